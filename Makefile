@@ -1,0 +1,48 @@
+# soft_gripper_sdre: the two commands of the README and their helpers.
+#   make demo   - the grasp over the real node graph on the shipped defaults
+#   make test   - the whole test suite (fast + slow), as CI runs it
+# Both build the venv from nothing (Python 3.11, pinned requirements.txt).
+
+PYTHON  ?= python3.11
+VENV    ?= .venv
+PY      := $(VENV)/bin/python
+STAMP   := $(VENV)/.installed
+OUT     ?= runs/demo
+
+.PHONY: demo test test-fast venv model bench lock clean
+
+$(STAMP): requirements.txt setup.py setup.cfg package.xml
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -r requirements.txt
+	$(PY) -m pip install --quiet --no-deps --no-build-isolation -e .
+	touch $(STAMP)
+
+venv: $(STAMP)
+
+demo: $(STAMP)
+	$(PY) -m soft_gripper_sdre.tools.demo --out $(OUT)
+
+test: $(STAMP)
+	$(PY) -m pytest -v
+
+test-fast: $(STAMP)
+	$(PY) -m pytest -m "not slow"
+
+# Reproduce the shipped model from nothing: collect the excitation data, then train.
+model: $(STAMP)
+	$(PY) -m soft_gripper_sdre.tools.collect --out data/excitation
+	$(PY) -m soft_gripper_sdre.tools.train --data data/excitation --out runs/train --install
+
+bench: $(STAMP)
+	$(PY) -m soft_gripper_sdre.tools.bench --write BENCHMARKS.md
+
+lock:
+	rm -rf /tmp/sgs-lock && $(PYTHON) -m venv /tmp/sgs-lock
+	/tmp/sgs-lock/bin/pip install --quiet -r requirements.in
+	( echo '# Resolved lock of requirements.in (pip freeze of a fresh venv, Python 3.11, x86_64).'; \
+	  echo '# Regenerate: make lock'; \
+	  /tmp/sgs-lock/bin/pip freeze | sed 's/^torch==\(.*\)+cpu/torch==\1/' ) > requirements.txt
+
+clean:
+	rm -rf $(VENV) build install log *.egg-info
