@@ -1,0 +1,64 @@
+"""Tracking and grasp metrics (SI in, mm and % out), shared by the demo, the report and the tests."""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class TrackingMetrics:
+    """Free-space 2-D tip position error of one finger."""
+
+    rmse_mm: float
+    max_mm: float
+    excursion_mm: float
+    rmse_pct: float
+    samples: int
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+def tracking_metrics(pos: np.ndarray, ref: np.ndarray, mask: np.ndarray,
+                     excursion: np.ndarray) -> list[TrackingMetrics]:
+    """Per-finger RMSE and max of the 2-D position error where ``mask`` is True.
+
+    Args:
+        pos: (T, n, 2) actual tip positions [m].
+        ref: (T, n, 2) reference positions [m].
+        mask: (T, n) bool, samples to score (free space).
+        excursion: (n,) peak excursion of the reference from rest [m]; the RMSE is also given as a
+            percentage of it (NaN for a finger whose reference does not move).
+    """
+    pos = np.asarray(pos, dtype=float)
+    ref = np.asarray(ref, dtype=float)
+    mask = np.asarray(mask, dtype=bool)
+    if pos.shape != ref.shape or pos.ndim != 3 or pos.shape[2] != 2:
+        raise ValueError(f'pos and ref must both have shape (T, n, 2), got {pos.shape} and {ref.shape}')
+    if mask.shape != pos.shape[:2]:
+        raise ValueError(f'mask must have shape {pos.shape[:2]}, got {mask.shape}')
+    excursion = np.broadcast_to(np.asarray(excursion, dtype=float), (pos.shape[1],))
+    err = np.linalg.norm(pos - ref, axis=2)          # ‖p − p_d‖ per sample and finger
+    out = []
+    for i in range(pos.shape[1]):
+        e = err[mask[:, i], i]
+        if e.size == 0:
+            out.append(TrackingMetrics(float('nan'), float('nan'), excursion[i] * 1e3, float('nan'), 0))
+            continue
+        rmse = float(np.sqrt(np.mean(e**2)))
+        pct = 100.0 * rmse / excursion[i] if excursion[i] > 0 else float('nan')
+        out.append(TrackingMetrics(rmse * 1e3, float(e.max()) * 1e3, float(excursion[i]) * 1e3,
+                                   pct, int(e.size)))
+    return out
+
+
+def r2_score(y_true: np.ndarray, y_pred: np.ndarray) -> np.ndarray:
+    """Coefficient of determination per column: 1 − Σ(y − ŷ)² / Σ(y − ȳ)²."""
+    y_true = np.asarray(y_true, dtype=float)
+    y_pred = np.asarray(y_pred, dtype=float)
+    if y_true.shape != y_pred.shape:
+        raise ValueError(f'y_true and y_pred shapes differ: {y_true.shape} vs {y_pred.shape}')
+    ss_res = np.sum((y_true - y_pred) ** 2, axis=0)
+    ss_tot = np.sum((y_true - y_true.mean(axis=0)) ** 2, axis=0)
+    return 1.0 - ss_res / ss_tot

@@ -1,0 +1,195 @@
+"""The grasp reference: two opposite fingers close on the cube along a smooth sinusoid and open again.
+
+Every finger's reference lives in its own base frame (SI, untranslated): it starts at the finger's
+rest tip position and moves by a scalar profile ``s(t) ∈ [0, 1]`` along a fixed direction,
+
+    p_d(t) = p_rest + s(t) · d,        ṗ_d = ṡ d,        p̈_d = s̈ d,
+
+with ``d = [side, close]`` for the grasping fingers (+Y points at the palm centre, so a positive
+``close`` distance moves the tip toward the cube). ``s`` is a raised cosine on each moving phase,
+
+    closing:  s = (1 − cos(π τ / T_c)) / 2,   τ = t − t_start ∈ [0, T_c]
+    holding:  s = 1                            for T_h
+    opening:  s = (1 + cos(π τ / T_o)) / 2,   τ ∈ [0, T_o]
+
+so position, velocity and acceleration are continuous at the ends of the moving phases (the jerk
+steps, as in the paper's sinusoidal grasp). The grasping fingers are meant to make contact with
+the cube partway through the closing phase (the reference continues a little "into" the cube so
+that the fingers squeeze it); :meth:`GraspTrajectory.free_space` tells where the reference stays a
+margin clear of the cube face, which is where free-space tracking is scored.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+import math
+
+import numpy as np
+
+#: what the non-grasping fingers do
+OTHERS_MODES = ('hold', 'open')
+
+
+@dataclass(frozen=True)
+class GraspProfile:
+    """Timing and geometry of the grasp (SI).
+
+    Attributes:
+        t_start: hold at rest before the fingers move [s].
+        t_close: duration of the closing motion [s].
+        t_hold: time spent closed [s].
+        t_open: duration of the opening motion [s].
+        close_distance: travel of the grasping fingers along +Y (toward the cube) [m].
+        side_distance: travel of the grasping fingers along X during the same motion [m].
+        contact_distance: travel along +Y at which a grasping tip touches the cube face [m]
+            (used only to tell free-space phases from contact phases).
+        contact_margin: clearance from the cube face below which a phase no longer counts as
+            free space [m].
+        grasp_fingers: indices of the two opposite fingers that grasp.
+        others: ``'hold'`` (stay at rest) or ``'open'`` (move away from the cube by
+            ``open_distance`` while the others close).
+        open_distance: travel of the non-grasping fingers along −Y in ``'open'`` mode [m].
+    """
+
+    t_start: float = 0.5
+    t_close: float = 2.0
+    t_hold: float = 1.0
+    t_open: float = 2.0
+    close_distance: float = 0.030
+    side_distance: float = 0.0
+    contact_distance: float = 0.024
+    contact_margin: float = 0.002
+    grasp_fingers: tuple[int, ...] = (0, 2)
+    others: str = 'hold'
+    open_distance: float = 0.005
+
+    def __post_init__(self) -> None:
+        for name in ('t_start', 't_hold'):
+            if not math.isfinite(getattr(self, name)) or getattr(self, name) < 0.0:
+                raise ValueError(f'{name} must be finite and >= 0, got {getattr(self, name)!r}')
+        for name in ('t_close', 't_open'):
+            if not math.isfinite(getattr(self, name)) or getattr(self, name) <= 0.0:
+                raise ValueError(f'{name} must be finite and > 0, got {getattr(self, name)!r}')
+        for name in ('close_distance', 'side_distance', 'contact_distance', 'contact_margin',
+                     'open_distance'):
+            if not math.isfinite(getattr(self, name)):
+                raise ValueError(f'{name} must be finite, got {getattr(self, name)!r}')
+        if self.others not in OTHERS_MODES:
+            raise ValueError(f'others must be one of {OTHERS_MODES}, got {self.others!r}')
+        if len(set(self.grasp_fingers)) != len(self.grasp_fingers) or any(
+                not 0 <= i < 4 for i in self.grasp_fingers):
+            raise ValueError(f'grasp_fingers must be distinct indices in 0..3, got {self.grasp_fingers!r}')
+
+    @property
+    def duration(self) -> float:
+        """Time at which the fingers are back at rest [s]."""
+        return self.t_start + self.t_close + self.t_hold + self.t_open
+
+
+def _profile(t: np.ndarray, p: GraspProfile) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The scalar profile s(t) and its first two time derivatives, vectorised over t."""
+    t = np.asarray(t, dtype=float)
+    s = np.zeros_like(t)
+    sd = np.zeros_like(t)
+    sdd = np.zeros_like(t)
+    t1 = p.t_start
+    t2 = t1 + p.t_close
+    t3 = t2 + p.t_hold
+    t4 = t3 + p.t_open
+
+    closing = (t >= t1) & (t < t2)
+    w = math.pi / p.t_close
+    tau = t[closing] - t1
+    s[closing] = 0.5 * (1.0 - np.cos(w * tau))          # s = (1 − cos ωτ)/2
+    sd[closing] = 0.5 * w * np.sin(w * tau)              # ṡ = ω sin(ωτ)/2
+    sdd[closing] = 0.5 * w * w * np.cos(w * tau)         # s̈ = ω² cos(ωτ)/2
+
+    s[(t >= t2) & (t < t3)] = 1.0
+
+    opening = (t >= t3) & (t < t4)
+    w = math.pi / p.t_open
+    tau = t[opening] - t3
+    s[opening] = 0.5 * (1.0 + np.cos(w * tau))          # s = (1 + cos ωτ)/2
+    sd[opening] = -0.5 * w * np.sin(w * tau)
+    sdd[opening] = -0.5 * w * w * np.cos(w * tau)
+    return s, sd, sdd
+
+
+@dataclass(frozen=True)
+class ReferenceSample:
+    """Reference positions, velocities, accelerations: arrays (..., n_fingers, 2) in SI."""
+
+    pos: np.ndarray
+    vel: np.ndarray
+    acc: np.ndarray
+
+
+@dataclass(frozen=True)
+class GraspTrajectory:
+    """The grasp reference for every finger, in each finger's base frame (X side, Y grasp).
+
+    Args:
+        rest: (n_fingers, 2) or (n_fingers, 3) rest tip positions [m]; only X, Y are used.
+        profile: timing and geometry.
+    """
+
+    rest: np.ndarray
+    profile: GraspProfile = field(default_factory=GraspProfile)
+
+    def __post_init__(self) -> None:
+        rest = np.asarray(self.rest, dtype=float)
+        if rest.ndim != 2 or rest.shape[1] not in (2, 3) or rest.shape[0] < 1:
+            raise ValueError(f'rest must have shape (n_fingers, 2 or 3), got {rest.shape}')
+        if not np.all(np.isfinite(rest)):
+            raise ValueError('rest contains non-finite values')
+        if any(i >= rest.shape[0] for i in self.profile.grasp_fingers):
+            raise ValueError(
+                f'grasp_fingers {self.profile.grasp_fingers} out of range for {rest.shape[0]} fingers')
+        object.__setattr__(self, 'rest', rest[:, :2].copy())
+
+    @property
+    def n_fingers(self) -> int:
+        return self.rest.shape[0]
+
+    @property
+    def directions(self) -> np.ndarray:
+        """(n_fingers, 2) displacement of each finger at s = 1 [m]."""
+        p = self.profile
+        d = np.zeros((self.n_fingers, 2))
+        if p.others == 'open':
+            d[:, 1] = -p.open_distance
+        for i in p.grasp_fingers:
+            d[i] = (p.side_distance, p.close_distance)
+        return d
+
+    def sample(self, t) -> ReferenceSample:
+        """Reference at time(s) t [s] (scalar or (T,)); arrays (n, 2) or (T, n, 2)."""
+        t_arr = np.asarray(t, dtype=float)
+        if not np.all(np.isfinite(t_arr)):
+            raise ValueError('t contains non-finite values')
+        s, sd, sdd = _profile(np.atleast_1d(t_arr), self.profile)
+        d = self.directions
+        pos = self.rest + s[:, None, None] * d          # p_d = p_rest + s d
+        vel = sd[:, None, None] * d                     # ṗ_d = ṡ d
+        acc = sdd[:, None, None] * d                    # p̈_d = s̈ d
+        if t_arr.ndim == 0:
+            pos, vel, acc = pos[0], vel[0], acc[0]
+        return ReferenceSample(pos, vel, acc)
+
+    def peak_excursion(self) -> np.ndarray:
+        """(n_fingers,) largest 2-D distance of the reference from the rest pose [m]."""
+        return np.linalg.norm(self.directions, axis=1)
+
+    def free_space(self, t) -> np.ndarray:
+        """(T, n_fingers) bool: True where the reference keeps a finger clear of the cube.
+
+        A grasping finger is in free space while its reference travel along +Y stays below
+        ``contact_distance − contact_margin``; the other fingers never touch the cube.
+        """
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        s, _, _ = _profile(t, self.profile)
+        p = self.profile
+        mask = np.ones((t.size, self.n_fingers), dtype=bool)
+        clear = s * p.close_distance < p.contact_distance - p.contact_margin
+        for i in p.grasp_fingers:
+            mask[:, i] = clear
+        return mask
