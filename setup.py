@@ -37,7 +37,6 @@ setup(
     maintainer_email='maintainers@soft-gripper-sdre.invalid',
     description='Learned-model SDRE tracking control of a soft gripper as a ROS 2 node graph',
     license='Apache-2.0',
-    tests_require=['pytest'],
     entry_points={
         'console_scripts': [f'{name} = {target}' for name, target in NODES.items()]
         + [
