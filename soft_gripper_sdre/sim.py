@@ -1,0 +1,439 @@
+"""A SoMo-faithful soft finger and four-finger hand in plain PyBullet (no ROS).
+
+The finger is SoMo's in-hand-manipulation finger (see ``finger_spec.md``): ten rigid segments on
+revolute joints with alternating axes (even joints bend about the link x axis, "ax0", the grasp
+axis; odd joints about the link y axis, "ax1", the side axis), a linear spring on every joint and a
+velocity motor with target 0 whose force limit acts as Coulomb-like joint friction. Every joint of
+an axis receives the full actuator torque of that axis:
+
+    τ_j = u[axis(j)] − k_axis(j) · q_j,        B = [[1,0],[0,1],[1,0],…] ∈ R^{10×2}.
+
+Inside this module everything is in SoMo's scaled world (1 length unit = 0.05 m, torques ×400,
+gravity 196.2 units/s²); the public API is SI (:mod:`soft_gripper_sdre.units`): torques in N·m in,
+tip positions in metres out, each in its finger's own base frame.
+
+Physics step: the stiffest linearised mode of the finger is ~329 Hz, and holding u = [25, 25]
+sim units turns chaotic with 1 ms semi-implicit steps, so every control period is split into
+``physics_substeps`` steps (default 2, i.e. 0.5 ms), which is stable over the paper's whole torque
+range. Two runs with the same configuration are bit-identical.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+import json
+import math
+import os
+from pathlib import Path
+import tempfile
+
+import numpy as np
+import pybullet as pb
+
+from soft_gripper_sdre.units import LENGTH_SCALE, TORQUE_SCALE
+
+SCENES = ('finger', 'hand')
+N_JOINTS = 10
+#: gravity in the scaled world [units/s²] (9.81 m/s² × 20)
+GRAVITY = 9.81 * LENGTH_SCALE
+#: joint spring stiffness per axis [sim torque units / rad]
+STIFFNESS = (87.4286, 414.857)
+#: force limit of the velocity-0 motor that acts as joint friction [sim torque units]
+FRICTION_TORQUE = 0.4
+#: axis of each joint: 0 = ax0 (grasp, link x), 1 = ax1 (side, link y)
+JOINT_AXIS = np.arange(N_JOINTS) % 2
+#: B ∈ R^{10×2}: every joint of an axis receives the full actuator torque
+B_MATRIX = np.stack([JOINT_AXIS == 0, JOINT_AXIS == 1], axis=1).astype(float)
+JOINT_STIFFNESS = np.where(JOINT_AXIS == 0, STIFFNESS[0], STIFFNESS[1])
+TIP_LINK = N_JOINTS - 1
+
+#: hand layout (sim units): finger base positions, yaw per finger, roll of every finger
+FINGER_BASE_POSITIONS = ((0.0, -0.7, 0.0), (0.7, 0.0, 0.0), (0.0, 0.7, 0.0), (-0.7, 0.0, 0.0))
+FINGER_YAW_DEG = (0.0, 90.0, 180.0, 270.0)
+FINGER_ROLL_DEG = 15.0
+PALM = dict(radius=0.4, length=1.0, mass=1.5, center=(0.0, 0.0, 1.25), friction=0.15)
+CUBE = dict(size=1.0, mass=0.01, center=(0.0, 0.0, 2.25), friction=1.2)
+FINGER_FRICTION = 3.0
+FINGER_RESTITUTION = 0.7
+
+
+# ----------------------------------------------------------------------------------------------
+# URDF generation
+# ----------------------------------------------------------------------------------------------
+
+def _inertial(mass: float, com: tuple, diag: tuple) -> str:
+    return (f'<inertial><origin xyz="{com[0]} {com[1]} {com[2]}" rpy="0 0 0"/>'
+            f'<mass value="{mass}"/>'
+            f'<inertia ixx="{diag[0]}" ixy="0" ixz="0" iyy="{diag[1]}" iyz="0" izz="{diag[2]}"/>'
+            f'</inertial>')
+
+
+def _box(size: tuple, xyz: tuple) -> str:
+    return (f'<collision><origin xyz="{xyz[0]} {xyz[1]} {xyz[2]}" rpy="0 0 0"/>'
+            f'<geometry><box size="{size[0]} {size[1]} {size[2]}"/></geometry></collision>'
+            f'<visual><origin xyz="{xyz[0]} {xyz[1]} {xyz[2]}" rpy="0 0 0"/>'
+            f'<geometry><box size="{size[0]} {size[1]} {size[2]}"/></geometry></visual>')
+
+
+def _finger_links(prefix: str, parent: str, origin_xyz: tuple, origin_rpy: tuple) -> list[str]:
+    """URDF elements of one finger: a base link fixed to ``parent`` and the 10-joint chain."""
+    out = [f'<link name="{prefix}base">{_inertial(0.6, (0, 0, 0.1), (0.0225, 0.0225, 0.041))}'
+           f'{_box((0.64, 0.64, 0.20), (0, 0, 0.10))}</link>']
+    if parent is not None:
+        out.append(f'<joint name="{prefix}mount" type="fixed"><parent link="{parent}"/>'
+                   f'<child link="{prefix}base"/><origin xyz="{origin_xyz[0]} {origin_xyz[1]} '
+                   f'{origin_xyz[2]}" rpy="{origin_rpy[0]} {origin_rpy[1]} {origin_rpy[2]}"/></joint>')
+    for j in range(N_JOINTS):
+        if j == TIP_LINK:
+            inertial = _inertial(0.01794, (0, 0, 0.083612), (1.08359e-3,) * 3)
+        elif JOINT_AXIS[j] == 0:
+            inertial = _inertial(0.00294294, (0, -0.00012, 0.0002), (8.2616e-5, 1.06513e-4, 8.2616e-5))
+        else:
+            inertial = _inertial(0.00294294, (0, 0, 0.0002), (6.3664e-5, 8.7560e-5, 8.2616e-5))
+        height = 0.10 if j in (0, TIP_LINK) else 0.20
+        # ax0 link frames sit 0.12 off the finger's centre line in y; the segments stay centred
+        y_centre = -0.12 if JOINT_AXIS[j] == 0 else 0.0
+        geometry = _box((0.46, 0.34, height), (0, y_centre, height / 2))
+        if j == TIP_LINK:
+            geometry += ('<collision><origin xyz="0 0.1 0.2" rpy="0 0 0"/>'
+                         '<geometry><sphere radius="0.3"/></geometry></collision>')
+        out.append(f'<link name="{prefix}link{j}">{inertial}{geometry}</link>')
+        if j == 0:
+            xyz = (0, 0.12, 0.30)
+        elif JOINT_AXIS[j] == 1:
+            xyz = (0, -0.12, 0.20)
+        else:
+            xyz = (0, 0.12, 0.20)
+        axis = '1 0 0' if JOINT_AXIS[j] == 0 else '0 1 0'
+        parent_link = f'{prefix}base' if j == 0 else f'{prefix}link{j - 1}'
+        out.append(f'<joint name="{prefix}joint{j}" type="revolute"><parent link="{parent_link}"/>'
+                   f'<child link="{prefix}link{j}"/><origin xyz="{xyz[0]} {xyz[1]} {xyz[2]}" rpy="0 0 0"/>'
+                   f'<axis xyz="{axis}"/><limit lower="-3.141592" upper="3.141592" effort="1000" '
+                   f'velocity="1000"/></joint>')
+    return out
+
+
+def finger_urdf() -> str:
+    """URDF of one finger whose root is its base link (mounted by the base pose at load time)."""
+    return '<?xml version="1.0"?><robot name="ihm_finger">' + ''.join(
+        _finger_links('', None, (0, 0, 0), (0, 0, 0))) + '</robot>'
+
+
+def finger_base_rpy(i: int) -> tuple[float, float, float]:
+    """URDF roll-pitch-yaw of hand finger i's base: roll 15° about its x axis, then yaw."""
+    return (math.radians(FINGER_ROLL_DEG), 0.0, math.radians(FINGER_YAW_DEG[i]))
+
+
+def hand_urdf() -> str:
+    """URDF of the hand: a fixed palm cylinder as root and four fingers mounted on it."""
+    c = PALM['center']
+    palm = (f'<link name="palm">{_inertial(PALM["mass"], (0, 0, c[2]), (0.1, 0.1, 0.1))}'
+            f'<collision><origin xyz="{c[0]} {c[1]} {c[2]}" rpy="0 0 0"/><geometry>'
+            f'<cylinder radius="{PALM["radius"]}" length="{PALM["length"]}"/></geometry></collision>'
+            f'<visual><origin xyz="{c[0]} {c[1]} {c[2]}" rpy="0 0 0"/><geometry>'
+            f'<cylinder radius="{PALM["radius"]}" length="{PALM["length"]}"/></geometry></visual></link>')
+    parts = [palm]
+    for i in range(4):
+        parts += _finger_links(f'f{i}_', 'palm', FINGER_BASE_POSITIONS[i], finger_base_rpy(i))
+    return '<?xml version="1.0"?><robot name="ihm_hand">' + ''.join(parts) + '</robot>'
+
+
+# ----------------------------------------------------------------------------------------------
+# Simulator
+# ----------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class SimConfig:
+    """Simulator settings (SI at the boundary).
+
+    Attributes:
+        scene: ``'finger'`` (one finger, data collection) or ``'hand'`` (four fingers, palm, cube).
+        control_period: duration of one :meth:`GripperSim.step` [s]; u is held over it.
+        physics_substeps: physics steps per control period (physics dt = period / substeps).
+        torque_limit: actuator limit; commands are clipped to ±limit [N·m].
+        noise_std: standard deviation of the Gaussian noise on measured tip positions [m].
+        seed: seed of the measurement noise.
+        settle_time: time at u = 0 before t = 0; its end pose is the rest pose [s].
+        mount_roll_deg: 'finger' scene only: roll of the base about its x axis. 15° mounts the
+            finger exactly like a hand finger (so a model learned on it applies to each of them);
+            0 is an upright finger.
+        with_cube: 'hand' scene only: put the cube on the palm.
+    """
+
+    scene: str = 'hand'
+    control_period: float = 1e-3
+    physics_substeps: int = 2
+    torque_limit: float = 0.1
+    noise_std: float = 0.0
+    seed: int = 0
+    settle_time: float = 0.5
+    mount_roll_deg: float = 15.0
+    with_cube: bool = True
+
+    def __post_init__(self) -> None:
+        if self.scene not in SCENES:
+            raise ValueError(f'scene must be one of {SCENES}, got {self.scene!r}')
+        if not (math.isfinite(self.control_period) and 1e-5 <= self.control_period <= 0.1):
+            raise ValueError(f'control_period must be in [1e-5, 0.1] s, got {self.control_period!r}')
+        if not (isinstance(self.physics_substeps, int) and 1 <= self.physics_substeps <= 100):
+            raise ValueError(f'physics_substeps must be an int in [1, 100], got {self.physics_substeps!r}')
+        if not (math.isfinite(self.torque_limit) and self.torque_limit > 0):
+            raise ValueError(f'torque_limit must be finite and > 0 N·m, got {self.torque_limit!r}')
+        if not (math.isfinite(self.noise_std) and self.noise_std >= 0):
+            raise ValueError(f'noise_std must be finite and >= 0 m, got {self.noise_std!r}')
+        if not (math.isfinite(self.settle_time) and self.settle_time >= 0):
+            raise ValueError(f'settle_time must be finite and >= 0 s, got {self.settle_time!r}')
+        if not math.isfinite(self.mount_roll_deg):
+            raise ValueError(f'mount_roll_deg must be finite, got {self.mount_roll_deg!r}')
+
+    @property
+    def physics_dt(self) -> float:
+        return self.control_period / self.physics_substeps
+
+    def to_json(self) -> str:
+        return json.dumps(asdict(self), sort_keys=True)
+
+
+@dataclass(frozen=True)
+class SimTruth:
+    """Ground truth at the current time (SI, each finger in its own base frame)."""
+
+    t: float
+    q: np.ndarray                 # (n, 10) joint angles [rad]
+    qd: np.ndarray                # (n, 10) joint velocities [rad/s]
+    tip_pos: np.ndarray           # (n, 3) [m]
+    tip_vel: np.ndarray           # (n, 3) [m/s]
+    tip_acc: np.ndarray           # (n, 3) mean acceleration over the last control period [m/s²]
+    u_applied: np.ndarray         # (n, 2) torque of the last step after clipping [N·m]
+    cube_pose: np.ndarray | None  # (7,) [x, y, z, qx, qy, qz, qw] in the hand frame [m]
+    finger_cube_contact: np.ndarray | None   # (n,) bool
+    contact_force: np.ndarray | None         # (n,) normal force of each finger on the cube [N]
+
+
+def _rot(rpy: tuple[float, float, float]) -> np.ndarray:
+    """Rotation matrix of URDF roll-pitch-yaw (R = Rz(yaw) Ry(pitch) Rx(roll))."""
+    return np.array(pb.getMatrixFromQuaternion(pb.getQuaternionFromEuler(rpy))).reshape(3, 3)
+
+
+class GripperSim:
+    """The finger or the hand in its own PyBullet DIRECT client.
+
+    Every PyBullet call names ``physicsClientId``, so several simulators can live in one process.
+    Construction builds the world and settles it (:meth:`reset`).
+    """
+
+    def __init__(self, config: SimConfig | None = None) -> None:
+        self.config = config or SimConfig()
+        self._client = pb.connect(pb.DIRECT)
+        self._urdf_dir = tempfile.TemporaryDirectory(prefix='sgs_urdf_')
+        self.n_fingers = 1 if self.config.scene == 'finger' else 4
+        self._rng = np.random.default_rng(self.config.seed)
+        self.reset()
+
+    # -- world construction ------------------------------------------------------------------
+    def _build(self) -> None:
+        cfg, cid = self.config, self._client
+        pb.resetSimulation(physicsClientId=cid)
+        pb.setGravity(0, 0, -GRAVITY, physicsClientId=cid)
+        pb.setTimeStep(cfg.physics_dt, physicsClientId=cid)
+        pb.setPhysicsEngineParameter(numSolverIterations=50, physicsClientId=cid)
+        flags = pb.URDF_USE_INERTIA_FROM_FILE
+        if cfg.scene == 'finger':
+            path = Path(self._urdf_dir.name) / 'finger.urdf'
+            path.write_text(finger_urdf())
+            rpy = (math.radians(cfg.mount_roll_deg), 0.0, 0.0)
+            self._body = pb.loadURDF(str(path), (0, 0, 0), pb.getQuaternionFromEuler(rpy),
+                                     useFixedBase=True, flags=flags, physicsClientId=cid)
+            self._base_pos = np.zeros((1, 3))
+            self._base_rot = _rot(rpy)[None]
+            self._joints = np.arange(N_JOINTS)
+            self._tip_links = [TIP_LINK]
+            self._finger_links = [list(range(-1, N_JOINTS))]
+            self._cube = None
+        else:
+            path = Path(self._urdf_dir.name) / 'hand.urdf'
+            path.write_text(hand_urdf())
+            self._body = pb.loadURDF(str(path), (0, 0, 0), (0, 0, 0, 1), useFixedBase=True,
+                                     flags=flags, physicsClientId=cid)
+            # link indices: palm is the base (-1); each finger adds its base link then 10 links
+            names = [pb.getJointInfo(self._body, j, physicsClientId=cid)[12].decode()
+                     for j in range(pb.getNumJoints(self._body, physicsClientId=cid))]
+            index = {name: j for j, name in enumerate(names)}
+            self._joints = np.array([index[f'f{i}_link{j}'] for i in range(4) for j in range(N_JOINTS)])
+            self._tip_links = [index[f'f{i}_link{TIP_LINK}'] for i in range(4)]
+            self._finger_links = [[index[f'f{i}_base']] + [index[f'f{i}_link{j}'] for j in range(N_JOINTS)]
+                                  for i in range(4)]
+            self._base_pos = np.array(FINGER_BASE_POSITIONS, dtype=float)
+            self._base_rot = np.stack([_rot(finger_base_rpy(i)) for i in range(4)])
+            pb.changeDynamics(self._body, -1, lateralFriction=PALM['friction'], physicsClientId=cid)
+            self._cube = None
+            if cfg.with_cube:
+                half = CUBE['size'] / 2
+                shape = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=[half] * 3, physicsClientId=cid)
+                visual = pb.createVisualShape(pb.GEOM_BOX, halfExtents=[half] * 3,
+                                              rgbaColor=[0, 0.8, 0, 1], physicsClientId=cid)
+                self._cube = pb.createMultiBody(CUBE['mass'], shape, visual, CUBE['center'],
+                                                physicsClientId=cid)
+                pb.changeDynamics(self._cube, -1, lateralFriction=CUBE['friction'], physicsClientId=cid)
+        for links in self._finger_links:
+            for link in links:
+                if link == -1 and cfg.scene == 'hand':
+                    continue
+                pb.changeDynamics(self._body, link, lateralFriction=FINGER_FRICTION,
+                                  restitution=FINGER_RESTITUTION, physicsClientId=cid)
+        n_all = len(self._joints)
+        self._joint_list = self._joints.tolist()
+        # joint friction: a velocity-0 motor with a force limit, active under torque control too
+        pb.setJointMotorControlArray(self._body, self._joint_list, pb.VELOCITY_CONTROL,
+                                     targetVelocities=[0.0] * n_all,
+                                     forces=[FRICTION_TORQUE] * n_all, physicsClientId=cid)
+        self._stiffness = np.tile(JOINT_STIFFNESS, self.n_fingers)
+        self._axis = np.tile(JOINT_AXIS, self.n_fingers) + 2 * np.repeat(np.arange(self.n_fingers), N_JOINTS)
+
+    def reset(self) -> None:
+        """Build a fresh world, settle ``settle_time`` at u = 0, and set t = 0 there."""
+        self._build()
+        self._u_sim = np.zeros(2 * self.n_fingers)
+        self._u_applied = np.zeros((self.n_fingers, 2))
+        settle_steps = int(round(self.config.settle_time / self.config.physics_dt))
+        for _ in range(settle_steps):
+            self._physics_step()
+        self._steps = 0
+        self._read_state()
+        self._prev_vel = self._tip_vel.copy()
+        self._tip_acc = np.zeros_like(self._tip_vel)
+        self.rest_tip = self._tip_pos.copy()
+        self._draw_noise()
+
+    # -- stepping ----------------------------------------------------------------------------
+    def _physics_step(self) -> None:
+        cid = self._client
+        states = pb.getJointStates(self._body, self._joint_list, physicsClientId=cid)
+        q = np.fromiter((s[0] for s in states), float, len(states))
+        tau = self._u_sim[self._axis] - self._stiffness * q       # τ_j = u[axis(j)] − k_j q_j
+        pb.setJointMotorControlArray(self._body, self._joint_list, pb.TORQUE_CONTROL,
+                                     forces=tau.tolist(), physicsClientId=cid)
+        pb.stepSimulation(physicsClientId=cid)
+
+    def step(self, u) -> None:
+        """Hold torques ``u`` (n, 2) [N·m] over one control period.
+
+        Raises:
+            ValueError: u has the wrong shape or non-finite entries (the state is unchanged).
+        """
+        u = np.asarray(u, dtype=float)
+        if u.shape != (self.n_fingers, 2):
+            raise ValueError(f'u must have shape ({self.n_fingers}, 2), got {u.shape}')
+        if not np.all(np.isfinite(u)):
+            raise ValueError('u contains non-finite torques')
+        lim = self.config.torque_limit
+        self._u_applied = np.clip(u, -lim, lim)
+        self._u_sim = (self._u_applied * TORQUE_SCALE).reshape(-1)
+        for _ in range(self.config.physics_substeps):
+            self._physics_step()
+        self._steps += 1
+        self._prev_vel = self._tip_vel
+        self._read_state()
+        # mean acceleration over the period: (v_k+1 − v_k) / Δt
+        self._tip_acc = (self._tip_vel - self._prev_vel) / self.config.control_period
+        self._draw_noise()
+
+    # -- reading -----------------------------------------------------------------------------
+    def _read_state(self) -> None:
+        cid = self._client
+        links = pb.getLinkStates(self._body, self._tip_links, computeLinkVelocity=1,
+                                 physicsClientId=cid)
+        pos = np.array([ls[0] for ls in links])              # centre of mass of link 9 (the tip)
+        vel = np.array([ls[6] for ls in links])
+        # into each finger's base frame: p_b = Rᵀ (p − p₀), v_b = Rᵀ v
+        self._tip_pos = np.einsum('nji,nj->ni', self._base_rot, pos - self._base_pos) / LENGTH_SCALE
+        self._tip_vel = np.einsum('nji,nj->ni', self._base_rot, vel) / LENGTH_SCALE
+
+    def _draw_noise(self) -> None:
+        noise = (self._rng.standard_normal(self._tip_pos.shape) * self.config.noise_std
+                 if self.config.noise_std > 0 else 0.0)
+        self._measured = self._tip_pos + noise
+
+    @property
+    def t(self) -> float:
+        """Time since the end of the settle [s]."""
+        return self._steps * self.config.control_period
+
+    @property
+    def joint_names(self) -> list[str]:
+        """``finger_<i>/joint_<j>`` for every joint, in the order of :attr:`SimTruth.q`."""
+        return [f'finger_{i}/joint_{j}' for i in range(self.n_fingers) for j in range(N_JOINTS)]
+
+    @property
+    def base_poses(self) -> tuple[np.ndarray, np.ndarray]:
+        """Each finger's base frame in the world: positions (n, 3) [m] and rotations (n, 3, 3)."""
+        return self._base_pos / LENGTH_SCALE, self._base_rot.copy()
+
+    def measure(self) -> np.ndarray:
+        """(n, 3) measured tip positions [m] (noisy when ``noise_std`` > 0; one draw per step)."""
+        return self._measured.copy()
+
+    def truth(self) -> SimTruth:
+        """Ground truth now."""
+        cid = self._client
+        states = pb.getJointStates(self._body, self._joint_list, physicsClientId=cid)
+        q = np.array([s[0] for s in states]).reshape(self.n_fingers, N_JOINTS)
+        qd = np.array([s[1] for s in states]).reshape(self.n_fingers, N_JOINTS)
+        cube_pose = contact = force = None
+        if self._cube is not None:
+            p, o = pb.getBasePositionAndOrientation(self._cube, physicsClientId=cid)
+            cube_pose = np.array([*(np.asarray(p) / LENGTH_SCALE), *o])
+            force = np.zeros(self.n_fingers)
+            for c in pb.getContactPoints(self._body, self._cube, physicsClientId=cid):
+                for i, links in enumerate(self._finger_links):
+                    if c[3] in links:
+                        # normal force in sim units (mass·units/s²) → N: ÷ 20
+                        force[i] += c[9] / LENGTH_SCALE
+            contact = force > 0.0
+        return SimTruth(self.t, q, qd, self._tip_pos.copy(), self._tip_vel.copy(),
+                        self._tip_acc.copy(), self._u_applied.copy(), cube_pose, contact, force)
+
+    # -- analysis helpers (ground truth for tests and evaluation) ----------------------------
+    def linear_modes(self) -> np.ndarray:
+        """Natural frequencies [Hz] of the finger linearised about its current pose, friction off.
+
+        M(q) δq̈ + (K + ∂g/∂q) δq = 0, with the gravity stiffness ∂g/∂q by central differences of
+        PyBullet's inverse dynamics at zero velocity and acceleration (finger scene only).
+        """
+        if self.config.scene != 'finger':
+            raise ValueError('linear_modes is defined for the finger scene')
+        cid = self._client
+        q = [s[0] for s in pb.getJointStates(self._body, self._joint_list, physicsClientId=cid)]
+        M = np.array(pb.calculateMassMatrix(self._body, q, physicsClientId=cid))
+        zeros = [0.0] * N_JOINTS
+        h = 1e-6
+        dg = np.zeros((N_JOINTS, N_JOINTS))
+        for j in range(N_JOINTS):
+            qp, qm = list(q), list(q)
+            qp[j] += h
+            qm[j] -= h
+            gp = np.array(pb.calculateInverseDynamics(self._body, qp, zeros, zeros, physicsClientId=cid))
+            gm = np.array(pb.calculateInverseDynamics(self._body, qm, zeros, zeros, physicsClientId=cid))
+            dg[:, j] = (gp - gm) / (2 * h)
+        K = np.diag(JOINT_STIFFNESS) + dg
+        w2 = np.linalg.eigvals(np.linalg.solve(M, K))
+        return np.sort(np.sqrt(np.abs(w2.real))) / (2 * math.pi)
+
+    # -- lifetime ----------------------------------------------------------------------------
+    def close(self) -> None:
+        if self._client is not None and pb.isConnected(physicsClientId=self._client):
+            pb.disconnect(physicsClientId=self._client)
+        self._client = None
+        self._urdf_dir.cleanup()
+
+    def __enter__(self) -> GripperSim:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __del__(self) -> None:  # best effort; close() is the API
+        try:
+            if getattr(self, '_client', None) is not None:
+                self.close()
+        except Exception:  # noqa: BLE001 — interpreter shutdown
+            pass
