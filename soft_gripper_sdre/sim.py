@@ -74,14 +74,10 @@ def _box(size: tuple, xyz: tuple) -> str:
             f'<geometry><box size="{size[0]} {size[1]} {size[2]}"/></geometry></visual>')
 
 
-def _finger_links(prefix: str, parent: str, origin_xyz: tuple, origin_rpy: tuple) -> list[str]:
-    """URDF elements of one finger: a base link fixed to ``parent`` and the 10-joint chain."""
+def _finger_links(prefix: str = '') -> list[str]:
+    """URDF elements of one finger: its base link (the root) and the 10-joint chain."""
     out = [f'<link name="{prefix}base">{_inertial(0.6, (0, 0, 0.1), (0.0225, 0.0225, 0.041))}'
            f'{_box((0.64, 0.64, 0.20), (0, 0, 0.10))}</link>']
-    if parent is not None:
-        out.append(f'<joint name="{prefix}mount" type="fixed"><parent link="{parent}"/>'
-                   f'<child link="{prefix}base"/><origin xyz="{origin_xyz[0]} {origin_xyz[1]} '
-                   f'{origin_xyz[2]}" rpy="{origin_rpy[0]} {origin_rpy[1]} {origin_rpy[2]}"/></joint>')
     for j in range(N_JOINTS):
         if j == TIP_LINK:
             inertial = _inertial(0.01794, (0, 0, 0.083612), (1.08359e-3,) * 3)
@@ -114,27 +110,18 @@ def _finger_links(prefix: str, parent: str, origin_xyz: tuple, origin_rpy: tuple
 
 def finger_urdf() -> str:
     """URDF of one finger whose root is its base link (mounted by the base pose at load time)."""
-    return '<?xml version="1.0"?><robot name="ihm_finger">' + ''.join(
-        _finger_links('', None, (0, 0, 0), (0, 0, 0))) + '</robot>'
+    return '<?xml version="1.0"?>\n<robot name="ihm_finger">\n' + '\n'.join(
+        _finger_links()) + '\n</robot>\n'
 
 
 def finger_base_rpy(i: int) -> tuple[float, float, float]:
-    """URDF roll-pitch-yaw of hand finger i's base: roll 15° about its x axis, then yaw."""
+    """Roll-pitch-yaw of hand finger i's base: roll 15° about its x axis, then yaw.
+
+    The roll is positive, so each finger leans away from the palm centre (a negative roll would
+    put the fingertips inside the cube); +Y still points at the centre, so a negative u_ax0
+    closes a finger toward the cube.
+    """
     return (math.radians(FINGER_ROLL_DEG), 0.0, math.radians(FINGER_YAW_DEG[i]))
-
-
-def hand_urdf() -> str:
-    """URDF of the hand: a fixed palm cylinder as root and four fingers mounted on it."""
-    c = PALM['center']
-    palm = (f'<link name="palm">{_inertial(PALM["mass"], (0, 0, c[2]), (0.1, 0.1, 0.1))}'
-            f'<collision><origin xyz="{c[0]} {c[1]} {c[2]}" rpy="0 0 0"/><geometry>'
-            f'<cylinder radius="{PALM["radius"]}" length="{PALM["length"]}"/></geometry></collision>'
-            f'<visual><origin xyz="{c[0]} {c[1]} {c[2]}" rpy="0 0 0"/><geometry>'
-            f'<cylinder radius="{PALM["radius"]}" length="{PALM["length"]}"/></geometry></visual></link>')
-    parts = [palm]
-    for i in range(4):
-        parts += _finger_links(f'f{i}_', 'palm', FINGER_BASE_POSITIONS[i], finger_base_rpy(i))
-    return '<?xml version="1.0"?><robot name="ihm_hand">' + ''.join(parts) + '</robot>'
 
 
 # ----------------------------------------------------------------------------------------------
@@ -237,35 +224,28 @@ class GripperSim:
         pb.setTimeStep(cfg.physics_dt, physicsClientId=cid)
         pb.setPhysicsEngineParameter(numSolverIterations=50, physicsClientId=cid)
         flags = pb.URDF_USE_INERTIA_FROM_FILE
+        path = Path(self._urdf_dir.name) / 'finger.urdf'
+        path.write_text(finger_urdf())
         if cfg.scene == 'finger':
-            path = Path(self._urdf_dir.name) / 'finger.urdf'
-            path.write_text(finger_urdf())
-            rpy = (math.radians(cfg.mount_roll_deg), 0.0, 0.0)
-            self._body = pb.loadURDF(str(path), (0, 0, 0), pb.getQuaternionFromEuler(rpy),
-                                     useFixedBase=True, flags=flags, physicsClientId=cid)
-            self._base_pos = np.zeros((1, 3))
-            self._base_rot = _rot(rpy)[None]
-            self._joints = np.arange(N_JOINTS)
-            self._tip_links = [TIP_LINK]
-            self._finger_links = [list(range(-1, N_JOINTS))]
-            self._cube = None
+            rpys = [(math.radians(cfg.mount_roll_deg), 0.0, 0.0)]
+            positions = [(0.0, 0.0, 0.0)]
         else:
-            path = Path(self._urdf_dir.name) / 'hand.urdf'
-            path.write_text(hand_urdf())
-            self._body = pb.loadURDF(str(path), (0, 0, 0), (0, 0, 0, 1), useFixedBase=True,
-                                     flags=flags, physicsClientId=cid)
-            # link indices: palm is the base (-1); each finger adds its base link then 10 links
-            names = [pb.getJointInfo(self._body, j, physicsClientId=cid)[12].decode()
-                     for j in range(pb.getNumJoints(self._body, physicsClientId=cid))]
-            index = {name: j for j, name in enumerate(names)}
-            self._joints = np.array([index[f'f{i}_link{j}'] for i in range(4) for j in range(N_JOINTS)])
-            self._tip_links = [index[f'f{i}_link{TIP_LINK}'] for i in range(4)]
-            self._finger_links = [[index[f'f{i}_base']] + [index[f'f{i}_link{j}'] for j in range(N_JOINTS)]
-                                  for i in range(4)]
-            self._base_pos = np.array(FINGER_BASE_POSITIONS, dtype=float)
-            self._base_rot = np.stack([_rot(finger_base_rpy(i)) for i in range(4)])
-            pb.changeDynamics(self._body, -1, lateralFriction=PALM['friction'], physicsClientId=cid)
-            self._cube = None
+            rpys = [finger_base_rpy(i) for i in range(4)]
+            positions = list(FINGER_BASE_POSITIONS)
+        # One multibody per finger: four 10-DoF chains solve far faster than one 40-DoF body
+        # (the joint-friction motors are constraints whose cost grows with the body's DoF).
+        self._bodies = [pb.loadURDF(str(path), pos, pb.getQuaternionFromEuler(rpy), useFixedBase=True,
+                                    flags=flags, physicsClientId=cid)
+                        for pos, rpy in zip(positions, rpys)]
+        self._base_pos = np.array(positions, dtype=float)
+        self._base_rot = np.stack([_rot(rpy) for rpy in rpys])
+        self._cube = self._palm = None
+        if cfg.scene == 'hand':
+            shape = pb.createCollisionShape(pb.GEOM_CYLINDER, radius=PALM['radius'], height=PALM['length'],
+                                            physicsClientId=cid)
+            # the palm is fixed to the world (mass 0 = static); its nominal mass is irrelevant then
+            self._palm = pb.createMultiBody(0.0, shape, -1, PALM['center'], physicsClientId=cid)
+            pb.changeDynamics(self._palm, -1, lateralFriction=PALM['friction'], physicsClientId=cid)
             if cfg.with_cube:
                 half = CUBE['size'] / 2
                 shape = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=[half] * 3, physicsClientId=cid)
@@ -274,25 +254,20 @@ class GripperSim:
                 self._cube = pb.createMultiBody(CUBE['mass'], shape, visual, CUBE['center'],
                                                 physicsClientId=cid)
                 pb.changeDynamics(self._cube, -1, lateralFriction=CUBE['friction'], physicsClientId=cid)
-        for links in self._finger_links:
-            for link in links:
-                if link == -1 and cfg.scene == 'hand':
-                    continue
-                pb.changeDynamics(self._body, link, lateralFriction=FINGER_FRICTION,
+        self._joint_list = list(range(N_JOINTS))
+        zeros, friction = [0.0] * N_JOINTS, [FRICTION_TORQUE] * N_JOINTS
+        for body in self._bodies:
+            for link in range(-1, N_JOINTS):
+                pb.changeDynamics(body, link, lateralFriction=FINGER_FRICTION,
                                   restitution=FINGER_RESTITUTION, physicsClientId=cid)
-        n_all = len(self._joints)
-        self._joint_list = self._joints.tolist()
-        # joint friction: a velocity-0 motor with a force limit, active under torque control too
-        pb.setJointMotorControlArray(self._body, self._joint_list, pb.VELOCITY_CONTROL,
-                                     targetVelocities=[0.0] * n_all,
-                                     forces=[FRICTION_TORQUE] * n_all, physicsClientId=cid)
-        self._stiffness = np.tile(JOINT_STIFFNESS, self.n_fingers)
-        self._axis = np.tile(JOINT_AXIS, self.n_fingers) + 2 * np.repeat(np.arange(self.n_fingers), N_JOINTS)
+            # joint friction: a velocity-0 motor with a force limit, active under torque control too
+            pb.setJointMotorControlArray(body, self._joint_list, pb.VELOCITY_CONTROL,
+                                         targetVelocities=zeros, forces=friction, physicsClientId=cid)
 
     def reset(self) -> None:
         """Build a fresh world, settle ``settle_time`` at u = 0, and set t = 0 there."""
         self._build()
-        self._u_sim = np.zeros(2 * self.n_fingers)
+        self._u_sim = np.zeros((self.n_fingers, 2))
         self._u_applied = np.zeros((self.n_fingers, 2))
         settle_steps = int(round(self.config.settle_time / self.config.physics_dt))
         for _ in range(settle_steps):
@@ -307,11 +282,12 @@ class GripperSim:
     # -- stepping ----------------------------------------------------------------------------
     def _physics_step(self) -> None:
         cid = self._client
-        states = pb.getJointStates(self._body, self._joint_list, physicsClientId=cid)
-        q = np.fromiter((s[0] for s in states), float, len(states))
-        tau = self._u_sim[self._axis] - self._stiffness * q       # τ_j = u[axis(j)] − k_j q_j
-        pb.setJointMotorControlArray(self._body, self._joint_list, pb.TORQUE_CONTROL,
-                                     forces=tau.tolist(), physicsClientId=cid)
+        for body, u in zip(self._bodies, self._u_sim):
+            states = pb.getJointStates(body, self._joint_list, physicsClientId=cid)
+            q = np.fromiter((s[0] for s in states), float, N_JOINTS)
+            tau = u[JOINT_AXIS] - JOINT_STIFFNESS * q          # τ_j = u[axis(j)] − k_j q_j
+            pb.setJointMotorControlArray(body, self._joint_list, pb.TORQUE_CONTROL,
+                                         forces=tau.tolist(), physicsClientId=cid)
         pb.stepSimulation(physicsClientId=cid)
 
     def step(self, u) -> None:
@@ -327,7 +303,7 @@ class GripperSim:
             raise ValueError('u contains non-finite torques')
         lim = self.config.torque_limit
         self._u_applied = np.clip(u, -lim, lim)
-        self._u_sim = (self._u_applied * TORQUE_SCALE).reshape(-1)
+        self._u_sim = self._u_applied * TORQUE_SCALE
         for _ in range(self.config.physics_substeps):
             self._physics_step()
         self._steps += 1
@@ -340,8 +316,8 @@ class GripperSim:
     # -- reading -----------------------------------------------------------------------------
     def _read_state(self) -> None:
         cid = self._client
-        links = pb.getLinkStates(self._body, self._tip_links, computeLinkVelocity=1,
-                                 physicsClientId=cid)
+        links = [pb.getLinkState(body, TIP_LINK, computeLinkVelocity=1, physicsClientId=cid)
+                 for body in self._bodies]
         pos = np.array([ls[0] for ls in links])              # centre of mass of link 9 (the tip)
         vel = np.array([ls[6] for ls in links])
         # into each finger's base frame: p_b = Rᵀ (p − p₀), v_b = Rᵀ v
@@ -375,19 +351,17 @@ class GripperSim:
     def truth(self) -> SimTruth:
         """Ground truth now."""
         cid = self._client
-        states = pb.getJointStates(self._body, self._joint_list, physicsClientId=cid)
-        q = np.array([s[0] for s in states]).reshape(self.n_fingers, N_JOINTS)
-        qd = np.array([s[1] for s in states]).reshape(self.n_fingers, N_JOINTS)
+        states = [pb.getJointStates(body, self._joint_list, physicsClientId=cid) for body in self._bodies]
+        q = np.array([[s[0] for s in finger] for finger in states])
+        qd = np.array([[s[1] for s in finger] for finger in states])
         cube_pose = contact = force = None
         if self._cube is not None:
             p, o = pb.getBasePositionAndOrientation(self._cube, physicsClientId=cid)
             cube_pose = np.array([*(np.asarray(p) / LENGTH_SCALE), *o])
             force = np.zeros(self.n_fingers)
-            for c in pb.getContactPoints(self._body, self._cube, physicsClientId=cid):
-                for i, links in enumerate(self._finger_links):
-                    if c[3] in links:
-                        # normal force in sim units (mass·units/s²) → N: ÷ 20
-                        force[i] += c[9] / LENGTH_SCALE
+            for i, body in enumerate(self._bodies):
+                for c in pb.getContactPoints(body, self._cube, physicsClientId=cid):
+                    force[i] += c[9] / LENGTH_SCALE   # normal force, sim units (kg·unit/s²) → N
             contact = force > 0.0
         return SimTruth(self.t, q, qd, self._tip_pos.copy(), self._tip_vel.copy(),
                         self._tip_acc.copy(), self._u_applied.copy(), cube_pose, contact, force)
@@ -402,8 +376,9 @@ class GripperSim:
         if self.config.scene != 'finger':
             raise ValueError('linear_modes is defined for the finger scene')
         cid = self._client
-        q = [s[0] for s in pb.getJointStates(self._body, self._joint_list, physicsClientId=cid)]
-        M = np.array(pb.calculateMassMatrix(self._body, q, physicsClientId=cid))
+        body = self._bodies[0]
+        q = [s[0] for s in pb.getJointStates(body, self._joint_list, physicsClientId=cid)]
+        M = np.array(pb.calculateMassMatrix(body, q, physicsClientId=cid))
         zeros = [0.0] * N_JOINTS
         h = 1e-6
         dg = np.zeros((N_JOINTS, N_JOINTS))
@@ -411,8 +386,8 @@ class GripperSim:
             qp, qm = list(q), list(q)
             qp[j] += h
             qm[j] -= h
-            gp = np.array(pb.calculateInverseDynamics(self._body, qp, zeros, zeros, physicsClientId=cid))
-            gm = np.array(pb.calculateInverseDynamics(self._body, qm, zeros, zeros, physicsClientId=cid))
+            gp = np.array(pb.calculateInverseDynamics(body, qp, zeros, zeros, physicsClientId=cid))
+            gm = np.array(pb.calculateInverseDynamics(body, qm, zeros, zeros, physicsClientId=cid))
             dg[:, j] = (gp - gm) / (2 * h)
         K = np.diag(JOINT_STIFFNESS) + dg
         w2 = np.linalg.eigvals(np.linalg.solve(M, K))
