@@ -1,0 +1,82 @@
+"""Excitation torques for identifying one finger (SI: N·m, shape (N, 2) = [u_ax0, u_ax1]).
+
+The paper's four signals (eq. 25, sim units, s = sin, both torques equal):
+
+    u1 = 25 s(πt)                    u2 = 25 s(0.5πt) + 2
+    u3 = 10 s(2πt) + 15 s(πt)        u4 = 6 s(3πt) + 7 s(2πt) + 8 s(πt)
+
+Because both torques are always equal, data from u1..u4 cannot tell how the input matrix G2(x)
+splits between its two columns: any G2 with the same row sums fits it equally well. The
+identification signals ``x1`` and ``x2`` drive the two torques independently — multisines on
+disjoint, incommensurate frequency sets per axis, so the two inputs are uncorrelated over the
+record and each takes both signs — with peaks inside the paper's ±25 sim-unit range.
+"""
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+
+from soft_gripper_sdre.units import torque_to_si
+
+#: duration of every excitation record [s] (the paper's 10 000 samples at 1 ms)
+DURATION = 10.0
+
+
+def _equal(f: Callable[[np.ndarray], np.ndarray]) -> Callable[[np.ndarray], np.ndarray]:
+    """Both torques equal to f(t) (sim units) → (N, 2) N·m."""
+    def signal(t):
+        t = np.asarray(t, dtype=float)
+        v = torque_to_si(f(t))
+        return np.stack([v, v], axis=-1)
+    return signal
+
+
+def _multisine(amplitudes_ax0, freqs_ax0, phases_ax0, amplitudes_ax1, freqs_ax1, phases_ax1):
+    """Independent multisines per axis (amplitudes in sim units, frequencies in Hz)."""
+    def axis(t, amps, freqs, phases):
+        return sum(a * np.sin(2 * np.pi * f * t + p) for a, f, p in zip(amps, freqs, phases))
+
+    def signal(t):
+        t = np.asarray(t, dtype=float)
+        return torque_to_si(np.stack([axis(t, amplitudes_ax0, freqs_ax0, phases_ax0),
+                                      axis(t, amplitudes_ax1, freqs_ax1, phases_ax1)], axis=-1))
+    return signal
+
+
+s = np.sin
+pi = np.pi
+
+#: name → u(t) (N·m, (N, 2)); u1..u4 are the paper's eq. 25, x1/x2 identify G2's columns
+SIGNALS: dict[str, Callable[[np.ndarray], np.ndarray]] = {
+    'u1': _equal(lambda t: 25 * s(pi * t)),
+    'u2': _equal(lambda t: 25 * s(0.5 * pi * t) + 2),
+    'u3': _equal(lambda t: 10 * s(2 * pi * t) + 15 * s(pi * t)),
+    'u4': _equal(lambda t: 6 * s(3 * pi * t) + 7 * s(2 * pi * t) + 8 * s(pi * t)),
+    # grasp axis slow and strong, side axis on other frequencies; peaks stay below 25 sim units
+    'x1': _multisine((10, 6, 4), (0.3, 0.9, 1.7), (0.0, 1.0, 2.0),
+                     (9, 6, 4), (0.5, 1.3, 2.3), (0.5, 2.5, 4.0)),
+    # the same idea with the frequency sets swapped between the axes, other phases
+    'x2': _multisine((9, 6, 4), (0.5, 1.3, 2.3), (1.5, 0.2, 3.0),
+                     (10, 6, 4), (0.3, 0.9, 1.7), (2.0, 4.0, 0.7)),
+}
+
+PAPER_SIGNALS = ('u1', 'u2', 'u3', 'u4')
+IDENTIFYING_SIGNALS = ('x1', 'x2')
+
+
+def signal_names() -> list[str]:
+    """Every known signal name."""
+    return list(SIGNALS)
+
+
+def get_signal(name: str) -> Callable[[np.ndarray], np.ndarray]:
+    """The signal called ``name``.
+
+    Raises:
+        KeyError: unknown name (the message lists the known ones).
+    """
+    try:
+        return SIGNALS[name]
+    except KeyError:
+        raise KeyError(f'unknown signal {name!r}; known signals: {", ".join(SIGNALS)}') from None

@@ -1,0 +1,154 @@
+"""The simulator against the SoMo figures of finger_spec.md (upright finger, sim units)."""
+import numpy as np
+import pytest
+
+from soft_gripper_sdre.sim import GripperSim, SimConfig
+from soft_gripper_sdre.units import LENGTH_SCALE, TORQUE_SCALE
+
+UPRIGHT = SimConfig(scene='finger', mount_roll_deg=0.0)
+
+
+def held_deflection(u_sim, config=UPRIGHT, hold=8.0, average=2.0):
+    """Spec protocol: settle 0.5 s at u = 0, step u on, hold, mean of the last 2 s (sim units)."""
+    with GripperSim(config) as sim:
+        rest = sim.rest_tip[0] * LENGTH_SCALE
+        u = np.array([u_sim], dtype=float) / TORQUE_SCALE
+        n, n_avg = int(round(hold / 1e-3)), int(round(average / 1e-3))
+        tips = []
+        for k in range(n):
+            sim.step(u)
+            if k >= n - n_avg:
+                tips.append(sim.truth().tip_pos[0] * LENGTH_SCALE)
+        tips = np.array(tips)
+    return tips.mean(axis=0) - rest, tips
+
+
+def test_settled_rest_pose_matches_somo():
+    with GripperSim(UPRIGHT) as sim:
+        rest = sim.rest_tip[0] * LENGTH_SCALE
+    np.testing.assert_allclose(rest, [0.0, -0.0429, 2.1791], atol=3e-3)
+
+
+@pytest.mark.parametrize('u, dx, dy', [((10, 10), 0.103, -0.729), ((-10, -10), None, 0.813)])
+def test_static_deflection(u, dx, dy):
+    d, _ = held_deflection(u)
+    assert d[1] == pytest.approx(dy, rel=0.05)
+    if dx is not None:
+        assert d[0] == pytest.approx(dx, rel=0.10)
+
+
+def test_linearised_modes_match_somo():
+    with GripperSim(UPRIGHT) as sim:
+        modes = sim.linear_modes()
+    assert modes[0] == pytest.approx(3.07, rel=0.05)
+    assert modes[1] == pytest.approx(8.92, rel=0.05)
+
+
+@pytest.mark.parametrize('u', [25.0, -25.0])
+def test_full_torque_held_is_stable_and_settles(u):
+    _, tips = held_deflection((u, u), hold=5.0, average=1.0)
+    assert np.all(np.isfinite(tips))
+    assert np.all(np.abs(tips) < 5.0)                 # bounded: the finger is 2.2 units long
+    assert np.all(tips.std(axis=0) < 1e-3)            # settled: no chaotic ringing in the last 1 s
+
+
+@pytest.mark.parametrize('axis, tip_axis, sign', [(0, 1, -1), (1, 0, +1)])
+def test_input_signs(axis, tip_axis, sign):
+    """+u_ax0 bends the tip toward −Y, +u_ax1 toward +X (finger base frame)."""
+    u = [0.0, 0.0]
+    u[axis] = 5.0
+    d, _ = held_deflection(u, config=SimConfig(scene='finger'), hold=1.0, average=0.2)
+    assert np.sign(d[tip_axis]) == sign and abs(d[tip_axis]) > 0.02
+
+
+def test_negative_grasp_torque_closes_hand_fingers_on_the_cube():
+    with GripperSim(SimConfig(scene='hand')) as sim:
+        cube0 = sim.truth().cube_pose
+        u = np.zeros((4, 2))
+        u[[0, 2], 0] = -8.0 / TORQUE_SCALE
+        for _ in range(600):
+            sim.step(u)
+        truth = sim.truth()
+    travel = truth.tip_pos[:, 1] - sim.rest_tip[:, 1]
+    assert travel[0] > 0.02 and travel[2] > 0.02               # +Y: toward the palm centre
+    assert truth.finger_cube_contact.tolist() == [True, False, True, False]
+    assert np.all(truth.contact_force[[0, 2]] > 0)
+    assert np.linalg.norm(truth.cube_pose[:3] - cube0[:3]) < 2e-3   # squeezed, not pushed away
+
+
+def test_hand_fingers_share_the_same_kinematics_in_their_base_frames():
+    with GripperSim(SimConfig(scene='hand')) as hand, GripperSim(SimConfig(scene='finger')) as finger:
+        np.testing.assert_allclose(hand.rest_tip, np.repeat(finger.rest_tip, 4, axis=0), atol=1e-9)
+
+
+def test_lockstep_runs_are_bit_identical():
+    def run():
+        with GripperSim(SimConfig(scene='hand', noise_std=5e-5, seed=3)) as sim:
+            out = []
+            for k in range(300):
+                u = np.full((4, 2), 0.02 * np.sin(0.01 * k))
+                sim.step(u)
+                out.append(np.concatenate([sim.measure().ravel(), sim.truth().q.ravel()]))
+        return np.array(out)
+    a, b = run(), run()
+    assert np.array_equal(a, b)
+
+
+def test_measurement_noise_is_seeded_and_sized():
+    with GripperSim(SimConfig(scene='finger', noise_std=1e-4, seed=1)) as sim:
+        errs = []
+        for _ in range(400):
+            sim.step(np.zeros((1, 2)))
+            errs.append(sim.measure()[0] - sim.truth().tip_pos[0])
+        assert np.array_equal(sim.measure(), sim.measure())     # one draw per step
+    assert np.std(errs) == pytest.approx(1e-4, rel=0.1)
+
+
+def test_truth_acceleration_is_the_velocity_change_over_the_period():
+    with GripperSim(SimConfig(scene='finger')) as sim:
+        v0 = sim.truth().tip_vel
+        sim.step(np.array([[0.03, 0.01]]))
+        tr = sim.truth()
+    np.testing.assert_allclose(tr.tip_acc, (tr.tip_vel - v0) / 1e-3)
+    assert np.abs(tr.tip_acc).max() > 0
+
+
+def test_torques_are_clipped_to_the_limit():
+    with GripperSim(SimConfig(scene='finger', torque_limit=0.05)) as sim:
+        sim.step(np.array([[1.0, -1.0]]))
+        np.testing.assert_allclose(sim.truth().u_applied, [[0.05, -0.05]])
+
+
+@pytest.mark.parametrize('u, match', [
+    (np.zeros((2, 2)), 'shape'), (np.array([[np.nan, 0.0]]), 'non-finite'), (np.array([[np.inf, 0.0]]), 'non-finite')])
+def test_bad_torques_rejected_and_state_unchanged(u, match):
+    with GripperSim(SimConfig(scene='finger')) as sim:
+        sim.step(np.array([[0.01, 0.0]]))
+        before = sim.truth()
+        with pytest.raises(ValueError, match=match):
+            sim.step(u)
+        after = sim.truth()
+        assert after.t == before.t and np.array_equal(after.q, before.q)
+
+
+@pytest.mark.parametrize('kwargs, field', [
+    (dict(scene='arm'), 'scene'), (dict(control_period=-1e-3), 'control_period'),
+    (dict(physics_substeps=0), 'physics_substeps'), (dict(torque_limit=0.0), 'torque_limit'),
+    (dict(noise_std=-1.0), 'noise_std'), (dict(settle_time=float('nan')), 'settle_time')])
+def test_bad_config_names_the_field(kwargs, field):
+    with pytest.raises(ValueError, match=field):
+        SimConfig(**kwargs)
+
+
+def test_two_simulators_live_in_one_process():
+    """Explicit physicsClientId everywhere: interleaved simulators do not disturb each other."""
+    with GripperSim(SimConfig(scene='finger')) as alone:
+        for _ in range(50):
+            alone.step(np.zeros((1, 2)))
+        expected = alone.truth().tip_pos
+    with GripperSim(SimConfig(scene='finger')) as a, GripperSim(SimConfig(scene='finger')) as b:
+        for _ in range(50):
+            a.step(np.array([[0.02, 0.0]]))
+            b.step(np.zeros((1, 2)))
+        assert np.array_equal(b.truth().tip_pos, expected)
+        assert not np.allclose(a.truth().tip_pos, expected)
