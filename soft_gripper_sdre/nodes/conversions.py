@@ -1,0 +1,219 @@
+"""numpy ↔ message conversions for every topic of the graph, with validation.
+
+Stamps are int nanoseconds of sim time. Every ``msg_to_*`` raises :class:`MessageError` naming
+the problem (non-finite values, wrong sizes, unknown / duplicate / missing names); nodes count
+and log those instead of computing with the message.
+"""
+from __future__ import annotations
+
+from builtin_interfaces.msg import Duration, Time
+from geometry_msgs.msg import Pose, PoseArray, Transform, Twist
+import numpy as np
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import JointState
+from trajectory_msgs.msg import MultiDOFJointTrajectory, MultiDOFJointTrajectoryPoint
+
+from soft_gripper_sdre import FINGER_NAMES
+
+NS = 1_000_000_000
+
+
+class MessageError(ValueError):
+    """A message cannot be used; the text says why."""
+
+
+# -- time ------------------------------------------------------------------------------------
+
+def to_time(ns: int) -> Time:
+    return Time(sec=int(ns // NS), nanosec=int(ns % NS))
+
+
+def from_time(stamp) -> int:
+    return int(stamp.sec) * NS + int(stamp.nanosec)
+
+
+def to_duration(ns: int) -> Duration:
+    return Duration(sec=int(ns // NS), nanosec=int(ns % NS))
+
+
+def clock_msg(ns: int) -> Clock:
+    return Clock(clock=to_time(ns))
+
+
+# -- names -----------------------------------------------------------------------------------
+
+def torque_names(n_fingers: int) -> list[str]:
+    """``finger_<i>/ax0``, ``finger_<i>/ax1`` for each finger, in the order of u.ravel()."""
+    return [f'{FINGER_NAMES[i]}/ax{a}' for i in range(n_fingers) for a in range(2)]
+
+
+def _order(names, expected: list[str], what: str) -> np.ndarray:
+    """Index of each expected name in ``names``; every name must be known and appear once."""
+    names = list(names)
+    if len(set(names)) != len(names):
+        dup = sorted({n for n in names if names.count(n) > 1})
+        raise MessageError(f'{what}: duplicate names {dup}')
+    unknown = sorted(set(names) - set(expected))
+    if unknown:
+        raise MessageError(f'{what}: unknown names {unknown[:4]} (expected {expected[:2]}…)')
+    missing = [n for n in expected if n not in names]
+    if missing:
+        raise MessageError(f'{what}: missing names {missing[:4]}')
+    pos = {n: i for i, n in enumerate(names)}
+    return np.fromiter((pos[n] for n in expected), int, len(expected))
+
+
+def _finite(a: np.ndarray, what: str) -> np.ndarray:
+    if not np.all(np.isfinite(a)):
+        raise MessageError(f'{what} contains NaN or Inf')
+    return a
+
+
+# -- tip positions (PoseArray) ---------------------------------------------------------------
+
+def tips_to_msg(ns: int, tips: np.ndarray, frame_id: str = 'finger_bases') -> PoseArray:
+    """(n, 3) tip positions [m] → PoseArray; pose i is finger i's tip in its own base frame."""
+    msg = PoseArray()
+    msg.header.stamp = to_time(ns)
+    msg.header.frame_id = frame_id
+    poses = []
+    for x, y, z in np.asarray(tips, dtype=float).tolist():
+        p = Pose()
+        p.position.x, p.position.y, p.position.z = x, y, z
+        poses.append(p)
+    msg.poses = poses
+    return msg
+
+
+def msg_to_tips(msg: PoseArray, n_fingers: int) -> tuple[int, np.ndarray]:
+    """PoseArray → (stamp ns, (n, 3) tips [m])."""
+    if len(msg.poses) != n_fingers:
+        raise MessageError(f'tip_positions: expected {n_fingers} poses, got {len(msg.poses)}')
+    tips = np.array([(p.position.x, p.position.y, p.position.z) for p in msg.poses], dtype=float)
+    return from_time(msg.header.stamp), _finite(tips, 'tip_positions')
+
+
+# -- torque commands (JointState effort) -----------------------------------------------------
+
+def torques_to_msg(ns: int, u: np.ndarray) -> JointState:
+    """(n, 2) torques [N·m] → JointState named finger_<i>/ax0|ax1 with efforts."""
+    u = np.asarray(u, dtype=float)
+    msg = JointState()
+    msg.header.stamp = to_time(ns)
+    msg.name = torque_names(u.shape[0])
+    msg.effort = u.ravel().tolist()
+    return msg
+
+
+def msg_to_torques(msg: JointState, n_fingers: int) -> tuple[int, np.ndarray]:
+    """JointState → (stamp ns, (n, 2) torques [N·m]), ordered by name whatever the message order."""
+    if len(msg.effort) != len(msg.name):
+        raise MessageError(f'torque_commands: {len(msg.name)} names but {len(msg.effort)} efforts')
+    idx = _order(msg.name, torque_names(n_fingers), 'torque_commands')
+    effort = np.asarray(msg.effort, dtype=float)[idx].reshape(n_fingers, 2)
+    return from_time(msg.header.stamp), _finite(effort, 'torque_commands effort')
+
+
+# -- joint states and contacts ---------------------------------------------------------------
+
+def joint_states_msg(ns: int, names: list[str], q: np.ndarray, qd: np.ndarray) -> JointState:
+    msg = JointState()
+    msg.header.stamp = to_time(ns)
+    msg.name = names
+    msg.position = np.asarray(q, dtype=float).ravel().tolist()
+    msg.velocity = np.asarray(qd, dtype=float).ravel().tolist()
+    return msg
+
+
+def contacts_msg(ns: int, force: np.ndarray) -> JointState:
+    """Normal contact force of each finger on the cube [N] as JointState efforts (name finger_i)."""
+    msg = JointState()
+    msg.header.stamp = to_time(ns)
+    msg.name = list(FINGER_NAMES[:len(force)])
+    msg.effort = np.asarray(force, dtype=float).tolist()
+    return msg
+
+
+# -- state estimate / reference (MultiDOFJointTrajectory) ------------------------------------
+
+def _point(pos, vel, acc, from_start_ns: int) -> MultiDOFJointTrajectoryPoint:
+    pt = MultiDOFJointTrajectoryPoint()
+    transforms, velocities, accelerations = [], [], []
+    for i in range(len(pos)):
+        tf = Transform()
+        tf.translation.x, tf.translation.y, tf.translation.z = pos[i]
+        tf.rotation.w = 1.0
+        transforms.append(tf)
+        tw = Twist()
+        tw.linear.x, tw.linear.y, tw.linear.z = vel[i]
+        velocities.append(tw)
+        if acc is not None:
+            ta = Twist()
+            ta.linear.x, ta.linear.y, ta.linear.z = acc[i]
+            accelerations.append(ta)
+    pt.transforms = transforms
+    pt.velocities = velocities
+    pt.accelerations = accelerations
+    pt.time_from_start = to_duration(from_start_ns)
+    return pt
+
+
+def _pad3(a: np.ndarray) -> list:
+    a = np.asarray(a, dtype=float)
+    if a.shape[-1] == 2:
+        a = np.concatenate([a, np.zeros(a.shape[:-1] + (1,))], axis=-1)
+    return a.tolist()
+
+
+def estimate_to_msg(ns: int, pos: np.ndarray, vel: np.ndarray) -> MultiDOFJointTrajectory:
+    """(n, 2|3) positions [m] and velocities [m/s] → one-point MultiDOFJointTrajectory."""
+    msg = MultiDOFJointTrajectory()
+    msg.header.stamp = to_time(ns)
+    msg.joint_names = list(FINGER_NAMES[:len(pos)])
+    msg.points = [_point(_pad3(pos), _pad3(vel), None, 0)]
+    return msg
+
+
+def msg_to_estimate(msg: MultiDOFJointTrajectory, n_fingers: int) -> tuple[int, np.ndarray]:
+    """One-point MultiDOFJointTrajectory → (stamp ns, (n, 4) [X, Y, Ẋ, Ẏ])."""
+    idx = _order(msg.joint_names, list(FINGER_NAMES[:n_fingers]), 'state_estimate')
+    if len(msg.points) != 1:
+        raise MessageError(f'state_estimate: expected 1 point, got {len(msg.points)}')
+    pt = msg.points[0]
+    if len(pt.transforms) != len(msg.joint_names) or len(pt.velocities) != len(msg.joint_names):
+        raise MessageError('state_estimate: transforms/velocities do not match joint_names')
+    x = np.array([(pt.transforms[j].translation.x, pt.transforms[j].translation.y,
+                   pt.velocities[j].linear.x, pt.velocities[j].linear.y) for j in idx], dtype=float)
+    return from_time(msg.header.stamp), _finite(x, 'state_estimate')
+
+
+def reference_to_msg(ns: int, offsets_ns, pos, vel, acc) -> MultiDOFJointTrajectory:
+    """Horizon of h points (offsets from the stamp) × n fingers: pos, vel, acc (h, n, 2|3)."""
+    msg = MultiDOFJointTrajectory()
+    msg.header.stamp = to_time(ns)
+    msg.joint_names = list(FINGER_NAMES[:np.asarray(pos).shape[1]])
+    msg.points = [_point(_pad3(p), _pad3(v), _pad3(a), int(o))
+                  for o, p, v, a in zip(offsets_ns, pos, vel, acc)]
+    return msg
+
+
+def msg_to_reference(msg: MultiDOFJointTrajectory, n_fingers: int):
+    """Horizon message → (stamp ns, times ns (h,), pos, vel, acc (h, n, 2))."""
+    idx = _order(msg.joint_names, list(FINGER_NAMES[:n_fingers]), 'grasp_reference')
+    if not msg.points:
+        raise MessageError('grasp_reference: no points')
+    m = len(msg.joint_names)
+    stamp = from_time(msg.header.stamp)
+    times, data = [], []
+    for pt in msg.points:
+        if len(pt.transforms) != m or len(pt.velocities) != m or len(pt.accelerations) != m:
+            raise MessageError('grasp_reference: a point does not hold one entry per finger')
+        times.append(stamp + pt.time_from_start.sec * NS + pt.time_from_start.nanosec)
+        data.append([(pt.transforms[j].translation.x, pt.transforms[j].translation.y,
+                      pt.velocities[j].linear.x, pt.velocities[j].linear.y,
+                      pt.accelerations[j].linear.x, pt.accelerations[j].linear.y) for j in idx])
+    times = np.asarray(times, dtype=np.int64)
+    if np.any(np.diff(times) <= 0):
+        raise MessageError('grasp_reference: point times are not increasing')
+    d = _finite(np.asarray(data, dtype=float), 'grasp_reference')
+    return stamp, times, d[..., 0:2], d[..., 2:4], d[..., 4:6]

@@ -1,0 +1,124 @@
+"""Declare every node parameter once: type, default, description, units, range or choices.
+
+A node lists its parameters in a tuple of :class:`Param` and calls :func:`declare_all`. rclpy
+rejects out-of-range values itself (``FloatingPointRange`` / ``IntegerRange``); choices and
+cross-field checks are ours. Bad values at startup raise :class:`ParameterError`, whose message names
+the parameter; ``main()`` logs it and exits non-zero. At runtime a bad value is refused with its
+reason and the old value stays in force.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Callable, Iterable
+
+from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
+                                SetParametersResult)
+from rclpy.exceptions import (InvalidParameterTypeException, InvalidParameterValueException,
+                              ParameterException)
+from rclpy.node import Node
+
+
+class ParameterError(ValueError):
+    """A parameter value is invalid; the message names the parameter."""
+
+
+@dataclass(frozen=True)
+class Param:
+    """One parameter: name, default (its type is the parameter's type), meaning and limits."""
+
+    name: str
+    default: Any
+    description: str
+    units: str = ''
+    min: float | None = None
+    max: float | None = None
+    choices: tuple | None = None
+    read_only: bool = False
+
+    def descriptor(self) -> ParameterDescriptor:
+        text = self.description + (f' [{self.units}]' if self.units else '')
+        if self.choices:
+            text += f' (one of: {", ".join(map(str, self.choices))})'
+        d = ParameterDescriptor(name=self.name, description=text, read_only=self.read_only)
+        if self.min is not None or self.max is not None:
+            lo = self.min if self.min is not None else -1e300
+            hi = self.max if self.max is not None else 1e300
+            if isinstance(self.default, bool):
+                pass
+            elif isinstance(self.default, int):
+                d.integer_range = [IntegerRange(from_value=int(max(lo, -2**62)),
+                                                to_value=int(min(hi, 2**62)), step=0)]
+            elif isinstance(self.default, float):
+                d.floating_point_range = [FloatingPointRange(from_value=float(lo), to_value=float(hi),
+                                                             step=0.0)]
+        return d
+
+    def check(self, value: Any) -> str | None:
+        """Why ``value`` is refused, or None (ranges are also enforced by rclpy)."""
+        if self.choices is not None and value not in self.choices:
+            return f'{self.name} must be one of {list(self.choices)}, got {value!r}'
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            if value != value:  # NaN
+                return f'{self.name} must not be NaN'
+            if self.min is not None and value < self.min:
+                return f'{self.name} must be >= {self.min}, got {value!r}'
+            if self.max is not None and value > self.max:
+                return f'{self.name} must be <= {self.max}, got {value!r}'
+        return None
+
+
+def declare_all(node: Node, params: Iterable[Param]) -> dict[str, Any]:
+    """Declare ``params`` on ``node`` (overrides come from --params-file / -p / parameter_overrides)
+    and return their values.
+
+    Raises:
+        ParameterError: a value is out of range, of the wrong type or not an allowed choice.
+    """
+    values = {}
+    for p in params:
+        try:
+            values[p.name] = node.declare_parameter(p.name, p.default, p.descriptor()).value
+        except (InvalidParameterValueException, InvalidParameterTypeException, ParameterException) as exc:
+            raise ParameterError(f'parameter {p.name!r}: {exc}') from None
+        reason = p.check(values[p.name])
+        if reason:
+            raise ParameterError(f'parameter {p.name!r}: {reason}')
+    return values
+
+
+def on_runtime_change(node: Node, params: Iterable[Param],
+                      validate: Callable[[dict[str, Any]], str | None] | None = None,
+                      apply: Callable[[dict[str, Any]], None] | None = None) -> None:
+    """Validate runtime parameter changes: per-parameter checks, then ``validate(new_values)``
+    for cross-field checks; refused changes leave the old values in force. Accepted changes are
+    passed to ``apply``."""
+    table = {p.name: p for p in params}
+
+    def callback(changes) -> SetParametersResult:
+        new = {}
+        for change in changes:
+            spec = table.get(change.name)
+            if spec is None:
+                continue
+            if spec.read_only:
+                return SetParametersResult(successful=False, reason=f'{change.name} is read-only')
+            reason = spec.check(change.value)
+            if reason:
+                return SetParametersResult(successful=False, reason=reason)
+            new[change.name] = change.value
+        if new and validate is not None:
+            reason = validate(new)
+            if reason:
+                return SetParametersResult(successful=False, reason=reason)
+        if new and apply is not None:
+            apply(new)
+        return SetParametersResult(successful=True)
+
+    node.add_on_set_parameters_callback(callback)
+
+
+def to_yaml(node_name: str, params: Iterable[Param]) -> str:
+    """The ``ros__parameters`` section of ``node_name`` with every default, for config/*.yaml."""
+    import yaml
+    body = {p.name: p.default for p in params}
+    return yaml.safe_dump({node_name: {'ros__parameters': body}}, sort_keys=False)

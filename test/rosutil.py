@@ -1,0 +1,56 @@
+"""Launch-free rclpy test helpers: own Context, one executor, deadline loops, discovery waits."""
+from __future__ import annotations
+
+import contextlib
+import time
+
+import rclpy
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+
+
+def overrides(**params) -> list[Parameter]:
+    return [Parameter(k, value=v) for k, v in params.items()]
+
+
+@contextlib.contextmanager
+def ros_context():
+    """A fresh rclpy Context and a SingleThreadedExecutor on it, torn down afterwards."""
+    ctx = Context()
+    rclpy.init(context=ctx)
+    executor = SingleThreadedExecutor(context=ctx)
+    try:
+        yield ctx, executor
+    finally:
+        for node in list(executor.get_nodes()):
+            executor.remove_node(node)
+            close = getattr(node, 'close', None)
+            if close is not None:
+                close()
+            node.destroy_node()
+        executor.shutdown()
+        rclpy.try_shutdown(context=ctx)
+
+
+def spin_until(executor, predicate, timeout: float = 10.0) -> bool:
+    """Spin until ``predicate()`` is true or ``timeout`` seconds pass; returns the predicate."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        executor.spin_once(timeout_sec=0.01)
+    return bool(predicate())
+
+
+class Probe(Node):
+    """A test node that publishes and records whatever the test asks."""
+
+    def __init__(self, context, name: str = 'probe') -> None:
+        super().__init__(name, context=context)
+        self.received: dict[str, list] = {}
+
+    def listen(self, msg_type, topic: str, qos):
+        self.received.setdefault(topic, [])
+        return self.create_subscription(msg_type, topic, self.received[topic].append, qos)

@@ -1,0 +1,138 @@
+"""The simulator node over real DDS (loopback), launch-free: own Context, executor, test node."""
+import numpy as np
+import pytest
+from geometry_msgs.msg import PoseArray
+from sensor_msgs.msg import JointState
+from diagnostic_msgs.msg import DiagnosticArray
+
+from rosutil import Probe, overrides, ros_context, spin_until
+from soft_gripper_sdre.nodes import conversions as cv
+from soft_gripper_sdre.nodes.params import ParameterError
+from soft_gripper_sdre.nodes.simulator import SimulatorNode
+from soft_gripper_sdre.nodes.topics import DIAGNOSTICS, LOOP_QOS, STREAM_QOS, TIP_POSITIONS, TORQUE_COMMANDS
+
+pytestmark = pytest.mark.ros
+
+
+def make_loop(ctx, executor, **params):
+    """Simulator (finger scene) + a probe that answers each tip message with a command."""
+    sim = SimulatorNode(context=ctx, parameter_overrides=overrides(
+        scene='finger', startup_timeout=20.0, **params))
+    probe = Probe(ctx)
+    probe.listen(PoseArray, TIP_POSITIONS, LOOP_QOS)
+    probe.listen(DiagnosticArray, DIAGNOSTICS, STREAM_QOS)
+    pub = probe.create_publisher(JointState, TORQUE_COMMANDS, LOOP_QOS)
+    executor.add_node(sim)
+    executor.add_node(probe)
+    assert spin_until(executor, lambda: pub.get_subscription_count() > 0 and sim.started
+                      and probe.received[TIP_POSITIONS], 20.0)
+    return sim, probe, pub
+
+
+def answer_tips(executor, probe, pub, u, steps, start=0):
+    """Lockstep partner: for each tip message stamped t_k publish u stamped t_k."""
+    tips = probe.received[TIP_POSITIONS]
+    for k in range(start, start + steps):
+        assert spin_until(executor, lambda: len(tips) > k, 5.0), f'no tip message {k}'
+        stamp, _ = cv.msg_to_tips(tips[k], 1)
+        pub.publish(cv.torques_to_msg(stamp, np.asarray(u, dtype=float)))
+    assert spin_until(executor, lambda: len(tips) > start + steps, 5.0)
+    return cv.msg_to_tips(tips[start + steps], 1)
+
+
+@pytest.mark.parametrize('u, tip_axis, sign', [
+    ([[0.01, 0.0]], 1, -1), ([[-0.01, 0.0]], 1, +1), ([[0.0, 0.01]], 0, +1), ([[0.0, -0.01]], 0, -1)])
+def test_finger_moves_the_expected_way_in_lockstep(u, tip_axis, sign):
+    with ros_context() as (ctx, executor):
+        sim, probe, pub = make_loop(ctx, executor)
+        rest = cv.msg_to_tips(probe.received[TIP_POSITIONS][0], 1)[1][0]
+        stamp, tip = answer_tips(executor, probe, pub, u, 150)
+        assert stamp == 150 * 1_000_000                   # lockstep: exactly one step per command
+        assert sim.diag.counters['timeouts'] == 0
+        d = tip[0] - rest
+        assert np.sign(d[tip_axis]) == sign and abs(d[tip_axis]) > 2e-4
+
+
+def test_lockstep_proceeds_on_timeout_holding_the_last_command():
+    with ros_context() as (ctx, executor):
+        sim, probe, pub = make_loop(ctx, executor, lockstep_timeout=0.05, on_timeout='hold')
+        answer_tips(executor, probe, pub, [[0.02, 0.0]], 5)
+        tips = probe.received[TIP_POSITIONS]
+        n0 = len(tips)
+        assert spin_until(executor, lambda: len(tips) >= n0 + 5, 10.0)     # no deadlock
+        assert sim.diag.counters['timeouts'] >= 5
+        np.testing.assert_allclose(sim.sim.truth().u_applied, [[0.02, 0.0]])
+
+
+def test_lockstep_timeout_with_zero_policy_applies_zero():
+    with ros_context() as (ctx, executor):
+        sim, probe, pub = make_loop(ctx, executor, lockstep_timeout=0.05, on_timeout='zero')
+        answer_tips(executor, probe, pub, [[0.02, 0.0]], 3)
+        assert spin_until(executor, lambda: sim.diag.counters['timeouts'] >= 2, 10.0)
+        np.testing.assert_array_equal(sim.sim.truth().u_applied, 0.0)
+
+
+def test_bad_commands_are_rejected_counted_and_never_stepped():
+    with ros_context() as (ctx, executor):
+        sim, probe, pub = make_loop(ctx, executor, lockstep_timeout=5.0)
+        answer_tips(executor, probe, pub, [[0.01, 0.0]], 2)
+        now = 2 * 1_000_000
+        bad = []
+        m = cv.torques_to_msg(now, np.array([[np.nan, 0.0]]))
+        bad.append(m)
+        m = cv.torques_to_msg(now, np.array([[0.0, 0.0]]))
+        m.effort = [0.0]                                   # wrong length
+        bad.append(m)
+        m = cv.torques_to_msg(now, np.array([[0.0, 0.0]]))
+        m.name = ['finger_0/ax0', 'finger_9/ax1']          # unknown name
+        bad.append(m)
+        m = cv.torques_to_msg(now, np.array([[0.0, 0.0]]))
+        m.name = ['finger_0/ax0', 'finger_0/ax0']          # duplicate
+        bad.append(m)
+        bad.append(cv.torques_to_msg(1 * 1_000_000, np.array([[0.0, 0.0]])))   # old stamp
+        bad.append(cv.torques_to_msg(9 * 1_000_000, np.array([[0.0, 0.0]])))   # future stamp
+        for m in bad:
+            pub.publish(m)
+        c = sim.diag.counters
+        assert spin_until(executor, lambda: c['bad_command'] + c['stale_command'] + c['future_command'] >= 6, 10.0)
+        assert c['bad_command'] == 4 and c['stale_command'] == 1 and c['future_command'] == 1
+        assert sim.k == 2                                   # none of them stepped the simulator
+        assert np.all(np.isfinite(sim.sim.truth().q))
+        # a good command still works afterwards
+        pub.publish(cv.torques_to_msg(now, np.array([[0.01, 0.0]])))
+        assert spin_until(executor, lambda: sim.k == 3, 5.0)
+
+
+def test_duration_stops_the_simulator():
+    with ros_context() as (ctx, executor):
+        sim, probe, pub = make_loop(ctx, executor, duration=0.01)
+        answer_tips(executor, probe, pub, [[0.0, 0.0]], 10)
+        assert sim.done and sim.k == 10
+
+
+def test_realtime_mode_steps_without_commands():
+    with ros_context() as (ctx, executor):
+        sim, probe, pub = make_loop(ctx, executor, mode='realtime', control_period=0.002)
+        assert spin_until(executor, lambda: sim.k >= 20, 10.0)
+        assert sim.diag.counters['late_periods'] >= 20
+
+
+@pytest.mark.parametrize('params, name', [
+    (dict(mode='warp'), 'mode'), (dict(control_period=-0.001), 'control_period'),
+    (dict(noise_std=1.0), 'noise_std'), (dict(scene='arm'), 'scene'), (dict(physics_substeps=1.5), 'physics_substeps')])
+def test_bad_parameters_fail_at_startup_naming_the_parameter(params, name):
+    with ros_context() as (ctx, executor):
+        with pytest.raises(ParameterError, match=name):
+            SimulatorNode(context=ctx, parameter_overrides=overrides(**params))
+
+
+def test_runtime_parameter_refusal_keeps_the_old_value():
+    from rclpy.parameter import Parameter
+    with ros_context() as (ctx, executor):
+        sim = SimulatorNode(context=ctx, parameter_overrides=overrides(scene='finger', startup_timeout=0.0))
+        executor.add_node(sim)
+        res = sim.set_parameters([Parameter('on_timeout', value='explode')])[0]
+        assert not res.successful and 'on_timeout' in res.reason
+        assert sim.get_parameter('on_timeout').value == 'hold'
+        res = sim.set_parameters([Parameter('scene', value='hand')])[0]
+        assert not res.successful
