@@ -1,0 +1,105 @@
+"""The paper's constant-velocity Kalman filter (appendix), batched over fingers.
+
+State per finger x = [X, Y, Ẋ, Ẏ] [m, m/s]; continuous model ẋ = A x + D ṽ with
+
+    A = [[0, I], [0, 0]],    H = [I, 0],    F = e^{AΔt} = [[I, Δt I], [0, I]],
+
+and the discrete process noise Σ_v = ∫₀^Δt e^{As} D q Dᵀ e^{Aᵀs} ds for white acceleration noise of
+intensity q [(m/s²)²/Hz]. The paper writes D = [0 0 1 1]ᵀ: one scalar noise drives both axes, so
+their accelerations are modelled as perfectly correlated (``process_noise='paper'``). The tip's
+X and Y accelerations are not correlated like that, so the default (``'independent'``) gives each
+axis its own noise, D = [[0,0],[0,0],[1,0],[0,1]].
+
+    predict:  x̂ = F x̂,                 S = F S Fᵀ + Σ_v
+    update:   K = S Hᵀ (H S Hᵀ + Σ_r)⁻¹,  x̂ = x̂ + K (z − H x̂),
+              S = (I − K H) S (I − K H)ᵀ + K Σ_r Kᵀ     (Joseph form: stays symmetric PSD)
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy.linalg import solve_discrete_are
+
+PROCESS_NOISE_MODELS = ('independent', 'paper')
+
+
+def cv_matrices(dt: float, accel_psd: float, process_noise: str = 'independent'):
+    """F (4,4) and Σ_v (4,4) of the constant-velocity model for step ``dt``."""
+    if process_noise not in PROCESS_NOISE_MODELS:
+        raise ValueError(f'process_noise must be one of {PROCESS_NOISE_MODELS}, got {process_noise!r}')
+    I2 = np.eye(2)
+    F = np.block([[I2, dt * I2], [np.zeros((2, 2)), I2]])
+    # ∫ e^{As} D q Dᵀ e^{Aᵀs} ds = q [[Δt³/3 C, Δt²/2 C], [Δt²/2 C, Δt C]],  C = D₂ D₂ᵀ
+    C = I2 if process_noise == 'independent' else np.ones((2, 2))
+    Q = accel_psd * np.block([[dt**3 / 3 * C, dt**2 / 2 * C], [dt**2 / 2 * C, dt * C]])
+    return F, Q
+
+
+class ConstantVelocityKF:
+    """Constant-velocity KF for ``n`` fingers at once.
+
+    Args:
+        dt: sample period [s].
+        accel_psd: white-acceleration intensity q [(m/s²)²/Hz] (Σ_v scale).
+        meas_std: measurement standard deviation σ_r [m] (Σ_r = σ_r² I).
+        n: number of fingers.
+        process_noise: ``'independent'`` (default) or ``'paper'`` (D = [0 0 1 1]ᵀ).
+    """
+
+    def __init__(self, dt: float, accel_psd: float, meas_std: float, n: int = 4,
+                 process_noise: str = 'independent') -> None:
+        if not (np.isfinite(dt) and dt > 0):
+            raise ValueError(f'dt must be finite and > 0, got {dt!r}')
+        if not (np.isfinite(accel_psd) and accel_psd >= 0):
+            raise ValueError(f'accel_psd must be finite and >= 0, got {accel_psd!r}')
+        if not (np.isfinite(meas_std) and meas_std > 0):
+            raise ValueError(f'meas_std must be finite and > 0, got {meas_std!r}')
+        if int(n) < 1:
+            raise ValueError(f'n must be >= 1, got {n!r}')
+        self.dt, self.n = float(dt), int(n)
+        self._F, self._Q = cv_matrices(dt, accel_psd, process_noise)
+        self._H = np.hstack([np.eye(2), np.zeros((2, 2))])
+        self._R = meas_std**2 * np.eye(2)
+        self._p0 = max(1.0, 1e6 * meas_std**2)     # broad initial velocity covariance
+        self.reset()
+
+    F = property(lambda self: self._F.copy())
+    Q = property(lambda self: self._Q.copy())
+    H = property(lambda self: self._H.copy())
+    R = property(lambda self: self._R.copy())
+
+    def reset(self, z0: np.ndarray | None = None) -> None:
+        """Start over: positions at z0 (n, 2) (zero if None), zero velocity, broad covariance."""
+        self.x = np.zeros((self.n, 4))
+        if z0 is not None:
+            z0 = np.asarray(z0, dtype=float)
+            if z0.shape != (self.n, 2):
+                raise ValueError(f'z0 must have shape ({self.n}, 2), got {z0.shape}')
+            self.x[:, :2] = z0
+        self.P = np.tile(np.diag([self._R[0, 0], self._R[1, 1], self._p0, self._p0]), (self.n, 1, 1))
+
+    def step(self, z: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
+        """Predict one period and update with measurements z (n, 2); rows with ``valid`` False
+        only predict. Returns a copy of x̂ (n, 4)."""
+        z = np.asarray(z, dtype=float)
+        if z.shape != (self.n, 2):
+            raise ValueError(f'z must have shape ({self.n}, 2), got {z.shape}')
+        F, H = self._F, self._H
+        x = self.x @ F.T                                   # x̂ = F x̂
+        P = F @ self.P @ F.T + self._Q                     # S = F S Fᵀ + Σ_v
+        S = P[:, :2, :2] + self._R                         # H S Hᵀ + Σ_r   (H picks positions)
+        K = np.linalg.solve(S, P[:, :2, :]).transpose(0, 2, 1)   # K = S Hᵀ (H S Hᵀ + Σ_r)⁻¹
+        innov = z - x[:, :2]
+        upd = np.ones(self.n, dtype=bool) if valid is None else np.asarray(valid, dtype=bool)
+        upd = upd & np.all(np.isfinite(z), axis=1)
+        x_new = x + np.einsum('nij,nj->ni', K, np.where(upd[:, None], innov, 0.0))
+        IKH = np.eye(4) - K @ H
+        P_new = IKH @ P @ IKH.transpose(0, 2, 1) + K @ self._R @ K.transpose(0, 2, 1)   # Joseph
+        self.x = x_new
+        self.P = np.where(upd[:, None, None], P_new, P)
+        return self.x.copy()
+
+    def steady_state(self) -> tuple[np.ndarray, np.ndarray]:
+        """Steady-state prior covariance S∞ (from the DARE) and gain K∞ of one finger."""
+        S = solve_discrete_are(self._F.T, self._H.T, self._Q, self._R)
+        K = S @ self._H.T @ np.linalg.inv(self._H @ S @ self._H.T + self._R)
+        return S, K
