@@ -1,0 +1,96 @@
+"""Reading and checking excitation datasets (the ``.npz`` files the collect tool writes)."""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+import zipfile
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+REQUIRED = {'t': 1, 'u': 2, 'tip': 3, 'rest_tip': None, 'dt': None}
+WIDTH = {'u': 2, 'tip': 3, 'tip_true': 3, 'vel_true': 3, 'acc_true': 3}
+
+
+class DatasetError(ValueError):
+    """A dataset file cannot be used; the message names the file and the problem."""
+
+
+@dataclass
+class Record:
+    """One excitation record (SI)."""
+
+    name: str
+    t: np.ndarray
+    u: np.ndarray
+    tip: np.ndarray
+    rest_tip: np.ndarray
+    dt: float
+    vel_true: np.ndarray | None = None
+    acc_true: np.ndarray | None = None
+    noise_std: float = 0.0
+
+
+def load_record(path: Path) -> Record:
+    """Load and validate one file; non-finite samples are dropped with a warning saying how many.
+
+    Raises:
+        DatasetError: missing, truncated or not an npz, missing arrays, wrong shapes, bad Δt.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DatasetError(f'{path}: no such dataset file')
+    try:
+        with np.load(path, allow_pickle=False) as d:
+            arrays = {k: d[k] for k in d.files}
+    except (zipfile.BadZipFile, OSError, ValueError, EOFError) as exc:
+        raise DatasetError(f'{path}: unreadable or truncated ({exc})') from None
+    missing = [k for k in REQUIRED if k not in arrays]
+    if missing:
+        raise DatasetError(f'{path}: missing arrays {missing}')
+    n = arrays['t'].shape[0] if arrays['t'].ndim == 1 else -1
+    if n < 10:
+        raise DatasetError(f'{path}: t must be a 1-D array of at least 10 samples, got shape {arrays["t"].shape}')
+    for key, width in WIDTH.items():
+        if key in arrays and arrays[key].shape != (n, width):
+            raise DatasetError(f'{path}: {key} must have shape ({n}, {width}), got {arrays[key].shape}')
+    if arrays['rest_tip'].shape != (3,) or not np.all(np.isfinite(arrays['rest_tip'])):
+        raise DatasetError(f'{path}: rest_tip must be 3 finite numbers, got {arrays["rest_tip"]!r}')
+    dt = float(arrays['dt'])
+    if not (np.isfinite(dt) and dt > 0):
+        raise DatasetError(f'{path}: dt must be > 0, got {dt}')
+    if not np.allclose(np.diff(arrays['t']), dt, rtol=1e-6, atol=1e-12):
+        raise DatasetError(f'{path}: t is not sampled at dt = {dt} s')
+    keys = ['t', 'u', 'tip'] + [k for k in ('vel_true', 'acc_true') if k in arrays]
+    finite = np.ones(n, dtype=bool)
+    for k in keys:
+        finite &= np.all(np.isfinite(arrays[k].reshape(n, -1)), axis=1)
+    if not finite.all():
+        bad = int((~finite).sum())
+        # the derivative estimate needs a uniform grid: keep the longest finite run
+        edges = np.flatnonzero(np.diff(np.concatenate([[0], finite.astype(int), [0]])))
+        runs = edges.reshape(-1, 2)
+        start, stop = max(runs, key=lambda r: r[1] - r[0])
+        if stop - start < 10:
+            raise DatasetError(f'{path}: fewer than 10 consecutive finite samples')
+        log.warning('%s: %d samples with NaN/Inf; keeping the longest finite run [%d, %d) (%d dropped)',
+                    path, bad, start, stop, n - (stop - start))
+        arrays = {k: (v[start:stop] if k in keys else v) for k, v in arrays.items()}
+    return Record(name=path.stem, t=arrays['t'], u=arrays['u'], tip=arrays['tip'],
+                  rest_tip=arrays['rest_tip'], dt=dt, vel_true=arrays.get('vel_true'),
+                  acc_true=arrays.get('acc_true'), noise_std=float(arrays.get('noise_std', 0.0)))
+
+
+def load_records(directory: Path, names: list[str]) -> dict[str, Record]:
+    """Load ``directory/<name>.npz`` for every name; all must share Δt and the rest pose."""
+    records = {name: load_record(Path(directory) / f'{name}.npz') for name in names}
+    first = next(iter(records.values()))
+    for r in records.values():
+        if not np.isclose(r.dt, first.dt, rtol=1e-9):
+            raise DatasetError(f'{r.name}.npz: dt = {r.dt} s differs from {first.name}.npz ({first.dt} s)')
+        if not np.allclose(r.rest_tip, first.rest_tip, atol=1e-4):
+            raise DatasetError(f'{r.name}.npz: rest_tip {r.rest_tip} differs from {first.name}.npz '
+                               f'({first.rest_tip}); all records must come from the same finger mount')
+    return records

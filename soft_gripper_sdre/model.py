@@ -1,0 +1,313 @@
+"""The learned task-space dynamics in state-dependent-coefficient form (the only torch module).
+
+State x = [X − X₀, Y − Y₀, Ẋ, Ẏ] (SI, translated so that the settled rest pose is the origin and
+f(0) = 0), input u = [u_ax0, u_ax1] [N·m]:
+
+    ẋ = A(x) x + G(x) u,   A = [[0, I], [A21(x), A22(x)]],   G = [[0], [G2(x)]],
+    vec([A21 A22]) = NN_θ1(x) ∈ R⁸,   vec(G2) = NN_θ2(x) ∈ R⁴      (vec stacks columns)
+
+each network three fully connected layers (4 → 32 → 32 → out) with ReLU between. The loss is
+eq. 18, mean ‖ẋ − A(x)x − G(x)u‖²; its first two rows are Ẋ − Ẋ ≡ 0, so only the acceleration
+rows carry information and the loss is the mean squared acceleration residual.
+
+With scaling (the default preset) the networks see x / s_x and predict scaled accelerations
+ẍ / s_a from scaled inputs u / s_u; the physical matrices follow exactly,
+A_ij = s_a,i Â_ij / s_x,j and G2_ij = s_a,i Ĝ_ij / s_u,j, so the model keeps the paper's form.
+
+:class:`SDCModel` evaluates a checkpoint with plain numpy (no torch at control time).
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+import hashlib
+import math
+from pathlib import Path
+import pickle
+import time
+from typing import Callable
+
+import numpy as np
+import torch
+from torch import nn
+
+FORMAT_VERSION = 1
+HIDDEN = 32
+DEFAULT_MODEL = Path(__file__).resolve().parent / 'models' / 'default.pt'
+
+
+class ModelFileError(ValueError):
+    """A checkpoint cannot be used; the message names the file and the reason."""
+
+
+# ----------------------------------------------------------------------------------------------
+# networks
+# ----------------------------------------------------------------------------------------------
+
+def mlp(n_in: int, n_out: int, hidden: int = HIDDEN) -> nn.Sequential:
+    """Three fully connected layers with ReLU between (none after the last)."""
+    return nn.Sequential(nn.Linear(n_in, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU(),
+                         nn.Linear(hidden, n_out))
+
+
+class SDCNet(nn.Module):
+    """NN_θ1 (A21, A22) and NN_θ2 (G2), in scaled units."""
+
+    def __init__(self, hidden: int = HIDDEN) -> None:
+        super().__init__()
+        self.a_net = mlp(4, 8, hidden)
+        self.g_net = mlp(4, 4, hidden)
+
+    def forward(self, xs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Scaled state (B, 4) → [A21 A22] (B, 2, 4) and G2 (B, 2, 2) (column-stacked vec⁻¹)."""
+        a = self.a_net(xs).reshape(-1, 4, 2).transpose(1, 2)
+        g = self.g_net(xs).reshape(-1, 2, 2).transpose(1, 2)
+        return a, g
+
+    def accel(self, xs: torch.Tensor, us: torch.Tensor) -> torch.Tensor:
+        """Scaled ẍ = [A21 A22] x + G2 u."""
+        a, g = self(xs)
+        return (a @ xs.unsqueeze(-1) + g @ us.unsqueeze(-1)).squeeze(-1)
+
+
+# ----------------------------------------------------------------------------------------------
+# training
+# ----------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class TrainSettings:
+    """A training preset. ``paper``: Adam 1e-5, 70 epochs, unscaled, as published."""
+
+    preset: str = 'default'
+    epochs: int = 300
+    lr: float = 1e-3
+    batch_size: int = 256
+    cosine: bool = True
+    scale: bool = True
+    weight_decay: float = 0.0
+    patience: int = 60
+    seed: int = 0
+    hidden: int = HIDDEN
+
+
+PRESETS = {
+    'default': TrainSettings(),
+    'paper': TrainSettings(preset='paper', epochs=70, lr=1e-5, batch_size=64, cosine=False,
+                           scale=False, patience=10**9),
+}
+
+
+@dataclass
+class TrainResult:
+    net: SDCNet
+    scales: dict[str, np.ndarray]
+    train_loss: list[float] = field(default_factory=list)
+    val_loss: list[float] = field(default_factory=list)
+    best_epoch: int = 0
+    seconds: float = 0.0
+
+
+def _scales(x: np.ndarray, u: np.ndarray, acc: np.ndarray, scale: bool) -> dict[str, np.ndarray]:
+    if not scale:
+        return {'x': np.ones(4), 'u': np.ones(2), 'acc': np.ones(2)}
+    std = lambda a: np.where(a.std(axis=0) > 0, a.std(axis=0), 1.0)  # noqa: E731
+    return {'x': std(x), 'u': std(u), 'acc': std(acc)}
+
+
+def train(x: np.ndarray, u: np.ndarray, acc: np.ndarray, x_val: np.ndarray, u_val: np.ndarray,
+          acc_val: np.ndarray, settings: TrainSettings,
+          on_epoch: Callable[[int, float, float], None] | None = None) -> TrainResult:
+    """Fit the SDC networks to accelerations (eq. 18). Seeded and deterministic.
+
+    Args:
+        x, u, acc: training states (N, 4), inputs (N, 2), acceleration labels (N, 2), SI.
+        x_val, u_val, acc_val: validation set; the weights of the best validation epoch are kept.
+        settings: the preset.
+        on_epoch: called with (epoch, train loss, validation loss) for progress display.
+    """
+    for name, a, w in (('x', x, 4), ('u', u, 2), ('acc', acc, 2), ('x_val', x_val, 4),
+                       ('u_val', u_val, 2), ('acc_val', acc_val, 2)):
+        if a.ndim != 2 or a.shape[1] != w:
+            raise ValueError(f'{name} must have shape (N, {w}), got {a.shape}')
+    torch.manual_seed(settings.seed)
+    gen = torch.Generator().manual_seed(settings.seed)
+    s = _scales(x, u, acc, settings.scale)
+    t = lambda a, k: torch.as_tensor(a / s[k], dtype=torch.float32)  # noqa: E731
+    X, U, Y = t(x, 'x'), t(u, 'u'), t(acc, 'acc')
+    Xv, Uv, Yv = t(x_val, 'x'), t(u_val, 'u'), t(acc_val, 'acc')
+    net = SDCNet(settings.hidden)
+    opt = torch.optim.Adam(net.parameters(), lr=settings.lr, weight_decay=settings.weight_decay)
+    sched = (torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=settings.epochs)
+             if settings.cosine else None)
+    result = TrainResult(net, s)
+    best, best_state, since_best = math.inf, None, 0
+    start = time.perf_counter()
+    n = X.shape[0]
+    for epoch in range(settings.epochs):
+        net.train()
+        perm = torch.randperm(n, generator=gen)
+        total = 0.0
+        for i in range(0, n, settings.batch_size):
+            idx = perm[i:i + settings.batch_size]
+            loss = ((net.accel(X[idx], U[idx]) - Y[idx]) ** 2).sum(dim=1).mean()   # eq. 18
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            total += loss.item() * idx.numel()
+        if sched is not None:
+            sched.step()
+        net.eval()
+        with torch.no_grad():
+            val = float(((net.accel(Xv, Uv) - Yv) ** 2).sum(dim=1).mean())
+        result.train_loss.append(total / n)
+        result.val_loss.append(val)
+        if on_epoch is not None:
+            on_epoch(epoch, total / n, val)
+        if val < best:
+            best, since_best, result.best_epoch = val, 0, epoch
+            best_state = {k: v.clone() for k, v in net.state_dict().items()}
+        else:
+            since_best += 1
+            if since_best >= settings.patience:
+                break
+    if best_state is not None:
+        net.load_state_dict(best_state)
+    result.seconds = time.perf_counter() - start
+    return result
+
+
+def fingerprint(*arrays: np.ndarray) -> str:
+    """sha256 over the training arrays (shape, dtype and bytes)."""
+    h = hashlib.sha256()
+    for a in arrays:
+        a = np.ascontiguousarray(a)
+        h.update(str((a.shape, a.dtype.str)).encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+# ----------------------------------------------------------------------------------------------
+# checkpoint
+# ----------------------------------------------------------------------------------------------
+
+def save_checkpoint(path: Path, result: TrainResult, *, rest_tip: np.ndarray, dt: float,
+                    settings: TrainSettings, data: dict, metrics: dict | None = None) -> Path:
+    """Write a self-describing checkpoint that ``torch.load(weights_only=True)`` can read."""
+    ckpt = {
+        'format_version': FORMAT_VERSION,
+        'architecture': {'hidden': settings.hidden, 'a_out': 8, 'g_out': 4, 'n_state': 4, 'n_input': 2},
+        'state_dict': {k: v.detach().clone() for k, v in result.net.state_dict().items()},
+        'scales': {k: torch.as_tensor(v, dtype=torch.float64) for k, v in result.scales.items()},
+        'rest_tip': torch.as_tensor(np.asarray(rest_tip, dtype=float)),
+        'dt': float(dt),
+        'settings': asdict(settings),
+        'data': data,
+        'metrics': metrics or {},
+        'history': {'train_loss': list(map(float, result.train_loss)),
+                    'val_loss': list(map(float, result.val_loss)), 'best_epoch': result.best_epoch},
+    }
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    torch.save(ckpt, path)
+    return path
+
+
+def read_checkpoint(path: Path) -> dict:
+    """Load and check a checkpoint; no code in the file is ever executed.
+
+    Raises:
+        ModelFileError: missing, unreadable or truncated, carrying pickled objects, another format
+            version, or other network sizes.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ModelFileError(f'model file {path} does not exist')
+    try:
+        ckpt = torch.load(path, map_location='cpu', weights_only=True)
+    except pickle.UnpicklingError as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else ''
+        raise ModelFileError(f'model file {path} holds objects other than tensors and plain data '
+                             f'(refused without running them): {first[:200]}') from None
+    except (RuntimeError, EOFError, OSError, ValueError) as exc:
+        raise ModelFileError(f'model file {path} is unreadable or truncated: {exc}'[:400]) from None
+    if not isinstance(ckpt, dict) or 'format_version' not in ckpt:
+        raise ModelFileError(f'model file {path} is not a soft_gripper_sdre checkpoint')
+    if ckpt['format_version'] != FORMAT_VERSION:
+        raise ModelFileError(f'model file {path} has format version {ckpt["format_version"]}, '
+                             f'this package reads version {FORMAT_VERSION}')
+    try:
+        hidden = int(ckpt['architecture']['hidden'])
+        net = SDCNet(hidden)
+        net.load_state_dict(ckpt['state_dict'])
+        for key, n in (('x', 4), ('u', 2), ('acc', 2)):
+            if tuple(ckpt['scales'][key].shape) != (n,):
+                raise ValueError(f'scale {key} has shape {tuple(ckpt["scales"][key].shape)}')
+        if tuple(ckpt['rest_tip'].shape) != (3,):
+            raise ValueError(f'rest_tip has shape {tuple(ckpt["rest_tip"].shape)}')
+    except (KeyError, RuntimeError, ValueError, TypeError) as exc:
+        raise ModelFileError(f'model file {path} does not match the network layout: {exc}'[:400]) from None
+    ckpt['net'] = net
+    return ckpt
+
+
+class SDCModel:
+    """A trained SDC model evaluated with numpy: A(x), G(x) for one state or a batch (SI).
+
+    Args:
+        path: checkpoint file; None loads the default model shipped with the package.
+    """
+
+    def __init__(self, path: Path | str | None = None) -> None:
+        self.path = Path(path) if path is not None else DEFAULT_MODEL
+        ckpt = read_checkpoint(self.path)
+        sd = {k: v.detach().double().numpy() for k, v in ckpt['state_dict'].items()}
+        self._a = [(sd[f'a_net.{i}.weight'].T.copy(), sd[f'a_net.{i}.bias'].copy()) for i in (0, 2, 4)]
+        self._g = [(sd[f'g_net.{i}.weight'].T.copy(), sd[f'g_net.{i}.bias'].copy()) for i in (0, 2, 4)]
+        s = {k: v.numpy() for k, v in ckpt['scales'].items()}
+        self._sx = s['x']
+        # physical = s_a,i · scaled_ij / s_x,j  (and / s_u,j for G2)
+        self._a_factor = s['acc'][:, None] / s['x'][None, :]
+        self._g_factor = s['acc'][:, None] / s['u'][None, :]
+        self.rest_tip = ckpt['rest_tip'].numpy().astype(float)
+        self.dt = float(ckpt['dt'])
+        self.settings = ckpt['settings']
+        self.data = ckpt['data']
+        self.metrics = ckpt['metrics']
+        self.history = ckpt['history']
+
+    @staticmethod
+    def _mlp(layers, h):
+        (w1, b1), (w2, b2), (w3, b3) = layers
+        h = np.maximum(h @ w1 + b1, 0.0)
+        h = np.maximum(h @ w2 + b2, 0.0)
+        return h @ w3 + b3
+
+    def AG(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """A(x) (n, 4, 4) and G(x) (n, 4, 2) for states x (4,) or (n, 4)."""
+        x = np.asarray(x, dtype=float)
+        if x.ndim == 1:
+            x = x[None]
+        if x.ndim != 2 or x.shape[1] != 4:
+            raise ValueError(f'x must have shape (4,) or (n, 4), got {x.shape}')
+        xs = x / self._sx
+        n = x.shape[0]
+        a = self._mlp(self._a, xs).reshape(n, 4, 2).transpose(0, 2, 1) * self._a_factor
+        g = self._mlp(self._g, xs).reshape(n, 2, 2).transpose(0, 2, 1) * self._g_factor
+        A = np.zeros((n, 4, 4))
+        A[:, 0, 2] = A[:, 1, 3] = 1.0          # Ẋ, Ẏ rows: [0 I]
+        A[:, 2:, :] = a
+        G = np.zeros((n, 4, 2))
+        G[:, 2:, :] = g
+        return A, G
+
+    def A(self, x: np.ndarray) -> np.ndarray:
+        return self.AG(x)[0]
+
+    def G(self, x: np.ndarray) -> np.ndarray:
+        return self.AG(x)[1]
+
+    def xdot(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """ẋ = A(x) x + G(x) u for (n, 4) states and (n, 2) inputs."""
+        x = np.atleast_2d(np.asarray(x, dtype=float))
+        u = np.atleast_2d(np.asarray(u, dtype=float))
+        A, G = self.AG(x)
+        return np.einsum('nij,nj->ni', A, x) + np.einsum('nij,nj->ni', G, u)

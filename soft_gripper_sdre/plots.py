@@ -1,0 +1,132 @@
+"""The paper's figures: training loss (2), predicted vs true acceleration (3), tracking (5–7).
+
+Input is plain arrays (SI), so the same functions draw an in-process run and a recorded bag.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use('Agg')
+import matplotlib.pyplot as plt  # noqa: E402  (the backend must be chosen first)
+import numpy as np  # noqa: E402
+
+AXES = ('X', 'Y')
+
+
+def _grid(n_fingers: int, title: str):
+    fig, axes = plt.subplots(n_fingers, 2, figsize=(10, 2.1 * n_fingers + 0.8), sharex=True,
+                             squeeze=False)
+    fig.suptitle(title)
+    return fig, axes
+
+
+def _finish(fig, axes, path: Path) -> Path:
+    for ax in axes[-1]:
+        ax.set_xlabel('time [s]')
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def plot_positions(t, pos, ref_pos, path, finger_names=None, contact=None) -> Path:
+    """Figure 5: desired (solid) vs actual (dashed) tip position per finger and axis, in mm
+    relative to the reference's starting point; shaded where the finger touches the cube."""
+    pos, ref_pos = np.asarray(pos), np.asarray(ref_pos)
+    n = pos.shape[1]
+    names = finger_names or [f'finger_{i}' for i in range(n)]
+    fig, axes = _grid(n, 'Tip position: desired (solid) vs actual (dashed)')
+    origin = ref_pos[0]
+    for i in range(n):
+        for a in range(2):
+            ax = axes[i, a]
+            ax.plot(t, 1e3 * (ref_pos[:, i, a] - origin[i, a]), 'C0-', lw=1.4, label='desired')
+            ax.plot(t, 1e3 * (pos[:, i, a] - origin[i, a]), 'C1--', lw=1.2, label='actual')
+            if contact is not None and np.any(contact[:, i]):
+                ax.fill_between(t, 0, 1, where=contact[:, i], color='0.85', alpha=0.6,
+                                transform=ax.get_xaxis_transform(), label='cube contact')
+            ax.set_ylabel(f'{names[i]} {AXES[a]} [mm]')
+            ax.grid(alpha=0.3)
+    axes[0, 0].legend(loc='best', fontsize=8)
+    return _finish(fig, axes, path)
+
+
+def plot_velocities(t, vel, ref_vel, path, finger_names=None) -> Path:
+    """Figure 6: desired (solid) vs actual (dashed) tip velocity per finger and axis, mm/s."""
+    vel, ref_vel = np.asarray(vel), np.asarray(ref_vel)
+    n = vel.shape[1]
+    names = finger_names or [f'finger_{i}' for i in range(n)]
+    fig, axes = _grid(n, 'Tip velocity: desired (solid) vs actual (dashed)')
+    for i in range(n):
+        for a in range(2):
+            ax = axes[i, a]
+            ax.plot(t, 1e3 * ref_vel[:, i, a], 'C0-', lw=1.4, label='desired')
+            ax.plot(t, 1e3 * vel[:, i, a], 'C1--', lw=1.0, label='actual')
+            ax.set_ylabel(f'{names[i]} d{AXES[a]}/dt [mm/s]')
+            ax.grid(alpha=0.3)
+    axes[0, 0].legend(loc='best', fontsize=8)
+    return _finish(fig, axes, path)
+
+
+def plot_torques(t, u, path, finger_names=None, u_max=None) -> Path:
+    """Figure 7: the two input torques per finger [mN·m]."""
+    u = np.asarray(u)
+    n = u.shape[1]
+    names = finger_names or [f'finger_{i}' for i in range(n)]
+    fig, axes = plt.subplots(n, 1, figsize=(10, 1.9 * n + 0.8), sharex=True, squeeze=False)
+    axes = axes[:, 0]
+    fig.suptitle('Control torques')
+    for i in range(n):
+        ax = axes[i]
+        ax.plot(t, 1e3 * u[:, i, 0], 'C2-', lw=1.0, label='u_ax0 (grasp axis)')
+        ax.plot(t, 1e3 * u[:, i, 1], 'C3-', lw=1.0, label='u_ax1 (side axis)')
+        if u_max is not None:
+            for s in (-1, 1):
+                ax.axhline(s * 1e3 * u_max, color='0.5', lw=0.8, ls=':')
+        ax.set_ylabel(f'{names[i]} [mN·m]')
+        ax.grid(alpha=0.3)
+    axes[0].legend(loc='best', fontsize=8)
+    axes[-1].set_xlabel('time [s]')
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return Path(path)
+
+
+def plot_loss(train_loss, val_loss, path, title='Training loss (eq. 18)') -> Path:
+    """Figure 2: training and validation loss per epoch (log scale)."""
+    fig, ax = plt.subplots(figsize=(6.5, 4))
+    epochs = np.arange(1, len(train_loss) + 1)
+    ax.semilogy(epochs, train_loss, label='training (u1–u3 …)')
+    ax.semilogy(epochs, val_loss, label='validation (u4)')
+    ax.set_xlabel('epoch')
+    ax.set_ylabel('mean squared residual (scaled units)')
+    ax.set_title(title)
+    ax.grid(alpha=0.3, which='both')
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return Path(path)
+
+
+def plot_accel(t, acc_true, acc_pred, path, r2=None, title='Validation (u4): predicted vs true') -> Path:
+    """Figure 3: predicted (dashed) vs true (solid) Ẍ, Ÿ [m/s²]."""
+    fig, axes = plt.subplots(2, 1, figsize=(9, 5), sharex=True)
+    for a, name in enumerate(('Ẍ', 'Ÿ')):
+        ax = axes[a]
+        ax.plot(t, acc_true[:, a], 'C0-', lw=1.0, label='true')
+        ax.plot(t, acc_pred[:, a], 'C1--', lw=1.0, label='predicted')
+        label = f'{name} [m/s²]' + (f'   R² = {r2[a]:.3f}' if r2 is not None else '')
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+    axes[0].legend(loc='upper right', fontsize=8)
+    axes[0].set_title(title)
+    axes[1].set_xlabel('time [s]')
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return Path(path)

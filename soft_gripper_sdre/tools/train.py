@@ -1,0 +1,180 @@
+"""Learn the SDC model from excitation data: derivative estimates, training, validation, figures.
+
+    python -m soft_gripper_sdre.tools.train --data data/excitation --out runs/train [--preset paper]
+
+Writes OUT/model.pt (checkpoint), OUT/metrics.json, OUT/fig2_loss.png (the paper's Figure 2) and
+OUT/fig3_accel_u4.png (Figure 3). ``--install`` also copies the checkpoint and its metrics into the
+package as the shipped default model. Training labels are the KF + RTS estimates from the measured
+tip positions; validation (u4) is scored against the simulator's true accelerations.
+"""
+from __future__ import annotations
+
+import argparse
+from dataclasses import replace
+import itertools
+import json
+import logging
+from pathlib import Path
+import shutil
+import sys
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from soft_gripper_sdre import derivatives
+from soft_gripper_sdre.dataset import DatasetError, Record, load_records
+from soft_gripper_sdre.metrics import r2_score
+from soft_gripper_sdre.model import DEFAULT_MODEL, PRESETS, SDCModel, fingerprint, save_checkpoint, train
+from soft_gripper_sdre.plots import plot_accel, plot_loss
+
+#: training signals per data variant; validation is always u4
+DATA_VARIANTS = {'paper': ('u1', 'u2', 'u3'), 'identifying': ('u1', 'u2', 'u3', 'x1', 'x2')}
+VALIDATION = 'u4'
+
+
+def states(record: Record, jerk_psd: float) -> dict[str, np.ndarray]:
+    """Translated state x = [X−X₀, Y−Y₀, Ẋ, Ẏ], input and acceleration labels from the KF + RTS."""
+    pos, vel, acc = derivatives.estimate_kinematics(record.t, record.tip[:, :2], jerk_psd,
+                                                    record.noise_std, smooth=True)
+    x = np.hstack([pos - record.rest_tip[:2], vel])
+    return {'x': x, 'u': record.u, 'acc': acc, 'vel': vel}
+
+
+def poly_features(x: np.ndarray, u: np.ndarray, degree: int = 3) -> np.ndarray:
+    """All monomials of (x, u) up to ``degree`` (with the constant)."""
+    z = np.hstack([x, u])
+    cols = [np.ones(len(z))]
+    for d in range(1, degree + 1):
+        for combo in itertools.combinations_with_replacement(range(z.shape[1]), d):
+            cols.append(np.prod(z[:, combo], axis=1))
+    return np.stack(cols, axis=1)
+
+
+def low_frequency_share(acc: np.ndarray, dt: float, cutoff: float = 10.0) -> list[float]:
+    """Share of each column's variance below ``cutoff`` Hz."""
+    a = acc - acc.mean(axis=0)
+    power = np.abs(np.fft.rfft(a, axis=0)) ** 2
+    f = np.fft.rfftfreq(len(a), dt)
+    return (power[f < cutoff].sum(axis=0) / power.sum(axis=0)).tolist()
+
+
+def _usage_error(parser, message):
+    parser.print_usage(sys.stderr)
+    print(f'{parser.prog}: error: {message}', file=sys.stderr)
+    raise SystemExit(2)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.train',
+                                     description=__doc__.split('\n\n')[0])
+    parser.add_argument('--data', required=True, type=Path, help='directory with <signal>.npz files')
+    parser.add_argument('--out', required=True, type=Path, help='output directory')
+    parser.add_argument('--preset', choices=sorted(PRESETS), default='default')
+    parser.add_argument('--variant', choices=sorted(DATA_VARIANTS), default=None,
+                        help='training signals: identifying (default preset) or paper (u1..u3)')
+    parser.add_argument('--seed', type=int, default=0)
+    parser.add_argument('--epochs', type=int, default=None, help='override the preset')
+    parser.add_argument('--jerk-psd', type=float, default=None,
+                        help='KF/RTS white-jerk intensity; default: tuned by likelihood on the data')
+    parser.add_argument('--install', action='store_true',
+                        help=f'copy the checkpoint to the package as the shipped model ({DEFAULT_MODEL.name})')
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format='%(levelname)s %(message)s')
+    torch.set_num_threads(1)
+
+    settings = replace(PRESETS[args.preset], seed=args.seed)
+    if args.epochs is not None:
+        if args.epochs < 1:
+            _usage_error(parser, '--epochs must be >= 1')
+        settings = replace(settings, epochs=args.epochs)
+    variant = args.variant or ('paper' if args.preset == 'paper' else 'identifying')
+    names = list(DATA_VARIANTS[variant]) + [VALIDATION]
+    try:
+        records = load_records(args.data, names)
+    except DatasetError as exc:
+        _usage_error(parser, str(exc))
+    try:
+        args.out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        _usage_error(parser, f'cannot create output directory {args.out}: {exc.strerror}')
+
+    first = records[names[0]]
+    jerk = args.jerk_psd
+    if jerk is None:
+        seg = slice(0, min(2000, first.t.size))
+        jerk = derivatives.tune_jerk_psd(first.t[seg], first.tip[seg, :2], first.noise_std,
+                                         np.logspace(1, 7, 7))
+    print(f'KF/RTS white-jerk intensity q = {jerk:g} (m/s³)²/Hz')
+    est = {}
+    deriv_err = {}
+    for name in tqdm(names, desc='KF + RTS', unit='signal'):
+        est[name] = states(records[name], jerk)
+        r = records[name]
+        if r.acc_true is not None:
+            deriv_err[name] = derivatives.estimate_errors(est[name]['vel'], est[name]['acc'],
+                                                          r.vel_true[:, :2], r.acc_true[:, :2])
+    train_names = names[:-1]
+    x = np.vstack([est[n]['x'] for n in train_names])
+    u = np.vstack([est[n]['u'] for n in train_names])
+    acc = np.vstack([est[n]['acc'] for n in train_names])
+    val = est[VALIDATION]
+
+    bar = tqdm(total=settings.epochs, desc=f'train ({args.preset})', unit='epoch')
+
+    def on_epoch(epoch, tl, vl):
+        bar.update(1)
+        bar.set_postfix(train=f'{tl:.3g}', val=f'{vl:.3g}')
+
+    result = train(x, u, acc, val['x'], val['u'], val['acc'], settings, on_epoch)
+    bar.close()
+
+    data_info = {'variant': variant, 'train_signals': train_names, 'validation': VALIDATION,
+                 'fingerprint': fingerprint(x, u, acc), 'jerk_psd': float(jerk),
+                 'noise_std': float(first.noise_std)}
+    ckpt_path = save_checkpoint(args.out / 'model.pt', result, rest_tip=first.rest_tip, dt=first.dt,
+                                settings=settings, data=data_info)
+    model = SDCModel(ckpt_path)
+
+    # validation against the simulator's TRUE accelerations
+    v_rec = records[VALIDATION]
+    acc_true = v_rec.acc_true[:, :2] if v_rec.acc_true is not None else val['acc']
+    pred = model.xdot(val['x'], val['u'])[:, 2:]
+    r2 = r2_score(acc_true, pred).tolist()
+    feats = poly_features(x, u)
+    coef, *_ = np.linalg.lstsq(feats, acc, rcond=None)
+    r2_ls = r2_score(acc_true, poly_features(val['x'], val['u']) @ coef).tolist()
+    _, G = model.AG(np.zeros(4))
+    G2 = G[0, 2:, :]
+    angles = [float(np.degrees(np.arctan2(G2[1, j], G2[0, j]))) for j in range(2)]
+    metrics = {
+        'preset': args.preset, 'variant': variant, 'epochs_run': len(result.train_loss),
+        'best_epoch': result.best_epoch, 'train_seconds': round(result.seconds, 1),
+        'u4_r2_true': {'X': r2[0], 'Y': r2[1]},
+        'u4_r2_ls_baseline': {'X': r2_ls[0], 'Y': r2_ls[1]},
+        'u4_true_variance_below_10hz': dict(zip('XY', low_frequency_share(acc_true, v_rec.dt))),
+        'derivative_errors': deriv_err,
+        'G2_at_origin': G2.tolist(), 'G2_column_angles_deg': angles,
+        'final_train_loss': result.train_loss[-1], 'best_val_loss': min(result.val_loss),
+    }
+    save_checkpoint(ckpt_path, result, rest_tip=first.rest_tip, dt=first.dt, settings=settings,
+                    data=data_info, metrics=metrics)
+    (args.out / 'metrics.json').write_text(json.dumps(metrics, indent=2))
+    plot_loss(result.train_loss, result.val_loss, args.out / 'fig2_loss.png',
+              title=f'Training loss, {args.preset} preset ({variant} data)')
+    plot_accel(v_rec.t, acc_true, pred, args.out / 'fig3_accel_u4.png', r2=r2,
+               title=f'u4 validation, {args.preset} preset: predicted (dashed) vs true (solid)')
+    print(f'u4 R² vs true acceleration: X {r2[0]:.3f}  Y {r2[1]:.3f}   '
+          f'(3rd-order least squares: X {r2_ls[0]:.3f}  Y {r2_ls[1]:.3f})')
+    print(f'G2 at the origin [m/s² per N·m]: {np.round(G2, 1).tolist()}')
+    print(f'training: {len(result.train_loss)} epochs in {result.seconds:.1f} s; wrote {args.out}')
+    if args.install:
+        DEFAULT_MODEL.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(ckpt_path, DEFAULT_MODEL)
+        DEFAULT_MODEL.with_suffix('.json').write_text(json.dumps(metrics, indent=2))
+        print(f'installed as {DEFAULT_MODEL}')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
