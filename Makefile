@@ -37,12 +37,19 @@ model: $(STAMP)
 bench: $(STAMP)
 	$(PY) -m soft_gripper_sdre.tools.bench --write BENCHMARKS.md
 
+# The lock is pip's own resolution (a dry-run report), so every line names a
+# distribution the index serves (pip freeze would also list the dist-info
+# names bundled inside the ros-* wheels, which no index has).
 lock:
 	rm -rf /tmp/sgs-lock && $(PYTHON) -m venv /tmp/sgs-lock
-	/tmp/sgs-lock/bin/pip install --quiet -r requirements.in
-	( echo '# Resolved lock of requirements.in (pip freeze of a fresh venv, Python 3.11, x86_64).'; \
+	/tmp/sgs-lock/bin/pip install --quiet --upgrade pip
+	/tmp/sgs-lock/bin/pip install --quiet --dry-run --ignore-installed \
+	    --report /tmp/sgs-lock/report.json -r requirements.in
+	( echo '# Resolved lock of requirements.in (pip dry-run report, Python 3.11, x86_64).'; \
 	  echo '# Regenerate: make lock'; \
-	  /tmp/sgs-lock/bin/pip freeze | sed 's/^torch==\(.*\)+cpu/torch==\1/' ) > requirements.txt
+	  $(PYTHON) -c 'import json; r = json.load(open("/tmp/sgs-lock/report.json")); \
+	    print("\n".join(sorted((i["metadata"]["name"] + "==" + i["metadata"]["version"].split("+")[0] \
+	    for i in r["install"]), key=str.lower)))' ) > requirements.txt
 
 clean:
 	rm -rf $(VENV) build install log *.egg-info

@@ -1,0 +1,113 @@
+"""The SDRE law against closed forms; the fast path against the reference; fallbacks."""
+import numpy as np
+import pytest
+from scipy.linalg import solve_continuous_are
+
+from soft_gripper_sdre.sdre import Check, SdreController, care, paper_weights_si, sdre_gains
+
+A_DI = np.array([[0, 0, 1, 0], [0, 0, 0, 1], [0, 0, 0, 0], [0, 0, 0, 0]], dtype=float)
+G_DI = np.vstack([np.zeros((2, 2)), np.eye(2)])
+
+
+def test_scalar_lqr_gain_is_sqrt_q_over_r():
+    q, r = 7.0, 0.3
+    P = care(np.zeros((1, 1)), np.ones((1, 1)), np.array([[q]]), np.array([[r]]))
+    K = -P / r
+    assert K[0, 0] == pytest.approx(-np.sqrt(q / r))
+
+
+def test_double_integrator_closed_form():
+    q1, q2, r = 4.0, 1.0, 0.25
+    Q, R = np.diag([q1, q1, q2, q2]), np.diag([r, r])
+    K, Ks, P = sdre_gains(A_DI, G_DI, Q, R)
+    # per axis: p12 = √(q1 r), p22 = √(r (q2 + 2 p12)), p11 = p12 p22 / r
+    p12 = np.sqrt(q1 * r)
+    p22 = np.sqrt(r * (q2 + 2 * p12))
+    p11 = p12 * p22 / r
+    np.testing.assert_allclose(P[0, 0], p11)
+    np.testing.assert_allclose(P[0, 2], p12)
+    np.testing.assert_allclose(P[2, 2], p22)
+    np.testing.assert_allclose(K[0], [-p12 / r, 0, -p22 / r, 0])
+
+
+def test_constant_reference_reached_on_a_double_integrator():
+    """For ẍ = u the law's steady state x = −A_cl⁻¹ G K_s x_d equals x_d in position."""
+    Q, R = np.diag([100.0, 100.0, 1.0, 1.0]), np.diag([0.1, 0.1])
+    K, Ks, _ = sdre_gains(A_DI, G_DI, Q, R)
+    A_cl = A_DI + G_DI @ K
+    x_d = np.array([0.3, -0.2, 0.0, 0.0])
+    x_ss = -np.linalg.solve(A_cl, G_DI @ Ks @ x_d)
+    np.testing.assert_allclose(x_ss[:2], x_d[:2], atol=1e-9)
+
+
+def _slowly_varying_plant(k, n=4):
+    rng = np.random.default_rng(0)
+    base21 = rng.normal(size=(n, 2, 4)) * 5
+    A = np.zeros((n, 4, 4))
+    A[:, 0, 2] = A[:, 1, 3] = 1.0
+    A[:, 2:, :] = base21 + 0.5 * np.sin(0.01 * k)
+    G = np.zeros((n, 4, 2))
+    G[:, 2:, :] = np.array([[1.0, 30.0], [-30.0, 1.0]]) * (1 + 0.1 * np.cos(0.01 * k))
+    return A, G
+
+
+def test_fast_path_matches_reference_on_a_sequence():
+    Q, R = np.diag([4e6, 4e6, 4e3, 4e3]), np.diag([1.6e4, 1.6e4])
+    fast = SdreController(Q, R, 1.0, method='fast')
+    ref = SdreController(Q, R, 1.0, method='reference')
+    rng = np.random.default_rng(1)
+    for k in range(200):
+        A, G = _slowly_varying_plant(k)
+        x, xd = rng.normal(size=(4, 4)) * 1e-3, rng.normal(size=(4, 4)) * 1e-3
+        a, b = fast.step(A, G, x, xd), ref.step(A, G, x, xd)
+        assert a.ok.all() and b.ok.all()
+        np.testing.assert_allclose(a.u, b.u, rtol=1e-6, atol=1e-12)
+    assert fast.exact_solves <= 8            # cold start, then Newton–Kleinman
+    assert fast.fallbacks == 0
+
+
+def test_singular_input_matrix_falls_back_to_last_valid_gains():
+    Q, R = np.diag([10.0, 10.0, 1.0, 1.0]), np.diag([1.0, 1.0])
+    for method in ('fast', 'reference'):
+        c = SdreController(Q, R, 0.5, n=1, method=method)
+        good = c.step(A_DI[None], G_DI[None], np.ones((1, 4)) * 0.1, np.zeros((1, 4)))
+        G_bad = np.zeros((1, 4, 2))
+        G_bad[0, 2:, :] = [[1.0, 1.0], [1.0, 1.0]]          # rank 1: Y and X not independently actuated
+        out = c.step(A_DI[None], G_bad, np.ones((1, 4)) * 0.1, np.zeros((1, 4)))
+        assert out.fallback[0] and not out.ok[0] and out.failed_checks[0] & Check.STABILIZABLE
+        np.testing.assert_allclose(out.K, good.K)
+        assert np.all(np.isfinite(out.u)) and c.fallbacks == 1
+
+
+def test_nonfinite_model_output_gives_finite_bounded_torque():
+    c = SdreController(np.eye(4), np.eye(2), 0.2, n=2)
+    A = np.stack([A_DI, A_DI])
+    A[1, 2, 0] = np.nan
+    out = c.step(A, np.stack([G_DI, G_DI]), np.ones((2, 4)), np.zeros((2, 4)))
+    assert np.all(np.isfinite(out.u)) and np.all(np.abs(out.u) <= 0.2)
+    assert out.ok[0] and out.failed_checks[1] & Check.NONFINITE
+    np.testing.assert_array_equal(out.u[1], 0.0)     # no valid gains yet: zero torque
+
+
+def test_saturation():
+    c = SdreController(np.eye(4) * 1e4, np.eye(2), [0.1, 0.2], n=1)
+    out = c.step(A_DI[None], G_DI[None], np.array([[1.0, -1.0, 0, 0]]), np.zeros((1, 4)))
+    np.testing.assert_allclose(np.abs(out.u), [[0.1, 0.2]])
+    assert out.saturated.all()
+
+
+def test_paper_weights_in_si():
+    Q, R = paper_weights_si()
+    np.testing.assert_allclose(np.diag(Q), 800.0)
+    np.testing.assert_allclose(np.diag(R), 16000.0)
+
+
+@pytest.mark.parametrize('Q, R, u_max, match', [
+    (-np.eye(4), np.eye(2), 1.0, 'Q must be symmetric positive semi-definite'),
+    (np.eye(3), np.eye(2), 1.0, 'Q must be'),
+    (np.eye(4), np.zeros((2, 2)), 1.0, 'R must be symmetric positive definite'),
+    (np.eye(4), np.eye(2), 0.0, 'u_max'),
+])
+def test_bad_weights(Q, R, u_max, match):
+    with pytest.raises(ValueError, match=match):
+        SdreController(Q, R, u_max)
