@@ -58,7 +58,11 @@ def load_record(path: Path) -> Record:
             raise DatasetError(f'{path}: {key} must have shape ({n}, {width}), got {arrays[key].shape}')
     if arrays['rest_tip'].shape != (3,) or not np.all(np.isfinite(arrays['rest_tip'])):
         raise DatasetError(f'{path}: rest_tip must be 3 finite numbers, got {arrays["rest_tip"]!r}')
-    dt = float(arrays['dt'])
+    try:
+        dt = float(arrays['dt'].item())
+        noise_std = float(arrays['noise_std'].item()) if 'noise_std' in arrays else 0.0
+    except (ValueError, TypeError) as exc:
+        raise DatasetError(f'{path}: dt and noise_std must be single numbers ({exc})') from None
     if not (np.isfinite(dt) and dt > 0):
         raise DatasetError(f'{path}: dt must be > 0, got {dt}')
     if not np.allclose(np.diff(arrays['t']), dt, rtol=1e-6, atol=1e-12):
@@ -72,6 +76,8 @@ def load_record(path: Path) -> Record:
         # the derivative estimate needs a uniform grid: keep the longest finite run
         edges = np.flatnonzero(np.diff(np.concatenate([[0], finite.astype(int), [0]])))
         runs = edges.reshape(-1, 2)
+        if len(runs) == 0:
+            raise DatasetError(f'{path}: fewer than 10 consecutive finite samples (every sample holds NaN/Inf)')
         start, stop = max(runs, key=lambda r: r[1] - r[0])
         if stop - start < 10:
             raise DatasetError(f'{path}: fewer than 10 consecutive finite samples')
@@ -80,7 +86,7 @@ def load_record(path: Path) -> Record:
         arrays = {k: (v[start:stop] if k in keys else v) for k, v in arrays.items()}
     return Record(name=path.stem, t=arrays['t'], u=arrays['u'], tip=arrays['tip'],
                   rest_tip=arrays['rest_tip'], dt=dt, vel_true=arrays.get('vel_true'),
-                  acc_true=arrays.get('acc_true'), noise_std=float(arrays.get('noise_std', 0.0)))
+                  acc_true=arrays.get('acc_true'), noise_std=noise_std)
 
 
 def load_records(directory: Path, names: list[str]) -> dict[str, Record]:

@@ -60,7 +60,7 @@ def estimate_kinematics(t: np.ndarray, pos: np.ndarray, jerk_psd: float, meas_st
         kf = _filter(dt, jerk_psd, meas_std)
         kf.x = np.array([[pos[0, j]], [0.0], [0.0]])
         kf.P = np.diag([kf.R[0, 0], 1.0, 1e3])
-        means, covs, _, _ = kf.batch_filter(pos[:, j])
+        means, covs, _, _ = kf.batch_filter(pos[:, j], update_first=True)  # x₀ is the state at t₀
         if smooth:
             means, _, _, _ = kf.rts_smoother(means, covs)
         out[:, :, j] = means[:, :, 0].T
