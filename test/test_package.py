@@ -70,3 +70,13 @@ def test_colcon_build_installs_every_node(tmp_path):
     assert (install / 'share' / 'ament_index' / 'resource_index' / 'packages' / 'soft_gripper_sdre').is_file()
     assert (install / 'share' / 'soft_gripper_sdre' / 'package.xml').is_file()
     assert list((install / 'share' / 'soft_gripper_sdre' / 'config').glob('*.yaml'))
+
+
+@pytest.mark.parametrize('node', NODES)
+def test_config_file_holds_every_declared_default(node):
+    """config/<node>.yaml is exactly the node's declared parameters with their defaults."""
+    import importlib
+    from soft_gripper_sdre.nodes.params import to_yaml
+    module = importlib.import_module(f'soft_gripper_sdre.nodes.{node}')
+    assert yaml.safe_load((ROOT / 'config' / f'{node}.yaml').read_text()) == \
+        yaml.safe_load(to_yaml(node, module.PARAMS))

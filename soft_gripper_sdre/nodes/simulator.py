@@ -54,6 +54,8 @@ PARAMS = (
           0.0, 1e6, read_only=True),
     Param('startup_timeout', 30.0, 'wall time to wait for a command publisher and a tip subscriber '
           'before the first step', 's', 0.0, 600.0, read_only=True),
+    Param('min_tip_subscribers', 1, 'start-up: tip_positions subscribers to wait for (the demo waits '
+          'for the estimator, the trajectory node and the recorder)', '', 0, 100, read_only=True),
     Param('state_rate', 100.0, 'rate of joint_states, cube_pose and cube_contacts in sim time', 'Hz',
           1.0, 1000.0, read_only=True),
 )
@@ -107,12 +109,15 @@ class SimulatorNode(Node):
 
     # -- start-up ----------------------------------------------------------------------------
     def _try_start(self) -> None:
-        ready = self.pub_tips.get_subscription_count() > 0 and self.sub_cmd.get_publisher_count() > 0
+        ready = (self.pub_tips.get_subscription_count() >= self.p['min_tip_subscribers']
+                 and self.sub_cmd.get_publisher_count() > 0)
         if not ready and time.monotonic() < self._startup_deadline:
             return
         if not ready:
-            self.get_logger().warning('starting without a controller: no torque_commands publisher '
-                                      'or tip_positions subscriber appeared within startup_timeout')
+            self.get_logger().warning(
+                f'starting with an incomplete graph: {self.sub_cmd.get_publisher_count()} torque_commands '
+                f'publishers and {self.pub_tips.get_subscription_count()} tip_positions subscribers '
+                'after startup_timeout')
         self._startup_timer.cancel()
         self.started = True
         if self.p['mode'] == 'lockstep':

@@ -37,6 +37,11 @@ TOPIC_TYPES = {
 #: the control loop: reliable, so lockstep never loses a period; a small queue absorbs bursts
 LOOP_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50,
                       reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
+#: the grasp reference: a late-joining controller still gets the last horizons (transient local),
+#: so start-up order between the trajectory node and the controller does not matter
+REFERENCE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
+                           reliability=ReliabilityPolicy.RELIABLE,
+                           durability=DurabilityPolicy.TRANSIENT_LOCAL)
 #: slower streams (joint states, cube pose, diagnostics)
 STREAM_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50,
                         reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)

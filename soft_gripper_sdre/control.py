@@ -1,0 +1,118 @@
+"""Task-space tracking control of the four fingers with a learned SDC model (no ROS).
+
+:class:`TrackingController` is what the controller node wraps: it takes each finger's estimated
+tip position and velocity and its reference in the finger's base frame (SI, untranslated), moves
+both into the model's translated coordinates (origin at the settled rest pose, where f(0) = 0),
+
+    x   = [X − X₀, Y − Y₀, Ẋ, Ẏ],        x_d = [X_d − X₀, Y_d − Y₀, Ẋ_d, Ẏ_d],
+
+queries A(x), G(x) from the model for all fingers at once and applies the SDRE tracking law of
+:mod:`soft_gripper_sdre.sdre` (u = K(x) x + K_s(x) x_d, saturated). One model serves every
+finger: each finger is controlled in its own base frame with its own copy of the same dynamics.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from soft_gripper_sdre.sdre import SdreController, SdreStep, paper_weights_si
+
+#: named weight presets, SI (positions in m, velocities in m/s, torques in N·m)
+WEIGHT_PRESETS = ('default', 'paper')
+
+
+@dataclass(frozen=True)
+class Weights:
+    """Diagonal SDRE weights in SI: Q = diag(q_pos, q_pos, q_vel, q_vel), R = diag(r, r)."""
+
+    q_pos: float
+    q_vel: float
+    r: float
+
+    def __post_init__(self) -> None:
+        for name in ('q_pos', 'q_vel'):
+            v = getattr(self, name)
+            if not np.isfinite(v) or v < 0.0:
+                raise ValueError(f'{name} must be finite and >= 0 (Q positive semi-definite), got {v!r}')
+        if not np.isfinite(self.r) or self.r <= 0.0:
+            raise ValueError(f'r must be finite and > 0 (R positive definite), got {self.r!r}')
+
+    @property
+    def Q(self) -> np.ndarray:
+        return np.diag([self.q_pos, self.q_pos, self.q_vel, self.q_vel])
+
+    @property
+    def R(self) -> np.ndarray:
+        return np.diag([self.r, self.r])
+
+
+def weights_preset(name: str) -> Weights:
+    """The named weights: ``'paper'`` = Q = diag(2,2,2,2), R = diag(0.1,0.1) in sim units
+    (barely moves this finger), ``'default'`` = tuned for tracking on this plant."""
+    if name == 'paper':
+        Q, R = paper_weights_si()
+        return Weights(float(Q[0, 0]), float(Q[2, 2]), float(R[0, 0]))
+    if name == 'default':
+        return Weights(**DEFAULT_WEIGHTS)
+    raise ValueError(f'unknown weights preset {name!r}; known: {WEIGHT_PRESETS}')
+
+
+#: tuned defaults (SI); see README "Tuning" for the sweep that chose them
+DEFAULT_WEIGHTS = dict(q_pos=1.0e6, q_vel=0.0, r=1.6e4)
+
+
+class TrackingController:
+    """SDRE tracking of every finger with one learned SDC model.
+
+    Args:
+        model: object with ``AG(x) -> (A (n,4,4), G (n,4,2))`` and ``rest_tip`` (3,) [m] (an
+            :class:`soft_gripper_sdre.model.SDCModel`).
+        weights: SDRE weights (SI).
+        u_max: torque saturation per input [N·m].
+        n_fingers: number of fingers controlled together.
+        method: ``'fast'`` (batched warm-started Newton–Kleinman) or ``'reference'`` (scipy).
+    """
+
+    def __init__(self, model, weights: Weights, u_max: float, n_fingers: int = 4,
+                 method: str = 'fast') -> None:
+        self.model = model
+        self.weights = weights
+        self.n_fingers = int(n_fingers)
+        rest = np.asarray(model.rest_tip, dtype=float).reshape(-1)
+        if rest.size < 2 or not np.all(np.isfinite(rest)):
+            raise ValueError(f'model.rest_tip must hold a finite rest position, got {model.rest_tip!r}')
+        self._origin = rest[:2].copy()
+        self.sdre = SdreController(weights.Q, weights.R, u_max, n=self.n_fingers, method=method)
+        self._x = np.zeros((self.n_fingers, 4))
+        self._xd = np.zeros((self.n_fingers, 4))
+
+    @property
+    def origin(self) -> np.ndarray:
+        """(2,) rest tip position the model's coordinates are translated by [m]."""
+        return self._origin
+
+    def reset(self) -> None:
+        """Forget warm starts and last valid gains (e.g. after a clock jump)."""
+        self.sdre.reset()
+
+    def compute(self, pos: np.ndarray, vel: np.ndarray, ref_pos: np.ndarray,
+                ref_vel: np.ndarray) -> SdreStep:
+        """Torques for every finger.
+
+        Args:
+            pos, vel: (n, 2) estimated tip position [m] and velocity [m/s] in each base frame.
+            ref_pos, ref_vel: (n, 2) reference position and velocity, same frames.
+
+        Returns:
+            the SDRE step (``u`` (n, 2) [N·m], gains, checks, fallbacks).
+        """
+        x, xd = self._x, self._xd
+        x[:, :2] = pos
+        x[:, :2] -= self._origin                  # translated coordinates: f(0) = 0 at rest
+        x[:, 2:] = vel
+        xd[:, :2] = ref_pos
+        xd[:, :2] -= self._origin
+        xd[:, 2:] = ref_vel
+        A, G = self.model.AG(x)
+        return self.sdre.step(A, G, x, xd)

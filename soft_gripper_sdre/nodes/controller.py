@@ -1,0 +1,225 @@
+"""The controller node: SDRE tracking of all four fingers with the learned SDC model.
+
+Subscribes ``state_estimate`` (one message per control period) and ``grasp_reference`` (a short
+horizon a few tens of times per second); publishes ``torque_commands`` stamped with the estimate's
+time, and ``/diagnostics`` (solves, Riccati check failures, fallbacks, saturation, compute time).
+
+For each estimate stamped t_k the reference is sampled at t_k from the newest horizon that covers
+it; if none does yet (the trajectory node's message for this instant is still in flight), the
+estimate waits and is answered as soon as a covering reference arrives — the answer never depends
+on which message won the race, so lockstep runs stay deterministic.
+
+Nothing bad ever reaches the actuators: malformed, non-finite, wrong-size or old messages are
+rejected (throttled warning, counted) and produce no torque; the SDRE core falls back to the last
+valid gains when a Riccati check fails and saturates at ``torque_limit``; a torque that is still
+not finite is replaced by zero and counted. When no fresh estimate has arrived for
+``estimate_timeout`` seconds of wall time (once estimates have started) the node publishes zero
+torque every ``stale_period`` and reports ``stale`` until data returns. Those commands carry the
+node clock's time: run with ``use_sim_time:=true`` in realtime mode so the simulator accepts them
+(in lockstep the simulator's own ``on_timeout`` decides what a missing command means).
+A missing or bad model file ends the node at start-up with a message and a non-zero status.
+"""
+from __future__ import annotations
+
+from collections import deque
+from pathlib import Path
+import time
+
+import numpy as np
+from rclpy.node import Node
+import torch
+from sensor_msgs.msg import JointState
+from trajectory_msgs.msg import MultiDOFJointTrajectory
+
+from soft_gripper_sdre.control import DEFAULT_WEIGHTS, TrackingController, Weights
+from soft_gripper_sdre.horizon import sample_horizon
+from soft_gripper_sdre.model import ModelFileError, SDCModel
+from soft_gripper_sdre.nodes import conversions as cv
+from soft_gripper_sdre.nodes.common import OK, WARN, Diagnostics, ThrottledLogger, run
+from soft_gripper_sdre.nodes.params import Param, ParameterError, declare_all
+from soft_gripper_sdre.nodes.topics import (GRASP_REFERENCE, LOOP_QOS, REFERENCE_QOS, STATE_ESTIMATE,
+                                            TORQUE_COMMANDS)
+from soft_gripper_sdre.sdre import Check
+
+PARAMS = (
+    Param('model_path', '', 'SDC model checkpoint (.pt); empty = the model shipped with the package',
+          read_only=True),
+    Param('n_fingers', 4, 'fingers controlled together', '', 1, 4, read_only=True),
+    Param('q_pos', DEFAULT_WEIGHTS['q_pos'], 'SDRE state weight on tip position, Q = diag(q_pos, q_pos, '
+          'q_vel, q_vel) (paper: 2 in sim units = 800 SI)', '1/m²', 0.0, 1e12, read_only=True),
+    Param('q_vel', DEFAULT_WEIGHTS['q_vel'], 'SDRE state weight on tip velocity', 's²/m²', 0.0, 1e12,
+          read_only=True),
+    Param('r', DEFAULT_WEIGHTS['r'], 'SDRE input weight, R = diag(r, r) (paper: 0.1 in sim units = '
+          '16000 SI)', '1/(N·m)²', 1e-12, 1e12, read_only=True),
+    Param('torque_limit', 0.0625, 'saturation of each torque (0.0625 N·m = 25 sim units, the '
+          'stable range of the physics step)', 'N·m', 1e-6, 1.0, read_only=True),
+    Param('solver', 'fast', 'Riccati solver: warm-started Newton–Kleinman or scipy reference',
+          choices=('fast', 'reference'), read_only=True),
+    Param('estimate_timeout', 0.5, 'wall time without a fresh estimate before zero torque is '
+          'commanded', 's', 1e-3, 60.0),
+    Param('stale_period', 0.05, 'wall period of the zero-torque commands while stale', 's', 1e-3, 10.0,
+          read_only=True),
+)
+
+
+class ControllerNode(Node):
+    """SDRE tracking controller on topics (see module doc)."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__('controller', **kwargs)
+        p = declare_all(self, PARAMS)
+        self.p = p
+        torch.set_num_threads(1)
+        try:
+            model = SDCModel(Path(p['model_path']).expanduser() if p['model_path'] else None)
+        except ModelFileError as exc:
+            raise ParameterError(f'model_path: {exc}') from None
+        try:
+            weights = Weights(p['q_pos'], p['q_vel'], p['r'])
+        except ValueError as exc:
+            raise ParameterError(str(exc)) from None
+        self.n = p['n_fingers']
+        self.ctrl = TrackingController(model, weights, p['torque_limit'], n_fingers=self.n,
+                                       method=p['solver'])
+        self.done = False
+        self.exit_code = 0
+
+        self.refs: deque = deque(maxlen=4)     # (start ns, end ns, times, pos, vel, acc), newest last
+        self.pending: tuple[int, np.ndarray] | None = None   # estimate waiting for a reference
+        self.last_est_ns = -1
+        self.last_ref_ns = -1
+        self.last_cmd_ns = -1
+        self.last_fresh = time.monotonic()
+        self.stale = False
+        self._compute_s = []
+
+        self.pub_cmd = self.create_publisher(JointState, TORQUE_COMMANDS, LOOP_QOS)
+        self.sub_est = self.create_subscription(MultiDOFJointTrajectory, STATE_ESTIMATE,
+                                                self.on_estimate, LOOP_QOS)
+        self.sub_ref = self.create_subscription(MultiDOFJointTrajectory, GRASP_REFERENCE,
+                                                self.on_reference, REFERENCE_QOS)
+        self.log = ThrottledLogger(self.get_logger())
+        self.diag = Diagnostics(self)
+        self.diag.values['model'] = str(model.path)
+        self.diag.values['weights'] = f'q_pos={weights.q_pos:g} q_vel={weights.q_vel:g} r={weights.r:g}'
+        self._watchdog = self.create_timer(p['stale_period'], self._check_stale)
+        self._stats_timer = self.create_timer(1.0, self._publish_stats)
+        self.get_logger().info(
+            f'model {model.path.name} (rest tip {1e3 * model.rest_tip[0]:.1f}, '
+            f'{1e3 * model.rest_tip[1]:.1f} mm); {self.diag.values["weights"]}; '
+            f'limit {p["torque_limit"]:g} N·m; {p["solver"]} solver')
+
+    # -- inputs ------------------------------------------------------------------------------
+    def on_reference(self, msg: MultiDOFJointTrajectory) -> None:
+        try:
+            stamp, times, pos, vel, acc = cv.msg_to_reference(msg, self.n)
+        except cv.MessageError as exc:
+            self._reject('bad_reference', str(exc))
+            return
+        if stamp < self.last_ref_ns:
+            self._reject('old_reference', f'grasp_reference: stamp {stamp} ns is older than the '
+                         f'last accepted {self.last_ref_ns} ns')
+            return
+        self.last_ref_ns = stamp
+        self.refs.append((int(times[0]), int(times[-1]), times, pos, vel, acc))
+        self.diag.count('references')
+        if self.pending is not None and self._covering(self.pending[0]) is not None:
+            stamp_est, x = self.pending
+            self.pending = None
+            self._control(stamp_est, x)
+
+    def on_estimate(self, msg: MultiDOFJointTrajectory) -> None:
+        try:
+            stamp, x = cv.msg_to_estimate(msg, self.n)
+        except cv.MessageError as exc:
+            self._reject('bad_estimate', str(exc))
+            return
+        if stamp <= self.last_est_ns:
+            self._reject('old_estimate', f'state_estimate: stamp {stamp} ns is not newer than the '
+                         f'last accepted {self.last_est_ns} ns')
+            return
+        self.last_est_ns = stamp
+        self.last_fresh = time.monotonic()
+        if self.stale:
+            self.stale = False
+            self.diag.set_status(OK, 'estimates are back')
+            self.get_logger().info('fresh state estimates again; tracking resumes')
+        self.diag.count('estimates')
+        if self._covering(stamp) is None:
+            if self.pending is not None:
+                self.diag.count('unanswered_estimates')   # superseded before any reference came
+            self.pending = (stamp, x)
+            return
+        self.pending = None
+        self._control(stamp, x)
+
+    def _covering(self, t_ns: int):
+        for ref in reversed(self.refs):
+            if ref[0] <= t_ns <= ref[1]:
+                return ref
+        return None
+
+    def _reject(self, key: str, why: str) -> None:
+        self.diag.count(key)
+        self.log.warn(key, f'rejected: {why}')
+
+    # -- the law -----------------------------------------------------------------------------
+    def _control(self, stamp: int, x: np.ndarray) -> None:
+        _, _, times, pos, vel, acc = self._covering(stamp)
+        ref_pos, ref_vel = sample_horizon(times, pos, vel, acc, stamp)
+        t0 = time.perf_counter()
+        out = self.ctrl.compute(x[:, :2], x[:, 2:], ref_pos, ref_vel)
+        self._compute_s.append(time.perf_counter() - t0)
+        u = out.u
+        if not np.all(np.isfinite(u)):          # the core guarantees this; keep the promise here too
+            self.diag.count('nonfinite_torque')
+            u = np.zeros_like(u)
+        self.pub_cmd.publish(cv.torques_to_msg(stamp, u))
+        self.last_cmd_ns = stamp
+        d = self.diag
+        d.count('commands')
+        if not out.ok.all():
+            d.count('check_failures', int((~out.ok).sum()))
+            for flag in Check:
+                hits = int(np.count_nonzero(out.failed_checks & flag))
+                if hits:
+                    d.count(f'failed_{flag.name.lower()}', hits)
+        if out.fallback.any():
+            d.count('fallbacks', int(out.fallback.sum()))
+            self.log.warn('fallback', f'Riccati checks failed for fingers '
+                          f'{np.flatnonzero(out.fallback).tolist()} at t = {stamp / cv.NS:.3f} s; '
+                          'using the last valid gains')
+        if out.saturated.any():
+            d.count('saturated', int(out.saturated.sum()))
+        res = float(np.max(out.residual))
+        if res > float(d.values.get('max_residual', '0')):
+            d.values['max_residual'] = f'{res:.3g}'
+
+    # -- liveness ----------------------------------------------------------------------------
+    def _check_stale(self) -> None:
+        if self.last_est_ns < 0 or time.monotonic() - self.last_fresh < self.p['estimate_timeout']:
+            return
+        if not self.stale:
+            self.stale = True
+            self.diag.set_status(WARN, f'no state_estimate for {self.p["estimate_timeout"]} s: '
+                                 'commanding zero torque')
+            self.get_logger().warning('state estimates are stale: commanding zero torque')
+        self.diag.count('stale_zero_commands')
+        stamp = max(self.get_clock().now().nanoseconds, self.last_cmd_ns + 1)
+        self.pub_cmd.publish(cv.torques_to_msg(stamp, np.zeros((self.n, 2))))
+        self.last_cmd_ns = stamp
+
+    def _publish_stats(self) -> None:
+        if self._compute_s:
+            c = np.asarray(self._compute_s) * 1e6
+            self.diag.values['compute_us_mean'] = f'{c.mean():.0f}'
+            self.diag.values['compute_us_max'] = f'{c.max():.0f}'
+            self._compute_s.clear()
+
+
+def main(args=None) -> int:
+    return run(ControllerNode, args)
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

@@ -1,0 +1,135 @@
+"""Start and stop the node graph as separate processes (what ``ros2 run`` would start).
+
+Used by the demo and the multi-process tests. Each node runs as
+``python -m soft_gripper_sdre.nodes.<name> --ros-args --params-file config/<name>.yaml -p ...`` with
+its stdout/stderr in a log file, DDS kept on loopback.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+import os
+from pathlib import Path
+import random
+import signal
+import subprocess
+import sys
+import time
+
+CONFIG_DIR = Path(__file__).resolve().parents[2] / 'config'
+
+
+def default_params_file(node: str) -> Path | None:
+    """The shipped ``config/<node>.yaml`` in a source tree or a colcon install, if any."""
+    candidates = [CONFIG_DIR / f'{node}.yaml']
+    try:
+        from ament_index_python.packages import get_package_share_directory
+        candidates.append(Path(get_package_share_directory('soft_gripper_sdre')) / 'config' / f'{node}.yaml')
+    except Exception:  # noqa: BLE001 — no ament index in a pip environment: only the source tree
+        pass
+    return next((p for p in candidates if p.is_file()), None)
+
+
+def ros_env(domain_id: int | None = None) -> dict[str, str]:
+    """The environment for the graph: DDS on loopback and a domain of its own."""
+    env = dict(os.environ)
+    env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    if domain_id is None:
+        domain_id = int(env.get('ROS_DOMAIN_ID', '0')) or random.SystemRandom().randint(1, 101)
+    env['ROS_DOMAIN_ID'] = str(domain_id)
+    env.setdefault('PYTHONUNBUFFERED', '1')
+    env.setdefault('OMP_NUM_THREADS', '1')
+    return env
+
+
+def _param_arg(key: str, value) -> str:
+    if isinstance(value, bool):
+        text = 'true' if value else 'false'
+    elif isinstance(value, (list, tuple)):
+        text = '[' + ','.join(repr(v) if isinstance(v, str) else str(v) for v in value) + ']'
+    else:
+        text = str(value)
+    return f'{key}:={text}'
+
+
+@dataclass
+class NodeProcess:
+    """One node process and its log file."""
+
+    name: str
+    popen: subprocess.Popen
+    log_path: Path
+
+    def alive(self) -> bool:
+        return self.popen.poll() is None
+
+    def log_tail(self, chars: int = 2000) -> str:
+        try:
+            return self.log_path.read_text(errors='replace')[-chars:]
+        except OSError:
+            return ''
+
+
+@dataclass
+class Graph:
+    """A set of node processes started together and stopped in reverse order."""
+
+    env: dict[str, str]
+    log_dir: Path
+    procs: dict[str, NodeProcess] = field(default_factory=dict)
+
+    def start(self, node: str, params: dict | None = None, params_file: Path | None | str = 'default',
+              name: str | None = None) -> NodeProcess:
+        name = name or node
+        if params_file == 'default':
+            params_file = default_params_file(node)
+        cmd = [sys.executable, '-m', f'soft_gripper_sdre.nodes.{node}', '--ros-args']
+        if params_file is not None:
+            cmd += ['--params-file', str(params_file)]
+        for key, value in (params or {}).items():
+            cmd += ['-p', _param_arg(key, value)]
+        self.log_dir.mkdir(parents=True, exist_ok=True)
+        log_path = self.log_dir / f'{name}.log'
+        log = open(log_path, 'w', encoding='utf-8')  # noqa: SIM115 — closed by the child's exit
+        popen = subprocess.Popen(cmd, env=self.env, stdout=log, stderr=subprocess.STDOUT,
+                                 stdin=subprocess.DEVNULL)
+        log.close()
+        proc = NodeProcess(name, popen, log_path)
+        self.procs[name] = proc
+        return proc
+
+    def stop(self, name: str, timeout: float = 10.0, sig: int = signal.SIGINT) -> int:
+        """Signal one node and wait for it; escalate to SIGKILL after ``timeout``."""
+        proc = self.procs[name]
+        if proc.alive():
+            proc.popen.send_signal(sig)
+            try:
+                proc.popen.wait(timeout)
+            except subprocess.TimeoutExpired:
+                proc.popen.kill()
+                proc.popen.wait(5.0)
+        return proc.popen.returncode
+
+    def stop_all(self, timeout: float = 10.0) -> dict[str, int]:
+        return {name: self.stop(name, timeout) for name in reversed(list(self.procs))}
+
+    def wait(self, name: str, timeout: float, poll=None) -> int | None:
+        """Wait for one node to exit by itself; ``poll()`` is called about 10× per second.
+        Returns its exit code, or None on timeout or if another node died first."""
+        deadline = time.monotonic() + timeout
+        proc = self.procs[name]
+        while time.monotonic() < deadline:
+            if not proc.alive():
+                return proc.popen.returncode
+            dead = [p for p in self.procs.values() if p.name != name and not p.alive()]
+            if dead:
+                return None
+            if poll is not None:
+                poll()
+            time.sleep(0.1)
+        return None
+
+    def __enter__(self) -> Graph:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop_all()

@@ -1,0 +1,176 @@
+"""The controller node over real DDS (loopback), launch-free: own Context, executor, test node."""
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from sensor_msgs.msg import JointState
+from trajectory_msgs.msg import MultiDOFJointTrajectory
+
+from rosutil import Probe, overrides, ros_context, spin_until
+from soft_gripper_sdre.control import DEFAULT_WEIGHTS, TrackingController, Weights
+from soft_gripper_sdre.model import SDCModel
+from soft_gripper_sdre.nodes import conversions as cv
+from soft_gripper_sdre.nodes.controller import ControllerNode
+from soft_gripper_sdre.nodes.topics import (GRASP_REFERENCE, LOOP_QOS, REFERENCE_QOS, STATE_ESTIMATE,
+                                            TORQUE_COMMANDS)
+
+pytestmark = pytest.mark.ros
+
+MS = 1_000_000
+LIMIT = 0.0625
+
+
+@pytest.fixture(scope='module')
+def model():
+    return SDCModel()
+
+
+def horizon(rest, start_ns, close_mm=5.0, points=21, step_ns=5 * MS):
+    """A constant reference ``close_mm`` towards the palm (+Y) for every finger."""
+    times = start_ns + step_ns * np.arange(points)
+    pos = np.repeat(rest[None, :, :], points, 0).copy()
+    pos[..., 1] += close_mm * 1e-3
+    zeros = np.zeros_like(pos)
+    return cv.reference_to_msg(start_ns, times - start_ns, pos, zeros, zeros), pos[0]
+
+
+def estimate(ns, pos, vel=None):
+    return cv.estimate_to_msg(ns, pos, np.zeros_like(pos) if vel is None else vel)
+
+
+def make(ctx, executor, **params):
+    node = ControllerNode(context=ctx, parameter_overrides=overrides(**params))
+    probe = Probe(ctx)
+    probe.listen(JointState, TORQUE_COMMANDS, LOOP_QOS)
+    est_pub = probe.create_publisher(MultiDOFJointTrajectory, STATE_ESTIMATE, LOOP_QOS)
+    ref_pub = probe.create_publisher(MultiDOFJointTrajectory, GRASP_REFERENCE, REFERENCE_QOS)
+    executor.add_node(node)
+    executor.add_node(probe)
+    assert spin_until(executor, lambda: est_pub.get_subscription_count() > 0
+                      and ref_pub.get_subscription_count() > 0
+                      and node.pub_cmd.get_subscription_count() > 0, 20.0)
+    return node, probe, est_pub, ref_pub
+
+
+def commands(probe):
+    return probe.received[TORQUE_COMMANDS]
+
+
+def test_torques_match_the_offline_law_and_close_the_fingers(model):
+    rest = np.repeat(model.rest_tip[None, :2], 4, 0)
+    offline = TrackingController(model, Weights(**DEFAULT_WEIGHTS), LIMIT)
+    with ros_context() as (ctx, executor):
+        node, probe, est_pub, ref_pub = make(ctx, executor)
+        ref_msg, ref_pos = horizon(rest, 0)
+        ref_pub.publish(ref_msg)
+        assert spin_until(executor, lambda: node.diag.counters['references'] == 1)
+        for k in range(5):
+            est_pub.publish(estimate(k * MS, rest))
+        assert spin_until(executor, lambda: len(commands(probe)) == 5)
+        for k, msg in enumerate(commands(probe)):
+            stamp, u = cv.msg_to_torques(msg, 4)
+            assert stamp == k * MS                      # stamped with the estimate's time
+            expected = offline.compute(rest, np.zeros((4, 2)), ref_pos, np.zeros((4, 2))).u
+            np.testing.assert_allclose(u, expected, rtol=1e-9, atol=1e-12)
+        # +Y (towards the palm) is reached with negative ax0 torque on every finger
+        assert np.all(u[:, 0] < 0)
+        assert node.diag.counters['commands'] == 5 and node.diag.counters['fallbacks'] == 0
+
+
+def test_estimate_waits_for_a_covering_reference(model):
+    rest = np.repeat(model.rest_tip[None, :2], 4, 0)
+    with ros_context() as (ctx, executor):
+        node, probe, est_pub, ref_pub = make(ctx, executor)
+        est_pub.publish(estimate(3 * MS, rest))
+        assert spin_until(executor, lambda: node.diag.counters['estimates'] == 1)
+        assert not spin_until(executor, lambda: commands(probe), 0.3)       # nothing to track yet
+        ref_pub.publish(horizon(rest, 0)[0])
+        assert spin_until(executor, lambda: len(commands(probe)) == 1)
+        assert cv.msg_to_torques(commands(probe)[0], 4)[0] == 3 * MS
+
+
+def _bad_estimates(rest):
+    nan = rest.copy()
+    nan[2, 1] = np.nan
+    wrong_names = estimate(5 * MS, rest)
+    wrong_names.joint_names = ['finger_0', 'finger_1', 'finger_2', 'thumb']
+    too_few = estimate(6 * MS, rest[:3])
+    no_point = estimate(7 * MS, rest)
+    no_point.points = []
+    old = estimate(1 * MS, rest)                        # older than the accepted 2 ms
+    return {'nan': estimate(4 * MS, nan), 'unknown finger': wrong_names, 'three fingers': too_few,
+            'no point': no_point, 'old stamp': old}
+
+
+def test_bad_estimates_are_rejected_counted_and_never_answered(model):
+    rest = np.repeat(model.rest_tip[None, :2], 4, 0)
+    with ros_context() as (ctx, executor):
+        node, probe, est_pub, ref_pub = make(ctx, executor)
+        ref_pub.publish(horizon(rest, 0)[0])
+        assert spin_until(executor, lambda: node.diag.counters['references'] == 1)
+        est_pub.publish(estimate(2 * MS, rest))
+        assert spin_until(executor, lambda: len(commands(probe)) == 1)
+        for msg in _bad_estimates(rest).values():
+            est_pub.publish(msg)
+        assert spin_until(executor, lambda: node.diag.counters['bad_estimate']
+                          + node.diag.counters['old_estimate'] == 5)
+        assert node.diag.counters['old_estimate'] == 1
+        est_pub.publish(estimate(9 * MS, rest))                # the node is alive and still tracks
+        assert spin_until(executor, lambda: len(commands(probe)) == 2)
+        stamps = [cv.msg_to_torques(m, 4)[0] for m in commands(probe)]
+        assert stamps == [2 * MS, 9 * MS]
+        assert all(np.all(np.isfinite(cv.msg_to_torques(m, 4)[1])) for m in commands(probe))
+
+
+def test_bad_references_are_rejected(model):
+    rest = np.repeat(model.rest_tip[None, :2], 4, 0)
+    with ros_context() as (ctx, executor):
+        node, probe, est_pub, ref_pub = make(ctx, executor)
+        nan_ref, _ = horizon(rest, 0)
+        nan_ref.points[3].transforms[1].translation.y = float('inf')
+        backwards, _ = horizon(rest, 0)
+        backwards.points[4].time_from_start = backwards.points[2].time_from_start
+        ref_pub.publish(nan_ref)
+        ref_pub.publish(backwards)
+        assert spin_until(executor, lambda: node.diag.counters['bad_reference'] == 2)
+        est_pub.publish(estimate(1 * MS, rest))
+        assert not spin_until(executor, lambda: commands(probe), 0.3)       # no torque from them
+
+
+def test_stale_estimates_command_zero_torque_until_data_returns(model):
+    rest = np.repeat(model.rest_tip[None, :2], 4, 0)
+    with ros_context() as (ctx, executor):
+        node, probe, est_pub, ref_pub = make(ctx, executor, estimate_timeout=0.1, stale_period=0.02)
+        ref_pub.publish(horizon(rest, 0, points=200)[0])
+        est_pub.publish(estimate(1 * MS, rest + 0.002))        # off the reference: non-zero torque
+        assert spin_until(executor, lambda: len(commands(probe)) == 1)
+        assert np.abs(cv.msg_to_torques(commands(probe)[0], 4)[1]).max() > 1e-4
+        assert spin_until(executor, lambda: node.stale and len(commands(probe)) >= 4, 5.0)
+        for msg in commands(probe)[1:]:
+            np.testing.assert_array_equal(cv.msg_to_torques(msg, 4)[1], 0.0)
+        est_pub.publish(estimate(2 * MS, rest))
+        assert spin_until(executor, lambda: not node.stale)
+        assert node.diag.counters['stale_zero_commands'] >= 3
+
+
+@pytest.mark.parametrize('args, needle', [
+    (['-p', 'model_path:=/nonexistent/model.pt'], 'model_path'),
+    (['-p', 'r:=0.0'], "'r'"),
+    (['-p', 'solver:=magic'], 'solver'),
+])
+def test_bad_model_or_parameters_end_the_node_at_startup(args, needle, tmp_path):
+    proc = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.nodes.controller', '--ros-args', *args],
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2, proc.stderr
+    assert needle in proc.stderr + proc.stdout
+
+
+def test_truncated_model_file_is_refused(tmp_path):
+    from soft_gripper_sdre.model import DEFAULT_MODEL
+    bad = tmp_path / 'half.pt'
+    bad.write_bytes(DEFAULT_MODEL.read_bytes()[:2000])
+    proc = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.nodes.controller', '--ros-args',
+                           '-p', f'model_path:={bad}'], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2
+    assert 'truncated' in proc.stderr + proc.stdout
