@@ -12,8 +12,9 @@ with ``d = [side, close]`` for the grasping fingers (+Y points at the palm centr
     holding:  s = 1                            for T_h
     opening:  s = (1 + cos(π τ / T_o)) / 2,   τ ∈ [0, T_o]
 
-so position, velocity and acceleration are continuous at the ends of the moving phases (the jerk
-steps, as in the paper's sinusoidal grasp). The grasping fingers are meant to make contact with
+so position and velocity are continuous everywhere; the acceleration steps by ±π²/(2T²)·|d| where
+a moving phase starts and ends (a half-cosine, as in the paper's sinusoidal grasp). The controller
+tracks position and velocity only, so the steps reach it as a kink in the reference velocity. The grasping fingers are meant to make contact with
 the cube partway through the closing phase (the reference continues a little "into" the cube so
 that the fingers squeeze it); :meth:`GraspTrajectory.free_space` tells where the reference stays a
 margin clear of the cube face, which is where free-space tracking is scored.

@@ -174,3 +174,20 @@ def test_truncated_model_file_is_refused(tmp_path):
                            '-p', f'model_path:={bad}'], capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2
     assert 'truncated' in proc.stderr + proc.stdout
+
+
+def test_time_jumping_back_resets_instead_of_rejecting(model):
+    """A simulator restart (stamps from 0 again) is followed, not rejected as old."""
+    rest = np.repeat(model.rest_tip[None, :2], 4, 0)
+    with ros_context() as (ctx, executor):
+        node, probe, est_pub, ref_pub = make(ctx, executor, reset_on_jump=0.5)
+        late = 2_000 * MS
+        ref_pub.publish(horizon(rest, late)[0])
+        est_pub.publish(estimate(late, rest))
+        assert spin_until(executor, lambda: len(commands(probe)) == 1)
+        ref_pub.publish(horizon(rest, 0)[0])              # restart: 2 s back
+        est_pub.publish(estimate(0, rest))
+        assert spin_until(executor, lambda: len(commands(probe)) == 2)
+        assert cv.msg_to_torques(commands(probe)[1], 4)[0] == 0
+        assert node.diag.counters['resets'] == 1
+        assert node.diag.counters['old_reference'] == 0 and node.diag.counters['old_estimate'] == 0

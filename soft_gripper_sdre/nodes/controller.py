@@ -57,6 +57,8 @@ PARAMS = (
           choices=('fast', 'reference'), read_only=True),
     Param('estimate_timeout', 0.5, 'wall time without a fresh estimate before zero torque is '
           'commanded', 's', 1e-3, 60.0),
+    Param('reset_on_jump', 0.5, 'a stamp this far behind the last one (a simulator restart) resets '
+          'the controller instead of being rejected', 's', 1e-3, 1e6, read_only=True),
     Param('stale_period', 0.05, 'wall period of the zero-torque commands while stale', 's', 1e-3, 10.0,
           read_only=True),
 )
@@ -79,6 +81,7 @@ class ControllerNode(Node):
         except ValueError as exc:
             raise ParameterError(str(exc)) from None
         self.n = p['n_fingers']
+        self.jump_ns = int(p['reset_on_jump'] * cv.NS)
         self.ctrl = TrackingController(model, weights, p['torque_limit'], n_fingers=self.n,
                                        method=p['solver'])
         self.done = False
@@ -116,6 +119,8 @@ class ControllerNode(Node):
         except cv.MessageError as exc:
             self._reject('bad_reference', str(exc))
             return
+        if stamp < self.last_ref_ns - self.jump_ns:
+            self._restart(stamp, 'grasp_reference')
         if stamp < self.last_ref_ns:
             self._reject('old_reference', f'grasp_reference: stamp {stamp} ns is older than the '
                          f'last accepted {self.last_ref_ns} ns')
@@ -134,6 +139,8 @@ class ControllerNode(Node):
         except cv.MessageError as exc:
             self._reject('bad_estimate', str(exc))
             return
+        if stamp < self.last_est_ns - self.jump_ns:
+            self._restart(stamp, 'state_estimate')
         if stamp <= self.last_est_ns:
             self._reject('old_estimate', f'state_estimate: stamp {stamp} ns is not newer than the '
                          f'last accepted {self.last_est_ns} ns')
@@ -152,6 +159,15 @@ class ControllerNode(Node):
             return
         self.pending = None
         self._control(stamp, x)
+
+    def _restart(self, stamp: int, topic: str) -> None:
+        """Time went back (the simulator restarted): forget references, estimates and warm starts."""
+        self.get_logger().warning(f'{topic}: time jumped back to {stamp / cv.NS:.3f} s; resetting')
+        self.diag.count('resets')
+        self.refs.clear()
+        self.pending = None
+        self.last_est_ns = self.last_ref_ns = self.last_cmd_ns = -1
+        self.ctrl.reset()
 
     def _covering(self, t_ns: int):
         for ref in reversed(self.refs):

@@ -1,0 +1,156 @@
+"""The estimator node over real DDS (loopback), launch-free: own Context, executor, test node."""
+from pathlib import Path
+
+from geometry_msgs.msg import PoseArray
+import numpy as np
+import pytest
+from rclpy.parameter import Parameter
+from trajectory_msgs.msg import MultiDOFJointTrajectory
+import yaml
+
+from rosutil import Probe, overrides, ros_context, spin_until
+from soft_gripper_sdre.kf import ConstantVelocityKF
+from soft_gripper_sdre.nodes import conversions as cv
+from soft_gripper_sdre.nodes.estimator import PARAMS, EstimatorNode
+from soft_gripper_sdre.nodes.params import ParameterError
+from soft_gripper_sdre.nodes.topics import LOOP_QOS, STATE_ESTIMATE, TIP_POSITIONS
+
+pytestmark = pytest.mark.ros
+
+MS = 1_000_000
+CONFIG = Path(__file__).resolve().parents[1] / 'config' / 'estimator.yaml'
+
+
+def make(ctx, executor, **params):
+    """Estimator + a probe publishing tip_positions and recording state_estimate, matched."""
+    node = EstimatorNode(context=ctx, parameter_overrides=overrides(**params))
+    probe = Probe(ctx)
+    probe.listen(MultiDOFJointTrajectory, STATE_ESTIMATE, LOOP_QOS)
+    pub = probe.create_publisher(PoseArray, TIP_POSITIONS, LOOP_QOS)
+    executor.add_node(node)
+    executor.add_node(probe)
+    assert spin_until(executor, lambda: pub.get_subscription_count() > 0
+                      and node.pub.get_subscription_count() > 0, 10.0)
+    return node, probe, pub
+
+
+def handled(node) -> int:
+    """Messages the node has dealt with: each is either estimated, malformed or stale."""
+    c = node.diag.counters
+    return c['estimates'] + c['bad_message'] + c['stale']
+
+
+def send(executor, node, pub, msg) -> None:
+    """Publish one tip message and spin until the node has handled it (in-order, reliable)."""
+    before = handled(node)
+    pub.publish(msg)
+    assert spin_until(executor, lambda: handled(node) > before, 5.0), 'tip message not handled'
+
+
+def estimates(executor, probe, count):
+    got = probe.received[STATE_ESTIMATE]
+    assert spin_until(executor, lambda: len(got) >= count, 5.0)
+    assert len(got) == count
+    return [cv.msg_to_estimate(m, 4) for m in got]
+
+
+def tips(ns, z):
+    return cv.tips_to_msg(ns, np.hstack([z, np.full((len(z), 1), 0.1)]))
+
+
+def test_constant_velocity_is_tracked_exactly_like_the_offline_filter():
+    rng = np.random.default_rng(3)
+    p0 = np.array([[0.0, -0.002], [0.001, -0.002], [0.0, -0.002], [0.0, 0.0]])
+    v = np.array([[0.02, -0.01], [0.0, 0.015], [-0.03, 0.0], [0.005, 0.005]])
+    steps, t0, sigma = 400, 7 * MS, 1e-6
+    stamps = t0 + MS * np.arange(steps)
+    z = p0 + v * (stamps[:, None, None] - t0) / cv.NS + rng.normal(size=(steps, 4, 2)) * sigma
+    with ros_context() as (ctx, executor):
+        node, probe, pub = make(ctx, executor)
+        for k in range(steps):
+            send(executor, node, pub, tips(int(stamps[k]), z[k]))
+        got = estimates(executor, probe, steps)
+        first = probe.received[STATE_ESTIMATE][0]
+    kf = ConstantVelocityKF(1e-3, 1.0, 5e-5, n=4)
+    kf.reset(z[0])
+    offline = [kf.x.copy()] + [kf.step(z[k]) for k in range(1, steps)]
+    assert [s for s, _ in got] == stamps.tolist()
+    np.testing.assert_array_equal(np.array([x for _, x in got]), np.array(offline))
+    assert first == cv.estimate_to_msg(int(stamps[0]), z[0], np.zeros((4, 2)))
+    est = np.array([x for _, x in got])
+    vel_err = np.abs(est[:, :, 2:] - v).max(axis=(1, 2))
+    assert vel_err[0] > 0.02 and vel_err[100:].max() < 2e-3      # from zero velocity to the truth
+    truth = p0 + v * (stamps[:, None, None] - t0) / cv.NS
+    np.testing.assert_allclose(est[:, :, :2], truth, rtol=0, atol=5 * sigma)
+    assert node.diag.counters['gaps'] == node.diag.counters['resets'] == 0
+
+
+def test_bad_inputs_are_counted_gaps_predicted_and_jumps_reset():
+    z = np.array([[0.001, -0.002], [0.0, 0.003], [0.002, 0.0], [0.0, 0.0]])
+    v = np.array([[0.01, 0.0], [0.0, -0.01], [0.0, 0.0], [0.02, 0.01]])
+    meas = lambda ns: z + v * ns / cv.NS                                       # noqa: E731
+    nan = tips(11 * MS, meas(11 * MS))
+    nan.poses[2].position.y = float('nan')
+    three = tips(11 * MS, meas(11 * MS)[:3])
+    five = tips(11 * MS, np.vstack([meas(11 * MS), [[0.0, 0.0]]]))
+    empty = PoseArray()
+    empty.header.stamp = cv.to_time(11 * MS)
+    sequence = ([(k * MS, 'ok') for k in range(10)]
+                + [(nan, 'bad_message'), (three, 'bad_message'), (five, 'bad_message'),
+                   (empty, 'bad_message'), (9 * MS, 'stale'), (5 * MS, 'stale'),
+                   (10 * MS, 'ok'), (13 * MS, 'gap'), (13 * MS + MS // 2, 'off_period'),
+                   (0, 'reset'), (60 * MS, 'reset'), (61 * MS, 'ok')])
+    kf = ConstantVelocityKF(1e-3, 1.0, 5e-5, n=4)
+    expected = []
+    with ros_context() as (ctx, executor):
+        node, probe, pub = make(ctx, executor, reset_on_jump=0.01)
+        for item, kind in sequence:
+            if not isinstance(item, int):
+                send(executor, node, pub, item)
+                continue
+            send(executor, node, pub, tips(item, meas(item)))
+            if kind == 'stale':
+                continue
+            if kind == 'reset' or not expected:
+                kf.reset(meas(item))
+                x = kf.x.copy()
+            else:
+                if kind == 'gap':
+                    kf.step(meas(item), np.zeros(4, dtype=bool))
+                    kf.step(meas(item), np.zeros(4, dtype=bool))
+                x = kf.step(meas(item))
+            expected.append((item, x))
+        got = estimates(executor, probe, len(expected))
+        c = node.diag.counters
+        assert (c['bad_message'], c['stale'], c['gaps'], c['missed_periods'], c['off_period'],
+                c['resets']) == (4, 2, 1, 2, 1, 2)
+        assert c['estimates'] == len(expected) == 16
+    assert [s for s, _ in got] == [s for s, _ in expected]
+    np.testing.assert_array_equal(np.array([x for _, x in got]), np.array([x for _, x in expected]))
+    reset_at_zero = dict(got)[0]
+    np.testing.assert_array_equal(reset_at_zero[:, 2:], 0.0)   # a reset starts at zero velocity
+
+
+@pytest.mark.parametrize('params, name', [
+    (dict(process_noise='coloured'), 'process_noise'), (dict(control_period=0.0), 'control_period'),
+    (dict(meas_std=0.0), 'meas_std'), (dict(n_fingers=5), 'n_fingers'),
+    (dict(accel_psd=float('nan')), 'accel_psd'), (dict(reset_on_jump='far'), 'reset_on_jump')])
+def test_bad_parameters_fail_at_startup_naming_the_parameter(params, name):
+    with ros_context() as (ctx, executor):
+        with pytest.raises(ParameterError, match=name):
+            EstimatorNode(context=ctx, parameter_overrides=overrides(**params))
+
+
+def test_runtime_changes_reset_on_jump_only():
+    with ros_context() as (ctx, executor):
+        node = EstimatorNode(context=ctx)
+        assert node.set_parameters([Parameter('reset_on_jump', value=0.5)])[0].successful
+        assert node.jump_ns == 500 * MS
+        assert not node.set_parameters([Parameter('reset_on_jump', value=0.0)])[0].successful
+        assert not node.set_parameters([Parameter('accel_psd', value=2.0)])[0].successful
+        assert node.jump_ns == 500 * MS and node.get_parameter('accel_psd').value == 1.0
+
+
+def test_config_file_holds_the_declared_defaults():
+    doc = yaml.safe_load(CONFIG.read_text())
+    assert doc == {'estimator': {'ros__parameters': {p.name: p.default for p in PARAMS}}}
