@@ -1,0 +1,176 @@
+"""Figures 5–7 and tracking metrics of a recorded run.
+
+    python -m soft_gripper_sdre.tools.report BAG --out DIR [--torque-limit 0.1]
+
+Writes DIR/fig5_positions.png (measured tip vs reference), fig6_velocities.png (KF estimate vs
+reference), fig7_torques.png (commands) and DIR/metrics.json:
+
+* per finger: free-space tracking RMSE / max of the 2-D tip error [mm] and the RMSE as % of the
+  reference's peak excursion from its first point; free space = samples where that finger's
+  cube contact force (held from the last cube_contacts message) is 0 — all samples if the bag has
+  no cube_contacts; plus the fraction of samples in contact;
+* the cube's largest displacement from its first pose [mm];
+* with ``--torque-limit``: how many torque commands reached the actuator limit (the simulator clips
+  them there), per finger;
+* messages per topic, and malformed messages that were skipped.
+
+The run starts at the first tip sample that has a reference in force. Exit status 2 for a missing
+or unusable bag.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+import sys
+
+import numpy as np
+
+from soft_gripper_sdre import FINGER_NAMES
+from soft_gripper_sdre.bag import BagError, Run, extract_run
+from soft_gripper_sdre.metrics import tracking_metrics
+from soft_gripper_sdre.plots import plot_positions, plot_torques, plot_velocities
+
+FIGURES = ('fig5_positions.png', 'fig6_velocities.png', 'fig7_torques.png')
+METRICS = 'metrics.json'
+
+
+def interpolate(t_src: np.ndarray, values: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """``values`` (T_src, …) sampled at ``t`` by linear interpolation, NaN outside ``t_src``."""
+    flat = values.reshape(len(t_src), -1)
+    out = np.stack([np.interp(t, t_src, flat[:, c], left=np.nan, right=np.nan)
+                    for c in range(flat.shape[1])], axis=1)
+    return out.reshape((len(t),) + values.shape[1:])
+
+
+def hold(t_src: np.ndarray, values: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """``values`` at ``t`` by zero-order hold of the latest sample (the first before it starts)."""
+    idx = np.clip(np.searchsorted(t_src, t, side='right') - 1, 0, len(t_src) - 1)
+    return values[idx]
+
+
+def _json_safe(value):
+    """NaN/Inf → None and numpy scalars → Python, recursively (strict JSON)."""
+    if isinstance(value, dict):
+        return {k: _json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(v) for v in value]
+    if isinstance(value, (float, np.floating)):
+        return float(value) if math.isfinite(value) else None
+    if isinstance(value, np.integer):
+        return int(value)
+    return value
+
+
+def _start(run: Run, path) -> int:
+    """Index of the first tip sample with a reference in force."""
+    valid = np.all(np.isfinite(run.reference.values.reshape(len(run.reference.t), -1)), axis=1)
+    if not valid.any():
+        raise BagError(f'bag {path}: grasp_reference starts after the last tip_positions sample')
+    return int(np.argmax(valid))
+
+
+def report(bag_path: str | Path, out_dir: str | Path, torque_limit: float | None = None) -> dict:
+    """Write the figures and metrics.json of the run in ``bag_path`` to ``out_dir``; return the metrics.
+
+    Args:
+        bag_path: rosbag2 directory recorded from the graph.
+        out_dir: created if needed.
+        torque_limit: actuator limit [N·m]; if given, commands at or beyond it are counted.
+
+    Raises:
+        BagError: the bag is missing, unreadable or lacks a required topic.
+    """
+    run = extract_run(bag_path)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    n = run.n_fingers
+    names = list(FINGER_NAMES[:n])
+
+    k0 = _start(run, bag_path)
+    t = run.tips.t[k0:]
+    pos = run.tips.values[k0:]
+    ref = run.reference.values[k0:]
+    vel = interpolate(run.estimate.t, run.estimate.values[..., 2:4], t)
+    has_contacts = run.contacts is not None
+    if has_contacts:
+        contact = hold(run.contacts.t, run.contacts.values, t) > 0.0
+    else:
+        contact = np.zeros((len(t), n), dtype=bool)
+    keep_u = run.torques.t >= t[0]
+    t_u, u = run.torques.t[keep_u], run.torques.values[keep_u]
+
+    excursion = np.linalg.norm(ref[..., :2] - ref[0, :, :2], axis=2).max(axis=0)
+    tracking = tracking_metrics(pos, ref[..., :2], ~contact, excursion)
+    fingers = {}
+    for i, name in enumerate(names):
+        fingers[name] = tracking[i].as_dict()
+        fingers[name]['contact_fraction'] = float(contact[:, i].mean()) if has_contacts else None
+
+    cube_mm = None
+    if run.cube_pose is not None:
+        p = run.cube_pose.values[:, :3]
+        cube_mm = 1e3 * float(np.linalg.norm(p - p[0], axis=1).max())
+
+    saturation = None
+    if torque_limit is not None:
+        hit = np.abs(u) >= torque_limit * (1.0 - 1e-9)          # (T, n, 2)
+        saturation = {'limit_Nm': float(torque_limit), 'commands': int(len(u)),
+                      'saturated': {name: int(hit[:, i].any(axis=1).sum()) for i, name in enumerate(names)}}
+
+    metrics = _json_safe({
+        'bag': str(Path(bag_path)),
+        'start_s': float(t[0]), 'end_s': float(t[-1]), 'samples': int(len(t)),
+        'free_space': 'cube contact force == 0' if has_contacts else 'all samples (no cube_contacts)',
+        'fingers': fingers,
+        'cube_max_displacement_mm': cube_mm,
+        'torque_saturation': saturation,
+        'message_counts': run.counts,
+        'skipped_messages': run.skipped,
+    })
+    plot_positions(t, pos, ref[..., :2], out / FIGURES[0], names,
+                   contact=contact if has_contacts else None)
+    plot_velocities(t, vel, ref[..., 2:4], out / FIGURES[1], names)
+    plot_torques(t_u, u, out / FIGURES[2], names, u_max=torque_limit)
+    (out / METRICS).write_text(json.dumps(metrics, indent=2) + '\n', encoding='utf-8')
+    return metrics
+
+
+def _fmt(value: float | None, spec: str, unit: str = '') -> str:
+    return 'n/a' if value is None else format(value, spec) + unit
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.report',
+                                     description=__doc__.split('\n\n')[0])
+    parser.add_argument('bag', type=Path, help='rosbag2 directory of a run')
+    parser.add_argument('--out', required=True, type=Path, help='output directory')
+    parser.add_argument('--torque-limit', type=float, default=None,
+                        help='actuator limit [N·m] (the simulator\'s torque_limit) to count saturation')
+    args = parser.parse_args(argv)
+    if args.torque_limit is not None and not args.torque_limit > 0:
+        parser.error(f'--torque-limit must be > 0 N·m, got {args.torque_limit}')
+    try:
+        metrics = report(args.bag, args.out, args.torque_limit)
+    except BagError as exc:
+        print(f'{parser.prog}: error: {exc}', file=sys.stderr)
+        return 2
+    except OSError as exc:
+        print(f'{parser.prog}: error: cannot write to {args.out}: {exc}', file=sys.stderr)
+        return 2
+    print(f'{metrics["samples"]} samples, t = {metrics["start_s"]:.3f} … {metrics["end_s"]:.3f} s; '
+          f'free space: {metrics["free_space"]}')
+    for name, m in metrics['fingers'].items():
+        print(f'  {name}: RMSE {_fmt(m["rmse_mm"], ".3f", " mm")} ({_fmt(m["rmse_pct"], ".1f", " %")} of '
+              f'{_fmt(m["excursion_mm"], ".1f", " mm")}), max {_fmt(m["max_mm"], ".3f", " mm")}, '
+              f'contact {_fmt(m["contact_fraction"], ".0%")}')
+    print(f'  cube moved at most {_fmt(metrics["cube_max_displacement_mm"], ".2f", " mm")}')
+    if metrics['torque_saturation']:
+        print(f'  torque commands at the limit: {metrics["torque_saturation"]["saturated"]}')
+    print(f'wrote {", ".join(FIGURES)} and {METRICS} to {args.out}')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
