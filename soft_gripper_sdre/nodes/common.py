@@ -94,6 +94,9 @@ def run(node_factory: Callable[..., Node], args: list[str] | None = None) -> int
         pass
     finally:
         if node is not None:
+            diag = getattr(node, 'diag', None)
+            if isinstance(diag, Diagnostics) and rclpy.ok():
+                diag.publish()                  # final counters, for recorders still listening
             close = getattr(node, 'close', None)
             if close is not None:
                 close()

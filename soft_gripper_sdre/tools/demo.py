@@ -1,0 +1,219 @@
+"""The grasp demo: the whole node graph as separate processes, in lockstep, recorded and reported.
+
+    python -m soft_gripper_sdre.tools.demo --out runs/demo
+
+starts the recorder, the estimator, the controller, the trajectory node and the simulator (each the
+process ``ros2 run soft_gripper_sdre <node>`` would start, with its ``config/<node>.yaml``), runs
+the grasp for ``--duration`` seconds of sim time, stops everything cleanly and writes
+
+    OUT/bag/            rosbag2 directory (metadata.yaml + MCAP) of every topic
+    OUT/logs/           one log per node
+    OUT/fig5_positions.png, fig6_velocities.png, fig7_torques.png, metrics.json
+
+then prints a summary. Exit status: 0 on success, 1 if a node failed, 2 on bad usage.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+import shutil
+import sys
+import time
+
+from soft_gripper_sdre.tools.procs import Graph, ros_env
+
+#: start order: listeners first, the simulator (which waits for them) last
+NODES = ('recorder', 'estimator', 'controller', 'trajectory', 'simulator')
+
+
+def _parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.demo', description=__doc__.split('\n')[0])
+    ap.add_argument('--out', type=Path, default=Path('runs/demo'), help='output directory (default %(default)s)')
+    ap.add_argument('--duration', type=float, default=6.0, help='sim time to run [s] (default %(default)s)')
+    ap.add_argument('--model', type=Path, default=None, help='model checkpoint (default: the shipped one)')
+    ap.add_argument('--noise', type=float, default=None, help='tip measurement noise σ [m] (default: config)')
+    ap.add_argument('--seed', type=int, default=None, help='measurement noise seed (default: config)')
+    ap.add_argument('--domain-id', type=int, default=None, help='ROS_DOMAIN_ID (default: env or random)')
+    ap.add_argument('--timeout', type=float, default=600.0, help='wall-clock limit [s] (default %(default)s)')
+    ap.add_argument('--no-progress', action='store_true', help='no progress bar')
+    return ap
+
+
+class _SimTime:
+    """Follows the simulator's sim time through its /diagnostics (1 Hz), for the progress bar."""
+
+    def __init__(self, env: dict[str, str]) -> None:
+        import os
+        os.environ.update({k: env[k] for k in ('ROS_DOMAIN_ID', 'ROS_AUTOMATIC_DISCOVERY_RANGE')})
+        import rclpy
+        from rclpy.context import Context
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.node import Node
+        from diagnostic_msgs.msg import DiagnosticArray
+
+        from soft_gripper_sdre.nodes.topics import DIAGNOSTICS, STREAM_QOS
+
+        self.t = 0.0
+        self._ctx = Context()
+        rclpy.init(context=self._ctx)
+        self._node = Node('demo_monitor', context=self._ctx)
+        self._node.create_subscription(DiagnosticArray, DIAGNOSTICS, self._on_diag, STREAM_QOS)
+        self._exec = SingleThreadedExecutor(context=self._ctx)
+        self._exec.add_node(self._node)
+
+    def _on_diag(self, msg) -> None:
+        for status in msg.status:
+            if status.name.endswith('simulator'):
+                for kv in status.values:
+                    if kv.key == 'sim_time':
+                        self.t = max(self.t, float(kv.value))
+
+    def poll(self) -> None:
+        self._exec.spin_once(timeout_sec=0.0)
+
+    def close(self) -> None:
+        import rclpy
+        self._exec.shutdown()
+        self._node.destroy_node()
+        rclpy.try_shutdown(context=self._ctx)
+
+
+def run_demo(out: Path, duration: float, model: Path | None = None, noise: float | None = None,
+             seed: int | None = None, domain_id: int | None = None, timeout: float = 600.0,
+             progress: bool = True) -> dict:
+    """Run the graph, write bag/figures/metrics under ``out``; returns the report (plus run facts).
+
+    Raises:
+        RuntimeError: a node failed or the run did not finish within ``timeout`` (logs are kept).
+    """
+    from soft_gripper_sdre.tools.report import report
+
+    out = Path(out)
+    bag = out / 'bag'
+    if bag.exists():
+        shutil.rmtree(bag)         # the demo owns its output directory; the recorder needs a new one
+    out.mkdir(parents=True, exist_ok=True)
+    env = ros_env(domain_id)
+    params = {
+        'recorder': {'output': str(bag)},
+        'estimator': {},
+        'controller': {'model_path': str(model.resolve())} if model else {},
+        'trajectory': {},
+        'simulator': {'duration': duration, 'min_tip_subscribers': 3},
+    }
+    if noise is not None:
+        params['simulator']['noise_std'] = noise
+    if seed is not None:
+        params['simulator']['seed'] = seed
+
+    monitor = _SimTime(env) if progress else None
+    bar = None
+    t_wall = time.monotonic()
+    with Graph(env, out / 'logs') as graph:
+        for node in NODES:
+            graph.start(node, params[node])
+        if progress:
+            from tqdm import tqdm
+            bar = tqdm(total=duration, desc='grasp (sim s)', unit='s', bar_format=(
+                '{desc}: {percentage:3.0f}%|{bar}| {n:.2f}/{total:.2f} [{elapsed}<{remaining}]'))
+
+        def poll() -> None:
+            if monitor is not None:
+                monitor.poll()
+                bar.update(min(monitor.t, duration) - bar.n)
+
+        code = graph.wait('simulator', timeout, poll)
+        wall = time.monotonic() - t_wall
+        if bar is not None:
+            if code == 0:
+                bar.update(duration - bar.n)
+            bar.close()
+        failed = {name: p.popen.returncode for name, p in graph.procs.items()
+                  if name != 'simulator' and not p.alive()}
+        stopped = graph.stop_all()
+    if monitor is not None:
+        monitor.close()
+    if code != 0 or failed:
+        culprit = 'simulator' if code not in (0, None) else next(iter(failed), 'simulator')
+        tail = graph.procs[culprit].log_tail()
+        why = 'timed out' if code is None and not failed else f'exit codes {stopped}'
+        raise RuntimeError(f'the grasp run failed ({why}); last lines of {culprit}.log:\n{tail}')
+    result = report(bag, out, torque_limit=_controller_limit())
+    result['controller'] = controller_stats(bag)
+    result['run'] = {'sim_duration_s': duration, 'wall_s': round(wall, 2),
+                     'real_time_factor': round(duration / wall, 3), 'exit_codes': stopped,
+                     'domain_id': int(env['ROS_DOMAIN_ID'])}
+    (out / 'metrics.json').write_text(json.dumps(result, indent=2, default=float))
+    return result
+
+
+def _controller_limit() -> float:
+    import yaml
+    from soft_gripper_sdre.tools.procs import default_params_file
+    path = default_params_file('controller')
+    return float(yaml.safe_load(path.read_text())['controller']['ros__parameters']['torque_limit'])
+
+
+def controller_stats(bag: Path) -> dict:
+    """The controller's last /diagnostics in the bag: counters, Riccati checks, compute time."""
+    from soft_gripper_sdre.bag import read_bag
+    last = None
+    for _, msg in read_bag(bag, ['/diagnostics'])['/diagnostics']:
+        for status in msg.status:
+            if status.name.endswith('controller'):
+                last = status
+    if last is None:
+        return {}
+    values = {kv.key: kv.value for kv in last.values}
+    stats: dict = {k: float(v) for k, v in values.items()
+                   if k not in ('model', 'weights') and v.replace('.', '', 1).replace('e-', '', 1).isdigit()}
+    stats.update({k: values[k] for k in ('model', 'weights') if k in values})
+    solves = stats.get('commands', 0.0) * 4
+    if solves:
+        stats['fallback_fraction'] = stats.get('fallbacks', 0.0) / solves
+        stats['check_failure_fraction'] = stats.get('check_failures', 0.0) / solves
+    return stats
+
+
+def summary(result: dict, out: Path) -> str:
+    """A short human summary of :func:`run_demo`'s result."""
+    lines = [f'grasp demo: {result["run"]["sim_duration_s"]:g} s sim in {result["run"]["wall_s"]:.1f} s wall '
+             f'(real-time factor {result["run"]["real_time_factor"]:.2f})']
+    for name, f in result['fingers'].items():
+        pct = 'n/a' if f['rmse_pct'] is None else f'{f["rmse_pct"]:.2f} %'
+        lines.append(f'  {name}: free-space RMSE {f["rmse_mm"]:.3f} mm ({pct} of its '
+                     f'{f["excursion_mm"]:.1f} mm excursion), max {f["max_mm"]:.3f} mm; '
+                     f'touching the cube {100 * (f["contact_fraction"] or 0):.0f} % of the time')
+    if result.get('cube_max_displacement_mm') is not None:
+        lines.append(f'  cube displaced at most {result["cube_max_displacement_mm"]:.2f} mm')
+    c = result.get('controller', {})
+    if 'fallback_fraction' in c:
+        lines.append(f'  Riccati: checks failed on {c["check_failure_fraction"]:.2%} of solves, fallbacks '
+                     f'{c["fallback_fraction"]:.2%}, max residual {c.get("max_residual", float("nan")):.1e}; '
+                     f'compute {c.get("compute_us_mean", float("nan")):.0f} µs mean per 4-finger step')
+    lines.append(f'  bag, figures and metrics.json in {out}/')
+    return '\n'.join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = _parser()
+    a = ap.parse_args(argv)
+    if not a.duration > 0:
+        ap.error(f'--duration must be > 0 s, got {a.duration}')
+    if a.model is not None and not a.model.is_file():
+        ap.error(f'--model {a.model}: no such file')
+    if a.noise is not None and not a.noise >= 0:
+        ap.error(f'--noise must be >= 0 m, got {a.noise}')
+    try:
+        result = run_demo(a.out, a.duration, a.model, a.noise, a.seed, a.domain_id, a.timeout,
+                          progress=not a.no_progress)
+    except RuntimeError as exc:
+        print(f'error: {exc}', file=sys.stderr)
+        return 1
+    print(summary(result, a.out))
+    return 0
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())
