@@ -9,6 +9,7 @@ from typing import Callable
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 import rclpy
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.signals import SignalHandlerOptions
 from rclpy.node import Node
 
 from soft_gripper_sdre.nodes.params import ParameterError
@@ -72,7 +73,9 @@ def run(node_factory: Callable[..., Node], args: list[str] | None = None) -> int
     SIGTERM is handled like SIGINT. A :class:`ParameterError` at construction is logged and the
     process exits with status 2; other construction errors exit 1.
     """
-    rclpy.init(args=args)
+    # Our own SIGINT handling (KeyboardInterrupt) keeps the context alive while the node closes,
+    # so it can still publish its final diagnostics and, for the recorder, finish the bag.
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     signal.signal(signal.SIGTERM, lambda *_: signal.raise_signal(signal.SIGINT))
     node = None
     code = 0
