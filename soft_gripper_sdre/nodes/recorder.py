@@ -152,6 +152,7 @@ class RecorderNode(Node):
         self._pending: list[tuple] | None = []    # held until the first /clock; None once flushed
         self.log = ThrottledLogger(self.get_logger())
         self.diag = Diagnostics(self)
+        self._subs: dict = {}
         for topic in topics:
             msg_class, qos = TOPIC_TYPES[topic], topic_qos(topic)
             name = self.resolve_topic_name(topic)   # fully qualified, as ros2 bag stores it
@@ -160,10 +161,17 @@ class RecorderNode(Node):
             self.counts[name] = 0
             callback = functools.partial(self._on_message, name, conn, _is_stamped(msg_class),
                                          topic == CLOCK)
-            self.create_subscription(msg_class, topic, callback, qos, raw=True)
+            self._subs[name] = self.create_subscription(msg_class, topic, callback, qos, raw=True)
         self.diag.values['output'] = str(self.path)
+        self._matched_timer = self.create_timer(0.2, self._report_publishers)
         self.diag.set_status(OK, f'recording {len(topics)} topics')
         self.get_logger().info(f'recording {", ".join(self.counts)} to {self.path} ({p["storage"]})')
+
+    def _report_publishers(self) -> None:
+        """Matched publishers per topic in /diagnostics ('publishers /topic'), so a supervisor
+        can start the simulator only once everything it records is connected."""
+        for name, sub in self._subs.items():
+            self.diag.values[f'publishers {name}'] = str(sub.get_publisher_count())
 
     # -- receiving ---------------------------------------------------------------------------
     def _on_message(self, topic: str, conn, stamped: bool, is_clock: bool, data: bytes) -> None:

@@ -25,6 +25,8 @@ from soft_gripper_sdre.tools.procs import Graph, ros_env
 
 #: start order: listeners first, the simulator (which waits for them) last
 NODES = ('recorder', 'estimator', 'controller', 'trajectory', 'simulator')
+#: topics whose publishers must be matched by the recorder before the simulator starts
+WIRED_BEFORE_START = ('/state_estimate', '/torque_commands', '/grasp_reference')
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -55,6 +57,7 @@ class _SimTime:
         from soft_gripper_sdre.nodes.topics import DIAGNOSTICS, STREAM_QOS
 
         self.t = 0.0
+        self.recorder_publishers: dict[str, int] = {}
         self._ctx = Context()
         rclpy.init(context=self._ctx)
         self._node = Node('demo_monitor', context=self._ctx)
@@ -64,6 +67,9 @@ class _SimTime:
 
     def _on_diag(self, msg) -> None:
         for status in msg.status:
+            if status.name.endswith('recorder'):
+                self.recorder_publishers.update({kv.key.split(' ', 1)[1]: int(kv.value)
+                                                 for kv in status.values if kv.key.startswith('publishers ')})
             if status.name.endswith('simulator'):
                 for kv in status.values:
                     if kv.key == 'sim_time':
@@ -107,20 +113,32 @@ def run_demo(out: Path, duration: float, model: Path | None = None, noise: float
     if seed is not None:
         params['simulator']['seed'] = seed
 
-    monitor = _SimTime(env) if progress else None
+    monitor = _SimTime(env)
     bar = None
     t_wall = time.monotonic()
     with Graph(env, out / 'logs') as graph:
-        for node in NODES:
+        for node in NODES[:-1]:
             graph.start(node, params[node])
+        # every stream the nodes publish reaches the recorder before the first step is taken
+        # (the simulator then waits for its own peers: min_tip_subscribers)
+        deadline = time.monotonic() + 60.0
+        while not all(monitor.recorder_publishers.get(t, 0) > 0 for t in WIRED_BEFORE_START):
+            dead = [p.name for p in graph.procs.values() if not p.alive()]
+            if dead or time.monotonic() > deadline:
+                raise RuntimeError(f'the graph did not connect (dead: {dead}); recorder sees '
+                                   f'{monitor.recorder_publishers}; last lines of recorder.log:\n'
+                                   f'{graph.procs["recorder"].log_tail()}')
+            monitor.poll()
+            time.sleep(0.05)
+        graph.start('simulator', params['simulator'])
         if progress:
             from tqdm import tqdm
             bar = tqdm(total=duration, desc='grasp (sim s)', unit='s', bar_format=(
                 '{desc}: {percentage:3.0f}%|{bar}| {n:.2f}/{total:.2f} [{elapsed}<{remaining}]'))
 
         def poll() -> None:
-            if monitor is not None:
-                monitor.poll()
+            monitor.poll()
+            if bar is not None:
                 bar.update(min(monitor.t, duration) - bar.n)
 
         code = graph.wait('simulator', timeout, poll)
@@ -132,8 +150,7 @@ def run_demo(out: Path, duration: float, model: Path | None = None, noise: float
         failed = {name: p.popen.returncode for name, p in graph.procs.items()
                   if name != 'simulator' and not p.alive()}
         stopped = graph.stop_all()
-    if monitor is not None:
-        monitor.close()
+    monitor.close()
     if code != 0 or failed:
         culprit = 'simulator' if code not in (0, None) else next(iter(failed), 'simulator')
         tail = graph.procs[culprit].log_tail()
