@@ -23,8 +23,9 @@ import time
 
 from soft_gripper_sdre.tools.procs import Graph, ros_env
 
-#: start order: listeners first, the simulator (which waits for them) last
-NODES = ('recorder', 'estimator', 'controller', 'trajectory', 'simulator')
+#: start order: listeners first, the simulator (which waits for them) last; they stop in reverse,
+#: so the controller goes right after the simulator, before it would see its estimates as stale
+NODES = ('recorder', 'estimator', 'trajectory', 'controller', 'simulator')
 #: topics whose publishers must be matched by the recorder before the simulator starts
 WIRED_BEFORE_START = ('/state_estimate', '/torque_commands', '/grasp_reference')
 

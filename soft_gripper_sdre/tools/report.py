@@ -98,7 +98,9 @@ def report(bag_path: str | Path, out_dir: str | Path, torque_limit: float | None
         contact = hold(run.contacts.t, run.contacts.values, t) > 0.0
     else:
         contact = np.zeros((len(t), n), dtype=bool)
-    keep_u = run.torques.t >= t[0]
+    # commands outside the recorded run (e.g. a controller's zero torques, stamped with its own
+    # clock, after the simulator stopped) are not part of it
+    keep_u = (run.torques.t >= t[0]) & (run.torques.t <= t[-1])
     t_u, u = run.torques.t[keep_u], run.torques.values[keep_u]
 
     excursion = np.linalg.norm(ref[..., :2] - ref[0, :, :2], axis=2).max(axis=0)
