@@ -93,6 +93,10 @@ def _check_weights(Q, R, u_max) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return Q, R, u_max
 
 
+_CHECK_BITS = tuple((c.name, int(c)) for c in Check)
+_I2 = np.eye(2)
+
+
 def care(A: np.ndarray, B: np.ndarray, Q: np.ndarray, R: np.ndarray) -> np.ndarray:
     """Stabilising solution of PA + AᵀP + Q − PBR⁻¹BᵀP = 0 (reference: scipy, one system)."""
     return solve_continuous_are(A, B, Q, R)
@@ -157,6 +161,7 @@ class SdreController:
         self._Rinv = np.linalg.inv(self.R)
         self._q_norm = max(np.linalg.norm(self.Q), 1e-300)
         self._q_pd = np.linalg.eigvalsh(self.Q).min() > 1e-12 * max(1.0, np.abs(self.Q).max())
+        self._q_pos_pd = np.linalg.eigvalsh(self.Q[:2, :2]).min() > 1e-12 * max(1.0, np.abs(self.Q).max())
         w, V = np.linalg.eigh(self.Q)
         self._q_half = V @ np.diag(np.sqrt(np.clip(w, 0, None))) @ V.T
         self._nominal = None
@@ -256,6 +261,10 @@ class SdreController:
         failed[finite & ~stab] |= Check.STABILIZABLE
         if self._q_pd:
             detect = np.ones(n, dtype=bool)
+        elif self._q_pos_pd and np.all(A[:, :2, :2] == 0.0) and np.all(A[:, :2, 2:] == _I2):
+            # SDC structure A = [[0, I], ·] with Q weighting both positions: C = Q^½ sees X, Y and,
+            # through the [0 I] rows, their rates, so (A, Q^½) is observable for every x
+            detect = np.ones(n, dtype=bool)
         else:
             detect = np.array([finite[i] and not _pbh_fails(A[i].T, self._q_half.T) for i in range(n)])
             failed[finite & ~detect] |= Check.DETECTABLE
@@ -314,8 +323,9 @@ class SdreController:
         saturated = np.abs(u_unsat) > self.u_max
 
         self.fallbacks += int(fallback.sum())
-        for c in Check:
-            self.check_failures[c.name] += int(np.count_nonzero(failed & c))
+        if failed.any():
+            for name, bit in _CHECK_BITS:
+                self.check_failures[name] += int(np.count_nonzero(failed & bit))
         return SdreStep(u=u, u_unsat=u_unsat, K=Kuse, Ks=Ksuse, P=P, residual=residual, ok=ok,
                         fallback=fallback, failed_checks=failed, saturated=saturated,
                         nk_iterations=iters)

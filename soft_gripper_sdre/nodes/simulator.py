@@ -120,6 +120,7 @@ class SimulatorNode(Node):
                 'after startup_timeout')
         self._startup_timer.cancel()
         self.started = True
+        self._wall_start = time.monotonic()
         if self.p['mode'] == 'lockstep':
             self._watchdog = self.create_timer(min(0.01, self.p['lockstep_timeout'] / 4), self._check_timeout)
         else:
@@ -166,8 +167,8 @@ class SimulatorNode(Node):
         self.k += 1
         self.diag.count('steps')
         if self.total_steps is not None and self.k >= self.total_steps:
-            self.publish_state()
             self.done = True
+            self.publish_state()
             self.diag.set_status(OK, f'finished {self.k} steps')
             self.diag.publish()
             self.get_logger().info(f'duration reached after {self.k} steps; stopping')
@@ -215,6 +216,10 @@ class SimulatorNode(Node):
         if self.diag.level == WARN and self.k % 1000 == 0 and self.deadline is not None:
             self.diag.set_status(OK, 'stepping')
         self.diag.values['sim_time'] = f'{ns / cv.NS:.3f}'
+        if self.k % 100 == 0 or self.done:
+            wall = time.monotonic() - self._wall_start
+            if wall > 0:
+                self.diag.values['real_time_factor'] = f'{ns / cv.NS / wall:.4f}'
 
     def close(self) -> None:
         self.sim.close()
