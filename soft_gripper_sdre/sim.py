@@ -367,21 +367,25 @@ class GripperSim:
                         self._tip_acc.copy(), self._u_applied.copy(), cube_pose, contact, force)
 
     # -- analysis helpers (ground truth for tests and evaluation) ----------------------------
-    def linear_modes(self) -> np.ndarray:
-        """Natural frequencies [Hz] of the finger linearised about its current pose, friction off.
+    def linearize(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The finger linearised about its current pose with friction off, in SI (finger scene):
+        M δq̈ + K δq = B u, tip position δp = J δq.
 
-        M(q) δq̈ + (K + ∂g/∂q) δq = 0, with the gravity stiffness ∂g/∂q by central differences of
-        PyBullet's inverse dynamics at zero velocity and acceleration (finger scene only).
+        M (10, 10) [kg·m²] and K (10, 10) [N·m/rad] (joint springs + gravity stiffness ∂g/∂q, by
+        central differences of PyBullet's inverse dynamics), B (10, 2) (u in N·m), and the tip
+        Jacobian J (3, 10) [m/rad] in the finger's base frame (finite differences of the tip).
         """
         if self.config.scene != 'finger':
-            raise ValueError('linear_modes is defined for the finger scene')
+            raise ValueError('linearize is defined for the finger scene')
         cid = self._client
         body = self._bodies[0]
-        q = [s[0] for s in pb.getJointStates(body, self._joint_list, physicsClientId=cid)]
+        states = pb.getJointStates(body, self._joint_list, physicsClientId=cid)
+        q = [s[0] for s in states]
         M = np.array(pb.calculateMassMatrix(body, q, physicsClientId=cid))
         zeros = [0.0] * N_JOINTS
         h = 1e-6
         dg = np.zeros((N_JOINTS, N_JOINTS))
+        J = np.zeros((3, N_JOINTS))
         for j in range(N_JOINTS):
             qp, qm = list(q), list(q)
             qp[j] += h
@@ -389,7 +393,21 @@ class GripperSim:
             gp = np.array(pb.calculateInverseDynamics(body, qp, zeros, zeros, physicsClientId=cid))
             gm = np.array(pb.calculateInverseDynamics(body, qm, zeros, zeros, physicsClientId=cid))
             dg[:, j] = (gp - gm) / (2 * h)
-        K = np.diag(JOINT_STIFFNESS) + dg
+            tips = []
+            for qq in (qp, qm):
+                for k in range(N_JOINTS):
+                    pb.resetJointState(body, k, qq[k], physicsClientId=cid)
+                tips.append(np.asarray(pb.getLinkState(body, TIP_LINK, physicsClientId=cid)[0]))
+            J[:, j] = self._base_rot[0].T @ (tips[0] - tips[1]) / (2 * h)
+        for k, st in enumerate(states):                       # put the finger back exactly
+            pb.resetJointState(body, k, st[0], st[1], physicsClientId=cid)
+        # scaled world → SI: lengths /20, torques /400 (so inertia /400 too: τ = M q̈)
+        K = (np.diag(JOINT_STIFFNESS) + dg) / TORQUE_SCALE
+        return M / TORQUE_SCALE, K, B_MATRIX.copy(), J / LENGTH_SCALE
+
+    def linear_modes(self) -> np.ndarray:
+        """Natural frequencies [Hz] of the finger linearised about its current pose, friction off."""
+        M, K, _, _ = self.linearize()
         w2 = np.linalg.eigvals(np.linalg.solve(M, K))
         return np.sort(np.sqrt(np.abs(w2.real))) / (2 * math.pi)
 
