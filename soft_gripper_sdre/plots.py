@@ -130,3 +130,32 @@ def plot_accel(t, acc_true, acc_pred, path, r2=None, title='Validation (u4): pre
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return Path(path)
+
+
+def plot_sweep(rows: list[dict], path) -> Path:
+    """Left: worst-finger free-space RMSE vs q_pos per noise σ (log-log, 5 % target dashed).
+    Right: spectral radius of the loop around the frictionless linearised finger vs q_pos."""
+    fig, (ax, ax_r) = plt.subplots(1, 2, figsize=(10, 4))
+    for sigma in sorted({r['noise_m'] for r in rows}):
+        sel = sorted((r for r in rows if r['noise_m'] == sigma), key=lambda r: r['q_pos'])
+        ax.loglog([r['q_pos'] for r in sel], [r['worst_rmse_pct'] for r in sel], 'o-',
+                  label=f'σ = {1e3 * sigma:g} mm')
+    ax.axhline(5.0, color='k', ls='--', lw=1, label='target 5 %')
+    ax.set_xlabel('position weight q_pos [1/m²]')
+    ax.set_ylabel('worst-finger RMSE [% of excursion]')
+    ax.set_title('Grasp tracking vs position weight')
+    ax.grid(True, which='both', alpha=0.3)
+    ax.legend(fontsize=8)
+    sel = {r['q_pos']: r['frictionless_radius'] for r in rows}
+    qs = sorted(sel)
+    ax_r.semilogx(qs, [sel[q] for q in qs], 's-', color='tab:red')
+    ax_r.axhline(1.0, color='k', ls='--', lw=1)
+    ax_r.set_xlabel('position weight q_pos [1/m²]')
+    ax_r.set_ylabel('spectral radius per 1 ms step')
+    ax_r.set_title('Same loop around the frictionless finger')
+    ax_r.grid(True, which='both', alpha=0.3)
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
