@@ -82,18 +82,25 @@ def linear_finger(dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def loop_spectral_radius(plant, model, Q: np.ndarray, R: np.ndarray, accel_psd: float,
-                         meas_std: float, dt: float = 1e-3) -> tuple[float, float]:
+                         meas_std: float, dt: float = 1e-3,
+                         lowpass_hz: float = 0.0) -> tuple[float, float]:
     """(largest |eigenvalue|, its frequency [Hz]) of the sampled loop: plant (Ad, Bd, C) from
-    :func:`linear_finger`, steady-state KF, gains frozen at the model's origin. > 1 means a mode
-    that grows when nothing but the linear dynamics act on it."""
+    :func:`linear_finger`, steady-state KF, gains frozen at the model's origin, and the optional
+    first-order roll-off on the command (as :class:`~soft_gripper_sdre.control.TrackingController`
+    applies it). > 1 means a mode that grows when nothing but the linear dynamics act on it."""
     Ad, Bd, C = plant
     A0, G0 = model.AG(np.zeros(4))
     K, _, _ = sdre_gains(A0[0], G0[0], Q, R)
     kf = ConstantVelocityKF(dt, accel_psd, meas_std, n=1)
     _, L = kf.steady_state()
     Af = (np.eye(4) - L @ kf.H) @ kf.F
-    # state [z_k, x̂_{k−1}]:  x̂_k = Af x̂_{k−1} + L C z_k,  u_k = K x̂_k,  z_{k+1} = Ad z_k + Bd u_k
-    closed = np.block([[Ad + Bd @ K @ L @ C, Bd @ K @ Af], [L @ C, Af]])
+    # state [z_k, x̂_{k−1}, u_{k−1}]:  x̂_k = Af x̂_{k−1} + L C z_k,
+    # u_k = a u_{k−1} + (1 − a) K x̂_k (a = 0 without roll-off),  z_{k+1} = Ad z_k + Bd u_k
+    a = float(np.exp(-2 * np.pi * lowpass_hz * dt)) if lowpass_hz > 0 else 0.0
+    Uz, Ux, Uu = (1 - a) * K @ L @ C, (1 - a) * K @ Af, a * np.eye(2)
+    closed = np.block([[Ad + Bd @ Uz, Bd @ Ux, Bd @ Uu],
+                       [L @ C, Af, np.zeros((4, 2))],
+                       [Uz, Ux, Uu]])
     ev = np.linalg.eigvals(closed)
     k = int(np.argmax(np.abs(ev)))
     return float(np.abs(ev[k])), float(abs(np.angle(ev[k])) / (2 * np.pi * dt))

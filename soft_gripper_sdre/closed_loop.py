@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from soft_gripper_sdre.control import TrackingController, Weights
+from soft_gripper_sdre.control import DEFAULT_LOWPASS_HZ, TrackingController, Weights
 from soft_gripper_sdre.kf import ConstantVelocityKF
 from soft_gripper_sdre.metrics import TrackingMetrics, tracking_metrics
 from soft_gripper_sdre.sim import GripperSim, SimConfig
@@ -59,7 +59,7 @@ class LoopResult:
 def run_closed_loop(model, *, duration: float, sim_config: SimConfig | None = None,
                     weights: Weights, u_max: float, profile: GraspProfile | None = None,
                     estimator: EstimatorSettings | None = None, method: str = 'fast',
-                    progress: bool = False) -> LoopResult:
+                    lowpass_hz: float = DEFAULT_LOWPASS_HZ, progress: bool = False) -> LoopResult:
     """Run the grasp for ``duration`` seconds of sim time and return everything recorded."""
     sim_config = sim_config or SimConfig(scene='hand')
     profile = profile or GraspProfile()
@@ -70,7 +70,8 @@ def run_closed_loop(model, *, duration: float, sim_config: SimConfig | None = No
         n = sim.n_fingers
         kf = ConstantVelocityKF(dt, estimator.accel_psd, estimator.meas_std, n=n,
                                 process_noise=estimator.process_noise)
-        ctrl = TrackingController(model, weights, u_max, n_fingers=n, method=method)
+        ctrl = TrackingController(model, weights, u_max, n_fingers=n, method=method,
+                                  lowpass_hz=lowpass_hz, dt=dt)
         rec = {k: [] for k in ('t', 'pos', 'vel', 'meas', 'est', 'ref_pos', 'ref_vel', 'u', 'ok',
                                'fallback', 'saturated', 'residual', 'contact', 'cube')}
         traj = None

@@ -58,8 +58,11 @@ def weights_preset(name: str) -> Weights:
     raise ValueError(f'unknown weights preset {name!r}; known: {WEIGHT_PRESETS}')
 
 
-#: tuned defaults (SI); see README "Tuning" for the sweep that chose them
+#: tuned defaults (SI); see README "Noise, gains and the bending modes" for the sweep behind them
 DEFAULT_WEIGHTS = dict(q_pos=1.0e6, q_vel=0.0, r=1.6e4)
+#: first-order roll-off of the torque command [Hz]: cuts the loop's feed into the finger's
+#: unmodelled ~59 Hz bending mode (README), well above the 3 and 9 Hz modes the model captures
+DEFAULT_LOWPASS_HZ = 40.0
 
 
 class TrackingController:
@@ -75,7 +78,7 @@ class TrackingController:
     """
 
     def __init__(self, model, weights: Weights, u_max: float, n_fingers: int = 4,
-                 method: str = 'fast') -> None:
+                 method: str = 'fast', lowpass_hz: float = DEFAULT_LOWPASS_HZ, dt: float = 1e-3) -> None:
         self.model = model
         self.weights = weights
         self.n_fingers = int(n_fingers)
@@ -86,6 +89,10 @@ class TrackingController:
         self.sdre = SdreController(weights.Q, weights.R, u_max, n=self.n_fingers, method=method)
         self._x = np.zeros((self.n_fingers, 4))
         self._xd = np.zeros((self.n_fingers, 4))
+        if not (np.isfinite(lowpass_hz) and lowpass_hz >= 0.0):
+            raise ValueError(f'lowpass_hz must be finite and >= 0 (0 = off), got {lowpass_hz!r}')
+        self._alpha = float(np.exp(-2.0 * np.pi * lowpass_hz * dt)) if lowpass_hz > 0 else 0.0
+        self._u_filt = None
 
     @property
     def origin(self) -> np.ndarray:
@@ -93,8 +100,9 @@ class TrackingController:
         return self._origin
 
     def reset(self) -> None:
-        """Forget warm starts and last valid gains (e.g. after a clock jump)."""
+        """Forget warm starts, last valid gains and the filter state (e.g. after a clock jump)."""
         self.sdre.reset()
+        self._u_filt = None
 
     def compute(self, pos: np.ndarray, vel: np.ndarray, ref_pos: np.ndarray,
                 ref_vel: np.ndarray) -> SdreStep:
@@ -115,4 +123,11 @@ class TrackingController:
         xd[:, :2] -= self._origin
         xd[:, 2:] = ref_vel
         A, G = self.model.AG(x)
-        return self.sdre.step(A, G, x, xd)
+        out = self.sdre.step(A, G, x, xd)
+        if self._alpha > 0.0:
+            # first-order roll-off of the command: keeps the loop from feeding the finger's
+            # unmodelled bending modes (README, "Noise")
+            u_f = out.u if self._u_filt is None else self._alpha * self._u_filt + (1 - self._alpha) * out.u
+            self._u_filt = u_f
+            out.u = u_f
+        return out

@@ -133,27 +133,38 @@ def plot_accel(t, acc_true, acc_pred, path, r2=None, title='Validation (u4): pre
 
 
 def plot_sweep(rows: list[dict], path) -> Path:
-    """Left: worst-finger free-space RMSE vs q_pos per noise σ (log-log, 5 % target dashed).
-    Right: spectral radius of the loop around the frictionless linearised finger vs q_pos."""
-    fig, (ax, ax_r) = plt.subplots(1, 2, figsize=(10, 4))
-    for sigma in sorted({r['noise_m'] for r in rows}):
-        sel = sorted((r for r in rows if r['noise_m'] == sigma), key=lambda r: r['q_pos'])
-        ax.loglog([r['q_pos'] for r in sel], [r['worst_rmse_pct'] for r in sel], 'o-',
-                  label=f'σ = {1e3 * sigma:g} mm')
+    """Left: worst-finger free-space RMSE vs q_pos per noise σ (log-log, 5 % target dashed), solid
+    with the torque roll-off, dotted without. Right: spectral radius of the loop around the
+    frictionless linearised finger vs q_pos, with and without the roll-off."""
+    fig, (ax, ax_r) = plt.subplots(1, 2, figsize=(11, 4.2))
+    colours = plt.rcParams['axes.prop_cycle'].by_key()['color']
+    qs = sorted({r['q_pos'] for r in rows})
+    for fc in sorted({r.get('lowpass_hz', 0.0) for r in rows}):
+        style = ':' if fc == 0 else '-'
+        tag = 'no roll-off' if fc == 0 else f'{fc:g} Hz roll-off'
+        for c, sigma in zip(colours, sorted({r['noise_m'] for r in rows})):
+            sel = sorted((r for r in rows if r['noise_m'] == sigma and r.get('lowpass_hz', 0.0) == fc),
+                         key=lambda r: r['q_pos'])
+            ax.loglog([r['q_pos'] for r in sel], [r['worst_rmse_pct'] for r in sel], 'o' + style,
+                      color=c, label=f'σ = {1e3 * sigma:g} mm, {tag}')
+        radius = {r['q_pos']: r['frictionless_radius'] for r in rows if r.get('lowpass_hz', 0.0) == fc}
+        ax_r.semilogx(sorted(radius), [radius[q] for q in sorted(radius)], 's' + style, color='tab:red',
+                      label=tag)
     ax.axhline(5.0, color='k', ls='--', lw=1, label='target 5 %')
     ax.set_xlabel('position weight q_pos [1/m²]')
     ax.set_ylabel('worst-finger RMSE [% of excursion]')
     ax.set_title('Grasp tracking vs position weight')
-    ax.grid(True, which='both', alpha=0.3)
-    ax.legend(fontsize=8)
-    sel = {r['q_pos']: r['frictionless_radius'] for r in rows}
-    qs = sorted(sel)
-    ax_r.semilogx(qs, [sel[q] for q in qs], 's-', color='tab:red')
+    ax.legend(fontsize=7)
     ax_r.axhline(1.0, color='k', ls='--', lw=1)
     ax_r.set_xlabel('position weight q_pos [1/m²]')
     ax_r.set_ylabel('spectral radius per 1 ms step')
     ax_r.set_title('Same loop around the frictionless finger')
-    ax_r.grid(True, which='both', alpha=0.3)
+    ax_r.legend(fontsize=8)
+    for a in (ax, ax_r):
+        a.grid(True, which='both', alpha=0.3)
+        a.set_xticks(qs)
+        a.set_xticklabels([f'{q:.2g}' for q in qs])
+        a.minorticks_off()
     fig.tight_layout()
     path = Path(path)
     fig.savefig(path, dpi=110)

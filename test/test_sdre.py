@@ -111,3 +111,26 @@ def test_paper_weights_in_si():
 def test_bad_weights(Q, R, u_max, match):
     with pytest.raises(ValueError, match=match):
         SdreController(Q, R, u_max)
+
+
+def test_tracking_controller_roll_off_is_a_first_order_filter():
+    """With the roll-off, a constant law output is approached as 1 − aᵏ (a = e^{−2π f Δt})."""
+    from soft_gripper_sdre.control import DEFAULT_WEIGHTS, TrackingController, Weights
+    from soft_gripper_sdre.model import SDCModel
+    model = SDCModel()
+    rest = np.repeat(model.rest_tip[None, :2], 4, 0)
+    ref = rest + [0.0, 0.002]
+    plain = TrackingController(model, Weights(**DEFAULT_WEIGHTS), 0.0625, lowpass_hz=0.0)
+    rolled = TrackingController(model, Weights(**DEFAULT_WEIGHTS), 0.0625, lowpass_hz=40.0, dt=1e-3)
+    zero = np.zeros((4, 2))
+    u_star = plain.compute(rest, zero, ref, zero).u
+    a = np.exp(-2 * np.pi * 40.0 * 1e-3)
+    first = rolled.compute(rest, zero, ref, zero).u
+    np.testing.assert_allclose(first, u_star)                    # starts at the law's output
+    rolled.reset()
+    rolled._u_filt = np.zeros((4, 2))                             # from rest: 1 − aᵏ
+    for k in range(1, 6):
+        u = rolled.compute(rest, zero, ref, zero).u
+        np.testing.assert_allclose(u, (1 - a**k) * u_star, rtol=1e-9, atol=1e-15)
+    with pytest.raises(ValueError, match='lowpass_hz'):
+        TrackingController(model, Weights(**DEFAULT_WEIGHTS), 0.0625, lowpass_hz=-1.0)

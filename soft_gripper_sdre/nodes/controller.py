@@ -31,7 +31,7 @@ import torch
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import MultiDOFJointTrajectory
 
-from soft_gripper_sdre.control import DEFAULT_WEIGHTS, TrackingController, Weights
+from soft_gripper_sdre.control import DEFAULT_LOWPASS_HZ, DEFAULT_WEIGHTS, TrackingController, Weights
 from soft_gripper_sdre.horizon import sample_horizon
 from soft_gripper_sdre.model import ModelFileError, SDCModel
 from soft_gripper_sdre.nodes import conversions as cv
@@ -53,6 +53,11 @@ PARAMS = (
           '16000 SI)', '1/(N·m)²', 1e-12, 1e12, read_only=True),
     Param('torque_limit', 0.0625, 'saturation of each torque (0.0625 N·m = 25 sim units, the '
           'stable range of the physics step)', 'N·m', 1e-6, 1.0, read_only=True),
+    Param('torque_lowpass_hz', DEFAULT_LOWPASS_HZ, 'first-order roll-off of the torque command '
+          '(keeps the loop out of the finger\'s ~59 Hz bending mode; 0 = off)', 'Hz', 0.0, 500.0,
+          read_only=True),
+    Param('control_period', 0.001, 'period of the estimates (the roll-off filter\'s step)', 's',
+          1e-4, 0.05, read_only=True),
     Param('solver', 'fast', 'Riccati solver: warm-started Newton–Kleinman or scipy reference',
           choices=('fast', 'reference'), read_only=True),
     Param('estimate_timeout', 0.5, 'wall time without a fresh estimate before zero torque is '
@@ -83,7 +88,8 @@ class ControllerNode(Node):
         self.n = p['n_fingers']
         self.jump_ns = int(p['reset_on_jump'] * cv.NS)
         self.ctrl = TrackingController(model, weights, p['torque_limit'], n_fingers=self.n,
-                                       method=p['solver'])
+                                       method=p['solver'], lowpass_hz=p['torque_lowpass_hz'],
+                                       dt=p['control_period'])
         self.done = False
         self.exit_code = 0
 

@@ -6,7 +6,7 @@ For each position weight q_pos and noise σ it runs the grasp in-process (sim �
 node graph's loop without the topics; R and q_vel at their defaults) and scores the free-space
 RMSE of the *true* tip, as % of each finger's excursion (the worst finger is reported). Beside it,
 the spectral radius of the same 1 ms loop closed around the full linearised 10-joint finger with
-friction off (:func:`soft_gripper_sdre.analysis.loop_spectral_radius`). Writes ``sweep.json``,
+friction off. Each point is run without and with the torque roll-off (:func:`soft_gripper_sdre.analysis.loop_spectral_radius`). Writes ``sweep.json``,
 ``sweep.png`` and prints a Markdown table.
 """
 from __future__ import annotations
@@ -23,6 +23,8 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument('--out', type=Path, default=Path('runs/sweep'))
     ap.add_argument('--q-pos', type=float, nargs='+', default=[2.5e5, 5e5, 1e6, 2e6, 4e6])
     ap.add_argument('--noise', type=float, nargs='+', default=[0.0, 5e-5, 2e-4], help='σ [m]')
+    ap.add_argument('--lowpass', type=float, nargs='+', default=None,
+                    help='torque roll-off frequencies to compare [Hz] (0 = off; default: 0 and the default)')
     ap.add_argument('--duration', type=float, default=6.0, help='sim time per run [s]')
     return ap
 
@@ -37,7 +39,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from soft_gripper_sdre.analysis import linear_finger, loop_spectral_radius
     from soft_gripper_sdre.closed_loop import EstimatorSettings, run_closed_loop
-    from soft_gripper_sdre.control import DEFAULT_WEIGHTS, Weights
+    from soft_gripper_sdre.control import DEFAULT_LOWPASS_HZ, DEFAULT_WEIGHTS, Weights
     from soft_gripper_sdre.model import SDCModel
     from soft_gripper_sdre.plots import plot_sweep
     from soft_gripper_sdre.sim import SimConfig
@@ -49,25 +51,28 @@ def main(argv: list[str] | None = None) -> int:
     est = EstimatorSettings()
     plant = linear_finger(1e-3)
     rows = []
-    combos = [(q, s) for s in a.noise for q in a.q_pos]
-    for q, sigma in tqdm(combos, desc='sweep', unit='run'):
+    lowpass = a.lowpass if a.lowpass is not None else [0.0, DEFAULT_LOWPASS_HZ]
+    combos = [(q, s, f) for f in lowpass for s in a.noise for q in a.q_pos]
+    for q, sigma, fc in tqdm(combos, desc='sweep', unit='run'):
         w = Weights(q, DEFAULT_WEIGHTS['q_vel'], DEFAULT_WEIGHTS['r'])
         r = run_closed_loop(model, duration=a.duration, weights=w, u_max=0.0625,
                             sim_config=SimConfig(scene='hand', noise_std=sigma),
-                            profile=GraspProfile(others='open'), estimator=est)
+                            profile=GraspProfile(others='open'), estimator=est, lowpass_hz=fc)
         pct = [m.rmse_pct for m in r.metrics]
-        rho, freq = loop_spectral_radius(plant, model, w.Q, w.R, est.accel_psd, est.meas_std)
-        rows.append({'q_pos': q, 'noise_m': sigma, 'worst_rmse_pct': float(np.nanmax(pct)),
+        rho, freq = loop_spectral_radius(plant, model, w.Q, w.R, est.accel_psd, est.meas_std,
+                                         lowpass_hz=fc)
+        rows.append({'q_pos': q, 'noise_m': sigma, 'lowpass_hz': fc, 'worst_rmse_pct': float(np.nanmax(pct)),
                      'rmse_pct': [float(p) for p in pct],
                      'saturated_fraction': float(r.saturated.any(axis=2).mean()),
                      'fallback_fraction': float(r.fallback.mean()),
                      'frictionless_radius': rho, 'frictionless_mode_hz': freq})
     (a.out / 'sweep.json').write_text(json.dumps(rows, indent=2) + '\n')
     plot_sweep(rows, a.out / 'sweep.png')
-    print('| q_pos | σ [mm] | worst-finger RMSE [% of excursion] | saturated steps | frictionless loop radius |')
-    print('| ---: | ---: | ---: | ---: | ---: |')
+    print('| roll-off | q_pos | σ [mm] | worst-finger RMSE [% of excursion] | saturated steps | frictionless loop radius |')
+    print('| ---: | ---: | ---: | ---: | ---: | ---: |')
     for row in rows:
-        print(f'| {row["q_pos"]:.2g} | {1e3 * row["noise_m"]:.2f} | {row["worst_rmse_pct"]:.2f} | '
+        off = 'off' if row['lowpass_hz'] == 0 else f'{row["lowpass_hz"]:g} Hz'
+        print(f'| {off} | {row["q_pos"]:.2g} | {1e3 * row["noise_m"]:.2f} | {row["worst_rmse_pct"]:.2f} | '
               f'{100 * row["saturated_fraction"]:.1f} % | {row["frictionless_radius"]:.4f} '
               f'({row["frictionless_mode_hz"]:.0f} Hz) |')
     print(f'wrote {a.out / "sweep.json"} and {a.out / "sweep.png"}')
