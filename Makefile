@@ -9,7 +9,7 @@ PY      := $(VENV)/bin/python
 STAMP   := $(VENV)/.installed
 OUT     ?= runs/demo
 
-.PHONY: demo test test-fast venv model bench lock clean
+.PHONY: demo test test-fast venv model bench sweep input-matrix lock clean
 
 $(STAMP): requirements.txt setup.py setup.cfg package.xml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -36,6 +36,13 @@ model: $(STAMP)
 
 bench: $(STAMP)
 	$(PY) -m soft_gripper_sdre.tools.bench --write BENCHMARKS.md
+
+# README "Noise, gains and the finger's bending modes" and "Identifying G2"
+sweep: $(STAMP)
+	$(PY) -m soft_gripper_sdre.tools.sweep --out runs/sweep
+
+input-matrix: $(STAMP)
+	$(PY) -m soft_gripper_sdre.tools.input_matrix --out runs/input_matrix
 
 # The lock is pip's own resolution (a dry-run report), so every line names a
 # distribution the index serves (pip freeze would also list the dist-info
