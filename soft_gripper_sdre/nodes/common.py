@@ -48,11 +48,27 @@ class Diagnostics:
         self.level = OK
         self.message = 'ok'
         self._hardware_id = hardware_id
+        self._clean = 0                         # good events since the last problem
+        self._log = ThrottledLogger(node.get_logger())
         self._pub = node.create_publisher(DiagnosticArray, DIAGNOSTICS, STREAM_QOS)
         self._timer = node.create_timer(period, self.publish)
 
     def count(self, key: str, n: int = 1) -> None:
         self.counters[key] += n
+
+    def problem(self, key: str, why: str) -> None:
+        """Count ``key``, go to WARN with ``why`` and warn (throttled per key)."""
+        self.count(key)
+        self.set_status(WARN, why)
+        self._clean = 0
+        self._log.warn(key, why)
+
+    def good(self, key: str, message: str, clear_after: int = 1000) -> None:
+        """Count ``key``; after ``clear_after`` good events in a row a WARN returns to OK."""
+        self.count(key)
+        self._clean += 1
+        if self._clean == clear_after and self.level != OK:
+            self.set_status(OK, message)
 
     def set_status(self, level: int, message: str) -> None:
         self.level, self.message = level, message

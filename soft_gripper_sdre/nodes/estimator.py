@@ -28,7 +28,7 @@ from trajectory_msgs.msg import MultiDOFJointTrajectory
 
 from soft_gripper_sdre.kf import PROCESS_NOISE_MODELS, ConstantVelocityKF
 from soft_gripper_sdre.nodes import conversions as cv
-from soft_gripper_sdre.nodes.common import OK, WARN, Diagnostics, ThrottledLogger, run
+from soft_gripper_sdre.nodes.common import Diagnostics, run
 from soft_gripper_sdre.nodes.params import Param, ParameterError, declare_all, on_runtime_change
 from soft_gripper_sdre.nodes.topics import LOOP_QOS, STATE_ESTIMATE, TIP_POSITIONS
 
@@ -45,9 +45,6 @@ PARAMS = (
     Param('reset_on_jump', 0.1, 'a stamp jump larger than this (either direction) resets the filter; '
           'shorter gaps are predicted through period by period, hence the bound', 's', 1e-3, 1.0),
 )
-
-#: consecutive clean measurements after which a warning status returns to OK
-_CLEAR_AFTER = 1000
 
 
 class EstimatorNode(Node):
@@ -68,7 +65,6 @@ class EstimatorNode(Node):
         on_runtime_change(self, PARAMS, apply=self._apply)
 
         self.last_ns: int | None = None          # stamp of the last accepted measurement
-        self._clean = 0                          # accepted measurements since the last problem
         self._predict_only = np.zeros(self.n, dtype=bool)
         # one outgoing message, filled in place for every estimate (no per-message allocation)
         self._msg = cv.estimate_to_msg(0, np.zeros((self.n, 2)), np.zeros((self.n, 2)))
@@ -77,7 +73,6 @@ class EstimatorNode(Node):
 
         self.pub = self.create_publisher(MultiDOFJointTrajectory, STATE_ESTIMATE, LOOP_QOS)
         self.sub = self.create_subscription(PoseArray, TIP_POSITIONS, self.on_tips, LOOP_QOS)
-        self.log = ThrottledLogger(self.get_logger())
         self.diag = Diagnostics(self)
         self.diag.values['process_noise'] = p['process_noise']
         self.get_logger().info(
@@ -93,7 +88,7 @@ class EstimatorNode(Node):
         try:
             stamp, tips = cv.msg_to_tips(msg, self.n)
         except cv.MessageError as exc:
-            self._problem('bad_message', f'rejected: {exc}')
+            self.diag.problem('bad_message', f'rejected: {exc}')
             return
         z = tips[:, :2]
         last = self.last_ns
@@ -102,22 +97,22 @@ class EstimatorNode(Node):
             return
         step = stamp - last
         if abs(step) > self.jump_ns:
-            self._problem('resets', f'tip_positions stamp jumped from {last / cv.NS:.4f} s to '
-                          f'{stamp / cv.NS:.4f} s (more than reset_on_jump); filter reset')
+            self.diag.problem('resets', f'tip_positions stamp jumped from {last / cv.NS:.4f} s to '
+                              f'{stamp / cv.NS:.4f} s (more than reset_on_jump); filter reset')
             self._initialise(stamp, z)
             return
         if step <= 0:
-            self._problem('stale', f'rejected: tip_positions stamp {stamp} ns is not newer than '
-                          f'the last {last} ns')
+            self.diag.problem('stale', f'rejected: tip_positions stamp {stamp} ns is not newer than '
+                              f'the last {last} ns')
             return
         periods = max(1, (step + self.period_ns // 2) // self.period_ns)
         if step != periods * self.period_ns:
-            self._problem('off_period', f'tip_positions stamp step {step} ns is not a multiple of '
-                          f'control_period ({self.period_ns} ns); treated as {periods} period(s)')
+            self.diag.problem('off_period', f'tip_positions stamp step {step} ns is not a multiple of '
+                              f'control_period ({self.period_ns} ns); treated as {periods} period(s)')
         if periods > 1:
             self.diag.count('missed_periods', periods - 1)
-            self._problem('gaps', f'{periods - 1} measurement(s) missing before t = '
-                          f'{stamp / cv.NS:.4f} s; predicting through them')
+            self.diag.problem('gaps', f'{periods - 1} measurement(s) missing before t = '
+                              f'{stamp / cv.NS:.4f} s; predicting through them')
             for _ in range(periods - 1):
                 self.kf.step(z, self._predict_only)
         self.kf.step(z)
@@ -132,11 +127,7 @@ class EstimatorNode(Node):
     def _accept(self, stamp: int) -> None:
         self.last_ns = stamp
         self._publish(stamp, self.kf.x)
-        d = self.diag
-        d.count('estimates')
-        self._clean += 1
-        if self._clean == _CLEAR_AFTER and d.level != OK:
-            d.set_status(OK, 'estimating')
+        self.diag.good('estimates', 'estimating')
 
     def _publish(self, stamp: int, x: np.ndarray) -> None:
         t = self._msg.header.stamp
@@ -145,12 +136,6 @@ class EstimatorNode(Node):
             pos.x, pos.y = px, py
             vel.x, vel.y = vx, vy
         self.pub.publish(self._msg)
-
-    def _problem(self, key: str, why: str) -> None:
-        self.diag.count(key)
-        self.diag.set_status(WARN, why)
-        self._clean = 0
-        self.log.warn(key, why)
 
 
 def main(args=None) -> int:

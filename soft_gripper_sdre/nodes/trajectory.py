@@ -28,7 +28,7 @@ from rclpy.node import Node
 from trajectory_msgs.msg import MultiDOFJointTrajectory
 
 from soft_gripper_sdre.nodes import conversions as cv
-from soft_gripper_sdre.nodes.common import OK, WARN, Diagnostics, ThrottledLogger, run
+from soft_gripper_sdre.nodes.common import Diagnostics, run
 from soft_gripper_sdre.nodes.params import Param, ParameterError, declare_all, on_runtime_change
 from soft_gripper_sdre.nodes.topics import GRASP_REFERENCE, LOOP_QOS, REFERENCE_QOS, TIP_POSITIONS
 from soft_gripper_sdre.trajectory import OTHERS_MODES, GraspProfile, GraspTrajectory
@@ -64,9 +64,6 @@ PARAMS = (
     Param('reset_on_jump', 0.1, 'a backwards stamp jump larger than this restarts from a new rest '
           'pose', 's', 1e-3, 1e3),
 )
-
-#: consecutive clean tip messages after which a warning status returns to OK
-_CLEAR_AFTER = 1000
 
 
 def _profile(p: dict) -> GraspProfile:
@@ -108,11 +105,9 @@ class TrajectoryNode(Node):
         self.traj: GraspTrajectory | None = None
         self.last_ns = -1                       # stamp of the last accepted tip message
         self.next_pub_ns = 0                    # next publish instant (multiple of publish_period)
-        self._clean = 0                         # accepted tip messages since the last problem
 
         self.pub = self.create_publisher(MultiDOFJointTrajectory, GRASP_REFERENCE, REFERENCE_QOS)
         self.sub = self.create_subscription(PoseArray, TIP_POSITIONS, self.on_tips, LOOP_QOS)
-        self.log = ThrottledLogger(self.get_logger())
         self.diag = Diagnostics(self)
         pr = self.profile
         self.get_logger().info(
@@ -128,21 +123,18 @@ class TrajectoryNode(Node):
         try:
             stamp, tips = cv.msg_to_tips(msg, self.n)
         except cv.MessageError as exc:
-            self._problem('bad_message', f'rejected: {exc}')
+            self.diag.problem('bad_message', f'rejected: {exc}')
             return
         if self.traj is not None and stamp <= self.last_ns:
             if self.last_ns - stamp <= self.jump_ns:
-                self._problem('stale', f'rejected: tip_positions stamp {stamp} ns is not newer than '
-                             f'the last {self.last_ns} ns')
+                self.diag.problem('stale', f'rejected: tip_positions stamp {stamp} ns is not newer '
+                                  f'than the last {self.last_ns} ns')
                 return
-            self._problem('resets', f'tip_positions stamp jumped back from {self.last_ns / cv.NS:.4f} s '
-                         f'to {stamp / cv.NS:.4f} s; taking a new rest pose')
+            self.diag.problem('resets', f'tip_positions stamp jumped back from '
+                              f'{self.last_ns / cv.NS:.4f} s to {stamp / cv.NS:.4f} s; taking a new rest pose')
             self.traj = None
         self.last_ns = stamp
-        self.diag.count('tips')
-        self._clean += 1
-        if self._clean == _CLEAR_AFTER and self.diag.level != OK:
-            self.diag.set_status(OK, 'publishing')
+        self.diag.good('tips', 'publishing')
         if self.traj is None:
             self.traj = GraspTrajectory(tips, self.profile)
             rest = ', '.join(f'({1e3 * x:.2f}, {1e3 * y:.2f})' for x, y in self.traj.rest.tolist())
@@ -160,12 +152,6 @@ class TrajectoryNode(Node):
         self.pub.publish(cv.reference_to_msg(start, offsets, ref.pos, ref.vel, ref.acc))
         self.next_pub_ns = (stamp // self.period_ns + 1) * self.period_ns
         self.diag.count('references')
-
-    def _problem(self, key: str, why: str) -> None:
-        self.diag.count(key)
-        self.diag.set_status(WARN, why)
-        self._clean = 0
-        self.log.warn(key, why)
 
 
 def main(args=None) -> int:
