@@ -15,12 +15,12 @@ from trajectory_msgs.msg import MultiDOFJointTrajectory, MultiDOFJointTrajectory
 from rosutil import Probe, overrides, ros_context, spin_until
 from soft_gripper_sdre.model import SDCModel
 from soft_gripper_sdre.nodes import conversions as cv
-from soft_gripper_sdre.nodes.controller import ControllerNode
-from soft_gripper_sdre.nodes.estimator import EstimatorNode
 from soft_gripper_sdre.nodes.simulator import SimulatorNode
-from soft_gripper_sdre.nodes.topics import (GRASP_REFERENCE, LOOP_QOS, REFERENCE_QOS, STATE_ESTIMATE,
-                                            TIP_POSITIONS, TORQUE_COMMANDS)
-from soft_gripper_sdre.nodes.trajectory import TrajectoryNode
+from soft_gripper_sdre.nodes.topics import (GRASP_REFERENCE, LOOP_QOS, STATE_ESTIMATE, TIP_POSITIONS,
+                                            TORQUE_COMMANDS)
+from test_node_controller import make as make_controller
+from test_node_estimator import make as make_estimator
+from test_node_trajectory import make as make_trajectory
 
 pytestmark = pytest.mark.ros
 
@@ -155,14 +155,7 @@ def test_fuzzed_torque_commands_never_reach_the_physics():
 def test_fuzzed_tips_never_reach_the_estimate():
     fz = Fuzz(2)
     with ros_context() as (ctx, executor):
-        node = EstimatorNode(context=ctx)
-        probe = Probe(ctx)
-        probe.listen(MultiDOFJointTrajectory, STATE_ESTIMATE, LOOP_QOS)
-        pub = probe.create_publisher(PoseArray, TIP_POSITIONS, LOOP_QOS)
-        executor.add_node(node)
-        executor.add_node(probe)
-        assert spin_until(executor, lambda: pub.get_subscription_count() > 0
-                          and node.count_subscribers(STATE_ESTIMATE) > 0)
+        node, probe, pub = make_estimator(ctx, executor)
         _fuzz(executor, pub, fz.pose_array, node, ('estimates', 'bad_message', 'stale'))
         assert _rejected(node, ('bad_message', 'stale')) >= fz.bad > 50
         out = probe.received[STATE_ESTIMATE]
@@ -177,14 +170,7 @@ def test_fuzzed_tips_never_reach_the_estimate():
 def test_fuzzed_tips_never_reach_the_reference():
     fz = Fuzz(3)
     with ros_context() as (ctx, executor):
-        node = TrajectoryNode(context=ctx)
-        probe = Probe(ctx)
-        probe.listen(MultiDOFJointTrajectory, GRASP_REFERENCE, REFERENCE_QOS)
-        pub = probe.create_publisher(PoseArray, TIP_POSITIONS, LOOP_QOS)
-        executor.add_node(node)
-        executor.add_node(probe)
-        assert spin_until(executor, lambda: pub.get_subscription_count() > 0
-                          and node.count_subscribers(GRASP_REFERENCE) > 0)
+        node, probe, pub = make_trajectory(ctx, executor)
         _fuzz(executor, pub, fz.pose_array, node, ('tips', 'bad_message', 'stale'))
         assert _rejected(node, ('bad_message', 'stale')) >= fz.bad > 50
         assert _finite_outputs(probe.received[GRASP_REFERENCE],
@@ -196,17 +182,8 @@ def test_fuzzed_estimates_and_references_never_reach_the_actuators():
     model = SDCModel()
     rest = np.repeat(model.rest_tip[None, :2], 4, 0)
     with ros_context() as (ctx, executor):
-        node = ControllerNode(context=ctx, parameter_overrides=overrides(estimate_timeout=60.0))
-        probe = Probe(ctx)
-        probe.listen(JointState, TORQUE_COMMANDS, LOOP_QOS)
+        node, probe, est_pub, ref_pub = make_controller(ctx, executor, estimate_timeout=60.0)
         cmds = probe.received[TORQUE_COMMANDS]
-        est_pub = probe.create_publisher(MultiDOFJointTrajectory, STATE_ESTIMATE, LOOP_QOS)
-        ref_pub = probe.create_publisher(MultiDOFJointTrajectory, GRASP_REFERENCE, REFERENCE_QOS)
-        executor.add_node(node)
-        executor.add_node(probe)
-        assert spin_until(executor, lambda: est_pub.get_subscription_count() > 0
-                          and ref_pub.get_subscription_count() > 0
-                          and node.pub_cmd.get_subscription_count() > 0)
         bad_before = fz.bad
         _fuzz(executor, ref_pub, lambda: fz.trajectory(points=int(fz.rng.integers(0, 6))), node,
               ('references', 'bad_reference', 'old_reference'), N_MESSAGES // 2)
