@@ -22,7 +22,6 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 import json
 import math
-import os
 from pathlib import Path
 import tempfile
 

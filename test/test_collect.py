@@ -1,10 +1,8 @@
 """The collect tool, run as a real subprocess on the real simulator."""
-from pathlib import Path
 import subprocess
 import sys
 
 import numpy as np
-import pytest
 
 from soft_gripper_sdre.signals import get_signal
 

@@ -1,7 +1,6 @@
 """The SDRE law against closed forms; the fast path against the reference; fallbacks."""
 import numpy as np
 import pytest
-from scipy.linalg import solve_continuous_are
 
 from soft_gripper_sdre.sdre import Check, SdreController, care, paper_weights_si, sdre_gains
 

@@ -111,7 +111,7 @@ def main(argv: list[str] | None = None) -> int:
             note = f'{ref / fast:.1f}× faster than scipy per step'
         rows.append((name, f'{us:.0f} µs', note))
     loop = bench_loop(0.5 if q else 2.0)
-    rows.append(('closed loop in-process (sim + KF + SDRE)', f'{loop:.2f}× real time', f'1 ms control period'))
+    rows.append(('closed loop in-process (sim + KF + SDRE)', f'{loop:.2f}× real time', '1 ms control period'))
     graph = bench_graph(0.5 if q else 2.0)
     rows.append(('node graph, 5 processes, lockstep', f'{graph:.2f}× real time',
                  f'{loop / graph:.1f}× slower than in-process (DDS, 4 hops per period)'))
