@@ -134,10 +134,12 @@ class ControllerNode(Node):
         self.last_ref_ns = stamp
         self.refs.append((int(times[0]), int(times[-1]), times, pos, vel, acc))
         self.diag.count('references')
-        if self.pending is not None and self._covering(self.pending[0]) is not None:
-            stamp_est, x = self.pending
-            self.pending = None
-            self._control(stamp_est, x)
+        if self.pending is not None:
+            ref = self._covering(self.pending[0])
+            if ref is not None:
+                stamp_est, x = self.pending
+                self.pending = None
+                self._control(stamp_est, x, ref)
 
     def on_estimate(self, msg: MultiDOFJointTrajectory) -> None:
         try:
@@ -158,13 +160,14 @@ class ControllerNode(Node):
             self.diag.set_status(OK, 'estimates are back')
             self.get_logger().info('fresh state estimates again; tracking resumes')
         self.diag.count('estimates')
-        if self._covering(stamp) is None:
+        ref = self._covering(stamp)
+        if ref is None:
             if self.pending is not None:
                 self.diag.count('unanswered_estimates')   # superseded before any reference came
             self.pending = (stamp, x)
             return
         self.pending = None
-        self._control(stamp, x)
+        self._control(stamp, x, ref)
 
     def _restart(self, stamp: int, topic: str) -> None:
         """Time went back (the simulator restarted): forget references, estimates and warm starts."""
@@ -176,6 +179,7 @@ class ControllerNode(Node):
         self.ctrl.reset()
 
     def _covering(self, t_ns: int):
+        """The newest stored horizon whose span holds ``t_ns``, or None."""
         for ref in reversed(self.refs):
             if ref[0] <= t_ns <= ref[1]:
                 return ref
@@ -186,8 +190,8 @@ class ControllerNode(Node):
         self.log.warn(key, f'rejected: {why}')
 
     # -- the law -----------------------------------------------------------------------------
-    def _control(self, stamp: int, x: np.ndarray) -> None:
-        _, _, times, pos, vel, acc = self._covering(stamp)
+    def _control(self, stamp: int, x: np.ndarray, ref: tuple) -> None:
+        _, _, times, pos, vel, acc = ref
         ref_pos, ref_vel = sample_horizon(times, pos, vel, acc, stamp)
         t0 = time.perf_counter()
         out = self.ctrl.compute(x[:, :2], x[:, 2:], ref_pos, ref_vel)

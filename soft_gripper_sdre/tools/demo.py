@@ -191,9 +191,12 @@ def controller_stats(bag: Path) -> dict:
     values = last_diagnostics(bag, 'controller')
     if not values:
         return {}
-    stats: dict = {k: float(v) for k, v in values.items()
-                   if k not in ('model', 'weights') and v.replace('.', '', 1).replace('e-', '', 1).isdigit()}
-    stats.update({k: values[k] for k in ('model', 'weights') if k in values})
+    stats: dict = {}
+    for key, value in values.items():
+        try:
+            stats[key] = float(value)
+        except ValueError:
+            stats[key] = value            # the model path and the weights string
     solves = stats.get('commands', 0.0) * 4
     if solves:
         stats['fallback_fraction'] = stats.get('fallbacks', 0.0) / solves
