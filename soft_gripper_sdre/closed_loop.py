@@ -14,6 +14,7 @@ It is used by the tests, the tuning sweeps and the benchmarks; the demo runs the
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+import time
 
 import numpy as np
 
@@ -54,6 +55,7 @@ class LoopResult:
     free_space: np.ndarray        # (T, n) scored samples
     excursion: np.ndarray         # (n,) peak reference excursion [m]
     metrics: list[TrackingMetrics] = field(default_factory=list)
+    step_seconds: float = 0.0     # wall time of the loop itself (after the simulator's settle) [s]
 
 
 def run_closed_loop(model, *, duration: float, sim_config: SimConfig | None = None,
@@ -79,6 +81,7 @@ def run_closed_loop(model, *, duration: float, sim_config: SimConfig | None = No
         if progress:
             from tqdm import tqdm
             iterator = tqdm(iterator, desc='closed loop', unit='step', mininterval=0.5)
+        start = time.perf_counter()
         for k in iterator:
             z = sim.measure()[:, :2]
             if traj is None:
@@ -106,9 +109,10 @@ def run_closed_loop(model, *, duration: float, sim_config: SimConfig | None = No
             rec['contact'].append(truth.finger_cube_contact if truth.finger_cube_contact is not None
                                   else np.zeros(n, dtype=bool))
             rec['cube'].append(truth.cube_pose if truth.cube_pose is not None else np.full(7, np.nan))
+        step_seconds = time.perf_counter() - start
     arrays = {k: np.asarray(v) for k, v in rec.items()}
     free = traj.free_space(arrays['t']) & ~arrays['contact']
     excursion = traj.peak_excursion()
-    result = LoopResult(**arrays, free_space=free, excursion=excursion)
+    result = LoopResult(**arrays, free_space=free, excursion=excursion, step_seconds=step_seconds)
     result.metrics = tracking_metrics(result.pos, result.ref_pos, free, excursion)
     return result
