@@ -209,7 +209,8 @@ class SdreController:
             lower-left block, the only part of A_cl whose inverse the law uses).
         max_nk_iterations: most Newton–Kleinman iterations per step before the exact fallback.
         nk_step_tol: Newton–Kleinman stops once its step ‖P_k+1 − P_k‖_F on P's lower rows, over
-            all fingers, is below this fraction of ‖P_k+1‖_F; the error left is of its square's order.
+            all fingers, is below this fraction of the warm start's ‖P_low‖_F; the error left is of
+            the order of its square.
         nominal: optional (A0, G0) whose gains serve as the fallback before any valid step.
     """
 
@@ -369,12 +370,12 @@ class SdreController:
           is C⁻¹, and the check is cond(C) < cond_max.
         """
         m = a.shape[0]
-        step2 = self.nk_step_tol**2
         Rg = self._Rinv @ g.transpose(0, 2, 1)                 # R⁻¹ G2ᵀ
         W = g @ Rg                                             # G2 R⁻¹ G2ᵀ
         L_open = _L0 + a.reshape(m, 8) @ _T8                   # L(A), flattened
         p = p0
         P_low = p.take(_LOW, axis=1).reshape(m, 2, 4)
+        small = self.nk_step_tol**2 * np.vdot(P_low, P_low)    # (tol ‖P_low‖_F)², from the warm start
         iterations = 0
         try:
             with np.errstate(all='ignore'):
@@ -389,7 +390,7 @@ class SdreController:
                     D = P_next - P_low                                          # lower rows of Δ
                     P_low = P_next
                     # quadratic convergence: after a step Δ, ‖P_k+1 − P*‖ is of order ‖Δ‖²
-                    if iterations == self.max_nk or np.vdot(D, D) < step2 * np.vdot(P_low, P_low):
+                    if iterations == self.max_nk or np.vdot(D, D) < small:
                         break
                 P = p.take(_FULL, axis=1).reshape(m, 4, 4)
                 WP = W @ P_low
