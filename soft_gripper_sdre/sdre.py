@@ -215,7 +215,7 @@ class SdreController:
     """
 
     def __init__(self, Q, R, u_max, n: int = 4, method: str = 'fast', residual_tol: float = 1e-6,
-                 cond_max: float = 1e8, max_nk_iterations: int = 4, nk_step_tol: float = 1e-5,
+                 cond_max: float = 1e8, max_nk_iterations: int = 5, nk_step_tol: float = 1e-5,
                  nominal=None) -> None:
         self.Q, self.R, self.u_max = _check_weights(Q, R, u_max)
         if method not in METHODS:
