@@ -37,16 +37,6 @@ def _median_time(fn, repeats: int, inner: int) -> float:
     return statistics.median(samples)
 
 
-def _step_times(fn, steps: int) -> np.ndarray:
-    """Wall time of each of ``fn(k)``, k = 0 … steps − 1 [s]."""
-    out = np.empty(steps)
-    for k in range(steps):
-        t0 = time.perf_counter()
-        fn(k)
-        out[k] = time.perf_counter() - t0
-    return out
-
-
 def bench_sim(scene: str, seconds: float, repeats: int) -> float:
     """Median wall time of one control period of the simulator alone (step + measure), u = 0 [s]."""
     from soft_gripper_sdre.sim import GripperSim, SimConfig
@@ -75,8 +65,11 @@ def closed_loop(seconds: float, noise_std: float):
 def bench_control(loop, repeats: int, ref_steps: int) -> dict[str, float]:
     """Controller, model, Riccati and KF costs on the states of a closed-loop run (replayed).
 
-    Returns medians over the per-step wall times [s] (first, cold step excluded), fast and
-    reference interleaved repeat by repeat.
+    The fast controller (which warm-starts from the step before) runs every step; the reference
+    runs on ``ref_steps`` steps spread over the run, each timed right after the fast one on the
+    same state, so the ratio compares the two under the same load. Returns medians of per-step
+    wall times [s] (the first, cold step left out), the fast path's mean Newton–Kleinman iterations
+    per step and its share of exact solves.
     """
     from soft_gripper_sdre.control import DEFAULT_WEIGHTS, TrackingController, Weights
     from soft_gripper_sdre.kf import ConstantVelocityKF
@@ -86,39 +79,53 @@ def bench_control(loop, repeats: int, ref_steps: int) -> dict[str, float]:
     w = Weights(**DEFAULT_WEIGHTS)
     est, ref_pos, ref_vel = loop.est, loop.ref_pos, loop.ref_vel
     T = len(est)
-    times: dict[str, list[np.ndarray]] = {k: [] for k in ('fast', 'reference', 'nk', 'care', 'model', 'kf')}
-    iterations: list[int] = []
+    paired = set(np.linspace(1, T - 1, min(ref_steps, T - 1)).astype(int).tolist())
     x = np.concatenate([est[:, :, :2] - model.rest_tip[:2], est[:, :, 2:]], axis=2)
     blocks = [model.sdc_blocks(x[k]) for k in range(T)]
     full = [SdreController._full(*b) for b in blocks]
+    t: dict[str, list[float]] = {k: [] for k in ('fast', 'fast_paired', 'reference', 'nk', 'nk_paired',
+                                                 'care', 'model', 'kf')}
+    iterations = []
+    clock = time.perf_counter
     for _ in range(repeats):
-        for method in ('fast', 'reference'):
-            c = TrackingController(model, w, 0.0625, method=method)
-            steps = T if method == 'fast' else min(T, ref_steps)
-
-            def compute(k):
-                out = c.compute(est[k, :, :2], est[k, :, 2:], ref_pos[k], ref_vel[k])
-                iterations.append(int(out.nk_iterations.max()))
-            t = _step_times(compute, steps)
-            times[method].append(t[1:])
-        # the Riccati solve and checks alone: warm-started NK (fast) vs scipy, 4 fingers
+        fast = TrackingController(model, w, 0.0625, method='fast')
+        ref = TrackingController(model, w, 0.0625, method='reference')
         s = SdreController(w.Q, w.R, 0.0625)
         s.step_sdc(*blocks[0], x[0], x[0])
-
-        def nk(k):
-            fast = s._fast_gains(*blocks[k], s._p)
-            s._p = fast.p
-        times['nk'].append(_step_times(nk, T)[1:])
-        times['care'].append(_step_times(lambda k: [care(full[k][0][i], full[k][1][i], w.Q, w.R)
-                                                     for i in range(4)], min(T, ref_steps)))
-        times['model'].append(_step_times(lambda k: model.sdc_blocks(x[k]), T))
         kf = ConstantVelocityKF(1e-3, 1.0, 5e-5, n=4)
         kf.reset(loop.meas[0])
-        times['kf'].append(_step_times(lambda k: kf.step(loop.meas[k]), T)[1:])
-    out = {k: float(np.median(np.concatenate(v))) for k, v in times.items()}
-    fast_iterations = np.array(iterations[:T])[1:]         # the first repeat's fast replay
-    out['iterations'] = float(fast_iterations.mean())
-    out['exact'] = float(np.mean(fast_iterations == 0))
+        for k in range(T):
+            args = (est[k, :, :2], est[k, :, 2:], ref_pos[k], ref_vel[k])
+            t0 = clock()
+            out = fast.compute(*args)
+            t1 = clock()
+            gains = s._fast_gains(*blocks[k], s._p)              # the Riccati solve and checks alone
+            t2 = clock()
+            s._p = gains.p
+            model.sdc_blocks(x[k])
+            t3 = clock()
+            kf.step(loop.meas[k])
+            t4 = clock()
+            if k == 0:
+                continue
+            iterations.append(int(out.nk_iterations.max()))
+            t['fast'].append(t1 - t0)
+            t['nk'].append(t2 - t1)
+            t['model'].append(t3 - t2)
+            t['kf'].append(t4 - t3)
+            if k in paired:
+                t0 = clock()
+                ref.compute(*args)
+                t1 = clock()
+                [care(full[k][0][i], full[k][1][i], w.Q, w.R) for i in range(4)]
+                t2 = clock()
+                t['reference'].append(t1 - t0)
+                t['care'].append(t2 - t1)
+                t['fast_paired'].append(t['fast'][-1])
+                t['nk_paired'].append(t['nk'][-1])
+    out = {k: float(np.median(v)) for k, v in t.items()}
+    out['iterations'] = float(np.mean(iterations))
+    out['exact'] = float(np.mean(np.array(iterations) == 0))
     return out
 
 
@@ -155,28 +162,26 @@ def rows(quick: bool) -> list[Row]:
     # the closed loop on the default settings (0.05 mm measurement noise), then its states replayed
     loop = closed_loop(1.0 if quick else 3.0, noise_std=5e-5)
     T = len(loop.t)
-    ctrl = bench_control(loop, 2 if quick else 3, 100 if quick else 400)
-    ratio = ctrl['reference'] / ctrl['fast']
+    ctrl = bench_control(loop, 1 if quick else 2, 100 if quick else 300)
+    ratio = ctrl['reference'] / ctrl['fast_paired']
     out += [('controller compute, 4 fingers (fast)', us(ctrl['fast']),
-             f'{ratio:.0f}× faster than the reference, same run; states of the closed loop below '
+             f'{ratio:.0f}× faster than the reference on the same steps; states of the closed loop below '
              f'(0.05 mm noise): {ctrl["iterations"]:.2f} Newton–Kleinman iterations per step, '
              f'{100 * ctrl["exact"]:.1f} % exact solves'),
             ('controller compute, 4 fingers (reference)', us(ctrl['reference']),
              'scipy solve_continuous_are per finger, general checks'),
             ('model A(x), G(x), 4 fingers', us(ctrl['model']), 'fused numpy network, three matmuls'),
             ('Riccati solve + checks, 4 fingers (fast)', us(ctrl['nk']),
-             f'{ctrl["care"] / ctrl["nk"]:.0f}× faster than scipy ×4 ({us(ctrl["care"])}), same run'),
+             f'{ctrl["care"] / ctrl["nk_paired"]:.0f}× faster than scipy ×4 ({us(ctrl["care"])}), same steps'),
             ('KF step, 4 fingers', us(ctrl['kf']), 'covariance recursion remembered once settled')]
-    clean = bench_control(closed_loop(1.0 if quick else 2.0, noise_std=0.0), 1 if quick else 2,
-                          50 if quick else 200)
+    clean = bench_control(closed_loop(1.0 if quick else 2.0, noise_std=0.0), 1, 50 if quick else 200)
     out.append(('controller compute, 4 fingers (fast), clean states', us(clean['fast']),
-                f'{clean["reference"] / clean["fast"]:.0f}× faster than the reference, same run; the same '
+                f'{clean["reference"] / clean["fast_paired"]:.0f}× faster than the reference, same steps; the same '
                 f'loop without measurement noise: {clean["iterations"]:.2f} iterations per step'))
     per_period = loop.step_seconds / T
     out.append(('closed loop in-process (sim + KF + controller)',
                 f'{T * 1e-3 / loop.step_seconds:.2f}× real time',
-                f'{us(per_period)} per 1 ms period, hand + cube, 0.05 mm noise; stepping only '
-                f'(the {hand * 1e6:.0f} µs simulator step bounds it at {1e-3 / hand:.1f}×)'))
+                f'{us(per_period)} per 1 ms period, hand + cube, 0.05 mm noise; stepping only'))
     out += graph_rows(quick)
     trained = Path('runs/train/metrics.json')
     if trained.is_file():          # training is timed by the train tool itself (`make model`)
