@@ -6,7 +6,8 @@ with the same rules, so a lockstep run of the graph reproduces it:
 1. the simulator measures the tips at t_k (:meth:`GripperSim.measure`);
 2. the estimator's constant-velocity KF turns them into x̂_k (the first measurement initialises it
    with zero velocity); the trajectory's rest pose is that first measurement;
-3. the controller samples the reference at t_k and computes u_k from x̂_k;
+3. the controller takes the reference at t_k (sampled for the whole run at once) and computes u_k
+   from x̂_k;
 4. the simulator holds u_k over [t_k, t_k + Δt).
 
 It is used by the tests, the tuning sweeps and the benchmarks; the demo runs the real node graph.
@@ -88,19 +89,20 @@ def run_closed_loop(model, *, duration: float, sim_config: SimConfig | None = No
                 kf.reset(z)
                 x_hat = kf.x.copy()
                 traj = GraspTrajectory(z, profile)
+                refs = traj.sample(np.arange(steps) * dt)     # the whole reference at once (t_k = k Δt)
             else:
                 x_hat = kf.step(z)
             truth = sim.truth()
-            ref = traj.sample(sim.t)
-            out = ctrl.compute(x_hat[:, :2], x_hat[:, 2:], ref.pos, ref.vel)
+            ref_pos, ref_vel = refs.pos[k], refs.vel[k]
+            out = ctrl.compute(x_hat[:, :2], x_hat[:, 2:], ref_pos, ref_vel)
             sim.step(out.u)
             rec['t'].append(truth.t)
             rec['pos'].append(truth.tip_pos[:, :2])
             rec['vel'].append(truth.tip_vel[:, :2])
             rec['meas'].append(z)
             rec['est'].append(x_hat)
-            rec['ref_pos'].append(ref.pos)
-            rec['ref_vel'].append(ref.vel)
+            rec['ref_pos'].append(ref_pos)
+            rec['ref_vel'].append(ref_vel)
             rec['u'].append(out.u)
             rec['ok'].append(out.ok)
             rec['fallback'].append(out.fallback)

@@ -195,10 +195,12 @@ def rows(quick: bool) -> list[Row]:
 
 
 def markdown(table: list[Row], quick: bool) -> str:
+    load = os.getloadavg()[0]
     lines = ['# Benchmarks', '',
              'Reproduce: `make bench` (= `python -m soft_gripper_sdre.tools.bench --write BENCHMARKS.md`).',
              f'Measured {time.strftime("%Y-%m-%d")} on {platform.machine()}, {os.cpu_count()} cores, '
-             f'Python {platform.python_version()}, a shared machine (other jobs running)'
+             f'Python {platform.python_version()}, a shared machine (other jobs running; load average '
+             f'{load:.1f} at the end of the run)'
              + (', short runs (`--quick`)' if quick else '')
              + ': compare the ratios, which are measured in one run.', '',
              '| what | figure | note |', '| --- | ---: | --- |']
