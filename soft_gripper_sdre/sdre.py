@@ -405,7 +405,8 @@ class SdreController:
                 C = (a - WP)[:, :, :2]                                         # A_cl = [[0, I], [C, D]]
                 # stabilisable (G2) and A_cl invertible (C), both 2×2 condition tests in one call
                 well, det = _cond2_below(np.concatenate([g, C]), self.cond_max)
-                # K_s = −R⁻¹ G2ᵀ C⁻ᵀ Q[:2, :],  C⁻ᵀ = [[c11, −c10], [−c01, c00]] / det C
+                # K_s = −R⁻¹ G2ᵀ C⁻ᵀ Q[:2, :],  C⁻ᵀ = [[c11, −c10], [−c01, c00]] / det C (the leading
+                # minus rides in _NEG_CHECKER)
                 Ks = (Rg @ (C[:, ::-1, ::-1] * (_NEG_CHECKER / det[m:, None, None]))) @ self._q_top
                 stack = np.concatenate([P, PSP + self._q_shift])               # [P; N − margin]
                 try:
