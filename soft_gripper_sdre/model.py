@@ -15,7 +15,7 @@ With scaling (the default preset) the networks see x / s_x and predict scaled ac
 A_ij = s_a,i Â_ij / s_x,j and G2_ij = s_a,i Ĝ_ij / s_u,j, so the model keeps the paper's form.
 
 :class:`SDCModel` evaluates a checkpoint with plain numpy (no torch at control time): the two
-networks as one fused network of three matmuls, ~5 µs for four fingers.
+networks as one fused network of three matmuls.
 """
 from __future__ import annotations
 
