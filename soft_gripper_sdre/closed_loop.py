@@ -57,6 +57,7 @@ class LoopResult:
     excursion: np.ndarray         # (n,) peak reference excursion [m]
     metrics: list[TrackingMetrics] = field(default_factory=list)
     step_seconds: float = 0.0     # wall time of the loop itself (after the simulator's settle) [s]
+    period_seconds: np.ndarray | None = None   # (T,) wall time of each period of the loop [s]
 
 
 def run_closed_loop(model, *, duration: float, sim_config: SimConfig | None = None,
@@ -82,7 +83,9 @@ def run_closed_loop(model, *, duration: float, sim_config: SimConfig | None = No
         if progress:
             from tqdm import tqdm
             iterator = tqdm(iterator, desc='closed loop', unit='step', mininterval=0.5)
-        start = time.perf_counter()
+        clock = time.perf_counter
+        stamps = np.empty(steps + 1)
+        stamps[0] = clock()
         for k in iterator:
             z = sim.measure()[:, :2]
             if traj is None:
@@ -111,10 +114,12 @@ def run_closed_loop(model, *, duration: float, sim_config: SimConfig | None = No
             rec['contact'].append(truth.finger_cube_contact if truth.finger_cube_contact is not None
                                   else np.zeros(n, dtype=bool))
             rec['cube'].append(truth.cube_pose if truth.cube_pose is not None else np.full(7, np.nan))
-        step_seconds = time.perf_counter() - start
+            stamps[k + 1] = clock()
     arrays = {k: np.asarray(v) for k, v in rec.items()}
     free = traj.free_space(arrays['t']) & ~arrays['contact']
     excursion = traj.peak_excursion()
-    result = LoopResult(**arrays, free_space=free, excursion=excursion, step_seconds=step_seconds)
+    periods = np.diff(stamps)
+    result = LoopResult(**arrays, free_space=free, excursion=excursion, step_seconds=float(periods.sum()),
+                        period_seconds=periods)
     result.metrics = tracking_metrics(result.pos, result.ref_pos, free, excursion)
     return result
