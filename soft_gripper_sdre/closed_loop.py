@@ -6,7 +6,8 @@ with the same rules, so a lockstep run of the graph reproduces it:
 1. the simulator measures the tips at t_k (:meth:`GripperSim.measure`);
 2. the estimator's constant-velocity KF turns them into x̂_k (the first measurement initialises it
    with zero velocity); the trajectory's rest pose is that first measurement;
-3. the controller samples the reference at t_k and computes u_k from x̂_k;
+3. the controller takes the reference at t_k (sampled for the whole run at once) and computes u_k
+   from x̂_k;
 4. the simulator holds u_k over [t_k, t_k + Δt).
 
 It is used by the tests, the tuning sweeps and the benchmarks; the demo runs the real node graph.
@@ -14,6 +15,7 @@ It is used by the tests, the tuning sweeps and the benchmarks; the demo runs the
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+import time
 
 import numpy as np
 
@@ -54,6 +56,8 @@ class LoopResult:
     free_space: np.ndarray        # (T, n) scored samples
     excursion: np.ndarray         # (n,) peak reference excursion [m]
     metrics: list[TrackingMetrics] = field(default_factory=list)
+    step_seconds: float = 0.0     # wall time of the loop itself (after the simulator's settle) [s]
+    period_seconds: np.ndarray | None = None   # (T,) wall time of each period of the loop [s]
 
 
 def run_closed_loop(model, *, duration: float, sim_config: SimConfig | None = None,
@@ -79,25 +83,29 @@ def run_closed_loop(model, *, duration: float, sim_config: SimConfig | None = No
         if progress:
             from tqdm import tqdm
             iterator = tqdm(iterator, desc='closed loop', unit='step', mininterval=0.5)
+        clock = time.perf_counter
+        stamps = np.empty(steps + 1)
+        stamps[0] = clock()
         for k in iterator:
             z = sim.measure()[:, :2]
             if traj is None:
                 kf.reset(z)
                 x_hat = kf.x.copy()
                 traj = GraspTrajectory(z, profile)
+                refs = traj.sample(np.arange(steps) * dt)     # the whole reference at once (t_k = k Δt)
             else:
                 x_hat = kf.step(z)
             truth = sim.truth()
-            ref = traj.sample(sim.t)
-            out = ctrl.compute(x_hat[:, :2], x_hat[:, 2:], ref.pos, ref.vel)
+            ref_pos, ref_vel = refs.pos[k], refs.vel[k]
+            out = ctrl.compute(x_hat[:, :2], x_hat[:, 2:], ref_pos, ref_vel)
             sim.step(out.u)
             rec['t'].append(truth.t)
             rec['pos'].append(truth.tip_pos[:, :2])
             rec['vel'].append(truth.tip_vel[:, :2])
             rec['meas'].append(z)
             rec['est'].append(x_hat)
-            rec['ref_pos'].append(ref.pos)
-            rec['ref_vel'].append(ref.vel)
+            rec['ref_pos'].append(ref_pos)
+            rec['ref_vel'].append(ref_vel)
             rec['u'].append(out.u)
             rec['ok'].append(out.ok)
             rec['fallback'].append(out.fallback)
@@ -106,9 +114,12 @@ def run_closed_loop(model, *, duration: float, sim_config: SimConfig | None = No
             rec['contact'].append(truth.finger_cube_contact if truth.finger_cube_contact is not None
                                   else np.zeros(n, dtype=bool))
             rec['cube'].append(truth.cube_pose if truth.cube_pose is not None else np.full(7, np.nan))
+            stamps[k + 1] = clock()
     arrays = {k: np.asarray(v) for k, v in rec.items()}
     free = traj.free_space(arrays['t']) & ~arrays['contact']
     excursion = traj.peak_excursion()
-    result = LoopResult(**arrays, free_space=free, excursion=excursion)
+    periods = np.diff(stamps)
+    result = LoopResult(**arrays, free_space=free, excursion=excursion, step_seconds=float(periods.sum()),
+                        period_seconds=periods)
     result.metrics = tracking_metrics(result.pos, result.ref_pos, free, excursion)
     return result

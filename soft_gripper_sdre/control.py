@@ -70,7 +70,8 @@ class TrackingController:
 
     Args:
         model: object with ``AG(x) -> (A (n,4,4), G (n,4,2))`` and ``rest_tip`` (3,) [m] (an
-            :class:`soft_gripper_sdre.model.SDCModel`).
+            :class:`soft_gripper_sdre.model.SDCModel`); if it also has
+            ``sdc_blocks(x) -> ([A21 A22] (n,2,4), G2 (n,2,2))``, only those lower rows are used.
         weights: SDRE weights (SI).
         u_max: torque saturation per input [N·m].
         n_fingers: number of fingers controlled together.
@@ -87,11 +88,13 @@ class TrackingController:
             raise ValueError(f'model.rest_tip must hold a finite rest position, got {model.rest_tip!r}')
         self._origin = rest[:2].copy()
         self.sdre = SdreController(weights.Q, weights.R, u_max, n=self.n_fingers, method=method)
+        self._blocks = getattr(model, 'sdc_blocks', None)
         self._x = np.zeros((self.n_fingers, 4))
         self._xd = np.zeros((self.n_fingers, 4))
         if not (np.isfinite(lowpass_hz) and lowpass_hz >= 0.0):
             raise ValueError(f'lowpass_hz must be finite and >= 0 (0 = off), got {lowpass_hz!r}')
         self._alpha = float(np.exp(-2.0 * np.pi * lowpass_hz * dt)) if lowpass_hz > 0 else 0.0
+        self._beta = 1.0 - self._alpha
         self._u_filt = None
 
     @property
@@ -122,12 +125,14 @@ class TrackingController:
         xd[:, :2] = ref_pos
         xd[:, :2] -= self._origin
         xd[:, 2:] = ref_vel
-        A, G = self.model.AG(x)
-        out = self.sdre.step(A, G, x, xd)
+        if self._blocks is not None:                 # a model in SDC form: only its lower rows
+            out = self.sdre.step_sdc(*self._blocks(x), x, xd)
+        else:
+            out = self.sdre.step(*self.model.AG(x), x, xd)
         if self._alpha > 0.0:
             # first-order roll-off of the command: keeps the loop from feeding the finger's
             # unmodelled bending modes (README, "Noise")
-            u_f = out.u if self._u_filt is None else self._alpha * self._u_filt + (1 - self._alpha) * out.u
+            u_f = out.u if self._u_filt is None else self._alpha * self._u_filt + self._beta * out.u
             self._u_filt = u_f
             out.u = u_f
         return out

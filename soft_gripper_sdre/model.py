@@ -14,7 +14,8 @@ With scaling (the default preset) the networks see x / s_x and predict scaled ac
 ẍ / s_a from scaled inputs u / s_u; the physical matrices follow exactly,
 A_ij = s_a,i Â_ij / s_x,j and G2_ij = s_a,i Ĝ_ij / s_u,j, so the model keeps the paper's form.
 
-:class:`SDCModel` evaluates a checkpoint with plain numpy (no torch at control time).
+:class:`SDCModel` evaluates a checkpoint with plain numpy (no torch at control time): the two
+networks as one fused network of three matmuls.
 """
 from __future__ import annotations
 
@@ -252,6 +253,43 @@ def read_checkpoint(path: Path) -> dict:
     return ckpt
 
 
+def _fused_layers(sd: dict[str, np.ndarray], s: dict[str, np.ndarray]) -> list[tuple[np.ndarray, np.ndarray]]:
+    """NN_θ1 and NN_θ2 as one network in physical units, for evaluation with three matmuls.
+
+    The two networks take the same input, so they run side by side: layer 1 stacks their weights
+    (4 → 2·32), layers 2 and 3 are block-diagonal. The scalings fold into the weights: the input
+    x / s_x into layer 1's rows, and the output factors (A_ij = s_a,i Â_ij / s_x,j,
+    G2_ij = s_a,i Ĝ_ij / s_u,j) into layer 3's columns, which are also reordered from the networks'
+    column-stacked vec to row-major [A21 A22] (8) then G2 (4).
+
+    Returns:
+        [(w1, b1), (w2, b2), (w3, b3)] with h ↦ relu(h w1 + b1) ↦ relu(· w2 + b2) ↦ · w3 + b3.
+    """
+    layer = lambda net, i: (sd[f'{net}.{i}.weight'].T, sd[f'{net}.{i}.bias'])  # noqa: E731
+    (a1, c1), (a2, c2), (a3, c3) = (layer('a_net', i) for i in (0, 2, 4))
+    (g1, d1), (g2, d2), (g3, d3) = (layer('g_net', i) for i in (0, 2, 4))
+    ha, hg = a1.shape[1], g1.shape[1]
+    w1 = np.hstack([a1, g1]) / s['x'][:, None]
+    b1 = np.concatenate([c1, d1])
+    w2 = np.zeros((ha + hg, ha + hg))
+    w2[:ha, :ha], w2[ha:, ha:] = a2, g2
+    b2 = np.concatenate([c2, d2])
+    w3 = np.zeros((ha + hg, 12))
+    b3 = np.zeros(12)
+    # output k of NN_θ1 is [A21 A22][k % 2, k // 2] (column-stacked vec), of NN_θ2 is G2[k % 2, k // 2]
+    for k in range(8):
+        r, c = k % 2, k // 2
+        f = s['acc'][r] / s['x'][c]
+        w3[:ha, 4 * r + c] = f * a3[:, k]
+        b3[4 * r + c] = f * c3[k]
+    for k in range(4):
+        r, c = k % 2, k // 2
+        f = s['acc'][r] / s['u'][c]
+        w3[ha:, 8 + 2 * r + c] = f * g3[:, k]
+        b3[8 + 2 * r + c] = f * d3[k]
+    return [(np.ascontiguousarray(w1), b1), (w2, b2), (w3, b3)]
+
+
 class SDCModel:
     """A trained SDC model evaluated with numpy: A(x), G(x) for one state or a batch (SI).
 
@@ -263,13 +301,8 @@ class SDCModel:
         self.path = Path(path) if path is not None else DEFAULT_MODEL
         ckpt = read_checkpoint(self.path)
         sd = {k: v.detach().double().numpy() for k, v in ckpt['state_dict'].items()}
-        self._a = [(sd[f'a_net.{i}.weight'].T.copy(), sd[f'a_net.{i}.bias'].copy()) for i in (0, 2, 4)]
-        self._g = [(sd[f'g_net.{i}.weight'].T.copy(), sd[f'g_net.{i}.bias'].copy()) for i in (0, 2, 4)]
         s = {k: v.numpy() for k, v in ckpt['scales'].items()}
-        self._sx = s['x']
-        # physical = s_a,i · scaled_ij / s_x,j  (and / s_u,j for G2)
-        self._a_factor = s['acc'][:, None] / s['x'][None, :]
-        self._g_factor = s['acc'][:, None] / s['u'][None, :]
+        self._layers = _fused_layers(sd, s)
         self.rest_tip = ckpt['rest_tip'].numpy().astype(float)
         self.dt = float(ckpt['dt'])
         self.settings = ckpt['settings']
@@ -277,24 +310,32 @@ class SDCModel:
         self.metrics = ckpt['metrics']
         self.history = ckpt['history']
 
-    @staticmethod
-    def _mlp(layers, h):
-        (w1, b1), (w2, b2), (w3, b3) = layers
-        h = np.maximum(h @ w1 + b1, 0.0)
-        h = np.maximum(h @ w2 + b2, 0.0)
-        return h @ w3 + b3
+    def sdc_blocks(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The learned blocks for states x (4,) or (n, 4): [A21 A22] (n, 2, 4) and G2 (n, 2, 2).
 
-    def AG(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """A(x) (n, 4, 4) and G(x) (n, 4, 2) for states x (4,) or (n, 4)."""
+        Both networks run as one: three matmuls with ReLU between (see :func:`_fused_layers`).
+        """
         x = np.asarray(x, dtype=float)
         if x.ndim == 1:
             x = x[None]
         if x.ndim != 2 or x.shape[1] != 4:
             raise ValueError(f'x must have shape (4,) or (n, 4), got {x.shape}')
-        xs = x / self._sx
+        (w1, b1), (w2, b2), (w3, b3) = self._layers
+        h = x @ w1
+        h += b1
+        np.maximum(h, 0.0, out=h)
+        h2 = h @ w2
+        h2 += b2
+        np.maximum(h2, 0.0, out=h2)
+        out = h2 @ w3
+        out += b3
         n = x.shape[0]
-        a = self._mlp(self._a, xs).reshape(n, 4, 2).transpose(0, 2, 1) * self._a_factor
-        g = self._mlp(self._g, xs).reshape(n, 2, 2).transpose(0, 2, 1) * self._g_factor
+        return out[:, :8].reshape(n, 2, 4), out[:, 8:].reshape(n, 2, 2)
+
+    def AG(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """A(x) (n, 4, 4) and G(x) (n, 4, 2) for states x (4,) or (n, 4)."""
+        a, g = self.sdc_blocks(x)
+        n = a.shape[0]
         A = np.zeros((n, 4, 4))
         A[:, 0, 2] = A[:, 1, 3] = 1.0          # Ẋ, Ẏ rows: [0 I]
         A[:, 2:, :] = a

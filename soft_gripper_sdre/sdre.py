@@ -13,15 +13,14 @@ has any, or zero torque; the failure is counted. ``u`` is always finite.
 
 Two solvers give the same P:
 
-* ``'reference'`` — scipy's ``solve_continuous_are`` per finger (Schur method), general PBH checks.
-* ``'fast'`` — Newton–Kleinman warm-started from each finger's previous P: each iteration solves
-  the Lyapunov equation A_kᵀ P + P A_k = −(Q + K_kᵀ R K_k), A_k = A − G K_k, for all fingers at once
-  as 16×16 linear systems (Kronecker form). A tracked state moves little in 1 ms, so one or two
-  iterations reach a residual of 1e-10; otherwise (cold start, residual above tolerance, A_k not
-  Hurwitz) that finger falls back to the exact solve. Structure-aware checks: with
-  A = [[0, I], [·, ·]] and G = [[0], [G2]], rank [G, AG] = 4 iff G2 is invertible, so (A, G) is
-  controllable (hence stabilisable) exactly when G2 is well conditioned; detectability holds for
-  Q ≻ 0 (otherwise the general PBH test runs).
+* ``'reference'`` — scipy's ``solve_continuous_are`` per finger (Schur method), general checks (PBH
+  tests, eigenvalues of A_cl, condition number of A_cl). It is the yardstick.
+* ``'fast'`` — for the SDC form A = [[0, I], [A21, A22]], G = [[0], [G2]] (write a = [A21 A22]):
+  Newton–Kleinman warm-started from each finger's previous P, all fingers at once, with
+  structure-aware checks that are each a handful of batched numpy calls (see :meth:`_fast_gains`).
+  A finger that is cold (first step, or its last step was rejected), or fails any fast check, takes
+  the exact path: scipy's solve and the general checks, for that finger only. Inputs that are not in
+  SDC form always take the exact path.
 """
 from __future__ import annotations
 
@@ -124,16 +123,76 @@ def _pbh_fails(A: np.ndarray, B: np.ndarray, tol: float = 1e-9) -> bool:
     return False
 
 
-def _lyap_batch(Ak: np.ndarray, M: np.ndarray) -> np.ndarray:
-    """Solve A_kᵀ P + P A_k = −M for a batch (n,4,4) via (I ⊗ A_kᵀ + A_kᵀ ⊗ I) vec P = −vec M."""
-    n = Ak.shape[0]
-    I4 = np.eye(4)
-    AT = Ak.transpose(0, 2, 1)
-    # row-major vec: vec(X Y Z) = (X ⊗ Zᵀ) vec(Y); A_kᵀ P → (A_kᵀ ⊗ I), P A_k → (I ⊗ A_kᵀ)
-    L = np.einsum('nij,kl->nikjl', AT, I4).reshape(n, 16, 16) + \
-        np.einsum('ij,nkl->nikjl', I4, AT).reshape(n, 16, 16)
-    P = np.linalg.solve(L, -M.reshape(n, 16, 1)).reshape(n, 4, 4)
-    return 0.5 * (P + P.transpose(0, 2, 1))
+# ----------------------------------------------------------------------------------------------
+# the SDC structure, tabulated once
+# ----------------------------------------------------------------------------------------------
+#
+# A symmetric 4×4 P has 10 unknowns p: its upper triangle, row by row. _UPPER picks them out of
+# P.reshape(16); _FULL rebuilds P from p; _LOW picks P's lower two rows (2, 4) out of p: with
+# G = [[0], [G2]] those rows are all of P that Gᵀ sees (Gᵀ P = G2ᵀ P[2:, :]).
+_ROWS, _COLS = np.triu_indices(4)
+_UPPER = 4 * _ROWS + _COLS
+_FULL = np.array([[int(np.flatnonzero((_ROWS == min(i, j)) & (_COLS == max(i, j)))[0])
+                   for j in range(4)] for i in range(4)]).reshape(16)
+_LOW = _FULL.reshape(4, 4)[2:, :].reshape(8)
+#: the rows of A the SDC form fixes: Ẋ, Ẏ = [0 I] x
+_TOP = np.hstack([np.zeros((2, 2)), np.eye(2)])
+#: −adj(C)ᵀ = _NEG_CHECKER ∘ C[::-1, ::-1] for 2×2 C
+_NEG_CHECKER = np.array([[-1.0, 1.0], [1.0, -1.0]])
+
+
+def _lyapunov_tables() -> tuple[np.ndarray, np.ndarray]:
+    """The Lyapunov operator of an SDC matrix as a linear function of its lower rows.
+
+    For A_k = [[0, I], [c]] (c the 2×4 lower rows) and symmetric P = P(p),
+
+        L(A_k) p := upper triangle of −(A_kᵀ P + P A_k) = (L0 + Σ_rs c_rs T_rs) p,
+
+    since the operator is linear in A_k. Returns L0 (100,) and T (8, 100), both flattened row-major
+    (10×10), so that L(A_k) = (L0 + c.reshape(8) @ T).reshape(10, 10). The entries are small integers,
+    exact in floating point.
+    """
+    basis = [np.eye(10)[j][_FULL].reshape(4, 4) for j in range(10)]
+
+    def operator(A: np.ndarray) -> np.ndarray:
+        return np.stack([(-(A.T @ B + B @ A)).reshape(16)[_UPPER] for B in basis], axis=1)
+
+    top = np.zeros((4, 4))
+    top[:2] = _TOP
+    tables = []
+    for r in range(2):
+        for s in range(4):
+            E = np.zeros((4, 4))
+            E[2 + r, s] = 1.0
+            tables.append(operator(E).reshape(100))
+    return operator(top).reshape(100), np.stack(tables)
+
+
+_L0, _T8 = _lyapunov_tables()
+
+
+def _cond2_below(M: np.ndarray, c_max: float) -> tuple[np.ndarray, np.ndarray]:
+    """For a stack of 2×2 matrices: (cond₂(M) < c_max, det M), without an SVD.
+
+    With singular values σ₁ ≥ σ₂: σ₁² + σ₂² = ‖M‖_F² and σ₁σ₂ = |det M|, so
+    κ + 1/κ = ‖M‖_F² / |det M| for κ = σ₁/σ₂; t ↦ t + 1/t increases on [1, ∞), hence
+    κ < c_max ⇔ ‖M‖_F² < (c_max + 1/c_max) |det M|. Singular or non-finite M gives False.
+    """
+    det = M[:, 0, 0] * M[:, 1, 1] - M[:, 0, 1] * M[:, 1, 0]
+    return np.einsum('nij,nij->n', M, M) < (c_max + 1.0 / c_max) * np.abs(det), det
+
+
+@dataclass
+class _FastGains:
+    """What :meth:`SdreController._fast_gains` found for a batch of fingers."""
+
+    p: np.ndarray            # (m, 10) P's upper triangle, the next warm start
+    P: np.ndarray            # (m, 4, 4)
+    K: np.ndarray            # (m, 2, 4)
+    Ks: np.ndarray           # (m, 2, 4)
+    residual: np.ndarray     # (m,)
+    iterations: int          # Newton–Kleinman iterations done (the same for the whole batch)
+    good: np.ndarray         # (m,) every fast check passed
 
 
 class SdreController:
@@ -146,24 +205,39 @@ class SdreController:
         n: number of fingers.
         method: ``'fast'`` or ``'reference'``.
         residual_tol: largest accepted relative Riccati residual.
-        cond_max: largest accepted condition number of G2 and of A_cl.
+        cond_max: largest accepted condition number of G2 and of A_cl (``'fast'``: of A_cl's
+            lower-left block, the only part of A_cl whose inverse the law uses).
+        max_nk_iterations: most Newton–Kleinman iterations per step before the exact fallback.
+        nk_step_tol: Newton–Kleinman stops once its step ‖P_k+1 − P_k‖_F on P's lower rows, over
+            all fingers, is below this fraction of the warm start's ‖P_low‖_F; the error left is of
+            the order of its square.
         nominal: optional (A0, G0) whose gains serve as the fallback before any valid step.
     """
 
     def __init__(self, Q, R, u_max, n: int = 4, method: str = 'fast', residual_tol: float = 1e-6,
-                 cond_max: float = 1e8, max_nk_iterations: int = 2, nominal=None) -> None:
+                 cond_max: float = 1e8, max_nk_iterations: int = 5, nk_step_tol: float = 1e-5,
+                 nominal=None) -> None:
         self.Q, self.R, self.u_max = _check_weights(Q, R, u_max)
         if method not in METHODS:
             raise ValueError(f'method must be one of {METHODS}, got {method!r}')
         self.n, self.method = int(n), method
         self.residual_tol, self.cond_max = float(residual_tol), float(cond_max)
         self.max_nk = int(max_nk_iterations)
+        self.nk_step_tol = float(nk_step_tol)
+        if self.max_nk < 1:
+            raise ValueError(f'max_nk_iterations must be >= 1, got {max_nk_iterations!r}')
         self._Rinv = np.linalg.inv(self.R)
         self._q_norm = max(np.linalg.norm(self.Q), 1e-300)
         self._q_pd = np.linalg.eigvalsh(self.Q).min() > 1e-12 * max(1.0, np.abs(self.Q).max())
         self._q_pos_pd = np.linalg.eigvalsh(self.Q[:2, :2]).min() > 1e-12 * max(1.0, np.abs(self.Q).max())
         w, V = np.linalg.eigh(self.Q)
         self._q_half = V @ np.diag(np.sqrt(np.clip(w, 0, None))) @ V.T
+        # fast path constants: Q's upper triangle, Q's top rows (K_s), and Q shifted by the
+        # Lyapunov test's margin (see _fast_gains)
+        self._q10 = self.Q.reshape(16)[_UPPER]
+        self._q_top = self.Q[:2, :].copy()
+        self._q_shift = self.Q - 2.0 * self.residual_tol * self._q_norm * np.eye(4)
+        self._fast_ok = method == 'fast' and (self._q_pd or self._q_pos_pd)   # detectable by structure
         self._nominal = None
         if nominal is not None:
             K0, Ks0, _ = sdre_gains(np.asarray(nominal[0], float), np.asarray(nominal[1], float),
@@ -173,7 +247,8 @@ class SdreController:
 
     def reset(self) -> None:
         """Forget warm starts and last valid gains; zero the counters."""
-        self._P = np.full((self.n, 4, 4), np.nan)
+        self._p = np.zeros((self.n, 10))                 # warm start: upper triangle of the last P
+        self._warm = np.zeros(self.n, dtype=bool)        # ... valid for these fingers
         self._K = np.zeros((self.n, 2, 4))
         self._Ks = np.zeros((self.n, 2, 4))
         self._have = np.zeros(self.n, dtype=bool)
@@ -185,53 +260,7 @@ class SdreController:
         self.exact_solves = 0
         self.check_failures = {c.name: 0 for c in Check}
 
-    # -- solvers -----------------------------------------------------------------------------
-    def _exact(self, A, G, i) -> np.ndarray:
-        self.exact_solves += 1
-        try:
-            return care(A[i], G[i], self.Q, self.R)
-        except (np.linalg.LinAlgError, ValueError):
-            return np.full((4, 4), np.nan)
-
-    def _solve(self, A, G, usable) -> tuple[np.ndarray, np.ndarray]:
-        P = np.full((self.n, 4, 4), np.nan)
-        iters = np.zeros(self.n, dtype=int)
-        if self.method == 'reference':
-            for i in np.flatnonzero(usable):
-                P[i] = self._exact(A, G, i)
-            return P, iters
-        warm = usable & np.all(np.isfinite(self._P), axis=(1, 2))
-        if warm.any():
-            idx = np.flatnonzero(warm)
-            Pk = self._P[idx]
-            Aw, Gw = A[idx], G[idx]
-            good = np.ones(idx.size, dtype=bool)
-            for _ in range(self.max_nk):
-                Kk = np.einsum('ij,njk,nkl->nil', self._Rinv, Gw.transpose(0, 2, 1), Pk)  # R⁻¹GᵀP
-                Ak = Aw - Gw @ Kk                                                        # A − G K_k
-                good &= np.all(np.linalg.eigvals(Ak).real < 0, axis=1)
-                M = self.Q + Kk.transpose(0, 2, 1) @ self.R @ Kk                          # Q + KᵀRK
-                with np.errstate(all='ignore'):
-                    Pk = _lyap_batch(Ak, M)
-                iters[idx] += 1
-                res = self._residual(Aw, Gw, Pk)
-                if np.all(res < 1e-3 * self.residual_tol):
-                    break
-            res = self._residual(Aw, Gw, Pk)
-            good &= np.isfinite(res) & (res < self.residual_tol)
-            P[idx[good]] = Pk[good]
-            warm[idx[~good]] = False
-        for i in np.flatnonzero(usable & ~warm):
-            P[i] = self._exact(A, G, i)
-            iters[i] = 0
-        return P, iters
-
-    def _residual(self, A, G, P) -> np.ndarray:
-        GRG = G @ self._Rinv @ G.transpose(0, 2, 1)
-        Res = P @ A + A.transpose(0, 2, 1) @ P + self.Q - P @ GRG @ P
-        return np.linalg.norm(Res, axis=(1, 2)) / self._q_norm
-
-    # -- the law -----------------------------------------------------------------------------
+    # -- entry points ------------------------------------------------------------------------
     def step(self, A, G, x, x_d) -> SdreStep:
         """Torques for every finger: A (n,4,4), G (n,4,2), x (n,4), x_d (n,4), translated SI."""
         A = np.asarray(A, dtype=float)
@@ -239,11 +268,190 @@ class SdreController:
         x = np.asarray(x, dtype=float)
         x_d = np.asarray(x_d, dtype=float)
         n = self.n
-        for name, a, shape in (('A', A, (n, 4, 4)), ('G', G, (n, 4, 2)), ('x', x, (n, 4)),
-                               ('x_d', x_d, (n, 4))):
-            if a.shape != shape:
-                raise ValueError(f'{name} must have shape {shape}, got {a.shape}')
+        for name, arr, shape in (('A', A, (n, 4, 4)), ('G', G, (n, 4, 2)), ('x', x, (n, 4)),
+                                 ('x_d', x_d, (n, 4))):
+            if arr.shape != shape:
+                raise ValueError(f'{name} must have shape {shape}, got {arr.shape}')
+        sdc = self.method == 'fast' and bool((A[:, :2, :] == _TOP).all()) and not G[:, :2, :].any()
+        return self._step(A[:, 2:, :] if sdc else None, G[:, 2:, :] if sdc else None, A, G, x, x_d)
+
+    def step_sdc(self, A2, G2, x, x_d) -> SdreStep:
+        """:meth:`step` for a model in SDC form, given only its lower rows:
+        A2 = [A21 A22] (n,2,4) and G2 (n,2,2), so that A = [[0, I], A2] and G = [[0], G2]."""
+        A2 = np.asarray(A2, dtype=float)
+        G2 = np.asarray(G2, dtype=float)
+        x = np.asarray(x, dtype=float)
+        x_d = np.asarray(x_d, dtype=float)
+        n = self.n
+        for name, arr, shape in (('A2', A2, (n, 2, 4)), ('G2', G2, (n, 2, 2)), ('x', x, (n, 4)),
+                                 ('x_d', x_d, (n, 4))):
+            if arr.shape != shape:
+                raise ValueError(f'{name} must have shape {shape}, got {arr.shape}')
+        if self.method != 'fast':
+            A, G = self._full(A2, G2)
+            return self._step(None, None, A, G, x, x_d)
+        return self._step(A2, G2, None, None, x, x_d)
+
+    @staticmethod
+    def _full(A2: np.ndarray, G2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """A = [[0, I], A2], G = [[0], G2]."""
+        n = A2.shape[0]
+        A = np.zeros((n, 4, 4))
+        A[:, :2, :] = _TOP
+        A[:, 2:, :] = A2
+        G = np.zeros((n, 4, 2))
+        G[:, 2:, :] = G2
+        return A, G
+
+    def _step(self, a, g, A, G, x, x_d) -> SdreStep:
+        """One step; ``a``, ``g`` are the SDC lower rows (None: not in SDC form), A, G the full
+        matrices (None: build them from a, g if the exact path needs them)."""
         self.steps += 1
+        fast, idx = None, None
+        if a is not None and self._fast_ok and self._warm.any():
+            idx = None if self._warm.all() else np.flatnonzero(self._warm)
+            fast = (self._fast_gains(a, g, self._p) if idx is None
+                    else self._fast_gains(a[idx], g[idx], self._p[idx]))
+        if fast is not None and idx is None and fast.good.all():
+            # the common path: every finger warm and every fast check passed
+            u_unsat = (fast.K @ x[:, :, None] + fast.Ks @ x_d[:, :, None])[:, :, 0]     # eq. 22
+            if np.isfinite(u_unsat).all():
+                n = self.n
+                self._p, self._K, self._Ks = fast.p, fast.K, fast.Ks
+                self._have[:] = True
+                u = np.minimum(np.maximum(u_unsat, -self.u_max), self.u_max)    # = np.clip, cheaper
+                return SdreStep(u=u, u_unsat=u_unsat, K=fast.K.copy(), Ks=fast.Ks.copy(), P=fast.P,
+                                residual=fast.residual, ok=np.ones(n, dtype=bool),
+                                fallback=np.zeros(n, dtype=bool), failed_checks=np.zeros(n, dtype=int),
+                                saturated=np.abs(u_unsat) > self.u_max,
+                                nk_iterations=np.full(n, fast.iterations))
+        if A is None:
+            A, G = self._full(a, g)
+        return self._careful_step(A, G, x, x_d, a is not None, fast, idx)
+
+    # -- the fast path -----------------------------------------------------------------------
+    def _fast_gains(self, a: np.ndarray, g: np.ndarray, p0: np.ndarray) -> _FastGains | None:
+        """Warm-started Newton–Kleinman and the structure-aware checks for m SDC fingers.
+
+        Args:
+            a: (m, 2, 4) lower rows [A21 A22] of A; g: (m, 2, 2) G2; p0: (m, 10) warm starts.
+
+        Returns:
+            the gains and which fingers passed every check, or None when a solve raised.
+
+        With S = G R⁻¹ Gᵀ = [[0, 0], [0, W]], W = G2 R⁻¹ G2ᵀ, every product with S only needs P's
+        lower rows P_low = P[2:, :]: S P = [[0], [W P_low]], P S P = P_lowᵀ W P_low, and
+        A_k = A − S P_k keeps the SDC form with lower rows a − W P_low.
+
+        Newton–Kleinman: A_kᵀ P_{k+1} + P_{k+1} A_k = −(Q + P_k S P_k), solved as one 10×10 system
+        per finger (P symmetric: 10 unknowns) whose matrix is linear in A_k's lower rows
+        (:func:`_lyapunov_tables`). The iteration converges quadratically, so it stops once the
+        relative step Δ = P_{k+1} − P_k on P's lower rows (all the gains see) is below nk_step_tol;
+        the residual of the result is then formed directly and must be below residual_tol.
+
+        Checks (each finger; any failure sends that finger to the exact path):
+
+        * stabilisable: rank [G, AG] = 4 iff G2 is invertible, so (A, G) is controllable when
+          cond(G2) < cond_max (closed form for 2×2, :func:`_cond2_below`). Detectable: holds for
+          Q ≻ 0, or for Q's position block ≻ 0 through the [0 I] rows (as in
+          :meth:`_careful_step`); any other Q always takes the exact path;
+        * residual ‖Res‖_F / ‖Q‖_F < residual_tol, formed directly from P;
+        * P ≻ 0 and A_cl Hurwitz, by Lyapunov. For any P, A_clᵀP + P A_cl = −N with
+          N = Q + P S P − Res (expand A_cl = A − S P and the residual). If P ≻ 0 and N ≻ 0 then
+          every eigenpair A_cl v = λv gives 2 Re λ · v*Pv = −v*Nv < 0, so Re λ < 0. By Weyl,
+          λ_min(N) ≥ λ_min(Q + P S P) − ‖Res‖₂ and ‖Res‖₂ ≤ ‖Res‖_F < tol ‖Q‖_F, so it suffices that
+          Q + P S P − 2 tol ‖Q‖_F I ≻ 0; the second tol ‖Q‖_F covers rounding in forming P S P
+          and Res (of order 1e-16 (‖PA‖ + ‖PSP‖), far below it here). Both tests are one Cholesky
+          of the stacked [P; Q + PSP − 2 tol ‖Q‖_F I]. Q + P S P ≻ 0 needs Q's position block ≻ 0
+          (on x = [0; v], P S P = vᵀ P22 W P22 v > 0 for P ≻ 0); a Q without it always takes the
+          exact path's eigenvalue test;
+        * A_cl invertible: A_cl = [[0, I], [C, D]] has det A_cl = det C and A_cl⁻ᵀ = [[·, I], [C⁻ᵀ, 0]],
+          so Gᵀ A_cl⁻ᵀ = G2ᵀ [C⁻ᵀ, 0] and K_s = −R⁻¹ G2ᵀ C⁻ᵀ Q[:2, :]: the only inverse the law uses
+          is C⁻¹, and the check is cond(C) < cond_max.
+        """
+        m = a.shape[0]
+        Rg = self._Rinv @ g.transpose(0, 2, 1)                 # R⁻¹ G2ᵀ
+        W = g @ Rg                                             # G2 R⁻¹ G2ᵀ
+        L_open = _L0 + a.reshape(m, 8) @ _T8                   # L(A), flattened
+        p = p0
+        P_low = p.take(_LOW, axis=1).reshape(m, 2, 4)
+        small = self.nk_step_tol**2 * np.vdot(P_low, P_low)    # (tol ‖P_low‖_F)², from the warm start
+        iterations = 0
+        try:
+            with np.errstate(all='ignore'):
+                while True:
+                    iterations += 1
+                    WP = W @ P_low                                              # S P_k (lower rows)
+                    L = (L_open - WP.reshape(m, 8) @ _T8).reshape(m, 10, 10)   # L(A − S P_k)
+                    M = (P_low.transpose(0, 2, 1) @ WP).reshape(m, 16).take(_UPPER, axis=1)
+                    M += self._q10                                              # Q + P_k S P_k
+                    p = np.linalg.solve(L, M[:, :, None])[:, :, 0]             # A_kᵀP + PA_k = −M
+                    P_next = p.take(_LOW, axis=1).reshape(m, 2, 4)
+                    D = P_next - P_low                                          # lower rows of Δ
+                    P_low = P_next
+                    # quadratic convergence: after a step Δ, ‖P_k+1 − P*‖ is of order ‖Δ‖²
+                    if iterations == self.max_nk or np.vdot(D, D) < small:
+                        break
+                P = p.take(_FULL, axis=1).reshape(m, 4, 4)
+                WP = W @ P_low
+                PSP = P_low.transpose(0, 2, 1) @ WP                            # P S P
+                PA = P[:, :, 2:] @ a                                           # P A, A = [[0, I], a]
+                PA[:, :, 2:] += P[:, :, :2]
+                Res = PA + PA.transpose(0, 2, 1)
+                Res += self.Q
+                Res -= PSP                                                     # PA + AᵀP + Q − PSP
+                residual = np.sqrt(np.einsum('nij,nij->n', Res, Res)) / self._q_norm
+                K = -(Rg @ P_low)                                              # −R⁻¹ Gᵀ P
+                C = (a - WP)[:, :, :2]                                         # A_cl = [[0, I], [C, D]]
+                # stabilisable (G2) and A_cl invertible (C), both 2×2 condition tests in one call
+                well, det = _cond2_below(np.concatenate([g, C]), self.cond_max)
+                # K_s = −R⁻¹ G2ᵀ C⁻ᵀ Q[:2, :],  C⁻ᵀ = [[c11, −c10], [−c01, c00]] / det C (the leading
+                # minus rides in _NEG_CHECKER)
+                Ks = (Rg @ (C[:, ::-1, ::-1] * (_NEG_CHECKER / det[m:, None, None]))) @ self._q_top
+                stack = np.concatenate([P, PSP + self._q_shift])               # [P; N − margin]
+                try:
+                    np.linalg.cholesky(stack)
+                    lyapunov = np.ones(m, dtype=bool)
+                except np.linalg.LinAlgError:                                  # which one: per finger
+                    lam = np.linalg.eigvalsh(np.where(np.isfinite(stack), stack, 0.0)).min(axis=1)
+                    lyapunov = (lam[:m] > 0) & (lam[m:] > 0)
+        except np.linalg.LinAlgError:
+            return None
+        stab, invertible = well[:m], well[m:]
+        good = stab & invertible & lyapunov & (residual < self.residual_tol)
+        return _FastGains(p=p, P=P, K=K, Ks=Ks, residual=residual, iterations=iterations, good=good)
+
+    # -- the exact path ----------------------------------------------------------------------
+    def _exact(self, A, G, i) -> np.ndarray:
+        self.exact_solves += 1
+        try:
+            return care(A[i], G[i], self.Q, self.R)
+        except (np.linalg.LinAlgError, ValueError):
+            return np.full((4, 4), np.nan)
+
+    def _solve(self, A, G, usable, fast, idx) -> tuple[np.ndarray, np.ndarray]:
+        """P for every usable finger: the fast result where it passed, else scipy's solve."""
+        P = np.full((self.n, 4, 4), np.nan)
+        iters = np.zeros(self.n, dtype=int)
+        done = np.zeros(self.n, dtype=bool)
+        if fast is not None:
+            rows = np.arange(self.n) if idx is None else idx
+            take = fast.good & usable[rows]
+            P[rows[take]] = fast.P[take]
+            iters[rows[take]] = fast.iterations
+            done[rows[take]] = True
+        for i in np.flatnonzero(usable & ~done):
+            P[i] = self._exact(A, G, i)
+        return P, iters
+
+    def _residual(self, A, G, P) -> np.ndarray:
+        GRG = G @ self._Rinv @ G.transpose(0, 2, 1)
+        Res = P @ A + A.transpose(0, 2, 1) @ P + self.Q - P @ GRG @ P
+        return np.linalg.norm(Res, axis=(1, 2)) / self._q_norm
+
+    def _careful_step(self, A, G, x, x_d, sdc: bool, fast: _FastGains | None, idx) -> SdreStep:
+        """The law with every check in its general form and the fallbacks, finger by finger."""
+        n = self.n
         failed = np.zeros(n, dtype=int)
         finite = (np.all(np.isfinite(A), axis=(1, 2)) & np.all(np.isfinite(G), axis=(1, 2))
                   & np.all(np.isfinite(x), axis=1) & np.all(np.isfinite(x_d), axis=1))
@@ -252,10 +460,9 @@ class SdreController:
         G = np.where(finite[:, None, None], G, 0.0)
 
         # Remark 3: (A, G) stabilisable, (A, Q^½) detectable
-        if self.method == 'fast':
+        if sdc:
             with np.errstate(all='ignore'):
-                cond_g = np.linalg.cond(G[:, 2:, :])
-            stab = finite & np.isfinite(cond_g) & (cond_g < self.cond_max)
+                stab = finite & _cond2_below(G[:, 2:, :], self.cond_max)[0]
         else:
             stab = np.array([finite[i] and not _pbh_fails(A[i], G[i]) for i in range(n)])
         failed[finite & ~stab] |= Check.STABILIZABLE
@@ -270,7 +477,7 @@ class SdreController:
             failed[finite & ~detect] |= Check.DETECTABLE
         usable = finite & stab & detect
 
-        P, iters = self._solve(A, G, usable)
+        P, iters = self._solve(A, G, usable, fast, idx)
         solved = usable & np.all(np.isfinite(P), axis=(1, 2))
         failed[usable & ~solved] |= Check.SOLVE_FAILED
         Psafe = np.where(solved[:, None, None], P, 0.0)
@@ -307,8 +514,8 @@ class SdreController:
         self._K[ok] = K[ok]
         self._Ks[ok] = Ks[ok]
         self._have |= ok
-        self._P[ok] = P[ok]
-        self._P[~ok] = np.nan            # no warm start from a rejected solve
+        self._p[ok] = P[ok].reshape(-1, 16)[:, _UPPER]
+        self._warm = ok.copy()           # no warm start from a rejected solve
         fallback = ~ok
         use_zero = fallback & ~self._have & (self._nominal is None)
         Kuse, Ksuse = self._K.copy(), self._Ks.copy()

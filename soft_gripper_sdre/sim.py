@@ -269,6 +269,7 @@ class GripperSim:
         self._u_sim = np.zeros((self.n_fingers, 2))
         self._u_applied = np.zeros((self.n_fingers, 2))
         settle_steps = int(round(self.config.settle_time / self.config.physics_dt))
+        self._read_joints()
         for _ in range(settle_steps):
             self._physics_step()
         self._steps = 0
@@ -279,15 +280,23 @@ class GripperSim:
         self._draw_noise()
 
     # -- stepping ----------------------------------------------------------------------------
+    def _read_joints(self) -> None:
+        """Cache every joint's angle and velocity (n, 10): the springs of the next physics step
+        and :meth:`truth` both read this cache, so each state is fetched from PyBullet once."""
+        cid = self._client
+        columns = [tuple(zip(*pb.getJointStates(body, self._joint_list, physicsClientId=cid)))
+                   for body in self._bodies]
+        self._q = np.array([c[0] for c in columns])
+        self._qd = np.array([c[1] for c in columns])
+
     def _physics_step(self) -> None:
         cid = self._client
-        for body, u in zip(self._bodies, self._u_sim):
-            states = pb.getJointStates(body, self._joint_list, physicsClientId=cid)
-            q = np.fromiter((s[0] for s in states), float, N_JOINTS)
-            tau = u[JOINT_AXIS] - JOINT_STIFFNESS * q          # τ_j = u[axis(j)] − k_j q_j
+        tau = self._u_sim[:, JOINT_AXIS] - JOINT_STIFFNESS * self._q   # τ_j = u[axis(j)] − k_j q_j
+        for body, tau_body in zip(self._bodies, tau.tolist()):
             pb.setJointMotorControlArray(body, self._joint_list, pb.TORQUE_CONTROL,
-                                         forces=tau.tolist(), physicsClientId=cid)
+                                         forces=tau_body, physicsClientId=cid)
         pb.stepSimulation(physicsClientId=cid)
+        self._read_joints()
 
     def step(self, u) -> None:
         """Hold torques ``u`` (n, 2) [N·m] over one control period.
@@ -350,9 +359,7 @@ class GripperSim:
     def truth(self) -> SimTruth:
         """Ground truth now."""
         cid = self._client
-        states = [pb.getJointStates(body, self._joint_list, physicsClientId=cid) for body in self._bodies]
-        q = np.array([[s[0] for s in finger] for finger in states])
-        qd = np.array([[s[1] for s in finger] for finger in states])
+        q, qd = self._q.copy(), self._qd.copy()
         cube_pose = contact = force = None
         if self._cube is not None:
             p, o = pb.getBasePositionAndOrientation(self._cube, physicsClientId=cid)
@@ -400,6 +407,7 @@ class GripperSim:
             J[:, j] = self._base_rot[0].T @ (tips[0] - tips[1]) / (2 * h)
         for k, st in enumerate(states):                       # put the finger back exactly
             pb.resetJointState(body, k, st[0], st[1], physicsClientId=cid)
+        self._read_joints()
         # scaled world → SI: lengths /20, torques /400 (so inertia /400 too: τ = M q̈)
         K = (np.diag(JOINT_STIFFNESS) + dg) / TORQUE_SCALE
         return M / TORQUE_SCALE, K, B_MATRIX.copy(), J / LENGTH_SCALE

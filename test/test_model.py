@@ -319,3 +319,21 @@ def test_default_model_loads_with_the_expected_input_matrix():
     assert abs(G2[0, 1]) > 10 * abs(G2[0, 0]) and abs(G2[1, 0]) > 10 * abs(G2[1, 1])
     assert model.metrics['G2_at_origin'] == summary['G2_at_origin']
     np.testing.assert_array_equal(model.xdot(np.zeros(4), np.zeros(2)), 0.0)
+
+
+@pytest.mark.parametrize('path', [DEFAULT_MODEL, DEFAULT_MODEL.with_name('paper_data.pt')])
+def test_fused_numpy_network_equals_the_torch_networks_in_double(path):
+    """The fused evaluator (both MLPs side by side, scalings folded in, outputs reordered) gives the
+    physical blocks of the torch networks run in float64: A2_ij = s_a,i Â_ij / s_x,j, G2_ij = s_a,i Ĝ_ij / s_u,j."""
+    ckpt = read_checkpoint(path)
+    net = ckpt['net'].double()
+    s = {k: v.numpy() for k, v in ckpt['scales'].items()}
+    x = np.random.default_rng(0).normal(size=(64, 4)) * [5e-3, 5e-3, 5e-2, 5e-2]
+    with torch.no_grad():
+        a, g = (t.numpy() for t in net(torch.as_tensor(x / s['x'])))
+    A2, G2 = SDCModel(path).sdc_blocks(x)
+    np.testing.assert_allclose(A2, a * s['acc'][:, None] / s['x'][None, :], rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(G2, g * s['acc'][:, None] / s['u'][None, :], rtol=1e-12, atol=1e-12)
+    A, G = SDCModel(path).AG(x)
+    np.testing.assert_array_equal(A[:, 2:, :], A2)
+    np.testing.assert_array_equal(G[:, 2:, :], G2)

@@ -1,22 +1,29 @@
-"""Benchmarks: simulator real-time factors, control-core costs, the closed loop in-process and as a graph.
+"""Benchmarks: the control core's costs, the simulator, the closed loop in-process and as a graph.
 
     python -m soft_gripper_sdre.tools.bench [--write BENCHMARKS.md] [--quick]
 
-Prints a table of figures and ratios measured in this run; ``--write`` also renders it as Markdown
-with the machine facts and the command. Figures are medians of repeated timings; the machine is
-shared, so compare ratios measured in the same run rather than absolute numbers across runs.
+Prints a table of (what, figure, note) rows; ``--write`` also renders it as Markdown with the
+machine facts and the command. Every figure is a median over repeated timings; where two paths
+compete (fast vs reference controller, fast vs scipy Riccati solve) they are timed interleaved in
+the same run and their ratio is reported, since the machine is shared and absolute numbers drift.
+The node-graph rows come from :mod:`soft_gripper_sdre.tools.bench_graph` when it is installed
+(``rows(quick) -> [(what, figure, note)]``).
 """
 from __future__ import annotations
 
 import argparse
+import importlib
+import json
 import os
 import platform
 import statistics
-import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
+os.environ.setdefault('OMP_NUM_THREADS', '1')      # before numpy loads BLAS: one thread, as the nodes
+import numpy as np  # noqa: E402
+
+Row = tuple[str, str, str]
 
 
 def _median_time(fn, repeats: int, inner: int) -> float:
@@ -30,63 +37,186 @@ def _median_time(fn, repeats: int, inner: int) -> float:
     return statistics.median(samples)
 
 
-def bench_sim(scene: str, seconds: float) -> float:
-    """Real-time factor of the simulator alone (sim seconds per wall second), u = 0."""
+def bench_sim(scene: str, seconds: float, repeats: int) -> float:
+    """Median wall time of one control period of the simulator alone (step + measure), u = 0 [s]."""
     from soft_gripper_sdre.sim import GripperSim, SimConfig
     with GripperSim(SimConfig(scene=scene)) as sim:
         u = np.zeros((sim.n_fingers, 2))
-        steps = int(seconds / sim.config.control_period)
-        t0 = time.perf_counter()
-        for _ in range(steps):
+        steps = int(seconds / sim.config.control_period / repeats)
+
+        def period():
             sim.step(u)
             sim.measure()
-        return seconds / (time.perf_counter() - t0)
+        return _median_time(period, repeats, steps)
 
 
-def bench_control(repeats: int) -> dict[str, float]:
-    """µs per call: model A(x), G(x) for 4 fingers; the SDRE step fast and reference; the KF step."""
-    from soft_gripper_sdre.control import DEFAULT_WEIGHTS, TrackingController, Weights
-    from soft_gripper_sdre.kf import ConstantVelocityKF
-    from soft_gripper_sdre.model import SDCModel
-    model = SDCModel()
-    rng = np.random.default_rng(0)
-    pos = model.rest_tip[:2] + 2e-3 * rng.standard_normal((4, 2))
-    vel = 1e-2 * rng.standard_normal((4, 2))
-    ref = np.repeat(model.rest_tip[None, :2], 4, 0)
-    x = np.concatenate([pos - model.rest_tip[:2], vel], axis=1)
-    out = {'model A(x), G(x), 4 fingers': _median_time(lambda: model.AG(x), repeats, 200) * 1e6}
-    for method in ('fast', 'reference'):
-        ctrl = TrackingController(model, Weights(**DEFAULT_WEIGHTS), 0.0625, method=method)
-        k = [0]
-
-        def step():
-            k[0] += 1
-            ctrl.compute(pos + 1e-7 * (k[0] % 50), vel, ref, vel * 0.0)
-        step()
-        out[f'SDRE step, 4 fingers ({method})'] = _median_time(step, repeats, 100) * 1e6
-    kf = ConstantVelocityKF(1e-3, 1.0, 5e-5, n=4)
-    kf.reset(pos)
-    out['KF step, 4 fingers'] = _median_time(lambda: kf.step(pos), repeats, 500) * 1e6
-    return out
-
-
-def bench_loop(seconds: float) -> float:
-    """Real-time factor of the in-process closed loop (hand, SDRE, KF, no ROS)."""
+def closed_loop(seconds: float, noise_std: float):
+    """The grasp closed in-process on the default settings (hand, KF, fast SDRE, roll-off)."""
     from soft_gripper_sdre.closed_loop import run_closed_loop
     from soft_gripper_sdre.control import DEFAULT_WEIGHTS, Weights
     from soft_gripper_sdre.model import SDCModel
+    from soft_gripper_sdre.sim import SimConfig
     from soft_gripper_sdre.trajectory import GraspProfile
+    return run_closed_loop(SDCModel(), duration=seconds, weights=Weights(**DEFAULT_WEIGHTS),
+                           u_max=0.0625, profile=GraspProfile(others='open'),
+                           sim_config=SimConfig(scene='hand', noise_std=noise_std))
+
+
+def bench_control(loop, repeats: int, ref_steps: int) -> dict[str, float]:
+    """Controller, model, Riccati and KF costs on the states of a closed-loop run (replayed).
+
+    The fast controller (which warm-starts from the step before) runs every step; the reference
+    runs on ``ref_steps`` steps spread over the run, each timed right after the fast one on the
+    same state, so the ratio compares the two under the same load. Returns medians of per-step
+    wall times [s] (the first, cold step left out), the fast path's mean Newton–Kleinman iterations
+    per step and its share of exact solves.
+    """
+    from soft_gripper_sdre.control import DEFAULT_WEIGHTS, TrackingController, Weights
+    from soft_gripper_sdre.kf import ConstantVelocityKF
+    from soft_gripper_sdre.model import SDCModel
+    from soft_gripper_sdre.sdre import SdreController, care
+    model = SDCModel()
+    w = Weights(**DEFAULT_WEIGHTS)
+    est, ref_pos, ref_vel = loop.est, loop.ref_pos, loop.ref_vel
+    T = len(est)
+    paired = set(np.linspace(1, T - 1, min(ref_steps, T - 1)).astype(int).tolist())
+    x = np.concatenate([est[:, :, :2] - model.rest_tip[:2], est[:, :, 2:]], axis=2)
+    blocks = [model.sdc_blocks(x[k]) for k in range(T)]
+    full = [SdreController._full(*b) for b in blocks]
+    t: dict[str, list[float]] = {k: [] for k in ('fast', 'fast_paired', 'reference', 'nk', 'nk_paired',
+                                                 'care', 'model', 'kf')}
+    iterations = []
+    clock = time.perf_counter
+    for _ in range(repeats):
+        fast = TrackingController(model, w, 0.0625, method='fast')
+        ref = TrackingController(model, w, 0.0625, method='reference')
+        s = SdreController(w.Q, w.R, 0.0625)
+        s.step_sdc(*blocks[0], x[0], x[0])
+        kf = ConstantVelocityKF(1e-3, 1.0, 5e-5, n=4)
+        kf.reset(loop.meas[0])
+        for k in range(T):
+            args = (est[k, :, :2], est[k, :, 2:], ref_pos[k], ref_vel[k])
+            t0 = clock()
+            out = fast.compute(*args)
+            t1 = clock()
+            gains = s._fast_gains(*blocks[k], s._p)              # the Riccati solve and checks alone
+            t2 = clock()
+            s._p = gains.p
+            model.sdc_blocks(x[k])
+            t3 = clock()
+            kf.step(loop.meas[k])
+            t4 = clock()
+            if k == 0:
+                continue
+            iterations.append(int(out.nk_iterations.max()))
+            t['fast'].append(t1 - t0)
+            t['nk'].append(t2 - t1)
+            t['model'].append(t3 - t2)
+            t['kf'].append(t4 - t3)
+            if k in paired:
+                t0 = clock()
+                ref.compute(*args)
+                t1 = clock()
+                [care(full[k][0][i], full[k][1][i], w.Q, w.R) for i in range(4)]
+                t2 = clock()
+                t['reference'].append(t1 - t0)
+                t['care'].append(t2 - t1)
+                t['fast_paired'].append(t['fast'][-1])
+                t['nk_paired'].append(t['nk'][-1])
+    out = {k: float(np.median(v)) for k, v in t.items()}
+    out['iterations'] = float(np.mean(iterations))
+    out['exact'] = float(np.mean(np.array(iterations) == 0))
+    return out
+
+
+def bench_collect(seconds: float) -> float:
+    """Real-time factor of collecting one excitation signal (finger scene, settle included)."""
+    from soft_gripper_sdre.tools.collect import collect_signal
     t0 = time.perf_counter()
-    run_closed_loop(SDCModel(), duration=seconds, weights=Weights(**DEFAULT_WEIGHTS), u_max=0.0625,
-                    profile=GraspProfile(others='open'))
+    collect_signal('u1', duration=seconds)
     return seconds / (time.perf_counter() - t0)
 
 
-def bench_graph(seconds: float) -> float:
-    """Real-time factor of the five-process graph in lockstep (from the demo's own timing)."""
-    from soft_gripper_sdre.tools.demo import run_demo
-    with tempfile.TemporaryDirectory() as tmp:
-        return run_demo(Path(tmp), seconds, progress=False)['run']['real_time_factor']
+def graph_rows(quick: bool) -> list[Row]:
+    """The node-graph rows, if the graph benchmark module is installed."""
+    try:
+        module = importlib.import_module('soft_gripper_sdre.tools.bench_graph')
+    except ModuleNotFoundError as exc:
+        if exc.name != 'soft_gripper_sdre.tools.bench_graph':
+            raise
+        return [('node graph', 'not measured', '`soft_gripper_sdre.tools.bench_graph` is not installed')]
+    return list(module.rows(quick))
+
+
+def rows(quick: bool) -> list[Row]:
+    """Every row of the table, measured now."""
+    out: list[Row] = []
+    us = lambda s: f'{s * 1e6:.0f} µs'          # noqa: E731
+    # simulator alone
+    finger = bench_sim('finger', 1.0 if quick else 4.0, 5)
+    hand = bench_sim('hand', 0.5 if quick else 2.0, 5)
+    out += [('simulator step, one finger', f'{us(finger)} ({1e-3 / finger:.2f}× real time)',
+             '1 ms period, 2 physics substeps; SoMo reports 6–8× for one finger'),
+            ('simulator step, hand + cube', f'{us(hand)} ({1e-3 / hand:.2f}× real time)',
+             f'{hand / finger:.1f}× one finger')]
+    # the closed loop on the default settings (0.05 mm measurement noise), then its states replayed
+    loop = closed_loop(1.0 if quick else 3.0, noise_std=5e-5)
+    T = len(loop.t)
+    ctrl = bench_control(loop, 1 if quick else 2, 100 if quick else 300)
+    ratio = ctrl['reference'] / ctrl['fast_paired']
+    out += [('controller compute, 4 fingers (fast)', us(ctrl['fast']),
+             f'{ratio:.0f}× faster than the reference on the same steps; states of the closed loop below '
+             f'(0.05 mm noise): {ctrl["iterations"]:.2f} Newton–Kleinman iterations per step, '
+             f'{100 * ctrl["exact"]:.1f} % exact solves'),
+            ('controller compute, 4 fingers (reference)', us(ctrl['reference']),
+             'scipy solve_continuous_are per finger, general checks'),
+            ('model A(x), G(x), 4 fingers', us(ctrl['model']), 'fused numpy network, three matmuls'),
+            ('Riccati solve + checks, 4 fingers (fast)', us(ctrl['nk']),
+             f'{ctrl["care"] / ctrl["nk_paired"]:.0f}× faster than scipy ×4 ({us(ctrl["care"])}), same steps'),
+            ('KF step, 4 fingers', us(ctrl['kf']), 'covariance recursion remembered once settled')]
+    clean = bench_control(closed_loop(1.0 if quick else 2.0, noise_std=0.0), 1, 50 if quick else 200)
+    out.append(('controller compute, 4 fingers (fast), clean states', us(clean['fast']),
+                f'{clean["reference"] / clean["fast_paired"]:.0f}× faster than the reference, same steps; the same '
+                f'loop without measurement noise: {clean["iterations"]:.2f} iterations per step'))
+    period = float(np.median(loop.period_seconds))
+    out.append(('closed loop in-process (sim + KF + controller)', f'{1e-3 / period:.2f}× real time',
+                f'median period {us(period)}; over the whole {T * 1e-3:.0f} s run '
+                f'{T * 1e-3 / loop.step_seconds:.2f}× (load bursts included); hand + cube, 0.05 mm noise, '
+                'stepping only'))
+    out += graph_rows(quick)
+    # training is timed by the train tool itself: a fresh `make model` run, else the shipped model's record
+    trained = Path('runs/train/metrics.json')
+    source = trained if trained.is_file() else Path(__file__).resolve().parents[1] / 'models' / 'default.json'
+    if source.is_file():
+        m = json.loads(source.read_text())
+        out.append((f'training, {m["preset"]} preset ({m["epochs_run"]} epochs)',
+                    f'{m["train_seconds"]:.0f} s',
+                    'as measured by `make model` (runs/train/metrics.json)' if source == trained else
+                    'as recorded with the shipped model (models/default.json), not re-run here'))
+    collect = bench_collect(1.0 if quick else 3.0)
+    out.append(('data collection, one finger', f'{collect:.2f}× real time',
+                'one excitation signal with ground truth, 0.5 s settle included'))
+    return out
+
+
+def markdown(table: list[Row], quick: bool) -> str:
+    load = os.getloadavg()[0]
+    lines = ['# Benchmarks', '',
+             'Reproduce: `make bench` (= `python -m soft_gripper_sdre.tools.bench --write BENCHMARKS.md`).',
+             f'Measured {time.strftime("%Y-%m-%d")} on {platform.machine()}, {os.cpu_count()} cores, '
+             f'Python {platform.python_version()}, a shared machine (other jobs running; load average '
+             f'{load:.1f} at the end of the run)'
+             + (', short runs (`--quick`)' if quick else '')
+             + ': compare the ratios, which are measured in one run.', '',
+             '| what | figure | note |', '| --- | ---: | --- |']
+    lines += [f'| {n} | {v} | {note} |' for n, v, note in table]
+    lines += ['', 'The controller, model, Riccati and KF rows replay the estimates and references of the '
+              'in-process closed loop (hand + cube, default weights and 40 Hz roll-off), so the fast '
+              "path's warm starts are as far off as in the loop; the first, cold step is left out. "
+              'The closed-loop row times the stepping only, not the simulator\'s construction and '
+              'settle; its figure is 1 ms over the median period. Training is timed by the train tool itself; data collection includes the '
+              'finger\'s 0.5 s settle.']
+    return '\n'.join(lines) + '\n'
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -94,46 +224,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--write', type=Path, default=None, help='also write the results as Markdown here')
     ap.add_argument('--quick', action='store_true', help='shorter runs (smoke test)')
     a = ap.parse_args(argv)
-    os.environ.setdefault('OMP_NUM_THREADS', '1')
     import torch
     torch.set_num_threads(1)
-    q = a.quick
-    rows: list[tuple[str, str, str]] = []
-    finger = bench_sim('finger', 1.0 if q else 5.0)
-    hand = bench_sim('hand', 0.5 if q else 3.0)
-    rows += [('simulator, one finger', f'{finger:.2f}× real time', 'SoMo reports 6–8× for one finger'),
-             ('simulator, hand + cube', f'{hand:.2f}× real time', f'{finger / hand:.1f}× slower than one finger')]
-    ctrl = bench_control(3 if q else 7)
-    fast, ref = ctrl['SDRE step, 4 fingers (fast)'], ctrl['SDRE step, 4 fingers (reference)']
-    for name, us in ctrl.items():
-        note = ''
-        if name.endswith('(fast)'):
-            note = f'{ref / fast:.1f}× faster than scipy per step'
-        rows.append((name, f'{us:.0f} µs', note))
-    loop = bench_loop(0.5 if q else 2.0)
-    rows.append(('closed loop in-process (sim + KF + SDRE)', f'{loop:.2f}× real time', '1 ms control period'))
-    graph = bench_graph(0.5 if q else 2.0)
-    rows.append(('node graph, 5 processes, lockstep', f'{graph:.2f}× real time',
-                 f'{loop / graph:.1f}× slower than in-process (DDS, 4 hops per period)'))
-
-    trained = Path('runs/train/metrics.json')
-    if trained.is_file():          # training is timed by the train tool itself (`make model`)
-        import json
-        m = json.loads(trained.read_text())
-        rows.append((f'training, {m["preset"]} preset ({m["epochs_run"]} epochs)',
-                     f'{m["train_seconds"]:.0f} s', 'as measured by `make model` (runs/train/metrics.json)'))
-    width = max(len(r[0]) for r in rows)
-    for name, value, note in rows:
-        print(f'{name:<{width}}  {value:>16}  {note}')
+    table = rows(a.quick)
+    width = max(len(r[0]) for r in table)
+    for name, value, note in table:
+        print(f'{name:<{width}}  {value:>28}  {note}')
     if a.write:
-        lines = ['# Benchmarks', '',
-                 'Reproduce: `make bench` (= `python -m soft_gripper_sdre.tools.bench --write BENCHMARKS.md`).',
-                 f'Measured {time.strftime("%Y-%m-%d")} on {platform.machine()}, {os.cpu_count()} cores, '
-                 f'Python {platform.python_version()}, a shared machine (other jobs running): '
-                 'compare the ratios, which are measured in one run.', '',
-                 '| what | figure | note |', '| --- | ---: | --- |']
-        lines += [f'| {n} | {v} | {note} |' for n, v, note in rows]
-        a.write.write_text('\n'.join(lines) + '\n')
+        a.write.write_text(markdown(table, a.quick))
         print(f'wrote {a.write}')
     return 0
 

@@ -1,0 +1,203 @@
+"""The fast SDRE path against the reference path (scipy) on the shipped model, and its checks.
+
+Tolerance: the fast path iterates Newton–Kleinman until its relative step is below 1e-5 (so P is
+converged to ~1e-10) and accepts a relative residual below 1e-6; its gains, P and the unsaturated
+torques agree with scipy's to within
+``U_TOL`` = 1e-6 of the largest torque of the sequence (measured: ≤ 3e-8); every check passes on
+both paths, and the fast path solves exactly only on the cold start.
+"""
+import time
+
+import numpy as np
+import pytest
+
+from soft_gripper_sdre.control import DEFAULT_WEIGHTS, TrackingController, Weights
+from soft_gripper_sdre.model import SDCModel
+from soft_gripper_sdre.sdre import (_FULL, _L0, _LOW, _T8, _UPPER, Check, SdreController, _cond2_below,
+                                    care)
+
+U_TOL = 1e-6
+N = 4
+
+
+@pytest.fixture(scope='module')
+def model():
+    return SDCModel()
+
+
+def trajectory_states(model, steps, noise, seed):
+    """Tip states of a smooth 4-finger motion (a few mm, tens of mm/s) plus white measurement-like
+    noise on positions and velocities, as the KF hands them to the controller (base frames, SI)."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(steps) * 1e-3
+    phase = rng.uniform(0, 2 * np.pi, (N, 2))
+    amp = rng.uniform(1e-3, 6e-3, (N, 2))
+    w = 2 * np.pi * rng.uniform(0.3, 1.5, (N, 2))
+    pos = model.rest_tip[:2] + amp * np.sin(w * t[:, None, None] + phase)
+    vel = amp * w * np.cos(w * t[:, None, None] + phase)
+    pos = pos + noise[0] * rng.standard_normal(pos.shape)
+    vel = vel + noise[1] * rng.standard_normal(vel.shape)
+    ref = model.rest_tip[:2] + amp * np.sin(w * (t[:, None, None] + 0.05) + phase)
+    return pos, vel, ref, np.zeros_like(vel)
+
+
+def run_both(model, pos, vel, ref, ref_vel):
+    ctrl = {m: TrackingController(model, Weights(**DEFAULT_WEIGHTS), 0.0625, method=m, lowpass_hz=0.0)
+            for m in ('fast', 'reference')}
+    out = {m: [c.compute(pos[k], vel[k], ref[k], ref_vel[k]) for k in range(len(pos))]
+           for m, c in ctrl.items()}
+    return ctrl, out
+
+
+@pytest.mark.parametrize('noise', [(0.0, 0.0), (5e-5, 5e-3)], ids=['clean', 'noisy'])
+def test_fast_torques_equal_the_reference_along_a_trajectory(model, noise):
+    pos, vel, ref, ref_vel = trajectory_states(model, 150, noise, seed=3)
+    ctrl, out = run_both(model, pos, vel, ref, ref_vel)
+    uf = np.array([o.u_unsat for o in out['fast']])
+    ur = np.array([o.u_unsat for o in out['reference']])
+    assert all(o.ok.all() for o in out['fast']) and all(o.ok.all() for o in out['reference'])
+    scale = np.abs(ur).max()
+    assert scale > 1e-3                                   # the law does something
+    np.testing.assert_allclose(uf, ur, rtol=0, atol=U_TOL * scale)
+    for o_f, o_r in zip(out['fast'], out['reference']):
+        np.testing.assert_allclose(o_f.K, o_r.K, rtol=0, atol=U_TOL * np.abs(o_r.K).max())
+        np.testing.assert_allclose(o_f.Ks, o_r.Ks, rtol=0, atol=U_TOL * np.abs(o_r.Ks).max())
+        assert np.all(o_f.residual < 1e-6)
+    # the fast path really ran: exact solves only for the cold start, Newton–Kleinman after it
+    assert ctrl['fast'].sdre.exact_solves == N and ctrl['fast'].sdre.fallbacks == 0
+    assert all(o.nk_iterations.min() >= 1 for o in out['fast'][1:])
+
+
+def test_fast_torques_equal_the_reference_at_random_states(model):
+    """Random states over the workspace; each is reached from a state 0.1 mm / 5 mm/s away."""
+    rng = np.random.default_rng(11)
+    fast = TrackingController(model, Weights(**DEFAULT_WEIGHTS), 0.0625, lowpass_hz=0.0)
+    ref = TrackingController(model, Weights(**DEFAULT_WEIGHTS), 0.0625, method='reference', lowpass_hz=0.0)
+    zero = np.zeros((N, 2))
+    for _ in range(25):
+        pos = model.rest_tip[:2] + rng.uniform(-8e-3, 8e-3, (N, 2))
+        vel = rng.uniform(-0.05, 0.05, (N, 2))
+        goal = model.rest_tip[:2] + rng.uniform(-8e-3, 8e-3, (N, 2))
+        fast.compute(pos, vel, goal, zero)                 # warm start near the state
+        pos2, vel2 = pos + 1e-4 * rng.standard_normal((N, 2)), vel + 5e-3 * rng.standard_normal((N, 2))
+        a, b = fast.compute(pos2, vel2, goal, zero), ref.compute(pos2, vel2, goal, zero)
+        assert a.ok.all() and b.ok.all() and a.nk_iterations.min() >= 1
+        np.testing.assert_allclose(a.u_unsat, b.u_unsat, rtol=0, atol=U_TOL * np.abs(b.u_unsat).max())
+        np.testing.assert_allclose(a.P, b.P, rtol=0, atol=U_TOL * np.abs(b.P).max())
+
+
+def test_lyapunov_tables_equal_the_kronecker_operator():
+    rng = np.random.default_rng(0)
+    for _ in range(5):
+        c = rng.normal(size=(2, 4))
+        A = np.vstack([np.hstack([np.zeros((2, 2)), np.eye(2)]), c])
+        L = (_L0 + c.reshape(8) @ _T8).reshape(10, 10)
+        P = rng.normal(size=(4, 4))
+        P = P + P.T
+        p = P.reshape(16)[_UPPER]
+        np.testing.assert_allclose(L @ p, (-(A.T @ P + P @ A)).reshape(16)[_UPPER], rtol=1e-12, atol=1e-12)
+        np.testing.assert_array_equal(p[_FULL].reshape(4, 4), P)
+        np.testing.assert_array_equal(p[_LOW].reshape(2, 4), P[2:, :])
+
+
+def test_closed_form_condition_test_equals_the_svd():
+    rng = np.random.default_rng(5)
+    M = rng.normal(size=(2000, 2, 2))
+    M[:500, 1] = M[:500, 0] * (1 + 10.0 ** rng.uniform(-12, -4, (500, 1)))   # near-singular
+    M[500:510] = 0.0
+    kappa = np.linalg.cond(M)
+    for c_max in (1e3, 1e8):
+        fast, det = _cond2_below(M, c_max)
+        np.testing.assert_allclose(det, np.linalg.det(M), rtol=1e-9, atol=1e-14)
+        clear = np.abs(np.log(kappa / c_max)) > 1e-6            # away from the threshold's rounding
+        np.testing.assert_array_equal(fast[clear], (kappa < c_max)[clear])
+    bad = np.full((1, 2, 2), np.nan)
+    assert not _cond2_below(bad, 1e8)[0][0]
+
+
+def sdc_plant(model, rng):
+    x = np.concatenate([rng.uniform(-3e-3, 3e-3, (N, 2)), rng.uniform(-0.02, 0.02, (N, 2))], axis=1)
+    a, g = model.sdc_blocks(x)
+    return x, a.copy(), g.copy()
+
+
+def warm(ctrl, a, g, x):
+    out = ctrl.step_sdc(a, g, x, np.zeros((N, 4)))
+    assert out.ok.all()
+    return out
+
+
+def test_fast_path_rejects_the_anti_stabilising_solution(model):
+    """Warm-started at the ARE's anti-stabilising solution (a fixed point of Newton's iteration),
+    the fast path's P ≻ 0 / Lyapunov test rejects it and the exact solve gives the right gains."""
+    rng = np.random.default_rng(2)
+    W = Weights(**DEFAULT_WEIGHTS)
+    ctrl = SdreController(W.Q, W.R, 0.0625, n=N)
+    x, a, g = sdc_plant(model, rng)
+    warm(ctrl, a, g, x)
+    A, G = SdreController._full(a, g)
+    anti = np.stack([-care(-A[i], G[i], W.Q, W.R) for i in range(N)])          # A − S P⁻ anti-Hurwitz
+    assert np.all(np.linalg.eigvals(A - G @ np.linalg.solve(W.R, G.transpose(0, 2, 1)) @ anti).real > 0)
+    fast = ctrl._fast_gains(a, g, anti.reshape(N, 16)[:, _UPPER])
+    assert fast is not None and np.all(fast.residual < 1e-6) and not fast.good.any()
+    ctrl._p[:] = anti.reshape(N, 16)[:, _UPPER]
+    before = ctrl.exact_solves
+    out = ctrl.step_sdc(a, g, x, np.zeros((N, 4)))
+    ref = SdreController(W.Q, W.R, 0.0625, n=N, method='reference').step_sdc(a, g, x, np.zeros((N, 4)))
+    assert out.ok.all() and ctrl.exact_solves == before + N
+    np.testing.assert_allclose(out.K, ref.K, rtol=1e-9)
+
+
+def test_fast_path_checks_still_trigger(model):
+    """Singular G2 (not stabilisable), NaN from the model, NaN state: flagged, fallback, finite u."""
+    rng = np.random.default_rng(4)
+    W = Weights(**DEFAULT_WEIGHTS)
+    ctrl = SdreController(W.Q, W.R, 0.0625, n=N)
+    x, a, g = sdc_plant(model, rng)
+    good = warm(ctrl, a, g, x)
+    warm(ctrl, a, g, x)                          # now on the fast path
+    assert ctrl.exact_solves == N
+    g_bad, a_bad, x_bad = g.copy(), a.copy(), x.copy()
+    g_bad[0, 1] = g_bad[0, 0] * 3.0              # rank 1: the two torques act along one direction
+    a_bad[1, 0, 2] = np.nan
+    x_bad[2, 3] = np.inf
+    out = ctrl.step_sdc(a_bad, g_bad, x_bad, np.zeros((N, 4)))
+    assert out.failed_checks[0] & Check.STABILIZABLE and out.failed_checks[1] & Check.NONFINITE
+    assert out.failed_checks[2] & Check.NONFINITE
+    assert list(out.fallback) == [True, True, True, False] and out.ok[3]
+    np.testing.assert_allclose(out.K[:2], good.K[:2])       # last valid gains
+    assert np.all(np.isfinite(out.u)) and np.all(out.u[2] == 0.0)
+    # after a rejected step that finger starts cold again, then returns to the fast path
+    out = ctrl.step_sdc(a, g, x, np.zeros((N, 4)))
+    assert out.ok.all() and list(out.nk_iterations == 0) == [True, True, True, False]
+    out = ctrl.step_sdc(a, g, x, np.zeros((N, 4)))
+    assert out.ok.all() and out.nk_iterations.min() >= 1
+
+
+def test_general_matrices_take_the_exact_path():
+    """(A, G) not in SDC form: no Newton–Kleinman, scipy and the general checks, same answer."""
+    rng = np.random.default_rng(8)
+    A = rng.normal(size=(N, 4, 4))
+    G = rng.normal(size=(N, 4, 2))
+    Q, R = np.eye(4), np.eye(2)
+    fast, ref = SdreController(Q, R, 10.0, n=N), SdreController(Q, R, 10.0, n=N, method='reference')
+    for _ in range(3):
+        a, b = fast.step(A, G, np.ones((N, 4)), np.zeros((N, 4))), ref.step(A, G, np.ones((N, 4)), np.zeros((N, 4)))
+        np.testing.assert_array_equal(a.u, b.u)
+        assert np.all(a.nk_iterations == 0)
+    assert fast.exact_solves == 3 * N
+
+
+def test_fast_is_faster_than_the_reference_in_the_same_run(model):
+    pos, vel, ref, ref_vel = trajectory_states(model, 60, (5e-5, 5e-3), seed=9)
+
+    def median_step(method):
+        c = TrackingController(model, Weights(**DEFAULT_WEIGHTS), 0.0625, method=method)
+        times = []
+        for k in range(len(pos)):
+            t0 = time.perf_counter()
+            c.compute(pos[k], vel[k], ref[k], ref_vel[k])
+            times.append(time.perf_counter() - t0)
+        return float(np.median(times[1:]))
+    fast, reference = median_step('fast'), median_step('reference')
+    assert fast * 3.0 < reference, (fast, reference)
