@@ -1,0 +1,251 @@
+"""Control laws beside the learned SDRE, all with :class:`~soft_gripper_sdre.control.TrackingController`'s
+interface (no ROS): ``compute(pos, vel, ref_pos, ref_vel)`` → a step with ``u`` (n, 2) [N·m],
+``ok``, ``fallback``, ``failed_checks``, ``saturated``, ``residual``; and ``reset()``.
+
+Every law works in the model's translated coordinates x = [p − p₀, ṗ] (p₀ = the model's rest tip),
+saturates at ``u_max`` and passes its command through the same first-order roll-off as the SDRE
+(``lowpass_hz``), so the comparison differs only in the law:
+
+* ``sdre``   — the learned SDRE (:class:`TrackingController` itself); ``weights='adaptive'`` gives it
+  the state-dependent Q(x) of :class:`AdaptiveSdreLaw`.
+* ``lqr``    — fixed gains from the learned model at the origin: (A₀, G₀) = (A(0), G(0)),
+  u = K₀ x + K_s0 x_d (eq. 22–23 with frozen matrices).
+* ``pd``     — a task-space PD through the learned input map at rest,
+  u = G₂(0)⁻¹ [k_p (p_d − p) + k_d (ṗ_d − ṗ)].
+* ``oracle`` — the SDRE on the *true* dynamics: A(x), G(x) from
+  :func:`soft_gripper_sdre.dynamics.oracle_sdc` at the plant's joint state (projected onto the
+  chain's static shapes; ``oracle_exact``: the paper's eq. 10–13 with the instantaneous
+  G₂ = J M⁻¹ B), which the caller hands
+  over each step with :meth:`OracleSdreLaw.observe` (the in-process loop does; the node graph does
+  not carry the 10-joint state at the loop rate, see README "Beyond the paper").
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from soft_gripper_sdre.control import DEFAULT_LOWPASS_HZ, TrackingController, Weights
+from soft_gripper_sdre.sdre import SdreController, sdre_gains
+
+LAWS = ('sdre', 'lqr', 'pd', 'oracle', 'oracle_exact')
+#: tuned task-space PD gains (natural frequency² and 2ζω of the error dynamics, 1/s² and 1/s);
+#: tools/evaluate.py --tune-pd reproduces the tuning grid
+DEFAULT_PD = dict(kp=3000.0, kd=40.0)
+
+
+@dataclass
+class LawStep:
+    """One step of a law for n fingers (the fields the node and the loop read from an SdreStep)."""
+
+    u: np.ndarray                # (n, 2) saturated, rolled-off torques, always finite
+    u_unsat: np.ndarray          # (n, 2) before saturation
+    ok: np.ndarray               # (n,) the law's own checks passed
+    fallback: np.ndarray         # (n,) a fallback was used
+    failed_checks: np.ndarray    # (n,) int bitmask (sdre.Check; 0 for laws without checks)
+    saturated: np.ndarray        # (n, 2)
+    residual: np.ndarray         # (n,) relative Riccati residual (0 for closed-form laws)
+
+
+class _FixedLaw:
+    """Shared plumbing: translation to the model's origin, saturation, roll-off."""
+
+    def __init__(self, rest_tip, u_max: float, n_fingers: int, lowpass_hz: float, dt: float) -> None:
+        rest = np.asarray(rest_tip, dtype=float).reshape(-1)
+        if rest.size < 2 or not np.all(np.isfinite(rest[:2])):
+            raise ValueError(f'rest_tip must hold a finite rest position, got {rest_tip!r}')
+        if not (np.isfinite(u_max) and u_max > 0):
+            raise ValueError(f'u_max must be finite and > 0, got {u_max!r}')
+        if not (np.isfinite(lowpass_hz) and lowpass_hz >= 0.0):
+            raise ValueError(f'lowpass_hz must be finite and >= 0 (0 = off), got {lowpass_hz!r}')
+        self._origin = rest[:2].copy()
+        self.u_max = float(u_max)
+        self.n_fingers = int(n_fingers)
+        self._alpha = float(np.exp(-2.0 * np.pi * lowpass_hz * dt)) if lowpass_hz > 0 else 0.0
+        self._u_filt = None
+
+    @property
+    def origin(self) -> np.ndarray:
+        return self._origin
+
+    def reset(self) -> None:
+        self._u_filt = None
+
+    def _states(self, pos, vel, ref_pos, ref_vel) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(x, x_d, finite) in translated coordinates; non-finite rows are zeroed."""
+        x = np.concatenate([np.asarray(pos, float) - self._origin, np.asarray(vel, float)], axis=1)
+        xd = np.concatenate([np.asarray(ref_pos, float) - self._origin, np.asarray(ref_vel, float)], axis=1)
+        n = self.n_fingers
+        if x.shape != (n, 4) or xd.shape != (n, 4):
+            raise ValueError(f'pos, vel, ref_pos, ref_vel must each have shape ({n}, 2)')
+        finite = np.all(np.isfinite(x), axis=1) & np.all(np.isfinite(xd), axis=1)
+        x[~finite] = 0.0
+        xd[~finite] = 0.0
+        return x, xd, finite
+
+    def _finish(self, u_unsat: np.ndarray, finite: np.ndarray) -> LawStep:
+        u_unsat = np.where(np.isfinite(u_unsat) & finite[:, None], u_unsat, 0.0)
+        u = np.clip(u_unsat, -self.u_max, self.u_max)
+        saturated = np.abs(u_unsat) > self.u_max
+        if self._alpha > 0.0:                 # same roll-off as TrackingController
+            u = u if self._u_filt is None else self._alpha * self._u_filt + (1 - self._alpha) * u
+            self._u_filt = u
+        n = self.n_fingers
+        return LawStep(u=u, u_unsat=u_unsat, ok=finite.copy(), fallback=~finite,
+                       failed_checks=np.where(finite, 0, 32).astype(int), saturated=saturated,
+                       residual=np.zeros(n))
+
+
+class LqrLaw(_FixedLaw):
+    """LQR with the gains of the learned model frozen at the origin: u = K₀ x + K_s0 x_d.
+
+    K₀ = −R⁻¹ G₀ᵀ P₀ with P₀ the CARE solution for (A(0), G(0)), K_s0 = −R⁻¹ G₀ᵀ A_cl⁻ᵀ Q (eq. 23).
+    """
+
+    def __init__(self, model, weights: Weights, u_max: float, n_fingers: int = 4,
+                 lowpass_hz: float = DEFAULT_LOWPASS_HZ, dt: float = 1e-3) -> None:
+        super().__init__(model.rest_tip, u_max, n_fingers, lowpass_hz, dt)
+        A0, G0 = model.AG(np.zeros(4))
+        self.K, self.Ks, self.P = sdre_gains(A0[0], G0[0], weights.Q, weights.R)
+
+    def compute(self, pos, vel, ref_pos, ref_vel) -> LawStep:
+        x, xd, finite = self._states(pos, vel, ref_pos, ref_vel)
+        return self._finish(x @ self.K.T + xd @ self.Ks.T, finite)          # u = K₀ x + K_s0 x_d
+
+
+class PdLaw(_FixedLaw):
+    """Task-space PD: u = G₂(0)⁻¹ [k_p (p_d − p) + k_d (ṗ_d − ṗ)], G₂(0) the learned input map at rest.
+
+    The inverse input map turns the desired tip acceleration into torques (so one pair of gains
+    serves both axes, whose torque-to-tip gains differ by 40×); no model of the drift is used.
+    """
+
+    def __init__(self, model, u_max: float, kp: float = DEFAULT_PD['kp'], kd: float = DEFAULT_PD['kd'],
+                 n_fingers: int = 4, lowpass_hz: float = DEFAULT_LOWPASS_HZ, dt: float = 1e-3) -> None:
+        super().__init__(model.rest_tip, u_max, n_fingers, lowpass_hz, dt)
+        if not (np.isfinite(kp) and kp > 0 and np.isfinite(kd) and kd >= 0):
+            raise ValueError(f'kp must be > 0 and kd >= 0 (finite), got kp={kp!r}, kd={kd!r}')
+        _, G0 = model.AG(np.zeros(4))
+        self.Ginv = np.linalg.inv(G0[0, 2:, :])
+        self.kp, self.kd = float(kp), float(kd)
+
+    def compute(self, pos, vel, ref_pos, ref_vel) -> LawStep:
+        x, xd, finite = self._states(pos, vel, ref_pos, ref_vel)
+        a_des = self.kp * (xd[:, :2] - x[:, :2]) + self.kd * (xd[:, 2:] - x[:, 2:])
+        return self._finish(a_des @ self.Ginv.T, finite)                      # u = G₂(0)⁻¹ a_des
+
+
+class OracleSdreLaw(_FixedLaw):
+    """The SDRE tracking law with A(x), G(x) from the simulator's exact dynamics.
+
+    Call :meth:`observe` with the plant's joint state (``SimTruth``: q, q̇ (n, 10)) before each
+    :meth:`compute`; the gains then come from :func:`~soft_gripper_sdre.dynamics.oracle_sdc` there.
+    The state fed back is the same estimate the other laws get.
+    """
+
+    def __init__(self, rest_tip, weights: Weights, u_max: float, n_fingers: int = 4,
+                 method: str = 'fast', lowpass_hz: float = DEFAULT_LOWPASS_HZ, dt: float = 1e-3,
+                 reduced: bool = True) -> None:
+        from soft_gripper_sdre.dynamics import FingerDynamics
+        super().__init__(rest_tip, u_max, n_fingers, lowpass_hz, dt)
+        self.reduced = bool(reduced)
+        self.dynamics = FingerDynamics()
+        self.sdre = SdreController(weights.Q, weights.R, u_max, n=self.n_fingers, method=method)
+        self._AG = None
+
+    def reset(self) -> None:
+        super().reset()
+        self.sdre.reset()
+        self._AG = None
+
+    def observe(self, truth) -> None:
+        """Evaluate the true SDC pair at the plant's joint state (``truth.q``, ``truth.qd``)."""
+        from soft_gripper_sdre.dynamics import oracle_sdc
+        A = np.zeros((self.n_fingers, 4, 4))
+        G = np.zeros((self.n_fingers, 4, 2))
+        for i in range(self.n_fingers):
+            A[i], G[i] = oracle_sdc(self.dynamics.evaluate(truth.q[i], truth.qd[i]), self._origin,
+                                      reduced=self.reduced)
+        self._AG = (A, G)
+
+    def compute(self, pos, vel, ref_pos, ref_vel) -> LawStep:
+        if self._AG is None:
+            raise RuntimeError('OracleSdreLaw.compute needs observe(truth) first (the plant state)')
+        x, xd, finite = self._states(pos, vel, ref_pos, ref_vel)
+        out = self.sdre.step(*self._AG, x, xd)
+        step = self._finish(out.u_unsat, finite)
+        step.ok, step.fallback = out.ok & finite, out.fallback | ~finite
+        step.failed_checks, step.residual = out.failed_checks, out.residual
+        return step
+
+    def close(self) -> None:
+        self.dynamics.close()
+
+
+class AdaptiveSdreLaw(TrackingController):
+    """The learned SDRE with a state-dependent position weight (the paper's future work):
+
+        Q(x) = diag(q(e), q(e), q_vel, q_vel),   q(e) = q_pos · (1 + (‖e‖ / e_ref)²),  e = p_d − p,
+
+    capped at ``gain_max`` · q_pos. A large tracking error (the fast phases, where the model's
+    errors show up as lag) raises the gain; near the reference the loop stays at the default,
+    noise-friendly weight. R stays fixed (only the ratio Q/R matters). All fingers share one Q per
+    step (the batched solver's constraint): the largest finger error sets it.
+    """
+
+    def __init__(self, model, weights: Weights, u_max: float, n_fingers: int = 4,
+                 method: str = 'fast', lowpass_hz: float = DEFAULT_LOWPASS_HZ, dt: float = 1e-3,
+                 e_ref: float = 1e-3, gain_max: float = 4.0) -> None:
+        super().__init__(model, weights, u_max, n_fingers=n_fingers, method=method,
+                         lowpass_hz=lowpass_hz, dt=dt)
+        if not (np.isfinite(e_ref) and e_ref > 0 and np.isfinite(gain_max) and gain_max >= 1):
+            raise ValueError(f'e_ref must be > 0 and gain_max >= 1, got {e_ref!r}, {gain_max!r}')
+        self.e_ref, self.gain_max = float(e_ref), float(gain_max)
+        self._method, self._u_max, self._levels = method, u_max, {}
+        self.gain = 1.0
+
+    def _controller(self, gain: float) -> SdreController:
+        # quantised gains (one SdreController per level) keep warm starts valid between steps
+        level = round(float(np.log2(gain)) * 8) / 8
+        if level not in self._levels:
+            w = Weights(self.weights.q_pos * 2 ** level, self.weights.q_vel, self.weights.r)
+            self._levels[level] = SdreController(w.Q, w.R, self._u_max, n=self.n_fingers,
+                                                 method=self._method)
+        return self._levels[level]
+
+    def reset(self) -> None:
+        super().reset()
+        for c in self._levels.values():
+            c.reset()
+
+    def compute(self, pos, vel, ref_pos, ref_vel):
+        e = np.linalg.norm(np.asarray(ref_pos, float) - np.asarray(pos, float), axis=1)
+        e_max = float(np.max(np.where(np.isfinite(e), e, 0.0)))
+        self.gain = min(1.0 + (e_max / self.e_ref) ** 2, self.gain_max)     # q(e) / q_pos
+        self.sdre = self._controller(self.gain)
+        return super().compute(pos, vel, ref_pos, ref_vel)
+
+
+def make_law(name: str, model, weights: Weights, u_max: float, n_fingers: int = 4,
+             method: str = 'fast', lowpass_hz: float = DEFAULT_LOWPASS_HZ, dt: float = 1e-3,
+             adaptive: bool = False, pd_gains: dict | None = None):
+    """The named law (one of :data:`LAWS`) with the shared settings.
+
+    Args:
+        adaptive: ``sdre`` only: the state-dependent Q(x) of :class:`AdaptiveSdreLaw`.
+        pd_gains: ``pd`` only: ``dict(kp=…, kd=…)`` (default :data:`DEFAULT_PD`).
+    """
+    if name == 'sdre':
+        cls = AdaptiveSdreLaw if adaptive else TrackingController
+        return cls(model, weights, u_max, n_fingers=n_fingers, method=method, lowpass_hz=lowpass_hz, dt=dt)
+    if adaptive:
+        raise ValueError(f'state-dependent weights are an option of the sdre law, not of {name!r}')
+    if name == 'lqr':
+        return LqrLaw(model, weights, u_max, n_fingers=n_fingers, lowpass_hz=lowpass_hz, dt=dt)
+    if name == 'pd':
+        return PdLaw(model, u_max, n_fingers=n_fingers, lowpass_hz=lowpass_hz, dt=dt,
+                     **(pd_gains or DEFAULT_PD))
+    if name in ('oracle', 'oracle_exact'):
+        return OracleSdreLaw(model.rest_tip, weights, u_max, n_fingers=n_fingers, method=method,
+                             lowpass_hz=lowpass_hz, dt=dt, reduced=name == 'oracle')
+    raise ValueError(f'unknown law {name!r}; known: {LAWS}')
