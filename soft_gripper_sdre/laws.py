@@ -31,7 +31,7 @@ from soft_gripper_sdre.sdre import SdreController, sdre_gains
 LAWS = ('sdre', 'lqr', 'pd', 'oracle', 'oracle_exact')
 #: tuned task-space PD gains (natural frequency² and 2ζω of the error dynamics, 1/s² and 1/s);
 #: tools/evaluate.py --tune-pd reproduces the tuning grid
-DEFAULT_PD = dict(kp=3000.0, kd=40.0)
+DEFAULT_PD = dict(kp=1.5e4, kd=40.0)
 
 
 @dataclass

@@ -132,7 +132,7 @@ def run_law(key: str, trajectory: str, model: SDCModel, weights: Weights, durati
     return summary, res
 
 
-def tune_pd(model: SDCModel, weights: Weights, kps=(3e3, 1e4, 3e4, 1e5), kds=(40.0, 150.0),
+def tune_pd(model: SDCModel, weights: Weights, kps=(3e3, 1e4, 1.5e4, 2e4), kds=(40.0, 150.0),
             trajectory: str = 'grasp', duration: float | None = None) -> list[tuple[float, float, float]]:
     """Grid over (k_p, k_d) on a trajectory: [(kp, kd, mean grasp-finger RMSE mm)], diverged = inf."""
     rows = []
