@@ -64,7 +64,8 @@ def test_workspace_grid_checks(model):
 
 def test_report_is_written(tmp_path):
     s = ev.RunSummary('lqr', 'fast', 1.0, 2.0, 1.1, 2.1, 0.01, 0.0, True, 0.1, 0.0, 50.0)
-    path = ev.write_report(tmp_path, [s], ['fast_laws.png'], None, {'default': 0.0}, {'x': 'y'})
+    ws = {'default': dict(check_fail_pct=0.0, min_sv=200.0, max_cond=4.0)}
+    path = ev.write_report(tmp_path, [s], ['fast_laws.png'], None, ws, {'x': 'y'})
     text = path.read_text()
     assert '| LQR at the origin | 1.000 | 2.00 |' in text and 'fast_laws.png' in text
     assert json.dumps(ev.expectation_verdict([s])) == '{}'       # needs all four laws

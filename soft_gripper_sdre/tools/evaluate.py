@@ -37,6 +37,7 @@ from soft_gripper_sdre.trajectory import GraspProfile
 LAW_SPECS = {
     'sdre': ('learned SDRE', 'sdre', {}),
     'sdre_qx': ('learned SDRE, Q(x)', 'sdre', {'adaptive': True}),
+    'sdre_4e6': ('learned SDRE, q_pos 4e6', 'sdre', {'q_pos': 4e6}),
     'lqr': ('LQR at the origin', 'lqr', {}),
     'pd': ('task-space PD', 'pd', {}),
     'oracle': ('oracle SDRE (projected truth)', 'oracle', {}),
@@ -47,6 +48,8 @@ TRAJECTORIES = {
     'grasp': (GraspProfile(others='open'), 6.0),
     'fast': (GraspProfile(t_start=0.2, t_close=0.5, t_hold=0.5, t_open=0.5, others='open'), 2.0),
 }
+#: the paper-data model retrained with the singular-value penalty (README "Beyond the paper")
+PAPER_DATA_SV_MODEL = PAPER_DATA_MODEL.with_name('paper_data_sv.pt')
 U_MAX = 0.0625
 NOISE = 5e-5
 
@@ -109,6 +112,8 @@ def run_law(key: str, trajectory: str, model: SDCModel, weights: Weights, durati
     profile, dur = TRAJECTORIES[trajectory]
     dur = duration or dur
     opts = dict(opts, **({'pd_gains': pd_gains} if name == 'pd' and pd_gains else {}))
+    if 'q_pos' in opts:
+        weights = Weights(opts.pop('q_pos'), weights.q_vel, weights.r)
     law = _Timed(make_law(name, model, weights, U_MAX, **opts))
     res = run_closed_loop(model, duration=dur, sim_config=SimConfig(scene='hand', noise_std=NOISE),
                           weights=weights, u_max=U_MAX, profile=profile, progress=progress,
@@ -209,6 +214,12 @@ def score_model(model: SDCModel, signal: str = 'u4', seconds: float = 4.0, every
 def workspace_check_failures(model: SDCModel, weights: Weights, n: int = 9, speeds=(0.0, 0.1)) -> float:
     """Share [%] of a grid of states (tip X ±10 mm, Y −35…+45 mm around rest; speeds in each
     direction) where an SDRE step on the learned model fails a Riccati check."""
+    return workspace_survey(model, weights, n, speeds)['check_fail_pct']
+
+
+def workspace_survey(model: SDCModel, weights: Weights, n: int = 9, speeds=(0.0, 0.1)) -> dict:
+    """On the grid of :func:`workspace_check_failures`: the check-failure share [%], and G2's
+    smallest singular value [m/s² per N·m] and largest condition number."""
     from soft_gripper_sdre.sdre import SdreController
     xs = np.linspace(-0.010, 0.010, n)
     ys = np.linspace(-0.035, 0.045, n)
@@ -222,7 +233,9 @@ def workspace_check_failures(model: SDCModel, weights: Weights, n: int = 9, spee
     A, G = model.AG(X)
     ctrl = SdreController(weights.Q, weights.R, U_MAX, n=len(X), method='reference')
     out = ctrl.step(A, G, X, np.zeros_like(X))
-    return 100.0 * float((~out.ok).mean())
+    sv = np.linalg.svd(G[:, 2:, :], compute_uv=False)
+    return dict(check_fail_pct=100.0 * float((~out.ok).mean()), min_sv=float(sv[:, 1].min()),
+                max_cond=float((sv[:, 0] / sv[:, 1]).max()), states=int(len(X)))
 
 
 # -- report ---------------------------------------------------------------------------------------
@@ -333,9 +346,12 @@ def write_report(out: Path, summaries: list[RunSummary], figures: list[str], mod
         lines += ['', '![model vs truth](model_vs_truth.png)', '']
     if workspace:
         lines += ['## Riccati checks on a workspace grid', '',
-                  '| model | check failures on the grid |', '| --- | ---: |']
+                  'Tip X ±10 mm, Y −35…+45 mm around rest (9 × 9), at rest and at 0.1 m/s in four '
+                  'directions; one SDRE step (scipy solver, every check of Remarks 2–3) per state.', '',
+                  '| model | check failures | smallest σ_min(G2) [m/s² per N·m] | largest cond(G2) |',
+                  '| --- | ---: | ---: | ---: |']
         for k, v in workspace.items():
-            lines.append(f'| {k} | {v:.2f} % |')
+            lines.append(f'| {k} | {v["check_fail_pct"]:.2f} % | {v["min_sv"]:.3g} | {v["max_cond"]:.3g} |')
         lines.append('')
     path = out / 'report.md'
     path.write_text('\n'.join(lines) + '\n')
@@ -394,10 +410,12 @@ def main(argv=None) -> int:
         scored = score_model(model)
         model_stats = scored['stats']
         _model_figure(scored['samples'], args.out)
-        workspace = {'default (shipped)': workspace_check_failures(SDCModel(), weights),
-                     'paper_data (shipped)': workspace_check_failures(SDCModel(PAPER_DATA_MODEL), weights)}
+        workspace = {'default (shipped)': workspace_survey(SDCModel(), weights),
+                     'paper_data (shipped)': workspace_survey(SDCModel(PAPER_DATA_MODEL), weights)}
+        if PAPER_DATA_SV_MODEL.is_file():
+            workspace['paper_data_sv (shipped, σ-penalty)'] = workspace_survey(SDCModel(PAPER_DATA_SV_MODEL), weights)
         if args.model is not None:
-            workspace[str(args.model)] = workspace_check_failures(model, weights)
+            workspace[str(args.model)] = workspace_survey(model, weights)
     verdict = expectation_verdict(summaries)
     (args.out / 'evaluate.json').write_text(json.dumps(
         dict(runs=[asdict(s) for s in summaries], expectation=verdict, model=model_stats,
