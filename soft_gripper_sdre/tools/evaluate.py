@@ -256,6 +256,9 @@ def _figures(results: dict, trajectory: str, out: Path) -> list[str]:
     axes[0, 0].plot(any_res.t, (any_res.ref_pos[:, 0, 1] - any_res.ref_pos[0, 0, 1]) * 1e3, 'k--', lw=1,
                     label='reference')
     axes[0, 0].set_ylabel('finger 0 tip Y − rest [mm]')
+    for ax in (axes[0, 1], axes[1, 1]):        # log: a diverging law would flatten the others
+        ax.set_yscale('log')
+        ax.set_ylim(1e-2, 1e2)
     axes[0, 1].set_ylabel('finger 0 error [mm]')
     axes[1, 0].set_ylabel('finger 0 u_ax0 [N·m]')
     axes[1, 1].set_ylabel('finger 1 error [mm]')
