@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from soft_gripper_sdre.control import DEFAULT_LOWPASS_HZ, TrackingController, Weights
-from soft_gripper_sdre.sdre import SdreController, sdre_gains
+from soft_gripper_sdre.sdre import Check, SdreController, sdre_gains
 
 LAWS = ('sdre', 'lqr', 'pd', 'oracle', 'oracle_exact')
 #: tuned task-space PD gains (natural frequency² and 2ζω of the error dynamics, 1/s² and 1/s);
@@ -92,7 +92,7 @@ class _FixedLaw:
             self._u_filt = u
         n = self.n_fingers
         return LawStep(u=u, u_unsat=u_unsat, ok=finite.copy(), fallback=~finite,
-                       failed_checks=np.where(finite, 0, 32).astype(int), saturated=saturated,
+                       failed_checks=np.where(finite, 0, int(Check.NONFINITE)), saturated=saturated,
                        residual=np.zeros(n))
 
 
