@@ -69,3 +69,21 @@ def test_report_is_written(tmp_path):
     text = path.read_text()
     assert '| LQR at the origin | 1.000 | 2.00 |' in text and 'fast_laws.png' in text
     assert json.dumps(ev.expectation_verdict([s])) == '{}'       # needs all four laws
+
+
+def test_command_line_writes_the_report(tmp_path):
+    import subprocess
+    import sys
+    out = tmp_path / 'ev'
+    proc = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.evaluate', '--out', str(out),
+                           '--laws', 'lqr', 'pd', '--trajectories', 'fast', '--duration', '0.4',
+                           '--no-model-score'], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    text = (out / 'report.md').read_text()
+    assert '| LQR at the origin |' in text and '| task-space PD |' in text
+    assert (out / 'fast_laws.png').stat().st_size > 10_000
+    runs = json.loads((out / 'evaluate.json').read_text())['runs']
+    assert {r['law'] for r in runs} == {'lqr', 'pd'} and all(r['check_fail_pct'] == 0.0 for r in runs)
+    bad = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.evaluate', '--laws', 'mpc'],
+                         capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and 'mpc' in bad.stderr
