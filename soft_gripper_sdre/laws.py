@@ -83,13 +83,17 @@ class _FixedLaw:
         xd[~finite] = 0.0
         return x, xd, finite
 
-    def _finish(self, u_unsat: np.ndarray, finite: np.ndarray) -> LawStep:
-        u_unsat = np.where(np.isfinite(u_unsat) & finite[:, None], u_unsat, 0.0)
-        u = np.clip(u_unsat, -self.u_max, self.u_max)
-        saturated = np.abs(u_unsat) > self.u_max
-        if self._alpha > 0.0:                 # same roll-off as TrackingController
+    def _roll_off(self, u: np.ndarray) -> np.ndarray:
+        """Same first-order roll-off as TrackingController: u_k = a u_{k−1} + (1 − a) u."""
+        if self._alpha > 0.0:
             u = u if self._u_filt is None else self._alpha * self._u_filt + (1 - self._alpha) * u
             self._u_filt = u
+        return u
+
+    def _finish(self, u_unsat: np.ndarray, finite: np.ndarray) -> LawStep:
+        u_unsat = np.where(np.isfinite(u_unsat) & finite[:, None], u_unsat, 0.0)
+        u = self._roll_off(np.clip(u_unsat, -self.u_max, self.u_max))
+        saturated = np.abs(u_unsat) > self.u_max
         n = self.n_fingers
         return LawStep(u=u, u_unsat=u_unsat, ok=finite.copy(), fallback=~finite,
                        failed_checks=np.where(finite, 0, int(Check.NONFINITE)), saturated=saturated,
@@ -182,7 +186,7 @@ class OracleSdreLaw(_FixedLaw):
         self.dynamics.close()
 
 
-class AdaptiveSdreLaw(TrackingController):
+class AdaptiveSdreLaw(_FixedLaw):
     """The learned SDRE with a state-dependent position weight (the paper's future work):
 
         Q(x) = diag(q(e), q(e), q_vel, q_vel),   q(e) = q_pos · (1 + (‖e‖ / e_ref)²),  e = p_d − p,
@@ -190,27 +194,28 @@ class AdaptiveSdreLaw(TrackingController):
     capped at ``gain_max`` · q_pos. A large tracking error (the fast phases, where the model's
     errors show up as lag) raises the gain; near the reference the loop stays at the default,
     noise-friendly weight. R stays fixed (only the ratio Q/R matters). All fingers share one Q per
-    step (the batched solver's constraint): the largest finger error sets it.
+    step: the largest finger error sets it. The gain is quantised to 1/8 octaves, one
+    :class:`TrackingController` (roll-off off) per level, so each level keeps its own warm start;
+    the roll-off is applied here, once, to whichever level answered.
     """
 
     def __init__(self, model, weights: Weights, u_max: float, n_fingers: int = 4,
                  method: str = 'fast', lowpass_hz: float = DEFAULT_LOWPASS_HZ, dt: float = 1e-3,
                  e_ref: float = 1e-3, gain_max: float = 4.0) -> None:
-        super().__init__(model, weights, u_max, n_fingers=n_fingers, method=method,
-                         lowpass_hz=lowpass_hz, dt=dt)
+        super().__init__(model.rest_tip, u_max, n_fingers, lowpass_hz, dt)
         if not (np.isfinite(e_ref) and e_ref > 0 and np.isfinite(gain_max) and gain_max >= 1):
             raise ValueError(f'e_ref must be > 0 and gain_max >= 1, got {e_ref!r}, {gain_max!r}')
+        self.model, self.weights, self.method = model, weights, method
         self.e_ref, self.gain_max = float(e_ref), float(gain_max)
-        self._method, self._u_max, self._levels = method, u_max, {}
+        self._levels: dict[float, TrackingController] = {}
         self.gain = 1.0
 
-    def _controller(self, gain: float) -> SdreController:
-        # quantised gains (one SdreController per level) keep warm starts valid between steps
+    def _controller(self, gain: float) -> TrackingController:
         level = round(float(np.log2(gain)) * 8) / 8
         if level not in self._levels:
             w = Weights(self.weights.q_pos * 2 ** level, self.weights.q_vel, self.weights.r)
-            self._levels[level] = SdreController(w.Q, w.R, self._u_max, n=self.n_fingers,
-                                                 method=self._method)
+            self._levels[level] = TrackingController(self.model, w, self.u_max, n_fingers=self.n_fingers,
+                                                     method=self.method, lowpass_hz=0.0)
         return self._levels[level]
 
     def reset(self) -> None:
@@ -222,8 +227,9 @@ class AdaptiveSdreLaw(TrackingController):
         e = np.linalg.norm(np.asarray(ref_pos, float) - np.asarray(pos, float), axis=1)
         e_max = float(np.max(np.where(np.isfinite(e), e, 0.0)))
         self.gain = min(1.0 + (e_max / self.e_ref) ** 2, self.gain_max)     # q(e) / q_pos
-        self.sdre = self._controller(self.gain)
-        return super().compute(pos, vel, ref_pos, ref_vel)
+        out = self._controller(self.gain).compute(pos, vel, ref_pos, ref_vel)
+        out.u = self._roll_off(out.u)
+        return out
 
 
 def make_law(name: str, model, weights: Weights, u_max: float, n_fingers: int = 4,
