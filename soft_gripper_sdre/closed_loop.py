@@ -19,6 +19,7 @@ import numpy as np
 
 from soft_gripper_sdre.control import DEFAULT_LOWPASS_HZ, TrackingController, Weights
 from soft_gripper_sdre.kf import ConstantVelocityKF
+from soft_gripper_sdre.laws import accepts_ref_acc
 from soft_gripper_sdre.metrics import TrackingMetrics, tracking_metrics
 from soft_gripper_sdre.sim import GripperSim, SimConfig
 from soft_gripper_sdre.trajectory import GraspProfile, GraspTrajectory
@@ -65,7 +66,8 @@ def run_closed_loop(model, *, duration: float, sim_config: SimConfig | None = No
 
     ``controller``: optional law with TrackingController's interface (:mod:`soft_gripper_sdre.laws`)
     used instead of the learned SDRE; one with an ``observe(truth)`` method gets the plant's ground
-    truth before each step (the oracle).
+    truth before each step (the oracle), one that :func:`~soft_gripper_sdre.laws.accepts_ref_acc`
+    gets the reference acceleration too.
     """
     sim_config = sim_config or SimConfig(scene='hand')
     profile = profile or GraspProfile()
@@ -79,6 +81,7 @@ def run_closed_loop(model, *, duration: float, sim_config: SimConfig | None = No
         ctrl = controller if controller is not None else TrackingController(
             model, weights, u_max, n_fingers=n, method=method, lowpass_hz=lowpass_hz, dt=dt)
         observe = getattr(ctrl, 'observe', None)
+        with_acc = accepts_ref_acc(ctrl)
         rec = {k: [] for k in ('t', 'pos', 'vel', 'meas', 'est', 'ref_pos', 'ref_vel', 'u', 'ok',
                                'fallback', 'saturated', 'residual', 'contact', 'cube')}
         traj = None
@@ -98,7 +101,8 @@ def run_closed_loop(model, *, duration: float, sim_config: SimConfig | None = No
             ref = traj.sample(sim.t)
             if observe is not None:
                 observe(truth)
-            out = ctrl.compute(x_hat[:, :2], x_hat[:, 2:], ref.pos, ref.vel)
+            out = ctrl.compute(x_hat[:, :2], x_hat[:, 2:], ref.pos, ref.vel,
+                               **({'ref_acc': ref.acc} if with_acc else {}))
             sim.step(out.u)
             rec['t'].append(truth.t)
             rec['pos'].append(truth.tip_pos[:, :2])
