@@ -33,7 +33,7 @@ from trajectory_msgs.msg import MultiDOFJointTrajectory
 
 from soft_gripper_sdre.control import DEFAULT_LOWPASS_HZ, DEFAULT_WEIGHTS, Weights
 from soft_gripper_sdre.horizon import sample_horizon
-from soft_gripper_sdre.laws import make_law
+from soft_gripper_sdre.laws import accepts_ref_acc, make_law
 from soft_gripper_sdre.model import ModelFileError, SDCModel
 from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.common import OK, WARN, Diagnostics, ThrottledLogger, run
@@ -63,7 +63,8 @@ PARAMS = (
           choices=('fast', 'reference'), read_only=True),
     Param('law', 'sdre', 'control law (soft_gripper_sdre.laws): learned SDRE, LQR frozen at the '
           'origin, task-space PD; the oracle needs the plant\'s joint state and runs in-process only '
-          '(tools/evaluate.py)', choices=('sdre', 'lqr', 'pd'), read_only=True),
+          '(tools/evaluate.py); sdre_ff: SDRE + model-inversion feedforward (README "Beyond the paper")',
+          choices=('sdre', 'sdre_ff', 'lqr', 'pd'), read_only=True),
     Param('state_weights', False, 'sdre only: state-dependent Q(x) that rises with the tracking error',
           read_only=True),
     Param('estimate_timeout', 0.5, 'wall time without a fresh estimate before zero torque is '
@@ -202,9 +203,13 @@ class ControllerNode(Node):
     # -- the law -----------------------------------------------------------------------------
     def _control(self, stamp: int, x: np.ndarray, ref: tuple) -> None:
         _, _, times, pos, vel, acc = ref
-        ref_pos, ref_vel = sample_horizon(times, pos, vel, acc, stamp)
+        if accepts_ref_acc(self.ctrl):            # feedforward laws (sdre_ff) also take p̈_d
+            ref_pos, ref_vel, ref_acc = sample_horizon(times, pos, vel, acc, stamp, with_acc=True)
+            kw = {'ref_acc': ref_acc}
+        else:
+            (ref_pos, ref_vel), kw = sample_horizon(times, pos, vel, acc, stamp), {}
         t0 = time.perf_counter()
-        out = self.ctrl.compute(x[:, :2], x[:, 2:], ref_pos, ref_vel)
+        out = self.ctrl.compute(x[:, :2], x[:, 2:], ref_pos, ref_vel, **kw)
         self._compute_s.append(time.perf_counter() - t0)
         u = out.u
         if not np.all(np.isfinite(u)):          # the core guarantees this; keep the promise here too
