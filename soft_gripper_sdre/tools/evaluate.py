@@ -256,6 +256,9 @@ def _figures(results: dict, trajectory: str, out: Path) -> list[str]:
     import matplotlib.pyplot as plt
     names = []
     fig, axes = plt.subplots(2, 2, figsize=(12, 6.5), sharex=True)
+    colours = plt.get_cmap('tab20').colors[::2] + plt.get_cmap('tab20').colors[1::2]   # 20 distinct
+    for ax in axes.flat:
+        ax.set_prop_cycle(color=colours[:max(len(results), 1)])
     for key, res in results.items():
         label = LAW_SPECS[key][0]
         err = np.linalg.norm(res.pos - res.ref_pos, axis=2) * 1e3
@@ -282,7 +285,33 @@ def _figures(results: dict, trajectory: str, out: Path) -> list[str]:
     fig.savefig(out / name, dpi=100)
     plt.close(fig)
     names.append(name)
+    ff = [k for k in ('sdre', 'pd', 'pd_ff', 'oracle_ff', 'sdre_ff') if k in results]
+    if 'sdre_ff' in ff:
+        names.append(_feedforward_figure({k: results[k] for k in ff}, trajectory, out))
     return names
+
+
+def _feedforward_figure(results: dict, trajectory: str, out: Path) -> str:
+    """The feedforward law against the paper's law and the PD: both grasping fingers' errors."""
+    import matplotlib.pyplot as plt
+    fig, axes = plt.subplots(1, 2, figsize=(12, 3.8), sharex=True, sharey=True)
+    for key, res in results.items():
+        err = np.linalg.norm(res.pos - res.ref_pos, axis=2) * 1e3
+        for ax, i in zip(axes, (0, 2)):
+            ax.plot(res.t, err[:, i], lw=1.6 if key == 'sdre_ff' else 0.9, label=LAW_SPECS[key][0])
+    for ax, i in zip(axes, (0, 2)):
+        ax.set_yscale('log')
+        ax.set_ylim(1e-3, 1e1)
+        ax.set_xlabel('time [s]')
+        ax.set_title(f'grasping finger {i}', fontsize=9)
+    axes[0].set_ylabel('tip error [mm] (in contact during the hold)')
+    axes[0].legend(fontsize=7)
+    fig.suptitle(f'{trajectory}: SDRE + model-inversion feedforward against the paper\'s law and the PD')
+    fig.tight_layout()
+    name = f'{trajectory}_feedforward.png'
+    fig.savefig(out / name, dpi=100)
+    plt.close(fig)
+    return name
 
 
 def _model_figure(samples: dict, out: Path) -> str:
