@@ -44,6 +44,11 @@ sweep: $(STAMP)
 input-matrix: $(STAMP)
 	$(PY) -m soft_gripper_sdre.tools.input_matrix --out runs/input_matrix
 
+# README "Beyond the paper": every law on the grasp and a fast grasp, the model vs ground truth
+.PHONY: evaluate
+evaluate: $(STAMP)
+	$(PY) -m soft_gripper_sdre.tools.evaluate --out runs/evaluate
+
 # The lock is pip's own resolution (a dry-run report), so every line names a
 # distribution the index serves (pip freeze would also list the dist-info
 # names bundled inside the ros-* wheels, which no index has).

@@ -21,6 +21,7 @@ import numpy as np
 
 from soft_gripper_sdre.control import DEFAULT_LOWPASS_HZ, TrackingController, Weights
 from soft_gripper_sdre.kf import ConstantVelocityKF
+from soft_gripper_sdre.laws import accepts_ref_acc
 from soft_gripper_sdre.metrics import TrackingMetrics, tracking_metrics
 from soft_gripper_sdre.sim import GripperSim, SimConfig
 from soft_gripper_sdre.trajectory import GraspProfile, GraspTrajectory
@@ -63,8 +64,15 @@ class LoopResult:
 def run_closed_loop(model, *, duration: float, sim_config: SimConfig | None = None,
                     weights: Weights, u_max: float, profile: GraspProfile | None = None,
                     estimator: EstimatorSettings | None = None, method: str = 'fast',
-                    lowpass_hz: float = DEFAULT_LOWPASS_HZ, progress: bool = False) -> LoopResult:
-    """Run the grasp for ``duration`` seconds of sim time and return everything recorded."""
+                    lowpass_hz: float = DEFAULT_LOWPASS_HZ, progress: bool = False,
+                    controller=None) -> LoopResult:
+    """Run the grasp for ``duration`` seconds of sim time and return everything recorded.
+
+    ``controller``: optional law with TrackingController's interface (:mod:`soft_gripper_sdre.laws`)
+    used instead of the learned SDRE; one with an ``observe(truth)`` method gets the plant's ground
+    truth before each step (the oracle), one that :func:`~soft_gripper_sdre.laws.accepts_ref_acc`
+    gets the reference acceleration too.
+    """
     sim_config = sim_config or SimConfig(scene='hand')
     profile = profile or GraspProfile()
     estimator = estimator or EstimatorSettings()
@@ -74,8 +82,10 @@ def run_closed_loop(model, *, duration: float, sim_config: SimConfig | None = No
         n = sim.n_fingers
         kf = ConstantVelocityKF(dt, estimator.accel_psd, estimator.meas_std, n=n,
                                 process_noise=estimator.process_noise)
-        ctrl = TrackingController(model, weights, u_max, n_fingers=n, method=method,
-                                  lowpass_hz=lowpass_hz, dt=dt)
+        ctrl = controller if controller is not None else TrackingController(
+            model, weights, u_max, n_fingers=n, method=method, lowpass_hz=lowpass_hz, dt=dt)
+        observe = getattr(ctrl, 'observe', None)
+        with_acc = accepts_ref_acc(ctrl)
         rec = {k: [] for k in ('t', 'pos', 'vel', 'meas', 'est', 'ref_pos', 'ref_vel', 'u', 'ok',
                                'fallback', 'saturated', 'residual', 'contact', 'cube')}
         traj = None
@@ -97,7 +107,10 @@ def run_closed_loop(model, *, duration: float, sim_config: SimConfig | None = No
                 x_hat = kf.step(z)
             truth = sim.truth()
             ref_pos, ref_vel = refs.pos[k], refs.vel[k]
-            out = ctrl.compute(x_hat[:, :2], x_hat[:, 2:], ref_pos, ref_vel)
+            if observe is not None:
+                observe(truth)
+            out = ctrl.compute(x_hat[:, :2], x_hat[:, 2:], ref_pos, ref_vel,
+                               **({'ref_acc': refs.acc[k]} if with_acc else {}))
             sim.step(out.u)
             rec['t'].append(truth.t)
             rec['pos'].append(truth.tip_pos[:, :2])

@@ -10,8 +10,14 @@ positions p, velocities v and accelerations a. Between the bracketing points t�
     h₀₀ = 2s³ − 3s² + 1,  h₁₀ = s³ − 2s² + s,  h₀₁ = −2s³ + 3s²,  h₁₁ = s³ − s²
 
 so each matches its value and slope at both points (velocity is the Hermite of v with slopes a,
-one order more accurate than differentiating the position interpolant). At a grid point the
-sample is that point exactly.
+one order more accurate than differentiating the position interpolant). The acceleration (on
+request) is the time derivative of that velocity interpolant,
+
+    a(t) = [h₀₀'(s) v₀ + h₀₁'(s) v₁] / h + h₁₀'(s) a₀ + h₁₁'(s) a₁
+    h₀₀' = 6s² − 6s,  h₁₀' = 3s² − 4s + 1,  h₀₁' = −6s² + 6s,  h₁₁' = 3s² − 2s
+
+(the Hermite's slopes are a₀, a₁ at the ends, so it is consistent with the sampled velocity). At a
+grid point the sample is that point exactly.
 """
 from __future__ import annotations
 
@@ -21,17 +27,18 @@ NS = 1_000_000_000
 
 
 def sample_horizon(times_ns: np.ndarray, pos: np.ndarray, vel: np.ndarray, acc: np.ndarray,
-                   t_ns: int) -> tuple[np.ndarray, np.ndarray]:
-    """Reference position and velocity at ``t_ns`` from a horizon of h points.
+                   t_ns: int, with_acc: bool = False) -> tuple[np.ndarray, ...]:
+    """Reference position and velocity (and, with ``with_acc``, acceleration) at ``t_ns``.
 
     Args:
         times_ns: (h,) strictly increasing absolute point times [ns] (as
             :func:`~soft_gripper_sdre.nodes.conversions.msg_to_reference` guarantees; not re-checked).
         pos, vel, acc: (h, n, 2) positions [m], velocities [m/s], accelerations [m/s²].
         t_ns: the sample time [ns], within ``[times_ns[0], times_ns[-1]]``.
+        with_acc: also return the acceleration (the feedforward laws of :mod:`soft_gripper_sdre.laws`).
 
     Returns:
-        (pos (n, 2), vel (n, 2)) at ``t_ns``.
+        (pos (n, 2), vel (n, 2)) at ``t_ns``; (pos, vel, acc (n, 2)) with ``with_acc``.
 
     Raises:
         ValueError: ``t_ns`` is outside the horizon, or the arrays' shapes do not agree.
@@ -50,7 +57,7 @@ def sample_horizon(times_ns: np.ndarray, pos: np.ndarray, vel: np.ndarray, acc: 
     # interval j: times[j] <= t <= times[j+1]; the last point belongs to the last interval
     j = min(int(np.searchsorted(times_ns, t_ns, side='right')) - 1, h - 2)
     if j < 0:                                  # a one-point horizon sampled at its only point
-        return pos[0].copy(), vel[0].copy()
+        return (pos[0].copy(), vel[0].copy()) + ((acc[0].copy(),) if with_acc else ())
     t0, t1 = int(times_ns[j]), int(times_ns[j + 1])
     dt = (t1 - t0) / NS
     s = (t_ns - t0) / (t1 - t0)
@@ -61,4 +68,9 @@ def sample_horizon(times_ns: np.ndarray, pos: np.ndarray, vel: np.ndarray, acc: 
     h11 = (s3 - s2) * dt
     p = h00 * pos[j] + h10 * vel[j] + h01 * pos[j + 1] + h11 * vel[j + 1]
     v = h00 * vel[j] + h10 * acc[j] + h01 * vel[j + 1] + h11 * acc[j + 1]
-    return p, v
+    if not with_acc:
+        return p, v
+    d00, d10 = 6.0 * s2 - 6.0 * s, 3.0 * s2 - 4.0 * s + 1.0
+    d01, d11 = -6.0 * s2 + 6.0 * s, 3.0 * s2 - 2.0 * s
+    a = (d00 * vel[j] + d01 * vel[j + 1]) / dt + d10 * acc[j] + d11 * acc[j + 1]   # a = dv/dt
+    return p, v, a

@@ -91,6 +91,12 @@ class TrainSettings:
     patience: int = 60
     seed: int = 0
     hidden: int = HIDDEN
+    #: controllability-aware learning (README "Beyond the paper"): weight of the penalty
+    #: mean(relu(σ_floor − σ_min(G2(x)))²) on G2's smallest singular value at states drawn uniformly
+    #: from a box of ±sv_box (scaled units: data standard deviations) each batch; 0 = off
+    sv_penalty: float = 0.0
+    sv_floor: float = 0.3
+    sv_box: float = 3.0
 
 
 PRESETS = {
@@ -153,6 +159,11 @@ def train(x: np.ndarray, u: np.ndarray, acc: np.ndarray, x_val: np.ndarray, u_va
         for i in range(0, n, settings.batch_size):
             idx = perm[i:i + settings.batch_size]
             loss = ((net.accel(X[idx], U[idx]) - Y[idx]) ** 2).sum(dim=1).mean()   # eq. 18
+            if settings.sv_penalty > 0:
+                # keep G2 invertible over the whole box, not only where the data lie
+                xs = (torch.rand(idx.numel(), 4, generator=gen) * 2 - 1) * settings.sv_box
+                smin = torch.linalg.svdvals(net(xs)[1])[:, -1]
+                loss = loss + settings.sv_penalty * torch.relu(settings.sv_floor - smin).pow(2).mean()
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()

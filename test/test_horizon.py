@@ -79,3 +79,23 @@ def test_mismatched_shapes_raise():
     with pytest.raises(ValueError, match=r'\(h, n, 2\)'):
         sample_horizon(np.array([], dtype=np.int64), np.zeros((0, 4, 2)), np.zeros((0, 4, 2)),
                        np.zeros((0, 4, 2)), 0)
+
+
+def test_acceleration_on_request_is_the_derivative_of_the_velocity_interpolant():
+    """Cubic motion: the acceleration is linear, so dv/dt of the (exact) velocity Hermite is exact
+    between points and the grid values at the points; without the flag the call is unchanged."""
+    c = np.array([[0.01, -0.02], [0.3, 0.1], [-2.0, 1.5], [4.0, -3.0]])
+    t = np.array([0.0, 0.004, 0.011, 0.02])
+    pos = (c[0] + t[:, None] * c[1] + t[:, None] ** 2 * c[2] + t[:, None] ** 3 * c[3])[:, None, :]
+    vel = (c[1] + 2 * t[:, None] * c[2] + 3 * t[:, None] ** 2 * c[3])[:, None, :]
+    acc = (2 * c[2] + 6 * t[:, None] * c[3])[:, None, :]
+    times = np.round(t * NS).astype(np.int64)
+    for tq in (0.001, 0.0075, 0.0199):
+        p, v, a = sample_horizon(times, pos, vel, acc, int(round(tq * NS)), with_acc=True)
+        np.testing.assert_allclose(a[0], 2 * c[2] + 6 * tq * c[3], rtol=0, atol=1e-9)
+        assert len(sample_horizon(times, pos, vel, acc, int(round(tq * NS)))) == 2
+    for k in range(len(t)):
+        np.testing.assert_allclose(sample_horizon(times, pos, vel, acc, int(times[k]), with_acc=True)[2],
+                                   acc[k], rtol=0, atol=1e-9)
+    one = sample_horizon(times[:1], pos[:1], vel[:1], acc[:1], int(times[0]), with_acc=True)
+    np.testing.assert_array_equal(one[2], acc[0])

@@ -31,8 +31,9 @@ import torch
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import MultiDOFJointTrajectory
 
-from soft_gripper_sdre.control import DEFAULT_LOWPASS_HZ, DEFAULT_WEIGHTS, TrackingController, Weights
+from soft_gripper_sdre.control import DEFAULT_LOWPASS_HZ, DEFAULT_WEIGHTS, Weights
 from soft_gripper_sdre.horizon import sample_horizon
+from soft_gripper_sdre.laws import accepts_ref_acc, make_law
 from soft_gripper_sdre.model import ModelFileError, SDCModel
 from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.common import OK, WARN, Diagnostics, ThrottledLogger, run
@@ -60,6 +61,12 @@ PARAMS = (
           1e-4, 0.05, read_only=True),
     Param('solver', 'fast', 'Riccati solver: warm-started Newton–Kleinman or scipy reference',
           choices=('fast', 'reference'), read_only=True),
+    Param('law', 'sdre', 'control law (soft_gripper_sdre.laws): learned SDRE, LQR frozen at the '
+          'origin, task-space PD; the oracle needs the plant\'s joint state and runs in-process only '
+          '(tools/evaluate.py); sdre_ff: SDRE + model-inversion feedforward (README "Beyond the paper")',
+          choices=('sdre', 'sdre_ff', 'lqr', 'pd'), read_only=True),
+    Param('state_weights', False, 'sdre only: state-dependent Q(x) that rises with the tracking error',
+          read_only=True),
     Param('estimate_timeout', 0.5, 'wall time without a fresh estimate before zero torque is '
           'commanded', 's', 1e-3, 60.0),
     Param('reset_on_jump', 0.5, 'a stamp this far behind the last one (a simulator restart) resets '
@@ -87,9 +94,12 @@ class ControllerNode(Node):
             raise ParameterError(str(exc)) from None
         self.n = p['n_fingers']
         self.jump_ns = int(p['reset_on_jump'] * cv.NS)
-        self.ctrl = TrackingController(model, weights, p['torque_limit'], n_fingers=self.n,
-                                       method=p['solver'], lowpass_hz=p['torque_lowpass_hz'],
-                                       dt=p['control_period'])
+        try:
+            self.ctrl = make_law(p['law'], model, weights, p['torque_limit'], n_fingers=self.n,
+                                 method=p['solver'], lowpass_hz=p['torque_lowpass_hz'],
+                                 dt=p['control_period'], adaptive=p['state_weights'])
+        except ValueError as exc:
+            raise ParameterError(f'law/state_weights: {exc}') from None
         self.done = False
         self.exit_code = 0
 
@@ -116,7 +126,8 @@ class ControllerNode(Node):
         self.get_logger().info(
             f'model {model.path.name} (rest tip {1e3 * model.rest_tip[0]:.1f}, '
             f'{1e3 * model.rest_tip[1]:.1f} mm); {self.diag.values["weights"]}; '
-            f'limit {p["torque_limit"]:g} N·m; {p["solver"]} solver')
+            f'limit {p["torque_limit"]:g} N·m; {p["solver"]} solver; law {p["law"]}'
+            f'{" with Q(x)" if p["state_weights"] else ""}')
 
     # -- inputs ------------------------------------------------------------------------------
     def on_reference(self, msg: MultiDOFJointTrajectory) -> None:
@@ -192,9 +203,13 @@ class ControllerNode(Node):
     # -- the law -----------------------------------------------------------------------------
     def _control(self, stamp: int, x: np.ndarray, ref: tuple) -> None:
         _, _, times, pos, vel, acc = ref
-        ref_pos, ref_vel = sample_horizon(times, pos, vel, acc, stamp)
+        if accepts_ref_acc(self.ctrl):            # feedforward laws (sdre_ff) also take p̈_d
+            ref_pos, ref_vel, ref_acc = sample_horizon(times, pos, vel, acc, stamp, with_acc=True)
+            kw = {'ref_acc': ref_acc}
+        else:
+            (ref_pos, ref_vel), kw = sample_horizon(times, pos, vel, acc, stamp), {}
         t0 = time.perf_counter()
-        out = self.ctrl.compute(x[:, :2], x[:, 2:], ref_pos, ref_vel)
+        out = self.ctrl.compute(x[:, :2], x[:, 2:], ref_pos, ref_vel, **kw)
         self._compute_s.append(time.perf_counter() - t0)
         u = out.u
         if not np.all(np.isfinite(u)):          # the core guarantees this; keep the promise here too

@@ -77,6 +77,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--epochs', type=int, default=None, help='override the preset')
     parser.add_argument('--jerk-psd', type=float, default=None,
                         help='KF/RTS white-jerk intensity; default: tuned by likelihood on the data')
+    parser.add_argument('--sv-penalty', type=float, default=0.0,
+                        help='weight of the penalty on G2\'s smallest singular value (0 = off)')
+    parser.add_argument('--sv-floor', type=float, default=0.3, help='singular-value floor (scaled units)')
     parser.add_argument('--install', action='store_true',
                         help=f'copy the checkpoint to the package as the shipped model ({DEFAULT_MODEL.name})')
     args = parser.parse_args(argv)
@@ -88,6 +91,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.epochs < 1:
             _usage_error(parser, '--epochs must be >= 1')
         settings = replace(settings, epochs=args.epochs)
+    if args.sv_penalty > 0:
+        settings = replace(settings, sv_penalty=args.sv_penalty, sv_floor=args.sv_floor)
     variant = args.variant or ('paper' if args.preset == 'paper' else 'identifying')
     names = list(DATA_VARIANTS[variant]) + [VALIDATION]
     try:

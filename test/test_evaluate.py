@@ -1,0 +1,103 @@
+"""The evaluation tool: a short run of the laws on the fast grasp, and the model scoring."""
+import json
+
+import numpy as np
+import pytest
+
+from soft_gripper_sdre.control import DEFAULT_WEIGHTS, Weights
+from soft_gripper_sdre.model import PAPER_DATA_MODEL, SDCModel
+from soft_gripper_sdre.tools import evaluate as ev
+
+
+@pytest.fixture(scope='module')
+def model():
+    return SDCModel()
+
+
+@pytest.fixture(scope='module')
+def fast_runs(model):
+    """The four laws of the issue's expectation, and the feedforward laws beyond the paper (SDRE,
+    oracle and PD with the reference acceleration), on the first 1.5 s of the fast grasp (closing,
+    holding, half the opening), with the default noise and weights."""
+    w = Weights(**DEFAULT_WEIGHTS)
+    return {k: ev.run_law(k, 'fast', model, w, duration=1.5)[0]
+            for k in ('sdre', 'lqr', 'pd', 'oracle', 'sdre_ff', 'oracle_ff', 'pd_ff')}
+
+
+@pytest.mark.slow
+def test_every_law_tracks_the_fast_grasp_without_failed_checks(fast_runs):
+    for key, s in fast_runs.items():
+        assert s.saturated_pct < 1.0, (key, s)
+        assert s.check_fail_pct < 0.1, (key, s)
+        assert s.rmse_mm_grasp < 2.0, (key, s)       # 30 mm in 0.5 s: ≤ 7 % of the excursion
+        assert np.isfinite(s.compute_us) and s.compute_us > 0
+
+
+@pytest.mark.slow
+def test_learned_sdre_is_within_1_5x_of_the_oracle(fast_runs):
+    """The issue's expectation, second half: holds as measured."""
+    assert fast_runs['sdre'].rmse_mm_grasp <= 1.5 * fast_runs['oracle'].rmse_mm_grasp
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason='measured: the learned SDRE does not beat LQR frozen at the origin '
+                   'and the tuned PD on free-space RMSE (README "Beyond the paper")')
+def test_learned_sdre_beats_lqr_and_pd(fast_runs):
+    """The issue's expectation, first half: does NOT hold as measured (strict xfail: this test
+    starts failing the day it holds, so the README must then be updated)."""
+    s = fast_runs['sdre'].rmse_mm_grasp
+    assert s < fast_runs['lqr'].rmse_mm_grasp and s < fast_runs['pd'].rmse_mm_grasp
+
+
+@pytest.mark.slow
+def test_sdre_with_feedforward_beats_lqr_and_pd_and_is_within_1_5x_of_the_oracle(fast_runs):
+    """Beyond the paper: the expectation holds for SDRE feedback + model-inversion feedforward
+    (README "Beyond the paper"), against the PD with the same reference acceleration too, and
+    within 1.5× of the oracle with the same feedforward (measured: below it)."""
+    s = fast_runs['sdre_ff'].rmse_mm_grasp
+    assert s < fast_runs['lqr'].rmse_mm_grasp and s < fast_runs['pd'].rmse_mm_grasp
+    assert s < fast_runs['pd_ff'].rmse_mm_grasp
+    assert s <= 1.5 * fast_runs['oracle_ff'].rmse_mm_grasp
+    assert s < 0.5 * fast_runs['sdre'].rmse_mm_grasp           # the feedforward, not the weights
+
+
+def test_model_scoring_against_the_ground_truth(model):
+    stats = ev.score_model(model, seconds=1.0, every=20)['stats']
+    assert stats['samples'] == 49
+    # the learned model predicts the simulator's acceleration on the held-out signal
+    assert stats['r2_learned_vs_sim'][1] > 0.9
+    # and its G2 points where the projected true input map points
+    assert max(stats['g2_vs_proj']['angle_median_deg']) < 10.0
+
+
+def test_workspace_grid_checks(model):
+    w = Weights(**DEFAULT_WEIGHTS)
+    assert ev.workspace_check_failures(model, w, n=5) == 0.0
+    assert ev.workspace_check_failures(SDCModel(PAPER_DATA_MODEL), w, n=5) == 0.0
+
+
+def test_report_is_written(tmp_path):
+    s = ev.RunSummary('lqr', 'fast', 1.0, 2.0, 1.1, 2.1, 0.01, 0.0, True, 0.1, 0.0, 50.0)
+    ws = {'default': dict(check_fail_pct=0.0, min_sv=200.0, max_cond=4.0)}
+    path = ev.write_report(tmp_path, [s], ['fast_laws.png'], None, ws, {'x': 'y'})
+    text = path.read_text()
+    assert '| LQR at the origin | 1.000 | 2.00 |' in text and 'fast_laws.png' in text
+    assert json.dumps(ev.expectation_verdict([s])) == '{}'       # needs all four laws
+
+
+def test_command_line_writes_the_report(tmp_path):
+    import subprocess
+    import sys
+    out = tmp_path / 'ev'
+    proc = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.evaluate', '--out', str(out),
+                           '--laws', 'lqr', 'pd', '--trajectories', 'fast', '--duration', '0.4',
+                           '--no-model-score'], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    text = (out / 'report.md').read_text()
+    assert '| LQR at the origin |' in text and '| task-space PD |' in text
+    assert (out / 'fast_laws.png').stat().st_size > 10_000
+    runs = json.loads((out / 'evaluate.json').read_text())['runs']
+    assert {r['law'] for r in runs} == {'lqr', 'pd'} and all(r['check_fail_pct'] == 0.0 for r in runs)
+    bad = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.evaluate', '--laws', 'mpc'],
+                         capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and 'mpc' in bad.stderr

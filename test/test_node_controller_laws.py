@@ -1,0 +1,74 @@
+"""The controller node's ``law`` parameter: the baselines run on the graph, the oracle is refused."""
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from rosutil import ros_context, spin_until
+from soft_gripper_sdre.control import DEFAULT_WEIGHTS, Weights
+from soft_gripper_sdre.laws import make_law
+from soft_gripper_sdre.model import SDCModel
+from soft_gripper_sdre.nodes import conversions as cv
+from test_node_controller import LIMIT, MS, commands, estimate, horizon, make
+
+pytestmark = pytest.mark.ros
+
+
+@pytest.mark.parametrize('law, weights', [('lqr', False), ('pd', False), ('sdre', True)])
+def test_law_parameter_selects_the_law(law, weights):
+    model = SDCModel()
+    rest = np.repeat(model.rest_tip[None, :2], 4, 0)
+    offline = make_law(law, model, Weights(**DEFAULT_WEIGHTS), LIMIT, adaptive=weights)
+    with ros_context() as (ctx, executor):
+        node, probe, est_pub, ref_pub = make(ctx, executor, law=law, state_weights=weights)
+        ref_msg, ref_pos = horizon(rest, 0)
+        ref_pub.publish(ref_msg)
+        assert spin_until(executor, lambda: node.diag.counters['references'] == 1)
+        for k in range(3):
+            est_pub.publish(estimate(k * MS, rest))
+        assert spin_until(executor, lambda: len(commands(probe)) == 3)
+        for msg in commands(probe):
+            _, u = cv.msg_to_torques(msg, 4)
+            expected = offline.compute(rest, np.zeros((4, 2)), ref_pos, np.zeros((4, 2))).u
+            np.testing.assert_allclose(u, expected, rtol=1e-9, atol=1e-12)
+        assert np.all(u[:, 0] < 0)                      # every law closes toward +Y with −ax0
+
+
+@pytest.mark.parametrize('args, needle', [
+    (['-p', 'law:=oracle'], 'law'),
+    (['-p', 'law:=pd', '-p', 'state_weights:=true'], 'state-dependent weights'),
+])
+def test_oracle_or_weights_on_a_baseline_end_the_node_at_startup(args, needle):
+    proc = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.nodes.controller', '--ros-args', *args],
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2, proc.stderr
+    assert needle in proc.stderr + proc.stdout
+
+
+def test_feedforward_law_gets_the_reference_acceleration_from_the_horizon():
+    """law:=sdre_ff: the node samples p̈_d from the published horizon (constant acceleration here)
+    and its torques match the offline law given that acceleration, not the law without it."""
+    from soft_gripper_sdre.horizon import sample_horizon
+    model = SDCModel()
+    rest = np.repeat(model.rest_tip[None, :2], 4, 0)
+    w = Weights(**DEFAULT_WEIGHTS)
+    with_acc, without = (make_law('sdre_ff', model, w, LIMIT) for _ in range(2))
+    times = 5 * MS * np.arange(21)
+    t = times[:, None, None] / 1e9
+    a = np.array([0.0, 0.5])                                     # m/s² towards the palm
+    pos, vel, acc = rest[None] + 0.5 * a * t ** 2, a * t * np.ones((1, 4, 1)), np.broadcast_to(a, (21, 4, 2))
+    with ros_context() as (ctx, executor):
+        node, probe, est_pub, ref_pub = make(ctx, executor, law='sdre_ff')
+        ref_pub.publish(cv.reference_to_msg(0, times, pos, vel, acc))
+        assert spin_until(executor, lambda: node.diag.counters['references'] == 1)
+        stamps = [k * MS for k in range(3)]
+        for s in stamps:
+            est_pub.publish(estimate(s, rest))
+        assert spin_until(executor, lambda: len(commands(probe)) == 3)
+        for s, msg in zip(stamps, commands(probe)):
+            _, u = cv.msg_to_torques(msg, 4)
+            p, v, ad = sample_horizon(times, pos, vel, acc, s, with_acc=True)
+            z = np.zeros((4, 2))
+            np.testing.assert_allclose(u, with_acc.compute(rest, z, p, v, ref_acc=ad).u, rtol=1e-9, atol=1e-12)
+            assert not np.allclose(u, without.compute(rest, z, p, v).u, rtol=1e-3, atol=0)
