@@ -8,6 +8,7 @@ import time
 from typing import Callable
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+import numpy as np
 import rclpy
 from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedExecutor
 from rclpy.experimental import EventsExecutor
@@ -54,6 +55,8 @@ class Diagnostics:
         self.level = OK
         self.message = 'ok'
         self._hardware_id = hardware_id
+        #: called before each publication, to refresh values that are costly to keep current
+        self.before_publish: list[Callable[[], None]] = []
         self._clean = 0                         # good events since the last problem
         self._log = ThrottledLogger(node.get_logger())
         self._pub = node.create_publisher(DiagnosticArray, DIAGNOSTICS, STREAM_QOS)
@@ -80,6 +83,8 @@ class Diagnostics:
         self.level, self.message = level, message
 
     def publish(self) -> None:
+        for refresh in self.before_publish:
+            refresh()
         status = DiagnosticStatus(level=self.level, name=self.node.get_fully_qualified_name(),
                                   message=self.message, hardware_id=self._hardware_id)
         status.values = ([KeyValue(key=k, value=str(v)) for k, v in sorted(self.counters.items())]
@@ -89,7 +94,30 @@ class Diagnostics:
         self._pub.publish(msg)
 
 
-def make_executor(kind: str | None = None) -> Executor:
+class LatencyWindow:
+    """The last ``size`` latencies in a ring buffer (no allocation per sample), summarised as
+    p50 / p99 / max in µs for /diagnostics."""
+
+    def __init__(self, size: int = 10_000) -> None:
+        self._buf = np.empty(size)
+        self._size = size
+        self.count = 0                          # samples ever added
+
+    def add(self, seconds: float) -> None:
+        self._buf[self.count % self._size] = seconds
+        self.count += 1
+
+    def summary(self, prefix: str) -> dict[str, str]:
+        """``{prefix}_p50``, ``_p99``, ``_max`` [µs] over the window ({} before any sample)."""
+        if not self.count:
+            return {}
+        us = 1e6 * self._buf[:min(self.count, self._size)]
+        p50, p99 = np.percentile(us, (50, 99))
+        return {f'{prefix}_p50': f'{p50:.0f}', f'{prefix}_p99': f'{p99:.0f}',
+                f'{prefix}_max': f'{us.max():.0f}'}
+
+
+def make_executor(kind: str | None = None, context=None) -> Executor:
     """The executor every node process spins: ``kind`` or $SOFT_GRIPPER_EXECUTOR, default 'events'.
 
     rclpy's EventsExecutor dispatches each message from C++ with no wait-set rebuild per callback:
@@ -103,7 +131,7 @@ def make_executor(kind: str | None = None) -> Executor:
     kind = kind or os.environ.get(EXECUTOR_ENV, 'events')
     if kind not in EXECUTORS:
         raise ValueError(f'{EXECUTOR_ENV}={kind!r}: expected one of {", ".join(EXECUTORS)}')
-    return EXECUTORS[kind]()
+    return EXECUTORS[kind](context=context)
 
 
 def run(node_factory: Callable[..., Node], args: list[str] | None = None) -> int:

@@ -1,0 +1,187 @@
+"""Benchmarks of the node graph as processes: lockstep speed, loop latency, realtime lateness, recorder loss.
+
+    python -m soft_gripper_sdre.tools.bench_graph [--quick] [--executor events|single]
+
+prints the rows that :mod:`soft_gripper_sdre.tools.bench` appends to BENCHMARKS.md
+(:func:`rows`). Every figure comes from the nodes' own /diagnostics, read by a monitor node:
+
+* **lockstep**: the four loop processes (simulator, estimator, trajectory, controller) at the 1 ms
+  period. The simulator reports the real-time factor of its stepping and the loop latency, the
+  wall time from publishing ``tip_positions`` for t_k to receiving the torque command stamped t_k
+  (three DDS hops and the estimator's and controller's work).
+* **realtime**: the simulator steps on a 1 ms wall timer; a period is late when no command for it
+  arrived before the next tick (its ``late_periods`` counter).
+* **recorder**: all five processes in realtime with every topic at 1 kHz (``state_rate`` 1000 Hz,
+  a horizon every 1 ms) into the recorder; lost = messages the nodes published (their counters)
+  minus the messages in the bag.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+from pathlib import Path
+import tempfile
+import time
+
+from soft_gripper_sdre.tools.procs import Graph, ros_env
+
+LOOP_NODES = ('estimator', 'trajectory', 'controller')
+#: topics the simulator publishes once per step when state_rate is 1 kHz (and once at t = 0)
+SIM_TOPICS = ('/clock', '/tip_positions', '/joint_states', '/cube_pose', '/cube_contacts')
+
+
+class Monitor:
+    """The newest /diagnostics values of every node, by node name (a node of its own Context)."""
+
+    def __init__(self, env: dict[str, str]) -> None:
+        os.environ.update({k: env[k] for k in ('ROS_DOMAIN_ID', 'ROS_AUTOMATIC_DISCOVERY_RANGE')})
+        import rclpy
+        from rclpy.context import Context
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.node import Node
+        from diagnostic_msgs.msg import DiagnosticArray
+
+        from soft_gripper_sdre.nodes.topics import DIAGNOSTICS, STREAM_QOS
+
+        self.values: dict[str, dict[str, str]] = {}
+        self._ctx = Context()
+        rclpy.init(context=self._ctx)
+        self._node = Node('bench_monitor', context=self._ctx)
+        self._node.create_subscription(DiagnosticArray, DIAGNOSTICS, self._on_diag, STREAM_QOS)
+        self._exec = SingleThreadedExecutor(context=self._ctx)
+        self._exec.add_node(self._node)
+
+    def _on_diag(self, msg) -> None:
+        for status in msg.status:
+            self.values[status.name.rsplit('/', 1)[-1]] = {kv.key: kv.value for kv in status.values}
+
+    def get(self, node: str, key: str, default: float = 0.0) -> float:
+        try:
+            return float(self.values.get(node, {}).get(key, default))
+        except ValueError:
+            return default
+
+    def spin_until(self, predicate, timeout: float) -> bool:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if predicate():
+                return True
+            self._exec.spin_once(timeout_sec=0.05)
+        return bool(predicate())
+
+    def close(self) -> None:
+        import rclpy
+        self._exec.shutdown()
+        self._node.destroy_node()
+        rclpy.try_shutdown(context=self._ctx)
+
+
+def run_graph(seconds: float, *, mode: str = 'lockstep', record: Path | None = None,
+              all_at_1khz: bool = False, executor: str | None = None,
+              timeout: float = 600.0) -> dict[str, dict[str, float]]:
+    """Run the loop processes (and the recorder into ``record``) for ``seconds`` of sim time.
+
+    Returns every node's final /diagnostics values as floats (non-numeric values dropped).
+
+    Raises:
+        RuntimeError: a node died or the run did not finish within ``timeout``.
+    """
+    env = ros_env()
+    if executor is not None:
+        env['SOFT_GRIPPER_EXECUTOR'] = executor
+    fast = {'state_rate': 1000.0} if all_at_1khz else {}
+    params = {'estimator': {}, 'controller': {},
+              'trajectory': {'publish_period': 0.001} if all_at_1khz else {},
+              'simulator': {'duration': seconds, 'mode': mode, 'min_tip_subscribers': 2 + bool(record),
+                            **fast}}
+    monitor = Monitor(env)
+    steps = int(round(seconds / 0.001))
+    with tempfile.TemporaryDirectory(prefix='sgs_bench_graph_') as logs, Graph(env, Path(logs)) as graph:
+        names = (('recorder',) if record else ()) + LOOP_NODES
+        for name in names:
+            graph.start(name, {'output': str(record)} if name == 'recorder' else params[name])
+        # every node is up (its diagnostics arrive) before the simulator starts stepping
+        if not monitor.spin_until(lambda: all(n in monitor.values for n in names)
+                                  or any(not p.alive() for p in graph.procs.values()), 60.0):
+            raise RuntimeError(f'the graph did not start: {sorted(monitor.values)}')
+        if record:       # the recorder hears every stream before the first step
+            wired = ('/state_estimate', '/torque_commands', '/grasp_reference')
+            monitor.spin_until(lambda: all(monitor.get('recorder', f'publishers {t}') > 0 for t in wired), 30.0)
+        graph.start('simulator', params['simulator'])
+        code = graph.wait('simulator', timeout, lambda: monitor.spin_until(lambda: False, 0.05))
+        if code != 0:
+            tails = {n: p.log_tail(600) for n, p in graph.procs.items()}
+            raise RuntimeError(f'the graph run failed (simulator exit {code}): {tails}')
+        # the simulator's final diagnostics, then the others' (published at their shutdown)
+        monitor.spin_until(lambda: monitor.get('simulator', 'steps') >= steps, 5.0)
+        for name in ('controller', 'trajectory', 'estimator'):
+            graph.stop(name)
+        if record:       # let a recorder that lags behind drain its queues before it is stopped
+            monitor.spin_until(lambda: monitor.get('recorder', 'messages /tip_positions') > steps, 10.0)
+            graph.stop('recorder')
+        monitor.spin_until(lambda: False, 0.5)
+    monitor.close()
+    out = {}
+    for node, values in monitor.values.items():
+        out[node] = {}
+        for key, value in values.items():
+            try:
+                out[node][key] = float(value)
+            except ValueError:
+                pass
+    return out
+
+
+def recorder_loss(seconds: float, executor: str | None = None) -> tuple[int, int]:
+    """(messages published, messages missing from the bag) with every topic at 1 kHz in realtime."""
+    from soft_gripper_sdre.bag import topic_counts
+    with tempfile.TemporaryDirectory(prefix='sgs_bench_bag_') as tmp:
+        bag = Path(tmp) / 'bag'
+        d = run_graph(seconds, mode='realtime', record=bag, all_at_1khz=True, executor=executor)
+        counts = topic_counts(bag)
+    sim, ctrl = d['simulator'], d['controller']
+    published = {t: int(sim['steps']) + 1 for t in SIM_TOPICS}
+    published['/state_estimate'] = int(d['estimator'].get('estimates', 0))
+    published['/grasp_reference'] = int(d['trajectory'].get('references', 0))
+    published['/torque_commands'] = int(ctrl.get('commands', 0) + ctrl.get('stale_zero_commands', 0))
+    lost = sum(max(0, n - counts.get(t, 0)) for t, n in published.items())
+    return sum(published.values()), lost
+
+
+def rows(quick: bool = False, executor: str | None = None) -> list[tuple[str, str, str]]:
+    """(what, figure, note) rows for BENCHMARKS.md; each run is a few seconds of sim time."""
+    seconds = 1.0 if quick else 3.0
+    lock = run_graph(seconds, executor=executor)['simulator']
+    real = run_graph(seconds, mode='realtime', executor=executor)['simulator']
+    sent, lost = recorder_loss(0.5 if quick else 2.0, executor=executor)
+    late = real.get('late_periods', 0.0) / max(real.get('steps', 1.0), 1.0)
+    return [
+        ('node graph, 4 processes, lockstep 1 ms', f'{lock.get("real_time_factor", float("nan")):.2f}× real time',
+         f'{seconds:g} s of sim time; {int(lock.get("timeouts", 0))} timeouts'),
+        ('loop latency p50 / p99 (tips out → torque back)',
+         f'{lock.get("loop_latency_us_p50", float("nan")):.0f} / {lock.get("loop_latency_us_p99", float("nan")):.0f} µs',
+         'measured in the simulator: 3 DDS hops + estimator + controller'),
+        ('realtime mode at 1 kHz: late periods', f'{100 * late:.1f} %',
+         f'stepping at {real.get("real_time_factor", float("nan")):.2f}× real time; '
+         f'latency p50 {real.get("loop_latency_us_p50", float("nan")):.0f} µs'),
+        ('recorder, all topics at 1 kHz: messages lost', f'{lost} of {sent}',
+         '5 processes in realtime; published (node counters) − in the bag'),
+    ]
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.bench_graph',
+                                 description=__doc__.split('\n')[0])
+    ap.add_argument('--quick', action='store_true', help='shorter runs (smoke test)')
+    ap.add_argument('--executor', choices=('events', 'single'), default=None,
+                    help='executor of the node processes (default: $SOFT_GRIPPER_EXECUTOR or events)')
+    a = ap.parse_args(argv)
+    table = rows(a.quick, a.executor)
+    width = max(len(r[0]) for r in table)
+    for name, value, note in table:
+        print(f'{name:<{width}}  {value:>18}  {note}')
+    return 0
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())
