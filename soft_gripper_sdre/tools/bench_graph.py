@@ -148,14 +148,116 @@ def recorder_loss(seconds: float, executor: str | None = None) -> tuple[int, int
     return sum(published.values()), lost
 
 
+def _echo(count: int) -> int:
+    """The far end of :func:`hop`: answer ``count`` tip messages on ``bench_pong``, then print the
+    CPU seconds this process spent per message."""
+    import rclpy
+    from geometry_msgs.msg import PoseArray
+    from rclpy.node import Node
+
+    from soft_gripper_sdre.nodes.common import make_executor
+    from soft_gripper_sdre.nodes.topics import LOOP_QOS
+    rclpy.init()
+    node = Node('bench_echo')
+    pub = node.create_publisher(PoseArray, 'bench_pong', LOOP_QOS)
+    seen = [0, 0.0]
+
+    def on_ping(msg) -> None:
+        if seen[0] == 0:
+            seen[1] = time.process_time()      # CPU from the first message on
+        seen[0] += 1
+        pub.publish(msg)
+    node.create_subscription(PoseArray, 'bench_ping', on_ping, LOOP_QOS)
+    executor = make_executor()
+    executor.add_node(node)
+    deadline = time.monotonic() + 120.0
+    while seen[0] < count and time.monotonic() < deadline:
+        executor.spin_once(timeout_sec=0.1)
+    print(f'cpu_per_message {(time.process_time() - seen[1]) / max(seen[0] - 1, 1):.9f}', flush=True)
+    executor.shutdown()
+    node.destroy_node()
+    rclpy.try_shutdown()
+    return 0
+
+
+def hop(executor: str, count: int = 2000) -> dict[str, float]:
+    """One DDS hop with the graph's own message and executor, between two processes.
+
+    A ping-pong of ``tip_positions``-sized PoseArrays: half the round trip is the latency of one
+    hop (publish → callback in the other process → publish back); the echo process reports its CPU
+    per message (receive + publish). Returns µs: ``p50``, ``p99`` of one hop, ``cpu``.
+    """
+    import subprocess
+    import sys
+
+    import numpy as np
+    import rclpy
+    from geometry_msgs.msg import PoseArray
+    from rclpy.context import Context
+    from rclpy.node import Node
+
+    from soft_gripper_sdre.nodes import conversions as cv
+    from soft_gripper_sdre.nodes.common import make_executor
+    from soft_gripper_sdre.nodes.topics import LOOP_QOS
+
+    env = ros_env()
+    env['SOFT_GRIPPER_EXECUTOR'] = executor
+    os.environ.update({k: env[k] for k in ('ROS_DOMAIN_ID', 'ROS_AUTOMATIC_DISCOVERY_RANGE')})
+    echo = subprocess.Popen([sys.executable, '-m', 'soft_gripper_sdre.tools.bench_graph', '--echo', str(count)],
+                            env=env, stdout=subprocess.PIPE, text=True)
+    ctx = Context()
+    rclpy.init(context=ctx)
+    node = Node('bench_ping', context=ctx)
+    ex = make_executor(executor, context=ctx)
+    msg = cv.tips_to_msg(0, np.zeros((4, 3)))
+    rtt = np.zeros(count)
+    state = {'k': 0, 't0': 0.0}
+    pub = node.create_publisher(PoseArray, 'bench_ping', LOOP_QOS)
+
+    def on_pong(_msg) -> None:
+        rtt[state['k']] = time.perf_counter() - state['t0']
+        state['k'] += 1
+        if state['k'] < count:
+            state['t0'] = time.perf_counter()
+            pub.publish(msg)
+    sub = node.create_subscription(PoseArray, 'bench_pong', on_pong, LOOP_QOS)
+    ex.add_node(node)
+    try:
+        deadline = time.monotonic() + 30.0
+        while (sub.get_publisher_count() == 0 or pub.get_subscription_count() == 0) and time.monotonic() < deadline:
+            ex.spin_once(timeout_sec=0.05)
+        state['t0'] = time.perf_counter()
+        pub.publish(msg)
+        deadline = time.monotonic() + 120.0
+        while state['k'] < count and time.monotonic() < deadline:
+            ex.spin_once(timeout_sec=0.1)
+        out, _ = echo.communicate(timeout=30.0)
+    finally:
+        if echo.poll() is None:
+            echo.kill()
+        ex.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
+    cpu = next((float(line.split()[1]) for line in out.splitlines() if line.startswith('cpu_per_message')),
+               float('nan'))
+    one_way = 0.5e6 * rtt[:state['k']]
+    return {'p50': float(np.percentile(one_way, 50)), 'p99': float(np.percentile(one_way, 99)), 'cpu': 1e6 * cpu}
+
+
 def rows(quick: bool = False, executor: str | None = None) -> list[tuple[str, str, str]]:
     """(what, figure, note) rows for BENCHMARKS.md; each run is a few seconds of sim time."""
     seconds = 1.0 if quick else 3.0
     lock = run_graph(seconds, executor=executor)['simulator']
     real = run_graph(seconds, mode='realtime', executor=executor)['simulator']
+    hops = {kind: hop(kind, 1000 if quick else 3000) for kind in ('events', 'single')}
     sent, lost = recorder_loss(0.5 if quick else 2.0, executor=executor)
     late = real.get('late_periods', 0.0) / max(real.get('steps', 1.0), 1.0)
+    ev, st = hops['events'], hops['single']
     return [
+        ('one DDS hop, tip_positions, EventsExecutor', f'{ev["p50"]:.0f} / {ev["p99"]:.0f} µs',
+         f'p50 / p99 one way (ping-pong of 2 processes); {ev["cpu"]:.0f} µs CPU per message received + sent'),
+        ('one DDS hop, tip_positions, SingleThreadedExecutor', f'{st["p50"]:.0f} / {st["p99"]:.0f} µs',
+         f'{st["cpu"]:.0f} µs CPU per message: {st["cpu"] / ev["cpu"]:.1f}× the EventsExecutor\'s'),
         ('node graph, 4 processes, lockstep 1 ms', f'{lock.get("real_time_factor", float("nan")):.2f}× real time',
          f'{seconds:g} s of sim time; {int(lock.get("timeouts", 0))} timeouts'),
         ('loop latency p50 / p99 (tips out → torque back)',
@@ -173,9 +275,12 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.bench_graph',
                                  description=__doc__.split('\n')[0])
     ap.add_argument('--quick', action='store_true', help='shorter runs (smoke test)')
+    ap.add_argument('--echo', type=int, default=None, help=argparse.SUPPRESS)   # hop()'s far end
     ap.add_argument('--executor', choices=('events', 'single'), default=None,
                     help='executor of the node processes (default: $SOFT_GRIPPER_EXECUTOR or events)')
     a = ap.parse_args(argv)
+    if a.echo is not None:
+        return _echo(a.echo)
     table = rows(a.quick, a.executor)
     width = max(len(r[0]) for r in table)
     for name, value, note in table:
