@@ -10,7 +10,8 @@ by ``on_timeout``), count it, warn in diagnostics and go on: the loop never dead
 *Realtime*: a wall timer steps at the control period with the latest command (zero-order hold),
 counting periods whose command was late.
 
-/diagnostics also carries the real-time factor of the stepping and the loop latency: the wall time
+/diagnostics also carries the real-time factor of the stepping, this process's CPU time per step
+(``cpu_per_step_us``) and the loop latency: the wall time
 from publishing ``tip_positions`` for t_k to receiving the first command stamped t_k, as p50 / p99 /
 max [µs] over the last 10 000 answered periods (``loop_latency_us_*``).
 
@@ -99,6 +100,7 @@ class SimulatorNode(Node):
         self.started = False
         self.deadline = None
         self._wall_start = self._wall_end = None   # monotonic time of the first and last step
+        self._cpu_start = self._cpu_end = None     # this process's CPU time then
         # loop latency: tip_positions for t_k published → the torque command stamped t_k received
         self.latency = LatencyWindow()
         self._tips_sent = np.zeros(LATENCY_PERIODS)   # perf_counter() at tips k, at k % LATENCY_PERIODS
@@ -137,7 +139,7 @@ class SimulatorNode(Node):
                 'after startup_timeout')
         self._startup_timer.cancel()
         self.started = True
-        self._wall_start = time.monotonic()
+        self._wall_start, self._cpu_start = time.monotonic(), time.process_time()
         if self.p['mode'] == 'lockstep':
             self._watchdog = self.create_timer(min(0.01, self.p['lockstep_timeout'] / 4), self._check_timeout)
         else:
@@ -190,7 +192,7 @@ class SimulatorNode(Node):
         self.diag.count('steps')
         if self.total_steps is not None and self.k >= self.total_steps:
             self.done = True
-            self._wall_end = time.monotonic()
+            self._wall_end, self._cpu_end = time.monotonic(), time.process_time()
             self.publish_state()
             self.diag.set_status(OK, f'finished {self.k} steps')
             self.diag.publish()
@@ -250,6 +252,9 @@ class SimulatorNode(Node):
             wall = (self._wall_end or time.monotonic()) - self._wall_start
             if wall > 0:
                 self.diag.values['real_time_factor'] = f'{t / wall:.4f}'
+            if self.k:
+                cpu = (self._cpu_end or time.process_time()) - self._cpu_start
+                self.diag.values['cpu_per_step_us'] = f'{1e6 * cpu / self.k:.0f}'
         self.diag.values.update(self.latency.summary('loop_latency_us'))
 
     def close(self) -> None:

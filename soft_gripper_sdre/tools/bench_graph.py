@@ -76,12 +76,22 @@ class Monitor:
         rclpy.try_shutdown(context=self._ctx)
 
 
+def _cpu_seconds(pid: int) -> float:
+    """User + system CPU time of a running process [s] (Linux /proc; NaN elsewhere)."""
+    try:
+        fields = Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()
+    except OSError:
+        return float('nan')
+    return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')     # utime, stime
+
+
 def run_graph(seconds: float, *, mode: str = 'lockstep', record: Path | None = None,
               all_at_1khz: bool = False, executor: str | None = None,
               timeout: float = 600.0) -> dict[str, dict[str, float]]:
     """Run the loop processes (and the recorder into ``record``) for ``seconds`` of sim time.
 
-    Returns every node's final /diagnostics values as floats (non-numeric values dropped).
+    Returns every node's final /diagnostics values as floats (non-numeric values dropped), and
+    for each node its CPU time per step while the simulator stepped (``cpu_per_step_us``).
 
     Raises:
         RuntimeError: a node died or the run did not finish within ``timeout``.
@@ -107,8 +117,10 @@ def run_graph(seconds: float, *, mode: str = 'lockstep', record: Path | None = N
         if record:       # the recorder hears every stream before the first step
             wired = ('/state_estimate', '/torque_commands', '/grasp_reference')
             monitor.spin_until(lambda: all(monitor.get('recorder', f'publishers {t}') > 0 for t in wired), 30.0)
+        cpu0 = {n: _cpu_seconds(graph.procs[n].popen.pid) for n in names}
         graph.start('simulator', params['simulator'])
         code = graph.wait('simulator', timeout, lambda: monitor.spin_until(lambda: False, 0.05))
+        cpu = {n: _cpu_seconds(graph.procs[n].popen.pid) - cpu0[n] for n in names}
         if code != 0:
             tails = {n: p.log_tail(600) for n, p in graph.procs.items()}
             raise RuntimeError(f'the graph run failed (simulator exit {code}): {tails}')
@@ -129,6 +141,8 @@ def run_graph(seconds: float, *, mode: str = 'lockstep', record: Path | None = N
                 out[node][key] = float(value)
             except ValueError:
                 pass
+    for node, seconds in cpu.items():       # CPU of the stepping only (start-up excluded)
+        out.setdefault(node, {})['cpu_per_step_us'] = 1e6 * seconds / steps
     return out
 
 
@@ -246,26 +260,37 @@ def hop(executor: str, count: int = 2000) -> dict[str, float]:
 
 def rows(quick: bool = False, executor: str | None = None) -> list[tuple[str, str, str]]:
     """(what, figure, note) rows for BENCHMARKS.md; each run is a few seconds of sim time."""
+    nan = float('nan')
     seconds = 1.0 if quick else 3.0
-    lock = run_graph(seconds, executor=executor)['simulator']
+    lock_all = run_graph(seconds, executor=executor)
+    lock = lock_all['simulator']
+    single = run_graph(seconds, executor='single')['simulator'] if executor != 'single' else lock
     real = run_graph(seconds, mode='realtime', executor=executor)['simulator']
-    hops = {kind: hop(kind, 1000 if quick else 3000) for kind in ('events', 'single')}
+    ev, st = (hop(kind, 1000 if quick else 3000) for kind in ('events', 'single'))
     sent, lost = recorder_loss(0.5 if quick else 2.0, executor=executor)
     late = real.get('late_periods', 0.0) / max(real.get('steps', 1.0), 1.0)
-    ev, st = hops['events'], hops['single']
+    cpu = {n: lock_all[n].get('cpu_per_step_us', nan) for n in ('simulator', *LOOP_NODES)}
+    compute = lock_all['controller'].get('compute_us_mean', nan)
     return [
         ('one DDS hop, tip_positions, EventsExecutor', f'{ev["p50"]:.0f} / {ev["p99"]:.0f} µs',
          f'p50 / p99 one way (ping-pong of 2 processes); {ev["cpu"]:.0f} µs CPU per message received + sent'),
         ('one DDS hop, tip_positions, SingleThreadedExecutor', f'{st["p50"]:.0f} / {st["p99"]:.0f} µs',
          f'{st["cpu"]:.0f} µs CPU per message: {st["cpu"] / ev["cpu"]:.1f}× the EventsExecutor\'s'),
-        ('node graph, 4 processes, lockstep 1 ms', f'{lock.get("real_time_factor", float("nan")):.2f}× real time',
+        ('node graph, 4 processes, lockstep 1 ms', f'{lock.get("real_time_factor", nan):.2f}× real time',
          f'{seconds:g} s of sim time; {int(lock.get("timeouts", 0))} timeouts'),
+        ('node graph, lockstep, SingleThreadedExecutor in every node',
+         f'{single.get("real_time_factor", nan):.2f}× real time',
+         f'the executor before EventsExecutor; loop latency p50 {single.get("loop_latency_us_p50", nan):.0f} µs'),
         ('loop latency p50 / p99 (tips out → torque back)',
-         f'{lock.get("loop_latency_us_p50", float("nan")):.0f} / {lock.get("loop_latency_us_p99", float("nan")):.0f} µs',
+         f'{lock.get("loop_latency_us_p50", nan):.0f} / {lock.get("loop_latency_us_p99", nan):.0f} µs',
          'measured in the simulator: 3 DDS hops + estimator + controller'),
+        ('CPU per period, lockstep: simulator / estimator / trajectory / controller',
+         ' / '.join(f'{c:.0f}' for c in cpu.values()) + ' µs',
+         f'sum {sum(cpu.values()):.0f} µs per 1 ms period on {os.cpu_count()} cores; '
+         f'controller compute {compute:.0f} µs (mean of its last second)'),
         ('realtime mode at 1 kHz: late periods', f'{100 * late:.1f} %',
-         f'stepping at {real.get("real_time_factor", float("nan")):.2f}× real time; '
-         f'latency p50 {real.get("loop_latency_us_p50", float("nan")):.0f} µs'),
+         f'stepping at {real.get("real_time_factor", nan):.2f}× real time; '
+         f'latency p50 {real.get("loop_latency_us_p50", nan):.0f} µs'),
         ('recorder, all topics at 1 kHz: messages lost', f'{lost} of {sent}',
          '5 processes in realtime; published (node counters) − in the bag'),
     ]
