@@ -85,6 +85,25 @@ def _cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')     # utime, stime
 
 
+def _number(text: str) -> float | None:
+    try:
+        return float(text)
+    except ValueError:
+        return None
+
+
+def published(d: dict[str, dict[str, float]]) -> dict[str, int]:
+    """Topic → messages the loop published, from the nodes' diagnostics ``d``: the simulator sends
+    each of its topics once per step and once at t = 0 (state topics only at state_rate 1 kHz),
+    the others count what they send."""
+    sim, ctrl = d.get('simulator', {}), d.get('controller', {})
+    out = {t: int(sim.get('steps') or 0) + 1 for t in SIM_TOPICS}
+    out['/state_estimate'] = int(d.get('estimator', {}).get('estimates') or 0)
+    out['/grasp_reference'] = int(d.get('trajectory', {}).get('references') or 0)
+    out['/torque_commands'] = int((ctrl.get('commands') or 0) + (ctrl.get('stale_zero_commands') or 0))
+    return out
+
+
 def run_graph(seconds: float, *, mode: str = 'lockstep', record: Path | None = None,
               all_at_1khz: bool = False, executor: str | None = None,
               timeout: float = 600.0) -> dict[str, dict[str, float]]:
@@ -129,37 +148,32 @@ def run_graph(seconds: float, *, mode: str = 'lockstep', record: Path | None = N
         for name in ('controller', 'trajectory', 'estimator'):
             graph.stop(name)
         if record:       # let a recorder that lags behind drain its queues before it is stopped
-            monitor.spin_until(lambda: monitor.get('recorder', 'messages /tip_positions') > steps, 10.0)
+            monitor.spin_until(lambda: False, 0.5)      # the stopped nodes' final diagnostics
+            sent = published({n: {k: _number(v) for k, v in monitor.values[n].items()}
+                              for n in ('simulator', *LOOP_NODES) if n in monitor.values})
+            monitor.spin_until(lambda: all(monitor.get('recorder', f'messages {t}') >= n
+                                           for t, n in sent.items()), 15.0)
             graph.stop('recorder')
         monitor.spin_until(lambda: False, 0.5)
     monitor.close()
-    out = {}
-    for node, values in monitor.values.items():
-        out[node] = {}
-        for key, value in values.items():
-            try:
-                out[node][key] = float(value)
-            except ValueError:
-                pass
+    out = {node: {k: _number(v) for k, v in values.items() if _number(v) is not None}
+           for node, values in monitor.values.items()}
     for node, seconds in cpu.items():       # CPU of the stepping only (start-up excluded)
         out.setdefault(node, {})['cpu_per_step_us'] = 1e6 * seconds / steps
     return out
 
 
-def recorder_loss(seconds: float, executor: str | None = None) -> tuple[int, int]:
-    """(messages published, messages missing from the bag) with every topic at 1 kHz in realtime."""
+def recorder_loss(seconds: float, executor: str | None = None) -> dict[str, tuple[int, int]]:
+    """Topic → (messages published, messages in the bag), every topic at 1 kHz in realtime.
+
+    The published counts are the nodes' own (:func:`published`).
+    """
     from soft_gripper_sdre.bag import topic_counts
     with tempfile.TemporaryDirectory(prefix='sgs_bench_bag_') as tmp:
         bag = Path(tmp) / 'bag'
         d = run_graph(seconds, mode='realtime', record=bag, all_at_1khz=True, executor=executor)
         counts = topic_counts(bag)
-    sim, ctrl = d['simulator'], d['controller']
-    published = {t: int(sim['steps']) + 1 for t in SIM_TOPICS}
-    published['/state_estimate'] = int(d['estimator'].get('estimates', 0))
-    published['/grasp_reference'] = int(d['trajectory'].get('references', 0))
-    published['/torque_commands'] = int(ctrl.get('commands', 0) + ctrl.get('stale_zero_commands', 0))
-    lost = sum(max(0, n - counts.get(t, 0)) for t, n in published.items())
-    return sum(published.values()), lost
+    return {t: (n, counts.get(t, 0)) for t, n in published(d).items()}
 
 
 def _echo(count: int) -> int:
@@ -267,7 +281,10 @@ def rows(quick: bool = False, executor: str | None = None) -> list[tuple[str, st
     single = run_graph(seconds, executor='single')['simulator'] if executor != 'single' else lock
     real = run_graph(seconds, mode='realtime', executor=executor)['simulator']
     ev, st = (hop(kind, 1000 if quick else 3000) for kind in ('events', 'single'))
-    sent, lost = recorder_loss(0.5 if quick else 2.0, executor=executor)
+    recorded = recorder_loss(0.5 if quick else 2.0, executor=executor)
+    sent = sum(n for n, _ in recorded.values())
+    lost = sum(max(0, n - got) for n, got in recorded.values())
+    worst = max(recorded, key=lambda t: recorded[t][0] - recorded[t][1])
     late = real.get('late_periods', 0.0) / max(real.get('steps', 1.0), 1.0)
     cpu = {n: lock_all[n].get('cpu_per_step_us', nan) for n in ('simulator', *LOOP_NODES)}
     compute = lock_all['controller'].get('compute_us_mean', nan)
@@ -292,7 +309,8 @@ def rows(quick: bool = False, executor: str | None = None) -> list[tuple[str, st
          f'stepping at {real.get("real_time_factor", nan):.2f}× real time; '
          f'latency p50 {real.get("loop_latency_us_p50", nan):.0f} µs'),
         ('recorder, all topics at 1 kHz: messages lost', f'{lost} of {sent}',
-         '5 processes in realtime; published (node counters) − in the bag'),
+         '5 processes in realtime; published (node counters) − in the bag'
+         + (f'; most on {worst}' if lost else '')),
     ]
 
 
