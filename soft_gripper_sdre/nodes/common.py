@@ -140,10 +140,14 @@ def run(node_factory: Callable[..., Node], args: list[str] | None = None) -> int
     SIGTERM is handled like SIGINT. A :class:`ParameterError` at construction is logged and the
     process exits with status 2; other construction errors exit 1.
     """
-    # Our own SIGINT handling (KeyboardInterrupt) keeps the context alive while the node closes,
-    # so it can still publish its final diagnostics and, for the recorder, finish the bag.
+    # Our own SIGINT handling keeps the context alive while the node closes, so it can still
+    # publish its final diagnostics and, for the recorder, finish the bag. The handler only sets a
+    # flag: an exception raised inside a callback would be logged by the EventsExecutor as a
+    # failing callback; instead the loop sees the flag within one spin_once timeout.
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-    signal.signal(signal.SIGTERM, lambda *_: signal.raise_signal(signal.SIGINT))
+    stop: list[int] = []
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda signum, _frame: stop.append(signum))
     node = executor = None
     code = 0
     try:
@@ -157,7 +161,7 @@ def run(node_factory: Callable[..., Node], args: list[str] | None = None) -> int
             return 1
         executor = make_executor()
         executor.add_node(node)
-        while rclpy.ok() and not getattr(node, 'done', False):
+        while rclpy.ok() and not stop and not getattr(node, 'done', False):
             executor.spin_once(timeout_sec=0.1)
         code = int(getattr(node, 'exit_code', 0))
     except (KeyboardInterrupt, ExternalShutdownException):
