@@ -68,15 +68,9 @@ def find_topic(name: str) -> str | None:
 
 
 def topic_qos(topic: str) -> QoSProfile:
-    """QoS to subscribe ``topic`` with, compatible with its publishers (topics.py).
-
-    /clock keeps CLOCK_QOS's best-effort reliability but a queue as deep as the loop's, so a busy
-    subscriber does not drop clock ticks.
-    """
+    """QoS of ``topic``'s publishers (topics.py); the recorder subscribes with it, deeper."""
     if topic == CLOCK:
-        qos = copy.copy(CLOCK_QOS)
-        qos.depth = LOOP_QOS.depth
-        return qos
+        return CLOCK_QOS
     return LOOP_QOS if topic in LOOP_TOPICS else STREAM_QOS
 
 

@@ -11,9 +11,9 @@ by ``on_timeout``), count it, warn in diagnostics and go on: the loop never dead
 counting periods whose command was late.
 
 /diagnostics also carries the real-time factor of the stepping, this process's CPU time per step
-(``cpu_per_step_us``) and the loop latency: the wall time
-from publishing ``tip_positions`` for t_k to receiving the first command stamped t_k, as p50 / p99 /
-max [µs] over the last 10 000 answered periods (``loop_latency_us_*``).
+(``cpu_per_step_us``) and the loop latency: the wall time from publishing ``tip_positions`` for
+t_k to receiving the first command stamped t_k, as p50 / p99 / max [µs] over the last 10 000
+answered periods (``loop_latency_us_*``).
 
 Bad commands (NaN/Inf, wrong sizes, unknown/duplicate/missing names, stamps older than the last
 applied one or ahead of the current period) are rejected with a throttled warning and counted;
