@@ -10,6 +10,7 @@ from typing import Callable
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 import numpy as np
 import rclpy
+from rclpy.duration import Duration
 from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedExecutor
 from rclpy.experimental import EventsExecutor
 from rclpy.signals import SignalHandlerOptions
@@ -134,6 +135,18 @@ def make_executor(kind: str | None = None, context=None) -> Executor:
     return EXECUTORS[kind](context=context)
 
 
+def flush(node: Node, timeout: float = 2.0) -> bool:
+    """Wait (at most ``timeout`` s in all) until every reliable subscriber has acknowledged what
+    ``node`` published, so a process that exits right after its last messages does not take them
+    with it: a reader that fell behind would otherwise lose the tail and the final diagnostics."""
+    deadline = time.monotonic() + timeout
+    acked = True
+    for pub in list(node.publishers):
+        left = max(0.0, deadline - time.monotonic())
+        acked &= pub.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9)))
+    return acked
+
+
 def run(node_factory: Callable[..., Node], args: list[str] | None = None) -> int:
     """``main()`` of every node: init → construct → spin until shutdown or ``node.done`` → clean up.
 
@@ -171,6 +184,8 @@ def run(node_factory: Callable[..., Node], args: list[str] | None = None) -> int
             diag = getattr(node, 'diag', None)
             if isinstance(diag, Diagnostics) and rclpy.ok():
                 diag.publish()                  # final counters, for recorders still listening
+            if rclpy.ok():
+                flush(node)
             close = getattr(node, 'close', None)
             if close is not None:
                 close()
