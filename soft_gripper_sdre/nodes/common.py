@@ -1,4 +1,5 @@
-"""What every node shares: process lifetime, throttled warnings, counters in /diagnostics."""
+"""What every node shares: process lifetime (executor, signals, a flush before exit), throttled
+warnings, counters in /diagnostics and a latency window for them."""
 from __future__ import annotations
 
 from collections import Counter
