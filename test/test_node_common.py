@@ -6,7 +6,9 @@ from sensor_msgs.msg import JointState
 import rclpy
 from rclpy.context import Context
 from soft_gripper_sdre.nodes import conversions as cv
-from soft_gripper_sdre.nodes.common import EXECUTOR_ENV, LatencyWindow, make_executor
+from rosutil import Probe, ros_context, spin_until
+from soft_gripper_sdre.nodes.common import EXECUTOR_ENV, LatencyWindow, flush, make_executor
+from soft_gripper_sdre.nodes.topics import LOOP_QOS, TORQUE_COMMANDS
 
 
 def test_latency_window_summarises_the_last_samples_in_microseconds():
@@ -69,3 +71,18 @@ def test_names_in_any_order_are_sorted_and_bad_names_still_refused():
     names = cv.torque_names(4)
     names.append('x')
     assert len(cv.torques_to_msg(0, u).name) == 8
+
+
+def test_flush_returns_once_the_reliable_subscriber_has_everything():
+    with ros_context('events') as (ctx, executor):
+        sender, receiver = Probe(ctx, 'sender'), Probe(ctx, 'receiver')
+        receiver.listen(JointState, TORQUE_COMMANDS, LOOP_QOS)
+        got = receiver.received[TORQUE_COMMANDS]
+        pub = sender.create_publisher(JointState, TORQUE_COMMANDS, LOOP_QOS)
+        executor.add_node(receiver)
+        assert spin_until(executor, lambda: pub.get_subscription_count() > 0, 10.0)
+        for k in range(20):
+            pub.publish(cv.torques_to_msg(k, np.zeros((4, 2))))
+        assert flush(sender, timeout=5.0)            # acknowledged by the reader's DDS history
+        assert spin_until(executor, lambda: len(got) == 20, 5.0)
+        sender.destroy_node()
