@@ -125,14 +125,33 @@ def run_graph(seconds: float, *, mode: str = 'lockstep', record: Path | None = N
                             **fast}}
     monitor = Monitor(env)
     steps = int(round(seconds / 0.001))
-    with tempfile.TemporaryDirectory(prefix='sgs_bench_graph_') as logs, Graph(env, Path(logs)) as graph:
+    try:
+        cpu = _run(graph_env=env, monitor=monitor, params=params, record=record, steps=steps,
+                   timeout=timeout)
+    finally:
+        monitor.close()
+    out = {node: {k: _number(v) for k, v in values.items() if _number(v) is not None}
+           for node, values in monitor.values.items()}
+    for node, seconds in cpu.items():       # CPU of the stepping only (start-up excluded)
+        out.setdefault(node, {})['cpu_per_step_us'] = 1e6 * seconds / steps
+    return out
+
+
+def _run(graph_env: dict[str, str], monitor: Monitor, params: dict, record: Path | None, steps: int,
+         timeout: float) -> dict[str, float]:
+    """:func:`run_graph`'s processes: start, step, drain, stop; returns CPU seconds per node
+    while the simulator stepped."""
+    with tempfile.TemporaryDirectory(prefix='sgs_bench_graph_') as logs, Graph(graph_env, Path(logs)) as graph:
         names = (('recorder',) if record else ()) + LOOP_NODES
         for name in names:
             graph.start(name, {'output': str(record)} if name == 'recorder' else params[name])
         # every node is up (its diagnostics arrive) before the simulator starts stepping
-        if not monitor.spin_until(lambda: all(n in monitor.values for n in names)
-                                  or any(not p.alive() for p in graph.procs.values()), 60.0):
-            raise RuntimeError(f'the graph did not start: {sorted(monitor.values)}')
+        monitor.spin_until(lambda: all(n in monitor.values for n in names)
+                           or any(not p.alive() for p in graph.procs.values()), 60.0)
+        dead = [n for n, p in graph.procs.items() if not p.alive()]
+        if dead or not all(n in monitor.values for n in names):
+            raise RuntimeError(f'the graph did not start (dead: {dead}; heard from {sorted(monitor.values)}): '
+                               f'{ {n: graph.procs[n].log_tail(600) for n in dead} }')
         if record:       # the recorder hears every stream before the first step
             wired = ('/state_estimate', '/torque_commands', '/grasp_reference')
             monitor.spin_until(lambda: all(monitor.get('recorder', f'publishers {t}') > 0 for t in wired), 30.0)
@@ -155,12 +174,7 @@ def run_graph(seconds: float, *, mode: str = 'lockstep', record: Path | None = N
                                            for t, n in sent.items()), 15.0)
             graph.stop('recorder')
         monitor.spin_until(lambda: False, 0.5)
-    monitor.close()
-    out = {node: {k: _number(v) for k, v in values.items() if _number(v) is not None}
-           for node, values in monitor.values.items()}
-    for node, seconds in cpu.items():       # CPU of the stepping only (start-up excluded)
-        out.setdefault(node, {})['cpu_per_step_us'] = 1e6 * seconds / steps
-    return out
+    return cpu
 
 
 def recorder_loss(seconds: float, executor: str | None = None) -> dict[str, tuple[int, int]]:
