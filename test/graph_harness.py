@@ -42,7 +42,7 @@ def run_graph(duration: float, *, simulator: dict | None = None, estimator: dict
               trajectory: dict | None = None, controller: dict | None = None,
               timeout: float = 300.0) -> GraphRun:
     """Run the graph in lockstep for ``duration`` s of sim time (see module doc)."""
-    with ros_context() as (ctx, executor):
+    with ros_context('events') as (ctx, executor):
         sim = SimulatorNode(context=ctx, parameter_overrides=overrides(
             duration=duration, min_tip_subscribers=3, **(simulator or {})))
         est = EstimatorNode(context=ctx, parameter_overrides=overrides(**(estimator or {})))

@@ -6,9 +6,10 @@ import time
 
 import rclpy
 from rclpy.context import Context
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+
+from soft_gripper_sdre.nodes.common import make_executor
 
 
 def overrides(**params) -> list[Parameter]:
@@ -16,11 +17,12 @@ def overrides(**params) -> list[Parameter]:
 
 
 @contextlib.contextmanager
-def ros_context():
-    """A fresh rclpy Context and a SingleThreadedExecutor on it, torn down afterwards."""
+def ros_context(executor: str = 'single'):
+    """A fresh rclpy Context and an executor on it ('single' or 'events', as the node processes
+    spin), torn down afterwards."""
     ctx = Context()
     rclpy.init(context=ctx)
-    executor = SingleThreadedExecutor(context=ctx)
+    executor = make_executor(executor, context=ctx)
     try:
         yield ctx, executor
     finally:

@@ -28,6 +28,8 @@ def test_demo_runs_the_graph_as_processes_and_writes_a_readable_bag(tmp_path):
     assert (tmp_path / 'bag' / 'metadata.yaml').is_file()
     assert list((tmp_path / 'bag').glob('*.mcap'))
     assert all(code == 0 for code in result['run']['exit_codes'].values()), result['run']
+    run = result['run']        # the simulator's final diagnostics, read back from the bag
+    assert 0 < run['real_time_factor'] and 0 < run['loop_latency_us_p50'] <= run['loop_latency_us_p99']
     for name in ('fig5_positions.png', 'fig6_velocities.png', 'fig7_torques.png'):
         assert (tmp_path / name).read_bytes()[:8] == b'\x89PNG\r\n\x1a\n'
     saved = json.loads((tmp_path / 'metrics.json').read_text())

@@ -136,3 +136,24 @@ def test_runtime_parameter_refusal_keeps_the_old_value():
         assert sim.get_parameter('on_timeout').value == 'hold'
         res = sim.set_parameters([Parameter('scene', value='hand')])[0]
         assert not res.successful
+
+
+def test_diagnostics_report_the_loop_latency_of_every_answered_period():
+    with ros_context() as (ctx, executor):
+        sim, probe, pub = make_loop(ctx, executor)
+        answer_tips(executor, probe, pub, [[0.0, 0.0]], 20)
+        assert sim.latency.count == 20              # one sample per period answered in lockstep
+        sim.diag.publish()
+
+        def latest():
+            for msg in reversed(probe.received[DIAGNOSTICS]):
+                for status in msg.status:
+                    values = {kv.key: kv.value for kv in status.values}
+                    if status.name.endswith('simulator') and values.get('sim_time') == '0.020':
+                        return values
+            return None
+        assert spin_until(executor, lambda: latest() is not None, 5.0)
+        v = latest()
+        p50, p99, top = (float(v[f'loop_latency_us_{k}']) for k in ('p50', 'p99', 'max'))
+        assert 0 < p50 <= p99 <= top
+        assert float(v['real_time_factor']) > 0

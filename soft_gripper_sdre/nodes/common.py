@@ -1,14 +1,19 @@
-"""What every node shares: process lifetime, throttled warnings, counters in /diagnostics."""
+"""What every node shares: process lifetime (executor, signals, a flush before exit), throttled
+warnings, counters in /diagnostics and a latency window for them."""
 from __future__ import annotations
 
 from collections import Counter
+import os
 import signal
 import time
 from typing import Callable
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+import numpy as np
 import rclpy
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.duration import Duration
+from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedExecutor
+from rclpy.experimental import EventsExecutor
 from rclpy.signals import SignalHandlerOptions
 from rclpy.node import Node
 
@@ -16,6 +21,10 @@ from soft_gripper_sdre.nodes.params import ParameterError
 from soft_gripper_sdre.nodes.topics import DIAGNOSTICS, STREAM_QOS
 
 OK, WARN, ERROR = DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR
+
+#: environment variable choosing the executor of :func:`run` ('events', the default, or 'single')
+EXECUTOR_ENV = 'SOFT_GRIPPER_EXECUTOR'
+EXECUTORS = {'events': EventsExecutor, 'single': SingleThreadedExecutor}
 
 
 class ThrottledLogger:
@@ -48,6 +57,8 @@ class Diagnostics:
         self.level = OK
         self.message = 'ok'
         self._hardware_id = hardware_id
+        #: called before each publication, to refresh values that are costly to keep current
+        self.before_publish: list[Callable[[], None]] = []
         self._clean = 0                         # good events since the last problem
         self._log = ThrottledLogger(node.get_logger())
         self._pub = node.create_publisher(DiagnosticArray, DIAGNOSTICS, STREAM_QOS)
@@ -74,6 +85,8 @@ class Diagnostics:
         self.level, self.message = level, message
 
     def publish(self) -> None:
+        for refresh in self.before_publish:
+            refresh()
         status = DiagnosticStatus(level=self.level, name=self.node.get_fully_qualified_name(),
                                   message=self.message, hardware_id=self._hardware_id)
         status.values = ([KeyValue(key=k, value=str(v)) for k, v in sorted(self.counters.items())]
@@ -83,17 +96,73 @@ class Diagnostics:
         self._pub.publish(msg)
 
 
+class LatencyWindow:
+    """The last ``size`` latencies in a ring buffer (no allocation per sample), summarised as
+    p50 / p99 / max in µs for /diagnostics."""
+
+    def __init__(self, size: int = 10_000) -> None:
+        self._buf = np.empty(size)
+        self._size = size
+        self.count = 0                          # samples ever added
+
+    def add(self, seconds: float) -> None:
+        self._buf[self.count % self._size] = seconds
+        self.count += 1
+
+    def summary(self, prefix: str) -> dict[str, str]:
+        """``{prefix}_p50``, ``_p99``, ``_max`` [µs] over the window ({} before any sample)."""
+        if not self.count:
+            return {}
+        us = 1e6 * self._buf[:min(self.count, self._size)]
+        p50, p99 = np.percentile(us, (50, 99))
+        return {f'{prefix}_p50': f'{p50:.0f}', f'{prefix}_p99': f'{p99:.0f}',
+                f'{prefix}_max': f'{us.max():.0f}'}
+
+
+def make_executor(kind: str | None = None, context=None) -> Executor:
+    """The executor every node process spins: ``kind`` or $SOFT_GRIPPER_EXECUTOR, default 'events'.
+
+    rclpy's EventsExecutor dispatches each message from C++ with no wait-set rebuild per callback:
+    about half the CPU per received message of the SingleThreadedExecutor (README "Performance of
+    the graph"). Our nodes need nothing it lacks: one thread, subscriptions (also ``raw=True``),
+    wall timers created and cancelled from callbacks, ``spin_once`` with a timeout.
+
+    Raises:
+        ValueError: an unknown executor name.
+    """
+    kind = kind or os.environ.get(EXECUTOR_ENV, 'events')
+    if kind not in EXECUTORS:
+        raise ValueError(f'{EXECUTOR_ENV}={kind!r}: expected one of {", ".join(EXECUTORS)}')
+    return EXECUTORS[kind](context=context)
+
+
+def flush(node: Node, timeout: float = 2.0) -> bool:
+    """Wait (at most ``timeout`` s in all) until every reliable subscriber has acknowledged what
+    ``node`` published, so a process that exits right after its last messages does not take them
+    with it: a reader that fell behind would otherwise lose the tail and the final diagnostics."""
+    deadline = time.monotonic() + timeout
+    acked = True
+    for pub in list(node.publishers):
+        left = max(0.0, deadline - time.monotonic())
+        acked &= pub.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9)))
+    return acked
+
+
 def run(node_factory: Callable[..., Node], args: list[str] | None = None) -> int:
     """``main()`` of every node: init → construct → spin until shutdown or ``node.done`` → clean up.
 
     SIGTERM is handled like SIGINT. A :class:`ParameterError` at construction is logged and the
     process exits with status 2; other construction errors exit 1.
     """
-    # Our own SIGINT handling (KeyboardInterrupt) keeps the context alive while the node closes,
-    # so it can still publish its final diagnostics and, for the recorder, finish the bag.
+    # Our own SIGINT handling keeps the context alive while the node closes, so it can still
+    # publish its final diagnostics and, for the recorder, finish the bag. The handler only sets a
+    # flag: an exception raised inside a callback would be logged by the EventsExecutor as a
+    # failing callback; instead the loop sees the flag within one spin_once timeout.
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-    signal.signal(signal.SIGTERM, lambda *_: signal.raise_signal(signal.SIGINT))
-    node = None
+    stop: list[int] = []
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda signum, _frame: stop.append(signum))
+    node = executor = None
     code = 0
     try:
         try:
@@ -104,9 +173,9 @@ def run(node_factory: Callable[..., Node], args: list[str] | None = None) -> int
         except (OSError, ValueError) as exc:
             rclpy.logging.get_logger('soft_gripper_sdre').fatal(f'cannot start: {exc}')
             return 1
-        executor = SingleThreadedExecutor()
+        executor = make_executor()
         executor.add_node(node)
-        while rclpy.ok() and not getattr(node, 'done', False):
+        while rclpy.ok() and not stop and not getattr(node, 'done', False):
             executor.spin_once(timeout_sec=0.1)
         code = int(getattr(node, 'exit_code', 0))
     except (KeyboardInterrupt, ExternalShutdownException):
@@ -116,9 +185,14 @@ def run(node_factory: Callable[..., Node], args: list[str] | None = None) -> int
             diag = getattr(node, 'diag', None)
             if isinstance(diag, Diagnostics) and rclpy.ok():
                 diag.publish()                  # final counters, for recorders still listening
+            if rclpy.ok():
+                flush(node)
             close = getattr(node, 'close', None)
             if close is not None:
                 close()
+            if executor is not None:
+                executor.remove_node(node)
+                executor.shutdown()
             node.destroy_node()
         rclpy.try_shutdown()
     return code

@@ -6,6 +6,8 @@ and log those instead of computing with the message.
 """
 from __future__ import annotations
 
+import functools
+
 from builtin_interfaces.msg import Duration, Time
 from geometry_msgs.msg import Pose, PoseArray, Transform, Twist
 import numpy as np
@@ -28,6 +30,11 @@ def to_time(ns: int) -> Time:
     return Time(sec=int(ns // NS), nanosec=int(ns % NS))
 
 
+def set_time(stamp: Time, ns: int) -> None:
+    """Write ``ns`` into an existing stamp (a message reused every period allocates nothing)."""
+    stamp.sec, stamp.nanosec = divmod(int(ns), NS)
+
+
 def from_time(stamp) -> int:
     return int(stamp.sec) * NS + int(stamp.nanosec)
 
@@ -37,19 +44,32 @@ def to_duration(ns: int) -> Duration:
 
 
 def clock_msg(ns: int) -> Clock:
-    return Clock(clock=to_time(ns))
+    msg = Clock()
+    set_time(msg.clock, ns)
+    return msg
 
 
 # -- names -----------------------------------------------------------------------------------
 
 def torque_names(n_fingers: int) -> list[str]:
     """``finger_<i>/ax0``, ``finger_<i>/ax1`` for each finger, in the order of u.ravel()."""
-    return [f'{FINGER_NAMES[i]}/ax{a}' for i in range(n_fingers) for a in range(2)]
+    return list(_torque_names(n_fingers))
 
 
-def _order(names, expected: list[str], what: str) -> np.ndarray:
-    """Index of each expected name in ``names``; every name must be known and appear once."""
+@functools.lru_cache(maxsize=None)
+def _torque_names(n_fingers: int) -> tuple[str, ...]:
+    return tuple(f'{FINGER_NAMES[i]}/ax{a}' for i in range(n_fingers) for a in range(2))
+
+
+def _order(names, expected, what: str) -> np.ndarray | slice:
+    """Index of each expected name in ``names``; every name must be known and appear once.
+
+    Names already in the expected order (what our own nodes send) give ``slice(None)``: the
+    check is one list comparison and the data need not be gathered.
+    """
     names = list(names)
+    if names == list(expected):
+        return slice(None)
     if len(set(names)) != len(names):
         dup = sorted({n for n in names if names.count(n) > 1})
         raise MessageError(f'{what}: duplicate names {dup}')
@@ -74,15 +94,18 @@ def _finite(a: np.ndarray, what: str) -> np.ndarray:
 def tips_to_msg(ns: int, tips: np.ndarray, frame_id: str = 'finger_bases') -> PoseArray:
     """(n, 3) tip positions [m] → PoseArray; pose i is finger i's tip in its own base frame."""
     msg = PoseArray()
-    msg.header.stamp = to_time(ns)
     msg.header.frame_id = frame_id
-    poses = []
-    for x, y, z in np.asarray(tips, dtype=float).tolist():
-        p = Pose()
-        p.position.x, p.position.y, p.position.z = x, y, z
-        poses.append(p)
-    msg.poses = poses
+    msg.poses = [Pose() for _ in range(len(tips))]
+    fill_tips(msg, ns, tips)
     return msg
+
+
+def fill_tips(msg: PoseArray, ns: int, tips: np.ndarray) -> None:
+    """Overwrite the stamp and the positions of a PoseArray from :func:`tips_to_msg` in place."""
+    set_time(msg.header.stamp, ns)
+    for pose, (x, y, z) in zip(msg.poses, np.asarray(tips, dtype=float).tolist()):
+        p = pose.position
+        p.x, p.y, p.z = x, y, z
 
 
 def msg_to_tips(msg: PoseArray, n_fingers: int) -> tuple[int, np.ndarray]:
@@ -99,8 +122,8 @@ def torques_to_msg(ns: int, u: np.ndarray) -> JointState:
     """(n, 2) torques [N·m] → JointState named finger_<i>/ax0|ax1 with efforts."""
     u = np.asarray(u, dtype=float)
     msg = JointState()
-    msg.header.stamp = to_time(ns)
-    msg.name = torque_names(u.shape[0])
+    set_time(msg.header.stamp, ns)
+    msg.name = list(_torque_names(u.shape[0]))
     msg.effort = u.ravel().tolist()
     return msg
 
@@ -109,7 +132,7 @@ def msg_to_torques(msg: JointState, n_fingers: int) -> tuple[int, np.ndarray]:
     """JointState → (stamp ns, (n, 2) torques [N·m]), ordered by name whatever the message order."""
     if len(msg.effort) != len(msg.name):
         raise MessageError(f'torque_commands: {len(msg.name)} names but {len(msg.effort)} efforts')
-    idx = _order(msg.name, torque_names(n_fingers), 'torque_commands')
+    idx = _order(msg.name, _torque_names(n_fingers), 'torque_commands')
     effort = np.asarray(msg.effort, dtype=float)[idx].reshape(n_fingers, 2)
     return from_time(msg.header.stamp), _finite(effort, 'torque_commands effort')
 
@@ -174,6 +197,17 @@ def estimate_to_msg(ns: int, pos: np.ndarray, vel: np.ndarray) -> MultiDOFJointT
     return msg
 
 
+def fill_estimate(msg: MultiDOFJointTrajectory, ns: int, x: np.ndarray) -> None:
+    """Overwrite the stamp and the (n, 4) [X, Y, Ẋ, Ẏ] of a message from :func:`estimate_to_msg`
+    in place (z and the rotation stay as they are: 0 and identity)."""
+    set_time(msg.header.stamp, ns)
+    pt = msg.points[0]
+    for tf, tw, (px, py, vx, vy) in zip(pt.transforms, pt.velocities, np.asarray(x, dtype=float).tolist()):
+        pos, vel = tf.translation, tw.linear
+        pos.x, pos.y = px, py
+        vel.x, vel.y = vx, vy
+
+
 def msg_to_estimate(msg: MultiDOFJointTrajectory, n_fingers: int) -> tuple[int, np.ndarray]:
     """One-point MultiDOFJointTrajectory → (stamp ns, (n, 4) [X, Y, Ẋ, Ẏ])."""
     idx = _order(msg.joint_names, list(FINGER_NAMES[:n_fingers]), 'state_estimate')
@@ -182,8 +216,8 @@ def msg_to_estimate(msg: MultiDOFJointTrajectory, n_fingers: int) -> tuple[int, 
     pt = msg.points[0]
     if len(pt.transforms) != len(msg.joint_names) or len(pt.velocities) != len(msg.joint_names):
         raise MessageError('state_estimate: transforms/velocities do not match joint_names')
-    x = np.array([(pt.transforms[j].translation.x, pt.transforms[j].translation.y,
-                   pt.velocities[j].linear.x, pt.velocities[j].linear.y) for j in idx], dtype=float)
+    x = np.array([(tf.translation.x, tf.translation.y, tw.linear.x, tw.linear.y)
+                  for tf, tw in zip(pt.transforms, pt.velocities)], dtype=float)[idx]
     return from_time(msg.header.stamp), _finite(x, 'state_estimate')
 
 
@@ -209,11 +243,10 @@ def msg_to_reference(msg: MultiDOFJointTrajectory, n_fingers: int):
         if len(pt.transforms) != m or len(pt.velocities) != m or len(pt.accelerations) != m:
             raise MessageError('grasp_reference: a point does not hold one entry per finger')
         times.append(stamp + pt.time_from_start.sec * NS + pt.time_from_start.nanosec)
-        data.append([(pt.transforms[j].translation.x, pt.transforms[j].translation.y,
-                      pt.velocities[j].linear.x, pt.velocities[j].linear.y,
-                      pt.accelerations[j].linear.x, pt.accelerations[j].linear.y) for j in idx])
+        data.append([(tf.translation.x, tf.translation.y, tw.linear.x, tw.linear.y, ta.linear.x, ta.linear.y)
+                     for tf, tw, ta in zip(pt.transforms, pt.velocities, pt.accelerations)])
     times = np.asarray(times, dtype=np.int64)
     if np.any(np.diff(times) <= 0):
         raise MessageError('grasp_reference: point times are not increasing')
-    d = _finite(np.asarray(data, dtype=float), 'grasp_reference')
+    d = _finite(np.asarray(data, dtype=float)[:, idx], 'grasp_reference')
     return stamp, times, d[..., 0:2], d[..., 2:4], d[..., 4:6]

@@ -68,8 +68,6 @@ class EstimatorNode(Node):
         self._predict_only = np.zeros(self.n, dtype=bool)
         # one outgoing message, filled in place for every estimate (no per-message allocation)
         self._msg = cv.estimate_to_msg(0, np.zeros((self.n, 2)), np.zeros((self.n, 2)))
-        point = self._msg.points[0]
-        self._out = [(tf.translation, tw.linear) for tf, tw in zip(point.transforms, point.velocities)]
 
         self.pub = self.create_publisher(MultiDOFJointTrajectory, STATE_ESTIMATE, LOOP_QOS)
         self.sub = self.create_subscription(PoseArray, TIP_POSITIONS, self.on_tips, LOOP_QOS)
@@ -130,11 +128,7 @@ class EstimatorNode(Node):
         self.diag.good('estimates', 'estimating')
 
     def _publish(self, stamp: int, x: np.ndarray) -> None:
-        t = self._msg.header.stamp
-        t.sec, t.nanosec = divmod(stamp, cv.NS)
-        for (pos, vel), (px, py, vx, vy) in zip(self._out, x.tolist()):
-            pos.x, pos.y = px, py
-            vel.x, vel.y = vx, vy
+        cv.fill_estimate(self._msg, stamp, x)
         self.pub.publish(self._msg)
 
 

@@ -1,7 +1,8 @@
 """The recorder node: a ``ros2 bag record`` for the pip environment (rosbags writer, MCAP storage).
 
 Subscribes each topic in ``topics`` with ``raw=True`` (the serialized CDR bytes go into the bag as
-received: no deserialisation cost) and writes a rosbag2 directory (format version 9, metadata.yaml
+received: no deserialisation cost), with its publishers' QoS but a queue of ``RECORD_DEPTH``
+messages, and writes a rosbag2 directory (format version 9, metadata.yaml
 plus one ``.mcap`` file) that ``ros2 bag info`` / ``ros2 bag play`` on Jazzy read. The writer is closed
 in :meth:`RecorderNode.close`, which ``common.run`` calls on SIGINT, SIGTERM and normal exit, so
 metadata.yaml is always written. Per-topic message counts go to /diagnostics.
@@ -46,6 +47,9 @@ LOOP_TOPICS = (TIP_POSITIONS, STATE_ESTIMATE, TORQUE_COMMANDS)
 SKEW_NS = 1_000_000_000
 #: messages held back while waiting for the first /clock
 MAX_PENDING = 10_000
+#: queue of each recording subscription: 1 s of a 1 kHz topic, so a recorder that falls behind for
+#: a moment (a busy machine) catches up instead of losing the oldest messages
+RECORD_DEPTH = 1000
 STORAGES = {'mcap': StoragePlugin.MCAP, 'sqlite3': StoragePlugin.SQLITE3}
 
 PARAMS = (
@@ -64,15 +68,9 @@ def find_topic(name: str) -> str | None:
 
 
 def topic_qos(topic: str) -> QoSProfile:
-    """QoS to subscribe ``topic`` with, compatible with its publishers (topics.py).
-
-    /clock keeps CLOCK_QOS's best-effort reliability but a queue as deep as the loop's, so a busy
-    subscriber does not drop clock ticks.
-    """
+    """QoS of ``topic``'s publishers (topics.py); the recorder subscribes with it, deeper."""
     if topic == CLOCK:
-        qos = copy.copy(CLOCK_QOS)
-        qos.depth = LOOP_QOS.depth
-        return qos
+        return CLOCK_QOS
     return LOOP_QOS if topic in LOOP_TOPICS else STREAM_QOS
 
 
@@ -161,7 +159,9 @@ class RecorderNode(Node):
             self.counts[name] = 0
             callback = functools.partial(self._on_message, name, conn, _is_stamped(msg_class),
                                          topic == CLOCK)
-            self._subs[name] = self.create_subscription(msg_class, topic, callback, qos, raw=True)
+            deep = copy.copy(qos)
+            deep.depth = RECORD_DEPTH           # history depth is not part of QoS matching
+            self._subs[name] = self.create_subscription(msg_class, topic, callback, deep, raw=True)
         self.diag.values['output'] = str(self.path)
         self._matched_timer = self.create_timer(0.2, self._report_publishers)
         self.diag.set_status(OK, f'recording {len(topics)} topics')

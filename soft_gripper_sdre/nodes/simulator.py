@@ -10,6 +10,11 @@ by ``on_timeout``), count it, warn in diagnostics and go on: the loop never dead
 *Realtime*: a wall timer steps at the control period with the latest command (zero-order hold),
 counting periods whose command was late.
 
+/diagnostics also carries the real-time factor of the stepping, this process's CPU time per step
+(``cpu_per_step_us``) and the loop latency: the wall time from publishing ``tip_positions`` for
+t_k to receiving the first command stamped t_k, as p50 / p99 / max [µs] over the last 10 000
+answered periods (``loop_latency_us_*``).
+
 Bad commands (NaN/Inf, wrong sizes, unknown/duplicate/missing names, stamps older than the last
 applied one or ahead of the current period) are rejected with a throttled warning and counted;
 the simulator never steps with a non-finite torque.
@@ -25,11 +30,14 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 
 from soft_gripper_sdre.nodes import conversions as cv
-from soft_gripper_sdre.nodes.common import OK, WARN, Diagnostics, ThrottledLogger, run
+from soft_gripper_sdre.nodes.common import OK, WARN, Diagnostics, LatencyWindow, ThrottledLogger, run
 from soft_gripper_sdre.nodes.params import Param, ParameterError, declare_all, on_runtime_change
 from soft_gripper_sdre.nodes.topics import (CLOCK, CLOCK_QOS, CUBE_CONTACTS, CUBE_POSE, JOINT_STATES,
                                             LOOP_QOS, STREAM_QOS, TIP_POSITIONS, TORQUE_COMMANDS)
 from soft_gripper_sdre.sim import GripperSim, SimConfig
+
+#: periods back a command may answer and still count in the loop latency (realtime: late answers)
+LATENCY_PERIODS = 64
 
 PARAMS = (
     Param('mode', 'lockstep', 'stepping mode', choices=('lockstep', 'realtime'), read_only=True),
@@ -91,7 +99,16 @@ class SimulatorNode(Node):
         self.k = 0                               # current period index; t_k = k · Δt
         self.started = False
         self.deadline = None
+        self._wall_start = self._wall_end = None   # monotonic time of the first and last step
+        self._cpu_start = self._cpu_end = None     # this process's CPU time then
+        # loop latency: tip_positions for t_k published → the torque command stamped t_k received
+        self.latency = LatencyWindow()
+        self._tips_sent = np.zeros(LATENCY_PERIODS)   # perf_counter() at tips k, at k % LATENCY_PERIODS
+        self._answered_ns = -1                   # newest period whose latency is counted
 
+        # the two per-period messages are built once and refilled in place
+        self._clock_msg = cv.clock_msg(0)
+        self._tips_msg = cv.tips_to_msg(0, np.zeros((self.n, 3)))
         self.pub_clock = self.create_publisher(Clock, CLOCK, CLOCK_QOS)
         self.pub_tips = self.create_publisher(PoseArray, TIP_POSITIONS, LOOP_QOS)
         self.pub_joints = self.create_publisher(JointState, JOINT_STATES, STREAM_QOS)
@@ -100,6 +117,7 @@ class SimulatorNode(Node):
         self.sub_cmd = self.create_subscription(JointState, TORQUE_COMMANDS, self.on_command, LOOP_QOS)
         self.log = ThrottledLogger(self.get_logger())
         self.diag = Diagnostics(self)
+        self.diag.before_publish.append(self._refresh_diagnostics)
         self.diag.values['mode'] = p['mode']
         self.diag.values['scene'] = p['scene']
         self._startup_deadline = time.monotonic() + p['startup_timeout']
@@ -121,7 +139,7 @@ class SimulatorNode(Node):
                 'after startup_timeout')
         self._startup_timer.cancel()
         self.started = True
-        self._wall_start = time.monotonic()
+        self._wall_start, self._cpu_start = time.monotonic(), time.process_time()
         if self.p['mode'] == 'lockstep':
             self._watchdog = self.create_timer(min(0.01, self.p['lockstep_timeout'] / 4), self._check_timeout)
         else:
@@ -136,6 +154,11 @@ class SimulatorNode(Node):
             self._reject('bad_command', str(exc))
             return
         now_ns = self.k * self.period_ns
+        if self._answered_ns < stamp <= now_ns and self.started and stamp % self.period_ns == 0:
+            j = stamp // self.period_ns          # answers the tips of period j (realtime: maybe late)
+            if self.k - j < LATENCY_PERIODS:
+                self.latency.add(time.perf_counter() - self._tips_sent[j % LATENCY_PERIODS])
+                self._answered_ns = stamp
         if stamp <= self.last_cmd_ns:
             self._reject('stale_command', f'torque_commands: stamp {stamp} ns is not newer than '
                          f'the last applied {self.last_cmd_ns} ns')
@@ -169,6 +192,7 @@ class SimulatorNode(Node):
         self.diag.count('steps')
         if self.total_steps is not None and self.k >= self.total_steps:
             self.done = True
+            self._wall_end, self._cpu_end = time.monotonic(), time.process_time()
             self.publish_state()
             self.diag.set_status(OK, f'finished {self.k} steps')
             self.diag.publish()
@@ -198,8 +222,11 @@ class SimulatorNode(Node):
     # -- publishing --------------------------------------------------------------------------
     def publish_state(self) -> None:
         ns = self.k * self.period_ns
-        self.pub_clock.publish(cv.clock_msg(ns))
-        self.pub_tips.publish(cv.tips_to_msg(ns, self.sim.measure()))
+        cv.set_time(self._clock_msg.clock, ns)
+        self.pub_clock.publish(self._clock_msg)
+        cv.fill_tips(self._tips_msg, ns, self.sim.measure())
+        self._tips_sent[self.k % LATENCY_PERIODS] = time.perf_counter()
+        self.pub_tips.publish(self._tips_msg)
         self.deadline = time.monotonic() + self.p['lockstep_timeout']
         if self.k % self.state_every == 0:
             truth = self.sim.truth()
@@ -216,11 +243,19 @@ class SimulatorNode(Node):
                 self.pub_contacts.publish(cv.contacts_msg(ns, truth.contact_force))
         if self.diag.level == WARN and self.k % 1000 == 0 and self.deadline is not None:
             self.diag.set_status(OK, 'stepping')
-        self.diag.values['sim_time'] = f'{ns / cv.NS:.3f}'
-        if self.k % 100 == 0 or self.done:
-            wall = time.monotonic() - self._wall_start
+
+    def _refresh_diagnostics(self) -> None:
+        """Sim time, real-time factor of the stepping and loop latency, before each /diagnostics."""
+        t = self.k * self.period_ns / cv.NS
+        self.diag.values['sim_time'] = f'{t:.3f}'
+        if self._wall_start is not None:
+            wall = (self._wall_end or time.monotonic()) - self._wall_start
             if wall > 0:
-                self.diag.values['real_time_factor'] = f'{ns / cv.NS / wall:.4f}'
+                self.diag.values['real_time_factor'] = f'{t / wall:.4f}'
+            if self.k:
+                cpu = (self._cpu_end or time.process_time()) - self._cpu_start
+                self.diag.values['cpu_per_step_us'] = f'{1e6 * cpu / self.k:.0f}'
+        self.diag.values.update(self.latency.summary('loop_latency_us'))
 
     def close(self) -> None:
         self.sim.close()

@@ -45,9 +45,10 @@ REFERENCE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
 #: slower streams (joint states, cube pose, diagnostics)
 STREAM_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50,
                         reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
-#: /clock as rclpy's time source subscribes to it
-CLOCK_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
-                       reliability=ReliabilityPolicy.BEST_EFFORT, durability=DurabilityPolicy.VOLATILE)
+#: /clock: reliable, so the recorder keeps every tick of a busy 1 kHz run; rclpy's time source
+#: subscribes best-effort, which a reliable publisher serves too
+CLOCK_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50,
+                       reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
 
 
 def type_name(msg_class) -> str:

@@ -159,9 +159,12 @@ def run_demo(out: Path, duration: float, model: Path | None = None, noise: float
         raise RuntimeError(f'the grasp run failed ({why}); last lines of {culprit}.log:\n{tail}')
     result = report(bag, out, torque_limit=_controller_limit())
     result['controller'] = controller_stats(bag)
-    stepping_rtf = last_diagnostics(bag, 'simulator').get('real_time_factor')
+    sim_diag = last_diagnostics(bag, 'simulator')
+    stepping_rtf = sim_diag.get('real_time_factor')
     result['run'] = {'sim_duration_s': duration, 'wall_s': round(wall, 2),
                      'real_time_factor': float(stepping_rtf) if stepping_rtf else None,
+                     **{f'loop_latency_us_{k}': float(sim_diag[f'loop_latency_us_{k}'])
+                        for k in ('p50', 'p99') if f'loop_latency_us_{k}' in sim_diag},
                      'exit_codes': stopped,
                      'domain_id': int(env['ROS_DOMAIN_ID'])}
     (out / 'metrics.json').write_text(json.dumps(result, indent=2, default=float))
@@ -208,8 +211,10 @@ def summary(result: dict, out: Path) -> str:
     """A short human summary of :func:`run_demo`'s result."""
     run = result['run']
     rtf = 'n/a' if run['real_time_factor'] is None else f'{run["real_time_factor"]:.2f}'
+    latency = (f'; loop latency p50 {run["loop_latency_us_p50"]:.0f} µs, p99 {run["loop_latency_us_p99"]:.0f} µs'
+               if 'loop_latency_us_p50' in run else '')
     lines = [f'grasp demo: {run["sim_duration_s"]:g} s of sim time, {run["wall_s"]:.1f} s wall with start-up '
-             f'(stepping at {rtf}× real time)']
+             f'(stepping at {rtf}× real time{latency})']
     for name, f in result['fingers'].items():
         pct = 'n/a' if f['rmse_pct'] is None else f'{f["rmse_pct"]:.2f} %'
         lines.append(f'  {name}: free-space RMSE {f["rmse_mm"]:.3f} mm ({pct} of its '

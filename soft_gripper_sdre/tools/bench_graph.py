@@ -1,0 +1,349 @@
+"""Benchmarks of the node graph as processes: lockstep speed, loop latency, realtime lateness, recorder loss.
+
+    python -m soft_gripper_sdre.tools.bench_graph [--quick] [--executor events|single]
+
+prints the rows that :mod:`soft_gripper_sdre.tools.bench` appends to BENCHMARKS.md
+(:func:`rows`). Every figure comes from the nodes' own /diagnostics, read by a monitor node:
+
+* **lockstep**: the four loop processes (simulator, estimator, trajectory, controller) at the 1 ms
+  period. The simulator reports the real-time factor of its stepping and the loop latency, the
+  wall time from publishing ``tip_positions`` for t_k to receiving the torque command stamped t_k
+  (three DDS hops and the estimator's and controller's work).
+* **realtime**: the simulator steps on a 1 ms wall timer; a period is late when no command for it
+  arrived before the next tick (its ``late_periods`` counter).
+* **recorder**: all five processes in realtime with every topic at 1 kHz (``state_rate`` 1000 Hz,
+  a horizon every 1 ms) into the recorder; lost = messages the nodes published (their counters)
+  minus the messages in the bag.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+from pathlib import Path
+import tempfile
+import time
+
+from soft_gripper_sdre.tools.procs import Graph, ros_env
+
+LOOP_NODES = ('estimator', 'trajectory', 'controller')
+#: topics the simulator publishes once per step when state_rate is 1 kHz (and once at t = 0)
+SIM_TOPICS = ('/clock', '/tip_positions', '/joint_states', '/cube_pose', '/cube_contacts')
+
+
+class Monitor:
+    """The newest /diagnostics values of every node, by node name (a node of its own Context)."""
+
+    def __init__(self, env: dict[str, str]) -> None:
+        os.environ.update({k: env[k] for k in ('ROS_DOMAIN_ID', 'ROS_AUTOMATIC_DISCOVERY_RANGE')})
+        import rclpy
+        from rclpy.context import Context
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.node import Node
+        from diagnostic_msgs.msg import DiagnosticArray
+
+        from soft_gripper_sdre.nodes.topics import DIAGNOSTICS, STREAM_QOS
+
+        self.values: dict[str, dict[str, str]] = {}
+        self._ctx = Context()
+        rclpy.init(context=self._ctx)
+        self._node = Node('bench_monitor', context=self._ctx)
+        self._node.create_subscription(DiagnosticArray, DIAGNOSTICS, self._on_diag, STREAM_QOS)
+        self._exec = SingleThreadedExecutor(context=self._ctx)
+        self._exec.add_node(self._node)
+
+    def _on_diag(self, msg) -> None:
+        for status in msg.status:
+            self.values[status.name.rsplit('/', 1)[-1]] = {kv.key: kv.value for kv in status.values}
+
+    def get(self, node: str, key: str, default: float = 0.0) -> float:
+        try:
+            return float(self.values.get(node, {}).get(key, default))
+        except ValueError:
+            return default
+
+    def spin_until(self, predicate, timeout: float) -> bool:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if predicate():
+                return True
+            self._exec.spin_once(timeout_sec=0.05)
+        return bool(predicate())
+
+    def close(self) -> None:
+        import rclpy
+        self._exec.shutdown()
+        self._node.destroy_node()
+        rclpy.try_shutdown(context=self._ctx)
+
+
+def _cpu_seconds(pid: int) -> float:
+    """User + system CPU time of a running process [s] (Linux /proc; NaN elsewhere)."""
+    try:
+        fields = Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()
+    except OSError:
+        return float('nan')
+    return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')     # utime, stime
+
+
+def _number(text: str) -> float | None:
+    try:
+        return float(text)
+    except ValueError:
+        return None
+
+
+def published(d: dict[str, dict[str, float]]) -> dict[str, int]:
+    """Topic → messages the loop published, from the nodes' diagnostics ``d``: the simulator sends
+    each of its topics once per step and once at t = 0 (state topics only at state_rate 1 kHz),
+    the others count what they send."""
+    sim, ctrl = d.get('simulator', {}), d.get('controller', {})
+    out = {t: int(sim.get('steps') or 0) + 1 for t in SIM_TOPICS}
+    out['/state_estimate'] = int(d.get('estimator', {}).get('estimates') or 0)
+    out['/grasp_reference'] = int(d.get('trajectory', {}).get('references') or 0)
+    out['/torque_commands'] = int((ctrl.get('commands') or 0) + (ctrl.get('stale_zero_commands') or 0))
+    return out
+
+
+def run_graph(seconds: float, *, mode: str = 'lockstep', record: Path | None = None,
+              all_at_1khz: bool = False, executor: str | None = None,
+              timeout: float = 600.0) -> dict[str, dict[str, float]]:
+    """Run the loop processes (and the recorder into ``record``) for ``seconds`` of sim time.
+
+    Returns every node's final /diagnostics values as floats (non-numeric values dropped), and
+    for each node its CPU time per step while the simulator stepped (``cpu_per_step_us``).
+
+    Raises:
+        RuntimeError: a node died or the run did not finish within ``timeout``.
+    """
+    env = ros_env()
+    if executor is not None:
+        env['SOFT_GRIPPER_EXECUTOR'] = executor
+    fast = {'state_rate': 1000.0} if all_at_1khz else {}
+    params = {'estimator': {}, 'controller': {},
+              'trajectory': {'publish_period': 0.001} if all_at_1khz else {},
+              'simulator': {'duration': seconds, 'mode': mode, 'min_tip_subscribers': 2 + bool(record),
+                            **fast}}
+    monitor = Monitor(env)
+    steps = int(round(seconds / 0.001))
+    try:
+        cpu = _run(graph_env=env, monitor=monitor, params=params, record=record, steps=steps,
+                   timeout=timeout)
+    finally:
+        monitor.close()
+    out = {node: {k: _number(v) for k, v in values.items() if _number(v) is not None}
+           for node, values in monitor.values.items()}
+    for node, seconds in cpu.items():       # CPU of the stepping only (start-up excluded)
+        out.setdefault(node, {})['cpu_per_step_us'] = 1e6 * seconds / steps
+    return out
+
+
+def _run(graph_env: dict[str, str], monitor: Monitor, params: dict, record: Path | None, steps: int,
+         timeout: float) -> dict[str, float]:
+    """:func:`run_graph`'s processes: start, step, drain, stop; returns CPU seconds per node
+    while the simulator stepped."""
+    with tempfile.TemporaryDirectory(prefix='sgs_bench_graph_') as logs, Graph(graph_env, Path(logs)) as graph:
+        names = (('recorder',) if record else ()) + LOOP_NODES
+        for name in names:
+            graph.start(name, {'output': str(record)} if name == 'recorder' else params[name])
+        # every node is up (its diagnostics arrive) before the simulator starts stepping
+        monitor.spin_until(lambda: all(n in monitor.values for n in names)
+                           or any(not p.alive() for p in graph.procs.values()), 60.0)
+        dead = [n for n, p in graph.procs.items() if not p.alive()]
+        if dead or not all(n in monitor.values for n in names):
+            raise RuntimeError(f'the graph did not start (dead: {dead}; heard from {sorted(monitor.values)}): '
+                               f'{ {n: graph.procs[n].log_tail(600) for n in dead} }')
+        if record:       # the recorder hears every stream before the first step
+            wired = ('/state_estimate', '/torque_commands', '/grasp_reference')
+            monitor.spin_until(lambda: all(monitor.get('recorder', f'publishers {t}') > 0 for t in wired), 30.0)
+        cpu0 = {n: _cpu_seconds(graph.procs[n].popen.pid) for n in names}
+        graph.start('simulator', params['simulator'])
+        code = graph.wait('simulator', timeout, lambda: monitor.spin_until(lambda: False, 0.05))
+        cpu = {n: _cpu_seconds(graph.procs[n].popen.pid) - cpu0[n] for n in names}
+        if code != 0:
+            tails = {n: p.log_tail(600) for n, p in graph.procs.items()}
+            raise RuntimeError(f'the graph run failed (simulator exit {code}): {tails}')
+        # the simulator's final diagnostics, then the others' (published at their shutdown)
+        monitor.spin_until(lambda: monitor.get('simulator', 'steps') >= steps, 5.0)
+        for name in ('controller', 'trajectory', 'estimator'):
+            graph.stop(name)
+        if record:       # let a recorder that lags behind drain its queues before it is stopped
+            monitor.spin_until(lambda: False, 0.5)      # the stopped nodes' final diagnostics
+            sent = published({n: {k: _number(v) for k, v in monitor.values[n].items()}
+                              for n in ('simulator', *LOOP_NODES) if n in monitor.values})
+            monitor.spin_until(lambda: all(monitor.get('recorder', f'messages {t}') >= n
+                                           for t, n in sent.items()), 15.0)
+            graph.stop('recorder')
+        monitor.spin_until(lambda: False, 0.5)
+    return cpu
+
+
+def recorder_loss(seconds: float, executor: str | None = None) -> dict[str, tuple[int, int]]:
+    """Topic → (messages published, messages in the bag), every topic at 1 kHz in realtime.
+
+    The published counts are the nodes' own (:func:`published`).
+    """
+    from soft_gripper_sdre.bag import topic_counts
+    with tempfile.TemporaryDirectory(prefix='sgs_bench_bag_') as tmp:
+        bag = Path(tmp) / 'bag'
+        d = run_graph(seconds, mode='realtime', record=bag, all_at_1khz=True, executor=executor)
+        counts = topic_counts(bag)
+    return {t: (n, counts.get(t, 0)) for t, n in published(d).items()}
+
+
+def _echo(count: int) -> int:
+    """The far end of :func:`hop`: answer ``count`` tip messages on ``bench_pong``, then print the
+    CPU seconds this process spent per message."""
+    import rclpy
+    from geometry_msgs.msg import PoseArray
+    from rclpy.node import Node
+
+    from soft_gripper_sdre.nodes.common import make_executor
+    from soft_gripper_sdre.nodes.topics import LOOP_QOS
+    rclpy.init()
+    node = Node('bench_echo')
+    pub = node.create_publisher(PoseArray, 'bench_pong', LOOP_QOS)
+    seen = [0, 0.0]
+
+    def on_ping(msg) -> None:
+        if seen[0] == 0:
+            seen[1] = time.process_time()      # CPU from the first message on
+        seen[0] += 1
+        pub.publish(msg)
+    node.create_subscription(PoseArray, 'bench_ping', on_ping, LOOP_QOS)
+    executor = make_executor()
+    executor.add_node(node)
+    deadline = time.monotonic() + 120.0
+    while seen[0] < count and time.monotonic() < deadline:
+        executor.spin_once(timeout_sec=0.1)
+    print(f'cpu_per_message {(time.process_time() - seen[1]) / max(seen[0] - 1, 1):.9f}', flush=True)
+    executor.shutdown()
+    node.destroy_node()
+    rclpy.try_shutdown()
+    return 0
+
+
+def hop(executor: str, count: int = 2000) -> dict[str, float]:
+    """One DDS hop with the graph's own message and executor, between two processes.
+
+    A ping-pong of ``tip_positions``-sized PoseArrays: half the round trip is the latency of one
+    hop (publish → callback in the other process → publish back); the echo process reports its CPU
+    per message (receive + publish). Returns µs: ``p50``, ``p99`` of one hop, ``cpu``.
+    """
+    import subprocess
+    import sys
+
+    import numpy as np
+    import rclpy
+    from geometry_msgs.msg import PoseArray
+    from rclpy.context import Context
+    from rclpy.node import Node
+
+    from soft_gripper_sdre.nodes import conversions as cv
+    from soft_gripper_sdre.nodes.common import make_executor
+    from soft_gripper_sdre.nodes.topics import LOOP_QOS
+
+    env = ros_env()
+    env['SOFT_GRIPPER_EXECUTOR'] = executor
+    os.environ.update({k: env[k] for k in ('ROS_DOMAIN_ID', 'ROS_AUTOMATIC_DISCOVERY_RANGE')})
+    echo = subprocess.Popen([sys.executable, '-m', 'soft_gripper_sdre.tools.bench_graph', '--echo', str(count)],
+                            env=env, stdout=subprocess.PIPE, text=True)
+    ctx = Context()
+    rclpy.init(context=ctx)
+    node = Node('bench_ping', context=ctx)
+    ex = make_executor(executor, context=ctx)
+    msg = cv.tips_to_msg(0, np.zeros((4, 3)))
+    rtt = np.zeros(count)
+    state = {'k': 0, 't0': 0.0}
+    pub = node.create_publisher(PoseArray, 'bench_ping', LOOP_QOS)
+
+    def on_pong(_msg) -> None:
+        rtt[state['k']] = time.perf_counter() - state['t0']
+        state['k'] += 1
+        if state['k'] < count:
+            state['t0'] = time.perf_counter()
+            pub.publish(msg)
+    sub = node.create_subscription(PoseArray, 'bench_pong', on_pong, LOOP_QOS)
+    ex.add_node(node)
+    try:
+        deadline = time.monotonic() + 30.0
+        while (sub.get_publisher_count() == 0 or pub.get_subscription_count() == 0) and time.monotonic() < deadline:
+            ex.spin_once(timeout_sec=0.05)
+        state['t0'] = time.perf_counter()
+        pub.publish(msg)
+        deadline = time.monotonic() + 120.0
+        while state['k'] < count and time.monotonic() < deadline:
+            ex.spin_once(timeout_sec=0.1)
+        out, _ = echo.communicate(timeout=30.0)
+    finally:
+        if echo.poll() is None:
+            echo.kill()
+        ex.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
+    cpu = next((float(line.split()[1]) for line in out.splitlines() if line.startswith('cpu_per_message')),
+               float('nan'))
+    one_way = 0.5e6 * rtt[:state['k']]
+    return {'p50': float(np.percentile(one_way, 50)), 'p99': float(np.percentile(one_way, 99)), 'cpu': 1e6 * cpu}
+
+
+def rows(quick: bool = False, executor: str | None = None) -> list[tuple[str, str, str]]:
+    """(what, figure, note) rows for BENCHMARKS.md; each run is a few seconds of sim time."""
+    nan = float('nan')
+    seconds = 1.0 if quick else 3.0
+    lock_all = run_graph(seconds, executor=executor)
+    lock = lock_all['simulator']
+    single = run_graph(seconds, executor='single')['simulator'] if executor != 'single' else lock
+    real = run_graph(seconds, mode='realtime', executor=executor)['simulator']
+    ev, st = (hop(kind, 1000 if quick else 3000) for kind in ('events', 'single'))
+    recorded = recorder_loss(0.5 if quick else 2.0, executor=executor)
+    sent = sum(n for n, _ in recorded.values())
+    lost = sum(max(0, n - got) for n, got in recorded.values())
+    worst = max(recorded, key=lambda t: recorded[t][0] - recorded[t][1])
+    late = real.get('late_periods', 0.0) / max(real.get('steps', 1.0), 1.0)
+    cpu = {n: lock_all[n].get('cpu_per_step_us', nan) for n in ('simulator', *LOOP_NODES)}
+    compute = lock_all['controller'].get('compute_us_mean', nan)
+    return [
+        ('one DDS hop, tip_positions, EventsExecutor', f'{ev["p50"]:.0f} / {ev["p99"]:.0f} µs',
+         f'p50 / p99 one way (ping-pong of 2 processes); {ev["cpu"]:.0f} µs CPU per message received + sent'),
+        ('one DDS hop, tip_positions, SingleThreadedExecutor', f'{st["p50"]:.0f} / {st["p99"]:.0f} µs',
+         f'{st["cpu"]:.0f} µs CPU per message: {st["cpu"] / ev["cpu"]:.1f}× the EventsExecutor\'s'),
+        ('node graph, 4 processes, lockstep 1 ms', f'{lock.get("real_time_factor", nan):.2f}× real time',
+         f'{seconds:g} s of sim time; {int(lock.get("timeouts", 0))} timeouts'),
+        ('node graph, lockstep, SingleThreadedExecutor in every node',
+         f'{single.get("real_time_factor", nan):.2f}× real time',
+         f'the executor before EventsExecutor; loop latency p50 {single.get("loop_latency_us_p50", nan):.0f} µs'),
+        ('loop latency p50 / p99 (tips out → torque back)',
+         f'{lock.get("loop_latency_us_p50", nan):.0f} / {lock.get("loop_latency_us_p99", nan):.0f} µs',
+         'measured in the simulator: 3 DDS hops + estimator + controller'),
+        ('CPU per period, lockstep: simulator / estimator / trajectory / controller',
+         ' / '.join(f'{c:.0f}' for c in cpu.values()) + ' µs',
+         f'sum {sum(cpu.values()):.0f} µs per 1 ms period on {os.cpu_count()} cores; '
+         f'controller compute {compute:.0f} µs (mean of its last second)'),
+        ('realtime mode at 1 kHz: late periods', f'{100 * late:.1f} %',
+         f'stepping at {real.get("real_time_factor", nan):.2f}× real time; '
+         f'latency p50 {real.get("loop_latency_us_p50", nan):.0f} µs'),
+        ('recorder, all topics at 1 kHz: messages lost', f'{lost} of {sent}',
+         '5 processes in realtime; published (node counters) − in the bag'
+         + (f'; most on {worst}' if lost else '')),
+    ]
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.bench_graph',
+                                 description=__doc__.split('\n')[0])
+    ap.add_argument('--quick', action='store_true', help='shorter runs (smoke test)')
+    ap.add_argument('--echo', type=int, default=None, help=argparse.SUPPRESS)   # hop()'s far end
+    ap.add_argument('--executor', choices=('events', 'single'), default=None,
+                    help='executor of the node processes (default: $SOFT_GRIPPER_EXECUTOR or events)')
+    a = ap.parse_args(argv)
+    if a.echo is not None:
+        return _echo(a.echo)
+    table = rows(a.quick, a.executor)
+    width = max(len(r[0]) for r in table)
+    for name, value, note in table:
+        print(f'{name:<{width}}  {value:>18}  {note}')
+    return 0
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

@@ -1,0 +1,88 @@
+"""What the nodes share: the executor choice, the latency window, the in-place message fillers."""
+import numpy as np
+import pytest
+from sensor_msgs.msg import JointState
+
+import rclpy
+from rclpy.context import Context
+from soft_gripper_sdre.nodes import conversions as cv
+from rosutil import Probe, ros_context, spin_until
+from soft_gripper_sdre.nodes.common import EXECUTOR_ENV, LatencyWindow, flush, make_executor
+from soft_gripper_sdre.nodes.topics import LOOP_QOS, TORQUE_COMMANDS
+
+
+def test_latency_window_summarises_the_last_samples_in_microseconds():
+    w = LatencyWindow(size=100)
+    assert w.summary('x') == {}
+    for ms in range(1, 101):                       # 1 … 100 ms
+        w.add(ms * 1e-3)
+    s = w.summary('lat_us')
+    assert s == {'lat_us_p50': f'{np.percentile(np.arange(1, 101) * 1e3, 50):.0f}',
+                 'lat_us_p99': f'{np.percentile(np.arange(1, 101) * 1e3, 99):.0f}', 'lat_us_max': '100000'}
+    for _ in range(100):                           # the window forgets what it no longer holds
+        w.add(2e-6)
+    assert w.summary('lat_us') == {'lat_us_p50': '2', 'lat_us_p99': '2', 'lat_us_max': '2'}
+    assert w.count == 200
+
+
+def test_executor_is_events_unless_asked_otherwise(monkeypatch):
+    ctx = Context()
+    rclpy.init(context=ctx)
+    try:
+        monkeypatch.delenv(EXECUTOR_ENV, raising=False)
+        assert 'EventsExecutor' in type(make_executor(context=ctx)).__name__
+        monkeypatch.setenv(EXECUTOR_ENV, 'single')
+        assert type(make_executor(context=ctx)).__name__ == 'SingleThreadedExecutor'
+        monkeypatch.setenv(EXECUTOR_ENV, 'threads')
+        with pytest.raises(ValueError, match=f'{EXECUTOR_ENV}=.threads.'):
+            make_executor(context=ctx)
+    finally:
+        rclpy.try_shutdown(context=ctx)
+
+
+def test_messages_refilled_in_place_read_back_as_new_ones():
+    rng = np.random.default_rng(0)
+    tips_msg = cv.tips_to_msg(0, np.zeros((4, 3)))
+    est_msg = cv.estimate_to_msg(0, np.zeros((4, 2)), np.zeros((4, 2)))
+    for k in range(1, 4):
+        tips, x = rng.standard_normal((4, 3)), rng.standard_normal((4, 4))
+        ns = k * 1_000_000 + 3 * cv.NS
+        cv.fill_tips(tips_msg, ns, tips)
+        cv.fill_estimate(est_msg, ns, x)
+        stamp, back = cv.msg_to_tips(tips_msg, 4)
+        assert stamp == ns and np.array_equal(back, tips)
+        stamp, back = cv.msg_to_estimate(est_msg, 4)
+        assert stamp == ns and np.array_equal(back, x)
+        fresh = cv.estimate_to_msg(ns, x[:, :2], x[:, 2:])
+        assert fresh == est_msg                      # the same message field by field
+
+
+def test_names_in_any_order_are_sorted_and_bad_names_still_refused():
+    u = np.arange(8.0).reshape(4, 2)
+    msg = cv.torques_to_msg(5, u)
+    assert np.array_equal(cv.msg_to_torques(msg, 4)[1], u)       # our own order: the fast path
+    shuffled = JointState(name=msg.name[::-1], effort=msg.effort[::-1])
+    assert np.array_equal(cv.msg_to_torques(shuffled, 4)[1], u)
+    with pytest.raises(cv.MessageError, match='duplicate'):
+        cv.msg_to_torques(JointState(name=[msg.name[0]] * 8, effort=[0.0] * 8), 4)
+    with pytest.raises(cv.MessageError, match='missing'):
+        cv.msg_to_torques(JointState(name=msg.name[:6], effort=[0.0] * 6), 4)
+    # the cached names are never handed out for a caller to mutate
+    names = cv.torque_names(4)
+    names.append('x')
+    assert len(cv.torques_to_msg(0, u).name) == 8
+
+
+def test_flush_returns_once_the_reliable_subscriber_has_everything():
+    with ros_context('events') as (ctx, executor):
+        sender, receiver = Probe(ctx, 'sender'), Probe(ctx, 'receiver')
+        receiver.listen(JointState, TORQUE_COMMANDS, LOOP_QOS)
+        got = receiver.received[TORQUE_COMMANDS]
+        pub = sender.create_publisher(JointState, TORQUE_COMMANDS, LOOP_QOS)
+        executor.add_node(receiver)
+        assert spin_until(executor, lambda: pub.get_subscription_count() > 0, 10.0)
+        for k in range(20):
+            pub.publish(cv.torques_to_msg(k, np.zeros((4, 2))))
+        assert flush(sender, timeout=5.0)            # acknowledged by the reader's DDS history
+        assert spin_until(executor, lambda: len(got) == 20, 5.0)
+        sender.destroy_node()
