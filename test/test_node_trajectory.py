@@ -118,7 +118,9 @@ def test_bad_tip_messages_are_counted_and_a_restart_takes_a_new_rest_pose():
     (dict(publish_period=0.06), 'horizon'), (dict(t_close=0.0), 't_close'), (dict(t_start=-1.0), 't_start'),
     (dict(grasp_fingers=[0, 0]), 'grasp_fingers'), (dict(grasp_fingers=[0, 4]), 'grasp_fingers'),
     (dict(grasp_fingers=[1, 3], n_fingers=2), 'grasp_fingers'), (dict(others='close'), 'others'),
-    (dict(close_distance=float('nan')), 'close_distance'), (dict(grasp_fingers='0,2'), 'grasp_fingers')])
+    (dict(close_distance=float('nan')), 'close_distance'), (dict(grasp_fingers='0,2'), 'grasp_fingers'),
+    (dict(rest_pose='0.0, 0.01'), 'rest_pose'), (dict(rest_pose='a b c d e f g h'), 'rest_pose'),
+    (dict(rest_pose=' '.join(['nan'] * 8)), 'rest_pose')])
 def test_bad_parameters_fail_at_startup_naming_the_parameter(params, name):
     with ros_context() as (ctx, executor):
         with pytest.raises(ParameterError, match=name):
