@@ -14,15 +14,19 @@ rejected (throttled warning, counted) and produce no torque; the SDRE core falls
 valid gains when a Riccati check fails and saturates at ``torque_limit``; a torque that is still
 not finite is replaced by zero and counted.
 
-Lost estimates are judged in sim time. The node follows ``/clock``; on a tick t whose newest
-estimate is ``estimate_timeout`` or more behind (two control periods by default), it publishes
-its safe command, zero torque stamped t (the lockstep simulator accepts it: it answers the period
-the simulator is waiting on), counts it (``safe_commands``) and reports ERROR until an estimate
-arrives again; tracking then resumes on that estimate. While estimates flow, the estimate of the
-previous period has always been answered before the simulator publishes the next tick, so a
-fault-free lockstep run never takes this path. Only the instant the estimates come back is
+Lost estimates are judged in sim time. The node follows ``/clock``; on a tick t when no estimate
+has arrived for ``estimate_timeout`` of sim time (two control periods by default; an estimate
+"arrives at" the newer of its stamp and the tick then current), it publishes its safe command,
+zero torque stamped t (the lockstep simulator accepts it: it answers the period the simulator
+is waiting on), counts it (``safe_commands``) and reports ERROR until an estimate arrives again;
+tracking then resumes. While estimates flow, the estimate of the previous period has always
+arrived before the simulator publishes the next tick, so a fault-free lockstep run never takes
+this path. An estimator that is alive but behind (just restarted, or starved of CPU) is not
+silent: its estimates for instants already answered are skipped (``late_estimates``), no safe
+command is sent, and the simulator waits for it (its ``lockstep_timeout``) until it has caught
+up — the loop is never driven past a slow estimator. Only the instant the estimates come back is
 ambiguous: if its tick wins the race against its estimate, that one period is still answered
-with zero (the estimate is counted as ``late_estimates``).
+with zero.
 
 A wall-time watchdog is the last resort for when sim time itself stops (the simulator is dead or
 hung): after ``clock_timeout`` seconds of wall time without a tick or an estimate the node
@@ -73,8 +77,8 @@ PARAMS = (
           1e-4, 0.05, read_only=True),
     Param('solver', 'fast', 'Riccati solver: warm-started Newton–Kleinman or scipy reference',
           choices=('fast', 'reference'), read_only=True),
-    Param('estimate_timeout', 0.002, 'sim time the newest estimate may lag the clock before the '
-          'safe command (zero torque) is sent; more than control_period (default: 2 periods)', 's',
+    Param('estimate_timeout', 0.002, 'sim time without an arriving estimate before the safe '
+          'command (zero torque) is sent; more than control_period (default: 2 periods)', 's',
           1e-4, 60.0),
     Param('reset_on_jump', 0.5, 'a stamp this far behind the last one (a simulator restart) resets '
           'the controller instead of being rejected', 's', 1e-3, 1e6, read_only=True),
@@ -120,6 +124,7 @@ class ControllerNode(Node):
         self.last_ref_ns = -1
         self.last_cmd_ns = -1
         self.clock_ns = -1                      # newest /clock tick
+        self.est_heard_ns = -1                  # sim time at which the last estimate arrived
         self.last_heard = time.monotonic()      # wall time of the last tick or estimate
         self.stale = False                      # estimates older than estimate_timeout
         self.clock_stopped = False              # nothing heard for clock_timeout of wall time
@@ -178,6 +183,7 @@ class ControllerNode(Node):
                          f'last accepted {self.last_est_ns} ns')
             return
         self.last_est_ns = stamp
+        self.est_heard_ns = max(stamp, self.clock_ns)
         self._heard()
         if self.stale:
             self.stale = False
@@ -203,7 +209,7 @@ class ControllerNode(Node):
         self.diag.count('resets')
         self.refs.clear()
         self.pending = None
-        self.last_est_ns = self.last_ref_ns = self.last_cmd_ns = self.clock_ns = -1
+        self.last_est_ns = self.last_ref_ns = self.last_cmd_ns = self.clock_ns = self.est_heard_ns = -1
         self.ctrl.reset()
 
     def _covering(self, t_ns: int):
@@ -268,11 +274,11 @@ class ControllerNode(Node):
             self._restart(t, '/clock')
         self.clock_ns = max(self.clock_ns, t)
         self._heard()
-        if self.last_est_ns < 0 or t - self.last_est_ns < self.timeout_ns or t <= self.last_cmd_ns:
+        if self.est_heard_ns < 0 or t - self.est_heard_ns < self.timeout_ns or t <= self.last_cmd_ns:
             return
         if not self.stale:
             self.stale = True
-            why = (f'no state_estimate since t = {self.last_est_ns / cv.NS:.4f} s (estimate_timeout '
+            why = (f'no state_estimate since t = {self.est_heard_ns / cv.NS:.4f} s (estimate_timeout '
                    f'{self.p["estimate_timeout"]:g} s of sim time): commanding zero torque')
             self.diag.set_status(ERROR, why)
             self.get_logger().error(why)
