@@ -203,3 +203,44 @@ def test_fuzzed_estimates_and_references_never_reach_the_actuators():
         n = len(cmds)
         assert spin_until(executor, lambda: len(cmds) > n, 5.0)
         assert _finite_outputs(cmds, lambda m: cv.msg_to_torques(m, 4)[1])
+
+
+def test_fuzzed_clock_ticks_never_reach_the_actuators_as_anything_but_zero():
+    """/clock at zero, in the past, far ahead and jumping back: the controller resets or sends its
+    safe command, stamped with the tick, and tracks again after a clean restart of time."""
+    from rosgraph_msgs.msg import Clock
+    from soft_gripper_sdre.nodes.topics import CLOCK, CLOCK_QOS
+    fz = Fuzz(5)
+    model = SDCModel()
+    rest = np.repeat(model.rest_tip[None, :2], 4, 0)
+    times = np.arange(0, 21) * 5_000_000
+    pos = np.repeat(rest[None], 21, 0)
+    with ros_context() as (ctx, executor):
+        node, probe, est_pub, ref_pub = make_controller(ctx, executor)
+        clock_pub = probe.create_publisher(Clock, CLOCK, CLOCK_QOS)
+        assert spin_until(executor, lambda: clock_pub.get_subscription_count() > 0, 20.0)
+        cmds = probe.received[TORQUE_COMMANDS]
+        ref_pub.publish(cv.reference_to_msg(0, times, pos, 0 * pos, 0 * pos))
+        est_pub.publish(cv.estimate_to_msg(1_000_000, rest, np.zeros((4, 2))))
+        assert spin_until(executor, lambda: len(cmds) == 1, 5.0)
+        sent = set()
+
+        def hostile_tick():
+            sec = int(fz.rng.choice([0, 0, 1, 2, 10**6, 2**31 - 1]))
+            msg = Clock()
+            msg.clock.sec, msg.clock.nanosec = sec, int(fz.rng.integers(0, 10**9))
+            sent.add(cv.from_time(msg.clock))
+            return msg
+        _fuzz(executor, clock_pub, hostile_tick, node, ('ticks',))
+        assert spin_until(executor, lambda: len(cmds) >= 1 + node.diag.counters['safe_commands'], 5.0)
+        assert node.diag.counters['safe_commands'] > 0 and node.diag.counters['resets'] > 0
+        for msg in cmds[1:]:
+            stamp, u = cv.msg_to_torques(msg, 4)
+            assert stamp in sent and np.all(u == 0.0)
+        # a clean restart of time: the controller resets and tracks again
+        ref_pub.publish(cv.reference_to_msg(0, times, pos + 0.001, 0 * pos, 0 * pos))
+        est_pub.publish(cv.estimate_to_msg(0, rest, np.zeros((4, 2))))
+        n = len(cmds)
+        assert spin_until(executor, lambda: len(cmds) > n, 5.0)
+        assert np.abs(cv.msg_to_torques(cmds[-1], 4)[1]).max() > 0
+        assert _finite_outputs(cmds, lambda m: cv.msg_to_torques(m, 4)[1])

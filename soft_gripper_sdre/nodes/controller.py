@@ -273,6 +273,7 @@ class ControllerNode(Node):
         if self.clock_ns >= 0 and t < self.clock_ns - self.jump_ns:
             self._restart(t, '/clock')
         self.clock_ns = max(self.clock_ns, t)
+        self.diag.count('ticks')
         self._heard()
         if self.est_heard_ns < 0 or t - self.est_heard_ns < self.timeout_ns or t <= self.last_cmd_ns:
             return
