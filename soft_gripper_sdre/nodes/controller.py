@@ -220,8 +220,7 @@ class ControllerNode(Node):
         return None
 
     def _reject(self, key: str, why: str) -> None:
-        self.diag.count(key)
-        self.log.warn(key, f'rejected: {why}')
+        self.diag.problem(key, f'rejected: {why}')
 
     # -- the law -----------------------------------------------------------------------------
     def _control(self, stamp: int, x: np.ndarray, ref: tuple) -> None:
@@ -237,7 +236,7 @@ class ControllerNode(Node):
         self.pub_cmd.publish(cv.torques_to_msg(stamp, u))
         self.last_cmd_ns = stamp
         d = self.diag
-        d.count('commands')
+        d.good('commands', 'tracking')
         if not out.ok.all():
             d.count('check_failures', int((~out.ok).sum()))
             for flag in Check:
