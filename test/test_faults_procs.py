@@ -34,6 +34,9 @@ SHORT = dict(t_start=0.1, t_close=0.8, t_hold=0.2, t_open=0.8, others='hold')
 #: what each victim publishes, so the test sees when it is back
 OUTPUT = {'controller': TORQUE_COMMANDS, 'estimator': STATE_ESTIMATE, 'trajectory': GRASP_REFERENCE}
 KILL_AT = 0.3           # sim time of the crash: the grasping fingers are closing in free space
+#: a jump of the victim's output stamps larger than this is the outage (a few lockstep timeouts
+#: of a loaded machine stay below it; references come every 20 ms)
+GAP = {'controller': 5 * MS, 'estimator': 5 * MS, 'trajectory': 45 * MS}
 AFTER = 1.0             # sim time the run goes on after the victim is back
 
 
@@ -50,95 +53,108 @@ def _last_diagnostics(msgs, node: str) -> dict[str, str]:
     return last
 
 
+def _recorder_hears(diags, topics, name: str = 'recorder') -> bool:
+    """Whether the recorder's /diagnostics report a publisher on each of ``topics``."""
+    values = {}
+    for msg in diags[-30:]:
+        for status in msg.status:
+            if status.name.lstrip('/') == name:
+                values = {kv.key: kv.value for kv in status.values}
+    return all(int(values.get(f'publishers /{t.lstrip("/")}', 0)) > 0 for t in topics)
+
+
 @pytest.mark.parametrize('victim', ['controller', 'estimator', 'trajectory'])
 def test_crashed_node_is_restarted_and_the_grasp_recovers(victim, tmp_path):
+    """The run is judged from a recorder's bag (lossless, as the recording test shows); the test's
+    own probe only watches sim time to time the kill and may lag behind the graph."""
+    from soft_gripper_sdre.bag import read_bag
     env = ros_env()
-    params = {'estimator': {}, 'trajectory': dict(SHORT), 'controller': {},
-              'simulator': {'min_tip_subscribers': 3, 'lockstep_timeout': 0.05, 'on_timeout': 'hold'}}
+    bag = tmp_path / 'bag'
+    duration = 3.0
+    params = {'recorder': {'output': str(bag), 'topics': [TIP_POSITIONS, TORQUE_COMMANDS, STATE_ESTIMATE,
+                                                          GRASP_REFERENCE, CUBE_CONTACTS, DIAGNOSTICS]},
+              'estimator': {}, 'trajectory': dict(SHORT), 'controller': {},
+              'simulator': {'duration': duration, 'min_tip_subscribers': 4, 'lockstep_timeout': 0.05,
+                            'on_timeout': 'hold'}}
     with ros_context() as (ctx, executor), Graph(env, tmp_path / 'logs') as graph:
         probe = Probe(ctx)
-        subs = {t: probe.listen(msg, t, qos) for t, msg, qos in (
-            (TIP_POSITIONS, PoseArray, LOOP_QOS), (TORQUE_COMMANDS, JointState, LOOP_QOS),
-            (STATE_ESTIMATE, MultiDOFJointTrajectory, LOOP_QOS), (CUBE_CONTACTS, JointState, STREAM_QOS),
-            (GRASP_REFERENCE, MultiDOFJointTrajectory, REFERENCE_QOS),
-            (DIAGNOSTICS, DiagnosticArray, STREAM_QOS))}
+        probe.listen(PoseArray, TIP_POSITIONS, LOOP_QOS)
+        probe.listen(DiagnosticArray, DIAGNOSTICS, STREAM_QOS)
         executor.add_node(probe)
         got = probe.received
-        for node in ('estimator', 'trajectory', 'controller'):
+        for node in ('recorder', 'estimator', 'trajectory', 'controller'):
             graph.start(node, params[node])
-        assert spin_until(executor, lambda: all(subs[t].get_publisher_count() > 0 for t in OUTPUT.values()),
-                          60.0), f'graph not up: {[p.log_tail(300) for p in graph.procs.values()]}'
+        assert spin_until(executor, lambda: _recorder_hears(got[DIAGNOSTICS], OUTPUT.values()), 90.0), \
+            {n: p.log_tail(300) for n, p in graph.procs.items()}
         graph.start('simulator', params['simulator'])
 
-        def sim_ns() -> int:
-            return _stamp(got[TIP_POSITIONS][-1]) if got[TIP_POSITIONS] else -1
+        def alive() -> dict[str, bool]:
+            return {n: p.alive() for n, p in graph.procs.items()}
 
-        def all_alive() -> bool:
-            return all(p.alive() for p in graph.procs.values())
-
-        assert spin_until(executor, lambda: sim_ns() >= KILL_AT * cv.NS or not all_alive(), 120.0)
-        assert all_alive(), {n: p.log_tail(500) for n, p in graph.procs.items() if not p.alive()}
+        assert spin_until(executor, lambda: (got[TIP_POSITIONS] and _stamp(got[TIP_POSITIONS][-1])
+                                             >= KILL_AT * cv.NS) or not all(alive().values()), 120.0)
+        assert all(alive().values()), {n: p.log_tail(500) for n, p in graph.procs.items() if not p.alive()}
+        restart = dict(params[victim])
+        if victim == 'trajectory':     # the restarted node must not take the bent tips as its rest
+            restart['rest_pose'] = _last_diagnostics(got[DIAGNOSTICS], 'trajectory')['rest_pose']
         proc = graph.procs[victim].popen
         proc.send_signal(signal.SIGKILL)
         proc.wait(10)
-        killed_ns, killed_wall = sim_ns(), time.monotonic()
-        n_out, n_cmd = len(got[OUTPUT[victim]]), len(got[TORQUE_COMMANDS])
-        restart = dict(params[victim])
-        if victim == 'trajectory':          # the restarted node must not take the bent tips as rest
-            rest = cv.msg_to_tips(got[TIP_POSITIONS][0], 4)[1][:, :2]
-            restart['rest_pose'] = ', '.join(f'{v!r}' for v in rest.ravel().tolist())
         graph.start(victim, restart, name=victim)
-        # back: the restarted victim publishes for an instant after the crash
-        assert spin_until(executor, lambda: any(_stamp(m) > killed_ns for m in got[OUTPUT[victim]][n_out:]),
-                          120.0), graph.procs[victim].log_tail()
-        # the loop is back once a torque command computed from an estimate (not the controller's
-        # zero safe command) answers an instant after the crash
-        def tracking_again() -> int | None:
-            return next((_stamp(m) for m in got[TORQUE_COMMANDS][n_cmd:] if _stamp(m) >= victim_ns
-                         and np.any(cv.msg_to_torques(m, 4)[1] != 0.0)), None)
-        victim_ns = next(_stamp(m) for m in got[OUTPUT[victim]][n_out:] if _stamp(m) > killed_ns)
-        assert spin_until(executor, lambda: tracking_again() is not None, 120.0), graph.procs['controller'].log_tail()
-        back_ns = tracking_again()
-        back_wall = time.monotonic() - killed_wall
-        assert spin_until(executor, lambda: sim_ns() >= back_ns + AFTER * cv.NS or not all_alive(), 300.0)
-        alive = {n: p.alive() for n, p in graph.procs.items()}
+        code = graph.wait('simulator', 600.0, lambda: executor.spin_once(timeout_sec=0.0))
+        running = alive()
         codes = graph.stop_all()
-        spin_until(executor, lambda: False, 1.0)            # final diagnostics
-        diag = {n: _last_diagnostics(got[DIAGNOSTICS], n) for n in ('simulator', 'controller')}
+    assert code == 0 and all(v for n, v in running.items() if n != 'simulator'), (code, running)
+    assert all(c == 0 for c in codes.values()), codes
 
-    assert all(alive.values()), alive
-    assert all(code == 0 for code in codes.values()), codes
-    t, tips = zip(*(cv.msg_to_tips(m, 4) for m in got[TIP_POSITIONS]))
+    data = read_bag(bag)
+    last = {}
+    for _, msg in data['/diagnostics']:
+        for status in msg.status:
+            last[status.name.lstrip('/')] = {kv.key: kv.value for kv in status.values}
+    # the crash, read off the victim's own output: its stamps jump over the outage, from the last
+    # instant of the killed process to the first of the restarted one
+    out = [_stamp(m) for _, m in data['/' + OUTPUT[victim]]]
+    killed_ns, victim_ns = next((a, b) for a, b in zip(out, out[1:])
+                                if b - a > GAP[victim] and a >= (KILL_AT - 0.05) * cv.NS)
+    cmds = [(_stamp(m), cv.msg_to_torques(m, 4)[1]) for _, m in data['/torque_commands']]
+    assert all(np.all(np.isfinite(u)) for _, u in cmds)
+    # the loop is whole again at the first torque computed from an estimate (not the zero safe
+    # command) for an instant the restarted victim has served
+    back_ns = next(s for s, u in cmds if s >= victim_ns and np.any(u != 0.0))
+    t, tips = zip(*(cv.msg_to_tips(m, 4) for _, m in data['/tip_positions']))
     t = np.asarray(t)
     tips = np.asarray(tips)[..., :2]
-    assert np.all(np.diff(t) == MS)              # every period on the probe, none lost
-    torques = [cv.msg_to_torques(m, 4)[1] for m in got[TORQUE_COMMANDS]]
-    assert all(np.all(np.isfinite(u)) for u in torques)
-    steps = int(diag['simulator']['steps'])
+    steps = int(last['simulator']['steps'])
+    assert steps == int(round(duration / 1e-3)) and np.all(np.diff(t) == MS)
     lost = steps + 1 - len(t)
-    timeouts = int(diag['simulator'].get('timeouts', 0))
-    safe = int(diag['controller'].get('safe_commands', 0))
+    timeouts = int(last['simulator'].get('timeouts', 0))
+    safe = int(last['controller'].get('safe_commands', 0))
     if victim == 'estimator':
         assert safe > 0                          # the controller commanded zero meanwhile
     else:
         assert timeouts > 0                      # the simulator held the last command meanwhile
-    forces = np.asarray([m.effort for m in got[CUBE_CONTACTS]])
+    forces = np.asarray([m.effort for _, m in data['/cube_contacts']])
     k = np.minimum(t // (10 * MS), len(forces) - 1)
     err, free, excursion = tracking_error(t / cv.NS, tips, forces[k] > 0, GraspProfile(**SHORT), tips[0])
     ends, ok = on_target(t / cv.NS, err, free, excursion)
     assert ok[ends < KILL_AT].all()                # on target before the crash
     rec = recovery_time(t / cv.NS, err, free, excursion, since=back_ns / cv.NS)
-    outage = (back_ns - killed_ns) / cv.NS
-    print(f'{victim}: killed at {killed_ns / cv.NS:.3f} s, back at {back_ns / cv.NS:.3f} s '
-          f'({back_wall:.1f} s wall), recovery {rec:.3f} s; timeouts {timeouts}, safe {safe}, lost {lost}')
+    outage_s = (back_ns - killed_ns) / cv.NS
+    print(f'{victim}: last output at {killed_ns / cv.NS:.3f} s, tracking at {back_ns / cv.NS:.3f} s, '
+          f'recovery {rec:.3f} s; timeouts {timeouts}, safe {safe}, lost {lost}')
+    assert back_ns / cv.NS + 1.0 <= duration       # a full second left to recover in
     assert rec <= 1.0, rec
     assert lost == 0
-    hold = (f'simulator held the last command for {timeouts} periods' if victim != 'estimator'
-            else f'controller sent zero torque for {safe} periods')
-    record(f'crashed_{victim}', injected=f'SIGKILL of the {victim} process at t = {killed_ns / cv.NS:.3f} s, '
-           'then restarted', times=1, crashes=0, nonfinite_outputs=0, messages_lost=lost,
-           recovery_s=rec, notes=f'{hold}; back {outage:.3f} s of sim time ({back_wall:.1f} s wall) '
-           'after the kill')
+    during = {s: u for s, u in cmds if killed_ns < s < back_ns}
+    held = (back_ns - killed_ns) // MS - 1 - len(during)        # instants no command answered
+    zeroed = sum(1 for u in during.values() if np.all(u == 0.0))
+    hold = (f'{held} periods held by the simulator, {zeroed} zero-torque safe commands'
+            if held else f'{zeroed} zero-torque safe commands from the controller')
+    record(f'crashed_{victim}', injected=f'SIGKILL of the {victim} process at t ≈ {killed_ns / cv.NS:.2f} s '
+           '(closing), then restarted', times=1, crashes=0, nonfinite_outputs=0, messages_lost=lost,
+           recovery_s=rec, notes=f'{hold}; tracking again {outage_s:.3f} s of sim time after its last '
+           'output')
 
 
 def _spawn_recorder(env, bag, name: str, log_dir):
@@ -227,3 +243,57 @@ def test_recording_a_10s_grasp_loses_nothing_and_signals_leave_readable_bags(tmp
            notes=f'{sum(published.values())} messages published = in the full bag; the signalled bags '
                  f'open and hold every loop message up to t = {signalled["SIGINT"] / cv.NS:.3f} s and '
                  f'{signalled["SIGTERM"] / cv.NS:.3f} s')
+
+
+def test_restarted_simulator_clock_jumps_back_and_every_node_resets(tmp_path):
+    """SIGKILL the simulator mid-grasp and start it again: its clock restarts at 0, and the
+    estimator, the trajectory node and the controller each reset (no negative time step) and the
+    new grasp is tracked on target from the new rest pose."""
+    env = ros_env()
+    sim_params = {'min_tip_subscribers': 3, 'lockstep_timeout': 0.05}
+    with ros_context() as (ctx, executor), Graph(env, tmp_path / 'logs') as graph:
+        probe = Probe(ctx)
+        for t, msg, qos in ((TIP_POSITIONS, PoseArray, LOOP_QOS), (TORQUE_COMMANDS, JointState, LOOP_QOS),
+                            (CUBE_CONTACTS, JointState, STREAM_QOS), (DIAGNOSTICS, DiagnosticArray, STREAM_QOS)):
+            probe.listen(msg, t, qos)
+        executor.add_node(probe)
+        got = probe.received
+        for node in ('estimator', 'trajectory', 'controller'):
+            graph.start(node, dict(SHORT) if node == 'trajectory' else {})
+        wired = probe.create_subscription(JointState, TORQUE_COMMANDS, lambda m: None, LOOP_QOS)
+        assert spin_until(executor, lambda: wired.get_publisher_count() > 0, 60.0)
+        graph.start('simulator', sim_params)
+        assert spin_until(executor, lambda: got[TIP_POSITIONS]
+                          and _stamp(got[TIP_POSITIONS][-1]) >= KILL_AT * cv.NS, 120.0)
+        graph.procs['simulator'].popen.send_signal(signal.SIGKILL)
+        graph.procs['simulator'].popen.wait(10)
+        first_run = len(got[TIP_POSITIONS])
+        graph.start('simulator', {**sim_params, 'duration': 1.0})
+        assert graph.wait('simulator', 300.0, lambda: executor.spin_once(timeout_sec=0.0)) == 0
+        alive = {n: p.alive() for n, p in graph.procs.items() if n != 'simulator'}
+        codes = graph.stop_all()
+        spin_until(executor, lambda: False, 1.0)
+        diag = {n: _last_diagnostics(got[DIAGNOSTICS], n) for n in ('estimator', 'trajectory', 'controller')}
+    assert all(alive.values()) and all(c == 0 for c in codes.values()), (alive, codes)
+    resets = {n: int(d.get('resets', 0)) for n, d in diag.items()}
+    assert all(r >= 1 for r in resets.values()), resets
+    assert all(np.all(np.isfinite(cv.msg_to_torques(m, 4)[1])) for m in got[TORQUE_COMMANDS])
+    # the second run: from t = 0 again, every period, tracked on target from its own rest pose
+    second = got[TIP_POSITIONS][first_run:]
+    start = next(i for i, m in enumerate(second) if _stamp(m) == 0)
+    t, tips = zip(*(cv.msg_to_tips(m, 4) for m in second[start:]))
+    t = np.asarray(t)
+    assert np.all(np.diff(t) > 0) and t[-1] == 1000 * MS     # (the probe may miss a few under load)
+    tips = np.asarray(tips)[..., :2]
+    contacts = got[CUBE_CONTACTS]
+    restart = max(i for i, m in enumerate(contacts) if _stamp(m) == 0)
+    forces = np.asarray([m.effort for m in contacts[restart:]])
+    k = np.minimum(t // (10 * MS), len(forces) - 1)
+    err, free, excursion = tracking_error(t / cv.NS, tips, forces[k] > 0, GraspProfile(**SHORT), tips[0])
+    ends, ok = on_target(t / cv.NS, err, free, excursion)
+    assert ok.all()
+    record('clock_jump_back', injected='SIGKILL of the simulator at t ≈ 0.3 s and a new one from '
+           't = 0 (5-process graph)', times=1, crashes=0, nonfinite_outputs=0, messages_lost=None,
+           recovery_s=0.0, notes=f'resets: estimator {resets["estimator"]}, trajectory '
+           f'{resets["trajectory"]}, controller {resets["controller"]}; the new grasp on target from '
+           'its first window')

@@ -8,6 +8,7 @@ from typing import Callable
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 import rclpy
+from rclpy.duration import Duration
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.signals import SignalHandlerOptions
 from rclpy.node import Node
@@ -75,6 +76,10 @@ class Diagnostics:
     def set_status(self, level: int, message: str) -> None:
         self.level, self.message = level, message
 
+    def flush(self, timeout: float = 2.0) -> bool:
+        """Wait up to ``timeout`` s until every subscriber acknowledged what was published."""
+        return self._pub.wait_for_all_acked(Duration(nanoseconds=int(timeout * 1e9)))
+
     def publish(self) -> None:
         status = DiagnosticStatus(level=self.level, name=self.node.get_fully_qualified_name(),
                                   message=self.message, hardware_id=self._hardware_id)
@@ -117,7 +122,8 @@ def run(node_factory: Callable[..., Node], args: list[str] | None = None) -> int
         if node is not None:
             diag = getattr(node, 'diag', None)
             if isinstance(diag, Diagnostics) and rclpy.ok():
-                diag.publish()                  # final counters, for recorders still listening
+                diag.publish()                  # final counters, for recorders still listening:
+                diag.flush()                    # delivered before the process goes
             close = getattr(node, 'close', None)
             if close is not None:
                 close()

@@ -80,8 +80,9 @@ PARAMS = (
     Param('estimate_timeout', 0.002, 'sim time without an arriving estimate before the safe '
           'command (zero torque) is sent; more than control_period (default: 2 periods)', 's',
           1e-4, 60.0),
-    Param('reset_on_jump', 0.5, 'a stamp this far behind the last one (a simulator restart) resets '
-          'the controller instead of being rejected', 's', 1e-3, 1e6, read_only=True),
+    Param('reset_on_jump', 0.1, 'a stamp this far behind the last one (a simulator restart) resets '
+          'the controller instead of being rejected (as in the estimator and trajectory node)', 's',
+          1e-3, 1e6, read_only=True),
     Param('clock_timeout', 0.5, 'wall time without /clock or an estimate after which sim time is '
           'taken to have stopped (ERROR; zero torque for the newest unanswered instant)', 's', 1e-2,
           600.0),
