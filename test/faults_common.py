@@ -19,6 +19,11 @@ from soft_gripper_sdre.trajectory import GraspProfile, GraspTrajectory
 TARGET_PCT = 5.0
 #: window of the moving RMSE that decides whether tracking is back [s]
 WINDOW = 0.1
+#: the item of issue 5 each record answers, and the table's row order
+ITEMS = {'fuzz_simulator': 1, 'fuzz_estimator': 1, 'fuzz_trajectory': 1, 'fuzz_controller': 1,
+         'fuzz_controller_clock': 1, 'lost_estimates': 2, 'crashed_controller': 3,
+         'crashed_estimator': 4, 'crashed_trajectory': 4, 'riccati_trouble': 5, 'recording': 8,
+         'clock_jump_back': 9}
 OUT = Path(os.environ.get('FAULTS_OUT', Path(__file__).resolve().parents[1] / 'runs' / 'faults'))
 
 
@@ -93,12 +98,14 @@ def _fmt(value, unit: str = '') -> str:
 
 def table(directory: Path = OUT) -> str:
     """The README table of every record in ``directory``."""
-    rows = ['| fault | injected | times | crashes | non-finite outputs | messages lost | recovery '
-            '(sim time) | notes |', '| --- | --- | ---: | ---: | ---: | ---: | ---: | --- |']
-    for path in sorted(directory.glob('*.json')):
-        r = json.loads(path.read_text())
+    rows = ['| # | fault | injected | times | crashes | non-finite outputs | messages lost | recovery '
+            '(sim time) | notes |', '| ---: | --- | --- | ---: | ---: | ---: | ---: | ---: | --- |']
+    records = [json.loads(path.read_text()) for path in directory.glob('*.json')]
+    order = list(ITEMS)
+    records.sort(key=lambda r: order.index(r['fault']) if r['fault'] in order else len(order))
+    for r in records:
         rec = r.get('recovery_s')
-        rows.append(f'| {r["fault"]} | {r["injected"]} | {r["times"]} | {r.get("crashes", 0)} | '
+        rows.append(f'| {ITEMS.get(r["fault"], "")} | {r["fault"]} | {r["injected"]} | {r["times"]} | {r.get("crashes", 0)} | '
                     f'{r.get("nonfinite_outputs", 0)} | {_fmt(r.get("messages_lost"))} | '
                     f'{_fmt(rec, " s")} | {r.get("notes", "")} |')
     return '\n'.join(rows)

@@ -177,5 +177,5 @@ def test_riccati_trouble_falls_back_counted_and_the_torque_stays_finite_and_boun
     assert fallbacks <= failed                   # (before any valid gains a finger gets zero)
     record('riccati_trouble', injected='4-finger steps through a test model: G2 near singular or '
            '(A, G) not stabilisable in half of the states', times=failed, crashes=0,
-           nonfinite_outputs=0, messages_lost=None, recovery_s=0.0,
-           notes=f'{fallbacks} fallbacks to the last valid gains (counted), |u| <= {limit} N·m throughout')
+           nonfinite_outputs=0, messages_lost=None, recovery_s=None,
+           notes=f'{fallbacks} fallbacks to the last valid gains (counted), every torque within ±{limit} N·m')

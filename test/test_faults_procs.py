@@ -152,8 +152,7 @@ def test_crashed_node_is_restarted_and_the_grasp_recovers(victim, tmp_path):
     during = {s: u for s, u in cmds if killed_ns < s < back_ns}
     held = (back_ns - killed_ns) // MS - 1 - len(during)        # instants no command answered
     zeroed = sum(1 for u in during.values() if np.all(u == 0.0))
-    hold = (f'{held} periods held by the simulator, {zeroed} zero-torque safe commands'
-            if held else f'{zeroed} zero-torque safe commands from the controller')
+    hold = f'{held} period(s) held by the simulator, {zeroed} zero-torque safe command(s)'
     record(f'crashed_{victim}', injected=f'SIGKILL of the {victim} process at t ≈ {killed_ns / cv.NS:.2f} s '
            '(closing), then restarted', times=1, crashes=0, nonfinite_outputs=0, messages_lost=lost,
            recovery_s=rec, notes=f'{hold}; tracking again {outage_s:.3f} s of sim time after its last '
