@@ -127,7 +127,7 @@ class ControllerNode(Node):
         self.clock_ns = -1                      # newest /clock tick
         self.est_heard_ns = -1                  # sim time at which the last estimate arrived
         self.last_heard = time.monotonic()      # wall time of the last tick or estimate
-        self.stale = False                      # estimates older than estimate_timeout
+        self.stale = False                      # no estimate for estimate_timeout of sim time
         self.clock_stopped = False              # nothing heard for clock_timeout of wall time
         self._compute_s = []
 
