@@ -8,7 +8,6 @@ non-finite, and tracking comes back on target. Slow: each run is tens of seconds
 from __future__ import annotations
 
 import signal
-import time
 
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseArray
