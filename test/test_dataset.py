@@ -152,3 +152,29 @@ def test_record_without_a_usable_finite_run_is_refused(tmp_path, record, bad_row
     with pytest.raises(DatasetError, match='fewer than 10 consecutive finite samples') as exc:
         load_record(path)
     assert str(path) in str(exc.value)
+
+
+class _OpensAFile:
+    """Unpickling this object calls open(marker, 'w'): a stand-in for arbitrary code."""
+
+    def __init__(self, marker):
+        self.marker = str(marker)
+
+    def __reduce__(self):
+        return (open, (self.marker, 'w'))
+
+
+def test_pickled_payload_is_refused_without_running_it(tmp_path, record):
+    """An npz carrying an object array is refused with a clear message; the payload never runs."""
+    marker = tmp_path / 'code_ran'
+    path = tmp_path / 'u1.npz'
+    payload = np.empty(1, dtype=object)
+    payload[0] = _OpensAFile(marker)
+    np.savez(path, **{k: v for k, v in record.items()}, extra=payload)
+    with pytest.raises(DatasetError, match='pickled objects') as exc:
+        load_record(path)
+    assert str(path) in str(exc.value)
+    assert not marker.exists(), 'the pickled payload was executed'
+    with np.load(path, allow_pickle=True) as d:       # the payload is live: a trusting load runs it
+        d['extra'][0].close()
+    assert marker.exists()

@@ -12,6 +12,7 @@ from geometry_msgs.msg import Pose, PoseArray, Transform, Twist
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import MultiDOFJointTrajectory, MultiDOFJointTrajectoryPoint
 
+from faults_common import record
 from rosutil import Probe, overrides, ros_context, spin_until
 from soft_gripper_sdre.model import SDCModel
 from soft_gripper_sdre.nodes import conversions as cv
@@ -128,6 +129,13 @@ def _fuzz(executor, pub, make, node, received, n=N_MESSAGES):
             f'message {i} not handled; counters {dict(node.diag.counters)}')
 
 
+def _record(node: str, topic: str, rejected: int, bad: int) -> None:
+    record(f'fuzz_{node}', injected=f'hostile {topic} messages (seeded)', times=N_MESSAGES, crashes=0,
+           nonfinite_outputs=0, messages_lost=None, recovery_s=None,
+           notes=f'{rejected} rejected and counted, of which {bad} held NaN/Inf; a good message is '
+                 'answered afterwards')
+
+
 def _rejected(node, keys) -> int:
     return sum(node.diag.counters[k] for k in keys)
 
@@ -150,6 +158,7 @@ def test_fuzzed_torque_commands_never_reach_the_physics():
         assert rejected >= fz.bad > 50
         assert np.all(np.isfinite(sim.sim.truth().tip_pos))
         assert _finite_outputs(probe.received[TIP_POSITIONS], lambda m: cv.msg_to_tips(m, 4)[1])
+    _record('simulator', 'torque_commands', rejected, fz.bad)
 
 
 def test_fuzzed_tips_never_reach_the_estimate():
@@ -165,6 +174,7 @@ def test_fuzzed_tips_never_reach_the_estimate():
         good = cv.tips_to_msg(10**15, np.zeros((4, 3)))
         pub.publish(good)
         assert spin_until(executor, lambda: len(out) > before)
+        _record('estimator', 'tip_positions', _rejected(node, ('bad_message', 'stale')), fz.bad)
 
 
 def test_fuzzed_tips_never_reach_the_reference():
@@ -175,6 +185,7 @@ def test_fuzzed_tips_never_reach_the_reference():
         assert _rejected(node, ('bad_message', 'stale')) >= fz.bad > 50
         assert _finite_outputs(probe.received[GRASP_REFERENCE],
                                lambda m: np.concatenate([a.ravel() for a in cv.msg_to_reference(m, 4)[2:]]))
+        _record('trajectory', 'tip_positions', _rejected(node, ('bad_message', 'stale')), fz.bad)
 
 
 def test_fuzzed_estimates_and_references_never_reach_the_actuators():
@@ -203,3 +214,52 @@ def test_fuzzed_estimates_and_references_never_reach_the_actuators():
         n = len(cmds)
         assert spin_until(executor, lambda: len(cmds) > n, 5.0)
         assert _finite_outputs(cmds, lambda m: cv.msg_to_torques(m, 4)[1])
+        c = node.diag.counters
+        _record('controller', 'state_estimate + grasp_reference (500 each)', c['bad_reference']
+                + c['old_reference'] + c['bad_estimate'] + c['old_estimate'], fz.bad)
+
+
+def test_fuzzed_clock_ticks_never_reach_the_actuators_as_anything_but_zero():
+    """/clock at zero, in the past, far ahead and jumping back: the controller resets or sends its
+    safe command, stamped with the tick, and tracks again after a clean restart of time."""
+    from rosgraph_msgs.msg import Clock
+    from soft_gripper_sdre.nodes.topics import CLOCK, CLOCK_QOS
+    fz = Fuzz(5)
+    model = SDCModel()
+    rest = np.repeat(model.rest_tip[None, :2], 4, 0)
+    times = np.arange(0, 21) * 5_000_000
+    pos = np.repeat(rest[None], 21, 0)
+    with ros_context() as (ctx, executor):
+        node, probe, est_pub, ref_pub = make_controller(ctx, executor)
+        clock_pub = probe.create_publisher(Clock, CLOCK, CLOCK_QOS)
+        assert spin_until(executor, lambda: clock_pub.get_subscription_count() > 0, 20.0)
+        cmds = probe.received[TORQUE_COMMANDS]
+        ref_pub.publish(cv.reference_to_msg(0, times, pos, 0 * pos, 0 * pos))
+        est_pub.publish(cv.estimate_to_msg(1_000_000, rest, np.zeros((4, 2))))
+        assert spin_until(executor, lambda: len(cmds) == 1, 5.0)
+        sent = set()
+
+        def hostile_tick():
+            sec = int(fz.rng.choice([0, 0, 1, 2, 10**6, 2**31 - 1]))
+            msg = Clock()
+            msg.clock.sec, msg.clock.nanosec = sec, int(fz.rng.integers(0, 10**9))
+            sent.add(cv.from_time(msg.clock))
+            return msg
+        _fuzz(executor, clock_pub, hostile_tick, node, ('ticks',))
+        assert spin_until(executor, lambda: len(cmds) >= 1 + node.diag.counters['safe_commands'], 5.0)
+        assert node.diag.counters['safe_commands'] > 0 and node.diag.counters['resets'] > 0
+        for msg in cmds[1:]:
+            stamp, u = cv.msg_to_torques(msg, 4)
+            assert stamp in sent and np.all(u == 0.0)
+        # a clean restart of time: the controller resets and tracks again
+        ref_pub.publish(cv.reference_to_msg(0, times, pos + 0.001, 0 * pos, 0 * pos))
+        est_pub.publish(cv.estimate_to_msg(0, rest, np.zeros((4, 2))))
+        n = len(cmds)
+        assert spin_until(executor, lambda: len(cmds) > n, 5.0)
+        assert np.abs(cv.msg_to_torques(cmds[-1], 4)[1]).max() > 0
+        assert _finite_outputs(cmds, lambda m: cv.msg_to_torques(m, 4)[1])
+        c = node.diag.counters
+        record('fuzz_controller_clock', injected='hostile /clock ticks (zero, past, far future, '
+               'jumping back)', times=N_MESSAGES, crashes=0, nonfinite_outputs=0, messages_lost=None,
+               recovery_s=None, notes=f'{c["resets"]} resets, {c["safe_commands"]} safe commands '
+               '(zero torque stamped with the tick); tracks after a clean restart')

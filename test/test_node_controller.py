@@ -138,20 +138,89 @@ def test_bad_references_are_rejected(model):
         assert not spin_until(executor, lambda: commands(probe), 0.3)       # no torque from them
 
 
-def test_stale_estimates_command_zero_torque_until_data_returns(model):
+def test_estimates_older_than_the_timeout_in_sim_time_get_the_safe_command(model):
+    """Ticks of /clock with no estimate: zero torque stamped with the tick, ERROR, then tracking."""
+    from rosgraph_msgs.msg import Clock
+    from soft_gripper_sdre.nodes.common import ERROR, OK
+    from soft_gripper_sdre.nodes.topics import CLOCK, CLOCK_QOS
     rest = np.repeat(model.rest_tip[None, :2], 4, 0)
     with ros_context() as (ctx, executor):
-        node, probe, est_pub, ref_pub = make(ctx, executor, estimate_timeout=0.1, stale_period=0.02)
+        node, probe, est_pub, ref_pub = make(ctx, executor, estimate_timeout=0.002)
+        clock_pub = probe.create_publisher(Clock, CLOCK, CLOCK_QOS)
+        assert spin_until(executor, lambda: clock_pub.get_subscription_count() > 0, 20.0)
+
+        def tick(k):
+            clock_pub.publish(cv.clock_msg(k * MS))
+            assert spin_until(executor, lambda: node.clock_ns == k * MS, 5.0)
+
         ref_pub.publish(horizon(rest, 0, points=200)[0])
+        assert spin_until(executor, lambda: node.diag.counters['references'] == 1)
+        tick(1)
         est_pub.publish(estimate(1 * MS, rest + 0.002))        # off the reference: non-zero torque
         assert spin_until(executor, lambda: len(commands(probe)) == 1)
         assert np.abs(cv.msg_to_torques(commands(probe)[0], 4)[1]).max() > 1e-4
-        assert spin_until(executor, lambda: node.stale and len(commands(probe)) >= 4, 5.0)
-        for msg in commands(probe)[1:]:
-            np.testing.assert_array_equal(cv.msg_to_torques(msg, 4)[1], 0.0)
-        est_pub.publish(estimate(2 * MS, rest))
-        assert spin_until(executor, lambda: not node.stale)
-        assert node.diag.counters['stale_zero_commands'] >= 3
+        tick(2)                                                # 1 period behind: still waiting
+        assert not spin_until(executor, lambda: len(commands(probe)) > 1, 0.2)
+        assert node.diag.level == OK
+        for k in (3, 4, 5):                                    # 2, 3, 4 periods behind
+            tick(k)
+            assert spin_until(executor, lambda: len(commands(probe)) == k - 1)
+        assert node.stale and node.diag.level == ERROR
+        for k, msg in zip((3, 4, 5), commands(probe)[1:]):
+            stamp, u = cv.msg_to_torques(msg, 4)
+            assert stamp == k * MS
+            np.testing.assert_array_equal(u, 0.0)
+        assert node.diag.counters['safe_commands'] == 3
+        est_pub.publish(estimate(5 * MS, rest))                # already answered with zero: late
+        assert spin_until(executor, lambda: node.diag.counters['late_estimates'] == 1)
+        assert not node.stale and node.diag.level == OK
+        tick(6)
+        est_pub.publish(estimate(6 * MS, rest + 0.002))        # tracking again
+        assert spin_until(executor, lambda: len(commands(probe)) == 5)
+        stamp, u = cv.msg_to_torques(commands(probe)[-1], 4)
+        assert stamp == 6 * MS and np.abs(u).max() > 1e-4
+
+
+def test_wall_watchdog_when_sim_time_stops(model):
+    """No tick and no estimate for clock_timeout of wall time: ERROR, one zero for the open instant."""
+    from soft_gripper_sdre.nodes.common import ERROR, OK
+    rest = np.repeat(model.rest_tip[None, :2], 4, 0)
+    with ros_context() as (ctx, executor):
+        node, probe, est_pub, ref_pub = make(ctx, executor, clock_timeout=0.2)
+        est_pub.publish(estimate(4 * MS, rest))                # no reference: stays unanswered
+        assert spin_until(executor, lambda: node.diag.counters['estimates'] == 1)
+        assert spin_until(executor, lambda: node.clock_stopped, 5.0)
+        assert node.diag.level == ERROR and 'sim time stopped' in node.diag.message
+        assert spin_until(executor, lambda: len(commands(probe)) == 1)
+        stamp, u = cv.msg_to_torques(commands(probe)[0], 4)
+        assert stamp == 4 * MS and np.all(u == 0.0)
+        assert not spin_until(executor, lambda: len(commands(probe)) > 1, 0.5)   # nothing newer
+        ref_pub.publish(horizon(rest, 0)[0])
+        est_pub.publish(estimate(5 * MS, rest))
+        assert spin_until(executor, lambda: len(commands(probe)) == 2)
+        assert not node.clock_stopped and node.diag.level == OK
+
+
+@pytest.mark.parametrize('changes, needle', [
+    ({'estimate_timeout': 0.001}, 'more than one control_period'),
+    ({'estimate_timeout': -1.0}, ''),
+    ({'clock_timeout': 0.0}, ''),
+    ({'q_pos': -1.0}, ''),
+    ({'solver': 'magic'}, ''),
+])
+def test_runtime_parameter_changes_are_refused_with_the_reason_and_the_old_value_stays(model, changes, needle):
+    from rclpy.parameter import Parameter
+    with ros_context() as (ctx, executor):
+        node = ControllerNode(context=ctx)
+        before = {k: node.get_parameter(k).value for k in changes}
+        timeout_ns = node.timeout_ns
+        result = node.set_parameters([Parameter(k, value=v) for k, v in changes.items()])[0]
+        assert not result.successful and result.reason
+        assert needle in result.reason
+        assert {k: node.get_parameter(k).value for k in changes} == before
+        assert node.timeout_ns == timeout_ns and node.p['estimate_timeout'] == 0.002
+        assert node.set_parameters([Parameter('estimate_timeout', value=0.005)])[0].successful
+        assert node.timeout_ns == 5 * MS
 
 
 @pytest.mark.parametrize('args, needle', [

@@ -118,7 +118,9 @@ def test_bad_tip_messages_are_counted_and_a_restart_takes_a_new_rest_pose():
     (dict(publish_period=0.06), 'horizon'), (dict(t_close=0.0), 't_close'), (dict(t_start=-1.0), 't_start'),
     (dict(grasp_fingers=[0, 0]), 'grasp_fingers'), (dict(grasp_fingers=[0, 4]), 'grasp_fingers'),
     (dict(grasp_fingers=[1, 3], n_fingers=2), 'grasp_fingers'), (dict(others='close'), 'others'),
-    (dict(close_distance=float('nan')), 'close_distance'), (dict(grasp_fingers='0,2'), 'grasp_fingers')])
+    (dict(close_distance=float('nan')), 'close_distance'), (dict(grasp_fingers='0,2'), 'grasp_fingers'),
+    (dict(rest_pose='0.0, 0.01'), 'rest_pose'), (dict(rest_pose='a b c d e f g h'), 'rest_pose'),
+    (dict(rest_pose=' '.join(['nan'] * 8)), 'rest_pose')])
 def test_bad_parameters_fail_at_startup_naming_the_parameter(params, name):
     with ros_context() as (ctx, executor):
         with pytest.raises(ParameterError, match=name):
@@ -131,3 +133,31 @@ def test_defaults_are_the_grasp_profile_with_every_finger_moving():
         assert node.profile == GraspProfile(others='open')
     doc = yaml.safe_load(CONFIG.read_text())
     assert doc == {'trajectory': {'ros__parameters': {p.name: p.default for p in PARAMS}}}
+
+
+def test_runtime_changes_are_checked_and_refusals_keep_the_old_value():
+    from rclpy.parameter import Parameter
+    with ros_context() as (ctx, executor):
+        node = TrajectoryNode(context=ctx)
+        res = node.set_parameters([Parameter('reset_on_jump', value=-1.0)])[0]   # a negative period
+        assert not res.successful and res.reason
+        res = node.set_parameters([Parameter('others', value='wave')])[0]        # read-only mode
+        assert not res.successful and 'others' in res.reason
+        assert node.get_parameter('others').value == 'open' and node.jump_ns == 100 * MS
+        assert node.set_parameters([Parameter('reset_on_jump', value=0.3)])[0].successful
+        assert node.jump_ns == 300 * MS
+
+
+def test_a_restart_mid_run_keeps_the_given_rest_pose():
+    """With rest_pose the first tips (bent mid-grasp) do not become the rest; without it, flagged."""
+    rest = ', '.join(repr(v) for v in REST[:, :2].ravel().tolist())
+    bent = REST + 0.01
+    with ros_context() as (ctx, executor):
+        node, probe, pub = make(ctx, executor, rest_pose=rest, **FAST)
+        send(executor, node, pub, cv.tips_to_msg(30 * MS, bent))
+        np.testing.assert_array_equal(node.traj.rest, REST[:, :2])
+        assert node.diag.counters['late_start'] == 0 and references(executor, node, probe)
+    with ros_context() as (ctx, executor):
+        node, probe, pub = make(ctx, executor, **FAST)
+        send(executor, node, pub, cv.tips_to_msg(30 * MS, bent))
+        assert node.diag.counters['late_start'] == 1

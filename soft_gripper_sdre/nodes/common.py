@@ -68,17 +68,19 @@ class Diagnostics:
         self.counters[key] += n
 
     def problem(self, key: str, why: str) -> None:
-        """Count ``key``, go to WARN with ``why`` and warn (throttled per key)."""
+        """Count ``key``, go to WARN with ``why`` (an ERROR stays) and warn (throttled per key)."""
         self.count(key)
-        self.set_status(WARN, why)
+        if self.level != ERROR:
+            self.set_status(WARN, why)
         self._clean = 0
         self._log.warn(key, why)
 
     def good(self, key: str, message: str, clear_after: int = 1000) -> None:
-        """Count ``key``; after ``clear_after`` good events in a row a WARN returns to OK."""
+        """Count ``key``; after ``clear_after`` good events in a row a WARN returns to OK (an
+        ERROR is cleared only by the node that raised it)."""
         self.count(key)
         self._clean += 1
-        if self._clean == clear_after and self.level != OK:
+        if self._clean == clear_after and self.level == WARN:
             self.set_status(OK, message)
 
     def set_status(self, level: int, message: str) -> None:

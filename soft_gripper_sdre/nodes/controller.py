@@ -12,11 +12,27 @@ on which message won the race, so lockstep runs stay deterministic.
 Nothing bad ever reaches the actuators: malformed, non-finite, wrong-size or old messages are
 rejected (throttled warning, counted) and produce no torque; the SDRE core falls back to the last
 valid gains when a Riccati check fails and saturates at ``torque_limit``; a torque that is still
-not finite is replaced by zero and counted. When no fresh estimate has arrived for
-``estimate_timeout`` seconds of wall time (once estimates have started) the node publishes zero
-torque every ``stale_period`` and reports ``stale`` until data returns. Those commands carry the
-node clock's time: run with ``use_sim_time:=true`` in realtime mode so the simulator accepts them
-(in lockstep the simulator's own ``on_timeout`` decides what a missing command means).
+not finite is replaced by zero and counted.
+
+Lost estimates are judged in sim time. The node follows ``/clock``; on a tick t when no estimate
+has arrived for ``estimate_timeout`` of sim time (two control periods by default; an estimate
+"arrives at" the newer of its stamp and the tick then current), it publishes its safe command,
+zero torque stamped t (the lockstep simulator accepts it: it answers the period the simulator
+is waiting on), counts it (``safe_commands``) and reports ERROR until an estimate arrives again;
+tracking then resumes. While estimates flow, the estimate of the previous period has always
+arrived before the simulator publishes the next tick, so a fault-free lockstep run never takes
+this path. An estimator that is alive but behind (just restarted, or starved of CPU) is not
+silent: its estimates for instants already answered are skipped (``late_estimates``), no safe
+command is sent, and the simulator waits for it (its ``lockstep_timeout``) until it has caught
+up — the loop is never driven past a slow estimator. Only the instant the estimates come back is
+ambiguous: if its tick wins the race against its estimate, that one period is still answered
+with zero.
+
+A wall-time watchdog is the last resort for when sim time itself stops (the simulator is dead or
+hung): after ``clock_timeout`` seconds of wall time without a tick or an estimate the node
+reports ERROR ("sim time stopped") and publishes zero torque for the newest instant it knows, if
+that instant is still unanswered (a simulator still waiting on it takes it); no later instant can
+be stamped honestly, so nothing more is sent until time moves again.
 A missing or bad model file ends the node at start-up with a message and a non-zero status.
 """
 from __future__ import annotations
@@ -27,6 +43,7 @@ import time
 
 import numpy as np
 from rclpy.node import Node
+from rosgraph_msgs.msg import Clock
 import torch
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import MultiDOFJointTrajectory
@@ -36,10 +53,10 @@ from soft_gripper_sdre.horizon import sample_horizon
 from soft_gripper_sdre.laws import accepts_ref_acc, make_law
 from soft_gripper_sdre.model import ModelFileError, SDCModel
 from soft_gripper_sdre.nodes import conversions as cv
-from soft_gripper_sdre.nodes.common import OK, WARN, Diagnostics, ThrottledLogger, run
-from soft_gripper_sdre.nodes.params import Param, ParameterError, declare_all
-from soft_gripper_sdre.nodes.topics import (GRASP_REFERENCE, LOOP_QOS, REFERENCE_QOS, STATE_ESTIMATE,
-                                            TORQUE_COMMANDS)
+from soft_gripper_sdre.nodes.common import ERROR, OK, Diagnostics, ThrottledLogger, run
+from soft_gripper_sdre.nodes.params import Param, ParameterError, declare_all, on_runtime_change
+from soft_gripper_sdre.nodes.topics import (CLOCK, CLOCK_QOS, GRASP_REFERENCE, LOOP_QOS, REFERENCE_QOS,
+                                            STATE_ESTIMATE, TORQUE_COMMANDS)
 from soft_gripper_sdre.sdre import Check
 
 PARAMS = (
@@ -67,12 +84,15 @@ PARAMS = (
           choices=('sdre', 'sdre_ff', 'lqr', 'pd'), read_only=True),
     Param('state_weights', False, 'sdre only: state-dependent Q(x) that rises with the tracking error',
           read_only=True),
-    Param('estimate_timeout', 0.5, 'wall time without a fresh estimate before zero torque is '
-          'commanded', 's', 1e-3, 60.0),
-    Param('reset_on_jump', 0.5, 'a stamp this far behind the last one (a simulator restart) resets '
-          'the controller instead of being rejected', 's', 1e-3, 1e6, read_only=True),
-    Param('stale_period', 0.05, 'wall period of the zero-torque commands while stale', 's', 1e-3, 10.0,
-          read_only=True),
+    Param('estimate_timeout', 0.002, 'sim time without an arriving estimate before the safe '
+          'command (zero torque) is sent; more than control_period (default: 2 periods)', 's',
+          1e-4, 60.0),
+    Param('reset_on_jump', 0.1, 'a stamp this far behind the last one (a simulator restart) resets '
+          'the controller instead of being rejected (as in the estimator and trajectory node)', 's',
+          1e-3, 1e6, read_only=True),
+    Param('clock_timeout', 0.5, 'wall time without /clock or an estimate after which sim time is '
+          'taken to have stopped (ERROR; zero torque for the newest unanswered instant)', 's', 1e-2,
+          600.0),
 )
 
 
@@ -94,6 +114,12 @@ class ControllerNode(Node):
             raise ParameterError(str(exc)) from None
         self.n = p['n_fingers']
         self.jump_ns = int(p['reset_on_jump'] * cv.NS)
+        reason = _check_timeouts(p)
+        if reason:
+            raise ParameterError(reason)
+        self.timeout_ns = int(round(p['estimate_timeout'] * cv.NS))
+        on_runtime_change(self, PARAMS, validate=lambda new: _check_timeouts({**self.p, **new}),
+                          apply=self._apply)
         try:
             self.ctrl = make_law(p['law'], model, weights, p['torque_limit'], n_fingers=self.n,
                                  method=p['solver'], lowpass_hz=p['torque_lowpass_hz'],
@@ -108,8 +134,11 @@ class ControllerNode(Node):
         self.last_est_ns = -1
         self.last_ref_ns = -1
         self.last_cmd_ns = -1
-        self.last_fresh = time.monotonic()
-        self.stale = False
+        self.clock_ns = -1                      # newest /clock tick
+        self.est_heard_ns = -1                  # sim time at which the last estimate arrived
+        self.last_heard = time.monotonic()      # wall time of the last tick or estimate
+        self.stale = False                      # no estimate for estimate_timeout of sim time
+        self.clock_stopped = False              # nothing heard for clock_timeout of wall time
         self._compute_s = []
 
         self.pub_cmd = self.create_publisher(JointState, TORQUE_COMMANDS, LOOP_QOS)
@@ -117,11 +146,12 @@ class ControllerNode(Node):
                                                 self.on_estimate, LOOP_QOS)
         self.sub_ref = self.create_subscription(MultiDOFJointTrajectory, GRASP_REFERENCE,
                                                 self.on_reference, REFERENCE_QOS)
+        self.sub_clock = self.create_subscription(Clock, CLOCK, self.on_clock, CLOCK_QOS)
         self.log = ThrottledLogger(self.get_logger())
         self.diag = Diagnostics(self)
         self.diag.values['model'] = str(model.path)
         self.diag.values['weights'] = f'q_pos={weights.q_pos:g} q_vel={weights.q_vel:g} r={weights.r:g}'
-        self._watchdog = self.create_timer(p['stale_period'], self._check_stale)
+        self._watchdog = self.create_timer(0.05, self._check_clock)
         self._stats_timer = self.create_timer(1.0, self._publish_stats)
         self.get_logger().info(
             f'model {model.path.name} (rest tip {1e3 * model.rest_tip[0]:.1f}, '
@@ -165,12 +195,17 @@ class ControllerNode(Node):
                          f'last accepted {self.last_est_ns} ns')
             return
         self.last_est_ns = stamp
-        self.last_fresh = time.monotonic()
+        self.est_heard_ns = max(stamp, self.clock_ns)
+        self._heard()
         if self.stale:
             self.stale = False
-            self.diag.set_status(OK, 'estimates are back')
-            self.get_logger().info('fresh state estimates again; tracking resumes')
+            self.diag.set_status(OK, 'estimates are back; tracking')
+            self.get_logger().info(f'state estimates are back at t = {stamp / cv.NS:.4f} s; tracking resumes')
         self.diag.count('estimates')
+        if stamp <= self.last_cmd_ns:           # this instant already got the safe command
+            self.diag.count('late_estimates')
+            self.pending = None
+            return
         ref = self._covering(stamp)
         if ref is None:
             if self.pending is not None:
@@ -186,7 +221,7 @@ class ControllerNode(Node):
         self.diag.count('resets')
         self.refs.clear()
         self.pending = None
-        self.last_est_ns = self.last_ref_ns = self.last_cmd_ns = -1
+        self.last_est_ns = self.last_ref_ns = self.last_cmd_ns = self.clock_ns = self.est_heard_ns = -1
         self.ctrl.reset()
 
     def _covering(self, t_ns: int):
@@ -197,8 +232,7 @@ class ControllerNode(Node):
         return None
 
     def _reject(self, key: str, why: str) -> None:
-        self.diag.count(key)
-        self.log.warn(key, f'rejected: {why}')
+        self.diag.problem(key, f'rejected: {why}')
 
     # -- the law -----------------------------------------------------------------------------
     def _control(self, stamp: int, x: np.ndarray, ref: tuple) -> None:
@@ -218,7 +252,7 @@ class ControllerNode(Node):
         self.pub_cmd.publish(cv.torques_to_msg(stamp, u))
         self.last_cmd_ns = stamp
         d = self.diag
-        d.count('commands')
+        d.good('commands', 'tracking')
         if not out.ok.all():
             d.count('check_failures', int((~out.ok).sum()))
             for flag in Check:
@@ -237,18 +271,55 @@ class ControllerNode(Node):
             d.values['max_residual'] = f'{res:.3g}'
 
     # -- liveness ----------------------------------------------------------------------------
-    def _check_stale(self) -> None:
-        if self.last_est_ns < 0 or time.monotonic() - self.last_fresh < self.p['estimate_timeout']:
+    def _apply(self, new: dict) -> None:
+        self.p.update(new)
+        self.timeout_ns = int(round(self.p['estimate_timeout'] * cv.NS))
+
+    def _heard(self) -> None:
+        self.last_heard = time.monotonic()
+        if self.clock_stopped:
+            self.clock_stopped = False
+            if not self.stale:
+                self.diag.set_status(OK, 'sim time moves again')
+
+    def on_clock(self, msg: Clock) -> None:
+        """Each sim-time tick: the safe command if the newest estimate is too old (module doc)."""
+        t = cv.from_time(msg.clock)
+        if self.clock_ns >= 0 and t < self.clock_ns - self.jump_ns:
+            self._restart(t, '/clock')
+        self.clock_ns = max(self.clock_ns, t)
+        self.diag.count('ticks')
+        self._heard()
+        if self.est_heard_ns < 0 or t - self.est_heard_ns < self.timeout_ns or t <= self.last_cmd_ns:
             return
         if not self.stale:
             self.stale = True
-            self.diag.set_status(WARN, f'no state_estimate for {self.p["estimate_timeout"]} s: '
-                                 'commanding zero torque')
-            self.get_logger().warning('state estimates are stale: commanding zero torque')
-        self.diag.count('stale_zero_commands')
-        stamp = max(self.get_clock().now().nanoseconds, self.last_cmd_ns + 1)
+            why = (f'no state_estimate since t = {self.est_heard_ns / cv.NS:.4f} s (estimate_timeout '
+                   f'{self.p["estimate_timeout"]:g} s of sim time): commanding zero torque')
+            self.diag.set_status(ERROR, why)
+            self.get_logger().error(why)
+        self._safe_command(t)
+
+    def _safe_command(self, stamp: int) -> None:
+        """Zero torque for the instant ``stamp``; the pending estimate, if any, is superseded."""
+        self.pending = None
         self.pub_cmd.publish(cv.torques_to_msg(stamp, np.zeros((self.n, 2))))
         self.last_cmd_ns = stamp
+        self.diag.count('safe_commands')
+
+    def _check_clock(self) -> None:
+        """Last resort (wall time): sim time has stopped, so the sim-time rule cannot fire."""
+        newest = max(self.clock_ns, self.last_est_ns)
+        if newest < 0 or time.monotonic() - self.last_heard < self.p['clock_timeout']:
+            return
+        if not self.clock_stopped:
+            self.clock_stopped = True
+            why = (f'no /clock or state_estimate for {self.p["clock_timeout"]:g} s of wall time: '
+                   f'sim time stopped at {newest / cv.NS:.4f} s')
+            self.diag.set_status(ERROR, why)
+            self.get_logger().error(why)
+        if newest > self.last_cmd_ns:
+            self._safe_command(newest)
 
     def _publish_stats(self) -> None:
         if self._compute_s:
@@ -256,6 +327,15 @@ class ControllerNode(Node):
             self.diag.values['compute_us_mean'] = f'{c.mean():.0f}'
             self.diag.values['compute_us_max'] = f'{c.max():.0f}'
             self._compute_s.clear()
+
+
+def _check_timeouts(p: dict) -> str | None:
+    """Why the timeouts in ``p`` are refused, or None."""
+    if not p['estimate_timeout'] > p['control_period']:
+        return (f"parameter 'estimate_timeout': {p['estimate_timeout']} s must be more than one "
+                f"control_period ({p['control_period']} s): every tick is a period ahead of the "
+                'newest estimate')
+    return None
 
 
 def main(args=None) -> int:

@@ -180,8 +180,7 @@ class SimulatorNode(Node):
             self.u_next = u
 
     def _reject(self, key: str, why: str) -> None:
-        self.diag.count(key)
-        self.log.warn(key, f'rejected: {why}')
+        self.diag.problem(key, f'rejected: {why}')
         if self.p['on_bad_command'] == 'zero':
             self.u_last = np.zeros((self.n, 2))
 

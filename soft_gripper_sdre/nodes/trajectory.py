@@ -17,6 +17,11 @@ depend on which one it uses.
 Malformed tip messages (wrong number of poses, NaN/Inf) and stamps not newer than the last are
 rejected with a throttled warning and counted; a backwards jump of more than ``reset_on_jump``
 seconds (a simulator restart) starts over: the next message is the rest pose again.
+
+A node restarted mid-run (after a crash) must not take the tips it first sees as the rest pose:
+they are wherever the grasp left them. Pass the rest pose the first instance used (its
+``/diagnostics`` value ``rest_pose``) as the ``rest_pose`` parameter; a first tip message after
+``t_start`` without it is flagged (``late_start``, WARN).
 """
 from __future__ import annotations
 
@@ -61,9 +66,26 @@ PARAMS = (
           'horizon)', 's', 1e-4, 1.0, read_only=True),
     Param('publish_period', 0.02, 'sim time between published horizons', 's', 1e-4, 30.0,
           read_only=True),
+    Param('rest_pose', '', "rest tips as 'x0, y0, x1, y1, …' (finger base frames); '' = the first "
+          "tip message. Give it when restarting the node mid-run: the tips then are not at rest", 'm',
+          read_only=True),
     Param('reset_on_jump', 0.1, 'a backwards stamp jump larger than this restarts from a new rest '
           'pose', 's', 1e-3, 1e3),
 )
+
+
+def _rest_pose(text: str, n: int) -> np.ndarray | None:
+    """The (n, 2) rest pose of the ``rest_pose`` parameter, or None if it is empty."""
+    if not text.strip():
+        return None
+    try:
+        values = np.array([float(v) for v in text.replace(',', ' ').split()])
+    except ValueError:
+        raise ParameterError(f"parameter 'rest_pose': {text!r} is not a list of numbers") from None
+    if values.size != 2 * n or not np.all(np.isfinite(values)):
+        raise ParameterError(f"parameter 'rest_pose': needs {2 * n} finite numbers (x, y of each "
+                             f'finger), got {text!r}')
+    return values.reshape(n, 2)
 
 
 def _profile(p: dict) -> GraspProfile:
@@ -100,6 +122,7 @@ class TrajectoryNode(Node):
             raise ParameterError(f"parameter 'horizon_step': {p['horizon_step']} s must be <= horizon "
                                  f"({p['horizon']} s)")
         self.jump_ns = int(round(p['reset_on_jump'] * cv.NS))
+        self.fixed_rest = _rest_pose(p['rest_pose'], self.n)
         on_runtime_change(self, PARAMS, apply=self._apply)
 
         self.traj: GraspTrajectory | None = None
@@ -136,7 +159,15 @@ class TrajectoryNode(Node):
         self.last_ns = stamp
         self.diag.good('tips', 'publishing')
         if self.traj is None:
-            self.traj = GraspTrajectory(tips, self.profile)
+            rest = self.fixed_rest
+            if rest is None:
+                rest = tips
+                if stamp > int(self.profile.t_start * cv.NS):
+                    self.diag.problem('late_start', f'first tip_positions at t = {stamp / cv.NS:.4f} s, '
+                                      'after the grasp began: taking them as the rest pose (give '
+                                      'rest_pose when restarting mid-run)')
+            self.traj = GraspTrajectory(rest, self.profile)
+            self.diag.values['rest_pose'] = ', '.join(f'{v:.6g}' for v in self.traj.rest.ravel().tolist())
             rest = ', '.join(f'({1e3 * x:.2f}, {1e3 * y:.2f})' for x, y in self.traj.rest.tolist())
             self.get_logger().info(f'rest pose at t = {stamp / cv.NS:.4f} s [mm]: {rest}')
             self.publish(stamp)
