@@ -33,6 +33,8 @@ from soft_gripper_sdre.control import DEFAULT_LOWPASS_HZ, TrackingController, We
 from soft_gripper_sdre.sdre import Check, SdreController, sdre_gains
 
 LAWS = ('sdre', 'sdre_ff', 'lqr', 'pd', 'oracle', 'oracle_exact', 'oracle_ff')
+#: the laws that run on the node graph (the oracles need the plant's joint state: in-process only)
+GRAPH_LAWS = ('sdre', 'sdre_ff', 'lqr', 'pd')
 #: tuned task-space PD gains (natural frequency² and 2ζω of the error dynamics, 1/s² and 1/s);
 #: tools/evaluate.py --tune-pd reproduces the tuning grid
 DEFAULT_PD = dict(kp=1.5e4, kd=40.0)

@@ -83,6 +83,10 @@ class Diagnostics:
         if self._clean == clear_after and self.level == WARN:
             self.set_status(OK, message)
 
+    def subscription_count(self) -> int:
+        """Subscribers matched on /diagnostics."""
+        return self._pub.get_subscription_count()
+
     def set_status(self, level: int, message: str) -> None:
         self.level, self.message = level, message
 
@@ -141,10 +145,13 @@ def make_executor(kind: str | None = None, context=None) -> Executor:
 def flush(node: Node, timeout: float = 2.0) -> bool:
     """Wait (at most ``timeout`` s in all) until every reliable subscriber has acknowledged what
     ``node`` published, so a process that exits right after its last messages does not take them
-    with it: a reader that fell behind would otherwise lose the tail and the final diagnostics."""
+    with it: a reader that fell behind would otherwise lose the tail and the final diagnostics.
+
+    The diagnostics go first: they carry the counts a recorder or a test checks the others against,
+    so a slow reader of a loop topic must not use up the time they get."""
     deadline = time.monotonic() + timeout
     acked = True
-    for pub in list(node.publishers):
+    for pub in sorted(node.publishers, key=lambda pub: pub.topic_name != '/' + DIAGNOSTICS.lstrip('/')):
         left = max(0.0, deadline - time.monotonic())
         acked &= pub.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9)))
     return acked

@@ -65,6 +65,9 @@ PARAMS = (
           'before the first step', 's', 0.0, 600.0, read_only=True),
     Param('min_tip_subscribers', 1, 'start-up: tip_positions subscribers to wait for (the demo waits '
           'for the estimator, the trajectory node and the recorder)', '', 0, 100, read_only=True),
+    Param('min_diagnostics_subscribers', 0, 'start-up: /diagnostics subscribers to wait for (a '
+          'monitor that reads the final counters of a short run must be matched before it begins)',
+          '', 0, 100, read_only=True),
     Param('state_rate', 100.0, 'rate of joint_states, cube_pose and cube_contacts in sim time', 'Hz',
           1.0, 1000.0, read_only=True),
 )
@@ -129,7 +132,8 @@ class SimulatorNode(Node):
     # -- start-up ----------------------------------------------------------------------------
     def _try_start(self) -> None:
         ready = (self.pub_tips.get_subscription_count() >= self.p['min_tip_subscribers']
-                 and self.sub_cmd.get_publisher_count() > 0)
+                 and self.sub_cmd.get_publisher_count() > 0
+                 and self.diag.subscription_count() >= self.p['min_diagnostics_subscribers'])
         if not ready and time.monotonic() < self._startup_deadline:
             return
         if not ready:

@@ -100,7 +100,7 @@ def published(d: dict[str, dict[str, float]]) -> dict[str, int]:
     out = {t: int(sim.get('steps') or 0) + 1 for t in SIM_TOPICS}
     out['/state_estimate'] = int(d.get('estimator', {}).get('estimates') or 0)
     out['/grasp_reference'] = int(d.get('trajectory', {}).get('references') or 0)
-    out['/torque_commands'] = int((ctrl.get('commands') or 0) + (ctrl.get('stale_zero_commands') or 0))
+    out['/torque_commands'] = int((ctrl.get('commands') or 0) + (ctrl.get('safe_commands') or 0))
     return out
 
 
@@ -122,6 +122,7 @@ def run_graph(seconds: float, *, mode: str = 'lockstep', record: Path | None = N
     params = {'estimator': {}, 'controller': {},
               'trajectory': {'publish_period': 0.001} if all_at_1khz else {},
               'simulator': {'duration': seconds, 'mode': mode, 'min_tip_subscribers': 2 + bool(record),
+                            'min_diagnostics_subscribers': 1 + bool(record),   # the monitor (+ recorder)
                             **fast}}
     monitor = Monitor(env)
     steps = int(round(seconds / 0.001))

@@ -21,6 +21,7 @@ import shutil
 import sys
 import time
 
+from soft_gripper_sdre.laws import GRAPH_LAWS
 from soft_gripper_sdre.tools.procs import Graph, ros_env
 
 #: start order: listeners first, the simulator (which waits for them) last; they stop in reverse,
@@ -37,6 +38,8 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument('--model', type=Path, default=None, help='model checkpoint (default: the shipped one)')
     ap.add_argument('--noise', type=float, default=None, help='tip measurement noise σ [m] (default: config)')
     ap.add_argument('--seed', type=int, default=None, help='measurement noise seed (default: config)')
+    ap.add_argument('--law', default=None, choices=GRAPH_LAWS,
+                    help='control law of the controller node (default: config/controller.yaml)')
     ap.add_argument('--domain-id', type=int, default=None, help='ROS_DOMAIN_ID (default: env or random)')
     ap.add_argument('--timeout', type=float, default=600.0, help='wall-clock limit [s] (default %(default)s)')
     ap.add_argument('--no-progress', action='store_true', help='no progress bar')
@@ -88,7 +91,7 @@ class _SimTime:
 
 def run_demo(out: Path, duration: float, model: Path | None = None, noise: float | None = None,
              seed: int | None = None, domain_id: int | None = None, timeout: float = 600.0,
-             progress: bool = True) -> dict:
+             progress: bool = True, law: str | None = None) -> dict:
     """Run the graph, write bag/figures/metrics under ``out``; returns the report (plus run facts).
 
     Raises:
@@ -113,6 +116,8 @@ def run_demo(out: Path, duration: float, model: Path | None = None, noise: float
         params['simulator']['noise_std'] = noise
     if seed is not None:
         params['simulator']['seed'] = seed
+    if law is not None:
+        params['controller']['law'] = law
 
     monitor = _SimTime(env)
     bar = None
@@ -242,7 +247,7 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f'--noise must be >= 0 m, got {a.noise}')
     try:
         result = run_demo(a.out, a.duration, a.model, a.noise, a.seed, a.domain_id, a.timeout,
-                          progress=not a.no_progress)
+                          progress=not a.no_progress, law=a.law)
     except RuntimeError as exc:
         print(f'error: {exc}', file=sys.stderr)
         return 1
