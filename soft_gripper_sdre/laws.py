@@ -35,6 +35,9 @@ from soft_gripper_sdre.sdre import Check, SdreController, sdre_gains
 LAWS = ('sdre', 'sdre_ff', 'lqr', 'pd', 'oracle', 'oracle_exact', 'oracle_ff')
 #: the laws that run on the node graph (the oracles need the plant's joint state: in-process only)
 GRAPH_LAWS = ('sdre', 'sdre_ff', 'lqr', 'pd')
+#: the controller node's default: the learned SDRE with model-inversion feedforward (README
+#: "Beyond the paper"); 'sdre' is the paper's law
+DEFAULT_LAW = 'sdre_ff'
 #: tuned task-space PD gains (natural frequency² and 2ζω of the error dynamics, 1/s² and 1/s);
 #: tools/evaluate.py --tune-pd reproduces the tuning grid
 DEFAULT_PD = dict(kp=1.5e4, kd=40.0)

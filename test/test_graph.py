@@ -5,6 +5,7 @@ import pytest
 from graph_harness import run_graph
 from soft_gripper_sdre.closed_loop import run_closed_loop
 from soft_gripper_sdre.control import DEFAULT_WEIGHTS, Weights
+from soft_gripper_sdre.laws import DEFAULT_LAW, make_law
 from soft_gripper_sdre.metrics import tracking_metrics
 from soft_gripper_sdre.model import SDCModel
 from soft_gripper_sdre.sim import SimConfig
@@ -49,10 +50,12 @@ def test_graph_reproduces_the_in_process_loop(graph_run):
     (up to the horizon's Hermite interpolation of the reference, ~1e-5 m/s in velocity)."""
     noise = graph_run.simulator.p['noise_std']          # the shipped default: 0.05 mm
     assert noise == 5e-5
-    ref = run_closed_loop(SDCModel(), duration=DURATION,
+    assert graph_run.controller.p['law'] == DEFAULT_LAW
+    model, weights = SDCModel(), Weights(**DEFAULT_WEIGHTS)
+    ref = run_closed_loop(model, duration=DURATION,
                           sim_config=SimConfig(scene='hand', noise_std=noise, seed=graph_run.simulator.p['seed']),
-                          weights=Weights(**DEFAULT_WEIGHTS), u_max=LIMIT,
-                          profile=GraspProfile(**SHORT, others='open'))
+                          weights=weights, u_max=LIMIT, profile=GraspProfile(**SHORT, others='open'),
+                          controller=make_law(DEFAULT_LAW, model, weights, LIMIT))
     np.testing.assert_allclose(graph_run.t, ref.t, atol=1e-12)
     # until a finger touches the cube the two agree to micrometres; contact then amplifies the
     # reference's interpolation difference, but not beyond a fraction of the tracking error

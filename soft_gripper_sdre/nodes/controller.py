@@ -50,7 +50,7 @@ from trajectory_msgs.msg import MultiDOFJointTrajectory
 
 from soft_gripper_sdre.control import DEFAULT_LOWPASS_HZ, DEFAULT_WEIGHTS, Weights
 from soft_gripper_sdre.horizon import sample_horizon
-from soft_gripper_sdre.laws import GRAPH_LAWS, accepts_ref_acc, make_law
+from soft_gripper_sdre.laws import DEFAULT_LAW, GRAPH_LAWS, accepts_ref_acc, make_law
 from soft_gripper_sdre.model import ModelFileError, SDCModel
 from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.common import ERROR, OK, Diagnostics, ThrottledLogger, run
@@ -78,7 +78,7 @@ PARAMS = (
           1e-4, 0.05, read_only=True),
     Param('solver', 'fast', 'Riccati solver: warm-started Newton–Kleinman or scipy reference',
           choices=('fast', 'reference'), read_only=True),
-    Param('law', 'sdre', 'control law (soft_gripper_sdre.laws): learned SDRE, LQR frozen at the '
+    Param('law', DEFAULT_LAW, 'control law (soft_gripper_sdre.laws): learned SDRE, LQR frozen at the '
           'origin, task-space PD; the oracle needs the plant\'s joint state and runs in-process only '
           '(tools/evaluate.py); sdre_ff: SDRE + model-inversion feedforward (README "Beyond the paper")',
           choices=GRAPH_LAWS, read_only=True),
