@@ -111,6 +111,21 @@ def sdre_gains(A, G, Q, R) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return K, Ks, P
 
 
+def _checked(**arrays) -> list[np.ndarray]:
+    """Each ``name=(value, shape)`` as a float array of that shape, in order.
+
+    Raises:
+        ValueError: naming the first array whose shape is wrong.
+    """
+    out = []
+    for name, (value, shape) in arrays.items():
+        arr = np.asarray(value, dtype=float)
+        if arr.shape != shape:
+            raise ValueError(f'{name} must have shape {shape}, got {arr.shape}')
+        out.append(arr)
+    return out
+
+
 def _pbh_fails(A: np.ndarray, B: np.ndarray, tol: float = 1e-9) -> bool:
     """True when some eigenvalue λ of A with Re λ ≥ 0 has rank [A − λI, B] < n (PBH test)."""
     n = A.shape[0]
@@ -263,30 +278,17 @@ class SdreController:
     # -- entry points ------------------------------------------------------------------------
     def step(self, A, G, x, x_d) -> SdreStep:
         """Torques for every finger: A (n,4,4), G (n,4,2), x (n,4), x_d (n,4), translated SI."""
-        A = np.asarray(A, dtype=float)
-        G = np.asarray(G, dtype=float)
-        x = np.asarray(x, dtype=float)
-        x_d = np.asarray(x_d, dtype=float)
         n = self.n
-        for name, arr, shape in (('A', A, (n, 4, 4)), ('G', G, (n, 4, 2)), ('x', x, (n, 4)),
-                                 ('x_d', x_d, (n, 4))):
-            if arr.shape != shape:
-                raise ValueError(f'{name} must have shape {shape}, got {arr.shape}')
+        A, G, x, x_d = _checked(A=(A, (n, 4, 4)), G=(G, (n, 4, 2)), x=(x, (n, 4)), x_d=(x_d, (n, 4)))
         sdc = self.method == 'fast' and bool((A[:, :2, :] == _TOP).all()) and not G[:, :2, :].any()
         return self._step(A[:, 2:, :] if sdc else None, G[:, 2:, :] if sdc else None, A, G, x, x_d)
 
     def step_sdc(self, A2, G2, x, x_d) -> SdreStep:
         """:meth:`step` for a model in SDC form, given only its lower rows:
         A2 = [A21 A22] (n,2,4) and G2 (n,2,2), so that A = [[0, I], A2] and G = [[0], G2]."""
-        A2 = np.asarray(A2, dtype=float)
-        G2 = np.asarray(G2, dtype=float)
-        x = np.asarray(x, dtype=float)
-        x_d = np.asarray(x_d, dtype=float)
         n = self.n
-        for name, arr, shape in (('A2', A2, (n, 2, 4)), ('G2', G2, (n, 2, 2)), ('x', x, (n, 4)),
-                                 ('x_d', x_d, (n, 4))):
-            if arr.shape != shape:
-                raise ValueError(f'{name} must have shape {shape}, got {arr.shape}')
+        A2, G2, x, x_d = _checked(A2=(A2, (n, 2, 4)), G2=(G2, (n, 2, 2)), x=(x, (n, 4)),
+                                  x_d=(x_d, (n, 4)))
         if self.method != 'fast':
             A, G = self._full(A2, G2)
             return self._step(None, None, A, G, x, x_d)

@@ -14,13 +14,12 @@ from geometry_msgs.msg import PoseArray
 import numpy as np
 import pytest
 from sensor_msgs.msg import JointState
-from trajectory_msgs.msg import MultiDOFJointTrajectory
 
 from faults_common import on_target, record, recovery_time, tracking_error
 from rosutil import Probe, ros_context, spin_until
 from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.topics import (CUBE_CONTACTS, DIAGNOSTICS, GRASP_REFERENCE, LOOP_QOS,
-                                            REFERENCE_QOS, STATE_ESTIMATE, STREAM_QOS, TIP_POSITIONS,
+                                            STATE_ESTIMATE, STREAM_QOS, TIP_POSITIONS,
                                             TORQUE_COMMANDS)
 from soft_gripper_sdre.tools.procs import Graph, ros_env
 from soft_gripper_sdre.trajectory import GraspProfile

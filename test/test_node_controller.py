@@ -8,7 +8,8 @@ from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import MultiDOFJointTrajectory
 
 from rosutil import Probe, overrides, ros_context, spin_until
-from soft_gripper_sdre.control import DEFAULT_WEIGHTS, TrackingController, Weights
+from soft_gripper_sdre.control import DEFAULT_WEIGHTS, Weights
+from soft_gripper_sdre.laws import accepts_ref_acc, make_law
 from soft_gripper_sdre.model import SDCModel
 from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.controller import ControllerNode
@@ -57,11 +58,14 @@ def commands(probe):
     return probe.received[TORQUE_COMMANDS]
 
 
-def test_torques_match_the_offline_law_and_close_the_fingers(model):
+@pytest.mark.parametrize('law', ['sdre', 'sdre_ff'])     # the paper's law and the node's default
+def test_torques_match_the_offline_law_and_close_the_fingers(model, law):
     rest = np.repeat(model.rest_tip[None, :2], 4, 0)
-    offline = TrackingController(model, Weights(**DEFAULT_WEIGHTS), LIMIT)
+    offline = make_law(law, model, Weights(**DEFAULT_WEIGHTS), LIMIT)
+    # the horizon below is constant, so the feedforward law's reference acceleration is zero
+    extra = {'ref_acc': np.zeros((4, 2))} if accepts_ref_acc(offline) else {}
     with ros_context() as (ctx, executor):
-        node, probe, est_pub, ref_pub = make(ctx, executor)
+        node, probe, est_pub, ref_pub = make(ctx, executor, law=law)
         ref_msg, ref_pos = horizon(rest, 0)
         ref_pub.publish(ref_msg)
         assert spin_until(executor, lambda: node.diag.counters['references'] == 1)
@@ -71,7 +75,7 @@ def test_torques_match_the_offline_law_and_close_the_fingers(model):
         for k, msg in enumerate(commands(probe)):
             stamp, u = cv.msg_to_torques(msg, 4)
             assert stamp == k * MS                      # stamped with the estimate's time
-            expected = offline.compute(rest, np.zeros((4, 2)), ref_pos, np.zeros((4, 2))).u
+            expected = offline.compute(rest, np.zeros((4, 2)), ref_pos, np.zeros((4, 2)), **extra).u
             np.testing.assert_allclose(u, expected, rtol=1e-9, atol=1e-12)
         # +Y (towards the palm) is reached with negative ax0 torque on every finger
         assert np.all(u[:, 0] < 0)

@@ -294,11 +294,14 @@ class ControllerNode(Node):
             return
         if not self.stale:
             self.stale = True
-            why = (f'no state_estimate since t = {self.est_heard_ns / cv.NS:.4f} s (estimate_timeout '
-                   f'{self.p["estimate_timeout"]:g} s of sim time): commanding zero torque')
-            self.diag.set_status(ERROR, why)
-            self.get_logger().error(why)
+            self._error(f'no state_estimate since t = {self.est_heard_ns / cv.NS:.4f} s (estimate_timeout '
+                        f'{self.p["estimate_timeout"]:g} s of sim time): commanding zero torque')
         self._safe_command(t)
+
+    def _error(self, why: str) -> None:
+        """Enter ERROR with ``why`` (status and log)."""
+        self.diag.set_status(ERROR, why)
+        self.get_logger().error(why)
 
     def _safe_command(self, stamp: int) -> None:
         """Zero torque for the instant ``stamp``; the pending estimate, if any, is superseded."""
@@ -314,10 +317,8 @@ class ControllerNode(Node):
             return
         if not self.clock_stopped:
             self.clock_stopped = True
-            why = (f'no /clock or state_estimate for {self.p["clock_timeout"]:g} s of wall time: '
-                   f'sim time stopped at {newest / cv.NS:.4f} s')
-            self.diag.set_status(ERROR, why)
-            self.get_logger().error(why)
+            self._error(f'no /clock or state_estimate for {self.p["clock_timeout"]:g} s of wall time: '
+                        f'sim time stopped at {newest / cv.NS:.4f} s')
         if newest > self.last_cmd_ns:
             self._safe_command(newest)
 
