@@ -98,6 +98,14 @@ class TrainSettings:
     sv_floor: float = 0.3
     sv_box: float = 3.0
 
+    def __post_init__(self) -> None:
+        if not (np.isfinite(self.sv_penalty) and self.sv_penalty >= 0.0):
+            raise ValueError(f'sv_penalty must be finite and >= 0 (0 = off), got {self.sv_penalty!r}')
+        for name in ('sv_floor', 'sv_box'):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v > 0.0):
+                raise ValueError(f'{name} must be finite and > 0, got {v!r}')
+
 
 PRESETS = {
     'default': TrainSettings(),

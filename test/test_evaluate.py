@@ -101,3 +101,9 @@ def test_command_line_writes_the_report(tmp_path):
     bad = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.evaluate', '--laws', 'mpc'],
                          capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and 'mpc' in bad.stderr
+    for args, why in ((['--duration', '0'], '--duration must be > 0'),
+                      (['--model', str(tmp_path / 'missing.pt')], '--model:')):
+        bad = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.evaluate', '--out',
+                              str(tmp_path / 'bad'), *args], capture_output=True, text=True, timeout=120)
+        assert bad.returncode == 2 and why in bad.stderr and 'Traceback' not in bad.stderr, bad.stderr
+        assert not (tmp_path / 'bad').exists()

@@ -75,6 +75,15 @@ def test_zero_epochs_is_a_usage_error(tmp_path, data_dir):
     assert '--epochs must be >= 1' in proc.stderr
 
 
+@pytest.mark.parametrize('args, why', [(('--sv-penalty', '-1'), 'sv_penalty must be finite and >= 0'),
+                                       (('--sv-penalty', 'nan'), 'sv_penalty must be finite and >= 0'),
+                                       (('--sv-penalty', '1', '--sv-floor', '0'), 'sv_floor must be finite and > 0')])
+def test_bad_singular_value_penalty_is_a_usage_error(tmp_path, data_dir, args, why):
+    proc = run_train('--data', str(data_dir), '--out', str(tmp_path / 'out'), *args)
+    assert proc.returncode == 2 and why in proc.stderr and 'Traceback' not in proc.stderr
+    assert not (tmp_path / 'out').exists()
+
+
 def test_tiny_training_run_writes_model_metrics_and_figures(tmp_path, data_dir):
     """3 epochs on collected data write a loadable model.pt, finite metrics.json and both figures."""
     out = tmp_path / 'run'

@@ -29,7 +29,7 @@ import numpy as np
 from soft_gripper_sdre.closed_loop import run_closed_loop
 from soft_gripper_sdre.control import DEFAULT_WEIGHTS, Weights
 from soft_gripper_sdre.laws import DEFAULT_PD, accepts_ref_acc, make_law
-from soft_gripper_sdre.model import PAPER_DATA_MODEL, SDCModel
+from soft_gripper_sdre.model import PAPER_DATA_MODEL, ModelFileError, SDCModel
 from soft_gripper_sdre.sim import SimConfig
 from soft_gripper_sdre.trajectory import GraspProfile
 
@@ -437,7 +437,12 @@ def main(argv=None) -> int:
     ap.add_argument('--tune-pd', action='store_true', help='print the PD tuning grid and exit')
     ap.add_argument('--model', type=Path, default=None, help='checkpoint (default: the shipped model)')
     args = ap.parse_args(argv)
-    model = SDCModel(args.model)
+    if args.duration is not None and not args.duration > 0:
+        ap.error(f'--duration must be > 0 s, got {args.duration}')
+    try:
+        model = SDCModel(args.model)
+    except ModelFileError as exc:
+        ap.error(f'--model: {exc}')
     weights = Weights(**DEFAULT_WEIGHTS)
     if args.tune_pd:
         for kp, kd, rmse in tune_pd(model, weights, duration=args.duration):

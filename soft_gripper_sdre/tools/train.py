@@ -91,8 +91,11 @@ def main(argv: list[str] | None = None) -> int:
         if args.epochs < 1:
             _usage_error(parser, '--epochs must be >= 1')
         settings = replace(settings, epochs=args.epochs)
-    if args.sv_penalty > 0:
-        settings = replace(settings, sv_penalty=args.sv_penalty, sv_floor=args.sv_floor)
+    if args.sv_penalty != 0:
+        try:
+            settings = replace(settings, sv_penalty=args.sv_penalty, sv_floor=args.sv_floor)
+        except ValueError as exc:
+            _usage_error(parser, f'--sv-penalty/--sv-floor: {exc}')
     variant = args.variant or ('paper' if args.preset == 'paper' else 'identifying')
     names = list(DATA_VARIANTS[variant]) + [VALIDATION]
     try:
