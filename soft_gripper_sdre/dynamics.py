@@ -43,7 +43,7 @@ import numpy as np
 import pybullet as pb
 
 from soft_gripper_sdre.sim import (B_MATRIX, FINGER_ROLL_DEG, FRICTION_TORQUE, GRAVITY, JOINT_STIFFNESS, N_JOINTS,
-                                   TIP_LINK, finger_urdf)
+                                   TIP_LINK, _rot, finger_urdf)
 from soft_gripper_sdre.units import LENGTH_SCALE, TORQUE_SCALE
 
 #: step of the central difference J̇ q̇ ≈ (J(q + h q̇) − J(q − h q̇)) q̇ / 2h  [s]
@@ -97,8 +97,7 @@ class FingerDynamics:
         # PyBullet's calculateInverseDynamics ignores a fixed base's orientation and would apply
         # gravity as if the finger stood upright (checked against finite differences of the
         # potential energy in test_dynamics.py). Base frame = world frame here.
-        rot = np.array(pb.getMatrixFromQuaternion(
-            pb.getQuaternionFromEuler((math.radians(mount_roll_deg), 0.0, 0.0)))).reshape(3, 3)
+        rot = _rot((math.radians(mount_roll_deg), 0.0, 0.0))
         pb.setGravity(*(rot.T @ np.array([0.0, 0.0, -GRAVITY])), physicsClientId=self._cid)
         with tempfile.TemporaryDirectory(prefix='sgs_dyn_') as d:
             path = Path(d) / 'finger.urdf'
@@ -110,6 +109,7 @@ class FingerDynamics:
         self._tip_offset = list(pb.getLinkState(self._body, TIP_LINK, physicsClientId=self._cid)[2])
         # static compliance's inverse stiffness, SI: K_si = K_sim / TORQUE_SCALE
         self._Kinv_B = np.diag(1.0 / JOINT_STIFFNESS) @ B_MATRIX * TORQUE_SCALE
+        self._Phi = self._Kinv_B / TORQUE_SCALE                      # Φ = K⁻¹ B, sim units
 
     def _jacobian(self, q: list, zeros: list) -> np.ndarray:
         """(3, 10) linear Jacobian of the tip (link 9's centre of mass) in the base frame, sim units."""
@@ -146,7 +146,7 @@ class FingerDynamics:
         if friction:
             h = h + FRICTION_TORQUE * np.sign(qd)                    # τ_f = −F sign(q̇) moves to the left
         J2 = J[:2] / LENGTH_SCALE                                    # SI: m/rad
-        Phi = self._Kinv_B / TORQUE_SCALE                            # Φ = K⁻¹ B, sim units
+        Phi = self._Phi
         S_sim = J @ Phi                                              # static compliance, sim units
         proj = S_sim @ np.linalg.solve(Phi.T @ M @ Phi, Phi.T)       # S M_r⁻¹ Φᵀ
         return TaskDynamics(

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from soft_gripper_sdre.control import DEFAULT_LOWPASS_HZ, TrackingController, Weights
-from soft_gripper_sdre.sdre import Check, SdreController, sdre_gains
+from soft_gripper_sdre.sdre import Check, SdreController, _cond2_below, sdre_gains
 
 LAWS = ('sdre', 'sdre_ff', 'lqr', 'pd', 'oracle', 'oracle_exact', 'oracle_ff')
 #: the laws that run on the node graph (the oracles need the plant's joint state: in-process only)
@@ -273,7 +273,7 @@ def model_inversion(A: np.ndarray, G: np.ndarray, x_d: np.ndarray, a_d: np.ndarr
     rhs = a_d - np.einsum('nij,nj->ni', A[:, 2:, :], x_d)              # a_d − A₂₁ p_d − A₂₂ v_d
     with np.errstate(all='ignore'):
         usable = (np.all(np.isfinite(rhs), axis=1) & np.all(np.isfinite(G2), axis=(1, 2))
-                  & (np.linalg.cond(G2) < cond_max))
+                  & _cond2_below(G2, cond_max)[0])
     u = np.zeros_like(rhs)
     if usable.any():
         u[usable] = np.linalg.solve(G2[usable], rhs[usable][..., None])[..., 0]   # G₂ u_ff = rhs

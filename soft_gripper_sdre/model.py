@@ -170,7 +170,7 @@ def train(x: np.ndarray, u: np.ndarray, acc: np.ndarray, x_val: np.ndarray, u_va
             if settings.sv_penalty > 0:
                 # keep G2 invertible over the whole box, not only where the data lie
                 xs = (torch.rand(idx.numel(), 4, generator=gen) * 2 - 1) * settings.sv_box
-                smin = torch.linalg.svdvals(net(xs)[1])[:, -1]
+                smin = torch.linalg.svdvals(net.g_net(xs).reshape(-1, 2, 2).transpose(1, 2))[:, -1]   # G2 alone
                 loss = loss + settings.sv_penalty * torch.relu(settings.sv_floor - smin).pow(2).mean()
             opt.zero_grad(set_to_none=True)
             loss.backward()
