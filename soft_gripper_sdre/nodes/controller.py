@@ -1,8 +1,12 @@
-"""The controller node: SDRE tracking of all four fingers with the learned SDC model.
+"""The controller node: tracking of all four fingers with the learned SDC model.
 
-Subscribes ``state_estimate`` (one message per control period) and ``grasp_reference`` (a short
-horizon a few tens of times per second); publishes ``torque_commands`` stamped with the estimate's
-time, and ``/diagnostics`` (solves, Riccati check failures, fallbacks, saturation, compute time).
+The control law is the ``law`` parameter (:mod:`soft_gripper_sdre.laws`): ``sdre_ff`` (default:
+SDRE feedback plus model-inversion feedforward), ``sdre`` (the paper's law), ``lqr`` or ``pd``.
+
+Subscribes ``state_estimate`` (one message per control period), ``grasp_reference`` (a short
+horizon a few tens of times per second) and ``/clock`` (sim time, for lost estimates, below);
+publishes ``torque_commands`` stamped with the estimate's time (safe commands: with the tick's),
+and ``/diagnostics`` (solves, Riccati check failures, fallbacks, saturation, compute time).
 
 For each estimate stamped t_k the reference is sampled at t_k from the newest horizon that covers
 it; if none does yet (the trajectory node's message for this instant is still in flight), the
@@ -126,6 +130,7 @@ class ControllerNode(Node):
                                  dt=p['control_period'], adaptive=p['state_weights'])
         except ValueError as exc:
             raise ParameterError(f'law/state_weights: {exc}') from None
+        self.with_acc = accepts_ref_acc(self.ctrl)    # feedforward laws (sdre_ff) also take p̈_d
         self.done = False
         self.exit_code = 0
 
@@ -237,11 +242,9 @@ class ControllerNode(Node):
     # -- the law -----------------------------------------------------------------------------
     def _control(self, stamp: int, x: np.ndarray, ref: tuple) -> None:
         _, _, times, pos, vel, acc = ref
-        if accepts_ref_acc(self.ctrl):            # feedforward laws (sdre_ff) also take p̈_d
-            ref_pos, ref_vel, ref_acc = sample_horizon(times, pos, vel, acc, stamp, with_acc=True)
-            kw = {'ref_acc': ref_acc}
-        else:
-            (ref_pos, ref_vel), kw = sample_horizon(times, pos, vel, acc, stamp), {}
+        sample = sample_horizon(times, pos, vel, acc, stamp, with_acc=self.with_acc)
+        ref_pos, ref_vel = sample[:2]
+        kw = {'ref_acc': sample[2]} if self.with_acc else {}
         t0 = time.perf_counter()
         out = self.ctrl.compute(x[:, :2], x[:, 2:], ref_pos, ref_vel, **kw)
         self._compute_s.append(time.perf_counter() - t0)

@@ -23,7 +23,7 @@ from pathlib import Path
 import tempfile
 import time
 
-from soft_gripper_sdre.tools.procs import Graph, ros_env
+from soft_gripper_sdre.tools.procs import WIRED_BEFORE_START, Graph, ros_env
 
 LOOP_NODES = ('estimator', 'trajectory', 'controller')
 #: topics the simulator publishes once per step when state_rate is 1 kHz (and once at t = 0)
@@ -115,9 +115,10 @@ def run_graph(seconds: float, *, mode: str = 'lockstep', record: Path | None = N
     Raises:
         RuntimeError: a node died or the run did not finish within ``timeout``.
     """
+    from soft_gripper_sdre.nodes.common import EXECUTOR_ENV
     env = ros_env()
     if executor is not None:
-        env['SOFT_GRIPPER_EXECUTOR'] = executor
+        env[EXECUTOR_ENV] = executor
     fast = {'state_rate': 1000.0} if all_at_1khz else {}
     params = {'estimator': {}, 'controller': {},
               'trajectory': {'publish_period': 0.001} if all_at_1khz else {},
@@ -154,8 +155,8 @@ def _run(graph_env: dict[str, str], monitor: Monitor, params: dict, record: Path
             raise RuntimeError(f'the graph did not start (dead: {dead}; heard from {sorted(monitor.values)}): '
                                f'{ {n: graph.procs[n].log_tail(600) for n in dead} }')
         if record:       # the recorder hears every stream before the first step
-            wired = ('/state_estimate', '/torque_commands', '/grasp_reference')
-            monitor.spin_until(lambda: all(monitor.get('recorder', f'publishers {t}') > 0 for t in wired), 30.0)
+            monitor.spin_until(lambda: all(monitor.get('recorder', f'publishers {t}') > 0
+                                           for t in WIRED_BEFORE_START), 30.0)
         cpu0 = {n: _cpu_seconds(graph.procs[n].popen.pid) for n in names}
         graph.start('simulator', params['simulator'])
         code = graph.wait('simulator', timeout, lambda: monitor.spin_until(lambda: False, 0.05))
@@ -240,11 +241,11 @@ def hop(executor: str, count: int = 2000) -> dict[str, float]:
     from rclpy.node import Node
 
     from soft_gripper_sdre.nodes import conversions as cv
-    from soft_gripper_sdre.nodes.common import make_executor
+    from soft_gripper_sdre.nodes.common import EXECUTOR_ENV, make_executor
     from soft_gripper_sdre.nodes.topics import LOOP_QOS
 
     env = ros_env()
-    env['SOFT_GRIPPER_EXECUTOR'] = executor
+    env[EXECUTOR_ENV] = executor
     os.environ.update({k: env[k] for k in ('ROS_DOMAIN_ID', 'ROS_AUTOMATIC_DISCOVERY_RANGE')})
     echo = subprocess.Popen([sys.executable, '-m', 'soft_gripper_sdre.tools.bench_graph', '--echo', str(count)],
                             env=env, stdout=subprocess.PIPE, text=True)

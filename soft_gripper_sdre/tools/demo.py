@@ -22,13 +22,12 @@ import sys
 import time
 
 from soft_gripper_sdre.laws import GRAPH_LAWS
-from soft_gripper_sdre.tools.procs import Graph, ros_env
+from soft_gripper_sdre.tools.procs import WIRED_BEFORE_START, Graph, ros_env
 
 #: start order: listeners first, the simulator (which waits for them) last; they stop in reverse,
-#: so the controller goes right after the simulator, before it would see its estimates as stale
+#: so the controller goes right after the simulator, before its clock_timeout watchdog (wall
+#: time, once /clock stops) would report ERROR and send a zero command
 NODES = ('recorder', 'estimator', 'trajectory', 'controller', 'simulator')
-#: topics whose publishers must be matched by the recorder before the simulator starts
-WIRED_BEFORE_START = ('/state_estimate', '/torque_commands', '/grasp_reference')
 
 
 def _parser() -> argparse.ArgumentParser:

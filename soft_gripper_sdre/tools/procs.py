@@ -16,6 +16,8 @@ import sys
 import time
 
 CONFIG_DIR = Path(__file__).resolve().parents[2] / 'config'
+#: topics whose publishers a recorder must have matched before the simulator starts stepping
+WIRED_BEFORE_START = ('/state_estimate', '/torque_commands', '/grasp_reference')
 
 
 def default_params_file(node: str) -> Path | None:
