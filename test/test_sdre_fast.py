@@ -16,7 +16,7 @@ from soft_gripper_sdre.model import SDCModel
 from soft_gripper_sdre.sdre import (_FULL, _L0, _LOW, _T8, _UPPER, Check, SdreController, _cond2_below,
                                     care)
 
-U_TOL = 1e-6
+U_TOL = 1e-4
 N = 4
 
 
