@@ -410,14 +410,14 @@ class SdreController:
         return self._careful_step(A, G, x, x_d, a is not None, fast, idx)
 
     # -- the fast path -----------------------------------------------------------------------
-    def _fast_gains(self, a: np.ndarray, g: np.ndarray, p0: np.ndarray) -> _FastGains | None:
+    def _fast_gains(self, a: np.ndarray, g: np.ndarray, p0: np.ndarray) -> _FastGains:
         """Warm-started Newton–Kleinman and the structure-aware checks for m SDC fingers.
 
         Args:
             a: (m, 2, 4) lower rows [A21 A22] of A; g: (m, 2, 2) G2; p0: (m, 10) warm starts.
 
         Returns:
-            the gains and which fingers passed every check, or None when a solve raised.
+            the gains and which fingers passed every check (a failed solve gives NaN, which fails them).
 
         With S = G R⁻¹ Gᵀ = [[0, 0], [0, W]], W = G2 R⁻¹ G2ᵀ, every product with S only needs P's
         lower rows P_low = P[2:, :]: S P = [[0], [W P_low]], P S P = P_lowᵀ W P_low, and
