@@ -1,8 +1,9 @@
 """The simulator against the SoMo figures of finger_spec.md (upright finger, sim units)."""
 import numpy as np
+import pybullet as pb
 import pytest
 
-from soft_gripper_sdre.sim import GripperSim, SimConfig
+from soft_gripper_sdre.sim import JOINT_AXIS, JOINT_STIFFNESS, GripperSim, SimConfig
 from soft_gripper_sdre.units import LENGTH_SCALE, TORQUE_SCALE
 
 UPRIGHT = SimConfig(scene='finger', mount_roll_deg=0.0)
@@ -152,3 +153,106 @@ def test_two_simulators_live_in_one_process():
             b.step(np.zeros((1, 2)))
         assert np.array_equal(b.truth().tip_pos, expected)
         assert not np.allclose(a.truth().tip_pos, expected)
+
+
+def _finger_pair_contacts(sim):
+    """Contact points between any two different fingers now."""
+    bodies, cid = sim._bodies, sim._client
+    return sum(len(pb.getContactPoints(a, b, physicsClientId=cid))
+               for i, a in enumerate(bodies) for b in bodies[i + 1:])
+
+
+def test_finger_collisions_off_filters_finger_pairs_only():
+    """Closing all four fingers at the limit with a side torque: they hit each other on the way
+    to the cube; with finger_collisions=False they pass through each other and all four grasp it."""
+    u = np.tile([-0.1, 0.1], (4, 1))
+    runs = {}
+    for collide in (True, False):
+        with GripperSim(SimConfig(scene='hand', finger_collisions=collide)) as sim:
+            pair_contacts = []
+            for _ in range(400):
+                sim.step(u)
+                pair_contacts.append(_finger_pair_contacts(sim))
+            runs[collide] = np.array(pair_contacts), sim.truth()
+    assert runs[True][0].max() > 0
+    assert runs[False][0].max() == 0
+    truth = runs[False][1]
+    assert truth.finger_cube_contact.all() and np.all(truth.contact_force > 0)
+
+
+def test_finger_collisions_off_is_bit_identical_while_fingers_do_not_touch():
+    """The closing grasp of two opposite fingers (contacts with the cube, none between fingers)."""
+    def run(collide):
+        with GripperSim(SimConfig(scene='hand', finger_collisions=collide)) as sim:
+            u = np.zeros((4, 2))
+            u[[0, 2], 0] = -8.0 / TORQUE_SCALE
+            out = []
+            for _ in range(400):
+                sim.step(u)
+                tr = sim.truth()
+                assert _finger_pair_contacts(sim) == 0
+                out.append(np.concatenate([tr.q.ravel(), tr.qd.ravel(), tr.tip_pos.ravel(), tr.cube_pose,
+                                           tr.contact_force]))
+            assert tr.finger_cube_contact.tolist() == [True, False, True, False]
+        return np.array(out)
+    assert np.array_equal(run(True), run(False))
+
+
+def test_finger_collisions_must_be_a_bool():
+    with pytest.raises(ValueError, match='finger_collisions'):
+        SimConfig(finger_collisions=0)
+
+
+def test_stepping_equals_the_straightforward_numpy_computation():
+    """The plain-float fast paths (spring torques, clip, tip frames, cube contact sums) give the
+    same bits as the direct numpy/PyBullet computation, in a grasp with contacts."""
+    cfg = SimConfig(scene='hand', settle_time=0.2)
+    u = np.zeros((4, 2))
+    u[[0, 2], 0] = -0.05
+    u[[1, 3]] = [0.3, -0.01]                           # beyond the limit: clipped
+    with GripperSim(cfg) as sim, GripperSim(cfg) as ref:
+        cid, bodies, joints = ref._client, ref._bodies, list(range(10))
+
+        def ref_joints():
+            states = [pb.getJointStates(b, joints, physicsClientId=cid) for b in bodies]
+            return (np.array([[s[0] for s in st] for st in states]),
+                    np.array([[s[1] for s in st] for st in states]))
+        for _ in range(300):
+            sim.step(u)
+            u_sim = np.clip(u, -cfg.torque_limit, cfg.torque_limit) * TORQUE_SCALE
+            for _ in range(cfg.physics_substeps):
+                q, _ = ref_joints()
+                tau = u_sim[:, JOINT_AXIS] - JOINT_STIFFNESS * q          # τ = B u − K q
+                for b, t in zip(bodies, tau.tolist()):
+                    pb.setJointMotorControlArray(b, joints, pb.TORQUE_CONTROL, forces=t, physicsClientId=cid)
+                pb.stepSimulation(physicsClientId=cid)
+        tr = sim.truth()
+        q, qd = ref_joints()
+        links = [pb.getLinkState(b, 9, computeLinkVelocity=1, physicsClientId=cid) for b in bodies]
+        # p_b = Rᵀ (p − p₀) in sim units, then → m
+        pos = np.einsum('nji,nj->ni', ref._base_rot, np.array([ls[0] for ls in links]) - ref._base_pos)
+        force = np.zeros(4)
+        for i, b in enumerate(bodies):
+            for c in pb.getContactPoints(b, ref._cube, physicsClientId=cid):
+                force[i] += c[9] / LENGTH_SCALE
+        assert np.array_equal(tr.q, q) and np.array_equal(tr.qd, qd)
+        assert np.array_equal(tr.u_applied, np.clip(u, -0.1, 0.1))
+        assert np.array_equal(tr.tip_pos, pos / LENGTH_SCALE)
+        assert tr.finger_cube_contact.tolist() == [True, False, True, False]
+        assert np.array_equal(tr.contact_force, force)
+
+
+def test_tip_frames_equal_numpys_einsum_bit_for_bit():
+    """_read_state sums Rᵀ d in plain floats in einsum's order: the same bits on random frames."""
+    rng = np.random.default_rng(0)
+    with GripperSim(SimConfig(scene='hand', settle_time=0.0)) as sim:
+        sim._base_pos = rng.standard_normal((4, 3))
+        sim._base_rot = np.stack([np.linalg.qr(rng.standard_normal((3, 3)))[0] for _ in range(4)])
+        sim._frames = [(p0.tolist(), R.T.tolist()) for p0, R in zip(sim._base_pos, sim._base_rot)]
+        for _ in range(20):
+            sim.step(rng.uniform(-0.1, 0.1, (4, 2)))
+            links = [pb.getLinkState(b, 9, computeLinkVelocity=1, physicsClientId=sim._client)
+                     for b in sim._bodies]
+            p, v = np.array([ls[0] for ls in links]), np.array([ls[6] for ls in links])
+            assert np.array_equal(sim._tip_pos, np.einsum('nji,nj->ni', sim._base_rot, p - sim._base_pos) / LENGTH_SCALE)
+            assert np.array_equal(sim._tip_vel, np.einsum('nji,nj->ni', sim._base_rot, v) / LENGTH_SCALE)
