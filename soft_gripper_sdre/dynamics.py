@@ -36,14 +36,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 import math
-from pathlib import Path
-import tempfile
 
 import numpy as np
 import pybullet as pb
 
 from soft_gripper_sdre.sim import (B_MATRIX, FINGER_ROLL_DEG, FRICTION_TORQUE, GRAVITY, JOINT_STIFFNESS, N_JOINTS,
-                                   TIP_LINK, _rot, finger_urdf)
+                                   TIP_LINK, _rot, load_fingers)
 from soft_gripper_sdre.units import LENGTH_SCALE, TORQUE_SCALE
 
 #: step of the central difference J̇ q̇ ≈ (J(q + h q̇) − J(q − h q̇)) q̇ / 2h  [s]
@@ -99,11 +97,7 @@ class FingerDynamics:
         # potential energy in test_dynamics.py). Base frame = world frame here.
         rot = _rot((math.radians(mount_roll_deg), 0.0, 0.0))
         pb.setGravity(*(rot.T @ np.array([0.0, 0.0, -GRAVITY])), physicsClientId=self._cid)
-        with tempfile.TemporaryDirectory(prefix='sgs_dyn_') as d:
-            path = Path(d) / 'finger.urdf'
-            path.write_text(finger_urdf())
-            self._body = pb.loadURDF(str(path), (0, 0, 0), useFixedBase=True,
-                                     flags=pb.URDF_USE_INERTIA_FROM_FILE, physicsClientId=self._cid)
+        self._body, = load_fingers(self._cid, [((0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))])
         # PyBullet's Jacobian point is in the link frame; the tip the simulator reports is link 9's
         # centre of mass, at its local inertial offset
         self._tip_offset = list(pb.getLinkState(self._body, TIP_LINK, physicsClientId=self._cid)[2])

@@ -118,6 +118,24 @@ def finger_urdf() -> str:
         _finger_links()) + '\n</robot>\n'
 
 
+def load_fingers(client: int, poses: list[tuple[tuple, tuple]]) -> list[int]:
+    """Load one finger (:func:`finger_urdf`, fixed base, inertia from the file) per base pose.
+
+    Args:
+        client: PyBullet physics client id.
+        poses: (position, quaternion [x, y, z, w]) of each finger's base, sim units.
+
+    Returns:
+        The body id of each finger. PyBullet parses URDF from files only; the file is written to a
+        temporary directory that is gone when this returns (the bodies do not need it).
+    """
+    with tempfile.TemporaryDirectory(prefix='sgs_urdf_') as d:
+        path = Path(d) / 'finger.urdf'
+        path.write_text(finger_urdf())
+        return [pb.loadURDF(str(path), pos, orn, useFixedBase=True, flags=pb.URDF_USE_INERTIA_FROM_FILE,
+                            physicsClientId=client) for pos, orn in poses]
+
+
 def finger_base_rpy(i: int) -> tuple[float, float, float]:
     """Roll-pitch-yaw of hand finger i's base: roll 15° about its x axis, then yaw.
 
@@ -224,7 +242,6 @@ class GripperSim:
     def __init__(self, config: SimConfig | None = None) -> None:
         self.config = config or SimConfig()
         self._client = pb.connect(pb.DIRECT)
-        self._urdf_dir = tempfile.TemporaryDirectory(prefix='sgs_urdf_')
         self.n_fingers = 1 if self.config.scene == 'finger' else 4
         self._rng = np.random.default_rng(self.config.seed)
         self.reset()
@@ -236,9 +253,6 @@ class GripperSim:
         pb.setGravity(0, 0, -GRAVITY, physicsClientId=cid)
         pb.setTimeStep(cfg.physics_dt, physicsClientId=cid)
         pb.setPhysicsEngineParameter(numSolverIterations=50, physicsClientId=cid)
-        flags = pb.URDF_USE_INERTIA_FROM_FILE
-        path = Path(self._urdf_dir.name) / 'finger.urdf'
-        path.write_text(finger_urdf())
         if cfg.scene == 'finger':
             rpys = [(math.radians(cfg.mount_roll_deg), 0.0, 0.0)]
             positions = [(0.0, 0.0, 0.0)]
@@ -247,9 +261,8 @@ class GripperSim:
             positions = list(FINGER_BASE_POSITIONS)
         # One multibody per finger: four 10-DoF chains solve far faster than one 40-DoF body
         # (the joint-friction motors are constraints whose cost grows with the body's DoF).
-        self._bodies = [pb.loadURDF(str(path), pos, pb.getQuaternionFromEuler(rpy), useFixedBase=True,
-                                    flags=flags, physicsClientId=cid)
-                        for pos, rpy in zip(positions, rpys)]
+        self._bodies = load_fingers(cid, [(pos, pb.getQuaternionFromEuler(rpy))
+                                          for pos, rpy in zip(positions, rpys)])
         self._base_pos = np.array(positions, dtype=float)
         self._base_rot = np.stack([_rot(rpy) for rpy in rpys])
         # per finger: p₀ and the columns of R (the rows of Rᵀ) as Python floats, for _read_state
@@ -453,7 +466,6 @@ class GripperSim:
         if self._client is not None and pb.isConnected(physicsClientId=self._client):
             pb.disconnect(physicsClientId=self._client)
         self._client = None
-        self._urdf_dir.cleanup()
 
     def __enter__(self) -> GripperSim:
         return self

@@ -254,5 +254,6 @@ def test_tip_frames_equal_numpys_einsum_bit_for_bit():
             links = [pb.getLinkState(b, 9, computeLinkVelocity=1, physicsClientId=sim._client)
                      for b in sim._bodies]
             p, v = np.array([ls[0] for ls in links]), np.array([ls[6] for ls in links])
-            assert np.array_equal(sim._tip_pos, np.einsum('nji,nj->ni', sim._base_rot, p - sim._base_pos) / LENGTH_SCALE)
+            p_b = np.einsum('nji,nj->ni', sim._base_rot, p - sim._base_pos)     # Rᵀ (p − p₀)
+            assert np.array_equal(sim._tip_pos, p_b / LENGTH_SCALE)
             assert np.array_equal(sim._tip_vel, np.einsum('nji,nj->ni', sim._base_rot, v) / LENGTH_SCALE)
