@@ -40,8 +40,8 @@ import math
 import numpy as np
 import pybullet as pb
 
-from soft_gripper_sdre.sim import (B_MATRIX, FINGER_ROLL_DEG, FRICTION_TORQUE, GRAVITY, JOINT_STIFFNESS, N_JOINTS,
-                                   TIP_LINK, _rot, load_fingers)
+from soft_gripper_sdre.sim import (B_MATRIX, FINGER_ROLL_DEG, FRICTION_TORQUE, JOINT_STIFFNESS, N_JOINTS, TIP_LINK,
+                                   WORLD_GRAVITY, _rot, load_fingers)
 from soft_gripper_sdre.units import LENGTH_SCALE, TORQUE_SCALE
 
 #: step of the central difference J̇ q̇ ≈ (J(q + h q̇) − J(q − h q̇)) q̇ / 2h  [s]
@@ -96,7 +96,7 @@ class FingerDynamics:
         # gravity as if the finger stood upright (checked against finite differences of the
         # potential energy in test_dynamics.py). Base frame = world frame here.
         rot = _rot((math.radians(mount_roll_deg), 0.0, 0.0))
-        pb.setGravity(*(rot.T @ np.array([0.0, 0.0, -GRAVITY])), physicsClientId=self._cid)
+        pb.setGravity(*(rot.T @ np.array(WORLD_GRAVITY)), physicsClientId=self._cid)
         self._body, = load_fingers(self._cid, [((0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))])
         # PyBullet's Jacobian point is in the link frame; the tip the simulator reports is link 9's
         # centre of mass, at its local inertial offset

@@ -34,6 +34,7 @@ SCENES = ('finger', 'hand')
 N_JOINTS = 10
 #: gravity in the scaled world [units/s²] (9.81 m/s² × 20)
 GRAVITY = 9.81 * LENGTH_SCALE
+WORLD_GRAVITY = (0.0, 0.0, -GRAVITY)
 #: joint spring stiffness per axis [sim torque units / rad]
 STIFFNESS = (87.4286, 414.857)
 #: force limit of the velocity-0 motor that acts as joint friction [sim torque units]
@@ -250,7 +251,7 @@ class GripperSim:
     def _build(self) -> None:
         cfg, cid = self.config, self._client
         pb.resetSimulation(physicsClientId=cid)
-        pb.setGravity(0, 0, -GRAVITY, physicsClientId=cid)
+        pb.setGravity(*WORLD_GRAVITY, physicsClientId=cid)
         pb.setTimeStep(cfg.physics_dt, physicsClientId=cid)
         pb.setPhysicsEngineParameter(numSolverIterations=50, physicsClientId=cid)
         if cfg.scene == 'finger':
@@ -416,13 +417,14 @@ class GripperSim:
                         tip_acc, self._u_applied.copy(), cube_pose, contact, force)
 
     # -- analysis helpers (ground truth for tests and evaluation) ----------------------------
-    def linearize(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def linearize(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The finger linearised about its current pose with friction off, in SI (finger scene):
         M δq̈ + K δq = B u, tip position δp = J δq.
 
         M (10, 10) [kg·m²] and K (10, 10) [N·m/rad] (joint springs + gravity stiffness ∂g/∂q, by
-        central differences of PyBullet's inverse dynamics), B (10, 2) (u in N·m), and the tip
-        Jacobian J (3, 10) [m/rad] in the finger's base frame (finite differences of the tip).
+        central differences of PyBullet's inverse dynamics with gravity as the mounted base sees
+        it), B (10, 2) (u in N·m), and the tip Jacobian J (3, 10) [m/rad] in the finger's base
+        frame (finite differences of the tip).
         """
         if self.config.scene != 'finger':
             raise ValueError('linearize is defined for the finger scene')
@@ -435,19 +437,31 @@ class GripperSim:
         h = 1e-6
         dg = np.zeros((N_JOINTS, N_JOINTS))
         J = np.zeros((3, N_JOINTS))
+        rot = self._base_rot[0]
+        # calculateInverseDynamics ignores a fixed base's orientation (gravity acts as if the finger
+        # stood upright), so it runs with gravity turned into the base frame, g_b = Rᵀ (0, 0, −g),
+        # as in dynamics.FingerDynamics; the world's gravity is put back right after
+        pb.setGravity(*(rot.T @ np.array(WORLD_GRAVITY)).tolist(), physicsClientId=cid)
+        try:
+            for j in range(N_JOINTS):
+                qp, qm = list(q), list(q)
+                qp[j] += h
+                qm[j] -= h
+                gp = np.array(pb.calculateInverseDynamics(body, qp, zeros, zeros, physicsClientId=cid))
+                gm = np.array(pb.calculateInverseDynamics(body, qm, zeros, zeros, physicsClientId=cid))
+                dg[:, j] = (gp - gm) / (2 * h)                  # ∂g/∂q_j
+        finally:
+            pb.setGravity(*WORLD_GRAVITY, physicsClientId=cid)
         for j in range(N_JOINTS):
             qp, qm = list(q), list(q)
             qp[j] += h
             qm[j] -= h
-            gp = np.array(pb.calculateInverseDynamics(body, qp, zeros, zeros, physicsClientId=cid))
-            gm = np.array(pb.calculateInverseDynamics(body, qm, zeros, zeros, physicsClientId=cid))
-            dg[:, j] = (gp - gm) / (2 * h)
             tips = []
             for qq in (qp, qm):
                 for k in range(N_JOINTS):
                     pb.resetJointState(body, k, qq[k], physicsClientId=cid)
                 tips.append(np.asarray(pb.getLinkState(body, TIP_LINK, physicsClientId=cid)[0]))
-            J[:, j] = self._base_rot[0].T @ (tips[0] - tips[1]) / (2 * h)
+            J[:, j] = rot.T @ (tips[0] - tips[1]) / (2 * h)
         for k, st in enumerate(states):                       # put the finger back exactly
             pb.resetJointState(body, k, st[0], st[1], physicsClientId=cid)
         self._read_joints()

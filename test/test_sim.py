@@ -3,7 +3,7 @@ import numpy as np
 import pybullet as pb
 import pytest
 
-from soft_gripper_sdre.sim import JOINT_AXIS, JOINT_STIFFNESS, GripperSim, SimConfig
+from soft_gripper_sdre.sim import GRAVITY, JOINT_AXIS, JOINT_STIFFNESS, GripperSim, SimConfig
 from soft_gripper_sdre.units import LENGTH_SCALE, TORQUE_SCALE
 
 UPRIGHT = SimConfig(scene='finger', mount_roll_deg=0.0)
@@ -257,3 +257,50 @@ def test_tip_frames_equal_numpys_einsum_bit_for_bit():
             p_b = np.einsum('nji,nj->ni', sim._base_rot, p - sim._base_pos)     # Rᵀ (p − p₀)
             assert np.array_equal(sim._tip_pos, p_b / LENGTH_SCALE)
             assert np.array_equal(sim._tip_vel, np.einsum('nji,nj->ni', sim._base_rot, v) / LENGTH_SCALE)
+
+
+def _potential_hessian(sim, h=1e-3):
+    """∂²V/∂q² [sim torque units/rad] of the gravity potential V(q) = Σ m_l g z_l(q), by central
+    differences of the links' world centres of mass (the base as mounted), finger scene."""
+    body, cid = sim._bodies[0], sim._client
+    masses = [pb.getDynamicsInfo(body, link, physicsClientId=cid)[0] for link in range(10)]
+    q0 = sim.truth().q[0]
+
+    def V(q):
+        for j in range(10):
+            pb.resetJointState(body, j, q[j], physicsClientId=cid)
+        return sum(m * GRAVITY * pb.getLinkState(body, link, physicsClientId=cid)[0][2]
+                   for link, m in enumerate(masses))
+    H, E = np.zeros((10, 10)), np.eye(10) * h
+    for j in range(10):
+        for k in range(j, 10):
+            H[j, k] = H[k, j] = (V(q0 + E[j] + E[k]) - V(q0 + E[j] - E[k]) - V(q0 - E[j] + E[k])
+                                 + V(q0 - E[j] - E[k])) / (4 * h * h)
+    return H
+
+
+@pytest.mark.parametrize('roll', [15.0, 0.0])
+def test_linearized_stiffness_is_springs_plus_the_gravity_potentials_hessian(roll):
+    """K = K_springs + ∂²V/∂q² with gravity as the mounted base sees it (PyBullet's inverse
+    dynamics alone would treat a rolled base as upright)."""
+    with GripperSim(SimConfig(scene='finger', mount_roll_deg=roll)) as sim:
+        for _ in range(300):
+            sim.step(np.array([[-0.04, 0.03]]))
+        M, K, _, _ = sim.linearize()
+        H = _potential_hessian(sim)
+    K_gravity = K - np.diag(JOINT_STIFFNESS) / TORQUE_SCALE
+    np.testing.assert_allclose(K_gravity, H / TORQUE_SCALE, rtol=0, atol=1e-4 * np.abs(H).max() / TORQUE_SCALE)
+
+
+def test_linearize_leaves_the_run_unchanged():
+    """linearize moves the joints and turns gravity for its differences; it puts both back exactly."""
+    def run(linearize_at):
+        with GripperSim(SimConfig(scene='finger')) as sim:
+            out = []
+            for k in range(400):
+                sim.step(np.array([[0.03 * np.sin(0.01 * k), -0.02]]))
+                if k == linearize_at:
+                    sim.linearize()
+                out.append(np.concatenate([sim.truth().q[0], sim.truth().qd[0]]))
+        return np.array(out)
+    assert np.array_equal(run(None), run(100))
