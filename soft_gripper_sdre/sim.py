@@ -56,9 +56,6 @@ PALM = dict(radius=0.4, length=1.0, mass=1.5, center=(0.0, 0.0, 1.25), friction=
 CUBE = dict(size=1.0, mass=0.01, center=(0.0, 0.0, 2.25), friction=1.2)
 FINGER_FRICTION = 3.0
 FINGER_RESTITUTION = 0.7
-#: collision groups with finger–finger pairs filtered out: a finger (group 1) collides only with
-#: the objects (group 2: palm, cube), which collide with both
-_FINGER_GROUP, _OBJECT_GROUP = 1, 2
 
 
 # ----------------------------------------------------------------------------------------------
@@ -167,12 +164,6 @@ class SimConfig:
             finger exactly like a hand finger (so a model learned on it applies to each of them);
             0 is an upright finger.
         with_cube: 'hand' scene only: put the cube on the palm.
-        finger_collisions: 'hand' scene only: the fingers collide with each other. False filters
-            those pairs out (each finger still collides with the palm and the cube), which saves
-            their collision detection, ~20 µs per physics step; bit-identical to True as long as no
-            two fingers touch (as in the grasp, and the closed loop at ±0.0625 N·m), but the
-            fingers pass through each other where they would touch (closing without the cube,
-            or at ±0.1 N·m on both axes with it).
     """
 
     scene: str = 'hand'
@@ -184,7 +175,6 @@ class SimConfig:
     settle_time: float = 0.5
     mount_roll_deg: float = 15.0
     with_cube: bool = True
-    finger_collisions: bool = True
 
     def __post_init__(self) -> None:
         if self.scene not in SCENES:
@@ -201,8 +191,6 @@ class SimConfig:
             raise ValueError(f'settle_time must be finite and >= 0 s, got {self.settle_time!r}')
         if not math.isfinite(self.mount_roll_deg):
             raise ValueError(f'mount_roll_deg must be finite, got {self.mount_roll_deg!r}')
-        if not isinstance(self.finger_collisions, bool):
-            raise ValueError(f'finger_collisions must be a bool, got {self.finger_collisions!r}')
 
     @property
     def physics_dt(self) -> float:
@@ -292,15 +280,6 @@ class GripperSim:
             # joint friction: a velocity-0 motor with a force limit, active under torque control too
             pb.setJointMotorControlArray(body, self._joint_list, pb.VELOCITY_CONTROL,
                                          targetVelocities=zeros, forces=friction, physicsClientId=cid)
-        if cfg.scene == 'hand' and not cfg.finger_collisions:
-            # a pair collides iff (group_a & mask_b) and (group_b & mask_a)
-            for body in self._bodies:
-                for link in range(-1, N_JOINTS):
-                    pb.setCollisionFilterGroupMask(body, link, _FINGER_GROUP, _OBJECT_GROUP, physicsClientId=cid)
-            for body in (self._palm, self._cube):
-                if body is not None:
-                    pb.setCollisionFilterGroupMask(body, -1, _OBJECT_GROUP, _FINGER_GROUP | _OBJECT_GROUP,
-                                                   physicsClientId=cid)
 
     def reset(self) -> None:
         """Build a fresh world, settle ``settle_time`` at u = 0, and set t = 0 there."""

@@ -155,54 +155,6 @@ def test_two_simulators_live_in_one_process():
         assert not np.allclose(a.truth().tip_pos, expected)
 
 
-def _finger_pair_contacts(sim):
-    """Contact points between any two different fingers now."""
-    bodies, cid = sim._bodies, sim._client
-    return sum(len(pb.getContactPoints(a, b, physicsClientId=cid))
-               for i, a in enumerate(bodies) for b in bodies[i + 1:])
-
-
-def test_finger_collisions_off_filters_finger_pairs_only():
-    """Closing all four fingers at the limit with a side torque: they hit each other on the way
-    to the cube; with finger_collisions=False they pass through each other and all four grasp it."""
-    u = np.tile([-0.1, 0.1], (4, 1))
-    runs = {}
-    for collide in (True, False):
-        with GripperSim(SimConfig(scene='hand', finger_collisions=collide)) as sim:
-            pair_contacts = []
-            for _ in range(400):
-                sim.step(u)
-                pair_contacts.append(_finger_pair_contacts(sim))
-            runs[collide] = np.array(pair_contacts), sim.truth()
-    assert runs[True][0].max() > 0
-    assert runs[False][0].max() == 0
-    truth = runs[False][1]
-    assert truth.finger_cube_contact.all() and np.all(truth.contact_force > 0)
-
-
-def test_finger_collisions_off_is_bit_identical_while_fingers_do_not_touch():
-    """The closing grasp of two opposite fingers (contacts with the cube, none between fingers)."""
-    def run(collide):
-        with GripperSim(SimConfig(scene='hand', finger_collisions=collide)) as sim:
-            u = np.zeros((4, 2))
-            u[[0, 2], 0] = -8.0 / TORQUE_SCALE
-            out = []
-            for _ in range(400):
-                sim.step(u)
-                tr = sim.truth()
-                assert _finger_pair_contacts(sim) == 0
-                out.append(np.concatenate([tr.q.ravel(), tr.qd.ravel(), tr.tip_pos.ravel(), tr.cube_pose,
-                                           tr.contact_force]))
-            assert tr.finger_cube_contact.tolist() == [True, False, True, False]
-        return np.array(out)
-    assert np.array_equal(run(True), run(False))
-
-
-def test_finger_collisions_must_be_a_bool():
-    with pytest.raises(ValueError, match='finger_collisions'):
-        SimConfig(finger_collisions=0)
-
-
 def test_stepping_equals_the_straightforward_numpy_computation():
     """The plain-float fast paths (spring torques, clip, tip frames, cube contact sums) give the
     same bits as the direct numpy/PyBullet computation, in a grasp with contacts."""
