@@ -93,8 +93,9 @@ class FingerDynamics:
         self._cid = pb.connect(pb.DIRECT)
         # The body is loaded upright with gravity turned into its base frame, g_b = Rᵀ (0, 0, −g):
         # PyBullet's calculateInverseDynamics ignores a fixed base's orientation and would apply
-        # gravity as if the finger stood upright (checked against finite differences of the
-        # potential energy in test_dynamics.py). Base frame = world frame here.
+        # gravity as if the finger stood upright (test_dynamics.py: a held pose of the rolled finger
+        # balances only with this; test_sim.py checks GripperSim.linearize, which does the same,
+        # against the Hessian of the gravity potential). Base frame = world frame here.
         rot = _rot((math.radians(mount_roll_deg), 0.0, 0.0))
         pb.setGravity(*(rot.T @ np.array(WORLD_GRAVITY)), physicsClientId=self._cid)
         self._body, = load_fingers(self._cid, [((0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))])
