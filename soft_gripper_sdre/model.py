@@ -345,6 +345,7 @@ class SDCModel:
         s = {k: v.numpy() for k, v in ckpt['scales'].items()}
         self._layers = _fused_layers(sd, s)
         self._net = _homogeneous(self._layers)
+        self._b1 = {}        # layer 1's bias repeated for small batches of n states (no broadcasting)
         self.rest_tip = ckpt['rest_tip'].numpy().astype(float)
         self.dt = float(ckpt['dt'])
         self.settings = ckpt['settings']
@@ -365,6 +366,10 @@ class SDCModel:
         if width != 4:
             raise ValueError(f'x must have shape (4,) or (n, 4), got {x.shape}')
         w1, b1, W2, W3 = self._net
+        if n <= 16:
+            b1 = self._b1.get(n)
+            if b1 is None:
+                b1 = self._b1[n] = np.tile(self._net[1], (n, 1))
         h = x @ w1
         h += b1                                  # [x w₁ + b₁, 1]
         np.maximum(h, 0.0, out=h)

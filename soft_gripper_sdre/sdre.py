@@ -55,8 +55,8 @@ class SdreStep:
 
     u: np.ndarray                # (n, 2) saturated torques, always finite
     u_unsat: np.ndarray          # (n, 2)
-    K: np.ndarray                # (n, 2, 4) gains in use
-    Ks: np.ndarray               # (n, 2, 4)
+    K: np.ndarray                # (n, 2, 4) gains in use (fast path: read-only, shared with the
+    Ks: np.ndarray               # (n, 2, 4)  controller's fallback gains, which it never writes into)
     P: np.ndarray                # (n, 4, 4) (NaN where the solve failed)
     residual: np.ndarray         # (n,) ‖PA + AᵀP + Q − PGR⁻¹GᵀP‖_F / ‖Q‖_F
     ok: np.ndarray               # (n,) every check passed
@@ -376,8 +376,10 @@ class SdreController:
         """:meth:`step` for a model in SDC form, given only its lower rows:
         A2 = [A21 A22] (n,2,4) and G2 (n,2,2), so that A = [[0, I], A2] and G = [[0], G2]."""
         n = self.n
-        A2, G2, x, x_d = _checked(A2=(A2, (n, 2, 4)), G2=(G2, (n, 2, 2)), x=(x, (n, 4)),
-                                  x_d=(x_d, (n, 4)))
+        A2, G2 = np.asarray(A2, dtype=float), np.asarray(G2, dtype=float)
+        x, x_d = np.asarray(x, dtype=float), np.asarray(x_d, dtype=float)
+        if (A2.shape, G2.shape, x.shape, x_d.shape) != ((n, 2, 4), (n, 2, 2), (n, 4), (n, 4)):
+            _checked(A2=(A2, (n, 2, 4)), G2=(G2, (n, 2, 2)), x=(x, (n, 4)), x_d=(x_d, (n, 4)))  # raises
         if self.method != 'fast':
             A, G = self._full(A2, G2)
             return self._step(None, None, A, G, x, x_d)
