@@ -208,8 +208,9 @@ def _cond2_below(M: np.ndarray, c_max: float) -> tuple[np.ndarray, np.ndarray]:
     κ < c_max ⇔ ‖M‖_F² < (c_max + 1/c_max) |det M|. Singular or non-finite M gives False.
     """
     f = M.reshape(-1, 4)                                   # [m00, m01, m10, m11]
-    fro2, det = ((f.take(_TWICE, axis=1) * f.take(_CROSS, axis=1)) @ _FRO_DET).T   # ‖M‖_F², det M
-    return fro2 < (c_max + 1.0 / c_max) * np.abs(det), det
+    fro2_det = (f.take(_TWICE, axis=1) * f.take(_CROSS, axis=1)) @ _FRO_DET     # [‖M‖_F², det M]
+    det = fro2_det[:, 1]
+    return fro2_det[:, 0] < (c_max + 1.0 / c_max) * np.abs(det), det
 
 
 #: weights of the upper-triangle entries in ‖S‖_F² of a symmetric 4×4 S (off-diagonals count twice)
@@ -284,7 +285,19 @@ class _FastGains:
     Ks: np.ndarray           # (m, 2, 4) view of KKs
     residual: np.ndarray     # (m,)
     iterations: int          # Newton–Kleinman iterations done (the same for the whole batch)
-    good: np.ndarray         # (m,) every fast check passed
+    passed: np.ndarray       # (2m,) [G2; C] well conditioned and [P; N − margin] ≻ 0
+    residual_tol: float
+
+    @property
+    def good(self) -> np.ndarray:
+        """(m,) every fast check passed."""
+        m = self.residual.shape[0]
+        return self.passed[:m] & self.passed[m:] & (self.residual < self.residual_tol)
+
+    def all_good(self) -> bool:
+        """``good.all()``, by counting the flags that hold (cheaper than combining them)."""
+        return (np.count_nonzero(self.passed) == self.passed.shape[0]
+                and np.count_nonzero(self.residual < self.residual_tol) == self.residual.shape[0])
 
 
 class SdreController:
@@ -403,7 +416,7 @@ class SdreController:
         fast, idx = None, None
         if a is not None and self._fast_ok and self._all_warm:
             fast = self._fast_gains(a, g, self._p)
-            if np.count_nonzero(fast.good) == self.n:      # (cheaper than .all() on 4 flags)
+            if fast.all_good():
                 # the common path: every finger warm and every fast check passed
                 u_unsat = np.matvec(fast.KKs, np.concatenate((x, x_d), axis=1))   # eq. 22: K x + K_s x_d
                 # Σ u² is finite iff every u is (or it overflows beyond 1e154: then the careful path)
@@ -506,7 +519,7 @@ class SdreController:
             res -= q10                                         # −Res = L(A)p + PSP − Q (upper)
             residual = np.sqrt((res * res) @ self._fro10_q)    # ‖Res‖_F / ‖Q‖_F (off-diagonals twice)
             P = p.take(_FULL, axis=1).reshape(m, 4, 4)
-            C = a[:, :, :2] - WP[:, :, :2]                     # A_cl = [[0, I], [C, D]]
+            C = (a - WP)[:, :, :2]                             # A_cl = [[0, I], [C, D]], lower rows a − W P_low
             # stabilisable (G2) and A_cl invertible (C), both 2×2 condition tests in one call
             well, det = _cond2_below(np.concatenate([g, C]), self.cond_max)
             # [K K_s] = −R⁻¹ G2ᵀ [P_low, C⁻ᵀ Q[:2, :]],  C⁻ᵀ = [[c11, −c10], [−c01, c00]] / det C
@@ -517,10 +530,8 @@ class SdreController:
             # L₃₃ depends on every entry of the lower triangle, so a NaN in the input reaches it too
             chol = _stack_cholesky(np.concatenate([P, PSP + self._q_shift_n[:m]]))
             passed = well & (chol[:, 3, 3] > 0.0)     # [G2; C] conditioned, [P; N − margin] ≻ 0
-            good = passed[:m] & passed[m:]
-            good &= residual < self.residual_tol
         return _FastGains(p=p, P=P, KKs=KKs, K=KKs[:, :, :4], Ks=KKs[:, :, 4:], residual=residual,
-                          iterations=iterations, good=good)
+                          iterations=iterations, passed=passed, residual_tol=self.residual_tol)
 
     # -- the exact path ----------------------------------------------------------------------
     def _exact(self, A, G, i) -> np.ndarray:
