@@ -457,10 +457,17 @@ class SdreController:
 
         Stop rule. Subtracting the equations of two iterates gives the exact identity
         Res(P_{k+1}) = −Δ_k S Δ_k (Δ_k = P_{k+1} − P_k), and with S's structure
-        Δ_k S Δ_k = Δ_lowᵀ W Δ_low, so ‖Res(P_{k+1})‖_F ≤ ‖W‖_F ‖Δ_low‖_F² per finger. The iteration
-        stops at the first k with (Σ_i ‖W_i‖_F²)^½ Σ_i ‖Δ_low,i‖_F² < residual_tol ‖Q‖_F / 2, i.e. when
-        every finger's new iterate has (in exact arithmetic) at most half the accepted residual; the
-        other half is room for the solve's rounding. The identity only decides when to stop: the
+        Δ_k S Δ_k = Δ_lowᵀ W Δ_low, a positive semi-definite matrix (W = G2 R⁻¹ G2ᵀ ⪰ 0), whose
+        Frobenius norm is at most its trace (√Σλ² ≤ Σλ for λ ≥ 0):
+
+            ‖Res(P_{k+1})‖_F ≤ tr(Δ_lowᵀ W Δ_low) = ⟨Δ_low, W Δ_low⟩,
+
+        and W Δ_low = W P_{k+1,low} − W P_{k,low} is the difference of two products the iteration
+        forms anyway. The iteration stops at the first k with Σ_i ⟨Δ_low,i, W_i Δ_low,i⟩ <
+        residual_tol ‖Q‖_F / 2, i.e. when every finger's new iterate has (in exact arithmetic) at
+        most half the accepted residual; the other half is room for the solve's rounding. (This
+        trace is ≤ ‖W‖_F ‖Δ_low‖_F², the bound of the previous rule, so it never stops later.) The
+        identity only decides when to stop: the
         residual that the checks use is then formed directly from P (below), so a solve that rounded
         badly fails the check instead of passing unseen. The gains' error is of the order of the
         residual times the conditioning of the Lyapunov operator of A_cl (measured on the noisy
@@ -496,10 +503,6 @@ class SdreController:
         L_open += self._L0n[:m]                                # L(A), flattened
         L_A = L_open.reshape(m, 10, 10)
         P_low = p0.take(_LOW, axis=1).reshape(m, 2, 4)
-        # stop rule: ‖Res(P_k+1)‖_F ≤ ‖W‖_F ‖Δ_low‖_F² per finger (see the docstring), so once
-        # (Σ_i ‖W_i‖_F²)^½ · Σ_i ‖Δ_low,i‖_F² < tol ‖Q‖_F / 2 every finger's next residual is too
-        w2 = float(np.vdot(W, W))
-        small = self._half_tol_q / math.sqrt(w2) if w2 > 0.0 else math.inf   # (NaN: one iteration)
         WP = W @ P_low                                         # S P (lower rows)
         PSP10 = _upper(P_low.transpose(0, 2, 1) @ WP)          # P S P = P_lowᵀ W P_low
         with np.errstate(all='ignore'):        # a failed factorisation gives NaN, which fails a check
@@ -508,11 +511,13 @@ class SdreController:
                 p = _stack_solve(L, PSP10 + q10)               # A_kᵀP + PA_k = −(Q + P_k S P_k)
                 P_next = p.take(_LOW, axis=1).reshape(m, 2, 4)
                 D = P_next - P_low                             # lower rows of Δ_k = P_k+1 − P_k
-                P_low = P_next
-                WP = W @ P_low
+                WP_next = W @ P_next
+                WD = WP_next - WP                              # W Δ_low
+                P_low, WP = P_next, WP_next
                 PSP = P_low.transpose(0, 2, 1) @ WP
                 PSP10 = PSP.reshape(m, 16).take(_UPPER, axis=1)            # (its upper triangle)
-                if np.vdot(D, D) < small:                      # False for NaN: iterate on
+                # stop rule: ‖Res(P_k+1)‖_F ≤ ⟨Δ_low, W Δ_low⟩ per finger (see the docstring)
+                if np.vdot(D, WD) < self._half_tol_q:          # False for NaN: iterate on
                     break
             res = np.matvec(L_A, p)
             res += PSP10
