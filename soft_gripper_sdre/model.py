@@ -309,7 +309,7 @@ def _fused_layers(sd: dict[str, np.ndarray], s: dict[str, np.ndarray]) -> list[t
     return [(np.ascontiguousarray(w1), b1), (w2, b2), (w3, b3)]
 
 
-def _homogeneous(layers: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _homogeneous(layers: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, ...]:
     """The fused network with layers 2 and 3's biases carried by a constant hidden unit.
 
     Layer 1 gets one more output unit, 0·x + 1 = 1, which the ReLU keeps at 1; layer 2 gets the

@@ -524,7 +524,7 @@ class SdreController:
             res -= q10                                         # −Res = L(A)p + PSP − Q (upper)
             residual = np.sqrt((res * res) @ self._fro10_q)    # ‖Res‖_F / ‖Q‖_F (off-diagonals twice)
             P = p.take(_FULL, axis=1).reshape(m, 4, 4)
-            C = (a - WP)[:, :, :2]                             # A_cl = [[0, I], [C, D]], lower rows a − W P_low
+            C = (a - WP)[:, :, :2]                             # A_cl = [[0, I], [C, D]] = A − S P
             # stabilisable (G2) and A_cl invertible (C), both 2×2 condition tests in one call
             well, det = _cond2_below(np.concatenate([g, C]), self.cond_max)
             # [K K_s] = −R⁻¹ G2ᵀ [P_low, C⁻ᵀ Q[:2, :]],  C⁻ᵀ = [[c11, −c10], [−c01, c00]] / det C
@@ -534,6 +534,7 @@ class SdreController:
             # P ≻ 0 and N − margin ≻ 0: both Cholesky factors exist. A failed one is all NaN, and
             # L₃₃ depends on every entry of the lower triangle, so a NaN in the input reaches it too
             chol = _stack_cholesky(np.concatenate([P, PSP + self._q_shift_n[:m]]))
+            # (a factor that exists has a positive diagonal; NaN > 0 is False)
             passed = well & (chol[:, 3, 3] > 0.0)     # [G2; C] conditioned, [P; N − margin] ≻ 0
         return _FastGains(p=p, P=P, KKs=KKs, K=KKs[:, :, :4], Ks=KKs[:, :, 4:], residual=residual,
                           iterations=iterations, passed=passed, residual_tol=self.residual_tol)
