@@ -111,7 +111,8 @@ class RestFrame:
             raise ValueError(f'rest_tip must hold a finite rest position, got {rest_tip!r}')
         self.origin = rest[:2].copy()
         self.n = int(n)
-        self._shift = np.concatenate([self.origin, [0.0, 0.0]] * 2)      # [p₀, 0, p₀, 0]
+        # [p₀, 0, p₀, 0] for every finger (an array of z's shape: no broadcasting in z −= shift)
+        self._shift = np.tile(np.concatenate([self.origin, [0.0, 0.0]] * 2), (self.n, 1))
 
     def states(self, pos, vel, ref_pos, ref_vel) -> tuple[np.ndarray, np.ndarray]:
         """(x, x_d), each (n, 4), from (n, 2) positions and velocities in the base frames.

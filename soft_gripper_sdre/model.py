@@ -309,6 +309,28 @@ def _fused_layers(sd: dict[str, np.ndarray], s: dict[str, np.ndarray]) -> list[t
     return [(np.ascontiguousarray(w1), b1), (w2, b2), (w3, b3)]
 
 
+def _homogeneous(layers: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, ...]:
+    """The fused network with layers 2 and 3's biases carried by a constant hidden unit.
+
+    Layer 1 gets one more output unit, 0·x + 1 = 1, which the ReLU keeps at 1; layer 2 gets the
+    same unit and both later layers take their bias from that unit's weight row:
+
+        h₁ = relu(x w₁' + b₁'),  h₂ = relu(h₁ W₂),  out = h₂ W₃,
+        W₂ = [[w₂, 0], [b₂, 1]],  W₃ = [[w₃], [b₃]]
+
+    (h₁ W₂ = h w₂ + 1·b₂ for h₁ = [h, 1]), so the network costs three matmuls, one bias add and
+    two in-place ReLUs. Returns (w₁', b₁', W₂, W₃).
+    """
+    (w1, b1), (w2, b2), (w3, b3) = layers
+    h = w1.shape[1]
+    w1e = np.hstack([w1, np.zeros((w1.shape[0], 1))])
+    b1e = np.append(b1, 1.0)
+    W2 = np.zeros((h + 1, h + 1))
+    W2[:h, :h], W2[h, :h], W2[h, h] = w2, b2, 1.0
+    W3 = np.vstack([w3, b3])
+    return np.ascontiguousarray(w1e), b1e, W2, W3
+
+
 class SDCModel:
     """A trained SDC model evaluated with numpy: A(x), G(x) for one state or a batch (SI).
 
@@ -322,6 +344,8 @@ class SDCModel:
         sd = {k: v.detach().double().numpy() for k, v in ckpt['state_dict'].items()}
         s = {k: v.numpy() for k, v in ckpt['scales'].items()}
         self._layers = _fused_layers(sd, s)
+        self._net = _homogeneous(self._layers)
+        self._b1 = {}        # layer 1's bias repeated for small batches of n states (no broadcasting)
         self.rest_tip = ckpt['rest_tip'].numpy().astype(float)
         self.dt = float(ckpt['dt'])
         self.settings = ckpt['settings']
@@ -332,23 +356,26 @@ class SDCModel:
     def sdc_blocks(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The learned blocks for states x (4,) or (n, 4): [A21 A22] (n, 2, 4) and G2 (n, 2, 2).
 
-        Both networks run as one: three matmuls with ReLU between (see :func:`_fused_layers`).
+        Both networks run as one: three matmuls with ReLU between (see :func:`_fused_layers`; the
+        biases of layers 2 and 3 ride on a constant hidden unit, :func:`_homogeneous`).
         """
         x = np.asarray(x, dtype=float)
         if x.ndim == 1:
             x = x[None]
-        if x.ndim != 2 or x.shape[1] != 4:
+        n, width = x.shape if x.ndim == 2 else (0, 0)
+        if width != 4:
             raise ValueError(f'x must have shape (4,) or (n, 4), got {x.shape}')
-        (w1, b1), (w2, b2), (w3, b3) = self._layers
+        w1, b1, W2, W3 = self._net
+        if n <= 16:
+            b1 = self._b1.get(n)
+            if b1 is None:
+                b1 = self._b1[n] = np.tile(self._net[1], (n, 1))
         h = x @ w1
-        h += b1
+        h += b1                                  # [x w₁ + b₁, 1]
         np.maximum(h, 0.0, out=h)
-        h2 = h @ w2
-        h2 += b2
-        np.maximum(h2, 0.0, out=h2)
-        out = h2 @ w3
-        out += b3
-        n = x.shape[0]
+        h = h @ W2                               # [h w₂ + b₂, 1]
+        np.maximum(h, 0.0, out=h)
+        out = h @ W3                             # h w₃ + b₃
         return out[:, :8].reshape(n, 2, 4), out[:, 8:].reshape(n, 2, 2)
 
     def AG(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

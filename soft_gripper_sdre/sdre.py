@@ -26,6 +26,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from enum import IntFlag
+import math
 
 import numpy as np
 from scipy.linalg import solve_continuous_are
@@ -54,8 +55,8 @@ class SdreStep:
 
     u: np.ndarray                # (n, 2) saturated torques, always finite
     u_unsat: np.ndarray          # (n, 2)
-    K: np.ndarray                # (n, 2, 4) gains in use
-    Ks: np.ndarray               # (n, 2, 4)
+    K: np.ndarray                # (n, 2, 4) gains in use (fast path: read-only, shared with the
+    Ks: np.ndarray               # (n, 2, 4)  controller's fallback gains, which it never writes into)
     P: np.ndarray                # (n, 4, 4) (NaN where the solve failed)
     residual: np.ndarray         # (n,) ‖PA + AᵀP + Q − PGR⁻¹GᵀP‖_F / ‖Q‖_F
     ok: np.ndarray               # (n,) every check passed
@@ -158,8 +159,8 @@ _FULL = np.array([[int(np.flatnonzero((_ROWS == min(i, j)) & (_COLS == max(i, j)
 _LOW = _FULL.reshape(4, 4)[2:, :].reshape(8)
 #: the rows of A the SDC form fixes: Ẋ, Ẏ = [0 I] x
 _TOP = np.hstack([np.zeros((2, 2)), np.eye(2)])
-#: −adj(C)ᵀ = _NEG_CHECKER ∘ C[::-1, ::-1] for 2×2 C
-_NEG_CHECKER = np.array([[-1.0, 1.0], [1.0, -1.0]])
+#: adj(C)ᵀ = _CHECKER ∘ C[::-1, ::-1] for 2×2 C, so C⁻ᵀ = _CHECKER ∘ C[::-1, ::-1] / det C
+_CHECKER = np.array([[1.0, -1.0], [-1.0, 1.0]])
 
 
 def _lyapunov_tables() -> tuple[np.ndarray, np.ndarray]:
@@ -207,8 +208,9 @@ def _cond2_below(M: np.ndarray, c_max: float) -> tuple[np.ndarray, np.ndarray]:
     κ < c_max ⇔ ‖M‖_F² < (c_max + 1/c_max) |det M|. Singular or non-finite M gives False.
     """
     f = M.reshape(-1, 4)                                   # [m00, m01, m10, m11]
-    fro2, det = ((f.take(_TWICE, axis=1) * f.take(_CROSS, axis=1)) @ _FRO_DET).T   # ‖M‖_F², det M
-    return fro2 < (c_max + 1.0 / c_max) * np.abs(det), det
+    fro2_det = (f.take(_TWICE, axis=1) * f.take(_CROSS, axis=1)) @ _FRO_DET     # [‖M‖_F², det M]
+    det = fro2_det[:, 1]
+    return fro2_det[:, 0] < (c_max + 1.0 / c_max) * np.abs(det), det
 
 
 #: weights of the upper-triangle entries in ‖S‖_F² of a symmetric 4×4 S (off-diagonals count twice)
@@ -278,11 +280,24 @@ class _FastGains:
 
     p: np.ndarray            # (m, 10) P's upper triangle, the next warm start
     P: np.ndarray            # (m, 4, 4)
-    K: np.ndarray            # (m, 2, 4)
-    Ks: np.ndarray           # (m, 2, 4)
+    KKs: np.ndarray          # (m, 2, 8) [K K_s], read-only: u = [K K_s] [x; x_d]
+    K: np.ndarray            # (m, 2, 4) view of KKs
+    Ks: np.ndarray           # (m, 2, 4) view of KKs
     residual: np.ndarray     # (m,)
     iterations: int          # Newton–Kleinman iterations done (the same for the whole batch)
-    good: np.ndarray         # (m,) every fast check passed
+    passed: np.ndarray       # (2m,) [G2; C] well conditioned and [P; N − margin] ≻ 0
+    residual_tol: float
+
+    @property
+    def good(self) -> np.ndarray:
+        """(m,) every fast check passed."""
+        m = self.residual.shape[0]
+        return self.passed[:m] & self.passed[m:] & (self.residual < self.residual_tol)
+
+    def all_good(self) -> bool:
+        """``good.all()``, by counting the flags that hold (cheaper than combining them)."""
+        return (np.count_nonzero(self.passed) == self.passed.shape[0]
+                and np.count_nonzero(self.residual < self.residual_tol) == self.residual.shape[0])
 
 
 class SdreController:
@@ -325,6 +340,14 @@ class SdreController:
         self._q10 = self.Q.reshape(16)[_UPPER]
         self._q_top = self.Q[:2, :].copy()
         self._q_shift = self.Q - 2.0 * self.residual_tol * self._q_norm * np.eye(4)
+        self._neg_Rinv = -self._Rinv
+        self._fro10_q = _FRO10 / self._q_norm**2          # ‖S‖_F² / ‖Q‖_F² from S's upper triangle
+        self._half_tol_q = 0.5 * self.residual_tol * self._q_norm
+        # the constants that meet (m, …) arrays elementwise, repeated for n fingers (slice [:m]):
+        # a ufunc between arrays of one shape skips the broadcasting set-up (~0.6 µs a call here)
+        tile = lambda c: np.ascontiguousarray(np.broadcast_to(c, (self.n,) + np.shape(c)))  # noqa: E731
+        self._L0n, self._q10n, self._q_shift_n = tile(_L0), tile(self._q10), tile(self._q_shift)
+        self._checker_n, self._u_max_n, self._u_min_n = tile(_CHECKER), tile(self.u_max), tile(-self.u_max)
         self._fast_ok = method == 'fast' and (self._q_pd or self._q_pos_pd)   # detectable by structure
         self._nominal = None
         if nominal is not None:
@@ -366,8 +389,10 @@ class SdreController:
         """:meth:`step` for a model in SDC form, given only its lower rows:
         A2 = [A21 A22] (n,2,4) and G2 (n,2,2), so that A = [[0, I], A2] and G = [[0], G2]."""
         n = self.n
-        A2, G2, x, x_d = _checked(A2=(A2, (n, 2, 4)), G2=(G2, (n, 2, 2)), x=(x, (n, 4)),
-                                  x_d=(x_d, (n, 4)))
+        A2, G2 = np.asarray(A2, dtype=float), np.asarray(G2, dtype=float)
+        x, x_d = np.asarray(x, dtype=float), np.asarray(x_d, dtype=float)
+        if (A2.shape, G2.shape, x.shape, x_d.shape) != ((n, 2, 4), (n, 2, 2), (n, 4), (n, 4)):
+            _checked(A2=(A2, (n, 2, 4)), G2=(G2, (n, 2, 2)), x=(x, (n, 4)), x_d=(x_d, (n, 4)))  # raises
         if self.method != 'fast':
             A, G = self._full(A2, G2)
             return self._step(None, None, A, G, x, x_d)
@@ -391,14 +416,17 @@ class SdreController:
         fast, idx = None, None
         if a is not None and self._fast_ok and self._all_warm:
             fast = self._fast_gains(a, g, self._p)
-            if fast.good.all():
+            if fast.all_good():
                 # the common path: every finger warm and every fast check passed
-                u_unsat = (fast.K @ x[:, :, None] + fast.Ks @ x_d[:, :, None])[:, :, 0]     # eq. 22
-                if np.isfinite(u_unsat).all():
-                    self._p, self._K, self._Ks = fast.p, fast.K, fast.Ks     # (warm ⇒ have: unchanged)
-                    u = np.minimum(np.maximum(u_unsat, -self.u_max), self.u_max)    # = np.clip, cheaper
+                u_unsat = np.matvec(fast.KKs, np.concatenate((x, x_d), axis=1))   # eq. 22: K x + K_s x_d
+                # Σ u² is finite iff every u is (or it overflows beyond 1e154: then the careful path)
+                if math.isfinite(np.vdot(u_unsat, u_unsat)):
+                    # the gains are read-only and shared with the result: _careful_step rebinds
+                    # self._K, self._Ks instead of writing into them (warm ⇒ have: unchanged)
+                    self._p, self._K, self._Ks = fast.p, fast.K, fast.Ks
+                    u = np.minimum(np.maximum(u_unsat, self._u_min_n), self._u_max_n)    # = np.clip, cheaper
                     ok, fallback, failed = self._passed
-                    return SdreStep(u=u, u_unsat=u_unsat, K=fast.K.copy(), Ks=fast.Ks.copy(), P=fast.P,
+                    return SdreStep(u=u, u_unsat=u_unsat, K=fast.K, Ks=fast.Ks, P=fast.P,
                                     residual=fast.residual, ok=ok, fallback=fallback, failed_checks=failed,
                                     saturated=u != u_unsat,          # = |u_unsat| > u_max here
                                     nk_iterations=self._iterations[fast.iterations])
@@ -429,10 +457,17 @@ class SdreController:
 
         Stop rule. Subtracting the equations of two iterates gives the exact identity
         Res(P_{k+1}) = −Δ_k S Δ_k (Δ_k = P_{k+1} − P_k), and with S's structure
-        Δ_k S Δ_k = Δ_lowᵀ W Δ_low, so ‖Res(P_{k+1})‖_F ≤ ‖W‖_F ‖Δ_low‖_F² per finger. The iteration
-        stops at the first k with (Σ_i ‖W_i‖_F²)^½ Σ_i ‖Δ_low,i‖_F² < residual_tol ‖Q‖_F / 2, i.e. when
-        every finger's new iterate has (in exact arithmetic) at most half the accepted residual; the
-        other half is room for the solve's rounding. The identity only decides when to stop: the
+        Δ_k S Δ_k = Δ_lowᵀ W Δ_low, a positive semi-definite matrix (W = G2 R⁻¹ G2ᵀ ⪰ 0), whose
+        Frobenius norm is at most its trace (√Σλ² ≤ Σλ for λ ≥ 0):
+
+            ‖Res(P_{k+1})‖_F ≤ tr(Δ_lowᵀ W Δ_low) = ⟨Δ_low, W Δ_low⟩,
+
+        and W Δ_low = W P_{k+1,low} − W P_{k,low} is the difference of two products the iteration
+        forms anyway. The iteration stops at the first k with Σ_i ⟨Δ_low,i, W_i Δ_low,i⟩ <
+        residual_tol ‖Q‖_F / 2, i.e. when every finger's new iterate has (in exact arithmetic) at
+        most half the accepted residual; the other half is room for the solve's rounding. (This
+        trace is ≤ ‖W‖_F ‖Δ_low‖_F², the bound of the previous rule, so it never stops later.) The
+        identity only decides when to stop: the
         residual that the checks use is then formed directly from P (below), so a solve that rounded
         badly fails the check instead of passing unseen. The gains' error is of the order of the
         residual times the conditioning of the Lyapunov operator of A_cl (measured on the noisy
@@ -460,48 +495,49 @@ class SdreController:
           is C⁻¹, and the check is cond(C) < cond_max.
         """
         m = a.shape[0]
-        Rg = self._Rinv @ g.transpose(0, 2, 1)                 # R⁻¹ G2ᵀ
-        W = g @ Rg                                             # G2 R⁻¹ G2ᵀ
+        q10 = self._q10n[:m]
+        nGR = g @ self._neg_Rinv                               # −G2 R⁻¹ = (−R⁻¹ G2ᵀ)ᵀ, R symmetric
+        W = nGR @ g.transpose(0, 2, 1)
+        np.negative(W, out=W)                                  # W = G2 R⁻¹ G2ᵀ
         L_open = a.reshape(m, 8) @ _T8
-        L_open += _L0                                          # L(A), flattened
+        L_open += self._L0n[:m]                                # L(A), flattened
         L_A = L_open.reshape(m, 10, 10)
         P_low = p0.take(_LOW, axis=1).reshape(m, 2, 4)
-        # stop rule: ‖Res(P_k+1)‖_F ≤ ‖W‖_F ‖Δ_low‖_F² per finger (see the docstring), so once
-        # (Σ_i ‖W_i‖_F²)^½ · Σ_i ‖Δ_low,i‖_F² < tol ‖Q‖_F / 2 every finger's next residual is too
-        small = 0.5 * self.residual_tol * self._q_norm / np.sqrt(np.vdot(W, W))
         WP = W @ P_low                                         # S P (lower rows)
         PSP10 = _upper(P_low.transpose(0, 2, 1) @ WP)          # P S P = P_lowᵀ W P_low
         with np.errstate(all='ignore'):        # a failed factorisation gives NaN, which fails a check
             for iterations in range(1, self.max_nk + 1):
                 L = (L_open - WP.reshape(m, 8) @ _T8).reshape(m, 10, 10)       # L(A − S P_k)
-                p = _stack_solve(L, PSP10 + self._q10)         # A_kᵀP + PA_k = −(Q + P_k S P_k)
+                p = _stack_solve(L, PSP10 + q10)               # A_kᵀP + PA_k = −(Q + P_k S P_k)
                 P_next = p.take(_LOW, axis=1).reshape(m, 2, 4)
                 D = P_next - P_low                             # lower rows of Δ_k = P_k+1 − P_k
-                P_low = P_next
-                WP = W @ P_low
+                WP_next = W @ P_next
+                WD = WP_next - WP                              # W Δ_low
+                P_low, WP = P_next, WP_next
                 PSP = P_low.transpose(0, 2, 1) @ WP
-                PSP10 = _upper(PSP)
-                if np.vdot(D, D) < small:                      # False for NaN: iterate on
+                PSP10 = PSP.reshape(m, 16).take(_UPPER, axis=1)            # (its upper triangle)
+                # stop rule: ‖Res(P_k+1)‖_F ≤ ⟨Δ_low, W Δ_low⟩ per finger (see the docstring)
+                if np.vdot(D, WD) < self._half_tol_q:          # False for NaN: iterate on
                     break
-            res = self._q10 - PSP10
-            res -= (L_A @ p[:, :, None])[:, :, 0]              # Res = Q − L(A)p − PSP (upper)
-            res2 = (res * res) @ _FRO10                        # ‖Res‖_F² (off-diagonals twice)
-            residual = np.sqrt(res2) / self._q_norm
+            res = np.matvec(L_A, p)
+            res += PSP10
+            res -= q10                                         # −Res = L(A)p + PSP − Q (upper)
+            residual = np.sqrt((res * res) @ self._fro10_q)    # ‖Res‖_F / ‖Q‖_F (off-diagonals twice)
             P = p.take(_FULL, axis=1).reshape(m, 4, 4)
-            K = -(Rg @ P_low)                                  # −R⁻¹ Gᵀ P
-            C = a[:, :, :2] - WP[:, :, :2]                     # A_cl = [[0, I], [C, D]]
+            C = (a - WP)[:, :, :2]                             # A_cl = [[0, I], [C, D]] = A − S P
             # stabilisable (G2) and A_cl invertible (C), both 2×2 condition tests in one call
             well, det = _cond2_below(np.concatenate([g, C]), self.cond_max)
-            # K_s = −R⁻¹ G2ᵀ C⁻ᵀ Q[:2, :],  C⁻ᵀ = [[c11, −c10], [−c01, c00]] / det C (the leading
-            # minus rides in _NEG_CHECKER)
-            Ks = (Rg @ (C[:, ::-1, ::-1] * (_NEG_CHECKER / det[m:, None, None]))) @ self._q_top
+            # [K K_s] = −R⁻¹ G2ᵀ [P_low, C⁻ᵀ Q[:2, :]],  C⁻ᵀ = [[c11, −c10], [−c01, c00]] / det C
+            CitQ = (C[:, ::-1, ::-1] * self._checker_n[:m]) @ self._q_top
+            CitQ /= det[m:, None, None]
+            KKs = _frozen(nGR.transpose(0, 2, 1) @ np.concatenate((P_low, CitQ), axis=2))
             # P ≻ 0 and N − margin ≻ 0: both Cholesky factors exist. A failed one is all NaN, and
             # L₃₃ depends on every entry of the lower triangle, so a NaN in the input reaches it too
-            chol = _stack_cholesky(np.concatenate([P, PSP + self._q_shift]))
-            pd = np.isfinite(chol[:, 3, 3])
-            passed = well & pd                         # [G2; C] conditioned, [P; N − margin] ≻ 0
-            good = passed[:m] & passed[m:] & (residual < self.residual_tol)
-        return _FastGains(p=p, P=P, K=K, Ks=Ks, residual=residual, iterations=iterations, good=good)
+            chol = _stack_cholesky(np.concatenate([P, PSP + self._q_shift_n[:m]]))
+            # (a factor that exists has a positive diagonal; NaN > 0 is False)
+            passed = well & (chol[:, 3, 3] > 0.0)     # [G2; C] conditioned, [P; N − margin] ≻ 0
+        return _FastGains(p=p, P=P, KKs=KKs, K=KKs[:, :, :4], Ks=KKs[:, :, 4:], residual=residual,
+                          iterations=iterations, passed=passed, residual_tol=self.residual_tol)
 
     # -- the exact path ----------------------------------------------------------------------
     def _exact(self, A, G, i) -> np.ndarray:
@@ -592,9 +628,10 @@ class SdreController:
         ok = failed == 0
         ok &= np.all(np.isfinite(K), axis=(1, 2)) & np.all(np.isfinite(Ks), axis=(1, 2))
 
-        # accept or fall back
-        self._K[ok] = K[ok]
-        self._Ks[ok] = Ks[ok]
+        # accept or fall back; new arrays, not writes into the old ones: the fast path shares its
+        # gains with the step it returned
+        self._K = np.where(ok[:, None, None], K, self._K)
+        self._Ks = np.where(ok[:, None, None], Ks, self._Ks)
         self._have |= ok
         self._p[ok] = P[ok].reshape(-1, 16)[:, _UPPER]
         self._warm = ok.copy()           # no warm start from a rejected solve

@@ -1,7 +1,8 @@
 """The fast SDRE path against the reference path (scipy) on the shipped model, and its checks.
 
 Tolerance: the fast path stops Newton–Kleinman once a bound on the next iterate's Riccati residual
-(the identity Res(P_k+1) = −Δ_k S Δ_k) is below half the accepted 1e-6 (relative to ‖Q‖_F), and
+(the identity Res(P_k+1) = −Δ_k S Δ_k, whose norm is at most its trace ⟨Δ_low, W Δ_low⟩) is below
+half the accepted 1e-6 (relative to ‖Q‖_F), and
 forms the residual directly for its checks; its gains, P and the unsaturated torques agree with
 scipy's to within ``U_TOL`` = 1e-4 of the largest value of the sequence (measured here ≤ 2e-6; on
 the noisy closed-loop replay of tools/bench.py ≤ 1.2e-5: the gains' error is the residual times the
@@ -200,6 +201,54 @@ def test_fast_path_checks_still_trigger(model):
     assert out.ok.all() and list(out.nk_iterations == 0) == [True, True, True, False]
     out = ctrl.step_sdc(a, g, x, np.zeros((N, 4)))
     assert out.ok.all() and out.nk_iterations.min() >= 1
+
+
+def test_stop_rule_trace_bound_holds_for_a_newton_kleinman_step(model):
+    """The stop rule's bound: for a Newton–Kleinman step from any P_k near the solution,
+    ‖Res(P_k+1)‖_F ≤ ⟨Δ_low, W Δ_low⟩ ≤ ‖W‖_F ‖Δ_low‖_F² (the previous rule's bound), with
+    Δ = P_k+1 − P_k, W = G2 R⁻¹ G2ᵀ; computed here on full matrices with scipy's Lyapunov solver."""
+    from scipy.linalg import solve_continuous_lyapunov
+    rng = np.random.default_rng(7)
+    W_ = Weights(**DEFAULT_WEIGHTS)
+    Q, R = W_.Q, W_.R
+    x, a, g = sdc_plant(model, rng)
+    A, G = SdreController._full(a, g)
+    S = G @ np.linalg.inv(R) @ G.transpose(0, 2, 1)
+    for i in range(N):
+        P_star = care(A[i], G[i], Q, R)
+        for scale in (1e-1, 1e-2, 1e-3):
+            E = rng.standard_normal((4, 4))
+            P_k = P_star * (1.0 + scale * (E + E.T) / 2)              # a nearby symmetric warm start
+            A_k = A[i] - S[i] @ P_k
+            P_next = solve_continuous_lyapunov(A_k.T, -(Q + P_k @ S[i] @ P_k))
+            res = np.linalg.norm(P_next @ A[i] + A[i].T @ P_next + Q - P_next @ S[i] @ P_next)
+            D = (P_next - P_k)[2:, :]
+            Wi = S[i][2:, 2:]
+            trace = np.vdot(D, Wi @ D)
+            assert res <= trace * (1 + 1e-6) + 1e-9 * np.linalg.norm(Q)
+            assert trace <= np.linalg.norm(Wi) * np.vdot(D, D) * (1 + 1e-12)
+
+
+def test_returned_gains_are_read_only_and_do_not_change_under_later_steps(model):
+    """The fast path shares its gains with the controller's fallback gains: read-only, and a later
+    step that falls back (and updates the fallback gains of the fingers that passed) leaves them."""
+    rng = np.random.default_rng(5)
+    W = Weights(**DEFAULT_WEIGHTS)
+    ctrl = SdreController(W.Q, W.R, 0.0625, n=N)
+    x, a, g = sdc_plant(model, rng)
+    warm(ctrl, a, g, x)
+    first = warm(ctrl, a, g, x)                  # a fast-path step
+    assert first.nk_iterations.min() >= 1
+    K, Ks = first.K.copy(), first.Ks.copy()
+    with pytest.raises(ValueError):
+        first.K[0, 0, 0] = 1.0
+    a2 = a * (1.0 + 1e-2 * rng.standard_normal(a.shape))
+    a2[1, 0, 2] = np.nan                         # finger 1 falls back, the others get new gains
+    out = ctrl.step_sdc(a2, g, x, np.zeros((N, 4)))
+    assert out.fallback[1] and out.ok[[0, 2, 3]].all()
+    assert not np.allclose(out.K[0], K[0])
+    np.testing.assert_array_equal(first.K, K)
+    np.testing.assert_array_equal(first.Ks, Ks)
 
 
 def test_general_matrices_take_the_exact_path():
