@@ -120,12 +120,16 @@ class RestFrame:
         Raises:
             ValueError: when an input is not (n, 2).
         """
-        try:
-            z = np.concatenate((pos, vel, ref_pos, ref_vel), axis=1, dtype=float)
-        except (ValueError, TypeError):
-            z = None
-        if z is None or z.shape != (self.n, 8):
-            raise ValueError(f'pos, vel, ref_pos, ref_vel must each have shape ({self.n}, 2)')
+        shape = (self.n, 2)
+        z = None
+        if np.shape(pos) == np.shape(vel) == np.shape(ref_pos) == np.shape(ref_vel) == shape:
+            try:
+                z = np.concatenate((pos, vel, ref_pos, ref_vel), axis=1, dtype=float)
+            except (ValueError, TypeError):
+                pass
+        if z is None:
+            raise ValueError(f'pos, vel, ref_pos, ref_vel must each have shape {shape}, got '
+                             f'{[np.shape(a) for a in (pos, vel, ref_pos, ref_vel)]}')
         z -= self._shift
         return z[:, :4], z[:, 4:]
 

@@ -251,7 +251,10 @@ def _stack_linalg():
     public np.linalg.solve / cholesky spend about half / 60 % of their time on argument checks
     and error-state set-up; the gufuncs they call, ``numpy.linalg._umath_linalg.solve1`` and
     ``cholesky_lo`` (private; numpy is pinned), run the same LAPACK routines (gesv, potrf) and write
-    NaN into the result of a matrix whose factorisation fails instead of raising. Call them inside
+    NaN into the result of a matrix whose factorisation fails (an exactly zero pivot, a non-positive
+    one in Cholesky, NaN input) instead of raising. A matrix singular only to rounding solves to
+    finite garbage, as with the public solve: the directly formed residual and the cond tests reject
+    it. Call them inside
     ``np.errstate(invalid='ignore')``. If the private module is missing or answers differently from
     the public functions on a small example, the public functions (wrapped to NaN likewise) serve.
     test_sdre_fast.py checks both implementations against each other.
@@ -471,7 +474,7 @@ class SdreController:
         residual that the checks use is then formed directly from P (below), so a solve that rounded
         badly fails the check instead of passing unseen. The gains' error is of the order of the
         residual times the conditioning of the Lyapunov operator of A_cl (measured on the noisy
-        closed-loop replay: ≤ 1.2e-5 of the largest torque against scipy; the tests allow 1e-4).
+        closed-loop replay: ≤ 1.1e-5 of the largest torque against scipy; the stated tolerance is 1e-4).
 
         Checks (each finger; any failure sends that finger to the exact path):
 
@@ -496,16 +499,17 @@ class SdreController:
         """
         m = a.shape[0]
         q10 = self._q10n[:m]
-        nGR = g @ self._neg_Rinv                               # −G2 R⁻¹ = (−R⁻¹ G2ᵀ)ᵀ, R symmetric
-        W = nGR @ g.transpose(0, 2, 1)
-        np.negative(W, out=W)                                  # W = G2 R⁻¹ G2ᵀ
-        L_open = a.reshape(m, 8) @ _T8
-        L_open += self._L0n[:m]                                # L(A), flattened
-        L_A = L_open.reshape(m, 10, 10)
-        P_low = p0.take(_LOW, axis=1).reshape(m, 2, 4)
-        WP = W @ P_low                                         # S P (lower rows)
-        PSP10 = _upper(P_low.transpose(0, 2, 1) @ WP)          # P S P = P_lowᵀ W P_low
-        with np.errstate(all='ignore'):        # a failed factorisation gives NaN, which fails a check
+        # a non-finite model output or a failed factorisation gives NaN, which fails a check
+        with np.errstate(all='ignore'):
+            nGR = g @ self._neg_Rinv                           # −G2 R⁻¹ = (−R⁻¹ G2ᵀ)ᵀ, R symmetric
+            W = nGR @ g.transpose(0, 2, 1)
+            np.negative(W, out=W)                              # W = G2 R⁻¹ G2ᵀ
+            L_open = a.reshape(m, 8) @ _T8
+            L_open += self._L0n[:m]                            # L(A), flattened
+            L_A = L_open.reshape(m, 10, 10)
+            P_low = p0.take(_LOW, axis=1).reshape(m, 2, 4)
+            WP = W @ P_low                                     # S P (lower rows)
+            PSP10 = _upper(P_low.transpose(0, 2, 1) @ WP)      # P S P = P_lowᵀ W P_low
             for iterations in range(1, self.max_nk + 1):
                 L = (L_open - WP.reshape(m, 8) @ _T8).reshape(m, 10, 10)       # L(A − S P_k)
                 p = _stack_solve(L, PSP10 + q10)               # A_kᵀP + PA_k = −(Q + P_k S P_k)
@@ -533,6 +537,7 @@ class SdreController:
             KKs = _frozen(nGR.transpose(0, 2, 1) @ np.concatenate((P_low, CitQ), axis=2))
             # P ≻ 0 and N − margin ≻ 0: both Cholesky factors exist. A failed one is all NaN, and
             # L₃₃ depends on every entry of the lower triangle, so a NaN in the input reaches it too
+            # (+inf on a diagonal can leave L₃₃ finite or +inf; the residual, NaN then, rejects it)
             chol = _stack_cholesky(np.concatenate([P, PSP + self._q_shift_n[:m]]))
             # (a factor that exists has a positive diagonal; NaN > 0 is False)
             passed = well & (chol[:, 3, 3] > 0.0)     # [G2; C] conditioned, [P; N − margin] ≻ 0

@@ -263,3 +263,17 @@ def test_pd_feedforward_adds_the_reference_acceleration_and_make_law_knows_the_n
         assert np.all(np.isfinite(push)) and np.any(push != still)
     finally:
         oracle.close()
+
+
+@pytest.mark.parametrize('shapes', [((2, 3), (2, 1), (2, 2), (2, 2)),     # widths that add up to 8
+                                    ((2, 2), (2, 2), (2, 1), (2, 3)),
+                                    ((2,), (2, 2), (2, 2), (2, 2)),         # no silent broadcast
+                                    ((1, 2), (1, 2), (1, 2), (1, 2))])      # too few fingers
+def test_every_law_refuses_states_of_the_wrong_shape(shapes):
+    laws = [TrackingController(LinearModel(), Weights(1e4, 1.0, 1.0), 1.0, n_fingers=2),
+            LqrLaw(LinearModel(), Weights(1e4, 1.0, 1.0), 1.0, n_fingers=2),
+            SdreFeedforwardLaw(LinearModel(), Weights(1e4, 1.0, 1.0), 1.0, n_fingers=2)]
+    args = [np.zeros(s) for s in shapes]
+    for law in laws:
+        with pytest.raises(ValueError, match=r'must each have shape \(2, 2\)'):
+            law.compute(*args)
