@@ -32,7 +32,7 @@ import numpy as np
 from rclpy.node import Node
 from trajectory_msgs.msg import MultiDOFJointTrajectory
 
-from soft_gripper_sdre.nodes import conversions as cv
+from soft_gripper_sdre.nodes import cdr, conversions as cv
 from soft_gripper_sdre.nodes.common import Diagnostics, run
 from soft_gripper_sdre.nodes.params import Param, ParameterError, declare_all, on_runtime_change
 from soft_gripper_sdre.nodes.topics import GRASP_REFERENCE, LOOP_QOS, REFERENCE_QOS, TIP_POSITIONS
@@ -129,8 +129,9 @@ class TrajectoryNode(Node):
         self.last_ns = -1                       # stamp of the last accepted tip message
         self.next_pub_ns = 0                    # next publish instant (multiple of publish_period)
 
+        self.cdr_tips = cdr.tips_codec(self.n)     # CDR bytes read at fixed offsets (nodes/cdr.py)
         self.pub = self.create_publisher(MultiDOFJointTrajectory, GRASP_REFERENCE, REFERENCE_QOS)
-        self.sub = self.create_subscription(PoseArray, TIP_POSITIONS, self.on_tips, LOOP_QOS)
+        self.sub = self.create_subscription(PoseArray, TIP_POSITIONS, self.on_tips, LOOP_QOS, raw=True)
         self.diag = Diagnostics(self)
         pr = self.profile
         self.get_logger().info(
@@ -142,9 +143,9 @@ class TrajectoryNode(Node):
         self.p.update(new)
         self.jump_ns = int(round(self.p['reset_on_jump'] * cv.NS))
 
-    def on_tips(self, msg: PoseArray) -> None:
+    def on_tips(self, data: bytes) -> None:
         try:
-            stamp, tips = cv.msg_to_tips(msg, self.n)
+            stamp, tips = self.cdr_tips.decode(data)
         except cv.MessageError as exc:
             self.diag.problem('bad_message', f'rejected: {exc}')
             return
