@@ -225,3 +225,12 @@ def clock_codec() -> LoopCodec:
     """``/clock``: the stamp only (values are an empty array)."""
     return LoopCodec(CLOCK, cv.Clock, lambda ns, _v: cv.clock_msg(ns),
                      lambda m: (cv.from_time(m.clock), np.empty(0)), (0,), None)
+
+
+def watch(diag, *codecs: LoopCodec) -> None:
+    """Report in ``diag`` (a :class:`~soft_gripper_sdre.nodes.common.Diagnostics`) how many
+    messages ``codecs`` decoded the slow way, as the value ``slow_decodes`` (0 while every
+    message comes from our own nodes)."""
+    def refresh() -> None:
+        diag.values['slow_decodes'] = str(sum(c.fallbacks for c in codecs))
+    diag.before_publish.append(refresh)

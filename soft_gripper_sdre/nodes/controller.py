@@ -158,6 +158,7 @@ class ControllerNode(Node):
         self.sub_clock = self.create_subscription(Clock, CLOCK, self.on_clock, CLOCK_QOS, raw=True)
         self.log = ThrottledLogger(self.get_logger())
         self.diag = Diagnostics(self)
+        cdr.watch(self.diag, self.cdr_estimate, self.cdr_clock)
         self.diag.values['model'] = str(model.path)
         self.diag.values['weights'] = f'q_pos={weights.q_pos:g} q_vel={weights.q_vel:g} r={weights.r:g}'
         self._watchdog = self.create_timer(0.05, self._check_clock)

@@ -73,6 +73,7 @@ class EstimatorNode(Node):
         self.pub = self.create_publisher(MultiDOFJointTrajectory, STATE_ESTIMATE, LOOP_QOS)
         self.sub = self.create_subscription(PoseArray, TIP_POSITIONS, self.on_tips, LOOP_QOS, raw=True)
         self.diag = Diagnostics(self)
+        cdr.watch(self.diag, self.cdr_tips)
         self.diag.values['process_noise'] = p['process_noise']
         self.get_logger().info(
             f'{self.n} fingers, Δt = {1e3 * p["control_period"]:g} ms, q = {p["accel_psd"]:g} '

@@ -123,6 +123,7 @@ class SimulatorNode(Node):
                                                 raw=True)
         self.log = ThrottledLogger(self.get_logger())
         self.diag = Diagnostics(self)
+        cdr.watch(self.diag, self.cdr_cmd)
         self.diag.before_publish.append(self._refresh_diagnostics)
         self.diag.values['mode'] = p['mode']
         self.diag.values['scene'] = p['scene']

@@ -133,6 +133,7 @@ class TrajectoryNode(Node):
         self.pub = self.create_publisher(MultiDOFJointTrajectory, GRASP_REFERENCE, REFERENCE_QOS)
         self.sub = self.create_subscription(PoseArray, TIP_POSITIONS, self.on_tips, LOOP_QOS, raw=True)
         self.diag = Diagnostics(self)
+        cdr.watch(self.diag, self.cdr_tips)
         pr = self.profile
         self.get_logger().info(
             f'grasp with fingers {list(pr.grasp_fingers)}, others {pr.others}: start {pr.t_start:g} s, '
