@@ -14,8 +14,8 @@ How a layout is learned, so that no offset is derived by hand:
   value in every slot; the slot offsets are where those sentinels land in rclpy's bytes;
 * every other byte is flipped in turn and the bytes deserialized again: a byte whose flip leaves
   the message equal to the template is one the deserializer ignores (alignment padding, which
-  rclpy's serializer leaves uninitialised, and the slack it adds at the end); every other byte is
-  structural (the encapsulation header, lengths, counts, strings such as frame_id and names, and
+  rclpy's serializer leaves uninitialised, and slack at the end, which the layout drops as rmw
+  does for a typed message); every other byte is structural (the encapsulation header, lengths, counts, strings such as frame_id and names, and
   fields outside the slots such as orientations) and must match the template exactly.
 
 A message matches a layout when it has the template's length and the same structural bytes; the
@@ -72,6 +72,7 @@ class Layout:
     stamp_at: int                 # byte offset of the stamp's sec (its nanosec follows)
     slots: np.ndarray             # (m,) index of each slot among the float64 words after HEADER
     shape: tuple[int, ...]        # shape of the slot values
+    slack_size: int               # length of rclpy's own serialization (with its slack)
 
     @classmethod
     def learn(cls, msg_type: type, build: Callable[[int, np.ndarray], object],
@@ -96,22 +97,29 @@ class Layout:
             moving[HEADER + 8 * s:HEADER + 8 * s + 8] = True
         with _quiet_stderr():       # the typesupport prints a line for each count it cannot read
             ignored = np.array([not moving[i] and _ignored(raw, i, msg, msg_type) for i in range(len(raw))])
+        # rclpy's buffer may end in slack the deserializer ignores; rmw sends typed messages
+        # without it, so the layout ends at the last byte that is read (typed and raw then match)
+        size = int(np.flatnonzero(~ignored)[-1]) + 1
+        size += -(size - HEADER) % 4            # an RTPS payload is whole 4-byte words
+        ignored = ignored[:size]
+        moving = moving[:size]
         mask = np.where(moving | ignored, 0, 0xFF).astype(np.uint8)
-        template = bytes(np.frombuffer(raw, np.uint8) & np.where(ignored, 0, 0xFF).astype(np.uint8))
+        template = bytes(np.frombuffer(raw[:size], np.uint8) & np.where(ignored, 0, 0xFF).astype(np.uint8))
         layout = cls(msg_type, template, mask, bytes(np.frombuffer(template, np.uint8) & mask),
-                     stamp_at, slots, tuple(shape))
+                     stamp_at, slots, tuple(shape), len(raw))
         if deserialize_message(layout.encode(sec * cv.NS + nanosec, values), msg_type) != msg:
             raise ValueError(f'{name}: the learned layout does not reproduce the template')
         return layout
 
     def decode(self, data: bytes) -> tuple[int, np.ndarray] | None:
         """(stamp ns, slot values of ``shape``) of ``data``, or None when it does not match."""
-        if len(data) != len(self.template):
+        size = len(self.template)
+        if len(data) != size and len(data) != self.slack_size:     # as rmw or as rclpy serializes
             return None
-        if (np.frombuffer(data, np.uint8) & self.mask).tobytes() != self.masked:
+        if (np.frombuffer(data, np.uint8, count=size) & self.mask).tobytes() != self.masked:
             return None
         sec, nanosec = _STAMP.unpack_from(data, self.stamp_at)
-        words = np.frombuffer(data, '<f8', count=(len(data) - HEADER) // 8, offset=HEADER)
+        words = np.frombuffer(data, '<f8', count=(size - HEADER) // 8, offset=HEADER)
         return sec * cv.NS + nanosec, words[self.slots].reshape(self.shape)   # a copy: data is not kept
 
     def encode(self, ns: int, values: np.ndarray) -> bytes:
