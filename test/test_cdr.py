@@ -2,7 +2,7 @@
 slow path (deserialize_message + msg_to_*) for everything that does not match exactly."""
 import numpy as np
 import pytest
-from geometry_msgs.msg import Pose, PoseArray
+from geometry_msgs.msg import PoseArray
 from rclpy.serialization import deserialize_message, serialize_message
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState

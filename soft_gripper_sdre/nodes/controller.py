@@ -162,7 +162,7 @@ class ControllerNode(Node):
         self.diag.values['model'] = str(model.path)
         self.diag.values['weights'] = f'q_pos={weights.q_pos:g} q_vel={weights.q_vel:g} r={weights.r:g}'
         self._watchdog = self.create_timer(0.05, self._check_clock)
-        self._stats_timer = self.create_timer(1.0, self._publish_stats)
+        self.diag.before_publish.append(self._compute_stats)
         self.get_logger().info(
             f'model {model.path.name} (rest tip {1e3 * model.rest_tip[0]:.1f}, '
             f'{1e3 * model.rest_tip[1]:.1f} mm); {self.diag.values["weights"]}; '
@@ -334,7 +334,8 @@ class ControllerNode(Node):
         if newest > self.last_cmd_ns:
             self._safe_command(newest)
 
-    def _publish_stats(self) -> None:
+    def _compute_stats(self) -> None:
+        """Mean and max compute time [µs] since the last /diagnostics, into its values."""
         if self._compute_s:
             c = np.asarray(self._compute_s) * 1e6
             self.diag.values['compute_us_mean'] = f'{c.mean():.0f}'

@@ -206,17 +206,6 @@ def estimate_to_msg(ns: int, pos: np.ndarray, vel: np.ndarray) -> MultiDOFJointT
     return msg
 
 
-def fill_estimate(msg: MultiDOFJointTrajectory, ns: int, x: np.ndarray) -> None:
-    """Overwrite the stamp and the (n, 4) [X, Y, Ẋ, Ẏ] of a message from :func:`estimate_to_msg`
-    in place (z and the rotation stay as they are: 0 and identity)."""
-    set_time(msg.header.stamp, ns)
-    pt = msg.points[0]
-    for tf, tw, (px, py, vx, vy) in zip(pt.transforms, pt.velocities, np.asarray(x, dtype=float).tolist()):
-        pos, vel = tf.translation, tw.linear
-        pos.x, pos.y = px, py
-        vel.x, vel.y = vx, vy
-
-
 def msg_to_estimate(msg: MultiDOFJointTrajectory, n_fingers: int) -> tuple[int, np.ndarray]:
     """One-point MultiDOFJointTrajectory → (stamp ns, (n, 4) [X, Y, Ẋ, Ẏ])."""
     idx = _order(msg.joint_names, list(FINGER_NAMES[:n_fingers]), 'state_estimate')
