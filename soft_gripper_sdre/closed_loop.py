@@ -86,8 +86,8 @@ def run_closed_loop(model, *, duration: float, sim_config: SimConfig | None = No
             model, weights, u_max, n_fingers=n, method=method, lowpass_hz=lowpass_hz, dt=dt)
         observe = getattr(ctrl, 'observe', None)
         with_acc = accepts_ref_acc(ctrl)
-        rec = {k: [] for k in ('t', 'pos', 'vel', 'meas', 'est', 'ref_pos', 'ref_vel', 'u', 'ok',
-                               'fallback', 'saturated', 'residual', 'contact', 'cube')}
+        rec = {k: [] for k in ('t', 'pos', 'vel', 'meas', 'est', 'u', 'ok', 'fallback', 'saturated',
+                               'residual', 'contact', 'cube')}
         traj = None
         iterator = range(steps)
         if progress:
@@ -106,10 +106,9 @@ def run_closed_loop(model, *, duration: float, sim_config: SimConfig | None = No
             else:
                 x_hat = kf.step(z)
             truth = sim.truth()
-            ref_pos, ref_vel = refs.pos[k], refs.vel[k]
             if observe is not None:
                 observe(truth)
-            out = ctrl.compute(x_hat[:, :2], x_hat[:, 2:], ref_pos, ref_vel,
+            out = ctrl.compute(x_hat[:, :2], x_hat[:, 2:], refs.pos[k], refs.vel[k],
                                **({'ref_acc': refs.acc[k]} if with_acc else {}))
             sim.step(out.u)
             rec['t'].append(truth.t)
@@ -117,8 +116,6 @@ def run_closed_loop(model, *, duration: float, sim_config: SimConfig | None = No
             rec['vel'].append(truth.tip_vel[:, :2])
             rec['meas'].append(z)
             rec['est'].append(x_hat)
-            rec['ref_pos'].append(ref_pos)
-            rec['ref_vel'].append(ref_vel)
             rec['u'].append(out.u)
             rec['ok'].append(out.ok)
             rec['fallback'].append(out.fallback)
@@ -129,6 +126,7 @@ def run_closed_loop(model, *, duration: float, sim_config: SimConfig | None = No
             rec['cube'].append(truth.cube_pose if truth.cube_pose is not None else np.full(7, np.nan))
             stamps[k + 1] = clock()
     arrays = {k: np.asarray(v) for k, v in rec.items()}
+    arrays['ref_pos'], arrays['ref_vel'] = refs.pos[:steps], refs.vel[:steps]
     free = traj.free_space(arrays['t']) & ~arrays['contact']
     excursion = traj.peak_excursion()
     periods = np.diff(stamps)

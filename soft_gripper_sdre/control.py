@@ -65,6 +65,70 @@ DEFAULT_WEIGHTS = dict(q_pos=1.0e6, q_vel=0.0, r=1.6e4)
 DEFAULT_LOWPASS_HZ = 40.0
 
 
+class RollOff:
+    """First-order roll-off of a command, the same for every law:
+
+        u_k = a u_{k−1} + (1 − a) v_k,    a = e^{−2π f Δt},    u_0 = v_0,
+
+    with v_k the law's saturated command. f = 0 turns it off (u_k = v_k).
+
+    Args:
+        hz: corner frequency f [Hz], finite and >= 0.
+        dt: control period Δt [s].
+    """
+
+    def __init__(self, hz: float, dt: float) -> None:
+        if not (np.isfinite(hz) and hz >= 0.0):
+            raise ValueError(f'lowpass_hz must be finite and >= 0 (0 = off), got {hz!r}')
+        self.alpha = float(np.exp(-2.0 * np.pi * hz * dt)) if hz > 0 else 0.0
+        self._beta = 1.0 - self.alpha
+        self._u = None
+
+    def reset(self) -> None:
+        """Forget the filter state: the next output is the next input."""
+        self._u = None
+
+    def __call__(self, v: np.ndarray) -> np.ndarray:
+        if self.alpha > 0.0:
+            v = v if self._u is None else self.alpha * self._u + self._beta * v
+            self._u = v
+        return v
+
+
+class RestFrame:
+    """The model's translated coordinates: origin at the settled rest tip p₀, where f(0) = 0.
+
+        x = [p − p₀, ṗ],    x_d = [p_d − p₀, ṗ_d]
+
+    Args:
+        rest_tip: the model's rest tip position (at least X₀, Y₀) [m].
+        n: number of fingers.
+    """
+
+    def __init__(self, rest_tip, n: int) -> None:
+        rest = np.asarray(rest_tip, dtype=float).reshape(-1)
+        if rest.size < 2 or not np.all(np.isfinite(rest[:2])):
+            raise ValueError(f'rest_tip must hold a finite rest position, got {rest_tip!r}')
+        self.origin = rest[:2].copy()
+        self.n = int(n)
+        self._shift = np.concatenate([self.origin, [0.0, 0.0]] * 2)      # [p₀, 0, p₀, 0]
+
+    def states(self, pos, vel, ref_pos, ref_vel) -> tuple[np.ndarray, np.ndarray]:
+        """(x, x_d), each (n, 4), from (n, 2) positions and velocities in the base frames.
+
+        Raises:
+            ValueError: when an input is not (n, 2).
+        """
+        try:
+            z = np.concatenate((pos, vel, ref_pos, ref_vel), axis=1, dtype=float)
+        except (ValueError, TypeError):
+            z = None
+        if z is None or z.shape != (self.n, 8):
+            raise ValueError(f'pos, vel, ref_pos, ref_vel must each have shape ({self.n}, 2)')
+        z -= self._shift
+        return z[:, :4], z[:, 4:]
+
+
 class TrackingController:
     """SDRE tracking of every finger with one learned SDC model.
 
@@ -76,6 +140,7 @@ class TrackingController:
         u_max: torque saturation per input [N·m].
         n_fingers: number of fingers controlled together.
         method: ``'fast'`` (batched warm-started Newton–Kleinman) or ``'reference'`` (scipy).
+        lowpass_hz, dt: the command's :class:`RollOff` (0 = off) and the control period [s].
     """
 
     def __init__(self, model, weights: Weights, u_max: float, n_fingers: int = 4,
@@ -83,29 +148,23 @@ class TrackingController:
         self.model = model
         self.weights = weights
         self.n_fingers = int(n_fingers)
-        rest = np.asarray(model.rest_tip, dtype=float).reshape(-1)
-        if rest.size < 2 or not np.all(np.isfinite(rest)):
-            raise ValueError(f'model.rest_tip must hold a finite rest position, got {model.rest_tip!r}')
-        self._origin = rest[:2].copy()
+        try:
+            self.frame = RestFrame(model.rest_tip, self.n_fingers)
+        except ValueError:
+            raise ValueError(f'model.rest_tip must hold a finite rest position, got {model.rest_tip!r}') from None
         self.sdre = SdreController(weights.Q, weights.R, u_max, n=self.n_fingers, method=method)
         self._blocks = getattr(model, 'sdc_blocks', None)
-        self._x = np.zeros((self.n_fingers, 4))
-        self._xd = np.zeros((self.n_fingers, 4))
-        if not (np.isfinite(lowpass_hz) and lowpass_hz >= 0.0):
-            raise ValueError(f'lowpass_hz must be finite and >= 0 (0 = off), got {lowpass_hz!r}')
-        self._alpha = float(np.exp(-2.0 * np.pi * lowpass_hz * dt)) if lowpass_hz > 0 else 0.0
-        self._beta = 1.0 - self._alpha
-        self._u_filt = None
+        self.roll_off = RollOff(lowpass_hz, dt)
 
     @property
     def origin(self) -> np.ndarray:
         """(2,) rest tip position the model's coordinates are translated by [m]."""
-        return self._origin
+        return self.frame.origin
 
     def reset(self) -> None:
         """Forget warm starts, last valid gains and the filter state (e.g. after a clock jump)."""
         self.sdre.reset()
-        self._u_filt = None
+        self.roll_off.reset()
 
     def compute(self, pos: np.ndarray, vel: np.ndarray, ref_pos: np.ndarray,
                 ref_vel: np.ndarray) -> SdreStep:
@@ -118,21 +177,11 @@ class TrackingController:
         Returns:
             the SDRE step (``u`` (n, 2) [N·m], gains, checks, fallbacks).
         """
-        x, xd = self._x, self._xd
-        x[:, :2] = pos
-        x[:, :2] -= self._origin                  # translated coordinates: f(0) = 0 at rest
-        x[:, 2:] = vel
-        xd[:, :2] = ref_pos
-        xd[:, :2] -= self._origin
-        xd[:, 2:] = ref_vel
+        x, xd = self.frame.states(pos, vel, ref_pos, ref_vel)   # f(0) = 0 at rest
         if self._blocks is not None:                 # a model in SDC form: only its lower rows
             out = self.sdre.step_sdc(*self._blocks(x), x, xd)
         else:
             out = self.sdre.step(*self.model.AG(x), x, xd)
-        if self._alpha > 0.0:
-            # first-order roll-off of the command: keeps the loop from feeding the finger's
-            # unmodelled bending modes (README, "Noise")
-            u_f = out.u if self._u_filt is None else self._alpha * self._u_filt + self._beta * out.u
-            self._u_filt = u_f
-            out.u = u_f
+        # keeps the loop from feeding the finger's unmodelled bending modes (README, "Noise")
+        out.u = self.roll_off(out.u)
         return out

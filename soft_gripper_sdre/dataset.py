@@ -45,12 +45,11 @@ def load_record(path: Path) -> Record:
     try:
         with np.load(path, allow_pickle=False) as d:
             arrays = {k: d[k] for k in d.files}
-    except ValueError as exc:
-        if 'allow_pickle' in str(exc):        # an object array: unpickling it could run code
+    except (ValueError, zipfile.BadZipFile, OSError, EOFError) as exc:
+        if isinstance(exc, ValueError) and 'allow_pickle' in str(exc):
+            # an object array: unpickling it could run code
             raise DatasetError(f'{path}: holds pickled objects, refused unread (a dataset is plain '
                                'numeric arrays)') from None
-        raise DatasetError(f'{path}: unreadable or truncated ({exc})') from None
-    except (zipfile.BadZipFile, OSError, EOFError) as exc:
         raise DatasetError(f'{path}: unreadable or truncated ({exc})') from None
     missing = [k for k in REQUIRED if k not in arrays]
     if missing:

@@ -29,8 +29,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from soft_gripper_sdre.control import DEFAULT_LOWPASS_HZ, TrackingController, Weights
-from soft_gripper_sdre.sdre import Check, SdreController, _cond2_below, sdre_gains
+from soft_gripper_sdre.control import DEFAULT_LOWPASS_HZ, RestFrame, RollOff, TrackingController, Weights
+from soft_gripper_sdre.sdre import Check, SdreController, _cond2_below, _stack_solve, sdre_gains
 
 LAWS = ('sdre', 'sdre_ff', 'lqr', 'pd', 'oracle', 'oracle_exact', 'oracle_ff')
 #: the laws that run on the node graph (the oracles need the plant's joint state: in-process only)
@@ -57,51 +57,37 @@ class LawStep:
 
 
 class _FixedLaw:
-    """Shared plumbing: translation to the model's origin, saturation, roll-off."""
+    """Shared plumbing: the model's translated coordinates, saturation, the roll-off
+    (:class:`~soft_gripper_sdre.control.RestFrame` and :class:`~soft_gripper_sdre.control.RollOff`,
+    as in :class:`TrackingController`)."""
 
     def __init__(self, rest_tip, u_max: float, n_fingers: int, lowpass_hz: float, dt: float) -> None:
-        rest = np.asarray(rest_tip, dtype=float).reshape(-1)
-        if rest.size < 2 or not np.all(np.isfinite(rest[:2])):
-            raise ValueError(f'rest_tip must hold a finite rest position, got {rest_tip!r}')
+        self.frame = RestFrame(rest_tip, n_fingers)
         if not (np.isfinite(u_max) and u_max > 0):
             raise ValueError(f'u_max must be finite and > 0, got {u_max!r}')
-        if not (np.isfinite(lowpass_hz) and lowpass_hz >= 0.0):
-            raise ValueError(f'lowpass_hz must be finite and >= 0 (0 = off), got {lowpass_hz!r}')
-        self._origin = rest[:2].copy()
         self.u_max = float(u_max)
         self.n_fingers = int(n_fingers)
-        self._alpha = float(np.exp(-2.0 * np.pi * lowpass_hz * dt)) if lowpass_hz > 0 else 0.0
-        self._u_filt = None
+        self.roll_off = RollOff(lowpass_hz, dt)
 
     @property
     def origin(self) -> np.ndarray:
-        return self._origin
+        return self.frame.origin
 
     def reset(self) -> None:
-        self._u_filt = None
+        self.roll_off.reset()
 
     def _states(self, pos, vel, ref_pos, ref_vel) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(x, x_d, finite) in translated coordinates; non-finite rows are zeroed."""
-        x = np.concatenate([np.asarray(pos, float) - self._origin, np.asarray(vel, float)], axis=1)
-        xd = np.concatenate([np.asarray(ref_pos, float) - self._origin, np.asarray(ref_vel, float)], axis=1)
-        n = self.n_fingers
-        if x.shape != (n, 4) or xd.shape != (n, 4):
-            raise ValueError(f'pos, vel, ref_pos, ref_vel must each have shape ({n}, 2)')
-        finite = np.all(np.isfinite(x), axis=1) & np.all(np.isfinite(xd), axis=1)
-        x[~finite] = 0.0
-        xd[~finite] = 0.0
+        x, xd = self.frame.states(pos, vel, ref_pos, ref_vel)
+        finite = np.isfinite(x).all(axis=1) & np.isfinite(xd).all(axis=1)
+        if not finite.all():
+            x[~finite] = 0.0
+            xd[~finite] = 0.0
         return x, xd, finite
-
-    def _roll_off(self, u: np.ndarray) -> np.ndarray:
-        """Same first-order roll-off as TrackingController: u_k = a u_{k−1} + (1 − a) u."""
-        if self._alpha > 0.0:
-            u = u if self._u_filt is None else self._alpha * self._u_filt + (1 - self._alpha) * u
-            self._u_filt = u
-        return u
 
     def _finish(self, u_unsat: np.ndarray, finite: np.ndarray) -> LawStep:
         u_unsat = np.where(np.isfinite(u_unsat) & finite[:, None], u_unsat, 0.0)
-        u = self._roll_off(np.clip(u_unsat, -self.u_max, self.u_max))
+        u = self.roll_off(np.clip(u_unsat, -self.u_max, self.u_max))
         saturated = np.abs(u_unsat) > self.u_max
         n = self.n_fingers
         return LawStep(u=u, u_unsat=u_unsat, ok=finite.copy(), fallback=~finite,
@@ -187,7 +173,7 @@ class OracleSdreLaw(_FixedLaw):
         A = np.zeros((self.n_fingers, 4, 4))
         G = np.zeros((self.n_fingers, 4, 2))
         for i in range(self.n_fingers):
-            A[i], G[i] = oracle_sdc(self.dynamics.evaluate(truth.q[i], truth.qd[i]), self._origin,
+            A[i], G[i] = oracle_sdc(self.dynamics.evaluate(truth.q[i], truth.qd[i]), self.origin,
                                       reduced=self.reduced)
         self._AG = (A, G)
 
@@ -247,7 +233,7 @@ class AdaptiveSdreLaw(_FixedLaw):
         e_max = float(np.max(np.where(np.isfinite(e), e, 0.0)))
         self.gain = min(1.0 + (e_max / self.e_ref) ** 2, self.gain_max)     # q(e) / q_pos
         out = self._controller(self.gain).compute(pos, vel, ref_pos, ref_vel)
-        out.u = self._roll_off(out.u)
+        out.u = self.roll_off(out.u)
         return out
 
 #: where the feedforward's model is evaluated (:class:`SdreFeedforwardLaw`)
@@ -259,26 +245,24 @@ def accepts_ref_acc(law) -> bool:
     return bool(getattr(law, 'takes_ref_acc', False))
 
 
-def model_inversion(A: np.ndarray, G: np.ndarray, x_d: np.ndarray, a_d: np.ndarray,
+def model_inversion(A2: np.ndarray, G2: np.ndarray, x_d: np.ndarray, a_d: np.ndarray,
                     cond_max: float = 1e8) -> tuple[np.ndarray, np.ndarray]:
     """Feedforward torque that makes the SDC model follow the reference, for n fingers:
 
-        u_ff = G₂⁻¹ (a_d − A₂₁ p_d − A₂₂ v_d) = G₂⁻¹ (a_d − [A x_d]₃,₄)
+        u_ff = G₂⁻¹ (a_d − A₂₁ p_d − A₂₂ v_d) = G₂⁻¹ (a_d − A₂ x_d)
 
-    with A (n,4,4), G (n,4,2) the SDC pair wherever the caller evaluated it, x_d (n,4) the
-    reference state, a_d (n,2) its acceleration. Returns (u_ff (n,2), usable (n,)): fingers whose
-    G₂ is singular (cond ≥ ``cond_max``) or whose inputs are not finite get u_ff = 0, usable False.
+    with A₂ = [A₂₁ A₂₂] (n,2,4) and G₂ (n,2,2) the SDC lower rows wherever the caller evaluated
+    them, x_d (n,4) the reference state, a_d (n,2) its acceleration. Returns (u_ff (n,2),
+    usable (n,)): fingers whose G₂ is singular (cond ≥ ``cond_max``) or whose inputs are not
+    finite get u_ff = 0, usable False.
     """
-    G2 = G[:, 2:, :]
-    rhs = a_d - np.einsum('nij,nj->ni', A[:, 2:, :], x_d)              # a_d − A₂₁ p_d − A₂₂ v_d
-    with np.errstate(all='ignore'):
-        usable = (np.all(np.isfinite(rhs), axis=1) & np.all(np.isfinite(G2), axis=(1, 2))
-                  & _cond2_below(G2, cond_max)[0])
-    u = np.zeros_like(rhs)
-    if usable.any():
-        u[usable] = np.linalg.solve(G2[usable], rhs[usable][..., None])[..., 0]   # G₂ u_ff = rhs
-    usable &= np.all(np.isfinite(u), axis=1)
-    u[~usable] = 0.0
+    rhs = a_d - (A2 @ x_d[:, :, None])[:, :, 0]                       # a_d − A₂₁ p_d − A₂₂ v_d
+    with np.errstate(all='ignore'):                                    # NaN where G₂ is singular
+        usable = _cond2_below(G2, cond_max)[0]
+        u = _stack_solve(G2, rhs)                                      # G₂ u_ff = rhs
+    usable &= np.isfinite(u).all(axis=1)
+    if not usable.all():
+        u[~usable] = 0.0
     return u, usable
 
 
@@ -294,16 +278,16 @@ def _reference_acc(ref_acc, n: int) -> tuple[np.ndarray, np.ndarray]:
     return a, finite
 
 
-def _feedforward_step(law, gains_AG, ff_AG, x, xd, finite, ref_acc) -> LawStep:
-    """u = u_ff + K e for a law with ``sdre`` (an SdreController) and _FixedLaw's plumbing."""
+def _feedforward_step(law, step, ff_blocks, x, xd, finite, ref_acc) -> LawStep:
+    """u = u_ff + K e for a law with _FixedLaw's plumbing: ``step`` the SDRE's step on
+    (e = x − x_d, x_d = 0), whose u_unsat = K(x) e; ``ff_blocks`` the (A₂, G₂) of u_ff."""
     a_d, acc_ok = _reference_acc(ref_acc, law.n_fingers)
-    out = law.sdre.step(*gains_AG, x - xd, np.zeros_like(xd))     # u_unsat = K(x) (x − x_d)
-    u_ff, ff_ok = model_inversion(*ff_AG, xd, a_d)
+    u_ff, ff_ok = model_inversion(*ff_blocks, xd, a_d)
     ff_ok &= acc_ok
-    step = law._finish(u_ff + out.u_unsat, finite)                # u = u_ff + K(x) e
-    step.ok, step.fallback = out.ok & finite, out.fallback | ~finite | ~ff_ok
-    step.failed_checks, step.residual = out.failed_checks, out.residual
-    return step
+    out = law._finish(u_ff + step.u_unsat, finite)                 # u = u_ff + K(x) e
+    out.ok, out.fallback = step.ok & finite, step.fallback | ~finite | ~ff_ok
+    out.failed_checks, out.residual = step.failed_checks, step.residual
+    return out
 
 
 class SdreFeedforwardLaw(_FixedLaw):
@@ -340,23 +324,29 @@ class SdreFeedforwardLaw(_FixedLaw):
             raise ValueError(f'ff_at must be one of {FF_AT}, got {ff_at!r}')
         self.model, self.weights, self.ff_at = model, weights, ff_at
         self.sdre = SdreController(weights.Q, weights.R, u_max, n=self.n_fingers, method=method)
+        self._zero = np.zeros((self.n_fingers, 4))          # x_d of the feedback step: K e only
+        self._zero.flags.writeable = False
 
     def reset(self) -> None:
         super().reset()
         self.sdre.reset()
 
-    def _pairs(self, x: np.ndarray, xd: np.ndarray):
-        """(A, G) at x for the gains, and the pair the feedforward uses."""
-        if self.ff_at == 'x':
-            A, G = self.model.AG(x)
-            return (A, G), (A, G)
-        A, G = self.model.AG(np.concatenate([x, xd]))           # one batched call for x and x_d
-        n = self.n_fingers
-        return (A[:n], G[:n]), (A[n:], G[n:])
-
     def compute(self, pos, vel, ref_pos, ref_vel, ref_acc=None) -> LawStep:
         x, xd, finite = self._states(pos, vel, ref_pos, ref_vel)
-        return _feedforward_step(self, *self._pairs(x, xd), x, xd, finite, ref_acc)
+        n = self.n_fingers
+        # the model's SDC lower rows at x (the gains) and where the feedforward evaluates it:
+        # one batched call for x and x_d with ff_at='ref'
+        z = x if self.ff_at == 'x' else np.concatenate([x, xd])
+        blocks = getattr(self.model, 'sdc_blocks', None)
+        if blocks is not None:
+            A2, G2 = blocks(z)
+            step = self.sdre.step_sdc(A2[:n], G2[:n], x - xd, self._zero)      # u_unsat = K(x) e
+        else:                                       # a model with AG only (any structure)
+            A, G = self.model.AG(z)
+            A2, G2 = A[:, 2:, :], G[:, 2:, :]
+            step = self.sdre.step(A[:n], G[:n], x - xd, self._zero)
+        return _feedforward_step(self, step, (A2[n:], G2[n:]) if self.ff_at == 'ref' else (A2, G2),
+                                 x, xd, finite, ref_acc)
 
 
 class OracleFeedforwardLaw(OracleSdreLaw):
@@ -369,7 +359,9 @@ class OracleFeedforwardLaw(OracleSdreLaw):
         if self._AG is None:
             raise RuntimeError('OracleFeedforwardLaw.compute needs observe(truth) first (the plant state)')
         x, xd, finite = self._states(pos, vel, ref_pos, ref_vel)
-        return _feedforward_step(self, self._AG, self._AG, x, xd, finite, ref_acc)
+        A, G = self._AG
+        step = self.sdre.step(A, G, x - xd, np.zeros_like(xd))           # u_unsat = K(q) e
+        return _feedforward_step(self, step, (A[:, 2:, :], G[:, 2:, :]), x, xd, finite, ref_acc)
 
 
 def make_law(name: str, model, weights: Weights, u_max: float, n_fingers: int = 4,

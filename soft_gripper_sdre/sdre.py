@@ -111,6 +111,12 @@ def sdre_gains(A, G, Q, R) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return K, Ks, P
 
 
+def _frozen(a: np.ndarray) -> np.ndarray:
+    """``a``, made read-only (for arrays that several results share)."""
+    a.flags.writeable = False
+    return a
+
+
 def _checked(**arrays) -> list[np.ndarray]:
     """Each ``name=(value, shape)`` as a float array of that shape, in order.
 
@@ -186,6 +192,13 @@ def _lyapunov_tables() -> tuple[np.ndarray, np.ndarray]:
 _L0, _T8 = _lyapunov_tables()
 
 
+#: for 2×2 M flattened to f: f[_TWICE] ∘ f[_CROSS] = [f ∘ f, f ∘ reversed f], which @ _FRO_DET
+#: sums to (‖M‖_F², det M)
+_TWICE = np.array([0, 1, 2, 3, 0, 1, 2, 3])
+_CROSS = np.array([0, 1, 2, 3, 3, 2, 1, 0])
+_FRO_DET = np.array([[1.0, 0.0]] * 4 + [[0.0, 0.5], [0.0, -0.5], [0.0, -0.5], [0.0, 0.5]])
+
+
 def _cond2_below(M: np.ndarray, c_max: float) -> tuple[np.ndarray, np.ndarray]:
     """For a stack of 2×2 matrices: (cond₂(M) < c_max, det M), without an SVD.
 
@@ -193,8 +206,70 @@ def _cond2_below(M: np.ndarray, c_max: float) -> tuple[np.ndarray, np.ndarray]:
     κ + 1/κ = ‖M‖_F² / |det M| for κ = σ₁/σ₂; t ↦ t + 1/t increases on [1, ∞), hence
     κ < c_max ⇔ ‖M‖_F² < (c_max + 1/c_max) |det M|. Singular or non-finite M gives False.
     """
-    det = M[:, 0, 0] * M[:, 1, 1] - M[:, 0, 1] * M[:, 1, 0]
-    return np.einsum('nij,nij->n', M, M) < (c_max + 1.0 / c_max) * np.abs(det), det
+    f = M.reshape(-1, 4)                                   # [m00, m01, m10, m11]
+    fro2, det = ((f.take(_TWICE, axis=1) * f.take(_CROSS, axis=1)) @ _FRO_DET).T   # ‖M‖_F², det M
+    return fro2 < (c_max + 1.0 / c_max) * np.abs(det), det
+
+
+#: weights of the upper-triangle entries in ‖S‖_F² of a symmetric 4×4 S (off-diagonals count twice)
+_FRO10 = np.where(_ROWS == _COLS, 1.0, 2.0)
+
+
+def _upper(S: np.ndarray) -> np.ndarray:
+    """(m, 4, 4) → (m, 10): the upper triangle, row by row (the order of p)."""
+    return S.reshape(-1, 16).take(_UPPER, axis=1)
+
+
+def _nan_where_it_raises(fn, *stacks: np.ndarray, shape: tuple) -> np.ndarray:
+    """fn over stacks at once, or, if that raises LinAlgError, matrix by matrix with NaN where it does."""
+    try:
+        return fn(*stacks)
+    except np.linalg.LinAlgError:
+        out = np.full(shape, np.nan)
+        for i in range(shape[0]):
+            try:
+                out[i] = fn(*(s[i:i + 1] for s in stacks))[0]
+            except np.linalg.LinAlgError:
+                pass
+        return out
+
+
+def _public_stack_solve(L: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return _nan_where_it_raises(lambda L, b: np.linalg.solve(L, b[:, :, None])[:, :, 0], L, b, shape=b.shape)
+
+
+def _public_stack_cholesky(S: np.ndarray) -> np.ndarray:
+    return _nan_where_it_raises(np.linalg.cholesky, S, shape=S.shape)
+
+
+def _stack_linalg():
+    """(solve, cholesky) for stacks of small float64 matrices, NaN where one is singular / not PD.
+
+    ``solve(L (m,k,k), b (m,k)) -> (m,k)`` and ``cholesky(S (m,k,k)) -> lower factors``. At m = 4 the
+    public np.linalg.solve / cholesky spend about half / 60 % of their time on argument checks
+    and error-state set-up; the gufuncs they call, ``numpy.linalg._umath_linalg.solve1`` and
+    ``cholesky_lo`` (private; numpy is pinned), run the same LAPACK routines (gesv, potrf) and write
+    NaN into the result of a matrix whose factorisation fails instead of raising. Call them inside
+    ``np.errstate(invalid='ignore')``. If the private module is missing or answers differently from
+    the public functions on a small example, the public functions (wrapped to NaN likewise) serve.
+    test_sdre_fast.py checks both implementations against each other.
+    """
+    try:
+        from numpy.linalg import _umath_linalg as gufuncs
+        solve, cholesky = gufuncs.solve1, gufuncs.cholesky_lo
+        L = np.array([[[4.0, 1.0], [1.0, 3.0]], [[1.0, 2.0], [2.0, 4.0]]])     # PD; singular
+        b = np.array([[1.0, 2.0], [1.0, 1.0]])
+        with np.errstate(all='ignore'):
+            x, c = solve(L, b), cholesky(L)
+        if not (np.allclose(x[0], np.linalg.solve(L[0], b[0])) and np.isnan(x[1]).all()
+                and np.allclose(c[0], np.linalg.cholesky(L[0])) and np.isnan(c[1]).all()):
+            raise ValueError('numpy.linalg._umath_linalg answers differently')
+        return solve, cholesky
+    except (ImportError, AttributeError, TypeError, ValueError):
+        return _public_stack_solve, _public_stack_cholesky
+
+
+_stack_solve, _stack_cholesky = _stack_linalg()
 
 
 @dataclass
@@ -223,14 +298,13 @@ class SdreController:
         cond_max: largest accepted condition number of G2 and of A_cl (``'fast'``: of A_cl's
             lower-left block, the only part of A_cl whose inverse the law uses).
         max_nk_iterations: most Newton–Kleinman iterations per step before the exact fallback.
-        nk_step_tol: Newton–Kleinman stops once its step ‖P_k+1 − P_k‖_F on P's lower rows, over
-            all fingers, is below this fraction of the warm start's ‖P_low‖_F; the error left is of
-            the order of its square.
+            Newton–Kleinman stops once a bound on the next iterate's residual is below
+            residual_tol / 2 (see :meth:`_fast_gains`).
         nominal: optional (A0, G0) whose gains serve as the fallback before any valid step.
     """
 
     def __init__(self, Q, R, u_max, n: int = 4, method: str = 'fast', residual_tol: float = 1e-6,
-                 cond_max: float = 1e8, max_nk_iterations: int = 5, nk_step_tol: float = 1e-5,
+                 cond_max: float = 1e8, max_nk_iterations: int = 5,
                  nominal=None) -> None:
         self.Q, self.R, self.u_max = _check_weights(Q, R, u_max)
         if method not in METHODS:
@@ -238,7 +312,6 @@ class SdreController:
         self.n, self.method = int(n), method
         self.residual_tol, self.cond_max = float(residual_tol), float(cond_max)
         self.max_nk = int(max_nk_iterations)
-        self.nk_step_tol = float(nk_step_tol)
         if self.max_nk < 1:
             raise ValueError(f'max_nk_iterations must be >= 1, got {max_nk_iterations!r}')
         self._Rinv = np.linalg.inv(self.R)
@@ -258,12 +331,18 @@ class SdreController:
             K0, Ks0, _ = sdre_gains(np.asarray(nominal[0], float), np.asarray(nominal[1], float),
                                     self.Q, self.R)
             self._nominal = (K0, Ks0)
+        # the flags of a step where every check passed, and nk_iterations per count: read-only,
+        # shared by every such step (fresh arrays cost more than the rest of the bookkeeping)
+        self._passed = tuple(_frozen(np.full(self.n, v, dtype=t))
+                             for v, t in ((True, bool), (False, bool), (0, int)))
+        self._iterations = [_frozen(np.full(self.n, k)) for k in range(self.max_nk + 1)]
         self.reset()
 
     def reset(self) -> None:
         """Forget warm starts and last valid gains; zero the counters."""
         self._p = np.zeros((self.n, 10))                 # warm start: upper triangle of the last P
         self._warm = np.zeros(self.n, dtype=bool)        # ... valid for these fingers
+        self._all_warm = False
         self._K = np.zeros((self.n, 2, 4))
         self._Ks = np.zeros((self.n, 2, 4))
         self._have = np.zeros(self.n, dtype=bool)
@@ -310,36 +389,35 @@ class SdreController:
         matrices (None: build them from a, g if the exact path needs them)."""
         self.steps += 1
         fast, idx = None, None
-        if a is not None and self._fast_ok and self._warm.any():
-            idx = None if self._warm.all() else np.flatnonzero(self._warm)
-            fast = (self._fast_gains(a, g, self._p) if idx is None
-                    else self._fast_gains(a[idx], g[idx], self._p[idx]))
-        if fast is not None and idx is None and fast.good.all():
-            # the common path: every finger warm and every fast check passed
-            u_unsat = (fast.K @ x[:, :, None] + fast.Ks @ x_d[:, :, None])[:, :, 0]     # eq. 22
-            if np.isfinite(u_unsat).all():
-                n = self.n
-                self._p, self._K, self._Ks = fast.p, fast.K, fast.Ks
-                self._have[:] = True
-                u = np.minimum(np.maximum(u_unsat, -self.u_max), self.u_max)    # = np.clip, cheaper
-                return SdreStep(u=u, u_unsat=u_unsat, K=fast.K.copy(), Ks=fast.Ks.copy(), P=fast.P,
-                                residual=fast.residual, ok=np.ones(n, dtype=bool),
-                                fallback=np.zeros(n, dtype=bool), failed_checks=np.zeros(n, dtype=int),
-                                saturated=np.abs(u_unsat) > self.u_max,
-                                nk_iterations=np.full(n, fast.iterations))
+        if a is not None and self._fast_ok and self._all_warm:
+            fast = self._fast_gains(a, g, self._p)
+            if fast.good.all():
+                # the common path: every finger warm and every fast check passed
+                u_unsat = (fast.K @ x[:, :, None] + fast.Ks @ x_d[:, :, None])[:, :, 0]     # eq. 22
+                if np.isfinite(u_unsat).all():
+                    self._p, self._K, self._Ks = fast.p, fast.K, fast.Ks     # (warm ⇒ have: unchanged)
+                    u = np.minimum(np.maximum(u_unsat, -self.u_max), self.u_max)    # = np.clip, cheaper
+                    ok, fallback, failed = self._passed
+                    return SdreStep(u=u, u_unsat=u_unsat, K=fast.K.copy(), Ks=fast.Ks.copy(), P=fast.P,
+                                    residual=fast.residual, ok=ok, fallback=fallback, failed_checks=failed,
+                                    saturated=u != u_unsat,          # = |u_unsat| > u_max here
+                                    nk_iterations=self._iterations[fast.iterations])
+        elif a is not None and self._fast_ok and self._warm.any():
+            idx = np.flatnonzero(self._warm)
+            fast = self._fast_gains(a[idx], g[idx], self._p[idx])
         if A is None:
             A, G = self._full(a, g)
         return self._careful_step(A, G, x, x_d, a is not None, fast, idx)
 
     # -- the fast path -----------------------------------------------------------------------
-    def _fast_gains(self, a: np.ndarray, g: np.ndarray, p0: np.ndarray) -> _FastGains | None:
+    def _fast_gains(self, a: np.ndarray, g: np.ndarray, p0: np.ndarray) -> _FastGains:
         """Warm-started Newton–Kleinman and the structure-aware checks for m SDC fingers.
 
         Args:
             a: (m, 2, 4) lower rows [A21 A22] of A; g: (m, 2, 2) G2; p0: (m, 10) warm starts.
 
         Returns:
-            the gains and which fingers passed every check, or None when a solve raised.
+            the gains and which fingers passed every check (a failed solve gives NaN, which fails them).
 
         With S = G R⁻¹ Gᵀ = [[0, 0], [0, W]], W = G2 R⁻¹ G2ᵀ, every product with S only needs P's
         lower rows P_low = P[2:, :]: S P = [[0], [W P_low]], P S P = P_lowᵀ W P_low, and
@@ -347,9 +425,18 @@ class SdreController:
 
         Newton–Kleinman: A_kᵀ P_{k+1} + P_{k+1} A_k = −(Q + P_k S P_k), solved as one 10×10 system
         per finger (P symmetric: 10 unknowns) whose matrix is linear in A_k's lower rows
-        (:func:`_lyapunov_tables`). The iteration converges quadratically, so it stops once the
-        relative step Δ = P_{k+1} − P_k on P's lower rows (all the gains see) is below nk_step_tol;
-        the residual of the result is then formed directly and must be below residual_tol.
+        (:func:`_lyapunov_tables`); the batched solve and Cholesky go through :func:`_stack_linalg`.
+
+        Stop rule. Subtracting the equations of two iterates gives the exact identity
+        Res(P_{k+1}) = −Δ_k S Δ_k (Δ_k = P_{k+1} − P_k), and with S's structure
+        Δ_k S Δ_k = Δ_lowᵀ W Δ_low, so ‖Res(P_{k+1})‖_F ≤ ‖W‖_F ‖Δ_low‖_F² per finger. The iteration
+        stops at the first k with (Σ_i ‖W_i‖_F²)^½ Σ_i ‖Δ_low,i‖_F² < residual_tol ‖Q‖_F / 2, i.e. when
+        every finger's new iterate has (in exact arithmetic) at most half the accepted residual; the
+        other half is room for the solve's rounding. The identity only decides when to stop: the
+        residual that the checks use is then formed directly from P (below), so a solve that rounded
+        badly fails the check instead of passing unseen. The gains' error is of the order of the
+        residual times the conditioning of the Lyapunov operator of A_cl (measured on the noisy
+        closed-loop replay: ≤ 1.2e-5 of the largest torque against scipy; the tests allow 1e-4).
 
         Checks (each finger; any failure sends that finger to the exact path):
 
@@ -357,7 +444,8 @@ class SdreController:
           cond(G2) < cond_max (closed form for 2×2, :func:`_cond2_below`). Detectable: holds for
           Q ≻ 0, or for Q's position block ≻ 0 through the [0 I] rows (as in
           :meth:`_careful_step`); any other Q always takes the exact path;
-        * residual ‖Res‖_F / ‖Q‖_F < residual_tol, formed directly from P;
+        * residual ‖Res‖_F / ‖Q‖_F < residual_tol, formed directly from P, on its upper triangle:
+          Res = Q − L(A) p − P S P, since L(A) p is the upper triangle of −(AᵀP + PA);
         * P ≻ 0 and A_cl Hurwitz, by Lyapunov. For any P, A_clᵀP + P A_cl = −N with
           N = Q + P S P − Res (expand A_cl = A − S P and the residual). If P ≻ 0 and N ≻ 0 then
           every eigenpair A_cl v = λv gives 2 Re λ · v*Pv = −v*Nv < 0, so Re λ < 0. By Weyl,
@@ -374,53 +462,45 @@ class SdreController:
         m = a.shape[0]
         Rg = self._Rinv @ g.transpose(0, 2, 1)                 # R⁻¹ G2ᵀ
         W = g @ Rg                                             # G2 R⁻¹ G2ᵀ
-        L_open = _L0 + a.reshape(m, 8) @ _T8                   # L(A), flattened
-        p = p0
-        P_low = p.take(_LOW, axis=1).reshape(m, 2, 4)
-        small = self.nk_step_tol**2 * np.vdot(P_low, P_low)    # (tol ‖P_low‖_F)², from the warm start
-        iterations = 0
-        try:
-            with np.errstate(all='ignore'):
-                while True:
-                    iterations += 1
-                    WP = W @ P_low                                              # S P_k (lower rows)
-                    L = (L_open - WP.reshape(m, 8) @ _T8).reshape(m, 10, 10)   # L(A − S P_k)
-                    M = (P_low.transpose(0, 2, 1) @ WP).reshape(m, 16).take(_UPPER, axis=1)
-                    M += self._q10                                              # Q + P_k S P_k
-                    p = np.linalg.solve(L, M[:, :, None])[:, :, 0]             # A_kᵀP + PA_k = −M
-                    P_next = p.take(_LOW, axis=1).reshape(m, 2, 4)
-                    D = P_next - P_low                                          # lower rows of Δ
-                    P_low = P_next
-                    # quadratic convergence: after a step Δ, ‖P_k+1 − P*‖ is of order ‖Δ‖²
-                    if iterations == self.max_nk or np.vdot(D, D) < small:
-                        break
-                P = p.take(_FULL, axis=1).reshape(m, 4, 4)
+        L_open = a.reshape(m, 8) @ _T8
+        L_open += _L0                                          # L(A), flattened
+        L_A = L_open.reshape(m, 10, 10)
+        P_low = p0.take(_LOW, axis=1).reshape(m, 2, 4)
+        # stop rule: ‖Res(P_k+1)‖_F ≤ ‖W‖_F ‖Δ_low‖_F² per finger (see the docstring), so once
+        # (Σ_i ‖W_i‖_F²)^½ · Σ_i ‖Δ_low,i‖_F² < tol ‖Q‖_F / 2 every finger's next residual is too
+        small = 0.5 * self.residual_tol * self._q_norm / np.sqrt(np.vdot(W, W))
+        WP = W @ P_low                                         # S P (lower rows)
+        PSP10 = _upper(P_low.transpose(0, 2, 1) @ WP)          # P S P = P_lowᵀ W P_low
+        with np.errstate(all='ignore'):        # a failed factorisation gives NaN, which fails a check
+            for iterations in range(1, self.max_nk + 1):
+                L = (L_open - WP.reshape(m, 8) @ _T8).reshape(m, 10, 10)       # L(A − S P_k)
+                p = _stack_solve(L, PSP10 + self._q10)         # A_kᵀP + PA_k = −(Q + P_k S P_k)
+                P_next = p.take(_LOW, axis=1).reshape(m, 2, 4)
+                D = P_next - P_low                             # lower rows of Δ_k = P_k+1 − P_k
+                P_low = P_next
                 WP = W @ P_low
-                PSP = P_low.transpose(0, 2, 1) @ WP                            # P S P
-                PA = P[:, :, 2:] @ a                                           # P A, A = [[0, I], a]
-                PA[:, :, 2:] += P[:, :, :2]
-                Res = PA + PA.transpose(0, 2, 1)
-                Res += self.Q
-                Res -= PSP                                                     # PA + AᵀP + Q − PSP
-                residual = np.sqrt(np.einsum('nij,nij->n', Res, Res)) / self._q_norm
-                K = -(Rg @ P_low)                                              # −R⁻¹ Gᵀ P
-                C = (a - WP)[:, :, :2]                                         # A_cl = [[0, I], [C, D]]
-                # stabilisable (G2) and A_cl invertible (C), both 2×2 condition tests in one call
-                well, det = _cond2_below(np.concatenate([g, C]), self.cond_max)
-                # K_s = −R⁻¹ G2ᵀ C⁻ᵀ Q[:2, :],  C⁻ᵀ = [[c11, −c10], [−c01, c00]] / det C (the leading
-                # minus rides in _NEG_CHECKER)
-                Ks = (Rg @ (C[:, ::-1, ::-1] * (_NEG_CHECKER / det[m:, None, None]))) @ self._q_top
-                stack = np.concatenate([P, PSP + self._q_shift])               # [P; N − margin]
-                try:
-                    np.linalg.cholesky(stack)
-                    lyapunov = np.ones(m, dtype=bool)
-                except np.linalg.LinAlgError:                                  # which one: per finger
-                    lam = np.linalg.eigvalsh(np.where(np.isfinite(stack), stack, 0.0)).min(axis=1)
-                    lyapunov = (lam[:m] > 0) & (lam[m:] > 0)
-        except np.linalg.LinAlgError:
-            return None
-        stab, invertible = well[:m], well[m:]
-        good = stab & invertible & lyapunov & (residual < self.residual_tol)
+                PSP = P_low.transpose(0, 2, 1) @ WP
+                PSP10 = _upper(PSP)
+                if np.vdot(D, D) < small:                      # False for NaN: iterate on
+                    break
+            res = self._q10 - PSP10
+            res -= (L_A @ p[:, :, None])[:, :, 0]              # Res = Q − L(A)p − PSP (upper)
+            res2 = (res * res) @ _FRO10                        # ‖Res‖_F² (off-diagonals twice)
+            residual = np.sqrt(res2) / self._q_norm
+            P = p.take(_FULL, axis=1).reshape(m, 4, 4)
+            K = -(Rg @ P_low)                                  # −R⁻¹ Gᵀ P
+            C = a[:, :, :2] - WP[:, :, :2]                     # A_cl = [[0, I], [C, D]]
+            # stabilisable (G2) and A_cl invertible (C), both 2×2 condition tests in one call
+            well, det = _cond2_below(np.concatenate([g, C]), self.cond_max)
+            # K_s = −R⁻¹ G2ᵀ C⁻ᵀ Q[:2, :],  C⁻ᵀ = [[c11, −c10], [−c01, c00]] / det C (the leading
+            # minus rides in _NEG_CHECKER)
+            Ks = (Rg @ (C[:, ::-1, ::-1] * (_NEG_CHECKER / det[m:, None, None]))) @ self._q_top
+            # P ≻ 0 and N − margin ≻ 0: both Cholesky factors exist. A failed one is all NaN, and
+            # L₃₃ depends on every entry of the lower triangle, so a NaN in the input reaches it too
+            chol = _stack_cholesky(np.concatenate([P, PSP + self._q_shift]))
+            pd = np.isfinite(chol[:, 3, 3])
+            passed = well & pd                         # [G2; C] conditioned, [P; N − margin] ≻ 0
+            good = passed[:m] & passed[m:] & (residual < self.residual_tol)
         return _FastGains(p=p, P=P, K=K, Ks=Ks, residual=residual, iterations=iterations, good=good)
 
     # -- the exact path ----------------------------------------------------------------------
@@ -518,6 +598,7 @@ class SdreController:
         self._have |= ok
         self._p[ok] = P[ok].reshape(-1, 16)[:, _UPPER]
         self._warm = ok.copy()           # no warm start from a rejected solve
+        self._all_warm = bool(ok.all())
         fallback = ~ok
         use_zero = fallback & ~self._have & (self._nominal is None)
         Kuse, Ksuse = self._K.copy(), self._Ks.copy()

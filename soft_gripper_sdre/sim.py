@@ -34,6 +34,7 @@ SCENES = ('finger', 'hand')
 N_JOINTS = 10
 #: gravity in the scaled world [units/s²] (9.81 m/s² × 20)
 GRAVITY = 9.81 * LENGTH_SCALE
+WORLD_GRAVITY = (0.0, 0.0, -GRAVITY)
 #: joint spring stiffness per axis [sim torque units / rad]
 STIFFNESS = (87.4286, 414.857)
 #: force limit of the velocity-0 motor that acts as joint friction [sim torque units]
@@ -44,6 +45,8 @@ JOINT_AXIS = np.arange(N_JOINTS) % 2
 B_MATRIX = np.stack([JOINT_AXIS == 0, JOINT_AXIS == 1], axis=1).astype(float)
 JOINT_STIFFNESS = np.where(JOINT_AXIS == 0, STIFFNESS[0], STIFFNESS[1])
 TIP_LINK = N_JOINTS - 1
+#: (axis, k) of every joint as Python numbers, for the per-substep spring torques in plain floats
+_SPRINGS = tuple(zip(JOINT_AXIS.tolist(), JOINT_STIFFNESS.tolist()))
 
 #: hand layout (sim units): finger base positions, yaw per finger, roll of every finger
 FINGER_BASE_POSITIONS = ((0.0, -0.7, 0.0), (0.7, 0.0, 0.0), (0.0, 0.7, 0.0), (-0.7, 0.0, 0.0))
@@ -111,6 +114,24 @@ def finger_urdf() -> str:
     """URDF of one finger whose root is its base link (mounted by the base pose at load time)."""
     return '<?xml version="1.0"?>\n<robot name="ihm_finger">\n' + '\n'.join(
         _finger_links()) + '\n</robot>\n'
+
+
+def load_fingers(client: int, poses: list[tuple[tuple, tuple]]) -> list[int]:
+    """Load one finger (:func:`finger_urdf`, fixed base, inertia from the file) per base pose.
+
+    Args:
+        client: PyBullet physics client id.
+        poses: (position, quaternion [x, y, z, w]) of each finger's base, sim units.
+
+    Returns:
+        The body id of each finger. PyBullet parses URDF from files only; the file is written to a
+        temporary directory that is gone when this returns (the bodies do not need it).
+    """
+    with tempfile.TemporaryDirectory(prefix='sgs_urdf_') as d:
+        path = Path(d) / 'finger.urdf'
+        path.write_text(finger_urdf())
+        return [pb.loadURDF(str(path), pos, orn, useFixedBase=True, flags=pb.URDF_USE_INERTIA_FROM_FILE,
+                            physicsClientId=client) for pos, orn in poses]
 
 
 def finger_base_rpy(i: int) -> tuple[float, float, float]:
@@ -210,7 +231,6 @@ class GripperSim:
     def __init__(self, config: SimConfig | None = None) -> None:
         self.config = config or SimConfig()
         self._client = pb.connect(pb.DIRECT)
-        self._urdf_dir = tempfile.TemporaryDirectory(prefix='sgs_urdf_')
         self.n_fingers = 1 if self.config.scene == 'finger' else 4
         self._rng = np.random.default_rng(self.config.seed)
         self.reset()
@@ -219,12 +239,9 @@ class GripperSim:
     def _build(self) -> None:
         cfg, cid = self.config, self._client
         pb.resetSimulation(physicsClientId=cid)
-        pb.setGravity(0, 0, -GRAVITY, physicsClientId=cid)
+        pb.setGravity(*WORLD_GRAVITY, physicsClientId=cid)
         pb.setTimeStep(cfg.physics_dt, physicsClientId=cid)
         pb.setPhysicsEngineParameter(numSolverIterations=50, physicsClientId=cid)
-        flags = pb.URDF_USE_INERTIA_FROM_FILE
-        path = Path(self._urdf_dir.name) / 'finger.urdf'
-        path.write_text(finger_urdf())
         if cfg.scene == 'finger':
             rpys = [(math.radians(cfg.mount_roll_deg), 0.0, 0.0)]
             positions = [(0.0, 0.0, 0.0)]
@@ -233,11 +250,12 @@ class GripperSim:
             positions = list(FINGER_BASE_POSITIONS)
         # One multibody per finger: four 10-DoF chains solve far faster than one 40-DoF body
         # (the joint-friction motors are constraints whose cost grows with the body's DoF).
-        self._bodies = [pb.loadURDF(str(path), pos, pb.getQuaternionFromEuler(rpy), useFixedBase=True,
-                                    flags=flags, physicsClientId=cid)
-                        for pos, rpy in zip(positions, rpys)]
+        self._bodies = load_fingers(cid, [(pos, pb.getQuaternionFromEuler(rpy))
+                                          for pos, rpy in zip(positions, rpys)])
         self._base_pos = np.array(positions, dtype=float)
         self._base_rot = np.stack([_rot(rpy) for rpy in rpys])
+        # per finger: p₀ and the columns of R (the rows of Rᵀ) as Python floats, for _read_state
+        self._frames = [(p0.tolist(), R.T.tolist()) for p0, R in zip(self._base_pos, self._base_rot)]
         self._cube = self._palm = None
         if cfg.scene == 'hand':
             shape = pb.createCollisionShape(pb.GEOM_CYLINDER, radius=PALM['radius'], height=PALM['length'],
@@ -266,7 +284,7 @@ class GripperSim:
     def reset(self) -> None:
         """Build a fresh world, settle ``settle_time`` at u = 0, and set t = 0 there."""
         self._build()
-        self._u_sim = np.zeros((self.n_fingers, 2))
+        self._u_sim = [[0.0, 0.0] for _ in range(self.n_fingers)]
         self._u_applied = np.zeros((self.n_fingers, 2))
         settle_steps = int(round(self.config.settle_time / self.config.physics_dt))
         self._read_joints()
@@ -274,27 +292,24 @@ class GripperSim:
             self._physics_step()
         self._steps = 0
         self._read_state()
-        self._prev_vel = self._tip_vel.copy()
-        self._tip_acc = np.zeros_like(self._tip_vel)
+        self._prev_vel = self._tip_vel        # tip_acc = (v − v) / Δt = 0 until the first step
         self.rest_tip = self._tip_pos.copy()
         self._draw_noise()
 
     # -- stepping ----------------------------------------------------------------------------
     def _read_joints(self) -> None:
-        """Cache every joint's angle and velocity (n, 10): the springs of the next physics step
-        and :meth:`truth` both read this cache, so each state is fetched from PyBullet once."""
-        cid = self._client
-        columns = [tuple(zip(*pb.getJointStates(body, self._joint_list, physicsClientId=cid)))
-                   for body in self._bodies]
-        self._q = np.array([c[0] for c in columns])
-        self._qd = np.array([c[1] for c in columns])
+        """Cache every joint's state as PyBullet returns it (per finger, per joint: angle, rate, …):
+        the springs of the next physics step and :meth:`truth` both read this cache, so each state
+        is fetched once, and turned into arrays only when :meth:`truth` asks."""
+        cid, joints = self._client, self._joint_list
+        self._joint_states = [pb.getJointStates(body, joints, physicsClientId=cid) for body in self._bodies]
 
     def _physics_step(self) -> None:
-        cid = self._client
-        tau = self._u_sim[:, JOINT_AXIS] - JOINT_STIFFNESS * self._q   # τ_j = u[axis(j)] − k_j q_j
-        for body, tau_body in zip(self._bodies, tau.tolist()):
-            pb.setJointMotorControlArray(body, self._joint_list, pb.TORQUE_CONTROL,
-                                         forces=tau_body, physicsClientId=cid)
+        cid, joints, torque = self._client, self._joint_list, pb.TORQUE_CONTROL
+        for body, u, states in zip(self._bodies, self._u_sim, self._joint_states):
+            # τ_j = u[axis(j)] − k_j q_j, in Python floats (the same IEEE operations as numpy's)
+            tau = [u[axis] - k * state[0] for (axis, k), state in zip(_SPRINGS, states)]
+            pb.setJointMotorControlArray(body, joints, torque, forces=tau, physicsClientId=cid)
         pb.stepSimulation(physicsClientId=cid)
         self._read_joints()
 
@@ -307,30 +322,32 @@ class GripperSim:
         u = np.asarray(u, dtype=float)
         if u.shape != (self.n_fingers, 2):
             raise ValueError(f'u must have shape ({self.n_fingers}, 2), got {u.shape}')
-        if not np.all(np.isfinite(u)):
+        if not np.isfinite(u).all():
             raise ValueError('u contains non-finite torques')
         lim = self.config.torque_limit
-        self._u_applied = np.clip(u, -lim, lim)
-        self._u_sim = self._u_applied * TORQUE_SCALE
+        self._u_applied = np.minimum(np.maximum(u, -lim), lim)      # clip to ±lim (u is finite)
+        self._u_sim = (self._u_applied * TORQUE_SCALE).tolist()
         for _ in range(self.config.physics_substeps):
             self._physics_step()
         self._steps += 1
         self._prev_vel = self._tip_vel
         self._read_state()
-        # mean acceleration over the period: (v_k+1 − v_k) / Δt
-        self._tip_acc = (self._tip_vel - self._prev_vel) / self.config.control_period
         self._draw_noise()
 
     # -- reading -----------------------------------------------------------------------------
     def _read_state(self) -> None:
-        cid = self._client
-        links = [pb.getLinkState(body, TIP_LINK, computeLinkVelocity=1, physicsClientId=cid)
-                 for body in self._bodies]
-        pos = np.array([ls[0] for ls in links])              # centre of mass of link 9 (the tip)
-        vel = np.array([ls[6] for ls in links])
-        # into each finger's base frame: p_b = Rᵀ (p − p₀), v_b = Rᵀ v
-        self._tip_pos = np.einsum('nji,nj->ni', self._base_rot, pos - self._base_pos) / LENGTH_SCALE
-        self._tip_vel = np.einsum('nji,nj->ni', self._base_rot, vel) / LENGTH_SCALE
+        cid, s = self._client, LENGTH_SCALE
+        pos, vel = [], []
+        for body, (p0, rot_t) in zip(self._bodies, self._frames):
+            # link 9's centre of mass (the tip) and its velocity, in the world
+            link = pb.getLinkState(body, TIP_LINK, computeLinkVelocity=1, physicsClientId=cid)
+            (px, py, pz), (vx, vy, vz) = link[0], link[6]
+            dx, dy, dz = px - p0[0], py - p0[1], pz - p0[2]
+            # into the finger's base frame: p_b = Rᵀ (p − p₀), v_b = Rᵀ v, each row summed in
+            # order j = 0, 1, 2 like numpy's einsum (a test checks the two are bit-identical)
+            pos.append([(r0 * dx + r1 * dy + r2 * dz) / s for r0, r1, r2 in rot_t])
+            vel.append([(r0 * vx + r1 * vy + r2 * vz) / s for r0, r1, r2 in rot_t])
+        self._tip_pos, self._tip_vel = np.array(pos), np.array(vel)
 
     def _draw_noise(self) -> None:
         noise = (self._rng.standard_normal(self._tip_pos.shape) * self.config.noise_std
@@ -359,27 +376,34 @@ class GripperSim:
     def truth(self) -> SimTruth:
         """Ground truth now."""
         cid = self._client
-        q, qd = self._q.copy(), self._qd.copy()
+        q = np.array([[s[0] for s in states] for states in self._joint_states])
+        qd = np.array([[s[1] for s in states] for states in self._joint_states])
+        # mean acceleration over the last period: (v_k+1 − v_k) / Δt
+        tip_acc = (self._tip_vel - self._prev_vel) / self.config.control_period
         cube_pose = contact = force = None
         if self._cube is not None:
             p, o = pb.getBasePositionAndOrientation(self._cube, physicsClientId=cid)
-            cube_pose = np.array([*(np.asarray(p) / LENGTH_SCALE), *o])
-            force = np.zeros(self.n_fingers)
-            for i, body in enumerate(self._bodies):
-                for c in pb.getContactPoints(body, self._cube, physicsClientId=cid):
-                    force[i] += c[9] / LENGTH_SCALE   # normal force, sim units (kg·unit/s²) → N
+            cube_pose = np.array([*(x / LENGTH_SCALE for x in p), *o])
+            # every contact of the cube in one call (bodyA = the cube, bodyB = the other body),
+            # in the order a per-finger query lists them, so each finger's sum is the same
+            sums = dict.fromkeys(self._bodies, 0.0)
+            for c in pb.getContactPoints(self._cube, physicsClientId=cid):
+                if c[2] in sums:
+                    sums[c[2]] += c[9] / LENGTH_SCALE   # normal force, sim units (kg·unit/s²) → N
+            force = np.array(list(sums.values()))
             contact = force > 0.0
         return SimTruth(self.t, q, qd, self._tip_pos.copy(), self._tip_vel.copy(),
-                        self._tip_acc.copy(), self._u_applied.copy(), cube_pose, contact, force)
+                        tip_acc, self._u_applied.copy(), cube_pose, contact, force)
 
     # -- analysis helpers (ground truth for tests and evaluation) ----------------------------
-    def linearize(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def linearize(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The finger linearised about its current pose with friction off, in SI (finger scene):
         M δq̈ + K δq = B u, tip position δp = J δq.
 
         M (10, 10) [kg·m²] and K (10, 10) [N·m/rad] (joint springs + gravity stiffness ∂g/∂q, by
-        central differences of PyBullet's inverse dynamics), B (10, 2) (u in N·m), and the tip
-        Jacobian J (3, 10) [m/rad] in the finger's base frame (finite differences of the tip).
+        central differences of PyBullet's inverse dynamics with gravity as the mounted base sees
+        it), B (10, 2) (u in N·m), and the tip Jacobian J (3, 10) [m/rad] in the finger's base
+        frame (finite differences of the tip).
         """
         if self.config.scene != 'finger':
             raise ValueError('linearize is defined for the finger scene')
@@ -392,19 +416,31 @@ class GripperSim:
         h = 1e-6
         dg = np.zeros((N_JOINTS, N_JOINTS))
         J = np.zeros((3, N_JOINTS))
+        rot = self._base_rot[0]
+        # calculateInverseDynamics ignores a fixed base's orientation (gravity acts as if the finger
+        # stood upright), so it runs with gravity turned into the base frame, g_b = Rᵀ (0, 0, −g),
+        # as in dynamics.FingerDynamics; the world's gravity is put back right after
+        pb.setGravity(*(rot.T @ np.array(WORLD_GRAVITY)).tolist(), physicsClientId=cid)
+        try:
+            for j in range(N_JOINTS):
+                qp, qm = list(q), list(q)
+                qp[j] += h
+                qm[j] -= h
+                gp = np.array(pb.calculateInverseDynamics(body, qp, zeros, zeros, physicsClientId=cid))
+                gm = np.array(pb.calculateInverseDynamics(body, qm, zeros, zeros, physicsClientId=cid))
+                dg[:, j] = (gp - gm) / (2 * h)                  # ∂g/∂q_j
+        finally:
+            pb.setGravity(*WORLD_GRAVITY, physicsClientId=cid)
         for j in range(N_JOINTS):
             qp, qm = list(q), list(q)
             qp[j] += h
             qm[j] -= h
-            gp = np.array(pb.calculateInverseDynamics(body, qp, zeros, zeros, physicsClientId=cid))
-            gm = np.array(pb.calculateInverseDynamics(body, qm, zeros, zeros, physicsClientId=cid))
-            dg[:, j] = (gp - gm) / (2 * h)
             tips = []
             for qq in (qp, qm):
                 for k in range(N_JOINTS):
                     pb.resetJointState(body, k, qq[k], physicsClientId=cid)
                 tips.append(np.asarray(pb.getLinkState(body, TIP_LINK, physicsClientId=cid)[0]))
-            J[:, j] = self._base_rot[0].T @ (tips[0] - tips[1]) / (2 * h)
+            J[:, j] = rot.T @ (tips[0] - tips[1]) / (2 * h)
         for k, st in enumerate(states):                       # put the finger back exactly
             pb.resetJointState(body, k, st[0], st[1], physicsClientId=cid)
         self._read_joints()
@@ -423,7 +459,6 @@ class GripperSim:
         if self._client is not None and pb.isConnected(physicsClientId=self._client):
             pb.disconnect(physicsClientId=self._client)
         self._client = None
-        self._urdf_dir.cleanup()
 
     def __enter__(self) -> GripperSim:
         return self

@@ -60,7 +60,8 @@ def test_fast_path_matches_reference_on_a_sequence():
         x, xd = rng.normal(size=(4, 4)) * 1e-3, rng.normal(size=(4, 4)) * 1e-3
         a, b = fast.step(A, G, x, xd), ref.step(A, G, x, xd)
         assert a.ok.all() and b.ok.all()
-        np.testing.assert_allclose(a.u, b.u, rtol=1e-6, atol=1e-12)
+        # the fast path's stated tolerance (test_sdre_fast.py U_TOL): 1e-4 of the step's largest torque
+        np.testing.assert_allclose(a.u, b.u, rtol=0, atol=1e-4 * np.abs(b.u).max())
     assert fast.exact_solves <= 8            # cold start, then Newton–Kleinman
     assert fast.fallbacks == 0
 
@@ -127,7 +128,7 @@ def test_tracking_controller_roll_off_is_a_first_order_filter():
     first = rolled.compute(rest, zero, ref, zero).u
     np.testing.assert_allclose(first, u_star)                    # starts at the law's output
     rolled.reset()
-    rolled._u_filt = np.zeros((4, 2))                             # from rest: 1 − aᵏ
+    rolled.roll_off._u = np.zeros((4, 2))                         # from rest: 1 − aᵏ
     for k in range(1, 6):
         u = rolled.compute(rest, zero, ref, zero).u
         np.testing.assert_allclose(u, (1 - a**k) * u_star, rtol=1e-9, atol=1e-15)

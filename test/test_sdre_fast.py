@@ -1,10 +1,13 @@
 """The fast SDRE path against the reference path (scipy) on the shipped model, and its checks.
 
-Tolerance: the fast path iterates Newton–Kleinman until its relative step is below 1e-5 (so P is
-converged to ~1e-10) and accepts a relative residual below 1e-6; its gains, P and the unsaturated
-torques agree with scipy's to within
-``U_TOL`` = 1e-6 of the largest torque of the sequence (measured: ≤ 3e-8); every check passes on
-both paths, and the fast path solves exactly only on the cold start.
+Tolerance: the fast path stops Newton–Kleinman once a bound on the next iterate's Riccati residual
+(the identity Res(P_k+1) = −Δ_k S Δ_k) is below half the accepted 1e-6 (relative to ‖Q‖_F), and
+forms the residual directly for its checks; its gains, P and the unsaturated torques agree with
+scipy's to within ``U_TOL`` = 1e-4 of the largest value of the sequence (measured here ≤ 2e-6; on
+the noisy closed-loop replay of tools/bench.py ≤ 1.2e-5: the gains' error is the residual times the
+Lyapunov operator's conditioning, which the weak velocity weight makes large). 1e-4 of the 0.0625
+N·m limit is 6 µN·m, far below the torque jitter the 0.05 mm measurement noise causes. Every check
+passes on both paths, and the fast path solves exactly only on the cold start.
 """
 import time
 
@@ -14,9 +17,10 @@ import pytest
 from soft_gripper_sdre.control import DEFAULT_WEIGHTS, TrackingController, Weights
 from soft_gripper_sdre.model import SDCModel
 from soft_gripper_sdre.sdre import (_FULL, _L0, _LOW, _T8, _UPPER, Check, SdreController, _cond2_below,
-                                    care)
+                                    _public_stack_cholesky, _public_stack_solve, _stack_cholesky,
+                                    _stack_solve, care)
 
-U_TOL = 1e-6
+U_TOL = 1e-4
 N = 4
 
 
@@ -113,6 +117,30 @@ def test_closed_form_condition_test_equals_the_svd():
         np.testing.assert_array_equal(fast[clear], (kappa < c_max)[clear])
     bad = np.full((1, 2, 2), np.nan)
     assert not _cond2_below(bad, 1e8)[0][0]
+
+
+def test_stack_linalg_equals_the_public_functions_and_flags_failures_with_nan():
+    """The gufunc shortcuts (numpy's private _umath_linalg) and the public fallback agree: the same
+    solutions and factors, and NaN exactly for the singular / non-PD / non-finite matrices."""
+    rng = np.random.default_rng(7)
+    L = rng.normal(size=(6, 10, 10)) + 5 * np.eye(10)
+    L[1] = 0.0                                                   # singular
+    L[2, 0] = np.nan                                             # not finite
+    b = rng.normal(size=(6, 10))
+    S = rng.normal(size=(6, 4, 4))
+    S = S @ S.transpose(0, 2, 1) + np.eye(4)
+    S[1] = -S[1]                                                 # negative definite
+    S[2, 3, 3] = -1e3                                            # indefinite
+    S[3, 3, 0] = np.inf
+    with np.errstate(all='ignore'):
+        for solve, cholesky in ((_stack_solve, _stack_cholesky), (_public_stack_solve, _public_stack_cholesky)):
+            x, c = solve(L, b), cholesky(S)
+            assert x.shape == b.shape and c.shape == S.shape
+            assert list(np.isfinite(x).all(axis=1)) == [True, False, False, True, True, True]
+            assert list(np.isfinite(c[:, 3, 3])) == [True, False, False, False, True, True]
+            good = [0, 3, 4, 5]
+            np.testing.assert_allclose(x[good], np.linalg.solve(L[good], b[good][..., None])[..., 0], rtol=1e-12)
+            np.testing.assert_allclose(c[[0, 4, 5]], np.linalg.cholesky(S[[0, 4, 5]]), rtol=1e-12)
 
 
 def sdc_plant(model, rng):

@@ -1,8 +1,9 @@
 """The simulator against the SoMo figures of finger_spec.md (upright finger, sim units)."""
 import numpy as np
+import pybullet as pb
 import pytest
 
-from soft_gripper_sdre.sim import GripperSim, SimConfig
+from soft_gripper_sdre.sim import GRAVITY, JOINT_AXIS, JOINT_STIFFNESS, GripperSim, SimConfig
 from soft_gripper_sdre.units import LENGTH_SCALE, TORQUE_SCALE
 
 UPRIGHT = SimConfig(scene='finger', mount_roll_deg=0.0)
@@ -152,3 +153,106 @@ def test_two_simulators_live_in_one_process():
             b.step(np.zeros((1, 2)))
         assert np.array_equal(b.truth().tip_pos, expected)
         assert not np.allclose(a.truth().tip_pos, expected)
+
+
+def test_stepping_equals_the_straightforward_numpy_computation():
+    """The plain-float fast paths (spring torques, clip, tip frames, cube contact sums) give the
+    same bits as the direct numpy/PyBullet computation, in a grasp with contacts."""
+    cfg = SimConfig(scene='hand', settle_time=0.2)
+    u = np.zeros((4, 2))
+    u[[0, 2], 0] = -0.05
+    u[[1, 3]] = [0.3, -0.01]                           # beyond the limit: clipped
+    with GripperSim(cfg) as sim, GripperSim(cfg) as ref:
+        cid, bodies, joints = ref._client, ref._bodies, list(range(10))
+
+        def ref_joints():
+            states = [pb.getJointStates(b, joints, physicsClientId=cid) for b in bodies]
+            return (np.array([[s[0] for s in st] for st in states]),
+                    np.array([[s[1] for s in st] for st in states]))
+        for _ in range(300):
+            sim.step(u)
+            u_sim = np.clip(u, -cfg.torque_limit, cfg.torque_limit) * TORQUE_SCALE
+            for _ in range(cfg.physics_substeps):
+                q, _ = ref_joints()
+                tau = u_sim[:, JOINT_AXIS] - JOINT_STIFFNESS * q          # τ = B u − K q
+                for b, t in zip(bodies, tau.tolist()):
+                    pb.setJointMotorControlArray(b, joints, pb.TORQUE_CONTROL, forces=t, physicsClientId=cid)
+                pb.stepSimulation(physicsClientId=cid)
+        tr = sim.truth()
+        q, qd = ref_joints()
+        links = [pb.getLinkState(b, 9, computeLinkVelocity=1, physicsClientId=cid) for b in bodies]
+        # p_b = Rᵀ (p − p₀) in sim units, then → m
+        pos = np.einsum('nji,nj->ni', ref._base_rot, np.array([ls[0] for ls in links]) - ref._base_pos)
+        force = np.zeros(4)
+        for i, b in enumerate(bodies):
+            for c in pb.getContactPoints(b, ref._cube, physicsClientId=cid):
+                force[i] += c[9] / LENGTH_SCALE
+        assert np.array_equal(tr.q, q) and np.array_equal(tr.qd, qd)
+        assert np.array_equal(tr.u_applied, np.clip(u, -0.1, 0.1))
+        assert np.array_equal(tr.tip_pos, pos / LENGTH_SCALE)
+        assert tr.finger_cube_contact.tolist() == [True, False, True, False]
+        assert np.array_equal(tr.contact_force, force)
+
+
+def test_tip_frames_equal_numpys_einsum_bit_for_bit():
+    """_read_state sums Rᵀ d in plain floats in einsum's order: the same bits on random frames."""
+    rng = np.random.default_rng(0)
+    with GripperSim(SimConfig(scene='hand', settle_time=0.0)) as sim:
+        sim._base_pos = rng.standard_normal((4, 3))
+        sim._base_rot = np.stack([np.linalg.qr(rng.standard_normal((3, 3)))[0] for _ in range(4)])
+        sim._frames = [(p0.tolist(), R.T.tolist()) for p0, R in zip(sim._base_pos, sim._base_rot)]
+        for _ in range(20):
+            sim.step(rng.uniform(-0.1, 0.1, (4, 2)))
+            links = [pb.getLinkState(b, 9, computeLinkVelocity=1, physicsClientId=sim._client)
+                     for b in sim._bodies]
+            p, v = np.array([ls[0] for ls in links]), np.array([ls[6] for ls in links])
+            p_b = np.einsum('nji,nj->ni', sim._base_rot, p - sim._base_pos)     # Rᵀ (p − p₀)
+            assert np.array_equal(sim._tip_pos, p_b / LENGTH_SCALE)
+            assert np.array_equal(sim._tip_vel, np.einsum('nji,nj->ni', sim._base_rot, v) / LENGTH_SCALE)
+
+
+def _potential_hessian(sim, h=1e-3):
+    """∂²V/∂q² [sim torque units/rad] of the gravity potential V(q) = Σ m_l g z_l(q), by central
+    differences of the links' world centres of mass (the base as mounted), finger scene."""
+    body, cid = sim._bodies[0], sim._client
+    masses = [pb.getDynamicsInfo(body, link, physicsClientId=cid)[0] for link in range(10)]
+    q0 = sim.truth().q[0]
+
+    def V(q):
+        for j in range(10):
+            pb.resetJointState(body, j, q[j], physicsClientId=cid)
+        return sum(m * GRAVITY * pb.getLinkState(body, link, physicsClientId=cid)[0][2]
+                   for link, m in enumerate(masses))
+    H, E = np.zeros((10, 10)), np.eye(10) * h
+    for j in range(10):
+        for k in range(j, 10):
+            H[j, k] = H[k, j] = (V(q0 + E[j] + E[k]) - V(q0 + E[j] - E[k]) - V(q0 - E[j] + E[k])
+                                 + V(q0 - E[j] - E[k])) / (4 * h * h)
+    return H
+
+
+@pytest.mark.parametrize('roll', [15.0, 0.0])
+def test_linearized_stiffness_is_springs_plus_the_gravity_potentials_hessian(roll):
+    """K = K_springs + ∂²V/∂q² with gravity as the mounted base sees it (PyBullet's inverse
+    dynamics alone would treat a rolled base as upright)."""
+    with GripperSim(SimConfig(scene='finger', mount_roll_deg=roll)) as sim:
+        for _ in range(300):
+            sim.step(np.array([[-0.04, 0.03]]))
+        M, K, _, _ = sim.linearize()
+        H = _potential_hessian(sim)
+    K_gravity = K - np.diag(JOINT_STIFFNESS) / TORQUE_SCALE
+    np.testing.assert_allclose(K_gravity, H / TORQUE_SCALE, rtol=0, atol=1e-4 * np.abs(H).max() / TORQUE_SCALE)
+
+
+def test_linearize_leaves_the_run_unchanged():
+    """linearize moves the joints and turns gravity for its differences; it puts both back exactly."""
+    def run(linearize_at):
+        with GripperSim(SimConfig(scene='finger')) as sim:
+            out = []
+            for k in range(400):
+                sim.step(np.array([[0.03 * np.sin(0.01 * k), -0.02]]))
+                if k == linearize_at:
+                    sim.linearize()
+                out.append(np.concatenate([sim.truth().q[0], sim.truth().qd[0]]))
+        return np.array(out)
+    assert np.array_equal(run(None), run(100))

@@ -23,57 +23,11 @@ from pathlib import Path
 import tempfile
 import time
 
-from soft_gripper_sdre.tools.procs import WIRED_BEFORE_START, Graph, ros_env
+from soft_gripper_sdre.tools.procs import WIRED_BEFORE_START, DiagnosticsMonitor, Graph, ros_env
 
 LOOP_NODES = ('estimator', 'trajectory', 'controller')
 #: topics the simulator publishes once per step when state_rate is 1 kHz (and once at t = 0)
 SIM_TOPICS = ('/clock', '/tip_positions', '/joint_states', '/cube_pose', '/cube_contacts')
-
-
-class Monitor:
-    """The newest /diagnostics values of every node, by node name (a node of its own Context)."""
-
-    def __init__(self, env: dict[str, str]) -> None:
-        os.environ.update({k: env[k] for k in ('ROS_DOMAIN_ID', 'ROS_AUTOMATIC_DISCOVERY_RANGE')})
-        import rclpy
-        from rclpy.context import Context
-        from rclpy.executors import SingleThreadedExecutor
-        from rclpy.node import Node
-        from diagnostic_msgs.msg import DiagnosticArray
-
-        from soft_gripper_sdre.nodes.topics import DIAGNOSTICS, STREAM_QOS
-
-        self.values: dict[str, dict[str, str]] = {}
-        self._ctx = Context()
-        rclpy.init(context=self._ctx)
-        self._node = Node('bench_monitor', context=self._ctx)
-        self._node.create_subscription(DiagnosticArray, DIAGNOSTICS, self._on_diag, STREAM_QOS)
-        self._exec = SingleThreadedExecutor(context=self._ctx)
-        self._exec.add_node(self._node)
-
-    def _on_diag(self, msg) -> None:
-        for status in msg.status:
-            self.values[status.name.rsplit('/', 1)[-1]] = {kv.key: kv.value for kv in status.values}
-
-    def get(self, node: str, key: str, default: float = 0.0) -> float:
-        try:
-            return float(self.values.get(node, {}).get(key, default))
-        except ValueError:
-            return default
-
-    def spin_until(self, predicate, timeout: float) -> bool:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            if predicate():
-                return True
-            self._exec.spin_once(timeout_sec=0.05)
-        return bool(predicate())
-
-    def close(self) -> None:
-        import rclpy
-        self._exec.shutdown()
-        self._node.destroy_node()
-        rclpy.try_shutdown(context=self._ctx)
 
 
 def _cpu_seconds(pid: int) -> float:
@@ -125,7 +79,7 @@ def run_graph(seconds: float, *, mode: str = 'lockstep', record: Path | None = N
               'simulator': {'duration': seconds, 'mode': mode, 'min_tip_subscribers': 2 + bool(record),
                             'min_diagnostics_subscribers': 1 + bool(record),   # the monitor (+ recorder)
                             **fast}}
-    monitor = Monitor(env)
+    monitor = DiagnosticsMonitor(env, 'bench_monitor')
     steps = int(round(seconds / 0.001))
     try:
         cpu = _run(graph_env=env, monitor=monitor, params=params, record=record, steps=steps,
@@ -139,7 +93,7 @@ def run_graph(seconds: float, *, mode: str = 'lockstep', record: Path | None = N
     return out
 
 
-def _run(graph_env: dict[str, str], monitor: Monitor, params: dict, record: Path | None, steps: int,
+def _run(graph_env: dict[str, str], monitor: DiagnosticsMonitor, params: dict, record: Path | None, steps: int,
          timeout: float) -> dict[str, float]:
     """:func:`run_graph`'s processes: start, step, drain, stop; returns CPU seconds per node
     while the simulator stepped."""

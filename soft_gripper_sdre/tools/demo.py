@@ -22,7 +22,7 @@ import sys
 import time
 
 from soft_gripper_sdre.laws import GRAPH_LAWS
-from soft_gripper_sdre.tools.procs import WIRED_BEFORE_START, Graph, ros_env
+from soft_gripper_sdre.tools.procs import WIRED_BEFORE_START, DiagnosticsMonitor, Graph, ros_env
 
 #: start order: listeners first, the simulator (which waits for them) last; they stop in reverse,
 #: so the controller goes right after the simulator, before its clock_timeout watchdog (wall
@@ -43,49 +43,6 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument('--timeout', type=float, default=600.0, help='wall-clock limit [s] (default %(default)s)')
     ap.add_argument('--no-progress', action='store_true', help='no progress bar')
     return ap
-
-
-class _SimTime:
-    """Follows the simulator's sim time through its /diagnostics (1 Hz), for the progress bar."""
-
-    def __init__(self, env: dict[str, str]) -> None:
-        import os
-        os.environ.update({k: env[k] for k in ('ROS_DOMAIN_ID', 'ROS_AUTOMATIC_DISCOVERY_RANGE')})
-        import rclpy
-        from rclpy.context import Context
-        from rclpy.executors import SingleThreadedExecutor
-        from rclpy.node import Node
-        from diagnostic_msgs.msg import DiagnosticArray
-
-        from soft_gripper_sdre.nodes.topics import DIAGNOSTICS, STREAM_QOS
-
-        self.t = 0.0
-        self.recorder_publishers: dict[str, int] = {}
-        self._ctx = Context()
-        rclpy.init(context=self._ctx)
-        self._node = Node('demo_monitor', context=self._ctx)
-        self._node.create_subscription(DiagnosticArray, DIAGNOSTICS, self._on_diag, STREAM_QOS)
-        self._exec = SingleThreadedExecutor(context=self._ctx)
-        self._exec.add_node(self._node)
-
-    def _on_diag(self, msg) -> None:
-        for status in msg.status:
-            if status.name.endswith('recorder'):
-                self.recorder_publishers.update({kv.key.split(' ', 1)[1]: int(kv.value)
-                                                 for kv in status.values if kv.key.startswith('publishers ')})
-            if status.name.endswith('simulator'):
-                for kv in status.values:
-                    if kv.key == 'sim_time':
-                        self.t = max(self.t, float(kv.value))
-
-    def poll(self) -> None:
-        self._exec.spin_once(timeout_sec=0.0)
-
-    def close(self) -> None:
-        import rclpy
-        self._exec.shutdown()
-        self._node.destroy_node()
-        rclpy.try_shutdown(context=self._ctx)
 
 
 def run_demo(out: Path, duration: float, model: Path | None = None, noise: float | None = None,
@@ -118,7 +75,7 @@ def run_demo(out: Path, duration: float, model: Path | None = None, noise: float
     if law is not None:
         params['controller']['law'] = law
 
-    monitor = _SimTime(env)
+    monitor = DiagnosticsMonitor(env, 'demo_monitor')
     bar = None
     t_wall = time.monotonic()
     with Graph(env, out / 'logs') as graph:
@@ -127,11 +84,11 @@ def run_demo(out: Path, duration: float, model: Path | None = None, noise: float
         # every stream the nodes publish reaches the recorder before the first step is taken
         # (the simulator then waits for its own peers: min_tip_subscribers)
         deadline = time.monotonic() + 60.0
-        while not all(monitor.recorder_publishers.get(t, 0) > 0 for t in WIRED_BEFORE_START):
+        while not all(monitor.get('recorder', f'publishers {t}') > 0 for t in WIRED_BEFORE_START):
             dead = [p.name for p in graph.procs.values() if not p.alive()]
             if dead or time.monotonic() > deadline:
                 raise RuntimeError(f'the graph did not connect (dead: {dead}); recorder sees '
-                                   f'{monitor.recorder_publishers}; last lines of recorder.log:\n'
+                                   f'{monitor.values.get("recorder", {})}; last lines of recorder.log:\n'
                                    f'{graph.procs["recorder"].log_tail()}')
             monitor.poll()
             time.sleep(0.05)
@@ -144,7 +101,7 @@ def run_demo(out: Path, duration: float, model: Path | None = None, noise: float
         def poll() -> None:
             monitor.poll()
             if bar is not None:
-                bar.update(min(monitor.t, duration) - bar.n)
+                bar.update(max(0.0, min(monitor.get('simulator', 'sim_time'), duration) - bar.n))
 
         code = graph.wait('simulator', timeout, poll)
         wall = time.monotonic() - t_wall

@@ -135,3 +135,59 @@ class Graph:
 
     def __exit__(self, *exc) -> None:
         self.stop_all()
+
+
+class DiagnosticsMonitor:
+    """The newest /diagnostics values of every node of a graph, by node name.
+
+    A node of its own rclpy Context in the calling process (the demo's progress bar and start-up
+    wait, the graph benchmarks' figures); ``poll``/``spin_until`` take what has arrived.
+    """
+
+    def __init__(self, env: dict[str, str], name: str = 'diagnostics_monitor') -> None:
+        os.environ.update({k: env[k] for k in ('ROS_DOMAIN_ID', 'ROS_AUTOMATIC_DISCOVERY_RANGE')})
+        import rclpy
+        from rclpy.context import Context
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.node import Node
+        from diagnostic_msgs.msg import DiagnosticArray
+
+        from soft_gripper_sdre.nodes.topics import DIAGNOSTICS, STREAM_QOS
+
+        self.values: dict[str, dict[str, str]] = {}
+        self._ctx = Context()
+        rclpy.init(context=self._ctx)
+        self._node = Node(name, context=self._ctx)
+        self._node.create_subscription(DiagnosticArray, DIAGNOSTICS, self._on_diag, STREAM_QOS)
+        self._exec = SingleThreadedExecutor(context=self._ctx)
+        self._exec.add_node(self._node)
+
+    def _on_diag(self, msg) -> None:
+        for status in msg.status:       # a status is named by its node's fully qualified name
+            self.values[status.name.rsplit('/', 1)[-1]] = {kv.key: kv.value for kv in status.values}
+
+    def get(self, node: str, key: str, default: float = 0.0) -> float:
+        """The newest value of ``key`` from ``node`` as a number (``default`` if none yet)."""
+        try:
+            return float(self.values.get(node, {}).get(key, default))
+        except ValueError:
+            return default
+
+    def poll(self) -> None:
+        """Take whatever has arrived, without waiting."""
+        self._exec.spin_once(timeout_sec=0.0)
+
+    def spin_until(self, predicate, timeout: float) -> bool:
+        """Spin until ``predicate()`` holds or ``timeout`` seconds of wall time pass."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if predicate():
+                return True
+            self._exec.spin_once(timeout_sec=0.05)
+        return bool(predicate())
+
+    def close(self) -> None:
+        import rclpy
+        self._exec.shutdown()
+        self._node.destroy_node()
+        rclpy.try_shutdown(context=self._ctx)
