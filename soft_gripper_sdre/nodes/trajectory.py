@@ -170,6 +170,7 @@ class TrajectoryNode(Node):
                                       'rest_pose when restarting mid-run)')
             self.traj = GraspTrajectory(rest, self.profile)
             self.diag.values['rest_pose'] = ', '.join(f'{v:.6g}' for v in self.traj.rest.ravel().tolist())
+            self.diag.publish()      # at once, not at the next 1 s tick: a restart is given this value
             rest = ', '.join(f'({1e3 * x:.2f}, {1e3 * y:.2f})' for x, y in self.traj.rest.tolist())
             self.get_logger().info(f'rest pose at t = {stamp / cv.NS:.4f} s [mm]: {rest}')
             self.publish(stamp)
