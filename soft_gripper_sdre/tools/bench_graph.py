@@ -157,11 +157,11 @@ def _echo(count: int, raw: bool = False) -> int:
     from soft_gripper_sdre.nodes import cdr
     from soft_gripper_sdre.nodes.common import make_executor
     from soft_gripper_sdre.nodes.topics import LOOP_QOS
+    codec = cdr.tips_codec(4) if raw else None     # learned before any DDS entity exists
     rclpy.init()
     node = Node('bench_echo')
     pub = node.create_publisher(PoseArray, 'bench_pong', LOOP_QOS)
     seen = [0, 0.0]
-    codec = cdr.tips_codec(4)
 
     def on_ping(msg) -> None:
         if seen[0] == 0:
