@@ -6,8 +6,9 @@ from soft_gripper_sdre.tools.bench_graph import SIM_TOPICS, hop, recorder_loss, 
 pytestmark = pytest.mark.ros
 
 
-def test_one_hop_is_timed_from_a_real_round_trip():
-    h = hop('events', 200)
+@pytest.mark.parametrize('raw', [False, True], ids=['typed', 'raw'])
+def test_one_hop_is_timed_from_a_real_round_trip(raw):
+    h = hop('events', 200, raw=raw)
     assert 0 < h['p50'] <= h['p99']
     assert h['cpu'] > 0                          # the echo process did receive and send
 

@@ -166,7 +166,8 @@ def run(node_factory: Callable[..., Node], args: list[str] | None = None) -> int
     # Our own SIGINT handling keeps the context alive while the node closes, so it can still
     # publish its final diagnostics and, for the recorder, finish the bag. The handler only sets a
     # flag: an exception raised inside a callback would be logged by the EventsExecutor as a
-    # failing callback; instead the loop sees the flag within one spin_once timeout.
+    # failing callback; instead the loop sees the flag within one spin_once timeout. So no
+    # KeyboardInterrupt is raised once the handlers are installed (before anything can fail).
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     stop: list[int] = []
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -187,7 +188,7 @@ def run(node_factory: Callable[..., Node], args: list[str] | None = None) -> int
         while rclpy.ok() and not stop and not getattr(node, 'done', False):
             executor.spin_once(timeout_sec=0.1)
         code = int(getattr(node, 'exit_code', 0))
-    except (KeyboardInterrupt, ExternalShutdownException):
+    except ExternalShutdownException:       # the context was shut down from elsewhere
         pass
     finally:
         if node is not None:

@@ -56,7 +56,7 @@ from soft_gripper_sdre.control import DEFAULT_LOWPASS_HZ, DEFAULT_WEIGHTS, Weigh
 from soft_gripper_sdre.horizon import sample_horizon
 from soft_gripper_sdre.laws import DEFAULT_LAW, GRAPH_LAWS, accepts_ref_acc, make_law
 from soft_gripper_sdre.model import ModelFileError, SDCModel
-from soft_gripper_sdre.nodes import conversions as cv
+from soft_gripper_sdre.nodes import cdr, conversions as cv
 from soft_gripper_sdre.nodes.common import ERROR, OK, Diagnostics, ThrottledLogger, run
 from soft_gripper_sdre.nodes.params import Param, ParameterError, declare_all, on_runtime_change
 from soft_gripper_sdre.nodes.topics import (CLOCK, CLOCK_QOS, GRASP_REFERENCE, LOOP_QOS, REFERENCE_QOS,
@@ -146,18 +146,23 @@ class ControllerNode(Node):
         self.clock_stopped = False              # nothing heard for clock_timeout of wall time
         self._compute_s = []
 
+        # the per-period messages travel as CDR bytes read / written at fixed offsets (nodes/cdr.py)
+        self.cdr_estimate = cdr.estimate_codec(self.n)
+        self.cdr_clock = cdr.clock_codec()
+        self.cdr_cmd = cdr.torques_codec(self.n)
         self.pub_cmd = self.create_publisher(JointState, TORQUE_COMMANDS, LOOP_QOS)
         self.sub_est = self.create_subscription(MultiDOFJointTrajectory, STATE_ESTIMATE,
-                                                self.on_estimate, LOOP_QOS)
+                                                self.on_estimate, LOOP_QOS, raw=True)
         self.sub_ref = self.create_subscription(MultiDOFJointTrajectory, GRASP_REFERENCE,
                                                 self.on_reference, REFERENCE_QOS)
-        self.sub_clock = self.create_subscription(Clock, CLOCK, self.on_clock, CLOCK_QOS)
+        self.sub_clock = self.create_subscription(Clock, CLOCK, self.on_clock, CLOCK_QOS, raw=True)
         self.log = ThrottledLogger(self.get_logger())
         self.diag = Diagnostics(self)
+        cdr.watch(self.diag, self.cdr_estimate, self.cdr_clock)
         self.diag.values['model'] = str(model.path)
         self.diag.values['weights'] = f'q_pos={weights.q_pos:g} q_vel={weights.q_vel:g} r={weights.r:g}'
         self._watchdog = self.create_timer(0.05, self._check_clock)
-        self._stats_timer = self.create_timer(1.0, self._publish_stats)
+        self.diag.before_publish.append(self._compute_stats)
         self.get_logger().info(
             f'model {model.path.name} (rest tip {1e3 * model.rest_tip[0]:.1f}, '
             f'{1e3 * model.rest_tip[1]:.1f} mm); {self.diag.values["weights"]}; '
@@ -187,9 +192,9 @@ class ControllerNode(Node):
                 self.pending = None
                 self._control(stamp_est, x, ref)
 
-    def on_estimate(self, msg: MultiDOFJointTrajectory) -> None:
+    def on_estimate(self, data: bytes) -> None:
         try:
-            stamp, x = cv.msg_to_estimate(msg, self.n)
+            stamp, x = self.cdr_estimate.decode(data)
         except cv.MessageError as exc:
             self._reject('bad_estimate', str(exc))
             return
@@ -252,7 +257,7 @@ class ControllerNode(Node):
         if not np.all(np.isfinite(u)):          # the core guarantees this; keep the promise here too
             self.diag.count('nonfinite_torque')
             u = np.zeros_like(u)
-        self.pub_cmd.publish(cv.torques_to_msg(stamp, u))
+        self.pub_cmd.publish(self.cdr_cmd.encode(stamp, u))
         self.last_cmd_ns = stamp
         d = self.diag
         d.good('commands', 'tracking')
@@ -285,9 +290,13 @@ class ControllerNode(Node):
             if not self.stale:
                 self.diag.set_status(OK, 'sim time moves again')
 
-    def on_clock(self, msg: Clock) -> None:
+    def on_clock(self, data: bytes) -> None:
         """Each sim-time tick: the safe command if the newest estimate is too old (module doc)."""
-        t = cv.from_time(msg.clock)
+        try:
+            t, _ = self.cdr_clock.decode(data)
+        except cv.MessageError as exc:
+            self._reject('bad_clock', str(exc))
+            return
         if self.clock_ns >= 0 and t < self.clock_ns - self.jump_ns:
             self._restart(t, '/clock')
         self.clock_ns = max(self.clock_ns, t)
@@ -309,7 +318,7 @@ class ControllerNode(Node):
     def _safe_command(self, stamp: int) -> None:
         """Zero torque for the instant ``stamp``; the pending estimate, if any, is superseded."""
         self.pending = None
-        self.pub_cmd.publish(cv.torques_to_msg(stamp, np.zeros((self.n, 2))))
+        self.pub_cmd.publish(self.cdr_cmd.encode(stamp, np.zeros((self.n, 2))))
         self.last_cmd_ns = stamp
         self.diag.count('safe_commands')
 
@@ -325,7 +334,8 @@ class ControllerNode(Node):
         if newest > self.last_cmd_ns:
             self._safe_command(newest)
 
-    def _publish_stats(self) -> None:
+    def _compute_stats(self) -> None:
+        """Mean and max compute time [µs] since the last /diagnostics, into its values."""
         if self._compute_s:
             c = np.asarray(self._compute_s) * 1e6
             self.diag.values['compute_us_mean'] = f'{c.mean():.0f}'

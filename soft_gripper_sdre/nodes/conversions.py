@@ -83,10 +83,19 @@ def _order(names, expected, what: str) -> np.ndarray | slice:
     return np.fromiter((pos[n] for n in expected), int, len(expected))
 
 
-def _finite(a: np.ndarray, what: str) -> np.ndarray:
+def check_finite(a: np.ndarray, what: str) -> np.ndarray:
+    """``a`` if every value is finite.
+
+    Raises:
+        MessageError: '<what> contains NaN or Inf'.
+    """
     if not np.all(np.isfinite(a)):
         raise MessageError(f'{what} contains NaN or Inf')
     return a
+
+
+#: what :func:`check_finite` names in the loop messages (also on the raw CDR path, nodes/cdr.py)
+TIPS_WHAT, TORQUES_WHAT, ESTIMATE_WHAT = 'tip_positions', 'torque_commands effort', 'state_estimate'
 
 
 # -- tip positions (PoseArray) ---------------------------------------------------------------
@@ -113,7 +122,7 @@ def msg_to_tips(msg: PoseArray, n_fingers: int) -> tuple[int, np.ndarray]:
     if len(msg.poses) != n_fingers:
         raise MessageError(f'tip_positions: expected {n_fingers} poses, got {len(msg.poses)}')
     tips = np.array([(p.position.x, p.position.y, p.position.z) for p in msg.poses], dtype=float)
-    return from_time(msg.header.stamp), _finite(tips, 'tip_positions')
+    return from_time(msg.header.stamp), check_finite(tips, TIPS_WHAT)
 
 
 # -- torque commands (JointState effort) -----------------------------------------------------
@@ -134,7 +143,7 @@ def msg_to_torques(msg: JointState, n_fingers: int) -> tuple[int, np.ndarray]:
         raise MessageError(f'torque_commands: {len(msg.name)} names but {len(msg.effort)} efforts')
     idx = _order(msg.name, _torque_names(n_fingers), 'torque_commands')
     effort = np.asarray(msg.effort, dtype=float)[idx].reshape(n_fingers, 2)
-    return from_time(msg.header.stamp), _finite(effort, 'torque_commands effort')
+    return from_time(msg.header.stamp), check_finite(effort, TORQUES_WHAT)
 
 
 # -- joint states and contacts ---------------------------------------------------------------
@@ -197,17 +206,6 @@ def estimate_to_msg(ns: int, pos: np.ndarray, vel: np.ndarray) -> MultiDOFJointT
     return msg
 
 
-def fill_estimate(msg: MultiDOFJointTrajectory, ns: int, x: np.ndarray) -> None:
-    """Overwrite the stamp and the (n, 4) [X, Y, Ẋ, Ẏ] of a message from :func:`estimate_to_msg`
-    in place (z and the rotation stay as they are: 0 and identity)."""
-    set_time(msg.header.stamp, ns)
-    pt = msg.points[0]
-    for tf, tw, (px, py, vx, vy) in zip(pt.transforms, pt.velocities, np.asarray(x, dtype=float).tolist()):
-        pos, vel = tf.translation, tw.linear
-        pos.x, pos.y = px, py
-        vel.x, vel.y = vx, vy
-
-
 def msg_to_estimate(msg: MultiDOFJointTrajectory, n_fingers: int) -> tuple[int, np.ndarray]:
     """One-point MultiDOFJointTrajectory → (stamp ns, (n, 4) [X, Y, Ẋ, Ẏ])."""
     idx = _order(msg.joint_names, list(FINGER_NAMES[:n_fingers]), 'state_estimate')
@@ -218,7 +216,7 @@ def msg_to_estimate(msg: MultiDOFJointTrajectory, n_fingers: int) -> tuple[int, 
         raise MessageError('state_estimate: transforms/velocities do not match joint_names')
     x = np.array([(tf.translation.x, tf.translation.y, tw.linear.x, tw.linear.y)
                   for tf, tw in zip(pt.transforms, pt.velocities)], dtype=float)[idx]
-    return from_time(msg.header.stamp), _finite(x, 'state_estimate')
+    return from_time(msg.header.stamp), check_finite(x, ESTIMATE_WHAT)
 
 
 def reference_to_msg(ns: int, offsets_ns, pos, vel, acc) -> MultiDOFJointTrajectory:
@@ -248,5 +246,5 @@ def msg_to_reference(msg: MultiDOFJointTrajectory, n_fingers: int):
     times = np.asarray(times, dtype=np.int64)
     if np.any(np.diff(times) <= 0):
         raise MessageError('grasp_reference: point times are not increasing')
-    d = _finite(np.asarray(data, dtype=float)[:, idx], 'grasp_reference')
+    d = check_finite(np.asarray(data, dtype=float)[:, idx], 'grasp_reference')
     return stamp, times, d[..., 0:2], d[..., 2:4], d[..., 4:6]

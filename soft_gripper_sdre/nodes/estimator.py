@@ -27,7 +27,7 @@ from rclpy.node import Node
 from trajectory_msgs.msg import MultiDOFJointTrajectory
 
 from soft_gripper_sdre.kf import PROCESS_NOISE_MODELS, ConstantVelocityKF
-from soft_gripper_sdre.nodes import conversions as cv
+from soft_gripper_sdre.nodes import cdr, conversions as cv
 from soft_gripper_sdre.nodes.common import Diagnostics, run
 from soft_gripper_sdre.nodes.params import Param, ParameterError, declare_all, on_runtime_change
 from soft_gripper_sdre.nodes.topics import LOOP_QOS, STATE_ESTIMATE, TIP_POSITIONS
@@ -66,12 +66,14 @@ class EstimatorNode(Node):
 
         self.last_ns: int | None = None          # stamp of the last accepted measurement
         self._predict_only = np.zeros(self.n, dtype=bool)
-        # one outgoing message, filled in place for every estimate (no per-message allocation)
-        self._msg = cv.estimate_to_msg(0, np.zeros((self.n, 2)), np.zeros((self.n, 2)))
+        # both messages travel as CDR bytes read / written at fixed offsets (nodes/cdr.py)
+        self.cdr_tips = cdr.tips_codec(self.n)
+        self.cdr_estimate = cdr.estimate_codec(self.n)
 
         self.pub = self.create_publisher(MultiDOFJointTrajectory, STATE_ESTIMATE, LOOP_QOS)
-        self.sub = self.create_subscription(PoseArray, TIP_POSITIONS, self.on_tips, LOOP_QOS)
+        self.sub = self.create_subscription(PoseArray, TIP_POSITIONS, self.on_tips, LOOP_QOS, raw=True)
         self.diag = Diagnostics(self)
+        cdr.watch(self.diag, self.cdr_tips)
         self.diag.values['process_noise'] = p['process_noise']
         self.get_logger().info(
             f'{self.n} fingers, Δt = {1e3 * p["control_period"]:g} ms, q = {p["accel_psd"]:g} '
@@ -82,9 +84,9 @@ class EstimatorNode(Node):
         self.jump_ns = int(round(self.p['reset_on_jump'] * cv.NS))
 
     # -- measurements ------------------------------------------------------------------------
-    def on_tips(self, msg: PoseArray) -> None:
+    def on_tips(self, data: bytes) -> None:
         try:
-            stamp, tips = cv.msg_to_tips(msg, self.n)
+            stamp, tips = self.cdr_tips.decode(data)
         except cv.MessageError as exc:
             self.diag.problem('bad_message', f'rejected: {exc}')
             return
@@ -128,8 +130,7 @@ class EstimatorNode(Node):
         self.diag.good('estimates', 'estimating')
 
     def _publish(self, stamp: int, x: np.ndarray) -> None:
-        cv.fill_estimate(self._msg, stamp, x)
-        self.pub.publish(self._msg)
+        self.pub.publish(self.cdr_estimate.encode(stamp, x))
 
 
 def main(args=None) -> int:

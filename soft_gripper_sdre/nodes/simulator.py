@@ -29,7 +29,7 @@ from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 
-from soft_gripper_sdre.nodes import conversions as cv
+from soft_gripper_sdre.nodes import cdr, conversions as cv
 from soft_gripper_sdre.nodes.common import OK, WARN, Diagnostics, LatencyWindow, ThrottledLogger, run
 from soft_gripper_sdre.nodes.params import Param, ParameterError, declare_all, on_runtime_change
 from soft_gripper_sdre.nodes.topics import (CLOCK, CLOCK_QOS, CUBE_CONTACTS, CUBE_POSE, JOINT_STATES,
@@ -38,6 +38,7 @@ from soft_gripper_sdre.sim import GripperSim, SimConfig
 
 #: periods back a command may answer and still count in the loop latency (realtime: late answers)
 LATENCY_PERIODS = 64
+_NO_VALUES = np.empty(0)       # /clock carries only its stamp
 
 PARAMS = (
     Param('mode', 'lockstep', 'stepping mode', choices=('lockstep', 'realtime'), read_only=True),
@@ -109,17 +110,20 @@ class SimulatorNode(Node):
         self._tips_sent = np.zeros(LATENCY_PERIODS)   # perf_counter() at tips k, at k % LATENCY_PERIODS
         self._answered_ns = -1                   # newest period whose latency is counted
 
-        # the two per-period messages are built once and refilled in place
-        self._clock_msg = cv.clock_msg(0)
-        self._tips_msg = cv.tips_to_msg(0, np.zeros((self.n, 3)))
+        # the per-period messages travel as CDR bytes written / read at fixed offsets (nodes/cdr.py)
+        self.cdr_clock = cdr.clock_codec()
+        self.cdr_tips = cdr.tips_codec(self.n)
+        self.cdr_cmd = cdr.torques_codec(self.n)
         self.pub_clock = self.create_publisher(Clock, CLOCK, CLOCK_QOS)
         self.pub_tips = self.create_publisher(PoseArray, TIP_POSITIONS, LOOP_QOS)
         self.pub_joints = self.create_publisher(JointState, JOINT_STATES, STREAM_QOS)
         self.pub_cube = self.create_publisher(PoseStamped, CUBE_POSE, STREAM_QOS)
         self.pub_contacts = self.create_publisher(JointState, CUBE_CONTACTS, STREAM_QOS)
-        self.sub_cmd = self.create_subscription(JointState, TORQUE_COMMANDS, self.on_command, LOOP_QOS)
+        self.sub_cmd = self.create_subscription(JointState, TORQUE_COMMANDS, self.on_command, LOOP_QOS,
+                                                raw=True)
         self.log = ThrottledLogger(self.get_logger())
         self.diag = Diagnostics(self)
+        cdr.watch(self.diag, self.cdr_cmd)
         self.diag.before_publish.append(self._refresh_diagnostics)
         self.diag.values['mode'] = p['mode']
         self.diag.values['scene'] = p['scene']
@@ -151,9 +155,9 @@ class SimulatorNode(Node):
         self.publish_state()
 
     # -- commands ----------------------------------------------------------------------------
-    def on_command(self, msg: JointState) -> None:
+    def on_command(self, data: bytes) -> None:
         try:
-            stamp, u = cv.msg_to_torques(msg, self.n)
+            stamp, u = self.cdr_cmd.decode(data)
         except cv.MessageError as exc:
             self._reject('bad_command', str(exc))
             return
@@ -225,11 +229,10 @@ class SimulatorNode(Node):
     # -- publishing --------------------------------------------------------------------------
     def publish_state(self) -> None:
         ns = self.k * self.period_ns
-        cv.set_time(self._clock_msg.clock, ns)
-        self.pub_clock.publish(self._clock_msg)
-        cv.fill_tips(self._tips_msg, ns, self.sim.measure())
+        tips = self.cdr_tips.encode(ns, self.sim.measure())
         self._tips_sent[self.k % LATENCY_PERIODS] = time.perf_counter()
-        self.pub_tips.publish(self._tips_msg)
+        self.pub_tips.publish(tips)         # first: the loop's critical path starts here
+        self.pub_clock.publish(self.cdr_clock.encode(ns, _NO_VALUES))
         self.deadline = time.monotonic() + self.p['lockstep_timeout']
         if self.k % self.state_every == 0:
             truth = self.sim.truth()

@@ -32,7 +32,7 @@ import numpy as np
 from rclpy.node import Node
 from trajectory_msgs.msg import MultiDOFJointTrajectory
 
-from soft_gripper_sdre.nodes import conversions as cv
+from soft_gripper_sdre.nodes import cdr, conversions as cv
 from soft_gripper_sdre.nodes.common import Diagnostics, run
 from soft_gripper_sdre.nodes.params import Param, ParameterError, declare_all, on_runtime_change
 from soft_gripper_sdre.nodes.topics import GRASP_REFERENCE, LOOP_QOS, REFERENCE_QOS, TIP_POSITIONS
@@ -129,9 +129,11 @@ class TrajectoryNode(Node):
         self.last_ns = -1                       # stamp of the last accepted tip message
         self.next_pub_ns = 0                    # next publish instant (multiple of publish_period)
 
+        self.cdr_tips = cdr.tips_codec(self.n)     # CDR bytes read at fixed offsets (nodes/cdr.py)
         self.pub = self.create_publisher(MultiDOFJointTrajectory, GRASP_REFERENCE, REFERENCE_QOS)
-        self.sub = self.create_subscription(PoseArray, TIP_POSITIONS, self.on_tips, LOOP_QOS)
+        self.sub = self.create_subscription(PoseArray, TIP_POSITIONS, self.on_tips, LOOP_QOS, raw=True)
         self.diag = Diagnostics(self)
+        cdr.watch(self.diag, self.cdr_tips)
         pr = self.profile
         self.get_logger().info(
             f'grasp with fingers {list(pr.grasp_fingers)}, others {pr.others}: start {pr.t_start:g} s, '
@@ -142,9 +144,9 @@ class TrajectoryNode(Node):
         self.p.update(new)
         self.jump_ns = int(round(self.p['reset_on_jump'] * cv.NS))
 
-    def on_tips(self, msg: PoseArray) -> None:
+    def on_tips(self, data: bytes) -> None:
         try:
-            stamp, tips = cv.msg_to_tips(msg, self.n)
+            stamp, tips = self.cdr_tips.decode(data)
         except cv.MessageError as exc:
             self.diag.problem('bad_message', f'rejected: {exc}')
             return
@@ -168,6 +170,7 @@ class TrajectoryNode(Node):
                                       'rest_pose when restarting mid-run)')
             self.traj = GraspTrajectory(rest, self.profile)
             self.diag.values['rest_pose'] = ', '.join(f'{v:.6g}' for v in self.traj.rest.ravel().tolist())
+            self.diag.publish()      # at once, not at the next 1 s tick: a restart is given this value
             rest = ', '.join(f'({1e3 * x:.2f}, {1e3 * y:.2f})' for x, y in self.traj.rest.tolist())
             self.get_logger().info(f'rest pose at t = {stamp / cv.NS:.4f} s [mm]: {rest}')
             self.publish(stamp)

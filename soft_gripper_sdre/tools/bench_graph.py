@@ -146,15 +146,18 @@ def recorder_loss(seconds: float, executor: str | None = None) -> dict[str, tupl
     return {t: (n, counts.get(t, 0)) for t, n in published(d).items()}
 
 
-def _echo(count: int) -> int:
+def _echo(count: int, raw: bool = False) -> int:
     """The far end of :func:`hop`: answer ``count`` tip messages on ``bench_pong``, then print the
-    CPU seconds this process spent per message."""
+    CPU seconds this process spent per message. ``raw``: receive the CDR bytes, decode and encode
+    them as the loop nodes do (nodes/cdr.py); otherwise republish the message rclpy built."""
     import rclpy
     from geometry_msgs.msg import PoseArray
     from rclpy.node import Node
 
+    from soft_gripper_sdre.nodes import cdr
     from soft_gripper_sdre.nodes.common import make_executor
     from soft_gripper_sdre.nodes.topics import LOOP_QOS
+    codec = cdr.tips_codec(4) if raw else None     # learned before any DDS entity exists
     rclpy.init()
     node = Node('bench_echo')
     pub = node.create_publisher(PoseArray, 'bench_pong', LOOP_QOS)
@@ -164,8 +167,8 @@ def _echo(count: int) -> int:
         if seen[0] == 0:
             seen[1] = time.process_time()      # CPU from the first message on
         seen[0] += 1
-        pub.publish(msg)
-    node.create_subscription(PoseArray, 'bench_ping', on_ping, LOOP_QOS)
+        pub.publish(codec.encode(*codec.decode(msg)) if raw else msg)
+    node.create_subscription(PoseArray, 'bench_ping', on_ping, LOOP_QOS, raw=raw)
     executor = make_executor()
     executor.add_node(node)
     deadline = time.monotonic() + 120.0
@@ -178,12 +181,13 @@ def _echo(count: int) -> int:
     return 0
 
 
-def hop(executor: str, count: int = 2000) -> dict[str, float]:
+def hop(executor: str, count: int = 2000, raw: bool = False) -> dict[str, float]:
     """One DDS hop with the graph's own message and executor, between two processes.
 
     A ping-pong of ``tip_positions``-sized PoseArrays: half the round trip is the latency of one
     hop (publish → callback in the other process → publish back); the echo process reports its CPU
-    per message (receive + publish). Returns µs: ``p50``, ``p99`` of one hop, ``cpu``.
+    per message (receive + publish; with ``raw`` as CDR bytes decoded and encoded by nodes/cdr.py,
+    as the loop nodes do). Returns µs: ``p50``, ``p99`` of one hop, ``cpu``.
     """
     import subprocess
     import sys
@@ -201,7 +205,8 @@ def hop(executor: str, count: int = 2000) -> dict[str, float]:
     env = ros_env()
     env[EXECUTOR_ENV] = executor
     os.environ.update({k: env[k] for k in ('ROS_DOMAIN_ID', 'ROS_AUTOMATIC_DISCOVERY_RANGE')})
-    echo = subprocess.Popen([sys.executable, '-m', 'soft_gripper_sdre.tools.bench_graph', '--echo', str(count)],
+    echo = subprocess.Popen([sys.executable, '-m', 'soft_gripper_sdre.tools.bench_graph', '--echo', str(count)]
+                            + ['--raw'] * raw,
                             env=env, stdout=subprocess.PIPE, text=True)
     ctx = Context()
     rclpy.init(context=ctx)
@@ -251,6 +256,7 @@ def rows(quick: bool = False, executor: str | None = None) -> list[tuple[str, st
     single = run_graph(seconds, executor='single')['simulator'] if executor != 'single' else lock
     real = run_graph(seconds, mode='realtime', executor=executor)['simulator']
     ev, st = (hop(kind, 1000 if quick else 3000) for kind in ('events', 'single'))
+    ev_raw = hop('events', 1000 if quick else 3000, raw=True)
     recorded = recorder_loss(0.5 if quick else 2.0, executor=executor)
     sent = sum(n for n, _ in recorded.values())
     lost = sum(max(0, n - got) for n, got in recorded.values())
@@ -261,6 +267,9 @@ def rows(quick: bool = False, executor: str | None = None) -> list[tuple[str, st
     return [
         ('one DDS hop, tip_positions, EventsExecutor', f'{ev["p50"]:.0f} / {ev["p99"]:.0f} µs',
          f'p50 / p99 one way (ping-pong of 2 processes); {ev["cpu"]:.0f} µs CPU per message received + sent'),
+        ('one DDS hop, tip_positions as raw CDR (nodes/cdr.py), EventsExecutor',
+         f'{ev_raw["p50"]:.0f} / {ev_raw["p99"]:.0f} µs',
+         f'{ev_raw["cpu"]:.0f} µs CPU per message received, decoded, encoded and sent, as the loop nodes do'),
         ('one DDS hop, tip_positions, SingleThreadedExecutor', f'{st["p50"]:.0f} / {st["p99"]:.0f} µs',
          f'{st["cpu"]:.0f} µs CPU per message: {st["cpu"] / ev["cpu"]:.1f}× the EventsExecutor\'s'),
         ('node graph, 4 processes, lockstep 1 ms', f'{lock.get("real_time_factor", nan):.2f}× real time',
@@ -289,11 +298,12 @@ def main(argv: list[str] | None = None) -> int:
                                  description=__doc__.split('\n')[0])
     ap.add_argument('--quick', action='store_true', help='shorter runs (smoke test)')
     ap.add_argument('--echo', type=int, default=None, help=argparse.SUPPRESS)   # hop()'s far end
+    ap.add_argument('--raw', action='store_true', help=argparse.SUPPRESS)       # … with raw CDR
     ap.add_argument('--executor', choices=('events', 'single'), default=None,
                     help='executor of the node processes (default: $SOFT_GRIPPER_EXECUTOR or events)')
     a = ap.parse_args(argv)
     if a.echo is not None:
-        return _echo(a.echo)
+        return _echo(a.echo, a.raw)
     table = rows(a.quick, a.executor)
     width = max(len(r[0]) for r in table)
     for name, value, note in table:

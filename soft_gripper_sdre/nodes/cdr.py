@@ -1,0 +1,244 @@
+"""Serialized CDR bytes of the per-period loop messages, read and written with numpy.
+
+rclpy builds a Python object for every nested message it deserializes, which is what makes the
+loop topics expensive (61 µs for a ``state_estimate`` of 4 joints, 34 µs for ``tip_positions``).
+The loop's messages never change shape from one period to the next: only the stamp and a few
+float64 fields move. So each loop topic gets a :class:`Layout` learned at start-up from a template
+message that rclpy itself serializes, and a period then costs a masked byte comparison and a
+numpy gather (decode) or scatter (encode) at fixed offsets.
+
+How a layout is learned, so that no offset is derived by hand:
+
+* the template is built by the same function that builds the message the slow way
+  (:mod:`~soft_gripper_sdre.nodes.conversions`), with a sentinel stamp and a distinct sentinel
+  value in every slot; the slot offsets are where those sentinels land in rclpy's bytes;
+* every other byte is flipped in turn and the bytes deserialized again: a byte whose flip leaves
+  the message equal to the template is one the deserializer ignores (alignment padding, which
+  rclpy's serializer leaves uninitialised, and slack at the end, which the layout drops as rmw
+  does for a typed message); every other byte is structural (the encapsulation header, lengths, counts, strings such as frame_id and names, and
+  fields outside the slots such as orientations) and must match the template exactly.
+
+A message matches a layout when it has the template's length and the same structural bytes; the
+slots may then hold anything. Anything else (another publisher's name order, a different
+frame_id, more points, big-endian CDR, …) goes the slow way: ``deserialize_message`` and the
+``msg_to_*`` conversion with all its checks (:class:`LoopCodec`). Both ways end in the same
+finiteness check, with the same error message.
+
+The bytes we publish are the template with the padding zeroed and the slots filled: valid CDR of
+the declared type (``deserialize_message`` gives back the message the slow way would have sent;
+test/test_cdr.py), so ``ros2 topic echo``, rosbag2 and typed subscribers are unaffected.
+"""
+from __future__ import annotations
+
+import contextlib
+from dataclasses import dataclass
+import os
+import struct
+import sys
+from typing import Callable
+
+import numpy as np
+from rclpy.serialization import deserialize_message, serialize_message
+
+from soft_gripper_sdre.nodes import conversions as cv
+from soft_gripper_sdre.nodes.topics import CLOCK, STATE_ESTIMATE, TIP_POSITIONS, TORQUE_COMMANDS
+
+#: CDR encapsulation header: 2 bytes representation id (00 01 = CDR little-endian), 2 bytes
+#: options; CDR aligns every primitive to its size relative to the byte after it
+HEADER = 4
+#: builtin_interfaces/Time = int32 sec, uint32 nanosec, little-endian
+_STAMP = struct.Struct('<iI')
+#: the template's stamp (sec, nanosec), distinct from anything else in the bytes
+_SENTINEL_STAMP = (0x5A5A_1234, 0x3B9A_C9FF)       # 1 515 852 340 s, 999 999 999 ns
+
+
+def _sentinels(count: int) -> np.ndarray:
+    """``count`` distinct float64s whose bit patterns occur nowhere else in a template."""
+    return -1234.5 - np.arange(count) * 0.0078125 * np.pi
+
+
+@dataclass(frozen=True)
+class Layout:
+    """Where the stamp and the float64 slots of a fixed-shape message sit in its CDR bytes.
+
+    Build with :meth:`learn`. ``template`` holds the padding zeroed; ``mask`` is 0xFF on the
+    structural bytes and 0 on the stamp, the slots and the padding.
+    """
+
+    msg_type: type
+    template: bytes
+    mask: np.ndarray              # (size,) uint8
+    masked: bytes                 # template & mask
+    stamp_at: int                 # byte offset of the stamp's sec (its nanosec follows)
+    slots: np.ndarray             # (m,) index of each slot among the float64 words after HEADER
+    shape: tuple[int, ...]        # shape of the slot values
+    slack_size: int               # length of rclpy's own serialization (with its slack)
+
+    @classmethod
+    def learn(cls, msg_type: type, build: Callable[[int, np.ndarray], object],
+              shape: tuple[int, ...]) -> 'Layout':
+        """The layout of ``build(ns, values)`` (values of ``shape``), as rclpy serializes it.
+
+        Raises:
+            ValueError: a sentinel is not found exactly once at an aligned place, or the learned
+                layout does not round-trip (the message has no fixed layout).
+        """
+        values = _sentinels(int(np.prod(shape))).reshape(shape)
+        sec, nanosec = _SENTINEL_STAMP
+        msg = build(sec * cv.NS + nanosec, values)
+        raw = serialize_message(msg)
+        name = msg_type.__name__
+        stamp_at = _find_once(raw, _STAMP.pack(sec, nanosec), 4, f'{name} stamp')
+        slots = np.array([(_find_once(raw, struct.pack('<d', v), 8, f'{name} slot {i}') - HEADER) // 8
+                          for i, v in enumerate(values.ravel().tolist())], dtype=np.intp)
+        moving = np.zeros(len(raw), dtype=bool)
+        moving[stamp_at:stamp_at + _STAMP.size] = True
+        for s in slots:
+            moving[HEADER + 8 * s:HEADER + 8 * s + 8] = True
+        with _quiet_stderr():       # the typesupport prints a line for each count it cannot read
+            ignored = np.array([not moving[i] and _ignored(raw, i, msg, msg_type) for i in range(len(raw))])
+        # rclpy's buffer may end in slack the deserializer ignores; rmw sends typed messages
+        # without it, so the layout ends at the last byte that is read (typed and raw then match)
+        size = int(np.flatnonzero(~ignored)[-1]) + 1
+        size += -(size - HEADER) % 4            # an RTPS payload is whole 4-byte words
+        ignored = ignored[:size]
+        moving = moving[:size]
+        mask = np.where(moving | ignored, 0, 0xFF).astype(np.uint8)
+        template = bytes(np.frombuffer(raw[:size], np.uint8) & np.where(ignored, 0, 0xFF).astype(np.uint8))
+        layout = cls(msg_type, template, mask, bytes(np.frombuffer(template, np.uint8) & mask),
+                     stamp_at, slots, tuple(shape), len(raw))
+        if deserialize_message(layout.encode(sec * cv.NS + nanosec, values), msg_type) != msg:
+            raise ValueError(f'{name}: the learned layout does not reproduce the template')
+        return layout
+
+    def decode(self, data: bytes) -> tuple[int, np.ndarray] | None:
+        """(stamp ns, slot values of ``shape``) of ``data``, or None when it does not match."""
+        size = len(self.template)
+        if len(data) != size and len(data) != self.slack_size:     # as rmw or as rclpy serializes
+            return None
+        if (np.frombuffer(data, np.uint8, count=size) & self.mask).tobytes() != self.masked:
+            return None
+        sec, nanosec = _STAMP.unpack_from(data, self.stamp_at)
+        words = np.frombuffer(data, '<f8', count=(size - HEADER) // 8, offset=HEADER)
+        return sec * cv.NS + nanosec, words[self.slots].reshape(self.shape)   # a copy: data is not kept
+
+    def encode(self, ns: int, values: np.ndarray) -> bytes:
+        """The CDR bytes of the message stamped ``ns`` with slot ``values`` (of ``shape``)."""
+        buf = bytearray(self.template)
+        _STAMP.pack_into(buf, self.stamp_at, *divmod(int(ns), cv.NS))
+        words = np.frombuffer(buf, '<f8', count=(len(buf) - HEADER) // 8, offset=HEADER)
+        words[self.slots] = np.asarray(values, dtype=float).ravel()
+        return bytes(buf)
+
+
+def _find_once(raw: bytes, pattern: bytes, align: int, what: str) -> int:
+    """The one offset of ``pattern`` in ``raw`` that is ``align``-aligned after the header."""
+    at = raw.find(pattern)
+    if at < 0 or raw.count(pattern) != 1 or (at - HEADER) % align:
+        raise ValueError(f'{what}: the sentinel occurs {raw.count(pattern)} times (first at byte {at}); '
+                         f'expected once, {align}-aligned after the header')
+    return at
+
+
+def _ignored(raw: bytes, i: int, msg, msg_type: type) -> bool:
+    """Whether the deserializer ignores byte ``i`` of ``raw``: flipped, the message is the same."""
+    flipped = bytearray(raw)
+    flipped[i] ^= 0xFF
+    try:
+        return deserialize_message(bytes(flipped), msg_type) == msg
+    except Exception:     # rclpy raises its RMWError (no public class) for bytes that do not parse
+        return False
+
+
+@contextlib.contextmanager
+def _quiet_stderr():
+    """File descriptor 2 on /dev/null for the duration (C++ writes there, not to sys.stderr)."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with open(os.devnull, 'wb') as null:
+            os.dup2(null.fileno(), 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+
+
+class LoopCodec:
+    """One loop topic's message ↔ (stamp, values), fast when the bytes match the layout.
+
+    ``to_msg(ns, values)`` builds the message the slow way (and is the template of the layout);
+    ``from_msg(msg)`` is the validating ``msg_to_*`` conversion used when the bytes do not match;
+    ``finite_what`` names the values in the error for NaN/Inf, as ``from_msg`` does.
+    ``fallbacks`` counts the messages decoded the slow way.
+    """
+
+    def __init__(self, topic: str, msg_type: type, to_msg: Callable[[int, np.ndarray], object],
+                 from_msg: Callable[[object], tuple[int, np.ndarray]], shape: tuple[int, ...],
+                 finite_what: str | None) -> None:
+        self.topic = topic
+        self.msg_type = msg_type
+        self.layout = Layout.learn(msg_type, to_msg, shape)
+        self._from_msg = from_msg
+        self._finite_what = finite_what
+        self.fallbacks = 0
+
+    def encode(self, ns: int, values: np.ndarray) -> bytes:
+        return self.layout.encode(ns, values)
+
+    def decode(self, data: bytes) -> tuple[int, np.ndarray]:
+        """(stamp ns, values) of serialized ``data``.
+
+        Raises:
+            conversions.MessageError: as ``from_msg`` would, or the bytes are not a message of
+                the type at all.
+        """
+        fast = self.layout.decode(data)
+        if fast is None:
+            self.fallbacks += 1
+            try:
+                msg = deserialize_message(data, self.msg_type)
+            except Exception:      # rclpy's RMWError: not CDR of this type
+                raise cv.MessageError(f'{self.topic}: {len(data)} bytes that do not deserialize as '
+                                      f'{self.msg_type.__name__}') from None
+            return self._from_msg(msg)
+        stamp, values = fast
+        if self._finite_what is not None:
+            cv.check_finite(values, self._finite_what)
+        return stamp, values
+
+
+# -- the loop topics -------------------------------------------------------------------------
+
+def tips_codec(n_fingers: int) -> LoopCodec:
+    """``tip_positions``: (n, 3) tip positions [m] (orientations and frame_id fixed)."""
+    return LoopCodec(TIP_POSITIONS, cv.PoseArray, cv.tips_to_msg, lambda m: cv.msg_to_tips(m, n_fingers),
+                     (n_fingers, 3), cv.TIPS_WHAT)
+
+
+def estimate_codec(n_fingers: int) -> LoopCodec:
+    """``state_estimate``: (n, 4) [X, Y, Ẋ, Ẏ]; joint names finger_0.., one point, z = 0."""
+    return LoopCodec(STATE_ESTIMATE, cv.MultiDOFJointTrajectory,
+                     lambda ns, x: cv.estimate_to_msg(ns, x[:, :2], x[:, 2:]),
+                     lambda m: cv.msg_to_estimate(m, n_fingers), (n_fingers, 4), cv.ESTIMATE_WHAT)
+
+
+def torques_codec(n_fingers: int) -> LoopCodec:
+    """``torque_commands``: (n, 2) efforts [N·m] named finger_i/ax0|ax1 in that order."""
+    return LoopCodec(TORQUE_COMMANDS, cv.JointState, cv.torques_to_msg, lambda m: cv.msg_to_torques(m, n_fingers),
+                     (n_fingers, 2), cv.TORQUES_WHAT)
+
+
+def clock_codec() -> LoopCodec:
+    """``/clock``: the stamp only (values are an empty array)."""
+    return LoopCodec(CLOCK, cv.Clock, lambda ns, _v: cv.clock_msg(ns),
+                     lambda m: (cv.from_time(m.clock), np.empty(0)), (0,), None)
+
+
+def watch(diag, *codecs: LoopCodec) -> None:
+    """Report in ``diag`` (a :class:`~soft_gripper_sdre.nodes.common.Diagnostics`) how many
+    messages ``codecs`` decoded the slow way, as the value ``slow_decodes`` (0 while every
+    message comes from our own nodes)."""
+    def refresh() -> None:
+        diag.values['slow_decodes'] = str(sum(c.fallbacks for c in codecs))
+    diag.before_publish.append(refresh)
