@@ -129,6 +129,34 @@ def bench_control(loop, repeats: int, ref_steps: int) -> dict[str, float]:
     return out
 
 
+def bench_idle(loop, law: str = 'sdre_ff') -> dict[str, float]:
+    """The graph's law on the closed loop's states, as a node runs it: median compute [s] right
+    after 1 ms of sleep (``idle``: a node waiting for its next estimate), right after sweeping
+    64 MB of memory (``flushed``: other processes ran on the core meanwhile, as in the graph), and
+    back to back (``busy``: as the replays above).
+
+    Three instances of the law step through the same states, one after the other at each step, so
+    all see the same warm starts and the same load.
+    """
+    from soft_gripper_sdre.control import DEFAULT_WEIGHTS, Weights
+    from soft_gripper_sdre.laws import make_law
+    from soft_gripper_sdre.model import SDCModel
+    model, w = SDCModel(), Weights(**DEFAULT_WEIGHTS)
+    laws = {k: make_law(law, model, w, 0.0625, n_fingers=4) for k in ('idle', 'flushed', 'busy')}
+    before = {'idle': lambda: time.sleep(1e-3), 'flushed': np.ones(8_000_000).sum, 'busy': lambda: None}
+    acc = np.zeros((loop.est.shape[1], 2))
+    clock, t = time.perf_counter, {k: [] for k in laws}
+    for k in range(len(loop.est)):
+        args = (loop.est[k, :, :2], loop.est[k, :, 2:], loop.ref_pos[k], loop.ref_vel[k])
+        for name, ctl in laws.items():
+            before[name]()
+            t0 = clock()
+            ctl.compute(*args, ref_acc=acc)
+            if k:
+                t[name].append(clock() - t0)
+    return {k: float(np.median(v)) for k, v in t.items()}
+
+
 def bench_collect(seconds: float) -> float:
     """Real-time factor of collecting one excitation signal (finger scene, settle included)."""
     from soft_gripper_sdre.tools.collect import collect_signal
@@ -178,6 +206,11 @@ def rows(quick: bool) -> list[Row]:
     out.append(('controller compute, 4 fingers (fast), clean states', us(clean['fast']),
                 f'{clean["reference"] / clean["fast_paired"]:.0f}× faster than the reference, same steps; the same '
                 f'loop without measurement noise: {clean["iterations"]:.2f} iterations per step'))
+    cold = bench_idle(loop)
+    out.append(('controller compute, sdre_ff (the graph\'s law), cold', f'{us(cold["idle"])} / {us(cold["flushed"])}',
+                f'after 1 ms of sleep / after 64 MB of other memory traffic, against {us(cold["busy"])} back '
+                f'to back on the same states ({cold["idle"] / cold["busy"]:.1f}× / {cold["flushed"] / cold["busy"]:.1f}×): '
+                'a node that waits for each estimate while other processes use its core runs it cold'))
     period = float(np.median(loop.period_seconds))
     out.append(('closed loop in-process (sim + KF + controller)', f'{1e-3 / period:.2f}× real time',
                 f'median period {us(period)}; over the whole {T * 1e-3:.0f} s run '
