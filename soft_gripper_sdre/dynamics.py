@@ -41,7 +41,7 @@ import numpy as np
 import pybullet as pb
 
 from soft_gripper_sdre.sim import (B_MATRIX, FINGER_ROLL_DEG, FRICTION_TORQUE, JOINT_STIFFNESS, N_JOINTS, TIP_LINK,
-                                   WORLD_GRAVITY, _rot, load_fingers)
+                                   WORLD_GRAVITY, DirectClient, _rot, load_fingers)
 from soft_gripper_sdre.units import LENGTH_SCALE, TORQUE_SCALE
 
 #: step of the central difference J̇ q̇ ≈ (J(q + h q̇) − J(q − h q̇)) q̇ / 2h  [s]
@@ -79,7 +79,7 @@ class TaskDynamics:
         return self.f + self.G2 @ np.asarray(u, dtype=float)
 
 
-class FingerDynamics:
+class FingerDynamics(DirectClient):
     """The finger's rigid-body model in a private PyBullet client.
 
     Args:
@@ -90,18 +90,18 @@ class FingerDynamics:
     def __init__(self, mount_roll_deg: float = FINGER_ROLL_DEG) -> None:
         if not math.isfinite(mount_roll_deg):
             raise ValueError(f'mount_roll_deg must be finite, got {mount_roll_deg!r}')
-        self._cid = pb.connect(pb.DIRECT)
+        super().__init__()
         # The body is loaded upright with gravity turned into its base frame, g_b = Rᵀ (0, 0, −g):
         # PyBullet's calculateInverseDynamics ignores a fixed base's orientation and would apply
         # gravity as if the finger stood upright (test_dynamics.py: a held pose of the rolled finger
         # balances only with this; test_sim.py checks GripperSim.linearize, which does the same,
         # against the Hessian of the gravity potential). Base frame = world frame here.
         rot = _rot((math.radians(mount_roll_deg), 0.0, 0.0))
-        pb.setGravity(*(rot.T @ np.array(WORLD_GRAVITY)), physicsClientId=self._cid)
-        self._body, = load_fingers(self._cid, [((0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))])
+        pb.setGravity(*(rot.T @ np.array(WORLD_GRAVITY)), physicsClientId=self._client)
+        self._body, = load_fingers(self._client, [((0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))])
         # PyBullet's Jacobian point is in the link frame; the tip the simulator reports is link 9's
         # centre of mass, at its local inertial offset
-        self._tip_offset = list(pb.getLinkState(self._body, TIP_LINK, physicsClientId=self._cid)[2])
+        self._tip_offset = list(pb.getLinkState(self._body, TIP_LINK, physicsClientId=self._client)[2])
         # static compliance's inverse stiffness, SI: K_si = K_sim / TORQUE_SCALE
         self._Kinv_B = np.diag(1.0 / JOINT_STIFFNESS) @ B_MATRIX * TORQUE_SCALE
         self._Phi = self._Kinv_B / TORQUE_SCALE                      # Φ = K⁻¹ B, sim units
@@ -109,7 +109,7 @@ class FingerDynamics:
     def _jacobian(self, q: list, zeros: list) -> np.ndarray:
         """(3, 10) linear Jacobian of the tip (link 9's centre of mass) in the base frame, sim units."""
         lin, _ = pb.calculateJacobian(self._body, TIP_LINK, self._tip_offset, q, zeros, zeros,
-                                      physicsClientId=self._cid)
+                                      physicsClientId=self._client)
         return np.asarray(lin)
 
     def evaluate(self, q: np.ndarray, qd: np.ndarray, friction: bool = False) -> TaskDynamics:
@@ -125,7 +125,7 @@ class FingerDynamics:
             raise ValueError(f'q and qd must have {N_JOINTS} entries, got {q.shape} and {qd.shape}')
         if not (np.all(np.isfinite(q)) and np.all(np.isfinite(qd))):
             raise ValueError('q and qd must be finite')
-        cid, body = self._cid, self._body
+        cid, body = self._client, self._body
         ql, qdl, zeros = q.tolist(), qd.tolist(), [0.0] * N_JOINTS
         M = np.asarray(pb.calculateMassMatrix(body, ql, physicsClientId=cid))              # sim units
         g = np.asarray(pb.calculateInverseDynamics(body, ql, zeros, zeros, physicsClientId=cid))
@@ -155,24 +155,6 @@ class FingerDynamics:
             f_pos_r=(proj @ (-JOINT_STIFFNESS * q - g))[:2] / LENGTH_SCALE,
             f_vel_r=(jdot_qd - proj @ (h - g))[:2] / LENGTH_SCALE,
             G2_r=(proj @ B_MATRIX)[:2] * TORQUE_SCALE / LENGTH_SCALE)
-
-    def close(self) -> None:
-        if self._cid is not None and pb.isConnected(physicsClientId=self._cid):
-            pb.disconnect(physicsClientId=self._cid)
-        self._cid = None
-
-    def __enter__(self) -> FingerDynamics:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-    def __del__(self) -> None:  # best effort; close() is the API
-        try:
-            if getattr(self, '_cid', None) is not None:
-                self.close()
-        except Exception:  # noqa: BLE001 — interpreter shutdown
-            pass
 
 
 #: below this distance from the origin [m] (and speed [m/s]) the rank-one corrections are skipped

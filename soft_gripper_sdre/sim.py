@@ -221,7 +221,33 @@ def _rot(rpy: tuple[float, float, float]) -> np.ndarray:
     return np.array(pb.getMatrixFromQuaternion(pb.getQuaternionFromEuler(rpy))).reshape(3, 3)
 
 
-class GripperSim:
+class DirectClient:
+    """A PyBullet DIRECT client that this object owns (``_client``): :meth:`close`, or leaving a
+    ``with`` block, disconnects it."""
+
+    def __init__(self) -> None:
+        self._client = pb.connect(pb.DIRECT)
+
+    def close(self) -> None:
+        if self._client is not None and pb.isConnected(physicsClientId=self._client):
+            pb.disconnect(physicsClientId=self._client)
+        self._client = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __del__(self) -> None:  # best effort; close() is the API
+        try:
+            if getattr(self, '_client', None) is not None:
+                self.close()
+        except Exception:  # noqa: BLE001 — interpreter shutdown
+            pass
+
+
+class GripperSim(DirectClient):
     """The finger or the hand in its own PyBullet DIRECT client.
 
     Every PyBullet call names ``physicsClientId``, so several simulators can live in one process.
@@ -230,7 +256,7 @@ class GripperSim:
 
     def __init__(self, config: SimConfig | None = None) -> None:
         self.config = config or SimConfig()
-        self._client = pb.connect(pb.DIRECT)
+        super().__init__()
         self.n_fingers = 1 if self.config.scene == 'finger' else 4
         self._rng = np.random.default_rng(self.config.seed)
         self.reset()
@@ -453,22 +479,3 @@ class GripperSim:
         M, K, _, _ = self.linearize()
         w2 = np.linalg.eigvals(np.linalg.solve(M, K))
         return np.sort(np.sqrt(np.abs(w2.real))) / (2 * math.pi)
-
-    # -- lifetime ----------------------------------------------------------------------------
-    def close(self) -> None:
-        if self._client is not None and pb.isConnected(physicsClientId=self._client):
-            pb.disconnect(physicsClientId=self._client)
-        self._client = None
-
-    def __enter__(self) -> GripperSim:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-    def __del__(self) -> None:  # best effort; close() is the API
-        try:
-            if getattr(self, '_client', None) is not None:
-                self.close()
-        except Exception:  # noqa: BLE001 — interpreter shutdown
-            pass
