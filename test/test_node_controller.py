@@ -58,14 +58,16 @@ def commands(probe):
     return probe.received[TORQUE_COMMANDS]
 
 
-@pytest.mark.parametrize('law', ['sdre', 'sdre_ff'])     # the paper's law and the node's default
-def test_torques_match_the_offline_law_and_close_the_fingers(model, law):
+# the paper's law, the node's default, the baselines and Q(x): the ``law`` / ``state_weights`` parameters
+@pytest.mark.parametrize('law, weights', [('sdre', False), ('sdre_ff', False), ('lqr', False), ('pd', False),
+                                          ('sdre', True)])
+def test_torques_match_the_offline_law_and_close_the_fingers(model, law, weights):
     rest = np.repeat(model.rest_tip[None, :2], 4, 0)
-    offline = make_law(law, model, Weights(**DEFAULT_WEIGHTS), LIMIT)
+    offline = make_law(law, model, Weights(**DEFAULT_WEIGHTS), LIMIT, adaptive=weights)
     # the horizon below is constant, so the feedforward law's reference acceleration is zero
     extra = {'ref_acc': np.zeros((4, 2))} if accepts_ref_acc(offline) else {}
     with ros_context() as (ctx, executor):
-        node, probe, est_pub, ref_pub = make(ctx, executor, law=law)
+        node, probe, est_pub, ref_pub = make(ctx, executor, law=law, state_weights=weights)
         ref_msg, ref_pos = horizon(rest, 0)
         ref_pub.publish(ref_msg)
         assert spin_until(executor, lambda: node.diag.counters['references'] == 1)
