@@ -17,7 +17,8 @@ from rosutil import Probe, overrides, ros_context, spin_until
 from soft_gripper_sdre.bag import read_bag, topic_counts
 from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.params import ParameterError
-from soft_gripper_sdre.nodes.recorder import RecorderNode, cdr_stamp, topic_qos
+from soft_gripper_sdre.nodes.cdr import leading_stamp
+from soft_gripper_sdre.nodes.recorder import RecorderNode, topic_qos
 from soft_gripper_sdre.nodes.topics import (CLOCK, CUBE_CONTACTS, DIAGNOSTICS, STREAM_QOS,
                                             TIP_POSITIONS, TORQUE_COMMANDS)
 from soft_gripper_sdre.tools import echo
@@ -111,13 +112,13 @@ def test_entry_times_stay_in_sim_time(tmp_path):
     assert [t for t, _ in data['/clock']] == [now]
 
 
-def test_cdr_stamp_reads_the_leading_time_and_survives_junk():
+def test_leading_stamp_reads_the_time_of_any_stamped_message_and_survives_junk():
     from rclpy.serialization import serialize_message
-    assert cdr_stamp(serialize_message(cv.tips_to_msg(3 * cv.NS + 7, TIPS[0]))) == 3 * cv.NS + 7
-    assert cdr_stamp(serialize_message(cv.clock_msg(12))) == 12
-    assert cdr_stamp(serialize_message(cv.clock_msg(0))) == 0
-    assert cdr_stamp(b'\x00\x01') is None
-    assert cdr_stamp(b'\x00\x01\x00\x00' + bytes.fromhex('ffffffff00000000')) is None       # sec = -1
+    assert leading_stamp(serialize_message(cv.tips_to_msg(3 * cv.NS + 7, TIPS[0]))) == 3 * cv.NS + 7
+    assert leading_stamp(serialize_message(cv.clock_msg(12))) == 12
+    assert leading_stamp(serialize_message(cv.clock_msg(0))) == 0
+    assert leading_stamp(b'\x00\x01') is None
+    assert leading_stamp(b'\x00\x01\x00\x00' + bytes.fromhex('ffffffff00000000')) is None       # sec = -1
 
 
 def _run_node(args, **kwargs):

@@ -131,6 +131,16 @@ class Layout:
         return bytes(buf)
 
 
+def leading_stamp(data: bytes) -> int | None:
+    """The leading stamp [ns] of the CDR bytes of any stamped message (its header's or Clock's
+    time comes first), in either byte order; None if too short or negative (the recorder's index)."""
+    if len(data) < HEADER + _STAMP.size:
+        return None
+    sec, nanosec = struct.unpack_from('<iI' if data[1] & 1 else '>iI', data, HEADER)   # byte 1: 1 = LE
+    ns = sec * cv.NS + nanosec
+    return ns if ns >= 0 else None
+
+
 def _find_once(raw: bytes, pattern: bytes, align: int, what: str) -> int:
     """The one offset of ``pattern`` in ``raw`` that is ``align``-aligned after the header."""
     at = raw.find(pattern)

@@ -25,7 +25,6 @@ from datetime import datetime
 import functools
 import os
 from pathlib import Path
-import struct
 import time
 
 import rclpy
@@ -36,6 +35,7 @@ from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness, Q
 from rosbags.rosbag2 import StoragePlugin, Writer, WriterError
 from rosbags.typesys import Stores, get_typestore
 
+from soft_gripper_sdre.nodes import cdr
 from soft_gripper_sdre.nodes.common import ERROR, OK, Diagnostics, ThrottledLogger, run
 from soft_gripper_sdre.nodes.params import Param, ParameterError, declare_all
 from soft_gripper_sdre.nodes.topics import (CLOCK, CLOCK_QOS, LOOP_QOS, STATE_ESTIMATE, STREAM_QOS,
@@ -92,18 +92,6 @@ def _is_stamped(msg_class) -> bool:
     """Whether the message starts with a builtin_interfaces/Time (``header.stamp`` or ``clock``)."""
     first = next(iter(msg_class.get_fields_and_field_types().values()), '')
     return first in ('std_msgs/Header', 'builtin_interfaces/Time')
-
-
-def cdr_stamp(data: bytes) -> int | None:
-    """Leading stamp [ns] of a serialized stamped message; None if too short or negative.
-
-    CDR: a 4-byte encapsulation header (byte 1: 1 = little endian), then int32 sec, uint32 nanosec.
-    """
-    if len(data) < 12:
-        return None
-    sec, nanosec = struct.unpack_from('<iI' if data[1] & 1 else '>iI', data, 4)
-    ns = sec * 1_000_000_000 + nanosec
-    return ns if ns >= 0 else None
 
 
 def _output_path(value: str) -> Path:
@@ -179,7 +167,7 @@ class RecorderNode(Node):
         if self._writer is None:
             return
         try:
-            stamp = cdr_stamp(data) if stamped else None
+            stamp = cdr.leading_stamp(data) if stamped else None
             if is_clock and stamp is not None:
                 self.clock_ns = stamp
             self.counts[topic] += 1
