@@ -80,3 +80,13 @@ def test_config_file_holds_every_declared_default(node):
     module = importlib.import_module(f'soft_gripper_sdre.nodes.{node}')
     assert yaml.safe_load((ROOT / 'config' / f'{node}.yaml').read_text()) == \
         yaml.safe_load(to_yaml(node, module.PARAMS))
+
+
+def test_controller_watchdog_outlasts_the_simulators_lockstep_wait():
+    """With equal timeouts a live simulator waiting out one lost estimate (lockstep_timeout) races
+    the controller's wall-time watchdog (clock_timeout), which then stamps a zero for a period the
+    simulator is giving up on (seen in CI as a late command); the shipped defaults keep them apart."""
+    def default(node, name):
+        doc = yaml.safe_load((ROOT / 'config' / f'{node}.yaml').read_text())
+        return next(iter(doc.values()))['ros__parameters'][name]
+    assert default('controller', 'clock_timeout') >= 2 * default('simulator', 'lockstep_timeout')

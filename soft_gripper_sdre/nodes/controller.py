@@ -33,7 +33,9 @@ ambiguous: if its tick wins the race against its estimate, that one period is st
 with zero.
 
 A wall-time watchdog is the last resort for when sim time itself stops (the simulator is dead or
-hung): after ``clock_timeout`` seconds of wall time without a tick or an estimate the node
+hung): after ``clock_timeout`` seconds of wall time without a tick or an estimate (1 s by default,
+twice the simulator's ``lockstep_timeout``, so that a live simulator waiting out a lost period is
+not mistaken for a stopped one and the sim-time rule above stays in charge) the node
 reports ERROR ("sim time stopped") and publishes zero torque for the newest instant it knows, if
 that instant is still unanswered (a simulator still waiting on it takes it); no later instant can
 be stamped honestly, so nothing more is sent until time moves again.
@@ -94,9 +96,10 @@ PARAMS = (
     Param('reset_on_jump', 0.1, 'a stamp this far behind the last one (a simulator restart) resets '
           'the controller instead of being rejected (as in the estimator and trajectory node)', 's',
           1e-3, 1e6, read_only=True),
-    Param('clock_timeout', 0.5, 'wall time without /clock or an estimate after which sim time is '
-          'taken to have stopped (ERROR; zero torque for the newest unanswered instant)', 's', 1e-2,
-          600.0),
+    Param('clock_timeout', 1.0, 'wall time without /clock or an estimate after which sim time is '
+          'taken to have stopped (ERROR; zero torque for the newest unanswered instant); keep it '
+          "longer than the simulator's lockstep_timeout, or a live simulator waiting out a lost "
+          'period is taken for a stopped one', 's', 1e-2, 600.0),
 )
 
 
