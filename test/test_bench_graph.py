@@ -9,6 +9,7 @@ pytestmark = pytest.mark.ros
 @pytest.mark.parametrize('raw', [False, True], ids=['typed', 'raw'])
 def test_one_hop_is_timed_from_a_real_round_trip(raw):
     h = hop('events', 200, raw=raw)
+    assert h['rounds'] == 200                    # every round answered (resends: h['resent'])
     assert 0 < h['p50'] <= h['p99']
     assert h['cpu'] > 0                          # the echo process did receive and send
 
