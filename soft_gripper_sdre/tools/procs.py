@@ -161,8 +161,10 @@ class DiagnosticsMonitor:
         self._node.create_subscription(DiagnosticArray, DIAGNOSTICS, self._on_diag, STREAM_QOS)
         self._exec = SingleThreadedExecutor(context=self._ctx)
         self._exec.add_node(self._node)
+        self._taken = 0                 # messages taken so far (poll: until none is left)
 
     def _on_diag(self, msg) -> None:
+        self._taken += 1
         for status in msg.status:       # a status is named by its node's fully qualified name
             self.values[status.name.rsplit('/', 1)[-1]] = {kv.key: kv.value for kv in status.values}
 
@@ -173,9 +175,17 @@ class DiagnosticsMonitor:
         except ValueError:
             return default
 
-    def poll(self) -> None:
-        """Take whatever has arrived, without waiting."""
-        self._exec.spin_once(timeout_sec=0.0)
+    def poll(self, most: int = 1000) -> None:
+        """Take whatever has arrived (up to ``most`` messages), without waiting. One spin_once
+        runs one ready entity, a message or one of the executor's own guard conditions, so spin
+        until two in a row take nothing."""
+        idle = 0
+        for _ in range(most):
+            before = self._taken
+            self._exec.spin_once(timeout_sec=0.0)
+            idle = idle + 1 if self._taken == before else 0
+            if idle == 2:
+                return
 
     def spin_until(self, predicate, timeout: float) -> bool:
         """Spin until ``predicate()`` holds or ``timeout`` seconds of wall time pass."""
