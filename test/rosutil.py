@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import contextlib
+import copy
 import time
 
 import rclpy
@@ -44,6 +45,20 @@ def spin_until(executor, predicate, timeout: float = 10.0) -> bool:
             return True
         executor.spin_once(timeout_sec=0.01)
     return bool(predicate())
+
+
+def drain(executor, seconds: float = 0.1) -> None:
+    """Run every callback that becomes ready within ``seconds`` (a poll for :meth:`Graph.wait`,
+    which sleeps 0.1 s between polls; one ``spin_once`` would take one message a poll)."""
+    spin_until(executor, lambda: False, seconds)
+
+
+def deep(qos, depth: int = 10_000):
+    """``qos`` with a reader history deep enough to hold what arrives between polls (the loop
+    topics' depth 50 is 50 ms at 1 kHz)."""
+    qos = copy.copy(qos)
+    qos.depth = depth
+    return qos
 
 
 class Probe(Node):

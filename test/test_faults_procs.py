@@ -16,7 +16,7 @@ import pytest
 from sensor_msgs.msg import JointState
 
 from faults_common import on_target, record, recovery_time, tracking_error
-from rosutil import Probe, ros_context, spin_until
+from rosutil import Probe, deep, drain, ros_context, spin_until
 from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.topics import (CUBE_CONTACTS, DIAGNOSTICS, GRASP_REFERENCE, LOOP_QOS,
                                             STATE_ESTIMATE, STREAM_QOS, TIP_POSITIONS,
@@ -40,6 +40,14 @@ AFTER = 1.0             # sim time the run goes on after the victim is back
 
 def _stamp(msg) -> int:
     return cv.from_time(msg.header.stamp)
+
+
+def _last_run(msgs) -> list:
+    """The messages after the last backward jump of their stamps (a restarted simulator's run;
+    the old run's last messages can still arrive after the restart was noticed)."""
+    stamps = [_stamp(m) for m in msgs]
+    back = [i for i in range(1, len(stamps)) if stamps[i] < stamps[i - 1]]
+    return msgs[back[-1]:] if back else msgs
 
 
 def _last_diagnostics(msgs, node: str) -> dict[str, str]:
@@ -124,7 +132,7 @@ def test_crashed_node_is_restarted_and_the_grasp_recovers(victim, tmp_path):
         proc.send_signal(signal.SIGKILL)
         proc.wait(10)
         graph.start(victim, restart, name=victim)
-        code = graph.wait('simulator', 600.0, lambda: executor.spin_once(timeout_sec=0.0))
+        code = graph.wait('simulator', 600.0, lambda: drain(executor))
         running = alive()
         codes = graph.stop_all()
     assert code == 0 and all(v for n, v in running.items() if n != 'simulator'), (code, running)
@@ -236,7 +244,7 @@ def test_recording_a_10s_grasp_loses_nothing_and_signals_leave_readable_bags(tmp
             signalled[sig] = _stamp(probe.received[TIP_POSITIONS][-1])
         for proc in extra.values():
             assert proc.wait(30) == 0
-        assert graph.wait('simulator', 900.0, lambda: executor.spin_once(timeout_sec=0.0)) == 0
+        assert graph.wait('simulator', 900.0, lambda: drain(executor)) == 0
         codes = graph.stop_all()
     assert all(code == 0 for code in codes.values()), codes
     assert tips_sub is not None
@@ -283,7 +291,7 @@ def test_restarted_simulator_clock_jumps_back_and_every_node_resets(tmp_path):
         probe = Probe(ctx)
         for t, msg, qos in ((TIP_POSITIONS, PoseArray, LOOP_QOS), (TORQUE_COMMANDS, JointState, LOOP_QOS),
                             (CUBE_CONTACTS, JointState, STREAM_QOS), (DIAGNOSTICS, DiagnosticArray, STREAM_QOS)):
-            probe.listen(msg, t, qos)
+            probe.listen(msg, t, deep(qos))
         executor.add_node(probe)
         got = probe.received
         for node in ('estimator', 'trajectory', 'controller'):
@@ -297,7 +305,7 @@ def test_restarted_simulator_clock_jumps_back_and_every_node_resets(tmp_path):
         graph.procs['simulator'].popen.wait(10)
         first_run = len(got[TIP_POSITIONS])
         graph.start('simulator', {**sim_params, 'duration': 1.0})
-        assert graph.wait('simulator', 300.0, lambda: executor.spin_once(timeout_sec=0.0)) == 0
+        assert graph.wait('simulator', 300.0, lambda: drain(executor)) == 0
         alive = {n: p.alive() for n, p in graph.procs.items() if n != 'simulator'}
         codes = graph.stop_all()
         spin_until(executor, lambda: False, 1.0)
@@ -307,19 +315,22 @@ def test_restarted_simulator_clock_jumps_back_and_every_node_resets(tmp_path):
     assert all(r >= 1 for r in resets.values()), resets
     assert all(np.all(np.isfinite(cv.msg_to_torques(m, 4)[1])) for m in got[TORQUE_COMMANDS])
     # the second run: from t = 0 again, every period, tracked on target from its own rest pose
-    second = got[TIP_POSITIONS][first_run:]
-    start = next(i for i, m in enumerate(second) if _stamp(m) == 0)
-    t, tips = zip(*(cv.msg_to_tips(m, 4) for m in second[start:]))
+    t, tips = zip(*(cv.msg_to_tips(m, 4) for m in _last_run(got[TIP_POSITIONS][first_run:])))
     t = np.asarray(t)
-    assert np.all(np.diff(t) > 0) and t[-1] == 1000 * MS     # (the probe may miss a few under load)
+    assert np.all(np.diff(t) > 0) and t[-1] == 1000 * MS
+    # the probe's deep history keeps what arrives between polls; only a test process starved for
+    # longer than the publisher's 50-message history could miss some (then not the rest pose)
+    missing = sorted(set(range(0, 1001 * MS, MS)) - set(t.tolist()))
+    assert len(missing) < 20 and t[0] < SHORT['t_start'] * cv.NS, (missing[:10], len(missing))
     tips = np.asarray(tips)[..., :2]
-    contacts = got[CUBE_CONTACTS]
-    restart = max(i for i, m in enumerate(contacts) if _stamp(m) == 0)
-    forces = np.asarray([m.effort for m in contacts[restart:]])
-    k = np.minimum(t // (10 * MS), len(forces) - 1)
-    err, free, excursion = tracking_error(t / cv.NS, tips, forces[k] > 0, GraspProfile(**SHORT), tips[0])
+    contacts = _last_run(got[CUBE_CONTACTS])                  # at 100 Hz: the newest at or before t
+    c_t = np.asarray([_stamp(m) for m in contacts])
+    forces = np.asarray([m.effort for m in contacts])[np.maximum(np.searchsorted(c_t, t, 'right') - 1, 0)]
+    err, free, excursion = tracking_error(t / cv.NS, tips, forces > 0, GraspProfile(**SHORT), tips[0])
     ends, ok = on_target(t / cv.NS, err, free, excursion)
-    assert ok.all()
+    assert ok.all(), (f'off target in windows ending {ends[~ok].min():.3f} … {ends[~ok].max():.3f} s; '
+                      f'worst free-space error {1e3 * np.where(free, err, 0).max(axis=0)} mm, '
+                      f'excursion {1e3 * excursion} mm, {len(missing)} tips missing')
     record('clock_jump_back', injected='SIGKILL of the simulator at t ≈ 0.3 s and a new one from '
            't = 0 (5-process graph)', times=1, crashes=0, nonfinite_outputs=0, messages_lost=None,
            recovery_s=0.0, notes=f'resets: estimator {resets["estimator"]}, trajectory '
