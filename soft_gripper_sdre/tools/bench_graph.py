@@ -168,14 +168,17 @@ def _echo(count: int, raw: bool = False) -> int:
     seen = {'n': 0, 'cpu': [0.0, 0.0], 'last': -1}
 
     def on_ping(msg) -> None:
-        stamp = codec.decode(msg)[0] if raw else cv.from_time(msg.header.stamp)
+        if raw:
+            stamp, tips = codec.decode(msg)
+        else:
+            stamp = cv.from_time(msg.header.stamp)
         if stamp >= count:
             seen['last'] = stamp                     # goodbye: every pong has arrived
             return
         if seen['n'] == 0:
             seen['cpu'][0] = time.process_time()     # CPU from the first message on
         seen['n'] += 1
-        pub.publish(codec.encode(*codec.decode(msg)) if raw else msg)
+        pub.publish(codec.encode(stamp, tips) if raw else msg)
         if stamp == count - 1:
             seen['cpu'][1] = time.process_time()
     node.create_subscription(PoseArray, 'bench_ping', on_ping, LOOP_QOS, raw=raw)
@@ -243,9 +246,10 @@ def hop(executor: str, count: int = 2000, raw: bool = False) -> dict[str, float]
         pub.publish(msg)
 
     def on_pong(pong) -> None:
+        now = time.perf_counter()
         if cv.from_time(pong.header.stamp) != state['k']:
             return                                   # the answer to a resent ping's first copy
-        rtt[state['k']] = time.perf_counter() - state['t0']
+        rtt[state['k']] = now - state['t0']
         state['k'] += 1
         if state['k'] < count:
             ping()
