@@ -1,9 +1,19 @@
 """Learned-model SDRE task-space tracking control of a soft gripper.
 
-Core modules (no ROS imports): :mod:`units`, :mod:`sim`, :mod:`signals`, :mod:`kf`,
-:mod:`derivatives`, :mod:`model` (the only torch user), :mod:`sdre`, :mod:`trajectory`,
-:mod:`metrics`, :mod:`plots`. ROS glue lives in :mod:`soft_gripper_sdre.nodes`, command-line
-tools in :mod:`soft_gripper_sdre.tools`.
+Subpackages, bottom to top (each imports only from those below it):
+
+* :mod:`~soft_gripper_sdre.sim` — the PyBullet finger and hand, excitation signals, units, and
+  the simulated finger's exact dynamics (ground truth).
+* :mod:`~soft_gripper_sdre.learning` — derivative labels, datasets, the SDC networks and their
+  training; the only place torch is imported.
+* :mod:`~soft_gripper_sdre.control` — Riccati solvers, the SDRE supervisor, the control laws, the
+  Kalman filter, references and horizons.
+* :mod:`~soft_gripper_sdre.analysis` — the in-process closed loop, metrics, bags, plots, the oracle
+  laws and other ground-truth yardsticks.
+* :mod:`~soft_gripper_sdre.nodes` (ROS glue only) and :mod:`~soft_gripper_sdre.tools` (command
+  lines) on top.
+
+Everything below ``nodes`` and ``tools`` is free of ROS imports.
 """
 from importlib import metadata as _metadata
 

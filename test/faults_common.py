@@ -13,7 +13,7 @@ import sys
 
 import numpy as np
 
-from soft_gripper_sdre.trajectory import GraspProfile, GraspTrajectory
+from soft_gripper_sdre.control.trajectory import GraspProfile, GraspTrajectory
 
 #: the free-space tracking target: RMSE <= 5 % of each finger's peak excursion
 TARGET_PCT = 5.0

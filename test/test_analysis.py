@@ -2,10 +2,10 @@
 import numpy as np
 import pytest
 
-from soft_gripper_sdre.analysis import (angle_difference, column_angles, input_matrix_survey,
+from soft_gripper_sdre.analysis.ground_truth import (angle_difference, column_angles, input_matrix_survey,
                                         linear_finger, loop_spectral_radius)
-from soft_gripper_sdre.control import Weights
-from soft_gripper_sdre.model import PAPER_DATA_MODEL, SDCModel
+from soft_gripper_sdre.control.tracking import Weights
+from soft_gripper_sdre.learning.model import PAPER_DATA_MODEL, SDCModel
 
 REST = np.zeros((1, 2))
 
@@ -49,7 +49,7 @@ def test_frictionless_loop_grows_faster_with_position_weight():
 def test_torque_roll_off_cuts_the_spillover_growth():
     """The default 40 Hz roll-off slows the growing ~57 Hz mode of the frictionless loop by an
     order of magnitude at the default weights (what lets the loop hold under 0.2 mm noise)."""
-    from soft_gripper_sdre.control import DEFAULT_LOWPASS_HZ, DEFAULT_WEIGHTS
+    from soft_gripper_sdre.control.tracking import DEFAULT_LOWPASS_HZ, DEFAULT_WEIGHTS
     plant = linear_finger(1e-3)
     model = SDCModel()
     w = Weights(**DEFAULT_WEIGHTS)

@@ -4,7 +4,7 @@ import sys
 
 import numpy as np
 
-from soft_gripper_sdre.signals import get_signal
+from soft_gripper_sdre.sim.signals import get_signal
 
 
 def run_collect(*args, cwd=None):

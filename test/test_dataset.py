@@ -4,8 +4,8 @@ import logging
 import numpy as np
 import pytest
 
-from soft_gripper_sdre.dataset import DatasetError, load_record, load_records
-from soft_gripper_sdre.sim import SimConfig
+from soft_gripper_sdre.learning.dataset import DatasetError, load_record, load_records
+from soft_gripper_sdre.sim.hand import SimConfig
 from soft_gripper_sdre.tools.collect import collect_signal, write_record
 
 N = 300
@@ -119,7 +119,7 @@ def test_nan_samples_are_dropped_with_a_warning(tmp_path, record, caplog):
     acc = record['acc_true'].copy()
     acc[21, 0] = np.inf                      # longest finite run is now [22, 250)
     path = write(tmp_path / 'u1.npz', record, tip=tip, acc_true=acc)
-    with caplog.at_level(logging.WARNING, logger='soft_gripper_sdre.dataset'):
+    with caplog.at_level(logging.WARNING, logger='soft_gripper_sdre.learning.dataset'):
         rec = load_record(path)
     warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
     assert len(warnings) == 1, warnings
@@ -135,7 +135,7 @@ def test_nan_samples_are_dropped_with_a_warning(tmp_path, record, caplog):
 
 def test_clean_file_logs_no_warning(tmp_path, record, caplog):
     """A finite record loads silently."""
-    with caplog.at_level(logging.WARNING, logger='soft_gripper_sdre.dataset'):
+    with caplog.at_level(logging.WARNING, logger='soft_gripper_sdre.learning.dataset'):
         load_record(write(tmp_path / 'u1.npz', record))
     assert not caplog.records
 

@@ -5,7 +5,7 @@ import sys
 
 import pytest
 
-from soft_gripper_sdre.bag import read_bag, topic_counts
+from soft_gripper_sdre.analysis.bag import read_bag, topic_counts
 from soft_gripper_sdre.tools.demo import run_demo, summary
 
 pytestmark = pytest.mark.ros

@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from soft_gripper_sdre import derivatives
-from soft_gripper_sdre.sim import SimConfig
+from soft_gripper_sdre.learning import derivatives
+from soft_gripper_sdre.sim.hand import SimConfig
 from soft_gripper_sdre.tools.collect import collect_signal
 
 DT = 1e-3

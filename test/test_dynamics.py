@@ -1,9 +1,9 @@
-"""Ground-truth task-space dynamics (soft_gripper_sdre.dynamics) against the simulator."""
+"""Ground-truth task-space dynamics (soft_gripper_sdre.sim.dynamics) against the simulator."""
 import numpy as np
 import pytest
 
-from soft_gripper_sdre.dynamics import FingerDynamics, oracle_sdc
-from soft_gripper_sdre.sim import GripperSim, SimConfig
+from soft_gripper_sdre.sim.dynamics import FingerDynamics, oracle_sdc
+from soft_gripper_sdre.sim.hand import GripperSim, SimConfig
 
 
 @pytest.fixture(scope='module')

@@ -4,8 +4,8 @@ import json
 import numpy as np
 import pytest
 
-from soft_gripper_sdre.control import DEFAULT_WEIGHTS, Weights
-from soft_gripper_sdre.model import PAPER_DATA_MODEL, SDCModel
+from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
+from soft_gripper_sdre.learning.model import PAPER_DATA_MODEL, SDCModel
 from soft_gripper_sdre.tools import evaluate as ev
 
 

@@ -21,7 +21,7 @@ from soft_gripper_sdre.nodes.simulator import SimulatorNode
 from soft_gripper_sdre.nodes.topics import (CUBE_CONTACTS, LOOP_QOS, STATE_ESTIMATE, STREAM_QOS,
                                             TIP_POSITIONS, TORQUE_COMMANDS)
 from soft_gripper_sdre.nodes.trajectory import TrajectoryNode
-from soft_gripper_sdre.trajectory import GraspProfile
+from soft_gripper_sdre.control.trajectory import GraspProfile
 
 pytestmark = pytest.mark.ros
 
@@ -155,8 +155,8 @@ def test_riccati_trouble_falls_back_counted_and_the_torque_stays_finite_and_boun
     """1000 steps of 4 fingers through a test model whose states are near singular or not
     stabilisable half the time: every such solve falls back (counted), every torque is finite
     and within the limit."""
-    from soft_gripper_sdre.control import DEFAULT_WEIGHTS, TrackingController, Weights
-    from soft_gripper_sdre.sdre import Check
+    from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, TrackingController, Weights
+    from soft_gripper_sdre.control.sdre import Check
     model = TroubledModel(3)
     limit = 0.0625
     ctrl = TrackingController(model, Weights(**DEFAULT_WEIGHTS), limit, n_fingers=4, lowpass_hz=0.0)

@@ -22,7 +22,7 @@ from soft_gripper_sdre.nodes.topics import (CUBE_CONTACTS, DIAGNOSTICS, GRASP_RE
                                             STATE_ESTIMATE, STREAM_QOS, TIP_POSITIONS,
                                             TORQUE_COMMANDS)
 from soft_gripper_sdre.tools.procs import Graph, ros_env
-from soft_gripper_sdre.trajectory import GraspProfile
+from soft_gripper_sdre.control.trajectory import GraspProfile
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
@@ -94,7 +94,7 @@ def _start_simulator_once_recorded(graph, executor, probe, params: dict, subscri
 def test_crashed_node_is_restarted_and_the_grasp_recovers(victim, tmp_path):
     """The run is judged from a recorder's bag (lossless, as the recording test shows); the test's
     own probe only watches sim time to time the kill and may lag behind the graph."""
-    from soft_gripper_sdre.bag import read_bag
+    from soft_gripper_sdre.analysis.bag import read_bag
     env = ros_env()
     bag = tmp_path / 'bag'
     # While a crashed estimator restarts, the controller's safe commands keep the lockstep loop
@@ -208,7 +208,7 @@ def test_recording_a_10s_grasp_loses_nothing_and_signals_leave_readable_bags(tmp
     """Three recorders on the 5-process graph over a 10 s grasp at 1 ms: one to the end (every
     message the nodes counted as published is in its bag), one stopped by SIGINT and one by SIGTERM
     mid-run (each bag opens and holds every loop message up to the signal, without a gap)."""
-    from soft_gripper_sdre.bag import read_bag, topic_counts
+    from soft_gripper_sdre.analysis.bag import read_bag, topic_counts
     duration = 10.0
     env = ros_env()
     logs = tmp_path / 'logs'

@@ -14,7 +14,7 @@ from trajectory_msgs.msg import MultiDOFJointTrajectory, MultiDOFJointTrajectory
 
 from faults_common import record
 from rosutil import Probe, overrides, ros_context, spin_until
-from soft_gripper_sdre.model import SDCModel
+from soft_gripper_sdre.learning.model import SDCModel
 from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.simulator import SimulatorNode
 from soft_gripper_sdre.nodes.topics import (GRASP_REFERENCE, LOOP_QOS, STATE_ESTIMATE, TIP_POSITIONS,

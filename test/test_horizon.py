@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from soft_gripper_sdre.horizon import sample_horizon
-from soft_gripper_sdre.trajectory import GraspProfile, GraspTrajectory
+from soft_gripper_sdre.control.horizon import sample_horizon
+from soft_gripper_sdre.control.trajectory import GraspProfile, GraspTrajectory
 
 NS = 1_000_000_000
 REST = np.array([[0.0, -0.002], [0.001, -0.002], [0.0, -0.002], [0.0, 0.0]])

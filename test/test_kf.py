@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 from scipy.linalg import expm
 
-from soft_gripper_sdre.kf import ConstantVelocityKF, cv_matrices
+from soft_gripper_sdre.control.kf import ConstantVelocityKF, cv_matrices
 
 A = np.block([[np.zeros((2, 2)), np.eye(2)], [np.zeros((2, 2)), np.zeros((2, 2))]])
 

@@ -1,13 +1,13 @@
-"""The baseline laws (soft_gripper_sdre.laws) against closed forms."""
+"""The baseline laws (soft_gripper_sdre.control.laws) against closed forms."""
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
-from soft_gripper_sdre.control import TrackingController, Weights
-from soft_gripper_sdre.laws import (AdaptiveSdreLaw, LqrLaw, OracleFeedforwardLaw, OracleSdreLaw, PdLaw,
+from soft_gripper_sdre.control.tracking import TrackingController, Weights
+from soft_gripper_sdre.control.laws import (AdaptiveSdreLaw, LqrLaw, OracleFeedforwardLaw, OracleSdreLaw, PdLaw,
                                     SdreFeedforwardLaw, accepts_ref_acc, make_law)
-from soft_gripper_sdre.sdre import sdre_gains
+from soft_gripper_sdre.control.sdre import sdre_gains
 
 REST = np.array([0.01, -0.02, 0.3])
 

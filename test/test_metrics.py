@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from soft_gripper_sdre.metrics import r2_score, tracking_metrics
+from soft_gripper_sdre.analysis.metrics import r2_score, tracking_metrics
 
 
 def test_tracking_metrics_known_values():

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 import torch
 
-from soft_gripper_sdre.model import (DEFAULT_MODEL, FORMAT_VERSION, PRESETS, ModelFileError, SDCModel,
+from soft_gripper_sdre.learning.model import (DEFAULT_MODEL, FORMAT_VERSION, PRESETS, ModelFileError, SDCModel,
                                      SDCNet, TrainResult, fingerprint, read_checkpoint, save_checkpoint,
                                      train)
-from soft_gripper_sdre.sim import SimConfig
+from soft_gripper_sdre.sim.hand import SimConfig
 from soft_gripper_sdre.tools.collect import collect_signal
 
 TRAIN_SIGNALS = ('u1', 'u2', 'x1', 'x2')

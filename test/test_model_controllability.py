@@ -4,7 +4,7 @@ from dataclasses import replace
 import numpy as np
 import torch
 
-from soft_gripper_sdre.model import PRESETS, train
+from soft_gripper_sdre.learning.model import PRESETS, train
 
 
 def _data(n, seed):

@@ -8,9 +8,9 @@ from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import MultiDOFJointTrajectory
 
 from rosutil import Probe, overrides, ros_context, spin_until
-from soft_gripper_sdre.control import DEFAULT_WEIGHTS, Weights
-from soft_gripper_sdre.laws import accepts_ref_acc, make_law
-from soft_gripper_sdre.model import SDCModel
+from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
+from soft_gripper_sdre.control.laws import accepts_ref_acc, make_law
+from soft_gripper_sdre.learning.model import SDCModel
 from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.controller import ControllerNode
 from soft_gripper_sdre.nodes.topics import (GRASP_REFERENCE, LOOP_QOS, REFERENCE_QOS, STATE_ESTIMATE,
@@ -242,7 +242,7 @@ def test_bad_model_or_parameters_end_the_node_at_startup(args, needle, tmp_path)
 
 
 def test_truncated_model_file_is_refused(tmp_path):
-    from soft_gripper_sdre.model import DEFAULT_MODEL
+    from soft_gripper_sdre.learning.model import DEFAULT_MODEL
     bad = tmp_path / 'half.pt'
     bad.write_bytes(DEFAULT_MODEL.read_bytes()[:2000])
     proc = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.nodes.controller', '--ros-args',

@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 from rosutil import ros_context, spin_until
-from soft_gripper_sdre.control import DEFAULT_WEIGHTS, Weights
-from soft_gripper_sdre.laws import make_law
-from soft_gripper_sdre.model import SDCModel
+from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
+from soft_gripper_sdre.control.laws import make_law
+from soft_gripper_sdre.learning.model import SDCModel
 from soft_gripper_sdre.nodes import conversions as cv
 from test_node_controller import LIMIT, MS, commands, estimate, make
 
@@ -34,7 +34,7 @@ def test_oracle_or_weights_on_a_baseline_end_the_node_at_startup(args, needle):
 def test_feedforward_law_gets_the_reference_acceleration_from_the_horizon():
     """law:=sdre_ff: the node samples p̈_d from the published horizon (constant acceleration here)
     and its torques match the offline law given that acceleration, not the law without it."""
-    from soft_gripper_sdre.horizon import sample_horizon
+    from soft_gripper_sdre.control.horizon import sample_horizon
     model = SDCModel()
     rest = np.repeat(model.rest_tip[None, :2], 4, 0)
     w = Weights(**DEFAULT_WEIGHTS)

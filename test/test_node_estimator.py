@@ -9,7 +9,7 @@ from trajectory_msgs.msg import MultiDOFJointTrajectory
 import yaml
 
 from rosutil import Probe, overrides, ros_context, spin_until
-from soft_gripper_sdre.kf import ConstantVelocityKF
+from soft_gripper_sdre.control.kf import ConstantVelocityKF
 from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.estimator import PARAMS, EstimatorNode
 from soft_gripper_sdre.nodes.params import ParameterError

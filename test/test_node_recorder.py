@@ -14,7 +14,7 @@ from sensor_msgs.msg import JointState
 import yaml
 
 from rosutil import Probe, overrides, ros_context, spin_until
-from soft_gripper_sdre.bag import read_bag, topic_counts
+from soft_gripper_sdre.analysis.bag import read_bag, topic_counts
 from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.params import ParameterError
 from soft_gripper_sdre.nodes.cdr import leading_stamp

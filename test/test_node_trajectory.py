@@ -8,12 +8,12 @@ from trajectory_msgs.msg import MultiDOFJointTrajectory
 import yaml
 
 from rosutil import Probe, overrides, ros_context, spin_until
-from soft_gripper_sdre.horizon import sample_horizon
+from soft_gripper_sdre.control.horizon import sample_horizon
 from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.params import ParameterError
 from soft_gripper_sdre.nodes.topics import GRASP_REFERENCE, LOOP_QOS, REFERENCE_QOS, TIP_POSITIONS
 from soft_gripper_sdre.nodes.trajectory import PARAMS, TrajectoryNode
-from soft_gripper_sdre.trajectory import GraspProfile, GraspTrajectory
+from soft_gripper_sdre.control.trajectory import GraspProfile, GraspTrajectory
 
 pytestmark = pytest.mark.ros
 

@@ -12,28 +12,74 @@ import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
 PKG = ROOT / 'soft_gripper_sdre'
-CORE_MODULES = sorted(p for p in PKG.glob('*.py') if p.name != '__init__.py')
+#: subpackages bottom to top: a module may import from its own layer and the layers before it
+LAYERS = (('sim', 'learning'), ('control',), ('analysis',), ('nodes', 'tools'))
+CORE_LAYERS = ('sim', 'learning', 'control', 'analysis')
+CORE_MODULES = sorted(p for layer in CORE_LAYERS for p in (PKG / layer).glob('*.py'))
+ALL_MODULES = sorted(PKG.rglob('*.py'))
 ROS_PREFIXES = ('rclpy', 'rosidl', 'rosgraph_msgs', 'builtin_interfaces')
 NODES = ('simulator', 'estimator', 'controller', 'trajectory', 'recorder')
 
 
-def _imports(path: Path) -> set[str]:
+def _imported_modules(path: Path) -> list[tuple[str, tuple[str, ...]]]:
+    """(module, names) of every absolute import in the file; names are empty for ``import m``."""
     tree = ast.parse(path.read_text(encoding='utf-8'))
-    names = set()
+    out = []
     for node in ast.walk(tree):
         if isinstance(node, ast.Import):
-            names.update(a.name.split('.')[0] for a in node.names)
+            out.extend((a.name, ()) for a in node.names)
         elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-            names.add(node.module.split('.')[0])
-    return names
+            out.append((node.module, tuple(a.name for a in node.names)))
+    return out
 
 
-@pytest.mark.parametrize('path', CORE_MODULES, ids=lambda p: p.name)
+def _imports(path: Path) -> set[str]:
+    return {module.split('.')[0] for module, _ in _imported_modules(path)}
+
+
+def _rel(path: Path) -> str:
+    return path.relative_to(PKG).as_posix()
+
+
+def _layer(subpackage: str) -> int | None:
+    return next((i for i, names in enumerate(LAYERS) if subpackage in names), None)
+
+
+@pytest.mark.parametrize('path', CORE_MODULES, ids=_rel)
 def test_core_module_imports_no_ros(path):
     bad = {n for n in _imports(path) if n.startswith(ROS_PREFIXES) or n.endswith('_msgs')}
-    assert not bad, f'{path.name} is a core module but imports {sorted(bad)}'
-    if path.name != 'model.py':
-        assert 'torch' not in _imports(path), f'{path.name}: torch belongs to model.py alone'
+    assert not bad, f'{_rel(path)} is a core module but imports {sorted(bad)}'
+
+
+@pytest.mark.parametrize('path', ALL_MODULES, ids=_rel)
+def test_torch_is_imported_by_the_learning_package_alone(path):
+    if _rel(path).startswith('learning/'):
+        return
+    assert 'torch' not in _imports(path), f'{_rel(path)}: torch belongs to soft_gripper_sdre.learning'
+
+
+@pytest.mark.parametrize('path', ALL_MODULES, ids=_rel)
+def test_imports_run_down_the_layers(path):
+    """sim and learning at the bottom, then control, analysis, and nodes and tools on top."""
+    parts = path.relative_to(PKG).parts
+    own = _layer(parts[0]) if len(parts) > 1 else -1          # the package's __init__: below all
+    for module, names in _imported_modules(path):
+        if not module.startswith(f'{PKG.name}.'):
+            continue
+        target = module.split('.')[1]
+        layer = _layer(target)
+        if layer is None:                                     # the top-level package itself
+            continue
+        assert own is not None and own >= 0 and layer <= own, (
+            f'{_rel(path)} imports {module}: {target} is above {parts[0]} in {LAYERS}')
+
+
+@pytest.mark.parametrize('path', ALL_MODULES, ids=_rel)
+def test_no_module_imports_another_modules_private_names(path):
+    for module, names in _imported_modules(path):
+        if module.startswith(PKG.name):
+            private = [n for n in names if n.startswith('_') and not n.startswith('__')]
+            assert not private, f'{_rel(path)} imports private {private} from {module}'
 
 
 def test_one_version_string():

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from soft_gripper_sdre.sdre import Check, SdreController, care, paper_weights_si, sdre_gains
+from soft_gripper_sdre.control.sdre import Check, SdreController, care, paper_weights_si, sdre_gains
 
 A_DI = np.array([[0, 0, 1, 0], [0, 0, 0, 1], [0, 0, 0, 0], [0, 0, 0, 0]], dtype=float)
 G_DI = np.vstack([np.zeros((2, 2)), np.eye(2)])
@@ -115,8 +115,8 @@ def test_bad_weights(Q, R, u_max, match):
 
 def test_tracking_controller_roll_off_is_a_first_order_filter():
     """With the roll-off, a constant law output is approached as 1 − aᵏ (a = e^{−2π f Δt})."""
-    from soft_gripper_sdre.control import DEFAULT_WEIGHTS, TrackingController, Weights
-    from soft_gripper_sdre.model import SDCModel
+    from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, TrackingController, Weights
+    from soft_gripper_sdre.learning.model import SDCModel
     model = SDCModel()
     rest = np.repeat(model.rest_tip[None, :2], 4, 0)
     ref = rest + [0.0, 0.002]

@@ -16,9 +16,9 @@ import time
 import numpy as np
 import pytest
 
-from soft_gripper_sdre.control import DEFAULT_WEIGHTS, TrackingController, Weights
-from soft_gripper_sdre.model import SDCModel
-from soft_gripper_sdre.sdre import (_FULL, _L0, _LOW, _T8, _UPPER, Check, SdreController, _cond2_below,
+from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, TrackingController, Weights
+from soft_gripper_sdre.learning.model import SDCModel
+from soft_gripper_sdre.control.sdre import (_FULL, _L0, _LOW, _T8, _UPPER, Check, SdreController, _cond2_below,
                                     _public_stack_cholesky, _public_stack_solve, _stack_cholesky,
                                     _stack_solve, care)
 

@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from soft_gripper_sdre.signals import SIGNALS, get_signal, signal_names
-from soft_gripper_sdre.units import TORQUE_SCALE
+from soft_gripper_sdre.sim.signals import SIGNALS, get_signal, signal_names
+from soft_gripper_sdre.sim.units import TORQUE_SCALE
 
 T = np.array([0.0, 0.25, 0.5, 1.3, 7.77])
 

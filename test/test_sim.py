@@ -3,8 +3,9 @@ import numpy as np
 import pybullet as pb
 import pytest
 
-from soft_gripper_sdre.sim import GRAVITY, JOINT_AXIS, JOINT_STIFFNESS, GripperSim, SimConfig
-from soft_gripper_sdre.units import LENGTH_SCALE, TORQUE_SCALE
+from soft_gripper_sdre.sim.finger import GRAVITY, JOINT_AXIS, JOINT_STIFFNESS
+from soft_gripper_sdre.sim.hand import GripperSim, SimConfig
+from soft_gripper_sdre.sim.units import LENGTH_SCALE, TORQUE_SCALE
 
 UPRIGHT = SimConfig(scene='finger', mount_roll_deg=0.0)
 

@@ -8,8 +8,8 @@ import sys
 import numpy as np
 import pytest
 
-from soft_gripper_sdre.model import SDCModel
-from soft_gripper_sdre.sim import SimConfig
+from soft_gripper_sdre.learning.model import SDCModel
+from soft_gripper_sdre.sim.hand import SimConfig
 from soft_gripper_sdre.tools.collect import collect_signal, write_record
 from soft_gripper_sdre.tools.train import DATA_VARIANTS, VALIDATION
 

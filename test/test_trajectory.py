@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from soft_gripper_sdre.trajectory import GraspProfile, GraspTrajectory
+from soft_gripper_sdre.control.trajectory import GraspProfile, GraspTrajectory
 
 REST = np.array([[0.0, -0.002, 0.109], [0.001, -0.002, 0.109], [0.0, -0.002, 0.109], [0.0, 0.0, 0.1]])
 

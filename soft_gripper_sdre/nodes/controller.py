@@ -1,6 +1,6 @@
 """The controller node: tracking of all four fingers with the learned SDC model.
 
-The control law is the ``law`` parameter (:mod:`soft_gripper_sdre.laws`): ``sdre_ff`` (default:
+The control law is the ``law`` parameter (:mod:`soft_gripper_sdre.control.laws`): ``sdre_ff`` (default:
 SDRE feedback plus model-inversion feedforward), ``sdre`` (the paper's law), ``lqr`` or ``pd``.
 
 Subscribes ``state_estimate`` (one message per control period), ``grasp_reference`` (a short
@@ -54,16 +54,16 @@ import torch
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import MultiDOFJointTrajectory
 
-from soft_gripper_sdre.control import DEFAULT_LOWPASS_HZ, DEFAULT_WEIGHTS, Weights
-from soft_gripper_sdre.horizon import sample_horizon
-from soft_gripper_sdre.laws import DEFAULT_LAW, GRAPH_LAWS, accepts_ref_acc, make_law
-from soft_gripper_sdre.model import ModelFileError, SDCModel
+from soft_gripper_sdre.control.tracking import DEFAULT_LOWPASS_HZ, DEFAULT_WEIGHTS, Weights
+from soft_gripper_sdre.control.horizon import sample_horizon
+from soft_gripper_sdre.control.laws import DEFAULT_LAW, GRAPH_LAWS, accepts_ref_acc, make_law
+from soft_gripper_sdre.learning.model import ModelFileError, SDCModel
 from soft_gripper_sdre.nodes import cdr, conversions as cv
 from soft_gripper_sdre.nodes.common import ERROR, OK, Diagnostics, ThrottledLogger, run
 from soft_gripper_sdre.nodes.params import Param, ParameterError, declare_all, on_runtime_change
 from soft_gripper_sdre.nodes.topics import (CLOCK, CLOCK_QOS, GRASP_REFERENCE, LOOP_QOS, REFERENCE_QOS,
                                             STATE_ESTIMATE, TORQUE_COMMANDS)
-from soft_gripper_sdre.sdre import Check
+from soft_gripper_sdre.control.sdre import Check
 
 PARAMS = (
     Param('model_path', '', 'SDC model checkpoint (.pt); empty = the model shipped with the package',
@@ -84,7 +84,7 @@ PARAMS = (
           1e-4, 0.05, read_only=True),
     Param('solver', 'fast', 'Riccati solver: warm-started Newton–Kleinman or scipy reference',
           choices=('fast', 'reference'), read_only=True),
-    Param('law', DEFAULT_LAW, 'control law (soft_gripper_sdre.laws): learned SDRE, LQR frozen at the '
+    Param('law', DEFAULT_LAW, 'control law (soft_gripper_sdre.control.laws): learned SDRE, LQR frozen at the '
           'origin, task-space PD; the oracle needs the plant\'s joint state and runs in-process only '
           '(tools/evaluate.py); sdre_ff: SDRE + model-inversion feedforward (README "Beyond the paper")',
           choices=GRAPH_LAWS, read_only=True),

@@ -2,9 +2,9 @@
 
 Subscribes ``tip_positions``; publishes one ``state_estimate`` per accepted measurement, stamped
 with the measurement's stamp, and ``/diagnostics``. The rules are those of
-:func:`soft_gripper_sdre.closed_loop.run_closed_loop`: the first measurement (after start or a
+:func:`soft_gripper_sdre.analysis.closed_loop.run_closed_loop`: the first measurement (after start or a
 reset) initialises the filter at the measured positions with zero velocity and is published as
-is; every later one is one predict + update of :class:`~soft_gripper_sdre.kf.ConstantVelocityKF`
+is; every later one is one predict + update of :class:`~soft_gripper_sdre.control.kf.ConstantVelocityKF`
 with Δt = ``control_period``.
 
 Stamps are checked against that period. A step of m > 1 periods (lost measurements) predicts
@@ -26,7 +26,7 @@ import numpy as np
 from rclpy.node import Node
 from trajectory_msgs.msg import MultiDOFJointTrajectory
 
-from soft_gripper_sdre.kf import PROCESS_NOISE_MODELS, ConstantVelocityKF
+from soft_gripper_sdre.control.kf import PROCESS_NOISE_MODELS, ConstantVelocityKF
 from soft_gripper_sdre.nodes import cdr, conversions as cv
 from soft_gripper_sdre.nodes.common import Diagnostics, run
 from soft_gripper_sdre.nodes.params import Param, ParameterError, declare_all, on_runtime_change

@@ -34,7 +34,7 @@ from soft_gripper_sdre.nodes.common import OK, WARN, Diagnostics, LatencyWindow,
 from soft_gripper_sdre.nodes.params import Param, ParameterError, declare_all, on_runtime_change
 from soft_gripper_sdre.nodes.topics import (CLOCK, CLOCK_QOS, CUBE_CONTACTS, CUBE_POSE, JOINT_STATES,
                                             LOOP_QOS, STREAM_QOS, TIP_POSITIONS, TORQUE_COMMANDS)
-from soft_gripper_sdre.sim import GripperSim, SimConfig
+from soft_gripper_sdre.sim.hand import GripperSim, SimConfig
 
 #: periods back a command may answer and still count in the loop latency (realtime: late answers)
 LATENCY_PERIODS = 64

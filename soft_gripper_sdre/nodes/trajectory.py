@@ -1,8 +1,8 @@
 """The trajectory node: publishes the grasp reference as short horizons, driven by sim time.
 
 Subscribes ``tip_positions``; publishes ``grasp_reference`` and ``/diagnostics``. The first tip
-message is the rest pose of :class:`~soft_gripper_sdre.trajectory.GraspTrajectory` (as in
-:func:`soft_gripper_sdre.closed_loop.run_closed_loop`), and a horizon is published at once; after
+message is the rest pose of :class:`~soft_gripper_sdre.control.trajectory.GraspTrajectory` (as in
+:func:`soft_gripper_sdre.analysis.closed_loop.run_closed_loop`), and a horizon is published at once; after
 that one is published on each tip message whose stamp has reached the next multiple of
 ``publish_period``. Publication is event-driven on tip stamps, never on wall timers, so a
 lockstep run is deterministic.
@@ -11,7 +11,7 @@ A horizon published for stamp t holds the points at the ABSOLUTE times k·``hori
 floor(t / step)·step up to the first grid time ≥ t + ``horizon``: header stamp = the first of
 them, ``time_from_start`` = each point's offset from it, positions / velocities / accelerations
 from ``GraspTrajectory.sample``. Two horizons therefore hold identical points wherever they
-overlap, and the controller's sample (:func:`soft_gripper_sdre.horizon.sample_horizon`) does not
+overlap, and the controller's sample (:func:`soft_gripper_sdre.control.horizon.sample_horizon`) does not
 depend on which one it uses.
 
 Malformed tip messages (wrong number of poses, NaN/Inf) and stamps not newer than the last are
@@ -36,7 +36,7 @@ from soft_gripper_sdre.nodes import cdr, conversions as cv
 from soft_gripper_sdre.nodes.common import Diagnostics, run
 from soft_gripper_sdre.nodes.params import Param, ParameterError, declare_all, on_runtime_change
 from soft_gripper_sdre.nodes.topics import GRASP_REFERENCE, LOOP_QOS, REFERENCE_QOS, TIP_POSITIONS
-from soft_gripper_sdre.trajectory import OTHERS_MODES, GraspProfile, GraspTrajectory
+from soft_gripper_sdre.control.trajectory import OTHERS_MODES, GraspProfile, GraspTrajectory
 
 _D = GraspProfile()
 PROFILE_FIELDS = tuple(f.name for f in fields(GraspProfile))

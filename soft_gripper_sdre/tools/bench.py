@@ -39,7 +39,7 @@ def _median_time(fn, repeats: int, inner: int) -> float:
 
 def bench_sim(scene: str, seconds: float, repeats: int) -> float:
     """Median wall time of one control period of the simulator alone (step + measure), u = 0 [s]."""
-    from soft_gripper_sdre.sim import GripperSim, SimConfig
+    from soft_gripper_sdre.sim.hand import GripperSim, SimConfig
     with GripperSim(SimConfig(scene=scene)) as sim:
         u = np.zeros((sim.n_fingers, 2))
         steps = int(seconds / sim.config.control_period / repeats)
@@ -52,11 +52,11 @@ def bench_sim(scene: str, seconds: float, repeats: int) -> float:
 
 def closed_loop(seconds: float, noise_std: float):
     """The grasp closed in-process on the default settings (hand, KF, fast SDRE, roll-off)."""
-    from soft_gripper_sdre.closed_loop import run_closed_loop
-    from soft_gripper_sdre.control import DEFAULT_WEIGHTS, Weights
-    from soft_gripper_sdre.model import SDCModel
-    from soft_gripper_sdre.sim import SimConfig
-    from soft_gripper_sdre.trajectory import GraspProfile
+    from soft_gripper_sdre.analysis.closed_loop import run_closed_loop
+    from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
+    from soft_gripper_sdre.learning.model import SDCModel
+    from soft_gripper_sdre.sim.hand import SimConfig
+    from soft_gripper_sdre.control.trajectory import GraspProfile
     return run_closed_loop(SDCModel(), duration=seconds, weights=Weights(**DEFAULT_WEIGHTS),
                            u_max=0.0625, profile=GraspProfile(others='open'),
                            sim_config=SimConfig(scene='hand', noise_std=noise_std))
@@ -71,10 +71,10 @@ def bench_control(loop, repeats: int, ref_steps: int) -> dict[str, float]:
     wall times [s] (the first, cold step left out), the fast path's mean Newton–Kleinman iterations
     per step and its share of exact solves.
     """
-    from soft_gripper_sdre.control import DEFAULT_WEIGHTS, TrackingController, Weights
-    from soft_gripper_sdre.kf import ConstantVelocityKF
-    from soft_gripper_sdre.model import SDCModel
-    from soft_gripper_sdre.sdre import SdreController, care
+    from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, TrackingController, Weights
+    from soft_gripper_sdre.control.kf import ConstantVelocityKF
+    from soft_gripper_sdre.learning.model import SDCModel
+    from soft_gripper_sdre.control.sdre import SdreController, care
     model = SDCModel()
     w = Weights(**DEFAULT_WEIGHTS)
     est, ref_pos, ref_vel = loop.est, loop.ref_pos, loop.ref_vel
@@ -138,9 +138,9 @@ def bench_idle(loop, law: str = 'sdre_ff') -> dict[str, float]:
     Three instances of the law step through the same states, one after the other at each step, so
     all see the same warm starts and the same load.
     """
-    from soft_gripper_sdre.control import DEFAULT_WEIGHTS, Weights
-    from soft_gripper_sdre.laws import make_law
-    from soft_gripper_sdre.model import SDCModel
+    from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
+    from soft_gripper_sdre.control.laws import make_law
+    from soft_gripper_sdre.learning.model import SDCModel
     model, w = SDCModel(), Weights(**DEFAULT_WEIGHTS)
     laws = {k: make_law(law, model, w, 0.0625, n_fingers=4) for k in ('idle', 'flushed', 'busy')}
     before = {'idle': lambda: time.sleep(1e-3), 'flushed': np.ones(8_000_000).sum, 'busy': lambda: None}

@@ -140,7 +140,7 @@ def recorder_loss(seconds: float, executor: str | None = None) -> dict[str, tupl
 
     The published counts are the nodes' own (:func:`published`).
     """
-    from soft_gripper_sdre.bag import topic_counts
+    from soft_gripper_sdre.analysis.bag import topic_counts
     with tempfile.TemporaryDirectory(prefix='sgs_bench_bag_') as tmp:
         bag = Path(tmp) / 'bag'
         d = run_graph(seconds, mode='realtime', record=bag, all_at_1khz=True, executor=executor)

@@ -22,8 +22,8 @@ import sys
 import numpy as np
 from tqdm import tqdm
 
-from soft_gripper_sdre.signals import DURATION, PAPER_SIGNALS, IDENTIFYING_SIGNALS, SIGNALS, get_signal
-from soft_gripper_sdre.sim import GripperSim, SimConfig
+from soft_gripper_sdre.sim.signals import DURATION, PAPER_SIGNALS, IDENTIFYING_SIGNALS, SIGNALS, get_signal
+from soft_gripper_sdre.sim.hand import GripperSim, SimConfig
 
 FORMAT_VERSION = 1
 DEFAULT_SIGNALS = PAPER_SIGNALS + IDENTIFYING_SIGNALS

@@ -21,7 +21,7 @@ import shutil
 import sys
 import time
 
-from soft_gripper_sdre.laws import GRAPH_LAWS
+from soft_gripper_sdre.control.laws import GRAPH_LAWS
 from soft_gripper_sdre.tools.procs import WIRED_BEFORE_START, DiagnosticsMonitor, Graph, ros_env
 
 #: start order: listeners first, the simulator (which waits for them) last; they stop in reverse,
@@ -141,7 +141,7 @@ def _controller_limit() -> float:
 
 def last_diagnostics(bag: Path, node: str) -> dict[str, str]:
     """Key/values of ``node``'s last /diagnostics status in the bag ({} if none)."""
-    from soft_gripper_sdre.bag import read_bag
+    from soft_gripper_sdre.analysis.bag import read_bag
     last = None
     for _, msg in read_bag(bag, ['/diagnostics'])['/diagnostics']:
         for status in msg.status:

@@ -4,7 +4,7 @@ model scored against the simulator's ground truth. Writes ``report.md``, ``evalu
     python -m soft_gripper_sdre.tools.evaluate --out runs/evaluate          # (make evaluate)
     python -m soft_gripper_sdre.tools.evaluate --out DIR --laws sdre lqr --trajectories fast --quick
 
-It uses the in-process loop (:func:`soft_gripper_sdre.closed_loop.run_closed_loop`: the node
+It uses the in-process loop (:func:`soft_gripper_sdre.analysis.closed_loop.run_closed_loop`: the node
 graph's loop with the topics replaced by calls, lockstep, seeded noise), because the oracle needs
 the plant's joint state at every step. The numbers:
 
@@ -26,12 +26,12 @@ import time
 
 import numpy as np
 
-from soft_gripper_sdre.closed_loop import run_closed_loop
-from soft_gripper_sdre.control import DEFAULT_WEIGHTS, Weights
-from soft_gripper_sdre.laws import DEFAULT_PD, accepts_ref_acc, make_law
-from soft_gripper_sdre.model import PAPER_DATA_MODEL, ModelFileError, SDCModel
-from soft_gripper_sdre.sim import SimConfig
-from soft_gripper_sdre.trajectory import GraspProfile
+from soft_gripper_sdre.analysis.closed_loop import run_closed_loop
+from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
+from soft_gripper_sdre.control.laws import DEFAULT_PD, accepts_ref_acc, make_law
+from soft_gripper_sdre.learning.model import PAPER_DATA_MODEL, ModelFileError, SDCModel
+from soft_gripper_sdre.sim.hand import SimConfig
+from soft_gripper_sdre.control.trajectory import GraspProfile
 
 #: (label, law name, make_law options)
 LAW_SPECS = {
@@ -160,10 +160,10 @@ def score_model(model: SDCModel, signal: str = 'u4', seconds: float = 4.0, every
     ``every``-th step: the learned ẍ = A(x)x + G(x)u with the exact, the projected and the
     simulator's measured tip acceleration; the learned G2 with J M⁻¹ B and with its projection;
     the learned drift A(x)x with the true f. Returns the samples and summary statistics."""
-    from soft_gripper_sdre.analysis import angle_difference, column_angles
-    from soft_gripper_sdre.dynamics import FingerDynamics, oracle_sdc
-    from soft_gripper_sdre.signals import get_signal
-    from soft_gripper_sdre.sim import GripperSim
+    from soft_gripper_sdre.analysis.ground_truth import angle_difference, column_angles
+    from soft_gripper_sdre.sim.dynamics import FingerDynamics, oracle_sdc
+    from soft_gripper_sdre.sim.signals import get_signal
+    from soft_gripper_sdre.sim.hand import GripperSim
     rows = {k: [] for k in ('t', 'x', 'u', 'acc_sim', 'acc_exact', 'acc_proj', 'acc_learned',
                             'G2_exact', 'G2_proj', 'G2_learned', 'f_exact', 'f_proj', 'f_learned',
                             'A_learned', 'A_oracle')}
@@ -231,7 +231,7 @@ def workspace_check_failures(model: SDCModel, weights: Weights, n: int = 9, spee
 def workspace_survey(model: SDCModel, weights: Weights, n: int = 9, speeds=(0.0, 0.1)) -> dict:
     """On the grid of :func:`workspace_check_failures`: the check-failure share [%], and G2's
     smallest singular value [m/s² per N·m] and largest condition number."""
-    from soft_gripper_sdre.sdre import SdreController
+    from soft_gripper_sdre.control.sdre import SdreController
     xs = np.linspace(-0.010, 0.010, n)
     ys = np.linspace(-0.035, 0.045, n)
     states = []

@@ -28,9 +28,9 @@ import sys
 import numpy as np
 
 from soft_gripper_sdre import FINGER_NAMES
-from soft_gripper_sdre.bag import BagError, Run, extract_run
-from soft_gripper_sdre.metrics import tracking_metrics
-from soft_gripper_sdre.plots import plot_positions, plot_torques, plot_velocities
+from soft_gripper_sdre.analysis.bag import BagError, Run, extract_run
+from soft_gripper_sdre.analysis.metrics import tracking_metrics
+from soft_gripper_sdre.analysis.plots import plot_positions, plot_torques, plot_velocities
 
 FIGURES = ('fig5_positions.png', 'fig6_velocities.png', 'fig7_torques.png')
 METRICS = 'metrics.json'

@@ -6,7 +6,7 @@ For each position weight q_pos and noise Ïƒ it runs the grasp in-process (sim â†
 node graph's loop without the topics; R and q_vel at their defaults) and scores the free-space
 RMSE of the *true* tip, as % of each finger's excursion (the worst finger is reported). Beside it,
 the spectral radius of the same 1 ms loop closed around the full linearised 10-joint finger with
-friction off. Each point is run without and with the torque roll-off (:func:`soft_gripper_sdre.analysis.loop_spectral_radius`). Writes ``sweep.json``,
+friction off. Each point is run without and with the torque roll-off (:func:`soft_gripper_sdre.analysis.ground_truth.loop_spectral_radius`). Writes ``sweep.json``,
 ``sweep.png`` and prints a Markdown table.
 """
 from __future__ import annotations
@@ -37,13 +37,13 @@ def main(argv: list[str] | None = None) -> int:
     import torch
     from tqdm import tqdm
 
-    from soft_gripper_sdre.analysis import linear_finger, loop_spectral_radius
-    from soft_gripper_sdre.closed_loop import EstimatorSettings, run_closed_loop
-    from soft_gripper_sdre.control import DEFAULT_LOWPASS_HZ, DEFAULT_WEIGHTS, Weights
-    from soft_gripper_sdre.model import SDCModel
-    from soft_gripper_sdre.plots import plot_sweep
-    from soft_gripper_sdre.sim import SimConfig
-    from soft_gripper_sdre.trajectory import GraspProfile
+    from soft_gripper_sdre.analysis.ground_truth import linear_finger, loop_spectral_radius
+    from soft_gripper_sdre.analysis.closed_loop import EstimatorSettings, run_closed_loop
+    from soft_gripper_sdre.control.tracking import DEFAULT_LOWPASS_HZ, DEFAULT_WEIGHTS, Weights
+    from soft_gripper_sdre.learning.model import SDCModel
+    from soft_gripper_sdre.analysis.plots import plot_sweep
+    from soft_gripper_sdre.sim.hand import SimConfig
+    from soft_gripper_sdre.control.trajectory import GraspProfile
 
     torch.set_num_threads(1)
     a.out.mkdir(parents=True, exist_ok=True)

@@ -22,11 +22,11 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from soft_gripper_sdre import derivatives
-from soft_gripper_sdre.dataset import DatasetError, Record, load_records
-from soft_gripper_sdre.metrics import r2_score
-from soft_gripper_sdre.model import DEFAULT_MODEL, PRESETS, SDCModel, fingerprint, save_checkpoint, train
-from soft_gripper_sdre.plots import plot_accel, plot_loss
+from soft_gripper_sdre.learning import derivatives
+from soft_gripper_sdre.learning.dataset import DatasetError, Record, load_records
+from soft_gripper_sdre.analysis.metrics import r2_score
+from soft_gripper_sdre.learning.model import DEFAULT_MODEL, PRESETS, SDCModel, fingerprint, save_checkpoint, train
+from soft_gripper_sdre.analysis.plots import plot_accel, plot_loss
 
 #: training signals per data variant; validation is always u4
 DATA_VARIANTS = {'paper': ('u1', 'u2', 'u3'), 'identifying': ('u1', 'u2', 'u3', 'x1', 'x2')}

@@ -19,12 +19,12 @@ import time
 
 import numpy as np
 
-from soft_gripper_sdre.control import DEFAULT_LOWPASS_HZ, TrackingController, Weights
-from soft_gripper_sdre.kf import ConstantVelocityKF
-from soft_gripper_sdre.laws import accepts_ref_acc
-from soft_gripper_sdre.metrics import TrackingMetrics, tracking_metrics
-from soft_gripper_sdre.sim import GripperSim, SimConfig
-from soft_gripper_sdre.trajectory import GraspProfile, GraspTrajectory
+from soft_gripper_sdre.control.tracking import DEFAULT_LOWPASS_HZ, TrackingController, Weights
+from soft_gripper_sdre.control.kf import ConstantVelocityKF
+from soft_gripper_sdre.control.laws import accepts_ref_acc
+from soft_gripper_sdre.analysis.metrics import TrackingMetrics, tracking_metrics
+from soft_gripper_sdre.sim.hand import GripperSim, SimConfig
+from soft_gripper_sdre.control.trajectory import GraspProfile, GraspTrajectory
 
 
 @dataclass(frozen=True)
@@ -68,9 +68,9 @@ def run_closed_loop(model, *, duration: float, sim_config: SimConfig | None = No
                     controller=None) -> LoopResult:
     """Run the grasp for ``duration`` seconds of sim time and return everything recorded.
 
-    ``controller``: optional law with TrackingController's interface (:mod:`soft_gripper_sdre.laws`)
+    ``controller``: optional law with TrackingController's interface (:mod:`soft_gripper_sdre.control.laws`)
     used instead of the learned SDRE; one with an ``observe(truth)`` method gets the plant's ground
-    truth before each step (the oracle), one that :func:`~soft_gripper_sdre.laws.accepts_ref_acc`
+    truth before each step (the oracle), one that :func:`~soft_gripper_sdre.control.laws.accepts_ref_acc`
     gets the reference acceleration too.
     """
     sim_config = sim_config or SimConfig(scene='hand')

@@ -35,7 +35,7 @@ def sample_horizon(times_ns: np.ndarray, pos: np.ndarray, vel: np.ndarray, acc: 
             :func:`~soft_gripper_sdre.nodes.conversions.msg_to_reference` guarantees; not re-checked).
         pos, vel, acc: (h, n, 2) positions [m], velocities [m/s], accelerations [m/s²].
         t_ns: the sample time [ns], within ``[times_ns[0], times_ns[-1]]``.
-        with_acc: also return the acceleration (the feedforward laws of :mod:`soft_gripper_sdre.laws`).
+        with_acc: also return the acceleration (the feedforward laws of :mod:`soft_gripper_sdre.control.laws`).
 
     Returns:
         (pos (n, 2), vel (n, 2)) at ``t_ns``; (pos, vel, acc (n, 2)) with ``with_acc``.

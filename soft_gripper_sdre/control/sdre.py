@@ -31,7 +31,7 @@ import math
 import numpy as np
 from scipy.linalg import solve_continuous_are
 
-from soft_gripper_sdre.units import LENGTH_SCALE, TORQUE_SCALE
+from soft_gripper_sdre.sim.units import LENGTH_SCALE, TORQUE_SCALE
 
 METHODS = ('fast', 'reference')
 

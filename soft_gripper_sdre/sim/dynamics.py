@@ -1,6 +1,6 @@
 """Ground-truth task-space dynamics of one finger, from PyBullet's rigid-body model (no ROS).
 
-The simulated finger is a 10-joint chain (``sim.py``): with joint angles q, the spring torques
+The simulated finger is a 10-joint chain (:mod:`soft_gripper_sdre.sim.finger`): with joint angles q, the spring torques
 −K q, gravity g(q), Coriolis/centrifugal C(q, q̇) q̇ and the actuator map B (10×2),
 
     M(q) q̈ + C(q, q̇) q̇ + g(q) = B u − K q                          (joint space, friction off)
@@ -40,9 +40,9 @@ import math
 import numpy as np
 import pybullet as pb
 
-from soft_gripper_sdre.sim import (B_MATRIX, FINGER_ROLL_DEG, FRICTION_TORQUE, JOINT_STIFFNESS, N_JOINTS, TIP_LINK,
-                                   WORLD_GRAVITY, DirectClient, _rot, load_fingers)
-from soft_gripper_sdre.units import LENGTH_SCALE, TORQUE_SCALE
+from soft_gripper_sdre.sim.finger import (B_MATRIX, FINGER_ROLL_DEG, FRICTION_TORQUE, JOINT_STIFFNESS, N_JOINTS,
+                                          TIP_LINK, WORLD_GRAVITY, DirectClient, load_fingers, rpy_matrix)
+from soft_gripper_sdre.sim.units import LENGTH_SCALE, TORQUE_SCALE
 
 #: step of the central difference J̇ q̇ ≈ (J(q + h q̇) − J(q − h q̇)) q̇ / 2h  [s]
 _JDOT_STEP = 1e-6
@@ -96,7 +96,7 @@ class FingerDynamics(DirectClient):
         # gravity as if the finger stood upright (test_dynamics.py: a held pose of the rolled finger
         # balances only with this; test_sim.py checks GripperSim.linearize, which does the same,
         # against the Hessian of the gravity potential). Base frame = world frame here.
-        rot = _rot((math.radians(mount_roll_deg), 0.0, 0.0))
+        rot = rpy_matrix((math.radians(mount_roll_deg), 0.0, 0.0))
         pb.setGravity(*(rot.T @ np.array(WORLD_GRAVITY)), physicsClientId=self._client)
         self._body, = load_fingers(self._client, [((0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))])
         # PyBullet's Jacobian point is in the link frame; the tip the simulator reports is link 9's

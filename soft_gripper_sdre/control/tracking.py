@@ -7,7 +7,7 @@ both into the model's translated coordinates (origin at the settled rest pose, w
     x   = [X − X₀, Y − Y₀, Ẋ, Ẏ],        x_d = [X_d − X₀, Y_d − Y₀, Ẋ_d, Ẏ_d],
 
 queries A(x), G(x) from the model for all fingers at once and applies the SDRE tracking law of
-:mod:`soft_gripper_sdre.sdre` (u = K(x) x + K_s(x) x_d, saturated). One model serves every
+:mod:`soft_gripper_sdre.control.sdre` (u = K(x) x + K_s(x) x_d, saturated). One model serves every
 finger: each finger is controlled in its own base frame with its own copy of the same dynamics.
 """
 from __future__ import annotations
@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from soft_gripper_sdre.sdre import SdreController, SdreStep, paper_weights_si
+from soft_gripper_sdre.control.sdre import SdreController, SdreStep, paper_weights_si
 
 #: named weight presets, SI (positions in m, velocities in m/s, torques in N·m)
 WEIGHT_PRESETS = ('default', 'paper')
@@ -139,7 +139,7 @@ class TrackingController:
 
     Args:
         model: object with ``AG(x) -> (A (n,4,4), G (n,4,2))`` and ``rest_tip`` (3,) [m] (an
-            :class:`soft_gripper_sdre.model.SDCModel`); if it also has
+            :class:`soft_gripper_sdre.learning.model.SDCModel`); if it also has
             ``sdc_blocks(x) -> ([A21 A22] (n,2,4), G2 (n,2,2))``, only those lower rows are used.
         weights: SDRE weights (SI).
         u_max: torque saturation per input [N·m].

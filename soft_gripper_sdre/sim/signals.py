@@ -17,7 +17,7 @@ from typing import Callable
 
 import numpy as np
 
-from soft_gripper_sdre.units import torque_to_si
+from soft_gripper_sdre.sim.units import torque_to_si
 
 #: duration of every excitation record [s] (the paper's 10 000 samples at 1 ms)
 DURATION = 10.0

@@ -1,4 +1,4 @@
-"""Control laws beside the learned SDRE, all with :class:`~soft_gripper_sdre.control.TrackingController`'s
+"""Control laws beside the learned SDRE, all with :class:`~soft_gripper_sdre.control.tracking.TrackingController`'s
 interface (no ROS): ``compute(pos, vel, ref_pos, ref_vel)`` → a step with ``u`` (n, 2) [N·m],
 ``ok``, ``fallback``, ``failed_checks``, ``saturated``, ``residual``; and ``reset()``.
 
@@ -13,7 +13,7 @@ saturates at ``u_max`` and passes its command through the same first-order roll-
 * ``pd``     — a task-space PD through the learned input map at rest,
   u = G₂(0)⁻¹ [k_p (p_d − p) + k_d (ṗ_d − ṗ)].
 * ``oracle`` — the SDRE on the *true* dynamics: A(x), G(x) from
-  :func:`soft_gripper_sdre.dynamics.oracle_sdc` at the plant's joint state (projected onto the
+  :func:`soft_gripper_sdre.sim.dynamics.oracle_sdc` at the plant's joint state (projected onto the
   chain's static shapes; ``oracle_exact``: the paper's eq. 10–13 with the instantaneous
   G₂ = J M⁻¹ B), which the caller hands
   over each step with :meth:`OracleSdreLaw.observe` (the in-process loop does; the node graph does
@@ -29,8 +29,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from soft_gripper_sdre.control import DEFAULT_LOWPASS_HZ, RestFrame, RollOff, TrackingController, Weights
-from soft_gripper_sdre.sdre import Check, SdreController, _cond2_below, _stack_solve, sdre_gains
+from soft_gripper_sdre.control.tracking import DEFAULT_LOWPASS_HZ, RestFrame, RollOff, TrackingController, Weights
+from soft_gripper_sdre.control.sdre import Check, SdreController, _cond2_below, _stack_solve, sdre_gains
 
 LAWS = ('sdre', 'sdre_ff', 'lqr', 'pd', 'oracle', 'oracle_exact', 'oracle_ff')
 #: the laws that run on the node graph (the oracles need the plant's joint state: in-process only)
@@ -58,7 +58,7 @@ class LawStep:
 
 class _FixedLaw:
     """Shared plumbing: the model's translated coordinates, saturation, the roll-off
-    (:class:`~soft_gripper_sdre.control.RestFrame` and :class:`~soft_gripper_sdre.control.RollOff`,
+    (:class:`~soft_gripper_sdre.control.tracking.RestFrame` and :class:`~soft_gripper_sdre.control.tracking.RollOff`,
     as in :class:`TrackingController`)."""
 
     def __init__(self, rest_tip, u_max: float, n_fingers: int, lowpass_hz: float, dt: float) -> None:
@@ -148,14 +148,14 @@ class OracleSdreLaw(_FixedLaw):
     """The SDRE tracking law with A(x), G(x) from the simulator's exact dynamics.
 
     Call :meth:`observe` with the plant's joint state (``SimTruth``: q, q̇ (n, 10)) before each
-    :meth:`compute`; the gains then come from :func:`~soft_gripper_sdre.dynamics.oracle_sdc` there.
+    :meth:`compute`; the gains then come from :func:`~soft_gripper_sdre.sim.dynamics.oracle_sdc` there.
     The state fed back is the same estimate the other laws get.
     """
 
     def __init__(self, rest_tip, weights: Weights, u_max: float, n_fingers: int = 4,
                  method: str = 'fast', lowpass_hz: float = DEFAULT_LOWPASS_HZ, dt: float = 1e-3,
                  reduced: bool = True) -> None:
-        from soft_gripper_sdre.dynamics import FingerDynamics
+        from soft_gripper_sdre.sim.dynamics import FingerDynamics
         super().__init__(rest_tip, u_max, n_fingers, lowpass_hz, dt)
         self.reduced = bool(reduced)
         self.dynamics = FingerDynamics()
@@ -169,7 +169,7 @@ class OracleSdreLaw(_FixedLaw):
 
     def observe(self, truth) -> None:
         """Evaluate the true SDC pair at the plant's joint state (``truth.q``, ``truth.qd``)."""
-        from soft_gripper_sdre.dynamics import oracle_sdc
+        from soft_gripper_sdre.sim.dynamics import oracle_sdc
         A = np.zeros((self.n_fingers, 4, 4))
         G = np.zeros((self.n_fingers, 4, 2))
         for i in range(self.n_fingers):
