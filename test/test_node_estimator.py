@@ -153,4 +153,4 @@ def test_runtime_changes_reset_on_jump_only():
 
 def test_config_file_holds_the_declared_defaults():
     doc = yaml.safe_load(CONFIG.read_text())
-    assert doc == {'estimator': {'ros__parameters': {p.name: p.default for p in PARAMS}}}
+    assert doc == {'/**/estimator': {'ros__parameters': {p.name: p.default for p in PARAMS}}}

@@ -132,7 +132,7 @@ def test_defaults_are_the_grasp_profile_with_every_finger_moving():
         node = TrajectoryNode(context=ctx)
         assert node.profile == GraspProfile(others='open')
     doc = yaml.safe_load(CONFIG.read_text())
-    assert doc == {'trajectory': {'ros__parameters': {p.name: p.default for p in PARAMS}}}
+    assert doc == {'/**/trajectory': {'ros__parameters': {p.name: p.default for p in PARAMS}}}
 
 
 def test_runtime_changes_are_checked_and_refusals_keep_the_old_value():

@@ -136,3 +136,13 @@ def test_controller_watchdog_outlasts_the_simulators_lockstep_wait():
         doc = yaml.safe_load((ROOT / 'config' / f'{node}.yaml').read_text())
         return next(iter(doc.values()))['ros__parameters'][name]
     assert default('controller', 'clock_timeout') >= 2 * default('simulator', 'lockstep_timeout')
+
+
+def test_package_xml_declares_every_ros_package_the_code_imports():
+    """A rosdep/colcon user gets every ROS package the nodes import from package.xml alone."""
+    declared = set(re.findall(r'<exec_depend>([^<]+)</exec_depend>', (ROOT / 'package.xml').read_text()))
+    ros_like = ('rclpy', 'rcl_interfaces', 'ament_index_python', 'builtin_interfaces', 'rosgraph_msgs')
+    imported = {name for path in ALL_MODULES for name in _imports(path)
+                if name in ros_like or name.endswith('_msgs')}
+    assert imported, 'the nodes import ROS packages; the scan found none'
+    assert imported <= declared, f'package.xml lacks exec_depend for {sorted(imported - declared)}'

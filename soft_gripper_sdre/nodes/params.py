@@ -118,7 +118,15 @@ def on_runtime_change(node: Node, params: Iterable[Param],
 
 
 def to_yaml(node_name: str, params: Iterable[Param]) -> str:
-    """The ``ros__parameters`` section of ``node_name`` with every default, for config/*.yaml."""
+    """The ``ros__parameters`` section of ``node_name`` with every default, for config/*.yaml.
+
+    The key ``/**/<node_name>`` matches the node under any namespace (``-r __ns:=/left_hand``).
+    """
     import yaml
     body = {p.name: p.default for p in params}
-    return yaml.safe_dump({node_name: {'ros__parameters': body}}, sort_keys=False)
+    return yaml.safe_dump({params_file_key(node_name): {'ros__parameters': body}}, sort_keys=False)
+
+
+def params_file_key(node_name: str) -> str:
+    """The top-level key of a parameters file that applies to ``node_name`` in every namespace."""
+    return f'/**/{node_name}'

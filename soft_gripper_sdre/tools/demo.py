@@ -136,7 +136,7 @@ def _controller_limit() -> float:
     import yaml
     from soft_gripper_sdre.tools.procs import default_params_file
     path = default_params_file('controller')
-    return float(yaml.safe_load(path.read_text())['controller']['ros__parameters']['torque_limit'])
+    return float(yaml.safe_load(path.read_text())['/**/controller']['ros__parameters']['torque_limit'])
 
 
 def last_diagnostics(bag: Path, node: str) -> dict[str, str]:
