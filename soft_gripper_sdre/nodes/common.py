@@ -5,6 +5,7 @@ from __future__ import annotations
 from collections import Counter
 import os
 import signal
+import sys
 import time
 from typing import Callable
 
@@ -17,6 +18,7 @@ from rclpy.experimental import EventsExecutor
 from rclpy.signals import SignalHandlerOptions
 from rclpy.node import Node
 
+from soft_gripper_sdre.nodes.cli import USAGE_ERROR, settle_command_line
 from soft_gripper_sdre.nodes.params import ParameterError
 from soft_gripper_sdre.nodes.topics import DIAGNOSTICS, STREAM_QOS
 
@@ -160,15 +162,29 @@ def flush(node: Node, timeout: float = 2.0) -> bool:
 def run(node_factory: Callable[..., Node], args: list[str] | None = None) -> int:
     """``main()`` of every node: init → construct → spin until shutdown or ``node.done`` → clean up.
 
-    SIGTERM is handled like SIGINT. A :class:`ParameterError` at construction is logged and the
-    process exits with status 2; other construction errors exit 1.
+    ``args`` is the whole command line (program name first; default ``sys.argv``). ``--help`` and
+    bad parameter files are settled first (:mod:`soft_gripper_sdre.nodes.cli`), from the node
+    module's ``PARAMS``. SIGTERM is handled like SIGINT. A :class:`ParameterError` at construction
+    is logged and the process exits with status 2; other construction errors exit 1.
     """
     # Our own SIGINT handling keeps the context alive while the node closes, so it can still
     # publish its final diagnostics and, for the recorder, finish the bag. The handler only sets a
     # flag: an exception raised inside a callback would be logged by the EventsExecutor as a
     # failing callback; instead the loop sees the flag within one spin_once timeout. So no
     # KeyboardInterrupt is raised once the handlers are installed (before anything can fail).
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    argv = list(sys.argv if args is None else args)
+    module = sys.modules.get(node_factory.__module__)
+    summary = ((getattr(module, '__doc__', None) or '').strip().splitlines() or [''])[0]
+    spec = getattr(module, '__spec__', None)      # the module's own name also under python -m
+    executable = (spec.name if spec is not None else node_factory.__module__).rsplit('.', 1)[-1]
+    status = settle_command_line(argv[1:], executable, summary, getattr(module, 'PARAMS', ()))
+    if status is not None:
+        return status
+    try:
+        rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
+    except RuntimeError as exc:               # rcl refused the ROS arguments (an RCLError)
+        sys.stderr.write(f'{executable}: cannot start with these arguments: {str(exc).splitlines()[0]}\n')
+        return USAGE_ERROR
     stop: list[int] = []
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda signum, _frame: stop.append(signum))
