@@ -164,6 +164,16 @@ class _OpensAFile:
         return (open, (self.marker, 'w'))
 
 
+@pytest.mark.parametrize('content', [bytes(range(256)) * 4, b'x'], ids=['random bytes', 'one byte'])
+def test_a_file_that_is_not_an_npz_is_named_as_such(tmp_path, content):
+    path = tmp_path / 'u1.npz'
+    path.write_bytes(content)
+    with pytest.raises(DatasetError) as exc:
+        load_record(path)
+    assert str(exc.value).startswith(f'{path}: not an .npz archive (a zip file)')
+    assert 'pickled' not in str(exc.value)
+
+
 def test_pickled_payload_is_refused_without_running_it(tmp_path, record):
     """An npz carrying an object array is refused with a clear message; the payload never runs."""
     marker = tmp_path / 'code_ran'

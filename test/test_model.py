@@ -287,7 +287,8 @@ def test_read_checkpoint_refuses_pickled_objects_without_running_them(checkpoint
     path = resave(tmp_path, checkpoint, lambda c: {**c, 'extra': _OpensAFile(marker)})
     with pytest.raises(ModelFileError, match='objects other than tensors') as exc:
         read_checkpoint(path)
-    assert str(path) in str(exc.value)
+    assert str(path) in str(exc.value) and '(it needs io.open)' in str(exc.value)
+    assert 'Weights only load failed' not in str(exc.value)
     assert not marker.exists(), 'the pickled payload was executed'
     # the payload is live: an unrestricted load does run it
     loaded = torch.load(path, weights_only=False)
@@ -295,12 +296,17 @@ def test_read_checkpoint_refuses_pickled_objects_without_running_them(checkpoint
     assert marker.exists()
 
 
-def test_read_checkpoint_refuses_a_text_file(tmp_path):
-    """A file that is not a checkpoint at all is a ModelFileError, whatever its bytes."""
+@pytest.mark.parametrize('content', [b'hello world ' * 10, bytes(range(256)) * 4, b''],
+                         ids=['text', 'random bytes', 'empty'])
+def test_read_checkpoint_says_a_corrupt_file_is_not_a_checkpoint(tmp_path, content):
+    """Bytes that are not a torch.save archive are named as such, not as pickled objects."""
     path = tmp_path / 'notes.pt'
-    path.write_text('hello world ' * 10)
-    with pytest.raises(ModelFileError, match=str(path)):
+    path.write_bytes(content)
+    with pytest.raises(ModelFileError) as exc:
         read_checkpoint(path)
+    message = str(exc.value)
+    assert message.startswith(f'model file {path} is not a checkpoint: a torch.save file is a zip archive')
+    assert 'pickled' not in message and 'objects other than tensors' not in message
 
 
 # ----------------------------------------------------------------------------------------------

@@ -24,6 +24,7 @@ import hashlib
 import math
 from pathlib import Path
 import pickle
+import re
 import time
 from typing import Callable
 
@@ -32,6 +33,8 @@ import torch
 from torch import nn
 
 FORMAT_VERSION = 1
+#: first bytes of every torch.save file (a zip archive)
+ZIP_MAGIC = b'PK\x03\x04'
 HIDDEN = 32
 DEFAULT_MODEL = Path(__file__).resolve().parent.parent / 'models' / 'default.pt'
 #: the same preset trained on the paper's signals alone (u1..u3, both torques equal): kept to show
@@ -245,11 +248,20 @@ def read_checkpoint(path: Path) -> dict:
     if not path.is_file():
         raise ModelFileError(f'model file {path} does not exist')
     try:
+        with path.open('rb') as f:
+            head = f.read(len(ZIP_MAGIC))
+    except OSError as exc:
+        raise ModelFileError(f'model file {path} cannot be read: {exc}') from None
+    if head != ZIP_MAGIC:
+        raise ModelFileError(f'model file {path} is not a checkpoint: a torch.save file is a zip archive '
+                             f'and this one starts with {head!r} (corrupt, or another kind of file)')
+    try:
         ckpt = torch.load(path, map_location='cpu', weights_only=True)
     except pickle.UnpicklingError as exc:
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else ''
-        raise ModelFileError(f'model file {path} holds objects other than tensors and plain data '
-                             f'(refused without running them): {first[:200]}') from None
+        found = re.search(r'Unsupported global: GLOBAL ([\w.]+)', str(exc))
+        what = f' (it needs {found.group(1)})' if found else ''
+        raise ModelFileError(f'model file {path} holds objects other than tensors and plain data{what}; '
+                             'refused without running them') from None
     except Exception as exc:  # torch reports a non-zip file through whatever its legacy reader hits
         raise ModelFileError(f'model file {path} is unreadable or truncated: {exc}'[:400]) from None
     if not isinstance(ckpt, dict) or 'format_version' not in ckpt:
