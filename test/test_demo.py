@@ -39,12 +39,36 @@ def test_demo_runs_the_graph_as_processes_and_writes_a_readable_bag(tmp_path):
     assert 'finger_0: free-space RMSE' in summary(result, tmp_path)
 
 
+def _corrupt_model(tmp_path):
+    path = tmp_path / 'corrupt.pt'
+    path.write_bytes(bytes(range(256)) * 8)
+    return path
+
+
 @pytest.mark.parametrize('args, needle', [
-    (['--duration', '-1'], '--duration'),
-    (['--model', '/nonexistent.pt'], '--model'),
-    (['--noise', '-0.1'], '--noise'),
+    (['--duration', '-1'], '--duration must be > 0'),
+    (['--model', '/nonexistent.pt'], '--model: model file /nonexistent.pt does not exist'),
+    (['--model', 'CORRUPT'], 'is not a checkpoint: a torch.save file is a zip archive'),
+    (['--noise', '-0.1'], '--noise is σ in mm'),
+    (['--noise', '50'], '--noise is σ in mm, from 0 to 10 mm, got 50.0'),
+    (['--seed', '-3'], '--seed must be in'),
+    (['--law', 'nonsense'], "invalid choice: 'nonsense'"),
 ])
-def test_demo_bad_usage_exits_2(args, needle, tmp_path):
-    proc = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.demo', '--out', str(tmp_path),
+def test_demo_bad_usage_exits_2_before_starting_anything(args, needle, tmp_path):
+    args = [str(_corrupt_model(tmp_path)) if a == 'CORRUPT' else a for a in args]
+    out = tmp_path / 'out'
+    proc = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.demo', '--out', str(out),
                            *args], capture_output=True, text=True, timeout=60)
-    assert proc.returncode == 2 and needle in proc.stderr
+    assert proc.returncode == 2 and needle in proc.stderr, proc.stderr
+    assert 'Traceback' not in proc.stderr
+    assert not out.exists(), 'a refused command line must not start the graph'
+
+
+def test_a_node_that_dies_is_named_with_its_own_log_and_no_bag_is_left(tmp_path):
+    """run_demo on a corrupt model (past the CLI's check): the controller exits at start-up."""
+    with pytest.raises(RuntimeError) as exc:
+        run_demo(tmp_path, duration=1.0, model=_corrupt_model(tmp_path), timeout=120, progress=False)
+    message = str(exc.value)
+    assert message.startswith('the controller node exited with status')
+    assert 'last lines of controller.log' in message and 'is not a checkpoint' in message
+    assert not (tmp_path / 'bag').exists()

@@ -10,7 +10,9 @@ the grasp for ``--duration`` seconds of sim time, stops everything cleanly and w
     OUT/logs/           one log per node
     OUT/fig5_positions.png, fig6_velocities.png, fig7_torques.png, metrics.json
 
-then prints a summary. Exit status: 0 on success, 1 if a node failed, 2 on bad usage.
+then prints a summary. Every argument is checked before anything starts (bad usage: exit 2);
+a node that dies is named with the last lines of its own log (exit 1), and the partial bag of a
+failed run is removed.
 """
 from __future__ import annotations
 
@@ -35,7 +37,8 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument('--out', type=Path, default=Path('runs/demo'), help='output directory (default %(default)s)')
     ap.add_argument('--duration', type=float, default=6.0, help='sim time to run [s] (default %(default)s)')
     ap.add_argument('--model', type=Path, default=None, help='model checkpoint (default: the shipped one)')
-    ap.add_argument('--noise', type=float, default=None, help='tip measurement noise σ [m] (default: config)')
+    ap.add_argument('--noise', type=float, default=None, metavar='MM',
+                    help='tip measurement noise σ [mm] (default: config/simulator.yaml, 0.05 mm)')
     ap.add_argument('--seed', type=int, default=None, help='measurement noise seed (default: config)')
     ap.add_argument('--law', default=None, choices=GRAPH_LAWS,
                     help='control law of the controller node (default: config/controller.yaml)')
@@ -86,8 +89,14 @@ def run_demo(out: Path, duration: float, model: Path | None = None, noise: float
         deadline = time.monotonic() + 60.0
         while not all(monitor.get('recorder', f'publishers {t}') > 0 for t in WIRED_BEFORE_START):
             dead = [p.name for p in graph.procs.values() if not p.alive()]
-            if dead or time.monotonic() > deadline:
-                raise RuntimeError(f'the graph did not connect (dead: {dead}); recorder sees '
+            if dead:
+                shutil.rmtree(bag, ignore_errors=True)
+                raise RuntimeError(f'the {dead[0]} node exited with status {graph.procs[dead[0]].popen.returncode} '
+                                   f'before the graph connected; last lines of {dead[0]}.log:\n'
+                                   f'{graph.procs[dead[0]].log_tail()}')
+            if time.monotonic() > deadline:
+                shutil.rmtree(bag, ignore_errors=True)
+                raise RuntimeError(f'the graph did not connect within 60 s; the recorder sees '
                                    f'{monitor.values.get("recorder", {})}; last lines of recorder.log:\n'
                                    f'{graph.procs["recorder"].log_tail()}')
             monitor.poll()
@@ -116,13 +125,18 @@ def run_demo(out: Path, duration: float, model: Path | None = None, noise: float
     if code != 0 or failed:
         culprit = 'simulator' if code not in (0, None) else next(iter(failed), 'simulator')
         tail = graph.procs[culprit].log_tail()
-        why = 'timed out' if code is None and not failed else f'exit codes {stopped}'
+        why = 'timed out' if code is None and not failed else f'the {culprit} node died; exit codes {stopped}'
+        shutil.rmtree(bag, ignore_errors=True)
         raise RuntimeError(f'the grasp run failed ({why}); last lines of {culprit}.log:\n{tail}')
+    t_report = time.monotonic()
+    if progress:
+        print('reading the bag and drawing the figures ...', file=sys.stderr, flush=True)
     result = report(bag, out, torque_limit=_controller_limit())
     result['controller'] = controller_stats(bag)
     sim_diag = last_diagnostics(bag, 'simulator')
     stepping_rtf = sim_diag.get('real_time_factor')
     result['run'] = {'sim_duration_s': duration, 'wall_s': round(wall, 2),
+                     'report_wall_s': round(time.monotonic() - t_report, 2),
                      'real_time_factor': float(stepping_rtf) if stepping_rtf else None,
                      **{f'loop_latency_us_{k}': float(sim_diag[f'loop_latency_us_{k}'])
                         for k in ('p50', 'p99') if f'loop_latency_us_{k}' in sim_diag},
@@ -175,7 +189,8 @@ def summary(result: dict, out: Path) -> str:
     latency = (f'; loop latency p50 {run["loop_latency_us_p50"]:.0f} µs, p99 {run["loop_latency_us_p99"]:.0f} µs'
                if 'loop_latency_us_p50' in run else '')
     lines = [f'grasp demo: {run["sim_duration_s"]:g} s of sim time, {run["wall_s"]:.1f} s wall with start-up '
-             f'(stepping at {rtf}× real time{latency})']
+             f'(stepping at {rtf}× real time{latency}), then {run.get("report_wall_s", 0.0):.1f} s '
+             'to read the bag and draw the figures']
     for name, f in result['fingers'].items():
         pct = 'n/a' if f['rmse_pct'] is None else f'{f["rmse_pct"]:.2f} %'
         lines.append(f'  {name}: free-space RMSE {f["rmse_mm"]:.3f} mm ({pct} of its '
@@ -192,18 +207,42 @@ def summary(result: dict, out: Path) -> str:
     return '\n'.join(lines)
 
 
+def argument_problem(a: argparse.Namespace) -> str | None:
+    """What is wrong with the demo's arguments, checked against the nodes' own parameter limits,
+    or None. Runs before any process starts."""
+    from soft_gripper_sdre.nodes.simulator import PARAMS as SIMULATOR_PARAMS
+    limits = {p.name: p for p in SIMULATOR_PARAMS}
+    if not (a.duration > 0 and limits['duration'].check(a.duration) is None):
+        return f'--duration must be > 0 and <= {limits["duration"].max:g} s of sim time, got {a.duration}'
+    if a.noise is not None:
+        reason = limits['noise_std'].check(a.noise * 1e-3)
+        if reason or not a.noise == a.noise:
+            return (f'--noise is σ in mm, from 0 to {limits["noise_std"].max * 1e3:g} mm, got {a.noise} '
+                    '(e.g. --noise 0.05)')
+    if a.seed is not None and limits['seed'].check(a.seed):
+        return f'--seed must be in [0, {limits["seed"].max}], got {a.seed}'
+    if a.domain_id is not None and not 0 <= a.domain_id <= 232:
+        return f'--domain-id must be a ROS domain ID in [0, 232], got {a.domain_id}'
+    if not a.timeout > 0:
+        return f'--timeout must be > 0 s, got {a.timeout}'
+    if a.model is not None:
+        from soft_gripper_sdre.learning.model import ModelFileError, read_checkpoint
+        try:
+            read_checkpoint(a.model)
+        except ModelFileError as exc:
+            return f'--model: {exc}'
+    return None
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = _parser()
     a = ap.parse_args(argv)
-    if not a.duration > 0:
-        ap.error(f'--duration must be > 0 s, got {a.duration}')
-    if a.model is not None and not a.model.is_file():
-        ap.error(f'--model {a.model}: no such file')
-    if a.noise is not None and not a.noise >= 0:
-        ap.error(f'--noise must be >= 0 m, got {a.noise}')
+    problem = argument_problem(a)
+    if problem:
+        ap.error(problem)
     try:
-        result = run_demo(a.out, a.duration, a.model, a.noise, a.seed, a.domain_id, a.timeout,
-                          progress=not a.no_progress, law=a.law)
+        result = run_demo(a.out, a.duration, a.model, None if a.noise is None else a.noise * 1e-3, a.seed,
+                          a.domain_id, a.timeout, progress=not a.no_progress, law=a.law)
     except RuntimeError as exc:
         print(f'error: {exc}', file=sys.stderr)
         return 1
