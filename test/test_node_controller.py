@@ -157,7 +157,7 @@ def test_estimates_older_than_the_timeout_in_sim_time_get_the_safe_command(model
 
         def tick(k):
             clock_pub.publish(cv.clock_msg(k * MS))
-            assert spin_until(executor, lambda: node.clock_ns == k * MS, 5.0)
+            assert spin_until(executor, lambda: node.gate.clock_ns == k * MS, 5.0)
 
         ref_pub.publish(horizon(rest, 0, points=200)[0])
         assert spin_until(executor, lambda: node.diag.counters['references'] == 1)
@@ -171,7 +171,7 @@ def test_estimates_older_than_the_timeout_in_sim_time_get_the_safe_command(model
         for k in (3, 4, 5):                                    # 2, 3, 4 periods behind
             tick(k)
             assert spin_until(executor, lambda: len(commands(probe)) == k - 1)
-        assert node.stale and node.diag.level == ERROR
+        assert node.gate.estimates_lost and node.diag.level == ERROR
         for k, msg in zip((3, 4, 5), commands(probe)[1:]):
             stamp, u = cv.msg_to_torques(msg, 4)
             assert stamp == k * MS
@@ -179,7 +179,7 @@ def test_estimates_older_than_the_timeout_in_sim_time_get_the_safe_command(model
         assert node.diag.counters['safe_commands'] == 3
         est_pub.publish(estimate(5 * MS, rest))                # already answered with zero: late
         assert spin_until(executor, lambda: node.diag.counters['late_estimates'] == 1)
-        assert not node.stale and node.diag.level == OK
+        assert not node.gate.estimates_lost and node.diag.level == OK
         tick(6)
         est_pub.publish(estimate(6 * MS, rest + 0.002))        # tracking again
         assert spin_until(executor, lambda: len(commands(probe)) == 5)
@@ -195,7 +195,7 @@ def test_wall_watchdog_when_sim_time_stops(model):
         node, probe, est_pub, ref_pub = make(ctx, executor, clock_timeout=0.2)
         est_pub.publish(estimate(4 * MS, rest))                # no reference: stays unanswered
         assert spin_until(executor, lambda: node.diag.counters['estimates'] == 1)
-        assert spin_until(executor, lambda: node.clock_stopped, 5.0)
+        assert spin_until(executor, lambda: node.gate.time_stopped, 5.0)
         assert node.diag.level == ERROR and 'sim time stopped' in node.diag.message
         assert spin_until(executor, lambda: len(commands(probe)) == 1)
         stamp, u = cv.msg_to_torques(commands(probe)[0], 4)
@@ -204,7 +204,7 @@ def test_wall_watchdog_when_sim_time_stops(model):
         ref_pub.publish(horizon(rest, 0)[0])
         est_pub.publish(estimate(5 * MS, rest))
         assert spin_until(executor, lambda: len(commands(probe)) == 2)
-        assert not node.clock_stopped and node.diag.level == OK
+        assert not node.gate.time_stopped and node.diag.level == OK
 
 
 @pytest.mark.parametrize('changes, needle', [
@@ -219,14 +219,14 @@ def test_runtime_parameter_changes_are_refused_with_the_reason_and_the_old_value
     with ros_context() as (ctx, executor):
         node = ControllerNode(context=ctx)
         before = {k: node.get_parameter(k).value for k in changes}
-        timeout_ns = node.timeout_ns
+        timeout_ns = node.gate.estimate_timeout_ns
         result = node.set_parameters([Parameter(k, value=v) for k, v in changes.items()])[0]
         assert not result.successful and result.reason
         assert needle in result.reason
         assert {k: node.get_parameter(k).value for k in changes} == before
-        assert node.timeout_ns == timeout_ns and node.p['estimate_timeout'] == 0.002
+        assert node.gate.estimate_timeout_ns == timeout_ns and node.p['estimate_timeout'] == 0.002
         assert node.set_parameters([Parameter('estimate_timeout', value=0.005)])[0].successful
-        assert node.timeout_ns == 5 * MS
+        assert node.gate.estimate_timeout_ns == 5 * MS
 
 
 @pytest.mark.parametrize('args, needle', [
