@@ -150,7 +150,7 @@ def test_fuzzed_torque_commands_never_reach_the_physics():
         pub = probe.create_publisher(JointState, TORQUE_COMMANDS, LOOP_QOS)
         executor.add_node(sim)
         executor.add_node(probe)
-        assert spin_until(executor, lambda: pub.get_subscription_count() > 0 and sim.started
+        assert spin_until(executor, lambda: pub.get_subscription_count() > 0 and sim.stepping.started
                           and probe.received[TIP_POSITIONS])
         _fuzz(executor, pub, fz.joint_state, sim,
               ('commands', 'bad_command', 'stale_command', 'future_command'))
