@@ -19,7 +19,7 @@ from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.simulator import SimulatorNode
 from soft_gripper_sdre.nodes.topics import (GRASP_REFERENCE, LOOP_QOS, STATE_ESTIMATE, TIP_POSITIONS,
                                             TORQUE_COMMANDS)
-from test_node_controller import make as make_controller
+from controller_harness import make as make_controller
 from test_node_estimator import make as make_estimator
 from test_node_trajectory import make as make_trajectory
 

@@ -104,9 +104,9 @@ class Stepping:
 
     # -- inputs ------------------------------------------------------------------------------
     def on_command(self, stamp: int, u: np.ndarray) -> CommandOutcome:
-        """A command stamped ``stamp`` with torques ``u`` (n, 2) arrived."""
-        if np.shape(u) != (self.n_fingers, 2) or not np.all(np.isfinite(u)):
-            return self._refuse('bad_command', f'torque_commands: {np.shape(u)} torques or not '
+        """A command stamped ``stamp`` with torques ``u`` (an array, (n, 2) unless refused) arrived."""
+        if u.shape != (self.n_fingers, 2) or not np.isfinite(u).all():
+            return self._refuse('bad_command', f'torque_commands: {u.shape} torques or not '
                                 f'finite; expected ({self.n_fingers}, 2) finite values')
         now_ns = self.now_ns
         first = None
