@@ -80,7 +80,7 @@ def test_lost_estimates_get_the_safe_command_then_tracking_recovers():
         steps = int(round(duration / 1e-3))
         tips_msgs = probe.received[TIP_POSITIONS]
         assert spin_until(executor, lambda: sim.done and len(tips_msgs) > steps, 600.0), (
-            f'{sim.k} of {steps} steps; simulator {dict(sim.diag.counters)}')
+            f'{sim.stepping.k} of {steps} steps; simulator {dict(sim.diag.counters)}')
         t, tips = zip(*(cv.msg_to_tips(m, 4) for m in tips_msgs[:steps]))
         t = np.asarray(t)
         tips = np.asarray(tips)[..., :2]
@@ -90,7 +90,7 @@ def test_lost_estimates_get_the_safe_command_then_tracking_recovers():
         c_sim, c_ctrl = dict(sim.diag.counters), dict(ctrl.diag.counters)
         # messages lost on the way to the probe: tips published (one per step and the first) and
         # torque commands the controller counted, against what arrived
-        lost = (sim.k + 1 - len(tips_msgs)) + (c_ctrl['commands'] + c_ctrl['safe_commands']
+        lost = (sim.stepping.k + 1 - len(tips_msgs)) + (c_ctrl['commands'] + c_ctrl['safe_commands']
                                               - len(probe.received[TORQUE_COMMANDS]))
 
     # the relay dropped exactly the 200 estimates of the window

@@ -19,7 +19,7 @@ from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.simulator import SimulatorNode
 from soft_gripper_sdre.nodes.topics import (GRASP_REFERENCE, LOOP_QOS, STATE_ESTIMATE, TIP_POSITIONS,
                                             TORQUE_COMMANDS)
-from test_node_controller import make as make_controller
+from controller_harness import make as make_controller
 from test_node_estimator import make as make_estimator
 from test_node_trajectory import make as make_trajectory
 
@@ -150,7 +150,7 @@ def test_fuzzed_torque_commands_never_reach_the_physics():
         pub = probe.create_publisher(JointState, TORQUE_COMMANDS, LOOP_QOS)
         executor.add_node(sim)
         executor.add_node(probe)
-        assert spin_until(executor, lambda: pub.get_subscription_count() > 0 and sim.started
+        assert spin_until(executor, lambda: pub.get_subscription_count() > 0 and sim.stepping.started
                           and probe.received[TIP_POSITIONS])
         _fuzz(executor, pub, fz.joint_state, sim,
               ('commands', 'bad_command', 'stale_command', 'future_command'))

@@ -4,58 +4,21 @@ import sys
 
 import numpy as np
 import pytest
-from sensor_msgs.msg import JointState
-from trajectory_msgs.msg import MultiDOFJointTrajectory
 
-from rosutil import Probe, overrides, ros_context, spin_until
+from controller_harness import LIMIT, MS, commands, estimate, horizon, make
+from rosutil import ros_context, spin_until
 from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
 from soft_gripper_sdre.control.laws import accepts_ref_acc, make_law
 from soft_gripper_sdre.learning.model import SDCModel
 from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.controller import ControllerNode
-from soft_gripper_sdre.nodes.topics import (GRASP_REFERENCE, LOOP_QOS, REFERENCE_QOS, STATE_ESTIMATE,
-                                            TORQUE_COMMANDS)
 
 pytestmark = pytest.mark.ros
-
-MS = 1_000_000
-LIMIT = 0.0625
 
 
 @pytest.fixture(scope='module')
 def model():
     return SDCModel()
-
-
-def horizon(rest, start_ns, close_mm=5.0, points=21, step_ns=5 * MS):
-    """A constant reference ``close_mm`` towards the palm (+Y) for every finger."""
-    times = start_ns + step_ns * np.arange(points)
-    pos = np.repeat(rest[None, :, :], points, 0).copy()
-    pos[..., 1] += close_mm * 1e-3
-    zeros = np.zeros_like(pos)
-    return cv.reference_to_msg(start_ns, times - start_ns, pos, zeros, zeros), pos[0]
-
-
-def estimate(ns, pos, vel=None):
-    return cv.estimate_to_msg(ns, pos, np.zeros_like(pos) if vel is None else vel)
-
-
-def make(ctx, executor, **params):
-    node = ControllerNode(context=ctx, parameter_overrides=overrides(**params))
-    probe = Probe(ctx)
-    probe.listen(JointState, TORQUE_COMMANDS, LOOP_QOS)
-    est_pub = probe.create_publisher(MultiDOFJointTrajectory, STATE_ESTIMATE, LOOP_QOS)
-    ref_pub = probe.create_publisher(MultiDOFJointTrajectory, GRASP_REFERENCE, REFERENCE_QOS)
-    executor.add_node(node)
-    executor.add_node(probe)
-    assert spin_until(executor, lambda: est_pub.get_subscription_count() > 0
-                      and ref_pub.get_subscription_count() > 0
-                      and node.pub_cmd.get_subscription_count() > 0, 20.0)
-    return node, probe, est_pub, ref_pub
-
-
-def commands(probe):
-    return probe.received[TORQUE_COMMANDS]
 
 
 # the paper's law, the node's default, the baselines and Q(x): the ``law`` / ``state_weights`` parameters
@@ -157,7 +120,7 @@ def test_estimates_older_than_the_timeout_in_sim_time_get_the_safe_command(model
 
         def tick(k):
             clock_pub.publish(cv.clock_msg(k * MS))
-            assert spin_until(executor, lambda: node.clock_ns == k * MS, 5.0)
+            assert spin_until(executor, lambda: node.gate.clock_ns == k * MS, 5.0)
 
         ref_pub.publish(horizon(rest, 0, points=200)[0])
         assert spin_until(executor, lambda: node.diag.counters['references'] == 1)
@@ -171,7 +134,7 @@ def test_estimates_older_than_the_timeout_in_sim_time_get_the_safe_command(model
         for k in (3, 4, 5):                                    # 2, 3, 4 periods behind
             tick(k)
             assert spin_until(executor, lambda: len(commands(probe)) == k - 1)
-        assert node.stale and node.diag.level == ERROR
+        assert node.gate.estimates_lost and node.diag.level == ERROR
         for k, msg in zip((3, 4, 5), commands(probe)[1:]):
             stamp, u = cv.msg_to_torques(msg, 4)
             assert stamp == k * MS
@@ -179,7 +142,7 @@ def test_estimates_older_than_the_timeout_in_sim_time_get_the_safe_command(model
         assert node.diag.counters['safe_commands'] == 3
         est_pub.publish(estimate(5 * MS, rest))                # already answered with zero: late
         assert spin_until(executor, lambda: node.diag.counters['late_estimates'] == 1)
-        assert not node.stale and node.diag.level == OK
+        assert not node.gate.estimates_lost and node.diag.level == OK
         tick(6)
         est_pub.publish(estimate(6 * MS, rest + 0.002))        # tracking again
         assert spin_until(executor, lambda: len(commands(probe)) == 5)
@@ -195,7 +158,7 @@ def test_wall_watchdog_when_sim_time_stops(model):
         node, probe, est_pub, ref_pub = make(ctx, executor, clock_timeout=0.2)
         est_pub.publish(estimate(4 * MS, rest))                # no reference: stays unanswered
         assert spin_until(executor, lambda: node.diag.counters['estimates'] == 1)
-        assert spin_until(executor, lambda: node.clock_stopped, 5.0)
+        assert spin_until(executor, lambda: node.gate.time_stopped, 5.0)
         assert node.diag.level == ERROR and 'sim time stopped' in node.diag.message
         assert spin_until(executor, lambda: len(commands(probe)) == 1)
         stamp, u = cv.msg_to_torques(commands(probe)[0], 4)
@@ -204,7 +167,7 @@ def test_wall_watchdog_when_sim_time_stops(model):
         ref_pub.publish(horizon(rest, 0)[0])
         est_pub.publish(estimate(5 * MS, rest))
         assert spin_until(executor, lambda: len(commands(probe)) == 2)
-        assert not node.clock_stopped and node.diag.level == OK
+        assert not node.gate.time_stopped and node.diag.level == OK
 
 
 @pytest.mark.parametrize('changes, needle', [
@@ -219,14 +182,14 @@ def test_runtime_parameter_changes_are_refused_with_the_reason_and_the_old_value
     with ros_context() as (ctx, executor):
         node = ControllerNode(context=ctx)
         before = {k: node.get_parameter(k).value for k in changes}
-        timeout_ns = node.timeout_ns
+        timeout_ns = node.gate.estimate_timeout_ns
         result = node.set_parameters([Parameter(k, value=v) for k, v in changes.items()])[0]
         assert not result.successful and result.reason
         assert needle in result.reason
         assert {k: node.get_parameter(k).value for k in changes} == before
-        assert node.timeout_ns == timeout_ns and node.p['estimate_timeout'] == 0.002
+        assert node.gate.estimate_timeout_ns == timeout_ns and node.p['estimate_timeout'] == 0.002
         assert node.set_parameters([Parameter('estimate_timeout', value=0.005)])[0].successful
-        assert node.timeout_ns == 5 * MS
+        assert node.gate.estimate_timeout_ns == 5 * MS
 
 
 @pytest.mark.parametrize('args, needle', [

@@ -15,7 +15,7 @@ from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
 from soft_gripper_sdre.control.laws import make_law
 from soft_gripper_sdre.learning.model import SDCModel
 from soft_gripper_sdre.nodes import conversions as cv
-from test_node_controller import LIMIT, MS, commands, estimate, make
+from controller_harness import LIMIT, MS, commands, estimate, make
 
 pytestmark = pytest.mark.ros
 

@@ -24,7 +24,7 @@ def make_loop(ctx, executor, **params):
     pub = probe.create_publisher(JointState, TORQUE_COMMANDS, LOOP_QOS)
     executor.add_node(sim)
     executor.add_node(probe)
-    assert spin_until(executor, lambda: pub.get_subscription_count() > 0 and sim.started
+    assert spin_until(executor, lambda: pub.get_subscription_count() > 0 and sim.stepping.started
                       and probe.received[TIP_POSITIONS], 20.0)
     return sim, probe, pub
 
@@ -96,24 +96,24 @@ def test_bad_commands_are_rejected_counted_and_never_stepped():
         c = sim.diag.counters
         assert spin_until(executor, lambda: c['bad_command'] + c['stale_command'] + c['future_command'] >= 6, 10.0)
         assert c['bad_command'] == 4 and c['stale_command'] == 1 and c['future_command'] == 1
-        assert sim.k == 2                                   # none of them stepped the simulator
+        assert sim.stepping.k == 2                          # none of them stepped the simulator
         assert np.all(np.isfinite(sim.sim.truth().q))
         # a good command still works afterwards
         pub.publish(cv.torques_to_msg(now, np.array([[0.01, 0.0]])))
-        assert spin_until(executor, lambda: sim.k == 3, 5.0)
+        assert spin_until(executor, lambda: sim.stepping.k == 3, 5.0)
 
 
 def test_duration_stops_the_simulator():
     with ros_context() as (ctx, executor):
         sim, probe, pub = make_loop(ctx, executor, duration=0.01)
         answer_tips(executor, probe, pub, [[0.0, 0.0]], 10)
-        assert sim.done and sim.k == 10
+        assert sim.done and sim.stepping.k == 10
 
 
 def test_realtime_mode_steps_without_commands():
     with ros_context() as (ctx, executor):
         sim, probe, pub = make_loop(ctx, executor, mode='realtime', control_period=0.002)
-        assert spin_until(executor, lambda: sim.k >= 20, 10.0)
+        assert spin_until(executor, lambda: sim.stepping.k >= 20, 10.0)
         assert sim.diag.counters['late_periods'] >= 20
 
 

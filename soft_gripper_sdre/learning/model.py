@@ -46,6 +46,12 @@ class ModelFileError(ValueError):
     """A checkpoint cannot be used; the message names the file and the reason."""
 
 
+def set_torch_threads(count: int) -> None:
+    """Let torch use ``count`` threads for its own operations (a process that shares the machine's
+    cores with other nodes asks for one)."""
+    torch.set_num_threads(count)
+
+
 # ----------------------------------------------------------------------------------------------
 # networks
 # ----------------------------------------------------------------------------------------------

@@ -4,60 +4,38 @@ The control law is the ``law`` parameter (:mod:`soft_gripper_sdre.control.laws`)
 SDRE feedback plus model-inversion feedforward), ``sdre`` (the paper's law), ``lqr`` or ``pd``.
 
 Subscribes ``state_estimate`` (one message per control period), ``grasp_reference`` (a short
-horizon a few tens of times per second) and ``/clock`` (sim time, for lost estimates, below);
-publishes ``torque_commands`` stamped with the estimate's time (safe commands: with the tick's),
-and ``/diagnostics`` (solves, Riccati check failures, fallbacks, saturation, compute time).
+horizon a few tens of times per second) and ``/clock`` (sim time, for lost estimates); publishes
+``torque_commands`` and ``/diagnostics`` (solves, Riccati check failures, fallbacks, saturation,
+compute time).
 
-For each estimate stamped t_k the reference is sampled at t_k from the newest horizon that covers
-it; if none does yet (the trajectory node's message for this instant is still in flight), the
-estimate waits and is answered as soon as a covering reference arrives — the answer never depends
-on which message won the race, so lockstep runs stay deterministic.
+Which instant is answered, and when with the safe command (zero torque) instead of the law, is
+decided by :class:`~soft_gripper_sdre.control.command_gate.CommandGate`: each estimate is answered
+with the reference horizon that covers its stamp, lost estimates and stopped sim time get the safe
+command (docs/design/loop_rules.md). This module is the ROS side: parameters, topics, conversions,
+status and logs.
 
-Nothing bad ever reaches the actuators: malformed, non-finite, wrong-size or old messages are
-rejected (throttled warning, counted) and produce no torque; the SDRE core falls back to the last
-valid gains when a Riccati check fails and saturates at ``torque_limit``; a torque that is still
-not finite is replaced by zero and counted.
-
-Lost estimates are judged in sim time. The node follows ``/clock``; on a tick t when no estimate
-has arrived for ``estimate_timeout`` of sim time (two control periods by default; an estimate
-"arrives at" the newer of its stamp and the tick then current), it publishes its safe command,
-zero torque stamped t (the lockstep simulator accepts it: it answers the period the simulator
-is waiting on), counts it (``safe_commands``) and reports ERROR until an estimate arrives again;
-tracking then resumes. While estimates flow, the estimate of the previous period has always
-arrived before the simulator publishes the next tick, so a fault-free lockstep run never takes
-this path. An estimator that is alive but behind (just restarted, or starved of CPU) is not
-silent: its estimates for instants already answered are skipped (``late_estimates``), no safe
-command is sent, and the simulator waits for it (its ``lockstep_timeout``) until it has caught
-up — the loop is never driven past a slow estimator. Only the instant the estimates come back is
-ambiguous: if its tick wins the race against its estimate, that one period is still answered
-with zero.
-
-A wall-time watchdog is the last resort for when sim time itself stops (the simulator is dead or
-hung): after ``clock_timeout`` seconds of wall time without a tick or an estimate (1 s by default,
-twice the simulator's ``lockstep_timeout``, so that a live simulator waiting out a lost period is
-not mistaken for a stopped one and the sim-time rule above stays in charge) the node
-reports ERROR ("sim time stopped") and publishes zero torque for the newest instant it knows, if
-that instant is still unanswered (a simulator still waiting on it takes it); no later instant can
-be stamped honestly, so nothing more is sent until time moves again.
-A missing or bad model file ends the node at start-up with a message and a non-zero status.
+Nothing bad reaches the actuators: malformed, non-finite, wrong-size or old messages are rejected
+(throttled warning, counted) and produce no torque; the SDRE core falls back to the last valid
+gains when a Riccati check fails and saturates at ``torque_limit``; a torque that is still not
+finite is replaced by zero and counted. A missing or bad model file ends the node at start-up with
+a message and a non-zero status.
 """
 from __future__ import annotations
 
-from collections import deque
 from pathlib import Path
 import time
 
 import numpy as np
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
-import torch
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import MultiDOFJointTrajectory
 
+from soft_gripper_sdre.control.command_gate import Change, CommandGate, Notice, Outcome
 from soft_gripper_sdre.control.tracking import DEFAULT_LOWPASS_HZ, DEFAULT_WEIGHTS, Weights
 from soft_gripper_sdre.control.horizon import sample_horizon
 from soft_gripper_sdre.control.laws import DEFAULT_LAW, GRAPH_LAWS, accepts_ref_acc, make_law
-from soft_gripper_sdre.learning.model import ModelFileError, SDCModel
+from soft_gripper_sdre.learning.model import ModelFileError, SDCModel, set_torch_threads
 from soft_gripper_sdre.nodes import cdr, conversions as cv
 from soft_gripper_sdre.nodes.common import ERROR, OK, Diagnostics, ThrottledLogger, run
 from soft_gripper_sdre.nodes.params import Param, ParameterError, declare_all, on_runtime_change
@@ -110,7 +88,7 @@ class ControllerNode(Node):
         super().__init__('controller', **kwargs)
         p = declare_all(self, PARAMS)
         self.p = p
-        torch.set_num_threads(1)
+        set_torch_threads(1)
         try:
             model = SDCModel(Path(p['model_path']).expanduser() if p['model_path'] else None)
         except ModelFileError as exc:
@@ -120,11 +98,9 @@ class ControllerNode(Node):
         except ValueError as exc:
             raise ParameterError(str(exc)) from None
         self.n = p['n_fingers']
-        self.jump_ns = int(p['reset_on_jump'] * cv.NS)
         reason = _check_timeouts(p)
         if reason:
             raise ParameterError(reason)
-        self.timeout_ns = int(round(p['estimate_timeout'] * cv.NS))
         on_runtime_change(self, PARAMS, validate=lambda new: _check_timeouts({**self.p, **new}),
                           apply=self._apply)
         try:
@@ -136,18 +112,8 @@ class ControllerNode(Node):
         self.with_acc = accepts_ref_acc(self.ctrl)    # feedforward laws (sdre_ff) also take p̈_d
         self.done = False
         self.exit_code = 0
-
-        self.refs: deque = deque(maxlen=4)     # (start ns, end ns, times, pos, vel, acc), newest last
-        self.pending: tuple[int, np.ndarray] | None = None   # estimate waiting for a reference
-        self.last_est_ns = -1
-        self.last_ref_ns = -1
-        self.last_cmd_ns = -1
-        self.clock_ns = -1                      # newest /clock tick
-        self.est_heard_ns = -1                  # sim time at which the last estimate arrived
-        self.last_heard = time.monotonic()      # wall time of the last tick or estimate
-        self.stale = False                      # no estimate for estimate_timeout of sim time
-        self.clock_stopped = False              # nothing heard for clock_timeout of wall time
         self._compute_s = []
+        self._zeros = np.zeros((self.n, 2))
 
         # the per-period messages travel as CDR bytes read / written at fixed offsets (nodes/cdr.py)
         self.cdr_estimate = cdr.estimate_codec(self.n)
@@ -161,10 +127,12 @@ class ControllerNode(Node):
         self.sub_clock = self.create_subscription(Clock, CLOCK, self.on_clock, CLOCK_QOS, raw=True)
         self.log = ThrottledLogger(self.get_logger())
         self.diag = Diagnostics(self)
+        self.gate = CommandGate(_ns(p['estimate_timeout']), int(p['reset_on_jump'] * cv.NS),
+                                p['clock_timeout'], counters=self.diag.counters)
         cdr.watch(self.diag, self.cdr_estimate, self.cdr_clock)
         self.diag.values['model'] = str(model.path)
         self.diag.values['weights'] = f'q_pos={weights.q_pos:g} q_vel={weights.q_vel:g} r={weights.r:g}'
-        self._watchdog = self.create_timer(0.05, self._check_clock)
+        self._watchdog = self.create_timer(0.05, lambda: self._act(self.gate.on_wall_time(time.monotonic())))
         self.diag.before_publish.append(self._compute_stats)
         self.get_logger().info(
             f'model {model.path.name} (rest tip {1e3 * model.rest_tip[0]:.1f}, '
@@ -179,21 +147,7 @@ class ControllerNode(Node):
         except cv.MessageError as exc:
             self._reject('bad_reference', str(exc))
             return
-        if stamp < self.last_ref_ns - self.jump_ns:
-            self._restart(stamp, 'grasp_reference')
-        if stamp < self.last_ref_ns:
-            self._reject('old_reference', f'grasp_reference: stamp {stamp} ns is older than the '
-                         f'last accepted {self.last_ref_ns} ns')
-            return
-        self.last_ref_ns = stamp
-        self.refs.append((int(times[0]), int(times[-1]), times, pos, vel, acc))
-        self.diag.count('references')
-        if self.pending is not None:
-            ref = self._covering(self.pending[0])
-            if ref is not None:
-                stamp_est, x = self.pending
-                self.pending = None
-                self._control(stamp_est, x, ref)
+        self._act(self.gate.on_reference(stamp, times, pos, vel, acc), GRASP_REFERENCE)
 
     def on_estimate(self, data: bytes) -> None:
         try:
@@ -201,51 +155,55 @@ class ControllerNode(Node):
         except cv.MessageError as exc:
             self._reject('bad_estimate', str(exc))
             return
-        if stamp < self.last_est_ns - self.jump_ns:
-            self._restart(stamp, 'state_estimate')
-        if stamp <= self.last_est_ns:
-            self._reject('old_estimate', f'state_estimate: stamp {stamp} ns is not newer than the '
-                         f'last accepted {self.last_est_ns} ns')
-            return
-        self.last_est_ns = stamp
-        self.est_heard_ns = max(stamp, self.clock_ns)
-        self._heard()
-        if self.stale:
-            self.stale = False
-            self.diag.set_status(OK, 'estimates are back; tracking')
-            self.get_logger().info(f'state estimates are back at t = {stamp / cv.NS:.4f} s; tracking resumes')
-        self.diag.count('estimates')
-        if stamp <= self.last_cmd_ns:           # this instant already got the safe command
-            self.diag.count('late_estimates')
-            self.pending = None
-            return
-        ref = self._covering(stamp)
-        if ref is None:
-            if self.pending is not None:
-                self.diag.count('unanswered_estimates')   # superseded before any reference came
-            self.pending = (stamp, x)
-            return
-        self.pending = None
-        self._control(stamp, x, ref)
+        self._act(self.gate.on_estimate(stamp, x, time.monotonic()), STATE_ESTIMATE)
 
-    def _restart(self, stamp: int, topic: str) -> None:
-        """Time went back (the simulator restarted): forget references, estimates and warm starts."""
-        self.get_logger().warning(f'{topic}: time jumped back to {stamp / cv.NS:.3f} s; resetting')
-        self.diag.count('resets')
-        self.refs.clear()
-        self.pending = None
-        self.last_est_ns = self.last_ref_ns = self.last_cmd_ns = self.clock_ns = self.est_heard_ns = -1
-        self.ctrl.reset()
-
-    def _covering(self, t_ns: int):
-        """The newest stored horizon whose span holds ``t_ns``, or None."""
-        for ref in reversed(self.refs):
-            if ref[0] <= t_ns <= ref[1]:
-                return ref
-        return None
+    def on_clock(self, data: bytes) -> None:
+        try:
+            t, _ = self.cdr_clock.decode(data)
+        except cv.MessageError as exc:
+            self._reject('bad_clock', str(exc))
+            return
+        self._act(self.gate.on_tick(t, time.monotonic()), CLOCK)
 
     def _reject(self, key: str, why: str) -> None:
         self.diag.problem(key, f'rejected: {why}')
+
+    # -- outputs -----------------------------------------------------------------------------
+    def _act(self, outcome: Outcome, topic: str = '') -> None:
+        """Report the gate's notices, then publish its answer or refuse the message."""
+        for notice in outcome.notices:
+            self._report(notice, topic)
+        if outcome.refused:
+            self._reject(outcome.refused, outcome.reason)
+        answer = outcome.answer
+        if answer is None:
+            return
+        if answer.safe:
+            self.pub_cmd.publish(self.cdr_cmd.encode(answer.stamp, self._zeros))
+        else:
+            self._control(answer.stamp, answer.estimate, answer.reference)
+
+    def _report(self, notice: Notice, topic: str) -> None:
+        change, t = notice.change, notice.t_ns / cv.NS
+        if change is Change.RESET:
+            self.get_logger().warning(f'{topic}: time jumped back to {t:.3f} s; resetting')
+            self.ctrl.reset()
+        elif change is Change.ESTIMATES_LOST:
+            self._error(f'no state_estimate since t = {t:.4f} s (estimate_timeout '
+                        f'{self.p["estimate_timeout"]:g} s of sim time): commanding zero torque')
+        elif change is Change.ESTIMATES_BACK:
+            self.diag.set_status(OK, 'estimates are back; tracking')
+            self.get_logger().info(f'state estimates are back at t = {t:.4f} s; tracking resumes')
+        elif change is Change.TIME_STOPPED:
+            self._error(f'no /clock or state_estimate for {self.p["clock_timeout"]:g} s of wall time: '
+                        f'sim time stopped at {t:.4f} s')
+        elif change is Change.TIME_MOVES:
+            self.diag.set_status(OK, 'sim time moves again')
+
+    def _error(self, why: str) -> None:
+        """Enter ERROR with ``why`` (status and log)."""
+        self.diag.set_status(ERROR, why)
+        self.get_logger().error(why)
 
     # -- the law -----------------------------------------------------------------------------
     def _control(self, stamp: int, x: np.ndarray, ref: tuple) -> None:
@@ -261,81 +219,13 @@ class ControllerNode(Node):
             self.diag.count('nonfinite_torque')
             u = np.zeros_like(u)
         self.pub_cmd.publish(self.cdr_cmd.encode(stamp, u))
-        self.last_cmd_ns = stamp
-        d = self.diag
-        d.good('commands', 'tracking')
-        if not out.ok.all():
-            d.count('check_failures', int((~out.ok).sum()))
-            for flag in Check:
-                hits = int(np.count_nonzero(out.failed_checks & flag))
-                if hits:
-                    d.count(f'failed_{flag.name.lower()}', hits)
-        if out.fallback.any():
-            d.count('fallbacks', int(out.fallback.sum()))
-            self.log.warn('fallback', f'Riccati checks failed for fingers '
-                          f'{np.flatnonzero(out.fallback).tolist()} at t = {stamp / cv.NS:.3f} s; '
-                          'using the last valid gains')
-        if out.saturated.any():
-            d.count('saturated', int(out.saturated.sum()))
-        res = float(np.max(out.residual))
-        if res > float(d.values.get('max_residual', '0')):
-            d.values['max_residual'] = f'{res:.3g}'
+        self.diag.good('commands', 'tracking')
+        count_solve(self.diag, self.log, out, stamp)
 
-    # -- liveness ----------------------------------------------------------------------------
     def _apply(self, new: dict) -> None:
         self.p.update(new)
-        self.timeout_ns = int(round(self.p['estimate_timeout'] * cv.NS))
-
-    def _heard(self) -> None:
-        self.last_heard = time.monotonic()
-        if self.clock_stopped:
-            self.clock_stopped = False
-            if not self.stale:
-                self.diag.set_status(OK, 'sim time moves again')
-
-    def on_clock(self, data: bytes) -> None:
-        """Each sim-time tick: the safe command if the newest estimate is too old (module doc)."""
-        try:
-            t, _ = self.cdr_clock.decode(data)
-        except cv.MessageError as exc:
-            self._reject('bad_clock', str(exc))
-            return
-        if self.clock_ns >= 0 and t < self.clock_ns - self.jump_ns:
-            self._restart(t, '/clock')
-        self.clock_ns = max(self.clock_ns, t)
-        self.diag.count('ticks')
-        self._heard()
-        if self.est_heard_ns < 0 or t - self.est_heard_ns < self.timeout_ns or t <= self.last_cmd_ns:
-            return
-        if not self.stale:
-            self.stale = True
-            self._error(f'no state_estimate since t = {self.est_heard_ns / cv.NS:.4f} s (estimate_timeout '
-                        f'{self.p["estimate_timeout"]:g} s of sim time): commanding zero torque')
-        self._safe_command(t)
-
-    def _error(self, why: str) -> None:
-        """Enter ERROR with ``why`` (status and log)."""
-        self.diag.set_status(ERROR, why)
-        self.get_logger().error(why)
-
-    def _safe_command(self, stamp: int) -> None:
-        """Zero torque for the instant ``stamp``; the pending estimate, if any, is superseded."""
-        self.pending = None
-        self.pub_cmd.publish(self.cdr_cmd.encode(stamp, np.zeros((self.n, 2))))
-        self.last_cmd_ns = stamp
-        self.diag.count('safe_commands')
-
-    def _check_clock(self) -> None:
-        """Last resort (wall time): sim time has stopped, so the sim-time rule cannot fire."""
-        newest = max(self.clock_ns, self.last_est_ns)
-        if newest < 0 or time.monotonic() - self.last_heard < self.p['clock_timeout']:
-            return
-        if not self.clock_stopped:
-            self.clock_stopped = True
-            self._error(f'no /clock or state_estimate for {self.p["clock_timeout"]:g} s of wall time: '
-                        f'sim time stopped at {newest / cv.NS:.4f} s')
-        if newest > self.last_cmd_ns:
-            self._safe_command(newest)
+        self.gate.estimate_timeout_ns = _ns(self.p['estimate_timeout'])
+        self.gate.clock_timeout = self.p['clock_timeout']
 
     def _compute_stats(self) -> None:
         """Mean and max compute time [µs] since the last /diagnostics, into its values."""
@@ -344,6 +234,30 @@ class ControllerNode(Node):
             self.diag.values['compute_us_mean'] = f'{c.mean():.0f}'
             self.diag.values['compute_us_max'] = f'{c.max():.0f}'
             self._compute_s.clear()
+
+
+def count_solve(diag: Diagnostics, log: ThrottledLogger, out, stamp: int) -> None:
+    """Count in ``diag`` what the law's output ``out`` for the instant ``stamp`` reports: failed
+    Riccati checks by kind, fallbacks (also a throttled warning), saturation, the largest residual."""
+    if not out.ok.all():
+        diag.count('check_failures', int((~out.ok).sum()))
+        for flag in Check:
+            hits = int(np.count_nonzero(out.failed_checks & flag))
+            if hits:
+                diag.count(f'failed_{flag.name.lower()}', hits)
+    if out.fallback.any():
+        diag.count('fallbacks', int(out.fallback.sum()))
+        log.warn('fallback', f'Riccati checks failed for fingers {np.flatnonzero(out.fallback).tolist()} '
+                 f'at t = {stamp / cv.NS:.3f} s; using the last valid gains')
+    if out.saturated.any():
+        diag.count('saturated', int(out.saturated.sum()))
+    res = float(np.max(out.residual))
+    if res > float(diag.values.get('max_residual', '0')):
+        diag.values['max_residual'] = f'{res:.3g}'
+
+
+def _ns(seconds: float) -> int:
+    return int(round(seconds * cv.NS))
 
 
 def _check_timeouts(p: dict) -> str | None:

@@ -3,21 +3,20 @@
 Publishes ``/clock``, ``tip_positions`` (each control period), ``joint_states``, ``cube_pose``,
 ``cube_contacts`` (~100 Hz of sim time) and ``/diagnostics``; subscribes ``torque_commands``.
 
-*Lockstep* (default, deterministic): publish /clock and tip_positions stamped t_k, then step only
-when a torque command stamped t_k arrives — event-driven, nothing blocks inside a callback. If
-none arrives within ``lockstep_timeout`` seconds of wall time, hold the last good command (or zero,
-by ``on_timeout``), count it, warn in diagnostics and go on: the loop never deadlocks.
-*Realtime*: a wall timer steps at the control period with the latest command (zero-order hold),
-counting periods whose command was late.
+When it steps and with which torque is decided by :class:`~soft_gripper_sdre.sim.lockstep.Stepping`
+(docs/design/loop_rules.md): in *lockstep* (default, deterministic) one step per command stamped
+with the current period, and after ``lockstep_timeout`` of wall time a step with the held or zero
+command so the loop never deadlocks; in *realtime* a wall timer steps at the control period with
+the newest command. Bad commands (NaN/Inf, wrong sizes, unknown/duplicate/missing names, stamps
+older than the last applied one or ahead of the current period) are rejected with a throttled
+warning and counted; the simulator never steps with a non-finite torque.
 
-/diagnostics also carries the real-time factor of the stepping, this process's CPU time per step
-(``cpu_per_step_us``) and the loop latency: the wall time from publishing ``tip_positions`` for
-t_k to receiving the first command stamped t_k, as p50 / p99 / max [µs] over the last 10 000
-answered periods (``loop_latency_us_*``).
-
-Bad commands (NaN/Inf, wrong sizes, unknown/duplicate/missing names, stamps older than the last
-applied one or ahead of the current period) are rejected with a throttled warning and counted;
-the simulator never steps with a non-finite torque.
+The first step waits until the graph is wired (``min_tip_subscribers``, a command publisher,
+``min_diagnostics_subscribers``) or ``startup_timeout`` has passed. /diagnostics also carries the
+real-time factor of the stepping, this process's CPU time per step (``cpu_per_step_us``) and the
+loop latency: the wall time from publishing ``tip_positions`` for t_k to receiving the first
+command stamped t_k, as p50 / p99 / max [µs] over the last 10 000 answered periods
+(``loop_latency_us_*``).
 """
 from __future__ import annotations
 
@@ -35,9 +34,8 @@ from soft_gripper_sdre.nodes.params import Param, ParameterError, declare_all, o
 from soft_gripper_sdre.nodes.topics import (CLOCK, CLOCK_QOS, CUBE_CONTACTS, CUBE_POSE, JOINT_STATES,
                                             LOOP_QOS, STREAM_QOS, TIP_POSITIONS, TORQUE_COMMANDS)
 from soft_gripper_sdre.sim.hand import GripperSim, SimConfig
+from soft_gripper_sdre.sim.lockstep import LATENCY_PERIODS, Stepping
 
-#: periods back a command may answer and still count in the loop latency (realtime: late answers)
-LATENCY_PERIODS = 64
 _NO_VALUES = np.empty(0)       # /clock carries only its stamp
 
 PARAMS = (
@@ -81,7 +79,7 @@ class SimulatorNode(Node):
         super().__init__('simulator', **kwargs)
         p = declare_all(self, PARAMS)
         self.p = p
-        on_runtime_change(self, PARAMS, apply=self.p.update)
+        on_runtime_change(self, PARAMS, apply=self._apply)
         try:
             self.sim = GripperSim(SimConfig(
                 scene=p['scene'], control_period=p['control_period'],
@@ -91,24 +89,13 @@ class SimulatorNode(Node):
         except ValueError as exc:
             raise ParameterError(str(exc)) from None
         self.n = self.sim.n_fingers
-        self.period_ns = int(round(p['control_period'] * cv.NS))
-        self.total_steps = int(round(p['duration'] / p['control_period'])) if p['duration'] > 0 else None
         self.state_every = max(1, int(round(1.0 / (p['state_rate'] * p['control_period']))))
-        self.done = False
         self.exit_code = 0
-
-        self.u_last = np.zeros((self.n, 2))      # last good command
-        self.u_next = None                       # command received for the current period
-        self.last_cmd_ns = -1                    # stamp of the last applied command
-        self.k = 0                               # current period index; t_k = k · Δt
-        self.started = False
-        self.deadline = None
         self._wall_start = self._wall_end = None   # monotonic time of the first and last step
         self._cpu_start = self._cpu_end = None     # this process's CPU time then
         # loop latency: tip_positions for t_k published → the torque command stamped t_k received
         self.latency = LatencyWindow()
         self._tips_sent = np.zeros(LATENCY_PERIODS)   # perf_counter() at tips k, at k % LATENCY_PERIODS
-        self._answered_ns = -1                   # newest period whose latency is counted
 
         # the per-period messages travel as CDR bytes written / read at fixed offsets (nodes/cdr.py)
         self.cdr_clock = cdr.clock_codec()
@@ -123,6 +110,10 @@ class SimulatorNode(Node):
                                                 raw=True)
         self.log = ThrottledLogger(self.get_logger())
         self.diag = Diagnostics(self)
+        self.stepping = Stepping(
+            self.n, int(round(p['control_period'] * cv.NS)), p['mode'],
+            int(round(p['duration'] / p['control_period'])) if p['duration'] > 0 else None,
+            p['lockstep_timeout'], p['on_timeout'], p['on_bad_command'], counters=self.diag.counters)
         cdr.watch(self.diag, self.cdr_cmd)
         self.diag.before_publish.append(self._refresh_diagnostics)
         self.diag.values['mode'] = p['mode']
@@ -132,6 +123,17 @@ class SimulatorNode(Node):
         self.get_logger().info(
             f'{p["scene"]} scene settled; {p["mode"]} at {1e3 * p["control_period"]:g} ms, '
             f'{p["physics_substeps"]} physics substeps, noise σ = {1e3 * p["noise_std"]:g} mm')
+
+    @property
+    def done(self) -> bool:
+        """The run reached its ``duration`` (the process then exits)."""
+        return self.stepping.done
+
+    def _apply(self, new: dict) -> None:
+        self.p.update(new)
+        self.stepping.timeout = self.p['lockstep_timeout']
+        self.stepping.on_timeout = self.p['on_timeout']
+        self.stepping.on_bad_command = self.p['on_bad_command']
 
     # -- start-up ----------------------------------------------------------------------------
     def _try_start(self) -> None:
@@ -146,125 +148,99 @@ class SimulatorNode(Node):
                 f'publishers and {self.pub_tips.get_subscription_count()} tip_positions subscribers '
                 'after startup_timeout')
         self._startup_timer.cancel()
-        self.started = True
+        self.stepping.start()
         self._wall_start, self._cpu_start = time.monotonic(), time.process_time()
         if self.p['mode'] == 'lockstep':
             self._watchdog = self.create_timer(min(0.01, self.p['lockstep_timeout'] / 4), self._check_timeout)
         else:
-            self._stepper = self.create_timer(self.p['control_period'], self._realtime_step)
+            self._stepper = self.create_timer(self.p['control_period'],
+                                              lambda: self._step(self.stepping.on_period()))
         self.publish_state()
 
-    # -- commands ----------------------------------------------------------------------------
+    # -- commands and stepping ---------------------------------------------------------------
     def on_command(self, data: bytes) -> None:
         try:
             stamp, u = self.cdr_cmd.decode(data)
         except cv.MessageError as exc:
-            self._reject('bad_command', str(exc))
+            self.stepping.command_refused()
+            self.diag.problem('bad_command', f'rejected: {exc}')
             return
-        now_ns = self.k * self.period_ns
-        if self._answered_ns < stamp <= now_ns and self.started and stamp % self.period_ns == 0:
-            j = stamp // self.period_ns          # answers the tips of period j (realtime: maybe late)
-            if self.k - j < LATENCY_PERIODS:
-                self.latency.add(time.perf_counter() - self._tips_sent[j % LATENCY_PERIODS])
-                self._answered_ns = stamp
-        if stamp <= self.last_cmd_ns:
-            self._reject('stale_command', f'torque_commands: stamp {stamp} ns is not newer than '
-                         f'the last applied {self.last_cmd_ns} ns')
-            return
-        if stamp > now_ns:
-            self._reject('future_command', f'torque_commands: stamp {stamp} ns is ahead of sim time {now_ns} ns')
-            return
-        self.diag.count('commands')
-        if self.p['mode'] == 'lockstep':
-            if stamp == now_ns and self.started and not self.done:
-                self.last_cmd_ns = stamp
-                self.u_last = u
-                self._step(u)
-            else:
-                self.diag.count('late_command')     # for an earlier period we already stepped past
-        else:
-            self.last_cmd_ns = stamp
-            self.u_last = u
-            self.u_next = u
-
-    def _reject(self, key: str, why: str) -> None:
-        self.diag.problem(key, f'rejected: {why}')
-        if self.p['on_bad_command'] == 'zero':
-            self.u_last = np.zeros((self.n, 2))
-
-    # -- stepping ----------------------------------------------------------------------------
-    def _step(self, u: np.ndarray) -> None:
-        self.sim.step(u)      # u is finite here: validated on receipt or zero/held
-        self.k += 1
-        self.diag.count('steps')
-        if self.total_steps is not None and self.k >= self.total_steps:
-            self.done = True
-            self._wall_end, self._cpu_end = time.monotonic(), time.process_time()
-            self.publish_state()
-            self.diag.set_status(OK, f'finished {self.k} steps')
-            self.diag.publish()
-            self.get_logger().info(f'duration reached after {self.k} steps; stopping')
-            return
-        self.publish_state()
+        outcome = self.stepping.on_command(stamp, u)
+        if outcome.first_answer is not None:
+            self.latency.add(time.perf_counter() - self._tips_sent[outcome.first_answer % LATENCY_PERIODS])
+        if outcome.refused:
+            self.diag.problem(outcome.refused, f'rejected: {outcome.reason}')
+        self._step(outcome.step)
 
     def _check_timeout(self) -> None:
-        if self.done or self.deadline is None or time.monotonic() < self.deadline:
+        u = self.stepping.on_wall_time(time.monotonic())
+        if u is None:
             return
         hold = self.p['on_timeout'] == 'hold'
-        self.diag.count('timeouts')
         self.diag.set_status(WARN, f'command timeout at t = {self.sim.t:.3f} s; '
                              f'{"holding the last command" if hold else "zero torque"}')
         self.log.warn('timeout', f'no torque_commands for t = {self.sim.t:.3f} s within '
                       f'{self.p["lockstep_timeout"]} s; {"holding last" if hold else "applying zero"}')
-        self._step(self.u_last if hold else np.zeros((self.n, 2)))
+        self._step(u)
 
-    def _realtime_step(self) -> None:
-        if self.done:
+    def _step(self, u: np.ndarray | None) -> None:
+        """Step the physics with ``u`` (finite: validated on receipt, or held or zero), if any."""
+        if u is None:
             return
-        if self.u_next is None:
-            self.diag.count('late_periods')
-        self.u_next = None
-        self._step(self.u_last)
+        self.sim.step(u)
+        if self.done:
+            self._wall_end, self._cpu_end = time.monotonic(), time.process_time()
+        self.publish_state()
+        if self.done:
+            k = self.stepping.k
+            self.diag.set_status(OK, f'finished {k} steps')
+            self.diag.publish()
+            self.get_logger().info(f'duration reached after {k} steps; stopping')
 
     # -- publishing --------------------------------------------------------------------------
     def publish_state(self) -> None:
-        ns = self.k * self.period_ns
+        k, ns = self.stepping.k, self.stepping.now_ns
         tips = self.cdr_tips.encode(ns, self.sim.measure())
-        self._tips_sent[self.k % LATENCY_PERIODS] = time.perf_counter()
+        self._tips_sent[k % LATENCY_PERIODS] = time.perf_counter()
         self.pub_tips.publish(tips)         # first: the loop's critical path starts here
         self.pub_clock.publish(self.cdr_clock.encode(ns, _NO_VALUES))
-        self.deadline = time.monotonic() + self.p['lockstep_timeout']
-        if self.k % self.state_every == 0:
+        self.stepping.await_command(time.monotonic())
+        if k % self.state_every == 0:
             truth = self.sim.truth()
             self.pub_joints.publish(cv.joint_states_msg(ns, self.sim.joint_names, truth.q, truth.qd))
             if truth.cube_pose is not None:
-                pose = PoseStamped()
-                pose.header.stamp = cv.to_time(ns)
-                pose.header.frame_id = 'hand'
-                c = truth.cube_pose.tolist()
-                pose.pose.position.x, pose.pose.position.y, pose.pose.position.z = c[:3]
-                (pose.pose.orientation.x, pose.pose.orientation.y, pose.pose.orientation.z,
-                 pose.pose.orientation.w) = c[3:]
-                self.pub_cube.publish(pose)
+                self.pub_cube.publish(cube_pose_msg(ns, truth.cube_pose))
                 self.pub_contacts.publish(cv.contacts_msg(ns, truth.contact_force))
-        if self.diag.level == WARN and self.k % 1000 == 0 and self.deadline is not None:
+        if self.diag.level == WARN and k % 1000 == 0:
             self.diag.set_status(OK, 'stepping')
 
     def _refresh_diagnostics(self) -> None:
         """Sim time, real-time factor of the stepping and loop latency, before each /diagnostics."""
-        t = self.k * self.period_ns / cv.NS
+        k = self.stepping.k
+        t = self.stepping.now_ns / cv.NS
         self.diag.values['sim_time'] = f'{t:.3f}'
         if self._wall_start is not None:
             wall = (self._wall_end or time.monotonic()) - self._wall_start
             if wall > 0:
                 self.diag.values['real_time_factor'] = f'{t / wall:.4f}'
-            if self.k:
+            if k:
                 cpu = (self._cpu_end or time.process_time()) - self._cpu_start
-                self.diag.values['cpu_per_step_us'] = f'{1e6 * cpu / self.k:.0f}'
+                self.diag.values['cpu_per_step_us'] = f'{1e6 * cpu / k:.0f}'
         self.diag.values.update(self.latency.summary('loop_latency_us'))
 
     def close(self) -> None:
         self.sim.close()
+
+
+def cube_pose_msg(ns: int, pose: np.ndarray) -> PoseStamped:
+    """The cube's pose [x, y, z, qx, qy, qz, qw] in the hand frame at ``ns``."""
+    msg = PoseStamped()
+    msg.header.stamp = cv.to_time(ns)
+    msg.header.frame_id = 'hand'
+    c = pose.tolist()
+    msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = c[:3]
+    msg.pose.orientation.x, msg.pose.orientation.y, msg.pose.orientation.z, msg.pose.orientation.w = c[3:]
+    return msg
 
 
 def main(args=None) -> int:

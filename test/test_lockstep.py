@@ -1,0 +1,148 @@
+"""The simulator's stepping rules (sim/lockstep.py) driven by plain calls: stamps, torques and
+wall times, no DDS and no physics."""
+import numpy as np
+import pytest
+
+from soft_gripper_sdre.sim.lockstep import LATENCY_PERIODS, Stepping
+
+MS = 1_000_000
+N = 2
+
+
+def torque(value):
+    return np.full((N, 2), float(value))
+
+
+def started(**kwargs) -> Stepping:
+    stepping = Stepping(N, MS, **kwargs)
+    stepping.start()
+    stepping.await_command(0.0)
+    return stepping
+
+
+def test_lockstep_steps_once_per_command_of_the_current_period():
+    s = started()
+    for k in range(3):
+        u = torque(k + 1)
+        out = s.on_command(k * MS, u)
+        assert out.step is u and out.refused is None and out.first_answer == k
+        assert s.k == k + 1 and s.now_ns == (k + 1) * MS
+    np.testing.assert_array_equal(s.held, torque(3))
+    assert s.counters == {'commands': 3, 'steps': 3}
+
+
+def test_nothing_steps_before_the_start():
+    s = Stepping(N, MS)
+    out = s.on_command(0, torque(1))
+    assert out.step is None and out.first_answer is None and s.k == 0
+    assert s.counters['late_command'] == 1
+    assert s.on_wall_time(1e9) is None                     # no timeout before the first tips
+
+
+@pytest.mark.parametrize('stamp, key', [(0, 'stale_command'), (1 * MS, 'stale_command'),
+                                        (3 * MS, 'future_command'), (2 * MS + 1, 'future_command')])
+def test_duplicate_old_and_future_stamps_are_refused(stamp, key):
+    s = started()
+    s.on_command(0, torque(1))
+    s.on_command(1 * MS, torque(2))                        # now at period 2
+    out = s.on_command(stamp, torque(9))
+    assert out.refused == key and out.step is None and str(stamp) in out.reason
+    assert s.k == 2 and key not in s.counters             # the caller counts refusals
+    np.testing.assert_array_equal(s.held, torque(2))       # on_bad_command='hold'
+
+
+@pytest.mark.parametrize('u', [np.zeros((N + 1, 2)), np.zeros(2 * N), np.array([[np.nan, 0.0], [0.0, 0.0]]),
+                               np.array([[0.0, np.inf], [0.0, 0.0]])])
+def test_wrong_size_or_non_finite_torques_are_refused(u):
+    s = started()
+    out = s.on_command(0, u)
+    assert out.refused == 'bad_command' and out.step is None and s.k == 0
+    assert out.first_answer is None
+
+
+def test_a_refused_command_drops_the_held_one_with_the_zero_policy():
+    s = started(on_bad_command='zero')
+    s.on_command(0, torque(1))
+    assert s.on_command(5 * MS, torque(2)).refused == 'future_command'
+    np.testing.assert_array_equal(s.held, 0.0)
+    s.on_command(1 * MS, torque(3))
+    s.command_refused()                                    # a message the node could not decode
+    np.testing.assert_array_equal(s.held, 0.0)
+
+
+@pytest.mark.parametrize('policy, expected', [('hold', 4.0), ('zero', 0.0)])
+def test_lockstep_timeout_steps_with_the_held_or_zero_command_and_counts(policy, expected):
+    s = started(timeout=0.5, on_timeout=policy)
+    s.on_command(0, torque(4))
+    s.await_command(10.0)                                 # tips of period 1 went out at 10 s
+    assert s.on_wall_time(10.49) is None
+    u = s.on_wall_time(10.5)
+    np.testing.assert_array_equal(u, expected)
+    assert s.k == 2 and s.counters['timeouts'] == 1 and s.counters['steps'] == 2
+    # the missed period's command arrives after all: counted, not applied
+    out = s.on_command(1 * MS, torque(5))
+    assert out.step is None and out.refused is None and s.counters['late_command'] == 1
+    # and the current one steps as usual
+    s.await_command(11.0)
+    assert s.on_command(2 * MS, torque(6)).step is not None and s.k == 3
+
+
+def test_timeout_policy_and_length_can_change_between_calls():
+    s = started(timeout=0.5, on_timeout='hold')
+    s.on_command(0, torque(4))
+    s.timeout, s.on_timeout = 2.0, 'zero'
+    s.await_command(10.0)
+    assert s.on_wall_time(11.0) is None
+    np.testing.assert_array_equal(s.on_wall_time(12.0), 0.0)
+
+
+def test_the_run_stops_after_total_steps():
+    s = started(total_steps=2)
+    s.on_command(0, torque(1))
+    assert not s.done
+    s.await_command(0.0)
+    assert s.on_wall_time(1.0) is not None and s.done and s.k == 2
+    out = s.on_command(2 * MS, torque(1))
+    assert out.step is None and s.counters['late_command'] == 1
+    s.await_command(2.0)
+    assert s.on_wall_time(100.0) is None and s.k == 2
+
+
+def test_realtime_steps_each_period_with_the_newest_command_and_counts_late_periods():
+    s = started(mode='realtime')
+    np.testing.assert_array_equal(s.on_period(), 0.0)       # nothing yet: zero, late
+    assert s.counters['late_periods'] == 1 and s.k == 1
+    out = s.on_command(1 * MS, torque(1))
+    assert out.step is None and out.refused is None           # applied by the next period
+    np.testing.assert_array_equal(s.on_period(), torque(1))
+    assert s.counters['late_periods'] == 1
+    np.testing.assert_array_equal(s.on_period(), torque(1))   # held, and late
+    assert s.counters['late_periods'] == 2 and s.k == 3
+    s.on_command(2 * MS, torque(2))                           # for a period already past: applied
+    np.testing.assert_array_equal(s.on_period(), torque(2))
+    assert s.on_wall_time(1e9) is None and s.counters['timeouts'] == 0   # no lockstep timeout
+
+
+def test_lockstep_has_no_periods_of_its_own():
+    s = started()
+    assert s.on_period() is None and s.k == 0
+
+
+def test_the_loop_latency_counts_the_first_answer_of_each_period_only():
+    s = started(mode='realtime')
+    for _ in range(3):
+        s.on_period()                                          # now at period 3
+    assert s.on_command(2 * MS, torque(1)).first_answer == 2
+    assert s.on_command(2 * MS, torque(1)).first_answer is None   # a duplicate
+    assert s.on_command(1 * MS, torque(1)).first_answer is None   # older than an answered one
+    assert s.on_command(3 * MS - 1, torque(1)).first_answer is None   # off the period grid
+    assert s.on_command(3 * MS, torque(1)).first_answer == 3
+    for _ in range(LATENCY_PERIODS + 2):
+        s.on_period()
+    assert s.on_command(5 * MS, torque(1)).first_answer is None   # too far back to time
+
+
+def test_bad_modes_and_policies_are_refused():
+    for kwargs in ({'mode': 'warp'}, {'on_timeout': 'explode'}, {'on_bad_command': 'maybe'}):
+        with pytest.raises(ValueError):
+            Stepping(N, MS, **kwargs)
