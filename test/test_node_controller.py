@@ -4,22 +4,16 @@ import sys
 
 import numpy as np
 import pytest
-from sensor_msgs.msg import JointState
-from trajectory_msgs.msg import MultiDOFJointTrajectory
 
-from rosutil import Probe, overrides, ros_context, spin_until
+from node_harness import MS, TORQUE_LIMIT, commands, estimate, make_controller as make
+from rosutil import ros_context, spin_until
 from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
 from soft_gripper_sdre.control.laws import accepts_ref_acc, make_law
 from soft_gripper_sdre.learning.model import SDCModel
 from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.controller import ControllerNode
-from soft_gripper_sdre.nodes.topics import (GRASP_REFERENCE, LOOP_QOS, REFERENCE_QOS, STATE_ESTIMATE,
-                                            TORQUE_COMMANDS)
 
 pytestmark = pytest.mark.ros
-
-MS = 1_000_000
-LIMIT = 0.0625
 
 
 @pytest.fixture(scope='module')
@@ -36,34 +30,12 @@ def horizon(rest, start_ns, close_mm=5.0, points=21, step_ns=5 * MS):
     return cv.reference_to_msg(start_ns, times - start_ns, pos, zeros, zeros), pos[0]
 
 
-def estimate(ns, pos, vel=None):
-    return cv.estimate_to_msg(ns, pos, np.zeros_like(pos) if vel is None else vel)
-
-
-def make(ctx, executor, **params):
-    node = ControllerNode(context=ctx, parameter_overrides=overrides(**params))
-    probe = Probe(ctx)
-    probe.listen(JointState, TORQUE_COMMANDS, LOOP_QOS)
-    est_pub = probe.create_publisher(MultiDOFJointTrajectory, STATE_ESTIMATE, LOOP_QOS)
-    ref_pub = probe.create_publisher(MultiDOFJointTrajectory, GRASP_REFERENCE, REFERENCE_QOS)
-    executor.add_node(node)
-    executor.add_node(probe)
-    assert spin_until(executor, lambda: est_pub.get_subscription_count() > 0
-                      and ref_pub.get_subscription_count() > 0
-                      and node.pub_cmd.get_subscription_count() > 0, 20.0)
-    return node, probe, est_pub, ref_pub
-
-
-def commands(probe):
-    return probe.received[TORQUE_COMMANDS]
-
-
 # the paper's law, the node's default, the baselines and Q(x): the ``law`` / ``state_weights`` parameters
 @pytest.mark.parametrize('law, weights', [('sdre', False), ('sdre_ff', False), ('lqr', False), ('pd', False),
                                           ('sdre', True)])
 def test_torques_match_the_offline_law_and_close_the_fingers(model, law, weights):
     rest = np.repeat(model.rest_tip[None, :2], 4, 0)
-    offline = make_law(law, model, Weights(**DEFAULT_WEIGHTS), LIMIT, adaptive=weights)
+    offline = make_law(law, model, Weights(**DEFAULT_WEIGHTS), TORQUE_LIMIT, adaptive=weights)
     # the horizon below is constant, so the feedforward law's reference acceleration is zero
     extra = {'ref_acc': np.zeros((4, 2))} if accepts_ref_acc(offline) else {}
     with ros_context() as (ctx, executor):

@@ -17,6 +17,7 @@ LAYERS = (('sim', 'learning'), ('control',), ('analysis',), ('nodes', 'tools'))
 CORE_LAYERS = ('sim', 'learning', 'control', 'analysis')
 CORE_MODULES = sorted(p for layer in CORE_LAYERS for p in (PKG / layer).glob('*.py'))
 ALL_MODULES = sorted(PKG.rglob('*.py'))
+TEST_MODULES = sorted((ROOT / 'test').glob('test_*.py'))
 ROS_PREFIXES = ('rclpy', 'rosidl', 'rosgraph_msgs', 'builtin_interfaces')
 NODES = ('simulator', 'estimator', 'controller', 'trajectory', 'recorder')
 
@@ -80,6 +81,14 @@ def test_no_module_imports_another_modules_private_names(path):
         if module.startswith(PKG.name):
             private = [n for n in names if n.startswith('_') and not n.startswith('__')]
             assert not private, f'{_rel(path)} imports private {private} from {module}'
+
+
+@pytest.mark.parametrize('path', TEST_MODULES, ids=lambda p: p.name)
+def test_no_test_module_imports_another(path):
+    """A test module is a leaf: what several of them share lives in conftest.py (fixtures) or in a
+    helper module whose name does not start with ``test_``, so no test file depends on another's."""
+    tests = [module for module, _ in _imported_modules(path) if module.split('.')[0].startswith('test_')]
+    assert not tests, f'{path.name} imports the test module(s) {tests}'
 
 
 def test_one_version_string():

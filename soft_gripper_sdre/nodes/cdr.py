@@ -189,7 +189,7 @@ class LoopCodec:
         self.topic = topic
         self.msg_type = msg_type
         self.layout = Layout.learn(msg_type, to_msg, shape)
-        self._from_msg = from_msg
+        self.from_msg = from_msg
         self._finite_what = finite_what
         self.fallbacks = 0
 
@@ -211,7 +211,7 @@ class LoopCodec:
             except Exception:      # rclpy's RMWError: not CDR of this type
                 raise cv.MessageError(f'{self.topic}: {len(data)} bytes that do not deserialize as '
                                       f'{self.msg_type.__name__}') from None
-            return self._from_msg(msg)
+            return self.from_msg(msg)
         stamp, values = fast
         if self._finite_what is not None:
             cv.check_finite(values, self._finite_what)
