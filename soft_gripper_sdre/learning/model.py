@@ -43,6 +43,14 @@ class ModelFileError(ValueError):
     """A checkpoint cannot be used; the message names the file and the reason."""
 
 
+def set_torch_threads(n: int) -> None:
+    """Run torch's CPU work on ``n`` threads (the tools use one, as the nodes run numpy: on a
+    shared machine more threads only contend for the same cores)."""
+    if int(n) < 1:
+        raise ValueError(f'n must be >= 1, got {n!r}')
+    torch.set_num_threads(int(n))
+
+
 # ----------------------------------------------------------------------------------------------
 # networks
 # ----------------------------------------------------------------------------------------------
