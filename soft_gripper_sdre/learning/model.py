@@ -35,7 +35,7 @@ FORMAT_VERSION = 1
 HIDDEN = 32
 DEFAULT_MODEL = Path(__file__).resolve().parent.parent / 'models' / 'default.pt'
 #: the same preset trained on the paper's signals alone (u1..u3, both torques equal): kept to show
-#: what identifying excitation buys (G2's columns come out ~40° off)
+#: what identifying excitation buys (without it G2's column directions come out wrong)
 PAPER_DATA_MODEL = DEFAULT_MODEL.with_name('paper_data.pt')
 
 
