@@ -85,6 +85,8 @@ def test_report_is_written(tmp_path):
     assert json.dumps(ev.expectation_verdict([s])) == '{}'       # needs all four laws
 
 
+@pytest.mark.slow
+@pytest.mark.timeout(100)
 def test_command_line_writes_the_report(tmp_path):
     import subprocess
     import sys

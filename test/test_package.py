@@ -116,7 +116,7 @@ def test_colcon_build_installs_every_node(tmp_path):
         '.venv', '.git', 'build', 'install', 'log', 'runs', 'data', '*.egg-info', '__pycache__'))
     env = dict(os.environ, PYTHONDONTWRITEBYTECODE='1')
     proc = subprocess.run([str(colcon), 'build', '--base-paths', 'src'], cwd=tmp_path / 'ws',
-                          env=env, capture_output=True, text=True, timeout=600)
+                          env=env, capture_output=True, text=True, timeout=50)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     install = tmp_path / 'ws' / 'install' / 'soft_gripper_sdre'
     for node in NODES:
