@@ -25,6 +25,7 @@ def fast_runs(model):
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(90)      # the first user of fast_runs: its set-up counts here
 def test_every_law_tracks_the_fast_grasp_without_failed_checks(fast_runs):
     for key, s in fast_runs.items():
         assert s.saturated_pct < 1.0, (key, s)
