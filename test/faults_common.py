@@ -128,4 +128,6 @@ def table(directory: Path) -> str:
 
 
 if __name__ == '__main__':
+    if len(sys.argv) < 2 and not os.environ.get(RECORDS_ENV):
+        sys.exit(f'usage: python {sys.argv[0]} DIR   (or set ${RECORDS_ENV})')
     print(table(Path(sys.argv[1]) if len(sys.argv) > 1 else records_dir()))
