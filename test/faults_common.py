@@ -1,8 +1,10 @@
 """What the fault-injection tests share: tracking error, recovery time, and the outcome records.
 
-Each fault test writes one JSON record of what it measured to ``$FAULTS_OUT`` (default
-``runs/faults/``); ``python test/faults_common.py [DIR]`` renders the records as the README table
-"Faults survived".
+Each fault test writes one JSON record of what it measured to the directory ``$FAULTS_OUT``,
+which test/conftest.py sets to a fresh temporary directory for the session unless it is set
+already. To keep the records, name a directory: ``FAULTS_OUT=runs/faults pytest test/test_faults.py
+test/test_faults_procs.py test/test_fuzz.py``; ``python test/faults_common.py runs/faults`` then
+renders them as the README table "Faults survived".
 """
 from __future__ import annotations
 
@@ -19,12 +21,13 @@ from soft_gripper_sdre.control.trajectory import GraspProfile, GraspTrajectory
 TARGET_PCT = 5.0
 #: window of the moving RMSE that decides whether tracking is back [s]
 WINDOW = 0.1
-#: the item of issue 5 each record answers, and the table's row order
+#: the number of each fault in the README table "Faults survived", and the table's row order
 ITEMS = {'fuzz_simulator': 1, 'fuzz_estimator': 1, 'fuzz_trajectory': 1, 'fuzz_controller': 1,
          'fuzz_controller_clock': 1, 'lost_estimates': 2, 'crashed_controller': 3,
          'crashed_estimator': 4, 'crashed_trajectory': 4, 'riccati_trouble': 5, 'recording': 8,
          'clock_jump_back': 9}
-OUT = Path(os.environ.get('FAULTS_OUT', Path(__file__).resolve().parents[1] / 'runs' / 'faults'))
+#: environment variable naming the directory of the outcome records
+RECORDS_ENV = 'FAULTS_OUT'
 
 
 def tracking_error(t: np.ndarray, tips: np.ndarray, contact: np.ndarray, profile: GraspProfile,
@@ -80,11 +83,24 @@ def recovery_time(t: np.ndarray, err: np.ndarray, free: np.ndarray, excursion: n
     return float(ends[bad[-1] + 1] - since)
 
 
+def records_dir() -> Path:
+    """The directory named by ``$FAULTS_OUT``.
+
+    Raises:
+        RuntimeError: the variable is not set (outside pytest, which sets it in conftest.py).
+    """
+    directory = os.environ.get(RECORDS_ENV)
+    if not directory:
+        raise RuntimeError(f'${RECORDS_ENV} names no directory for the fault records')
+    return Path(directory)
+
+
 def record(name: str, **outcome) -> dict:
-    """Write the measured outcome of one fault test to ``OUT/name.json`` and return it."""
-    OUT.mkdir(parents=True, exist_ok=True)
+    """Write the measured outcome of one fault test to ``$FAULTS_OUT/name.json`` and return it."""
+    directory = records_dir()
+    directory.mkdir(parents=True, exist_ok=True)
     outcome = {'fault': name, **outcome}
-    (OUT / f'{name}.json').write_text(json.dumps(outcome, indent=2, default=float))
+    (directory / f'{name}.json').write_text(json.dumps(outcome, indent=2, default=float))
     return outcome
 
 
@@ -96,7 +112,7 @@ def _fmt(value, unit: str = '') -> str:
     return f'{value}{unit}'
 
 
-def table(directory: Path = OUT) -> str:
+def table(directory: Path) -> str:
     """The README table of every record in ``directory``."""
     rows = ['| # | fault | injected | times | crashes | non-finite outputs | messages lost | recovery '
             '(sim time) | notes |', '| ---: | --- | --- | ---: | ---: | ---: | ---: | ---: | --- |']
@@ -112,4 +128,6 @@ def table(directory: Path = OUT) -> str:
 
 
 if __name__ == '__main__':
-    print(table(Path(sys.argv[1]) if len(sys.argv) > 1 else OUT))
+    if len(sys.argv) < 2 and not os.environ.get(RECORDS_ENV):
+        sys.exit(f'usage: python {sys.argv[0]} DIR   (or set ${RECORDS_ENV})')
+    print(table(Path(sys.argv[1]) if len(sys.argv) > 1 else records_dir()))

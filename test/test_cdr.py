@@ -41,7 +41,7 @@ def _slow(codec, data):
     except Exception:                           # rclpy's RMWError
         return NOT_CDR
     try:
-        return codec._from_msg(msg)
+        return codec.from_msg(msg)
     except cv.MessageError as exc:
         return str(exc)
 

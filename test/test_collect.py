@@ -9,7 +9,7 @@ from soft_gripper_sdre.sim.signals import get_signal
 
 def run_collect(*args, cwd=None):
     return subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.collect', *args],
-                          capture_output=True, text=True, timeout=120, cwd=cwd)
+                          capture_output=True, text=True, timeout=50, cwd=cwd)
 
 
 def test_collect_writes_aligned_dataset(tmp_path):

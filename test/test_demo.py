@@ -11,8 +11,10 @@ from soft_gripper_sdre.tools.demo import run_demo, summary
 pytestmark = pytest.mark.ros
 
 
+@pytest.mark.slow
+@pytest.mark.timeout(75)
 def test_demo_runs_the_graph_as_processes_and_writes_a_readable_bag(tmp_path):
-    result = run_demo(tmp_path, duration=1.0, timeout=300, progress=False)
+    result = run_demo(tmp_path, duration=1.0, timeout=60, progress=False)
     counts = topic_counts(tmp_path / 'bag')
     # lockstep: one message per period on every loop topic, t = 0 … 1 s inclusive (the answer to
     # the final tips may be cut off by the shutdown: the simulator no longer needs it)

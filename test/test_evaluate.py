@@ -25,6 +25,7 @@ def fast_runs(model):
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(90)      # the first user of fast_runs: its set-up counts here
 def test_every_law_tracks_the_fast_grasp_without_failed_checks(fast_runs):
     for key, s in fast_runs.items():
         assert s.saturated_pct < 1.0, (key, s)
@@ -85,6 +86,8 @@ def test_report_is_written(tmp_path):
     assert json.dumps(ev.expectation_verdict([s])) == '{}'       # needs all four laws
 
 
+@pytest.mark.slow
+@pytest.mark.timeout(100)
 def test_command_line_writes_the_report(tmp_path):
     import subprocess
     import sys

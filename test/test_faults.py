@@ -54,6 +54,7 @@ class DropWindow(Node):
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(90)
 def test_lost_estimates_get_the_safe_command_then_tracking_recovers():
     start, end, duration = 300 * MS, 500 * MS, 1.9
     with ros_context() as (ctx, executor):

@@ -90,6 +90,7 @@ def _start_simulator_once_recorded(graph, executor, probe, params: dict, subscri
     probe.create_subscription(PoseArray, TIP_POSITIONS, lambda m: None, LOOP_QOS)
 
 
+@pytest.mark.timeout(170)
 @pytest.mark.parametrize('victim', ['controller', 'estimator', 'trajectory'])
 def test_crashed_node_is_restarted_and_the_grasp_recovers(victim, tmp_path):
     """The run is judged from a recorder's bag (lossless, as the recording test shows); the test's
@@ -204,6 +205,7 @@ def _spawn_recorder(env, bag, name: str, log_dir):
     return proc
 
 
+@pytest.mark.timeout(220)
 def test_recording_a_10s_grasp_loses_nothing_and_signals_leave_readable_bags(tmp_path):
     """Three recorders on the 5-process graph over a 10 s grasp at 1 ms: one to the end (every
     message the nodes counted as published is in its bag), one stopped by SIGINT and one by SIGTERM
@@ -281,6 +283,7 @@ def test_recording_a_10s_grasp_loses_nothing_and_signals_leave_readable_bags(tmp
                  f'{signalled["SIGTERM"] / cv.NS:.3f} s')
 
 
+@pytest.mark.timeout(90)
 def test_restarted_simulator_clock_jumps_back_and_every_node_resets(tmp_path):
     """SIGKILL the simulator mid-grasp and start it again: its clock restarts at 0, and the
     estimator, the trajectory node and the controller each reset (no negative time step) and the

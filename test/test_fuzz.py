@@ -13,15 +13,13 @@ from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import MultiDOFJointTrajectory, MultiDOFJointTrajectoryPoint
 
 from faults_common import record
+from node_harness import make_controller, make_estimator, make_trajectory
 from rosutil import Probe, overrides, ros_context, spin_until
 from soft_gripper_sdre.learning.model import SDCModel
 from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.simulator import SimulatorNode
 from soft_gripper_sdre.nodes.topics import (GRASP_REFERENCE, LOOP_QOS, STATE_ESTIMATE, TIP_POSITIONS,
                                             TORQUE_COMMANDS)
-from controller_harness import make as make_controller
-from test_node_estimator import make as make_estimator
-from test_node_trajectory import make as make_trajectory
 
 pytestmark = pytest.mark.ros
 

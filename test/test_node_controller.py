@@ -5,7 +5,7 @@ import sys
 import numpy as np
 import pytest
 
-from controller_harness import LIMIT, MS, commands, estimate, horizon, make
+from node_harness import MS, TORQUE_LIMIT, commands, estimate, make_controller as make
 from rosutil import ros_context, spin_until
 from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
 from soft_gripper_sdre.control.laws import accepts_ref_acc, make_law
@@ -21,12 +21,21 @@ def model():
     return SDCModel()
 
 
+def horizon(rest, start_ns, close_mm=5.0, points=21, step_ns=5 * MS):
+    """A constant reference ``close_mm`` towards the palm (+Y) for every finger."""
+    times = start_ns + step_ns * np.arange(points)
+    pos = np.repeat(rest[None, :, :], points, 0).copy()
+    pos[..., 1] += close_mm * 1e-3
+    zeros = np.zeros_like(pos)
+    return cv.reference_to_msg(start_ns, times - start_ns, pos, zeros, zeros), pos[0]
+
+
 # the paper's law, the node's default, the baselines and Q(x): the ``law`` / ``state_weights`` parameters
 @pytest.mark.parametrize('law, weights', [('sdre', False), ('sdre_ff', False), ('lqr', False), ('pd', False),
                                           ('sdre', True)])
 def test_torques_match_the_offline_law_and_close_the_fingers(model, law, weights):
     rest = np.repeat(model.rest_tip[None, :2], 4, 0)
-    offline = make_law(law, model, Weights(**DEFAULT_WEIGHTS), LIMIT, adaptive=weights)
+    offline = make_law(law, model, Weights(**DEFAULT_WEIGHTS), TORQUE_LIMIT, adaptive=weights)
     # the horizon below is constant, so the feedforward law's reference acceleration is zero
     extra = {'ref_acc': np.zeros((4, 2))} if accepts_ref_acc(offline) else {}
     with ros_context() as (ctx, executor):

@@ -10,12 +10,12 @@ import sys
 import numpy as np
 import pytest
 
+from node_harness import MS, TORQUE_LIMIT, commands, estimate, make_controller
 from rosutil import ros_context, spin_until
 from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
 from soft_gripper_sdre.control.laws import make_law
 from soft_gripper_sdre.learning.model import SDCModel
 from soft_gripper_sdre.nodes import conversions as cv
-from controller_harness import LIMIT, MS, commands, estimate, make
 
 pytestmark = pytest.mark.ros
 
@@ -38,13 +38,13 @@ def test_feedforward_law_gets_the_reference_acceleration_from_the_horizon():
     model = SDCModel()
     rest = np.repeat(model.rest_tip[None, :2], 4, 0)
     w = Weights(**DEFAULT_WEIGHTS)
-    with_acc, without = (make_law('sdre_ff', model, w, LIMIT) for _ in range(2))
+    with_acc, without = (make_law('sdre_ff', model, w, TORQUE_LIMIT) for _ in range(2))
     times = 5 * MS * np.arange(21)
     t = times[:, None, None] / 1e9
     a = np.array([0.0, 0.5])                                     # m/s² towards the palm
     pos, vel, acc = rest[None] + 0.5 * a * t ** 2, a * t * np.ones((1, 4, 1)), np.broadcast_to(a, (21, 4, 2))
     with ros_context() as (ctx, executor):
-        node, probe, est_pub, ref_pub = make(ctx, executor, law='sdre_ff')
+        node, probe, est_pub, ref_pub = make_controller(ctx, executor, law='sdre_ff')
         ref_pub.publish(cv.reference_to_msg(0, times, pos, vel, acc))
         assert spin_until(executor, lambda: node.diag.counters['references'] == 1)
         stamps = [k * MS for k in range(3)]

@@ -5,33 +5,19 @@ from geometry_msgs.msg import PoseArray
 import numpy as np
 import pytest
 from rclpy.parameter import Parameter
-from trajectory_msgs.msg import MultiDOFJointTrajectory
 import yaml
 
-from rosutil import Probe, overrides, ros_context, spin_until
+from node_harness import MS, make_estimator
+from rosutil import overrides, ros_context, spin_until
 from soft_gripper_sdre.control.kf import ConstantVelocityKF
 from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.estimator import PARAMS, EstimatorNode
 from soft_gripper_sdre.nodes.params import ParameterError
-from soft_gripper_sdre.nodes.topics import LOOP_QOS, STATE_ESTIMATE, TIP_POSITIONS
+from soft_gripper_sdre.nodes.topics import STATE_ESTIMATE
 
 pytestmark = pytest.mark.ros
 
-MS = 1_000_000
 CONFIG = Path(__file__).resolve().parents[1] / 'config' / 'estimator.yaml'
-
-
-def make(ctx, executor, **params):
-    """Estimator + a probe publishing tip_positions and recording state_estimate, matched."""
-    node = EstimatorNode(context=ctx, parameter_overrides=overrides(**params))
-    probe = Probe(ctx)
-    probe.listen(MultiDOFJointTrajectory, STATE_ESTIMATE, LOOP_QOS)
-    pub = probe.create_publisher(PoseArray, TIP_POSITIONS, LOOP_QOS)
-    executor.add_node(node)
-    executor.add_node(probe)
-    assert spin_until(executor, lambda: pub.get_subscription_count() > 0
-                      and node.pub.get_subscription_count() > 0, 10.0)
-    return node, probe, pub
 
 
 def handled(node) -> int:
@@ -66,7 +52,7 @@ def test_constant_velocity_is_tracked_exactly_like_the_offline_filter():
     stamps = t0 + MS * np.arange(steps)
     z = p0 + v * (stamps[:, None, None] - t0) / cv.NS + rng.normal(size=(steps, 4, 2)) * sigma
     with ros_context() as (ctx, executor):
-        node, probe, pub = make(ctx, executor)
+        node, probe, pub = make_estimator(ctx, executor)
         for k in range(steps):
             send(executor, node, pub, tips(int(stamps[k]), z[k]))
         got = estimates(executor, probe, steps)
@@ -103,7 +89,7 @@ def test_bad_inputs_are_counted_gaps_predicted_and_jumps_reset():
     kf = ConstantVelocityKF(1e-3, 1.0, 5e-5, n=4)
     expected = []
     with ros_context() as (ctx, executor):
-        node, probe, pub = make(ctx, executor, reset_on_jump=0.01)
+        node, probe, pub = make_estimator(ctx, executor, reset_on_jump=0.01)
         for item, kind in sequence:
             if not isinstance(item, int):
                 send(executor, node, pub, item)

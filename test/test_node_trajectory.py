@@ -1,40 +1,25 @@
 """The trajectory node over real DDS (loopback), launch-free: own Context, executor, test node."""
 from pathlib import Path
 
-from geometry_msgs.msg import PoseArray
 import numpy as np
 import pytest
-from trajectory_msgs.msg import MultiDOFJointTrajectory
 import yaml
 
-from rosutil import Probe, overrides, ros_context, spin_until
+from node_harness import MS, make_trajectory
+from rosutil import overrides, ros_context, spin_until
 from soft_gripper_sdre.control.horizon import sample_horizon
 from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.params import ParameterError
-from soft_gripper_sdre.nodes.topics import GRASP_REFERENCE, LOOP_QOS, REFERENCE_QOS, TIP_POSITIONS
+from soft_gripper_sdre.nodes.topics import GRASP_REFERENCE
 from soft_gripper_sdre.nodes.trajectory import PARAMS, TrajectoryNode
 from soft_gripper_sdre.control.trajectory import GraspProfile, GraspTrajectory
 
 pytestmark = pytest.mark.ros
 
-MS = 1_000_000
 CONFIG = Path(__file__).resolve().parents[1] / 'config' / 'trajectory.yaml'
 #: a grasp short enough that 100 ms of sim time see every phase
 FAST = dict(t_start=0.01, t_close=0.04, t_hold=0.01, t_open=0.03, side_distance=0.002)
 REST = np.array([[0.001, -0.002, 0.109], [0.0, -0.003, 0.108], [-0.001, -0.002, 0.109], [0.0, 0.001, 0.11]])
-
-
-def make(ctx, executor, **params):
-    """Trajectory node + a probe publishing tip_positions and recording grasp_reference, matched."""
-    node = TrajectoryNode(context=ctx, parameter_overrides=overrides(**params))
-    probe = Probe(ctx)
-    probe.listen(MultiDOFJointTrajectory, GRASP_REFERENCE, REFERENCE_QOS)
-    pub = probe.create_publisher(PoseArray, TIP_POSITIONS, LOOP_QOS)
-    executor.add_node(node)
-    executor.add_node(probe)
-    assert spin_until(executor, lambda: pub.get_subscription_count() > 0
-                      and node.pub.get_subscription_count() > 0, 10.0)
-    return node, probe, pub
 
 
 def send(executor, node, pub, msg) -> None:
@@ -56,7 +41,7 @@ def run_tips(stamps_ms, **params):
     """Send tips at the given stamps (the first at REST, later ones displaced); return the
     references and the node's counters."""
     with ros_context() as (ctx, executor):
-        node, probe, pub = make(ctx, executor, **params)
+        node, probe, pub = make_trajectory(ctx, executor, **params)
         for i, k in enumerate(stamps_ms):
             send(executor, node, pub, cv.tips_to_msg(k * MS, REST + (0.0 if i == 0 else 0.001)))
         return references(executor, node, probe), dict(node.diag.counters)
@@ -92,7 +77,7 @@ def test_horizons_follow_the_sim_clock_and_the_grasp_from_the_first_rest_pose(fi
 
 def test_bad_tip_messages_are_counted_and_a_restart_takes_a_new_rest_pose():
     with ros_context() as (ctx, executor):
-        node, probe, pub = make(ctx, executor, reset_on_jump=0.01, **FAST)
+        node, probe, pub = make_trajectory(ctx, executor, reset_on_jump=0.01, **FAST)
         for k in range(0, 30):
             send(executor, node, pub, cv.tips_to_msg(k * MS, REST))
         nan = cv.tips_to_msg(30 * MS, REST)
@@ -153,11 +138,11 @@ def test_a_restart_mid_run_keeps_the_given_rest_pose():
     rest = ', '.join(repr(v) for v in REST[:, :2].ravel().tolist())
     bent = REST + 0.01
     with ros_context() as (ctx, executor):
-        node, probe, pub = make(ctx, executor, rest_pose=rest, **FAST)
+        node, probe, pub = make_trajectory(ctx, executor, rest_pose=rest, **FAST)
         send(executor, node, pub, cv.tips_to_msg(30 * MS, bent))
         np.testing.assert_array_equal(node.traj.rest, REST[:, :2])
         assert node.diag.counters['late_start'] == 0 and references(executor, node, probe)
     with ros_context() as (ctx, executor):
-        node, probe, pub = make(ctx, executor, **FAST)
+        node, probe, pub = make_trajectory(ctx, executor, **FAST)
         send(executor, node, pub, cv.tips_to_msg(30 * MS, bent))
         assert node.diag.counters['late_start'] == 1

@@ -17,6 +17,7 @@ LAYERS = (('sim', 'learning'), ('control',), ('analysis',), ('nodes', 'tools'))
 CORE_LAYERS = ('sim', 'learning', 'control', 'analysis')
 CORE_MODULES = sorted(p for layer in CORE_LAYERS for p in (PKG / layer).glob('*.py'))
 ALL_MODULES = sorted(PKG.rglob('*.py'))
+TEST_MODULES = sorted((ROOT / 'test').glob('test_*.py'))
 ROS_PREFIXES = ('rclpy', 'rosidl', 'rosgraph_msgs', 'builtin_interfaces')
 NODES = ('simulator', 'estimator', 'controller', 'trajectory', 'recorder')
 
@@ -82,6 +83,14 @@ def test_no_module_imports_another_modules_private_names(path):
             assert not private, f'{_rel(path)} imports private {private} from {module}'
 
 
+@pytest.mark.parametrize('path', TEST_MODULES, ids=lambda p: p.name)
+def test_no_test_module_imports_another(path):
+    """A test module is a leaf: what several of them share lives in conftest.py (fixtures) or in a
+    helper module whose name does not start with ``test_``, so no test file depends on another's."""
+    tests = [module for module, _ in _imported_modules(path) if module.split('.')[0].startswith('test_')]
+    assert not tests, f'{path.name} imports the test module(s) {tests}'
+
+
 def test_one_version_string():
     xml_version = re.search(r'<version>([^<]+)</version>', (ROOT / 'package.xml').read_text()).group(1)
     assert 'version=' not in (ROOT / 'setup.py').read_text().replace('version=_version()', '')
@@ -107,7 +116,7 @@ def test_colcon_build_installs_every_node(tmp_path):
         '.venv', '.git', 'build', 'install', 'log', 'runs', 'data', '*.egg-info', '__pycache__'))
     env = dict(os.environ, PYTHONDONTWRITEBYTECODE='1')
     proc = subprocess.run([str(colcon), 'build', '--base-paths', 'src'], cwd=tmp_path / 'ws',
-                          env=env, capture_output=True, text=True, timeout=600)
+                          env=env, capture_output=True, text=True, timeout=50)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     install = tmp_path / 'ws' / 'install' / 'soft_gripper_sdre'
     for node in NODES:

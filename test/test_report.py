@@ -193,7 +193,7 @@ def test_report_cli_writes_real_pngs_and_metrics(bag, tmp_path):
     out = tmp_path / 'figs'
     proc = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.report', str(bag), '--out', str(out),
                            '--torque-limit', str(LIMIT)], env=dict(os.environ), capture_output=True,
-                          text=True, timeout=120)
+                          text=True, timeout=50)
     assert proc.returncode == 0, proc.stderr
     assert 'finger_0: RMSE 1.000 mm' in proc.stdout
     for name in report_tool.FIGURES:
@@ -207,7 +207,7 @@ def test_report_cli_bad_bag_exits_2(tmp_path):
     missing = tmp_path / 'no_such_bag'
     proc = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.report', str(missing), '--out',
                            str(tmp_path / 'out')], env=dict(os.environ), capture_output=True, text=True,
-                          timeout=120)
+                          timeout=50)
     assert proc.returncode == 2 and str(missing) in proc.stderr and 'does not exist' in proc.stderr
 
 

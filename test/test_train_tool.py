@@ -19,7 +19,7 @@ PNG_MAGIC = b'\x89PNG\r\n\x1a\n'
 
 def run_train(*args, cwd=None):
     return subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.train', *args],
-                          capture_output=True, text=True, timeout=300, cwd=cwd)
+                          capture_output=True, text=True, timeout=50, cwd=cwd)
 
 
 @pytest.fixture(scope='module')

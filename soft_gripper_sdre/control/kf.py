@@ -20,6 +20,8 @@ import numpy as np
 from scipy.linalg import solve_discrete_are
 
 PROCESS_NOISE_MODELS = ('independent', 'paper')
+#: covariance steps a filter remembers at most (the recursion settles onto one or two of them)
+REMEMBERED_STEPS = 8
 
 
 def cv_matrices(dt: float, accel_psd: float, process_noise: str = 'independent'):
@@ -43,10 +45,12 @@ class ConstantVelocityKF:
         meas_std: measurement standard deviation σ_r [m] (Σ_r = σ_r² I).
         n: number of fingers.
         process_noise: ``'independent'`` (default) or ``'paper'`` (D = [0 0 1 1]ᵀ).
+        remember_covariances: look settled covariance steps up instead of recomputing them (the
+            same numbers either way; see :meth:`step`).
     """
 
     def __init__(self, dt: float, accel_psd: float, meas_std: float, n: int = 4,
-                 process_noise: str = 'independent') -> None:
+                 process_noise: str = 'independent', remember_covariances: bool = True) -> None:
         if not (np.isfinite(dt) and dt > 0):
             raise ValueError(f'dt must be finite and > 0, got {dt!r}')
         if not (np.isfinite(accel_psd) and accel_psd >= 0):
@@ -60,12 +64,18 @@ class ConstantVelocityKF:
         self._H = np.hstack([np.eye(2), np.zeros((2, 2))])
         self._R = meas_std**2 * np.eye(2)
         self._p0 = max(1.0, 1e6 * meas_std**2)     # broad initial velocity covariance
+        self._remember = bool(remember_covariances)
         self.reset()
 
     F = property(lambda self: self._F.copy())
     Q = property(lambda self: self._Q.copy())
     H = property(lambda self: self._H.copy())
     R = property(lambda self: self._R.copy())
+
+    @property
+    def remembered_covariances(self) -> int:
+        """How many covariance steps are remembered now (at most :data:`REMEMBERED_STEPS`)."""
+        return len(self._memo)
 
     def reset(self, z0: np.ndarray | None = None) -> None:
         """Start over: positions at z0 (n, 2) (zero if None), zero velocity, broad covariance."""
@@ -80,7 +90,13 @@ class ConstantVelocityKF:
 
     def step(self, z: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
         """Predict one period and update with measurements z (n, 2); rows with ``valid`` False
-        (or a non-finite z) only predict. Returns a copy of x̂ (n, 4)."""
+        (or a non-finite z) only predict. Returns a copy of x̂ (n, 4).
+
+        The covariance recursion of a step in which every row updates does not depend on the
+        data, and in floating point it settles within a few hundred periods onto a fixed point or
+        a 2-cycle of bit patterns; with ``remember_covariances`` such a step is then a dictionary
+        hit instead of the covariance algebra, with exactly the same numbers.
+        """
         z = np.asarray(z, dtype=float)
         if z.shape != (self.n, 2):
             raise ValueError(f'z must have shape ({self.n}, 2), got {z.shape}')
@@ -109,17 +125,15 @@ class ConstantVelocityKF:
         return K, P, P_new
 
     def _covariance_step(self, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(K, posterior) after a full update, remembered by P's bytes.
-
-        The recursion does not depend on the data, and in floating point it settles within a few
-        hundred periods onto a fixed point or a 2-cycle of bit patterns; from then on every step
-        is a dictionary hit instead of the covariance algebra, and exactly the same numbers.
-        """
+        """(K, posterior) after a full update, remembered by P's bytes (see :meth:`step`)."""
+        if not self._remember:
+            K, _, P_new = self._covariance(P)
+            return K, P_new
         key = P.tobytes()
         hit = self._memo.get(key)
         if hit is None:
             K, _, P_new = self._covariance(P)
-            if len(self._memo) >= 8:
+            if len(self._memo) >= REMEMBERED_STEPS:
                 self._memo.clear()
             self._memo[key] = hit = (K, P_new)
         return hit[0], hit[1].copy()

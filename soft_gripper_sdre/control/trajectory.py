@@ -14,10 +14,12 @@ with ``d = [side, close]`` for the grasping fingers (+Y points at the palm centr
 
 so position and velocity are continuous everywhere; the acceleration steps by ±π²/(2T²)·|d| where
 a moving phase starts and ends (a half-cosine, as in the paper's sinusoidal grasp). The controller
-tracks position and velocity only, so the steps reach it as a kink in the reference velocity. The grasping fingers are meant to make contact with
-the cube partway through the closing phase (the reference continues a little "into" the cube so
-that the fingers squeeze it); :meth:`GraspTrajectory.free_space` tells where the reference stays a
-margin clear of the cube face, which is where free-space tracking is scored.
+tracks position and velocity only, so the steps reach it as a kink in the reference velocity.
+
+The grasping fingers are meant to make contact with the cube partway through the closing phase
+(the reference continues a little "into" the cube so that the fingers squeeze it);
+:meth:`GraspTrajectory.free_space` tells where the reference stays a margin clear of the cube
+face, which is where free-space tracking is scored.
 """
 from __future__ import annotations
 

@@ -38,7 +38,7 @@ ZIP_MAGIC = b'PK\x03\x04'
 HIDDEN = 32
 DEFAULT_MODEL = Path(__file__).resolve().parent.parent / 'models' / 'default.pt'
 #: the same preset trained on the paper's signals alone (u1..u3, both torques equal): kept to show
-#: what identifying excitation buys (G2's columns come out ~40° off)
+#: what identifying excitation buys (without it G2's column directions come out wrong)
 PAPER_DATA_MODEL = DEFAULT_MODEL.with_name('paper_data.pt')
 
 
@@ -46,10 +46,12 @@ class ModelFileError(ValueError):
     """A checkpoint cannot be used; the message names the file and the reason."""
 
 
-def set_torch_threads(count: int) -> None:
-    """Let torch use ``count`` threads for its own operations (a process that shares the machine's
-    cores with other nodes asks for one)."""
-    torch.set_num_threads(count)
+def set_torch_threads(n: int) -> None:
+    """Run torch's CPU work on ``n`` threads (the tools use one, as the nodes run numpy: on a
+    shared machine more threads only contend for the same cores)."""
+    if int(n) < 1:
+        raise ValueError(f'n must be >= 1, got {n!r}')
+    torch.set_num_threads(int(n))
 
 
 # ----------------------------------------------------------------------------------------------

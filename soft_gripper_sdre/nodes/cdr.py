@@ -1,32 +1,23 @@
 """Serialized CDR bytes of the per-period loop messages, read and written with numpy.
 
-rclpy builds a Python object for every nested message it deserializes, which is what makes the
-loop topics expensive (61 µs for a ``state_estimate`` of 4 joints, 34 µs for ``tip_positions``).
-The loop's messages never change shape from one period to the next: only the stamp and a few
-float64 fields move. So each loop topic gets a :class:`Layout` learned at start-up from a template
-message that rclpy itself serializes, and a period then costs a masked byte comparison and a
-numpy gather (decode) or scatter (encode) at fixed offsets.
+rclpy builds a Python object for every nested message it deserializes, which makes the loop
+topics costly to receive. The loop's messages never change shape from one period to the next:
+only the stamp and a few float64 fields move. So each loop topic gets a :class:`Layout` learned at
+start-up from a template message that rclpy itself serializes, and a period then costs a masked
+byte comparison and a numpy gather (decode) or scatter (encode) at fixed offsets.
 
-How a layout is learned, so that no offset is derived by hand:
-
-* the template is built by the same function that builds the message the slow way
-  (:mod:`~soft_gripper_sdre.nodes.conversions`), with a sentinel stamp and a distinct sentinel
-  value in every slot; the slot offsets are where those sentinels land in rclpy's bytes;
-* every other byte is flipped in turn and the bytes deserialized again: a byte whose flip leaves
-  the message equal to the template is one the deserializer ignores (alignment padding, which
-  rclpy's serializer leaves uninitialised, and slack at the end, which the layout drops as rmw
-  does for a typed message); every other byte is structural (the encapsulation header, lengths, counts, strings such as frame_id and names, and
-  fields outside the slots such as orientations) and must match the template exactly.
-
-A message matches a layout when it has the template's length and the same structural bytes; the
-slots may then hold anything. Anything else (another publisher's name order, a different
+A message matches a layout when it has the template's length and the same structural bytes (the
+encapsulation header, counts, strings, fields outside the slots); the stamp, the slots and the
+alignment padding may hold anything. Anything else (another publisher's name order, a different
 frame_id, more points, big-endian CDR, …) goes the slow way: ``deserialize_message`` and the
 ``msg_to_*`` conversion with all its checks (:class:`LoopCodec`). Both ways end in the same
 finiteness check, with the same error message.
 
 The bytes we publish are the template with the padding zeroed and the slots filled: valid CDR of
-the declared type (``deserialize_message`` gives back the message the slow way would have sent;
-test/test_cdr.py), so ``ros2 topic echo``, rosbag2 and typed subscribers are unaffected.
+the declared type, so ``ros2 topic echo``, rosbag2 and typed subscribers are unaffected.
+
+The byte layouts of the four loop messages, and how :meth:`Layout.learn` finds them without an
+offset derived by hand, are in docs/design/cdr.md.
 """
 from __future__ import annotations
 
@@ -189,7 +180,7 @@ class LoopCodec:
         self.topic = topic
         self.msg_type = msg_type
         self.layout = Layout.learn(msg_type, to_msg, shape)
-        self._from_msg = from_msg
+        self.from_msg = from_msg
         self._finite_what = finite_what
         self.fallbacks = 0
 
@@ -211,7 +202,7 @@ class LoopCodec:
             except Exception:      # rclpy's RMWError: not CDR of this type
                 raise cv.MessageError(f'{self.topic}: {len(data)} bytes that do not deserialize as '
                                       f'{self.msg_type.__name__}') from None
-            return self._from_msg(msg)
+            return self.from_msg(msg)
         stamp, values = fast
         if self._finite_what is not None:
             cv.check_finite(values, self._finite_what)

@@ -130,9 +130,9 @@ class LatencyWindow:
 def make_executor(kind: str | None = None, context=None) -> Executor:
     """The executor every node process spins: ``kind`` or $SOFT_GRIPPER_EXECUTOR, default 'events'.
 
-    rclpy's EventsExecutor dispatches each message from C++ with no wait-set rebuild per callback:
-    about half the CPU per received message of the SingleThreadedExecutor (README "Performance of
-    the graph"). Our nodes need nothing it lacks: one thread, subscriptions (also ``raw=True``),
+    rclpy's EventsExecutor dispatches each message from C++ with no wait-set rebuild per callback,
+    so it spends less CPU per received message than the SingleThreadedExecutor (BENCHMARKS.md,
+    "one DDS hop"). Our nodes need nothing it lacks: one thread, subscriptions (also ``raw=True``),
     wall timers created and cancelled from callbacks, ``spin_once`` with a timeout.
 
     Raises:

@@ -7,7 +7,7 @@ plus one ``.mcap`` file) that ``ros2 bag info`` / ``ros2 bag play`` on Jazzy rea
 in :meth:`RecorderNode.close`, which ``common.run`` calls on SIGINT, SIGTERM and normal exit, so
 metadata.yaml is always written. Per-topic message counts go to /diagnostics.
 
-Timestamp of each bag entry (the graph's time domain is sim time; DESIGN "All stamps are sim time"):
+Timestamp of each bag entry (the graph's time domain is sim time; README "Topics"):
 
 * a message's own stamp (``header.stamp``, or ``clock`` for /clock), read from the CDR bytes — the
   sim time the data refers to, so a lockstep run gives the same bag on any machine;

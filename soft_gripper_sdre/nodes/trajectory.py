@@ -38,26 +38,26 @@ from soft_gripper_sdre.nodes.params import Param, ParameterError, declare_all, o
 from soft_gripper_sdre.nodes.topics import GRASP_REFERENCE, LOOP_QOS, REFERENCE_QOS, TIP_POSITIONS
 from soft_gripper_sdre.control.trajectory import OTHERS_MODES, GraspProfile, GraspTrajectory
 
-_D = GraspProfile()
+_DEFAULTS = GraspProfile()     # the parameters' defaults
 PROFILE_FIELDS = tuple(f.name for f in fields(GraspProfile))
 
 PARAMS = (
     Param('n_fingers', 4, 'fingers in each tip_positions message', '', 1, 4, read_only=True),
-    Param('t_start', _D.t_start, 'hold at rest before the fingers move', 's', 0.0, 1e4, read_only=True),
-    Param('t_close', _D.t_close, 'duration of the closing motion', 's', 1e-3, 1e4, read_only=True),
-    Param('t_hold', _D.t_hold, 'time spent closed', 's', 0.0, 1e4, read_only=True),
-    Param('t_open', _D.t_open, 'duration of the opening motion', 's', 1e-3, 1e4, read_only=True),
-    Param('close_distance', _D.close_distance, 'travel of the grasping fingers along +Y (toward '
+    Param('t_start', _DEFAULTS.t_start, 'hold at rest before the fingers move', 's', 0.0, 1e4, read_only=True),
+    Param('t_close', _DEFAULTS.t_close, 'duration of the closing motion', 's', 1e-3, 1e4, read_only=True),
+    Param('t_hold', _DEFAULTS.t_hold, 'time spent closed', 's', 0.0, 1e4, read_only=True),
+    Param('t_open', _DEFAULTS.t_open, 'duration of the opening motion', 's', 1e-3, 1e4, read_only=True),
+    Param('close_distance', _DEFAULTS.close_distance, 'travel of the grasping fingers along +Y (toward '
           'the cube)', 'm', -0.1, 0.1, read_only=True),
-    Param('side_distance', _D.side_distance, 'travel of the grasping fingers along X while closing',
+    Param('side_distance', _DEFAULTS.side_distance, 'travel of the grasping fingers along X while closing',
           'm', -0.1, 0.1, read_only=True),
-    Param('open_distance', _D.open_distance, "travel of the other fingers along −Y when others = "
+    Param('open_distance', _DEFAULTS.open_distance, "travel of the other fingers along −Y when others = "
           "'open'", 'm', -0.1, 0.1, read_only=True),
-    Param('contact_distance', _D.contact_distance, 'travel along +Y at which a grasping tip touches '
+    Param('contact_distance', _DEFAULTS.contact_distance, 'travel along +Y at which a grasping tip touches '
           'the cube (scoring only)', 'm', -0.1, 0.1, read_only=True),
-    Param('contact_margin', _D.contact_margin, 'clearance from the cube below which a phase is no '
+    Param('contact_margin', _DEFAULTS.contact_margin, 'clearance from the cube below which a phase is no '
           'longer free space (scoring only)', 'm', 0.0, 0.1, read_only=True),
-    Param('grasp_fingers', list(_D.grasp_fingers), 'indices of the two opposite fingers that grasp',
+    Param('grasp_fingers', list(_DEFAULTS.grasp_fingers), 'indices of the two opposite fingers that grasp',
           read_only=True),
     Param('others', 'open', 'what the non-grasping fingers do', choices=OTHERS_MODES, read_only=True),
     Param('horizon', 0.1, 'reference time covered beyond each publishing stamp (>= 2 × '

@@ -1,36 +1,20 @@
 """Ground-truth task-space dynamics of one finger, from PyBullet's rigid-body model (no ROS).
 
-The simulated finger is a 10-joint chain (:mod:`soft_gripper_sdre.sim.finger`): with joint angles q, the spring torques
-−K q, gravity g(q), Coriolis/centrifugal C(q, q̇) q̇ and the actuator map B (10×2),
+The simulated finger is a 10-joint chain (:mod:`soft_gripper_sdre.sim.finger`). With the joint
+equation M(q) q̈ + C(q, q̇) q̇ + g(q) = B u − K q (friction off) and the tip Jacobian J, the tip's
+exact acceleration in its base frame is
 
-    M(q) q̈ + C(q, q̇) q̇ + g(q) = B u − K q                          (joint space, friction off)
-    p = tip(q),   ṗ = J(q) q̇,   p̈ = J q̈ + J̇ q̇                       (tip in the base frame)
+    p̈ = J̇ q̇ + J M⁻¹ (B u − K q − C q̇ − g)  =  f(q, q̇) + G₂(q) u,     G₂ = J M⁻¹ B,
 
-so the exact task-space acceleration (the paper's eq. 4–13 with the 10-joint q mapped to the 2-D
-tip by the tip Jacobian J ∈ R^{2×10}) is
+with the drift split into f_pos = J M⁻¹ (−K q − g) and f_vel = J̇ q̇ − J M⁻¹ C q̇. These depend on
+the whole 20-dimensional joint state; the 4-state SDC model approximates them. Beside the exact
+terms, :class:`TaskDynamics` carries their projection onto the chain's two static shapes
+Φ = K⁻¹ B (``f_pos_r``, ``f_vel_r``, ``G2_r``): the part a 4-state model can hope to match, since
+G₂ itself includes the chain's fast bending modes.
 
-    p̈ = J̇ q̇ + J M⁻¹ (B u − K q − C q̇ − g)  =  f(q, q̇) + G₂(q) u,     G₂ = J M⁻¹ B.
-
-The drift splits into a configuration part f_pos = J M⁻¹ (−K q − g) and a velocity part
-f_vel = J̇ q̇ − J M⁻¹ C q̇. Both depend on the whole 20-dimensional joint state, not just on the
-4-dimensional task state x = [p − p₀, ṗ]: the 4-state SDC model is an approximation of this.
-
-G₂ = J M⁻¹ B is the *instantaneous* response of the flexible chain (it includes its fast 23, 59 Hz…
-bending modes). The terms a 4-state model can hope to match come from projecting the joint
-equation onto the chain's two static shapes Φ = K⁻¹ B (the deflections a held torque produces;
-q ≈ Φ s, p ≈ S s with S = J Φ the static compliance), a Galerkin/Rayleigh–Ritz reduction:
-
-    M_r s̈ = Φᵀ (B u − K q − C q̇ − g),  M_r = Φᵀ M Φ   ⇒   p̈ ≈ J̇ q̇ + S M_r⁻¹ Φᵀ (B u − K q − C q̇ − g),
-
-evaluated at the true joint state. :class:`TaskDynamics` carries both (``G2`` and ``G2_r`` …).
-
-:class:`FingerDynamics` evaluates these terms in its own PyBullet DIRECT client (the same URDF and
-mount as the simulator's finger, so one instance serves every hand finger: each is evaluated in
-its own base frame). Joint friction (a Coulomb-like motor in the simulator) is left out: it is not
-a smooth term and has no place in an SDC form.
-
-:func:`oracle_sdc` turns the exact terms into an SDC pair A(x), G(x) — one of many, since the SDC
-factorisation of f is not unique (see its docstring).
+:class:`FingerDynamics` evaluates the terms in its own PyBullet DIRECT client (the simulator's
+URDF, so one instance serves every hand finger, each in its own base frame). :func:`oracle_sdc`
+turns them into one SDC pair A(x), G(x). The derivations are in docs/design/finger_dynamics.md.
 """
 from __future__ import annotations
 
@@ -59,7 +43,7 @@ class TaskDynamics:
     G2: np.ndarray         # (2, 2) J M⁻¹ B [m/s² per N·m]
     S: np.ndarray          # (2, 2) static compliance J K⁻¹ B (spring stiffness only) [m per N·m]
     J: np.ndarray          # (2, 10) tip Jacobian [m/rad]
-    # the same, Galerkin-projected onto the chain's static shapes Φ = K⁻¹ B (see module doc)
+    # the same, Galerkin-projected onto the chain's static shapes Φ = K⁻¹ B, M_r = Φᵀ M Φ
     f_pos_r: np.ndarray    # (2,) S M_r⁻¹ Φᵀ (−K q − g) [m/s²]
     f_vel_r: np.ndarray    # (2,) J̇ q̇ − S M_r⁻¹ Φᵀ C q̇ [m/s²]
     G2_r: np.ndarray       # (2, 2) S M_r⁻¹ Φᵀ B [m/s² per N·m]
@@ -93,9 +77,7 @@ class FingerDynamics(DirectClient):
         super().__init__()
         # The body is loaded upright with gravity turned into its base frame, g_b = Rᵀ (0, 0, −g):
         # PyBullet's calculateInverseDynamics ignores a fixed base's orientation and would apply
-        # gravity as if the finger stood upright (test_dynamics.py: a held pose of the rolled finger
-        # balances only with this; test_sim.py checks GripperSim.linearize, which does the same,
-        # against the Hessian of the gravity potential). Base frame = world frame here.
+        # gravity as if the finger stood upright. Base frame = world frame here.
         rot = rpy_matrix((math.radians(mount_roll_deg), 0.0, 0.0))
         pb.setGravity(*(rot.T @ np.array(WORLD_GRAVITY)), physicsClientId=self._client)
         self._body, = load_fingers(self._client, [((0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))])

@@ -1,10 +1,10 @@
 """The soft finger in plain PyBullet: its numbers, its URDF, the hand layout (no ROS).
 
-The finger is SoMo's in-hand-manipulation finger (see ``finger_spec.md``): ten rigid segments on
-revolute joints with alternating axes (even joints bend about the link x axis, "ax0", the grasp
-axis; odd joints about the link y axis, "ax1", the side axis), a linear spring on every joint and a
-velocity motor with target 0 whose force limit acts as Coulomb-like joint friction. Every joint of
-an axis receives the full actuator torque of that axis:
+The finger is SoMo's in-hand-manipulation finger: ten rigid segments on revolute joints with
+alternating axes (even joints bend about the link x axis, "ax0", the grasp axis; odd joints about
+the link y axis, "ax1", the side axis), a linear spring on every joint and a velocity motor with
+target 0 whose force limit acts as Coulomb-like joint friction. Every joint of an axis receives
+the full actuator torque of that axis:
 
     τ_j = u[axis(j)] − k_axis(j) · q_j,        B = [[1,0],[0,1],[1,0],…] ∈ R^{10×2}.
 

@@ -257,8 +257,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--write', type=Path, default=None, help='also write the results as Markdown here')
     ap.add_argument('--quick', action='store_true', help='shorter runs (smoke test)')
     a = ap.parse_args(argv)
-    import torch
-    torch.set_num_threads(1)
+    from soft_gripper_sdre.learning.model import set_torch_threads
+    set_torch_threads(1)
     table = rows(a.quick)
     width = max(len(r[0]) for r in table)
     for name, value, note in table:

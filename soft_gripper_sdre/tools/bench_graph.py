@@ -185,7 +185,7 @@ def _echo(count: int, raw: bool = False) -> int:
     executor = make_executor()
     executor.add_node(node)
     # a last pong published just before this writer is destroyed can be lost, and the pinging
-    # side would wait out its deadline (seen 1 run in 6): so this side waits for the goodbye
+    # side would wait out its deadline: so this side waits for the goodbye
     deadline = time.monotonic() + 120.0
     while seen['last'] < count and time.monotonic() < deadline:
         executor.spin_once(timeout_sec=0.1)
@@ -321,7 +321,7 @@ def rows(quick: bool = False, executor: str | None = None) -> list[tuple[str, st
          f'{seconds:g} s of sim time; {int(lock.get("timeouts", 0))} timeouts'),
         ('node graph, lockstep, SingleThreadedExecutor in every node',
          f'{single.get("real_time_factor", nan):.2f}× real time',
-         f'the executor before EventsExecutor; loop latency p50 {single.get("loop_latency_us_p50", nan):.0f} µs'),
+         f'rclpy\'s default executor; loop latency p50 {single.get("loop_latency_us_p50", nan):.0f} µs'),
         ('loop latency p50 / p99 (tips out → torque back)',
          f'{lock.get("loop_latency_us_p50", nan):.0f} / {lock.get("loop_latency_us_p99", nan):.0f} µs',
          'measured in the simulator: 3 DDS hops + estimator + controller'),

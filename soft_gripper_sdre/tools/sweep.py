@@ -34,18 +34,17 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     if any(q <= 0 for q in a.q_pos) or any(s < 0 for s in a.noise) or a.duration <= 0:
         ap.error('q_pos and duration must be > 0, noise >= 0')
-    import torch
     from tqdm import tqdm
 
     from soft_gripper_sdre.analysis.ground_truth import linear_finger, loop_spectral_radius
     from soft_gripper_sdre.analysis.closed_loop import EstimatorSettings, run_closed_loop
     from soft_gripper_sdre.control.tracking import DEFAULT_LOWPASS_HZ, DEFAULT_WEIGHTS, Weights
-    from soft_gripper_sdre.learning.model import SDCModel
+    from soft_gripper_sdre.learning.model import SDCModel, set_torch_threads
     from soft_gripper_sdre.analysis.plots import plot_sweep
     from soft_gripper_sdre.sim.hand import SimConfig
     from soft_gripper_sdre.control.trajectory import GraspProfile
 
-    torch.set_num_threads(1)
+    set_torch_threads(1)
     a.out.mkdir(parents=True, exist_ok=True)
     model = SDCModel()
     est = EstimatorSettings()

@@ -19,13 +19,13 @@ import shutil
 import sys
 
 import numpy as np
-import torch
 from tqdm import tqdm
 
 from soft_gripper_sdre.learning import derivatives
 from soft_gripper_sdre.learning.dataset import DatasetError, Record, load_records
 from soft_gripper_sdre.analysis.metrics import r2_score
-from soft_gripper_sdre.learning.model import DEFAULT_MODEL, PRESETS, SDCModel, fingerprint, save_checkpoint, train
+from soft_gripper_sdre.learning.model import (DEFAULT_MODEL, PRESETS, SDCModel, fingerprint, save_checkpoint,
+                                              set_torch_threads, train)
 from soft_gripper_sdre.analysis.plots import plot_accel, plot_loss
 
 #: training signals per data variant; validation is always u4
@@ -84,7 +84,7 @@ def main(argv: list[str] | None = None) -> int:
                         help=f'copy the checkpoint to the package as the shipped model ({DEFAULT_MODEL.name})')
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format='%(levelname)s %(message)s')
-    torch.set_num_threads(1)
+    set_torch_threads(1)
 
     settings = replace(PRESETS[args.preset], seed=args.seed)
     if args.epochs is not None:

@@ -1,0 +1,80 @@
+"""One node at a time over real DDS (loopback): the node under test and a probe node, matched.
+
+Each ``make_*`` builds the node with parameter overrides in the caller's Context, adds it and a
+:class:`~rosutil.Probe` to the executor, and returns once the probe's publishers and the node's
+publisher are matched both ways, so nothing the test sends next is lost to discovery.
+"""
+from __future__ import annotations
+
+from geometry_msgs.msg import PoseArray
+import numpy as np
+from sensor_msgs.msg import JointState
+from trajectory_msgs.msg import MultiDOFJointTrajectory
+
+from rosutil import Probe, overrides, spin_until
+from soft_gripper_sdre.nodes import conversions as cv
+from soft_gripper_sdre.nodes.controller import ControllerNode
+from soft_gripper_sdre.nodes.estimator import EstimatorNode
+from soft_gripper_sdre.nodes.topics import (GRASP_REFERENCE, LOOP_QOS, REFERENCE_QOS, STATE_ESTIMATE,
+                                            TIP_POSITIONS, TORQUE_COMMANDS)
+from soft_gripper_sdre.nodes.trajectory import TrajectoryNode
+
+#: one millisecond of sim time [ns]
+MS = 1_000_000
+#: the controller's torque limit in these tests [N·m]
+TORQUE_LIMIT = 0.0625
+
+
+def make_controller(ctx, executor, **params):
+    """Controller + a probe publishing state_estimate and grasp_reference and recording
+    torque_commands: ``(node, probe, estimate publisher, reference publisher)``."""
+    node = ControllerNode(context=ctx, parameter_overrides=overrides(**params))
+    probe = Probe(ctx)
+    probe.listen(JointState, TORQUE_COMMANDS, LOOP_QOS)
+    est_pub = probe.create_publisher(MultiDOFJointTrajectory, STATE_ESTIMATE, LOOP_QOS)
+    ref_pub = probe.create_publisher(MultiDOFJointTrajectory, GRASP_REFERENCE, REFERENCE_QOS)
+    executor.add_node(node)
+    executor.add_node(probe)
+    assert spin_until(executor, lambda: est_pub.get_subscription_count() > 0
+                      and ref_pub.get_subscription_count() > 0
+                      and node.pub_cmd.get_subscription_count() > 0, 20.0)
+    return node, probe, est_pub, ref_pub
+
+
+def make_estimator(ctx, executor, **params):
+    """Estimator + a probe publishing tip_positions and recording state_estimate:
+    ``(node, probe, tip publisher)``."""
+    node = EstimatorNode(context=ctx, parameter_overrides=overrides(**params))
+    probe = Probe(ctx)
+    probe.listen(MultiDOFJointTrajectory, STATE_ESTIMATE, LOOP_QOS)
+    pub = probe.create_publisher(PoseArray, TIP_POSITIONS, LOOP_QOS)
+    executor.add_node(node)
+    executor.add_node(probe)
+    assert spin_until(executor, lambda: pub.get_subscription_count() > 0
+                      and node.pub.get_subscription_count() > 0, 10.0)
+    return node, probe, pub
+
+
+def make_trajectory(ctx, executor, **params):
+    """Trajectory node + a probe publishing tip_positions and recording grasp_reference:
+    ``(node, probe, tip publisher)``."""
+    node = TrajectoryNode(context=ctx, parameter_overrides=overrides(**params))
+    probe = Probe(ctx)
+    probe.listen(MultiDOFJointTrajectory, GRASP_REFERENCE, REFERENCE_QOS)
+    pub = probe.create_publisher(PoseArray, TIP_POSITIONS, LOOP_QOS)
+    executor.add_node(node)
+    executor.add_node(probe)
+    assert spin_until(executor, lambda: pub.get_subscription_count() > 0
+                      and node.pub.get_subscription_count() > 0, 10.0)
+    return node, probe, pub
+
+
+def estimate(ns: int, pos: np.ndarray, vel: np.ndarray | None = None) -> MultiDOFJointTrajectory:
+    """A state_estimate message stamped ``ns`` with positions ``pos`` (n, 2) and velocities
+    ``vel`` (zero if None)."""
+    return cv.estimate_to_msg(ns, pos, np.zeros_like(pos) if vel is None else vel)
+
+
+def commands(probe: Probe) -> list[JointState]:
+    """The torque_commands messages ``probe`` has received so far (a live list)."""
+    return probe.received[TORQUE_COMMANDS]
