@@ -155,3 +155,10 @@ def test_package_xml_declares_every_ros_package_the_code_imports():
                 if name in ros_like or name.endswith('_msgs')}
     assert imported, 'the nodes import ROS packages; the scan found none'
     assert imported <= declared, f'package.xml lacks exec_depend for {sorted(imported - declared)}'
+
+
+def test_parameter_reference_is_generated_from_the_declarations():
+    """docs/parameters.md is what tools/params_doc renders from the nodes' PARAMS (regenerate with
+    ``python -m soft_gripper_sdre.tools.params_doc``)."""
+    from soft_gripper_sdre.tools.params_doc import render
+    assert (ROOT / 'docs' / 'parameters.md').read_text(encoding='utf-8') == render()
