@@ -89,7 +89,7 @@ def test_make_law_names_and_options():
     assert isinstance(make_law('pd', model, w, 0.06), PdLaw)
     with pytest.raises(ValueError, match='unknown law .*known'):
         make_law('mpc', model, w, 0.06)
-    with pytest.raises(ValueError, match="adaptive=True is not an option of the 'pd' law.*'sdre'"):
+    with pytest.raises(ValueError, match=r"adaptive=True \(state-dependent weights Q\(x\)\) is not an option of the 'pd' law.*'sdre'"):
         make_law('pd', model, w, 0.06, adaptive=True)
     with pytest.raises(ValueError, match='not an option'):
         make_law('sdre', model, w, 0.06, adaptve=True)              # a misspelt option is refused
@@ -256,7 +256,7 @@ def test_pd_feedforward_adds_the_reference_acceleration_and_make_law_knows_the_n
     assert make_law('sdre_ff', LinearModel(), W, 0.06, ff_at='ref').ff_at == 'ref'
     with pytest.raises(ValueError, match='ff_at'):
         make_law('sdre_ff', LinearModel(), W, 0.06, ff_at='later')
-    with pytest.raises(ValueError, match="feedforward=True is not an option of the 'sdre' law.*'pd'"):
+    with pytest.raises(ValueError, match=r"feedforward=True .* is not an option of the 'sdre' law.*'pd'"):
         make_law('sdre', LinearModel(), W, 0.06, feedforward=True)
     oracle = make_law('oracle_ff', LinearModel(), W, 0.06, n_fingers=1)
     try:

@@ -1,19 +1,13 @@
-"""The SDRE supervisor: the paper's tracking law (eq. 22) for n fingers, with fallbacks and counters.
+"""The SDRE supervisor: the paper's law u = K(x) x + K_s(x) x_d (eq. 22, saturated) for n fingers.
 
-    u = K(x) x + K_s(x) x_d, saturated to ±u_max                 (22)
-
-with K, K_s of eq. 23–24 (:mod:`~soft_gripper_sdre.control.riccati`). Two solvers give the same P:
-
-* ``'reference'`` — scipy per finger and the general checks (:mod:`~soft_gripper_sdre.control.riccati`),
-  the yardstick.
-* ``'fast'`` — for the SDC form, the kernel (:mod:`~soft_gripper_sdre.control.kernel`): Newton–Kleinman
-  warm-started from each finger's previous P, all fingers at once, with the structure's checks. A
-  finger that is cold (first step, or its last step was rejected) or fails a kernel check takes the
-  exact path (scipy and the general checks) alone. Inputs not in SDC form always take the exact path.
-
-:class:`SdreController` owns the warm starts, the last valid gains and the counters. A finger whose
-step fails any check uses its last valid gains (fallback), or the gains of a nominal model before
-it has any, or zero torque; the failure is counted. ``u`` is always finite.
+K, K_s and the checks are those of eq. 23–24 and Remarks 2–3 (:mod:`~soft_gripper_sdre.control.riccati`).
+``method='reference'`` solves with scipy; ``'fast'`` with the kernel (:mod:`~soft_gripper_sdre.control.kernel`,
+warm-started Newton–Kleinman on the SDC form), and a finger that is cold (first step, or its last step
+was rejected) or fails a kernel check takes the exact path (scipy and the general checks) alone;
+inputs not in SDC form always do. The supervisor owns the warm starts, the last valid gains and the
+counters: a finger whose step fails any check uses its last valid gains (fallback), or a nominal
+model's before it has any, or zero torque, and ``u`` is always finite. docs/design/fast_riccati.md
+has the derivations.
 """
 from __future__ import annotations
 
@@ -39,8 +33,7 @@ def _frozen(a: np.ndarray) -> np.ndarray:
 
 
 def _checked(**arrays) -> list[np.ndarray]:
-    """Each ``name=(value, shape)`` as a float array of that shape, in order; ValueError naming the
-    first whose shape is wrong."""
+    """Each ``name=(value, shape)`` as a float array, in order; ValueError naming the first of another shape."""
     out = []
     for name, (value, shape) in arrays.items():
         arr = np.asarray(value, dtype=float)
@@ -65,8 +58,7 @@ class SdreController:
         max_nk_iterations: most Newton–Kleinman iterations per step before the exact path.
         nominal: optional (A0, G0) whose gains serve as the fallback before any valid step.
 
-    Counters: ``steps``, ``fallbacks`` (finger-steps), ``exact_solves`` (scipy solves) and
-    ``check_failures`` (per :class:`Check` name).
+    Counters: ``steps``, ``fallbacks`` (finger-steps), ``exact_solves``, ``check_failures`` (per :class:`Check`).
     """
 
     def __init__(self, Q, R, u_max, n: int = 4, method: str = 'fast', residual_tol: float = 1e-6,

@@ -79,6 +79,10 @@ def _pd(s: LawSettings, pd_gains: dict | None = None, feedforward: bool = False)
                  feedforward=feedforward, **(pd_gains or DEFAULT_PD))
 
 
+#: what the options of the laws below mean (for error messages)
+_OPTION_MEANINGS = {'adaptive': 'state-dependent weights Q(x)', 'ff_at': 'where the feedforward evaluates the model',
+                    'pd_gains': 'the PD gains', 'feedforward': 'the reference acceleration added to the PD'}
+
 #: law name → how to build it; :func:`register_law` adds to it
 LAW_REGISTRY: dict[str, LawEntry] = {
     'sdre': LawEntry(_sdre, ('adaptive',)),
@@ -113,6 +117,7 @@ def make_law(name: str, model, weights: Weights, u_max: float, n_fingers: int = 
             taken[key] = value
         elif value is not None and value is not False:
             owners = [n for n, e in LAW_REGISTRY.items() if key in e.options]
-            raise ValueError(f'{key}={value!r} is not an option of the {name!r} law; laws that take it: '
-                             f'{owners or "none"}')
+            meaning = f' ({_OPTION_MEANINGS[key]})' if key in _OPTION_MEANINGS else ''
+            raise ValueError(f'{key}={value!r}{meaning} is not an option of the {name!r} law; laws that take '
+                             f'it: {owners or "none"}')
     return entry.build(LawSettings(model, weights, u_max, n_fingers, method, lowpass_hz, dt), **taken)
