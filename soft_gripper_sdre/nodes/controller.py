@@ -63,7 +63,7 @@ from soft_gripper_sdre.nodes.common import ERROR, OK, Diagnostics, ThrottledLogg
 from soft_gripper_sdre.nodes.params import Param, ParameterError, declare_all, on_runtime_change
 from soft_gripper_sdre.nodes.topics import (CLOCK, CLOCK_QOS, GRASP_REFERENCE, LOOP_QOS, REFERENCE_QOS,
                                             STATE_ESTIMATE, TORQUE_COMMANDS)
-from soft_gripper_sdre.control.sdre import Check
+from soft_gripper_sdre.control.riccati import Check
 
 PARAMS = (
     Param('model_path', '', 'SDC model checkpoint (.pt); empty = the model shipped with the package',
