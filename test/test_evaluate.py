@@ -86,6 +86,20 @@ def test_report_is_written(tmp_path):
     assert json.dumps(ev.expectation_verdict([s])) == '{}'       # needs all four laws
 
 
+def test_law_figures_add_the_feedforward_comparison_when_the_feedforward_law_ran(tmp_path):
+    from types import SimpleNamespace
+    t = np.arange(50) * 1e-3
+    ref = np.zeros((50, 4, 2)) + np.linspace(0, 1e-2, 50)[:, None, None]
+
+    def run(lag):
+        return SimpleNamespace(t=t, pos=ref - lag, ref_pos=ref, u=np.full((50, 4, 2), lag))
+    names = ev.law_figures({'sdre': run(1e-3), 'lqr': run(2e-3)}, 'fast', tmp_path)
+    assert names == ['fast_laws.png']
+    names = ev.law_figures({'sdre': run(1e-3), 'pd': run(2e-3), 'sdre_ff': run(1e-4)}, 'fast', tmp_path)
+    assert names == ['fast_laws.png', 'fast_feedforward.png']
+    assert all((tmp_path / n).read_bytes()[:4] == b'\x89PNG' for n in names)
+
+
 @pytest.mark.slow
 @pytest.mark.timeout(100)
 def test_command_line_writes_the_report(tmp_path):
@@ -101,6 +115,7 @@ def test_command_line_writes_the_report(tmp_path):
     assert (out / 'fast_laws.png').stat().st_size > 10_000
     runs = json.loads((out / 'evaluate.json').read_text())['runs']
     assert {r['law'] for r in runs} == {'lqr', 'pd'} and all(r['check_fail_pct'] == 0.0 for r in runs)
+    assert all(np.isfinite(r['compute_us']) and r['compute_us'] > 0 for r in runs)   # the loop timed the law
     bad = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.evaluate', '--laws', 'mpc'],
                          capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and 'mpc' in bad.stderr

@@ -156,11 +156,12 @@ def test_riccati_trouble_falls_back_counted_and_the_torque_stays_finite_and_boun
     """1000 steps of 4 fingers through a test model whose states are near singular or not
     stabilisable half the time: every such solve falls back (counted), every torque is finite
     and within the limit."""
-    from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, TrackingController, Weights
-    from soft_gripper_sdre.control.sdre import Check
+    from soft_gripper_sdre.control.laws import SdreLaw
+    from soft_gripper_sdre.control.riccati import Check
+    from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
     model = TroubledModel(3)
     limit = 0.0625
-    ctrl = TrackingController(model, Weights(**DEFAULT_WEIGHTS), limit, n_fingers=4, lowpass_hz=0.0)
+    ctrl = SdreLaw(model, Weights(**DEFAULT_WEIGHTS), limit, n_fingers=4, lowpass_hz=0.0)
     rng = np.random.default_rng(4)
     fallbacks = failed = 0
     for _ in range(1000):

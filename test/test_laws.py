@@ -1,13 +1,14 @@
-"""The baseline laws (soft_gripper_sdre.control.laws) against closed forms."""
+"""The laws (soft_gripper_sdre.control.laws, and the oracles of analysis.oracle) against closed forms."""
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
-from soft_gripper_sdre.control.tracking import TrackingController, Weights
-from soft_gripper_sdre.control.laws import (AdaptiveSdreLaw, LqrLaw, OracleFeedforwardLaw, OracleSdreLaw, PdLaw,
-                                    SdreFeedforwardLaw, accepts_ref_acc, make_law)
-from soft_gripper_sdre.control.sdre import sdre_gains
+from soft_gripper_sdre.analysis.oracle import ORACLE_LAWS, OracleFeedforwardLaw, OracleSdreLaw
+from soft_gripper_sdre.control.laws import (GRAPH_LAWS, LAW_REGISTRY, AdaptiveSdreLaw, LqrLaw, PdLaw,
+                                            SdreFeedforwardLaw, SdreLaw, make_law)
+from soft_gripper_sdre.control.riccati import sdre_gains
+from soft_gripper_sdre.control.tracking import Weights
 
 REST = np.array([0.01, -0.02, 0.3])
 
@@ -50,7 +51,7 @@ def test_lqr_law_applies_its_frozen_gains_in_translated_coordinates():
     xd = np.hstack([ref - REST[:2], ref_vel])
     np.testing.assert_allclose(out.u, x @ law.K.T + xd @ law.Ks.T, rtol=1e-12)
     # the same gains as the SDRE controller on the same (state-independent) model
-    sdre = TrackingController(model, w, 1e9, n_fingers=2, method='reference', lowpass_hz=0.0)
+    sdre = SdreLaw(model, w, 1e9, n_fingers=2, method='reference', lowpass_hz=0.0)
     np.testing.assert_allclose(sdre.compute(pos, vel, ref, ref_vel).u, out.u, rtol=1e-6)
 
 
@@ -82,14 +83,19 @@ def test_laws_saturate_roll_off_and_refuse_non_finite_states():
 
 def test_make_law_names_and_options():
     model, w = LinearModel(), Weights(1e6, 0.0, 1.6e4)
-    assert type(make_law('sdre', model, w, 0.06)) is TrackingController
+    assert type(make_law('sdre', model, w, 0.06)) is SdreLaw
     assert isinstance(make_law('sdre', model, w, 0.06, adaptive=True), AdaptiveSdreLaw)
     assert isinstance(make_law('lqr', model, w, 0.06), LqrLaw)
     assert isinstance(make_law('pd', model, w, 0.06), PdLaw)
     with pytest.raises(ValueError, match='unknown law .*known'):
         make_law('mpc', model, w, 0.06)
-    with pytest.raises(ValueError, match='state-dependent weights'):
+    with pytest.raises(ValueError, match=r"adaptive=True \(state-dependent weights Q\(x\)\) is not an option of the 'pd' law.*'sdre'"):
         make_law('pd', model, w, 0.06, adaptive=True)
+    with pytest.raises(ValueError, match='not an option'):
+        make_law('sdre', model, w, 0.06, adaptve=True)              # a misspelt option is refused
+    assert isinstance(make_law('lqr', model, w, 0.06, adaptive=False, pd_gains=None), LqrLaw)   # off: fine
+    # the registry holds every graph law, and the oracles once analysis.oracle is imported
+    assert set(GRAPH_LAWS) | set(ORACLE_LAWS) <= set(LAW_REGISTRY)
     with pytest.raises(ValueError, match='kp'):
         PdLaw(model, 0.06, kp=-1.0)
 
@@ -106,7 +112,7 @@ def test_state_dependent_weight_rises_with_the_error_and_is_capped():
     assert law.gain == pytest.approx(2.0)
     u_big = law.compute(p, z, p + [[0.0, 5e-3]], z).u
     assert law.gain == 4.0
-    fixed = TrackingController(model, Weights(4e6, 0.0, 1.6e4), 1e9, n_fingers=1, lowpass_hz=0.0)
+    fixed = SdreLaw(model, Weights(4e6, 0.0, 1.6e4), 1e9, n_fingers=1, lowpass_hz=0.0)
     np.testing.assert_allclose(u_big, fixed.compute(p, z, p + [[0.0, 5e-3]], z).u, rtol=1e-6)
     assert np.all(np.isfinite(u0))
 
@@ -162,7 +168,7 @@ def test_feedforward_on_the_reference_is_the_model_inversion(ff_at):
     out = law.compute(p, v, p, v, ref_acc=a)
     u = np.linalg.solve(SPRING['G2'], a[0] - SPRING['A21'] @ (p[0] - REST[:2]))
     np.testing.assert_allclose(out.u[0], u, rtol=1e-12)
-    assert out.ok.all() and not out.fallback.any() and accepts_ref_acc(law)
+    assert out.ok.all() and not out.fallback.any()
 
 
 def test_feedforward_at_x_makes_the_models_error_dynamics_the_closed_loop_matrix():
@@ -190,8 +196,7 @@ def _track_sine(law, model, seconds=0.3, dt=2e-4):
     err = []
     for k in range(int(round(seconds / dt))):
         p_d, v_d, a_d = sine_reference(k * dt)
-        kw = {'ref_acc': a_d} if accepts_ref_acc(law) else {}
-        u = law.compute(x[None, :2] + REST[:2], x[None, 2:], p_d, v_d, **kw).u[0]
+        u = law.compute(x[None, :2] + REST[:2], x[None, 2:], p_d, v_d, ref_acc=a_d).u[0]
 
         def f(z):
             A, G = model.AG(z)
@@ -209,10 +214,10 @@ def test_feedforward_makes_a_sinusoid_an_exact_solution_where_the_paper_law_lags
     the 0.2 ms zero-order hold; the paper's u = Kx + K_s x_d (same weights) lags by far more."""
     model = LinearModel(**SPRING)
     ff = SdreFeedforwardLaw(model, W, 1e9, n_fingers=1, lowpass_hz=0.0)
-    paper = TrackingController(model, W, 1e9, n_fingers=1, lowpass_hz=0.0)
+    paper = SdreLaw(model, W, 1e9, n_fingers=1, lowpass_hz=0.0)
     e_ff, e_paper = _track_sine(ff, model), _track_sine(paper, model)
-    assert e_ff < 5e-6                     # 4 mm amplitude: measured 0.86 µm (the hold)
-    assert e_paper > 100 * e_ff and e_paper > 1e-3  # measured 1.6 mm
+    assert e_ff < 5e-6                     # of a 4 mm amplitude: the error of the hold alone
+    assert e_paper > 100 * e_ff and e_paper > 1e-3
 
 
 def test_feedforward_with_bad_reference_acceleration_still_gives_finite_torque():
@@ -244,16 +249,18 @@ def test_pd_feedforward_adds_the_reference_acceleration_and_make_law_knows_the_n
     p, v, a = sine_reference(0.03)
     out = pd.compute(p, v, p + [[0, 1e-3]], v, ref_acc=a)
     np.testing.assert_allclose(G2 @ out.u[0], a[0] + [0, 2.0], rtol=1e-10)
-    assert accepts_ref_acc(pd) and not accepts_ref_acc(make_law('pd', LinearModel(), W, 0.06))
+    plain = make_law('pd', LinearModel(G2=G2), W, 1e9, n_fingers=1, lowpass_hz=0.0, pd_gains=dict(kp=2000.0, kd=30.0))
+    np.testing.assert_allclose(G2 @ plain.compute(p, v, p + [[0, 1e-3]], v, ref_acc=a).u[0], [0, 2.0],
+                               atol=1e-12)                               # without feedforward: a_d unused
     assert isinstance(make_law('sdre_ff', LinearModel(), W, 0.06), SdreFeedforwardLaw)
     assert make_law('sdre_ff', LinearModel(), W, 0.06, ff_at='ref').ff_at == 'ref'
     with pytest.raises(ValueError, match='ff_at'):
         make_law('sdre_ff', LinearModel(), W, 0.06, ff_at='later')
-    with pytest.raises(ValueError, match='feedforward is an option of the pd law'):
+    with pytest.raises(ValueError, match=r"feedforward=True .* is not an option of the 'sdre' law.*'pd'"):
         make_law('sdre', LinearModel(), W, 0.06, feedforward=True)
     oracle = make_law('oracle_ff', LinearModel(), W, 0.06, n_fingers=1)
     try:
-        assert isinstance(oracle, OracleFeedforwardLaw) and accepts_ref_acc(oracle)
+        assert isinstance(oracle, OracleFeedforwardLaw)
         with pytest.raises(RuntimeError, match='observe'):
             oracle.compute(REST[None, :2], np.zeros((1, 2)), REST[None, :2], np.zeros((1, 2)))
         oracle.observe(SimpleNamespace(q=np.zeros((1, 10)), qd=np.zeros((1, 10))))
@@ -270,9 +277,10 @@ def test_pd_feedforward_adds_the_reference_acceleration_and_make_law_knows_the_n
                                     ((2,), (2, 2), (2, 2), (2, 2)),         # no silent broadcast
                                     ((1, 2), (1, 2), (1, 2), (1, 2))])      # too few fingers
 def test_every_law_refuses_states_of_the_wrong_shape(shapes):
-    laws = [TrackingController(LinearModel(), Weights(1e4, 1.0, 1.0), 1.0, n_fingers=2),
+    laws = [SdreLaw(LinearModel(), Weights(1e4, 1.0, 1.0), 1.0, n_fingers=2),
             LqrLaw(LinearModel(), Weights(1e4, 1.0, 1.0), 1.0, n_fingers=2),
-            SdreFeedforwardLaw(LinearModel(), Weights(1e4, 1.0, 1.0), 1.0, n_fingers=2)]
+            SdreFeedforwardLaw(LinearModel(), Weights(1e4, 1.0, 1.0), 1.0, n_fingers=2),
+            PdLaw(LinearModel(), 1.0, n_fingers=2)]
     args = [np.zeros(s) for s in shapes]
     for law in laws:
         with pytest.raises(ValueError, match=r'must each have shape \(2, 2\)'):

@@ -8,7 +8,7 @@ import pytest
 from node_harness import MS, TORQUE_LIMIT, commands, estimate, make_controller as make
 from rosutil import ros_context, spin_until
 from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
-from soft_gripper_sdre.control.laws import accepts_ref_acc, make_law
+from soft_gripper_sdre.control.laws import make_law
 from soft_gripper_sdre.learning.model import SDCModel
 from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.controller import ControllerNode
@@ -36,8 +36,8 @@ def horizon(rest, start_ns, close_mm=5.0, points=21, step_ns=5 * MS):
 def test_torques_match_the_offline_law_and_close_the_fingers(model, law, weights):
     rest = np.repeat(model.rest_tip[None, :2], 4, 0)
     offline = make_law(law, model, Weights(**DEFAULT_WEIGHTS), TORQUE_LIMIT, adaptive=weights)
-    # the horizon below is constant, so the feedforward law's reference acceleration is zero
-    extra = {'ref_acc': np.zeros((4, 2))} if accepts_ref_acc(offline) else {}
+    # the horizon below is constant, so the reference acceleration is zero
+    zero_acc = np.zeros((4, 2))
     with ros_context() as (ctx, executor):
         node, probe, est_pub, ref_pub = make(ctx, executor, law=law, state_weights=weights)
         ref_msg, ref_pos = horizon(rest, 0)
@@ -49,7 +49,7 @@ def test_torques_match_the_offline_law_and_close_the_fingers(model, law, weights
         for k, msg in enumerate(commands(probe)):
             stamp, u = cv.msg_to_torques(msg, 4)
             assert stamp == k * MS                      # stamped with the estimate's time
-            expected = offline.compute(rest, np.zeros((4, 2)), ref_pos, np.zeros((4, 2)), **extra).u
+            expected = offline.compute(rest, np.zeros((4, 2)), ref_pos, np.zeros((4, 2)), ref_acc=zero_acc).u
             np.testing.assert_allclose(u, expected, rtol=1e-9, atol=1e-12)
         # +Y (towards the palm) is reached with negative ax0 torque on every finger
         assert np.all(u[:, 0] < 0)

@@ -15,7 +15,7 @@ PKG = ROOT / 'soft_gripper_sdre'
 #: subpackages bottom to top: a module may import from its own layer and the layers before it
 LAYERS = (('sim', 'learning'), ('control',), ('analysis',), ('nodes', 'tools'))
 CORE_LAYERS = ('sim', 'learning', 'control', 'analysis')
-CORE_MODULES = sorted(p for layer in CORE_LAYERS for p in (PKG / layer).glob('*.py'))
+CORE_MODULES = sorted(p for layer in CORE_LAYERS for p in (PKG / layer).rglob('*.py'))
 ALL_MODULES = sorted(PKG.rglob('*.py'))
 TEST_MODULES = sorted((ROOT / 'test').glob('test_*.py'))
 ROS_PREFIXES = ('rclpy', 'rosidl', 'rosgraph_msgs', 'builtin_interfaces')

@@ -2,7 +2,9 @@
 import numpy as np
 import pytest
 
-from soft_gripper_sdre.control.sdre import Check, SdreController, care, paper_weights_si, sdre_gains
+from soft_gripper_sdre.control.riccati import Check, care, is_detectable, is_stabilizable, sdre_gains
+from soft_gripper_sdre.control.sdre import SdreController
+from soft_gripper_sdre.control.tracking import paper_weights_si
 
 A_DI = np.array([[0, 0, 1, 0], [0, 0, 0, 1], [0, 0, 0, 0], [0, 0, 0, 0]], dtype=float)
 G_DI = np.vstack([np.zeros((2, 2)), np.eye(2)])
@@ -113,24 +115,36 @@ def test_bad_weights(Q, R, u_max, match):
         SdreController(Q, R, u_max)
 
 
-def test_tracking_controller_roll_off_is_a_first_order_filter():
+def test_sdre_law_roll_off_is_a_first_order_filter():
     """With the roll-off, a constant law output is approached as 1 − aᵏ (a = e^{−2π f Δt})."""
-    from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, TrackingController, Weights
+    from soft_gripper_sdre.control.laws import SdreLaw
+    from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
     from soft_gripper_sdre.learning.model import SDCModel
     model = SDCModel()
     rest = np.repeat(model.rest_tip[None, :2], 4, 0)
     ref = rest + [0.0, 0.002]
-    plain = TrackingController(model, Weights(**DEFAULT_WEIGHTS), 0.0625, lowpass_hz=0.0)
-    rolled = TrackingController(model, Weights(**DEFAULT_WEIGHTS), 0.0625, lowpass_hz=40.0, dt=1e-3)
+    plain = SdreLaw(model, Weights(**DEFAULT_WEIGHTS), 0.0625, lowpass_hz=0.0)
+    rolled = SdreLaw(model, Weights(**DEFAULT_WEIGHTS), 0.0625, lowpass_hz=40.0, dt=1e-3)
     zero = np.zeros((4, 2))
     u_star = plain.compute(rest, zero, ref, zero).u
     a = np.exp(-2 * np.pi * 40.0 * 1e-3)
     first = rolled.compute(rest, zero, ref, zero).u
     np.testing.assert_allclose(first, u_star)                    # starts at the law's output
     rolled.reset()
-    rolled.roll_off._u = np.zeros((4, 2))                         # from rest: 1 − aᵏ
+    np.testing.assert_array_equal(rolled.compute(rest, zero, rest, zero).u, 0.0)   # at rest: 1 − aᵏ
     for k in range(1, 6):
         u = rolled.compute(rest, zero, ref, zero).u
         np.testing.assert_allclose(u, (1 - a**k) * u_star, rtol=1e-9, atol=1e-15)
     with pytest.raises(ValueError, match='lowpass_hz'):
-        TrackingController(model, Weights(**DEFAULT_WEIGHTS), 0.0625, lowpass_hz=-1.0)
+        SdreLaw(model, Weights(**DEFAULT_WEIGHTS), 0.0625, lowpass_hz=-1.0)
+
+
+def test_pbh_tests_find_an_unstable_mode_that_the_input_or_the_output_misses():
+    """A double integrator per axis: stabilisable through both inputs, not when one axis is unactuated;
+    detectable from both positions, not from the velocities alone (the positions drift unseen)."""
+    assert is_stabilizable(A_DI, G_DI)
+    assert not is_stabilizable(A_DI, G_DI[:, :1])
+    assert is_detectable(A_DI, np.hstack([np.eye(2), np.zeros((2, 2))]))
+    assert not is_detectable(A_DI, np.hstack([np.zeros((2, 2)), np.eye(2)]))
+    stable = -np.eye(4)
+    assert is_stabilizable(stable, np.zeros((4, 2))) and is_detectable(stable, np.zeros((1, 4)))

@@ -1,30 +1,32 @@
-"""The fast SDRE path against the reference path (scipy) on the shipped model, and its checks.
+"""The fast SDRE path (control/kernel.py under the supervisor) against the reference path (scipy)
+on the shipped model, and its checks.
 
-Tolerance: the fast path stops Newton–Kleinman once a bound on the next iterate's Riccati residual
-(the identity Res(P_k+1) = −Δ_k S Δ_k, whose norm is at most its trace ⟨Δ_low, W Δ_low⟩) is below
-half the accepted 1e-6 (relative to ‖Q‖_F), and
-forms the residual directly for its checks; its gains, P and the unsaturated torques agree with
-scipy's to within ``U_TOL`` = 1e-4 of the largest value of the sequence (measured here ≤ 2e-6, and
-held to ``REGRESSION_TOL`` = 2e-5 so that a loss of accuracy shows long before the tolerance; on
-the noisy closed-loop replay of tools/bench.py ≤ 1.1e-5: the gains' error is the residual times the
-Lyapunov operator's conditioning, which the weak velocity weight makes large). 1e-4 of the 0.0625
-N·m limit is 6 µN·m, far below the torque jitter the 0.05 mm measurement noise causes. Every check
-passes on both paths, and the fast path solves exactly only on the cold start.
+Tolerance: the kernel stops Newton–Kleinman once a bound on the next iterate's Riccati residual is
+below half the accepted 1e-6 (relative to ‖Q‖_F) and forms the residual directly for its checks;
+its gains, P and the unsaturated torques agree with scipy's to within ``U_TOL`` = 1e-4 of the
+largest value of the sequence, and are held to ``REGRESSION_TOL`` = 2e-5 so that a loss of
+accuracy shows long before the tolerance (docs/design/fast_riccati.md, "Accuracy"). 1e-4 of the
+0.0625 N·m limit is 6 µN·m, far below the torque jitter the 0.05 mm measurement noise causes. Every
+check passes on both paths, and the fast path solves exactly only on the cold start.
 """
 import time
 
 import numpy as np
 import pytest
 
-from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, TrackingController, Weights
+from soft_gripper_sdre.control.batched_linalg import (batched_cholesky, batched_solve, portable_batched_cholesky,
+                                                      portable_batched_solve, well_conditioned_2x2)
+from soft_gripper_sdre.control.kernel import (LOWER_ROWS_FROM_UPPER, LYAPUNOV_BASE, LYAPUNOV_SLOPES,
+                                              SYMMETRIC_FROM_UPPER, UPPER_TRIANGLE, checks_passed,
+                                              full_sdc_matrices, structured_gains, upper_triangle)
+from soft_gripper_sdre.control.laws import SdreLaw
+from soft_gripper_sdre.control.riccati import Check, care
+from soft_gripper_sdre.control.sdre import SdreController
+from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
 from soft_gripper_sdre.learning.model import SDCModel
-from soft_gripper_sdre.control.sdre import (_FULL, _L0, _LOW, _T8, _UPPER, Check, SdreController, _cond2_below,
-                                    _public_stack_cholesky, _public_stack_solve, _stack_cholesky,
-                                    _stack_solve, care)
 
 U_TOL = 1e-4
-#: 10× the worst torque error these tests measure (2e-6): an accuracy regression trips it long
-#: before the stated tolerance would
+#: an accuracy regression trips it long before the stated tolerance would
 REGRESSION_TOL = 2e-5
 N = 4
 
@@ -51,7 +53,7 @@ def trajectory_states(model, steps, noise, seed):
 
 
 def run_both(model, pos, vel, ref, ref_vel):
-    ctrl = {m: TrackingController(model, Weights(**DEFAULT_WEIGHTS), 0.0625, method=m, lowpass_hz=0.0)
+    ctrl = {m: SdreLaw(model, Weights(**DEFAULT_WEIGHTS), 0.0625, method=m, lowpass_hz=0.0)
             for m in ('fast', 'reference')}
     out = {m: [c.compute(pos[k], vel[k], ref[k], ref_vel[k]) for k in range(len(pos))]
            for m, c in ctrl.items()}
@@ -81,8 +83,8 @@ def test_fast_torques_equal_the_reference_along_a_trajectory(model, noise):
 def test_fast_torques_equal_the_reference_at_random_states(model):
     """Random states over the workspace; each is reached from a state 0.1 mm / 5 mm/s away."""
     rng = np.random.default_rng(11)
-    fast = TrackingController(model, Weights(**DEFAULT_WEIGHTS), 0.0625, lowpass_hz=0.0)
-    ref = TrackingController(model, Weights(**DEFAULT_WEIGHTS), 0.0625, method='reference', lowpass_hz=0.0)
+    fast = SdreLaw(model, Weights(**DEFAULT_WEIGHTS), 0.0625, lowpass_hz=0.0)
+    ref = SdreLaw(model, Weights(**DEFAULT_WEIGHTS), 0.0625, method='reference', lowpass_hz=0.0)
     zero = np.zeros((N, 2))
     for _ in range(25):
         pos = model.rest_tip[:2] + rng.uniform(-8e-3, 8e-3, (N, 2))
@@ -101,13 +103,14 @@ def test_lyapunov_tables_equal_the_kronecker_operator():
     for _ in range(5):
         c = rng.normal(size=(2, 4))
         A = np.vstack([np.hstack([np.zeros((2, 2)), np.eye(2)]), c])
-        L = (_L0 + c.reshape(8) @ _T8).reshape(10, 10)
+        L = (LYAPUNOV_BASE + c.reshape(8) @ LYAPUNOV_SLOPES).reshape(10, 10)
         P = rng.normal(size=(4, 4))
         P = P + P.T
-        p = P.reshape(16)[_UPPER]
-        np.testing.assert_allclose(L @ p, (-(A.T @ P + P @ A)).reshape(16)[_UPPER], rtol=1e-12, atol=1e-12)
-        np.testing.assert_array_equal(p[_FULL].reshape(4, 4), P)
-        np.testing.assert_array_equal(p[_LOW].reshape(2, 4), P[2:, :])
+        p = P.reshape(16)[UPPER_TRIANGLE]
+        np.testing.assert_array_equal(upper_triangle(P[None])[0], p)
+        np.testing.assert_allclose(L @ p, (-(A.T @ P + P @ A)).reshape(16)[UPPER_TRIANGLE], rtol=1e-12, atol=1e-12)
+        np.testing.assert_array_equal(p[SYMMETRIC_FROM_UPPER].reshape(4, 4), P)
+        np.testing.assert_array_equal(p[LOWER_ROWS_FROM_UPPER].reshape(2, 4), P[2:, :])
 
 
 def test_closed_form_condition_test_equals_the_svd():
@@ -117,17 +120,17 @@ def test_closed_form_condition_test_equals_the_svd():
     M[500:510] = 0.0
     kappa = np.linalg.cond(M)
     for c_max in (1e3, 1e8):
-        fast, det = _cond2_below(M, c_max)
+        fast, det = well_conditioned_2x2(M, c_max)
         np.testing.assert_allclose(det, np.linalg.det(M), rtol=1e-9, atol=1e-14)
         clear = np.abs(np.log(kappa / c_max)) > 1e-6            # away from the threshold's rounding
         np.testing.assert_array_equal(fast[clear], (kappa < c_max)[clear])
     bad = np.full((1, 2, 2), np.nan)
-    assert not _cond2_below(bad, 1e8)[0][0]
+    assert not well_conditioned_2x2(bad, 1e8)[0][0]
 
 
-def test_stack_linalg_equals_the_public_functions_and_flags_failures_with_nan():
-    """The gufunc shortcuts (numpy's private _umath_linalg) and the public fallback agree: the same
-    solutions and factors, and NaN exactly for the singular / non-PD / non-finite matrices."""
+def test_batched_linalg_equals_the_public_functions_and_flags_failures_with_nan():
+    """The batched solve and Cholesky in use (numpy's gufuncs) and the portable fallback agree: the
+    same solutions and factors, and NaN exactly for the singular / non-PD / non-finite matrices."""
     rng = np.random.default_rng(7)
     L = rng.normal(size=(6, 10, 10)) + 5 * np.eye(10)
     L[1] = 0.0                                                   # singular
@@ -139,7 +142,8 @@ def test_stack_linalg_equals_the_public_functions_and_flags_failures_with_nan():
     S[2, 3, 3] = -1e3                                            # indefinite
     S[3, 3, 0] = np.inf
     with np.errstate(all='ignore'):
-        for solve, cholesky in ((_stack_solve, _stack_cholesky), (_public_stack_solve, _public_stack_cholesky)):
+        for solve, cholesky in ((batched_solve, batched_cholesky),
+                                (portable_batched_solve, portable_batched_cholesky)):
             x, c = solve(L, b), cholesky(S)
             assert x.shape == b.shape and c.shape == S.shape
             assert list(np.isfinite(x).all(axis=1)) == [True, False, False, True, True, True]
@@ -169,12 +173,12 @@ def test_fast_path_rejects_the_anti_stabilising_solution(model):
     ctrl = SdreController(W.Q, W.R, 0.0625, n=N)
     x, a, g = sdc_plant(model, rng)
     warm(ctrl, a, g, x)
-    A, G = SdreController._full(a, g)
+    A, G = full_sdc_matrices(a, g)
     anti = np.stack([-care(-A[i], G[i], W.Q, W.R) for i in range(N)])          # A − S P⁻ anti-Hurwitz
     assert np.all(np.linalg.eigvals(A - G @ np.linalg.solve(W.R, G.transpose(0, 2, 1)) @ anti).real > 0)
-    fast = ctrl._fast_gains(a, g, anti.reshape(N, 16)[:, _UPPER])
-    assert fast is not None and np.all(fast.residual < 1e-6) and not fast.good.any()
-    ctrl._p[:] = anti.reshape(N, 16)[:, _UPPER]
+    fast = structured_gains(a, g, upper_triangle(anti), ctrl.kernel_constants)
+    assert np.all(fast.residual < 1e-6) and not checks_passed(fast, ctrl.kernel_constants).any()
+    ctrl.warm_start(anti)
     before = ctrl.exact_solves
     out = ctrl.step_sdc(a, g, x, np.zeros((N, 4)))
     ref = SdreController(W.Q, W.R, 0.0625, n=N, method='reference').step_sdc(a, g, x, np.zeros((N, 4)))
@@ -217,7 +221,7 @@ def test_stop_rule_trace_bound_holds_for_a_newton_kleinman_step(model):
     W_ = Weights(**DEFAULT_WEIGHTS)
     Q, R = W_.Q, W_.R
     x, a, g = sdc_plant(model, rng)
-    A, G = SdreController._full(a, g)
+    A, G = full_sdc_matrices(a, g)
     S = G @ np.linalg.inv(R) @ G.transpose(0, 2, 1)
     for i in range(N):
         P_star = care(A[i], G[i], Q, R)
@@ -274,7 +278,7 @@ def test_fast_is_faster_than_the_reference_in_the_same_run(model):
     pos, vel, ref, ref_vel = trajectory_states(model, 60, (5e-5, 5e-3), seed=9)
 
     def median_step(method):
-        c = TrackingController(model, Weights(**DEFAULT_WEIGHTS), 0.0625, method=method)
+        c = SdreLaw(model, Weights(**DEFAULT_WEIGHTS), 0.0625, method=method)
         times = []
         for k in range(len(pos)):
             t0 = time.perf_counter()

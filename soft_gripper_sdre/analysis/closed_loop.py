@@ -19,9 +19,9 @@ import time
 
 import numpy as np
 
-from soft_gripper_sdre.control.tracking import DEFAULT_LOWPASS_HZ, TrackingController, Weights
 from soft_gripper_sdre.control.kf import ConstantVelocityKF
-from soft_gripper_sdre.control.laws import accepts_ref_acc
+from soft_gripper_sdre.control.laws import SdreLaw
+from soft_gripper_sdre.control.tracking import DEFAULT_LOWPASS_HZ, Law, Weights
 from soft_gripper_sdre.analysis.metrics import TrackingMetrics, tracking_metrics
 from soft_gripper_sdre.sim.hand import GripperSim, SimConfig
 from soft_gripper_sdre.control.trajectory import GraspProfile, GraspTrajectory
@@ -59,19 +59,20 @@ class LoopResult:
     metrics: list[TrackingMetrics] = field(default_factory=list)
     step_seconds: float = 0.0     # wall time of the loop itself (after the simulator's settle) [s]
     period_seconds: np.ndarray | None = None   # (T,) wall time of each period of the loop [s]
+    law_seconds: np.ndarray | None = None      # (T,) wall time of the law each period (observe + compute) [s]
 
 
 def run_closed_loop(model, *, duration: float, sim_config: SimConfig | None = None,
                     weights: Weights, u_max: float, profile: GraspProfile | None = None,
                     estimator: EstimatorSettings | None = None, method: str = 'fast',
                     lowpass_hz: float = DEFAULT_LOWPASS_HZ, progress: bool = False,
-                    controller=None) -> LoopResult:
+                    controller: Law | None = None) -> LoopResult:
     """Run the grasp for ``duration`` seconds of sim time and return everything recorded.
 
-    ``controller``: optional law with TrackingController's interface (:mod:`soft_gripper_sdre.control.laws`)
-    used instead of the learned SDRE; one with an ``observe(truth)`` method gets the plant's ground
-    truth before each step (the oracle), one that :func:`~soft_gripper_sdre.control.laws.accepts_ref_acc`
-    gets the reference acceleration too.
+    ``controller``: optional :class:`~soft_gripper_sdre.control.tracking.Law` used instead of the
+    paper's learned SDRE (:mod:`soft_gripper_sdre.control.laws`); every law gets the reference
+    acceleration, and one with an ``observe(truth)`` method gets the plant's ground truth before
+    each step (the oracles, :mod:`soft_gripper_sdre.analysis.oracle`).
     """
     sim_config = sim_config or SimConfig(scene='hand')
     profile = profile or GraspProfile()
@@ -82,10 +83,9 @@ def run_closed_loop(model, *, duration: float, sim_config: SimConfig | None = No
         n = sim.n_fingers
         kf = ConstantVelocityKF(dt, estimator.accel_psd, estimator.meas_std, n=n,
                                 process_noise=estimator.process_noise)
-        ctrl = controller if controller is not None else TrackingController(
+        ctrl = controller if controller is not None else SdreLaw(
             model, weights, u_max, n_fingers=n, method=method, lowpass_hz=lowpass_hz, dt=dt)
         observe = getattr(ctrl, 'observe', None)
-        with_acc = accepts_ref_acc(ctrl)
         rec = {k: [] for k in ('t', 'pos', 'vel', 'meas', 'est', 'u', 'ok', 'fallback', 'saturated',
                                'residual', 'contact', 'cube')}
         traj = None
@@ -95,6 +95,7 @@ def run_closed_loop(model, *, duration: float, sim_config: SimConfig | None = No
             iterator = tqdm(iterator, desc='closed loop', unit='step', mininterval=0.5)
         clock = time.perf_counter
         stamps = np.empty(steps + 1)
+        law_seconds = np.empty(steps)
         stamps[0] = clock()
         for k in iterator:
             z = sim.measure()[:, :2]
@@ -106,10 +107,11 @@ def run_closed_loop(model, *, duration: float, sim_config: SimConfig | None = No
             else:
                 x_hat = kf.step(z)
             truth = sim.truth()
+            t_law = clock()
             if observe is not None:
                 observe(truth)
-            out = ctrl.compute(x_hat[:, :2], x_hat[:, 2:], refs.pos[k], refs.vel[k],
-                               **({'ref_acc': refs.acc[k]} if with_acc else {}))
+            out = ctrl.compute(x_hat[:, :2], x_hat[:, 2:], refs.pos[k], refs.vel[k], ref_acc=refs.acc[k])
+            law_seconds[k] = clock() - t_law
             sim.step(out.u)
             rec['t'].append(truth.t)
             rec['pos'].append(truth.tip_pos[:, :2])
@@ -131,6 +133,6 @@ def run_closed_loop(model, *, duration: float, sim_config: SimConfig | None = No
     excursion = traj.peak_excursion()
     periods = np.diff(stamps)
     result = LoopResult(**arrays, free_space=free, excursion=excursion, step_seconds=float(periods.sum()),
-                        period_seconds=periods)
+                        period_seconds=periods, law_seconds=law_seconds)
     result.metrics = tracking_metrics(result.pos, result.ref_pos, free, excursion)
     return result

@@ -15,7 +15,7 @@ import numpy as np
 from scipy.linalg import expm
 
 from soft_gripper_sdre.control.kf import ConstantVelocityKF
-from soft_gripper_sdre.control.sdre import sdre_gains
+from soft_gripper_sdre.control.riccati import sdre_gains
 from soft_gripper_sdre.sim.hand import GripperSim, SimConfig
 
 
@@ -86,7 +86,7 @@ def loop_spectral_radius(plant, model, Q: np.ndarray, R: np.ndarray, accel_psd: 
                          lowpass_hz: float = 0.0) -> tuple[float, float]:
     """(largest |eigenvalue|, its frequency [Hz]) of the sampled loop: plant (Ad, Bd, C) from
     :func:`linear_finger`, steady-state KF, gains frozen at the model's origin, and the optional
-    first-order roll-off on the command (as :class:`~soft_gripper_sdre.control.tracking.TrackingController`
+    first-order roll-off on the command (as :class:`~soft_gripper_sdre.control.laws.SdreLaw`
     applies it). > 1 means a mode that grows when nothing but the linear dynamics act on it."""
     Ad, Bd, C = plant
     A0, G0 = model.AG(np.zeros(4))

@@ -1,22 +1,25 @@
-"""Task-space tracking control of the four fingers with a learned SDC model (no ROS).
+"""What every tracking law shares (no ROS): weights, the step type, the protocol, and the plumbing
+around each law's own arithmetic.
 
-:class:`TrackingController` is what the controller node wraps: it takes each finger's estimated
-tip position and velocity and its reference in the finger's base frame (SI, untranslated), moves
-both into the model's translated coordinates (origin at the settled rest pose, where f(0) = 0),
+Every law takes each finger's estimated tip position and velocity and its reference in the
+finger's base frame (SI, untranslated) and works in the model's translated coordinates (origin at
+the settled rest pose, where f(0) = 0),
 
-    x   = [X − X₀, Y − Y₀, Ẋ, Ẏ],        x_d = [X_d − X₀, Y_d − Y₀, Ẋ_d, Ẏ_d],
+    x   = [X − X₀, Y − Y₀, Ẋ, Ẏ],        x_d = [X_d − X₀, Y_d − Y₀, Ẋ_d, Ẏ_d]       (:class:`RestFrame`),
 
-queries A(x), G(x) from the model for all fingers at once and applies the SDRE tracking law of
-:mod:`soft_gripper_sdre.control.sdre` (u = K(x) x + K_s(x) x_d, saturated). One model serves every
-finger: each finger is controlled in its own base frame with its own copy of the same dynamics.
+saturates its torques at ``u_max`` and passes them through the same first-order roll-off
+(:class:`RollOff`), so laws differ only in their own arithmetic. The laws are in
+:mod:`soft_gripper_sdre.control.laws`.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
-from soft_gripper_sdre.control.sdre import SdreController, SdreStep, paper_weights_si
+from soft_gripper_sdre.control.riccati import Check
+from soft_gripper_sdre.sim.units import LENGTH_SCALE, TORQUE_SCALE
 
 #: named weight presets, SI (positions in m, velocities in m/s, torques in N·m)
 WEIGHT_PRESETS = ('default', 'paper')
@@ -45,6 +48,16 @@ class Weights:
     @property
     def R(self) -> np.ndarray:
         return np.diag([self.r, self.r])
+
+
+def paper_weights_si() -> tuple[np.ndarray, np.ndarray]:
+    """The paper's Q = diag(2,2,2,2), R = diag(0.1,0.1) (sim units) in SI.
+
+    Positions and velocities scale by 20 (x_sim = 20 x_si) and torques by 400, so the cost
+    x_simᵀ Q_sim x_sim + u_simᵀ R_sim u_sim equals x_siᵀ (400 Q_sim) x_si + u_siᵀ (160000 R_sim) u_si.
+    """
+    return (LENGTH_SCALE**2 * np.diag([2.0, 2.0, 2.0, 2.0]),
+            TORQUE_SCALE**2 * np.diag([0.1, 0.1]))
 
 
 def weights_preset(name: str) -> Weights:
@@ -134,31 +147,56 @@ class RestFrame:
         return z[:, :4], z[:, 4:]
 
 
-class TrackingController:
-    """SDRE tracking of every finger with one learned SDC model.
+@dataclass
+class LawStep:
+    """One step of a law for n fingers. The SDRE laws also fill the last four fields."""
 
-    Args:
-        model: object with ``AG(x) -> (A (n,4,4), G (n,4,2))`` and ``rest_tip`` (3,) [m] (an
-            :class:`soft_gripper_sdre.learning.model.SDCModel`); if it also has
-            ``sdc_blocks(x) -> ([A21 A22] (n,2,4), G2 (n,2,2))``, only those lower rows are used.
-        weights: SDRE weights (SI).
-        u_max: torque saturation per input [N·m].
-        n_fingers: number of fingers controlled together.
-        method: ``'fast'`` (batched warm-started Newton–Kleinman) or ``'reference'`` (scipy).
-        lowpass_hz, dt: the command's :class:`RollOff` (0 = off) and the control period [s].
+    u: np.ndarray                # (n, 2) saturated, rolled-off torques [N·m], always finite
+    u_unsat: np.ndarray          # (n, 2) before saturation
+    ok: np.ndarray               # (n,) the law's own checks passed
+    fallback: np.ndarray         # (n,) a fallback was used (last valid gains, zero, no feedforward)
+    failed_checks: np.ndarray    # (n,) int bitmask of :class:`Check` (0 for laws without checks)
+    saturated: np.ndarray        # (n, 2)
+    residual: np.ndarray         # (n,) relative Riccati residual (0 for closed-form laws)
+    K: np.ndarray | None = None              # (n, 2, 4) SDRE gains in use (fast path: read-only,
+    Ks: np.ndarray | None = None             # (n, 2, 4)  shared with the supervisor's fallback gains)
+    P: np.ndarray | None = None              # (n, 4, 4) Riccati solution (NaN where it failed)
+    nk_iterations: np.ndarray | None = None  # (n,) Newton–Kleinman iterations (0 = exact solve)
+
+
+class Law(Protocol):
+    """A control law for n fingers: what the controller node, the in-process loop and the tools call.
+
+    A law that needs the plant's ground truth (the oracles, :mod:`soft_gripper_sdre.analysis.oracle`)
+    also has ``observe(truth)``, which the in-process loop calls before each :meth:`compute`.
     """
 
-    def __init__(self, model, weights: Weights, u_max: float, n_fingers: int = 4,
-                 method: str = 'fast', lowpass_hz: float = DEFAULT_LOWPASS_HZ, dt: float = 1e-3) -> None:
-        self.model = model
-        self.weights = weights
+    def compute(self, pos: np.ndarray, vel: np.ndarray, ref_pos: np.ndarray, ref_vel: np.ndarray,
+                ref_acc: np.ndarray | None = None) -> LawStep:
+        """Torques for every finger from (n, 2) tip positions [m] and velocities [m/s], their
+        references, and the reference acceleration [m/s²] (used by the feedforward laws; None = 0)."""
+
+    def reset(self) -> None:
+        """Forget all state (warm starts, last valid gains, the filter), e.g. after a clock jump."""
+
+
+class LawIO:
+    """The plumbing a law composes around its own arithmetic: the translated states in (non-finite
+    rows zeroed), saturation at ``u_max`` and the :class:`RollOff` out.
+
+    Args:
+        rest_tip: the model's rest tip position (at least X₀, Y₀) [m].
+        u_max: torque saturation [N·m], finite and > 0.
+        n_fingers: number of fingers.
+        lowpass_hz, dt: the roll-off's corner frequency [Hz] (0 = off) and the control period [s].
+    """
+
+    def __init__(self, rest_tip, u_max: float, n_fingers: int, lowpass_hz: float, dt: float) -> None:
+        self.frame = RestFrame(rest_tip, n_fingers)
+        if not (np.isfinite(u_max) and u_max > 0):
+            raise ValueError(f'u_max must be finite and > 0, got {u_max!r}')
+        self.u_max = float(u_max)
         self.n_fingers = int(n_fingers)
-        try:
-            self.frame = RestFrame(model.rest_tip, self.n_fingers)
-        except ValueError:
-            raise ValueError(f'model.rest_tip must hold a finite rest position, got {model.rest_tip!r}') from None
-        self.sdre = SdreController(weights.Q, weights.R, u_max, n=self.n_fingers, method=method)
-        self._blocks = getattr(model, 'sdc_blocks', None)
         self.roll_off = RollOff(lowpass_hz, dt)
 
     @property
@@ -167,26 +205,23 @@ class TrackingController:
         return self.frame.origin
 
     def reset(self) -> None:
-        """Forget warm starts, last valid gains and the filter state (e.g. after a clock jump)."""
-        self.sdre.reset()
         self.roll_off.reset()
 
-    def compute(self, pos: np.ndarray, vel: np.ndarray, ref_pos: np.ndarray,
-                ref_vel: np.ndarray) -> SdreStep:
-        """Torques for every finger.
+    def states(self, pos, vel, ref_pos, ref_vel) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(x, x_d, finite) in translated coordinates; non-finite rows are zeroed."""
+        x, xd = self.frame.states(pos, vel, ref_pos, ref_vel)
+        finite = np.isfinite(x).all(axis=1) & np.isfinite(xd).all(axis=1)
+        if not finite.all():
+            x[~finite] = 0.0
+            xd[~finite] = 0.0
+        return x, xd, finite
 
-        Args:
-            pos, vel: (n, 2) estimated tip position [m] and velocity [m/s] in each base frame.
-            ref_pos, ref_vel: (n, 2) reference position and velocity, same frames.
-
-        Returns:
-            the SDRE step (``u`` (n, 2) [N·m], gains, checks, fallbacks).
-        """
-        x, xd = self.frame.states(pos, vel, ref_pos, ref_vel)   # f(0) = 0 at rest
-        if self._blocks is not None:                 # a model in SDC form: only its lower rows
-            out = self.sdre.step_sdc(*self._blocks(x), x, xd)
-        else:
-            out = self.sdre.step(*self.model.AG(x), x, xd)
-        # keeps the loop from feeding the finger's unmodelled bending modes (README, "Noise")
-        out.u = self.roll_off(out.u)
-        return out
+    def finish(self, u_unsat: np.ndarray, finite: np.ndarray) -> LawStep:
+        """The step of a law without Riccati checks: u_unsat zeroed where not finite, saturated,
+        rolled off; a non-finite finger is flagged (NONFINITE) and counts as a fallback."""
+        u_unsat = np.where(np.isfinite(u_unsat) & finite[:, None], u_unsat, 0.0)
+        u = self.roll_off(np.clip(u_unsat, -self.u_max, self.u_max))
+        saturated = np.abs(u_unsat) > self.u_max
+        return LawStep(u=u, u_unsat=u_unsat, ok=finite.copy(), fallback=~finite,
+                       failed_checks=np.where(finite, 0, int(Check.NONFINITE)), saturated=saturated,
+                       residual=np.zeros(self.n_fingers))

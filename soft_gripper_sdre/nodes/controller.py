@@ -34,14 +34,14 @@ from trajectory_msgs.msg import MultiDOFJointTrajectory
 from soft_gripper_sdre.control.command_gate import Change, CommandGate, Notice, Outcome
 from soft_gripper_sdre.control.tracking import DEFAULT_LOWPASS_HZ, DEFAULT_WEIGHTS, Weights
 from soft_gripper_sdre.control.horizon import sample_horizon
-from soft_gripper_sdre.control.laws import DEFAULT_LAW, GRAPH_LAWS, accepts_ref_acc, make_law
+from soft_gripper_sdre.control.laws import DEFAULT_LAW, GRAPH_LAWS, make_law
 from soft_gripper_sdre.learning.model import ModelFileError, SDCModel, set_torch_threads
 from soft_gripper_sdre.nodes import cdr, conversions as cv
 from soft_gripper_sdre.nodes.common import ERROR, OK, Diagnostics, ThrottledLogger, run
 from soft_gripper_sdre.nodes.params import Param, ParameterError, declare_all, on_runtime_change
 from soft_gripper_sdre.nodes.topics import (CLOCK, CLOCK_QOS, GRASP_REFERENCE, LOOP_QOS, REFERENCE_QOS,
                                             STATE_ESTIMATE, TORQUE_COMMANDS)
-from soft_gripper_sdre.control.sdre import Check
+from soft_gripper_sdre.control.riccati import Check
 
 PARAMS = (
     Param('model_path', '', 'SDC model checkpoint (.pt); empty = the model shipped with the package',
@@ -109,7 +109,6 @@ class ControllerNode(Node):
                                  dt=p['control_period'], adaptive=p['state_weights'])
         except ValueError as exc:
             raise ParameterError(f'law/state_weights: {exc}') from None
-        self.with_acc = accepts_ref_acc(self.ctrl)    # feedforward laws (sdre_ff) also take p̈_d
         self.done = False
         self.exit_code = 0
         self._compute_s = []
@@ -208,11 +207,9 @@ class ControllerNode(Node):
     # -- the law -----------------------------------------------------------------------------
     def _control(self, stamp: int, x: np.ndarray, ref: tuple) -> None:
         _, _, times, pos, vel, acc = ref
-        sample = sample_horizon(times, pos, vel, acc, stamp, with_acc=self.with_acc)
-        ref_pos, ref_vel = sample[:2]
-        kw = {'ref_acc': sample[2]} if self.with_acc else {}
+        ref_pos, ref_vel, ref_acc = sample_horizon(times, pos, vel, acc, stamp, with_acc=True)
         t0 = time.perf_counter()
-        out = self.ctrl.compute(x[:, :2], x[:, 2:], ref_pos, ref_vel, **kw)
+        out = self.ctrl.compute(x[:, :2], x[:, 2:], ref_pos, ref_vel, ref_acc=ref_acc)
         self._compute_s.append(time.perf_counter() - t0)
         u = out.u
         if not np.all(np.isfinite(u)):          # the core guarantees this; keep the promise here too

@@ -71,10 +71,13 @@ def bench_control(loop, repeats: int, ref_steps: int) -> dict[str, float]:
     wall times [s] (the first, cold step left out), the fast path's mean Newton–Kleinman iterations
     per step and its share of exact solves.
     """
-    from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, TrackingController, Weights
+    from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
+    from soft_gripper_sdre.control.kernel import full_sdc_matrices, structured_gains, upper_triangle
     from soft_gripper_sdre.control.kf import ConstantVelocityKF
+    from soft_gripper_sdre.control.laws import SdreLaw
     from soft_gripper_sdre.learning.model import SDCModel
-    from soft_gripper_sdre.control.sdre import SdreController, care
+    from soft_gripper_sdre.control.riccati import care
+    from soft_gripper_sdre.control.sdre import SdreController
     model = SDCModel()
     w = Weights(**DEFAULT_WEIGHTS)
     est, ref_pos, ref_vel = loop.est, loop.ref_pos, loop.ref_vel
@@ -82,16 +85,16 @@ def bench_control(loop, repeats: int, ref_steps: int) -> dict[str, float]:
     paired = set(np.linspace(1, T - 1, min(ref_steps, T - 1)).astype(int).tolist())
     x = np.concatenate([est[:, :, :2] - model.rest_tip[:2], est[:, :, 2:]], axis=2)
     blocks = [model.sdc_blocks(x[k]) for k in range(T)]
-    full = [SdreController._full(*b) for b in blocks]
+    full = [full_sdc_matrices(*b) for b in blocks]
     t: dict[str, list[float]] = {k: [] for k in ('fast', 'fast_paired', 'reference', 'nk', 'nk_paired',
                                                  'care', 'model', 'kf')}
     iterations = []
     clock = time.perf_counter
     for _ in range(repeats):
-        fast = TrackingController(model, w, 0.0625, method='fast')
-        ref = TrackingController(model, w, 0.0625, method='reference')
+        fast = SdreLaw(model, w, 0.0625, method='fast')
+        ref = SdreLaw(model, w, 0.0625, method='reference')
         s = SdreController(w.Q, w.R, 0.0625)
-        s.step_sdc(*blocks[0], x[0], x[0])
+        p = upper_triangle(s.step_sdc(*blocks[0], x[0], x[0]).P)        # the kernel's warm start
         kf = ConstantVelocityKF(1e-3, 1.0, 5e-5, n=4)
         kf.reset(loop.meas[0])
         for k in range(T):
@@ -99,9 +102,9 @@ def bench_control(loop, repeats: int, ref_steps: int) -> dict[str, float]:
             t0 = clock()
             out = fast.compute(*args)
             t1 = clock()
-            gains = s._fast_gains(*blocks[k], s._p)              # the Riccati solve and checks alone
+            gains = structured_gains(*blocks[k], p, s.kernel_constants)   # the Riccati solve and checks alone
             t2 = clock()
-            s._p = gains.p
+            p = gains.p
             model.sdc_blocks(x[k])
             t3 = clock()
             kf.step(loop.meas[k])

@@ -22,13 +22,15 @@ import argparse
 from dataclasses import asdict, dataclass
 import json
 from pathlib import Path
-import time
 
 import numpy as np
 
 from soft_gripper_sdre.analysis.closed_loop import run_closed_loop
+# importing analysis.oracle registers the oracle laws ('oracle', 'oracle_exact', 'oracle_ff') with make_law
+import soft_gripper_sdre.analysis.oracle  # noqa: F401
+from soft_gripper_sdre.analysis.plots import plot_feedforward, plot_laws, plot_model_vs_truth
 from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
-from soft_gripper_sdre.control.laws import DEFAULT_PD, accepts_ref_acc, make_law
+from soft_gripper_sdre.control.laws import DEFAULT_PD, make_law
 from soft_gripper_sdre.learning.model import PAPER_DATA_MODEL, ModelFileError, SDCModel
 from soft_gripper_sdre.sim.hand import SimConfig
 from soft_gripper_sdre.control.trajectory import GraspProfile
@@ -56,30 +58,6 @@ TRAJECTORIES = {
 PAPER_DATA_SV_MODEL = PAPER_DATA_MODEL.with_name('paper_data_sv.pt')
 U_MAX = 0.0625
 NOISE = 5e-5
-
-
-class _Timed:
-    """Wraps a law and records the wall time of each compute()."""
-
-    def __init__(self, law) -> None:
-        self.law, self.seconds = law, []
-        if hasattr(law, 'observe'):
-            self.observe = self._observe
-        self.takes_ref_acc = accepts_ref_acc(law)
-
-    def _observe(self, truth) -> None:
-        t0 = time.perf_counter()
-        self.law.observe(truth)
-        self._obs = time.perf_counter() - t0
-
-    def reset(self) -> None:
-        self.law.reset()
-
-    def compute(self, *args, **kwargs):
-        t0 = time.perf_counter()
-        out = self.law.compute(*args, **kwargs)
-        self.seconds.append(time.perf_counter() - t0 + getattr(self, '_obs', 0.0))
-        return out
 
 
 @dataclass
@@ -119,12 +97,14 @@ def run_law(key: str, trajectory: str, model: SDCModel, weights: Weights, durati
     opts = dict(opts, **({'pd_gains': pd_gains} if name == 'pd' and pd_gains else {}))
     if 'q_pos' in opts:
         weights = Weights(opts.pop('q_pos'), weights.q_vel, weights.r)
-    law = _Timed(make_law(name, model, weights, U_MAX, **opts))
-    res = run_closed_loop(model, duration=dur, sim_config=SimConfig(scene='hand', noise_std=NOISE),
-                          weights=weights, u_max=U_MAX, profile=profile, progress=progress,
-                          controller=law)
-    if hasattr(law.law, 'close'):
-        law.law.close()
+    law = make_law(name, model, weights, U_MAX, **opts)
+    try:
+        res = run_closed_loop(model, duration=dur, sim_config=SimConfig(scene='hand', noise_std=NOISE),
+                              weights=weights, u_max=U_MAX, profile=profile, progress=progress,
+                              controller=law)
+    finally:
+        if hasattr(law, 'close'):         # the oracles hold a PyBullet client
+            law.close()
     g = list(profile.grasp_fingers)
     ok, cube_mm = grasp_success(res, profile)
     m = res.metrics
@@ -138,7 +118,7 @@ def run_law(key: str, trajectory: str, model: SDCModel, weights: Weights, durati
         saturated_pct=100.0 * float(res.saturated.any(axis=2).mean()),
         grasp_success=ok, cube_mm=cube_mm,
         check_fail_pct=100.0 * float((~res.ok).mean()),
-        compute_us=1e6 * float(np.mean(law.seconds)))
+        compute_us=1e6 * float(np.mean(res.law_seconds)))
     return summary, res
 
 
@@ -250,88 +230,16 @@ def workspace_survey(model: SDCModel, weights: Weights, n: int = 9, speeds=(0.0,
 
 
 # -- report ---------------------------------------------------------------------------------------
-def _figures(results: dict, trajectory: str, out: Path) -> list[str]:
-    import matplotlib
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
-    names = []
-    fig, axes = plt.subplots(2, 2, figsize=(12, 6.5), sharex=True)
-    colours = plt.get_cmap('tab20').colors[::2] + plt.get_cmap('tab20').colors[1::2]   # 20 distinct
-    for ax in axes.flat:
-        ax.set_prop_cycle(color=colours[:max(len(results), 1)])
-    for key, res in results.items():
-        label = LAW_SPECS[key][0]
-        err = np.linalg.norm(res.pos - res.ref_pos, axis=2) * 1e3
-        axes[0, 0].plot(res.t, (res.pos[:, 0, 1] - res.ref_pos[0, 0, 1]) * 1e3, label=label, lw=1)
-        axes[0, 1].plot(res.t, err[:, 0], label=label, lw=1)
-        axes[1, 0].plot(res.t, res.u[:, 0, 0], label=label, lw=0.8)
-        axes[1, 1].plot(res.t, err[:, 1], label=label, lw=1)
-    any_res = next(iter(results.values()))
-    axes[0, 0].plot(any_res.t, (any_res.ref_pos[:, 0, 1] - any_res.ref_pos[0, 0, 1]) * 1e3, 'k--', lw=1,
-                    label='reference')
-    axes[0, 0].set_ylabel('finger 0 tip Y − rest [mm]')
-    for ax in (axes[0, 1], axes[1, 1]):        # log: a diverging law would flatten the others
-        ax.set_yscale('log')
-        ax.set_ylim(1e-2, 1e2)
-    axes[0, 1].set_ylabel('finger 0 error [mm]')
-    axes[1, 0].set_ylabel('finger 0 u_ax0 [N·m]')
-    axes[1, 1].set_ylabel('finger 1 error [mm]')
-    for ax in axes[1]:
-        ax.set_xlabel('time [s]')
-    axes[0, 0].legend(fontsize=7)
-    fig.suptitle(f'{trajectory}: every law on the same plant, reference and noise')
-    fig.tight_layout()
-    name = f'{trajectory}_laws.png'
-    fig.savefig(out / name, dpi=100)
-    plt.close(fig)
-    names.append(name)
+def law_figures(results: dict, trajectory: str, out: Path) -> list[str]:
+    """The figures of one trajectory's runs (``results``: law key → LoopResult) in ``out``: every
+    law, and the feedforward law against the paper's law and the PD when it ran."""
+    labels = {key: LAW_SPECS[key][0] for key in results}
+    names = [plot_laws(results, labels, trajectory, out / f'{trajectory}_laws.png').name]
     ff = [k for k in ('sdre', 'pd', 'pd_ff', 'oracle_ff', 'sdre_ff') if k in results]
     if 'sdre_ff' in ff:
-        names.append(_feedforward_figure({k: results[k] for k in ff}, trajectory, out))
+        names.append(plot_feedforward({k: results[k] for k in ff}, labels, trajectory,
+                                      out / f'{trajectory}_feedforward.png', highlight='sdre_ff').name)
     return names
-
-
-def _feedforward_figure(results: dict, trajectory: str, out: Path) -> str:
-    """The feedforward law against the paper's law and the PD: both grasping fingers' errors."""
-    import matplotlib.pyplot as plt
-    fig, axes = plt.subplots(1, 2, figsize=(12, 3.8), sharex=True, sharey=True)
-    for key, res in results.items():
-        err = np.linalg.norm(res.pos - res.ref_pos, axis=2) * 1e3
-        for ax, i in zip(axes, (0, 2)):
-            ax.plot(res.t, err[:, i], lw=1.6 if key == 'sdre_ff' else 0.9, label=LAW_SPECS[key][0])
-    for ax, i in zip(axes, (0, 2)):
-        ax.set_yscale('log')
-        ax.set_ylim(1e-3, 1e1)
-        ax.set_xlabel('time [s]')
-        ax.set_title(f'grasping finger {i}', fontsize=9)
-    axes[0].set_ylabel('tip error [mm] (in contact during the hold)')
-    axes[0].legend(fontsize=7)
-    fig.suptitle(f'{trajectory}: SDRE + model-inversion feedforward against the paper\'s law and the PD')
-    fig.tight_layout()
-    name = f'{trajectory}_feedforward.png'
-    fig.savefig(out / name, dpi=100)
-    plt.close(fig)
-    return name
-
-
-def _model_figure(samples: dict, out: Path) -> str:
-    import matplotlib
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
-    fig, axes = plt.subplots(2, 1, figsize=(11, 6), sharex=True)
-    for i, ax in enumerate(axes):
-        ax.plot(samples['t'], samples['acc_sim'][:, i], 'k', lw=1, label='simulator (measured)')
-        ax.plot(samples['t'], samples['acc_exact'][:, i], lw=1, label='exact J̇q̇ + JM⁻¹(Bu − Kq − Cq̇ − g)')
-        ax.plot(samples['t'], samples['acc_proj'][:, i], lw=1, label='projected on static shapes')
-        ax.plot(samples['t'], samples['acc_learned'][:, i], lw=1, label='learned A(x)x + G(x)u')
-        ax.set_ylabel(f'tip acceleration {"XY"[i]} [m/s²]')
-    axes[0].legend(fontsize=7)
-    axes[1].set_xlabel('time [s]')
-    fig.suptitle('held-out signal u4: learned vs ground-truth task-space acceleration')
-    fig.tight_layout()
-    fig.savefig(out / 'model_vs_truth.png', dpi=100)
-    plt.close(fig)
-    return 'model_vs_truth.png'
 
 
 def _fmt(v, f='.3f'):
@@ -461,12 +369,12 @@ def main(argv=None) -> int:
         tqdm.write(f'{traj:6s} {key:13s} RMSE {s.rmse_mm_grasp:.3f} mm, max {s.max_mm_all:.2f} mm, '
                    f'checks failed {s.check_fail_pct:.2f} %, {s.compute_us:.0f} µs/step')
     for traj, res in results.items():
-        figures += _figures(res, traj, args.out)
+        figures += law_figures(res, traj, args.out)
     model_stats = workspace = None
     if not args.no_model_score:
         scored = score_model(model)
         model_stats = scored['stats']
-        _model_figure(scored['samples'], args.out)
+        plot_model_vs_truth(scored['samples'], args.out / 'model_vs_truth.png')
         workspace = {'default (shipped)': workspace_survey(SDCModel(), weights),
                      'paper_data (shipped)': workspace_survey(SDCModel(PAPER_DATA_MODEL), weights)}
         if PAPER_DATA_SV_MODEL.is_file():

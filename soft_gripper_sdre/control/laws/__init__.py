@@ -1,0 +1,123 @@
+"""The control laws (no ROS) and the registry that builds them by name.
+
+Every law has the :class:`~soft_gripper_sdre.control.tracking.Law` protocol (``compute(pos, vel,
+ref_pos, ref_vel, ref_acc=None)`` → :class:`~soft_gripper_sdre.control.tracking.LawStep`, and
+``reset()``) and works in the model's translated coordinates with the same saturation and
+roll-off, so a comparison differs only in the law:
+
+* ``sdre``    — the paper's learned SDRE, u = K(x) x + K_s(x) x_d (:class:`SdreLaw`);
+  ``adaptive=True``: the state-dependent Q(x) of :class:`AdaptiveSdreLaw`.
+* ``sdre_ff`` — beyond the paper: SDRE feedback on the tracking error plus model-inversion
+  feedforward, u = G₂⁻¹(a_d − A₂₁p_d − A₂₂v_d) + K(x)(x − x_d) (:class:`SdreFeedforwardLaw`;
+  ``ff_at``: where the feedforward evaluates the model, :data:`FF_AT`).
+* ``lqr``     — fixed gains from the learned model at the origin (:class:`LqrLaw`).
+* ``pd``      — a task-space PD through the learned input map at rest (:class:`PdLaw`;
+  ``pd_gains=dict(kp=…, kd=…)``, ``feedforward=True`` adds the reference acceleration).
+
+The oracle laws (``oracle``, ``oracle_exact``, ``oracle_ff``: the SDRE on the simulator's true
+dynamics) are evaluation yardsticks that need the plant's ground truth; they live in
+:mod:`soft_gripper_sdre.analysis.oracle`, which adds them to this registry when it is imported.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, NamedTuple
+
+from soft_gripper_sdre.control.laws.feedback import AdaptiveSdreLaw, SdreLaw
+from soft_gripper_sdre.control.laws.feedforward import FF_AT, SdreFeedforwardLaw, model_inversion
+from soft_gripper_sdre.control.laws.fixed import DEFAULT_PD, LqrLaw, PdLaw
+from soft_gripper_sdre.control.tracking import DEFAULT_LOWPASS_HZ, Law, Weights
+
+__all__ = ['AdaptiveSdreLaw', 'DEFAULT_LAW', 'DEFAULT_PD', 'FF_AT', 'GRAPH_LAWS', 'LAW_REGISTRY', 'LawEntry',
+           'LawSettings', 'LqrLaw', 'PdLaw', 'SdreFeedforwardLaw', 'SdreLaw', 'make_law', 'model_inversion',
+           'register_law']
+
+#: the laws that run on the node graph (the oracles need the plant's joint state: in-process only)
+GRAPH_LAWS = ('sdre', 'sdre_ff', 'lqr', 'pd')
+#: the controller node's default: the learned SDRE with model-inversion feedforward (README
+#: "Beyond the paper"); 'sdre' is the paper's law
+DEFAULT_LAW = 'sdre_ff'
+
+
+@dataclass(frozen=True)
+class LawSettings:
+    """What every law is built from (:func:`make_law`'s shared arguments)."""
+
+    model: object                 # the learned SDC model (AG, rest_tip, optionally sdc_blocks)
+    weights: Weights
+    u_max: float                  # torque saturation [N·m]
+    n_fingers: int = 4
+    method: str = 'fast'          # the SDRE solver: 'fast' or 'reference'
+    lowpass_hz: float = DEFAULT_LOWPASS_HZ
+    dt: float = 1e-3              # control period [s]
+
+
+class LawEntry(NamedTuple):
+    """A registered law: ``build(settings, **options)`` and the names of the options it takes."""
+
+    build: Callable[..., Law]
+    options: tuple[str, ...] = ()
+
+
+def _sdre(s: LawSettings, adaptive: bool = False) -> Law:
+    law = AdaptiveSdreLaw if adaptive else SdreLaw
+    return law(s.model, s.weights, s.u_max, n_fingers=s.n_fingers, method=s.method, lowpass_hz=s.lowpass_hz,
+               dt=s.dt)
+
+
+def _sdre_ff(s: LawSettings, ff_at: str = 'x') -> Law:
+    return SdreFeedforwardLaw(s.model, s.weights, s.u_max, n_fingers=s.n_fingers, method=s.method,
+                              lowpass_hz=s.lowpass_hz, dt=s.dt, ff_at=ff_at)
+
+
+def _lqr(s: LawSettings) -> Law:
+    return LqrLaw(s.model, s.weights, s.u_max, n_fingers=s.n_fingers, lowpass_hz=s.lowpass_hz, dt=s.dt)
+
+
+def _pd(s: LawSettings, pd_gains: dict | None = None, feedforward: bool = False) -> Law:
+    return PdLaw(s.model, s.u_max, n_fingers=s.n_fingers, lowpass_hz=s.lowpass_hz, dt=s.dt,
+                 feedforward=feedforward, **(pd_gains or DEFAULT_PD))
+
+
+#: what the options of the laws below mean (for error messages)
+_OPTION_MEANINGS = {'adaptive': 'state-dependent weights Q(x)', 'ff_at': 'where the feedforward evaluates the model',
+                    'pd_gains': 'the PD gains', 'feedforward': 'the reference acceleration added to the PD'}
+
+#: law name → how to build it; :func:`register_law` adds to it
+LAW_REGISTRY: dict[str, LawEntry] = {
+    'sdre': LawEntry(_sdre, ('adaptive',)),
+    'sdre_ff': LawEntry(_sdre_ff, ('ff_at',)),
+    'lqr': LawEntry(_lqr),
+    'pd': LawEntry(_pd, ('pd_gains', 'feedforward')),
+}
+
+
+def register_law(name: str, build: Callable[..., Law], options: tuple[str, ...] = ()) -> None:
+    """Make ``make_law(name, …)`` build ``build(settings, **options)`` (replacing an earlier entry)."""
+    LAW_REGISTRY[name] = LawEntry(build, tuple(options))
+
+
+def make_law(name: str, model, weights: Weights, u_max: float, n_fingers: int = 4, method: str = 'fast',
+             lowpass_hz: float = DEFAULT_LOWPASS_HZ, dt: float = 1e-3, **options) -> Law:
+    """The law registered as ``name`` with the shared settings and its own ``options``.
+
+    An option the law does not take is refused unless it is off (None or False), so callers can
+    pass e.g. ``adaptive=False`` to any law.
+
+    Raises:
+        ValueError: unknown law, or an option the law does not take, or a bad setting.
+    """
+    entry = LAW_REGISTRY.get(name)
+    if entry is None:
+        raise ValueError(f'unknown law {name!r}; known: {tuple(LAW_REGISTRY)} (the oracle laws are known '
+                         'once soft_gripper_sdre.analysis.oracle is imported)')
+    taken = {}
+    for key, value in options.items():
+        if key in entry.options:
+            taken[key] = value
+        elif value is not None and value is not False:
+            owners = [n for n, e in LAW_REGISTRY.items() if key in e.options]
+            meaning = f' ({_OPTION_MEANINGS[key]})' if key in _OPTION_MEANINGS else ''
+            raise ValueError(f'{key}={value!r}{meaning} is not an option of the {name!r} law; laws that take '
+                             f'it: {owners or "none"}')
+    return entry.build(LawSettings(model, weights, u_max, n_fingers, method, lowpass_hz, dt), **taken)

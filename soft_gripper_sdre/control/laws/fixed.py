@@ -1,0 +1,70 @@
+"""Laws with fixed gains from the learned model at rest: LQR and a task-space PD."""
+from __future__ import annotations
+
+import numpy as np
+
+from soft_gripper_sdre.control.laws.feedforward import reference_acceleration
+from soft_gripper_sdre.control.riccati import sdre_gains
+from soft_gripper_sdre.control.tracking import DEFAULT_LOWPASS_HZ, LawIO, LawStep, Weights
+
+#: tuned task-space PD gains (natural frequency² and 2ζω of the error dynamics, 1/s² and 1/s);
+#: tools/evaluate.py --tune-pd reproduces the tuning grid
+DEFAULT_PD = dict(kp=1.5e4, kd=40.0)
+
+
+class LqrLaw:
+    """LQR with the gains of the learned model frozen at the origin: u = K₀ x + K_s0 x_d.
+
+    K₀ = −R⁻¹ G₀ᵀ P₀ with P₀ the CARE solution for (A(0), G(0)), K_s0 = −R⁻¹ G₀ᵀ A_cl⁻ᵀ Q (eq. 23).
+    """
+
+    def __init__(self, model, weights: Weights, u_max: float, n_fingers: int = 4,
+                 lowpass_hz: float = DEFAULT_LOWPASS_HZ, dt: float = 1e-3) -> None:
+        self.io = LawIO(model.rest_tip, u_max, n_fingers, lowpass_hz, dt)
+        A0, G0 = model.AG(np.zeros(4))
+        self.K, self.Ks, self.P = sdre_gains(A0[0], G0[0], weights.Q, weights.R)
+
+    def reset(self) -> None:
+        self.io.reset()
+
+    def compute(self, pos, vel, ref_pos, ref_vel, ref_acc=None) -> LawStep:
+        """Torques for every finger (the law does not use ``ref_acc``)."""
+        x, xd, finite = self.io.states(pos, vel, ref_pos, ref_vel)
+        return self.io.finish(x @ self.K.T + xd @ self.Ks.T, finite)          # u = K₀ x + K_s0 x_d
+
+
+class PdLaw:
+    """Task-space PD: u = G₂(0)⁻¹ [k_p (p_d − p) + k_d (ṗ_d − ṗ)], G₂(0) the learned input map at rest.
+
+    The inverse input map turns the desired tip acceleration into torques (so one pair of gains
+    serves both axes, whose torque-to-tip gains differ by 40×); no model of the drift is used.
+    ``feedforward=True`` adds the reference acceleration (a fair partner for
+    :class:`~soft_gripper_sdre.control.laws.feedforward.SdreFeedforwardLaw`):
+    u = G₂(0)⁻¹ [a_d + k_p (p_d − p) + k_d (ṗ_d − ṗ)], still no drift.
+    """
+
+    def __init__(self, model, u_max: float, kp: float = DEFAULT_PD['kp'], kd: float = DEFAULT_PD['kd'],
+                 n_fingers: int = 4, lowpass_hz: float = DEFAULT_LOWPASS_HZ, dt: float = 1e-3,
+                 feedforward: bool = False) -> None:
+        self.io = LawIO(model.rest_tip, u_max, n_fingers, lowpass_hz, dt)
+        self.feedforward = bool(feedforward)
+        if not (np.isfinite(kp) and kp > 0 and np.isfinite(kd) and kd >= 0):
+            raise ValueError(f'kp must be > 0 and kd >= 0 (finite), got kp={kp!r}, kd={kd!r}')
+        _, G0 = model.AG(np.zeros(4))
+        self.Ginv = np.linalg.inv(G0[0, 2:, :])
+        self.kp, self.kd = float(kp), float(kd)
+
+    def reset(self) -> None:
+        self.io.reset()
+
+    def compute(self, pos, vel, ref_pos, ref_vel, ref_acc=None) -> LawStep:
+        """Torques for every finger; ``ref_acc`` is used with ``feedforward`` only."""
+        x, xd, finite = self.io.states(pos, vel, ref_pos, ref_vel)
+        a_des = self.kp * (xd[:, :2] - x[:, :2]) + self.kd * (xd[:, 2:] - x[:, 2:])
+        acc_ok = np.ones(self.io.n_fingers, dtype=bool)
+        if self.feedforward:
+            a_d, acc_ok = reference_acceleration(ref_acc, self.io.n_fingers)
+            a_des += a_d                                                      # + p̈_d
+        step = self.io.finish(a_des @ self.Ginv.T, finite)                    # u = G₂(0)⁻¹ a_des
+        step.fallback |= ~acc_ok
+        return step

@@ -1,0 +1,196 @@
+"""The reference Riccati solver (scipy) and the SDRE's checks in their general form.
+
+For each finger, with A = A(x), G = G(x) from the learned model (the paper's eq. 23–24):
+
+    P A + Aᵀ P + Q − P G R⁻¹ Gᵀ P = 0                       (24, stabilising solution)
+    K = −R⁻¹ Gᵀ P,   A_cl = A − G R⁻¹ Gᵀ P,   K_s = −R⁻¹ Gᵀ A_cl⁻ᵀ Q      (23)
+
+and the checks of Remarks 2–3, each a bit of :class:`Check`: (A, G) stabilisable, (A, Q^½)
+detectable, everything finite, P symmetric positive definite with a small residual, A_cl Hurwitz
+and invertible. These hold for any (A, G); the fast kernel (:mod:`~soft_gripper_sdre.control.kernel`)
+has cheaper versions for the SDC structure.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import IntFlag
+
+import numpy as np
+from scipy.linalg import solve_continuous_are
+
+from soft_gripper_sdre.control.batched_linalg import well_conditioned_2x2
+
+
+class Check(IntFlag):
+    """The SDRE's checks: bits of :attr:`~soft_gripper_sdre.control.tracking.LawStep.failed_checks`."""
+
+    STABILIZABLE = 1
+    DETECTABLE = 2
+    HURWITZ = 4
+    ACL_SINGULAR = 8
+    SOLVE_FAILED = 16
+    NONFINITE = 32
+    RESIDUAL = 64
+    P_NOT_PD = 128
+
+
+_I2 = np.eye(2)
+
+
+def care(A: np.ndarray, B: np.ndarray, Q: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """Stabilising solution of PA + AᵀP + Q − PBR⁻¹BᵀP = 0 (reference: scipy, one system)."""
+    return solve_continuous_are(A, B, Q, R)
+
+
+def sdre_gains(A, G, Q, R) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(K, K_s, P) of eq. 23–24 for one system, for readers and tests."""
+    P = care(A, G, Q, R)
+    Rinv_Gt = np.linalg.solve(R, G.T)
+    K = -Rinv_Gt @ P
+    A_cl = A + G @ K
+    Ks = -Rinv_Gt @ np.linalg.solve(A_cl.T, Q)        # −R⁻¹ Gᵀ A_cl⁻ᵀ Q
+    return K, Ks, P
+
+
+def is_stabilizable(A: np.ndarray, B: np.ndarray, tol: float = 1e-9) -> bool:
+    """(A, B) stabilisable by the PBH test: rank [A − λI, B] = n for every eigenvalue λ of A with Re λ ≥ 0."""
+    n = A.shape[0]
+    for lam in np.linalg.eigvals(A):
+        if lam.real >= -tol:
+            M = np.hstack([A - lam * np.eye(n), B])
+            s = np.linalg.svd(M, compute_uv=False)
+            if s[-1] < tol * max(1.0, s[0]):
+                return False
+    return True
+
+
+def is_detectable(A: np.ndarray, C: np.ndarray, tol: float = 1e-9) -> bool:
+    """(A, C) detectable: (Aᵀ, Cᵀ) stabilisable."""
+    return is_stabilizable(A.T, C.T, tol)
+
+
+def checked_weights(Q, R, u_max) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(Q (4, 4), R (2, 2), u_max (2,)) as float arrays.
+
+    Raises:
+        ValueError: Q is not symmetric PSD, R not symmetric PD, or u_max not finite and > 0.
+    """
+    Q = np.asarray(Q, dtype=float)
+    R = np.asarray(R, dtype=float)
+    if Q.shape != (4, 4) or not np.all(np.isfinite(Q)):
+        raise ValueError(f'Q must be a finite (4, 4) matrix, got shape {Q.shape}')
+    if not np.allclose(Q, Q.T) or np.linalg.eigvalsh(Q).min() < -1e-12 * max(1.0, np.abs(Q).max()):
+        raise ValueError('Q must be symmetric positive semi-definite')
+    if R.shape != (2, 2) or not np.all(np.isfinite(R)):
+        raise ValueError(f'R must be a finite (2, 2) matrix, got shape {R.shape}')
+    if not np.allclose(R, R.T) or np.linalg.eigvalsh(R).min() <= 0:
+        raise ValueError('R must be symmetric positive definite')
+    u_max = np.broadcast_to(np.asarray(u_max, dtype=float), (2,)).copy()
+    if not np.all(np.isfinite(u_max)) or np.any(u_max <= 0):
+        raise ValueError(f'u_max must be finite and > 0, got {u_max}')
+    return Q, R, u_max
+
+
+@dataclass(frozen=True)
+class RiccatiCost:
+    """The weights and what the general checks derive from them once (:func:`riccati_cost`)."""
+
+    Q: np.ndarray                 # (4, 4) symmetric PSD
+    R: np.ndarray                 # (2, 2) symmetric PD
+    R_inv: np.ndarray
+    q_norm: float                 # ‖Q‖_F (at least 1e-300)
+    q_half: np.ndarray            # Q^½
+    q_definite: bool              # Q ≻ 0
+    q_position_definite: bool     # Q's position block Q[:2, :2] ≻ 0
+
+
+def riccati_cost(Q: np.ndarray, R: np.ndarray) -> RiccatiCost:
+    """:class:`RiccatiCost` of weights already checked by :func:`checked_weights`."""
+    scale = 1e-12 * max(1.0, np.abs(Q).max())
+    w, V = np.linalg.eigh(Q)
+    return RiccatiCost(Q=Q, R=R, R_inv=np.linalg.inv(R), q_norm=max(np.linalg.norm(Q), 1e-300),
+                       q_half=V @ np.diag(np.sqrt(np.clip(w, 0, None))) @ V.T,
+                       q_definite=bool(np.linalg.eigvalsh(Q).min() > scale),
+                       q_position_definite=bool(np.linalg.eigvalsh(Q[:2, :2]).min() > scale))
+
+
+def solvability(A: np.ndarray, G: np.ndarray, finite: np.ndarray, sdc: bool, cost: RiccatiCost,
+                cond_max: float) -> tuple[np.ndarray, np.ndarray]:
+    """Remark 3 for n fingers: (usable (n,), failed (n,) bits of STABILIZABLE and DETECTABLE).
+
+    A finger is usable when it is ``finite``, (A, G) is stabilisable and (A, Q^½) detectable. In
+    SDC form (``sdc``) stabilisable means G2 invertible, tested as cond(G2) < cond_max; otherwise
+    the PBH test. Detectability holds for Q ≻ 0, and for a Q whose position block is ≻ 0 when A has
+    the SDC rows [0 I] (Q^½ sees X, Y and, through those rows, their rates); else the PBH test.
+    """
+    n = A.shape[0]
+    failed = np.zeros(n, dtype=int)
+    if sdc:
+        with np.errstate(all='ignore'):
+            stab = finite & well_conditioned_2x2(G[:, 2:, :], cond_max)[0]
+    else:
+        stab = np.array([finite[i] and is_stabilizable(A[i], G[i]) for i in range(n)])
+    failed[finite & ~stab] |= Check.STABILIZABLE
+    if cost.q_definite:
+        detect = np.ones(n, dtype=bool)
+    elif cost.q_position_definite and np.all(A[:, :2, :2] == 0.0) and np.all(A[:, :2, 2:] == _I2):
+        detect = np.ones(n, dtype=bool)
+    else:
+        detect = np.array([finite[i] and is_detectable(A[i], cost.q_half) for i in range(n)])
+        failed[finite & ~detect] |= Check.DETECTABLE
+    return finite & stab & detect, failed
+
+
+@dataclass
+class CheckedGains:
+    """The gains of eq. 23 for n fingers and the checks they passed (:func:`checked_gains`)."""
+
+    K: np.ndarray                # (n, 2, 4)
+    Ks: np.ndarray               # (n, 2, 4)
+    residual: np.ndarray         # (n,) ‖Res‖_F / ‖Q‖_F, NaN where there is no solution
+    ok: np.ndarray               # (n,) every check passed and the gains are finite
+    failed: np.ndarray           # (n,) bits of Check
+
+
+def checked_gains(A: np.ndarray, G: np.ndarray, P: np.ndarray, usable: np.ndarray, failed: np.ndarray,
+                  cost: RiccatiCost, residual_tol: float, cond_max: float) -> CheckedGains:
+    """K, K_s from P (n, 4, 4) and every check of eq. 23–24 and Remark 2, finger by finger.
+
+    ``usable`` and ``failed`` are :func:`solvability`'s answer (``failed`` is updated in place); P
+    is NaN where no solution was found. Checks: solved (P finite), residual < residual_tol, P ≻ 0,
+    A_cl Hurwitz, A_cl invertible (cond(A_cl) < cond_max).
+    """
+    n = A.shape[0]
+    solved = usable & np.all(np.isfinite(P), axis=(1, 2))
+    failed[usable & ~solved] |= Check.SOLVE_FAILED
+    Psafe = np.where(solved[:, None, None], P, 0.0)
+    GRG = G @ cost.R_inv @ G.transpose(0, 2, 1)
+    Res = Psafe @ A + A.transpose(0, 2, 1) @ Psafe + cost.Q - Psafe @ GRG @ Psafe
+    residual = np.where(solved, np.linalg.norm(Res, axis=(1, 2)) / cost.q_norm, np.nan)
+    failed[solved & ~(residual < residual_tol)] |= Check.RESIDUAL
+    pd = np.zeros(n, dtype=bool)
+    if solved.any():
+        pd[solved] = np.linalg.eigvalsh(Psafe[solved]).min(axis=1) > 0
+    failed[solved & ~pd] |= Check.P_NOT_PD
+
+    Rinv_Gt = cost.R_inv @ G.transpose(0, 2, 1)                  # (n, 2, 4)
+    K = -Rinv_Gt @ Psafe                                         # K = −R⁻¹GᵀP
+    A_cl = A + G @ K                                             # A − G R⁻¹ Gᵀ P
+    hurwitz = np.zeros(n, dtype=bool)
+    invertible = np.zeros(n, dtype=bool)
+    Ks = np.zeros((n, 2, 4))
+    if solved.any():
+        s = np.flatnonzero(solved)
+        hurwitz[s] = np.all(np.linalg.eigvals(A_cl[s]).real < 0, axis=1)
+        with np.errstate(all='ignore'):
+            invertible[s] = np.linalg.cond(A_cl[s]) < cond_max
+        ok_inv = s[invertible[s]]
+        if ok_inv.size:
+            # K_s = −R⁻¹ Gᵀ A_cl⁻ᵀ Q
+            Ks[ok_inv] = -Rinv_Gt[ok_inv] @ np.linalg.solve(A_cl[ok_inv].transpose(0, 2, 1),
+                                                            np.broadcast_to(cost.Q, (ok_inv.size, 4, 4)))
+    failed[solved & ~hurwitz] |= Check.HURWITZ
+    failed[solved & ~invertible] |= Check.ACL_SINGULAR
+    ok = failed == 0
+    ok &= np.all(np.isfinite(K), axis=(1, 2)) & np.all(np.isfinite(Ks), axis=(1, 2))
+    return CheckedGains(K=K, Ks=Ks, residual=residual, ok=ok, failed=failed)
