@@ -27,6 +27,7 @@ GRASP_REFERENCE = 'grasp_reference'
 TORQUE_COMMANDS = 'torque_commands'
 CUBE_CONTACTS = 'cube_contacts'
 CUBE_POSE = 'cube_pose'
+JOINT_STATES = 'joint_states'
 #: topics :func:`extract_run` needs; cube_contacts and cube_pose are optional (finger scene)
 REQUIRED_TOPICS = (TIP_POSITIONS, STATE_ESTIMATE, GRASP_REFERENCE, TORQUE_COMMANDS)
 
@@ -53,6 +54,7 @@ class Run:
     reference: Series            # on the tip times: (T, n, 4) X_d, Y_d [m], Ẋ_d, Ẏ_d [m/s]
     contacts: Series | None      # (T, n) normal force of each finger on the cube [N]
     cube_pose: Series | None     # (T, 7) x, y, z [m], qx, qy, qz, qw
+    joints: Series | None = None  # (T, n, 2, 10) each finger's joint angles [rad] and rates [rad/s]
     counts: dict[str, int] = field(default_factory=dict)    # messages per topic in the bag
     skipped: dict[str, int] = field(default_factory=dict)   # malformed messages per topic
 
@@ -196,6 +198,20 @@ def _horizon(msg, n: int) -> tuple[np.ndarray, np.ndarray]:
     return times, points
 
 
+def _joints(msg, n: int) -> np.ndarray:
+    """(n, 2, 10): angles and rates of ``finger_i/joint_j``, in that order whatever the message's."""
+    per = 10
+    expected = [f'{FINGER_NAMES[i]}/joint_{j}' for i in range(n) for j in range(per)]
+    idx = _order(msg.name, expected)
+    q, qd = np.asarray(msg.position, dtype=float), np.asarray(msg.velocity, dtype=float)
+    if len(q) != len(msg.name) or len(qd) != len(msg.name):
+        raise _Malformed('joint_states: position/velocity lengths differ from the names')
+    out = np.stack([q[idx], qd[idx]]).reshape(2, n, per).transpose(1, 0, 2)
+    if not np.all(np.isfinite(out)):
+        raise _Malformed('joint_states: non-finite values')
+    return out
+
+
 def _cube_pose(msg, n: int) -> np.ndarray:
     p, q = msg.pose.position, msg.pose.orientation
     return np.array([p.x, p.y, p.z, q.x, q.y, q.z, q.w], dtype=float)
@@ -249,7 +265,7 @@ def extract_run(path: str | Path) -> Run:
     if missing:
         raise BagError(f'bag {path} lacks topic(s) {", ".join(missing)} '
                        f'(has: {", ".join(counts) or "none"})')
-    wanted = list(REQUIRED_TOPICS) + [t for t in (CUBE_CONTACTS, CUBE_POSE)
+    wanted = list(REQUIRED_TOPICS) + [t for t in (CUBE_CONTACTS, CUBE_POSE, JOINT_STATES)
                                       if len(_matches(counts, t)) == 1]
     messages = read_bag(path, wanted)
     by_name = {t: messages[_resolve(path, counts, t)] for t in wanted}
@@ -277,4 +293,4 @@ def extract_run(path: str | Path) -> Run:
                torques=series(TORQUE_COMMANDS, _torques),
                reference=Series(tip_ns / NS, sample_reference(tip_ns, ref_ns, horizons)),
                contacts=series(CUBE_CONTACTS, _contacts), cube_pose=series(CUBE_POSE, _cube_pose),
-               counts=counts, skipped=skipped)
+               joints=series(JOINT_STATES, _joints), counts=counts, skipped=skipped)

@@ -1,5 +1,7 @@
 """Ground truth from the simulator for judging a learned model and a loop (no ROS).
 
+* :func:`true_tips` — each finger's true tip position and velocity from recorded joint states
+  (``joint_states``), the ground truth the figures compare the reference with.
 * :func:`input_matrix_survey` — the finger's true input matrix J M⁻¹ B (tip acceleration per unit
   torque, friction off) at static poses across the workspace, beside the learned G2 at the same
   states: column directions and magnitudes.
@@ -16,7 +18,31 @@ from scipy.linalg import expm
 
 from soft_gripper_sdre.control.kf import ConstantVelocityKF
 from soft_gripper_sdre.control.riccati import sdre_gains
+from soft_gripper_sdre.sim.dynamics import FingerDynamics
 from soft_gripper_sdre.sim.hand import GripperSim, SimConfig
+
+
+def true_tips(joints: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """True tip positions and velocities of hand fingers from their joint states.
+
+    Args:
+        joints: (T, n, 2, 10) joint angles [rad] and rates [rad/s] per sample and finger, as
+            :class:`soft_gripper_sdre.analysis.bag.Run` reads them from ``joint_states``.
+
+    Returns:
+        ((T, n, 2) tip X, Y [m], (T, n, 2) tip velocity [m/s]) in each finger's base frame: the
+        forward kinematics of the simulator's own finger, without measurement noise.
+    """
+    joints = np.asarray(joints, dtype=float)
+    if joints.ndim != 4 or joints.shape[2:] != (2, 10):
+        raise ValueError(f'joints must have shape (T, n, 2, 10), got {joints.shape}')
+    pos = np.empty(joints.shape[:2] + (2,))
+    vel = np.empty_like(pos)
+    with FingerDynamics() as finger:                    # the hand's fingers are all mounted alike
+        for k in range(joints.shape[0]):
+            for i in range(joints.shape[1]):
+                pos[k, i], vel[k, i] = finger.tip_state(joints[k, i, 0], joints[k, i, 1])
+    return pos, vel
 
 
 def column_angles(G2: np.ndarray) -> np.ndarray:

@@ -34,43 +34,86 @@ def _finish(fig, axes, path: Path) -> Path:
     return path
 
 
-def plot_positions(t, pos, ref_pos, path, finger_names=None, contact=None) -> Path:
-    """Figure 5: desired (solid) vs actual (dashed) tip position per finger and axis, in mm
-    relative to the reference's starting point; shaded where the finger touches the cube."""
-    pos, ref_pos = np.asarray(pos), np.asarray(ref_pos)
-    n = pos.shape[1]
+def _span_limits(ax, values: np.ndarray, min_span: float) -> None:
+    """Y limits around the data with at least ``min_span`` of range, so a nearly constant trace is
+    not blown up to its noise."""
+    finite = values[np.isfinite(values)]
+    if finite.size == 0:
+        return
+    lo, hi = float(finite.min()), float(finite.max())
+    pad = max(min_span - (hi - lo), 0.0) / 2 + 0.08 * max(hi - lo, min_span)
+    ax.set_ylim(lo - pad, hi + pad)
+
+
+def plot_tracking(t_ref, ref, t_act, act, path, *, quantity: str, achieved_label: str, title: str,
+                  finger_names=None, contact=None) -> Path:
+    """Desired vs achieved per finger: X and Y beside each other, the 2-D error on its own axis.
+
+    Args:
+        t_ref, ref: (T,) [s] and (T, n, 2) desired values [m or m/s].
+        t_act, act: (S,) and (S, n, 2) achieved values on their own time base.
+        quantity: ``'position'`` (mm, relative to the reference's first point) or ``'velocity'``.
+        achieved_label: legend entry of the achieved trace (says which signal it is).
+        contact: (T,) … (T, n) bool on ``t_ref``, shaded where the finger touches the cube.
+    """
+    ref, act = np.asarray(ref, dtype=float), np.asarray(act, dtype=float)
+    t_ref, t_act = np.asarray(t_ref, dtype=float), np.asarray(t_act, dtype=float)
+    n = ref.shape[1]
     names = finger_names or [f'finger_{i}' for i in range(n)]
-    fig, axes = _grid(n, 'Tip position: desired (solid) vs actual (dashed)')
-    origin = ref_pos[0]
+    position = quantity == 'position'
+    origin = ref[0] if position else np.zeros_like(ref[0])
+    unit, min_span = ('mm', 2.0) if position else ('mm/s', 10.0)
+    desired_on_act = np.stack([np.stack([np.interp(t_act, t_ref, ref[:, i, a]) for a in range(2)], -1)
+                               for i in range(n)], 1)
+    error = 1e3 * np.linalg.norm(act - desired_on_act, axis=2)                # (S, n)
+    fig, axes = plt.subplots(n, 3, figsize=(12, 2.0 * n + 1.2), sharex=True, squeeze=False,
+                             gridspec_kw={'width_ratios': [1, 1, 0.8]})
     for i in range(n):
         for a in range(2):
             ax = axes[i, a]
-            ax.plot(t, 1e3 * (ref_pos[:, i, a] - origin[i, a]), 'C0-', lw=1.4, label='desired')
-            ax.plot(t, 1e3 * (pos[:, i, a] - origin[i, a]), 'C1--', lw=1.2, label='actual')
-            if contact is not None and np.any(contact[:, i]):
-                ax.fill_between(t, 0, 1, where=contact[:, i], color='0.85', alpha=0.6,
-                                transform=ax.get_xaxis_transform(), label='cube contact')
-            ax.set_ylabel(f'{names[i]} {AXES[a]} [mm]')
+            d = 1e3 * (ref[:, i, a] - origin[i, a])
+            y = 1e3 * (act[:, i, a] - origin[i, a])
+            ax.plot(t_ref, d, color='0.15', lw=1.6, label='desired (reference)')
+            ax.plot(t_act, y, color='C1', lw=1.0, ls='--', label=achieved_label)
+            _span_limits(ax, np.concatenate([d, y]), min_span)
+            ax.set_ylabel(f'{names[i]}  {AXES[a]}{"" if position else " rate"} [{unit}]', fontsize=8)
+        err_ax = axes[i, 2]
+        err_ax.plot(t_act, error[:, i], color='C3', lw=0.9, label=f'|achieved − desired| (2-D) [{unit}]')
+        free = np.ones(len(t_act), dtype=bool)
+        if contact is not None:                  # scaled to free space: in contact the reference
+            touching = contact[np.clip(np.searchsorted(t_ref, t_act) - 1, 0, len(t_ref) - 1), i]
+            free = ~touching                      # lies inside the cube, off this scale on purpose
+        scale = float(np.nanmax(error[free, i])) if free.any() else float(np.nanmax(error[:, i]))
+        top = max(scale * 1.25, 0.05 if position else 1.0)
+        err_ax.set_ylim(0, top)
+        if np.nanmax(error[:, i]) > top:
+            err_ax.text(0.5, 0.93, f'in contact: up to {np.nanmax(error[:, i]):.2g} {unit} (off scale)',
+                        transform=err_ax.transAxes, ha='center', va='top', fontsize=7, color='0.3')
+        err_ax.set_ylabel(f'error [{unit}]', fontsize=8)
+        if contact is not None and np.any(contact[:, i]):
+            for ax in axes[i]:
+                ax.fill_between(t_ref, 0, 1, where=contact[:, i], color='0.85', alpha=0.7, lw=0,
+                                transform=ax.get_xaxis_transform(), label='touching the cube')
+        for ax in axes[i]:
             ax.grid(alpha=0.3)
-    axes[0, 0].legend(loc='best', fontsize=8)
-    return _finish(fig, axes, path)
-
-
-def plot_velocities(t, vel, ref_vel, path, finger_names=None) -> Path:
-    """Figure 6: desired (solid) vs actual (dashed) tip velocity per finger and axis, mm/s."""
-    vel, ref_vel = np.asarray(vel), np.asarray(ref_vel)
-    n = vel.shape[1]
-    names = finger_names or [f'finger_{i}' for i in range(n)]
-    fig, axes = _grid(n, 'Tip velocity: desired (solid) vs actual (dashed)')
-    for i in range(n):
-        for a in range(2):
-            ax = axes[i, a]
-            ax.plot(t, 1e3 * ref_vel[:, i, a], 'C0-', lw=1.4, label='desired')
-            ax.plot(t, 1e3 * vel[:, i, a], 'C1--', lw=1.0, label='actual')
-            ax.set_ylabel(f'{names[i]} d{AXES[a]}/dt [mm/s]')
-            ax.grid(alpha=0.3)
-    axes[0, 0].legend(loc='best', fontsize=8)
-    return _finish(fig, axes, path)
+            ax.tick_params(labelsize=8)
+    axes[0, 0].set_title('X (side)', fontsize=9)
+    axes[0, 1].set_title('Y (grasp)', fontsize=9)
+    axes[0, 2].set_title('tracking error', fontsize=9)
+    handles = {}
+    for ax in axes[0]:
+        for h, lab in zip(*ax.get_legend_handles_labels()):
+            handles.setdefault(lab, h)
+    fig.suptitle(title, fontsize=10)
+    fig.legend(list(handles.values()), list(handles), loc='upper center', ncol=len(handles),
+               fontsize=8, frameon=False, bbox_to_anchor=(0.5, 0.985 - 0.25 / (2.0 * n + 1.2)))
+    for ax in axes[-1]:
+        ax.set_xlabel('time [s]')
+    fig.tight_layout(rect=(0, 0, 1, 1 - 0.75 / (2.0 * n + 1.2)))
+    path = Path(path)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
 
 
 def plot_torques(t, u, path, finger_names=None, u_max=None) -> Path:
@@ -80,7 +123,7 @@ def plot_torques(t, u, path, finger_names=None, u_max=None) -> Path:
     names = finger_names or [f'finger_{i}' for i in range(n)]
     fig, axes = plt.subplots(n, 1, figsize=(10, 1.9 * n + 0.8), sharex=True, squeeze=False)
     axes = axes[:, 0]
-    fig.suptitle('Control torques')
+    fig.suptitle('Torque commands of the controller (saturation limit dotted)')
     for i in range(n):
         ax = axes[i]
         ax.plot(t, 1e3 * u[:, i, 0], 'C2-', lw=1.0, label='u_ax0 (grasp axis)')
@@ -90,9 +133,11 @@ def plot_torques(t, u, path, finger_names=None, u_max=None) -> Path:
                 ax.axhline(s * 1e3 * u_max, color='0.5', lw=0.8, ls=':')
         ax.set_ylabel(f'{names[i]} [mN·m]')
         ax.grid(alpha=0.3)
-    axes[0].legend(loc='best', fontsize=8)
+    handles, labels = axes[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc='upper center', ncol=len(labels), fontsize=8, frameon=False,
+               bbox_to_anchor=(0.5, 0.985 - 0.25 / (1.9 * n + 0.8)))
     axes[-1].set_xlabel('time [s]')
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0, 1, 1 - 0.75 / (1.9 * n + 0.8)))
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return Path(path)

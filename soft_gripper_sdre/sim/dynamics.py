@@ -94,6 +94,20 @@ class FingerDynamics(DirectClient):
                                       physicsClientId=self._client)
         return np.asarray(lin)
 
+    def tip_state(self, q: np.ndarray, qd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The tip's (X, Y) position [m] and velocity [m/s] in the base frame at joint angles q
+        (10,) [rad] and rates q̇ (10,) [rad/s]: the simulator's reported tip, from its joint state."""
+        q = np.asarray(q, dtype=float).reshape(-1)
+        qd = np.asarray(qd, dtype=float).reshape(-1)
+        if q.shape != (N_JOINTS,) or qd.shape != (N_JOINTS,):
+            raise ValueError(f'q and qd must have {N_JOINTS} entries, got {q.shape} and {qd.shape}')
+        cid, body = self._client, self._body
+        for j in range(N_JOINTS):
+            pb.resetJointState(body, j, float(q[j]), float(qd[j]), physicsClientId=cid)
+        state = pb.getLinkState(body, TIP_LINK, computeLinkVelocity=1, computeForwardKinematics=1,
+                                physicsClientId=cid)
+        return np.asarray(state[0][:2]) / LENGTH_SCALE, np.asarray(state[6][:2]) / LENGTH_SCALE
+
     def evaluate(self, q: np.ndarray, qd: np.ndarray, friction: bool = False) -> TaskDynamics:
         """The exact task-space terms at joint angles q (10,) [rad] and rates q̇ (10,) [rad/s].
 

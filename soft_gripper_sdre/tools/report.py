@@ -2,13 +2,16 @@
 
     python -m soft_gripper_sdre.tools.report BAG --out DIR [--torque-limit 0.1]
 
-Writes DIR/fig5_positions.png (measured tip vs reference), fig6_velocities.png (KF estimate vs
-reference), fig7_torques.png (commands) and DIR/metrics.json:
+Writes DIR/fig5_positions.png and fig6_velocities.png (the reference against the true tip, from the
+simulator's joint states in the bag; the measured tip where the bag has no joint_states),
+fig7_torques.png (commands) and DIR/metrics.json:
 
 * per finger: free-space tracking RMSE / max of the 2-D tip error [mm] and the RMSE as % of the
   reference's peak excursion from its first point; free space = samples where that finger's
   cube contact force (held from the last cube_contacts message) is 0 — all samples if the bag has
-  no cube_contacts; plus the fraction of samples in contact;
+  no cube_contacts; plus the fraction of samples in contact; the errors are those of the measured
+  tips (sensor noise included), and, with joint_states in the bag, ``true_tip`` holds the same
+  figures for the true tip at the joint states' rate;
 * the cube's largest displacement from its first pose [mm];
 * with ``--torque-limit``: how many torque commands reached the actuator limit (the simulator clips
   them there), per finger;
@@ -30,7 +33,7 @@ import numpy as np
 from soft_gripper_sdre import FINGER_NAMES
 from soft_gripper_sdre.analysis.bag import BagError, Run, extract_run
 from soft_gripper_sdre.analysis.metrics import tracking_metrics
-from soft_gripper_sdre.analysis.plots import plot_positions, plot_torques, plot_velocities
+from soft_gripper_sdre.analysis.plots import plot_torques, plot_tracking
 
 FIGURES = ('fig5_positions.png', 'fig6_velocities.png', 'fig7_torques.png')
 METRICS = 'metrics.json'
@@ -69,6 +72,18 @@ def _start(run: Run, path) -> int:
     if not valid.any():
         raise BagError(f'bag {path}: grasp_reference starts after the last tip_positions sample')
     return int(np.argmax(valid))
+
+
+def _true_tips(run: Run, t: np.ndarray):
+    """(t, pos, vel) of the true tips over the run's span from its joint states, or None."""
+    if run.joints is None:
+        return None
+    keep = (run.joints.t >= t[0]) & (run.joints.t <= t[-1])
+    if keep.sum() < 2:
+        return None
+    from soft_gripper_sdre.analysis.ground_truth import true_tips
+    pos, vel = true_tips(run.joints.values[keep])
+    return run.joints.t[keep], pos, vel
 
 
 def report(bag_path: str | Path, out_dir: str | Path, torque_limit: float | None = None) -> dict:
@@ -131,9 +146,27 @@ def report(bag_path: str | Path, out_dir: str | Path, torque_limit: float | None
         'message_counts': run.counts,
         'skipped_messages': run.skipped,
     })
-    plot_positions(t, pos, ref[..., :2], out / FIGURES[0], names,
-                   contact=contact if has_contacts else None)
-    plot_velocities(t, vel, ref[..., 2:4], out / FIGURES[1], names)
+    truth = _true_tips(run, t)
+    if truth is not None:
+        t_true, pos_true, vel_true = truth
+        ref_true = interpolate(t, ref, t_true)
+        contact_true = hold(t, contact, t_true)
+        true_metrics = tracking_metrics(pos_true, ref_true[..., :2], ~contact_true, excursion)
+        for i, name in enumerate(names):
+            metrics['fingers'][name]['true_tip'] = _json_safe(true_metrics[i].as_dict())
+        achieved = ('true tip (simulator ground truth: forward kinematics of joint_states)', t_true,
+                    pos_true, vel_true)
+    else:
+        achieved = ('measured tip (with sensor noise)', t, pos, vel)
+    label, t_act, pos_act, vel_act = achieved
+    plot_tracking(t, ref[..., :2], t_act, pos_act, out / FIGURES[0], quantity='position',
+                  achieved_label=label, finger_names=names, contact=contact if has_contacts else None,
+                  title=f'Fig. 5  Tip position: desired vs {label.split(" (")[0]} [mm from the start]')
+    vel_label = label if truth is not None else 'Kalman-filter estimate (state_estimate)'
+    plot_tracking(t, ref[..., 2:4], t_act, vel_act, out / FIGURES[1], quantity='velocity',
+                  achieved_label=vel_label.replace('tip', 'tip velocity', 1), finger_names=names,
+                  contact=contact if has_contacts else None,
+                  title=f'Fig. 6  Tip velocity: desired vs {vel_label.split(" (")[0]} velocity')
     plot_torques(t_u, u, out / FIGURES[2], names, u_max=torque_limit)
     (out / METRICS).write_text(json.dumps(metrics, indent=2) + '\n', encoding='utf-8')
     return metrics
