@@ -60,7 +60,8 @@ def positive_definite(S, work):
 @kernel
 def solve_in_place(L, b):
     """Solve L y = b (small dense L) by Gaussian elimination with partial pivoting: b becomes y,
-    L is overwritten. False when a pivot is zero or not finite (y is then meaningless)."""
+    L is overwritten (its diagonal by the pivots' reciprocals, so that back substitution multiplies
+    instead of dividing). False when a pivot is zero or not finite (y is then meaningless)."""
     n = b.shape[0]
     for col in range(n):
         pivot, big = col, abs(L[col, col])
@@ -73,10 +74,10 @@ def solve_in_place(L, b):
             for c in range(col, n):
                 L[col, c], L[pivot, c] = L[pivot, c], L[col, c]
             b[col], b[pivot] = b[pivot], b[col]
-        inv = 1.0 / L[col, col]
+        inv = L[col, col] = 1.0 / L[col, col]
         for r in range(col + 1, n):
             f = L[r, col] * inv
-            if f != 0.0:
+            if f != 0.0:                                   # the Lyapunov operator is mostly zeros
                 for c in range(col + 1, n):
                     L[r, c] -= f * L[col, c]
                 b[r] -= f * b[col]
@@ -84,7 +85,7 @@ def solve_in_place(L, b):
         s = b[r]
         for c in range(r + 1, n):
             s -= L[r, c] * b[c]
-        b[r] = s / L[r, r]
+        b[r] = s * L[r, r]
     return True
 
 
