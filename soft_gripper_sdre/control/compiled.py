@@ -14,12 +14,14 @@ For the SDC form A = [[0, I], [a]], G = [[0], [G2]] (a = [A21 A22]) and each fin
     K = −R⁻¹ G2ᵀ P_low,   K_s = −R⁻¹ G2ᵀ C⁻ᵀ Q[:2, :]   (C = A_cl's lower-left block)   (eq. 23)
     u = K x + K_s x_d, saturated to ±u_max                                               (eq. 22)
 
-with the stop rule and the checks of the numpy fast path (SdreController), the stop rule applied
-to each finger on its own. A finger that is cold (``warm`` False on entry) or fails a check keeps
+with the stop rule and the checks of the numpy fast path (SdreController): the warm fingers iterate
+together until a bound on the next iterate's residual, summed over them, is below half the
+accepted one (docs/design/compiled_kernel.md). A finger that is cold (``warm`` False on entry) or fails a check keeps
 its previous gains (zero before any: zero torque) and comes back with ``warm`` False and the failed
 checks' :class:`~soft_gripper_sdre.control.sdre.Check` bits; the caller solves it exactly (scipy)
 and writes P, K, K_s and ``warm`` into the state. :func:`warm_up` compiles (or loads from numba's
-cache) every kernel at these types: call it before the first real-time step.
+cache) every kernel at these types: call it before the first real-time step. The kernels are
+importable from here as well as from their modules.
 """
 from __future__ import annotations
 
@@ -30,6 +32,10 @@ import numpy as np
 from soft_gripper_sdre.control.compiled_kf import kf_step
 from soft_gripper_sdre.control.compiled_sdre import (feedforward_step, model_inversion, sdc_forward, sdre_gains,
                                                      sdre_step, tracking_step, tracking_torques)
+
+__all__ = ['SdcNetwork', 'SdreSettings', 'SdreState', 'SdreOutputs', 'FeedforwardOutputs', 'warm_up',
+           'sdc_forward', 'sdre_gains', 'tracking_torques', 'sdre_step', 'tracking_step', 'model_inversion',
+           'feedforward_step', 'kf_step']
 
 
 class SdcNetwork(NamedTuple):
@@ -61,9 +67,15 @@ class SdreSettings(NamedTuple):
     @classmethod
     def of(cls, Q, R, u_max, residual_tol: float = 1e-6, cond_max: float = 1e8,
            max_iterations: int = 5) -> SdreSettings:
+        """From SdreController's arguments (Q, R, u_max scalar or (2,), and its defaults)."""
         Q, R = np.array(Q, dtype=np.float64), np.array(R, dtype=np.float64)
         u_max = np.array(np.broadcast_to(np.asarray(u_max, dtype=np.float64), (2,)))
         return cls(Q, np.linalg.inv(R), u_max, float(residual_tol), float(cond_max), int(max_iterations))
+
+    @property
+    def riccati(self) -> tuple:
+        """The settings :func:`~soft_gripper_sdre.control.compiled_sdre.sdre_gains` takes (all but u_max)."""
+        return self.q, self.r_inv, self.residual_tol, self.cond_max, self.max_iterations
 
 
 class SdreState(NamedTuple):
@@ -120,7 +132,7 @@ def warm_up() -> None:
     state, out = SdreState.cold(n), SdreOutputs.empty(n)
     rows, ones = np.zeros((n, 2)), np.ones(n, dtype=np.bool_)
     sdc_forward(np.zeros((n, 4)), *network, out.a2, out.g2)
-    sdre_gains(out.a2, out.g2, ones, *settings[:2], *settings[3:], *state, out.residual, out.iterations, out.failed)
+    sdre_gains(out.a2, out.g2, ones, *settings.riccati, *state, out.residual, out.iterations, out.failed)
     tracking_torques(state.K, state.Ks, np.zeros((n, 4)), np.zeros((n, 4)), ones, settings.u_max, out.u, out.u_unsat)
     sdre_step(np.zeros((n, 4)), np.zeros((n, 4)), *settings, *state, *out)
     model_inversion(out.a2, out.g2, np.zeros((n, 4)), rows, settings.cond_max, rows.copy(), ones.copy())

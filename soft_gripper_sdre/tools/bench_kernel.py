@@ -223,7 +223,8 @@ def compile_seconds() -> dict[str, float]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.bench_kernel', description=__doc__.split('\n')[0])
+    ap = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.bench_kernel',
+                                 description=__doc__.split('\n')[0])
     ap.add_argument('--seconds', type=float, default=2.0, help='length of the replayed closed loop [s]')
     ap.add_argument('--noise', type=float, default=5e-5, help='measurement noise of the closed loop [m]')
     ap.add_argument('--no-compile-times', action='store_true', help='skip the cold / cached compile timings')
