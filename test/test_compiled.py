@@ -334,3 +334,12 @@ def test_warm_up_compiles_once_then_loads_from_the_cache(tmp_path):
     (miss1, hit1), (miss2, hit2) = ([int(v) for v in r] for r in runs)
     assert miss1 >= 8 and hit1 == 0
     assert miss2 == 0 and hit2 >= 8
+
+
+def test_bench_kernel_reports_every_path(capsys):
+    from soft_gripper_sdre.tools.bench_kernel import main
+    assert main(['--seconds', '0.05', '--no-compile-times']) == 0
+    out = capsys.readouterr().out
+    for row in ('numpy fast', 'compiled (KernelLaw)', 'compiled kernel call', 'scipy reference', 'KF step'):
+        assert row in out
+    assert out.count('exact solves: 4 compiled, 4 numpy') == 2          # cold start only, both laws

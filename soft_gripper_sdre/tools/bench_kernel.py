@@ -139,26 +139,25 @@ def bench_laws(loop, law: str, repeats: int = 2) -> dict:
     clock = time.perf_counter
     t = {k: [] for k in ('numpy fast', 'compiled (KernelLaw)', 'compiled kernel call', 'scipy reference')}
 
-    def run(name, compute):
+    def run(name, compute, after=lambda: None):
+        """compute(args) for every step, timed; then ``after()``, not timed."""
         out = []
         for k, args in enumerate(steps):
             t0 = clock()
-            res = compute(k, args)
+            res = compute(args)
             if k:
                 t[name].append(clock() - t0)
             out.append(res)
+            after()
         return out
 
     for _ in range(repeats):
         fast = make_law(law, model, w, 0.0625, method='fast', lowpass_hz=0.0)
         ref = make_law(law, model, w, 0.0625, method='reference', lowpass_hz=0.0)
         compiled = KernelLaw(model, w, 0.0625, law=law)
-        before = []
-
-        def compiled_step(k, args):
-            before.append(tuple(a.copy() for a in compiled.state))
-            return compiled.compute(*args, **kw)
-        out_c = run('compiled (KernelLaw)', compiled_step)
+        before = [tuple(a.copy() for a in compiled.state)]      # the state each step starts from
+        out_c = run('compiled (KernelLaw)', lambda args: compiled.compute(*args, **kw),
+                    after=lambda: before.append(tuple(a.copy() for a in compiled.state)))
         state, out, ff = SdreState.cold(4), SdreOutputs.empty(4), FeedforwardOutputs.empty(4)
         for k, args in enumerate(steps):            # the kernel alone, from the warm start KernelLaw had
             for src, dst in zip(before[k], state):
@@ -171,8 +170,8 @@ def bench_laws(loop, law: str, repeats: int = 2) -> dict:
                                  *compiled.settings, *state, *out, *ff)
             if k:
                 t['compiled kernel call'].append(clock() - t0)
-        out_f = run('numpy fast', lambda k, args: fast.compute(*args, **kw))
-        out_r = run('scipy reference', lambda k, args: ref.compute(*args, **kw))
+        out_f = run('numpy fast', lambda args: fast.compute(*args, **kw))
+        out_r = run('scipy reference', lambda args: ref.compute(*args, **kw))
     uc = np.array([o['u_unsat'] for o in out_c])
     uf, ur = (np.array([o.u_unsat for o in outs]) for outs in (out_f, out_r))
     it_fast = [o.nk_iterations.max() for o in out_f[1:]] if law == 'sdre' else None   # LawStep has none
