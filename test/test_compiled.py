@@ -3,8 +3,8 @@
 The kernels run the numpy fast path's algorithm (same warm start, stop rule and checks), so they
 are held to it tightly (``SAME_TOL`` of the largest torque: only the summation order differs) and
 to the reference within the fast path's stated tolerance (``U_TOL``, as in test_sdre_fast.py).
-The supervisor part that is not compiled (the exact path for fingers the kernel hands back) is
-KernelLaw's: a one-finger reference SdreController per finger.
+The supervisor part that is not compiled (the exact path for the fingers the kernel hands back)
+is KernelLaw's: SdreController's exact path, run by a cold one-finger controller.
 """
 import os
 from pathlib import Path
@@ -257,7 +257,7 @@ def test_singular_closed_loop_block_is_flagged(model, weights):
     C = a[:, :, :2] - (W @ P[:, 2:, :])[:, :, :2]
     cond_C, cond_G = np.linalg.cond(C), np.linalg.cond(g)
     for i in range(N):
-        assert cond_G[i] < cond_C[i]           # (so a limit between them trips only the A_cl test)
+        assert cond_G[i] < cond_C[i], 'a limit between them must trip the A_cl test alone'  # (this model)
         limit = np.sqrt(cond_G[i] * cond_C[i])
         settings = SdreSettings.of(weights.Q, weights.R, U_MAX, cond_max=limit)
         state, out = SdreState(*(s.copy() for s in kernel.state)), SdreOutputs.empty(N)
