@@ -398,6 +398,16 @@ class SDCModel:
         out = h @ W3                             # h w₃ + b₃
         return out[:, :8].reshape(n, 2, 4), out[:, 8:].reshape(n, 2, 2)
 
+    @property
+    def fused_network(self) -> tuple[np.ndarray, ...]:
+        """Copies of the fused network's arrays (w1, b1, w2, b2, w3, b3), float64 and C-contiguous.
+
+        h ↦ relu(x w1 + b1) ↦ relu(· w2 + b2) ↦ · w3 + b3 maps states x (n, 4) to (n, 12): row-major
+        [A21 A22] (8) then G2 (4), in SI (:func:`_fused_layers`). For evaluators outside this
+        package's numpy path, such as the compiled control kernels, which take the arrays as inputs.
+        """
+        return tuple(np.array(a, dtype=np.float64, order='C') for layer in self._layers for a in layer)
+
     def AG(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """A(x) (n, 4, 4) and G(x) (n, 4, 2) for states x (4,) or (n, 4)."""
         a, g = self.sdc_blocks(x)
