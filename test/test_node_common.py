@@ -81,3 +81,28 @@ def test_flush_returns_once_the_reliable_subscriber_has_everything():
         assert flush(sender, timeout=5.0)            # acknowledged by the reader's DDS history
         assert spin_until(executor, lambda: len(got) == 20, 5.0)
         sender.destroy_node()
+
+
+def test_diagnostics_are_stamped_with_wall_time_and_named_by_the_full_node_name():
+    """/diagnostics is published on a wall timer, so its stamp is wall time (the loop topics carry
+    sim time); the status is named by the node's namespace and name."""
+    import time
+    from diagnostic_msgs.msg import DiagnosticArray
+    from soft_gripper_sdre.nodes.common import Diagnostics
+    from soft_gripper_sdre.nodes.topics import DIAGNOSTICS, STREAM_QOS
+    with ros_context('events') as (ctx, executor):
+        node = rclpy.create_node('diag_source', namespace='/left_hand', context=ctx)
+        diag = Diagnostics(node, period=0.05)
+        diag.count('steps', 3)
+        listener = Probe(ctx, 'listener')
+        listener.listen(DiagnosticArray, DIAGNOSTICS, STREAM_QOS)
+        executor.add_node(node)
+        executor.add_node(listener)
+        got = listener.received[DIAGNOSTICS]
+        before = time.time()
+        assert spin_until(executor, lambda: len(got) >= 2, 10.0)
+        stamp = got[-1].header.stamp.sec + got[-1].header.stamp.nanosec * 1e-9
+        assert before - 5.0 < stamp < time.time() + 1.0
+        status = got[-1].status[0]
+        assert status.name == '/left_hand/diag_source'
+        assert {kv.key: kv.value for kv in status.values}['steps'] == '3'

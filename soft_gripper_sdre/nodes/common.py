@@ -50,7 +50,8 @@ class ThrottledLogger:
 
 
 class Diagnostics:
-    """Counters and a status level published as one DiagnosticStatus on /diagnostics (~1 Hz, wall)."""
+    """Counters and a status level published as one DiagnosticStatus on /diagnostics, on a wall
+    timer (~1 Hz) and stamped with wall time; the loop topics are the ones stamped in sim time."""
 
     def __init__(self, node: Node, hardware_id: str = 'soft_gripper', period: float = 1.0) -> None:
         self.node = node
