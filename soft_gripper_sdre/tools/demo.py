@@ -78,6 +78,9 @@ def run_demo(out: Path, duration: float, model: Path | None = None, noise: float
     if law is not None:
         params['controller']['law'] = law
 
+    if progress:
+        print(f'starting the node graph ({", ".join(NODES)}) on ROS_DOMAIN_ID {env["ROS_DOMAIN_ID"]}, '
+              f'logs in {out / "logs"} ...', file=sys.stderr, flush=True)
     monitor = DiagnosticsMonitor(env, 'demo_monitor')
     bar = None
     t_wall = time.monotonic()
