@@ -73,7 +73,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--preset', choices=sorted(PRESETS), default='default')
     parser.add_argument('--variant', choices=sorted(DATA_VARIANTS), default=None,
                         help='training signals: identifying (default preset) or paper (u1..u3)')
-    parser.add_argument('--seed', type=int, default=0)
+    parser.add_argument('--seed', type=int, default=0,
+                        help='seed of the initial weights and the batch shuffles (the shipped models use 0)')
     parser.add_argument('--epochs', type=int, default=None, help='override the preset')
     parser.add_argument('--jerk-psd', type=float, default=None,
                         help='KF/RTS white-jerk intensity; default: tuned by likelihood on the data')
@@ -156,7 +157,7 @@ def main(argv: list[str] | None = None) -> int:
     G2 = G[0, 2:, :]
     angles = [float(np.degrees(np.arctan2(G2[1, j], G2[0, j]))) for j in range(2)]
     metrics = {
-        'preset': args.preset, 'variant': variant, 'epochs_run': len(result.train_loss),
+        'preset': args.preset, 'variant': variant, 'seed': settings.seed, 'epochs_run': len(result.train_loss),
         'best_epoch': result.best_epoch, 'train_seconds': round(result.seconds, 1),
         'u4_r2_true': {'X': r2[0], 'Y': r2[1]},
         'u4_r2_ls_baseline': {'X': r2_ls[0], 'Y': r2_ls[1]},
