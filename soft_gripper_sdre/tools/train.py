@@ -76,6 +76,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--seed', type=int, default=0,
                         help='seed of the initial weights and the batch shuffles (the shipped models use 0)')
     parser.add_argument('--epochs', type=int, default=None, help='override the preset')
+    parser.add_argument('--patience', type=int, default=None,
+                        help="stop after this many epochs without a new best validation loss "
+                             "(default: the preset's; both presets run every epoch)")
+    parser.add_argument('--jitter', type=float, default=0.0,
+                        help='robustness check: multiply every training state and label by '
+                             '1 + JITTER·N(0, 1), e.g. 1e-9 to flip float32 roundings (0 = off)')
+    parser.add_argument('--jitter-seed', type=int, default=0, help='seed of the --jitter draws')
     parser.add_argument('--jerk-psd', type=float, default=None,
                         help='KF/RTS white-jerk intensity; default: tuned by likelihood on the data')
     parser.add_argument('--sv-penalty', type=float, default=0.0,
@@ -92,6 +99,13 @@ def main(argv: list[str] | None = None) -> int:
         if args.epochs < 1:
             _usage_error(parser, '--epochs must be >= 1')
         settings = replace(settings, epochs=args.epochs)
+    if args.patience is not None:
+        try:
+            settings = replace(settings, patience=args.patience)
+        except ValueError as exc:
+            _usage_error(parser, f'--patience: {exc}')
+    if not (np.isfinite(args.jitter) and 0.0 <= args.jitter < 1e-3):
+        _usage_error(parser, f'--jitter must be in [0, 1e-3), got {args.jitter}')
     if args.sv_penalty != 0:
         try:
             settings = replace(settings, sv_penalty=args.sv_penalty, sv_floor=args.sv_floor)
@@ -127,6 +141,10 @@ def main(argv: list[str] | None = None) -> int:
     x = np.vstack([est[n]['x'] for n in train_names])
     u = np.vstack([est[n]['u'] for n in train_names])
     acc = np.vstack([est[n]['acc'] for n in train_names])
+    if args.jitter > 0:
+        rng = np.random.default_rng(args.jitter_seed)
+        acc = acc * (1.0 + args.jitter * rng.standard_normal(acc.shape))
+        x = x * (1.0 + args.jitter * rng.standard_normal(x.shape))
     val = est[VALIDATION]
 
     bar = tqdm(total=settings.epochs, desc=f'train ({args.preset})', unit='epoch')
@@ -141,6 +159,8 @@ def main(argv: list[str] | None = None) -> int:
     data_info = {'variant': variant, 'train_signals': train_names, 'validation': VALIDATION,
                  'fingerprint': fingerprint(x, u, acc), 'jerk_psd': float(jerk),
                  'noise_std': float(first.noise_std)}
+    if args.jitter > 0:
+        data_info['jitter'] = {'relative': args.jitter, 'seed': args.jitter_seed}
     ckpt_path = save_checkpoint(args.out / 'model.pt', result, rest_tip=first.rest_tip, dt=first.dt,
                                 settings=settings, data=data_info)
     model = SDCModel(ckpt_path)
