@@ -1,9 +1,11 @@
 """The simulator against the SoMo figures of finger_spec.md (upright finger, sim units)."""
+import xml.etree.ElementTree as ET
+
 import numpy as np
 import pybullet as pb
 import pytest
 
-from soft_gripper_sdre.sim.finger import GRAVITY, JOINT_AXIS, JOINT_STIFFNESS
+from soft_gripper_sdre.sim.finger import GRAVITY, JOINT_AXIS, JOINT_STIFFNESS, finger_urdf
 from soft_gripper_sdre.sim.hand import GripperSim, SimConfig
 from soft_gripper_sdre.sim.units import LENGTH_SCALE, TORQUE_SCALE
 
@@ -164,7 +166,8 @@ def test_stepping_equals_the_straightforward_numpy_computation():
     u[[0, 2], 0] = -0.05
     u[[1, 3]] = [0.3, -0.01]                           # beyond the limit: clipped
     with GripperSim(cfg) as sim, GripperSim(cfg) as ref:
-        cid, bodies, joints = ref._client, ref._bodies, list(range(10))
+        cid, bodies, joints = ref.physics_client, ref.finger_bodies, list(range(10))
+        base_pos, base_rot = ref.base_poses
 
         def ref_joints():
             states = [pb.getJointStates(b, joints, physicsClientId=cid) for b in bodies]
@@ -181,12 +184,13 @@ def test_stepping_equals_the_straightforward_numpy_computation():
                 pb.stepSimulation(physicsClientId=cid)
         tr = sim.truth()
         q, qd = ref_joints()
-        links = [pb.getLinkState(b, 9, computeLinkVelocity=1, physicsClientId=cid) for b in bodies]
+        links = [pb.getLinkState(b, 9, computeLinkVelocity=1, computeForwardKinematics=1, physicsClientId=cid)
+                 for b in bodies]
         # p_b = Rᵀ (p − p₀) in sim units, then → m
-        pos = np.einsum('nji,nj->ni', ref._base_rot, np.array([ls[0] for ls in links]) - ref._base_pos)
+        pos = np.einsum('nji,nj->ni', base_rot, np.array([ls[0] for ls in links]) - base_pos * LENGTH_SCALE)
         force = np.zeros(4)
         for i, b in enumerate(bodies):
-            for c in pb.getContactPoints(b, ref._cube, physicsClientId=cid):
+            for c in pb.getContactPoints(b, ref.cube_body, physicsClientId=cid):
                 force[i] += c[9] / LENGTH_SCALE
         assert np.array_equal(tr.q, q) and np.array_equal(tr.qd, qd)
         assert np.array_equal(tr.u_applied, np.clip(u, -0.1, 0.1))
@@ -196,26 +200,68 @@ def test_stepping_equals_the_straightforward_numpy_computation():
 
 
 def test_tip_frames_equal_numpys_einsum_bit_for_bit():
-    """_read_state sums Rᵀ d in plain floats in einsum's order: the same bits on random frames."""
+    """The tips are turned into each finger's base frame in plain floats, summed in einsum's order:
+    the same bits as numpy on the hand's four frames (roll 15°, yaw 0/90/180/270°)."""
     rng = np.random.default_rng(0)
     with GripperSim(SimConfig(scene='hand', settle_time=0.0)) as sim:
-        sim._base_pos = rng.standard_normal((4, 3))
-        sim._base_rot = np.stack([np.linalg.qr(rng.standard_normal((3, 3)))[0] for _ in range(4)])
-        sim._frames = [(p0.tolist(), R.T.tolist()) for p0, R in zip(sim._base_pos, sim._base_rot)]
+        base_pos, base_rot = sim.base_poses
+        base_pos = base_pos * LENGTH_SCALE
         for _ in range(20):
             sim.step(rng.uniform(-0.1, 0.1, (4, 2)))
-            links = [pb.getLinkState(b, 9, computeLinkVelocity=1, physicsClientId=sim._client)
-                     for b in sim._bodies]
+            links = [pb.getLinkState(b, 9, computeLinkVelocity=1, computeForwardKinematics=1,
+                                     physicsClientId=sim.physics_client) for b in sim.finger_bodies]
             p, v = np.array([ls[0] for ls in links]), np.array([ls[6] for ls in links])
-            p_b = np.einsum('nji,nj->ni', sim._base_rot, p - sim._base_pos)     # Rᵀ (p − p₀)
-            assert np.array_equal(sim._tip_pos, p_b / LENGTH_SCALE)
-            assert np.array_equal(sim._tip_vel, np.einsum('nji,nj->ni', sim._base_rot, v) / LENGTH_SCALE)
+            p_b = np.einsum('nji,nj->ni', base_rot, p - base_pos)     # Rᵀ (p − p₀)
+            truth = sim.truth()
+            assert np.array_equal(truth.tip_pos, p_b / LENGTH_SCALE)
+            assert np.array_equal(truth.tip_vel, np.einsum('nji,nj->ni', base_rot, v) / LENGTH_SCALE)
+
+
+def urdf_tip_kinematics(q, qd):
+    """Tip position [sim units] and velocity [sim units/s] in the finger's base frame, from the joint
+    state and the URDF alone (joint origins, axes and link 9's inertial origin): the tip the simulator
+    should report, computed without PyBullet."""
+    robot = ET.fromstring(finger_urdf().split('\n', 1)[1])     # without the XML declaration
+    floats = lambda text: np.array([float(v) for v in text.split()])  # noqa: E731
+    joints = robot.findall('joint')
+    tip_link = joints[-1].find('child').get('link')
+    com = floats(robot.find(f"link[@name='{tip_link}']/inertial/origin").get('xyz'))
+    R, p, origins, axes = np.eye(3), np.zeros(3), [], []
+    for joint, angle in zip(joints, q):
+        p = p + R @ floats(joint.find('origin').get('xyz'))
+        a = floats(joint.find('axis').get('xyz'))
+        k = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+        R = R @ (np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k)     # Rodrigues
+        origins.append(p)
+        axes.append(R @ a)
+    tip = p + R @ com
+    return tip, sum(w * np.cross(a, tip - o) for w, a, o in zip(qd, axes, origins))
+
+
+@pytest.mark.parametrize('scene', ['finger', 'hand'])
+def test_reported_tip_is_the_forward_kinematics_of_the_reported_joint_state(scene):
+    """truth() and measure() give the tip of the joint state truth() reports, not of the state one
+    physics substep earlier, to machine precision, while the fingers swing fast."""
+    with GripperSim(SimConfig(scene=scene, settle_time=0.1)) as sim:
+        n = sim.n_fingers
+        for k in range(300):
+            sim.step(np.tile([[0.03 * np.sin(0.02 * k), 0.02 * np.cos(0.05 * k)]], (n, 1)))
+            if k % 10:
+                continue
+            truth = sim.truth()
+            for i in range(n):
+                tip, vel = urdf_tip_kinematics(truth.q[i], truth.qd[i])
+                # a few ulps of the 0.1 m tip and the ~1 m/s speeds of this motion
+                np.testing.assert_allclose(truth.tip_pos[i], tip / LENGTH_SCALE, rtol=0, atol=1e-15)
+                np.testing.assert_allclose(truth.tip_vel[i], vel / LENGTH_SCALE, rtol=0, atol=1e-14)
+            assert np.array_equal(sim.measure(), truth.tip_pos)
+        assert np.abs(truth.tip_vel).max() > 0.3         # the check ran on a moving finger
 
 
 def _potential_hessian(sim, h=1e-3):
     """∂²V/∂q² [sim torque units/rad] of the gravity potential V(q) = Σ m_l g z_l(q), by central
     differences of the links' world centres of mass (the base as mounted), finger scene."""
-    body, cid = sim._bodies[0], sim._client
+    body, cid = sim.finger_bodies[0], sim.physics_client
     masses = [pb.getDynamicsInfo(body, link, physicsClientId=cid)[0] for link in range(10)]
     q0 = sim.truth().q[0]
 

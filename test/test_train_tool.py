@@ -84,6 +84,15 @@ def test_bad_singular_value_penalty_is_a_usage_error(tmp_path, data_dir, args, w
     assert not (tmp_path / 'out').exists()
 
 
+@pytest.mark.parametrize('args, why', [(('--patience', '0'), 'patience must be an int >= 1'),
+                                       (('--jitter', 'nan'), '--jitter must be in [0, 1e-3)'),
+                                       (('--jitter', '0.01'), '--jitter must be in [0, 1e-3)')])
+def test_bad_patience_or_jitter_is_a_usage_error(tmp_path, data_dir, args, why):
+    proc = run_train('--data', str(data_dir), '--out', str(tmp_path / 'out'), *args)
+    assert proc.returncode == 2 and why in proc.stderr and 'Traceback' not in proc.stderr
+    assert not (tmp_path / 'out').exists()
+
+
 def test_tiny_training_run_writes_model_metrics_and_figures(tmp_path, data_dir):
     """3 epochs on collected data write a loadable model.pt, finite metrics.json and both figures."""
     out = tmp_path / 'run'

@@ -19,6 +19,7 @@ networks as one fused network of three matmuls.
 """
 from __future__ import annotations
 
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 import hashlib
 import math
@@ -26,7 +27,7 @@ from pathlib import Path
 import pickle
 import re
 import time
-from typing import Callable
+from typing import Callable, Iterator
 
 import numpy as np
 import torch
@@ -36,6 +37,9 @@ FORMAT_VERSION = 1
 #: first bytes of every torch.save file (a zip archive)
 ZIP_MAGIC = b'PK\x03\x04'
 HIDDEN = 32
+#: intra-op threads while training: the order of torch's reductions, and so every weight's bits,
+#: depends on it
+TRAIN_THREADS = 1
 DEFAULT_MODEL = Path(__file__).resolve().parent.parent / 'models' / 'default.pt'
 #: the same preset trained on the paper's signals alone (u1..u3, both torques equal): kept to show
 #: what identifying excitation buys (without it G2's column directions come out wrong)
@@ -90,7 +94,14 @@ class SDCNet(nn.Module):
 
 @dataclass(frozen=True)
 class TrainSettings:
-    """A training preset. ``paper``: Adam 1e-5, 70 epochs, unscaled, as published."""
+    """A training preset. ``paper``: Adam 1e-5, 70 epochs, unscaled, as published.
+
+    ``patience``: stop after this many epochs without a new best validation loss; None runs the
+    whole budget. The default preset runs it: its cosine schedule anneals the learning rate to zero
+    over the budget, while a stop decided by the noisy mid-schedule validation curve can fall
+    tens of epochs earlier or later when the data change at rounding level, and so give another
+    model. Either way the weights of the best validation epoch are kept.
+    """
 
     preset: str = 'default'
     epochs: int = 300
@@ -99,7 +110,7 @@ class TrainSettings:
     cosine: bool = True
     scale: bool = True
     weight_decay: float = 0.0
-    patience: int = 60
+    patience: int | None = None
     seed: int = 0
     hidden: int = HIDDEN
     #: controllability-aware learning (README "Beyond the paper"): weight of the penalty
@@ -110,6 +121,8 @@ class TrainSettings:
     sv_box: float = 3.0
 
     def __post_init__(self) -> None:
+        if self.patience is not None and not (isinstance(self.patience, int) and self.patience >= 1):
+            raise ValueError(f'patience must be an int >= 1 or None (run every epoch), got {self.patience!r}')
         if not (np.isfinite(self.sv_penalty) and self.sv_penalty >= 0.0):
             raise ValueError(f'sv_penalty must be finite and >= 0 (0 = off), got {self.sv_penalty!r}')
         for name in ('sv_floor', 'sv_box'):
@@ -121,7 +134,7 @@ class TrainSettings:
 PRESETS = {
     'default': TrainSettings(),
     'paper': TrainSettings(preset='paper', epochs=70, lr=1e-5, batch_size=64, cosine=False,
-                           scale=False, patience=10**9),
+                           scale=False),
 }
 
 
@@ -142,10 +155,29 @@ def _scales(x: np.ndarray, u: np.ndarray, acc: np.ndarray, scale: bool) -> dict[
     return {'x': std(x), 'u': std(u), 'acc': std(acc)}
 
 
+@contextmanager
+def deterministic_torch(threads: int = TRAIN_THREADS) -> Iterator[None]:
+    """Run the block with ``threads`` intra-op threads and torch's deterministic algorithms only,
+    then put both settings back."""
+    old_threads = torch.get_num_threads()
+    old_mode = torch.are_deterministic_algorithms_enabled()
+    old_warn_only = torch.is_deterministic_algorithms_warn_only_enabled()
+    torch.set_num_threads(threads)
+    torch.use_deterministic_algorithms(True)
+    try:
+        yield
+    finally:
+        torch.use_deterministic_algorithms(old_mode, warn_only=old_warn_only)
+        torch.set_num_threads(old_threads)
+
+
 def train(x: np.ndarray, u: np.ndarray, acc: np.ndarray, x_val: np.ndarray, u_val: np.ndarray,
           acc_val: np.ndarray, settings: TrainSettings,
           on_epoch: Callable[[int, float, float], None] | None = None) -> TrainResult:
-    """Fit the SDC networks to accelerations (eq. 18). Seeded and deterministic.
+    """Fit the SDC networks to accelerations (eq. 18).
+
+    Seeded and deterministic: the same data and settings give the same bits on the same machine
+    kind and torch build (:data:`TRAIN_THREADS` threads, deterministic algorithms only).
 
     Args:
         x, u, acc: training states (N, 4), inputs (N, 2), acceleration labels (N, 2), SI.
@@ -157,6 +189,11 @@ def train(x: np.ndarray, u: np.ndarray, acc: np.ndarray, x_val: np.ndarray, u_va
                        ('u_val', u_val, 2), ('acc_val', acc_val, 2)):
         if a.ndim != 2 or a.shape[1] != w:
             raise ValueError(f'{name} must have shape (N, {w}), got {a.shape}')
+    with deterministic_torch():
+        return _train_seeded(x, u, acc, x_val, u_val, acc_val, settings, on_epoch)
+
+
+def _train_seeded(x, u, acc, x_val, u_val, acc_val, settings: TrainSettings, on_epoch) -> TrainResult:
     torch.manual_seed(settings.seed)
     gen = torch.Generator().manual_seed(settings.seed)
     s = _scales(x, u, acc, settings.scale)
@@ -201,7 +238,7 @@ def train(x: np.ndarray, u: np.ndarray, acc: np.ndarray, x_val: np.ndarray, u_va
             best_state = {k: v.clone() for k, v in net.state_dict().items()}
         else:
             since_best += 1
-            if since_best >= settings.patience:
+            if settings.patience is not None and since_best >= settings.patience:
                 break
     if best_state is not None:
         net.load_state_dict(best_state)

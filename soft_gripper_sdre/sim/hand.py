@@ -211,8 +211,11 @@ class GripperSim(DirectClient):
         cid, s = self._client, LENGTH_SCALE
         pos, vel = [], []
         for body, (p0, rot_t) in zip(self._bodies, self._frames):
-            # link 9's centre of mass (the tip) and its velocity, in the world
-            link = pb.getLinkState(body, TIP_LINK, computeLinkVelocity=1, physicsClientId=cid)
+            # link 9's centre of mass (the tip) and its velocity, in the world. PyBullet's cached link
+            # frames are those of the state before the last physics step; recomputing the forward
+            # kinematics makes the tip that of the joint state the step ended in (the one truth() reports)
+            link = pb.getLinkState(body, TIP_LINK, computeLinkVelocity=1, computeForwardKinematics=1,
+                                   physicsClientId=cid)
             (px, py, pz), (vx, vy, vz) = link[0], link[6]
             dx, dy, dz = px - p0[0], py - p0[1], pz - p0[2]
             # into the finger's base frame: p_b = Rᵀ (p − p₀), v_b = Rᵀ v, each row summed in
@@ -235,6 +238,21 @@ class GripperSim(DirectClient):
     def joint_names(self) -> list[str]:
         """``finger_<i>/joint_<j>`` for every joint, in the order of :attr:`SimTruth.q`."""
         return [f'finger_{i}/joint_{j}' for i in range(self.n_fingers) for j in range(N_JOINTS)]
+
+    @property
+    def physics_client(self) -> int:
+        """The PyBullet client id of this simulator (for direct PyBullet queries in analysis and tests)."""
+        return self._client
+
+    @property
+    def finger_bodies(self) -> tuple[int, ...]:
+        """PyBullet body id of each finger, in finger order."""
+        return tuple(self._bodies)
+
+    @property
+    def cube_body(self) -> int | None:
+        """PyBullet body id of the cube (None without a cube)."""
+        return self._cube
 
     @property
     def base_poses(self) -> tuple[np.ndarray, np.ndarray]:

@@ -73,8 +73,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--preset', choices=sorted(PRESETS), default='default')
     parser.add_argument('--variant', choices=sorted(DATA_VARIANTS), default=None,
                         help='training signals: identifying (default preset) or paper (u1..u3)')
-    parser.add_argument('--seed', type=int, default=0)
+    parser.add_argument('--seed', type=int, default=0,
+                        help='seed of the initial weights and the batch shuffles (the shipped models use 0)')
     parser.add_argument('--epochs', type=int, default=None, help='override the preset')
+    parser.add_argument('--patience', type=int, default=None,
+                        help="stop after this many epochs without a new best validation loss "
+                             "(default: the preset's; both presets run every epoch)")
+    parser.add_argument('--jitter', type=float, default=0.0,
+                        help='robustness check: multiply every training state and label by '
+                             '1 + JITTER·N(0, 1), e.g. 1e-9 to flip float32 roundings (0 = off)')
+    parser.add_argument('--jitter-seed', type=int, default=0, help='seed of the --jitter draws')
     parser.add_argument('--jerk-psd', type=float, default=None,
                         help='KF/RTS white-jerk intensity; default: tuned by likelihood on the data')
     parser.add_argument('--sv-penalty', type=float, default=0.0,
@@ -91,6 +99,13 @@ def main(argv: list[str] | None = None) -> int:
         if args.epochs < 1:
             _usage_error(parser, '--epochs must be >= 1')
         settings = replace(settings, epochs=args.epochs)
+    if args.patience is not None:
+        try:
+            settings = replace(settings, patience=args.patience)
+        except ValueError as exc:
+            _usage_error(parser, f'--patience: {exc}')
+    if not (np.isfinite(args.jitter) and 0.0 <= args.jitter < 1e-3):
+        _usage_error(parser, f'--jitter must be in [0, 1e-3), got {args.jitter}')
     if args.sv_penalty != 0:
         try:
             settings = replace(settings, sv_penalty=args.sv_penalty, sv_floor=args.sv_floor)
@@ -126,6 +141,10 @@ def main(argv: list[str] | None = None) -> int:
     x = np.vstack([est[n]['x'] for n in train_names])
     u = np.vstack([est[n]['u'] for n in train_names])
     acc = np.vstack([est[n]['acc'] for n in train_names])
+    if args.jitter > 0:
+        rng = np.random.default_rng(args.jitter_seed)
+        acc = acc * (1.0 + args.jitter * rng.standard_normal(acc.shape))
+        x = x * (1.0 + args.jitter * rng.standard_normal(x.shape))
     val = est[VALIDATION]
 
     bar = tqdm(total=settings.epochs, desc=f'train ({args.preset})', unit='epoch')
@@ -140,6 +159,8 @@ def main(argv: list[str] | None = None) -> int:
     data_info = {'variant': variant, 'train_signals': train_names, 'validation': VALIDATION,
                  'fingerprint': fingerprint(x, u, acc), 'jerk_psd': float(jerk),
                  'noise_std': float(first.noise_std)}
+    if args.jitter > 0:
+        data_info['jitter'] = {'relative': args.jitter, 'seed': args.jitter_seed}
     ckpt_path = save_checkpoint(args.out / 'model.pt', result, rest_tip=first.rest_tip, dt=first.dt,
                                 settings=settings, data=data_info)
     model = SDCModel(ckpt_path)
@@ -156,7 +177,7 @@ def main(argv: list[str] | None = None) -> int:
     G2 = G[0, 2:, :]
     angles = [float(np.degrees(np.arctan2(G2[1, j], G2[0, j]))) for j in range(2)]
     metrics = {
-        'preset': args.preset, 'variant': variant, 'epochs_run': len(result.train_loss),
+        'preset': args.preset, 'variant': variant, 'seed': settings.seed, 'epochs_run': len(result.train_loss),
         'best_epoch': result.best_epoch, 'train_seconds': round(result.seconds, 1),
         'u4_r2_true': {'X': r2[0], 'Y': r2[1]},
         'u4_r2_ls_baseline': {'X': r2_ls[0], 'Y': r2_ls[1]},
