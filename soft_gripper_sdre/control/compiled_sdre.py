@@ -15,7 +15,7 @@ from numba import njit
 #: every kernel: cached on disk, IEEE division (x / 0 = ±inf or NaN, never an exception), no GIL
 kernel = njit(cache=True, error_model='numpy', nogil=True)
 
-#: the bits of sdre.Check (written out: the compiled code keeps the values it was compiled with)
+#: the bits of riccati.Check (written out: the compiled code keeps the values it was compiled with)
 STABILIZABLE, HURWITZ, ACL_SINGULAR, SOLVE_FAILED, NONFINITE, RESIDUAL, P_NOT_PD = 1, 4, 8, 16, 32, 64, 128
 
 # A symmetric 4×4 P has 10 unknowns: its upper triangle row by row, entry e = (ROW[e], COL[e]);
@@ -263,8 +263,7 @@ def sdre_gains(a2, g2, finite, q, r_inv, residual_tol, cond_max, max_iterations,
     and the checks; the state (P, warm, K, Ks) is updated in place.
 
     The warm fingers iterate together and stop at the first iteration where Σ ⟨Δ_low, W Δ_low⟩ <
-    residual_tol ‖Q‖_F / 2 over them (the numpy fast path's rule); a finger whose solve fails
-    leaves the sum. A finger keeps its previous K, K_s and ends with warm False when it was cold
+    residual_tol ‖Q‖_F / 2 over them; a finger whose solve fails leaves the sum. A finger keeps its previous K, K_s and ends with warm False when it was cold
     or any check failed (``failed``: the Check bits; NONFINITE and STABILIZABLE hold for cold
     fingers too).
     """
@@ -362,7 +361,7 @@ def rest_frame_states(pos, vel, ref_pos, ref_vel, origin, x, x_d):
 def tracking_step(pos, vel, ref_pos, ref_vel, origin, w1, b1, w2, b2, w3, b3,
                   q, r_inv, u_max, residual_tol, cond_max, max_iterations, P, warm, K, Ks,
                   a2, g2, u, u_unsat, residual, iterations, failed):
-    """TrackingController.compute before its roll-off: the paper's law on the model's blocks at
+    """SdreLaw.compute before its roll-off: the paper's law on the model's blocks at
     the estimated states (base-frame positions and velocities (n, 2), origin = the rest tip (2,))."""
     n = pos.shape[0]
     x, x_d = np.empty((n, 4)), np.empty((n, 4))

@@ -18,6 +18,7 @@ from typing import Protocol
 
 import numpy as np
 
+from soft_gripper_sdre.control.compiled import kernel_array
 from soft_gripper_sdre.control.riccati import Check
 from soft_gripper_sdre.sim.units import LENGTH_SCALE, TORQUE_SCALE
 
@@ -133,18 +134,32 @@ class RestFrame:
         Raises:
             ValueError: when an input is not (n, 2).
         """
-        shape = (self.n, 2)
         z = None
-        if np.shape(pos) == np.shape(vel) == np.shape(ref_pos) == np.shape(ref_vel) == shape:
+        if np.shape(pos) == np.shape(vel) == np.shape(ref_pos) == np.shape(ref_vel) == (self.n, 2):
             try:
                 z = np.concatenate((pos, vel, ref_pos, ref_vel), axis=1, dtype=float)
             except (ValueError, TypeError):
                 pass
         if z is None:
-            raise ValueError(f'pos, vel, ref_pos, ref_vel must each have shape {shape}, got '
-                             f'{[np.shape(a) for a in (pos, vel, ref_pos, ref_vel)]}')
+            self._refuse(pos, vel, ref_pos, ref_vel)
         z -= self._shift
         return z[:, :4], z[:, 4:]
+
+    def rows(self, *arrays) -> list[np.ndarray]:
+        """The (n, 2) arrays as the compiled kernels take them (:func:`~soft_gripper_sdre.control.compiled.kernel_array`).
+
+        Raises:
+            ValueError: when one is not (n, 2).
+        """
+        out = [kernel_array(a) for a in arrays]
+        for a in out:
+            if a.shape != (self.n, 2):
+                self._refuse(*arrays)
+        return out
+
+    def _refuse(self, *arrays) -> None:
+        raise ValueError(f'pos, vel, ref_pos, ref_vel must each have shape {(self.n, 2)}, got '
+                         f'{[np.shape(a) for a in arrays]}')
 
 
 @dataclass
@@ -158,8 +173,8 @@ class LawStep:
     failed_checks: np.ndarray    # (n,) int bitmask of :class:`Check` (0 for laws without checks)
     saturated: np.ndarray        # (n, 2)
     residual: np.ndarray         # (n,) relative Riccati residual (0 for closed-form laws)
-    K: np.ndarray | None = None              # (n, 2, 4) SDRE gains in use (fast path: read-only,
-    Ks: np.ndarray | None = None             # (n, 2, 4)  shared with the supervisor's fallback gains)
+    K: np.ndarray | None = None              # (n, 2, 4) SDRE gains in use
+    Ks: np.ndarray | None = None             # (n, 2, 4)
     P: np.ndarray | None = None              # (n, 4, 4) Riccati solution (NaN where it failed)
     nk_iterations: np.ndarray | None = None  # (n,) Newton–Kleinman iterations (0 = exact solve)
 
