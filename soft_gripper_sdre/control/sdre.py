@@ -164,7 +164,7 @@ class SdreController:
         s, out = self.state, self.outputs
         self.steps += 1
         failed, iterations, P = out.failed.copy(), out.iterations.copy(), s.P.copy()
-        if not s.warm.all():
+        if np.count_nonzero(s.warm) != self.n:
             x, x_d = feedback_states()
             self._exact_path(x, x_d, failed, iterations, P)
             if feedforward:                                   # u = u_ff + K e, as the kernel composes it
@@ -217,10 +217,11 @@ class SdreController:
 
     def _record(self, u, u_unsat, K, Ks, P, residual, ok, failed, iterations) -> LawStep:
         """The step's :class:`LawStep` (arrays the caller owns); the counters."""
-        fallback = ~ok
-        self.fallbacks += int(np.count_nonzero(fallback))
-        if failed.any():
+        fallbacks = self.n - np.count_nonzero(ok)
+        if fallbacks:                     # a finger with a failed check is never ok
+            self.fallbacks += fallbacks
             for name, bit in _CHECK_BITS:
                 self.check_failures[name] += int(np.count_nonzero(failed & bit))
-        return LawStep(u=u, u_unsat=u_unsat, K=K, Ks=Ks, P=P, residual=residual, ok=ok, fallback=fallback,
-                       failed_checks=failed, saturated=np.abs(u_unsat) > self.u_max, nk_iterations=iterations)
+        # u = clip(u_unsat) with u_unsat finite: u ≠ u_unsat ⇔ |u_unsat| > u_max
+        return LawStep(u=u, u_unsat=u_unsat, K=K, Ks=Ks, P=P, residual=residual, ok=ok, fallback=~ok,
+                       failed_checks=failed, saturated=u != u_unsat, nk_iterations=iterations)
