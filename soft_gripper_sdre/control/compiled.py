@@ -5,7 +5,7 @@ take float64 / bool / int64 C-contiguous arrays and scalars, write their results
 caller owns and update the controller's state in place. Their parameters come in the groups below,
 whose fields are the parameters in order, so a caller holds four tuples and splats them:
 
-    tracking_step(pos, vel, ref_pos, ref_vel, origin, *network, *settings, *state, *outputs)
+    tracking_step(z, origin, *network, *settings, *state, *outputs)
 
 For the SDC form A = [[0, I], [a]], G = [[0], [G2]] (a = [A21 A22]) and each finger:
 
@@ -150,7 +150,7 @@ def warm_up() -> None:
     tracking_torques(state.K, state.Ks, np.zeros((n, 4)), np.zeros((n, 4)), ones, settings.u_max, out.u, out.u_unsat)
     sdre_step(np.zeros((n, 4)), np.zeros((n, 4)), *settings, *state, *out)
     model_inversion(out.a2, out.g2, np.zeros((n, 4)), rows, settings.cond_max, rows.copy(), ones.copy())
-    tracking_step(rows, rows, rows, rows, np.zeros(2), *network, *settings, *state, *out)
-    feedforward_step(rows, rows, rows, rows, rows, np.zeros(2), False, *network, *settings, *state, *out,
+    tracking_step(np.zeros((n, 8)), np.zeros(2), *network, *settings, *state, *out)
+    feedforward_step(np.zeros((n, 10)), np.zeros(2), False, *network, *settings, *state, *out,
                      *FeedforwardOutputs.empty(n))
     kf_step(np.zeros((n, 4)), np.zeros((n, 4, 4)), rows, ones, np.eye(4), np.eye(4), np.eye(2))

@@ -55,6 +55,13 @@ def _finite_rows(*arrays: np.ndarray) -> np.ndarray:
     return finite
 
 
+def rest_frame_states(z: np.ndarray, origin: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(x, x_d) = ([p − p₀, ṗ], [p_d − p₀, ṗ_d]), each (n, 4), from the rows z = [p, ṗ, p_d, ṗ_d, …]
+    as the kernels form them."""
+    return (np.concatenate((z[:, 0:2] - origin, z[:, 2:4]), axis=1),
+            np.concatenate((z[:, 4:6] - origin, z[:, 6:8]), axis=1))
+
+
 class SdreController:
     """The SDRE tracking law for ``n`` fingers with fallbacks and counters.
 
@@ -89,7 +96,10 @@ class SdreController:
         self.settings = SdreSettings.of(self.Q, self.R, self.u_max, self.residual_tol, self.cond_max,
                                         int(max_nk_iterations))
         self.state, self.outputs = SdreState.cold(self.n), SdreOutputs.empty(self.n)
-        self.feedforward = FeedforwardOutputs.empty(self.n)
+        # the feedforward's two flags as the rows of one array: one count says whether all are set
+        self._feedforward_flags = np.zeros((2, self.n), dtype=np.bool_)
+        self.feedforward = FeedforwardOutputs(np.zeros((self.n, 2)), np.zeros((self.n, 2, 4)), np.zeros((self.n, 2, 2)),
+                                              *self._feedforward_flags)
         self._nominal = None
         if nominal is not None:
             K0, Ks0, _ = sdre_gains(np.asarray(nominal[0], float), np.asarray(nominal[1], float), self.Q, self.R)
@@ -132,29 +142,35 @@ class SdreController:
         sdre_step(x, x_d, *self.settings, *self.state, *out)
         return self._settle(lambda: (x, x_d))
 
-    def track(self, network: SdcNetwork, origin: np.ndarray, pos, vel, ref_pos, ref_vel) -> LawStep:
+    def track(self, network: SdcNetwork, origin: np.ndarray, z: np.ndarray) -> LawStep:
         """:meth:`step_sdc` on the fused network's blocks at the states x = [p − p₀, ṗ],
-        x_d = [p_d − p₀, ṗ_d] (``fast`` only): every argument an (n, 2) C-contiguous float64 array
-        of base-frame positions or velocities, ``origin`` p₀ (2,)."""
-        tracking_step(pos, vel, ref_pos, ref_vel, origin, *network, *self.settings, *self.state, *self.outputs)
-        return self._settle(lambda: (np.concatenate((pos - origin, vel), axis=1),
-                                     np.concatenate((ref_pos - origin, ref_vel), axis=1)))
+        x_d = [p_d − p₀, ṗ_d] (``fast`` only): z (n, 8) = [p, ṗ, p_d, ṗ_d], a C-contiguous float64
+        array of base-frame positions and velocities (:meth:`RestFrame.stacked
+        <soft_gripper_sdre.control.tracking.RestFrame.stacked>`), ``origin`` p₀ (2,)."""
+        tracking_step(z, origin, *network, *self.settings, *self.state, *self.outputs)
+        return self._settle(lambda: rest_frame_states(z, origin))
 
     def track_feedforward(self, network: SdcNetwork, origin: np.ndarray, ff_at_reference: bool,
-                          pos, vel, ref_pos, ref_vel, ref_acc) -> LawStep:
-        """The feedforward law's step (``fast`` only; arrays as :meth:`track`, ``ref_acc`` (n, 2)):
-        u = u_ff + K(x) e, e = x − x_d, u_ff = G2(z)⁻¹ (a_d − A2(z) x_d), z = x or (with
-        ``ff_at_reference``) x_d. The step's flags are the feedback's; :attr:`feedforward` holds
-        u_ff and which fingers had a finite state and a usable feedforward."""
-        feedforward_step(pos, vel, ref_pos, ref_vel, ref_acc, origin, ff_at_reference, *network, *self.settings,
-                         *self.state, *self.outputs, *self.feedforward)
+                          z: np.ndarray) -> LawStep:
+        """The feedforward law's step (``fast`` only; as :meth:`track` with z (n, 10) =
+        [p, ṗ, p_d, ṗ_d, a_d]): u = u_ff + K(x) e, e = x − x_d, u_ff = G2(z)⁻¹ (a_d − A2(z) x_d),
+        z = x or (``ff_at_reference``) x_d. :attr:`feedforward` holds u_ff and which fingers had a
+        finite state and a usable feedforward; the step's ``ok`` also needs the first, its
+        ``fallback`` is set without either (``fallbacks`` counts the feedback's alone)."""
+        feedforward_step(z, origin, ff_at_reference, *network, *self.settings, *self.state, *self.outputs,
+                         *self.feedforward)
 
         def error_states():
-            x = np.concatenate((pos - origin, vel), axis=1)
-            x -= np.concatenate((ref_pos - origin, ref_vel), axis=1)
+            x, x_d = rest_frame_states(z, origin)
+            x -= x_d
             x[~self.feedforward.state_finite] = 0.0           # solved at x = x_d = 0
             return x, np.zeros_like(x)
-        return self._settle(error_states, feedforward=True)
+        step = self._settle(error_states, feedforward=True)
+        if np.count_nonzero(self._feedforward_flags) != self._feedforward_flags.size:
+            ff = self.feedforward
+            step.ok &= ff.state_finite
+            step.fallback |= ~ff.state_finite | ~ff.ff_usable
+        return step
 
     # -- after a kernel ----------------------------------------------------------------------
     def _settle(self, feedback_states: Callable[[], tuple[np.ndarray, np.ndarray]],
@@ -164,7 +180,8 @@ class SdreController:
         s, out = self.state, self.outputs
         self.steps += 1
         failed, iterations, P = out.failed.copy(), out.iterations.copy(), s.P.copy()
-        if np.count_nonzero(s.warm) != self.n:
+        accepted = np.count_nonzero(s.warm)
+        if accepted != self.n:
             x, x_d = feedback_states()
             self._exact_path(x, x_d, failed, iterations, P)
             if feedforward:                                   # u = u_ff + K e, as the kernel composes it
@@ -173,8 +190,9 @@ class SdreController:
                 v[~(np.isfinite(v) & ff.state_finite[:, None])] = 0.0
                 out.u_unsat[:] = v
                 np.clip(v, -self.u_max, self.u_max, out=out.u)
+            accepted = np.count_nonzero(s.warm)
         return self._record(out.u.copy(), out.u_unsat.copy(), s.K.copy(), s.Ks.copy(), P, out.residual.copy(),
-                            s.warm.copy(), failed, iterations)
+                            s.warm.copy(), failed, iterations, accepted)
 
     def _exact_path(self, x, x_d, failed, iterations, P) -> None:
         """scipy and the general checks for each finger the kernel handed back with usable inputs;
@@ -213,11 +231,12 @@ class SdreController:
         u_unsat[~finite] = 0.0            # no torque from a state we cannot read
         u = np.clip(u_unsat, -self.u_max, self.u_max)
         return self._record(u, u_unsat, K, Ks, P, checked.residual, ok, checked.failed,
-                            np.zeros(self.n, dtype=np.int64))
+                            np.zeros(self.n, dtype=np.int64), np.count_nonzero(ok))
 
-    def _record(self, u, u_unsat, K, Ks, P, residual, ok, failed, iterations) -> LawStep:
-        """The step's :class:`LawStep` (arrays the caller owns); the counters."""
-        fallbacks = self.n - np.count_nonzero(ok)
+    def _record(self, u, u_unsat, K, Ks, P, residual, ok, failed, iterations, accepted: int) -> LawStep:
+        """The step's :class:`LawStep` (arrays the caller owns); the counters. ``accepted``: how
+        many fingers are ``ok``."""
+        fallbacks = self.n - accepted
         if fallbacks:                     # a finger with a failed check is never ok
             self.fallbacks += fallbacks
             for name, bit in _CHECK_BITS:

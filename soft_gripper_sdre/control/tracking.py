@@ -18,7 +18,6 @@ from typing import Protocol
 
 import numpy as np
 
-from soft_gripper_sdre.control.compiled import kernel_array
 from soft_gripper_sdre.control.riccati import Check
 from soft_gripper_sdre.sim.units import LENGTH_SCALE, TORQUE_SCALE
 
@@ -134,32 +133,28 @@ class RestFrame:
         Raises:
             ValueError: when an input is not (n, 2).
         """
-        z = None
-        if np.shape(pos) == np.shape(vel) == np.shape(ref_pos) == np.shape(ref_vel) == (self.n, 2):
-            try:
-                z = np.concatenate((pos, vel, ref_pos, ref_vel), axis=1, dtype=float)
-            except (ValueError, TypeError):
-                pass
-        if z is None:
-            self._refuse(pos, vel, ref_pos, ref_vel)
+        z = self.stacked(pos, vel, ref_pos, ref_vel)
         z -= self._shift
         return z[:, :4], z[:, 4:]
 
-    def rows(self, *arrays) -> list[np.ndarray]:
-        """The (n, 2) arrays as the compiled kernels take them (:func:`~soft_gripper_sdre.control.compiled.kernel_array`).
+    def stacked(self, *arrays) -> np.ndarray:
+        """The (n, 2) arrays side by side as one new (n, 2k) float64 array: [pos, vel, ref_pos,
+        ref_vel, …] in the order given (the rows the compiled kernels take).
 
         Raises:
-            ValueError: when one is not (n, 2).
+            ValueError: when one is not (n, 2) (named as the law's inputs pos, vel, ref_pos, ref_vel).
         """
-        out = [kernel_array(a) for a in arrays]
-        for a in out:
-            if a.shape != (self.n, 2):
-                self._refuse(*arrays)
-        return out
-
-    def _refuse(self, *arrays) -> None:
-        raise ValueError(f'pos, vel, ref_pos, ref_vel must each have shape {(self.n, 2)}, got '
-                         f'{[np.shape(a) for a in arrays]}')
+        z = None
+        shape = (self.n, 2)
+        if all(np.shape(a) == shape for a in arrays):
+            try:
+                z = np.concatenate(arrays, axis=1, dtype=float)
+            except (ValueError, TypeError):
+                pass
+        if z is None:
+            raise ValueError(f'pos, vel, ref_pos, ref_vel must each have shape {shape}, got '
+                             f'{[np.shape(a) for a in arrays]}')
+        return z
 
 
 @dataclass

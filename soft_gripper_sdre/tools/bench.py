@@ -88,6 +88,7 @@ def bench_control(loop, law: str, repeats: int, ref_steps: int) -> dict[str, flo
     acc = np.gradient(loop.ref_vel, loop.t, axis=0)            # the moving reference's acceleration
     rows = [tuple(np.ascontiguousarray(a) for a in (loop.est[k, :, :2], loop.est[k, :, 2:], loop.ref_pos[k],
                                                     loop.ref_vel[k], acc[k])) for k in range(T)]
+    stacked = [np.concatenate(r[:4] if law == 'sdre' else r, axis=1) for r in rows]      # the kernel's z
     paired = set(np.linspace(1, T - 1, min(ref_steps, T - 1)).astype(int).tolist())
     origin = np.array(model.rest_tip[:2], dtype=np.float64)
     t: dict[str, list[float]] = {k: [] for k in ('fast', 'fast_paired', 'reference', 'kernel')}
@@ -105,10 +106,9 @@ def bench_control(loop, law: str, repeats: int, ref_steps: int) -> dict[str, flo
             step = fast.compute(pos, vel, ref_pos, ref_vel, ref_acc=ref_acc)
             t1 = clock()
             if law == 'sdre':
-                tracking_step(pos, vel, ref_pos, ref_vel, origin, *fast.network, *s.settings, *state, *out)
+                tracking_step(stacked[k], origin, *fast.network, *s.settings, *state, *out)
             else:
-                feedforward_step(pos, vel, ref_pos, ref_vel, ref_acc, origin, False, *fast.network, *s.settings,
-                                 *state, *out, *ff)
+                feedforward_step(stacked[k], origin, False, *fast.network, *s.settings, *state, *out, *ff)
             t2 = clock()
             if k == 0:
                 continue

@@ -68,7 +68,7 @@ class SdreLaw:
             the SDRE step (``u`` (n, 2) [N·m], gains, checks, fallbacks).
         """
         if self.network is not None:                 # the compiled step, network included
-            out = self.sdre.track(self.network, self.frame.origin, *self.frame.rows(pos, vel, ref_pos, ref_vel))
+            out = self.sdre.track(self.network, self.frame.origin, self.frame.stacked(pos, vel, ref_pos, ref_vel))
         else:
             x, xd = self.frame.states(pos, vel, ref_pos, ref_vel)   # f(0) = 0 at rest
             if self._blocks is not None:             # a model in SDC form: only its lower rows

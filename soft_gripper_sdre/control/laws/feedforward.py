@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 
 from soft_gripper_sdre.control.batched_linalg import batched_solve, well_conditioned_2x2
-from soft_gripper_sdre.control.compiled import compiled_network, kernel_array
+from soft_gripper_sdre.control.compiled import compiled_network
 from soft_gripper_sdre.control.sdre import SdreController
 from soft_gripper_sdre.control.tracking import DEFAULT_LOWPASS_HZ, LawIO, LawStep, Weights
 
@@ -131,16 +131,11 @@ class SdreFeedforwardLaw:
 
     def _compiled_step(self, pos, vel, ref_pos, ref_vel, ref_acc) -> LawStep:
         """:meth:`compute` in one compiled call (the same law and flags)."""
-        rows = self.io.frame.rows(pos, vel, ref_pos, ref_vel)
         if ref_acc is None:
             ref_acc = self._no_acc
-        else:
-            ref_acc = kernel_array(ref_acc)
-            if ref_acc.shape != (self.n_fingers, 2):
-                raise ValueError(f'ref_acc must have shape ({self.n_fingers}, 2), got {ref_acc.shape}')
-        out = self.sdre.track_feedforward(self.network, self.io.origin, self.ff_at == 'ref', *rows, ref_acc)
-        ff = self.sdre.feedforward
-        out.ok &= ff.state_finite
-        out.fallback |= ~ff.state_finite | ~ff.ff_usable
+        elif np.shape(ref_acc) != (self.n_fingers, 2):
+            raise ValueError(f'ref_acc must have shape ({self.n_fingers}, 2), got {np.shape(ref_acc)}')
+        z = self.io.frame.stacked(pos, vel, ref_pos, ref_vel, ref_acc)
+        out = self.sdre.track_feedforward(self.network, self.io.origin, self.ff_at == 'ref', z)
         out.u = self.io.roll_off(out.u)
         return out
