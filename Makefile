@@ -7,9 +7,12 @@ PYTHON  ?= python3.11
 VENV    ?= .venv
 PY      := $(VENV)/bin/python
 STAMP   := $(VENV)/.installed
+# numba's on-disk cache of the compiled control kernels, filled once (compiling takes about a
+# minute; every process started later loads them from the cache in about a second)
+KERNELS := soft_gripper_sdre/control/__pycache__/kernels.stamp
 OUT     ?= runs/demo
 
-.PHONY: demo test test-fast venv model bench sweep input-matrix lock clean
+.PHONY: demo test test-fast venv kernels model bench sweep input-matrix lock clean
 
 $(STAMP): requirements.txt setup.py setup.cfg package.xml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -20,13 +23,19 @@ $(STAMP): requirements.txt setup.py setup.cfg package.xml
 
 venv: $(STAMP)
 
-demo: $(STAMP)
+$(KERNELS): $(STAMP) $(wildcard soft_gripper_sdre/control/compiled*.py)
+	$(PY) -c 'from soft_gripper_sdre.control.compiled import warm_up; warm_up()'
+	mkdir -p $(@D) && touch $@
+
+kernels: $(KERNELS)
+
+demo: $(KERNELS)
 	$(PY) -m soft_gripper_sdre.tools.demo --out $(OUT)
 
-test: $(STAMP)
+test: $(KERNELS)
 	$(PY) -m pytest -v
 
-test-fast: $(STAMP)
+test-fast: $(KERNELS)
 	$(PY) -m pytest -m "not slow"
 
 # Reproduce the shipped model from nothing: collect the excitation data, then train.
@@ -34,11 +43,11 @@ model: $(STAMP)
 	$(PY) -m soft_gripper_sdre.tools.collect --out data/excitation
 	$(PY) -m soft_gripper_sdre.tools.train --data data/excitation --out runs/train --install
 
-bench: $(STAMP)
+bench: $(KERNELS)
 	$(PY) -m soft_gripper_sdre.tools.bench --write BENCHMARKS.md
 
 # README "Noise, gains and the finger's bending modes" and "Identifying G2"
-sweep: $(STAMP)
+sweep: $(KERNELS)
 	$(PY) -m soft_gripper_sdre.tools.sweep --out runs/sweep
 
 input-matrix: $(STAMP)
@@ -46,7 +55,7 @@ input-matrix: $(STAMP)
 
 # README "Beyond the paper": every law on the grasp and a fast grasp, the model vs ground truth
 .PHONY: evaluate
-evaluate: $(STAMP)
+evaluate: $(KERNELS)
 	$(PY) -m soft_gripper_sdre.tools.evaluate --out runs/evaluate
 
 # The lock is pip's own resolution (a dry-run report), so every line names a

@@ -1,5 +1,6 @@
-"""Shared test set-up: DDS stays on loopback, each test session gets its own domain, and the
-fault tests' outcome records go to a directory of the session's own."""
+"""Shared test set-up: DDS stays on loopback, each test session gets its own domain, the compiled
+kernels are in numba's cache before any test starts, and the fault tests' outcome records go to a
+directory of the session's own."""
 import os
 from pathlib import Path
 import random
@@ -14,6 +15,14 @@ os.environ.setdefault(
     'ROS_DOMAIN_ID', str(random.Random(os.getpid() ^ int.from_bytes(os.urandom(4), 'little')).randint(1, 101))
 )
 os.environ.setdefault('OMP_NUM_THREADS', '1')
+
+
+def pytest_sessionstart(session):
+    """Compile the control kernels into numba's on-disk cache, or load them from it, before the
+    first test: outside every test's time limit, and before the node processes that graph tests
+    start, which then load them from the cache instead of each compiling them."""
+    from soft_gripper_sdre.control.compiled import warm_up
+    warm_up()
 
 
 @pytest.fixture(scope='session', autouse=True)

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 from scipy.linalg import expm
 
-from soft_gripper_sdre.control.kf import REMEMBERED_STEPS, ConstantVelocityKF, cv_matrices
+from soft_gripper_sdre.control.kf import ConstantVelocityKF, cv_matrices
 
 A = np.block([[np.zeros((2, 2)), np.eye(2)], [np.zeros((2, 2)), np.zeros((2, 2))]])
 
@@ -65,6 +65,15 @@ def test_invalid_rows_only_predict():
     kf.reset(np.zeros((2, 2)))
     x = kf.step(np.array([[1e-3, 0.0], [np.nan, np.nan]]), valid=np.array([True, True]))
     assert np.all(np.isfinite(x)) and x[1, 0] == 0.0 and x[0, 0] > 0
+    x_before, P_before = kf.x.copy(), kf.P.copy()
+    kf.step(np.array([[1e-3, 0.0], [1e-3, 0.0]]), valid=np.array([False, True]))
+    F, Q = kf.F, kf.Q
+    np.testing.assert_allclose(kf.x[0], F @ x_before[0], rtol=1e-14, atol=1e-18)      # row 0: predicted
+    np.testing.assert_allclose(kf.P[0], F @ P_before[0] @ F.T + Q, rtol=1e-14, atol=1e-18)
+    assert kf.x[1, 0] > F[0] @ x_before[1]                                           # row 1: updated
+    x_before = kf.x.copy()
+    kf.step(np.zeros((2, 2)), valid=False)                   # no row valid: a prediction for both
+    np.testing.assert_allclose(kf.x, x_before @ F.T, rtol=1e-14, atol=1e-18)
 
 
 @pytest.mark.parametrize('kwargs, match', [
@@ -77,23 +86,3 @@ def test_bad_arguments(kwargs, match):
         ConstantVelocityKF(**args)
     with pytest.raises(ValueError, match='z must'):
         ConstantVelocityKF(1e-3, 1.0, 1e-4, n=2).step(np.zeros((3, 2)))
-
-
-def test_remembered_covariance_steps_are_the_covariance_algebra_bit_for_bit():
-    """The covariance recursion settles onto repeating bit patterns and is then looked up; the
-    estimates equal those of a filter that recomputes every step, exactly, through gaps too."""
-    rng = np.random.default_rng(3)
-    a = ConstantVelocityKF(1e-3, 1.0, 5e-5, n=4)
-    b = ConstantVelocityKF(1e-3, 1.0, 5e-5, n=4, remember_covariances=False)
-    z0 = rng.normal(size=(4, 2)) * 1e-3
-    a.reset(z0)
-    b.reset(z0)
-    for k in range(1500):
-        z = z0 + rng.normal(size=(4, 2)) * 5e-5
-        valid = np.array([True, k % 400 != 5, True, True])
-        if k % 300 == 7:
-            z[2] = np.nan
-        np.testing.assert_array_equal(a.step(z, valid), b.step(z, valid))
-        np.testing.assert_array_equal(a.P, b.P)
-    assert b.remembered_covariances == 0
-    assert 1 <= a.remembered_covariances <= REMEMBERED_STEPS

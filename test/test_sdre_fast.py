@@ -1,11 +1,11 @@
-"""The fast SDRE path (control/kernel.py under the supervisor) against the reference path (scipy)
-on the shipped model, and its checks.
+"""The fast SDRE path (the compiled kernels under the supervisor) against the reference path
+(scipy) on the shipped model, and its checks.
 
 Tolerance: the kernel stops Newton–Kleinman once a bound on the next iterate's Riccati residual is
 below half the accepted 1e-6 (relative to ‖Q‖_F) and forms the residual directly for its checks;
 its gains, P and the unsaturated torques agree with scipy's to within ``U_TOL`` = 1e-4 of the
 largest value of the sequence, and are held to ``REGRESSION_TOL`` = 2e-5 so that a loss of
-accuracy shows long before the tolerance (docs/design/fast_riccati.md, "Accuracy"). 1e-4 of the
+accuracy shows long before the tolerance (docs/design/compiled_kernel.md, "Accuracy"). 1e-4 of the
 0.0625 N·m limit is 6 µN·m, far below the torque jitter the 0.05 mm measurement noise causes. Every
 check passes on both paths, and the fast path solves exactly only on the cold start.
 """
@@ -14,13 +14,10 @@ import time
 import numpy as np
 import pytest
 
-from soft_gripper_sdre.control.batched_linalg import (batched_cholesky, batched_solve, portable_batched_cholesky,
-                                                      portable_batched_solve, well_conditioned_2x2)
-from soft_gripper_sdre.control.kernel import (LOWER_ROWS_FROM_UPPER, LYAPUNOV_BASE, LYAPUNOV_SLOPES,
-                                              SYMMETRIC_FROM_UPPER, UPPER_TRIANGLE, checks_passed,
-                                              full_sdc_matrices, structured_gains, upper_triangle)
+from soft_gripper_sdre.control.batched_linalg import batched_solve, portable_batched_solve, well_conditioned_2x2
+from soft_gripper_sdre.control.compiled_sdre import well_conditioned
 from soft_gripper_sdre.control.laws import SdreLaw
-from soft_gripper_sdre.control.riccati import Check, care
+from soft_gripper_sdre.control.riccati import Check, care, full_sdc_matrices
 from soft_gripper_sdre.control.sdre import SdreController
 from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
 from soft_gripper_sdre.learning.model import SDCModel
@@ -98,22 +95,8 @@ def test_fast_torques_equal_the_reference_at_random_states(model):
         np.testing.assert_allclose(a.P, b.P, rtol=0, atol=U_TOL * np.abs(b.P).max())
 
 
-def test_lyapunov_tables_equal_the_kronecker_operator():
-    rng = np.random.default_rng(0)
-    for _ in range(5):
-        c = rng.normal(size=(2, 4))
-        A = np.vstack([np.hstack([np.zeros((2, 2)), np.eye(2)]), c])
-        L = (LYAPUNOV_BASE + c.reshape(8) @ LYAPUNOV_SLOPES).reshape(10, 10)
-        P = rng.normal(size=(4, 4))
-        P = P + P.T
-        p = P.reshape(16)[UPPER_TRIANGLE]
-        np.testing.assert_array_equal(upper_triangle(P[None])[0], p)
-        np.testing.assert_allclose(L @ p, (-(A.T @ P + P @ A)).reshape(16)[UPPER_TRIANGLE], rtol=1e-12, atol=1e-12)
-        np.testing.assert_array_equal(p[SYMMETRIC_FROM_UPPER].reshape(4, 4), P)
-        np.testing.assert_array_equal(p[LOWER_ROWS_FROM_UPPER].reshape(2, 4), P[2:, :])
-
-
 def test_closed_form_condition_test_equals_the_svd():
+    """The 2×2 condition test without an SVD, batched (the reference path) and compiled (the kernels)."""
     rng = np.random.default_rng(5)
     M = rng.normal(size=(2000, 2, 2))
     M[:500, 1] = M[:500, 0] * (1 + 10.0 ** rng.uniform(-12, -4, (500, 1)))   # near-singular
@@ -124,33 +107,27 @@ def test_closed_form_condition_test_equals_the_svd():
         np.testing.assert_allclose(det, np.linalg.det(M), rtol=1e-9, atol=1e-14)
         clear = np.abs(np.log(kappa / c_max)) > 1e-6            # away from the threshold's rounding
         np.testing.assert_array_equal(fast[clear], (kappa < c_max)[clear])
+        compiled = np.array([well_conditioned(m, c_max) for m in M])
+        np.testing.assert_array_equal(compiled[clear], (kappa < c_max)[clear])
     bad = np.full((1, 2, 2), np.nan)
-    assert not well_conditioned_2x2(bad, 1e8)[0][0]
+    assert not well_conditioned_2x2(bad, 1e8)[0][0] and not well_conditioned(bad[0], 1e8)
 
 
-def test_batched_linalg_equals_the_public_functions_and_flags_failures_with_nan():
-    """The batched solve and Cholesky in use (numpy's gufuncs) and the portable fallback agree: the
-    same solutions and factors, and NaN exactly for the singular / non-PD / non-finite matrices."""
+def test_batched_solve_equals_the_public_solve_and_flags_failures_with_nan():
+    """The batched solve in use (numpy's gufunc) and the portable fallback agree: the same
+    solutions, and NaN exactly for the singular and the non-finite matrices."""
     rng = np.random.default_rng(7)
-    L = rng.normal(size=(6, 10, 10)) + 5 * np.eye(10)
+    L = rng.normal(size=(6, 2, 2)) + 5 * np.eye(2)
     L[1] = 0.0                                                   # singular
     L[2, 0] = np.nan                                             # not finite
-    b = rng.normal(size=(6, 10))
-    S = rng.normal(size=(6, 4, 4))
-    S = S @ S.transpose(0, 2, 1) + np.eye(4)
-    S[1] = -S[1]                                                 # negative definite
-    S[2, 3, 3] = -1e3                                            # indefinite
-    S[3, 3, 0] = np.inf
+    b = rng.normal(size=(6, 2))
     with np.errstate(all='ignore'):
-        for solve, cholesky in ((batched_solve, batched_cholesky),
-                                (portable_batched_solve, portable_batched_cholesky)):
-            x, c = solve(L, b), cholesky(S)
-            assert x.shape == b.shape and c.shape == S.shape
+        for solve in (batched_solve, portable_batched_solve):
+            x = solve(L, b)
+            assert x.shape == b.shape
             assert list(np.isfinite(x).all(axis=1)) == [True, False, False, True, True, True]
-            assert list(np.isfinite(c[:, 3, 3])) == [True, False, False, False, True, True]
             good = [0, 3, 4, 5]
             np.testing.assert_allclose(x[good], np.linalg.solve(L[good], b[good][..., None])[..., 0], rtol=1e-12)
-            np.testing.assert_allclose(c[[0, 4, 5]], np.linalg.cholesky(S[[0, 4, 5]]), rtol=1e-12)
 
 
 def sdc_plant(model, rng):
@@ -167,7 +144,7 @@ def warm(ctrl, a, g, x):
 
 def test_fast_path_rejects_the_anti_stabilising_solution(model):
     """Warm-started at the ARE's anti-stabilising solution (a fixed point of Newton's iteration),
-    the fast path's P ≻ 0 / Lyapunov test rejects it and the exact solve gives the right gains."""
+    the kernel's P ≻ 0 / Lyapunov test rejects it and the exact solve gives the right gains."""
     rng = np.random.default_rng(2)
     W = Weights(**DEFAULT_WEIGHTS)
     ctrl = SdreController(W.Q, W.R, 0.0625, n=N)
@@ -176,14 +153,14 @@ def test_fast_path_rejects_the_anti_stabilising_solution(model):
     A, G = full_sdc_matrices(a, g)
     anti = np.stack([-care(-A[i], G[i], W.Q, W.R) for i in range(N)])          # A − S P⁻ anti-Hurwitz
     assert np.all(np.linalg.eigvals(A - G @ np.linalg.solve(W.R, G.transpose(0, 2, 1)) @ anti).real > 0)
-    fast = structured_gains(a, g, upper_triangle(anti), ctrl.kernel_constants)
-    assert np.all(fast.residual < 1e-6) and not checks_passed(fast, ctrl.kernel_constants).any()
     ctrl.warm_start(anti)
     before = ctrl.exact_solves
     out = ctrl.step_sdc(a, g, x, np.zeros((N, 4)))
     ref = SdreController(W.Q, W.R, 0.0625, n=N, method='reference').step_sdc(a, g, x, np.zeros((N, 4)))
-    assert out.ok.all() and ctrl.exact_solves == before + N
+    assert out.ok.all() and ctrl.exact_solves == before + N and np.all(out.nk_iterations == 0)
+    assert not out.failed_checks.any()                   # the exact path's checks are the final word
     np.testing.assert_allclose(out.K, ref.K, rtol=1e-9)
+    assert ctrl.step_sdc(a, g, x, np.zeros((N, 4))).nk_iterations.min() >= 1    # back on the kernel
 
 
 def test_fast_path_checks_still_trigger(model):
@@ -214,7 +191,7 @@ def test_fast_path_checks_still_trigger(model):
 
 def test_stop_rule_trace_bound_holds_for_a_newton_kleinman_step(model):
     """The stop rule's bound: for a Newton–Kleinman step from any P_k near the solution,
-    ‖Res(P_k+1)‖_F ≤ ⟨Δ_low, W Δ_low⟩ ≤ ‖W‖_F ‖Δ_low‖_F² (the previous rule's bound), with
+    ‖Res(P_k+1)‖_F ≤ ⟨Δ_low, W Δ_low⟩ ≤ ‖W‖_F ‖Δ_low‖_F² (a coarser bound), with
     Δ = P_k+1 − P_k, W = G2 R⁻¹ G2ᵀ; computed here on full matrices with scipy's Lyapunov solver."""
     from scipy.linalg import solve_continuous_lyapunov
     rng = np.random.default_rng(7)
@@ -238,9 +215,10 @@ def test_stop_rule_trace_bound_holds_for_a_newton_kleinman_step(model):
             assert trace <= np.linalg.norm(Wi) * np.vdot(D, D) * (1 + 1e-12)
 
 
-def test_returned_gains_are_read_only_and_do_not_change_under_later_steps(model):
-    """The fast path shares its gains with the controller's fallback gains: read-only, and a later
-    step that falls back (and updates the fallback gains of the fingers that passed) leaves them."""
+def test_a_steps_arrays_are_its_own(model):
+    """A step's gains and torques do not change under later steps (also ones that fall back and
+    update the gains of the fingers that passed), and writing into them does not reach the
+    controller."""
     rng = np.random.default_rng(5)
     W = Weights(**DEFAULT_WEIGHTS)
     ctrl = SdreController(W.Q, W.R, 0.0625, n=N)
@@ -248,9 +226,7 @@ def test_returned_gains_are_read_only_and_do_not_change_under_later_steps(model)
     warm(ctrl, a, g, x)
     first = warm(ctrl, a, g, x)                  # a fast-path step
     assert first.nk_iterations.min() >= 1
-    K, Ks = first.K.copy(), first.Ks.copy()
-    with pytest.raises(ValueError):
-        first.K[0, 0, 0] = 1.0
+    K, Ks, u = first.K.copy(), first.Ks.copy(), first.u.copy()
     a2 = a * (1.0 + 1e-2 * rng.standard_normal(a.shape))
     a2[1, 0, 2] = np.nan                         # finger 1 falls back, the others get new gains
     out = ctrl.step_sdc(a2, g, x, np.zeros((N, 4)))
@@ -258,6 +234,41 @@ def test_returned_gains_are_read_only_and_do_not_change_under_later_steps(model)
     assert not np.allclose(out.K[0], K[0])
     np.testing.assert_array_equal(first.K, K)
     np.testing.assert_array_equal(first.Ks, Ks)
+    np.testing.assert_array_equal(first.u, u)
+    np.testing.assert_array_equal(out.K[1], K[1])                       # the last valid gains
+    out.K[:] = 0.0
+    out.Ks[:] = 0.0
+    again = ctrl.step_sdc(a2, g, x, np.zeros((N, 4)))
+    np.testing.assert_array_equal(again.K[1], K[1])
+
+
+def test_fast_path_without_the_fused_network_and_weights_it_cannot_take(model):
+    """A model with only ``sdc_blocks`` runs the kernel on its blocks; a Q whose position block is
+    singular (no detectability through the SDC form) takes the reference path, bit for bit."""
+
+    class BlocksOnly:
+        rest_tip = model.rest_tip
+
+        def sdc_blocks(self, x):
+            return model.sdc_blocks(x)
+
+    pos, vel, ref, ref_vel = trajectory_states(model, 40, (5e-5, 5e-3), seed=4)
+    w = Weights(**DEFAULT_WEIGHTS)
+    blocks, fused, reference = (SdreLaw(m, w, 0.0625, method=meth, lowpass_hz=0.0)
+                                for m, meth in ((BlocksOnly(), 'fast'), (model, 'fast'), (model, 'reference')))
+    assert blocks.network is None and fused.network is not None and blocks.sdre.fast
+    for k in range(len(pos)):
+        b, f, r = (law.compute(pos[k], vel[k], ref[k], ref_vel[k]) for law in (blocks, fused, reference))
+        np.testing.assert_allclose(b.u_unsat, f.u_unsat, rtol=0, atol=1e-9 * np.abs(f.u_unsat).max())
+        np.testing.assert_allclose(b.u_unsat, r.u_unsat, rtol=0, atol=U_TOL * np.abs(r.u_unsat).max())
+    assert blocks.sdre.exact_solves == N
+    velocity_only = Weights(0.0, 1.0, 1.0)
+    fast, ref_law = (SdreLaw(model, velocity_only, 0.0625, method=m, lowpass_hz=0.0) for m in ('fast', 'reference'))
+    assert not fast.sdre.fast and fast.network is None
+    for k in range(5):
+        a, b = (law.compute(pos[k], vel[k], ref[k], ref_vel[k]) for law in (fast, ref_law))
+        np.testing.assert_array_equal(a.u, b.u)
+        np.testing.assert_array_equal(a.failed_checks, b.failed_checks)
 
 
 def test_general_matrices_take_the_exact_path():

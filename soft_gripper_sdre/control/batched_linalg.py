@@ -1,10 +1,9 @@
 """Linear algebra on stacks of small matrices that reports a failure as NaN instead of raising.
 
-The SDRE's fast path and the feedforward law solve a handful of 2×2 … 10×10 systems per control
-step, for all fingers at once. A finger whose matrix is singular must not stop the others, so
-every function here works on a stack and marks a failed matrix with NaN (which the callers' checks
-then reject). See docs/design/fast_riccati.md for why the solve and the Cholesky factorisation go
-through numpy's gufuncs directly.
+The reference path's checks and the feedforward law's model inversion work on 2×2 matrices of all
+fingers at once. A finger whose matrix is singular must not stop the others, so every function
+here works on a stack and marks a failed matrix with NaN or False (which the callers' checks then
+reject). See docs/design/fast_riccati.md for why the solve goes through numpy's gufunc directly.
 """
 from __future__ import annotations
 
@@ -30,49 +29,37 @@ def well_conditioned_2x2(M: np.ndarray, cond_max: float) -> tuple[np.ndarray, np
     return fro2_det[:, 0] < (cond_max + 1.0 / cond_max) * np.abs(det), det
 
 
-def _nan_where_it_raises(fn, *stacks: np.ndarray, shape: tuple) -> np.ndarray:
-    """fn over the stacks at once or, if that raises LinAlgError, matrix by matrix with NaN where it does."""
+def portable_batched_solve(L: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """:data:`batched_solve` through numpy's public ``np.linalg.solve`` (the fallback)."""
     try:
-        return fn(*stacks)
+        return np.linalg.solve(L, b[:, :, None])[:, :, 0]
     except np.linalg.LinAlgError:
-        out = np.full(shape, np.nan)
-        for i in range(shape[0]):
+        out = np.full(b.shape, np.nan)
+        for i in range(b.shape[0]):
             try:
-                out[i] = fn(*(s[i:i + 1] for s in stacks))[0]
+                out[i] = np.linalg.solve(L[i], b[i])
             except np.linalg.LinAlgError:
                 pass
         return out
 
 
-def portable_batched_solve(L: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """:data:`batched_solve` through numpy's public ``np.linalg.solve`` (the fallback)."""
-    return _nan_where_it_raises(lambda L, b: np.linalg.solve(L, b[:, :, None])[:, :, 0], L, b, shape=b.shape)
-
-
-def portable_batched_cholesky(S: np.ndarray) -> np.ndarray:
-    """:data:`batched_cholesky` through numpy's public ``np.linalg.cholesky`` (the fallback)."""
-    return _nan_where_it_raises(np.linalg.cholesky, S, shape=S.shape)
-
-
-def _gufuncs_or_portable():
-    """numpy's private gufuncs ``solve1`` and ``cholesky_lo`` when they answer as the public
-    functions on a small example (a PD and a singular matrix), else the portable functions."""
+def _gufunc_or_portable():
+    """numpy's private gufunc ``solve1`` when it answers as the public function on a small example
+    (a regular and a singular matrix), else :func:`portable_batched_solve`."""
     try:
         from numpy.linalg import _umath_linalg as gufuncs
-        solve, cholesky = gufuncs.solve1, gufuncs.cholesky_lo
-        L = np.array([[[4.0, 1.0], [1.0, 3.0]], [[1.0, 2.0], [2.0, 4.0]]])     # PD; singular
+        solve = gufuncs.solve1
+        L = np.array([[[4.0, 1.0], [1.0, 3.0]], [[1.0, 2.0], [2.0, 4.0]]])     # regular; singular
         b = np.array([[1.0, 2.0], [1.0, 1.0]])
         with np.errstate(all='ignore'):
-            x, c = solve(L, b), cholesky(L)
-        if not (np.allclose(x[0], np.linalg.solve(L[0], b[0])) and np.isnan(x[1]).all()
-                and np.allclose(c[0], np.linalg.cholesky(L[0])) and np.isnan(c[1]).all()):
+            x = solve(L, b)
+        if not (np.allclose(x[0], np.linalg.solve(L[0], b[0])) and np.isnan(x[1]).all()):
             raise ValueError('numpy.linalg._umath_linalg answers differently')
-        return solve, cholesky
+        return solve
     except (ImportError, AttributeError, TypeError, ValueError):
-        return portable_batched_solve, portable_batched_cholesky
+        return portable_batched_solve
 
 
-#: ``batched_solve(L (m,k,k), b (m,k)) -> x (m,k)`` with L x = b per matrix, NaN where L is singular;
-#: ``batched_cholesky(S (m,k,k)) -> lower factors (m,k,k)``, NaN where S is not positive definite.
-#: Both may warn about invalid values: call them inside ``np.errstate(invalid='ignore')``.
-batched_solve, batched_cholesky = _gufuncs_or_portable()
+#: ``batched_solve(L (m,k,k), b (m,k)) -> x (m,k)`` with L x = b per matrix, NaN where L is singular.
+#: It may warn about invalid values: call it inside ``np.errstate(invalid='ignore')``.
+batched_solve = _gufunc_or_portable()

@@ -5,7 +5,7 @@ take float64 / bool / int64 C-contiguous arrays and scalars, write their results
 caller owns and update the controller's state in place. Their parameters come in the groups below,
 whose fields are the parameters in order, so a caller holds four tuples and splats them:
 
-    tracking_step(pos, vel, ref_pos, ref_vel, origin, *network, *settings, *state, *outputs)
+    tracking_step(z, origin, *network, *settings, *state, *outputs)
 
 For the SDC form A = [[0, I], [a]], G = [[0], [G2]] (a = [A21 A22]) and each finger:
 
@@ -14,14 +14,14 @@ For the SDC form A = [[0, I], [a]], G = [[0], [G2]] (a = [A21 A22]) and each fin
     K = −R⁻¹ G2ᵀ P_low,   K_s = −R⁻¹ G2ᵀ C⁻ᵀ Q[:2, :]   (C = A_cl's lower-left block)   (eq. 23)
     u = K x + K_s x_d, saturated to ±u_max                                               (eq. 22)
 
-with the stop rule and the checks of the numpy fast path (SdreController): the warm fingers iterate
-together until a bound on the next iterate's residual, summed over them, is below half the
-accepted one (docs/design/compiled_kernel.md). A finger that is cold (``warm`` False on entry) or fails a check keeps
-its previous gains (zero before any: zero torque) and comes back with ``warm`` False and the failed
-checks' :class:`~soft_gripper_sdre.control.sdre.Check` bits; the caller solves it exactly (scipy)
-and writes P, K, K_s and ``warm`` into the state. :func:`warm_up` compiles (or loads from numba's
-cache) every kernel at these types: call it before the first real-time step. The kernels are
-importable from here as well as from their modules.
+The warm fingers iterate together until a bound on the next iterate's residual, summed over them,
+is below half the accepted one (docs/design/compiled_kernel.md). A finger that is cold (``warm``
+False on entry) or fails a check keeps its previous gains (zero before any: zero torque) and comes
+back with ``warm`` False and the failed checks' :class:`~soft_gripper_sdre.control.riccati.Check`
+bits; the supervisor (:class:`~soft_gripper_sdre.control.sdre.SdreController`) solves it exactly
+(scipy) and writes P, K, K_s and ``warm`` into the state. :func:`warm_up` compiles (or loads from
+numba's cache) every kernel at these types: a process calls it before its first real-time step.
+The kernels are importable from here as well as from their modules.
 """
 from __future__ import annotations
 
@@ -33,7 +33,8 @@ from soft_gripper_sdre.control.compiled_kf import kf_step
 from soft_gripper_sdre.control.compiled_sdre import (feedforward_step, model_inversion, sdc_forward, sdre_gains,
                                                      sdre_step, tracking_step, tracking_torques)
 
-__all__ = ['SdcNetwork', 'SdreSettings', 'SdreState', 'SdreOutputs', 'FeedforwardOutputs', 'warm_up',
+__all__ = ['SdcNetwork', 'SdreSettings', 'SdreState', 'SdreOutputs', 'FeedforwardOutputs', 'compiled_network',
+           'kernel_array', 'warm_up',
            'sdc_forward', 'sdre_gains', 'tracking_torques', 'sdre_step', 'tracking_step', 'model_inversion',
            'feedforward_step', 'kf_step']
 
@@ -52,6 +53,19 @@ class SdcNetwork(NamedTuple):
     def of(cls, model) -> SdcNetwork:
         """The arrays of a model with ``fused_network`` (an SDCModel)."""
         return cls(*model.fused_network)
+
+
+def kernel_array(a, dtype=np.float64) -> np.ndarray:
+    """``a`` as the kernels take it: a C-contiguous, writeable array of ``dtype`` (``a`` itself if it
+    is one). numba types a read-only or strided array differently and would compile the kernel
+    anew for it."""
+    a = np.ascontiguousarray(a, dtype=dtype)
+    return a if a.flags.writeable else a.copy()
+
+
+def compiled_network(model) -> SdcNetwork | None:
+    """The model's :class:`SdcNetwork` if it has ``fused_network`` (an SDCModel), else None."""
+    return SdcNetwork.of(model) if hasattr(model, 'fused_network') else None
 
 
 class SdreSettings(NamedTuple):
@@ -136,7 +150,7 @@ def warm_up() -> None:
     tracking_torques(state.K, state.Ks, np.zeros((n, 4)), np.zeros((n, 4)), ones, settings.u_max, out.u, out.u_unsat)
     sdre_step(np.zeros((n, 4)), np.zeros((n, 4)), *settings, *state, *out)
     model_inversion(out.a2, out.g2, np.zeros((n, 4)), rows, settings.cond_max, rows.copy(), ones.copy())
-    tracking_step(rows, rows, rows, rows, np.zeros(2), *network, *settings, *state, *out)
-    feedforward_step(rows, rows, rows, rows, rows, np.zeros(2), False, *network, *settings, *state, *out,
+    tracking_step(np.zeros((n, 8)), np.zeros(2), *network, *settings, *state, *out)
+    feedforward_step(np.zeros((n, 10)), np.zeros(2), False, *network, *settings, *state, *out,
                      *FeedforwardOutputs.empty(n))
     kf_step(np.zeros((n, 4)), np.zeros((n, 4, 4)), rows, ones, np.eye(4), np.eye(4), np.eye(2))

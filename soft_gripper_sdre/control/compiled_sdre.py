@@ -15,7 +15,7 @@ from numba import njit
 #: every kernel: cached on disk, IEEE division (x / 0 = ±inf or NaN, never an exception), no GIL
 kernel = njit(cache=True, error_model='numpy', nogil=True)
 
-#: the bits of sdre.Check (written out: the compiled code keeps the values it was compiled with)
+#: the bits of riccati.Check (written out: the compiled code keeps the values it was compiled with)
 STABILIZABLE, HURWITZ, ACL_SINGULAR, SOLVE_FAILED, NONFINITE, RESIDUAL, P_NOT_PD = 1, 4, 8, 16, 32, 64, 128
 
 # A symmetric 4×4 P has 10 unknowns: its upper triangle row by row, entry e = (ROW[e], COL[e]);
@@ -263,8 +263,7 @@ def sdre_gains(a2, g2, finite, q, r_inv, residual_tol, cond_max, max_iterations,
     and the checks; the state (P, warm, K, Ks) is updated in place.
 
     The warm fingers iterate together and stop at the first iteration where Σ ⟨Δ_low, W Δ_low⟩ <
-    residual_tol ‖Q‖_F / 2 over them (the numpy fast path's rule); a finger whose solve fails
-    leaves the sum. A finger keeps its previous K, K_s and ends with warm False when it was cold
+    residual_tol ‖Q‖_F / 2 over them; a finger whose solve fails leaves the sum. A finger keeps its previous K, K_s and ends with warm False when it was cold
     or any check failed (``failed``: the Check bits; NONFINITE and STABILIZABLE hold for cold
     fingers too).
     """
@@ -350,23 +349,24 @@ def sdre_step(x, x_d, q, r_inv, u_max, residual_tol, cond_max, max_iterations, P
 
 
 @kernel
-def rest_frame_states(pos, vel, ref_pos, ref_vel, origin, x, x_d):
-    """x = [p − p₀, ṗ], x_d = [p_d − p₀, ṗ_d] (n, 4) from (n, 2) arrays (RestFrame.states)."""
-    for i in range(pos.shape[0]):
+def rest_frame_states(z, origin, x, x_d):
+    """x = [p − p₀, ṗ], x_d = [p_d − p₀, ṗ_d] (n, 4) from the rows z = [p, ṗ, p_d, ṗ_d, …] (RestFrame.states)."""
+    for i in range(z.shape[0]):
         for k in range(2):
-            x[i, k], x[i, 2 + k] = pos[i, k] - origin[k], vel[i, k]
-            x_d[i, k], x_d[i, 2 + k] = ref_pos[i, k] - origin[k], ref_vel[i, k]
+            x[i, k], x[i, 2 + k] = z[i, k] - origin[k], z[i, 2 + k]
+            x_d[i, k], x_d[i, 2 + k] = z[i, 4 + k] - origin[k], z[i, 6 + k]
 
 
 @kernel
-def tracking_step(pos, vel, ref_pos, ref_vel, origin, w1, b1, w2, b2, w3, b3,
+def tracking_step(z, origin, w1, b1, w2, b2, w3, b3,
                   q, r_inv, u_max, residual_tol, cond_max, max_iterations, P, warm, K, Ks,
                   a2, g2, u, u_unsat, residual, iterations, failed):
-    """TrackingController.compute before its roll-off: the paper's law on the model's blocks at
-    the estimated states (base-frame positions and velocities (n, 2), origin = the rest tip (2,))."""
-    n = pos.shape[0]
+    """SdreLaw.compute before its roll-off: the paper's law on the model's blocks at the estimated
+    states, z (n, 8) = [p, ṗ, p_d, ṗ_d] the base-frame positions and velocities of the estimate and
+    the reference, origin = the rest tip p₀ (2,)."""
+    n = z.shape[0]
     x, x_d = np.empty((n, 4)), np.empty((n, 4))
-    rest_frame_states(pos, vel, ref_pos, ref_vel, origin, x, x_d)
+    rest_frame_states(z, origin, x, x_d)
     sdc_forward(x, w1, b1, w2, b2, w3, b3, a2, g2)
     sdre_step(x, x_d, q, r_inv, u_max, residual_tol, cond_max, max_iterations, P, warm, K, Ks,
               a2, g2, u, u_unsat, residual, iterations, failed)
@@ -389,22 +389,22 @@ def model_inversion(a2, g2, x_d, a_d, cond_max, u_ff, usable):
 
 
 @kernel
-def feedforward_step(pos, vel, ref_pos, ref_vel, ref_acc, origin, ff_at_reference, w1, b1, w2, b2, w3, b3,
+def feedforward_step(z, origin, ff_at_reference, w1, b1, w2, b2, w3, b3,
                      q, r_inv, u_max, residual_tol, cond_max, max_iterations, P, warm, K, Ks,
                      a2, g2, u, u_unsat, residual, iterations, failed, u_ff, a2_ff, g2_ff, state_finite, ff_usable):
     """SdreFeedforwardLaw.compute before its roll-off:
 
         u = u_ff + K(x) e,   e = x − x_d,   u_ff = G2(z)⁻¹ (a_d − A2(z) x_d),   z = x or x_d
 
-    (``ff_at_reference``: z = x_d). A finger whose state or reference is not finite is solved at
-    x = x_d = 0 and gets u = 0 (``state_finite`` False); a non-finite row of ``ref_acc`` counts as
-    a_d = 0. ``ff_usable``: the feedforward acted and a_d was finite. u_ff: the feedforward part of
-    u_unsat; a2_ff, g2_ff: the blocks at z.
+    (``ff_at_reference``: z = x_d), from the rows z (n, 10) = [p, ṗ, p_d, ṗ_d, a_d] (base frames). A
+    finger whose state or reference is not finite is solved at x = x_d = 0 and gets u = 0
+    (``state_finite`` False); a non-finite a_d counts as zero. ``ff_usable``: the feedforward acted
+    and a_d was finite. u_ff: the feedforward part of u_unsat; a2_ff, g2_ff: the blocks at z.
     """
-    n = pos.shape[0]
+    n = z.shape[0]
     x, x_d, e, zero = np.empty((n, 4)), np.empty((n, 4)), np.empty((n, 4)), np.zeros((n, 4))
     a_d, finite = np.empty((n, 2)), np.empty(n, dtype=np.bool_)
-    rest_frame_states(pos, vel, ref_pos, ref_vel, origin, x, x_d)
+    rest_frame_states(z, origin, x, x_d)
     for i in range(n):
         state_finite[i] = np.all(np.isfinite(x[i])) and np.all(np.isfinite(x_d[i]))
         if not state_finite[i]:
@@ -422,9 +422,9 @@ def feedforward_step(pos, vel, ref_pos, ref_vel, ref_acc, origin, ff_at_referenc
     tracking_torques(K, Ks, e, zero, finite, u_max, u, u_unsat)          # u_unsat = K e
     acc_finite = np.empty(n, dtype=np.bool_)
     for i in range(n):
-        acc_finite[i] = np.isfinite(ref_acc[i, 0]) and np.isfinite(ref_acc[i, 1])
+        acc_finite[i] = np.isfinite(z[i, 8]) and np.isfinite(z[i, 9])
         for r in range(2):
-            a_d[i, r] = ref_acc[i, r] if acc_finite[i] else 0.0
+            a_d[i, r] = z[i, 8 + r] if acc_finite[i] else 0.0
     model_inversion(a2_ff, g2_ff, x_d, a_d, cond_max, u_ff, ff_usable)
     for i in range(n):
         ff_usable[i] &= acc_finite[i]

@@ -19,9 +19,9 @@ from __future__ import annotations
 import numpy as np
 from scipy.linalg import solve_discrete_are
 
+from soft_gripper_sdre.control.compiled import kernel_array, kf_step
+
 PROCESS_NOISE_MODELS = ('independent', 'paper')
-#: covariance steps a filter remembers at most (the recursion settles onto one or two of them)
-REMEMBERED_STEPS = 8
 
 
 def cv_matrices(dt: float, accel_psd: float, process_noise: str = 'independent'):
@@ -37,7 +37,8 @@ def cv_matrices(dt: float, accel_psd: float, process_noise: str = 'independent')
 
 
 class ConstantVelocityKF:
-    """Constant-velocity KF for ``n`` fingers at once.
+    """Constant-velocity KF for ``n`` fingers at once; each step is one call of the compiled
+    :func:`~soft_gripper_sdre.control.compiled_kf.kf_step`.
 
     Args:
         dt: sample period [s].
@@ -45,12 +46,12 @@ class ConstantVelocityKF:
         meas_std: measurement standard deviation σ_r [m] (Σ_r = σ_r² I).
         n: number of fingers.
         process_noise: ``'independent'`` (default) or ``'paper'`` (D = [0 0 1 1]ᵀ).
-        remember_covariances: look settled covariance steps up instead of recomputing them (the
-            same numbers either way; see :meth:`step`).
+
+    ``x`` (n, 4) and ``P`` (n, 4, 4) are the estimate and its covariance, updated in place.
     """
 
     def __init__(self, dt: float, accel_psd: float, meas_std: float, n: int = 4,
-                 process_noise: str = 'independent', remember_covariances: bool = True) -> None:
+                 process_noise: str = 'independent') -> None:
         if not (np.isfinite(dt) and dt > 0):
             raise ValueError(f'dt must be finite and > 0, got {dt!r}')
         if not (np.isfinite(accel_psd) and accel_psd >= 0):
@@ -64,18 +65,13 @@ class ConstantVelocityKF:
         self._H = np.hstack([np.eye(2), np.zeros((2, 2))])
         self._R = meas_std**2 * np.eye(2)
         self._p0 = max(1.0, 1e6 * meas_std**2)     # broad initial velocity covariance
-        self._remember = bool(remember_covariances)
+        self._all_valid = np.ones(self.n, dtype=np.bool_)
         self.reset()
 
     F = property(lambda self: self._F.copy())
     Q = property(lambda self: self._Q.copy())
     H = property(lambda self: self._H.copy())
     R = property(lambda self: self._R.copy())
-
-    @property
-    def remembered_covariances(self) -> int:
-        """How many covariance steps are remembered now (at most :data:`REMEMBERED_STEPS`)."""
-        return len(self._memo)
 
     def reset(self, z0: np.ndarray | None = None) -> None:
         """Start over: positions at z0 (n, 2) (zero if None), zero velocity, broad covariance."""
@@ -86,57 +82,19 @@ class ConstantVelocityKF:
                 raise ValueError(f'z0 must have shape ({self.n}, 2), got {z0.shape}')
             self.x[:, :2] = z0
         self.P = np.tile(np.diag([self._R[0, 0], self._R[1, 1], self._p0, self._p0]), (self.n, 1, 1))
-        self._memo: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
 
     def step(self, z: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
         """Predict one period and update with measurements z (n, 2); rows with ``valid`` False
-        (or a non-finite z) only predict. Returns a copy of x̂ (n, 4).
-
-        The covariance recursion of a step in which every row updates does not depend on the
-        data, and in floating point it settles within a few hundred periods onto a fixed point or
-        a 2-cycle of bit patterns; with ``remember_covariances`` such a step is then a dictionary
-        hit instead of the covariance algebra, with exactly the same numbers.
-        """
-        z = np.asarray(z, dtype=float)
+        (or a non-finite z) only predict. Returns a copy of x̂ (n, 4)."""
+        z = kernel_array(z)
         if z.shape != (self.n, 2):
             raise ValueError(f'z must have shape ({self.n}, 2), got {z.shape}')
-        x = self.x @ self._F.T                             # x̂ = F x̂
-        innov = z - x[:, :2]                               # z − H x̂
-        if (valid is None or np.all(valid)) and np.isfinite(z).all():
-            # every row updates: the covariance recursion depends on P alone
-            K, self.P = self._covariance_step(self.P)
-            self.x = x + np.einsum('nij,nj->ni', K, innov)     # x̂ = x̂ + K (z − H x̂)
-            return self.x.copy()
-        upd = np.ones(self.n, dtype=bool) if valid is None else np.asarray(valid, dtype=bool)
-        upd = upd & np.all(np.isfinite(z), axis=1)
-        K, P_pred, P_new = self._covariance(self.P)
-        self.x = x + np.einsum('nij,nj->ni', K, np.where(upd[:, None], innov, 0.0))
-        self.P = np.where(upd[:, None, None], P_new, P_pred)
+        if valid is None:
+            valid = self._all_valid
+        else:
+            valid = kernel_array(np.broadcast_to(np.asarray(valid, dtype=np.bool_), (self.n,)), np.bool_)
+        kf_step(self.x, self.P, z, valid, self._F, self._Q, self._R)
         return self.x.copy()
-
-    def _covariance(self, P: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Gain K, prior S and posterior of one period from the posterior P (all rows)."""
-        F, H = self._F, self._H
-        P = F @ P @ F.T + self._Q                          # S = F S Fᵀ + Σ_v
-        S = P[:, :2, :2] + self._R                         # H S Hᵀ + Σ_r   (H picks positions)
-        K = np.linalg.solve(S, P[:, :2, :]).transpose(0, 2, 1)   # K = S Hᵀ (H S Hᵀ + Σ_r)⁻¹
-        IKH = np.eye(4) - K @ H
-        P_new = IKH @ P @ IKH.transpose(0, 2, 1) + K @ self._R @ K.transpose(0, 2, 1)   # Joseph
-        return K, P, P_new
-
-    def _covariance_step(self, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(K, posterior) after a full update, remembered by P's bytes (see :meth:`step`)."""
-        if not self._remember:
-            K, _, P_new = self._covariance(P)
-            return K, P_new
-        key = P.tobytes()
-        hit = self._memo.get(key)
-        if hit is None:
-            K, _, P_new = self._covariance(P)
-            if len(self._memo) >= REMEMBERED_STEPS:
-                self._memo.clear()
-            self._memo[key] = hit = (K, P_new)
-        return hit[0], hit[1].copy()
 
     def steady_state(self) -> tuple[np.ndarray, np.ndarray]:
         """Steady-state prior covariance S∞ (from the DARE) and gain K∞ of one finger."""

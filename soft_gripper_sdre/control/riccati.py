@@ -7,8 +7,8 @@ For each finger, with A = A(x), G = G(x) from the learned model (the paper's eq.
 
 and the checks of Remarks 2–3, each a bit of :class:`Check`: (A, G) stabilisable, (A, Q^½)
 detectable, everything finite, P symmetric positive definite with a small residual, A_cl Hurwitz
-and invertible. These hold for any (A, G); the fast kernel (:mod:`~soft_gripper_sdre.control.kernel`)
-has cheaper versions for the SDC structure.
+and invertible. These hold for any (A, G); the compiled kernels (:mod:`~soft_gripper_sdre.control.compiled`)
+have cheaper versions for the SDC structure, A = [[0, I], [A21 A22]] and G = [[0], [G2]].
 """
 from __future__ import annotations
 
@@ -35,6 +35,8 @@ class Check(IntFlag):
 
 
 _I2 = np.eye(2)
+#: the rows of A that the SDC form fixes: Ẋ, Ẏ = [0 I] x
+SDC_TOP_ROWS = np.hstack([np.zeros((2, 2)), _I2])
 
 
 def care(A: np.ndarray, B: np.ndarray, Q: np.ndarray, R: np.ndarray) -> np.ndarray:
@@ -50,6 +52,22 @@ def sdre_gains(A, G, Q, R) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     A_cl = A + G @ K
     Ks = -Rinv_Gt @ np.linalg.solve(A_cl.T, Q)        # −R⁻¹ Gᵀ A_cl⁻ᵀ Q
     return K, Ks, P
+
+
+def in_sdc_form(A: np.ndarray, G: np.ndarray) -> bool:
+    """Every (A (n, 4, 4), G (n, 4, 2)) has the SDC form's top rows: A[:2] = [0 I], G[:2] = 0."""
+    return bool((A[:, :2, :] == SDC_TOP_ROWS).all()) and not G[:, :2, :].any()
+
+
+def full_sdc_matrices(A2: np.ndarray, G2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A = [[0, I], A2] (n, 4, 4) and G = [[0], G2] (n, 4, 2) from the lower rows A2 (n, 2, 4), G2 (n, 2, 2)."""
+    n = A2.shape[0]
+    A = np.zeros((n, 4, 4))
+    A[:, :2, :] = SDC_TOP_ROWS
+    A[:, 2:, :] = A2
+    G = np.zeros((n, 4, 2))
+    G[:, 2:, :] = G2
+    return A, G
 
 
 def is_stabilizable(A: np.ndarray, B: np.ndarray, tol: float = 1e-9) -> bool:
@@ -194,3 +212,26 @@ def checked_gains(A: np.ndarray, G: np.ndarray, P: np.ndarray, usable: np.ndarra
     ok = failed == 0
     ok &= np.all(np.isfinite(K), axis=(1, 2)) & np.all(np.isfinite(Ks), axis=(1, 2))
     return CheckedGains(K=K, Ks=Ks, residual=residual, ok=ok, failed=failed)
+
+
+def solve_and_check(A: np.ndarray, G: np.ndarray, finite: np.ndarray, sdc: bool, cost: RiccatiCost,
+                    residual_tol: float, cond_max: float) -> tuple[np.ndarray, CheckedGains, int]:
+    """The reference path for n fingers: Remark 3 (:func:`solvability`), scipy's solution for every
+    usable finger and every check of :func:`checked_gains`.
+
+    ``finite`` (n,) says which fingers' A, G and states are finite (the others are flagged
+    NONFINITE and not solved; their A, G may hold anything). Returns (P (n, 4, 4), NaN where not
+    solved; the checked gains; how many scipy solves were attempted).
+    """
+    A = np.where(finite[:, None, None], A, 0.0)
+    G = np.where(finite[:, None, None], G, 0.0)
+    usable, failed = solvability(A, G, finite, sdc, cost, cond_max)
+    failed[~finite] |= Check.NONFINITE
+    P = np.full((A.shape[0], 4, 4), np.nan)
+    solves = np.flatnonzero(usable)
+    for i in solves:
+        try:
+            P[i] = care(A[i], G[i], cost.Q, cost.R)
+        except (np.linalg.LinAlgError, ValueError):
+            pass                                     # stays NaN: SOLVE_FAILED
+    return P, checked_gains(A, G, P, usable, failed, cost, residual_tol, cond_max), len(solves)

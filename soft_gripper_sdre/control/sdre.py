@@ -1,46 +1,65 @@
 """The SDRE supervisor: the paper's law u = K(x) x + K_s(x) x_d (eq. 22, saturated) for n fingers.
 
 K, K_s and the checks are those of eq. 23–24 and Remarks 2–3 (:mod:`~soft_gripper_sdre.control.riccati`).
-``method='reference'`` solves with scipy; ``'fast'`` with the kernel (:mod:`~soft_gripper_sdre.control.kernel`,
-warm-started Newton–Kleinman on the SDC form), and a finger that is cold (first step, or its last step
-was rejected) or fails a kernel check takes the exact path (scipy and the general checks) alone;
-inputs not in SDC form always do. The supervisor owns the warm starts, the last valid gains and the
-counters: a finger whose step fails any check uses its last valid gains (fallback), or a nominal
-model's before it has any, or zero torque, and ``u`` is always finite. docs/design/fast_riccati.md
-has the derivations.
+Two paths compute them:
+
+* ``method='fast'``: the compiled kernels (:mod:`~soft_gripper_sdre.control.compiled`: warm-started
+  Newton–Kleinman on the SDC form with the structure's checks, the gains and the law in one call);
+  a finger the kernel hands back (cold: first step or its last step was rejected; or a failed
+  check) takes the exact path alone: scipy's solver and the general checks, after which its
+  torques are formed again with the gains now in use. Inputs not in SDC form, and weights for
+  which the SDC form does not prove detectability, take the reference path.
+* ``method='reference'``: scipy and the general checks for every finger, every step.
+
+The supervisor owns the state the kernels update (warm starts, the gains in use), the exact path
+and the counters: a finger whose step fails any check uses its last valid gains (fallback), or a
+nominal model's before it has any, or zero torque, and ``u`` is always finite.
+docs/design/compiled_kernel.md has the derivations.
 """
 from __future__ import annotations
 
-import math
+from typing import Callable
 
 import numpy as np
 
-from soft_gripper_sdre.control.kernel import (SDC_TOP_ROWS, checks_passed, every_check_passed,
-                                              full_sdc_matrices, kernel_constants, structured_gains,
-                                              upper_triangle)
-from soft_gripper_sdre.control.riccati import (Check, care, checked_gains, checked_weights, riccati_cost,
-                                               sdre_gains, solvability)
+from soft_gripper_sdre.control.compiled import (FeedforwardOutputs, SdcNetwork, SdreOutputs, SdreSettings, SdreState,
+                                                feedforward_step, kernel_array, sdre_step, tracking_step,
+                                                tracking_torques)
+from soft_gripper_sdre.control.riccati import (Check, checked_weights, full_sdc_matrices, in_sdc_form, riccati_cost,
+                                               sdre_gains, solve_and_check)
 from soft_gripper_sdre.control.tracking import LawStep
 
 METHODS = ('fast', 'reference')
 _CHECK_BITS = tuple((c.name, int(c)) for c in Check)
-
-
-def _frozen(a: np.ndarray) -> np.ndarray:
-    """``a``, made read-only (for arrays that several results share)."""
-    a.flags.writeable = False
-    return a
+#: the kernel's Check bits that are final: the exact path tests these in the same form
+_FINAL_BITS = int(Check.NONFINITE | Check.STABILIZABLE)
 
 
 def _checked(**arrays) -> list[np.ndarray]:
-    """Each ``name=(value, shape)`` as a float array, in order; ValueError naming the first of another shape."""
+    """Each ``name=(value, shape)`` as a float64 array the kernels take, in order; ValueError
+    naming the first of another shape."""
     out = []
     for name, (value, shape) in arrays.items():
-        arr = np.asarray(value, dtype=float)
+        arr = kernel_array(value)
         if arr.shape != shape:
             raise ValueError(f'{name} must have shape {shape}, got {arr.shape}')
         out.append(arr)
     return out
+
+
+def _finite_rows(*arrays: np.ndarray) -> np.ndarray:
+    """(n,) every entry of row i of every (n, …) array is finite."""
+    finite = np.ones(arrays[0].shape[0], dtype=bool)
+    for a in arrays:
+        finite &= np.isfinite(a.reshape(a.shape[0], -1)).all(axis=1)
+    return finite
+
+
+def rest_frame_states(z: np.ndarray, origin: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(x, x_d) = ([p − p₀, ṗ], [p_d − p₀, ṗ_d]), each (n, 4), from the rows z = [p, ṗ, p_d, ṗ_d, …]
+    as the kernels form them."""
+    return (np.concatenate((z[:, 0:2] - origin, z[:, 2:4]), axis=1),
+            np.concatenate((z[:, 4:6] - origin, z[:, 6:8]), axis=1))
 
 
 class SdreController:
@@ -58,7 +77,8 @@ class SdreController:
         max_nk_iterations: most Newton–Kleinman iterations per step before the exact path.
         nominal: optional (A0, G0) whose gains serve as the fallback before any valid step.
 
-    Counters: ``steps``, ``fallbacks`` (finger-steps), ``exact_solves``, ``check_failures`` (per :class:`Check`).
+    ``fast`` says whether the compiled kernels serve this controller. Counters: ``steps``,
+    ``fallbacks`` (finger-steps), ``exact_solves``, ``check_failures`` (per :class:`Check`).
     """
 
     def __init__(self, Q, R, u_max, n: int = 4, method: str = 'fast', residual_tol: float = 1e-6,
@@ -71,148 +91,156 @@ class SdreController:
         if int(max_nk_iterations) < 1:
             raise ValueError(f'max_nk_iterations must be >= 1, got {max_nk_iterations!r}')
         self._cost = riccati_cost(self.Q, self.R)
-        #: the fast kernel's constants (public for benchmarks that time the kernel alone)
-        self.kernel_constants = kernel_constants(self.Q, self.R, self.n, self.residual_tol, self.cond_max,
-                                                 int(max_nk_iterations))
-        # (n, 2) bounds: np.minimum / np.maximum between arrays of one shape skip broadcasting
-        self._u_max_n = np.ascontiguousarray(np.broadcast_to(self.u_max, (self.n, 2)))
-        self._u_min_n = np.ascontiguousarray(np.broadcast_to(-self.u_max, (self.n, 2)))
         # the kernel's detectability argument needs Q ≻ 0 or Q's position block ≻ 0
-        self._fast_ok = method == 'fast' and (self._cost.q_definite or self._cost.q_position_definite)
+        self.fast = method == 'fast' and (self._cost.q_definite or self._cost.q_position_definite)
+        self.settings = SdreSettings.of(self.Q, self.R, self.u_max, self.residual_tol, self.cond_max,
+                                        int(max_nk_iterations))
+        self.state, self.outputs = SdreState.cold(self.n), SdreOutputs.empty(self.n)
+        # the feedforward's two flags as the rows of one array: one count says whether all are set
+        self._feedforward_flags = np.zeros((2, self.n), dtype=np.bool_)
+        self.feedforward = FeedforwardOutputs(np.zeros((self.n, 2)), np.zeros((self.n, 2, 4)), np.zeros((self.n, 2, 2)),
+                                              *self._feedforward_flags)
         self._nominal = None
         if nominal is not None:
             K0, Ks0, _ = sdre_gains(np.asarray(nominal[0], float), np.asarray(nominal[1], float), self.Q, self.R)
             self._nominal = (K0, Ks0)
-        # the flags of a step where every check passed, and nk_iterations per count: read-only,
-        # shared by every such step (fresh arrays cost more than the rest of the bookkeeping)
-        self._passed = tuple(_frozen(np.full(self.n, v, dtype=t)) for v, t in ((True, bool), (False, bool), (0, int)))
-        self._iterations = [_frozen(np.full(self.n, k)) for k in range(int(max_nk_iterations) + 1)]
         self.reset()
 
     def reset(self) -> None:
         """Forget warm starts and last valid gains; zero the counters."""
-        self._p = np.zeros((self.n, 10))                 # warm start: upper triangle of the last P
-        self._warm = np.zeros(self.n, dtype=bool)        # ... valid for these fingers
-        self._all_warm = False
-        self._K = np.zeros((self.n, 2, 4))
-        self._Ks = np.zeros((self.n, 2, 4))
-        self._have = np.zeros(self.n, dtype=bool)
-        if self._nominal is not None:
-            self._K[:] = self._nominal[0]
-            self._Ks[:] = self._nominal[1]
+        s = self.state
+        s.P[:], s.warm[:] = 0.0, False
+        s.K[:], s.Ks[:] = (0.0, 0.0) if self._nominal is None else self._nominal
         self.steps = self.fallbacks = self.exact_solves = 0
         self.check_failures = {c.name: 0 for c in Check}
 
     def warm_start(self, P) -> None:
         """Start every finger's next fast step from P (n, 4, 4) instead of its last solution (the
         kernel's checks still decide whether the result is used)."""
-        self._p = upper_triangle(_checked(P=(P, (self.n, 4, 4)))[0])
-        self._warm = np.ones(self.n, dtype=bool)
-        self._all_warm = True
+        self.state.P[:] = _checked(P=(P, (self.n, 4, 4)))[0]
+        self.state.warm[:] = True
 
+    # -- the steps ---------------------------------------------------------------------------
     def step(self, A, G, x, x_d) -> LawStep:
         """Torques for every finger: A (n,4,4), G (n,4,2), x (n,4), x_d (n,4), translated SI."""
         n = self.n
         A, G, x, x_d = _checked(A=(A, (n, 4, 4)), G=(G, (n, 4, 2)), x=(x, (n, 4)), x_d=(x_d, (n, 4)))
-        sdc = self.method == 'fast' and bool((A[:, :2, :] == SDC_TOP_ROWS).all()) and not G[:, :2, :].any()
-        return self._step(A[:, 2:, :] if sdc else None, G[:, 2:, :] if sdc else None, A, G, x, x_d)
+        sdc = self.method == 'fast' and in_sdc_form(A, G)
+        if self.fast and sdc:
+            return self.step_sdc(A[:, 2:, :], G[:, 2:, :], x, x_d)
+        return self._reference_step(A, G, x, x_d, sdc)
 
     def step_sdc(self, A2, G2, x, x_d) -> LawStep:
         """:meth:`step` for a model in SDC form, given only its lower rows:
         A2 = [A21 A22] (n,2,4) and G2 (n,2,2), so that A = [[0, I], A2] and G = [[0], G2]."""
         n = self.n
-        A2, G2 = np.asarray(A2, dtype=float), np.asarray(G2, dtype=float)
-        x, x_d = np.asarray(x, dtype=float), np.asarray(x_d, dtype=float)
-        if (A2.shape, G2.shape, x.shape, x_d.shape) != ((n, 2, 4), (n, 2, 2), (n, 4), (n, 4)):
-            _checked(A2=(A2, (n, 2, 4)), G2=(G2, (n, 2, 2)), x=(x, (n, 4)), x_d=(x_d, (n, 4)))  # raises
-        if self.method != 'fast':
-            return self._step(None, None, *full_sdc_matrices(A2, G2), x, x_d)
-        return self._step(A2, G2, None, None, x, x_d)
+        A2, G2, x, x_d = _checked(A2=(A2, (n, 2, 4)), G2=(G2, (n, 2, 2)), x=(x, (n, 4)), x_d=(x_d, (n, 4)))
+        if not self.fast:
+            return self._reference_step(*full_sdc_matrices(A2, G2), x, x_d, self.method == 'fast')
+        out = self.outputs
+        out.a2[:], out.g2[:] = A2, G2
+        sdre_step(x, x_d, *self.settings, *self.state, *out)
+        return self._settle(lambda: (x, x_d))
 
-    def _step(self, a, g, A, G, x, x_d) -> LawStep:
-        """One step; ``a``, ``g`` are the SDC lower rows (None: not in SDC form), A, G the full
-        matrices (None: built from a, g if the exact path needs them)."""
+    def track(self, network: SdcNetwork, origin: np.ndarray, z: np.ndarray) -> LawStep:
+        """:meth:`step_sdc` on the fused network's blocks at the states x = [p − p₀, ṗ],
+        x_d = [p_d − p₀, ṗ_d] (``fast`` only): z (n, 8) = [p, ṗ, p_d, ṗ_d], a C-contiguous float64
+        array of base-frame positions and velocities (:meth:`RestFrame.stacked
+        <soft_gripper_sdre.control.tracking.RestFrame.stacked>`), ``origin`` p₀ (2,)."""
+        tracking_step(z, origin, *network, *self.settings, *self.state, *self.outputs)
+        return self._settle(lambda: rest_frame_states(z, origin))
+
+    def track_feedforward(self, network: SdcNetwork, origin: np.ndarray, ff_at_reference: bool,
+                          z: np.ndarray) -> LawStep:
+        """The feedforward law's step (``fast`` only; as :meth:`track` with z (n, 10) =
+        [p, ṗ, p_d, ṗ_d, a_d]): u = u_ff + K(x) e, e = x − x_d, u_ff = G2(z)⁻¹ (a_d − A2(z) x_d),
+        z = x or (``ff_at_reference``) x_d. :attr:`feedforward` holds u_ff and which fingers had a
+        finite state and a usable feedforward; the step's ``ok`` also needs the first, its
+        ``fallback`` is set without either (``fallbacks`` counts the feedback's alone)."""
+        feedforward_step(z, origin, ff_at_reference, *network, *self.settings, *self.state, *self.outputs,
+                         *self.feedforward)
+
+        def error_states():
+            x, x_d = rest_frame_states(z, origin)
+            x -= x_d
+            x[~self.feedforward.state_finite] = 0.0           # solved at x = x_d = 0
+            return x, np.zeros_like(x)
+        step = self._settle(error_states, feedforward=True)
+        if np.count_nonzero(self._feedforward_flags) != self._feedforward_flags.size:
+            ff = self.feedforward
+            step.ok &= ff.state_finite
+            step.fallback |= ~ff.state_finite | ~ff.ff_usable
+        return step
+
+    # -- after a kernel ----------------------------------------------------------------------
+    def _settle(self, feedback_states: Callable[[], tuple[np.ndarray, np.ndarray]],
+                feedforward: bool = False) -> LawStep:
+        """The step's record after a kernel call; first the exact path for the fingers it handed
+        back, given the (x, x_d) its SDRE step used."""
+        s, out = self.state, self.outputs
         self.steps += 1
-        fast, idx = None, None
-        if a is not None and self._fast_ok and self._all_warm:
-            fast = structured_gains(a, g, self._p, self.kernel_constants)
-            if every_check_passed(fast, self.kernel_constants):
-                # the common path: every finger warm and every kernel check passed
-                u_unsat = np.matvec(fast.gains, np.concatenate((x, x_d), axis=1))   # eq. 22: K x + K_s x_d
-                # Σ u² is finite iff every u is (or it overflows beyond 1e154: then the careful path)
-                if math.isfinite(np.vdot(u_unsat, u_unsat)):
-                    # the gains are read-only and shared with the result: _careful_step rebinds
-                    # self._K, self._Ks instead of writing into them (warm ⇒ have: unchanged)
-                    gains = _frozen(fast.gains)
-                    self._p, self._K, self._Ks = fast.p, gains[:, :, :4], gains[:, :, 4:]
-                    u = np.minimum(np.maximum(u_unsat, self._u_min_n), self._u_max_n)    # = np.clip, cheaper
-                    ok, fallback, failed = self._passed
-                    return LawStep(u=u, u_unsat=u_unsat, K=self._K, Ks=self._Ks, P=fast.P,
-                                   residual=fast.residual, ok=ok, fallback=fallback, failed_checks=failed,
-                                   saturated=u != u_unsat,          # = |u_unsat| > u_max here
-                                   nk_iterations=self._iterations[fast.iterations])
-        elif a is not None and self._fast_ok and self._warm.any():
-            idx = np.flatnonzero(self._warm)
-            fast = structured_gains(a[idx], g[idx], self._p[idx], self.kernel_constants)
-        if A is None:
-            A, G = full_sdc_matrices(a, g)
-        return self._careful_step(A, G, x, x_d, a is not None, fast, idx)
+        failed, iterations, P = out.failed.copy(), out.iterations.copy(), s.P.copy()
+        accepted = np.count_nonzero(s.warm)
+        if accepted != self.n:
+            x, x_d = feedback_states()
+            self._exact_path(x, x_d, failed, iterations, P)
+            if feedforward:                                   # u = u_ff + K e, as the kernel composes it
+                ff = self.feedforward
+                v = ff.u_ff + out.u_unsat
+                v[~(np.isfinite(v) & ff.state_finite[:, None])] = 0.0
+                out.u_unsat[:] = v
+                np.clip(v, -self.u_max, self.u_max, out=out.u)
+            accepted = np.count_nonzero(s.warm)
+        return self._record(out.u.copy(), out.u_unsat.copy(), s.K.copy(), s.Ks.copy(), P, out.residual.copy(),
+                            s.warm.copy(), failed, iterations, accepted)
 
-    def _solve(self, A, G, usable, fast, idx) -> tuple[np.ndarray, np.ndarray]:
-        """P for every usable finger: the kernel's where it passed its checks, else scipy's."""
-        P = np.full((self.n, 4, 4), np.nan)
-        iterations = np.zeros(self.n, dtype=int)
-        done = np.zeros(self.n, dtype=bool)
-        if fast is not None:
-            rows = np.arange(self.n) if idx is None else idx
-            take = checks_passed(fast, self.kernel_constants) & usable[rows]
-            P[rows[take]] = fast.P[take]
-            iterations[rows[take]] = fast.iterations
-            done[rows[take]] = True
-        for i in np.flatnonzero(usable & ~done):
-            self.exact_solves += 1
-            try:
-                P[i] = care(A[i], G[i], self.Q, self.R)
-            except (np.linalg.LinAlgError, ValueError):
-                pass                                     # stays NaN: SOLVE_FAILED
-        return P, iterations
+    def _exact_path(self, x, x_d, failed, iterations, P) -> None:
+        """scipy and the general checks for each finger the kernel handed back with usable inputs;
+        an accepted solution becomes its state (gains, warm start); then every finger's torques
+        with the gains in use. ``failed``, ``iterations`` and ``P`` (the step's record) are
+        updated in place."""
+        s, out = self.state, self.outputs
+        P[~s.warm] = np.nan
+        idx = np.flatnonzero(~s.warm & ((failed & _FINAL_BITS) == 0))
+        if idx.size:
+            A, G = full_sdc_matrices(out.a2[idx], out.g2[idx])
+            P_exact, checked, solves = solve_and_check(A, G, np.ones(idx.size, dtype=bool), True, self._cost,
+                                                       self.residual_tol, self.cond_max)
+            self.exact_solves += solves
+            failed[idx], iterations[idx], P[idx], out.residual[idx] = checked.failed, 0, P_exact, checked.residual
+            ok = checked.ok
+            s.P[idx[ok]], s.K[idx[ok]], s.Ks[idx[ok]], s.warm[idx[ok]] = P_exact[ok], checked.K[ok], checked.Ks[ok], True
+        finite = _finite_rows(out.a2, out.g2, x, x_d)
+        tracking_torques(s.K, s.Ks, x, x_d, finite, self.settings.u_max, out.u, out.u_unsat)
 
-    def _careful_step(self, A, G, x, x_d, sdc: bool, fast, idx) -> LawStep:
-        """The law with every check in its general form and the fallbacks, finger by finger."""
-        finite = (np.all(np.isfinite(A), axis=(1, 2)) & np.all(np.isfinite(G), axis=(1, 2))
-                  & np.all(np.isfinite(x), axis=1) & np.all(np.isfinite(x_d), axis=1))
-        A = np.where(finite[:, None, None], A, 0.0)
-        G = np.where(finite[:, None, None], G, 0.0)
-        usable, failed = solvability(A, G, finite, sdc, self._cost, self.cond_max)   # Remark 3
-        failed[~finite] |= Check.NONFINITE
-        P, iterations = self._solve(A, G, usable, fast, idx)
-        checked = checked_gains(A, G, P, usable, failed, self._cost, self.residual_tol, self.cond_max)
-        ok = checked.ok
-
-        # accept or fall back; new arrays, not writes into the old ones: the fast path shares its
-        # gains with the step it returned
-        self._K = np.where(ok[:, None, None], checked.K, self._K)
-        self._Ks = np.where(ok[:, None, None], checked.Ks, self._Ks)
-        self._have |= ok
-        self._p[ok] = upper_triangle(P[ok])
-        self._warm = ok.copy()           # no warm start from a rejected solve
-        self._all_warm = bool(ok.all())
-        fallback = ~ok
-        use_zero = fallback & ~self._have & (self._nominal is None)
-        K, Ks = self._K.copy(), self._Ks.copy()
-        K[use_zero] = 0.0
-        Ks[use_zero] = 0.0
+    # -- the reference path ------------------------------------------------------------------
+    def _reference_step(self, A, G, x, x_d, sdc: bool) -> LawStep:
+        """scipy and the general checks for every finger; a finger that fails keeps its last gains.
+        ``sdc``: test stabilisability in the SDC form (cond(G2)) instead of by PBH."""
+        self.steps += 1
+        finite = _finite_rows(A, G, x, x_d)
+        P, checked, solves = solve_and_check(A, G, finite, sdc, self._cost, self.residual_tol, self.cond_max)
+        self.exact_solves += solves
+        ok, s = checked.ok, self.state
+        s.K[ok], s.Ks[ok], s.P[ok], s.warm[:] = checked.K[ok], checked.Ks[ok], P[ok], ok
+        K, Ks = s.K.copy(), s.Ks.copy()
         xs = np.where(finite[:, None], x, 0.0)
         xds = np.where(finite[:, None], x_d, 0.0)
         u_unsat = np.einsum('nij,nj->ni', K, xs) + np.einsum('nij,nj->ni', Ks, xds)   # eq. 22
         u_unsat = np.where(np.isfinite(u_unsat), u_unsat, 0.0)
         u_unsat[~finite] = 0.0            # no torque from a state we cannot read
         u = np.clip(u_unsat, -self.u_max, self.u_max)
+        return self._record(u, u_unsat, K, Ks, P, checked.residual, ok, checked.failed,
+                            np.zeros(self.n, dtype=np.int64), np.count_nonzero(ok))
 
-        self.fallbacks += int(fallback.sum())
-        if failed.any():
+    def _record(self, u, u_unsat, K, Ks, P, residual, ok, failed, iterations, accepted: int) -> LawStep:
+        """The step's :class:`LawStep` (arrays the caller owns); the counters. ``accepted``: how
+        many fingers are ``ok``."""
+        fallbacks = self.n - accepted
+        if fallbacks:                     # a finger with a failed check is never ok
+            self.fallbacks += fallbacks
             for name, bit in _CHECK_BITS:
                 self.check_failures[name] += int(np.count_nonzero(failed & bit))
-        return LawStep(u=u, u_unsat=u_unsat, K=K, Ks=Ks, P=P, residual=checked.residual, ok=ok,
-                       fallback=fallback, failed_checks=failed, saturated=np.abs(u_unsat) > self.u_max,
-                       nk_iterations=iterations)
+        # u = clip(u_unsat) with u_unsat finite: u ≠ u_unsat ⇔ |u_unsat| > u_max
+        return LawStep(u=u, u_unsat=u_unsat, K=K, Ks=Ks, P=P, residual=residual, ok=ok, fallback=~ok,
+                       failed_checks=failed, saturated=u != u_unsat, nk_iterations=iterations)

@@ -133,18 +133,28 @@ class RestFrame:
         Raises:
             ValueError: when an input is not (n, 2).
         """
-        shape = (self.n, 2)
+        z = self.stacked(pos, vel, ref_pos, ref_vel)
+        z -= self._shift
+        return z[:, :4], z[:, 4:]
+
+    def stacked(self, *arrays) -> np.ndarray:
+        """The (n, 2) arrays side by side as one new (n, 2k) float64 array: [pos, vel, ref_pos,
+        ref_vel, …] in the order given (the rows the compiled kernels take).
+
+        Raises:
+            ValueError: when one is not (n, 2) (named as the law's inputs pos, vel, ref_pos, ref_vel).
+        """
         z = None
-        if np.shape(pos) == np.shape(vel) == np.shape(ref_pos) == np.shape(ref_vel) == shape:
+        shape = (self.n, 2)
+        if all(np.shape(a) == shape for a in arrays):
             try:
-                z = np.concatenate((pos, vel, ref_pos, ref_vel), axis=1, dtype=float)
+                z = np.concatenate(arrays, axis=1, dtype=float)
             except (ValueError, TypeError):
                 pass
         if z is None:
             raise ValueError(f'pos, vel, ref_pos, ref_vel must each have shape {shape}, got '
-                             f'{[np.shape(a) for a in (pos, vel, ref_pos, ref_vel)]}')
-        z -= self._shift
-        return z[:, :4], z[:, 4:]
+                             f'{[np.shape(a) for a in arrays]}')
+        return z
 
 
 @dataclass
@@ -158,8 +168,8 @@ class LawStep:
     failed_checks: np.ndarray    # (n,) int bitmask of :class:`Check` (0 for laws without checks)
     saturated: np.ndarray        # (n, 2)
     residual: np.ndarray         # (n,) relative Riccati residual (0 for closed-form laws)
-    K: np.ndarray | None = None              # (n, 2, 4) SDRE gains in use (fast path: read-only,
-    Ks: np.ndarray | None = None             # (n, 2, 4)  shared with the supervisor's fallback gains)
+    K: np.ndarray | None = None              # (n, 2, 4) SDRE gains in use
+    Ks: np.ndarray | None = None             # (n, 2, 4)
     P: np.ndarray | None = None              # (n, 4, 4) Riccati solution (NaN where it failed)
     nk_iterations: np.ndarray | None = None  # (n,) Newton–Kleinman iterations (0 = exact solve)
 

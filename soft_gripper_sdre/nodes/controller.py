@@ -32,6 +32,7 @@ from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import MultiDOFJointTrajectory
 
 from soft_gripper_sdre.control.command_gate import Change, CommandGate, Notice, Outcome
+from soft_gripper_sdre.control.compiled import warm_up
 from soft_gripper_sdre.control.tracking import DEFAULT_LOWPASS_HZ, DEFAULT_WEIGHTS, Weights
 from soft_gripper_sdre.control.horizon import sample_horizon
 from soft_gripper_sdre.control.laws import DEFAULT_LAW, GRAPH_LAWS, make_law
@@ -109,6 +110,7 @@ class ControllerNode(Node):
                                  dt=p['control_period'], adaptive=p['state_weights'])
         except ValueError as exc:
             raise ParameterError(f'law/state_weights: {exc}') from None
+        warm_up()       # compiled (or loaded from the cache) before any topic shows the node ready
         self.done = False
         self.exit_code = 0
         self._compute_s = []

@@ -26,6 +26,7 @@ import numpy as np
 from rclpy.node import Node
 from trajectory_msgs.msg import MultiDOFJointTrajectory
 
+from soft_gripper_sdre.control.compiled import warm_up
 from soft_gripper_sdre.control.kf import PROCESS_NOISE_MODELS, ConstantVelocityKF
 from soft_gripper_sdre.nodes import cdr, conversions as cv
 from soft_gripper_sdre.nodes.common import Diagnostics, run
@@ -60,6 +61,7 @@ class EstimatorNode(Node):
                                          process_noise=p['process_noise'])
         except ValueError as exc:
             raise ParameterError(str(exc)) from None
+        warm_up()       # compiled (or loaded from the cache) before any topic shows the node ready
         self.period_ns = int(round(p['control_period'] * cv.NS))
         self.jump_ns = int(round(p['reset_on_jump'] * cv.NS))
         on_runtime_change(self, PARAMS, apply=self._apply)

@@ -4,8 +4,9 @@
 
 Prints a table of (what, figure, note) rows; ``--write`` also renders it as Markdown with the
 machine facts and the command. Every figure is a median over repeated timings; where two paths
-compete (fast vs reference controller, fast vs scipy Riccati solve) they are timed interleaved in
-the same run and their ratio is reported, since the machine is shared and absolute numbers drift.
+compete (the compiled controller vs the scipy reference) they are timed interleaved in the same
+run and their ratio is reported, since the machine is shared and absolute numbers drift. The
+start-up rows time numba's compilation from an empty cache and the graph's start-up on a filled one.
 The node-graph rows come from :mod:`soft_gripper_sdre.tools.bench_graph` when it is installed
 (``rows(quick) -> [(what, figure, note)]``).
 """
@@ -17,6 +18,9 @@ import json
 import os
 import platform
 import statistics
+import subprocess
+import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -62,74 +66,138 @@ def closed_loop(seconds: float, noise_std: float):
                            sim_config=SimConfig(scene='hand', noise_std=noise_std))
 
 
-def bench_control(loop, repeats: int, ref_steps: int) -> dict[str, float]:
-    """Controller, model, Riccati and KF costs on the states of a closed-loop run (replayed).
+def bench_control(loop, law: str, repeats: int, ref_steps: int) -> dict[str, float]:
+    """``law``'s compute, compiled (the fast path) against the scipy reference, on the states of a
+    closed-loop run (replayed).
 
-    The fast controller (which warm-starts from the step before) runs every step; the reference
-    runs on ``ref_steps`` steps spread over the run, each timed right after the fast one on the
-    same state, so the ratio compares the two under the same load. Returns medians of per-step
-    wall times [s] (the first, cold step left out), the fast path's mean Newton–Kleinman iterations
-    per step and its share of exact solves.
+    The fast law (which warm-starts from the step before) runs every step, and right after it the
+    bare kernel call (``tracking_step`` / ``feedforward_step``) from the same warm start; the
+    reference runs on ``ref_steps`` steps spread over the run, each timed right after the fast one
+    on the same state, so the ratio compares the two under the same load. Returns medians of
+    per-step wall times [s] (the first, cold step left out), the fast path's mean Newton–Kleinman
+    iterations per step, its share of exact solves, and the largest difference of the unsaturated
+    torques to the reference's relative to the largest of those.
     """
+    from soft_gripper_sdre.control.compiled import (FeedforwardOutputs, SdreOutputs, SdreState, feedforward_step,
+                                                    tracking_step)
+    from soft_gripper_sdre.control.laws import make_law
     from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
-    from soft_gripper_sdre.control.kernel import full_sdc_matrices, structured_gains, upper_triangle
-    from soft_gripper_sdre.control.kf import ConstantVelocityKF
-    from soft_gripper_sdre.control.laws import SdreLaw
     from soft_gripper_sdre.learning.model import SDCModel
-    from soft_gripper_sdre.control.riccati import care
-    from soft_gripper_sdre.control.sdre import SdreController
-    model = SDCModel()
-    w = Weights(**DEFAULT_WEIGHTS)
-    est, ref_pos, ref_vel = loop.est, loop.ref_pos, loop.ref_vel
-    T = len(est)
+    model, w = SDCModel(), Weights(**DEFAULT_WEIGHTS)
+    T, n = loop.est.shape[:2]
+    acc = np.gradient(loop.ref_vel, loop.t, axis=0)            # the moving reference's acceleration
+    rows = [tuple(np.ascontiguousarray(a) for a in (loop.est[k, :, :2], loop.est[k, :, 2:], loop.ref_pos[k],
+                                                    loop.ref_vel[k], acc[k])) for k in range(T)]
+    stacked = [np.concatenate(r[:4] if law == 'sdre' else r, axis=1) for r in rows]      # the kernel's z
     paired = set(np.linspace(1, T - 1, min(ref_steps, T - 1)).astype(int).tolist())
-    x = np.concatenate([est[:, :, :2] - model.rest_tip[:2], est[:, :, 2:]], axis=2)
-    blocks = [model.sdc_blocks(x[k]) for k in range(T)]
-    full = [full_sdc_matrices(*b) for b in blocks]
-    t: dict[str, list[float]] = {k: [] for k in ('fast', 'fast_paired', 'reference', 'nk', 'nk_paired',
-                                                 'care', 'model', 'kf')}
-    iterations = []
+    origin = np.array(model.rest_tip[:2], dtype=np.float64)
+    t: dict[str, list[float]] = {k: [] for k in ('fast', 'fast_paired', 'reference', 'kernel')}
+    iterations, worst, scale = [], 0.0, 0.0
     clock = time.perf_counter
     for _ in range(repeats):
-        fast = SdreLaw(model, w, 0.0625, method='fast')
-        ref = SdreLaw(model, w, 0.0625, method='reference')
-        s = SdreController(w.Q, w.R, 0.0625)
-        p = upper_triangle(s.step_sdc(*blocks[0], x[0], x[0]).P)        # the kernel's warm start
-        kf = ConstantVelocityKF(1e-3, 1.0, 5e-5, n=4)
-        kf.reset(loop.meas[0])
-        for k in range(T):
-            args = (est[k, :, :2], est[k, :, 2:], ref_pos[k], ref_vel[k])
+        fast = make_law(law, model, w, 0.0625, n_fingers=n, method='fast')
+        ref = make_law(law, model, w, 0.0625, n_fingers=n, method='reference')
+        s = fast.sdre
+        state, out, ff = SdreState.cold(n), SdreOutputs.empty(n), FeedforwardOutputs.empty(n)
+        for k, (pos, vel, ref_pos, ref_vel, ref_acc) in enumerate(rows):
+            for src, dst in zip(s.state, state):
+                dst[:] = src                              # the warm start the law starts from
             t0 = clock()
-            out = fast.compute(*args)
+            step = fast.compute(pos, vel, ref_pos, ref_vel, ref_acc=ref_acc)
             t1 = clock()
-            gains = structured_gains(*blocks[k], p, s.kernel_constants)   # the Riccati solve and checks alone
+            if law == 'sdre':
+                tracking_step(stacked[k], origin, *fast.network, *s.settings, *state, *out)
+            else:
+                feedforward_step(stacked[k], origin, False, *fast.network, *s.settings, *state, *out, *ff)
             t2 = clock()
-            p = gains.p
-            model.sdc_blocks(x[k])
-            t3 = clock()
-            kf.step(loop.meas[k])
-            t4 = clock()
             if k == 0:
                 continue
-            iterations.append(int(out.nk_iterations.max()))
+            iterations.append(int(step.nk_iterations.max()))
             t['fast'].append(t1 - t0)
-            t['nk'].append(t2 - t1)
-            t['model'].append(t3 - t2)
-            t['kf'].append(t4 - t3)
+            t['kernel'].append(t2 - t1)
             if k in paired:
                 t0 = clock()
-                ref.compute(*args)
-                t1 = clock()
-                [care(full[k][0][i], full[k][1][i], w.Q, w.R) for i in range(4)]
-                t2 = clock()
-                t['reference'].append(t1 - t0)
-                t['care'].append(t2 - t1)
+                reference = ref.compute(pos, vel, ref_pos, ref_vel, ref_acc=ref_acc)
+                t['reference'].append(clock() - t0)
                 t['fast_paired'].append(t['fast'][-1])
-                t['nk_paired'].append(t['nk'][-1])
-    out = {k: float(np.median(v)) for k, v in t.items()}
-    out['iterations'] = float(np.mean(iterations))
-    out['exact'] = float(np.mean(np.array(iterations) == 0))
+                worst = max(worst, float(np.abs(step.u_unsat - reference.u_unsat).max()))
+                scale = max(scale, float(np.abs(reference.u_unsat).max()))
+    result = {k: float(np.median(v)) for k, v in t.items()}
+    result['iterations'] = float(np.mean(iterations))
+    result['exact'] = float(np.mean(np.array(iterations) == 0))
+    result['difference'] = worst / scale
+    return result
+
+
+def bench_kf(loop, repeats: int) -> float:
+    """Median wall time of one ConstantVelocityKF step for every finger (compiled) [s], on the
+    loop's measurements."""
+    from soft_gripper_sdre.control.kf import ConstantVelocityKF
+    meas = [np.ascontiguousarray(z) for z in loop.meas]
+    samples = []
+    clock = time.perf_counter
+    for _ in range(repeats):
+        kf = ConstantVelocityKF(1e-3, 1.0, 5e-5, n=meas[0].shape[0])
+        kf.reset(meas[0])
+        for z in meas[1:]:
+            t0 = clock()
+            kf.step(z)
+            samples.append(clock() - t0)
+    return float(np.median(samples))
+
+
+def compile_seconds() -> dict[str, float]:
+    """Seconds for ``import compiled`` and ``warm_up()`` in a fresh interpreter, with an empty numba
+    cache (``cold``: compiling every kernel) and again with the cache that run left (``cached``)."""
+    code = ('import time; t0 = time.perf_counter(); from soft_gripper_sdre.control import compiled; '
+            't1 = time.perf_counter(); compiled.warm_up(); t2 = time.perf_counter(); print(t1 - t0, t2 - t1)')
+    out = {}
+    with tempfile.TemporaryDirectory(prefix='sgs_numba_cache_') as cache:
+        env = dict(os.environ, NUMBA_CACHE_DIR=cache)
+        for name in ('cold', 'cached'):
+            res = subprocess.run([sys.executable, '-c', code], env=env, capture_output=True, text=True, check=True)
+            out[f'{name} import'], out[f'{name} warm_up'] = map(float, res.stdout.split())
     return out
+
+
+def graph_startup(timeout: float = 120.0) -> float:
+    """Seconds from launching the four loop processes together (simulator, estimator, trajectory,
+    controller, on the shipped configuration, numba's cache as it is) to the first torque command
+    on ``torque_commands``, heard by a node of this process."""
+    import rclpy
+    from rclpy.context import Context
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+    from sensor_msgs.msg import JointState
+
+    from soft_gripper_sdre.nodes.topics import LOOP_QOS, TORQUE_COMMANDS
+    from soft_gripper_sdre.tools.procs import Graph, ros_env
+    env = ros_env()
+    os.environ.update({k: env[k] for k in ('ROS_DOMAIN_ID', 'ROS_AUTOMATIC_DISCOVERY_RANGE')})
+    first: list[float] = []
+    context = Context()
+    rclpy.init(context=context)
+    node = Node('bench_startup', context=context)
+    node.create_subscription(JointState, TORQUE_COMMANDS, lambda _: first or first.append(time.monotonic()),
+                             LOOP_QOS)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    try:
+        with tempfile.TemporaryDirectory(prefix='sgs_startup_') as logs, Graph(env, Path(logs)) as graph:
+            t0 = time.monotonic()
+            for name in ('estimator', 'trajectory', 'controller'):
+                graph.start(name)
+            graph.start('simulator', {'duration': 0.5, 'min_tip_subscribers': 2})
+            while not first and time.monotonic() < t0 + timeout and all(p.alive() for p in graph.procs.values()):
+                executor.spin_once(timeout_sec=0.05)
+            if not first:
+                raise RuntimeError(f'no torque command within {timeout:g} s: '
+                                   f'{ {n: p.log_tail(600) for n, p in graph.procs.items()} }')
+            return first[0] - t0
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
 
 
 def bench_idle(loop, law: str = 'sdre_ff') -> dict[str, float]:
@@ -193,22 +261,22 @@ def rows(quick: bool) -> list[Row]:
     # the closed loop on the default settings (0.05 mm measurement noise), then its states replayed
     loop = closed_loop(1.0 if quick else 3.0, noise_std=5e-5)
     T = len(loop.t)
-    ctrl = bench_control(loop, 1 if quick else 2, 100 if quick else 300)
-    ratio = ctrl['reference'] / ctrl['fast_paired']
-    out += [('controller compute, 4 fingers (fast)', us(ctrl['fast']),
-             f'{ratio:.0f}× faster than the reference on the same steps; states of the closed loop below '
-             f'(0.05 mm noise): {ctrl["iterations"]:.2f} Newton–Kleinman iterations per step, '
-             f'{100 * ctrl["exact"]:.1f} % exact solves'),
-            ('controller compute, 4 fingers (reference)', us(ctrl['reference']),
-             'scipy solve_continuous_are per finger, general checks'),
-            ('model A(x), G(x), 4 fingers', us(ctrl['model']), 'fused numpy network, three matmuls'),
-            ('Riccati solve + checks, 4 fingers (fast)', us(ctrl['nk']),
-             f'{ctrl["care"] / ctrl["nk_paired"]:.0f}× faster than scipy ×4 ({us(ctrl["care"])}), same steps'),
-            ('KF step, 4 fingers', us(ctrl['kf']), 'covariance recursion remembered once settled')]
-    clean = bench_control(closed_loop(1.0 if quick else 2.0, noise_std=0.0), 1, 50 if quick else 200)
-    out.append(('controller compute, 4 fingers (fast), clean states', us(clean['fast']),
+    for law in ('sdre', 'sdre_ff'):
+        ctrl = bench_control(loop, law, 1 if quick else 2, 100 if quick else 300)
+        out += [(f'controller compute, {law}, 4 fingers (compiled)', us(ctrl['fast']),
+                 f'{ctrl["reference"] / ctrl["fast_paired"]:.0f}× faster than the reference on the same steps; states '
+                 f'of the closed loop below (0.05 mm noise): {ctrl["iterations"]:.2f} Newton–Kleinman iterations '
+                 f'per step, {100 * ctrl["exact"]:.1f} % exact solves; torques within {ctrl["difference"]:.1e} of '
+                 "the largest of the reference's; the kernel call alone "
+                 f'{us(ctrl["kernel"])}'),
+                (f'controller compute, {law}, 4 fingers (scipy reference)', us(ctrl['reference']),
+                 'scipy solve_continuous_are per finger, general checks')]
+    clean = bench_control(closed_loop(1.0 if quick else 2.0, noise_std=0.0), 'sdre', 1, 50 if quick else 200)
+    out.append(('controller compute, sdre, 4 fingers (compiled), clean states', us(clean['fast']),
                 f'{clean["reference"] / clean["fast_paired"]:.0f}× faster than the reference, same steps; the same '
                 f'loop without measurement noise: {clean["iterations"]:.2f} iterations per step'))
+    out.append(('KF step, 4 fingers (compiled)', us(bench_kf(loop, 1 if quick else 3)),
+                'predict + Joseph-form update, the closed loop\'s measurements'))
     cold = bench_idle(loop)
     out.append(('controller compute, sdre_ff (the graph\'s law), cold', f'{us(cold["idle"])} / {us(cold["flushed"])}',
                 f'after 1 ms of sleep / after 64 MB of other memory traffic, against {us(cold["busy"])} back '
@@ -220,6 +288,16 @@ def rows(quick: bool) -> list[Row]:
                 f'{T * 1e-3 / loop.step_seconds:.2f}× (load bursts included); hand + cube, 0.05 mm noise, '
                 'stepping only'))
     out += graph_rows(quick)
+    if not quick:                # compiling from an empty cache takes about a minute
+        compiled = compile_seconds()
+        out.append(('compiled kernels: import + warm_up(), empty cache / cached',
+                    f'{compiled["cold import"] + compiled["cold warm_up"]:.1f} s / '
+                    f'{compiled["cached import"] + compiled["cached warm_up"]:.1f} s',
+                    f'a fresh interpreter with NUMBA_CACHE_DIR empty, then again with what it left; of which '
+                    f'importing numba and the kernels {compiled["cold import"]:.1f} s / {compiled["cached import"]:.1f} s'))
+    out.append(('graph start-up (processes launched → first torque command)', f'{graph_startup():.1f} s',
+                'simulator, estimator, trajectory, controller started together on the shipped configuration, '
+                "numba's cache filled (make's kernels stamp)"))
     # training is timed by the train tool itself: a fresh `make model` run, else the shipped model's record
     trained = Path('runs/train/metrics.json')
     source = trained if trained.is_file() else Path(__file__).resolve().parents[1] / 'models' / 'default.json'
@@ -246,12 +324,11 @@ def markdown(table: list[Row], quick: bool) -> str:
              + ': compare the ratios, which are measured in one run.', '',
              '| what | figure | note |', '| --- | ---: | --- |']
     lines += [f'| {n} | {v} | {note} |' for n, v, note in table]
-    lines += ['', 'The controller, model, Riccati and KF rows replay the estimates and references of the '
-              'in-process closed loop (hand + cube, default weights and 40 Hz roll-off), so the fast '
-              "path's warm starts are as far off as in the loop; the first, cold step is left out. "
-              'The closed-loop row times the stepping only, not the simulator\'s construction and '
-              'settle; its figure is 1 ms over the median period. Training is timed by the train tool itself; data collection includes the '
-              'finger\'s 0.5 s settle.']
+    lines += ['', 'The controller and KF rows replay the estimates and references of the in-process closed '
+              'loop (hand + cube, default weights and 40 Hz roll-off), so the fast path\'s warm starts are as far '
+              'off as in the loop; the first, cold step is left out. The closed-loop row times the stepping only, '
+              'not the simulator\'s construction and settle; its figure is 1 ms over the median period. Training '
+              'is timed by the train tool itself; data collection includes the finger\'s 0.5 s settle.']
     return '\n'.join(lines) + '\n'
 
 

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from soft_gripper_sdre.control.compiled import compiled_network
 from soft_gripper_sdre.control.sdre import SdreController
 from soft_gripper_sdre.control.tracking import DEFAULT_LOWPASS_HZ, LawIO, LawStep, RestFrame, RollOff, Weights
 
@@ -13,16 +14,20 @@ class SdreLaw:
     Moves the estimates and the reference into the model's translated coordinates, queries A(x),
     G(x) for all fingers at once and applies :class:`~soft_gripper_sdre.control.sdre.SdreController`
     (u = K(x) x + K_s(x) x_d, saturated), then the roll-off. One model serves every finger: each is
-    controlled in its own base frame with its own copy of the same dynamics.
+    controlled in its own base frame with its own copy of the same dynamics. On the fast path a
+    model with ``fused_network`` is evaluated inside the compiled step
+    (:meth:`~soft_gripper_sdre.control.sdre.SdreController.track`).
 
     Args:
         model: object with ``AG(x) -> (A (n,4,4), G (n,4,2))`` and ``rest_tip`` (3,) [m] (an
             :class:`soft_gripper_sdre.learning.model.SDCModel`); if it also has
-            ``sdc_blocks(x) -> ([A21 A22] (n,2,4), G2 (n,2,2))``, only those lower rows are used.
+            ``sdc_blocks(x) -> ([A21 A22] (n,2,4), G2 (n,2,2))``, only those lower rows are used,
+            and if it has ``fused_network`` (the arrays of
+            :class:`~soft_gripper_sdre.control.compiled.SdcNetwork`), the compiled step evaluates it.
         weights: SDRE weights (SI).
         u_max: torque saturation per input [N·m].
         n_fingers: number of fingers controlled together.
-        method: ``'fast'`` (batched warm-started Newton–Kleinman) or ``'reference'`` (scipy).
+        method: ``'fast'`` (the compiled kernels) or ``'reference'`` (scipy).
         lowpass_hz, dt: the command's :class:`~soft_gripper_sdre.control.tracking.RollOff` (0 = off)
             and the control period [s].
     """
@@ -38,6 +43,7 @@ class SdreLaw:
             raise ValueError(f'model.rest_tip must hold a finite rest position, got {model.rest_tip!r}') from None
         self.sdre = SdreController(weights.Q, weights.R, u_max, n=self.n_fingers, method=method)
         self._blocks = getattr(model, 'sdc_blocks', None)
+        self.network = compiled_network(model) if self.sdre.fast else None
         self.roll_off = RollOff(lowpass_hz, dt)
 
     @property
@@ -61,11 +67,14 @@ class SdreLaw:
         Returns:
             the SDRE step (``u`` (n, 2) [N·m], gains, checks, fallbacks).
         """
-        x, xd = self.frame.states(pos, vel, ref_pos, ref_vel)   # f(0) = 0 at rest
-        if self._blocks is not None:                 # a model in SDC form: only its lower rows
-            out = self.sdre.step_sdc(*self._blocks(x), x, xd)
+        if self.network is not None:                 # the compiled step, network included
+            out = self.sdre.track(self.network, self.frame.origin, self.frame.stacked(pos, vel, ref_pos, ref_vel))
         else:
-            out = self.sdre.step(*self.model.AG(x), x, xd)
+            x, xd = self.frame.states(pos, vel, ref_pos, ref_vel)   # f(0) = 0 at rest
+            if self._blocks is not None:             # a model in SDC form: only its lower rows
+                out = self.sdre.step_sdc(*self._blocks(x), x, xd)
+            else:
+                out = self.sdre.step(*self.model.AG(x), x, xd)
         # keeps the loop from feeding the finger's unmodelled bending modes (README, "Noise")
         out.u = self.roll_off(out.u)
         return out

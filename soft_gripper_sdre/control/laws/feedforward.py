@@ -4,6 +4,7 @@ from __future__ import annotations
 import numpy as np
 
 from soft_gripper_sdre.control.batched_linalg import batched_solve, well_conditioned_2x2
+from soft_gripper_sdre.control.compiled import compiled_network
 from soft_gripper_sdre.control.sdre import SdreController
 from soft_gripper_sdre.control.tracking import DEFAULT_LOWPASS_HZ, LawIO, LawStep, Weights
 
@@ -60,6 +61,7 @@ def combine_feedforward(io: LawIO, feedback: LawStep, A2: np.ndarray, G2: np.nda
     out = io.finish(u_ff + feedback.u_unsat, finite)                 # u = u_ff + K(x) e
     out.ok, out.fallback = feedback.ok & finite, feedback.fallback | ~finite | ~ff_ok
     out.failed_checks, out.residual = feedback.failed_checks, feedback.residual
+    out.K, out.Ks, out.P, out.nk_iterations = feedback.K, feedback.Ks, feedback.P, feedback.nk_iterations
     return out
 
 
@@ -84,7 +86,9 @@ class SdreFeedforwardLaw:
     gains are the SDRE's at x; the saturation, 40 Hz roll-off, Riccati checks and fallback rules
     are those of the other laws (a finger that falls back keeps its last valid K). A finger whose
     ``ref_acc`` is not finite, or whose G₂(z) is singular, gets no feedforward and is flagged
-    ``fallback`` (the feedback still acts); ``ref_acc=None`` means a_d = 0.
+    ``fallback`` (the feedback still acts); ``ref_acc=None`` means a_d = 0. On the fast path a
+    model with ``fused_network`` is evaluated inside the compiled step
+    (:meth:`~soft_gripper_sdre.control.sdre.SdreController.track_feedforward`).
     """
 
     def __init__(self, model, weights: Weights, u_max: float, n_fingers: int = 4,
@@ -98,12 +102,16 @@ class SdreFeedforwardLaw:
         self.sdre = SdreController(weights.Q, weights.R, u_max, n=self.n_fingers, method=method)
         self._zero = np.zeros((self.n_fingers, 4))          # x_d of the feedback step: K e only
         self._zero.flags.writeable = False
+        self.network = compiled_network(model) if self.sdre.fast else None
+        self._no_acc = np.zeros((self.n_fingers, 2))
 
     def reset(self) -> None:
         self.io.reset()
         self.sdre.reset()
 
     def compute(self, pos, vel, ref_pos, ref_vel, ref_acc=None) -> LawStep:
+        if self.network is not None:
+            return self._compiled_step(pos, vel, ref_pos, ref_vel, ref_acc)
         x, xd, finite = self.io.states(pos, vel, ref_pos, ref_vel)
         n = self.n_fingers
         # the model's SDC lower rows at x (the gains) and where the feedforward evaluates it:
@@ -120,3 +128,14 @@ class SdreFeedforwardLaw:
         if self.ff_at == 'ref':
             A2, G2 = A2[n:], G2[n:]
         return combine_feedforward(self.io, step, A2, G2, xd, finite, ref_acc)
+
+    def _compiled_step(self, pos, vel, ref_pos, ref_vel, ref_acc) -> LawStep:
+        """:meth:`compute` in one compiled call (the same law and flags)."""
+        if ref_acc is None:
+            ref_acc = self._no_acc
+        elif np.shape(ref_acc) != (self.n_fingers, 2):
+            raise ValueError(f'ref_acc must have shape ({self.n_fingers}, 2), got {np.shape(ref_acc)}')
+        z = self.io.frame.stacked(pos, vel, ref_pos, ref_vel, ref_acc)
+        out = self.sdre.track_feedforward(self.network, self.io.origin, self.ff_at == 'ref', z)
+        out.u = self.io.roll_off(out.u)
+        return out
