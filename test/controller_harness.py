@@ -15,7 +15,8 @@ LIMIT = 0.0625
 
 
 def horizon(rest, start_ns, close_mm=5.0, points=21, step_ns=5 * MS):
-    """A constant reference ``close_mm`` towards the palm (+Y) for every finger."""
+    """A plan message: a constant reference ``close_mm`` towards the palm (+Y) for every finger,
+    from ``start_ns`` on (held after its last point)."""
     times = start_ns + step_ns * np.arange(points)
     pos = np.repeat(rest[None, :, :], points, 0).copy()
     pos[..., 1] += close_mm * 1e-3
@@ -43,3 +44,15 @@ def make(ctx, executor, **params):
 
 def commands(probe):
     return probe.received[TORQUE_COMMANDS]
+
+
+def send_estimate(executor, node, est_pub, msg) -> None:
+    """Publish one estimate and spin until the node has taken it (it keeps only the newest
+    message, so a burst would be skipped down to its last)."""
+    c = node.diag.counters
+
+    def taken() -> int:
+        return c['estimates'] + c['bad_estimate'] + c['old_estimate']
+    before = taken()
+    est_pub.publish(msg)
+    assert spin_until(executor, lambda: taken() > before, 5.0), 'estimate not taken'

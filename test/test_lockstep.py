@@ -87,6 +87,50 @@ def test_lockstep_timeout_steps_with_the_held_or_zero_command_and_counts(policy,
     assert s.on_command(2 * MS, torque(6)).step is not None and s.k == 3
 
 
+def test_after_a_timeout_lost_commands_step_with_zero_after_a_short_wait_until_one_arrives():
+    s = started(timeout=0.5, lost_command_wait=0.01)
+    s.on_command(0, torque(4))
+    s.await_command(10.0)                                 # period 1: awaited until 10.5 s
+    np.testing.assert_array_equal(s.on_wall_time(10.5), torque(4))    # the timeout holds
+    assert s.lost and s.lost_since_ns == 1 * MS and s.counters['timeouts'] == 1
+    s.await_command(10.5)                                 # period 2: awaited 0.01 s only
+    assert s.deadline == pytest.approx(10.51)
+    assert s.on_wall_time(10.505) is None
+    np.testing.assert_array_equal(s.on_wall_time(10.51), 0.0)
+    s.await_command(10.51)
+    np.testing.assert_array_equal(s.on_wall_time(10.52), 0.0)
+    assert s.counters['safe_periods'] == 2 and s.counters['timeouts'] == 1 and s.k == 4
+    s.await_command(10.52)
+    out = s.on_command(4 * MS, torque(5))                 # commands are back: tracking
+    assert out.resumed and out.step is not None and not s.lost and s.k == 5
+    s.await_command(10.53)
+    assert s.deadline == pytest.approx(11.03)            # the full timeout again
+
+
+def test_a_late_command_while_lost_ends_the_short_wait_the_loop_is_slow_not_dead():
+    s = started(timeout=0.5, lost_command_wait=0.01)
+    s.on_command(0, torque(4))
+    s.await_command(10.0)
+    s.on_wall_time(10.5)                                  # timeout: period 1 held
+    s.await_command(10.5)
+    s.on_wall_time(10.51)                                 # period 2 zero
+    s.await_command(10.51)
+    out = s.on_command(2 * MS, torque(5))                 # period 2's answer, after all
+    assert out.step is None and out.resumed and s.counters['late_command'] == 1
+    assert s.deadline == pytest.approx(11.01)             # period 3 waits the full timeout
+    assert s.on_wall_time(10.6) is None
+
+
+def test_refused_commands_do_not_end_lost_commands():
+    s = started(timeout=0.5, lost_command_wait=0.01)
+    s.on_command(0, torque(4))
+    s.await_command(10.0)
+    s.on_wall_time(10.5)
+    assert s.on_command(0, torque(1)).refused == 'stale_command'
+    assert s.on_command(9 * MS, torque(1)).refused == 'future_command'
+    assert s.lost
+
+
 def test_timeout_policy_and_length_can_change_between_calls():
     s = started(timeout=0.5, on_timeout='hold')
     s.on_command(0, torque(4))
@@ -115,12 +159,38 @@ def test_realtime_steps_each_period_with_the_newest_command_and_counts_late_peri
     out = s.on_command(1 * MS, torque(1))
     assert out.step is None and out.refused is None           # applied by the next period
     np.testing.assert_array_equal(s.on_period(), torque(1))
-    assert s.counters['late_periods'] == 1
+    assert s.counters['late_periods'] == 1                    # period 1's own command was in
     np.testing.assert_array_equal(s.on_period(), torque(1))   # held, and late
     assert s.counters['late_periods'] == 2 and s.k == 3
-    s.on_command(2 * MS, torque(2))                           # for a period already past: applied
-    np.testing.assert_array_equal(s.on_period(), torque(2))
+    s.on_command(2 * MS, torque(2))                           # for a period already past: applied,
+    np.testing.assert_array_equal(s.on_period(), torque(2))   # but period 3 is still late
+    assert s.counters['late_periods'] == 3
     assert s.on_wall_time(1e9) is None and s.counters['timeouts'] == 0   # no lockstep timeout
+
+
+def test_realtime_holds_a_late_command_for_hold_periods_then_steps_with_zero():
+    s = started(mode='realtime', hold_periods=3)
+    s.on_command(0, torque(1))
+    for _ in range(4):                                        # period 0 in time, 1 … 3 held
+        np.testing.assert_array_equal(s.on_period(), torque(1))
+        assert not s.lost
+    assert s.counters['late_periods'] == 3 and s.counters['safe_periods'] == 0
+    np.testing.assert_array_equal(s.on_period(), 0.0)         # period 4: the command is 4 old
+    np.testing.assert_array_equal(s.on_period(), 0.0)
+    assert s.lost and s.lost_since_ns == 1 * MS and s.counters['safe_periods'] == 2
+    out = s.on_command(5 * MS, torque(2))                     # commands are back (one late)
+    assert out.resumed and not s.lost
+    np.testing.assert_array_equal(s.on_period(), torque(2))   # period 6 holds it
+    assert s.counters['late_periods'] == 6 and s.counters['safe_periods'] == 2
+    s.hold_periods = 0                                        # may change between calls
+    np.testing.assert_array_equal(s.on_period(), 0.0)
+
+
+def test_realtime_zeroes_nothing_before_the_first_command():
+    s = started(mode='realtime', hold_periods=1)
+    for _ in range(5):
+        np.testing.assert_array_equal(s.on_period(), 0.0)
+    assert s.counters['late_periods'] == 5 and 'safe_periods' not in s.counters and not s.lost
 
 
 def test_lockstep_has_no_periods_of_its_own():
