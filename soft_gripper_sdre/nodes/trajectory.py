@@ -205,7 +205,8 @@ class TrajectoryNode(Node):
     def _plan(self, rest: np.ndarray, source: str) -> None:
         """Plan the grasp from ``rest`` and publish it (``source`` says where the rest came from)."""
         self.traj = GraspTrajectory(rest, self.profile)
-        self.diag.values['rest_pose'] = ', '.join(f'{v:.6g}' for v in self.traj.rest.ravel().tolist())
+        # repr round-trips: a node restarted with this value plans the very same points
+        self.diag.values['rest_pose'] = ', '.join(repr(v) for v in self.traj.rest.ravel().tolist())
         self.diag.publish()      # at once, not at the next 1 s tick: a restart is given this value
         times = plan_offsets(self.profile.duration, self.step_ns)
         ref = self.traj.sample(times / cv.NS)
