@@ -158,12 +158,13 @@ def test_realtime_steps_each_period_with_the_newest_command_and_counts_late_peri
     assert s.counters['late_periods'] == 1 and s.k == 1
     out = s.on_command(1 * MS, torque(1))
     assert out.step is None and out.refused is None           # applied by the next period
-    np.testing.assert_array_equal(s.on_period(), torque(1))
-    assert s.counters['late_periods'] == 1                    # period 1's own command was in
-    np.testing.assert_array_equal(s.on_period(), torque(1))   # held, and late
-    assert s.counters['late_periods'] == 2 and s.k == 3
-    s.on_command(2 * MS, torque(2))                           # for a period already past: applied,
-    np.testing.assert_array_equal(s.on_period(), torque(2))   # but period 3 is still late
+    np.testing.assert_array_equal(s.on_period(), torque(1))   # period 1: its own command
+    np.testing.assert_array_equal(s.on_period(), torque(1))   # period 2: one period of transport delay
+    assert s.counters['late_periods'] == 1
+    np.testing.assert_array_equal(s.on_period(), torque(1))   # period 3: held, and late
+    assert s.counters['late_periods'] == 2 and s.k == 4
+    s.on_command(2 * MS, torque(2))                           # newer, for a period long past: applied,
+    np.testing.assert_array_equal(s.on_period(), torque(2))   # but period 4 is still late
     assert s.counters['late_periods'] == 3
     assert s.on_wall_time(1e9) is None and s.counters['timeouts'] == 0   # no lockstep timeout
 
@@ -171,19 +172,20 @@ def test_realtime_steps_each_period_with_the_newest_command_and_counts_late_peri
 def test_realtime_holds_a_late_command_for_hold_periods_then_steps_with_zero():
     s = started(mode='realtime', hold_periods=3)
     s.on_command(0, torque(1))
-    for _ in range(4):                                        # period 0 in time, 1 … 3 held
+    for _ in range(4):                                        # periods 0, 1 on time, 2, 3 held
         np.testing.assert_array_equal(s.on_period(), torque(1))
         assert not s.lost
-    assert s.counters['late_periods'] == 3 and s.counters['safe_periods'] == 0
+    assert s.counters['late_periods'] == 2 and s.counters['safe_periods'] == 0
     np.testing.assert_array_equal(s.on_period(), 0.0)         # period 4: the command is 4 old
     np.testing.assert_array_equal(s.on_period(), 0.0)
     assert s.lost and s.lost_since_ns == 1 * MS and s.counters['safe_periods'] == 2
-    out = s.on_command(5 * MS, torque(2))                     # commands are back (one late)
+    out = s.on_command(5 * MS, torque(2))                     # commands are back
     assert out.resumed and not s.lost
-    np.testing.assert_array_equal(s.on_period(), torque(2))   # period 6 holds it
-    assert s.counters['late_periods'] == 6 and s.counters['safe_periods'] == 2
+    np.testing.assert_array_equal(s.on_period(), torque(2))   # period 6: on time
+    assert s.counters['late_periods'] == 4 and s.counters['safe_periods'] == 2
     s.hold_periods = 0                                        # may change between calls
-    np.testing.assert_array_equal(s.on_period(), 0.0)
+    s.on_period()
+    np.testing.assert_array_equal(s.on_period(), 0.0)         # period 8: 3 old
 
 
 def test_realtime_zeroes_nothing_before_the_first_command():

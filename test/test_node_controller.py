@@ -127,6 +127,24 @@ def test_the_watchdog_reports_lost_estimates_and_nothing_is_sent_without_one(mod
         assert node.diag.counters['skipped_estimates'] == 4               # 5 … 8 ms never came
 
 
+def test_a_controller_that_fell_behind_answers_only_the_newest_estimate(model):
+    """Estimates that queued while the node could not run: it answers the newest (its reader keeps
+    one message) and counts the skipped ones, instead of working off a queue of stale ones."""
+    import time
+    rest = np.repeat(model.rest_tip[None, :2], 4, 0)
+    with ros_context() as (ctx, executor):
+        node, probe, est_pub, ref_pub = make(ctx, executor)
+        ref_pub.publish(horizon(rest, 0)[0])
+        assert spin_until(executor, lambda: node.diag.counters['references'] == 1)
+        send_estimate(executor, node, est_pub, estimate(0, rest))
+        for k in range(1, 21):                       # the node's executor does not run meanwhile
+            est_pub.publish(estimate(k * MS, rest))
+        time.sleep(0.3)
+        spin_until(executor, lambda: False, 0.5)
+        assert [cv.msg_to_torques(m, 4)[0] for m in commands(probe)] == [0, 20 * MS]
+        assert node.diag.counters['skipped_estimates'] == 19
+
+
 @pytest.mark.parametrize('changes, needle', [
     ({'estimate_watchdog': 0.0}, ''),
     ({'estimate_watchdog': -1.0}, ''),

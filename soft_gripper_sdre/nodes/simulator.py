@@ -21,8 +21,9 @@ The first step waits until the graph is wired (``min_tip_subscribers``, a comman
 real-time factor of the stepping, this process's CPU time per step (``cpu_per_step_us``) and the
 loop latency: the wall time from publishing ``tip_positions`` for t_k to receiving the first
 command stamped t_k, as p50 / p99 / max [µs] over the last 10 000 answered periods
-(``loop_latency_us_*``), and when the first command was accepted (``first_command_monotonic_s``,
-this machine's monotonic clock, and ``first_command_after_tips_ms``, from the first tips).
+(``loop_latency_us_*``) and over those since the previous /diagnostics (``recent_latency_us_*``);
+and when the first command was accepted (``first_command_monotonic_s``, this machine's monotonic
+clock, and ``first_command_after_tips_ms``, from the first tips).
 """
 from __future__ import annotations
 
@@ -109,6 +110,7 @@ class SimulatorNode(Node):
         self._cpu_start = self._cpu_end = None     # this process's CPU time then
         # loop latency: tip_positions for t_k published → the torque command stamped t_k received
         self.latency = LatencyWindow()
+        self._latency_mark = 0                     # latency samples before the last /diagnostics
         self._tips_sent = np.zeros(LATENCY_PERIODS)   # perf_counter() at tips k, at k % LATENCY_PERIODS
 
         # the per-period messages travel as CDR bytes written / read at fixed offsets (nodes/cdr.py)
@@ -279,6 +281,11 @@ class SimulatorNode(Node):
                 cpu = (self._cpu_end or time.process_time()) - self._cpu_start
                 self.diag.values['cpu_per_step_us'] = f'{1e6 * cpu / k:.0f}'
         self.diag.values.update(self.latency.summary('loop_latency_us'))
+        recent = self.latency.summary('recent_latency_us', last=self.latency.count - self._latency_mark)
+        self._latency_mark = self.latency.count
+        for key in ('recent_latency_us_p50', 'recent_latency_us_p99', 'recent_latency_us_max'):
+            self.diag.values.pop(key, None)
+        self.diag.values.update(recent)
 
     def close(self) -> None:
         self.sim.close()

@@ -12,10 +12,10 @@ new period's tips and then calls :meth:`Stepping.await_command` with the wall ti
   ``lost_command_wait`` and steps with zero torque (``safe_periods``), until any command is
   accepted again. A command for a period already stepped past is counted (``late_command``) and
   not applied.
-* *realtime*: each period of a wall timer steps with the newest command; a period whose own
-  command (stamped with its tips) has not arrived is counted (``late_periods``) and holds the
-  newest one, as long as that is at most ``hold_periods`` periods old; an older one is replaced by
-  zero torque (``safe_periods``).
+* *realtime*: each period of a wall timer steps with the newest command. The command for the
+  current period's tips, or for the previous period's (one period of transport delay), is on
+  time; an older one makes the period late (``late_periods``) and is held while it is at most
+  ``hold_periods`` periods old; after that zero torque is applied (``safe_periods``).
 * Refused in both modes: a stamp not newer than the last applied command (``stale_command``), a
   stamp ahead of the current period (``future_command``), a wrong-size or non-finite torque
   (``bad_command``). With ``on_bad_command='zero'`` a refused command also drops the held one.
@@ -182,7 +182,7 @@ class Stepping:
         if self.mode != 'realtime' or self.done:
             return None
         now_ns = self.now_ns
-        if self.last_command_ns >= now_ns:
+        if self.last_command_ns >= max(0, now_ns - self.period_ns):   # this period's or the previous one's
             return self._advance(self.held)
         self.counters['late_periods'] += 1
         if self.last_command_ns < 0 or now_ns - self.last_command_ns <= self.hold_periods * self.period_ns:
