@@ -131,7 +131,6 @@ class SimulatorNode(Node):
             int(round(p['duration'] / p['control_period'])) if p['duration'] > 0 else None,
             p['lockstep_timeout'], p['on_timeout'], p['on_bad_command'], p['lost_command_wait'],
             self._hold_periods(), counters=self.diag.counters)
-        self._first_tips: float | None = None     # monotonic time of the first tips
         cdr.watch(self.diag, self.cdr_cmd)
         self.diag.before_publish.append(self._refresh_diagnostics)
         self.diag.values['mode'] = p['mode']
@@ -193,10 +192,10 @@ class SimulatorNode(Node):
             self.latency.add(time.perf_counter() - self._tips_sent[outcome.first_answer % LATENCY_PERIODS])
         if outcome.refused:
             self.diag.problem(outcome.refused, f'rejected: {outcome.reason}')
-        elif self._first_tips is not None and 'first_command_monotonic_s' not in self.diag.values:
-            now = time.monotonic()
+        elif self._wall_start is not None and 'first_command_monotonic_s' not in self.diag.values:
+            now = time.monotonic()          # (the first tips went out at _wall_start)
             self.diag.values['first_command_monotonic_s'] = f'{now:.6f}'
-            self.diag.values['first_command_after_tips_ms'] = f'{1e3 * (now - self._first_tips):.1f}'
+            self.diag.values['first_command_after_tips_ms'] = f'{1e3 * (now - self._wall_start):.1f}'
         if outcome.resumed:
             self.diag.set_status(OK, 'torque_commands are back')
             self.get_logger().info(f'torque_commands are back at t = {stamp / cv.NS:.4f} s '
@@ -253,10 +252,7 @@ class SimulatorNode(Node):
         tips = self.cdr_tips.encode(ns, self.sim.measure())
         self._tips_sent[k % LATENCY_PERIODS] = time.perf_counter()
         self.pub_tips.publish(tips)         # first: the loop's critical path starts here
-        now = time.monotonic()
-        self.stepping.await_command(now)
-        if self._first_tips is None:
-            self._first_tips = now
+        self.stepping.await_command(time.monotonic())
         if k % self.clock_every == 0:
             self.pub_clock.publish(self.cdr_clock.encode(ns, _NO_VALUES))
         if k % self.state_every == 0:
@@ -283,9 +279,7 @@ class SimulatorNode(Node):
         self.diag.values.update(self.latency.summary('loop_latency_us'))
         recent = self.latency.summary('recent_latency_us', last=self.latency.count - self._latency_mark)
         self._latency_mark = self.latency.count
-        for key in ('recent_latency_us_p50', 'recent_latency_us_p99', 'recent_latency_us_max'):
-            self.diag.values.pop(key, None)
-        self.diag.values.update(recent)
+        self.diag.values = {k: v for k, v in self.diag.values.items() if not k.startswith('recent_')} | recent
 
     def close(self) -> None:
         self.sim.close()

@@ -373,7 +373,7 @@ def rows(quick: bool = False, executor: str | None = None, graph_only: bool = Fa
          ' / '.join(f'{hog[p]["p50"]:.0f}' for p in PHASES) + ' µs',
          'late periods ' + ' / '.join(f'{100 * hog[p]["late"]:.1f}' for p in PHASES) + ' %, p99 '
          + ' / '.join(f'{hog[p]["p99"]:.0f}' for p in PHASES) + f' µs; "after" from {SETTLE_S:g} s '
-         'past the hog: the loop keeps no backlog'),
+         'of sim time past the hog'),
     ]
     if graph_only:
         return table
