@@ -107,6 +107,16 @@ def test_after_a_timeout_lost_commands_step_with_zero_after_a_short_wait_until_o
     assert s.deadline == pytest.approx(11.03)            # the full timeout again
 
 
+def test_before_the_loop_ever_answered_every_period_waits_the_full_timeout():
+    """At start-up the controller may still be waiting for its plan: nothing is lost yet."""
+    s = started(timeout=0.5, lost_command_wait=0.01)
+    for k in range(3):
+        s.await_command(10.0 + k)
+        assert s.on_wall_time(10.49 + k) is None
+        np.testing.assert_array_equal(s.on_wall_time(10.5 + k), 0.0)
+    assert s.counters['timeouts'] == 3 and not s.lost and 'safe_periods' not in s.counters
+
+
 def test_a_late_command_while_lost_ends_the_short_wait_the_loop_is_slow_not_dead():
     s = started(timeout=0.5, lost_command_wait=0.01)
     s.on_command(0, torque(4))

@@ -8,10 +8,10 @@ new period's tips and then calls :meth:`Stepping.await_command` with the wall ti
 
 * *lockstep*: the physics steps when the command stamped with the current period arrives; after
   ``timeout`` seconds of wall time without it, with the held command (``on_timeout='hold'``) or
-  zero, counted (``timeouts``). Commands are then *lost*: each following period waits only
-  ``lost_command_wait`` and steps with zero torque (``safe_periods``), until any command is
-  accepted again. A command for a period already stepped past is counted (``late_command``) and
-  not applied.
+  zero, counted (``timeouts``). If the loop had answered before, commands are then *lost*: each
+  following period waits only ``lost_command_wait`` and steps with zero torque
+  (``safe_periods``), until any command is accepted again. A command for a period already stepped
+  past is counted (``late_command``) and not applied.
 * *realtime*: each period of a wall timer steps with the newest command. The command for the
   current period's tips, or for the previous period's (one period of transport delay), is on
   time; an older one makes the period late (``late_periods``) and is held while it is at most
@@ -165,7 +165,8 @@ class Stepping:
     def on_wall_time(self, wall: float) -> np.ndarray | None:
         """Lockstep: the torque to step with now if the current period's command is overdue at
         wall time ``wall``, else None. The first overdue period is a timeout (the held command or
-        zero, by ``on_timeout``) and commands are lost from then on; every later one gets zero."""
+        zero, by ``on_timeout``); if a command was ever accepted, commands are lost from then on
+        and every later overdue period gets zero after ``lost_command_wait``."""
         deadline = self.deadline
         if self.mode != 'lockstep' or self.done or deadline is None or wall < deadline:
             return None
@@ -173,7 +174,8 @@ class Stepping:
             self.counters['safe_periods'] += 1
             return self._advance(np.zeros((self.n_fingers, 2)))
         self.counters['timeouts'] += 1
-        self.lost, self.lost_since_ns = True, self.now_ns
+        if self.last_command_ns >= 0:          # (before the loop has ever answered, keep waiting)
+            self.lost, self.lost_since_ns = True, self.now_ns
         return self._advance(self.held if self.on_timeout == 'hold' else np.zeros((self.n_fingers, 2)))
 
     def on_period(self) -> np.ndarray | None:
