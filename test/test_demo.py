@@ -5,7 +5,7 @@ import sys
 
 import pytest
 
-from soft_gripper_sdre.analysis.bag import read_bag, topic_counts
+from soft_gripper_sdre.analysis.bag import topic_counts
 from soft_gripper_sdre.tools.demo import run_demo, summary
 
 pytestmark = pytest.mark.ros
@@ -17,16 +17,12 @@ def test_demo_runs_the_graph_as_processes_and_writes_a_readable_bag(tmp_path):
     result = run_demo(tmp_path, duration=1.0, timeout=60, progress=False)
     counts = topic_counts(tmp_path / 'bag')
     # lockstep: one message per period on every loop topic, t = 0 … 1 s inclusive (the answer to
-    # the final tips may be cut off by the shutdown: the simulator no longer needs it)
-    for topic in ('/clock', '/tip_positions'):
-        assert counts[topic] == 1001, (topic, counts)
+    # the final tips may be cut off by the shutdown: the simulator no longer needs it); /clock at
+    # 100 Hz of sim time; the controller answers estimates only
+    assert counts['/tip_positions'] == 1001 and counts['/clock'] == 101, counts
     assert counts['/state_estimate'] in (1000, 1001), counts
-    # torque commands of the run (a controller that outlives the simulator by more than its
-    # estimate_timeout adds zero-torque commands stamped with its own clock after it)
-    in_run = [m for _, m in read_bag(tmp_path / 'bag', ['torque_commands'])['/torque_commands']
-              if m.header.stamp.sec * 10**9 + m.header.stamp.nanosec <= 10**9]
-    assert len(in_run) in (1000, 1001), len(in_run)
-    assert counts['/grasp_reference'] >= 50 and counts['/cube_contacts'] >= 100
+    assert counts['/torque_commands'] in (1000, 1001), counts
+    assert counts['/grasp_reference'] == 1 and counts['/cube_contacts'] >= 100   # the whole plan, once
     assert (tmp_path / 'bag' / 'metadata.yaml').is_file()
     assert list((tmp_path / 'bag').glob('*.mcap'))
     assert all(code == 0 for code in result['run']['exit_codes'].values()), result['run']

@@ -2,8 +2,9 @@
 
 Every node is its own process (what ``ros2 run`` starts, ``tools/procs.py``); a probe node in the
 test process listens to the loop. A victim is killed with SIGKILL mid-grasp and started again;
-the lockstep simulator holds per its ``on_timeout`` meanwhile, the graph resumes, no torque is
-non-finite, and tracking comes back on target. Slow: each run is tens of seconds of wall time.
+the lockstep simulator holds the first missing period (``on_timeout``) and steps the later ones
+with zero torque meanwhile, the graph resumes, no torque is non-finite, and tracking comes back on
+target. Slow: each run is tens of seconds of wall time.
 """
 from __future__ import annotations
 
@@ -31,10 +32,12 @@ MS = 1_000_000
 SHORT = dict(t_start=0.1, t_close=0.8, t_hold=0.2, t_open=0.8, others='hold')
 #: what each victim publishes, so the test sees when it is back
 OUTPUT = {'controller': TORQUE_COMMANDS, 'estimator': STATE_ESTIMATE, 'trajectory': GRASP_REFERENCE}
+#: the victims whose loss breaks the loop (the controller keeps a dead trajectory node's plan)
+IN_THE_LOOP = ('controller', 'estimator')
 KILL_AT = 0.3           # sim time of the crash: the grasping fingers are closing in free space
 #: a jump of the victim's output stamps larger than this is the outage (a few lockstep timeouts
-#: of a loaded machine stay below it; references come every 20 ms)
-GAP = {'controller': 5 * MS, 'estimator': 5 * MS, 'trajectory': 45 * MS}
+#: of a loaded machine stay below it)
+GAP = 5 * MS
 AFTER = 1.0             # sim time the run goes on after the victim is back
 
 
@@ -98,11 +101,7 @@ def test_crashed_node_is_restarted_and_the_grasp_recovers(victim, tmp_path):
     from soft_gripper_sdre.analysis.bag import read_bag
     env = ros_env()
     bag = tmp_path / 'bag'
-    # While a crashed estimator restarts, the controller's safe commands keep the lockstep loop
-    # stepping at full speed, so the outage in sim time is the restart's wall time times the loop's
-    # real-time factor (0.9–2.5 s seen, growing as the loop gets faster): its run leaves room for
-    # twice that and a second to recover in.
-    duration = 8.0 if victim == 'estimator' else 5.0
+    duration = 5.0
     params = {'recorder': {'output': str(bag), 'topics': [TIP_POSITIONS, TORQUE_COMMANDS, STATE_ESTIMATE,
                                                           GRASP_REFERENCE, CUBE_CONTACTS, DIAGNOSTICS]},
               'estimator': {}, 'trajectory': dict(SHORT), 'controller': {},
@@ -131,6 +130,7 @@ def test_crashed_node_is_restarted_and_the_grasp_recovers(victim, tmp_path):
             restart['rest_pose'] = _last_diagnostics(got[DIAGNOSTICS], 'trajectory')['rest_pose']
         proc = graph.procs[victim].popen
         proc.send_signal(signal.SIGKILL)
+        killed_at_ns = _stamp(got[TIP_POSITIONS][-1])      # (the probe may lag the graph)
         proc.wait(10)
         graph.start(victim, restart, name=victim)
         code = graph.wait('simulator', 600.0, lambda: drain(executor))
@@ -144,53 +144,60 @@ def test_crashed_node_is_restarted_and_the_grasp_recovers(victim, tmp_path):
     for _, msg in data['/diagnostics']:
         for status in msg.status:
             last[status.name.lstrip('/')] = {kv.key: kv.value for kv in status.values}
-    # the crash, read off the victim's own output: its stamps jump over the outage, from the last
-    # instant of the killed process to the first of the restarted one
-    out = [_stamp(m) for _, m in data['/' + OUTPUT[victim]]]
-    killed_ns, victim_ns = next((a, b) for a, b in zip(out, out[1:])
-                                if b - a > GAP[victim] and a >= (KILL_AT - 0.05) * cv.NS)
     cmds = [(_stamp(m), cv.msg_to_torques(m, 4)[1]) for _, m in data['/torque_commands']]
     assert all(np.all(np.isfinite(u)) for _, u in cmds)
-    # the loop is whole again at the first torque computed from an estimate (not the zero safe
-    # command) for an instant the restarted victim has served
-    back_ns = next(s for s, u in cmds if s >= victim_ns and np.any(u != 0.0))
     t, tips = zip(*(cv.msg_to_tips(m, 4) for _, m in data['/tip_positions']))
     t = np.asarray(t)
     tips = np.asarray(tips)[..., :2]
     steps = int(last['simulator']['steps'])
     assert steps == int(round(duration / 1e-3)) and np.all(np.diff(t) > 0)
     # tips missing from the bag: a recorder starved of CPU for longer than the loop topics'
-    # 50-message history loses the oldest (seen on a loaded machine, and while safe commands step
-    # a dead estimator's loop at full speed); reported, and the scoring below works around gaps
+    # 50-message history loses the oldest (seen on a loaded machine); reported, and the scoring
+    # below works around gaps
     missing = sorted(set(range(0, steps * MS + 1, MS)) - set(t.tolist()))
     lost = len(missing)
     assert lost < 0.02 * steps, missing[:10]
     timeouts = int(last['simulator'].get('timeouts', 0))
-    safe = int(last['controller'].get('safe_commands', 0))
-    if victim == 'estimator':
-        assert safe > 0                          # the controller commanded zero meanwhile
-    else:
-        assert timeouts > 0                      # the simulator held the last command meanwhile
+    safe = int(last['simulator'].get('safe_periods', 0))
     forces = np.asarray([m.effort for _, m in data['/cube_contacts']])
     k = np.minimum(t // (10 * MS), len(forces) - 1)
     err, free, excursion = tracking_error(t / cv.NS, tips, forces[k] > 0, GraspProfile(**SHORT), tips[0])
     ends, ok = on_target(t / cv.NS, err, free, excursion)
     assert ok[ends < KILL_AT].all()                # on target before the crash
-    rec = recovery_time(t / cv.NS, err, free, excursion, since=back_ns / cv.NS)
-    outage_s = (back_ns - killed_ns) / cv.NS
+    if victim in IN_THE_LOOP:
+        # the crash, read off the victim's own output: its stamps jump over the outage, from the
+        # last instant of the killed process to the first of the restarted one
+        out = [_stamp(m) for _, m in data['/' + OUTPUT[victim]]]
+        killed_ns, victim_ns = next((a, b) for a, b in zip(out, out[1:])
+                                    if b - a > GAP and a >= (KILL_AT - 0.05) * cv.NS)
+        # the loop is whole again at the first torque computed for an instant the restarted victim served
+        back_ns = next(s for s, _ in cmds if s >= victim_ns)
+        assert not [s for s, _ in cmds if killed_ns < s < back_ns]     # nothing answered meanwhile
+        assert timeouts >= 1 and safe > 0          # held once, then zero torque until it was back
+        rec = recovery_time(t / cv.NS, err, free, excursion, since=back_ns / cv.NS)
+        outage_s = (back_ns - killed_ns) / cv.NS
+        assert back_ns / cv.NS + 1.0 <= duration   # a full second left to recover in
+        notes = (f'{timeouts} period held by the simulator (lockstep_timeout), {safe} stepped with zero '
+                 f'torque; tracking again {outage_s:.3f} s of sim time after its last output')
+    else:
+        # the controller keeps the plan: the loop never breaks, and the restarted node (given
+        # the rest pose) publishes the same plan again
+        plans = [cv.msg_to_reference(m, 4) for _, m in data['/grasp_reference']]
+        assert len(plans) == 2 and all(np.array_equal(a, b) for a, b in zip(*plans))
+        answered = {s for s, _ in cmds}
+        unanswered = [s for s in range(0, steps * MS, MS) if s not in answered]
+        assert len(unanswered) < 5, unanswered         # (a stall of the loaded machine, if any)
+        killed_ns = back_ns = killed_at_ns
+        rec = recovery_time(t / cv.NS, err, free, excursion, since=KILL_AT)
+        notes = (f'{len(unanswered)} period(s) without a command in the run: the controller tracks the '
+                 'plan it has; the restarted node, given the rest pose, sends the same plan again')
     print(f'{victim}: last output at {killed_ns / cv.NS:.3f} s, tracking at {back_ns / cv.NS:.3f} s, '
-          f'recovery {rec:.3f} s; timeouts {timeouts}, safe {safe}, lost {lost}')
-    assert back_ns / cv.NS + 1.0 <= duration       # a full second left to recover in
+          f'recovery {rec:.3f} s; timeouts {timeouts}, safe periods {safe}, lost {lost}')
     assert rec <= 1.0, rec
-    during = {s: u for s, u in cmds if killed_ns < s < back_ns}
-    held = (back_ns - killed_ns) // MS - 1 - len(during)        # instants no command answered
-    zeroed = sum(1 for u in during.values() if np.all(u == 0.0))
-    hold = f'{held} period(s) held by the simulator, {zeroed} zero-torque safe command(s)'
     record(f'crashed_{victim}', injected=f'SIGKILL of the {victim} process at t ≈ {killed_ns / cv.NS:.2f} s '
            '(closing), then restarted', times=1, crashes=0, nonfinite_outputs=0, messages_lost=lost,
-           recovery_s=rec, notes=f'{hold}; tracking again {outage_s:.3f} s of sim time after its last '
-           'output' + (f'; the recorder missed {lost} tips (from t = {missing[0] / cv.NS:.3f} s)'
-                       if lost else ''))
+           recovery_s=rec, notes=notes + (f'; the recorder missed {lost} tips (from t = {missing[0] / cv.NS:.3f} s)'
+                                          if lost else ''))
 
 
 def _spawn_recorder(env, bag, name: str, log_dir):
@@ -259,11 +266,10 @@ def test_recording_a_10s_grasp_loses_nothing_and_signals_leave_readable_bags(tmp
             last[s.name.lstrip('/')] = {kv.key: kv.value for kv in s.values}
     steps = int(last['simulator']['steps'])
     assert steps == int(round(duration / 1e-3))
-    published = {'/clock': steps + 1, '/tip_positions': steps + 1,
+    published = {'/clock': steps // 10 + 1, '/tip_positions': steps + 1,
                  '/joint_states': steps // 10 + 1, '/cube_pose': steps // 10 + 1, '/cube_contacts': steps // 10 + 1,
                  '/state_estimate': int(last['estimator']['estimates']),
-                 '/torque_commands': int(last['controller']['commands'])
-                 + int(last['controller'].get('safe_commands', 0)),
+                 '/torque_commands': int(last['controller']['commands']),
                  '/grasp_reference': int(last['trajectory']['references'])}
     lost = {t: n - counts.get(t, 0) for t, n in published.items()}
     print(f'published {published}; bag {counts}; signals at {signalled}')
@@ -307,7 +313,8 @@ def test_restarted_simulator_clock_jumps_back_and_every_node_resets(tmp_path):
         graph.procs['simulator'].popen.send_signal(signal.SIGKILL)
         graph.procs['simulator'].popen.wait(10)
         first_run = len(got[TIP_POSITIONS])
-        graph.start('simulator', {**sim_params, 'duration': 1.0})
+        # the trajectory node dropped its tip subscription once it had planned: one reader less
+        graph.start('simulator', {**sim_params, 'duration': 1.0, 'min_tip_subscribers': 2})
         assert graph.wait('simulator', 300.0, lambda: drain(executor)) == 0
         alive = {n: p.alive() for n, p in graph.procs.items() if n != 'simulator'}
         codes = graph.stop_all()

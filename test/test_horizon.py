@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from soft_gripper_sdre.control.horizon import sample_horizon
+from soft_gripper_sdre.control.horizon import sample_horizon, sample_plan
 from soft_gripper_sdre.control.trajectory import GraspProfile, GraspTrajectory
 
 NS = 1_000_000_000
@@ -99,3 +99,31 @@ def test_acceleration_on_request_is_the_derivative_of_the_velocity_interpolant()
                                    acc[k], rtol=0, atol=1e-9)
     one = sample_horizon(times[:1], pos[:1], vel[:1], acc[:1], int(times[0]), with_acc=True)
     np.testing.assert_array_equal(one[2], acc[0])
+
+
+def test_a_whole_plan_samples_bit_for_bit_like_short_horizons_on_the_same_grid():
+    """The controller samples one plan of the whole grasp (ending at rest, held after it) where it
+    used to sample 0.1 s horizons on the same absolute grid, published every 20 ms: every instant
+    of a 10 s run, the grasp's 5.5 s and beyond, gives the very same floats."""
+    traj = GraspTrajectory(REST, GraspProfile(side_distance=0.004, others='open'))
+    step, horizon, every = 5_000_000, 100_000_000, 20_000_000
+    end = -(-int(round(traj.profile.duration * NS)) // step) * step
+    plan = grid_horizon(traj, 0, end, step)
+    for t in range(0, 10 * NS, 1_000_000):
+        stamp = t // every * every                          # the newest horizon's publishing stamp
+        start = stamp // step * step
+        h = grid_horizon(traj, start, start + (-(-(stamp + horizon - start) // step)) * step, step)
+        for a, b in zip(sample_plan(*plan, t, with_acc=True), sample_horizon(*h, t, with_acc=True)):
+            np.testing.assert_array_equal(a, b)
+
+
+def test_a_plan_holds_its_last_point_after_its_end_and_raises_before_its_start():
+    times = np.array([10, 20, 30], dtype=np.int64) * 1_000_000
+    pos = np.arange(24, dtype=float).reshape(3, 4, 2)
+    zeros = np.zeros_like(pos)
+    for t in (30_000_000, 31_000_000, 45_500_000, 10**12):
+        p, v, a = sample_plan(times, pos, zeros, zeros, t, with_acc=True)
+        np.testing.assert_allclose(p, pos[-1], rtol=1e-15, atol=0)    # (the Hermite's rounding)
+        assert not v.any() and not a.any()
+    with pytest.raises(ValueError, match='outside the horizon'):
+        sample_plan(times, pos, zeros, zeros, 9_999_999)

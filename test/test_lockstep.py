@@ -87,6 +87,60 @@ def test_lockstep_timeout_steps_with_the_held_or_zero_command_and_counts(policy,
     assert s.on_command(2 * MS, torque(6)).step is not None and s.k == 3
 
 
+def test_after_a_timeout_lost_commands_step_with_zero_after_a_short_wait_until_one_arrives():
+    s = started(timeout=0.5, lost_command_wait=0.01)
+    s.on_command(0, torque(4))
+    s.await_command(10.0)                                 # period 1: awaited until 10.5 s
+    np.testing.assert_array_equal(s.on_wall_time(10.5), torque(4))    # the timeout holds
+    assert s.lost and s.lost_since_ns == 1 * MS and s.counters['timeouts'] == 1
+    s.await_command(10.5)                                 # period 2: awaited 0.01 s only
+    assert s.deadline == pytest.approx(10.51)
+    assert s.on_wall_time(10.505) is None
+    np.testing.assert_array_equal(s.on_wall_time(10.51), 0.0)
+    s.await_command(10.51)
+    np.testing.assert_array_equal(s.on_wall_time(10.52), 0.0)
+    assert s.counters['safe_periods'] == 2 and s.counters['timeouts'] == 1 and s.k == 4
+    s.await_command(10.52)
+    out = s.on_command(4 * MS, torque(5))                 # commands are back: tracking
+    assert out.resumed and out.step is not None and not s.lost and s.k == 5
+    s.await_command(10.53)
+    assert s.deadline == pytest.approx(11.03)            # the full timeout again
+
+
+def test_before_the_loop_ever_answered_every_period_waits_the_full_timeout():
+    """At start-up the controller may still be waiting for its plan: nothing is lost yet."""
+    s = started(timeout=0.5, lost_command_wait=0.01)
+    for k in range(3):
+        s.await_command(10.0 + k)
+        assert s.on_wall_time(10.49 + k) is None
+        np.testing.assert_array_equal(s.on_wall_time(10.5 + k), 0.0)
+    assert s.counters['timeouts'] == 3 and not s.lost and 'safe_periods' not in s.counters
+
+
+def test_a_late_command_while_lost_ends_the_short_wait_the_loop_is_slow_not_dead():
+    s = started(timeout=0.5, lost_command_wait=0.01)
+    s.on_command(0, torque(4))
+    s.await_command(10.0)
+    s.on_wall_time(10.5)                                  # timeout: period 1 held
+    s.await_command(10.5)
+    s.on_wall_time(10.51)                                 # period 2 zero
+    s.await_command(10.51)
+    out = s.on_command(2 * MS, torque(5))                 # period 2's answer, after all
+    assert out.step is None and out.resumed and s.counters['late_command'] == 1
+    assert s.deadline == pytest.approx(11.01)             # period 3 waits the full timeout
+    assert s.on_wall_time(10.6) is None
+
+
+def test_refused_commands_do_not_end_lost_commands():
+    s = started(timeout=0.5, lost_command_wait=0.01)
+    s.on_command(0, torque(4))
+    s.await_command(10.0)
+    s.on_wall_time(10.5)
+    assert s.on_command(0, torque(1)).refused == 'stale_command'
+    assert s.on_command(9 * MS, torque(1)).refused == 'future_command'
+    assert s.lost
+
+
 def test_timeout_policy_and_length_can_change_between_calls():
     s = started(timeout=0.5, on_timeout='hold')
     s.on_command(0, torque(4))
@@ -114,13 +168,41 @@ def test_realtime_steps_each_period_with_the_newest_command_and_counts_late_peri
     assert s.counters['late_periods'] == 1 and s.k == 1
     out = s.on_command(1 * MS, torque(1))
     assert out.step is None and out.refused is None           # applied by the next period
-    np.testing.assert_array_equal(s.on_period(), torque(1))
+    np.testing.assert_array_equal(s.on_period(), torque(1))   # period 1: its own command
+    np.testing.assert_array_equal(s.on_period(), torque(1))   # period 2: one period of transport delay
     assert s.counters['late_periods'] == 1
-    np.testing.assert_array_equal(s.on_period(), torque(1))   # held, and late
-    assert s.counters['late_periods'] == 2 and s.k == 3
-    s.on_command(2 * MS, torque(2))                           # for a period already past: applied
-    np.testing.assert_array_equal(s.on_period(), torque(2))
+    np.testing.assert_array_equal(s.on_period(), torque(1))   # period 3: held, and late
+    assert s.counters['late_periods'] == 2 and s.k == 4
+    s.on_command(2 * MS, torque(2))                           # newer, for a period long past: applied,
+    np.testing.assert_array_equal(s.on_period(), torque(2))   # but period 4 is still late
+    assert s.counters['late_periods'] == 3
     assert s.on_wall_time(1e9) is None and s.counters['timeouts'] == 0   # no lockstep timeout
+
+
+def test_realtime_holds_a_late_command_for_hold_periods_then_steps_with_zero():
+    s = started(mode='realtime', hold_periods=3)
+    s.on_command(0, torque(1))
+    for _ in range(4):                                        # periods 0, 1 on time, 2, 3 held
+        np.testing.assert_array_equal(s.on_period(), torque(1))
+        assert not s.lost
+    assert s.counters['late_periods'] == 2 and s.counters['safe_periods'] == 0
+    np.testing.assert_array_equal(s.on_period(), 0.0)         # period 4: the command is 4 old
+    np.testing.assert_array_equal(s.on_period(), 0.0)
+    assert s.lost and s.lost_since_ns == 1 * MS and s.counters['safe_periods'] == 2
+    out = s.on_command(5 * MS, torque(2))                     # commands are back
+    assert out.resumed and not s.lost
+    np.testing.assert_array_equal(s.on_period(), torque(2))   # period 6: on time
+    assert s.counters['late_periods'] == 4 and s.counters['safe_periods'] == 2
+    s.hold_periods = 0                                        # may change between calls
+    s.on_period()
+    np.testing.assert_array_equal(s.on_period(), 0.0)         # period 8: 3 old
+
+
+def test_realtime_zeroes_nothing_before_the_first_command():
+    s = started(mode='realtime', hold_periods=1)
+    for _ in range(5):
+        np.testing.assert_array_equal(s.on_period(), 0.0)
+    assert s.counters['late_periods'] == 5 and 'safe_periods' not in s.counters and not s.lost
 
 
 def test_lockstep_has_no_periods_of_its_own():

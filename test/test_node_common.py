@@ -23,6 +23,10 @@ def test_latency_window_summarises_the_last_samples_in_microseconds():
         w.add(2e-6)
     assert w.summary('lat_us') == {'lat_us_p50': '2', 'lat_us_p99': '2', 'lat_us_max': '2'}
     assert w.count == 200
+    for ms in (7, 9):                              # the newest samples only, across the ring's end
+        w.add(ms * 1e-3)
+    assert w.summary('new_us', last=2) == {'new_us_p50': '8000', 'new_us_p99': '8980', 'new_us_max': '9000'}
+    assert w.summary('new_us', last=0) == {} and w.summary('all', last=10**6)['all_max'] == '9000'
 
 
 def test_executor_is_events_unless_asked_otherwise(monkeypatch):

@@ -5,7 +5,7 @@ import sys
 import numpy as np
 import pytest
 
-from node_harness import MS, TORQUE_LIMIT, commands, estimate, make_controller as make
+from node_harness import MS, TORQUE_LIMIT, commands, estimate, horizon, make_controller as make, send_estimate
 from rosutil import ros_context, spin_until
 from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
 from soft_gripper_sdre.control.laws import make_law
@@ -20,14 +20,6 @@ pytestmark = pytest.mark.ros
 def model():
     return SDCModel()
 
-
-def horizon(rest, start_ns, close_mm=5.0, points=21, step_ns=5 * MS):
-    """A constant reference ``close_mm`` towards the palm (+Y) for every finger."""
-    times = start_ns + step_ns * np.arange(points)
-    pos = np.repeat(rest[None, :, :], points, 0).copy()
-    pos[..., 1] += close_mm * 1e-3
-    zeros = np.zeros_like(pos)
-    return cv.reference_to_msg(start_ns, times - start_ns, pos, zeros, zeros), pos[0]
 
 
 # the paper's law, the node's default, the baselines and Q(x): the ``law`` / ``state_weights`` parameters
@@ -44,7 +36,7 @@ def test_torques_match_the_offline_law_and_close_the_fingers(model, law, weights
         ref_pub.publish(ref_msg)
         assert spin_until(executor, lambda: node.diag.counters['references'] == 1)
         for k in range(5):
-            est_pub.publish(estimate(k * MS, rest))
+            send_estimate(executor, node, est_pub, estimate(k * MS, rest))
         assert spin_until(executor, lambda: len(commands(probe)) == 5)
         for k, msg in enumerate(commands(probe)):
             stamp, u = cv.msg_to_torques(msg, 4)
@@ -56,7 +48,7 @@ def test_torques_match_the_offline_law_and_close_the_fingers(model, law, weights
         assert node.diag.counters['commands'] == 5 and node.diag.counters['fallbacks'] == 0
 
 
-def test_estimate_waits_for_a_covering_reference(model):
+def test_estimate_waits_for_a_covering_plan(model):
     rest = np.repeat(model.rest_tip[None, :2], 4, 0)
     with ros_context() as (ctx, executor):
         node, probe, est_pub, ref_pub = make(ctx, executor)
@@ -90,9 +82,8 @@ def test_bad_estimates_are_rejected_counted_and_never_answered(model):
         est_pub.publish(estimate(2 * MS, rest))
         assert spin_until(executor, lambda: len(commands(probe)) == 1)
         for msg in _bad_estimates(rest).values():
-            est_pub.publish(msg)
-        assert spin_until(executor, lambda: node.diag.counters['bad_estimate']
-                          + node.diag.counters['old_estimate'] == 5)
+            send_estimate(executor, node, est_pub, msg)
+        assert node.diag.counters['bad_estimate'] + node.diag.counters['old_estimate'] == 5
         assert node.diag.counters['old_estimate'] == 1
         est_pub.publish(estimate(9 * MS, rest))                # the node is alive and still tracks
         assert spin_until(executor, lambda: len(commands(probe)) == 2)
@@ -110,79 +101,54 @@ def test_bad_references_are_rejected(model):
         backwards, _ = horizon(rest, 0)
         backwards.points[4].time_from_start = backwards.points[2].time_from_start
         ref_pub.publish(nan_ref)
+        assert spin_until(executor, lambda: node.diag.counters['bad_reference'] == 1)
         ref_pub.publish(backwards)
         assert spin_until(executor, lambda: node.diag.counters['bad_reference'] == 2)
         est_pub.publish(estimate(1 * MS, rest))
         assert not spin_until(executor, lambda: commands(probe), 0.3)       # no torque from them
 
 
-def test_estimates_older_than_the_timeout_in_sim_time_get_the_safe_command(model):
-    """Ticks of /clock with no estimate: zero torque stamped with the tick, ERROR, then tracking."""
-    from rosgraph_msgs.msg import Clock
-    from soft_gripper_sdre.nodes.common import ERROR, OK
-    from soft_gripper_sdre.nodes.topics import CLOCK, CLOCK_QOS
-    rest = np.repeat(model.rest_tip[None, :2], 4, 0)
-    with ros_context() as (ctx, executor):
-        node, probe, est_pub, ref_pub = make(ctx, executor, estimate_timeout=0.002)
-        clock_pub = probe.create_publisher(Clock, CLOCK, CLOCK_QOS)
-        assert spin_until(executor, lambda: clock_pub.get_subscription_count() > 0, 20.0)
-
-        def tick(k):
-            clock_pub.publish(cv.clock_msg(k * MS))
-            assert spin_until(executor, lambda: node.gate.clock_ns == k * MS, 5.0)
-
-        ref_pub.publish(horizon(rest, 0, points=200)[0])
-        assert spin_until(executor, lambda: node.diag.counters['references'] == 1)
-        tick(1)
-        est_pub.publish(estimate(1 * MS, rest + 0.002))        # off the reference: non-zero torque
-        assert spin_until(executor, lambda: len(commands(probe)) == 1)
-        assert np.abs(cv.msg_to_torques(commands(probe)[0], 4)[1]).max() > 1e-4
-        tick(2)                                                # 1 period behind: still waiting
-        assert not spin_until(executor, lambda: len(commands(probe)) > 1, 0.2)
-        assert node.diag.level == OK
-        for k in (3, 4, 5):                                    # 2, 3, 4 periods behind
-            tick(k)
-            assert spin_until(executor, lambda: len(commands(probe)) == k - 1)
-        assert node.gate.estimates_lost and node.diag.level == ERROR
-        for k, msg in zip((3, 4, 5), commands(probe)[1:]):
-            stamp, u = cv.msg_to_torques(msg, 4)
-            assert stamp == k * MS
-            np.testing.assert_array_equal(u, 0.0)
-        assert node.diag.counters['safe_commands'] == 3
-        est_pub.publish(estimate(5 * MS, rest))                # already answered with zero: late
-        assert spin_until(executor, lambda: node.diag.counters['late_estimates'] == 1)
-        assert not node.gate.estimates_lost and node.diag.level == OK
-        tick(6)
-        est_pub.publish(estimate(6 * MS, rest + 0.002))        # tracking again
-        assert spin_until(executor, lambda: len(commands(probe)) == 5)
-        stamp, u = cv.msg_to_torques(commands(probe)[-1], 4)
-        assert stamp == 6 * MS and np.abs(u).max() > 1e-4
-
-
-def test_wall_watchdog_when_sim_time_stops(model):
-    """No tick and no estimate for clock_timeout of wall time: ERROR, one zero for the open instant."""
+def test_the_watchdog_reports_lost_estimates_and_nothing_is_sent_without_one(model):
+    """No estimate for estimate_watchdog of wall time: ERROR, and no command; OK with the next."""
     from soft_gripper_sdre.nodes.common import ERROR, OK
     rest = np.repeat(model.rest_tip[None, :2], 4, 0)
     with ros_context() as (ctx, executor):
-        node, probe, est_pub, ref_pub = make(ctx, executor, clock_timeout=0.2)
-        est_pub.publish(estimate(4 * MS, rest))                # no reference: stays unanswered
-        assert spin_until(executor, lambda: node.diag.counters['estimates'] == 1)
-        assert spin_until(executor, lambda: node.gate.time_stopped, 5.0)
-        assert node.diag.level == ERROR and 'sim time stopped' in node.diag.message
-        assert spin_until(executor, lambda: len(commands(probe)) == 1)
-        stamp, u = cv.msg_to_torques(commands(probe)[0], 4)
-        assert stamp == 4 * MS and np.all(u == 0.0)
-        assert not spin_until(executor, lambda: len(commands(probe)) > 1, 0.5)   # nothing newer
+        node, probe, est_pub, ref_pub = make(ctx, executor, estimate_watchdog=0.2)
         ref_pub.publish(horizon(rest, 0)[0])
-        est_pub.publish(estimate(5 * MS, rest))
+        assert spin_until(executor, lambda: node.diag.counters['references'] == 1)
+        send_estimate(executor, node, est_pub, estimate(4 * MS, rest + 0.002))
+        assert spin_until(executor, lambda: len(commands(probe)) == 1)
+        assert node.diag.level == OK
+        assert spin_until(executor, lambda: node.gate.estimates_lost, 5.0)
+        assert node.diag.level == ERROR and 'no state_estimate' in node.diag.message
+        assert not spin_until(executor, lambda: len(commands(probe)) > 1, 0.5)   # nothing sent
+        send_estimate(executor, node, est_pub, estimate(9 * MS, rest + 0.002))
         assert spin_until(executor, lambda: len(commands(probe)) == 2)
-        assert not node.gate.time_stopped and node.diag.level == OK
+        assert not node.gate.estimates_lost and node.diag.level == OK
+        assert node.diag.counters['skipped_estimates'] == 4               # 5 … 8 ms never came
+
+
+def test_a_controller_that_fell_behind_answers_only_the_newest_estimate(model):
+    """Estimates that queued while the node could not run: it answers the newest (its reader keeps
+    one message) and counts the skipped ones, instead of working off a queue of stale ones."""
+    import time
+    rest = np.repeat(model.rest_tip[None, :2], 4, 0)
+    with ros_context() as (ctx, executor):
+        node, probe, est_pub, ref_pub = make(ctx, executor)
+        ref_pub.publish(horizon(rest, 0)[0])
+        assert spin_until(executor, lambda: node.diag.counters['references'] == 1)
+        send_estimate(executor, node, est_pub, estimate(0, rest))
+        for k in range(1, 21):                       # the node's executor does not run meanwhile
+            est_pub.publish(estimate(k * MS, rest))
+        time.sleep(0.3)
+        spin_until(executor, lambda: False, 0.5)
+        assert [cv.msg_to_torques(m, 4)[0] for m in commands(probe)] == [0, 20 * MS]
+        assert node.diag.counters['skipped_estimates'] == 19
 
 
 @pytest.mark.parametrize('changes, needle', [
-    ({'estimate_timeout': 0.001}, 'more than one control_period'),
-    ({'estimate_timeout': -1.0}, ''),
-    ({'clock_timeout': 0.0}, ''),
+    ({'estimate_watchdog': 0.0}, ''),
+    ({'estimate_watchdog': -1.0}, ''),
     ({'q_pos': -1.0}, ''),
     ({'solver': 'magic'}, ''),
 ])
@@ -191,14 +157,13 @@ def test_runtime_parameter_changes_are_refused_with_the_reason_and_the_old_value
     with ros_context() as (ctx, executor):
         node = ControllerNode(context=ctx)
         before = {k: node.get_parameter(k).value for k in changes}
-        timeout_ns = node.gate.estimate_timeout_ns
         result = node.set_parameters([Parameter(k, value=v) for k, v in changes.items()])[0]
         assert not result.successful and result.reason
         assert needle in result.reason
         assert {k: node.get_parameter(k).value for k in changes} == before
-        assert node.gate.estimate_timeout_ns == timeout_ns and node.p['estimate_timeout'] == 0.002
-        assert node.set_parameters([Parameter('estimate_timeout', value=0.005)])[0].successful
-        assert node.gate.estimate_timeout_ns == 5 * MS
+        assert node.gate.watchdog == 0.5 and node.p['estimate_watchdog'] == 0.5
+        assert node.set_parameters([Parameter('estimate_watchdog', value=2.0)])[0].successful
+        assert node.gate.watchdog == 2.0
 
 
 @pytest.mark.parametrize('args, needle', [
@@ -224,17 +189,20 @@ def test_truncated_model_file_is_refused(tmp_path):
 
 
 def test_time_jumping_back_resets_instead_of_rejecting(model):
-    """A simulator restart (stamps from 0 again) is followed, not rejected as old."""
+    """A simulator restart (stamps from 0 again) is followed, not rejected as old: the old run's
+    plan is forgotten and the new run is tracked once its plan arrives."""
     rest = np.repeat(model.rest_tip[None, :2], 4, 0)
     with ros_context() as (ctx, executor):
         node, probe, est_pub, ref_pub = make(ctx, executor, reset_on_jump=0.5)
         late = 2_000 * MS
-        ref_pub.publish(horizon(rest, late)[0])
-        est_pub.publish(estimate(late, rest))
+        ref_pub.publish(horizon(rest, 0)[0])
+        assert spin_until(executor, lambda: node.diag.counters['references'] == 1)
+        send_estimate(executor, node, est_pub, estimate(late, rest))
         assert spin_until(executor, lambda: len(commands(probe)) == 1)
-        ref_pub.publish(horizon(rest, 0)[0])              # restart: 2 s back
-        est_pub.publish(estimate(0, rest))
+        send_estimate(executor, node, est_pub, estimate(0, rest))        # restart: 2 s back
+        assert node.diag.counters['resets'] == 1 and node.gate.plan is None
+        assert not spin_until(executor, lambda: len(commands(probe)) > 1, 0.3)   # waits for its plan
+        ref_pub.publish(horizon(rest, 0, close_mm=3.0)[0])
         assert spin_until(executor, lambda: len(commands(probe)) == 2)
         assert cv.msg_to_torques(commands(probe)[1], 4)[0] == 0
-        assert node.diag.counters['resets'] == 1
-        assert node.diag.counters['old_reference'] == 0 and node.diag.counters['old_estimate'] == 0
+        assert node.diag.counters['old_estimate'] == 0

@@ -10,7 +10,7 @@ import sys
 import numpy as np
 import pytest
 
-from node_harness import MS, TORQUE_LIMIT, commands, estimate, make_controller
+from node_harness import MS, TORQUE_LIMIT, commands, estimate, make_controller, send_estimate
 from rosutil import ros_context, spin_until
 from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
 from soft_gripper_sdre.control.laws import make_law
@@ -32,7 +32,7 @@ def test_oracle_or_weights_on_a_baseline_end_the_node_at_startup(args, needle):
 
 
 def test_feedforward_law_gets_the_reference_acceleration_from_the_horizon():
-    """law:=sdre_ff: the node samples p̈_d from the published horizon (constant acceleration here)
+    """law:=sdre_ff: the node samples p̈_d from the published plan (constant acceleration here)
     and its torques match the offline law given that acceleration, not the law without it."""
     from soft_gripper_sdre.control.horizon import sample_horizon
     model = SDCModel()
@@ -49,7 +49,7 @@ def test_feedforward_law_gets_the_reference_acceleration_from_the_horizon():
         assert spin_until(executor, lambda: node.diag.counters['references'] == 1)
         stamps = [k * MS for k in range(3)]
         for s in stamps:
-            est_pub.publish(estimate(s, rest))
+            send_estimate(executor, node, est_pub, estimate(s, rest))
         assert spin_until(executor, lambda: len(commands(probe)) == 3)
         for s, msg in zip(stamps, commands(probe)):
             _, u = cv.msg_to_torques(msg, 4)

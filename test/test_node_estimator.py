@@ -1,5 +1,6 @@
 """The estimator node over real DDS (loopback), launch-free: own Context, executor, test node."""
 from pathlib import Path
+import time
 
 from geometry_msgs.msg import PoseArray
 import numpy as np
@@ -115,6 +116,22 @@ def test_bad_inputs_are_counted_gaps_predicted_and_jumps_reset():
     np.testing.assert_array_equal(np.array([x for _, x in got]), np.array([x for _, x in expected]))
     reset_at_zero = dict(got)[0]
     np.testing.assert_array_equal(reset_at_zero[:, 2:], 0.0)   # a reset starts at zero velocity
+
+
+def test_a_node_that_fell_behind_takes_only_the_newest_tips_and_predicts_through_the_rest():
+    """Tips that queued while the node could not run: it goes on from the newest (its reader
+    keeps one message), predicting through the skipped periods, instead of working off a queue."""
+    z = np.array([[0.001, -0.002], [0.0, 0.003], [0.002, 0.0], [0.0, 0.0]])
+    with ros_context() as (ctx, executor):
+        node, probe, pub = make_estimator(ctx, executor)
+        send(executor, node, pub, tips(0, z))
+        for k in range(1, 21):                       # the node's executor does not run meanwhile
+            pub.publish(tips(k * MS, z))
+        time.sleep(0.3)
+        spin_until(executor, lambda: False, 0.5)
+        c = node.diag.counters
+        assert (c['estimates'], c['gaps'], c['missed_periods']) == (2, 1, 19)
+        assert [s for s, _ in estimates(executor, probe, 2)] == [0, 20 * MS]
 
 
 @pytest.mark.parametrize('params, name', [

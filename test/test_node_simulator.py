@@ -53,22 +53,34 @@ def test_finger_moves_the_expected_way_in_lockstep(u, tip_axis, sign):
         assert np.sign(d[tip_axis]) == sign and abs(d[tip_axis]) > 2e-4
 
 
-def test_lockstep_proceeds_on_timeout_holding_the_last_command():
+def test_lockstep_holds_on_a_timeout_then_steps_lost_periods_with_zero_until_commands_return():
+    from rclpy.parameter import Parameter
+    from soft_gripper_sdre.nodes.common import ERROR, OK
     with ros_context() as (ctx, executor):
-        sim, probe, pub = make_loop(ctx, executor, lockstep_timeout=0.05, on_timeout='hold')
+        sim, probe, pub = make_loop(ctx, executor, lockstep_timeout=0.05, on_timeout='hold',
+                                    lost_command_wait=5.0)
         answer_tips(executor, probe, pub, [[0.02, 0.0]], 5)
-        tips = probe.received[TIP_POSITIONS]
-        n0 = len(tips)
-        assert spin_until(executor, lambda: len(tips) >= n0 + 5, 10.0)     # no deadlock
-        assert sim.diag.counters['timeouts'] >= 5
-        np.testing.assert_allclose(sim.sim.truth().u_applied, [[0.02, 0.0]])
+        c = sim.diag.counters
+        assert spin_until(executor, lambda: c['timeouts'] == 1, 10.0)          # no deadlock
+        np.testing.assert_allclose(sim.sim.truth().u_applied, [[0.02, 0.0]])   # the timeout holds
+        assert c['safe_periods'] == 0
+        assert sim.set_parameters([Parameter('lost_command_wait', value=0.005)])[0].successful
+        assert spin_until(executor, lambda: c['safe_periods'] >= 5, 10.0)   # lost: zero, period by period
+        assert c['timeouts'] == 1
+        np.testing.assert_array_equal(sim.sim.truth().u_applied, 0.0)
+        assert sim.diag.level == ERROR and 'zero torque' in sim.diag.message
+        k = sim.stepping.k                                                  # a command returns
+        pub.publish(cv.torques_to_msg(k * 1_000_000, np.array([[0.01, 0.0]])))
+        assert spin_until(executor, lambda: c['commands'] == 6, 5.0)
+        assert not sim.stepping.lost and sim.diag.level == OK
 
 
 def test_lockstep_timeout_with_zero_policy_applies_zero():
     with ros_context() as (ctx, executor):
         sim, probe, pub = make_loop(ctx, executor, lockstep_timeout=0.05, on_timeout='zero')
         answer_tips(executor, probe, pub, [[0.02, 0.0]], 3)
-        assert spin_until(executor, lambda: sim.diag.counters['timeouts'] >= 2, 10.0)
+        assert spin_until(executor, lambda: sim.diag.counters['safe_periods'] >= 2, 10.0)
+        assert sim.diag.counters['timeouts'] == 1
         np.testing.assert_array_equal(sim.sim.truth().u_applied, 0.0)
 
 
@@ -91,10 +103,10 @@ def test_bad_commands_are_rejected_counted_and_never_stepped():
         bad.append(m)
         bad.append(cv.torques_to_msg(1 * 1_000_000, np.array([[0.0, 0.0]])))   # old stamp
         bad.append(cv.torques_to_msg(9 * 1_000_000, np.array([[0.0, 0.0]])))   # future stamp
-        for m in bad:
-            pub.publish(m)
         c = sim.diag.counters
-        assert spin_until(executor, lambda: c['bad_command'] + c['stale_command'] + c['future_command'] >= 6, 10.0)
+        for i, m in enumerate(bad):        # one at a time: the simulator keeps only the newest
+            pub.publish(m)
+            assert spin_until(executor, lambda: c['bad_command'] + c['stale_command'] + c['future_command'] > i, 10.0)
         assert c['bad_command'] == 4 and c['stale_command'] == 1 and c['future_command'] == 1
         assert sim.stepping.k == 2                          # none of them stepped the simulator
         assert np.all(np.isfinite(sim.sim.truth().q))

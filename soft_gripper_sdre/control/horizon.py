@@ -74,3 +74,22 @@ def sample_horizon(times_ns: np.ndarray, pos: np.ndarray, vel: np.ndarray, acc: 
     d01, d11 = -6.0 * s2 + 6.0 * s, 3.0 * s2 - 2.0 * s
     a = (d00 * vel[j] + d01 * vel[j + 1]) / dt + d10 * acc[j] + d11 * acc[j + 1]   # a = dv/dt
     return p, v, a
+
+
+def sample_plan(times_ns: np.ndarray, pos: np.ndarray, vel: np.ndarray, acc: np.ndarray,
+                t_ns: int, with_acc: bool = False) -> tuple[np.ndarray, ...]:
+    """:func:`sample_horizon` of a plan that holds its last point after its end.
+
+    A plan ends at rest, and a run may go on beyond it: after the last point the reference is
+    that point repeated on the plan's grid (the spacing of its last two points), sampled with the
+    same Hermite formulas, so a sample there is exactly what a plan with those repeated points
+    would give. Before the first point it raises as :func:`sample_horizon` does.
+    """
+    times_ns = np.asarray(times_ns)
+    last = int(times_ns[-1]) if times_ns.ndim == 1 and len(times_ns) else None
+    if last is None or int(t_ns) <= last:
+        return sample_horizon(times_ns, pos, vel, acc, t_ns, with_acc)
+    step = last - int(times_ns[-2]) if len(times_ns) > 1 else 1
+    t0 = last + (int(t_ns) - last) // step * step
+    rest = [np.repeat(np.asarray(a, dtype=float)[-1:], 2, axis=0) for a in (pos, vel, acc)]
+    return sample_horizon(np.array([t0, t0 + step], dtype=np.int64), *rest, t_ns, with_acc)

@@ -118,11 +118,15 @@ class LatencyWindow:
         self._buf[self.count % self._size] = seconds
         self.count += 1
 
-    def summary(self, prefix: str) -> dict[str, str]:
-        """``{prefix}_p50``, ``_p99``, ``_max`` [µs] over the window ({} before any sample)."""
-        if not self.count:
+    def summary(self, prefix: str, last: int | None = None) -> dict[str, str]:
+        """``{prefix}_p50``, ``_p99``, ``_max`` [µs] over the window, or over its newest ``last``
+        samples ({} without a sample)."""
+        held = min(self.count, self._size)
+        if last is not None:
+            held = min(held, last)
+        if not held:
             return {}
-        us = 1e6 * self._buf[:min(self.count, self._size)]
+        us = 1e6 * self._buf[(self.count - held + np.arange(held)) % self._size]
         p50, p99 = np.percentile(us, (50, 99))
         return {f'{prefix}_p50': f'{p50:.0f}', f'{prefix}_p99': f'{p99:.0f}',
                 f'{prefix}_max': f'{us.max():.0f}'}

@@ -3,16 +3,17 @@
 The control law is the ``law`` parameter (:mod:`soft_gripper_sdre.control.laws`): ``sdre_ff`` (default:
 SDRE feedback plus model-inversion feedforward), ``sdre`` (the paper's law), ``lqr`` or ``pd``.
 
-Subscribes ``state_estimate`` (one message per control period), ``grasp_reference`` (a short
-horizon a few tens of times per second) and ``/clock`` (sim time, for lost estimates); publishes
-``torque_commands`` and ``/diagnostics`` (solves, Riccati check failures, fallbacks, saturation,
-compute time).
+Subscribes ``state_estimate`` (one message per control period, keeping only the newest) and
+``grasp_reference`` (the planned grasp, once per plan); publishes ``torque_commands`` (one per
+estimate) and ``/diagnostics`` (solves, Riccati check failures, fallbacks, saturation, compute
+time, skipped estimates).
 
-Which instant is answered, and when with the safe command (zero torque) instead of the law, is
-decided by :class:`~soft_gripper_sdre.control.command_gate.CommandGate`: each estimate is answered
-with the reference horizon that covers its stamp, lost estimates and stopped sim time get the safe
-command (docs/design/loop_rules.md). This module is the ROS side: parameters, topics, conversions,
-status and logs.
+Which estimate is answered, and when, is decided by
+:class:`~soft_gripper_sdre.control.command_gate.CommandGate`: each estimate is answered with the
+plan once one covers its stamp; when estimates stop the controller sends nothing (the simulator
+steps safely on its own) and a wall-time watchdog reports ERROR after ``estimate_watchdog``
+(docs/design/loop_rules.md). This module is the ROS side: parameters, topics, conversions, status
+and logs.
 
 Nothing bad reaches the actuators: malformed, non-finite, wrong-size or old messages are rejected
 (throttled warning, counted) and produce no torque; the SDRE core falls back to the last valid
@@ -27,20 +28,20 @@ import time
 
 import numpy as np
 from rclpy.node import Node
-from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import MultiDOFJointTrajectory
 
-from soft_gripper_sdre.control.command_gate import Change, CommandGate, Notice, Outcome
+from soft_gripper_sdre.control.command_gate import Change, CommandGate, Notice, Outcome, Plan
 from soft_gripper_sdre.control.compiled import warm_up
 from soft_gripper_sdre.control.tracking import DEFAULT_LOWPASS_HZ, DEFAULT_WEIGHTS, Weights
-from soft_gripper_sdre.control.horizon import sample_horizon
+from soft_gripper_sdre.control.horizon import sample_plan
 from soft_gripper_sdre.control.laws import DEFAULT_LAW, GRAPH_LAWS, make_law
 from soft_gripper_sdre.learning.model import ModelFileError, SDCModel, set_torch_threads
 from soft_gripper_sdre.nodes import cdr, conversions as cv
 from soft_gripper_sdre.nodes.common import ERROR, OK, Diagnostics, ThrottledLogger, run
 from soft_gripper_sdre.nodes.params import Param, ParameterError, declare_all, on_runtime_change
-from soft_gripper_sdre.nodes.topics import (CLOCK, CLOCK_QOS, GRASP_REFERENCE, LOOP_QOS, REFERENCE_QOS,
+from soft_gripper_sdre.nodes.plan_cdr import PlanCodec
+from soft_gripper_sdre.nodes.topics import (GRASP_REFERENCE, LOOP_QOS, NEWEST_QOS, REFERENCE_QOS,
                                             STATE_ESTIMATE, TORQUE_COMMANDS)
 from soft_gripper_sdre.control.riccati import Check
 
@@ -69,16 +70,12 @@ PARAMS = (
           choices=GRAPH_LAWS, read_only=True),
     Param('state_weights', False, 'sdre only: state-dependent Q(x) that rises with the tracking error',
           read_only=True),
-    Param('estimate_timeout', 0.002, 'sim time without an arriving estimate before the safe '
-          'command (zero torque) is sent; more than control_period (default: 2 periods)', 's',
-          1e-4, 60.0),
+    Param('estimate_watchdog', 0.5, 'wall time without a state_estimate after which the controller '
+          'reports ERROR (it sends nothing without an estimate: the simulator steps safely on its own)',
+          's', 1e-2, 600.0),
     Param('reset_on_jump', 0.1, 'a stamp this far behind the last one (a simulator restart) resets '
           'the controller instead of being rejected (as in the estimator and trajectory node)', 's',
           1e-3, 1e6, read_only=True),
-    Param('clock_timeout', 1.0, 'wall time without /clock or an estimate after which sim time is '
-          'taken to have stopped (ERROR; zero torque for the newest unanswered instant); keep it '
-          "longer than the simulator's lockstep_timeout, or a live simulator waiting out a lost "
-          'period is taken for a stopped one', 's', 1e-2, 600.0),
 )
 
 
@@ -99,11 +96,7 @@ class ControllerNode(Node):
         except ValueError as exc:
             raise ParameterError(str(exc)) from None
         self.n = p['n_fingers']
-        reason = _check_timeouts(p)
-        if reason:
-            raise ParameterError(reason)
-        on_runtime_change(self, PARAMS, validate=lambda new: _check_timeouts({**self.p, **new}),
-                          apply=self._apply)
+        on_runtime_change(self, PARAMS, apply=self._apply)
         try:
             self.ctrl = make_law(p['law'], model, weights, p['torque_limit'], n_fingers=self.n,
                                  method=p['solver'], lowpass_hz=p['torque_lowpass_hz'],
@@ -114,23 +107,21 @@ class ControllerNode(Node):
         self.done = False
         self.exit_code = 0
         self._compute_s = []
-        self._zeros = np.zeros((self.n, 2))
 
         # the per-period messages travel as CDR bytes read / written at fixed offsets (nodes/cdr.py)
         self.cdr_estimate = cdr.estimate_codec(self.n)
-        self.cdr_clock = cdr.clock_codec()
         self.cdr_cmd = cdr.torques_codec(self.n)
+        self.cdr_plan = PlanCodec(self.n)
         self.pub_cmd = self.create_publisher(JointState, TORQUE_COMMANDS, LOOP_QOS)
         self.sub_est = self.create_subscription(MultiDOFJointTrajectory, STATE_ESTIMATE,
-                                                self.on_estimate, LOOP_QOS, raw=True)
+                                                self.on_estimate, NEWEST_QOS, raw=True)
         self.sub_ref = self.create_subscription(MultiDOFJointTrajectory, GRASP_REFERENCE,
-                                                self.on_reference, REFERENCE_QOS)
-        self.sub_clock = self.create_subscription(Clock, CLOCK, self.on_clock, CLOCK_QOS, raw=True)
+                                                self.on_reference, REFERENCE_QOS, raw=True)
         self.log = ThrottledLogger(self.get_logger())
         self.diag = Diagnostics(self)
-        self.gate = CommandGate(_ns(p['estimate_timeout']), int(p['reset_on_jump'] * cv.NS),
-                                p['clock_timeout'], counters=self.diag.counters)
-        cdr.watch(self.diag, self.cdr_estimate, self.cdr_clock)
+        self.gate = CommandGate(_ns(p['control_period']), _ns(p['reset_on_jump']),
+                                p['estimate_watchdog'], counters=self.diag.counters)
+        cdr.watch(self.diag, self.cdr_estimate, self.cdr_plan)
         self.diag.values['model'] = str(model.path)
         self.diag.values['weights'] = f'q_pos={weights.q_pos:g} q_vel={weights.q_vel:g} r={weights.r:g}'
         self._watchdog = self.create_timer(0.05, lambda: self._act(self.gate.on_wall_time(time.monotonic())))
@@ -142,13 +133,13 @@ class ControllerNode(Node):
             f'{" with Q(x)" if p["state_weights"] else ""}')
 
     # -- inputs ------------------------------------------------------------------------------
-    def on_reference(self, msg: MultiDOFJointTrajectory) -> None:
+    def on_reference(self, data: bytes) -> None:
         try:
-            stamp, times, pos, vel, acc = cv.msg_to_reference(msg, self.n)
+            _, times, pos, vel, acc = self.cdr_plan.decode(data)
         except cv.MessageError as exc:
             self._reject('bad_reference', str(exc))
             return
-        self._act(self.gate.on_reference(stamp, times, pos, vel, acc), GRASP_REFERENCE)
+        self._act(self.gate.on_plan(times, pos, vel, acc), GRASP_REFERENCE)
 
     def on_estimate(self, data: bytes) -> None:
         try:
@@ -157,14 +148,6 @@ class ControllerNode(Node):
             self._reject('bad_estimate', str(exc))
             return
         self._act(self.gate.on_estimate(stamp, x, time.monotonic()), STATE_ESTIMATE)
-
-    def on_clock(self, data: bytes) -> None:
-        try:
-            t, _ = self.cdr_clock.decode(data)
-        except cv.MessageError as exc:
-            self._reject('bad_clock', str(exc))
-            return
-        self._act(self.gate.on_tick(t, time.monotonic()), CLOCK)
 
     def _reject(self, key: str, why: str) -> None:
         self.diag.problem(key, f'rejected: {why}')
@@ -177,12 +160,8 @@ class ControllerNode(Node):
         if outcome.refused:
             self._reject(outcome.refused, outcome.reason)
         answer = outcome.answer
-        if answer is None:
-            return
-        if answer.safe:
-            self.pub_cmd.publish(self.cdr_cmd.encode(answer.stamp, self._zeros))
-        else:
-            self._control(answer.stamp, answer.estimate, answer.reference)
+        if answer is not None:
+            self._control(answer.stamp, answer.estimate, answer.plan)
 
     def _report(self, notice: Notice, topic: str) -> None:
         change, t = notice.change, notice.t_ns / cv.NS
@@ -190,16 +169,11 @@ class ControllerNode(Node):
             self.get_logger().warning(f'{topic}: time jumped back to {t:.3f} s; resetting')
             self.ctrl.reset()
         elif change is Change.ESTIMATES_LOST:
-            self._error(f'no state_estimate since t = {t:.4f} s (estimate_timeout '
-                        f'{self.p["estimate_timeout"]:g} s of sim time): commanding zero torque')
+            self._error(f'no state_estimate for {self.p["estimate_watchdog"]:g} s of wall time, the '
+                        f'last stamped t = {t:.4f} s: commanding nothing')
         elif change is Change.ESTIMATES_BACK:
             self.diag.set_status(OK, 'estimates are back; tracking')
             self.get_logger().info(f'state estimates are back at t = {t:.4f} s; tracking resumes')
-        elif change is Change.TIME_STOPPED:
-            self._error(f'no /clock or state_estimate for {self.p["clock_timeout"]:g} s of wall time: '
-                        f'sim time stopped at {t:.4f} s')
-        elif change is Change.TIME_MOVES:
-            self.diag.set_status(OK, 'sim time moves again')
 
     def _error(self, why: str) -> None:
         """Enter ERROR with ``why`` (status and log)."""
@@ -207,9 +181,9 @@ class ControllerNode(Node):
         self.get_logger().error(why)
 
     # -- the law -----------------------------------------------------------------------------
-    def _control(self, stamp: int, x: np.ndarray, ref: tuple) -> None:
-        _, _, times, pos, vel, acc = ref
-        ref_pos, ref_vel, ref_acc = sample_horizon(times, pos, vel, acc, stamp, with_acc=True)
+    def _control(self, stamp: int, x: np.ndarray, plan: Plan) -> None:
+        ref_pos, ref_vel, ref_acc = sample_plan(plan.times, plan.pos, plan.vel, plan.acc, stamp,
+                                                with_acc=True)
         t0 = time.perf_counter()
         out = self.ctrl.compute(x[:, :2], x[:, 2:], ref_pos, ref_vel, ref_acc=ref_acc)
         self._compute_s.append(time.perf_counter() - t0)
@@ -223,8 +197,7 @@ class ControllerNode(Node):
 
     def _apply(self, new: dict) -> None:
         self.p.update(new)
-        self.gate.estimate_timeout_ns = _ns(self.p['estimate_timeout'])
-        self.gate.clock_timeout = self.p['clock_timeout']
+        self.gate.watchdog = self.p['estimate_watchdog']
 
     def _compute_stats(self) -> None:
         """Mean and max compute time [µs] since the last /diagnostics, into its values."""
@@ -257,15 +230,6 @@ def count_solve(diag: Diagnostics, log: ThrottledLogger, out, stamp: int) -> Non
 
 def _ns(seconds: float) -> int:
     return int(round(seconds * cv.NS))
-
-
-def _check_timeouts(p: dict) -> str | None:
-    """Why the timeouts in ``p`` are refused, or None."""
-    if not p['estimate_timeout'] > p['control_period']:
-        return (f"parameter 'estimate_timeout': {p['estimate_timeout']} s must be more than one "
-                f"control_period ({p['control_period']} s): every tick is a period ahead of the "
-                'newest estimate')
-    return None
 
 
 def main(args=None) -> int:

@@ -1,7 +1,8 @@
 """The estimator node: the paper's constant-velocity Kalman filter on the measured tip positions.
 
-Subscribes ``tip_positions``; publishes one ``state_estimate`` per accepted measurement, stamped
-with the measurement's stamp, and ``/diagnostics``. The rules are those of
+Subscribes ``tip_positions`` (keeping only the newest: after a busy moment it goes on from the
+present, predicting through what it skipped); publishes one ``state_estimate`` per accepted
+measurement, stamped with the measurement's stamp, and ``/diagnostics``. The rules are those of
 :func:`soft_gripper_sdre.analysis.closed_loop.run_closed_loop`: the first measurement (after start or a
 reset) initialises the filter at the measured positions with zero velocity and is published as
 is; every later one is one predict + update of :class:`~soft_gripper_sdre.control.kf.ConstantVelocityKF`
@@ -31,7 +32,7 @@ from soft_gripper_sdre.control.kf import PROCESS_NOISE_MODELS, ConstantVelocityK
 from soft_gripper_sdre.nodes import cdr, conversions as cv
 from soft_gripper_sdre.nodes.common import Diagnostics, run
 from soft_gripper_sdre.nodes.params import Param, ParameterError, declare_all, on_runtime_change
-from soft_gripper_sdre.nodes.topics import LOOP_QOS, STATE_ESTIMATE, TIP_POSITIONS
+from soft_gripper_sdre.nodes.topics import LOOP_QOS, NEWEST_QOS, STATE_ESTIMATE, TIP_POSITIONS
 
 PARAMS = (
     Param('n_fingers', 4, 'fingers in each tip_positions message', '', 1, 4, read_only=True),
@@ -73,7 +74,7 @@ class EstimatorNode(Node):
         self.cdr_estimate = cdr.estimate_codec(self.n)
 
         self.pub = self.create_publisher(MultiDOFJointTrajectory, STATE_ESTIMATE, LOOP_QOS)
-        self.sub = self.create_subscription(PoseArray, TIP_POSITIONS, self.on_tips, LOOP_QOS, raw=True)
+        self.sub = self.create_subscription(PoseArray, TIP_POSITIONS, self.on_tips, NEWEST_QOS, raw=True)
         self.diag = Diagnostics(self)
         cdr.watch(self.diag, self.cdr_tips)
         self.diag.values['process_noise'] = p['process_noise']

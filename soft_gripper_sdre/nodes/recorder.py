@@ -38,10 +38,12 @@ from rosbags.typesys import Stores, get_typestore
 from soft_gripper_sdre.nodes import cdr
 from soft_gripper_sdre.nodes.common import ERROR, OK, Diagnostics, ThrottledLogger, run
 from soft_gripper_sdre.nodes.params import Param, ParameterError, declare_all
-from soft_gripper_sdre.nodes.topics import (CLOCK, CLOCK_QOS, LOOP_QOS, STATE_ESTIMATE, STREAM_QOS,
-                                            TIP_POSITIONS, TOPIC_TYPES, TORQUE_COMMANDS, type_name)
+from soft_gripper_sdre.nodes.topics import (CLOCK, CLOCK_QOS, GRASP_REFERENCE, LOOP_QOS, REFERENCE_QOS,
+                                            STATE_ESTIMATE, STREAM_QOS, TIP_POSITIONS, TOPIC_TYPES,
+                                            TORQUE_COMMANDS, type_name)
 
-#: topics of the 1 kHz control loop (LOOP_QOS); /clock has CLOCK_QOS, the rest STREAM_QOS
+#: topics of the 1 kHz control loop (LOOP_QOS); /clock has CLOCK_QOS, the plan REFERENCE_QOS (a
+#: recorder that starts after the plan went out still gets it), the rest STREAM_QOS
 LOOP_TOPICS = (TIP_POSITIONS, STATE_ESTIMATE, TORQUE_COMMANDS)
 #: a stamp further than this from the latest /clock is not the current sim time
 SKEW_NS = 1_000_000_000
@@ -71,6 +73,8 @@ def topic_qos(topic: str) -> QoSProfile:
     """QoS of ``topic``'s publishers (topics.py); the recorder subscribes with it, deeper."""
     if topic == CLOCK:
         return CLOCK_QOS
+    if topic == GRASP_REFERENCE:
+        return REFERENCE_QOS
     return LOOP_QOS if topic in LOOP_TOPICS else STREAM_QOS
 
 

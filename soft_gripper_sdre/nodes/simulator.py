@@ -1,22 +1,29 @@
 """The simulator node: the PyBullet gripper on topics.
 
-Publishes ``/clock``, ``tip_positions`` (each control period), ``joint_states``, ``cube_pose``,
-``cube_contacts`` (~100 Hz of sim time) and ``/diagnostics``; subscribes ``torque_commands``.
+Publishes ``tip_positions`` (each control period), ``/clock`` (``clock_rate``, 100 Hz of sim time
+by default), ``joint_states``, ``cube_pose``, ``cube_contacts`` (``state_rate``) and
+``/diagnostics``; subscribes ``torque_commands`` (keeping only the newest). Per period it sends
+one loop message and receives one.
 
 When it steps and with which torque is decided by :class:`~soft_gripper_sdre.sim.lockstep.Stepping`
 (docs/design/loop_rules.md): in *lockstep* (default, deterministic) one step per command stamped
 with the current period, and after ``lockstep_timeout`` of wall time a step with the held or zero
-command so the loop never deadlocks; in *realtime* a wall timer steps at the control period with
-the newest command. Bad commands (NaN/Inf, wrong sizes, unknown/duplicate/missing names, stamps
-older than the last applied one or ahead of the current period) are rejected with a throttled
-warning and counted; the simulator never steps with a non-finite torque.
+command so the loop never deadlocks; commands are then lost, and each following period waits only
+``lost_command_wait`` before it steps with zero torque (ERROR), until a command arrives again. In
+*realtime* a wall timer steps at the control period with the newest command, holding it while it
+is at most ``hold_limit`` old and stepping with zero torque after that. Bad commands (NaN/Inf,
+wrong sizes, unknown/duplicate/missing names, stamps older than the last applied one or ahead of
+the current period) are rejected with a throttled warning and counted; the simulator never steps
+with a non-finite torque.
 
 The first step waits until the graph is wired (``min_tip_subscribers``, a command publisher,
 ``min_diagnostics_subscribers``) or ``startup_timeout`` has passed. /diagnostics also carries the
 real-time factor of the stepping, this process's CPU time per step (``cpu_per_step_us``) and the
 loop latency: the wall time from publishing ``tip_positions`` for t_k to receiving the first
 command stamped t_k, as p50 / p99 / max [µs] over the last 10 000 answered periods
-(``loop_latency_us_*``).
+(``loop_latency_us_*``) and over those since the previous /diagnostics (``recent_latency_us_*``);
+and when the first command was accepted (``first_command_monotonic_s``, this machine's monotonic
+clock, and ``first_command_after_tips_ms``, from the first tips).
 """
 from __future__ import annotations
 
@@ -29,10 +36,11 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 
 from soft_gripper_sdre.nodes import cdr, conversions as cv
-from soft_gripper_sdre.nodes.common import OK, WARN, Diagnostics, LatencyWindow, ThrottledLogger, run
+from soft_gripper_sdre.nodes.common import ERROR, OK, WARN, Diagnostics, LatencyWindow, ThrottledLogger, run
 from soft_gripper_sdre.nodes.params import Param, ParameterError, declare_all, on_runtime_change
 from soft_gripper_sdre.nodes.topics import (CLOCK, CLOCK_QOS, CUBE_CONTACTS, CUBE_POSE, JOINT_STATES,
-                                            LOOP_QOS, STREAM_QOS, TIP_POSITIONS, TORQUE_COMMANDS)
+                                            LOOP_QOS, NEWEST_QOS, STREAM_QOS, TIP_POSITIONS,
+                                            TORQUE_COMMANDS)
 from soft_gripper_sdre.sim.hand import GripperSim, SimConfig
 from soft_gripper_sdre.sim.lockstep import LATENCY_PERIODS, Stepping
 
@@ -57,6 +65,10 @@ PARAMS = (
           's', 1e-3, 60.0),
     Param('on_timeout', 'hold', 'lockstep: command used when none arrived in time',
           choices=('hold', 'zero')),
+    Param('lost_command_wait', 0.01, 'lockstep: after a timeout, wall time each period waits for its '
+          'command before it steps with zero torque, until commands arrive again', 's', 1e-3, 60.0),
+    Param('hold_limit', 0.005, 'realtime: how old (sim time) the newest command may be and still '
+          'be held; an older one is replaced by zero torque', 's', 0.0, 60.0),
     Param('on_bad_command', 'hold', 'what replaces a rejected command', choices=('hold', 'zero')),
     Param('duration', 0.0, 'stop after this much sim time and exit (0 = run until shut down)', 's',
           0.0, 1e6, read_only=True),
@@ -69,6 +81,8 @@ PARAMS = (
           '', 0, 100, read_only=True),
     Param('state_rate', 100.0, 'rate of joint_states, cube_pose and cube_contacts in sim time', 'Hz',
           1.0, 1000.0, read_only=True),
+    Param('clock_rate', 100.0, 'rate of /clock in sim time (the tips carry every period\'s stamp)',
+          'Hz', 1.0, 1000.0, read_only=True),
 )
 
 
@@ -90,11 +104,13 @@ class SimulatorNode(Node):
             raise ParameterError(str(exc)) from None
         self.n = self.sim.n_fingers
         self.state_every = max(1, int(round(1.0 / (p['state_rate'] * p['control_period']))))
+        self.clock_every = max(1, int(round(1.0 / (p['clock_rate'] * p['control_period']))))
         self.exit_code = 0
         self._wall_start = self._wall_end = None   # monotonic time of the first and last step
         self._cpu_start = self._cpu_end = None     # this process's CPU time then
         # loop latency: tip_positions for t_k published → the torque command stamped t_k received
         self.latency = LatencyWindow()
+        self._latency_mark = 0                     # latency samples before the last /diagnostics
         self._tips_sent = np.zeros(LATENCY_PERIODS)   # perf_counter() at tips k, at k % LATENCY_PERIODS
 
         # the per-period messages travel as CDR bytes written / read at fixed offsets (nodes/cdr.py)
@@ -106,14 +122,15 @@ class SimulatorNode(Node):
         self.pub_joints = self.create_publisher(JointState, JOINT_STATES, STREAM_QOS)
         self.pub_cube = self.create_publisher(PoseStamped, CUBE_POSE, STREAM_QOS)
         self.pub_contacts = self.create_publisher(JointState, CUBE_CONTACTS, STREAM_QOS)
-        self.sub_cmd = self.create_subscription(JointState, TORQUE_COMMANDS, self.on_command, LOOP_QOS,
+        self.sub_cmd = self.create_subscription(JointState, TORQUE_COMMANDS, self.on_command, NEWEST_QOS,
                                                 raw=True)
         self.log = ThrottledLogger(self.get_logger())
         self.diag = Diagnostics(self)
         self.stepping = Stepping(
             self.n, int(round(p['control_period'] * cv.NS)), p['mode'],
             int(round(p['duration'] / p['control_period'])) if p['duration'] > 0 else None,
-            p['lockstep_timeout'], p['on_timeout'], p['on_bad_command'], counters=self.diag.counters)
+            p['lockstep_timeout'], p['on_timeout'], p['on_bad_command'], p['lost_command_wait'],
+            self._hold_periods(), counters=self.diag.counters)
         cdr.watch(self.diag, self.cdr_cmd)
         self.diag.before_publish.append(self._refresh_diagnostics)
         self.diag.values['mode'] = p['mode']
@@ -134,6 +151,11 @@ class SimulatorNode(Node):
         self.stepping.timeout = self.p['lockstep_timeout']
         self.stepping.on_timeout = self.p['on_timeout']
         self.stepping.on_bad_command = self.p['on_bad_command']
+        self.stepping.lost_command_wait = self.p['lost_command_wait']
+        self.stepping.hold_periods = self._hold_periods()
+
+    def _hold_periods(self) -> int:
+        return int(round(self.p['hold_limit'] / self.p['control_period']))
 
     # -- start-up ----------------------------------------------------------------------------
     def _try_start(self) -> None:
@@ -151,10 +173,10 @@ class SimulatorNode(Node):
         self.stepping.start()
         self._wall_start, self._cpu_start = time.monotonic(), time.process_time()
         if self.p['mode'] == 'lockstep':
-            self._watchdog = self.create_timer(min(0.01, self.p['lockstep_timeout'] / 4), self._check_timeout)
+            self._watchdog = self.create_timer(
+                min(0.01, self.p['lockstep_timeout'] / 4, self.p['lost_command_wait'] / 2), self._check_timeout)
         else:
-            self._stepper = self.create_timer(self.p['control_period'],
-                                              lambda: self._step(self.stepping.on_period()))
+            self._stepper = self.create_timer(self.p['control_period'], self._on_period)
         self.publish_state()
 
     # -- commands and stepping ---------------------------------------------------------------
@@ -170,18 +192,45 @@ class SimulatorNode(Node):
             self.latency.add(time.perf_counter() - self._tips_sent[outcome.first_answer % LATENCY_PERIODS])
         if outcome.refused:
             self.diag.problem(outcome.refused, f'rejected: {outcome.reason}')
+        elif self._wall_start is not None and 'first_command_monotonic_s' not in self.diag.values:
+            now = time.monotonic()          # (the first tips went out at _wall_start)
+            self.diag.values['first_command_monotonic_s'] = f'{now:.6f}'
+            self.diag.values['first_command_after_tips_ms'] = f'{1e3 * (now - self._wall_start):.1f}'
+        if outcome.resumed:
+            self.diag.set_status(OK, 'torque_commands are back')
+            self.get_logger().info(f'torque_commands are back at t = {stamp / cv.NS:.4f} s '
+                                   f'({self.diag.counters["safe_periods"]} safe periods so far)')
         self._step(outcome.step)
 
     def _check_timeout(self) -> None:
+        lost = self.stepping.lost
         u = self.stepping.on_wall_time(time.monotonic())
         if u is None:
             return
-        hold = self.p['on_timeout'] == 'hold'
-        self.diag.set_status(WARN, f'command timeout at t = {self.sim.t:.3f} s; '
-                             f'{"holding the last command" if hold else "zero torque"}')
-        self.log.warn('timeout', f'no torque_commands for t = {self.sim.t:.3f} s within '
-                      f'{self.p["lockstep_timeout"]} s; {"holding last" if hold else "applying zero"}')
+        if lost:
+            if self.diag.level != ERROR:
+                self._commands_lost(f'each period waits {self.p["lost_command_wait"]:g} s')
+        else:
+            hold = self.p['on_timeout'] == 'hold'
+            self.diag.set_status(WARN, f'command timeout at t = {self.sim.t:.3f} s; '
+                                 f'{"holding the last command" if hold else "zero torque"}')
+            self.log.warn('timeout', f'no torque_commands for t = {self.sim.t:.3f} s within '
+                          f'{self.p["lockstep_timeout"]} s; {"holding last" if hold else "applying zero"}')
         self._step(u)
+
+    def _on_period(self) -> None:
+        lost = self.stepping.lost
+        u = self.stepping.on_period()
+        if self.stepping.lost and not lost:
+            self._commands_lost(f'the newest is older than hold_limit ({self.p["hold_limit"]:g} s)')
+        self._step(u)
+
+    def _commands_lost(self, how: str) -> None:
+        """Commands are lost: report ERROR (status and a throttled log) once per spell."""
+        t = self.stepping.lost_since_ns / cv.NS
+        why = f'no torque_commands since t = {t:.4f} s: stepping with zero torque ({how})'
+        self.diag.set_status(ERROR, why)
+        self.log.warn('lost', why)
 
     def _step(self, u: np.ndarray | None) -> None:
         """Step the physics with ``u`` (finite: validated on receipt, or held or zero), if any."""
@@ -203,8 +252,9 @@ class SimulatorNode(Node):
         tips = self.cdr_tips.encode(ns, self.sim.measure())
         self._tips_sent[k % LATENCY_PERIODS] = time.perf_counter()
         self.pub_tips.publish(tips)         # first: the loop's critical path starts here
-        self.pub_clock.publish(self.cdr_clock.encode(ns, _NO_VALUES))
         self.stepping.await_command(time.monotonic())
+        if k % self.clock_every == 0:
+            self.pub_clock.publish(self.cdr_clock.encode(ns, _NO_VALUES))
         if k % self.state_every == 0:
             truth = self.sim.truth()
             self.pub_joints.publish(cv.joint_states_msg(ns, self.sim.joint_names, truth.q, truth.qd))
@@ -227,6 +277,9 @@ class SimulatorNode(Node):
                 cpu = (self._cpu_end or time.process_time()) - self._cpu_start
                 self.diag.values['cpu_per_step_us'] = f'{1e6 * cpu / k:.0f}'
         self.diag.values.update(self.latency.summary('loop_latency_us'))
+        recent = self.latency.summary('recent_latency_us', last=self.latency.count - self._latency_mark)
+        self._latency_mark = self.latency.count
+        self.diag.values = {k: v for k, v in self.diag.values.items() if not k.startswith('recent_')} | recent
 
     def close(self) -> None:
         self.sim.close()

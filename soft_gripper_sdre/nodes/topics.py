@@ -1,6 +1,8 @@
 """The topic contract of the node graph: names, message types, QoS (see README "Topics").
 
-One message per topic per control period carries all four fingers; every stamp is sim time.
+Each loop topic (``tip_positions``, ``state_estimate``, ``torque_commands``) carries one message
+per control period for all four fingers; ``grasp_reference`` carries the whole planned grasp, once
+per plan; ``/clock`` and the state topics run at 100 Hz of sim time. Every stamp is sim time.
 """
 from __future__ import annotations
 
@@ -34,19 +36,27 @@ TOPIC_TYPES = {
     DIAGNOSTICS: DiagnosticArray,
 }
 
-#: the control loop: reliable, so lockstep never loses a period; a small queue absorbs bursts
+#: the control loop's publishers, and readers that must see every message (the recorder, tests):
+#: reliable, so lockstep never loses a period; a small queue absorbs bursts
 LOOP_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50,
                       reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
-#: the grasp reference: a late-joining controller still gets the last horizons (transient local),
-#: so start-up order between the trajectory node and the controller does not matter
-REFERENCE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
+#: the loop nodes' own readers (the estimator's tips, the controller's estimates, the simulator's
+#: commands): only the newest message is kept, so a node that fell behind (a busy machine) goes on
+#: from the present instead of working off a queue, and the loop latency cannot build up. Lockstep
+#: has one message in flight per topic and loses nothing; what a node skipped shows as a gap in
+#: the stamps it receives
+NEWEST_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+                        reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
+#: the grasp plan: only the newest matters, and a late-joining controller or recorder still gets
+#: it (transient local), so start-up order between the trajectory node and the others does not matter
+REFERENCE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                            reliability=ReliabilityPolicy.RELIABLE,
                            durability=DurabilityPolicy.TRANSIENT_LOCAL)
 #: slower streams (joint states, cube pose, diagnostics)
 STREAM_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50,
                         reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
-#: /clock: reliable, so the recorder keeps every tick of a busy 1 kHz run; rclpy's time source
-#: subscribes best-effort, which a reliable publisher serves too
+#: /clock (100 Hz of sim time by default): reliable, so the recorder keeps every tick; rclpy's time
+#: source subscribes best-effort, which a reliable publisher serves too
 CLOCK_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50,
                        reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
 

@@ -1,27 +1,29 @@
-"""The trajectory node: publishes the grasp reference as short horizons, driven by sim time.
+"""The trajectory node: publishes the planned grasp as a whole, once per plan.
 
-Subscribes ``tip_positions``; publishes ``grasp_reference`` and ``/diagnostics``. The first tip
-message is the rest pose of :class:`~soft_gripper_sdre.control.trajectory.GraspTrajectory` (as in
-:func:`soft_gripper_sdre.analysis.closed_loop.run_closed_loop`), and a horizon is published at once; after
-that one is published on each tip message whose stamp has reached the next multiple of
-``publish_period``. Publication is event-driven on tip stamps, never on wall timers, so a
-lockstep run is deterministic.
+Subscribes ``tip_positions`` only until it has a rest pose (one message), and ``/clock`` (100 Hz of
+sim time) to notice a restarted simulator; publishes ``grasp_reference`` and ``/diagnostics``.
+The rest pose of :class:`~soft_gripper_sdre.control.trajectory.GraspTrajectory` is the first tip
+message (as in :func:`soft_gripper_sdre.analysis.closed_loop.run_closed_loop`), or the
+``rest_pose`` parameter. The plan then goes out at once, on a transient-local topic (a controller
+or recorder that starts later still gets it), and the tip subscription is dropped: the node
+receives nothing per control period.
 
-A horizon published for stamp t holds the points at the ABSOLUTE times k·``horizon_step`` from
-floor(t / step)·step up to the first grid time ≥ t + ``horizon``: header stamp = the first of
-them, ``time_from_start`` = each point's offset from it, positions / velocities / accelerations
-from ``GraspTrajectory.sample``. Two horizons therefore hold identical points wherever they
-overlap, and the controller's sample (:func:`soft_gripper_sdre.control.horizon.sample_horizon`) does not
-depend on which one it uses.
+The plan holds the points at the ABSOLUTE times k·``horizon_step`` from 0 to the first grid time
+at or after the grasp's end, where the fingers are back at rest: header stamp 0,
+``time_from_start`` = each point's time, positions / velocities / accelerations from
+``GraspTrajectory.sample``. After its last point the reference stays there
+(:func:`soft_gripper_sdre.control.horizon.sample_plan`).
 
-Malformed tip messages (wrong number of poses, NaN/Inf) and stamps not newer than the last are
-rejected with a throttled warning and counted; a backwards jump of more than ``reset_on_jump``
-seconds (a simulator restart) starts over: the next message is the rest pose again.
+A ``/clock`` stamp more than ``reset_on_jump`` behind the newest one means the simulator
+restarted: the node takes a new rest pose from the next tip message (or, with ``rest_pose``,
+publishes its plan again), since the controller forgets a plan made for the old run. Malformed
+tip or clock messages (wrong number of poses, NaN/Inf) are rejected with a throttled warning and
+counted.
 
 A node restarted mid-run (after a crash) must not take the tips it first sees as the rest pose:
 they are wherever the grasp left them. Pass the rest pose the first instance used (its
-``/diagnostics`` value ``rest_pose``) as the ``rest_pose`` parameter; a first tip message after
-``t_start`` without it is flagged (``late_start``, WARN).
+``/diagnostics`` value ``rest_pose``) as the ``rest_pose`` parameter; it then publishes at once,
+without a tip. A first tip message after ``t_start`` without it is flagged (``late_start``, WARN).
 """
 from __future__ import annotations
 
@@ -30,12 +32,15 @@ from dataclasses import fields
 from geometry_msgs.msg import PoseArray
 import numpy as np
 from rclpy.node import Node
+from rosgraph_msgs.msg import Clock
 from trajectory_msgs.msg import MultiDOFJointTrajectory
 
 from soft_gripper_sdre.nodes import cdr, conversions as cv
 from soft_gripper_sdre.nodes.common import Diagnostics, run
 from soft_gripper_sdre.nodes.params import Param, ParameterError, declare_all, on_runtime_change
-from soft_gripper_sdre.nodes.topics import GRASP_REFERENCE, LOOP_QOS, REFERENCE_QOS, TIP_POSITIONS
+from soft_gripper_sdre.nodes.plan_cdr import PlanCodec
+from soft_gripper_sdre.nodes.topics import (CLOCK, CLOCK_QOS, GRASP_REFERENCE, LOOP_QOS, REFERENCE_QOS,
+                                            TIP_POSITIONS)
 from soft_gripper_sdre.control.trajectory import OTHERS_MODES, GraspProfile, GraspTrajectory
 
 _DEFAULTS = GraspProfile()     # the parameters' defaults
@@ -60,17 +65,13 @@ PARAMS = (
     Param('grasp_fingers', list(_DEFAULTS.grasp_fingers), 'indices of the two opposite fingers that grasp',
           read_only=True),
     Param('others', 'open', 'what the non-grasping fingers do', choices=OTHERS_MODES, read_only=True),
-    Param('horizon', 0.1, 'reference time covered beyond each publishing stamp (>= 2 × '
-          'publish_period)', 's', 1e-3, 60.0, read_only=True),
-    Param('horizon_step', 0.005, 'spacing of the absolute time grid of the horizon points (<= '
-          'horizon)', 's', 1e-4, 1.0, read_only=True),
-    Param('publish_period', 0.02, 'sim time between published horizons', 's', 1e-4, 30.0,
-          read_only=True),
+    Param('horizon_step', 0.005, 'spacing of the absolute time grid of the plan\'s points', 's',
+          1e-4, 1.0, read_only=True),
     Param('rest_pose', '', "rest tips as 'x0, y0, x1, y1, …' (finger base frames); '' = the first "
           "tip message. Give it when restarting the node mid-run: the tips then are not at rest", 'm',
           read_only=True),
-    Param('reset_on_jump', 0.1, 'a backwards stamp jump larger than this restarts from a new rest '
-          'pose', 's', 1e-3, 1e3),
+    Param('reset_on_jump', 0.1, 'a backwards /clock jump larger than this (a restarted simulator) '
+          'takes a new rest pose', 's', 1e-3, 1e3),
 )
 
 
@@ -103,8 +104,15 @@ def _profile(p: dict) -> GraspProfile:
     return profile
 
 
+def plan_offsets(duration: float, step_ns: int) -> np.ndarray:
+    """Point times [ns] of a plan: the grid k·``step_ns`` from 0 to the first point at or after
+    ``duration`` [s] (the grasp's end: the reference is at rest from there on)."""
+    points = -(-int(round(duration * cv.NS)) // step_ns) + 1
+    return step_ns * np.arange(max(points, 2), dtype=np.int64)
+
+
 class TrajectoryNode(Node):
-    """Grasp reference horizons on ``grasp_reference``, stepped by tip stamps (see module doc)."""
+    """The planned grasp on ``grasp_reference``, once per rest pose (see module doc)."""
 
     def __init__(self, **kwargs) -> None:
         super().__init__('trajectory', **kwargs)
@@ -112,80 +120,101 @@ class TrajectoryNode(Node):
         self.p = p
         self.n = p['n_fingers']
         self.profile = _profile(p)
-        self.horizon_ns = int(round(p['horizon'] * cv.NS))
         self.step_ns = int(round(p['horizon_step'] * cv.NS))
-        self.period_ns = int(round(p['publish_period'] * cv.NS))
-        if self.horizon_ns < 2 * self.period_ns:
-            raise ParameterError(f"parameter 'horizon': {p['horizon']} s must be >= 2 × publish_period "
-                                 f"({p['publish_period']} s) so a horizon always covers the next one")
-        if self.step_ns > self.horizon_ns:
-            raise ParameterError(f"parameter 'horizon_step': {p['horizon_step']} s must be <= horizon "
-                                 f"({p['horizon']} s)")
         self.jump_ns = int(round(p['reset_on_jump'] * cv.NS))
         self.fixed_rest = _rest_pose(p['rest_pose'], self.n)
         on_runtime_change(self, PARAMS, apply=self._apply)
 
         self.traj: GraspTrajectory | None = None
-        self.last_ns = -1                       # stamp of the last accepted tip message
-        self.next_pub_ns = 0                    # next publish instant (multiple of publish_period)
-
+        self.clock_ns = -1                      # newest /clock stamp
+        self.sub = None                         # the tip subscription, while a rest pose is wanted
         self.cdr_tips = cdr.tips_codec(self.n)     # CDR bytes read at fixed offsets (nodes/cdr.py)
+        self.cdr_clock = cdr.clock_codec()
+        self.cdr_plan = PlanCodec(self.n)
         self.pub = self.create_publisher(MultiDOFJointTrajectory, GRASP_REFERENCE, REFERENCE_QOS)
-        self.sub = self.create_subscription(PoseArray, TIP_POSITIONS, self.on_tips, LOOP_QOS, raw=True)
+        self.sub_clock = self.create_subscription(Clock, CLOCK, self.on_clock, CLOCK_QOS, raw=True)
+        # the tip subscription is dropped outside its own callback, by this timer
+        self._drop_timer = self.create_timer(0.001, self._drop_tips, autostart=False)
         self.diag = Diagnostics(self)
-        cdr.watch(self.diag, self.cdr_tips)
+        cdr.watch(self.diag, self.cdr_tips, self.cdr_clock)
         pr = self.profile
         self.get_logger().info(
             f'grasp with fingers {list(pr.grasp_fingers)}, others {pr.others}: start {pr.t_start:g} s, '
-            f'close {pr.t_close:g} s, hold {pr.t_hold:g} s, open {pr.t_open:g} s; horizons of '
-            f'{p["horizon"]:g} s every {p["publish_period"]:g} s on a {1e3 * p["horizon_step"]:g} ms grid')
+            f'close {pr.t_close:g} s, hold {pr.t_hold:g} s, open {pr.t_open:g} s; planned on a '
+            f'{1e3 * p["horizon_step"]:g} ms grid')
+        if self.fixed_rest is None:
+            self._want_tips()
+        else:
+            self._plan(self.fixed_rest, 'given')
 
     def _apply(self, new: dict) -> None:
         self.p.update(new)
         self.jump_ns = int(round(self.p['reset_on_jump'] * cv.NS))
 
+    # -- inputs ------------------------------------------------------------------------------
     def on_tips(self, data: bytes) -> None:
+        if self.traj is not None:               # already planned: the subscription is on its way out
+            return
         try:
             stamp, tips = self.cdr_tips.decode(data)
         except cv.MessageError as exc:
             self.diag.problem('bad_message', f'rejected: {exc}')
             return
-        if self.traj is not None and stamp <= self.last_ns:
-            if self.last_ns - stamp <= self.jump_ns:
-                self.diag.problem('stale', f'rejected: tip_positions stamp {stamp} ns is not newer '
-                                  f'than the last {self.last_ns} ns')
-                return
-            self.diag.problem('resets', f'tip_positions stamp jumped back from '
-                              f'{self.last_ns / cv.NS:.4f} s to {stamp / cv.NS:.4f} s; taking a new rest pose')
-            self.traj = None
-        self.last_ns = stamp
-        self.diag.good('tips', 'publishing')
-        if self.traj is None:
-            rest = self.fixed_rest
-            if rest is None:
-                rest = tips
-                if stamp > int(self.profile.t_start * cv.NS):
-                    self.diag.problem('late_start', f'first tip_positions at t = {stamp / cv.NS:.4f} s, '
-                                      'after the grasp began: taking them as the rest pose (give '
-                                      'rest_pose when restarting mid-run)')
-            self.traj = GraspTrajectory(rest, self.profile)
-            self.diag.values['rest_pose'] = ', '.join(f'{v:.6g}' for v in self.traj.rest.ravel().tolist())
-            self.diag.publish()      # at once, not at the next 1 s tick: a restart is given this value
-            rest = ', '.join(f'({1e3 * x:.2f}, {1e3 * y:.2f})' for x, y in self.traj.rest.tolist())
-            self.get_logger().info(f'rest pose at t = {stamp / cv.NS:.4f} s [mm]: {rest}')
-            self.publish(stamp)
-        elif stamp >= self.next_pub_ns:
-            self.publish(stamp)
+        self.diag.count('tips')
+        if stamp > int(self.profile.t_start * cv.NS):
+            self.diag.problem('late_start', f'first tip_positions at t = {stamp / cv.NS:.4f} s, after '
+                              'the grasp began: taking them as the rest pose (give rest_pose when '
+                              'restarting mid-run)')
+        self._drop_timer.reset()
+        self._plan(tips, f'from the tips at t = {stamp / cv.NS:.4f} s')
 
-    def publish(self, stamp: int) -> None:
-        """Publish the horizon for ``stamp`` and schedule the next publish instant."""
-        start = stamp // self.step_ns * self.step_ns
-        count = -(-(stamp + self.horizon_ns - start) // self.step_ns) + 1     # ceil, both ends
-        offsets = self.step_ns * np.arange(count, dtype=np.int64)
-        ref = self.traj.sample((start + offsets) / cv.NS)
-        self.pub.publish(cv.reference_to_msg(start, offsets, ref.pos, ref.vel, ref.acc))
-        self.next_pub_ns = (stamp // self.period_ns + 1) * self.period_ns
+    def on_clock(self, data: bytes) -> None:
+        try:
+            stamp, _ = self.cdr_clock.decode(data)
+        except cv.MessageError as exc:
+            self.diag.problem('bad_clock', f'rejected: {exc}')
+            return
+        if stamp >= self.clock_ns - self.jump_ns or self.clock_ns < 0:
+            self.clock_ns = max(self.clock_ns, stamp)
+            self.diag.good('ticks', 'planned')
+            return
+        self.diag.count('ticks')
+        self.diag.problem('resets', f'/clock jumped back from {self.clock_ns / cv.NS:.4f} s to '
+                          f'{stamp / cv.NS:.4f} s: a restarted simulator; '
+                          + ('planning again' if self.fixed_rest is not None else 'taking a new rest pose'))
+        self.clock_ns = stamp
+        if self.fixed_rest is not None:
+            self._plan(self.fixed_rest, 'given')
+        else:
+            self.traj = None
+            self._want_tips()
+
+    # -- the tip subscription ----------------------------------------------------------------
+    def _want_tips(self) -> None:
+        self._drop_timer.cancel()
+        if self.sub is None:
+            self.sub = self.create_subscription(PoseArray, TIP_POSITIONS, self.on_tips, LOOP_QOS, raw=True)
+
+    def _drop_tips(self) -> None:
+        self._drop_timer.cancel()
+        if self.sub is not None and self.traj is not None:
+            self.destroy_subscription(self.sub)
+            self.sub = None
+
+    # -- the plan ----------------------------------------------------------------------------
+    def _plan(self, rest: np.ndarray, source: str) -> None:
+        """Plan the grasp from ``rest`` and publish it (``source`` says where the rest came from)."""
+        self.traj = GraspTrajectory(rest, self.profile)
+        # repr round-trips: a node restarted with this value plans the very same points
+        self.diag.values['rest_pose'] = ', '.join(repr(v) for v in self.traj.rest.ravel().tolist())
+        self.diag.publish()      # at once, not at the next 1 s tick: a restart is given this value
+        times = plan_offsets(self.profile.duration, self.step_ns)
+        ref = self.traj.sample(times / cv.NS)
+        self.pub.publish(self.cdr_plan.encode(0, times, ref.pos, ref.vel, ref.acc))
         self.diag.count('references')
+        mm = ', '.join(f'({1e3 * x:.2f}, {1e3 * y:.2f})' for x, y in self.traj.rest.tolist())
+        self.get_logger().info(f'planned {len(times)} points to t = {times[-1] / cv.NS:g} s from the rest '
+                               f'pose {source} [mm]: {mm}')
 
 
 def main(args=None) -> int:

@@ -8,10 +8,14 @@ new period's tips and then calls :meth:`Stepping.await_command` with the wall ti
 
 * *lockstep*: the physics steps when the command stamped with the current period arrives; after
   ``timeout`` seconds of wall time without it, with the held command (``on_timeout='hold'``) or
-  zero, counted (``timeouts``). A command for a period already stepped past is counted
-  (``late_command``) and not applied.
-* *realtime*: each period of a wall timer steps with the newest command; a period that received
-  none is counted (``late_periods``).
+  zero, counted (``timeouts``). If the loop had answered before, commands are then *lost*: each
+  following period waits only ``lost_command_wait`` and steps with zero torque
+  (``safe_periods``), until any command is accepted again. A command for a period already stepped
+  past is counted (``late_command``) and not applied.
+* *realtime*: each period of a wall timer steps with the newest command. The command for the
+  current period's tips, or for the previous period's (one period of transport delay), is on
+  time; an older one makes the period late (``late_periods``) and is held while it is at most
+  ``hold_periods`` periods old; after that zero torque is applied (``safe_periods``).
 * Refused in both modes: a stamp not newer than the last applied command (``stale_command``), a
   stamp ahead of the current period (``future_command``), a wrong-size or non-finite torque
   (``bad_command``). With ``on_bad_command='zero'`` a refused command also drops the held one.
@@ -37,13 +41,15 @@ class CommandOutcome:
 
     ``step``: step the physics now with this torque (n, 2). ``refused``: the counter key of a
     refused command, with ``reason``. ``first_answer``: the period index whose tips this command
-    is the first answer to, for the loop latency (None: not counted).
+    is the first answer to, for the loop latency (None: not counted). ``resumed``: the command
+    ended a spell of lost commands (zero torque), and the node reports that commands are back.
     """
 
     step: np.ndarray | None = None
     refused: str | None = None
     reason: str = ''
     first_answer: int | None = None
+    resumed: bool = False
 
 
 class Stepping:
@@ -57,17 +63,23 @@ class Stepping:
         timeout: lockstep: wall time [s] to wait for the current period's command.
         on_timeout: lockstep: 'hold' the last good command or apply 'zero' after a timeout.
         on_bad_command: 'hold' keeps, 'zero' drops the held command when a command is refused.
+        lost_command_wait: lockstep: wall time [s] each period waits for its command once
+            commands are lost (after a timeout), before it steps with zero torque.
+        hold_periods: realtime: how many periods old the held command may be; an older one is
+            replaced by zero torque.
         counters: where to count (the node's diagnostics); a new Counter by default. Keys:
-            ``steps``, ``commands`` (accepted), ``late_command``, ``timeouts``, ``late_periods``.
-            Refused commands are not counted here: the caller counts them with its other
-            rejections (:attr:`CommandOutcome.refused`).
+            ``steps``, ``commands`` (accepted), ``late_command``, ``timeouts``, ``late_periods``,
+            ``safe_periods``. Refused commands are not counted here: the caller counts them with
+            its other rejections (:attr:`CommandOutcome.refused`).
 
-    ``timeout``, ``on_timeout`` and ``on_bad_command`` may be changed between calls.
+    ``timeout``, ``on_timeout``, ``on_bad_command``, ``lost_command_wait`` and ``hold_periods``
+    may be changed between calls.
     """
 
     def __init__(self, n_fingers: int, period_ns: int, mode: str = 'lockstep',
                  total_steps: int | None = None, timeout: float = 0.5, on_timeout: str = 'hold',
-                 on_bad_command: str = 'hold', counters: Counter | None = None) -> None:
+                 on_bad_command: str = 'hold', lost_command_wait: float = 0.01, hold_periods: int = 5,
+                 counters: Counter | None = None) -> None:
         if mode not in MODES or on_timeout not in POLICIES or on_bad_command not in POLICIES:
             raise ValueError(f'mode {mode!r} must be one of {MODES}, on_timeout {on_timeout!r} and '
                              f'on_bad_command {on_bad_command!r} one of {POLICIES}')
@@ -78,20 +90,30 @@ class Stepping:
         self.timeout = timeout
         self.on_timeout = on_timeout
         self.on_bad_command = on_bad_command
+        self.lost_command_wait = lost_command_wait
+        self.hold_periods = hold_periods
         self.counters = Counter() if counters is None else counters
         self.k = 0                             # current period; t_k = k · period_ns
         self.started = False
         self.done = False
         self.held = np.zeros((n_fingers, 2))   # the last good command
-        self.received: np.ndarray | None = None   # realtime: a command arrived this period
         self.last_command_ns = -1              # stamp of the last applied command
         self.answered_ns = -1                  # newest period whose latency was counted
-        self.deadline: float | None = None     # lockstep: wall time the command is awaited until
+        self.sent_at: float | None = None      # lockstep: wall time the current tips went out
+        self.lost = False                      # commands lost: stepping with zero torque
+        self.lost_since_ns = -1                # the first period stepped without its command
 
     @property
     def now_ns(self) -> int:
         """Sim time of the current period [ns]."""
         return self.k * self.period_ns
+
+    @property
+    def deadline(self) -> float | None:
+        """Lockstep: the wall time until which the current period's command is awaited."""
+        if self.sent_at is None:
+            return None
+        return self.sent_at + (self.lost_command_wait if self.lost else self.timeout)
 
     def start(self) -> None:
         """The graph is wired: commands are accepted and timeouts run from now on."""
@@ -99,8 +121,8 @@ class Stepping:
 
     def await_command(self, wall: float) -> None:
         """The current period's tips went out at wall time ``wall``: its command is awaited until
-        ``wall + timeout``."""
-        self.deadline = wall + self.timeout
+        :attr:`deadline`."""
+        self.sent_at = wall
 
     # -- inputs ------------------------------------------------------------------------------
     def on_command(self, stamp: int, u: np.ndarray) -> CommandOutcome:
@@ -122,16 +144,17 @@ class Stepping:
             return self._refuse('future_command', f'torque_commands: stamp {stamp} ns is ahead of '
                                 f'sim time {now_ns} ns', first)
         self.counters['commands'] += 1
+        resumed, self.lost = self.lost, False      # any accepted command: the loop answers again
         if self.mode == 'realtime':
             self.last_command_ns = stamp
-            self.held = self.received = u
-            return CommandOutcome(first_answer=first)
+            self.held = u
+            return CommandOutcome(first_answer=first, resumed=resumed)
         if stamp == now_ns and self.started and not self.done:
             self.last_command_ns = stamp
             self.held = u
-            return CommandOutcome(step=self._advance(u), first_answer=first)
+            return CommandOutcome(step=self._advance(u), first_answer=first, resumed=resumed)
         self.counters['late_command'] += 1        # for an earlier period we already stepped past
-        return CommandOutcome(first_answer=first)
+        return CommandOutcome(first_answer=first, resumed=resumed)
 
     def command_refused(self) -> None:
         """A command was refused (here or by the caller's decoder): ``on_bad_command='zero'``
@@ -141,21 +164,35 @@ class Stepping:
 
     def on_wall_time(self, wall: float) -> np.ndarray | None:
         """Lockstep: the torque to step with now if the current period's command is overdue at
-        wall time ``wall`` (the held command or zero, by ``on_timeout``), else None."""
-        if self.mode != 'lockstep' or self.done or self.deadline is None or wall < self.deadline:
+        wall time ``wall``, else None. The first overdue period is a timeout (the held command or
+        zero, by ``on_timeout``); if a command was ever accepted, commands are lost from then on
+        and every later overdue period gets zero after ``lost_command_wait``."""
+        deadline = self.deadline
+        if self.mode != 'lockstep' or self.done or deadline is None or wall < deadline:
             return None
+        if self.lost:
+            self.counters['safe_periods'] += 1
+            return self._advance(np.zeros((self.n_fingers, 2)))
         self.counters['timeouts'] += 1
+        if self.last_command_ns >= 0:          # (before the loop has ever answered, keep waiting)
+            self.lost, self.lost_since_ns = True, self.now_ns
         return self._advance(self.held if self.on_timeout == 'hold' else np.zeros((self.n_fingers, 2)))
 
     def on_period(self) -> np.ndarray | None:
         """Realtime: a period of the wall timer ended; the torque to step with (the newest
-        command), or None once done."""
+        command, or zero once it is more than ``hold_periods`` old), or None once done."""
         if self.mode != 'realtime' or self.done:
             return None
-        if self.received is None:
-            self.counters['late_periods'] += 1
-        self.received = None
-        return self._advance(self.held)
+        now_ns = self.now_ns
+        if self.last_command_ns >= max(0, now_ns - self.period_ns):   # this period's or the previous one's
+            return self._advance(self.held)
+        self.counters['late_periods'] += 1
+        if self.last_command_ns < 0 or now_ns - self.last_command_ns <= self.hold_periods * self.period_ns:
+            return self._advance(self.held)     # nothing yet (zero) or recent enough to hold
+        if not self.lost:
+            self.lost, self.lost_since_ns = True, self.last_command_ns + self.period_ns
+        self.counters['safe_periods'] += 1
+        return self._advance(np.zeros((self.n_fingers, 2)))
 
     # -- helpers -----------------------------------------------------------------------------
     def _advance(self, u: np.ndarray) -> np.ndarray:

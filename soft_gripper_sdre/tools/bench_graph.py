@@ -1,19 +1,27 @@
-"""Benchmarks of the node graph as processes: lockstep speed, loop latency, realtime lateness, recorder loss.
+"""Benchmarks of the node graph as processes: lockstep speed, CPU and latency, realtime lateness
+(also through a CPU hog), start-up, recorder loss.
 
-    python -m soft_gripper_sdre.tools.bench_graph [--quick] [--executor events|single]
+    python -m soft_gripper_sdre.tools.bench_graph [--quick] [--graph-only] [--executor events|single]
 
 prints the rows that :mod:`soft_gripper_sdre.tools.bench` appends to BENCHMARKS.md
-(:func:`rows`). Every figure comes from the nodes' own /diagnostics, read by a monitor node:
+(:func:`rows`). Every figure comes from the nodes' own /diagnostics, read by a monitor node, or
+from /proc (CPU time of each process while the simulator stepped):
 
 * **lockstep**: the four loop processes (simulator, estimator, trajectory, controller) at the 1 ms
   period. The simulator reports the real-time factor of its stepping and the loop latency, the
   wall time from publishing ``tip_positions`` for t_k to receiving the torque command stamped t_k
-  (three DDS hops and the estimator's and controller's work).
-* **realtime**: the simulator steps on a 1 ms wall timer; a period is late when no command for it
-  arrived before the next tick (its ``late_periods`` counter).
-* **recorder**: all five processes in realtime with every topic at 1 kHz (``state_rate`` 1000 Hz,
-  a horizon every 1 ms) into the recorder; lost = messages the nodes published (their counters)
-  minus the messages in the bag.
+  (three DDS hops and the estimator's and controller's work), and when the first command came:
+  the start-up is measured from launching the processes to that first torque.
+* **realtime**: the simulator steps on a 1 ms wall timer with its newest command; a period is
+  late when that command answers tips older than the previous period's (more than one period of
+  transport delay, ``late_periods``), and safe when it is older than ``hold_limit`` and zero torque
+  is applied instead.
+* **CPU hog**: the same realtime graph while one busy process per core runs for a second; the
+  latency and lateness of the windows before, during and after it (the simulator's
+  ``recent_latency_us_*`` of each /diagnostics) show whether the loop comes back by itself.
+* **recorder**: all five processes in realtime with every simulator topic at 1 kHz
+  (``state_rate`` and ``clock_rate`` 1000 Hz) into the recorder; lost = messages the nodes
+  published (their counters) minus the messages in the bag.
 """
 from __future__ import annotations
 
@@ -23,12 +31,13 @@ from pathlib import Path
 import tempfile
 import time
 
+from soft_gripper_sdre.tools.bench_hog import PHASES, SETTLE_S, CpuHog, phase_figures
 from soft_gripper_sdre.tools.procs import WIRED_BEFORE_START, DiagnosticsMonitor, Graph, ros_env
 
 LOOP_NODES = ('estimator', 'trajectory', 'controller')
 #: a ping-pong round unanswered this long [s] sends its ping again (see :func:`hop`)
 RESEND_S = 1.0
-#: topics the simulator publishes once per step when state_rate is 1 kHz (and once at t = 0)
+#: topics the simulator publishes once per step when state_rate and clock_rate are 1 kHz (and at t = 0)
 SIM_TOPICS = ('/clock', '/tip_positions', '/joint_states', '/cube_pose', '/cube_contacts')
 
 
@@ -48,15 +57,19 @@ def _number(text: str) -> float | None:
         return None
 
 
+def _numbers(values: dict[str, str]) -> dict[str, float]:
+    return {k: _number(v) for k, v in values.items() if _number(v) is not None}
+
+
 def published(d: dict[str, dict[str, float]]) -> dict[str, int]:
     """Topic → messages the loop published, from the nodes' diagnostics ``d``: the simulator sends
-    each of its topics once per step and once at t = 0 (state topics only at state_rate 1 kHz),
-    the others count what they send."""
+    each of its topics once per step and once at t = 0 (when they all run at 1 kHz), the others
+    count what they send."""
     sim, ctrl = d.get('simulator', {}), d.get('controller', {})
     out = {t: int(sim.get('steps') or 0) + 1 for t in SIM_TOPICS}
     out['/state_estimate'] = int(d.get('estimator', {}).get('estimates') or 0)
     out['/grasp_reference'] = int(d.get('trajectory', {}).get('references') or 0)
-    out['/torque_commands'] = int((ctrl.get('commands') or 0) + (ctrl.get('safe_commands') or 0))
+    out['/torque_commands'] = int(ctrl.get('commands') or 0)
     return out
 
 
@@ -65,42 +78,70 @@ def run_graph(seconds: float, *, mode: str = 'lockstep', record: Path | None = N
               timeout: float = 600.0) -> dict[str, dict[str, float]]:
     """Run the loop processes (and the recorder into ``record``) for ``seconds`` of sim time.
 
-    Returns every node's final /diagnostics values as floats (non-numeric values dropped), and
-    for each node its CPU time per step while the simulator stepped (``cpu_per_step_us``).
+    Returns every node's final /diagnostics values as floats (non-numeric values dropped), for
+    each node its CPU time per step while the simulator stepped (``cpu_per_step_us``), and for the
+    simulator the wall time from launching the processes to its first command (``startup_s``).
 
     Raises:
         RuntimeError: a node died or the run did not finish within ``timeout``.
     """
+    return _graph_run(seconds, mode, record, all_at_1khz, executor, timeout)[0]
+
+
+def hog_run(seconds: float, hog_at: float, hog_seconds: float = 1.0, executor: str | None = None,
+            timeout: float = 600.0) -> dict[str, dict[str, float]]:
+    """The realtime graph for ``seconds`` of sim time, with one busy process per core for
+    ``hog_seconds`` of wall time from ``hog_at`` of sim time on.
+
+    Returns :func:`~soft_gripper_sdre.tools.bench_hog.phase_figures` of the simulator's
+    /diagnostics: for each of :data:`PHASES`, lateness and loop latency.
+    """
+    hog = CpuHog(hog_at, hog_seconds)
+    try:
+        _, history = _graph_run(seconds, 'realtime', None, False, executor, timeout, during=hog.poll)
+    finally:
+        hog.stop()
+    if hog.span is None:
+        raise RuntimeError(f'the run ended before the hog started at {hog_at} s of sim time')
+    return phase_figures(history.get('simulator', []), *hog.span)
+
+
+def _graph_run(seconds: float, mode: str, record: Path | None, all_at_1khz: bool, executor: str | None,
+               timeout: float, during=None) -> tuple[dict[str, dict[str, float]], dict[str, list]]:
+    """:func:`run_graph`, also returning the monitor's /diagnostics history; ``during(monitor)``
+    is called about 10 times a second while the simulator steps."""
     from soft_gripper_sdre.nodes.common import EXECUTOR_ENV
     env = ros_env()
     if executor is not None:
         env[EXECUTOR_ENV] = executor
-    fast = {'state_rate': 1000.0} if all_at_1khz else {}
-    params = {'estimator': {}, 'controller': {},
-              'trajectory': {'publish_period': 0.001} if all_at_1khz else {},
+    fast = {'state_rate': 1000.0, 'clock_rate': 1000.0} if all_at_1khz else {}
+    params = {'estimator': {}, 'controller': {}, 'trajectory': {},
               'simulator': {'duration': seconds, 'mode': mode, 'min_tip_subscribers': 2 + bool(record),
                             'min_diagnostics_subscribers': 1 + bool(record),   # the monitor (+ recorder)
                             **fast}}
     monitor = DiagnosticsMonitor(env, 'bench_monitor')
     steps = int(round(seconds / 0.001))
     try:
-        cpu = _run(graph_env=env, monitor=monitor, params=params, record=record, steps=steps,
-                   timeout=timeout)
+        cpu, launched = _run(graph_env=env, monitor=monitor, params=params, record=record, steps=steps,
+                             timeout=timeout, during=during)
     finally:
         monitor.close()
-    out = {node: {k: _number(v) for k, v in values.items() if _number(v) is not None}
-           for node, values in monitor.values.items()}
+    out = {node: _numbers(values) for node, values in monitor.values.items()}
     for node, seconds in cpu.items():       # CPU of the stepping only (start-up excluded)
         out.setdefault(node, {})['cpu_per_step_us'] = 1e6 * seconds / steps
-    return out
+    sim = out.setdefault('simulator', {})
+    if 'first_command_monotonic_s' in sim:
+        sim['startup_s'] = sim['first_command_monotonic_s'] - launched
+    return out, monitor.history
 
 
 def _run(graph_env: dict[str, str], monitor: DiagnosticsMonitor, params: dict, record: Path | None, steps: int,
-         timeout: float) -> dict[str, float]:
+         timeout: float, during=None) -> tuple[dict[str, float], float]:
     """:func:`run_graph`'s processes: start, step, drain, stop; returns CPU seconds per node
-    while the simulator stepped."""
+    while the simulator stepped, and the monotonic time the processes were launched."""
     with tempfile.TemporaryDirectory(prefix='sgs_bench_graph_') as logs, Graph(graph_env, Path(logs)) as graph:
         names = (('recorder',) if record else ()) + LOOP_NODES
+        launched = time.monotonic()
         for name in names:
             graph.start(name, {'output': str(record)} if name == 'recorder' else params[name])
         # every node is up (its diagnostics arrive) before the simulator starts stepping
@@ -115,7 +156,12 @@ def _run(graph_env: dict[str, str], monitor: DiagnosticsMonitor, params: dict, r
                                            for t in WIRED_BEFORE_START), 30.0)
         cpu0 = {n: _cpu_seconds(graph.procs[n].popen.pid) for n in names}
         graph.start('simulator', params['simulator'])
-        code = graph.wait('simulator', timeout, lambda: monitor.spin_until(lambda: False, 0.05))
+
+        def poll() -> None:
+            monitor.spin_until(lambda: False, 0.05)
+            if during is not None:
+                during(monitor)
+        code = graph.wait('simulator', timeout, poll)
         cpu = {n: _cpu_seconds(graph.procs[n].popen.pid) - cpu0[n] for n in names}
         if code != 0:
             tails = {n: p.log_tail(600) for n, p in graph.procs.items()}
@@ -126,13 +172,13 @@ def _run(graph_env: dict[str, str], monitor: DiagnosticsMonitor, params: dict, r
             graph.stop(name)
         if record:       # let a recorder that lags behind drain its queues before it is stopped
             monitor.spin_until(lambda: False, 0.5)      # the stopped nodes' final diagnostics
-            sent = published({n: {k: _number(v) for k, v in monitor.values[n].items()}
-                              for n in ('simulator', *LOOP_NODES) if n in monitor.values})
+            sent = published({n: _numbers(monitor.values[n]) for n in ('simulator', *LOOP_NODES)
+                              if n in monitor.values})
             monitor.spin_until(lambda: all(monitor.get('recorder', f'messages {t}') >= n
                                            for t, n in sent.items()), 15.0)
             graph.stop('recorder')
         monitor.spin_until(lambda: False, 0.5)
-    return cpu
+    return cpu, launched
 
 
 def recorder_loss(seconds: float, executor: str | None = None) -> dict[str, tuple[int, int]]:
@@ -292,23 +338,52 @@ def hop(executor: str, count: int = 2000, raw: bool = False) -> dict[str, float]
             'rounds': rounds, 'resent': state['resent']}
 
 
-def rows(quick: bool = False, executor: str | None = None) -> list[tuple[str, str, str]]:
-    """(what, figure, note) rows for BENCHMARKS.md; each run is a few seconds of sim time."""
+def rows(quick: bool = False, executor: str | None = None, graph_only: bool = False) -> list[tuple[str, str, str]]:
+    """(what, figure, note) rows for BENCHMARKS.md. ``graph_only``: the graph runs alone, without
+    the DDS hops, the SingleThreadedExecutor run and the recorder run."""
     nan = float('nan')
-    seconds = 1.0 if quick else 3.0
+    seconds, real_s = (1.0, 3.0) if quick else (3.0, 20.0)
     lock_all = run_graph(seconds, executor=executor)
     lock = lock_all['simulator']
+    real = run_graph(real_s, mode='realtime', executor=executor)['simulator']
+    hog = hog_run(9.0 if quick else 14.0, 4.5 if quick else 6.0, executor=executor)
+    steps = max(real.get('steps', 1.0), 1.0)
+    cpu = {n: lock_all[n].get('cpu_per_step_us', nan) for n in ('simulator', *LOOP_NODES)}
+    compute = lock_all['controller'].get('compute_us_mean', nan)
+
+    def latency(d: dict, prefix: str = 'loop_latency_us') -> str:
+        return ' / '.join(f'{d.get(f"{prefix}_{k}", nan):.0f}' for k in ('p50', 'p99', 'max')) + ' µs'
+    table = [
+        ('node graph, 4 processes, lockstep 1 ms', f'{lock.get("real_time_factor", nan):.2f}× real time',
+         f'{seconds:g} s of sim time; {int(lock.get("timeouts", 0))} timeouts'),
+        ('loop latency p50 / p99 / max, lockstep (tips out → torque back)', latency(lock),
+         'measured in the simulator: 3 DDS hops + estimator + controller'),
+        ('CPU per period, lockstep: simulator / estimator / trajectory / controller',
+         ' / '.join(f'{c:.0f}' for c in cpu.values()) + ' µs',
+         f'sum {sum(cpu.values()):.0f} µs per 1 ms period on {os.cpu_count()} cores; '
+         f'controller compute {compute:.0f} µs (mean of its last second)'),
+        ('start-up to the first torque, lockstep', f'{lock.get("startup_s", nan):.1f} s',
+         f'from launching the 4 processes; {lock.get("first_command_after_tips_ms", nan):.0f} ms of it '
+         'from the first tips to the first command'),
+        (f'realtime mode at 1 kHz, {real_s:g} s: late periods', f'{100 * real.get("late_periods", 0.0) / steps:.1f} %',
+         f'a period is late when its newest command answers tips older than the previous period\'s; '
+         f'{100 * real.get("safe_periods", 0.0) / steps:.2f} % stepped with zero torque (hold_limit); '
+         f'stepping at {real.get("real_time_factor", nan):.2f}× real time; latency p50 / p99 / max {latency(real)}'),
+        ('realtime with a 1 s CPU hog on every core: latency p50 before / during / after',
+         ' / '.join(f'{hog[p]["p50"]:.0f}' for p in PHASES) + ' µs',
+         'late periods ' + ' / '.join(f'{100 * hog[p]["late"]:.1f}' for p in PHASES) + ' %, p99 '
+         + ' / '.join(f'{hog[p]["p99"]:.0f}' for p in PHASES) + f' µs; "after" from {SETTLE_S:g} s '
+         'of sim time past the hog'),
+    ]
+    if graph_only:
+        return table
     single = run_graph(seconds, executor='single')['simulator'] if executor != 'single' else lock
-    real = run_graph(seconds, mode='realtime', executor=executor)['simulator']
     ev, st = (hop(kind, 1000 if quick else 3000) for kind in ('events', 'single'))
     ev_raw = hop('events', 1000 if quick else 3000, raw=True)
     recorded = recorder_loss(0.5 if quick else 2.0, executor=executor)
     sent = sum(n for n, _ in recorded.values())
     lost = sum(max(0, n - got) for n, got in recorded.values())
     worst = max(recorded, key=lambda t: recorded[t][0] - recorded[t][1])
-    late = real.get('late_periods', 0.0) / max(real.get('steps', 1.0), 1.0)
-    cpu = {n: lock_all[n].get('cpu_per_step_us', nan) for n in ('simulator', *LOOP_NODES)}
-    compute = lock_all['controller'].get('compute_us_mean', nan)
     return [
         ('one DDS hop, tip_positions, EventsExecutor', f'{ev["p50"]:.0f} / {ev["p99"]:.0f} µs',
          f'p50 / p99 one way (ping-pong of 2 processes); {ev["cpu"]:.0f} µs CPU per message received + sent'),
@@ -317,21 +392,11 @@ def rows(quick: bool = False, executor: str | None = None) -> list[tuple[str, st
          f'{ev_raw["cpu"]:.0f} µs CPU per message received, decoded, encoded and sent, as the loop nodes do'),
         ('one DDS hop, tip_positions, SingleThreadedExecutor', f'{st["p50"]:.0f} / {st["p99"]:.0f} µs',
          f'{st["cpu"]:.0f} µs CPU per message: {st["cpu"] / ev["cpu"]:.1f}× the EventsExecutor\'s'),
-        ('node graph, 4 processes, lockstep 1 ms', f'{lock.get("real_time_factor", nan):.2f}× real time',
-         f'{seconds:g} s of sim time; {int(lock.get("timeouts", 0))} timeouts'),
+        *table[:1],
         ('node graph, lockstep, SingleThreadedExecutor in every node',
          f'{single.get("real_time_factor", nan):.2f}× real time',
          f'rclpy\'s default executor; loop latency p50 {single.get("loop_latency_us_p50", nan):.0f} µs'),
-        ('loop latency p50 / p99 (tips out → torque back)',
-         f'{lock.get("loop_latency_us_p50", nan):.0f} / {lock.get("loop_latency_us_p99", nan):.0f} µs',
-         'measured in the simulator: 3 DDS hops + estimator + controller'),
-        ('CPU per period, lockstep: simulator / estimator / trajectory / controller',
-         ' / '.join(f'{c:.0f}' for c in cpu.values()) + ' µs',
-         f'sum {sum(cpu.values()):.0f} µs per 1 ms period on {os.cpu_count()} cores; '
-         f'controller compute {compute:.0f} µs (mean of its last second)'),
-        ('realtime mode at 1 kHz: late periods', f'{100 * late:.1f} %',
-         f'stepping at {real.get("real_time_factor", nan):.2f}× real time; '
-         f'latency p50 {real.get("loop_latency_us_p50", nan):.0f} µs'),
+        *table[1:],
         ('recorder, all topics at 1 kHz: messages lost', f'{lost} of {sent}',
          '5 processes in realtime; published (node counters) − in the bag'
          + (f'; most on {worst}' if lost else '')),
@@ -342,6 +407,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.bench_graph',
                                  description=__doc__.split('\n')[0])
     ap.add_argument('--quick', action='store_true', help='shorter runs (smoke test)')
+    ap.add_argument('--graph-only', action='store_true',
+                    help='only the graph runs: no DDS hops, SingleThreadedExecutor run or recorder run')
     ap.add_argument('--echo', type=int, default=None, help=argparse.SUPPRESS)   # hop()'s far end
     ap.add_argument('--raw', action='store_true', help=argparse.SUPPRESS)       # … with raw CDR
     ap.add_argument('--executor', choices=('events', 'single'), default=None,
@@ -349,7 +416,7 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     if a.echo is not None:
         return _echo(a.echo, a.raw)
-    table = rows(a.quick, a.executor)
+    table = rows(a.quick, a.executor, a.graph_only)
     width = max(len(r[0]) for r in table)
     for name, value, note in table:
         print(f'{name:<{width}}  {value:>18}  {note}')

@@ -27,8 +27,8 @@ from soft_gripper_sdre.control.laws import GRAPH_LAWS
 from soft_gripper_sdre.tools.procs import WIRED_BEFORE_START, DiagnosticsMonitor, Graph, ros_env
 
 #: start order: listeners first, the simulator (which waits for them) last; they stop in reverse,
-#: so the controller goes right after the simulator, before its clock_timeout watchdog (wall
-#: time, once /clock stops) would report ERROR and send a zero command
+#: so the controller goes right after the simulator, before its estimate_watchdog (wall time,
+#: once the estimates stop) would report ERROR
 NODES = ('recorder', 'estimator', 'trajectory', 'controller', 'simulator')
 
 

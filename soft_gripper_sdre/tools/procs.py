@@ -138,7 +138,8 @@ class Graph:
 
 
 class DiagnosticsMonitor:
-    """The newest /diagnostics values of every node of a graph, by node name.
+    """The newest /diagnostics values of every node of a graph, by node name, and every status
+    received (``history``, in order).
 
     A node of its own rclpy Context in the calling process (the demo's progress bar and start-up
     wait, the graph benchmarks' figures); ``poll``/``spin_until`` take what has arrived.
@@ -155,6 +156,7 @@ class DiagnosticsMonitor:
         from soft_gripper_sdre.nodes.topics import DIAGNOSTICS, STREAM_QOS
 
         self.values: dict[str, dict[str, str]] = {}
+        self.history: dict[str, list[dict[str, str]]] = {}
         self._ctx = Context()
         rclpy.init(context=self._ctx)
         self._node = Node(name, context=self._ctx)
@@ -166,7 +168,9 @@ class DiagnosticsMonitor:
     def _on_diag(self, msg) -> None:
         self._taken += 1
         for status in msg.status:       # a status is named by its node's fully qualified name
-            self.values[status.name.rsplit('/', 1)[-1]] = {kv.key: kv.value for kv in status.values}
+            node = status.name.rsplit('/', 1)[-1]
+            self.values[node] = {kv.key: kv.value for kv in status.values}
+            self.history.setdefault(node, []).append(self.values[node])
 
     def get(self, node: str, key: str, default: float = 0.0) -> float:
         """The newest value of ``key`` from ``node`` as a number (``default`` if none yet)."""
