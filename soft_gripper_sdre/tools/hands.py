@@ -29,6 +29,10 @@ from soft_gripper_sdre.tools.procs import DiagnosticsMonitor, Graph, ros_env
 
 #: wall time for the graphs to connect before the simulators start [s]
 CONNECT_TIMEOUT = 90.0
+#: counters that say a message was refused, lost, late or out of order, or a node started over
+TROUBLE = ('stale_command', 'future_command', 'late_command', 'bad_command', 'timeouts', 'resets',
+           'stale', 'bad_message', 'off_period', 'gaps', 'missed_periods', 'late_start', 'late_estimates',
+           'unanswered_estimates', 'safe_commands', 'nonfinite_torque', 'bad_estimate', 'bad_clock')
 
 
 @dataclass(frozen=True)
@@ -93,7 +97,7 @@ def _failure(what: str, graphs: Sequence[Graph], name: str | None = None) -> Run
 
 def run_graphs(specs: Sequence[GraphSpec], env: dict[str, str], log_dir: Path, *,
                place: Callable[[NodeSpec], Placement] | None = None, timeout: float = 600.0,
-               on_poll: Callable[[DiagnosticsMonitor], None] | None = None,
+               on_poll: Callable[[DiagnosticsMonitor, list[Graph]], None] | None = None,
                monitor_name: str = 'graphs_monitor') -> list[GraphRun]:
     """Run ``specs`` together: start every node but the leads, wait until each graph is
     connected, start the leads (simulators), wait for them to exit, stop the rest.
@@ -104,7 +108,8 @@ def run_graphs(specs: Sequence[GraphSpec], env: dict[str, str], log_dir: Path, *
         log_dir: one directory of logs per graph (named by its namespace, ``root`` for '').
         place: where each node runs (default: here, with ``env``).
         timeout: wall-time limit of the stepping [s].
-        on_poll: called about 10 times a second while the simulators step.
+        on_poll: called with the monitor and the graphs' processes about 20 times a second
+            while the simulators step.
         monitor_name: the node name of this process's /diagnostics listener.
 
     Returns:
@@ -167,7 +172,7 @@ def run_graphs(specs: Sequence[GraphSpec], env: dict[str, str], log_dir: Path, *
                 raise RuntimeError(f'the run did not finish within {timeout:g} s of wall time; logs in {log_dir}')
             monitor.poll()
             if on_poll is not None:
-                on_poll(monitor)
+                on_poll(monitor, graphs)
             time.sleep(0.05)
         # then each graph in reverse start order, the recorder last: it receives the others'
         # final counters (and so does the monitor)
@@ -183,6 +188,28 @@ def run_graphs(specs: Sequence[GraphSpec], env: dict[str, str], log_dir: Path, *
         for graph in graphs:
             graph.stop_all()
         monitor.close()
+
+
+def published_and_recorded(run: GraphRun) -> dict[str, tuple[int | None, int]]:
+    """Loop topic → (messages its node counted as published, messages in the bag)."""
+    from soft_gripper_sdre.analysis.bag import topic_counts
+    counts = topic_counts(run.bag)
+    steps = run.value('simulator', 'steps')
+
+    def counter(node: str, *keys: str) -> int | None:
+        values = [run.value(node, k, 0.0) for k in keys]
+        return None if run.value(node, keys[0]) != run.value(node, keys[0]) else int(sum(values))
+    published = {'tip_positions': None if steps != steps else int(steps) + 1,
+                 'state_estimate': counter('estimator', 'estimates'),
+                 'torque_commands': counter('controller', 'commands', 'safe_commands'),
+                 'grasp_reference': counter('trajectory', 'references')}
+    return {topic: (n, counts.get(run.spec.topic(topic), 0)) for topic, n in published.items()}
+
+
+def trouble(run: GraphRun) -> dict[str, dict[str, int]]:
+    """Per node, the :data:`TROUBLE` counters that are not zero."""
+    return {node: {k: int(run.value(node, k)) for k in TROUBLE if run.value(node, k, 0.0) > 0}
+            for node in run.spec.names if any(run.value(node, k, 0.0) > 0 for k in TROUBLE)}
 
 
 def hand_graphs(hands: Sequence[str], out: Path, duration: float, *, record: bool = True,
