@@ -20,6 +20,7 @@ import json
 from pathlib import Path
 import shutil
 import signal
+import subprocess
 import sys
 import time
 from typing import Callable, Sequence
@@ -29,6 +30,10 @@ from soft_gripper_sdre.tools.procs import DiagnosticsMonitor, Graph, ros_env
 
 #: wall time for the graphs to connect before the simulators start [s]
 CONNECT_TIMEOUT = 90.0
+#: lockstep that waits out a node starved of CPU (many processes on few cores, at start-up
+#: especially) instead of stepping without its command, so two runs of one grasp step alike and
+#: any timeout is a fault; the controller's clock watchdog stays longer than the simulator's wait
+PATIENT_LOCKSTEP = {'simulator': {'lockstep_timeout': 2.0}, 'controller': {'clock_timeout': 5.0}}
 #: counters that say a message was refused, lost, late or out of order, or a node started over
 TROUBLE = ('stale_command', 'future_command', 'late_command', 'bad_command', 'timeouts', 'resets',
            'stale', 'bad_message', 'off_period', 'gaps', 'missed_periods', 'late_start', 'late_estimates',
@@ -50,8 +55,11 @@ class GraphRun:
     spec: GraphSpec
     diagnostics: dict[str, dict[str, str]]      # node name → its last /diagnostics values
     exit_codes: dict[str, int]
-    wall_s: float                               # from starting the simulator to its exit
+    wall_s: float                               # from starting the simulator to its last step
     pids: dict[str, int] = field(default_factory=dict)
+    #: node name → its /diagnostics values as last heard while the simulator stepped (the
+    #: recorder's matched publishers, say, before the others stop)
+    during_run: dict[str, dict[str, str]] = field(default_factory=dict)
 
     def value(self, node: str, key: str, default: float = float('nan')) -> float:
         """``key`` of ``node``'s last /diagnostics as a number (``default`` if absent)."""
@@ -83,6 +91,14 @@ def _finished(spec: GraphSpec, monitor: DiagnosticsMonitor) -> bool:
     """The lead (simulator) reports its last step: its sim time reached its ``duration``."""
     duration = float(spec.node(spec.lead).parameters.get('duration', 0.0))
     return duration > 0 and monitor.get(spec.node(spec.lead).full_name, 'sim_time') >= duration
+
+
+def _exit_code(graph: Graph, name: str, timeout: float = 15.0) -> int:
+    """The exit status of a process that is stopping by itself; stopped after ``timeout``."""
+    try:
+        return graph.procs[name].popen.wait(timeout)
+    except subprocess.TimeoutExpired:
+        return graph.stop(name)
 
 
 def _failure(what: str, graphs: Sequence[Graph], name: str | None = None) -> RuntimeError:
@@ -127,7 +143,8 @@ def run_graphs(specs: Sequence[GraphSpec], env: dict[str, str], log_dir: Path, *
              else s.with_parameters(s.lead, min_diagnostics_subscribers=readers) for s in specs]
     monitor = DiagnosticsMonitor(env, monitor_name)
     graphs = [Graph(env, Path(log_dir) / (s.namespace.strip('/').replace('/', '_') or 'root')) for s in specs]
-    wall = {}
+    wall: dict[int, float] = {}
+    during: dict[int, dict] = {}
     try:
         for spec, graph in zip(specs, graphs):
             for node in spec.nodes:
@@ -158,6 +175,7 @@ def run_graphs(specs: Sequence[GraphSpec], env: dict[str, str], log_dir: Path, *
                 if lead.alive() and not _finished(spec, monitor):
                     continue
                 wall[id(graph)] = time.monotonic() - started
+                during[id(graph)] = {n.name: dict(monitor.by_full_name.get(n.full_name, {})) for n in spec.nodes}
                 codes[id(graph)] = {}
                 # the simulator has taken its last step: the loop nodes are told to stop at once
                 # (the controller before its clock watchdog fires while the simulator closes),
@@ -175,14 +193,18 @@ def run_graphs(specs: Sequence[GraphSpec], env: dict[str, str], log_dir: Path, *
                 on_poll(monitor, graphs)
             time.sleep(0.05)
         # then each graph in reverse start order, the recorder last: it receives the others'
-        # final counters (and so does the monitor)
+        # final counters (and so does the monitor). The simulator and the signalled nodes are
+        # on their way out: a second signal could land after the interpreter has restored the
+        # default handlers and kill the process, so they are only waited for
         for spec, graph in zip(specs, graphs):
             for node in reversed(spec.nodes):
-                codes[id(graph)][node.name] = graph.stop(node.name)
+                codes[id(graph)][node.name] = (graph.stop(node.name) if node.name == 'recorder'
+                                               else _exit_code(graph, node.name))
                 monitor.poll()
         monitor.spin_until(lambda: False, 0.5)
         return [GraphRun(spec, {n.name: dict(monitor.by_full_name.get(n.full_name, {})) for n in spec.nodes},
-                         codes[id(graph)], wall[id(graph)], {k: p.popen.pid for k, p in graph.procs.items()})
+                         codes[id(graph)], wall[id(graph)], {k: p.popen.pid for k, p in graph.procs.items()},
+                         during[id(graph)])
                 for spec, graph in zip(specs, graphs)]
     finally:
         for graph in graphs:
@@ -251,7 +273,7 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f'--duration must be in (0, 600] s of sim time, got {a.duration}')
     for hand in hands:
         shutil.rmtree(a.out / hand.strip('/') / 'bag', ignore_errors=True)
-    specs = hand_graphs(hands, a.out, a.duration)
+    specs = hand_graphs(hands, a.out, a.duration, parameters=PATIENT_LOCKSTEP)
     try:
         runs = run_graphs(specs, ros_env(a.domain_id), a.out / 'logs', timeout=a.timeout, monitor_name='hands_monitor')
     except RuntimeError as exc:

@@ -39,7 +39,8 @@ import threading
 import time
 
 from soft_gripper_sdre.nodes.graph import GraphSpec, NodeSpec, grasp_graph
-from soft_gripper_sdre.tools.hands import GraphRun, Placement, published_and_recorded, run_graphs, trouble
+from soft_gripper_sdre.tools.hands import (PATIENT_LOCKSTEP, GraphRun, Placement, published_and_recorded,
+                                           run_graphs, trouble)
 from soft_gripper_sdre.tools.procs import ros_env
 
 SIM_ADDRESS = '10.231.0.1'
@@ -221,7 +222,7 @@ def _supervise(job_path: Path) -> int:
         run = run_graphs([spec], envs[pair.sim_ns], Path(job['logs']), place=place, timeout=job['timeout'],
                          on_poll=on_poll, monitor_name='two_hosts_monitor')[0]
         result = {'diagnostics': run.diagnostics, 'exit_codes': run.exit_codes, 'wall_s': run.wall_s,
-                  'pids': run.pids, 'shared_memory': mapped,
+                  'pids': run.pids, 'during_run': run.during_run, 'shared_memory': mapped,
                   'fault': None if fault is None else asdict(fault)}
     except RuntimeError as exc:
         result = {'error': str(exc)}
@@ -259,7 +260,8 @@ def run_split(pair: HostPair, out: Path, duration: float, parameters: dict[str, 
         raise RuntimeError(result.get('error') or f'the supervisor exited with {code}; see {out / "supervisor.log"}:\n'
                            + (out / 'supervisor.log').read_text()[-2000:])
     spec = split_graph(out / 'bag', duration, parameters)
-    run = GraphRun(spec, result['diagnostics'], result['exit_codes'], result['wall_s'], result['pids'])
+    run = GraphRun(spec, result['diagnostics'], result['exit_codes'], result['wall_s'], result['pids'],
+                   result['during_run'])
     extra = {'shared_memory': result['shared_memory'], 'fault': result['fault'],
              'traffic': {k: after[k] - before[k] for k in after}}
     return run, extra
@@ -364,9 +366,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f'error: cannot make the two hosts: {reason}', file=sys.stderr)
         return 2
     try:
-        one = run_one_host(a.out / 'one_host', a.duration, timeout=a.timeout)
+        one = run_one_host(a.out / 'one_host', a.duration, PATIENT_LOCKSTEP, timeout=a.timeout)
         with HostPair.new() as pair:
-            two, extra = run_split(pair, a.out / 'two_hosts', a.duration, timeout=a.timeout)
+            two, extra = run_split(pair, a.out / 'two_hosts', a.duration, PATIENT_LOCKSTEP, timeout=a.timeout)
             faulted = None
             if a.link_fault:
                 faulted = run_split(pair, a.out / 'link_fault', a.duration, {'simulator': {'lockstep_timeout': 0.1}},
