@@ -76,7 +76,7 @@ def run_demo(out: Path, duration: float, model: Path | None = None, noise: float
     spec = grasp_graph(parameters=params)
 
     if progress:
-        print(f'starting the node graph ({", ".join(NODES)}) on ROS_DOMAIN_ID {env["ROS_DOMAIN_ID"]}, '
+        print(f'starting the node graph ({", ".join(spec.names)}) on ROS_DOMAIN_ID {env["ROS_DOMAIN_ID"]}, '
               f'logs in {out / "logs"} ...', file=sys.stderr, flush=True)
     monitor = DiagnosticsMonitor(env, 'demo_monitor')
     bar = None
