@@ -293,6 +293,33 @@ def finite_torques(run: GraphRun) -> bool:
     return all(np.isfinite(np.asarray(m.effort, dtype=float)).all() for _, m in msgs)
 
 
+def paired_tracking(one: GraphRun, two: GraphRun) -> dict:
+    """The two runs instant by instant, on the instants both bags hold (a recorder starved of CPU
+    for longer than a topic's 50-message history loses the oldest, on either run): whether the
+    measured tips and the torque commands are bit-identical there, and each run's free-space
+    tracking (:func:`~soft_gripper_sdre.analysis.metrics.tracking_metrics`) over those instants."""
+    import numpy as np
+    from soft_gripper_sdre.analysis.bag import extract_run
+    from soft_gripper_sdre.analysis.metrics import tracking_metrics
+    from soft_gripper_sdre.tools.report import hold
+    runs = [extract_run(run.bag) for run in (one, two)]
+    common, ia, ib = np.intersect1d(runs[0].tips.t, runs[1].tips.t, return_indices=True)
+    u_common, ua, ub = np.intersect1d(runs[0].torques.t, runs[1].torques.t, return_indices=True)
+    out = {'instants': int(len(common)), 'steps': int(one.value('simulator', 'steps')) + 1,
+           'tips_identical': bool(np.array_equal(runs[0].tips.values[ia], runs[1].tips.values[ib])),
+           'torques_identical': bool(np.array_equal(runs[0].torques.values[ua], runs[1].torques.values[ub])),
+           'torque_instants': int(len(u_common))}
+    for name, run, idx in (('one_host', runs[0], ia), ('two_hosts', runs[1], ib)):
+        ref = run.reference.values[idx][..., :2]
+        valid = np.all(np.isfinite(ref.reshape(len(ref), -1)), axis=1)
+        contact = hold(run.contacts.t, run.contacts.values, common) > 0.0
+        excursion = np.linalg.norm(ref[valid] - ref[valid][0], axis=2).max(axis=0)
+        metrics = tracking_metrics(run.tips.values[idx][valid], ref[valid], ~contact[valid], excursion)
+        out[name] = {f'finger_{i}': m.as_dict() for i, m in enumerate(metrics)}
+    out['tracking_identical'] = out['one_host'] == out['two_hosts']
+    return out
+
+
 def compare(one: GraphRun, two: GraphRun, extra: dict, faulted: tuple[GraphRun, dict] | None, out: Path) -> dict:
     """The figures of the three runs side by side (tracking from each bag's report)."""
     from soft_gripper_sdre.tools.report import report
@@ -300,7 +327,9 @@ def compare(one: GraphRun, two: GraphRun, extra: dict, faulted: tuple[GraphRun, 
     result = {
         'duration_s': float(two.spec.node('simulator').parameters['duration']),
         'load_average': os.getloadavg(), 'cpus': os.cpu_count(),
-        'tracking': fingers, 'tracking_identical': fingers['one_host'] == fingers['two_hosts'],
+        'tracking': fingers, 'report_identical': fingers['one_host'] == fingers['two_hosts'],
+        'paired': paired_tracking(one, two),
+        'accounts': {'one_host': published_and_recorded(one), 'two_hosts': published_and_recorded(two)},
         'timing': {'one_host': timing(one), 'two_hosts': timing(two)},
         'trouble': {'one_host': trouble(one), 'two_hosts': trouble(two)},
         'shared_memory': extra['shared_memory'], 'link_traffic': extra['traffic'],
@@ -327,10 +356,18 @@ def summary(result: dict) -> str:
              f'{worst["one_host"]:.2f} %',
              f'  two hosts: {two["real_time_factor"]:.2f}× real time, loop latency p50 '
              f'{two["loop_latency_us_p50"]:.0f} µs, p99 {two["loop_latency_us_p99"]:.0f} µs; worst finger '
-             f'{worst["two_hosts"]:.2f} % ({"identical" if result["tracking_identical"] else "DIFFERENT"} '
-             f'tracking); {result["link_traffic"]["tx_bytes"] / 1e6:.1f} MB sent and '
+             f'{worst["two_hosts"]:.2f} %; {result["link_traffic"]["tx_bytes"] / 1e6:.1f} MB sent and '
              f'{result["link_traffic"]["rx_bytes"] / 1e6:.1f} MB received over the link; Fast DDS shared '
              f'memory mapped: {sorted(k for k, v in result["shared_memory"].items() if v) or "none"}']
+    paired = result['paired']
+    missing = {run: {t: n - got for t, (n, got) in accounts.items() if n is not None and n != got}
+               for run, accounts in result['accounts'].items()}
+    lines.append(f'  the same loop: tips {"identical" if paired["tips_identical"] else "DIFFERENT"} and torque '
+                 f'commands {"identical" if paired["torques_identical"] else "DIFFERENT"} at the '
+                 f'{paired["instants"]} of {paired["steps"]} instants both bags hold; tracking over them '
+                 f'{"identical" if paired["tracking_identical"] else "DIFFERENT"}; report figures '
+                 f'{"identical" if result["report_identical"] else "not identical"}; messages missing from '
+                 f'the bags (published − recorded): {missing}')
     fault = result.get('link_fault')
     if fault:
         lost = {t: (n - got if n is not None else None) for t, (n, got) in fault['published_and_recorded'].items()}
