@@ -284,11 +284,14 @@ def main(argv: list[str] | None = None) -> int:
         hand = run.spec.namespace
         metrics = report(run.bag, a.out / hand.strip('/'))
         summary[hand] = {'fingers': metrics['fingers'], 'wall_s': run.wall_s,
-                         'real_time_factor': run.value('simulator', 'real_time_factor'),
-                         'steps': run.value('simulator', 'steps'), 'commands': run.value('controller', 'commands')}
+                         **{k: run.value('simulator', k) for k in ('real_time_factor', 'steps', 'loop_latency_us_p50',
+                                                                   'loop_latency_us_p99')},
+                         'commands': run.value('controller', 'commands'), 'trouble': trouble(run)}
         print(f'{hand}: {a.duration:g} s of sim time in {run.wall_s:.1f} s wall '
-              f'({summary[hand]["real_time_factor"]:.2f}× real time), {int(summary[hand]["steps"])} steps, '
-              f'{int(summary[hand]["commands"])} commands of its own controller')
+              f'({summary[hand]["real_time_factor"]:.2f}× real time, loop latency p50 '
+              f'{summary[hand]["loop_latency_us_p50"]:.0f} µs, p99 {summary[hand]["loop_latency_us_p99"]:.0f} µs), '
+              f'{int(summary[hand]["steps"])} steps, {int(summary[hand]["commands"])} commands of its own '
+              f'controller; refused, late or lost: {summary[hand]["trouble"] or "none"}')
         for name, f in metrics['fingers'].items():
             pct = 'n/a' if f['rmse_pct'] is None else f'{f["rmse_pct"]:.2f} %'
             print(f'  {name}: free-space RMSE {f["rmse_mm"]:.3f} mm ({pct} of {f["excursion_mm"]:.1f} mm)')
