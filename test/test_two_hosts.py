@@ -121,13 +121,16 @@ def test_link_down_for_half_a_second_and_the_loop_resumes_by_itself(host_pair, t
         around - set(np.round(data.estimate.t * 1e3).astype(int).tolist()))[:10]
     fingers = report(run.bag, tmp_path / 'report')['fingers']
     assert worst_pct(fingers) <= TARGET_PCT, fingers
-    # back on target: the moving free-space error of every finger, from the cut on
+    # back on target: the moving free-space error of the grasping fingers from the cut on (at
+    # this pace an opening finger lags its 4 mm reference by several % over 100 ms windows even
+    # without a fault, docs/faults.md, which would hide the recovery)
     contact = np.asarray(data.contacts.values)[np.clip(np.searchsorted(data.contacts.t, data.tips.t, 'right') - 1,
                                                        0, len(data.contacts.t) - 1)] > 0
     ref = data.reference.values[..., :2]
     valid = np.all(np.isfinite(ref.reshape(len(ref), -1)), axis=1)
     err = np.linalg.norm(data.tips.values - ref, axis=2)[valid]
     excursion = np.linalg.norm(ref[valid] - ref[valid][0], axis=2).max(axis=0)
+    excursion = np.where(excursion > 0.02, excursion, 0.0)          # the two grasping fingers alone
     recovery = recovery_time(data.tips.t[valid], err, ~contact[valid], excursion, since=fault['down_sim_time'])
     assert recovery <= 0.5, recovery
     problems = trouble(run)
@@ -136,5 +139,7 @@ def test_link_down_for_half_a_second_and_the_loop_resumes_by_itself(host_pair, t
     record('link_down', injected=f'ip link set <veth> down for {LINK_DOWN_S} s at t ≈ {fault["down_sim_time"]:.2f} s '
            '(graph split across two network namespaces, UDP only)', times=1, crashes=0, nonfinite_outputs=0,
            messages_lost=sum(lost.values()), recovery_s=recovery,
-           notes=f'{timeouts} lockstep timeouts (held command); counters {problems}; published = in the bag '
-                 f'for {", ".join(accounts)}')
+           notes=f'{timeouts} lockstep timeout(s) (held command), '
+                 f'{int(run.value("controller", "safe_commands", 0.0))} zero-torque safe command(s), '
+                 f'{int(run.value("controller", "late_estimates", 0.0))} late estimate(s); published − in the '
+                 f'bag: {lost}')
