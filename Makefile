@@ -12,7 +12,7 @@ STAMP   := $(VENV)/.installed
 KERNELS := soft_gripper_sdre/control/__pycache__/kernels.stamp
 OUT     ?= runs/demo
 
-.PHONY: demo test test-fast venv kernels model bench sweep input-matrix lock clean
+.PHONY: demo test test-fast venv kernels model bench sweep input-matrix lock clean two-hands two-hosts
 
 $(STAMP): requirements.txt setup.py setup.cfg package.xml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -57,6 +57,15 @@ input-matrix: $(STAMP)
 .PHONY: evaluate
 evaluate: $(KERNELS)
 	$(PY) -m soft_gripper_sdre.tools.evaluate --out runs/evaluate
+
+# docs/deployment.md: two hands on one ROS domain, each in its own namespace with its own clock
+two-hands: $(KERNELS)
+	$(PY) -m soft_gripper_sdre.tools.hands --out runs/hands
+
+# docs/deployment.md: the graph split across two hosts (two network namespaces joined by a veth
+# pair; needs root and iproute2), beside the same grasp on one host, then with the link cut 0.5 s
+two-hosts: $(KERNELS)
+	$(PY) -m soft_gripper_sdre.tools.two_hosts --out runs/two_hosts
 
 # The lock is pip's own resolution (a dry-run report), so every line names a
 # distribution the index serves (pip freeze would also list the dist-info

@@ -25,7 +25,7 @@ WINDOW = 0.1
 ITEMS = {'fuzz_simulator': 1, 'fuzz_estimator': 1, 'fuzz_trajectory': 1, 'fuzz_controller': 1,
          'fuzz_trajectory_clock': 1, 'lost_estimates': 2, 'crashed_controller': 3,
          'crashed_estimator': 4, 'crashed_trajectory': 4, 'riccati_trouble': 5, 'recording': 8,
-         'clock_jump_back': 9}
+         'clock_jump_back': 9, 'link_down': 10}
 #: environment variable naming the directory of the outcome records
 RECORDS_ENV = 'FAULTS_OUT'
 

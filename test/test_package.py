@@ -125,6 +125,8 @@ def test_colcon_build_installs_every_node(tmp_path):
     assert (install / 'share' / 'ament_index' / 'resource_index' / 'packages' / 'soft_gripper_sdre').is_file()
     assert (install / 'share' / 'soft_gripper_sdre' / 'package.xml').is_file()
     assert list((install / 'share' / 'soft_gripper_sdre' / 'config').glob('*.yaml'))
+    assert (install / 'share' / 'soft_gripper_sdre' / 'launch' / 'grasp.launch.py').is_file(), \
+        'ros2 launch soft_gripper_sdre grasp.launch.py would not find the launch file'
 
 
 @pytest.mark.parametrize('node', NODES)

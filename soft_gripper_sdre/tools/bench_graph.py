@@ -31,6 +31,7 @@ from pathlib import Path
 import tempfile
 import time
 
+from soft_gripper_sdre.nodes.graph import GraphSpec, grasp_graph
 from soft_gripper_sdre.tools.bench_hog import PHASES, SETTLE_S, CpuHog, phase_figures
 from soft_gripper_sdre.tools.procs import WIRED_BEFORE_START, DiagnosticsMonitor, Graph, ros_env
 
@@ -119,10 +120,13 @@ def _graph_run(seconds: float, mode: str, record: Path | None, all_at_1khz: bool
               'simulator': {'duration': seconds, 'mode': mode, 'min_tip_subscribers': 2 + bool(record),
                             'min_diagnostics_subscribers': 1 + bool(record),   # the monitor (+ recorder)
                             **fast}}
+    if record:
+        params['recorder'] = {'output': str(record)}
+    spec = grasp_graph(record=bool(record), parameters=params)
     monitor = DiagnosticsMonitor(env, 'bench_monitor')
     steps = int(round(seconds / 0.001))
     try:
-        cpu, launched = _run(graph_env=env, monitor=monitor, params=params, record=record, steps=steps,
+        cpu, launched = _run(graph_env=env, monitor=monitor, spec=spec, record=record, steps=steps,
                              timeout=timeout, during=during)
     finally:
         monitor.close()
@@ -135,15 +139,15 @@ def _graph_run(seconds: float, mode: str, record: Path | None, all_at_1khz: bool
     return out, monitor.history
 
 
-def _run(graph_env: dict[str, str], monitor: DiagnosticsMonitor, params: dict, record: Path | None, steps: int,
+def _run(graph_env: dict[str, str], monitor: DiagnosticsMonitor, spec: GraphSpec, record: Path | None, steps: int,
          timeout: float, during=None) -> tuple[dict[str, float], float]:
     """:func:`run_graph`'s processes: start, step, drain, stop; returns CPU seconds per node
     while the simulator stepped, and the monotonic time the processes were launched."""
     with tempfile.TemporaryDirectory(prefix='sgs_bench_graph_') as logs, Graph(graph_env, Path(logs)) as graph:
-        names = (('recorder',) if record else ()) + LOOP_NODES
+        names = spec.names[:-1]
         launched = time.monotonic()
-        for name in names:
-            graph.start(name, {'output': str(record)} if name == 'recorder' else params[name])
+        for node in spec.nodes[:-1]:
+            graph.start_node(node)
         # every node is up (its diagnostics arrive) before the simulator starts stepping
         monitor.spin_until(lambda: all(n in monitor.values for n in names)
                            or any(not p.alive() for p in graph.procs.values()), 60.0)
@@ -155,7 +159,7 @@ def _run(graph_env: dict[str, str], monitor: DiagnosticsMonitor, params: dict, r
             monitor.spin_until(lambda: all(monitor.get('recorder', f'publishers {t}') > 0
                                            for t in WIRED_BEFORE_START), 30.0)
         cpu0 = {n: _cpu_seconds(graph.procs[n].popen.pid) for n in names}
-        graph.start('simulator', params['simulator'])
+        graph.start_node(spec.node('simulator'))
 
         def poll() -> None:
             monitor.spin_until(lambda: False, 0.05)

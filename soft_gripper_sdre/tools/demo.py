@@ -24,12 +24,8 @@ import sys
 import time
 
 from soft_gripper_sdre.control.laws import GRAPH_LAWS
+from soft_gripper_sdre.nodes.graph import grasp_graph
 from soft_gripper_sdre.tools.procs import WIRED_BEFORE_START, DiagnosticsMonitor, Graph, ros_env
-
-#: start order: listeners first, the simulator (which waits for them) last; they stop in reverse,
-#: so the controller goes right after the simulator, before its estimate_watchdog (wall time,
-#: once the estimates stop) would report ERROR
-NODES = ('recorder', 'estimator', 'trajectory', 'controller', 'simulator')
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -77,16 +73,17 @@ def run_demo(out: Path, duration: float, model: Path | None = None, noise: float
         params['simulator']['seed'] = seed
     if law is not None:
         params['controller']['law'] = law
+    spec = grasp_graph(parameters=params)
 
     if progress:
-        print(f'starting the node graph ({", ".join(NODES)}) on ROS_DOMAIN_ID {env["ROS_DOMAIN_ID"]}, '
+        print(f'starting the node graph ({", ".join(spec.names)}) on ROS_DOMAIN_ID {env["ROS_DOMAIN_ID"]}, '
               f'logs in {out / "logs"} ...', file=sys.stderr, flush=True)
     monitor = DiagnosticsMonitor(env, 'demo_monitor')
     bar = None
     t_wall = time.monotonic()
     with Graph(env, out / 'logs') as graph:
-        for node in NODES[:-1]:
-            graph.start(node, params[node])
+        for node in spec.nodes[:-1]:
+            graph.start_node(node)
         # every stream the nodes publish reaches the recorder before the first step is taken
         # (the simulator then waits for its own peers: min_tip_subscribers)
         deadline = time.monotonic() + 60.0
@@ -104,7 +101,7 @@ def run_demo(out: Path, duration: float, model: Path | None = None, noise: float
                                    f'{graph.procs["recorder"].log_tail()}')
             monitor.poll()
             time.sleep(0.05)
-        graph.start('simulator', params['simulator'])
+        graph.start_node(spec.node('simulator'))
         if progress:
             from tqdm import tqdm
             bar = tqdm(total=duration, desc='grasp (sim s)', unit='s', bar_format=(

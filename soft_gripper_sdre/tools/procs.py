@@ -1,8 +1,10 @@
 """Start and stop the node graph as separate processes (what ``ros2 run`` would start).
 
-Used by the demo and the multi-process tests. Each node runs as
-``python -m soft_gripper_sdre.nodes.<name> --ros-args --params-file config/<name>.yaml -p ...`` with
-its stdout/stderr in a log file, DDS kept on loopback.
+Used by the demo, the benchmarks, the multi-hand and multi-host runs and the multi-process tests.
+Each node runs as the command of its :class:`~soft_gripper_sdre.nodes.graph.NodeSpec`,
+``python -m soft_gripper_sdre.nodes.<name> --ros-args --params-file config/<name>.yaml -p ...``
+(optionally behind a prefix such as ``ip netns exec <host>``), with its stdout/stderr in a log
+file, DDS kept on loopback unless the caller's environment says otherwise.
 """
 from __future__ import annotations
 
@@ -15,20 +17,13 @@ import subprocess
 import sys
 import time
 
-CONFIG_DIR = Path(__file__).resolve().parents[2] / 'config'
+from soft_gripper_sdre.nodes.graph import RECORDED_BEFORE_START, NodeSpec, default_params_file
+
 #: topics whose publishers a recorder must have matched before the simulator starts stepping
-WIRED_BEFORE_START = ('/state_estimate', '/torque_commands', '/grasp_reference')
-
-
-def default_params_file(node: str) -> Path | None:
-    """The shipped ``config/<node>.yaml`` in a source tree or a colcon install, if any."""
-    candidates = [CONFIG_DIR / f'{node}.yaml']
-    try:
-        from ament_index_python.packages import get_package_share_directory
-        candidates.append(Path(get_package_share_directory('soft_gripper_sdre')) / 'config' / f'{node}.yaml')
-    except Exception:  # noqa: BLE001 — no ament index in a pip environment: only the source tree
-        pass
-    return next((p for p in candidates if p.is_file()), None)
+#: (the root graph's names)
+WIRED_BEFORE_START = tuple(f'/{topic}' for topic in RECORDED_BEFORE_START)
+#: the environment variables that decide whom a DDS participant discovers and how it talks to them
+DDS_ENV = ('ROS_DOMAIN_ID', 'ROS_AUTOMATIC_DISCOVERY_RANGE', 'ROS_STATIC_PEERS', 'FASTDDS_BUILTIN_TRANSPORTS')
 
 
 def ros_env(domain_id: int | None = None) -> dict[str, str]:
@@ -41,16 +36,6 @@ def ros_env(domain_id: int | None = None) -> dict[str, str]:
     env.setdefault('PYTHONUNBUFFERED', '1')
     env.setdefault('OMP_NUM_THREADS', '1')
     return env
-
-
-def _param_arg(key: str, value) -> str:
-    if isinstance(value, bool):
-        text = 'true' if value else 'false'
-    elif isinstance(value, (list, tuple)):
-        text = '[' + ','.join(repr(v) if isinstance(v, str) else str(v) for v in value) + ']'
-    else:
-        text = str(value)
-    return f'{key}:={text}'
 
 
 @dataclass
@@ -81,22 +66,32 @@ class Graph:
 
     def start(self, node: str, params: dict | None = None, params_file: Path | None | str = 'default',
               name: str | None = None) -> NodeProcess:
-        name = name or node
+        """Start the node ``node`` of the root namespace with its shipped parameters file (or
+        ``params_file``) and the overrides ``params``; ``name`` keys the process and its log."""
         if params_file == 'default':
             params_file = default_params_file(node)
-        cmd = [sys.executable, '-m', f'soft_gripper_sdre.nodes.{node}', '--ros-args']
-        if params_file is not None:
-            cmd += ['--params-file', str(params_file)]
-        for key, value in (params or {}).items():
-            cmd += ['-p', _param_arg(key, value)]
+        return self.start_node(NodeSpec(node, node, params_file=params_file, parameters=dict(params or {})),
+                               key=name)
+
+    def start_node(self, spec: NodeSpec, *, key: str | None = None, prefix: tuple[str, ...] = (),
+                   env: dict[str, str] | None = None) -> NodeProcess:
+        """Start the node ``spec`` describes as its own process.
+
+        Args:
+            spec: the node (its command line is :meth:`NodeSpec.command`).
+            key: the process's name in :attr:`procs` and of its log file (default: the node name).
+            prefix: run the command behind this, e.g. ``('ip', 'netns', 'exec', 'host_b')``.
+            env: the process's environment (default: the graph's).
+        """
+        key = key or spec.name
         self.log_dir.mkdir(parents=True, exist_ok=True)
-        log_path = self.log_dir / f'{name}.log'
+        log_path = self.log_dir / f'{key}.log'
         log = open(log_path, 'w', encoding='utf-8')  # noqa: SIM115 — closed by the child's exit
-        popen = subprocess.Popen(cmd, env=self.env, stdout=log, stderr=subprocess.STDOUT,
-                                 stdin=subprocess.DEVNULL)
+        popen = subprocess.Popen([*prefix, *spec.command(sys.executable)], env=env or self.env, stdout=log,
+                                 stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
         log.close()
-        proc = NodeProcess(name, popen, log_path)
-        self.procs[name] = proc
+        proc = NodeProcess(key, popen, log_path)
+        self.procs[key] = proc
         return proc
 
     def stop(self, name: str, timeout: float = 10.0, sig: int = signal.SIGINT) -> int:
@@ -146,7 +141,7 @@ class DiagnosticsMonitor:
     """
 
     def __init__(self, env: dict[str, str], name: str = 'diagnostics_monitor') -> None:
-        os.environ.update({k: env[k] for k in ('ROS_DOMAIN_ID', 'ROS_AUTOMATIC_DISCOVERY_RANGE')})
+        os.environ.update({k: env[k] for k in DDS_ENV if k in env})
         import rclpy
         from rclpy.context import Context
         from rclpy.executors import SingleThreadedExecutor
@@ -155,8 +150,9 @@ class DiagnosticsMonitor:
 
         from soft_gripper_sdre.nodes.topics import DIAGNOSTICS, STREAM_QOS
 
-        self.values: dict[str, dict[str, str]] = {}
-        self.history: dict[str, list[dict[str, str]]] = {}
+        self.values: dict[str, dict[str, str]] = {}         # by node name (the last one heard)
+        self.by_full_name: dict[str, dict[str, str]] = {}   # by fully qualified name
+        self.history: dict[str, list[dict[str, str]]] = {}  # by node name, every status heard
         self._ctx = Context()
         rclpy.init(context=self._ctx)
         self._node = Node(name, context=self._ctx)
@@ -168,14 +164,19 @@ class DiagnosticsMonitor:
     def _on_diag(self, msg) -> None:
         self._taken += 1
         for status in msg.status:       # a status is named by its node's fully qualified name
+            values = {kv.key: kv.value for kv in status.values}
             node = status.name.rsplit('/', 1)[-1]
-            self.values[node] = {kv.key: kv.value for kv in status.values}
-            self.history.setdefault(node, []).append(self.values[node])
+            self.values[node] = values
+            self.by_full_name[status.name] = values
+            self.history.setdefault(node, []).append(values)
 
     def get(self, node: str, key: str, default: float = 0.0) -> float:
-        """The newest value of ``key`` from ``node`` as a number (``default`` if none yet)."""
+        """The newest value of ``key`` from ``node`` as a number (``default`` if none yet).
+        ``node`` is a node name, or a fully qualified one (``/left_hand/simulator``) to tell the
+        nodes of several namespaces apart."""
+        table = self.by_full_name if node.startswith('/') else self.values
         try:
-            return float(self.values.get(node, {}).get(key, default))
+            return float(table.get(node, {}).get(key, default))
         except ValueError:
             return default
 

@@ -1,0 +1,201 @@
+"""The grasp's node graph as data: its nodes, their executables, parameter files, parameter
+overrides, remappings and namespace.
+
+One description serves every way the graph is started:
+
+* :class:`soft_gripper_sdre.tools.procs.Graph` starts each node as the process
+  ``python -m soft_gripper_sdre.nodes.<executable> --ros-args ...`` (:meth:`NodeSpec.command`): the
+  demo, the graph benchmarks, the multi-hand and multi-host runs and the tests;
+* ``launch/grasp.launch.py`` turns the same specs into ``launch_ros`` nodes for ``ros2 launch``.
+
+Pure data: no rclpy import, so a launch file, a supervisor in another network namespace or a
+test can read it without a ROS context.
+
+**Time with several hands.** The simulator publishes sim time on ``/clock``, the absolute name every
+ROS tool expects. Two simulators on one domain would both publish there, and a node of one hand
+would step its clock back and forth between the two. So a graph in a namespace remaps ``/clock``
+to the relative ``clock`` for all its nodes: the hand ``/left_hand`` keeps its own time on
+``/left_hand/clock`` (``clock=`` of :func:`grasp_graph` names another topic). Every other topic of
+the graph is relative already and lands under the namespace; ``/diagnostics`` stays shared, its
+statuses named by each node's fully qualified name (``/left_hand/simulator``).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+import re
+import sys
+from typing import Any, Mapping
+
+PACKAGE = 'soft_gripper_sdre'
+#: the source tree's parameter files (a colcon install has them under share/, see default_params_file)
+CONFIG_DIR = Path(__file__).resolve().parents[2] / 'config'
+#: sim time, as the simulator publishes it (nodes/topics.py CLOCK)
+CLOCK = '/clock'
+#: start order: listeners first, the simulator (which waits for them) last. A run stops in reverse,
+#: so the controller goes right after the simulator, before its estimate_watchdog (wall time,
+#: once the clock stops) would report ERROR and send a zero command
+GRASP_NODES = ('recorder', 'estimator', 'trajectory', 'controller', 'simulator')
+#: the nodes that read ``tip_positions``, so the simulator waits for them before its first step
+TIP_READERS = ('recorder', 'estimator', 'trajectory')
+#: topics (relative to the graph's namespace) whose publishers a recorder must have matched before
+#: the simulator starts stepping, so the bag holds the run from its first instant
+RECORDED_BEFORE_START = ('state_estimate', 'torque_commands', 'grasp_reference')
+
+_NAME_TOKEN = re.compile(r'[A-Za-z_][A-Za-z0-9_]*')
+
+
+def default_params_file(node: str) -> Path | None:
+    """The shipped ``config/<node>.yaml`` in a source tree or a colcon install, if any."""
+    candidates = [CONFIG_DIR / f'{node}.yaml']
+    try:
+        from ament_index_python.packages import get_package_share_directory
+        candidates.append(Path(get_package_share_directory(PACKAGE)) / 'config' / f'{node}.yaml')
+    except Exception:  # noqa: BLE001 — no ament index in a pip environment: only the source tree
+        pass
+    return next((p for p in candidates if p.is_file()), None)
+
+
+def parameter_argument(key: str, value: Any) -> str:
+    """``key:=value`` for ``--ros-args -p``: booleans as YAML ``true``/``false``, lists in brackets."""
+    if isinstance(value, bool):
+        text = 'true' if value else 'false'
+    elif isinstance(value, (list, tuple)):
+        text = '[' + ','.join(repr(v) if isinstance(v, str) else str(v) for v in value) + ']'
+    else:
+        text = str(value)
+    return f'{key}:={text}'
+
+
+def normalize_namespace(namespace: str) -> str:
+    """``'left_hand'``, ``'/left_hand'`` → ``'/left_hand'``; ``''`` and ``'/'`` → ``''`` (the root).
+
+    Raises:
+        ValueError: not a valid ROS namespace (tokens of letters, digits and underscores, not
+            starting with a digit).
+    """
+    tokens = [t for t in namespace.strip().strip('/').split('/')] if namespace.strip('/ ') else []
+    bad = [t for t in tokens if not _NAME_TOKEN.fullmatch(t)]
+    if bad:
+        raise ValueError(f'namespace {namespace!r}: {bad[0]!r} is not a valid name token '
+                         '(letters, digits and underscores, not starting with a digit)')
+    return ''.join('/' + t for t in tokens)
+
+
+@dataclass(frozen=True)
+class NodeSpec:
+    """One node of the graph: what ``ros2 run`` / ``ros2 launch`` starts, and with what."""
+
+    name: str                                   # node name
+    executable: str                             # console script = module under soft_gripper_sdre.nodes
+    namespace: str = ''                         # '' (root) or '/left_hand'
+    params_file: Path | None = None             # a ROS parameters file keyed /**/<name>
+    parameters: Mapping[str, Any] = field(default_factory=dict)     # overrides, after the file
+    remappings: tuple[tuple[str, str], ...] = ()
+
+    @property
+    def full_name(self) -> str:
+        """The node's fully qualified name (``/left_hand/simulator``), as in its /diagnostics."""
+        return f'{self.namespace}/{self.name}'
+
+    @property
+    def module(self) -> str:
+        return f'{PACKAGE}.nodes.{self.executable}'
+
+    def ros_arguments(self) -> list[str]:
+        """``--ros-args`` and everything after it: namespace and node name (when not the
+        executable's own), the parameters file, each override, each remapping."""
+        args = ['--ros-args']
+        if self.namespace:
+            args += ['-r', f'__ns:={self.namespace}']
+        if self.name != self.executable:
+            args += ['-r', f'__node:={self.name}']
+        if self.params_file is not None:
+            args += ['--params-file', str(self.params_file)]
+        for key, value in self.parameters.items():
+            args += ['-p', parameter_argument(key, value)]
+        for source, target in self.remappings:
+            args += ['-r', f'{source}:={target}']
+        return args
+
+    def command(self, python: str = sys.executable) -> list[str]:
+        """The process that runs this node: ``python -m soft_gripper_sdre.nodes.<executable> --ros-args …``."""
+        return [python, '-m', self.module, *self.ros_arguments()]
+
+    def with_parameters(self, **parameters: Any) -> NodeSpec:
+        """The same node with ``parameters`` added to (or replacing) its overrides."""
+        return replace(self, parameters={**self.parameters, **parameters})
+
+
+@dataclass(frozen=True)
+class GraphSpec:
+    """A graph of nodes in one namespace, in start order (see :data:`GRASP_NODES`)."""
+
+    namespace: str
+    nodes: tuple[NodeSpec, ...]
+    remappings: tuple[tuple[str, str], ...] = ()    # applied to every node
+    lead: str = 'simulator'                         # the node whose exit ends a run
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(n.name for n in self.nodes)
+
+    def node(self, name: str) -> NodeSpec:
+        """The node called ``name``; KeyError if the graph has none."""
+        for spec in self.nodes:
+            if spec.name == name:
+                return spec
+        raise KeyError(f'the graph has no node {name!r} (nodes: {", ".join(self.names)})')
+
+    def topic(self, name: str) -> str:
+        """The fully qualified topic a node of this graph uses for ``name`` (remapped, then
+        expanded in the namespace): ``'tip_positions'`` → ``'/left_hand/tip_positions'``,
+        ``'/clock'`` → ``'/left_hand/clock'``, ``'/diagnostics'`` → ``'/diagnostics'``."""
+        absolute = name if name.startswith('/') else f'{self.namespace}/{name}'
+        for source, target in self.remappings:
+            if absolute == (source if source.startswith('/') else f'{self.namespace}/{source}'):
+                return target if target.startswith('/') else f'{self.namespace}/{target}'
+        return absolute
+
+    def with_parameters(self, node: str, **parameters: Any) -> GraphSpec:
+        """The same graph with ``parameters`` added to ``node``'s overrides."""
+        self.node(node)
+        return replace(self, nodes=tuple(n.with_parameters(**parameters) if n.name == node else n
+                                         for n in self.nodes))
+
+    def without(self, *names: str) -> GraphSpec:
+        """The graph without the nodes ``names`` (e.g. the recorder)."""
+        return replace(self, nodes=tuple(n for n in self.nodes if n.name not in names))
+
+
+def grasp_graph(namespace: str = '', *, record: bool = True,
+                parameters: Mapping[str, Mapping[str, Any]] | None = None,
+                clock: str | None = None) -> GraphSpec:
+    """The grasp graph: recorder (if ``record``), estimator, trajectory, controller, simulator.
+
+    Args:
+        namespace: '' for the root, or the hand's namespace (``'left_hand'`` or ``'/left_hand'``).
+        record: include the recorder (its ``output`` parameter names the bag directory).
+        parameters: per node name, overrides on top of its ``config/<node>.yaml``. The simulator
+            waits for as many ``tip_positions`` readers as the graph has (``min_tip_subscribers``)
+            unless told otherwise.
+        clock: the topic that carries this graph's sim time. Default ``/clock`` in the root
+            namespace and the relative ``clock`` in any other (one clock per hand).
+
+    Raises:
+        ValueError: a bad namespace, or parameters for a node the graph does not have.
+    """
+    namespace = normalize_namespace(namespace)
+    names = GRASP_NODES if record else tuple(n for n in GRASP_NODES if n != 'recorder')
+    parameters = dict(parameters or {})
+    unknown = sorted(set(parameters) - set(names))
+    if unknown:
+        raise ValueError(f'parameters for {unknown}: the graph has the nodes {", ".join(names)}')
+    clock = clock or ('clock' if namespace else CLOCK)
+    remappings = () if clock == CLOCK else ((CLOCK, clock),)
+    simulator = dict(parameters.get('simulator', {}))
+    simulator.setdefault('min_tip_subscribers', sum(n in TIP_READERS for n in names))
+    parameters['simulator'] = simulator
+    nodes = tuple(NodeSpec(name, name, namespace, default_params_file(name), dict(parameters.get(name, {})),
+                           remappings) for name in names)
+    return GraphSpec(namespace, nodes, remappings)

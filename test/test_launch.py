@@ -1,0 +1,80 @@
+"""launch/grasp.launch.py: its node list is the graph's description, without the launch packages.
+
+The launch file imports ``launch``/``launch_ros`` only inside ``generate_launch_description``, so
+these tests load it in the project's environment (which has neither) and compare what it would
+start with :func:`soft_gripper_sdre.nodes.graph.grasp_graph`.
+"""
+import ast
+import importlib.util
+from pathlib import Path
+
+import pytest
+
+from soft_gripper_sdre.nodes.graph import grasp_graph
+
+LAUNCH_FILE = Path(__file__).resolve().parents[1] / 'launch' / 'grasp.launch.py'
+
+
+@pytest.fixture(scope='module')
+def launch_module():
+    spec = importlib.util.spec_from_file_location('grasp_launch', LAUNCH_FILE)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _as_launched(graph_spec) -> list[dict]:
+    """What launch_ros would get for each node of the description."""
+    return [{'package': 'soft_gripper_sdre', 'executable': n.executable, 'name': n.name,
+             'namespace': n.namespace.lstrip('/') or None,
+             'parameters': [str(n.params_file)] + ([dict(n.parameters)] if n.parameters else []),
+             'remappings': list(n.remappings)} for n in graph_spec.nodes]
+
+
+def test_the_launch_packages_are_imported_only_when_launching():
+    tree = ast.parse(LAUNCH_FILE.read_text(encoding='utf-8'))
+    top = [n for n in tree.body if isinstance(n, (ast.Import, ast.ImportFrom))]
+    assert [getattr(n, 'module', None) for n in top] == ['soft_gripper_sdre.nodes.graph']
+    inner = {n.module.split('.')[0] for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n not in top}
+    assert inner == {'launch', 'launch_ros'}
+
+
+def test_default_launch_is_the_root_graph_without_recorder(launch_module):
+    nodes = launch_module.grasp_nodes()
+    assert nodes == _as_launched(grasp_graph(record=False, parameters={'simulator': {'duration': 6.0}}))
+    assert [n['executable'] for n in nodes] == ['estimator', 'trajectory', 'controller', 'simulator']
+    assert all(Path(n['parameters'][0]).is_file() and n['remappings'] == [] for n in nodes)
+    defaults = {name: default for name, default, _ in launch_module.ARGUMENTS}
+    assert launch_module.grasp_nodes(**defaults) == nodes
+
+
+def test_a_hand_in_a_namespace_with_every_argument(launch_module):
+    nodes = launch_module.grasp_nodes(namespace='left_hand', duration='2.5', law='sdre', noise='0.2', seed='7',
+                                      record='true', output='/tmp/left_bag')
+    expected = grasp_graph('left_hand', parameters={
+        'simulator': {'duration': 2.5, 'noise_std': 0.2e-3, 'seed': 7}, 'controller': {'law': 'sdre'},
+        'recorder': {'output': '/tmp/left_bag'}})
+    assert nodes == _as_launched(expected)
+    assert {n['namespace'] for n in nodes} == {'left_hand'}
+    assert all(n['remappings'] == [('/clock', 'clock')] for n in nodes)
+    simulator = nodes[-1]['parameters'][1]
+    assert simulator == {'duration': 2.5, 'noise_std': pytest.approx(2e-4), 'seed': 7, 'min_tip_subscribers': 3}
+
+
+@pytest.mark.parametrize('arguments, needle', [
+    ({'duration': 'six'}, "duration:='six' is not a number"),
+    ({'seed': '1.5'}, "seed:='1.5' is not a number"),
+    ({'record': 'maybe'}, "record:='maybe' must be 'true' or 'false'"),
+    ({'namespace': '2nd_hand'}, 'is not a valid name token'),
+])
+def test_bad_arguments_are_named(launch_module, arguments, needle):
+    with pytest.raises(ValueError, match=needle.replace('(', r'\(').replace('.', r'\.')):
+        launch_module.grasp_nodes(**arguments)
+
+
+def test_the_declared_arguments_are_the_ones_grasp_nodes_takes(launch_module):
+    """The arguments documented in the launch file are exactly the ones grasp_nodes takes."""
+    import inspect
+    names = [name for name, _, _ in launch_module.ARGUMENTS]
+    assert names == list(inspect.signature(launch_module.grasp_nodes).parameters)
+    assert callable(launch_module.generate_launch_description)
