@@ -33,8 +33,8 @@ CONFIG_DIR = Path(__file__).resolve().parents[2] / 'config'
 #: sim time, as the simulator publishes it (nodes/topics.py CLOCK)
 CLOCK = '/clock'
 #: start order: listeners first, the simulator (which waits for them) last. A run stops in reverse,
-#: so the controller goes right after the simulator, before its estimate_watchdog (wall time,
-#: once the clock stops) would report ERROR and send a zero command
+#: so the controller goes right after the simulator, before its estimate_watchdog (wall time, once
+#: the estimates stop) would report ERROR
 GRASP_NODES = ('recorder', 'estimator', 'trajectory', 'controller', 'simulator')
 #: the nodes that read ``tip_positions``, so the simulator waits for them before its first step
 TIP_READERS = ('recorder', 'estimator', 'trajectory')
