@@ -94,8 +94,9 @@ def test_split_graph_tracks_exactly_as_on_one_host(host_pair, tmp_path):
 @pytest.mark.timeout(150)
 def test_link_down_for_half_a_second_and_the_loop_resumes_by_itself(host_pair, tmp_path):
     """``ip link set <veth> down`` mid-grasp for 0.5 s: the simulator holds its last command at
-    each lockstep timeout (0.1 s here), nothing crashes or sends a non-finite torque, the loop
-    resumes by itself when the link is back, and the bag says what was lost."""
+    the first lockstep timeout (0.1 s here) and steps the lost commands' periods with zero torque
+    after that, nothing crashes or sends a non-finite torque, the loop resumes by itself when the
+    link is back, and the bag and the counters say what was lost."""
     params = {**PARAMETERS, 'simulator': {'lockstep_timeout': 0.1}}
     run, extra = run_split(host_pair, tmp_path, DURATION, params, fault_at=0.5, fault_seconds=LINK_DOWN_S,
                            timeout=150.0)
@@ -105,20 +106,21 @@ def test_link_down_for_half_a_second_and_the_loop_resumes_by_itself(host_pair, t
     assert all(code == 0 for code in run.exit_codes.values()), run.exit_codes       # nothing crashed
     assert finite_torques(run)
     timeouts = int(run.value('simulator', 'timeouts', 0.0))
-    assert timeouts >= 1                                       # the simulator held while cut off
-    assert run.value('simulator', 'steps') == STEPS            # ... and went on to the end by itself
+    safe = int(run.value('simulator', 'safe_periods', 0.0))
+    assert timeouts >= 1                                       # the simulator held while cut off,
+    assert run.value('simulator', 'steps') == STEPS            # then stepped on and to the end
     assert run.value('estimator', 'resets', 0.0) == 0 and run.value('controller', 'resets', 0.0) == 0
-    # the bag's accounting: what the nodes counted as published against what the bag holds; the
-    # link's losses are resent (reliable), so every estimate around the cut made it across
+    # the bag's accounting: what the nodes counted as published against what the bag holds (the
+    # recorder's readers keep a deep history, so the link's losses are resent to it); the loop's
+    # own readers keep only the newest message, so what the estimator skipped while the link was
+    # down it counts as missed: every instant has an estimate in the bag or is counted missing
     accounts = published_and_recorded(run)
     lost = {t: n - got for t, (n, got) in accounts.items()}
     assert all(n is not None for n, _ in accounts.values()), accounts
     assert all(0 <= v < 0.02 * STEPS for v in lost.values()), lost
+    missed = int(run.value('estimator', 'missed_periods', 0.0))
+    assert accounts['state_estimate'][0] + missed in (STEPS, STEPS + 1), (accounts, missed)
     data = extract_run(run.bag)
-    cut_ms = int(fault['down_sim_time'] * 1e3)
-    around = set(range(max(0, cut_ms - 50), min(STEPS, cut_ms + 200) + 1))
-    assert around <= set(np.round(data.estimate.t * 1e3).astype(int).tolist()), sorted(
-        around - set(np.round(data.estimate.t * 1e3).astype(int).tolist()))[:10]
     fingers = report(run.bag, tmp_path / 'report')['fingers']
     assert worst_pct(fingers) <= TARGET_PCT, fingers
     # back on target: the moving free-space error of the grasping fingers from the cut on (at
@@ -135,11 +137,10 @@ def test_link_down_for_half_a_second_and_the_loop_resumes_by_itself(host_pair, t
     assert recovery <= 0.5, recovery
     problems = trouble(run)
     print(f'link down {LINK_DOWN_S} s at t = {fault["down_sim_time"]:.3f} s: {timeouts} lockstep timeouts, '
+          f'{safe} safe periods, {missed} missed by the estimator, '
           f'counters {problems}, lost {lost}, recovery {recovery:.3f} s, worst finger {worst_pct(fingers):.2f} %')
     record('link_down', injected=f'ip link set <veth> down for {LINK_DOWN_S} s at t ≈ {fault["down_sim_time"]:.2f} s '
            '(graph split across two network namespaces, UDP only)', times=1, crashes=0, nonfinite_outputs=0,
            messages_lost=sum(lost.values()), recovery_s=recovery,
-           notes=f'{timeouts} lockstep timeout(s) (held command), '
-                 f'{int(run.value("controller", "safe_commands", 0.0))} zero-torque safe command(s), '
-                 f'{int(run.value("controller", "late_estimates", 0.0))} late estimate(s); published − in the '
-                 f'bag: {lost}')
+           notes=f'{timeouts} lockstep timeout(s) (held command), {safe} zero-torque safe period(s), '
+                 f'{missed} period(s) the estimator skipped; published − in the bag: {lost}')

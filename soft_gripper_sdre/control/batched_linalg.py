@@ -3,7 +3,8 @@
 The reference path's checks and the feedforward law's model inversion work on 2×2 matrices of all
 fingers at once. A finger whose matrix is singular must not stop the others, so every function
 here works on a stack and marks a failed matrix with NaN or False (which the callers' checks then
-reject). See docs/design/fast_riccati.md for why the solve goes through numpy's gufunc directly.
+reject). docs/design/compiled_kernel.md ("The batched 2×2 solve") says why the solve goes through
+numpy's gufunc directly.
 """
 from __future__ import annotations
 

@@ -339,6 +339,8 @@ def compare(one: GraphRun, two: GraphRun, extra: dict, faulted: tuple[GraphRun, 
         result['link_fault'] = {
             'fault': fault_extra['fault'], 'exit_codes': run.exit_codes,
             'steps': run.value('simulator', 'steps'), 'timeouts': run.value('simulator', 'timeouts', 0.0),
+            'safe_periods': run.value('simulator', 'safe_periods', 0.0),
+            'missed_by_estimator': run.value('estimator', 'missed_periods', 0.0),
             'trouble': trouble(run), 'finite_torques': finite_torques(run),
             'published_and_recorded': published_and_recorded(run),
             'tracking': report(run.bag, Path(out) / 'link_fault')['fingers'], 'timing': timing(run)}
@@ -374,6 +376,8 @@ def summary(result: dict) -> str:
         worst_fault = max(f['rmse_pct'] or 0.0 for f in fault['tracking'].values())
         lines.append(f'  link down {fault["fault"]["seconds"]:g} s at t = {fault["fault"]["down_sim_time"]:.2f} s: '
                      f'{int(fault["steps"])} steps, {int(fault["timeouts"])} lockstep timeouts (held command), '
+                     f'{int(fault["safe_periods"])} periods stepped with zero torque for lost commands, '
+                     f'{int(fault["missed_by_estimator"])} tips the estimator skipped, '
                      f'torques finite: {fault["finite_torques"]}, counters {fault["trouble"]}; '
                      f'messages lost (published − in the bag) {lost}; worst finger {worst_fault:.2f} %')
     return '\n'.join(lines)
