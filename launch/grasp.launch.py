@@ -1,7 +1,7 @@
 """The grasp graph for ``ros2 launch`` on a ROS 2 Jazzy install.
 
     ros2 launch soft_gripper_sdre grasp.launch.py [namespace:=left_hand] [duration:=6.0]
-        [law:=sdre_ff] [noise:=0.05] [seed:=0] [record:=true] [output:=runs/grasp_bag]
+        [law:=sdre_ff] [noise:=0.05] [seed:=0] [record:=true] [output:=runs/grasp_bag] [startup_timeout:=300]
 
 Starts the recorder (with ``record:=true``), the estimator, the trajectory node, the controller
 and the simulator of :func:`soft_gripper_sdre.nodes.graph.grasp_graph`, the same description the
@@ -27,6 +27,8 @@ ARGUMENTS = (
     ('seed', '', "seed of the measurement noise ('' = config/simulator.yaml)"),
     ('record', 'false', 'record every topic of the graph to a rosbag2 (MCAP) directory'),
     ('output', '', "with record:=true, the bag directory to create ('' = rosbag2_<date>-<time> here)"),
+    ('startup_timeout', '300', 'wall time the simulator waits for the controller and its tip readers before '
+     'stepping anyway [s]; the first launch of a fresh install compiles the control kernels first'),
 )
 
 _TRUE, _FALSE = ('true', '1', 'yes', 'on'), ('false', '0', 'no', 'off', '')
@@ -40,7 +42,7 @@ def _number(name: str, text: str, kind=float):
 
 
 def grasp_nodes(namespace: str = '', duration: str = '6.0', law: str = '', noise: str = '', seed: str = '',
-                record: str = 'false', output: str = '') -> list[dict]:
+                record: str = 'false', output: str = '', startup_timeout: str = '300') -> list[dict]:
     """The launch arguments (strings, as launch gives them) → one dict per node, for
     ``launch_ros.actions.Node(**d)``: package, executable, name, namespace (relative, None at the
     root), parameters (the params-file path, then a dict of overrides), remappings.
@@ -51,7 +53,9 @@ def grasp_nodes(namespace: str = '', duration: str = '6.0', law: str = '', noise
     if record.strip().lower() not in _TRUE + _FALSE:
         raise ValueError(f"launch argument record:={record!r} must be 'true' or 'false'")
     recording = record.strip().lower() in _TRUE
-    parameters: dict[str, dict] = {'simulator': {'duration': _number('duration', duration)}, 'controller': {}}
+    parameters: dict[str, dict] = {'simulator': {'duration': _number('duration', duration),
+                                                 'startup_timeout': _number('startup_timeout', startup_timeout)},
+                                   'controller': {}}
     if noise.strip():
         parameters['simulator']['noise_std'] = _number('noise', noise) * 1e-3
     if seed.strip():

@@ -41,7 +41,8 @@ def test_the_launch_packages_are_imported_only_when_launching():
 
 def test_default_launch_is_the_root_graph_without_recorder(launch_module):
     nodes = launch_module.grasp_nodes()
-    assert nodes == _as_launched(grasp_graph(record=False, parameters={'simulator': {'duration': 6.0}}))
+    assert nodes == _as_launched(grasp_graph(record=False, parameters={
+        'simulator': {'duration': 6.0, 'startup_timeout': 300.0}}))
     assert [n['executable'] for n in nodes] == ['estimator', 'trajectory', 'controller', 'simulator']
     assert all(Path(n['parameters'][0]).is_file() and n['remappings'] == [] for n in nodes)
     defaults = {name: default for name, default, _ in launch_module.ARGUMENTS}
@@ -50,15 +51,17 @@ def test_default_launch_is_the_root_graph_without_recorder(launch_module):
 
 def test_a_hand_in_a_namespace_with_every_argument(launch_module):
     nodes = launch_module.grasp_nodes(namespace='left_hand', duration='2.5', law='sdre', noise='0.2', seed='7',
-                                      record='true', output='/tmp/left_bag')
+                                      record='true', output='/tmp/left_bag', startup_timeout='60')
     expected = grasp_graph('left_hand', parameters={
-        'simulator': {'duration': 2.5, 'noise_std': 0.2e-3, 'seed': 7}, 'controller': {'law': 'sdre'},
+        'simulator': {'duration': 2.5, 'startup_timeout': 60.0, 'noise_std': 0.2e-3, 'seed': 7},
+        'controller': {'law': 'sdre'},
         'recorder': {'output': '/tmp/left_bag'}})
     assert nodes == _as_launched(expected)
     assert {n['namespace'] for n in nodes} == {'left_hand'}
     assert all(n['remappings'] == [('/clock', 'clock')] for n in nodes)
     simulator = nodes[-1]['parameters'][1]
-    assert simulator == {'duration': 2.5, 'noise_std': pytest.approx(2e-4), 'seed': 7, 'min_tip_subscribers': 3}
+    assert simulator == {'duration': 2.5, 'startup_timeout': 60.0, 'noise_std': pytest.approx(2e-4), 'seed': 7,
+                         'min_tip_subscribers': 3}
 
 
 @pytest.mark.parametrize('arguments, needle', [

@@ -45,6 +45,8 @@ from soft_gripper_sdre.control.trajectory import OTHERS_MODES, GraspProfile, Gra
 
 _DEFAULTS = GraspProfile()     # the parameters' defaults
 PROFILE_FIELDS = tuple(f.name for f in fields(GraspProfile))
+#: most points a plan may hold: it is one message (about 640 bytes a point for four fingers)
+MAX_PLAN_POINTS = 20_000
 
 PARAMS = (
     Param('n_fingers', 4, 'fingers in each tip_positions message', '', 1, 4, read_only=True),
@@ -104,11 +106,11 @@ def _profile(p: dict) -> GraspProfile:
     return profile
 
 
-def plan_offsets(duration: float, step_ns: int) -> np.ndarray:
+def plan_offsets(duration: float, step_ns: int, limit: int | None = None) -> np.ndarray:
     """Point times [ns] of a plan: the grid k·``step_ns`` from 0 to the first point at or after
-    ``duration`` [s] (the grasp's end: the reference is at rest from there on)."""
-    points = -(-int(round(duration * cv.NS)) // step_ns) + 1
-    return step_ns * np.arange(max(points, 2), dtype=np.int64)
+    ``duration`` [s] (the grasp's end: the reference is at rest from there on); at most ``limit``."""
+    points = max(-(-int(round(duration * cv.NS)) // step_ns) + 1, 2)
+    return step_ns * np.arange(points if limit is None else min(points, limit), dtype=np.int64)
 
 
 class TrajectoryNode(Node):
@@ -121,6 +123,11 @@ class TrajectoryNode(Node):
         self.n = p['n_fingers']
         self.profile = _profile(p)
         self.step_ns = int(round(p['horizon_step'] * cv.NS))
+        points = len(plan_offsets(self.profile.duration, self.step_ns, limit=MAX_PLAN_POINTS + 1))
+        if points > MAX_PLAN_POINTS:
+            raise ParameterError(f"parameter 'horizon_step': a grasp of {self.profile.duration:g} s on a "
+                                 f"{p['horizon_step']:g} s grid needs more than {MAX_PLAN_POINTS} points "
+                                 '(one message); take a coarser grid')
         self.jump_ns = int(round(p['reset_on_jump'] * cv.NS))
         self.fixed_rest = _rest_pose(p['rest_pose'], self.n)
         on_runtime_change(self, PARAMS, apply=self._apply)

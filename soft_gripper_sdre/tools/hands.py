@@ -32,7 +32,7 @@ from soft_gripper_sdre.tools.procs import DiagnosticsMonitor, Graph, ros_env
 CONNECT_TIMEOUT = 90.0
 #: lockstep that waits out a node starved of CPU (many processes on few cores, at start-up
 #: especially) instead of stepping without its command, so two runs of one grasp step alike and
-#: any timeout is a fault; the controller's clock watchdog stays longer than the simulator's wait
+#: any timeout is a fault; the controller's estimate watchdog stays longer than the simulator's wait
 PATIENT_LOCKSTEP = {'simulator': {'lockstep_timeout': 2.0}, 'controller': {'estimate_watchdog': 5.0}}
 #: counters that say a message was refused, lost, late or out of order, or a node started over
 TROUBLE = ('stale_command', 'future_command', 'late_command', 'bad_command', 'timeouts', 'safe_periods',
@@ -224,7 +224,7 @@ def published_and_recorded(run: GraphRun) -> dict[str, tuple[int | None, int]]:
         return None if run.value(node, keys[0]) != run.value(node, keys[0]) else int(sum(values))
     published = {'tip_positions': None if steps != steps else int(steps) + 1,
                  'state_estimate': counter('estimator', 'estimates'),
-                 'torque_commands': counter('controller', 'commands', 'safe_commands'),
+                 'torque_commands': counter('controller', 'commands'),
                  'grasp_reference': counter('trajectory', 'references')}
     return {topic: (n, counts.get(run.spec.topic(topic), 0)) for topic, n in published.items()}
 
