@@ -23,7 +23,7 @@ pytestmark = [pytest.mark.ros, pytest.mark.slow]
 GRASPING = {'left_hand': [0, 2], 'right_hand': [1, 3]}
 
 
-@pytest.mark.timeout(150)
+@pytest.mark.timeout(240)
 def test_two_hands_on_one_domain_each_track_their_own_grasp(tmp_path):
     specs = [grasp_graph(hand, parameters={
         'recorder': {'output': str(tmp_path / hand / 'bag')},
