@@ -20,8 +20,7 @@ import pybullet as pb
 
 from soft_gripper_sdre.sim.finger import (CUBE, FINGER_BASE_POSITIONS, FINGER_FRICTION, FINGER_RESTITUTION,
                                           FRICTION_TORQUE, JOINT_SPRINGS, N_JOINTS, PALM, SCENES, TIP_LINK,
-                                          WORLD_GRAVITY, B_MATRIX, JOINT_STIFFNESS, DirectClient, finger_base_rpy,
-                                          load_fingers, rpy_matrix)
+                                          WORLD_GRAVITY, DirectClient, finger_base_rpy, load_fingers, rpy_matrix)
 from soft_gripper_sdre.sim.units import LENGTH_SCALE, TORQUE_SCALE
 
 
@@ -287,59 +286,11 @@ class GripperSim(DirectClient):
 
     # -- analysis helpers (ground truth for tests and evaluation) ----------------------------
     def linearize(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """The finger linearised about its current pose with friction off, in SI (finger scene):
-        M δq̈ + K δq = B u, tip position δp = J δq.
-
-        M (10, 10) [kg·m²] and K (10, 10) [N·m/rad] (joint springs + gravity stiffness ∂g/∂q, by
-        central differences of PyBullet's inverse dynamics with gravity as the mounted base sees
-        it), B (10, 2) (u in N·m), and the tip Jacobian J (3, 10) [m/rad] in the finger's base
-        frame (finite differences of the tip).
-        """
-        if self.config.scene != 'finger':
-            raise ValueError('linearize is defined for the finger scene')
-        cid = self._client
-        body = self._bodies[0]
-        states = pb.getJointStates(body, self._joint_list, physicsClientId=cid)
-        q = [s[0] for s in states]
-        M = np.array(pb.calculateMassMatrix(body, q, physicsClientId=cid))
-        zeros = [0.0] * N_JOINTS
-        h = 1e-6
-        dg = np.zeros((N_JOINTS, N_JOINTS))
-        J = np.zeros((3, N_JOINTS))
-        rot = self._base_rot[0]
-        # calculateInverseDynamics ignores a fixed base's orientation (gravity acts as if the finger
-        # stood upright), so it runs with gravity turned into the base frame, g_b = Rᵀ (0, 0, −g),
-        # as in dynamics.FingerDynamics; the world's gravity is put back right after
-        pb.setGravity(*(rot.T @ np.array(WORLD_GRAVITY)).tolist(), physicsClientId=cid)
-        try:
-            for j in range(N_JOINTS):
-                qp, qm = list(q), list(q)
-                qp[j] += h
-                qm[j] -= h
-                gp = np.array(pb.calculateInverseDynamics(body, qp, zeros, zeros, physicsClientId=cid))
-                gm = np.array(pb.calculateInverseDynamics(body, qm, zeros, zeros, physicsClientId=cid))
-                dg[:, j] = (gp - gm) / (2 * h)                  # ∂g/∂q_j
-        finally:
-            pb.setGravity(*WORLD_GRAVITY, physicsClientId=cid)
-        for j in range(N_JOINTS):
-            qp, qm = list(q), list(q)
-            qp[j] += h
-            qm[j] -= h
-            tips = []
-            for qq in (qp, qm):
-                for k in range(N_JOINTS):
-                    pb.resetJointState(body, k, qq[k], physicsClientId=cid)
-                tips.append(np.asarray(pb.getLinkState(body, TIP_LINK, physicsClientId=cid)[0]))
-            J[:, j] = rot.T @ (tips[0] - tips[1]) / (2 * h)
-        for k, st in enumerate(states):                       # put the finger back exactly
-            pb.resetJointState(body, k, st[0], st[1], physicsClientId=cid)
-        self._read_joints()
-        # scaled world → SI: lengths /20, torques /400 (so inertia /400 too: τ = M q̈)
-        K = (np.diag(JOINT_STIFFNESS) + dg) / TORQUE_SCALE
-        return M / TORQUE_SCALE, K, B_MATRIX.copy(), J / LENGTH_SCALE
+        """The finger linearised about its current pose (:func:`soft_gripper_sdre.sim.linear.linearize`)."""
+        from soft_gripper_sdre.sim.linear import linearize
+        return linearize(self)
 
     def linear_modes(self) -> np.ndarray:
-        """Natural frequencies [Hz] of the finger linearised about its current pose, friction off."""
-        M, K, _, _ = self.linearize()
-        w2 = np.linalg.eigvals(np.linalg.solve(M, K))
-        return np.sort(np.sqrt(np.abs(w2.real))) / (2 * math.pi)
+        """Natural frequencies [Hz] about the current pose (:func:`soft_gripper_sdre.sim.linear.linear_modes`)."""
+        from soft_gripper_sdre.sim.linear import linear_modes
+        return linear_modes(self)
