@@ -16,6 +16,7 @@ def test_one_hop_is_timed_from_a_real_round_trip(raw):
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(240)
 def test_lockstep_run_reports_speed_and_latency_of_every_period():
     d = run_graph(0.3)
     sim = d['simulator']
@@ -28,6 +29,7 @@ def test_lockstep_run_reports_speed_and_latency_of_every_period():
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(240)
 def test_recorder_keeps_every_message_with_all_topics_at_1khz():
     recorded = recorder_loss(0.3)
     for topic in SIM_TOPICS:                      # the state topics really ran at 1 kHz
@@ -36,6 +38,7 @@ def test_recorder_keeps_every_message_with_all_topics_at_1khz():
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(240)
 def test_realtime_latency_comes_back_after_a_cpu_hog():
     """One busy process per core for a second: the loop is late while it runs, and afterwards
     its latency is what it was before (no queue left to work off: every loop reader keeps only

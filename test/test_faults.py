@@ -60,8 +60,10 @@ class DropWindow(Node):
 def test_lost_estimates_are_stepped_safely_by_the_simulator_then_tracking_recovers():
     start, end, duration = 300 * MS, 500 * MS, 1.9
     with ros_context() as (ctx, executor):
+        # a lockstep wait long enough that a starved process on a busy machine is not taken for
+        # a lost period: the one timeout counted is the relay's window
         sim = SimulatorNode(context=ctx, parameter_overrides=overrides(
-            duration=duration, min_tip_subscribers=3))
+            duration=duration, min_tip_subscribers=3, lockstep_timeout=2.0))
         est = EstimatorNode(context=ctx, cli_args=['--ros-args', '-r', f'{STATE_ESTIMATE}:={RAW}'])
         traj = TrajectoryNode(context=ctx, parameter_overrides=overrides(**SHORT))
         ctrl = ControllerNode(context=ctx)
