@@ -141,6 +141,17 @@ def test_feedforward_faults_match_the_reference(model, weights):
     assert fast.compute(pos, vel, ref_pos, np.zeros((N, 2)), ref_acc=acc).nk_iterations.min() >= 1
 
 
+def test_bench_times_the_compiled_laws_against_the_reference(loop):
+    """tools/bench's controller rows: both laws replayed, the reference on the paired steps, the
+    torques compared there."""
+    from soft_gripper_sdre.tools.bench import bench_control, bench_kf
+    for law in ('sdre', 'sdre_ff'):
+        r = bench_control(loop, law, repeats=1, ref_steps=10)
+        assert all(r[k] > 0 for k in ('fast', 'fast_paired', 'reference', 'kernel'))
+        assert r['iterations'] >= 1 and r['exact'] == 0.0 and r['difference'] < U_TOL
+    assert bench_kf(loop, repeats=1) > 0
+
+
 def test_model_inversion_equals_the_numpy_function(model):
     rng = np.random.default_rng(3)
     x = np.concatenate([rng.uniform(-3e-3, 3e-3, (N, 2)), rng.uniform(-0.02, 0.02, (N, 2))], axis=1)

@@ -98,8 +98,8 @@ class SdreController:
         self.state, self.outputs = SdreState.cold(self.n), SdreOutputs.empty(self.n)
         # the feedforward's two flags as the rows of one array: one count says whether all are set
         self._feedforward_flags = np.zeros((2, self.n), dtype=np.bool_)
-        self.feedforward = FeedforwardOutputs(np.zeros((self.n, 2)), np.zeros((self.n, 2, 4)), np.zeros((self.n, 2, 2)),
-                                              *self._feedforward_flags)
+        self.feedforward = FeedforwardOutputs(np.zeros((self.n, 2)), np.zeros((self.n, 2, 4)),
+                                              np.zeros((self.n, 2, 2)), *self._feedforward_flags)
         self._nominal = None
         if nominal is not None:
             K0, Ks0, _ = sdre_gains(np.asarray(nominal[0], float), np.asarray(nominal[1], float), self.Q, self.R)
@@ -153,9 +153,9 @@ class SdreController:
     def track_feedforward(self, network: SdcNetwork, origin: np.ndarray, ff_at_reference: bool,
                           z: np.ndarray) -> LawStep:
         """The feedforward law's step (``fast`` only; as :meth:`track` with z (n, 10) =
-        [p, ṗ, p_d, ṗ_d, a_d]): u = u_ff + K(x) e, e = x − x_d, u_ff = G2(z)⁻¹ (a_d − A2(z) x_d),
-        z = x or (``ff_at_reference``) x_d. :attr:`feedforward` holds u_ff and which fingers had a
-        finite state and a usable feedforward; the step's ``ok`` also needs the first, its
+        [p, ṗ, p_d, ṗ_d, a_d]): u = u_ff + K(x) e, e = x − x_d, u_ff = G2⁻¹ (a_d − A2 x_d) with the
+        model at x or (``ff_at_reference``) at x_d. :attr:`feedforward` holds u_ff and which fingers
+        had a finite state and a usable feedforward; the step's ``ok`` also needs the first, its
         ``fallback`` is set without either (``fallbacks`` counts the feedback's alone)."""
         feedforward_step(z, origin, ff_at_reference, *network, *self.settings, *self.state, *self.outputs,
                          *self.feedforward)
@@ -209,7 +209,8 @@ class SdreController:
             self.exact_solves += solves
             failed[idx], iterations[idx], P[idx], out.residual[idx] = checked.failed, 0, P_exact, checked.residual
             ok = checked.ok
-            s.P[idx[ok]], s.K[idx[ok]], s.Ks[idx[ok]], s.warm[idx[ok]] = P_exact[ok], checked.K[ok], checked.Ks[ok], True
+            accepted = idx[ok]
+            s.P[accepted], s.K[accepted], s.Ks[accepted], s.warm[accepted] = P_exact[ok], checked.K[ok], checked.Ks[ok], True
         finite = _finite_rows(out.a2, out.g2, x, x_d)
         tracking_torques(s.K, s.Ks, x, x_d, finite, self.settings.u_max, out.u, out.u_unsat)
 

@@ -293,8 +293,9 @@ def rows(quick: bool) -> list[Row]:
         out.append(('compiled kernels: import + warm_up(), empty cache / cached',
                     f'{compiled["cold import"] + compiled["cold warm_up"]:.1f} s / '
                     f'{compiled["cached import"] + compiled["cached warm_up"]:.1f} s',
-                    f'a fresh interpreter with NUMBA_CACHE_DIR empty, then again with what it left; of which '
-                    f'importing numba and the kernels {compiled["cold import"]:.1f} s / {compiled["cached import"]:.1f} s'))
+                    'a fresh interpreter with NUMBA_CACHE_DIR empty, then again with what it left; of which '
+                    f'importing numba and the kernels {compiled["cold import"]:.1f} s / '
+                    f'{compiled["cached import"]:.1f} s'))
     out.append(('graph start-up (processes launched → first torque command)', f'{graph_startup():.1f} s',
                 'simulator, estimator, trajectory, controller started together on the shipped configuration, '
                 "numba's cache filled (make's kernels stamp)"))
