@@ -42,10 +42,10 @@ def test_learned_sdre_is_within_1_5x_of_the_oracle(fast_runs):
 
 @pytest.mark.slow
 @pytest.mark.xfail(strict=True, reason='measured: the learned SDRE does not beat LQR frozen at the origin '
-                   'and the tuned PD on free-space RMSE (README "Beyond the paper")')
+                   'and the tuned PD on free-space RMSE (docs/results.md "Beyond the paper")')
 def test_learned_sdre_beats_lqr_and_pd(fast_runs):
     """The issue's expectation, first half: does NOT hold as measured (strict xfail: this test
-    starts failing the day it holds, so the README must then be updated)."""
+    starts failing the day it holds, so docs/results.md must then be updated)."""
     s = fast_runs['sdre'].rmse_mm_grasp
     assert s < fast_runs['lqr'].rmse_mm_grasp and s < fast_runs['pd'].rmse_mm_grasp
 
@@ -53,7 +53,7 @@ def test_learned_sdre_beats_lqr_and_pd(fast_runs):
 @pytest.mark.slow
 def test_sdre_with_feedforward_beats_lqr_and_pd_and_is_within_1_5x_of_the_oracle(fast_runs):
     """Beyond the paper: the expectation holds for SDRE feedback + model-inversion feedforward
-    (README "Beyond the paper"), against the PD with the same reference acceleration too, and
+    (docs/results.md "Beyond the paper"), against the PD with the same reference acceleration too, and
     within 1.5× of the oracle with the same feedforward (measured: below it)."""
     s = fast_runs['sdre_ff'].rmse_mm_grasp
     assert s < fast_runs['lqr'].rmse_mm_grasp and s < fast_runs['pd'].rmse_mm_grasp

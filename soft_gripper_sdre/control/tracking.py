@@ -71,7 +71,8 @@ def weights_preset(name: str) -> Weights:
     raise ValueError(f'unknown weights preset {name!r}; known: {WEIGHT_PRESETS}')
 
 
-#: tuned defaults (SI); see README "Noise, gains and the bending modes" for the sweep behind them
+#: tuned defaults (SI); docs/results.md "Noise, gains and the finger's bending modes" has the sweep
+#: behind them
 DEFAULT_WEIGHTS = dict(q_pos=1.0e6, q_vel=0.0, r=1.6e4)
 #: first-order roll-off of the torque command [Hz]: cuts the loop's feed into the finger's
 #: unmodelled ~59 Hz bending mode (README), well above the 3 and 9 Hz modes the model captures

@@ -66,7 +66,8 @@ PARAMS = (
           choices=('fast', 'reference'), read_only=True),
     Param('law', DEFAULT_LAW, 'control law (soft_gripper_sdre.control.laws): learned SDRE, LQR frozen at the '
           'origin, task-space PD; the oracle needs the plant\'s joint state and runs in-process only '
-          '(tools/evaluate.py); sdre_ff: SDRE + model-inversion feedforward (README "Beyond the paper")',
+          '(tools/evaluate.py); sdre_ff: SDRE + model-inversion feedforward '
+          '(docs/results.md "Beyond the paper")',
           choices=GRAPH_LAWS, read_only=True),
     Param('state_weights', False, 'sdre only: state-dependent Q(x) that rises with the tracking error',
           read_only=True),

@@ -54,7 +54,7 @@ TRAJECTORIES = {
     'grasp': (GraspProfile(others='open'), 6.0),
     'fast': (GraspProfile(t_start=0.2, t_close=0.5, t_hold=0.5, t_open=0.5, others='open'), 2.0),
 }
-#: the paper-data model retrained with the singular-value penalty (README "Beyond the paper")
+#: the paper-data model retrained with the singular-value penalty (docs/results.md "Beyond the paper")
 PAPER_DATA_SV_MODEL = PAPER_DATA_MODEL.with_name('paper_data_sv.pt')
 U_MAX = 0.0625
 NOISE = 5e-5
