@@ -10,8 +10,8 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
-#: first bytes of an .npz file (a zip archive)
-NPZ_MAGIC = b'PK\x03\x04'
+#: first bytes of a zip archive: an .npz dataset, and also a torch.save checkpoint
+ZIP_MAGIC = b'PK\x03\x04'
 REQUIRED = {'t': 1, 'u': 2, 'tip': 3, 'rest_tip': None, 'dt': None}
 WIDTH = {'u': 2, 'tip': 3, 'tip_true': 3, 'vel_true': 3, 'acc_true': 3}
 
@@ -46,10 +46,10 @@ def load_record(path: Path) -> Record:
         raise DatasetError(f'{path}: no such dataset file')
     try:
         with path.open('rb') as f:
-            head = f.read(len(NPZ_MAGIC))
+            head = f.read(len(ZIP_MAGIC))
     except OSError as exc:
         raise DatasetError(f'{path}: cannot be read ({exc})') from None
-    if head != NPZ_MAGIC:
+    if head != ZIP_MAGIC:
         raise DatasetError(f'{path}: not an .npz archive (a zip file); it starts with {head!r} '
                            '(corrupt, or another kind of file)')
     try:

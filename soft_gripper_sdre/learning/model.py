@@ -33,9 +33,9 @@ import numpy as np
 import torch
 from torch import nn
 
+from soft_gripper_sdre.learning.dataset import ZIP_MAGIC
+
 FORMAT_VERSION = 1
-#: first bytes of every torch.save file (a zip archive)
-ZIP_MAGIC = b'PK\x03\x04'
 HIDDEN = 32
 #: intra-op threads while training: the order of torch's reductions, and so every weight's bits,
 #: depends on it
