@@ -31,7 +31,10 @@ def test_lockstep_run_reports_speed_and_latency_of_every_period():
 @pytest.mark.slow
 @pytest.mark.timeout(240)
 def test_recorder_keeps_every_message_with_all_topics_at_1khz():
-    recorded = recorder_loss(0.3)
+    """Seven topics at 1 kHz into one recorder, beside the loop. Lockstep: the loop sets the pace
+    and does not wait for the recorder, but nor does the wall clock, so the test does not hinge on
+    the machine being fast enough for realtime (what realtime loses is BENCHMARKS.md's row)."""
+    recorded = recorder_loss(0.3, mode='lockstep')
     for topic in SIM_TOPICS:                      # the state topics really ran at 1 kHz
         assert recorded[topic][0] == 301, recorded
     assert all(n == got for n, got in recorded.values()), recorded
