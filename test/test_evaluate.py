@@ -86,6 +86,10 @@ def test_report_is_written(tmp_path):
     assert json.dumps(ev.expectation_verdict([s])) == '{}'       # needs all four laws
 
 
+def _summary(law: str, rmse: float, success: bool = True) -> ev.RunSummary:
+    return ev.RunSummary(law, 'fast', rmse, 2 * rmse, rmse, 2 * rmse, 0.01, 0.0, success, 0.1, 0.0, 50.0)
+
+
 def test_law_figures_add_the_feedforward_comparison_when_the_feedforward_law_ran(tmp_path):
     from types import SimpleNamespace
     t = np.arange(50) * 1e-3
@@ -93,11 +97,22 @@ def test_law_figures_add_the_feedforward_comparison_when_the_feedforward_law_ran
 
     def run(lag):
         return SimpleNamespace(t=t, pos=ref - lag, ref_pos=ref, u=np.full((50, 4, 2), lag))
-    names = ev.law_figures({'sdre': run(1e-3), 'lqr': run(2e-3)}, 'fast', tmp_path)
+    summaries = [_summary('sdre', 1.0), _summary('lqr', 2.0)]
+    names = ev.law_figures({'sdre': run(1e-3), 'lqr': run(2e-3)}, summaries, 'fast', tmp_path)
     assert names == ['fast_laws.png']
-    names = ev.law_figures({'sdre': run(1e-3), 'pd': run(2e-3), 'sdre_ff': run(1e-4)}, 'fast', tmp_path)
+    summaries = [_summary('sdre', 1.0), _summary('pd', float('nan'), False), _summary('sdre_ff', 0.1)]
+    names = ev.law_figures({'sdre': run(1e-3), 'pd': run(2e-3), 'sdre_ff': run(1e-4)}, summaries, 'fast',
+                           tmp_path)
     assert names == ['fast_laws.png', 'fast_feedforward.png']
     assert all((tmp_path / n).read_bytes()[:4] == b'\x89PNG' for n in names)
+
+
+def test_the_traced_laws_are_the_highlighted_the_papers_and_the_best_rival():
+    from soft_gripper_sdre.analysis.law_plots import detail_laws
+    scores = {'sdre': (0.4, True), 'sdre_ff': (0.08, True), 'pd': (0.2, True), 'lqr': (0.3, True),
+              'oracle_ff': (0.01, True), 'koopman': (float('nan'), False), 'sdre_ff_ref': (0.09, True)}
+    # no yardstick that knows the plant, no diverged run, no variant of the highlighted law
+    assert detail_laws(scores, 'sdre_ff') == ['sdre_ff', 'sdre', 'pd']
 
 
 @pytest.mark.slow

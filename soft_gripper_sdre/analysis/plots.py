@@ -1,5 +1,5 @@
-"""Every figure: the paper's (training loss 2, predicted vs true acceleration 3, tracking 5–7), the
-gain sweep, and the evaluation's comparisons of the laws and of the model against the ground truth.
+"""The paper's figures (training loss 2, predicted vs true acceleration 3, tracking 5–7) and the
+gain sweep; the evaluation's comparisons are in :mod:`soft_gripper_sdre.analysis.law_plots`.
 
 Input is plain arrays (SI) or closed-loop results, so the same functions draw an in-process run and
 a recorded bag.
@@ -144,11 +144,14 @@ def plot_torques(t, u, path, finger_names=None, u_max=None) -> Path:
 
 
 def plot_loss(train_loss, val_loss, path, title='Training loss (eq. 18)') -> Path:
-    """Figure 2: training and validation loss per epoch (log scale)."""
+    """Figure 2: training and validation loss per epoch (log scale), the kept (best validation)
+    epoch marked."""
     fig, ax = plt.subplots(figsize=(6.5, 4))
     epochs = np.arange(1, len(train_loss) + 1)
     ax.semilogy(epochs, train_loss, label='training (u1–u3 …)')
     ax.semilogy(epochs, val_loss, label='validation (u4)')
+    best = int(np.nanargmin(val_loss))
+    ax.plot(epochs[best], val_loss[best], 'ko', ms=5, label=f'kept: epoch {best + 1}')
     ax.set_xlabel('epoch')
     ax.set_ylabel('mean squared residual (scaled units)')
     ax.set_title(title)
@@ -170,8 +173,8 @@ def plot_accel(t, acc_true, acc_pred, path, r2=None, title='Validation (u4): pre
         label = f'{name} [m/s²]' + (f'   R² = {r2[a]:.3f}' if r2 is not None else '')
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
-    axes[0].legend(loc='upper right', fontsize=8)
-    axes[0].set_title(title)
+    axes[0].legend(loc='lower right', bbox_to_anchor=(1.0, 1.0), ncol=2, fontsize=8, frameon=False)
+    axes[0].set_title(title, loc='left')
     axes[1].set_xlabel('time [s]')
     fig.tight_layout()
     fig.savefig(path, dpi=110)
@@ -215,88 +218,5 @@ def plot_sweep(rows: list[dict], path) -> Path:
     fig.tight_layout()
     path = Path(path)
     fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
-
-
-def _tip_error_mm(res) -> np.ndarray:
-    """(T, n) 2-D tip error of a closed-loop result [mm]."""
-    return np.linalg.norm(res.pos - res.ref_pos, axis=2) * 1e3
-
-
-def plot_laws(results: dict, labels: dict, trajectory: str, path) -> Path:
-    """Every law of one trajectory (``results``: key → LoopResult, ``labels``: key → legend text):
-    finger 0's tip Y and error, its first torque, and finger 1's error (errors on a log scale)."""
-    fig, axes = plt.subplots(2, 2, figsize=(12, 6.5), sharex=True)
-    colours = plt.get_cmap('tab20').colors[::2] + plt.get_cmap('tab20').colors[1::2]   # 20 distinct
-    for ax in axes.flat:
-        ax.set_prop_cycle(color=colours[:max(len(results), 1)])
-    for key, res in results.items():
-        label = labels[key]
-        err = _tip_error_mm(res)
-        axes[0, 0].plot(res.t, (res.pos[:, 0, 1] - res.ref_pos[0, 0, 1]) * 1e3, label=label, lw=1)
-        axes[0, 1].plot(res.t, err[:, 0], label=label, lw=1)
-        axes[1, 0].plot(res.t, res.u[:, 0, 0], label=label, lw=0.8)
-        axes[1, 1].plot(res.t, err[:, 1], label=label, lw=1)
-    any_res = next(iter(results.values()))
-    axes[0, 0].plot(any_res.t, (any_res.ref_pos[:, 0, 1] - any_res.ref_pos[0, 0, 1]) * 1e3, 'k--', lw=1,
-                    label='reference')
-    axes[0, 0].set_ylabel('finger 0 tip Y − rest [mm]')
-    for ax in (axes[0, 1], axes[1, 1]):        # log: a diverging law would flatten the others
-        ax.set_yscale('log')
-        ax.set_ylim(1e-2, 1e2)
-    axes[0, 1].set_ylabel('finger 0 error [mm]')
-    axes[1, 0].set_ylabel('finger 0 u_ax0 [N·m]')
-    axes[1, 1].set_ylabel('finger 1 error [mm]')
-    for ax in axes[1]:
-        ax.set_xlabel('time [s]')
-    axes[0, 0].legend(fontsize=7)
-    fig.suptitle(f'{trajectory}: every law on the same plant, reference and noise')
-    fig.tight_layout()
-    path = Path(path)
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
-
-
-def plot_feedforward(results: dict, labels: dict, trajectory: str, path, highlight: str = 'sdre_ff') -> Path:
-    """A feedforward law (``highlight``, drawn thicker) against the others in ``results``: both
-    grasping fingers' tip errors (log scale)."""
-    fig, axes = plt.subplots(1, 2, figsize=(12, 3.8), sharex=True, sharey=True)
-    for key, res in results.items():
-        err = _tip_error_mm(res)
-        for ax, i in zip(axes, (0, 2)):
-            ax.plot(res.t, err[:, i], lw=1.6 if key == highlight else 0.9, label=labels[key])
-    for ax, i in zip(axes, (0, 2)):
-        ax.set_yscale('log')
-        ax.set_ylim(1e-3, 1e1)
-        ax.set_xlabel('time [s]')
-        ax.set_title(f'grasping finger {i}', fontsize=9)
-    axes[0].set_ylabel('tip error [mm] (in contact during the hold)')
-    axes[0].legend(fontsize=7)
-    fig.suptitle(f'{trajectory}: SDRE + model-inversion feedforward against the paper\'s law and the PD')
-    fig.tight_layout()
-    path = Path(path)
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
-
-
-def plot_model_vs_truth(samples: dict, path) -> Path:
-    """The learned task-space acceleration against the simulator's, the exact and the projected
-    one: ``samples`` holds t (T,) [s] and acc_sim, acc_exact, acc_proj, acc_learned (T, 2) [m/s²]."""
-    fig, axes = plt.subplots(2, 1, figsize=(11, 6), sharex=True)
-    for i, ax in enumerate(axes):
-        ax.plot(samples['t'], samples['acc_sim'][:, i], 'k', lw=1, label='simulator (measured)')
-        ax.plot(samples['t'], samples['acc_exact'][:, i], lw=1, label='exact J̇q̇ + JM⁻¹(Bu − Kq − Cq̇ − g)')
-        ax.plot(samples['t'], samples['acc_proj'][:, i], lw=1, label='projected on static shapes')
-        ax.plot(samples['t'], samples['acc_learned'][:, i], lw=1, label='learned A(x)x + G(x)u')
-        ax.set_ylabel(f'tip acceleration {"XY"[i]} [m/s²]')
-    axes[0].legend(fontsize=7)
-    axes[1].set_xlabel('time [s]')
-    fig.suptitle('held-out signal u4: learned vs ground-truth task-space acceleration')
-    fig.tight_layout()
-    path = Path(path)
-    fig.savefig(path, dpi=100)
     plt.close(fig)
     return path

@@ -28,7 +28,7 @@ import numpy as np
 from soft_gripper_sdre.analysis.closed_loop import run_closed_loop
 # importing analysis.oracle registers the oracle laws ('oracle', 'oracle_exact', 'oracle_ff') with make_law
 import soft_gripper_sdre.analysis.oracle  # noqa: F401
-from soft_gripper_sdre.analysis.plots import plot_feedforward, plot_laws, plot_model_vs_truth
+from soft_gripper_sdre.analysis.law_plots import plot_feedforward, plot_laws, plot_model_vs_truth
 from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
 from soft_gripper_sdre.control.laws import DEFAULT_PD, make_law
 from soft_gripper_sdre.learning.model import PAPER_DATA_MODEL, ModelFileError, SDCModel
@@ -230,11 +230,13 @@ def workspace_survey(model: SDCModel, weights: Weights, n: int = 9, speeds=(0.0,
 
 
 # -- report ---------------------------------------------------------------------------------------
-def law_figures(results: dict, trajectory: str, out: Path) -> list[str]:
+def law_figures(results: dict, summaries: list[RunSummary], trajectory: str, out: Path) -> list[str]:
     """The figures of one trajectory's runs (``results``: law key → LoopResult) in ``out``: every
-    law, and the feedforward law against the paper's law and the PD when it ran."""
+    law (RMSE and grasp success from ``summaries``), and the feedforward law against the paper's
+    law and the PD when it ran."""
     labels = {key: LAW_SPECS[key][0] for key in results}
-    names = [plot_laws(results, labels, trajectory, out / f'{trajectory}_laws.png').name]
+    scores = {s.law: (s.rmse_mm_grasp, s.grasp_success) for s in summaries if s.trajectory == trajectory}
+    names = [plot_laws(results, labels, scores, trajectory, out / f'{trajectory}_laws.png').name]
     ff = [k for k in ('sdre', 'pd', 'pd_ff', 'oracle_ff', 'sdre_ff') if k in results]
     if 'sdre_ff' in ff:
         names.append(plot_feedforward({k: results[k] for k in ff}, labels, trajectory,
@@ -369,7 +371,7 @@ def main(argv=None) -> int:
         tqdm.write(f'{traj:6s} {key:13s} RMSE {s.rmse_mm_grasp:.3f} mm, max {s.max_mm_all:.2f} mm, '
                    f'checks failed {s.check_fail_pct:.2f} %, {s.compute_us:.0f} µs/step')
     for traj, res in results.items():
-        figures += law_figures(res, traj, args.out)
+        figures += law_figures(res, summaries, traj, args.out)
     model_stats = workspace = None
     if not args.no_model_score:
         scored = score_model(model)
