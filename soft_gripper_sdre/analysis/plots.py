@@ -144,14 +144,14 @@ def plot_torques(t, u, path, finger_names=None, u_max=None) -> Path:
 
 
 def plot_loss(train_loss, val_loss, path, title='Training loss (eq. 18)') -> Path:
-    """Figure 2: training and validation loss per epoch (log scale), the kept (best validation)
-    epoch marked."""
+    """Figure 2: training and validation loss per epoch (log scale, epochs counted from 0 as the
+    checkpoint's ``best_epoch``), the kept (best validation) epoch marked."""
     fig, ax = plt.subplots(figsize=(6.5, 4))
-    epochs = np.arange(1, len(train_loss) + 1)
+    epochs = np.arange(len(train_loss))
     ax.semilogy(epochs, train_loss, label='training (u1–u3 …)')
     ax.semilogy(epochs, val_loss, label='validation (u4)')
     best = int(np.nanargmin(val_loss))
-    ax.plot(epochs[best], val_loss[best], 'ko', ms=5, label=f'kept: epoch {best + 1}')
+    ax.plot(epochs[best], val_loss[best], 'ko', ms=5, label=f'kept: epoch {best} (best validation)')
     ax.set_xlabel('epoch')
     ax.set_ylabel('mean squared residual (scaled units)')
     ax.set_title(title)
