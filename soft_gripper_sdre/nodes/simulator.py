@@ -44,7 +44,7 @@ from soft_gripper_sdre.nodes.params import (Param, ParameterError, declare_all, 
 from soft_gripper_sdre.nodes.topics import (CLOCK, CLOCK_QOS, CUBE_CONTACTS, CUBE_POSE, JOINT_STATES,
                                             LOOP_QOS, NEWEST_QOS, STREAM_QOS, TIP_POSITIONS,
                                             TORQUE_COMMANDS)
-from soft_gripper_sdre.sim.finger import FINGER_BASE_POSITIONS
+from soft_gripper_sdre.sim.finger import FINGER_BASE_POSITIONS, N_JOINTS
 from soft_gripper_sdre.sim.hand import GripperSim, SimConfig
 from soft_gripper_sdre.sim.lockstep import LATENCY_PERIODS, Stepping
 
@@ -104,8 +104,7 @@ class SimulatorNode(Node):
         self.p = p
         on_runtime_change(self, PARAMS, apply=self._apply)
         self.names = tuple(p['finger_names'])
-        self.mounted = exposed_fingers(self.names, p['hand_fingers'],
-                                       1 if p['scene'] == 'finger' else len(FINGER_BASE_POSITIONS), p['scene'])
+        self.mounted = exposed_fingers(self.names, p['hand_fingers'], p['scene'])
         try:
             self.sim = GripperSim(SimConfig(
                 scene=p['scene'], control_period=p['control_period'],
@@ -114,10 +113,8 @@ class SimulatorNode(Node):
                 with_cube=p['with_cube']))
         except ValueError as exc:
             raise ParameterError(str(exc)) from None
-        self.n = len(self.names)
         self._u_scene = np.zeros((self.sim.n_fingers, 2))   # the fingers not exposed stay at zero
-        self.joint_names = [f'{name}/joint_{j}' for name in self.names
-                            for j in range(len(self.sim.joint_names) // self.sim.n_fingers)]
+        self.joint_names = [f'{name}/joint_{j}' for name in self.names for j in range(N_JOINTS)]
         self.state_every = max(1, int(round(1.0 / (p['state_rate'] * p['control_period']))))
         self.clock_every = max(1, int(round(1.0 / (p['clock_rate'] * p['control_period']))))
         self.exit_code = 0
@@ -142,7 +139,7 @@ class SimulatorNode(Node):
         self.log = ThrottledLogger(self.get_logger())
         self.diag = Diagnostics(self)
         self.stepping = Stepping(
-            self.n, int(round(p['control_period'] * cv.NS)), p['mode'],
+            len(self.names), int(round(p['control_period'] * cv.NS)), p['mode'],
             int(round(p['duration'] / p['control_period'])) if p['duration'] > 0 else None,
             p['lockstep_timeout'], p['on_timeout'], p['on_bad_command'], p['lost_command_wait'],
             self._hold_periods(), counters=self.diag.counters)
@@ -273,12 +270,11 @@ class SimulatorNode(Node):
             self.pub_clock.publish(self.cdr_clock.encode(ns, _NO_VALUES))
         if k % self.state_every == 0:
             truth = self.sim.truth()
-            mounted = self.mounted
-            self.pub_joints.publish(cv.joint_states_msg(ns, self.joint_names, truth.q[mounted],
-                                                        truth.qd[mounted]))
+            on = self.mounted        # the exposed fingers
+            self.pub_joints.publish(cv.joint_states_msg(ns, self.joint_names, truth.q[on], truth.qd[on]))
             if truth.cube_pose is not None:
                 self.pub_cube.publish(cube_pose_msg(ns, truth.cube_pose))
-                self.pub_contacts.publish(cv.contacts_msg(ns, truth.contact_force[mounted], self.names))
+                self.pub_contacts.publish(cv.contacts_msg(ns, truth.contact_force[on], self.names))
         if self.diag.level == WARN and k % 1000 == 0:
             self.diag.set_status(OK, 'stepping')
 
@@ -303,13 +299,14 @@ class SimulatorNode(Node):
         self.sim.close()
 
 
-def exposed_fingers(names, hand_fingers, scene_fingers: int, scene: str) -> np.ndarray:
-    """The scene's finger index of each of ``names`` (the ``hand_fingers`` parameter), checked.
+def exposed_fingers(names, hand_fingers, scene: str) -> np.ndarray:
+    """The ``scene``'s finger index of each of ``names`` (the ``hand_fingers`` parameter), checked.
 
     Raises:
         ParameterError: not one index per name, an index twice, or one the scene does not have.
     """
     hand_fingers = [int(i) for i in hand_fingers]
+    scene_fingers = 1 if scene == 'finger' else len(FINGER_BASE_POSITIONS)
     if len(hand_fingers) != len(names):
         raise ParameterError(f"parameter 'hand_fingers': {hand_fingers} has {len(hand_fingers)} "
                              f'entries but finger_names {list(names)} has {len(names)}: give one '
