@@ -7,12 +7,12 @@ import sys
 
 import numpy as np
 import pytest
-from rclpy.qos import qos_profile_system_default
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_system_default
 from rclpy.serialization import serialize_message
 from std_msgs.msg import Float64MultiArray
 
 from node_harness import MS, commands, horizon, make_controller, send_estimate
-from rosutil import ros_context, spin_until
+from rosutil import Probe, ros_context, spin_until
 from soft_gripper_sdre.learning.model import SDCModel
 from soft_gripper_sdre.nodes import cdr, conversions as cv
 
@@ -114,9 +114,15 @@ def test_float64_multi_array_holds_the_joint_state_efforts_in_the_controllers_jo
     with ros_context() as (ctx, executor):
         node, probe, est_pub, ref_pub = make_controller(
             ctx, executor, finger_names=list(names), effort_topic=EFFORT_TOPIC, effort_joints=EFFORT_JOINTS)
-        # a subscriber with the QoS of ros2_control's forward_command_controller (system default)
-        probe.listen(Float64MultiArray, EFFORT_TOPIC, qos_profile_system_default)
-        assert spin_until(executor, lambda: node.pub_effort.get_subscription_count() > 0, 10.0)
+        # every message, for the comparison below (reliable, volatile, as ros2_control subscribes)
+        probe.listen(Float64MultiArray, EFFORT_TOPIC, QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE,
+                                                                 durability=DurabilityPolicy.VOLATILE))
+        # and a subscriber with the QoS of ros2_control's forward_command_controller (system
+        # default: its history keeps about the newest message only)
+        controller_like = Probe(ctx, 'forward_command_controller')
+        controller_like.listen(Float64MultiArray, EFFORT_TOPIC, qos_profile_system_default)
+        executor.add_node(controller_like)
+        assert spin_until(executor, lambda: node.pub_effort.get_subscription_count() == 2, 10.0)
         times = 5 * MS * np.arange(21)
         pos = np.repeat(rest[None], 21, 0)
         pos[..., 1] += 0.005
@@ -138,6 +144,8 @@ def test_float64_multi_array_holds_the_joint_state_efforts_in_the_controllers_jo
             assert list(array.layout.dim) == [] and array.layout.data_offset == 0
         assert np.all(np.isfinite(np.asarray([a.data for a in arrays])))
         assert all(any(v != 0.0 for v in a.data) for a in arrays)
+        assert spin_until(executor, lambda: controller_like.received[EFFORT_TOPIC])
+        assert list(controller_like.received[EFFORT_TOPIC][-1].data) in [list(a.data) for a in arrays]
 
 
 def _run_node(node, *args):
