@@ -51,6 +51,10 @@ def _corrupt_model(tmp_path):
     (['--noise', '50'], '--noise is σ in mm, from 0 to 10 mm, got 50.0'),
     (['--seed', '-3'], '--seed must be in'),
     (['--law', 'nonsense'], "invalid choice: 'nonsense'"),
+    (['--fingers', 'left=1,right=3'], 'none of the fingers is at hand finger 0 or 2'),
+    (['--fingers', 'left'], "--fingers: 'left' is not NAME=HAND_FINGER"),
+    (['--fingers', 'left=0,right=0'], 'hand fingers must be distinct'),
+    (['--fingers', 'a/b=0'], "'a/b' is not a valid finger name"),
 ])
 def test_demo_bad_usage_exits_2_before_starting_anything(args, needle, tmp_path):
     args = [str(_corrupt_model(tmp_path)) if a == 'CORRUPT' else a for a in args]

@@ -136,7 +136,8 @@ def test_a_node_that_fell_behind_takes_only_the_newest_tips_and_predicts_through
 
 @pytest.mark.parametrize('params, name', [
     (dict(process_noise='coloured'), 'process_noise'), (dict(control_period=0.0), 'control_period'),
-    (dict(meas_std=0.0), 'meas_std'), (dict(n_fingers=5), 'n_fingers'),
+    (dict(meas_std=0.0), 'meas_std'), (dict(finger_names=[f'f{i}' for i in range(5)]), 'finger_names'),
+    (dict(finger_names=['a/b']), 'finger_names'),
     (dict(accel_psd=float('nan')), 'accel_psd'), (dict(reset_on_jump='far'), 'reset_on_jump')])
 def test_bad_parameters_fail_at_startup_naming_the_parameter(params, name):
     with ros_context() as (ctx, executor):

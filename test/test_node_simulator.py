@@ -13,11 +13,14 @@ from soft_gripper_sdre.nodes.topics import DIAGNOSTICS, LOOP_QOS, STREAM_QOS, TI
 
 pytestmark = pytest.mark.ros
 
+#: the finger scene: one finger, exposed under its default name
+FINGER_SCENE = dict(scene='finger', finger_names=['finger_0'], hand_fingers=[0])
+
 
 def make_loop(ctx, executor, **params):
     """Simulator (finger scene) + a probe that answers each tip message with a command."""
     sim = SimulatorNode(context=ctx, parameter_overrides=overrides(
-        scene='finger', startup_timeout=20.0, **params))
+        **FINGER_SCENE, startup_timeout=20.0, **params))
     probe = Probe(ctx)
     probe.listen(PoseArray, TIP_POSITIONS, LOOP_QOS)
     probe.listen(DiagnosticArray, DIAGNOSTICS, STREAM_QOS)
@@ -131,7 +134,10 @@ def test_realtime_mode_steps_without_commands():
 
 @pytest.mark.parametrize('params, name', [
     (dict(mode='warp'), 'mode'), (dict(control_period=-0.001), 'control_period'),
-    (dict(noise_std=1.0), 'noise_std'), (dict(scene='arm'), 'scene'), (dict(physics_substeps=1.5), 'physics_substeps')])
+    (dict(noise_std=1.0), 'noise_std'), (dict(scene='arm'), 'scene'), (dict(physics_substeps=1.5), 'physics_substeps'),
+    (dict(scene='finger'), 'hand_fingers'), (dict(finger_names=['a', 'b'], hand_fingers=[0, 0]), 'hand_fingers'),
+    (dict(finger_names=['a', 'b'], hand_fingers=[0, 4]), 'hand_fingers'),
+    (dict(finger_names=['left', 'left']), 'finger_names'), (dict(finger_names=['0left']), 'finger_names')])
 def test_bad_parameters_fail_at_startup_naming_the_parameter(params, name):
     with ros_context() as (ctx, executor):
         with pytest.raises(ParameterError, match=name):
@@ -141,7 +147,7 @@ def test_bad_parameters_fail_at_startup_naming_the_parameter(params, name):
 def test_runtime_parameter_refusal_keeps_the_old_value():
     from rclpy.parameter import Parameter
     with ros_context() as (ctx, executor):
-        sim = SimulatorNode(context=ctx, parameter_overrides=overrides(scene='finger', startup_timeout=0.0))
+        sim = SimulatorNode(context=ctx, parameter_overrides=overrides(**FINGER_SCENE, startup_timeout=0.0))
         executor.add_node(sim)
         res = sim.set_parameters([Parameter('on_timeout', value='explode')])[0]
         assert not res.successful and 'on_timeout' in res.reason

@@ -103,7 +103,8 @@ def test_bad_tip_messages_are_counted_and_a_restart_takes_a_new_rest_pose():
     (dict(horizon_step=0.0), 'horizon_step'), (dict(horizon_step=1e-4, t_hold=10.0), 'horizon_step'),
     (dict(t_close=0.0), 't_close'), (dict(t_start=-1.0), 't_start'),
     (dict(grasp_fingers=[0, 0]), 'grasp_fingers'), (dict(grasp_fingers=[0, 4]), 'grasp_fingers'),
-    (dict(grasp_fingers=[1, 3], n_fingers=2), 'grasp_fingers'), (dict(others='close'), 'others'),
+    (dict(grasp_fingers=[1, 3], finger_names=['left', 'right']), 'grasp_fingers'),
+    (dict(finger_names=['left', 'right']), 'grasp_fingers'), (dict(others='close'), 'others'),
     (dict(close_distance=float('nan')), 'close_distance'), (dict(grasp_fingers='0,2'), 'grasp_fingers'),
     (dict(rest_pose='0.0, 0.01'), 'rest_pose'), (dict(rest_pose='a b c d e f g h'), 'rest_pose'),
     (dict(rest_pose=' '.join(['nan'] * 8)), 'rest_pose')])

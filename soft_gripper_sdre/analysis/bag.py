@@ -57,6 +57,7 @@ class Run:
     joints: Series | None = None  # (T, n, 2, 10) each finger's joint angles [rad] and rates [rad/s]
     counts: dict[str, int] = field(default_factory=dict)    # messages per topic in the bag
     skipped: dict[str, int] = field(default_factory=dict)   # malformed messages per topic
+    finger_names: tuple[str, ...] = ()   # the fingers, in the order of every array's finger axis
 
     @property
     def n_fingers(self) -> int:
@@ -147,28 +148,30 @@ def _order(names, expected: list[str]) -> list[int]:
     return [names.index(n) for n in expected]
 
 
-def _tips(msg, n: int) -> np.ndarray:
+def _tips(msg, names: tuple[str, ...]) -> np.ndarray:
+    n = len(names)
     if len(msg.poses) != n:
         raise _Malformed(f'{len(msg.poses)} poses, expected {n}')
     return np.array([(p.position.x, p.position.y) for p in msg.poses], dtype=float)
 
 
-def _torques(msg, n: int) -> np.ndarray:
-    names = [f'{FINGER_NAMES[i]}/ax{a}' for i in range(n) for a in range(2)]
+def _torques(msg, names: tuple[str, ...]) -> np.ndarray:
+    torques = [f'{name}/ax{a}' for name in names for a in range(2)]
     if len(msg.effort) != len(msg.name):
         raise _Malformed('names and efforts differ in length')
-    return np.asarray(msg.effort, dtype=float)[_order(msg.name, names)].reshape(n, 2)
+    return np.asarray(msg.effort, dtype=float)[_order(msg.name, torques)].reshape(len(names), 2)
 
 
-def _contacts(msg, n: int) -> np.ndarray:
+def _contacts(msg, names: tuple[str, ...]) -> np.ndarray:
     if len(msg.effort) != len(msg.name):
         raise _Malformed('names and efforts differ in length')
-    return np.asarray(msg.effort, dtype=float)[_order(msg.name, list(FINGER_NAMES[:n]))]
+    return np.asarray(msg.effort, dtype=float)[_order(msg.name, list(names))]
 
 
-def _points(msg, n: int) -> np.ndarray:
+def _points(msg, names: tuple[str, ...]) -> np.ndarray:
     """(h, n, 4) [X, Y, Ẋ, Ẏ] of every point of a MultiDOFJointTrajectory."""
-    idx = _order(msg.joint_names, list(FINGER_NAMES[:n]))
+    n = len(names)
+    idx = _order(msg.joint_names, list(names))
     if not msg.points:
         raise _Malformed('no points')
     out = []
@@ -180,28 +183,28 @@ def _points(msg, n: int) -> np.ndarray:
     return np.asarray(out, dtype=float)
 
 
-def _estimate(msg, n: int) -> np.ndarray:
-    points = _points(msg, n)
+def _estimate(msg, names: tuple[str, ...]) -> np.ndarray:
+    points = _points(msg, names)
     if len(points) != 1:
         raise _Malformed(f'{len(points)} points, expected 1')
     return points[0]
 
 
-def _horizon(msg, n: int) -> tuple[np.ndarray, np.ndarray]:
+def _horizon(msg, names: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
     """Absolute point times [ns] (h,) and states (h, n, 4) of a reference horizon."""
     stamp = _stamp(msg)
     times = np.array([stamp + int(pt.time_from_start.sec) * NS + int(pt.time_from_start.nanosec)
                       for pt in msg.points], dtype=np.int64)
-    points = _points(msg, n)
+    points = _points(msg, names)
     if np.any(np.diff(times) <= 0):
         raise _Malformed('point times are not increasing')
     return times, points
 
 
-def _joints(msg, n: int) -> np.ndarray:
-    """(n, 2, 10): angles and rates of ``finger_i/joint_j``, in that order whatever the message's."""
-    per = 10
-    expected = [f'{FINGER_NAMES[i]}/joint_{j}' for i in range(n) for j in range(per)]
+def _joints(msg, names: tuple[str, ...]) -> np.ndarray:
+    """(n, 2, 10): angles and rates of ``<finger>/joint_j``, in that order whatever the message's."""
+    per, n = 10, len(names)
+    expected = [f'{name}/joint_{j}' for name in names for j in range(per)]
     idx = _order(msg.name, expected)
     q, qd = np.asarray(msg.position, dtype=float), np.asarray(msg.velocity, dtype=float)
     if len(q) != len(msg.name) or len(qd) != len(msg.name):
@@ -212,17 +215,17 @@ def _joints(msg, n: int) -> np.ndarray:
     return out
 
 
-def _cube_pose(msg, n: int) -> np.ndarray:
+def _cube_pose(msg, names: tuple[str, ...]) -> np.ndarray:
     p, q = msg.pose.position, msg.pose.orientation
     return np.array([p.x, p.y, p.z, q.x, q.y, q.z, q.w], dtype=float)
 
 
-def _collect(messages, parse, n: int, skipped: dict[str, int], topic: str) -> tuple[np.ndarray, list]:
+def _collect(messages, parse, names: tuple[str, ...], skipped: dict[str, int], topic: str) -> tuple[np.ndarray, list]:
     """Stamps [ns] and parsed values of the well-formed messages, sorted by stamp."""
     stamps, values = [], []
     for _, msg in messages:
         try:
-            values.append(parse(msg, n))
+            values.append(parse(msg, names))
         except _Malformed:
             skipped[topic] = skipped.get(topic, 0) + 1
             continue
@@ -253,8 +256,9 @@ def sample_reference(t_ns: np.ndarray, ref_stamps: np.ndarray,
 def extract_run(path: str | Path) -> Run:
     """One run of the graph from a bag, as arrays (shapes in :class:`Run`).
 
-    The number of fingers n comes from the first tip_positions message with poses. The reference
-    is sampled at the tip times by :func:`sample_reference`.
+    The number of fingers n comes from the first tip_positions message with poses, their names
+    from the first state_estimate message with n joint names (finger_0.. if there is none). The
+    reference is sampled at the tip times by :func:`sample_reference`.
 
     Raises:
         BagError: the bag is missing or unreadable, lacks one of :data:`REQUIRED_TOPICS`, or holds
@@ -272,10 +276,12 @@ def extract_run(path: str | Path) -> Run:
     n = next((len(m.poses) for _, m in by_name[TIP_POSITIONS] if len(m.poses) > 0), 0)
     if not 0 < n <= len(FINGER_NAMES):
         raise BagError(f'bag {path}: no usable tip_positions message')
+    names = next((tuple(m.joint_names) for _, m in by_name[STATE_ESTIMATE] if len(m.joint_names) == n),
+                 FINGER_NAMES[:n])
     skipped: dict[str, int] = {}
 
     def collect(topic: str, parse) -> tuple[np.ndarray, list]:
-        stamps, values = _collect(by_name[topic], parse, n, skipped, topic)
+        stamps, values = _collect(by_name[topic], parse, names, skipped, topic)
         if not values:
             raise BagError(f'bag {path}: no well-formed {topic} message')
         return stamps, values
@@ -293,4 +299,5 @@ def extract_run(path: str | Path) -> Run:
                torques=series(TORQUE_COMMANDS, _torques),
                reference=Series(tip_ns / NS, sample_reference(tip_ns, ref_ns, horizons)),
                contacts=series(CUBE_CONTACTS, _contacts), cube_pose=series(CUBE_POSE, _cube_pose),
-               joints=series(JOINT_STATES, _joints), counts=counts, skipped=skipped)
+               joints=series(JOINT_STATES, _joints), counts=counts, skipped=skipped,
+               finger_names=names)

@@ -13,6 +13,13 @@ frame_id, more points, big-endian CDR, …) goes the slow way: ``deserialize_mes
 ``msg_to_*`` conversion with all its checks (:class:`LoopCodec`). Both ways end in the same
 finiteness check, with the same error message.
 
+Another publisher sends every message in its own shape: a motion-capture system stamps its tips
+with its own frame_id, a driver lists the fingers in its own order. So the first message of a shape
+that decoded the slow way teaches the codec that shape too (at most :data:`MAX_ADOPTED` of them):
+a layout is learned from a copy of that very message whose stamp and slots are refilled (values
+written to the entry of the finger they belong to), and the following messages of that shape
+decode fast, in our finger order.
+
 The bytes we publish are the template with the padding zeroed and the slots filled: valid CDR of
 the declared type, so ``ros2 topic echo``, rosbag2 and typed subscribers are unaffected.
 
@@ -41,6 +48,8 @@ HEADER = 4
 _STAMP = struct.Struct('<iI')
 #: the template's stamp (sec, nanosec), distinct from anything else in the bytes
 _SENTINEL_STAMP = (0x5A5A_1234, 0x3B9A_C9FF)       # 1 515 852 340 s, 999 999 999 ns
+#: layouts a codec learns from other publishers' messages, and attempts to learn one, at most
+MAX_ADOPTED, MAX_ADOPT_ATTEMPTS = 4, 8
 
 
 def _sentinels(count: int) -> np.ndarray:
@@ -166,22 +175,29 @@ def _quiet_stderr():
 
 
 class LoopCodec:
-    """One loop topic's message ↔ (stamp, values), fast when the bytes match the layout.
+    """One loop topic's message ↔ (stamp, values), fast when the bytes match a layout.
 
     ``to_msg(ns, values)`` builds the message the slow way (and is the template of the layout);
     ``from_msg(msg)`` is the validating ``msg_to_*`` conversion used when the bytes do not match;
     ``finite_what`` names the values in the error for NaN/Inf, as ``from_msg`` does.
-    ``fallbacks`` counts the messages decoded the slow way.
+    ``refill(msg, ns, values)``, if given, writes a stamp and values (in our order) into a
+    message of another publisher's shape, in place: the first such message that decodes the slow
+    way then teaches the codec its layout (module doc). ``fallbacks`` counts the messages decoded
+    the slow way.
     """
 
     def __init__(self, topic: str, msg_type: type, to_msg: Callable[[int, np.ndarray], object],
                  from_msg: Callable[[object], tuple[int, np.ndarray]], shape: tuple[int, ...],
-                 finite_what: str | None) -> None:
+                 finite_what: str | None,
+                 refill: Callable[[object, int, np.ndarray], None] | None = None) -> None:
         self.topic = topic
         self.msg_type = msg_type
         self.layout = Layout.learn(msg_type, to_msg, shape)
+        self.adopted: list[Layout] = []     # layouts learned from other publishers' messages
         self.from_msg = from_msg
         self._finite_what = finite_what
+        self._refill = refill
+        self._adopt_attempts = 0
         self.fallbacks = 0
 
     def encode(self, ns: int, values: np.ndarray) -> bytes:
@@ -195,6 +211,10 @@ class LoopCodec:
                 the type at all.
         """
         fast = self.layout.decode(data)
+        for layout in self.adopted:
+            if fast is not None:
+                break
+            fast = layout.decode(data)
         if fast is None:
             self.fallbacks += 1
             try:
@@ -202,32 +222,80 @@ class LoopCodec:
             except Exception:      # rclpy's RMWError: not CDR of this type
                 raise cv.MessageError(f'{self.topic}: {len(data)} bytes that do not deserialize as '
                                       f'{self.msg_type.__name__}') from None
-            return self.from_msg(msg)
+            stamp, values = self.from_msg(msg)
+            if (self._refill is not None and len(self.adopted) < MAX_ADOPTED
+                    and self._adopt_attempts < MAX_ADOPT_ATTEMPTS):
+                self._adopt(data, stamp, values)
+            return stamp, values
         stamp, values = fast
         if self._finite_what is not None:
             cv.check_finite(values, self._finite_what)
         return stamp, values
 
+    def _adopt(self, data: bytes, stamp: int, values: np.ndarray) -> None:
+        """Learn the layout of ``data`` (a well-formed message of another shape), keeping it only
+        if it reads ``data`` exactly as the slow way did."""
+        self._adopt_attempts += 1
+
+        def build(ns: int, slot_values: np.ndarray):
+            msg = deserialize_message(data, self.msg_type)
+            self._refill(msg, ns, slot_values)
+            return msg
+
+        try:
+            layout = Layout.learn(self.msg_type, build, values.shape)
+        except ValueError:          # no fixed layout (e.g. a value equal to a sentinel)
+            return
+        fast = layout.decode(data)
+        if fast is not None and fast[0] == stamp and np.array_equal(fast[1], values):
+            self.adopted.append(layout)
+
 
 # -- the loop topics -------------------------------------------------------------------------
 
-def tips_codec(n_fingers: int) -> LoopCodec:
-    """``tip_positions``: (n, 3) tip positions [m] (orientations and frame_id fixed)."""
-    return LoopCodec(TIP_POSITIONS, cv.PoseArray, cv.tips_to_msg, lambda m: cv.msg_to_tips(m, n_fingers),
-                     (n_fingers, 3), cv.TIPS_WHAT)
+def tips_codec(fingers: cv.Fingers) -> LoopCodec:
+    """``tip_positions``: (n, 3) tip positions [m], pose i = finger i; orientations and frame_id
+    are ours when we publish and anything fixed when another publisher does."""
+    n = len(cv.finger_names(fingers))
+    return LoopCodec(TIP_POSITIONS, cv.PoseArray, cv.tips_to_msg, lambda m: cv.msg_to_tips(m, n),
+                     (n, 3), cv.TIPS_WHAT, refill=cv.fill_tips)
 
 
-def estimate_codec(n_fingers: int) -> LoopCodec:
-    """``state_estimate``: (n, 4) [X, Y, Ẋ, Ẏ]; joint names finger_0.., one point, z = 0."""
+def estimate_codec(fingers: cv.Fingers) -> LoopCodec:
+    """``state_estimate``: (n, 4) [X, Y, Ẋ, Ẏ]; joint names = the finger names (decoded in our
+    order whatever the publisher's), one point, z = 0."""
+    names = cv.finger_names(fingers)
+
+    def refill(msg, ns: int, x: np.ndarray) -> None:
+        cv.set_time(msg.header.stamp, ns)
+        point = msg.points[0]
+        for name, row in zip(names, x.tolist()):
+            j = msg.joint_names.index(name)
+            t, v = point.transforms[j].translation, point.velocities[j].linear
+            t.x, t.y, v.x, v.y = row
+
     return LoopCodec(STATE_ESTIMATE, cv.MultiDOFJointTrajectory,
-                     lambda ns, x: cv.estimate_to_msg(ns, x[:, :2], x[:, 2:]),
-                     lambda m: cv.msg_to_estimate(m, n_fingers), (n_fingers, 4), cv.ESTIMATE_WHAT)
+                     lambda ns, x: cv.estimate_to_msg(ns, x[:, :2], x[:, 2:], names),
+                     lambda m: cv.msg_to_estimate(m, names), (len(names), 4), cv.ESTIMATE_WHAT,
+                     refill=refill)
 
 
-def torques_codec(n_fingers: int) -> LoopCodec:
-    """``torque_commands``: (n, 2) efforts [N·m] named finger_i/ax0|ax1 in that order."""
-    return LoopCodec(TORQUE_COMMANDS, cv.JointState, cv.torques_to_msg, lambda m: cv.msg_to_torques(m, n_fingers),
-                     (n_fingers, 2), cv.TORQUES_WHAT)
+def torques_codec(fingers: cv.Fingers) -> LoopCodec:
+    """``torque_commands``: (n, 2) efforts [N·m] named <finger>/ax0|ax1 (decoded in our order
+    whatever the publisher's)."""
+    names = cv.finger_names(fingers)
+    torques = cv.torque_names(names)
+
+    def refill(msg, ns: int, u: np.ndarray) -> None:
+        cv.set_time(msg.header.stamp, ns)
+        effort = list(msg.effort)
+        for name, value in zip(torques, u.ravel().tolist()):
+            effort[list(msg.name).index(name)] = value
+        msg.effort = effort
+
+    return LoopCodec(TORQUE_COMMANDS, cv.JointState, lambda ns, u: cv.torques_to_msg(ns, u, names),
+                     lambda m: cv.msg_to_torques(m, names), (len(names), 2), cv.TORQUES_WHAT,
+                     refill=refill)
 
 
 def clock_codec() -> LoopCodec:

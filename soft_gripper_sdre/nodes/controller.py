@@ -1,11 +1,13 @@
-"""The controller node: tracking of all four fingers with the learned SDC model.
+"""The controller node: tracking of every finger with the learned SDC model.
 
 The control law is the ``law`` parameter (:mod:`soft_gripper_sdre.control.laws`): ``sdre_ff`` (default:
 SDRE feedback plus model-inversion feedforward), ``sdre`` (the paper's law), ``lqr`` or ``pd``.
 
 Subscribes ``state_estimate`` (one message per control period, keeping only the newest) and
 ``grasp_reference`` (the planned grasp, once per plan); publishes ``torque_commands`` (one per
-estimate) and ``/diagnostics`` (solves, Riccati check failures, fallbacks, saturation, compute
+estimate; with ``effort_topic`` also the same efforts as a ``std_msgs/Float64MultiArray`` in the
+joint order of a ros2_control ``forward_command_controller``, ``effort_joints``) and
+``/diagnostics`` (solves, Riccati check failures, fallbacks, saturation, compute
 time, skipped estimates).
 
 Which estimate is answered, and when, is decided by
@@ -29,8 +31,10 @@ import time
 import numpy as np
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray
 from trajectory_msgs.msg import MultiDOFJointTrajectory
 
+from soft_gripper_sdre import FINGER_NAMES
 from soft_gripper_sdre.control.command_gate import Change, CommandGate, Notice, Outcome, Plan
 from soft_gripper_sdre.control.compiled import warm_up
 from soft_gripper_sdre.control.tracking import DEFAULT_LOWPASS_HZ, DEFAULT_WEIGHTS, Weights
@@ -39,7 +43,8 @@ from soft_gripper_sdre.control.laws import DEFAULT_LAW, GRAPH_LAWS, make_law
 from soft_gripper_sdre.learning.model import ModelFileError, SDCModel, set_torch_threads
 from soft_gripper_sdre.nodes import cdr, conversions as cv
 from soft_gripper_sdre.nodes.common import ERROR, OK, Diagnostics, ThrottledLogger, run
-from soft_gripper_sdre.nodes.params import Param, ParameterError, declare_all, on_runtime_change
+from soft_gripper_sdre.nodes.params import (Param, ParameterError, declare_all, finger_names_param,
+                                            on_runtime_change)
 from soft_gripper_sdre.nodes.plan_cdr import PlanCodec
 from soft_gripper_sdre.nodes.topics import (GRASP_REFERENCE, LOOP_QOS, NEWEST_QOS, REFERENCE_QOS,
                                             STATE_ESTIMATE, TORQUE_COMMANDS)
@@ -48,7 +53,8 @@ from soft_gripper_sdre.control.riccati import Check
 PARAMS = (
     Param('model_path', '', 'SDC model checkpoint (.pt); empty = the model shipped with the package',
           read_only=True),
-    Param('n_fingers', 4, 'fingers controlled together', '', 1, 4, read_only=True),
+    finger_names_param('the fingers controlled together: the joint names of state_estimate and '
+                       'grasp_reference; torque_commands names <finger>/ax0, <finger>/ax1'),
     Param('q_pos', DEFAULT_WEIGHTS['q_pos'], 'SDRE state weight on tip position, Q = diag(q_pos, q_pos, '
           'q_vel, q_vel) (paper: 2 in sim units = 800 SI)', '1/m²', 0.0, 1e12, read_only=True),
     Param('q_vel', DEFAULT_WEIGHTS['q_vel'], 'SDRE state weight on tip velocity', 's²/m²', 0.0, 1e12,
@@ -77,6 +83,12 @@ PARAMS = (
     Param('reset_on_jump', 0.1, 'a stamp this far behind the last one (a simulator restart) resets '
           'the controller instead of being rejected (as in the estimator and trajectory node)', 's',
           1e-3, 1e6, read_only=True),
+    Param('effort_topic', '', 'also publish each command as std_msgs/Float64MultiArray here, as a '
+          'ros2_control forward_command_controller with the effort interface reads it '
+          "(/<controller_name>/commands); '' = off", read_only=True),
+    Param('effort_joints', cv.torque_names(FINGER_NAMES), 'effort_topic: for each joint of the '
+          "forward_command_controller, in the order of its 'joints' list, the torque that drives "
+          'it (<finger>/ax0 or <finger>/ax1); every torque once', read_only=True),
 )
 
 
@@ -96,7 +108,14 @@ class ControllerNode(Node):
             weights = Weights(p['q_pos'], p['q_vel'], p['r'])
         except ValueError as exc:
             raise ParameterError(str(exc)) from None
-        self.n = p['n_fingers']
+        self.names = tuple(p['finger_names'])
+        self.n = len(self.names)
+        self.effort_order = None            # index into u.ravel() of each effort_topic entry
+        if p['effort_topic']:
+            try:
+                self.effort_order = cv.effort_array_order(p['effort_joints'], self.names)
+            except ValueError as exc:
+                raise ParameterError(f'parameter \'effort_joints\': {exc}') from None
         on_runtime_change(self, PARAMS, apply=self._apply)
         try:
             self.ctrl = make_law(p['law'], model, weights, p['torque_limit'], n_fingers=self.n,
@@ -110,10 +129,14 @@ class ControllerNode(Node):
         self._compute_s = []
 
         # the per-period messages travel as CDR bytes read / written at fixed offsets (nodes/cdr.py)
-        self.cdr_estimate = cdr.estimate_codec(self.n)
-        self.cdr_cmd = cdr.torques_codec(self.n)
-        self.cdr_plan = PlanCodec(self.n)
+        self.cdr_estimate = cdr.estimate_codec(self.names)
+        self.cdr_cmd = cdr.torques_codec(self.names)
+        self.cdr_plan = PlanCodec(self.names)
         self.pub_cmd = self.create_publisher(JointState, TORQUE_COMMANDS, LOOP_QOS)
+        self.pub_effort = self._effort_msg = None
+        if self.effort_order is not None:
+            self.pub_effort = self.create_publisher(Float64MultiArray, p['effort_topic'], LOOP_QOS)
+            self._effort_msg = Float64MultiArray()      # layout: no dims, data_offset 0
         self.sub_est = self.create_subscription(MultiDOFJointTrajectory, STATE_ESTIMATE,
                                                 self.on_estimate, NEWEST_QOS, raw=True)
         self.sub_ref = self.create_subscription(MultiDOFJointTrajectory, GRASP_REFERENCE,
@@ -131,7 +154,9 @@ class ControllerNode(Node):
             f'model {model.path.name} (rest tip {1e3 * model.rest_tip[0]:.1f}, '
             f'{1e3 * model.rest_tip[1]:.1f} mm); {self.diag.values["weights"]}; '
             f'limit {p["torque_limit"]:g} N·m; {p["solver"]} solver; law {p["law"]}'
-            f'{" with Q(x)" if p["state_weights"] else ""}')
+            f'{" with Q(x)" if p["state_weights"] else ""}; fingers {", ".join(self.names)}'
+            + (f'; efforts also on {self.pub_effort.topic_name} for {", ".join(p["effort_joints"])}'
+               if self.pub_effort is not None else ''))
 
     # -- inputs ------------------------------------------------------------------------------
     def on_reference(self, data: bytes) -> None:
@@ -193,6 +218,9 @@ class ControllerNode(Node):
             self.diag.count('nonfinite_torque')
             u = np.zeros_like(u)
         self.pub_cmd.publish(self.cdr_cmd.encode(stamp, u))
+        if self.pub_effort is not None:         # the same efforts in the joint order of ros2_control
+            self._effort_msg.data = u.ravel()[self.effort_order].tolist()
+            self.pub_effort.publish(self._effort_msg)
         self.diag.good('commands', 'tracking')
         count_solve(self.diag, self.log, out, stamp)
 

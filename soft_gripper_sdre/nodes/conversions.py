@@ -7,6 +7,8 @@ and log those instead of computing with the message.
 from __future__ import annotations
 
 import functools
+import re
+from typing import Sequence
 
 from builtin_interfaces.msg import Duration, Time
 from geometry_msgs.msg import Pose, PoseArray, Transform, Twist
@@ -51,14 +53,49 @@ def clock_msg(ns: int) -> Clock:
 
 # -- names -----------------------------------------------------------------------------------
 
-def torque_names(n_fingers: int) -> list[str]:
-    """``finger_<i>/ax0``, ``finger_<i>/ax1`` for each finger, in the order of u.ravel()."""
-    return list(_torque_names(n_fingers))
+#: most fingers one message carries (the hand's four)
+MAX_FINGERS = len(FINGER_NAMES)
+_FINGER_NAME = re.compile(r'[A-Za-z_][A-Za-z0-9_]*')
+
+#: the fingers of a message: a count (named ``finger_0``.. in order) or the names themselves
+Fingers = int | Sequence[str]
+
+
+def finger_names(fingers: Fingers) -> tuple[str, ...]:
+    """The finger names ``fingers`` stands for: ``n`` → ``finger_0 .. finger_<n-1>``; names as given."""
+    if isinstance(fingers, (int, np.integer)):
+        return FINGER_NAMES[:int(fingers)]
+    return tuple(fingers)
+
+
+def finger_names_problem(names: Sequence[str]) -> str | None:
+    """Why ``names`` cannot name the fingers of the graph, or None.
+
+    One rule for every node: the number of fingers is the number of names, 1 to
+    :data:`MAX_FINGERS`; each name is a ROS name token (letters, digits, underscores, not
+    starting with a digit), used as is in ``state_estimate`` / ``grasp_reference`` joint names
+    and as ``<name>/ax0``, ``<name>/ax1`` in ``torque_commands``; no name twice.
+    """
+    names = list(names)
+    if not 1 <= len(names) <= MAX_FINGERS:
+        return f'needs 1 to {MAX_FINGERS} names (one per finger), got {len(names)}'
+    bad = [n for n in names if not _FINGER_NAME.fullmatch(n)]
+    if bad:
+        return (f'{bad[0]!r} is not a valid finger name (letters, digits and underscores, '
+                'not starting with a digit)')
+    if len(set(names)) != len(names):
+        return f'names must be distinct, got {names}'
+    return None
+
+
+def torque_names(fingers: Fingers) -> list[str]:
+    """``<finger>/ax0``, ``<finger>/ax1`` for each finger, in the order of u.ravel()."""
+    return list(_torque_names(finger_names(fingers)))
 
 
 @functools.lru_cache(maxsize=None)
-def _torque_names(n_fingers: int) -> tuple[str, ...]:
-    return tuple(f'{FINGER_NAMES[i]}/ax{a}' for i in range(n_fingers) for a in range(2))
+def _torque_names(names: tuple[str, ...]) -> tuple[str, ...]:
+    return tuple(f'{name}/ax{a}' for name in names for a in range(2))
 
 
 def _order(names, expected, what: str) -> np.ndarray | slice:
@@ -117,8 +154,9 @@ def fill_tips(msg: PoseArray, ns: int, tips: np.ndarray) -> None:
         p.x, p.y, p.z = x, y, z
 
 
-def msg_to_tips(msg: PoseArray, n_fingers: int) -> tuple[int, np.ndarray]:
-    """PoseArray → (stamp ns, (n, 3) tips [m])."""
+def msg_to_tips(msg: PoseArray, fingers: Fingers) -> tuple[int, np.ndarray]:
+    """PoseArray → (stamp ns, (n, 3) tips [m]); pose i is finger i's, any frame_id and orientation."""
+    n_fingers = len(finger_names(fingers))
     if len(msg.poses) != n_fingers:
         raise MessageError(f'tip_positions: expected {n_fingers} poses, got {len(msg.poses)}')
     tips = np.array([(p.position.x, p.position.y, p.position.z) for p in msg.poses], dtype=float)
@@ -127,21 +165,24 @@ def msg_to_tips(msg: PoseArray, n_fingers: int) -> tuple[int, np.ndarray]:
 
 # -- torque commands (JointState effort) -----------------------------------------------------
 
-def torques_to_msg(ns: int, u: np.ndarray) -> JointState:
-    """(n, 2) torques [N·m] → JointState named finger_<i>/ax0|ax1 with efforts."""
+def torques_to_msg(ns: int, u: np.ndarray, fingers: Fingers | None = None) -> JointState:
+    """(n, 2) torques [N·m] → JointState named <finger>/ax0|ax1 with efforts (``fingers``:
+    the names, default finger_0..)."""
     u = np.asarray(u, dtype=float)
     msg = JointState()
     set_time(msg.header.stamp, ns)
-    msg.name = list(_torque_names(u.shape[0]))
+    msg.name = list(_torque_names(finger_names(u.shape[0] if fingers is None else fingers)))
     msg.effort = u.ravel().tolist()
     return msg
 
 
-def msg_to_torques(msg: JointState, n_fingers: int) -> tuple[int, np.ndarray]:
+def msg_to_torques(msg: JointState, fingers: Fingers) -> tuple[int, np.ndarray]:
     """JointState → (stamp ns, (n, 2) torques [N·m]), ordered by name whatever the message order."""
+    names = finger_names(fingers)
+    n_fingers = len(names)
     if len(msg.effort) != len(msg.name):
         raise MessageError(f'torque_commands: {len(msg.name)} names but {len(msg.effort)} efforts')
-    idx = _order(msg.name, _torque_names(n_fingers), 'torque_commands')
+    idx = _order(msg.name, _torque_names(names), 'torque_commands')
     effort = np.asarray(msg.effort, dtype=float)[idx].reshape(n_fingers, 2)
     return from_time(msg.header.stamp), check_finite(effort, TORQUES_WHAT)
 
@@ -157,11 +198,11 @@ def joint_states_msg(ns: int, names: list[str], q: np.ndarray, qd: np.ndarray) -
     return msg
 
 
-def contacts_msg(ns: int, force: np.ndarray) -> JointState:
-    """Normal contact force of each finger on the cube [N] as JointState efforts (name finger_i)."""
+def contacts_msg(ns: int, force: np.ndarray, fingers: Fingers | None = None) -> JointState:
+    """Normal contact force of each finger on the cube [N] as JointState efforts named by finger."""
     msg = JointState()
     msg.header.stamp = to_time(ns)
-    msg.name = list(FINGER_NAMES[:len(force)])
+    msg.name = list(finger_names(len(force) if fingers is None else fingers))
     msg.effort = np.asarray(force, dtype=float).tolist()
     return msg
 
@@ -197,18 +238,21 @@ def _pad3(a: np.ndarray) -> list:
     return a.tolist()
 
 
-def estimate_to_msg(ns: int, pos: np.ndarray, vel: np.ndarray) -> MultiDOFJointTrajectory:
-    """(n, 2|3) positions [m] and velocities [m/s] → one-point MultiDOFJointTrajectory."""
+def estimate_to_msg(ns: int, pos: np.ndarray, vel: np.ndarray,
+                    fingers: Fingers | None = None) -> MultiDOFJointTrajectory:
+    """(n, 2|3) positions [m] and velocities [m/s] → one-point MultiDOFJointTrajectory whose joint
+    names are the fingers' (default finger_0..)."""
     msg = MultiDOFJointTrajectory()
     msg.header.stamp = to_time(ns)
-    msg.joint_names = list(FINGER_NAMES[:len(pos)])
+    msg.joint_names = list(finger_names(len(pos) if fingers is None else fingers))
     msg.points = [_point(_pad3(pos), _pad3(vel), None, 0)]
     return msg
 
 
-def msg_to_estimate(msg: MultiDOFJointTrajectory, n_fingers: int) -> tuple[int, np.ndarray]:
-    """One-point MultiDOFJointTrajectory → (stamp ns, (n, 4) [X, Y, Ẋ, Ẏ])."""
-    idx = _order(msg.joint_names, list(FINGER_NAMES[:n_fingers]), 'state_estimate')
+def msg_to_estimate(msg: MultiDOFJointTrajectory, fingers: Fingers) -> tuple[int, np.ndarray]:
+    """One-point MultiDOFJointTrajectory → (stamp ns, (n, 4) [X, Y, Ẋ, Ẏ]) in the order of
+    ``fingers``, whatever the message's joint order."""
+    idx = _order(msg.joint_names, list(finger_names(fingers)), 'state_estimate')
     if len(msg.points) != 1:
         raise MessageError(f'state_estimate: expected 1 point, got {len(msg.points)}')
     pt = msg.points[0]
@@ -219,19 +263,21 @@ def msg_to_estimate(msg: MultiDOFJointTrajectory, n_fingers: int) -> tuple[int, 
     return from_time(msg.header.stamp), check_finite(x, ESTIMATE_WHAT)
 
 
-def reference_to_msg(ns: int, offsets_ns, pos, vel, acc) -> MultiDOFJointTrajectory:
+def reference_to_msg(ns: int, offsets_ns, pos, vel, acc,
+                     fingers: Fingers | None = None) -> MultiDOFJointTrajectory:
     """Horizon of h points (offsets from the stamp) × n fingers: pos, vel, acc (h, n, 2|3)."""
     msg = MultiDOFJointTrajectory()
     msg.header.stamp = to_time(ns)
-    msg.joint_names = list(FINGER_NAMES[:np.asarray(pos).shape[1]])
+    msg.joint_names = list(finger_names(np.asarray(pos).shape[1] if fingers is None else fingers))
     msg.points = [_point(_pad3(p), _pad3(v), _pad3(a), int(o))
                   for o, p, v, a in zip(offsets_ns, pos, vel, acc)]
     return msg
 
 
-def msg_to_reference(msg: MultiDOFJointTrajectory, n_fingers: int):
-    """Horizon message → (stamp ns, times ns (h,), pos, vel, acc (h, n, 2))."""
-    idx = _order(msg.joint_names, list(FINGER_NAMES[:n_fingers]), 'grasp_reference')
+def msg_to_reference(msg: MultiDOFJointTrajectory, fingers: Fingers):
+    """Horizon message → (stamp ns, times ns (h,), pos, vel, acc (h, n, 2)), fingers in the order
+    of ``fingers``."""
+    idx = _order(msg.joint_names, list(finger_names(fingers)), 'grasp_reference')
     if not msg.points:
         raise MessageError('grasp_reference: no points')
     m = len(msg.joint_names)
@@ -248,3 +294,30 @@ def msg_to_reference(msg: MultiDOFJointTrajectory, n_fingers: int):
         raise MessageError('grasp_reference: point times are not increasing')
     d = check_finite(np.asarray(data, dtype=float)[:, idx], 'grasp_reference')
     return stamp, times, d[..., 0:2], d[..., 2:4], d[..., 4:6]
+
+
+# -- efforts for a ros2_control forward_command_controller (Float64MultiArray) ---------------
+
+def effort_array_order(joints: Sequence[str], fingers: Fingers) -> np.ndarray:
+    """Index into ``u.ravel()`` of the torque each of ``joints`` carries, in that order.
+
+    ``joints`` names, for each joint of a ros2_control ``forward_command_controller`` (effort
+    interface) in the order of its ``joints`` list, the torque that drives it: ``<finger>/ax0`` or
+    ``<finger>/ax1``. Every torque of ``fingers`` appears exactly once.
+
+    Raises:
+        ValueError: an unknown or repeated torque name, or a torque left out.
+    """
+    torques = _torque_names(finger_names(fingers))
+    joints = list(joints)
+    unknown = [j for j in joints if j not in torques]
+    if unknown:
+        raise ValueError(f'{unknown[0]!r} is not a torque of these fingers (the torques are '
+                         f'{", ".join(torques)})')
+    repeated = sorted({j for j in joints if joints.count(j) > 1})
+    if repeated:
+        raise ValueError(f'{repeated[0]!r} appears more than once')
+    missing = [t for t in torques if t not in joints]
+    if missing:
+        raise ValueError(f'no joint carries {", ".join(missing)} (each torque drives one joint)')
+    return np.array([torques.index(j) for j in joints], dtype=np.intp)

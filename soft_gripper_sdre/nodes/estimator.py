@@ -31,11 +31,13 @@ from soft_gripper_sdre.control.compiled import warm_up
 from soft_gripper_sdre.control.kf import PROCESS_NOISE_MODELS, ConstantVelocityKF
 from soft_gripper_sdre.nodes import cdr, conversions as cv
 from soft_gripper_sdre.nodes.common import Diagnostics, run
-from soft_gripper_sdre.nodes.params import Param, ParameterError, declare_all, on_runtime_change
+from soft_gripper_sdre.nodes.params import (Param, ParameterError, declare_all, finger_names_param,
+                                            on_runtime_change)
 from soft_gripper_sdre.nodes.topics import LOOP_QOS, NEWEST_QOS, STATE_ESTIMATE, TIP_POSITIONS
 
 PARAMS = (
-    Param('n_fingers', 4, 'fingers in each tip_positions message', '', 1, 4, read_only=True),
+    finger_names_param('the fingers: pose i of tip_positions is finger i; the joint names of '
+                       'state_estimate'),
     Param('control_period', 0.001, 'period of the measurements: the KF step Δt and the expected '
           'stamp step', 's', 1e-4, 0.05, read_only=True),
     Param('accel_psd', 1.0, 'white-acceleration intensity q of the process noise',
@@ -56,7 +58,8 @@ class EstimatorNode(Node):
         super().__init__('estimator', **kwargs)
         p = declare_all(self, PARAMS)
         self.p = p
-        self.n = p['n_fingers']
+        self.names = tuple(p['finger_names'])
+        self.n = len(self.names)
         try:
             self.kf = ConstantVelocityKF(p['control_period'], p['accel_psd'], p['meas_std'], n=self.n,
                                          process_noise=p['process_noise'])
@@ -70,8 +73,8 @@ class EstimatorNode(Node):
         self.last_ns: int | None = None          # stamp of the last accepted measurement
         self._predict_only = np.zeros(self.n, dtype=bool)
         # both messages travel as CDR bytes read / written at fixed offsets (nodes/cdr.py)
-        self.cdr_tips = cdr.tips_codec(self.n)
-        self.cdr_estimate = cdr.estimate_codec(self.n)
+        self.cdr_tips = cdr.tips_codec(self.names)
+        self.cdr_estimate = cdr.estimate_codec(self.names)
 
         self.pub = self.create_publisher(MultiDOFJointTrajectory, STATE_ESTIMATE, LOOP_QOS)
         self.sub = self.create_subscription(PoseArray, TIP_POSITIONS, self.on_tips, NEWEST_QOS, raw=True)
@@ -79,7 +82,7 @@ class EstimatorNode(Node):
         cdr.watch(self.diag, self.cdr_tips)
         self.diag.values['process_noise'] = p['process_noise']
         self.get_logger().info(
-            f'{self.n} fingers, Δt = {1e3 * p["control_period"]:g} ms, q = {p["accel_psd"]:g} '
+            f'{self.n} fingers ({", ".join(self.names)}), Δt = {1e3 * p["control_period"]:g} ms, q = {p["accel_psd"]:g} '
             f'(m/s²)²/Hz, σ = {1e3 * p["meas_std"]:g} mm, {p["process_noise"]} process noise')
 
     def _apply(self, new: dict) -> None:

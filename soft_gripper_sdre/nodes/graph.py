@@ -42,6 +42,9 @@ TIP_READERS = ('recorder', 'estimator', 'trajectory')
 #: the simulator starts stepping, so the bag holds the run from its first instant
 RECORDED_BEFORE_START = ('state_estimate', 'torque_commands', 'grasp_reference')
 
+#: the hand's two fingers that face each other across the cube: the grasping pair of the hand
+CUBE_FINGERS = (0, 2)
+
 _NAME_TOKEN = re.compile(r'[A-Za-z_][A-Za-z0-9_]*')
 
 
@@ -80,6 +83,19 @@ def normalize_namespace(namespace: str) -> str:
         raise ValueError(f'namespace {namespace!r}: {bad[0]!r} is not a valid name token '
                          '(letters, digits and underscores, not starting with a digit)')
     return ''.join('/' + t for t in tokens)
+
+
+def finger_parameters(fingers: Mapping[str, int]) -> dict[str, dict[str, Any]]:
+    """Per-node parameters of a grasp graph on a subset of the hand: ``fingers`` maps each finger
+    name, in message order, to the hand finger it is (0..3). Every node gets ``finger_names``, the
+    simulator ``hand_fingers``, the trajectory node ``grasp_fingers``: those of the chosen
+    fingers mounted at :data:`CUBE_FINGERS` (the others open away from the cube)."""
+    names, mounted = list(fingers), [int(i) for i in fingers.values()]
+    grasp = [k for k, i in enumerate(mounted) if i in CUBE_FINGERS]
+    return {'simulator': {'finger_names': names, 'hand_fingers': mounted},
+            'estimator': {'finger_names': names},
+            'trajectory': {'finger_names': names, 'grasp_fingers': grasp},
+            'controller': {'finger_names': names}}
 
 
 @dataclass(frozen=True)

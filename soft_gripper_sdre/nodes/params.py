@@ -8,7 +8,7 @@ reason and the old value stays in force.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Callable, Iterable
 
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
@@ -16,6 +16,9 @@ from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescr
 from rclpy.exceptions import (InvalidParameterTypeException, InvalidParameterValueException,
                               ParameterException)
 from rclpy.node import Node
+
+from soft_gripper_sdre import FINGER_NAMES
+from soft_gripper_sdre.nodes.conversions import MAX_FINGERS, finger_names_problem
 
 
 class ParameterError(ValueError):
@@ -34,6 +37,8 @@ class Param:
     max: float | None = None
     choices: tuple | None = None
     read_only: bool = False
+    #: a further check of the value: why it is refused, or None
+    rule: Callable[[Any], str | None] | None = field(default=None, compare=False)
 
     def descriptor(self) -> ParameterDescriptor:
         text = self.description + (f' [{self.units}]' if self.units else '')
@@ -64,7 +69,18 @@ class Param:
                 return f'{self.name} must be >= {self.min}, got {value!r}'
             if self.max is not None and value > self.max:
                 return f'{self.name} must be <= {self.max}, got {value!r}'
+        if self.rule is not None:
+            why = self.rule(value)
+            if why:
+                return f'{self.name}: {why}'
         return None
+
+
+def finger_names_param(description: str) -> Param:
+    """``finger_names``, the same rule in every node: the fingers in message order; their number
+    is the number of names (:func:`~soft_gripper_sdre.nodes.conversions.finger_names_problem`)."""
+    return Param('finger_names', list(FINGER_NAMES), description + '; as many names as fingers (1 to '
+                 f'{MAX_FINGERS}), each a ROS name token', rule=finger_names_problem, read_only=True)
 
 
 def declare_all(node: Node, params: Iterable[Param]) -> dict[str, Any]:

@@ -21,7 +21,6 @@ import struct
 import numpy as np
 from rclpy.serialization import deserialize_message, serialize_message
 
-from soft_gripper_sdre import FINGER_NAMES
 from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.topics import GRASP_REFERENCE
 
@@ -39,7 +38,8 @@ def _pad(offset: int, align: int) -> int:
 
 
 class PlanCodec:
-    """A plan of n fingers ↔ CDR bytes of its MultiDOFJointTrajectory (module doc).
+    """A plan of the fingers ``fingers`` (names, or a count for finger_0..) ↔ CDR bytes of its
+    MultiDOFJointTrajectory (module doc).
 
     ``fallbacks`` counts the messages read the slow way.
 
@@ -47,9 +47,9 @@ class PlanCodec:
         ValueError: at construction, if the self-check against rclpy's serialization fails.
     """
 
-    def __init__(self, n_fingers: int) -> None:
-        self.n = n_fingers
-        self.names = list(FINGER_NAMES[:n_fingers])
+    def __init__(self, fingers: cv.Fingers) -> None:
+        self.names = list(cv.finger_names(fingers))
+        self.n = len(self.names)
         self.fallbacks = 0
         prefix, padding = bytearray(), []   # frame_id '' and the joint names, after the stamp
         fields = [_U32.pack(1) + b'\x00', _U32.pack(len(self.names))]
@@ -107,7 +107,7 @@ class PlanCodec:
             except Exception:      # rclpy's RMWError: not CDR of this type
                 raise cv.MessageError(f'{WHAT}: {len(data)} bytes that do not deserialize as '
                                       'MultiDOFJointTrajectory') from None
-            return cv.msg_to_reference(msg, self.n)
+            return cv.msg_to_reference(msg, self.names)
         stamp, times, transforms, velocities, accelerations = fast
         if np.any(np.diff(times) <= 0):
             raise cv.MessageError(f'{WHAT}: point times are not increasing')
@@ -164,11 +164,11 @@ class PlanCodec:
         offsets = np.array([0, 5_000_000, 1_000_000_123], dtype=np.int64)
         pos, vel, acc = (rng.standard_normal((3, self.n, 2)) for _ in range(3))
         ns = 7 * cv.NS + 123
-        msg = cv.reference_to_msg(ns, offsets, pos, vel, acc)
+        msg = cv.reference_to_msg(ns, offsets, pos, vel, acc, self.names)
         ours = self.encode(ns, offsets, pos, vel, acc)
         theirs = serialize_message(msg)
         read = self._read(theirs)
-        slow = cv.msg_to_reference(msg, self.n)
+        slow = cv.msg_to_reference(msg, self.names)
         if (deserialize_message(ours, cv.MultiDOFJointTrajectory) != msg or read is None
                 or self._read(ours) is None
                 or not all(np.array_equal(a, b) for a, b in zip(self.decode(theirs), slow))):

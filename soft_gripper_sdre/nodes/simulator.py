@@ -1,5 +1,7 @@
 """The simulator node: the PyBullet gripper on topics.
 
+It exposes the fingers ``finger_names``, each one of the scene's fingers (``hand_fingers``: a
+2-finger gripper is the hand's opposite fingers 0 and 2); the others stay at zero torque.
 Publishes ``tip_positions`` (each control period), ``/clock`` (``clock_rate``, 100 Hz of sim time
 by default), ``joint_states``, ``cube_pose``, ``cube_contacts`` (``state_rate``) and
 ``/diagnostics``; subscribes ``torque_commands`` (keeping only the newest). Per period it sends
@@ -37,10 +39,12 @@ from sensor_msgs.msg import JointState
 
 from soft_gripper_sdre.nodes import cdr, conversions as cv
 from soft_gripper_sdre.nodes.common import ERROR, OK, WARN, Diagnostics, LatencyWindow, ThrottledLogger, run
-from soft_gripper_sdre.nodes.params import Param, ParameterError, declare_all, on_runtime_change
+from soft_gripper_sdre.nodes.params import (Param, ParameterError, declare_all, finger_names_param,
+                                            on_runtime_change)
 from soft_gripper_sdre.nodes.topics import (CLOCK, CLOCK_QOS, CUBE_CONTACTS, CUBE_POSE, JOINT_STATES,
                                             LOOP_QOS, NEWEST_QOS, STREAM_QOS, TIP_POSITIONS,
                                             TORQUE_COMMANDS)
+from soft_gripper_sdre.sim.finger import FINGER_BASE_POSITIONS, N_JOINTS
 from soft_gripper_sdre.sim.hand import GripperSim, SimConfig
 from soft_gripper_sdre.sim.lockstep import LATENCY_PERIODS, Stepping
 
@@ -61,6 +65,11 @@ PARAMS = (
     Param('settle_time', 0.5, 'time at u = 0 before t = 0 (defines the rest pose)', 's', 0.0, 10.0,
           read_only=True),
     Param('with_cube', True, 'hand scene: put the cube on the palm', read_only=True),
+    finger_names_param('the fingers the node exposes, in message order: pose i of tip_positions, '
+                       'torque_commands <finger>/ax0|ax1, joint_states <finger>/joint_<j>'),
+    Param('hand_fingers', [0, 1, 2, 3], "which of the scene's fingers each of finger_names is (hand: "
+          "0 to 3, 0 and 2 face each other across the cube; finger scene: 0); one per name, each "
+          'once. The fingers not listed stay in the scene at zero torque', read_only=True),
     Param('lockstep_timeout', 0.5, 'lockstep: wall time to wait for a command before stepping anyway',
           's', 1e-3, 60.0),
     Param('on_timeout', 'hold', 'lockstep: command used when none arrived in time',
@@ -94,6 +103,8 @@ class SimulatorNode(Node):
         p = declare_all(self, PARAMS)
         self.p = p
         on_runtime_change(self, PARAMS, apply=self._apply)
+        self.names = tuple(p['finger_names'])
+        self.mounted = exposed_fingers(self.names, p['hand_fingers'], p['scene'])
         try:
             self.sim = GripperSim(SimConfig(
                 scene=p['scene'], control_period=p['control_period'],
@@ -102,7 +113,8 @@ class SimulatorNode(Node):
                 with_cube=p['with_cube']))
         except ValueError as exc:
             raise ParameterError(str(exc)) from None
-        self.n = self.sim.n_fingers
+        self._u_scene = np.zeros((self.sim.n_fingers, 2))   # the fingers not exposed stay at zero
+        self.joint_names = [f'{name}/joint_{j}' for name in self.names for j in range(N_JOINTS)]
         self.state_every = max(1, int(round(1.0 / (p['state_rate'] * p['control_period']))))
         self.clock_every = max(1, int(round(1.0 / (p['clock_rate'] * p['control_period']))))
         self.exit_code = 0
@@ -115,8 +127,8 @@ class SimulatorNode(Node):
 
         # the per-period messages travel as CDR bytes written / read at fixed offsets (nodes/cdr.py)
         self.cdr_clock = cdr.clock_codec()
-        self.cdr_tips = cdr.tips_codec(self.n)
-        self.cdr_cmd = cdr.torques_codec(self.n)
+        self.cdr_tips = cdr.tips_codec(self.names)
+        self.cdr_cmd = cdr.torques_codec(self.names)
         self.pub_clock = self.create_publisher(Clock, CLOCK, CLOCK_QOS)
         self.pub_tips = self.create_publisher(PoseArray, TIP_POSITIONS, LOOP_QOS)
         self.pub_joints = self.create_publisher(JointState, JOINT_STATES, STREAM_QOS)
@@ -127,7 +139,7 @@ class SimulatorNode(Node):
         self.log = ThrottledLogger(self.get_logger())
         self.diag = Diagnostics(self)
         self.stepping = Stepping(
-            self.n, int(round(p['control_period'] * cv.NS)), p['mode'],
+            len(self.names), int(round(p['control_period'] * cv.NS)), p['mode'],
             int(round(p['duration'] / p['control_period'])) if p['duration'] > 0 else None,
             p['lockstep_timeout'], p['on_timeout'], p['on_bad_command'], p['lost_command_wait'],
             self._hold_periods(), counters=self.diag.counters)
@@ -236,7 +248,8 @@ class SimulatorNode(Node):
         """Step the physics with ``u`` (finite: validated on receipt, or held or zero), if any."""
         if u is None:
             return
-        self.sim.step(u)
+        self._u_scene[self.mounted] = u
+        self.sim.step(self._u_scene)
         if self.done:
             self._wall_end, self._cpu_end = time.monotonic(), time.process_time()
         self.publish_state()
@@ -249,7 +262,7 @@ class SimulatorNode(Node):
     # -- publishing --------------------------------------------------------------------------
     def publish_state(self) -> None:
         k, ns = self.stepping.k, self.stepping.now_ns
-        tips = self.cdr_tips.encode(ns, self.sim.measure())
+        tips = self.cdr_tips.encode(ns, self.sim.measure()[self.mounted])
         self._tips_sent[k % LATENCY_PERIODS] = time.perf_counter()
         self.pub_tips.publish(tips)         # first: the loop's critical path starts here
         self.stepping.await_command(time.monotonic())
@@ -257,10 +270,11 @@ class SimulatorNode(Node):
             self.pub_clock.publish(self.cdr_clock.encode(ns, _NO_VALUES))
         if k % self.state_every == 0:
             truth = self.sim.truth()
-            self.pub_joints.publish(cv.joint_states_msg(ns, self.sim.joint_names, truth.q, truth.qd))
+            on = self.mounted        # the exposed fingers
+            self.pub_joints.publish(cv.joint_states_msg(ns, self.joint_names, truth.q[on], truth.qd[on]))
             if truth.cube_pose is not None:
                 self.pub_cube.publish(cube_pose_msg(ns, truth.cube_pose))
-                self.pub_contacts.publish(cv.contacts_msg(ns, truth.contact_force))
+                self.pub_contacts.publish(cv.contacts_msg(ns, truth.contact_force[on], self.names))
         if self.diag.level == WARN and k % 1000 == 0:
             self.diag.set_status(OK, 'stepping')
 
@@ -283,6 +297,27 @@ class SimulatorNode(Node):
 
     def close(self) -> None:
         self.sim.close()
+
+
+def exposed_fingers(names, hand_fingers, scene: str) -> np.ndarray:
+    """The ``scene``'s finger index of each of ``names`` (the ``hand_fingers`` parameter), checked.
+
+    Raises:
+        ParameterError: not one index per name, an index twice, or one the scene does not have.
+    """
+    hand_fingers = [int(i) for i in hand_fingers]
+    scene_fingers = 1 if scene == 'finger' else len(FINGER_BASE_POSITIONS)
+    if len(hand_fingers) != len(names):
+        raise ParameterError(f"parameter 'hand_fingers': {hand_fingers} has {len(hand_fingers)} "
+                             f'entries but finger_names {list(names)} has {len(names)}: give one '
+                             f"scene finger per name (the {scene} scene has {scene_fingers}: "
+                             f'0 to {scene_fingers - 1})')
+    if len(set(hand_fingers)) != len(hand_fingers):
+        raise ParameterError(f"parameter 'hand_fingers': {hand_fingers} names a finger twice")
+    if any(not 0 <= i < scene_fingers for i in hand_fingers):
+        raise ParameterError(f"parameter 'hand_fingers': {hand_fingers} out of range: the {scene} "
+                             f'scene has {scene_fingers} finger(s), 0 to {scene_fingers - 1}')
+    return np.array(hand_fingers, dtype=np.intp)
 
 
 def cube_pose_msg(ns: int, pose: np.ndarray) -> PoseStamped:

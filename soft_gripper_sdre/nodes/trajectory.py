@@ -37,7 +37,8 @@ from trajectory_msgs.msg import MultiDOFJointTrajectory
 
 from soft_gripper_sdre.nodes import cdr, conversions as cv
 from soft_gripper_sdre.nodes.common import Diagnostics, run
-from soft_gripper_sdre.nodes.params import Param, ParameterError, declare_all, on_runtime_change
+from soft_gripper_sdre.nodes.params import (Param, ParameterError, declare_all, finger_names_param,
+                                            on_runtime_change)
 from soft_gripper_sdre.nodes.plan_cdr import PlanCodec
 from soft_gripper_sdre.nodes.topics import (CLOCK, CLOCK_QOS, GRASP_REFERENCE, LOOP_QOS, REFERENCE_QOS,
                                             TIP_POSITIONS)
@@ -49,7 +50,8 @@ PROFILE_FIELDS = tuple(f.name for f in fields(GraspProfile))
 MAX_PLAN_POINTS = 20_000
 
 PARAMS = (
-    Param('n_fingers', 4, 'fingers in each tip_positions message', '', 1, 4, read_only=True),
+    finger_names_param('the fingers: pose i of tip_positions is finger i; the joint names of '
+                       'grasp_reference'),
     Param('t_start', _DEFAULTS.t_start, 'hold at rest before the fingers move', 's', 0.0, 1e4, read_only=True),
     Param('t_close', _DEFAULTS.t_close, 'duration of the closing motion', 's', 1e-3, 1e4, read_only=True),
     Param('t_hold', _DEFAULTS.t_hold, 'time spent closed', 's', 0.0, 1e4, read_only=True),
@@ -64,8 +66,8 @@ PARAMS = (
           'the cube (scoring only)', 'm', -0.1, 0.1, read_only=True),
     Param('contact_margin', _DEFAULTS.contact_margin, 'clearance from the cube below which a phase is no '
           'longer free space (scoring only)', 'm', 0.0, 0.1, read_only=True),
-    Param('grasp_fingers', list(_DEFAULTS.grasp_fingers), 'indices of the two opposite fingers that grasp',
-          read_only=True),
+    Param('grasp_fingers', list(_DEFAULTS.grasp_fingers), 'indices into finger_names of the fingers '
+          'that close on the object (two opposite ones in the hand)', read_only=True),
     Param('others', 'open', 'what the non-grasping fingers do', choices=OTHERS_MODES, read_only=True),
     Param('horizon_step', 0.005, 'spacing of the absolute time grid of the plan\'s points', 's',
           1e-4, 1.0, read_only=True),
@@ -100,9 +102,10 @@ def _profile(p: dict) -> GraspProfile:
     except ValueError as exc:
         name = next((f for f in PROFILE_FIELDS if str(exc).startswith(f)), 'grasp profile')
         raise ParameterError(f'parameter {name!r}: {exc}') from None
-    if any(i >= p['n_fingers'] for i in profile.grasp_fingers):
-        raise ParameterError(f"parameter 'grasp_fingers': {list(profile.grasp_fingers)} out of range "
-                             f"for n_fingers = {p['n_fingers']}")
+    names = p['finger_names']
+    if any(i >= len(names) for i in profile.grasp_fingers):
+        raise ParameterError(f"parameter 'grasp_fingers': {list(profile.grasp_fingers)} are not all "
+                             f'indices into finger_names {names} (0 to {len(names) - 1})')
     return profile
 
 
@@ -120,7 +123,8 @@ class TrajectoryNode(Node):
         super().__init__('trajectory', **kwargs)
         p = declare_all(self, PARAMS)
         self.p = p
-        self.n = p['n_fingers']
+        self.names = tuple(p['finger_names'])
+        self.n = len(self.names)
         self.profile = _profile(p)
         self.step_ns = int(round(p['horizon_step'] * cv.NS))
         points = len(plan_offsets(self.profile.duration, self.step_ns, limit=MAX_PLAN_POINTS + 1))
@@ -135,9 +139,9 @@ class TrajectoryNode(Node):
         self.traj: GraspTrajectory | None = None
         self.clock_ns = -1                      # newest /clock stamp
         self.sub = None                         # the tip subscription, while a rest pose is wanted
-        self.cdr_tips = cdr.tips_codec(self.n)     # CDR bytes read at fixed offsets (nodes/cdr.py)
+        self.cdr_tips = cdr.tips_codec(self.names)     # CDR bytes read at fixed offsets (nodes/cdr.py)
         self.cdr_clock = cdr.clock_codec()
-        self.cdr_plan = PlanCodec(self.n)
+        self.cdr_plan = PlanCodec(self.names)
         self.pub = self.create_publisher(MultiDOFJointTrajectory, GRASP_REFERENCE, REFERENCE_QOS)
         self.sub_clock = self.create_subscription(Clock, CLOCK, self.on_clock, CLOCK_QOS, raw=True)
         # the tip subscription is dropped outside its own callback, by this timer
@@ -146,7 +150,7 @@ class TrajectoryNode(Node):
         cdr.watch(self.diag, self.cdr_tips, self.cdr_clock)
         pr = self.profile
         self.get_logger().info(
-            f'grasp with fingers {list(pr.grasp_fingers)}, others {pr.others}: start {pr.t_start:g} s, '
+            f'grasp with fingers {[self.names[i] for i in pr.grasp_fingers]}, others {pr.others}: start {pr.t_start:g} s, '
             f'close {pr.t_close:g} s, hold {pr.t_hold:g} s, open {pr.t_open:g} s; planned on a '
             f'{1e3 * p["horizon_step"]:g} ms grid')
         if self.fixed_rest is None:

@@ -24,7 +24,7 @@ import sys
 import time
 
 from soft_gripper_sdre.control.laws import GRAPH_LAWS
-from soft_gripper_sdre.nodes.graph import grasp_graph
+from soft_gripper_sdre.nodes.graph import CUBE_FINGERS, finger_parameters, grasp_graph
 from soft_gripper_sdre.tools.procs import WIRED_BEFORE_START, DiagnosticsMonitor, Graph, ros_env
 
 
@@ -38,6 +38,10 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument('--seed', type=int, default=None, help='measurement noise seed (default: config)')
     ap.add_argument('--law', default=None, choices=GRAPH_LAWS,
                     help='control law of the controller node (default: config/controller.yaml)')
+    ap.add_argument('--fingers', default=None, metavar='NAME=HAND_FINGER,...',
+                    help='run the graph on these fingers of the hand, named (e.g. left=0,right=2: '
+                         f'hand fingers {CUBE_FINGERS[0]} and {CUBE_FINGERS[1]} face each other across '
+                         'the cube); default all four, finger_0=0,...,finger_3=3')
     ap.add_argument('--domain-id', type=int, default=None, help='ROS_DOMAIN_ID (default: env or random)')
     ap.add_argument('--timeout', type=float, default=600.0, help='wall-clock limit [s] (default %(default)s)')
     ap.add_argument('--no-progress', action='store_true', help='no progress bar')
@@ -46,7 +50,7 @@ def _parser() -> argparse.ArgumentParser:
 
 def run_demo(out: Path, duration: float, model: Path | None = None, noise: float | None = None,
              seed: int | None = None, domain_id: int | None = None, timeout: float = 600.0,
-             progress: bool = True, law: str | None = None) -> dict:
+             progress: bool = True, law: str | None = None, fingers: dict[str, int] | None = None) -> dict:
     """Run the graph, write bag/figures/metrics under ``out``; returns the report (plus run facts).
 
     Raises:
@@ -73,6 +77,8 @@ def run_demo(out: Path, duration: float, model: Path | None = None, noise: float
         params['simulator']['seed'] = seed
     if law is not None:
         params['controller']['law'] = law
+    for node, values in (finger_parameters(fingers) if fingers else {}).items():
+        params[node].update(values)
     spec = grasp_graph(parameters=params)
 
     if progress:
@@ -132,7 +138,7 @@ def run_demo(out: Path, duration: float, model: Path | None = None, noise: float
     if progress:
         print('reading the bag and drawing the figures ...', file=sys.stderr, flush=True)
     result = report(bag, out, torque_limit=_controller_limit())
-    result['controller'] = controller_stats(bag)
+    result['controller'] = controller_stats(bag, len(result['fingers']))
     sim_diag = last_diagnostics(bag, 'simulator')
     stepping_rtf = sim_diag.get('real_time_factor')
     result['run'] = {'sim_duration_s': duration, 'wall_s': round(wall, 2),
@@ -164,7 +170,7 @@ def last_diagnostics(bag: Path, node: str) -> dict[str, str]:
     return {} if last is None else {kv.key: kv.value for kv in last.values}
 
 
-def controller_stats(bag: Path) -> dict:
+def controller_stats(bag: Path, n_fingers: int = 4) -> dict:
     """The controller's last /diagnostics in the bag: counters, Riccati checks, compute time."""
     values = last_diagnostics(bag, 'controller')
     if not values:
@@ -175,7 +181,7 @@ def controller_stats(bag: Path) -> dict:
             stats[key] = float(value)
         except ValueError:
             stats[key] = value            # the model path and the weights string
-    solves = stats.get('commands', 0.0) * 4
+    solves = stats.get('commands', 0.0) * n_fingers
     if solves:
         stats['fallback_fraction'] = stats.get('fallbacks', 0.0) / solves
         stats['check_failure_fraction'] = stats.get('check_failures', 0.0) / solves
@@ -202,7 +208,8 @@ def summary(result: dict, out: Path) -> str:
     if 'fallback_fraction' in c:
         lines.append(f'  Riccati: checks failed on {c["check_failure_fraction"]:.2%} of solves, fallbacks '
                      f'{c["fallback_fraction"]:.2%}, max residual {c.get("max_residual", float("nan")):.1e}; '
-                     f'compute {c.get("compute_us_mean", float("nan")):.0f} µs mean per 4-finger step')
+                     f'compute {c.get("compute_us_mean", float("nan")):.0f} µs mean per '
+                     f'{len(result["fingers"])}-finger step')
     lines.append(f'  bag, figures and metrics.json in {out}/')
     return '\n'.join(lines)
 
@@ -225,12 +232,45 @@ def argument_problem(a: argparse.Namespace) -> str | None:
         return f'--domain-id must be a ROS domain ID in [0, 232], got {a.domain_id}'
     if not a.timeout > 0:
         return f'--timeout must be > 0 s, got {a.timeout}'
+    if a.fingers is not None:
+        problem = fingers_problem(a.fingers)
+        if problem:
+            return f'--fingers: {problem}'
     if a.model is not None:
         from soft_gripper_sdre.learning.model import ModelFileError, read_checkpoint
         try:
             read_checkpoint(a.model)
         except ModelFileError as exc:
             return f'--model: {exc}'
+    return None
+
+
+def parse_fingers(text: str) -> dict[str, int]:
+    """``'left=0,right=2'`` → ``{'left': 0, 'right': 2}`` (ValueError if not of that form)."""
+    out = {}
+    for item in text.split(','):
+        name, sep, index = item.strip().partition('=')
+        if not sep or name.strip() in out:
+            raise ValueError(f'{item.strip()!r}: give each finger once as NAME=HAND_FINGER')
+        out[name.strip()] = int(index)
+    return out
+
+
+def fingers_problem(text: str) -> str | None:
+    """What is wrong with a ``--fingers`` value, or None."""
+    from soft_gripper_sdre.nodes.conversions import finger_names_problem
+    try:
+        fingers = parse_fingers(text)
+    except ValueError as exc:
+        return f'{text!r} is not NAME=HAND_FINGER,...: {exc}'
+    problem = finger_names_problem(list(fingers))
+    if problem:
+        return problem
+    mounted = list(fingers.values())
+    if len(set(mounted)) != len(mounted) or not all(0 <= i <= 3 for i in mounted):
+        return f'hand fingers must be distinct, 0 to 3, got {mounted}'
+    if not set(mounted) & set(CUBE_FINGERS):
+        return f'none of the fingers is at hand finger {CUBE_FINGERS[0]} or {CUBE_FINGERS[1]}, the two that grasp the cube'
     return None
 
 
@@ -242,7 +282,8 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(problem)
     try:
         result = run_demo(a.out, a.duration, a.model, None if a.noise is None else a.noise * 1e-3, a.seed,
-                          a.domain_id, a.timeout, progress=not a.no_progress, law=a.law)
+                          a.domain_id, a.timeout, progress=not a.no_progress, law=a.law,
+                          fingers=parse_fingers(a.fingers) if a.fingers else None)
     except RuntimeError as exc:
         print(f'error: {exc}', file=sys.stderr)
         return 1

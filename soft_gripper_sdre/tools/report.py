@@ -101,7 +101,7 @@ def report(bag_path: str | Path, out_dir: str | Path, torque_limit: float | None
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     n = run.n_fingers
-    names = list(FINGER_NAMES[:n])
+    names = list(run.finger_names) or list(FINGER_NAMES[:n])
 
     k0 = _start(run, bag_path)
     t = run.tips.t[k0:]
