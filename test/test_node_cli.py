@@ -67,3 +67,20 @@ def test_ros_args_sections_are_told_apart_from_user_args():
     assert ros == ['--params-file', 'a.yaml', '-p', 'n:=1']
     assert params_files(ros) == ['a.yaml']
     assert params_files(['--params-file']) == ['']
+
+
+@pytest.mark.parametrize('node', ['estimator', 'controller'])
+def test_unknown_parameter_exits_2_listing_the_nodes_parameters(node, tmp_path):
+    out = _run(node, '--ros-args', '-p', 'n_fingers:=2', tmp_path=tmp_path)
+    assert out.returncode == 2
+    assert f"{node}: unknown parameter 'n_fingers'" in out.stderr and 'finger_names' in out.stderr
+    assert 'Traceback' not in out.stderr
+    assert not list(tmp_path.iterdir())
+
+
+def test_rclpy_own_parameters_are_not_unknown():
+    from soft_gripper_sdre.nodes.cli import unknown_parameter_problem
+    from soft_gripper_sdre.nodes.controller import PARAMS
+    for name in ('use_sim_time', 'qos_overrides./tip_positions.subscription.depth', 'law'):
+        assert unknown_parameter_problem(name, PARAMS) is None
+    assert 'unknown parameter' in unknown_parameter_problem('lwa', PARAMS)

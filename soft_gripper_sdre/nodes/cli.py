@@ -1,9 +1,11 @@
-"""What a node's command line settles before anything starts: ``--help`` and bad parameter files.
+"""What a node's command line settles before anything starts: ``--help``, bad parameter files
+and unknown parameters.
 
 ``ros2 run soft_gripper_sdre <node> --help`` prints the node's parameters and exits 0 without
 touching ROS. A ``--params-file`` that is missing or is not a ROS parameters file is refused with
 a message naming the file and the problem and exit status 2, before ``rclpy.init`` (whose own
-parser would end in a traceback).
+parser would end in a traceback). So is a ``-p NAME:=VALUE`` that names no parameter of the node:
+ROS would ignore it without a word, and the node would run on the default.
 """
 from __future__ import annotations
 
@@ -16,6 +18,9 @@ import yaml
 from soft_gripper_sdre.nodes.params import Param
 
 HELP_FLAGS = ('-h', '--help')
+#: parameters every rclpy node has besides its own, and prefixes of those it may have
+ROS_PARAMETERS = ('use_sim_time', 'start_type_description_service')
+ROS_PARAMETER_PREFIXES = ('qos_overrides.',)
 #: exit status of a refused command line
 USAGE_ERROR = 2
 
@@ -44,6 +49,20 @@ def params_files(ros_args: list[str]) -> list[str]:
     """Every file named by ``--params-file FILE`` among the ROS arguments."""
     return [ros_args[i + 1] for i, arg in enumerate(ros_args[:-1]) if arg == '--params-file'] + (
         [''] if ros_args[-1:] == ['--params-file'] else [])
+
+
+def parameter_assignments(ros_args: list[str]) -> list[str]:
+    """The NAME of every ``-p NAME:=VALUE`` / ``--param NAME:=VALUE`` among the ROS arguments."""
+    return [ros_args[i + 1].split(':=', 1)[0] for i, arg in enumerate(ros_args[:-1])
+            if arg in ('-p', '--param') and ':=' in ros_args[i + 1]]
+
+
+def unknown_parameter_problem(name: str, params: Iterable[Param]) -> str | None:
+    """Why ``-p name:=…`` cannot be meant for this node, or None."""
+    known = [p.name for p in params]
+    if name in known or name in ROS_PARAMETERS or name.startswith(ROS_PARAMETER_PREFIXES):
+        return None
+    return f'unknown parameter {name!r} (this node has: {", ".join(known)})'
 
 
 def params_file_problem(path: str) -> str | None:
@@ -94,11 +113,18 @@ def format_help(executable: str, summary: str, params: Iterable[Param]) -> str:
 
 def settle_command_line(argv: list[str], executable: str, summary: str, params: Iterable[Param],
                         out: TextIO = sys.stdout, err: TextIO = sys.stderr) -> int | None:
-    """Handle ``--help`` and refuse bad parameter files; the exit status, or None to go on."""
+    """Handle ``--help`` and refuse bad parameter files and unknown ``-p`` parameters; the exit
+    status, or None to go on."""
+    params = list(params)
     user, ros = split_ros_args(argv)
     if any(a in HELP_FLAGS for a in user):
         out.write(format_help(executable, summary, params))
         return 0
+    for name in parameter_assignments(ros):
+        problem = unknown_parameter_problem(name, params)
+        if problem:
+            err.write(f'{executable}: {problem}\n')
+            return USAGE_ERROR
     for path in params_files(ros):
         problem = params_file_problem(path)
         if problem:
