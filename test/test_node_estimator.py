@@ -12,7 +12,7 @@ from node_harness import MS, make_estimator
 from rosutil import overrides, ros_context, spin_until
 from soft_gripper_sdre.control.kf import ConstantVelocityKF
 from soft_gripper_sdre.nodes import conversions as cv
-from soft_gripper_sdre.nodes.estimator import PARAMS, EstimatorNode
+from soft_gripper_sdre.nodes.estimator import MESSAGE_OUTCOMES, PARAMS, EstimatorNode
 from soft_gripper_sdre.nodes.params import ParameterError
 from soft_gripper_sdre.nodes.topics import STATE_ESTIMATE
 
@@ -22,9 +22,8 @@ CONFIG = Path(__file__).resolve().parents[1] / 'config' / 'estimator.yaml'
 
 
 def handled(node) -> int:
-    """Messages the node has dealt with: each is either estimated, malformed or stale."""
-    c = node.diag.counters
-    return c['estimates'] + c['bad_message'] + c['stale']
+    """Messages the node has dealt with: each is accepted or rejected under one reason."""
+    return sum(node.diag.counters[k] for k in MESSAGE_OUTCOMES)
 
 
 def send(executor, node, pub, msg) -> None:
@@ -84,8 +83,8 @@ def test_bad_inputs_are_counted_gaps_predicted_and_jumps_reset():
     empty.header.stamp = cv.to_time(11 * MS)
     sequence = ([(k * MS, 'ok') for k in range(10)]
                 + [(nan, 'bad_message'), (three, 'bad_message'), (five, 'bad_message'),
-                   (empty, 'bad_message'), (9 * MS, 'stale'), (5 * MS, 'stale'),
-                   (10 * MS, 'ok'), (13 * MS, 'gap'), (13 * MS + MS // 2, 'off_period'),
+                   (empty, 'bad_message'), (8 * MS, 'out_of_order'), (5 * MS, 'out_of_order'),
+                   (9 * MS, 'duplicate'), (10 * MS, 'ok'), (13 * MS, 'gap'), (13 * MS + MS // 2, 'off_grid'),
                    (0, 'reset'), (60 * MS, 'reset'), (61 * MS, 'ok')])
     kf = ConstantVelocityKF(1e-3, 1.0, 5e-5, n=4)
     expected = []
@@ -96,7 +95,7 @@ def test_bad_inputs_are_counted_gaps_predicted_and_jumps_reset():
                 send(executor, node, pub, item)
                 continue
             send(executor, node, pub, tips(item, meas(item)))
-            if kind == 'stale':
+            if kind in ('out_of_order', 'duplicate'):
                 continue
             if kind == 'reset' or not expected:
                 kf.reset(meas(item))
@@ -105,13 +104,14 @@ def test_bad_inputs_are_counted_gaps_predicted_and_jumps_reset():
                 if kind == 'gap':
                     kf.step(meas(item), np.zeros(4, dtype=bool))
                     kf.step(meas(item), np.zeros(4, dtype=bool))
-                x = kf.step(meas(item))
+                x = kf.step(meas(item), dt=MS / 2 / cv.NS if kind == 'off_grid' else None)
             expected.append((item, x))
         got = estimates(executor, probe, len(expected))
         c = node.diag.counters
-        assert (c['bad_message'], c['stale'], c['gaps'], c['missed_periods'], c['off_period'],
-                c['resets']) == (4, 2, 1, 2, 1, 2)
+        assert (c['bad_message'], c['out_of_order'], c['duplicate'], c['gaps'], c['missed_periods'],
+                c['resets'], c['dropouts']) == (4, 2, 1, 1, 2, 2, 0)
         assert c['estimates'] == len(expected) == 16
+        assert c['received'] == len(sequence) == sum(c[k] for k in MESSAGE_OUTCOMES)
     assert [s for s, _ in got] == [s for s, _ in expected]
     np.testing.assert_array_equal(np.array([x for _, x in got]), np.array([x for _, x in expected]))
     reset_at_zero = dict(got)[0]
