@@ -38,7 +38,9 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument('--seed', type=int, default=None, help='measurement noise seed (default: config)')
     ap.add_argument('--period', type=float, default=None, metavar='MS',
                     help='control period of the whole loop [ms], from 1 to 10: the simulator, the '
-                         'estimator and the controller all take it (default: the config files, 1 ms)')
+                         'estimator and the controller all take it (default: the config files, 1 ms; '
+                         'the default weights hold only the shorter periods: docs/results.md '
+                         '"Control rates")')
     ap.add_argument('--law', default=None, choices=GRAPH_LAWS,
                     help='control law of the controller node (default: config/controller.yaml)')
     ap.add_argument('--domain-id', type=int, default=None, help='ROS_DOMAIN_ID (default: env or random)')
