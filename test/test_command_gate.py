@@ -117,6 +117,9 @@ def test_old_estimates_are_refused_and_gaps_are_counted_as_skipped():
     assert gate.counters['skipped_estimates'] == 3 and gate.counters['estimates'] == 3
     gate.on_estimate(10_000 * MS, estimate(), wall=0.0)             # an outage, not a skip
     assert gate.counters['skipped_estimates'] == 3
+    gate.on_estimate(10_001 * MS + MS // 3, estimate(), wall=0.0)   # a jittery step: none skipped
+    gate.on_estimate(10_003 * MS + MS // 4, estimate(), wall=0.0)   # about two periods: one skipped
+    assert gate.counters['skipped_estimates'] == 4
 
 
 def test_the_watchdog_reports_lost_estimates_once_and_their_return():

@@ -84,6 +84,20 @@ def test_parameters_for_a_node_the_graph_lacks_are_refused():
         grasp_graph().with_parameters('planner', x=1)
 
 
+def test_one_control_period_reaches_every_node_that_declares_one():
+    import importlib
+    declares = {name for name in GRASP_NODES
+                if any(p.name == 'control_period' for p in importlib.import_module(f'soft_gripper_sdre.nodes.{name}').PARAMS)}
+    assert declares == set(graph.PERIOD_NODES)
+    spec = grasp_graph(control_period=0.005, parameters={'controller': {'law': 'sdre'}})
+    assert {n.name: n.parameters.get('control_period') for n in spec.nodes} == {
+        'recorder': None, 'estimator': 0.005, 'trajectory': None, 'controller': 0.005, 'simulator': 0.005}
+    assert spec.node('controller').parameters['law'] == 'sdre'
+    assert '-p' in spec.node('estimator').ros_arguments() and 'control_period:=0.005' in spec.node('estimator').ros_arguments()
+    with pytest.raises(ValueError, match='control_period 0.005 s for the graph, but 0.002 s in the estimator'):
+        grasp_graph(control_period=0.005, parameters={'estimator': {'control_period': 0.002}})
+
+
 def test_a_renamed_node_says_so_on_its_command_line():
     spec = NodeSpec('recorder_left', 'recorder', parameters={'topics': ['tip_positions', '/clock']})
     assert spec.ros_arguments() == ['--ros-args', '-r', '__node:=recorder_left', '-p',

@@ -86,3 +86,68 @@ def test_bad_arguments(kwargs, match):
         ConstantVelocityKF(**args)
     with pytest.raises(ValueError, match='z must'):
         ConstantVelocityKF(1e-3, 1.0, 1e-4, n=2).step(np.zeros((3, 2)))
+
+
+@pytest.mark.parametrize('model', ['independent', 'paper'])
+def test_variable_steps_match_filterpy_with_the_same_dt_sequence(model):
+    """Jittered steps (100–400 Hz, ±20 %) and a bridged dropout: the compiled per-step F and Σ_v
+    give filterpy's KalmanFilter (Joseph-form update) fed cv_matrices of each step's Δt."""
+    from filterpy.kalman import KalmanFilter
+    rng = np.random.default_rng(11)
+    q, sigma, n = 2.0, 5e-5, 3
+    dts = np.concatenate([rng.uniform(0.8, 1.2, 150) / 120, rng.uniform(0.8, 1.2, 150) / 400, [0.031]])
+    rng.shuffle(dts)
+    t = np.cumsum(dts)
+    truth = rng.normal(size=(n, 2)) * 1e-3 + rng.normal(size=(n, 2)) * 0.02 * t[:, None, None]
+    z = truth + rng.normal(size=truth.shape) * sigma
+    kf = ConstantVelocityKF(1 / 120, q, sigma, n=n, process_noise=model)
+    kf.reset(z[0])
+    refs = []
+    for i in range(n):
+        ref = KalmanFilter(dim_x=4, dim_z=2)
+        ref.x, ref.P = kf.x[i].copy(), kf.P[i].copy()
+        ref.H, ref.R = kf.H, kf.R
+        refs.append(ref)
+    for k in range(1, len(t)):
+        dt = t[k] - t[k - 1]
+        got = kf.step(z[k], dt=dt)
+        F, Q = cv_matrices(dt, q, model)
+        for i, ref in enumerate(refs):
+            ref.predict(F=F, Q=Q)
+            ref.update(z[k, i])
+            np.testing.assert_allclose(got[i], ref.x, rtol=1e-7, atol=1e-9)
+            np.testing.assert_allclose(kf.P[i], ref.P, rtol=1e-7, atol=1e-16)
+    assert np.abs(got[:, :2] - truth[-1]).max() < 5 * sigma
+
+
+def test_a_step_of_the_filters_own_dt_is_the_fixed_step_bit_for_bit():
+    rng = np.random.default_rng(2)
+    fixed, given = (ConstantVelocityKF(1e-3, 1.0, 5e-5, n=4) for _ in range(2))
+    for k in range(50):
+        z = rng.normal(size=(4, 2)) * 1e-3
+        np.testing.assert_array_equal(fixed.step(z), given.step(z, dt=1e-3))
+    np.testing.assert_array_equal(fixed.P, given.P)
+
+
+def test_compiled_matrices_agree_with_cv_matrices():
+    from soft_gripper_sdre.control.compiled import kf_step_dt
+    for model, coupling in (('independent', 0.0), ('paper', 1.0)):
+        for dt in (1e-4, 8.3e-3, 0.05):
+            F, Q = np.empty((4, 4)), np.empty((4, 4))
+            x, P = np.zeros((1, 4)), np.zeros((1, 4, 4))
+            kf_step_dt(x, P, np.zeros((1, 2)), np.zeros(1, dtype=np.bool_), dt, 3.0, coupling, F, Q, np.eye(2))
+            F_ref, Q_ref = cv_matrices(dt, 3.0, model)
+            np.testing.assert_array_equal(F, F_ref)
+            np.testing.assert_allclose(Q, Q_ref, rtol=1e-15, atol=0)
+            np.testing.assert_allclose(P[0], Q_ref, rtol=1e-15, atol=0)   # predicted from P = 0
+
+
+@pytest.mark.parametrize('dt', [0.0, -1e-3, float('nan'), float('inf')])
+def test_a_step_over_a_bad_dt_is_refused_and_leaves_the_filter(dt):
+    kf = ConstantVelocityKF(1e-3, 1.0, 5e-5, n=2)
+    kf.reset(np.ones((2, 2)))
+    before = kf.x.copy(), kf.P.copy()
+    with pytest.raises(ValueError, match='dt must be finite and > 0'):
+        kf.step(np.zeros((2, 2)), dt=dt)
+    np.testing.assert_array_equal(kf.x, before[0])
+    np.testing.assert_array_equal(kf.P, before[1])

@@ -69,6 +69,8 @@ def test_a_hand_in_a_namespace_with_every_argument(launch_module):
     ({'seed': '1.5'}, "seed:='1.5' is not a number"),
     ({'record': 'maybe'}, "record:='maybe' must be 'true' or 'false'"),
     ({'namespace': '2nd_hand'}, 'is not a valid name token'),
+    ({'control_period': '0.02'}, "control_period:='0.02' must be from 0.001 to 0.01 s"),
+    ({'control_period': '5ms'}, "control_period:='5ms' is not a number"),
 ])
 def test_bad_arguments_are_named(launch_module, arguments, needle):
     with pytest.raises(ValueError, match=needle.replace('(', r'\(').replace('.', r'\.')):
@@ -81,3 +83,10 @@ def test_the_declared_arguments_are_the_ones_grasp_nodes_takes(launch_module):
     names = [name for name, _, _ in launch_module.ARGUMENTS]
     assert names == list(inspect.signature(launch_module.grasp_nodes).parameters)
     assert callable(launch_module.generate_launch_description)
+
+
+def test_control_period_reaches_every_node_of_the_loop(launch_module):
+    nodes = {n['name']: n for n in launch_module.grasp_nodes(control_period='0.005')}
+    overrides = {name: next((d for d in n['parameters'] if isinstance(d, dict)), {}) for name, n in nodes.items()}
+    periods = {name: d.get('control_period') for name, d in overrides.items()}
+    assert periods == {'estimator': 0.005, 'trajectory': None, 'controller': 0.005, 'simulator': 0.005}

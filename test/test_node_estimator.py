@@ -12,7 +12,8 @@ from node_harness import MS, make_estimator
 from rosutil import overrides, ros_context, spin_until
 from soft_gripper_sdre.control.kf import ConstantVelocityKF
 from soft_gripper_sdre.nodes import conversions as cv
-from soft_gripper_sdre.nodes.estimator import PARAMS, EstimatorNode
+from soft_gripper_sdre.nodes.common import OK, WARN
+from soft_gripper_sdre.nodes.estimator import MESSAGE_OUTCOMES, PARAMS, EstimatorNode
 from soft_gripper_sdre.nodes.params import ParameterError
 from soft_gripper_sdre.nodes.topics import STATE_ESTIMATE
 
@@ -22,9 +23,8 @@ CONFIG = Path(__file__).resolve().parents[1] / 'config' / 'estimator.yaml'
 
 
 def handled(node) -> int:
-    """Messages the node has dealt with: each is either estimated, malformed or stale."""
-    c = node.diag.counters
-    return c['estimates'] + c['bad_message'] + c['stale']
+    """Messages the node has dealt with: each is accepted or rejected under one reason."""
+    return sum(node.diag.counters[k] for k in MESSAGE_OUTCOMES)
 
 
 def send(executor, node, pub, msg) -> None:
@@ -84,8 +84,8 @@ def test_bad_inputs_are_counted_gaps_predicted_and_jumps_reset():
     empty.header.stamp = cv.to_time(11 * MS)
     sequence = ([(k * MS, 'ok') for k in range(10)]
                 + [(nan, 'bad_message'), (three, 'bad_message'), (five, 'bad_message'),
-                   (empty, 'bad_message'), (9 * MS, 'stale'), (5 * MS, 'stale'),
-                   (10 * MS, 'ok'), (13 * MS, 'gap'), (13 * MS + MS // 2, 'off_period'),
+                   (empty, 'bad_message'), (8 * MS, 'out_of_order'), (5 * MS, 'out_of_order'),
+                   (9 * MS, 'duplicate'), (10 * MS, 'ok'), (13 * MS, 'gap'), (13 * MS + MS // 2, 'off_grid'),
                    (0, 'reset'), (60 * MS, 'reset'), (61 * MS, 'ok')])
     kf = ConstantVelocityKF(1e-3, 1.0, 5e-5, n=4)
     expected = []
@@ -96,7 +96,7 @@ def test_bad_inputs_are_counted_gaps_predicted_and_jumps_reset():
                 send(executor, node, pub, item)
                 continue
             send(executor, node, pub, tips(item, meas(item)))
-            if kind == 'stale':
+            if kind in ('out_of_order', 'duplicate'):
                 continue
             if kind == 'reset' or not expected:
                 kf.reset(meas(item))
@@ -105,13 +105,14 @@ def test_bad_inputs_are_counted_gaps_predicted_and_jumps_reset():
                 if kind == 'gap':
                     kf.step(meas(item), np.zeros(4, dtype=bool))
                     kf.step(meas(item), np.zeros(4, dtype=bool))
-                x = kf.step(meas(item))
+                x = kf.step(meas(item), dt=MS / 2 / cv.NS if kind == 'off_grid' else None)
             expected.append((item, x))
         got = estimates(executor, probe, len(expected))
         c = node.diag.counters
-        assert (c['bad_message'], c['stale'], c['gaps'], c['missed_periods'], c['off_period'],
-                c['resets']) == (4, 2, 1, 2, 1, 2)
+        assert (c['bad_message'], c['out_of_order'], c['duplicate'], c['gaps'], c['missed_periods'],
+                c['resets'], c['dropouts']) == (4, 2, 1, 1, 2, 2, 0)
         assert c['estimates'] == len(expected) == 16
+        assert c['received'] == len(sequence) == sum(c[k] for k in MESSAGE_OUTCOMES)
     assert [s for s, _ in got] == [s for s, _ in expected]
     np.testing.assert_array_equal(np.array([x for _, x in got]), np.array([x for _, x in expected]))
     reset_at_zero = dict(got)[0]
@@ -132,6 +133,52 @@ def test_a_node_that_fell_behind_takes_only_the_newest_tips_and_predicts_through
         c = node.diag.counters
         assert (c['estimates'], c['gaps'], c['missed_periods']) == (2, 1, 19)
         assert [s for s, _ in estimates(executor, probe, 2)] == [0, 20 * MS]
+
+
+@pytest.mark.parametrize('rate_hz', [100.0, 400.0])
+def test_a_clean_source_with_jittery_stamps_raises_nothing(rate_hz):
+    """Stamps ±20 % of the period about a wall-clock grid, none lost: every message is estimated
+    over its own stamp step, nothing is counted as a gap or reported, the node stays OK."""
+    rng = np.random.default_rng(int(rate_hz))
+    period = int(round(1e9 / rate_hz))
+    stamps = 1_764_000_000 * 10**9 + period * np.arange(200) + (rng.uniform(-0.2, 0.2, 200) * period).astype(int)
+    z = np.array([[0.001, -0.002], [0.0, 0.003], [0.002, 0.0], [0.0, 0.0]])
+    with ros_context() as (ctx, executor):
+        node, probe, pub = make_estimator(ctx, executor, control_period=1.0 / rate_hz)
+        for stamp in stamps:
+            send(executor, node, pub, tips(int(stamp), z))
+        got = estimates(executor, probe, len(stamps))
+        c = node.diag.counters
+        assert c['received'] == c['estimates'] == len(stamps)
+        assert {k: v for k, v in c.items() if k not in ('received', 'estimates') and v} == {}
+        assert node.diag.level == OK
+        node.diag.publish()
+        assert float(node.diag.values['stamp_period_ms']) == pytest.approx(1e3 / rate_hz, rel=0.02)
+    assert [s for s, _ in got] == stamps.tolist()
+
+
+def test_a_dropout_longer_than_max_bridge_is_reported_and_predicted_through():
+    z = np.array([[0.001, -0.002], [0.0, 0.003], [0.002, 0.0], [0.0, 0.0]])
+    v = np.array([[0.01, 0.0], [0.0, -0.01], [0.0, 0.0], [0.02, 0.01]])
+    meas = lambda ns: z + v * ns / cv.NS                                       # noqa: E731
+    sequence = [0, MS, 2 * MS, 12 * MS, 42 * MS, 43 * MS]     # 9 then 29 periods lost
+    with ros_context() as (ctx, executor):
+        node, probe, pub = make_estimator(ctx, executor, max_bridge=0.02, reset_on_jump=0.1)
+        for stamp in sequence:
+            send(executor, node, pub, tips(stamp, meas(stamp)))
+        got = estimates(executor, probe, len(sequence))
+        c = node.diag.counters
+        assert (c['gaps'], c['missed_periods'], c['dropouts'], c['resets']) == (2, 38, 1, 0)
+        assert node.diag.level == WARN and 'max_bridge' in node.diag.message
+    kf = ConstantVelocityKF(1e-3, 1.0, 5e-5, n=4)
+    kf.reset(meas(0))
+    expected = [kf.x.copy()]
+    for last, stamp in zip(sequence, sequence[1:]):
+        for _ in range((stamp - last) // MS - 1):
+            kf.step(meas(stamp), np.zeros(4, dtype=bool))
+        expected.append(kf.step(meas(stamp)))
+    np.testing.assert_array_equal(np.array([x for _, x in got]), np.array(expected))
+    np.testing.assert_allclose(got[-1][1][:, 2:], v, atol=1e-3)      # the velocity was kept
 
 
 @pytest.mark.parametrize('params, name', [

@@ -6,7 +6,7 @@ import pybullet as pb
 import pytest
 
 from soft_gripper_sdre.sim.finger import GRAVITY, JOINT_AXIS, JOINT_STIFFNESS, finger_urdf
-from soft_gripper_sdre.sim.hand import GripperSim, SimConfig
+from soft_gripper_sdre.sim.hand import MAX_PHYSICS_DT, GripperSim, SimConfig, physics_substeps_for
 from soft_gripper_sdre.sim.units import LENGTH_SCALE, TORQUE_SCALE
 
 UPRIGHT = SimConfig(scene='finger', mount_roll_deg=0.0)
@@ -142,6 +142,15 @@ def test_bad_torques_rejected_and_state_unchanged(u, match):
 def test_bad_config_names_the_field(kwargs, field):
     with pytest.raises(ValueError, match=field):
         SimConfig(**kwargs)
+
+
+@pytest.mark.parametrize('period, substeps', [(1e-3, 2), (2e-3, 4), (3e-3, 6), (5e-3, 10), (1e-2, 20),
+                                              (7e-4, 2), (2e-4, 1)])
+def test_default_substeps_keep_the_physics_step_at_most_half_a_millisecond(period, substeps):
+    cfg = SimConfig(control_period=period)
+    assert cfg.physics_substeps == physics_substeps_for(period) == substeps
+    assert cfg.physics_dt <= MAX_PHYSICS_DT * (1 + 1e-12)
+    assert SimConfig(control_period=period, physics_substeps=3).physics_substeps == 3
 
 
 def test_two_simulators_live_in_one_process():

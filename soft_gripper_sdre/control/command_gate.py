@@ -87,8 +87,8 @@ class CommandGate:
     """The controller's covering-plan, estimate-order, reset and watchdog rules (module doc).
 
     Args:
-        period_ns: the control period [ns]: a step of m periods between two estimates counts
-            m − 1 skipped estimates.
+        period_ns: the nominal control period [ns]: a step of m periods between two estimates
+            (rounded to the nearest whole number) counts m − 1 skipped estimates.
         reset_jump_ns: how far a stamp may fall behind the newest estimate before it is taken
             for a restart of time rather than refused as old.
         watchdog: wall time [s] without an estimate before estimates are reported lost.
@@ -137,7 +137,8 @@ class CommandGate:
             return Outcome(refused='old_estimate', reason=(
                 f'state_estimate: stamp {stamp} ns is not newer than the last accepted {last} ns'))
         elif last >= 0 and stamp - last <= self.reset_jump_ns:
-            self.counters['skipped_estimates'] += max(0, (stamp - last) // self.period_ns - 1)
+            # the nearest whole number of periods: a jittery source's steps are not exact multiples
+            self.counters['skipped_estimates'] += max(0, (stamp - last + self.period_ns // 2) // self.period_ns - 1)
         self.last_estimate_ns = stamp
         self.last_heard = wall
         if self.estimates_lost:

@@ -29,14 +29,14 @@ from typing import NamedTuple
 
 import numpy as np
 
-from soft_gripper_sdre.control.compiled_kf import kf_step
+from soft_gripper_sdre.control.compiled_kf import kf_step, kf_step_dt
 from soft_gripper_sdre.control.compiled_sdre import (feedforward_step, model_inversion, sdc_forward, sdre_gains,
                                                      sdre_step, tracking_step, tracking_torques)
 
 __all__ = ['SdcNetwork', 'SdreSettings', 'SdreState', 'SdreOutputs', 'FeedforwardOutputs', 'compiled_network',
            'kernel_array', 'warm_up',
            'sdc_forward', 'sdre_gains', 'tracking_torques', 'sdre_step', 'tracking_step', 'model_inversion',
-           'feedforward_step', 'kf_step']
+           'feedforward_step', 'kf_step', 'kf_step_dt']
 
 
 class SdcNetwork(NamedTuple):
@@ -154,3 +154,4 @@ def warm_up() -> None:
     feedforward_step(np.zeros((n, 10)), np.zeros(2), False, *network, *settings, *state, *out,
                      *FeedforwardOutputs.empty(n))
     kf_step(np.zeros((n, 4)), np.zeros((n, 4, 4)), rows, ones, np.eye(4), np.eye(4), np.eye(2))
+    kf_step_dt(np.zeros((n, 4)), np.zeros((n, 4, 4)), rows, ones, 1e-3, 1.0, 0.0, np.eye(4), np.eye(4), np.eye(2))

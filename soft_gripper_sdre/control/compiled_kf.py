@@ -7,7 +7,10 @@ Per finger, with F, Σ_v from :func:`~soft_gripper_sdre.control.kf.cv_matrices`,
     update:   K = S Hᵀ (H S Hᵀ + Σ_r)⁻¹,   x̂ = x̂ + K (z − H x̂),
               S = (I − K H) S (I − K H)ᵀ + K Σ_r Kᵀ      (Joseph form)
 
-A finger whose measurement is not valid or not finite only predicts.
+A finger whose measurement is not valid or not finite only predicts. :func:`kf_step` takes F and Σ_v
+built once for a fixed step; :func:`kf_step_dt` builds them for each call's Δt (a source whose
+stamps are not evenly spaced). Both live in this one file: numba's on-disk cache is keyed on the
+source file of the function compiled.
 """
 from __future__ import annotations
 
@@ -56,3 +59,28 @@ def kf_step(x, P, z, valid, F, Q, R):
                        + K[r, 1] * (R[1, 0] * K[c, 0] + R[1, 1] * K[c, 1]))
                 P[i, r, c] = (T[r, 0] * IKH[c, 0] + T[r, 1] * IKH[c, 1] + T[r, 2] * IKH[c, 2]
                               + T[r, 3] * IKH[c, 3] + krk)
+
+
+@kernel
+def cv_matrices_into(dt, accel_psd, axis_coupling, F, Q):
+    """F (4, 4) and Σ_v (4, 4) of the constant-velocity model for step ``dt``, written in place:
+    the arithmetic of :func:`~soft_gripper_sdre.control.kf.cv_matrices`, with C = [[1, c], [c, 1]]
+    and c = ``axis_coupling`` (0: independent axes, 1: the paper's D = [0 0 1 1]ᵀ)."""
+    q3, q2, q1 = dt**3 / 3, dt**2 / 2, dt
+    for r in range(4):
+        for c in range(4):
+            F[r, c] = 1.0 if r == c else 0.0
+            coupling = 1.0 if r % 2 == c % 2 else axis_coupling
+            scale = q3 if r < 2 and c < 2 else (q1 if r >= 2 and c >= 2 else q2)
+            Q[r, c] = accel_psd * (scale * coupling)
+    F[0, 2] = dt
+    F[1, 3] = dt
+
+
+@kernel
+def kf_step_dt(x, P, z, valid, dt, accel_psd, axis_coupling, F, Q, R):
+    """:func:`kf_step` over a step of ``dt`` seconds: F and Σ_v are built for it into the scratch
+    arrays F, Q (4, 4) first (:func:`cv_matrices_into`), so a variable-rate source costs no Python
+    matrix work per message."""
+    cv_matrices_into(dt, accel_psd, axis_coupling, F, Q)
+    kf_step(x, P, z, valid, F, Q, R)

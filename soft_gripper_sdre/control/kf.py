@@ -13,13 +13,17 @@ axis its own noise, D = [[0,0],[0,0],[1,0],[0,1]].
     predict:  x̂ = F x̂,                 S = F S Fᵀ + Σ_v
     update:   K = S Hᵀ (H S Hᵀ + Σ_r)⁻¹,  x̂ = x̂ + K (z − H x̂),
               S = (I − K H) S (I − K H)ᵀ + K Σ_r Kᵀ     (Joseph form: stays symmetric PSD)
+
+Each step may have its own Δt (a sensor whose stamps are not evenly spaced): F and Σ_v are then
+built for that Δt inside the compiled step. A step of the filter's own ``dt`` uses the matrices
+built once at construction, so a fixed-rate run does the same arithmetic whichever way it is called.
 """
 from __future__ import annotations
 
 import numpy as np
 from scipy.linalg import solve_discrete_are
 
-from soft_gripper_sdre.control.compiled import kernel_array, kf_step
+from soft_gripper_sdre.control.compiled import kernel_array, kf_step, kf_step_dt
 
 PROCESS_NOISE_MODELS = ('independent', 'paper')
 
@@ -62,6 +66,9 @@ class ConstantVelocityKF:
             raise ValueError(f'n must be >= 1, got {n!r}')
         self.dt, self.n = float(dt), int(n)
         self._F, self._Q = cv_matrices(dt, accel_psd, process_noise)
+        self._accel_psd = float(accel_psd)
+        self._axis_coupling = 0.0 if process_noise == 'independent' else 1.0
+        self._F_dt, self._Q_dt = np.empty((4, 4)), np.empty((4, 4))     # kf_step_dt's scratch
         self._H = np.hstack([np.eye(2), np.zeros((2, 2))])
         self._R = meas_std**2 * np.eye(2)
         self._p0 = max(1.0, 1e6 * meas_std**2)     # broad initial velocity covariance
@@ -83,9 +90,14 @@ class ConstantVelocityKF:
             self.x[:, :2] = z0
         self.P = np.tile(np.diag([self._R[0, 0], self._R[1, 1], self._p0, self._p0]), (self.n, 1, 1))
 
-    def step(self, z: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
-        """Predict one period and update with measurements z (n, 2); rows with ``valid`` False
-        (or a non-finite z) only predict. Returns a copy of x̂ (n, 4)."""
+    def step(self, z: np.ndarray, valid: np.ndarray | None = None, dt: float | None = None) -> np.ndarray:
+        """Predict over ``dt`` seconds (None: the filter's own ``dt``) and update with
+        measurements z (n, 2); rows with ``valid`` False (or a non-finite z) only predict.
+        Returns a copy of x̂ (n, 4).
+
+        Raises:
+            ValueError: z of the wrong shape, or ``dt`` not finite and > 0.
+        """
         z = kernel_array(z)
         if z.shape != (self.n, 2):
             raise ValueError(f'z must have shape ({self.n}, 2), got {z.shape}')
@@ -93,7 +105,13 @@ class ConstantVelocityKF:
             valid = self._all_valid
         else:
             valid = kernel_array(np.broadcast_to(np.asarray(valid, dtype=np.bool_), (self.n,)), np.bool_)
-        kf_step(self.x, self.P, z, valid, self._F, self._Q, self._R)
+        if dt is None or dt == self.dt:
+            kf_step(self.x, self.P, z, valid, self._F, self._Q, self._R)
+        elif np.isfinite(dt) and dt > 0:
+            kf_step_dt(self.x, self.P, z, valid, float(dt), self._accel_psd, self._axis_coupling,
+                       self._F_dt, self._Q_dt, self._R)
+        else:
+            raise ValueError(f'dt must be finite and > 0, got {dt!r}')
         return self.x.copy()
 
     def steady_state(self) -> tuple[np.ndarray, np.ndarray]:

@@ -5,20 +5,31 @@ present, predicting through what it skipped); publishes one ``state_estimate`` p
 measurement, stamped with the measurement's stamp, and ``/diagnostics``. The rules are those of
 :func:`soft_gripper_sdre.analysis.closed_loop.run_closed_loop`: the first measurement (after start or a
 reset) initialises the filter at the measured positions with zero velocity and is published as
-is; every later one is one predict + update of :class:`~soft_gripper_sdre.control.kf.ConstantVelocityKF`
-with Δt = ``control_period``.
+is; every later one is one predict + update of :class:`~soft_gripper_sdre.control.kf.ConstantVelocityKF`.
 
-Stamps are checked against that period. A step of m > 1 periods (lost measurements) predicts
-through the m − 1 missing ones first (counted as ``gaps`` and ``missed_periods``); a step that
-is not a whole number of periods is rounded to the nearest one (at least one) and counted
-(``off_period``). A stamp that is not newer than the last is rejected (``stale``). A jump of more
-than ``reset_on_jump`` seconds — backwards, as when the simulator restarts at t = 0, or forwards
-over a long outage — resets the filter (``resets``, logged) and the measurement initialises it
-again.
+**Stamps and rates.** The filter's Δt is the difference of the measurement stamps, whatever the
+source's rate and jitter: a mocap system at 120 Hz stamped with wall time is filtered as it comes.
+``control_period`` is the source's *nominal* period. It decides only which stamp steps count as
+gaps, and on the simulator's exact grid (a step of m whole periods) the filter steps period by
+period with matrices built once, which is the arithmetic of the offline loop. Every received
+message is either accepted (``estimates``) or rejected under one reason, so ``received`` =
+``estimates`` + ``bad_message`` + ``duplicate`` + ``out_of_order``:
 
-Malformed messages (wrong number of poses, NaN/Inf) are rejected with a throttled warning naming
-the problem and counted (``bad_message``); nothing is published for them and the filter is
-untouched.
+* a step of more than 1.5 nominal periods is a gap: messages were lost. Up to ``max_bridge``
+  seconds the filter predicts through it quietly (counted: ``gaps``, and ``missed_periods``, the
+  nominal periods without a message); a longer one is a dropout, reported with a throttled
+  warning (``dropouts``) and still predicted through;
+* a jump of more than ``reset_on_jump`` seconds, forwards (an outage too long to predict through)
+  or backwards (the simulator restarting at t = 0), resets the filter (``resets``, logged) and
+  the measurement initialises it again;
+* a stamp equal to the last accepted one is rejected (``duplicate``), an older one within
+  ``reset_on_jump`` (a late message, overtaken by a newer one) too (``out_of_order``);
+* malformed messages (wrong number of poses, NaN/Inf) are rejected (``bad_message``).
+
+Rejected messages raise a throttled warning naming the problem; nothing is published for them
+and the filter is untouched. A step of up to 1.5 nominal periods is neither counted nor
+reported, so a clean source whose stamps jitter by ±20 % keeps the node OK. ``stamp_period_ms`` in /diagnostics is the mean
+stamp step accepted since the previous status.
 """
 from __future__ import annotations
 
@@ -38,17 +49,26 @@ from soft_gripper_sdre.nodes.topics import LOOP_QOS, NEWEST_QOS, STATE_ESTIMATE,
 PARAMS = (
     finger_names_param('the fingers: pose i of tip_positions is finger i; the joint names of '
                        'state_estimate'),
-    Param('control_period', 0.001, 'period of the measurements: the KF step Δt and the expected '
-          'stamp step', 's', 1e-4, 0.05, read_only=True),
+    Param('control_period', 0.001, 'nominal period of the tip measurements: a stamp step over 1.5 '
+          'periods is a gap (each KF step\'s Δt is the stamp difference)', 's', 1e-4, 0.05,
+          read_only=True),
     Param('accel_psd', 1.0, 'white-acceleration intensity q of the process noise',
           '(m/s²)²/Hz', 0.0, 1e9, read_only=True),
     Param('meas_std', 5e-5, 'standard deviation of the tip measurement noise', 'm', 1e-9, 0.01,
           read_only=True),
     Param('process_noise', 'independent', "process-noise direction: one noise per axis, or the "
           "paper's D = [0 0 1 1]ᵀ", choices=PROCESS_NOISE_MODELS, read_only=True),
+    Param('max_bridge', 0.05, 'a gap in the stamps up to this long is predicted through quietly '
+          '(counted); a longer one is also reported as a dropout', 's', 1e-4, 1.0),
     Param('reset_on_jump', 0.1, 'a stamp jump larger than this (either direction) resets the filter; '
-          'shorter gaps are predicted through period by period, hence the bound', 's', 1e-3, 1.0),
+          'shorter gaps are predicted through, hence the bound', 's', 1e-3, 1.0),
 )
+
+#: a stamp step longer than this many nominal periods is a gap (±20 % jitter on each stamp gives
+#: steps of at most 1.4 periods; one lost message gives about 2)
+GAP_PERIODS = 1.5
+#: the counters every received message is counted under exactly one of
+MESSAGE_OUTCOMES = ('estimates', 'bad_message', 'duplicate', 'out_of_order')
 
 
 class EstimatorNode(Node):
@@ -67,11 +87,14 @@ class EstimatorNode(Node):
             raise ParameterError(str(exc)) from None
         warm_up()       # compiled (or loaded from the cache) before any topic shows the node ready
         self.period_ns = int(round(p['control_period'] * cv.NS))
+        self.gap_ns = int(GAP_PERIODS * self.period_ns)
         self.jump_ns = int(round(p['reset_on_jump'] * cv.NS))
+        self.bridge_ns = int(round(p['max_bridge'] * cv.NS))
         on_runtime_change(self, PARAMS, apply=self._apply)
 
         self.last_ns: int | None = None          # stamp of the last accepted measurement
         self._predict_only = np.zeros(self.n, dtype=bool)
+        self._steps_ns = [0, 0]                  # accepted stamp steps since the last status: count, sum
         # both messages travel as CDR bytes read / written at fixed offsets (nodes/cdr.py)
         self.cdr_tips = cdr.tips_codec(self.names)
         self.cdr_estimate = cdr.estimate_codec(self.names)
@@ -81,16 +104,25 @@ class EstimatorNode(Node):
         self.diag = Diagnostics(self)
         cdr.watch(self.diag, self.cdr_tips)
         self.diag.values['process_noise'] = p['process_noise']
+        self.diag.before_publish.append(self._stamp_stats)
         self.get_logger().info(
-            f'{self.n} fingers ({", ".join(self.names)}), Δt = {1e3 * p["control_period"]:g} ms, q = {p["accel_psd"]:g} '
+            f'{self.n} fingers ({", ".join(self.names)}), nominal period {1e3 * p["control_period"]:g} ms, q = {p["accel_psd"]:g} '
             f'(m/s²)²/Hz, σ = {1e3 * p["meas_std"]:g} mm, {p["process_noise"]} process noise')
 
     def _apply(self, new: dict) -> None:
         self.p.update(new)
         self.jump_ns = int(round(self.p['reset_on_jump'] * cv.NS))
+        self.bridge_ns = int(round(self.p['max_bridge'] * cv.NS))
+
+    def _stamp_stats(self) -> None:
+        count, total = self._steps_ns
+        if count:
+            self.diag.values['stamp_period_ms'] = f'{total / count / 1e6:.4g}'
+            self._steps_ns = [0, 0]
 
     # -- measurements ------------------------------------------------------------------------
     def on_tips(self, data: bytes) -> None:
+        self.diag.count('received')
         try:
             stamp, tips = self.cdr_tips.decode(data)
         except cv.MessageError as exc:
@@ -108,21 +140,31 @@ class EstimatorNode(Node):
             self._initialise(stamp, z)
             return
         if step <= 0:
-            self.diag.problem('stale', f'rejected: tip_positions stamp {stamp} ns is not newer than '
-                              f'the last {last} ns')
+            kind = 'duplicate' if step == 0 else 'out_of_order'
+            self.diag.problem(kind, f'rejected ({kind}): tip_positions stamp {stamp} ns is not newer '
+                              f'than the last accepted {last} ns')
             return
-        periods = max(1, (step + self.period_ns // 2) // self.period_ns)
-        if step != periods * self.period_ns:
-            self.diag.problem('off_period', f'tip_positions stamp step {step} ns is not a multiple of '
-                              f'control_period ({self.period_ns} ns); treated as {periods} period(s)')
-        if periods > 1:
-            self.diag.count('missed_periods', periods - 1)
-            self.diag.problem('gaps', f'{periods - 1} measurement(s) missing before t = '
-                              f'{stamp / cv.NS:.4f} s; predicting through them')
+        if step > self.gap_ns:
+            self._count_gap(stamp, step)
+        periods, rest = divmod(step, self.period_ns)
+        if rest == 0:        # on the nominal grid: period by period, with the matrices built once
             for _ in range(periods - 1):
                 self.kf.step(z, self._predict_only)
-        self.kf.step(z)
+            self.kf.step(z)
+        else:
+            self.kf.step(z, dt=step / cv.NS)
+        self._steps_ns[0] += 1
+        self._steps_ns[1] += step
         self._accept(stamp)
+
+    def _count_gap(self, stamp: int, step: int) -> None:
+        """Messages were lost before ``stamp``: count the gap, and report it if it is a dropout."""
+        missing = max(1, (step + self.period_ns // 2) // self.period_ns - 1)
+        self.diag.count('gaps')
+        self.diag.count('missed_periods', missing)
+        if step > self.bridge_ns:
+            self.diag.problem('dropouts', f'no tip_positions for {step / 1e6:.1f} ms (more than '
+                              f'max_bridge) before t = {stamp / cv.NS:.4f} s; predicting through it')
 
     def _initialise(self, stamp: int, z: np.ndarray) -> None:
         """First measurement after start or reset: positions z, zero velocity (as closed_loop.py)."""

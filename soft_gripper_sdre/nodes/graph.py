@@ -36,6 +36,10 @@ CLOCK = '/clock'
 #: so the controller goes right after the simulator, before its estimate_watchdog (wall time, once
 #: the estimates stop) would report ERROR
 GRASP_NODES = ('recorder', 'estimator', 'trajectory', 'controller', 'simulator')
+#: the nodes that declare ``control_period``: :func:`grasp_graph` gives them all one value
+PERIOD_NODES = ('estimator', 'controller', 'simulator')
+#: the control periods the grasp graph is run and measured at [s] (docs/results.md "Control rates")
+PERIOD_RANGE = (1e-3, 1e-2)
 #: the nodes that read ``tip_positions``, so the simulator waits for them before its first step
 TIP_READERS = ('recorder', 'estimator', 'trajectory')
 #: topics (relative to the graph's namespace) whose publishers a recorder must have matched before
@@ -186,7 +190,7 @@ class GraphSpec:
 
 def grasp_graph(namespace: str = '', *, record: bool = True,
                 parameters: Mapping[str, Mapping[str, Any]] | None = None,
-                clock: str | None = None) -> GraphSpec:
+                clock: str | None = None, control_period: float | None = None) -> GraphSpec:
     """The grasp graph: recorder (if ``record``), estimator, trajectory, controller, simulator.
 
     Args:
@@ -197,9 +201,13 @@ def grasp_graph(namespace: str = '', *, record: bool = True,
             unless told otherwise.
         clock: the topic that carries this graph's sim time. Default ``/clock`` in the root
             namespace and the relative ``clock`` in any other (one clock per hand).
+        control_period: the loop's period [s], set on every node of :data:`PERIOD_NODES` (the
+            simulator's step and its physics substeps, the estimator's nominal period, the
+            controller's roll-off and skip count); None keeps the parameter files' (1 ms).
 
     Raises:
-        ValueError: a bad namespace, or parameters for a node the graph does not have.
+        ValueError: a bad namespace, parameters for a node the graph does not have, or a
+            ``control_period`` that a node's own parameters contradict.
     """
     namespace = normalize_namespace(namespace)
     names = GRASP_NODES if record else tuple(n for n in GRASP_NODES if n != 'recorder')
@@ -207,6 +215,13 @@ def grasp_graph(namespace: str = '', *, record: bool = True,
     unknown = sorted(set(parameters) - set(names))
     if unknown:
         raise ValueError(f'parameters for {unknown}: the graph has the nodes {", ".join(names)}')
+    if control_period is not None:
+        for name in PERIOD_NODES:
+            own = dict(parameters.get(name, {}))
+            if own.get('control_period', control_period) != control_period:
+                raise ValueError(f'control_period {control_period:g} s for the graph, but '
+                                 f'{own["control_period"]:g} s in the {name} parameters: set it once')
+            parameters[name] = {**own, 'control_period': float(control_period)}
     clock = clock or ('clock' if namespace else CLOCK)
     remappings = () if clock == CLOCK else ((CLOCK, clock),)
     simulator = dict(parameters.get('simulator', {}))

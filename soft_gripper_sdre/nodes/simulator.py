@@ -55,8 +55,8 @@ PARAMS = (
     Param('scene', 'hand', 'what to simulate', choices=('hand', 'finger'), read_only=True),
     Param('control_period', 0.001, 'sim time per step; commands are held over it', 's',
           1e-4, 0.05, read_only=True),
-    Param('physics_substeps', 2, 'physics steps per control period (0.5 ms keeps |u| <= 25 sim units stable)',
-          '', 1, 50, read_only=True),
+    Param('physics_substeps', 0, 'physics steps per control period; 0 = the fewest of at most 0.5 ms '
+          '(2 at 1 ms, 20 at 10 ms: 0.5 ms keeps |u| <= 25 sim units stable)', '', 0, 100, read_only=True),
     Param('torque_limit', 0.1, 'actuator limit; commands are clipped to ±limit', 'N·m', 1e-4, 1.0,
           read_only=True),
     Param('noise_std', 5e-5, 'Gaussian noise on measured tip positions (0.05 mm: a fingertip tracker)',
@@ -108,7 +108,7 @@ class SimulatorNode(Node):
         try:
             self.sim = GripperSim(SimConfig(
                 scene=p['scene'], control_period=p['control_period'],
-                physics_substeps=p['physics_substeps'], torque_limit=p['torque_limit'],
+                physics_substeps=p['physics_substeps'] or None, torque_limit=p['torque_limit'],
                 noise_std=p['noise_std'], seed=p['seed'], settle_time=p['settle_time'],
                 with_cube=p['with_cube']))
         except ValueError as exc:
@@ -151,7 +151,7 @@ class SimulatorNode(Node):
         self._startup_timer = self.create_timer(0.01, self._try_start)
         self.get_logger().info(
             f'{p["scene"]} scene settled; {p["mode"]} at {1e3 * p["control_period"]:g} ms, '
-            f'{p["physics_substeps"]} physics substeps, noise σ = {1e3 * p["noise_std"]:g} mm')
+            f'{self.sim.config.physics_substeps} physics substeps, noise σ = {1e3 * p["noise_std"]:g} mm')
 
     @property
     def done(self) -> bool:

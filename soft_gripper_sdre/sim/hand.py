@@ -6,8 +6,9 @@ finger's own base frame.
 
 Physics step: the stiffest linearised mode of the finger is ~329 Hz, and holding u = [25, 25]
 sim units turns chaotic with 1 ms semi-implicit steps, so every control period is split into
-``physics_substeps`` steps (default 2, i.e. 0.5 ms), which is stable over the paper's whole torque
-range. Two runs with the same configuration are bit-identical.
+``physics_substeps`` steps. By default they are the fewest of at most :data:`MAX_PHYSICS_DT`
+(0.5 ms: 2 at the 1 ms control period, 20 at 10 ms), which is stable over the paper's whole
+torque range. Two runs with the same configuration are bit-identical.
 """
 from __future__ import annotations
 
@@ -24,6 +25,15 @@ from soft_gripper_sdre.sim.finger import (CUBE, FINGER_BASE_POSITIONS, FINGER_FR
 from soft_gripper_sdre.sim.units import LENGTH_SCALE, TORQUE_SCALE
 
 
+#: the longest physics step the default substeps allow [s]
+MAX_PHYSICS_DT = 5e-4
+
+
+def physics_substeps_for(control_period: float) -> int:
+    """The fewest physics steps per control period that are each at most :data:`MAX_PHYSICS_DT`."""
+    return max(1, math.ceil(control_period / MAX_PHYSICS_DT - 1e-9))
+
+
 @dataclass(frozen=True)
 class SimConfig:
     """Simulator settings (SI at the boundary).
@@ -31,7 +41,8 @@ class SimConfig:
     Attributes:
         scene: ``'finger'`` (one finger, data collection) or ``'hand'`` (four fingers, palm, cube).
         control_period: duration of one :meth:`GripperSim.step` [s]; u is held over it.
-        physics_substeps: physics steps per control period (physics dt = period / substeps).
+        physics_substeps: physics steps per control period (physics dt = period / substeps);
+            None: :func:`physics_substeps_for` the period.
         torque_limit: actuator limit; commands are clipped to ±limit [N·m].
         noise_std: standard deviation of the Gaussian noise on measured tip positions [m].
         seed: seed of the measurement noise.
@@ -44,7 +55,7 @@ class SimConfig:
 
     scene: str = 'hand'
     control_period: float = 1e-3
-    physics_substeps: int = 2
+    physics_substeps: int | None = None
     torque_limit: float = 0.1
     noise_std: float = 0.0
     seed: int = 0
@@ -57,6 +68,8 @@ class SimConfig:
             raise ValueError(f'scene must be one of {SCENES}, got {self.scene!r}')
         if not (math.isfinite(self.control_period) and 1e-5 <= self.control_period <= 0.1):
             raise ValueError(f'control_period must be in [1e-5, 0.1] s, got {self.control_period!r}')
+        if self.physics_substeps is None:
+            object.__setattr__(self, 'physics_substeps', physics_substeps_for(self.control_period))
         if not (isinstance(self.physics_substeps, int) and 1 <= self.physics_substeps <= 100):
             raise ValueError(f'physics_substeps must be an int in [1, 100], got {self.physics_substeps!r}')
         if not (math.isfinite(self.torque_limit) and self.torque_limit > 0):

@@ -24,7 +24,7 @@ import sys
 import time
 
 from soft_gripper_sdre.control.laws import GRAPH_LAWS
-from soft_gripper_sdre.nodes.graph import CUBE_FINGERS, finger_parameters, grasp_graph
+from soft_gripper_sdre.nodes.graph import CUBE_FINGERS, PERIOD_RANGE, finger_parameters, grasp_graph
 from soft_gripper_sdre.tools.procs import WIRED_BEFORE_START, DiagnosticsMonitor, Graph, ros_env
 
 
@@ -36,6 +36,11 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument('--noise', type=float, default=None, metavar='MM',
                     help='tip measurement noise σ [mm] (default: config/simulator.yaml, 0.05 mm)')
     ap.add_argument('--seed', type=int, default=None, help='measurement noise seed (default: config)')
+    ap.add_argument('--period', type=float, default=None, metavar='MS',
+                    help='control period of the whole loop [ms], from 1 to 10: the simulator, the '
+                         'estimator and the controller all take it (default: the config files, 1 ms; '
+                         'the default weights hold only the shorter periods: docs/results.md '
+                         '"Control rates")')
     ap.add_argument('--law', default=None, choices=GRAPH_LAWS,
                     help='control law of the controller node (default: config/controller.yaml)')
     ap.add_argument('--fingers', default=None, metavar='NAME=HAND_FINGER,...',
@@ -50,8 +55,10 @@ def _parser() -> argparse.ArgumentParser:
 
 def run_demo(out: Path, duration: float, model: Path | None = None, noise: float | None = None,
              seed: int | None = None, domain_id: int | None = None, timeout: float = 600.0,
-             progress: bool = True, law: str | None = None, fingers: dict[str, int] | None = None) -> dict:
+             progress: bool = True, law: str | None = None, fingers: dict[str, int] | None = None,
+             period: float | None = None) -> dict:
     """Run the graph, write bag/figures/metrics under ``out``; returns the report (plus run facts).
+    ``period`` [s] is the control period of every node of the loop (None: the config files').
 
     Raises:
         RuntimeError: a node failed or the run did not finish within ``timeout`` (logs are kept).
@@ -79,7 +86,7 @@ def run_demo(out: Path, duration: float, model: Path | None = None, noise: float
         params['controller']['law'] = law
     for node, values in (finger_parameters(fingers) if fingers else {}).items():
         params[node].update(values)
-    spec = grasp_graph(parameters=params)
+    spec = grasp_graph(parameters=params, control_period=period)
 
     if progress:
         print(f'starting the node graph ({", ".join(spec.names)}) on ROS_DOMAIN_ID {env["ROS_DOMAIN_ID"]}, '
@@ -141,7 +148,8 @@ def run_demo(out: Path, duration: float, model: Path | None = None, noise: float
     result['controller'] = controller_stats(bag, len(result['fingers']))
     sim_diag = last_diagnostics(bag, 'simulator')
     stepping_rtf = sim_diag.get('real_time_factor')
-    result['run'] = {'sim_duration_s': duration, 'wall_s': round(wall, 2),
+    result['run'] = {'sim_duration_s': duration, 'control_period_s': float(_simulator_period(spec)),
+                     'wall_s': round(wall, 2),
                      'report_wall_s': round(time.monotonic() - t_report, 2),
                      'real_time_factor': float(stepping_rtf) if stepping_rtf else None,
                      **{f'loop_latency_us_{k}': float(sim_diag[f'loop_latency_us_{k}'])
@@ -150,6 +158,17 @@ def run_demo(out: Path, duration: float, model: Path | None = None, noise: float
                      'domain_id': int(env['ROS_DOMAIN_ID'])}
     (out / 'metrics.json').write_text(json.dumps(result, indent=2, default=float))
     return result
+
+
+def _simulator_period(spec) -> float:
+    """The control period the graph ``spec`` runs at: its override, else config/simulator.yaml's."""
+    import yaml
+    from soft_gripper_sdre.tools.procs import default_params_file
+    node = spec.node('simulator')
+    if 'control_period' in node.parameters:
+        return node.parameters['control_period']
+    return yaml.safe_load(default_params_file('simulator').read_text())['/**/simulator']['ros__parameters'][
+        'control_period']
 
 
 def _controller_limit() -> float:
@@ -194,7 +213,8 @@ def summary(result: dict, out: Path) -> str:
     rtf = 'n/a' if run['real_time_factor'] is None else f'{run["real_time_factor"]:.2f}'
     latency = (f'; loop latency p50 {run["loop_latency_us_p50"]:.0f} µs, p99 {run["loop_latency_us_p99"]:.0f} µs'
                if 'loop_latency_us_p50' in run else '')
-    lines = [f'grasp demo: {run["sim_duration_s"]:g} s of sim time, {run["wall_s"]:.1f} s wall with start-up '
+    period = f' at a {1e3 * run["control_period_s"]:g} ms control period' if 'control_period_s' in run else ''
+    lines = [f'grasp demo: {run["sim_duration_s"]:g} s of sim time{period}, {run["wall_s"]:.1f} s wall with start-up '
              f'(stepping at {rtf}× real time{latency}), then {run.get("report_wall_s", 0.0):.1f} s '
              'to read the bag and draw the figures']
     for name, f in result['fingers'].items():
@@ -226,6 +246,9 @@ def argument_problem(a: argparse.Namespace) -> str | None:
         if reason or not a.noise == a.noise:
             return (f'--noise is σ in mm, from 0 to {limits["noise_std"].max * 1e3:g} mm, got {a.noise} '
                     '(e.g. --noise 0.05)')
+    if a.period is not None and not PERIOD_RANGE[0] <= a.period * 1e-3 <= PERIOD_RANGE[1]:
+        return (f'--period is the control period in ms, from {1e3 * PERIOD_RANGE[0]:g} to '
+                f'{1e3 * PERIOD_RANGE[1]:g}, got {a.period} (e.g. --period 5)')
     if a.seed is not None and limits['seed'].check(a.seed):
         return f'--seed must be in [0, {limits["seed"].max}], got {a.seed}'
     if a.domain_id is not None and not 0 <= a.domain_id <= 232:
@@ -283,7 +306,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         result = run_demo(a.out, a.duration, a.model, None if a.noise is None else a.noise * 1e-3, a.seed,
                           a.domain_id, a.timeout, progress=not a.no_progress, law=a.law,
-                          fingers=parse_fingers(a.fingers) if a.fingers else None)
+                          fingers=parse_fingers(a.fingers) if a.fingers else None,
+                          period=None if a.period is None else a.period * 1e-3)
     except RuntimeError as exc:
         print(f'error: {exc}', file=sys.stderr)
         return 1

@@ -36,9 +36,9 @@ CONNECT_TIMEOUT = 90.0
 PATIENT_LOCKSTEP = {'simulator': {'lockstep_timeout': 2.0}, 'controller': {'estimate_watchdog': 5.0}}
 #: counters that say a message was refused, lost, late or out of order, or a node started over
 TROUBLE = ('stale_command', 'future_command', 'late_command', 'bad_command', 'timeouts', 'safe_periods',
-           'late_periods', 'resets', 'stale', 'bad_message', 'off_period', 'gaps', 'missed_periods', 'late_start',
-           'old_estimate', 'old_reference', 'skipped_estimates', 'unanswered_estimates', 'nonfinite_torque',
-           'bad_estimate', 'bad_reference', 'bad_clock')
+           'late_periods', 'resets', 'duplicate', 'out_of_order', 'bad_message', 'dropouts', 'gaps',
+           'missed_periods', 'late_start', 'old_estimate', 'old_reference', 'skipped_estimates',
+           'unanswered_estimates', 'nonfinite_torque', 'bad_estimate', 'bad_reference', 'bad_clock')
 
 
 @dataclass(frozen=True)
