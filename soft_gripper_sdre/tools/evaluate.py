@@ -48,6 +48,8 @@ LAW_SPECS = {
     'sdre_ff_ref': ('learned SDRE + feedforward at x_d', 'sdre_ff', {'ff_at': 'ref'}),
     'pd_ff': ('task-space PD + p̈_d', 'pd', {'feedforward': True}),
     'oracle_ff': ('oracle SDRE + feedforward', 'oracle_ff', {}),
+    'koopman_mpc': ('Koopman MPC', 'koopman_mpc', {}),
+    'koopman_lqr': ('Koopman LQR', 'koopman_lqr', {}),
 }
 #: the grasp of the demo, and a faster one (30 mm in 0.5 s: peak 94 mm/s) that stresses the model
 TRAJECTORIES = {
