@@ -38,8 +38,9 @@ __all__ = ['AdaptiveSdreLaw', 'DEFAULT_LAW', 'DEFAULT_PD', 'FF_AT', 'GRAPH_LAWS'
            'LAW_REGISTRY', 'LawEntry', 'LawSettings', 'LqrLaw', 'PdLaw', 'SdreFeedforwardLaw', 'SdreLaw', 'make_law', 'model_inversion',
            'register_law']
 
-#: the laws that run on the node graph (the oracles need the plant's joint state: in-process only)
-GRAPH_LAWS = ('sdre', 'sdre_ff', 'lqr', 'pd')
+#: the laws that run on the node graph (the oracles need the plant's joint state: in-process only;
+#: the Koopman laws load the shipped Koopman model beside the SDC one)
+GRAPH_LAWS = ('sdre', 'sdre_ff', 'lqr', 'pd', 'koopman_mpc', 'koopman_lqr')
 #: the controller node's default: the learned SDRE with model-inversion feedforward (README
 #: "Beyond the paper"); 'sdre' is the paper's law
 DEFAULT_LAW = 'sdre_ff'

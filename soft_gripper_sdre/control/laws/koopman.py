@@ -38,9 +38,9 @@ from soft_gripper_sdre.control.laws.feedforward import reference_acceleration
 from soft_gripper_sdre.control.tracking import DEFAULT_LOWPASS_HZ, LawIO, LawStep, Weights
 from soft_gripper_sdre.learning.koopman import KoopmanModel
 
-#: the MPC's defaults: N blocks of ``block`` control periods (a 50 ms horizon at 1 ms)
+#: the MPC's defaults: N blocks of ``block`` control periods (a 20 ms horizon at 1 ms)
 MPC_HORIZON = 10
-MPC_BLOCK = 5
+MPC_BLOCK = 2
 
 
 def blocked(A: np.ndarray, B: np.ndarray, block: int) -> tuple[np.ndarray, np.ndarray]:
