@@ -153,3 +153,22 @@ def test_law_tracks_a_step_on_the_simulated_finger_within_the_torque_limit(name)
     # measured: 0.19 mm over the last 0.3 s for both, from 5.8 mm (joint friction holds the finger
     # short of the step: no law here has integral action)
     assert errors[0] > 5e-3 and errors[-300:].mean() < 0.3e-3, errors[-300:].mean()
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(300)
+def test_measured_ordering_on_the_fast_grasp():
+    """docs/results.md "Koopman baseline", on the first 1.5 s of the fast grasp (measured: sdre_ff
+    0.033 mm, Koopman LQR 0.115, Koopman MPC 0.120, PD 0.255): the default law ahead of the Koopman
+    MPC, the Koopman MPC ahead of the PD, and the MPC no better than its LQR while the box never
+    binds."""
+    from soft_gripper_sdre.learning.model import SDCModel
+    from soft_gripper_sdre.tools import evaluate as ev
+    model = SDCModel()
+    runs = {k: ev.run_law(k, 'fast', model, WEIGHTS, duration=1.5)[0]
+            for k in ('koopman_mpc', 'koopman_lqr', 'sdre_ff', 'pd')}
+    rmse = {k: s.rmse_mm_grasp for k, s in runs.items()}
+    assert runs['koopman_mpc'].saturated_pct == 0.0 and runs['koopman_mpc'].grasp_success, runs['koopman_mpc']
+    assert rmse['sdre_ff'] < 0.5 * rmse['koopman_mpc'], rmse
+    assert rmse['koopman_mpc'] < 0.7 * rmse['pd'], rmse
+    assert rmse['koopman_lqr'] <= rmse['koopman_mpc'] < 1.2 * rmse['koopman_lqr'], rmse
