@@ -172,3 +172,20 @@ def test_measured_ordering_on_the_fast_grasp():
     assert rmse['sdre_ff'] < 0.5 * rmse['koopman_mpc'], rmse
     assert rmse['koopman_mpc'] < 0.7 * rmse['pd'], rmse
     assert rmse['koopman_lqr'] <= rmse['koopman_mpc'] < 1.2 * rmse['koopman_lqr'], rmse
+
+
+@pytest.mark.parametrize('name', ['koopman_mpc', 'koopman_lqr'])
+def test_bad_inputs_give_finite_flagged_torques(name):
+    """A NaN state zeroes that finger's torque, a NaN or huge p̈_d is taken as zero and flagged;
+    the other fingers are untouched."""
+    koopman = KoopmanModel.load()
+    rest = np.repeat(koopman.rest_tip[None, :2], 3, 0)
+    pos, vel, ref = rest.copy(), np.zeros((3, 2)), rest + [0.0, 0.004]
+    acc = np.zeros((3, 2))
+    clean = make_law(name, None, WEIGHTS, U_MAX, n_fingers=3, lowpass_hz=0.0).compute(pos, vel, ref, vel, acc)
+    pos[0, 0], acc[1, 1] = np.nan, np.inf
+    out = make_law(name, None, WEIGHTS, U_MAX, n_fingers=3, lowpass_hz=0.0).compute(pos, vel, ref, vel, acc)
+    assert np.all(np.isfinite(out.u)) and np.all(np.abs(out.u) <= U_MAX)
+    np.testing.assert_array_equal(out.u[0], 0.0)
+    np.testing.assert_allclose(out.u[1:], clean.u[1:])         # p̈_d = inf taken as 0, as the clean run's
+    assert out.fallback.tolist() == [True, True, False] and not out.ok[0]

@@ -11,10 +11,13 @@ p the tip position in the finger's base frame, p₀ the settled rest tip):
     z_k = [ s_k (4),  (p_{k−d} − p₀)/σ_p for each delay d (2 per delay),  monomials of s_k of
             degree 2 … ``degree`` ]
 
-* **Delay coordinates** of the position stand in for the states a 4-state model does not see (the
-  bending of the 10-joint chain): with them the one-step acceleration fit improves most.
-* **Polynomial terms** give the linear lifted model some of the configuration dependence of
-  the stiffness and the input map.
+* **Polynomial terms** (the shipped model: degree ≤ 3) give the linear lifted model some of the
+  configuration dependence of the stiffness and the input map.
+* **Delay coordinates** of the position (optional; none in the shipped model) stand in for the
+  states a 4-state model does not see (the bending of the 10-joint chain) and improve the one-step
+  fit most. But their fitted evolution is a regression, not the exact shift it is physically, and
+  a controller built on the lifted model feeds back on them as if it were: docs/results.md
+  "Koopman baseline" has both measurements.
 * No constant observable: the rest pose is z = 0 with u = 0, as f(0) = 0 for the SDC model.
 
 The fit regresses the increment z_{k+1} − z_k on [z_k, u_k/σ_u] with ridge α (per sample, on

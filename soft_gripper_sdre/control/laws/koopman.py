@@ -155,17 +155,20 @@ class KoopmanLqrLaw:
         self.history.reset()
 
     def lifted(self, pos, vel, ref_pos, ref_vel, ref_acc):
-        """(z (n, n_z), x_d, a_d, finite) for a step: the history advanced by one period."""
+        """(z (n, n_z), x_d, a_d, finite, acc_ok) for a step, the history advanced by one period.
+        A non-finite p̈_d row is taken as zero (``acc_ok`` False: the step is flagged fallback)."""
         x, xd, finite = self.io.states(pos, vel, ref_pos, ref_vel)
         a_d, acc_ok = reference_acceleration(ref_acc, self.io.n_fingers)
         z = self.koopman.lift(x, self.history.push(x[:, :2]))
-        return z, xd, a_d, finite & acc_ok
+        return z, xd, a_d, finite, acc_ok
 
     def compute(self, pos, vel, ref_pos, ref_vel, ref_acc=None) -> LawStep:
-        z, xd, a_d, finite = self.lifted(pos, vel, ref_pos, ref_vel, ref_acc)
+        z, xd, a_d, finite, acc_ok = self.lifted(pos, vel, ref_pos, ref_vel, ref_acc)
         zd = self.tracking.reference(xd, a_d, 2)
         u = self.tracking.feedforward(zd)[:, 0] + (z - zd[:, 0]) @ self.tracking.K.T
-        return self.io.finish(u, finite)
+        step = self.io.finish(u, finite)
+        step.fallback |= ~acc_ok
+        return step
 
 
 class KoopmanMpcLaw(KoopmanLqrLaw):
@@ -202,10 +205,11 @@ class KoopmanMpcLaw(KoopmanLqrLaw):
         return E @ self.WGamma - ud.reshape(n, -1) @ self.Rbar
 
     def compute(self, pos, vel, ref_pos, ref_vel, ref_acc=None) -> LawStep:
-        z, xd, a_d, finite = self.lifted(pos, vel, ref_pos, ref_vel, ref_acc)
+        z, xd, a_d, finite, acc_ok = self.lifted(pos, vel, ref_pos, ref_vel, ref_acc)
         zd = self.blocks.reference(xd, a_d, self.horizon + 1)
         U, active = self.qp.solve(self.gradient(z, zd, self.blocks.feedforward(zd)))
         step = self.io.finish(U[:, :2], finite)
+        step.fallback |= ~acc_ok
         step.saturated = active[:, None] & (np.abs(U[:, :2]) >= self.io.u_max * (1 - 1e-9))
         return step
 
