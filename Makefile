@@ -38,10 +38,12 @@ test: $(KERNELS)
 test-fast: $(KERNELS)
 	$(PY) -m pytest -m "not slow"
 
-# Reproduce the shipped model from nothing: collect the excitation data, then train.
+# Reproduce the shipped models from nothing: collect the excitation data, then train the SDC
+# networks and fit the Koopman baseline to the same records.
 model: $(STAMP)
 	$(PY) -m soft_gripper_sdre.tools.collect --out data/excitation
 	$(PY) -m soft_gripper_sdre.tools.train --data data/excitation --out runs/train --install
+	$(PY) -m soft_gripper_sdre.tools.koopman --data data/excitation --out runs/koopman --install
 
 bench: $(KERNELS)
 	$(PY) -m soft_gripper_sdre.tools.bench --write BENCHMARKS.md

@@ -25,7 +25,7 @@ setup(
     name=PACKAGE,
     version=_version(),
     packages=find_packages(exclude=['test']),
-    package_data={PACKAGE: ['models/*.pt', 'models/*.json']},
+    package_data={PACKAGE: ['models/*.pt', 'models/*.json', 'models/*.npz']},
     data_files=[
         ('share/ament_index/resource_index/packages', [f'resource/{PACKAGE}']),
         (f'share/{PACKAGE}', ['package.xml']),

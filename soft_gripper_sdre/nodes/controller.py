@@ -1,7 +1,8 @@
 """The controller node: tracking of every finger with the learned SDC model.
 
 The control law is the ``law`` parameter (:mod:`soft_gripper_sdre.control.laws`): ``sdre_ff`` (default:
-SDRE feedback plus model-inversion feedforward), ``sdre`` (the paper's law), ``lqr`` or ``pd``.
+SDRE feedback plus model-inversion feedforward), ``sdre`` (the paper's law), ``lqr``, ``pd``, or the
+Koopman baselines ``koopman_mpc`` and ``koopman_lqr``.
 
 Subscribes ``state_estimate`` (one message per control period, keeping only the newest) and
 ``grasp_reference`` (the planned grasp, once per plan); publishes ``torque_commands`` (one per
@@ -73,7 +74,8 @@ PARAMS = (
     Param('law', DEFAULT_LAW, 'control law (soft_gripper_sdre.control.laws): learned SDRE, LQR frozen at the '
           'origin, task-space PD; the oracle needs the plant\'s joint state and runs in-process only '
           '(tools/evaluate.py); sdre_ff: SDRE + model-inversion feedforward '
-          '(docs/results.md "Beyond the paper")',
+          '(docs/results.md "Beyond the paper"); koopman_mpc, koopman_lqr: the Koopman baselines on '
+          'the shipped Koopman model (models/koopman.npz; docs/results.md "Koopman baseline")',
           choices=GRAPH_LAWS, read_only=True),
     Param('state_weights', False, 'sdre only: state-dependent Q(x) that rises with the tracking error',
           read_only=True),

@@ -48,6 +48,8 @@ LAW_SPECS = {
     'sdre_ff_ref': ('learned SDRE + feedforward at x_d', 'sdre_ff', {'ff_at': 'ref'}),
     'pd_ff': ('task-space PD + p̈_d', 'pd', {'feedforward': True}),
     'oracle_ff': ('oracle SDRE + feedforward', 'oracle_ff', {}),
+    'koopman_mpc': ('Koopman MPC', 'koopman_mpc', {}),
+    'koopman_lqr': ('Koopman LQR', 'koopman_lqr', {}),
 }
 #: the grasp of the demo, and a faster one (30 mm in 0.5 s: peak 94 mm/s) that stresses the model
 TRAJECTORIES = {
@@ -89,12 +91,15 @@ def grasp_success(result, profile: GraspProfile) -> tuple[bool, float]:
 
 
 def run_law(key: str, trajectory: str, model: SDCModel, weights: Weights, duration: float | None = None,
-            progress: bool = False, pd_gains: dict | None = None):
-    """One closed-loop run: (RunSummary, LoopResult)."""
+            progress: bool = False, pd_gains: dict | None = None, koopman_path: Path | None = None):
+    """One closed-loop run: (RunSummary, LoopResult). ``koopman_path``: the Koopman laws' model
+    file (None = the shipped one)."""
     _, name, opts = LAW_SPECS[key]
     profile, dur = TRAJECTORIES[trajectory]
     dur = duration or dur
     opts = dict(opts, **({'pd_gains': pd_gains} if name == 'pd' and pd_gains else {}))
+    if koopman_path is not None and name.startswith('koopman'):
+        opts['koopman_path'] = koopman_path
     if 'q_pos' in opts:
         weights = Weights(opts.pop('q_pos'), weights.q_vel, weights.r)
     law = make_law(name, model, weights, U_MAX, **opts)
@@ -346,7 +351,11 @@ def main(argv=None) -> int:
     ap.add_argument('--no-model-score', action='store_true', help='skip the ground-truth model scoring')
     ap.add_argument('--tune-pd', action='store_true', help='print the PD tuning grid and exit')
     ap.add_argument('--model', type=Path, default=None, help='checkpoint (default: the shipped model)')
+    ap.add_argument('--koopman', type=Path, default=None,
+                    help='Koopman model of the koopman_* laws (default: the shipped one; tools.koopman writes one)')
     args = ap.parse_args(argv)
+    if args.koopman is not None and not args.koopman.is_file():
+        ap.error(f'--koopman: no such file {args.koopman}')
     if args.duration is not None and not args.duration > 0:
         ap.error(f'--duration must be > 0 s, got {args.duration}')
     try:
@@ -365,7 +374,7 @@ def main(argv=None) -> int:
     jobs = [(t, k) for t in args.trajectories for k in args.laws]
     results: dict = {}
     for traj, key in tqdm(jobs, desc='evaluate', unit='run'):
-        s, res = run_law(key, traj, model, weights, duration=args.duration)
+        s, res = run_law(key, traj, model, weights, duration=args.duration, koopman_path=args.koopman)
         summaries.append(s)
         results.setdefault(traj, {})[key] = res
         tqdm.write(f'{traj:6s} {key:13s} RMSE {s.rmse_mm_grasp:.3f} mm, max {s.max_mm_all:.2f} mm, '

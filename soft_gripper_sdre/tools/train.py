@@ -41,6 +41,13 @@ def states(record: Record, jerk_psd: float) -> dict[str, np.ndarray]:
     return {'x': x, 'u': record.u, 'acc': acc, 'vel': vel}
 
 
+def tuned_jerk_psd(record: Record) -> float:
+    """The KF/RTS white-jerk intensity picked by likelihood on the first 2 s of ``record`` (the
+    first training record: the labels of every model fitted to the same data)."""
+    seg = slice(0, min(2000, record.t.size))
+    return derivatives.tune_jerk_psd(record.t[seg], record.tip[seg, :2], record.noise_std, np.logspace(1, 7, 7))
+
+
 def poly_features(x: np.ndarray, u: np.ndarray, degree: int = 3) -> np.ndarray:
     """All monomials of (x, u) up to ``degree`` (with the constant)."""
     z = np.hstack([x, u])
@@ -123,11 +130,7 @@ def main(argv: list[str] | None = None) -> int:
         _usage_error(parser, f'cannot create output directory {args.out}: {exc.strerror}')
 
     first = records[names[0]]
-    jerk = args.jerk_psd
-    if jerk is None:
-        seg = slice(0, min(2000, first.t.size))
-        jerk = derivatives.tune_jerk_psd(first.t[seg], first.tip[seg, :2], first.noise_std,
-                                         np.logspace(1, 7, 7))
+    jerk = args.jerk_psd if args.jerk_psd is not None else tuned_jerk_psd(first)
     print(f'KF/RTS white-jerk intensity q = {jerk:g} (m/s³)²/Hz')
     est = {}
     deriv_err = {}

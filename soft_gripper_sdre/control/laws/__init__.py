@@ -13,6 +13,10 @@ roll-off, so a comparison differs only in the law:
 * ``lqr``     — fixed gains from the learned model at the origin (:class:`LqrLaw`).
 * ``pd``      — a task-space PD through the learned input map at rest (:class:`PdLaw`;
   ``pd_gains=dict(kp=…, kd=…)``, ``feedforward=True`` adds the reference acceleration).
+* ``koopman_mpc``, ``koopman_lqr`` — the Koopman baselines: linear MPC (box-constrained QP) and
+  LQR on the lifted linear model of :mod:`soft_gripper_sdre.learning.koopman`, not on the SDC
+  model (:class:`KoopmanMpcLaw`, :class:`KoopmanLqrLaw`; ``koopman_path``: the model file, None =
+  the shipped one).
 
 The oracle laws (``oracle``, ``oracle_exact``, ``oracle_ff``: the SDRE on the simulator's true
 dynamics) are evaluation yardsticks that need the plant's ground truth; they live in
@@ -26,14 +30,17 @@ from typing import Callable, NamedTuple
 from soft_gripper_sdre.control.laws.feedback import AdaptiveSdreLaw, SdreLaw
 from soft_gripper_sdre.control.laws.feedforward import FF_AT, SdreFeedforwardLaw, model_inversion
 from soft_gripper_sdre.control.laws.fixed import DEFAULT_PD, LqrLaw, PdLaw
+from soft_gripper_sdre.control.laws.koopman import KoopmanLqrLaw, KoopmanMpcLaw
 from soft_gripper_sdre.control.tracking import DEFAULT_LOWPASS_HZ, Law, Weights
+from soft_gripper_sdre.learning.koopman import KoopmanFileError, KoopmanModel
 
-__all__ = ['AdaptiveSdreLaw', 'DEFAULT_LAW', 'DEFAULT_PD', 'FF_AT', 'GRAPH_LAWS', 'LAW_REGISTRY', 'LawEntry',
-           'LawSettings', 'LqrLaw', 'PdLaw', 'SdreFeedforwardLaw', 'SdreLaw', 'make_law', 'model_inversion',
+__all__ = ['AdaptiveSdreLaw', 'DEFAULT_LAW', 'DEFAULT_PD', 'FF_AT', 'GRAPH_LAWS', 'KoopmanLqrLaw', 'KoopmanMpcLaw',
+           'LAW_REGISTRY', 'LawEntry', 'LawSettings', 'LqrLaw', 'PdLaw', 'SdreFeedforwardLaw', 'SdreLaw', 'make_law', 'model_inversion',
            'register_law']
 
-#: the laws that run on the node graph (the oracles need the plant's joint state: in-process only)
-GRAPH_LAWS = ('sdre', 'sdre_ff', 'lqr', 'pd')
+#: the laws that run on the node graph (the oracles need the plant's joint state: in-process only;
+#: the Koopman laws load the shipped Koopman model beside the SDC one)
+GRAPH_LAWS = ('sdre', 'sdre_ff', 'lqr', 'pd', 'koopman_mpc', 'koopman_lqr')
 #: the controller node's default: the learned SDRE with model-inversion feedforward (README
 #: "Beyond the paper"); 'sdre' is the paper's law
 DEFAULT_LAW = 'sdre_ff'
@@ -79,9 +86,18 @@ def _pd(s: LawSettings, pd_gains: dict | None = None, feedforward: bool = False)
                  feedforward=feedforward, **(pd_gains or DEFAULT_PD))
 
 
+def _koopman(s: LawSettings, law=KoopmanMpcLaw, koopman_path=None) -> Law:
+    try:
+        koopman = KoopmanModel.load(koopman_path)
+    except KoopmanFileError as exc:
+        raise ValueError(f'koopman_path: {exc}') from None
+    return law(koopman, s.weights, s.u_max, n_fingers=s.n_fingers, lowpass_hz=s.lowpass_hz, dt=s.dt)
+
+
 #: what the options of the laws below mean (for error messages)
 _OPTION_MEANINGS = {'adaptive': 'state-dependent weights Q(x)', 'ff_at': 'where the feedforward evaluates the model',
-                    'pd_gains': 'the PD gains', 'feedforward': 'the reference acceleration added to the PD'}
+                    'pd_gains': 'the PD gains', 'feedforward': 'the reference acceleration added to the PD',
+                    'koopman_path': 'the Koopman model file'}
 
 #: law name → how to build it; :func:`register_law` adds to it
 LAW_REGISTRY: dict[str, LawEntry] = {
@@ -89,6 +105,8 @@ LAW_REGISTRY: dict[str, LawEntry] = {
     'sdre_ff': LawEntry(_sdre_ff, ('ff_at',)),
     'lqr': LawEntry(_lqr),
     'pd': LawEntry(_pd, ('pd_gains', 'feedforward')),
+    'koopman_mpc': LawEntry(_koopman, ('koopman_path',)),
+    'koopman_lqr': LawEntry(lambda s, koopman_path=None: _koopman(s, KoopmanLqrLaw, koopman_path), ('koopman_path',)),
 }
 
 
