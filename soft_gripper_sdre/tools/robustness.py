@@ -27,6 +27,7 @@ import os
 from pathlib import Path
 import shlex
 import sys
+import textwrap
 
 import numpy as np
 
@@ -113,8 +114,9 @@ def plot_grid(results: list[CaseResult], path: Path, command: str) -> Path:
     variations = [v for v in VARIATIONS if any(r.variation == v for r in results)]
     top = 2.0 * TARGET_PCT
     norm = TwoSlopeNorm(vmin=0.0, vcenter=TARGET_PCT, vmax=top)
+    width = max(8.0, 1.6 + 1.1 * len(laws) * len(trajectories) + 1.2)
     fig, axes = plt.subplots(1, len(trajectories), squeeze=False, constrained_layout=True,
-                             figsize=(1.2 + 1.45 * len(laws) * len(trajectories) + 1.6, 1.0 + 0.42 * len(variations)))
+                             figsize=(width, 1.6 + 0.4 * len(variations)))
     image = None
     for ax, traj in zip(axes[0], trajectories):
         cells = results_by_cell(results, traj)
@@ -137,11 +139,13 @@ def plot_grid(results: list[CaseResult], path: Path, command: str) -> Path:
         if ax is not axes[0][0]:
             ax.set_yticklabels([])
     bar = fig.colorbar(image, ax=list(axes[0]), shrink=0.9)
-    bar.set_label(f'worst finger\'s free-space RMSE [% of its excursion]; target ≤ {TARGET_PCT:g} %', fontsize=8)
-    fig.suptitle('Free-space tracking error per law and plant variation (model trained on the nominal '
-                 'finger);\ncell text: grasping fingers\' RMSE; ✗ = grasp lost', fontsize=9)
-    fig.text(0.0, 0.0, f'$ {command}', fontsize=6.5, family='monospace', ha='left', va='bottom')
-    fig.get_layout_engine().set(rect=(0.0, 0.03, 1.0, 0.97))
+    bar.set_label(f'worst finger\'s free-space RMSE\n[% of its excursion]; target ≤ {TARGET_PCT:g} %', fontsize=8)
+    fig.suptitle('Free-space tracking error per law and plant variation, model trained on the nominal finger\n'
+                 '(colour: worst finger, % of its excursion; text: grasping fingers\' RMSE; ✗ = grasp lost)',
+                 fontsize=9)
+    lines = textwrap.wrap(f'$ {command}', width=int(width * 17), subsequent_indent='    ')
+    fig.text(0.005, 0.005, '\n'.join(lines), fontsize=6.5, family='monospace', ha='left', va='bottom')
+    fig.get_layout_engine().set(rect=(0.0, 0.01 + 0.035 * len(lines), 1.0, 0.99 - 0.035 * len(lines)))
     fig.savefig(path, dpi=130)
     plt.close(fig)
     return path
