@@ -35,20 +35,31 @@ def tip_deflection_mm(u, seconds: float = 1.5, **scales) -> float:
 
 
 # -- the variations change the plant ----------------------------------------------------------------
+#: a held ax0 torque [N·m] that bends the finger well beyond its friction band
+BENDING_TORQUE = np.array([-0.01, 0.0])
+
+
+@pytest.fixture(scope='module')
+def nominal_bending():
+    """The nominal upright finger: its linearisation at rest (M, K, B, J) and its tip's deflection
+    under :data:`BENDING_TORQUE` [mm]."""
+    with GripperSim(SimConfig(scene='finger', mount_roll_deg=0.0)) as sim:
+        linear = sim.linearize()
+    return linear, tip_deflection_mm(BENDING_TORQUE)
+
+
 @pytest.mark.parametrize('scale', [1.2, 0.8])
-def test_stiffness_scale_changes_the_rest_deflection_as_the_linearised_finger_predicts(scale):
+def test_stiffness_scale_changes_the_rest_deflection_as_the_linearised_finger_predicts(scale, nominal_bending):
     """±20 % stiffness: the tip's rest deflection under a held ax0 torque changes by the ratio the
     nominal finger's linearisation predicts with its springs scaled (gravity's stiffness unchanged)."""
-    u = np.array([-0.01, 0.0])
-    with GripperSim(SimConfig(scene='finger', mount_roll_deg=0.0)) as sim:
-        _, K, B, J = sim.linearize()
+    (_, K, B, J), nominal_mm = nominal_bending
     springs = np.diag(JOINT_STIFFNESS) / TORQUE_SCALE
 
     def predicted(s):
-        return np.linalg.norm(J @ np.linalg.solve(K + (s - 1.0) * springs, B @ u))
+        return np.linalg.norm(J @ np.linalg.solve(K + (s - 1.0) * springs, B @ BENDING_TORQUE))
 
     expected = predicted(scale) / predicted(1.0)
-    measured = tip_deflection_mm(u, stiffness_scale=scale) / tip_deflection_mm(u)
+    measured = tip_deflection_mm(BENDING_TORQUE, stiffness_scale=scale) / nominal_mm
     assert abs(expected - 1.0) > 0.15                  # a change well beyond the tolerance below
     assert measured == pytest.approx(expected, rel=0.03)
 
@@ -133,13 +144,23 @@ def test_the_grid_runs_every_registered_law_but_the_oracles(monkeypatch):
     (['--laws', 'sdre', 'no_such_law'], "invalid choice: 'no_such_law'"),
     (['--variations', 'stiffness_+30'], "invalid choice: 'stiffness_+30'"),
     (['--workers', '0'], '--workers must be >= 1'),
+    (['--duration', '-1'], '--duration must be > 0'),
 ])
-def test_cli_refuses_bad_arguments_before_starting(tmp_path, args, message):
+def test_cli_refuses_bad_arguments_before_starting(tmp_path, capsys, args, message):
     out = tmp_path / 'out'
-    proc = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.robustness', '--out', str(out), *args],
-                          capture_output=True, text=True, timeout=50)
+    with pytest.raises(SystemExit) as exit_info:
+        robustness.main(['--out', str(out), *args])
+    assert exit_info.value.code == 2
+    assert message in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_cli_refusal_exits_2_without_a_traceback(tmp_path):
+    out = tmp_path / 'out'
+    proc = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.robustness', '--out', str(out),
+                           '--laws', 'no_such_law'], capture_output=True, text=True, timeout=50)
     assert proc.returncode == 2
-    assert message in proc.stderr and 'Traceback' not in proc.stderr
+    assert "invalid choice: 'no_such_law'" in proc.stderr and 'Traceback' not in proc.stderr
     assert not out.exists()
 
 
@@ -153,10 +174,10 @@ def test_run_grid_refuses_bad_workers_and_unknown_names():
 def test_table_and_figure_from_results(tmp_path):
     from soft_gripper_sdre.tools.robustness_grid import CaseResult
     nan = float('nan')
-    results = [CaseResult('sdre_ff', 'nominal', 'grasp', 0.08, 1.4, 0.2, True, 0.03, 0.0, 0.0),
-               CaseResult('pd', 'nominal', 'grasp', 0.22, 2.6, 0.6, True, 0.02, 0.0, 0.0),
-               CaseResult('sdre_ff', 'delay_2ms', 'grasp', 0.1, 1.6, 0.3, True, 0.03, 0.0, 0.0),
-               CaseResult('pd', 'delay_2ms', 'grasp', nan, nan, nan, False, 20.0, 90.0, 0.0)]
+    results = [CaseResult('sdre_ff', 'nominal', 'grasp', 0.08, 1.4, 0.2, True, 0.03, 0.0, 0.0, 30.0),
+               CaseResult('pd', 'nominal', 'grasp', 0.22, 2.6, 0.6, True, 0.02, 0.0, 0.0, 30.0),
+               CaseResult('sdre_ff', 'delay_2ms', 'grasp', 0.1, 1.6, 0.3, True, 0.03, 0.0, 0.0, 30.0),
+               CaseResult('pd', 'delay_2ms', 'grasp', nan, nan, nan, False, 20.0, 90.0, 0.0, 30.0)]
     table = robustness.markdown_table(results, 'grasp')
     assert '| nominal plant | 0.080 mm (1.40 %) ✓ | 0.220 mm (2.60 %) ✓ |' in table
     assert '| sensor delay 2 ms | 0.100 mm (1.60 %) ✓ | diverged ✗ |' in table

@@ -75,9 +75,10 @@ def markdown_table(results: list[CaseResult], trajectory: str) -> str:
     return '\n'.join(lines)
 
 
-def trajectory_heading(trajectory: str) -> str:
+def trajectory_heading(results: list[CaseResult], trajectory: str) -> str:
     p, dur = TRAJECTORIES[trajectory]
-    return (f'{trajectory}: close {p.close_distance * 1e3:g} mm in {p.t_close:g} s, hold {p.t_hold:g} s, '
+    close_mm = next(r.close_mm for r in results if r.trajectory == trajectory)
+    return (f'{trajectory}: close {close_mm:g} mm in {p.t_close:g} s, hold {p.t_hold:g} s, '
             f'open in {p.t_open:g} s ({dur:g} s run)')
 
 
@@ -89,7 +90,7 @@ def write_report(out: Path, results: list[CaseResult], command: str, figure: str
              f'excursion; target ≤ {TARGET_PCT:g} %), ✓ the grasp held (both grasping fingers on the cube '
              '≥ 90 % of the hold, cube moved < 1 mm), ✗ it did not. † knows the nominal plant (oracle).', '']
     for traj in dict.fromkeys(r.trajectory for r in results):
-        lines += [f'## {trajectory_heading(traj)}', '', markdown_table(results, traj), '']
+        lines += [f'## {trajectory_heading(results, traj)}', '', markdown_table(results, traj), '']
     errors = [r for r in results if r.error]
     if errors:
         lines += ['## Runs that failed', ''] + [f'- {r.law} / {r.variation} / {r.trajectory}: {r.error}'
@@ -135,7 +136,7 @@ def plot_grid(results: list[CaseResult], path: Path, command: str) -> Path:
         ax.set_xticks(range(len(laws)), [law_label(law) for law in laws], fontsize=8)
         ax.set_yticks(range(len(variations)), [VARIATIONS[v].label for v in variations], fontsize=8)
         ax.xaxis.tick_top()
-        ax.set_title(trajectory_heading(traj), fontsize=8)
+        ax.set_title(trajectory_heading(results, traj), fontsize=8)
         if ax is not axes[0][0]:
             ax.set_yticklabels([])
     bar = fig.colorbar(image, ax=list(axes[0]), shrink=0.9)
@@ -160,6 +161,8 @@ def parse_args(argv=None) -> argparse.Namespace:
                     metavar='VARIATION', help=f'known: {list(VARIATIONS)} (default: all)')
     ap.add_argument('--trajectories', nargs='+', default=list(TRAJECTORIES), choices=list(TRAJECTORIES))
     ap.add_argument('--duration', type=float, default=None, help='override every run\'s duration [s]')
+    ap.add_argument('--close-mm', type=float, default=None,
+                    help='override the grasping fingers\' travel from rest [mm] (default: the trajectory\'s, 30)')
     ap.add_argument('--workers', type=int, default=os.cpu_count() or 1, help='worker processes (default: every core)')
     ap.add_argument('--model', type=Path, default=None, help='checkpoint (default: the shipped model)')
     args = ap.parse_args(argv)
@@ -167,6 +170,8 @@ def parse_args(argv=None) -> argparse.Namespace:
         ap.error(f'--workers must be >= 1, got {args.workers}')
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
         ap.error(f'--duration must be > 0 s, got {args.duration}')
+    if args.close_mm is not None and not (math.isfinite(args.close_mm) and 0 < args.close_mm <= 50):
+        ap.error(f'--close-mm must be in (0, 50] mm, got {args.close_mm}')
     try:
         SDCModel(args.model)
     except ModelFileError as exc:
@@ -178,7 +183,8 @@ def main(argv=None) -> int:
     args = parse_args(argv)
     command = 'python -m soft_gripper_sdre.tools.robustness ' + ' '.join(
         shlex.quote(a) for a in (sys.argv[1:] if argv is None else argv))
-    cases = [Case(law, variation, traj, args.duration) for traj in args.trajectories
+    close = None if args.close_mm is None else args.close_mm * 1e-3
+    cases = [Case(law, variation, traj, args.duration, close) for traj in args.trajectories
              for law in dict.fromkeys(args.laws) for variation in dict.fromkeys(args.variations)]
     args.out.mkdir(parents=True, exist_ok=True)
     results = run_grid(cases, args.workers, model_path=args.model)

@@ -14,7 +14,7 @@ numbers, bit for bit, whatever the number of workers.
 from __future__ import annotations
 
 from concurrent.futures import ProcessPoolExecutor, as_completed
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 import multiprocessing
 import sys
 
@@ -71,12 +71,19 @@ def known_laws() -> list[str]:
 @dataclass(frozen=True)
 class Case:
     """One run of the grid: a law (registry name) on a trajectory (:data:`TRAJECTORIES`) with a
-    variation (:data:`VARIATIONS`); ``duration`` [s] overrides the trajectory's run length."""
+    variation (:data:`VARIATIONS`); ``duration`` [s] overrides the trajectory's run length and
+    ``close_distance`` [m] the grasping fingers' travel from their rest pose."""
 
     law: str
     variation: str
     trajectory: str = 'grasp'
     duration: float | None = None
+    close_distance: float | None = None
+
+    def profile(self):
+        """The trajectory's :class:`~soft_gripper_sdre.control.trajectory.GraspProfile` with this case's travel."""
+        profile = TRAJECTORIES[self.trajectory][0]
+        return profile if self.close_distance is None else replace(profile, close_distance=self.close_distance)
 
 
 @dataclass(frozen=True)
@@ -93,13 +100,14 @@ class CaseResult:
     cube_mm: float                # largest displacement of the cube [mm]
     saturated_pct: float          # share of the per-finger steps with a saturated torque
     check_fail_pct: float         # share of the per-finger steps whose Riccati checks failed
+    close_mm: float = float('nan')  # the grasping fingers' travel from rest [mm]
     error: str = ''
 
 
 def run_case(case: Case, model: SDCModel) -> CaseResult:
     """Run one case in this process and score it."""
     variation = VARIATIONS[case.variation]
-    profile, duration = TRAJECTORIES[case.trajectory]
+    profile, duration = case.profile(), TRAJECTORIES[case.trajectory][1]
     weights = Weights(**DEFAULT_WEIGHTS)
     law = make_law(case.law, model, weights, U_MAX)
     config = SimConfig(scene='hand', noise_std=variation.noise_std, plant=variation.plant)
@@ -120,7 +128,7 @@ def run_case(case: Case, model: SDCModel) -> CaseResult:
             max_mm_all=float(np.max([x.max_mm for x in m])),
             grasp_success=ok, cube_mm=cube_mm,
             saturated_pct=100.0 * float(res.saturated.any(axis=2).mean()),
-            check_fail_pct=100.0 * float((~res.ok).mean()))
+            check_fail_pct=100.0 * float((~res.ok).mean()), close_mm=profile.close_distance * 1e3)
 
 
 # -- the worker pool ------------------------------------------------------------------------------
@@ -139,7 +147,7 @@ def _run_in_worker(case: Case) -> CaseResult:
     except Exception as exc:  # noqa: BLE001 — one failing law must not lose the rest of the grid
         nan = float('nan')
         return CaseResult(case.law, case.variation, case.trajectory, nan, nan, nan, False, nan, nan, nan,
-                          error=f'{type(exc).__name__}: {exc}')
+                          case.profile().close_distance * 1e3, error=f'{type(exc).__name__}: {exc}')
 
 
 def run_grid(cases: list[Case], workers: int, model_path=None, progress: bool = True) -> list[CaseResult]:
