@@ -21,10 +21,6 @@ from soft_gripper_sdre.sim.units import TORQUE_SCALE
 from soft_gripper_sdre.tools import robustness
 from soft_gripper_sdre.tools.robustness_grid import VARIATIONS, Case, grid_laws, run_grid
 
-#: the variations on which the default law stays within the 5 % free-space target (docs/results.md)
-PLANT_VARIATIONS = ('nominal', 'stiffness_+20', 'stiffness_-20', 'friction_x0.5', 'friction_x2', 'tip_mass_+50',
-                    'cube_mass_x5')
-
 
 def tip_deflection_mm(u, seconds: float = 1.5, **scales) -> float:
     """How far a torque ``u`` held ``seconds`` moves the upright finger's tip from rest [mm]."""
@@ -205,23 +201,68 @@ def test_grid_numbers_do_not_depend_on_the_number_of_workers():
     assert result_bits(one) == result_bits(two)
 
 
+#: the plants whose finger rests ~3 mm further from the cube than the nominal one, so that the
+#: grasp's 30 mm travel from rest stops short of the cube (docs/results.md "Robustness to the plant")
+SAGGING = ('stiffness_-20', 'friction_x0.5', 'tip_mass_+50')
+#: the plants on which the default law stays within the 5 % free-space target on every finger
+WITHIN_TARGET = ('nominal', 'friction_x0.5', 'friction_x2', 'cube_mass_x5')
+
+
 @pytest.fixture(scope='module')
-def default_law_grid():
-    """The default law on every variation, the grasp through the end of its hold (3.6 s)."""
+def claims_grid():
+    """The runs behind the claims: the default law on every variation, the grasp through the end of
+    its hold (3.6 s); the default law on the sagging plants with a 34 mm travel and the PD with a
+    2 ms delay and with 0.1 mm noise, on the fast grasp through its hold (1.3 s)."""
     cases = [Case(DEFAULT_LAW, variation, 'grasp', 3.6) for variation in VARIATIONS]
-    return {r.variation: r for r in run_grid(cases, 2, progress=False)}
+    cases += [Case(DEFAULT_LAW, variation, 'fast', 1.3, 0.034) for variation in SAGGING]
+    cases += [Case('pd', variation, 'fast', 1.3) for variation in ('delay_2ms', 'noise_0.1mm')]
+    results = run_grid(cases, 2, progress=False)
+    assert not [r.error for r in results if r.error]
+    return {(r.law, r.variation, r.trajectory): r for r in results}
 
 
 @pytest.mark.slow
-@pytest.mark.timeout(300)      # the first user of default_law_grid: its runs count here
-def test_default_law_keeps_the_grasp_on_every_variation(default_law_grid):
-    for variation, r in default_law_grid.items():
-        assert not r.error, (variation, r.error)
-        assert r.grasp_success, (variation, r)
-        assert r.saturated_pct < 1.0, (variation, r)
+@pytest.mark.timeout(360)      # the first user of claims_grid: its runs count here
+def test_default_law_keeps_the_grasp_on_every_plant_that_rests_where_the_nominal_one_does(claims_grid):
+    for variation in VARIATIONS:
+        r = claims_grid[DEFAULT_LAW, variation, 'grasp']
+        assert r.saturated_pct < 1.0 and r.rmse_mm_grasp < 0.4, r        # < 1.4 % of the 30 mm travel
+        if variation not in SAGGING:
+            assert r.grasp_success, r
 
 
 @pytest.mark.slow
-def test_default_law_stays_within_5_percent_on_the_stiffness_friction_and_mass_variations(default_law_grid):
-    for variation in PLANT_VARIATIONS:
-        assert default_law_grid[variation].rmse_pct_worst <= robustness.TARGET_PCT, default_law_grid[variation]
+def test_on_the_sagging_plants_the_grasp_stops_short_of_the_cube_and_holds_with_a_longer_travel(claims_grid):
+    for variation in SAGGING:
+        short = claims_grid[DEFAULT_LAW, variation, 'grasp']
+        assert not short.grasp_success and short.cube_mm < 0.01, short     # never touched the cube
+        assert claims_grid[DEFAULT_LAW, variation, 'fast'].grasp_success
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason='measured: the grasp travels 30 mm from rest, and on the sagging plants '
+                   'the finger rests ~3 mm further out (docs/results.md "Robustness to the plant")')
+def test_default_law_keeps_the_grasp_on_every_variation(claims_grid):
+    """The issue's target as stated: does NOT hold as measured (strict xfail: fails the day it holds)."""
+    assert all(claims_grid[DEFAULT_LAW, v, 'grasp'].grasp_success for v in VARIATIONS)
+
+
+@pytest.mark.slow
+def test_default_law_stays_within_5_percent_on_the_friction_and_cube_mass_variations(claims_grid):
+    for variation in WITHIN_TARGET:
+        assert claims_grid[DEFAULT_LAW, variation, 'grasp'].rmse_pct_worst <= robustness.TARGET_PCT
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason='measured: the opening fingers (5 mm travel) exceed 5 % on stiffness ±20 % '
+                   'and tip mass +50 % (docs/results.md "Robustness to the plant")')
+def test_default_law_stays_within_5_percent_on_the_stiffness_and_tip_mass_variations(claims_grid):
+    for variation in ('stiffness_+20', 'stiffness_-20', 'tip_mass_+50'):
+        assert claims_grid[DEFAULT_LAW, variation, 'grasp'].rmse_pct_worst <= robustness.TARGET_PCT
+
+
+@pytest.mark.slow
+def test_the_pd_loses_the_grasp_with_a_2_ms_delay_or_0_1_mm_noise(claims_grid):
+    for variation in ('delay_2ms', 'noise_0.1mm'):
+        r = claims_grid['pd', variation, 'fast']
+        assert not r.grasp_success and r.rmse_pct_worst > 20.0, r

@@ -131,7 +131,8 @@ def plot_grid(results: list[CaseResult], path: Path, command: str) -> Path:
                     text += '' if r.grasp_success else '\n✗ grasp lost'
                 else:
                     text = 'error' if r is not None else ''
-                ax.text(j, i, text, ha='center', va='center', fontsize=7.5)
+                dark = grid[i, j] >= 0.85 * top          # white text on the darkest red
+                ax.text(j, i, text, ha='center', va='center', fontsize=7.5, color='white' if dark else 'black')
         image = ax.imshow(np.minimum(grid, top), cmap='RdYlGn_r', norm=norm, aspect='auto')
         ax.set_xticks(range(len(laws)), [law_label(law) for law in laws], fontsize=8)
         ax.set_yticks(range(len(variations)), [VARIATIONS[v].label for v in variations], fontsize=8)
