@@ -60,6 +60,12 @@ input-matrix: $(STAMP)
 evaluate: $(KERNELS)
 	$(PY) -m soft_gripper_sdre.tools.evaluate --out runs/evaluate
 
+# docs/results.md "Robustness to the plant": every registered law (oracles aside) on the grasp and
+# the fast grasp, on plants and sensors the model was not trained on, over every core
+.PHONY: robustness
+robustness: $(KERNELS)
+	$(PY) -m soft_gripper_sdre.tools.robustness --out runs/robustness
+
 # docs/deployment.md: two hands on one ROS domain, each in its own namespace with its own clock
 two-hands: $(KERNELS)
 	$(PY) -m soft_gripper_sdre.tools.hands --out runs/hands

@@ -3,7 +3,9 @@
 This is the node graph's loop with the topics replaced by function calls, in the same order and
 with the same rules, so a lockstep run of the graph reproduces it:
 
-1. the simulator measures the tips at t_k (:meth:`GripperSim.measure`);
+1. the simulator measures the tips at t_k (:meth:`GripperSim.measure`); with a ``sensor_delay`` of
+   d control periods the estimator gets the measurement of t_(k−d) instead (a FIFO of
+   measurements, filled with the first one until d have been taken);
 2. the estimator's constant-velocity KF turns them into x̂_k (the first measurement initialises it
    with zero velocity); the trajectory's rest pose is that first measurement;
 3. the controller takes the reference at t_k (sampled for the whole run at once) and computes u_k
@@ -14,7 +16,9 @@ It is used by the tests, the tuning sweeps and the benchmarks; the demo runs the
 """
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass, field
+import math
 import time
 
 import numpy as np
@@ -43,7 +47,7 @@ class LoopResult:
     t: np.ndarray                 # (T,) s
     pos: np.ndarray               # (T, n, 2) true tip position [m]
     vel: np.ndarray               # (T, n, 2) true tip velocity [m/s]
-    meas: np.ndarray              # (T, n, 2) measured tip position [m]
+    meas: np.ndarray              # (T, n, 2) measured tip position the estimator got (delayed by sensor_delay) [m]
     est: np.ndarray               # (T, n, 4) KF estimate [m, m/s]
     ref_pos: np.ndarray           # (T, n, 2)
     ref_vel: np.ndarray           # (T, n, 2)
@@ -66,19 +70,26 @@ def run_closed_loop(model, *, duration: float, sim_config: SimConfig | None = No
                     weights: Weights, u_max: float, profile: GraspProfile | None = None,
                     estimator: EstimatorSettings | None = None, method: str = 'fast',
                     lowpass_hz: float = DEFAULT_LOWPASS_HZ, progress: bool = False,
-                    controller: Law | None = None) -> LoopResult:
+                    controller: Law | None = None, sensor_delay: float = 0.0) -> LoopResult:
     """Run the grasp for ``duration`` seconds of sim time and return everything recorded.
 
     ``controller``: optional :class:`~soft_gripper_sdre.control.tracking.Law` used instead of the
     paper's learned SDRE (:mod:`soft_gripper_sdre.control.laws`); every law gets the reference
     acceleration, and one with an ``observe(truth)`` method gets the plant's ground truth before
     each step (the oracles, :mod:`soft_gripper_sdre.analysis.oracle`).
+
+    ``sensor_delay`` [s]: age of the measurement the estimator gets, a whole number of control
+    periods (0: the measurement of the same period, as on the node graph in lockstep).
+
+    Raises:
+        ValueError: ``sensor_delay`` is negative, not finite or not a whole number of periods.
     """
     sim_config = sim_config or SimConfig(scene='hand')
     profile = profile or GraspProfile()
     estimator = estimator or EstimatorSettings()
     dt = sim_config.control_period
     steps = int(round(duration / dt))
+    delay_steps = delay_in_periods(sensor_delay, dt)
     with GripperSim(sim_config) as sim:
         n = sim.n_fingers
         kf = ConstantVelocityKF(dt, estimator.accel_psd, estimator.meas_std, n=n,
@@ -97,9 +108,12 @@ def run_closed_loop(model, *, duration: float, sim_config: SimConfig | None = No
         stamps = np.empty(steps + 1)
         law_seconds = np.empty(steps)
         stamps[0] = clock()
+        fifo = deque(maxlen=delay_steps + 1)     # the last d + 1 measurements, oldest first
         for k in iterator:
-            z = sim.measure()[:, :2]
+            fifo.append(sim.measure()[:, :2])
+            z = fifo[0]
             if traj is None:
+                fifo.extend([z] * delay_steps)  # before d measurements exist, the sensor repeats the first
                 kf.reset(z)
                 x_hat = kf.x.copy()
                 traj = GraspTrajectory(z, profile)
@@ -136,3 +150,17 @@ def run_closed_loop(model, *, duration: float, sim_config: SimConfig | None = No
                         period_seconds=periods, law_seconds=law_seconds)
     result.metrics = tracking_metrics(result.pos, result.ref_pos, free, excursion)
     return result
+
+
+def delay_in_periods(delay: float, period: float) -> int:
+    """A sensor delay [s] as a whole number of control periods.
+
+    Raises:
+        ValueError: the delay is negative, not finite or not a whole number of periods (within 1e-9).
+    """
+    if not (isinstance(delay, (int, float)) and math.isfinite(delay) and delay >= 0):
+        raise ValueError(f'sensor_delay must be a finite number >= 0 s, got {delay!r}')
+    steps = round(delay / period)
+    if abs(steps * period - delay) > 1e-9:
+        raise ValueError(f'sensor_delay must be a whole number of control periods ({period:g} s), got {delay!r} s')
+    return int(steps)

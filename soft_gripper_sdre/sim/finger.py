@@ -38,6 +38,9 @@ JOINT_AXIS = np.arange(N_JOINTS) % 2
 B_MATRIX = np.stack([JOINT_AXIS == 0, JOINT_AXIS == 1], axis=1).astype(float)
 JOINT_STIFFNESS = np.where(JOINT_AXIS == 0, STIFFNESS[0], STIFFNESS[1])
 TIP_LINK = N_JOINTS - 1
+#: the tip link's mass [kg] and principal moments of inertia [kg·unit²] (sim units)
+TIP_MASS = 0.01794
+TIP_INERTIA = 1.08359e-3
 #: (axis, k) of every joint as Python numbers, for the per-substep spring torques in plain floats
 JOINT_SPRINGS = tuple(zip(JOINT_AXIS.tolist(), JOINT_STIFFNESS.tolist()))
 
@@ -69,13 +72,14 @@ def _box(size: tuple, xyz: tuple) -> str:
             f'<geometry><box size="{size[0]} {size[1]} {size[2]}"/></geometry></visual>')
 
 
-def _finger_links(prefix: str = '') -> list[str]:
-    """URDF elements of one finger: its base link (the root) and the 10-joint chain."""
+def _finger_links(prefix: str = '', tip_mass_scale: float = 1.0) -> list[str]:
+    """URDF elements of one finger: its base link (the root) and the 10-joint chain, the tip's
+    mass and inertia multiplied by ``tip_mass_scale``."""
     out = [f'<link name="{prefix}base">{_inertial(0.6, (0, 0, 0.1), (0.0225, 0.0225, 0.041))}'
            f'{_box((0.64, 0.64, 0.20), (0, 0, 0.10))}</link>']
     for j in range(N_JOINTS):
         if j == TIP_LINK:
-            inertial = _inertial(0.01794, (0, 0, 0.083612), (1.08359e-3,) * 3)
+            inertial = _inertial(TIP_MASS * tip_mass_scale, (0, 0, 0.083612), (TIP_INERTIA * tip_mass_scale,) * 3)
         elif JOINT_AXIS[j] == 0:
             inertial = _inertial(0.00294294, (0, -0.00012, 0.0002), (8.2616e-5, 1.06513e-4, 8.2616e-5))
         else:
@@ -103,18 +107,20 @@ def _finger_links(prefix: str = '') -> list[str]:
     return out
 
 
-def finger_urdf() -> str:
-    """URDF of one finger whose root is its base link (mounted by the base pose at load time)."""
+def finger_urdf(tip_mass_scale: float = 1.0) -> str:
+    """URDF of one finger whose root is its base link (mounted by the base pose at load time);
+    ``tip_mass_scale`` multiplies the tip link's mass and inertia (1: the nominal finger)."""
     return '<?xml version="1.0"?>\n<robot name="ihm_finger">\n' + '\n'.join(
-        _finger_links()) + '\n</robot>\n'
+        _finger_links(tip_mass_scale=tip_mass_scale)) + '\n</robot>\n'
 
 
-def load_fingers(client: int, poses: list[tuple[tuple, tuple]]) -> list[int]:
+def load_fingers(client: int, poses: list[tuple[tuple, tuple]], tip_mass_scale: float = 1.0) -> list[int]:
     """Load one finger (:func:`finger_urdf`, fixed base, inertia from the file) per base pose.
 
     Args:
         client: PyBullet physics client id.
         poses: (position, quaternion [x, y, z, w]) of each finger's base, sim units.
+        tip_mass_scale: factor on the tip link's mass and inertia (1: the nominal finger).
 
     Returns:
         The body id of each finger. PyBullet parses URDF from files only; the file is written to a
@@ -122,7 +128,7 @@ def load_fingers(client: int, poses: list[tuple[tuple, tuple]]) -> list[int]:
     """
     with tempfile.TemporaryDirectory(prefix='sgs_urdf_') as d:
         path = Path(d) / 'finger.urdf'
-        path.write_text(finger_urdf())
+        path.write_text(finger_urdf(tip_mass_scale))
         return [pb.loadURDF(str(path), pos, orn, useFixedBase=True, flags=pb.URDF_USE_INERTIA_FROM_FILE,
                             physicsClientId=client) for pos, orn in poses]
 

@@ -12,7 +12,7 @@ torque range. Two runs with the same configuration are bit-identical.
 """
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 import json
 import math
 
@@ -22,6 +22,7 @@ import pybullet as pb
 from soft_gripper_sdre.sim.finger import (CUBE, FINGER_BASE_POSITIONS, FINGER_FRICTION, FINGER_RESTITUTION,
                                           FRICTION_TORQUE, JOINT_SPRINGS, N_JOINTS, PALM, SCENES, TIP_LINK,
                                           WORLD_GRAVITY, DirectClient, finger_base_rpy, load_fingers, rpy_matrix)
+from soft_gripper_sdre.sim.plant import PlantVariation
 from soft_gripper_sdre.sim.units import LENGTH_SCALE, TORQUE_SCALE
 
 
@@ -51,6 +52,8 @@ class SimConfig:
             finger exactly like a hand finger (so a model learned on it applies to each of them);
             0 is an upright finger.
         with_cube: 'hand' scene only: put the cube on the palm.
+        plant: scales on the finger's stiffness, friction, tip mass and the cube's mass
+            (:class:`~soft_gripper_sdre.sim.plant.PlantVariation`; default: the nominal plant).
     """
 
     scene: str = 'hand'
@@ -62,6 +65,7 @@ class SimConfig:
     settle_time: float = 0.5
     mount_roll_deg: float = 15.0
     with_cube: bool = True
+    plant: PlantVariation = field(default_factory=PlantVariation)
 
     def __post_init__(self) -> None:
         if self.scene not in SCENES:
@@ -80,6 +84,8 @@ class SimConfig:
             raise ValueError(f'settle_time must be finite and >= 0 s, got {self.settle_time!r}')
         if not math.isfinite(self.mount_roll_deg):
             raise ValueError(f'mount_roll_deg must be finite, got {self.mount_roll_deg!r}')
+        if not isinstance(self.plant, PlantVariation):
+            raise ValueError(f'plant must be a PlantVariation, got {type(self.plant).__name__}')
 
     @property
     def physics_dt(self) -> float:
@@ -121,7 +127,9 @@ class GripperSim(DirectClient):
 
     # -- world construction ------------------------------------------------------------------
     def _build(self) -> None:
-        cfg, cid = self.config, self._client
+        cfg, cid, plant = self.config, self._client, self.config.plant
+        # (axis, k) of every joint with the plant's stiffness, read by every physics step
+        self._springs = tuple((axis, k * plant.stiffness_scale) for axis, k in JOINT_SPRINGS)
         pb.resetSimulation(physicsClientId=cid)
         pb.setGravity(*WORLD_GRAVITY, physicsClientId=cid)
         pb.setTimeStep(cfg.physics_dt, physicsClientId=cid)
@@ -135,7 +143,8 @@ class GripperSim(DirectClient):
         # One multibody per finger: four 10-DoF chains solve far faster than one 40-DoF body
         # (the joint-friction motors are constraints whose cost grows with the body's DoF).
         self._bodies = load_fingers(cid, [(pos, pb.getQuaternionFromEuler(rpy))
-                                          for pos, rpy in zip(positions, rpys)])
+                                          for pos, rpy in zip(positions, rpys)],
+                                    tip_mass_scale=plant.tip_mass_scale)
         self._base_pos = np.array(positions, dtype=float)
         self._base_rot = np.stack([rpy_matrix(rpy) for rpy in rpys])
         # per finger: p₀ and the columns of R (the rows of Rᵀ) as Python floats, for _read_state
@@ -152,11 +161,11 @@ class GripperSim(DirectClient):
                 shape = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=[half] * 3, physicsClientId=cid)
                 visual = pb.createVisualShape(pb.GEOM_BOX, halfExtents=[half] * 3,
                                               rgbaColor=[0, 0.8, 0, 1], physicsClientId=cid)
-                self._cube = pb.createMultiBody(CUBE['mass'], shape, visual, CUBE['center'],
+                self._cube = pb.createMultiBody(CUBE['mass'] * plant.cube_mass_scale, shape, visual, CUBE['center'],
                                                 physicsClientId=cid)
                 pb.changeDynamics(self._cube, -1, lateralFriction=CUBE['friction'], physicsClientId=cid)
         self._joint_list = list(range(N_JOINTS))
-        zeros, friction = [0.0] * N_JOINTS, [FRICTION_TORQUE] * N_JOINTS
+        zeros, friction = [0.0] * N_JOINTS, [FRICTION_TORQUE * plant.friction_scale] * N_JOINTS
         for body in self._bodies:
             for link in range(-1, N_JOINTS):
                 pb.changeDynamics(body, link, lateralFriction=FINGER_FRICTION,
@@ -192,7 +201,7 @@ class GripperSim(DirectClient):
         cid, joints, torque = self._client, self._joint_list, pb.TORQUE_CONTROL
         for body, u, states in zip(self._bodies, self._u_sim, self._joint_states):
             # τ_j = u[axis(j)] − k_j q_j, in Python floats (the same IEEE operations as numpy's)
-            tau = [u[axis] - k * state[0] for (axis, k), state in zip(JOINT_SPRINGS, states)]
+            tau = [u[axis] - k * state[0] for (axis, k), state in zip(self._springs, states)]
             pb.setJointMotorControlArray(body, joints, torque, forces=tau, physicsClientId=cid)
         pb.stepSimulation(physicsClientId=cid)
         self._read_joints()

@@ -19,7 +19,8 @@ def linearize(sim: GripperSim) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.n
     """The finger linearised about its current pose with friction off, in SI (finger scene):
     M δq̈ + K δq = B u, tip position δp = J δq.
 
-    M (10, 10) [kg·m²] and K (10, 10) [N·m/rad] (joint springs + gravity stiffness ∂g/∂q, by
+    M (10, 10) [kg·m²] and K (10, 10) [N·m/rad] (the simulator's joint springs, with its plant's
+    scale, + gravity stiffness ∂g/∂q, by
     central differences of PyBullet's inverse dynamics with gravity as the mounted base sees
     it), B (10, 2) (u in N·m), and the tip Jacobian J (3, 10) [m/rad] in the finger's base
     frame (finite differences of the tip).
@@ -63,7 +64,7 @@ def linearize(sim: GripperSim) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.n
     for k, st in enumerate(states):                       # put the finger back exactly
         pb.resetJointState(body, k, st[0], st[1], physicsClientId=cid)
     # scaled world → SI: lengths /20, torques /400 (so inertia /400 too: τ = M q̈)
-    K = (np.diag(JOINT_STIFFNESS) + dg) / TORQUE_SCALE
+    K = (np.diag(JOINT_STIFFNESS * sim.config.plant.stiffness_scale) + dg) / TORQUE_SCALE
     return M / TORQUE_SCALE, K, B_MATRIX.copy(), J / LENGTH_SCALE
 
 def linear_modes(sim: GripperSim) -> np.ndarray:

@@ -1,0 +1,183 @@
+"""The robustness grid's runs: every law on plants and sensors the learned model was not trained on.
+
+A case is one law on one trajectory with one :class:`Variation` of the plant or the sensor. Each
+case runs the in-process closed loop (:func:`soft_gripper_sdre.analysis.closed_loop.run_closed_loop`:
+the node graph's loop with the topics replaced by calls, the KF, lockstep, seeded noise) like
+:mod:`soft_gripper_sdre.tools.evaluate`, with the model trained on the nominal finger, and is scored
+on the true tip in free space and on the grasp (:func:`soft_gripper_sdre.tools.evaluate.grasp_success`).
+
+The cases are independent, so :func:`run_grid` runs them in a pool of spawned worker processes,
+each with its own simulator, law and copy of the model. A case's result depends on the case only
+(every simulator starts from the same seed, every law is built fresh), so the grid gives the same
+numbers, bit for bit, whatever the number of workers.
+"""
+from __future__ import annotations
+
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass, field, replace
+import multiprocessing
+import sys
+
+import numpy as np
+
+# importing analysis.oracle adds the oracle laws to the registry (they know the nominal plant's
+# dynamics, so the grid leaves them out unless asked)
+from soft_gripper_sdre.analysis.oracle import ORACLE_LAWS
+from soft_gripper_sdre.analysis.closed_loop import run_closed_loop
+from soft_gripper_sdre.control.laws import LAW_REGISTRY, make_law
+from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
+from soft_gripper_sdre.learning.model import SDCModel
+from soft_gripper_sdre.sim.hand import SimConfig
+from soft_gripper_sdre.sim.plant import PlantVariation
+from soft_gripper_sdre.tools.evaluate import NOISE, TRAJECTORIES, U_MAX, grasp_success
+
+
+@dataclass(frozen=True)
+class Variation:
+    """A plant or sensor the model was not trained on: the plant's scales, the tip noise [m] and the
+    sensor delay [s] (the nominal values are those of :mod:`soft_gripper_sdre.tools.evaluate`)."""
+
+    label: str
+    plant: PlantVariation = field(default_factory=PlantVariation)
+    noise_std: float = NOISE
+    sensor_delay: float = 0.0
+
+
+#: the grid's variations by name, the nominal plant (the reference row) first
+VARIATIONS = {
+    'nominal': Variation('nominal plant'),
+    'stiffness_+20': Variation('joint stiffness +20 %', PlantVariation(stiffness_scale=1.2)),
+    'stiffness_-20': Variation('joint stiffness −20 %', PlantVariation(stiffness_scale=0.8)),
+    'friction_x0.5': Variation('joint friction ×0.5', PlantVariation(friction_scale=0.5)),
+    'friction_x2': Variation('joint friction ×2', PlantVariation(friction_scale=2.0)),
+    'tip_mass_+50': Variation('tip mass +50 %', PlantVariation(tip_mass_scale=1.5)),
+    'cube_mass_x5': Variation('cube mass ×5', PlantVariation(cube_mass_scale=5.0)),
+    'delay_2ms': Variation('sensor delay 2 ms', sensor_delay=0.002),
+    'noise_0.1mm': Variation('sensor noise 0.1 mm', noise_std=1e-4),
+    'noise_0.2mm': Variation('sensor noise 0.2 mm', noise_std=2e-4),
+}
+
+
+def grid_laws() -> list[str]:
+    """The laws the grid runs by default: every registered law but the oracles, in registry order."""
+    return [name for name in LAW_REGISTRY if name not in ORACLE_LAWS]
+
+
+def known_laws() -> list[str]:
+    """Every law the grid can run: the registry's, oracles included."""
+    return list(LAW_REGISTRY)
+
+
+@dataclass(frozen=True)
+class Case:
+    """One run of the grid: a law (registry name) on a trajectory (:data:`TRAJECTORIES`) with a
+    variation (:data:`VARIATIONS`); ``duration`` [s] overrides the trajectory's run length and
+    ``close_distance`` [m] the grasping fingers' travel from their rest pose."""
+
+    law: str
+    variation: str
+    trajectory: str = 'grasp'
+    duration: float | None = None
+    close_distance: float | None = None
+
+    def profile(self):
+        """The trajectory's :class:`~soft_gripper_sdre.control.trajectory.GraspProfile` with this case's travel."""
+        profile = TRAJECTORIES[self.trajectory][0]
+        return profile if self.close_distance is None else replace(profile, close_distance=self.close_distance)
+
+
+@dataclass(frozen=True)
+class CaseResult:
+    """The scores of one case (NaN where the loop diverged; ``error``: why the run failed, else '')."""
+
+    law: str
+    variation: str
+    trajectory: str
+    rmse_mm_grasp: float          # free-space RMSE, mean over the grasping fingers [mm]
+    rmse_pct_worst: float         # free-space RMSE of the worst finger, % of its peak excursion
+    max_mm_all: float             # largest free-space error of any finger [mm]
+    grasp_success: bool
+    cube_mm: float                # largest displacement of the cube [mm]
+    saturated_pct: float          # share of the per-finger steps with a saturated torque
+    check_fail_pct: float         # share of the per-finger steps whose Riccati checks failed
+    close_mm: float = float('nan')  # the grasping fingers' travel from rest [mm]
+    error: str = ''
+
+
+def run_case(case: Case, model: SDCModel) -> CaseResult:
+    """Run one case in this process and score it."""
+    variation = VARIATIONS[case.variation]
+    profile, duration = case.profile(), TRAJECTORIES[case.trajectory][1]
+    weights = Weights(**DEFAULT_WEIGHTS)
+    law = make_law(case.law, model, weights, U_MAX)
+    config = SimConfig(scene='hand', noise_std=variation.noise_std, plant=variation.plant)
+    try:
+        res = run_closed_loop(model, duration=case.duration or duration, sim_config=config, weights=weights,
+                              u_max=U_MAX, profile=profile, controller=law, sensor_delay=variation.sensor_delay)
+    finally:
+        if hasattr(law, 'close'):         # the oracles hold a PyBullet client
+            law.close()
+    grasping = list(profile.grasp_fingers)
+    ok, cube_mm = grasp_success(res, profile)
+    m = res.metrics
+    with np.errstate(all='ignore'):
+        return CaseResult(
+            law=case.law, variation=case.variation, trajectory=case.trajectory,
+            rmse_mm_grasp=float(np.mean([m[i].rmse_mm for i in grasping])),
+            rmse_pct_worst=float(np.max([x.rmse_pct for x in m])),
+            max_mm_all=float(np.max([x.max_mm for x in m])),
+            grasp_success=ok, cube_mm=cube_mm,
+            saturated_pct=100.0 * float(res.saturated.any(axis=2).mean()),
+            check_fail_pct=100.0 * float((~res.ok).mean()), close_mm=profile.close_distance * 1e3)
+
+
+# -- the worker pool ------------------------------------------------------------------------------
+#: the model of this worker process (loaded once by :func:`_start_worker`)
+_worker_model: SDCModel | None = None
+
+
+def _start_worker(model_path) -> None:
+    global _worker_model
+    _worker_model = SDCModel(model_path)
+
+
+def _run_in_worker(case: Case) -> CaseResult:
+    try:
+        return run_case(case, _worker_model)
+    except Exception as exc:  # noqa: BLE001 — one failing law must not lose the rest of the grid
+        nan = float('nan')
+        return CaseResult(case.law, case.variation, case.trajectory, nan, nan, nan, False, nan, nan, nan,
+                          case.profile().close_distance * 1e3, error=f'{type(exc).__name__}: {exc}')
+
+
+def run_grid(cases: list[Case], workers: int, model_path=None, progress: bool = True) -> list[CaseResult]:
+    """Run every case in a pool of ``workers`` spawned processes; the results in the order of ``cases``.
+
+    Each worker loads the model (``model_path``; None: the shipped one) once and builds a simulator
+    and a law per case. The compiled kernels are loaded into numba's on-disk cache here first, so
+    the workers load them instead of each compiling them. ``progress``: a bar on stderr.
+
+    Raises:
+        ValueError: ``workers`` < 1, or a case names an unknown law, variation or trajectory.
+    """
+    if not (isinstance(workers, int) and workers >= 1):
+        raise ValueError(f'workers must be an int >= 1, got {workers!r}')
+    for case in cases:
+        for value, known, what in ((case.law, known_laws(), 'law'), (case.variation, VARIATIONS, 'variation'),
+                                   (case.trajectory, TRAJECTORIES, 'trajectory')):
+            if value not in known:
+                raise ValueError(f'unknown {what} {value!r}; known: {list(known)}')
+    from soft_gripper_sdre.control.compiled import warm_up
+    warm_up()
+    results: list[CaseResult | None] = [None] * len(cases)
+    context = multiprocessing.get_context('spawn')
+    with ProcessPoolExecutor(max_workers=min(workers, max(1, len(cases))), mp_context=context,
+                             initializer=_start_worker, initargs=(model_path,)) as pool:
+        futures = {pool.submit(_run_in_worker, case): i for i, case in enumerate(cases)}
+        done = as_completed(futures)
+        if progress:
+            from tqdm import tqdm
+            done = tqdm(done, total=len(futures), desc='robustness', unit='run', file=sys.stderr)
+        for future in done:
+            results[futures[future]] = future.result()
+    return results
