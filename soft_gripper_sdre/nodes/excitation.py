@@ -39,9 +39,6 @@ from soft_gripper_sdre.nodes.topics import LOOP_QOS, NEWEST_QOS, TIP_POSITIONS, 
 from soft_gripper_sdre.sim.excitation import ExcitationPlan, SignalSpecError, resolve_signals
 from soft_gripper_sdre.sim.signals import SIGNALS
 
-#: wall time the shutdown stop waits for one more tip message to answer with zero [s]
-STOP_WAIT = 0.2
-
 PARAMS = (
     Param('signals', ['u1'], f'signals to play in order, each after the settle phase: built-in '
           f'({", ".join(SIGNALS)}) or named in spec_file', read_only=True),
@@ -66,6 +63,9 @@ PARAMS = (
           0.1, 3600.0, read_only=True),
     Param('reset_on_jump', 0.1, 'tip stamps jumping back by more than this (a restarted driver) '
           'stop the run as a fault', 's', 1e-3, 1e6, read_only=True),
+    Param('stop_wait', 0.2, 'shutdown, tips timing: wall time to wait for one more tip message to '
+          'answer with zero torque (then zero goes out stamped with the newest tips)', 's', 0.0, 10.0,
+          read_only=True),
     Param('max_excursion', 0.0, 'stop as a fault when an excited tip moves further than this from '
           'its starting position (0 = off)', 'm', 0.0, 1.0, read_only=True),
 )
@@ -207,14 +207,14 @@ class ExcitationNode(Node):
     def close(self) -> None:
         """The shutdown stop (run() calls this on SIGINT/SIGTERM and after the end): unless the
         final zero went out, answer the next tips with zero (tips timing; waiting at most
-        :data:`STOP_WAIT`) or publish it on the clock now, and wait until it is delivered."""
+        ``stop_wait``) or publish it on the clock now, and wait until it is delivered."""
         if self.stopped or not self.context.ok():
             return
         if self.p['timing'] == 'timer' and self.start_ns is not None:
             self.stop(max(self.get_clock().now().nanoseconds, self.answered_ns + 1), 'stopped on shutdown')
         elif self.executor is not None and self.start_ns is not None:
             self.stopping = True
-            deadline = time.monotonic() + STOP_WAIT
+            deadline = time.monotonic() + self.p['stop_wait']
             while not self.stopped and time.monotonic() < deadline:
                 self.executor.spin_once(timeout_sec=0.02)
         if not self.stopped:          # no tips came: zero for the newest stamp heard
