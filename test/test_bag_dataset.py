@@ -5,10 +5,9 @@ import sys
 
 import numpy as np
 import pytest
-from geometry_msgs.msg import PoseArray
 
 from bag_writing import MS, excitation_bag, tips_messages, torque_messages, write_bag
-from soft_gripper_sdre.analysis.bag_dataset import (BagDataError, hold_commands, label_finger, read_recording,
+from soft_gripper_sdre.analysis.bag_dataset import (hold_commands, label_finger, read_recording,
                                                     settle_estimates, tip_stretches)
 from soft_gripper_sdre.learning.model import read_checkpoint
 from soft_gripper_sdre.tools import train as train_tool
