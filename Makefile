@@ -12,7 +12,7 @@ STAMP   := $(VENV)/.installed
 KERNELS := soft_gripper_sdre/control/__pycache__/kernels.stamp
 OUT     ?= runs/demo
 
-.PHONY: demo test test-fast venv kernels model bench sweep input-matrix lock clean two-hands two-hosts
+.PHONY: demo test test-fast venv kernels model model-from-bags bench sweep input-matrix lock clean two-hands two-hosts
 
 $(STAMP): requirements.txt setup.py setup.cfg package.xml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -44,6 +44,16 @@ model: $(STAMP)
 	$(PY) -m soft_gripper_sdre.tools.collect --out data/excitation
 	$(PY) -m soft_gripper_sdre.tools.train --data data/excitation --out runs/train --install
 	$(PY) -m soft_gripper_sdre.tools.koopman --data data/excitation --out runs/koopman --install
+
+# The same model learned over the ROS interfaces, as on a robot: the excitation node plays each
+# identification signal on the simulator node while the recorder records (one bag per signal),
+# then train --bag learns from the bags (docs/model.md "Training from bags"; not installed).
+BAGS ?= runs/bags
+model-from-bags: $(STAMP)
+	rm -rf $(BAGS)
+	$(PY) -m soft_gripper_sdre.tools.excite --out $(BAGS)/train --signals u1 u2 u3 x1 x2
+	$(PY) -m soft_gripper_sdre.tools.excite --out $(BAGS)/val --signals u4
+	$(PY) -m soft_gripper_sdre.tools.train --bag $(BAGS)/train --val-bag $(BAGS)/val --out runs/train_bags
 
 bench: $(KERNELS)
 	$(PY) -m soft_gripper_sdre.tools.bench --write BENCHMARKS.md

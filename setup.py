@@ -19,6 +19,7 @@ NODES = {
     'controller': 'soft_gripper_sdre.nodes.controller:main',
     'trajectory': 'soft_gripper_sdre.nodes.trajectory:main',
     'recorder': 'soft_gripper_sdre.nodes.recorder:main',
+    'excitation': 'soft_gripper_sdre.nodes.excitation:main',
 }
 
 setup(

@@ -8,7 +8,7 @@ import pytest
 
 from soft_gripper_sdre.nodes.cli import params_files, split_ros_args
 
-NODES = ('simulator', 'estimator', 'controller', 'trajectory', 'recorder')
+NODES = ('simulator', 'estimator', 'controller', 'trajectory', 'recorder', 'excitation')
 
 
 def _run(node, *args, tmp_path):

@@ -100,3 +100,100 @@ def estimate_errors(vel_est: np.ndarray, acc_est: np.ndarray, vel_true: np.ndarr
         'acc_rmse': np.sqrt(np.mean((acc_est - acc_true) ** 2, axis=0)).tolist(),
         'acc_r2': (1.0 - acc_res / acc_tot).tolist(),
     }
+
+
+# -- irregular stamps (recordings of a real sensor) ------------------------------------------
+
+def _irregular_models(times: np.ndarray, jerk_psd: float) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """F and Σ_v of each step between consecutive ``times``: element i goes from i to i + 1."""
+    Fs, Qs = [], []
+    for h in np.diff(times).tolist():
+        Fs.append(np.array([[1.0, h, 0.5 * h * h], [0.0, 1.0, h], [0.0, 0.0, 1.0]]))
+        Qs.append(Q_continuous_white_noise(dim=3, dt=h, spectral_density=jerk_psd))
+    return Fs, Qs
+
+
+def is_uniform(t: np.ndarray) -> bool:
+    """Whether ``t`` is evenly spaced, as :func:`estimate_kinematics` requires."""
+    t = np.asarray(t, dtype=float)
+    if t.size < 3:
+        return False
+    d = np.diff(t)
+    return bool(np.allclose(d, float(np.median(d)), rtol=1e-6, atol=1e-12))
+
+
+def estimate_kinematics_irregular(t: np.ndarray, pos: np.ndarray, grid: np.ndarray, jerk_psd: float,
+                                  meas_std: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The smoothed position, velocity and acceleration at the times ``grid`` from measurements
+    ``pos`` at the increasing, unevenly spaced times ``t`` (jittery stamps, dropped samples).
+
+    The filter of :func:`estimate_kinematics` with a step of its own between consecutive instants
+    of the merged time axis: at a measurement time it updates, at a grid time without one it only
+    predicts, and the RTS smoother runs back over the same steps, so every grid value is the
+    smoothed estimate from all measurements (no interpolation of the data).
+
+    Args:
+        t: (N,) strictly increasing measurement times [s], N >= 3.
+        pos: (N, d) measured positions [m].
+        grid: (M,) times to estimate at [s], within [t[0], t[-1]].
+        jerk_psd, meas_std: as :func:`estimate_kinematics`.
+
+    Returns:
+        pos, vel, acc, each (M, d).
+    """
+    t = np.asarray(t, dtype=float)
+    grid = np.asarray(grid, dtype=float)
+    pos = np.asarray(pos, dtype=float)
+    if pos.ndim == 1:
+        pos = pos[:, None]
+    if t.ndim != 1 or pos.shape[0] != t.size or t.size < 3:
+        raise ValueError(f't must be (N,) and pos (N, d) with N >= 3, got {t.shape} and {pos.shape}')
+    if np.any(np.diff(t) <= 0):
+        raise ValueError('t must be strictly increasing')
+    if grid.ndim != 1 or grid.size == 0 or grid[0] < t[0] or grid[-1] > t[-1]:
+        raise ValueError('grid must be a non-empty (M,) array within [t[0], t[-1]]')
+    if not (np.isfinite(jerk_psd) and jerk_psd > 0):
+        raise ValueError(f'jerk_psd must be finite and > 0, got {jerk_psd!r}')
+    times, inverse = np.unique(np.concatenate([t, grid]), return_inverse=True)
+    meas_at = inverse[:t.size]               # index of each measurement on the merged axis
+    grid_at = inverse[t.size:]
+    Fs, Qs = _irregular_models(times, jerk_psd)
+    Fs.append(Fs[-1] if Fs else np.eye(3))   # the filter's last prediction is never used
+    Qs.append(Qs[-1] if Qs else np.zeros((3, 3)))
+    out = np.empty((3, grid.size, pos.shape[1]))
+    for j in range(pos.shape[1]):
+        zs: list = [None] * times.size
+        for i, z in zip(meas_at.tolist(), pos[:, j].tolist()):
+            zs[i] = z
+        kf = _filter(float(np.median(np.diff(t))), jerk_psd, meas_std)
+        kf.x = np.array([[pos[0, j]], [0.0], [0.0]])
+        kf.P = np.diag([kf.R[0, 0], 1.0, 1e3])
+        means, covs, _, _ = kf.batch_filter(zs, Fs=Fs, Qs=Qs, update_first=True)
+        # the smoother's step k + 1 is the transition from k to k + 1
+        means, _, _, _ = kf.rts_smoother(means, covs, Fs=[Fs[-1]] + Fs[:-1], Qs=[Qs[-1]] + Qs[:-1])
+        out[:, :, j] = means[grid_at, :, 0].T
+    return out[0], out[1], out[2]
+
+
+def innovation_loglik_irregular(t: np.ndarray, pos: np.ndarray, jerk_psd: float, meas_std: float) -> float:
+    """:func:`innovation_loglik` for unevenly spaced times ``t`` (a step per interval)."""
+    t = np.asarray(t, dtype=float)
+    Fs, Qs = _irregular_models(t, jerk_psd)
+    total = 0.0
+    for j in range(pos.shape[1]):
+        kf = _filter(float(np.median(np.diff(t))), jerk_psd, meas_std)
+        kf.x = np.array([[pos[0, j]], [0.0], [0.0]])
+        kf.P = np.diag([kf.R[0, 0], 1.0, 1e3])
+        for z, F, Q in zip(pos[1:, j], Fs, Qs):
+            kf.predict(F=F, Q=Q)
+            kf.update(z)
+            total += kf.log_likelihood
+    return float(total)
+
+
+def tune_jerk_psd_irregular(t: np.ndarray, pos: np.ndarray, meas_std: float,
+                            grid: np.ndarray | None = None) -> float:
+    """:func:`tune_jerk_psd` for unevenly spaced times ``t``."""
+    grid = np.logspace(0, 8, 9) if grid is None else np.asarray(grid, dtype=float)
+    scores = [innovation_loglik_irregular(t, pos, q, meas_std) for q in grid]
+    return float(grid[int(np.argmax(scores))])

@@ -15,7 +15,7 @@ import sys
 
 from soft_gripper_sdre.nodes.params import Param
 
-NODES = ('simulator', 'estimator', 'trajectory', 'controller', 'recorder')
+NODES = ('simulator', 'estimator', 'trajectory', 'controller', 'recorder', 'excitation')
 DEFAULT_OUT = Path('docs/parameters.md')
 
 

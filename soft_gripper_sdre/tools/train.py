@@ -1,6 +1,11 @@
 """Learn the SDC model from excitation data: derivative estimates, training, validation, figures.
 
     python -m soft_gripper_sdre.tools.train --data data/excitation --out runs/train [--preset paper]
+    python -m soft_gripper_sdre.tools.train --bag DIR [--bag DIR ...] --val-bag DIR --out runs/train_bags
+
+With ``--bag`` the data come from rosbag2 recordings of ``tip_positions`` and ``torque_commands``
+(the excitation node and a recorder, on the simulator or a robot):
+:mod:`soft_gripper_sdre.tools.train_bags`. The rest of this text is about ``--data``.
 
 Writes OUT/model.pt (checkpoint), OUT/metrics.json, OUT/fig2_loss.png (the paper's Figure 2) and
 OUT/fig3_accel_u4.png (Figure 3). ``--install`` also copies the checkpoint and its metrics into the
@@ -75,8 +80,22 @@ def _usage_error(parser, message):
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.train',
                                      description=__doc__.split('\n\n')[0])
-    parser.add_argument('--data', required=True, type=Path, help='directory with <signal>.npz files')
+    parser.add_argument('--data', type=Path, help='directory with <signal>.npz files (tools.collect)')
     parser.add_argument('--out', required=True, type=Path, help='output directory')
+    bags = parser.add_argument_group('training from rosbag2 recordings (instead of --data)')
+    bags.add_argument('--bag', type=Path, action='append', metavar='DIR',
+                      help='a rosbag2 directory, or a directory of them (repeatable): training data')
+    bags.add_argument('--val-bag', type=Path, action='append', metavar='DIR',
+                      help='a rosbag2 directory, or a directory of them (repeatable): validation data')
+    bags.add_argument('--tips-topic', default='tip_positions', help='PoseArray topic (default %(default)s)')
+    bags.add_argument('--torques-topic', default='torque_commands', help='JointState topic (default %(default)s)')
+    bags.add_argument('--finger', type=int, default=None,
+                      help='learn from this finger only (default: every finger that was excited)')
+    bags.add_argument('--meas-std', type=float, default=None,
+                      help='tip measurement noise σ [m] for the KF/RTS (default: estimated from the '
+                           'settle phase at zero torque, 0 without one)')
+    bags.add_argument('--min-duration', type=float, default=1.0,
+                      help='refuse a bag with less commanded time than this [s] (default %(default)s)')
     parser.add_argument('--preset', choices=sorted(PRESETS), default='default')
     parser.add_argument('--variant', choices=sorted(DATA_VARIANTS), default=None,
                         help='training signals: identifying (default preset) or paper (u1..u3)')
@@ -118,6 +137,10 @@ def main(argv: list[str] | None = None) -> int:
             settings = replace(settings, sv_penalty=args.sv_penalty, sv_floor=args.sv_floor)
         except ValueError as exc:
             _usage_error(parser, f'--sv-penalty/--sv-floor: {exc}')
+    if args.bag or args.val_bag:
+        return _main_bags(parser, args, settings)
+    if args.data is None:
+        _usage_error(parser, 'give --data DIR (.npz files) or --bag DIR ... --val-bag DIR (rosbag2)')
     variant = args.variant or ('paper' if args.preset == 'paper' else 'identifying')
     names = list(DATA_VARIANTS[variant]) + [VALIDATION]
     try:
@@ -204,6 +227,45 @@ def main(argv: list[str] | None = None) -> int:
         DEFAULT_MODEL.parent.mkdir(parents=True, exist_ok=True)
         shutil.copyfile(ckpt_path, DEFAULT_MODEL)
         DEFAULT_MODEL.with_suffix('.json').write_text(json.dumps(metrics, indent=2))
+        print(f'installed as {DEFAULT_MODEL}')
+    return 0
+
+
+def _main_bags(parser: argparse.ArgumentParser, args: argparse.Namespace, settings) -> int:
+    """The ``--bag`` path: arguments checked, then :func:`~soft_gripper_sdre.tools.train_bags.train_from_bags`."""
+    from soft_gripper_sdre.analysis.bag_dataset import BagDataError
+    from soft_gripper_sdre.tools.train_bags import train_from_bags
+
+    if args.data is not None:
+        _usage_error(parser, '--data and --bag exclude each other')
+    if not args.bag or not args.val_bag:
+        _usage_error(parser, '--bag needs --val-bag (the validation recording) and the other way round')
+    if args.variant is not None or args.jitter > 0:
+        _usage_error(parser, '--variant and --jitter apply to --data only')
+    if args.meas_std is not None and not (np.isfinite(args.meas_std) and 0 <= args.meas_std < 0.01):
+        _usage_error(parser, f'--meas-std must be in [0, 0.01) m, got {args.meas_std}')
+    if not (np.isfinite(args.min_duration) and args.min_duration > 0):
+        _usage_error(parser, f'--min-duration must be > 0 s, got {args.min_duration}')
+    if args.finger is not None and not 0 <= args.finger < 4:
+        _usage_error(parser, f'--finger must be in [0, 3], got {args.finger}')
+    if args.jerk_psd is not None and not (np.isfinite(args.jerk_psd) and args.jerk_psd > 0):
+        _usage_error(parser, f'--jerk-psd must be > 0, got {args.jerk_psd}')
+    if args.out.exists() and not args.out.is_dir():
+        _usage_error(parser, f'--out {args.out} exists and is not a directory')
+    try:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        _usage_error(parser, f'cannot create the parent of {args.out}: {exc.strerror}')
+    try:
+        train_from_bags(args.bag, args.val_bag, args.out, settings, tips_topic=args.tips_topic,
+                        torques_topic=args.torques_topic, min_duration=args.min_duration, finger=args.finger,
+                        meas_std=args.meas_std, jerk_psd=args.jerk_psd)
+    except BagDataError as exc:
+        _usage_error(parser, str(exc))
+    if args.install:
+        DEFAULT_MODEL.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(args.out / 'model.pt', DEFAULT_MODEL)
+        shutil.copyfile(args.out / 'metrics.json', DEFAULT_MODEL.with_suffix('.json'))
         print(f'installed as {DEFAULT_MODEL}')
     return 0
 

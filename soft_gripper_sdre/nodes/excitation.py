@@ -1,0 +1,230 @@
+"""The excitation node: plays identification torques on ``torque_commands`` and exits when done.
+
+Plays ``signals`` in order (the paper's u1..u4, the identifying x1, x2, or multisines and chirps
+from the YAML ``spec_file``, :mod:`soft_gripper_sdre.sim.excitation`), each after ``settle_time``
+of zero torque, on ``finger`` or on every finger, clipped to ``torque_limit``; a recorder running
+meanwhile captures ``tip_positions`` and ``torque_commands`` for ``tools.train --bag``. Plan time
+starts at the first ``tip_positions`` message, so the recording holds the settle phase.
+
+Timing (``timing``):
+
+* ``tips`` (default): each tip message is answered with the torque for its stamp, stamped with
+  it, as the controller answers estimates: in lockstep with the simulator node (which steps when
+  the command for its current period arrives), and at the sensor's rate with a realtime driver.
+* ``timer``: a timer on the node's clock publishes the torque for the clock's time every
+  ``period``, stamped with that time, for drivers that want commands at their own rate.
+
+Stops: at the end of the plan, on shutdown (SIGINT/SIGTERM) and on a fault, zero torque is
+published before the node exits (status 0 at the end of the plan, 1 after a fault). Faults: no
+tips for ``tips_timeout`` of wall time (or none at all within ``startup_timeout``), tip stamps
+jumping back by more than ``reset_on_jump`` (a restarted driver), and an excited tip moving more
+than ``max_excursion`` from where it was at the start. Malformed or old tip messages are
+counted, warned about (throttled) and not answered. Counters and the signal being played go to
+/diagnostics.
+"""
+from __future__ import annotations
+
+import time
+
+from geometry_msgs.msg import PoseArray
+import numpy as np
+from rclpy.duration import Duration
+from rclpy.node import Node
+from sensor_msgs.msg import JointState
+
+from soft_gripper_sdre.nodes import cdr, conversions as cv
+from soft_gripper_sdre.nodes.common import ERROR, OK, Diagnostics, run
+from soft_gripper_sdre.nodes.params import Param, ParameterError, declare_all
+from soft_gripper_sdre.nodes.topics import LOOP_QOS, NEWEST_QOS, TIP_POSITIONS, TORQUE_COMMANDS
+from soft_gripper_sdre.sim.excitation import ExcitationPlan, SignalSpecError, resolve_signals
+from soft_gripper_sdre.sim.signals import SIGNALS
+
+PARAMS = (
+    Param('signals', ['u1'], f'signals to play in order, each after the settle phase: built-in '
+          f'({", ".join(SIGNALS)}) or named in spec_file', read_only=True),
+    Param('spec_file', '', 'YAML file of user-defined multisines and chirps (see '
+          'soft_gripper_sdre/sim/excitation.py); empty = built-in signals only', read_only=True),
+    Param('duration', 0.0, 'length of each signal (0 = its own: 10 s for the built-in ones)', 's',
+          0.0, 3600.0, read_only=True),
+    Param('settle_time', 0.5, 'zero torque before each signal (the first one also gives the rest '
+          'pose and the noise level to training)', 's', 0.0, 600.0, read_only=True),
+    Param('finger', -1, 'the finger to excite (-1 = all); the others get zero torque', '', -1, 3,
+          read_only=True),
+    Param('n_fingers', 4, 'fingers in each tip_positions and torque_commands message', '', 1, 4,
+          read_only=True),
+    Param('torque_limit', 0.1, 'every torque is clipped to ±limit (0.1 N·m: the simulator\'s '
+          'actuator limit; the paper\'s signals peak at 0.0675)', 'N·m', 1e-6, 1.0, read_only=True),
+    Param('timing', 'tips', 'answer each tip message with the torque for its stamp, or publish on '
+          'a timer of the node\'s clock', choices=('tips', 'timer'), read_only=True),
+    Param('period', 0.001, 'timer timing: the command period', 's', 1e-4, 1.0, read_only=True),
+    Param('tips_timeout', 1.0, 'wall time without tip_positions after which the run stops as a fault',
+          's', 0.01, 600.0, read_only=True),
+    Param('startup_timeout', 60.0, 'wall time to wait for the first tip_positions message', 's',
+          0.1, 3600.0, read_only=True),
+    Param('reset_on_jump', 0.1, 'tip stamps jumping back by more than this (a restarted driver) '
+          'stop the run as a fault', 's', 1e-3, 1e6, read_only=True),
+    Param('stop_wait', 0.2, 'shutdown, tips timing: wall time to wait for one more tip message to '
+          'answer with zero torque (then zero goes out stamped with the newest tips)', 's', 0.0, 10.0,
+          read_only=True),
+    Param('max_excursion', 0.0, 'stop as a fault when an excited tip moves further than this from '
+          'its starting position (0 = off)', 'm', 0.0, 1.0, read_only=True),
+)
+
+
+class ExcitationNode(Node):
+    """Identification torques on ``torque_commands`` (see module doc)."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__('excitation', **kwargs)
+        p = declare_all(self, PARAMS)
+        self.p = p
+        try:
+            signals = resolve_signals(list(p['signals']), p['spec_file'] or None, p['duration'] or None)
+            self.plan = ExcitationPlan(signals, p['settle_time'], p['n_fingers'],
+                                       None if p['finger'] < 0 else p['finger'], p['torque_limit'])
+        except (SignalSpecError, ValueError) as exc:
+            raise ParameterError(str(exc)) from None
+        self.n = p['n_fingers']
+        self.done = False
+        self.exit_code = 0
+        self.start_ns: int | None = None        # stamp of the first tips: plan time 0 (tips timing)
+        self.clock_start_ns: int | None = None  # clock time of the first tick (timer timing)
+        self.last_ns = -1                       # newest accepted tip stamp
+        self.answered_ns = -1                   # stamp of the last command published
+        self.last_heard: float | None = None    # wall time of the newest accepted tips
+        self.rest: np.ndarray | None = None     # tips at the start, for max_excursion
+        self.stopping = False                   # shutdown: answer the next tips with zero
+        self.stopped = False                    # the final zero went out
+        self._deadline = time.monotonic() + p['startup_timeout']
+        self.cdr_tips = cdr.tips_codec(self.n)
+        self.cdr_cmd = cdr.torques_codec(self.n)
+        self.pub_cmd = self.create_publisher(JointState, TORQUE_COMMANDS, LOOP_QOS)
+        self.sub_tips = self.create_subscription(PoseArray, TIP_POSITIONS, self.on_tips, NEWEST_QOS, raw=True)
+        self.diag = Diagnostics(self)
+        cdr.watch(self.diag, self.cdr_tips)
+        self.diag.values.update(signal='waiting for tip_positions', plan_duration=f'{self.plan.duration:.3f}')
+        self._watchdog = self.create_timer(0.05, self._check_watchdog)
+        if p['timing'] == 'timer':
+            self._ticker = self.create_timer(p['period'], self._on_tick, clock=self.get_clock())
+        names = ', '.join(s.name for s in signals)
+        where = 'every finger' if p['finger'] < 0 else f'finger {p["finger"]}'
+        self.get_logger().info(
+            f'{names} on {where} of {self.n}, '
+            f'{p["settle_time"]:g} s settle before each, |u| <= {p["torque_limit"]:g} N·m, '
+            f'{self.plan.duration:g} s in all; {p["timing"]} timing')
+
+    # -- inputs ------------------------------------------------------------------------------
+    def on_tips(self, data: bytes) -> None:
+        if self.stopped:
+            return
+        try:
+            stamp, tips = self.cdr_tips.decode(data)
+        except cv.MessageError as exc:
+            self.diag.problem('bad_tips', f'rejected: {exc}')
+            return
+        if self.start_ns is None:
+            self.start_ns, self.rest = stamp, tips.copy()
+            self.get_logger().info(f'first tip_positions at t = {stamp / cv.NS:.4f} s: the plan starts')
+        elif stamp <= self.last_ns:
+            if stamp < self.last_ns - int(self.p['reset_on_jump'] * cv.NS):
+                self.fault(f'tip stamps jumped back from {self.last_ns / cv.NS:.4f} s to '
+                           f'{stamp / cv.NS:.4f} s (a restarted driver?)', stamp)
+            else:
+                self.diag.problem('old_tips', f'rejected: stamp {stamp} ns is not newer than {self.last_ns} ns')
+            return
+        self.last_ns, self.last_heard = stamp, time.monotonic()
+        self.diag.count('tips')
+        if self.stopping:
+            self.stop(stamp, 'stopped on shutdown')
+            return
+        if self.p['max_excursion'] > 0 and self._excursion(tips) > self.p['max_excursion']:
+            self.fault(f'a tip moved {1e3 * self._excursion(tips):.2f} mm from its start, more than '
+                       f'max_excursion ({1e3 * self.p["max_excursion"]:g} mm)', stamp)
+            return
+        if self.p['timing'] == 'tips':
+            self._play(stamp, (stamp - self.start_ns) / cv.NS)
+
+    def _on_tick(self) -> None:
+        if self.stopped or self.start_ns is None:
+            return
+        now = self.get_clock().now().nanoseconds
+        if self.clock_start_ns is None:
+            self.clock_start_ns = now
+        if now <= self.answered_ns:
+            return
+        self._play(now, (now - self.clock_start_ns) / cv.NS)
+
+    def _check_watchdog(self) -> None:
+        if self.stopped:
+            return
+        now = time.monotonic()
+        if self.last_heard is None and now > self._deadline:
+            self.fault(f'no tip_positions within startup_timeout ({self.p["startup_timeout"]:g} s)',
+                       max(self.last_ns, 0))
+        elif self.last_heard is not None and now - self.last_heard > self.p['tips_timeout']:
+            self.fault(f'no tip_positions for {self.p["tips_timeout"]:g} s of wall time since '
+                       f't = {self.last_ns / cv.NS:.4f} s', self.last_ns)
+
+    def _excursion(self, tips: np.ndarray) -> float:
+        """The largest distance of an excited tip from its starting position [m] (NaN counts as far)."""
+        rows = slice(None) if self.plan.finger is None else [self.plan.finger]
+        d = np.linalg.norm(tips[rows] - self.rest[rows], axis=-1)
+        return float(np.inf if not np.all(np.isfinite(d)) else d.max())
+
+    # -- outputs -----------------------------------------------------------------------------
+    def _play(self, stamp: int, t: float) -> None:
+        """Publish the plan's torque for plan time ``t`` stamped ``stamp``, or stop at its end."""
+        if self.plan.finished(t):
+            self.stop(stamp, f'finished: {self.plan.duration:g} s played')
+            return
+        seg = self.plan.segment_at(t)
+        self.diag.values['signal'] = seg.signal.name if seg is not None else 'settle'
+        self.diag.values['plan_time'] = f'{t:.3f}'
+        self._publish(stamp, self.plan.torques(t))
+        self.diag.good('commands', 'playing')
+
+    def _publish(self, stamp: int, u: np.ndarray) -> None:
+        self.pub_cmd.publish(self.cdr_cmd.encode(stamp, u))
+        self.answered_ns = stamp
+
+    def stop(self, stamp: int, why: str, level: int = OK) -> None:
+        """Publish zero torque stamped ``stamp`` and end the run (the node exits)."""
+        if self.stopped:
+            return
+        self._publish(stamp, np.zeros((self.n, 2)))
+        self.stopped = self.done = True
+        self.diag.values['signal'] = 'stopped'
+        self.diag.set_status(level, why)
+        if level == OK:
+            self.get_logger().info(f'{why}; zero torque sent at t = {stamp / cv.NS:.4f} s')
+
+    def fault(self, why: str, stamp: int) -> None:
+        """Stop with zero torque and exit status 1, reporting ``why`` (ERROR)."""
+        self.exit_code = 1
+        self.get_logger().error(f'{why}: stopping with zero torque')
+        self.stop(stamp, why, ERROR)
+
+    def close(self) -> None:
+        """The shutdown stop (run() calls this on SIGINT/SIGTERM and after the end): unless the
+        final zero went out, answer the next tips with zero (tips timing; waiting at most
+        ``stop_wait``) or publish it on the clock now, and wait until it is delivered."""
+        if self.stopped or not self.context.ok():
+            return
+        if self.p['timing'] == 'timer' and self.start_ns is not None:
+            self.stop(max(self.get_clock().now().nanoseconds, self.answered_ns + 1), 'stopped on shutdown')
+        elif self.executor is not None and self.start_ns is not None:
+            self.stopping = True
+            deadline = time.monotonic() + self.p['stop_wait']
+            while not self.stopped and time.monotonic() < deadline:
+                self.executor.spin_once(timeout_sec=0.02)
+        if not self.stopped:          # no tips came: zero for the newest stamp heard
+            self.stop(max(self.last_ns, 0), 'stopped on shutdown')
+        self.pub_cmd.wait_for_all_acked(Duration(seconds=1))
+
+
+def main(args=None) -> int:
+    return run(ExcitationNode, args)
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

@@ -1,0 +1,201 @@
+"""Training from rosbag2 recordings: the ``--bag`` path of ``tools.train``.
+
+    python -m soft_gripper_sdre.tools.train --bag runs/bags/train --val-bag runs/bags/val/u4 --out runs/train_bags
+
+Every ``--bag`` (a rosbag2 directory, or a directory of them) is read and checked first
+(:mod:`soft_gripper_sdre.analysis.bag_dataset`); a bad one ends the tool with exit status 2 and a
+message naming it before anything is written. Each excited finger of each bag gives training
+samples: KF + RTS states and acceleration labels on the tip stamps (or on a uniform grid when the
+stamps jitter), the command held onto them, the state translated by that finger's rest pose.
+The checkpoint's ``data`` records the provenance: every bag with its topics, types, message
+counts, rates, jitter, gaps, durations, fingers, rest poses, noise levels and sample counts.
+
+The outputs are written to a temporary directory beside ``--out`` and moved into it only when
+all are complete, so a failed run leaves nothing half-written there. Validation R² is scored
+against the validation bags' own KF + RTS labels (a recording has no true acceleration).
+"""
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+import shutil
+import tempfile
+
+import numpy as np
+from tqdm import tqdm
+
+from soft_gripper_sdre import FINGER_NAMES
+from soft_gripper_sdre.analysis.bag_dataset import (DEFAULT_GAP_PERIODS, BagDataError, FingerSamples, Recording,
+                                                    excited_fingers, label_finger, read_recording,
+                                                    settle_estimates, tip_stretches)
+from soft_gripper_sdre.analysis.metrics import r2_score
+from soft_gripper_sdre.analysis.plots import plot_accel, plot_loss
+from soft_gripper_sdre.learning import derivatives
+from soft_gripper_sdre.learning.model import SDCModel, TrainSettings, fingerprint, save_checkpoint, train
+
+#: samples of the first stretch the jerk intensity is tuned on (as the .npz path)
+TUNE_SAMPLES = 2000
+JERK_GRID = np.logspace(1, 7, 7)
+OUTPUTS = ('model.pt', 'metrics.json', 'fig2_loss.png', 'fig3_accel_val.png')
+
+
+def expand_bag_paths(paths: list[Path]) -> list[Path]:
+    """Each path as given if it is a rosbag2 directory (or anything else: reading it will say
+    what is wrong), or the bags directly inside it, in name order."""
+    out = []
+    for path in paths:
+        path = Path(path)
+        inner = sorted(p for p in path.iterdir() if (p / 'metadata.yaml').is_file()) \
+            if path.is_dir() and not (path / 'metadata.yaml').is_file() else []
+        out.extend(inner or [path])
+    return out
+
+
+def load_bags(paths: list[Path], tips_topic: str, torques_topic: str, min_duration: float,
+              finger: int | None) -> list[tuple[Recording, list[int]]]:
+    """Every bag read and checked, with the fingers to learn from (``finger``, or every excited one).
+
+    Raises:
+        BagDataError: a bag cannot be used (named), or no finger of it was excited.
+    """
+    loaded = []
+    for path in expand_bag_paths(paths):
+        rec = read_recording(path, tips_topic, torques_topic, min_duration)
+        excited = excited_fingers(rec)
+        if finger is not None:
+            if finger >= rec.n_fingers:
+                raise BagDataError(f'bag {path}: --finger {finger}, but {rec.tips_topic} holds '
+                                   f'{rec.n_fingers} finger(s)')
+            if finger not in excited:
+                raise BagDataError(f'bag {path}: finger {finger} received only zero torque')
+            excited = [finger]
+        if not excited:
+            raise BagDataError(f'bag {path}: every torque in {rec.torques_topic} is zero (nothing was excited)')
+        loaded.append((rec, excited))
+    return loaded
+
+
+def tune_jerk(rec: Recording, finger: int, meas_std: float) -> float:
+    """The KF/RTS jerk intensity tuned by likelihood on the start of ``rec``'s first stretch."""
+    stretch = tip_stretches(rec)[0]
+    ns = rec.tip_ns[stretch][:TUNE_SAMPLES]
+    t = (ns - ns[0]) / 1e9
+    xy = rec.tips[stretch, finger, :2][:TUNE_SAMPLES]
+    if derivatives.is_uniform(t):
+        return derivatives.tune_jerk_psd(t, xy, meas_std, JERK_GRID)
+    return derivatives.tune_jerk_psd_irregular(t, xy, meas_std, JERK_GRID)
+
+
+def _plain(value):
+    """``value`` with numpy scalars and arrays as Python numbers and lists (a checkpoint holds
+    plain data only)."""
+    if isinstance(value, dict):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
+
+
+def label_bags(loaded: list[tuple[Recording, list[int]]], jerk: float, meas_std: float | None,
+               gap_periods: float = DEFAULT_GAP_PERIODS) -> tuple[list[FingerSamples], list[dict], np.ndarray]:
+    """Samples of every (bag, finger), the provenance of each bag, and the first rest tip (3,).
+
+    ``meas_std`` None: each finger's noise level from its settle phase (0 when it has none)."""
+    samples, provenance, first_rest = [], [], None
+    for rec, fingers in loaded:
+        info = rec.describe()
+        info['fingers'] = {}
+        for f in fingers:
+            rest, sigma, n_settle = settle_estimates(rec, f)
+            used = meas_std if meas_std is not None else (sigma or 0.0)
+            got = label_finger(rec, f, jerk, used, rest, gap_periods)
+            samples += got
+            first_rest = rest if first_rest is None else first_rest
+            info['fingers'][FINGER_NAMES[f]] = {
+                'rest_tip': rest, 'settle_samples': n_settle, 'noise_std_settle': sigma,
+                'noise_std_used': used, 'stretches': [s.info for s in got],
+                'samples': int(sum(len(s.t) for s in got))}
+        provenance.append(info)
+    return samples, _plain(provenance), first_rest
+
+
+def _stack(samples: list[FingerSamples]) -> tuple[np.ndarray, ...]:
+    return tuple(np.concatenate([getattr(s, k) for s in samples]) for k in ('t', 'x', 'u', 'acc'))
+
+
+def train_from_bags(train_paths: list[Path], val_paths: list[Path], out: Path, settings: TrainSettings, *,
+                    tips_topic: str, torques_topic: str, min_duration: float, finger: int | None,
+                    meas_std: float | None, jerk_psd: float | None) -> dict:
+    """Read, label, train, validate and write (module doc); returns the metrics.
+
+    Raises:
+        BagDataError: a bag cannot be used (before anything is written).
+    """
+    train_set = load_bags(train_paths, tips_topic, torques_topic, min_duration, finger)
+    val_set = load_bags(val_paths, tips_topic, torques_topic, min_duration, finger)
+    rec0, fingers0 = train_set[0]
+    rest0, sigma0, _ = settle_estimates(rec0, fingers0[0])
+    jerk = jerk_psd if jerk_psd is not None else tune_jerk(
+        rec0, fingers0[0], meas_std if meas_std is not None else (sigma0 or 0.0))
+    print(f'KF/RTS white-jerk intensity q = {jerk:g} (m/s³)²/Hz')
+    samples, provenance, rest_tip = label_bags(tqdm(train_set, desc='bags: KF + RTS', unit='bag'), jerk, meas_std)
+    val_samples, val_provenance, _ = label_bags(val_set, jerk, meas_std)
+    if not samples or not val_samples:
+        raise BagDataError('no training samples' if not samples else 'no validation samples')
+    _, x, u, acc = _stack(samples)
+    t_val, x_val, u_val, acc_val = _stack(val_samples)
+
+    bar = tqdm(total=settings.epochs, desc=f'train ({settings.preset})', unit='epoch')
+    result = train(x, u, acc, x_val, u_val, acc_val, settings,
+                   lambda epoch, tl, vl: (bar.update(1), bar.set_postfix(train=f'{tl:.3g}', val=f'{vl:.3g}')))
+    bar.close()
+
+    from soft_gripper_sdre.tools.train import poly_features
+    data_info = {'source': 'rosbag2', 'topics': {'tips': tips_topic, 'torques': torques_topic},
+                 'bags': provenance, 'validation_bags': val_provenance,
+                 'train_samples': int(len(x)), 'validation_samples': int(len(x_val)),
+                 'fingerprint': fingerprint(x, u, acc), 'jerk_psd': float(jerk),
+                 'noise_std': float(meas_std if meas_std is not None else (sigma0 or 0.0))}
+    dt = float(np.median(np.diff(rec0.tip_ns)) / 1e9)
+    staging = Path(tempfile.mkdtemp(prefix=f'.{out.name}.partial-', dir=out.parent))
+    try:
+        ckpt = save_checkpoint(staging / 'model.pt', result, rest_tip=rest_tip, dt=dt, settings=settings,
+                               data=data_info)
+        model = SDCModel(ckpt)
+        pred = model.xdot(x_val, u_val)[:, 2:]
+        r2 = r2_score(acc_val, pred).tolist()
+        coef, *_ = np.linalg.lstsq(poly_features(x, u), acc, rcond=None)
+        r2_ls = r2_score(acc_val, poly_features(x_val, u_val) @ coef).tolist()
+        G2 = model.AG(np.zeros(4))[1][0, 2:, :]
+        metrics = {
+            'source': 'rosbag2', 'preset': settings.preset, 'seed': settings.seed,
+            'epochs_run': len(result.train_loss), 'best_epoch': result.best_epoch,
+            'train_seconds': round(result.seconds, 1),
+            'val_r2_labels': {'X': r2[0], 'Y': r2[1]}, 'val_r2_ls_baseline': {'X': r2_ls[0], 'Y': r2_ls[1]},
+            'G2_at_origin': G2.tolist(),
+            'G2_column_angles_deg': [float(np.degrees(np.arctan2(G2[1, j], G2[0, j]))) for j in range(2)],
+            'final_train_loss': result.train_loss[-1], 'best_val_loss': min(result.val_loss),
+            'train_samples': int(len(x)), 'validation_samples': int(len(x_val)),
+        }
+        save_checkpoint(ckpt, result, rest_tip=rest_tip, dt=dt, settings=settings, data=data_info, metrics=metrics)
+        (staging / 'metrics.json').write_text(json.dumps(metrics, indent=2))
+        plot_loss(result.train_loss, result.val_loss, staging / 'fig2_loss.png',
+                  title=f'Training loss from bags, {settings.preset} preset')
+        plot_accel(t_val, acc_val, pred, staging / 'fig3_accel_val.png', r2=r2,
+                   title='validation bags: predicted (dashed) vs KF + RTS labels (solid)')
+        out.mkdir(parents=True, exist_ok=True)
+        for name in OUTPUTS:
+            os.replace(staging / name, out / name)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    print(f'validation R² vs the KF + RTS labels: X {r2[0]:.3f}  Y {r2[1]:.3f}   '
+          f'(3rd-order least squares: X {r2_ls[0]:.3f}  Y {r2_ls[1]:.3f})')
+    print(f'G2 at the origin [m/s² per N·m]: {np.round(G2, 1).tolist()}')
+    print(f'training: {len(result.train_loss)} epochs on {len(x)} samples from {len(provenance)} bag(s) '
+          f'in {result.seconds:.1f} s; wrote {out}')
+    return metrics
