@@ -74,7 +74,7 @@ BAD_BAGS = {
     'NaN tips': (dict(tips=_nan_tips()), '/tip_positions holds NaN or Inf in 1 message(s), the first stamped 0.700000 s'),
     'Inf torques': (dict(torques=_nan_torques()), '/torque_commands holds NaN or Inf in 1 message(s)'),
     'torques of other joints': (dict(torques=torque_messages(STAMPS, TORQUES, names=['left', 'right'])),
-                                "names ['left', 'right'] with 2 efforts; expected the 2 joints"),
+                                "names ['left', 'right']; expected '<finger>/ax0' and '<finger>/ax1' for each of the 1"),
     'poses per message change': (dict(tips=_changing_poses()), '/tip_positions message 50 holds 2 poses, the first held 1'),
     'nothing excited': (dict(torques=torque_messages(STAMPS, np.zeros_like(TORQUES))),
                         'every torque in /torque_commands is zero'),
@@ -94,6 +94,20 @@ def test_a_bad_bag_is_refused_naming_the_problem_and_nothing_is_written(case, tm
         assert exit_info.value.code == 2, err
         assert f'error: bag {bag}' in err and expected in err, err
         assert not out.exists() and sorted(p.name for p in tmp_path.iterdir()) == ['bag', 'good']
+
+
+def test_fingers_are_named_by_the_torque_names_in_the_order_they_first_appear(tmp_path):
+    tips = np.zeros((N, 2, 3))
+    tips[:, 1, 1] = 1e-3                               # pose 1 is the second named finger
+    torques = np.stack([np.full((N, 2), 0.01), np.full((N, 2), -0.02)], axis=1)
+    msgs = torque_messages(STAMPS, torques, names=['left/ax0', 'left/ax1', 'right/ax0', 'right/ax1'])
+    for _, msg in msgs[1:]:                            # later messages list the joints in another order
+        msg.name = ['right/ax1', 'left/ax0', 'right/ax0', 'left/ax1']
+        msg.effort = np.array([-0.02, 0.01, -0.02, 0.01])
+    rec = read_recording(write_bag(tmp_path / 'bag', {'/tip_positions': tips_messages(STAMPS, tips),
+                                                      '/torque_commands': msgs}))
+    assert rec.finger_names == ('left', 'right')
+    assert np.all(rec.torques[:, 0] == 0.01) and np.all(rec.torques[:, 1] == -0.02)
 
 
 def test_a_path_that_is_no_bag_is_refused(tmp_path, capsys):

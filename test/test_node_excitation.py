@@ -19,7 +19,7 @@ REST = np.array([[0.0, -0.0105, 0.1076]])
 
 
 def start(ctx, executor, **params):
-    node = ExcitationNode(context=ctx, parameter_overrides=overrides(n_fingers=1, **params))
+    node = ExcitationNode(context=ctx, parameter_overrides=overrides(finger_names=['finger_0'], **params))
     probe = Probe(ctx)
     pub = probe.create_publisher(PoseArray, TIP_POSITIONS, LOOP_QOS)
     probe.listen(JointState, TORQUE_COMMANDS, deep(LOOP_QOS))
@@ -130,10 +130,10 @@ def test_timer_timing_publishes_on_the_clock_and_stops_with_zero():
 @pytest.mark.parametrize('params, message', [
     (dict(signals=['u9']), "unknown signal 'u9'"),
     (dict(spec_file='/no/such.yaml', signals=['mine']), 'signal file /no/such.yaml does not exist'),
-    (dict(finger=2), 'finger must be in [0, 0]'),
+    (dict(finger=2), "parameter 'finger': 2 is not a finger of finger_names ['finger_0']"),
 ])
 def test_bad_parameters_stop_the_node_at_start_up(params, message):
     with ros_context() as (ctx, _executor):
         with pytest.raises(ParameterError) as info:
-            ExcitationNode(context=ctx, parameter_overrides=overrides(n_fingers=1, **params))
+            ExcitationNode(context=ctx, parameter_overrides=overrides(finger_names=['finger_0'], **params))
         assert message in str(info.value)

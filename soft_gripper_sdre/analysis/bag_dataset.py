@@ -57,6 +57,7 @@ class Recording:
     tips: np.ndarray             # (T, n, 3) [m]
     cmd_ns: np.ndarray           # (C,) int64, strictly increasing
     torques: np.ndarray          # (C, n, 2) [N·m]
+    finger_names: tuple[str, ...] = ()   # as the torque names give them, in tip order
 
     @property
     def n_fingers(self) -> int:
@@ -132,8 +133,22 @@ def _tips(path: Path, topic: str, messages: list) -> tuple[np.ndarray, np.ndarra
     return np.asarray(stamps, dtype=np.int64), np.asarray(values, dtype=float)
 
 
+def torque_joint_order(names: list[str]) -> list[str]:
+    """The joints of a torque message in finger order: ``<finger>/ax0``, ``<finger>/ax1`` for each
+    finger in the order its names first appear (the order of the finger names the graph was
+    given, as pose i of the tips is finger i); [] when the names are not of that form."""
+    fingers = list(dict.fromkeys(name.rsplit('/', 1)[0] for name in names))
+    expected = [f'{finger}/ax{a}' for finger in fingers for a in range(2)]
+    return expected if sorted(names) == sorted(expected) else []
+
+
 def _torques(path: Path, topic: str, messages: list, n: int) -> tuple[np.ndarray, np.ndarray]:
-    expected = [f'{FINGER_NAMES[i]}/ax{a}' for i in range(n) for a in range(2)]
+    first = list(messages[0][1].name)
+    expected = torque_joint_order(first)
+    if len(expected) != 2 * n:
+        raise BagDataError(f'bag {path}: {topic} message 0 names {first[:8]}; expected '
+                           f"'<finger>/ax0' and '<finger>/ax1' for each of the {n} finger(s) in "
+                           f'tip_positions (e.g. {FINGER_NAMES[0]}/ax0)')
     stamps, values = [], []
     for i, (_, msg) in enumerate(messages):
         names = list(msg.name)
@@ -186,7 +201,8 @@ def read_recording(path: str | Path, tips_topic: str = TIP_POSITIONS, torques_to
         raise BagDataError(f'bag {path}: too short: {int(inside.sum())} tips over {span:.3f} s while '
                            f'commands were given ({cmd_ns[0] / NS:.3f} to {cmd_ns[-1] / NS:.3f} s); at '
                            f'least {MIN_SAMPLES} tips over {min_duration:g} s needed')
-    return Recording(path, tips_name, torques_name, tip_ns, tips, cmd_ns, torques)
+    names = tuple(j.rsplit('/', 1)[0] for j in torque_joint_order(list(cmd_msgs[0][1].name))[::2])
+    return Recording(path, tips_name, torques_name, tip_ns, tips, cmd_ns, torques, names)
 
 
 # -- from a recording to samples --------------------------------------------------------------
@@ -259,7 +275,7 @@ def label_finger(rec: Recording, finger: int, jerk_psd: float, meas_std: float, 
             continue
         x = np.hstack([pos - rest_tip[:2], vel])
         out.append(FingerSamples(
-            f'{rec.path.name}/{FINGER_NAMES[finger]}#{k}', grid_ns[keep] / NS, x[keep], u[keep], acc[keep],
+            f'{rec.path.name}/{rec.finger_names[finger]}#{k}', grid_ns[keep] / NS, x[keep], u[keep], acc[keep],
             {'resampled': resampled, 'samples': int(keep.sum()), 'left_out': int((~keep).sum()),
              'span_s': [float(grid_ns[keep][0] / NS), float(grid_ns[keep][-1] / NS)]}))
     return out

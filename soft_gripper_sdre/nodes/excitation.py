@@ -34,7 +34,7 @@ from sensor_msgs.msg import JointState
 
 from soft_gripper_sdre.nodes import cdr, conversions as cv
 from soft_gripper_sdre.nodes.common import ERROR, OK, Diagnostics, run
-from soft_gripper_sdre.nodes.params import Param, ParameterError, declare_all
+from soft_gripper_sdre.nodes.params import Param, ParameterError, declare_all, finger_names_param
 from soft_gripper_sdre.nodes.topics import LOOP_QOS, NEWEST_QOS, TIP_POSITIONS, TORQUE_COMMANDS
 from soft_gripper_sdre.sim.excitation import ExcitationPlan, SignalSpecError, resolve_signals
 from soft_gripper_sdre.sim.signals import SIGNALS
@@ -48,10 +48,10 @@ PARAMS = (
           0.0, 3600.0, read_only=True),
     Param('settle_time', 0.5, 'zero torque before each signal (the first one also gives the rest '
           'pose and the noise level to training)', 's', 0.0, 600.0, read_only=True),
-    Param('finger', -1, 'the finger to excite (-1 = all); the others get zero torque', '', -1, 3,
-          read_only=True),
-    Param('n_fingers', 4, 'fingers in each tip_positions and torque_commands message', '', 1, 4,
-          read_only=True),
+    finger_names_param('the fingers: pose i of tip_positions is finger i; the torque_commands names '
+                       'are <finger>/ax0, <finger>/ax1'),
+    Param('finger', -1, 'the finger to excite, an index into finger_names (-1 = all); the others get '
+          'zero torque', '', -1, 3, read_only=True),
     Param('torque_limit', 0.1, 'every torque is clipped to ±limit (0.1 N·m: the simulator\'s '
           'actuator limit; the paper\'s signals peak at 0.0675)', 'N·m', 1e-6, 1.0, read_only=True),
     Param('timing', 'tips', 'answer each tip message with the torque for its stamp, or publish on '
@@ -78,13 +78,17 @@ class ExcitationNode(Node):
         super().__init__('excitation', **kwargs)
         p = declare_all(self, PARAMS)
         self.p = p
+        self.names = tuple(p['finger_names'])
+        self.n = len(self.names)
+        if p['finger'] >= self.n:
+            raise ParameterError(f"parameter 'finger': {p['finger']} is not a finger of finger_names "
+                                 f'{list(self.names)} (indices 0 to {self.n - 1}, or -1 for all)')
         try:
             signals = resolve_signals(list(p['signals']), p['spec_file'] or None, p['duration'] or None)
-            self.plan = ExcitationPlan(signals, p['settle_time'], p['n_fingers'],
+            self.plan = ExcitationPlan(signals, p['settle_time'], self.n,
                                        None if p['finger'] < 0 else p['finger'], p['torque_limit'])
         except (SignalSpecError, ValueError) as exc:
             raise ParameterError(str(exc)) from None
-        self.n = p['n_fingers']
         self.done = False
         self.exit_code = 0
         self.start_ns: int | None = None        # stamp of the first tips: plan time 0 (tips timing)
@@ -96,8 +100,8 @@ class ExcitationNode(Node):
         self.stopping = False                   # shutdown: answer the next tips with zero
         self.stopped = False                    # the final zero went out
         self._deadline = time.monotonic() + p['startup_timeout']
-        self.cdr_tips = cdr.tips_codec(self.n)
-        self.cdr_cmd = cdr.torques_codec(self.n)
+        self.cdr_tips = cdr.tips_codec(self.names)
+        self.cdr_cmd = cdr.torques_codec(self.names)
         self.pub_cmd = self.create_publisher(JointState, TORQUE_COMMANDS, LOOP_QOS)
         self.sub_tips = self.create_subscription(PoseArray, TIP_POSITIONS, self.on_tips, NEWEST_QOS, raw=True)
         self.diag = Diagnostics(self)
@@ -107,7 +111,7 @@ class ExcitationNode(Node):
         if p['timing'] == 'timer':
             self._ticker = self.create_timer(p['period'], self._on_tick, clock=self.get_clock())
         names = ', '.join(s.name for s in signals)
-        where = 'every finger' if p['finger'] < 0 else f'finger {p["finger"]}'
+        where = 'every finger' if p['finger'] < 0 else self.names[p['finger']]
         self.get_logger().info(
             f'{names} on {where} of {self.n}, '
             f'{p["settle_time"]:g} s settle before each, |u| <= {p["torque_limit"]:g} N·m, '

@@ -23,6 +23,7 @@ import shutil
 import sys
 import time
 
+from soft_gripper_sdre import FINGER_NAMES
 from soft_gripper_sdre.nodes.graph import NodeSpec, default_params_file
 from soft_gripper_sdre.sim.excitation import SignalSpecError, resolve_signals
 from soft_gripper_sdre.tools.procs import DiagnosticsMonitor, Graph, ros_env
@@ -89,14 +90,15 @@ def record_run(out: Path, signals: list[str], a: argparse.Namespace, seed: int, 
         RuntimeError: a node failed, the graph did not connect or the run timed out (no bag is left).
     """
     bag, logs = out / signals[0], out / 'logs' / signals[0]
-    n_fingers = 1 if a.scene == 'finger' else 4
+    names = [FINGER_NAMES[0]] if a.scene == 'finger' else list(FINGER_NAMES)
     excitation = {'signals': signals, 'settle_time': a.settle, 'torque_limit': a.torque_limit,
-                  'n_fingers': n_fingers, 'finger': a.finger}
+                  'finger_names': names, 'finger': a.finger}
     if a.duration is not None:
         excitation['duration'] = a.duration
     if a.spec_file is not None:
         excitation['spec_file'] = str(a.spec_file.resolve())
-    simulator = {'scene': a.scene, 'noise_std': a.noise * 1e-3, 'seed': seed, 'min_tip_subscribers': 2}
+    simulator = {'scene': a.scene, 'noise_std': a.noise * 1e-3, 'seed': seed, 'min_tip_subscribers': 2,
+                 'finger_names': names, 'hand_fingers': list(range(len(names)))}
     if a.scene == 'hand':
         simulator['with_cube'] = False
     monitor = DiagnosticsMonitor(env, f'excite_monitor_{signals[0]}')
