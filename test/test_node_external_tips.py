@@ -115,3 +115,27 @@ def test_a_jittery_120_hz_mocap_source_is_estimated_and_controlled_at_its_own_ra
         offline = [kf.x.copy()] + [kf.step(z[k], dt=(t[k] - t[k - 1]) / 1e9) for k in range(1, sent)]
         np.testing.assert_allclose(x, np.array(offline), rtol=1e-9, atol=1e-12)
         np.testing.assert_allclose(x[:, :, :2], z, atol=2e-4)
+
+
+@pytest.mark.parametrize('reliability, matched', [('reliable', False), ('best_effort', True)])
+def test_a_sensor_data_qos_driver_is_heard_only_with_a_best_effort_tips_subscription(reliability, matched):
+    """A driver publishing with the sensor-data QoS (best effort) offers less than a reliable reader
+    asks for, so DDS never connects them; tips_reliability:=best_effort does."""
+    from rclpy.qos import qos_profile_sensor_data
+    stamps, tips, _ = mocap_source()
+    with ros_context() as (ctx, executor):
+        est = EstimatorNode(context=ctx, parameter_overrides=overrides(
+            control_period=1.0 / RATE_HZ, tips_reliability=reliability))
+        probe = Probe(ctx, 'mocap')
+        tip_pub = probe.create_publisher(PoseArray, TIP_POSITIONS, qos_profile_sensor_data)
+        probe.listen(MultiDOFJointTrajectory, STATE_ESTIMATE, deep(LOOP_QOS))
+        for node in (est, probe):
+            executor.add_node(node)
+        # the probe's own estimate reader matches either way: discovery has run once it has
+        assert spin_until(executor, lambda: est.pub.get_subscription_count() > 0, 20.0)
+        assert spin_until(executor, lambda: tip_pub.get_subscription_count() > 0, 3.0) is matched
+        if matched:                  # paced: the reader keeps only the newest message
+            for k in range(20):
+                tip_pub.publish(cv.tips_to_msg(int(stamps[k]), tips[k]))
+                spin_until(executor, lambda: est.diag.counters['estimates'] > k, 2.0)
+            assert est.diag.counters['estimates'] >= 15      # best effort may lose one now and then

@@ -33,9 +33,11 @@ stamp step accepted since the previous status.
 """
 from __future__ import annotations
 
+import copy
 from geometry_msgs.msg import PoseArray
 import numpy as np
 from rclpy.node import Node
+from rclpy.qos import ReliabilityPolicy
 from trajectory_msgs.msg import MultiDOFJointTrajectory
 
 from soft_gripper_sdre.control.compiled import warm_up
@@ -62,6 +64,10 @@ PARAMS = (
           '(counted); a longer one is also reported as a dropout', 's', 1e-4, 1.0),
     Param('reset_on_jump', 0.1, 'a stamp jump larger than this (either direction) resets the filter; '
           'shorter gaps are predicted through, hence the bound', 's', 1e-3, 1.0),
+    Param('tips_reliability', 'reliable', "reliability of the tip_positions subscription: 'reliable' "
+          "(the simulator: lockstep loses no period) or 'best_effort', which also matches a driver "
+          'that publishes with the sensor-data QoS', choices=('reliable', 'best_effort'),
+          read_only=True),
 )
 
 #: a stamp step longer than this many nominal periods is a gap (±20 % jitter on each stamp gives
@@ -100,7 +106,9 @@ class EstimatorNode(Node):
         self.cdr_estimate = cdr.estimate_codec(self.names)
 
         self.pub = self.create_publisher(MultiDOFJointTrajectory, STATE_ESTIMATE, LOOP_QOS)
-        self.sub = self.create_subscription(PoseArray, TIP_POSITIONS, self.on_tips, NEWEST_QOS, raw=True)
+        tips_qos = copy.copy(NEWEST_QOS)
+        tips_qos.reliability = ReliabilityPolicy[p['tips_reliability'].upper()]
+        self.sub = self.create_subscription(PoseArray, TIP_POSITIONS, self.on_tips, tips_qos, raw=True)
         self.diag = Diagnostics(self)
         cdr.watch(self.diag, self.cdr_tips)
         self.diag.values['process_noise'] = p['process_noise']
