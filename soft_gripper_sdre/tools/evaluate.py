@@ -82,7 +82,7 @@ class RunSummary:
     cube_mm: float
     check_fail_pct: float
     compute_us: float
-    held_mm: float                # held-reference error, mean over the fingers
+    held_mm: float = float('nan')  # held-reference error, mean over the fingers
 
 
 def grasp_success(result, profile: GraspProfile) -> tuple[bool, float]:
@@ -278,7 +278,8 @@ def write_report(out: Path, summaries: list[RunSummary], figures: list[str], mod
             if s.trajectory != traj:
                 continue
             lines.append(f'| {LAW_SPECS[s.law][0]} | {_fmt(s.rmse_mm_grasp)} | {_fmt(s.max_mm_grasp, ".2f")} | '
-                         f'{_fmt(s.rmse_mm_worst)} | {_fmt(s.max_mm_all, ".2f")} | {_fmt(s.held_mm)} | '
+                         f'{_fmt(s.rmse_mm_worst)} | {_fmt(s.max_mm_all, ".2f")} | '
+                         f'{"n/a" if np.isnan(s.held_mm) else _fmt(s.held_mm)} | '
                          f'{s.effort_rms_nm:.4f} | '
                          f'{s.saturated_pct:.1f} % | {"yes" if s.grasp_success else "no"} | {s.cube_mm:.2f} | '
                          f'{s.check_fail_pct:.2f} % | {s.compute_us:.0f} |')
