@@ -22,9 +22,9 @@ def model():
 
 
 
-# the paper's law, the node's default, the baselines and Q(x): the ``law`` / ``state_weights`` parameters
+# the paper's law, the node's default, the baselines, computed torque and Q(x): the ``law`` / ``state_weights`` parameters
 @pytest.mark.parametrize('law, weights', [('sdre', False), ('sdre_ff', False), ('lqr', False), ('pd', False),
-                                          ('sdre', True)])
+                                          ('computed_torque', False), ('sdre', True)])
 def test_torques_match_the_offline_law_and_close_the_fingers(model, law, weights):
     rest = np.repeat(model.rest_tip[None, :2], 4, 0)
     offline = make_law(law, model, Weights(**DEFAULT_WEIGHTS), TORQUE_LIMIT, adaptive=weights)
