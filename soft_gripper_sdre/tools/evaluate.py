@@ -55,8 +55,9 @@ LAW_SPECS = {
     'oracle_ff': ('oracle SDRE + feedforward', 'oracle_ff', {}),
     'computed_torque': ('computed torque (learned model)', 'computed_torque', {}),
 }
-#: the laws whose PD gains tune_gains grids (LAW_SPECS keys), with the gains they ship with
-TUNABLE = {'pd': DEFAULT_PD, 'computed_torque': DEFAULT_CT}
+#: the laws whose PD gains tune_gains grids (LAW_SPECS keys): the gains they ship with, the grid's k_p and k_d
+TUNABLE = {'pd': (DEFAULT_PD, (3e3, 1e4, 1.5e4, 2e4), (40.0, 150.0)),
+           'computed_torque': (DEFAULT_CT, (5e3, 1e4, 1.5e4, 2e4), (40.0, 80.0, 120.0))}
 #: the grasp of the demo, and a faster one (30 mm in 0.5 s: peak 94 mm/s) that stresses the model
 TRAJECTORIES = {
     'grasp': (GraspProfile(others='open'), 6.0),
@@ -133,13 +134,15 @@ def run_law(key: str, trajectory: str, model: SDCModel, weights: Weights, durati
     return summary, res
 
 
-def tune_gains(model: SDCModel, weights: Weights, law: str = 'pd', kps=(3e3, 1e4, 1.5e4, 2e4),
-               kds=(40.0, 150.0), trajectory: str = 'grasp',
+def tune_gains(model: SDCModel, weights: Weights, law: str = 'pd', kps=None, kds=None, trajectory: str = 'grasp',
                duration: float | None = None) -> list[tuple[float, float, float]]:
-    """Grid over the PD gains (k_p, k_d) of ``law`` (a :data:`TUNABLE` key) on a trajectory:
-    [(kp, kd, mean grasp-finger RMSE mm)]; a run that diverged or saturated > 5 % of the steps = inf."""
+    """Grid over the PD gains (k_p, k_d) of ``law`` (a :data:`TUNABLE` key; None: its grid) on a
+    trajectory: [(kp, kd, mean grasp-finger RMSE mm)]; a run that diverged or saturated > 5 % of the
+    steps = inf."""
     if law not in TUNABLE:
         raise ValueError(f'law must be one of {tuple(TUNABLE)}, got {law!r}')
+    _, grid_kps, grid_kds = TUNABLE[law]
+    kps, kds = kps or grid_kps, kds or grid_kds
     rows = []
     for kp in kps:
         for kd in kds:
@@ -375,7 +378,7 @@ def main(argv=None) -> int:
     if args.tune:
         for kp, kd, rmse in tune_gains(model, weights, args.tune, duration=args.duration):
             print(f'{args.tune} kp={kp:g} kd={kd:g}: grasp-finger RMSE {rmse:.3f} mm')
-        print(f'shipped: {TUNABLE[args.tune]}')
+        print(f'shipped: {TUNABLE[args.tune][0]}')
         return 0
     args.out.mkdir(parents=True, exist_ok=True)
     from tqdm import tqdm
