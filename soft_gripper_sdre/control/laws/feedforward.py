@@ -162,7 +162,6 @@ class SdreFeedforwardLaw:
         z = self.io.frame.stacked(pos, vel, ref_pos, ref_vel, ref_acc)
         out = self.sdre.track_feedforward(self.network, self.io.origin, self.ff_at == 'ref', z)
         if self.integral is not None:
-            self.integral.apply(out, self.integral.torque(), z[:, 0:2] - z[:, 4:6],
-                                self.sdre.feedforward.state_finite)
+            self.integral.apply(out, z[:, 0:2] - z[:, 4:6], self.sdre.feedforward.state_finite)
         out.u = self.io.roll_off(out.u)
         return out

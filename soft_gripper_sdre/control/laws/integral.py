@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 
+from soft_gripper_sdre.control.compiled import integral_step, integral_update, kernel_array
 from soft_gripper_sdre.control.tracking import LawStep
 
 #: the default law's integral action: gain k_i [1/s³] (0 = off) and the error band [m] inside which
@@ -57,6 +58,8 @@ class IntegralAction:
         self.from_torque = g2 / self.gain                        # ξ = from_torque u_I
         self.decay = math.exp(-self.dt / INTEGRAL_LEAK_S)
         self.xi = np.zeros((int(n_fingers), 2))                  # ∫ (p_d − p) dt [m·s]
+        if self.u_max <= 0 or not math.isfinite(self.u_max):
+            raise ValueError(f'u_max must be finite and > 0, got {u_max!r}')
 
     def reset(self) -> None:
         self.xi[:] = 0.0
@@ -65,26 +68,17 @@ class IntegralAction:
         """(n, 2) u_I = k_i G₂(0)⁻¹ ξ [N·m] from the integral so far."""
         return self.xi @ self.to_torque.T
 
-    def apply(self, step: LawStep, u_i: np.ndarray, error: np.ndarray, finite: np.ndarray) -> None:
-        """Add ``u_i`` (:meth:`torque`) to ``step``'s unsaturated command where ``finite`` and saturate
-        it again (``u``, ``u_unsat``, ``saturated`` in place, before the roll-off); then
-        :meth:`update` with the tracking error ``error`` = p − p_d (n, 2) [m]."""
-        v = step.u_unsat + np.where(finite[:, None], u_i, 0.0)
-        step.u_unsat = v
-        step.saturated = np.abs(v) > self.u_max
-        step.u = np.clip(v, -self.u_max, self.u_max)
-        self.update(error, step.saturated, finite)
+    def apply(self, step: LawStep, error: np.ndarray, finite: np.ndarray) -> None:
+        """Add :meth:`torque` to ``step``'s unsaturated command where ``finite`` and saturate it
+        again (``u``, ``u_unsat``, ``saturated`` in place, before the roll-off); then :meth:`update`
+        with the tracking error ``error`` = p − p_d (n, 2) [m]. One compiled call."""
+        for name in ('u', 'u_unsat', 'saturated'):
+            setattr(step, name, kernel_array(getattr(step, name), np.bool_ if name == 'saturated' else np.float64))
+        integral_step(self.xi, self.to_torque, self.from_torque, self.dt, self.band, self.decay, self.u_max,
+                      kernel_array(error), kernel_array(finite, np.bool_), step.u_unsat, step.u, step.saturated)
 
     def update(self, error: np.ndarray, saturated: np.ndarray, finite: np.ndarray) -> None:
         """One step of ξ from the error p − p_d (n, 2) [m], the (n, 2) saturation of the command that
         used it, and which fingers' inputs were finite (the rules in the class docstring)."""
-        err = np.where(finite[:, None], error, 0.0)
-        inside = np.linalg.norm(err, axis=1) <= self.band
-        integrate = finite & inside & ~saturated.any(axis=1)
-        leak = finite & ~inside
-        self.xi[integrate] -= self.dt * err[integrate]          # ξ += Δt (p_d − p)
-        self.xi[leak] *= self.decay
-        u_i = self.torque()
-        over = (np.abs(u_i) > self.u_max).any(axis=1)
-        if over.any():                                            # |u_I| ≤ u_max
-            self.xi[over] = np.clip(u_i[over], -self.u_max, self.u_max) @ self.from_torque.T
+        integral_update(self.xi, self.to_torque, self.from_torque, self.dt, self.band, self.decay, self.u_max,
+                        kernel_array(error), kernel_array(saturated, np.bool_), kernel_array(finite, np.bool_))
