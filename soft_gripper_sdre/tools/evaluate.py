@@ -99,9 +99,11 @@ def grasp_success(result, profile: GraspProfile) -> tuple[bool, float]:
 
 
 def run_law(key: str, trajectory: str, model: SDCModel, weights: Weights, duration: float | None = None,
-            progress: bool = False, pd_gains: dict | None = None):
-    """One closed-loop run: (RunSummary, LoopResult)."""
+            progress: bool = False, pd_gains: dict | None = None, **law_options):
+    """One closed-loop run: (RunSummary, LoopResult). ``pd_gains`` go to a law that takes them,
+    ``law_options`` (e.g. ``integral_gain``) to make_law over the spec's."""
     _, name, opts = LAW_SPECS[key]
+    opts = dict(opts, **law_options)
     profile, dur = TRAJECTORIES[trajectory]
     dur = duration or dur
     if pd_gains and 'pd_gains' in LAW_REGISTRY[name].options:
@@ -149,6 +151,17 @@ def tune_gains(model: SDCModel, weights: Weights, law: str = 'pd', kps=None, kds
             s, _ = run_law(law, trajectory, model, weights, duration=duration, pd_gains=dict(kp=kp, kd=kd))
             bad = s.saturated_pct > 5.0 or not np.isfinite(s.rmse_mm_grasp)
             rows.append((kp, kd, float('inf') if bad else s.rmse_mm_grasp))
+    return rows
+
+
+def tune_integral(model: SDCModel, weights: Weights, gains=(0.0, 3e4, 1e5, 3e5), trajectory: str = 'grasp',
+                  duration: float | None = None) -> list[tuple[float, float, float]]:
+    """The default law's integral gain k_i over a grid: [(k_i, mean grasp-finger RMSE mm,
+    held-reference error mm)]."""
+    rows = []
+    for gain in gains:
+        s, _ = run_law('sdre_ff', trajectory, model, weights, duration=duration, integral_gain=gain)
+        rows.append((gain, s.rmse_mm_grasp, s.held_mm))
     return rows
 
 
@@ -363,8 +376,9 @@ def main(argv=None) -> int:
     ap.add_argument('--trajectories', nargs='+', default=list(TRAJECTORIES), choices=list(TRAJECTORIES))
     ap.add_argument('--duration', type=float, default=None, help='override every run\'s duration [s]')
     ap.add_argument('--no-model-score', action='store_true', help='skip the ground-truth model scoring')
-    ap.add_argument('--tune', choices=list(TUNABLE), default=None,
-                    help='print the gain tuning grid of this law and exit')
+    ap.add_argument('--tune', choices=[*TUNABLE, 'integral'], default=None,
+                    help='print the tuning grid of this law\'s PD gains (or of the default law\'s integral gain) '
+                         'on both trajectories and exit')
     ap.add_argument('--tune-pd', dest='tune', action='store_const', const='pd', help='the same as --tune pd')
     ap.add_argument('--model', type=Path, default=None, help='checkpoint (default: the shipped model)')
     args = ap.parse_args(argv)
@@ -375,9 +389,16 @@ def main(argv=None) -> int:
     except ModelFileError as exc:
         ap.error(f'--model: {exc}')
     weights = Weights(**DEFAULT_WEIGHTS)
+    if args.tune == 'integral':
+        for traj in args.trajectories:
+            for gain, rmse, held in tune_integral(model, weights, trajectory=traj, duration=args.duration):
+                print(f'{traj} integral_gain={gain:g}: grasp-finger RMSE {rmse:.4f} mm, held-reference error '
+                      f'{held:.4f} mm')
+        return 0
     if args.tune:
-        for kp, kd, rmse in tune_gains(model, weights, args.tune, duration=args.duration):
-            print(f'{args.tune} kp={kp:g} kd={kd:g}: grasp-finger RMSE {rmse:.3f} mm')
+        for traj in args.trajectories:
+            for kp, kd, rmse in tune_gains(model, weights, args.tune, trajectory=traj, duration=args.duration):
+                print(f'{traj} {args.tune} kp={kp:g} kd={kd:g}: grasp-finger RMSE {rmse:.4f} mm')
         print(f'shipped: {TUNABLE[args.tune][0]}')
         return 0
     args.out.mkdir(parents=True, exist_ok=True)
