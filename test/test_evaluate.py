@@ -87,6 +87,14 @@ def test_computed_torque_tracks_at_least_as_well_as_the_riccati_gains_on_the_sam
     assert ct.grasp_success and ct.check_fail_pct == 0.0
 
 
+def test_run_law_leaves_the_law_specs_as_they_were(model):
+    """A spec's options (q_pos here) are taken from a copy: the same law runs the same way twice."""
+    import copy
+    before = copy.deepcopy(ev.LAW_SPECS)
+    ev.run_law('sdre_4e6', 'fast', model, Weights(**DEFAULT_WEIGHTS), duration=0.005, integral_gain=None)
+    assert ev.LAW_SPECS == before
+
+
 def test_model_scoring_against_the_ground_truth(model):
     stats = ev.score_model(model, seconds=1.0, every=20)['stats']
     assert stats['samples'] == 49

@@ -57,7 +57,7 @@ LAW_SPECS = {
 }
 #: the laws whose PD gains tune_gains grids (LAW_SPECS keys): the gains they ship with, the grid's k_p and k_d
 TUNABLE = {'pd': (DEFAULT_PD, (3e3, 1e4, 1.5e4, 2e4), (40.0, 150.0)),
-           'computed_torque': (DEFAULT_CT, (5e3, 1e4, 1.5e4, 2e4), (40.0, 80.0, 120.0))}
+           'computed_torque': (DEFAULT_CT, (5e3, 1.5e4, 3e4, 6e4), (40.0, 80.0, 150.0))}
 #: the grasp of the demo, and a faster one (30 mm in 0.5 s: peak 94 mm/s) that stresses the model
 TRAJECTORIES = {
     'grasp': (GraspProfile(others='open'), 6.0),
