@@ -51,6 +51,7 @@ def _corrupt_model(tmp_path):
     (['--noise', '50'], '--noise is σ in mm, from 0 to 10 mm, got 50.0'),
     (['--seed', '-3'], '--seed must be in'),
     (['--law', 'nonsense'], "invalid choice: 'nonsense'"),
+    (['--integral-gain', '-1'], '--integral-gain must be in [0, '),
 ])
 def test_demo_bad_usage_exits_2_before_starting_anything(args, needle, tmp_path):
     args = [str(_corrupt_model(tmp_path)) if a == 'CORRUPT' else a for a in args]
