@@ -50,6 +50,8 @@ class IntegralAction:
             raise ValueError(f'integral gain must be finite and > 0 (0 = no integral action), got {gain!r}')
         if not (math.isfinite(band) and band > 0):
             raise ValueError(f'integral band must be finite and > 0 m, got {band!r}')
+        if not (math.isfinite(u_max) and u_max > 0):
+            raise ValueError(f'u_max must be finite and > 0, got {u_max!r}')
         g2 = np.asarray(g2_rest, dtype=float)
         if g2.shape != (2, 2) or not np.all(np.isfinite(g2)) or abs(np.linalg.det(g2)) == 0.0:
             raise ValueError(f'g2_rest must be a finite, invertible (2, 2) input map, got {g2_rest!r}')
@@ -58,8 +60,6 @@ class IntegralAction:
         self.from_torque = g2 / self.gain                        # ξ = from_torque u_I
         self.decay = math.exp(-self.dt / INTEGRAL_LEAK_S)
         self.xi = np.zeros((int(n_fingers), 2))                  # ∫ (p_d − p) dt [m·s]
-        if self.u_max <= 0 or not math.isfinite(self.u_max):
-            raise ValueError(f'u_max must be finite and > 0, got {u_max!r}')
 
     def reset(self) -> None:
         self.xi[:] = 0.0
