@@ -57,6 +57,7 @@ def _corrupt_model(tmp_path):
     (['--fingers', 'a/b=0'], "'a/b' is not a valid finger name"),
     (['--period', '20'], '--period is the control period in ms, from 1 to 10, got 20.0'),
     (['--period', 'nan'], '--period is the control period in ms'),
+    (['--integral-gain', '-1'], '--integral-gain must be in [0, '),
 ])
 def test_demo_bad_usage_exits_2_before_starting_anything(args, needle, tmp_path):
     args = [str(_corrupt_model(tmp_path)) if a == 'CORRUPT' else a for a in args]

@@ -16,16 +16,17 @@ def model():
 
 @pytest.fixture(scope='module')
 def fast_runs(model):
-    """The four laws of the issue's expectation, and the feedforward laws beyond the paper (SDRE,
-    oracle and PD with the reference acceleration), on the first 1.5 s of the fast grasp (closing,
-    holding, half the opening), with the default noise and weights."""
+    """The four laws of the issue's expectation, the feedforward laws beyond the paper (SDRE with and
+    without integral action, oracle and PD with the reference acceleration) and computed torque, on
+    the first 1.5 s of the fast grasp (closing, holding, half the opening), with the default noise
+    and weights."""
     w = Weights(**DEFAULT_WEIGHTS)
     return {k: ev.run_law(k, 'fast', model, w, duration=1.5)[0]
-            for k in ('sdre', 'lqr', 'pd', 'oracle', 'sdre_ff', 'oracle_ff', 'pd_ff')}
+            for k in ('sdre', 'lqr', 'pd', 'oracle', 'sdre_ff', 'oracle_ff', 'pd_ff', 'sdre_ff_noi', 'computed_torque')}
 
 
 @pytest.mark.slow
-@pytest.mark.timeout(90)      # the first user of fast_runs: its set-up counts here
+@pytest.mark.timeout(150)     # the first user of fast_runs: its set-up counts here
 def test_every_law_tracks_the_fast_grasp_without_failed_checks(fast_runs):
     for key, s in fast_runs.items():
         assert s.saturated_pct < 1.0, (key, s)
@@ -60,6 +61,38 @@ def test_sdre_with_feedforward_beats_lqr_and_pd_and_is_within_1_5x_of_the_oracle
     assert s < fast_runs['pd_ff'].rmse_mm_grasp
     assert s <= 1.5 * fast_runs['oracle_ff'].rmse_mm_grasp
     assert s < 0.5 * fast_runs['sdre'].rmse_mm_grasp           # the feedforward, not the weights
+
+
+@pytest.mark.slow
+def test_integral_action_removes_the_held_offset_without_giving_back_tracking(fast_runs):
+    """The default law's integral action (docs/results.md "Integral action"): the error where the
+    reference stands still and is reachable falls below the law's without it and below the 0.05 mm
+    target with the margin measured there, and the free-space RMSE of the moving fingers is no
+    worse than 1.1× the law's without it; the grasp holds."""
+    on, off = fast_runs['sdre_ff'], fast_runs['sdre_ff_noi']
+    assert on.held_mm < off.held_mm and on.held_mm <= 0.025
+    assert on.rmse_mm_grasp <= 1.1 * off.rmse_mm_grasp and on.rmse_mm_worst <= 1.1 * off.rmse_mm_worst
+    assert on.grasp_success and on.saturated_pct == 0.0
+
+
+@pytest.mark.slow
+def test_computed_torque_tracks_at_least_as_well_as_the_riccati_gains_on_the_same_inversion(fast_runs):
+    """Computed torque with the learned model (tuned PD gains where sdre_ff has the SDRE's Riccati
+    gains) against sdre_ff without integral action, as docs/results.md reports: on this part of the
+    fast grasp the grasping fingers are tracked as well (within 10 %) and the worst finger better;
+    the Riccati equation does not earn its cost here."""
+    ct, riccati = fast_runs['computed_torque'], fast_runs['sdre_ff_noi']
+    assert ct.rmse_mm_grasp <= 1.1 * riccati.rmse_mm_grasp
+    assert ct.rmse_mm_worst < riccati.rmse_mm_worst
+    assert ct.grasp_success and ct.check_fail_pct == 0.0
+
+
+def test_run_law_leaves_the_law_specs_as_they_were(model):
+    """A spec's options (q_pos here) are taken from a copy: the same law runs the same way twice."""
+    import copy
+    before = copy.deepcopy(ev.LAW_SPECS)
+    ev.run_law('sdre_4e6', 'fast', model, Weights(**DEFAULT_WEIGHTS), duration=0.005, integral_gain=None)
+    assert ev.LAW_SPECS == before
 
 
 def test_model_scoring_against_the_ground_truth(model):

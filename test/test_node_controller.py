@@ -22,10 +22,11 @@ def model():
 
 
 
-# the paper's law, the node's default, the baselines (Koopman too) and Q(x): the ``law`` /
-# ``state_weights`` parameters
+# the paper's law, the node's default, the baselines (Koopman too), computed torque and Q(x): the
+# ``law`` / ``state_weights`` parameters
 @pytest.mark.parametrize('law, weights', [('sdre', False), ('sdre_ff', False), ('lqr', False), ('pd', False),
-                                          ('sdre', True), ('koopman_mpc', False), ('koopman_lqr', False)])
+                                          ('computed_torque', False), ('sdre', True), ('koopman_mpc', False),
+                                          ('koopman_lqr', False)])
 def test_torques_match_the_offline_law_and_close_the_fingers(model, law, weights):
     rest = np.repeat(model.rest_tip[None, :2], 4, 0)
     offline = make_law(law, model, Weights(**DEFAULT_WEIGHTS), TORQUE_LIMIT, adaptive=weights)

@@ -1,5 +1,6 @@
 """The controller node's ``law`` parameter: the feedforward law samples p̈_d from the horizon; the
-oracle (and Q(x) on a baseline) is refused at start-up.
+oracle (and Q(x) on a baseline) is refused at start-up; ``integral_gain`` switches the default law's
+integral action.
 
 That every graph law runs on the node and gives the offline law's torques is
 test_node_controller.py's test_torques_match_the_offline_law_and_close_the_fingers.
@@ -11,9 +12,9 @@ import numpy as np
 import pytest
 
 from node_harness import MS, TORQUE_LIMIT, commands, estimate, make_controller, send_estimate
-from rosutil import ros_context, spin_until
+from rosutil import overrides, ros_context, spin_until
 from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
-from soft_gripper_sdre.control.laws import make_law
+from soft_gripper_sdre.control.laws import DEFAULT_INTEGRAL, ComputedTorqueLaw, make_law
 from soft_gripper_sdre.learning.model import SDCModel
 from soft_gripper_sdre.nodes import conversions as cv
 
@@ -23,6 +24,7 @@ pytestmark = pytest.mark.ros
 @pytest.mark.parametrize('args, needle', [
     (['-p', 'law:=oracle'], 'law'),
     (['-p', 'law:=pd', '-p', 'state_weights:=true'], 'state-dependent weights'),
+    (['-p', 'integral_gain:=-1.0'], 'integral_gain'),
 ])
 def test_oracle_or_weights_on_a_baseline_end_the_node_at_startup(args, needle):
     proc = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.nodes.controller', '--ros-args', *args],
@@ -57,3 +59,18 @@ def test_feedforward_law_gets_the_reference_acceleration_from_the_horizon():
             z = np.zeros((4, 2))
             np.testing.assert_allclose(u, with_acc.compute(rest, z, p, v, ref_acc=ad).u, rtol=1e-9, atol=1e-12)
             assert not np.allclose(u, without.compute(rest, z, p, v).u, rtol=1e-3, atol=0)
+
+
+def test_integral_gain_switches_the_default_laws_integral_action_and_other_laws_ignore_it():
+    from soft_gripper_sdre.nodes.controller import ControllerNode
+    with ros_context() as (ctx, executor):
+        def node(**params):
+            n = ControllerNode(context=ctx, parameter_overrides=overrides(**params))
+            executor.add_node(n)
+            return n.ctrl
+        default = node()
+        assert default.integral.gain == DEFAULT_INTEGRAL['gain'] and default.integral.band == DEFAULT_INTEGRAL['band']
+        assert node(integral_gain=0.0).integral is None                  # the law without integral action
+        tuned = node(integral_gain=2e4, integral_band=1e-3).integral
+        assert (tuned.gain, tuned.band) == (2e4, 1e-3)
+        assert isinstance(node(law='computed_torque', integral_gain=5e4), ComputedTorqueLaw)

@@ -53,6 +53,36 @@ def tracking_metrics(pos: np.ndarray, ref: np.ndarray, mask: np.ndarray,
     return out
 
 
+def held_reference_error(pos: np.ndarray, ref_pos: np.ndarray, ref_vel: np.ndarray,
+                         contact: np.ndarray) -> np.ndarray:
+    """(n,) per finger: the mean 2-D distance [mm] of the tip from a reference that stands still and
+    is reachable, i.e. over the samples where the reference velocity is exactly zero and the finger
+    does not touch the cube (NaN for a finger without such samples).
+
+    In the grasp these are the rest before the fingers move and after they are back, and the hold
+    phase of the fingers that do not grasp (the grasping fingers hold a reference inside the cube:
+    not reachable, not counted). It measures the steady offset joint friction leaves.
+
+    Args:
+        pos, ref_pos, ref_vel: (T, n, 2) tip position, reference position and velocity [m, m/s].
+        contact: (T, n) bool, the finger touches the cube.
+    """
+    pos, ref_pos, ref_vel = (np.asarray(a, dtype=float) for a in (pos, ref_pos, ref_vel))
+    if not (pos.shape == ref_pos.shape == ref_vel.shape and pos.ndim == 3 and pos.shape[2] == 2):
+        raise ValueError(f'pos, ref_pos and ref_vel must all have shape (T, n, 2), got {pos.shape}, '
+                         f'{ref_pos.shape} and {ref_vel.shape}')
+    contact = np.asarray(contact, dtype=bool)
+    if contact.shape != pos.shape[:2]:
+        raise ValueError(f'contact must have shape {pos.shape[:2]}, got {contact.shape}')
+    still = np.all(ref_vel == 0.0, axis=2) & ~contact
+    err = np.linalg.norm(pos - ref_pos, axis=2)
+    out = np.full(pos.shape[1], np.nan)
+    for i in range(pos.shape[1]):
+        if still[:, i].any():
+            out[i] = 1e3 * float(err[still[:, i], i].mean())
+    return out
+
+
 def r2_score(y_true: np.ndarray, y_pred: np.ndarray) -> np.ndarray:
     """Coefficient of determination per column: 1 − Σ(y − ŷ)² / Σ(y − ȳ)²."""
     y_true = np.asarray(y_true, dtype=float)

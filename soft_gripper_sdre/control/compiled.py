@@ -1,6 +1,7 @@
 """The controller's per-step work compiled with numba: how to call the kernels, what they keep.
 
-The kernels (:mod:`~soft_gripper_sdre.control.compiled_sdre`, :mod:`~soft_gripper_sdre.control.compiled_kf`)
+The kernels (:mod:`~soft_gripper_sdre.control.compiled_sdre`, :mod:`~soft_gripper_sdre.control.compiled_kf`,
+:mod:`~soft_gripper_sdre.control.compiled_integral`)
 take float64 / bool / int64 C-contiguous arrays and scalars, write their results into arrays the
 caller owns and update the controller's state in place. Their parameters come in the groups below,
 whose fields are the parameters in order, so a caller holds four tuples and splats them:
@@ -29,6 +30,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from soft_gripper_sdre.control.compiled_integral import integral_step, integral_update
 from soft_gripper_sdre.control.compiled_kf import kf_step, kf_step_dt
 from soft_gripper_sdre.control.compiled_sdre import (feedforward_step, model_inversion, sdc_forward, sdre_gains,
                                                      sdre_step, tracking_step, tracking_torques)
@@ -36,7 +38,7 @@ from soft_gripper_sdre.control.compiled_sdre import (feedforward_step, model_inv
 __all__ = ['SdcNetwork', 'SdreSettings', 'SdreState', 'SdreOutputs', 'FeedforwardOutputs', 'compiled_network',
            'kernel_array', 'warm_up',
            'sdc_forward', 'sdre_gains', 'tracking_torques', 'sdre_step', 'tracking_step', 'model_inversion',
-           'feedforward_step', 'kf_step', 'kf_step_dt']
+           'feedforward_step', 'kf_step', 'kf_step_dt', 'integral_step', 'integral_update']
 
 
 class SdcNetwork(NamedTuple):
@@ -155,3 +157,7 @@ def warm_up() -> None:
                      *FeedforwardOutputs.empty(n))
     kf_step(np.zeros((n, 4)), np.zeros((n, 4, 4)), rows, ones, np.eye(4), np.eye(4), np.eye(2))
     kf_step_dt(np.zeros((n, 4)), np.zeros((n, 4, 4)), rows, ones, 1e-3, 1.0, 0.0, np.eye(4), np.eye(4), np.eye(2))
+    saturated = np.zeros((n, 2), dtype=np.bool_)
+    integral_step(rows.copy(), np.eye(2), np.eye(2), 1e-3, 1e-3, 0.9, 1.0, rows, ones, rows.copy(), rows.copy(),
+                  saturated)
+    integral_update(rows.copy(), np.eye(2), np.eye(2), 1e-3, 1e-3, 0.9, 1.0, rows, saturated, ones)

@@ -1,8 +1,9 @@
 """The controller node: tracking of every finger with the learned SDC model.
 
 The control law is the ``law`` parameter (:mod:`soft_gripper_sdre.control.laws`): ``sdre_ff`` (default:
-SDRE feedback plus model-inversion feedforward), ``sdre`` (the paper's law), ``lqr``, ``pd``, or the
-Koopman baselines ``koopman_mpc`` and ``koopman_lqr``.
+SDRE feedback plus model-inversion feedforward, with integral action unless ``integral_gain`` is 0),
+``sdre`` (the paper's law), ``lqr``, ``pd``, ``computed_torque``, or the Koopman baselines
+``koopman_mpc`` and ``koopman_lqr``.
 
 Subscribes ``state_estimate`` (one message per control period, keeping only the newest) and
 ``grasp_reference`` (the planned grasp, once per plan); publishes ``torque_commands`` (one per
@@ -40,7 +41,7 @@ from soft_gripper_sdre.control.command_gate import Change, CommandGate, Notice, 
 from soft_gripper_sdre.control.compiled import warm_up
 from soft_gripper_sdre.control.tracking import DEFAULT_LOWPASS_HZ, DEFAULT_WEIGHTS, Weights
 from soft_gripper_sdre.control.horizon import sample_plan
-from soft_gripper_sdre.control.laws import DEFAULT_LAW, GRAPH_LAWS, make_law
+from soft_gripper_sdre.control.laws import DEFAULT_INTEGRAL, DEFAULT_LAW, GRAPH_LAWS, LAW_REGISTRY, make_law
 from soft_gripper_sdre.learning.model import ModelFileError, SDCModel, set_torch_threads
 from soft_gripper_sdre.nodes import cdr, conversions as cv
 from soft_gripper_sdre.nodes.common import ERROR, OK, Diagnostics, ThrottledLogger, run
@@ -72,13 +73,20 @@ PARAMS = (
     Param('solver', 'fast', 'Riccati solver: warm-started Newton–Kleinman or scipy reference',
           choices=('fast', 'reference'), read_only=True),
     Param('law', DEFAULT_LAW, 'control law (soft_gripper_sdre.control.laws): learned SDRE, LQR frozen at the '
-          'origin, task-space PD; the oracle needs the plant\'s joint state and runs in-process only '
+          'origin, task-space PD, computed torque on the learned model; the oracle needs the plant\'s joint state and runs in-process only '
           '(tools/evaluate.py); sdre_ff: SDRE + model-inversion feedforward '
           '(docs/results.md "Beyond the paper"); koopman_mpc, koopman_lqr: the Koopman baselines on '
           'the shipped Koopman model (models/koopman.npz; docs/results.md "Koopman baseline")',
           choices=GRAPH_LAWS, read_only=True),
     Param('state_weights', False, 'sdre only: state-dependent Q(x) that rises with the tracking error',
           read_only=True),
+    Param('integral_gain', DEFAULT_INTEGRAL['gain'], 'sdre_ff only: integral action on the tip position '
+          'error against the steady offset of joint friction, as a tip acceleration k_i ∫(p_d − p)dt '
+          'through the learned input map at rest; frozen while saturated, decaying while the error is '
+          'outside integral_band (pressing on the cube); 0 = off', '1/s³', 0.0, 1e8, read_only=True),
+    Param('integral_band', DEFAULT_INTEGRAL['band'], 'sdre_ff only: tip error beyond which the integral '
+          'stops integrating and decays (the reference is not reachable, e.g. inside the cube)', 'm',
+          1e-6, 0.1, read_only=True),
     Param('estimate_watchdog', 0.5, 'wall time without a state_estimate after which the controller '
           'reports ERROR (it sends nothing without an estimate: the simulator steps safely on its own)',
           's', 1e-2, 600.0),
@@ -119,12 +127,15 @@ class ControllerNode(Node):
             except ValueError as exc:
                 raise ParameterError(f'parameter \'effort_joints\': {exc}') from None
         on_runtime_change(self, PARAMS, apply=self._apply)
+        integral = {}
+        if 'integral_gain' in LAW_REGISTRY[p['law']].options:
+            integral = dict(integral_gain=p['integral_gain'], integral_band=p['integral_band'])
         try:
             self.ctrl = make_law(p['law'], model, weights, p['torque_limit'], n_fingers=self.n,
                                  method=p['solver'], lowpass_hz=p['torque_lowpass_hz'],
-                                 dt=p['control_period'], adaptive=p['state_weights'])
+                                 dt=p['control_period'], adaptive=p['state_weights'], **integral)
         except ValueError as exc:
-            raise ParameterError(f'law/state_weights: {exc}') from None
+            raise ParameterError(f'law/state_weights/integral_gain: {exc}') from None
         warm_up()       # compiled (or loaded from the cache) before any topic shows the node ready
         self.done = False
         self.exit_code = 0
@@ -152,11 +163,12 @@ class ControllerNode(Node):
         self.diag.values['weights'] = f'q_pos={weights.q_pos:g} q_vel={weights.q_vel:g} r={weights.r:g}'
         self._watchdog = self.create_timer(0.05, lambda: self._act(self.gate.on_wall_time(time.monotonic())))
         self.diag.before_publish.append(self._compute_stats)
+        integral_note = f'; integral gain {integral["integral_gain"]:g}' if integral else ''
         self.get_logger().info(
             f'model {model.path.name} (rest tip {1e3 * model.rest_tip[0]:.1f}, '
             f'{1e3 * model.rest_tip[1]:.1f} mm); {self.diag.values["weights"]}; '
             f'limit {p["torque_limit"]:g} N·m; {p["solver"]} solver; law {p["law"]}'
-            f'{" with Q(x)" if p["state_weights"] else ""}; fingers {", ".join(self.names)}'
+            f'{" with Q(x)" if p["state_weights"] else ""}{integral_note}; fingers {", ".join(self.names)}'
             + (f'; efforts also on {self.pub_effort.topic_name} for {", ".join(p["effort_joints"])}'
                if self.pub_effort is not None else ''))
 

@@ -98,10 +98,12 @@ def bench_control(loop, law: str, repeats: int, ref_steps: int) -> dict[str, flo
         fast = make_law(law, model, w, 0.0625, n_fingers=n, method='fast')
         ref = make_law(law, model, w, 0.0625, n_fingers=n, method='reference')
         s = fast.sdre
+        integral = getattr(fast, 'integral', None)
         state, out, ff = SdreState.cold(n), SdreOutputs.empty(n), FeedforwardOutputs.empty(n)
         for k, (pos, vel, ref_pos, ref_vel, ref_acc) in enumerate(rows):
             for src, dst in zip(s.state, state):
                 dst[:] = src                              # the warm start the law starts from
+            xi = None if integral is None else integral.xi.copy()
             t0 = clock()
             step = fast.compute(pos, vel, ref_pos, ref_vel, ref_acc=ref_acc)
             t1 = clock()
@@ -116,6 +118,8 @@ def bench_control(loop, law: str, repeats: int, ref_steps: int) -> dict[str, flo
             t['fast'].append(t1 - t0)
             t['kernel'].append(t2 - t1)
             if k in paired:
+                if xi is not None:                        # the reference from the same integral
+                    ref.integral.xi[:] = xi
                 t0 = clock()
                 reference = ref.compute(pos, vel, ref_pos, ref_vel, ref_acc=ref_acc)
                 t['reference'].append(clock() - t0)

@@ -47,6 +47,8 @@ def _parser() -> argparse.ArgumentParser:
                     help='run the graph on these fingers of the hand, named (e.g. left=0,right=2: '
                          f'hand fingers {CUBE_FINGERS[0]} and {CUBE_FINGERS[1]} face each other across '
                          'the cube); default all four, finger_0=0,...,finger_3=3')
+    ap.add_argument('--integral-gain', type=float, default=None, metavar='KI',
+                    help='the default law\'s integral gain [1/s³], 0 = off (default: config/controller.yaml)')
     ap.add_argument('--domain-id', type=int, default=None, help='ROS_DOMAIN_ID (default: env or random)')
     ap.add_argument('--timeout', type=float, default=600.0, help='wall-clock limit [s] (default %(default)s)')
     ap.add_argument('--no-progress', action='store_true', help='no progress bar')
@@ -56,7 +58,7 @@ def _parser() -> argparse.ArgumentParser:
 def run_demo(out: Path, duration: float, model: Path | None = None, noise: float | None = None,
              seed: int | None = None, domain_id: int | None = None, timeout: float = 600.0,
              progress: bool = True, law: str | None = None, fingers: dict[str, int] | None = None,
-             period: float | None = None) -> dict:
+             period: float | None = None, integral_gain: float | None = None) -> dict:
     """Run the graph, write bag/figures/metrics under ``out``; returns the report (plus run facts).
     ``period`` [s] is the control period of every node of the loop (None: the config files').
 
@@ -84,6 +86,8 @@ def run_demo(out: Path, duration: float, model: Path | None = None, noise: float
         params['simulator']['seed'] = seed
     if law is not None:
         params['controller']['law'] = law
+    if integral_gain is not None:
+        params['controller']['integral_gain'] = float(integral_gain)
     for node, values in (finger_parameters(fingers) if fingers else {}).items():
         params[node].update(values)
     spec = grasp_graph(parameters=params, control_period=period)
@@ -222,6 +226,11 @@ def summary(result: dict, out: Path) -> str:
         lines.append(f'  {name}: free-space RMSE {f["rmse_mm"]:.3f} mm ({pct} of its '
                      f'{f["excursion_mm"]:.1f} mm excursion), max {f["max_mm"]:.3f} mm; '
                      f'touching the cube {100 * (f["contact_fraction"] or 0):.0f} % of the time')
+    held = [f.get('true_tip', f).get('held_mm') for f in result['fingers'].values()]
+    if any(h is not None for h in held):
+        where = 'true tip' if all('true_tip' in f for f in result['fingers'].values()) else 'measured tip'
+        lines.append('  where the reference stands still and the finger is free: mean error '
+                     + ', '.join('n/a' if h is None else f'{h:.3f}' for h in held) + f' mm ({where})')
     if result.get('cube_max_displacement_mm') is not None:
         lines.append(f'  cube displaced at most {result["cube_max_displacement_mm"]:.2f} mm')
     c = result.get('controller', {})
@@ -251,6 +260,11 @@ def argument_problem(a: argparse.Namespace) -> str | None:
                 f'{1e3 * PERIOD_RANGE[1]:g}, got {a.period} (e.g. --period 5)')
     if a.seed is not None and limits['seed'].check(a.seed):
         return f'--seed must be in [0, {limits["seed"].max}], got {a.seed}'
+    if a.integral_gain is not None:
+        from soft_gripper_sdre.nodes.controller import PARAMS as CONTROLLER_PARAMS
+        gain = next(p for p in CONTROLLER_PARAMS if p.name == 'integral_gain')
+        if gain.check(a.integral_gain) or not a.integral_gain == a.integral_gain:
+            return f'--integral-gain must be in [0, {gain.max:g}] 1/s³ (0 = off), got {a.integral_gain}'
     if a.domain_id is not None and not 0 <= a.domain_id <= 232:
         return f'--domain-id must be a ROS domain ID in [0, 232], got {a.domain_id}'
     if not a.timeout > 0:
@@ -307,7 +321,8 @@ def main(argv: list[str] | None = None) -> int:
         result = run_demo(a.out, a.duration, a.model, None if a.noise is None else a.noise * 1e-3, a.seed,
                           a.domain_id, a.timeout, progress=not a.no_progress, law=a.law,
                           fingers=parse_fingers(a.fingers) if a.fingers else None,
-                          period=None if a.period is None else a.period * 1e-3)
+                          period=None if a.period is None else a.period * 1e-3,
+                          integral_gain=a.integral_gain)
     except RuntimeError as exc:
         print(f'error: {exc}', file=sys.stderr)
         return 1

@@ -13,6 +13,9 @@ the plant's joint state at every step. The numbers:
 * torque effort: RMS of the applied torques over the run and all fingers [N·m];
 * grasp success: both grasping fingers touch the cube during ≥ 90 % of the hold phase and the
   cube moves < 1 mm;
+* held-reference error: mean 2-D tip error [mm] where the reference stands still and the finger
+  does not touch the cube (rest phases, and the hold of the fingers that do not grasp), averaged
+  over the fingers (:func:`~soft_gripper_sdre.analysis.metrics.held_reference_error`);
 * check failures: share of the per-finger steps whose Riccati checks failed (SDRE laws);
 * compute time per 4-finger step [µs] (the law only; machine- and load-dependent).
 """
@@ -26,11 +29,12 @@ from pathlib import Path
 import numpy as np
 
 from soft_gripper_sdre.analysis.closed_loop import run_closed_loop
+from soft_gripper_sdre.analysis.metrics import held_reference_error
 # importing analysis.oracle registers the oracle laws ('oracle', 'oracle_exact', 'oracle_ff') with make_law
 import soft_gripper_sdre.analysis.oracle  # noqa: F401
 from soft_gripper_sdre.analysis.law_plots import plot_feedforward, plot_laws, plot_model_vs_truth
 from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
-from soft_gripper_sdre.control.laws import DEFAULT_PD, make_law
+from soft_gripper_sdre.control.laws import DEFAULT_CT, DEFAULT_PD, LAW_REGISTRY, make_law
 from soft_gripper_sdre.learning.model import PAPER_DATA_MODEL, ModelFileError, SDCModel
 from soft_gripper_sdre.sim.hand import SimConfig
 from soft_gripper_sdre.control.trajectory import GraspProfile
@@ -45,12 +49,17 @@ LAW_SPECS = {
     'oracle': ('oracle SDRE (projected truth)', 'oracle', {}),
     'oracle_exact': ('oracle SDRE (exact eq. 13)', 'oracle_exact', {}),
     'sdre_ff': ('learned SDRE + feedforward', 'sdre_ff', {}),
+    'sdre_ff_noi': ('learned SDRE + feedforward, no integral', 'sdre_ff', {'integral_gain': 0.0}),
     'sdre_ff_ref': ('learned SDRE + feedforward at x_d', 'sdre_ff', {'ff_at': 'ref'}),
     'pd_ff': ('task-space PD + p̈_d', 'pd', {'feedforward': True}),
     'oracle_ff': ('oracle SDRE + feedforward', 'oracle_ff', {}),
     'koopman_mpc': ('Koopman MPC', 'koopman_mpc', {}),
     'koopman_lqr': ('Koopman LQR', 'koopman_lqr', {}),
+    'computed_torque': ('computed torque (learned model)', 'computed_torque', {}),
 }
+#: the laws whose PD gains tune_gains grids (LAW_SPECS keys): the gains they ship with, the grid's k_p and k_d
+TUNABLE = {'pd': (DEFAULT_PD, (3e3, 1e4, 1.5e4, 2e4), (40.0, 150.0)),
+           'computed_torque': (DEFAULT_CT, (5e3, 1.5e4, 3e4, 6e4), (40.0, 80.0, 150.0))}
 #: the grasp of the demo, and a faster one (30 mm in 0.5 s: peak 94 mm/s) that stresses the model
 TRAJECTORIES = {
     'grasp': (GraspProfile(others='open'), 6.0),
@@ -76,6 +85,7 @@ class RunSummary:
     cube_mm: float
     check_fail_pct: float
     compute_us: float
+    held_mm: float = float('nan')  # held-reference error, mean over the fingers
 
 
 def grasp_success(result, profile: GraspProfile) -> tuple[bool, float]:
@@ -91,13 +101,17 @@ def grasp_success(result, profile: GraspProfile) -> tuple[bool, float]:
 
 
 def run_law(key: str, trajectory: str, model: SDCModel, weights: Weights, duration: float | None = None,
-            progress: bool = False, pd_gains: dict | None = None, koopman_path: Path | None = None):
-    """One closed-loop run: (RunSummary, LoopResult). ``koopman_path``: the Koopman laws' model
-    file (None = the shipped one)."""
+            progress: bool = False, pd_gains: dict | None = None, koopman_path: Path | None = None,
+            **law_options):
+    """One closed-loop run: (RunSummary, LoopResult). ``pd_gains`` go to a law that takes them,
+    ``koopman_path`` (None = the shipped model) to the Koopman laws, ``law_options`` (e.g.
+    ``integral_gain``) to make_law over the spec's."""
     _, name, opts = LAW_SPECS[key]
+    opts = dict(opts, **law_options)
     profile, dur = TRAJECTORIES[trajectory]
     dur = duration or dur
-    opts = dict(opts, **({'pd_gains': pd_gains} if name == 'pd' and pd_gains else {}))
+    if pd_gains and 'pd_gains' in LAW_REGISTRY[name].options:
+        opts = dict(opts, pd_gains=pd_gains)
     if koopman_path is not None and name.startswith('koopman'):
         opts['koopman_path'] = koopman_path
     if 'q_pos' in opts:
@@ -123,19 +137,37 @@ def run_law(key: str, trajectory: str, model: SDCModel, weights: Weights, durati
         saturated_pct=100.0 * float(res.saturated.any(axis=2).mean()),
         grasp_success=ok, cube_mm=cube_mm,
         check_fail_pct=100.0 * float((~res.ok).mean()),
-        compute_us=1e6 * float(np.mean(res.law_seconds)))
+        compute_us=1e6 * float(np.mean(res.law_seconds)),
+        held_mm=float(np.nanmean(held_reference_error(res.pos, res.ref_pos, res.ref_vel, res.contact))))
     return summary, res
 
 
-def tune_pd(model: SDCModel, weights: Weights, kps=(3e3, 1e4, 1.5e4, 2e4), kds=(40.0, 150.0),
-            trajectory: str = 'grasp', duration: float | None = None) -> list[tuple[float, float, float]]:
-    """Grid over (k_p, k_d) on a trajectory: [(kp, kd, mean grasp-finger RMSE mm)], diverged = inf."""
+def tune_gains(model: SDCModel, weights: Weights, law: str = 'pd', kps=None, kds=None, trajectory: str = 'grasp',
+               duration: float | None = None) -> list[tuple[float, float, float]]:
+    """Grid over the PD gains (k_p, k_d) of ``law`` (a :data:`TUNABLE` key; None: its grid) on a
+    trajectory: [(kp, kd, mean grasp-finger RMSE mm)]; a run that diverged or saturated > 5 % of the
+    steps = inf."""
+    if law not in TUNABLE:
+        raise ValueError(f'law must be one of {tuple(TUNABLE)}, got {law!r}')
+    _, grid_kps, grid_kds = TUNABLE[law]
+    kps, kds = kps or grid_kps, kds or grid_kds
     rows = []
     for kp in kps:
         for kd in kds:
-            s, _ = run_law('pd', trajectory, model, weights, duration=duration, pd_gains=dict(kp=kp, kd=kd))
+            s, _ = run_law(law, trajectory, model, weights, duration=duration, pd_gains=dict(kp=kp, kd=kd))
             bad = s.saturated_pct > 5.0 or not np.isfinite(s.rmse_mm_grasp)
             rows.append((kp, kd, float('inf') if bad else s.rmse_mm_grasp))
+    return rows
+
+
+def tune_integral(model: SDCModel, weights: Weights, gains=(0.0, 3e4, 1e5, 3e5), trajectory: str = 'grasp',
+                  duration: float | None = None) -> list[tuple[float, float, float]]:
+    """The default law's integral gain k_i over a grid: [(k_i, mean grasp-finger RMSE mm,
+    held-reference error mm)]."""
+    rows = []
+    for gain in gains:
+        s, _ = run_law('sdre_ff', trajectory, model, weights, duration=duration, integral_gain=gain)
+        rows.append((gain, s.rmse_mm_grasp, s.held_mm))
     return rows
 
 
@@ -263,13 +295,16 @@ def write_report(out: Path, summaries: list[RunSummary], figures: list[str], mod
         lines += [f'## {traj}: close {p.close_distance * 1e3:g} mm in {p.t_close:g} s, hold {p.t_hold:g} s, '
                   f'open in {p.t_open:g} s ({dur:g} s run)', '',
                   '| law | RMSE grasp fingers [mm] | max grasp [mm] | worst-finger RMSE [mm] | max any [mm] '
-                  '| torque RMS [N·m] | saturated | grasp | cube moved [mm] | check failures | compute [µs/step] |',
-                  '| --- | ---: | ---: | ---: | ---: | ---: | ---: | :---: | ---: | ---: | ---: |']
+                  '| held-reference error [mm] | torque RMS [N·m] | saturated | grasp | cube moved [mm] | check failures '
+                  '| compute [µs/step] |',
+                  '| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | :---: | ---: | ---: | ---: |']
         for s in summaries:
             if s.trajectory != traj:
                 continue
             lines.append(f'| {LAW_SPECS[s.law][0]} | {_fmt(s.rmse_mm_grasp)} | {_fmt(s.max_mm_grasp, ".2f")} | '
-                         f'{_fmt(s.rmse_mm_worst)} | {_fmt(s.max_mm_all, ".2f")} | {s.effort_rms_nm:.4f} | '
+                         f'{_fmt(s.rmse_mm_worst)} | {_fmt(s.max_mm_all, ".2f")} | '
+                         f'{"n/a" if np.isnan(s.held_mm) else _fmt(s.held_mm)} | '
+                         f'{s.effort_rms_nm:.4f} | '
                          f'{s.saturated_pct:.1f} % | {"yes" if s.grasp_success else "no"} | {s.cube_mm:.2f} | '
                          f'{s.check_fail_pct:.2f} % | {s.compute_us:.0f} |')
         lines += ['']
@@ -349,7 +384,10 @@ def main(argv=None) -> int:
     ap.add_argument('--trajectories', nargs='+', default=list(TRAJECTORIES), choices=list(TRAJECTORIES))
     ap.add_argument('--duration', type=float, default=None, help='override every run\'s duration [s]')
     ap.add_argument('--no-model-score', action='store_true', help='skip the ground-truth model scoring')
-    ap.add_argument('--tune-pd', action='store_true', help='print the PD tuning grid and exit')
+    ap.add_argument('--tune', choices=[*TUNABLE, 'integral'], default=None,
+                    help='print the tuning grid of this law\'s PD gains (or of the default law\'s integral gain) '
+                         'on both trajectories and exit')
+    ap.add_argument('--tune-pd', dest='tune', action='store_const', const='pd', help='the same as --tune pd')
     ap.add_argument('--model', type=Path, default=None, help='checkpoint (default: the shipped model)')
     ap.add_argument('--koopman', type=Path, default=None,
                     help='Koopman model of the koopman_* laws (default: the shipped one; tools.koopman writes one)')
@@ -363,10 +401,17 @@ def main(argv=None) -> int:
     except ModelFileError as exc:
         ap.error(f'--model: {exc}')
     weights = Weights(**DEFAULT_WEIGHTS)
-    if args.tune_pd:
-        for kp, kd, rmse in tune_pd(model, weights, duration=args.duration):
-            print(f'kp={kp:g} kd={kd:g}: grasp-finger RMSE {rmse:.3f} mm')
-        print(f'shipped: {DEFAULT_PD}')
+    if args.tune == 'integral':
+        for traj in args.trajectories:
+            for gain, rmse, held in tune_integral(model, weights, trajectory=traj, duration=args.duration):
+                print(f'{traj} integral_gain={gain:g}: grasp-finger RMSE {rmse:.4f} mm, held-reference error '
+                      f'{held:.4f} mm')
+        return 0
+    if args.tune:
+        for traj in args.trajectories:
+            for kp, kd, rmse in tune_gains(model, weights, args.tune, trajectory=traj, duration=args.duration):
+                print(f'{traj} {args.tune} kp={kp:g} kd={kd:g}: grasp-finger RMSE {rmse:.4f} mm')
+        print(f'shipped: {TUNABLE[args.tune][0]}')
         return 0
     args.out.mkdir(parents=True, exist_ok=True)
     from tqdm import tqdm
@@ -377,7 +422,8 @@ def main(argv=None) -> int:
         s, res = run_law(key, traj, model, weights, duration=args.duration, koopman_path=args.koopman)
         summaries.append(s)
         results.setdefault(traj, {})[key] = res
-        tqdm.write(f'{traj:6s} {key:13s} RMSE {s.rmse_mm_grasp:.3f} mm, max {s.max_mm_all:.2f} mm, '
+        tqdm.write(f'{traj:6s} {key:15s} RMSE {s.rmse_mm_grasp:.3f} mm, max {s.max_mm_all:.2f} mm, '
+                   f'held {s.held_mm:.3f} mm, '
                    f'checks failed {s.check_fail_pct:.2f} %, {s.compute_us:.0f} µs/step')
     for traj, res in results.items():
         figures += law_figures(res, summaries, traj, args.out)

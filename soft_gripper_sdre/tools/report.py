@@ -11,7 +11,9 @@ fig7_torques.png (commands) and DIR/metrics.json:
   cube contact force (held from the last cube_contacts message) is 0 — all samples if the bag has
   no cube_contacts; plus the fraction of samples in contact; the errors are those of the measured
   tips (sensor noise included), and, with joint_states in the bag, ``true_tip`` holds the same
-  figures for the true tip at the joint states' rate;
+  figures for the true tip at the joint states' rate; ``held_mm``: the mean 2-D error where the
+  reference stands still and the finger touches nothing
+  (:func:`~soft_gripper_sdre.analysis.metrics.held_reference_error`);
 * the cube's largest displacement from its first pose [mm];
 * with ``--torque-limit``: how many torque commands reached the actuator limit (the simulator clips
   them there), per finger;
@@ -32,7 +34,7 @@ import numpy as np
 
 from soft_gripper_sdre import FINGER_NAMES
 from soft_gripper_sdre.analysis.bag import BagError, Run, extract_run
-from soft_gripper_sdre.analysis.metrics import tracking_metrics
+from soft_gripper_sdre.analysis.metrics import held_reference_error, tracking_metrics
 from soft_gripper_sdre.analysis.plots import plot_torques, plot_tracking
 
 FIGURES = ('fig5_positions.png', 'fig6_velocities.png', 'fig7_torques.png')
@@ -120,10 +122,12 @@ def report(bag_path: str | Path, out_dir: str | Path, torque_limit: float | None
 
     excursion = np.linalg.norm(ref[..., :2] - ref[0, :, :2], axis=2).max(axis=0)
     tracking = tracking_metrics(pos, ref[..., :2], ~contact, excursion)
+    held = held_reference_error(pos, ref[..., :2], ref[..., 2:4], contact)
     fingers = {}
     for i, name in enumerate(names):
         fingers[name] = tracking[i].as_dict()
         fingers[name]['contact_fraction'] = float(contact[:, i].mean()) if has_contacts else None
+        fingers[name]['held_mm'] = float(held[i])
 
     cube_mm = None
     if run.cube_pose is not None:
@@ -152,8 +156,10 @@ def report(bag_path: str | Path, out_dir: str | Path, torque_limit: float | None
         ref_true = interpolate(t, ref, t_true)
         contact_true = hold(t, contact, t_true)
         true_metrics = tracking_metrics(pos_true, ref_true[..., :2], ~contact_true, excursion)
+        held_true = held_reference_error(pos_true, ref_true[..., :2], ref_true[..., 2:4], contact_true)
         for i, name in enumerate(names):
-            metrics['fingers'][name]['true_tip'] = _json_safe(true_metrics[i].as_dict())
+            metrics['fingers'][name]['true_tip'] = _json_safe(dict(true_metrics[i].as_dict(),
+                                                                   held_mm=float(held_true[i])))
         achieved = ('true tip (simulator ground truth: forward kinematics of joint_states)', t_true,
                     pos_true, vel_true)
     else:

@@ -9,7 +9,9 @@ roll-off, so a comparison differs only in the law:
   ``adaptive=True``: the state-dependent Q(x) of :class:`AdaptiveSdreLaw`.
 * ``sdre_ff`` — beyond the paper: SDRE feedback on the tracking error plus model-inversion
   feedforward, u = G₂⁻¹(a_d − A₂₁p_d − A₂₂v_d) + K(x)(x − x_d) (:class:`SdreFeedforwardLaw`;
-  ``ff_at``: where the feedforward evaluates the model, :data:`FF_AT`).
+  ``ff_at``: where the feedforward evaluates the model, :data:`FF_AT`; ``integral_gain``,
+  ``integral_band``: integral action with anti-windup, :class:`IntegralAction`, gain 0 = off,
+  None = :data:`DEFAULT_INTEGRAL`).
 * ``lqr``     — fixed gains from the learned model at the origin (:class:`LqrLaw`).
 * ``pd``      — a task-space PD through the learned input map at rest (:class:`PdLaw`;
   ``pd_gains=dict(kp=…, kd=…)``, ``feedforward=True`` adds the reference acceleration).
@@ -17,6 +19,9 @@ roll-off, so a comparison differs only in the law:
   LQR on the lifted linear model of :mod:`soft_gripper_sdre.learning.koopman`, not on the SDC
   model (:class:`KoopmanMpcLaw`, :class:`KoopmanLqrLaw`; ``koopman_path``: the model file, None =
   the shipped one).
+* ``computed_torque`` — feedback linearisation on the learned model with PD gains on the error,
+  u = G₂(x)⁻¹(a_d − A₂(x)x − k_p e − k_d ė) (:class:`ComputedTorqueLaw`; ``pd_gains=dict(kp=…, kd=…)``):
+  ``sdre_ff`` without the Riccati equation.
 
 The oracle laws (``oracle``, ``oracle_exact``, ``oracle_ff``: the SDRE on the simulator's true
 dynamics) are evaluation yardsticks that need the plant's ground truth; they live in
@@ -27,20 +32,23 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Callable, NamedTuple
 
+from soft_gripper_sdre.control.laws.computed_torque import DEFAULT_CT, ComputedTorqueLaw
 from soft_gripper_sdre.control.laws.feedback import AdaptiveSdreLaw, SdreLaw
 from soft_gripper_sdre.control.laws.feedforward import FF_AT, SdreFeedforwardLaw, model_inversion
 from soft_gripper_sdre.control.laws.fixed import DEFAULT_PD, LqrLaw, PdLaw
 from soft_gripper_sdre.control.laws.koopman import KoopmanLqrLaw, KoopmanMpcLaw
+from soft_gripper_sdre.control.laws.integral import DEFAULT_INTEGRAL, IntegralAction
 from soft_gripper_sdre.control.tracking import DEFAULT_LOWPASS_HZ, Law, Weights
 from soft_gripper_sdre.learning.koopman import KoopmanFileError, KoopmanModel
 
-__all__ = ['AdaptiveSdreLaw', 'DEFAULT_LAW', 'DEFAULT_PD', 'FF_AT', 'GRAPH_LAWS', 'KoopmanLqrLaw', 'KoopmanMpcLaw',
-           'LAW_REGISTRY', 'LawEntry', 'LawSettings', 'LqrLaw', 'PdLaw', 'SdreFeedforwardLaw', 'SdreLaw', 'make_law', 'model_inversion',
+__all__ = ['AdaptiveSdreLaw', 'ComputedTorqueLaw', 'DEFAULT_CT', 'DEFAULT_INTEGRAL', 'DEFAULT_LAW', 'DEFAULT_PD',
+           'FF_AT', 'GRAPH_LAWS', 'IntegralAction', 'KoopmanLqrLaw', 'KoopmanMpcLaw', 'LAW_REGISTRY', 'LawEntry',
+           'LawSettings', 'LqrLaw', 'PdLaw', 'SdreFeedforwardLaw', 'SdreLaw', 'make_law', 'model_inversion',
            'register_law']
 
 #: the laws that run on the node graph (the oracles need the plant's joint state: in-process only;
 #: the Koopman laws load the shipped Koopman model beside the SDC one)
-GRAPH_LAWS = ('sdre', 'sdre_ff', 'lqr', 'pd', 'koopman_mpc', 'koopman_lqr')
+GRAPH_LAWS = ('sdre', 'sdre_ff', 'lqr', 'pd', 'computed_torque', 'koopman_mpc', 'koopman_lqr')
 #: the controller node's default: the learned SDRE with model-inversion feedforward (README
 #: "Beyond the paper"); 'sdre' is the paper's law
 DEFAULT_LAW = 'sdre_ff'
@@ -72,9 +80,12 @@ def _sdre(s: LawSettings, adaptive: bool = False) -> Law:
                dt=s.dt)
 
 
-def _sdre_ff(s: LawSettings, ff_at: str = 'x') -> Law:
+def _sdre_ff(s: LawSettings, ff_at: str = 'x', integral_gain: float | None = None,
+             integral_band: float | None = None) -> Law:
+    gain = DEFAULT_INTEGRAL['gain'] if integral_gain is None else integral_gain
+    band = DEFAULT_INTEGRAL['band'] if integral_band is None else integral_band
     return SdreFeedforwardLaw(s.model, s.weights, s.u_max, n_fingers=s.n_fingers, method=s.method,
-                              lowpass_hz=s.lowpass_hz, dt=s.dt, ff_at=ff_at)
+                              lowpass_hz=s.lowpass_hz, dt=s.dt, ff_at=ff_at, integral_gain=gain, integral_band=band)
 
 
 def _lqr(s: LawSettings) -> Law:
@@ -92,21 +103,26 @@ def _koopman(s: LawSettings, law=KoopmanMpcLaw, koopman_path=None) -> Law:
     except KoopmanFileError as exc:
         raise ValueError(f'koopman_path: {exc}') from None
     return law(koopman, s.weights, s.u_max, n_fingers=s.n_fingers, lowpass_hz=s.lowpass_hz, dt=s.dt)
+def _computed_torque(s: LawSettings, pd_gains: dict | None = None) -> Law:
+    return ComputedTorqueLaw(s.model, s.u_max, n_fingers=s.n_fingers, lowpass_hz=s.lowpass_hz, dt=s.dt,
+                             method=s.method, **(pd_gains or DEFAULT_CT))
 
 
 #: what the options of the laws below mean (for error messages)
 _OPTION_MEANINGS = {'adaptive': 'state-dependent weights Q(x)', 'ff_at': 'where the feedforward evaluates the model',
+                    'integral_gain': 'the integral action\'s gain', 'integral_band': 'the integral action\'s error band',
                     'pd_gains': 'the PD gains', 'feedforward': 'the reference acceleration added to the PD',
                     'koopman_path': 'the Koopman model file'}
 
 #: law name → how to build it; :func:`register_law` adds to it
 LAW_REGISTRY: dict[str, LawEntry] = {
     'sdre': LawEntry(_sdre, ('adaptive',)),
-    'sdre_ff': LawEntry(_sdre_ff, ('ff_at',)),
+    'sdre_ff': LawEntry(_sdre_ff, ('ff_at', 'integral_gain', 'integral_band')),
     'lqr': LawEntry(_lqr),
     'pd': LawEntry(_pd, ('pd_gains', 'feedforward')),
     'koopman_mpc': LawEntry(_koopman, ('koopman_path',)),
     'koopman_lqr': LawEntry(lambda s, koopman_path=None: _koopman(s, KoopmanLqrLaw, koopman_path), ('koopman_path',)),
+    'computed_torque': LawEntry(_computed_torque, ('pd_gains',)),
 }
 
 

@@ -5,6 +5,7 @@ import numpy as np
 
 from soft_gripper_sdre.control.batched_linalg import batched_solve, well_conditioned_2x2
 from soft_gripper_sdre.control.compiled import compiled_network
+from soft_gripper_sdre.control.laws.integral import DEFAULT_INTEGRAL, IntegralAction
 from soft_gripper_sdre.control.sdre import SdreController
 from soft_gripper_sdre.control.tracking import DEFAULT_LOWPASS_HZ, LawIO, LawStep, Weights
 
@@ -51,14 +52,18 @@ def reference_acceleration(ref_acc, n: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def combine_feedforward(io: LawIO, feedback: LawStep, A2: np.ndarray, G2: np.ndarray, x_d: np.ndarray,
-                        finite: np.ndarray, ref_acc) -> LawStep:
-    """u = u_ff + K e: ``feedback`` is the SDRE's step on (e = x − x_d, x_d = 0), whose
-    u_unsat = K(x) e; (A2, G2) the SDC lower rows the feedforward inverts (:func:`model_inversion`).
-    A finger without feedforward (singular G₂, non-finite ``ref_acc``) is flagged ``fallback``."""
+                        finite: np.ndarray, ref_acc, u_extra: np.ndarray | None = None) -> LawStep:
+    """u = u_ff + K e (+ ``u_extra``, e.g. an integral term, before saturation): ``feedback`` is
+    the SDRE's step on (e = x − x_d, x_d = 0), whose u_unsat = K(x) e; (A2, G2) the SDC lower rows
+    the feedforward inverts (:func:`model_inversion`). A finger without feedforward (singular G₂,
+    non-finite ``ref_acc``) is flagged ``fallback``."""
     a_d, acc_ok = reference_acceleration(ref_acc, io.n_fingers)
     u_ff, ff_ok = model_inversion(A2, G2, x_d, a_d)
     ff_ok &= acc_ok
-    out = io.finish(u_ff + feedback.u_unsat, finite)                 # u = u_ff + K(x) e
+    u_unsat = u_ff + feedback.u_unsat                                 # u = u_ff + K(x) e
+    if u_extra is not None:
+        u_unsat += u_extra
+    out = io.finish(u_unsat, finite)
     out.ok, out.fallback = feedback.ok & finite, feedback.fallback | ~finite | ~ff_ok
     out.failed_checks, out.residual = feedback.failed_checks, feedback.residual
     out.K, out.Ks, out.P, out.nk_iterations = feedback.K, feedback.Ks, feedback.P, feedback.nk_iterations
@@ -89,11 +94,17 @@ class SdreFeedforwardLaw:
     ``fallback`` (the feedback still acts); ``ref_acc=None`` means a_d = 0. On the fast path a
     model with ``fused_network`` is evaluated inside the compiled step
     (:meth:`~soft_gripper_sdre.control.sdre.SdreController.track_feedforward`).
+
+    ``integral_gain`` k_i > 0 adds integral action on the position error before saturation,
+    u += k_i G₂(0)⁻¹ ∫(p_d − p)dt, integrating only while the finger is unsaturated and its error
+    is within ``integral_band`` [m] (:class:`~soft_gripper_sdre.control.laws.integral.IntegralAction`);
+    0 leaves the law without it, arithmetic unchanged.
     """
 
     def __init__(self, model, weights: Weights, u_max: float, n_fingers: int = 4,
                  method: str = 'fast', lowpass_hz: float = DEFAULT_LOWPASS_HZ, dt: float = 1e-3,
-                 ff_at: str = 'x') -> None:
+                 ff_at: str = 'x', integral_gain: float = DEFAULT_INTEGRAL['gain'],
+                 integral_band: float = DEFAULT_INTEGRAL['band']) -> None:
         self.io = LawIO(model.rest_tip, u_max, n_fingers, lowpass_hz, dt)
         if ff_at not in FF_AT:
             raise ValueError(f'ff_at must be one of {FF_AT}, got {ff_at!r}')
@@ -104,10 +115,18 @@ class SdreFeedforwardLaw:
         self._zero.flags.writeable = False
         self.network = compiled_network(model) if self.sdre.fast else None
         self._no_acc = np.zeros((self.n_fingers, 2))
+        if not (np.isfinite(integral_gain) and integral_gain >= 0):
+            raise ValueError(f'integral_gain must be finite and >= 0 (0 = off), got {integral_gain!r}')
+        self.integral = None
+        if integral_gain > 0:
+            _, G0 = model.AG(np.zeros(4))
+            self.integral = IntegralAction(G0[0, 2:, :], integral_gain, integral_band, u_max, self.n_fingers, dt)
 
     def reset(self) -> None:
         self.io.reset()
         self.sdre.reset()
+        if self.integral is not None:
+            self.integral.reset()
 
     def compute(self, pos, vel, ref_pos, ref_vel, ref_acc=None) -> LawStep:
         if self.network is not None:
@@ -127,7 +146,12 @@ class SdreFeedforwardLaw:
             step = self.sdre.step(A[:n], G[:n], x - xd, self._zero)
         if self.ff_at == 'ref':
             A2, G2 = A2[n:], G2[n:]
-        return combine_feedforward(self.io, step, A2, G2, xd, finite, ref_acc)
+        if self.integral is None:
+            return combine_feedforward(self.io, step, A2, G2, xd, finite, ref_acc)
+        u_i = np.where(finite[:, None], self.integral.torque(), 0.0)
+        out = combine_feedforward(self.io, step, A2, G2, xd, finite, ref_acc, u_extra=u_i)
+        self.integral.update(x[:, :2] - xd[:, :2], out.saturated, finite)
+        return out
 
     def _compiled_step(self, pos, vel, ref_pos, ref_vel, ref_acc) -> LawStep:
         """:meth:`compute` in one compiled call (the same law and flags)."""
@@ -137,5 +161,7 @@ class SdreFeedforwardLaw:
             raise ValueError(f'ref_acc must have shape ({self.n_fingers}, 2), got {np.shape(ref_acc)}')
         z = self.io.frame.stacked(pos, vel, ref_pos, ref_vel, ref_acc)
         out = self.sdre.track_feedforward(self.network, self.io.origin, self.ff_at == 'ref', z)
+        if self.integral is not None:
+            self.integral.apply(out, z[:, 0:2] - z[:, 4:6], self.sdre.feedforward.state_finite)
         out.u = self.io.roll_off(out.u)
         return out

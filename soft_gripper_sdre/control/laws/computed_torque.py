@@ -1,0 +1,81 @@
+"""Computed torque on the learned model: feedback linearisation with PD gains on the error."""
+from __future__ import annotations
+
+import numpy as np
+
+from soft_gripper_sdre.control import compiled
+from soft_gripper_sdre.control.laws.feedforward import model_inversion, reference_acceleration
+from soft_gripper_sdre.control.tracking import DEFAULT_LOWPASS_HZ, LawIO, LawStep
+
+#: tuned gains (natural frequency² [1/s²] and 2ζω [1/s] of the linearised error dynamics);
+#: ``python -m soft_gripper_sdre.tools.evaluate --tune computed_torque`` reproduces the tuning grid
+DEFAULT_CT = dict(kp=1.5e4, kd=80.0)
+#: largest condition number of G₂(x) the inversion accepts (as the feedforward's)
+CT_COND_MAX = 1e8
+
+
+class ComputedTorqueLaw:
+    """Computed torque with the learned SDC model (ẋ = A(x)x + G(x)u, lower rows A₂, G₂):
+
+        u = G₂(x)⁻¹ (a_d − A₂(x) x − k_p (p − p_d) − k_d (ṗ − ṗ_d))
+
+    The model's tip acceleration is then exactly ë = −k_p e − k_d ė (e = p − p_d): the same
+    linearisation as :class:`~soft_gripper_sdre.control.laws.feedforward.SdreFeedforwardLaw` with
+    ``ff_at='x'``, whose u = G₂(x)⁻¹(a_d − A₂(x)x_d) + K(x)(x − x_d) puts the Riccati gains K(x) where
+    this law puts −G₂(x)⁻¹(A₂(x) + [k_p I, k_d I]). It is the same model inversion
+    (:func:`~soft_gripper_sdre.control.laws.feedforward.model_inversion` at x with the desired
+    acceleration a_d − k_p e − k_d ė), with no Riccati equation.
+
+    Saturation and roll-off are those of every law. A finger whose G₂(x) is singular (cond ≥
+    :data:`CT_COND_MAX`) or whose torque is not finite gets zero torque and is flagged ``fallback``
+    (``ok`` False); a non-finite ``ref_acc`` counts as zero and is flagged ``fallback``. With
+    ``method='fast'`` a model with ``fused_network`` is evaluated by the compiled network kernel.
+
+    Args:
+        model: the learned SDC model (``sdc_blocks`` or ``AG``, ``rest_tip``).
+        u_max: torque saturation per input [N·m].
+        kp, kd: gains on the position [1/s²] and velocity [1/s] error, finite, kp > 0, kd ≥ 0.
+        n_fingers, lowpass_hz, dt, method: as for the other laws.
+    """
+
+    def __init__(self, model, u_max: float, kp: float = DEFAULT_CT['kp'], kd: float = DEFAULT_CT['kd'],
+                 n_fingers: int = 4, lowpass_hz: float = DEFAULT_LOWPASS_HZ, dt: float = 1e-3,
+                 method: str = 'fast') -> None:
+        self.io = LawIO(model.rest_tip, u_max, n_fingers, lowpass_hz, dt)
+        if not (np.isfinite(kp) and kp > 0 and np.isfinite(kd) and kd >= 0):
+            raise ValueError(f'kp must be > 0 and kd >= 0 (finite), got kp={kp!r}, kd={kd!r}')
+        self.model, self.kp, self.kd = model, float(kp), float(kd)
+        n = self.io.n_fingers
+        self.network = compiled.compiled_network(model) if method == 'fast' else None
+        self._a2, self._g2 = np.zeros((n, 2, 4)), np.zeros((n, 2, 2))
+        self._u, self._usable = np.zeros((n, 2)), np.zeros(n, dtype=np.bool_)
+
+    def reset(self) -> None:
+        self.io.reset()
+
+    def compute(self, pos, vel, ref_pos, ref_vel, ref_acc=None) -> LawStep:
+        x, xd, finite = self.io.states(pos, vel, ref_pos, ref_vel)
+        a_d, acc_ok = reference_acceleration(ref_acc, self.io.n_fingers)
+        e = x - xd
+        a_des = a_d - self.kp * e[:, :2] - self.kd * e[:, 2:]              # a_d − k_p e − k_d ė
+        u, usable = self.invert(x, a_des)
+        step = self.io.finish(u, finite)
+        step.ok &= usable
+        step.fallback |= ~usable | ~acc_ok
+        return step
+
+    def invert(self, x: np.ndarray, a_des: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(u (n,2), usable (n,)): u = G₂(x)⁻¹ (a_des − A₂(x) x), the model evaluated at x (n,4)."""
+        if self.network is not None:
+            x = compiled.kernel_array(x)
+            compiled.sdc_forward(x, *self.network, self._a2, self._g2)
+            compiled.model_inversion(self._a2, self._g2, x, compiled.kernel_array(a_des), CT_COND_MAX,
+                                     self._u, self._usable)
+            return self._u.copy(), self._usable.copy()
+        blocks = getattr(self.model, 'sdc_blocks', None)
+        if blocks is not None:
+            A2, G2 = blocks(x)
+        else:
+            A, G = self.model.AG(x)
+            A2, G2 = A[:, 2:, :], G[:, 2:, :]
+        return model_inversion(A2, G2, x, a_des, CT_COND_MAX)

@@ -1,0 +1,84 @@
+"""Integral action for a tracking law: removes the steady offset joint friction leaves where the
+reference is constant and reachable, without winding up at the torque limit or against the cube."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from soft_gripper_sdre.control.compiled import integral_step, integral_update, kernel_array
+from soft_gripper_sdre.control.tracking import LawStep
+
+#: the default law's integral action: gain k_i [1/s³] (0 = off) and the error band [m] inside which
+#: it integrates; docs/results.md "Integral action" has the tuning behind them
+DEFAULT_INTEGRAL = dict(gain=1.0e5, band=5e-4)
+#: time constant [s] with which the integral decays while the error is outside the band
+INTEGRAL_LEAK_S = 0.1
+
+
+class IntegralAction:
+    """u_I = k_i G₂(0)⁻¹ ξ,  ξ = ∫ (p_d − p) dt  per finger, with conditional integration.
+
+    The integral is a desired tip acceleration k_i ξ turned into torques by the learned input map
+    at rest (as the PD's gains are), so one gain serves both axes. Each step first adds u_I (from
+    the integral so far) to the law's unsaturated command, then updates ξ by Δt (p_d − p), but only
+    where that is safe:
+
+    * **saturated** (either torque of the finger beyond ``u_max`` with u_I added): ξ is frozen, so
+      the integral cannot wind up while the actuator cannot deliver more;
+    * **error outside the band** (‖p − p_d‖ > ``band``): the reference is not reachable now. That
+      is a grasping finger pressing on the cube, whose reference lies inside it so that the law's
+      stiffness sets the grip force; an integral there would keep raising the grip until the
+      torque saturates. ξ decays instead (time constant :data:`INTEGRAL_LEAK_S`), so in a held
+      contact the grip force returns to that of the law without integral action, and a finger
+      leaving the cube does not start from an integral built for the other direction of motion;
+    * a finger whose state is not finite: ξ is left as it is and gets no u_I this step.
+
+    ξ is also bounded so that |u_I| ≤ u_max on each torque. :meth:`reset` zeroes it.
+
+    Args:
+        g2_rest: (2, 2) the learned G₂ at rest [m/s² per N·m].
+        gain: k_i [1/s³], finite and > 0.
+        band: the error norm [m] inside which ξ integrates, finite and > 0.
+        u_max: torque saturation [N·m].
+        n_fingers: number of fingers.
+        dt: control period [s].
+    """
+
+    def __init__(self, g2_rest, gain: float, band: float, u_max: float, n_fingers: int, dt: float) -> None:
+        if not (math.isfinite(gain) and gain > 0):
+            raise ValueError(f'integral gain must be finite and > 0 (0 = no integral action), got {gain!r}')
+        if not (math.isfinite(band) and band > 0):
+            raise ValueError(f'integral band must be finite and > 0 m, got {band!r}')
+        if not (math.isfinite(u_max) and u_max > 0):
+            raise ValueError(f'u_max must be finite and > 0, got {u_max!r}')
+        g2 = np.asarray(g2_rest, dtype=float)
+        if g2.shape != (2, 2) or not np.all(np.isfinite(g2)) or abs(np.linalg.det(g2)) == 0.0:
+            raise ValueError(f'g2_rest must be a finite, invertible (2, 2) input map, got {g2_rest!r}')
+        self.gain, self.band, self.u_max, self.dt = float(gain), float(band), float(u_max), float(dt)
+        self.to_torque = self.gain * np.linalg.inv(g2)          # u_I = to_torque ξ
+        self.from_torque = g2 / self.gain                        # ξ = from_torque u_I
+        self.decay = math.exp(-self.dt / INTEGRAL_LEAK_S)
+        self.xi = np.zeros((int(n_fingers), 2))                  # ∫ (p_d − p) dt [m·s]
+
+    def reset(self) -> None:
+        self.xi[:] = 0.0
+
+    def torque(self) -> np.ndarray:
+        """(n, 2) u_I = k_i G₂(0)⁻¹ ξ [N·m] from the integral so far."""
+        return self.xi @ self.to_torque.T
+
+    def apply(self, step: LawStep, error: np.ndarray, finite: np.ndarray) -> None:
+        """Add :meth:`torque` to ``step``'s unsaturated command where ``finite`` and saturate it
+        again (``u``, ``u_unsat``, ``saturated`` in place, before the roll-off); then :meth:`update`
+        with the tracking error ``error`` = p − p_d (n, 2) [m]. One compiled call."""
+        for name in ('u', 'u_unsat', 'saturated'):
+            setattr(step, name, kernel_array(getattr(step, name), np.bool_ if name == 'saturated' else np.float64))
+        integral_step(self.xi, self.to_torque, self.from_torque, self.dt, self.band, self.decay, self.u_max,
+                      kernel_array(error), kernel_array(finite, np.bool_), step.u_unsat, step.u, step.saturated)
+
+    def update(self, error: np.ndarray, saturated: np.ndarray, finite: np.ndarray) -> None:
+        """One step of ξ from the error p − p_d (n, 2) [m], the (n, 2) saturation of the command that
+        used it, and which fingers' inputs were finite (the rules in the class docstring)."""
+        integral_update(self.xi, self.to_torque, self.from_torque, self.dt, self.band, self.decay, self.u_max,
+                        kernel_array(error), kernel_array(saturated, np.bool_), kernel_array(finite, np.bool_))
