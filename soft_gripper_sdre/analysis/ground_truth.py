@@ -111,12 +111,13 @@ def linear_finger(dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 def loop_spectral_radius(plant, model, Q: np.ndarray, R: np.ndarray, accel_psd: float,
                          meas_std: float, dt: float = 1e-3,
-                         lowpass_hz: float = 0.0) -> tuple[float, float]:
+                         lowpass_hz: float = 0.0, capped: bool = True) -> tuple[float, float]:
     """(largest |eigenvalue|, its frequency [Hz]) of the sampled loop: plant (Ad, Bd, C) from
     :func:`linear_finger`, steady-state KF, gains frozen at the model's origin, and the optional
     first-order roll-off on the command (:class:`~soft_gripper_sdre.control.tracking.RollOff`, its
-    corner capped at a tenth of the sampling rate as every law caps it). > 1 means a mode that
-    grows when nothing but the linear dynamics act on it."""
+    corner capped at a tenth of the sampling rate as every law caps it; ``capped=False``: the
+    corner as asked, for comparison). > 1 means a mode that grows when nothing but the linear
+    dynamics act on it."""
     Ad, Bd, C = plant
     A0, G0 = model.AG(np.zeros(4))
     K, _, _ = sdre_gains(A0[0], G0[0], Q, R)
@@ -125,7 +126,8 @@ def loop_spectral_radius(plant, model, Q: np.ndarray, R: np.ndarray, accel_psd: 
     Af = (np.eye(4) - L @ kf.H) @ kf.F
     # state [z_k, x̂_{k−1}, u_{k−1}]:  x̂_k = Af x̂_{k−1} + L C z_k,
     # u_k = a u_{k−1} + (1 − a) K x̂_k (a = 0 without roll-off),  z_{k+1} = Ad z_k + Bd u_k
-    a = RollOff(lowpass_hz, dt).alpha
+    hz = RollOff(lowpass_hz, dt).hz if capped else lowpass_hz
+    a = float(np.exp(-2.0 * np.pi * hz * dt)) if hz > 0 else 0.0
     Uz, Ux, Uu = (1 - a) * K @ L @ C, (1 - a) * K @ Af, a * np.eye(2)
     closed = np.block([[Ad + Bd @ Uz, Bd @ Ux, Bd @ Uu],
                        [L @ C, Af, np.zeros((4, 2))],
