@@ -57,3 +57,20 @@ def test_torque_roll_off_cuts_the_spillover_growth():
     rolled, _ = loop_spectral_radius(plant, model, w.Q, w.R, 1.0, 5e-5, lowpass_hz=DEFAULT_LOWPASS_HZ)
     assert 50.0 < f_bare < 65.0                      # the finger's fourth bending mode (~59 Hz)
     assert (rolled - 1.0) < 0.2 * (bare - 1.0)
+
+
+def test_a_long_period_destabilises_the_23_hz_bend_and_the_capped_roll_off_slows_it():
+    """At 10 ms the frictionless loop's least stable mode is the finger's ~23 Hz bend (moved to
+    ~25–30 Hz by the loop), not the ~59 Hz one of the 1 ms loop. A 40 Hz corner hardly attenuates
+    it; the corner capped at a tenth of the sampling rate (10 Hz) halves its growth per second
+    (docs/design/control_period.md)."""
+    from soft_gripper_sdre.control.tracking import DEFAULT_LOWPASS_HZ, DEFAULT_WEIGHTS
+    dt = 1e-2
+    plant = linear_finger(dt)
+    w = Weights(**DEFAULT_WEIGHTS)
+    fixed_40, f_fixed = loop_spectral_radius(plant, SDCModel(), w.Q, w.R, 1.0, 5e-5, dt=dt,
+                                             lowpass_hz=DEFAULT_LOWPASS_HZ, capped=False)
+    capped, _ = loop_spectral_radius(plant, SDCModel(), w.Q, w.R, 1.0, 5e-5, dt=dt, lowpass_hz=DEFAULT_LOWPASS_HZ)
+    assert 20.0 < f_fixed < 35.0
+    assert fixed_40 > 1.0
+    assert np.log(capped) < 0.5 * np.log(fixed_40)             # growth per step (and per second)

@@ -148,3 +148,17 @@ def test_pbh_tests_find_an_unstable_mode_that_the_input_or_the_output_misses():
     assert not is_detectable(A_DI, np.hstack([np.zeros((2, 2)), np.eye(2)]))
     stable = -np.eye(4)
     assert is_stabilizable(stable, np.zeros((4, 2))) and is_detectable(stable, np.zeros((1, 4)))
+
+
+def test_the_roll_off_corner_is_capped_at_a_tenth_of_the_sampling_rate():
+    """40 Hz up to a 2.5 ms period (the 1 ms filter bit for bit), then 0.1 / Δt; off stays off."""
+    from soft_gripper_sdre.control.tracking import RollOff, roll_off_corner_hz
+    assert RollOff(40.0, 1e-3).alpha == np.exp(-2 * np.pi * 40.0 * 1e-3)
+    assert roll_off_corner_hz(40.0, 2e-3) == 40.0
+    assert roll_off_corner_hz(40.0, 5e-3) == pytest.approx(20.0)
+    assert RollOff(40.0, 1e-2).hz == pytest.approx(10.0)
+    assert roll_off_corner_hz(7.5, 1e-2) == 7.5                   # a lower corner is kept
+    assert RollOff(0.0, 1e-2).alpha == 0.0
+    for dt in (0.0, -1e-3, float('nan')):
+        with pytest.raises(ValueError, match='control period'):
+            RollOff(40.0, dt)

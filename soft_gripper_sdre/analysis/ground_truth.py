@@ -5,9 +5,10 @@
 * :func:`input_matrix_survey` — the finger's true input matrix J M⁻¹ B (tip acceleration per unit
   torque, friction off) at static poses across the workspace, beside the learned G2 at the same
   states: column directions and magnitudes.
-* :func:`loop_spectral_radius` — the 1 ms loop (ZOH plant, steady-state constant-velocity KF,
-  frozen SDRE gains) closed around the *full* linearised 10-joint finger with friction off: the
-  growth per step of its least stable mode. It explains why the loop leans on joint friction.
+* :func:`loop_spectral_radius` — the sampled loop (ZOH plant, steady-state constant-velocity KF,
+  frozen SDRE gains, the roll-off) closed around the *full* linearised 10-joint finger with
+  friction off, at any control period: the growth per step of its least stable mode. It explains
+  why the loop leans on joint friction, and which bending mode a long period destabilises.
 """
 from __future__ import annotations
 
@@ -18,6 +19,7 @@ from scipy.linalg import expm
 
 from soft_gripper_sdre.control.kf import ConstantVelocityKF
 from soft_gripper_sdre.control.riccati import sdre_gains
+from soft_gripper_sdre.control.tracking import RollOff
 from soft_gripper_sdre.sim.dynamics import FingerDynamics
 from soft_gripper_sdre.sim.hand import GripperSim, SimConfig
 
@@ -109,11 +111,13 @@ def linear_finger(dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 def loop_spectral_radius(plant, model, Q: np.ndarray, R: np.ndarray, accel_psd: float,
                          meas_std: float, dt: float = 1e-3,
-                         lowpass_hz: float = 0.0) -> tuple[float, float]:
+                         lowpass_hz: float = 0.0, capped: bool = True) -> tuple[float, float]:
     """(largest |eigenvalue|, its frequency [Hz]) of the sampled loop: plant (Ad, Bd, C) from
     :func:`linear_finger`, steady-state KF, gains frozen at the model's origin, and the optional
-    first-order roll-off on the command (as :class:`~soft_gripper_sdre.control.laws.SdreLaw`
-    applies it). > 1 means a mode that grows when nothing but the linear dynamics act on it."""
+    first-order roll-off on the command (:class:`~soft_gripper_sdre.control.tracking.RollOff`, its
+    corner capped at a tenth of the sampling rate as every law caps it; ``capped=False``: the
+    corner as asked, for comparison). > 1 means a mode that grows when nothing but the linear
+    dynamics act on it."""
     Ad, Bd, C = plant
     A0, G0 = model.AG(np.zeros(4))
     K, _, _ = sdre_gains(A0[0], G0[0], Q, R)
@@ -122,7 +126,8 @@ def loop_spectral_radius(plant, model, Q: np.ndarray, R: np.ndarray, accel_psd: 
     Af = (np.eye(4) - L @ kf.H) @ kf.F
     # state [z_k, x̂_{k−1}, u_{k−1}]:  x̂_k = Af x̂_{k−1} + L C z_k,
     # u_k = a u_{k−1} + (1 − a) K x̂_k (a = 0 without roll-off),  z_{k+1} = Ad z_k + Bd u_k
-    a = float(np.exp(-2 * np.pi * lowpass_hz * dt)) if lowpass_hz > 0 else 0.0
+    hz = RollOff(lowpass_hz, dt).hz if capped else lowpass_hz
+    a = float(np.exp(-2.0 * np.pi * hz * dt)) if hz > 0 else 0.0
     Uz, Ux, Uu = (1 - a) * K @ L @ C, (1 - a) * K @ Af, a * np.eye(2)
     closed = np.block([[Ad + Bd @ Uz, Bd @ Ux, Bd @ Uu],
                        [L @ C, Af, np.zeros((4, 2))],

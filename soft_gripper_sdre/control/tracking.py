@@ -77,6 +77,28 @@ DEFAULT_WEIGHTS = dict(q_pos=1.0e6, q_vel=0.0, r=1.6e4)
 #: first-order roll-off of the torque command [Hz]: cuts the loop's feed into the finger's
 #: unmodelled ~59 Hz bending mode (README), well above the 3 and 9 Hz modes the model captures
 DEFAULT_LOWPASS_HZ = 40.0
+#: the roll-off's corner is at most this fraction of the sampling rate 1/Δt (:func:`roll_off_corner_hz`)
+ROLL_OFF_RATE_FRACTION = 0.1
+
+
+def roll_off_corner_hz(hz: float, dt: float) -> float:
+    """The corner the roll-off uses at control period ``dt`` [s]: ``hz``, or a tenth of the sampling
+    rate where that is lower, min(hz, 0.1 / dt); 0 (off) stays 0.
+
+    The command is held for a whole period, which lags the loop by about Δt/2. With a corner fixed
+    in Hz, that lag destabilises the finger's unmodelled ~23 Hz bending mode at long periods, a mode
+    the 40 Hz corner hardly attenuates (docs/design/control_period.md). A corner at a tenth of the
+    sampling rate cuts that mode harder the longer the period; up to 2.5 ms the cap is above 40 Hz
+    and the default corner is the one asked for.
+
+    Raises:
+        ValueError: ``hz`` is not finite and >= 0, or ``dt`` is not finite and > 0.
+    """
+    if not (np.isfinite(hz) and hz >= 0.0):
+        raise ValueError(f'lowpass_hz must be finite and >= 0 (0 = off), got {hz!r}')
+    if not (np.isfinite(dt) and dt > 0.0):
+        raise ValueError(f'the control period dt must be finite and > 0 s, got {dt!r}')
+    return float(min(hz, ROLL_OFF_RATE_FRACTION / dt)) if hz > 0 else 0.0
 
 
 class RollOff:
@@ -84,17 +106,19 @@ class RollOff:
 
         u_k = a u_{k−1} + (1 − a) v_k,    a = e^{−2π f Δt},    u_0 = v_0,
 
-    with v_k the law's saturated command. f = 0 turns it off (u_k = v_k).
+    with v_k the law's saturated command and f the corner asked for, capped at a tenth of the
+    sampling rate (:func:`roll_off_corner_hz`). f = 0 turns it off (u_k = v_k).
 
     Args:
-        hz: corner frequency f [Hz], finite and >= 0.
-        dt: control period Δt [s].
+        hz: corner frequency asked for [Hz], finite and >= 0.
+        dt: control period Δt [s], finite and > 0.
+
+    ``hz`` is the corner in use [Hz].
     """
 
     def __init__(self, hz: float, dt: float) -> None:
-        if not (np.isfinite(hz) and hz >= 0.0):
-            raise ValueError(f'lowpass_hz must be finite and >= 0 (0 = off), got {hz!r}')
-        self.alpha = float(np.exp(-2.0 * np.pi * hz * dt)) if hz > 0 else 0.0
+        self.hz = roll_off_corner_hz(hz, dt)
+        self.alpha = float(np.exp(-2.0 * np.pi * self.hz * dt)) if self.hz > 0 else 0.0
         self._beta = 1.0 - self.alpha
         self._u = None
 

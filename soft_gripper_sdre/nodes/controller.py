@@ -39,7 +39,7 @@ from trajectory_msgs.msg import MultiDOFJointTrajectory
 from soft_gripper_sdre import FINGER_NAMES
 from soft_gripper_sdre.control.command_gate import Change, CommandGate, Notice, Outcome, Plan
 from soft_gripper_sdre.control.compiled import warm_up
-from soft_gripper_sdre.control.tracking import DEFAULT_LOWPASS_HZ, DEFAULT_WEIGHTS, Weights
+from soft_gripper_sdre.control.tracking import DEFAULT_LOWPASS_HZ, DEFAULT_WEIGHTS, Weights, roll_off_corner_hz
 from soft_gripper_sdre.control.horizon import sample_plan
 from soft_gripper_sdre.control.laws import DEFAULT_INTEGRAL, DEFAULT_LAW, GRAPH_LAWS, LAW_REGISTRY, make_law
 from soft_gripper_sdre.learning.model import ModelFileError, SDCModel, set_torch_threads
@@ -66,7 +66,8 @@ PARAMS = (
     Param('torque_limit', 0.0625, 'saturation of each torque (0.0625 N·m = 25 sim units, the '
           'stable range of the physics step)', 'N·m', 1e-6, 1.0, read_only=True),
     Param('torque_lowpass_hz', DEFAULT_LOWPASS_HZ, 'first-order roll-off of the torque command '
-          '(keeps the loop out of the finger\'s ~59 Hz bending mode; 0 = off)', 'Hz', 0.0, 500.0,
+          '(keeps the loop out of the finger\'s ~59 Hz bending mode; 0 = off); its corner is capped '
+          'at a tenth of the control rate, 0.1 / control_period (10 Hz at 10 ms)', 'Hz', 0.0, 500.0,
           read_only=True),
     Param('control_period', 0.001, 'period of the estimates (the roll-off filter\'s step)', 's',
           1e-4, 0.05, read_only=True),
@@ -161,13 +162,15 @@ class ControllerNode(Node):
         cdr.watch(self.diag, self.cdr_estimate, self.cdr_plan)
         self.diag.values['model'] = str(model.path)
         self.diag.values['weights'] = f'q_pos={weights.q_pos:g} q_vel={weights.q_vel:g} r={weights.r:g}'
+        self.diag.values['roll_off_hz'] = f'{roll_off_corner_hz(p["torque_lowpass_hz"], p["control_period"]):g}'
         self._watchdog = self.create_timer(0.05, lambda: self._act(self.gate.on_wall_time(time.monotonic())))
         self.diag.before_publish.append(self._compute_stats)
         integral_note = f'; integral gain {integral["integral_gain"]:g}' if integral else ''
         self.get_logger().info(
             f'model {model.path.name} (rest tip {1e3 * model.rest_tip[0]:.1f}, '
             f'{1e3 * model.rest_tip[1]:.1f} mm); {self.diag.values["weights"]}; '
-            f'limit {p["torque_limit"]:g} N·m; {p["solver"]} solver; law {p["law"]}'
+            f'limit {p["torque_limit"]:g} N·m, rolled off at {self.diag.values["roll_off_hz"]} Hz; '
+            f'{p["solver"]} solver; law {p["law"]}'
             f'{" with Q(x)" if p["state_weights"] else ""}{integral_note}; fingers {", ".join(self.names)}'
             + (f'; efforts also on {self.pub_effort.topic_name} for {", ".join(p["effort_joints"])}'
                if self.pub_effort is not None else ''))

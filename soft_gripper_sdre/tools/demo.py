@@ -38,9 +38,9 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument('--seed', type=int, default=None, help='measurement noise seed (default: config)')
     ap.add_argument('--period', type=float, default=None, metavar='MS',
                     help='control period of the whole loop [ms], from 1 to 10: the simulator, the '
-                         'estimator and the controller all take it (default: the config files, 1 ms; '
-                         'the default weights hold only the shorter periods: docs/results.md '
-                         '"Control rates")')
+                         'estimator and the controller all take it, the torque roll-off\'s corner is '
+                         'capped at a tenth of the control rate (default: the config files, 1 ms; '
+                         'tracking per period: docs/results.md "Control rates")')
     ap.add_argument('--law', default=None, choices=GRAPH_LAWS,
                     help='control law of the controller node (default: config/controller.yaml)')
     ap.add_argument('--fingers', default=None, metavar='NAME=HAND_FINGER,...',
