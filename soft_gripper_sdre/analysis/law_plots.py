@@ -92,7 +92,7 @@ def plot_laws(results: dict, labels: dict, scores: dict[str, tuple[float, bool]]
     ax_e.set_ylim(1e-3, 1e1)
     ax_e.set_ylabel('finger 0 tip error [mm]\n(in contact while closed)')
     ax_e.set_xlabel('time [s]   (true tip from the simulator)')
-    ax_y.legend(loc='upper left', fontsize=7, framealpha=0.9)     # the rest pose's hold: no data there
+    ax_y.legend(loc='center', fontsize=7, framealpha=0.9)     # below the closed fingers: no data there
     fig.suptitle(f'{trajectory}: every law on the same plant, reference and noise', y=0.99)
     fig.subplots_adjust(left=0.2, right=0.98, top=0.88, bottom=0.1)
     path = Path(path)
