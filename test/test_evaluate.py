@@ -16,7 +16,7 @@ def model():
 
 @pytest.fixture(scope='module')
 def fast_runs(model):
-    """The four laws of the issue's expectation, the feedforward laws beyond the paper (SDRE with and
+    """The four laws of the expectation (docs/results.md "Beyond the paper"), the feedforward laws beyond the paper (SDRE with and
     without integral action, oracle and PD with the reference acceleration) and computed torque, on
     the first 1.5 s of the fast grasp (closing, holding, half the opening), with the default noise
     and weights."""
@@ -37,7 +37,7 @@ def test_every_law_tracks_the_fast_grasp_without_failed_checks(fast_runs):
 
 @pytest.mark.slow
 def test_learned_sdre_is_within_1_5x_of_the_oracle(fast_runs):
-    """The issue's expectation, second half: holds as measured."""
+    """The expectation, second half: holds as measured."""
     assert fast_runs['sdre'].rmse_mm_grasp <= 1.5 * fast_runs['oracle'].rmse_mm_grasp
 
 
@@ -45,7 +45,7 @@ def test_learned_sdre_is_within_1_5x_of_the_oracle(fast_runs):
 @pytest.mark.xfail(strict=True, reason='measured: the learned SDRE does not beat LQR frozen at the origin '
                    'and the tuned PD on free-space RMSE (docs/results.md "Beyond the paper")')
 def test_learned_sdre_beats_lqr_and_pd(fast_runs):
-    """The issue's expectation, first half: does NOT hold as measured (strict xfail: this test
+    """The expectation, first half: does NOT hold as measured (strict xfail: this test
     starts failing the day it holds, so docs/results.md must then be updated)."""
     s = fast_runs['sdre'].rmse_mm_grasp
     assert s < fast_runs['lqr'].rmse_mm_grasp and s < fast_runs['pd'].rmse_mm_grasp

@@ -243,7 +243,7 @@ def test_on_the_sagging_plants_the_grasp_stops_short_of_the_cube_and_holds_with_
 @pytest.mark.xfail(strict=True, reason='measured: the grasp travels 30 mm from rest, and on the sagging plants '
                    'the finger rests ~3 mm further out (docs/results.md "Robustness to the plant")')
 def test_default_law_keeps_the_grasp_on_every_variation(claims_grid):
-    """The issue's target as stated: does NOT hold as measured (strict xfail: fails the day it holds)."""
+    """The robustness target as stated: does NOT hold as measured (strict xfail: fails the day it holds)."""
     assert all(claims_grid[DEFAULT_LAW, v, 'grasp'].grasp_success for v in VARIATIONS)
 
 

@@ -355,8 +355,8 @@ def write_report(out: Path, summaries: list[RunSummary], figures: list[str], mod
 
 
 def expectation_verdict(summaries: list[RunSummary]) -> dict:
-    """The issue's expectation, per trajectory: learned SDRE beats LQR and PD on free-space RMSE
-    (grasping fingers) and is within 1.5× of the oracle — for the paper's law (``sdre`` against
+    """The expectation of docs/results.md "Beyond the paper", per trajectory: learned SDRE beats
+    LQR and PD on free-space RMSE (grasping fingers) and is within 1.5× of the oracle — for the paper's law (``sdre`` against
     ``oracle``) and, when run, the feedforward law (``sdre_ff`` against ``oracle_ff`` if run, else
     ``oracle``)."""
     out = {}
