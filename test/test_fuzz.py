@@ -15,7 +15,7 @@ from trajectory_msgs.msg import MultiDOFJointTrajectory, MultiDOFJointTrajectory
 
 from faults_common import record
 from node_harness import FAST_GRASP as FAST, make_controller, make_estimator, make_trajectory
-from rosutil import Probe, overrides, ros_context, spin_until
+from rosutil import Probe, drain, overrides, ros_context, spin_until
 from soft_gripper_sdre.learning.model import SDCModel
 from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.estimator import MESSAGE_OUTCOMES
@@ -219,7 +219,12 @@ def test_fuzzed_clock_ticks_restart_the_plan_and_nothing_else():
             return msg
         _fuzz(executor, probe.clock, hostile_tick, node, ('ticks',))
         plans = probe.received[GRASP_REFERENCE]
-        assert c['resets'] > 100 and spin_until(executor, lambda: len(plans) == c['references'] == 1 + c['resets'])
+        assert c['resets'] > 100 and c['references'] == 1 + c['resets']     # one plan per restart
+        # the plan's writer keeps only the newest (REFERENCE_QOS): a reader that falls behind a
+        # burst of restarts misses some plans, still gets the newest (reliable), never an extra one
+        assert spin_until(executor, lambda: len(plans) >= 2)
+        drain(executor, 1.0)
+        assert len(plans) <= c['references']
         first = cv.msg_to_reference(plans[0], 4)
         for msg in plans[1:]:
             for a, b in zip(cv.msg_to_reference(msg, 4), first):
