@@ -8,29 +8,10 @@ from soft_gripper_sdre.control.laws.integral import INTEGRAL_LEAK_S
 from soft_gripper_sdre.control.tracking import Weights
 from soft_gripper_sdre.learning.model import SDCModel
 
-REST = np.array([0.01, -0.02, 0.3])
+from sdc_models import REST, StiffeningModel
+
 W = Weights(1e6, 0.0, 1.6e4)
 G2 = np.array([[15.0, 640.0], [-620.0, -8.0]])
-
-
-class StiffeningModel:
-    """A state-dependent SDC model (AG only): ẍ = −k(1 + (p/p₀)²) p − c v + G₂(p) u."""
-
-    rest_tip = REST
-
-    def AG(self, x):
-        x = np.atleast_2d(x)
-        n = len(x)
-        A = np.zeros((n, 4, 4))
-        A[:, 0, 2] = A[:, 1, 3] = 1.0
-        s = 1.0 + (x[:, :2] / 5e-3) ** 2
-        A[:, 2, 0], A[:, 3, 1] = -300.0 * s[:, 0], -900.0 * s[:, 1]
-        A[:, 2, 2] = A[:, 3, 3] = -2.0
-        th = 20.0 * x[:, 1]
-        G = np.zeros((n, 4, 2))
-        G[:, 2, 0], G[:, 2, 1] = 10.0 * np.cos(th), 600.0 + 50.0 * np.sin(th)
-        G[:, 3, 0], G[:, 3, 1] = -600.0, 5.0 + 100.0 * x[:, 0]
-        return A, G
 
 
 def random_states(rng, n, spread=3e-3):

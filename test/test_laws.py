@@ -10,7 +10,7 @@ from soft_gripper_sdre.control.laws import (GRAPH_LAWS, LAW_REGISTRY, AdaptiveSd
 from soft_gripper_sdre.control.riccati import sdre_gains
 from soft_gripper_sdre.control.tracking import Weights
 
-REST = np.array([0.01, -0.02, 0.3])
+from sdc_models import REST, StiffeningModel
 
 
 class LinearModel:
@@ -132,26 +132,6 @@ def test_oracle_needs_the_plant_state():
 
 SPRING = dict(A21=-np.diag([300.0, 900.0]), G2=np.array([[10.0, 600.0], [-600.0, 5.0]]))
 W = Weights(1e6, 0.0, 1.6e4)
-
-
-class StiffeningModel:
-    """A state-dependent SDC model: ẍ = −k(1 + (p/p₀)²) p − c v + G₂(p) u, G₂ rotating with p."""
-
-    rest_tip = REST
-
-    def AG(self, x):
-        x = np.atleast_2d(x)
-        n = len(x)
-        A = np.zeros((n, 4, 4))
-        A[:, 0, 2] = A[:, 1, 3] = 1.0
-        s = 1.0 + (x[:, :2] / 5e-3) ** 2
-        A[:, 2, 0], A[:, 3, 1] = -300.0 * s[:, 0], -900.0 * s[:, 1]
-        A[:, 2, 2] = A[:, 3, 3] = -2.0
-        th = 20.0 * x[:, 1]
-        G = np.zeros((n, 4, 2))
-        G[:, 2, 0], G[:, 2, 1] = 10.0 * np.cos(th), 600.0 + 50.0 * np.sin(th)
-        G[:, 3, 0], G[:, 3, 1] = -600.0, 5.0 + 100.0 * x[:, 0]
-        return A, G
 
 
 def sine_reference(t, amp=np.array([2e-3, 4e-3]), w=2 * np.pi * 3.0):
