@@ -105,7 +105,9 @@ def test_crashed_node_is_restarted_and_the_grasp_recovers(victim, tmp_path):
     params = {'recorder': {'output': str(bag), 'topics': [TIP_POSITIONS, TORQUE_COMMANDS, STATE_ESTIMATE,
                                                           GRASP_REFERENCE, CUBE_CONTACTS, DIAGNOSTICS]},
               'estimator': {}, 'trajectory': dict(SHORT), 'controller': {},
-              'simulator': {'duration': duration, 'lockstep_timeout': 0.05, 'on_timeout': 'hold'}}
+              # the loop waits out a loaded machine's stalls when the victim is not in it
+              'simulator': {'duration': duration, 'lockstep_timeout': 0.05 if victim in IN_THE_LOOP else 1.0,
+                            'on_timeout': 'hold'}}
     with ros_context() as (ctx, executor), Graph(env, tmp_path / 'logs') as graph:
         probe = Probe(ctx)
         probe.listen(PoseArray, TIP_POSITIONS, LOOP_QOS)
@@ -185,13 +187,14 @@ def test_crashed_node_is_restarted_and_the_grasp_recovers(victim, tmp_path):
         # the rest pose) publishes the same plan again
         plans = [cv.msg_to_reference(m, 4) for _, m in data['/grasp_reference']]
         assert len(plans) == 2 and all(np.array_equal(a, b) for a, b in zip(*plans))
-        answered = {s for s, _ in cmds}
-        unanswered = [s for s in range(0, steps * MS, MS) if s not in answered]
-        assert len(unanswered) < 5, unanswered         # (a stall of the loaded machine, if any)
+        # every period stepped on its own command, by the simulator's count (the bag may miss some
+        # a starved recorder dropped)
+        sim = last['simulator']
+        assert (timeouts, safe, int(sim.get('late_command', 0)), int(sim['commands'])) == (0, 0, 0, steps), sim
         killed_ns = back_ns = killed_at_ns
         rec = recovery_time(t / cv.NS, err, free, excursion, since=KILL_AT)
-        notes = (f'{len(unanswered)} period(s) without a command in the run: the controller tracks the '
-                 'plan it has; the restarted node, given the rest pose, sends the same plan again')
+        notes = ('every period stepped on its own command: the controller tracks the plan it has; the '
+                 'restarted node, given the rest pose, sends the same plan again')
     print(f'{victim}: last output at {killed_ns / cv.NS:.3f} s, tracking at {back_ns / cv.NS:.3f} s, '
           f'recovery {rec:.3f} s; timeouts {timeouts}, safe periods {safe}, lost {lost}')
     assert rec <= 1.0, rec

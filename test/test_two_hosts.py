@@ -14,7 +14,7 @@ import subprocess
 import numpy as np
 import pytest
 
-from faults_common import record, recovery_time
+from faults_common import on_target, record, recovery_time
 from multi_graph import DURATION, SHORT_GRASP, TARGET_PCT, worst_pct
 from soft_gripper_sdre.analysis.bag import extract_run
 from soft_gripper_sdre.tools.hands import PATIENT_LOCKSTEP, published_and_recorded, trouble
@@ -135,10 +135,11 @@ def test_link_down_for_half_a_second_and_the_loop_resumes_by_itself(host_pair, t
     assert accounts['state_estimate'][0] + missed in (STEPS, STEPS + 1), (accounts, missed)
     data = extract_run(run.bag)
     fingers = report(run.bag, tmp_path / 'report')['fingers']
-    assert worst_pct(fingers) <= TARGET_PCT, fingers
-    # back on target: the moving free-space error of the grasping fingers from the cut on (at
-    # this pace an opening finger lags its 4 mm reference by several % over 100 ms windows even
-    # without a fault, docs/faults.md, which would hide the recovery)
+    # on target before the cut and back on target after it: the moving free-space error of the
+    # grasping fingers (at this pace an opening finger lags its 4 mm reference by several % over
+    # 100 ms windows even without a fault, docs/faults.md, which would hide the recovery). The
+    # whole run's RMSE is printed, not judged: it counts the zero-torque periods of the outage,
+    # and how many there are depends on the machine's pace while the link is down
     contact = np.asarray(data.contacts.values)[np.clip(np.searchsorted(data.contacts.t, data.tips.t, 'right') - 1,
                                                        0, len(data.contacts.t) - 1)] > 0
     ref = data.reference.values[..., :2]
@@ -146,6 +147,8 @@ def test_link_down_for_half_a_second_and_the_loop_resumes_by_itself(host_pair, t
     err = np.linalg.norm(data.tips.values - ref, axis=2)[valid]
     excursion = np.linalg.norm(ref[valid] - ref[valid][0], axis=2).max(axis=0)
     excursion = np.where(excursion > 0.02, excursion, 0.0)          # the two grasping fingers alone
+    ends, ok = on_target(data.tips.t[valid], err, ~contact[valid], excursion)
+    assert ok[ends < fault['down_sim_time']].all()
     recovery = recovery_time(data.tips.t[valid], err, ~contact[valid], excursion, since=fault['down_sim_time'])
     assert recovery <= 0.5, recovery
     problems = trouble(run)
