@@ -20,6 +20,12 @@ def started(**kwargs) -> Stepping:
     return stepping
 
 
+def overdue(s: Stepping, wall: float):
+    """The watchdog's two looks past the deadline: the first never steps, the second's result."""
+    assert s.on_wall_time(wall) is None
+    return s.on_wall_time(wall)
+
+
 def test_lockstep_steps_once_per_command_of_the_current_period():
     s = started()
     for k in range(3):
@@ -76,7 +82,7 @@ def test_lockstep_timeout_steps_with_the_held_or_zero_command_and_counts(policy,
     s.on_command(0, torque(4))
     s.await_command(10.0)                                 # tips of period 1 went out at 10 s
     assert s.on_wall_time(10.49) is None
-    u = s.on_wall_time(10.5)
+    u = overdue(s, 10.5)
     np.testing.assert_array_equal(u, expected)
     assert s.k == 2 and s.counters['timeouts'] == 1 and s.counters['steps'] == 2
     # the missed period's command arrives after all: counted, not applied
@@ -87,18 +93,33 @@ def test_lockstep_timeout_steps_with_the_held_or_zero_command_and_counts(policy,
     assert s.on_command(2 * MS, torque(6)).step is not None and s.k == 3
 
 
+def test_a_command_waiting_behind_the_first_late_look_steps_its_period_not_a_timeout():
+    """A starved simulator wakes with its watchdog and the command both ready; the executor runs
+    the watchdog first. Its first look past the deadline waits, the command is taken, no timeout."""
+    s = started(timeout=0.05)
+    s.on_command(0, torque(4))
+    s.await_command(10.0)
+    assert s.on_wall_time(10.3) is None                   # long past the deadline: the first look
+    out = s.on_command(1 * MS, torque(5))
+    assert out.step is not None and s.k == 2 and 'timeouts' not in s.counters and not s.lost
+    s.await_command(10.3)                                 # the next period gets its own two looks
+    assert s.on_wall_time(10.36) is None
+    np.testing.assert_array_equal(s.on_wall_time(10.37), torque(5))
+    assert s.counters['timeouts'] == 1
+
+
 def test_after_a_timeout_lost_commands_step_with_zero_after_a_short_wait_until_one_arrives():
     s = started(timeout=0.5, lost_command_wait=0.01)
     s.on_command(0, torque(4))
     s.await_command(10.0)                                 # period 1: awaited until 10.5 s
-    np.testing.assert_array_equal(s.on_wall_time(10.5), torque(4))    # the timeout holds
+    np.testing.assert_array_equal(overdue(s, 10.5), torque(4))        # the timeout holds
     assert s.lost and s.lost_since_ns == 1 * MS and s.counters['timeouts'] == 1
     s.await_command(10.5)                                 # period 2: awaited 0.01 s only
     assert s.deadline == pytest.approx(10.51)
     assert s.on_wall_time(10.505) is None
-    np.testing.assert_array_equal(s.on_wall_time(10.51), 0.0)
+    np.testing.assert_array_equal(overdue(s, 10.51), 0.0)
     s.await_command(10.51)
-    np.testing.assert_array_equal(s.on_wall_time(10.52), 0.0)
+    np.testing.assert_array_equal(overdue(s, 10.52), 0.0)
     assert s.counters['safe_periods'] == 2 and s.counters['timeouts'] == 1 and s.k == 4
     s.await_command(10.52)
     out = s.on_command(4 * MS, torque(5))                 # commands are back: tracking
@@ -113,7 +134,7 @@ def test_before_the_loop_ever_answered_every_period_waits_the_full_timeout():
     for k in range(3):
         s.await_command(10.0 + k)
         assert s.on_wall_time(10.49 + k) is None
-        np.testing.assert_array_equal(s.on_wall_time(10.5 + k), 0.0)
+        np.testing.assert_array_equal(overdue(s, 10.5 + k), 0.0)
     assert s.counters['timeouts'] == 3 and not s.lost and 'safe_periods' not in s.counters
 
 
@@ -121,9 +142,9 @@ def test_a_late_command_while_lost_ends_the_short_wait_the_loop_is_slow_not_dead
     s = started(timeout=0.5, lost_command_wait=0.01)
     s.on_command(0, torque(4))
     s.await_command(10.0)
-    s.on_wall_time(10.5)                                  # timeout: period 1 held
+    overdue(s, 10.5)                                      # timeout: period 1 held
     s.await_command(10.5)
-    s.on_wall_time(10.51)                                 # period 2 zero
+    overdue(s, 10.51)                                     # period 2 zero
     s.await_command(10.51)
     out = s.on_command(2 * MS, torque(5))                 # period 2's answer, after all
     assert out.step is None and out.resumed and s.counters['late_command'] == 1
@@ -135,7 +156,7 @@ def test_refused_commands_do_not_end_lost_commands():
     s = started(timeout=0.5, lost_command_wait=0.01)
     s.on_command(0, torque(4))
     s.await_command(10.0)
-    s.on_wall_time(10.5)
+    overdue(s, 10.5)
     assert s.on_command(0, torque(1)).refused == 'stale_command'
     assert s.on_command(9 * MS, torque(1)).refused == 'future_command'
     assert s.lost
@@ -147,7 +168,7 @@ def test_timeout_policy_and_length_can_change_between_calls():
     s.timeout, s.on_timeout = 2.0, 'zero'
     s.await_command(10.0)
     assert s.on_wall_time(11.0) is None
-    np.testing.assert_array_equal(s.on_wall_time(12.0), 0.0)
+    np.testing.assert_array_equal(overdue(s, 12.0), 0.0)
 
 
 def test_the_run_stops_after_total_steps():
@@ -155,7 +176,7 @@ def test_the_run_stops_after_total_steps():
     s.on_command(0, torque(1))
     assert not s.done
     s.await_command(0.0)
-    assert s.on_wall_time(1.0) is not None and s.done and s.k == 2
+    assert overdue(s, 1.0) is not None and s.done and s.k == 2
     out = s.on_command(2 * MS, torque(1))
     assert out.step is None and s.counters['late_command'] == 1
     s.await_command(2.0)

@@ -8,7 +8,9 @@ new period's tips and then calls :meth:`Stepping.await_command` with the wall ti
 
 * *lockstep*: the physics steps when the command stamped with the current period arrives; after
   ``timeout`` seconds of wall time without it, with the held command (``on_timeout='hold'``) or
-  zero, counted (``timeouts``). If the loop had answered before, commands are then *lost*: each
+  zero, counted (``timeouts``). A period is given up at the second look of the node's watchdog
+  past its deadline, never at the first: a simulator starved of CPU wakes with its watchdog
+  timer and the command both ready, and the executor runs timers first. If the loop had answered before, commands are then *lost*: each
   following period waits only ``lost_command_wait`` and steps with zero torque
   (``safe_periods``), until any command is accepted again. A command for a period already stepped
   past is counted (``late_command``) and not applied.
@@ -102,6 +104,7 @@ class Stepping:
         self.sent_at: float | None = None      # lockstep: wall time the current tips went out
         self.lost = False                      # commands lost: stepping with zero torque
         self.lost_since_ns = -1                # the first period stepped without its command
+        self._looked_overdue_k = -1            # the period a look already found past its deadline
 
     @property
     def now_ns(self) -> int:
@@ -166,9 +169,15 @@ class Stepping:
         """Lockstep: the torque to step with now if the current period's command is overdue at
         wall time ``wall``, else None. The first overdue period is a timeout (the held command or
         zero, by ``on_timeout``); if a command was ever accepted, commands are lost from then on
-        and every later overdue period gets zero after ``lost_command_wait``."""
+        and every later overdue period gets zero after ``lost_command_wait``.
+
+        Each call is one look: a period is overdue at the second look past its deadline, so a
+        command that was already waiting at the first look is taken in between."""
         deadline = self.deadline
         if self.mode != 'lockstep' or self.done or deadline is None or wall < deadline:
+            return None
+        if self._looked_overdue_k != self.k:
+            self._looked_overdue_k = self.k
             return None
         if self.lost:
             self.counters['safe_periods'] += 1
