@@ -77,3 +77,18 @@ def test_a_node_that_dies_is_named_with_its_own_log_and_no_bag_is_left(tmp_path)
     assert message.startswith('the controller node exited with status')
     assert 'last lines of controller.log' in message and 'is not a checkpoint' in message
     assert not (tmp_path / 'bag').exists()
+
+
+@pytest.mark.parametrize('controller, expected, absent', [
+    ({'law': 'sdre_ff', 'max_residual': 3e-9, 'fallback_fraction': 0.0, 'check_failure_fraction': 0.01,
+      'compute_us_mean': 40.0}, '  Riccati: checks failed on 1.00% of solves, fallbacks 0.00%, max residual '
+                                '3.0e-09; compute 40 µs mean per 1-finger step', 'no Riccati'),
+    ({'law': 'pd', 'fallback_fraction': 0.0, 'check_failure_fraction': 0.0, 'compute_us_mean': 9.0},
+     '  pd (no Riccati equation): compute 9 µs mean per 1-finger step', 'residual'),
+])
+def test_summary_reports_the_riccati_checks_only_for_laws_that_solve_one(controller, expected, absent, tmp_path):
+    finger = {'rmse_mm': 0.1, 'rmse_pct': 1.0, 'excursion_mm': 10.0, 'max_mm': 0.2, 'contact_fraction': 0.0}
+    result = {'run': {'sim_duration_s': 1.0, 'wall_s': 2.0, 'real_time_factor': 0.5},
+              'fingers': {'finger_0': finger}, 'controller': controller}
+    text = summary(result, tmp_path)
+    assert expected in text.splitlines() and absent not in text and 'nan' not in text

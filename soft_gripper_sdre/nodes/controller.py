@@ -161,6 +161,7 @@ class ControllerNode(Node):
                                 p['estimate_watchdog'], counters=self.diag.counters)
         cdr.watch(self.diag, self.cdr_estimate, self.cdr_plan)
         self.diag.values['model'] = str(model.path)
+        self.diag.values['law'] = p['law']
         self.diag.values['weights'] = f'q_pos={weights.q_pos:g} q_vel={weights.q_vel:g} r={weights.r:g}'
         self.diag.values['roll_off_hz'] = f'{roll_off_corner_hz(p["torque_lowpass_hz"], p["control_period"]):g}'
         self._watchdog = self.create_timer(0.05, lambda: self._act(self.gate.on_wall_time(time.monotonic())))

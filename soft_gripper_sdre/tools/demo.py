@@ -234,11 +234,13 @@ def summary(result: dict, out: Path) -> str:
     if result.get('cube_max_displacement_mm') is not None:
         lines.append(f'  cube displaced at most {result["cube_max_displacement_mm"]:.2f} mm')
     c = result.get('controller', {})
-    if 'fallback_fraction' in c:
+    compute = (f'compute {c.get("compute_us_mean", float("nan")):.0f} µs mean per '
+               f'{len(result["fingers"])}-finger step')
+    if 'max_residual' in c:           # (reported by the laws that solve a Riccati equation)
         lines.append(f'  Riccati: checks failed on {c["check_failure_fraction"]:.2%} of solves, fallbacks '
-                     f'{c["fallback_fraction"]:.2%}, max residual {c.get("max_residual", float("nan")):.1e}; '
-                     f'compute {c.get("compute_us_mean", float("nan")):.0f} µs mean per '
-                     f'{len(result["fingers"])}-finger step')
+                     f'{c["fallback_fraction"]:.2%}, max residual {c["max_residual"]:.1e}; {compute}')
+    elif 'compute_us_mean' in c:
+        lines.append(f'  {c.get("law", "the law")} (no Riccati equation): {compute}')
     lines.append(f'  bag, figures and metrics.json in {out}/')
     return '\n'.join(lines)
 
