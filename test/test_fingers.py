@@ -11,7 +11,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profi
 from rclpy.serialization import serialize_message
 from std_msgs.msg import Float64MultiArray
 
-from node_harness import MS, commands, horizon, make_controller, send_estimate
+from node_harness import MS, commands, make_controller, send_estimate
 from rosutil import Probe, ros_context, spin_until
 from soft_gripper_sdre.learning.model import SDCModel
 from soft_gripper_sdre.nodes import cdr, conversions as cv

@@ -5,7 +5,6 @@ Its own file: numba's on-disk cache is keyed on the source file of the function 
 """
 from __future__ import annotations
 
-import numpy as np
 from numba import njit
 
 kernel = njit(cache=True, error_model='numpy', nogil=True)

@@ -28,13 +28,12 @@ from pathlib import Path
 
 import numpy as np
 
-from soft_gripper_sdre.analysis.closed_loop import run_closed_loop
-from soft_gripper_sdre.analysis.metrics import held_reference_error
+from soft_gripper_sdre.analysis import law_runs
 # importing analysis.oracle registers the oracle laws ('oracle', 'oracle_exact', 'oracle_ff') with make_law
 import soft_gripper_sdre.analysis.oracle  # noqa: F401
 from soft_gripper_sdre.analysis.law_plots import plot_feedforward, plot_laws, plot_model_vs_truth
 from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
-from soft_gripper_sdre.control.laws import DEFAULT_CT, DEFAULT_PD, LAW_REGISTRY, make_law
+from soft_gripper_sdre.control.laws import DEFAULT_CT, DEFAULT_PD, LAW_REGISTRY
 from soft_gripper_sdre.learning.model import PAPER_DATA_MODEL, ModelFileError, SDCModel
 from soft_gripper_sdre.sim.hand import SimConfig
 from soft_gripper_sdre.control.trajectory import GraspProfile
@@ -88,18 +87,6 @@ class RunSummary:
     held_mm: float = float('nan')  # held-reference error, mean over the fingers
 
 
-def grasp_success(result, profile: GraspProfile) -> tuple[bool, float]:
-    """(success, cube displacement [mm]): both grasping fingers in contact ≥ 90 % of the hold,
-    cube moved < 1 mm."""
-    t = result.t
-    hold = (t >= profile.t_start + profile.t_close) & (t < profile.t_start + profile.t_close + profile.t_hold)
-    touching = result.contact[hold][:, list(profile.grasp_fingers)].mean(axis=0)
-    cube = result.cube[:, :3]
-    cube_mm = float(np.nanmax(np.linalg.norm(cube - cube[0], axis=1))) * 1e3 if np.all(
-        np.isfinite(cube)) else float('nan')
-    return bool(np.all(touching >= 0.9) and cube_mm < 1.0), cube_mm
-
-
 def run_law(key: str, trajectory: str, model: SDCModel, weights: Weights, duration: float | None = None,
             progress: bool = False, pd_gains: dict | None = None, koopman_path: Path | None = None,
             **law_options):
@@ -116,30 +103,9 @@ def run_law(key: str, trajectory: str, model: SDCModel, weights: Weights, durati
         opts['koopman_path'] = koopman_path
     if 'q_pos' in opts:
         weights = Weights(opts.pop('q_pos'), weights.q_vel, weights.r)
-    law = make_law(name, model, weights, U_MAX, **opts)
-    try:
-        res = run_closed_loop(model, duration=dur, sim_config=SimConfig(scene='hand', noise_std=NOISE),
-                              weights=weights, u_max=U_MAX, profile=profile, progress=progress,
-                              controller=law)
-    finally:
-        if hasattr(law, 'close'):         # the oracles hold a PyBullet client
-            law.close()
-    g = list(profile.grasp_fingers)
-    ok, cube_mm = grasp_success(res, profile)
-    m = res.metrics
-    summary = RunSummary(
-        law=key, trajectory=trajectory,
-        rmse_mm_grasp=float(np.mean([m[i].rmse_mm for i in g])),
-        max_mm_grasp=float(np.max([m[i].max_mm for i in g])),
-        rmse_mm_worst=float(np.nanmax([x.rmse_mm for x in m])),
-        max_mm_all=float(np.nanmax([x.max_mm for x in m])),
-        effort_rms_nm=float(np.sqrt(np.mean(res.u ** 2))),
-        saturated_pct=100.0 * float(res.saturated.any(axis=2).mean()),
-        grasp_success=ok, cube_mm=cube_mm,
-        check_fail_pct=100.0 * float((~res.ok).mean()),
-        compute_us=1e6 * float(np.mean(res.law_seconds)),
-        held_mm=float(np.nanmean(held_reference_error(res.pos, res.ref_pos, res.ref_vel, res.contact))))
-    return summary, res
+    res = law_runs.run_law(name, model, weights, U_MAX, profile, dur, SimConfig(scene='hand', noise_std=NOISE),
+                           progress=progress, **opts)
+    return RunSummary(law=key, trajectory=trajectory, **law_runs.score(res, profile).pick(RunSummary)), res
 
 
 def tune_gains(model: SDCModel, weights: Weights, law: str = 'pd', kps=None, kds=None, trajectory: str = 'grasp',

@@ -4,7 +4,7 @@ A case is one law on one trajectory with one :class:`Variation` of the plant or 
 case runs the in-process closed loop (:func:`soft_gripper_sdre.analysis.closed_loop.run_closed_loop`:
 the node graph's loop with the topics replaced by calls, the KF, lockstep, seeded noise) like
 :mod:`soft_gripper_sdre.tools.evaluate`, with the model trained on the nominal finger, and is scored
-on the true tip in free space and on the grasp (:func:`soft_gripper_sdre.tools.evaluate.grasp_success`).
+on the true tip in free space and on the grasp (:mod:`soft_gripper_sdre.analysis.law_runs`).
 
 The cases are independent, so :func:`run_grid` runs them in a pool of spawned worker processes,
 each with its own simulator, law and copy of the model. A case's result depends on the case only
@@ -18,18 +18,16 @@ from dataclasses import dataclass, field, replace
 import multiprocessing
 import sys
 
-import numpy as np
-
 # importing analysis.oracle adds the oracle laws to the registry (they know the nominal plant's
 # dynamics, so the grid leaves them out unless asked)
 from soft_gripper_sdre.analysis.oracle import ORACLE_LAWS
-from soft_gripper_sdre.analysis.closed_loop import run_closed_loop
-from soft_gripper_sdre.control.laws import LAW_REGISTRY, make_law
+from soft_gripper_sdre.analysis import law_runs
+from soft_gripper_sdre.control.laws import LAW_REGISTRY
 from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
 from soft_gripper_sdre.learning.model import SDCModel
 from soft_gripper_sdre.sim.hand import SimConfig
 from soft_gripper_sdre.sim.plant import PlantVariation
-from soft_gripper_sdre.tools.evaluate import NOISE, TRAJECTORIES, U_MAX, grasp_success
+from soft_gripper_sdre.tools.evaluate import NOISE, TRAJECTORIES, U_MAX
 
 
 @dataclass(frozen=True)
@@ -108,27 +106,11 @@ def run_case(case: Case, model: SDCModel) -> CaseResult:
     """Run one case in this process and score it."""
     variation = VARIATIONS[case.variation]
     profile, duration = case.profile(), TRAJECTORIES[case.trajectory][1]
-    weights = Weights(**DEFAULT_WEIGHTS)
-    law = make_law(case.law, model, weights, U_MAX)
     config = SimConfig(scene='hand', noise_std=variation.noise_std, plant=variation.plant)
-    try:
-        res = run_closed_loop(model, duration=case.duration or duration, sim_config=config, weights=weights,
-                              u_max=U_MAX, profile=profile, controller=law, sensor_delay=variation.sensor_delay)
-    finally:
-        if hasattr(law, 'close'):         # the oracles hold a PyBullet client
-            law.close()
-    grasping = list(profile.grasp_fingers)
-    ok, cube_mm = grasp_success(res, profile)
-    m = res.metrics
-    with np.errstate(all='ignore'):
-        return CaseResult(
-            law=case.law, variation=case.variation, trajectory=case.trajectory,
-            rmse_mm_grasp=float(np.mean([m[i].rmse_mm for i in grasping])),
-            rmse_pct_worst=float(np.max([x.rmse_pct for x in m])),
-            max_mm_all=float(np.max([x.max_mm for x in m])),
-            grasp_success=ok, cube_mm=cube_mm,
-            saturated_pct=100.0 * float(res.saturated.any(axis=2).mean()),
-            check_fail_pct=100.0 * float((~res.ok).mean()), close_mm=profile.close_distance * 1e3)
+    res = law_runs.run_law(case.law, model, Weights(**DEFAULT_WEIGHTS), U_MAX, profile, case.duration or duration,
+                           config, sensor_delay=variation.sensor_delay)
+    return CaseResult(law=case.law, variation=case.variation, trajectory=case.trajectory,
+                      close_mm=profile.close_distance * 1e3, **law_runs.score(res, profile).pick(CaseResult))
 
 
 # -- the worker pool ------------------------------------------------------------------------------
