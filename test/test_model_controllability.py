@@ -1,10 +1,10 @@
-"""Controllability-aware learning: the penalty on G2's smallest singular value (model.train)."""
+"""Controllability-aware learning: the penalty on G2's smallest singular value (learning/training.py)."""
 from dataclasses import replace
 
 import numpy as np
 import torch
 
-from soft_gripper_sdre.learning.model import PRESETS, train
+from soft_gripper_sdre.learning.training import PRESETS, train
 
 
 def _data(n, seed):

@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 import torch
 
-from soft_gripper_sdre.learning.model import DEFAULT_MODEL, PRESETS, TrainSettings, read_checkpoint, train
+from soft_gripper_sdre.learning.model import DEFAULT_MODEL, read_checkpoint
+from soft_gripper_sdre.learning.training import PRESETS, TrainSettings, train
 from soft_gripper_sdre.sim.hand import SimConfig
 from soft_gripper_sdre.tools.collect import collect_signal
 

@@ -32,7 +32,8 @@ from soft_gripper_sdre.analysis.bag_dataset import (DEFAULT_GAP_PERIODS, BagData
 from soft_gripper_sdre.analysis.metrics import r2_score
 from soft_gripper_sdre.analysis.plots import plot_accel, plot_loss
 from soft_gripper_sdre.learning import derivatives
-from soft_gripper_sdre.learning.model import SDCModel, TrainSettings, fingerprint, save_checkpoint, train
+from soft_gripper_sdre.learning.model import SDCModel
+from soft_gripper_sdre.learning.training import TrainSettings, fingerprint, save_checkpoint, train
 
 #: samples of the first stretch the jerk intensity is tuned on (as the .npz path)
 TUNE_SAMPLES = 2000
