@@ -94,8 +94,8 @@ def test_lockstep_timeout_steps_with_the_held_or_zero_command_and_counts(policy,
 
 
 def test_a_command_waiting_behind_the_first_late_look_steps_its_period_not_a_timeout():
-    """A starved simulator wakes with its watchdog and the command both ready; the executor runs
-    the watchdog first. Its first look past the deadline waits, the command is taken, no timeout."""
+    """A starved simulator wakes with its watchdog and the command both due and may run the
+    watchdog first. Its first look past the deadline waits, the command is taken, no timeout."""
     s = started(timeout=0.05)
     s.on_command(0, torque(4))
     s.await_command(10.0)

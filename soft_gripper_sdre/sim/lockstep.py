@@ -10,10 +10,10 @@ new period's tips and then calls :meth:`Stepping.await_command` with the wall ti
   ``timeout`` seconds of wall time without it, with the held command (``on_timeout='hold'``) or
   zero, counted (``timeouts``). A period is given up at the second look of the node's watchdog
   past its deadline, never at the first: a simulator starved of CPU wakes with its watchdog
-  timer and the command both ready, and the executor runs timers first. If the loop had answered before, commands are then *lost*: each
-  following period waits only ``lost_command_wait`` and steps with zero torque
-  (``safe_periods``), until any command is accepted again. A command for a period already stepped
-  past is counted (``late_command``) and not applied.
+  timer and the command both due, and may run the watchdog first. If the loop had answered
+  before, commands are then *lost*: each following period waits only ``lost_command_wait`` and
+  steps with zero torque (``safe_periods``), until any command is accepted again. A command for
+  a period already stepped past is counted (``late_command``) and not applied.
 * *realtime*: each period of a wall timer steps with the newest command. The command for the
   current period's tips, or for the previous period's (one period of transport delay), is on
   time; an older one makes the period late (``late_periods``) and is held while it is at most
