@@ -1,4 +1,5 @@
-"""What the nodes share: the executor choice, the latency window, the in-place message filler."""
+"""What the nodes share: the executor choice, the latency window, a stepping loop's timing, the
+in-place message filler."""
 import numpy as np
 import pytest
 from sensor_msgs.msg import JointState
@@ -7,7 +8,7 @@ import rclpy
 from rclpy.context import Context
 from soft_gripper_sdre.nodes import conversions as cv
 from rosutil import Probe, ros_context, spin_until
-from soft_gripper_sdre.nodes.common import EXECUTOR_ENV, LatencyWindow, flush, make_executor
+from soft_gripper_sdre.nodes.common import EXECUTOR_ENV, LatencyWindow, SteppingTiming, flush, make_executor
 from soft_gripper_sdre.nodes.topics import LOOP_QOS, TORQUE_COMMANDS
 
 
@@ -110,3 +111,23 @@ def test_diagnostics_are_stamped_with_wall_time_and_named_by_the_full_node_name(
         status = got[-1].status[0]
         assert status.name == '/left_hand/diag_source'
         assert {kv.key: kv.value for kv in status.values}['steps'] == '3'
+
+
+def test_stepping_timing_reports_the_real_time_factor_cpu_per_step_and_latencies():
+    clocks = {'wall': 100.0, 'cpu': 5.0, 'perf': 0.0}
+    timing = SteppingTiming(4, wall=lambda: clocks['wall'], cpu=lambda: clocks['cpu'], perf=lambda: clocks['perf'])
+    assert timing.report(0.0, 0) == {}                       # not started, nothing answered
+    timing.start()
+    for k in range(6):                                       # the ring wraps: k % 4
+        clocks['perf'] = k * 1.0
+        timing.tips_sent(k)
+        clocks['perf'] += 0.001 * (k + 1)                    # answered after (k + 1) ms
+        timing.answered(k)
+    clocks['wall'], clocks['cpu'] = 102.0, 5.5
+    out = timing.report(1.0, 500)                            # 1 s of sim time in 2 s of wall time
+    assert out['real_time_factor'] == '0.5000' and out['cpu_per_step_us'] == '1000'
+    assert out['loop_latency_us_max'] == '6000' and out['recent_latency_us_max'] == '6000'
+    timing.finish()
+    clocks['wall'] = 200.0                                   # after the end, the run's figures stay
+    again = timing.report(1.0, 500)
+    assert again['real_time_factor'] == '0.5000' and 'recent_latency_us_p50' not in again

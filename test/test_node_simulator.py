@@ -160,7 +160,7 @@ def test_diagnostics_report_the_loop_latency_of_every_answered_period():
     with ros_context() as (ctx, executor):
         sim, probe, pub = make_loop(ctx, executor)
         answer_tips(executor, probe, pub, [[0.0, 0.0]], 20)
-        assert sim.latency.count == 20              # one sample per period answered in lockstep
+        assert sim.timing.latency.count == 20       # one sample per period answered in lockstep
         sim.diag.publish()
 
         def latest():

@@ -1,5 +1,5 @@
 """What every node shares: process lifetime (executor, signals, a flush before exit), throttled
-warnings, counters in /diagnostics and a latency window for them."""
+warnings, counters in /diagnostics, a latency window and a stepping loop's timing for them."""
 from __future__ import annotations
 
 from collections import Counter
@@ -130,6 +130,49 @@ class LatencyWindow:
         p50, p99 = np.percentile(us, (50, 99))
         return {f'{prefix}_p50': f'{p50:.0f}', f'{prefix}_p99': f'{p99:.0f}',
                 f'{prefix}_max': f'{us.max():.0f}'}
+
+
+class SteppingTiming:
+    """How fast a stepping loop runs, for /diagnostics: its real-time factor, this process's CPU
+    time per step and the loop latency (tips for period k sent → the first command stamped k
+    received), over the whole run (``loop_latency_us_*``) and since the previous report
+    (``recent_latency_us_*``). The clocks are arguments so the arithmetic can be checked."""
+
+    def __init__(self, periods: int, wall=time.monotonic, cpu=time.process_time, perf=time.perf_counter) -> None:
+        self._wall, self._cpu, self._perf = wall, cpu, perf
+        self.latency = LatencyWindow()
+        self._reported = 0                      # latency samples in the previous report
+        self._sent = np.zeros(periods)          # perf clock when the tips of period k went out, at k % periods
+        self.wall_start: float | None = None    # wall clock at the first step
+        self._wall_end = self._cpu_start = self._cpu_end = None
+
+    def start(self) -> None:
+        self.wall_start, self._cpu_start = self._wall(), self._cpu()
+
+    def finish(self) -> None:
+        self._wall_end, self._cpu_end = self._wall(), self._cpu()
+
+    def tips_sent(self, k: int) -> None:
+        self._sent[k % len(self._sent)] = self._perf()
+
+    def answered(self, k: int) -> None:
+        """The first command for the tips of period ``k`` arrived."""
+        self.latency.add(self._perf() - self._sent[k % len(self._sent)])
+
+    def report(self, sim_time: float, steps: int) -> dict[str, str]:
+        """The values for /diagnostics after ``steps`` steps, ``sim_time`` [s] of sim time."""
+        out = {}
+        if self.wall_start is not None:
+            wall = (self._wall_end or self._wall()) - self.wall_start
+            if wall > 0:
+                out['real_time_factor'] = f'{sim_time / wall:.4f}'
+            if steps:
+                cpu = (self._cpu_end or self._cpu()) - self._cpu_start
+                out['cpu_per_step_us'] = f'{1e6 * cpu / steps:.0f}'
+        out.update(self.latency.summary('loop_latency_us'))
+        out.update(self.latency.summary('recent_latency_us', last=self.latency.count - self._reported))
+        self._reported = self.latency.count
+        return out
 
 
 def make_executor(kind: str | None = None, context=None) -> Executor:

@@ -10,9 +10,9 @@ one loop message and receives one.
 When it steps and with which torque is decided by :class:`~soft_gripper_sdre.sim.lockstep.Stepping`
 (docs/design/loop_rules.md): in *lockstep* (default, deterministic) one step per command stamped
 with the current period, and after ``lockstep_timeout`` of wall time (confirmed at the watchdog's
-next look, a few ms later) a step with the held or zero command so the loop never deadlocks; commands are then lost, and each following period waits only
-``lost_command_wait`` before it steps with zero torque (ERROR), until a command arrives again. In
-*realtime* a wall timer steps at the control period with the newest command, holding it while it
+next look, a few ms later) a step with the held or zero command so the loop never deadlocks;
+commands are then lost, and each following period waits only ``lost_command_wait`` before it
+steps with zero torque (ERROR), until a command arrives again. In *realtime* a wall timer steps at the control period with the newest command, holding it while it
 is at most ``hold_limit`` old and stepping with zero torque after that. Bad commands (NaN/Inf,
 wrong sizes, unknown/duplicate/missing names, stamps older than the last applied one or ahead of
 the current period) are rejected with a throttled warning and counted; the simulator never steps
@@ -38,7 +38,7 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 
 from soft_gripper_sdre.nodes import cdr, conversions as cv
-from soft_gripper_sdre.nodes.common import ERROR, OK, WARN, Diagnostics, LatencyWindow, ThrottledLogger, run
+from soft_gripper_sdre.nodes.common import ERROR, OK, WARN, Diagnostics, SteppingTiming, ThrottledLogger, run
 from soft_gripper_sdre.nodes.params import (Param, ParameterError, declare_all, finger_names_param,
                                             on_runtime_change)
 from soft_gripper_sdre.nodes.topics import (CLOCK, CLOCK_QOS, CUBE_CONTACTS, CUBE_POSE, JOINT_STATES,
@@ -119,12 +119,7 @@ class SimulatorNode(Node):
         self.state_every = max(1, int(round(1.0 / (p['state_rate'] * p['control_period']))))
         self.clock_every = max(1, int(round(1.0 / (p['clock_rate'] * p['control_period']))))
         self.exit_code = 0
-        self._wall_start = self._wall_end = None   # monotonic time of the first and last step
-        self._cpu_start = self._cpu_end = None     # this process's CPU time then
-        # loop latency: tip_positions for t_k published → the torque command stamped t_k received
-        self.latency = LatencyWindow()
-        self._latency_mark = 0                     # latency samples before the last /diagnostics
-        self._tips_sent = np.zeros(LATENCY_PERIODS)   # perf_counter() at tips k, at k % LATENCY_PERIODS
+        self.timing = SteppingTiming(LATENCY_PERIODS)
 
         # the per-period messages travel as CDR bytes written / read at fixed offsets (nodes/cdr.py)
         self.cdr_clock = cdr.clock_codec()
@@ -184,7 +179,7 @@ class SimulatorNode(Node):
                 'after startup_timeout')
         self._startup_timer.cancel()
         self.stepping.start()
-        self._wall_start, self._cpu_start = time.monotonic(), time.process_time()
+        self.timing.start()
         if self.p['mode'] == 'lockstep':
             self._watchdog = self.create_timer(
                 min(0.01, self.p['lockstep_timeout'] / 4, self.p['lost_command_wait'] / 2), self._check_timeout)
@@ -202,13 +197,13 @@ class SimulatorNode(Node):
             return
         outcome = self.stepping.on_command(stamp, u)
         if outcome.first_answer is not None:
-            self.latency.add(time.perf_counter() - self._tips_sent[outcome.first_answer % LATENCY_PERIODS])
+            self.timing.answered(outcome.first_answer)
         if outcome.refused:
             self.diag.problem(outcome.refused, f'rejected: {outcome.reason}')
-        elif self._wall_start is not None and 'first_command_monotonic_s' not in self.diag.values:
-            now = time.monotonic()          # (the first tips went out at _wall_start)
+        elif self.timing.wall_start is not None and 'first_command_monotonic_s' not in self.diag.values:
+            now = time.monotonic()          # (the first tips went out at the timing's start)
             self.diag.values['first_command_monotonic_s'] = f'{now:.6f}'
-            self.diag.values['first_command_after_tips_ms'] = f'{1e3 * (now - self._wall_start):.1f}'
+            self.diag.values['first_command_after_tips_ms'] = f'{1e3 * (now - self.timing.wall_start):.1f}'
         if outcome.resumed:
             self.diag.set_status(OK, 'torque_commands are back')
             self.get_logger().info(f'torque_commands are back at t = {stamp / cv.NS:.4f} s '
@@ -252,7 +247,7 @@ class SimulatorNode(Node):
         self._u_scene[self.mounted] = u
         self.sim.step(self._u_scene)
         if self.done:
-            self._wall_end, self._cpu_end = time.monotonic(), time.process_time()
+            self.timing.finish()
         self.publish_state()
         if self.done:
             k = self.stepping.k
@@ -264,7 +259,7 @@ class SimulatorNode(Node):
     def publish_state(self) -> None:
         k, ns = self.stepping.k, self.stepping.now_ns
         tips = self.cdr_tips.encode(ns, self.sim.measure()[self.mounted])
-        self._tips_sent[k % LATENCY_PERIODS] = time.perf_counter()
+        self.timing.tips_sent(k)
         self.pub_tips.publish(tips)         # first: the loop's critical path starts here
         self.stepping.await_command(time.monotonic())
         if k % self.clock_every == 0:
@@ -281,20 +276,9 @@ class SimulatorNode(Node):
 
     def _refresh_diagnostics(self) -> None:
         """Sim time, real-time factor of the stepping and loop latency, before each /diagnostics."""
-        k = self.stepping.k
         t = self.stepping.now_ns / cv.NS
-        self.diag.values['sim_time'] = f'{t:.3f}'
-        if self._wall_start is not None:
-            wall = (self._wall_end or time.monotonic()) - self._wall_start
-            if wall > 0:
-                self.diag.values['real_time_factor'] = f'{t / wall:.4f}'
-            if k:
-                cpu = (self._cpu_end or time.process_time()) - self._cpu_start
-                self.diag.values['cpu_per_step_us'] = f'{1e6 * cpu / k:.0f}'
-        self.diag.values.update(self.latency.summary('loop_latency_us'))
-        recent = self.latency.summary('recent_latency_us', last=self.latency.count - self._latency_mark)
-        self._latency_mark = self.latency.count
-        self.diag.values = {k: v for k, v in self.diag.values.items() if not k.startswith('recent_')} | recent
+        kept = {k: v for k, v in self.diag.values.items() if not k.startswith('recent_')}
+        self.diag.values = kept | {'sim_time': f'{t:.3f}'} | self.timing.report(t, self.stepping.k)
 
     def close(self) -> None:
         self.sim.close()
