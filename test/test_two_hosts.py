@@ -19,7 +19,7 @@ from multi_graph import DURATION, SHORT_GRASP, TARGET_PCT, worst_pct
 from soft_gripper_sdre.analysis.bag import extract_run
 from soft_gripper_sdre.tools.hands import PATIENT_LOCKSTEP, published_and_recorded, trouble
 from soft_gripper_sdre.tools.report import report
-from soft_gripper_sdre.tools.two_hosts import (CTL_ADDRESS, SIM_ADDRESS, HostPair, finite_torques,
+from soft_gripper_sdre.tools.two_hosts import (CTL_ADDRESS, MULTICAST_ROUTE, SIM_ADDRESS, HostPair, finite_torques,
                                                netns_unavailable, paired_tracking, run_one_host, run_split,
                                                timing)
 
@@ -50,16 +50,10 @@ def _addresses(netns: str | None = None) -> set[str]:
     return {a['local'] for link in links for a in link.get('addr_info', []) if a.get('family') == 'inet'}
 
 
-def _run_split_started_again_once(pair, out, *args, **kwargs):
-    """``run_split``, begun once more in a fresh directory if its graphs did not connect: once in
-    several runs on the shared 2-core machine one node's diagnostics were never heard across the
-    split during start-up (cause not found); what the tests judge is the run itself."""
-    try:
-        return run_split(pair, out, *args, **kwargs)
-    except RuntimeError as exc:
-        if 'did not connect' not in str(exc):
-            raise
-        return run_split(pair, out / 'started_again', *args, **kwargs)
+def _routes(netns: str) -> set[tuple[str, str]]:
+    cmd = ['ip', '-n', netns, '-j', 'route', 'show', 'table', 'main']
+    return {(r['dst'], r['dev']) for r in json.loads(subprocess.run(cmd, capture_output=True, text=True,
+                                                                    check=True).stdout)}
 
 
 @pytest.mark.timeout(420)
@@ -73,10 +67,12 @@ def test_split_graph_tracks_exactly_as_on_one_host(host_pair, tmp_path):
     assert _addresses(pair.sim_ns) == {'127.0.0.1', SIM_ADDRESS}
     assert _addresses(pair.ctl_ns) == {'127.0.0.1', CTL_ADDRESS}
     assert not {SIM_ADDRESS, CTL_ADDRESS} & _addresses()
+    # and routes to the link's subnet and multicast over the link only: no way out of the pair
+    for ns, link in ((pair.sim_ns, pair.sim_link), (pair.ctl_ns, pair.ctl_link)):
+        assert _routes(ns) == {('10.231.0.0/24', link), (MULTICAST_ROUTE, link)}, _routes(ns)
 
     one = run_one_host(tmp_path / 'one_host', DURATION, PARAMETERS, timeout=150.0)
-    two, extra = _run_split_started_again_once(pair, tmp_path / 'two_hosts', DURATION, PARAMETERS,
-                                               timeout=150.0)
+    two, extra = run_split(pair, tmp_path / 'two_hosts', DURATION, PARAMETERS, timeout=150.0)
     for run in (one, two):
         assert all(code == 0 for code in run.exit_codes.values()), run.exit_codes
         assert trouble(run) == {}, trouble(run)
@@ -111,8 +107,8 @@ def test_link_down_for_half_a_second_and_the_loop_resumes_by_itself(host_pair, t
     after that, nothing crashes or sends a non-finite torque, the loop resumes by itself when the
     link is back, and the bag and the counters say what was lost."""
     params = {**PARAMETERS, 'simulator': {'lockstep_timeout': 0.1}}
-    run, extra = _run_split_started_again_once(host_pair, tmp_path, DURATION, params, fault_at=0.5,
-                                               fault_seconds=LINK_DOWN_S, timeout=150.0)
+    run, extra = run_split(host_pair, tmp_path, DURATION, params, fault_at=0.5, fault_seconds=LINK_DOWN_S,
+                           timeout=150.0)
     fault = extra['fault']
     assert fault['down_wall'] is not None and fault['up_wall'] is not None, fault
     assert fault['up_wall'] - fault['down_wall'] >= LINK_DOWN_S

@@ -5,7 +5,9 @@ trajectory node and the controller on the other, joined by one network link.
 
 On one Linux machine the two hosts are two network namespaces joined by a veth pair whose
 addresses (:data:`SIM_ADDRESS`, :data:`CTL_ADDRESS`, /24) exist only inside them, each with its
-loopback up: every process is started as ``ip netns exec <host> python -m
+loopback up and a route for multicast (224.0.0.0/4) over its end of the link, as a host on a LAN
+has through its default route (without one, DDS discovery across the link fails, static peer or
+not: docs/deployment.md). Every process is started as ``ip netns exec <host> python -m
 soft_gripper_sdre.nodes.<node> ...`` (so it needs root and iproute2). DDS between the hosts (see
 docs/deployment.md):
 
@@ -14,8 +16,8 @@ docs/deployment.md):
 * ``ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET``: discovery on the hosts' own subnet (each namespace has
   nothing else). ``LOCALHOST`` would not do: Jazzy's rmw_fastrtps then replaces the built-in
   transports with its own shared memory + UDP pair, and FASTDDS_BUILTIN_TRANSPORTS is ignored;
-* ``ROS_STATIC_PEERS=<the other host>``: discovery by unicast too, so it does not rest on
-  multicast alone.
+* ``ROS_STATIC_PEERS=<the other host>``: the other host's address for unicast discovery
+  announcements as well.
 
 The command runs the same lockstep grasp three ways, one after another: on one host (all five
 processes here, the project's default DDS settings), split across the two hosts, and split with
@@ -46,6 +48,8 @@ from soft_gripper_sdre.tools.procs import ros_env
 SIM_ADDRESS = '10.231.0.1'
 CTL_ADDRESS = '10.231.0.2'
 PREFIX_LENGTH = 24
+#: multicast leaves each host over its end of the link (DDS discovery needs it)
+MULTICAST_ROUTE = '224.0.0.0/4'
 #: the nodes on the simulator's host; the others run on the controller's
 SIM_HOST_NODES = ('recorder', 'simulator')
 
@@ -113,6 +117,7 @@ class HostPair:
                 _ip('addr', 'add', f'{address}/{PREFIX_LENGTH}', 'dev', link, netns=ns)
                 _ip('link', 'set', 'lo', 'up', netns=ns)
                 _ip('link', 'set', link, 'up', netns=ns)
+                _ip('route', 'add', MULTICAST_ROUTE, 'dev', link, netns=ns)
         except RuntimeError:
             self.remove()
             raise
