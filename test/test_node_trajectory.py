@@ -99,6 +99,16 @@ def test_bad_tip_messages_are_counted_and_a_restart_takes_a_new_rest_pose():
         assert spin_until(executor, lambda: node.sub is None, 5.0)
 
 
+def test_close_to_plans_every_grasping_finger_to_the_same_closed_y():
+    with ros_context() as (ctx, executor):
+        node, probe, pub = make(ctx, executor, close_to='0.0261', **FAST)
+        send(executor, node, pub, cv.tips_to_msg(0, REST))
+        (plan,) = references(executor, node, probe)
+        check_plan(plan, REST, close_to=0.0261, **FAST)
+        closed = plan[2][:, [0, 2], 1].max(axis=0)
+        np.testing.assert_allclose(closed, 0.0261)                     # rests at -2 mm: 28.1 mm each
+
+
 @pytest.mark.parametrize('params, name', [
     (dict(horizon_step=0.0), 'horizon_step'), (dict(horizon_step=1e-4, t_hold=10.0), 'horizon_step'),
     (dict(t_close=0.0), 't_close'), (dict(t_start=-1.0), 't_start'),
@@ -107,7 +117,8 @@ def test_bad_tip_messages_are_counted_and_a_restart_takes_a_new_rest_pose():
     (dict(finger_names=['left', 'right']), 'grasp_fingers'), (dict(others='close'), 'others'),
     (dict(close_distance=float('nan')), 'close_distance'), (dict(grasp_fingers='0,2'), 'grasp_fingers'),
     (dict(rest_pose='0.0, 0.01'), 'rest_pose'), (dict(rest_pose='a b c d e f g h'), 'rest_pose'),
-    (dict(rest_pose=' '.join(['nan'] * 8)), 'rest_pose')])
+    (dict(rest_pose=' '.join(['nan'] * 8)), 'rest_pose'), (dict(close_to='near'), 'close_to'),
+    (dict(close_to='0.5'), 'close_to'), (dict(close_to='nan'), 'close_to')])
 def test_bad_parameters_fail_at_startup_naming_the_parameter(params, name):
     with ros_context() as (ctx, executor):
         with pytest.raises(ParameterError, match=name):

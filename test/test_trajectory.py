@@ -51,7 +51,31 @@ def test_free_space_mask_excludes_contact_phase_of_grasping_fingers_only():
     np.testing.assert_allclose(traj.peak_excursion()[[0, 1]], [prof.close_distance, 0.0])
 
 
+def test_close_to_anchors_the_closed_pose_whatever_the_rest_and_moves_the_face_with_it():
+    """Two grasping fingers resting 3 mm apart in Y close to the same point; each meets the cube
+    face the same squeeze (close_distance − contact_distance) before the end of its travel."""
+    rest = REST.copy()
+    rest[2, 1] = rest[0, 1] - 0.003                     # finger 2 rests 3 mm further from the cube
+    prof = GraspProfile(close_to=rest[0, 1] + 0.030)
+    traj = GraspTrajectory(rest, prof)
+    closed = traj.sample(prof.t_start + prof.t_close + 0.5 * prof.t_hold).pos
+    np.testing.assert_allclose(closed[[0, 2], 1], prof.close_to)
+    np.testing.assert_allclose([traj.travel(0), traj.travel(2)], [0.030, 0.033])
+    np.testing.assert_allclose(traj.peak_excursion()[[0, 2]], [0.030, 0.033])
+    t = np.arange(0.0, prof.duration, 1e-4)
+    mask = traj.free_space(t)
+    s_face = [(prof.contact_distance - prof.contact_margin + travel - prof.close_distance) / travel
+              for travel in (0.030, 0.033)]
+    for finger, s_max in zip((0, 2), s_face):
+        s = (traj.sample(t).pos[:, finger, 1] - rest[finger, 1]) / traj.travel(finger)
+        np.testing.assert_array_equal(mask[:, finger], s < s_max - 1e-12)
+    # without close_to the same rests travel the same distance each
+    plain = GraspTrajectory(rest, GraspProfile())
+    assert plain.travel(0) == plain.travel(2) == GraspProfile().close_distance
+
+
 @pytest.mark.parametrize('kwargs, match', [
+    (dict(close_to=float('inf')), 'close_to'),
     (dict(t_close=0.0), 't_close'),
     (dict(t_start=-1.0), 't_start'),
     (dict(others='wave'), 'others'),

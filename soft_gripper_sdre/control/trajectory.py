@@ -51,6 +51,11 @@ class GraspProfile:
         others: ``'hold'`` (stay at rest) or ``'open'`` (move away from the cube by
             ``open_distance`` while the others close).
         open_distance: travel of the non-grasping fingers along −Y in ``'open'`` mode [m].
+        close_to: where the grasping fingers close to along Y in their base frames [m], anchoring
+            the closed pose to the hand (and the cube on it) rather than to the rest pose: each
+            grasping finger then travels ``close_to − rest_y``, and meets the cube face that much
+            minus the squeeze ``close_distance − contact_distance``. None: ``close_distance``
+            from the rest pose.
     """
 
     t_start: float = 0.5
@@ -64,8 +69,11 @@ class GraspProfile:
     grasp_fingers: tuple[int, ...] = (0, 2)
     others: str = 'hold'
     open_distance: float = 0.005
+    close_to: float | None = None
 
     def __post_init__(self) -> None:
+        if self.close_to is not None and not math.isfinite(self.close_to):
+            raise ValueError(f'close_to must be finite or None, got {self.close_to!r}')
         for name in ('t_start', 't_hold'):
             if not math.isfinite(getattr(self, name)) or getattr(self, name) < 0.0:
                 raise ValueError(f'{name} must be finite and >= 0, got {getattr(self, name)!r}')
@@ -161,8 +169,13 @@ class GraspTrajectory:
         if p.others == 'open':
             d[:, 1] = -p.open_distance
         for i in p.grasp_fingers:
-            d[i] = (p.side_distance, p.close_distance)
+            d[i] = (p.side_distance, self.travel(i))
         return d
+
+    def travel(self, finger: int) -> float:
+        """How far grasping finger ``finger`` closes along +Y [m]."""
+        p = self.profile
+        return p.close_distance if p.close_to is None else p.close_to - float(self.rest[finger, 1])
 
     def sample(self, t) -> ReferenceSample:
         """Reference at time(s) t [s] (scalar or (T,)); arrays (n, 2) or (T, n, 2)."""
@@ -185,14 +198,16 @@ class GraspTrajectory:
     def free_space(self, t) -> np.ndarray:
         """(T, n_fingers) bool: True where the reference keeps a finger clear of the cube.
 
-        A grasping finger is in free space while its reference travel along +Y stays below
-        ``contact_distance − contact_margin``; the other fingers never touch the cube.
+        A grasping finger is in free space while its reference travel along +Y stays below its
+        travel to the cube face less ``contact_margin`` (the face: ``contact_distance`` from rest,
+        or with ``close_to`` the squeeze before the end); the other fingers never touch the cube.
         """
         t = np.atleast_1d(np.asarray(t, dtype=float))
         s, _, _ = _profile(t, self.profile)
         p = self.profile
         mask = np.ones((t.size, self.n_fingers), dtype=bool)
-        clear = s * p.close_distance < p.contact_distance - p.contact_margin
         for i in p.grasp_fingers:
-            mask[:, i] = clear
+            travel = self.travel(i)
+            face = p.contact_distance if p.close_to is None else p.contact_distance + travel - p.close_distance
+            mask[:, i] = s * travel < face - p.contact_margin
         return mask

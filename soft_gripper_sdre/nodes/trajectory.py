@@ -28,6 +28,7 @@ without a tip. A first tip message after ``t_start`` without it is flagged (``la
 from __future__ import annotations
 
 from dataclasses import fields
+import math
 
 from geometry_msgs.msg import PoseArray
 import numpy as np
@@ -62,6 +63,10 @@ PARAMS = (
           'm', -0.1, 0.1, read_only=True),
     Param('open_distance', _DEFAULTS.open_distance, "travel of the other fingers along −Y when others = "
           "'open'", 'm', -0.1, 0.1, read_only=True),
+    Param('close_to', '', "where the grasping fingers close to along Y in their base frames, anchoring the "
+          "closed pose to the hand: each travels close_to − its rest Y (e.g. the learned model's rest Y + "
+          "close_distance, so a finger that rests elsewhere still reaches the cube); '' = close_distance "
+          'from rest', 'm', read_only=True),
     Param('contact_distance', _DEFAULTS.contact_distance, 'travel along +Y at which a grasping tip touches '
           'the cube (scoring only)', 'm', -0.1, 0.1, read_only=True),
     Param('contact_margin', _DEFAULTS.contact_margin, 'clearance from the cube below which a phase is no '
@@ -93,10 +98,24 @@ def _rest_pose(text: str, n: int) -> np.ndarray | None:
     return values.reshape(n, 2)
 
 
+def _close_to(text: str) -> float | None:
+    """The ``close_to`` parameter [m], or None if it is empty."""
+    if not text.strip():
+        return None
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and abs(value) <= 0.1):
+        raise ParameterError(f"parameter 'close_to': {text!r} is not a coordinate in [-0.1, 0.1] m (or '')")
+    return value
+
+
 def _profile(p: dict) -> GraspProfile:
     """The GraspProfile of the parameters; ParameterError names the offending one."""
     values = {name: p[name] for name in PROFILE_FIELDS}
     values['grasp_fingers'] = tuple(int(i) for i in values['grasp_fingers'])
+    values['close_to'] = _close_to(values['close_to'])
     try:
         profile = GraspProfile(**values)
     except ValueError as exc:

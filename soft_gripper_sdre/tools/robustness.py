@@ -77,8 +77,10 @@ def markdown_table(results: list[CaseResult], trajectory: str) -> str:
 
 def trajectory_heading(results: list[CaseResult], trajectory: str) -> str:
     p, dur = TRAJECTORIES[trajectory]
-    close_mm = next(r.close_mm for r in results if r.trajectory == trajectory)
-    return (f'{trajectory}: close {close_mm:g} mm in {p.t_close:g} s, hold {p.t_hold:g} s, '
+    first = next(r for r in results if r.trajectory == trajectory)
+    close = (f'close to {first.close_mm:g} mm past the nominal rest' if first.anchored
+             else f'close {first.close_mm:g} mm')
+    return (f'{trajectory}: {close} in {p.t_close:g} s, hold {p.t_hold:g} s, '
             f'open in {p.t_open:g} s ({dur:g} s run)')
 
 
@@ -164,6 +166,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     ap.add_argument('--duration', type=float, default=None, help='override every run\'s duration [s]')
     ap.add_argument('--close-mm', type=float, default=None,
                     help='override the grasping fingers\' travel from rest [mm] (default: the trajectory\'s, 30)')
+    ap.add_argument('--anchored', action='store_true',
+                    help='close the grasping fingers to the nominal finger\'s closed pose (the model\'s rest Y '
+                         'plus the travel) wherever the plant\'s finger rests, instead of the travel from rest')
     ap.add_argument('--workers', type=int, default=os.cpu_count() or 1, help='worker processes (default: every core)')
     ap.add_argument('--model', type=Path, default=None, help='checkpoint (default: the shipped model)')
     args = ap.parse_args(argv)
@@ -185,7 +190,7 @@ def main(argv=None) -> int:
     command = 'python -m soft_gripper_sdre.tools.robustness ' + ' '.join(
         shlex.quote(a) for a in (sys.argv[1:] if argv is None else argv))
     close = None if args.close_mm is None else args.close_mm * 1e-3
-    cases = [Case(law, variation, traj, args.duration, close) for traj in args.trajectories
+    cases = [Case(law, variation, traj, args.duration, close, args.anchored) for traj in args.trajectories
              for law in dict.fromkeys(args.laws) for variation in dict.fromkeys(args.variations)]
     args.out.mkdir(parents=True, exist_ok=True)
     results = run_grid(cases, args.workers, model_path=args.model)

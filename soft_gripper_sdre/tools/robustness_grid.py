@@ -70,18 +70,28 @@ def known_laws() -> list[str]:
 class Case:
     """One run of the grid: a law (registry name) on a trajectory (:data:`TRAJECTORIES`) with a
     variation (:data:`VARIATIONS`); ``duration`` [s] overrides the trajectory's run length and
-    ``close_distance`` [m] the grasping fingers' travel from their rest pose."""
+    ``close_distance`` [m] the grasping fingers' travel. ``anchored``: the grasping fingers close
+    to the nominal finger's closed pose (the model's rest Y plus the travel) wherever this plant's
+    finger rests, instead of travelling that far from its own rest."""
 
     law: str
     variation: str
     trajectory: str = 'grasp'
     duration: float | None = None
     close_distance: float | None = None
+    anchored: bool = False
 
-    def profile(self):
-        """The trajectory's :class:`~soft_gripper_sdre.control.trajectory.GraspProfile` with this case's travel."""
+    def profile(self, nominal_rest_y: float | None = None):
+        """The trajectory's :class:`~soft_gripper_sdre.control.trajectory.GraspProfile` with this
+        case's travel; an anchored case needs the nominal finger's rest Y [m]."""
         profile = TRAJECTORIES[self.trajectory][0]
-        return profile if self.close_distance is None else replace(profile, close_distance=self.close_distance)
+        if self.close_distance is not None:
+            profile = replace(profile, close_distance=self.close_distance)
+        if self.anchored:
+            if nominal_rest_y is None:
+                raise ValueError('an anchored case needs the nominal rest Y')
+            profile = replace(profile, close_to=nominal_rest_y + profile.close_distance)
+        return profile
 
 
 @dataclass(frozen=True)
@@ -98,19 +108,21 @@ class CaseResult:
     cube_mm: float                # largest displacement of the cube [mm]
     saturated_pct: float          # share of the per-finger steps with a saturated torque
     check_fail_pct: float         # share of the per-finger steps whose Riccati checks failed
-    close_mm: float = float('nan')  # the grasping fingers' travel from rest [mm]
+    close_mm: float = float('nan')  # the grasping fingers' travel from rest [mm] (anchored: the nominal one's)
+    anchored: bool = False          # the closed pose anchored to the hand (Case.anchored)
     error: str = ''
 
 
 def run_case(case: Case, model: SDCModel) -> CaseResult:
     """Run one case in this process and score it."""
     variation = VARIATIONS[case.variation]
-    profile, duration = case.profile(), TRAJECTORIES[case.trajectory][1]
+    profile, duration = case.profile(float(model.rest_tip[1])), TRAJECTORIES[case.trajectory][1]
     config = SimConfig(scene='hand', noise_std=variation.noise_std, plant=variation.plant)
     res = law_runs.run_law(case.law, model, Weights(**DEFAULT_WEIGHTS), U_MAX, profile, case.duration or duration,
                            config, sensor_delay=variation.sensor_delay)
     return CaseResult(law=case.law, variation=case.variation, trajectory=case.trajectory,
-                      close_mm=profile.close_distance * 1e3, **law_runs.score(res, profile).pick(CaseResult))
+                      close_mm=profile.close_distance * 1e3, anchored=case.anchored,
+                      **law_runs.score(res, profile).pick(CaseResult))
 
 
 # -- the worker pool ------------------------------------------------------------------------------
@@ -128,8 +140,9 @@ def _run_in_worker(case: Case) -> CaseResult:
         return run_case(case, _worker_model)
     except Exception as exc:  # noqa: BLE001 — one failing law must not lose the rest of the grid
         nan = float('nan')
+        travel = case.close_distance or TRAJECTORIES[case.trajectory][0].close_distance
         return CaseResult(case.law, case.variation, case.trajectory, nan, nan, nan, False, nan, nan, nan,
-                          case.profile().close_distance * 1e3, error=f'{type(exc).__name__}: {exc}')
+                          1e3 * travel, case.anchored, error=f'{type(exc).__name__}: {exc}')
 
 
 def run_grid(cases: list[Case], workers: int, model_path=None, progress: bool = True) -> list[CaseResult]:
