@@ -82,9 +82,9 @@ def test_a_node_that_dies_is_named_with_its_own_log_and_no_bag_is_left(tmp_path)
 @pytest.mark.parametrize('controller, expected, absent', [
     ({'law': 'sdre_ff', 'max_residual': 3e-9, 'fallback_fraction': 0.0, 'check_failure_fraction': 0.01,
       'compute_us_mean': 40.0}, '  Riccati: checks failed on 1.00% of solves, fallbacks 0.00%, max residual '
-                                '3.0e-09; compute 40 µs mean per 1-finger step', 'no Riccati'),
+                                '3.0e-09; compute 40 µs mean per 1-finger step', 'no per-step'),
     ({'law': 'pd', 'fallback_fraction': 0.0, 'check_failure_fraction': 0.0, 'compute_us_mean': 9.0},
-     '  pd (no Riccati equation): compute 9 µs mean per 1-finger step', 'residual'),
+     '  pd (no per-step Riccati solve): compute 9 µs mean per 1-finger step', 'residual'),
 ])
 def test_summary_reports_the_riccati_checks_only_for_laws_that_solve_one(controller, expected, absent, tmp_path):
     finger = {'rmse_mm': 0.1, 'rmse_pct': 1.0, 'excursion_mm': 10.0, 'max_mm': 0.2, 'contact_fraction': 0.0}

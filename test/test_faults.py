@@ -125,7 +125,8 @@ def test_lost_estimates_are_stepped_safely_by_the_simulator_then_tracking_recove
            '(relay node)', times=1, crashes=0, nonfinite_outputs=0, messages_lost=lost,
            recovery_s=rec, notes=f'the first missing period held ({c_sim["timeouts"]} simulator timeout), '
            f'zero torque from the 2nd on ({c_sim["safe_periods"]} safe periods, each after '
-           f'{sim.p["lost_command_wait"]:g} s of wall time and the watchdog\'s next look; ERROR meanwhile in simulator and controller); '
+           f'{sim.p["lost_command_wait"]:g} s of wall time and the watchdog\'s second look; ERROR meanwhile '
+           'in simulator and controller); '
            f'peak error {1e3 * peak:.1f} mm')
 
 

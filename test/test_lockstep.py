@@ -152,6 +152,20 @@ def test_a_late_command_while_lost_ends_the_short_wait_the_loop_is_slow_not_dead
     assert s.on_wall_time(10.6) is None
 
 
+def test_a_deadline_that_moves_within_a_period_gets_its_own_two_looks():
+    s = started(timeout=0.5, lost_command_wait=0.01)
+    s.on_command(0, torque(4))
+    s.await_command(10.0)
+    overdue(s, 10.5)                                      # timeout: period 1 held, commands lost
+    s.await_command(10.5)
+    assert s.on_wall_time(10.52) is None                  # period 2: first look past 10.51
+    s.on_command(1 * MS, torque(5))                       # a late answer: the loop is slow, not dead
+    assert not s.lost and s.deadline == pytest.approx(11.0)
+    assert s.on_wall_time(11.0) is None and s.k == 2      # the new deadline's first look
+    np.testing.assert_array_equal(s.on_wall_time(11.0), torque(4))
+    assert s.counters['timeouts'] == 2 and 'safe_periods' not in s.counters
+
+
 def test_refused_commands_do_not_end_lost_commands():
     s = started(timeout=0.5, lost_command_wait=0.01)
     s.on_command(0, torque(4))

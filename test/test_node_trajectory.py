@@ -100,13 +100,16 @@ def test_bad_tip_messages_are_counted_and_a_restart_takes_a_new_rest_pose():
 
 
 def test_close_to_plans_every_grasping_finger_to_the_same_closed_y():
+    rest = REST.copy()
+    rest[2, 1] = -0.005                                                # 3 mm further from the cube
     with ros_context() as (ctx, executor):
         node, probe, pub = make(ctx, executor, close_to='0.0261', **FAST)
-        send(executor, node, pub, cv.tips_to_msg(0, REST))
+        send(executor, node, pub, cv.tips_to_msg(0, rest))
         (plan,) = references(executor, node, probe)
-        check_plan(plan, REST, close_to=0.0261, **FAST)
-        closed = plan[2][:, [0, 2], 1].max(axis=0)
-        np.testing.assert_allclose(closed, 0.0261)                     # rests at -2 mm: 28.1 mm each
+        check_plan(plan, rest, close_to=0.0261, **FAST)
+        pos = plan[2]
+        np.testing.assert_allclose(pos[:, [0, 2], 1].max(axis=0), 0.0261)
+        np.testing.assert_allclose(np.ptp(pos[:, [0, 2], 1], axis=0), [0.0281, 0.0311])   # each its own travel
 
 
 @pytest.mark.parametrize('params, name', [

@@ -9,11 +9,12 @@ one loop message and receives one.
 
 When it steps and with which torque is decided by :class:`~soft_gripper_sdre.sim.lockstep.Stepping`
 (docs/design/loop_rules.md): in *lockstep* (default, deterministic) one step per command stamped
-with the current period, and after ``lockstep_timeout`` of wall time (confirmed at the watchdog's
-next look, a few ms later) a step with the held or zero command so the loop never deadlocks;
-commands are then lost, and each following period waits only ``lost_command_wait`` before it
-steps with zero torque (ERROR), until a command arrives again. In *realtime* a wall timer steps at the control period with the newest command, holding it while it
-is at most ``hold_limit`` old and stepping with zero torque after that. Bad commands (NaN/Inf,
+with the current period, and after ``lockstep_timeout`` of wall time (at the watchdog's second
+look past it, at most 20 ms later) a step with the held or zero command so the loop never
+deadlocks; commands are then lost, and each following period waits only ``lost_command_wait``
+before it steps with zero torque (ERROR), until a command arrives again. In *realtime* a wall
+timer steps at the control period with the newest command, holding it while it is at most
+``hold_limit`` old and stepping with zero torque after that. Bad commands (NaN/Inf,
 wrong sizes, unknown/duplicate/missing names, stamps older than the last applied one or ahead of
 the current period) are rejected with a throttled warning and counted; the simulator never steps
 with a non-finite torque.
@@ -71,7 +72,7 @@ PARAMS = (
           "0 to 3, 0 and 2 face each other across the cube; finger scene: 0); one per name, each "
           'once. The fingers not listed stay in the scene at zero torque', read_only=True),
     Param('lockstep_timeout', 0.5, 'lockstep: wall time to wait for a command before stepping anyway '
-          '(at the watchdog\'s next look after it, at most 10 ms later)',
+          '(at the watchdog\'s second look past it, at most 20 ms later)',
           's', 1e-3, 60.0),
     Param('on_timeout', 'hold', 'lockstep: command used when none arrived in time',
           choices=('hold', 'zero')),

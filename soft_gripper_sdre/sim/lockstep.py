@@ -104,7 +104,7 @@ class Stepping:
         self.sent_at: float | None = None      # lockstep: wall time the current tips went out
         self.lost = False                      # commands lost: stepping with zero torque
         self.lost_since_ns = -1                # the first period stepped without its command
-        self._looked_overdue_k = -1            # the period a look already found past its deadline
+        self._looked_overdue = None            # (period, deadline) a look already found past
 
     @property
     def now_ns(self) -> int:
@@ -176,8 +176,8 @@ class Stepping:
         deadline = self.deadline
         if self.mode != 'lockstep' or self.done or deadline is None or wall < deadline:
             return None
-        if self._looked_overdue_k != self.k:
-            self._looked_overdue_k = self.k
+        if self._looked_overdue != (self.k, deadline):     # (a moved deadline gets its own two looks)
+            self._looked_overdue = (self.k, deadline)
             return None
         if self.lost:
             self.counters['safe_periods'] += 1

@@ -236,11 +236,11 @@ def summary(result: dict, out: Path) -> str:
     c = result.get('controller', {})
     compute = (f'compute {c.get("compute_us_mean", float("nan")):.0f} µs mean per '
                f'{len(result["fingers"])}-finger step')
-    if 'max_residual' in c:           # (reported by the laws that solve a Riccati equation)
+    if 'max_residual' in c:           # (reported by the laws that solve a Riccati equation each step)
         lines.append(f'  Riccati: checks failed on {c["check_failure_fraction"]:.2%} of solves, fallbacks '
                      f'{c["fallback_fraction"]:.2%}, max residual {c["max_residual"]:.1e}; {compute}')
     elif 'compute_us_mean' in c:
-        lines.append(f'  {c.get("law", "the law")} (no Riccati equation): {compute}')
+        lines.append(f'  {c.get("law", "the law")} (no per-step Riccati solve): {compute}')
     lines.append(f'  bag, figures and metrics.json in {out}/')
     return '\n'.join(lines)
 

@@ -165,7 +165,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     ap.add_argument('--trajectories', nargs='+', default=list(TRAJECTORIES), choices=list(TRAJECTORIES))
     ap.add_argument('--duration', type=float, default=None, help='override every run\'s duration [s]')
     ap.add_argument('--close-mm', type=float, default=None,
-                    help='override the grasping fingers\' travel from rest [mm] (default: the trajectory\'s, 30)')
+                    help='override the grasping fingers\' travel from rest [mm] (default: the trajectory\'s, 30); '
+                         'with --anchored, the nominal finger\'s')
     ap.add_argument('--anchored', action='store_true',
                     help='close the grasping fingers to the nominal finger\'s closed pose (the model\'s rest Y '
                          'plus the travel) wherever the plant\'s finger rests, instead of the travel from rest')

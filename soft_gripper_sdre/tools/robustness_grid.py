@@ -140,7 +140,8 @@ def _run_in_worker(case: Case) -> CaseResult:
         return run_case(case, _worker_model)
     except Exception as exc:  # noqa: BLE001 — one failing law must not lose the rest of the grid
         nan = float('nan')
-        travel = case.close_distance or TRAJECTORIES[case.trajectory][0].close_distance
+        travel = (case.close_distance if case.close_distance is not None
+                  else TRAJECTORIES[case.trajectory][0].close_distance)
         return CaseResult(case.law, case.variation, case.trajectory, nan, nan, nan, False, nan, nan, nan,
                           1e3 * travel, case.anchored, error=f'{type(exc).__name__}: {exc}')
 
