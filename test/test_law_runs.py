@@ -71,7 +71,8 @@ def test_a_run_without_a_cube_pose_is_no_grasp():
 
 def test_the_evaluation_and_the_grid_take_every_score_they_report_from_the_same_score():
     s = score(run([finger(0.1), finger(0.3), finger(0.2), finger(0.05)]), PROFILE)
-    own = {RunSummary: {'law', 'trajectory'}, CaseResult: {'law', 'variation', 'trajectory', 'close_mm', 'anchored', 'error'}}
+    own = {RunSummary: {'law', 'trajectory'},
+           CaseResult: {'law', 'variation', 'trajectory', 'close_mm', 'anchored', 'error'}}
     for cls, labels in own.items():
         assert set(s.pick(cls)) == set(cls.__dataclass_fields__) - labels
     summary = RunSummary(law='pd', trajectory='fast', **s.pick(RunSummary))
