@@ -6,8 +6,8 @@ trajectory node and the controller on the other, joined by one network link.
 On one Linux machine the two hosts are two network namespaces joined by a veth pair whose
 addresses (:data:`SIM_ADDRESS`, :data:`CTL_ADDRESS`, /24) exist only inside them, each with its
 loopback up and a route for multicast (224.0.0.0/4) over its end of the link, as a host on a LAN
-has through its default route (without one, DDS discovery across the link fails, static peer or
-not: docs/deployment.md). Every process is started as ``ip netns exec <host> python -m
+has through its default route (without one the split graph did not connect on its first start:
+docs/deployment.md). Every process is started as ``ip netns exec <host> python -m
 soft_gripper_sdre.nodes.<node> ...`` (so it needs root and iproute2). DDS between the hosts (see
 docs/deployment.md):
 
@@ -48,7 +48,7 @@ from soft_gripper_sdre.tools.procs import ros_env
 SIM_ADDRESS = '10.231.0.1'
 CTL_ADDRESS = '10.231.0.2'
 PREFIX_LENGTH = 24
-#: multicast leaves each host over its end of the link (DDS discovery needs it)
+#: multicast leaves each host over its end of the link (the split graph connects with it)
 MULTICAST_ROUTE = '224.0.0.0/4'
 #: the nodes on the simulator's host; the others run on the controller's
 SIM_HOST_NODES = ('recorder', 'simulator')
