@@ -30,6 +30,22 @@ def _filter(dt: float, jerk_psd: float, meas_std: float) -> KalmanFilter:
     return kf
 
 
+def _started_filter(x0: float, dt: float, jerk_psd: float, meas_std: float) -> KalmanFilter:
+    """The filter at the first measurement ``x0``: the position known to σ_r, the velocity and
+    the acceleration vague."""
+    kf = _filter(dt, jerk_psd, meas_std)
+    kf.x = np.array([[x0], [0.0], [0.0]])
+    kf.P = np.diag([kf.R[0, 0], 1.0, 1e3])
+    return kf
+
+
+def _best_on_grid(loglik, t: np.ndarray, pos: np.ndarray, meas_std: float, grid: np.ndarray | None) -> float:
+    """The jerk intensity on ``grid`` (default 1 … 1e8, a decade apart) that maximises ``loglik``."""
+    grid = np.logspace(0, 8, 9) if grid is None else np.asarray(grid, dtype=float)
+    scores = [loglik(t, pos, q, meas_std) for q in grid]
+    return float(grid[int(np.argmax(scores))])
+
+
 def estimate_kinematics(t: np.ndarray, pos: np.ndarray, jerk_psd: float, meas_std: float,
                         smooth: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Position, velocity, acceleration estimates of each column of ``pos``.
@@ -57,9 +73,7 @@ def estimate_kinematics(t: np.ndarray, pos: np.ndarray, jerk_psd: float, meas_st
         raise ValueError(f'jerk_psd must be finite and > 0, got {jerk_psd!r}')
     out = np.empty((3,) + pos.shape)
     for j in range(pos.shape[1]):
-        kf = _filter(dt, jerk_psd, meas_std)
-        kf.x = np.array([[pos[0, j]], [0.0], [0.0]])
-        kf.P = np.diag([kf.R[0, 0], 1.0, 1e3])
+        kf = _started_filter(pos[0, j], dt, jerk_psd, meas_std)
         means, covs, _, _ = kf.batch_filter(pos[:, j], update_first=True)  # x₀ is the state at t₀
         if smooth:
             means, _, _, _ = kf.rts_smoother(means, covs)
@@ -72,9 +86,7 @@ def innovation_loglik(t: np.ndarray, pos: np.ndarray, jerk_psd: float, meas_std:
     dt = float(np.median(np.diff(t)))
     total = 0.0
     for j in range(pos.shape[1]):
-        kf = _filter(dt, jerk_psd, meas_std)
-        kf.x = np.array([[pos[0, j]], [0.0], [0.0]])
-        kf.P = np.diag([kf.R[0, 0], 1.0, 1e3])
+        kf = _started_filter(pos[0, j], dt, jerk_psd, meas_std)
         for z in pos[1:, j]:
             kf.predict()
             kf.update(z)
@@ -85,9 +97,7 @@ def innovation_loglik(t: np.ndarray, pos: np.ndarray, jerk_psd: float, meas_std:
 def tune_jerk_psd(t: np.ndarray, pos: np.ndarray, meas_std: float,
                   grid: np.ndarray | None = None) -> float:
     """The jerk intensity on ``grid`` that maximises the innovation likelihood of ``pos``."""
-    grid = np.logspace(0, 8, 9) if grid is None else np.asarray(grid, dtype=float)
-    scores = [innovation_loglik(t, pos, q, meas_std) for q in grid]
-    return float(grid[int(np.argmax(scores))])
+    return _best_on_grid(innovation_loglik, t, pos, meas_std, grid)
 
 
 def estimate_errors(vel_est: np.ndarray, acc_est: np.ndarray, vel_true: np.ndarray,
@@ -165,9 +175,7 @@ def estimate_kinematics_irregular(t: np.ndarray, pos: np.ndarray, grid: np.ndarr
         zs: list = [None] * times.size
         for i, z in zip(meas_at.tolist(), pos[:, j].tolist()):
             zs[i] = z
-        kf = _filter(float(np.median(np.diff(t))), jerk_psd, meas_std)
-        kf.x = np.array([[pos[0, j]], [0.0], [0.0]])
-        kf.P = np.diag([kf.R[0, 0], 1.0, 1e3])
+        kf = _started_filter(pos[0, j], float(np.median(np.diff(t))), jerk_psd, meas_std)
         means, covs, _, _ = kf.batch_filter(zs, Fs=Fs, Qs=Qs, update_first=True)
         # the smoother's step k + 1 is the transition from k to k + 1
         means, _, _, _ = kf.rts_smoother(means, covs, Fs=[Fs[-1]] + Fs[:-1], Qs=[Qs[-1]] + Qs[:-1])
@@ -181,9 +189,7 @@ def innovation_loglik_irregular(t: np.ndarray, pos: np.ndarray, jerk_psd: float,
     Fs, Qs = _irregular_models(t, jerk_psd)
     total = 0.0
     for j in range(pos.shape[1]):
-        kf = _filter(float(np.median(np.diff(t))), jerk_psd, meas_std)
-        kf.x = np.array([[pos[0, j]], [0.0], [0.0]])
-        kf.P = np.diag([kf.R[0, 0], 1.0, 1e3])
+        kf = _started_filter(pos[0, j], float(np.median(np.diff(t))), jerk_psd, meas_std)
         for z, F, Q in zip(pos[1:, j], Fs, Qs):
             kf.predict(F=F, Q=Q)
             kf.update(z)
@@ -194,6 +200,4 @@ def innovation_loglik_irregular(t: np.ndarray, pos: np.ndarray, jerk_psd: float,
 def tune_jerk_psd_irregular(t: np.ndarray, pos: np.ndarray, meas_std: float,
                             grid: np.ndarray | None = None) -> float:
     """:func:`tune_jerk_psd` for unevenly spaced times ``t``."""
-    grid = np.logspace(0, 8, 9) if grid is None else np.asarray(grid, dtype=float)
-    scores = [innovation_loglik_irregular(t, pos, q, meas_std) for q in grid]
-    return float(grid[int(np.argmax(scores))])
+    return _best_on_grid(innovation_loglik_irregular, t, pos, meas_std, grid)
