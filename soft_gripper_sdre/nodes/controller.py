@@ -74,7 +74,8 @@ PARAMS = (
     Param('solver', 'fast', 'Riccati solver: warm-started Newton–Kleinman or scipy reference',
           choices=('fast', 'reference'), read_only=True),
     Param('law', DEFAULT_LAW, 'control law (soft_gripper_sdre.control.laws): learned SDRE, LQR frozen at the '
-          'origin, task-space PD, computed torque on the learned model; the oracle needs the plant\'s joint state and runs in-process only '
+          'origin, task-space PD, computed torque on the learned model; the oracle needs the plant\'s joint '
+          'state and runs in-process only '
           '(tools/evaluate.py); sdre_ff: SDRE + model-inversion feedforward '
           '(docs/results.md "Beyond the paper"); koopman_mpc, koopman_lqr: the Koopman baselines on '
           'the shipped Koopman model (models/koopman.npz; docs/results.md "Koopman baseline")',

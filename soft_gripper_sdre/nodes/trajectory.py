@@ -169,7 +169,8 @@ class TrajectoryNode(Node):
         cdr.watch(self.diag, self.cdr_tips, self.cdr_clock)
         pr = self.profile
         self.get_logger().info(
-            f'grasp with fingers {[self.names[i] for i in pr.grasp_fingers]}, others {pr.others}: start {pr.t_start:g} s, '
+            f'grasp with fingers {[self.names[i] for i in pr.grasp_fingers]}, others {pr.others}: '
+            f'start {pr.t_start:g} s, '
             f'close {pr.t_close:g} s, hold {pr.t_hold:g} s, open {pr.t_open:g} s; planned on a '
             f'{1e3 * p["horizon_step"]:g} ms grid')
         if self.fixed_rest is None:

@@ -309,7 +309,8 @@ def fingers_problem(text: str) -> str | None:
     if len(set(mounted)) != len(mounted) or not all(0 <= i <= 3 for i in mounted):
         return f'hand fingers must be distinct, 0 to 3, got {mounted}'
     if not set(mounted) & set(CUBE_FINGERS):
-        return f'none of the fingers is at hand finger {CUBE_FINGERS[0]} or {CUBE_FINGERS[1]}, the two that grasp the cube'
+        return (f'none of the fingers is at hand finger {CUBE_FINGERS[0]} or {CUBE_FINGERS[1]}, '
+                'the two that grasp the cube')
     return None
 
 

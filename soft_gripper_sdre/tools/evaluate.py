@@ -261,7 +261,8 @@ def write_report(out: Path, summaries: list[RunSummary], figures: list[str], mod
         lines += [f'## {traj}: close {p.close_distance * 1e3:g} mm in {p.t_close:g} s, hold {p.t_hold:g} s, '
                   f'open in {p.t_open:g} s ({dur:g} s run)', '',
                   '| law | RMSE grasp fingers [mm] | max grasp [mm] | worst-finger RMSE [mm] | max any [mm] '
-                  '| held-reference error [mm] | torque RMS [N·m] | saturated | grasp | cube moved [mm] | check failures '
+                  '| held-reference error [mm] | torque RMS [N·m] | saturated | grasp | cube moved [mm] '
+                  '| check failures '
                   '| compute [µs/step] |',
                   '| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | :---: | ---: | ---: | ---: |']
         for s in summaries:
@@ -322,9 +323,9 @@ def write_report(out: Path, summaries: list[RunSummary], figures: list[str], mod
 
 def expectation_verdict(summaries: list[RunSummary]) -> dict:
     """The expectation of docs/results.md "Beyond the paper", per trajectory: learned SDRE beats
-    LQR and PD on free-space RMSE (grasping fingers) and is within 1.5× of the oracle — for the paper's law (``sdre`` against
-    ``oracle``) and, when run, the feedforward law (``sdre_ff`` against ``oracle_ff`` if run, else
-    ``oracle``)."""
+    LQR and PD on free-space RMSE (grasping fingers) and is within 1.5× of the oracle — for the
+    paper's law (``sdre`` against ``oracle``) and, when run, the feedforward law (``sdre_ff``
+    against ``oracle_ff`` if run, else ``oracle``)."""
     out = {}
     for traj in dict.fromkeys(s.trajectory for s in summaries):
         by = {s.law: s.rmse_mm_grasp for s in summaries if s.trajectory == traj}

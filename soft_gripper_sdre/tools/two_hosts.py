@@ -255,9 +255,10 @@ def run_split(pair: HostPair, out: Path, duration: float, parameters: dict[str, 
     before = pair.traffic()
     env = pair.env(pair.sim_ns, ros_env())
     with open(out / 'supervisor.log', 'w', encoding='utf-8') as log:
-        code = subprocess.run([*pair.exec_prefix(pair.sim_ns), sys.executable, '-m', 'soft_gripper_sdre.tools.two_hosts',
-                               '--supervise', str(job_path)], env=env, stdout=log, stderr=subprocess.STDOUT,
-                              stdin=subprocess.DEVNULL, timeout=timeout + 180).returncode
+        code = subprocess.run([*pair.exec_prefix(pair.sim_ns), sys.executable, '-m',
+                               'soft_gripper_sdre.tools.two_hosts', '--supervise', str(job_path)], env=env,
+                              stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                              timeout=timeout + 180).returncode
     after = pair.traffic()
     result_path = Path(job['result'])
     result = json.loads(result_path.read_text()) if result_path.is_file() else {}
@@ -328,7 +329,8 @@ def paired_tracking(one: GraphRun, two: GraphRun) -> dict:
 def compare(one: GraphRun, two: GraphRun, extra: dict, faulted: tuple[GraphRun, dict] | None, out: Path) -> dict:
     """The figures of the three runs side by side (tracking from each bag's report)."""
     from soft_gripper_sdre.tools.report import report
-    fingers = {name: report(run.bag, Path(out) / name)['fingers'] for name, run in (('one_host', one), ('two_hosts', two))}
+    fingers = {name: report(run.bag, Path(out) / name)['fingers']
+               for name, run in (('one_host', one), ('two_hosts', two))}
     result = {
         'duration_s': float(two.spec.node('simulator').parameters['duration']),
         'load_average': os.getloadavg(), 'cpus': os.cpu_count(),
