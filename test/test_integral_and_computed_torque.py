@@ -8,7 +8,7 @@ from soft_gripper_sdre.control.laws.integral import INTEGRAL_LEAK_S
 from soft_gripper_sdre.control.tracking import Weights
 from soft_gripper_sdre.learning.model import SDCModel
 
-from sdc_models import REST, StiffeningModel
+from sdc_models import REST, StiffeningModel, track_sine
 
 W = Weights(1e6, 0.0, 1.6e4)
 G2 = np.array([[15.0, 640.0], [-620.0, -8.0]])
@@ -107,24 +107,7 @@ def test_computed_torque_tracks_a_sinusoid_on_a_state_dependent_model():
     at the zero-order hold's."""
     model, dt = StiffeningModel(), 2e-4
     law = ComputedTorqueLaw(model, 1e9, n_fingers=1, lowpass_hz=0.0, dt=dt)
-    amp, w = np.array([2e-3, 4e-3]), 2 * np.pi * 3.0
-
-    def ref(t):
-        return REST[None, :2] + amp * np.sin(w * t), (amp * w * np.cos(w * t))[None], (-amp * w * w * np.sin(w * t))[None]
-    p, v, _ = ref(0.0)
-    x, worst = np.concatenate([p[0] - REST[:2], v[0]]), 0.0
-    for k in range(1500):
-        p_d, v_d, a_d = ref(k * dt)
-        u = law.compute(x[None, :2] + REST[:2], x[None, 2:], p_d, v_d, ref_acc=a_d).u[0]
-
-        def f(z):
-            A, G = model.AG(z)
-            return A[0] @ z + G[0] @ u
-        k1 = f(x)
-        k2 = f(x + dt / 2 * k1)
-        k3 = f(x + dt / 2 * k2)
-        x = x + dt / 6 * (k1 + 2 * k2 + 2 * k3 + f(x + dt * k3))
-        worst = max(worst, np.linalg.norm(x[:2] + REST[:2] - ref((k + 1) * dt)[0][0]))
+    worst = track_sine(law, model, seconds=0.3, dt=dt)
     assert worst < 1e-5
 
 

@@ -10,7 +10,7 @@ from soft_gripper_sdre.control.laws import (GRAPH_LAWS, LAW_REGISTRY, AdaptiveSd
 from soft_gripper_sdre.control.riccati import sdre_gains
 from soft_gripper_sdre.control.tracking import Weights
 
-from sdc_models import REST, StiffeningModel
+from sdc_models import REST, StiffeningModel, sine_reference, track_sine
 
 
 class LinearModel:
@@ -134,12 +134,6 @@ SPRING = dict(A21=-np.diag([300.0, 900.0]), G2=np.array([[10.0, 600.0], [-600.0,
 W = Weights(1e6, 0.0, 1.6e4)
 
 
-def sine_reference(t, amp=np.array([2e-3, 4e-3]), w=2 * np.pi * 3.0):
-    """p_d = amp sin(ωt) about the rest tip: (pos, vel, acc) (1, 2) each."""
-    return (REST[None, :2] + amp * np.sin(w * t), (amp * w * np.cos(w * t))[None],
-            (-amp * w * w * np.sin(w * t))[None])
-
-
 @pytest.mark.parametrize('ff_at', ['x', 'ref'])
 def test_feedforward_on_the_reference_is_the_model_inversion(ff_at):
     """x = x_d: the feedback term vanishes and u = G₂⁻¹ (a_d − A₂₁ p_d − A₂₂ v_d), closed form."""
@@ -169,33 +163,13 @@ def test_feedforward_at_x_makes_the_models_error_dynamics_the_closed_loop_matrix
         np.testing.assert_allclose(e_dot, (A[i] + G[i] @ K) @ (x[i] - xd[i]), rtol=1e-7, atol=1e-9)
 
 
-def _track_sine(law, model, seconds=0.3, dt=2e-4):
-    """Integrate the model's plant (RK4, u held over dt) under ``law`` from the sine's start."""
-    p, v, _ = sine_reference(0.0)
-    x = np.concatenate([p[0] - REST[:2], v[0]])
-    err = []
-    for k in range(int(round(seconds / dt))):
-        p_d, v_d, a_d = sine_reference(k * dt)
-        u = law.compute(x[None, :2] + REST[:2], x[None, 2:], p_d, v_d, ref_acc=a_d).u[0]
-
-        def f(z):
-            A, G = model.AG(z)
-            return A[0] @ z + G[0] @ u
-        k1 = f(x)
-        k2 = f(x + dt / 2 * k1)
-        k3 = f(x + dt / 2 * k2)
-        x = x + dt / 6 * (k1 + 2 * k2 + 2 * k3 + f(x + dt * k3))
-        err.append(np.linalg.norm(x[:2] + REST[:2] - sine_reference((k + 1) * dt)[0][0]))
-    return np.max(err)
-
-
 def test_feedforward_makes_a_sinusoid_an_exact_solution_where_the_paper_law_lags():
     """Linear SDC spring (A, G constant): started on the sine, the feedforward law tracks it up to
     the 0.2 ms zero-order hold; the paper's u = Kx + K_s x_d (same weights) lags by far more."""
     model = LinearModel(**SPRING)
     ff = SdreFeedforwardLaw(model, W, 1e9, n_fingers=1, lowpass_hz=0.0)
     paper = SdreLaw(model, W, 1e9, n_fingers=1, lowpass_hz=0.0)
-    e_ff, e_paper = _track_sine(ff, model), _track_sine(paper, model)
+    e_ff, e_paper = track_sine(ff, model), track_sine(paper, model)
     assert e_ff < 5e-6                     # of a 4 mm amplitude: the error of the hold alone
     assert e_paper > 100 * e_ff and e_paper > 1e-3
 
