@@ -51,6 +51,8 @@ def test_realtime_latency_comes_back_after_a_cpu_hog():
     assert min(before['windows'], during['windows'], after['windows']) >= 1, figures
     # the machine is shared: the other jobs' load moves between the phases, hence the margins;
     # a loop that keeps a queue has tens of periods of latency and answers old tips in nearly
-    # every period, before and after alike
+    # every period after the hog. On a quiet machine fewer than half the periods are late after
+    # it; on one already too loaded for realtime before the hog (a third of the periods late),
+    # after it no more than 0.2 more of them than before
     assert after['p50'] <= 3.0 * before['p50'], figures
-    assert after['late'] < 0.5, figures
+    assert after['late'] < max(0.5, before['late'] + 0.2), figures
