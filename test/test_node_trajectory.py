@@ -1,6 +1,7 @@
 """The trajectory node over real DDS (loopback), launch-free: own Context, executor, test node."""
 from pathlib import Path
 
+from geometry_msgs.msg import PoseArray
 import numpy as np
 import pytest
 import yaml
@@ -9,7 +10,7 @@ from node_harness import FAST_GRASP, make_trajectory as make
 from rosutil import overrides, ros_context, spin_until
 from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.params import ParameterError
-from soft_gripper_sdre.nodes.topics import GRASP_REFERENCE
+from soft_gripper_sdre.nodes.topics import GRASP_REFERENCE, TIP_POSITIONS
 from soft_gripper_sdre.nodes.trajectory import PARAMS, TrajectoryNode
 from soft_gripper_sdre.control.trajectory import GraspProfile, GraspTrajectory
 
@@ -43,14 +44,16 @@ def references(executor, node, probe):
     return [cv.msg_to_reference(m, 4) for m in got]
 
 
-def check_plan(plan, rest, **profile):
-    """The plan is the grasp from ``rest`` on the 5 ms grid from 0 to its end (at rest)."""
+def check_plan(plan, rest, origin=0, **profile):
+    """The plan is the grasp from ``rest`` on the 5 ms grid from ``origin`` [ns] to its end (at
+    rest), the same points at any origin."""
     stamp, times, pos, vel, acc = plan
     traj = GraspTrajectory(rest, GraspProfile(others='open', **profile))
-    assert stamp == times[0] == 0
+    assert stamp == times[0] == origin
     np.testing.assert_array_equal(np.diff(times), 5 * MS)
-    assert times[-2] < traj.profile.duration * cv.NS <= times[-1]
-    ref = traj.sample(times / cv.NS)
+    offsets = times - origin
+    assert offsets[-2] < traj.profile.duration * cv.NS <= offsets[-1]
+    ref = traj.sample(offsets / cv.NS)
     np.testing.assert_array_equal(pos, ref.pos)
     np.testing.assert_array_equal(vel, ref.vel)
     np.testing.assert_array_equal(acc, ref.acc)
@@ -64,7 +67,7 @@ def test_the_whole_grasp_is_planned_from_the_first_tips_which_are_then_no_longer
         send(executor, node, pub, cv.tips_to_msg(first * MS, REST))
         refs = references(executor, node, probe)
         assert len(refs) == 1
-        check_plan(refs[0], REST, **FAST)
+        check_plan(refs[0], REST, origin=first * MS, **FAST)   # the plan starts at the first tips
         assert np.abs(refs[0][3]).max() > 0.01                       # the grasp really moves
         # the tip subscription is gone: the node receives nothing per control period
         assert spin_until(executor, lambda: node.sub is None, 5.0)
@@ -95,7 +98,7 @@ def test_bad_tip_messages_are_counted_and_a_restart_takes_a_new_rest_pose():
         refs = references(executor, node, probe)
         assert len(refs) == 2
         check_plan(refs[0], REST, **FAST)
-        check_plan(refs[1], moved, **FAST)
+        check_plan(refs[1], moved, origin=1 * MS, **FAST)            # a new origin with the new rest
         assert spin_until(executor, lambda: node.sub is None, 5.0)
 
 
@@ -121,7 +124,9 @@ def test_close_to_plans_every_grasping_finger_to_the_same_closed_y():
     (dict(close_distance=float('nan')), 'close_distance'), (dict(grasp_fingers='0,2'), 'grasp_fingers'),
     (dict(rest_pose='0.0, 0.01'), 'rest_pose'), (dict(rest_pose='a b c d e f g h'), 'rest_pose'),
     (dict(rest_pose=' '.join(['nan'] * 8)), 'rest_pose'), (dict(close_to='near'), 'close_to'),
-    (dict(close_to='0.5'), 'close_to'), (dict(close_to='nan'), 'close_to')])
+    (dict(close_to='0.5'), 'close_to'), (dict(close_to='nan'), 'close_to'),
+    (dict(start_at='soon'), 'start_at'), (dict(start_at='-1'), 'start_at'),
+    (dict(start_at='inf'), 'start_at'), (dict(tips_reliability='sometimes'), 'tips_reliability')])
 def test_bad_parameters_fail_at_startup_naming_the_parameter(params, name):
     with ros_context() as (ctx, executor):
         with pytest.raises(ParameterError, match=name):
@@ -151,7 +156,8 @@ def test_runtime_changes_are_checked_and_refusals_keep_the_old_value():
 
 def test_a_restart_mid_run_keeps_the_given_rest_pose():
     """With rest_pose the plan goes out at once, without a tip (they are bent mid-grasp), and again
-    after a simulator restart; without it, the first tips after t_start are flagged."""
+    after a simulator restart; with start_at and without rest_pose, the first tips after start_at +
+    t_start are flagged."""
     rest = ', '.join(repr(v) for v in REST[:, :2].ravel().tolist())
     bent = REST + 0.01
     with ros_context() as (ctx, executor):
@@ -167,7 +173,58 @@ def test_a_restart_mid_run_keeps_the_given_rest_pose():
         check_plan(refs[1], REST, **FAST)
         assert node.diag.counters['late_start'] == 0
     with ros_context() as (ctx, executor):
-        node, probe, pub = make(ctx, executor, **FAST)
+        node, probe, pub = make(ctx, executor, start_at='0', **FAST)
         send(executor, node, pub, cv.tips_to_msg(30 * MS, bent))
         assert node.diag.counters['late_start'] == 1
         check_plan(references(executor, node, probe)[0], bent, **FAST)
+
+
+WALL_NS = 1_767_225_600_123_456_789          # a wall-time stamp [ns] (2026)
+
+
+def diagnostics_value(node, key):
+    return node.diag.values[key]
+
+
+@pytest.mark.parametrize('reliability', ['reliable', 'best_effort'])
+def test_a_wall_time_driver_gets_a_plan_starting_at_its_first_tips(reliability):
+    """Tips stamped with wall time, from a driver with the sensor-data QoS when the node's tips are
+    best effort: the plan starts at their stamp, and /diagnostics carries the origin exactly."""
+    from rclpy.qos import qos_profile_sensor_data
+    with ros_context() as (ctx, executor):
+        node, probe, pub = make(ctx, executor, tips_reliability=reliability, **FAST)
+        if reliability == 'best_effort':
+            pub = probe.create_publisher(PoseArray, TIP_POSITIONS, qos_profile_sensor_data)
+            assert spin_until(executor, lambda: pub.get_subscription_count() > 0, 10.0)
+        send(executor, node, pub, cv.tips_to_msg(WALL_NS, REST))
+        (plan,) = references(executor, node, probe)
+        check_plan(plan, REST, origin=WALL_NS, **FAST)
+        assert node.diag.counters['late_start'] == 0
+        assert diagnostics_value(node, 'start_at') == '1767225600.123456789'
+        # the same plan, bit for bit, as the one at origin 0 (times apart)
+        zero = GraspTrajectory(REST, GraspProfile(others='open', **FAST)).sample(
+            (plan[1] - WALL_NS) / cv.NS)
+        np.testing.assert_array_equal(plan[2], zero.pos)
+
+
+def test_a_restart_with_the_published_rest_pose_and_start_reproduces_the_plan():
+    with ros_context() as (ctx, executor):
+        node, probe, pub = make(ctx, executor, **FAST)
+        send(executor, node, pub, cv.tips_to_msg(WALL_NS, REST))
+        (first,) = references(executor, node, probe)
+        given = dict(rest_pose=diagnostics_value(node, 'rest_pose'),
+                     start_at=diagnostics_value(node, 'start_at'))
+    with ros_context() as (ctx, executor):
+        node, probe, pub = make(ctx, executor, **given, **FAST)
+        assert node.sub is None                                      # no tips needed
+        (again,) = references(executor, node, probe)
+        for a, b in zip(first, again):
+            np.testing.assert_array_equal(a, b)
+
+
+def test_start_at_sets_the_origin_of_a_plan_from_the_first_tips():
+    with ros_context() as (ctx, executor):
+        node, probe, pub = make(ctx, executor, start_at='1767225600.5', **FAST)
+        send(executor, node, pub, cv.tips_to_msg(WALL_NS, REST))
+        (plan,) = references(executor, node, probe)
+        check_plan(plan, REST, origin=1_767_225_600_500_000_000, **FAST)

@@ -5,9 +5,14 @@ rejects out-of-range values itself (``FloatingPointRange`` / ``IntegerRange``); 
 cross-field checks are ours. Bad values at startup raise :class:`ParameterError`, whose message names
 the parameter; ``main()`` logs it and exits non-zero. At runtime a bad value is refused with its
 reason and the old value stays in force.
+
+A whole number given for a floating-point parameter (``-p max_excursion:=0``, ``0`` in a parameters
+file, or an integer in a runtime change) is taken as that float: ROS types ``0`` as an integer, and
+a parameter declared with a float default would refuse it. Any other type is refused.
 """
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass, field
 from typing import Any, Callable, Iterable
 
@@ -16,6 +21,8 @@ from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescr
 from rclpy.exceptions import (InvalidParameterTypeException, InvalidParameterValueException,
                               ParameterException)
 from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import QoSProfile, ReliabilityPolicy
 
 from soft_gripper_sdre import FINGER_NAMES
 from soft_gripper_sdre.nodes.conversions import MAX_FINGERS, finger_names_problem
@@ -83,13 +90,53 @@ def finger_names_param(description: str) -> Param:
                  f'{MAX_FINGERS}), each a ROS name token', rule=finger_names_problem, read_only=True)
 
 
+#: the choices of ``tips_reliability`` (:func:`tips_reliability_param`)
+RELIABILITIES = ('reliable', 'best_effort')
+
+
+def tips_reliability_param() -> Param:
+    """``tips_reliability``, the same in every node that reads ``tip_positions``."""
+    return Param('tips_reliability', 'reliable', "reliability of the tip_positions subscription: "
+                 "'reliable' (the simulator: lockstep loses no period) or 'best_effort', which also "
+                 'matches a driver that publishes with the sensor-data QoS', choices=RELIABILITIES,
+                 read_only=True)
+
+
+def with_reliability(qos: QoSProfile, reliability: str) -> QoSProfile:
+    """A copy of ``qos`` with ``reliability`` ('reliable' or 'best_effort')."""
+    out = copy.copy(qos)
+    out.reliability = ReliabilityPolicy[reliability.upper()]
+    return out
+
+
+def _is_float(p: Param) -> bool:
+    return isinstance(p.default, float)
+
+
+def _as_float(param: Parameter) -> Parameter:
+    """``param`` with an integer value as the same float (other values unchanged)."""
+    if param.type_ is Parameter.Type.INTEGER:
+        return Parameter(param.name, Parameter.Type.DOUBLE, float(param.value))
+    return param
+
+
 def declare_all(node: Node, params: Iterable[Param]) -> dict[str, Any]:
     """Declare ``params`` on ``node`` (overrides come from --params-file / -p / parameter_overrides)
-    and return their values.
+    and return their values. A whole number given for a float parameter is taken as that float,
+    at start-up and in later changes (module doc).
 
     Raises:
         ParameterError: a value is out of range, of the wrong type or not an allowed choice.
     """
+    params = list(params)
+    floats = {p.name for p in params if _is_float(p)}
+    # rclpy keeps the -p / --params-file / parameter_overrides values here until declaration, and
+    # has no public way to read them
+    overrides = node._parameter_overrides
+    for name in floats & set(overrides):
+        overrides[name] = _as_float(overrides[name])
+    node.add_pre_set_parameters_callback(
+        lambda changes: [_as_float(c) if c.name in floats else c for c in changes])
     values = {}
     for p in params:
         try:

@@ -8,26 +8,33 @@ message (as in :func:`soft_gripper_sdre.analysis.closed_loop.run_closed_loop`), 
 or recorder that starts later still gets it), and the tip subscription is dropped: the node
 receives nothing per control period.
 
-The plan holds the points at the ABSOLUTE times k·``horizon_step`` from 0 to the first grid time
-at or after the grasp's end, where the fingers are back at rest: header stamp 0,
-``time_from_start`` = each point's time, positions / velocities / accelerations from
-``GraspTrajectory.sample``. After its last point the reference stays there
-(:func:`soft_gripper_sdre.control.horizon.sample_plan`).
+**Time comes from the data.** The plan starts at its origin: the stamp of the tips the rest pose
+is taken from, whatever clock the driver stamps with (sim time from 0, or wall time), or the
+``start_at`` parameter; with ``rest_pose`` and without ``start_at`` the origin is 0. The plan
+holds the points at the times origin + k·``horizon_step`` up to the first grid time at or after
+the grasp's end, where the fingers are back at rest: header stamp = the origin,
+``time_from_start`` = k·``horizon_step``, positions / velocities / accelerations from
+``GraspTrajectory.sample`` at k·``horizon_step``. After its last point the reference stays there
+(:func:`soft_gripper_sdre.control.horizon.sample_plan`). The simulator's first tips are stamped 0,
+so its plan starts at 0.
 
 A ``/clock`` stamp more than ``reset_on_jump`` behind the newest one means the simulator
-restarted: the node takes a new rest pose from the next tip message (or, with ``rest_pose``,
-publishes its plan again), since the controller forgets a plan made for the old run. Malformed
-tip or clock messages (wrong number of poses, NaN/Inf) are rejected with a throttled warning and
-counted.
+restarted: the node takes a new rest pose, and with it a new origin, from the next tip message
+(or, with ``rest_pose``, publishes its plan again), since the controller forgets a plan made for
+the old run. A ``start_at`` that was given stays. Malformed tip or clock messages (wrong number of
+poses, NaN/Inf) are rejected with a throttled warning and counted.
 
-A node restarted mid-run (after a crash) must not take the tips it first sees as the rest pose:
-they are wherever the grasp left them. Pass the rest pose the first instance used (its
-``/diagnostics`` value ``rest_pose``) as the ``rest_pose`` parameter; it then publishes at once,
-without a tip. A first tip message after ``t_start`` without it is flagged (``late_start``, WARN).
+A node restarted mid-run (after a crash) must not take the tips it first sees as the rest pose
+and their stamp as the start: the fingers are wherever the grasp left them. Pass the values the
+first instance published in its ``/diagnostics`` (``rest_pose`` and ``start_at``) as parameters;
+it then publishes the very same plan at once, without a tip. With ``start_at`` and without
+``rest_pose``, a first tip message more than ``t_start`` after ``start_at`` is flagged
+(``late_start``, WARN).
 """
 from __future__ import annotations
 
 from dataclasses import fields
+import decimal
 import math
 
 from geometry_msgs.msg import PoseArray
@@ -39,7 +46,8 @@ from trajectory_msgs.msg import MultiDOFJointTrajectory
 from soft_gripper_sdre.nodes import cdr, conversions as cv
 from soft_gripper_sdre.nodes.common import Diagnostics, run
 from soft_gripper_sdre.nodes.params import (Param, ParameterError, declare_all, finger_names_param,
-                                            on_runtime_change)
+                                            on_runtime_change, tips_reliability_param,
+                                            with_reliability)
 from soft_gripper_sdre.nodes.plan_cdr import PlanCodec
 from soft_gripper_sdre.nodes.topics import (CLOCK, CLOCK_QOS, GRASP_REFERENCE, LOOP_QOS, REFERENCE_QOS,
                                             TIP_POSITIONS)
@@ -79,8 +87,13 @@ PARAMS = (
     Param('rest_pose', '', "rest tips as 'x0, y0, x1, y1, …' (finger base frames); '' = the first "
           "tip message. Give it when restarting the node mid-run: the tips then are not at rest", 'm',
           read_only=True),
+    Param('start_at', '', "when the plan starts (its origin), an absolute time in s on the clock of "
+          "the tip stamps, e.g. '1767225600.25'; '' = the stamp of the tips the rest pose is taken "
+          "from, or 0 with rest_pose. Give it, with rest_pose, when restarting the node mid-run",
+          's', read_only=True),
     Param('reset_on_jump', 0.1, 'a backwards /clock jump larger than this (a restarted simulator) '
           'takes a new rest pose', 's', 1e-3, 1e3),
+    tips_reliability_param(),
 )
 
 
@@ -111,6 +124,25 @@ def _close_to(text: str) -> float | None:
     return value
 
 
+def _start_at(text: str) -> int | None:
+    """The ``start_at`` parameter as an exact time [ns], or None if it is empty."""
+    if not text.strip():
+        return None
+    try:
+        value = decimal.Decimal(text.strip())
+    except decimal.InvalidOperation:
+        value = decimal.Decimal('NaN')
+    if not (value.is_finite() and 0 <= value < 2**62 // cv.NS):
+        raise ParameterError(f"parameter 'start_at': {text!r} is not a time >= 0 in s (or '')")
+    return int(value * cv.NS)
+
+
+def format_time(ns: int) -> str:
+    """``ns`` as exact seconds, the way ``start_at`` reads it ('1767225600.250000000')."""
+    sign, ns = ('-', -ns) if ns < 0 else ('', ns)
+    return f'{sign}{ns // cv.NS}.{ns % cv.NS:09d}'
+
+
 def _profile(p: dict) -> GraspProfile:
     """The GraspProfile of the parameters; ParameterError names the offending one."""
     values = {name: p[name] for name in PROFILE_FIELDS}
@@ -129,7 +161,7 @@ def _profile(p: dict) -> GraspProfile:
 
 
 def plan_offsets(duration: float, step_ns: int, limit: int | None = None) -> np.ndarray:
-    """Point times [ns] of a plan: the grid k·``step_ns`` from 0 to the first point at or after
+    """Point times [ns] of a plan after its origin: the grid k·``step_ns`` from 0 to the first point at or after
     ``duration`` [s] (the grasp's end: the reference is at rest from there on); at most ``limit``."""
     points = max(-(-int(round(duration * cv.NS)) // step_ns) + 1, 2)
     return step_ns * np.arange(points if limit is None else min(points, limit), dtype=np.int64)
@@ -153,6 +185,9 @@ class TrajectoryNode(Node):
                                  '(one message); take a coarser grid')
         self.jump_ns = int(round(p['reset_on_jump'] * cv.NS))
         self.fixed_rest = _rest_pose(p['rest_pose'], self.n)
+        self.fixed_start = _start_at(p['start_at'])
+        self.tips_qos = with_reliability(LOOP_QOS, p['tips_reliability'])
+        self.origin_ns: int | None = None       # the plan's origin, once planned
         on_runtime_change(self, PARAMS, apply=self._apply)
 
         self.traj: GraspTrajectory | None = None
@@ -176,7 +211,7 @@ class TrajectoryNode(Node):
         if self.fixed_rest is None:
             self._want_tips()
         else:
-            self._plan(self.fixed_rest, 'given')
+            self._plan(self.fixed_rest, 'given', self._given_origin())
 
     def _apply(self, new: dict) -> None:
         self.p.update(new)
@@ -192,12 +227,13 @@ class TrajectoryNode(Node):
             self.diag.problem('bad_message', f'rejected: {exc}')
             return
         self.diag.count('tips')
-        if stamp > int(self.profile.t_start * cv.NS):
-            self.diag.problem('late_start', f'first tip_positions at t = {stamp / cv.NS:.4f} s, after '
-                              'the grasp began: taking them as the rest pose (give rest_pose when '
-                              'restarting mid-run)')
+        origin = stamp if self.fixed_start is None else self.fixed_start
+        if stamp > origin + int(self.profile.t_start * cv.NS):
+            self.diag.problem('late_start', f'first tip_positions at t = {format_time(stamp)} s, after '
+                              f'the grasp began (start_at {format_time(origin)} s + t_start): taking '
+                              'them as the rest pose (give rest_pose when restarting mid-run)')
         self._drop_timer.reset()
-        self._plan(tips, f'from the tips at t = {stamp / cv.NS:.4f} s')
+        self._plan(tips, f'from the tips at t = {format_time(stamp)} s', origin)
 
     def on_clock(self, data: bytes) -> None:
         try:
@@ -215,16 +251,21 @@ class TrajectoryNode(Node):
                           + ('planning again' if self.fixed_rest is not None else 'taking a new rest pose'))
         self.clock_ns = stamp
         if self.fixed_rest is not None:
-            self._plan(self.fixed_rest, 'given')
+            self._plan(self.fixed_rest, 'given', self._given_origin())
         else:
             self.traj = None
             self._want_tips()
+
+    def _given_origin(self) -> int:
+        """The origin of a plan from the given ``rest_pose``: ``start_at``, else 0."""
+        return 0 if self.fixed_start is None else self.fixed_start
 
     # -- the tip subscription ----------------------------------------------------------------
     def _want_tips(self) -> None:
         self._drop_timer.cancel()
         if self.sub is None:
-            self.sub = self.create_subscription(PoseArray, TIP_POSITIONS, self.on_tips, LOOP_QOS, raw=True)
+            self.sub = self.create_subscription(PoseArray, TIP_POSITIONS, self.on_tips,
+                                                self.tips_qos, raw=True)
 
     def _drop_tips(self) -> None:
         self._drop_timer.cancel()
@@ -233,19 +274,22 @@ class TrajectoryNode(Node):
             self.sub = None
 
     # -- the plan ----------------------------------------------------------------------------
-    def _plan(self, rest: np.ndarray, source: str) -> None:
-        """Plan the grasp from ``rest`` and publish it (``source`` says where the rest came from)."""
+    def _plan(self, rest: np.ndarray, source: str, origin: int) -> None:
+        """Plan the grasp from ``rest`` starting at ``origin`` [ns] and publish it (``source`` says
+        where the rest came from)."""
         self.traj = GraspTrajectory(rest, self.profile)
-        # repr round-trips: a node restarted with this value plans the very same points
+        self.origin_ns = origin
+        # both round-trip: a node restarted with these values plans the very same points
         self.diag.values['rest_pose'] = ', '.join(repr(v) for v in self.traj.rest.ravel().tolist())
-        self.diag.publish()      # at once, not at the next 1 s tick: a restart is given this value
-        times = plan_offsets(self.profile.duration, self.step_ns)
-        ref = self.traj.sample(times / cv.NS)
-        self.pub.publish(self.cdr_plan.encode(0, times, ref.pos, ref.vel, ref.acc))
+        self.diag.values['start_at'] = format_time(origin)
+        self.diag.publish()      # at once, not at the next 1 s tick: a restart is given these values
+        offsets = plan_offsets(self.profile.duration, self.step_ns)
+        ref = self.traj.sample(offsets / cv.NS)          # relative times: the same at any origin
+        self.pub.publish(self.cdr_plan.encode(origin, offsets, ref.pos, ref.vel, ref.acc))
         self.diag.count('references')
         mm = ', '.join(f'({1e3 * x:.2f}, {1e3 * y:.2f})' for x, y in self.traj.rest.tolist())
-        self.get_logger().info(f'planned {len(times)} points to t = {times[-1] / cv.NS:g} s from the rest '
-                               f'pose {source} [mm]: {mm}')
+        self.get_logger().info(f'planned {len(offsets)} points from t = {format_time(origin)} s over '
+                               f'{offsets[-1] / cv.NS:g} s from the rest pose {source} [mm]: {mm}')
 
 
 def main(args=None) -> int:
