@@ -13,11 +13,12 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 import yaml
 
-from rosutil import Probe, overrides, ros_context, spin_until
+from rosutil import Probe, drain, overrides, ros_context, spin_until
 from soft_gripper_sdre.analysis.bag import read_bag, topic_counts
 from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.params import ParameterError
 from soft_gripper_sdre.nodes.cdr import leading_stamp
+from soft_gripper_sdre.nodes import recorder as recorder_module
 from soft_gripper_sdre.nodes.recorder import RecorderNode, topic_qos
 from soft_gripper_sdre.nodes.topics import (CLOCK, CUBE_CONTACTS, DIAGNOSTICS, STREAM_QOS,
                                             TIP_POSITIONS, TORQUE_COMMANDS)
@@ -112,6 +113,109 @@ def test_entry_times_stay_in_sim_time(tmp_path):
     assert [t for t, _ in data['/clock']] == [now]
 
 
+WALL_NS = 1_767_225_600_000_000_000           # a wall-time stamp [ns]
+
+
+def test_a_best_effort_driver_stamping_wall_time_is_recorded_without_a_clock(tmp_path):
+    """The default topics (/clock among them) in a graph without /clock: a driver publishing tips
+    with the sensor-data QoS at wall-time stamps is heard with tips_reliability:=best_effort, and
+    every message goes into the bag at its own stamp, the diagnostics held before it too."""
+    from rclpy.qos import qos_profile_sensor_data
+    with ros_context() as (ctx, executor):
+        rec = RecorderNode(context=ctx, parameter_overrides=overrides(
+            output=str(tmp_path / 'bag'), tips_reliability='best_effort'))
+        probe = Probe(ctx)
+        tips = probe.create_publisher(PoseArray, TIP_POSITIONS, qos_profile_sensor_data)
+        diags = probe.create_publisher(DiagnosticArray, DIAGNOSTICS, topic_qos(DIAGNOSTICS))
+        executor.add_node(rec)
+        executor.add_node(probe)
+        assert spin_until(executor, lambda: tips.get_subscription_count() > 0
+                          and diags.get_subscription_count() > 0, 20.0)
+        now = time.time_ns()                                 # the driver stamps with wall time
+        diag = DiagnosticArray()
+        diag.header.stamp = cv.to_time(now - 3 * MS)
+        publish_and_wait(executor, rec, diags, diag, DIAGNOSTICS)
+        assert rec._pending                                  # held: a /clock may still come
+        stamps = [now + 5 * MS * k for k in range(N)]        # 200 Hz
+        for k, ns in enumerate(stamps):
+            publish_and_wait(executor, rec, tips, cv.tips_to_msg(ns, TIPS[k]), '/tip_positions')
+            assert rec._pending is None                      # the graph runs on wall time
+        rec.close()
+    data = read_bag(tmp_path / 'bag')
+    assert [t for t, _ in data['/diagnostics']] == [now - 3 * MS]
+    assert [t for t, _ in data['/tip_positions']] == stamps
+    assert [cv.from_time(m.header.stamp) for _, m in data['/tip_positions']] == stamps
+    assert topic_counts(tmp_path / 'bag')['/tip_positions'] == N
+
+
+def test_messages_held_for_a_clock_that_never_comes_are_written_after_the_clock_wait(
+        tmp_path, monkeypatch):
+    monkeypatch.setattr(recorder_module, 'CLOCK_WAIT_S', 0.3)
+    with ros_context() as (ctx, executor):
+        rec, pubs = start_recorder(ctx, executor, tmp_path, {CLOCK: Clock,
+                                                              DIAGNOSTICS: DiagnosticArray})
+        diag = DiagnosticArray()
+        diag.header.stamp = cv.to_time(WALL_NS)
+        publish_and_wait(executor, rec, pubs[DIAGNOSTICS], diag, DIAGNOSTICS)
+        assert rec._pending
+        assert spin_until(executor, lambda: rec._pending is None, 5.0)
+        publish_and_wait(executor, rec, pubs[DIAGNOSTICS], diag, DIAGNOSTICS)
+        rec.close()
+    assert [t for t, _ in read_bag(tmp_path / 'bag')['/diagnostics']] == [WALL_NS, WALL_NS]
+
+
+def test_topics_under_other_names_are_recorded_with_their_type_and_offered_qos(tmp_path):
+    """A remapped table topic, and names the recorder does not know, whose type and QoS it takes
+    from the graph: a best-effort PoseStamped, a transient-local String sent before the recorder
+    subscribed (it still gets it, as ros2 bag record does)."""
+    from geometry_msgs.msg import PoseStamped
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+    from std_msgs.msg import String
+    latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    with ros_context() as (ctx, executor):
+        rec = RecorderNode(context=ctx, cli_args=['--ros-args', '-r', 'tip_positions:=/driver/tips'],
+                           parameter_overrides=overrides(output=str(tmp_path / 'bag'), topics=[
+                               'tip_positions', 'mocap/body', '/left_hand/cube_pose', 'notes']))
+        assert set(rec.counts) == {'/driver/tips'}                 # the others: once published
+        probe = Probe(ctx)
+        tips = probe.create_publisher(PoseArray, '/driver/tips', topic_qos(TIP_POSITIONS))
+        body = probe.create_publisher(PoseStamped, 'mocap/body', qos_profile_sensor_data)
+        cube = probe.create_publisher(PoseStamped, '/left_hand/cube_pose', STREAM_QOS)
+        notes = probe.create_publisher(String, 'notes', latched)
+        notes.publish(String(data='sent before the recorder listened'))
+        executor.add_node(rec)
+        executor.add_node(probe)
+        pubs = (tips, body, cube, notes)
+        assert spin_until(executor, lambda: all(p.get_subscription_count() > 0 for p in pubs), 20.0)
+        assert spin_until(executor, lambda: rec.counts.get('/notes') == 1, 5.0)
+        subs = rec._subs
+        assert subs['/mocap/body'].qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT
+        assert subs['/left_hand/cube_pose'].qos_profile.reliability == ReliabilityPolicy.RELIABLE
+        assert subs['/notes'].qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
+        for k in range(3):
+            publish_and_wait(executor, rec, tips, cv.tips_to_msg(k * MS, TIPS[k]), '/driver/tips')
+            pose = PoseStamped()
+            pose.header.stamp = cv.to_time(k * MS)
+            pose.pose.position.x = float(k)
+            publish_and_wait(executor, rec, body, pose, '/mocap/body')
+            publish_and_wait(executor, rec, cube, pose, '/left_hand/cube_pose')
+        rec.close()
+    bag = tmp_path / 'bag'
+    assert topic_counts(bag) == {'/driver/tips': 3, '/mocap/body': 3, '/left_hand/cube_pose': 3,
+                                 '/notes': 1}
+    data = read_bag(bag)
+    assert [(t, m.pose.position.x) for t, m in data['/mocap/body']] == [(k * MS, k) for k in range(3)]
+    assert type(data['/mocap/body'][0][1]).__msgtype__ == 'geometry_msgs/msg/PoseStamped'
+    assert [t for t, _ in data['/driver/tips']] == [k * MS for k in range(3)]
+    assert data['/notes'][0][1].data == 'sent before the recorder listened'
+    info = yaml.safe_load((bag / 'metadata.yaml').read_text())['rosbag2_bagfile_information']
+    types = {t['topic_metadata']['name']: t['topic_metadata']['type']
+             for t in info['topics_with_message_count']}
+    assert types['/notes'] == 'std_msgs/msg/String'
+    assert types['/left_hand/cube_pose'] == 'geometry_msgs/msg/PoseStamped'
+
+
 def test_leading_stamp_reads_the_time_of_any_stamped_message_and_survives_junk():
     from rclpy.serialization import serialize_message
     assert leading_stamp(serialize_message(cv.tips_to_msg(3 * cv.NS + 7, TIPS[0]))) == 3 * cv.NS + 7
@@ -162,7 +266,7 @@ def test_recorder_process_stopped_by_signal_leaves_a_readable_bag(tmp_path, sig)
 @pytest.mark.parametrize('case', ['output', 'topics'])
 def test_recorder_process_refuses_bad_parameters(tmp_path, case):
     args = {'output': ['-p', f'output:={tmp_path}'],
-            'topics': ['-p', f'output:={tmp_path / "bag"}', '-p', 'topics:=[tip_positions, bogus]']}[case]
+            'topics': ['-p', f'output:={tmp_path / "bag"}', '-p', 'topics:=[tip_positions, 9lives]']}[case]
     proc = _run_node(args)
     out, err = proc.communicate(timeout=30)
     assert proc.returncode == 2
@@ -171,7 +275,8 @@ def test_recorder_process_refuses_bad_parameters(tmp_path, case):
 
 
 @pytest.mark.parametrize('params, match', [
-    (dict(topics=['tip_positions', 'cmd_vel']), "'topics'.*cmd_vel"),
+    (dict(topics=['tip_positions', 'cmd vel']), "'topics'.*cmd vel"),
+    (dict(tips_reliability='sometimes'), 'tips_reliability'),
     (dict(topics=[]), 'topics'),
     (dict(storage='rosbag'), 'storage'),
     (dict(output='{tmp}'), "'output'.*already exists"),

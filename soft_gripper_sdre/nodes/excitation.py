@@ -34,7 +34,8 @@ from sensor_msgs.msg import JointState
 
 from soft_gripper_sdre.nodes import cdr, conversions as cv
 from soft_gripper_sdre.nodes.common import ERROR, OK, Diagnostics, run
-from soft_gripper_sdre.nodes.params import Param, ParameterError, declare_all, finger_names_param
+from soft_gripper_sdre.nodes.params import (Param, ParameterError, declare_all, finger_names_param,
+                                            tips_reliability_param, with_reliability)
 from soft_gripper_sdre.nodes.topics import LOOP_QOS, NEWEST_QOS, TIP_POSITIONS, TORQUE_COMMANDS
 from soft_gripper_sdre.sim.excitation import ExcitationPlan, SignalSpecError, resolve_signals
 from soft_gripper_sdre.sim.signals import SIGNALS
@@ -68,6 +69,7 @@ PARAMS = (
           read_only=True),
     Param('max_excursion', 0.0, 'stop as a fault when an excited tip moves further than this from '
           'its starting position (0 = off)', 'm', 0.0, 1.0, read_only=True),
+    tips_reliability_param(),
 )
 
 
@@ -103,7 +105,9 @@ class ExcitationNode(Node):
         self.cdr_tips = cdr.tips_codec(self.names)
         self.cdr_cmd = cdr.torques_codec(self.names)
         self.pub_cmd = self.create_publisher(JointState, TORQUE_COMMANDS, LOOP_QOS)
-        self.sub_tips = self.create_subscription(PoseArray, TIP_POSITIONS, self.on_tips, NEWEST_QOS, raw=True)
+        self.sub_tips = self.create_subscription(
+            PoseArray, TIP_POSITIONS, self.on_tips,
+            with_reliability(NEWEST_QOS, p['tips_reliability']), raw=True)
         self.diag = Diagnostics(self)
         cdr.watch(self.diag, self.cdr_tips)
         self.diag.values.update(signal='waiting for tip_positions', plan_duration=f'{self.plan.duration:.3f}')

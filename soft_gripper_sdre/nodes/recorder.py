@@ -1,35 +1,52 @@
 """The recorder node: a ``ros2 bag record`` for the pip environment (rosbags writer, MCAP storage).
 
-Subscribes each topic in ``topics`` with ``raw=True`` (the serialized CDR bytes go into the bag as
-received: no deserialisation cost), with its publishers' QoS but a queue of ``RECORD_DEPTH``
-messages, and writes a rosbag2 directory (format version 9, metadata.yaml
-plus one ``.mcap`` file) that ``ros2 bag info`` / ``ros2 bag play`` on Jazzy read. The writer is closed
-in :meth:`RecorderNode.close`, which ``common.run`` calls on SIGINT, SIGTERM and normal exit, so
-metadata.yaml is always written. Per-topic message counts go to /diagnostics.
+Records each topic in ``topics`` with ``raw=True`` (the serialized CDR bytes go into the bag as
+received: no deserialisation cost), with a queue of ``RECORD_DEPTH`` messages, and writes a
+rosbag2 directory (format version 9, metadata.yaml plus one ``.mcap`` file) that
+``ros2 bag info`` / ``ros2 bag play`` on Jazzy read. The writer is closed in
+:meth:`RecorderNode.close`, which ``common.run`` calls on SIGINT, SIGTERM and normal exit, so
+metadata.yaml is always written. Per-topic message counts and matched publishers go to
+/diagnostics.
 
-Timestamp of each bag entry (the graph's time domain is sim time; README "Topics"):
+Which topics, with which QoS:
+
+* a name of the topic table (README "Topics", ``tip_positions`` or ``/tip_positions``; remapping
+  applies, ``-r tip_positions:=/mocap/tips``) is subscribed at once with its type and its
+  publishers' QoS from the table; ``tip_positions`` with ``tips_reliability`` (``best_effort``
+  hears a driver publishing with the sensor-data QoS);
+* any other name (namespaced, remapped, a topic of your own) is subscribed once a publisher
+  appears in the graph, with the type the graph reports, and with the QoS ``ros2 bag record``
+  adapts to the publishers' offers: reliable only if every publisher offers reliable, transient
+  local only if every one offers it. Messages sent before that are not recorded.
+
+Timestamp of each bag entry (the graph's time domain is sim time, or the driver's own clock when
+there is no /clock):
 
 * a message's own stamp (``header.stamp``, or ``clock`` for /clock), read from the CDR bytes — the
-  sim time the data refers to, so a lockstep run gives the same bag on any machine;
+  time the data refers to, so a lockstep run gives the same bag on any machine;
 * the latest /clock value instead when the stamp lies more than ``SKEW_NS`` from it: such a stamp is
   not the current sim time but an unset header (0) or a node whose clock is wall time (e.g. its
   /diagnostics), and would misplace the entry or stretch the bag over decades;
-* messages that arrive before the first /clock are held back (at most ``MAX_PENDING``) and written
-  once it comes, with the same rule, so a bag never mixes wall and sim time; if no /clock arrives
-  (a graph without sim time) they are written with their stamp, else their wall receive time.
+* while /clock is recorded but has not ticked yet, messages are held back and written once it
+  comes, with the same rule, so a bag never mixes wall and sim time. Held messages are written
+  with their own stamps (unstamped ones at their receive time) as soon as the graph shows it runs
+  without sim time: a message of a topic other than ``WALL_TIME_TOPICS`` stamped within
+  ``SKEW_NS`` of the wall clock (a driver stamping with wall time). At most ``MAX_PENDING``
+  messages or ``CLOCK_WAIT_S`` of wall time are held; without /clock among the topics nothing is.
 """
 from __future__ import annotations
 
 import copy
 from datetime import datetime
 import functools
+import importlib
 import os
 from pathlib import Path
 import time
 
 import rclpy
 from rclpy.node import Node
-from rclpy.qos import QoSProfile
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness, QosReliability,
                                 QosTime)
 from rosbags.rosbag2 import StoragePlugin, Writer, WriterError
@@ -37,18 +54,25 @@ from rosbags.typesys import Stores, get_typestore
 
 from soft_gripper_sdre.nodes import cdr
 from soft_gripper_sdre.nodes.common import ERROR, OK, Diagnostics, ThrottledLogger, run
-from soft_gripper_sdre.nodes.params import Param, ParameterError, declare_all
-from soft_gripper_sdre.nodes.topics import (CLOCK, CLOCK_QOS, GRASP_REFERENCE, LOOP_QOS, REFERENCE_QOS,
-                                            STATE_ESTIMATE, STREAM_QOS, TIP_POSITIONS, TOPIC_TYPES,
-                                            TORQUE_COMMANDS, type_name)
+from soft_gripper_sdre.nodes.params import (Param, ParameterError, declare_all,
+                                            tips_reliability_param, with_reliability)
+from soft_gripper_sdre.nodes.topics import (CLOCK, CLOCK_QOS, DIAGNOSTICS, GRASP_REFERENCE,
+                                            LOOP_QOS, REFERENCE_QOS, STATE_ESTIMATE, STREAM_QOS,
+                                            TIP_POSITIONS, TOPIC_TYPES, TORQUE_COMMANDS, type_name)
 
 #: topics of the 1 kHz control loop (LOOP_QOS); /clock has CLOCK_QOS, the plan REFERENCE_QOS (a
 #: recorder that starts after the plan went out still gets it), the rest STREAM_QOS
 LOOP_TOPICS = (TIP_POSITIONS, STATE_ESTIMATE, TORQUE_COMMANDS)
 #: a stamp further than this from the latest /clock is not the current sim time
 SKEW_NS = 1_000_000_000
-#: messages held back while waiting for the first /clock
+#: messages held back while waiting for the first /clock, at most
 MAX_PENDING = 10_000
+#: wall time [s] messages are held back waiting for the first /clock, at most
+CLOCK_WAIT_S = 120.0
+#: topics stamped with wall time in a sim-time graph too: they do not show the graph's time
+WALL_TIME_TOPICS = (DIAGNOSTICS, '/rosout')
+#: how often the graph is looked at for publishers of the topics not yet subscribed [s]
+GRAPH_POLL_S = 0.1
 #: queue of each recording subscription: 1 s of a 1 kHz topic, so a recorder that falls behind for
 #: a moment (a busy machine) catches up instead of losing the oldest messages
 RECORD_DEPTH = 1000
@@ -57,9 +81,11 @@ STORAGES = {'mcap': StoragePlugin.MCAP, 'sqlite3': StoragePlugin.SQLITE3}
 PARAMS = (
     Param('output', '', 'bag directory to create; must not exist yet '
           "('' = rosbag2_<date>-<time> in the working directory)", read_only=True),
-    Param('topics', list(TOPIC_TYPES), 'topics to record (names as in the topic table)',
-          read_only=True),
+    Param('topics', list(TOPIC_TYPES), 'topics to record: names of the topic table, or any other '
+          '(namespaced, remapped, your own), subscribed with the type the graph reports once a '
+          'publisher appears', read_only=True),
     Param('storage', 'mcap', 'rosbag2 storage plugin', choices=tuple(STORAGES), read_only=True),
+    tips_reliability_param(),
 )
 
 
@@ -76,6 +102,33 @@ def topic_qos(topic: str) -> QoSProfile:
     if topic == GRASP_REFERENCE:
         return REFERENCE_QOS
     return LOOP_QOS if topic in LOOP_TOPICS else STREAM_QOS
+
+
+def adapted_qos(offers: list[QoSProfile]) -> QoSProfile:
+    """The QoS ``ros2 bag record`` subscribes with to publishers offering ``offers``: reliable if
+    every one offers reliable, else best effort; transient local if every one offers it, else
+    volatile; a queue of ``RECORD_DEPTH``."""
+    reliable = all(o.reliability == ReliabilityPolicy.RELIABLE for o in offers)
+    latched = all(o.durability == DurabilityPolicy.TRANSIENT_LOCAL for o in offers)
+    reliability = ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT
+    durability = DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=RECORD_DEPTH, reliability=reliability,
+                      durability=durability)
+
+
+def message_class(type_name: str):
+    """The message class of 'pkg/msg/Type'.
+
+    Raises:
+        ValueError: not a message type name, or its package is not installed.
+    """
+    parts = type_name.split('/')
+    if len(parts) != 3 or parts[1] != 'msg':
+        raise ValueError(f'{type_name!r} is not a message type')
+    try:
+        return getattr(importlib.import_module(f'{parts[0]}.msg'), parts[2])
+    except (ImportError, AttributeError):
+        raise ValueError(f'message type {type_name} is not installed') from None
 
 
 def _bag_qos(profile: QoSProfile) -> Qos:
@@ -120,14 +173,21 @@ class RecorderNode(Node):
         names = list(p['topics'])
         if not names:
             raise ParameterError("parameter 'topics': name at least one topic")
-        topics = []
+        known: dict[str, str] = {}                # resolved name -> key of TOPIC_TYPES
+        self._waiting: list[str] = []             # resolved names of the other topics
         for name in names:
             topic = find_topic(name)
+            try:
+                resolved = self.resolve_topic_name(topic or name.strip())
+            except Exception as exc:            # noqa: BLE001 — rclpy raises its RCLError here
+                raise ParameterError(f"parameter 'topics': {name!r} is not a topic name: "
+                                     f'{str(exc).splitlines()[0]}') from None
+            if resolved in known or resolved in self._waiting:
+                continue
             if topic is None:
-                raise ParameterError(f"parameter 'topics': unknown topic {name!r} "
-                                     f'(known: {", ".join(TOPIC_TYPES)})')
-            if topic not in topics:
-                topics.append(topic)
+                self._waiting.append(resolved)
+            else:
+                known[resolved] = topic
         self.path = _output_path(p['output'])
         self._writer: Writer | None = Writer(self.path, version=Writer.VERSION_LATEST,
                                              storage_plugin=STORAGES[p['storage']])
@@ -136,34 +196,76 @@ class RecorderNode(Node):
         except (OSError, WriterError) as exc:
             raise ParameterError(f"parameter 'output': cannot create bag {self.path}: {exc}") from None
 
-        typestore = get_typestore(Stores.ROS2_JAZZY)
+        self._typestore = get_typestore(Stores.ROS2_JAZZY)
         self.counts: dict[str, int] = {}
         self.clock_ns: int | None = None          # latest /clock value
-        self._pending: list[tuple] | None = []    # held until the first /clock; None once flushed
+        # held until the first /clock; None once flushed, or from the start without /clock
+        self._pending: list[tuple] | None = [] if CLOCK in known.values() else None
         self.log = ThrottledLogger(self.get_logger())
         self.diag = Diagnostics(self)
         self._subs: dict = {}
-        for topic in topics:
-            msg_class, qos = TOPIC_TYPES[topic], topic_qos(topic)
-            name = self.resolve_topic_name(topic)   # fully qualified, as ros2 bag stores it
-            conn = self._writer.add_connection(name, type_name(msg_class), typestore=typestore,
-                                               offered_qos_profiles=[_bag_qos(qos)])
-            self.counts[name] = 0
-            callback = functools.partial(self._on_message, name, conn, _is_stamped(msg_class),
-                                         topic == CLOCK)
-            deep = copy.copy(qos)
-            deep.depth = RECORD_DEPTH           # history depth is not part of QoS matching
-            self._subs[name] = self.create_subscription(msg_class, topic, callback, deep, raw=True)
+        tips_qos = with_reliability(LOOP_QOS, p['tips_reliability'])
+        for name, topic in known.items():
+            qos = tips_qos if topic == TIP_POSITIONS else topic_qos(topic)
+            self._record(name, TOPIC_TYPES[topic], qos, is_clock=topic == CLOCK)
         self.diag.values['output'] = str(self.path)
         self._matched_timer = self.create_timer(0.2, self._report_publishers)
-        self.diag.set_status(OK, f'recording {len(topics)} topics')
-        self.get_logger().info(f'recording {", ".join(self.counts)} to {self.path} ({p["storage"]})')
+        self._graph_timer = self.create_timer(GRAPH_POLL_S, self._look_at_graph)
+        self.diag.set_status(OK, f'recording {len(known) + len(self._waiting)} topics')
+        waiting = (f'; once a publisher appears: {", ".join(self._waiting)}' if self._waiting
+                   else '')
+        self.get_logger().info(f'recording {", ".join(self.counts) or "nothing yet"}{waiting} to '
+                               f'{self.path} ({p["storage"]})')
+
+    def _record(self, name: str, msg_class, qos: QoSProfile, is_clock: bool = False) -> None:
+        """Add ``name`` (resolved) to the bag and subscribe it with ``qos``, deeper."""
+        conn = self._writer.add_connection(name, type_name(msg_class), typestore=self._typestore,
+                                           offered_qos_profiles=[_bag_qos(qos)])
+        self.counts[name] = 0
+        callback = functools.partial(self._on_message, name, conn, _is_stamped(msg_class), is_clock)
+        deep = copy.copy(qos)
+        deep.depth = RECORD_DEPTH           # history depth is not part of QoS matching
+        self._subs[name] = self.create_subscription(msg_class, name, callback, deep, raw=True)
+
+    def _look_at_graph(self) -> None:
+        """Subscribe each topic not in the table once a publisher of it is in the graph, with the
+        type it reports and the QoS adapted to the offers; also give up holding messages back for
+        a /clock that does not come within ``CLOCK_WAIT_S``."""
+        if (self._pending and self.clock_ns is None
+                and time.time_ns() - self._pending[0][2] > CLOCK_WAIT_S * 1e9):
+            self.get_logger().info(f'no /clock within {CLOCK_WAIT_S:g} s: writing the messages '
+                                   'with their own stamps')
+            self._flush_pending()
+        if self._writer is None or not self._waiting:
+            return
+        for name in list(self._waiting):
+            offers = self.get_publishers_info_by_topic(name)
+            if not offers:
+                continue
+            types = sorted({o.topic_type for o in offers})
+            if len(types) > 1:
+                self.log.warn(f'types {name}', f'{name}: publishers of several types '
+                              f'({", ".join(types)}); not recording it until they agree')
+                continue
+            self._waiting.remove(name)
+            try:
+                msg_class = message_class(types[0])
+                self._record(name, msg_class, adapted_qos([o.qos_profile for o in offers]))
+            except (ValueError, KeyError, WriterError) as exc:
+                self.diag.problem('unrecordable_topics', f'{name} ({types[0]}) cannot be '
+                                  f'recorded: {exc}')
+                continue
+            qos = self._subs[name].qos_profile
+            self.get_logger().info(f'recording {name} ({types[0]}, {qos.reliability.name.lower()}, '
+                                   f'{qos.durability.name.lower()})')
 
     def _report_publishers(self) -> None:
         """Matched publishers per topic in /diagnostics ('publishers /topic'), so a supervisor
         can start the simulator only once everything it records is connected."""
         for name, sub in self._subs.items():
             self.diag.values[f'publishers {name}'] = str(sub.get_publisher_count())
+        for name in self._waiting:
+            self.diag.values[f'publishers {name}'] = '0'
 
     # -- receiving ---------------------------------------------------------------------------
     def _on_message(self, topic: str, conn, stamped: bool, is_clock: bool, data: bytes) -> None:
@@ -176,11 +278,14 @@ class RecorderNode(Node):
                 self.clock_ns = stamp
             self.counts[topic] += 1
             self.diag.count(f'messages {topic}')
+            wall_ns = time.time_ns()
             if self._pending is None:
-                self._write(conn, self._entry_time(stamp, time.time_ns()), data)
+                self._write(conn, self._entry_time(stamp, wall_ns), data)
                 return
-            self._pending.append((conn, stamp, time.time_ns(), data))
-            if self.clock_ns is not None or len(self._pending) >= MAX_PENDING:
+            self._pending.append((conn, stamp, wall_ns, data))
+            wall_time_graph = (stamp is not None and topic not in WALL_TIME_TOPICS
+                               and abs(stamp - wall_ns) <= SKEW_NS)
+            if self.clock_ns is not None or len(self._pending) >= MAX_PENDING or wall_time_graph:
                 self._flush_pending()
         except Exception as exc:  # noqa: BLE001 — a recorder must survive anything it receives
             self.diag.count('errors')
