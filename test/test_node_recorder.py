@@ -174,7 +174,8 @@ def test_topics_under_other_names_are_recorded_with_their_type_and_offered_qos(t
     latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
     with ros_context() as (ctx, executor):
-        rec = RecorderNode(context=ctx, cli_args=['--ros-args', '-r', 'tip_positions:=/driver/tips'],
+        rec = RecorderNode(context=ctx,
+                           cli_args=['--ros-args', '-r', 'tip_positions:=/driver/tips'],
                            parameter_overrides=overrides(output=str(tmp_path / 'bag'), topics=[
                                'tip_positions', 'mocap/body', '/left_hand/cube_pose', 'notes']))
         assert set(rec.counts) == {'/driver/tips'}                 # the others: once published
@@ -205,7 +206,8 @@ def test_topics_under_other_names_are_recorded_with_their_type_and_offered_qos(t
     assert topic_counts(bag) == {'/driver/tips': 3, '/mocap/body': 3, '/left_hand/cube_pose': 3,
                                  '/notes': 1}
     data = read_bag(bag)
-    assert [(t, m.pose.position.x) for t, m in data['/mocap/body']] == [(k * MS, k) for k in range(3)]
+    assert [(t, m.pose.position.x) for t, m in data['/mocap/body']] == [(k * MS, k)
+                                                                        for k in range(3)]
     assert type(data['/mocap/body'][0][1]).__msgtype__ == 'geometry_msgs/msg/PoseStamped'
     assert [t for t, _ in data['/driver/tips']] == [k * MS for k in range(3)]
     assert data['/notes'][0][1].data == 'sent before the recorder listened'
@@ -266,7 +268,8 @@ def test_recorder_process_stopped_by_signal_leaves_a_readable_bag(tmp_path, sig)
 @pytest.mark.parametrize('case', ['output', 'topics'])
 def test_recorder_process_refuses_bad_parameters(tmp_path, case):
     args = {'output': ['-p', f'output:={tmp_path}'],
-            'topics': ['-p', f'output:={tmp_path / "bag"}', '-p', 'topics:=[tip_positions, 9lives]']}[case]
+            'topics': ['-p', f'output:={tmp_path / "bag"}',
+                       '-p', 'topics:=[tip_positions, 9lives]']}[case]
     proc = _run_node(args)
     out, err = proc.communicate(timeout=30)
     assert proc.returncode == 2

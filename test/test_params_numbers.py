@@ -22,8 +22,9 @@ REST = '0.0, -0.0105, 0.0, -0.0105, 0.0, -0.0105, 0.0, -0.0105'
 
 
 def _trajectory(*ros_args):
-    return subprocess.Popen([sys.executable, '-m', 'soft_gripper_sdre.nodes.trajectory', '--ros-args',
-                             '-p', f'rest_pose:={REST}', *ros_args], env=dict(os.environ),
+    return subprocess.Popen([sys.executable, '-m', 'soft_gripper_sdre.nodes.trajectory',
+                             '--ros-args', '-p', f'rest_pose:={REST}', *ros_args],
+                            env=dict(os.environ),
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 

@@ -96,10 +96,10 @@ RELIABILITIES = ('reliable', 'best_effort')
 
 def tips_reliability_param() -> Param:
     """``tips_reliability``, the same in every node that reads ``tip_positions``."""
-    return Param('tips_reliability', 'reliable', "reliability of the tip_positions subscription: "
-                 "'reliable' (the simulator: lockstep loses no period) or 'best_effort', which also "
-                 'matches a driver that publishes with the sensor-data QoS', choices=RELIABILITIES,
-                 read_only=True)
+    return Param('tips_reliability', 'reliable', "reliability of the tip_positions "
+                 "subscription: 'reliable' (the simulator: lockstep loses no period) or "
+                 "'best_effort', which also matches a driver that publishes with the sensor-data "
+                 'QoS', choices=RELIABILITIES, read_only=True)
 
 
 def with_reliability(qos: QoSProfile, reliability: str) -> QoSProfile:

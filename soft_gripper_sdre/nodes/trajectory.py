@@ -87,10 +87,10 @@ PARAMS = (
     Param('rest_pose', '', "rest tips as 'x0, y0, x1, y1, …' (finger base frames); '' = the first "
           "tip message. Give it when restarting the node mid-run: the tips then are not at rest", 'm',
           read_only=True),
-    Param('start_at', '', "when the plan starts (its origin), an absolute time in s on the clock of "
-          "the tip stamps, e.g. '1767225600.25'; '' = the stamp of the tips the rest pose is taken "
-          "from, or 0 with rest_pose. Give it, with rest_pose, when restarting the node mid-run",
-          's', read_only=True),
+    Param('start_at', '', "when the plan starts (its origin), an absolute time in s on the "
+          "clock of the tip stamps, e.g. '1767225600.25'; '' = the stamp of the tips the rest "
+          "pose is taken from, or 0 with rest_pose. Give it, with rest_pose, when restarting the "
+          'node mid-run', 's', read_only=True),
     Param('reset_on_jump', 0.1, 'a backwards /clock jump larger than this (a restarted simulator) '
           'takes a new rest pose', 's', 1e-3, 1e3),
     tips_reliability_param(),
@@ -161,8 +161,9 @@ def _profile(p: dict) -> GraspProfile:
 
 
 def plan_offsets(duration: float, step_ns: int, limit: int | None = None) -> np.ndarray:
-    """Point times [ns] of a plan after its origin: the grid k·``step_ns`` from 0 to the first point at or after
-    ``duration`` [s] (the grasp's end: the reference is at rest from there on); at most ``limit``."""
+    """Point times [ns] of a plan after its origin: the grid k·``step_ns`` from 0 to the first
+    point at or after ``duration`` [s] (the grasp's end: the reference is at rest from there on);
+    at most ``limit``."""
     points = max(-(-int(round(duration * cv.NS)) // step_ns) + 1, 2)
     return step_ns * np.arange(points if limit is None else min(points, limit), dtype=np.int64)
 
@@ -229,9 +230,10 @@ class TrajectoryNode(Node):
         self.diag.count('tips')
         origin = stamp if self.fixed_start is None else self.fixed_start
         if stamp > origin + int(self.profile.t_start * cv.NS):
-            self.diag.problem('late_start', f'first tip_positions at t = {format_time(stamp)} s, after '
-                              f'the grasp began (start_at {format_time(origin)} s + t_start): taking '
-                              'them as the rest pose (give rest_pose when restarting mid-run)')
+            self.diag.problem('late_start', f'first tip_positions at t = {format_time(stamp)} s, '
+                              f'after the grasp began (start_at {format_time(origin)} s + '
+                              't_start): taking them as the rest pose (give rest_pose when '
+                              'restarting mid-run)')
         self._drop_timer.reset()
         self._plan(tips, f'from the tips at t = {format_time(stamp)} s', origin)
 
@@ -282,14 +284,15 @@ class TrajectoryNode(Node):
         # both round-trip: a node restarted with these values plans the very same points
         self.diag.values['rest_pose'] = ', '.join(repr(v) for v in self.traj.rest.ravel().tolist())
         self.diag.values['start_at'] = format_time(origin)
-        self.diag.publish()      # at once, not at the next 1 s tick: a restart is given these values
+        self.diag.publish()      # at once, not at the next 1 s tick: a restart is given these
         offsets = plan_offsets(self.profile.duration, self.step_ns)
         ref = self.traj.sample(offsets / cv.NS)          # relative times: the same at any origin
         self.pub.publish(self.cdr_plan.encode(origin, offsets, ref.pos, ref.vel, ref.acc))
         self.diag.count('references')
         mm = ', '.join(f'({1e3 * x:.2f}, {1e3 * y:.2f})' for x, y in self.traj.rest.tolist())
-        self.get_logger().info(f'planned {len(offsets)} points from t = {format_time(origin)} s over '
-                               f'{offsets[-1] / cv.NS:g} s from the rest pose {source} [mm]: {mm}')
+        self.get_logger().info(f'planned {len(offsets)} points from t = {format_time(origin)} s '
+                               f'over {offsets[-1] / cv.NS:g} s from the rest pose {source} [mm]: '
+                               f'{mm}')
 
 
 def main(args=None) -> int:
