@@ -146,7 +146,7 @@ def test_friction_slides_at_its_coulomb_level():
     plant = FingerPlant(params)
     x = plant.rest_q.tolist() + [0.5, -0.3] + [0.0, 0.0]
     for _ in range(4000):                   # z relaxes at the constant rates q̇ (Euler, 0.1 ms)
-        x[4:] = [z + 1e-4 * d for z, d in zip(x[4:], plant._derivative(x, [0.0, 0.0])[4:])]
+        x[4:] = [z + 1e-4 * d for z, d in zip(x[4:], plant.derivative(x, [0.0, 0.0])[4:])]
     friction = np.asarray(params.presliding) * np.asarray(x[4:])
     np.testing.assert_allclose(friction, [params.coulomb[0], -params.coulomb[1]], rtol=1e-3)
 
@@ -201,3 +201,17 @@ def test_inputs_are_clipped_and_checked():
 def test_a_substep_too_coarse_for_the_friction_is_refused():
     with pytest.raises(ValueError, match='too fast for RK4'):
         dataclasses.replace(PLANTS['stiff2_a'](), substep=1e-3)
+
+
+@pytest.mark.parametrize('name', ['tendon3_thumb', 'stiff2_b'])
+def test_the_written_out_derivatives_are_the_general_one(name):
+    """The two- and three-joint fast paths compute the general derivative, in any state."""
+    plant = FingerPlant(PLANTS[name]())
+    assert plant.derivative != plant._derivative
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        x = np.concatenate([plant.rest_q + rng.normal(0, 0.5, plant.n),
+                            rng.normal(0, 5, plant.n), rng.normal(0, 0.005, plant.n)]).tolist()
+        tau = rng.normal(0, plant.params.torque_limit, plant.n).tolist()
+        np.testing.assert_allclose(plant.derivative(x, tau), plant._derivative(x, tau),
+                                   rtol=1e-12, atol=1e-12)

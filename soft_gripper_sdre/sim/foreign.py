@@ -175,6 +175,9 @@ class FingerPlant:
         self._q_r, self._k, self._k3 = list(p.rest_angles), list(p.stiffness), list(p.hardening)
         self._c, self._sigma = list(p.damping), list(p.presliding)
         self._sof = [s / f if f > 0 else 0.0 for s, f in zip(p.presliding, p.coulomb)]   # σ/F_c
+        self._v_s = p.friction_speed
+        #: the state's time derivative: written out for two and three joints, general otherwise
+        self.derivative = {2: self._derivative2, 3: self._derivative3}.get(n, self._derivative)
         self.state = FingerState(np.zeros(n), np.zeros(n), np.zeros(n))
         self.rest_q = self.equilibrium()
         self.rest_tip = self.tip_of(self.rest_q)
@@ -286,7 +289,7 @@ class FingerPlant:
         Plain floats: for two or three joints this is several times faster than numpy."""
         n = self.n
         q_r, k, k3, c, sigma, sof = self._q_r, self._k, self._k3, self._c, self._sigma, self._sof
-        a, gmu, v_s = self._a, self._gmu, self.params.friction_speed
+        a, gmu, v_s = self._a, self._gmu, self._v_s
         theta = list(accumulate(x[:n]))
         w = list(accumulate(x[n:2 * n]))
         cos_t = [math.cos(t) for t in theta]
@@ -333,6 +336,74 @@ class FingerPlant:
             out[n + i] = r[i] - r[i - 1]
         return out
 
+    def _derivative2(self, x: list[float], tau_in: list[float]) -> list[float]:
+        """:meth:`_derivative` written out for two joints (the same equations, ~3× faster)."""
+        q0, q1, qd0, qd1, z0, z1 = x
+        (a00, a01), (_, a11) = self._a
+        gmu0, gmu1 = self._gmu
+        (r0, r1), (k0, k1), (h0, h1) = self._q_r, self._k, self._k3
+        (c0, c1), (sg0, sg1), (f0, f1), v_s = self._c, self._sigma, self._sof, self._v_s
+        th1 = q0 + q1
+        w0, w1 = qd0, qd0 + qd1
+        cos0, sin0, cos1, sin1 = math.cos(q0), math.sin(q0), math.cos(th1), math.sin(th1)
+        d0, d1 = q0 - r0, q1 - r1
+        t0 = tau_in[0] - d0 * (k0 + h0 * d0 * d0) - c0 * qd0 - sg0 * z0
+        t1 = tau_in[1] - d1 * (k1 + h1 * d1 * d1) - c1 * qd1 - sg1 * z1
+        m01 = a01 * (cos0 * cos1 + sin0 * sin1)
+        n01 = a01 * (sin0 * cos1 - cos0 * sin1)            # a₀₁ sin(θ₀ − θ₁)
+        b0 = t0 - t1 - gmu0 * sin0 - n01 * w1 * w1
+        b1 = t1 - gmu1 * sin1 + n01 * w0 * w0
+        det = a00 * a11 - m01 * m01
+        acc0 = (a11 * b0 - m01 * b1) / det
+        acc1 = (a00 * b1 - m01 * b0) / det
+        zd0 = qd0 - v_s * math.tanh(abs(qd0) / v_s) * f0 * z0 if f0 else 0.0
+        zd1 = qd1 - v_s * math.tanh(abs(qd1) / v_s) * f1 * z1 if f1 else 0.0
+        return [qd0, qd1, acc0, acc1 - acc0, zd0, zd1]
+
+    def _derivative3(self, x: list[float], tau_in: list[float]) -> list[float]:
+        """:meth:`_derivative` written out for three joints (the same equations, ~3× faster)."""
+        q0, q1, q2, qd0, qd1, qd2, z0, z1, z2 = x
+        (a00, a01, a02), (_, a11, a12), (_, _, a22) = self._a
+        gmu0, gmu1, gmu2 = self._gmu
+        (r0, r1, r2), (k0, k1, k2), (h0, h1, h2) = self._q_r, self._k, self._k3
+        (c0, c1, c2), (sg0, sg1, sg2) = self._c, self._sigma
+        (f0, f1, f2), v_s = self._sof, self._v_s
+        th1 = q0 + q1
+        th2 = th1 + q2
+        w0 = qd0
+        w1 = w0 + qd1
+        w2 = w1 + qd2
+        cos0, sin0 = math.cos(q0), math.sin(q0)
+        cos1, sin1 = math.cos(th1), math.sin(th1)
+        cos2, sin2 = math.cos(th2), math.sin(th2)
+        d0, d1, d2 = q0 - r0, q1 - r1, q2 - r2
+        t0 = tau_in[0] - d0 * (k0 + h0 * d0 * d0) - c0 * qd0 - sg0 * z0
+        t1 = tau_in[1] - d1 * (k1 + h1 * d1 * d1) - c1 * qd1 - sg1 * z1
+        t2 = tau_in[2] - d2 * (k2 + h2 * d2 * d2) - c2 * qd2 - sg2 * z2
+        m01 = a01 * (cos0 * cos1 + sin0 * sin1)
+        m02 = a02 * (cos0 * cos2 + sin0 * sin2)
+        m12 = a12 * (cos1 * cos2 + sin1 * sin2)
+        n01 = a01 * (sin0 * cos1 - cos0 * sin1)            # aᵢⱼ sin(θᵢ − θⱼ)
+        n02 = a02 * (sin0 * cos2 - cos0 * sin2)
+        n12 = a12 * (sin1 * cos2 - cos1 * sin2)
+        ww0, ww1, ww2 = w0 * w0, w1 * w1, w2 * w2
+        b0 = t0 - t1 - gmu0 * sin0 - n01 * ww1 - n02 * ww2
+        b1 = t1 - t2 - gmu1 * sin1 + n01 * ww0 - n12 * ww2
+        b2 = t2 - gmu2 * sin2 + n02 * ww0 + n12 * ww1
+        # Gaussian elimination of the symmetric D
+        g1, g2 = m01 / a00, m02 / a00
+        e11, e12, e22 = a11 - g1 * m01, m12 - g1 * m02, a22 - g2 * m02
+        b1 -= g1 * b0
+        b2 -= g2 * b0
+        g = e12 / e11
+        acc2 = (b2 - g * b1) / (e22 - g * e12)
+        acc1 = (b1 - e12 * acc2) / e11
+        acc0 = (b0 - m01 * acc1 - m02 * acc2) / a00
+        zd0 = qd0 - v_s * math.tanh(abs(qd0) / v_s) * f0 * z0 if f0 else 0.0
+        zd1 = qd1 - v_s * math.tanh(abs(qd1) / v_s) * f1 * z1 if f1 else 0.0
+        zd2 = qd2 - v_s * math.tanh(abs(qd2) / v_s) * f2 * z2 if f2 else 0.0
+        return [qd0, qd1, qd2, acc0, acc1 - acc0, acc2 - acc1, zd0, zd1, zd2]
+
     def step(self, u, dt: float) -> None:
         """Advance ``dt`` [s] with the input ``u`` (2,) [N·m] held (clipped to ±torque_limit),
         in RK4 steps of at most ``substep``.
@@ -353,7 +424,7 @@ class FingerPlant:
         h = dt / steps
         st = self.state
         x = st.q.tolist() + st.qd.tolist() + st.z.tolist()
-        f = self._derivative
+        f = self.derivative
         for _ in range(steps):
             k1 = f(x, tau_in)
             k2 = f([a + 0.5 * h * b for a, b in zip(x, k1)], tau_in)
