@@ -19,6 +19,18 @@ steps safely on its own) and a wall-time watchdog reports ERROR after ``estimate
 (docs/design/loop_rules.md). This module is the ROS side: parameters, topics, conversions, status
 and logs.
 
+**Tuning at runtime.** ``q_pos``, ``q_vel``, ``r``, ``integral_gain``, ``integral_band``, ``pd_kp``
+and ``pd_kd`` may be changed while the node runs (``ros2 param set /controller q_pos 2e6``). A
+change is checked by building the law with the new values: a refused one returns its reason and
+the old values stay in force. An accepted one takes effect at the next estimate: parameter
+changes are executor callbacks like the estimates, so they never run inside a control step. The
+law is built again with the new values and handed the state that keeps the command continuous
+(the roll-off's last output, the integral's torque:
+:func:`~soft_gripper_sdre.control.laws.hand_over`); the SDRE solves afresh, as after a
+reset. The change is logged, and /diagnostics shows the values
+in force (``weights``, ``integral``, ``pd_gains``). A value the law does not use (``pd_kp`` for
+``sdre_ff``) is taken and has no effect.
+
 Nothing bad reaches the actuators: malformed, non-finite, wrong-size or old messages are rejected
 (throttled warning, counted) and produce no torque; the SDRE core falls back to the last valid
 gains when a Riccati check fails and saturates at ``torque_limit``; a torque that is still not
@@ -41,7 +53,9 @@ from soft_gripper_sdre.control.command_gate import Change, CommandGate, Notice, 
 from soft_gripper_sdre.control.compiled import warm_up
 from soft_gripper_sdre.control.tracking import DEFAULT_LOWPASS_HZ, DEFAULT_WEIGHTS, Weights, roll_off_corner_hz
 from soft_gripper_sdre.control.horizon import sample_plan
-from soft_gripper_sdre.control.laws import DEFAULT_INTEGRAL, DEFAULT_LAW, GRAPH_LAWS, LAW_REGISTRY, make_law
+from soft_gripper_sdre.control.laws import (DEFAULT_CT, DEFAULT_INTEGRAL, DEFAULT_LAW, DEFAULT_PD,
+                                             GRAPH_LAWS, LAW_REGISTRY, hand_over, make_law,
+                                             pd_gains)
 from soft_gripper_sdre.learning.model import ModelFileError, SDCModel, set_torch_threads
 from soft_gripper_sdre.nodes import cdr, conversions as cv
 from soft_gripper_sdre.nodes.common import ERROR, OK, Diagnostics, ThrottledLogger, run
@@ -58,11 +72,12 @@ PARAMS = (
     finger_names_param('the fingers controlled together: the joint names of state_estimate and '
                        'grasp_reference; torque_commands names <finger>/ax0, <finger>/ax1'),
     Param('q_pos', DEFAULT_WEIGHTS['q_pos'], 'SDRE state weight on tip position, Q = diag(q_pos, q_pos, '
-          'q_vel, q_vel) (paper: 2 in sim units = 800 SI)', '1/m²', 0.0, 1e12, read_only=True),
-    Param('q_vel', DEFAULT_WEIGHTS['q_vel'], 'SDRE state weight on tip velocity', 's²/m²', 0.0, 1e12,
-          read_only=True),
+          'q_vel, q_vel) (paper: 2 in sim units = 800 SI); every law but pd and computed_torque',
+          '1/m²', 0.0, 1e12),
+    Param('q_vel', DEFAULT_WEIGHTS['q_vel'], 'SDRE state weight on tip velocity', 's²/m²', 0.0,
+          1e12),
     Param('r', DEFAULT_WEIGHTS['r'], 'SDRE input weight, R = diag(r, r) (paper: 0.1 in sim units = '
-          '16000 SI)', '1/(N·m)²', 1e-12, 1e12, read_only=True),
+          '16000 SI)', '1/(N·m)²', 1e-12, 1e12),
     Param('torque_limit', 0.0625, 'saturation of each torque (0.0625 N·m = 25 sim units, the '
           'stable range of the physics step)', 'N·m', 1e-6, 1.0, read_only=True),
     Param('torque_lowpass_hz', DEFAULT_LOWPASS_HZ, 'first-order roll-off of the torque command '
@@ -85,10 +100,17 @@ PARAMS = (
     Param('integral_gain', DEFAULT_INTEGRAL['gain'], 'sdre_ff only: integral action on the tip position '
           'error against the steady offset of joint friction, as a tip acceleration k_i ∫(p_d − p)dt '
           'through the learned input map at rest; frozen while saturated, decaying while the error is '
-          'outside integral_band (pressing on the cube); 0 = off', '1/s³', 0.0, 1e8, read_only=True),
+          'outside integral_band (pressing on the cube); 0 = off', '1/s³', 0.0, 1e8),
     Param('integral_band', DEFAULT_INTEGRAL['band'], 'sdre_ff only: tip error beyond which the integral '
           'stops integrating and decays (the reference is not reachable, e.g. inside the cube)', 'm',
-          1e-6, 0.1, read_only=True),
+          1e-6, 0.1),
+    Param('pd_kp', 0.0, 'pd and computed_torque only: the task-space gain on the tip position '
+          "error, the error dynamics' natural frequency squared; 0 = the law's own tuned gain "
+          f"({DEFAULT_PD['kp']:g} for pd, {DEFAULT_CT['kp']:g} for computed_torque)", '1/s²',
+          0.0, 1e9),
+    Param('pd_kd', 0.0, 'pd and computed_torque only: the gain on the tip velocity error, 2ζω; '
+          f"0 = the law's own ({DEFAULT_PD['kd']:g} for pd, {DEFAULT_CT['kd']:g} for "
+          'computed_torque)', '1/s', 0.0, 1e6),
     Param('estimate_watchdog', 0.5, 'wall time without a state_estimate after which the controller '
           'reports ERROR (it sends nothing without an estimate: the simulator steps safely on its own)',
           's', 1e-2, 600.0),
@@ -104,6 +126,12 @@ PARAMS = (
 )
 
 
+#: the parameters that may be changed while the node runs and retune the law
+TUNABLE = ('q_pos', 'q_vel', 'r', 'integral_gain', 'integral_band', 'pd_kp', 'pd_kd')
+#: the laws whose gains are not from the SDRE weights
+FIXED_GAIN_LAWS = ('pd', 'computed_torque')
+
+
 class ControllerNode(Node):
     """SDRE tracking controller on topics (see module doc)."""
 
@@ -116,10 +144,7 @@ class ControllerNode(Node):
             model = SDCModel(Path(p['model_path']).expanduser() if p['model_path'] else None)
         except ModelFileError as exc:
             raise ParameterError(f'model_path: {exc}') from None
-        try:
-            weights = Weights(p['q_pos'], p['q_vel'], p['r'])
-        except ValueError as exc:
-            raise ParameterError(str(exc)) from None
+        self.model = model
         self.names = tuple(p['finger_names'])
         self.n = len(self.names)
         self.effort_order = None            # index into u.ravel() of each effort_topic entry
@@ -128,16 +153,12 @@ class ControllerNode(Node):
                 self.effort_order = cv.effort_array_order(p['effort_joints'], self.names)
             except ValueError as exc:
                 raise ParameterError(f'parameter \'effort_joints\': {exc}') from None
-        on_runtime_change(self, PARAMS, apply=self._apply)
-        integral = {}
-        if 'integral_gain' in LAW_REGISTRY[p['law']].options:
-            integral = dict(integral_gain=p['integral_gain'], integral_band=p['integral_band'])
+        self._retuned = None                # the law built by an accepted runtime change
+        on_runtime_change(self, PARAMS, validate=self._validate, apply=self._apply)
         try:
-            self.ctrl = make_law(p['law'], model, weights, p['torque_limit'], n_fingers=self.n,
-                                 method=p['solver'], lowpass_hz=p['torque_lowpass_hz'],
-                                 dt=p['control_period'], adaptive=p['state_weights'], **integral)
+            self.ctrl = self._build_law(p)
         except ValueError as exc:
-            raise ParameterError(f'law/state_weights/integral_gain: {exc}') from None
+            raise ParameterError(f'law/state_weights/integral_gain/pd_kp/pd_kd: {exc}') from None
         warm_up()       # compiled (or loaded from the cache) before any topic shows the node ready
         self.done = False
         self.exit_code = 0
@@ -163,11 +184,12 @@ class ControllerNode(Node):
         cdr.watch(self.diag, self.cdr_estimate, self.cdr_plan)
         self.diag.values['model'] = str(model.path)
         self.diag.values['law'] = p['law']
-        self.diag.values['weights'] = f'q_pos={weights.q_pos:g} q_vel={weights.q_vel:g} r={weights.r:g}'
+        self._show_gains()
         self.diag.values['roll_off_hz'] = f'{roll_off_corner_hz(p["torque_lowpass_hz"], p["control_period"]):g}'
         self._watchdog = self.create_timer(0.05, lambda: self._act(self.gate.on_wall_time(time.monotonic())))
         self.diag.before_publish.append(self._compute_stats)
-        integral_note = f'; integral gain {integral["integral_gain"]:g}' if integral else ''
+        integral_note = (f'; integral gain {p["integral_gain"]:g}' if self._uses('integral_gain')
+                         else '')
         self.get_logger().info(
             f'model {model.path.name} (rest tip {1e3 * model.rest_tip[0]:.1f}, '
             f'{1e3 * model.rest_tip[1]:.1f} mm); {self.diag.values["weights"]}; '
@@ -243,9 +265,68 @@ class ControllerNode(Node):
         self.diag.good('commands', 'tracking')
         count_solve(self.diag, self.log, out, stamp)
 
+    # -- the law and its tuning --------------------------------------------------------------
+    def _uses(self, name: str) -> bool:
+        """Whether the law in use reads the tunable parameter ``name``."""
+        options = LAW_REGISTRY[self.p['law']].options
+        if name in ('q_pos', 'q_vel', 'r'):
+            return self.p['law'] not in FIXED_GAIN_LAWS
+        if name in ('integral_gain', 'integral_band'):
+            return 'integral_gain' in options
+        return name in ('pd_kp', 'pd_kd') and 'pd_gains' in options
+
+    def _build_law(self, p: dict):
+        """The control law of the parameters ``p``.
+
+        Raises:
+            ValueError: a value the law refuses (the message names it).
+        """
+        options = LAW_REGISTRY[p['law']].options
+        extra = {}
+        if 'integral_gain' in options:
+            extra.update(integral_gain=p['integral_gain'], integral_band=p['integral_band'])
+        if 'pd_gains' in options:
+            extra['pd_gains'] = pd_gains(p['law'], p['pd_kp'], p['pd_kd'])
+        return make_law(p['law'], self.model, Weights(p['q_pos'], p['q_vel'], p['r']),
+                        p['torque_limit'], n_fingers=self.n, method=p['solver'],
+                        lowpass_hz=p['torque_lowpass_hz'], dt=p['control_period'],
+                        adaptive=p['state_weights'], **extra)
+
+    def _show_gains(self) -> None:
+        """The tunable values in force, in /diagnostics."""
+        p, values = self.p, self.diag.values
+        values['weights'] = f'q_pos={p["q_pos"]:g} q_vel={p["q_vel"]:g} r={p["r"]:g}'
+        values['integral'] = f'gain={p["integral_gain"]:g} band={p["integral_band"]:g}'
+        gains = pd_gains(p['law'], p['pd_kp'], p['pd_kd'])
+        values['pd_gains'] = f'kp={gains["kp"]:g} kd={gains["kd"]:g}'
+
+    def _validate(self, new: dict) -> str | None:
+        """Why the runtime change ``new`` is refused, or None; an accepted change to a value the
+        law uses builds the law it will run (:meth:`_apply` puts it in force)."""
+        self._retuned = None
+        if not any(self._uses(name) for name in TUNABLE if name in new):
+            return None
+        try:
+            self._retuned = self._build_law({**self.p, **new})
+        except ValueError as exc:
+            return f'{", ".join(sorted(new))}: {exc}'
+        return None
+
     def _apply(self, new: dict) -> None:
         self.p.update(new)
         self.gate.watchdog = self.p['estimate_watchdog']
+        tuned = {name: new[name] for name in TUNABLE if name in new}
+        if not tuned:
+            return
+        changes = ', '.join(f'{name} = {value:g}' for name, value in tuned.items())
+        if self._retuned is None:
+            self.get_logger().info(f'{changes}: not used by the {self.p["law"]} law, no effect')
+        else:
+            hand_over(self.ctrl, self._retuned)
+            self.ctrl, self._retuned = self._retuned, None
+            self.get_logger().info(f'{changes}: the {self.p["law"]} law is retuned from the next '
+                                   'estimate')
+        self._show_gains()
 
     def _compute_stats(self) -> None:
         """Mean and max compute time [µs] since the last /diagnostics, into its values."""

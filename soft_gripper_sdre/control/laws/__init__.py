@@ -43,8 +43,8 @@ from soft_gripper_sdre.learning.koopman import KoopmanFileError, KoopmanModel
 
 __all__ = ['AdaptiveSdreLaw', 'ComputedTorqueLaw', 'DEFAULT_CT', 'DEFAULT_INTEGRAL', 'DEFAULT_LAW', 'DEFAULT_PD',
            'FF_AT', 'GRAPH_LAWS', 'IntegralAction', 'KoopmanLqrLaw', 'KoopmanMpcLaw', 'LAW_REGISTRY', 'LawEntry',
-           'LawSettings', 'LqrLaw', 'PdLaw', 'SdreFeedforwardLaw', 'SdreLaw', 'make_law', 'model_inversion',
-           'register_law']
+           'LawSettings', 'LqrLaw', 'PdLaw', 'SdreFeedforwardLaw', 'SdreLaw', 'hand_over',
+           'make_law', 'model_inversion', 'pd_gains', 'register_law']
 
 #: the laws that run on the node graph (the oracles need the plant's joint state: in-process only;
 #: the Koopman laws load the shipped Koopman model beside the SDC one)
@@ -124,6 +124,36 @@ LAW_REGISTRY: dict[str, LawEntry] = {
     'koopman_lqr': LawEntry(lambda s, koopman_path=None: _koopman(s, KoopmanLqrLaw, koopman_path), ('koopman_path',)),
     'computed_torque': LawEntry(_computed_torque, ('pd_gains',)),
 }
+
+
+def pd_gains(law: str, kp: float = 0.0, kd: float = 0.0) -> dict:
+    """The ``pd_gains`` of ``law`` ('pd' or 'computed_torque'): ``kp`` [1/s²] and ``kd`` [1/s],
+    where 0 means the law's own tuned gain (:data:`DEFAULT_PD`, :data:`DEFAULT_CT`)."""
+    own = DEFAULT_CT if law == 'computed_torque' else DEFAULT_PD
+    return dict(kp=float(kp) or own['kp'], kd=float(kd) or own['kd'])
+
+
+def _roll_off(law):
+    io = getattr(law, 'io', None)
+    return io.roll_off if io is not None else getattr(law, 'roll_off', None)
+
+
+def hand_over(old: Law, new: Law) -> None:
+    """Give ``new`` (the law ``old`` is, built again with other gains or weights) the state that
+    keeps its command continuous: the roll-off filter's last output, the integral action's torque
+    (its integral rescaled to the new gain; none when either law has no integral), and the
+    Koopman laws' state history. Warm starts and last valid Riccati gains are not carried: they
+    belong to the old weights, and the new law solves afresh as after a reset."""
+    if type(old) is not type(new):
+        raise ValueError(f'cannot hand a {type(old).__name__} over to a {type(new).__name__}')
+    before, after = _roll_off(old), _roll_off(new)
+    if before is not None and after is not None and before.alpha > 0.0 and after.alpha > 0.0:
+        after._u = None if before._u is None else before._u.copy()
+    old_i, new_i = getattr(old, 'integral', None), getattr(new, 'integral', None)
+    if old_i is not None and new_i is not None:
+        new_i.xi[:] = old_i.xi * (old_i.gain / new_i.gain)         # the same u_I = k_i G₂⁻¹ ξ
+    if hasattr(old, 'history') and hasattr(new, 'history'):
+        new.history = old.history
 
 
 def register_law(name: str, build: Callable[..., Law], options: tuple[str, ...] = ()) -> None:
