@@ -111,3 +111,22 @@ def test_the_tunable_parameters_are_the_runtime_ones():
     runtime = {p.name for p in PARAMS if not p.read_only}
     assert runtime == {'q_pos', 'q_vel', 'r', 'integral_gain', 'integral_band', 'pd_kp', 'pd_kd',
                        'estimate_watchdog'}
+
+
+def test_hand_over_keeps_the_command_continuous():
+    """The law built again with other gains takes over the roll-off's last output and the
+    integral's torque."""
+    from soft_gripper_sdre.control.laws import hand_over, make_law
+    from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
+    model, w = SDCModel(), Weights(**DEFAULT_WEIGHTS)
+    old = make_law('sdre_ff', model, w, TORQUE_LIMIT, integral_gain=1e5, integral_band=5e-3)
+    ref = REST + [0.0, 2e-4]
+    for _ in range(20):
+        old.compute(REST, np.zeros((4, 2)), ref, np.zeros((4, 2)))
+    new = make_law('sdre_ff', model, w, TORQUE_LIMIT, integral_gain=4e5, integral_band=5e-3)
+    hand_over(old, new)
+    assert np.abs(old.integral.torque()).max() > 0
+    np.testing.assert_allclose(new.integral.torque(), old.integral.torque(), rtol=1e-12)
+    np.testing.assert_array_equal(new.io.roll_off._u, old.io.roll_off._u)
+    with pytest.raises(ValueError, match='PdLaw'):
+        hand_over(old, make_law('pd', model, w, TORQUE_LIMIT))
