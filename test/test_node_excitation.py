@@ -19,6 +19,7 @@ REST = np.array([[0.0, -0.0105, 0.1076]])
 
 
 def start(ctx, executor, **params):
+    params.setdefault('min_command_subscribers', 1)      # the probe is the only subscriber
     node = ExcitationNode(context=ctx, parameter_overrides=overrides(finger_names=['finger_0'], **params))
     probe = Probe(ctx)
     pub = probe.create_publisher(PoseArray, TIP_POSITIONS, LOOP_QOS)

@@ -241,6 +241,26 @@ def settle_estimates(rec: Recording, finger: int) -> tuple[np.ndarray, float | N
     return tips.mean(axis=0), sigma, len(tips)
 
 
+def settle_noise(rec: Recording, finger: int) -> tuple[np.ndarray, float, int]:
+    """(rest tip (3,), measurement σ [m], settle samples) of ``finger``, as
+    :func:`settle_estimates`, for training that takes the noise level from the bag.
+
+    Raises:
+        BagDataError: fewer than :data:`MIN_SETTLE_SAMPLES` tips of the settle phase (the tips
+            stamped from the first command until the finger's first non-zero torque), naming the
+            bag and the finger and saying what to do.
+    """
+    rest, sigma, n = settle_estimates(rec, finger)
+    if sigma is None:
+        name = rec.finger_names[finger] if finger < len(rec.finger_names) else f'finger {finger}'
+        raise BagDataError(
+            f'bag {rec.path}: {name}: no settle phase of zero torque before the first non-zero '
+            f'torque ({n} tip(s) from the first command on, {MIN_SETTLE_SAMPLES} needed to '
+            "estimate the noise level): record with the excitation node's settle_time > 0, or "
+            'give --meas-std')
+    return rest, sigma, n
+
+
 def tip_stretches(rec: Recording, gap_periods: float = DEFAULT_GAP_PERIODS) -> list[slice]:
     """Index ranges of the tips without a gap longer than ``gap_periods`` median periods, each
     of at least :data:`MIN_SAMPLES` tips."""

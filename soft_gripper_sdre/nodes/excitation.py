@@ -2,9 +2,24 @@
 
 Plays ``signals`` in order (the paper's u1..u4, the identifying x1, x2, or multisines and chirps
 from the YAML ``spec_file``, :mod:`soft_gripper_sdre.sim.excitation`), each after ``settle_time``
-of zero torque, on ``finger`` or on every finger, clipped to ``torque_limit``; a recorder running
-meanwhile captures ``tip_positions`` and ``torque_commands`` for ``tools.train --bag``. Plan time
-starts at the first ``tip_positions`` message, so the recording holds the settle phase.
+of zero torque, on ``finger`` or on every finger, scaled by ``amplitude`` and clipped to
+``torque_limit``; a recorder running meanwhile captures ``tip_positions`` and ``torque_commands``
+for ``tools.train --bag``.
+
+Start: the run begins only once ``torque_commands`` has ``min_command_subscribers`` matched
+subscribers (default 2: the driver and the recorder), so no command is sent before the recorder
+hears it; until then each tip message is answered with zero torque. Plan time starts at the
+first tips after that, so the recording holds the whole settle phase (the rest pose and the noise
+level for training). Not matched within ``startup_timeout`` is a fault.
+
+Level (``level``): ``fixed`` plays the signals at ``amplitude``. ``auto`` first searches the
+amplitude on the finger (:class:`~soft_gripper_sdre.sim.excitation.LevelSearch`): after the settle
+phase, probes at amplitudes rising from ``level_start``, each ``level_probe_time`` long and
+followed by ``settle_time`` at zero, until a probe moves an excited tip ``level_target`` ×
+``max_excursion`` from rest (or reaches the torque limit); the signals are then played at the
+amplitude that scales the response to that target, kept off the clip. The probes are published
+and recorded like the signals. The amplitude, the probes and the share of the signals' samples
+at the clip go to the log and /diagnostics (``amplitude``, ``probes``, ``clip_share``).
 
 Timing (``timing``):
 
@@ -37,7 +52,8 @@ from soft_gripper_sdre.nodes.common import ERROR, OK, Diagnostics, run
 from soft_gripper_sdre.nodes.params import (Param, ParameterError, declare_all, finger_names_param,
                                             tips_reliability_param, with_reliability)
 from soft_gripper_sdre.nodes.topics import LOOP_QOS, NEWEST_QOS, TIP_POSITIONS, TORQUE_COMMANDS
-from soft_gripper_sdre.sim.excitation import ExcitationPlan, SignalSpecError, resolve_signals
+from soft_gripper_sdre.sim.excitation import (MIN_SETTLE_SAMPLES, ExcitationPlan, LevelSearch,
+                                              SignalSpecError, resolve_signals)
 from soft_gripper_sdre.sim.signals import SIGNALS
 
 PARAMS = (
@@ -60,15 +76,30 @@ PARAMS = (
     Param('period', 0.001, 'timer timing: the command period', 's', 1e-4, 1.0, read_only=True),
     Param('tips_timeout', 1.0, 'wall time without tip_positions after which the run stops as a fault',
           's', 0.01, 600.0, read_only=True),
-    Param('startup_timeout', 60.0, 'wall time to wait for the first tip_positions message', 's',
-          0.1, 3600.0, read_only=True),
+    Param('startup_timeout', 60.0, 'wall time to wait for the first tip_positions message and for '
+          'min_command_subscribers', 's', 0.1, 3600.0, read_only=True),
+    Param('min_command_subscribers', 2, 'start only once torque_commands has this many matched '
+          'subscribers (2: the driver and the recorder; 1 without a recorder)', '', 0, 64,
+          read_only=True),
     Param('reset_on_jump', 0.1, 'tip stamps jumping back by more than this (a restarted driver) '
           'stop the run as a fault', 's', 1e-3, 1e6, read_only=True),
     Param('stop_wait', 0.2, 'shutdown, tips timing: wall time to wait for one more tip message to '
           'answer with zero torque (then zero goes out stamped with the newest tips)', 's', 0.0, 10.0,
           read_only=True),
     Param('max_excursion', 0.0, 'stop as a fault when an excited tip moves further than this from '
-          'its starting position (0 = off)', 'm', 0.0, 1.0, read_only=True),
+          'its starting position (0 = off; level auto needs it)', 'm', 0.0, 1.0, read_only=True),
+    Param('amplitude', 1.0, 'level fixed: every signal (built-in or spec_file) is multiplied by '
+          'this before the torque_limit clip', '', 1e-6, 100.0, read_only=True),
+    Param('level', 'fixed', 'fixed: play the signals at amplitude; auto: choose the amplitude by '
+          'probes on the finger first (needs max_excursion > 0 and settle_time > 0)',
+          choices=('fixed', 'auto'), read_only=True),
+    Param('level_target', 0.5, 'level auto: the peak excursion aimed at, as a fraction of '
+          'max_excursion', '', 0.05, 1.0, read_only=True),
+    Param('level_start', 0.05, 'level auto: the amplitude of the first probe (then up to twice the '
+          'last per probe)', '', 1e-6, 100.0, read_only=True),
+    Param('level_probe_time', 2.0, 'level auto: the length of each probe (two periods of a sine '
+          'at the signals\' peak torque; settle_time at zero after each)', 's', 0.1, 60.0,
+          read_only=True),
     tips_reliability_param(),
 )
 
@@ -85,12 +116,18 @@ class ExcitationNode(Node):
         if p['finger'] >= self.n:
             raise ParameterError(f"parameter 'finger': {p['finger']} is not a finger of finger_names "
                                  f'{list(self.names)} (indices 0 to {self.n - 1}, or -1 for all)')
+        finger = None if p['finger'] < 0 else p['finger']
         try:
             signals = resolve_signals(list(p['signals']), p['spec_file'] or None, p['duration'] or None)
-            self.plan = ExcitationPlan(signals, p['settle_time'], self.n,
-                                       None if p['finger'] < 0 else p['finger'], p['torque_limit'])
+            self.plan = ExcitationPlan(signals, p['settle_time'], self.n, finger, p['torque_limit'],
+                                       p['amplitude'])
         except (SignalSpecError, ValueError) as exc:
             raise ParameterError(str(exc)) from None
+        self.search = self._level_search(finger) if p['level'] == 'auto' else None
+        self.plan_offset = 0.0                  # run time at which plan time 0 is [s]
+        self.settle_tips = 0                    # tips answered before the first non-zero torque
+        self.excited = False                    # a non-zero torque went out
+        self.newest_tips: np.ndarray | None = None
         self.done = False
         self.exit_code = 0
         self.start_ns: int | None = None        # stamp of the first tips: plan time 0 (tips timing)
@@ -110,16 +147,47 @@ class ExcitationNode(Node):
             with_reliability(NEWEST_QOS, p['tips_reliability']), raw=True)
         self.diag = Diagnostics(self)
         cdr.watch(self.diag, self.cdr_tips)
-        self.diag.values.update(signal='waiting for tip_positions', plan_duration=f'{self.plan.duration:.3f}')
+        self.diag.values.update(signal='waiting for tip_positions', level=p['level'],
+                                plan_duration=f'{self.plan.duration:.3f}')
+        if self.search is None:
+            self.diag.values.update(amplitude=f'{p["amplitude"]:g}',
+                                    clip_share=f'{self.plan.clip_share():.4f}')
         self._watchdog = self.create_timer(0.05, self._check_watchdog)
         if p['timing'] == 'timer':
             self._ticker = self.create_timer(p['period'], self._on_tick, clock=self.get_clock())
         names = ', '.join(s.name for s in signals)
         where = 'every finger' if p['finger'] < 0 else self.names[p['finger']]
+        level = (f'amplitude {p["amplitude"]:g} ({self._clip_text()})' if self.search is None else
+                 f'amplitude by probes aiming at {1e3 * self.search.goal:g} mm')
         self.get_logger().info(
             f'{names} on {where} of {self.n}, '
             f'{p["settle_time"]:g} s settle before each, |u| <= {p["torque_limit"]:g} N·m, '
-            f'{self.plan.duration:g} s in all; {p["timing"]} timing')
+            f'{level}, {self.plan.duration:g} s in all; {p["timing"]} timing; starting once '
+            f'{TORQUE_COMMANDS} has {p["min_command_subscribers"]} subscriber(s)')
+
+    def _level_search(self, finger: int | None) -> LevelSearch:
+        """The amplitude search of ``level: auto`` (cross-checks its parameters)."""
+        p = self.p
+        for name, bad, why in (
+                ('max_excursion', p['max_excursion'] <= 0,
+                 'level auto needs max_excursion > 0 (it aims at level_target × max_excursion)'),
+                ('settle_time', p['settle_time'] <= 0,
+                 'level auto needs settle_time > 0 (the rest pose the probes are measured from)'),
+                ('amplitude', p['amplitude'] != 1.0,
+                 f'{p["amplitude"]:g} with level auto, which chooses the amplitude itself; leave '
+                 'amplitude at 1.0, or use level fixed')):
+            if bad:
+                raise ParameterError(f'parameter {name!r}: {why}')
+        peak = self.plan.peak_torque
+        if not peak.max() > 0:
+            raise ParameterError("parameter 'signals': every signal is zero; level auto has "
+                                 'nothing to scale')
+        return LevelSearch(peak, p['torque_limit'], p['max_excursion'], self.n, finger,
+                           target=p['level_target'], start=p['level_start'],
+                           probe_time=p['level_probe_time'], settle_time=p['settle_time'])
+
+    def _clip_text(self) -> str:
+        return f'{100 * self.plan.clip_share():.1f} % of the signals\' samples at the torque limit'
 
     # -- inputs ------------------------------------------------------------------------------
     def on_tips(self, data: bytes) -> None:
@@ -130,10 +198,7 @@ class ExcitationNode(Node):
         except cv.MessageError as exc:
             self.diag.problem('bad_tips', f'rejected: {exc}')
             return
-        if self.start_ns is None:
-            self.start_ns, self.rest = stamp, tips.copy()
-            self.get_logger().info(f'first tip_positions at t = {stamp / cv.NS:.4f} s: the plan starts')
-        elif stamp <= self.last_ns:
+        if stamp <= self.last_ns:
             if stamp < self.last_ns - int(self.p['reset_on_jump'] * cv.NS):
                 self.fault(f'tip stamps jumped back from {self.last_ns / cv.NS:.4f} s to '
                            f'{stamp / cv.NS:.4f} s (a restarted driver?)', stamp)
@@ -141,16 +206,29 @@ class ExcitationNode(Node):
                 self.diag.problem('old_tips', f'rejected: stamp {stamp} ns is not newer than {self.last_ns} ns')
             return
         self.last_ns, self.last_heard = stamp, time.monotonic()
+        self.newest_tips = tips
         self.diag.count('tips')
         if self.stopping:
             self.stop(stamp, 'stopped on shutdown')
             return
+        if self.start_ns is None:
+            subscribers = self.pub_cmd.get_subscription_count()
+            self.diag.values['command_subscribers'] = str(subscribers)
+            if subscribers < self.p['min_command_subscribers']:
+                self.diag.values['signal'] = (f'waiting for {self.p["min_command_subscribers"]} '
+                                              f'{TORQUE_COMMANDS} subscribers')
+                if self.p['timing'] == 'tips':
+                    self._publish(stamp, np.zeros((self.n, 2)))
+                return
+            self.start_ns, self.rest = stamp, tips.copy()
+            self.get_logger().info(f'tip_positions at t = {stamp / cv.NS:.4f} s with {subscribers} '
+                                   f'{TORQUE_COMMANDS} subscriber(s): the run starts')
         if self.p['max_excursion'] > 0 and self._excursion(tips) > self.p['max_excursion']:
             self.fault(f'a tip moved {1e3 * self._excursion(tips):.2f} mm from its start, more than '
                        f'max_excursion ({1e3 * self.p["max_excursion"]:g} mm)', stamp)
             return
         if self.p['timing'] == 'tips':
-            self._play(stamp, (stamp - self.start_ns) / cv.NS)
+            self._advance(stamp, (stamp - self.start_ns) / cv.NS, tips)
 
     def _on_tick(self) -> None:
         if self.stopped or self.start_ns is None:
@@ -160,7 +238,7 @@ class ExcitationNode(Node):
             self.clock_start_ns = now
         if now <= self.answered_ns:
             return
-        self._play(now, (now - self.clock_start_ns) / cv.NS)
+        self._advance(now, (now - self.clock_start_ns) / cv.NS, self.newest_tips)
 
     def _check_watchdog(self) -> None:
         if self.stopped:
@@ -169,6 +247,11 @@ class ExcitationNode(Node):
         if self.last_heard is None and now > self._deadline:
             self.fault(f'no tip_positions within startup_timeout ({self.p["startup_timeout"]:g} s)',
                        max(self.last_ns, 0))
+        elif self.start_ns is None and now > self._deadline:
+            self.fault(f'{TORQUE_COMMANDS} has {self.pub_cmd.get_subscription_count()} matched '
+                       f'subscriber(s) after startup_timeout ({self.p["startup_timeout"]:g} s); '
+                       f'min_command_subscribers is {self.p["min_command_subscribers"]}: start the '
+                       'driver and the recorder, or lower min_command_subscribers', self.last_ns)
         elif self.last_heard is not None and now - self.last_heard > self.p['tips_timeout']:
             self.fault(f'no tip_positions for {self.p["tips_timeout"]:g} s of wall time since '
                        f't = {self.last_ns / cv.NS:.4f} s', self.last_ns)
@@ -180,6 +263,53 @@ class ExcitationNode(Node):
         return float(np.inf if not np.all(np.isfinite(d)) else d.max())
 
     # -- outputs -----------------------------------------------------------------------------
+    def _advance(self, stamp: int, t: float, tips: np.ndarray) -> None:
+        """Publish the torque for run time ``t`` [s] stamped ``stamp``: the level search's while
+        it runs (``tips``: the newest), then the plan's."""
+        search = self.search
+        if search is not None and not search.done:
+            u = search.step(t, tips)
+            if not search.done:
+                probe = len(search.probes) + 1
+                self.diag.values.update(
+                    signal=f'level probe {probe}' if t >= search.settle_time else 'settle',
+                    level=f'auto: probe {probe} at amplitude {search.current:.4g}', plan_time='')
+                self._note_settle(u)
+                self._publish(stamp, u)
+                self.diag.good('commands', 'probing the level')
+                return
+            self._level_chosen()
+        self._play(stamp, t - self.plan_offset)
+
+    def _level_chosen(self) -> None:
+        """Scale the plan to the amplitude the search chose; plan time 0 is where it ended."""
+        search = self.search
+        self.plan = self.plan.scaled(search.amplitude)
+        self.plan_offset = search.end
+        probes = ', '.join(f'{pr.amplitude:.4g} → {1e3 * pr.excursion:.2f} mm'
+                           for pr in search.probes)
+        self.diag.values.update(level='auto: chosen', amplitude=f'{search.amplitude:.6g}',
+                                clip_share=f'{self.plan.clip_share():.4f}', probes=probes)
+        self.get_logger().info(f'level probes (amplitude → peak excursion): {probes}; amplitude '
+                               f'{search.amplitude:.4g} for {1e3 * search.goal:g} mm, '
+                               f'{self._clip_text()}')
+
+    def _note_settle(self, u: np.ndarray) -> None:
+        """Count the zero-torque answers before the first non-zero torque; warn at that torque if
+        they are too few for training to estimate the noise level."""
+        if self.excited:
+            return
+        if not np.any(u != 0.0):
+            self.settle_tips += 1
+            return
+        self.excited = True
+        self.diag.values['settle_tips'] = str(self.settle_tips)
+        if self.settle_tips < MIN_SETTLE_SAMPLES:
+            self.get_logger().warn(
+                f'only {self.settle_tips} tip message(s) answered with zero torque before the '
+                f'first non-zero torque; training estimates the noise level from {MIN_SETTLE_SAMPLES} or '
+                'more (a longer settle_time, or give train --meas-std)')
+
     def _play(self, stamp: int, t: float) -> None:
         """Publish the plan's torque for plan time ``t`` stamped ``stamp``, or stop at its end."""
         if self.plan.finished(t):
@@ -188,7 +318,9 @@ class ExcitationNode(Node):
         seg = self.plan.segment_at(t)
         self.diag.values['signal'] = seg.signal.name if seg is not None else 'settle'
         self.diag.values['plan_time'] = f'{t:.3f}'
-        self._publish(stamp, self.plan.torques(t))
+        u = self.plan.torques(t)
+        self._note_settle(u)
+        self._publish(stamp, u)
         self.diag.good('commands', 'playing')
 
     def _publish(self, stamp: int, u: np.ndarray) -> None:

@@ -1,9 +1,17 @@
 """Identification runs as a schedule of torques: which torque each finger gets at each instant.
 
 An :class:`ExcitationPlan` plays a list of :class:`Signal` one after the other, each after a
-settle phase at zero torque, on one finger or on all of them, clipped to a torque limit; after
-the last signal every torque is zero. It is the excitation node's logic without ROS: the node
-asks :meth:`ExcitationPlan.torques` for the torque at the time since the run began.
+settle phase at zero torque, on one finger or on all of them, scaled by an amplitude and then
+clipped to a torque limit; after the last signal every torque is zero. It is the excitation
+node's logic without ROS: the node asks :meth:`ExcitationPlan.torques` for the torque at the time
+since the run began. :meth:`ExcitationPlan.clip_share` says how much of the signals sits on the
+clip at an amplitude.
+
+A :class:`LevelSearch` chooses the amplitude on the finger itself, before the plan: after a
+settle phase (the rest pose) it plays short probes at amplitudes rising geometrically, each
+followed by a settle phase, measures each probe's peak excursion from rest, and stops once a
+probe moves the tip to near a target distance; the amplitude then scales the signals to that
+target, assuming a roughly linear response (see the class).
 
 Signals are the built-in ones of :mod:`soft_gripper_sdre.sim.signals` (the paper's u1..u4 and
 the identifying x1, x2) or multisines and chirps defined in a YAML file (SI: N·m, Hz, rad, s)::
@@ -25,6 +33,7 @@ first wrong one (file, signal, axis, field) in a :class:`SignalSpecError`.
 """
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 import math
 from pathlib import Path
@@ -44,6 +53,11 @@ MAX_DURATION = 3600.0
 MAX_FREQUENCY = 500.0
 MAX_TORQUE = 10.0
 _NAME = re.compile(r'[A-Za-z_][A-Za-z0-9_]*')
+#: tips a settle phase needs for training to estimate the noise level from it (as
+#: analysis.bag_dataset.MIN_SETTLE_SAMPLES)
+MIN_SETTLE_SAMPLES = 10
+#: rate [Hz] at which the signals are sampled for their peaks and their share at the clip
+SAMPLE_RATE = 1000.0
 
 TorqueFunction = Callable[[np.ndarray], np.ndarray]
 
@@ -251,13 +265,15 @@ class ExcitationPlan:
         n_fingers: the torque is (n_fingers, 2).
         finger: the finger that is excited (None: all); the others get zero.
         torque_limit: each torque is clipped to ±torque_limit [N·m].
+        amplitude: each signal's torque is multiplied by this before the clip.
 
     Raises:
-        ValueError: no signals, or a bad settle time, finger or limit.
+        ValueError: no signals, or a bad settle time, finger, limit or amplitude.
     """
 
     def __init__(self, signals: Sequence[Signal], settle_time: float, n_fingers: int,
-                 finger: int | None = None, torque_limit: float = 0.1) -> None:
+                 finger: int | None = None, torque_limit: float = 0.1,
+                 amplitude: float = 1.0) -> None:
         if not signals:
             raise ValueError('an excitation plan needs at least one signal')
         if not (math.isfinite(settle_time) and settle_time >= 0):
@@ -268,9 +284,12 @@ class ExcitationPlan:
             raise ValueError(f'finger must be in [0, {n_fingers - 1}] (or all), got {finger!r}')
         if not (math.isfinite(torque_limit) and torque_limit > 0):
             raise ValueError(f'torque_limit must be finite and > 0 N·m, got {torque_limit!r}')
+        if not (math.isfinite(amplitude) and amplitude > 0):
+            raise ValueError(f'amplitude must be finite and > 0, got {amplitude!r}')
         self.n_fingers = n_fingers
         self.finger = finger
         self.torque_limit = float(torque_limit)
+        self.amplitude = float(amplitude)
         self.settle_time = float(settle_time)
         segments, t = [], 0.0
         for signal in signals:
@@ -279,6 +298,52 @@ class ExcitationPlan:
             t += signal.duration
         self.segments = tuple(segments)
         self.duration = t
+        self._samples: tuple[np.ndarray, np.ndarray] | None = None
+
+    def scaled(self, amplitude: float) -> 'ExcitationPlan':
+        """The same plan with the signals multiplied by ``amplitude`` (instead of this one's).
+
+        Raises:
+            ValueError: ``amplitude`` is not finite and > 0.
+        """
+        if not (math.isfinite(amplitude) and amplitude > 0):
+            raise ValueError(f'amplitude must be finite and > 0, got {amplitude!r}')
+        plan = copy.copy(self)
+        plan.amplitude = float(amplitude)
+        return plan
+
+    def _sampled(self) -> tuple[np.ndarray, np.ndarray]:
+        """Per-axis peak |torque| (2,) of the signals at amplitude 1, unclipped, and each
+        sample's larger |torque| of the two axes, the signals sampled at :data:`SAMPLE_RATE`."""
+        if self._samples is None:
+            peak, larger = np.zeros(2), []
+            for seg in self.segments:
+                n = max(1, int(math.ceil(seg.signal.duration * SAMPLE_RATE)))
+                t = np.arange(n) / SAMPLE_RATE
+                u = np.abs(seg.signal.torque(t))
+                u = np.where(np.isfinite(u), u, 0.0)
+                peak = np.maximum(peak, u.max(axis=0))
+                larger.append(u.max(axis=1))
+            self._samples = (peak, np.concatenate(larger))
+        return self._samples
+
+    @property
+    def peak_torque(self) -> np.ndarray:
+        """The signals' largest |torque| per axis (2,) [N·m] at amplitude 1, before the clip."""
+        return self._sampled()[0].copy()
+
+    def clip_share(self, amplitude: float | None = None) -> float:
+        """The share of the signals' samples (at :data:`SAMPLE_RATE`, settle phases left out)
+        at the clip, on either axis, at ``amplitude`` (default: the plan's)."""
+        a = self.amplitude if amplitude is None else float(amplitude)
+        larger = self._sampled()[1]
+        return float(np.count_nonzero(a * larger >= self.torque_limit) / larger.size)
+
+    def largest_unclipped_amplitude(self) -> float:
+        """The amplitude at which the signals' peak just reaches the torque limit (inf: the
+        signals are zero)."""
+        peak = float(self._sampled()[0].max())
+        return self.torque_limit / peak if peak > 0 else math.inf
 
     def segment_at(self, t: float) -> Segment | None:
         """The segment whose signal runs at plan time ``t`` (None: settling or finished)."""
@@ -298,9 +363,140 @@ class ExcitationPlan:
         if seg is None:
             return u
         value = seg.signal.torque(np.array([t - seg.start]))[0]
-        value = np.clip(np.where(np.isfinite(value), value, 0.0), -self.torque_limit, self.torque_limit)
+        value = np.where(np.isfinite(value), value, 0.0) * self.amplitude
+        value = np.clip(value, -self.torque_limit, self.torque_limit)
         if self.finger is None:
             u[:] = value
         else:
             u[self.finger] = value
         return u
+
+
+# -- choosing the amplitude ------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Probe:
+    """One probe of a :class:`LevelSearch`: its amplitude, when it started (search time [s]) and
+    the peak excursion of an excited tip from rest during it and the settle after it [m]."""
+
+    amplitude: float
+    start: float
+    excursion: float
+
+
+class LevelSearch:
+    """Choose the signals' amplitude from probes on the finger (module doc).
+
+    Search time 0 is the start. Over [0, settle_time) the torque is zero and the excited tips'
+    mean is the rest pose. Then probe k runs for ``probe_time`` at amplitude a_k and is followed
+    by ``settle_time`` of zero torque; its excursion e_k is the largest distance of an excited tip
+    from rest over both. A probe is the signals' peak torque per axis, ``peak``, times a_k times a
+    sine of two periods, the axes in phase over the first and in opposite phase over the second,
+    so both axes reach their peaks with either relative sign.
+
+    With the goal g = ``target`` × ``max_excursion``: a_0 = ``start``; after a probe with
+    e_k ≥ ``close`` × g, or at the largest amplitude (the signals' peak at the torque limit),
+    the search ends; otherwise a_{k+1} = min(``ratio`` a_k, a_k g / e_k, largest). The chosen
+    amplitude is a_k g / e_k, at most ``ratio`` a_k and at most the largest amplitude, so the
+    signals stay off the clip.
+
+    Drive it with :meth:`step` for each tip message (or each tick, with the newest tips);
+    ``done`` then ``amplitude`` and ``end`` (the search time at which it ended) give the result.
+
+    Raises:
+        ValueError: a bad argument (named).
+    """
+
+    def __init__(self, peak: np.ndarray, torque_limit: float, max_excursion: float,
+                 n_fingers: int, finger: int | None = None, *, target: float = 0.5,
+                 start: float = 0.05, ratio: float = 2.0, probe_time: float = 2.0,
+                 settle_time: float = 0.5, close: float = 0.8) -> None:
+        peak = np.asarray(peak, dtype=float)
+        checks = (
+            ('peak', peak.shape == (2,) and bool(np.all(np.isfinite(peak)))
+             and bool(np.all(peak >= 0)) and bool(peak.max() > 0),
+             'two finite torques >= 0 [N·m], not both zero'),
+            ('torque_limit', math.isfinite(torque_limit) and torque_limit > 0,
+             'finite and > 0 N·m'),
+            ('max_excursion', math.isfinite(max_excursion) and max_excursion > 0,
+             'finite and > 0 m'),
+            ('target', 0 < target <= 1, 'in (0, 1]'),
+            ('start', math.isfinite(start) and start > 0, 'finite and > 0'),
+            ('ratio', math.isfinite(ratio) and ratio > 1, 'finite and > 1'),
+            ('probe_time', math.isfinite(probe_time) and probe_time > 0, 'finite and > 0 s'),
+            ('settle_time', math.isfinite(settle_time) and settle_time > 0, 'finite and > 0 s'),
+            ('close', 0 < close <= 1, 'in (0, 1]'),
+        )
+        for name, ok, what in checks:
+            if not ok:
+                raise ValueError(f'{name} must be {what}')
+        if finger is not None and not 0 <= finger < n_fingers:
+            raise ValueError(f'finger must be in [0, {n_fingers - 1}] (or all), got {finger!r}')
+        self.peak = peak
+        self.n_fingers = n_fingers
+        self.rows = list(range(n_fingers)) if finger is None else [finger]
+        self.goal = float(target) * float(max_excursion)
+        self.largest = float(torque_limit) / float(peak.max())
+        self.ratio, self.close = float(ratio), float(close)
+        self.probe_time, self.settle_time = float(probe_time), float(settle_time)
+        self.probes: list[Probe] = []
+        self.rest: np.ndarray | None = None
+        self.amplitude: float | None = None
+        self.end: float | None = None
+        self._rest_sum = np.zeros((len(self.rows), 3))
+        self._rest_n = 0
+        self._a = min(float(start), self.largest)
+        self._start = self.settle_time          # search time of the current probe's start
+        self._excursion = 0.0
+
+    @property
+    def done(self) -> bool:
+        return self.amplitude is not None
+
+    @property
+    def current(self) -> float:
+        """The amplitude of the probe running (or the next one)."""
+        return self._a
+
+    def probe_torque(self, s: float, amplitude: float) -> np.ndarray:
+        """A probe's torque (2,) [N·m] at ``s`` seconds from its start (zero outside it)."""
+        if not 0 <= s < self.probe_time:
+            return np.zeros(2)
+        w = math.sin(4 * math.pi * s / self.probe_time)
+        return amplitude * self.peak * np.array([w, w if s < self.probe_time / 2 else -w])
+
+    def step(self, t: float, tips: np.ndarray) -> np.ndarray:
+        """Take the tips (n_fingers, 3) [m] measured at search time ``t`` [s]; return the
+        torque (n_fingers, 2) [N·m] to apply now (zero once done)."""
+        u = np.zeros((self.n_fingers, 2))
+        if self.done:
+            return u
+        rows = np.asarray(tips, dtype=float)[self.rows, :3]
+        if t < self.settle_time:
+            if np.all(np.isfinite(rows)):
+                self._rest_sum += rows
+                self._rest_n += 1
+            return u
+        if self.rest is None:
+            self.rest = self._rest_sum / self._rest_n if self._rest_n else rows.copy()
+        if t >= self._start + self.probe_time + self.settle_time:
+            self._finish_probe()
+            if self.done:
+                return u
+        d = np.linalg.norm(rows - self.rest, axis=-1)
+        self._excursion = max(self._excursion, float(d.max()) if np.all(np.isfinite(d)) else 0.0)
+        u[self.rows] = self.probe_torque(t - self._start, self._a)
+        return u
+
+    def _finish_probe(self) -> None:
+        a, e = self._a, self._excursion
+        self.probes.append(Probe(a, self._start, e))
+        self._start += self.probe_time + self.settle_time
+        self._excursion = 0.0
+        if e >= self.close * self.goal or a >= self.largest * (1 - 1e-9):
+            chosen = a * self.ratio if e <= 0 else a * self.goal / e
+            self.amplitude = min(chosen, a * self.ratio, self.largest)
+            self.end = self._start
+        else:
+            grow = a * self.ratio if e <= 0 else min(a * self.ratio, a * self.goal / e)
+            self._a = min(grow, self.largest)

@@ -11,6 +11,11 @@ the others. ``OUT/<signal>/`` is the signal's rosbag2 directory and ``OUT/logs/<
 node logs; ``tools.train --bag OUT`` reads every bag in ``OUT``. ``--one-bag`` plays all signals
 in one run into ``OUT/<first signal>/`` instead.
 
+``--amplitude`` scales every signal before ``--torque-limit`` clips it; ``--level auto`` lets the
+excitation node choose the amplitude on the finger instead (probes aiming at ``--level-target`` ×
+``--max-excursion``, docs/identification.md). The node logs the amplitude and the share of the
+signals at the clip, and puts both in /diagnostics, which the bag records.
+
 This is the recipe a robot follows with its own driver in place of the simulator node
 (README "Use with your own gripper"). Arguments are checked before anything starts (exit 2); a
 node that fails ends the tool with exit status 1, its log's last lines and no partial bag.
@@ -41,6 +46,18 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument('--settle', type=float, default=0.5, help='zero torque before each signal [s] (default %(default)s)')
     ap.add_argument('--duration', type=float, default=None, help='length of each signal [s] (default: its own)')
     ap.add_argument('--torque-limit', type=float, default=0.1, help='N·m (default %(default)s)')
+    ap.add_argument('--amplitude', type=float, default=1.0,
+                    help='scale on every signal before the clip, --level fixed '
+                         '(default %(default)s)')
+    ap.add_argument('--level', choices=('fixed', 'auto'), default='fixed',
+                    help='fixed: play at --amplitude; auto: the node chooses the amplitude by '
+                         'probes (needs --max-excursion) (default %(default)s)')
+    ap.add_argument('--max-excursion', type=float, default=0.0, metavar='MM',
+                    help='stop a run whose tip moves further than this from rest [mm] (0 = off; '
+                         '--level auto aims at a fraction of it) (default %(default)s)')
+    ap.add_argument('--level-target', type=float, default=0.5,
+                    help='--level auto: the peak excursion aimed at, as a fraction of '
+                         '--max-excursion (default %(default)s)')
     ap.add_argument('--scene', choices=('finger', 'hand'), default='finger',
                     help='one finger mounted as in the hand (as tools.collect), or the hand without its cube')
     ap.add_argument('--finger', type=int, default=-1, help='hand scene: excite only this finger (default: all)')
@@ -64,6 +81,21 @@ def argument_problem(a: argparse.Namespace) -> str | None:
         return f'--duration must be in (0, 3600] s, got {a.duration}'
     if not 0 < a.torque_limit <= 1.0:
         return f'--torque-limit must be in (0, 1] N·m, got {a.torque_limit}'
+    if not 1e-6 <= a.amplitude <= 100:
+        return f'--amplitude must be in [1e-6, 100], got {a.amplitude}'
+    if not 0 <= a.max_excursion <= 1000:
+        return f'--max-excursion is in mm, from 0 (off) to 1000, got {a.max_excursion}'
+    if not 0.05 <= a.level_target <= 1:
+        return (f'--level-target must be in [0.05, 1] (a fraction of --max-excursion), '
+                f'got {a.level_target}')
+    if a.level == 'auto':
+        if a.max_excursion <= 0:
+            return ('--level auto needs --max-excursion > 0 (it aims at --level-target × '
+                    '--max-excursion)')
+        if a.settle <= 0:
+            return '--level auto needs --settle > 0 (the rest pose the probes are measured from)'
+        if a.amplitude != 1.0:
+            return '--amplitude is chosen by --level auto; leave it out, or use --level fixed'
     if not -1 <= a.finger <= 3 or (a.scene == 'finger' and a.finger > 0):
         return f'--finger must be -1 (all) or 0..3 (0 in the finger scene), got {a.finger}'
     if not 0 <= a.noise <= 10:
@@ -92,7 +124,9 @@ def record_run(out: Path, signals: list[str], a: argparse.Namespace, seed: int, 
     bag, logs = out / signals[0], out / 'logs' / signals[0]
     names = [FINGER_NAMES[0]] if a.scene == 'finger' else list(FINGER_NAMES)
     excitation = {'signals': signals, 'settle_time': a.settle, 'torque_limit': a.torque_limit,
-                  'finger_names': names, 'finger': a.finger}
+                  'finger_names': names, 'finger': a.finger, 'amplitude': a.amplitude,
+                  'level': a.level, 'level_target': a.level_target,
+                  'max_excursion': a.max_excursion * 1e-3}
     if a.duration is not None:
         excitation['duration'] = a.duration
     if a.spec_file is not None:
