@@ -20,6 +20,7 @@ NODES = {
     'trajectory': 'soft_gripper_sdre.nodes.trajectory:main',
     'recorder': 'soft_gripper_sdre.nodes.recorder:main',
     'excitation': 'soft_gripper_sdre.nodes.excitation:main',
+    'plant_driver': 'soft_gripper_sdre.nodes.plant_driver:main',
 }
 
 setup(

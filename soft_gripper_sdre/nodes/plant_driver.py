@@ -1,0 +1,237 @@
+"""The plant driver node: a gripper of two foreign fingers served the way a lab's driver would.
+
+It stands in for a real robot's driver in front of the node graph (README, "Use with your own
+gripper"): the fingers are the planar plants of :mod:`soft_gripper_sdre.sim.foreign` (``plant``:
+``tendon3`` or ``stiff2``), and the loop runs on the wall clock, not in lockstep. A steady-clock
+timer ticks at ``rate``; each tick
+
+1. takes the newest command (zero-order hold): the efforts ``<finger>/ax0``, ``<finger>/ax1`` of
+   ``torque_commands``, clipped to ±``torque_limit``. A command received more than
+   ``command_timeout`` ago (wall time) is replaced by zero torque (``stale_ticks``), as is the
+   absence of any command (``idle_ticks``);
+2. advances both plants by the wall time elapsed since the previous tick, at most
+   :data:`MAX_STEP_PERIODS` periods (a longer stall is not made up; ``late_ticks`` counts ticks
+   more than 1.5 periods after the previous one);
+3. measures the tips at wall time t_m (``time.time_ns()``) and stamps them t_m + δ, δ uniform in
+   ±``stamp_jitter``: ``tip_positions`` carries the tips plus Gaussian noise of ``noise_std``
+   per axis, published with the sensor-data QoS (best effort: a reliable reader does not match
+   it; the estimator takes it with ``tips_reliability:=best_effort``), and ``drop_fraction`` of
+   these messages are not published (``dropped``), at random; ``true_tip_positions`` carries
+   the noise-free tips of every tick with the same stamps (reliable), for scoring.
+
+Pose i is finger i's tip (x, y, 0) in its base frame (sim/foreign.py: X down the hanging finger,
+Y toward the palm). Nothing publishes /clock: every stamp is wall time.
+
+Commands are never trusted: one that does not decode (unknown, missing or duplicate names,
+sizes) is counted (``bad_commands``) with a throttled warning and the previous command stays in
+force; one with a NaN or Inf effort is counted (``nonfinite_commands``) and zero torque is
+applied. /diagnostics (1 Hz) carries these counters and ``ticks``, ``published``,
+``commands``, ``clipped_commands``, the plant time, the command's age and the tick intervals.
+The node stops at ``duration`` of wall time (exit 0) or on SIGINT / SIGTERM.
+"""
+from __future__ import annotations
+
+import math
+import time
+
+from geometry_msgs.msg import PoseArray
+import numpy as np
+from rclpy.clock import Clock, ClockType
+from rclpy.node import Node
+from rclpy.qos import qos_profile_sensor_data
+from rclpy.serialization import deserialize_message
+from sensor_msgs.msg import JointState
+
+from soft_gripper_sdre.nodes import cdr, conversions as cv
+from soft_gripper_sdre.nodes.common import OK, WARN, Diagnostics, LatencyWindow, run
+from soft_gripper_sdre.nodes.params import (Param, ParameterError, declare_all,
+                                            on_runtime_change)
+from soft_gripper_sdre.nodes.topics import LOOP_QOS, NEWEST_QOS, TIP_POSITIONS, TORQUE_COMMANDS
+from soft_gripper_sdre.sim.foreign import PAIRS, plant_pair
+
+#: the noise-free tips, for scoring (same type and stamps as tip_positions)
+TRUE_TIP_POSITIONS = 'true_tip_positions'
+#: the longest advance of the plants in one tick, in periods: a stall beyond it is not made up
+MAX_STEP_PERIODS = 4
+#: a tick more than this many periods after the previous one is late
+LATE_PERIODS = 1.5
+#: the fingers of each plant
+N_FINGERS = 2
+
+
+def _two_names(names) -> str | None:
+    why = cv.finger_names_problem(names)
+    if why is None and len(names) != N_FINGERS:
+        why = f'the plant has {N_FINGERS} fingers: give {N_FINGERS} names, got {len(names)}'
+    return why
+
+
+PARAMS = (
+    Param('plant', 'tendon3', 'the gripper, from sim/foreign.py: tendon3 (an index and a thumb, '
+          'soft three-link tendon fingers) or stiff2 (two fast two-link fingers)',
+          choices=tuple(PAIRS), read_only=True),
+    Param('finger_names', ['index', 'thumb'], 'the fingers in message order (pose i of the tips, '
+          'torque_commands <finger>/ax0|ax1); two names, each a ROS name token', rule=_two_names,
+          read_only=True),
+    Param('rate', 200.0, 'ticks per second: plants advanced, tips measured and published', 'Hz',
+          100.0, 1000.0, read_only=True),
+    Param('stamp_jitter', 4e-4, 'each tip_positions stamp is the measurement time plus a uniform '
+          'offset in ±stamp_jitter; less than half a period, so stamps keep their order', 's',
+          0.0, 0.005, read_only=True),
+    Param('drop_fraction', 0.01, 'fraction of tip_positions messages not published, at random',
+          '', 0.0, 0.5, read_only=True),
+    Param('noise_std', 5e-5, 'Gaussian noise on each measured tip coordinate', 'm', 0.0, 0.01,
+          read_only=True),
+    Param('seed', 0, 'seed of the noise, the jitter and the drops', '', 0, 2**31 - 1,
+          read_only=True),
+    Param('torque_limit', 0.0, "commands are clipped to ±torque_limit; 0 = each finger's "
+          'actuator limit (tendon3 0.02, stiff2 0.25 N·m), which also caps a larger value',
+          'N·m', 0.0, 1.0, read_only=True),
+    Param('duration', 0.0, 'stop after this much wall time and exit (0 = run until shut down)',
+          's', 0.0, 1e6, read_only=True),
+    Param('command_timeout', 0.05, 'a command received longer ago than this (wall time) is '
+          'replaced by zero torque', 's', 1e-3, 10.0),
+)
+
+
+class PlantDriverNode(Node):
+    """Two foreign fingers on a wall-clock loop, served like a robot driver (see module doc)."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__('plant_driver', **kwargs)
+        p = declare_all(self, PARAMS)
+        self.p = p
+        self.period = 1.0 / p['rate']
+        if p['stamp_jitter'] >= 0.5 * self.period:
+            raise ParameterError(f"parameter 'stamp_jitter': {p['stamp_jitter']:g} s must be less "
+                                 f"than half the period ({0.5 * self.period:g} s at rate "
+                                 f"{p['rate']:g} Hz), or stamps could go back")
+        on_runtime_change(self, PARAMS, apply=self.p.update)
+        self.names = tuple(p['finger_names'])
+        self.plants = plant_pair(p['plant'])
+        limits = np.array([f.params.torque_limit for f in self.plants])
+        self.limit = np.minimum(limits, p['torque_limit']) if p['torque_limit'] > 0 else limits
+        self.rng = np.random.default_rng(p['seed'])
+        #: the command in force (n, 2) [N·m] and its receipt (monotonic s; None: none yet)
+        self.command = np.zeros((N_FINGERS, 2))
+        self.command_received: float | None = None
+        #: the torque of the last tick (n, 2) [N·m]
+        self.applied = np.zeros((N_FINGERS, 2))
+        self.plant_time = 0.0
+        self.done = False
+        self._last_stamp = 0
+        self._intervals = LatencyWindow(2000)
+
+        self.cdr_tips = cdr.tips_codec(self.names)
+        self.cdr_cmd = cdr.torques_codec(self.names)
+        self.pub_tips = self.create_publisher(PoseArray, TIP_POSITIONS, qos_profile_sensor_data)
+        self.pub_truth = self.create_publisher(PoseArray, TRUE_TIP_POSITIONS, LOOP_QOS)
+        self.sub_cmd = self.create_subscription(JointState, TORQUE_COMMANDS, self.on_command,
+                                                NEWEST_QOS, raw=True)
+        self.diag = Diagnostics(self, hardware_id=f'plant_driver/{p["plant"]}')
+        cdr.watch(self.diag, self.cdr_cmd)
+        self.diag.before_publish.append(self._refresh_diagnostics)
+        self.diag.values['plant'] = p['plant']
+        steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self._started = self._last_tick = time.monotonic()
+        self._timer = self.create_timer(self.period, self._tick, clock=steady)
+        freqs = ', '.join(f'{f.params.name} {f.natural_frequencies()[0]:.1f} Hz'
+                          for f in self.plants)
+        self.get_logger().info(
+            f'driving {p["plant"]} ({freqs}) as {", ".join(self.names)} at {p["rate"]:g} Hz '
+            f'on the wall clock; torque limit {", ".join(f"{x:g}" for x in self.limit)} N·m')
+
+    # -- commands ----------------------------------------------------------------------------
+    def on_command(self, data: bytes) -> None:
+        self.diag.count('commands')
+        try:
+            _stamp, u = self.cdr_cmd.decode(data)
+        except cv.MessageError as exc:
+            if _has_nonfinite_effort(data):
+                self._take(np.zeros((N_FINGERS, 2)))
+                self.diag.problem('nonfinite_commands', f'torque_commands with NaN or Inf: '
+                                  f'zero torque ({exc})')
+            else:
+                self.diag.problem('bad_commands', f'rejected: {exc}; the previous command '
+                                  'stays in force')
+            return
+        clipped = np.clip(u, -self.limit[:, None], self.limit[:, None])
+        if np.any(clipped != u):
+            self.diag.count('clipped_commands')
+        self._take(clipped)
+
+    def _take(self, u: np.ndarray) -> None:
+        self.command = u
+        self.command_received = time.monotonic()
+
+    def _torque(self, now: float) -> np.ndarray:
+        """The torque to hold over this tick: the command, or zero if none or stale."""
+        if self.command_received is None:
+            self.diag.count('idle_ticks')
+            return np.zeros((N_FINGERS, 2))
+        if now - self.command_received > self.p['command_timeout']:
+            self.diag.count('stale_ticks')
+            if self.diag.level == OK:
+                self.diag.set_status(WARN, 'torque_commands stale: zero torque')
+            return np.zeros((N_FINGERS, 2))
+        if self.diag.level == WARN and self.diag.message.startswith('torque_commands stale'):
+            self.diag.set_status(OK, 'driving')
+        return self.command
+
+    # -- the loop ----------------------------------------------------------------------------
+    def _tick(self) -> None:
+        now = time.monotonic()
+        elapsed = now - self._last_tick
+        self._last_tick = now
+        self._intervals.add(elapsed)
+        if elapsed > LATE_PERIODS * self.period:
+            self.diag.count('late_ticks')
+        dt = min(elapsed, MAX_STEP_PERIODS * self.period)
+        self.applied = self._torque(now)
+        for plant, u in zip(self.plants, self.applied):
+            plant.step(u, dt)
+        self.plant_time += dt
+        jitter = self.rng.uniform(-1.0, 1.0) * self.p['stamp_jitter']
+        stamp = time.time_ns() + int(round(jitter * 1e9))      # the measurement's wall time
+        stamp = max(stamp, self._last_stamp + 1)   # a tick that catches up after a stall is early
+        self._last_stamp = stamp
+        self.diag.count('ticks')
+        truth = np.zeros((N_FINGERS, 3))
+        truth[:, :2] = [plant.tip() for plant in self.plants]
+        self.pub_truth.publish(self.cdr_tips.encode(stamp, truth))
+        measured = truth.copy()
+        measured[:, :2] += self.rng.normal(0.0, self.p['noise_std'], (N_FINGERS, 2))
+        if self.rng.random() < self.p['drop_fraction']:
+            self.diag.count('dropped')
+        else:
+            self.pub_tips.publish(self.cdr_tips.encode(stamp, measured))
+            self.diag.count('published')
+        if self.p['duration'] > 0 and now - self._started >= self.p['duration']:
+            self._timer.cancel()
+            self.done = True
+            self.get_logger().info(f'duration reached after {self.diag.counters["ticks"]} ticks; '
+                                   'stopping')
+
+    def _refresh_diagnostics(self) -> None:
+        self.diag.values['plant_time'] = f'{self.plant_time:.3f}'
+        if self.command_received is not None:
+            age = time.monotonic() - self.command_received
+            self.diag.values['command_age_ms'] = f'{1e3 * age:.1f}'
+        self.diag.values.update(self._intervals.summary('tick_interval_us'))
+
+
+def _has_nonfinite_effort(data: bytes) -> bool:
+    """Whether ``data`` is a JointState whose efforts hold a NaN or Inf."""
+    try:
+        msg = deserialize_message(data, JointState)
+    except Exception:       # rclpy's RMWError: not CDR of a JointState at all
+        return False
+    return not all(math.isfinite(e) for e in msg.effort)
+
+
+def main(args=None) -> int:
+    return run(PlantDriverNode, args)
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())
