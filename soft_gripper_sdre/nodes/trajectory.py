@@ -19,9 +19,10 @@ the grasp's end, where the fingers are back at rest: header stamp = the origin,
 so its plan starts at 0.
 
 A ``/clock`` stamp more than ``reset_on_jump`` behind the newest one means the simulator
-restarted: the node takes a new rest pose, and with it a new origin, from the next tip message
-(or, with ``rest_pose``, publishes its plan again), since the controller forgets a plan made for
-the old run. A ``start_at`` that was given stays. Malformed tip or clock messages (wrong number of
+restarted: the node takes a new rest pose from the next tip message, and a new origin: the time
+/clock jumped back to, the new run's start (the tip subscription, made again only now, misses the
+new run's first tips). With ``rest_pose`` it publishes its plan again. The controller forgets a
+plan made for the old run. A ``start_at`` that was given stays. Malformed tip or clock messages (wrong number of
 poses, NaN/Inf) are rejected with a throttled warning and counted.
 
 A node restarted mid-run (after a crash) must not take the tips it first sees as the rest pose
@@ -189,6 +190,7 @@ class TrajectoryNode(Node):
         self.fixed_start = _start_at(p['start_at'])
         self.tips_qos = with_reliability(LOOP_QOS, p['tips_reliability'])
         self.origin_ns: int | None = None       # the plan's origin, once planned
+        self.run_start: int | None = None       # where /clock jumped back to (a new run's start)
         on_runtime_change(self, PARAMS, apply=self._apply)
 
         self.traj: GraspTrajectory | None = None
@@ -228,7 +230,9 @@ class TrajectoryNode(Node):
             self.diag.problem('bad_message', f'rejected: {exc}')
             return
         self.diag.count('tips')
-        origin = stamp if self.fixed_start is None else self.fixed_start
+        origin = self.fixed_start
+        if origin is None:
+            origin = stamp if self.run_start is None else min(self.run_start, stamp)
         if stamp > origin + int(self.profile.t_start * cv.NS):
             self.diag.problem('late_start', f'first tip_positions at t = {format_time(stamp)} s, '
                               f'after the grasp began (start_at {format_time(origin)} s + '
@@ -251,7 +255,7 @@ class TrajectoryNode(Node):
         self.diag.problem('resets', f'/clock jumped back from {self.clock_ns / cv.NS:.4f} s to '
                           f'{stamp / cv.NS:.4f} s: a restarted simulator; '
                           + ('planning again' if self.fixed_rest is not None else 'taking a new rest pose'))
-        self.clock_ns = stamp
+        self.clock_ns = self.run_start = stamp
         if self.fixed_rest is not None:
             self._plan(self.fixed_rest, 'given', self._given_origin())
         else:
