@@ -22,8 +22,8 @@ A ``/clock`` stamp more than ``reset_on_jump`` behind the newest one means the s
 restarted: the node takes a new rest pose from the next tip message, and a new origin: the time
 /clock jumped back to, the new run's start (the tip subscription, made again only now, misses the
 new run's first tips). With ``rest_pose`` it publishes its plan again. The controller forgets a
-plan made for the old run. A ``start_at`` that was given stays. Malformed tip or clock messages (wrong number of
-poses, NaN/Inf) are rejected with a throttled warning and counted.
+plan made for the old run. A ``start_at`` that was given stays. Malformed tip or clock messages
+(wrong number of poses, NaN/Inf) are rejected with a throttled warning and counted.
 
 A node restarted mid-run (after a crash) must not take the tips it first sees as the rest pose
 and their stamp as the start: the fingers are wherever the grasp left them. Pass the values the
