@@ -92,8 +92,9 @@ def main(argv: list[str] | None = None) -> int:
     bags.add_argument('--finger', type=int, default=None,
                       help='learn from this finger only (default: every finger that was excited)')
     bags.add_argument('--meas-std', type=float, default=None,
-                      help='tip measurement noise σ [m] for the KF/RTS (default: estimated from the '
-                           'settle phase at zero torque, 0 without one)')
+                      help='tip measurement noise σ [m] for the KF/RTS and the derived estimator '
+                           '(default: estimated from the settle phase at zero torque; a bag '
+                           'without one is refused)')
     bags.add_argument('--min-duration', type=float, default=1.0,
                       help='refuse a bag with less commanded time than this [s] (default %(default)s)')
     parser.add_argument('--preset', choices=sorted(PRESETS), default='default')

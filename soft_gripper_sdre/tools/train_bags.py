@@ -24,11 +24,13 @@ import tempfile
 
 import numpy as np
 from tqdm import tqdm
+import yaml
 
 from soft_gripper_sdre import FINGER_NAMES
 from soft_gripper_sdre.analysis.bag_dataset import (DEFAULT_GAP_PERIODS, BagDataError, FingerSamples, Recording,
                                                     excited_fingers, label_finger, read_recording,
-                                                    settle_estimates, tip_stretches)
+                                                    settle_estimates, settle_noise, tip_stretches)
+from soft_gripper_sdre.analysis import loop_settings, model_fitness
 from soft_gripper_sdre.analysis.metrics import r2_score
 from soft_gripper_sdre.analysis.plots import plot_accel, plot_loss
 from soft_gripper_sdre.learning import derivatives
@@ -39,6 +41,8 @@ from soft_gripper_sdre.learning.training import TrainSettings, fingerprint, save
 TUNE_SAMPLES = 2000
 JERK_GRID = np.logspace(1, 7, 7)
 OUTPUTS = ('model.pt', 'metrics.json', 'fig2_loss.png', 'fig3_accel_val.png')
+#: written only for a model fit to control whose settings passed their closed-loop check
+PARAMS_FILE = 'params.yaml'
 
 
 def expand_bag_paths(paths: list[Path]) -> list[Path]:
@@ -106,14 +110,15 @@ def label_bags(loaded: list[tuple[Recording, list[int]]], jerk: float, meas_std:
                gap_periods: float = DEFAULT_GAP_PERIODS) -> tuple[list[FingerSamples], list[dict], np.ndarray]:
     """Samples of every (bag, finger), the provenance of each bag, and the first rest tip (3,).
 
-    ``meas_std`` None: each finger's noise level from its settle phase (0 when it has none)."""
+    ``meas_std`` None: each finger's noise level from its settle phase (a bag without one is
+    refused, :func:`~soft_gripper_sdre.analysis.bag_dataset.settle_noise`)."""
     samples, provenance, first_rest = [], [], None
     for rec, fingers in loaded:
         info = rec.describe()
         info['fingers'] = {}
         for f in fingers:
-            rest, sigma, n_settle = settle_estimates(rec, f)
-            used = meas_std if meas_std is not None else (sigma or 0.0)
+            rest, sigma, n_settle = (settle_estimates if meas_std is not None else settle_noise)(rec, f)
+            used = meas_std if meas_std is not None else sigma
             got = label_finger(rec, f, jerk, used, rest, gap_periods)
             samples += got
             first_rest = rest if first_rest is None else first_rest
@@ -129,10 +134,51 @@ def _stack(samples: list[FingerSamples]) -> tuple[np.ndarray, ...]:
     return tuple(np.concatenate([getattr(s, k) for s in samples]) for k in ('t', 'x', 'u', 'acc'))
 
 
+def validation_segments(samples: list[FingerSamples]) -> list[tuple[np.ndarray, ...]]:
+    """(t, x, u) of every validation stretch, cut where samples were left out (a hole in the
+    grid), for the free-run check."""
+    out = []
+    for smp in samples:
+        d = np.diff(smp.t)
+        cuts = np.flatnonzero(d > 1.5 * np.median(d)) + 1
+        for a, b in zip([0, *cuts.tolist()], [*cuts.tolist(), len(smp.t)]):
+            if b - a >= 2:
+                out.append((smp.t[a:b], smp.x[a:b], smp.u[a:b]))
+    return out
+
+
+def tuning_stretch(rec: Recording, finger: int) -> tuple[np.ndarray, np.ndarray]:
+    """(t [s], tips (N, 2)) of the start of ``rec``'s first stretch, to tune the estimator on."""
+    stretch = tip_stretches(rec)[0]
+    ns = rec.tip_ns[stretch][:TUNE_SAMPLES]
+    return (ns - ns[0]) / 1e9, rec.tips[stretch, finger, :2][:TUNE_SAMPLES]
+
+
+def params_yaml(derived: loop_settings.LoopSettings, model_path: Path, finger_names: list[str],
+                source: str) -> str:
+    """The parameter file of the estimator and the controller for ``derived`` settings."""
+    from soft_gripper_sdre.nodes.params import params_file_key
+    est = {'finger_names': finger_names, 'control_period': derived.control_period,
+           'meas_std': derived.meas_std, 'accel_psd': derived.accel_psd}
+    ctrl = {'model_path': str(model_path.resolve()), 'finger_names': finger_names,
+            'control_period': derived.control_period, 'q_pos': derived.q_pos,
+            'q_vel': derived.q_vel, 'r': derived.r, 'torque_limit': derived.torque_limit,
+            'torque_lowpass_hz': derived.torque_lowpass_hz,
+            'integral_gain': derived.integral_gain, 'integral_band': derived.integral_band,
+            'pd_kp': derived.pd_kp, 'pd_kd': derived.pd_kd}
+    body = {params_file_key('estimator'): {'ros__parameters': _plain(est)},
+            params_file_key('controller'): {'ros__parameters': _plain(ctrl)}}
+    head = (f'# Estimator and controller settings derived from {source} by tools.train\n'
+            f'# (closed-loop bandwidth {derived.bandwidth_hz:g} Hz; how they are derived and checked:\n'
+            '# docs/own_gripper.md). Use: --ros-args --params-file <this file>\n')
+    return head + yaml.safe_dump(body, sort_keys=False)
+
+
 def train_from_bags(train_paths: list[Path], val_paths: list[Path], out: Path, settings: TrainSettings, *,
                     tips_topic: str, torques_topic: str, min_duration: float, finger: int | None,
                     meas_std: float | None, jerk_psd: float | None) -> dict:
-    """Read, label, train, validate and write (module doc); returns the metrics.
+    """Read, label, train, validate, judge, derive the loop's settings and write (module doc);
+    returns the metrics.
 
     Raises:
         BagDataError: a bag cannot be used (before anything is written).
@@ -140,9 +186,8 @@ def train_from_bags(train_paths: list[Path], val_paths: list[Path], out: Path, s
     train_set = load_bags(train_paths, tips_topic, torques_topic, min_duration, finger)
     val_set = load_bags(val_paths, tips_topic, torques_topic, min_duration, finger)
     rec0, fingers0 = train_set[0]
-    rest0, sigma0, _ = settle_estimates(rec0, fingers0[0])
-    jerk = jerk_psd if jerk_psd is not None else tune_jerk(
-        rec0, fingers0[0], meas_std if meas_std is not None else (sigma0 or 0.0))
+    noise = meas_std if meas_std is not None else settle_noise(rec0, fingers0[0])[1]
+    jerk = jerk_psd if jerk_psd is not None else tune_jerk(rec0, fingers0[0], noise)
     print(f'KF/RTS white-jerk intensity q = {jerk:g} (m/s³)²/Hz')
     samples, provenance, rest_tip = label_bags(tqdm(train_set, desc='bags: KF + RTS', unit='bag'), jerk, meas_std)
     val_samples, val_provenance, _ = label_bags(val_set, jerk, meas_std)
@@ -161,8 +206,9 @@ def train_from_bags(train_paths: list[Path], val_paths: list[Path], out: Path, s
                  'bags': provenance, 'validation_bags': val_provenance,
                  'train_samples': int(len(x)), 'validation_samples': int(len(x_val)),
                  'fingerprint': fingerprint(x, u, acc), 'jerk_psd': float(jerk),
-                 'noise_std': float(meas_std if meas_std is not None else (sigma0 or 0.0))}
+                 'noise_std': float(noise)}
     dt = float(np.median(np.diff(rec0.tip_ns)) / 1e9)
+    finger_names = list(rec0.finger_names)
     staging = Path(tempfile.mkdtemp(prefix=f'.{out.name}.partial-', dir=out.parent))
     try:
         ckpt = save_checkpoint(staging / 'model.pt', result, rest_tip=rest_tip, dt=dt, settings=settings,
@@ -173,6 +219,13 @@ def train_from_bags(train_paths: list[Path], val_paths: list[Path], out: Path, s
         coef, *_ = np.linalg.lstsq(poly_features(x, u), acc, rcond=None)
         r2_ls = r2_score(acc_val, poly_features(x_val, u_val) @ coef).tolist()
         G2 = model.AG(np.zeros(4))[1][0, 2:, :]
+        fitness = model_fitness.judge(model, validation_segments(val_samples))
+        derived = None
+        if fitness.fit:
+            facts = loop_settings.data_facts(model, x[:, :2], u, dt, noise,
+                                             tuning_stretch(rec0, fingers0[0]))
+            derived = loop_settings.derive(model, facts, progress=lambda text: print(
+                f'  closed-loop check on the model: {text}', flush=True))
         metrics = {
             'source': 'rosbag2', 'preset': settings.preset, 'seed': settings.seed,
             'epochs_run': len(result.train_loss), 'best_epoch': result.best_epoch,
@@ -182,6 +235,8 @@ def train_from_bags(train_paths: list[Path], val_paths: list[Path], out: Path, s
             'G2_column_angles_deg': [float(np.degrees(np.arctan2(G2[1, j], G2[0, j]))) for j in range(2)],
             'final_train_loss': result.train_loss[-1], 'best_val_loss': min(result.val_loss),
             'train_samples': int(len(x)), 'validation_samples': int(len(x_val)),
+            'noise_std': noise, 'fitness': _plain(fitness.summary()),
+            'derived_settings': _plain(derived.summary()) if derived is not None else None,
         }
         save_checkpoint(ckpt, result, rest_tip=rest_tip, dt=dt, settings=settings, data=data_info, metrics=metrics)
         (staging / 'metrics.json').write_text(json.dumps(metrics, indent=2))
@@ -189,8 +244,15 @@ def train_from_bags(train_paths: list[Path], val_paths: list[Path], out: Path, s
                   title=f'Training loss from bags, {settings.preset} preset')
         plot_accel(t_val, acc_val, pred, staging / 'fig3_accel_val.png', r2=r2,
                    title='validation bags: predicted (dashed) vs KF + RTS labels (solid)')
+        outputs = list(OUTPUTS)
+        if derived is not None and derived.settings is not None:
+            (staging / PARAMS_FILE).write_text(params_yaml(
+                derived.settings, out / 'model.pt', finger_names,
+                ', '.join(str(p) for p in train_paths)))
+            outputs.append(PARAMS_FILE)
         out.mkdir(parents=True, exist_ok=True)
-        for name in OUTPUTS:
+        (out / PARAMS_FILE).unlink(missing_ok=True)      # never a file from another model beside this one
+        for name in outputs:
             os.replace(staging / name, out / name)
     finally:
         shutil.rmtree(staging, ignore_errors=True)
@@ -199,4 +261,31 @@ def train_from_bags(train_paths: list[Path], val_paths: list[Path], out: Path, s
     print(f'G2 at the origin [m/s² per N·m]: {np.round(G2, 1).tolist()}')
     print(f'training: {len(result.train_loss)} epochs on {len(x)} samples from {len(provenance)} bag(s) '
           f'in {result.seconds:.1f} s; wrote {out}')
+    report_fitness(fitness, derived, out)
     return metrics
+
+
+def report_fitness(fitness: model_fitness.Fitness, derived, out: Path) -> None:
+    """Say plainly whether the model is fit to control and what was written for the loop."""
+    rest, run = fitness.rest, fitness.free_run
+    print(f'rest: A(0) eigenvalues with real parts up to {rest.max_real:+.3g} 1/s '
+          f'(modes {", ".join(f"{hz:.2f}" for hz in rest.natural_hz) or "none"} Hz); '
+          f'free run over {run.window_s:g} s windows: {1e3 * run.rmse_m:.3f} mm, '
+          f'{100 * run.relative:.0f} % of the validation motion')
+    if not fitness.fit:
+        print('THE MODEL IS NOT FIT TO CONTROL: ' + '; '.join(fitness.reasons) + '.\n'
+              f'  {PARAMS_FILE} was not written. Record longer or richer excitation (docs/own_gripper.md),'
+              ' check the settle phase and the noise level, then train again.')
+        return
+    if derived is None or derived.settings is None:
+        print(f'no controller setting passed the closed-loop check on the model; {PARAMS_FILE} was not '
+              'written (docs/own_gripper.md)')
+        return
+    d = derived.settings
+    checks = ', '.join(f'{law} {100 * c.rmse_rel:.2f} %' for law, c in derived.checks.items())
+    print(f'model fit to control. {out / PARAMS_FILE}: control_period {d.control_period:g} s, '
+          f'meas_std {d.meas_std:.3g} m, accel_psd {d.accel_psd:.3g}, bandwidth {d.bandwidth_hz:g} Hz '
+          f'(q_pos {d.q_pos:.3g}, r {d.r:.3g}), torque_limit {d.torque_limit:.3g} N·m, '
+          f'roll-off {d.torque_lowpass_hz:g} Hz, integral {d.integral_gain:.3g} / '
+          f'{1e3 * d.integral_band:.2f} mm; closed loop on the model, error / travel '
+          f'{1e3 * abs(derived.facts.travel):.1f} mm: {checks}')

@@ -1,0 +1,299 @@
+"""Estimator and controller settings derived from a finger's own data, checked in closed loop.
+
+The shipped parameters were tuned on the package's own finger at 1 kHz. A finger that is stiffer,
+softer, slower, noisier or sampled at another rate needs others, and everything they depend on
+is in the identification data and the model learned from it:
+
+=================  ==================================================================
+setting            from
+=================  ==================================================================
+control_period     the median tip period of the recordings
+meas_std           the measurement noise σ of the settle phase
+accel_psd          the estimator's white-acceleration intensity, picked in the check
+                   among fractions of the value that best explains the recorded tips
+torque_limit       the largest torque of the excitation (the model knows nothing beyond)
+q_pos, r           a closed-loop bandwidth f_c through the learned input map at rest:
+                   for ẍ ≈ G₂u, LQR places each direction i at ω_i = (q_pos s_i² / r)^¼
+                   (s_i the singular values of G₂(0)), so with r = 1/u_max² the weights
+                   q_pos = r ω_c⁴ / (s₁ s₂) put their geometric mean at ω_c = 2π f_c
+torque_lowpass_hz  :data:`ROLL_OFF_RATIO` · f_c (capped at a tenth of the rate by the law)
+integral_gain      k_i = ω_c³ / :data:`INTEGRAL_DIVISOR`, the integral corner a decade
+                   under the loop's; band :data:`BAND_TRAVEL` of the travel (≥ 10 σ)
+pd_kp, pd_kd       ω_c² and 2 ζ ω_c with ζ = :data:`PD_DAMPING`, for ``pd``
+=================  ==================================================================
+
+The bandwidth and the estimator's intensity are chosen by simulation (:func:`derive`): each
+candidate runs the default law on the learned model itself, with the measured noise on the
+tips, the estimator in the loop and the command applied one period late (a driver that applies
+the newest command at its next tick), along a move of the travel the data reached
+(:func:`check_move`). A candidate is kept when it does not diverge, never saturates while the
+finger is held at rest, and still tracks when the model's input gain is off by the factors in
+:data:`GAIN_ERRORS` (the real finger is not the model); among those, the lowest error wins, and
+then the next lower bandwidth when it tracks within :data:`PREFER_SLOWER` of it, for margin
+against what the model does not know.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+import math
+
+import numpy as np
+
+from soft_gripper_sdre.analysis import model_fitness
+from soft_gripper_sdre.analysis.model_fitness import rk4_step
+from soft_gripper_sdre.control.kf import ConstantVelocityKF, cv_matrices
+from soft_gripper_sdre.control.laws import make_law
+from soft_gripper_sdre.control.tracking import Weights
+from soft_gripper_sdre.control.trajectory import GraspProfile, GraspTrajectory
+
+#: closed-loop bandwidths tried [Hz], kept below a :data:`RATE_FRACTION` of the sampling rate
+BANDWIDTHS_HZ = (0.5, 1.0, 2.0, 4.0, 8.0, 16.0, 32.0)
+RATE_FRACTION = 1 / 20
+#: estimator intensities tried, as fractions of the likelihood-best one
+ACCEL_PSD_FRACTIONS = (1.0, 0.1, 0.01)
+ROLL_OFF_RATIO = 4.0
+INTEGRAL_DIVISOR = 10.0
+BAND_TRAVEL = 0.1
+PD_DAMPING = 0.7
+#: the model's input gain off by these factors in the robustness runs
+GAIN_ERRORS = (0.5, 2.0)
+#: a candidate is kept when its error (share of the travel) is at most this on the model, and at
+#: most the second with the input gain off (stability with margin: the feedforward is then off
+#: by as much, which the feedback corrects only over the move)
+KEEP_NOMINAL = 0.05
+KEEP_ROBUST = 0.5
+PREFER_SLOWER = 1.5
+#: the check's move: travel as a share of the 95th percentile of the data's reach, and timing
+TRAVEL_SHARE = 0.8
+CHECK_PROFILE = dict(t_start=0.3, t_close=1.0, t_hold=0.5, t_open=1.0)
+#: the model is integrated in RK4 steps of at most this [s]
+MAX_STEP = 2.5e-3
+
+
+@dataclass(frozen=True)
+class DataFacts:
+    """What the recordings say about the finger (SI)."""
+
+    period: float                 # median tip period [s]
+    noise_std: float              # measurement σ [m]
+    travel: float                 # signed move along Y the check makes [m]
+    torque_limit: float           # largest |torque| the finger was excited with [N·m]
+    accel_psd_ml: float           # the CV model's likelihood-best intensity [(m/s²)²/Hz]
+
+
+@dataclass(frozen=True)
+class LoopSettings:
+    """The estimator's and the controller's parameters (the nodes' names and units)."""
+
+    control_period: float
+    meas_std: float
+    accel_psd: float
+    q_pos: float
+    q_vel: float
+    r: float
+    torque_limit: float
+    torque_lowpass_hz: float
+    integral_gain: float
+    integral_band: float
+    pd_kp: float
+    pd_kd: float
+    bandwidth_hz: float
+
+    def weights(self) -> Weights:
+        return Weights(self.q_pos, self.q_vel, self.r)
+
+
+@dataclass
+class CheckResult:
+    """One closed-loop run on the learned model."""
+
+    law: str
+    rmse_rel: float               # RMSE of the true tip / travel (inf when it diverged)
+    rest_saturated: float         # share of periods at the limit while held at rest
+    rest_torque: float            # largest |u| / limit while held at rest
+    saturated: float              # share of periods at the limit over the whole run
+    diverged: bool
+
+    @property
+    def ok(self) -> bool:
+        return not self.diverged and self.rest_saturated == 0.0 and self.rest_torque < 0.5
+
+
+def settings_for(model, facts: DataFacts, bandwidth_hz: float, accel_psd: float) -> LoopSettings:
+    """The settings of one candidate (module doc's table)."""
+    s = np.linalg.svd(model.AG(np.zeros(4))[1][0, 2:, :], compute_uv=False)
+    w = 2 * math.pi * bandwidth_hz
+    r = 1.0 / facts.torque_limit ** 2
+    q_pos = r * w ** 4 / max(float(s[0] * s[1]), 1e-12)
+    band = max(BAND_TRAVEL * abs(facts.travel), 10 * facts.noise_std)
+    return LoopSettings(
+        control_period=facts.period, meas_std=max(facts.noise_std, 1e-7), accel_psd=accel_psd,
+        q_pos=q_pos, q_vel=0.0, r=r, torque_limit=facts.torque_limit,
+        torque_lowpass_hz=ROLL_OFF_RATIO * bandwidth_hz, integral_gain=w ** 3 / INTEGRAL_DIVISOR,
+        integral_band=band, pd_kp=w ** 2, pd_kd=2 * PD_DAMPING * w, bandwidth_hz=bandwidth_hz)
+
+
+class _GainError:
+    """The learned model with its input map scaled: ẋ = A(x)x + k G(x)u (a robustness plant)."""
+
+    def __init__(self, model, k: float) -> None:
+        self.model, self.k = model, k
+
+    def xdot(self, x, u):
+        return model_fitness.xdot(self.model, x, self.k * np.asarray(u))
+
+
+def check_move(facts: DataFacts) -> GraspTrajectory:
+    """The check's reference for one finger at the model's rest: a raised-cosine move of
+    ``facts.travel`` along Y, held, and back (:data:`CHECK_PROFILE`)."""
+    profile = GraspProfile(close_distance=facts.travel, grasp_fingers=(0,), others='hold',
+                           contact_distance=facts.travel, **CHECK_PROFILE)
+    return GraspTrajectory(np.zeros((1, 2)), profile)
+
+
+def check_on_model(model, settings: LoopSettings, facts: DataFacts, law: str = 'sdre_ff',
+                   gain_error: float = 1.0, seed: int = 0, delay: int = 1) -> CheckResult:
+    """Run ``law`` with ``settings`` on the learned model as the plant (module doc): measured
+    noise, the estimator, the command ``delay`` periods late, along :func:`check_move`."""
+    dt = settings.control_period
+    traj = check_move(facts)
+    steps = int(round(traj.profile.duration / dt)) + 1
+    t = np.arange(steps) * dt
+    ref = traj.sample(t)
+    rest = model.rest_tip[:2]
+    options = {}
+    if law == 'sdre_ff':
+        options = dict(integral_gain=settings.integral_gain, integral_band=settings.integral_band)
+    elif law in ('pd', 'computed_torque'):
+        options = dict(pd_gains=dict(kp=settings.pd_kp, kd=settings.pd_kd))
+    ctrl = make_law(law, model, settings.weights(), settings.torque_limit, n_fingers=1,
+                    lowpass_hz=settings.torque_lowpass_hz, dt=dt, **options)
+    kf = ConstantVelocityKF(dt, settings.accel_psd, settings.meas_std, n=1)
+    plant = model if gain_error == 1.0 else _GainError(model, gain_error)
+    rng = np.random.default_rng(seed)
+    x = np.zeros((1, 4))
+    pending = [np.zeros((1, 2))] * delay
+    pos = np.empty((steps, 2))
+    u_hist = np.empty((steps, 2))
+    sat = np.zeros(steps, dtype=bool)
+    bound = 20 * abs(facts.travel) + 0.01
+    substeps = math.ceil(dt / MAX_STEP - 1e-9)
+    for k in range(steps):
+        z = rest + x[:, :2] + facts.noise_std * rng.standard_normal((1, 2))
+        xh = kf.step(z) if k else (kf.reset(z), kf.x.copy())[1]
+        out = ctrl.compute(xh[:, :2], xh[:, 2:], rest + ref.pos[k], ref.vel[k], ref_acc=ref.acc[k])
+        pending.append(out.u)
+        u = pending.pop(0)
+        for _ in range(substeps):
+            x = rk4_step(plant, x, u, dt / substeps)
+        pos[k], u_hist[k], sat[k] = x[0, :2], out.u[0], bool(np.any(out.saturated))
+        if not (np.all(np.isfinite(x)) and np.abs(x[0, :2]).max() < bound):
+            return CheckResult(law, math.inf, 1.0, math.inf, 1.0, True)
+    err = np.linalg.norm(pos - ref.pos[:, 0], axis=1)
+    at_rest = t < traj.profile.t_start
+    return CheckResult(law, float(np.sqrt(np.mean(err ** 2)) / abs(facts.travel)),
+                       float(sat[at_rest].mean()),
+                       float(np.abs(u_hist[at_rest]).max() / settings.torque_limit),
+                       float(sat.mean()), False)
+
+
+@dataclass
+class Derivation:
+    """The chosen settings, their checks, and every candidate tried."""
+
+    settings: LoopSettings | None
+    checks: dict                  # law → CheckResult of the chosen settings (nominal)
+    candidates: list[dict]
+    facts: DataFacts
+
+    def summary(self) -> dict:
+        return {'settings': asdict(self.settings) if self.settings else None,
+                'facts': asdict(self.facts),
+                'checks': {k: asdict(v) for k, v in self.checks.items()},
+                'candidates': self.candidates,
+                'rules': {'bandwidths_hz': list(BANDWIDTHS_HZ), 'gain_errors': list(GAIN_ERRORS),
+                          'keep_nominal': KEEP_NOMINAL, 'keep_robust': KEEP_ROBUST,
+                          'check_profile': CHECK_PROFILE, 'delay_periods': 1}}
+
+
+def derive(model, facts: DataFacts, laws: tuple[str, ...] = ('sdre_ff', 'sdre'),
+           progress=None) -> Derivation:
+    """Pick the bandwidth and the estimator's intensity by closed-loop runs on the model (module
+    doc); ``settings`` is None when no candidate passes. ``progress(text)`` hears each run."""
+    top = RATE_FRACTION / facts.period
+    rows, passed = [], []
+    for hz in [b for b in BANDWIDTHS_HZ if b <= top]:
+        for frac in ACCEL_PSD_FRACTIONS:
+            cand = settings_for(model, facts, hz, frac * facts.accel_psd_ml)
+            nominal = check_on_model(model, cand, facts)
+            rows.append({'bandwidth_hz': hz, 'accel_psd': cand.accel_psd, 'nominal': asdict(nominal)})
+            if nominal.ok and nominal.rmse_rel <= KEEP_NOMINAL:
+                passed.append((nominal.rmse_rel, hz, cand, rows[-1]))
+            if progress is not None:
+                progress(f'{hz:g} Hz, accel_psd {cand.accel_psd:.3g}: '
+                         + ('diverged' if nominal.diverged else
+                            f'{100 * nominal.rmse_rel:.2f} % of travel'))
+
+    def robust(entry) -> bool:
+        """The gain-error runs of a candidate (once; recorded in its row)."""
+        row = entry[3]
+        if 'robust' not in row:
+            runs = [check_on_model(model, entry[2], facts, gain_error=g) for g in GAIN_ERRORS]
+            row['robust'] = [asdict(r) for r in runs]
+            row['robust_ok'] = all(r.ok and r.rmse_rel <= KEEP_ROBUST for r in runs)
+        return row['robust_ok']
+
+    passed.sort(key=lambda c: (c[0], c[1]))
+    best = next((c for c in passed if robust(c)), None)
+    if best is None:
+        return Derivation(None, {}, rows, facts)
+    slower = [c for c in passed if c[1] < best[1] and c[0] <= PREFER_SLOWER * best[0]]
+    slower.sort(key=lambda c: (-c[1], c[0]))
+    chosen = next((c for c in slower if robust(c)), best)[2]
+    checks = {law: check_on_model(model, chosen, facts, law=law) for law in laws}
+    return Derivation(chosen, checks, rows, facts)
+
+
+# -- what the data say -----------------------------------------------------------------------
+
+def cv_loglik(t: np.ndarray, pos: np.ndarray, accel_psd: float, meas_std: float) -> float:
+    """Innovation log-likelihood of tips ``pos`` (N, 2) at times ``t`` under the estimator's
+    constant-velocity model (each axis on its own)."""
+    R = meas_std ** 2
+    ll = 0.0
+    for axis in range(pos.shape[1]):
+        x = np.array([pos[0, axis], 0.0])
+        P = np.diag([R, 1.0])
+        for k in range(1, len(t)):
+            F, Q = cv_matrices(t[k] - t[k - 1], accel_psd)
+            F, Q = F[np.ix_([0, 2], [0, 2])], Q[np.ix_([0, 2], [0, 2])]
+            x = F @ x
+            P = F @ P @ F.T + Q
+            S = P[0, 0] + R
+            v = pos[k, axis] - x[0]
+            ll -= 0.5 * (math.log(2 * math.pi * S) + v * v / S)
+            K = P[:, 0] / S
+            x = x + K * v
+            P = P - np.outer(K, P[0, :])
+    return ll
+
+
+def tune_accel_psd(t: np.ndarray, pos: np.ndarray, meas_std: float,
+                   grid: np.ndarray | None = None) -> float:
+    """The estimator's intensity that best explains the tips (:func:`cv_loglik` on a log grid)."""
+    grid = np.logspace(-3, 5, 17) if grid is None else grid
+    sigma = max(meas_std, 1e-7)
+    return float(max(grid, key=lambda q: cv_loglik(t, pos, q, sigma)))
+
+
+def data_facts(model, positions: np.ndarray, torques: np.ndarray, period: float,
+               noise_std: float, tune: tuple[np.ndarray, np.ndarray]) -> DataFacts:
+    """:class:`DataFacts` from the training samples: translated positions (N, 2), held torques
+    (N, 2), the tip period, the measured σ, and (t, tips) of a stretch to tune the estimator on."""
+    y = positions[:, 1]
+    up, down = np.percentile(y, 95), -np.percentile(y, 5)
+    travel = TRAVEL_SHARE * (up if up >= down else -down)
+    limit = float(np.percentile(np.abs(torques).max(axis=1), 99.9))
+    return DataFacts(period=float(period), noise_std=float(noise_std), travel=float(travel),
+                     torque_limit=limit, accel_psd_ml=tune_accel_psd(*tune, noise_std))
+

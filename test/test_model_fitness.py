@@ -1,0 +1,147 @@
+"""The model's fitness for control (analysis/model_fitness.py) and the loop settings derived from
+data (analysis/loop_settings.py): on SDC models of known structure and on the shipped model."""
+import math
+
+import numpy as np
+import pytest
+from scipy.linalg import solve_continuous_are
+
+from soft_gripper_sdre.analysis import loop_settings as ls
+from soft_gripper_sdre.analysis import model_fitness as mf
+from soft_gripper_sdre.learning.model import SDCModel
+
+
+class LinearModel:
+    """ẍ = −k p − c v + G₂ u: a constant SDC model (stable for k, c > 0)."""
+
+    rest_tip = np.array([0.0, 0.05, 0.0])
+
+    def __init__(self, k=400.0, c=4.0, g2=((300.0, 250.0), (-100.0, 200.0))):
+        self.k, self.c, self.g2 = k, c, np.asarray(g2, dtype=float)
+
+    def AG(self, x):
+        n = len(np.atleast_2d(x))
+        A = np.zeros((n, 4, 4))
+        A[:, 0, 2] = A[:, 1, 3] = 1.0
+        A[:, 2, 0] = A[:, 3, 1] = -self.k
+        A[:, 2, 2] = A[:, 3, 3] = -self.c
+        G = np.zeros((n, 4, 2))
+        G[:, 2:, :] = self.g2
+        return A, G
+
+
+class SofteningModel(LinearModel):
+    """Stable at rest, but the spring turns negative beyond |p| = 2 mm: an offset of 4 mm runs
+    away although A(0) is Hurwitz."""
+
+    def AG(self, x):
+        A, G = super().AG(x)
+        p = np.atleast_2d(x)[:, :2]
+        A[:, 2, 0] = -self.k * (1 - (p[:, 0] / 2e-3) ** 2)
+        A[:, 3, 1] = -self.k * (1 - (p[:, 1] / 2e-3) ** 2)
+        return A, G
+
+
+def _driven(model, seconds=4.0, dt=2e-3, seed=0):
+    """A validation segment (t, x, u) of ``model`` itself under a multisine."""
+    t = np.arange(int(seconds / dt)) * dt
+    u = 0.01 * np.stack([np.sin(2 * np.pi * 0.7 * t) + 0.5 * np.sin(2 * np.pi * 2.3 * t + 1),
+                         np.sin(2 * np.pi * 1.1 * t + 2)], axis=1)
+    x = mf.simulate(model, np.zeros((1, 4)), u[:, None, :], dt, substeps=4)[:-1, 0]
+    return t, x, u
+
+
+def test_a_model_judged_on_its_own_motion_is_fit():
+    model = LinearModel()
+    fit = mf.judge(model, [_driven(model)])
+    assert fit.fit, fit.reasons
+    assert fit.free_run.relative < 1e-3
+    assert fit.rest.max_real == pytest.approx(-2.0)          # −c/2
+    assert fit.rest.natural_hz[0] == pytest.approx(math.sqrt(400.0) / (2 * math.pi), rel=1e-3)
+
+
+def test_an_unstable_rest_is_not_fit_and_says_why():
+    data = _driven(LinearModel())
+    fit = mf.judge(LinearModel(k=-50.0), [data])
+    assert not fit.fit
+    assert fit.rest.max_real > 0 and not fit.rest.stable
+    assert any('rest is unstable' in r for r in fit.reasons)
+
+
+def test_a_rest_stable_only_in_its_linearisation_is_caught_by_the_free_run_from_rest():
+    rest = mf.rest_stability(SofteningModel(), offset=4e-3)
+    assert rest.max_real < 0                                 # A(0) alone would pass
+    assert not rest.stable and rest.returned > mf.REST_RETURN
+    assert mf.rest_stability(SofteningModel(), offset=1e-3).stable
+
+
+def test_a_model_of_another_plant_misses_the_free_run():
+    data = _driven(LinearModel())
+    other = LinearModel(k=900.0, g2=((-300.0, 100.0), (200.0, 50.0)))
+    fit = mf.judge(other, [data])
+    assert not fit.fit
+    assert fit.free_run.relative > mf.FREE_RUN_LIMIT
+    assert any('open loop' in r for r in fit.reasons)
+
+
+def test_free_run_needs_a_window_of_data():
+    t, x, u = _driven(LinearModel(), seconds=0.5)
+    with pytest.raises(ValueError, match='window'):
+        mf.free_run_error(LinearModel(), [(t, x, u)], window=1.0)
+
+
+def test_the_weights_place_the_loop_bandwidth_where_asked():
+    """q_pos = r ω⁴ / (s₁ s₂): on ẍ = G₂u the LQR poles' geometric mean modulus is ω."""
+    model = LinearModel(k=0.0, c=0.0)
+    facts = ls.DataFacts(period=1e-3, noise_std=5e-5, travel=5e-3, torque_limit=0.02, accel_psd_ml=1.0)
+    for hz in (2.0, 8.0):
+        s = ls.settings_for(model, facts, hz, 1.0)
+        A, G = (a[0] for a in model.AG(np.zeros(4)))
+        P = solve_continuous_are(A, G, np.diag([s.q_pos] * 2 + [0.0] * 2), np.eye(2) * s.r)
+        poles = np.linalg.eigvals(A - G @ np.linalg.solve(np.eye(2) * s.r, G.T @ P))
+        assert np.all(poles.real < 0)
+        assert np.exp(np.mean(np.log(np.abs(poles)))) == pytest.approx(2 * np.pi * hz, rel=1e-6)
+        assert s.torque_lowpass_hz == ls.ROLL_OFF_RATIO * hz
+        assert s.pd_kp == pytest.approx((2 * np.pi * hz) ** 2)
+
+
+def test_the_estimator_intensity_is_picked_by_likelihood():
+    """Tips of a constant-velocity random walk of known intensity: the grid point nearest it."""
+    rng = np.random.default_rng(3)
+    dt, q, sigma = 5e-3, 10.0, 5e-5
+    vel = np.cumsum(rng.normal(0, math.sqrt(q * dt), (3000, 2)), axis=0)
+    pos = np.cumsum(vel * dt, axis=0) + rng.normal(0, sigma, (3000, 2))
+    t = np.arange(3000) * dt
+    assert ls.tune_accel_psd(t, pos, sigma, np.logspace(-1, 3, 5)) == pytest.approx(q)
+
+
+@pytest.fixture(scope='module')
+def shipped():
+    return SDCModel()
+
+
+def test_settings_derived_for_the_shipped_model_pass_their_checks(shipped):
+    """The shipped finger at a 5 ms period (a driver of 200 Hz): the chosen settings track the
+    check's move on the model, never saturate at rest, and the paper's law is checked too."""
+    facts = ls.DataFacts(period=5e-3, noise_std=5e-5, travel=0.01, torque_limit=0.03, accel_psd_ml=100.0)
+    derived = ls.derive(shipped, facts)
+    assert derived.settings is not None
+    d = derived.settings
+    assert d.bandwidth_hz <= ls.RATE_FRACTION / facts.period
+    assert d.control_period == facts.period and d.meas_std == facts.noise_std
+    nominal = derived.checks['sdre_ff']
+    assert nominal.ok and nominal.rmse_rel <= ls.KEEP_NOMINAL
+    assert set(derived.checks) == {'sdre_ff', 'sdre'}
+    kept = [c for c in derived.candidates if 'robust' in c]
+    assert kept, 'no candidate reached the robustness runs'
+    summary = derived.summary()
+    assert summary['settings']['q_pos'] == d.q_pos
+
+
+def test_no_setting_passes_on_a_finger_the_torque_cannot_hold(shipped):
+    """A torque limit far below what the move needs: every candidate saturates or misses, and
+    nothing is derived."""
+    facts = ls.DataFacts(period=5e-3, noise_std=5e-5, travel=0.03, torque_limit=1e-5, accel_psd_ml=100.0)
+    derived = ls.derive(shipped, facts)
+    assert derived.settings is None and derived.checks == {}
+    assert derived.candidates
