@@ -212,6 +212,17 @@ class SDCModel:
         self.metrics = ckpt['metrics']
         self.history = ckpt['history']
 
+    @property
+    def finger_rests(self) -> dict[str, np.ndarray]:
+        """Each finger's own settled rest tip (3,) [m] by name, for a model learned from bags of
+        several fingers (each translated by its own rest in training: the mean over the bags of
+        its settle phases); {} for a model of one finger's records, whose rest is ``rest_tip``."""
+        rests: dict[str, list] = {}
+        for bag in self.data.get('bags', []) if isinstance(self.data, dict) else []:
+            for name, info in bag.get('fingers', {}).items():
+                rests.setdefault(name, []).append(info['rest_tip'])
+        return {name: np.mean(np.asarray(v, dtype=float), axis=0) for name, v in rests.items()}
+
     def sdc_blocks(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The learned blocks for states x (4,) or (n, 4): [A21 A22] (n, 2, 4) and G2 (n, 2, 2).
 

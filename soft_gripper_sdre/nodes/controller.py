@@ -132,6 +132,18 @@ TUNABLE = ('q_pos', 'q_vel', 'r', 'integral_gain', 'integral_band', 'pd_kp', 'pd
 FIXED_GAIN_LAWS = ('pd', 'computed_torque')
 
 
+def rest_shift(model, names: tuple[str, ...]) -> np.ndarray | None:
+    """(n, 2) p₀ − p₀ᶠ per finger: added to a finger's tip and reference, it puts the finger's own
+    rest p₀ᶠ where the model's coordinates have theirs, p₀ (a model learned from several fingers
+    that rest apart, each translated by its own rest in training); None when the model does not
+    know every finger's rest, or they all rest where it does."""
+    rests = model.finger_rests
+    if not all(name in rests for name in names):
+        return None
+    shift = np.array([model.rest_tip[:2] - rests[name][:2] for name in names])
+    return shift if np.any(shift != 0.0) else None
+
+
 class ControllerNode(Node):
     """SDRE tracking controller on topics (see module doc)."""
 
@@ -147,6 +159,7 @@ class ControllerNode(Node):
         self.model = model
         self.names = tuple(p['finger_names'])
         self.n = len(self.names)
+        self.rest_shift = rest_shift(model, self.names)
         self.effort_order = None            # index into u.ravel() of each effort_topic entry
         if p['effort_topic']:
             try:
@@ -192,7 +205,8 @@ class ControllerNode(Node):
                          else '')
         self.get_logger().info(
             f'model {model.path.name} (rest tip {1e3 * model.rest_tip[0]:.1f}, '
-            f'{1e3 * model.rest_tip[1]:.1f} mm); {self.diag.values["weights"]}; '
+            f'{1e3 * model.rest_tip[1]:.1f} mm{"; each finger at its own" if self.rest_shift is not None else ""}); '
+            f'{self.diag.values["weights"]}; '
             f'limit {p["torque_limit"]:g} N·m, rolled off at {self.diag.values["roll_off_hz"]} Hz; '
             f'{p["solver"]} solver; law {p["law"]}'
             f'{" with Q(x)" if p["state_weights"] else ""}{integral_note}; fingers {", ".join(self.names)}'
@@ -251,8 +265,11 @@ class ControllerNode(Node):
     def _control(self, stamp: int, x: np.ndarray, plan: Plan) -> None:
         ref_pos, ref_vel, ref_acc = sample_plan(plan.times, plan.pos, plan.vel, plan.acc, stamp,
                                                 with_acc=True)
+        pos = x[:, :2]
+        if self.rest_shift is not None:         # each finger into the model's frame
+            pos, ref_pos = pos + self.rest_shift, ref_pos + self.rest_shift
         t0 = time.perf_counter()
-        out = self.ctrl.compute(x[:, :2], x[:, 2:], ref_pos, ref_vel, ref_acc=ref_acc)
+        out = self.ctrl.compute(pos, x[:, 2:], ref_pos, ref_vel, ref_acc=ref_acc)
         self._compute_s.append(time.perf_counter() - t0)
         u = out.u
         if not np.all(np.isfinite(u)):          # the core guarantees this; keep the promise here too
