@@ -1,12 +1,21 @@
 """Reproducible training: the stopping rule, the fixed thread count, and (slow) `make model`
 reproducing the shipped model from nothing.
 
-Training is deterministic on the machine kind CI runs on (one thread, deterministic algorithms,
-seeded shuffles), so the slow test compares exactly: the same data fingerprint, the same epochs, the
-same u4 R² and the same weights as soft_gripper_sdre/models/default.pt and its default.json.
+Training is deterministic on one machine (one thread, deterministic algorithms, seeded shuffles).
+Across machines the bits part in the math libraries' CPU-specific kernels: OpenBLAS picks its
+matrix kernels by CPU (the KF/RTS labels differ at 1e-12 between its Haswell and SkylakeX
+kernels), MKL and ATen theirs for training. :data:`PINNED_KERNELS` fixes each of them to one code
+path that every x86-64 machine with AVX2 and FMA runs; with them the slow test demands the shipped
+checkpoint bit for bit (the same data fingerprint, epochs, u4 R² and weights as
+soft_gripper_sdre/models/default.pt and its default.json). On every machine, pinned or not, it
+demands the model within :data:`BAND` of the shipped one: the spread measured by perturbing the
+training data at rounding level (docs/model.md, "The same model on another machine").
 """
 from dataclasses import replace
 import json
+import os
+from pathlib import Path
+import platform
 import subprocess
 import sys
 
@@ -70,9 +79,109 @@ def test_training_fixes_its_thread_count_and_restores_the_callers(data):
         assert torch.equal(value, b.net.state_dict()[key]), key
 
 
-def run_tool(tool, *args, timeout):
+#: the math kernels pinned to one code path that every x86-64 machine with AVX2 and FMA runs:
+#: OpenBLAS's Haswell kernels (numpy: the KF/RTS labels), MKL's AVX2 branch in strict
+#: conditional-numerical-reproducibility mode and ATen's AVX2 kernels (torch: training)
+PINNED_KERNELS = {'OPENBLAS_CORETYPE': 'Haswell', 'MKL_CBWR': 'AVX2,STRICT',
+                  'ATEN_CPU_CAPABILITY': 'avx2'}
+
+#: how far the trained model may move when the training arrays' bits do (another CPU's kernels):
+#: the u4 R² X and Y (absolute), the two dominant entries of G2 at the origin (relative), the
+#: angles of G2's columns [deg] and the derivative errors (relative). Measured (MEASURED): the
+#: shipped data trained with this machine's own OpenBLAS kernels and with --jitter 1e-9 (four
+#: seeds) moved R² X by at most 0.0135, Y by 0.0031, the dominant entries by 2.2 %, the angles by
+#: 1.0°, the derivative errors by 6e-9; the band is 2 to 3 times that (the derivative errors'
+#: far more). G2's two small entries, the cross coupling at about 1 % of the dominant ones, are
+#: not held: they ranged from -11.5 to +1.9 and from 20.7 to 25.6 (docs/model.md).
+BAND = {'r2_X': 0.03, 'r2_Y': 0.01, 'G2_dominant': 0.05, 'angle_deg': 2.5, 'derivative': 1e-6}
+
+#: metrics of models trained on the shipped data with other bits (see BAND): this machine's own
+#: OpenBLAS kernels (SkylakeX, an AMD EPYC with AVX-512), then --jitter 1e-9 with seeds 1 to 4
+MEASURED = (
+    {'u4_r2_true': {'X': 0.8508390426046684, 'Y': 0.9869506743537236},
+     'G2_at_origin': [[23.475, 644.988], [-608.142, 1.926]],
+     'G2_column_angles_deg': [-87.79, 0.17]},
+    {'u4_r2_true': {'X': 0.8355894838048261, 'Y': 0.9864810164317401},
+     'G2_at_origin': [[24.8, 648.754], [-606.736, -11.006]],
+     'G2_column_angles_deg': [-87.66, -0.97]},
+    {'u4_r2_true': {'X': 0.8381743807830602, 'Y': 0.9831892775189803},
+     'G2_at_origin': [[20.698, 635.695], [-594.046, -5.171]],
+     'G2_column_angles_deg': [-88.0, -0.47]},
+    {'u4_r2_true': {'X': 0.8334907947978176, 'Y': 0.9855799895236229},
+     'G2_at_origin': [[25.596, 643.601], [-599.441, -11.485]],
+     'G2_column_angles_deg': [-87.55, -1.02]},
+    {'u4_r2_true': {'X': 0.8338788505684773, 'Y': 0.9859978056983386},
+     'G2_at_origin': [[25.033, 647.288], [-600.154, -8.16]],
+     'G2_column_angles_deg': [-87.61, -0.72]},
+)
+
+
+def cpu_runs_pinned_kernels() -> bool:
+    """An x86-64 Linux machine with AVX2 and FMA: the one that runs :data:`PINNED_KERNELS`."""
+    if platform.machine() != 'x86_64':
+        return False
+    try:
+        text = Path('/proc/cpuinfo').read_text()
+    except OSError:
+        return False
+    flags = next((line.split(':', 1)[1].split() for line in text.splitlines()
+                  if line.startswith('flags')), [])
+    return {'avx2', 'fma'} <= set(flags)
+
+
+def band_problems(metrics: dict, shipped: dict, band: dict = BAND) -> list[str]:
+    """Where ``metrics`` leave the band around ``shipped`` (empty: within it)."""
+    problems = []
+    for axis in 'XY':
+        got, want = metrics['u4_r2_true'][axis], shipped['u4_r2_true'][axis]
+        if abs(got - want) > band[f'r2_{axis}']:
+            problems.append(f'u4 R² {axis} {got:.4f}, shipped {want:.4f}')
+    G, G0 = np.asarray(metrics['G2_at_origin']), np.asarray(shipped['G2_at_origin'])
+    for i, j in ((0, 1), (1, 0)):
+        if abs(G[i, j] - G0[i, j]) > band['G2_dominant'] * abs(G0[i, j]):
+            problems.append(f'G2[{i}][{j}] {G[i, j]:.1f}, shipped {G0[i, j]:.1f}')
+    for k, (got, want) in enumerate(zip(metrics['G2_column_angles_deg'],
+                                         shipped['G2_column_angles_deg'])):
+        if abs(got - want) > band['angle_deg']:
+            problems.append(f'G2 column {k} at {got:.2f}°, shipped {want:.2f}°')
+    for signal, errors in metrics.get('derivative_errors', {}).items():
+        for key, values in errors.items():
+            want = shipped['derivative_errors'][signal][key]
+            if not np.allclose(values, want, rtol=band['derivative'], atol=0.0):
+                problems.append(f'derivative error {signal} {key} {values}, shipped {want}')
+    return problems
+
+
+def test_the_band_holds_every_measured_run_and_refuses_another_model():
+    shipped = json.loads(DEFAULT_MODEL.with_suffix('.json').read_text())
+    assert band_problems(shipped, shipped) == []
+    for run in MEASURED:
+        assert band_problems(run, shipped) == [], run
+    swapped = {**MEASURED[0], 'G2_at_origin': [[645.0, 23.5], [1.9, -608.1]],
+               'G2_column_angles_deg': [2.0, 89.0]}
+    assert len(band_problems(swapped, shipped)) == 4
+    worse = {**MEASURED[0], 'u4_r2_true': {'X': 0.78, 'Y': 0.9869}}
+    assert band_problems(worse, shipped) == ['u4 R² X 0.7800, shipped 0.8374']
+
+
+@pytest.mark.skipif(not cpu_runs_pinned_kernels(), reason='needs x86-64 with AVX2 and FMA')
+def test_the_pinned_kernels_are_the_ones_numpy_and_torch_run():
+    """The variables are honoured: OpenBLAS reports its Haswell core, ATen its AVX2 kernels."""
+    probe = ('import ctypes, glob, os, numpy, torch\n'
+             "libs = os.path.join(os.path.dirname(numpy.__file__), '..', 'numpy.libs')\n"
+             "lib = ctypes.CDLL(glob.glob(os.path.join(libs, 'libscipy_openblas*'))[0])\n"
+             'lib.scipy_openblas_get_corename64_.restype = ctypes.c_char_p\n'
+             'print(lib.scipy_openblas_get_corename64_().decode(), '
+             'torch.backends.cpu.get_cpu_capability())\n')
+    out = subprocess.run([sys.executable, '-c', probe], capture_output=True, text=True,
+                         env={**os.environ, **PINNED_KERNELS}, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.split() == ['Haswell', 'AVX2']
+
+
+def run_tool(tool, *args, timeout, env=None):
     proc = subprocess.run([sys.executable, '-m', f'soft_gripper_sdre.tools.{tool}', *args],
-                          capture_output=True, text=True, timeout=timeout)
+                          capture_output=True, text=True, timeout=timeout, env=env)
     assert proc.returncode == 0, proc.stderr[-2000:]
     return proc
 
@@ -80,19 +189,28 @@ def run_tool(tool, *args, timeout):
 @pytest.mark.slow
 @pytest.mark.timeout(900)
 def test_collect_then_train_reproduces_the_shipped_checkpoint(tmp_path):
+    """Within the band on every machine; bit for bit where the pinned kernels run."""
+    pinned = cpu_runs_pinned_kernels()
+    env = {**os.environ, **(PINNED_KERNELS if pinned else {})}
     data, out = tmp_path / 'excitation', tmp_path / 'train'
-    run_tool('collect', '--out', str(data), timeout=300)
-    run_tool('train', '--data', str(data), '--out', str(out), timeout=800)
+    run_tool('collect', '--out', str(data), timeout=300, env=env)
+    run_tool('train', '--data', str(data), '--out', str(out), timeout=800, env=env)
 
     shipped = json.loads(DEFAULT_MODEL.with_suffix('.json').read_text())
     metrics = json.loads((out / 'metrics.json').read_text())
+    assert metrics['epochs_run'] == shipped['epochs_run']
+    assert band_problems(metrics, shipped) == []
+    if not pinned:
+        return
+
     assert metrics['u4_r2_true'] == shipped['u4_r2_true']
-    assert (metrics['epochs_run'], metrics['best_epoch']) == (shipped['epochs_run'], shipped['best_epoch'])
+    assert (metrics['epochs_run'], metrics['best_epoch']) == (shipped['epochs_run'],
+                                                              shipped['best_epoch'])
     assert metrics['derivative_errors'] == shipped['derivative_errors']
     assert metrics['G2_at_origin'] == shipped['G2_at_origin']
 
     ours, theirs = read_checkpoint(out / 'model.pt'), read_checkpoint(DEFAULT_MODEL)
-    assert ours['data']['fingerprint'] == theirs['data']['fingerprint']     # the same training arrays
+    assert ours['data']['fingerprint'] == theirs['data']['fingerprint']     # the same arrays
     assert ours['settings'] == theirs['settings']
     assert ours['state_dict'].keys() == theirs['state_dict'].keys()
     for key, weights in ours['state_dict'].items():
