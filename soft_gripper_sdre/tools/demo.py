@@ -9,6 +9,7 @@ the grasp for ``--duration`` seconds of sim time, stops everything cleanly and w
     OUT/bag/            rosbag2 directory (metadata.yaml + MCAP) of every topic
     OUT/logs/           one log per node
     OUT/fig5_positions.png, fig6_velocities.png, fig7_torques.png, metrics.json
+    OUT/fig1_hand.png, fig4_snapshots.png, grasp.gif   the hand drawn from the bag
 
 then prints a summary. Every argument is checked before anything starts (bad usage: exit 2);
 a node that dies is named with the last lines of its own log (exit 1), and the partial bag of a
@@ -148,7 +149,7 @@ def run_demo(out: Path, duration: float, model: Path | None = None, noise: float
     t_report = time.monotonic()
     if progress:
         print('reading the bag and drawing the figures ...', file=sys.stderr, flush=True)
-    result = report(bag, out, torque_limit=_controller_limit())
+    result = report(bag, out, torque_limit=_controller_limit(), render=True)
     result['controller'] = controller_stats(bag, len(result['fingers']))
     sim_diag = last_diagnostics(bag, 'simulator')
     stepping_rtf = sim_diag.get('real_time_factor')

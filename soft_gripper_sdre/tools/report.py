@@ -1,6 +1,6 @@
 """Figures 5–7 and tracking metrics of a recorded run.
 
-    python -m soft_gripper_sdre.tools.report BAG --out DIR [--torque-limit 0.1]
+    python -m soft_gripper_sdre.tools.report BAG --out DIR [--torque-limit 0.1] [--render]
 
 Writes DIR/fig5_positions.png and fig6_velocities.png (the reference against the true tip, from the
 simulator's joint states in the bag; the measured tip where the bag has no joint_states),
@@ -18,6 +18,9 @@ fig7_torques.png (commands) and DIR/metrics.json:
 * with ``--torque-limit``: how many torque commands reached the actuator limit (the simulator clips
   them there), per finger;
 * messages per topic, and malformed messages that were skipped.
+
+With ``--render`` it also draws the hand from the bag's joint states (:mod:`.render`): Fig. 1
+``fig1_hand.png``, Fig. 4 ``fig4_snapshots.png`` and the animation ``grasp.gif``.
 
 The run starts at the first tip sample that has a reference in force. Exit status 2 for a missing
 or unusable bag.
@@ -88,13 +91,17 @@ def _true_tips(run: Run, t: np.ndarray):
     return run.joints.t[keep], pos, vel
 
 
-def report(bag_path: str | Path, out_dir: str | Path, torque_limit: float | None = None) -> dict:
+def report(bag_path: str | Path, out_dir: str | Path, torque_limit: float | None = None,
+           render: bool = False) -> dict:
     """Write the figures and metrics.json of the run in ``bag_path`` to ``out_dir``; return the metrics.
 
     Args:
         bag_path: rosbag2 directory recorded from the graph.
         out_dir: created if needed.
         torque_limit: actuator limit [N·m]; if given, commands at or beyond it are counted.
+        render: also draw the hand (:func:`.render.render_run`: Figs. 1 and 4, the animation)
+            from the same reading of the bag, where it has joint_states; ``metrics['render']``
+            says what was written and in how long.
 
     Raises:
         BagError: the bag is missing, unreadable or lacks a required topic.
@@ -174,6 +181,9 @@ def report(bag_path: str | Path, out_dir: str | Path, torque_limit: float | None
                   contact=contact if has_contacts else None,
                   title=f'Fig. 6  Tip velocity: desired vs {vel_label.split(" (")[0]} velocity')
     plot_torques(t_u, u, out / FIGURES[2], names, u_max=torque_limit)
+    if render and run.joints is not None:
+        from soft_gripper_sdre.tools.render import render_run
+        metrics['render'] = render_run(bag_path, out, run=run)
     (out / METRICS).write_text(json.dumps(metrics, indent=2) + '\n', encoding='utf-8')
     return metrics
 
@@ -189,11 +199,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--out', required=True, type=Path, help='output directory')
     parser.add_argument('--torque-limit', type=float, default=None,
                         help='actuator limit [N·m] (the simulator\'s torque_limit) to count saturation')
+    parser.add_argument('--render', action='store_true',
+                        help='also draw the hand: Fig. 1, Fig. 4 and grasp.gif (needs joint_states)')
     args = parser.parse_args(argv)
     if args.torque_limit is not None and not args.torque_limit > 0:
         parser.error(f'--torque-limit must be > 0 N·m, got {args.torque_limit}')
     try:
-        metrics = report(args.bag, args.out, args.torque_limit)
+        metrics = report(args.bag, args.out, args.torque_limit, args.render)
     except BagError as exc:
         print(f'{parser.prog}: error: {exc}', file=sys.stderr)
         return 2
@@ -209,7 +221,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f'  cube moved at most {_fmt(metrics["cube_max_displacement_mm"], ".2f", " mm")}')
     if metrics['torque_saturation']:
         print(f'  torque commands at the limit: {metrics["torque_saturation"]["saturated"]}')
-    print(f'wrote {", ".join(FIGURES)} and {METRICS} to {args.out}')
+    drawn = metrics.get('render', {}).get('files', [])
+    print(f'wrote {", ".join(FIGURES + tuple(drawn))} and {METRICS} to {args.out}')
     return 0
 
 
