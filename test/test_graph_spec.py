@@ -33,7 +33,9 @@ def test_root_graph_command_lines_are_those_ros2_run_takes():
     commands = {n.name: n.command('python') for n in spec.nodes}
     assert commands['simulator'] == ['python', '-m', 'soft_gripper_sdre.nodes.simulator', '--ros-args', '--params-file',
                                      str(default_params_file('simulator')), '-p', 'duration:=6.0',
-                                     '-p', 'min_tip_subscribers:=3', '-p', 'noise_std:=0.0001']
+                                     '-p', 'min_tip_subscribers:=3', '-p', 'noise_std:=0.0001',
+                                     '-p',
+                                     'wait_for_nodes:=recorder,estimator,trajectory,controller']
     assert commands['estimator'] == ['python', '-m', 'soft_gripper_sdre.nodes.estimator', '--ros-args',
                                      '--params-file', str(default_params_file('estimator'))]
     assert commands['controller'][-2:] == ['-p', 'law:=sdre']

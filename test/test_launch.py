@@ -27,7 +27,8 @@ def _as_launched(graph_spec) -> list[dict]:
     """What launch_ros would get for each node of the description."""
     return [{'package': 'soft_gripper_sdre', 'executable': n.executable, 'name': n.name,
              'namespace': n.namespace.lstrip('/') or None,
-             'parameters': [str(n.params_file)] + ([dict(n.parameters)] if n.parameters else []),
+             'parameters': [str(f) for f in (n.params_file, *n.more_params_files)]
+             + ([dict(n.parameters)] if n.parameters else []),
              'remappings': list(n.remappings)} for n in graph_spec.nodes]
 
 
@@ -35,8 +36,12 @@ def test_the_launch_packages_are_imported_only_when_launching():
     tree = ast.parse(LAUNCH_FILE.read_text(encoding='utf-8'))
     top = [n for n in tree.body if isinstance(n, (ast.Import, ast.ImportFrom))]
     assert [getattr(n, 'module', None) for n in top] == ['soft_gripper_sdre.nodes.graph']
-    inner = {n.module.split('.')[0] for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n not in top}
-    assert inner == {'launch', 'launch_ros'}
+    generate = next(n for n in tree.body if isinstance(n, ast.FunctionDef)
+                    and n.name == 'generate_launch_description')
+    inside = {n for n in ast.walk(generate) if isinstance(n, ast.ImportFrom)}
+    launch = {n for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)
+              and n.module.split('.')[0] in ('launch', 'launch_ros')}
+    assert launch == inside and {n.module.split('.')[0] for n in inside} == {'launch', 'launch_ros'}
 
 
 def test_default_launch_is_the_root_graph_without_recorder(launch_module):
@@ -60,8 +65,9 @@ def test_a_hand_in_a_namespace_with_every_argument(launch_module):
     assert {n['namespace'] for n in nodes} == {'left_hand'}
     assert all(n['remappings'] == [('/clock', 'clock')] for n in nodes)
     simulator = nodes[-1]['parameters'][1]
-    assert simulator == {'duration': 2.5, 'startup_timeout': 60.0, 'noise_std': pytest.approx(2e-4), 'seed': 7,
-                         'min_tip_subscribers': 3}
+    assert simulator == {'duration': 2.5, 'startup_timeout': 60.0, 'noise_std': pytest.approx(2e-4),
+                         'seed': 7, 'min_tip_subscribers': 3,
+                         'wait_for_nodes': 'recorder,estimator,trajectory,controller'}
 
 
 @pytest.mark.parametrize('arguments, needle', [
@@ -71,6 +77,14 @@ def test_a_hand_in_a_namespace_with_every_argument(launch_module):
     ({'namespace': '2nd_hand'}, 'is not a valid name token'),
     ({'control_period': '0.02'}, "control_period:='0.02' must be from 0.001 to 0.01 s"),
     ({'control_period': '5ms'}, "control_period:='5ms' is not a number"),
+    ({'law': 'bogus'}, "law:='bogus' is not a law of the controller (sdre, sdre_ff, lqr"),
+    ({'law': 'oracle'}, "law:='oracle' is not a law of the controller"),
+    ({'noise': '50'}, "noise:='50': noise_std must be <= 0.01"),
+    ({'seed': '-1'}, "seed:='-1': seed must be >= 0"),
+    ({'duration': '-1'}, "duration:='-1': duration must be >= 0"),
+    ({'startup_timeout': 'nan'}, "startup_timeout:='nan'"),
+    ({'params_file': '/nonexistent/mine.yaml'},
+     "params_file:='/nonexistent/mine.yaml': cannot read"),
 ])
 def test_bad_arguments_are_named(launch_module, arguments, needle):
     with pytest.raises(ValueError, match=needle.replace('(', r'\(').replace('.', r'\.')):
@@ -90,3 +104,51 @@ def test_control_period_reaches_every_node_of_the_loop(launch_module):
     overrides = {name: next((d for d in n['parameters'] if isinstance(d, dict)), {}) for name, n in nodes.items()}
     periods = {name: d.get('control_period') for name, d in overrides.items()}
     assert periods == {'estimator': 0.005, 'trajectory': None, 'controller': 0.005, 'simulator': 0.005}
+
+
+def test_the_law_choices_are_the_controllers_own(launch_module):
+    from soft_gripper_sdre.control.laws import GRAPH_LAWS
+    from soft_gripper_sdre.nodes.controller import PARAMS
+    assert next(p for p in PARAMS if p.name == 'law').choices == GRAPH_LAWS
+    for law in GRAPH_LAWS:
+        controller = launch_module.grasp_nodes(law=law)[2]
+        assert controller['name'] == 'controller' and controller['parameters'][-1] == {'law': law}
+
+
+def test_a_users_params_file_comes_after_the_shipped_one_and_before_the_arguments(launch_module,
+                                                                                 tmp_path):
+    mine = tmp_path / 'mine.yaml'
+    mine.write_text('/**/controller:\n  ros__parameters:\n    integral_gain: 0.0\n')
+    nodes = launch_module.grasp_nodes(params_file=str(mine), law='sdre')
+    for node in nodes:
+        shipped, users = node['parameters'][:2]
+        assert Path(shipped).name == f'{node["name"]}.yaml' and users == str(mine.resolve())
+    assert nodes[2]['parameters'][2] == {'law': 'sdre'}
+
+
+@pytest.mark.parametrize('text, needle', [('[1, 2]', 'is not a ROS parameters file'),
+                                          ('a: [', 'is not YAML')])
+def test_a_params_file_that_is_not_one_is_named(launch_module, tmp_path, text, needle):
+    bad = tmp_path / 'bad.yaml'
+    bad.write_text(text)
+    with pytest.raises(ValueError, match=f"params_file:='{bad}'.*{needle}"):
+        launch_module.grasp_nodes(params_file=str(bad))
+
+
+@pytest.mark.parametrize('node, code, shutting_down, verdict', [
+    ('simulator', 0, False, ('done', 'the simulator finished')),
+    ('simulator', 1, False, ('failed', 'the simulator node exited with status 1')),
+    ('controller', 2, False, ('failed', 'the controller node exited with status 2')),
+    ('recorder', 0, False, ('failed', 'the recorder node exited with status 0')),
+    ('controller', -15, True, None),
+    ('simulator', 0, True, None),
+])
+def test_a_node_that_ends_on_its_own_ends_the_launch(launch_module, node, code, shutting_down,
+                                                     verdict):
+    """The lead finishing ends the launch cleanly; any other exit before that ends it with an
+    error naming the node and its status; exits while it shuts down change nothing."""
+    got = launch_module.exit_verdict(node, code, shutting_down)
+    if verdict is None:
+        assert got is None
+    else:
+        assert got[0] == verdict[0] and got[1].startswith(verdict[1])

@@ -19,6 +19,7 @@ from rclpy.signals import SignalHandlerOptions
 from rclpy.node import Node
 
 from soft_gripper_sdre.nodes.cli import USAGE_ERROR, settle_command_line
+from soft_gripper_sdre.nodes.graph import wiring_key
 from soft_gripper_sdre.nodes.params import ParameterError
 from soft_gripper_sdre.nodes.topics import DIAGNOSTICS, STREAM_QOS
 
@@ -99,10 +100,23 @@ class Diagnostics:
         status = DiagnosticStatus(level=self.level, name=self.node.get_fully_qualified_name(),
                                   message=self.message, hardware_id=self._hardware_id)
         status.values = ([KeyValue(key=k, value=str(v)) for k, v in sorted(self.counters.items())]
-                         + [KeyValue(key=k, value=v) for k, v in sorted(self.values.items())])
+                         + [KeyValue(key=k, value=v) for k, v in sorted(self.values.items())]
+                         + [KeyValue(key=k, value=v) for k, v in wiring(self.node).items()])
         msg = DiagnosticArray(status=[status])
         msg.header.stamp = self.node.get_clock().now().to_msg()
         self._pub.publish(msg)
+
+
+def wiring(node: Node) -> dict[str, str]:
+    """The matched counts of ``node``'s topics, as /diagnostics carries them for the start rule
+    (:func:`soft_gripper_sdre.nodes.graph.readiness_problem`): per publisher the readers it has
+    matched, per subscription the writers (ROS's own /diagnostics and /parameter_events aside)."""
+    skip = {DIAGNOSTICS, '/parameter_events', '/rosout'}
+    out = {wiring_key('readers', pub.topic_name): str(pub.get_subscription_count())
+           for pub in node.publishers if pub.topic_name not in skip}
+    out.update({wiring_key('writers', sub.topic_name): str(sub.get_publisher_count())
+                for sub in node.subscriptions if sub.topic_name not in skip})
+    return dict(sorted(out.items()))
 
 
 class LatencyWindow:

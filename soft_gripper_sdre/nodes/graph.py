@@ -25,7 +25,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 import re
 import sys
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping, Sequence
 
 PACKAGE = 'soft_gripper_sdre'
 #: the source tree's parameter files (a colcon install has them under share/, see default_params_file)
@@ -49,7 +49,68 @@ RECORDED_BEFORE_START = ('state_estimate', 'torque_commands', 'grasp_reference')
 #: the hand's two fingers that face each other across the cube: the grasping pair of the hand
 CUBE_FINGERS = (0, 2)
 
+#: what each node of the grasp graph writes and reads, by topic name as in the node (``/clock``
+#: stands for the graph's clock topic); the recorder reads every topic another node writes
+WRITES = {'simulator': ('tip_positions', CLOCK, 'joint_states', 'cube_pose', 'cube_contacts'),
+          'estimator': ('state_estimate',), 'trajectory': ('grasp_reference',),
+          'controller': ('torque_commands',), 'recorder': ()}
+READS = {'simulator': ('torque_commands',), 'estimator': ('tip_positions',),
+         'trajectory': ('tip_positions', CLOCK),
+         'controller': ('state_estimate', 'grasp_reference'),
+         'recorder': tuple(t for node in GRASP_NODES for t in WRITES[node])}
+
 _NAME_TOKEN = re.compile(r'[A-Za-z_][A-Za-z0-9_]*')
+
+
+def wiring_key(role: str, topic: str) -> str:
+    """The /diagnostics key of a matched count: ``readers <topic>`` (the readers a node's writer
+    has matched) or ``writers <topic>`` (the writers a node's reader has matched)."""
+    if role not in ('readers', 'writers'):
+        raise ValueError(f"role must be 'readers' or 'writers', got {role!r}")
+    return f'{role} {topic}'
+
+
+def readiness_problem(present: Sequence[str], reports: Mapping[str, Mapping[str, str] | None],
+                      topic: Callable[[str], str]) -> str | None:
+    """What keeps a grasp graph from taking its first step, or None once it may: the one start
+    rule of the simulator (which waits for it), the demo and the multi-hand and multi-host runners.
+
+    Every node of the graph has reported on /diagnostics (the controller creates its topics and
+    its reporter only once its model is loaded and its kernels compiled; the estimator after its
+    kernels), and for each topic :data:`WRITES` and :data:`READS` name, each node's writer has
+    matched every reader the graph has of it and each node's reader every writer. Both ends
+    count: a writer sends nothing to a reader it has not matched yet (the loop topics are
+    volatile), and a reader drops what comes from a writer it has not matched.
+
+    Args:
+        present: the graph's node names (of :data:`GRASP_NODES`).
+        reports: per node name, its newest /diagnostics values (``None`` or absent: none yet);
+            the counts are under :func:`wiring_key`.
+        topic: a topic name as the nodes use it → its full name in this graph
+            (:meth:`GraphSpec.topic`).
+    """
+    problems = []
+    for node in present:
+        values = reports.get(node)
+        if values is None:
+            problems.append(f'nothing heard from the {node} yet')
+            continue
+        others = [n for n in present if n != node]
+        for role, mine, theirs in (('readers', WRITES, READS), ('writers', READS, WRITES)):
+            for name in mine.get(node, ()):
+                need = sum(name in theirs.get(other, ()) for other in others)
+                have = _count(values.get(wiring_key(role, topic(name))))
+                if have < need:
+                    problems.append(f'the {node} has matched {have} of {need} {role} of '
+                                    f'{topic(name)}')
+    return '; '.join(problems) or None
+
+
+def _count(value: str | None) -> int:
+    try:
+        return int(value) if value is not None else 0
+    except ValueError:
+        return 0
 
 
 def default_params_file(node: str) -> Path | None:
@@ -110,8 +171,9 @@ class NodeSpec:
     executable: str                             # console script = module under soft_gripper_sdre.nodes
     namespace: str = ''                         # '' (root) or '/left_hand'
     params_file: Path | None = None             # a ROS parameters file keyed /**/<name>
-    parameters: Mapping[str, Any] = field(default_factory=dict)     # overrides, after the file
+    parameters: Mapping[str, Any] = field(default_factory=dict)     # overrides, after the files
     remappings: tuple[tuple[str, str], ...] = ()
+    more_params_files: tuple[Path, ...] = ()    # a user's parameter files, after params_file
 
     @property
     def full_name(self) -> str:
@@ -130,8 +192,9 @@ class NodeSpec:
             args += ['-r', f'__ns:={self.namespace}']
         if self.name != self.executable:
             args += ['-r', f'__node:={self.name}']
-        if self.params_file is not None:
-            args += ['--params-file', str(self.params_file)]
+        for path in (self.params_file, *self.more_params_files):
+            if path is not None:
+                args += ['--params-file', str(path)]
         for key, value in self.parameters.items():
             args += ['-p', parameter_argument(key, value)]
         for source, target in self.remappings:
@@ -184,13 +247,26 @@ class GraphSpec:
                                          for n in self.nodes))
 
     def without(self, *names: str) -> GraphSpec:
-        """The graph without the nodes ``names`` (e.g. the recorder)."""
-        return replace(self, nodes=tuple(n for n in self.nodes if n.name not in names))
+        """The graph without the nodes ``names`` (e.g. the recorder); the simulator no longer
+        waits for them (``wait_for_nodes``)."""
+        nodes = []
+        for node in self.nodes:
+            if node.name in names:
+                continue
+            waited = node.parameters.get('wait_for_nodes')
+            if node.name == 'simulator' and isinstance(waited, str):
+                kept = ','.join(n for n in waited.split(',') if n and n not in names)
+                node = (node.with_parameters(wait_for_nodes=kept) if kept else
+                        replace(node, parameters={k: v for k, v in node.parameters.items()
+                                                  if k != 'wait_for_nodes'}))
+            nodes.append(node)
+        return replace(self, nodes=tuple(nodes))
 
 
 def grasp_graph(namespace: str = '', *, record: bool = True,
                 parameters: Mapping[str, Mapping[str, Any]] | None = None,
-                clock: str | None = None, control_period: float | None = None) -> GraphSpec:
+                clock: str | None = None, control_period: float | None = None,
+                params_files: Sequence[Path | str] = ()) -> GraphSpec:
     """The grasp graph: recorder (if ``record``), estimator, trajectory, controller, simulator.
 
     Args:
@@ -204,6 +280,11 @@ def grasp_graph(namespace: str = '', *, record: bool = True,
         control_period: the loop's period [s], set on every node of :data:`PERIOD_NODES` (the
             simulator's step and its physics substeps, the estimator's nominal period, the
             controller's roll-off and skip count); None keeps the parameter files' (1 ms).
+        params_files: a user's ROS parameter files, given to every node after its shipped one
+            (each node takes its own section, ``/**/<node>`` or ``/**``), before ``parameters``.
+
+    The simulator waits for the graph's other nodes by :func:`readiness_problem`
+    (``wait_for_nodes``), unless told otherwise.
 
     Raises:
         ValueError: a bad namespace, parameters for a node the graph does not have, or a
@@ -226,7 +307,10 @@ def grasp_graph(namespace: str = '', *, record: bool = True,
     remappings = () if clock == CLOCK else ((CLOCK, clock),)
     simulator = dict(parameters.get('simulator', {}))
     simulator.setdefault('min_tip_subscribers', sum(n in TIP_READERS for n in names))
+    if len(names) > 1:
+        simulator.setdefault('wait_for_nodes', ','.join(n for n in names if n != 'simulator'))
     parameters['simulator'] = simulator
-    nodes = tuple(NodeSpec(name, name, namespace, default_params_file(name), dict(parameters.get(name, {})),
-                           remappings) for name in names)
+    extra = tuple(Path(f) for f in params_files)
+    nodes = tuple(NodeSpec(name, name, namespace, default_params_file(name),
+                           dict(parameters.get(name, {})), remappings, extra) for name in names)
     return GraphSpec(namespace, nodes, remappings)

@@ -19,12 +19,20 @@ wrong sizes, unknown/duplicate/missing names, stamps older than the last applied
 the current period) are rejected with a throttled warning and counted; the simulator never steps
 with a non-finite torque.
 
-The first step waits until the graph is wired (``min_tip_subscribers``, a command publisher,
-``min_diagnostics_subscribers``) or ``startup_timeout`` has passed. /diagnostics also carries the
-real-time factor of the stepping, this process's CPU time per step (``cpu_per_step_us``) and the
-loop latency: the wall time from publishing ``tip_positions`` for t_k to receiving the first
-command stamped t_k, as p50 / p99 / max [µs] over the last 10 000 answered periods
-(``loop_latency_us_*``) and over those since the previous /diagnostics (``recent_latency_us_*``);
+The first step waits until the graph is wired and ready: a command publisher,
+``min_tip_subscribers`` tip readers and ``min_diagnostics_subscribers`` /diagnostics readers,
+and, given ``wait_for_nodes`` (the graph's other nodes, as
+:func:`~soft_gripper_sdre.nodes.graph.grasp_graph` names them), the start rule
+:func:`~soft_gripper_sdre.nodes.graph.readiness_problem` over their /diagnostics: each of them
+has reported, and every writer and reader of the graph has matched its peers. Without
+``wait_for_nodes`` it starts after ``startup_timeout`` with what is there (a warning); with it,
+it gives up instead, naming what is missing, with exit status 1.
+
+/diagnostics also carries the real-time factor of the stepping, this process's CPU time per
+step (``cpu_per_step_us``) and the loop latency: the wall time from publishing ``tip_positions``
+for t_k to receiving the first command stamped t_k, as p50 / p99 / max [µs] over the last
+10 000 answered periods (``loop_latency_us_*``) and over those since the previous /diagnostics
+(``recent_latency_us_*``);
 and when the first command was accepted (``first_command_monotonic_s``, this machine's monotonic
 clock, and ``first_command_after_tips_ms``, from the first tips).
 """
@@ -32,6 +40,7 @@ from __future__ import annotations
 
 import time
 
+from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseArray, PoseStamped
 import numpy as np
 from rclpy.node import Node
@@ -39,12 +48,14 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 
 from soft_gripper_sdre.nodes import cdr, conversions as cv
-from soft_gripper_sdre.nodes.common import ERROR, OK, WARN, Diagnostics, SteppingTiming, ThrottledLogger, run
+from soft_gripper_sdre.nodes.common import (ERROR, OK, WARN, Diagnostics, SteppingTiming,
+                                            ThrottledLogger, run, wiring)
+from soft_gripper_sdre.nodes.graph import GRASP_NODES, readiness_problem
 from soft_gripper_sdre.nodes.params import (Param, ParameterError, declare_all, finger_names_param,
                                             on_runtime_change)
-from soft_gripper_sdre.nodes.topics import (CLOCK, CLOCK_QOS, CUBE_CONTACTS, CUBE_POSE, JOINT_STATES,
-                                            LOOP_QOS, NEWEST_QOS, STREAM_QOS, TIP_POSITIONS,
-                                            TORQUE_COMMANDS)
+from soft_gripper_sdre.nodes.topics import (CLOCK, CLOCK_QOS, CUBE_CONTACTS, CUBE_POSE, DIAGNOSTICS,
+                                            JOINT_STATES, LOOP_QOS, NEWEST_QOS, STREAM_QOS,
+                                            TIP_POSITIONS, TORQUE_COMMANDS)
 from soft_gripper_sdre.sim.finger import FINGER_BASE_POSITIONS, N_JOINTS
 from soft_gripper_sdre.sim.hand import GripperSim, SimConfig
 from soft_gripper_sdre.sim.lockstep import LATENCY_PERIODS, Stepping
@@ -83,10 +94,17 @@ PARAMS = (
     Param('on_bad_command', 'hold', 'what replaces a rejected command', choices=('hold', 'zero')),
     Param('duration', 0.0, 'stop after this much sim time and exit (0 = run until shut down)', 's',
           0.0, 1e6, read_only=True),
-    Param('startup_timeout', 30.0, 'wall time to wait for a command publisher and a tip subscriber '
-          'before the first step', 's', 0.0, 600.0, read_only=True),
+    Param('startup_timeout', 30.0, 'wall time to wait for the graph to be ready before the first '
+          'step: a command publisher, the tip subscribers and, with wait_for_nodes, the whole '
+          'graph; after it a simulator with wait_for_nodes gives up (exit status 1), one without '
+          'starts with what is there', 's', 0.0, 600.0, read_only=True),
     Param('min_tip_subscribers', 1, 'start-up: tip_positions subscribers to wait for (the demo waits '
           'for the estimator, the trajectory node and the recorder)', '', 0, 100, read_only=True),
+    Param('wait_for_nodes', '', "start-up: the graph's other nodes, comma-separated, of "
+          f"{', '.join(n for n in GRASP_NODES if n != 'simulator')} (grasp_graph and the launch "
+          'file name them): the first step waits until each has reported on /diagnostics and every '
+          "writer and reader of the graph has matched its peers; '' = no such wait",
+          read_only=True, rule=lambda text: _waited_nodes_problem(text)),
     Param('min_diagnostics_subscribers', 0, 'start-up: /diagnostics subscribers to wait for (a '
           'monitor that reads the final counters of a short run must be matched before it begins)',
           '', 0, 100, read_only=True),
@@ -145,6 +163,11 @@ class SimulatorNode(Node):
         self.diag.values['mode'] = p['mode']
         self.diag.values['scene'] = p['scene']
         self._startup_deadline = time.monotonic() + p['startup_timeout']
+        self.waited = waited_nodes(p['wait_for_nodes'])
+        self._gave_up = False
+        self._reports: dict[str, dict[str, str]] = {}      # /diagnostics values by full name
+        self._sub_diag = (self.create_subscription(DiagnosticArray, DIAGNOSTICS, self._on_report,
+                                                   STREAM_QOS) if self.waited else None)
         self._startup_timer = self.create_timer(0.01, self._try_start)
         self.get_logger().info(
             f'{p["scene"]} scene settled; {p["mode"]} at {1e3 * p["control_period"]:g} ms, '
@@ -152,8 +175,9 @@ class SimulatorNode(Node):
 
     @property
     def done(self) -> bool:
-        """The run reached its ``duration`` (the process then exits)."""
-        return self.stepping.done
+        """The run reached its ``duration``, or the graph never got ready (the process then
+        exits)."""
+        return self.stepping.done or self._gave_up
 
     def _apply(self, new: dict) -> None:
         self.p.update(new)
@@ -167,18 +191,50 @@ class SimulatorNode(Node):
         return int(round(self.p['hold_limit'] / self.p['control_period']))
 
     # -- start-up ----------------------------------------------------------------------------
+    def _on_report(self, msg: DiagnosticArray) -> None:
+        for status in msg.status:
+            self._reports[status.name] = {kv.key: kv.value for kv in status.values}
+
+    def start_problem(self) -> str | None:
+        """What the first step still waits for (module doc), or None."""
+        problems = []
+        tips, commands = self.pub_tips.get_subscription_count(), self.sub_cmd.get_publisher_count()
+        if tips < self.p['min_tip_subscribers']:
+            problems.append(f'{tips} of {self.p["min_tip_subscribers"]} tip_positions readers')
+        if commands < 1:
+            problems.append('no torque_commands writer')
+        if self.diag.subscription_count() < self.p['min_diagnostics_subscribers']:
+            problems.append(f'{self.diag.subscription_count()} of '
+                            f'{self.p["min_diagnostics_subscribers"]} /diagnostics readers')
+        if self.waited:
+            prefix = self.get_namespace().rstrip('/')
+            reports = {'simulator': wiring(self)} | {n: self._reports.get(f'{prefix}/{n}')
+                                                     for n in self.waited}
+            graph = readiness_problem(('simulator', *self.waited), reports, self.resolve_topic_name)
+            if graph:
+                problems.append(graph)
+        return '; '.join(problems) or None
+
     def _try_start(self) -> None:
-        ready = (self.pub_tips.get_subscription_count() >= self.p['min_tip_subscribers']
-                 and self.sub_cmd.get_publisher_count() > 0
-                 and self.diag.subscription_count() >= self.p['min_diagnostics_subscribers'])
-        if not ready and time.monotonic() < self._startup_deadline:
+        problem = self.start_problem()
+        if problem and time.monotonic() < self._startup_deadline:
             return
-        if not ready:
-            self.get_logger().warning(
-                f'starting with an incomplete graph: {self.sub_cmd.get_publisher_count()} torque_commands '
-                f'publishers and {self.pub_tips.get_subscription_count()} tip_positions subscribers '
-                'after startup_timeout')
         self._startup_timer.cancel()
+        if problem and self.waited:
+            self.get_logger().error(f'the graph was not ready within startup_timeout '
+                                    f'({self.p["startup_timeout"]:g} s): {problem}; giving up')
+            self.diag.set_status(ERROR, f'the graph was not ready: {problem}')
+            self.exit_code, self._gave_up = 1, True
+            return
+        if problem:
+            self.get_logger().warning(f'starting with an incomplete graph after startup_timeout: '
+                                      f'{problem}')
+        elif self.waited:
+            self.get_logger().info(f'the graph is wired and ready ({", ".join(self.waited)}); '
+                                   'stepping')
+        if self._sub_diag is not None:
+            self.destroy_subscription(self._sub_diag)
+            self._sub_diag = None
         self.stepping.start()
         self.timing.start()
         if self.p['mode'] == 'lockstep':
@@ -283,6 +339,22 @@ class SimulatorNode(Node):
 
     def close(self) -> None:
         self.sim.close()
+
+
+def waited_nodes(text: str) -> tuple[str, ...]:
+    """``wait_for_nodes`` as names: ``'recorder, estimator'`` → ``('recorder', 'estimator')``."""
+    return tuple(name.strip() for name in text.split(',') if name.strip())
+
+
+def _waited_nodes_problem(text: str) -> str | None:
+    names = waited_nodes(text)
+    known = [n for n in GRASP_NODES if n != 'simulator']
+    unknown = [n for n in names if n not in known]
+    if unknown:
+        return f'{unknown[0]!r} is not a node of the grasp graph ({", ".join(known)})'
+    if len(set(names)) != len(names):
+        return f'{text!r} names a node twice'
+    return None
 
 
 def exposed_fingers(names, hand_fingers, scene: str) -> np.ndarray:

@@ -26,7 +26,7 @@ import time
 
 from soft_gripper_sdre.control.laws import GRAPH_LAWS
 from soft_gripper_sdre.nodes.graph import CUBE_FINGERS, PERIOD_RANGE, finger_parameters, grasp_graph
-from soft_gripper_sdre.tools.procs import WIRED_BEFORE_START, DiagnosticsMonitor, Graph, ros_env
+from soft_gripper_sdre.tools.procs import DiagnosticsMonitor, Graph, ros_env
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -100,26 +100,10 @@ def run_demo(out: Path, duration: float, model: Path | None = None, noise: float
     bar = None
     t_wall = time.monotonic()
     with Graph(env, out / 'logs') as graph:
-        for node in spec.nodes[:-1]:
+        # the simulator takes its first step once the whole graph is wired and ready
+        # (nodes/graph.readiness_problem): a recorder then holds the run from its first instant
+        for node in spec.nodes:
             graph.start_node(node)
-        # every stream the nodes publish reaches the recorder before the first step is taken
-        # (the simulator then waits for its own peers: min_tip_subscribers)
-        deadline = time.monotonic() + 60.0
-        while not all(monitor.get('recorder', f'publishers {t}') > 0 for t in WIRED_BEFORE_START):
-            dead = [p.name for p in graph.procs.values() if not p.alive()]
-            if dead:
-                shutil.rmtree(bag, ignore_errors=True)
-                raise RuntimeError(f'the {dead[0]} node exited with status {graph.procs[dead[0]].popen.returncode} '
-                                   f'before the graph connected; last lines of {dead[0]}.log:\n'
-                                   f'{graph.procs[dead[0]].log_tail()}')
-            if time.monotonic() > deadline:
-                shutil.rmtree(bag, ignore_errors=True)
-                raise RuntimeError(f'the graph did not connect within 60 s; the recorder sees '
-                                   f'{monitor.values.get("recorder", {})}; last lines of recorder.log:\n'
-                                   f'{graph.procs["recorder"].log_tail()}')
-            monitor.poll()
-            time.sleep(0.05)
-        graph.start_node(spec.node('simulator'))
         if progress:
             from tqdm import tqdm
             bar = tqdm(total=duration, desc='grasp (sim s)', unit='s', bar_format=(
@@ -141,11 +125,15 @@ def run_demo(out: Path, duration: float, model: Path | None = None, noise: float
         stopped = graph.stop_all()
     monitor.close()
     if code != 0 or failed:
-        culprit = 'simulator' if code not in (0, None) else next(iter(failed), 'simulator')
-        tail = graph.procs[culprit].log_tail()
-        why = 'timed out' if code is None and not failed else f'the {culprit} node died; exit codes {stopped}'
         shutil.rmtree(bag, ignore_errors=True)
-        raise RuntimeError(f'the grasp run failed ({why}); last lines of {culprit}.log:\n{tail}')
+        if code is None and not failed:
+            raise RuntimeError(f'the grasp run timed out after {timeout:g} s; last lines of '
+                               f'simulator.log:\n{graph.procs["simulator"].log_tail()}')
+        culprit = 'simulator' if code not in (0, None) else next(iter(failed))
+        status = code if culprit == 'simulator' else failed[culprit]
+        raise RuntimeError(f'the {culprit} node exited with status {status} (exit codes '
+                           f'{stopped}); last lines of {culprit}.log:\n'
+                           f'{graph.procs[culprit].log_tail()}')
     t_report = time.monotonic()
     if progress:
         print('reading the bag and drawing the figures ...', file=sys.stderr, flush=True)

@@ -25,7 +25,7 @@ import sys
 import time
 from typing import Callable, Sequence
 
-from soft_gripper_sdre.nodes.graph import RECORDED_BEFORE_START, GraphSpec, NodeSpec, grasp_graph
+from soft_gripper_sdre.nodes.graph import GraphSpec, NodeSpec, grasp_graph, readiness_problem
 from soft_gripper_sdre.tools.procs import DiagnosticsMonitor, Graph, ros_env
 
 #: wall time for the graphs to connect before the simulators start [s]
@@ -79,13 +79,12 @@ class GraphRun:
 
 
 def _connected(spec: GraphSpec, monitor: DiagnosticsMonitor) -> bool:
-    """Every node but the lead is heard from, and a recorder has matched every stream it must
-    hold from the first instant."""
-    heard = all(n.full_name in monitor.by_full_name for n in spec.nodes if n.name != spec.lead)
-    if 'recorder' not in spec.names:
-        return heard
-    recorder = spec.node('recorder').full_name
-    return heard and all(monitor.get(recorder, f'publishers {spec.topic(t)}') > 0 for t in RECORDED_BEFORE_START)
+    """The graph's start rule (:func:`~soft_gripper_sdre.nodes.graph.readiness_problem`) holds
+    for every node but the lead: each has reported and matched its peers among them. The lead
+    (the simulator) applies the same rule, itself included, before its first step."""
+    others = [n for n in spec.nodes if n.name != spec.lead]
+    reports = {n.name: monitor.by_full_name.get(n.full_name) for n in others}
+    return readiness_problem([n.name for n in others], reports, spec.topic) is None
 
 
 def _finished(spec: GraphSpec, monitor: DiagnosticsMonitor) -> bool:
