@@ -131,6 +131,12 @@ def test_render_run_writes_the_figures_and_the_animation(run, tmp_path):
         render_tool.render_run('in-process run', tmp_path, instants=(2.5,), run=run)
 
 
+def test_default_instants_are_the_papers_within_the_run():
+    assert render_tool.default_instants(0.0, 6.0) == render_tool.PAPER_INSTANTS
+    assert render_tool.default_instants(0.0, 1.8) == (1.5, 1.75)
+    assert render_tool.default_instants(0.0, 1.0) == (0.2, 0.4, 0.6, 0.8)   # a short run
+
+
 @pytest.mark.parametrize('args, message', [
     (['/nonexistent/bag', '--out', 'x'], 'does not exist'),
     (['b', '--out', 'x', '--fps', '0'], '--fps'),

@@ -10,8 +10,8 @@ writes to DIR:
 * ``fig1_hand.png``: the hand at rest (the run's first joint state), each finger's controlled
   point (link 9's centre of mass) marked;
 * ``fig4_snapshots.png``: snapshots at ``--instants`` (default the paper's 1.5, 1.75 and 2 s, and
-  2.75 s with the cube held), the reference (ring) and the true tip (dot) of every finger drawn in,
-  the grasping fingers' reference paths as lines;
+  2.75 s with the cube held, those within the run; four spread over a shorter run), the reference
+  (ring) and the true tip (dot) of every finger drawn in, the grasping fingers' reference paths;
 * ``grasp.gif``: the whole run at ``--fps`` frames per second of sim time, the same overlay.
 
 Exit status 2 for a missing or unusable bag or bad arguments.
@@ -131,11 +131,21 @@ def animation(frames, path: Path, fps: float) -> None:
                    loop=0, optimize=True)
 
 
-def render_run(bag: str | Path, out: str | Path, instants=PAPER_INSTANTS, gif: bool = True,
+def default_instants(t0: float, t_end: float) -> tuple[float, ...]:
+    """:data:`PAPER_INSTANTS` that fall within the run [t0, t_end]; if fewer than two do (a short
+    run), four instants spread over it."""
+    inside = tuple(t for t in PAPER_INSTANTS if t0 <= t <= t_end)
+    if len(inside) >= 2:
+        return inside
+    return tuple(float(t) for t in np.round(np.linspace(t0, t_end, 6)[1:-1], 3))
+
+
+def render_run(bag: str | Path, out: str | Path, instants=None, gif: bool = True,
                fps: float = 12.0, gif_width: int = 400, hand_fingers=None, run=None) -> dict:
     """Write :data:`FIG1`, :data:`FIG4` and (``gif``) :data:`GIF` of the run in ``bag`` to ``out``.
 
     Args:
+        instants: sim times of the Fig. 4 snapshots [s]; None: :func:`default_instants`.
         run: the bag already read by :func:`~soft_gripper_sdre.analysis.bag.extract_run`
             (read here if None).
 
@@ -151,6 +161,8 @@ def render_run(bag: str | Path, out: str | Path, instants=PAPER_INSTANTS, gif: b
     if run.joints is None:
         raise BagError(f'bag {bag}: no joint_states, so the hand cannot be posed')
     t_end = float(run.joints.t[-1])
+    if instants is None:
+        instants = default_instants(float(run.joints.t[0]), t_end)
     bad = [t for t in instants if not run.joints.t[0] <= t <= t_end]
     if bad:
         raise ValueError(f'instants {bad} lie outside the run ({run.joints.t[0]:.2f} to '
@@ -195,9 +207,9 @@ def main(argv: list[str] | None = None) -> int:
                                      description=__doc__.split('\n\n')[0])
     parser.add_argument('bag', type=Path, help='rosbag2 directory of a run (with joint_states)')
     parser.add_argument('--out', required=True, type=Path, help='output directory')
-    parser.add_argument('--instants', type=float, nargs='+', default=list(PAPER_INSTANTS),
-                        metavar='S', help='sim times of the Fig. 4 snapshots [s] (default '
-                                          f'{" ".join(map(str, PAPER_INSTANTS))})')
+    parser.add_argument('--instants', type=float, nargs='+', default=None, metavar='S',
+                        help='sim times of the Fig. 4 snapshots [s] (default '
+                             f'{" ".join(map(str, PAPER_INSTANTS))}, those within the run)')
     parser.add_argument('--no-gif', action='store_true', help=f'do not write {GIF}')
     parser.add_argument('--fps', type=float, default=12.0,
                         help='animation frames per second of sim time (default %(default)s)')
@@ -211,10 +223,11 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f'--fps must be in [1, 50], got {args.fps:g}')
     if not 64 <= args.gif_width <= 1280:
         parser.error(f'--gif-width must be in [64, 1280] px, got {args.gif_width}')
-    if not args.instants or len(args.instants) > 8:
+    if args.instants is not None and len(args.instants) > 8:
         parser.error('--instants takes 1 to 8 times')
     try:
-        result = render_run(args.bag, args.out, tuple(args.instants), not args.no_gif, args.fps,
+        instants = None if args.instants is None else tuple(args.instants)
+        result = render_run(args.bag, args.out, instants, not args.no_gif, args.fps,
                             args.gif_width, args.hand_fingers)
     except (BagError, ValueError) as exc:
         print(f'{parser.prog}: error: {exc}', file=sys.stderr)
