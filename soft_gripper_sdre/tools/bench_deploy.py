@@ -1,0 +1,408 @@
+"""The deployment loop's benchmark: a minimal driver stand-in with the estimator and the controller.
+
+    python -m soft_gripper_sdre.tools.bench_deploy [--quick] [--seconds S] [--repeats N]
+        [--rate 1000 500] [--variants base shm composed ...]
+
+On a robot the simulator is replaced by the robot's driver, a light process that publishes the
+measured tips every period and applies the newest command. This benchmark puts the cheapest such
+driver we can write in Python in that place, so what it measures is the estimator, the
+controller and rclpy/Fast DDS between them:
+
+* **the driver** (its own process, :func:`driver`) publishes ``tip_positions`` on an absolute
+  wall-clock schedule (1 kHz or 500 Hz) from CDR bytes built before the run (no message object,
+  no serialization per period: as cheap as a C++ driver's publisher), and takes
+  ``torque_commands`` as raw bytes, reading only each command's stamp. The tips are the measured
+  tips of the in-process closed loop (hand + cube, 0.05 mm noise, the default grasp), replayed,
+  so the estimator and the controller see the states and the Newton–Kleinman iterations of the
+  real grasp; they are stamped k·period from 0, as the simulator stamps them.
+* **the graph**: the estimator, the trajectory node (the plan, once) and the controller as
+  separate processes on their shipped parameters (``control_period`` = the driver's period),
+  optionally the recorder (all topics into an MCAP bag), or the estimator and the controller
+  composed in one process (``controller --with-estimator``).
+
+Per run, over the periods after a warm-up: **late periods** (at the driver's tick k the newest
+command answers tips older than k − 1, the simulator's realtime rule; a tick whose command never
+came counts too), **latency** tips out → the command with the same stamp back, p50 / p99 / max,
+and **CPU per period** of each process from ``/proc/<pid>/schedstat`` (nanoseconds on a CPU, all
+threads) over the same window. The variants change one thing each (environment, composition,
+scheduling); see :data:`VARIANTS`.
+"""
+from __future__ import annotations
+
+import argparse
+import ctypes
+import json
+import os
+from pathlib import Path
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+
+import numpy as np
+
+from soft_gripper_sdre.nodes.graph import NodeSpec, default_params_file
+from soft_gripper_sdre.tools.procs import Graph, ros_env
+
+#: periods before the measured window: discovery, the plan, the first cold steps
+WARMUP_S = 2.0
+#: the driver's wait for the command of its last tick, after its last tick [s]
+DRAIN_S = 0.2
+#: the estimator's and the controller's start-up log lines begin so (their kernels are loaded)
+ESTIMATOR_UP, CONTROLLER_UP = ']: 4 fingers (', ']: model '
+#: variant → (what it changes, environment additions, options)
+VARIANTS: dict[str, tuple[str, dict[str, str], dict]] = {
+    'base': ('separate processes, shipped settings', {}, {}),
+    'shm': ('Fast DDS shared memory only (FASTDDS_BUILTIN_TRANSPORTS=SHM)',
+            {'FASTDDS_BUILTIN_TRANSPORTS': 'SHM'}, {}),
+    'sync': ('Fast DDS synchronous publication (RMW_FASTRTPS_PUBLICATION_MODE=SYNCHRONOUS)',
+             {'RMW_FASTRTPS_PUBLICATION_MODE': 'SYNCHRONOUS'}, {}),
+    'composed': ('estimator + controller in one process, one executor', {}, {'composed': True}),
+    'pinned': ('estimator and controller on core 1, driver and trajectory on core 0 (affinity)',
+               {}, {'pinned': True}),
+    'fifo': ('estimator, controller and driver at SCHED_FIFO priority 50', {}, {'fifo': True}),
+}
+
+
+# -- the driver stand-in ------------------------------------------------------------------------
+
+def _schedstat_ns(pid: int) -> int:
+    """Nanoseconds ``pid`` (all its threads) has run on a CPU (``/proc/<pid>/schedstat``)."""
+    try:
+        return int(Path(f'/proc/{pid}/schedstat').read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        return -1
+
+
+def _timer_slack(ns: int) -> None:
+    """This thread's timer slack (Linux prctl PR_SET_TIMERSLACK), so sleeps end on time."""
+    try:
+        ctypes.CDLL(None, use_errno=True).prctl(29, ctypes.c_ulong(ns), 0, 0, 0)
+    except (OSError, AttributeError):
+        pass
+
+
+def driver(period: float, warmup: float, seconds: float, tips_path: Path, readers: int,
+           pids: dict[str, int]) -> dict:
+    """The driver stand-in (run in its own process): publish the tips of ``tips_path`` every
+    ``period`` on an absolute schedule, time the commands, return the figures.
+
+    Waits until ``readers`` subscribers have matched ``tip_positions`` and a publisher has matched
+    ``torque_commands``, ticks for ``warmup`` + ``seconds``, and measures the last ``seconds``:
+    lateness, latency, and the CPU of every process in ``pids`` (name → pid) and its own.
+    """
+    import rclpy
+    from geometry_msgs.msg import PoseArray
+    from rclpy.experimental import EventsExecutor
+    from rclpy.node import Node
+    from sensor_msgs.msg import JointState
+
+    from soft_gripper_sdre.nodes import cdr
+    from soft_gripper_sdre.nodes.topics import LOOP_QOS, TIP_POSITIONS, TORQUE_COMMANDS
+
+    tips = np.load(tips_path)
+    period_ns = int(round(period * 1e9))
+    stride = int(round(period / 1e-3))
+    total = int(round((warmup + seconds) / period))
+    first = int(round(warmup / period))
+    if (total - 1) * stride >= len(tips):
+        raise ValueError(f'{tips_path} holds {len(tips)} ms of tips, {total * stride} needed')
+    codec = cdr.tips_codec(tips.shape[1])
+    messages = [codec.encode(k * period_ns, tips[k * stride]) for k in range(total)]
+    sent = np.zeros(total)              # perf_counter at each tick's publish (0: skipped)
+    received = np.zeros(total)          # perf_counter when the command stamped k arrived
+    newest = [-1]                       # the newest period answered
+    late = np.zeros(total, dtype=bool)
+    wake = np.zeros(total)              # how late each tick woke [s]
+    perf = time.perf_counter
+    _timer_slack(1000)
+
+    rclpy.init()
+    node = Node('deploy_driver')
+    pub = node.create_publisher(PoseArray, TIP_POSITIONS, LOOP_QOS)
+
+    def on_command(data: bytes) -> None:
+        now = perf()
+        stamp = cdr.leading_stamp(data)
+        if stamp is None:
+            return
+        k = stamp // period_ns
+        if 0 <= k < total and not received[k]:
+            received[k] = now
+            if k > newest[0]:
+                newest[0] = k
+    sub = node.create_subscription(JointState, TORQUE_COMMANDS, on_command, LOOP_QOS, raw=True)
+    executor = EventsExecutor()
+    executor.add_node(node)
+    stop = threading.Event()
+
+    def spin() -> None:
+        while not stop.is_set():
+            executor.spin_once(timeout_sec=0.05)
+    spinner = threading.Thread(target=spin, daemon=True)
+    spinner.start()
+    deadline = time.monotonic() + 60.0
+    while (pub.get_subscription_count() < readers or sub.get_publisher_count() < 1) \
+            and time.monotonic() < deadline:
+        time.sleep(0.01)
+    matched = pub.get_subscription_count(), sub.get_publisher_count()
+    time.sleep(0.2)                     # both sides of every match settled
+    cpu0: dict[str, int] = {}
+    watched = {**pids, 'driver': os.getpid()}
+    skipped = 0
+    t0 = perf() + 0.01
+    k = 0
+    while k < total:
+        due = t0 + k * period
+        now = perf()
+        if now < due:
+            time.sleep(due - now)
+            now = perf()
+        behind = int((now - t0) / period) - k
+        if behind > 0:                  # woke more than a period late: skip, as a timer does
+            skipped += behind
+            k += behind
+            if k >= total:
+                break
+            due = t0 + k * period
+        if k >= first and not cpu0:
+            cpu0 = {name: _schedstat_ns(pid) for name, pid in watched.items()}
+            first = k
+        wake[k] = now - due
+        late[k] = newest[0] < k - 1
+        sent[k] = perf()
+        pub.publish(messages[k])
+        k += 1
+    cpu1 = {name: _schedstat_ns(pid) for name, pid in watched.items()}
+    time.sleep(DRAIN_S)
+    stop.set()
+    spinner.join()
+    executor.shutdown()
+    node.destroy_node()
+    rclpy.try_shutdown()
+    window = np.arange(first, total)
+    ticked = window[sent[window] > 0]
+    answered = ticked[received[ticked] > 0]
+    latency = 1e6 * (received[answered] - sent[answered])
+    periods = total - first
+    cpu = {name: (cpu1[name] - cpu0.get(name, cpu1[name])) / 1e3 / periods for name in cpu1}
+    return {
+        'periods': periods, 'ticks': int(len(ticked)), 'skipped': skipped,
+        'late': int(late[ticked].sum()), 'unanswered': int(len(ticked) - len(answered)),
+        'late_pct': 100.0 * float(late[ticked].sum()) / max(len(ticked), 1),
+        'latency_p50': float(np.percentile(latency, 50)) if len(latency) else float('nan'),
+        'latency_p99': float(np.percentile(latency, 99)) if len(latency) else float('nan'),
+        'latency_max': float(latency.max()) if len(latency) else float('nan'),
+        'wake_p99': 1e6 * float(np.percentile(wake[ticked], 99)),
+        'cpu_us': cpu, 'matched': matched,
+    }
+
+
+# -- the run ------------------------------------------------------------------------------------
+
+def replay_tips(seconds: float, path: Path) -> Path:
+    """The measured tips (n, 3 with z = 0) of ``seconds`` of the in-process closed loop, every
+    1 ms, saved to ``path`` (.npy) unless it holds them already."""
+    if path.is_file():
+        return path
+    from soft_gripper_sdre.tools.bench import closed_loop
+    meas = closed_loop(seconds, noise_std=5e-5).meas
+    tips = np.concatenate([meas, np.zeros(meas.shape[:2] + (1,))], axis=2)
+    np.save(path, tips)
+    return path
+
+
+def _threads(pid: int) -> list[int]:
+    try:
+        return [int(t) for t in os.listdir(f'/proc/{pid}/task')]
+    except OSError:
+        return []
+
+
+def _pin(pid: int, cpus: set[int]) -> None:
+    """Every thread of ``pid`` on ``cpus``."""
+    for tid in _threads(pid):
+        try:
+            os.sched_setaffinity(tid, cpus)
+        except OSError:
+            pass
+
+
+def _fifo(pid: int, priority: int = 50) -> bool:
+    """Every thread of ``pid`` under SCHED_FIFO at ``priority``; False if refused."""
+    ok = True
+    for tid in _threads(pid):
+        try:
+            os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(priority))
+        except OSError:
+            ok = False
+    return ok
+
+
+def _spec(name: str, parameters: dict) -> NodeSpec:
+    return NodeSpec(name, name, params_file=default_params_file(name), parameters=parameters)
+
+
+def run_deploy(period: float, seconds: float, tips: Path, *, record: bool = False,
+               variant: str = 'base', warmup: float = WARMUP_S) -> dict:
+    """One run of the deployment loop (see the module doc); returns :func:`driver`'s figures plus
+    ``variant``, ``rate_hz``, ``record`` and ``load`` (the 1-minute load average at the end)."""
+    _, extra_env, options = VARIANTS[variant]
+    env = {**ros_env(), **extra_env}
+    timing = {'control_period': float(period)}
+    with tempfile.TemporaryDirectory(prefix='sgs_bench_deploy_') as tmp, \
+            Graph(env, Path(tmp) / 'logs') as graph:
+        if record:
+            graph.start_node(_spec('recorder', {'output': str(Path(tmp) / 'bag')}))
+        if options.get('composed'):
+            spec = _spec('controller', timing)
+            cmd = [sys.executable, '-m', spec.module, '--with-estimator', *spec.ros_arguments(),
+                   '--params-file', str(default_params_file('estimator'))]
+            graph.procs['controller'] = _popen(graph, 'controller', cmd, env)
+        else:
+            graph.start_node(_spec('estimator', timing))
+            graph.start_node(_spec('controller', timing))
+        graph.start_node(_spec('trajectory', {}))
+        loop = [n for n in ('estimator', 'controller') if n in graph.procs]
+        _wait_ready(graph, {'controller': (ESTIMATOR_UP, CONTROLLER_UP)} if options.get('composed')
+                    else {'estimator': (ESTIMATOR_UP,), 'controller': (CONTROLLER_UP,)})
+        pids = {name: proc.popen.pid for name, proc in graph.procs.items()}
+        readers = 2 + record
+        cmd = [sys.executable, '-m', 'soft_gripper_sdre.tools.bench_deploy', '--driver',
+               json.dumps({'period': period, 'warmup': warmup, 'seconds': seconds,
+                           'tips': str(tips), 'readers': readers, 'pids': pids})]
+        drv = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                               text=True)
+        if options.get('pinned'):
+            time.sleep(1.0)
+            for name in loop:
+                _pin(pids[name], {1})
+            _pin(drv.pid, {0})
+            _pin(pids['trajectory'], {0})
+        fifo = None
+        if options.get('fifo'):
+            time.sleep(1.0)
+            fifo = all([_fifo(pids[name]) for name in loop] + [_fifo(drv.pid)])
+        out, err = drv.communicate(timeout=warmup + seconds + 120.0)
+        if drv.returncode != 0:
+            tails = {n: p.log_tail(800) for n, p in graph.procs.items()}
+            raise RuntimeError(f'the driver failed ({drv.returncode}): {err[-2000:]}\n{tails}')
+    result = json.loads(out.strip().splitlines()[-1])
+    result.update(variant=variant, rate_hz=round(1.0 / period), record=record,
+                  load=os.getloadavg()[0])
+    if fifo is not None:
+        result['fifo_granted'] = fifo
+    return result
+
+
+def _popen(graph: Graph, key: str, cmd: list[str], env: dict[str, str]):
+    from soft_gripper_sdre.tools.procs import NodeProcess
+    graph.log_dir.mkdir(parents=True, exist_ok=True)
+    log_path = graph.log_dir / f'{key}.log'
+    with open(log_path, 'w', encoding='utf-8') as log:
+        popen = subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT,
+                                 stdin=subprocess.DEVNULL)
+    return NodeProcess(key, popen, log_path)
+
+
+def _wait_ready(graph: Graph, ready: dict[str, tuple[str, ...]], timeout: float = 120.0) -> None:
+    """Until every process of ``ready`` has logged each of its words (the nodes' start-up lines,
+    written once the kernels are loaded)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        dead = [n for n, p in graph.procs.items() if not p.alive()]
+        if dead:
+            raise RuntimeError(f'{dead} exited: {[graph.procs[n].log_tail(800) for n in dead]}')
+        if all(all(w in graph.procs[n].log_tail(100_000) for w in words)
+               for n, words in ready.items()):
+            return
+        time.sleep(0.1)
+    raise RuntimeError(f'not ready within {timeout:g} s: '
+                       f'{[graph.procs[n].log_tail(800) for n in ready]}')
+
+
+# -- the table ----------------------------------------------------------------------------------
+
+def summary(runs: list[dict]) -> dict:
+    """The quietest run of repeated ones (lowest late share, then lowest p99), with the spread."""
+    best = min(runs, key=lambda r: (r['late_pct'], r['latency_p99']))
+    late = [r['late_pct'] for r in runs]
+    p99 = [r['latency_p99'] for r in runs]
+    return {**best, 'spread_late': (min(late), max(late)), 'spread_p99': (min(p99), max(p99)),
+            'loads': [round(r['load'], 1) for r in runs], 'repeats': len(runs)}
+
+
+def describe(s: dict) -> tuple[str, str, str]:
+    """(what, figure, note) of a :func:`summary`."""
+    cpu = s['cpu_us']
+    loop = [n for n in ('estimator', 'controller') if n in cpu]
+    parts = ' + '.join(f'{n} {cpu[n]:.0f}' for n in loop)
+    total = sum(cpu[n] for n in loop)
+    what = (f'deployment loop at {s["rate_hz"]} Hz, {VARIANTS[s["variant"]][0]}'
+            + (', with the recorder' if s['record'] else ''))
+    figure = (f'{s["late_pct"]:.2f} % late; {s["latency_p50"]:.0f} / {s["latency_p99"]:.0f} / '
+              f'{s["latency_max"]:.0f} µs')
+    note = (f'latency p50 / p99 / max; CPU per period {parts} = {total:.0f} µs'
+            + (f', recorder {cpu["recorder"]:.0f}' if 'recorder' in cpu else '')
+            + f', driver {cpu["driver"]:.0f} µs; {s["periods"]} periods, best of {s["repeats"]} '
+            f'(late {s["spread_late"][0]:.2f}–{s["spread_late"][1]:.2f} %, p99 '
+            f'{s["spread_p99"][0]:.0f}–{s["spread_p99"][1]:.0f} µs; load {s["loads"]})')
+    return what, figure, note
+
+
+def measure(rates: list[int], variants: list[str], seconds: float, repeats: int,
+            record_too: bool, tips: Path, echo=print) -> list[dict]:
+    out = []
+    for rate in rates:
+        for variant in variants:
+            for record in ((False, True) if record_too else (False,)):
+                runs = []
+                for _ in range(repeats):
+                    runs.append(run_deploy(1.0 / rate, seconds, tips, record=record,
+                                           variant=variant))
+                    echo(json.dumps(runs[-1]))
+                out.append(summary(runs))
+                echo(' | '.join(describe(out[-1])))
+    return out
+
+
+def rows(quick: bool = False) -> list[tuple[str, str, str]]:
+    """The deployment rows of BENCHMARKS.md: 1 kHz and 500 Hz, with and without the recorder."""
+    seconds = 3.0 if quick else 10.0
+    with tempfile.TemporaryDirectory(prefix='sgs_deploy_tips_') as tmp:
+        tips = replay_tips(WARMUP_S + seconds + 1.0, Path(tmp) / 'tips.npy')
+        table = measure([1000, 500], ['base'], seconds, 1 if quick else 3, True, tips,
+                        echo=lambda _: None)
+    return [describe(s) for s in table]
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.bench_deploy',
+                                 description=__doc__.split('\n')[0])
+    ap.add_argument('--driver', default=None, help=argparse.SUPPRESS)     # the driver process
+    ap.add_argument('--quick', action='store_true', help='short runs, once each')
+    ap.add_argument('--seconds', type=float, default=None, help='measured seconds per run')
+    ap.add_argument('--repeats', type=int, default=None, help='runs per configuration')
+    ap.add_argument('--rate', type=int, nargs='+', default=[1000, 500], help='driver rates [Hz]')
+    ap.add_argument('--variants', nargs='+', default=['base'], choices=sorted(VARIANTS))
+    ap.add_argument('--no-recorder', action='store_true', help='only the runs without recorder')
+    ap.add_argument('--tips', type=Path, default=None, help='cache of the replayed tips (.npy)')
+    a = ap.parse_args(argv)
+    if a.driver is not None:
+        d = json.loads(a.driver)
+        result = driver(d['period'], d['warmup'], d['seconds'], Path(d['tips']), d['readers'],
+                        d['pids'])
+        print(json.dumps(result), flush=True)
+        return 0
+    seconds = a.seconds or (3.0 if a.quick else 10.0)
+    repeats = a.repeats or (1 if a.quick else 3)
+    with tempfile.TemporaryDirectory(prefix='sgs_deploy_tips_') as tmp:
+        tips = a.tips or Path(tmp) / 'tips.npy'
+        replay_tips(WARMUP_S + seconds + 1.0, tips)
+        measure(a.rate, a.variants, seconds, repeats, not a.no_recorder, tips)
+    return 0
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())
