@@ -165,6 +165,8 @@ def generate_launch_description():
     from launch.substitutions import LaunchConfiguration
     from launch_ros.actions import Node
 
+    from soft_gripper_sdre.tools.procs import pinned_kernels
+
     def watch(name):
         def on_exit(event, context):
             verdict = exit_verdict(name, event.returncode, context.is_shutdown)
@@ -178,8 +180,10 @@ def generate_launch_description():
 
     def nodes(context):
         values = {name: LaunchConfiguration(name).perform(context) for name, _, _ in ARGUMENTS}
+        # the math kernels every AVX2 machine runs alike, as the demo's processes get them
+        env = pinned_kernels()
         return [Node(**node, output='screen', emulate_tty=True, on_exit=watch(node['name']),
-                     sigterm_timeout=str(CLOSE_TIMEOUT))
+                     sigterm_timeout=str(CLOSE_TIMEOUT), additional_env=env or None)
                 for node in grasp_nodes(**values)]
 
     return LaunchDescription(

@@ -4,9 +4,9 @@ reproducing the shipped model from nothing.
 Training is deterministic on one machine (one thread, deterministic algorithms, seeded shuffles).
 Across machines the bits part in the math libraries' CPU-specific kernels: OpenBLAS picks its
 matrix kernels by CPU (the KF/RTS labels differ at 1e-12 between its Haswell and SkylakeX
-kernels), MKL and ATen theirs for training. :data:`PINNED_KERNELS` fixes each of them to one code
-path that every x86-64 machine with AVX2 and FMA runs; with them the slow test demands the shipped
-checkpoint bit for bit (the same data fingerprint, epochs, u4 R² and weights as
+kernels), MKL and ATen theirs for training. ``tools.procs.PINNED_KERNELS`` fixes each of them to
+one code path that every x86-64 machine with AVX2 and FMA runs; with them the slow test demands
+the shipped checkpoint bit for bit (the same data fingerprint, epochs, u4 R² and weights as
 soft_gripper_sdre/models/default.pt and its default.json). On every machine, pinned or not, it
 demands the model within :data:`BAND` of the shipped one: the spread measured by perturbing the
 training data at rounding level (docs/model.md, "The same model on another machine").
@@ -14,8 +14,6 @@ training data at rounding level (docs/model.md, "The same model on another machi
 from dataclasses import replace
 import json
 import os
-from pathlib import Path
-import platform
 import subprocess
 import sys
 
@@ -27,6 +25,7 @@ from soft_gripper_sdre.learning.model import DEFAULT_MODEL, read_checkpoint
 from soft_gripper_sdre.learning.training import PRESETS, TrainSettings, train
 from soft_gripper_sdre.sim.hand import SimConfig
 from soft_gripper_sdre.tools.collect import collect_signal
+from soft_gripper_sdre.tools.procs import PINNED_KERNELS, cpu_runs_pinned_kernels, ros_env
 
 
 @pytest.fixture(scope='module')
@@ -79,12 +78,6 @@ def test_training_fixes_its_thread_count_and_restores_the_callers(data):
         assert torch.equal(value, b.net.state_dict()[key]), key
 
 
-#: the math kernels pinned to one code path that every x86-64 machine with AVX2 and FMA runs:
-#: OpenBLAS's Haswell kernels (numpy: the KF/RTS labels), MKL's AVX2 branch in strict
-#: conditional-numerical-reproducibility mode and ATen's AVX2 kernels (torch: training)
-PINNED_KERNELS = {'OPENBLAS_CORETYPE': 'Haswell', 'MKL_CBWR': 'AVX2,STRICT',
-                  'ATEN_CPU_CAPABILITY': 'avx2'}
-
 #: how far the trained model may move when the training arrays' bits do (another CPU's kernels):
 #: the u4 R² X and Y (absolute), the two dominant entries of G2 at the origin (relative), the
 #: angles of G2's columns [deg] and the derivative errors (relative). Measured (MEASURED): the
@@ -114,19 +107,6 @@ MEASURED = (
      'G2_at_origin': [[25.033, 647.288], [-600.154, -8.16]],
      'G2_column_angles_deg': [-87.61, -0.72]},
 )
-
-
-def cpu_runs_pinned_kernels() -> bool:
-    """An x86-64 Linux machine with AVX2 and FMA: the one that runs :data:`PINNED_KERNELS`."""
-    if platform.machine() != 'x86_64':
-        return False
-    try:
-        text = Path('/proc/cpuinfo').read_text()
-    except OSError:
-        return False
-    flags = next((line.split(':', 1)[1].split() for line in text.splitlines()
-                  if line.startswith('flags')), [])
-    return {'avx2', 'fma'} <= set(flags)
 
 
 def band_problems(metrics: dict, shipped: dict, band: dict = BAND) -> list[str]:
@@ -177,6 +157,20 @@ def test_the_pinned_kernels_are_the_ones_numpy_and_torch_run():
                          env={**os.environ, **PINNED_KERNELS}, timeout=120)
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.split() == ['Haswell', 'AVX2']
+
+
+def test_the_graph_processes_get_the_pinned_kernels_unless_the_caller_set_its_own(monkeypatch):
+    """The demo's, the runners' and the tests' node processes (tools.procs.ros_env) run the
+    pinned kernels where the CPU has them; a variable set by the caller is kept."""
+    monkeypatch.setenv('MKL_CBWR', 'COMPATIBLE')
+    monkeypatch.delenv('OPENBLAS_CORETYPE', raising=False)
+    env = ros_env(42)
+    assert env['MKL_CBWR'] == 'COMPATIBLE'
+    if cpu_runs_pinned_kernels():
+        assert env['OPENBLAS_CORETYPE'] == 'Haswell'
+        assert env['ATEN_CPU_CAPABILITY'] == PINNED_KERNELS['ATEN_CPU_CAPABILITY']
+    else:
+        assert 'OPENBLAS_CORETYPE' not in env
 
 
 def run_tool(tool, *args, timeout, env=None):

@@ -79,7 +79,9 @@ def run_demo(out: Path, duration: float, model: Path | None = None, noise: float
         'estimator': {},
         'controller': {'model_path': str(model.resolve())} if model else {},
         'trajectory': {},
-        'simulator': {'duration': duration, 'min_tip_subscribers': 3},
+        # the first run after an install compiles the control kernels (about a minute) before
+        # the controller and the estimator report ready
+        'simulator': {'duration': duration, 'min_tip_subscribers': 3, 'startup_timeout': 120.0},
     }
     if noise is not None:
         params['simulator']['noise_std'] = noise

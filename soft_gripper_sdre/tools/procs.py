@@ -11,11 +11,13 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 import os
 from pathlib import Path
+import platform
 import random
 import signal
 import subprocess
 import sys
 import time
+from typing import Mapping
 
 from soft_gripper_sdre.nodes.graph import RECORDED_BEFORE_START, NodeSpec, default_params_file
 
@@ -26,9 +28,41 @@ WIRED_BEFORE_START = tuple(f'/{topic}' for topic in RECORDED_BEFORE_START)
 DDS_ENV = ('ROS_DOMAIN_ID', 'ROS_AUTOMATIC_DISCOVERY_RANGE', 'ROS_STATIC_PEERS', 'FASTDDS_BUILTIN_TRANSPORTS')
 
 
+#: the math libraries' kernels pinned to one code path that every x86-64 machine with AVX2 and
+#: FMA runs, so numbers come out the same on each: OpenBLAS's Haswell kernels (numpy), MKL's AVX2
+#: branch in strict conditional-numerical-reproducibility mode and ATen's AVX2 kernels (torch).
+#: Without them an AVX-512 machine's OpenBLAS takes its SkylakeX kernels and parts from an AVX2
+#: machine in the last bits (docs/model.md, "The same model on another machine")
+PINNED_KERNELS = {'OPENBLAS_CORETYPE': 'Haswell', 'MKL_CBWR': 'AVX2,STRICT',
+                  'ATEN_CPU_CAPABILITY': 'avx2'}
+
+
+def cpu_runs_pinned_kernels() -> bool:
+    """An x86-64 Linux machine with AVX2 and FMA: one that runs :data:`PINNED_KERNELS`."""
+    if platform.machine() != 'x86_64':
+        return False
+    try:
+        text = Path('/proc/cpuinfo').read_text()
+    except OSError:
+        return False
+    flags = next((line.split(':', 1)[1].split() for line in text.splitlines()
+                  if line.startswith('flags')), [])
+    return {'avx2', 'fma'} <= set(flags)
+
+
+def pinned_kernels(environ: Mapping[str, str] = os.environ) -> dict[str, str]:
+    """The :data:`PINNED_KERNELS` that ``environ`` does not set already, where this machine runs
+    them (else none)."""
+    if not cpu_runs_pinned_kernels():
+        return {}
+    return {key: value for key, value in PINNED_KERNELS.items() if key not in environ}
+
+
 def ros_env(domain_id: int | None = None) -> dict[str, str]:
-    """The environment for the graph: DDS on loopback and a domain of its own."""
+    """The environment for the graph: DDS on loopback, a domain of its own and, where the CPU
+    runs them, the :data:`PINNED_KERNELS` (a variable the caller set is kept)."""
     env = dict(os.environ)
+    env.update(pinned_kernels(env))
     env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
     if domain_id is None:
         domain_id = int(env.get('ROS_DOMAIN_ID', '0')) or random.SystemRandom().randint(1, 101)
