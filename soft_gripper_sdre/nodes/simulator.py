@@ -5,7 +5,9 @@ It exposes the fingers ``finger_names``, each one of the scene's fingers (``hand
 Publishes ``tip_positions`` (each control period), ``/clock`` (``clock_rate``, 100 Hz of sim time
 by default), ``joint_states``, ``cube_pose``, ``cube_contacts`` (``state_rate``) and
 ``/diagnostics``; subscribes ``torque_commands`` (keeping only the newest). Per period it sends
-one loop message and receives one.
+one loop message and receives one. The hand scene also publishes the live 3-D view
+(docs/visualization.md): its URDF on ``robot_description`` once, and the hand as ``markers`` on a
+wall timer at ``marker_rate`` while someone subscribes.
 
 When it steps and with which torque is decided by :class:`~soft_gripper_sdre.sim.lockstep.Stepping`
 (docs/design/loop_rules.md): in *lockstep* (default, deterministic) one step per command stamped
