@@ -1,7 +1,8 @@
 """The controller's per-step work compiled with numba: how to call the kernels, what they keep.
 
 The kernels (:mod:`~soft_gripper_sdre.control.compiled_sdre`, :mod:`~soft_gripper_sdre.control.compiled_kf`,
-:mod:`~soft_gripper_sdre.control.compiled_integral`)
+:mod:`~soft_gripper_sdre.control.compiled_integral`,
+:mod:`~soft_gripper_sdre.control.compiled_horizon`)
 take float64 / bool / int64 C-contiguous arrays and scalars, write their results into arrays the
 caller owns and update the controller's state in place. Their parameters come in the groups below,
 whose fields are the parameters in order, so a caller holds four tuples and splats them:
@@ -30,6 +31,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from soft_gripper_sdre.control.compiled_horizon import plan_sample
 from soft_gripper_sdre.control.compiled_integral import integral_step, integral_update
 from soft_gripper_sdre.control.compiled_kf import kf_step, kf_step_dt
 from soft_gripper_sdre.control.compiled_sdre import (feedforward_step, model_inversion, sdc_forward, sdre_gains,
@@ -38,7 +40,8 @@ from soft_gripper_sdre.control.compiled_sdre import (feedforward_step, model_inv
 __all__ = ['SdcNetwork', 'SdreSettings', 'SdreState', 'SdreOutputs', 'FeedforwardOutputs', 'compiled_network',
            'kernel_array', 'warm_up',
            'sdc_forward', 'sdre_gains', 'tracking_torques', 'sdre_step', 'tracking_step', 'model_inversion',
-           'feedforward_step', 'kf_step', 'kf_step_dt', 'integral_step', 'integral_update']
+           'feedforward_step', 'kf_step', 'kf_step_dt', 'integral_step', 'integral_update',
+           'plan_sample']
 
 
 class SdcNetwork(NamedTuple):
@@ -161,3 +164,6 @@ def warm_up() -> None:
     integral_step(rows.copy(), np.eye(2), np.eye(2), 1e-3, 1e-3, 0.9, 1.0, rows, ones, rows.copy(), rows.copy(),
                   saturated)
     integral_update(rows.copy(), np.eye(2), np.eye(2), 1e-3, 1e-3, 0.9, 1.0, rows, saturated, ones)
+    plan = np.zeros((2, n, 2))
+    plan_sample(np.array([0, 1], dtype=np.int64), plan, plan, plan, 0, rows.copy(), rows.copy(),
+                rows.copy())

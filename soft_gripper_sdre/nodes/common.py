@@ -221,9 +221,11 @@ def flush(node: Node, timeout: float = 2.0) -> bool:
     return acked
 
 
-def run(node_factory: Callable[..., Node], args: list[str] | None = None) -> int:
+def run(node_factory: Callable[..., Node | tuple[Node, ...]], args: list[str] | None = None) -> int:
     """``main()`` of every node: init → construct → spin until shutdown or ``node.done`` → clean up.
 
+    ``node_factory`` builds one node, or several that share the process and its one executor (the
+    first ``done`` ends them all; the exit status is the largest of theirs).
     ``args`` is the whole command line (program name first; default ``sys.argv``). ``--help`` and
     bad parameter files are settled first (:mod:`soft_gripper_sdre.nodes.cli`), from the node
     module's ``PARAMS``. SIGTERM is handled like SIGINT. A :class:`ParameterError` at construction
@@ -250,26 +252,29 @@ def run(node_factory: Callable[..., Node], args: list[str] | None = None) -> int
     stop: list[int] = []
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda signum, _frame: stop.append(signum))
-    node = executor = None
+    nodes: tuple[Node, ...] = ()
+    executor = None
     code = 0
     try:
         try:
-            node = node_factory()
+            made = node_factory()
         except ParameterError as exc:
             rclpy.logging.get_logger('soft_gripper_sdre').fatal(f'bad parameter: {exc}')
             return 2
         except (OSError, ValueError) as exc:
             rclpy.logging.get_logger('soft_gripper_sdre').fatal(f'cannot start: {exc}')
             return 1
+        nodes = made if isinstance(made, tuple) else (made,)
         executor = make_executor()
-        executor.add_node(node)
-        while rclpy.ok() and not stop and not getattr(node, 'done', False):
+        for node in nodes:
+            executor.add_node(node)
+        while rclpy.ok() and not stop and not any(getattr(node, 'done', False) for node in nodes):
             executor.spin_once(timeout_sec=0.1)
-        code = int(getattr(node, 'exit_code', 0))
+        code = max(int(getattr(node, 'exit_code', 0)) for node in nodes)
     except ExternalShutdownException:       # the context was shut down from elsewhere
         pass
     finally:
-        if node is not None:
+        for node in nodes:
             diag = getattr(node, 'diag', None)
             if isinstance(diag, Diagnostics) and rclpy.ok():
                 diag.publish()                  # final counters, for recorders still listening
@@ -280,7 +285,8 @@ def run(node_factory: Callable[..., Node], args: list[str] | None = None) -> int
                 close()
             if executor is not None:
                 executor.remove_node(node)
-                executor.shutdown()
             node.destroy_node()
+        if executor is not None:
+            executor.shutdown()
         rclpy.try_shutdown()
     return code

@@ -40,6 +40,7 @@ a message and a non-zero status.
 from __future__ import annotations
 
 from pathlib import Path
+import sys
 import time
 
 import numpy as np
@@ -50,7 +51,7 @@ from trajectory_msgs.msg import MultiDOFJointTrajectory
 
 from soft_gripper_sdre import FINGER_NAMES
 from soft_gripper_sdre.control.command_gate import Change, CommandGate, Notice, Outcome, Plan
-from soft_gripper_sdre.control.compiled import warm_up
+from soft_gripper_sdre.control.compiled import plan_sample, warm_up
 from soft_gripper_sdre.control.tracking import DEFAULT_LOWPASS_HZ, DEFAULT_WEIGHTS, Weights, roll_off_corner_hz
 from soft_gripper_sdre.control.horizon import sample_plan
 from soft_gripper_sdre.control.laws import (DEFAULT_CT, DEFAULT_INTEGRAL, DEFAULT_LAW, DEFAULT_PD,
@@ -147,7 +148,9 @@ def rest_shift(model, names: tuple[str, ...]) -> np.ndarray | None:
 class ControllerNode(Node):
     """SDRE tracking controller on topics (see module doc)."""
 
-    def __init__(self, **kwargs) -> None:
+    def __init__(self, *, subscribe_estimates: bool = True, **kwargs) -> None:
+        """``subscribe_estimates=False``: no ``state_estimate`` subscription; the estimates come
+        by :meth:`take_estimate` (an estimator node in the same process)."""
         super().__init__('controller', **kwargs)
         p = declare_all(self, PARAMS)
         self.p = p
@@ -176,6 +179,8 @@ class ControllerNode(Node):
         self.done = False
         self.exit_code = 0
         self._compute_s = []
+        self._plan: Plan | None = None      # the plan the contiguous copies below are of
+        self._plan_arrays: tuple = ()
 
         # the per-period messages travel as CDR bytes read / written at fixed offsets (nodes/cdr.py)
         self.cdr_estimate = cdr.estimate_codec(self.names)
@@ -186,8 +191,10 @@ class ControllerNode(Node):
         if self.effort_order is not None:
             self.pub_effort = self.create_publisher(Float64MultiArray, p['effort_topic'], LOOP_QOS)
             self._effort_msg = Float64MultiArray()      # layout: no dims, data_offset 0
-        self.sub_est = self.create_subscription(MultiDOFJointTrajectory, STATE_ESTIMATE,
-                                                self.on_estimate, NEWEST_QOS, raw=True)
+        self.sub_est = None
+        if subscribe_estimates:
+            self.sub_est = self.create_subscription(MultiDOFJointTrajectory, STATE_ESTIMATE,
+                                                    self.on_estimate, NEWEST_QOS, raw=True)
         self.sub_ref = self.create_subscription(MultiDOFJointTrajectory, GRASP_REFERENCE,
                                                 self.on_reference, REFERENCE_QOS, raw=True)
         self.log = ThrottledLogger(self.get_logger())
@@ -230,6 +237,11 @@ class ControllerNode(Node):
             return
         self._act(self.gate.on_estimate(stamp, x, time.monotonic()), STATE_ESTIMATE)
 
+    def take_estimate(self, stamp: int, x: np.ndarray) -> None:
+        """The estimate (n, 4) stamped ``stamp`` [ns], handed over in-process by an estimator
+        node of the same process and executor: answered as if it had come on the topic."""
+        self._act(self.gate.on_estimate(stamp, x, time.monotonic()), STATE_ESTIMATE)
+
     def _reject(self, key: str, why: str) -> None:
         self.diag.problem(key, f'rejected: {why}')
 
@@ -263,8 +275,7 @@ class ControllerNode(Node):
 
     # -- the law -----------------------------------------------------------------------------
     def _control(self, stamp: int, x: np.ndarray, plan: Plan) -> None:
-        ref_pos, ref_vel, ref_acc = sample_plan(plan.times, plan.pos, plan.vel, plan.acc, stamp,
-                                                with_acc=True)
+        ref_pos, ref_vel, ref_acc = self._sample(plan, stamp)
         pos = x[:, :2]
         if self.rest_shift is not None:         # each finger into the model's frame
             pos, ref_pos = pos + self.rest_shift, ref_pos + self.rest_shift
@@ -272,7 +283,7 @@ class ControllerNode(Node):
         out = self.ctrl.compute(pos, x[:, 2:], ref_pos, ref_vel, ref_acc=ref_acc)
         self._compute_s.append(time.perf_counter() - t0)
         u = out.u
-        if not np.all(np.isfinite(u)):          # the core guarantees this; keep the promise here too
+        if not np.isfinite(u).all():        # the core guarantees this; keep the promise here too
             self.diag.count('nonfinite_torque')
             u = np.zeros_like(u)
         self.pub_cmd.publish(self.cdr_cmd.encode(stamp, u))
@@ -281,6 +292,19 @@ class ControllerNode(Node):
             self.pub_effort.publish(self._effort_msg)
         self.diag.good('commands', 'tracking')
         count_solve(self.diag, self.log, out, stamp)
+
+    def _sample(self, plan: Plan, stamp: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The plan's position, velocity and acceleration (n, 2) at ``stamp``: :func:`sample_plan`
+        compiled (the same bits), on the plan's arrays made contiguous once per plan."""
+        if plan is not self._plan:
+            self._plan = plan
+            self._plan_arrays = (np.ascontiguousarray(plan.times, dtype=np.int64),
+                                 *(np.ascontiguousarray(a, dtype=np.float64)
+                                   for a in (plan.pos, plan.vel, plan.acc)))
+        out = np.empty((3, self.n, 2))
+        if plan_sample(*self._plan_arrays, stamp, out[0], out[1], out[2]):
+            return out[0], out[1], out[2]
+        return sample_plan(plan.times, plan.pos, plan.vel, plan.acc, stamp, with_acc=True)
 
     # -- the law and its tuning --------------------------------------------------------------
     def _uses(self, name: str) -> bool:
@@ -369,7 +393,7 @@ def count_solve(diag: Diagnostics, log: ThrottledLogger, out, stamp: int) -> Non
                  f'at t = {stamp / cv.NS:.3f} s; using the last valid gains')
     if out.saturated.any():
         diag.count('saturated', int(out.saturated.sum()))
-    res = float(np.max(out.residual))
+    res = float(out.residual.max())
     if res > float(diag.values.get('max_residual', '0')):
         diag.values['max_residual'] = f'{res:.3g}'
 
@@ -378,8 +402,34 @@ def _ns(seconds: float) -> int:
     return int(round(seconds * cv.NS))
 
 
+#: the command-line flag that runs the estimator node in the controller's process
+WITH_ESTIMATOR = '--with-estimator'
+
+
+def with_estimator() -> tuple[Node, Node]:
+    """The estimator and the controller as two nodes of one process: each estimate is handed to
+    the controller in-process (no DDS hop, no second process to wake) and still published on
+    ``state_estimate``; the controller has no ``state_estimate`` subscription."""
+    from soft_gripper_sdre.nodes.estimator import EstimatorNode
+    controller = ControllerNode(subscribe_estimates=False)
+    try:
+        estimator = EstimatorNode()
+    except BaseException:
+        controller.destroy_node()
+        raise
+    estimator.listeners.append(controller.take_estimate)
+    return estimator, controller
+
+
 def main(args=None) -> int:
-    return run(ControllerNode, args)
+    """``controller [--with-estimator] [--ros-args ...]``; with the flag the process also runs the
+    estimator node (:func:`with_estimator`; ``-p`` takes the controller's parameter names, the
+    estimator's own come from its parameters file)."""
+    argv = list(sys.argv if args is None else args)
+    if WITH_ESTIMATOR in argv:
+        argv.remove(WITH_ESTIMATOR)
+        return run(with_estimator, argv)
+    return run(ControllerNode, argv)
 
 
 if __name__ == '__main__':

@@ -98,6 +98,10 @@ class EstimatorNode(Node):
         self.bridge_ns = int(round(p['max_bridge'] * cv.NS))
         on_runtime_change(self, PARAMS, apply=self._apply)
 
+        #: called with (stamp, estimate) for every estimate before it is published: a node of
+        #: this process that takes the estimates without a DDS round trip (``controller
+        #: --with-estimator``); the estimate is still published for everyone else
+        self.listeners: list = []
         self.last_ns: int | None = None          # stamp of the last accepted measurement
         self._predict_only = np.zeros(self.n, dtype=bool)
         self._steps_ns = [0, 0]                  # accepted stamp steps since the last status: count, sum
@@ -186,6 +190,8 @@ class EstimatorNode(Node):
         self.diag.good('estimates', 'estimating')
 
     def _publish(self, stamp: int, x: np.ndarray) -> None:
+        for listener in self.listeners:
+            listener(stamp, x.copy())
         self.pub.publish(self.cdr_estimate.encode(stamp, x))
 
 
