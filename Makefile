@@ -58,6 +58,13 @@ model-from-bags: $(STAMP)
 bench: $(KERNELS)
 	$(PY) -m soft_gripper_sdre.tools.bench --write BENCHMARKS.md
 
+# the deployment loop alone (a driver stand-in, the estimator and the controller; part of bench):
+# make bench-deploy DEPLOY_ARGS='--variants base composed shm composed+shm --rate 1000'
+.PHONY: bench-deploy
+DEPLOY_ARGS ?=
+bench-deploy: $(KERNELS)
+	$(PY) -m soft_gripper_sdre.tools.bench_deploy $(DEPLOY_ARGS)
+
 # README "Noise, gains and the finger's bending modes" and "Identifying G2"
 sweep: $(KERNELS)
 	$(PY) -m soft_gripper_sdre.tools.sweep --out runs/sweep

@@ -34,6 +34,8 @@ stamp step accepted since the previous status.
 from __future__ import annotations
 
 import copy
+from typing import Callable
+
 from geometry_msgs.msg import PoseArray
 import numpy as np
 from rclpy.node import Node
@@ -101,7 +103,7 @@ class EstimatorNode(Node):
         #: called with (stamp, estimate) for every estimate before it is published: a node of
         #: this process that takes the estimates without a DDS round trip (``controller
         #: --with-estimator``); the estimate is still published for everyone else
-        self.listeners: list = []
+        self.listeners: list[Callable[[int, np.ndarray], None]] = []
         self.last_ns: int | None = None          # stamp of the last accepted measurement
         self._predict_only = np.zeros(self.n, dtype=bool)
         self._steps_ns = [0, 0]                  # accepted stamp steps since the last status: count, sum

@@ -256,15 +256,43 @@ def bench_collect(seconds: float) -> float:
     return seconds / (time.perf_counter() - t0)
 
 
-def graph_rows(quick: bool) -> list[Row]:
-    """The node-graph rows, if the graph benchmark module is installed."""
+def graph_rows(quick: bool, figures: dict[str, float] | None = None) -> list[Row]:
+    """The node-graph rows, if the graph benchmark module is installed (``figures``: see
+    :func:`soft_gripper_sdre.tools.bench_graph.rows`)."""
     try:
         module = importlib.import_module('soft_gripper_sdre.tools.bench_graph')
     except ModuleNotFoundError as exc:
         if exc.name != 'soft_gripper_sdre.tools.bench_graph':
             raise
         return [('node graph', 'not measured', '`soft_gripper_sdre.tools.bench_graph` is not installed')]
-    return list(module.rows(quick))
+    return list(module.rows(quick, figures=figures))
+
+
+def floor_rows(hand: float, hop_us: float, kf: float, control: float, rtf: float) -> list[Row]:
+    """The lockstep graph against its floor, from figures of this run: the physics of a period
+    ``hand`` [s], one DDS hop one way ``hop_us`` [µs], the KF and controller compute ``kf``,
+    ``control`` [s], the lockstep real-time factor ``rtf``. In strict lockstep nothing overlaps,
+    so a period can be no shorter than their sum."""
+    floor = hand + 3e-6 * hop_us + kf + control
+    period = 1e-3 / rtf if rtf > 0 else float('nan')
+    us = lambda s: f'{s * 1e6:.0f} µs'          # noqa: E731
+    return [
+        ('floor of a lockstep period: physics + three rclpy hops + compute',
+         f'{us(floor)} ({1e-3 / floor:.2f}× real time)',
+         f'physics alone {us(hand)} (the hand + cube row), three hops {3 * hop_us:.0f} µs (3 × the '
+         f'raw-CDR hop\'s p50, each with its node\'s receive and send), compute {us(kf + control)} '
+         '(KF + sdre_ff, back to back)'),
+        ('lockstep graph period against its floor',
+         f'{us(period)} = {period / floor:.2f}× the floor',
+         f'1 ms / {rtf:.2f}× real time (the lockstep row); the rest is what the three processes '
+         'add beyond their hop: waking up, /diagnostics, cold caches, the machine\'s other load'),
+    ]
+
+
+def deploy_rows(quick: bool) -> list[Row]:
+    """The deployment loop's rows (:mod:`soft_gripper_sdre.tools.bench_deploy`)."""
+    from soft_gripper_sdre.tools.bench_deploy import rows as deploy
+    return deploy(quick)
 
 
 def rows(quick: bool) -> list[Row]:
@@ -300,7 +328,8 @@ def rows(quick: bool) -> list[Row]:
     out.append(('controller compute, sdre, 4 fingers (compiled), clean states', us(clean['fast']),
                 f'{clean["reference"] / clean["fast_paired"]:.0f}× faster than the reference, same steps; the same '
                 f'loop without measurement noise: {clean["iterations"]:.2f} iterations per step'))
-    out.append(('KF step, 4 fingers (compiled)', us(bench_kf(loop, 1 if quick else 3)),
+    kf = bench_kf(loop, 1 if quick else 3)
+    out.append(('KF step, 4 fingers (compiled)', us(kf),
                 'predict + Joseph-form update, the closed loop\'s measurements'))
     cold = bench_idle(loop)
     out.append(('controller compute, sdre_ff (the graph\'s law), cold', f'{us(cold["idle"])} / {us(cold["flushed"])}',
@@ -312,7 +341,11 @@ def rows(quick: bool) -> list[Row]:
                 f'median period {us(period)}; over the whole {T * 1e-3:.0f} s run '
                 f'{T * 1e-3 / loop.step_seconds:.2f}× (load bursts included); hand + cube, 0.05 mm noise, '
                 'stepping only'))
-    out += graph_rows(quick)
+    figures: dict[str, float] = {}
+    out += graph_rows(quick, figures)
+    if 'hop_p50_us' in figures:
+        out += floor_rows(hand, figures['hop_p50_us'], kf, ctrl['fast'], figures['lockstep_rtf'])
+    out += deploy_rows(quick)
     if not quick:                # compiling from an empty cache takes about a minute
         compiled = compile_seconds()
         out.append(('compiled kernels: import + warm_up(), empty cache / cached',

@@ -65,6 +65,15 @@ VARIANTS: dict[str, tuple[str, dict[str, str], dict]] = {
 }
 
 
+def variant_settings(name: str) -> tuple[str, dict[str, str], dict]:
+    """The variant ``name``, or several joined by '+' (``composed+fifo``): their descriptions,
+    environments and options together."""
+    parts = [VARIANTS[part] for part in name.split('+')]
+    env = {k: v for _, e, _ in parts for k, v in e.items()}
+    options = {k: v for _, _, o in parts for k, v in o.items()}
+    return '; '.join(what for what, _, _ in parts), env, options
+
+
 # -- the driver stand-in ------------------------------------------------------------------------
 
 def _schedstat_ns(pid: int) -> int:
@@ -248,7 +257,7 @@ def run_deploy(period: float, seconds: float, tips: Path, *, record: bool = Fals
                variant: str = 'base', warmup: float = WARMUP_S) -> dict:
     """One run of the deployment loop (see the module doc); returns :func:`driver`'s figures plus
     ``variant``, ``rate_hz``, ``record`` and ``load`` (the 1-minute load average at the end)."""
-    _, extra_env, options = VARIANTS[variant]
+    _, extra_env, options = variant_settings(variant)
     env = {**ros_env(), **extra_env}
     timing = {'control_period': float(period)}
     with tempfile.TemporaryDirectory(prefix='sgs_bench_deploy_') as tmp, \
@@ -339,7 +348,7 @@ def describe(s: dict) -> tuple[str, str, str]:
     loop = [n for n in ('estimator', 'controller') if n in cpu]
     parts = ' + '.join(f'{n} {cpu[n]:.0f}' for n in loop)
     total = sum(cpu[n] for n in loop)
-    what = (f'deployment loop at {s["rate_hz"]} Hz, {VARIANTS[s["variant"]][0]}'
+    what = (f'deployment loop at {s["rate_hz"]} Hz, {variant_settings(s["variant"])[0]}'
             + (', with the recorder' if s['record'] else ''))
     figure = (f'{s["late_pct"]:.2f} % late; {s["latency_p50"]:.0f} / {s["latency_p99"]:.0f} / '
               f'{s["latency_max"]:.0f} µs')
@@ -353,26 +362,33 @@ def describe(s: dict) -> tuple[str, str, str]:
 
 def measure(rates: list[int], variants: list[str], seconds: float, repeats: int,
             record_too: bool, tips: Path, echo=print) -> list[dict]:
-    out = []
-    for rate in rates:
-        for variant in variants:
-            for record in ((False, True) if record_too else (False,)):
-                runs = []
-                for _ in range(repeats):
-                    runs.append(run_deploy(1.0 / rate, seconds, tips, record=record,
-                                           variant=variant))
-                    echo(json.dumps(runs[-1]))
-                out.append(summary(runs))
-                echo(' | '.join(describe(out[-1])))
+    """:func:`summary` of ``repeats`` runs of every rate × variant × (recorder or not). The
+    repeats go round all the configurations in turn, so a load that drifts meets each alike."""
+    configs = [(rate, v, record) for rate in rates for v in variants
+               for record in ((False, True) if record_too else (False,))]
+    runs: dict[tuple, list[dict]] = {c: [] for c in configs}
+    for _ in range(repeats):
+        for rate, v, record in configs:
+            runs[rate, v, record].append(run_deploy(1.0 / rate, seconds, tips, record=record,
+                                                    variant=v))
+            echo(json.dumps(runs[rate, v, record][-1]))
+    out = [summary(runs[c]) for c in configs]
+    for s in out:
+        echo(' | '.join(describe(s)))
     return out
 
 
+#: the layouts :func:`rows` measures: the shipped one and the composed one
+ROW_VARIANTS = ('base', 'composed')
+
+
 def rows(quick: bool = False) -> list[tuple[str, str, str]]:
-    """The deployment rows of BENCHMARKS.md: 1 kHz and 500 Hz, with and without the recorder."""
+    """The deployment rows of BENCHMARKS.md: each of :data:`ROW_VARIANTS` at 1 kHz and 500 Hz,
+    with and without the recorder, the best of three runs (one with ``quick``)."""
     seconds = 3.0 if quick else 10.0
     with tempfile.TemporaryDirectory(prefix='sgs_deploy_tips_') as tmp:
         tips = replay_tips(WARMUP_S + seconds + 1.0, Path(tmp) / 'tips.npy')
-        table = measure([1000, 500], ['base'], seconds, 1 if quick else 3, True, tips,
+        table = measure([1000, 500], list(ROW_VARIANTS), seconds, 1 if quick else 3, True, tips,
                         echo=lambda _: None)
     return [describe(s) for s in table]
 
@@ -385,7 +401,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--seconds', type=float, default=None, help='measured seconds per run')
     ap.add_argument('--repeats', type=int, default=None, help='runs per configuration')
     ap.add_argument('--rate', type=int, nargs='+', default=[1000, 500], help='driver rates [Hz]')
-    ap.add_argument('--variants', nargs='+', default=['base'], choices=sorted(VARIANTS))
+    ap.add_argument('--variants', nargs='+', default=list(ROW_VARIANTS),
+                    help=f'any of {", ".join(VARIANTS)}, or several joined by + (composed+fifo)')
     ap.add_argument('--no-recorder', action='store_true', help='only the runs without recorder')
     ap.add_argument('--tips', type=Path, default=None, help='cache of the replayed tips (.npy)')
     a = ap.parse_args(argv)

@@ -345,9 +345,12 @@ def hop(executor: str, count: int = 2000, raw: bool = False) -> dict[str, float]
             'rounds': rounds, 'resent': state['resent']}
 
 
-def rows(quick: bool = False, executor: str | None = None, graph_only: bool = False) -> list[tuple[str, str, str]]:
+def rows(quick: bool = False, executor: str | None = None, graph_only: bool = False,
+         figures: dict[str, float] | None = None) -> list[tuple[str, str, str]]:
     """(what, figure, note) rows for BENCHMARKS.md. ``graph_only``: the graph runs alone, without
-    the DDS hops, the SingleThreadedExecutor run and the recorder run."""
+    the DDS hops, the SingleThreadedExecutor run and the recorder run. ``figures``, if given, gets
+    the numbers the floor rows of :mod:`soft_gripper_sdre.tools.bench` compare: the lockstep
+    real-time factor (``lockstep_rtf``) and the raw-CDR hop's one-way p50 [µs] (``hop_p50_us``)."""
     nan = float('nan')
     seconds, real_s = (1.0, 3.0) if quick else (3.0, 20.0)
     lock_all = run_graph(seconds, executor=executor)
@@ -357,6 +360,8 @@ def rows(quick: bool = False, executor: str | None = None, graph_only: bool = Fa
     steps = max(real.get('steps', 1.0), 1.0)
     cpu = {n: lock_all[n].get('cpu_per_step_us', nan) for n in ('simulator', *LOOP_NODES)}
     compute = lock_all['controller'].get('compute_us_mean', nan)
+    if figures is not None:
+        figures['lockstep_rtf'] = lock.get('real_time_factor', nan)
 
     def latency(d: dict, prefix: str = 'loop_latency_us') -> str:
         return ' / '.join(f'{d.get(f"{prefix}_{k}", nan):.0f}' for k in ('p50', 'p99', 'max')) + ' µs'
@@ -387,6 +392,8 @@ def rows(quick: bool = False, executor: str | None = None, graph_only: bool = Fa
     single = run_graph(seconds, executor='single')['simulator'] if executor != 'single' else lock
     ev, st = (hop(kind, 1000 if quick else 3000) for kind in ('events', 'single'))
     ev_raw = hop('events', 1000 if quick else 3000, raw=True)
+    if figures is not None:
+        figures['hop_p50_us'] = ev_raw['p50']
     recorded = recorder_loss(0.5 if quick else 2.0, executor=executor)
     sent = sum(n for n, _ in recorded.values())
     lost = sum(max(0, n - got) for n, got in recorded.values())

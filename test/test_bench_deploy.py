@@ -1,0 +1,44 @@
+"""The deployment benchmark measures what it claims: a driver process over DDS with the real
+estimator, trajectory and controller processes, figures from the driver and /proc; and the floor
+rows' arithmetic."""
+import pytest
+
+from soft_gripper_sdre.tools.bench import floor_rows
+from soft_gripper_sdre.tools.bench_deploy import replay_tips, run_deploy, summary, variant_settings
+
+
+@pytest.fixture(scope='module')
+def tips(tmp_path_factory):
+    return replay_tips(4.0, tmp_path_factory.mktemp('deploy') / 'tips.npy')
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+@pytest.mark.timeout(300)
+def test_separate_and_composed_loops_answer_every_tick_and_composed_costs_less_cpu(tips):
+    runs = {v: run_deploy(2e-3, 1.0, tips, variant=v) for v in ('base', 'composed')}
+    for name, r in runs.items():
+        assert r['periods'] == 500 and r['ticks'] + r['skipped'] >= 500, name
+        assert r['matched'] == [2, 1], name          # estimator + trajectory; the controller
+        assert r['unanswered'] <= r['ticks'] // 20, name
+        assert 0 < r['latency_p50'] <= r['latency_p99'] <= r['latency_max'], name
+        assert r['cpu_us']['driver'] > 0 and r['cpu_us']['trajectory'] >= 0, name
+    separate, composed = runs['base']['cpu_us'], runs['composed']['cpu_us']
+    assert separate['estimator'] > 0 and separate['controller'] > 0
+    assert 'estimator' not in composed and composed['controller'] > 0
+    # one DDS hop and one process fewer per period, measured in the same test
+    assert composed['controller'] < 0.9 * (separate['estimator'] + separate['controller'])
+    best = summary([runs['base'], {**runs['base'], 'late_pct': runs['base']['late_pct'] + 1}])
+    assert best['repeats'] == 2 and best['late_pct'] == runs['base']['late_pct']
+
+
+def test_variants_join_their_settings():
+    what, env, options = variant_settings('composed+shm')
+    assert env == {'FASTDDS_BUILTIN_TRANSPORTS': 'SHM'} and options == {'composed': True}
+    assert 'one process' in what and 'shared memory' in what
+
+
+def test_the_floor_is_the_sum_of_physics_three_hops_and_compute():
+    (_, floor, _), (_, graph, _) = floor_rows(600e-6, 200.0, 3e-6, 47e-6, 0.5)
+    assert floor.startswith('1250 µs (0.80× real time)')
+    assert graph == '2000 µs = 1.60× the floor'
