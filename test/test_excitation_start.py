@@ -18,7 +18,7 @@ from soft_gripper_sdre.nodes.excitation import ExcitationNode
 from soft_gripper_sdre.nodes.params import ParameterError
 from soft_gripper_sdre.nodes.recorder import RecorderNode
 from soft_gripper_sdre.nodes.topics import LOOP_QOS, TIP_POSITIONS, TORQUE_COMMANDS
-from test_excitation_level import NOISE, RATE, REST, SpringDamper
+from spring_finger import NOISE, RATE, REST, SpringDamper
 
 pytestmark = pytest.mark.ros
 

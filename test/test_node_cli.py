@@ -8,7 +8,8 @@ import pytest
 
 from soft_gripper_sdre.nodes.cli import params_files, split_ros_args
 
-NODES = ('simulator', 'estimator', 'controller', 'trajectory', 'recorder', 'excitation')
+NODES = ('simulator', 'estimator', 'controller', 'trajectory', 'recorder', 'excitation',
+         'plant_driver')
 
 
 def _run(node, *args, tmp_path):

@@ -19,7 +19,8 @@ CORE_MODULES = sorted(p for layer in CORE_LAYERS for p in (PKG / layer).rglob('*
 ALL_MODULES = sorted(PKG.rglob('*.py'))
 TEST_MODULES = sorted((ROOT / 'test').glob('test_*.py'))
 ROS_PREFIXES = ('rclpy', 'rosidl', 'rosgraph_msgs', 'builtin_interfaces')
-NODES = ('simulator', 'estimator', 'controller', 'trajectory', 'recorder', 'excitation')
+NODES = ('simulator', 'estimator', 'controller', 'trajectory', 'recorder', 'excitation',
+         'plant_driver')
 
 
 def _imported_modules(path: Path) -> list[tuple[str, tuple[str, ...]]]:

@@ -11,7 +11,7 @@ control_period     the median tip period of the recordings
 meas_std           the measurement noise σ of the settle phase
 accel_psd          the estimator's white-acceleration intensity, picked in the check
                    among fractions of the value that best explains the recorded tips
-torque_limit       the largest torque of the excitation (the model knows nothing beyond)
+torque_limit       :data:`TORQUE_MARGIN` × the largest torque of the excitation
 q_pos, r           a closed-loop bandwidth f_c through the learned input map at rest:
                    for ẍ ≈ G₂u, LQR places each direction i at ω_i = (q_pos s_i² / r)^¼
                    (s_i the singular values of G₂(0)), so with r = 1/u_max² the weights
@@ -63,9 +63,13 @@ GAIN_ERRORS = (0.5, 2.0)
 KEEP_NOMINAL = 0.05
 KEEP_ROBUST = 0.5
 PREFER_SLOWER = 1.5
-#: the check's move: travel as a share of the 95th percentile of the data's reach, and timing
-TRAVEL_SHARE = 0.8
-CHECK_PROFILE = dict(t_start=0.3, t_close=1.0, t_hold=0.5, t_open=1.0)
+#: the check's move: closing (+Y) by a share of the data's reach that way (its 99th percentile),
+#: on the trajectory node's default timing
+TRAVEL_SHARE = 0.5
+REACH_PERCENTILE = 99.0
+#: the torque limit is this many times the largest torque of the excitation
+TORQUE_MARGIN = 2.0
+CHECK_PROFILE = dict(t_start=0.5, t_close=2.0, t_hold=1.0, t_open=2.0)
 #: the model is integrated in RK4 steps of at most this [s]
 MAX_STEP = 2.5e-3
 
@@ -286,14 +290,13 @@ def tune_accel_psd(t: np.ndarray, pos: np.ndarray, meas_std: float,
     return float(max(grid, key=lambda q: cv_loglik(t, pos, q, sigma)))
 
 
-def data_facts(model, positions: np.ndarray, torques: np.ndarray, period: float,
-               noise_std: float, tune: tuple[np.ndarray, np.ndarray]) -> DataFacts:
+def data_facts(positions: np.ndarray, torques: np.ndarray, period: float, noise_std: float,
+               tune: list[tuple[np.ndarray, np.ndarray]]) -> DataFacts:
     """:class:`DataFacts` from the training samples: translated positions (N, 2), held torques
-    (N, 2), the tip period, the measured σ, and (t, tips) of a stretch to tune the estimator on."""
-    y = positions[:, 1]
-    up, down = np.percentile(y, 95), -np.percentile(y, 5)
-    travel = TRAVEL_SHARE * (up if up >= down else -down)
-    limit = float(np.percentile(np.abs(torques).max(axis=1), 99.9))
+    (N, 2), the tip period, the measured σ, and (t, tips) of stretches to tune the estimator on
+    (the largest intensity any of them asks for: the loop must follow the fastest motion)."""
+    travel = TRAVEL_SHARE * max(float(np.percentile(positions[:, 1], REACH_PERCENTILE)), 0.0)
+    limit = TORQUE_MARGIN * float(np.percentile(np.abs(torques).max(axis=1), 99.9))
+    psd = max(tune_accel_psd(t, tips, noise_std) for t, tips in tune)
     return DataFacts(period=float(period), noise_std=float(noise_std), travel=float(travel),
-                     torque_limit=limit, accel_psd_ml=tune_accel_psd(*tune, noise_std))
-
+                     torque_limit=limit, accel_psd_ml=psd)

@@ -44,6 +44,26 @@ def _multisine(amplitudes_ax0, freqs_ax0, phases_ax0, amplitudes_ax1, freqs_ax1,
     return signal
 
 
+def _broadband(f_lo: float, f_hi: float, per_axis: int, axis0_first: bool, peak: float = 25.0):
+    """Independent multisines per axis over [f_lo, f_hi] Hz (sim units): 2·``per_axis``
+    log-spaced frequencies dealt alternately to the axes (ax0 the first when ``axis0_first``),
+    equal amplitudes, Schroeder phases φ_k = −π k(k−1)/K (a low crest factor), scaled so the
+    larger axis peaks at ``peak`` over the record (:data:`DURATION` s at 1 ms)."""
+    freqs = np.geomspace(f_lo, f_hi, 2 * per_axis)
+    sets = (freqs[0::2], freqs[1::2]) if axis0_first else (freqs[1::2], freqs[0::2])
+    k = np.arange(1, per_axis + 1)
+    phases = -np.pi * k * (k - 1) / per_axis
+    t = np.arange(int(DURATION * 1000)) * 1e-3
+    raw = [np.sin(2 * np.pi * f[:, None] * t + phases[:, None]).sum(axis=0) for f in sets]
+    amp = peak / max(np.abs(r).max() for r in raw)
+
+    def signal(t):
+        t = np.asarray(t, dtype=float)
+        axes = [amp * np.sin(2 * np.pi * np.multiply.outer(t, f) + phases).sum(axis=-1) for f in sets]
+        return torque_to_si(np.stack(axes, axis=-1))
+    return signal
+
+
 s = np.sin
 pi = np.pi
 
@@ -59,10 +79,15 @@ SIGNALS: dict[str, Callable[[np.ndarray], np.ndarray]] = {
     # the same idea with the frequency sets swapped between the axes, other phases
     'x2': _multisine((9, 6, 4), (0.5, 1.3, 2.3), (1.5, 0.2, 3.0),
                      (10, 6, 4), (0.3, 0.9, 1.7), (2.0, 4.0, 0.7)),
+    # broadband, for fingers faster or stiffer than this one: 0.2 to 30 Hz on both axes, each
+    # with its own frequencies (b2 deals them the other way round)
+    'b1': _broadband(0.2, 30.0, 12, True),
+    'b2': _broadband(0.2, 30.0, 12, False),
 }
 
 PAPER_SIGNALS = ('u1', 'u2', 'u3', 'u4')
 IDENTIFYING_SIGNALS = ('x1', 'x2')
+BROADBAND_SIGNALS = ('b1', 'b2')
 
 
 def signal_names() -> list[str]:

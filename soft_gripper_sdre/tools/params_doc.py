@@ -15,7 +15,8 @@ import sys
 
 from soft_gripper_sdre.nodes.params import Param
 
-NODES = ('simulator', 'estimator', 'trajectory', 'controller', 'recorder', 'excitation')
+NODES = ('simulator', 'estimator', 'trajectory', 'controller', 'recorder', 'excitation',
+         'plant_driver')
 DEFAULT_OUT = Path('docs/parameters.md')
 
 

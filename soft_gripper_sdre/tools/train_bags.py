@@ -37,9 +37,10 @@ from soft_gripper_sdre.learning import derivatives
 from soft_gripper_sdre.learning.model import SDCModel
 from soft_gripper_sdre.learning.training import TrainSettings, fingerprint, save_checkpoint, train
 
-#: samples of the first stretch the jerk intensity is tuned on (as the .npz path)
+#: samples of a recording's first stretch its jerk intensity is tuned on
 TUNE_SAMPLES = 2000
-JERK_GRID = np.logspace(1, 7, 7)
+#: white-jerk intensities tried [(m/s³)²/Hz]: from a slow, soft finger's to a fast, stiff one's
+JERK_GRID = np.logspace(-3, 7, 11)
 OUTPUTS = ('model.pt', 'metrics.json', 'fig2_loss.png', 'fig3_accel_val.png')
 #: written only for a model fit to control whose settings passed their closed-loop check
 PARAMS_FILE = 'params.yaml'
@@ -82,7 +83,8 @@ def load_bags(paths: list[Path], tips_topic: str, torques_topic: str, min_durati
 
 
 def tune_jerk(rec: Recording, finger: int, meas_std: float) -> float:
-    """The KF/RTS jerk intensity tuned by likelihood on the start of ``rec``'s first stretch."""
+    """The KF/RTS jerk intensity of ``finger`` tuned by likelihood on the start of ``rec``'s first
+    stretch."""
     stretch = tip_stretches(rec)[0]
     ns = rec.tip_ns[stretch][:TUNE_SAMPLES]
     t = (ns - ns[0]) / 1e9
@@ -106,10 +108,18 @@ def _plain(value):
     return value
 
 
-def label_bags(loaded: list[tuple[Recording, list[int]]], jerk: float, meas_std: float | None,
+def _finger_name(rec: Recording, finger: int) -> str:
+    """The name the bag gives finger ``finger`` (its torque names), else the default name."""
+    return rec.finger_names[finger] if finger < len(rec.finger_names) else FINGER_NAMES[finger]
+
+
+def label_bags(loaded: list[tuple[Recording, list[int]]], jerk: float | None, meas_std: float | None,
                gap_periods: float = DEFAULT_GAP_PERIODS) -> tuple[list[FingerSamples], list[dict], np.ndarray]:
     """Samples of every (bag, finger), the provenance of each bag, and the first rest tip (3,).
 
+    ``jerk`` None: the KF/RTS jerk intensity of each (bag, finger) tuned by likelihood on its own
+    tips (:func:`tune_jerk`): a slow signal's labels want a smoother filter than a fast one's,
+    and one intensity for every signal leaves one of them with labels that are mostly noise.
     ``meas_std`` None: each finger's noise level from its settle phase (a bag without one is
     refused, :func:`~soft_gripper_sdre.analysis.bag_dataset.settle_noise`)."""
     samples, provenance, first_rest = [], [], None
@@ -119,12 +129,13 @@ def label_bags(loaded: list[tuple[Recording, list[int]]], jerk: float, meas_std:
         for f in fingers:
             rest, sigma, n_settle = (settle_estimates if meas_std is not None else settle_noise)(rec, f)
             used = meas_std if meas_std is not None else sigma
-            got = label_finger(rec, f, jerk, used, rest, gap_periods)
+            q = jerk if jerk is not None else tune_jerk(rec, f, used)
+            got = label_finger(rec, f, q, used, rest, gap_periods)
             samples += got
             first_rest = rest if first_rest is None else first_rest
-            info['fingers'][FINGER_NAMES[f]] = {
+            info['fingers'][_finger_name(rec, f)] = {
                 'rest_tip': rest, 'settle_samples': n_settle, 'noise_std_settle': sigma,
-                'noise_std_used': used, 'stretches': [s.info for s in got],
+                'noise_std_used': used, 'jerk_psd': q, 'stretches': [s.info for s in got],
                 'samples': int(sum(len(s.t) for s in got))}
         provenance.append(info)
     return samples, _plain(provenance), first_rest
@@ -187,10 +198,14 @@ def train_from_bags(train_paths: list[Path], val_paths: list[Path], out: Path, s
     val_set = load_bags(val_paths, tips_topic, torques_topic, min_duration, finger)
     rec0, fingers0 = train_set[0]
     noise = meas_std if meas_std is not None else settle_noise(rec0, fingers0[0])[1]
-    jerk = jerk_psd if jerk_psd is not None else tune_jerk(rec0, fingers0[0], noise)
-    print(f'KF/RTS white-jerk intensity q = {jerk:g} (m/s³)²/Hz')
-    samples, provenance, rest_tip = label_bags(tqdm(train_set, desc='bags: KF + RTS', unit='bag'), jerk, meas_std)
-    val_samples, val_provenance, _ = label_bags(val_set, jerk, meas_std)
+    samples, provenance, rest_tip = label_bags(tqdm(train_set, desc='bags: KF + RTS', unit='bag'),
+                                               jerk_psd, meas_std)
+    val_samples, val_provenance, _ = label_bags(val_set, jerk_psd, meas_std)
+    tuned = [f['jerk_psd'] for bag in provenance for f in bag['fingers'].values()]
+    jerk = jerk_psd if jerk_psd is not None else float(np.median(tuned))
+    print(f'KF/RTS white-jerk intensity q [(m/s³)²/Hz]: '
+          + (f'{jerk_psd:g}' if jerk_psd is not None else
+             f'tuned per bag and finger, {min(tuned):g} to {max(tuned):g}'))
     if not samples or not val_samples:
         raise BagDataError('no training samples' if not samples else 'no validation samples')
     _, x, u, acc = _stack(samples)
@@ -222,8 +237,8 @@ def train_from_bags(train_paths: list[Path], val_paths: list[Path], out: Path, s
         fitness = model_fitness.judge(model, validation_segments(val_samples))
         derived = None
         if fitness.fit:
-            facts = loop_settings.data_facts(model, x[:, :2], u, dt, noise,
-                                             tuning_stretch(rec0, fingers0[0]))
+            facts = loop_settings.data_facts(x[:, :2], u, dt, noise,
+                                             [tuning_stretch(rec, f[0]) for rec, f in train_set])
             derived = loop_settings.derive(model, facts, progress=lambda text: print(
                 f'  closed-loop check on the model: {text}', flush=True))
         metrics = {

@@ -1,0 +1,249 @@
+"""The README's own-gripper recipe, end to end, on a gripper the package has never seen.
+
+    python -m soft_gripper_sdre.tools.foreign --plant tendon3 --out runs/foreign/tendon3
+    python -m soft_gripper_sdre.tools.foreign --plant stiff2 --out runs/foreign/stiff2
+
+The gripper is the ``plant_driver`` node (two fingers of :mod:`soft_gripper_sdre.sim.foreign`,
+served like a lab's driver: wall-clock loop, best-effort tips stamped with wall time, jitter,
+dropped messages, noise). Every step is what README "Use with your own gripper" tells a user
+to run, as separate processes over DDS, with the settings the tools produce and nothing tuned
+by hand:
+
+1. **identify** — recorder + excitation node, one bag per signal: u1 with ``level:=auto`` (the
+   amplitude found by probing the finger to half of ``max_excursion``), then x1 x2 b1 b2 and the
+   validation signal u4 at that amplitude;
+2. **train** — ``tools.train --bag … --val-bag …``: the model, its verdict and ``params.yaml``;
+3. **deploy** — estimator and controller on ``params.yaml``, the trajectory node closing both
+   fingers by the plant's travel along +Y, the recorder; once per law (``--laws``);
+4. **score** — from each deployment's bag: the RMSE of the driver's true tips
+   (``true_tip_positions``) against the plan, as a share of the travel, and the share of
+   commands at the torque limit while the plan holds at rest.
+
+``OUT/metrics.json`` holds every figure, ``OUT/<step>/logs`` the node logs. Arguments are checked
+before anything starts (exit 2); a failed step ends the tool with exit status 1 and names it.
+"""
+from __future__ import annotations
+
+import argparse
+from dataclasses import dataclass
+import json
+from pathlib import Path
+import re
+import subprocess
+import sys
+import time
+
+import numpy as np
+import yaml
+
+from soft_gripper_sdre.control.horizon import sample_plan
+from soft_gripper_sdre.tools.procs import DiagnosticsMonitor, Graph, ros_env
+
+
+@dataclass(frozen=True)
+class Setup:
+    """What a lab chooses for its gripper: the driver's rate, how far the excitation may move a
+    tip, and the grasp's travel along +Y (SI)."""
+
+    rate: float
+    max_excursion: float
+    travel: float
+
+
+#: the two foreign grippers, as their lab would set them up
+SETUPS = {'tendon3': Setup(rate=200.0, max_excursion=0.016, travel=0.008),
+          'stiff2': Setup(rate=500.0, max_excursion=0.004, travel=0.002)}
+FINGERS = ['index', 'thumb']
+TRAIN_SIGNALS = ['u1', 'x1', 'x2', 'b1', 'b2']
+#: the grasp: trajectory node defaults (hold 0.5 s at rest, close 2 s, hold 1 s, open 2 s)
+T_START, GRASP_SECONDS = 0.5, 5.5
+DEPLOY_TOPICS = ['tip_positions', 'true_tip_positions', 'state_estimate', 'grasp_reference',
+                 'torque_commands']
+BEST_EFFORT = {'tips_reliability': 'best_effort'}
+
+
+def _parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.foreign',
+                                 description=__doc__.split('\n')[0])
+    ap.add_argument('--plant', choices=sorted(SETUPS), required=True, help='the foreign gripper')
+    ap.add_argument('--out', type=Path, required=True, help='output directory (must not exist)')
+    ap.add_argument('--laws', nargs='+', default=['sdre_ff', 'sdre'],
+                    help='laws deployed in turn (default: %(default)s)')
+    ap.add_argument('--seed', type=int, default=0, help='the driver\'s noise seed (+1 per run)')
+    ap.add_argument('--epochs', type=int, default=None, help='training epochs (default: the preset)')
+    ap.add_argument('--domain-id', type=int, default=None, help='ROS_DOMAIN_ID (default: env or random)')
+    return ap
+
+
+def argument_problem(a: argparse.Namespace) -> str | None:
+    """What is wrong with the arguments, or None."""
+    from soft_gripper_sdre.control.laws import GRAPH_LAWS
+    bad = [law for law in a.laws if law not in GRAPH_LAWS]
+    if bad:
+        return f'--laws: unknown law(s) {bad}; known: {", ".join(GRAPH_LAWS)}'
+    if a.out.exists():
+        return f'--out {a.out} exists already (nothing is overwritten)'
+    if not 0 <= a.seed < 2**31 - 64:
+        return f'--seed must be in [0, 2^31 - 64), got {a.seed}'
+    if a.epochs is not None and a.epochs < 1:
+        return f'--epochs must be >= 1, got {a.epochs}'
+    if a.domain_id is not None and not 0 <= a.domain_id <= 232:
+        return f'--domain-id must be in [0, 232], got {a.domain_id}'
+    return None
+
+
+def _driver(a: argparse.Namespace, seed: int) -> dict:
+    return {'plant': a.plant, 'finger_names': FINGERS, 'rate': SETUPS[a.plant].rate, 'seed': seed}
+
+
+def _fail(graph: Graph, who: str, what: str) -> RuntimeError:
+    return RuntimeError(f'{what}; last lines of {who}.log:\n{graph.procs[who].log_tail()}')
+
+
+def excite(a: argparse.Namespace, env: dict, bag: Path, signals: list[str], level: dict,
+           seed: int) -> str:
+    """One identification run into ``bag``; returns the excitation node's log."""
+    setup = SETUPS[a.plant]
+    monitor = DiagnosticsMonitor(env, f'foreign_monitor_{bag.name}')
+    with Graph(env, bag.parent / 'logs' / bag.name) as graph:
+        graph.start('plant_driver', _driver(a, seed), params_file=None)
+        graph.start('recorder', {'output': str(bag), 'topics': ['tip_positions', 'torque_commands'],
+                                 **BEST_EFFORT})
+        # as a user starts the excitation once the recorder runs: the bag then holds the settle phase
+        hearing = monitor.spin_until(lambda: monitor.get('recorder', 'messages /tip_positions') > 0, 60.0)
+        monitor.close()
+        if not hearing:
+            raise _fail(graph, 'recorder', f'identification run {bag.name}: the recorder hears no tips')
+        graph.start('excitation', {'signals': signals, 'finger_names': FINGERS,
+                                   'max_excursion': setup.max_excursion, 'tips_timeout': 5.0,
+                                   **BEST_EFFORT, **level})
+        code = graph.wait('excitation', 600.0)
+        if code != 0:
+            who = next((p.name for p in graph.procs.values() if not p.alive() and p.name != 'excitation'),
+                       'excitation')
+            raise _fail(graph, who, f'identification run {bag.name}: {who} failed (exit {code})')
+        return graph.procs['excitation'].log_path.read_text(encoding='utf-8')
+
+
+def deploy(a: argparse.Namespace, env: dict, out: Path, params: Path, law: str, seed: int) -> Path:
+    """The grasp with ``law`` on ``params``; returns the bag."""
+    bag = out / 'bag'
+    monitor = DiagnosticsMonitor(env, f'foreign_monitor_{law}')
+    try:
+        with Graph(env, out / 'logs') as graph:
+            graph.start('plant_driver', _driver(a, seed), params_file=None)
+            graph.start('recorder', {'output': str(bag), 'topics': DEPLOY_TOPICS, **BEST_EFFORT})
+            graph.start('estimator', BEST_EFFORT, params_file=params)
+            graph.start('controller', {'law': law}, params_file=params)
+            ready = monitor.spin_until(lambda: all(n in monitor.values for n in ('estimator', 'controller')),
+                                       120.0)
+            if not ready:
+                dead = next((p.name for p in graph.procs.values() if not p.alive()), 'controller')
+                raise _fail(graph, dead, f'deploying {law}: the estimator and controller did not come up')
+            graph.start('trajectory', {'finger_names': FINGERS, 'grasp_fingers': [0, 1], 'others': 'hold',
+                                       'close_distance': SETUPS[a.plant].travel, **BEST_EFFORT})
+            end = time.monotonic() + GRASP_SECONDS + 3.0
+            while time.monotonic() < end:
+                dead = [p.name for p in graph.procs.values() if not p.alive()]
+                if dead:
+                    raise _fail(graph, dead[0], f'deploying {law}: {dead[0]} exited')
+                monitor.poll()
+                time.sleep(0.1)
+    finally:
+        monitor.close()
+    return bag
+
+
+def score(bag: Path, travel: float, torque_limit: float) -> dict:
+    """Tracking of the deployed grasp from its bag (module doc)."""
+    from soft_gripper_sdre.analysis.bag import read_bag
+    msgs = read_bag(bag, ['true_tip_positions', 'grasp_reference', 'torque_commands'])
+    by = {k.lstrip('/'): v for k, v in msgs.items()}
+    plan = by['grasp_reference'][-1][1]
+    times = np.array([p.time_from_start.sec * 10**9 + p.time_from_start.nanosec for p in plan.points])
+    times += plan.header.stamp.sec * 10**9 + plan.header.stamp.nanosec
+    n = len(plan.joint_names)
+    pos = np.array([[[t.translation.x, t.translation.y] for t in p.transforms] for p in plan.points])
+    vel = np.array([[[v.linear.x, v.linear.y] for v in p.velocities] for p in plan.points])
+    acc = np.array([[[v.linear.x, v.linear.y] for v in p.accelerations] for p in plan.points])
+    stamp = lambda m: m.header.stamp.sec * 10**9 + m.header.stamp.nanosec  # noqa: E731
+    start, stop = int(times[0]), int(times[0] + GRASP_SECONDS * 1e9)
+    errs, rest_cmds = [], []
+    for _, m in by['true_tip_positions']:
+        t = stamp(m)
+        if start <= t <= stop:
+            ref = sample_plan(times, pos, vel, acc, t)[0]
+            tip = np.array([[p.position.x, p.position.y] for p in m.poses[:n]])
+            errs.append(np.linalg.norm(tip - ref, axis=1))
+    for _, m in by['torque_commands']:
+        if start <= stamp(m) < start + T_START * 1e9:
+            rest_cmds.append(np.abs(np.asarray(m.effort)))
+    errs = np.array(errs)
+    rmse = np.sqrt(np.mean(errs ** 2, axis=0))
+    rest = np.array(rest_cmds) if rest_cmds else np.zeros((0, 2 * n))
+    return {'rmse_mm': (1e3 * rmse).round(4).tolist(), 'rmse_pct_of_travel': (100 * rmse / travel).round(3).tolist(),
+            'max_mm': (1e3 * errs.max(axis=0)).round(4).tolist(), 'samples': int(len(errs)),
+            'saturated_at_rest': float(np.mean(rest >= torque_limit * (1 - 1e-9))) if rest.size else 0.0,
+            'largest_torque_at_rest': float(rest.max()) if rest.size else 0.0}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = _parser()
+    a = ap.parse_args(argv)
+    problem = argument_problem(a)
+    if problem:
+        ap.error(problem)
+    env = ros_env(a.domain_id)
+    out = a.out
+    metrics: dict = {'plant': a.plant, 'setup': SETUPS[a.plant].__dict__, 'fingers': FINGERS}
+    try:
+        t0 = time.monotonic()
+        train_bags = out / 'bags' / 'train'
+        log = excite(a, env, train_bags / TRAIN_SIGNALS[0], TRAIN_SIGNALS[:1], {'level': 'auto'}, a.seed)
+        found = re.search(r'; amplitude ([0-9.eE+-]+) for', log)
+        if found is None:
+            raise RuntimeError('the excitation node did not report the amplitude it chose')
+        amplitude = float(found.group(1))
+        for i, signal in enumerate(TRAIN_SIGNALS[1:] + ['u4']):
+            bag = (train_bags / signal) if signal != 'u4' else out / 'bags' / 'val' / signal
+            excite(a, env, bag, [signal], {'amplitude': amplitude}, a.seed + 1 + i)
+        metrics['identification'] = {'amplitude': amplitude, 'wall_s': round(time.monotonic() - t0, 1)}
+        print(f'identified at amplitude {amplitude:.4g} in {time.monotonic() - t0:.0f} s', flush=True)
+
+        t0 = time.monotonic()
+        cmd = [sys.executable, '-m', 'soft_gripper_sdre.tools.train', '--bag', str(out / 'bags' / 'train'),
+               '--val-bag', str(out / 'bags' / 'val'), '--out', str(out / 'model')]
+        if a.epochs is not None:
+            cmd += ['--epochs', str(a.epochs)]
+        train = subprocess.run(cmd, env=env, capture_output=True, text=True)
+        (out / 'train.log').write_text(train.stdout + train.stderr, encoding='utf-8')
+        if train.returncode != 0:
+            raise RuntimeError(f'training failed (exit {train.returncode}):\n{train.stderr[-2000:]}')
+        trained = json.loads((out / 'model' / 'metrics.json').read_text())
+        metrics['training'] = {k: trained[k] for k in ('val_r2_labels', 'fitness', 'derived_settings',
+                                                        'noise_std', 'train_samples')}
+        metrics['training']['wall_s'] = round(time.monotonic() - t0, 1)
+        params = out / 'model' / 'params.yaml'
+        if not params.exists():
+            raise RuntimeError('training wrote no params.yaml: ' + '; '.join(trained['fitness']['reasons']))
+        print(train.stdout.strip().splitlines()[-1], flush=True)
+        limit = yaml.safe_load(params.read_text())['/**/controller']['ros__parameters']['torque_limit']
+        metrics['deploy'] = {}
+        for i, law in enumerate(a.laws):
+            bag = deploy(a, env, out / f'deploy_{law}', params, law, a.seed + 10 + i)
+            metrics['deploy'][law] = score(bag, SETUPS[a.plant].travel, limit)
+            s = metrics['deploy'][law]
+            print(f'{law}: RMSE {s["rmse_mm"]} mm = {s["rmse_pct_of_travel"]} % of the '
+                  f'{1e3 * SETUPS[a.plant].travel:g} mm travel; saturated at rest '
+                  f'{100 * s["saturated_at_rest"]:.1f} %', flush=True)
+    except RuntimeError as exc:
+        print(f'error: {exc}', file=sys.stderr)
+        return 1
+    finally:
+        if out.exists():
+            (out / 'metrics.json').write_text(json.dumps(metrics, indent=2))
+    return 0
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())
