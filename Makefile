@@ -83,6 +83,14 @@ evaluate: $(KERNELS)
 robustness: $(KERNELS)
 	$(PY) -m soft_gripper_sdre.tools.robustness --out runs/robustness
 
+# docs/own_gripper.md: the README's own-gripper recipe over DDS on two simulated grippers unlike
+# the hand (the plant_driver node), nothing tuned by hand
+.PHONY: foreign
+foreign: $(KERNELS)
+	rm -rf runs/foreign
+	-$(PY) -m soft_gripper_sdre.tools.foreign --plant tendon3 --out runs/foreign/tendon3
+	-$(PY) -m soft_gripper_sdre.tools.foreign --plant stiff2 --out runs/foreign/stiff2
+
 # docs/deployment.md: two hands on one ROS domain, each in its own namespace with its own clock
 two-hands: $(KERNELS)
 	$(PY) -m soft_gripper_sdre.tools.hands --out runs/hands

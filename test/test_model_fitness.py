@@ -120,6 +120,8 @@ def shipped():
     return SDCModel()
 
 
+@pytest.mark.slow
+@pytest.mark.timeout(600)
 def test_settings_derived_for_the_shipped_model_pass_their_checks(shipped):
     """The shipped finger at a 5 ms period (a driver of 200 Hz): the chosen settings track the
     check's move on the model, never saturate at rest, and the paper's law is checked too."""
@@ -138,6 +140,8 @@ def test_settings_derived_for_the_shipped_model_pass_their_checks(shipped):
     assert summary['settings']['q_pos'] == d.q_pos
 
 
+@pytest.mark.slow
+@pytest.mark.timeout(600)
 def test_no_setting_passes_on_a_finger_the_torque_cannot_hold(shipped):
     """A torque limit far below what the move needs: every candidate saturates or misses, and
     nothing is derived."""
