@@ -40,6 +40,11 @@ test-fast: $(KERNELS)
 
 # Reproduce the shipped models from nothing: collect the excitation data, then train the SDC
 # networks and fit the Koopman baseline to the same records.
+# the math kernels pinned as the shipped model was made (docs/model.md "The same model on another
+# machine"; tools/procs.PINNED_KERNELS)
+model: export OPENBLAS_CORETYPE = Haswell
+model: export MKL_CBWR = AVX2,STRICT
+model: export ATEN_CPU_CAPABILITY = avx2
 model: $(STAMP)
 	$(PY) -m soft_gripper_sdre.tools.collect --out data/excitation
 	$(PY) -m soft_gripper_sdre.tools.train --data data/excitation --out runs/train --install
