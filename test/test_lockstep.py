@@ -261,5 +261,58 @@ def test_the_loop_latency_counts_the_first_answer_of_each_period_only():
 
 def test_bad_modes_and_policies_are_refused():
     for kwargs in ({'mode': 'warp'}, {'on_timeout': 'explode'}, {'on_bad_command': 'maybe'}):
-        with pytest.raises(ValueError):
+        with pytest.raises(ValueError, match=repr(next(iter(kwargs.values())))):
             Stepping(N, MS, **kwargs)
+    with pytest.raises(ValueError, match="mode 'pipeline' must be one of .*'pipelined'"):
+        Stepping(N, MS, mode='pipeline')
+
+
+def _waiting_rules_trace(mode: str) -> list:
+    """Every waiting rule of lockstep, driven by one script: what each call returned."""
+    s = Stepping(N, MS, mode=mode, timeout=0.5, lost_command_wait=0.01, total_steps=7)
+    trace = [s.on_command(0, torque(1)).step, s.on_wall_time(1e9)]     # before the start: nothing
+    s.start()
+    s.await_command(0.0)
+    for k in range(2):                                   # periods 0, 1 answered on time
+        trace.append(s.on_command(k * MS, torque(k + 1)).step)
+        s.await_command(1.0 + k)
+    trace += [s.on_command(1 * MS, torque(9)).refused, s.on_command(5 * MS, torque(9)).refused,
+              s.on_command(2 * MS, torque(np.nan)).refused]
+    trace += [s.on_wall_time(3.49), s.on_wall_time(3.5), s.on_wall_time(3.5)]   # period 2 times out
+    s.await_command(3.5)
+    trace += [s.on_wall_time(3.51), s.on_wall_time(3.51), s.lost]               # period 3 lost: zero
+    s.await_command(3.51)
+    out = s.on_command(3 * MS, torque(7))                # period 3's late answer: the loop is back
+    trace += [out.step, out.resumed, s.lost, s.deadline]
+    trace.append(s.on_command(4 * MS, torque(8)).step)
+    s.await_command(4.0)
+    trace += [s.on_command(5 * MS, torque(6)).step, s.done, s.on_command(6 * MS, torque(5)).step,
+              s.done, s.k, s.on_period(), dict(s.counters)]
+    return trace
+
+
+def test_pipelined_keeps_every_waiting_rule_of_lockstep():
+    """Pipelined differs from lockstep only in when the node steps the physics: what to wait
+    for, how long, and what steps when a command is missing, late, refused or lost are the same."""
+    lock, pipe = _waiting_rules_trace('lockstep'), _waiting_rules_trace('pipelined')
+    assert len(lock) == len(pipe)
+    for i, (a, b) in enumerate(zip(lock, pipe)):
+        if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+            np.testing.assert_array_equal(a, b, err_msg=f'entry {i}')
+        else:
+            assert a == b, f'entry {i}: lockstep {a!r}, pipelined {b!r}'
+    counters = lock[-1]                                  # and the script did exercise every rule
+    assert counters['timeouts'] == 1 and counters['safe_periods'] == 1 and counters['late_command'] >= 1
+    assert counters['steps'] == 7 and lock[-3] == 7 and lock[-4] is True
+
+
+def test_only_pipelined_steps_at_the_start_with_zero_torque():
+    """The physics step t_0 → t_1 comes before any command in pipelined mode: the command that
+    would drive it answers t_(−1)."""
+    pipe = Stepping(N, MS, mode='pipelined')
+    assert pipe.pipelined
+    np.testing.assert_array_equal(pipe.start(), np.zeros((N, 2)))
+    assert pipe.k == 0 and 'steps' not in pipe.counters   # the period is still 0's, awaiting its command
+    for mode in ('lockstep', 'realtime'):
+        s = Stepping(N, MS, mode=mode)
+        assert s.start() is None and not s.pipelined

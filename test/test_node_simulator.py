@@ -56,11 +56,12 @@ def test_finger_moves_the_expected_way_in_lockstep(u, tip_axis, sign):
         assert np.sign(d[tip_axis]) == sign and abs(d[tip_axis]) > 2e-4
 
 
-def test_lockstep_holds_on_a_timeout_then_steps_lost_periods_with_zero_until_commands_return():
+@pytest.mark.parametrize('mode', ['lockstep', 'pipelined'])
+def test_lockstep_holds_on_a_timeout_then_steps_lost_periods_with_zero_until_commands_return(mode):
     from rclpy.parameter import Parameter
     from soft_gripper_sdre.nodes.common import ERROR, OK
     with ros_context() as (ctx, executor):
-        sim, probe, pub = make_loop(ctx, executor, lockstep_timeout=0.05, on_timeout='hold',
+        sim, probe, pub = make_loop(ctx, executor, mode=mode, lockstep_timeout=0.05, on_timeout='hold',
                                     lost_command_wait=5.0)
         answer_tips(executor, probe, pub, [[0.02, 0.0]], 5)
         c = sim.diag.counters
@@ -76,6 +77,59 @@ def test_lockstep_holds_on_a_timeout_then_steps_lost_periods_with_zero_until_com
         pub.publish(cv.torques_to_msg(k * 1_000_000, np.array([[0.01, 0.0]])))
         assert spin_until(executor, lambda: c['commands'] == 6, 5.0)
         assert not sim.stepping.lost and sim.diag.level == OK
+
+
+def pattern(k: int) -> np.ndarray:
+    """A torque of its own for each period k, within the actuator limit."""
+    return np.array([[0.03 * np.sin(0.3 * k + 0.5), 0.02 * np.cos(0.2 * k)]])
+
+
+def replay(config, torques) -> np.ndarray:
+    """The tips a fresh simulator with ``config`` measures before each of the steps ``torques``
+    and after the last."""
+    from soft_gripper_sdre.sim.hand import GripperSim
+    with GripperSim(config) as sim:
+        tips = [sim.measure()]
+        for u in torques:
+            sim.step(u)
+            tips.append(sim.measure())
+    return np.array(tips)
+
+
+def test_pipelined_steps_the_physics_with_the_command_that_answered_the_previous_tips():
+    """The tips of t_k go out before the physics steps from t_k to t_(k+1), with the command
+    stamped t_(k−1): a fresh simulator given zero, then the answers to t_0, t_1, … measures
+    exactly the published tips; given the answers in lockstep's order it does not."""
+    steps = 30
+    with ros_context() as (ctx, executor):
+        sim, probe, pub = make_loop(ctx, executor, mode='pipelined', lockstep_timeout=5.0)
+        tips = probe.received[TIP_POSITIONS]
+        for k in range(steps):
+            assert spin_until(executor, lambda: len(tips) > k, 5.0), f'no tip message {k}'
+            stamp, _ = cv.msg_to_tips(tips[k], 1)
+            assert stamp == k * 1_000_000
+            pub.publish(cv.torques_to_msg(stamp, pattern(k)))
+        assert spin_until(executor, lambda: len(tips) > steps, 5.0)
+        assert sim.diag.counters['timeouts'] == 0 and sim.stepping.k == steps
+        # the physics is a period ahead of the newest tips, driven by the answer to t_(steps−1)
+        np.testing.assert_array_equal(sim.sim.truth().u_applied, pattern(steps - 1))
+        assert sim.sim.t == pytest.approx((steps + 1) * 1e-3)
+        published = np.array([cv.msg_to_tips(m, 1)[1] for m in tips[:steps + 1]])
+        config = sim.sim.config
+    answers = [pattern(k) for k in range(steps)]
+    np.testing.assert_array_equal(published, replay(config, [np.zeros((1, 2))] + answers[:-1]))
+    lockstep_order = replay(config, answers)
+    assert not np.array_equal(published, lockstep_order)
+    assert np.abs(published - lockstep_order).max() > 1e-7    # more than rounding: a period's drift
+
+
+def test_pipelined_run_ends_with_the_physics_at_its_duration():
+    """The final command is not applied: the physics stops at t_N, as in lockstep."""
+    with ros_context() as (ctx, executor):
+        sim, probe, pub = make_loop(ctx, executor, mode='pipelined', duration=0.01)
+        answer_tips(executor, probe, pub, [[0.01, 0.0]], 10)
+        assert sim.done and sim.stepping.k == 10 and sim.sim.t == pytest.approx(0.01)
+        assert sim.diag.counters['steps'] == 10 and sim.diag.counters['commands'] == 10
 
 
 def test_lockstep_timeout_with_zero_policy_applies_zero():
@@ -133,7 +187,8 @@ def test_realtime_mode_steps_without_commands():
 
 
 @pytest.mark.parametrize('params, name', [
-    (dict(mode='warp'), 'mode'), (dict(control_period=-0.001), 'control_period'),
+    (dict(mode='warp'), "'mode': mode must be one of .*'pipelined'.*got 'warp'"),
+    (dict(control_period=-0.001), 'control_period'),
     (dict(noise_std=1.0), 'noise_std'), (dict(scene='arm'), 'scene'), (dict(physics_substeps=1.5), 'physics_substeps'),
     (dict(scene='finger'), 'hand_fingers'), (dict(finger_names=['a', 'b'], hand_fingers=[0, 0]), 'hand_fingers'),
     (dict(finger_names=['a', 'b'], hand_fingers=[0, 4]), 'hand_fingers'),

@@ -14,7 +14,11 @@ When it steps and with which torque is decided by :class:`~soft_gripper_sdre.sim
 with the current period, and after ``lockstep_timeout`` of wall time (at the watchdog's second
 look past it, at most 20 ms later) a step with the held or zero command so the loop never
 deadlocks; commands are then lost, and each following period waits only ``lost_command_wait``
-before it steps with zero torque (ERROR), until a command arrives again. In *realtime* a wall
+before it steps with zero torque (ERROR), until a command arrives again. *Pipelined* keeps
+lockstep's rules but publishes the tips of t_k before it steps the physics from t_k to t_(k+1)
+with the command that answered t_(k−1), so the physics runs while the estimator and the
+controller work (one period of sensing-to-actuation delay; the first step goes with zero torque
+at the start, and the run's last command is not applied). In *realtime* a wall
 timer steps at the control period with the newest command, holding it while it is at most
 ``hold_limit`` old and stepping with zero torque after that. Bad commands (NaN/Inf,
 wrong sizes, unknown/duplicate/missing names, stamps older than the last applied one or ahead of
@@ -68,7 +72,7 @@ from soft_gripper_sdre.nodes.topics import (CLOCK, CLOCK_QOS, CUBE_CONTACTS, CUB
 from soft_gripper_sdre.sim.finger import FINGER_BASE_POSITIONS, N_JOINTS
 from soft_gripper_sdre.sim.hand import GripperSim, SimConfig
 from soft_gripper_sdre.sim.hand_description import hand_urdf
-from soft_gripper_sdre.sim.lockstep import LATENCY_PERIODS, Stepping
+from soft_gripper_sdre.sim.lockstep import LATENCY_PERIODS, MODES, Stepping
 
 _NO_VALUES = np.empty(0)       # /clock carries only its stamp
 #: the live 3-D view: the hand as markers, and its URDF for a late-joining viewer
@@ -77,7 +81,10 @@ DESCRIPTION_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 PARAMS = (
-    Param('mode', 'lockstep', 'stepping mode', choices=('lockstep', 'realtime'), read_only=True),
+    Param('mode', 'lockstep', 'stepping mode: lockstep (each period steps on its own command), '
+          'pipelined (lockstep\'s rules, the physics stepped with the previous period\'s command '
+          'while the current one is computed: one period of sensing-to-actuation delay) or realtime '
+          '(a wall timer steps with the newest command)', choices=MODES, read_only=True),
     Param('scene', 'hand', 'what to simulate', choices=('hand', 'finger'), read_only=True),
     Param('control_period', 0.001, 'sim time per step; commands are held over it', 's',
           1e-4, 0.05, read_only=True),
@@ -96,12 +103,12 @@ PARAMS = (
     Param('hand_fingers', [0, 1, 2, 3], "which of the scene's fingers each of finger_names is (hand: "
           "0 to 3, 0 and 2 face each other across the cube; finger scene: 0); one per name, each "
           'once. The fingers not listed stay in the scene at zero torque', read_only=True),
-    Param('lockstep_timeout', 0.5, 'lockstep: wall time to wait for a command before stepping anyway '
+    Param('lockstep_timeout', 0.5, 'lockstep, pipelined: wall time to wait for a command before stepping anyway '
           '(at the watchdog\'s second look past it, at most 20 ms later)',
           's', 1e-3, 60.0),
-    Param('on_timeout', 'hold', 'lockstep: command used when none arrived in time',
+    Param('on_timeout', 'hold', 'lockstep, pipelined: command used when none arrived in time',
           choices=('hold', 'zero')),
-    Param('lost_command_wait', 0.01, 'lockstep: after a timeout, wall time each period waits for its '
+    Param('lost_command_wait', 0.01, 'lockstep, pipelined: after a timeout, wall time each period waits for its '
           'command before it steps with zero torque, until commands arrive again', 's', 1e-3, 60.0),
     Param('hold_limit', 0.005, 'realtime: how old (sim time) the newest command may be and still '
           'be held; an older one is replaced by zero torque', 's', 0.0, 60.0),
@@ -135,7 +142,7 @@ PARAMS = (
 
 
 class SimulatorNode(Node):
-    """PyBullet gripper in lockstep or realtime with the controller (see module doc)."""
+    """PyBullet gripper in lockstep, pipelined or realtime with the controller (see module doc)."""
 
     def __init__(self, **kwargs) -> None:
         super().__init__('simulator', **kwargs)
@@ -158,6 +165,7 @@ class SimulatorNode(Node):
         self.clock_every = max(1, int(round(1.0 / (p['clock_rate'] * p['control_period']))))
         self.exit_code = 0
         self.timing = SteppingTiming(LATENCY_PERIODS)
+        self._physics_k = 0           # the physics' period: the tips' one, or one ahead (pipelined)
 
         # the per-period messages travel as CDR bytes written / read at fixed offsets (nodes/cdr.py)
         self.cdr_clock = cdr.clock_codec()
@@ -255,14 +263,16 @@ class SimulatorNode(Node):
         if self._sub_diag is not None:
             self.destroy_subscription(self._sub_diag)
             self._sub_diag = None
-        self.stepping.start()
+        first = self.stepping.start()
         self.timing.start()
-        if self.p['mode'] == 'lockstep':
+        if self.p['mode'] == 'realtime':
+            self._stepper = self.create_timer(self.p['control_period'], self._on_period)
+        else:
             self._watchdog = self.create_timer(
                 min(0.01, self.p['lockstep_timeout'] / 4, self.p['lost_command_wait'] / 2), self._check_timeout)
-        else:
-            self._stepper = self.create_timer(self.p['control_period'], self._on_period)
         self.publish_state()
+        if first is not None:                # pipelined: t_0 → t_1 while the tips of t_0 are answered
+            self._physics(first)
 
     # -- commands and stepping ---------------------------------------------------------------
     def on_command(self, data: bytes) -> None:
@@ -310,6 +320,12 @@ class SimulatorNode(Node):
             self._commands_lost(f'the newest is older than hold_limit ({self.p["hold_limit"]:g} s)')
         self._step(u)
 
+    def _physics(self, u: np.ndarray) -> None:
+        """One control period of the physics with the exposed fingers' torques ``u``."""
+        self._u_scene[self.mounted] = u
+        self.sim.step(self._u_scene)
+        self._physics_k += 1
+
     def _commands_lost(self, how: str) -> None:
         """Commands are lost: report ERROR (status and a throttled log) once per spell."""
         t = self.stepping.lost_since_ns / cv.NS
@@ -318,14 +334,23 @@ class SimulatorNode(Node):
         self.log.warn('lost', why)
 
     def _step(self, u: np.ndarray | None) -> None:
-        """Step the physics with ``u`` (finite: validated on receipt, or held or zero), if any."""
+        """The period moved on with ``u`` (finite: validated on receipt, or held or zero), if any:
+        step the physics with it and publish the new period's tips. Pipelined: publish the tips
+        first (the physics is there already) and step after them, from t_k to t_(k+1), while they
+        are answered; once the run is done the physics stays at its end."""
         if u is None:
             return
-        self._u_scene[self.mounted] = u
-        self.sim.step(self._u_scene)
-        if self.done:
-            self.timing.finish()
-        self.publish_state()
+        if self.stepping.pipelined:
+            if self.done:
+                self.timing.finish()
+            self.publish_state()
+            if not self.done:
+                self._physics(u)
+        else:
+            self._physics(u)
+            if self.done:
+                self.timing.finish()
+            self.publish_state()
         if self.done:
             k = self.stepping.k
             self.diag.set_status(OK, f'finished {k} steps')
@@ -371,7 +396,7 @@ class SimulatorNode(Node):
         """The hand's markers now, if anyone subscribes."""
         if self._markers is None or self.pub_markers.get_subscription_count() == 0:
             return
-        ns, truth = self.stepping.now_ns, self.sim.truth()
+        ns, truth = self._physics_k * self.stepping.period_ns, self.sim.truth()
         self.pub_markers.publish(self._markers.encode(ns, truth.q[self.mounted], truth.cube_pose,
                                                       self._reference_now(ns)))
 

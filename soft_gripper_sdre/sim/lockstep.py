@@ -4,7 +4,8 @@
 integer nanoseconds). The node reports each received command (stamp and torques), the wall clock
 on a timer, and in realtime mode each period of its wall timer; each call says whether to step the
 physics now and with what, or why a command is refused. The node steps the physics, publishes the
-new period's tips and then calls :meth:`Stepping.await_command` with the wall time.
+new period's tips and calls :meth:`Stepping.await_command` with the wall time (pipelined: it
+publishes the new period's tips first and steps the physics after them).
 
 * *lockstep*: the physics steps when the command stamped with the current period arrives; after
   ``timeout`` seconds of wall time without it, with the held command (``on_timeout='hold'``) or
@@ -14,11 +15,16 @@ new period's tips and then calls :meth:`Stepping.await_command` with the wall ti
   before, commands are then *lost*: each following period waits only ``lost_command_wait`` and
   steps with zero torque (``safe_periods``), until any command is accepted again. A command for
   a period already stepped past is counted (``late_command``) and not applied.
+* *pipelined*: lockstep's rules, all of them; the node steps the physics one period later. It
+  publishes the tips of t_k when the command for t_(k−1) has arrived (or the watchdog gave up on
+  it) and then steps the physics from t_k to t_(k+1) with that command, while the estimator and
+  controller answer t_k: one period of sensing-to-actuation delay. The first step, t_0 → t_1,
+  goes at the start with zero torque (:meth:`Stepping.start` returns it).
 * *realtime*: each period of a wall timer steps with the newest command. The command for the
   current period's tips, or for the previous period's (one period of transport delay), is on
   time; an older one makes the period late (``late_periods``) and is held while it is at most
   ``hold_periods`` periods old; after that zero torque is applied (``safe_periods``).
-* Refused in both modes: a stamp not newer than the last applied command (``stale_command``), a
+* Refused in every mode: a stamp not newer than the last applied command (``stale_command``), a
   stamp ahead of the current period (``future_command``), a wrong-size or non-finite torque
   (``bad_command``). With ``on_bad_command='zero'`` a refused command also drops the held one.
 
@@ -31,7 +37,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-MODES = ('lockstep', 'realtime')
+MODES = ('lockstep', 'pipelined', 'realtime')
 POLICIES = ('hold', 'zero')
 #: periods back a command may answer and still count in the loop latency (realtime: late answers)
 LATENCY_PERIODS = 64
@@ -60,12 +66,13 @@ class Stepping:
     Args:
         n_fingers: the torque command is (n_fingers, 2).
         period_ns: the control period [ns].
-        mode: 'lockstep' or 'realtime'.
-        total_steps: stop after this many steps (None: run on).
-        timeout: lockstep: wall time [s] to wait for the current period's command.
-        on_timeout: lockstep: 'hold' the last good command or apply 'zero' after a timeout.
+        mode: 'lockstep', 'pipelined' (lockstep's rules; the node steps the physics one period
+            later) or 'realtime'.
+        total_steps: stop after this many periods (None: run on).
+        timeout: lockstep and pipelined: wall time [s] to wait for the current period's command.
+        on_timeout: lockstep, pipelined: 'hold' the last good command or apply 'zero' after a timeout.
         on_bad_command: 'hold' keeps, 'zero' drops the held command when a command is refused.
-        lost_command_wait: lockstep: wall time [s] each period waits for its command once
+        lost_command_wait: lockstep, pipelined: wall time [s] each period waits for its command once
             commands are lost (after a timeout), before it steps with zero torque.
         hold_periods: realtime: how many periods old the held command may be; an older one is
             replaced by zero torque.
@@ -101,7 +108,7 @@ class Stepping:
         self.held = np.zeros((n_fingers, 2))   # the last good command
         self.last_command_ns = -1              # stamp of the last applied command
         self.answered_ns = -1                  # newest period whose latency was counted
-        self.sent_at: float | None = None      # lockstep: wall time the current tips went out
+        self.sent_at: float | None = None      # wall time the current tips went out (not realtime)
         self.lost = False                      # commands lost: stepping with zero torque
         self.lost_since_ns = -1                # the first period stepped without its command
         self._looked_overdue = None            # (period, deadline) a look already found past
@@ -113,14 +120,25 @@ class Stepping:
 
     @property
     def deadline(self) -> float | None:
-        """Lockstep: the wall time until which the current period's command is awaited."""
+        """Lockstep, pipelined: the wall time until which the current period's command is awaited."""
         if self.sent_at is None:
             return None
         return self.sent_at + (self.lost_command_wait if self.lost else self.timeout)
 
-    def start(self) -> None:
-        """The graph is wired: commands are accepted and timeouts run from now on."""
+    @property
+    def pipelined(self) -> bool:
+        """The node publishes the tips of t_k and then steps the physics from t_k to t_(k+1) with
+        the command that answered t_(k−1): the physics runs one period behind the commands."""
+        return self.mode == 'pipelined'
+
+    def start(self) -> np.ndarray | None:
+        """The graph is wired: commands are accepted and timeouts run from now on.
+
+        Returns the torque of the physics step the node takes right after publishing the first
+        tips, before any command: zero in pipelined mode (the step t_0 → t_1, whose command would
+        answer t_(−1)), None (no such step) otherwise."""
         self.started = True
+        return np.zeros((self.n_fingers, 2)) if self.pipelined else None
 
     def await_command(self, wall: float) -> None:
         """The current period's tips went out at wall time ``wall``: its command is awaited until
@@ -166,15 +184,15 @@ class Stepping:
             self.held = np.zeros((self.n_fingers, 2))
 
     def on_wall_time(self, wall: float) -> np.ndarray | None:
-        """Lockstep: the torque to step with now if the current period's command is overdue at
-        wall time ``wall``, else None. The first overdue period is a timeout (the held command or
+        """Lockstep and pipelined: the torque to step with now if the current period's command
+        is overdue at wall time ``wall``, else None. The first overdue period is a timeout (the held command or
         zero, by ``on_timeout``); if a command was ever accepted, commands are lost from then on
         and every later overdue period gets zero after ``lost_command_wait``.
 
         Each call is one look: a period is overdue at the second look past its deadline, so a
         command that was already waiting at the first look is taken in between."""
         deadline = self.deadline
-        if self.mode != 'lockstep' or self.done or deadline is None or wall < deadline:
+        if self.mode == 'realtime' or self.done or deadline is None or wall < deadline:
             return None
         if self._looked_overdue != (self.k, deadline):     # (a moved deadline gets its own two looks)
             self._looked_overdue = (self.k, deadline)

@@ -1,4 +1,4 @@
-"""The grasp demo: the whole node graph as separate processes, in lockstep, recorded and reported.
+"""The grasp demo: the whole node graph as separate processes, in lockstep (or ``--mode``), recorded and reported.
 
     python -m soft_gripper_sdre.tools.demo --out runs/demo
 
@@ -26,6 +26,7 @@ import time
 
 from soft_gripper_sdre.control.laws import GRAPH_LAWS
 from soft_gripper_sdre.nodes.graph import CUBE_FINGERS, PERIOD_RANGE, finger_parameters, grasp_graph
+from soft_gripper_sdre.sim.lockstep import MODES
 from soft_gripper_sdre.tools.procs import DiagnosticsMonitor, Graph, ros_env
 
 
@@ -48,6 +49,12 @@ def _parser() -> argparse.ArgumentParser:
                     help='run the graph on these fingers of the hand, named (e.g. left=0,right=2: '
                          f'hand fingers {CUBE_FINGERS[0]} and {CUBE_FINGERS[1]} face each other across '
                          'the cube); default all four, finger_0=0,...,finger_3=3')
+    ap.add_argument('--mode', default=None, choices=MODES,
+                    help='the simulator\'s stepping (default: config/simulator.yaml, lockstep): '
+                         'pipelined steps the physics with the previous period\'s command while '
+                         'the current one is computed, deterministic as lockstep and faster on '
+                         'two or more cores; realtime steps on a wall timer and is not reproducible '
+                         '(docs/design/loop_rules.md)')
     ap.add_argument('--integral-gain', type=float, default=None, metavar='KI',
                     help='the default law\'s integral gain [1/s³], 0 = off (default: config/controller.yaml)')
     ap.add_argument('--domain-id', type=int, default=None, help='ROS_DOMAIN_ID (default: env or random)')
@@ -59,9 +66,11 @@ def _parser() -> argparse.ArgumentParser:
 def run_demo(out: Path, duration: float, model: Path | None = None, noise: float | None = None,
              seed: int | None = None, domain_id: int | None = None, timeout: float = 600.0,
              progress: bool = True, law: str | None = None, fingers: dict[str, int] | None = None,
-             period: float | None = None, integral_gain: float | None = None) -> dict:
+             period: float | None = None, integral_gain: float | None = None,
+             mode: str | None = None) -> dict:
     """Run the graph, write bag/figures/metrics under ``out``; returns the report (plus run facts).
-    ``period`` [s] is the control period of every node of the loop (None: the config files').
+    ``period`` [s] is the control period of every node of the loop (None: the config files');
+    ``mode`` the simulator's stepping (None: its config file's).
 
     Raises:
         RuntimeError: a node failed or the run did not finish within ``timeout`` (logs are kept).
@@ -91,6 +100,8 @@ def run_demo(out: Path, duration: float, model: Path | None = None, noise: float
         params['controller']['law'] = law
     if integral_gain is not None:
         params['controller']['integral_gain'] = float(integral_gain)
+    if mode is not None:
+        params['simulator']['mode'] = mode
     for node, values in (finger_parameters(fingers) if fingers else {}).items():
         params[node].update(values)
     spec = grasp_graph(parameters=params, control_period=period)
@@ -144,6 +155,7 @@ def run_demo(out: Path, duration: float, model: Path | None = None, noise: float
     sim_diag = last_diagnostics(bag, 'simulator')
     stepping_rtf = sim_diag.get('real_time_factor')
     result['run'] = {'sim_duration_s': duration, 'control_period_s': float(_simulator_period(spec)),
+                     'mode': sim_diag.get('mode', mode),
                      'wall_s': round(wall, 2),
                      'report_wall_s': round(time.monotonic() - t_report, 2),
                      'real_time_factor': float(stepping_rtf) if stepping_rtf else None,
@@ -209,7 +221,8 @@ def summary(result: dict, out: Path) -> str:
     latency = (f'; loop latency p50 {run["loop_latency_us_p50"]:.0f} µs, p99 {run["loop_latency_us_p99"]:.0f} µs'
                if 'loop_latency_us_p50' in run else '')
     period = f' at a {1e3 * run["control_period_s"]:g} ms control period' if 'control_period_s' in run else ''
-    lines = [f'grasp demo: {run["sim_duration_s"]:g} s of sim time{period}, {run["wall_s"]:.1f} s wall with start-up '
+    mode = f' ({run["mode"]})' if run.get('mode', 'lockstep') != 'lockstep' else ''
+    lines = [f'grasp demo{mode}: {run["sim_duration_s"]:g} s of sim time{period}, {run["wall_s"]:.1f} s wall with start-up '
              f'(stepping at {rtf}× real time{latency}), then {run.get("report_wall_s", 0.0):.1f} s '
              'to read the bag and draw the figures']
     for name, f in result['fingers'].items():
@@ -316,7 +329,7 @@ def main(argv: list[str] | None = None) -> int:
                           a.domain_id, a.timeout, progress=not a.no_progress, law=a.law,
                           fingers=parse_fingers(a.fingers) if a.fingers else None,
                           period=None if a.period is None else a.period * 1e-3,
-                          integral_gain=a.integral_gain)
+                          integral_gain=a.integral_gain, mode=a.mode)
     except RuntimeError as exc:
         print(f'error: {exc}', file=sys.stderr)
         return 1
