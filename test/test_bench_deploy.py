@@ -1,6 +1,8 @@
 """The deployment benchmark measures what it claims: a driver process over DDS with the real
 estimator, trajectory and controller processes, figures from the driver and /proc; and the floor
 rows' arithmetic."""
+import os
+
 import pytest
 
 from soft_gripper_sdre.tools.bench import floor_rows
@@ -38,7 +40,14 @@ def test_variants_join_their_settings():
     assert 'one process' in what and 'shared memory' in what
 
 
-def test_the_floor_is_the_sum_of_physics_three_hops_and_compute():
-    (_, floor, _), (_, graph, _) = floor_rows(600e-6, 200.0, 3e-6, 47e-6, 0.5)
-    assert floor.startswith('1250 µs (0.80× real time)')
+def test_the_floor_is_the_sum_in_lockstep_and_the_larger_branch_pipelined():
+    figures = {'lockstep_rtf': 0.5, 'pipelined_rtf': 0.8, 'pipelined_cpu_us': 1800.0}
+    (_, floor, _), (_, graph, _), (_, pipe_floor, note), (_, pipe, pipe_note) = floor_rows(
+        600e-6, 200.0, 3e-6, 47e-6, figures)
+    assert floor.startswith('1250 µs (0.80× real time)')          # 600 + 3 × 200 + 50
     assert graph == '2000 µs = 1.60× the floor'
+    assert pipe_floor.startswith('650 µs (1.54× real time)')      # max(600, 3 × 200 + 50)
+    assert pipe == '1250 µs = 1.92× the floor' and 'period is 1.60× this one' in pipe_note
+    assert f'needs at least {1800 / os.cpu_count():.0f} µs' in note   # 1800 µs of CPU over the cores
+    (_, pipe_floor, _) = floor_rows(900e-6, 200.0, 3e-6, 47e-6, figures)[2]
+    assert pipe_floor.startswith('900 µs')                         # the physics is the longer branch

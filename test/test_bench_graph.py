@@ -1,7 +1,7 @@
 """The graph benchmarks measure what they claim: real processes over DDS, figures from the nodes."""
 import pytest
 
-from soft_gripper_sdre.tools.bench_graph import SIM_TOPICS, hog_run, hop, recorder_loss, run_graph
+from soft_gripper_sdre.tools.bench_graph import SIM_TOPICS, hog_run, hop, mode_rows, recorder_loss, run_graph
 from soft_gripper_sdre.tools.bench_hog import PHASES
 
 pytestmark = pytest.mark.ros
@@ -17,8 +17,10 @@ def test_one_hop_is_timed_from_a_real_round_trip(raw):
 
 @pytest.mark.slow
 @pytest.mark.timeout(240)
-def test_lockstep_run_reports_speed_and_latency_of_every_period():
-    d = run_graph(0.3)
+@pytest.mark.parametrize('mode', ['lockstep', 'pipelined'])
+def test_lockstep_run_reports_speed_and_latency_of_every_period(mode):
+    d = run_graph(0.3, mode=mode)
+    assert d['simulator']['steps'] == 300 and d['simulator'].get('late_command', 0) == 0
     sim = d['simulator']
     assert sim['steps'] == 300 and sim.get('timeouts', 0) == 0
     assert sim['real_time_factor'] > 0
@@ -56,3 +58,21 @@ def test_realtime_latency_comes_back_after_a_cpu_hog():
     # after it no more than 0.2 more of them than before
     assert after['p50'] <= 3.0 * before['p50'], figures
     assert after['late'] < max(0.5, before['late'] + 0.2), figures
+
+
+def _run(rtf: float, load: float, cpu: float) -> dict:
+    nodes = {n: {'cpu_per_step_us': cpu} for n in ('estimator', 'trajectory', 'controller')}
+    return {'simulator': {'real_time_factor': rtf, 'load': load, 'cpu_per_step_us': 2 * cpu,
+                          'loop_latency_us_p50': 700.0, 'loop_latency_us_p99': 900.0}, **nodes}
+
+
+def test_mode_rows_report_the_median_run_with_the_range_and_the_loads():
+    runs = {'lockstep': [_run(0.6, 1.0, 100.0), _run(0.5, 2.0, 110.0), _run(0.7, 3.0, 120.0)],
+            'pipelined': [_run(1.1, 1.5, 200.0), _run(0.9, 2.5, 210.0), _run(1.0, 3.5, 220.0)]}
+    figures = {}
+    (lock, lock_rtf, lock_note), (pipe, pipe_rtf, pipe_note) = mode_rows(runs, 3.0, figures)
+    assert 'lockstep' in lock and 'pipelined' in pipe
+    assert lock_rtf == '0.60× real time' and pipe_rtf == '1.00× real time'
+    assert '0.60×, 0.50×, 0.70× at load 1.0, 2.0, 3.0' in lock_note
+    assert 'CPU per period simulator / estimator / trajectory / controller 440 / 220 / 220 / 220 µs (sum 1100)' in pipe_note
+    assert figures == {'lockstep_rtf': 0.6, 'lockstep_cpu_us': 500.0, 'pipelined_rtf': 1.0, 'pipelined_cpu_us': 1100.0}

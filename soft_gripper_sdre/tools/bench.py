@@ -1,6 +1,6 @@
 """Benchmarks: the control core's costs, the simulator, the closed loop in-process and as a graph.
 
-    python -m soft_gripper_sdre.tools.bench [--write BENCHMARKS.md] [--quick]
+    python -m soft_gripper_sdre.tools.bench [--write BENCHMARKS.md] [--quick] [--floor REPEATS]
 
 Prints a table of (what, figure, note) rows; ``--write`` also renders it as Markdown with the
 machine facts and the command. Every figure is a median over repeated timings; where two paths
@@ -8,7 +8,8 @@ compete (the compiled controller vs the scipy reference) they are timed interlea
 run and their ratio is reported, since the machine is shared and absolute numbers drift. The
 start-up rows time numba's compilation from an empty cache and the graph's start-up on a filled one.
 The node-graph rows come from :mod:`soft_gripper_sdre.tools.bench_graph` when it is installed
-(``rows(quick) -> [(what, figure, note)]``).
+(``rows(quick) -> [(what, figure, note)]``). ``--floor REPEATS`` measures only what the floor rows
+compare (:func:`floor_table`): a few minutes instead of the whole table's hour.
 """
 from __future__ import annotations
 
@@ -268,25 +269,72 @@ def graph_rows(quick: bool, figures: dict[str, float] | None = None) -> list[Row
     return list(module.rows(quick, figures=figures))
 
 
-def floor_rows(hand: float, hop_us: float, kf: float, control: float, rtf: float) -> list[Row]:
-    """The lockstep graph against its floor, from figures of this run: the physics of a period
+def floor_rows(hand: float, hop_us: float, kf: float, control: float, figures: dict[str, float]) -> list[Row]:
+    """Each mode of the graph against its floor, from figures of this run: the physics of a period
     ``hand`` [s], one DDS hop one way ``hop_us`` [µs], the KF and controller compute ``kf``,
-    ``control`` [s], the lockstep real-time factor ``rtf``. In strict lockstep nothing overlaps,
-    so a period can be no shorter than their sum."""
-    floor = hand + 3e-6 * hop_us + kf + control
-    period = 1e-3 / rtf if rtf > 0 else float('nan')
+    ``control`` [s], and the graph runs' ``figures`` (:func:`soft_gripper_sdre.tools.bench_graph.mode_rows`).
+
+    In strict lockstep nothing overlaps, so a period can be no shorter than the sum of the
+    physics, the three hops and the compute. Pipelined, the physics of one period runs while the
+    tips of the next travel the three hops and are computed on, so a period can be no shorter
+    than the larger of the physics and the hops + compute (the hops and the compute follow one
+    another); on ``os.cpu_count()`` cores it also needs every process's CPU of a period spread
+    over them."""
+    hops, compute = 3e-6 * hop_us, kf + control
+    lockstep_floor = hand + hops + compute
+    pipelined_floor = max(hand, hops + compute)
+    cores = os.cpu_count() or 1
     us = lambda s: f'{s * 1e6:.0f} µs'          # noqa: E731
+
+    def period(mode: str) -> float:
+        rtf = figures.get(f'{mode}_rtf', float('nan'))
+        return 1e-3 / rtf if rtf > 0 else float('nan')
+    lock, pipe = period('lockstep'), period('pipelined')
+    cpu = figures.get('pipelined_cpu_us', float('nan'))
     return [
         ('floor of a lockstep period: physics + three rclpy hops + compute',
-         f'{us(floor)} ({1e-3 / floor:.2f}× real time)',
+         f'{us(lockstep_floor)} ({1e-3 / lockstep_floor:.2f}× real time)',
          f'physics alone {us(hand)} (the hand + cube row), three hops {3 * hop_us:.0f} µs (3 × the '
-         f'raw-CDR hop\'s p50, each with its node\'s receive and send), compute {us(kf + control)} '
+         f'raw-CDR hop\'s p50, each with its node\'s receive and send), compute {us(compute)} '
          '(KF + sdre_ff, back to back)'),
         ('lockstep graph period against its floor',
-         f'{us(period)} = {period / floor:.2f}× the floor',
-         f'1 ms / {rtf:.2f}× real time (the lockstep row); the rest is what the three processes '
-         'add beyond their hop: waking up, /diagnostics, cold caches, the machine\'s other load'),
+         f'{us(lock)} = {lock / lockstep_floor:.2f}× the floor',
+         f'1 ms / {figures.get("lockstep_rtf", float("nan")):.2f}× real time (the lockstep row); the rest is what '
+         'the three processes add beyond their hop: waking up, /diagnostics, cold caches, the machine\'s other load'),
+        ('floor of a pipelined period: the larger of physics and three hops + compute',
+         f'{us(pipelined_floor)} ({1e-3 / pipelined_floor:.2f}× real time)',
+         f'physics {us(hand)} beside three hops + compute {us(hops + compute)}: the physics of t_k → t_(k+1) runs '
+         f'while the tips of t_k are answered; and on {cores} cores every process\'s CPU of a period '
+         f'({cpu:.0f} µs in the pipelined run) needs at least {cpu / cores:.0f} µs'),
+        ('pipelined graph period against its floor',
+         f'{us(pipe)} = {pipe / pipelined_floor:.2f}× the floor',
+         f'1 ms / {figures.get("pipelined_rtf", float("nan")):.2f}× real time (the pipelined row); '
+         f'the lockstep run\'s period is {lock / pipe:.2f}× this one'),
     ]
+
+
+def floor_table(quick: bool, repeats: int) -> list[Row]:
+    """The floor rows alone, measured together (``--floor``): the hand's physics, the KF and
+    ``sdre_ff`` compute on the closed loop's states, the raw-CDR hop, and the graph in lockstep
+    and pipelined mode alternating ``repeats`` times, each row with the load it ran under."""
+    from soft_gripper_sdre.tools.bench_graph import hop, mode_rows, mode_runs
+    us = lambda s: f'{s * 1e6:.0f} µs'          # noqa: E731
+    load = lambda: f'load average {os.getloadavg()[0]:.1f}'    # noqa: E731
+    hand = bench_sim('hand', 0.5 if quick else 2.0, 5)
+    out: list[Row] = [('simulator step, hand + cube', f'{us(hand)} ({1e-3 / hand:.2f}× real time)', load())]
+    loop = closed_loop(1.0 if quick else 2.0, noise_std=5e-5)
+    kf = bench_kf(loop, 1 if quick else 3)
+    ctrl = bench_control(loop, 'sdre_ff', 1 if quick else 2, 20)
+    out += [('KF step, 4 fingers (compiled)', us(kf), load()),
+            ('controller compute, sdre_ff, 4 fingers (compiled)', us(ctrl['fast']),
+             f'the kernel call alone {us(ctrl["kernel"])}; {load()}')]
+    raw = hop('events', 1000 if quick else 3000, raw=True)
+    out.append(('one DDS hop, tip_positions as raw CDR (nodes/cdr.py), EventsExecutor',
+                f'{raw["p50"]:.0f} / {raw["p99"]:.0f} µs', f'p50 / p99 one way; {load()}'))
+    seconds = 1.0 if quick else 3.0
+    figures: dict[str, float] = {}
+    out += mode_rows(mode_runs(seconds, repeats), seconds, figures)
+    return out + floor_rows(hand, raw['p50'], kf, ctrl['fast'], figures)
 
 
 def deploy_rows(quick: bool) -> list[Row]:
@@ -344,7 +392,7 @@ def rows(quick: bool) -> list[Row]:
     figures: dict[str, float] = {}
     out += graph_rows(quick, figures)
     if 'hop_p50_us' in figures:
-        out += floor_rows(hand, figures['hop_p50_us'], kf, ctrl['fast'], figures['lockstep_rtf'])
+        out += floor_rows(hand, figures['hop_p50_us'], kf, ctrl['fast'], figures)
     out += deploy_rows(quick)
     if not quick:                # compiling from an empty cache takes about a minute
         compiled = compile_seconds()
@@ -395,10 +443,15 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.bench', description=__doc__.split('\n')[0])
     ap.add_argument('--write', type=Path, default=None, help='also write the results as Markdown here')
     ap.add_argument('--quick', action='store_true', help='shorter runs (smoke test)')
+    ap.add_argument('--floor', type=int, default=None, metavar='REPEATS',
+                    help='only the floor rows: physics, compute, one hop, and the graph in lockstep and '
+                         'pipelined mode alternating REPEATS times (prints; --write is refused)')
     a = ap.parse_args(argv)
+    if a.floor is not None and (a.floor < 1 or a.write):
+        ap.error('--floor takes a number of repeats >= 1 and prints only (no --write)')
     from soft_gripper_sdre.learning.model import set_torch_threads
     set_torch_threads(1)
-    table = rows(a.quick)
+    table = floor_table(a.quick, a.floor) if a.floor is not None else rows(a.quick)
     width = max(len(r[0]) for r in table)
     for name, value, note in table:
         print(f'{name:<{width}}  {value:>28}  {note}')

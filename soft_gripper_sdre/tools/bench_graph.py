@@ -12,6 +12,9 @@ from /proc (CPU time of each process while the simulator stepped):
   wall time from publishing ``tip_positions`` for t_k to receiving the torque command stamped t_k
   (three DDS hops and the estimator's and controller's work), and when the first command came:
   the start-up is measured from launching the processes to that first torque.
+* **pipelined**: the same graph with the simulator's ``mode: pipelined`` (the physics of t_k →
+  t_(k+1) steps with the answer to t_(k−1) while t_k is answered), right after the lockstep run,
+  so both see about the same load (:func:`mode_runs` alternates them).
 * **realtime**: the simulator steps on a 1 ms wall timer with its newest command; a period is
   late when that command answers tips older than the previous period's (more than one period of
   transport delay, ``late_periods``), and safe when it is older than ``hold_limit`` and zero torque
@@ -345,29 +348,84 @@ def hop(executor: str, count: int = 2000, raw: bool = False) -> dict[str, float]
             'rounds': rounds, 'resent': state['resent']}
 
 
+def mode_runs(seconds: float, repeats: int = 1, executor: str | None = None) -> dict[str, list[dict]]:
+    """The graph in lockstep and in pipelined mode, ``seconds`` of sim time each, alternating
+    ``repeats`` times so that both modes meet the same load. Per mode, each run's
+    :func:`run_graph` result; its simulator's values also hold the 1-minute load average at the
+    run's end (``load``)."""
+    runs: dict[str, list[dict]] = {'lockstep': [], 'pipelined': []}
+    for _ in range(repeats):
+        for mode, done in runs.items():
+            d = run_graph(seconds, mode=mode, executor=executor)
+            d['simulator']['load'] = os.getloadavg()[0]
+            done.append(d)
+    return runs
+
+
+def cpu_per_period(d: dict[str, dict[str, float]]) -> dict[str, float]:
+    """Each loop process's CPU time per period [µs] in the run ``d`` (:func:`run_graph`)."""
+    return {n: d.get(n, {}).get('cpu_per_step_us', float('nan')) for n in ('simulator', *LOOP_NODES)}
+
+
+def median_run(done: list[dict]) -> dict:
+    """The run of median real-time factor (the lower middle one of an even count)."""
+    ranked = sorted(done, key=lambda d: d['simulator'].get('real_time_factor', 0.0))
+    return ranked[(len(ranked) - 1) // 2]
+
+
+def mode_rows(runs: dict[str, list[dict]], seconds: float,
+              figures: dict[str, float] | None = None) -> list[tuple[str, str, str]]:
+    """The rows of :func:`mode_runs`: each mode's real-time factor (the median run, with the range
+    and the loads when there are several), latency and CPU per period. ``figures`` gets
+    ``<mode>_rtf`` and ``<mode>_cpu_us`` (every process's CPU per period, summed)."""
+    nan = float('nan')
+    out = []
+    for mode, done in runs.items():
+        d = median_run(done)
+        sim = d['simulator']
+        cpu = cpu_per_period(d)
+        rtfs = [r['simulator'].get('real_time_factor', nan) for r in done]
+        if figures is not None:
+            figures[f'{mode}_rtf'] = sim.get('real_time_factor', nan)
+            figures[f'{mode}_cpu_us'] = sum(cpu.values())
+        spread = (f'; median of {len(done)} runs alternating the two modes: '
+                  + ', '.join(f'{r:.2f}×' for r in rtfs) + ' at load '
+                  + ', '.join(f'{r["simulator"]["load"]:.1f}' for r in done)) if len(done) > 1 else ''
+        out.append((f'node graph, 4 processes, {mode} 1 ms', f'{sim.get("real_time_factor", nan):.2f}× real time',
+                    f'{seconds:g} s of sim time; {int(sim.get("timeouts", 0))} timeouts; loop latency p50 / p99 '
+                    f'{sim.get("loop_latency_us_p50", nan):.0f} / {sim.get("loop_latency_us_p99", nan):.0f} µs; '
+                    'CPU per period simulator / estimator / trajectory / controller '
+                    + ' / '.join(f'{c:.0f}' for c in cpu.values()) + f' µs (sum {sum(cpu.values()):.0f})'
+                    + spread))
+    return out
+
+
 def rows(quick: bool = False, executor: str | None = None, graph_only: bool = False,
          figures: dict[str, float] | None = None) -> list[tuple[str, str, str]]:
     """(what, figure, note) rows for BENCHMARKS.md. ``graph_only``: the graph runs alone, without
     the DDS hops, the SingleThreadedExecutor run and the recorder run. ``figures``, if given, gets
-    the numbers the floor rows of :mod:`soft_gripper_sdre.tools.bench` compare: the lockstep
-    real-time factor (``lockstep_rtf``) and the raw-CDR hop's one-way p50 [µs] (``hop_p50_us``)."""
+    the numbers the floor rows of :mod:`soft_gripper_sdre.tools.bench` compare: the lockstep and
+    pipelined real-time factors and CPU per period (``lockstep_rtf``, ``pipelined_rtf``,
+    ``lockstep_cpu_us``, ``pipelined_cpu_us``: :func:`mode_rows`) and the raw-CDR hop's one-way
+    p50 [µs] (``hop_p50_us``)."""
     nan = float('nan')
     seconds, real_s = (1.0, 3.0) if quick else (3.0, 20.0)
-    lock_all = run_graph(seconds, executor=executor)
+    runs = mode_runs(seconds, executor=executor)
+    lock_all = runs['lockstep'][0]
     lock = lock_all['simulator']
+    pipelined_row = mode_rows(runs, seconds, figures)[1]
     real = run_graph(real_s, mode='realtime', executor=executor)['simulator']
     hog = hog_run(9.0 if quick else 14.0, 4.5 if quick else 6.0, executor=executor)
     steps = max(real.get('steps', 1.0), 1.0)
-    cpu = {n: lock_all[n].get('cpu_per_step_us', nan) for n in ('simulator', *LOOP_NODES)}
+    cpu = cpu_per_period(lock_all)
     compute = lock_all['controller'].get('compute_us_mean', nan)
-    if figures is not None:
-        figures['lockstep_rtf'] = lock.get('real_time_factor', nan)
 
     def latency(d: dict, prefix: str = 'loop_latency_us') -> str:
         return ' / '.join(f'{d.get(f"{prefix}_{k}", nan):.0f}' for k in ('p50', 'p99', 'max')) + ' µs'
     table = [
         ('node graph, 4 processes, lockstep 1 ms', f'{lock.get("real_time_factor", nan):.2f}× real time',
          f'{seconds:g} s of sim time; {int(lock.get("timeouts", 0))} timeouts'),
+        pipelined_row,
         ('loop latency p50 / p99 / max, lockstep (tips out → torque back)', latency(lock),
          'measured in the simulator: 3 DDS hops + estimator + controller'),
         ('CPU per period, lockstep: simulator / estimator / trajectory / controller',
@@ -406,11 +464,11 @@ def rows(quick: bool = False, executor: str | None = None, graph_only: bool = Fa
          f'{ev_raw["cpu"]:.0f} µs CPU per message received, decoded, encoded and sent, as the loop nodes do'),
         ('one DDS hop, tip_positions, SingleThreadedExecutor', f'{st["p50"]:.0f} / {st["p99"]:.0f} µs',
          f'{st["cpu"]:.0f} µs CPU per message: {st["cpu"] / ev["cpu"]:.1f}× the EventsExecutor\'s'),
-        *table[:1],
+        *table[:2],
         ('node graph, lockstep, SingleThreadedExecutor in every node',
          f'{single.get("real_time_factor", nan):.2f}× real time',
          f'rclpy\'s default executor; loop latency p50 {single.get("loop_latency_us_p50", nan):.0f} µs'),
-        *table[1:],
+        *table[2:],
         ('recorder, all topics at 1 kHz: messages lost', f'{lost} of {sent}',
          '5 processes in realtime; published (node counters) − in the bag'
          + (f'; most on {worst}' if lost else '')),
