@@ -35,7 +35,7 @@ from soft_gripper_sdre.analysis.metrics import r2_score
 from soft_gripper_sdre.analysis.plots import plot_accel, plot_loss
 from soft_gripper_sdre.learning import derivatives
 from soft_gripper_sdre.learning.model import SDCModel
-from soft_gripper_sdre.learning.training import TrainSettings, fingerprint, save_checkpoint, train
+from soft_gripper_sdre.learning.training import Run, TrainSettings, fingerprint, save_checkpoint, train
 
 #: samples of a recording's first stretch its jerk intensity is tuned on
 TUNE_SAMPLES = 2000
@@ -146,8 +146,8 @@ def _stack(samples: list[FingerSamples]) -> tuple[np.ndarray, ...]:
 
 
 def validation_segments(samples: list[FingerSamples]) -> list[tuple[np.ndarray, ...]]:
-    """(t, x, u) of every validation stretch, cut where samples were left out (a hole in the
-    grid), for the free-run check."""
+    """(t, x, u) of every stretch of samples, cut where samples were left out (a hole in the
+    grid), for the free-run check and the simulation stage of training."""
     out = []
     for smp in samples:
         d = np.diff(smp.t)
@@ -156,6 +156,11 @@ def validation_segments(samples: list[FingerSamples]) -> list[tuple[np.ndarray, 
             if b - a >= 2:
                 out.append((smp.t[a:b], smp.x[a:b], smp.u[a:b]))
     return out
+
+
+def runs(samples: list[FingerSamples]) -> list[Run]:
+    """The contiguous stretches of ``samples`` as the simulation stage of training takes them."""
+    return [Run(x, u, float(np.median(np.diff(t)))) for t, x, u in validation_segments(samples)]
 
 
 def tuning_stretch(rec: Recording, finger: int) -> tuple[np.ndarray, np.ndarray]:
@@ -211,9 +216,11 @@ def train_from_bags(train_paths: list[Path], val_paths: list[Path], out: Path, s
     _, x, u, acc = _stack(samples)
     t_val, x_val, u_val, acc_val = _stack(val_samples)
 
-    bar = tqdm(total=settings.epochs, desc=f'train ({settings.preset})', unit='epoch')
+    bar = tqdm(total=settings.epochs + settings.rollout_epochs, desc=f'train ({settings.preset})',
+               unit='epoch')
     result = train(x, u, acc, x_val, u_val, acc_val, settings,
-                   lambda epoch, tl, vl: (bar.update(1), bar.set_postfix(train=f'{tl:.3g}', val=f'{vl:.3g}')))
+                   lambda epoch, tl, vl: (bar.update(1), bar.set_postfix(train=f'{tl:.3g}', val=f'{vl:.3g}')),
+                   runs=runs(samples), val_runs=runs(val_samples))
     bar.close()
 
     from soft_gripper_sdre.tools.train import poly_features
@@ -244,6 +251,8 @@ def train_from_bags(train_paths: list[Path], val_paths: list[Path], out: Path, s
         metrics = {
             'source': 'rosbag2', 'preset': settings.preset, 'seed': settings.seed,
             'epochs_run': len(result.train_loss), 'best_epoch': result.best_epoch,
+            'rollout_epochs_run': len(result.rollout_loss),
+            'best_val_sim_error': min(result.val_sim_error) if result.val_sim_error else None,
             'train_seconds': round(result.seconds, 1),
             'val_r2_labels': {'X': r2[0], 'Y': r2[1]}, 'val_r2_ls_baseline': {'X': r2_ls[0], 'Y': r2_ls[1]},
             'G2_at_origin': G2.tolist(),
