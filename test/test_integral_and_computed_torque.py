@@ -192,3 +192,35 @@ def test_integral_is_the_default_laws_switch():
     assert make_law('sdre_ff', spring_model(), W, 0.06, integral_band=1e-3).integral.band == 1e-3
     with pytest.raises(ValueError, match='integral_gain'):
         make_law('sdre_ff', spring_model(), W, 0.06, integral_gain=-1.0)
+
+
+def test_the_compiled_integral_and_roll_off_are_the_separate_steps_bit_for_bit():
+    """The default law's fast path ends in one compiled call (integral, saturation, roll-off): on
+    the shipped model, at states inside and outside the band, saturated and not, with the
+    roll-off on and off, its torques, saturation, integral and filter state are those of
+    IntegralAction.apply followed by RollOff, bit for bit."""
+    model = SDCModel()
+    rng = np.random.default_rng(3)
+    for lowpass_hz, u_max in ((40.0, 0.0625), (40.0, 0.004), (0.0, 0.0625)):
+        fused, split = (SdreFeedforwardLaw(model, Weights(1e6, 0.0, 1.6e4), u_max, lowpass_hz=lowpass_hz)
+                        for _ in range(2))
+        saturated = outside = 0
+        for k in range(300):
+            pos = model.rest_tip[:2] + rng.normal(0, 2e-3, (4, 2))
+            spread = 2e-4 if k % 3 else 2e-3                   # inside the 0.5 mm band, and outside
+            args = (pos, rng.normal(0, 0.02, (4, 2)), pos + rng.normal(0, spread, (4, 2)),
+                    rng.normal(0, 0.02, (4, 2)), rng.normal(0, 0.5, (4, 2)))
+            a = fused.compute(*args)
+            z = split.io.frame.stacked(*args)
+            b = split.sdre.track_feedforward(split.network, split.io.origin, False, z)
+            split.integral.apply(b, z[:, 0:2] - z[:, 4:6], split.sdre.feedforward.state_finite)
+            b.u = split.io.roll_off(b.u)
+            for name in ('u', 'u_unsat', 'saturated'):
+                np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=f'{name}, step {k}')
+            np.testing.assert_array_equal(fused.integral.xi, split.integral.xi, err_msg=f'step {k}')
+            saturated += int(a.saturated.any())
+            outside += int((np.linalg.norm(args[0] - args[2], axis=1) > fused.integral.band).any())
+        assert outside > 50 and (saturated > 50 if u_max < 0.01 else saturated < 300)
+        if lowpass_hz:
+            assert a.u is fused.io.roll_off._u                # the filter goes on from this step's output
+            assert not np.array_equal(a.u, np.clip(a.u_unsat, -u_max, u_max))

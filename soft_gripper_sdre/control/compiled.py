@@ -32,7 +32,7 @@ from typing import NamedTuple
 import numpy as np
 
 from soft_gripper_sdre.control.compiled_horizon import plan_sample
-from soft_gripper_sdre.control.compiled_integral import integral_step, integral_update
+from soft_gripper_sdre.control.compiled_integral import integral_roll_off, integral_step, integral_update
 from soft_gripper_sdre.control.compiled_kf import kf_step, kf_step_dt
 from soft_gripper_sdre.control.compiled_sdre import (feedforward_step, model_inversion, sdc_forward, sdre_gains,
                                                      sdre_step, tracking_step, tracking_torques)
@@ -40,7 +40,7 @@ from soft_gripper_sdre.control.compiled_sdre import (feedforward_step, model_inv
 __all__ = ['SdcNetwork', 'SdreSettings', 'SdreState', 'SdreOutputs', 'FeedforwardOutputs', 'compiled_network',
            'kernel_array', 'warm_up',
            'sdc_forward', 'sdre_gains', 'tracking_torques', 'sdre_step', 'tracking_step', 'model_inversion',
-           'feedforward_step', 'kf_step', 'kf_step_dt', 'integral_step', 'integral_update',
+           'feedforward_step', 'kf_step', 'kf_step_dt', 'integral_step', 'integral_update', 'integral_roll_off',
            'plan_sample']
 
 
@@ -164,6 +164,8 @@ def warm_up() -> None:
     integral_step(rows.copy(), np.eye(2), np.eye(2), 1e-3, 1e-3, 0.9, 1.0, rows, ones, rows.copy(), rows.copy(),
                   saturated)
     integral_update(rows.copy(), np.eye(2), np.eye(2), 1e-3, 1e-3, 0.9, 1.0, rows, saturated, ones)
+    integral_roll_off(rows.copy(), np.eye(2), np.eye(2), 1e-3, 1e-3, 0.9, 1.0, np.zeros((n, 10)), ones, rows.copy(),
+                      rows.copy(), saturated, 0.5, 0.5, rows.copy(), True)
     plan = np.zeros((2, n, 2))
     plan_sample(np.array([0, 1], dtype=np.int64), plan, plan, plan, 0, rows.copy(), rows.copy(),
                 rows.copy())

@@ -6,6 +6,7 @@ Its own file: numba's on-disk cache is keyed on the source file of the function 
 from __future__ import annotations
 
 from numba import njit
+import numpy as np
 
 kernel = njit(cache=True, error_model='numpy', nogil=True)
 
@@ -51,3 +52,22 @@ def integral_step(xi, to_torque, from_torque, dt, band, decay, u_max, error, fin
             saturated[i, j] = abs(v) > u_max
             u[i, j] = min(max(v, -u_max), u_max)
     integral_update(xi, to_torque, from_torque, dt, band, decay, u_max, error, saturated, finite)
+
+
+@kernel
+def integral_roll_off(xi, to_torque, from_torque, dt, band, decay, u_max, z, finite, u_unsat, u, saturated,
+                      alpha, beta, u_prev, has_prev):
+    """The default law's last arithmetic in one call: :func:`integral_step` with the error
+    e = p − p_d taken from the kernel rows z = [p, ṗ, p_d, …] (n, ≥ 6), then the roll-off of ``u``
+    in place, u ← α u_prev + β u (β = 1 − α) where ``alpha`` > 0 and ``has_prev``, each element as
+    :class:`~soft_gripper_sdre.control.tracking.RollOff` computes it."""
+    n = xi.shape[0]
+    error = np.empty((n, 2))
+    for i in range(n):
+        error[i, 0] = z[i, 0] - z[i, 4]
+        error[i, 1] = z[i, 1] - z[i, 5]
+    integral_step(xi, to_torque, from_torque, dt, band, decay, u_max, error, finite, u_unsat, u, saturated)
+    if alpha > 0.0 and has_prev:
+        for i in range(n):
+            for j in range(2):
+                u[i, j] = alpha * u_prev[i, j] + beta * u[i, j]

@@ -132,6 +132,17 @@ class RollOff:
             self._u = v
         return v
 
+    def kernel_args(self, v: np.ndarray) -> tuple[float, float, np.ndarray, bool]:
+        """(α, 1 − α, the previous output, whether there is one) for a compiled step that rolls
+        off ``v`` in place as :meth:`__call__` would (before the first output the previous one is
+        ``v`` itself, unused); then :meth:`keep` the result."""
+        return self.alpha, self._beta, v if self._u is None else self._u, self._u is not None
+
+    def keep(self, u: np.ndarray) -> None:
+        """``u`` was rolled off in place (:meth:`kernel_args`): it is the filter's last output."""
+        if self.alpha > 0.0:
+            self._u = u
+
 
 class RestFrame:
     """The model's translated coordinates: origin at the settled rest tip p₀, where f(0) = 0.

@@ -161,7 +161,8 @@ class SdreFeedforwardLaw:
             raise ValueError(f'ref_acc must have shape ({self.n_fingers}, 2), got {np.shape(ref_acc)}')
         z = self.io.frame.stacked(pos, vel, ref_pos, ref_vel, ref_acc)
         out = self.sdre.track_feedforward(self.network, self.io.origin, self.ff_at == 'ref', z)
-        if self.integral is not None:
-            self.integral.apply(out, z[:, 0:2] - z[:, 4:6], self.sdre.feedforward.state_finite)
-        out.u = self.io.roll_off(out.u)
+        if self.integral is not None:       # the integral and the roll-off in one compiled call
+            self.integral.apply_and_roll_off(out, z, self.sdre.feedforward.state_finite, self.io.roll_off)
+        else:
+            out.u = self.io.roll_off(out.u)
         return out

@@ -6,8 +6,8 @@ import math
 
 import numpy as np
 
-from soft_gripper_sdre.control.compiled import integral_step, integral_update, kernel_array
-from soft_gripper_sdre.control.tracking import LawStep
+from soft_gripper_sdre.control.compiled import integral_roll_off, integral_step, integral_update, kernel_array
+from soft_gripper_sdre.control.tracking import LawStep, RollOff
 
 #: the default law's integral action: gain k_i [1/s³] (0 = off) and the error band [m] inside which
 #: it integrates; docs/results.md "Integral action" has the tuning behind them
@@ -76,6 +76,16 @@ class IntegralAction:
             setattr(step, name, kernel_array(getattr(step, name), np.bool_ if name == 'saturated' else np.float64))
         integral_step(self.xi, self.to_torque, self.from_torque, self.dt, self.band, self.decay, self.u_max,
                       kernel_array(error), kernel_array(finite, np.bool_), step.u_unsat, step.u, step.saturated)
+
+    def apply_and_roll_off(self, step: LawStep, z: np.ndarray, finite: np.ndarray, roll_off: RollOff) -> None:
+        """:meth:`apply` with the error p − p_d from the kernel rows z = [p, ṗ, p_d, …] (n, ≥ 6), then
+        ``roll_off`` of ``step.u`` in place, all in one compiled call: the same arithmetic as
+        :meth:`apply` followed by ``step.u = roll_off(step.u)``. ``step``'s ``u``, ``u_unsat`` and
+        ``saturated`` must be arrays the kernels take (a compiled step's own)."""
+        alpha, beta, previous, has_previous = roll_off.kernel_args(step.u)
+        integral_roll_off(self.xi, self.to_torque, self.from_torque, self.dt, self.band, self.decay, self.u_max,
+                          z, finite, step.u_unsat, step.u, step.saturated, alpha, beta, previous, has_previous)
+        roll_off.keep(step.u)
 
     def update(self, error: np.ndarray, saturated: np.ndarray, finite: np.ndarray) -> None:
         """One step of ξ from the error p − p_d (n, 2) [m], the (n, 2) saturation of the command that
