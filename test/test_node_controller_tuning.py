@@ -130,3 +130,26 @@ def test_hand_over_keeps_the_command_continuous():
     np.testing.assert_array_equal(new.io.roll_off._u, old.io.roll_off._u)
     with pytest.raises(ValueError, match='PdLaw'):
         hand_over(old, make_law('pd', model, w, TORQUE_LIMIT))
+
+
+def test_feedforward_at_the_reference_is_the_law_the_node_runs():
+    """feedforward_at:=ref builds sdre_ff with its model evaluated on the reference: the node's
+    torque is that law's to the bit, and not the default's (the estimate is off the plan)."""
+    from soft_gripper_sdre.control.laws import make_law
+    from soft_gripper_sdre.control.tracking import Weights
+    with ros_context() as (ctx, executor):
+        node, probe, torque = start(ctx, executor, law='sdre_ff', feedforward_at='ref',
+                                    torque_lowpass_hz=0.0, integral_gain=0.0)
+        assert node.ctrl.ff_at == 'ref'
+        u = torque()
+        p = node.p
+        pos, vel, acc = node._sample(node.gate.plan, 1 * MS)
+        twins = {at: make_law('sdre_ff', node.model, Weights(p['q_pos'], p['q_vel'], p['r']),
+                              p['torque_limit'], n_fingers=4, method=p['solver'], lowpass_hz=0.0,
+                              dt=p['control_period'], ff_at=at, integral_gain=0.0)
+                 for at in ('ref', 'x')}
+        expect = {at: law.compute(REST, np.zeros((4, 2)), pos, vel, ref_acc=acc).u
+                  for at, law in twins.items()}
+        np.testing.assert_allclose(u, expect['ref'], rtol=0, atol=1e-14)
+        assert np.abs(expect['ref'] - expect['x']).max() > 1e-10     # 1 µm off the plan: ~6e-9
+        assert set_parameters(executor, probe, feedforward_at='x')[0][0] is False   # read-only

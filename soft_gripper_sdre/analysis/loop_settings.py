@@ -20,6 +20,10 @@ torque_lowpass_hz  :data:`ROLL_OFF_RATIO` · f_c (capped at a tenth of the rate 
 integral_gain      k_i = ω_c³ / :data:`INTEGRAL_DIVISOR`, the integral corner a decade
                    under the loop's; band :data:`BAND_TRAVEL` of the travel (≥ 10 σ)
 pd_kp, pd_kd       ω_c² and 2 ζ ω_c with ζ = :data:`PD_DAMPING`, for ``pd``
+feedforward_at     ``ref``: the feedforward inverts the model on the reference. Evaluated
+                   at the estimate, a model that depends on velocity (friction) turns the
+                   estimate's noise into torque; on the tendon finger's model that alone
+                   made every loop above 1 Hz diverge in the check
 =================  ==================================================================
 
 The bandwidth and the estimator's intensity are chosen by simulation (:func:`derive`): each
@@ -70,6 +74,8 @@ REACH_PERCENTILE = 99.0
 #: the torque limit is this many times the largest torque of the excitation
 TORQUE_MARGIN = 2.0
 CHECK_PROFILE = dict(t_start=0.5, t_close=2.0, t_hold=1.0, t_open=2.0)
+#: where the derived sdre_ff evaluates the model for its feedforward (module doc)
+FEEDFORWARD_AT = 'ref'
 #: the model is integrated in RK4 steps of at most this [s]
 MAX_STEP = 2.5e-3
 
@@ -102,6 +108,7 @@ class LoopSettings:
     pd_kp: float
     pd_kd: float
     bandwidth_hz: float
+    feedforward_at: str = FEEDFORWARD_AT
 
     def weights(self) -> Weights:
         return Weights(self.q_pos, self.q_vel, self.r)
@@ -167,7 +174,8 @@ def check_on_model(model, settings: LoopSettings, facts: DataFacts, law: str = '
     rest = model.rest_tip[:2]
     options = {}
     if law == 'sdre_ff':
-        options = dict(integral_gain=settings.integral_gain, integral_band=settings.integral_band)
+        options = dict(integral_gain=settings.integral_gain, integral_band=settings.integral_band,
+                       ff_at=settings.feedforward_at)
     elif law in ('pd', 'computed_torque'):
         options = dict(pd_gains=dict(kp=settings.pd_kp, kd=settings.pd_kd))
     ctrl = make_law(law, model, settings.weights(), settings.torque_limit, n_fingers=1,

@@ -98,6 +98,10 @@ PARAMS = (
           choices=GRAPH_LAWS, read_only=True),
     Param('state_weights', False, 'sdre only: state-dependent Q(x) that rises with the tracking error',
           read_only=True),
+    Param('feedforward_at', 'x', "sdre_ff only: where the feedforward evaluates the learned model: "
+          "'x' the estimated state (its error dynamics exactly linear), 'ref' the reference (no "
+          'measurement noise reaches the model; what settings derived by training use)',
+          choices=('x', 'ref'), read_only=True),
     Param('integral_gain', DEFAULT_INTEGRAL['gain'], 'sdre_ff only: integral action on the tip position '
           'error against the steady offset of joint friction, as a tip acceleration k_i ∫(p_d − p)dt '
           'through the learned input map at rest; frozen while saturated, decaying while the error is '
@@ -326,6 +330,8 @@ class ControllerNode(Node):
         extra = {}
         if 'integral_gain' in options:
             extra.update(integral_gain=p['integral_gain'], integral_band=p['integral_band'])
+        if 'ff_at' in options:
+            extra['ff_at'] = p['feedforward_at']
         if 'pd_gains' in options:
             extra['pd_gains'] = pd_gains(p['law'], p['pd_kp'], p['pd_kd'])
         return make_law(p['law'], self.model, Weights(p['q_pos'], p['q_vel'], p['r']),

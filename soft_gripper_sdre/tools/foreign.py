@@ -14,7 +14,9 @@ by hand:
    validation signal u4 at that amplitude;
 2. **train** — ``tools.train --bag … --val-bag …``: the model, its verdict and ``params.yaml``;
 3. **deploy** — estimator and controller on ``params.yaml``, the trajectory node closing both
-   fingers by the plant's travel along +Y, the recorder; once per law (``--laws``);
+   fingers along +Y by the travel the settings were checked for (half of the identification
+   data's reach that way: a learned model is only known where the data went), the recorder;
+   once per law (``--laws``);
 4. **score** — from each deployment's bag: the RMSE of the driver's true tips
    (``true_tip_positions``) against the plan, as a share of the travel, and the share of
    commands at the torque limit while the plan holds at rest.
@@ -42,17 +44,16 @@ from soft_gripper_sdre.tools.procs import DiagnosticsMonitor, Graph, ros_env
 
 @dataclass(frozen=True)
 class Setup:
-    """What a lab chooses for its gripper: the driver's rate, how far the excitation may move a
-    tip, and the grasp's travel along +Y (SI)."""
+    """What a lab chooses for its gripper: the driver's rate and how far the excitation may move
+    a tip (SI)."""
 
     rate: float
     max_excursion: float
-    travel: float
 
 
 #: the two foreign grippers, as their lab would set them up
-SETUPS = {'tendon3': Setup(rate=200.0, max_excursion=0.016, travel=0.008),
-          'stiff2': Setup(rate=500.0, max_excursion=0.004, travel=0.002)}
+SETUPS = {'tendon3': Setup(rate=200.0, max_excursion=0.016),
+          'stiff2': Setup(rate=500.0, max_excursion=0.004)}
 FINGERS = ['index', 'thumb']
 TRAIN_SIGNALS = ['u1', 'x1', 'x2', 'b1', 'b2']
 #: the grasp: trajectory node defaults (hold 0.5 s at rest, close 2 s, hold 1 s, open 2 s)
@@ -71,6 +72,8 @@ def _parser() -> argparse.ArgumentParser:
                     help='laws deployed in turn (default: %(default)s)')
     ap.add_argument('--seed', type=int, default=0, help='the driver\'s noise seed (+1 per run)')
     ap.add_argument('--epochs', type=int, default=None, help='training epochs (default: the preset)')
+    ap.add_argument('--rollout-epochs', type=int, default=None,
+                    help='simulation-stage epochs of training (default: the preset)')
     ap.add_argument('--domain-id', type=int, default=None, help='ROS_DOMAIN_ID (default: env or random)')
     return ap
 
@@ -87,6 +90,8 @@ def argument_problem(a: argparse.Namespace) -> str | None:
         return f'--seed must be in [0, 2^31 - 64), got {a.seed}'
     if a.epochs is not None and a.epochs < 1:
         return f'--epochs must be >= 1, got {a.epochs}'
+    if a.rollout_epochs is not None and a.rollout_epochs < 0:
+        return f'--rollout-epochs must be >= 0, got {a.rollout_epochs}'
     if a.domain_id is not None and not 0 <= a.domain_id <= 232:
         return f'--domain-id must be in [0, 232], got {a.domain_id}'
     return None
@@ -125,8 +130,9 @@ def excite(a: argparse.Namespace, env: dict, bag: Path, signals: list[str], leve
         return graph.procs['excitation'].log_path.read_text(encoding='utf-8')
 
 
-def deploy(a: argparse.Namespace, env: dict, out: Path, params: Path, law: str, seed: int) -> Path:
-    """The grasp with ``law`` on ``params``; returns the bag."""
+def deploy(a: argparse.Namespace, env: dict, out: Path, params: Path, law: str, seed: int,
+           travel: float) -> Path:
+    """The grasp with ``law`` on ``params``, closing by ``travel`` [m]; returns the bag."""
     bag = out / 'bag'
     monitor = DiagnosticsMonitor(env, f'foreign_monitor_{law}')
     try:
@@ -141,7 +147,7 @@ def deploy(a: argparse.Namespace, env: dict, out: Path, params: Path, law: str, 
                 dead = next((p.name for p in graph.procs.values() if not p.alive()), 'controller')
                 raise _fail(graph, dead, f'deploying {law}: the estimator and controller did not come up')
             graph.start('trajectory', {'finger_names': FINGERS, 'grasp_fingers': [0, 1], 'others': 'hold',
-                                       'close_distance': SETUPS[a.plant].travel, **BEST_EFFORT})
+                                       'close_distance': travel, **BEST_EFFORT})
             end = time.monotonic() + GRASP_SECONDS + 3.0
             while time.monotonic() < end:
                 dead = [p.name for p in graph.procs.values() if not p.alive()]
@@ -215,6 +221,8 @@ def main(argv: list[str] | None = None) -> int:
                '--val-bag', str(out / 'bags' / 'val'), '--out', str(out / 'model')]
         if a.epochs is not None:
             cmd += ['--epochs', str(a.epochs)]
+        if a.rollout_epochs is not None:
+            cmd += ['--rollout-epochs', str(a.rollout_epochs)]
         train = subprocess.run(cmd, env=env, capture_output=True, text=True)
         (out / 'train.log').write_text(train.stdout + train.stderr, encoding='utf-8')
         if train.returncode != 0:
@@ -228,13 +236,14 @@ def main(argv: list[str] | None = None) -> int:
             raise RuntimeError('training wrote no params.yaml: ' + '; '.join(trained['fitness']['reasons']))
         print(train.stdout.strip().splitlines()[-1], flush=True)
         limit = yaml.safe_load(params.read_text())['/**/controller']['ros__parameters']['torque_limit']
-        metrics['deploy'] = {}
+        travel = float(trained['derived_settings']['facts']['travel'])
+        metrics['deploy'] = {'travel': travel}
         for i, law in enumerate(a.laws):
-            bag = deploy(a, env, out / f'deploy_{law}', params, law, a.seed + 10 + i)
-            metrics['deploy'][law] = score(bag, SETUPS[a.plant].travel, limit)
+            bag = deploy(a, env, out / f'deploy_{law}', params, law, a.seed + 10 + i, travel)
+            metrics['deploy'][law] = score(bag, travel, limit)
             s = metrics['deploy'][law]
             print(f'{law}: RMSE {s["rmse_mm"]} mm = {s["rmse_pct_of_travel"]} % of the '
-                  f'{1e3 * SETUPS[a.plant].travel:g} mm travel; saturated at rest '
+                  f'{1e3 * travel:.2f} mm travel; saturated at rest '
                   f'{100 * s["saturated_at_rest"]:.1f} %', flush=True)
     except RuntimeError as exc:
         print(f'error: {exc}', file=sys.stderr)

@@ -181,7 +181,7 @@ def params_yaml(derived: loop_settings.LoopSettings, model_path: Path, finger_na
             'q_vel': derived.q_vel, 'r': derived.r, 'torque_limit': derived.torque_limit,
             'torque_lowpass_hz': derived.torque_lowpass_hz,
             'integral_gain': derived.integral_gain, 'integral_band': derived.integral_band,
-            'pd_kp': derived.pd_kp, 'pd_kd': derived.pd_kd}
+            'feedforward_at': derived.feedforward_at, 'pd_kp': derived.pd_kp, 'pd_kd': derived.pd_kd}
     body = {params_file_key('estimator'): {'ros__parameters': _plain(est)},
             params_file_key('controller'): {'ros__parameters': _plain(ctrl)}}
     head = (f'# Estimator and controller settings derived from {source} by tools.train\n'
