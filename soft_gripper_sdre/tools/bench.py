@@ -315,8 +315,9 @@ def floor_rows(hand: float, hop_us: float, kf: float, control: float, figures: d
 
 def floor_table(quick: bool, repeats: int) -> list[Row]:
     """The floor rows alone, measured together (``--floor``): the hand's physics, the KF and
-    ``sdre_ff`` compute on the closed loop's states, the raw-CDR hop, and the graph in lockstep
-    and pipelined mode alternating ``repeats`` times, each row with the load it ran under."""
+    ``sdre_ff`` compute on the closed loop's states, the raw-CDR hop, and the graph in lockstep,
+    in pipelined mode and pipelined with the estimator and the controller in one process, taking
+    turns ``repeats`` times, each row with the load it ran under."""
     from soft_gripper_sdre.tools.bench_graph import hop, mode_rows, mode_runs
     us = lambda s: f'{s * 1e6:.0f} µs'          # noqa: E731
     load = lambda: f'load average {os.getloadavg()[0]:.1f}'    # noqa: E731
@@ -333,7 +334,8 @@ def floor_table(quick: bool, repeats: int) -> list[Row]:
                 f'{raw["p50"]:.0f} / {raw["p99"]:.0f} µs', f'p50 / p99 one way; {load()}'))
     seconds = 1.0 if quick else 3.0
     figures: dict[str, float] = {}
-    out += mode_rows(mode_runs(seconds, repeats), seconds, figures)
+    out += mode_rows(mode_runs(seconds, repeats, layouts=('lockstep', 'pipelined', 'pipelined_composed')),
+                     seconds, figures)
     return out + floor_rows(hand, raw['p50'], kf, ctrl['fast'], figures)
 
 

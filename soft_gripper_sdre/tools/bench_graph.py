@@ -78,9 +78,11 @@ def published(d: dict[str, dict[str, float]]) -> dict[str, int]:
 
 
 def run_graph(seconds: float, *, mode: str = 'lockstep', record: Path | None = None,
-              all_at_1khz: bool = False, executor: str | None = None,
+              all_at_1khz: bool = False, executor: str | None = None, composed: bool = False,
               timeout: float = 600.0) -> dict[str, dict[str, float]]:
-    """Run the loop processes (and the recorder into ``record``) for ``seconds`` of sim time.
+    """Run the loop processes (and the recorder into ``record``) for ``seconds`` of sim time;
+    ``composed``: the estimator and the controller as one process (``controller --with-estimator``),
+    whose CPU time is the controller's.
 
     Returns every node's final /diagnostics values as floats (non-numeric values dropped), for
     each node its CPU time per step while the simulator stepped (``cpu_per_step_us``), and for the
@@ -89,7 +91,7 @@ def run_graph(seconds: float, *, mode: str = 'lockstep', record: Path | None = N
     Raises:
         RuntimeError: a node died or the run did not finish within ``timeout``.
     """
-    return _graph_run(seconds, mode, record, all_at_1khz, executor, timeout)[0]
+    return _graph_run(seconds, mode, record, all_at_1khz, executor, timeout, composed=composed)[0]
 
 
 def hog_run(seconds: float, hog_at: float, hog_seconds: float = 1.0, executor: str | None = None,
@@ -111,7 +113,7 @@ def hog_run(seconds: float, hog_at: float, hog_seconds: float = 1.0, executor: s
 
 
 def _graph_run(seconds: float, mode: str, record: Path | None, all_at_1khz: bool, executor: str | None,
-               timeout: float, during=None) -> tuple[dict[str, dict[str, float]], dict[str, list]]:
+               timeout: float, during=None, composed: bool = False) -> tuple[dict[str, dict[str, float]], dict[str, list]]:
     """:func:`run_graph`, also returning the monitor's /diagnostics history; ``during(monitor)``
     is called about 10 times a second while the simulator steps."""
     from soft_gripper_sdre.nodes.common import EXECUTOR_ENV
@@ -125,12 +127,14 @@ def _graph_run(seconds: float, mode: str, record: Path | None, all_at_1khz: bool
                             **fast}}
     if record:
         params['recorder'] = {'output': str(record)}
+    if composed:     # the readiness rule expects a controller that reads state_estimate itself
+        params['simulator']['wait_for_nodes'] = 'recorder,trajectory' if record else 'trajectory'
     spec = grasp_graph(record=bool(record), parameters=params)
     monitor = DiagnosticsMonitor(env, 'bench_monitor')
     steps = int(round(seconds / 0.001))
     try:
         cpu, launched = _run(graph_env=env, monitor=monitor, spec=spec, record=record, steps=steps,
-                             timeout=timeout, during=during)
+                             timeout=timeout, during=during, composed=composed)
     finally:
         monitor.close()
     out = {node: _numbers(values) for node, values in monitor.values.items()}
@@ -143,14 +147,19 @@ def _graph_run(seconds: float, mode: str, record: Path | None, all_at_1khz: bool
 
 
 def _run(graph_env: dict[str, str], monitor: DiagnosticsMonitor, spec: GraphSpec, record: Path | None, steps: int,
-         timeout: float, during=None) -> tuple[dict[str, float], float]:
+         timeout: float, during=None, composed: bool = False) -> tuple[dict[str, float], float]:
     """:func:`run_graph`'s processes: start, step, drain, stop; returns CPU seconds per node
     while the simulator stepped, and the monotonic time the processes were launched."""
     with tempfile.TemporaryDirectory(prefix='sgs_bench_graph_') as logs, Graph(graph_env, Path(logs)) as graph:
         names = spec.names[:-1]
         launched = time.monotonic()
         for node in spec.nodes[:-1]:
-            graph.start_node(node)
+            if composed and node.name == 'estimator':
+                continue                    # it runs in the controller's process
+            if composed and node.name == 'controller':
+                _start_composed(graph, node, spec.node('estimator'))
+            else:
+                graph.start_node(node)
         # every node is up (its diagnostics arrive) before the simulator starts stepping
         monitor.spin_until(lambda: all(n in monitor.values for n in names)
                            or any(not p.alive() for p in graph.procs.values()), 60.0)
@@ -161,7 +170,7 @@ def _run(graph_env: dict[str, str], monitor: DiagnosticsMonitor, spec: GraphSpec
         if record:       # the recorder hears every stream before the first step
             monitor.spin_until(lambda: all(monitor.get('recorder', f'publishers {t}') > 0
                                            for t in WIRED_BEFORE_START), 30.0)
-        cpu0 = {n: _cpu_seconds(graph.procs[n].popen.pid) for n in names}
+        cpu0 = {n: _cpu_seconds(graph.procs[n].popen.pid) for n in names if n in graph.procs}
         graph.start_node(spec.node('simulator'))
 
         def poll() -> None:
@@ -169,14 +178,15 @@ def _run(graph_env: dict[str, str], monitor: DiagnosticsMonitor, spec: GraphSpec
             if during is not None:
                 during(monitor)
         code = graph.wait('simulator', timeout, poll)
-        cpu = {n: _cpu_seconds(graph.procs[n].popen.pid) - cpu0[n] for n in names}
+        cpu = {n: _cpu_seconds(graph.procs[n].popen.pid) - cpu0[n] for n in cpu0}
         if code != 0:
             tails = {n: p.log_tail(600) for n, p in graph.procs.items()}
             raise RuntimeError(f'the graph run failed (simulator exit {code}): {tails}')
         # the simulator's final diagnostics, then the others' (published at their shutdown)
         monitor.spin_until(lambda: monitor.get('simulator', 'steps') >= steps, 5.0)
         for name in ('controller', 'trajectory', 'estimator'):
-            graph.stop(name)
+            if name in graph.procs:
+                graph.stop(name)
         if record:       # let a recorder that lags behind drain its queues before it is stopped
             monitor.spin_until(lambda: False, 0.5)      # the stopped nodes' final diagnostics
             sent = published({n: _numbers(monitor.values[n]) for n in ('simulator', *LOOP_NODES)
@@ -186,6 +196,22 @@ def _run(graph_env: dict[str, str], monitor: DiagnosticsMonitor, spec: GraphSpec
             graph.stop('recorder')
         monitor.spin_until(lambda: False, 0.5)
     return cpu, launched
+
+
+def _start_composed(graph: Graph, controller, estimator) -> None:
+    """``controller --with-estimator`` as the controller's process, the estimator node reading
+    its own parameters file (and overrides)."""
+    import subprocess
+    import sys
+    from soft_gripper_sdre.nodes.controller import WITH_ESTIMATOR
+    from soft_gripper_sdre.tools.procs import NodeProcess
+    cmd = [sys.executable, '-m', controller.module, WITH_ESTIMATOR, *controller.ros_arguments(),
+           *estimator.ros_arguments()[1:]]
+    graph.log_dir.mkdir(parents=True, exist_ok=True)
+    log_path = graph.log_dir / 'controller.log'
+    with open(log_path, 'w', encoding='utf-8') as log:
+        popen = subprocess.Popen(cmd, env=graph.env, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
+    graph.procs['controller'] = NodeProcess('controller', popen, log_path)
 
 
 def recorder_loss(seconds: float, executor: str | None = None,
@@ -348,15 +374,24 @@ def hop(executor: str, count: int = 2000, raw: bool = False) -> dict[str, float]
             'rounds': rounds, 'resent': state['resent']}
 
 
-def mode_runs(seconds: float, repeats: int = 1, executor: str | None = None) -> dict[str, list[dict]]:
-    """The graph in lockstep and in pipelined mode, ``seconds`` of sim time each, alternating
-    ``repeats`` times so that both modes meet the same load. Per mode, each run's
+#: the graph layouts :func:`mode_runs` can alternate: (simulator mode, estimator + controller in
+#: one process), and the words of their rows
+LAYOUTS = {'lockstep': ('lockstep', False, '4 processes, lockstep'),
+           'pipelined': ('pipelined', False, '4 processes, pipelined'),
+           'pipelined_composed': ('pipelined', True, '3 processes (controller --with-estimator), pipelined')}
+
+
+def mode_runs(seconds: float, repeats: int = 1, executor: str | None = None,
+              layouts: tuple[str, ...] = ('lockstep', 'pipelined')) -> dict[str, list[dict]]:
+    """The graph in each of ``layouts`` (:data:`LAYOUTS`), ``seconds`` of sim time each, one after
+    the other ``repeats`` times so that all meet the same load. Per layout, each run's
     :func:`run_graph` result; its simulator's values also hold the 1-minute load average at the
     run's end (``load``)."""
-    runs: dict[str, list[dict]] = {'lockstep': [], 'pipelined': []}
+    runs: dict[str, list[dict]] = {name: [] for name in layouts}
     for _ in range(repeats):
-        for mode, done in runs.items():
-            d = run_graph(seconds, mode=mode, executor=executor)
+        for name, done in runs.items():
+            mode, composed, _ = LAYOUTS[name]
+            d = run_graph(seconds, mode=mode, executor=executor, composed=composed)
             d['simulator']['load'] = os.getloadavg()[0]
             done.append(d)
     return runs
@@ -375,26 +410,27 @@ def median_run(done: list[dict]) -> dict:
 
 def mode_rows(runs: dict[str, list[dict]], seconds: float,
               figures: dict[str, float] | None = None) -> list[tuple[str, str, str]]:
-    """The rows of :func:`mode_runs`: each mode's real-time factor (the median run, with the range
-    and the loads when there are several), latency and CPU per period. ``figures`` gets
-    ``<mode>_rtf`` and ``<mode>_cpu_us`` (every process's CPU per period, summed)."""
+    """The rows of :func:`mode_runs`: each layout's real-time factor (the median run, with the
+    range and the loads when there are several), latency and CPU per period (a composed
+    estimator's is the controller's). ``figures`` gets ``<layout>_rtf`` and ``<layout>_cpu_us``
+    (every process's CPU per period, summed)."""
     nan = float('nan')
     out = []
     for mode, done in runs.items():
         d = median_run(done)
         sim = d['simulator']
-        cpu = cpu_per_period(d)
+        cpu = {n: c for n, c in cpu_per_period(d).items() if not (LAYOUTS[mode][1] and n == 'estimator')}
         rtfs = [r['simulator'].get('real_time_factor', nan) for r in done]
         if figures is not None:
             figures[f'{mode}_rtf'] = sim.get('real_time_factor', nan)
             figures[f'{mode}_cpu_us'] = sum(cpu.values())
-        spread = (f'; median of {len(done)} runs alternating the two modes: '
+        spread = (f'; median of {len(done)} runs taking turns with the other layouts: '
                   + ', '.join(f'{r:.2f}×' for r in rtfs) + ' at load '
                   + ', '.join(f'{r["simulator"]["load"]:.1f}' for r in done)) if len(done) > 1 else ''
-        out.append((f'node graph, 4 processes, {mode} 1 ms', f'{sim.get("real_time_factor", nan):.2f}× real time',
+        out.append((f'node graph, {LAYOUTS[mode][2]} 1 ms', f'{sim.get("real_time_factor", nan):.2f}× real time',
                     f'{seconds:g} s of sim time; {int(sim.get("timeouts", 0))} timeouts; loop latency p50 / p99 '
                     f'{sim.get("loop_latency_us_p50", nan):.0f} / {sim.get("loop_latency_us_p99", nan):.0f} µs; '
-                    'CPU per period simulator / estimator / trajectory / controller '
+                    f'CPU per period {" / ".join(cpu)} '
                     + ' / '.join(f'{c:.0f}' for c in cpu.values()) + f' µs (sum {sum(cpu.values()):.0f})'
                     + spread))
     return out
