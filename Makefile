@@ -58,7 +58,7 @@ model-from-bags: $(STAMP)
 	rm -rf $(BAGS)
 	$(PY) -m soft_gripper_sdre.tools.excite --out $(BAGS)/train --signals u1 u2 u3 x1 x2
 	$(PY) -m soft_gripper_sdre.tools.excite --out $(BAGS)/val --signals u4
-	$(PY) -m soft_gripper_sdre.tools.train --bag $(BAGS)/train --val-bag $(BAGS)/val --out runs/train_bags
+	$(PY) -m soft_gripper_sdre.tools.train --bag $(BAGS)/train --val-bag $(BAGS)/val --out runs/train_bags --preset default
 
 bench: $(KERNELS)
 	$(PY) -m soft_gripper_sdre.tools.bench --write BENCHMARKS.md
@@ -77,16 +77,36 @@ sweep: $(KERNELS)
 input-matrix: $(STAMP)
 	$(PY) -m soft_gripper_sdre.tools.input_matrix --out runs/input_matrix
 
+# The sweeps run their jobs on every core, or as Ray tasks on a cluster with RAY=ADDRESS
+# (make evaluate RAY=auto; make ray installs the optional Ray first; tools/jobs.py)
+RUNNER = $(if $(RAY),--ray $(RAY))
+
 # README "Beyond the paper": every law on the grasp and a fast grasp, the model vs ground truth
 .PHONY: evaluate
 evaluate: $(KERNELS)
-	$(PY) -m soft_gripper_sdre.tools.evaluate --out runs/evaluate
+	$(PY) -m soft_gripper_sdre.tools.evaluate --out runs/evaluate $(RUNNER)
 
 # docs/results.md "Robustness to the plant": every registered law (oracles aside) on the grasp and
 # the fast grasp, on plants and sensors the model was not trained on, over every core
 .PHONY: robustness
 robustness: $(KERNELS)
-	$(PY) -m soft_gripper_sdre.tools.robustness --out runs/robustness
+	$(PY) -m soft_gripper_sdre.tools.robustness --out runs/robustness $(RUNNER)
+
+# README "What it achieves" and docs/model.md "Over training seeds": the model and the grasp over 5
+# training seeds x 3 draws of the data (as collected, and twice with its float roundings moved),
+# the shipped model placed among them; make model's data (collected here if missing) and kernels
+.PHONY: seeds
+seeds: export OPENBLAS_CORETYPE = Haswell
+seeds: export MKL_CBWR = AVX2,STRICT
+seeds: export ATEN_CPU_CAPABILITY = avx2
+seeds: $(KERNELS)
+	test -f data/excitation/x2.npz || $(PY) -m soft_gripper_sdre.tools.collect --out data/excitation
+	$(PY) -m soft_gripper_sdre.tools.seeds --data data/excitation --out runs/seeds --seeds 5 --draws 2 --demo $(RUNNER)
+
+# the optional Ray runner of the sweeps (requirements-ray.txt; README "Dependencies")
+.PHONY: ray
+ray: $(STAMP)
+	$(PY) -m pip install --quiet -r requirements-ray.txt -c requirements.txt
 
 # docs/own_gripper.md: the README's own-gripper recipe over DDS on two simulated grippers unlike
 # the hand (the plant_driver node), nothing tuned by hand

@@ -233,7 +233,8 @@ def test_training_on_a_jittery_bag_records_the_provenance(tmp_path):
     jittery_bag(tmp_path / 'val', rng, seconds=2.0)
     out = tmp_path / 'out'
     assert train_tool.main(['--bag', str(tmp_path / 'train'), '--val-bag', str(tmp_path / 'val'),
-                            '--out', str(out), '--epochs', '2', '--meas-std', '1e-6']) == 0
+                            '--out', str(out), '--epochs', '2', '--rollout-epochs', '2',
+                            '--meas-std', '1e-6']) == 0
     assert sorted(p.name for p in out.iterdir()) == ['fig2_loss.png', 'fig3_accel_val.png', 'metrics.json', 'model.pt']
     assert not [p for p in tmp_path.iterdir() if p.name.startswith('.out')], 'the staging directory is left'
     data = read_checkpoint(out / 'model.pt')['data']

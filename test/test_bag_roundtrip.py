@@ -74,7 +74,7 @@ def test_bags_from_the_graph_train_the_model_the_npz_path_trains(tmp_path):
     # train from the bags with the CLI, and on the npz records with the same settings
     out = tmp_path / 'model'
     run_tool('train', '--bag', bags / 'x1', '--val-bag', bags / 'u4', '--out', out, '--epochs', EPOCHS,
-             '--meas-std', 0, '--jerk-psd', JERK, timeout=200)
+             '--meas-std', 0, '--jerk-psd', JERK, '--preset', 'default', timeout=200)
     metrics = json.loads((out / 'metrics.json').read_text())
     assert metrics['source'] == 'rosbag2' and metrics['train_samples'] == npz['x1'][0].t.size
     x, v = labelled['x1'], labelled['u4']

@@ -88,7 +88,7 @@ def test_two_runs_give_the_same_weights(data, trained):
 
 
 @pytest.mark.parametrize('field, value', [('rollout_epochs', -1), ('rollout_epochs', 1.5),
-                                          ('rollout_stride', 0), ('rollout_seconds', 0.0),
+                                          ('rollout_overlap', 0), ('rollout_seconds', 0.0),
                                           ('rollout_lr', float('nan')), ('rest_margin', -1.0),
                                           ('rest_weight', 0.0)])
 def test_bad_stage_settings_are_refused_by_name(field, value):

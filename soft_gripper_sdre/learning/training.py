@@ -71,11 +71,12 @@ class TrainSettings:
     sv_floor: float = 0.3
     sv_box: float = 3.0
     #: simulation-error stage (module doc): epochs (0 = off), window length [s], learning rate,
-    #: and the spacing of the windows' starts [samples]
+    #: and how many windows cover each sample (their starts are H / overlap samples apart, so
+    #: the cost per epoch does not grow with the rate)
     rollout_epochs: int = 0
     rollout_seconds: float = 0.1
     rollout_lr: float = 3e-4
-    rollout_stride: int = 4
+    rollout_overlap: int = 5
     #: stable learned rest (module doc): A(0)'s eigenvalues kept left of −rest_margin [1/s]
     #: (0 = off) by a penalty of this weight
     rest_margin: float = 0.0
@@ -90,7 +91,7 @@ class TrainSettings:
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0.0):
                 raise ValueError(f'{name} must be finite and > 0, got {v!r}')
-        for name in ('rollout_epochs', 'rollout_stride'):
+        for name in ('rollout_epochs', 'rollout_overlap'):
             v = getattr(self, name)
             if not (isinstance(v, int) and v >= (0 if name == 'rollout_epochs' else 1)):
                 raise ValueError(f'{name} must be an int >= {0 if name == "rollout_epochs" else 1}, '
@@ -193,13 +194,13 @@ class _Scales(NamedTuple):
     acc: torch.Tensor
 
 
-def _windows(runs: list[Run], seconds: float, stride: int) -> list[tuple[float, torch.Tensor, ...]]:
-    """Every window of ``seconds`` whose start is a multiple of ``stride`` samples into its run,
+def _windows(runs: list[Run], seconds: float, overlap: int) -> list[tuple[float, torch.Tensor, ...]]:
+    """Windows of ``seconds`` (H samples) starting every H / ``overlap`` samples into each run,
     grouped by grid spacing: [(dt, starts (B, 4), inputs (B, H, 2), positions (B, H, 2))]."""
     groups: dict[float, list[list[np.ndarray]]] = {}
     for run in runs:
         h = max(int(round(seconds / run.dt)), 1)
-        starts = range(0, len(run.x) - h, stride)
+        starts = range(0, len(run.x) - h, max(h // overlap, 1))
         if not starts:
             continue
         got = groups.setdefault(float(run.dt), [[], [], []])
@@ -279,8 +280,7 @@ def _train_seeded(x, u, acc, x_val, u_val, acc_val, settings: TrainSettings, on_
              if settings.cosine else None)
     result = TrainResult(net, s)
     simulating = settings.rollout_epochs > 0
-    val_windows = (_windows(val_runs, settings.rollout_seconds, max(int(round(
-        settings.rollout_seconds / val_runs[0].dt)), 1)) if simulating else [])
+    val_windows = _windows(val_runs, settings.rollout_seconds, 1) if simulating else []
     best, best_state, since_best = math.inf, None, 0
 
     def keep_if_best(epoch: int, score: float) -> bool:
@@ -337,7 +337,7 @@ def _train_seeded(x, u, acc, x_val, u_val, acc_val, settings: TrainSettings, on_
 def _simulation_stage(net, st: _Scales, runs, val_windows, settings: TrainSettings, gen, result,
                       on_epoch, keep_if_best) -> None:
     """The rollout epochs (module doc), continuing from the label stage's last weights."""
-    windows = _windows(runs, settings.rollout_seconds, settings.rollout_stride)
+    windows = _windows(runs, settings.rollout_seconds, settings.rollout_overlap)
     opt = torch.optim.Adam(net.parameters(), lr=settings.rollout_lr)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=settings.rollout_epochs)
     first = len(result.train_loss)
