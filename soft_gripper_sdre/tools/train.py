@@ -97,12 +97,16 @@ def main(argv: list[str] | None = None) -> int:
                            'without one is refused)')
     bags.add_argument('--min-duration', type=float, default=1.0,
                       help='refuse a bag with less commanded time than this [s] (default %(default)s)')
-    parser.add_argument('--preset', choices=sorted(PRESETS), default='default')
+    parser.add_argument('--preset', choices=sorted(PRESETS), default=None,
+                        help='training preset (default: gripper with --bag, labels then the '
+                             'simulation error, docs/own_gripper.md; default with --data)')
     parser.add_argument('--variant', choices=sorted(DATA_VARIANTS), default=None,
                         help='training signals: identifying (default preset) or paper (u1..u3)')
     parser.add_argument('--seed', type=int, default=0,
                         help='seed of the initial weights and the batch shuffles (the shipped models use 0)')
     parser.add_argument('--epochs', type=int, default=None, help='override the preset')
+    parser.add_argument('--rollout-epochs', type=int, default=None,
+                        help="override the preset's simulation-stage epochs (--bag only; 0 = off)")
     parser.add_argument('--patience', type=int, default=None,
                         help="stop after this many epochs without a new best validation loss "
                              "(default: the preset's; both presets run every epoch)")
@@ -121,7 +125,16 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format='%(levelname)s %(message)s')
     set_torch_threads(1)
 
+    bags = bool(args.bag or args.val_bag)
+    args.preset = args.preset or ('gripper' if bags else 'default')
     settings = replace(PRESETS[args.preset], seed=args.seed)
+    if args.rollout_epochs is not None:
+        if not bags or args.rollout_epochs < 0:
+            _usage_error(parser, '--rollout-epochs takes an int >= 0 and needs --bag (the '
+                                 'simulation stage trains on contiguous records)')
+        settings = replace(settings, rollout_epochs=args.rollout_epochs)
+    elif settings.rollout_epochs and not bags:
+        _usage_error(parser, f'the {args.preset} preset trains on contiguous records: give --bag')
     if args.epochs is not None:
         if args.epochs < 1:
             _usage_error(parser, '--epochs must be >= 1')
