@@ -72,9 +72,10 @@ def test_the_node_waits_for_the_recorder_so_the_bag_holds_the_settle_phase(tmp_p
         rec = recorder(ctx, tmp_path / 'bag')           # the recorder comes late
         executor.add_node(rec)
         assert spin_until(executor, lambda: node.done, 30.0)
-        assert node.exit_code == 0 and node.settle_tips >= 4 * MIN_SETTLE_SAMPLES
+        assert node.exit_code == 0 and node.settle_tips >= node.p['settle_samples'] == 100
         executor.remove_node(rec)
         rec.close()
+        rec.destroy_node()          # (ros_context destroys only the executor's nodes)
     bag = read_recording(tmp_path / 'bag')
     rest, sigma, n = settle_noise(bag, 0)
     assert n >= 4 * MIN_SETTLE_SAMPLES
@@ -99,6 +100,7 @@ def test_a_run_started_before_the_recorder_loses_the_settle_phase_and_training_s
         assert spin_until(executor, lambda: node.done, 30.0)
         executor.remove_node(rec)
         rec.close()
+        rec.destroy_node()          # (ros_context destroys only the executor's nodes)
     bag = read_recording(tmp_path / 'bag', min_duration=0.2)
     assert settle_estimates(bag, 0)[1] is None          # what training took as σ = 0
     with pytest.raises(BagDataError) as info:
@@ -147,6 +149,7 @@ def test_level_auto_probes_the_finger_then_plays_the_signal_near_the_target(tmp_
         assert node.exit_code == 0, node.diag.message
         executor.remove_node(rec)
         rec.close()
+        rec.destroy_node()          # (ros_context destroys only the executor's nodes)
     search = node.search
     assert search.done and len(search.probes) >= 2
     assert node.diag.values['amplitude'] == f'{search.amplitude:.6g}'

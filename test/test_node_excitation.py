@@ -42,7 +42,9 @@ def send_tips(executor, probe, pub, ns, tips=REST):
 
 def test_each_tip_message_is_answered_with_the_torque_for_its_stamp_then_zero_at_the_end():
     with ros_context() as (ctx, executor):
-        node, probe, pub = start(ctx, executor, signals=['x1'], duration=0.02, settle_time=0.005)
+        # (settle_samples: the 5 tips of settle_time at 1 ms are enough, the plan is not shifted)
+        node, probe, pub = start(ctx, executor, signals=['x1'], duration=0.02, settle_time=0.005,
+                                 settle_samples=5)
         plan = ExcitationPlan([builtin_signal('x1', 0.02)], 0.005, 1)
         start_ns = 7 * MS                      # plan time starts at the first tips, whatever its stamp
         for k in range(30):
@@ -55,6 +57,28 @@ def test_each_tip_message_is_answered_with_the_torque_for_its_stamp_then_zero_at
             np.testing.assert_array_equal(u, plan.torques(k * MS / 1e9))
         assert np.all(got[-1][1] == 0.0) and np.any(got[10][1] != 0.0) and np.all(got[2][1] == 0.0)
         assert node.done and node.exit_code == 0 and node.stopped
+
+
+def test_too_few_tips_in_settle_time_extend_the_settle_phase_and_shift_the_plan():
+    """A driver slower than settle_time needs (here 200 Hz: 2 tips in 10 ms): zero torque until
+    settle_samples tips were heard, then the plan from the end of its settle phase."""
+    with ros_context() as (ctx, executor):
+        node, probe, pub = start(ctx, executor, signals=['x1'], duration=0.02, settle_time=0.01,
+                                 settle_samples=6)
+        plan = ExcitationPlan([builtin_signal('x1', 0.02)], 0.01, 1)
+        period = 5 * MS
+        shift = 6 * period / 1e9 - 0.01        # the 7th tip (30 ms) is the plan's 10 ms
+        for k in range(20):
+            assert send_tips(executor, probe, pub, 3 * MS + k * period), f'tips {k} not answered'
+            if node.done:
+                break
+        got = commands(probe)
+        assert all(np.all(u == 0.0) for _, u in got[:6])
+        for k, (_, u) in enumerate(got[6:-1], start=6):
+            np.testing.assert_array_equal(u, plan.torques(k * period / 1e9 - shift))
+        assert len(got) == 6 + 4 + 1 and np.any(got[7][1] != 0.0)
+        assert node.done and node.exit_code == 0 and node.settle_tips >= 6
+        assert node.diag.values['settle_extended'] == '0.020'
 
 
 def test_bad_and_old_tips_are_counted_and_not_answered():

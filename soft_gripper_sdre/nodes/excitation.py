@@ -2,15 +2,25 @@
 
 Plays ``signals`` in order (the paper's u1..u4, the identifying x1, x2, or multisines and chirps
 from the YAML ``spec_file``, :mod:`soft_gripper_sdre.sim.excitation`), each after ``settle_time``
-of zero torque, on ``finger`` or on every finger, scaled by ``amplitude`` and clipped to
-``torque_limit``; a recorder running meanwhile captures ``tip_positions`` and ``torque_commands``
-for ``tools.train --bag``.
+of zero torque (the first one also until ``settle_samples`` tips were heard, below), on
+``finger`` or on every finger, scaled by ``amplitude`` and clipped to ``torque_limit``; a recorder
+running meanwhile captures ``tip_positions`` and ``torque_commands`` for ``tools.train --bag``.
 
 Start: the run begins only once ``torque_commands`` has ``min_command_subscribers`` matched
 subscribers (default 2: the driver and the recorder), so no command is sent before the recorder
 hears it; until then each tip message is answered with zero torque. Plan time starts at the
 first tips after that, so the recording holds the whole settle phase (the rest pose and the noise
 level for training). Not matched within ``startup_timeout`` is a fault.
+
+Settle: the first settle phase (before the first probe of ``level: auto`` or the first signal)
+lasts ``settle_time`` of tip stamps and, with ``settle_time`` > 0, until the node has heard at
+least ``settle_samples`` tip messages since the start: it is extended, at zero torque, when the
+driver delivers fewer in ``settle_time`` (a lower rate, dropped messages, a loaded machine that
+delays the driver's ticks), and the rest of the plan (and ``plan_time``) is shifted by the
+extension. With tips timing every tip heard is answered with zero torque, so a recorder that hears
+the same tips holds at least ``settle_samples`` of them before the first non-zero torque, which
+training takes the noise level from. The tips answered with zero go to /diagnostics
+(``settle_tips``) and the log at the first non-zero torque.
 
 Level (``level``): ``fixed`` plays the signals at ``amplitude``. ``auto`` first searches the
 amplitude on the finger (:class:`~soft_gripper_sdre.sim.excitation.LevelSearch`): after the settle
@@ -65,6 +75,9 @@ PARAMS = (
           0.0, 3600.0, read_only=True),
     Param('settle_time', 0.5, 'zero torque before each signal (the first one also gives the rest '
           'pose and the noise level to training)', 's', 0.0, 600.0, read_only=True),
+    Param('settle_samples', 100, 'the first settle phase goes on past settle_time until this many '
+          'tip messages were heard since the start (with settle_time > 0; 0 = settle_time alone)',
+          '', 0, 1_000_000, read_only=True),
     finger_names_param('the fingers: pose i of tip_positions is finger i; the torque_commands names '
                        'are <finger>/ax0, <finger>/ax1'),
     Param('finger', -1, 'the finger to excite, an index into finger_names (-1 = all); the others get '
@@ -126,6 +139,9 @@ class ExcitationNode(Node):
         self.search = self._level_search(finger) if p['level'] == 'auto' else None
         self.plan_offset = 0.0                  # run time at which plan time 0 is [s]
         self.settle_tips = 0                    # tips answered before the first non-zero torque
+        self.settle_heard = 0                   # tips heard since the start, in the first settle phase
+        self.settle_extended = False            # the first settle phase outlasted settle_time
+        self.settle_shift: float | None = None  # its extension [s], once it is over
         self.excited = False                    # a non-zero torque went out
         self.newest_tips: np.ndarray | None = None
         self.done = False
@@ -229,6 +245,8 @@ class ExcitationNode(Node):
             return
         if self.p['timing'] == 'tips':
             self._advance(stamp, (stamp - self.start_ns) / cv.NS, tips)
+        if self.settle_shift is None:           # (counted after its own answer: tips timing
+            self.settle_heard += 1              # answers it before it counts)
 
     def _on_tick(self) -> None:
         if self.stopped or self.start_ns is None:
@@ -263,9 +281,33 @@ class ExcitationNode(Node):
         return float(np.inf if not np.all(np.isfinite(d)) else d.max())
 
     # -- outputs -----------------------------------------------------------------------------
+    def _settled(self, t: float) -> float | None:
+        """Run time ``t`` [s] less the extension of the first settle phase, or None while that
+        phase is extended (it lasts ``settle_time`` and until ``settle_samples`` tips were heard)."""
+        if self.settle_shift is None:
+            settle = self.p['settle_time']
+            if t < settle:
+                return t
+            if settle > 0 and self.settle_heard < self.p['settle_samples']:
+                self.settle_extended = True
+                return None
+            self.settle_shift = t - settle if self.settle_extended else 0.0
+            if self.settle_extended:
+                self.diag.values['settle_extended'] = f'{self.settle_shift:.3f}'
+        return t - self.settle_shift
+
     def _advance(self, stamp: int, t: float, tips: np.ndarray) -> None:
-        """Publish the torque for run time ``t`` [s] stamped ``stamp``: the level search's while
-        it runs (``tips``: the newest), then the plan's."""
+        """Publish the torque for run time ``t`` [s] stamped ``stamp``: zero while the first
+        settle phase is extended, then the level search's while it runs (``tips``: the newest),
+        then the plan's."""
+        t = self._settled(t)
+        if t is None:
+            u = np.zeros((self.n, 2))
+            self.diag.values.update(signal='settle', plan_time='')
+            self._note_settle(u)
+            self._publish(stamp, u)
+            self.diag.good('commands', 'settling until settle_samples tips were heard')
+            return
         search = self.search
         if search is not None and not search.done:
             u = search.step(t, tips)
@@ -304,6 +346,10 @@ class ExcitationNode(Node):
             return
         self.excited = True
         self.diag.values['settle_tips'] = str(self.settle_tips)
+        extended = (f', settle phase extended by {self.settle_shift:.3f} s for settle_samples'
+                    if self.settle_extended else '')
+        self.get_logger().info(f'first non-zero torque after {self.settle_tips} tip message(s) '
+                               f'answered with zero torque{extended}')
         if self.settle_tips < MIN_SETTLE_SAMPLES:
             self.get_logger().warn(
                 f'only {self.settle_tips} tip message(s) answered with zero torque before the '
