@@ -137,6 +137,9 @@ def test_the_cli_exits_2_without_a_traceback(tmp_path):
     (['--bag', 'a', '--val-bag', 'b', '--meas-std', 'nan'], '--meas-std must be in [0, 0.01) m'),
     (['--bag', 'a', '--val-bag', 'b', '--min-duration', '0'], '--min-duration must be > 0 s'),
     (['--bag', 'a', '--val-bag', 'b', '--finger', '4'], '--finger must be in [0, 3]'),
+    (['--bag', 'a', '--val-bag', 'b', '--rollout-epochs', '-1'], '--rollout-epochs takes an int >= 0'),
+    (['--data', 'c', '--rollout-epochs', '5'], '--rollout-epochs takes an int >= 0 and needs --bag'),
+    (['--data', 'c', '--preset', 'gripper'], 'the gripper preset trains on contiguous records'),
     ([], 'give --data DIR'),
 ])
 def test_bad_bag_arguments_are_usage_errors(args, why, tmp_path, capsys):
