@@ -1,7 +1,7 @@
 """The grasp graph for ``ros2 launch`` on a ROS 2 Jazzy install.
 
     ros2 launch soft_gripper_sdre grasp.launch.py [namespace:=left_hand] [duration:=6.0]
-        [control_period:=0.005] [law:=sdre_ff] [noise:=0.05] [seed:=0] [record:=true]
+        [control_period:=0.005] [mode:=pipelined] [law:=sdre_ff] [noise:=0.05] [seed:=0] [record:=true]
         [output:=runs/grasp_bag] [startup_timeout:=300] [params_file:=my_params.yaml]
 
 Starts the recorder (with ``record:=true``), the estimator, the trajectory node, the controller
@@ -33,6 +33,9 @@ ARGUMENTS = (
      '(0 = until Ctrl-C)'),
     ('control_period', '', "the loop's period [s], given to the simulator, the estimator and the "
      "controller alike (0.001 to 0.01; '' = the config files, 0.001)"),
+    ('mode', '', "the simulator's stepping: lockstep, pipelined (the physics one period behind the "
+     "commands, stepped while they are computed) or realtime ('' = config/simulator.yaml, "
+     'lockstep)'),
     ('law', '', "control law of the controller (sdre_ff, sdre, lqr, pd, computed_torque, "
      "koopman_mpc, koopman_lqr; '' = config/controller.yaml)"),
     ('noise', '', "tip measurement noise σ [mm] ('' = config/simulator.yaml, 0.05 mm)"),
@@ -90,7 +93,7 @@ def _params_file(text: str):
     return path.resolve()
 
 
-def grasp_nodes(namespace: str = '', duration: str = '6.0', control_period: str = '',
+def grasp_nodes(namespace: str = '', duration: str = '6.0', control_period: str = '', mode: str = '',
                 law: str = '', noise: str = '', seed: str = '', record: str = 'false',
                 output: str = '', startup_timeout: str = '300',
                 params_file: str = '') -> list[dict]:
@@ -101,7 +104,7 @@ def grasp_nodes(namespace: str = '', duration: str = '6.0', control_period: str 
 
     Raises:
         ValueError: naming the argument: not a number, a boolean, a namespace or a law where one
-            is needed, a number outside the simulator's limits, a control period outside 0.001
+            is needed, a number or mode outside the simulator's limits, a control period outside 0.001
             to 0.01 s, or a parameters file that cannot be read as one.
     """
     from soft_gripper_sdre.control.laws import GRAPH_LAWS
@@ -120,6 +123,9 @@ def grasp_nodes(namespace: str = '', duration: str = '6.0', control_period: str 
     if seed.strip():
         simulator['seed'] = _number('seed', seed, int)
         _within('seed', seed, simulator['seed'], 'seed')
+    if mode.strip():
+        simulator['mode'] = mode.strip()
+        _within('mode', mode, simulator['mode'], 'mode')
     if law.strip():
         if law.strip() not in GRAPH_LAWS:
             raise ValueError(f'launch argument law:={law!r} is not a law of the controller '

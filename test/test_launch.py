@@ -81,6 +81,7 @@ def test_a_hand_in_a_namespace_with_every_argument(launch_module):
     ({'law': 'oracle'}, "law:='oracle' is not a law of the controller"),
     ({'noise': '50'}, "noise:='50': noise_std must be <= 0.01"),
     ({'seed': '-1'}, "seed:='-1': seed must be >= 0"),
+    ({'mode': 'pipeline'}, "mode:='pipeline': mode must be one of"),
     ({'duration': '-1'}, "duration:='-1': duration must be >= 0"),
     ({'startup_timeout': 'nan'}, "startup_timeout:='nan'"),
     ({'params_file': '/nonexistent/mine.yaml'},
@@ -104,6 +105,12 @@ def test_control_period_reaches_every_node_of_the_loop(launch_module):
     overrides = {name: next((d for d in n['parameters'] if isinstance(d, dict)), {}) for name, n in nodes.items()}
     periods = {name: d.get('control_period') for name, d in overrides.items()}
     assert periods == {'estimator': 0.005, 'trajectory': None, 'controller': 0.005, 'simulator': 0.005}
+
+
+def test_the_mode_reaches_the_simulator(launch_module):
+    simulator = launch_module.grasp_nodes(mode='pipelined')[-1]
+    assert simulator['name'] == 'simulator' and simulator['parameters'][-1]['mode'] == 'pipelined'
+    assert 'mode' not in launch_module.grasp_nodes()[-1]['parameters'][-1]
 
 
 def test_the_law_choices_are_the_controllers_own(launch_module):
