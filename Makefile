@@ -70,6 +70,13 @@ DEPLOY_ARGS ?=
 bench-deploy: $(KERNELS)
 	$(PY) -m soft_gripper_sdre.tools.bench_deploy $(DEPLOY_ARGS)
 
+# the graph in lockstep and pipelined mode beside their floors (the floor rows of bench alone):
+# make bench-floor FLOOR_REPEATS=3
+.PHONY: bench-floor
+FLOOR_REPEATS ?= 3
+bench-floor: $(KERNELS)
+	$(PY) -m soft_gripper_sdre.tools.bench --floor $(FLOOR_REPEATS)
+
 # README "Noise, gains and the finger's bending modes" and "Identifying G2"
 sweep: $(KERNELS)
 	$(PY) -m soft_gripper_sdre.tools.sweep --out runs/sweep
