@@ -2,11 +2,14 @@
 model scored against the simulator's ground truth. Writes ``report.md``, ``evaluate.json`` and PNGs.
 
     python -m soft_gripper_sdre.tools.evaluate --out runs/evaluate          # (make evaluate)
-    python -m soft_gripper_sdre.tools.evaluate --out DIR --laws sdre lqr --trajectories fast --quick
+    python -m soft_gripper_sdre.tools.evaluate --out DIR --laws sdre lqr --trajectories fast --workers 1
+    python -m soft_gripper_sdre.tools.evaluate --out runs/evaluate --ray auto     # the runs on a Ray cluster
 
 It uses the in-process loop (:func:`soft_gripper_sdre.analysis.closed_loop.run_closed_loop`: the node
 graph's loop with the topics replaced by calls, lockstep, seeded noise), because the oracle needs
-the plant's joint state at every step. The numbers:
+the plant's joint state at every step. The runs are independent jobs on ``--workers`` processes
+(default: every core) or on the Ray cluster at ``--ray ADDRESS`` (:mod:`soft_gripper_sdre.tools.jobs`),
+with the same numbers wherever they run (but the compute time). The numbers:
 
 * free-space RMSE and max of the 2-D tip error [mm] on the *true* tip (grasping fingers 0 and 2,
   and the worst of the four), where the finger does not touch the cube;
@@ -37,6 +40,7 @@ from soft_gripper_sdre.control.laws import DEFAULT_CT, DEFAULT_PD, LAW_REGISTRY
 from soft_gripper_sdre.learning.model import PAPER_DATA_MODEL, ModelFileError, SDCModel
 from soft_gripper_sdre.sim.hand import SimConfig
 from soft_gripper_sdre.control.trajectory import GraspProfile
+from soft_gripper_sdre.tools import jobs
 
 #: (label, law name, make_law options)
 LAW_SPECS = {
@@ -135,6 +139,55 @@ def tune_integral(model: SDCModel, weights: Weights, gains=(0.0, 3e4, 1e5, 3e5),
         s, _ = run_law('sdre_ff', trajectory, model, weights, duration=duration, integral_gain=gain)
         rows.append((gain, s.rmse_mm_grasp, s.held_mm))
     return rows
+
+
+# -- every law, as independent jobs ---------------------------------------------------------------
+@dataclass(frozen=True)
+class LawRunsContext:
+    """What the law runs share: the model's and the Koopman model's files (they travel with the
+    jobs, :class:`~soft_gripper_sdre.tools.jobs.FileBlob`) and the duration override."""
+
+    model: jobs.FileBlob
+    koopman: jobs.FileBlob
+    duration: float | None
+
+
+#: the SDC models this process has loaded, by the sha256 of their file
+_models: dict[str, SDCModel] = {}
+
+
+def run_law_job(context: LawRunsContext, job: tuple[str, str]):
+    """One law on one trajectory, (RunSummary, LoopResult), as a job of
+    :func:`~soft_gripper_sdre.tools.jobs.run_jobs` (``job``: (trajectory, LAW_SPECS key))."""
+    from soft_gripper_sdre.control.compiled import warm_up
+    warm_up()                      # a new worker loads the kernels here, not inside the timed law
+    trajectory, key = job
+    if context.model.digest not in _models:
+        _models[context.model.digest] = SDCModel(context.model.path())
+    return run_law(key, trajectory, _models[context.model.digest], Weights(**DEFAULT_WEIGHTS),
+                   duration=context.duration, koopman_path=context.koopman.path())
+
+
+def run_laws(laws, trajectories, model_path: Path | None = None, koopman_path: Path | None = None,
+             duration: float | None = None, runner: jobs.Runner = jobs.Runner(), progress: bool = True):
+    """Every law of ``laws`` (LAW_SPECS keys) on every trajectory, with the default weights:
+    ([RunSummary], {trajectory: {law: LoopResult}}), in the order trajectory by trajectory. The
+    runs are independent jobs (:mod:`~soft_gripper_sdre.tools.jobs`, on ``runner``); each result
+    depends on its run only, so the numbers do not depend on the runner (but ``compute_us``, the
+    law's wall time, does on the load)."""
+    from soft_gripper_sdre.control.compiled import warm_up
+    from soft_gripper_sdre.learning.koopman import DEFAULT_KOOPMAN
+    from soft_gripper_sdre.learning.model import DEFAULT_MODEL
+    warm_up()                      # the kernels into numba's cache once, before the workers load them
+    context = LawRunsContext(jobs.FileBlob.read(model_path or DEFAULT_MODEL),
+                             jobs.FileBlob.read(koopman_path or DEFAULT_KOOPMAN), duration)
+    todo = [(t, k) for t in trajectories for k in laws]
+    out = jobs.run_jobs(run_law_job, todo, context, runner, desc='evaluate', progress=progress)
+    summaries, results = [], {}
+    for (traj, key), (summary, result) in zip(todo, out):
+        summaries.append(summary)
+        results.setdefault(traj, {})[key] = result
+    return summaries, results
 
 
 # -- the learned model against the ground truth ---------------------------------------------------
@@ -358,7 +411,9 @@ def main(argv=None) -> int:
     ap.add_argument('--model', type=Path, default=None, help='checkpoint (default: the shipped model)')
     ap.add_argument('--koopman', type=Path, default=None,
                     help='Koopman model of the koopman_* laws (default: the shipped one; tools.koopman writes one)')
+    jobs.add_arguments(ap)
     args = ap.parse_args(argv)
+    runner = jobs.runner_from_args(ap, args)
     if args.koopman is not None and not args.koopman.is_file():
         ap.error(f'--koopman: no such file {args.koopman}')
     if args.duration is not None and not args.duration > 0:
@@ -380,18 +435,17 @@ def main(argv=None) -> int:
                 print(f'{traj} {args.tune} kp={kp:g} kd={kd:g}: grasp-finger RMSE {rmse:.4f} mm')
         print(f'shipped: {TUNABLE[args.tune][0]}')
         return 0
-    args.out.mkdir(parents=True, exist_ok=True)
-    from tqdm import tqdm
-    summaries, figures = [], []
-    jobs = [(t, k) for t in args.trajectories for k in args.laws]
-    results: dict = {}
-    for traj, key in tqdm(jobs, desc='evaluate', unit='run'):
-        s, res = run_law(key, traj, model, weights, duration=args.duration, koopman_path=args.koopman)
-        summaries.append(s)
-        results.setdefault(traj, {})[key] = res
-        tqdm.write(f'{traj:6s} {key:15s} RMSE {s.rmse_mm_grasp:.3f} mm, max {s.max_mm_all:.2f} mm, '
-                   f'held {s.held_mm:.3f} mm, '
-                   f'checks failed {s.check_fail_pct:.2f} %, {s.compute_us:.0f} µs/step')
+    try:
+        with jobs.session(runner):
+            args.out.mkdir(parents=True, exist_ok=True)
+            summaries, results = run_laws(args.laws, args.trajectories, args.model, args.koopman, args.duration,
+                                          runner)
+    except jobs.JobsError as exc:
+        ap.error(f'--ray: {exc}')
+    figures = []
+    for s in summaries:
+        print(f'{s.trajectory:6s} {s.law:15s} RMSE {s.rmse_mm_grasp:.3f} mm, max {s.max_mm_all:.2f} mm, '
+              f'held {s.held_mm:.3f} mm, checks failed {s.check_fail_pct:.2f} %, {s.compute_us:.0f} µs/step')
     for traj, res in results.items():
         figures += law_figures(res, summaries, traj, args.out)
     model_stats = workspace = None

@@ -4,6 +4,7 @@ sensors it was not trained on. Writes ``robustness.md`` (the table), ``robustnes
 
     python -m soft_gripper_sdre.tools.robustness --out runs/robustness          # (make robustness)
     python -m soft_gripper_sdre.tools.robustness --out DIR --laws sdre_ff pd --variations nominal friction_x2 --workers 2
+    python -m soft_gripper_sdre.tools.robustness --out runs/robustness --ray auto   # on a Ray cluster
 
 The laws are every registered law but the oracles (``--laws`` may name those too: they know the
 nominal plant's dynamics, and are marked † in the outputs); the variations are
@@ -14,8 +15,9 @@ of ``make evaluate`` (the same noise, seed, saturation and roll-off), scored on 
   excursion (the ≤ 5 % target of docs/results.md);
 * grasp: both grasping fingers touch the cube ≥ 90 % of the hold and the cube moves < 1 mm.
 
-The runs are spread over ``--workers`` processes (default: every core); the numbers do not depend
-on how many.
+The runs are spread over ``--workers`` processes (default: every core), or over the Ray cluster
+at ``--ray ADDRESS`` (:mod:`soft_gripper_sdre.tools.jobs`); the numbers do not depend on how many
+or where.
 """
 from __future__ import annotations
 
@@ -23,7 +25,6 @@ import argparse
 from dataclasses import asdict
 import json
 import math
-import os
 from pathlib import Path
 import shlex
 import sys
@@ -33,10 +34,12 @@ import numpy as np
 
 from soft_gripper_sdre.analysis.oracle import ORACLE_LAWS
 from soft_gripper_sdre.learning.model import ModelFileError, SDCModel
+from soft_gripper_sdre.tools import jobs
 from soft_gripper_sdre.tools.evaluate import TRAJECTORIES
 from soft_gripper_sdre.tools.robustness_grid import (VARIATIONS, Case, CaseResult, grid_laws, known_laws,
                                                      run_grid)
 
+PROG = 'python -m soft_gripper_sdre.tools.robustness'
 #: the free-space target: worst-finger RMSE as a share of its peak excursion [%] (docs/results.md)
 TARGET_PCT = 5.0
 
@@ -156,7 +159,7 @@ def plot_grid(results: list[CaseResult], path: Path, command: str) -> Path:
 
 
 def parse_args(argv=None) -> argparse.Namespace:
-    ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    ap = argparse.ArgumentParser(prog=PROG, description=__doc__.split('\n')[0])
     ap.add_argument('--out', type=Path, default=Path('runs/robustness'))
     ap.add_argument('--laws', nargs='+', default=grid_laws(), choices=known_laws(), metavar='LAW',
                     help=f'registered law names (default: every one but the oracles; known: {known_laws()})')
@@ -170,11 +173,10 @@ def parse_args(argv=None) -> argparse.Namespace:
     ap.add_argument('--anchored', action='store_true',
                     help='close the grasping fingers to the nominal finger\'s closed pose (the model\'s rest Y '
                          'plus the travel) wherever the plant\'s finger rests, instead of the travel from rest')
-    ap.add_argument('--workers', type=int, default=os.cpu_count() or 1, help='worker processes (default: every core)')
     ap.add_argument('--model', type=Path, default=None, help='checkpoint (default: the shipped model)')
+    jobs.add_arguments(ap)
     args = ap.parse_args(argv)
-    if args.workers < 1:
-        ap.error(f'--workers must be >= 1, got {args.workers}')
+    args.runner = jobs.runner_from_args(ap, args)
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
         ap.error(f'--duration must be > 0 s, got {args.duration}')
     if args.close_mm is not None and not (math.isfinite(args.close_mm) and 0 < args.close_mm <= 50):
@@ -193,8 +195,13 @@ def main(argv=None) -> int:
     close = None if args.close_mm is None else args.close_mm * 1e-3
     cases = [Case(law, variation, traj, args.duration, close, args.anchored) for traj in args.trajectories
              for law in dict.fromkeys(args.laws) for variation in dict.fromkeys(args.variations)]
-    args.out.mkdir(parents=True, exist_ok=True)
-    results = run_grid(cases, args.workers, model_path=args.model)
+    try:
+        with jobs.session(args.runner):
+            args.out.mkdir(parents=True, exist_ok=True)
+            results = run_grid(cases, args.runner, model_path=args.model)
+    except jobs.JobsError as exc:
+        print(f'{PROG}: error: --ray: {exc}', file=sys.stderr)
+        return 2
     (args.out / 'robustness.json').write_text(json.dumps(
         dict(command=command, runs=[asdict(r) for r in results]), indent=2))
     figure = plot_grid(results, args.out / 'robustness.png', command)

@@ -6,17 +6,15 @@ the node graph's loop with the topics replaced by calls, the KF, lockstep, seede
 :mod:`soft_gripper_sdre.tools.evaluate`, with the model trained on the nominal finger, and is scored
 on the true tip in free space and on the grasp (:mod:`soft_gripper_sdre.analysis.law_runs`).
 
-The cases are independent, so :func:`run_grid` runs them in a pool of spawned worker processes,
-each with its own simulator, law and copy of the model. A case's result depends on the case only
-(every simulator starts from the same seed, every law is built fresh), so the grid gives the same
-numbers, bit for bit, whatever the number of workers.
+The cases are independent, so :func:`run_grid` runs them as jobs (:mod:`soft_gripper_sdre.tools.jobs`):
+on a pool of spawned worker processes or on a Ray cluster, each worker with its own simulator, law
+and copy of the model. A case's result depends on the case only (every simulator starts from the
+same seed, every law is built fresh), so the grid gives the same numbers, bit for bit, whatever the
+number of workers and wherever they run.
 """
 from __future__ import annotations
 
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field, replace
-import multiprocessing
-import sys
 
 # importing analysis.oracle adds the oracle laws to the registry (they know the nominal plant's
 # dynamics, so the grid leaves them out unless asked)
@@ -24,10 +22,11 @@ from soft_gripper_sdre.analysis.oracle import ORACLE_LAWS
 from soft_gripper_sdre.analysis import law_runs
 from soft_gripper_sdre.control.laws import LAW_REGISTRY
 from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
-from soft_gripper_sdre.learning.model import SDCModel
+from soft_gripper_sdre.learning.model import DEFAULT_MODEL, SDCModel
 from soft_gripper_sdre.sim.hand import SimConfig
 from soft_gripper_sdre.sim.plant import PlantVariation
 from soft_gripper_sdre.tools.evaluate import NOISE, TRAJECTORIES, U_MAX
+from soft_gripper_sdre.tools.jobs import FileBlob, Runner, run_jobs
 
 
 @dataclass(frozen=True)
@@ -125,19 +124,22 @@ def run_case(case: Case, model: SDCModel) -> CaseResult:
                       **law_runs.score(res, profile).pick(CaseResult))
 
 
-# -- the worker pool ------------------------------------------------------------------------------
-#: the model of this worker process (loaded once by :func:`_start_worker`)
-_worker_model: SDCModel | None = None
+# -- the jobs -------------------------------------------------------------------------------------
+#: the models this process has loaded, by the sha256 of their file
+_models: dict[str, SDCModel] = {}
 
 
-def _start_worker(model_path) -> None:
-    global _worker_model
-    _worker_model = SDCModel(model_path)
+def _model_of(blob: FileBlob) -> SDCModel:
+    if blob.digest not in _models:
+        _models[blob.digest] = SDCModel(blob.path())
+    return _models[blob.digest]
 
 
-def _run_in_worker(case: Case) -> CaseResult:
+def run_case_job(model: FileBlob, case: Case) -> CaseResult:
+    """One case as a job of :func:`~soft_gripper_sdre.tools.jobs.run_jobs` (the model's file travels
+    with it); a run that fails is a result with its ``error``, so the rest of the grid is kept."""
     try:
-        return run_case(case, _worker_model)
+        return run_case(case, _model_of(model))
     except Exception as exc:  # noqa: BLE001 — one failing law must not lose the rest of the grid
         nan = float('nan')
         travel = (case.close_distance if case.close_distance is not None
@@ -146,18 +148,23 @@ def _run_in_worker(case: Case) -> CaseResult:
                           1e3 * travel, case.anchored, error=f'{type(exc).__name__}: {exc}')
 
 
-def run_grid(cases: list[Case], workers: int, model_path=None, progress: bool = True) -> list[CaseResult]:
-    """Run every case in a pool of ``workers`` spawned processes; the results in the order of ``cases``.
+def run_grid(cases: list[Case], workers: int | Runner, model_path=None, progress: bool = True) -> list[CaseResult]:
+    """Run every case; the results in the order of ``cases``.
 
-    Each worker loads the model (``model_path``; None: the shipped one) once and builds a simulator
-    and a law per case. The compiled kernels are loaded into numba's on-disk cache here first, so
-    the workers load them instead of each compiling them. ``progress``: a bar on stderr.
+    ``workers``: the number of spawned worker processes of this machine (1: this process), or a
+    :class:`~soft_gripper_sdre.tools.jobs.Runner` (a pool, or a Ray cluster). The model's file
+    (``model_path``; None: the shipped one) goes with the cases, and each worker loads it once and
+    builds a simulator and a law per case. The compiled kernels are loaded into numba's on-disk
+    cache here first, so that the workers of this machine load them instead of each compiling them.
+    ``progress``: a bar on stderr.
 
     Raises:
         ValueError: ``workers`` < 1, or a case names an unknown law, variation or trajectory.
+        soft_gripper_sdre.tools.jobs.JobsError: a Ray runner without ray or without its cluster.
     """
-    if not (isinstance(workers, int) and workers >= 1):
-        raise ValueError(f'workers must be an int >= 1, got {workers!r}')
+    runner = workers if isinstance(workers, Runner) else Runner(workers) if isinstance(workers, int) else None
+    if runner is None:
+        raise ValueError(f'workers must be an int >= 1 or a Runner, got {workers!r}')
     for case in cases:
         for value, known, what in ((case.law, known_laws(), 'law'), (case.variation, VARIATIONS, 'variation'),
                                    (case.trajectory, TRAJECTORIES, 'trajectory')):
@@ -165,15 +172,5 @@ def run_grid(cases: list[Case], workers: int, model_path=None, progress: bool = 
                 raise ValueError(f'unknown {what} {value!r}; known: {list(known)}')
     from soft_gripper_sdre.control.compiled import warm_up
     warm_up()
-    results: list[CaseResult | None] = [None] * len(cases)
-    context = multiprocessing.get_context('spawn')
-    with ProcessPoolExecutor(max_workers=min(workers, max(1, len(cases))), mp_context=context,
-                             initializer=_start_worker, initargs=(model_path,)) as pool:
-        futures = {pool.submit(_run_in_worker, case): i for i, case in enumerate(cases)}
-        done = as_completed(futures)
-        if progress:
-            from tqdm import tqdm
-            done = tqdm(done, total=len(futures), desc='robustness', unit='run', file=sys.stderr)
-        for future in done:
-            results[futures[future]] = future.result()
-    return results
+    return run_jobs(run_case_job, cases, FileBlob.read(model_path or DEFAULT_MODEL), runner, desc='robustness',
+                    progress=progress)

@@ -15,7 +15,7 @@ tip positions; validation (u4) is scored against the simulator's true accelerati
 from __future__ import annotations
 
 import argparse
-from dataclasses import replace
+from dataclasses import dataclass, replace
 import itertools
 import json
 import logging
@@ -69,6 +69,106 @@ def low_frequency_share(acc: np.ndarray, dt: float, cutoff: float = 10.0) -> lis
     power = np.abs(np.fft.rfft(a, axis=0)) ** 2
     f = np.fft.rfftfreq(len(a), dt)
     return (power[f < cutoff].sum(axis=0) / power.sum(axis=0)).tolist()
+
+
+@dataclass
+class LabelledData:
+    """The ``--data`` records as training sees them: the training arrays of every training signal,
+    stacked, and the validation signal, labelled by the KF + RTS (:func:`label_records`)."""
+
+    variant: str
+    train_signals: list[str]
+    x: np.ndarray                  # (N, 4) translated states
+    u: np.ndarray                  # (N, 2) torques
+    acc: np.ndarray                # (N, 2) acceleration labels
+    val: dict[str, np.ndarray]     # :func:`states` of the validation signal
+    acc_true: np.ndarray           # (M, 2) the validation signal's true acceleration (its labels without one)
+    val_dt: float
+    jerk_psd: float
+    rest_tip: np.ndarray
+    dt: float
+    noise_std: float
+    derivative_errors: dict
+
+
+def label_records(records: dict[str, Record], variant: str, jerk_psd: float | None = None,
+                  progress: bool = True) -> LabelledData:
+    """Label ``records`` (``DATA_VARIANTS[variant]`` and the validation signal) with the KF + RTS at
+    ``jerk_psd`` (None: :func:`tuned_jerk_psd` on the first training record)."""
+    names = list(DATA_VARIANTS[variant]) + [VALIDATION]
+    first = records[names[0]]
+    jerk = jerk_psd if jerk_psd is not None else tuned_jerk_psd(first)
+    est = {}
+    deriv_err = {}
+    for name in tqdm(names, desc='KF + RTS', unit='signal', disable=not progress):
+        est[name] = states(records[name], jerk)
+        r = records[name]
+        if r.acc_true is not None:
+            deriv_err[name] = derivatives.estimate_errors(est[name]['vel'], est[name]['acc'],
+                                                          r.vel_true[:, :2], r.acc_true[:, :2])
+    train_names = names[:-1]
+    val, v_rec = est[VALIDATION], records[VALIDATION]
+    return LabelledData(
+        variant=variant, train_signals=train_names,
+        x=np.vstack([est[n]['x'] for n in train_names]), u=np.vstack([est[n]['u'] for n in train_names]),
+        acc=np.vstack([est[n]['acc'] for n in train_names]), val=val,
+        acc_true=v_rec.acc_true[:, :2] if v_rec.acc_true is not None else val['acc'], val_dt=v_rec.dt,
+        jerk_psd=float(jerk), rest_tip=first.rest_tip, dt=first.dt, noise_std=float(first.noise_std),
+        derivative_errors=deriv_err)
+
+
+def jittered(x: np.ndarray, acc: np.ndarray, jitter: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """(x, acc) times 1 + ``jitter``·N(0, 1) elementwise (labels first, then states, from one
+    generator seeded with ``seed``): the same data, other float roundings."""
+    rng = np.random.default_rng(seed)
+    acc = acc * (1.0 + jitter * rng.standard_normal(acc.shape))
+    x = x * (1.0 + jitter * rng.standard_normal(x.shape))
+    return x, acc
+
+
+def fit(data: LabelledData, settings, path: Path, jitter: float = 0.0, jitter_seed: int = 0,
+        on_epoch=None) -> tuple[Path, dict, object, np.ndarray]:
+    """Train on ``data`` (jittered by ``jitter`` when > 0, :func:`jittered`), write the checkpoint
+    with its metrics to ``path`` and score it: (path, metrics, the TrainResult, the validation
+    signal's predicted acceleration)."""
+    x, u, acc = data.x, data.u, data.acc
+    if jitter > 0:
+        x, acc = jittered(x, acc, jitter, jitter_seed)
+    val = data.val
+    result = train(x, u, acc, val['x'], val['u'], val['acc'], settings, on_epoch)
+    data_info = {'variant': data.variant, 'train_signals': data.train_signals, 'validation': VALIDATION,
+                 'fingerprint': fingerprint(x, u, acc), 'jerk_psd': data.jerk_psd,
+                 'noise_std': data.noise_std}
+    if jitter > 0:
+        data_info['jitter'] = {'relative': jitter, 'seed': jitter_seed}
+    ckpt_path = save_checkpoint(path, result, rest_tip=data.rest_tip, dt=data.dt, settings=settings,
+                                data=data_info)
+    model = SDCModel(ckpt_path)
+
+    # validation against the simulator's TRUE accelerations
+    acc_true = data.acc_true
+    pred = model.xdot(val['x'], val['u'])[:, 2:]
+    r2 = r2_score(acc_true, pred).tolist()
+    feats = poly_features(x, u)
+    coef, *_ = np.linalg.lstsq(feats, acc, rcond=None)
+    r2_ls = r2_score(acc_true, poly_features(val['x'], val['u']) @ coef).tolist()
+    _, G = model.AG(np.zeros(4))
+    G2 = G[0, 2:, :]
+    angles = [float(np.degrees(np.arctan2(G2[1, j], G2[0, j]))) for j in range(2)]
+    metrics = {
+        'preset': settings.preset, 'variant': data.variant, 'seed': settings.seed,
+        'epochs_run': len(result.train_loss),
+        'best_epoch': result.best_epoch, 'train_seconds': round(result.seconds, 1),
+        'u4_r2_true': {'X': r2[0], 'Y': r2[1]},
+        'u4_r2_ls_baseline': {'X': r2_ls[0], 'Y': r2_ls[1]},
+        'u4_true_variance_below_10hz': dict(zip('XY', low_frequency_share(acc_true, data.val_dt))),
+        'derivative_errors': data.derivative_errors,
+        'G2_at_origin': G2.tolist(), 'G2_column_angles_deg': angles,
+        'final_train_loss': result.train_loss[-1], 'best_val_loss': min(result.val_loss),
+    }
+    save_checkpoint(ckpt_path, result, rest_tip=data.rest_tip, dt=data.dt, settings=settings,
+                    data=data_info, metrics=metrics)
+    return ckpt_path, metrics, result, pred
 
 
 def _usage_error(parser, message):
@@ -166,75 +266,26 @@ def main(argv: list[str] | None = None) -> int:
     except OSError as exc:
         _usage_error(parser, f'cannot create output directory {args.out}: {exc.strerror}')
 
-    first = records[names[0]]
-    jerk = args.jerk_psd if args.jerk_psd is not None else tuned_jerk_psd(first)
-    print(f'KF/RTS white-jerk intensity q = {jerk:g} (m/s³)²/Hz')
-    est = {}
-    deriv_err = {}
-    for name in tqdm(names, desc='KF + RTS', unit='signal'):
-        est[name] = states(records[name], jerk)
-        r = records[name]
-        if r.acc_true is not None:
-            deriv_err[name] = derivatives.estimate_errors(est[name]['vel'], est[name]['acc'],
-                                                          r.vel_true[:, :2], r.acc_true[:, :2])
-    train_names = names[:-1]
-    x = np.vstack([est[n]['x'] for n in train_names])
-    u = np.vstack([est[n]['u'] for n in train_names])
-    acc = np.vstack([est[n]['acc'] for n in train_names])
-    if args.jitter > 0:
-        rng = np.random.default_rng(args.jitter_seed)
-        acc = acc * (1.0 + args.jitter * rng.standard_normal(acc.shape))
-        x = x * (1.0 + args.jitter * rng.standard_normal(x.shape))
-    val = est[VALIDATION]
-
+    data = label_records(records, variant, args.jerk_psd)
+    print(f'KF/RTS white-jerk intensity q = {data.jerk_psd:g} (m/s³)²/Hz')
     bar = tqdm(total=settings.epochs, desc=f'train ({args.preset})', unit='epoch')
 
     def on_epoch(epoch, tl, vl):
         bar.update(1)
         bar.set_postfix(train=f'{tl:.3g}', val=f'{vl:.3g}')
 
-    result = train(x, u, acc, val['x'], val['u'], val['acc'], settings, on_epoch)
+    ckpt_path, metrics, result, pred = fit(data, settings, args.out / 'model.pt', args.jitter, args.jitter_seed,
+                                           on_epoch)
     bar.close()
-
-    data_info = {'variant': variant, 'train_signals': train_names, 'validation': VALIDATION,
-                 'fingerprint': fingerprint(x, u, acc), 'jerk_psd': float(jerk),
-                 'noise_std': float(first.noise_std)}
-    if args.jitter > 0:
-        data_info['jitter'] = {'relative': args.jitter, 'seed': args.jitter_seed}
-    ckpt_path = save_checkpoint(args.out / 'model.pt', result, rest_tip=first.rest_tip, dt=first.dt,
-                                settings=settings, data=data_info)
-    model = SDCModel(ckpt_path)
-
-    # validation against the simulator's TRUE accelerations
+    r2, r2_ls, G2 = metrics['u4_r2_true'], metrics['u4_r2_ls_baseline'], np.asarray(metrics['G2_at_origin'])
     v_rec = records[VALIDATION]
-    acc_true = v_rec.acc_true[:, :2] if v_rec.acc_true is not None else val['acc']
-    pred = model.xdot(val['x'], val['u'])[:, 2:]
-    r2 = r2_score(acc_true, pred).tolist()
-    feats = poly_features(x, u)
-    coef, *_ = np.linalg.lstsq(feats, acc, rcond=None)
-    r2_ls = r2_score(acc_true, poly_features(val['x'], val['u']) @ coef).tolist()
-    _, G = model.AG(np.zeros(4))
-    G2 = G[0, 2:, :]
-    angles = [float(np.degrees(np.arctan2(G2[1, j], G2[0, j]))) for j in range(2)]
-    metrics = {
-        'preset': args.preset, 'variant': variant, 'seed': settings.seed, 'epochs_run': len(result.train_loss),
-        'best_epoch': result.best_epoch, 'train_seconds': round(result.seconds, 1),
-        'u4_r2_true': {'X': r2[0], 'Y': r2[1]},
-        'u4_r2_ls_baseline': {'X': r2_ls[0], 'Y': r2_ls[1]},
-        'u4_true_variance_below_10hz': dict(zip('XY', low_frequency_share(acc_true, v_rec.dt))),
-        'derivative_errors': deriv_err,
-        'G2_at_origin': G2.tolist(), 'G2_column_angles_deg': angles,
-        'final_train_loss': result.train_loss[-1], 'best_val_loss': min(result.val_loss),
-    }
-    save_checkpoint(ckpt_path, result, rest_tip=first.rest_tip, dt=first.dt, settings=settings,
-                    data=data_info, metrics=metrics)
     (args.out / 'metrics.json').write_text(json.dumps(metrics, indent=2))
     plot_loss(result.train_loss, result.val_loss, args.out / 'fig2_loss.png',
               title=f'Training loss, {args.preset} preset ({variant} data)')
-    plot_accel(v_rec.t, acc_true, pred, args.out / 'fig3_accel_u4.png', r2=r2,
+    plot_accel(v_rec.t, data.acc_true, pred, args.out / 'fig3_accel_u4.png', r2=[r2['X'], r2['Y']],
                title=f'u4 validation, {args.preset} preset: predicted (dashed) vs true (solid)')
-    print(f'u4 R² vs true acceleration: X {r2[0]:.3f}  Y {r2[1]:.3f}   '
-          f'(3rd-order least squares: X {r2_ls[0]:.3f}  Y {r2_ls[1]:.3f})')
+    print(f'u4 R² vs true acceleration: X {r2["X"]:.3f}  Y {r2["Y"]:.3f}   '
+          f'(3rd-order least squares: X {r2_ls["X"]:.3f}  Y {r2_ls["Y"]:.3f})')
     print(f'G2 at the origin [m/s² per N·m]: {np.round(G2, 1).tolist()}')
     print(f'training: {len(result.train_loss)} epochs in {result.seconds:.1f} s; wrote {args.out}')
     if args.install:
