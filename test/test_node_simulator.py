@@ -66,6 +66,7 @@ def test_lockstep_holds_on_a_timeout_then_steps_lost_periods_with_zero_until_com
         answer_tips(executor, probe, pub, [[0.02, 0.0]], 5)
         c = sim.diag.counters
         assert spin_until(executor, lambda: c['timeouts'] == 1, 10.0)          # no deadlock
+        assert 'command timeout at t = 0.005 s' in sim.diag.message            # the period awaited
         np.testing.assert_allclose(sim.sim.truth().u_applied, [[0.02, 0.0]])   # the timeout holds
         assert c['safe_periods'] == 0
         assert sim.set_parameters([Parameter('lost_command_wait', value=0.005)])[0].successful

@@ -299,6 +299,7 @@ class SimulatorNode(Node):
 
     def _check_timeout(self) -> None:
         lost = self.stepping.lost
+        t = self.stepping.now_ns / cv.NS     # the period awaited (pipelined: the physics is one ahead)
         u = self.stepping.on_wall_time(time.monotonic())
         if u is None:
             return
@@ -307,9 +308,9 @@ class SimulatorNode(Node):
                 self._commands_lost(f'each period waits {self.p["lost_command_wait"]:g} s')
         else:
             hold = self.p['on_timeout'] == 'hold'
-            self.diag.set_status(WARN, f'command timeout at t = {self.sim.t:.3f} s; '
+            self.diag.set_status(WARN, f'command timeout at t = {t:.3f} s; '
                                  f'{"holding the last command" if hold else "zero torque"}')
-            self.log.warn('timeout', f'no torque_commands for t = {self.sim.t:.3f} s within '
+            self.log.warn('timeout', f'no torque_commands for t = {t:.3f} s within '
                           f'{self.p["lockstep_timeout"]} s; {"holding last" if hold else "applying zero"}')
         self._step(u)
 
