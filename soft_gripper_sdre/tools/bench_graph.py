@@ -446,8 +446,8 @@ def rows(quick: bool = False, executor: str | None = None, graph_only: bool = Fa
     p50 [µs] (``hop_p50_us``)."""
     nan = float('nan')
     seconds, real_s = (1.0, 3.0) if quick else (3.0, 20.0)
-    runs = mode_runs(seconds, executor=executor)
-    lock_all = runs['lockstep'][0]
+    runs = mode_runs(seconds, 1 if quick else 3, executor=executor)      # one run of each swings 0.4–0.8×
+    lock_all = median_run(runs['lockstep'])
     lock = lock_all['simulator']
     pipelined_row = mode_rows(runs, seconds, figures)[1]
     real = run_graph(real_s, mode='realtime', executor=executor)['simulator']
@@ -460,7 +460,10 @@ def rows(quick: bool = False, executor: str | None = None, graph_only: bool = Fa
         return ' / '.join(f'{d.get(f"{prefix}_{k}", nan):.0f}' for k in ('p50', 'p99', 'max')) + ' µs'
     table = [
         ('node graph, 4 processes, lockstep 1 ms', f'{lock.get("real_time_factor", nan):.2f}× real time',
-         f'{seconds:g} s of sim time; {int(lock.get("timeouts", 0))} timeouts'),
+         f'{seconds:g} s of sim time; {int(lock.get("timeouts", 0))} timeouts'
+         + (f'; median of {len(runs["lockstep"])} runs taking turns with pipelined: '
+            + ', '.join(f'{r["simulator"].get("real_time_factor", nan):.2f}×' for r in runs['lockstep'])
+            if len(runs['lockstep']) > 1 else '')),
         pipelined_row,
         ('loop latency p50 / p99 / max, lockstep (tips out → torque back)', latency(lock),
          'measured in the simulator: 3 DDS hops + estimator + controller'),
