@@ -167,15 +167,26 @@ def test_crashed_node_is_restarted_and_the_grasp_recovers(victim, tmp_path):
     ends, ok = on_target(t / cv.NS, err, free, excursion)
     assert ok[ends < KILL_AT].all()                # on target before the crash
     if victim in IN_THE_LOOP:
-        # the crash, read off the victim's own output: its stamps jump over the outage from the
-        # last instant of the killed process (the bag may miss the restarted one's first messages:
-        # the recorder discovers the new process after the controller may have)
+        # the crash, read off the victim's own output: its stamps jump over the outage (the bag may
+        # miss the restarted one's first messages: the recorder discovers the new process after
+        # the controller may have) ...
         out = [_stamp(m) for _, m in data['/' + OUTPUT[victim]]]
-        killed_ns = next(a for a, b in zip(out, out[1:]) if b - a > GAP and a >= (KILL_AT - 0.05) * cv.NS)
+        seen_ns = next(a for a, b in zip(out, out[1:]) if b - a > GAP and a >= (KILL_AT - 0.05) * cv.NS)
+        # ... from the killed process's last output in the bag. The bag may lack its very last
+        # outputs (a SIGKILLed writer cannot resend what the recorder missed), but each one the
+        # loop got shows as a command of its stamp, one per period (the controller stamps its
+        # answer to an estimate with the estimate's stamp): the crash is where the commands stop
+        # going on period by period from there
+        answered = {s for s, _ in cmds}
+        killed_ns = seen_ns
+        while killed_ns + MS in answered:
+            killed_ns += MS
+        assert killed_ns - seen_ns < GAP, (seen_ns, killed_ns)    # (the victim's last few at most)
         # the loop is whole again at the first torque after that: every command is stamped with
         # the instant it answers, so one the dead victim could not have served shows as no gap
-        back_ns = next(s for s, _ in cmds if s > killed_ns)
-        assert back_ns - killed_ns > GAP, (killed_ns, back_ns)       # nothing answered meanwhile
+        back_ns = next((s for s in sorted(answered) if s > killed_ns), None)
+        # nothing answered meanwhile
+        assert back_ns is not None and back_ns - killed_ns > GAP, (killed_ns, back_ns)
         assert timeouts >= 1 and safe > 0          # held once, then zero torque until it was back
         rec = recovery_time(t / cv.NS, err, free, excursion, since=back_ns / cv.NS)
         outage_s = (back_ns - killed_ns) / cv.NS
