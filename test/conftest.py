@@ -1,19 +1,66 @@
 """Shared test set-up: DDS stays on loopback, each test session gets its own domain, the compiled
 kernels are in numba's cache before any test starts, and the fault tests' outcome records go to a
-directory of the session's own."""
+directory of the session's own; ``run_main`` runs a command line in the test's process."""
+import fcntl
 import os
 from pathlib import Path
 import random
+import subprocess
 
 import pytest
 
 from faults_common import RECORDS_ENV
 
-# Must be set before any rclpy.init(); subprocesses started by tests inherit them.
+#: the domain IDs a session picks from: those whose DDS ports stay clear of Linux's ephemeral port
+#: range (32768-60999) with the default port mapping, 0-101 and 215-232 (0 left to users)
+DOMAIN_IDS = (*range(1, 102), *range(215, 233))
+#: one lock file per domain ID, held (flock) by the session using it until its process exits
+DOMAIN_LOCK = '/tmp/soft_gripper_sdre_ros_domain_{}.lock'
+
+
+def _lock_domain(domain_id: int) -> int | None:
+    """The descriptor of the lock file of ``domain_id``, exclusively locked, or None if another
+    session holds it (or it cannot be opened). The lock goes with the descriptor: released at this
+    process's exit, however it ends, and not passed to subprocesses (Python's descriptors are not
+    inherited)."""
+    try:         # (read-only: flock needs no write access, so another user's file serves too)
+        fd = os.open(DOMAIN_LOCK.format(domain_id), os.O_RDONLY | os.O_CREAT, 0o644)
+    except OSError:
+        return None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        os.close(fd)
+        return None
+    return fd
+
+
+def claim_domain_id() -> tuple[int, int]:
+    """A domain ID no other test session on this machine uses, and its held lock: the IDs of
+    :data:`DOMAIN_IDS` in random order, the first whose lock is free.
+
+    Raises:
+        RuntimeError: every one is taken.
+    """
+    ids = list(DOMAIN_IDS)
+    random.SystemRandom().shuffle(ids)
+    for domain_id in ids:
+        lock = _lock_domain(domain_id)
+        if lock is not None:
+            return domain_id, lock
+    raise RuntimeError(f'every ROS domain ID a test session may use is taken (all {len(ids)} locks '
+                       f'{DOMAIN_LOCK.format("*")} are held); set ROS_DOMAIN_ID to choose one')
+
+
+# Must be set before any rclpy.init(); subprocesses started by tests inherit them. A
+# ROS_DOMAIN_ID set by the caller is used as it is (and locked when free, so no other session
+# picks it meanwhile).
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
-os.environ.setdefault(
-    'ROS_DOMAIN_ID', str(random.Random(os.getpid() ^ int.from_bytes(os.urandom(4), 'little')).randint(1, 101))
-)
+if os.environ.get('ROS_DOMAIN_ID', '').isdigit():
+    _DOMAIN_LOCK = _lock_domain(int(os.environ['ROS_DOMAIN_ID']))
+else:
+    _domain_id, _DOMAIN_LOCK = claim_domain_id()
+    os.environ['ROS_DOMAIN_ID'] = str(_domain_id)
 os.environ.setdefault('OMP_NUM_THREADS', '1')
 
 
@@ -36,3 +83,22 @@ def fault_records_dir(tmp_path_factory):
         directory = tmp_path_factory.mktemp('faults')
         patch.setenv(RECORDS_ENV, str(directory))
         yield directory
+
+
+@pytest.fixture
+def run_main(capsys):
+    """Run a command line's ``main(argv)`` in the test's own process, for the checks of its
+    arguments: no interpreter to start and nothing to import again for each case (each test file
+    still runs its tool once as ``python -m``). Returns a CompletedProcess with the exit status,
+    stdout and stderr ``python -m`` would give; an exception escaping ``main`` (a traceback under
+    ``python -m``) fails the test."""
+    def run(main, *argv) -> subprocess.CompletedProcess:
+        args = [str(a) for a in argv]
+        capsys.readouterr()
+        try:
+            code = main(args)
+        except SystemExit as exc:
+            code = exc.code
+        out, err = capsys.readouterr()
+        return subprocess.CompletedProcess(args, code, out, err)
+    return run

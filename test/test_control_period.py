@@ -19,7 +19,7 @@ pytestmark = pytest.mark.ros
 ], ids=['5ms', '10ms'])
 def test_the_graph_runs_and_tracks_at_a_longer_period(tmp_path, period_ms, rmse_mm, max_mm):
     period = period_ms * 1e-3
-    result = run_demo(tmp_path, duration=6.0, timeout=150, progress=False, period=period)
+    result = run_demo(tmp_path, duration=6.0, timeout=150, progress=False, period=period, render=False)
     assert all(code == 0 for code in result['run']['exit_codes'].values()), result['run']
     assert result['run']['control_period_s'] == period
     steps = round(6.0 / period)

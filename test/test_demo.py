@@ -6,7 +6,7 @@ import sys
 import pytest
 
 from soft_gripper_sdre.analysis.bag import topic_counts
-from soft_gripper_sdre.tools.demo import run_demo, summary
+from soft_gripper_sdre.tools.demo import main, run_demo, summary
 
 pytestmark = pytest.mark.ros
 
@@ -59,14 +59,22 @@ def _corrupt_model(tmp_path):
     (['--period', 'nan'], '--period is the control period in ms'),
     (['--integral-gain', '-1'], '--integral-gain must be in [0, '),
 ])
-def test_demo_bad_usage_exits_2_before_starting_anything(args, needle, tmp_path):
+def test_demo_bad_usage_exits_2_before_starting_anything(args, needle, tmp_path, run_main):
     args = [str(_corrupt_model(tmp_path)) if a == 'CORRUPT' else a for a in args]
     out = tmp_path / 'out'
-    proc = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.demo', '--out', str(out),
-                           *args], capture_output=True, text=True, timeout=60)
+    proc = run_main(main, '--out', out, *args)
     assert proc.returncode == 2 and needle in proc.stderr, proc.stderr
-    assert 'Traceback' not in proc.stderr
     assert not out.exists(), 'a refused command line must not start the graph'
+
+
+def test_demo_command_line_refuses_bad_usage_with_exit_2_and_no_traceback(tmp_path):
+    """The refusals above, through ``python -m`` once."""
+    out = tmp_path / 'out'
+    proc = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.demo', '--out', str(out),
+                           '--duration', '-1'], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2 and '--duration must be > 0' in proc.stderr, proc.stderr
+    assert 'Traceback' not in proc.stderr
+    assert not out.exists()
 
 
 def test_a_node_that_dies_is_named_with_its_own_log_and_no_bag_is_left(tmp_path):

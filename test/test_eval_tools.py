@@ -41,6 +41,7 @@ def test_input_matrix_tool_reports_both_shipped_models(tmp_path):
     assert len(result['default']['workspace']['true_deg']) == 9
 
 
-def test_input_matrix_tool_refuses_a_missing_model(tmp_path):
-    proc = run_tool('input_matrix', '--models', str(tmp_path / 'none.pt'))
+def test_input_matrix_tool_refuses_a_missing_model(tmp_path, run_main):
+    from soft_gripper_sdre.tools.input_matrix import main
+    proc = run_main(main, '--models', tmp_path / 'none.pt')      # (python -m: the test above)
     assert proc.returncode == 2 and 'none.pt' in proc.stderr

@@ -150,7 +150,7 @@ def test_the_traced_laws_are_the_highlighted_the_papers_and_the_best_rival():
 
 @pytest.mark.slow
 @pytest.mark.timeout(100)
-def test_command_line_writes_the_report(tmp_path):
+def test_command_line_writes_the_report(tmp_path, run_main):
     import subprocess
     import sys
     out = tmp_path / 'ev'
@@ -164,12 +164,11 @@ def test_command_line_writes_the_report(tmp_path):
     runs = json.loads((out / 'evaluate.json').read_text())['runs']
     assert {r['law'] for r in runs} == {'lqr', 'pd'} and all(r['check_fail_pct'] == 0.0 for r in runs)
     assert all(np.isfinite(r['compute_us']) and r['compute_us'] > 0 for r in runs)   # the loop timed the law
-    bad = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.evaluate', '--laws', 'mpc'],
-                         capture_output=True, text=True, timeout=120)
+    # the refusals, in this process (the run above went through python -m)
+    bad = run_main(ev.main, '--laws', 'mpc')
     assert bad.returncode == 2 and 'mpc' in bad.stderr
     for args, why in ((['--duration', '0'], '--duration must be > 0'),
                       (['--model', str(tmp_path / 'missing.pt')], '--model:')):
-        bad = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.evaluate', '--out',
-                              str(tmp_path / 'bad'), *args], capture_output=True, text=True, timeout=120)
-        assert bad.returncode == 2 and why in bad.stderr and 'Traceback' not in bad.stderr, bad.stderr
+        bad = run_main(ev.main, '--out', tmp_path / 'bad', *args)
+        assert bad.returncode == 2 and why in bad.stderr, bad.stderr
         assert not (tmp_path / 'bad').exists()

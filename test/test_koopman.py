@@ -73,14 +73,14 @@ def test_bad_model_files_and_settings_are_refused_with_the_reason(tmp_path):
         make_law('sdre', None, WEIGHTS, U_MAX, koopman_path='x.npz')
 
 
-def test_tool_refuses_bad_arguments_before_reading_anything(tmp_path):
+def test_tool_refuses_bad_arguments_before_reading_anything(tmp_path, run_main):
     proc = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.koopman', '--data', str(tmp_path),
                            '--out', str(tmp_path / 'o'), '--degree', '9'], capture_output=True, text=True,
                           timeout=50)
     assert proc.returncode == 2 and 'degree' in proc.stderr and 'Traceback' not in proc.stderr
-    proc = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.koopman', '--data', str(tmp_path),
-                           '--out', str(tmp_path / 'o')], capture_output=True, text=True, timeout=50)
-    assert proc.returncode == 2 and 'u1.npz' in proc.stderr and 'Traceback' not in proc.stderr
+    from soft_gripper_sdre.tools.koopman import main
+    proc = run_main(main, '--data', tmp_path, '--out', tmp_path / 'o')        # (in this process)
+    assert proc.returncode == 2 and 'u1.npz' in proc.stderr
 
 
 def model_trajectory(law: KoopmanMpcLaw, z0: np.ndarray, ud: np.ndarray) -> np.ndarray:

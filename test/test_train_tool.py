@@ -1,4 +1,5 @@
-"""The train tool, run as a real subprocess on data collected from the real simulator."""
+"""The train tool on data collected from the real simulator: its refusals of bad arguments in
+this process (``run_main``), a tiny training run as a real subprocess."""
 import json
 import math
 import shutil
@@ -11,7 +12,7 @@ import pytest
 from soft_gripper_sdre.learning.model import SDCModel
 from soft_gripper_sdre.sim.hand import SimConfig
 from soft_gripper_sdre.tools.collect import collect_signal, write_record
-from soft_gripper_sdre.tools.train import DATA_VARIANTS, VALIDATION
+from soft_gripper_sdre.tools.train import DATA_VARIANTS, VALIDATION, main
 
 SIGNALS = DATA_VARIANTS['identifying'] + (VALIDATION,)
 PNG_MAGIC = b'\x89PNG\r\n\x1a\n'
@@ -41,36 +42,36 @@ def finite(value):
     return not isinstance(value, float) or math.isfinite(value)
 
 
-def test_missing_data_dir_is_a_usage_error(tmp_path):
+def test_missing_data_dir_is_a_usage_error(tmp_path, run_main):
     """A data directory that does not exist: exit 2, the message names the file, nothing written."""
     missing = tmp_path / 'no_such_dir'
-    proc = run_train('--data', str(missing), '--out', str(tmp_path / 'out'))
+    proc = run_main(main, '--data', str(missing), '--out', str(tmp_path / 'out'))
     assert proc.returncode == 2, proc.stderr
     assert 'error:' in proc.stderr and str(missing / 'u1.npz') in proc.stderr
     assert 'no such dataset file' in proc.stderr and 'Traceback' not in proc.stderr
     assert not (tmp_path / 'out').exists()
 
 
-def test_missing_signal_file_is_a_usage_error(tmp_path, data_dir):
+def test_missing_signal_file_is_a_usage_error(tmp_path, data_dir, run_main):
     """A data directory lacking one signal of the variant: exit 2 naming that file."""
     partial = tmp_path / 'partial'
     shutil.copytree(data_dir, partial)
     (partial / 'x2.npz').unlink()
-    proc = run_train('--data', str(partial), '--out', str(tmp_path / 'out'))
+    proc = run_main(main, '--data', str(partial), '--out', str(tmp_path / 'out'))
     assert proc.returncode == 2, proc.stderr
     assert 'x2.npz: no such dataset file' in proc.stderr and 'Traceback' not in proc.stderr
 
 
-def test_unknown_preset_is_a_usage_error(tmp_path, data_dir):
+def test_unknown_preset_is_a_usage_error(tmp_path, data_dir, run_main):
     """--preset outside the known ones: exit 2 listing the choices."""
-    proc = run_train('--data', str(data_dir), '--out', str(tmp_path / 'out'), '--preset', 'turbo')
+    proc = run_main(main, '--data', str(data_dir), '--out', str(tmp_path / 'out'), '--preset', 'turbo')
     assert proc.returncode == 2
     assert "invalid choice: 'turbo'" in proc.stderr and 'default' in proc.stderr and 'paper' in proc.stderr
     assert not (tmp_path / 'out').exists()
 
 
-def test_zero_epochs_is_a_usage_error(tmp_path, data_dir):
-    proc = run_train('--data', str(data_dir), '--out', str(tmp_path / 'out'), '--epochs', '0')
+def test_zero_epochs_is_a_usage_error(tmp_path, data_dir, run_main):
+    proc = run_main(main, '--data', str(data_dir), '--out', str(tmp_path / 'out'), '--epochs', '0')
     assert proc.returncode == 2
     assert '--epochs must be >= 1' in proc.stderr
 
@@ -78,8 +79,8 @@ def test_zero_epochs_is_a_usage_error(tmp_path, data_dir):
 @pytest.mark.parametrize('args, why', [(('--sv-penalty', '-1'), 'sv_penalty must be finite and >= 0'),
                                        (('--sv-penalty', 'nan'), 'sv_penalty must be finite and >= 0'),
                                        (('--sv-penalty', '1', '--sv-floor', '0'), 'sv_floor must be finite and > 0')])
-def test_bad_singular_value_penalty_is_a_usage_error(tmp_path, data_dir, args, why):
-    proc = run_train('--data', str(data_dir), '--out', str(tmp_path / 'out'), *args)
+def test_bad_singular_value_penalty_is_a_usage_error(tmp_path, data_dir, args, why, run_main):
+    proc = run_main(main, '--data', str(data_dir), '--out', str(tmp_path / 'out'), *args)
     assert proc.returncode == 2 and why in proc.stderr and 'Traceback' not in proc.stderr
     assert not (tmp_path / 'out').exists()
 
@@ -87,8 +88,8 @@ def test_bad_singular_value_penalty_is_a_usage_error(tmp_path, data_dir, args, w
 @pytest.mark.parametrize('args, why', [(('--patience', '0'), 'patience must be an int >= 1'),
                                        (('--jitter', 'nan'), '--jitter must be in [0, 1e-3)'),
                                        (('--jitter', '0.01'), '--jitter must be in [0, 1e-3)')])
-def test_bad_patience_or_jitter_is_a_usage_error(tmp_path, data_dir, args, why):
-    proc = run_train('--data', str(data_dir), '--out', str(tmp_path / 'out'), *args)
+def test_bad_patience_or_jitter_is_a_usage_error(tmp_path, data_dir, args, why, run_main):
+    proc = run_main(main, '--data', str(data_dir), '--out', str(tmp_path / 'out'), *args)
     assert proc.returncode == 2 and why in proc.stderr and 'Traceback' not in proc.stderr
     assert not (tmp_path / 'out').exists()
 

@@ -67,10 +67,11 @@ def run_demo(out: Path, duration: float, model: Path | None = None, noise: float
              seed: int | None = None, domain_id: int | None = None, timeout: float = 600.0,
              progress: bool = True, law: str | None = None, fingers: dict[str, int] | None = None,
              period: float | None = None, integral_gain: float | None = None,
-             mode: str | None = None) -> dict:
+             mode: str | None = None, render: bool = True) -> dict:
     """Run the graph, write bag/figures/metrics under ``out``; returns the report (plus run facts).
     ``period`` [s] is the control period of every node of the loop (None: the config files');
-    ``mode`` the simulator's stepping (None: its config file's).
+    ``mode`` the simulator's stepping (None: its config file's); ``render``: also draw the hand
+    (Figs. 1 and 4, the animation) beside the tracking figures.
 
     Raises:
         RuntimeError: a node failed or the run did not finish within ``timeout`` (logs are kept).
@@ -150,7 +151,7 @@ def run_demo(out: Path, duration: float, model: Path | None = None, noise: float
     t_report = time.monotonic()
     if progress:
         print('reading the bag and drawing the figures ...', file=sys.stderr, flush=True)
-    result = report(bag, out, torque_limit=_controller_limit(), render=True)
+    result = report(bag, out, torque_limit=_controller_limit(), render=render)
     result['controller'] = controller_stats(bag, len(result['fingers']))
     sim_diag = last_diagnostics(bag, 'simulator')
     stepping_rtf = sim_diag.get('real_time_factor')
