@@ -47,10 +47,12 @@ def test_an_existing_output_is_never_overwritten(tmp_path):
 def test_the_recipe_runs_end_to_end_on_the_tendon_finger(tmp_path):
     """Identify over DDS from a best-effort, wall-stamped 200 Hz driver, train, and deploy or
     say why not: every bag holds its settle phase and the measured noise, the level search chose
-    an amplitude, the verdict is recorded, and a deployed law never saturates at rest."""
+    an amplitude, the verdict is recorded, and a deployed law never saturates at rest. Both
+    training stages run, shortened (the label stage has converged by about 40 epochs; each
+    simulation-stage epoch costs seconds)."""
     out = tmp_path / 'tendon3'
-    r = _tool('--plant', 'tendon3', '--out', str(out), '--laws', 'sdre_ff', '--epochs', '100',
-              timeout=1400)
+    r = _tool('--plant', 'tendon3', '--out', str(out), '--laws', 'sdre_ff', '--epochs', '40',
+              '--rollout-epochs', '10', timeout=1400)
     assert r.returncode in (0, 1), r.stderr[-3000:]
     metrics = json.loads((out / 'metrics.json').read_text())
     assert 0 < metrics['identification']['amplitude'] < 1
@@ -61,8 +63,11 @@ def test_the_recipe_runs_end_to_end_on_the_tendon_finger(tmp_path):
         rec = read_recording(meta.parent)
         assert rec.finger_names == ('index', 'thumb')
         for finger in range(2):
+            # the excitation node answers at least settle_samples (100) tips with zero torque
+            # before the first non-zero one, however late the driver's ticks come; the recorder
+            # hears the same best-effort tips (a few may be lost)
             _, sigma, n = settle_noise(rec, finger)
-            assert n >= 50 and 3e-5 < sigma < 7e-5           # the driver's 0.05 mm
+            assert n >= 90 and 3e-5 < sigma < 7e-5           # the driver's 0.05 mm
     fitness = metrics['training']['fitness']
     if r.returncode == 1:                                    # the recipe stops and says why
         assert not (out / 'model' / 'params.yaml').exists()
