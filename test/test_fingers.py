@@ -1,9 +1,7 @@
 """Any number of named fingers through the graph, other publishers' message shapes on the fast
 CDR path, and the controller's Float64MultiArray output in ros2_control's layout (real rclpy,
 real DDS, real processes)."""
-import os
-import subprocess
-import sys
+import importlib
 
 import numpy as np
 import pytest
@@ -12,9 +10,10 @@ from rclpy.serialization import serialize_message
 from std_msgs.msg import Float64MultiArray
 
 from node_harness import MS, commands, make_controller, send_estimate
-from rosutil import Probe, ros_context, spin_until
+from rosutil import Probe, overrides, ros_context, spin_until
 from soft_gripper_sdre.learning.model import SDCModel
 from soft_gripper_sdre.nodes import cdr, conversions as cv
+from soft_gripper_sdre.nodes.params import ParameterError
 
 NAMES = ('left', 'right', 'thumb')
 #: a forward_command_controller's topic, and its joints (as the torques that drive them)
@@ -148,25 +147,24 @@ def test_float64_multi_array_holds_the_joint_state_efforts_in_the_controllers_jo
         assert list(controller_like.received[EFFORT_TOPIC][-1].data) in [list(a.data) for a in arrays]
 
 
-def _run_node(node, *args):
-    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
-    return subprocess.run([sys.executable, '-m', f'soft_gripper_sdre.nodes.{node}', '--ros-args', *args],
-                          env=env, capture_output=True, text=True, timeout=120)
-
-
 @pytest.mark.ros
-@pytest.mark.parametrize('node, args, needle', [
-    ('controller', ['-p', 'finger_names:=[left,right]', '-p', f'effort_topic:={EFFORT_TOPIC}'],
+@pytest.mark.parametrize('node, params, needle', [
+    ('controller', dict(finger_names=['left', 'right'], effort_topic=EFFORT_TOPIC),
      "'finger_0/ax0' is not a torque of these fingers (the torques are left/ax0"),
-    ('controller', ['-p', 'finger_names:=[left,left]'], 'names must be distinct'),
-    ('trajectory', ['-p', 'finger_names:=[left,right]'], "grasp_fingers': [0, 2] are not all indices"),
-    ('estimator', ['-p', 'finger_names:=[a,b,c,d,e]'], 'needs 1 to 4 names'),
-    ('simulator', ['-p', 'finger_names:=[left,right]'], "hand_fingers': [0, 1, 2, 3] has 4 entries"),
+    ('controller', dict(finger_names=['left', 'left']), 'names must be distinct'),
+    ('trajectory', dict(finger_names=['left', 'right']), "grasp_fingers': [0, 2] are not all indices"),
+    ('estimator', dict(finger_names=['a', 'b', 'c', 'd', 'e']), 'needs 1 to 4 names'),
+    ('simulator', dict(finger_names=['left', 'right']), "hand_fingers': [0, 1, 2, 3] has 4 entries"),
 ])
-def test_bad_finger_parameters_exit_2_naming_the_problem(node, args, needle):
-    out = _run_node(node, *args)
-    assert out.returncode == 2, out.stderr
-    assert needle in out.stderr and 'Traceback' not in out.stderr
+def test_bad_finger_parameters_stop_the_node_naming_the_problem(node, params, needle):
+    """A ParameterError, with which the node's process exits with status 2 naming it (that path:
+    test_node_cli.py)."""
+    module = importlib.import_module(f'soft_gripper_sdre.nodes.{node}')
+    node_class = getattr(module, f'{node.capitalize()}Node')
+    with ros_context() as (ctx, _executor):
+        with pytest.raises(ParameterError) as info:
+            node_class(context=ctx, parameter_overrides=overrides(**params))
+    assert needle in str(info.value)
 
 
 # -- a two-finger graph, end to end over DDS -----------------------------------------------------

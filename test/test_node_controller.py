@@ -1,17 +1,15 @@
 """The controller node over real DDS (loopback), launch-free: own Context, executor, test node."""
-import subprocess
-import sys
-
 import numpy as np
 import pytest
 
 from node_harness import MS, TORQUE_LIMIT, commands, estimate, horizon, make_controller as make, send_estimate
-from rosutil import ros_context, spin_until
+from rosutil import overrides, ros_context, spin_until
 from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
 from soft_gripper_sdre.control.laws import make_law
 from soft_gripper_sdre.learning.model import SDCModel
 from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.controller import ControllerNode
+from soft_gripper_sdre.nodes.params import ParameterError
 
 pytestmark = pytest.mark.ros
 
@@ -168,26 +166,28 @@ def test_runtime_parameter_changes_are_refused_with_the_reason_and_the_old_value
         assert node.gate.watchdog == 2.0
 
 
-@pytest.mark.parametrize('args, needle', [
-    (['-p', 'model_path:=/nonexistent/model.pt'], 'model_path'),
-    (['-p', 'r:=0.0'], "'r'"),
-    (['-p', 'solver:=magic'], 'solver'),
+@pytest.mark.parametrize('params, needle', [
+    (dict(model_path='/nonexistent/model.pt'), 'model_path'),
+    (dict(r=0.0), "'r'"),
+    (dict(solver='magic'), 'solver'),
 ])
-def test_bad_model_or_parameters_end_the_node_at_startup(args, needle, tmp_path):
-    proc = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.nodes.controller', '--ros-args', *args],
-                          capture_output=True, text=True, timeout=60)
-    assert proc.returncode == 2, proc.stderr
-    assert needle in proc.stderr + proc.stdout
+def test_bad_model_or_parameters_end_the_node_at_startup(params, needle):
+    """A ParameterError, with which the node's process exits with status 2 naming it (that path:
+    test_node_cli.py)."""
+    with ros_context() as (ctx, _executor):
+        with pytest.raises(ParameterError) as info:
+            ControllerNode(context=ctx, parameter_overrides=overrides(**params))
+    assert needle in str(info.value)
 
 
 def test_truncated_model_file_is_refused(tmp_path):
     from soft_gripper_sdre.learning.model import DEFAULT_MODEL
     bad = tmp_path / 'half.pt'
     bad.write_bytes(DEFAULT_MODEL.read_bytes()[:2000])
-    proc = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.nodes.controller', '--ros-args',
-                           '-p', f'model_path:={bad}'], capture_output=True, text=True, timeout=60)
-    assert proc.returncode == 2
-    assert 'truncated' in proc.stderr + proc.stdout
+    with ros_context() as (ctx, _executor):
+        with pytest.raises(ParameterError) as info:
+            ControllerNode(context=ctx, parameter_overrides=overrides(model_path=str(bad)))
+    assert 'truncated' in str(info.value)
 
 
 def test_time_jumping_back_resets_instead_of_rejecting(model):

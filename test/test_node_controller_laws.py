@@ -5,9 +5,6 @@ integral action.
 That every graph law runs on the node and gives the offline law's torques is
 test_node_controller.py's test_torques_match_the_offline_law_and_close_the_fingers.
 """
-import subprocess
-import sys
-
 import numpy as np
 import pytest
 
@@ -17,20 +14,23 @@ from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
 from soft_gripper_sdre.control.laws import DEFAULT_INTEGRAL, ComputedTorqueLaw, make_law
 from soft_gripper_sdre.learning.model import SDCModel
 from soft_gripper_sdre.nodes import conversions as cv
+from soft_gripper_sdre.nodes.controller import ControllerNode
+from soft_gripper_sdre.nodes.params import ParameterError
 
 pytestmark = pytest.mark.ros
 
 
-@pytest.mark.parametrize('args, needle', [
-    (['-p', 'law:=oracle'], 'law'),
-    (['-p', 'law:=pd', '-p', 'state_weights:=true'], 'state-dependent weights'),
-    (['-p', 'integral_gain:=-1.0'], 'integral_gain'),
+@pytest.mark.parametrize('params, needle', [
+    (dict(law='oracle'), 'law'),
+    (dict(law='pd', state_weights=True), 'state-dependent weights'),
+    (dict(integral_gain=-1.0), 'integral_gain'),
 ])
-def test_oracle_or_weights_on_a_baseline_end_the_node_at_startup(args, needle):
-    proc = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.nodes.controller', '--ros-args', *args],
-                          capture_output=True, text=True, timeout=60)
-    assert proc.returncode == 2, proc.stderr
-    assert needle in proc.stderr + proc.stdout
+def test_oracle_or_weights_on_a_baseline_end_the_node_at_startup(params, needle):
+    """A ParameterError: the node's process exits with status 2 naming it (test_node_cli.py)."""
+    with ros_context() as (ctx, _executor):
+        with pytest.raises(ParameterError) as info:
+            ControllerNode(context=ctx, parameter_overrides=overrides(**params))
+    assert needle in str(info.value)
 
 
 def test_feedforward_law_gets_the_reference_acceleration_from_the_horizon():
@@ -62,7 +62,6 @@ def test_feedforward_law_gets_the_reference_acceleration_from_the_horizon():
 
 
 def test_integral_gain_switches_the_default_laws_integral_action_and_other_laws_ignore_it():
-    from soft_gripper_sdre.nodes.controller import ControllerNode
     with ros_context() as (ctx, executor):
         def node(**params):
             n = ControllerNode(context=ctx, parameter_overrides=overrides(**params))
