@@ -211,10 +211,16 @@ def _windows(runs: list[Run], seconds: float, overlap: int) -> list[tuple[float,
     return [(dt, f32(x0), f32(u), f32(p)) for dt, (x0, u, p) in sorted(groups.items())]
 
 
+#: a simulated state is held within this many data standard deviations, so a diverging run
+#: stays finite (its window then counts at most :data:`SIM_ERROR_CAP`, and passes no gradient)
+SIM_BOUND = 100.0
+
+
 def _simulate(net: SDCNet, s: _Scales, x0: torch.Tensor, u: torch.Tensor, dt: float) -> torch.Tensor:
     """Positions (B, H, 2) of the model's RK4 runs from x0 (B, 4), inputs u (B, H, 2) held."""
     def f(x, uk):
         return torch.cat([x[:, 2:], net.accel(x / s.x, uk / s.u) * s.acc], dim=1)
+    bound = SIM_BOUND * s.x
     x, out = x0, []
     for k in range(u.shape[1]):
         uk = u[:, k]
@@ -222,14 +228,21 @@ def _simulate(net: SDCNet, s: _Scales, x0: torch.Tensor, u: torch.Tensor, dt: fl
         k2 = f(x + 0.5 * dt * k1, uk)
         k3 = f(x + 0.5 * dt * k2, uk)
         k4 = f(x + dt * k3, uk)
-        x = x + dt / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+        x = torch.maximum(torch.minimum(x + dt / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4), bound), -bound)
         out.append(x[:, :2])
     return torch.stack(out, dim=1)
 
 
+def _window_errors(net: SDCNet, s: _Scales, dt: float, x0, u, p) -> torch.Tensor:
+    """Each window's L_sim (module doc), positions in units of their scale, capped at
+    :data:`SIM_ERROR_CAP`."""
+    err = (((_simulate(net, s, x0, u, dt) - p) / s.x[:2]) ** 2).sum(dim=-1).mean(dim=1)
+    return err.clamp(max=SIM_ERROR_CAP)
+
+
 def _sim_error(net: SDCNet, s: _Scales, dt: float, x0, u, p) -> torch.Tensor:
-    """L_sim of windows (module doc), positions in units of their scale."""
-    return (((_simulate(net, s, x0, u, dt) - p) / s.x[:2]) ** 2).sum(dim=-1).mean()
+    """L_sim of a batch of windows."""
+    return _window_errors(net, s, dt, x0, u, p).mean()
 
 
 #: a validation window's simulation error counts at most this (scaled units: a run off by ten
@@ -243,9 +256,9 @@ def _val_sim_error(net: SDCNet, s: _Scales, windows) -> float:
     total, count = 0.0, 0
     with torch.no_grad():
         for dt, x0, u, p in windows:
-            err = (((_simulate(net, s, x0, u, dt) - p) / s.x[:2]) ** 2).sum(dim=-1).mean(dim=1)
+            err = _window_errors(net, s, dt, x0, u, p)
             err = torch.where(torch.isfinite(err), err, torch.full_like(err, SIM_ERROR_CAP))
-            total += float(err.clamp(max=SIM_ERROR_CAP).sum())
+            total += float(err.sum())
             count += err.numel()
     return total / count
 
@@ -264,13 +277,16 @@ def _rest_penalty(net: SDCNet, s: _Scales, settings: TrainSettings) -> torch.Ten
 
 
 def _step(opt: torch.optim.Optimizer, loss: torch.Tensor, net: SDCNet, clip: float | None = None) -> bool:
-    """One optimiser step; a batch whose loss is not finite (a window diverged) is skipped."""
+    """One optimiser step; a batch whose loss or gradient is not finite is skipped."""
     if not torch.isfinite(loss):
         return False
     opt.zero_grad(set_to_none=True)
     loss.backward()
     if clip is not None:
-        torch.nn.utils.clip_grad_norm_(net.parameters(), clip)
+        norm = torch.nn.utils.clip_grad_norm_(net.parameters(), clip)
+        if not torch.isfinite(norm):
+            opt.zero_grad(set_to_none=True)
+            return False
     opt.step()
     return True
 
