@@ -25,6 +25,8 @@ def _tool(*args, timeout=60):
     (['--seed', '-1'], '--seed must be'),
     (['--epochs', '0'], '--epochs must be >= 1'),
     (['--domain-id', '500'], '--domain-id must be'),
+    (['--rollout-epochs', '-1'], '--rollout-epochs must be >= 0'),
+    (['--bags', '/nonexistent/bags'], 'has no train/ and val/ bag directories'),
 ])
 def test_bad_arguments_exit_2_before_anything_starts(tmp_path, args, message):
     out = tmp_path / 'out'

@@ -7,7 +7,7 @@ The gripper is the ``plant_driver`` node (two fingers of :mod:`soft_gripper_sdre
 served like a lab's driver: wall-clock loop, best-effort tips stamped with wall time, jitter,
 dropped messages, noise). Every step is what README "Use with your own gripper" tells a user
 to run, as separate processes over DDS, with the settings the tools produce and nothing tuned
-by hand:
+by hand (``--bags`` reuses an earlier run's recordings and starts at step 2):
 
 1. **identify** — recorder + excitation node, one bag per signal: u1 with ``level:=auto`` (the
    amplitude found by probing the finger to half of ``max_excursion``), then x1 x2 b1 b2 and the
@@ -72,6 +72,9 @@ def _parser() -> argparse.ArgumentParser:
                     help='laws deployed in turn (default: %(default)s)')
     ap.add_argument('--seed', type=int, default=0, help='the driver\'s noise seed (+1 per run)')
     ap.add_argument('--epochs', type=int, default=None, help='training epochs (default: the preset)')
+    ap.add_argument('--bags', type=Path, default=None,
+                    help='skip step 1: train on the bags an earlier run wrote (its OUT/bags, with '
+                         'train/ and val/)')
     ap.add_argument('--rollout-epochs', type=int, default=None,
                     help='simulation-stage epochs of training (default: the preset)')
     ap.add_argument('--domain-id', type=int, default=None, help='ROS_DOMAIN_ID (default: env or random)')
@@ -90,6 +93,8 @@ def argument_problem(a: argparse.Namespace) -> str | None:
         return f'--seed must be in [0, 2^31 - 64), got {a.seed}'
     if a.epochs is not None and a.epochs < 1:
         return f'--epochs must be >= 1, got {a.epochs}'
+    if a.bags is not None and not all((a.bags / d).is_dir() for d in ('train', 'val')):
+        return f'--bags {a.bags} has no train/ and val/ bag directories'
     if a.rollout_epochs is not None and a.rollout_epochs < 0:
         return f'--rollout-epochs must be >= 0, got {a.rollout_epochs}'
     if a.domain_id is not None and not 0 <= a.domain_id <= 232:
@@ -193,6 +198,21 @@ def score(bag: Path, travel: float, torque_limit: float) -> dict:
             'largest_torque_at_rest': float(rest.max()) if rest.size else 0.0}
 
 
+def identify(a: argparse.Namespace, env: dict, bags: Path) -> dict:
+    """Step 1 (module doc): the level search on u1, then one bag per signal at its amplitude."""
+    t0 = time.monotonic()
+    log = excite(a, env, bags / 'train' / TRAIN_SIGNALS[0], TRAIN_SIGNALS[:1], {'level': 'auto'}, a.seed)
+    found = re.search(r'; amplitude ([0-9.eE+-]+) for', log)
+    if found is None:
+        raise RuntimeError('the excitation node did not report the amplitude it chose')
+    amplitude = float(found.group(1))
+    for i, signal in enumerate(TRAIN_SIGNALS[1:] + ['u4']):
+        bag = bags / ('train' if signal != 'u4' else 'val') / signal
+        excite(a, env, bag, [signal], {'amplitude': amplitude}, a.seed + 1 + i)
+    print(f'identified at amplitude {amplitude:.4g} in {time.monotonic() - t0:.0f} s', flush=True)
+    return {'amplitude': amplitude, 'wall_s': round(time.monotonic() - t0, 1)}
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = _parser()
     a = ap.parse_args(argv)
@@ -202,23 +222,17 @@ def main(argv: list[str] | None = None) -> int:
     env = ros_env(a.domain_id)
     out = a.out
     metrics: dict = {'plant': a.plant, 'setup': SETUPS[a.plant].__dict__, 'fingers': FINGERS}
+    bags = a.bags or out / 'bags'
     try:
-        t0 = time.monotonic()
-        train_bags = out / 'bags' / 'train'
-        log = excite(a, env, train_bags / TRAIN_SIGNALS[0], TRAIN_SIGNALS[:1], {'level': 'auto'}, a.seed)
-        found = re.search(r'; amplitude ([0-9.eE+-]+) for', log)
-        if found is None:
-            raise RuntimeError('the excitation node did not report the amplitude it chose')
-        amplitude = float(found.group(1))
-        for i, signal in enumerate(TRAIN_SIGNALS[1:] + ['u4']):
-            bag = (train_bags / signal) if signal != 'u4' else out / 'bags' / 'val' / signal
-            excite(a, env, bag, [signal], {'amplitude': amplitude}, a.seed + 1 + i)
-        metrics['identification'] = {'amplitude': amplitude, 'wall_s': round(time.monotonic() - t0, 1)}
-        print(f'identified at amplitude {amplitude:.4g} in {time.monotonic() - t0:.0f} s', flush=True)
+        if a.bags is None:
+            metrics['identification'] = identify(a, env, bags)
+        else:
+            out.mkdir(parents=True)
+            metrics['identification'] = {'bags': str(a.bags)}
 
         t0 = time.monotonic()
-        cmd = [sys.executable, '-m', 'soft_gripper_sdre.tools.train', '--bag', str(out / 'bags' / 'train'),
-               '--val-bag', str(out / 'bags' / 'val'), '--out', str(out / 'model')]
+        cmd = [sys.executable, '-m', 'soft_gripper_sdre.tools.train', '--bag', str(bags / 'train'),
+               '--val-bag', str(bags / 'val'), '--out', str(out / 'model')]
         if a.epochs is not None:
             cmd += ['--epochs', str(a.epochs)]
         if a.rollout_epochs is not None:
