@@ -6,8 +6,9 @@ with the same rules, so a lockstep run of the graph reproduces it:
 1. the simulator measures the tips at t_k (:meth:`GripperSim.measure`); with a ``sensor_delay`` of
    d control periods the estimator gets the measurement of t_(k−d) instead (a FIFO of
    measurements, filled with the first one until d have been taken);
-2. the estimator's constant-velocity KF turns them into x̂_k (the first measurement initialises it
-   with zero velocity); the trajectory's rest pose is that first measurement;
+2. the estimator's constant-velocity KF turns them into x̂_k under the estimator node's rules
+   (:class:`~soft_gripper_sdre.control.tip_filter.TipFilter`, stamped t_k: the first measurement
+   initialises it with zero velocity); the trajectory's rest pose is that first measurement;
 3. the controller takes the reference at t_k (sampled for the whole run at once) and computes u_k
    from x̂_k;
 4. the simulator holds u_k over [t_k, t_k + Δt).
@@ -25,6 +26,7 @@ import numpy as np
 
 from soft_gripper_sdre.control.kf import ConstantVelocityKF
 from soft_gripper_sdre.control.laws import SdreLaw
+from soft_gripper_sdre.control.tip_filter import MAX_BRIDGE, NS, RESET_ON_JUMP, TipFilter
 from soft_gripper_sdre.control.tracking import DEFAULT_LOWPASS_HZ, Law, Weights
 from soft_gripper_sdre.analysis.metrics import TrackingMetrics, tracking_metrics
 from soft_gripper_sdre.sim.hand import GripperSim, SimConfig
@@ -94,6 +96,8 @@ def run_closed_loop(model, *, duration: float, sim_config: SimConfig | None = No
         n = sim.n_fingers
         kf = ConstantVelocityKF(dt, estimator.accel_psd, estimator.meas_std, n=n,
                                 process_noise=estimator.process_noise)
+        period_ns = int(round(dt * NS))
+        tips = TipFilter(kf, period_ns, int(round(RESET_ON_JUMP * NS)), int(round(MAX_BRIDGE * NS)))
         ctrl = controller if controller is not None else SdreLaw(
             model, weights, u_max, n_fingers=n, method=method, lowpass_hz=lowpass_hz, dt=dt)
         observe = getattr(ctrl, 'observe', None)
@@ -114,12 +118,12 @@ def run_closed_loop(model, *, duration: float, sim_config: SimConfig | None = No
             z = fifo[0]
             if traj is None:
                 fifo.extend([z] * delay_steps)  # before d measurements exist, the sensor repeats the first
-                kf.reset(z)
-                x_hat = kf.x.copy()
                 traj = GraspTrajectory(z, profile)
                 refs = traj.sample(np.arange(steps) * dt)     # the whole reference at once (t_k = k Δt)
-            else:
-                x_hat = kf.step(z)
+            x_hat = tips.on_tips(k * period_ns, z).estimate
+            if x_hat is None:
+                raise RuntimeError(f'the simulator measured tips the estimator refuses at '
+                                   f't = {k * dt:g} s: {z.tolist()}')
             truth = sim.truth()
             t_law = clock()
             if observe is not None:

@@ -2,10 +2,13 @@
 
 Subscribes ``tip_positions`` (keeping only the newest: after a busy moment it goes on from the
 present, predicting through what it skipped); publishes one ``state_estimate`` per accepted
-measurement, stamped with the measurement's stamp, and ``/diagnostics``. The rules are those of
-:func:`soft_gripper_sdre.analysis.closed_loop.run_closed_loop`: the first measurement (after start or a
-reset) initialises the filter at the measured positions with zero velocity and is published as
-is; every later one is one predict + update of :class:`~soft_gripper_sdre.control.kf.ConstantVelocityKF`.
+measurement, stamped with the measurement's stamp, and ``/diagnostics``. The rules are
+:class:`~soft_gripper_sdre.control.tip_filter.TipFilter`'s, which the in-process loop
+(:func:`soft_gripper_sdre.analysis.closed_loop.run_closed_loop`) shares: the first measurement
+(after start or a reset) initialises the filter at the measured positions with zero velocity and
+is published as is; every later one is one predict + update of
+:class:`~soft_gripper_sdre.control.kf.ConstantVelocityKF`. The node decodes the messages, feeds
+the filter, and publishes, logs and counts what it returns.
 
 **Stamps and rates.** The filter's Δt is the difference of the measurement stamps, whatever the
 source's rate and jitter: a mocap system at 120 Hz stamped with wall time is filtered as it comes.
@@ -44,6 +47,8 @@ from trajectory_msgs.msg import MultiDOFJointTrajectory
 
 from soft_gripper_sdre.control.compiled import warm_up
 from soft_gripper_sdre.control.kf import PROCESS_NOISE_MODELS, ConstantVelocityKF
+from soft_gripper_sdre.control.tip_filter import (MAX_BRIDGE, RESET_ON_JUMP, Change, Notice,
+                                                  Outcome, TipFilter)
 from soft_gripper_sdre.nodes import cdr, conversions as cv
 from soft_gripper_sdre.nodes.common import Diagnostics, run
 from soft_gripper_sdre.nodes.params import (Param, ParameterError, declare_all, finger_names_param,
@@ -62,19 +67,16 @@ PARAMS = (
           read_only=True),
     Param('process_noise', 'independent', "process-noise direction: one noise per axis, or the "
           "paper's D = [0 0 1 1]ᵀ", choices=PROCESS_NOISE_MODELS, read_only=True),
-    Param('max_bridge', 0.05, 'a gap in the stamps up to this long is predicted through quietly '
-          '(counted); a longer one is also reported as a dropout', 's', 1e-4, 1.0),
-    Param('reset_on_jump', 0.1, 'a stamp jump larger than this (either direction) resets the filter; '
-          'shorter gaps are predicted through, hence the bound', 's', 1e-3, 1.0),
+    Param('max_bridge', MAX_BRIDGE, 'a gap in the stamps up to this long is predicted through '
+          'quietly (counted); a longer one is also reported as a dropout', 's', 1e-4, 1.0),
+    Param('reset_on_jump', RESET_ON_JUMP, 'a stamp jump larger than this (either direction) resets '
+          'the filter; shorter gaps are predicted through, hence the bound', 's', 1e-3, 1.0),
     Param('tips_reliability', 'reliable', "reliability of the tip_positions subscription: 'reliable' "
           "(the simulator: lockstep loses no period) or 'best_effort', which also matches a driver "
           'that publishes with the sensor-data QoS', choices=('reliable', 'best_effort'),
           read_only=True),
 )
 
-#: a stamp step longer than this many nominal periods is a gap (±20 % jitter on each stamp gives
-#: steps of at most 1.4 periods; one lost message gives about 2)
-GAP_PERIODS = 1.5
 #: the counters every received message is counted under exactly one of
 MESSAGE_OUTCOMES = ('estimates', 'bad_message', 'duplicate', 'out_of_order')
 
@@ -94,19 +96,10 @@ class EstimatorNode(Node):
         except ValueError as exc:
             raise ParameterError(str(exc)) from None
         warm_up()       # compiled (or loaded from the cache) before any topic shows the node ready
-        self.period_ns = int(round(p['control_period'] * cv.NS))
-        self.gap_ns = int(GAP_PERIODS * self.period_ns)
-        self.jump_ns = int(round(p['reset_on_jump'] * cv.NS))
-        self.bridge_ns = int(round(p['max_bridge'] * cv.NS))
-        on_runtime_change(self, PARAMS, apply=self._apply)
-
         #: called with (stamp, estimate) for every estimate before it is published: a node of
         #: this process that takes the estimates without a DDS round trip (``controller
         #: --with-estimator``); the estimate is still published for everyone else
         self.listeners: list[Callable[[int, np.ndarray], None]] = []
-        self.last_ns: int | None = None          # stamp of the last accepted measurement
-        self._predict_only = np.zeros(self.n, dtype=bool)
-        self._steps_ns = [0, 0]                  # accepted stamp steps since the last status: count, sum
         # both messages travel as CDR bytes read / written at fixed offsets (nodes/cdr.py)
         self.cdr_tips = cdr.tips_codec(self.names)
         self.cdr_estimate = cdr.estimate_codec(self.names)
@@ -116,6 +109,9 @@ class EstimatorNode(Node):
         tips_qos.reliability = ReliabilityPolicy[p['tips_reliability'].upper()]
         self.sub = self.create_subscription(PoseArray, TIP_POSITIONS, self.on_tips, tips_qos, raw=True)
         self.diag = Diagnostics(self)
+        self.filter = TipFilter(self.kf, _ns(p['control_period']), _ns(p['reset_on_jump']),
+                                _ns(p['max_bridge']), counters=self.diag.counters)
+        on_runtime_change(self, PARAMS, apply=self._apply)
         cdr.watch(self.diag, self.cdr_tips)
         self.diag.values['process_noise'] = p['process_noise']
         self.diag.before_publish.append(self._stamp_stats)
@@ -123,16 +119,20 @@ class EstimatorNode(Node):
             f'{self.n} fingers ({", ".join(self.names)}), nominal period {1e3 * p["control_period"]:g} ms, q = {p["accel_psd"]:g} '
             f'(m/s²)²/Hz, σ = {1e3 * p["meas_std"]:g} mm, {p["process_noise"]} process noise')
 
+    @property
+    def jump_ns(self) -> int:
+        """``reset_on_jump`` [ns]: a larger stamp jump resets the filter."""
+        return self.filter.reset_jump_ns
+
     def _apply(self, new: dict) -> None:
         self.p.update(new)
-        self.jump_ns = int(round(self.p['reset_on_jump'] * cv.NS))
-        self.bridge_ns = int(round(self.p['max_bridge'] * cv.NS))
+        self.filter.reset_jump_ns = _ns(self.p['reset_on_jump'])
+        self.filter.max_bridge_ns = _ns(self.p['max_bridge'])
 
     def _stamp_stats(self) -> None:
-        count, total = self._steps_ns
-        if count:
-            self.diag.values['stamp_period_ms'] = f'{total / count / 1e6:.4g}'
-            self._steps_ns = [0, 0]
+        mean = self.filter.take_mean_step()
+        if mean is not None:
+            self.diag.values['stamp_period_ms'] = f'{mean / 1e6:.4g}'
 
     # -- measurements ------------------------------------------------------------------------
     def on_tips(self, data: bytes) -> None:
@@ -142,59 +142,38 @@ class EstimatorNode(Node):
         except cv.MessageError as exc:
             self.diag.problem('bad_message', f'rejected: {exc}')
             return
-        z = tips[:, :2]
-        last = self.last_ns
-        if last is None:
-            self._initialise(stamp, z)
-            return
-        step = stamp - last
-        if abs(step) > self.jump_ns:
+        self._act(stamp, self.filter.on_tips(stamp, tips[:, :2]))
+
+    def _act(self, stamp: int, outcome: Outcome) -> None:
+        """Report the filter's notices, then publish its estimate or refuse the message."""
+        for notice in outcome.notices:
+            self._report(notice)
+        if outcome.refused:
+            self.diag.problem(outcome.refused, f'rejected ({outcome.refused}): {outcome.reason}')
+        if outcome.estimate is not None:
+            self._publish(stamp, outcome.estimate)
+            self.diag.good('estimates', 'estimating')
+
+    def _report(self, notice: Notice) -> None:
+        change, t, last = notice.change, notice.t_ns / cv.NS, notice.last_ns
+        if change is Change.RESET:
             self.diag.problem('resets', f'tip_positions stamp jumped from {last / cv.NS:.4f} s to '
-                              f'{stamp / cv.NS:.4f} s (more than reset_on_jump); filter reset')
-            self._initialise(stamp, z)
-            return
-        if step <= 0:
-            kind = 'duplicate' if step == 0 else 'out_of_order'
-            self.diag.problem(kind, f'rejected ({kind}): tip_positions stamp {stamp} ns is not newer '
-                              f'than the last accepted {last} ns')
-            return
-        if step > self.gap_ns:
-            self._count_gap(stamp, step)
-        periods, rest = divmod(step, self.period_ns)
-        if rest == 0:        # on the nominal grid: period by period, with the matrices built once
-            for _ in range(periods - 1):
-                self.kf.step(z, self._predict_only)
-            self.kf.step(z)
-        else:
-            self.kf.step(z, dt=step / cv.NS)
-        self._steps_ns[0] += 1
-        self._steps_ns[1] += step
-        self._accept(stamp)
-
-    def _count_gap(self, stamp: int, step: int) -> None:
-        """Messages were lost before ``stamp``: count the gap, and report it if it is a dropout."""
-        missing = max(1, (step + self.period_ns // 2) // self.period_ns - 1)
-        self.diag.count('gaps')
-        self.diag.count('missed_periods', missing)
-        if step > self.bridge_ns:
-            self.diag.problem('dropouts', f'no tip_positions for {step / 1e6:.1f} ms (more than '
-                              f'max_bridge) before t = {stamp / cv.NS:.4f} s; predicting through it')
-
-    def _initialise(self, stamp: int, z: np.ndarray) -> None:
-        """First measurement after start or reset: positions z, zero velocity (as closed_loop.py)."""
-        self.kf.reset(z)
-        self.get_logger().info(f'filter initialised at t = {stamp / cv.NS:.4f} s')
-        self._accept(stamp)
-
-    def _accept(self, stamp: int) -> None:
-        self.last_ns = stamp
-        self._publish(stamp, self.kf.x)
-        self.diag.good('estimates', 'estimating')
+                              f'{t:.4f} s (more than reset_on_jump); filter reset')
+        elif change is Change.DROPOUT:
+            gap_ms = (notice.t_ns - last) / 1e6
+            self.diag.problem('dropouts', f'no tip_positions for {gap_ms:.1f} ms (more than '
+                              f'max_bridge) before t = {t:.4f} s; predicting through it')
+        elif change is Change.INITIALISED:
+            self.get_logger().info(f'filter initialised at t = {t:.4f} s')
 
     def _publish(self, stamp: int, x: np.ndarray) -> None:
         for listener in self.listeners:
             listener(stamp, x.copy())
         self.pub.publish(self.cdr_estimate.encode(stamp, x))
+
+
+def _ns(seconds: float) -> int:
+    return int(round(seconds * cv.NS))
 
 
 def main(args=None) -> int:
