@@ -26,7 +26,8 @@ feedforward_at     ``ref``: the feedforward inverts the model on the reference. 
                    made every loop above 1 Hz diverge in the check
 =================  ==================================================================
 
-The bandwidth and the estimator's intensity are chosen by simulation (:func:`derive`): each
+The bandwidth and the estimator's intensity are chosen by simulation (:func:`derive`), from the
+slowest bandwidth up to the first at which every intensity diverges: each
 candidate runs the default law on the learned model itself, with the measured noise on the
 tips, the estimator in the loop and the command applied one period late (a driver that applies
 the newest command at its next tick), along a move of the travel the data reached
@@ -235,16 +236,20 @@ def derive(model, facts: DataFacts, laws: tuple[str, ...] = ('sdre_ff', 'sdre'),
     top = RATE_FRACTION / facts.period
     rows, passed = [], []
     for hz in [b for b in BANDWIDTHS_HZ if b <= top]:
+        diverged = 0
         for frac in ACCEL_PSD_FRACTIONS:
             cand = settings_for(model, facts, hz, frac * facts.accel_psd_ml)
             nominal = check_on_model(model, cand, facts)
             rows.append({'bandwidth_hz': hz, 'accel_psd': cand.accel_psd, 'nominal': asdict(nominal)})
+            diverged += nominal.diverged
             if nominal.ok and nominal.rmse_rel <= KEEP_NOMINAL:
                 passed.append((nominal.rmse_rel, hz, cand, rows[-1]))
             if progress is not None:
                 progress(f'{hz:g} Hz, accel_psd {cand.accel_psd:.3g}: '
                          + ('diverged' if nominal.diverged else
                             f'{100 * nominal.rmse_rel:.2f} % of travel'))
+        if diverged == len(ACCEL_PSD_FRACTIONS):
+            break                  # every estimator diverged: a faster loop has less margin still
 
     def robust(entry) -> bool:
         """The gain-error runs of a candidate (once; recorded in its row)."""
