@@ -17,7 +17,7 @@ information at a far better signal-to-noise ratio. With ``rest_margin`` > 0 both
 
 which keeps the learned rest stable (every eigenvalue of A(0) left of −rest_margin), as the
 finger's is. When the rollout stage is on, the kept weights are those of the epoch, in either
-stage, whose simulation error on the validation records is lowest.
+stage, whose free runs of ``rollout_val_seconds`` on the validation records miss least.
 
 Seeded and deterministic: the same data and settings give the same bits on the same machine kind
 and torch build (:data:`TRAIN_THREADS` intra-op threads, torch's deterministic algorithms only).
@@ -77,6 +77,10 @@ class TrainSettings:
     rollout_seconds: float = 0.1
     rollout_lr: float = 3e-4
     rollout_overlap: int = 5
+    #: the epochs are scored by free runs of this length [s] on the validation records, as long
+    #: as the verdict's (analysis/model_fitness.py): 0.1 s runs of a slow signal cannot tell a
+    #: quasi-static model from the finger
+    rollout_val_seconds: float = 1.0
     #: stable learned rest (module doc): A(0)'s eigenvalues kept left of −rest_margin [1/s]
     #: (0 = off) by a penalty of this weight
     rest_margin: float = 0.0
@@ -87,7 +91,8 @@ class TrainSettings:
             raise ValueError(f'patience must be an int >= 1 or None (run every epoch), got {self.patience!r}')
         if not (np.isfinite(self.sv_penalty) and self.sv_penalty >= 0.0):
             raise ValueError(f'sv_penalty must be finite and >= 0 (0 = off), got {self.sv_penalty!r}')
-        for name in ('sv_floor', 'sv_box', 'rollout_seconds', 'rollout_lr', 'rest_weight'):
+        for name in ('sv_floor', 'sv_box', 'rollout_seconds', 'rollout_lr', 'rest_weight',
+                     'rollout_val_seconds'):
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0.0):
                 raise ValueError(f'{name} must be finite and > 0, got {v!r}')
@@ -180,10 +185,11 @@ def train(x: np.ndarray, u: np.ndarray, acc: np.ndarray, x_val: np.ndarray, u_va
         if a.ndim != 2 or a.shape[1] != w:
             raise ValueError(f'{name} must have shape (N, {w}), got {a.shape}')
     if settings.rollout_epochs > 0:
-        for name, given in (('runs', runs), ('val_runs', val_runs)):
-            if not given or not _windows(given, settings.rollout_seconds, 1):
+        for name, given, seconds in (('runs', runs, settings.rollout_seconds),
+                                     ('val_runs', val_runs, settings.rollout_val_seconds)):
+            if not given or not _windows(given, seconds, 1):
                 raise ValueError(f'the simulation stage needs {name}: records longer than '
-                                 f'rollout_seconds ({settings.rollout_seconds:g} s)')
+                                 f'{seconds:g} s')
     with deterministic_torch():
         return _train_seeded(x, u, acc, x_val, u_val, acc_val, settings, on_epoch, runs, val_runs)
 
@@ -306,7 +312,7 @@ def _train_seeded(x, u, acc, x_val, u_val, acc_val, settings: TrainSettings, on_
              if settings.cosine else None)
     result = TrainResult(net, s)
     simulating = settings.rollout_epochs > 0
-    val_windows = _windows(val_runs, settings.rollout_seconds, 1) if simulating else []
+    val_windows = _windows(val_runs, settings.rollout_val_seconds, 1) if simulating else []
     best, best_state, since_best = math.inf, None, 0
 
     def keep_if_best(epoch: int, score: float) -> bool:
