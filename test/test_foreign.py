@@ -73,7 +73,13 @@ def test_the_recipe_runs_end_to_end_on_the_tendon_finger(tmp_path):
     fitness = metrics['training']['fitness']
     if r.returncode == 1:                                    # the recipe stops and says why
         assert not (out / 'model' / 'params.yaml').exists()
-        assert 'params.yaml' in r.stderr and fitness['reasons']
+        assert 'params.yaml' in r.stderr
+        if fitness['fit_for_control']:                       # no setting passed its check
+            derived = metrics['training']['derived_settings']
+            assert derived['settings'] is None and derived['candidates']
+            assert 'no controller setting passed' in r.stderr
+        else:
+            assert fitness['reasons'] and fitness['reasons'][0] in r.stderr
         return
     assert fitness['fit_for_control'] and (out / 'model' / 'params.yaml').exists()
     score = metrics['deploy']['sdre_ff']

@@ -247,7 +247,10 @@ def main(argv: list[str] | None = None) -> int:
         metrics['training']['wall_s'] = round(time.monotonic() - t0, 1)
         params = out / 'model' / 'params.yaml'
         if not params.exists():
-            raise RuntimeError('training wrote no params.yaml: ' + '; '.join(trained['fitness']['reasons']))
+            why = trained['fitness']['reasons'] or [
+                'the model is fit to control, but no controller setting passed the closed-loop '
+                'check on it (metrics.json: derived_settings)']
+            raise RuntimeError('training wrote no params.yaml: ' + '; '.join(why))
         print(train.stdout.strip().splitlines()[-1], flush=True)
         limit = yaml.safe_load(params.read_text())['/**/controller']['ros__parameters']['torque_limit']
         travel = float(trained['derived_settings']['facts']['travel'])
