@@ -271,6 +271,11 @@ def summarise(rows: list[dict], keys) -> dict:
     return out
 
 
+def _finer(fmt: str) -> str:
+    """The format of a spread: one decimal more than its figure's (``.3f`` → ``.4f``)."""
+    return f'.{int(fmt[1:-1]) + 1}f' if fmt.endswith('f') and fmt[1:-1].isdigit() else fmt
+
+
 def _f(value, fmt) -> str:
     if value is None or (isinstance(value, float) and not math.isfinite(value)):
         return '–'
@@ -293,8 +298,9 @@ def markdown(rows: list[dict], summary: dict, keys, command: str, facts: dict) -
         s, a = e['seeds'], e['all']
         shipped = e.get('shipped')
         place = (f'{_f(shipped["z"], "+.2f")}, {shipped["below"]}/{shipped["of"]}' if shipped else '–')
-        lines.append(f'| {label} | {_f(s["mean"], fmt)} ± {_f(s["sd"], fmt)} | {_f(s["min"], fmt)} – {_f(s["max"], fmt)} '
-                     f'| {_f(e["draws_sd"], fmt)} | {_f(a["mean"], fmt)} ± {_f(a["sd"], fmt)} '
+        fine = _finer(fmt)
+        lines.append(f'| {label} | {_f(s["mean"], fmt)} ± {_f(s["sd"], fine)} | {_f(s["min"], fmt)} – {_f(s["max"], fmt)} '
+                     f'| {_f(e["draws_sd"], fine)} | {_f(a["mean"], fmt)} ± {_f(a["sd"], fine)} '
                      f'| {_f(a["min"], fmt)} – {_f(a["max"], fmt)} | {_f(shipped["value"], fmt) if shipped else "–"} '
                      f'| {place} |')
     lines += ['', '## Every model', '',
@@ -432,25 +438,37 @@ def main(argv=None) -> int:
             paths[o.name] = args.out / o.name / 'model.pt'
             paths[o.name].write_bytes(o.checkpoint)
             (args.out / o.name / 'metrics.json').write_text(json.dumps(o.metrics, indent=2))
-    demos = run_demos(paths, args.out, args.domain_id, progress) if args.demo else {}
+    facts = {'models': len(outcomes) - 1, 'seeds': f'0–{args.seeds - 1}', 'draws': args.draws,
+             'jitter': args.jitter, 'settings': 'default preset' + (' with ' + ', '.join(args.set) if args.set else ''),
+             'fingerprint': fingerprint(data.x, data.u, data.acc), 'runner': runner.describe(), 'wall_s': wall,
+             'kernels': ' '.join(f'{k}={os.environ[k]}' for k in jobs.KERNEL_ENV if k in os.environ) or 'as detected'}
+    text = write_results(args.out, outcomes, {}, args, command, facts)
+    if args.demo:
+        try:
+            demos = run_demos(paths, args.out, args.domain_id, progress)
+        except RuntimeError as exc:
+            print(f'{text}\nthe demos failed, the tables above are without them: {exc}', file=sys.stderr)
+            return 1
+        text = write_results(args.out, outcomes, demos, args, command, facts)
+    print(text)
+    return 0
+
+
+def write_results(out: Path, outcomes: list[ModelOutcome], demos: dict, args, command: str, facts: dict) -> str:
+    """seeds.json and seeds.md in ``out`` from the jobs' outcomes and the demos' figures; the tables."""
     rows = [model_row(o, demos.get(o.name)) for o in outcomes]
     keys = figure_keys(rows, args.laws, args.trajectories)
     summary = summarise(rows, keys)
     shipped = next(r for r in rows if r['seed'] is None)
     seed0 = next((r for r in rows if r['seed'] == 0 and r['draw'] == 0), None)
-    facts = {'models': len(rows) - 1, 'seeds': f'0–{args.seeds - 1}', 'draws': args.draws, 'jitter': args.jitter,
-             'settings': 'default preset' + (' with ' + ', '.join(args.set) if args.set else ''),
-             'fingerprint': fingerprint(data.x, data.u, data.acc), 'runner': runner.describe(), 'wall_s': wall,
-             'kernels': ' '.join(f'{k}={os.environ[k]}' for k in jobs.KERNEL_ENV if k in os.environ) or 'as detected',
-             'seed0_is_shipped': None if seed0 is None else seed0['weights_sha256'] == shipped['weights_sha256']}
+    facts = dict(facts, seed0_is_shipped=None if seed0 is None else seed0['weights_sha256'] == shipped['weights_sha256'])
     text = markdown(rows, summary, keys, command, facts)
-    (args.out / 'seeds.json').write_text(json.dumps(
+    (out / 'seeds.json').write_text(json.dumps(
         dict(command=command, facts=facts, summary=summary, models=rows,
              tracking={o.name: o.tracking for o in outcomes},
              job_seconds={o.name: round(o.job_seconds, 1) for o in outcomes}), indent=2, default=float))
-    (args.out / 'seeds.md').write_text(text)
-    print(text)
-    return 0
+    (out / 'seeds.md').write_text(text)
+    return text
 
 
 if __name__ == '__main__':
