@@ -4,6 +4,7 @@ import hashlib
 import importlib
 import json
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -251,6 +252,7 @@ def ray_head():
             os.killpg(head.pid, signal.SIGKILL)     # the session this fixture started, by its id
             head.wait(10)
         log.close()
+        shutil.rmtree(temp, ignore_errors=True)
 
 
 @needs_ray
