@@ -187,7 +187,7 @@ def train(x: np.ndarray, u: np.ndarray, acc: np.ndarray, x_val: np.ndarray, u_va
     if settings.rollout_epochs > 0:
         for name, given, seconds in (('runs', runs, settings.rollout_seconds),
                                      ('val_runs', val_runs, settings.rollout_val_seconds)):
-            if not given or not _windows(given, seconds, 1):
+            if not any(len(r.x) > max(int(round(seconds / r.dt)), 1) for r in given or ()):
                 raise ValueError(f'the simulation stage needs {name}: records longer than '
                                  f'{seconds:g} s')
     with deterministic_torch():
@@ -220,6 +220,9 @@ def _windows(runs: list[Run], seconds: float, overlap: int) -> list[tuple[float,
 #: a simulated state is held within this many data standard deviations, so a diverging run
 #: stays finite (its window then counts at most :data:`SIM_ERROR_CAP`, and passes no gradient)
 SIM_BOUND = 100.0
+#: a window's simulation error counts at most this (scaled units: a run off by ten standard
+#: deviations of the data), so one diverged window does not hide how the others do
+SIM_ERROR_CAP = 100.0
 
 
 def _simulate(net: SDCNet, s: _Scales, x0: torch.Tensor, u: torch.Tensor, dt: float) -> torch.Tensor:
@@ -251,11 +254,6 @@ def _sim_error(net: SDCNet, s: _Scales, dt: float, x0, u, p) -> torch.Tensor:
     return _window_errors(net, s, dt, x0, u, p).mean()
 
 
-#: a validation window's simulation error counts at most this (scaled units: a run off by ten
-#: standard deviations of the data), so one diverged window does not hide how the others do
-SIM_ERROR_CAP = 100.0
-
-
 def _val_sim_error(net: SDCNet, s: _Scales, windows) -> float:
     """L_sim over every validation window, each window's error capped at
     :data:`SIM_ERROR_CAP` (a diverged run counts as the cap)."""
@@ -269,9 +267,18 @@ def _val_sim_error(net: SDCNet, s: _Scales, windows) -> float:
     return total / count
 
 
+def _with_rest_penalty(loss: torch.Tensor, net: SDCNet, s: _Scales,
+                       settings: TrainSettings) -> torch.Tensor:
+    """``loss`` + L_rest (module doc) when the penalty is on and some eigenvalue of A(0) is right
+    of −rest_margin (eigenvalues' gradients are only taken where they are needed)."""
+    if settings.rest_margin <= 0:
+        return loss
+    rest = _rest_penalty(net, s, settings)
+    return loss if rest is None else loss + rest
+
+
 def _rest_penalty(net: SDCNet, s: _Scales, settings: TrainSettings) -> torch.Tensor | None:
-    """L_rest (module doc), or None when every eigenvalue of A(0) is already left of the margin
-    (eigenvalues' gradients are only taken where they are needed)."""
+    """L_rest (module doc), or None when every eigenvalue of A(0) is already left of the margin."""
     def real_parts():
         a0 = net(torch.zeros(1, 4))[0][0] * s.acc[:, None] / s.x[None, :]   # [A21 A22] at rest, SI
         top = torch.cat([torch.zeros(2, 2), torch.eye(2)], dim=1)
@@ -338,9 +345,7 @@ def _train_seeded(x, u, acc, x_val, u_val, acc_val, settings: TrainSettings, on_
                 xs = (torch.rand(idx.numel(), 4, generator=gen) * 2 - 1) * settings.sv_box
                 smin = torch.linalg.svdvals(net.g_net(xs).reshape(-1, 2, 2).transpose(1, 2))[:, -1]   # G2 alone
                 loss = loss + settings.sv_penalty * torch.relu(settings.sv_floor - smin).pow(2).mean()
-            if settings.rest_margin > 0:
-                rest = _rest_penalty(net, st, settings)
-                loss = loss if rest is None else loss + rest
+            loss = _with_rest_penalty(loss, net, st, settings)
             _step(opt, loss, net)
             total += loss.item() * idx.numel()
         if sched is not None:
@@ -380,10 +385,8 @@ def _simulation_stage(net, st: _Scales, runs, val_windows, settings: TrainSettin
             perm = torch.randperm(x0.shape[0], generator=gen)
             for i in range(0, len(perm), settings.batch_size):
                 idx = perm[i:i + settings.batch_size]
-                loss = _sim_error(net, st, dt, x0[idx], u[idx], p[idx])
-                if settings.rest_margin > 0:
-                    rest = _rest_penalty(net, st, settings)
-                    loss = loss if rest is None else loss + rest
+                loss = _with_rest_penalty(_sim_error(net, st, dt, x0[idx], u[idx], p[idx]), net, st,
+                                          settings)
                 if _step(opt, loss, net, clip=1.0):
                     total += loss.item() * idx.numel()
                     count += idx.numel()
