@@ -247,3 +247,29 @@ def test_training_on_a_jittery_bag_records_the_provenance(tmp_path):
     assert bag['tips']['rate_hz'] == pytest.approx(120.0, rel=0.02) and bag['tips']['duration_s'] > 3.5
     assert bag['fingers']['finger_1']['stretches'][0]['resampled'] is True
     assert data['noise_std'] == 1e-6 and data['train_samples'] == bag['fingers']['finger_1']['samples']
+
+
+def test_the_labels_filter_is_tuned_on_the_excited_tips_not_on_the_rest_before_them(tmp_path):
+    """A driver idle for longer than the tuning window, a settle phase, then a fast motion: the
+    window starts at the first non-zero torque, and picks the motion's intensity, not the rest's."""
+    from soft_gripper_sdre.learning import derivatives
+    from soft_gripper_sdre.tools.train_bags import JERK_GRID, TUNE_SAMPLES, tune_jerk, tuning_stretch
+    rng = np.random.default_rng(7)
+    stamps = np.arange(4400) * 5 * MS                      # 200 Hz, 22 s
+    t = stamps / 1e9
+    moving = t >= 12.0
+    tips = np.zeros((len(t), 1, 3))
+    tips[moving, 0, 0] = 2e-3 * np.sin(2 * np.pi * 6.0 * (t[moving] - 12.0))
+    tips[:, 0, :2] += rng.normal(0.0, 5e-5, (len(t), 2))
+    cmd_at = t >= 11.0                                     # commands from 11 s: zero until 12 s
+    torques = np.zeros((int(cmd_at.sum()), 1, 2))
+    torques[t[cmd_at] >= 12.0] = 0.01
+    write_bag(tmp_path / 'bag', {'/tip_positions': tips_messages(stamps, tips),
+                                 '/torque_commands': torque_messages(stamps[cmd_at], torques)})
+    rec = read_recording(tmp_path / 'bag')
+    tt, xy = tuning_stretch(rec, 0)
+    assert len(tt) == min(TUNE_SAMPLES, int(moving.sum())) and tt[0] == 0.0
+    np.testing.assert_array_equal(xy, tips[moving, 0, :2][:len(tt)])
+    at_rest = derivatives.tune_jerk_psd(t[:TUNE_SAMPLES], tips[:TUNE_SAMPLES, 0, :2], 5e-5, JERK_GRID)
+    q = tune_jerk(rec, 0, 5e-5)
+    assert q >= 100 * at_rest, (q, at_rest)

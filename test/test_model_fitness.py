@@ -140,12 +140,38 @@ def test_settings_derived_for_the_shipped_model_pass_their_checks(shipped):
     assert summary['settings']['q_pos'] == d.q_pos
 
 
+def test_the_hold_torque_is_the_spring_over_the_input_map():
+    """At rest at Y = y the linear model needs G₂u = (0, k y): u = G₂⁻¹ (0, k y)."""
+    model = LinearModel()
+    ys = np.array([1e-3, 2e-3])
+    u = ls.hold_torques(model, ys)
+    np.testing.assert_allclose(u, np.linalg.solve(model.g2, np.stack([0 * ys, model.k * ys])).T, rtol=1e-9)
+
+
+def test_the_checked_move_shrinks_to_what_half_the_torque_limit_holds():
+    """Inputs 8° apart: a pure +Y move needs opposing torques; the move is cut to the largest
+    displacement held with HOLD_SHARE of the limit, and refused when that is under the noise."""
+    model = LinearModel(g2=((300.0, 280.0), (40.0, 80.0)))
+    per_m = np.abs(np.linalg.solve(model.g2, [0.0, model.k])).max()     # N·m per m held
+    facts = ls.DataFacts(period=5e-3, noise_std=5e-5, travel=0.01, torque_limit=0.02, accel_psd_ml=1.0)
+    held = ls.holdable_travel(model, facts)
+    assert ls.HOLD_SHARE * facts.torque_limit / per_m - facts.travel / ls.HOLD_GRID < held \
+        <= ls.HOLD_SHARE * facts.torque_limit / per_m
+    roomy = ls.DataFacts(**{**facts.__dict__, 'torque_limit': 10.0})
+    assert ls.holdable_travel(model, roomy) == roomy.travel          # the reach's share, uncut
+    weak = ls.DataFacts(**{**facts.__dict__, 'torque_limit': 1e-6})
+    derived = ls.derive(model, weak)
+    assert derived.settings is None and derived.candidates == []
+    assert 'excite with larger torques' in derived.reason and derived.facts.reach_travel == 0.01
+    assert derived.summary()['reason'] == derived.reason
+
+
 @pytest.mark.slow
 @pytest.mark.timeout(600)
 def test_no_setting_passes_on_a_finger_the_torque_cannot_hold(shipped):
-    """A torque limit far below what the move needs: every candidate saturates or misses, and
-    nothing is derived."""
+    """A torque limit far below what the move needs: the move it could hold is under the noise,
+    nothing is run and nothing is derived, and the reason says so."""
     facts = ls.DataFacts(period=5e-3, noise_std=5e-5, travel=0.03, torque_limit=1e-5, accel_psd_ml=100.0)
     derived = ls.derive(shipped, facts)
-    assert derived.settings is None and derived.checks == {}
-    assert derived.candidates
+    assert derived.settings is None and derived.checks == {} and derived.candidates == []
+    assert 'torque limit' in derived.reason

@@ -16,9 +16,13 @@ q_pos, r           a closed-loop bandwidth f_c through the learned input map at 
                    for ẍ ≈ G₂u, LQR places each direction i at ω_i = (q_pos s_i² / r)^¼
                    (s_i the singular values of G₂(0)), so with r = 1/u_max² the weights
                    q_pos = r ω_c⁴ / (s₁ s₂) put their geometric mean at ω_c = 2π f_c
-torque_lowpass_hz  :data:`ROLL_OFF_RATIO` · f_c (capped at a tenth of the rate by the law)
-integral_gain      k_i = ω_c³ / :data:`INTEGRAL_DIVISOR`, the integral corner a decade
-                   under the loop's; band :data:`BAND_TRAVEL` of the travel (≥ 10 σ)
+torque_lowpass_hz  :data:`ROLL_OFF_RATIO` · max(f_c, the model's fastest oscillating mode at rest)
+                   (capped at a tenth of the rate by the law): a roll-off near a lightly
+                   damped mode the loop does not dominate adds its lag there, and the loop
+                   rings (the tendon finger at 2 Hz: 300 % of travel with 8 Hz, 2.5 % with 20)
+integral_gain      k_i = ω_c³ / d, d in :data:`INTEGRAL_DIVISORS` (picked in the check: the
+                   corner a decade under the loop's, or nearer); band :data:`BAND_TRAVEL` of
+                   the travel (≥ 10 σ)
 pd_kp, pd_kd       ω_c² and 2 ζ ω_c with ζ = :data:`PD_DAMPING`, for ``pd``
 feedforward_at     ``ref``: the feedforward inverts the model on the reference. Evaluated
                    at the estimate, a model that depends on velocity (friction) turns the
@@ -26,20 +30,30 @@ feedforward_at     ``ref``: the feedforward inverts the model on the reference. 
                    made every loop above 1 Hz diverge in the check
 =================  ==================================================================
 
-The bandwidth and the estimator's intensity are chosen by simulation (:func:`derive`), from the
-slowest bandwidth up to the first at which every intensity diverges: each
+The bandwidth, the estimator's intensity and the integral gain are chosen by simulation
+(:func:`derive`), from the slowest bandwidth up to the first at which every intensity diverges: each
 candidate runs the default law on the learned model itself, with the measured noise on the
 tips, the estimator in the loop and the command applied one period late (a driver that applies
 the newest command at its next tick), along a move of the travel the data reached
-(:func:`check_move`). A candidate is kept when it does not diverge, never saturates while the
-finger is held at rest, and still tracks when the model's input gain is off by the factors in
-:data:`GAIN_ERRORS` (the real finger is not the model); among those, the lowest error wins, and
-then the next lower bandwidth when it tracks within :data:`PREFER_SLOWER` of it, for margin
-against what the model does not know.
+(:func:`check_move`). At each bandwidth the best intensity is then tried with the stronger
+integral gains. A candidate is kept when it tracks within :data:`KEEP_NOMINAL` of the travel,
+does not diverge, never saturates while the finger is held at rest, and still tracks when the
+model's input gain is off by the factors in :data:`GAIN_ERRORS` (the real finger is not the
+model: two fingers that share one model differ by about that much). Its score is the worst error
+of these runs; the lowest score wins, and then the next lower bandwidth when it scores within
+:data:`PREFER_SLOWER` of it, for margin against what the model does not know.
+
+The move's travel is the smaller of :data:`TRAVEL_SHARE` of the data's reach along +Y and the
+largest displacement the learned model holds still along +Y with :data:`HOLD_SHARE` of the torque
+limit (:func:`holdable_travel`: at rest the model needs u = −G₂(x)⁻¹ (A(x)x)₂). Two inputs whose
+tip directions are close (13° on the tendon finger) move the tip across them only with opposing
+torques, far larger than the excitation's: half the reach can be out of the limit's range, and a
+check along it measures saturation, not the settings. Below :data:`MIN_TRAVEL_NOISE` σ of
+measurement noise no move is checked and nothing is derived (:attr:`Derivation.reason`).
 """
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 import math
 
 import numpy as np
@@ -57,7 +71,9 @@ RATE_FRACTION = 1 / 20
 #: estimator intensities tried, as fractions of the likelihood-best one
 ACCEL_PSD_FRACTIONS = (1.0, 0.1, 0.01)
 ROLL_OFF_RATIO = 4.0
-INTEGRAL_DIVISOR = 10.0
+#: integral gains tried, k_i = ω_c³ / divisor: the corner a decade under the loop's first, then
+#: nearer it (a stronger integral absorbs more of the model's gain error while a move goes on)
+INTEGRAL_DIVISORS = (10.0, 4.0, 2.0)
 BAND_TRAVEL = 0.1
 PD_DAMPING = 0.7
 #: the model's input gain off by these factors in the robustness runs
@@ -72,6 +88,12 @@ PREFER_SLOWER = 1.5
 #: on the trajectory node's default timing
 TRAVEL_SHARE = 0.5
 REACH_PERCENTILE = 99.0
+#: the check's move holds still with at most this share of the torque limit (the rest is the
+#: feedback's), and is at least this many σ of measurement noise
+HOLD_SHARE = 0.5
+MIN_TRAVEL_NOISE = 10.0
+#: displacements tried for the holdable travel, as shares of the reach's travel
+HOLD_GRID = 40
 #: the torque limit is this many times the largest torque of the excitation
 TORQUE_MARGIN = 2.0
 CHECK_PROFILE = dict(t_start=0.5, t_close=2.0, t_hold=1.0, t_open=2.0)
@@ -88,8 +110,9 @@ class DataFacts:
     period: float                 # median tip period [s]
     noise_std: float              # measurement σ [m]
     travel: float                 # signed move along Y the check makes [m]
-    torque_limit: float           # largest |torque| the finger was excited with [N·m]
+    torque_limit: float           # the loop's torque limit [N·m]
     accel_psd_ml: float           # the CV model's likelihood-best intensity [(m/s²)²/Hz]
+    reach_travel: float | None = None   # TRAVEL_SHARE of the data's +Y reach [m] (None: travel)
 
 
 @dataclass(frozen=True)
@@ -131,6 +154,14 @@ class CheckResult:
         return not self.diverged and self.rest_saturated == 0.0 and self.rest_torque < 0.5
 
 
+def fastest_mode_hz(model) -> float:
+    """The natural frequency |λ| / 2π [Hz] of the learned A(0)'s fastest oscillating mode (an
+    eigenvalue with an imaginary part); 0 when none oscillates."""
+    lam = np.linalg.eigvals(model.AG(np.zeros(4))[0][0])
+    lam = lam[lam.imag > 0]
+    return float(np.abs(lam).max() / (2 * math.pi)) if lam.size else 0.0
+
+
 def settings_for(model, facts: DataFacts, bandwidth_hz: float, accel_psd: float) -> LoopSettings:
     """The settings of one candidate (module doc's table)."""
     s = np.linalg.svd(model.AG(np.zeros(4))[1][0, 2:, :], compute_uv=False)
@@ -141,7 +172,7 @@ def settings_for(model, facts: DataFacts, bandwidth_hz: float, accel_psd: float)
     return LoopSettings(
         control_period=facts.period, meas_std=max(facts.noise_std, 1e-7), accel_psd=accel_psd,
         q_pos=q_pos, q_vel=0.0, r=r, torque_limit=facts.torque_limit,
-        torque_lowpass_hz=ROLL_OFF_RATIO * bandwidth_hz, integral_gain=w ** 3 / INTEGRAL_DIVISOR,
+        torque_lowpass_hz=ROLL_OFF_RATIO * max(bandwidth_hz, fastest_mode_hz(model)), integral_gain=w ** 3 / INTEGRAL_DIVISORS[0],
         integral_band=band, pd_kp=w ** 2, pd_kd=2 * PD_DAMPING * w, bandwidth_hz=bandwidth_hz)
 
 
@@ -210,63 +241,107 @@ def check_on_model(model, settings: LoopSettings, facts: DataFacts, law: str = '
                        float(sat.mean()), False)
 
 
+def hold_torques(model, ys: np.ndarray) -> np.ndarray:
+    """(len(ys), 2) torques that hold the learned model still at Y = ``ys`` (X = 0, at rest):
+    u = −G₂(x)⁻¹ (A(x)x)₂, from ẋ = A(x)x + G(x)u being affine in u."""
+    x = np.zeros((len(ys), 4))
+    x[:, 1] = ys
+    free = model_fitness.xdot(model, x, np.zeros((len(ys), 2)))[:, 2:]
+    G2 = np.stack([model_fitness.xdot(model, x, np.tile(e, (len(ys), 1)))[:, 2:] - free
+                   for e in np.eye(2)], axis=2)
+    return -np.stack([np.linalg.lstsq(g, f, rcond=None)[0] for g, f in zip(G2, free)])
+
+
+def holdable_travel(model, facts: DataFacts) -> float:
+    """The largest displacement along the travel's direction, up to ``facts.travel``, that every
+    smaller one included the model holds with :data:`HOLD_SHARE` of ``facts.torque_limit``."""
+    ys = facts.travel * np.arange(1, HOLD_GRID + 1) / HOLD_GRID
+    need = np.abs(hold_torques(model, ys)).max(axis=1)
+    over = np.flatnonzero(~(need <= HOLD_SHARE * facts.torque_limit))
+    return float(ys[over[0] - 1]) if over.size and over[0] > 0 else (0.0 if over.size else facts.travel)
+
+
 @dataclass
 class Derivation:
-    """The chosen settings, their checks, and every candidate tried."""
+    """The chosen settings, their checks, and every candidate tried; ``reason`` says why
+    nothing was derived when no candidate was run."""
 
     settings: LoopSettings | None
     checks: dict                  # law → CheckResult of the chosen settings (nominal)
     candidates: list[dict]
     facts: DataFacts
+    reason: str = ''
 
     def summary(self) -> dict:
         return {'settings': asdict(self.settings) if self.settings else None,
-                'facts': asdict(self.facts),
+                'reason': self.reason, 'facts': asdict(self.facts),
                 'checks': {k: asdict(v) for k, v in self.checks.items()},
                 'candidates': self.candidates,
                 'rules': {'bandwidths_hz': list(BANDWIDTHS_HZ), 'gain_errors': list(GAIN_ERRORS),
                           'keep_nominal': KEEP_NOMINAL, 'keep_robust': KEEP_ROBUST,
+                          'hold_share': HOLD_SHARE, 'min_travel_noise': MIN_TRAVEL_NOISE,
                           'check_profile': CHECK_PROFILE, 'delay_periods': 1}}
 
 
 def derive(model, facts: DataFacts, laws: tuple[str, ...] = ('sdre_ff', 'sdre'),
            progress=None) -> Derivation:
-    """Pick the bandwidth and the estimator's intensity by closed-loop runs on the model (module
-    doc); ``settings`` is None when no candidate passes. ``progress(text)`` hears each run."""
-    top = RATE_FRACTION / facts.period
-    rows, passed = [], []
-    for hz in [b for b in BANDWIDTHS_HZ if b <= top]:
-        diverged = 0
+    """Pick the bandwidth, the estimator's intensity and the integral gain by closed-loop runs on
+    the model (module doc); ``settings`` is None when no candidate passes or no move can be
+    checked (``reason``). ``progress(text)`` hears each run."""
+    reach = facts.travel if facts.reach_travel is None else facts.reach_travel
+    facts = replace(facts, travel=math.copysign(holdable_travel(model, replace(facts, travel=reach)), reach),
+                    reach_travel=reach)
+    if abs(facts.travel) < MIN_TRAVEL_NOISE * facts.noise_std:
+        need = np.abs(hold_torques(model, np.array([MIN_TRAVEL_NOISE * math.copysign(facts.noise_std, reach)]))).max()
+        return Derivation(None, {}, [], facts, reason=(
+            f'the model holds at most {1e3 * abs(facts.travel):.3g} mm along +Y with '
+            f'{HOLD_SHARE:g} of the torque limit {facts.torque_limit:.3g} N·m, under '
+            f'{MIN_TRAVEL_NOISE:g} σ of noise ({1e3 * MIN_TRAVEL_NOISE * facts.noise_std:.3g} mm, '
+            f'which needs {need:.3g} N·m): excite with larger torques'))
+    say = progress if progress is not None else (lambda text: None)
+    say(f'move of {1e3 * abs(facts.travel):.3g} mm along +Y (half the reach {1e3 * abs(reach):.3g} mm, '
+        f'or what the model holds with {HOLD_SHARE:g} of the torque limit {facts.torque_limit:.3g} N·m)')
+
+    def run(cand: LoopSettings, row: dict) -> CheckResult:
+        nominal = check_on_model(model, cand, facts)
+        row['nominal'] = asdict(nominal)
+        say(f'{cand.bandwidth_hz:g} Hz, accel_psd {cand.accel_psd:.3g}, integral '
+            f'{cand.integral_gain:.3g}: ' + ('diverged' if nominal.diverged else
+                                            f'{100 * nominal.rmse_rel:.2f} % of travel'))
+        return nominal
+
+    rows, kept = [], []
+    for hz in [b for b in BANDWIDTHS_HZ if b <= RATE_FRACTION / facts.period]:
+        tried = []
         for frac in ACCEL_PSD_FRACTIONS:
             cand = settings_for(model, facts, hz, frac * facts.accel_psd_ml)
-            nominal = check_on_model(model, cand, facts)
-            rows.append({'bandwidth_hz': hz, 'accel_psd': cand.accel_psd, 'nominal': asdict(nominal)})
-            diverged += nominal.diverged
-            if nominal.ok and nominal.rmse_rel <= KEEP_NOMINAL:
-                passed.append((nominal.rmse_rel, hz, cand, rows[-1]))
-            if progress is not None:
-                progress(f'{hz:g} Hz, accel_psd {cand.accel_psd:.3g}: '
-                         + ('diverged' if nominal.diverged else
-                            f'{100 * nominal.rmse_rel:.2f} % of travel'))
-        if diverged == len(ACCEL_PSD_FRACTIONS):
+            rows.append({'bandwidth_hz': hz, 'accel_psd': cand.accel_psd,
+                         'integral_gain': cand.integral_gain})
+            tried.append((run(cand, rows[-1]), cand, rows[-1]))
+        if all(nominal.diverged for nominal, _, _ in tried):
             break                  # every estimator diverged: a faster loop has less margin still
-
-    def robust(entry) -> bool:
-        """The gain-error runs of a candidate (once; recorded in its row)."""
-        row = entry[3]
-        if 'robust' not in row:
-            runs = [check_on_model(model, entry[2], facts, gain_error=g) for g in GAIN_ERRORS]
+        nominal, cand, row = min(tried, key=lambda c: (not c[0].ok, c[0].rmse_rel))
+        w = 2 * math.pi * hz
+        for divisor in INTEGRAL_DIVISORS[1:]:
+            more = replace(cand, integral_gain=w ** 3 / divisor)
+            rows.append({'bandwidth_hz': hz, 'accel_psd': more.accel_psd,
+                         'integral_gain': more.integral_gain})
+            tried.append((run(more, rows[-1]), more, rows[-1]))
+        for nominal, cand, row in tried:
+            if not (nominal.ok and nominal.rmse_rel <= KEEP_NOMINAL):
+                continue
+            runs = [check_on_model(model, cand, facts, gain_error=g) for g in GAIN_ERRORS]
             row['robust'] = [asdict(r) for r in runs]
             row['robust_ok'] = all(r.ok and r.rmse_rel <= KEEP_ROBUST for r in runs)
-        return row['robust_ok']
-
-    passed.sort(key=lambda c: (c[0], c[1]))
-    best = next((c for c in passed if robust(c)), None)
-    if best is None:
+            row['score'] = max([nominal.rmse_rel] + [r.rmse_rel for r in runs])
+            if row['robust_ok']:
+                kept.append((row['score'], hz, cand))
+    if not kept:
         return Derivation(None, {}, rows, facts)
-    slower = [c for c in passed if c[1] < best[1] and c[0] <= PREFER_SLOWER * best[0]]
-    slower.sort(key=lambda c: (-c[1], c[0]))
-    chosen = next((c for c in slower if robust(c)), best)[2]
+    kept.sort(key=lambda c: (c[0], c[1]))
+    best = kept[0]
+    slower = [c for c in kept if c[1] < best[1] and c[0] <= PREFER_SLOWER * best[0]]
+    chosen = max(slower, key=lambda c: (c[1], -c[0]))[2] if slower else best[2]
     checks = {law: check_on_model(model, chosen, facts, law=law) for law in laws}
     return Derivation(chosen, checks, rows, facts)
 
@@ -312,4 +387,4 @@ def data_facts(positions: np.ndarray, torques: np.ndarray, period: float, noise_
     limit = TORQUE_MARGIN * float(np.percentile(np.abs(torques).max(axis=1), 99.9))
     psd = max(tune_accel_psd(t, tips, noise_std) for t, tips in tune)
     return DataFacts(period=float(period), noise_std=float(noise_std), travel=float(travel),
-                     torque_limit=limit, accel_psd_ml=psd)
+                     torque_limit=limit, accel_psd_ml=psd, reach_travel=float(travel))

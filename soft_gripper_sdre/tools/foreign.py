@@ -53,7 +53,7 @@ class Setup:
 
 #: the two foreign grippers, as their lab would set them up
 SETUPS = {'tendon3': Setup(rate=200.0, max_excursion=0.016),
-          'stiff2': Setup(rate=500.0, max_excursion=0.004)}
+          'stiff2': Setup(rate=500.0, max_excursion=0.008)}
 FINGERS = ['index', 'thumb']
 TRAIN_SIGNALS = ['u1', 'x1', 'x2', 'b1', 'b2']
 #: the grasp: trajectory node defaults (hold 0.5 s at rest, close 2 s, hold 1 s, open 2 s)
@@ -248,6 +248,7 @@ def main(argv: list[str] | None = None) -> int:
         params = out / 'model' / 'params.yaml'
         if not params.exists():
             why = trained['fitness']['reasons'] or [
+                (trained.get('derived_settings') or {}).get('reason') or
                 'the model is fit to control, but no controller setting passed the closed-loop '
                 'check on it (metrics.json: derived_settings)']
             raise RuntimeError('training wrote no params.yaml: ' + '; '.join(why))

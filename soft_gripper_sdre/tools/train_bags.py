@@ -27,8 +27,8 @@ from tqdm import tqdm
 import yaml
 
 from soft_gripper_sdre import FINGER_NAMES
-from soft_gripper_sdre.analysis.bag_dataset import (DEFAULT_GAP_PERIODS, BagDataError, FingerSamples, Recording,
-                                                    excited_fingers, label_finger, read_recording,
+from soft_gripper_sdre.analysis.bag_dataset import (DEFAULT_GAP_PERIODS, MIN_SAMPLES, BagDataError, FingerSamples,
+                                                    Recording, excited_fingers, label_finger, read_recording,
                                                     settle_estimates, settle_noise, tip_stretches)
 from soft_gripper_sdre.analysis import loop_settings, model_fitness
 from soft_gripper_sdre.analysis.metrics import r2_score
@@ -83,12 +83,9 @@ def load_bags(paths: list[Path], tips_topic: str, torques_topic: str, min_durati
 
 
 def tune_jerk(rec: Recording, finger: int, meas_std: float) -> float:
-    """The KF/RTS jerk intensity of ``finger`` tuned by likelihood on the start of ``rec``'s first
-    stretch."""
-    stretch = tip_stretches(rec)[0]
-    ns = rec.tip_ns[stretch][:TUNE_SAMPLES]
-    t = (ns - ns[0]) / 1e9
-    xy = rec.tips[stretch, finger, :2][:TUNE_SAMPLES]
+    """The KF/RTS jerk intensity of ``finger`` tuned by likelihood on its first excited tips
+    (:func:`tuning_stretch`)."""
+    t, xy = tuning_stretch(rec, finger)
     if derivatives.is_uniform(t):
         return derivatives.tune_jerk_psd(t, xy, meas_std, JERK_GRID)
     return derivatives.tune_jerk_psd_irregular(t, xy, meas_std, JERK_GRID)
@@ -164,10 +161,19 @@ def runs(samples: list[FingerSamples]) -> list[Run]:
 
 
 def tuning_stretch(rec: Recording, finger: int) -> tuple[np.ndarray, np.ndarray]:
-    """(t [s], tips (N, 2)) of the start of ``rec``'s first stretch, to tune the estimator on."""
-    stretch = tip_stretches(rec)[0]
-    ns = rec.tip_ns[stretch][:TUNE_SAMPLES]
-    return (ns - ns[0]) / 1e9, rec.tips[stretch, finger, :2][:TUNE_SAMPLES]
+    """(t [s], tips (N, 2)) of ``finger``'s first :data:`TUNE_SAMPLES` excited tips: from its first
+    non-zero torque on, within the stretch of tips (no long gap) that holds it; the whole first
+    stretch when it has no tips from then on. The tips at rest before it (a driver's idle time,
+    the settle phase) would tune the estimator to a finger that does not move."""
+    nonzero = np.flatnonzero(np.any(rec.torques[:, finger] != 0.0, axis=1))
+    onset = rec.cmd_ns[nonzero[0]] if nonzero.size else rec.tip_ns[0]
+    stretches = tip_stretches(rec)
+    chosen = next((s for s in stretches if rec.tip_ns[s.stop - 1] >= onset), stretches[0])
+    idx = np.arange(chosen.start, chosen.stop)
+    moving = idx[rec.tip_ns[idx] >= onset]
+    idx = (moving if len(moving) >= MIN_SAMPLES else idx)[:TUNE_SAMPLES]
+    ns = rec.tip_ns[idx]
+    return (ns - ns[0]) / 1e9, rec.tips[idx, finger, :2]
 
 
 def params_yaml(derived: loop_settings.LoopSettings, model_path: Path, finger_names: list[str],
@@ -302,8 +308,9 @@ def report_fitness(fitness: model_fitness.Fitness, derived, out: Path) -> None:
               ' check the settle phase and the noise level, then train again.')
         return
     if derived is None or derived.settings is None:
-        print(f'no controller setting passed the closed-loop check on the model; {PARAMS_FILE} was not '
-              'written (docs/own_gripper.md)')
+        why = derived.reason if derived is not None and derived.reason else \
+            'no controller setting passed the closed-loop check on the model'
+        print(f'{why}; {PARAMS_FILE} was not written (docs/own_gripper.md)')
         return
     d = derived.settings
     checks = ', '.join(f'{law} {100 * c.rmse_rel:.2f} %' for law, c in derived.checks.items())
