@@ -284,10 +284,10 @@ class Derivation:
 
 
 def derive(model, facts: DataFacts, laws: tuple[str, ...] = ('sdre_ff', 'sdre'),
-           progress=None) -> Derivation:
-    """Pick the bandwidth, the estimator's intensity and the integral gain by closed-loop runs on
-    the model (module doc); ``settings`` is None when no candidate passes or no move can be
-    checked (``reason``). ``progress(text)`` hears each run."""
+           progress=None, bandwidths: tuple[float, ...] = BANDWIDTHS_HZ) -> Derivation:
+    """Pick the bandwidth (among ``bandwidths``), the estimator's intensity and the integral gain
+    by closed-loop runs on the model (module doc); ``settings`` is None when no candidate passes
+    or no move can be checked (``reason``). ``progress(text)`` hears each run."""
     reach = facts.travel if facts.reach_travel is None else facts.reach_travel
     facts = replace(facts, travel=math.copysign(holdable_travel(model, replace(facts, travel=reach)), reach),
                     reach_travel=reach)
@@ -311,7 +311,7 @@ def derive(model, facts: DataFacts, laws: tuple[str, ...] = ('sdre_ff', 'sdre'),
         return nominal
 
     rows, kept = [], []
-    for hz in [b for b in BANDWIDTHS_HZ if b <= RATE_FRACTION / facts.period]:
+    for hz in [b for b in bandwidths if b <= RATE_FRACTION / facts.period]:
         tried = []
         for frac in ACCEL_PSD_FRACTIONS:
             cand = settings_for(model, facts, hz, frac * facts.accel_psd_ml)
@@ -320,10 +320,11 @@ def derive(model, facts: DataFacts, laws: tuple[str, ...] = ('sdre_ff', 'sdre'),
             tried.append((run(cand, rows[-1]), cand, rows[-1]))
         if all(nominal.diverged for nominal, _, _ in tried):
             break                  # every estimator diverged: a faster loop has less margin still
-        nominal, cand, row = min(tried, key=lambda c: (not c[0].ok, c[0].rmse_rel))
+        best = min(tried, key=lambda c: (not c[0].ok, c[0].rmse_rel))
         w = 2 * math.pi * hz
+        tried = [best]             # the other intensities are not run with the input gain off
         for divisor in INTEGRAL_DIVISORS[1:]:
-            more = replace(cand, integral_gain=w ** 3 / divisor)
+            more = replace(best[1], integral_gain=w ** 3 / divisor)
             rows.append({'bandwidth_hz': hz, 'accel_psd': more.accel_psd,
                          'integral_gain': more.integral_gain})
             tried.append((run(more, rows[-1]), more, rows[-1]))
