@@ -320,11 +320,11 @@ def derive(model, facts: DataFacts, laws: tuple[str, ...] = ('sdre_ff', 'sdre'),
             tried.append((run(cand, rows[-1]), cand, rows[-1]))
         if all(nominal.diverged for nominal, _, _ in tried):
             break                  # every estimator diverged: a faster loop has less margin still
-        best = min(tried, key=lambda c: (not c[0].ok, c[0].rmse_rel))
+        lead = min(tried, key=lambda c: (not c[0].ok, c[0].rmse_rel))
         w = 2 * math.pi * hz
-        tried = [best]             # the other intensities are not run with the input gain off
+        tried = [lead]             # the other intensities are not run with the input gain off
         for divisor in INTEGRAL_DIVISORS[1:]:
-            more = replace(best[1], integral_gain=w ** 3 / divisor)
+            more = replace(lead[1], integral_gain=w ** 3 / divisor)
             rows.append({'bandwidth_hz': hz, 'accel_psd': more.accel_psd,
                          'integral_gain': more.integral_gain})
             tried.append((run(more, rows[-1]), more, rows[-1]))
