@@ -4,6 +4,7 @@ import pytest
 
 from soft_gripper_sdre.sim.dynamics import FingerDynamics, oracle_sdc
 from soft_gripper_sdre.sim.hand import GripperSim, SimConfig
+from soft_gripper_sdre.sim.linear import linearize
 
 
 @pytest.fixture(scope='module')
@@ -18,12 +19,12 @@ def _drive(sim, u, steps):
 
 
 def test_jacobian_and_input_matrix_match_the_simulators_finite_differences(fd):
-    """J from PyBullet's analytic Jacobian equals sim.linearize's finite-difference tip Jacobian,
+    """J from PyBullet's analytic Jacobian equals linearize's finite-difference tip Jacobian,
     hence J M⁻¹ B too, at a bent pose (the hand's 15° mount)."""
     with GripperSim(SimConfig(scene='finger')) as sim:
         _drive(sim, [-0.04, 0.03], 300)
         truth = sim.truth()
-        M, _, B, J = sim.linearize()
+        M, _, B, J = linearize(sim)
     d = fd.evaluate(truth.q[0], truth.qd[0])
     np.testing.assert_allclose(d.J, J[:2], atol=1e-8)
     np.testing.assert_allclose(d.G2, J[:2] @ np.linalg.solve(M, B), rtol=1e-6)

@@ -7,6 +7,7 @@ import pytest
 
 from soft_gripper_sdre.sim.finger import GRAVITY, JOINT_AXIS, JOINT_STIFFNESS, finger_urdf
 from soft_gripper_sdre.sim.hand import MAX_PHYSICS_DT, GripperSim, SimConfig, physics_substeps_for
+from soft_gripper_sdre.sim.linear import linear_modes, linearize
 from soft_gripper_sdre.sim.units import LENGTH_SCALE, TORQUE_SCALE
 
 UPRIGHT = SimConfig(scene='finger', mount_roll_deg=0.0)
@@ -43,7 +44,7 @@ def test_static_deflection(u, dx, dy):
 
 def test_linearised_modes_match_somo():
     with GripperSim(UPRIGHT) as sim:
-        modes = sim.linear_modes()
+        modes = linear_modes(sim)
     assert modes[0] == pytest.approx(3.07, rel=0.05)
     assert modes[1] == pytest.approx(8.92, rel=0.05)
 
@@ -294,7 +295,7 @@ def test_linearized_stiffness_is_springs_plus_the_gravity_potentials_hessian(rol
     with GripperSim(SimConfig(scene='finger', mount_roll_deg=roll)) as sim:
         for _ in range(300):
             sim.step(np.array([[-0.04, 0.03]]))
-        M, K, _, _ = sim.linearize()
+        M, K, _, _ = linearize(sim)
         H = _potential_hessian(sim)
     K_gravity = K - np.diag(JOINT_STIFFNESS) / TORQUE_SCALE
     np.testing.assert_allclose(K_gravity, H / TORQUE_SCALE, rtol=0, atol=1e-4 * np.abs(H).max() / TORQUE_SCALE)
@@ -308,7 +309,7 @@ def test_linearize_leaves_the_run_unchanged():
             for k in range(400):
                 sim.step(np.array([[0.03 * np.sin(0.01 * k), -0.02]]))
                 if k == linearize_at:
-                    sim.linearize()
+                    linearize(sim)
                 out.append(np.concatenate([sim.truth().q[0], sim.truth().qd[0]]))
         return np.array(out)
     assert np.array_equal(run(None), run(100))

@@ -168,3 +168,13 @@ def delay_in_periods(delay: float, period: float) -> int:
     if abs(steps * period - delay) > 1e-9:
         raise ValueError(f'sensor_delay must be a whole number of control periods ({period:g} s), got {delay!r} s')
     return int(steps)
+
+
+def default_grasp(seconds: float, noise_std: float) -> LoopResult:
+    """The grasp closed in-process on the default settings (hand, KF, fast SDRE, roll-off): the
+    loop the benchmarks time and replay."""
+    from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS
+    from soft_gripper_sdre.learning.model import SDCModel
+    return run_closed_loop(SDCModel(), duration=seconds, weights=Weights(**DEFAULT_WEIGHTS),
+                           u_max=0.0625, profile=GraspProfile(others='open'),
+                           sim_config=SimConfig(scene='hand', noise_std=noise_std))

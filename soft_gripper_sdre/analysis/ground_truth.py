@@ -22,6 +22,7 @@ from soft_gripper_sdre.control.riccati import sdre_gains
 from soft_gripper_sdre.control.tracking import RollOff
 from soft_gripper_sdre.sim.dynamics import FingerDynamics
 from soft_gripper_sdre.sim.hand import GripperSim, SimConfig
+from soft_gripper_sdre.sim.linear import linearize
 
 
 def true_tips(joints: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -86,7 +87,7 @@ def input_matrix_survey(model, torques: np.ndarray, settle: float = 2.0) -> Inpu
         with GripperSim(SimConfig(scene='finger')) as sim:
             for _ in range(int(round(settle / sim.config.control_period))):
                 sim.step(u[None])
-            M, _, B, J = sim.linearize()
+            M, _, B, J = linearize(sim)
             tip = sim.truth().tip_pos[0]
         x = np.concatenate([tip[:2] - model.rest_tip[:2], [0.0, 0.0]])
         rows['u'].append(u)
@@ -100,7 +101,7 @@ def linear_finger(dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """ZOH discretisation (Ad (20,20), Bd (20,2)) and tip output C (2,20) of the finger at rest,
     friction off, SI."""
     with GripperSim(SimConfig(scene='finger')) as sim:
-        M, K, B, J = sim.linearize()
+        M, K, B, J = linearize(sim)
     n = M.shape[0]
     Minv = np.linalg.inv(M)
     Ac = np.block([[np.zeros((n, n)), np.eye(n)], [-Minv @ K, np.zeros((n, n))]])

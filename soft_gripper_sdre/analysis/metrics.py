@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
+import itertools
 
 import numpy as np
 
@@ -92,3 +93,14 @@ def r2_score(y_true: np.ndarray, y_pred: np.ndarray) -> np.ndarray:
     ss_res = np.sum((y_true - y_pred) ** 2, axis=0)
     ss_tot = np.sum((y_true - y_true.mean(axis=0)) ** 2, axis=0)
     return 1.0 - ss_res / ss_tot
+
+
+def poly_features(x: np.ndarray, u: np.ndarray, degree: int = 3) -> np.ndarray:
+    """All monomials of (x, u) up to ``degree`` (with the constant): the features of the
+    least-squares baseline that training reports beside the model's R²."""
+    z = np.hstack([x, u])
+    cols = [np.ones(len(z))]
+    for d in range(1, degree + 1):
+        for combo in itertools.combinations_with_replacement(range(z.shape[1]), d):
+            cols.append(np.prod(z[:, combo], axis=1))
+    return np.stack(cols, axis=1)

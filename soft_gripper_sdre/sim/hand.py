@@ -305,14 +305,3 @@ class GripperSim(DirectClient):
             contact = force > 0.0
         return SimTruth(self.t, q, qd, self._tip_pos.copy(), self._tip_vel.copy(),
                         tip_acc, self._u_applied.copy(), cube_pose, contact, force)
-
-    # -- analysis helpers (ground truth for tests and evaluation) ----------------------------
-    def linearize(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """The finger linearised about its current pose (:func:`soft_gripper_sdre.sim.linear.linearize`)."""
-        from soft_gripper_sdre.sim.linear import linearize
-        return linearize(self)
-
-    def linear_modes(self) -> np.ndarray:
-        """Natural frequencies [Hz] about the current pose (:func:`soft_gripper_sdre.sim.linear.linear_modes`)."""
-        from soft_gripper_sdre.sim.linear import linear_modes
-        return linear_modes(self)

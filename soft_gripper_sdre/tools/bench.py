@@ -71,18 +71,6 @@ def bench_markers(repeats: int) -> float:
         return _median_time(update, repeats, 50)
 
 
-def closed_loop(seconds: float, noise_std: float):
-    """The grasp closed in-process on the default settings (hand, KF, fast SDRE, roll-off)."""
-    from soft_gripper_sdre.analysis.closed_loop import run_closed_loop
-    from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
-    from soft_gripper_sdre.learning.model import SDCModel
-    from soft_gripper_sdre.sim.hand import SimConfig
-    from soft_gripper_sdre.control.trajectory import GraspProfile
-    return run_closed_loop(SDCModel(), duration=seconds, weights=Weights(**DEFAULT_WEIGHTS),
-                           u_max=0.0625, profile=GraspProfile(others='open'),
-                           sim_config=SimConfig(scene='hand', noise_std=noise_std))
-
-
 def bench_control(loop, law: str, repeats: int, ref_steps: int) -> dict[str, float]:
     """``law``'s compute, compiled (the fast path) against the scipy reference, on the states of a
     closed-loop run (replayed).
@@ -318,12 +306,13 @@ def floor_table(quick: bool, repeats: int) -> list[Row]:
     ``sdre_ff`` compute on the closed loop's states, the raw-CDR hop, and the graph in lockstep,
     in pipelined mode and pipelined with the estimator and the controller in one process, taking
     turns ``repeats`` times, each row with the load it ran under."""
+    from soft_gripper_sdre.analysis.closed_loop import default_grasp
     from soft_gripper_sdre.tools.bench_graph import hop, mode_rows, mode_runs
     us = lambda s: f'{s * 1e6:.0f} µs'          # noqa: E731
     load = lambda: f'load average {os.getloadavg()[0]:.1f}'    # noqa: E731
     hand = bench_sim('hand', 0.5 if quick else 2.0, 5)
     out: list[Row] = [('simulator step, hand + cube', f'{us(hand)} ({1e-3 / hand:.2f}× real time)', load())]
-    loop = closed_loop(1.0 if quick else 2.0, noise_std=5e-5)
+    loop = default_grasp(1.0 if quick else 2.0, noise_std=5e-5)
     kf = bench_kf(loop, 1 if quick else 3)
     ctrl = bench_control(loop, 'sdre_ff', 1 if quick else 2, 20)
     out += [('KF step, 4 fingers (compiled)', us(kf), load()),
@@ -362,7 +351,8 @@ def rows(quick: bool) -> list[Row]:
                 f'default marker_rate 10 Hz {100 * 10 * marker / (1000 * hand):.1f} % of the hand '
                 "simulator's stepping at 1 kHz (publishing the 12 KB adds a DDS write)"))
     # the closed loop on the default settings (0.05 mm measurement noise), then its states replayed
-    loop = closed_loop(1.0 if quick else 3.0, noise_std=5e-5)
+    from soft_gripper_sdre.analysis.closed_loop import default_grasp
+    loop = default_grasp(1.0 if quick else 3.0, noise_std=5e-5)
     T = len(loop.t)
     for law in ('sdre', 'sdre_ff'):
         ctrl = bench_control(loop, law, 1 if quick else 2, 100 if quick else 300)
@@ -374,7 +364,7 @@ def rows(quick: bool) -> list[Row]:
                  f'{us(ctrl["kernel"])}'),
                 (f'controller compute, {law}, 4 fingers (scipy reference)', us(ctrl['reference']),
                  'scipy solve_continuous_are per finger, general checks')]
-    clean = bench_control(closed_loop(1.0 if quick else 2.0, noise_std=0.0), 'sdre', 1, 50 if quick else 200)
+    clean = bench_control(default_grasp(1.0 if quick else 2.0, noise_std=0.0), 'sdre', 1, 50 if quick else 200)
     out.append(('controller compute, sdre, 4 fingers (compiled), clean states', us(clean['fast']),
                 f'{clean["reference"] / clean["fast_paired"]:.0f}× faster than the reference, same steps; the same '
                 f'loop without measurement noise: {clean["iterations"]:.2f} iterations per step'))

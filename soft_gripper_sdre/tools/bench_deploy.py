@@ -215,8 +215,8 @@ def replay_tips(seconds: float, path: Path) -> Path:
     1 ms, saved to ``path`` (.npy) unless it holds them already."""
     if path.is_file():
         return path
-    from soft_gripper_sdre.tools.bench import closed_loop
-    meas = closed_loop(seconds, noise_std=5e-5).meas
+    from soft_gripper_sdre.analysis.closed_loop import default_grasp
+    meas = default_grasp(seconds, noise_std=5e-5).meas
     tips = np.concatenate([meas, np.zeros(meas.shape[:2] + (1,))], axis=2)
     np.save(path, tips)
     return path

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 from dataclasses import dataclass, replace
-import itertools
 import json
 import logging
 from pathlib import Path
@@ -28,7 +27,7 @@ from tqdm import tqdm
 
 from soft_gripper_sdre.learning import derivatives
 from soft_gripper_sdre.learning.dataset import DatasetError, Record, load_records
-from soft_gripper_sdre.analysis.metrics import r2_score
+from soft_gripper_sdre.analysis.metrics import poly_features, r2_score
 from soft_gripper_sdre.learning.model import DEFAULT_MODEL, SDCModel, set_torch_threads
 from soft_gripper_sdre.learning.training import PRESETS, fingerprint, save_checkpoint, train
 from soft_gripper_sdre.analysis.plots import plot_accel, plot_loss
@@ -51,16 +50,6 @@ def tuned_jerk_psd(record: Record) -> float:
     first training record: the labels of every model fitted to the same data)."""
     seg = slice(0, min(2000, record.t.size))
     return derivatives.tune_jerk_psd(record.t[seg], record.tip[seg, :2], record.noise_std, np.logspace(1, 7, 7))
-
-
-def poly_features(x: np.ndarray, u: np.ndarray, degree: int = 3) -> np.ndarray:
-    """All monomials of (x, u) up to ``degree`` (with the constant)."""
-    z = np.hstack([x, u])
-    cols = [np.ones(len(z))]
-    for d in range(1, degree + 1):
-        for combo in itertools.combinations_with_replacement(range(z.shape[1]), d):
-            cols.append(np.prod(z[:, combo], axis=1))
-    return np.stack(cols, axis=1)
 
 
 def low_frequency_share(acc: np.ndarray, dt: float, cutoff: float = 10.0) -> list[float]:

@@ -31,7 +31,7 @@ from soft_gripper_sdre.analysis.bag_dataset import (DEFAULT_GAP_PERIODS, MIN_SAM
                                                     Recording, excited_fingers, label_finger, read_recording,
                                                     settle_estimates, settle_noise, tip_stretches)
 from soft_gripper_sdre.analysis import loop_settings, model_fitness
-from soft_gripper_sdre.analysis.metrics import r2_score
+from soft_gripper_sdre.analysis.metrics import poly_features, r2_score
 from soft_gripper_sdre.analysis.plots import plot_accel, plot_loss
 from soft_gripper_sdre.learning import derivatives
 from soft_gripper_sdre.learning.model import SDCModel
@@ -229,7 +229,6 @@ def train_from_bags(train_paths: list[Path], val_paths: list[Path], out: Path, s
                    runs=runs(samples), val_runs=runs(val_samples))
     bar.close()
 
-    from soft_gripper_sdre.tools.train import poly_features
     data_info = {'source': 'rosbag2', 'topics': {'tips': tips_topic, 'torques': torques_topic},
                  'bags': provenance, 'validation_bags': val_provenance,
                  'train_samples': int(len(x)), 'validation_samples': int(len(x_val)),
