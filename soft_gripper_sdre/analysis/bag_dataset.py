@@ -224,12 +224,18 @@ def excited_fingers(rec: Recording) -> list[int]:
     return [i for i in range(rec.n_fingers) if np.any(rec.torques[:, i] != 0.0)]
 
 
+def first_torque_ns(rec: Recording, finger: int) -> int | None:
+    """The stamp of ``finger``'s first non-zero torque (the end of its settle phase), or None."""
+    nonzero = np.flatnonzero(np.any(rec.torques[:, finger] != 0.0, axis=1))
+    return int(rec.cmd_ns[nonzero[0]]) if nonzero.size else None
+
+
 def settle_estimates(rec: Recording, finger: int) -> tuple[np.ndarray, float | None, int]:
     """(rest tip (3,), measurement σ [m] or None, settle samples) of ``finger`` from the tips
     stamped from the first command until its first non-zero torque (the first tip at or after
     the first command when there are none); σ needs :data:`MIN_SETTLE_SAMPLES` of them."""
-    nonzero = np.flatnonzero(np.any(rec.torques[:, finger] != 0.0, axis=1))
-    end = rec.cmd_ns[nonzero[0]] if nonzero.size else rec.cmd_ns[-1] + 1
+    onset = first_torque_ns(rec, finger)
+    end = onset if onset is not None else rec.cmd_ns[-1] + 1
     settle = (rec.tip_ns >= rec.cmd_ns[0]) & (rec.tip_ns < end)
     tips = rec.tips[settle, finger]
     if not len(tips):

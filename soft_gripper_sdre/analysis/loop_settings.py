@@ -172,7 +172,8 @@ def settings_for(model, facts: DataFacts, bandwidth_hz: float, accel_psd: float)
     return LoopSettings(
         control_period=facts.period, meas_std=max(facts.noise_std, 1e-7), accel_psd=accel_psd,
         q_pos=q_pos, q_vel=0.0, r=r, torque_limit=facts.torque_limit,
-        torque_lowpass_hz=ROLL_OFF_RATIO * max(bandwidth_hz, fastest_mode_hz(model)), integral_gain=w ** 3 / INTEGRAL_DIVISORS[0],
+        torque_lowpass_hz=ROLL_OFF_RATIO * max(bandwidth_hz, fastest_mode_hz(model)),
+        integral_gain=w ** 3 / INTEGRAL_DIVISORS[0],
         integral_band=band, pd_kp=w ** 2, pd_kd=2 * PD_DAMPING * w, bandwidth_hz=bandwidth_hz)
 
 
@@ -257,8 +258,10 @@ def holdable_travel(model, facts: DataFacts) -> float:
     smaller one included the model holds with :data:`HOLD_SHARE` of ``facts.torque_limit``."""
     ys = facts.travel * np.arange(1, HOLD_GRID + 1) / HOLD_GRID
     need = np.abs(hold_torques(model, ys)).max(axis=1)
-    over = np.flatnonzero(~(need <= HOLD_SHARE * facts.torque_limit))
-    return float(ys[over[0] - 1]) if over.size and over[0] > 0 else (0.0 if over.size else facts.travel)
+    over = np.flatnonzero(~(need <= HOLD_SHARE * facts.torque_limit))    # NaN counts as over
+    if not over.size:
+        return facts.travel
+    return float(ys[over[0] - 1]) if over[0] > 0 else 0.0
 
 
 @dataclass
@@ -302,32 +305,28 @@ def derive(model, facts: DataFacts, laws: tuple[str, ...] = ('sdre_ff', 'sdre'),
     say(f'move of {1e3 * abs(facts.travel):.3g} mm along +Y (half the reach {1e3 * abs(reach):.3g} mm, '
         f'or what the model holds with {HOLD_SHARE:g} of the torque limit {facts.torque_limit:.3g} N·m)')
 
-    def run(cand: LoopSettings, row: dict) -> CheckResult:
+    rows, kept = [], []
+
+    def run(cand: LoopSettings) -> tuple[CheckResult, LoopSettings, dict]:
+        """The nominal check of ``cand``, recorded as a new row of ``rows``."""
         nominal = check_on_model(model, cand, facts)
-        row['nominal'] = asdict(nominal)
+        rows.append({'bandwidth_hz': cand.bandwidth_hz, 'accel_psd': cand.accel_psd,
+                     'integral_gain': cand.integral_gain, 'nominal': asdict(nominal)})
         say(f'{cand.bandwidth_hz:g} Hz, accel_psd {cand.accel_psd:.3g}, integral '
             f'{cand.integral_gain:.3g}: ' + ('diverged' if nominal.diverged else
                                             f'{100 * nominal.rmse_rel:.2f} % of travel'))
-        return nominal
+        return nominal, cand, rows[-1]
 
-    rows, kept = [], []
     for hz in [b for b in bandwidths if b <= RATE_FRACTION / facts.period]:
-        tried = []
-        for frac in ACCEL_PSD_FRACTIONS:
-            cand = settings_for(model, facts, hz, frac * facts.accel_psd_ml)
-            rows.append({'bandwidth_hz': hz, 'accel_psd': cand.accel_psd,
-                         'integral_gain': cand.integral_gain})
-            tried.append((run(cand, rows[-1]), cand, rows[-1]))
+        tried = [run(settings_for(model, facts, hz, frac * facts.accel_psd_ml))
+                 for frac in ACCEL_PSD_FRACTIONS]
         if all(nominal.diverged for nominal, _, _ in tried):
             break                  # every estimator diverged: a faster loop has less margin still
         lead = min(tried, key=lambda c: (not c[0].ok, c[0].rmse_rel))
         w = 2 * math.pi * hz
-        tried = [lead]             # the other intensities are not run with the input gain off
-        for divisor in INTEGRAL_DIVISORS[1:]:
-            more = replace(lead[1], integral_gain=w ** 3 / divisor)
-            rows.append({'bandwidth_hz': hz, 'accel_psd': more.accel_psd,
-                         'integral_gain': more.integral_gain})
-            tried.append((run(more, rows[-1]), more, rows[-1]))
+        # the other intensities are not run with the input gain off
+        tried = [lead] + [run(replace(lead[1], integral_gain=w ** 3 / divisor))
+                          for divisor in INTEGRAL_DIVISORS[1:]]
         for nominal, cand, row in tried:
             if not (nominal.ok and nominal.rmse_rel <= KEEP_NOMINAL):
                 continue

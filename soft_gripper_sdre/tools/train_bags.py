@@ -28,8 +28,9 @@ import yaml
 
 from soft_gripper_sdre import FINGER_NAMES
 from soft_gripper_sdre.analysis.bag_dataset import (DEFAULT_GAP_PERIODS, MIN_SAMPLES, BagDataError, FingerSamples,
-                                                    Recording, excited_fingers, label_finger, read_recording,
-                                                    settle_estimates, settle_noise, tip_stretches)
+                                                    Recording, excited_fingers, first_torque_ns, label_finger,
+                                                    read_recording, settle_estimates, settle_noise,
+                                                    tip_stretches)
 from soft_gripper_sdre.analysis import loop_settings, model_fitness
 from soft_gripper_sdre.analysis.metrics import poly_features, r2_score
 from soft_gripper_sdre.analysis.plots import plot_accel, plot_loss
@@ -165,8 +166,8 @@ def tuning_stretch(rec: Recording, finger: int) -> tuple[np.ndarray, np.ndarray]
     non-zero torque on, within the stretch of tips (no long gap) that holds it; the whole first
     stretch when it has no tips from then on. The tips at rest before it (a driver's idle time,
     the settle phase) would tune the estimator to a finger that does not move."""
-    nonzero = np.flatnonzero(np.any(rec.torques[:, finger] != 0.0, axis=1))
-    onset = rec.cmd_ns[nonzero[0]] if nonzero.size else rec.tip_ns[0]
+    onset = first_torque_ns(rec, finger)
+    onset = rec.tip_ns[0] if onset is None else onset
     stretches = tip_stretches(rec)
     chosen = next((s for s in stretches if rec.tip_ns[s.stop - 1] >= onset), stretches[0])
     idx = np.arange(chosen.start, chosen.stop)
