@@ -186,7 +186,10 @@ def test_the_estimator_takes_the_drivers_tips_as_they_come():
             drop_fraction=0.05, seed=2)
         e = est.diag.counters
     assert e['received'] >= 0.9 * len(tips) and e['received'] == e['estimates']
-    assert 0 < e['gaps'] <= int(counters['dropped']) + int(counters.get('late_ticks', 0))
+    # every gap is a message the driver dropped, a late tick, or one best effort lost on the way
+    # (published but never received: under load the reader's queue can overflow)
+    lost = int(counters['published']) - e['received']
+    assert 0 < e['gaps'] <= int(counters['dropped']) + int(counters.get('late_ticks', 0)) + lost
 
 
 def test_bad_nan_and_stale_commands_leave_the_previous_or_zero_torque():
