@@ -1,12 +1,14 @@
 """tools.foreign: the README's own-gripper recipe over DDS on a gripper unlike the package's own
 (sim/foreign.py through the plant_driver node)."""
 import json
+import math
 import os
 from pathlib import Path
 import subprocess
 import sys
 
 import pytest
+import yaml
 
 from soft_gripper_sdre.analysis.bag_dataset import read_recording, settle_noise
 
@@ -84,7 +86,14 @@ def test_the_recipe_runs_end_to_end_on_the_tendon_finger(tmp_path):
         assert 'no controller setting passed' in r.stderr
         return
     assert derived['settings']['control_period'] == pytest.approx(1 / 200, rel=0.02)
-    assert (out / 'model' / 'params.yaml').exists()
+    # the move goes the way the finger bends (up and in: the inputs' common direction, 120–140°),
+    # and params.yaml gives it to the trajectory node
+    assert 110 < facts['direction'] < 150
+    plan = yaml.safe_load((out / 'model' / 'params.yaml').read_text())['/**/trajectory']['ros__parameters']
+    assert math.hypot(plan['close_distance'], plan['side_distance']) == pytest.approx(facts['travel'])
+    assert math.degrees(math.atan2(plan['close_distance'], plan['side_distance'])) == \
+        pytest.approx(facts['direction'])
+    assert plan['contact_distance'] == plan['close_distance']
     score = metrics['deploy']['sdre_ff']
     assert metrics['deploy']['travel'] == facts['travel']
     assert score['samples'] > 500 and score['saturated_at_rest'] == 0.0

@@ -148,29 +148,81 @@ def test_settings_derived_for_the_shipped_model_pass_their_checks(shipped):
 
 
 def test_the_hold_torque_is_the_spring_over_the_input_map():
-    """At rest at Y = y the linear model needs G₂u = (0, k y): u = G₂⁻¹ (0, k y)."""
+    """Held still at p the linear model needs G₂u = k p: u = G₂⁻¹ k p, in any direction."""
     model = LinearModel()
-    ys = np.array([1e-3, 2e-3])
-    u = ls.hold_torques(model, ys)
-    np.testing.assert_allclose(u, np.linalg.solve(model.g2, np.stack([0 * ys, model.k * ys])).T, rtol=1e-9)
+    points = np.array([[0.0, 1e-3], [0.0, 2e-3], [2e-3, -1e-3]])
+    u = ls.hold_torques(model, points)
+    np.testing.assert_allclose(u, np.linalg.solve(model.g2, model.k * points.T).T, rtol=1e-9)
+
+
+def test_the_closing_direction_is_where_the_data_moved_most():
+    """Tips driven by random torques through inputs 8° apart move along their common direction:
+    the principal axis of the compliance k⁻¹ G₂, turned toward +Y whatever the data's sign."""
+    model = LinearModel(g2=((-300.0, -280.0), (40.0, 80.0)))
+    u = np.random.default_rng(0).uniform(-0.01, 0.01, (4000, 2))
+    tips = u @ model.g2.T / model.k                            # held still: k p = G₂ u
+    axis = np.linalg.svd(model.g2)[0][:, 0]
+    expected = math.degrees(math.atan2(abs(axis[1]), -abs(axis[0])))     # −X, +Y quadrant
+    assert ls.closing_direction(tips) == pytest.approx(expected, abs=0.5)
+    assert ls.closing_direction(-tips) == pytest.approx(expected, abs=0.5)
+    facts = ls.data_facts(tips, u, 5e-3, 5e-5, [(np.arange(100) * 5e-3, tips[:100])])
+    assert facts.direction == ls.closing_direction(tips)
+    along = tips @ ls.unit_vector(facts.direction)
+    assert facts.travel == pytest.approx(ls.TRAVEL_SHARE * np.percentile(along, ls.REACH_PERCENTILE))
+    close, side = facts.move()
+    assert close > 0 and side < 0 and math.hypot(close, side) == pytest.approx(facts.travel)
+    traj = ls.check_move(facts)
+    held = traj.sample(np.array([traj.profile.t_start + traj.profile.t_close + 0.5])).pos[0, 0]
+    np.testing.assert_allclose(held, facts.travel * facts.unit, atol=1e-12)
 
 
 def test_the_checked_move_shrinks_to_what_half_the_torque_limit_holds():
     """Inputs 8° apart: a pure +Y move needs opposing torques; the move is cut to the largest
-    displacement held with HOLD_SHARE of the limit, and refused when that is under the noise."""
+    displacement held with HOLD_SHARE of the limit, and refused when that is under the noise.
+    Along the inputs' common direction the same limit holds far more."""
     model = LinearModel(g2=((300.0, 280.0), (40.0, 80.0)))
     per_m = np.abs(np.linalg.solve(model.g2, [0.0, model.k])).max()     # N·m per m held
     facts = ls.DataFacts(period=5e-3, noise_std=5e-5, travel=0.01, torque_limit=0.02, accel_psd_ml=1.0)
     held = ls.holdable_travel(model, facts)
     assert ls.HOLD_SHARE * facts.torque_limit / per_m - facts.travel / ls.HOLD_GRID < held \
         <= ls.HOLD_SHARE * facts.torque_limit / per_m
+    axis = np.linalg.svd(model.g2)[0][:, 0]
+    along = ls.DataFacts(**{**facts.__dict__, 'direction': math.degrees(math.atan2(*np.abs(axis)[::-1]))})
+    assert ls.holdable_travel(model, along) > 5 * held
     roomy = ls.DataFacts(**{**facts.__dict__, 'torque_limit': 10.0})
     assert ls.holdable_travel(model, roomy) == roomy.travel          # the reach's share, uncut
     weak = ls.DataFacts(**{**facts.__dict__, 'torque_limit': 1e-6})
     derived = ls.derive(model, weak)
     assert derived.settings is None and derived.candidates == []
     assert 'excite with larger torques' in derived.reason and derived.facts.reach_travel == 0.01
+    assert '90° from +X toward +Y' in derived.reason
     assert derived.summary()['reason'] == derived.reason
+
+
+class DragBeyond(LinearModel):
+    """Linear, but beyond 2.8 mm along +Y a drag of 4000/s: it holds still anywhere with little
+    torque and cannot follow the check's move out there within the torque limit."""
+
+    def AG(self, x):
+        A, G = super().AG(x)
+        p = np.atleast_2d(x)[:, 1]
+        drag = 4000.0 / (1 + np.exp(np.clip(-(p - 2.8e-3) / 1e-4, -50, 50)))
+        A[:, 2, 2] -= drag
+        A[:, 3, 3] -= drag
+        return A, G
+
+
+def test_a_move_no_setting_passes_on_is_halved_until_one_does():
+    model = DragBeyond(c=40.0)
+    facts = ls.DataFacts(period=5e-3, noise_std=1e-5, travel=4e-3, torque_limit=0.02, accel_psd_ml=1.0)
+    assert ls.holdable_travel(model, facts) == facts.travel
+    derived = ls.derive(model, facts, bandwidths=(4.0,))
+    travels = [row['travel'] for row in derived.candidates]
+    assert travels[0] == 4e-3 and travels[-1] == 2e-3 and set(travels) == {4e-3, 2e-3}
+    assert not any(row.get('robust_ok') for row in derived.candidates if row['travel'] == 4e-3)
+    assert derived.settings is not None and derived.facts.travel == 2e-3
+    assert derived.facts.reach_travel == 4e-3
+    assert derived.checks['sdre_ff'].rmse_rel <= ls.KEEP_NOMINAL
 
 
 @pytest.mark.slow

@@ -43,13 +43,22 @@ model: two fingers that share one model differ by about that much). Its score is
 of these runs; the lowest score wins, and then the next lower bandwidth when it scores within
 :data:`PREFER_SLOWER` of it, for margin against what the model does not know.
 
-The move's travel is the smaller of :data:`TRAVEL_SHARE` of the data's reach along +Y and the
-largest displacement the learned model holds still along +Y with :data:`HOLD_SHARE` of the torque
-limit (:func:`holdable_travel`: at rest the model needs u = −G₂(x)⁻¹ (A(x)x)₂). Two inputs whose
-tip directions are close (13° on the tendon finger) move the tip across them only with opposing
-torques, far larger than the excitation's: half the reach can be out of the limit's range, and a
-check along it measures saturation, not the settings. Below :data:`MIN_TRAVEL_NOISE` σ of
-measurement noise no move is checked and nothing is derived (:attr:`Derivation.reason`).
+The move goes along the direction the finger moved most in the identification data (the
+principal axis of its tips about the rest pose, turned toward +Y: :func:`closing_direction`), the
+way it bends when driven. Two inputs whose tip directions are close (12–13° on both foreign
+fingers) move the tip across that axis only with opposing torques, far larger than the
+excitation's: a move along pure +Y, 35–50° off the axis on those fingers, is out of the
+limit's range beyond a fraction of a millimetre, and a check along it measures saturation, not the
+settings. The move's travel is the smaller of :data:`TRAVEL_SHARE` of the data's reach along the
+direction and the largest displacement the learned model holds still there with
+:data:`HOLD_SHARE` of the torque limit (:func:`holdable_travel`: at rest the model needs
+u = −G₂(x)⁻¹ (A(x)x)₂). When no candidate passes along it, the search is made again along
+:data:`TRAVEL_SHRINK` of it: near the edge of its data a learned model can hold still yet snap
+in motion (the tendon finger's model, 2 mm out along its axis, jumps 1 mm under every loop, and
+the check fails at every bandwidth by 8–9 % of a 3.7 mm move; at 1.85 mm it passes). Below
+:data:`MIN_TRAVEL_NOISE` σ of measurement noise no move is checked and nothing is derived
+(:attr:`Derivation.reason`). The trajectory node closes along it with
+``close_distance`` and ``side_distance``, the travel's Y and X parts (:meth:`DataFacts.move`).
 """
 from __future__ import annotations
 
@@ -84,14 +93,17 @@ GAIN_ERRORS = (0.5, 2.0)
 KEEP_NOMINAL = 0.05
 KEEP_ROBUST = 0.5
 PREFER_SLOWER = 1.5
-#: the check's move: closing (+Y) by a share of the data's reach that way (its 99th percentile),
-#: on the trajectory node's default timing
+#: the check's move: along the data's principal direction by a share of the data's reach that way
+#: (the 99th percentile of the tips projected on it), on the trajectory node's default timing
 TRAVEL_SHARE = 0.5
 REACH_PERCENTILE = 99.0
 #: the check's move holds still with at most this share of the torque limit (the rest is the
 #: feedback's), and is at least this many σ of measurement noise
 HOLD_SHARE = 0.5
 MIN_TRAVEL_NOISE = 10.0
+#: when no candidate passes along the move, the check is made again along this share of it (a
+#: learned model is least known near the edge of its data), down to MIN_TRAVEL_NOISE σ
+TRAVEL_SHRINK = 0.5
 #: displacements tried for the holdable travel, as shares of the reach's travel
 HOLD_GRID = 40
 #: the torque limit is this many times the largest torque of the excitation
@@ -103,16 +115,34 @@ FEEDFORWARD_AT = 'ref'
 MAX_STEP = 2.5e-3
 
 
+def unit_vector(degrees: float) -> np.ndarray:
+    """(cos, sin) of an angle from +X toward +Y [deg]."""
+    a = math.radians(degrees)
+    return np.array([math.cos(a), math.sin(a)])
+
+
 @dataclass(frozen=True)
 class DataFacts:
     """What the recordings say about the finger (SI)."""
 
     period: float                 # median tip period [s]
     noise_std: float              # measurement σ [m]
-    travel: float                 # signed move along Y the check makes [m]
+    travel: float                 # length of the move the check makes along ``direction`` [m]
     torque_limit: float           # the loop's torque limit [N·m]
     accel_psd_ml: float           # the CV model's likelihood-best intensity [(m/s²)²/Hz]
-    reach_travel: float | None = None   # TRAVEL_SHARE of the data's +Y reach [m] (None: travel)
+    reach_travel: float | None = None   # TRAVEL_SHARE of the data's reach that way [m] (None: travel)
+    direction: float = 90.0       # of the move, from +X toward +Y [deg] (90: closing along +Y)
+
+    @property
+    def unit(self) -> np.ndarray:
+        """The move's direction as a unit vector (X, Y)."""
+        return unit_vector(self.direction)
+
+    def move(self) -> tuple[float, float]:
+        """The move as the trajectory node's ``(close_distance, side_distance)`` [m]: its Y and X
+        parts."""
+        x, y = self.travel * self.unit
+        return float(y), float(x)
 
 
 @dataclass(frozen=True)
@@ -189,9 +219,10 @@ class _GainError:
 
 def check_move(facts: DataFacts) -> GraspTrajectory:
     """The check's reference for one finger at the model's rest: a raised-cosine move of
-    ``facts.travel`` along Y, held, and back (:data:`CHECK_PROFILE`)."""
-    profile = GraspProfile(close_distance=facts.travel, grasp_fingers=(0,), others='hold',
-                           contact_distance=facts.travel, **CHECK_PROFILE)
+    ``facts.travel`` along ``facts.direction``, held, and back (:data:`CHECK_PROFILE`)."""
+    close, side = facts.move()
+    profile = GraspProfile(close_distance=close, side_distance=side, grasp_fingers=(0,),
+                           others='hold', contact_distance=close, **CHECK_PROFILE)
     return GraspTrajectory(np.zeros((1, 2)), profile)
 
 
@@ -242,26 +273,27 @@ def check_on_model(model, settings: LoopSettings, facts: DataFacts, law: str = '
                        float(sat.mean()), False)
 
 
-def hold_torques(model, ys: np.ndarray) -> np.ndarray:
-    """(len(ys), 2) torques that hold the learned model still at Y = ``ys`` (X = 0, at rest):
-    u = −G₂(x)⁻¹ (A(x)x)₂, from ẋ = A(x)x + G(x)u being affine in u."""
-    x = np.zeros((len(ys), 4))
-    x[:, 1] = ys
-    free = model_fitness.xdot(model, x, np.zeros((len(ys), 2)))[:, 2:]
-    G2 = np.stack([model_fitness.xdot(model, x, np.tile(e, (len(ys), 1)))[:, 2:] - free
+def hold_torques(model, points: np.ndarray) -> np.ndarray:
+    """(N, 2) torques that hold the learned model still at the displacements ``points`` (N, 2)
+    from its rest: u = −G₂(x)⁻¹ (A(x)x)₂, from ẋ = A(x)x + G(x)u being affine in u."""
+    n = len(points)
+    x = np.zeros((n, 4))
+    x[:, :2] = points
+    free = model_fitness.xdot(model, x, np.zeros((n, 2)))[:, 2:]
+    G2 = np.stack([model_fitness.xdot(model, x, np.tile(e, (n, 1)))[:, 2:] - free
                    for e in np.eye(2)], axis=2)
     return -np.stack([np.linalg.lstsq(g, f, rcond=None)[0] for g, f in zip(G2, free)])
 
 
 def holdable_travel(model, facts: DataFacts) -> float:
-    """The largest displacement along the travel's direction, up to ``facts.travel``, that every
+    """The largest displacement along ``facts.direction``, up to ``facts.travel``, that every
     smaller one included the model holds with :data:`HOLD_SHARE` of ``facts.torque_limit``."""
-    ys = facts.travel * np.arange(1, HOLD_GRID + 1) / HOLD_GRID
-    need = np.abs(hold_torques(model, ys)).max(axis=1)
+    lengths = facts.travel * np.arange(1, HOLD_GRID + 1) / HOLD_GRID
+    need = np.abs(hold_torques(model, np.outer(lengths, facts.unit))).max(axis=1)
     over = np.flatnonzero(~(need <= HOLD_SHARE * facts.torque_limit))    # NaN counts as over
     if not over.size:
         return facts.travel
-    return float(ys[over[0] - 1]) if over[0] > 0 else 0.0
+    return float(lengths[over[0] - 1]) if over[0] > 0 else 0.0
 
 
 @dataclass
@@ -283,6 +315,7 @@ class Derivation:
                 'rules': {'bandwidths_hz': list(BANDWIDTHS_HZ), 'gain_errors': list(GAIN_ERRORS),
                           'keep_nominal': KEEP_NOMINAL, 'keep_robust': KEEP_ROBUST,
                           'hold_share': HOLD_SHARE, 'min_travel_noise': MIN_TRAVEL_NOISE,
+                          'travel_shrink': TRAVEL_SHRINK,
                           'check_profile': CHECK_PROFILE, 'delay_periods': 1}}
 
 
@@ -292,26 +325,48 @@ def derive(model, facts: DataFacts, laws: tuple[str, ...] = ('sdre_ff', 'sdre'),
     by closed-loop runs on the model (module doc); ``settings`` is None when no candidate passes
     or no move can be checked (``reason``). ``progress(text)`` hears each run."""
     reach = facts.travel if facts.reach_travel is None else facts.reach_travel
-    facts = replace(facts, travel=math.copysign(holdable_travel(model, replace(facts, travel=reach)), reach),
-                    reach_travel=reach)
-    if abs(facts.travel) < MIN_TRAVEL_NOISE * facts.noise_std:
-        need = np.abs(hold_torques(model, np.array([MIN_TRAVEL_NOISE * math.copysign(facts.noise_std, reach)]))).max()
+    facts = replace(facts, travel=holdable_travel(model, replace(facts, travel=reach)), reach_travel=reach)
+    way = f'{facts.direction:.0f}° from +X toward +Y'
+    if facts.travel < MIN_TRAVEL_NOISE * facts.noise_std:
+        need = np.abs(hold_torques(model, MIN_TRAVEL_NOISE * facts.noise_std * facts.unit[None])).max()
         return Derivation(None, {}, [], facts, reason=(
-            f'the model holds at most {1e3 * abs(facts.travel):.3g} mm along +Y with '
+            f'the model holds at most {1e3 * facts.travel:.3g} mm along {way} with '
             f'{HOLD_SHARE:g} of the torque limit {facts.torque_limit:.3g} N·m, under '
             f'{MIN_TRAVEL_NOISE:g} σ of noise ({1e3 * MIN_TRAVEL_NOISE * facts.noise_std:.3g} mm, '
             f'which needs {need:.3g} N·m): excite with larger torques'))
     say = progress if progress is not None else (lambda text: None)
-    say(f'move of {1e3 * abs(facts.travel):.3g} mm along +Y (half the reach {1e3 * abs(reach):.3g} mm, '
+    say(f'move of {1e3 * facts.travel:.3g} mm along {way} (half the reach {1e3 * reach:.3g} mm, '
         f'or what the model holds with {HOLD_SHARE:g} of the torque limit {facts.torque_limit:.3g} N·m)')
+    rows: list[dict] = []
+    while True:
+        kept = _search(model, facts, bandwidths, rows, say)
+        shorter = TRAVEL_SHRINK * facts.travel
+        if kept or shorter < MIN_TRAVEL_NOISE * facts.noise_std:
+            break
+        facts = replace(facts, travel=shorter)
+        say(f'no setting passed: a move of {1e3 * shorter:.3g} mm')
+    if not kept:
+        return Derivation(None, {}, rows, facts)
+    kept.sort(key=lambda c: (c[0], c[1]))
+    best = kept[0]
+    slower = [c for c in kept if c[1] < best[1] and c[0] <= PREFER_SLOWER * best[0]]
+    chosen = max(slower, key=lambda c: (c[1], -c[0]))[2] if slower else best[2]
+    checks = {law: check_on_model(model, chosen, facts, law=law) for law in laws}
+    return Derivation(chosen, checks, rows, facts)
 
-    rows, kept = [], []
+
+def _search(model, facts: DataFacts, bandwidths: tuple[float, ...], rows: list[dict],
+            say) -> list[tuple[float, float, LoopSettings]]:
+    """The candidates along ``facts``' move (module doc), each run appended to ``rows``; returns
+    the kept ones as (score, bandwidth, settings)."""
+    kept = []
 
     def run(cand: LoopSettings) -> tuple[CheckResult, LoopSettings, dict]:
         """The nominal check of ``cand``, recorded as a new row of ``rows``."""
         nominal = check_on_model(model, cand, facts)
-        rows.append({'bandwidth_hz': cand.bandwidth_hz, 'accel_psd': cand.accel_psd,
-                     'integral_gain': cand.integral_gain, 'nominal': asdict(nominal)})
+        rows.append({'travel': facts.travel, 'bandwidth_hz': cand.bandwidth_hz,
+                     'accel_psd': cand.accel_psd, 'integral_gain': cand.integral_gain,
+                     'nominal': asdict(nominal)})
         say(f'{cand.bandwidth_hz:g} Hz, accel_psd {cand.accel_psd:.3g}, integral '
             f'{cand.integral_gain:.3g}: ' + ('diverged' if nominal.diverged else
                                             f'{100 * nominal.rmse_rel:.2f} % of travel'))
@@ -336,14 +391,7 @@ def derive(model, facts: DataFacts, laws: tuple[str, ...] = ('sdre_ff', 'sdre'),
             row['score'] = max([nominal.rmse_rel] + [r.rmse_rel for r in runs])
             if row['robust_ok']:
                 kept.append((row['score'], hz, cand))
-    if not kept:
-        return Derivation(None, {}, rows, facts)
-    kept.sort(key=lambda c: (c[0], c[1]))
-    best = kept[0]
-    slower = [c for c in kept if c[1] < best[1] and c[0] <= PREFER_SLOWER * best[0]]
-    chosen = max(slower, key=lambda c: (c[1], -c[0]))[2] if slower else best[2]
-    checks = {law: check_on_model(model, chosen, facts, law=law) for law in laws}
-    return Derivation(chosen, checks, rows, facts)
+    return kept
 
 
 # -- what the data say -----------------------------------------------------------------------
@@ -378,13 +426,28 @@ def tune_accel_psd(t: np.ndarray, pos: np.ndarray, meas_std: float,
     return float(max(grid, key=lambda q: cv_loglik(t, pos, q, sigma)))
 
 
+def closing_direction(positions: np.ndarray) -> float:
+    """The direction [deg from +X toward +Y, in [0, 180)] the tips ``positions`` (N, 2), as
+    displacements from the rest pose, moved most: the principal axis of their second moment about
+    the rest, turned toward +Y (the closing side; toward +X when it lies along X)."""
+    p = np.asarray(positions, dtype=float)
+    _, vecs = np.linalg.eigh(p.T @ p)
+    x, y = vecs[:, -1]
+    if y < 0 or (y == 0 and x < 0):
+        x, y = -x, -y
+    return float(math.degrees(math.atan2(y, x)))
+
+
 def data_facts(positions: np.ndarray, torques: np.ndarray, period: float, noise_std: float,
                tune: list[tuple[np.ndarray, np.ndarray]]) -> DataFacts:
     """:class:`DataFacts` from the training samples: translated positions (N, 2), held torques
     (N, 2), the tip period, the measured σ, and (t, tips) of stretches to tune the estimator on
     (the largest intensity any of them asks for: the loop must follow the fastest motion)."""
-    travel = TRAVEL_SHARE * max(float(np.percentile(positions[:, 1], REACH_PERCENTILE)), 0.0)
+    direction = closing_direction(positions)
+    along = positions @ unit_vector(direction)
+    travel = TRAVEL_SHARE * max(float(np.percentile(along, REACH_PERCENTILE)), 0.0)
     limit = TORQUE_MARGIN * float(np.percentile(np.abs(torques).max(axis=1), 99.9))
     psd = max(tune_accel_psd(t, tips, noise_std) for t, tips in tune)
     return DataFacts(period=float(period), noise_std=float(noise_std), travel=float(travel),
-                     torque_limit=limit, accel_psd_ml=psd, reach_travel=float(travel))
+                     torque_limit=limit, accel_psd_ml=psd, reach_travel=float(travel),
+                     direction=direction)

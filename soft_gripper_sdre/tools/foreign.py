@@ -13,10 +13,10 @@ by hand (``--bags`` reuses an earlier run's recordings and starts at step 2):
    amplitude found by probing the finger to half of ``max_excursion``), then x1 x2 b1 b2 and the
    validation signal u4 at that amplitude;
 2. **train** — ``tools.train --bag … --val-bag …``: the model, its verdict and ``params.yaml``;
-3. **deploy** — estimator and controller on ``params.yaml``, the trajectory node closing both
-   fingers along +Y by the travel the settings were checked for (half of the identification
-   data's reach that way: a learned model is only known where the data went), the recorder;
-   once per law (``--laws``);
+3. **deploy** — estimator, controller and trajectory node on ``params.yaml``: both fingers close
+   along the move the settings were checked for (the way the finger moved most in the
+   identification data, by at most half its reach that way: a learned model is only known where
+   the data went), the recorder; once per law (``--laws``);
 4. **score** — from each deployment's bag: the RMSE of the driver's true tips
    (``true_tip_positions``) against the plan, as a share of the travel, and the share of
    commands at the torque limit while the plan holds at rest.
@@ -135,9 +135,9 @@ def excite(a: argparse.Namespace, env: dict, bag: Path, signals: list[str], leve
         return graph.procs['excitation'].log_path.read_text(encoding='utf-8')
 
 
-def deploy(a: argparse.Namespace, env: dict, out: Path, params: Path, law: str, seed: int,
-           travel: float) -> Path:
-    """The grasp with ``law`` on ``params``, closing by ``travel`` [m]; returns the bag."""
+def deploy(a: argparse.Namespace, env: dict, out: Path, params: Path, law: str, seed: int) -> Path:
+    """The grasp with ``law`` on ``params``, closing by the move they were checked on (their
+    trajectory section); returns the bag."""
     bag = out / 'bag'
     monitor = DiagnosticsMonitor(env, f'foreign_monitor_{law}')
     try:
@@ -152,7 +152,7 @@ def deploy(a: argparse.Namespace, env: dict, out: Path, params: Path, law: str, 
                 dead = next((p.name for p in graph.procs.values() if not p.alive()), 'controller')
                 raise _fail(graph, dead, f'deploying {law}: the estimator and controller did not come up')
             graph.start('trajectory', {'finger_names': FINGERS, 'grasp_fingers': [0, 1], 'others': 'hold',
-                                       'close_distance': travel, **BEST_EFFORT})
+                                       **BEST_EFFORT}, params_file=params)
             end = time.monotonic() + GRASP_SECONDS + 3.0
             while time.monotonic() < end:
                 dead = [p.name for p in graph.procs.values() if not p.alive()]
@@ -254,14 +254,15 @@ def main(argv: list[str] | None = None) -> int:
             raise RuntimeError('training wrote no params.yaml: ' + '; '.join(why))
         print(train.stdout.strip().splitlines()[-1], flush=True)
         limit = yaml.safe_load(params.read_text())['/**/controller']['ros__parameters']['torque_limit']
-        travel = float(trained['derived_settings']['facts']['travel'])
-        metrics['deploy'] = {'travel': travel}
+        facts = trained['derived_settings']['facts']
+        travel = float(facts['travel'])
+        metrics['deploy'] = {'travel': travel, 'direction_deg': facts['direction']}
         for i, law in enumerate(a.laws):
-            bag = deploy(a, env, out / f'deploy_{law}', params, law, a.seed + 10 + i, travel)
+            bag = deploy(a, env, out / f'deploy_{law}', params, law, a.seed + 10 + i)
             metrics['deploy'][law] = score(bag, travel, limit)
             s = metrics['deploy'][law]
             print(f'{law}: RMSE {s["rmse_mm"]} mm = {s["rmse_pct_of_travel"]} % of the '
-                  f'{1e3 * travel:.2f} mm travel; saturated at rest '
+                  f'{1e3 * travel:.2f} mm travel at {facts["direction"]:.0f}°; saturated at rest '
                   f'{100 * s["saturated_at_rest"]:.1f} %', flush=True)
     except RuntimeError as exc:
         print(f'error: {exc}', file=sys.stderr)

@@ -177,23 +177,31 @@ def tuning_stretch(rec: Recording, finger: int) -> tuple[np.ndarray, np.ndarray]
     return (ns - ns[0]) / 1e9, rec.tips[idx, finger, :2]
 
 
-def params_yaml(derived: loop_settings.LoopSettings, model_path: Path, finger_names: list[str],
+def params_yaml(derived: loop_settings.Derivation, model_path: Path, finger_names: list[str],
                 source: str) -> str:
-    """The parameter file of the estimator and the controller for ``derived`` settings."""
+    """The parameter file of the estimator, the controller and the trajectory node's checked move
+    for ``derived`` settings."""
     from soft_gripper_sdre.nodes.params import params_file_key
-    est = {'finger_names': finger_names, 'control_period': derived.control_period,
-           'meas_std': derived.meas_std, 'accel_psd': derived.accel_psd}
+    d = derived.settings
+    est = {'finger_names': finger_names, 'control_period': d.control_period,
+           'meas_std': d.meas_std, 'accel_psd': d.accel_psd}
     ctrl = {'model_path': str(model_path.resolve()), 'finger_names': finger_names,
-            'control_period': derived.control_period, 'q_pos': derived.q_pos,
-            'q_vel': derived.q_vel, 'r': derived.r, 'torque_limit': derived.torque_limit,
-            'torque_lowpass_hz': derived.torque_lowpass_hz,
-            'integral_gain': derived.integral_gain, 'integral_band': derived.integral_band,
-            'feedforward_at': derived.feedforward_at, 'pd_kp': derived.pd_kp, 'pd_kd': derived.pd_kd}
+            'control_period': d.control_period, 'q_pos': d.q_pos,
+            'q_vel': d.q_vel, 'r': d.r, 'torque_limit': d.torque_limit,
+            'torque_lowpass_hz': d.torque_lowpass_hz,
+            'integral_gain': d.integral_gain, 'integral_band': d.integral_band,
+            'feedforward_at': d.feedforward_at, 'pd_kp': d.pd_kp, 'pd_kd': d.pd_kd}
+    close, side = derived.facts.move()
+    plan = {'close_distance': close, 'side_distance': side, 'contact_distance': close}
     body = {params_file_key('estimator'): {'ros__parameters': _plain(est)},
-            params_file_key('controller'): {'ros__parameters': _plain(ctrl)}}
+            params_file_key('controller'): {'ros__parameters': _plain(ctrl)},
+            params_file_key('trajectory'): {'ros__parameters': _plain(plan)}}
     head = (f'# Estimator and controller settings derived from {source} by tools.train\n'
-            f'# (closed-loop bandwidth {derived.bandwidth_hz:g} Hz; how they are derived and checked:\n'
-            '# docs/own_gripper.md). Use: --ros-args --params-file <this file>\n')
+            f'# (closed-loop bandwidth {d.bandwidth_hz:g} Hz), and the move they were checked on:\n'
+            f'# {1e3 * derived.facts.travel:.3g} mm at {derived.facts.direction:.0f}° from +X toward +Y '
+            '(trajectory: close_distance, side_distance;\n'
+            '# contact_distance = close_distance: the whole move scored as free space). How they are\n'
+            '# derived and checked: docs/own_gripper.md. Use: --ros-args --params-file <this file>\n')
     return head + yaml.safe_dump(body, sort_keys=False)
 
 
@@ -277,7 +285,7 @@ def train_from_bags(train_paths: list[Path], val_paths: list[Path], out: Path, s
         outputs = list(OUTPUTS)
         if derived is not None and derived.settings is not None:
             (staging / PARAMS_FILE).write_text(params_yaml(
-                derived.settings, out / 'model.pt', finger_names,
+                derived, out / 'model.pt', finger_names,
                 ', '.join(str(p) for p in train_paths)))
             outputs.append(PARAMS_FILE)
         out.mkdir(parents=True, exist_ok=True)
@@ -319,4 +327,8 @@ def report_fitness(fitness: model_fitness.Fitness, derived, out: Path) -> None:
           f'(q_pos {d.q_pos:.3g}, r {d.r:.3g}), torque_limit {d.torque_limit:.3g} N·m, '
           f'roll-off {d.torque_lowpass_hz:g} Hz, integral {d.integral_gain:.3g} / '
           f'{1e3 * d.integral_band:.2f} mm; closed loop on the model, error / travel '
-          f'{1e3 * abs(derived.facts.travel):.1f} mm: {checks}')
+          f'{1e3 * derived.facts.travel:.2f} mm: {checks}')
+    close, side = derived.facts.move()
+    print(f'the checked move: {1e3 * derived.facts.travel:.2f} mm at {derived.facts.direction:.0f}° from +X '
+          f'toward +Y, close_distance {1e3 * close:.2f} mm and side_distance {1e3 * side:.2f} mm '
+          f'(the trajectory section of {PARAMS_FILE}); a longer move is not checked')
