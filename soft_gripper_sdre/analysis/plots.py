@@ -17,23 +17,6 @@ import numpy as np  # noqa: E402
 AXES = ('X', 'Y')
 
 
-def _grid(n_fingers: int, title: str):
-    fig, axes = plt.subplots(n_fingers, 2, figsize=(10, 2.1 * n_fingers + 0.8), sharex=True,
-                             squeeze=False)
-    fig.suptitle(title)
-    return fig, axes
-
-
-def _finish(fig, axes, path: Path) -> Path:
-    for ax in axes[-1]:
-        ax.set_xlabel('time [s]')
-    fig.tight_layout()
-    path = Path(path)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
-
-
 def _span_limits(ax, values: np.ndarray, min_span: float) -> None:
     """Y limits around the data with at least ``min_span`` of range, so a nearly constant trace is
     not blown up to its noise."""

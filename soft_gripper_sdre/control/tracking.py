@@ -21,10 +21,6 @@ import numpy as np
 from soft_gripper_sdre.control.riccati import Check
 from soft_gripper_sdre.sim.units import LENGTH_SCALE, TORQUE_SCALE
 
-#: named weight presets, SI (positions in m, velocities in m/s, torques in N·m)
-WEIGHT_PRESETS = ('default', 'paper')
-
-
 @dataclass(frozen=True)
 class Weights:
     """Diagonal SDRE weights in SI: Q = diag(q_pos, q_pos, q_vel, q_vel), R = diag(r, r)."""
@@ -58,17 +54,6 @@ def paper_weights_si() -> tuple[np.ndarray, np.ndarray]:
     """
     return (LENGTH_SCALE**2 * np.diag([2.0, 2.0, 2.0, 2.0]),
             TORQUE_SCALE**2 * np.diag([0.1, 0.1]))
-
-
-def weights_preset(name: str) -> Weights:
-    """The named weights: ``'paper'`` = Q = diag(2,2,2,2), R = diag(0.1,0.1) in sim units
-    (barely moves this finger), ``'default'`` = tuned for tracking on this plant."""
-    if name == 'paper':
-        Q, R = paper_weights_si()
-        return Weights(float(Q[0, 0]), float(Q[2, 2]), float(R[0, 0]))
-    if name == 'default':
-        return Weights(**DEFAULT_WEIGHTS)
-    raise ValueError(f'unknown weights preset {name!r}; known: {WEIGHT_PRESETS}')
 
 
 #: tuned defaults (SI); docs/results.md "Noise, gains and the finger's bending modes" has the sweep

@@ -13,21 +13,6 @@ LENGTH_SCALE = 20.0
 TORQUE_SCALE = LENGTH_SCALE**2
 
 
-def length_to_si(value):
-    """Simulator length (or velocity, acceleration) → metres (m/s, m/s²)."""
-    return value / LENGTH_SCALE
-
-
-def length_to_sim(value):
-    """Metres (m/s, m/s²) → simulator length units."""
-    return value * LENGTH_SCALE
-
-
 def torque_to_si(value):
     """Simulator torque units → N·m."""
     return value / TORQUE_SCALE
-
-
-def torque_to_sim(value):
-    """N·m → simulator torque units."""
-    return value * TORQUE_SCALE
