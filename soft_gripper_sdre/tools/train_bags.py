@@ -296,6 +296,10 @@ def train_from_bags(train_paths: list[Path], val_paths: list[Path], out: Path, s
         shutil.rmtree(staging, ignore_errors=True)
     print(f'validation R² vs the KF + RTS labels: X {r2[0]:.3f}  Y {r2[1]:.3f}   '
           f'(3rd-order least squares: X {r2_ls[0]:.3f}  Y {r2_ls[1]:.3f})')
+    if min(r2 + r2_ls) < 0.0:
+        print('  (below 0: the validation labels vary less than the predictions miss them. Where the '
+              'baseline is below 0 too, the labels are mostly noise or smoothed flat at this signal\'s '
+              'speed; the free run below judges the model on the recorded positions instead)')
     print(f'G2 at the origin [m/s² per N·m]: {np.round(G2, 1).tolist()}')
     print(f'training: {len(result.train_loss)} epochs on {len(x)} samples from {len(provenance)} bag(s) '
           f'in {result.seconds:.1f} s; wrote {out}')
