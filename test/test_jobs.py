@@ -40,7 +40,9 @@ def test_in_process_and_pool_give_the_same_results_in_job_order(tmp_path):
         for j in range(6)]
     assert {pid for *_, pid in serial} == {os.getpid()}
     assert os.getpid() not in {pid for *_, pid in pooled}
-    assert context['blob'].path() != source and context['blob'].path().name == 'model.pt'
+    blob = context['blob'].path()
+    assert blob != source and blob.name == 'model.pt' and blob.read_bytes() == source.read_bytes()
+    assert blob.parent.parent == jobs.blob_dir()            # one copy per content, every process's
 
 
 def test_a_failing_job_raises_here():
@@ -291,12 +293,17 @@ def test_evaluate_and_robustness_on_a_ray_cluster_give_the_pool_numbers(tmp_path
 @needs_ray
 @pytest.mark.slow
 @pytest.mark.timeout(300)
-def test_a_local_ray_instance_runs_the_jobs_in_its_own_workers():
+def test_a_local_ray_instance_runs_the_jobs_in_its_own_workers(monkeypatch):
     from ray import cloudpickle
     cloudpickle.register_pickle_by_value(jobs_helpers)      # the helpers travel with their jobs
     runner = jobs.Runner(2, 'local')
-    with jobs.session(runner):
-        on_ray = jobs.run_jobs(draw, range(4), {'scale': 2.5}, runner, progress=False)
+    temp = tempfile.mkdtemp(prefix='sgs-ray-')       # the instance's session files, removed after
+    monkeypatch.setenv('RAY_TMPDIR', temp)
+    try:
+        with jobs.session(runner):
+            on_ray = jobs.run_jobs(draw, range(4), {'scale': 2.5}, runner, progress=False)
+    finally:
+        shutil.rmtree(temp, ignore_errors=True)
     here = jobs.run_jobs(draw, range(4), {'scale': 2.5}, progress=False)
     assert [r[:2] for r in on_ray] == [r[:2] for r in here]
     assert os.getpid() not in {pid for *_, pid in on_ray}

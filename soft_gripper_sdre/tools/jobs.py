@@ -121,7 +121,8 @@ def worker_env(environ=os.environ) -> dict[str, str]:
 @dataclass(frozen=True)
 class FileBlob:
     """A file's bytes, to hand a job a file the worker's machine may not have (a model checkpoint):
-    :meth:`path` writes it once per process to a temporary directory and returns that path."""
+    :meth:`path` writes it, once per machine and content, to :func:`blob_dir` and returns that
+    path."""
 
     name: str
     data: bytes
@@ -136,23 +137,20 @@ class FileBlob:
         return hashlib.sha256(self.data).hexdigest()
 
     def path(self) -> Path:
-        target = _blob_dir() / self.digest[:16] / self.name
+        target = blob_dir() / self.digest[:16] / self.name
         if not target.is_file():
             target.parent.mkdir(parents=True, exist_ok=True)
-            partial = target.with_name(target.name + '.part')
+            partial = target.with_name(f'{target.name}.{os.getpid()}.part')    # one per writer
             partial.write_bytes(self.data)
             partial.replace(target)
         return target
 
 
-_BLOB_DIR: tempfile.TemporaryDirectory | None = None
-
-
-def _blob_dir() -> Path:
-    global _BLOB_DIR
-    if _BLOB_DIR is None:
-        _BLOB_DIR = tempfile.TemporaryDirectory(prefix='sgs-jobs-')
-    return Path(_BLOB_DIR.name)
+def blob_dir() -> Path:
+    """Where :class:`FileBlob` writes, content-addressed and shared by this user's processes on
+    the machine: a worker ended without its exit clean-up (Ray ends its workers so) leaves no
+    directory of its own behind, and each distinct file is written once, then reused."""
+    return Path(tempfile.gettempdir()) / f'sgs-jobs-{os.getuid()}'
 
 
 # -- running ------------------------------------------------------------------------------------
