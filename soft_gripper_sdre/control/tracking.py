@@ -21,6 +21,7 @@ import numpy as np
 from soft_gripper_sdre.control.riccati import Check
 from soft_gripper_sdre.sim.units import LENGTH_SCALE, TORQUE_SCALE
 
+
 @dataclass(frozen=True)
 class Weights:
     """Diagonal SDRE weights in SI: Q = diag(q_pos, q_pos, q_vel, q_vel), R = diag(r, r)."""
