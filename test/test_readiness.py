@@ -104,7 +104,7 @@ def test_two_runs_started_at_once_give_the_same_torques_and_bags_from_t_0(tmp_pa
             bag = tmp_path / f'bag{run}'
             spec = grasp_graph(parameters={'recorder': {'output': str(bag)},
                                            'simulator': {'duration': RUN,
-                                                         'min_diagnostics_subscribers': 1}})
+                                                         'min_diagnostics_subscribers': 2}})   # monitor, recorder
             codes = _run_all_at_once(spec, env, tmp_path / f'logs{run}')
             assert all(c == 0 for c in codes.values()), codes
             monitor.poll()
@@ -158,3 +158,20 @@ def test_a_node_that_never_gets_ready_makes_the_simulator_give_up_naming_it(tmp_
     assert code == 1 and waited < 30, (code, waited)
     assert 'the graph was not ready within startup_timeout (3 s)' in log, log
     assert 'nothing heard from the controller yet' in log, log
+
+
+@pytest.mark.ros
+@pytest.mark.timeout(120)
+def test_the_simulators_own_readiness_reader_does_not_count_as_a_diagnostics_reader(tmp_path):
+    """The simulator reads /diagnostics itself while it waits for the graph; that reader must not
+    stand in for the monitor ``min_diagnostics_subscribers`` asks for (a short run would end before
+    the monitor matched and its final counters would be lost). No other reader: it gives up."""
+    spec = grasp_graph(record=False, parameters={
+        'simulator': {'duration': RUN, 'startup_timeout': 3.0, 'min_diagnostics_subscribers': 1}})
+    with Graph(ros_env(), tmp_path / 'logs') as graph:
+        for node in spec.nodes:
+            graph.start_node(node)
+        code = graph.procs['simulator'].popen.wait(60)
+        log = graph.procs['simulator'].log_tail()
+    assert code == 1, (code, log)
+    assert '0 of 1 /diagnostics readers' in log, log

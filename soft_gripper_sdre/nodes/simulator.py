@@ -126,8 +126,8 @@ PARAMS = (
           'file name them): the first step waits until each has reported on /diagnostics and every '
           "writer and reader of the graph has matched its peers; '' = no such wait",
           read_only=True, rule=lambda text: _waited_nodes_problem(text)),
-    Param('min_diagnostics_subscribers', 0, 'start-up: /diagnostics subscribers to wait for (a '
-          'monitor that reads the final counters of a short run must be matched before it begins)',
+    Param('min_diagnostics_subscribers', 0, 'start-up: /diagnostics subscribers of other nodes to wait '
+          'for (a monitor that reads the final counters of a short run must be matched before it begins)',
           '', 0, 100, read_only=True),
     Param('state_rate', 100.0, 'rate of joint_states, cube_pose and cube_contacts in sim time', 'Hz',
           1.0, 1000.0, read_only=True),
@@ -231,9 +231,9 @@ class SimulatorNode(Node):
             problems.append(f'{tips} of {self.p["min_tip_subscribers"]} tip_positions readers')
         if commands < 1:
             problems.append('no torque_commands writer')
-        if self.diag.subscription_count() < self.p['min_diagnostics_subscribers']:
-            problems.append(f'{self.diag.subscription_count()} of '
-                            f'{self.p["min_diagnostics_subscribers"]} /diagnostics readers')
+        readers = self.diag.subscription_count() - (self._sub_diag is not None)   # not its own
+        if readers < self.p['min_diagnostics_subscribers']:
+            problems.append(f'{readers} of {self.p["min_diagnostics_subscribers"]} /diagnostics readers')
         if self.waited:
             prefix = self.get_namespace().rstrip('/')
             reports = {'simulator': wiring(self)} | {n: self._reports.get(f'{prefix}/{n}')
