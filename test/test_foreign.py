@@ -94,6 +94,11 @@ def test_the_recipe_runs_end_to_end_on_the_tendon_finger(tmp_path):
     assert math.degrees(math.atan2(plan['close_distance'], plan['side_distance'])) == \
         pytest.approx(facts['direction'])
     assert plan['contact_distance'] == plan['close_distance']
+    # the paper's law's offset against the spring, and the loop it would need to hold a tenth
+    paper = derived['paper_law']
+    assert 0 < paper['hold_offset'] < 1
+    assert (paper['hold_offset'] > paper['share']) == \
+        (paper['needs_bandwidth_hz'] is None or paper['needs_bandwidth_hz'] > derived['settings']['bandwidth_hz'])
     score = metrics['deploy']['sdre_ff']
     assert metrics['deploy']['travel'] == facts['travel']
     assert score['samples'] > 500 and score['saturated_at_rest'] == 0.0

@@ -8,6 +8,7 @@ from scipy.linalg import solve_continuous_are
 
 from soft_gripper_sdre.analysis import loop_settings as ls
 from soft_gripper_sdre.analysis import model_fitness as mf
+from soft_gripper_sdre.control.laws import make_law
 from soft_gripper_sdre.learning.model import SDCModel
 
 
@@ -234,3 +235,32 @@ def test_no_setting_passes_on_a_finger_the_torque_cannot_hold(shipped):
     derived = ls.derive(shipped, facts)
     assert derived.settings is None and derived.checks == {} and derived.candidates == []
     assert 'torque limit' in derived.reason
+
+
+def test_the_paper_laws_hold_offset_is_the_spring_against_the_loop():
+    """The paper's law weighs the holding torque in its cost: on ẍ = −ω_n² p − c v + G₂u with
+    G₂ = g·rotation, the weights of bandwidth f_c stop it 1 / (1 + (f_c/f_n)⁴) short of a held
+    move, in any direction; the real ``sdre`` law settles there, and ``sdre_ff`` does not."""
+    g, th = 300.0, 0.4
+    rot = np.array([[math.cos(th), -math.sin(th)], [math.sin(th), math.cos(th)]])
+    model = LinearModel(k=(2 * np.pi * 5.0) ** 2, c=6.0, g2=g * rot)
+    facts = ls.DataFacts(period=1e-3, noise_std=5e-5, travel=2e-3, torque_limit=0.05, accel_psd_ml=1.0,
+                         direction=70.0)
+    for hz in (2.5, 5.0, 5.0 * 3 ** 0.5, 10.0):
+        assert ls.paper_law_offset(model, facts, hz) == pytest.approx(1 / (1 + (hz / 5.0) ** 4), rel=1e-6)
+    assert ls.paper_law_bandwidth(model, facts, 0.1) == pytest.approx(5.0 * 3 ** 0.5, rel=1e-6)
+
+    s = ls.settings_for(model, facts, 5.0, 1.0)
+    goal = model.rest_tip[:2] + facts.travel * facts.unit
+    held = {}
+    for law in ('sdre', 'sdre_ff'):
+        ctrl = make_law(law, model, s.weights(), s.torque_limit, n_fingers=1, dt=1e-3,
+                        **({'integral_gain': s.integral_gain, 'integral_band': s.integral_band}
+                           if law == 'sdre_ff' else {}))
+        x = np.zeros((1, 4))
+        for _ in range(3000):
+            u = ctrl.compute(model.rest_tip[:2] + x[:, :2], x[:, 2:], goal[None], np.zeros((1, 2))).u
+            x = mf.rk4_step(model, x, u, 1e-3)
+        held[law] = np.linalg.norm(model.rest_tip[:2] + x[0, :2] - goal) / facts.travel
+    assert held['sdre'] == pytest.approx(0.5, abs=0.01), held        # f_c = f_n: half the move
+    assert held['sdre_ff'] < 0.01, held

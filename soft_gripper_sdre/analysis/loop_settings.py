@@ -59,6 +59,11 @@ the check fails at every bandwidth by 8–9 % of a 3.7 mm move; at 1.85 mm it pa
 :data:`MIN_TRAVEL_NOISE` σ of measurement noise no move is checked and nothing is derived
 (:attr:`Derivation.reason`). The trajectory node closes along it with
 ``close_distance`` and ``side_distance``, the travel's Y and X parts (:meth:`DataFacts.move`).
+
+The settings are the default law's. The paper's law weighs the torque that holds the finger
+against its spring in its cost, so it stops short of a held move by a share set by the loop's
+bandwidth against the finger's stiffness (:func:`paper_law_offset`); :func:`paper_law_bandwidth`
+says how fast a loop it needs, and the derivation reports both (:attr:`Derivation.paper_law`).
 """
 from __future__ import annotations
 
@@ -71,6 +76,7 @@ from soft_gripper_sdre.analysis import model_fitness
 from soft_gripper_sdre.analysis.model_fitness import rk4_step
 from soft_gripper_sdre.control.kf import ConstantVelocityKF, cv_matrices
 from soft_gripper_sdre.control.laws import make_law
+from soft_gripper_sdre.control.riccati import sdre_gains
 from soft_gripper_sdre.control.tracking import Weights
 from soft_gripper_sdre.control.trajectory import GraspProfile, GraspTrajectory
 
@@ -113,6 +119,8 @@ CHECK_PROFILE = dict(t_start=0.5, t_close=2.0, t_hold=1.0, t_open=2.0)
 FEEDFORWARD_AT = 'ref'
 #: the model is integrated in RK4 steps of at most this [s]
 MAX_STEP = 2.5e-3
+#: the share of the travel the paper's law is asked to reach (:func:`paper_law_bandwidth`)
+PAPER_LAW_SHARE = 0.1
 
 
 def unit_vector(degrees: float) -> np.ndarray:
@@ -273,6 +281,35 @@ def check_on_model(model, settings: LoopSettings, facts: DataFacts, law: str = '
                        float(sat.mean()), False)
 
 
+def paper_law_offset(model, facts: DataFacts, bandwidth_hz: float) -> float:
+    """Share of a held move along ``facts.direction`` that the paper's law (``sdre``, eq. 22–23)
+    stops short of, on the model linearised at rest, with the weights of ``bandwidth_hz``.
+
+    Its gains minimise eᵀQe + uᵀRu, and the torque that holds a displaced finger against its
+    spring is in that cost: the steady state x = −A_cl⁻¹ G K_s x_d trades error for torque. On
+    ẍ = −ω_n² p + g u with q/r = ω_c⁴/g² the share is 1 / (1 + (ω_c/ω_n)⁴) exactly, so a tenth
+    needs ω_c ≥ √3 ω_n whatever Q and R. ``sdre_ff``'s feedforward and integral remove it.
+    """
+    A, G = (a[0] for a in model.AG(np.zeros((1, 4))))
+    cost = settings_for(model, facts, bandwidth_hz, facts.accel_psd_ml).weights()
+    K, Ks, _ = sdre_gains(A, G, cost.Q, cost.R)
+    x_d = np.concatenate([facts.unit, np.zeros(2)])
+    x = -np.linalg.solve(A + G @ K, G @ (Ks @ x_d))
+    return float(np.linalg.norm((x_d - x)[:2]))
+
+
+def paper_law_bandwidth(model, facts: DataFacts, share: float = PAPER_LAW_SHARE) -> float:
+    """The lowest bandwidth [Hz] whose weights bring :func:`paper_law_offset` to ``share``
+    (``inf`` beyond 1 kHz): how fast a loop the paper's law needs on this finger."""
+    lo, hi = 0.01, 1000.0
+    if paper_law_offset(model, facts, hi) > share:
+        return math.inf
+    for _ in range(40):                 # the offset falls as the bandwidth rises: bisect in log
+        mid = math.sqrt(lo * hi)
+        lo, hi = (mid, hi) if paper_law_offset(model, facts, mid) > share else (lo, mid)
+    return hi
+
+
 def hold_torques(model, points: np.ndarray) -> np.ndarray:
     """(N, 2) torques that hold the learned model still at the displacements ``points`` (N, 2)
     from its rest: u = −G₂(x)⁻¹ (A(x)x)₂, from ẋ = A(x)x + G(x)u being affine in u."""
@@ -306,10 +343,13 @@ class Derivation:
     candidates: list[dict]
     facts: DataFacts
     reason: str = ''
+    #: the paper's law on the chosen settings: the share of the move it holds short of, and the
+    #: bandwidth it would need for :data:`PAPER_LAW_SHARE` (:func:`paper_law_offset`)
+    paper_law: dict | None = None
 
     def summary(self) -> dict:
         return {'settings': asdict(self.settings) if self.settings else None,
-                'reason': self.reason, 'facts': asdict(self.facts),
+                'reason': self.reason, 'facts': asdict(self.facts), 'paper_law': self.paper_law,
                 'checks': {k: asdict(v) for k, v in self.checks.items()},
                 'candidates': self.candidates,
                 'rules': {'bandwidths_hz': list(BANDWIDTHS_HZ), 'gain_errors': list(GAIN_ERRORS),
@@ -352,7 +392,10 @@ def derive(model, facts: DataFacts, laws: tuple[str, ...] = ('sdre_ff', 'sdre'),
     slower = [c for c in kept if c[1] < best[1] and c[0] <= PREFER_SLOWER * best[0]]
     chosen = max(slower, key=lambda c: (c[1], -c[0]))[2] if slower else best[2]
     checks = {law: check_on_model(model, chosen, facts, law=law) for law in laws}
-    return Derivation(chosen, checks, rows, facts)
+    needs = paper_law_bandwidth(model, facts)
+    paper = {'hold_offset': paper_law_offset(model, facts, chosen.bandwidth_hz), 'share': PAPER_LAW_SHARE,
+             'needs_bandwidth_hz': needs if math.isfinite(needs) else None}     # None: over 1 kHz
+    return Derivation(chosen, checks, rows, facts, paper_law=paper)
 
 
 def _search(model, facts: DataFacts, bandwidths: tuple[float, ...], rows: list[dict],

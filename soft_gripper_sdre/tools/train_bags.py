@@ -336,3 +336,8 @@ def report_fitness(fitness: model_fitness.Fitness, derived, out: Path) -> None:
     print(f'the checked move: {1e3 * derived.facts.travel:.2f} mm at {derived.facts.direction:.0f}° from +X '
           f'toward +Y, close_distance {1e3 * close:.2f} mm and side_distance {1e3 * side:.2f} mm '
           f'(the trajectory section of {PARAMS_FILE}); a longer move is not checked')
+    paper, needs = derived.paper_law, derived.paper_law['needs_bandwidth_hz']
+    print(f'the paper\'s law (sdre) on these settings holds {100 * paper["hold_offset"]:.0f} % short of the '
+          f'move: its cost weighs the torque that holds the finger against its spring; within '
+          f'{100 * paper["share"]:.0f} % it needs ' + (f'a {needs:.3g} Hz loop' if needs else 'over 1 kHz')
+          + ' (docs/own_gripper.md). The default law, sdre_ff, has no such offset')
