@@ -166,11 +166,11 @@ def exit_verdict(node: str, returncode: int, shutting_down: bool,
 
 def generate_launch_description():
     """The LaunchDescription: the arguments, and the nodes once their values are checked."""
-    from launch import LaunchDescription
     from launch.actions import DeclareLaunchArgument, OpaqueFunction, Shutdown
     from launch.substitutions import LaunchConfiguration
     from launch_ros.actions import Node
 
+    from launch import LaunchDescription
     from soft_gripper_sdre.tools.procs import pinned_kernels
 
     def watch(name):

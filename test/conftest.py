@@ -7,9 +7,8 @@ from pathlib import Path
 import random
 import subprocess
 
-import pytest
-
 from faults_common import RECORDS_ENV
+import pytest
 
 #: the domain IDs a session picks from: those whose DDS ports stay clear of Linux's ephemeral port
 #: range (32768-60999) with the default port mapping, 0-101 and 215-232 (0 left to users)

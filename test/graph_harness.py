@@ -8,18 +8,24 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
 from geometry_msgs.msg import PoseArray
+import numpy as np
+from rosutil import Probe, overrides, ros_context, spin_until
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import MultiDOFJointTrajectory
 
-from rosutil import Probe, overrides, ros_context, spin_until
 from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.controller import ControllerNode
 from soft_gripper_sdre.nodes.estimator import EstimatorNode
 from soft_gripper_sdre.nodes.simulator import SimulatorNode
-from soft_gripper_sdre.nodes.topics import (CUBE_CONTACTS, LOOP_QOS, STATE_ESTIMATE, STREAM_QOS,
-                                            TIP_POSITIONS, TORQUE_COMMANDS)
+from soft_gripper_sdre.nodes.topics import (
+    CUBE_CONTACTS,
+    LOOP_QOS,
+    STATE_ESTIMATE,
+    STREAM_QOS,
+    TIP_POSITIONS,
+    TORQUE_COMMANDS,
+)
 from soft_gripper_sdre.nodes.trajectory import TrajectoryNode
 
 

@@ -8,17 +8,24 @@ from __future__ import annotations
 
 from geometry_msgs.msg import PoseArray
 import numpy as np
+from rosgraph_msgs.msg import Clock
+from rosutil import Probe, deep, overrides, spin_until
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import MultiDOFJointTrajectory
 
-from rosgraph_msgs.msg import Clock
-
-from rosutil import Probe, deep, overrides, spin_until
 from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.controller import ControllerNode
 from soft_gripper_sdre.nodes.estimator import EstimatorNode
-from soft_gripper_sdre.nodes.topics import (CLOCK, CLOCK_QOS, GRASP_REFERENCE, LOOP_QOS, REFERENCE_QOS,
-                                            STATE_ESTIMATE, TIP_POSITIONS, TORQUE_COMMANDS)
+from soft_gripper_sdre.nodes.topics import (
+    CLOCK,
+    CLOCK_QOS,
+    GRASP_REFERENCE,
+    LOOP_QOS,
+    REFERENCE_QOS,
+    STATE_ESTIMATE,
+    TIP_POSITIONS,
+    TORQUE_COMMANDS,
+)
 from soft_gripper_sdre.nodes.trajectory import TrajectoryNode
 
 #: one millisecond of sim time [ns]

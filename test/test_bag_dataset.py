@@ -3,12 +3,17 @@ differently stamped recordings labelled right (real bags written with rosbags, r
 import subprocess
 import sys
 
+from bag_writing import MS, excitation_bag, tips_messages, torque_messages, write_bag
 import numpy as np
 import pytest
 
-from bag_writing import MS, excitation_bag, tips_messages, torque_messages, write_bag
-from soft_gripper_sdre.analysis.bag_dataset import (hold_commands, label_finger, read_recording,
-                                                    settle_estimates, tip_stretches)
+from soft_gripper_sdre.analysis.bag_dataset import (
+    hold_commands,
+    label_finger,
+    read_recording,
+    settle_estimates,
+    tip_stretches,
+)
 from soft_gripper_sdre.learning.model import read_checkpoint
 from soft_gripper_sdre.tools import train as train_tool
 
@@ -253,7 +258,12 @@ def test_the_labels_filter_is_tuned_on_the_excited_tips_not_on_the_rest_before_t
     """A driver idle for longer than the tuning window, a settle phase, then a fast motion: the
     window starts at the first non-zero torque, and picks the motion's intensity, not the rest's."""
     from soft_gripper_sdre.learning import derivatives
-    from soft_gripper_sdre.tools.train_bags import JERK_GRID, TUNE_SAMPLES, tune_jerk, tuning_stretch
+    from soft_gripper_sdre.tools.train_bags import (
+        JERK_GRID,
+        TUNE_SAMPLES,
+        tune_jerk,
+        tuning_stretch,
+    )
     rng = np.random.default_rng(7)
     stamps = np.arange(4400) * 5 * MS                      # 200 Hz, 22 s
     t = stamps / 1e9

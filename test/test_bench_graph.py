@@ -1,7 +1,14 @@
 """The graph benchmarks measure what they claim: real processes over DDS, figures from the nodes."""
 import pytest
 
-from soft_gripper_sdre.tools.bench_graph import SIM_TOPICS, hog_run, hop, mode_rows, recorder_loss, run_graph
+from soft_gripper_sdre.tools.bench_graph import (
+    SIM_TOPICS,
+    hog_run,
+    hop,
+    mode_rows,
+    recorder_loss,
+    run_graph,
+)
 from soft_gripper_sdre.tools.bench_hog import PHASES
 
 pytestmark = pytest.mark.ros

@@ -1,15 +1,16 @@
 """The raw CDR codec of the loop topics (nodes/cdr.py): valid bytes out, strict fast path in, the
 slow path (deserialize_message + msg_to_*) for everything that does not match exactly."""
+from geometry_msgs.msg import PoseArray
 import numpy as np
 import pytest
-from geometry_msgs.msg import PoseArray
 from rclpy.serialization import deserialize_message, serialize_message
 from rosgraph_msgs.msg import Clock
+from rosutil import Probe, ros_context, spin_until
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import MultiDOFJointTrajectory
 
-from rosutil import Probe, ros_context, spin_until
-from soft_gripper_sdre.nodes import cdr, conversions as cv
+from soft_gripper_sdre.nodes import cdr
+from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.topics import LOOP_QOS, STATE_ESTIMATE, TIP_POSITIONS, TORQUE_COMMANDS
 
 NS = 7 * cv.NS + 123_456_789

@@ -14,12 +14,21 @@ import numpy as np
 import pytest
 
 from soft_gripper_sdre.analysis.closed_loop import run_closed_loop
-from soft_gripper_sdre.control import compiled
-from soft_gripper_sdre.control.compiled import (SdcNetwork, SdreOutputs, SdreSettings, SdreState, kf_step,
-                                                model_inversion, sdc_forward, sdre_step, warm_up)
-from soft_gripper_sdre.control import compiled_sdre
+from soft_gripper_sdre.control import compiled, compiled_sdre
+from soft_gripper_sdre.control.compiled import (
+    SdcNetwork,
+    SdreOutputs,
+    SdreSettings,
+    SdreState,
+    kf_step,
+    model_inversion,
+    sdc_forward,
+    sdre_step,
+    warm_up,
+)
 from soft_gripper_sdre.control.kf import ConstantVelocityKF
-from soft_gripper_sdre.control.laws import make_law, model_inversion as numpy_model_inversion
+from soft_gripper_sdre.control.laws import make_law
+from soft_gripper_sdre.control.laws import model_inversion as numpy_model_inversion
 from soft_gripper_sdre.control.riccati import Check, care, full_sdc_matrices
 from soft_gripper_sdre.control.sdre import SdreController
 from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights

@@ -4,12 +4,13 @@ import math
 
 import numpy as np
 import pytest
+from spring_finger import NOISE, RATE, REST, SpringDamper
 
 from soft_gripper_sdre.analysis import bag_dataset
 from soft_gripper_sdre.sim import excitation
 from soft_gripper_sdre.sim.excitation import ExcitationPlan, LevelSearch, builtin_signal
 from soft_gripper_sdre.sim.signals import BROADBAND_SIGNALS, SIGNALS
-from spring_finger import NOISE, RATE, REST, SpringDamper
+
 
 def run_search(search: LevelSearch, plant: SpringDamper, limit: float = 120.0) -> int:
     """Drive ``search`` with the plant's tips until it is done; returns the tips it took."""

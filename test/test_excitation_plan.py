@@ -4,8 +4,14 @@ import numpy as np
 import pytest
 import yaml
 
-from soft_gripper_sdre.sim.excitation import (ExcitationPlan, SignalSpecError, builtin_signal, load_signal_specs,
-                                              parse_signal_specs, resolve_signals)
+from soft_gripper_sdre.sim.excitation import (
+    ExcitationPlan,
+    SignalSpecError,
+    builtin_signal,
+    load_signal_specs,
+    parse_signal_specs,
+    resolve_signals,
+)
 from soft_gripper_sdre.sim.signals import get_signal
 
 SPEC = {'signals': {

@@ -8,17 +8,22 @@ from geometry_msgs.msg import PoseArray
 import numpy as np
 import pytest
 from rclpy.node import Node
-from sensor_msgs.msg import JointState
-
 from rosutil import Probe, deep, overrides, ros_context, spin_until
-from soft_gripper_sdre.analysis.bag_dataset import (MIN_SETTLE_SAMPLES, BagDataError,
-                                                    read_recording, settle_estimates, settle_noise)
+from sensor_msgs.msg import JointState
+from spring_finger import NOISE, RATE, REST, SpringDamper
+
+from soft_gripper_sdre.analysis.bag_dataset import (
+    MIN_SETTLE_SAMPLES,
+    BagDataError,
+    read_recording,
+    settle_estimates,
+    settle_noise,
+)
 from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.excitation import ExcitationNode
 from soft_gripper_sdre.nodes.params import ParameterError
 from soft_gripper_sdre.nodes.recorder import RecorderNode
 from soft_gripper_sdre.nodes.topics import LOOP_QOS, TIP_POSITIONS, TORQUE_COMMANDS
-from spring_finger import NOISE, RATE, REST, SpringDamper
 
 pytestmark = pytest.mark.ros
 

@@ -6,24 +6,30 @@ ERROR; the simulator holds the first missing period (its lockstep timeout) and s
 one with zero torque (ERROR) until commands return; tracking is back within 1 s of sim time once
 estimates return.
 """
+from faults_common import on_target, record, recovery_time, tracking_error
+from geometry_msgs.msg import PoseArray
 import numpy as np
 import pytest
-from geometry_msgs.msg import PoseArray
 from rclpy.node import Node
+from rosutil import Probe, overrides, ros_context, spin_until
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import MultiDOFJointTrajectory
 
-from faults_common import on_target, record, recovery_time, tracking_error
-from rosutil import Probe, overrides, ros_context, spin_until
+from soft_gripper_sdre.control.trajectory import GraspProfile
 from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.common import ERROR, OK
 from soft_gripper_sdre.nodes.controller import ControllerNode
 from soft_gripper_sdre.nodes.estimator import EstimatorNode
 from soft_gripper_sdre.nodes.simulator import SimulatorNode
-from soft_gripper_sdre.nodes.topics import (CUBE_CONTACTS, LOOP_QOS, STATE_ESTIMATE, STREAM_QOS,
-                                            TIP_POSITIONS, TORQUE_COMMANDS)
+from soft_gripper_sdre.nodes.topics import (
+    CUBE_CONTACTS,
+    LOOP_QOS,
+    STATE_ESTIMATE,
+    STREAM_QOS,
+    TIP_POSITIONS,
+    TORQUE_COMMANDS,
+)
 from soft_gripper_sdre.nodes.trajectory import TrajectoryNode
-from soft_gripper_sdre.control.trajectory import GraspProfile
 
 pytestmark = pytest.mark.ros
 

@@ -11,19 +11,26 @@ from __future__ import annotations
 import signal
 
 from diagnostic_msgs.msg import DiagnosticArray
+from faults_common import on_target, record, recovery_time, tracking_error
 from geometry_msgs.msg import PoseArray
 import numpy as np
 import pytest
+from rosutil import Probe, deep, drain, ros_context, spin_until
 from sensor_msgs.msg import JointState
 
-from faults_common import on_target, record, recovery_time, tracking_error
-from rosutil import Probe, deep, drain, ros_context, spin_until
-from soft_gripper_sdre.nodes import conversions as cv
-from soft_gripper_sdre.nodes.topics import (CUBE_CONTACTS, DIAGNOSTICS, GRASP_REFERENCE, LOOP_QOS,
-                                            STATE_ESTIMATE, STREAM_QOS, TIP_POSITIONS,
-                                            TORQUE_COMMANDS)
-from soft_gripper_sdre.tools.procs import Graph, ros_env
 from soft_gripper_sdre.control.trajectory import GraspProfile
+from soft_gripper_sdre.nodes import conversions as cv
+from soft_gripper_sdre.nodes.topics import (
+    CUBE_CONTACTS,
+    DIAGNOSTICS,
+    GRASP_REFERENCE,
+    LOOP_QOS,
+    STATE_ESTIMATE,
+    STREAM_QOS,
+    TIP_POSITIONS,
+    TORQUE_COMMANDS,
+)
+from soft_gripper_sdre.tools.procs import Graph, ros_env
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 

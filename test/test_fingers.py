@@ -3,16 +3,17 @@ CDR path, and the controller's Float64MultiArray output in ros2_control's layout
 real DDS, real processes)."""
 import importlib
 
+from node_harness import MS, commands, make_controller, send_estimate
 import numpy as np
 import pytest
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_system_default
 from rclpy.serialization import serialize_message
+from rosutil import Probe, overrides, ros_context, spin_until
 from std_msgs.msg import Float64MultiArray
 
-from node_harness import MS, commands, make_controller, send_estimate
-from rosutil import Probe, overrides, ros_context, spin_until
 from soft_gripper_sdre.learning.model import SDCModel
-from soft_gripper_sdre.nodes import cdr, conversions as cv
+from soft_gripper_sdre.nodes import cdr
+from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.params import ParameterError
 
 NAMES = ('left', 'right', 'thumb')

@@ -5,8 +5,15 @@ import dataclasses
 import numpy as np
 import pytest
 
-from soft_gripper_sdre.sim.foreign import (PAIRS, PLANTS, FingerParams, FingerPlant, FingerState,
-                                           input_angle, plant_pair)
+from soft_gripper_sdre.sim.foreign import (
+    PAIRS,
+    PLANTS,
+    FingerParams,
+    FingerPlant,
+    FingerState,
+    input_angle,
+    plant_pair,
+)
 
 UM = 1e-6
 

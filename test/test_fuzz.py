@@ -6,22 +6,28 @@ future — and sends 1000 of them to each node over real DDS. An exception in an
 surface from the executor and fail the test; every message holding a non-finite number must be
 counted as rejected; the node must still answer a good message afterwards.
 """
+from faults_common import record
+from geometry_msgs.msg import Pose, PoseArray, Transform, Twist
+from node_harness import FAST_GRASP as FAST
+from node_harness import make_controller, make_estimator, make_trajectory
 import numpy as np
 import pytest
-from geometry_msgs.msg import Pose, PoseArray, Transform, Twist
 from rosgraph_msgs.msg import Clock
+from rosutil import Probe, drain, overrides, ros_context, spin_until
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import MultiDOFJointTrajectory, MultiDOFJointTrajectoryPoint
 
-from faults_common import record
-from node_harness import FAST_GRASP as FAST, make_controller, make_estimator, make_trajectory
-from rosutil import Probe, drain, overrides, ros_context, spin_until
 from soft_gripper_sdre.learning.model import SDCModel
 from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.estimator import MESSAGE_OUTCOMES
 from soft_gripper_sdre.nodes.simulator import SimulatorNode
-from soft_gripper_sdre.nodes.topics import (GRASP_REFERENCE, LOOP_QOS, STATE_ESTIMATE, TIP_POSITIONS,
-                                            TORQUE_COMMANDS)
+from soft_gripper_sdre.nodes.topics import (
+    GRASP_REFERENCE,
+    LOOP_QOS,
+    STATE_ESTIMATE,
+    TIP_POSITIONS,
+    TORQUE_COMMANDS,
+)
 
 pytestmark = pytest.mark.ros
 

@@ -1,15 +1,15 @@
 """The closed loop over real DDS: all nodes in one process (launch-free harness), and as processes."""
+from graph_harness import run_graph
 import numpy as np
 import pytest
 
-from graph_harness import run_graph
 from soft_gripper_sdre.analysis.closed_loop import run_closed_loop
-from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
-from soft_gripper_sdre.control.laws import DEFAULT_LAW, make_law
 from soft_gripper_sdre.analysis.metrics import tracking_metrics
+from soft_gripper_sdre.control.laws import DEFAULT_LAW, make_law
+from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
+from soft_gripper_sdre.control.trajectory import GraspProfile, GraspTrajectory
 from soft_gripper_sdre.learning.model import SDCModel
 from soft_gripper_sdre.sim.hand import SimConfig
-from soft_gripper_sdre.control.trajectory import GraspProfile, GraspTrajectory
 
 pytestmark = pytest.mark.ros
 

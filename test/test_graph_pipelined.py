@@ -1,9 +1,9 @@
 """Pipelined stepping over real DDS: the grasp tracks as in lockstep, the physics lags the
 commands by exactly one period, and a run is reproducible."""
+from graph_harness import run_graph
 import numpy as np
 import pytest
 
-from graph_harness import run_graph
 from soft_gripper_sdre.analysis.metrics import tracking_metrics
 from soft_gripper_sdre.control.trajectory import GraspProfile, GraspTrajectory
 from soft_gripper_sdre.sim.hand import GripperSim

@@ -10,8 +10,13 @@ from rclpy.context import Context
 from rclpy.node import Node
 
 from soft_gripper_sdre.nodes import graph
-from soft_gripper_sdre.nodes.graph import (GRASP_NODES, NodeSpec, default_params_file, grasp_graph,
-                                           normalize_namespace)
+from soft_gripper_sdre.nodes.graph import (
+    GRASP_NODES,
+    NodeSpec,
+    default_params_file,
+    grasp_graph,
+    normalize_namespace,
+)
 from soft_gripper_sdre.nodes.topics import CLOCK, TOPIC_TYPES
 
 

@@ -13,8 +13,13 @@ import pytest
 from soft_gripper_sdre.nodes.markers import HandMarkers, decode
 from soft_gripper_sdre.sim.finger import N_JOINTS
 from soft_gripper_sdre.sim.hand import GripperSim, SimConfig
-from soft_gripper_sdre.sim.hand_description import (URDF_FILE, HandKinematics, hand_urdf,
-                                                    link_name, tip_link)
+from soft_gripper_sdre.sim.hand_description import (
+    URDF_FILE,
+    HandKinematics,
+    hand_urdf,
+    link_name,
+    tip_link,
+)
 from soft_gripper_sdre.sim.units import LENGTH_SCALE
 
 ROOT_DIR = Path(__file__).resolve().parents[1]

@@ -9,12 +9,17 @@ start-up, and the test then demands no timeout at all. Slow: tens of seconds of 
 """
 from __future__ import annotations
 
+from multi_graph import DURATION, SHORT_GRASP, TARGET_PCT, worst_pct
 import pytest
 
-from multi_graph import DURATION, SHORT_GRASP, TARGET_PCT, worst_pct
 from soft_gripper_sdre.analysis.bag import read_bag, topic_counts
 from soft_gripper_sdre.nodes.graph import RECORDED_BEFORE_START, grasp_graph
-from soft_gripper_sdre.tools.hands import PATIENT_LOCKSTEP, published_and_recorded, run_graphs, trouble
+from soft_gripper_sdre.tools.hands import (
+    PATIENT_LOCKSTEP,
+    published_and_recorded,
+    run_graphs,
+    trouble,
+)
 from soft_gripper_sdre.tools.procs import ros_env
 from soft_gripper_sdre.tools.report import report
 

@@ -1,14 +1,19 @@
 """Computed torque on the learned model and the default law's integral action, against closed forms."""
 import numpy as np
 import pytest
+from sdc_models import REST, StiffeningModel, track_sine
 
-from soft_gripper_sdre.control.laws import (DEFAULT_INTEGRAL, GRAPH_LAWS, ComputedTorqueLaw, IntegralAction,
-                                            SdreFeedforwardLaw, make_law)
+from soft_gripper_sdre.control.laws import (
+    DEFAULT_INTEGRAL,
+    GRAPH_LAWS,
+    ComputedTorqueLaw,
+    IntegralAction,
+    SdreFeedforwardLaw,
+    make_law,
+)
 from soft_gripper_sdre.control.laws.integral import INTEGRAL_LEAK_S
 from soft_gripper_sdre.control.tracking import Weights
 from soft_gripper_sdre.learning.model import SDCModel
-
-from sdc_models import REST, StiffeningModel, track_sine
 
 W = Weights(1e6, 0.0, 1.6e4)
 G2 = np.array([[15.0, 640.0], [-620.0, -8.0]])

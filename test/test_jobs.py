@@ -12,11 +12,11 @@ import sys
 import tempfile
 import time
 
+import jobs_helpers
+from jobs_helpers import draw, fail_on_three
 import numpy as np
 import pytest
 
-import jobs_helpers
-from jobs_helpers import draw, fail_on_three
 from soft_gripper_sdre.sim.hand import SimConfig
 from soft_gripper_sdre.tools import jobs
 from soft_gripper_sdre.tools.collect import collect_signal, write_record

@@ -10,8 +10,12 @@ from soft_gripper_sdre.analysis.metrics import r2_score
 from soft_gripper_sdre.control.laws import make_law
 from soft_gripper_sdre.control.laws.koopman import BoxQP, KoopmanLqrLaw, KoopmanMpcLaw
 from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
-from soft_gripper_sdre.learning.koopman import (KoopmanFileError, KoopmanModel, KoopmanSettings,
-                                                fit_koopman)
+from soft_gripper_sdre.learning.koopman import (
+    KoopmanFileError,
+    KoopmanModel,
+    KoopmanSettings,
+    fit_koopman,
+)
 from soft_gripper_sdre.sim.hand import GripperSim, SimConfig
 from soft_gripper_sdre.tools.collect import collect_signal
 

@@ -3,14 +3,21 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from sdc_models import REST, StiffeningModel, sine_reference, track_sine
 
 from soft_gripper_sdre.analysis.oracle import ORACLE_LAWS, OracleFeedforwardLaw, OracleSdreLaw
-from soft_gripper_sdre.control.laws import (GRAPH_LAWS, LAW_REGISTRY, AdaptiveSdreLaw, LqrLaw, PdLaw,
-                                            SdreFeedforwardLaw, SdreLaw, make_law)
+from soft_gripper_sdre.control.laws import (
+    GRAPH_LAWS,
+    LAW_REGISTRY,
+    AdaptiveSdreLaw,
+    LqrLaw,
+    PdLaw,
+    SdreFeedforwardLaw,
+    SdreLaw,
+    make_law,
+)
 from soft_gripper_sdre.control.riccati import sdre_gains
 from soft_gripper_sdre.control.tracking import Weights
-
-from sdc_models import REST, StiffeningModel, sine_reference, track_sine
 
 
 class LinearModel:

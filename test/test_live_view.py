@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from rosbags.rosbag2 import Reader
 from rosbags.typesys import Stores, get_typestore
+from rosutil import Probe, overrides, ros_context, spin_until
 from sensor_msgs.msg import JointState
 
-from rosutil import Probe, overrides, ros_context, spin_until
 from soft_gripper_sdre.nodes.recorder import RecorderNode
 from soft_gripper_sdre.nodes.simulator import MARKERS, ROBOT_DESCRIPTION, SimulatorNode
 from soft_gripper_sdre.nodes.topics import JOINT_STATES, LOOP_QOS, TORQUE_COMMANDS

@@ -6,9 +6,21 @@ import numpy as np
 import pytest
 import torch
 
-from soft_gripper_sdre.learning.model import (DEFAULT_MODEL, FORMAT_VERSION, ModelFileError, SDCModel, SDCNet,
-                                              read_checkpoint)
-from soft_gripper_sdre.learning.training import PRESETS, TrainResult, fingerprint, save_checkpoint, train
+from soft_gripper_sdre.learning.model import (
+    DEFAULT_MODEL,
+    FORMAT_VERSION,
+    ModelFileError,
+    SDCModel,
+    SDCNet,
+    read_checkpoint,
+)
+from soft_gripper_sdre.learning.training import (
+    PRESETS,
+    TrainResult,
+    fingerprint,
+    save_checkpoint,
+    train,
+)
 from soft_gripper_sdre.sim.hand import SimConfig
 from soft_gripper_sdre.tools.collect import collect_signal
 

@@ -5,20 +5,25 @@ real DDS (loopback)."""
 import time
 
 from geometry_msgs.msg import PoseArray
+from node_harness import FAST_GRASP, MS
 import numpy as np
 import pytest
 from rclpy.qos import qos_profile_sensor_data
+from rosutil import Probe, deep, overrides, ros_context, spin_until
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import MultiDOFJointTrajectory
 
-from node_harness import FAST_GRASP, MS
-from rosutil import Probe, deep, overrides, ros_context, spin_until
 from soft_gripper_sdre.analysis.bag import read_bag, topic_counts
 from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.excitation import ExcitationNode
 from soft_gripper_sdre.nodes.recorder import RecorderNode
-from soft_gripper_sdre.nodes.topics import (GRASP_REFERENCE, LOOP_QOS, REFERENCE_QOS,
-                                            TIP_POSITIONS, TORQUE_COMMANDS)
+from soft_gripper_sdre.nodes.topics import (
+    GRASP_REFERENCE,
+    LOOP_QOS,
+    REFERENCE_QOS,
+    TIP_POSITIONS,
+    TORQUE_COMMANDS,
+)
 from soft_gripper_sdre.nodes.trajectory import TrajectoryNode
 
 pytestmark = pytest.mark.ros

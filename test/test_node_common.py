@@ -2,13 +2,19 @@
 in-place message filler."""
 import numpy as np
 import pytest
-from sensor_msgs.msg import JointState
-
 import rclpy
 from rclpy.context import Context
-from soft_gripper_sdre.nodes import conversions as cv
 from rosutil import Probe, ros_context, spin_until
-from soft_gripper_sdre.nodes.common import EXECUTOR_ENV, LatencyWindow, SteppingTiming, flush, make_executor
+from sensor_msgs.msg import JointState
+
+from soft_gripper_sdre.nodes import conversions as cv
+from soft_gripper_sdre.nodes.common import (
+    EXECUTOR_ENV,
+    LatencyWindow,
+    SteppingTiming,
+    flush,
+    make_executor,
+)
 from soft_gripper_sdre.nodes.topics import LOOP_QOS, TORQUE_COMMANDS
 
 
@@ -92,7 +98,9 @@ def test_diagnostics_are_stamped_with_wall_time_and_named_by_the_full_node_name(
     """/diagnostics is published on a wall timer, so its stamp is wall time (the loop topics carry
     sim time); the status is named by the node's namespace and name."""
     import time
+
     from diagnostic_msgs.msg import DiagnosticArray
+
     from soft_gripper_sdre.nodes.common import Diagnostics
     from soft_gripper_sdre.nodes.topics import DIAGNOSTICS, STREAM_QOS
     with ros_context('events') as (ctx, executor):

@@ -8,19 +8,25 @@ import sys
 import time
 
 from geometry_msgs.msg import PoseArray
+from node_harness import MS, horizon
 import numpy as np
 import pytest
+from rosutil import Probe, deep, ros_context, spin_until
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import MultiDOFJointTrajectory
 
-from node_harness import MS, horizon
-from rosutil import Probe, deep, ros_context, spin_until
 from soft_gripper_sdre.learning.model import SDCModel
 from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.controller import ControllerNode
 from soft_gripper_sdre.nodes.estimator import EstimatorNode
-from soft_gripper_sdre.nodes.topics import (GRASP_REFERENCE, LOOP_QOS, REFERENCE_QOS,
-                                            STATE_ESTIMATE, TIP_POSITIONS, TORQUE_COMMANDS)
+from soft_gripper_sdre.nodes.topics import (
+    GRASP_REFERENCE,
+    LOOP_QOS,
+    REFERENCE_QOS,
+    STATE_ESTIMATE,
+    TIP_POSITIONS,
+    TORQUE_COMMANDS,
+)
 
 pytestmark = pytest.mark.ros
 

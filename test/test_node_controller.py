@@ -1,11 +1,12 @@
 """The controller node over real DDS (loopback), launch-free: own Context, executor, test node."""
+from node_harness import MS, TORQUE_LIMIT, commands, estimate, horizon, send_estimate
+from node_harness import make_controller as make
 import numpy as np
 import pytest
-
-from node_harness import MS, TORQUE_LIMIT, commands, estimate, horizon, make_controller as make, send_estimate
 from rosutil import overrides, ros_context, spin_until
-from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
+
 from soft_gripper_sdre.control.laws import make_law
+from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
 from soft_gripper_sdre.learning.model import SDCModel
 from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.controller import ControllerNode

@@ -5,13 +5,13 @@ integral action.
 That every graph law runs on the node and gives the offline law's torques is
 test_node_controller.py's test_torques_match_the_offline_law_and_close_the_fingers.
 """
+from node_harness import MS, TORQUE_LIMIT, commands, estimate, make_controller, send_estimate
 import numpy as np
 import pytest
-
-from node_harness import MS, TORQUE_LIMIT, commands, estimate, make_controller, send_estimate
 from rosutil import overrides, ros_context, spin_until
-from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
+
 from soft_gripper_sdre.control.laws import DEFAULT_INTEGRAL, ComputedTorqueLaw, make_law
+from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
 from soft_gripper_sdre.learning.model import SDCModel
 from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.controller import ControllerNode

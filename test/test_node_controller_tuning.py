@@ -2,14 +2,21 @@
 (``/controller/set_parameters``, as ``ros2 param set`` calls it) over real DDS (loopback): an
 accepted change retunes the torque from the next estimate, a refused one leaves everything as it
 was."""
+from node_harness import (
+    MS,
+    TORQUE_LIMIT,
+    commands,
+    estimate,
+    horizon,
+    make_controller,
+    send_estimate,
+)
 import numpy as np
 import pytest
 from rcl_interfaces.srv import SetParameters
 from rclpy.parameter import Parameter
-
-from node_harness import (MS, TORQUE_LIMIT, commands, estimate, horizon, make_controller,
-                          send_estimate)
 from rosutil import ros_context, spin_until
+
 from soft_gripper_sdre.control.laws import DEFAULT_CT, DEFAULT_PD
 from soft_gripper_sdre.learning.model import SDCModel
 from soft_gripper_sdre.nodes import conversions as cv

@@ -3,13 +3,13 @@ from pathlib import Path
 import time
 
 from geometry_msgs.msg import PoseArray
+from node_harness import MS, make_estimator
 import numpy as np
 import pytest
 from rclpy.parameter import Parameter
+from rosutil import overrides, ros_context, spin_until
 import yaml
 
-from node_harness import MS, make_estimator
-from rosutil import overrides, ros_context, spin_until
 from soft_gripper_sdre.control.kf import ConstantVelocityKF
 from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.common import OK, WARN

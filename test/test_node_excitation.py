@@ -1,11 +1,11 @@
 """The excitation node over real DDS (loopback): answers tips with the plan's torque for their
 stamp, stops with zero torque at the end, on a fault and on shutdown, and refuses bad parameters."""
+from geometry_msgs.msg import PoseArray
 import numpy as np
 import pytest
-from geometry_msgs.msg import PoseArray
+from rosutil import Probe, deep, overrides, ros_context, spin_until
 from sensor_msgs.msg import JointState
 
-from rosutil import Probe, deep, overrides, ros_context, spin_until
 from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.excitation import ExcitationNode
 from soft_gripper_sdre.nodes.params import ParameterError

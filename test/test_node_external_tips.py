@@ -3,23 +3,29 @@ controller over real DDS: 120 Hz, stamps jittered by ±20 % of the period around
 1 % of the messages never sent, another frame_id than the simulator's."""
 import time
 
+from geometry_msgs.msg import PoseArray
+from node_harness import TORQUE_LIMIT, horizon
 import numpy as np
 import pytest
-from geometry_msgs.msg import PoseArray
 from rcl_interfaces.msg import Log
+from rosutil import Probe, deep, overrides, ros_context, spin_until
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import MultiDOFJointTrajectory
 
-from node_harness import TORQUE_LIMIT, horizon
-from rosutil import Probe, deep, overrides, ros_context, spin_until
 from soft_gripper_sdre.control.kf import ConstantVelocityKF
 from soft_gripper_sdre.learning.model import SDCModel
 from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.common import OK
 from soft_gripper_sdre.nodes.controller import ControllerNode
 from soft_gripper_sdre.nodes.estimator import MESSAGE_OUTCOMES, EstimatorNode
-from soft_gripper_sdre.nodes.topics import (GRASP_REFERENCE, LOOP_QOS, REFERENCE_QOS, STATE_ESTIMATE,
-                                            TIP_POSITIONS, TORQUE_COMMANDS)
+from soft_gripper_sdre.nodes.topics import (
+    GRASP_REFERENCE,
+    LOOP_QOS,
+    REFERENCE_QOS,
+    STATE_ESTIMATE,
+    TIP_POSITIONS,
+    TORQUE_COMMANDS,
+)
 
 pytestmark = pytest.mark.ros
 

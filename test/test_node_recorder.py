@@ -10,18 +10,24 @@ from geometry_msgs.msg import PoseArray
 import numpy as np
 import pytest
 from rosgraph_msgs.msg import Clock
+from rosutil import Probe, overrides, ros_context, spin_until
 from sensor_msgs.msg import JointState
 import yaml
 
-from rosutil import Probe, drain, overrides, ros_context, spin_until
 from soft_gripper_sdre.analysis.bag import read_bag, topic_counts
 from soft_gripper_sdre.nodes import conversions as cv
-from soft_gripper_sdre.nodes.params import ParameterError
-from soft_gripper_sdre.nodes.cdr import leading_stamp
 from soft_gripper_sdre.nodes import recorder as recorder_module
+from soft_gripper_sdre.nodes.cdr import leading_stamp
+from soft_gripper_sdre.nodes.params import ParameterError
 from soft_gripper_sdre.nodes.recorder import RecorderNode, topic_qos
-from soft_gripper_sdre.nodes.topics import (CLOCK, CUBE_CONTACTS, DIAGNOSTICS, STREAM_QOS,
-                                            TIP_POSITIONS, TORQUE_COMMANDS)
+from soft_gripper_sdre.nodes.topics import (
+    CLOCK,
+    CUBE_CONTACTS,
+    DIAGNOSTICS,
+    STREAM_QOS,
+    TIP_POSITIONS,
+    TORQUE_COMMANDS,
+)
 from soft_gripper_sdre.tools import echo
 
 pytestmark = pytest.mark.ros

@@ -1,15 +1,21 @@
 """The simulator node over real DDS (loopback), launch-free: own Context, executor, test node."""
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseArray
 import numpy as np
 import pytest
-from geometry_msgs.msg import PoseArray
-from sensor_msgs.msg import JointState
-from diagnostic_msgs.msg import DiagnosticArray
-
 from rosutil import Probe, overrides, ros_context, spin_until
+from sensor_msgs.msg import JointState
+
 from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.params import ParameterError
 from soft_gripper_sdre.nodes.simulator import SimulatorNode
-from soft_gripper_sdre.nodes.topics import DIAGNOSTICS, LOOP_QOS, STREAM_QOS, TIP_POSITIONS, TORQUE_COMMANDS
+from soft_gripper_sdre.nodes.topics import (
+    DIAGNOSTICS,
+    LOOP_QOS,
+    STREAM_QOS,
+    TIP_POSITIONS,
+    TORQUE_COMMANDS,
+)
 
 pytestmark = pytest.mark.ros
 
@@ -59,6 +65,7 @@ def test_finger_moves_the_expected_way_in_lockstep(u, tip_axis, sign):
 @pytest.mark.parametrize('mode', ['lockstep', 'pipelined'])
 def test_lockstep_holds_on_a_timeout_then_steps_lost_periods_with_zero_until_commands_return(mode):
     from rclpy.parameter import Parameter
+
     from soft_gripper_sdre.nodes.common import ERROR, OK
     with ros_context() as (ctx, executor):
         sim, probe, pub = make_loop(ctx, executor, mode=mode, lockstep_timeout=0.05, on_timeout='hold',

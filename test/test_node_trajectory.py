@@ -2,17 +2,18 @@
 from pathlib import Path
 
 from geometry_msgs.msg import PoseArray
+from node_harness import FAST_GRASP
+from node_harness import make_trajectory as make
 import numpy as np
 import pytest
+from rosutil import overrides, ros_context, spin_until
 import yaml
 
-from node_harness import FAST_GRASP, make_trajectory as make
-from rosutil import overrides, ros_context, spin_until
+from soft_gripper_sdre.control.trajectory import GraspProfile, GraspTrajectory
 from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.params import ParameterError
 from soft_gripper_sdre.nodes.topics import GRASP_REFERENCE, TIP_POSITIONS
 from soft_gripper_sdre.nodes.trajectory import PARAMS, TrajectoryNode
-from soft_gripper_sdre.control.trajectory import GraspProfile, GraspTrajectory
 
 pytestmark = pytest.mark.ros
 

@@ -1,21 +1,27 @@
 """A driver stamping with wall time (no /clock): the trajectory node plans from its first tips and
 the controller tracks that plan, over real DDS (loopback). Wall-time stamps (~1.8e18 ns) go through
 the plan's int64 times and the controller's sampling of it without losing a nanosecond."""
+from geometry_msgs.msg import PoseArray
+from node_harness import FAST_GRASP, MS, TORQUE_LIMIT, estimate
 import numpy as np
 import pytest
-from geometry_msgs.msg import PoseArray
 from rclpy.qos import qos_profile_sensor_data
+from rosutil import Probe, deep, overrides, ros_context, spin_until
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import MultiDOFJointTrajectory
 
-from node_harness import FAST_GRASP, MS, TORQUE_LIMIT, estimate
-from rosutil import Probe, deep, overrides, ros_context, spin_until
 from soft_gripper_sdre.control.horizon import sample_plan
 from soft_gripper_sdre.learning.model import SDCModel
 from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.controller import ControllerNode
-from soft_gripper_sdre.nodes.topics import (GRASP_REFERENCE, LOOP_QOS, REFERENCE_QOS,
-                                            STATE_ESTIMATE, TIP_POSITIONS, TORQUE_COMMANDS)
+from soft_gripper_sdre.nodes.topics import (
+    GRASP_REFERENCE,
+    LOOP_QOS,
+    REFERENCE_QOS,
+    STATE_ESTIMATE,
+    TIP_POSITIONS,
+    TORQUE_COMMANDS,
+)
 from soft_gripper_sdre.nodes.trajectory import TrajectoryNode
 
 pytestmark = pytest.mark.ros

@@ -134,6 +134,7 @@ def test_colcon_build_installs_every_node(tmp_path):
 def test_config_file_holds_every_declared_default(node):
     """config/<node>.yaml is exactly the node's declared parameters with their defaults."""
     import importlib
+
     from soft_gripper_sdre.nodes.params import to_yaml
     module = importlib.import_module(f'soft_gripper_sdre.nodes.{node}')
     assert yaml.safe_load((ROOT / 'config' / f'{node}.yaml').read_text()) == \

@@ -5,13 +5,13 @@ import os
 import subprocess
 import sys
 
+from node_harness import MS
 import numpy as np
 import pytest
 from rclpy.parameter import Parameter
+from rosutil import Probe, deep, overrides, ros_context, spin_until
 from trajectory_msgs.msg import MultiDOFJointTrajectory
 
-from node_harness import MS
-from rosutil import Probe, deep, overrides, ros_context, spin_until
 from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.estimator import EstimatorNode
 from soft_gripper_sdre.nodes.topics import GRASP_REFERENCE, REFERENCE_QOS

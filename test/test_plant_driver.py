@@ -13,15 +13,20 @@ import numpy as np
 import pytest
 from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.qos import QoSPolicyKind, qos_profile_sensor_data
+from rosutil import Probe, deep, drain, overrides, ros_context, spin_until
 from sensor_msgs.msg import JointState
 
-from rosutil import Probe, deep, drain, overrides, ros_context, spin_until
 from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.common import WARN
 from soft_gripper_sdre.nodes.estimator import EstimatorNode
 from soft_gripper_sdre.nodes.plant_driver import PARAMS, TRUE_TIP_POSITIONS, PlantDriverNode
-from soft_gripper_sdre.nodes.topics import (DIAGNOSTICS, LOOP_QOS, STREAM_QOS, TIP_POSITIONS,
-                                            TORQUE_COMMANDS)
+from soft_gripper_sdre.nodes.topics import (
+    DIAGNOSTICS,
+    LOOP_QOS,
+    STREAM_QOS,
+    TIP_POSITIONS,
+    TORQUE_COMMANDS,
+)
 from soft_gripper_sdre.sim.foreign import plant_pair
 
 pytestmark = pytest.mark.ros

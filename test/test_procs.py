@@ -1,9 +1,9 @@
 """The process-graph helpers' own ROS side: the diagnostics monitor takes every queued message."""
-import pytest
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+import pytest
 from rclpy.duration import Duration
-
 from rosutil import Probe, ros_context, spin_until
+
 from soft_gripper_sdre.nodes.topics import DIAGNOSTICS, STREAM_QOS
 from soft_gripper_sdre.tools.procs import DiagnosticsMonitor, ros_env
 

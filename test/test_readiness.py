@@ -16,8 +16,14 @@ import numpy as np
 import pytest
 
 from soft_gripper_sdre.analysis.bag import read_bag
-from soft_gripper_sdre.nodes.graph import (GRASP_NODES, READS, WRITES, grasp_graph,
-                                           readiness_problem, wiring_key)
+from soft_gripper_sdre.nodes.graph import (
+    GRASP_NODES,
+    READS,
+    WRITES,
+    grasp_graph,
+    readiness_problem,
+    wiring_key,
+)
 from soft_gripper_sdre.tools.procs import DiagnosticsMonitor, Graph, ros_env
 
 RUN = 0.3           # s of sim time per run

@@ -16,8 +16,14 @@ from PIL import Image
 import pytest
 
 from soft_gripper_sdre.analysis.bag import Run, Series
-from soft_gripper_sdre.analysis.render import (GRASPING, HandScene, blank_fraction, replay,
-                                               scene_joints, visible)
+from soft_gripper_sdre.analysis.render import (
+    GRASPING,
+    HandScene,
+    blank_fraction,
+    replay,
+    scene_joints,
+    visible,
+)
 from soft_gripper_sdre.sim.hand import GripperSim, SimConfig
 from soft_gripper_sdre.tools import render as render_tool
 

@@ -12,11 +12,11 @@ from pathlib import Path
 import subprocess
 import sys
 
+from geometry_msgs.msg import PoseStamped
 import numpy as np
 import pytest
-from geometry_msgs.msg import PoseStamped
-
 from rosutil import Probe, overrides, ros_context, spin_until
+
 from soft_gripper_sdre.analysis.bag import BagError, extract_run, read_bag, sample_reference
 from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.recorder import RecorderNode, topic_qos

@@ -2,7 +2,13 @@
 import numpy as np
 import pytest
 
-from soft_gripper_sdre.control.riccati import Check, care, is_detectable, is_stabilizable, sdre_gains
+from soft_gripper_sdre.control.riccati import (
+    Check,
+    care,
+    is_detectable,
+    is_stabilizable,
+    sdre_gains,
+)
 from soft_gripper_sdre.control.sdre import SdreController
 from soft_gripper_sdre.control.tracking import paper_weights_si
 

@@ -14,7 +14,11 @@ import time
 import numpy as np
 import pytest
 
-from soft_gripper_sdre.control.batched_linalg import batched_solve, portable_batched_solve, well_conditioned_2x2
+from soft_gripper_sdre.control.batched_linalg import (
+    batched_solve,
+    portable_batched_solve,
+    well_conditioned_2x2,
+)
 from soft_gripper_sdre.control.compiled_sdre import well_conditioned
 from soft_gripper_sdre.control.laws import SdreLaw
 from soft_gripper_sdre.control.riccati import Check, care, full_sdc_matrices

@@ -4,14 +4,13 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from spring_finger import NOISE, RATE, SpringDamper
 import torch
 
 from soft_gripper_sdre.learning import derivatives
 from soft_gripper_sdre.learning.model import SDCModel
 from soft_gripper_sdre.learning.training import PRESETS, Run, TrainSettings, save_checkpoint, train
 from soft_gripper_sdre.sim.signals import SIGNALS
-
-from spring_finger import NOISE, RATE, SpringDamper
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(400)]
 

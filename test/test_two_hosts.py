@@ -11,17 +11,26 @@ from __future__ import annotations
 import json
 import subprocess
 
+from faults_common import on_target, record, recovery_time
+from multi_graph import DURATION, SHORT_GRASP, TARGET_PCT, worst_pct
 import numpy as np
 import pytest
 
-from faults_common import on_target, record, recovery_time
-from multi_graph import DURATION, SHORT_GRASP, TARGET_PCT, worst_pct
 from soft_gripper_sdre.analysis.bag import extract_run
 from soft_gripper_sdre.tools.hands import PATIENT_LOCKSTEP, published_and_recorded, trouble
 from soft_gripper_sdre.tools.report import report
-from soft_gripper_sdre.tools.two_hosts import (CTL_ADDRESS, MULTICAST_ROUTE, SIM_ADDRESS, HostPair, finite_torques,
-                                               netns_unavailable, paired_tracking, run_one_host, run_split,
-                                               timing)
+from soft_gripper_sdre.tools.two_hosts import (
+    CTL_ADDRESS,
+    MULTICAST_ROUTE,
+    SIM_ADDRESS,
+    HostPair,
+    finite_torques,
+    netns_unavailable,
+    paired_tracking,
+    run_one_host,
+    run_split,
+    timing,
+)
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 

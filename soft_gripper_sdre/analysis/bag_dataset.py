@@ -27,7 +27,14 @@ from pathlib import Path
 import numpy as np
 
 from soft_gripper_sdre import FINGER_NAMES
-from soft_gripper_sdre.analysis.bag import NS, TIP_POSITIONS, TORQUE_COMMANDS, BagError, read_bag, topic_counts
+from soft_gripper_sdre.analysis.bag import (
+    NS,
+    TIP_POSITIONS,
+    TORQUE_COMMANDS,
+    BagError,
+    read_bag,
+    topic_counts,
+)
 from soft_gripper_sdre.learning import derivatives
 
 TIPS_TYPE = 'geometry_msgs/msg/PoseArray'

@@ -24,13 +24,13 @@ import time
 
 import numpy as np
 
+from soft_gripper_sdre.analysis.metrics import TrackingMetrics, tracking_metrics
 from soft_gripper_sdre.control.kf import ConstantVelocityKF
 from soft_gripper_sdre.control.laws import SdreLaw
 from soft_gripper_sdre.control.tip_filter import MAX_BRIDGE, NS, RESET_ON_JUMP, TipFilter
 from soft_gripper_sdre.control.tracking import DEFAULT_LOWPASS_HZ, Law, Weights
-from soft_gripper_sdre.analysis.metrics import TrackingMetrics, tracking_metrics
-from soft_gripper_sdre.sim.hand import GripperSim, SimConfig
 from soft_gripper_sdre.control.trajectory import GraspProfile, GraspTrajectory
+from soft_gripper_sdre.sim.hand import GripperSim, SimConfig
 
 
 @dataclass(frozen=True)

@@ -18,8 +18,17 @@ from dataclasses import dataclass
 import numpy as np
 import pybullet as pb
 
-from soft_gripper_sdre.sim.finger import (CUBE, FINGER_BASE_POSITIONS, N_JOINTS, PALM, TIP_LINK,
-                                          DirectClient, finger_base_rpy, load_fingers, rpy_matrix)
+from soft_gripper_sdre.sim.finger import (
+    CUBE,
+    FINGER_BASE_POSITIONS,
+    N_JOINTS,
+    PALM,
+    TIP_LINK,
+    DirectClient,
+    finger_base_rpy,
+    load_fingers,
+    rpy_matrix,
+)
 from soft_gripper_sdre.sim.units import LENGTH_SCALE
 
 #: the hand's fingers that grasp the cube (they face each other across it)

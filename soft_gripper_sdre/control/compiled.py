@@ -32,10 +32,21 @@ from typing import NamedTuple
 import numpy as np
 
 from soft_gripper_sdre.control.compiled_horizon import plan_sample
-from soft_gripper_sdre.control.compiled_integral import integral_roll_off, integral_step, integral_update
+from soft_gripper_sdre.control.compiled_integral import (
+    integral_roll_off,
+    integral_step,
+    integral_update,
+)
 from soft_gripper_sdre.control.compiled_kf import kf_step, kf_step_dt
-from soft_gripper_sdre.control.compiled_sdre import (feedforward_step, model_inversion, sdc_forward, sdre_gains,
-                                                     sdre_step, tracking_step, tracking_torques)
+from soft_gripper_sdre.control.compiled_sdre import (
+    feedforward_step,
+    model_inversion,
+    sdc_forward,
+    sdre_gains,
+    sdre_step,
+    tracking_step,
+    tracking_torques,
+)
 
 __all__ = ['SdcNetwork', 'SdreSettings', 'SdreState', 'SdreOutputs', 'FeedforwardOutputs', 'compiled_network',
            'kernel_array', 'warm_up',

@@ -9,8 +9,8 @@ file of the function compiled: a kernel calling into another file would keep a s
 """
 from __future__ import annotations
 
-import numpy as np
 from numba import njit
+import numpy as np
 
 #: every kernel: cached on disk, IEEE division (x / 0 = ±inf or NaN, never an exception), no GIL
 kernel = njit(cache=True, error_model='numpy', nogil=True)

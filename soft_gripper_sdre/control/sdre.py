@@ -22,11 +22,27 @@ from typing import Callable
 
 import numpy as np
 
-from soft_gripper_sdre.control.compiled import (FeedforwardOutputs, SdcNetwork, SdreOutputs, SdreSettings, SdreState,
-                                                feedforward_step, kernel_array, sdre_step, tracking_step,
-                                                tracking_torques)
-from soft_gripper_sdre.control.riccati import (Check, checked_weights, full_sdc_matrices, in_sdc_form, riccati_cost,
-                                               sdre_gains, solve_and_check)
+from soft_gripper_sdre.control.compiled import (
+    FeedforwardOutputs,
+    SdcNetwork,
+    SdreOutputs,
+    SdreSettings,
+    SdreState,
+    feedforward_step,
+    kernel_array,
+    sdre_step,
+    tracking_step,
+    tracking_torques,
+)
+from soft_gripper_sdre.control.riccati import (
+    Check,
+    checked_weights,
+    full_sdc_matrices,
+    in_sdc_form,
+    riccati_cost,
+    sdre_gains,
+    solve_and_check,
+)
 from soft_gripper_sdre.control.tracking import LawStep
 
 METHODS = ('fast', 'reference')

@@ -1,8 +1,8 @@
 """Reading and checking excitation datasets (the ``.npz`` files the collect tool writes)."""
 from __future__ import annotations
 
-import logging
 from dataclasses import dataclass
+import logging
 from pathlib import Path
 import zipfile
 

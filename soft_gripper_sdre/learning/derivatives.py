@@ -13,9 +13,9 @@ a real data set would be processed; the tools report the error against the simul
 """
 from __future__ import annotations
 
-import numpy as np
 from filterpy.common import Q_continuous_white_noise
 from filterpy.kalman import KalmanFilter
+import numpy as np
 
 #: lower bound on σ_r [m], so noise-free simulated data still gives the filter a positive Σ_r
 MEAS_STD_FLOOR = 1e-7

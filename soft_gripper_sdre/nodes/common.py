@@ -15,8 +15,8 @@ import rclpy
 from rclpy.duration import Duration
 from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedExecutor
 from rclpy.experimental import EventsExecutor
-from rclpy.signals import SignalHandlerOptions
 from rclpy.node import Node
+from rclpy.signals import SignalHandlerOptions
 
 from soft_gripper_sdre.nodes.cli import USAGE_ERROR, settle_command_line
 from soft_gripper_sdre.nodes.graph import wiring_key

@@ -52,20 +52,45 @@ from trajectory_msgs.msg import MultiDOFJointTrajectory
 from soft_gripper_sdre import FINGER_NAMES
 from soft_gripper_sdre.control.command_gate import Change, CommandGate, Notice, Outcome, Plan
 from soft_gripper_sdre.control.compiled import plan_sample, warm_up
-from soft_gripper_sdre.control.tracking import DEFAULT_LOWPASS_HZ, DEFAULT_WEIGHTS, Weights, roll_off_corner_hz
 from soft_gripper_sdre.control.horizon import sample_plan
-from soft_gripper_sdre.control.laws import (DEFAULT_CT, DEFAULT_INTEGRAL, DEFAULT_LAW, DEFAULT_PD,
-                                             GRAPH_LAWS, LAW_REGISTRY, hand_over, make_law,
-                                             pd_gains)
-from soft_gripper_sdre.learning.model import ModelFileError, SDCModel, set_torch_threads
-from soft_gripper_sdre.nodes import cdr, conversions as cv
-from soft_gripper_sdre.nodes.common import ERROR, OK, Diagnostics, ThrottledLogger, run
-from soft_gripper_sdre.nodes.params import (Param, ParameterError, declare_all, finger_names_param,
-                                            on_runtime_change)
-from soft_gripper_sdre.nodes.plan_cdr import PlanCodec
-from soft_gripper_sdre.nodes.topics import (GRASP_REFERENCE, LOOP_QOS, NEWEST_QOS, REFERENCE_QOS,
-                                            STATE_ESTIMATE, TORQUE_COMMANDS)
+from soft_gripper_sdre.control.laws import (
+    DEFAULT_CT,
+    DEFAULT_INTEGRAL,
+    DEFAULT_LAW,
+    DEFAULT_PD,
+    GRAPH_LAWS,
+    LAW_REGISTRY,
+    hand_over,
+    make_law,
+    pd_gains,
+)
 from soft_gripper_sdre.control.riccati import Check
+from soft_gripper_sdre.control.tracking import (
+    DEFAULT_LOWPASS_HZ,
+    DEFAULT_WEIGHTS,
+    Weights,
+    roll_off_corner_hz,
+)
+from soft_gripper_sdre.learning.model import ModelFileError, SDCModel, set_torch_threads
+from soft_gripper_sdre.nodes import cdr
+from soft_gripper_sdre.nodes import conversions as cv
+from soft_gripper_sdre.nodes.common import ERROR, OK, Diagnostics, ThrottledLogger, run
+from soft_gripper_sdre.nodes.params import (
+    Param,
+    ParameterError,
+    declare_all,
+    finger_names_param,
+    on_runtime_change,
+)
+from soft_gripper_sdre.nodes.plan_cdr import PlanCodec
+from soft_gripper_sdre.nodes.topics import (
+    GRASP_REFERENCE,
+    LOOP_QOS,
+    NEWEST_QOS,
+    REFERENCE_QOS,
+    STATE_ESTIMATE,
+    TORQUE_COMMANDS,
+)
 
 PARAMS = (
     Param('model_path', '', 'SDC model checkpoint (.pt); empty = the model shipped with the package',

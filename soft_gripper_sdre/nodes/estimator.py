@@ -47,12 +47,24 @@ from trajectory_msgs.msg import MultiDOFJointTrajectory
 
 from soft_gripper_sdre.control.compiled import warm_up
 from soft_gripper_sdre.control.kf import PROCESS_NOISE_MODELS, ConstantVelocityKF
-from soft_gripper_sdre.control.tip_filter import (MAX_BRIDGE, RESET_ON_JUMP, Change, Notice,
-                                                  Outcome, TipFilter)
-from soft_gripper_sdre.nodes import cdr, conversions as cv
+from soft_gripper_sdre.control.tip_filter import (
+    MAX_BRIDGE,
+    RESET_ON_JUMP,
+    Change,
+    Notice,
+    Outcome,
+    TipFilter,
+)
+from soft_gripper_sdre.nodes import cdr
+from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.common import Diagnostics, run
-from soft_gripper_sdre.nodes.params import (Param, ParameterError, declare_all, finger_names_param,
-                                            on_runtime_change)
+from soft_gripper_sdre.nodes.params import (
+    Param,
+    ParameterError,
+    declare_all,
+    finger_names_param,
+    on_runtime_change,
+)
 from soft_gripper_sdre.nodes.topics import LOOP_QOS, NEWEST_QOS, STATE_ESTIMATE, TIP_POSITIONS
 
 PARAMS = (

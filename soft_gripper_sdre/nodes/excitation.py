@@ -57,13 +57,25 @@ from rclpy.duration import Duration
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
-from soft_gripper_sdre.nodes import cdr, conversions as cv
+from soft_gripper_sdre.nodes import cdr
+from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.common import ERROR, OK, Diagnostics, run
-from soft_gripper_sdre.nodes.params import (Param, ParameterError, declare_all, finger_names_param,
-                                            tips_reliability_param, with_reliability)
+from soft_gripper_sdre.nodes.params import (
+    Param,
+    ParameterError,
+    declare_all,
+    finger_names_param,
+    tips_reliability_param,
+    with_reliability,
+)
 from soft_gripper_sdre.nodes.topics import LOOP_QOS, NEWEST_QOS, TIP_POSITIONS, TORQUE_COMMANDS
-from soft_gripper_sdre.sim.excitation import (MIN_SETTLE_SAMPLES, ExcitationPlan, LevelSearch,
-                                              SignalSpecError, resolve_signals)
+from soft_gripper_sdre.sim.excitation import (
+    MIN_SETTLE_SAMPLES,
+    ExcitationPlan,
+    LevelSearch,
+    SignalSpecError,
+    resolve_signals,
+)
 from soft_gripper_sdre.sim.signals import SIGNALS
 
 PARAMS = (

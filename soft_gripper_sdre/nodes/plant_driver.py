@@ -42,10 +42,10 @@ from rclpy.qos import qos_profile_sensor_data
 from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import JointState
 
-from soft_gripper_sdre.nodes import cdr, conversions as cv
+from soft_gripper_sdre.nodes import cdr
+from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.common import OK, WARN, Diagnostics, LatencyWindow, run
-from soft_gripper_sdre.nodes.params import (Param, ParameterError, declare_all,
-                                            on_runtime_change)
+from soft_gripper_sdre.nodes.params import Param, ParameterError, declare_all, on_runtime_change
 from soft_gripper_sdre.nodes.topics import LOOP_QOS, NEWEST_QOS, TIP_POSITIONS, TORQUE_COMMANDS
 from soft_gripper_sdre.sim.foreign import PAIRS, plant_pair
 

@@ -47,18 +47,40 @@ import time
 import rclpy
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness, QosReliability,
-                                QosTime)
+from rosbags.interfaces import (
+    Qos,
+    QosDurability,
+    QosHistory,
+    QosLiveliness,
+    QosReliability,
+    QosTime,
+)
 from rosbags.rosbag2 import StoragePlugin, Writer, WriterError
 from rosbags.typesys import Stores, get_typestore
 
 from soft_gripper_sdre.nodes import cdr
 from soft_gripper_sdre.nodes.common import ERROR, OK, Diagnostics, ThrottledLogger, run
-from soft_gripper_sdre.nodes.params import (Param, ParameterError, declare_all,
-                                            tips_reliability_param, with_reliability)
-from soft_gripper_sdre.nodes.topics import (CLOCK, CLOCK_QOS, DIAGNOSTICS, GRASP_REFERENCE,
-                                            LOOP_QOS, REFERENCE_QOS, STATE_ESTIMATE, STREAM_QOS,
-                                            TIP_POSITIONS, TOPIC_TYPES, TORQUE_COMMANDS, type_name)
+from soft_gripper_sdre.nodes.params import (
+    Param,
+    ParameterError,
+    declare_all,
+    tips_reliability_param,
+    with_reliability,
+)
+from soft_gripper_sdre.nodes.topics import (
+    CLOCK,
+    CLOCK_QOS,
+    DIAGNOSTICS,
+    GRASP_REFERENCE,
+    LOOP_QOS,
+    REFERENCE_QOS,
+    STATE_ESTIMATE,
+    STREAM_QOS,
+    TIP_POSITIONS,
+    TOPIC_TYPES,
+    TORQUE_COMMANDS,
+    type_name,
+)
 
 #: topics of the 1 kHz control loop (LOOP_QOS); /clock has CLOCK_QOS, the plan REFERENCE_QOS (a
 #: recorder that starts after the plan went out still gets it), the rest STREAM_QOS

@@ -58,17 +58,42 @@ from std_msgs.msg import String
 from trajectory_msgs.msg import MultiDOFJointTrajectory
 from visualization_msgs.msg import MarkerArray
 
-from soft_gripper_sdre.nodes import cdr, conversions as cv
-from soft_gripper_sdre.nodes.common import (ERROR, OK, WARN, Diagnostics, SteppingTiming,
-                                            ThrottledLogger, run, wiring)
+from soft_gripper_sdre.nodes import cdr
+from soft_gripper_sdre.nodes import conversions as cv
+from soft_gripper_sdre.nodes.common import (
+    ERROR,
+    OK,
+    WARN,
+    Diagnostics,
+    SteppingTiming,
+    ThrottledLogger,
+    run,
+    wiring,
+)
 from soft_gripper_sdre.nodes.graph import GRASP_NODES, readiness_problem
 from soft_gripper_sdre.nodes.markers import HandMarkers
-from soft_gripper_sdre.nodes.params import (Param, ParameterError, declare_all, finger_names_param,
-                                            on_runtime_change)
-from soft_gripper_sdre.nodes.topics import (CLOCK, CLOCK_QOS, CUBE_CONTACTS, CUBE_POSE,
-                                            DIAGNOSTICS, GRASP_REFERENCE, JOINT_STATES, LOOP_QOS,
-                                            NEWEST_QOS, REFERENCE_QOS, STREAM_QOS, TIP_POSITIONS,
-                                            TORQUE_COMMANDS)
+from soft_gripper_sdre.nodes.params import (
+    Param,
+    ParameterError,
+    declare_all,
+    finger_names_param,
+    on_runtime_change,
+)
+from soft_gripper_sdre.nodes.topics import (
+    CLOCK,
+    CLOCK_QOS,
+    CUBE_CONTACTS,
+    CUBE_POSE,
+    DIAGNOSTICS,
+    GRASP_REFERENCE,
+    JOINT_STATES,
+    LOOP_QOS,
+    NEWEST_QOS,
+    REFERENCE_QOS,
+    STREAM_QOS,
+    TIP_POSITIONS,
+    TORQUE_COMMANDS,
+)
 from soft_gripper_sdre.sim.finger import FINGER_BASE_POSITIONS, N_JOINTS
 from soft_gripper_sdre.sim.hand import GripperSim, SimConfig
 from soft_gripper_sdre.sim.hand_description import hand_urdf

@@ -44,15 +44,28 @@ from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 from trajectory_msgs.msg import MultiDOFJointTrajectory
 
-from soft_gripper_sdre.nodes import cdr, conversions as cv
-from soft_gripper_sdre.nodes.common import Diagnostics, run
-from soft_gripper_sdre.nodes.params import (Param, ParameterError, declare_all, finger_names_param,
-                                            on_runtime_change, tips_reliability_param,
-                                            with_reliability)
-from soft_gripper_sdre.nodes.plan_cdr import PlanCodec
-from soft_gripper_sdre.nodes.topics import (CLOCK, CLOCK_QOS, GRASP_REFERENCE, LOOP_QOS, REFERENCE_QOS,
-                                            TIP_POSITIONS)
 from soft_gripper_sdre.control.trajectory import OTHERS_MODES, GraspProfile, GraspTrajectory
+from soft_gripper_sdre.nodes import cdr
+from soft_gripper_sdre.nodes import conversions as cv
+from soft_gripper_sdre.nodes.common import Diagnostics, run
+from soft_gripper_sdre.nodes.params import (
+    Param,
+    ParameterError,
+    declare_all,
+    finger_names_param,
+    on_runtime_change,
+    tips_reliability_param,
+    with_reliability,
+)
+from soft_gripper_sdre.nodes.plan_cdr import PlanCodec
+from soft_gripper_sdre.nodes.topics import (
+    CLOCK,
+    CLOCK_QOS,
+    GRASP_REFERENCE,
+    LOOP_QOS,
+    REFERENCE_QOS,
+    TIP_POSITIONS,
+)
 
 _DEFAULTS = GraspProfile()     # the parameters' defaults
 PROFILE_FIELDS = tuple(f.name for f in fields(GraspProfile))

@@ -24,8 +24,18 @@ import math
 import numpy as np
 import pybullet as pb
 
-from soft_gripper_sdre.sim.finger import (B_MATRIX, FINGER_ROLL_DEG, FRICTION_TORQUE, JOINT_STIFFNESS, N_JOINTS,
-                                          TIP_LINK, WORLD_GRAVITY, DirectClient, load_fingers, rpy_matrix)
+from soft_gripper_sdre.sim.finger import (
+    B_MATRIX,
+    FINGER_ROLL_DEG,
+    FRICTION_TORQUE,
+    JOINT_STIFFNESS,
+    N_JOINTS,
+    TIP_LINK,
+    WORLD_GRAVITY,
+    DirectClient,
+    load_fingers,
+    rpy_matrix,
+)
 from soft_gripper_sdre.sim.units import LENGTH_SCALE, TORQUE_SCALE
 
 #: step of the central difference J̇ q̇ ≈ (J(q + h q̇) − J(q − h q̇)) q̇ / 2h  [s]

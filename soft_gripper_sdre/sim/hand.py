@@ -19,12 +19,25 @@ import math
 import numpy as np
 import pybullet as pb
 
-from soft_gripper_sdre.sim.finger import (CUBE, FINGER_BASE_POSITIONS, FINGER_FRICTION, FINGER_RESTITUTION,
-                                          FRICTION_TORQUE, JOINT_SPRINGS, N_JOINTS, PALM, SCENES, TIP_LINK,
-                                          WORLD_GRAVITY, DirectClient, finger_base_rpy, load_fingers, rpy_matrix)
+from soft_gripper_sdre.sim.finger import (
+    CUBE,
+    FINGER_BASE_POSITIONS,
+    FINGER_FRICTION,
+    FINGER_RESTITUTION,
+    FRICTION_TORQUE,
+    JOINT_SPRINGS,
+    N_JOINTS,
+    PALM,
+    SCENES,
+    TIP_LINK,
+    WORLD_GRAVITY,
+    DirectClient,
+    finger_base_rpy,
+    load_fingers,
+    rpy_matrix,
+)
 from soft_gripper_sdre.sim.plant import PlantVariation
 from soft_gripper_sdre.sim.units import LENGTH_SCALE, TORQUE_SCALE
-
 
 #: the longest physics step the default substeps allow [s]
 MAX_PHYSICS_DT = 5e-4

@@ -22,8 +22,14 @@ import xml.etree.ElementTree as ET
 import numpy as np
 
 from soft_gripper_sdre import FINGER_NAMES
-from soft_gripper_sdre.sim.finger import (FINGER_BASE_POSITIONS, N_JOINTS, PALM, TIP_LINK,
-                                          finger_base_rpy, finger_urdf)
+from soft_gripper_sdre.sim.finger import (
+    FINGER_BASE_POSITIONS,
+    N_JOINTS,
+    PALM,
+    TIP_LINK,
+    finger_base_rpy,
+    finger_urdf,
+)
 from soft_gripper_sdre.sim.units import LENGTH_SCALE, TORQUE_SCALE
 
 ROOT = 'hand'

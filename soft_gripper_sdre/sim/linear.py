@@ -10,7 +10,13 @@ import math
 import numpy as np
 import pybullet as pb
 
-from soft_gripper_sdre.sim.finger import B_MATRIX, JOINT_STIFFNESS, N_JOINTS, TIP_LINK, WORLD_GRAVITY
+from soft_gripper_sdre.sim.finger import (
+    B_MATRIX,
+    JOINT_STIFFNESS,
+    N_JOINTS,
+    TIP_LINK,
+    WORLD_GRAVITY,
+)
 from soft_gripper_sdre.sim.hand import GripperSim
 from soft_gripper_sdre.sim.units import LENGTH_SCALE, TORQUE_SCALE
 

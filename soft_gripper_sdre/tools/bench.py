@@ -17,13 +17,13 @@ import argparse
 import importlib
 import json
 import os
+from pathlib import Path
 import platform
 import statistics
 import subprocess
 import sys
 import tempfile
 import time
-from pathlib import Path
 
 os.environ.setdefault('OMP_NUM_THREADS', '1')      # before numpy loads BLAS: one thread, as the nodes
 import numpy as np  # noqa: E402
@@ -83,8 +83,13 @@ def bench_control(loop, law: str, repeats: int, ref_steps: int) -> dict[str, flo
     iterations per step, its share of exact solves, and the largest difference of the unsaturated
     torques to the reference's relative to the largest of those.
     """
-    from soft_gripper_sdre.control.compiled import (FeedforwardOutputs, SdreOutputs, SdreState, feedforward_step,
-                                                    tracking_step)
+    from soft_gripper_sdre.control.compiled import (
+        FeedforwardOutputs,
+        SdreOutputs,
+        SdreState,
+        feedforward_step,
+        tracking_step,
+    )
     from soft_gripper_sdre.control.laws import make_law
     from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
     from soft_gripper_sdre.learning.model import SDCModel
@@ -218,8 +223,8 @@ def bench_idle(loop, law: str = 'sdre_ff') -> dict[str, float]:
     Three instances of the law step through the same states, one after the other at each step, so
     all see the same warm starts and the same load.
     """
-    from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
     from soft_gripper_sdre.control.laws import make_law
+    from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
     from soft_gripper_sdre.learning.model import SDCModel
     model, w = SDCModel(), Weights(**DEFAULT_WEIGHTS)
     laws = {k: make_law(law, model, w, 0.0625, n_fingers=4) for k in ('idle', 'flushed', 'busy')}

@@ -101,8 +101,8 @@ def driver(period: float, warmup: float, seconds: float, tips_path: Path, reader
     ``torque_commands``, ticks for ``warmup`` + ``seconds``, and measures the last ``seconds``:
     lateness, latency, and the CPU of every process in ``pids`` (name → pid) and its own.
     """
-    import rclpy
     from geometry_msgs.msg import PoseArray
+    import rclpy
     from rclpy.experimental import EventsExecutor
     from rclpy.node import Node
     from sensor_msgs.msg import JointState

@@ -203,6 +203,7 @@ def _start_composed(graph: Graph, controller, estimator) -> None:
     its own parameters file (and overrides)."""
     import subprocess
     import sys
+
     from soft_gripper_sdre.nodes.controller import WITH_ESTIMATOR
     from soft_gripper_sdre.tools.procs import NodeProcess
     cmd = [sys.executable, '-m', controller.module, WITH_ESTIMATOR, *controller.ros_arguments(),
@@ -235,8 +236,8 @@ def _echo(count: int, raw: bool = False) -> int:
     ``bench_pong``, print the CPU seconds this process spent per message, and go when the pinging
     side says so with a ping stamped ``count``. ``raw``: receive the CDR bytes, decode and encode
     them as the loop nodes do (nodes/cdr.py); otherwise republish the message rclpy built."""
-    import rclpy
     from geometry_msgs.msg import PoseArray
+    import rclpy
     from rclpy.node import Node
 
     from soft_gripper_sdre.nodes import cdr
@@ -298,9 +299,9 @@ def hop(executor: str, count: int = 2000, raw: bool = False) -> dict[str, float]
     import subprocess
     import sys
 
+    from geometry_msgs.msg import PoseArray
     import numpy as np
     import rclpy
-    from geometry_msgs.msg import PoseArray
     from rclpy.context import Context
     from rclpy.node import Node
 

@@ -22,8 +22,14 @@ import sys
 import numpy as np
 from tqdm import tqdm
 
-from soft_gripper_sdre.sim.signals import DURATION, PAPER_SIGNALS, IDENTIFYING_SIGNALS, SIGNALS, get_signal
 from soft_gripper_sdre.sim.hand import GripperSim, SimConfig
+from soft_gripper_sdre.sim.signals import (
+    DURATION,
+    IDENTIFYING_SIGNALS,
+    PAPER_SIGNALS,
+    SIGNALS,
+    get_signal,
+)
 
 FORMAT_VERSION = 1
 DEFAULT_SIGNALS = PAPER_SIGNALS + IDENTIFYING_SIGNALS

@@ -171,6 +171,7 @@ def run_demo(out: Path, duration: float, model: Path | None = None, noise: float
 def _simulator_period(spec) -> float:
     """The control period the graph ``spec`` runs at: its override, else config/simulator.yaml's."""
     import yaml
+
     from soft_gripper_sdre.tools.procs import default_params_file
     node = spec.node('simulator')
     if 'control_period' in node.parameters:
@@ -181,6 +182,7 @@ def _simulator_period(spec) -> float:
 
 def _controller_limit() -> float:
     import yaml
+
     from soft_gripper_sdre.tools.procs import default_params_file
     path = default_params_file('controller')
     return float(yaml.safe_load(path.read_text())['/**/controller']['ros__parameters']['torque_limit'])

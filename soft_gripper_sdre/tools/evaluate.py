@@ -32,14 +32,15 @@ from pathlib import Path
 import numpy as np
 
 from soft_gripper_sdre.analysis import law_runs
+from soft_gripper_sdre.analysis.law_plots import plot_feedforward, plot_laws, plot_model_vs_truth
+
 # importing analysis.oracle registers the oracle laws ('oracle', 'oracle_exact', 'oracle_ff') with make_law
 import soft_gripper_sdre.analysis.oracle  # noqa: F401
-from soft_gripper_sdre.analysis.law_plots import plot_feedforward, plot_laws, plot_model_vs_truth
-from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
 from soft_gripper_sdre.control.laws import DEFAULT_CT, DEFAULT_PD, LAW_REGISTRY
+from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
+from soft_gripper_sdre.control.trajectory import GraspProfile
 from soft_gripper_sdre.learning.model import PAPER_DATA_MODEL, ModelFileError, SDCModel
 from soft_gripper_sdre.sim.hand import SimConfig
-from soft_gripper_sdre.control.trajectory import GraspProfile
 from soft_gripper_sdre.tools import jobs
 
 #: (label, law name, make_law options)
@@ -198,8 +199,8 @@ def score_model(model: SDCModel, signal: str = 'u4', seconds: float = 4.0, every
     the learned drift A(x)x with the true f. Returns the samples and summary statistics."""
     from soft_gripper_sdre.analysis.ground_truth import angle_difference, column_angles
     from soft_gripper_sdre.sim.dynamics import FingerDynamics, oracle_sdc
-    from soft_gripper_sdre.sim.signals import get_signal
     from soft_gripper_sdre.sim.hand import GripperSim
+    from soft_gripper_sdre.sim.signals import get_signal
     rows = {k: [] for k in ('t', 'x', 'u', 'acc_sim', 'acc_exact', 'acc_proj', 'acc_learned',
                             'G2_exact', 'G2_proj', 'G2_learned', 'f_exact', 'f_proj', 'f_learned',
                             'A_learned', 'A_oracle')}

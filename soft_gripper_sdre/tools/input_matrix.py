@@ -26,7 +26,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--out', type=Path, default=None, help='also write input_matrix.json here')
     a = ap.parse_args(argv)
     from soft_gripper_sdre.analysis.ground_truth import column_angles, input_matrix_survey
-    from soft_gripper_sdre.learning.model import DEFAULT_MODEL, PAPER_DATA_MODEL, ModelFileError, SDCModel
+    from soft_gripper_sdre.learning.model import (
+        DEFAULT_MODEL,
+        PAPER_DATA_MODEL,
+        ModelFileError,
+        SDCModel,
+    )
     named = {'default': DEFAULT_MODEL, 'paper_data': PAPER_DATA_MODEL}
     results = {}
     for name in a.models:

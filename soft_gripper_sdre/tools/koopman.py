@@ -24,7 +24,12 @@ import numpy as np
 
 from soft_gripper_sdre.analysis.metrics import r2_score
 from soft_gripper_sdre.learning.dataset import DatasetError, load_records
-from soft_gripper_sdre.learning.koopman import DEFAULT_KOOPMAN, KoopmanModel, KoopmanSettings, fit_koopman
+from soft_gripper_sdre.learning.koopman import (
+    DEFAULT_KOOPMAN,
+    KoopmanModel,
+    KoopmanSettings,
+    fit_koopman,
+)
 from soft_gripper_sdre.tools.train import DATA_VARIANTS, VALIDATION, states, tuned_jerk_psd
 
 #: score_model's samples: every 10th step of the first 4 s, from step 10 on

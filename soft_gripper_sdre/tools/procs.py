@@ -176,11 +176,11 @@ class DiagnosticsMonitor:
 
     def __init__(self, env: dict[str, str], name: str = 'diagnostics_monitor') -> None:
         os.environ.update({k: env[k] for k in DDS_ENV if k in env})
+        from diagnostic_msgs.msg import DiagnosticArray
         import rclpy
         from rclpy.context import Context
         from rclpy.executors import SingleThreadedExecutor
         from rclpy.node import Node
-        from diagnostic_msgs.msg import DiagnosticArray
 
         from soft_gripper_sdre.nodes.topics import DIAGNOSTICS, STREAM_QOS
 

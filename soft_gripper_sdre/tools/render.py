@@ -26,8 +26,7 @@ import time
 import numpy as np
 
 from soft_gripper_sdre.analysis.bag import BagError, extract_run
-from soft_gripper_sdre.analysis.render import (GRASPING, HandScene, reference_paths, replay,
-                                               visible)
+from soft_gripper_sdre.analysis.render import GRASPING, HandScene, reference_paths, replay, visible
 
 FIG1 = 'fig1_hand.png'
 FIG4 = 'fig4_snapshots.png'

@@ -36,8 +36,14 @@ from soft_gripper_sdre.analysis.oracle import ORACLE_LAWS
 from soft_gripper_sdre.learning.model import ModelFileError, SDCModel
 from soft_gripper_sdre.tools import jobs
 from soft_gripper_sdre.tools.evaluate import TRAJECTORIES
-from soft_gripper_sdre.tools.robustness_grid import (VARIATIONS, Case, CaseResult, grid_laws, known_laws,
-                                                     run_grid)
+from soft_gripper_sdre.tools.robustness_grid import (
+    VARIATIONS,
+    Case,
+    CaseResult,
+    grid_laws,
+    known_laws,
+    run_grid,
+)
 
 PROG = 'python -m soft_gripper_sdre.tools.robustness'
 #: the free-space target: worst-finger RMSE as a share of its peak excursion [%] (docs/results.md)
@@ -112,8 +118,8 @@ def plot_grid(results: list[CaseResult], path: Path, command: str) -> Path:
     grasping fingers' RMSE [mm] and ✗ where the grasp was lost."""
     import matplotlib
     matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
     from matplotlib.colors import TwoSlopeNorm
+    import matplotlib.pyplot as plt
 
     trajectories = list(dict.fromkeys(r.trajectory for r in results))
     laws = list(dict.fromkeys(r.law for r in results))

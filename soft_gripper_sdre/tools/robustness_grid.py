@@ -16,10 +16,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 
+from soft_gripper_sdre.analysis import law_runs
+
 # importing analysis.oracle adds the oracle laws to the registry (they know the nominal plant's
 # dynamics, so the grid leaves them out unless asked)
 from soft_gripper_sdre.analysis.oracle import ORACLE_LAWS
-from soft_gripper_sdre.analysis import law_runs
 from soft_gripper_sdre.control.laws import LAW_REGISTRY
 from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
 from soft_gripper_sdre.learning.model import DEFAULT_MODEL, SDCModel

@@ -36,13 +36,13 @@ def main(argv: list[str] | None = None) -> int:
         ap.error('q_pos and duration must be > 0, noise >= 0')
     from tqdm import tqdm
 
-    from soft_gripper_sdre.analysis.ground_truth import linear_finger, loop_spectral_radius
     from soft_gripper_sdre.analysis.closed_loop import EstimatorSettings, run_closed_loop
-    from soft_gripper_sdre.control.tracking import DEFAULT_LOWPASS_HZ, DEFAULT_WEIGHTS, Weights
-    from soft_gripper_sdre.learning.model import SDCModel, set_torch_threads
+    from soft_gripper_sdre.analysis.ground_truth import linear_finger, loop_spectral_radius
     from soft_gripper_sdre.analysis.plots import plot_sweep
-    from soft_gripper_sdre.sim.hand import SimConfig
+    from soft_gripper_sdre.control.tracking import DEFAULT_LOWPASS_HZ, DEFAULT_WEIGHTS, Weights
     from soft_gripper_sdre.control.trajectory import GraspProfile
+    from soft_gripper_sdre.learning.model import SDCModel, set_torch_threads
+    from soft_gripper_sdre.sim.hand import SimConfig
 
     set_torch_threads(1)
     a.out.mkdir(parents=True, exist_ok=True)

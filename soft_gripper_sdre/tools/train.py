@@ -25,12 +25,12 @@ import sys
 import numpy as np
 from tqdm import tqdm
 
+from soft_gripper_sdre.analysis.metrics import poly_features, r2_score
+from soft_gripper_sdre.analysis.plots import plot_accel, plot_loss
 from soft_gripper_sdre.learning import derivatives
 from soft_gripper_sdre.learning.dataset import DatasetError, Record, load_records
-from soft_gripper_sdre.analysis.metrics import poly_features, r2_score
 from soft_gripper_sdre.learning.model import DEFAULT_MODEL, SDCModel, set_torch_threads
 from soft_gripper_sdre.learning.training import PRESETS, fingerprint, save_checkpoint, train
-from soft_gripper_sdre.analysis.plots import plot_accel, plot_loss
 
 #: training signals per data variant; validation is always u4
 DATA_VARIANTS = {'paper': ('u1', 'u2', 'u3'), 'identifying': ('u1', 'u2', 'u3', 'x1', 'x2')}

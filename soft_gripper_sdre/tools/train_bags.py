@@ -27,16 +27,32 @@ from tqdm import tqdm
 import yaml
 
 from soft_gripper_sdre import FINGER_NAMES
-from soft_gripper_sdre.analysis.bag_dataset import (DEFAULT_GAP_PERIODS, MIN_SAMPLES, BagDataError, FingerSamples,
-                                                    Recording, excited_fingers, first_torque_ns, label_finger,
-                                                    read_recording, settle_estimates, settle_noise,
-                                                    tip_stretches)
 from soft_gripper_sdre.analysis import loop_settings, model_fitness
+from soft_gripper_sdre.analysis.bag_dataset import (
+    DEFAULT_GAP_PERIODS,
+    MIN_SAMPLES,
+    BagDataError,
+    FingerSamples,
+    Recording,
+    excited_fingers,
+    first_torque_ns,
+    label_finger,
+    read_recording,
+    settle_estimates,
+    settle_noise,
+    tip_stretches,
+)
 from soft_gripper_sdre.analysis.metrics import poly_features, r2_score
 from soft_gripper_sdre.analysis.plots import plot_accel, plot_loss
 from soft_gripper_sdre.learning import derivatives
 from soft_gripper_sdre.learning.model import SDCModel
-from soft_gripper_sdre.learning.training import Run, TrainSettings, fingerprint, save_checkpoint, train
+from soft_gripper_sdre.learning.training import (
+    Run,
+    TrainSettings,
+    fingerprint,
+    save_checkpoint,
+    train,
+)
 
 #: samples of a recording's first stretch its jerk intensity is tuned on
 TUNE_SAMPLES = 2000
@@ -223,7 +239,7 @@ def train_from_bags(train_paths: list[Path], val_paths: list[Path], out: Path, s
     val_samples, val_provenance, _ = label_bags(val_set, jerk_psd, meas_std)
     tuned = [f['jerk_psd'] for bag in provenance for f in bag['fingers'].values()]
     jerk = jerk_psd if jerk_psd is not None else float(np.median(tuned))
-    print(f'KF/RTS white-jerk intensity q [(m/s³)²/Hz]: '
+    print('KF/RTS white-jerk intensity q [(m/s³)²/Hz]: '
           + (f'{jerk_psd:g}' if jerk_psd is not None else
              f'tuned per bag and finger, {min(tuned):g} to {max(tuned):g}'))
     if not samples or not val_samples:

@@ -41,8 +41,14 @@ import threading
 import time
 
 from soft_gripper_sdre.nodes.graph import GraphSpec, NodeSpec, grasp_graph
-from soft_gripper_sdre.tools.hands import (PATIENT_LOCKSTEP, GraphRun, Placement, published_and_recorded,
-                                           run_graphs, trouble)
+from soft_gripper_sdre.tools.hands import (
+    PATIENT_LOCKSTEP,
+    GraphRun,
+    Placement,
+    published_and_recorded,
+    run_graphs,
+    trouble,
+)
 from soft_gripper_sdre.tools.procs import ros_env
 
 SIM_ADDRESS = '10.231.0.1'
@@ -294,6 +300,7 @@ def timing(run: GraphRun) -> dict[str, float]:
 def finite_torques(run: GraphRun) -> bool:
     """Whether every torque command in the run's bag is finite."""
     import numpy as np
+
     from soft_gripper_sdre.analysis.bag import read_bag
     msgs = read_bag(run.bag, [run.spec.topic('torque_commands')])[run.spec.topic('torque_commands')]
     return all(np.isfinite(np.asarray(m.effort, dtype=float)).all() for _, m in msgs)
@@ -305,6 +312,7 @@ def paired_tracking(one: GraphRun, two: GraphRun) -> dict:
     measured tips and the torque commands are bit-identical there, and each run's free-space
     tracking (:func:`~soft_gripper_sdre.analysis.metrics.tracking_metrics`) over those instants."""
     import numpy as np
+
     from soft_gripper_sdre.analysis.bag import extract_run
     from soft_gripper_sdre.analysis.metrics import tracking_metrics
     from soft_gripper_sdre.tools.report import hold

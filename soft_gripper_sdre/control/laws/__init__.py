@@ -36,8 +36,8 @@ from soft_gripper_sdre.control.laws.computed_torque import DEFAULT_CT, ComputedT
 from soft_gripper_sdre.control.laws.feedback import AdaptiveSdreLaw, SdreLaw
 from soft_gripper_sdre.control.laws.feedforward import FF_AT, SdreFeedforwardLaw, model_inversion
 from soft_gripper_sdre.control.laws.fixed import DEFAULT_PD, LqrLaw, PdLaw
-from soft_gripper_sdre.control.laws.koopman import KoopmanLqrLaw, KoopmanMpcLaw
 from soft_gripper_sdre.control.laws.integral import DEFAULT_INTEGRAL, IntegralAction
+from soft_gripper_sdre.control.laws.koopman import KoopmanLqrLaw, KoopmanMpcLaw
 from soft_gripper_sdre.control.tracking import DEFAULT_LOWPASS_HZ, Law, Weights
 from soft_gripper_sdre.learning.koopman import KoopmanFileError, KoopmanModel
 

@@ -5,7 +5,14 @@ import numpy as np
 
 from soft_gripper_sdre.control.compiled import compiled_network
 from soft_gripper_sdre.control.sdre import SdreController
-from soft_gripper_sdre.control.tracking import DEFAULT_LOWPASS_HZ, LawIO, LawStep, RestFrame, RollOff, Weights
+from soft_gripper_sdre.control.tracking import (
+    DEFAULT_LOWPASS_HZ,
+    LawIO,
+    LawStep,
+    RestFrame,
+    RollOff,
+    Weights,
+)
 
 
 class SdreLaw:

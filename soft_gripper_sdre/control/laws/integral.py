@@ -6,7 +6,12 @@ import math
 
 import numpy as np
 
-from soft_gripper_sdre.control.compiled import integral_roll_off, integral_step, integral_update, kernel_array
+from soft_gripper_sdre.control.compiled import (
+    integral_roll_off,
+    integral_step,
+    integral_update,
+    kernel_array,
+)
 from soft_gripper_sdre.control.tracking import LawStep, RollOff
 
 #: the default law's integral action: gain k_i [1/s³] (0 = off) and the error band [m] inside which
