@@ -76,7 +76,8 @@ def make_trajectory(ctx, executor, **params):
     probe.clock = probe.create_publisher(Clock, CLOCK, CLOCK_QOS)
     executor.add_node(node)
     executor.add_node(probe)
-    assert spin_until(executor, lambda: (pub.get_subscription_count() > 0 or node.fixed_rest is not None)
+    assert spin_until(executor, lambda: (pub.get_subscription_count() > 0
+                                         or node.fixed_rest is not None)
                       and probe.clock.get_subscription_count() > 0
                       and node.pub.get_subscription_count() > 0, 10.0)
     return node, probe, pub

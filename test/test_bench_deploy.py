@@ -33,7 +33,8 @@ def test_separate_and_composed_loops_answer_every_tick_and_composed_costs_less_c
         separate, composed = runs['base']['cpu_us'], runs['composed']['cpu_us']
         assert separate['estimator'] > 0 and separate['controller'] > 0
         assert 'estimator' not in composed and composed['controller'] > 0
-    separate = min(r['base']['cpu_us']['estimator'] + r['base']['cpu_us']['controller'] for r in rounds)
+    separate = min(r['base']['cpu_us']['estimator'] + r['base']['cpu_us']['controller']
+                   for r in rounds)
     composed = min(r['composed']['cpu_us']['controller'] for r in rounds)
     # one DDS hop and one process fewer per period, measured in the same test
     assert composed < separate, (composed, separate)
@@ -56,6 +57,6 @@ def test_the_floor_is_the_sum_in_lockstep_and_the_larger_branch_pipelined():
     assert graph == '2000 µs = 1.60× the floor'
     assert pipe_floor.startswith('650 µs (1.54× real time)')      # max(600, 3 × 200 + 50)
     assert pipe == '1250 µs = 1.92× the floor' and 'period is 1.60× this one' in pipe_note
-    assert f'needs at least {1800 / os.cpu_count():.0f} µs' in note   # 1800 µs of CPU over the cores
+    assert f'needs at least {1800 / os.cpu_count():.0f} µs' in note  # 1800 µs of CPU over the cores
     (_, pipe_floor, _) = floor_rows(900e-6, 200.0, 3e-6, 47e-6, figures)[2]
-    assert pipe_floor.startswith('900 µs')                         # the physics is the longer branch
+    assert pipe_floor.startswith('900 µs')                        # the physics is the longer branch

@@ -24,16 +24,19 @@ def test_one_hop_is_timed_from_a_real_round_trip(raw):
 
 @pytest.mark.slow
 @pytest.mark.timeout(240)
-@pytest.mark.parametrize('mode, composed', [('lockstep', False), ('pipelined', False), ('pipelined', True)],
+@pytest.mark.parametrize('mode, composed',
+                         [('lockstep', False), ('pipelined', False), ('pipelined', True)],
                          ids=['lockstep', 'pipelined', 'pipelined-composed'])
 def test_lockstep_run_reports_speed_and_latency_of_every_period(mode, composed):
     d = run_graph(0.3, mode=mode, composed=composed)
     assert d['simulator']['steps'] == 300 and d['simulator'].get('late_command', 0) == 0
-    assert ('estimator' in d and 'cpu_per_step_us' not in d['estimator']) == composed   # one process fewer
+    assert ('estimator' in d
+            and 'cpu_per_step_us' not in d['estimator']) == composed   # one process fewer
     sim = d['simulator']
     assert sim['steps'] == 300 and sim.get('timeouts', 0) == 0
     assert sim['real_time_factor'] > 0
-    assert 0 < sim['loop_latency_us_p50'] <= sim['loop_latency_us_p99'] <= sim['loop_latency_us_max']
+    assert (0 < sim['loop_latency_us_p50'] <= sim['loop_latency_us_p99']
+            <= sim['loop_latency_us_max'])
     assert d['controller']['commands'] >= 300     # every period answered
     assert 0 < sim['first_command_after_tips_ms'] < 1e3 * sim['startup_s']
     assert all(d[n]['cpu_per_step_us'] > 0 for n in ('simulator', 'trajectory', 'controller'))
@@ -86,6 +89,9 @@ def test_mode_rows_report_the_median_run_with_the_range_and_the_loads():
     assert 'simulator / trajectory / controller 600 / 300 / 300 µs (sum 1200)' in composed_note
     assert 'lockstep' in lock and 'pipelined' in pipe
     assert lock_rtf == '0.60× real time' and pipe_rtf == '1.00× real time'
-    assert '0.60×, 0.50×, 0.70× at load 1.0, 2.0, 3.0' in lock_note and '4 processes, lockstep' in lock
-    assert 'CPU per period simulator / estimator / trajectory / controller 440 / 220 / 220 / 220 µs (sum 1100)' in pipe_note
-    assert figures == {'lockstep_rtf': 0.6, 'lockstep_cpu_us': 500.0, 'pipelined_rtf': 1.0, 'pipelined_cpu_us': 1100.0}
+    assert ('0.60×, 0.50×, 0.70× at load 1.0, 2.0, 3.0' in lock_note
+            and '4 processes, lockstep' in lock)
+    assert ('CPU per period simulator / estimator / trajectory / controller '
+            '440 / 220 / 220 / 220 µs (sum 1100)' in pipe_note)
+    assert figures == {'lockstep_rtf': 0.6, 'lockstep_cpu_us': 500.0, 'pipelined_rtf': 1.0,
+                       'pipelined_cpu_us': 1100.0}

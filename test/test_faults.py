@@ -50,7 +50,8 @@ class DropWindow(Node):
         self.dropped: list[int] = []
         self.relayed = 0
         self.pub = self.create_publisher(MultiDOFJointTrajectory, STATE_ESTIMATE, LOOP_QOS)
-        self.sub = self.create_subscription(MultiDOFJointTrajectory, RAW, self.on_estimate, LOOP_QOS)
+        self.sub = self.create_subscription(MultiDOFJointTrajectory, RAW, self.on_estimate,
+                                            LOOP_QOS)
 
     def on_estimate(self, msg) -> None:
         stamp = cv.from_time(msg.header.stamp)
@@ -101,7 +102,8 @@ def test_lost_estimates_are_stepped_safely_by_the_simulator_then_tracking_recove
         c_sim, c_ctrl = dict(sim.diag.counters), dict(ctrl.diag.counters)
         # messages lost on the way to the probe: tips published (one per step and the first) and
         # torque commands the controller counted, against what arrived
-        lost = (sim.stepping.k + 1 - len(tips_msgs)) + (c_ctrl['commands'] - len(probe.received[TORQUE_COMMANDS]))
+        lost = ((sim.stepping.k + 1 - len(tips_msgs))
+                + (c_ctrl['commands'] - len(probe.received[TORQUE_COMMANDS])))
 
     # the relay dropped exactly the 200 estimates of the window
     assert relay.dropped == list(range(start, end, MS))
@@ -116,10 +118,12 @@ def test_lost_estimates_are_stepped_safely_by_the_simulator_then_tracking_recove
     assert levels[end + 20 * MS] == (OK, OK)
     # never a non-finite torque, and the simulator rejected none of the controller's commands
     assert all(np.all(np.isfinite(u)) for u in cmds.values())
-    assert c_sim.get('bad_command', 0) == c_sim.get('stale_command', 0) == c_sim.get('future_command', 0) == 0
+    assert (c_sim.get('bad_command', 0) == c_sim.get('stale_command', 0)
+            == c_sim.get('future_command', 0) == 0)
     # tracking is back under the free-space target within 1 s of sim time after data returns
     k = np.minimum((t / 1e-3 / 10).astype(int), len(forces) - 1)
-    err, free, excursion = tracking_error(t / cv.NS, tips, forces[k] > 0, GraspProfile(**SHORT), tips[0])
+    err, free, excursion = tracking_error(t / cv.NS, tips, forces[k] > 0, GraspProfile(**SHORT),
+                                          tips[0])
     ends, ok = on_target(t / cv.NS, err, free, excursion)
     assert ok[ends < start / cv.NS].all()            # it was on target before the fault
     rec = recovery_time(t / cv.NS, err, free, excursion, since=end / cv.NS)
@@ -127,12 +131,12 @@ def test_lost_estimates_are_stepped_safely_by_the_simulator_then_tracking_recove
     print(f'recovery {rec:.3f} s after data returned; peak error {1e3 * peak:.2f} mm')
     assert rec <= 1.0, rec
     assert lost == 0
-    record('lost_estimates', injected='estimator output dropped for 200 ms of sim time while closing '
-           '(relay node)', times=1, crashes=0, nonfinite_outputs=0, messages_lost=lost,
-           recovery_s=rec, notes=f'the first missing period held ({c_sim["timeouts"]} simulator timeout), '
-           f'zero torque from the 2nd on ({c_sim["safe_periods"]} safe periods, each after '
-           f'{sim.p["lost_command_wait"]:g} s of wall time and the watchdog\'s second look; ERROR meanwhile '
-           'in simulator and controller); '
+    record('lost_estimates', injected='estimator output dropped for 200 ms of sim time while '
+           'closing (relay node)', times=1, crashes=0, nonfinite_outputs=0, messages_lost=lost,
+           recovery_s=rec, notes=f'the first missing period held ({c_sim["timeouts"]} simulator '
+           f'timeout), zero torque from the 2nd on ({c_sim["safe_periods"]} safe periods, each '
+           f'after {sim.p["lost_command_wait"]:g} s of wall time and the watchdog\'s second look; '
+           'ERROR meanwhile in simulator and controller); '
            f'peak error {1e3 * peak:.1f} mm')
 
 
@@ -152,7 +156,8 @@ class TroubledModel:
         A[:, 0, 2] = A[:, 1, 3] = 1.0
         G = np.zeros((n, 4, 2))
         G[:, 2, 0] = G[:, 3, 1] = 1.0
-        kinds = self.rng.choice(['good', 'near_singular', 'unstabilisable'], size=n, p=[0.5, 0.25, 0.25])
+        kinds = self.rng.choice(['good', 'near_singular', 'unstabilisable'], size=n,
+                                p=[0.5, 0.25, 0.25])
         for i, kind in enumerate(kinds):
             if kind == 'near_singular':
                 G[i, 2:, :] = [[1.0, 1.0], [1.0, 1.0 + 1e-9]]
@@ -177,8 +182,8 @@ def test_riccati_trouble_falls_back_counted_and_the_torque_stays_finite_and_boun
     fallbacks = failed = 0
     for _ in range(1000):
         pos = model.rest_tip[:2] + rng.normal(0.0, 2e-3, (4, 2))
-        out = ctrl.compute(pos, rng.normal(0.0, 1e-2, (4, 2)), model.rest_tip[:2] + np.zeros((4, 2)),
-                           np.zeros((4, 2)))
+        out = ctrl.compute(pos, rng.normal(0.0, 1e-2, (4, 2)),
+                           model.rest_tip[:2] + np.zeros((4, 2)), np.zeros((4, 2)))
         kinds = np.array(model.kinds[-1])
         troubled = kinds != 'good'
         assert np.all(~out.ok[troubled])                       # every troubled state caught …
@@ -191,4 +196,5 @@ def test_riccati_trouble_falls_back_counted_and_the_torque_stays_finite_and_boun
     record('riccati_trouble', injected='4-finger steps through a test model: G2 near singular or '
            '(A, G) not stabilisable in half of the states', times=failed, crashes=0,
            nonfinite_outputs=0, messages_lost=None, recovery_s=None,
-           notes=f'{fallbacks} fallbacks to the last valid gains (counted), every torque within ±{limit} N·m')
+           notes=f'{fallbacks} fallbacks to the last valid gains (counted), every torque within '
+                 f'±{limit} N·m')

@@ -80,7 +80,7 @@ def test_the_recipe_runs_end_to_end_on_the_tendon_finger(tmp_path):
     facts = derived['facts']
     # the move is what the model holds with half the torque limit, within half the data's reach
     assert 10 * facts['noise_std'] <= facts['travel'] <= facts['reach_travel']
-    if r.returncode == 1:                        # no setting passed its check: said, nothing written
+    if r.returncode == 1:  # no setting passed its check: said, nothing written
         assert derived['settings'] is None and derived['candidates']
         assert not (out / 'model' / 'params.yaml').exists()
         assert 'no controller setting passed' in r.stderr
@@ -89,8 +89,10 @@ def test_the_recipe_runs_end_to_end_on_the_tendon_finger(tmp_path):
     # the move goes the way the finger bends (up and in: the inputs' common direction, 120–140°),
     # and params.yaml gives it to the trajectory node
     assert 110 < facts['direction'] < 150
-    plan = yaml.safe_load((out / 'model' / 'params.yaml').read_text())['/**/trajectory']['ros__parameters']
-    assert math.hypot(plan['close_distance'], plan['side_distance']) == pytest.approx(facts['travel'])
+    plan = yaml.safe_load((out / 'model' / 'params.yaml').read_text())['/**/trajectory'][
+        'ros__parameters']
+    assert (math.hypot(plan['close_distance'], plan['side_distance'])
+            == pytest.approx(facts['travel']))
     assert math.degrees(math.atan2(plan['close_distance'], plan['side_distance'])) == \
         pytest.approx(facts['direction'])
     assert plan['contact_distance'] == plan['close_distance']
@@ -98,7 +100,8 @@ def test_the_recipe_runs_end_to_end_on_the_tendon_finger(tmp_path):
     paper = derived['paper_law']
     assert 0 < paper['hold_offset'] < 1
     assert (paper['hold_offset'] > paper['share']) == \
-        (paper['needs_bandwidth_hz'] is None or paper['needs_bandwidth_hz'] > derived['settings']['bandwidth_hz'])
+        (paper['needs_bandwidth_hz'] is None
+         or paper['needs_bandwidth_hz'] > derived['settings']['bandwidth_hz'])
     score = metrics['deploy']['sdre_ff']
     assert metrics['deploy']['travel'] == facts['travel']
     assert score['samples'] > 500 and score['saturated_at_rest'] == 0.0

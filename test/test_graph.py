@@ -1,4 +1,5 @@
-"""The closed loop over real DDS: all nodes in one process (launch-free harness), and as processes."""
+"""The closed loop over real DDS: all nodes in one process (launch-free harness), and as
+processes."""
 from graph_harness import run_graph
 import numpy as np
 import pytest
@@ -53,8 +54,10 @@ def test_graph_reproduces_the_in_process_loop(graph_run):
     assert graph_run.controller.p['law'] == DEFAULT_LAW
     model, weights = SDCModel(), Weights(**DEFAULT_WEIGHTS)
     ref = run_closed_loop(model, duration=DURATION,
-                          sim_config=SimConfig(scene='hand', noise_std=noise, seed=graph_run.simulator.p['seed']),
-                          weights=weights, u_max=LIMIT, profile=GraspProfile(**SHORT, others='open'),
+                          sim_config=SimConfig(scene='hand', noise_std=noise,
+                                               seed=graph_run.simulator.p['seed']),
+                          weights=weights, u_max=LIMIT,
+                          profile=GraspProfile(**SHORT, others='open'),
                           controller=make_law(DEFAULT_LAW, model, weights, LIMIT))
     np.testing.assert_allclose(graph_run.t, ref.t, atol=1e-12)
     # until a finger touches the cube the two agree to micrometres; contact then amplifies the

@@ -48,15 +48,17 @@ def test_default_launch_is_the_root_graph_without_recorder(launch_module):
     nodes = launch_module.grasp_nodes()
     assert nodes == _as_launched(grasp_graph(record=False, parameters={
         'simulator': {'duration': 6.0, 'startup_timeout': 300.0}}))
-    assert [n['executable'] for n in nodes] == ['estimator', 'trajectory', 'controller', 'simulator']
+    assert [n['executable'] for n in nodes] == ['estimator', 'trajectory', 'controller',
+                                                'simulator']
     assert all(Path(n['parameters'][0]).is_file() and n['remappings'] == [] for n in nodes)
     defaults = {name: default for name, default, _ in launch_module.ARGUMENTS}
     assert launch_module.grasp_nodes(**defaults) == nodes
 
 
 def test_a_hand_in_a_namespace_with_every_argument(launch_module):
-    nodes = launch_module.grasp_nodes(namespace='left_hand', duration='2.5', law='sdre', noise='0.2', seed='7',
-                                      record='true', output='/tmp/left_bag', startup_timeout='60')
+    nodes = launch_module.grasp_nodes(namespace='left_hand', duration='2.5', law='sdre',
+                                      noise='0.2', seed='7', record='true',
+                                      output='/tmp/left_bag', startup_timeout='60')
     expected = grasp_graph('left_hand', parameters={
         'simulator': {'duration': 2.5, 'startup_timeout': 60.0, 'noise_std': 0.2e-3, 'seed': 7},
         'controller': {'law': 'sdre'},
@@ -102,9 +104,11 @@ def test_the_declared_arguments_are_the_ones_grasp_nodes_takes(launch_module):
 
 def test_control_period_reaches_every_node_of_the_loop(launch_module):
     nodes = {n['name']: n for n in launch_module.grasp_nodes(control_period='0.005')}
-    overrides = {name: next((d for d in n['parameters'] if isinstance(d, dict)), {}) for name, n in nodes.items()}
+    overrides = {name: next((d for d in n['parameters'] if isinstance(d, dict)), {})
+                 for name, n in nodes.items()}
     periods = {name: d.get('control_period') for name, d in overrides.items()}
-    assert periods == {'estimator': 0.005, 'trajectory': None, 'controller': 0.005, 'simulator': 0.005}
+    assert periods == {'estimator': 0.005, 'trajectory': None, 'controller': 0.005,
+                       'simulator': 0.005}
 
 
 def test_the_mode_reaches_the_simulator(launch_module):

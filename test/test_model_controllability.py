@@ -1,4 +1,5 @@
-"""Controllability-aware learning: the penalty on G2's smallest singular value (learning/training.py)."""
+"""Controllability-aware learning: the penalty on G2's smallest singular value
+(learning/training.py)."""
 from dataclasses import replace
 
 import numpy as np
@@ -31,7 +32,7 @@ def test_singular_value_penalty_keeps_g2_invertible_over_the_box():
     plain = train(x, u, acc, xv, uv, accv, base)
     aware = train(x, u, acc, xv, uv, accv, replace(base, sv_penalty=10.0, sv_floor=0.3))
     s_plain, s_aware = _min_singular_value(plain.net), _min_singular_value(aware.net)
-    assert np.quantile(s_aware, 0.05) > 0.25                      # the floor holds almost everywhere
+    assert np.quantile(s_aware, 0.05) > 0.25  # the floor holds almost everywhere
     assert np.quantile(s_aware, 0.05) > 2 * np.quantile(s_plain, 0.05)
     # and the fit is not given up for it: the validation loss stays within 2× of the plain one
     assert aware.val_loss[aware.best_epoch] < 2 * plain.val_loss[plain.best_epoch] + 1e-3

@@ -85,8 +85,9 @@ def test_bad_inputs_are_counted_gaps_predicted_and_jumps_reset():
     sequence = ([(k * MS, 'ok') for k in range(10)]
                 + [(nan, 'bad_message'), (three, 'bad_message'), (five, 'bad_message'),
                    (empty, 'bad_message'), (8 * MS, 'out_of_order'), (5 * MS, 'out_of_order'),
-                   (9 * MS, 'duplicate'), (10 * MS, 'ok'), (13 * MS, 'gap'), (13 * MS + MS // 2, 'off_grid'),
-                   (0, 'reset'), (60 * MS, 'reset'), (61 * MS, 'ok')])
+                   (9 * MS, 'duplicate'), (10 * MS, 'ok'), (13 * MS, 'gap'),
+                   (13 * MS + MS // 2, 'off_grid'), (0, 'reset'), (60 * MS, 'reset'),
+                   (61 * MS, 'ok')])
     kf = ConstantVelocityKF(1e-3, 1.0, 5e-5, n=4)
     expected = []
     with ros_context() as (ctx, executor):
@@ -141,7 +142,8 @@ def test_a_clean_source_with_jittery_stamps_raises_nothing(rate_hz):
     over its own stamp step, nothing is counted as a gap or reported, the node stays OK."""
     rng = np.random.default_rng(int(rate_hz))
     period = int(round(1e9 / rate_hz))
-    stamps = 1_764_000_000 * 10**9 + period * np.arange(200) + (rng.uniform(-0.2, 0.2, 200) * period).astype(int)
+    stamps = (1_764_000_000 * 10**9 + period * np.arange(200)
+              + (rng.uniform(-0.2, 0.2, 200) * period).astype(int))
     z = np.array([[0.001, -0.002], [0.0, 0.003], [0.002, 0.0], [0.0, 0.0]])
     with ros_context() as (ctx, executor):
         node, probe, pub = make_estimator(ctx, executor, control_period=1.0 / rate_hz)
@@ -183,7 +185,8 @@ def test_a_dropout_longer_than_max_bridge_is_reported_and_predicted_through():
 
 @pytest.mark.parametrize('params, name', [
     (dict(process_noise='coloured'), 'process_noise'), (dict(control_period=0.0), 'control_period'),
-    (dict(meas_std=0.0), 'meas_std'), (dict(finger_names=[f'f{i}' for i in range(5)]), 'finger_names'),
+    (dict(meas_std=0.0), 'meas_std'),
+    (dict(finger_names=[f'f{i}' for i in range(5)]), 'finger_names'),
     (dict(finger_names=['a/b']), 'finger_names'),
     (dict(accel_psd=float('nan')), 'accel_psd'), (dict(reset_on_jump='far'), 'reset_on_jump')])
 def test_bad_parameters_fail_at_startup_naming_the_parameter(params, name):

@@ -34,8 +34,8 @@ PERIOD_NS = int(round(1e9 / RATE_HZ))
 SLOTS = 360                       # 3 s of the source
 #: what the estimator and the controller count as refused, lost or reset (none of it may happen)
 ESTIMATOR_PROBLEMS = ('bad_message', 'duplicate', 'out_of_order', 'dropouts', 'resets')
-CONTROLLER_PROBLEMS = ('bad_estimate', 'old_estimate', 'bad_reference', 'resets', 'nonfinite_torque',
-                       'unanswered_estimates')
+CONTROLLER_PROBLEMS = ('bad_estimate', 'old_estimate', 'bad_reference', 'resets',
+                       'nonfinite_torque', 'unanswered_estimates')
 
 
 def mocap_source(seed: int = 5):
@@ -62,19 +62,22 @@ def test_a_jittery_120_hz_mocap_source_is_estimated_and_controlled_at_its_own_ra
     params = dict(control_period=1.0 / RATE_HZ)
     with ros_context() as (ctx, executor):
         est = EstimatorNode(context=ctx, parameter_overrides=overrides(**params))
-        ctrl = ControllerNode(context=ctx, parameter_overrides=overrides(torque_limit=TORQUE_LIMIT, **params))
+        ctrl = ControllerNode(context=ctx,
+                              parameter_overrides=overrides(torque_limit=TORQUE_LIMIT, **params))
         probe = Probe(ctx, 'mocap')
         tip_pub = probe.create_publisher(PoseArray, TIP_POSITIONS, LOOP_QOS)
         ref_pub = probe.create_publisher(MultiDOFJointTrajectory, GRASP_REFERENCE, REFERENCE_QOS)
         probe.listen(MultiDOFJointTrajectory, STATE_ESTIMATE, deep(LOOP_QOS))
         probe.listen(JointState, TORQUE_COMMANDS, deep(LOOP_QOS))
         warnings = []
-        probe.create_subscription(Log, '/rosout', lambda m: warnings.append(m) if m.level >= Log.WARN
-                                  and m.name in ('estimator', 'controller') else None, deep(LOOP_QOS, 1000))
+        probe.create_subscription(Log, '/rosout', lambda m: warnings.append(m)
+                                  if m.level >= Log.WARN and m.name in ('estimator', 'controller')
+                                  else None, deep(LOOP_QOS, 1000))
         for node in (est, ctrl, probe):
             executor.add_node(node)
         assert spin_until(executor, lambda: tip_pub.get_subscription_count() > 0
-                          and ref_pub.get_subscription_count() > 0 and est.pub.get_subscription_count() > 1
+                          and ref_pub.get_subscription_count() > 0
+                          and est.pub.get_subscription_count() > 1
                           and ctrl.pub_cmd.get_subscription_count() > 0, 20.0)
         rest = SDCModel().rest_tip[None, :2].repeat(4, 0)
         ref_pub.publish(horizon(rest, int(stamps[0]))[0])
@@ -85,8 +88,9 @@ def test_a_jittery_120_hz_mocap_source_is_estimated_and_controlled_at_its_own_ra
         for k in np.flatnonzero(kept):          # paced at the source's rate, each message taken
             before = sum(c[key] for key in ('estimates', 'bad_estimate', 'old_estimate'))
             tip_pub.publish(cv.tips_to_msg(int(stamps[k]), tips[k], frame_id='mocap_world'))
-            assert spin_until(executor, lambda: sum(c[key] for key in ('estimates', 'bad_estimate',
-                                                                        'old_estimate')) > before, 5.0)
+            assert spin_until(executor,
+                              lambda: sum(c[key] for key in ('estimates', 'bad_estimate',
+                                                             'old_estimate')) > before, 5.0)
             spin_until(executor, lambda: False, max(0.0, wall0 + k / RATE_HZ - time.monotonic()))
         sent = int(kept.sum())
         got_u = probe.received[TORQUE_COMMANDS]
@@ -118,13 +122,15 @@ def test_a_jittery_120_hz_mocap_source_is_estimated_and_controlled_at_its_own_ra
         kf = ConstantVelocityKF(1.0 / RATE_HZ, 1.0, 5e-5, n=4)
         z, t = tips[kept][:, :, :2], stamps[kept]
         kf.reset(z[0])
-        offline = [kf.x.copy()] + [kf.step(z[k], dt=(t[k] - t[k - 1]) / 1e9) for k in range(1, sent)]
+        offline = [kf.x.copy()] + [kf.step(z[k], dt=(t[k] - t[k - 1]) / 1e9)
+                                   for k in range(1, sent)]
         np.testing.assert_allclose(x, np.array(offline), rtol=1e-9, atol=1e-12)
         np.testing.assert_allclose(x[:, :, :2], z, atol=2e-4)
 
 
 @pytest.mark.parametrize('reliability, matched', [('reliable', False), ('best_effort', True)])
-def test_a_sensor_data_qos_driver_is_heard_only_with_a_best_effort_tips_subscription(reliability, matched):
+def test_a_sensor_data_qos_driver_is_heard_only_with_a_best_effort_tips_subscription(reliability,
+                                                                                     matched):
     """A driver publishing with the sensor-data QoS (best effort) offers less than a reliable reader
     asks for, so DDS never connects them; tips_reliability:=best_effort does."""
     from rclpy.qos import qos_profile_sensor_data

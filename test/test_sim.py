@@ -82,7 +82,8 @@ def test_negative_grasp_torque_closes_hand_fingers_on_the_cube():
 
 
 def test_hand_fingers_share_the_same_kinematics_in_their_base_frames():
-    with GripperSim(SimConfig(scene='hand')) as hand, GripperSim(SimConfig(scene='finger')) as finger:
+    with (GripperSim(SimConfig(scene='hand')) as hand,
+          GripperSim(SimConfig(scene='finger')) as finger):
         np.testing.assert_allclose(hand.rest_tip, np.repeat(finger.rest_tip, 4, axis=0), atol=1e-9)
 
 
@@ -125,7 +126,8 @@ def test_torques_are_clipped_to_the_limit():
 
 
 @pytest.mark.parametrize('u, match', [
-    (np.zeros((2, 2)), 'shape'), (np.array([[np.nan, 0.0]]), 'non-finite'), (np.array([[np.inf, 0.0]]), 'non-finite')])
+    (np.zeros((2, 2)), 'shape'), (np.array([[np.nan, 0.0]]), 'non-finite'),
+    (np.array([[np.inf, 0.0]]), 'non-finite')])
 def test_bad_torques_rejected_and_state_unchanged(u, match):
     with GripperSim(SimConfig(scene='finger')) as sim:
         sim.step(np.array([[0.01, 0.0]]))
@@ -145,8 +147,8 @@ def test_bad_config_names_the_field(kwargs, field):
         SimConfig(**kwargs)
 
 
-@pytest.mark.parametrize('period, substeps', [(1e-3, 2), (2e-3, 4), (3e-3, 6), (5e-3, 10), (1e-2, 20),
-                                              (7e-4, 2), (2e-4, 1)])
+@pytest.mark.parametrize('period, substeps', [(1e-3, 2), (2e-3, 4), (3e-3, 6), (5e-3, 10),
+                                              (1e-2, 20), (7e-4, 2), (2e-4, 1)])
 def test_default_substeps_keep_the_physics_step_at_most_half_a_millisecond(period, substeps):
     cfg = SimConfig(control_period=period)
     assert cfg.physics_substeps == physics_substeps_for(period) == substeps
@@ -190,14 +192,16 @@ def test_stepping_equals_the_straightforward_numpy_computation():
                 q, _ = ref_joints()
                 tau = u_sim[:, JOINT_AXIS] - JOINT_STIFFNESS * q          # τ = B u − K q
                 for b, t in zip(bodies, tau.tolist()):
-                    pb.setJointMotorControlArray(b, joints, pb.TORQUE_CONTROL, forces=t, physicsClientId=cid)
+                    pb.setJointMotorControlArray(b, joints, pb.TORQUE_CONTROL, forces=t,
+                                                 physicsClientId=cid)
                 pb.stepSimulation(physicsClientId=cid)
         tr = sim.truth()
         q, qd = ref_joints()
-        links = [pb.getLinkState(b, 9, computeLinkVelocity=1, computeForwardKinematics=1, physicsClientId=cid)
-                 for b in bodies]
+        links = [pb.getLinkState(b, 9, computeLinkVelocity=1, computeForwardKinematics=1,
+                                 physicsClientId=cid) for b in bodies]
         # p_b = Rᵀ (p − p₀) in sim units, then → m
-        pos = np.einsum('nji,nj->ni', base_rot, np.array([ls[0] for ls in links]) - base_pos * LENGTH_SCALE)
+        pos = np.einsum('nji,nj->ni', base_rot,
+                        np.array([ls[0] for ls in links]) - base_pos * LENGTH_SCALE)
         force = np.zeros(4)
         for i, b in enumerate(bodies):
             for c in pb.getContactPoints(b, ref.cube_body, physicsClientId=cid):
@@ -224,13 +228,14 @@ def test_tip_frames_equal_numpys_einsum_bit_for_bit():
             p_b = np.einsum('nji,nj->ni', base_rot, p - base_pos)     # Rᵀ (p − p₀)
             truth = sim.truth()
             assert np.array_equal(truth.tip_pos, p_b / LENGTH_SCALE)
-            assert np.array_equal(truth.tip_vel, np.einsum('nji,nj->ni', base_rot, v) / LENGTH_SCALE)
+            assert np.array_equal(truth.tip_vel,
+                                  np.einsum('nji,nj->ni', base_rot, v) / LENGTH_SCALE)
 
 
 def urdf_tip_kinematics(q, qd):
-    """Tip position [sim units] and velocity [sim units/s] in the finger's base frame, from the joint
-    state and the URDF alone (joint origins, axes and link 9's inertial origin): the tip the simulator
-    should report, computed without PyBullet."""
+    """Tip position [sim units] and velocity [sim units/s] in the finger's base frame, from the
+    joint state and the URDF alone (joint origins, axes and link 9's inertial origin): the tip the
+    simulator should report, computed without PyBullet."""
     robot = ET.fromstring(finger_urdf().split('\n', 1)[1])     # without the XML declaration
     floats = lambda text: np.array([float(v) for v in text.split()])  # noqa: E731
     joints = robot.findall('joint')
@@ -298,11 +303,13 @@ def test_linearized_stiffness_is_springs_plus_the_gravity_potentials_hessian(rol
         M, K, _, _ = linearize(sim)
         H = _potential_hessian(sim)
     K_gravity = K - np.diag(JOINT_STIFFNESS) / TORQUE_SCALE
-    np.testing.assert_allclose(K_gravity, H / TORQUE_SCALE, rtol=0, atol=1e-4 * np.abs(H).max() / TORQUE_SCALE)
+    np.testing.assert_allclose(K_gravity, H / TORQUE_SCALE, rtol=0,
+                               atol=1e-4 * np.abs(H).max() / TORQUE_SCALE)
 
 
 def test_linearize_leaves_the_run_unchanged():
-    """linearize moves the joints and turns gravity for its differences; it puts both back exactly."""
+    """linearize moves the joints and turns gravity for its differences; it puts both back
+    exactly."""
     def run(linearize_at):
         with GripperSim(SimConfig(scene='finger')) as sim:
             out = []

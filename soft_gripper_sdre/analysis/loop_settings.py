@@ -138,7 +138,8 @@ class DataFacts:
     travel: float                 # length of the move the check makes along ``direction`` [m]
     torque_limit: float           # the loop's torque limit [N·m]
     accel_psd_ml: float           # the CV model's likelihood-best intensity [(m/s²)²/Hz]
-    reach_travel: float | None = None   # TRAVEL_SHARE of the data's reach that way [m] (None: travel)
+    # TRAVEL_SHARE of the data's reach that way [m] (None: travel)
+    reach_travel: float | None = None
     direction: float = 90.0       # of the move, from +X toward +Y [deg] (90: closing along +Y)
 
     @property
@@ -365,10 +366,12 @@ def derive(model, facts: DataFacts, laws: tuple[str, ...] = ('sdre_ff', 'sdre'),
     by closed-loop runs on the model (module doc); ``settings`` is None when no candidate passes
     or no move can be checked (``reason``). ``progress(text)`` hears each run."""
     reach = facts.travel if facts.reach_travel is None else facts.reach_travel
-    facts = replace(facts, travel=holdable_travel(model, replace(facts, travel=reach)), reach_travel=reach)
+    facts = replace(facts, travel=holdable_travel(model, replace(facts, travel=reach)),
+                    reach_travel=reach)
     way = f'{facts.direction:.0f}° from +X toward +Y'
     if facts.travel < MIN_TRAVEL_NOISE * facts.noise_std:
-        need = np.abs(hold_torques(model, MIN_TRAVEL_NOISE * facts.noise_std * facts.unit[None])).max()
+        need = np.abs(hold_torques(model,
+                                   MIN_TRAVEL_NOISE * facts.noise_std * facts.unit[None])).max()
         return Derivation(None, {}, [], facts, reason=(
             f'the model holds at most {1e3 * facts.travel:.3g} mm along {way} with '
             f'{HOLD_SHARE:g} of the torque limit {facts.torque_limit:.3g} N·m, under '
@@ -376,7 +379,8 @@ def derive(model, facts: DataFacts, laws: tuple[str, ...] = ('sdre_ff', 'sdre'),
             f'which needs {need:.3g} N·m): excite with larger torques'))
     say = progress if progress is not None else (lambda text: None)
     say(f'move of {1e3 * facts.travel:.3g} mm along {way} (half the reach {1e3 * reach:.3g} mm, '
-        f'or what the model holds with {HOLD_SHARE:g} of the torque limit {facts.torque_limit:.3g} N·m)')
+        f'or what the model holds with {HOLD_SHARE:g} of the torque limit '
+        f'{facts.torque_limit:.3g} N·m)')
     rows: list[dict] = []
     while True:
         kept = _search(model, facts, bandwidths, rows, say)
@@ -393,7 +397,8 @@ def derive(model, facts: DataFacts, laws: tuple[str, ...] = ('sdre_ff', 'sdre'),
     chosen = max(slower, key=lambda c: (c[1], -c[0]))[2] if slower else best[2]
     checks = {law: check_on_model(model, chosen, facts, law=law) for law in laws}
     needs = paper_law_bandwidth(model, facts)
-    paper = {'hold_offset': paper_law_offset(model, facts, chosen.bandwidth_hz), 'share': PAPER_LAW_SHARE,
+    paper = {'hold_offset': paper_law_offset(model, facts, chosen.bandwidth_hz),
+             'share': PAPER_LAW_SHARE,
              'needs_bandwidth_hz': needs if math.isfinite(needs) else None}     # None: over 1 kHz
     return Derivation(chosen, checks, rows, facts, paper_law=paper)
 

@@ -87,7 +87,8 @@ class RestCheck:
         return d
 
 
-def rest_stability(model, offset: float, dt: float = 1e-3, seconds: float = REST_SECONDS) -> RestCheck:
+def rest_stability(model, offset: float, dt: float = 1e-3,
+                   seconds: float = REST_SECONDS) -> RestCheck:
     """Eigenvalues of A(0) and a free run of ``seconds`` from eight offsets of ``offset`` [m]
     around rest (±X, ±Y and the diagonals, zero velocity, zero input)."""
     A = model.AG(np.zeros(4))[0][0]
@@ -188,6 +189,7 @@ def judge(model, segments: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
     if run.relative > FREE_RUN_LIMIT:
         reasons.append(f'open loop over {window:g} s windows the model misses the validation '
                        f'positions by {100 * run.relative:.0f} % of their spread (limit '
-                       f'{100 * FREE_RUN_LIMIT:.0f} %)' + (f'; {run.diverged} of {run.windows} '
-                                                            'windows diverged' if run.diverged else ''))
+                       f'{100 * FREE_RUN_LIMIT:.0f} %)'
+                       + (f'; {run.diverged} of {run.windows} windows diverged'
+                          if run.diverged else ''))
     return Fitness(not reasons, reasons, rest, run)

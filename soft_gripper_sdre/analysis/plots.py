@@ -46,7 +46,8 @@ def plot_tracking(t_ref, ref, t_act, act, path, *, quantity: str, achieved_label
     position = quantity == 'position'
     origin = ref[0] if position else np.zeros_like(ref[0])
     unit, min_span = ('mm', 2.0) if position else ('mm/s', 10.0)
-    desired_on_act = np.stack([np.stack([np.interp(t_act, t_ref, ref[:, i, a]) for a in range(2)], -1)
+    desired_on_act = np.stack([np.stack([np.interp(t_act, t_ref, ref[:, i, a])
+                                         for a in range(2)], -1)
                                for i in range(n)], 1)
     error = 1e3 * np.linalg.norm(act - desired_on_act, axis=2)                # (S, n)
     fig, axes = plt.subplots(n, 3, figsize=(12, 2.0 * n + 1.2), sharex=True, squeeze=False,
@@ -59,9 +60,11 @@ def plot_tracking(t_ref, ref, t_act, act, path, *, quantity: str, achieved_label
             ax.plot(t_ref, d, color='0.15', lw=1.6, label='desired (reference)')
             ax.plot(t_act, y, color='C1', lw=1.0, ls='--', label=achieved_label)
             _span_limits(ax, np.concatenate([d, y]), min_span)
-            ax.set_ylabel(f'{names[i]}  {AXES[a]}{"" if position else " rate"} [{unit}]', fontsize=8)
+            ax.set_ylabel(f'{names[i]}  {AXES[a]}{"" if position else " rate"} [{unit}]',
+                          fontsize=8)
         err_ax = axes[i, 2]
-        err_ax.plot(t_act, error[:, i], color='C3', lw=0.9, label=f'|achieved − desired| (2-D) [{unit}]')
+        err_ax.plot(t_act, error[:, i], color='C3', lw=0.9,
+                    label=f'|achieved − desired| (2-D) [{unit}]')
         free = np.ones(len(t_act), dtype=bool)
         if contact is not None:                  # scaled to free space: in contact the reference
             touching = contact[np.clip(np.searchsorted(t_ref, t_act) - 1, 0, len(t_ref) - 1), i]
@@ -70,7 +73,8 @@ def plot_tracking(t_ref, ref, t_act, act, path, *, quantity: str, achieved_label
         top = max(scale * 1.25, 0.05 if position else 1.0)
         err_ax.set_ylim(0, top)
         if np.nanmax(error[:, i]) > top:
-            err_ax.text(0.5, 0.93, f'in contact: up to {np.nanmax(error[:, i]):.2g} {unit} (off scale)',
+            err_ax.text(0.5, 0.93,
+                        f'in contact: up to {np.nanmax(error[:, i]):.2g} {unit} (off scale)',
                         transform=err_ax.transAxes, ha='center', va='top', fontsize=7, color='0.3')
         err_ax.set_ylabel(f'error [{unit}]', fontsize=8)
         if contact is not None and np.any(contact[:, i]):
@@ -146,7 +150,8 @@ def plot_loss(train_loss, val_loss, path, title='Training loss (eq. 18)') -> Pat
     return Path(path)
 
 
-def plot_accel(t, acc_true, acc_pred, path, r2=None, title='Validation (u4): predicted vs true') -> Path:
+def plot_accel(t, acc_true, acc_pred, path, r2=None,
+               title='Validation (u4): predicted vs true') -> Path:
     """Figure 3: predicted (dashed) vs true (solid) Ẍ, Ÿ [m/s²]."""
     fig, axes = plt.subplots(2, 1, figsize=(9, 5), sharex=True)
     for a, name in enumerate(('Ẍ', 'Ÿ')):
@@ -176,13 +181,15 @@ def plot_sweep(rows: list[dict], path) -> Path:
         style = ':' if fc == 0 else '-'
         tag = 'no roll-off' if fc == 0 else f'{fc:g} Hz roll-off'
         for c, sigma in zip(colours, sorted({r['noise_m'] for r in rows})):
-            sel = sorted((r for r in rows if r['noise_m'] == sigma and r.get('lowpass_hz', 0.0) == fc),
+            sel = sorted((r for r in rows
+                          if r['noise_m'] == sigma and r.get('lowpass_hz', 0.0) == fc),
                          key=lambda r: r['q_pos'])
             ax.loglog([r['q_pos'] for r in sel], [r['worst_rmse_pct'] for r in sel], 'o' + style,
                       color=c, label=f'σ = {1e3 * sigma:g} mm, {tag}')
-        radius = {r['q_pos']: r['frictionless_radius'] for r in rows if r.get('lowpass_hz', 0.0) == fc}
-        ax_r.semilogx(sorted(radius), [radius[q] for q in sorted(radius)], 's' + style, color='tab:red',
-                      label=tag)
+        radius = {r['q_pos']: r['frictionless_radius'] for r in rows
+                  if r.get('lowpass_hz', 0.0) == fc}
+        ax_r.semilogx(sorted(radius), [radius[q] for q in sorted(radius)], 's' + style,
+                      color='tab:red', label=tag)
     ax.axhline(5.0, color='k', ls='--', lw=1, label='target 5 %')
     ax.set_xlabel('position weight q_pos [1/m²]')
     ax.set_ylabel('worst-finger RMSE [% of excursion]')

@@ -40,7 +40,8 @@ def integral_update(xi, to_torque, from_torque, dt, band, decay, u_max, error, s
 
 
 @kernel
-def integral_step(xi, to_torque, from_torque, dt, band, decay, u_max, error, finite, u_unsat, u, saturated):
+def integral_step(xi, to_torque, from_torque, dt, band, decay, u_max, error, finite, u_unsat, u,
+                  saturated):
     """Add u_I = to_torque ξ to ``u_unsat`` of every finite finger, saturate it again into ``u`` and
     ``saturated`` (all (n, 2), in place), then :func:`integral_update` with that saturation."""
     for i in range(xi.shape[0]):
@@ -55,8 +56,8 @@ def integral_step(xi, to_torque, from_torque, dt, band, decay, u_max, error, fin
 
 
 @kernel
-def integral_roll_off(xi, to_torque, from_torque, dt, band, decay, u_max, z, finite, u_unsat, u, saturated,
-                      alpha, beta, u_prev, has_prev):
+def integral_roll_off(xi, to_torque, from_torque, dt, band, decay, u_max, z, finite, u_unsat, u,
+                      saturated, alpha, beta, u_prev, has_prev):
     """The default law's last arithmetic in one call: :func:`integral_step` with the error
     e = p − p_d taken from the kernel rows z = [p, ṗ, p_d, …] (n, ≥ 6), then the roll-off of ``u``
     in place, u ← α u_prev + β u (β = 1 − α) where ``alpha`` > 0 and ``has_prev``, each element as
@@ -66,7 +67,8 @@ def integral_roll_off(xi, to_torque, from_torque, dt, band, decay, u_max, z, fin
     for i in range(n):
         error[i, 0] = z[i, 0] - z[i, 4]
         error[i, 1] = z[i, 1] - z[i, 5]
-    integral_step(xi, to_torque, from_torque, dt, band, decay, u_max, error, finite, u_unsat, u, saturated)
+    integral_step(xi, to_torque, from_torque, dt, band, decay, u_max, error, finite, u_unsat, u,
+                  saturated)
     if alpha > 0.0 and has_prev:
         for i in range(n):
             for j in range(2):

@@ -1,5 +1,6 @@
-"""The constant-velocity Kalman filter step (:class:`~soft_gripper_sdre.control.kf.ConstantVelocityKF`)
-compiled with numba, for n fingers at once, in place.
+"""The constant-velocity Kalman filter step
+(:class:`~soft_gripper_sdre.control.kf.ConstantVelocityKF`) compiled with numba, for n fingers at
+once, in place.
 
 Per finger, with F, Σ_v from :func:`~soft_gripper_sdre.control.kf.cv_matrices`, H = [I 0], Σ_r:
 
@@ -30,15 +31,17 @@ def kf_step(x, P, z, valid, F, Q, R):
             xp[r] = F[r, 0] * x[i, 0] + F[r, 1] * x[i, 1] + F[r, 2] * x[i, 2] + F[r, 3] * x[i, 3]
         for r in range(4):                                            # S = F S Fᵀ + Σ_v
             for c in range(4):
-                FP[r, c] = F[r, 0] * P[i, 0, c] + F[r, 1] * P[i, 1, c] + F[r, 2] * P[i, 2, c] + F[r, 3] * P[i, 3, c]
+                FP[r, c] = (F[r, 0] * P[i, 0, c] + F[r, 1] * P[i, 1, c] + F[r, 2] * P[i, 2, c]
+                            + F[r, 3] * P[i, 3, c])
         for r in range(4):
             for c in range(4):
-                Pp[r, c] = (FP[r, 0] * F[c, 0] + FP[r, 1] * F[c, 1] + FP[r, 2] * F[c, 2] + FP[r, 3] * F[c, 3]
-                            + Q[r, c])
+                Pp[r, c] = (FP[r, 0] * F[c, 0] + FP[r, 1] * F[c, 1] + FP[r, 2] * F[c, 2]
+                            + FP[r, 3] * F[c, 3] + Q[r, c])
         if not (valid[i] and np.isfinite(z[i, 0]) and np.isfinite(z[i, 1])):
             x[i], P[i] = xp, Pp
             continue
-        s00, s01, s10, s11 = Pp[0, 0] + R[0, 0], Pp[0, 1] + R[0, 1], Pp[1, 0] + R[1, 0], Pp[1, 1] + R[1, 1]
+        s00, s01, s10, s11 = (Pp[0, 0] + R[0, 0], Pp[0, 1] + R[0, 1], Pp[1, 0] + R[1, 0],
+                              Pp[1, 1] + R[1, 1])
         det = s00 * s11 - s01 * s10
         i00, i01, i10, i11 = s11 / det, -s01 / det, -s10 / det, s00 / det      # (H S Hᵀ + Σ_r)⁻¹
         for r in range(4):
@@ -47,12 +50,14 @@ def kf_step(x, P, z, valid, F, Q, R):
         e0, e1 = z[i, 0] - xp[0], z[i, 1] - xp[1]
         for r in range(4):
             x[i, r] = xp[r] + K[r, 0] * e0 + K[r, 1] * e1
-        for r in range(4):                                            # I − K H: H picks the positions
+        # I − K H: H picks the positions
+        for r in range(4):
             for c in range(4):
                 IKH[r, c] = (1.0 if r == c else 0.0) - (K[r, c] if c < 2 else 0.0)
         for r in range(4):
             for c in range(4):
-                T[r, c] = IKH[r, 0] * Pp[0, c] + IKH[r, 1] * Pp[1, c] + IKH[r, 2] * Pp[2, c] + IKH[r, 3] * Pp[3, c]
+                T[r, c] = (IKH[r, 0] * Pp[0, c] + IKH[r, 1] * Pp[1, c] + IKH[r, 2] * Pp[2, c]
+                           + IKH[r, 3] * Pp[3, c])
         for r in range(4):
             for c in range(4):
                 krk = (K[r, 0] * (R[0, 0] * K[c, 0] + R[0, 1] * K[c, 1])

@@ -31,7 +31,8 @@ PROCESS_NOISE_MODELS = ('independent', 'paper')
 def cv_matrices(dt: float, accel_psd: float, process_noise: str = 'independent'):
     """F (4,4) and Σ_v (4,4) of the constant-velocity model for step ``dt``."""
     if process_noise not in PROCESS_NOISE_MODELS:
-        raise ValueError(f'process_noise must be one of {PROCESS_NOISE_MODELS}, got {process_noise!r}')
+        raise ValueError(f'process_noise must be one of {PROCESS_NOISE_MODELS}, '
+                         f'got {process_noise!r}')
     I2 = np.eye(2)
     F = np.block([[I2, dt * I2], [np.zeros((2, 2)), I2]])
     # ∫ e^{As} D q Dᵀ e^{Aᵀs} ds = q [[Δt³/3 C, Δt²/2 C], [Δt²/2 C, Δt C]],  C = D₂ D₂ᵀ
@@ -88,9 +89,11 @@ class ConstantVelocityKF:
             if z0.shape != (self.n, 2):
                 raise ValueError(f'z0 must have shape ({self.n}, 2), got {z0.shape}')
             self.x[:, :2] = z0
-        self.P = np.tile(np.diag([self._R[0, 0], self._R[1, 1], self._p0, self._p0]), (self.n, 1, 1))
+        self.P = np.tile(np.diag([self._R[0, 0], self._R[1, 1], self._p0, self._p0]),
+                         (self.n, 1, 1))
 
-    def step(self, z: np.ndarray, valid: np.ndarray | None = None, dt: float | None = None) -> np.ndarray:
+    def step(self, z: np.ndarray, valid: np.ndarray | None = None,
+             dt: float | None = None) -> np.ndarray:
         """Predict over ``dt`` seconds (None: the filter's own ``dt``) and update with
         measurements z (n, 2); rows with ``valid`` False (or a non-finite z) only predict.
         Returns a copy of x̂ (n, 4).
@@ -104,7 +107,8 @@ class ConstantVelocityKF:
         if valid is None:
             valid = self._all_valid
         else:
-            valid = kernel_array(np.broadcast_to(np.asarray(valid, dtype=np.bool_), (self.n,)), np.bool_)
+            valid = kernel_array(np.broadcast_to(np.asarray(valid, dtype=np.bool_), (self.n,)),
+                                 np.bool_)
         if dt is None or dt == self.dt:
             kf_step(self.x, self.P, z, valid, self._F, self._Q, self._R)
         elif np.isfinite(dt) and dt > 0:

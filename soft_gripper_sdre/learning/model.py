@@ -1,5 +1,6 @@
 """The learned task-space dynamics in state-dependent-coefficient form: the two networks, their
-checkpoint, and the numpy model the controller evaluates (training: :mod:`soft_gripper_sdre.learning.training`).
+checkpoint, and the numpy model the controller evaluates (training:
+:mod:`soft_gripper_sdre.learning.training`).
 
 State x = [X − X₀, Y − Y₀, Ẋ, Ẏ] (SI, translated so that the settled rest pose is the origin and
 f(0) = 0), input u = [u_ax0, u_ax1] [N·m]:
@@ -100,15 +101,16 @@ def read_checkpoint(path: Path) -> dict:
     except OSError as exc:
         raise ModelFileError(f'model file {path} cannot be read: {exc}') from None
     if head != ZIP_MAGIC:
-        raise ModelFileError(f'model file {path} is not a checkpoint: a torch.save file is a zip archive '
-                             f'and this one starts with {head!r} (corrupt, or another kind of file)')
+        raise ModelFileError(f'model file {path} is not a checkpoint: a torch.save file is a zip '
+                             f'archive and this one starts with {head!r} '
+                             f'(corrupt, or another kind of file)')
     try:
         ckpt = torch.load(path, map_location='cpu', weights_only=True)
     except pickle.UnpicklingError as exc:
         found = re.search(r'Unsupported global: GLOBAL ([\w.]+)', str(exc))
         what = f' (it needs {found.group(1)})' if found else ''
-        raise ModelFileError(f'model file {path} holds objects other than tensors and plain data{what}; '
-                             'refused without running them') from None
+        raise ModelFileError(f'model file {path} holds objects other than tensors and plain '
+                             f'data{what}; refused without running them') from None
     except Exception as exc:  # torch reports a non-zip file through whatever its legacy reader hits
         raise ModelFileError(f'model file {path} is unreadable or truncated: {exc}'[:400]) from None
     if not isinstance(ckpt, dict) or 'format_version' not in ckpt:
@@ -126,12 +128,14 @@ def read_checkpoint(path: Path) -> dict:
         if tuple(ckpt['rest_tip'].shape) != (3,):
             raise ValueError(f'rest_tip has shape {tuple(ckpt["rest_tip"].shape)}')
     except (KeyError, RuntimeError, ValueError, TypeError) as exc:
-        raise ModelFileError(f'model file {path} does not match the network layout: {exc}'[:400]) from None
+        raise ModelFileError(
+            f'model file {path} does not match the network layout: {exc}'[:400]) from None
     ckpt['net'] = net
     return ckpt
 
 
-def _fused_layers(sd: dict[str, np.ndarray], s: dict[str, np.ndarray]) -> list[tuple[np.ndarray, np.ndarray]]:
+def _fused_layers(sd: dict[str, np.ndarray],
+                  s: dict[str, np.ndarray]) -> list[tuple[np.ndarray, np.ndarray]]:
     """NN_θ1 and NN_θ2 as one network in physical units, for evaluation with three matmuls.
 
     The two networks take the same input, so they run side by side: layer 1 stacks their weights
@@ -154,7 +158,8 @@ def _fused_layers(sd: dict[str, np.ndarray], s: dict[str, np.ndarray]) -> list[t
     b2 = np.concatenate([c2, d2])
     w3 = np.zeros((ha + hg, 12))
     b3 = np.zeros(12)
-    # output k of NN_θ1 is [A21 A22][k % 2, k // 2] (column-stacked vec), of NN_θ2 is G2[k % 2, k // 2]
+    # output k of NN_θ1 is [A21 A22][k % 2, k // 2] (column-stacked vec), of NN_θ2 is
+    # G2[k % 2, k // 2]
     for k in range(8):
         r, c = k % 2, k // 2
         f = s['acc'][r] / s['x'][c]
@@ -204,7 +209,7 @@ class SDCModel:
         s = {k: v.numpy() for k, v in ckpt['scales'].items()}
         self._layers = _fused_layers(sd, s)
         self._net = _homogeneous(self._layers)
-        self._b1 = {}        # layer 1's bias repeated for small batches of n states (no broadcasting)
+        self._b1 = {}  # layer 1's bias repeated for small batches of n states (no broadcasting)
         self.rest_tip = ckpt['rest_tip'].numpy().astype(float)
         self.dt = float(ckpt['dt'])
         self.settings = ckpt['settings']
@@ -256,7 +261,8 @@ class SDCModel:
         [A21 A22] (8) then G2 (4), in SI (:func:`_fused_layers`). For evaluators outside this
         package's numpy path, such as the compiled control kernels, which take the arrays as inputs.
         """
-        return tuple(np.array(a, dtype=np.float64, order='C') for layer in self._layers for a in layer)
+        return tuple(np.array(a, dtype=np.float64, order='C')
+                     for layer in self._layers for a in layer)
 
     def AG(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """A(x) (n, 4, 4) and G(x) (n, 4, 2) for states x (4,) or (n, 4)."""

@@ -71,7 +71,8 @@ def params_file_problem(path: str) -> str | None:
         return '--params-file needs a file name'
     p = Path(path)
     if not p.is_file():
-        return f'parameters file {path} does not exist' if not p.exists() else f'{path} is not a file'
+        return (f'parameters file {path} does not exist' if not p.exists()
+                else f'{path} is not a file')
     try:
         doc = yaml.safe_load(p.read_text(encoding='utf-8'))
     except (OSError, UnicodeDecodeError) as exc:

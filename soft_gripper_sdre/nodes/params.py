@@ -2,9 +2,9 @@
 
 A node lists its parameters in a tuple of :class:`Param` and calls :func:`declare_all`. rclpy
 rejects out-of-range values itself (``FloatingPointRange`` / ``IntegerRange``); choices and
-cross-field checks are ours. Bad values at startup raise :class:`ParameterError`, whose message names
-the parameter; ``main()`` logs it and exits non-zero. At runtime a bad value is refused with its
-reason and the old value stays in force.
+cross-field checks are ours. Bad values at startup raise :class:`ParameterError`, whose message
+names the parameter; ``main()`` logs it and exits non-zero. At runtime a bad value is refused with
+its reason and the old value stays in force.
 
 A whole number given for a floating-point parameter (``-p max_excursion:=0``, ``0`` in a parameters
 file, or an integer in a runtime change) is taken as that float: ROS types ``0`` as an integer, and
@@ -68,8 +68,8 @@ class Param:
                 d.integer_range = [IntegerRange(from_value=int(max(lo, -2**62)),
                                                 to_value=int(min(hi, 2**62)), step=0)]
             elif isinstance(self.default, float):
-                d.floating_point_range = [FloatingPointRange(from_value=float(lo), to_value=float(hi),
-                                                             step=0.0)]
+                d.floating_point_range = [FloatingPointRange(from_value=float(lo),
+                                                             to_value=float(hi), step=0.0)]
         return d
 
     def check(self, value: Any) -> str | None:
@@ -93,8 +93,9 @@ class Param:
 def finger_names_param(description: str) -> Param:
     """``finger_names``, the same rule in every node: the fingers in message order; their number
     is the number of names (:func:`~soft_gripper_sdre.nodes.conversions.finger_names_problem`)."""
-    return Param('finger_names', list(FINGER_NAMES), description + '; as many names as fingers (1 to '
-                 f'{MAX_FINGERS}), each a ROS name token', rule=finger_names_problem, read_only=True)
+    return Param('finger_names', list(FINGER_NAMES), description + '; as many names as fingers '
+                 f'(1 to {MAX_FINGERS}), each a ROS name token', rule=finger_names_problem,
+                 read_only=True)
 
 
 #: the choices of ``tips_reliability`` (:func:`tips_reliability_param`)
@@ -148,7 +149,8 @@ def declare_all(node: Node, params: Iterable[Param]) -> dict[str, Any]:
     for p in params:
         try:
             values[p.name] = node.declare_parameter(p.name, p.default, p.descriptor()).value
-        except (InvalidParameterValueException, InvalidParameterTypeException, ParameterException) as exc:
+        except (InvalidParameterValueException, InvalidParameterTypeException,
+                ParameterException) as exc:
             raise ParameterError(f'parameter {p.name!r}: {exc}') from None
         reason = p.check(values[p.name])
         if reason:

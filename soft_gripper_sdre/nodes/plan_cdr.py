@@ -96,8 +96,9 @@ class PlanCodec:
         """(stamp ns, times ns (h,), pos, vel, acc (h, n, 2)) of serialized ``data``.
 
         Raises:
-            conversions.MessageError: as :func:`~soft_gripper_sdre.nodes.conversions.msg_to_reference`
-                would, or the bytes are not a MultiDOFJointTrajectory at all.
+            conversions.MessageError: as
+                :func:`~soft_gripper_sdre.nodes.conversions.msg_to_reference` would, or the bytes
+                are not a MultiDOFJointTrajectory at all.
         """
         fast = self._read(data)
         if fast is None:
@@ -111,7 +112,8 @@ class PlanCodec:
         stamp, times, transforms, velocities, accelerations = fast
         if np.any(np.diff(times) <= 0):
             raise cv.MessageError(f'{WHAT}: point times are not increasing')
-        data_xy = np.concatenate([transforms[..., :2], velocities[..., :2], accelerations[..., :2]], axis=2)
+        data_xy = np.concatenate([transforms[..., :2], velocities[..., :2],
+                                  accelerations[..., :2]], axis=2)
         cv.check_finite(data_xy, WHAT)
         return stamp, times, data_xy[..., 0:2], data_xy[..., 2:4], data_xy[..., 4:6]
 

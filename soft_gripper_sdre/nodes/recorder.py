@@ -174,15 +174,19 @@ def _is_stamped(msg_class) -> bool:
 
 
 def _output_path(value: str) -> Path:
-    """The bag directory named by the ``output`` parameter; refuses an existing or unwritable path."""
-    path = Path(value or datetime.now().strftime('rosbag2_%Y_%m_%d-%H_%M_%S')).expanduser().absolute()
+    """The bag directory named by the ``output`` parameter; refuses an existing or unwritable
+    path."""
+    path = Path(value
+                or datetime.now().strftime('rosbag2_%Y_%m_%d-%H_%M_%S')).expanduser().absolute()
     if path.exists():
-        raise ParameterError(f"parameter 'output': {path} already exists (a bag is never overwritten)")
+        raise ParameterError(f"parameter 'output': {path} already exists "
+                             "(a bag is never overwritten)")
     parent = path.parent
     while not parent.exists():
         parent = parent.parent
     if not (parent.is_dir() and os.access(parent, os.W_OK | os.X_OK)):
-        raise ParameterError(f"parameter 'output': cannot create {path}: {parent} is not a writable directory")
+        raise ParameterError(f"parameter 'output': cannot create {path}: "
+                             f"{parent} is not a writable directory")
     return path
 
 
@@ -216,7 +220,8 @@ class RecorderNode(Node):
         try:
             self._writer.open()
         except (OSError, WriterError) as exc:
-            raise ParameterError(f"parameter 'output': cannot create bag {self.path}: {exc}") from None
+            raise ParameterError(f"parameter 'output': cannot create bag {self.path}: "
+                                 f"{exc}") from None
 
         self._typestore = get_typestore(Stores.ROS2_JAZZY)
         self.counts: dict[str, int] = {}
@@ -342,7 +347,8 @@ class RecorderNode(Node):
         self._flush_pending()
         writer, self._writer = self._writer, None
         # after a SIGINT the context is shut down and the node logger can no longer reach /rosout
-        logger = self.get_logger() if self.context.ok() else rclpy.logging.get_logger('soft_gripper_sdre')
+        logger = (self.get_logger() if self.context.ok()
+                  else rclpy.logging.get_logger('soft_gripper_sdre'))
         try:
             writer.close()
         except (OSError, WriterError) as exc:

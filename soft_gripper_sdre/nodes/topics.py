@@ -46,15 +46,18 @@ LOOP_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50,
 #: has one message in flight per topic and loses nothing; what a node skipped shows as a gap in
 #: the stamps it receives
 NEWEST_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
-                        reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
+                        reliability=ReliabilityPolicy.RELIABLE,
+                        durability=DurabilityPolicy.VOLATILE)
 #: the grasp plan: only the newest matters, and a late-joining controller or recorder still gets
-#: it (transient local), so start-up order between the trajectory node and the others does not matter
+#: it (transient local), so start-up order between the trajectory node and the others does not
+#: matter
 REFERENCE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                            reliability=ReliabilityPolicy.RELIABLE,
                            durability=DurabilityPolicy.TRANSIENT_LOCAL)
 #: slower streams (joint states, cube pose, diagnostics)
 STREAM_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50,
-                        reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
+                        reliability=ReliabilityPolicy.RELIABLE,
+                        durability=DurabilityPolicy.VOLATILE)
 #: /clock (100 Hz of sim time by default): reliable, so the recorder keeps every tick; rclpy's time
 #: source subscribes best-effort, which a reliable publisher serves too
 CLOCK_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50,

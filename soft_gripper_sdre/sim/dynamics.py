@@ -93,20 +93,23 @@ class FingerDynamics(DirectClient):
         self._body, = load_fingers(self._client, [((0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))])
         # PyBullet's Jacobian point is in the link frame; the tip the simulator reports is link 9's
         # centre of mass, at its local inertial offset
-        self._tip_offset = list(pb.getLinkState(self._body, TIP_LINK, physicsClientId=self._client)[2])
+        self._tip_offset = list(pb.getLinkState(self._body, TIP_LINK,
+                                                physicsClientId=self._client)[2])
         # static compliance's inverse stiffness, SI: K_si = K_sim / TORQUE_SCALE
         self._Kinv_B = np.diag(1.0 / JOINT_STIFFNESS) @ B_MATRIX * TORQUE_SCALE
         self._Phi = self._Kinv_B / TORQUE_SCALE                      # Φ = K⁻¹ B, sim units
 
     def _jacobian(self, q: list, zeros: list) -> np.ndarray:
-        """(3, 10) linear Jacobian of the tip (link 9's centre of mass) in the base frame, sim units."""
+        """(3, 10) linear Jacobian of the tip (link 9's centre of mass) in the base frame, sim
+        units."""
         lin, _ = pb.calculateJacobian(self._body, TIP_LINK, self._tip_offset, q, zeros, zeros,
                                       physicsClientId=self._client)
         return np.asarray(lin)
 
     def tip_state(self, q: np.ndarray, qd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The tip's (X, Y) position [m] and velocity [m/s] in the base frame at joint angles q
-        (10,) [rad] and rates q̇ (10,) [rad/s]: the simulator's reported tip, from its joint state."""
+        (10,) [rad] and rates q̇ (10,) [rad/s]: the simulator's reported tip, from its joint
+        state."""
         q = np.asarray(q, dtype=float).reshape(-1)
         qd = np.asarray(qd, dtype=float).reshape(-1)
         if q.shape != (N_JOINTS,) or qd.shape != (N_JOINTS,):
@@ -133,9 +136,10 @@ class FingerDynamics(DirectClient):
             raise ValueError('q and qd must be finite')
         cid, body = self._client, self._body
         ql, qdl, zeros = q.tolist(), qd.tolist(), [0.0] * N_JOINTS
-        M = np.asarray(pb.calculateMassMatrix(body, ql, physicsClientId=cid))              # sim units
+        M = np.asarray(pb.calculateMassMatrix(body, ql, physicsClientId=cid))  # sim units
         g = np.asarray(pb.calculateInverseDynamics(body, ql, zeros, zeros, physicsClientId=cid))
-        h = np.asarray(pb.calculateInverseDynamics(body, ql, qdl, zeros, physicsClientId=cid))  # C q̇ + g
+        h = np.asarray(pb.calculateInverseDynamics(body, ql, qdl, zeros,
+                                                   physicsClientId=cid))  # C q̇ + g
         J = self._jacobian(ql, zeros)
         Jp = self._jacobian((q + _JDOT_STEP * qd).tolist(), zeros)
         Jm = self._jacobian((q - _JDOT_STEP * qd).tolist(), zeros)
@@ -145,7 +149,8 @@ class FingerDynamics(DirectClient):
         tip = np.asarray(pb.getLinkState(body, TIP_LINK, physicsClientId=cid)[0])
         JMinv = np.linalg.solve(M.T, J.T).T                          # J M⁻¹
         if friction:
-            h = h + FRICTION_TORQUE * np.sign(qd)                    # τ_f = −F sign(q̇) moves to the left
+            # τ_f = −F sign(q̇) moves to the left
+            h = h + FRICTION_TORQUE * np.sign(qd)
         J2 = J[:2] / LENGTH_SCALE                                    # SI: m/rad
         Phi = self._Phi
         S_sim = J @ Phi                                              # static compliance, sim units
@@ -167,7 +172,8 @@ class FingerDynamics(DirectClient):
 _EPS_POS, _EPS_VEL = 1e-7, 1e-6
 
 
-def oracle_sdc(d: TaskDynamics, rest_tip: np.ndarray, reduced: bool = True) -> tuple[np.ndarray, np.ndarray]:
+def oracle_sdc(d: TaskDynamics, rest_tip: np.ndarray,
+               reduced: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """An SDC pair (A (4, 4), G (4, 2)) built from the true terms, translated by ``rest_tip``:
     the static-shape projection (``reduced``, default) or the paper's exact eq. (10)–(13).
 

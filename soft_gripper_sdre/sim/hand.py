@@ -84,11 +84,13 @@ class SimConfig:
         if self.scene not in SCENES:
             raise ValueError(f'scene must be one of {SCENES}, got {self.scene!r}')
         if not (math.isfinite(self.control_period) and 1e-5 <= self.control_period <= 0.1):
-            raise ValueError(f'control_period must be in [1e-5, 0.1] s, got {self.control_period!r}')
+            raise ValueError(f'control_period must be in [1e-5, 0.1] s, '
+                             f'got {self.control_period!r}')
         if self.physics_substeps is None:
             object.__setattr__(self, 'physics_substeps', physics_substeps_for(self.control_period))
         if not (isinstance(self.physics_substeps, int) and 1 <= self.physics_substeps <= 100):
-            raise ValueError(f'physics_substeps must be an int in [1, 100], got {self.physics_substeps!r}')
+            raise ValueError(f'physics_substeps must be an int in [1, 100], '
+                             f'got {self.physics_substeps!r}')
         if not (math.isfinite(self.torque_limit) and self.torque_limit > 0):
             raise ValueError(f'torque_limit must be finite and > 0 N·m, got {self.torque_limit!r}')
         if not (math.isfinite(self.noise_std) and self.noise_std >= 0):
@@ -161,22 +163,25 @@ class GripperSim(DirectClient):
         self._base_pos = np.array(positions, dtype=float)
         self._base_rot = np.stack([rpy_matrix(rpy) for rpy in rpys])
         # per finger: p₀ and the columns of R (the rows of Rᵀ) as Python floats, for _read_state
-        self._frames = [(p0.tolist(), R.T.tolist()) for p0, R in zip(self._base_pos, self._base_rot)]
+        self._frames = [(p0.tolist(), R.T.tolist())
+                        for p0, R in zip(self._base_pos, self._base_rot)]
         self._cube = self._palm = None
         if cfg.scene == 'hand':
-            shape = pb.createCollisionShape(pb.GEOM_CYLINDER, radius=PALM['radius'], height=PALM['length'],
-                                            physicsClientId=cid)
+            shape = pb.createCollisionShape(pb.GEOM_CYLINDER, radius=PALM['radius'],
+                                            height=PALM['length'], physicsClientId=cid)
             # the palm is fixed to the world (mass 0 = static); its nominal mass is irrelevant then
             self._palm = pb.createMultiBody(0.0, shape, -1, PALM['center'], physicsClientId=cid)
             pb.changeDynamics(self._palm, -1, lateralFriction=PALM['friction'], physicsClientId=cid)
             if cfg.with_cube:
                 half = CUBE['size'] / 2
-                shape = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=[half] * 3, physicsClientId=cid)
+                shape = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=[half] * 3,
+                                                physicsClientId=cid)
                 visual = pb.createVisualShape(pb.GEOM_BOX, halfExtents=[half] * 3,
                                               rgbaColor=[0, 0.8, 0, 1], physicsClientId=cid)
-                self._cube = pb.createMultiBody(CUBE['mass'] * plant.cube_mass_scale, shape, visual, CUBE['center'],
-                                                physicsClientId=cid)
-                pb.changeDynamics(self._cube, -1, lateralFriction=CUBE['friction'], physicsClientId=cid)
+                self._cube = pb.createMultiBody(CUBE['mass'] * plant.cube_mass_scale, shape, visual,
+                                                CUBE['center'], physicsClientId=cid)
+                pb.changeDynamics(self._cube, -1, lateralFriction=CUBE['friction'],
+                                  physicsClientId=cid)
         self._joint_list = list(range(N_JOINTS))
         zeros, friction = [0.0] * N_JOINTS, [FRICTION_TORQUE * plant.friction_scale] * N_JOINTS
         for body in self._bodies:
@@ -185,7 +190,8 @@ class GripperSim(DirectClient):
                                   restitution=FINGER_RESTITUTION, physicsClientId=cid)
             # joint friction: a velocity-0 motor with a force limit, active under torque control too
             pb.setJointMotorControlArray(body, self._joint_list, pb.VELOCITY_CONTROL,
-                                         targetVelocities=zeros, forces=friction, physicsClientId=cid)
+                                         targetVelocities=zeros, forces=friction,
+                                         physicsClientId=cid)
 
     def reset(self) -> None:
         """Build a fresh world, settle ``settle_time`` at u = 0, and set t = 0 there."""
@@ -208,7 +214,8 @@ class GripperSim(DirectClient):
         the springs of the next physics step and :meth:`truth` both read this cache, so each state
         is fetched once, and turned into arrays only when :meth:`truth` asks."""
         cid, joints = self._client, self._joint_list
-        self._joint_states = [pb.getJointStates(body, joints, physicsClientId=cid) for body in self._bodies]
+        self._joint_states = [pb.getJointStates(body, joints, physicsClientId=cid)
+                              for body in self._bodies]
 
     def _physics_step(self) -> None:
         cid, joints, torque = self._client, self._joint_list, pb.TORQUE_CONTROL
@@ -245,11 +252,12 @@ class GripperSim(DirectClient):
         cid, s = self._client, LENGTH_SCALE
         pos, vel = [], []
         for body, (p0, rot_t) in zip(self._bodies, self._frames):
-            # link 9's centre of mass (the tip) and its velocity, in the world. PyBullet's cached link
-            # frames are those of the state before the last physics step; recomputing the forward
-            # kinematics makes the tip that of the joint state the step ended in (the one truth() reports)
-            link = pb.getLinkState(body, TIP_LINK, computeLinkVelocity=1, computeForwardKinematics=1,
-                                   physicsClientId=cid)
+            # link 9's centre of mass (the tip) and its velocity, in the world. PyBullet's cached
+            # link frames are those of the state before the last physics step; recomputing the
+            # forward kinematics makes the tip that of the joint state the step ended in (the one
+            # truth() reports)
+            link = pb.getLinkState(body, TIP_LINK, computeLinkVelocity=1,
+                                   computeForwardKinematics=1, physicsClientId=cid)
             (px, py, pz), (vx, vy, vz) = link[0], link[6]
             dx, dy, dz = px - p0[0], py - p0[1], pz - p0[2]
             # into the finger's base frame: p_b = Rᵀ (p − p₀), v_b = Rᵀ v, each row summed in
@@ -275,7 +283,8 @@ class GripperSim(DirectClient):
 
     @property
     def physics_client(self) -> int:
-        """The PyBullet client id of this simulator (for direct PyBullet queries in analysis and tests)."""
+        """The PyBullet client id of this simulator (for direct PyBullet queries in analysis and
+        tests)."""
         return self._client
 
     @property

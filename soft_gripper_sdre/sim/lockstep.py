@@ -70,7 +70,8 @@ class Stepping:
             later) or 'realtime'.
         total_steps: stop after this many periods (None: run on).
         timeout: lockstep and pipelined: wall time [s] to wait for the current period's command.
-        on_timeout: lockstep, pipelined: 'hold' the last good command or apply 'zero' after a timeout.
+        on_timeout: lockstep, pipelined: 'hold' the last good command or apply 'zero' after a
+            timeout.
         on_bad_command: 'hold' keeps, 'zero' drops the held command when a command is refused.
         lost_command_wait: lockstep, pipelined: wall time [s] each period waits for its command once
             commands are lost (after a timeout), before it steps with zero torque.
@@ -87,8 +88,8 @@ class Stepping:
 
     def __init__(self, n_fingers: int, period_ns: int, mode: str = 'lockstep',
                  total_steps: int | None = None, timeout: float = 0.5, on_timeout: str = 'hold',
-                 on_bad_command: str = 'hold', lost_command_wait: float = 0.01, hold_periods: int = 5,
-                 counters: Counter | None = None) -> None:
+                 on_bad_command: str = 'hold', lost_command_wait: float = 0.01,
+                 hold_periods: int = 5, counters: Counter | None = None) -> None:
         if mode not in MODES or on_timeout not in POLICIES or on_bad_command not in POLICIES:
             raise ValueError(f'mode {mode!r} must be one of {MODES}, on_timeout {on_timeout!r} and '
                              f'on_bad_command {on_bad_command!r} one of {POLICIES}')
@@ -120,7 +121,8 @@ class Stepping:
 
     @property
     def deadline(self) -> float | None:
-        """Lockstep, pipelined: the wall time until which the current period's command is awaited."""
+        """Lockstep, pipelined: the wall time until which the current period's command is
+        awaited."""
         if self.sent_at is None:
             return None
         return self.sent_at + (self.lost_command_wait if self.lost else self.timeout)
@@ -147,14 +149,15 @@ class Stepping:
 
     # -- inputs ------------------------------------------------------------------------------
     def on_command(self, stamp: int, u: np.ndarray) -> CommandOutcome:
-        """A command stamped ``stamp`` with torques ``u`` (an array, (n, 2) unless refused) arrived."""
+        """A command stamped ``stamp`` with torques ``u`` (an array, (n, 2) unless refused)
+        arrived."""
         if u.shape != (self.n_fingers, 2) or not np.isfinite(u).all():
             return self._refuse('bad_command', f'torque_commands: {u.shape} torques or not '
                                 f'finite; expected ({self.n_fingers}, 2) finite values')
         now_ns = self.now_ns
         first = None
         if self.answered_ns < stamp <= now_ns and self.started and stamp % self.period_ns == 0:
-            j = stamp // self.period_ns          # answers the tips of period j (realtime: maybe late)
+            j = stamp // self.period_ns  # answers the tips of period j (realtime: maybe late)
             if self.k - j < LATENCY_PERIODS:
                 first = j
                 self.answered_ns = stamp
@@ -185,16 +188,16 @@ class Stepping:
 
     def on_wall_time(self, wall: float) -> np.ndarray | None:
         """Lockstep and pipelined: the torque to step with now if the current period's command
-        is overdue at wall time ``wall``, else None. The first overdue period is a timeout (the held command or
-        zero, by ``on_timeout``); if a command was ever accepted, commands are lost from then on
-        and every later overdue period gets zero after ``lost_command_wait``.
+        is overdue at wall time ``wall``, else None. The first overdue period is a timeout (the held
+        command or zero, by ``on_timeout``); if a command was ever accepted, commands are lost from
+        then on and every later overdue period gets zero after ``lost_command_wait``.
 
         Each call is one look: a period is overdue at the second look past its deadline, so a
         command that was already waiting at the first look is taken in between."""
         deadline = self.deadline
         if self.mode == 'realtime' or self.done or deadline is None or wall < deadline:
             return None
-        if self._looked_overdue != (self.k, deadline):     # (a moved deadline gets its own two looks)
+        if self._looked_overdue != (self.k, deadline):  # (a moved deadline gets its own two looks)
             self._looked_overdue = (self.k, deadline)
             return None
         if self.lost:
@@ -203,7 +206,8 @@ class Stepping:
         self.counters['timeouts'] += 1
         if self.last_command_ns >= 0:          # (before the loop has ever answered, keep waiting)
             self.lost, self.lost_since_ns = True, self.now_ns
-        return self._advance(self.held if self.on_timeout == 'hold' else np.zeros((self.n_fingers, 2)))
+        return self._advance(self.held if self.on_timeout == 'hold'
+                             else np.zeros((self.n_fingers, 2)))
 
     def on_period(self) -> np.ndarray | None:
         """Realtime: a period of the wall timer ended; the torque to step with (the newest
@@ -211,10 +215,12 @@ class Stepping:
         if self.mode != 'realtime' or self.done:
             return None
         now_ns = self.now_ns
-        if self.last_command_ns >= max(0, now_ns - self.period_ns):   # this period's or the previous one's
+        # this period's or the previous one's
+        if self.last_command_ns >= max(0, now_ns - self.period_ns):
             return self._advance(self.held)
         self.counters['late_periods'] += 1
-        if self.last_command_ns < 0 or now_ns - self.last_command_ns <= self.hold_periods * self.period_ns:
+        if (self.last_command_ns < 0
+                or now_ns - self.last_command_ns <= self.hold_periods * self.period_ns):
             return self._advance(self.held)     # nothing yet (zero) or recent enough to hold
         if not self.lost:
             self.lost, self.lost_since_ns = True, self.last_command_ns + self.period_ns

@@ -1,7 +1,8 @@
 """Benchmarks of the node graph as processes: lockstep speed, CPU and latency, realtime lateness
 (also through a CPU hog), start-up, recorder loss.
 
-    python -m soft_gripper_sdre.tools.bench_graph [--quick] [--graph-only] [--executor events|single]
+    python -m soft_gripper_sdre.tools.bench_graph [--quick] [--graph-only]
+        [--executor events|single]
 
 prints the rows that :mod:`soft_gripper_sdre.tools.bench` appends to BENCHMARKS.md
 (:func:`rows`). Every figure comes from the nodes' own /diagnostics, read by a monitor node, or
@@ -41,7 +42,8 @@ from soft_gripper_sdre.tools.procs import WIRED_BEFORE_START, DiagnosticsMonitor
 LOOP_NODES = ('estimator', 'trajectory', 'controller')
 #: a ping-pong round unanswered this long [s] sends its ping again (see :func:`hop`)
 RESEND_S = 1.0
-#: topics the simulator publishes once per step when state_rate and clock_rate are 1 kHz (and at t = 0)
+#: topics the simulator publishes once per step when state_rate and clock_rate are 1 kHz
+#: (and at t = 0)
 SIM_TOPICS = ('/clock', '/tip_positions', '/joint_states', '/cube_pose', '/cube_contacts')
 
 
@@ -104,7 +106,8 @@ def hog_run(seconds: float, hog_at: float, hog_seconds: float = 1.0, executor: s
     """
     hog = CpuHog(hog_at, hog_seconds)
     try:
-        _, history = _graph_run(seconds, 'realtime', None, False, executor, timeout, during=hog.poll)
+        _, history = _graph_run(seconds, 'realtime', None, False, executor, timeout,
+                                during=hog.poll)
     finally:
         hog.stop()
     if hog.span is None:
@@ -112,8 +115,9 @@ def hog_run(seconds: float, hog_at: float, hog_seconds: float = 1.0, executor: s
     return phase_figures(history.get('simulator', []), *hog.span)
 
 
-def _graph_run(seconds: float, mode: str, record: Path | None, all_at_1khz: bool, executor: str | None,
-               timeout: float, during=None, composed: bool = False) -> tuple[dict[str, dict[str, float]], dict[str, list]]:
+def _graph_run(seconds: float, mode: str, record: Path | None, all_at_1khz: bool,
+               executor: str | None, timeout: float, during=None,
+               composed: bool = False) -> tuple[dict[str, dict[str, float]], dict[str, list]]:
     """:func:`run_graph`, also returning the monitor's /diagnostics history; ``during(monitor)``
     is called about 10 times a second while the simulator steps."""
     from soft_gripper_sdre.nodes.common import EXECUTOR_ENV
@@ -122,8 +126,10 @@ def _graph_run(seconds: float, mode: str, record: Path | None, all_at_1khz: bool
         env[EXECUTOR_ENV] = executor
     fast = {'state_rate': 1000.0, 'clock_rate': 1000.0} if all_at_1khz else {}
     params = {'estimator': {}, 'controller': {}, 'trajectory': {},
-              'simulator': {'duration': seconds, 'mode': mode, 'min_tip_subscribers': 2 + bool(record),
-                            'min_diagnostics_subscribers': 1 + bool(record),   # the monitor (+ recorder)
+              'simulator': {'duration': seconds, 'mode': mode,
+                            'min_tip_subscribers': 2 + bool(record),
+                            # the monitor (+ recorder)
+                            'min_diagnostics_subscribers': 1 + bool(record),
                             **fast}}
     if record:
         params['recorder'] = {'output': str(record)}
@@ -146,11 +152,13 @@ def _graph_run(seconds: float, mode: str, record: Path | None, all_at_1khz: bool
     return out, monitor.history
 
 
-def _run(graph_env: dict[str, str], monitor: DiagnosticsMonitor, spec: GraphSpec, record: Path | None, steps: int,
-         timeout: float, during=None, composed: bool = False) -> tuple[dict[str, float], float]:
+def _run(graph_env: dict[str, str], monitor: DiagnosticsMonitor, spec: GraphSpec,
+         record: Path | None, steps: int, timeout: float, during=None,
+         composed: bool = False) -> tuple[dict[str, float], float]:
     """:func:`run_graph`'s processes: start, step, drain, stop; returns CPU seconds per node
     while the simulator stepped, and the monotonic time the processes were launched."""
-    with tempfile.TemporaryDirectory(prefix='sgs_bench_graph_') as logs, Graph(graph_env, Path(logs)) as graph:
+    with (tempfile.TemporaryDirectory(prefix='sgs_bench_graph_') as logs,
+          Graph(graph_env, Path(logs)) as graph):
         names = spec.names[:-1]
         launched = time.monotonic()
         for node in spec.nodes[:-1]:
@@ -165,7 +173,8 @@ def _run(graph_env: dict[str, str], monitor: DiagnosticsMonitor, spec: GraphSpec
                            or any(not p.alive() for p in graph.procs.values()), 60.0)
         dead = [n for n, p in graph.procs.items() if not p.alive()]
         if dead or not all(n in monitor.values for n in names):
-            raise RuntimeError(f'the graph did not start (dead: {dead}; heard from {sorted(monitor.values)}): '
+            raise RuntimeError(f'the graph did not start (dead: {dead}; '
+                               f'heard from {sorted(monitor.values)}): '
                                f'{ {n: graph.procs[n].log_tail(600) for n in dead} }')
         if record:       # the recorder hears every stream before the first step
             monitor.spin_until(lambda: all(monitor.get('recorder', f'publishers {t}') > 0
@@ -211,7 +220,8 @@ def _start_composed(graph: Graph, controller, estimator) -> None:
     graph.log_dir.mkdir(parents=True, exist_ok=True)
     log_path = graph.log_dir / 'controller.log'
     with open(log_path, 'w', encoding='utf-8') as log:
-        popen = subprocess.Popen(cmd, env=graph.env, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
+        popen = subprocess.Popen(cmd, env=graph.env, stdout=log, stderr=subprocess.STDOUT,
+                                 stdin=subprocess.DEVNULL)
     graph.procs['controller'] = NodeProcess('controller', popen, log_path)
 
 
@@ -312,8 +322,8 @@ def hop(executor: str, count: int = 2000, raw: bool = False) -> dict[str, float]
     env = ros_env()
     env[EXECUTOR_ENV] = executor
     os.environ.update({k: env[k] for k in ('ROS_DOMAIN_ID', 'ROS_AUTOMATIC_DISCOVERY_RANGE')})
-    echo = subprocess.Popen([sys.executable, '-m', 'soft_gripper_sdre.tools.bench_graph', '--echo', str(count)]
-                            + ['--raw'] * raw,
+    echo = subprocess.Popen([sys.executable, '-m', 'soft_gripper_sdre.tools.bench_graph', '--echo',
+                             str(count)] + ['--raw'] * raw,
                             env=env, stdout=subprocess.PIPE, text=True)
     ctx = Context()
     rclpy.init(context=ctx)
@@ -341,7 +351,8 @@ def hop(executor: str, count: int = 2000, raw: bool = False) -> dict[str, float]
     ex.add_node(node)
     try:
         deadline = time.monotonic() + 30.0
-        while (sub.get_publisher_count() == 0 or pub.get_subscription_count() == 0) and time.monotonic() < deadline:
+        while (sub.get_publisher_count() == 0
+               or pub.get_subscription_count() == 0) and time.monotonic() < deadline:
             ex.spin_once(timeout_sec=0.05)
         ping()
         deadline = time.monotonic() + 120.0
@@ -368,18 +379,19 @@ def hop(executor: str, count: int = 2000, raw: bool = False) -> dict[str, float]
         ex.shutdown()
         node.destroy_node()
         rclpy.try_shutdown(context=ctx)
-    cpu = next((float(line.split()[1]) for line in out.splitlines() if line.startswith('cpu_per_message')),
-               float('nan'))
+    cpu = next((float(line.split()[1]) for line in out.splitlines()
+                if line.startswith('cpu_per_message')), float('nan'))
     one_way = 0.5e6 * rtt[:rounds]
-    return {'p50': float(np.percentile(one_way, 50)), 'p99': float(np.percentile(one_way, 99)), 'cpu': 1e6 * cpu,
-            'rounds': rounds, 'resent': state['resent']}
+    return {'p50': float(np.percentile(one_way, 50)), 'p99': float(np.percentile(one_way, 99)),
+            'cpu': 1e6 * cpu, 'rounds': rounds, 'resent': state['resent']}
 
 
 #: the graph layouts :func:`mode_runs` can alternate: (simulator mode, estimator + controller in
 #: one process), and the words of their rows
 LAYOUTS = {'lockstep': ('lockstep', False, '4 processes, lockstep'),
            'pipelined': ('pipelined', False, '4 processes, pipelined'),
-           'pipelined_composed': ('pipelined', True, '3 processes (controller --with-estimator), pipelined')}
+           'pipelined_composed': ('pipelined', True,
+                                  '3 processes (controller --with-estimator), pipelined')}
 
 
 def mode_runs(seconds: float, repeats: int = 1, executor: str | None = None,
@@ -400,7 +412,8 @@ def mode_runs(seconds: float, repeats: int = 1, executor: str | None = None,
 
 def cpu_per_period(d: dict[str, dict[str, float]]) -> dict[str, float]:
     """Each loop process's CPU time per period [µs] in the run ``d`` (:func:`run_graph`)."""
-    return {n: d.get(n, {}).get('cpu_per_step_us', float('nan')) for n in ('simulator', *LOOP_NODES)}
+    return {n: d.get(n, {}).get('cpu_per_step_us', float('nan'))
+            for n in ('simulator', *LOOP_NODES)}
 
 
 def median_run(done: list[dict]) -> dict:
@@ -420,19 +433,24 @@ def mode_rows(runs: dict[str, list[dict]], seconds: float,
     for mode, done in runs.items():
         d = median_run(done)
         sim = d['simulator']
-        cpu = {n: c for n, c in cpu_per_period(d).items() if not (LAYOUTS[mode][1] and n == 'estimator')}
+        cpu = {n: c for n, c in cpu_per_period(d).items()
+               if not (LAYOUTS[mode][1] and n == 'estimator')}
         rtfs = [r['simulator'].get('real_time_factor', nan) for r in done]
         if figures is not None:
             figures[f'{mode}_rtf'] = sim.get('real_time_factor', nan)
             figures[f'{mode}_cpu_us'] = sum(cpu.values())
         spread = (f'; median of {len(done)} runs taking turns with the other layouts: '
                   + ', '.join(f'{r:.2f}×' for r in rtfs) + ' at load '
-                  + ', '.join(f'{r["simulator"]["load"]:.1f}' for r in done)) if len(done) > 1 else ''
-        out.append((f'node graph, {LAYOUTS[mode][2]} 1 ms', f'{sim.get("real_time_factor", nan):.2f}× real time',
-                    f'{seconds:g} s of sim time; {int(sim.get("timeouts", 0))} timeouts; loop latency p50 / p99 '
-                    f'{sim.get("loop_latency_us_p50", nan):.0f} / {sim.get("loop_latency_us_p99", nan):.0f} µs; '
+                  + ', '.join(f'{r["simulator"]["load"]:.1f}'
+                              for r in done)) if len(done) > 1 else ''
+        out.append((f'node graph, {LAYOUTS[mode][2]} 1 ms',
+                    f'{sim.get("real_time_factor", nan):.2f}× real time',
+                    f'{seconds:g} s of sim time; {int(sim.get("timeouts", 0))} timeouts; '
+                    f'loop latency p50 / p99 {sim.get("loop_latency_us_p50", nan):.0f} / '
+                    f'{sim.get("loop_latency_us_p99", nan):.0f} µs; '
                     f'CPU per period {" / ".join(cpu)} '
-                    + ' / '.join(f'{c:.0f}' for c in cpu.values()) + f' µs (sum {sum(cpu.values()):.0f})'
+                    + ' / '.join(f'{c:.0f}' for c in cpu.values())
+                    + f' µs (sum {sum(cpu.values()):.0f})'
                     + spread))
     return out
 
@@ -447,7 +465,8 @@ def rows(quick: bool = False, executor: str | None = None, graph_only: bool = Fa
     p50 [µs] (``hop_p50_us``)."""
     nan = float('nan')
     seconds, real_s = (1.0, 3.0) if quick else (3.0, 20.0)
-    runs = mode_runs(seconds, 1 if quick else 3, executor=executor)      # one run of each swings 0.4–0.8×
+    runs = mode_runs(seconds, 1 if quick else 3,
+                     executor=executor)      # one run of each swings 0.4–0.8×
     lock_all = median_run(runs['lockstep'])
     lock = lock_all['simulator']
     pipelined_row = mode_rows(runs, seconds, figures)[1]
@@ -458,12 +477,15 @@ def rows(quick: bool = False, executor: str | None = None, graph_only: bool = Fa
     compute = lock_all['controller'].get('compute_us_mean', nan)
 
     def latency(d: dict, prefix: str = 'loop_latency_us') -> str:
-        return ' / '.join(f'{d.get(f"{prefix}_{k}", nan):.0f}' for k in ('p50', 'p99', 'max')) + ' µs'
+        return ' / '.join(f'{d.get(f"{prefix}_{k}", nan):.0f}'
+                          for k in ('p50', 'p99', 'max')) + ' µs'
     table = [
-        ('node graph, 4 processes, lockstep 1 ms', f'{lock.get("real_time_factor", nan):.2f}× real time',
+        ('node graph, 4 processes, lockstep 1 ms',
+         f'{lock.get("real_time_factor", nan):.2f}× real time',
          f'{seconds:g} s of sim time; {int(lock.get("timeouts", 0))} timeouts'
          + (f'; median of {len(runs["lockstep"])} runs taking turns with pipelined: '
-            + ', '.join(f'{r["simulator"].get("real_time_factor", nan):.2f}×' for r in runs['lockstep'])
+            + ', '.join(f'{r["simulator"].get("real_time_factor", nan):.2f}×'
+                        for r in runs['lockstep'])
             if len(runs['lockstep']) > 1 else '')),
         pipelined_row,
         ('loop latency p50 / p99 / max, lockstep (tips out → torque back)', latency(lock),
@@ -473,12 +495,14 @@ def rows(quick: bool = False, executor: str | None = None, graph_only: bool = Fa
          f'sum {sum(cpu.values()):.0f} µs per 1 ms period on {os.cpu_count()} cores; '
          f'controller compute {compute:.0f} µs (mean of its last second)'),
         ('start-up to the first torque, lockstep', f'{lock.get("startup_s", nan):.1f} s',
-         f'from launching the 4 processes; {lock.get("first_command_after_tips_ms", nan):.0f} ms of it '
-         'from the first tips to the first command'),
-        (f'realtime mode at 1 kHz, {real_s:g} s: late periods', f'{100 * real.get("late_periods", 0.0) / steps:.1f} %',
-         f'a period is late when its newest command answers tips older than the previous period\'s; '
-         f'{100 * real.get("safe_periods", 0.0) / steps:.2f} % stepped with zero torque (hold_limit); '
-         f'stepping at {real.get("real_time_factor", nan):.2f}× real time; latency p50 / p99 / max {latency(real)}'),
+         f'from launching the 4 processes; {lock.get("first_command_after_tips_ms", nan):.0f} '
+         'ms of it from the first tips to the first command'),
+        (f'realtime mode at 1 kHz, {real_s:g} s: late periods',
+         f'{100 * real.get("late_periods", 0.0) / steps:.1f} %',
+         f'a period is late when its newest command answers tips older than the previous '
+         f'period\'s; {100 * real.get("safe_periods", 0.0) / steps:.2f} % stepped with zero torque '
+         f'(hold_limit); stepping at {real.get("real_time_factor", nan):.2f}× real time; '
+         f'latency p50 / p99 / max {latency(real)}'),
         ('realtime with a 1 s CPU hog on every core: latency p50 before / during / after',
          ' / '.join(f'{hog[p]["p50"]:.0f}' for p in PHASES) + ' µs',
          'late periods ' + ' / '.join(f'{100 * hog[p]["late"]:.1f}' for p in PHASES) + ' %, p99 '
@@ -498,16 +522,20 @@ def rows(quick: bool = False, executor: str | None = None, graph_only: bool = Fa
     worst = max(recorded, key=lambda t: recorded[t][0] - recorded[t][1])
     return [
         ('one DDS hop, tip_positions, EventsExecutor', f'{ev["p50"]:.0f} / {ev["p99"]:.0f} µs',
-         f'p50 / p99 one way (ping-pong of 2 processes); {ev["cpu"]:.0f} µs CPU per message received + sent'),
+         f'p50 / p99 one way (ping-pong of 2 processes); {ev["cpu"]:.0f} µs CPU per message '
+         f'received + sent'),
         ('one DDS hop, tip_positions as raw CDR (nodes/cdr.py), EventsExecutor',
          f'{ev_raw["p50"]:.0f} / {ev_raw["p99"]:.0f} µs',
-         f'{ev_raw["cpu"]:.0f} µs CPU per message received, decoded, encoded and sent, as the loop nodes do'),
-        ('one DDS hop, tip_positions, SingleThreadedExecutor', f'{st["p50"]:.0f} / {st["p99"]:.0f} µs',
+         f'{ev_raw["cpu"]:.0f} µs CPU per message received, decoded, encoded and sent, '
+         f'as the loop nodes do'),
+        ('one DDS hop, tip_positions, SingleThreadedExecutor',
+         f'{st["p50"]:.0f} / {st["p99"]:.0f} µs',
          f'{st["cpu"]:.0f} µs CPU per message: {st["cpu"] / ev["cpu"]:.1f}× the EventsExecutor\'s'),
         *table[:2],
         ('node graph, lockstep, SingleThreadedExecutor in every node',
          f'{single.get("real_time_factor", nan):.2f}× real time',
-         f'rclpy\'s default executor; loop latency p50 {single.get("loop_latency_us_p50", nan):.0f} µs'),
+         f'rclpy\'s default executor; loop latency p50 '
+         f'{single.get("loop_latency_us_p50", nan):.0f} µs'),
         *table[2:],
         ('recorder, all topics at 1 kHz: messages lost', f'{lost} of {sent}',
          '5 processes in realtime; published (node counters) − in the bag'
@@ -520,11 +548,13 @@ def main(argv: list[str] | None = None) -> int:
                                  description=__doc__.split('\n')[0])
     ap.add_argument('--quick', action='store_true', help='shorter runs (smoke test)')
     ap.add_argument('--graph-only', action='store_true',
-                    help='only the graph runs: no DDS hops, SingleThreadedExecutor run or recorder run')
+                    help='only the graph runs: no DDS hops, SingleThreadedExecutor run or '
+                         'recorder run')
     ap.add_argument('--echo', type=int, default=None, help=argparse.SUPPRESS)   # hop()'s far end
     ap.add_argument('--raw', action='store_true', help=argparse.SUPPRESS)       # … with raw CDR
     ap.add_argument('--executor', choices=('events', 'single'), default=None,
-                    help='executor of the node processes (default: $SOFT_GRIPPER_EXECUTOR or events)')
+                    help='executor of the node processes '
+                         '(default: $SOFT_GRIPPER_EXECUTOR or events)')
     a = ap.parse_args(argv)
     if a.echo is not None:
         return _echo(a.echo, a.raw)

@@ -1,4 +1,5 @@
-"""The grasp demo: the whole node graph as separate processes, in lockstep (or ``--mode``), recorded and reported.
+"""The grasp demo: the whole node graph as separate processes, in lockstep (or ``--mode``), \
+recorded and reported.
 
     python -m soft_gripper_sdre.tools.demo --out runs/demo
 
@@ -31,34 +32,42 @@ from soft_gripper_sdre.tools.procs import DiagnosticsMonitor, Graph, ros_env
 
 
 def _parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.demo', description=__doc__.split('\n')[0])
-    ap.add_argument('--out', type=Path, default=Path('runs/demo'), help='output directory (default %(default)s)')
-    ap.add_argument('--duration', type=float, default=6.0, help='sim time to run [s] (default %(default)s)')
-    ap.add_argument('--model', type=Path, default=None, help='model checkpoint (default: the shipped one)')
+    ap = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.demo',
+                                 description=__doc__.split('\n')[0])
+    ap.add_argument('--out', type=Path, default=Path('runs/demo'),
+                    help='output directory (default %(default)s)')
+    ap.add_argument('--duration', type=float, default=6.0,
+                    help='sim time to run [s] (default %(default)s)')
+    ap.add_argument('--model', type=Path, default=None,
+                    help='model checkpoint (default: the shipped one)')
     ap.add_argument('--noise', type=float, default=None, metavar='MM',
                     help='tip measurement noise σ [mm] (default: config/simulator.yaml, 0.05 mm)')
-    ap.add_argument('--seed', type=int, default=None, help='measurement noise seed (default: config)')
+    ap.add_argument('--seed', type=int, default=None,
+                    help='measurement noise seed (default: config)')
     ap.add_argument('--period', type=float, default=None, metavar='MS',
                     help='control period of the whole loop [ms], from 1 to 10: the simulator, the '
-                         'estimator and the controller all take it, the torque roll-off\'s corner is '
-                         'capped at a tenth of the control rate (default: the config files, 1 ms; '
-                         'tracking per period: docs/results.md "Control rates")')
+                         'estimator and the controller all take it, the torque roll-off\'s corner '
+                         'is capped at a tenth of the control rate (default: the config files, '
+                         '1 ms; tracking per period: docs/results.md "Control rates")')
     ap.add_argument('--law', default=None, choices=GRAPH_LAWS,
                     help='control law of the controller node (default: config/controller.yaml)')
     ap.add_argument('--fingers', default=None, metavar='NAME=HAND_FINGER,...',
                     help='run the graph on these fingers of the hand, named (e.g. left=0,right=2: '
-                         f'hand fingers {CUBE_FINGERS[0]} and {CUBE_FINGERS[1]} face each other across '
-                         'the cube); default all four, finger_0=0,...,finger_3=3')
+                         f'hand fingers {CUBE_FINGERS[0]} and {CUBE_FINGERS[1]} face each other '
+                         'across the cube); default all four, finger_0=0,...,finger_3=3')
     ap.add_argument('--mode', default=None, choices=MODES,
                     help='the simulator\'s stepping (default: config/simulator.yaml, lockstep): '
                          'pipelined steps the physics with the previous period\'s command while '
                          'the current one is computed, deterministic as lockstep and faster on '
-                         'two or more cores; realtime steps on a wall timer and is not reproducible '
-                         '(docs/design/loop_rules.md)')
+                         'two or more cores; realtime steps on a wall timer and is not '
+                         'reproducible (docs/design/loop_rules.md)')
     ap.add_argument('--integral-gain', type=float, default=None, metavar='KI',
-                    help='the default law\'s integral gain [1/s³], 0 = off (default: config/controller.yaml)')
-    ap.add_argument('--domain-id', type=int, default=None, help='ROS_DOMAIN_ID (default: env or random)')
-    ap.add_argument('--timeout', type=float, default=600.0, help='wall-clock limit [s] (default %(default)s)')
+                    help='the default law\'s integral gain [1/s³], 0 = off '
+                         '(default: config/controller.yaml)')
+    ap.add_argument('--domain-id', type=int, default=None,
+                    help='ROS_DOMAIN_ID (default: env or random)')
+    ap.add_argument('--timeout', type=float, default=600.0,
+                    help='wall-clock limit [s] (default %(default)s)')
     ap.add_argument('--no-progress', action='store_true', help='no progress bar')
     return ap
 
@@ -81,7 +90,7 @@ def run_demo(out: Path, duration: float, model: Path | None = None, noise: float
     out = Path(out)
     bag = out / 'bag'
     if bag.exists():
-        shutil.rmtree(bag)         # the demo owns its output directory; the recorder needs a new one
+        shutil.rmtree(bag)  # the demo owns its output directory; the recorder needs a new one
     out.mkdir(parents=True, exist_ok=True)
     env = ros_env(domain_id)
     params = {
@@ -108,8 +117,8 @@ def run_demo(out: Path, duration: float, model: Path | None = None, noise: float
     spec = grasp_graph(parameters=params, control_period=period)
 
     if progress:
-        print(f'starting the node graph ({", ".join(spec.names)}) on ROS_DOMAIN_ID {env["ROS_DOMAIN_ID"]}, '
-              f'logs in {out / "logs"} ...', file=sys.stderr, flush=True)
+        print(f'starting the node graph ({", ".join(spec.names)}) on ROS_DOMAIN_ID '
+              f'{env["ROS_DOMAIN_ID"]}, logs in {out / "logs"} ...', file=sys.stderr, flush=True)
     monitor = DiagnosticsMonitor(env, 'demo_monitor')
     bar = None
     t_wall = time.monotonic()
@@ -176,8 +185,8 @@ def _simulator_period(spec) -> float:
     node = spec.node('simulator')
     if 'control_period' in node.parameters:
         return node.parameters['control_period']
-    return yaml.safe_load(default_params_file('simulator').read_text())['/**/simulator']['ros__parameters'][
-        'control_period']
+    return yaml.safe_load(default_params_file('simulator').read_text())[
+        '/**/simulator']['ros__parameters']['control_period']
 
 
 def _controller_limit() -> float:
@@ -185,7 +194,8 @@ def _controller_limit() -> float:
 
     from soft_gripper_sdre.tools.procs import default_params_file
     path = default_params_file('controller')
-    return float(yaml.safe_load(path.read_text())['/**/controller']['ros__parameters']['torque_limit'])
+    return float(yaml.safe_load(path.read_text())['/**/controller']['ros__parameters'][
+        'torque_limit'])
 
 
 def last_diagnostics(bag: Path, node: str) -> dict[str, str]:
@@ -221,11 +231,14 @@ def summary(result: dict, out: Path) -> str:
     """A short human summary of :func:`run_demo`'s result."""
     run = result['run']
     rtf = 'n/a' if run['real_time_factor'] is None else f'{run["real_time_factor"]:.2f}'
-    latency = (f'; loop latency p50 {run["loop_latency_us_p50"]:.0f} µs, p99 {run["loop_latency_us_p99"]:.0f} µs'
+    latency = (f'; loop latency p50 {run["loop_latency_us_p50"]:.0f} µs, '
+               f'p99 {run["loop_latency_us_p99"]:.0f} µs'
                if 'loop_latency_us_p50' in run else '')
-    period = f' at a {1e3 * run["control_period_s"]:g} ms control period' if 'control_period_s' in run else ''
+    period = (f' at a {1e3 * run["control_period_s"]:g} ms control period'
+              if 'control_period_s' in run else '')
     mode = f' ({run["mode"]})' if run.get('mode', 'lockstep') != 'lockstep' else ''
-    lines = [f'grasp demo{mode}: {run["sim_duration_s"]:g} s of sim time{period}, {run["wall_s"]:.1f} s wall with start-up '
+    lines = [f'grasp demo{mode}: {run["sim_duration_s"]:g} s of sim time{period}, '
+             f'{run["wall_s"]:.1f} s wall with start-up '
              f'(stepping at {rtf}× real time{latency}), then {run.get("report_wall_s", 0.0):.1f} s '
              'to read the bag and draw the figures']
     for name, f in result['fingers'].items():
@@ -235,17 +248,20 @@ def summary(result: dict, out: Path) -> str:
                      f'touching the cube {100 * (f["contact_fraction"] or 0):.0f} % of the time')
     held = [f.get('true_tip', f).get('held_mm') for f in result['fingers'].values()]
     if any(h is not None for h in held):
-        where = 'true tip' if all('true_tip' in f for f in result['fingers'].values()) else 'measured tip'
+        where = ('true tip' if all('true_tip' in f for f in result['fingers'].values())
+                 else 'measured tip')
         lines.append('  where the reference stands still and the finger is free: mean error '
-                     + ', '.join('n/a' if h is None else f'{h:.3f}' for h in held) + f' mm ({where})')
+                     + ', '.join('n/a' if h is None else f'{h:.3f}' for h in held)
+                     + f' mm ({where})')
     if result.get('cube_max_displacement_mm') is not None:
         lines.append(f'  cube displaced at most {result["cube_max_displacement_mm"]:.2f} mm')
     c = result.get('controller', {})
     compute = (f'compute {c.get("compute_us_mean", float("nan")):.0f} µs mean per '
                f'{len(result["fingers"])}-finger step')
-    if 'max_residual' in c:           # (reported by the laws that solve a Riccati equation each step)
-        lines.append(f'  Riccati: checks failed on {c["check_failure_fraction"]:.2%} of solves, fallbacks '
-                     f'{c["fallback_fraction"]:.2%}, max residual {c["max_residual"]:.1e}; {compute}')
+    if 'max_residual' in c:  # (reported by the laws that solve a Riccati equation each step)
+        lines.append(f'  Riccati: checks failed on {c["check_failure_fraction"]:.2%} of solves, '
+                     f'fallbacks {c["fallback_fraction"]:.2%}, '
+                     f'max residual {c["max_residual"]:.1e}; {compute}')
     elif 'compute_us_mean' in c:
         lines.append(f'  {c.get("law", "the law")} (no per-step Riccati solve): {compute}')
     lines.append(f'  bag, figures and metrics.json in {out}/')
@@ -258,12 +274,13 @@ def argument_problem(a: argparse.Namespace) -> str | None:
     from soft_gripper_sdre.nodes.simulator import PARAMS as SIMULATOR_PARAMS
     limits = {p.name: p for p in SIMULATOR_PARAMS}
     if not (a.duration > 0 and limits['duration'].check(a.duration) is None):
-        return f'--duration must be > 0 and <= {limits["duration"].max:g} s of sim time, got {a.duration}'
+        return (f'--duration must be > 0 and <= {limits["duration"].max:g} s of sim time, '
+                f'got {a.duration}')
     if a.noise is not None:
         reason = limits['noise_std'].check(a.noise * 1e-3)
         if reason or not a.noise == a.noise:
-            return (f'--noise is σ in mm, from 0 to {limits["noise_std"].max * 1e3:g} mm, got {a.noise} '
-                    '(e.g. --noise 0.05)')
+            return (f'--noise is σ in mm, from 0 to {limits["noise_std"].max * 1e3:g} mm, '
+                    f'got {a.noise} (e.g. --noise 0.05)')
     if a.period is not None and not PERIOD_RANGE[0] <= a.period * 1e-3 <= PERIOD_RANGE[1]:
         return (f'--period is the control period in ms, from {1e3 * PERIOD_RANGE[0]:g} to '
                 f'{1e3 * PERIOD_RANGE[1]:g}, got {a.period} (e.g. --period 5)')
@@ -273,7 +290,8 @@ def argument_problem(a: argparse.Namespace) -> str | None:
         from soft_gripper_sdre.nodes.controller import PARAMS as CONTROLLER_PARAMS
         gain = next(p for p in CONTROLLER_PARAMS if p.name == 'integral_gain')
         if gain.check(a.integral_gain) or not a.integral_gain == a.integral_gain:
-            return f'--integral-gain must be in [0, {gain.max:g}] 1/s³ (0 = off), got {a.integral_gain}'
+            return (f'--integral-gain must be in [0, {gain.max:g}] 1/s³ (0 = off), '
+                    f'got {a.integral_gain}')
     if a.domain_id is not None and not 0 <= a.domain_id <= 232:
         return f'--domain-id must be a ROS domain ID in [0, 232], got {a.domain_id}'
     if not a.timeout > 0:
@@ -328,8 +346,8 @@ def main(argv: list[str] | None = None) -> int:
     if problem:
         ap.error(problem)
     try:
-        result = run_demo(a.out, a.duration, a.model, None if a.noise is None else a.noise * 1e-3, a.seed,
-                          a.domain_id, a.timeout, progress=not a.no_progress, law=a.law,
+        result = run_demo(a.out, a.duration, a.model, None if a.noise is None else a.noise * 1e-3,
+                          a.seed, a.domain_id, a.timeout, progress=not a.no_progress, law=a.law,
                           fingers=parse_fingers(a.fingers) if a.fingers else None,
                           period=None if a.period is None else a.period * 1e-3,
                           integral_gain=a.integral_gain, mode=a.mode)

@@ -71,13 +71,15 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument('--laws', nargs='+', default=['sdre_ff', 'sdre'],
                     help='laws deployed in turn (default: %(default)s)')
     ap.add_argument('--seed', type=int, default=0, help='the driver\'s noise seed (+1 per run)')
-    ap.add_argument('--epochs', type=int, default=None, help='training epochs (default: the preset)')
+    ap.add_argument('--epochs', type=int, default=None,
+                    help='training epochs (default: the preset)')
     ap.add_argument('--bags', type=Path, default=None,
                     help='skip step 1: train on the bags an earlier run wrote (its OUT/bags, with '
                          'train/ and val/)')
     ap.add_argument('--rollout-epochs', type=int, default=None,
                     help='simulation-stage epochs of training (default: the preset)')
-    ap.add_argument('--domain-id', type=int, default=None, help='ROS_DOMAIN_ID (default: env or random)')
+    ap.add_argument('--domain-id', type=int, default=None,
+                    help='ROS_DOMAIN_ID (default: env or random)')
     return ap
 
 
@@ -119,18 +121,21 @@ def excite(a: argparse.Namespace, env: dict, bag: Path, signals: list[str], leve
         graph.start('plant_driver', _driver(a, seed), params_file=None)
         graph.start('recorder', {'output': str(bag), 'topics': ['tip_positions', 'torque_commands'],
                                  **BEST_EFFORT})
-        # as a user starts the excitation once the recorder runs: the bag then holds the settle phase
-        hearing = monitor.spin_until(lambda: monitor.get('recorder', 'messages /tip_positions') > 0, 60.0)
+        # as a user starts the excitation once the recorder runs: the bag then holds the settle
+        # phase
+        hearing = monitor.spin_until(lambda: monitor.get('recorder', 'messages /tip_positions') > 0,
+                                     60.0)
         monitor.close()
         if not hearing:
-            raise _fail(graph, 'recorder', f'identification run {bag.name}: the recorder hears no tips')
+            raise _fail(graph, 'recorder',
+                        f'identification run {bag.name}: the recorder hears no tips')
         graph.start('excitation', {'signals': signals, 'finger_names': FINGERS,
                                    'max_excursion': setup.max_excursion, 'tips_timeout': 5.0,
                                    **BEST_EFFORT, **level})
         code = graph.wait('excitation', 600.0)
         if code != 0:
-            who = next((p.name for p in graph.procs.values() if not p.alive() and p.name != 'excitation'),
-                       'excitation')
+            who = next((p.name for p in graph.procs.values()
+                        if not p.alive() and p.name != 'excitation'), 'excitation')
             raise _fail(graph, who, f'identification run {bag.name}: {who} failed (exit {code})')
         return graph.procs['excitation'].log_path.read_text(encoding='utf-8')
 
@@ -146,13 +151,14 @@ def deploy(a: argparse.Namespace, env: dict, out: Path, params: Path, law: str, 
             graph.start('recorder', {'output': str(bag), 'topics': DEPLOY_TOPICS, **BEST_EFFORT})
             graph.start('estimator', BEST_EFFORT, params_file=params)
             graph.start('controller', {'law': law}, params_file=params)
-            ready = monitor.spin_until(lambda: all(n in monitor.values for n in ('estimator', 'controller')),
-                                       120.0)
+            ready = monitor.spin_until(lambda: all(n in monitor.values
+                                                   for n in ('estimator', 'controller')), 120.0)
             if not ready:
                 dead = next((p.name for p in graph.procs.values() if not p.alive()), 'controller')
-                raise _fail(graph, dead, f'deploying {law}: the estimator and controller did not come up')
-            graph.start('trajectory', {'finger_names': FINGERS, 'grasp_fingers': [0, 1], 'others': 'hold',
-                                       **BEST_EFFORT}, params_file=params)
+                raise _fail(graph, dead,
+                            f'deploying {law}: the estimator and controller did not come up')
+            graph.start('trajectory', {'finger_names': FINGERS, 'grasp_fingers': [0, 1],
+                                       'others': 'hold', **BEST_EFFORT}, params_file=params)
             end = time.monotonic() + GRASP_SECONDS + 3.0
             while time.monotonic() < end:
                 dead = [p.name for p in graph.procs.values() if not p.alive()]
@@ -171,10 +177,12 @@ def score(bag: Path, travel: float, torque_limit: float) -> dict:
     msgs = read_bag(bag, ['true_tip_positions', 'grasp_reference', 'torque_commands'])
     by = {k.lstrip('/'): v for k, v in msgs.items()}
     plan = by['grasp_reference'][-1][1]
-    times = np.array([p.time_from_start.sec * 10**9 + p.time_from_start.nanosec for p in plan.points])
+    times = np.array([p.time_from_start.sec * 10**9 + p.time_from_start.nanosec
+                      for p in plan.points])
     times += plan.header.stamp.sec * 10**9 + plan.header.stamp.nanosec
     n = len(plan.joint_names)
-    pos = np.array([[[t.translation.x, t.translation.y] for t in p.transforms] for p in plan.points])
+    pos = np.array([[[t.translation.x, t.translation.y] for t in p.transforms]
+                    for p in plan.points])
     vel = np.array([[[v.linear.x, v.linear.y] for v in p.velocities] for p in plan.points])
     acc = np.array([[[v.linear.x, v.linear.y] for v in p.accelerations] for p in plan.points])
     stamp = lambda m: m.header.stamp.sec * 10**9 + m.header.stamp.nanosec  # noqa: E731
@@ -192,16 +200,19 @@ def score(bag: Path, travel: float, torque_limit: float) -> dict:
     errs = np.array(errs)
     rmse = np.sqrt(np.mean(errs ** 2, axis=0))
     rest = np.array(rest_cmds) if rest_cmds else np.zeros((0, 2 * n))
-    return {'rmse_mm': (1e3 * rmse).round(4).tolist(), 'rmse_pct_of_travel': (100 * rmse / travel).round(3).tolist(),
+    return {'rmse_mm': (1e3 * rmse).round(4).tolist(),
+            'rmse_pct_of_travel': (100 * rmse / travel).round(3).tolist(),
             'max_mm': (1e3 * errs.max(axis=0)).round(4).tolist(), 'samples': int(len(errs)),
-            'saturated_at_rest': float(np.mean(rest >= torque_limit * (1 - 1e-9))) if rest.size else 0.0,
+            'saturated_at_rest': (float(np.mean(rest >= torque_limit * (1 - 1e-9)))
+                                  if rest.size else 0.0),
             'largest_torque_at_rest': float(rest.max()) if rest.size else 0.0}
 
 
 def identify(a: argparse.Namespace, env: dict, bags: Path) -> dict:
     """Step 1 (module doc): the level search on u1, then one bag per signal at its amplitude."""
     t0 = time.monotonic()
-    log = excite(a, env, bags / 'train' / TRAIN_SIGNALS[0], TRAIN_SIGNALS[:1], {'level': 'auto'}, a.seed)
+    log = excite(a, env, bags / 'train' / TRAIN_SIGNALS[0], TRAIN_SIGNALS[:1], {'level': 'auto'},
+                 a.seed)
     found = re.search(r'; amplitude ([0-9.eE+-]+) for', log)
     if found is None:
         raise RuntimeError('the excitation node did not report the amplitude it chose')
@@ -240,10 +251,12 @@ def main(argv: list[str] | None = None) -> int:
         train = subprocess.run(cmd, env=env, capture_output=True, text=True)
         (out / 'train.log').write_text(train.stdout + train.stderr, encoding='utf-8')
         if train.returncode != 0:
-            raise RuntimeError(f'training failed (exit {train.returncode}):\n{train.stderr[-2000:]}')
+            raise RuntimeError(f'training failed (exit {train.returncode}):\n'
+                               f'{train.stderr[-2000:]}')
         trained = json.loads((out / 'model' / 'metrics.json').read_text())
-        metrics['training'] = {k: trained[k] for k in ('val_r2_labels', 'fitness', 'derived_settings',
-                                                        'noise_std', 'train_samples')}
+        metrics['training'] = {k: trained[k] for k in ('val_r2_labels', 'fitness',
+                                                       'derived_settings', 'noise_std',
+                                                       'train_samples')}
         metrics['training']['wall_s'] = round(time.monotonic() - t0, 1)
         params = out / 'model' / 'params.yaml'
         if not params.exists():
@@ -253,7 +266,8 @@ def main(argv: list[str] | None = None) -> int:
                 'check on it (metrics.json: derived_settings)']
             raise RuntimeError('training wrote no params.yaml: ' + '; '.join(why))
         print(train.stdout.strip().splitlines()[-1], flush=True)
-        limit = yaml.safe_load(params.read_text())['/**/controller']['ros__parameters']['torque_limit']
+        limit = yaml.safe_load(params.read_text())['/**/controller']['ros__parameters'][
+            'torque_limit']
         facts = trained['derived_settings']['facts']
         travel = float(facts['travel'])
         metrics['deploy'] = {'travel': travel, 'direction_deg': facts['direction']}

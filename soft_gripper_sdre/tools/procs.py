@@ -25,7 +25,8 @@ from soft_gripper_sdre.nodes.graph import RECORDED_BEFORE_START, NodeSpec, defau
 #: (the root graph's names)
 WIRED_BEFORE_START = tuple(f'/{topic}' for topic in RECORDED_BEFORE_START)
 #: the environment variables that decide whom a DDS participant discovers and how it talks to them
-DDS_ENV = ('ROS_DOMAIN_ID', 'ROS_AUTOMATIC_DISCOVERY_RANGE', 'ROS_STATIC_PEERS', 'FASTDDS_BUILTIN_TRANSPORTS')
+DDS_ENV = ('ROS_DOMAIN_ID', 'ROS_AUTOMATIC_DISCOVERY_RANGE', 'ROS_STATIC_PEERS',
+           'FASTDDS_BUILTIN_TRANSPORTS')
 
 
 #: the math libraries' kernels pinned to one code path that every x86-64 machine with AVX2 and
@@ -98,14 +99,14 @@ class Graph:
     log_dir: Path
     procs: dict[str, NodeProcess] = field(default_factory=dict)
 
-    def start(self, node: str, params: dict | None = None, params_file: Path | None | str = 'default',
-              name: str | None = None) -> NodeProcess:
+    def start(self, node: str, params: dict | None = None,
+              params_file: Path | None | str = 'default', name: str | None = None) -> NodeProcess:
         """Start the node ``node`` of the root namespace with its shipped parameters file (or
         ``params_file``) and the overrides ``params``; ``name`` keys the process and its log."""
         if params_file == 'default':
             params_file = default_params_file(node)
-        return self.start_node(NodeSpec(node, node, params_file=params_file, parameters=dict(params or {})),
-                               key=name)
+        return self.start_node(NodeSpec(node, node, params_file=params_file,
+                                        parameters=dict(params or {})), key=name)
 
     def start_node(self, spec: NodeSpec, *, key: str | None = None, prefix: tuple[str, ...] = (),
                    env: dict[str, str] | None = None) -> NodeProcess:
@@ -121,8 +122,8 @@ class Graph:
         self.log_dir.mkdir(parents=True, exist_ok=True)
         log_path = self.log_dir / f'{key}.log'
         log = open(log_path, 'w', encoding='utf-8')  # noqa: SIM115 — closed by the child's exit
-        popen = subprocess.Popen([*prefix, *spec.command(sys.executable)], env=env or self.env, stdout=log,
-                                 stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
+        popen = subprocess.Popen([*prefix, *spec.command(sys.executable)], env=env or self.env,
+                                 stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
         log.close()
         proc = NodeProcess(key, popen, log_path)
         self.procs[key] = proc

@@ -1,16 +1,17 @@
 """The robustness grid's runs: every law on plants and sensors the learned model was not trained on.
 
 A case is one law on one trajectory with one :class:`Variation` of the plant or the sensor. Each
-case runs the in-process closed loop (:func:`soft_gripper_sdre.analysis.closed_loop.run_closed_loop`:
-the node graph's loop with the topics replaced by calls, the KF, lockstep, seeded noise) like
+case runs the in-process closed loop
+(:func:`soft_gripper_sdre.analysis.closed_loop.run_closed_loop`: the node graph's loop with the
+topics replaced by calls, the KF, lockstep, seeded noise) like
 :mod:`soft_gripper_sdre.tools.evaluate`, with the model trained on the nominal finger, and is scored
 on the true tip in free space and on the grasp (:mod:`soft_gripper_sdre.analysis.law_runs`).
 
-The cases are independent, so :func:`run_grid` runs them as jobs (:mod:`soft_gripper_sdre.tools.jobs`):
-on a pool of spawned worker processes or on a Ray cluster, each worker with its own simulator, law
-and copy of the model. A case's result depends on the case only (every simulator starts from the
-same seed, every law is built fresh), so the grid gives the same numbers, bit for bit, whatever the
-number of workers and wherever they run.
+The cases are independent, so :func:`run_grid` runs them as jobs
+(:mod:`soft_gripper_sdre.tools.jobs`): on a pool of spawned worker processes or on a Ray cluster,
+each worker with its own simulator, law and copy of the model. A case's result depends on the case
+only (every simulator starts from the same seed, every law is built fresh), so the grid gives the
+same numbers, bit for bit, whatever the number of workers and wherever they run.
 """
 from __future__ import annotations
 
@@ -57,7 +58,8 @@ VARIATIONS = {
 
 
 def grid_laws() -> list[str]:
-    """The laws the grid runs by default: every registered law but the oracles, in registry order."""
+    """The laws the grid runs by default: every registered law but the oracles, in registry
+    order."""
     return [name for name in LAW_REGISTRY if name not in ORACLE_LAWS]
 
 
@@ -96,7 +98,8 @@ class Case:
 
 @dataclass(frozen=True)
 class CaseResult:
-    """The scores of one case (NaN where the loop diverged; ``error``: why the run failed, else '')."""
+    """The scores of one case (NaN where the loop diverged; ``error``: why the run failed, else
+    '')."""
 
     law: str
     variation: str
@@ -108,7 +111,8 @@ class CaseResult:
     cube_mm: float                # largest displacement of the cube [mm]
     saturated_pct: float          # share of the per-finger steps with a saturated torque
     check_fail_pct: float         # share of the per-finger steps whose Riccati checks failed
-    close_mm: float = float('nan')  # the grasping fingers' travel from rest [mm] (anchored: the nominal one's)
+    # the grasping fingers' travel from rest [mm] (anchored: the nominal one's)
+    close_mm: float = float('nan')
     anchored: bool = False          # the closed pose anchored to the hand (Case.anchored)
     error: str = ''
 
@@ -118,8 +122,8 @@ def run_case(case: Case, model: SDCModel) -> CaseResult:
     variation = VARIATIONS[case.variation]
     profile, duration = case.profile(float(model.rest_tip[1])), TRAJECTORIES[case.trajectory][1]
     config = SimConfig(scene='hand', noise_std=variation.noise_std, plant=variation.plant)
-    res = law_runs.run_law(case.law, model, Weights(**DEFAULT_WEIGHTS), U_MAX, profile, case.duration or duration,
-                           config, sensor_delay=variation.sensor_delay)
+    res = law_runs.run_law(case.law, model, Weights(**DEFAULT_WEIGHTS), U_MAX, profile,
+                           case.duration or duration, config, sensor_delay=variation.sensor_delay)
     return CaseResult(law=case.law, variation=case.variation, trajectory=case.trajectory,
                       close_mm=profile.close_distance * 1e3, anchored=case.anchored,
                       **law_runs.score(res, profile).pick(CaseResult))
@@ -145,11 +149,12 @@ def run_case_job(model: FileBlob, case: Case) -> CaseResult:
         nan = float('nan')
         travel = (case.close_distance if case.close_distance is not None
                   else TRAJECTORIES[case.trajectory][0].close_distance)
-        return CaseResult(case.law, case.variation, case.trajectory, nan, nan, nan, False, nan, nan, nan,
-                          1e3 * travel, case.anchored, error=f'{type(exc).__name__}: {exc}')
+        return CaseResult(case.law, case.variation, case.trajectory, nan, nan, nan, False, nan, nan,
+                          nan, 1e3 * travel, case.anchored, error=f'{type(exc).__name__}: {exc}')
 
 
-def run_grid(cases: list[Case], workers: int | Runner, model_path=None, progress: bool = True) -> list[CaseResult]:
+def run_grid(cases: list[Case], workers: int | Runner, model_path=None,
+             progress: bool = True) -> list[CaseResult]:
     """Run every case; the results in the order of ``cases``.
 
     ``workers``: the number of spawned worker processes of this machine (1: this process), or a
@@ -163,15 +168,17 @@ def run_grid(cases: list[Case], workers: int | Runner, model_path=None, progress
         ValueError: ``workers`` < 1, or a case names an unknown law, variation or trajectory.
         soft_gripper_sdre.tools.jobs.JobsError: a Ray runner without ray or without its cluster.
     """
-    runner = workers if isinstance(workers, Runner) else Runner(workers) if isinstance(workers, int) else None
+    runner = (workers if isinstance(workers, Runner)
+              else Runner(workers) if isinstance(workers, int) else None)
     if runner is None:
         raise ValueError(f'workers must be an int >= 1 or a Runner, got {workers!r}')
     for case in cases:
-        for value, known, what in ((case.law, known_laws(), 'law'), (case.variation, VARIATIONS, 'variation'),
+        for value, known, what in ((case.law, known_laws(), 'law'),
+                                   (case.variation, VARIATIONS, 'variation'),
                                    (case.trajectory, TRAJECTORIES, 'trajectory')):
             if value not in known:
                 raise ValueError(f'unknown {what} {value!r}; known: {list(known)}')
     from soft_gripper_sdre.control.compiled import warm_up
     warm_up()
-    return run_jobs(run_case_job, cases, FileBlob.read(model_path or DEFAULT_MODEL), runner, desc='robustness',
-                    progress=progress)
+    return run_jobs(run_case_job, cases, FileBlob.read(model_path or DEFAULT_MODEL), runner,
+                    desc='robustness', progress=progress)

@@ -6,7 +6,8 @@ For each position weight q_pos and noise σ it runs the grasp in-process (sim �
 node graph's loop without the topics; R and q_vel at their defaults) and scores the free-space
 RMSE of the *true* tip, as % of each finger's excursion (the worst finger is reported). Beside it,
 the spectral radius of the same 1 ms loop closed around the full linearised 10-joint finger with
-friction off. Each point is run without and with the torque roll-off (:func:`soft_gripper_sdre.analysis.ground_truth.loop_spectral_radius`). Writes ``sweep.json``,
+friction off. Each point is run without and with the torque roll-off
+(:func:`soft_gripper_sdre.analysis.ground_truth.loop_spectral_radius`). Writes ``sweep.json``,
 ``sweep.png`` and prints a Markdown table.
 """
 from __future__ import annotations
@@ -19,12 +20,14 @@ import numpy as np
 
 
 def _parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.sweep', description=__doc__.split('\n')[0])
+    ap = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.sweep',
+                                 description=__doc__.split('\n')[0])
     ap.add_argument('--out', type=Path, default=Path('runs/sweep'))
     ap.add_argument('--q-pos', type=float, nargs='+', default=[2.5e5, 5e5, 1e6, 2e6, 4e6])
     ap.add_argument('--noise', type=float, nargs='+', default=[0.0, 5e-5, 2e-4], help='σ [m]')
     ap.add_argument('--lowpass', type=float, nargs='+', default=None,
-                    help='torque roll-off frequencies to compare [Hz] (0 = off; default: 0 and the default)')
+                    help='torque roll-off frequencies to compare [Hz] '
+                         '(0 = off; default: 0 and the default)')
     ap.add_argument('--duration', type=float, default=6.0, help='sim time per run [s]')
     return ap
 
@@ -60,20 +63,21 @@ def main(argv: list[str] | None = None) -> int:
         pct = [m.rmse_pct for m in r.metrics]
         rho, freq = loop_spectral_radius(plant, model, w.Q, w.R, est.accel_psd, est.meas_std,
                                          lowpass_hz=fc)
-        rows.append({'q_pos': q, 'noise_m': sigma, 'lowpass_hz': fc, 'worst_rmse_pct': float(np.nanmax(pct)),
-                     'rmse_pct': [float(p) for p in pct],
+        rows.append({'q_pos': q, 'noise_m': sigma, 'lowpass_hz': fc,
+                     'worst_rmse_pct': float(np.nanmax(pct)), 'rmse_pct': [float(p) for p in pct],
                      'saturated_fraction': float(r.saturated.any(axis=2).mean()),
                      'fallback_fraction': float(r.fallback.mean()),
                      'frictionless_radius': rho, 'frictionless_mode_hz': freq})
     (a.out / 'sweep.json').write_text(json.dumps(rows, indent=2) + '\n')
     plot_sweep(rows, a.out / 'sweep.png')
-    print('| roll-off | q_pos | σ [mm] | worst-finger RMSE [% of excursion] | saturated steps | frictionless loop radius |')
+    print('| roll-off | q_pos | σ [mm] | worst-finger RMSE [% of excursion] | saturated steps | '
+          'frictionless loop radius |')
     print('| ---: | ---: | ---: | ---: | ---: | ---: |')
     for row in rows:
         off = 'off' if row['lowpass_hz'] == 0 else f'{row["lowpass_hz"]:g} Hz'
-        print(f'| {off} | {row["q_pos"]:.2g} | {1e3 * row["noise_m"]:.2f} | {row["worst_rmse_pct"]:.2f} | '
-              f'{100 * row["saturated_fraction"]:.1f} % | {row["frictionless_radius"]:.4f} '
-              f'({row["frictionless_mode_hz"]:.0f} Hz) |')
+        print(f'| {off} | {row["q_pos"]:.2g} | {1e3 * row["noise_m"]:.2f} | '
+              f'{row["worst_rmse_pct"]:.2f} | {100 * row["saturated_fraction"]:.1f} % | '
+              f'{row["frictionless_radius"]:.4f} ({row["frictionless_mode_hz"]:.0f} Hz) |')
     print(f'wrote {a.out / "sweep.json"} and {a.out / "sweep.png"}')
     return 0
 

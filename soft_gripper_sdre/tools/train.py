@@ -1,7 +1,8 @@
 """Learn the SDC model from excitation data: derivative estimates, training, validation, figures.
 
     python -m soft_gripper_sdre.tools.train --data data/excitation --out runs/train [--preset paper]
-    python -m soft_gripper_sdre.tools.train --bag DIR [--bag DIR ...] --val-bag DIR --out runs/train_bags
+    python -m soft_gripper_sdre.tools.train --bag DIR [--bag DIR ...] --val-bag DIR
+        --out runs/train_bags
 
 With ``--bag`` the data come from rosbag2 recordings of ``tip_positions`` and ``torque_commands``
 (the excitation node and a recorder, on the simulator or a robot):
@@ -49,7 +50,8 @@ def tuned_jerk_psd(record: Record) -> float:
     """The KF/RTS white-jerk intensity picked by likelihood on the first 2 s of ``record`` (the
     first training record: the labels of every model fitted to the same data)."""
     seg = slice(0, min(2000, record.t.size))
-    return derivatives.tune_jerk_psd(record.t[seg], record.tip[seg, :2], record.noise_std, np.logspace(1, 7, 7))
+    return derivatives.tune_jerk_psd(record.t[seg], record.tip[seg, :2], record.noise_std,
+                                     np.logspace(1, 7, 7))
 
 
 def low_frequency_share(acc: np.ndarray, dt: float, cutoff: float = 10.0) -> list[float]:
@@ -71,7 +73,8 @@ class LabelledData:
     u: np.ndarray                  # (N, 2) torques
     acc: np.ndarray                # (N, 2) acceleration labels
     val: dict[str, np.ndarray]     # :func:`states` of the validation signal
-    acc_true: np.ndarray           # (M, 2) the validation signal's true acceleration (its labels without one)
+    # (M, 2) the validation signal's true acceleration (its labels without one)
+    acc_true: np.ndarray
     val_dt: float
     jerk_psd: float
     rest_tip: np.ndarray
@@ -99,14 +102,16 @@ def label_records(records: dict[str, Record], variant: str, jerk_psd: float | No
     val, v_rec = est[VALIDATION], records[VALIDATION]
     return LabelledData(
         variant=variant, train_signals=train_names,
-        x=np.vstack([est[n]['x'] for n in train_names]), u=np.vstack([est[n]['u'] for n in train_names]),
+        x=np.vstack([est[n]['x'] for n in train_names]),
+        u=np.vstack([est[n]['u'] for n in train_names]),
         acc=np.vstack([est[n]['acc'] for n in train_names]), val=val,
-        acc_true=v_rec.acc_true[:, :2] if v_rec.acc_true is not None else val['acc'], val_dt=v_rec.dt,
-        jerk_psd=float(jerk), rest_tip=first.rest_tip, dt=first.dt, noise_std=float(first.noise_std),
-        derivative_errors=deriv_err)
+        acc_true=v_rec.acc_true[:, :2] if v_rec.acc_true is not None else val['acc'],
+        val_dt=v_rec.dt, jerk_psd=float(jerk), rest_tip=first.rest_tip, dt=first.dt,
+        noise_std=float(first.noise_std), derivative_errors=deriv_err)
 
 
-def jittered(x: np.ndarray, acc: np.ndarray, jitter: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+def jittered(x: np.ndarray, acc: np.ndarray, jitter: float,
+             seed: int) -> tuple[np.ndarray, np.ndarray]:
     """(x, acc) times 1 + ``jitter``·N(0, 1) elementwise (labels first, then states, from one
     generator seeded with ``seed``): the same data, other float roundings."""
     rng = np.random.default_rng(seed)
@@ -125,9 +130,9 @@ def fit(data: LabelledData, settings, path: Path, jitter: float = 0.0, jitter_se
         x, acc = jittered(x, acc, jitter, jitter_seed)
     val = data.val
     result = train(x, u, acc, val['x'], val['u'], val['acc'], settings, on_epoch)
-    data_info = {'variant': data.variant, 'train_signals': data.train_signals, 'validation': VALIDATION,
-                 'fingerprint': fingerprint(x, u, acc), 'jerk_psd': data.jerk_psd,
-                 'noise_std': data.noise_std}
+    data_info = {'variant': data.variant, 'train_signals': data.train_signals,
+                 'validation': VALIDATION, 'fingerprint': fingerprint(x, u, acc),
+                 'jerk_psd': data.jerk_psd, 'noise_std': data.noise_std}
     if jitter > 0:
         data_info['jitter'] = {'relative': jitter, 'seed': jitter_seed}
     ckpt_path = save_checkpoint(path, result, rest_tip=data.rest_tip, dt=data.dt, settings=settings,
@@ -169,15 +174,20 @@ def _usage_error(parser, message):
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.train',
                                      description=__doc__.split('\n\n')[0])
-    parser.add_argument('--data', type=Path, help='directory with <signal>.npz files (tools.collect)')
+    parser.add_argument('--data', type=Path,
+                        help='directory with <signal>.npz files (tools.collect)')
     parser.add_argument('--out', required=True, type=Path, help='output directory')
     bags = parser.add_argument_group('training from rosbag2 recordings (instead of --data)')
     bags.add_argument('--bag', type=Path, action='append', metavar='DIR',
-                      help='a rosbag2 directory, or a directory of them (repeatable): training data')
+                      help='a rosbag2 directory, or a directory of them (repeatable): '
+                           'training data')
     bags.add_argument('--val-bag', type=Path, action='append', metavar='DIR',
-                      help='a rosbag2 directory, or a directory of them (repeatable): validation data')
-    bags.add_argument('--tips-topic', default='tip_positions', help='PoseArray topic (default %(default)s)')
-    bags.add_argument('--torques-topic', default='torque_commands', help='JointState topic (default %(default)s)')
+                      help='a rosbag2 directory, or a directory of them (repeatable): '
+                           'validation data')
+    bags.add_argument('--tips-topic', default='tip_positions',
+                      help='PoseArray topic (default %(default)s)')
+    bags.add_argument('--torques-topic', default='torque_commands',
+                      help='JointState topic (default %(default)s)')
     bags.add_argument('--finger', type=int, default=None,
                       help='learn from this finger only (default: every finger that was excited)')
     bags.add_argument('--meas-std', type=float, default=None,
@@ -185,14 +195,16 @@ def main(argv: list[str] | None = None) -> int:
                            '(default: estimated from the settle phase at zero torque; a bag '
                            'without one is refused)')
     bags.add_argument('--min-duration', type=float, default=1.0,
-                      help='refuse a bag with less commanded time than this [s] (default %(default)s)')
+                      help='refuse a bag with less commanded time than this [s] '
+                           '(default %(default)s)')
     parser.add_argument('--preset', choices=sorted(PRESETS), default=None,
                         help='training preset (default: gripper with --bag, labels then the '
                              'simulation error, docs/own_gripper.md; default with --data)')
     parser.add_argument('--variant', choices=sorted(DATA_VARIANTS), default=None,
                         help='training signals: identifying (default preset) or paper (u1..u3)')
     parser.add_argument('--seed', type=int, default=0,
-                        help='seed of the initial weights and the batch shuffles (the shipped models use 0)')
+                        help='seed of the initial weights and the batch shuffles '
+                             '(the shipped models use 0)')
     parser.add_argument('--epochs', type=int, default=None, help='override the preset')
     parser.add_argument('--rollout-epochs', type=int, default=None,
                         help="override the preset's simulation-stage epochs (--bag only; 0 = off)")
@@ -204,12 +216,15 @@ def main(argv: list[str] | None = None) -> int:
                              '1 + JITTER·N(0, 1), e.g. 1e-9 to flip float32 roundings (0 = off)')
     parser.add_argument('--jitter-seed', type=int, default=0, help='seed of the --jitter draws')
     parser.add_argument('--jerk-psd', type=float, default=None,
-                        help='KF/RTS white-jerk intensity; default: tuned by likelihood on the data')
+                        help='KF/RTS white-jerk intensity; '
+                             'default: tuned by likelihood on the data')
     parser.add_argument('--sv-penalty', type=float, default=0.0,
                         help='weight of the penalty on G2\'s smallest singular value (0 = off)')
-    parser.add_argument('--sv-floor', type=float, default=0.3, help='singular-value floor (scaled units)')
+    parser.add_argument('--sv-floor', type=float, default=0.3,
+                        help='singular-value floor (scaled units)')
     parser.add_argument('--install', action='store_true',
-                        help=f'copy the checkpoint to the package as the shipped model ({DEFAULT_MODEL.name})')
+                        help=f'copy the checkpoint to the package as the shipped model '
+                             f'({DEFAULT_MODEL.name})')
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format='%(levelname)s %(message)s')
     set_torch_threads(1)
@@ -243,7 +258,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.bag or args.val_bag:
         return _main_bags(parser, args, settings)
     if args.data is None:
-        _usage_error(parser, 'give --data DIR (.npz files) or --bag DIR ... --val-bag DIR (rosbag2)')
+        _usage_error(parser,
+                     'give --data DIR (.npz files) or --bag DIR ... --val-bag DIR (rosbag2)')
     variant = args.variant or ('paper' if args.preset == 'paper' else 'identifying')
     names = list(DATA_VARIANTS[variant]) + [VALIDATION]
     try:
@@ -263,10 +279,11 @@ def main(argv: list[str] | None = None) -> int:
         bar.update(1)
         bar.set_postfix(train=f'{tl:.3g}', val=f'{vl:.3g}')
 
-    ckpt_path, metrics, result, pred = fit(data, settings, args.out / 'model.pt', args.jitter, args.jitter_seed,
-                                           on_epoch)
+    ckpt_path, metrics, result, pred = fit(data, settings, args.out / 'model.pt', args.jitter,
+                                           args.jitter_seed, on_epoch)
     bar.close()
-    r2, r2_ls, G2 = metrics['u4_r2_true'], metrics['u4_r2_ls_baseline'], np.asarray(metrics['G2_at_origin'])
+    r2, r2_ls, G2 = (metrics['u4_r2_true'], metrics['u4_r2_ls_baseline'],
+                     np.asarray(metrics['G2_at_origin']))
     v_rec = records[VALIDATION]
     (args.out / 'metrics.json').write_text(json.dumps(metrics, indent=2))
     plot_loss(result.train_loss, result.val_loss, args.out / 'fig2_loss.png',
@@ -286,14 +303,16 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _main_bags(parser: argparse.ArgumentParser, args: argparse.Namespace, settings) -> int:
-    """The ``--bag`` path: arguments checked, then :func:`~soft_gripper_sdre.tools.train_bags.train_from_bags`."""
+    """The ``--bag`` path: arguments checked, then
+    :func:`~soft_gripper_sdre.tools.train_bags.train_from_bags`."""
     from soft_gripper_sdre.analysis.bag_dataset import BagDataError
     from soft_gripper_sdre.tools.train_bags import train_from_bags
 
     if args.data is not None:
         _usage_error(parser, '--data and --bag exclude each other')
     if not args.bag or not args.val_bag:
-        _usage_error(parser, '--bag needs --val-bag (the validation recording) and the other way round')
+        _usage_error(parser,
+                     '--bag needs --val-bag (the validation recording) and the other way round')
     if args.variant is not None or args.jitter > 0:
         _usage_error(parser, '--variant and --jitter apply to --data only')
     if args.meas_std is not None and not (np.isfinite(args.meas_std) and 0 <= args.meas_std < 0.01):
@@ -312,8 +331,8 @@ def _main_bags(parser: argparse.ArgumentParser, args: argparse.Namespace, settin
         _usage_error(parser, f'cannot create the parent of {args.out}: {exc.strerror}')
     try:
         train_from_bags(args.bag, args.val_bag, args.out, settings, tips_topic=args.tips_topic,
-                        torques_topic=args.torques_topic, min_duration=args.min_duration, finger=args.finger,
-                        meas_std=args.meas_std, jerk_psd=args.jerk_psd)
+                        torques_topic=args.torques_topic, min_duration=args.min_duration,
+                        finger=args.finger, meas_std=args.meas_std, jerk_psd=args.jerk_psd)
     except BagDataError as exc:
         _usage_error(parser, str(exc))
     if args.install:

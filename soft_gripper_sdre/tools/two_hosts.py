@@ -1,7 +1,8 @@
 """The grasp graph across two hosts: the simulator and the recorder on one, the estimator, the
 trajectory node and the controller on the other, joined by one network link.
 
-    sudo python -m soft_gripper_sdre.tools.two_hosts --out runs/two_hosts [--duration 6] [--link-fault 0.5]
+    sudo python -m soft_gripper_sdre.tools.two_hosts --out runs/two_hosts [--duration 6]
+        [--link-fault 0.5]
 
 On one Linux machine the two hosts are two network namespaces joined by a veth pair whose
 addresses (:data:`SIM_ADDRESS`, :data:`CTL_ADDRESS`, /24) exist only inside them, each with its
@@ -142,7 +143,8 @@ class HostPair:
 
     def exists(self) -> bool:
         names = _ip('netns', 'list')
-        return any(line.split()[0] in (self.sim_ns, self.ctl_ns) for line in names.splitlines() if line.strip())
+        return any(line.split()[0] in (self.sim_ns, self.ctl_ns)
+                   for line in names.splitlines() if line.strip())
 
     def interfaces(self, ns: str) -> list[str]:
         """The interface names in the namespace ``ns``."""
@@ -150,7 +152,8 @@ class HostPair:
 
     def traffic(self) -> dict[str, int]:
         """Bytes and packets the simulator's end of the link has sent and received."""
-        stats = json.loads(_ip('-j', '-s', 'link', 'show', 'dev', self.sim_link, netns=self.sim_ns))[0]['stats64']
+        stats = json.loads(_ip('-j', '-s', 'link', 'show', 'dev', self.sim_link,
+                               netns=self.sim_ns))[0]['stats64']
         return {'tx_bytes': stats['tx']['bytes'], 'rx_bytes': stats['rx']['bytes'],
                 'tx_packets': stats['tx']['packets'], 'rx_packets': stats['rx']['packets']}
 
@@ -214,12 +217,14 @@ def _supervise(job_path: Path) -> int:
     base = dict(os.environ)
     envs = {ns: pair.env(ns, base) for ns in (pair.sim_ns, pair.ctl_ns)}
     spec = split_graph(Path(job['bag']), job['duration'], job['parameters'])
-    fault = LinkFault(pair.sim_link, job['fault_at'], job['fault_seconds']) if job['fault_seconds'] else None
+    fault = (LinkFault(pair.sim_link, job['fault_at'], job['fault_seconds'])
+             if job['fault_seconds'] else None)
     mapped: dict[str, list[str]] = {}
 
     def on_poll(monitor, graphs) -> None:
         if not mapped and monitor.get('simulator', 'sim_time') > 0.1:     # DDS is fully set up
-            mapped.update({key: shared_memory_files(p.popen.pid) for g in graphs for key, p in g.procs.items()})
+            mapped.update({key: shared_memory_files(p.popen.pid)
+                           for g in graphs for key, p in g.procs.items()})
         if fault is not None:
             fault(monitor, graphs)
 
@@ -230,19 +235,21 @@ def _supervise(job_path: Path) -> int:
     os.environ.update(envs[pair.sim_ns])
     result: dict = {}
     try:
-        run = run_graphs([spec], envs[pair.sim_ns], Path(job['logs']), place=place, timeout=job['timeout'],
-                         on_poll=on_poll, monitor_name='two_hosts_monitor')[0]
-        result = {'diagnostics': run.diagnostics, 'exit_codes': run.exit_codes, 'wall_s': run.wall_s,
-                  'pids': run.pids, 'during_run': run.during_run, 'shared_memory': mapped,
-                  'fault': None if fault is None else asdict(fault)}
+        run = run_graphs([spec], envs[pair.sim_ns], Path(job['logs']), place=place,
+                         timeout=job['timeout'], on_poll=on_poll,
+                         monitor_name='two_hosts_monitor')[0]
+        result = {'diagnostics': run.diagnostics, 'exit_codes': run.exit_codes,
+                  'wall_s': run.wall_s, 'pids': run.pids, 'during_run': run.during_run,
+                  'shared_memory': mapped, 'fault': None if fault is None else asdict(fault)}
     except RuntimeError as exc:
         result = {'error': str(exc)}
     Path(job['result']).write_text(json.dumps(result, indent=2))
     return 0 if 'error' not in result else 1
 
 
-def run_split(pair: HostPair, out: Path, duration: float, parameters: dict[str, dict] | None = None, *,
-              fault_at: float = 0.0, fault_seconds: float = 0.0, timeout: float = 600.0) -> tuple[GraphRun, dict]:
+def run_split(pair: HostPair, out: Path, duration: float, parameters: dict[str, dict] | None = None,
+              *, fault_at: float = 0.0, fault_seconds: float = 0.0,
+              timeout: float = 600.0) -> tuple[GraphRun, dict]:
     """The graph across ``pair``'s two hosts, recording to ``out/bag``; returns the run and what
     only the split run has: ``shared_memory`` (node → Fast DDS shared-memory files it mapped),
     ``traffic`` (bytes over the link), ``fault`` (:class:`LinkFault`'s record).
@@ -253,27 +260,28 @@ def run_split(pair: HostPair, out: Path, duration: float, parameters: dict[str, 
     out = Path(out)
     shutil.rmtree(out / 'bag', ignore_errors=True)
     out.mkdir(parents=True, exist_ok=True)
-    job = {'tag': pair.tag, 'bag': str(out / 'bag'), 'duration': duration, 'parameters': parameters or {},
-           'fault_at': fault_at, 'fault_seconds': fault_seconds, 'logs': str(out / 'logs'),
-           'result': str(out / 'supervisor.json'), 'timeout': timeout}
+    job = {'tag': pair.tag, 'bag': str(out / 'bag'), 'duration': duration,
+           'parameters': parameters or {}, 'fault_at': fault_at, 'fault_seconds': fault_seconds,
+           'logs': str(out / 'logs'), 'result': str(out / 'supervisor.json'), 'timeout': timeout}
     job_path = out / 'job.json'
     job_path.write_text(json.dumps(job, indent=2))
     before = pair.traffic()
     env = pair.env(pair.sim_ns, ros_env())
     with open(out / 'supervisor.log', 'w', encoding='utf-8') as log:
         code = subprocess.run([*pair.exec_prefix(pair.sim_ns), sys.executable, '-m',
-                               'soft_gripper_sdre.tools.two_hosts', '--supervise', str(job_path)], env=env,
-                              stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                              timeout=timeout + 180).returncode
+                               'soft_gripper_sdre.tools.two_hosts', '--supervise', str(job_path)],
+                              env=env, stdout=log, stderr=subprocess.STDOUT,
+                              stdin=subprocess.DEVNULL, timeout=timeout + 180).returncode
     after = pair.traffic()
     result_path = Path(job['result'])
     result = json.loads(result_path.read_text()) if result_path.is_file() else {}
     if code != 0 or 'error' in result:
-        raise RuntimeError(result.get('error') or f'the supervisor exited with {code}; see {out / "supervisor.log"}:\n'
+        raise RuntimeError(result.get('error')
+                           or f'the supervisor exited with {code}; see {out / "supervisor.log"}:\n'
                            + (out / 'supervisor.log').read_text()[-2000:])
     spec = split_graph(out / 'bag', duration, parameters)
-    run = GraphRun(spec, result['diagnostics'], result['exit_codes'], result['wall_s'], result['pids'],
-                   result['during_run'])
+    run = GraphRun(spec, result['diagnostics'], result['exit_codes'], result['wall_s'],
+                   result['pids'], result['during_run'])
     extra = {'shared_memory': result['shared_memory'], 'fault': result['fault'],
              'traffic': {k: after[k] - before[k] for k in after}}
     return run, extra
@@ -286,7 +294,8 @@ def run_one_host(out: Path, duration: float, parameters: dict[str, dict] | None 
     shutil.rmtree(out / 'bag', ignore_errors=True)
     out.mkdir(parents=True, exist_ok=True)
     spec = split_graph(out / 'bag', duration, parameters)
-    return run_graphs([spec], ros_env(), out / 'logs', timeout=timeout, monitor_name='one_host_monitor')[0]
+    return run_graphs([spec], ros_env(), out / 'logs', timeout=timeout,
+                      monitor_name='one_host_monitor')[0]
 
 
 def timing(run: GraphRun) -> dict[str, float]:
@@ -321,20 +330,23 @@ def paired_tracking(one: GraphRun, two: GraphRun) -> dict:
     u_common, ua, ub = np.intersect1d(runs[0].torques.t, runs[1].torques.t, return_indices=True)
     out = {'instants': int(len(common)), 'steps': int(one.value('simulator', 'steps')) + 1,
            'tips_identical': bool(np.array_equal(runs[0].tips.values[ia], runs[1].tips.values[ib])),
-           'torques_identical': bool(np.array_equal(runs[0].torques.values[ua], runs[1].torques.values[ub])),
+           'torques_identical': bool(np.array_equal(runs[0].torques.values[ua],
+                                                    runs[1].torques.values[ub])),
            'torque_instants': int(len(u_common))}
     for name, run, idx in (('one_host', runs[0], ia), ('two_hosts', runs[1], ib)):
         ref = run.reference.values[idx][..., :2]
         valid = np.all(np.isfinite(ref.reshape(len(ref), -1)), axis=1)
         contact = hold(run.contacts.t, run.contacts.values, common) > 0.0
         excursion = np.linalg.norm(ref[valid] - ref[valid][0], axis=2).max(axis=0)
-        metrics = tracking_metrics(run.tips.values[idx][valid], ref[valid], ~contact[valid], excursion)
+        metrics = tracking_metrics(run.tips.values[idx][valid], ref[valid], ~contact[valid],
+                                   excursion)
         out[name] = {f'finger_{i}': m.as_dict() for i, m in enumerate(metrics)}
     out['tracking_identical'] = out['one_host'] == out['two_hosts']
     return out
 
 
-def compare(one: GraphRun, two: GraphRun, extra: dict, faulted: tuple[GraphRun, dict] | None, out: Path) -> dict:
+def compare(one: GraphRun, two: GraphRun, extra: dict, faulted: tuple[GraphRun, dict] | None,
+            out: Path) -> dict:
     """The figures of the three runs side by side (tracking from each bag's report)."""
     from soft_gripper_sdre.tools.report import report
     fingers = {name: report(run.bag, Path(out) / name)['fingers']
@@ -344,7 +356,8 @@ def compare(one: GraphRun, two: GraphRun, extra: dict, faulted: tuple[GraphRun, 
         'load_average': os.getloadavg(), 'cpus': os.cpu_count(),
         'tracking': fingers, 'report_identical': fingers['one_host'] == fingers['two_hosts'],
         'paired': paired_tracking(one, two),
-        'accounts': {'one_host': published_and_recorded(one), 'two_hosts': published_and_recorded(two)},
+        'accounts': {'one_host': published_and_recorded(one),
+                     'two_hosts': published_and_recorded(two)},
         'timing': {'one_host': timing(one), 'two_hosts': timing(two)},
         'trouble': {'one_host': trouble(one), 'two_hosts': trouble(two)},
         'shared_memory': extra['shared_memory'], 'link_traffic': extra['traffic'],
@@ -353,7 +366,8 @@ def compare(one: GraphRun, two: GraphRun, extra: dict, faulted: tuple[GraphRun, 
         run, fault_extra = faulted
         result['link_fault'] = {
             'fault': fault_extra['fault'], 'exit_codes': run.exit_codes,
-            'steps': run.value('simulator', 'steps'), 'timeouts': run.value('simulator', 'timeouts', 0.0),
+            'steps': run.value('simulator', 'steps'),
+            'timeouts': run.value('simulator', 'timeouts', 0.0),
             'safe_periods': run.value('simulator', 'safe_periods', 0.0),
             'missed_by_estimator': run.value('estimator', 'missed_periods', 0.0),
             'trouble': trouble(run), 'finite_torques': finite_torques(run),
@@ -365,48 +379,60 @@ def compare(one: GraphRun, two: GraphRun, extra: dict, faulted: tuple[GraphRun, 
 def summary(result: dict) -> str:
     """A short human summary of :func:`compare`'s result."""
     one, two = result['timing']['one_host'], result['timing']['two_hosts']
-    worst = {k: max(f['rmse_pct'] or 0.0 for f in v.values()) for k, v in result['tracking'].items()}
-    lines = [f'{result["duration_s"]:g} s lockstep grasp; load average {result["load_average"][0]:.1f} on '
-             f'{result["cpus"]} cores',
+    worst = {k: max(f['rmse_pct'] or 0.0 for f in v.values())
+             for k, v in result['tracking'].items()}
+    lines = [f'{result["duration_s"]:g} s lockstep grasp; load average '
+             f'{result["load_average"][0]:.1f} on {result["cpus"]} cores',
              f'  one host : {one["real_time_factor"]:.2f}× real time, loop latency p50 '
-             f'{one["loop_latency_us_p50"]:.0f} µs, p99 {one["loop_latency_us_p99"]:.0f} µs; worst finger '
-             f'{worst["one_host"]:.2f} %',
+             f'{one["loop_latency_us_p50"]:.0f} µs, p99 {one["loop_latency_us_p99"]:.0f} µs; '
+             f'worst finger {worst["one_host"]:.2f} %',
              f'  two hosts: {two["real_time_factor"]:.2f}× real time, loop latency p50 '
-             f'{two["loop_latency_us_p50"]:.0f} µs, p99 {two["loop_latency_us_p99"]:.0f} µs; worst finger '
-             f'{worst["two_hosts"]:.2f} %; {result["link_traffic"]["tx_bytes"] / 1e6:.1f} MB sent and '
-             f'{result["link_traffic"]["rx_bytes"] / 1e6:.1f} MB received over the link; Fast DDS shared '
-             f'memory mapped: {sorted(k for k, v in result["shared_memory"].items() if v) or "none"}']
+             f'{two["loop_latency_us_p50"]:.0f} µs, p99 {two["loop_latency_us_p99"]:.0f} µs; '
+             f'worst finger {worst["two_hosts"]:.2f} %; '
+             f'{result["link_traffic"]["tx_bytes"] / 1e6:.1f} MB sent and '
+             f'{result["link_traffic"]["rx_bytes"] / 1e6:.1f} MB received over the link; '
+             f'Fast DDS shared memory mapped: '
+             f'{sorted(k for k, v in result["shared_memory"].items() if v) or "none"}']
     paired = result['paired']
     missing = {run: {t: n - got for t, (n, got) in accounts.items() if n is not None and n != got}
                for run, accounts in result['accounts'].items()}
-    lines.append(f'  the same loop: tips {"identical" if paired["tips_identical"] else "DIFFERENT"} and torque '
+    lines.append(f'  the same loop: tips '
+                 f'{"identical" if paired["tips_identical"] else "DIFFERENT"} and torque '
                  f'commands {"identical" if paired["torques_identical"] else "DIFFERENT"} at the '
-                 f'{paired["instants"]} of {paired["steps"]} instants both bags hold; tracking over them '
+                 f'{paired["instants"]} of {paired["steps"]} instants both bags hold; '
+                 f'tracking over them '
                  f'{"identical" if paired["tracking_identical"] else "DIFFERENT"}; report figures '
-                 f'{"identical" if result["report_identical"] else "not identical"}; messages missing from '
-                 f'the bags (published − recorded): {missing}')
+                 f'{"identical" if result["report_identical"] else "not identical"}; '
+                 f'messages missing from the bags (published − recorded): {missing}')
     fault = result.get('link_fault')
     if fault:
-        lost = {t: (n - got if n is not None else None) for t, (n, got) in fault['published_and_recorded'].items()}
+        lost = {t: (n - got if n is not None else None)
+                for t, (n, got) in fault['published_and_recorded'].items()}
         worst_fault = max(f['rmse_pct'] or 0.0 for f in fault['tracking'].values())
-        lines.append(f'  link down {fault["fault"]["seconds"]:g} s at t = {fault["fault"]["down_sim_time"]:.2f} s: '
-                     f'{int(fault["steps"])} steps, {int(fault["timeouts"])} lockstep timeouts (held command), '
-                     f'{int(fault["safe_periods"])} periods stepped with zero torque for lost commands, '
-                     f'{int(fault["missed_by_estimator"])} tips the estimator skipped, '
+        lines.append(f'  link down {fault["fault"]["seconds"]:g} s at t = '
+                     f'{fault["fault"]["down_sim_time"]:.2f} s: {int(fault["steps"])} steps, '
+                     f'{int(fault["timeouts"])} lockstep timeouts (held command), '
+                     f'{int(fault["safe_periods"])} periods stepped with zero torque for lost '
+                     f'commands, {int(fault["missed_by_estimator"])} tips the estimator skipped, '
                      f'torques finite: {fault["finite_torques"]}, counters {fault["trouble"]}; '
-                     f'messages lost (published − in the bag) {lost}; worst finger {worst_fault:.2f} %')
+                     f'messages lost (published − in the bag) {lost}; '
+                     f'worst finger {worst_fault:.2f} %')
     return '\n'.join(lines)
 
 
 def _parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.two_hosts',
                                  description=__doc__.split('\n\n')[0].replace('\n', ' '))
-    ap.add_argument('--out', type=Path, default=Path('runs/two_hosts'), help='output directory (default %(default)s)')
-    ap.add_argument('--duration', type=float, default=6.0, help='sim time of each run [s] (default %(default)s)')
+    ap.add_argument('--out', type=Path, default=Path('runs/two_hosts'),
+                    help='output directory (default %(default)s)')
+    ap.add_argument('--duration', type=float, default=6.0,
+                    help='sim time of each run [s] (default %(default)s)')
     ap.add_argument('--link-fault', type=float, default=0.5, metavar='SECONDS',
-                    help='a third run with the link down this long mid-grasp (0: none; default %(default)s)')
+                    help='a third run with the link down this long mid-grasp '
+                         '(0: none; default %(default)s)')
     ap.add_argument('--timeout', type=float, default=900.0, help='wall-clock limit of each run [s]')
-    ap.add_argument('--supervise', type=Path, default=None, help=argparse.SUPPRESS)   # run_split's far end
+    ap.add_argument('--supervise', type=Path, default=None,
+                    help=argparse.SUPPRESS)   # run_split's far end
     return ap
 
 
@@ -424,10 +450,12 @@ def main(argv: list[str] | None = None) -> int:
     try:
         one = run_one_host(a.out / 'one_host', a.duration, PATIENT_LOCKSTEP, timeout=a.timeout)
         with HostPair.new() as pair:
-            two, extra = run_split(pair, a.out / 'two_hosts', a.duration, PATIENT_LOCKSTEP, timeout=a.timeout)
+            two, extra = run_split(pair, a.out / 'two_hosts', a.duration, PATIENT_LOCKSTEP,
+                                   timeout=a.timeout)
             faulted = None
             if a.link_fault:
-                faulted = run_split(pair, a.out / 'link_fault', a.duration, {'simulator': {'lockstep_timeout': 0.1}},
+                faulted = run_split(pair, a.out / 'link_fault', a.duration,
+                                    {'simulator': {'lockstep_timeout': 0.1}},
                                     fault_at=min(1.0, a.duration / 3), fault_seconds=a.link_fault,
                                     timeout=a.timeout)
     except RuntimeError as exc:

@@ -20,8 +20,8 @@ roll-off, so a comparison differs only in the law:
   model (:class:`KoopmanMpcLaw`, :class:`KoopmanLqrLaw`; ``koopman_path``: the model file, None =
   the shipped one).
 * ``computed_torque`` — feedback linearisation on the learned model with PD gains on the error,
-  u = G₂(x)⁻¹(a_d − A₂(x)x − k_p e − k_d ė) (:class:`ComputedTorqueLaw`; ``pd_gains=dict(kp=…, kd=…)``):
-  ``sdre_ff`` without the Riccati equation.
+  u = G₂(x)⁻¹(a_d − A₂(x)x − k_p e − k_d ė) (:class:`ComputedTorqueLaw`;
+  ``pd_gains=dict(kp=…, kd=…)``): ``sdre_ff`` without the Riccati equation.
 
 The oracle laws (``oracle``, ``oracle_exact``, ``oracle_ff``: the SDRE on the simulator's true
 dynamics) are evaluation yardsticks that need the plant's ground truth; they live in
@@ -41,10 +41,10 @@ from soft_gripper_sdre.control.laws.koopman import KoopmanLqrLaw, KoopmanMpcLaw
 from soft_gripper_sdre.control.tracking import DEFAULT_LOWPASS_HZ, Law, Weights
 from soft_gripper_sdre.learning.koopman import KoopmanFileError, KoopmanModel
 
-__all__ = ['AdaptiveSdreLaw', 'ComputedTorqueLaw', 'DEFAULT_CT', 'DEFAULT_INTEGRAL', 'DEFAULT_LAW', 'DEFAULT_PD',
-           'FF_AT', 'GRAPH_LAWS', 'IntegralAction', 'KoopmanLqrLaw', 'KoopmanMpcLaw', 'LAW_REGISTRY', 'LawEntry',
-           'LawSettings', 'LqrLaw', 'PdLaw', 'SdreFeedforwardLaw', 'SdreLaw', 'hand_over',
-           'make_law', 'model_inversion', 'pd_gains', 'register_law']
+__all__ = ['AdaptiveSdreLaw', 'ComputedTorqueLaw', 'DEFAULT_CT', 'DEFAULT_INTEGRAL', 'DEFAULT_LAW',
+           'DEFAULT_PD', 'FF_AT', 'GRAPH_LAWS', 'IntegralAction', 'KoopmanLqrLaw', 'KoopmanMpcLaw',
+           'LAW_REGISTRY', 'LawEntry', 'LawSettings', 'LqrLaw', 'PdLaw', 'SdreFeedforwardLaw',
+           'SdreLaw', 'hand_over', 'make_law', 'model_inversion', 'pd_gains', 'register_law']
 
 #: the laws that run on the node graph (the oracles need the plant's joint state: in-process only;
 #: the Koopman laws load the shipped Koopman model beside the SDC one)
@@ -76,8 +76,8 @@ class LawEntry(NamedTuple):
 
 def _sdre(s: LawSettings, adaptive: bool = False) -> Law:
     law = AdaptiveSdreLaw if adaptive else SdreLaw
-    return law(s.model, s.weights, s.u_max, n_fingers=s.n_fingers, method=s.method, lowpass_hz=s.lowpass_hz,
-               dt=s.dt)
+    return law(s.model, s.weights, s.u_max, n_fingers=s.n_fingers, method=s.method,
+               lowpass_hz=s.lowpass_hz, dt=s.dt)
 
 
 def _sdre_ff(s: LawSettings, ff_at: str = 'x', integral_gain: float | None = None,
@@ -85,11 +85,13 @@ def _sdre_ff(s: LawSettings, ff_at: str = 'x', integral_gain: float | None = Non
     gain = DEFAULT_INTEGRAL['gain'] if integral_gain is None else integral_gain
     band = DEFAULT_INTEGRAL['band'] if integral_band is None else integral_band
     return SdreFeedforwardLaw(s.model, s.weights, s.u_max, n_fingers=s.n_fingers, method=s.method,
-                              lowpass_hz=s.lowpass_hz, dt=s.dt, ff_at=ff_at, integral_gain=gain, integral_band=band)
+                              lowpass_hz=s.lowpass_hz, dt=s.dt, ff_at=ff_at, integral_gain=gain,
+                              integral_band=band)
 
 
 def _lqr(s: LawSettings) -> Law:
-    return LqrLaw(s.model, s.weights, s.u_max, n_fingers=s.n_fingers, lowpass_hz=s.lowpass_hz, dt=s.dt)
+    return LqrLaw(s.model, s.weights, s.u_max, n_fingers=s.n_fingers, lowpass_hz=s.lowpass_hz,
+                  dt=s.dt)
 
 
 def _pd(s: LawSettings, pd_gains: dict | None = None, feedforward: bool = False) -> Law:
@@ -104,14 +106,17 @@ def _koopman(s: LawSettings, law=KoopmanMpcLaw, koopman_path=None) -> Law:
         raise ValueError(f'koopman_path: {exc}') from None
     return law(koopman, s.weights, s.u_max, n_fingers=s.n_fingers, lowpass_hz=s.lowpass_hz, dt=s.dt)
 def _computed_torque(s: LawSettings, pd_gains: dict | None = None) -> Law:
-    return ComputedTorqueLaw(s.model, s.u_max, n_fingers=s.n_fingers, lowpass_hz=s.lowpass_hz, dt=s.dt,
-                             method=s.method, **(pd_gains or DEFAULT_CT))
+    return ComputedTorqueLaw(s.model, s.u_max, n_fingers=s.n_fingers, lowpass_hz=s.lowpass_hz,
+                             dt=s.dt, method=s.method, **(pd_gains or DEFAULT_CT))
 
 
 #: what the options of the laws below mean (for error messages)
-_OPTION_MEANINGS = {'adaptive': 'state-dependent weights Q(x)', 'ff_at': 'where the feedforward evaluates the model',
-                    'integral_gain': 'the integral action\'s gain', 'integral_band': 'the integral action\'s error band',
-                    'pd_gains': 'the PD gains', 'feedforward': 'the reference acceleration added to the PD',
+_OPTION_MEANINGS = {'adaptive': 'state-dependent weights Q(x)',
+                    'ff_at': 'where the feedforward evaluates the model',
+                    'integral_gain': 'the integral action\'s gain',
+                    'integral_band': 'the integral action\'s error band',
+                    'pd_gains': 'the PD gains',
+                    'feedforward': 'the reference acceleration added to the PD',
                     'koopman_path': 'the Koopman model file'}
 
 #: law name → how to build it; :func:`register_law` adds to it
@@ -121,7 +126,8 @@ LAW_REGISTRY: dict[str, LawEntry] = {
     'lqr': LawEntry(_lqr),
     'pd': LawEntry(_pd, ('pd_gains', 'feedforward')),
     'koopman_mpc': LawEntry(_koopman, ('koopman_path',)),
-    'koopman_lqr': LawEntry(lambda s, koopman_path=None: _koopman(s, KoopmanLqrLaw, koopman_path), ('koopman_path',)),
+    'koopman_lqr': LawEntry(lambda s, koopman_path=None: _koopman(s, KoopmanLqrLaw, koopman_path),
+                            ('koopman_path',)),
     'computed_torque': LawEntry(_computed_torque, ('pd_gains',)),
 }
 
@@ -157,12 +163,14 @@ def hand_over(old: Law, new: Law) -> None:
 
 
 def register_law(name: str, build: Callable[..., Law], options: tuple[str, ...] = ()) -> None:
-    """Make ``make_law(name, …)`` build ``build(settings, **options)`` (replacing an earlier entry)."""
+    """Make ``make_law(name, …)`` build ``build(settings, **options)`` (replacing an earlier
+    entry)."""
     LAW_REGISTRY[name] = LawEntry(build, tuple(options))
 
 
-def make_law(name: str, model, weights: Weights, u_max: float, n_fingers: int = 4, method: str = 'fast',
-             lowpass_hz: float = DEFAULT_LOWPASS_HZ, dt: float = 1e-3, **options) -> Law:
+def make_law(name: str, model, weights: Weights, u_max: float, n_fingers: int = 4,
+             method: str = 'fast', lowpass_hz: float = DEFAULT_LOWPASS_HZ, dt: float = 1e-3,
+             **options) -> Law:
     """The law registered as ``name`` with the shared settings and its own ``options``.
 
     An option the law does not take is refused unless it is off (None or False), so callers can
@@ -173,8 +181,8 @@ def make_law(name: str, model, weights: Weights, u_max: float, n_fingers: int = 
     """
     entry = LAW_REGISTRY.get(name)
     if entry is None:
-        raise ValueError(f'unknown law {name!r}; known: {tuple(LAW_REGISTRY)} (the oracle laws are known '
-                         'once soft_gripper_sdre.analysis.oracle is imported)')
+        raise ValueError(f'unknown law {name!r}; known: {tuple(LAW_REGISTRY)} (the oracle laws '
+                         'are known once soft_gripper_sdre.analysis.oracle is imported)')
     taken = {}
     for key, value in options.items():
         if key in entry.options:
@@ -182,6 +190,7 @@ def make_law(name: str, model, weights: Weights, u_max: float, n_fingers: int = 
         elif value is not None and value is not False:
             owners = [n for n, e in LAW_REGISTRY.items() if key in e.options]
             meaning = f' ({_OPTION_MEANINGS[key]})' if key in _OPTION_MEANINGS else ''
-            raise ValueError(f'{key}={value!r}{meaning} is not an option of the {name!r} law; laws that take '
-                             f'it: {owners or "none"}')
-    return entry.build(LawSettings(model, weights, u_max, n_fingers, method, lowpass_hz, dt), **taken)
+            raise ValueError(f'{key}={value!r}{meaning} is not an option of the {name!r} law; '
+                             f'laws that take it: {owners or "none"}')
+    return entry.build(LawSettings(model, weights, u_max, n_fingers, method, lowpass_hz, dt),
+                       **taken)

@@ -50,17 +50,21 @@ class IntegralAction:
         dt: control period [s].
     """
 
-    def __init__(self, g2_rest, gain: float, band: float, u_max: float, n_fingers: int, dt: float) -> None:
+    def __init__(self, g2_rest, gain: float, band: float, u_max: float, n_fingers: int,
+                 dt: float) -> None:
         if not (math.isfinite(gain) and gain > 0):
-            raise ValueError(f'integral gain must be finite and > 0 (0 = no integral action), got {gain!r}')
+            raise ValueError(f'integral gain must be finite and > 0 (0 = no integral action), '
+                             f'got {gain!r}')
         if not (math.isfinite(band) and band > 0):
             raise ValueError(f'integral band must be finite and > 0 m, got {band!r}')
         if not (math.isfinite(u_max) and u_max > 0):
             raise ValueError(f'u_max must be finite and > 0, got {u_max!r}')
         g2 = np.asarray(g2_rest, dtype=float)
         if g2.shape != (2, 2) or not np.all(np.isfinite(g2)) or abs(np.linalg.det(g2)) == 0.0:
-            raise ValueError(f'g2_rest must be a finite, invertible (2, 2) input map, got {g2_rest!r}')
-        self.gain, self.band, self.u_max, self.dt = float(gain), float(band), float(u_max), float(dt)
+            raise ValueError(f'g2_rest must be a finite, invertible (2, 2) input map, '
+                             f'got {g2_rest!r}')
+        self.gain, self.band, self.u_max, self.dt = (float(gain), float(band), float(u_max),
+                                                     float(dt))
         self.to_torque = self.gain * np.linalg.inv(g2)          # u_I = to_torque ξ
         self.from_torque = g2 / self.gain                        # ξ = from_torque u_I
         self.decay = math.exp(-self.dt / INTEGRAL_LEAK_S)
@@ -78,22 +82,27 @@ class IntegralAction:
         again (``u``, ``u_unsat``, ``saturated`` in place, before the roll-off); then :meth:`update`
         with the tracking error ``error`` = p − p_d (n, 2) [m]. One compiled call."""
         for name in ('u', 'u_unsat', 'saturated'):
-            setattr(step, name, kernel_array(getattr(step, name), np.bool_ if name == 'saturated' else np.float64))
-        integral_step(self.xi, self.to_torque, self.from_torque, self.dt, self.band, self.decay, self.u_max,
-                      kernel_array(error), kernel_array(finite, np.bool_), step.u_unsat, step.u, step.saturated)
+            setattr(step, name, kernel_array(getattr(step, name),
+                                             np.bool_ if name == 'saturated' else np.float64))
+        integral_step(self.xi, self.to_torque, self.from_torque, self.dt, self.band, self.decay,
+                      self.u_max, kernel_array(error), kernel_array(finite, np.bool_), step.u_unsat,
+                      step.u, step.saturated)
 
-    def apply_and_roll_off(self, step: LawStep, z: np.ndarray, finite: np.ndarray, roll_off: RollOff) -> None:
-        """:meth:`apply` with the error p − p_d from the kernel rows z = [p, ṗ, p_d, …] (n, ≥ 6), then
-        ``roll_off`` of ``step.u`` in place, all in one compiled call: the same arithmetic as
+    def apply_and_roll_off(self, step: LawStep, z: np.ndarray, finite: np.ndarray,
+                           roll_off: RollOff) -> None:
+        """:meth:`apply` with the error p − p_d from the kernel rows z = [p, ṗ, p_d, …] (n, ≥ 6),
+        then ``roll_off`` of ``step.u`` in place, all in one compiled call: the same arithmetic as
         :meth:`apply` followed by ``step.u = roll_off(step.u)``. ``step``'s ``u``, ``u_unsat`` and
         ``saturated`` must be arrays the kernels take (a compiled step's own)."""
         alpha, beta, previous, has_previous = roll_off.kernel_args(step.u)
-        integral_roll_off(self.xi, self.to_torque, self.from_torque, self.dt, self.band, self.decay, self.u_max,
-                          z, finite, step.u_unsat, step.u, step.saturated, alpha, beta, previous, has_previous)
+        integral_roll_off(self.xi, self.to_torque, self.from_torque, self.dt, self.band, self.decay,
+                          self.u_max, z, finite, step.u_unsat, step.u, step.saturated, alpha, beta,
+                          previous, has_previous)
         roll_off.keep(step.u)
 
     def update(self, error: np.ndarray, saturated: np.ndarray, finite: np.ndarray) -> None:
-        """One step of ξ from the error p − p_d (n, 2) [m], the (n, 2) saturation of the command that
-        used it, and which fingers' inputs were finite (the rules in the class docstring)."""
-        integral_update(self.xi, self.to_torque, self.from_torque, self.dt, self.band, self.decay, self.u_max,
-                        kernel_array(error), kernel_array(saturated, np.bool_), kernel_array(finite, np.bool_))
+        """One step of ξ from the error p − p_d (n, 2) [m], the (n, 2) saturation of the command
+        that used it, and which fingers' inputs were finite (the rules in the class docstring)."""
+        integral_update(self.xi, self.to_torque, self.from_torque, self.dt, self.band, self.decay,
+                        self.u_max, kernel_array(error), kernel_array(saturated, np.bool_),
+                        kernel_array(finite, np.bool_))
