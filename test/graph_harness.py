@@ -69,10 +69,11 @@ def run_graph(duration: float, *, simulator: dict | None = None, estimator: dict
         tips = probe.received[TIP_POSITIONS]
         assert spin_until(executor, lambda: sim.done and len(tips) > steps
                           and len(probe.received[TORQUE_COMMANDS]) >= steps, timeout), (
-            f'graph did not finish: {sim.stepping.k} of {steps} steps, counters {dict(sim.diag.counters)}')
+            f'graph did not finish: {sim.stepping.k} of {steps} steps, '
+            f'counters {dict(sim.diag.counters)}')
         t, tip = zip(*(cv.msg_to_tips(m, 4) for m in tips[:steps]))
         est_ = [cv.msg_to_estimate(m, 4)[1] for m in probe.received[STATE_ESTIMATE][:steps]]
         u = [cv.msg_to_torques(m, 4)[1] for m in probe.received[TORQUE_COMMANDS][:steps]]
         force = [np.asarray(m.effort) for m in probe.received[CUBE_CONTACTS]]
-        return GraphRun(np.asarray(t) / cv.NS, np.asarray(tip)[..., :2], np.asarray(est_), np.asarray(u),
-                        np.asarray(force), sim, ctrl, est, traj)
+        return GraphRun(np.asarray(t) / cv.NS, np.asarray(tip)[..., :2], np.asarray(est_),
+                        np.asarray(u), np.asarray(force), sim, ctrl, est, traj)

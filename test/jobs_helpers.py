@@ -11,7 +11,8 @@ def draw(context, job):
     ``context['blob']`` (as the worker reads it) and the process that ran the job."""
     blob = context.get('blob')
     digest = hashlib.sha256(blob.path().read_bytes()).hexdigest() if blob is not None else None
-    return float(np.random.default_rng(job).standard_normal() * context['scale']), digest, os.getpid()
+    return float(np.random.default_rng(job).standard_normal()
+                 * context['scale']), digest, os.getpid()
 
 
 def fail_on_three(context, job):

@@ -1,4 +1,5 @@
-"""Ground truth from the simulator: the input matrix, and the loop around the frictionless finger."""
+"""Ground truth from the simulator: the input matrix, and the loop around the frictionless
+finger."""
 import numpy as np
 import pytest
 
@@ -59,7 +60,8 @@ def test_torque_roll_off_cuts_the_spillover_growth():
     model = SDCModel()
     w = Weights(**DEFAULT_WEIGHTS)
     bare, f_bare = loop_spectral_radius(plant, model, w.Q, w.R, 1.0, 5e-5)
-    rolled, _ = loop_spectral_radius(plant, model, w.Q, w.R, 1.0, 5e-5, lowpass_hz=DEFAULT_LOWPASS_HZ)
+    rolled, _ = loop_spectral_radius(plant, model, w.Q, w.R, 1.0, 5e-5,
+                                     lowpass_hz=DEFAULT_LOWPASS_HZ)
     assert 50.0 < f_bare < 65.0                      # the finger's fourth bending mode (~59 Hz)
     assert (rolled - 1.0) < 0.2 * (bare - 1.0)
 
@@ -75,7 +77,8 @@ def test_a_long_period_destabilises_the_23_hz_bend_and_the_capped_roll_off_slows
     w = Weights(**DEFAULT_WEIGHTS)
     fixed_40, f_fixed = loop_spectral_radius(plant, SDCModel(), w.Q, w.R, 1.0, 5e-5, dt=dt,
                                              lowpass_hz=DEFAULT_LOWPASS_HZ, capped=False)
-    capped, _ = loop_spectral_radius(plant, SDCModel(), w.Q, w.R, 1.0, 5e-5, dt=dt, lowpass_hz=DEFAULT_LOWPASS_HZ)
+    capped, _ = loop_spectral_radius(plant, SDCModel(), w.Q, w.R, 1.0, 5e-5, dt=dt,
+                                     lowpass_hz=DEFAULT_LOWPASS_HZ)
     assert 20.0 < f_fixed < 35.0
     assert fixed_40 > 1.0
     assert np.log(capped) < 0.5 * np.log(fixed_40)             # growth per step (and per second)

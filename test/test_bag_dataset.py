@@ -45,7 +45,8 @@ def _nan_torques():
 
 def _reordered():
     msgs = tips_messages(STAMPS, TIPS)
-    msgs[300], msgs[301] = (msgs[300][0], msgs[301][1]), (msgs[301][0], msgs[300][1])   # bag order kept
+    msgs[300], msgs[301] = ((msgs[300][0], msgs[301][1]),
+                            (msgs[301][0], msgs[300][1]))  # bag order kept
     return msgs
 
 
@@ -68,19 +69,26 @@ BAD_BAGS = {
                              'topic /tip_positions has type sensor_msgs/msg/JointState; expected '
                              'geometry_msgs/msg/PoseArray'),
     'torques of another type': (dict(torques=tips_messages(STAMPS, TIPS)),
-                                'topic /torque_commands has type geometry_msgs/msg/PoseArray; expected '
-                                'sensor_msgs/msg/JointState'),
+                                'topic /torque_commands has type geometry_msgs/msg/PoseArray; '
+                                'expected sensor_msgs/msg/JointState'),
     'too few messages': (dict(torques=torque_messages(STAMPS[:5], TORQUES[:5])),
                          'topic /torque_commands holds 5 message(s); at least 20 needed'),
     'too short': (dict(torques=torque_messages(STAMPS[:400], TORQUES[:400])),
                   'too short: 400 tips over 0.399 s while commands were given'),
-    'reordered stamps': (dict(tips=_reordered()), '/tip_positions stamps do not increase: message 301'),
-    'duplicate stamps': (dict(tips=_duplicated()), '/tip_positions stamps do not increase: message 900'),
-    'NaN tips': (dict(tips=_nan_tips()), '/tip_positions holds NaN or Inf in 1 message(s), the first stamped 0.700000 s'),
-    'Inf torques': (dict(torques=_nan_torques()), '/torque_commands holds NaN or Inf in 1 message(s)'),
-    'torques of other joints': (dict(torques=torque_messages(STAMPS, TORQUES, names=['left', 'right'])),
-                                "names ['left', 'right']; expected '<finger>/ax0' and '<finger>/ax1' for each of the 1"),
-    'poses per message change': (dict(tips=_changing_poses()), '/tip_positions message 50 holds 2 poses, the first held 1'),
+    'reordered stamps': (dict(tips=_reordered()),
+                         '/tip_positions stamps do not increase: message 301'),
+    'duplicate stamps': (dict(tips=_duplicated()),
+                         '/tip_positions stamps do not increase: message 900'),
+    'NaN tips': (dict(tips=_nan_tips()),
+                 '/tip_positions holds NaN or Inf in 1 message(s), the first stamped 0.700000 s'),
+    'Inf torques': (dict(torques=_nan_torques()),
+                    '/torque_commands holds NaN or Inf in 1 message(s)'),
+    'torques of other joints': (dict(torques=torque_messages(STAMPS, TORQUES,
+                                                             names=['left', 'right'])),
+                                "names ['left', 'right']; expected '<finger>/ax0' and "
+                                "'<finger>/ax1' for each of the 1"),
+    'poses per message change': (dict(tips=_changing_poses()),
+                                 '/tip_positions message 50 holds 2 poses, the first held 1'),
     'nothing excited': (dict(torques=torque_messages(STAMPS, np.zeros_like(TORQUES))),
                         'every torque in /torque_commands is zero'),
 }
@@ -94,7 +102,8 @@ def test_a_bad_bag_is_refused_naming_the_problem_and_nothing_is_written(case, tm
     out = tmp_path / 'out'
     for train_bag, val_bag in ((bag, good), (good, bag)):     # as training and as validation data
         with pytest.raises(SystemExit) as exit_info:
-            train_tool.main(['--bag', str(train_bag), '--val-bag', str(val_bag), '--out', str(out), '--epochs', '1'])
+            train_tool.main(['--bag', str(train_bag), '--val-bag', str(val_bag), '--out', str(out),
+                             '--epochs', '1'])
         err = capsys.readouterr().err
         assert exit_info.value.code == 2, err
         assert f'error: bag {bag}' in err and expected in err, err
@@ -105,8 +114,9 @@ def test_fingers_are_named_by_the_torque_names_in_the_order_they_first_appear(tm
     tips = np.zeros((N, 2, 3))
     tips[:, 1, 1] = 1e-3                               # pose 1 is the second named finger
     torques = np.stack([np.full((N, 2), 0.01), np.full((N, 2), -0.02)], axis=1)
-    msgs = torque_messages(STAMPS, torques, names=['left/ax0', 'left/ax1', 'right/ax0', 'right/ax1'])
-    for _, msg in msgs[1:]:                            # later messages list the joints in another order
+    msgs = torque_messages(STAMPS, torques,
+                           names=['left/ax0', 'left/ax1', 'right/ax0', 'right/ax1'])
+    for _, msg in msgs[1:]:  # later messages list the joints in another order
         msg.name = ['right/ax1', 'left/ax0', 'right/ax0', 'left/ax1']
         msg.effort = np.array([-0.02, 0.01, -0.02, 0.01])
     rec = read_recording(write_bag(tmp_path / 'bag', {'/tip_positions': tips_messages(STAMPS, tips),
@@ -118,7 +128,8 @@ def test_fingers_are_named_by_the_torque_names_in_the_order_they_first_appear(tm
 def test_a_path_that_is_no_bag_is_refused(tmp_path, capsys):
     good = excitation_bag(tmp_path / 'good')
     with pytest.raises(SystemExit) as exit_info:
-        train_tool.main(['--bag', str(tmp_path / 'nothing'), '--val-bag', str(good), '--out', str(tmp_path / 'out')])
+        train_tool.main(['--bag', str(tmp_path / 'nothing'), '--val-bag', str(good),
+                         '--out', str(tmp_path / 'out')])
     assert exit_info.value.code == 2
     assert f'bag {tmp_path / "nothing"} does not exist' in capsys.readouterr().err
 
@@ -128,7 +139,8 @@ def test_the_cli_exits_2_without_a_traceback(tmp_path):
     bag = _bag(tmp_path, tips=_nan_tips())
     out = tmp_path / 'out'
     proc = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.train', '--bag', str(bag),
-                           '--val-bag', str(bag), '--out', str(out)], capture_output=True, text=True, timeout=60)
+                           '--val-bag', str(bag), '--out', str(out)],
+                          capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2, proc.stderr
     assert 'holds NaN or Inf' in proc.stderr and 'Traceback' not in proc.stderr
     assert not out.exists()
@@ -138,12 +150,15 @@ def test_the_cli_exits_2_without_a_traceback(tmp_path):
     (['--bag', 'a'], '--bag needs --val-bag'),
     (['--val-bag', 'a'], '--bag needs --val-bag'),
     (['--bag', 'a', '--val-bag', 'b', '--data', 'c'], '--data and --bag exclude each other'),
-    (['--bag', 'a', '--val-bag', 'b', '--variant', 'paper'], '--variant and --jitter apply to --data only'),
+    (['--bag', 'a', '--val-bag', 'b', '--variant', 'paper'],
+     '--variant and --jitter apply to --data only'),
     (['--bag', 'a', '--val-bag', 'b', '--meas-std', 'nan'], '--meas-std must be in [0, 0.01) m'),
     (['--bag', 'a', '--val-bag', 'b', '--min-duration', '0'], '--min-duration must be > 0 s'),
     (['--bag', 'a', '--val-bag', 'b', '--finger', '4'], '--finger must be in [0, 3]'),
-    (['--bag', 'a', '--val-bag', 'b', '--rollout-epochs', '-1'], '--rollout-epochs takes an int >= 0'),
-    (['--data', 'c', '--rollout-epochs', '5'], '--rollout-epochs takes an int >= 0 and needs --bag'),
+    (['--bag', 'a', '--val-bag', 'b', '--rollout-epochs', '-1'],
+     '--rollout-epochs takes an int >= 0'),
+    (['--data', 'c', '--rollout-epochs', '5'],
+     '--rollout-epochs takes an int >= 0 and needs --bag'),
     (['--data', 'c', '--preset', 'gripper'], 'the gripper preset trains on contiguous records'),
     ([], 'give --data DIR'),
 ])
@@ -160,7 +175,8 @@ def _motion(t):
     """A tip motion with known acceleration: position (T, 2) [m] and acceleration (T, 2) [m/s²]."""
     w = np.array([2.0, 3.0]) * np.pi
     pos = np.stack([1e-3 * np.sin(w[0] * t), -0.01 + 2e-3 * np.sin(w[1] * t)], axis=1)
-    acc = np.stack([-w[0] ** 2 * 1e-3 * np.sin(w[0] * t), -w[1] ** 2 * 2e-3 * np.sin(w[1] * t)], axis=1)
+    acc = np.stack([-w[0] ** 2 * 1e-3 * np.sin(w[0] * t), -w[1] ** 2 * 2e-3 * np.sin(w[1] * t)],
+                   axis=1)
     return pos, acc
 
 
@@ -196,7 +212,7 @@ def test_zero_order_hold_takes_the_last_command_at_or_before_each_time():
 def test_jittery_dropped_and_differently_stamped_recording_is_labelled_on_a_uniform_grid(tmp_path):
     rng = np.random.default_rng(3)
     base, tip_ns, cmd_ns, cmd = jittery_bag(tmp_path / 'bag', rng)
-    rec = read_recording(tmp_path / 'bag')             # the namespaced topics are found by their last name
+    rec = read_recording(tmp_path / 'bag')  # the namespaced topics are found by their last name
     assert rec.n_fingers == 2 and rec.tips_topic == '/hand/tip_positions'
     info = rec.describe()
     assert info['tips']['rate_hz'] == pytest.approx(120.0, rel=0.02) and info['tips']['gaps'] > 0
@@ -207,7 +223,8 @@ def test_jittery_dropped_and_differently_stamped_recording_is_labelled_on_a_unif
     assert samples.info['resampled']
     step = np.diff(samples.t)
     assert np.allclose(step, step[0], rtol=1e-6) and step[0] == pytest.approx(1 / 120, rel=0.02)
-    # every sample holds the newest command stamped at or before it (brute force), none after the last
+    # every sample holds the newest command stamped at or before it (brute force), none after the
+    # last
     t_ns = tip_ns[0] + np.round(samples.t * 1e9).astype(np.int64)
     for k in range(0, len(t_ns), 7):
         j = np.flatnonzero(cmd_ns <= t_ns[k])[-1]
@@ -217,9 +234,11 @@ def test_jittery_dropped_and_differently_stamped_recording_is_labelled_on_a_unif
     _, acc_true = _motion((t_ns - base) / 1e9)
     inner = slice(30, -30)
     resid = samples.acc[inner] - acc_true[inner]
-    r2 = 1 - (resid ** 2).sum(axis=0) / ((acc_true[inner] - acc_true[inner].mean(axis=0)) ** 2).sum(axis=0)
+    r2 = 1 - (resid ** 2).sum(axis=0) / (
+        (acc_true[inner] - acc_true[inner].mean(axis=0)) ** 2).sum(axis=0)
     assert np.all(r2 > 0.98), r2
-    np.testing.assert_allclose(samples.x[:, :2] + rest[:2], _motion((t_ns - base) / 1e9)[0], atol=2e-5)
+    np.testing.assert_allclose(samples.x[:, :2] + rest[:2], _motion((t_ns - base) / 1e9)[0],
+                               atol=2e-5)
 
 
 def test_a_long_gap_splits_the_recording(tmp_path):
@@ -227,7 +246,8 @@ def test_a_long_gap_splits_the_recording(tmp_path):
     tips = np.zeros((2000, 1, 3))
     tips[:, 0, 0] = np.sin(stamps / 1e9)
     write_bag(tmp_path / 'bag', {'/tip_positions': tips_messages(stamps, tips),
-                                 '/torque_commands': torque_messages(stamps, np.full((2000, 1, 2), 0.01))})
+                                 '/torque_commands': torque_messages(stamps,
+                                                                     np.full((2000, 1, 2), 0.01))})
     rec = read_recording(tmp_path / 'bag')
     assert tip_stretches(rec) == [slice(0, 1000), slice(1000, 2000)]
     parts = label_finger(rec, 0, 1e3, 1e-7, np.zeros(3))
@@ -243,15 +263,21 @@ def test_training_on_a_jittery_bag_records_the_provenance(tmp_path):
     assert train_tool.main(['--bag', str(tmp_path / 'train'), '--val-bag', str(tmp_path / 'val'),
                             '--out', str(out), '--epochs', '2', '--rollout-epochs', '2',
                             '--meas-std', '1e-6']) == 0
-    assert sorted(p.name for p in out.iterdir()) == ['fig2_loss.png', 'fig3_accel_val.png', 'metrics.json', 'model.pt']
-    assert not [p for p in tmp_path.iterdir() if p.name.startswith('.out')], 'the staging directory is left'
+    assert sorted(p.name for p in out.iterdir()) == ['fig2_loss.png', 'fig3_accel_val.png',
+                                                     'metrics.json', 'model.pt']
+    assert not [p for p in tmp_path.iterdir()
+                if p.name.startswith('.out')], 'the staging directory is left'
     data = read_checkpoint(out / 'model.pt')['data']
     [bag] = data['bags']
-    assert bag['path'] == str((tmp_path / 'train').resolve()) and list(bag['fingers']) == ['finger_1']
-    assert bag['tips']['topic'] == '/hand/tip_positions' and bag['torques']['type'] == 'sensor_msgs/msg/JointState'
-    assert bag['tips']['rate_hz'] == pytest.approx(120.0, rel=0.02) and bag['tips']['duration_s'] > 3.5
+    assert (bag['path'] == str((tmp_path / 'train').resolve())
+            and list(bag['fingers']) == ['finger_1'])
+    assert (bag['tips']['topic'] == '/hand/tip_positions'
+            and bag['torques']['type'] == 'sensor_msgs/msg/JointState')
+    assert (bag['tips']['rate_hz'] == pytest.approx(120.0, rel=0.02)
+            and bag['tips']['duration_s'] > 3.5)
     assert bag['fingers']['finger_1']['stretches'][0]['resampled'] is True
-    assert data['noise_std'] == 1e-6 and data['train_samples'] == bag['fingers']['finger_1']['samples']
+    assert (data['noise_std'] == 1e-6
+            and data['train_samples'] == bag['fingers']['finger_1']['samples'])
 
 
 def test_the_labels_filter_is_tuned_on_the_excited_tips_not_on_the_rest_before_them(tmp_path):
@@ -280,6 +306,7 @@ def test_the_labels_filter_is_tuned_on_the_excited_tips_not_on_the_rest_before_t
     tt, xy = tuning_stretch(rec, 0)
     assert len(tt) == min(TUNE_SAMPLES, int(moving.sum())) and tt[0] == 0.0
     np.testing.assert_array_equal(xy, tips[moving, 0, :2][:len(tt)])
-    at_rest = derivatives.tune_jerk_psd(t[:TUNE_SAMPLES], tips[:TUNE_SAMPLES, 0, :2], 5e-5, JERK_GRID)
+    at_rest = derivatives.tune_jerk_psd(t[:TUNE_SAMPLES], tips[:TUNE_SAMPLES, 0, :2], 5e-5,
+                                        JERK_GRID)
     q = tune_jerk(rec, 0, 5e-5)
     assert q >= 100 * at_rest, (q, at_rest)

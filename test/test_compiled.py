@@ -40,8 +40,8 @@ U_TOL = 1e-4
 N = 4
 U_MAX = 0.0625
 ROOT = Path(__file__).resolve().parents[1]
-KERNELS = ('sdc_forward', 'sdre_gains', 'tracking_torques', 'sdre_step', 'model_inversion', 'tracking_step',
-           'feedforward_step', 'kf_step')
+KERNELS = ('sdc_forward', 'sdre_gains', 'tracking_torques', 'sdre_step', 'model_inversion',
+           'tracking_step', 'feedforward_step', 'kf_step')
 
 
 @pytest.fixture(scope='module')
@@ -69,11 +69,13 @@ def replay(law, loop, acc=None):
 
 
 def fast_and_reference(law, model, weights, **options):
-    return [make_law(law, model, weights, U_MAX, method=m, lowpass_hz=0.0, **options) for m in ('fast', 'reference')]
+    return [make_law(law, model, weights, U_MAX, method=m, lowpass_hz=0.0, **options)
+            for m in ('fast', 'reference')]
 
 
 def test_check_bits_are_those_of_riccati_check():
-    for name in ('STABILIZABLE', 'HURWITZ', 'ACL_SINGULAR', 'SOLVE_FAILED', 'NONFINITE', 'RESIDUAL', 'P_NOT_PD'):
+    for name in ('STABILIZABLE', 'HURWITZ', 'ACL_SINGULAR', 'SOLVE_FAILED', 'NONFINITE', 'RESIDUAL',
+                 'P_NOT_PD'):
         assert getattr(compiled_sdre, name) == int(Check[name])
 
 
@@ -119,7 +121,7 @@ def test_sdre_law_equals_the_reference_along_a_closed_loop(model, weights, loop)
 
 @pytest.mark.parametrize('ff_at', ['x', 'ref'])
 def test_feedforward_law_equals_the_reference_along_a_closed_loop(model, weights, loop, ff_at):
-    acc = np.gradient(loop.ref_vel, 1e-3, axis=0)                  # a moving reference's acceleration
+    acc = np.gradient(loop.ref_vel, 1e-3, axis=0)  # a moving reference's acceleration
     fast, ref = fast_and_reference('sdre_ff', model, weights, ff_at=ff_at)
     out_f, out_r = replay(fast, loop, acc), replay(ref, loop, acc)
     uf, ur = (np.array([o.u_unsat for o in outs]) for outs in (out_f, out_r))
@@ -210,24 +212,27 @@ def test_anti_stabilising_and_garbage_warm_starts_are_rejected_then_solved_exact
     A, G = full_sdc_matrices(a, g)
     anti = np.stack([-care(-A[i], G[i], weights.Q, weights.R) for i in range(N)])
     E = np.random.default_rng(1).normal(size=(N, 4, 4))
-    starts = {'anti-stabilising': anti, 'random': E + E.transpose(0, 2, 1), 'nan': np.full((N, 4, 4), np.nan),
-              'huge': np.full((N, 4, 4), 1e30)}
-    ref = SdreController(weights.Q, weights.R, U_MAX, n=N, method='reference').step_sdc(a, g, x, zero)
+    starts = {'anti-stabilising': anti, 'random': E + E.transpose(0, 2, 1),
+              'nan': np.full((N, 4, 4), np.nan), 'huge': np.full((N, 4, 4), 1e30)}
+    ref = SdreController(weights.Q, weights.R, U_MAX, n=N,
+                         method='reference').step_sdc(a, g, x, zero)
     state, settings = solved_state(weights, a, g, x)
     for name, P0 in starts.items():
         start = SdreState(P0, *state[1:])
         after, out = kernel_step(start, settings, a, g, x)
-        assert not after.warm.any() and out.failed.all(), name     # every finger rejected, with a reason
+        # every finger rejected, with a reason
+        assert not after.warm.any() and out.failed.all(), name
         if name == 'anti-stabilising':
-            assert np.all(out.residual < 1e-6) and np.all(out.failed & (Check.P_NOT_PD | Check.HURWITZ))
+            assert (np.all(out.residual < 1e-6)
+                    and np.all(out.failed & (Check.P_NOT_PD | Check.HURWITZ)))
         assert np.isfinite(out.u).all()
         np.testing.assert_array_equal(after.K, state.K)            # the gains in use are kept
         ctrl = SdreController(weights.Q, weights.R, U_MAX, n=N)
         ctrl.warm_start(P0)
-        k = ctrl.step_sdc(a, g, x, zero)                            # the same step with the exact path
+        k = ctrl.step_sdc(a, g, x, zero)  # the same step with the exact path
         assert k.ok.all() and not k.failed_checks.any() and np.all(k.nk_iterations == 0), name
         np.testing.assert_allclose(k.K, ref.K, rtol=1e-9, err_msg=name)
-        assert ctrl.step_sdc(a, g, x, zero).nk_iterations.min() >= 1      # and back to Newton–Kleinman
+        assert ctrl.step_sdc(a, g, x, zero).nk_iterations.min() >= 1  # and back to Newton–Kleinman
 
 
 def test_singular_closed_loop_block_is_flagged(model, weights):
@@ -238,9 +243,11 @@ def test_singular_closed_loop_block_is_flagged(model, weights):
     C = a[:, :, :2] - (W @ state.P[:, 2:, :])[:, :, :2]
     cond_C, cond_G = np.linalg.cond(C), np.linalg.cond(g)
     for i in range(N):
-        assert cond_G[i] < cond_C[i], 'a limit between them must trip the A_cl test alone'  # (this model)
+        assert cond_G[i] < cond_C[i], (
+            'a limit between them must trip the A_cl test alone')  # (this model)
         limit = np.sqrt(cond_G[i] * cond_C[i])
-        after, out = kernel_step(state, SdreSettings.of(weights.Q, weights.R, U_MAX, cond_max=limit), a, g, x)
+        after, out = kernel_step(state, SdreSettings.of(weights.Q, weights.R, U_MAX,
+                                                        cond_max=limit), a, g, x)
         expected = cond_C >= limit
         np.testing.assert_array_equal(out.failed & Check.ACL_SINGULAR != 0, expected)
         np.testing.assert_array_equal(after.warm, ~expected)
@@ -248,7 +255,8 @@ def test_singular_closed_loop_block_is_flagged(model, weights):
 
 def test_overflowing_torque_is_zeroed_like_the_reference(model, weights):
     x, a, g = sdc_plant(model, 8)
-    fast, ref = (SdreController(weights.Q, weights.R, U_MAX, n=N, method=m) for m in ('fast', 'reference'))
+    fast, ref = (SdreController(weights.Q, weights.R, U_MAX, n=N, method=m)
+                 for m in ('fast', 'reference'))
     zero = np.zeros((N, 4))
     for _ in range(2):
         K = fast.step_sdc(a, g, x, zero).K
@@ -311,13 +319,13 @@ def test_warm_up_leaves_one_signature_per_kernel_and_the_laws_add_none(model, we
     kf = ConstantVelocityKF(1e-3, 1.0, 5e-5, n=N)
     read_only = np.frombuffer(rest.tobytes(), dtype=float).reshape(N, 2)     # as a decoded message
     for k in range(3):
-        for law in laws:                              # lists, views, read-only buffers, as nodes hand them over
-            law.compute((rest + 1e-3 * k).tolist(), np.zeros((N, 4))[:, 1:3], read_only, np.zeros((N, 2)),
-                        ref_acc=read_only)
+        for law in laws:  # lists, views, read-only buffers, as nodes hand them over
+            law.compute((rest + 1e-3 * k).tolist(), np.zeros((N, 4))[:, 1:3], read_only,
+                        np.zeros((N, 2)), ref_acc=read_only)
         kf.step((rest + 1e-3 * k)[:, ::-1], np.ones(N))
         kf.step(read_only, np.ones(N, dtype=bool)[::-1])
-    SdreController(weights.Q, weights.R, U_MAX, n=N).step_sdc(*model.sdc_blocks(np.zeros((N, 4))), np.zeros((N, 4)),
-                                                              np.zeros((N, 4)).tolist())
+    SdreController(weights.Q, weights.R, U_MAX, n=N).step_sdc(
+        *model.sdc_blocks(np.zeros((N, 4))), np.zeros((N, 4)), np.zeros((N, 4)).tolist())
     assert [len(k.signatures) for k in kernels] == before
 
 
@@ -328,10 +336,11 @@ def test_warm_up_compiles_once_then_loads_from_the_cache(tmp_path):
     second loads every one of them from the cache (no compilation)."""
     code = ('from soft_gripper_sdre.control import compiled as c; c.warm_up(); '
             f'ks = [getattr(c, name) for name in {KERNELS!r}]; '
-            'print(sum(len(k.stats.cache_misses) for k in ks), sum(sum(k.stats.cache_hits.values()) for k in ks))')
+            'print(sum(len(k.stats.cache_misses) for k in ks), '
+            'sum(sum(k.stats.cache_hits.values()) for k in ks))')
     env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path), PYTHONPATH=str(ROOT))
-    runs = [subprocess.run([sys.executable, '-c', code], env=env, capture_output=True, text=True, check=True,
-                           timeout=290).stdout.split() for _ in range(2)]
+    runs = [subprocess.run([sys.executable, '-c', code], env=env, capture_output=True, text=True,
+                           check=True, timeout=290).stdout.split() for _ in range(2)]
     (miss1, hit1), (miss2, hit2) = ([int(v) for v in r] for r in runs)
     assert miss1 >= len(KERNELS) and hit1 == 0
     assert miss2 == 0 and hit2 >= len(KERNELS)

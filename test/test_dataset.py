@@ -14,7 +14,8 @@ N = 300
 @pytest.fixture(scope='module')
 def record():
     """0.3 s of u1 collected on the simulated finger with 10 µm measurement noise."""
-    return collect_signal('u1', SimConfig(scene='finger', noise_std=1e-5, seed=1), duration=N * 1e-3)
+    return collect_signal('u1', SimConfig(scene='finger', noise_std=1e-5, seed=1),
+                          duration=N * 1e-3)
 
 
 def write(path, record, **changes):
@@ -130,7 +131,8 @@ def test_nan_samples_are_dropped_with_a_warning(tmp_path, record, caplog):
     np.testing.assert_array_equal(rec.t, record['t'][22:250])
     np.testing.assert_array_equal(rec.tip, record['tip'][22:250])
     np.testing.assert_array_equal(rec.vel_true, record['vel_true'][22:250])
-    assert all(np.isfinite(getattr(rec, k)).all() for k in ('t', 'u', 'tip', 'vel_true', 'acc_true'))
+    assert all(np.isfinite(getattr(rec, k)).all()
+               for k in ('t', 'u', 'tip', 'vel_true', 'acc_true'))
 
 
 def test_clean_file_logs_no_warning(tmp_path, record, caplog):
@@ -145,7 +147,8 @@ def test_clean_file_logs_no_warning(tmp_path, record, caplog):
     pytest.param(np.arange(0, N, 2), id='every-other-nan'),
 ])
 def test_record_without_a_usable_finite_run_is_refused(tmp_path, record, bad_rows):
-    """All-NaN samples, or NaN every other sample, leave no 10 consecutive finite samples: refused."""
+    """All-NaN samples, or NaN every other sample, leave no 10 consecutive finite samples:
+    refused."""
     tip = record['tip'].copy()
     tip[bad_rows] = np.nan
     path = write(tmp_path / 'u1.npz', record, tip=tip)

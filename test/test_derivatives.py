@@ -1,4 +1,5 @@
-"""KF + RTS derivative estimates: a closed-form track, real simulator data, jerk-intensity tuning."""
+"""KF + RTS derivative estimates: a closed-form track, real simulator data, jerk-intensity
+tuning."""
 import numpy as np
 import pytest
 
@@ -21,11 +22,13 @@ def constant_acceleration_track(n: int = 2000):
 @pytest.fixture(scope='module')
 def noisy_record():
     """1 s of the x1 excitation (independent torques) on the simulated finger, 5 µm noise."""
-    return collect_signal('x1', SimConfig(scene='finger', noise_std=NOISE_STD, seed=3), duration=1.0)
+    return collect_signal('x1', SimConfig(scene='finger', noise_std=NOISE_STD, seed=3),
+                          duration=1.0)
 
 
 def test_noiseless_constant_acceleration_track_is_recovered_after_the_start():
-    """Past the first 100 samples the smoothed p, ṗ, p̈ of a constant-acceleration track are exact."""
+    """Past the first 100 samples the smoothed p, ṗ, p̈ of a constant-acceleration track are
+    exact."""
     t, pos, vel, acc = constant_acceleration_track()
     p, v, a = derivatives.estimate_kinematics(t, pos, jerk_psd=1.0, meas_std=0.0)
     assert p.shape == v.shape == a.shape == pos.shape
@@ -76,7 +79,8 @@ def test_tuned_jerk_psd_maximises_the_likelihood_over_its_neighbours(noisy_recor
     (dict(jerk_psd=0.0), 'jerk_psd'), (dict(jerk_psd=np.nan), 'jerk_psd'),
     (dict(t=np.r_[0.0, 1e-3, 3e-3, 4e-3]), 'uniformly'), (dict(pos=np.zeros((3, 2))), 'N >= 3')])
 def test_bad_arguments_are_value_errors(change, match):
-    """Invalid q, a non-uniform time grid or mismatched lengths raise ValueError naming the problem."""
+    """Invalid q, a non-uniform time grid or mismatched lengths raise ValueError naming the
+    problem."""
     args = dict(t=np.arange(4) * DT, pos=np.zeros((4, 2)), jerk_psd=1.0, meas_std=0.0)
     args.update(change)
     with pytest.raises(ValueError, match=match):

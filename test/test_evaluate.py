@@ -16,13 +16,14 @@ def model():
 
 @pytest.fixture(scope='module')
 def fast_runs(model):
-    """The four laws of the expectation (docs/results.md "Beyond the paper"), the feedforward laws beyond the paper (SDRE with and
-    without integral action, oracle and PD with the reference acceleration) and computed torque, on
-    the first 1.5 s of the fast grasp (closing, holding, half the opening), with the default noise
-    and weights."""
+    """The four laws of the expectation (docs/results.md "Beyond the paper"), the feedforward laws
+    beyond the paper (SDRE with and without integral action, oracle and PD with the reference
+    acceleration) and computed torque, on the first 1.5 s of the fast grasp (closing, holding, half
+    the opening), with the default noise and weights."""
     w = Weights(**DEFAULT_WEIGHTS)
     return {k: ev.run_law(k, 'fast', model, w, duration=1.5)[0]
-            for k in ('sdre', 'lqr', 'pd', 'oracle', 'sdre_ff', 'oracle_ff', 'pd_ff', 'sdre_ff_noi', 'computed_torque')}
+            for k in ('sdre', 'lqr', 'pd', 'oracle', 'sdre_ff', 'oracle_ff', 'pd_ff', 'sdre_ff_noi',
+                      'computed_torque')}
 
 
 @pytest.mark.slow
@@ -42,8 +43,9 @@ def test_learned_sdre_is_within_1_5x_of_the_oracle(fast_runs):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason='measured: the learned SDRE does not beat LQR frozen at the origin '
-                   'and the tuned PD on free-space RMSE (docs/results.md "Beyond the paper")')
+@pytest.mark.xfail(strict=True, reason='measured: the learned SDRE does not beat LQR frozen at the '
+                   'origin and the tuned PD on free-space RMSE (docs/results.md '
+                   '"Beyond the paper")')
 def test_learned_sdre_beats_lqr_and_pd(fast_runs):
     """The expectation, first half: does NOT hold as measured (strict xfail: this test
     starts failing the day it holds, so docs/results.md must then be updated)."""
@@ -54,8 +56,8 @@ def test_learned_sdre_beats_lqr_and_pd(fast_runs):
 @pytest.mark.slow
 def test_sdre_with_feedforward_beats_lqr_and_pd_and_is_within_1_5x_of_the_oracle(fast_runs):
     """Beyond the paper: the expectation holds for SDRE feedback + model-inversion feedforward
-    (docs/results.md "Beyond the paper"), against the PD with the same reference acceleration too, and
-    within 1.5× of the oracle with the same feedforward (measured: below it)."""
+    (docs/results.md "Beyond the paper"), against the PD with the same reference acceleration too,
+    and within 1.5× of the oracle with the same feedforward (measured: below it)."""
     s = fast_runs['sdre_ff'].rmse_mm_grasp
     assert s < fast_runs['lqr'].rmse_mm_grasp and s < fast_runs['pd'].rmse_mm_grasp
     assert s < fast_runs['pd_ff'].rmse_mm_grasp
@@ -71,12 +73,14 @@ def test_integral_action_removes_the_held_offset_without_giving_back_tracking(fa
     worse than 1.1× the law's without it; the grasp holds."""
     on, off = fast_runs['sdre_ff'], fast_runs['sdre_ff_noi']
     assert on.held_mm < off.held_mm and on.held_mm <= 0.025
-    assert on.rmse_mm_grasp <= 1.1 * off.rmse_mm_grasp and on.rmse_mm_worst <= 1.1 * off.rmse_mm_worst
+    assert (on.rmse_mm_grasp <= 1.1 * off.rmse_mm_grasp
+            and on.rmse_mm_worst <= 1.1 * off.rmse_mm_worst)
     assert on.grasp_success and on.saturated_pct == 0.0
 
 
 @pytest.mark.slow
-def test_computed_torque_tracks_at_least_as_well_as_the_riccati_gains_on_the_same_inversion(fast_runs):
+def test_computed_torque_tracks_at_least_as_well_as_the_riccati_gains_on_the_same_inversion(
+        fast_runs):
     """Computed torque with the learned model (tuned PD gains where sdre_ff has the SDRE's Riccati
     gains) against sdre_ff without integral action, as docs/results.md reports: on this part of the
     fast grasp the grasping fingers are tracked as well (within 10 %) and the worst finger better;
@@ -91,7 +95,8 @@ def test_run_law_leaves_the_law_specs_as_they_were(model):
     """A spec's options (q_pos here) are taken from a copy: the same law runs the same way twice."""
     import copy
     before = copy.deepcopy(ev.LAW_SPECS)
-    ev.run_law('sdre_4e6', 'fast', model, Weights(**DEFAULT_WEIGHTS), duration=0.005, integral_gain=None)
+    ev.run_law('sdre_4e6', 'fast', model, Weights(**DEFAULT_WEIGHTS), duration=0.005,
+               integral_gain=None)
     assert ev.LAW_SPECS == before
 
 
@@ -120,7 +125,8 @@ def test_report_is_written(tmp_path):
 
 
 def _summary(law: str, rmse: float, success: bool = True) -> ev.RunSummary:
-    return ev.RunSummary(law, 'fast', rmse, 2 * rmse, rmse, 2 * rmse, 0.01, 0.0, success, 0.1, 0.0, 50.0)
+    return ev.RunSummary(law, 'fast', rmse, 2 * rmse, rmse, 2 * rmse, 0.01, 0.0, success, 0.1,
+                         0.0, 50.0)
 
 
 def test_law_figures_add_the_feedforward_comparison_when_the_feedforward_law_ran(tmp_path):
@@ -133,9 +139,10 @@ def test_law_figures_add_the_feedforward_comparison_when_the_feedforward_law_ran
     summaries = [_summary('sdre', 1.0), _summary('lqr', 2.0)]
     names = ev.law_figures({'sdre': run(1e-3), 'lqr': run(2e-3)}, summaries, 'fast', tmp_path)
     assert names == ['fast_laws.png']
-    summaries = [_summary('sdre', 1.0), _summary('pd', float('nan'), False), _summary('sdre_ff', 0.1)]
-    names = ev.law_figures({'sdre': run(1e-3), 'pd': run(2e-3), 'sdre_ff': run(1e-4)}, summaries, 'fast',
-                           tmp_path)
+    summaries = [_summary('sdre', 1.0), _summary('pd', float('nan'), False),
+                 _summary('sdre_ff', 0.1)]
+    names = ev.law_figures({'sdre': run(1e-3), 'pd': run(2e-3), 'sdre_ff': run(1e-4)}, summaries,
+                           'fast', tmp_path)
     assert names == ['fast_laws.png', 'fast_feedforward.png']
     assert all((tmp_path / n).read_bytes()[:4] == b'\x89PNG' for n in names)
 
@@ -143,7 +150,8 @@ def test_law_figures_add_the_feedforward_comparison_when_the_feedforward_law_ran
 def test_the_traced_laws_are_the_highlighted_the_papers_and_the_best_rival():
     from soft_gripper_sdre.analysis.law_plots import detail_laws
     scores = {'sdre': (0.4, True), 'sdre_ff': (0.08, True), 'pd': (0.2, True), 'lqr': (0.3, True),
-              'oracle_ff': (0.01, True), 'koopman': (float('nan'), False), 'sdre_ff_ref': (0.09, True)}
+              'oracle_ff': (0.01, True), 'koopman': (float('nan'), False),
+              'sdre_ff_ref': (0.09, True)}
     # no yardstick that knows the plant, no diverged run, no variant of the highlighted law
     assert detail_laws(scores, 'sdre_ff') == ['sdre_ff', 'sdre', 'pd']
 
@@ -154,7 +162,8 @@ def test_command_line_writes_the_report(tmp_path, run_main):
     import subprocess
     import sys
     out = tmp_path / 'ev'
-    proc = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.evaluate', '--out', str(out),
+    proc = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.evaluate',
+                           '--out', str(out),
                            '--laws', 'lqr', 'pd', '--trajectories', 'fast', '--duration', '0.4',
                            '--no-model-score'], capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr
@@ -162,8 +171,10 @@ def test_command_line_writes_the_report(tmp_path, run_main):
     assert '| LQR at the origin |' in text and '| task-space PD |' in text
     assert (out / 'fast_laws.png').stat().st_size > 10_000
     runs = json.loads((out / 'evaluate.json').read_text())['runs']
-    assert {r['law'] for r in runs} == {'lqr', 'pd'} and all(r['check_fail_pct'] == 0.0 for r in runs)
-    assert all(np.isfinite(r['compute_us']) and r['compute_us'] > 0 for r in runs)   # the loop timed the law
+    assert ({r['law'] for r in runs} == {'lqr', 'pd'}
+            and all(r['check_fail_pct'] == 0.0 for r in runs))
+    assert all(np.isfinite(r['compute_us']) and r['compute_us'] > 0
+               for r in runs)  # the loop timed the law
     # the refusals, in this process (the run above went through python -m)
     bad = run_main(ev.main, '--laws', 'mpc')
     assert bad.returncode == 2 and 'mpc' in bad.stderr

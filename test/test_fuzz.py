@@ -95,8 +95,8 @@ class Fuzz:
         msg = MultiDOFJointTrajectory()
         self.stamp(msg)
         n = self.count() // 2 if self.rng.random() < 0.3 else 4
-        msg.joint_names = [str(self.rng.choice(NAMES)) for _ in range(n)] if self.rng.random() < 0.3 \
-            else NAMES[:n]
+        msg.joint_names = [str(self.rng.choice(NAMES)) for _ in range(n)] \
+            if self.rng.random() < 0.3 else NAMES[:n]
         numbers = []
         for k in range(points):
             pt = MultiDOFJointTrajectoryPoint()
@@ -136,8 +136,8 @@ def _fuzz(executor, pub, make, node, received, n=N_MESSAGES):
 
 
 def _record(node: str, topic: str, rejected: int, bad: int) -> None:
-    record(f'fuzz_{node}', injected=f'hostile {topic} messages (seeded)', times=N_MESSAGES, crashes=0,
-           nonfinite_outputs=0, messages_lost=None, recovery_s=None,
+    record(f'fuzz_{node}', injected=f'hostile {topic} messages (seeded)', times=N_MESSAGES,
+           crashes=0, nonfinite_outputs=0, messages_lost=None, recovery_s=None,
            notes=f'{rejected} rejected and counted, of which {bad} held NaN/Inf; a good message is '
                  'answered afterwards')
 
@@ -156,8 +156,8 @@ def test_fuzzed_torque_commands_never_reach_the_physics():
         pub = probe.create_publisher(JointState, TORQUE_COMMANDS, LOOP_QOS)
         executor.add_node(sim)
         executor.add_node(probe)
-        assert spin_until(executor, lambda: pub.get_subscription_count() > 0 and sim.stepping.started
-                          and probe.received[TIP_POSITIONS])
+        assert spin_until(executor, lambda: pub.get_subscription_count() > 0
+                          and sim.stepping.started and probe.received[TIP_POSITIONS])
         _fuzz(executor, pub, fz.joint_state, sim,
               ('commands', 'bad_command', 'stale_command', 'future_command'))
         rejected = _rejected(sim, ('bad_command', 'stale_command', 'future_command'))
@@ -205,7 +205,8 @@ def test_fuzzed_tips_never_reach_the_plan():
         assert c['bad_message'] >= fz.bad > 50 and c['tips'] > 50
         plans = probe.received[GRASP_REFERENCE]
         assert spin_until(executor, lambda: len(plans) == c['references'] == c['tips'], 5.0)
-        assert _finite_outputs(plans, lambda m: np.concatenate([a.ravel() for a in cv.msg_to_reference(m, 4)[2:]]))
+        assert _finite_outputs(plans, lambda m: np.concatenate(
+            [a.ravel() for a in cv.msg_to_reference(m, 4)[2:]]))
         _record('trajectory', 'tip_positions', c['bad_message'], fz.bad)
 
 
@@ -235,11 +236,13 @@ def test_fuzzed_clock_ticks_restart_the_plan_and_nothing_else():
         for msg in plans[1:]:
             for a, b in zip(cv.msg_to_reference(msg, 4), first):
                 np.testing.assert_array_equal(a, b)
-        assert _finite_outputs(plans[:1], lambda m: np.concatenate([a.ravel() for a in cv.msg_to_reference(m, 4)[2:]]))
-        record('fuzz_trajectory_clock', injected='hostile /clock ticks (zero, past, far future, jumping '
-               'back)', times=N_MESSAGES, crashes=0, nonfinite_outputs=0, messages_lost=None,
-               recovery_s=None, notes=f'{c["resets"]} restarts detected, each answered with the plan '
-               'again (from the given rest pose, identical and finite)')
+        assert _finite_outputs(plans[:1], lambda m: np.concatenate(
+            [a.ravel() for a in cv.msg_to_reference(m, 4)[2:]]))
+        record('fuzz_trajectory_clock', injected='hostile /clock ticks (zero, past, far future, '
+               'jumping back)', times=N_MESSAGES, crashes=0, nonfinite_outputs=0,
+               messages_lost=None, recovery_s=None,
+               notes=f'{c["resets"]} restarts detected, each answered with the plan again (from '
+                     'the given rest pose, identical and finite)')
 
 
 def test_fuzzed_estimates_and_references_never_reach_the_actuators():
@@ -257,7 +260,8 @@ def test_fuzzed_estimates_and_references_never_reach_the_actuators():
               ('estimates', 'bad_estimate', 'old_estimate'), N_MESSAGES // 2)
         bad_est = fz.bad - bad_before - bad_refs
         assert node.diag.counters['bad_reference'] >= bad_refs > 20
-        assert node.diag.counters['bad_estimate'] + node.diag.counters['old_estimate'] >= bad_est > 20
+        assert (node.diag.counters['bad_estimate'] + node.diag.counters['old_estimate']
+                >= bad_est > 20)
         assert _finite_outputs(cmds, lambda m: cv.msg_to_torques(m, 4)[1])
         # a clean restart of time: the controller resets and tracks again
         times = np.arange(0, 21) * 5_000_000

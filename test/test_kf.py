@@ -68,9 +68,9 @@ def test_invalid_rows_only_predict():
     x_before, P_before = kf.x.copy(), kf.P.copy()
     kf.step(np.array([[1e-3, 0.0], [1e-3, 0.0]]), valid=np.array([False, True]))
     F, Q = kf.F, kf.Q
-    np.testing.assert_allclose(kf.x[0], F @ x_before[0], rtol=1e-14, atol=1e-18)      # row 0: predicted
+    np.testing.assert_allclose(kf.x[0], F @ x_before[0], rtol=1e-14, atol=1e-18)  # row 0: predicted
     np.testing.assert_allclose(kf.P[0], F @ P_before[0] @ F.T + Q, rtol=1e-14, atol=1e-18)
-    assert kf.x[1, 0] > F[0] @ x_before[1]                                           # row 1: updated
+    assert kf.x[1, 0] > F[0] @ x_before[1]                                        # row 1: updated
     x_before = kf.x.copy()
     kf.step(np.zeros((2, 2)), valid=False)                   # no row valid: a prediction for both
     np.testing.assert_allclose(kf.x, x_before @ F.T, rtol=1e-14, atol=1e-18)
@@ -95,7 +95,8 @@ def test_variable_steps_match_filterpy_with_the_same_dt_sequence(model):
     from filterpy.kalman import KalmanFilter
     rng = np.random.default_rng(11)
     q, sigma, n = 2.0, 5e-5, 3
-    dts = np.concatenate([rng.uniform(0.8, 1.2, 150) / 120, rng.uniform(0.8, 1.2, 150) / 400, [0.031]])
+    dts = np.concatenate([rng.uniform(0.8, 1.2, 150) / 120, rng.uniform(0.8, 1.2, 150) / 400,
+                          [0.031]])
     rng.shuffle(dts)
     t = np.cumsum(dts)
     truth = rng.normal(size=(n, 2)) * 1e-3 + rng.normal(size=(n, 2)) * 0.02 * t[:, None, None]
@@ -135,7 +136,8 @@ def test_compiled_matrices_agree_with_cv_matrices():
         for dt in (1e-4, 8.3e-3, 0.05):
             F, Q = np.empty((4, 4)), np.empty((4, 4))
             x, P = np.zeros((1, 4)), np.zeros((1, 4, 4))
-            kf_step_dt(x, P, np.zeros((1, 2)), np.zeros(1, dtype=np.bool_), dt, 3.0, coupling, F, Q, np.eye(2))
+            kf_step_dt(x, P, np.zeros((1, 2)), np.zeros(1, dtype=np.bool_), dt, 3.0, coupling, F, Q,
+                       np.eye(2))
             F_ref, Q_ref = cv_matrices(dt, 3.0, model)
             np.testing.assert_array_equal(F, F_ref)
             np.testing.assert_allclose(Q, Q_ref, rtol=1e-15, atol=0)

@@ -1,4 +1,5 @@
-"""The laws (soft_gripper_sdre.control.laws, and the oracles of analysis.oracle) against closed forms."""
+"""The laws (soft_gripper_sdre.control.laws, and the oracles of analysis.oracle) against closed
+forms."""
 from types import SimpleNamespace
 
 import numpy as np
@@ -34,7 +35,8 @@ class LinearModel:
     def AG(self, x):
         x = np.atleast_2d(x)
         n = x.shape[0]
-        return np.broadcast_to(self._A, (n, 4, 4)).copy(), np.broadcast_to(self._G, (n, 4, 2)).copy()
+        return (np.broadcast_to(self._A, (n, 4, 4)).copy(),
+                np.broadcast_to(self._G, (n, 4, 2)).copy())
 
 
 def test_lqr_gain_of_the_double_integrator_is_the_closed_form():
@@ -79,11 +81,11 @@ def test_laws_saturate_roll_off_and_refuse_non_finite_states():
     ref = pos + [[1.0, 0.0], [np.nan, 0.0]]
     out = law.compute(pos, np.zeros((2, 2)), ref, np.zeros((2, 2)))
     assert out.saturated[0, 0] and not out.ok[1] and out.fallback[1]
-    np.testing.assert_array_equal(out.u[1], [0.0, 0.0])           # no torque from a NaN reference
-    np.testing.assert_allclose(out.u[0], [0.05, 0.0])             # first step: the filter starts there
+    np.testing.assert_array_equal(out.u[1], [0.0, 0.0])        # no torque from a NaN reference
+    np.testing.assert_allclose(out.u[0], [0.05, 0.0])          # first step: the filter starts there
     out = law.compute(pos, np.zeros((2, 2)), pos, np.zeros((2, 2)))
     a = np.exp(-2 * np.pi * 40.0 * 1e-3)
-    np.testing.assert_allclose(out.u[0], [a * 0.05, 0.0])         # u_k = a u_{k−1} + (1 − a) · 0
+    np.testing.assert_allclose(out.u[0], [a * 0.05, 0.0])      # u_k = a u_{k−1} + (1 − a) · 0
     law.reset()
     assert np.all(law.compute(pos, np.zeros((2, 2)), pos, np.zeros((2, 2))).u == 0.0)
 
@@ -96,11 +98,13 @@ def test_make_law_names_and_options():
     assert isinstance(make_law('pd', model, w, 0.06), PdLaw)
     with pytest.raises(ValueError, match='unknown law .*known'):
         make_law('mpc', model, w, 0.06)
-    with pytest.raises(ValueError, match=r"adaptive=True \(state-dependent weights Q\(x\)\) is not an option of the 'pd' law.*'sdre'"):
+    with pytest.raises(ValueError, match=r"adaptive=True \(state-dependent weights Q\(x\)\) is "
+                                         r"not an option of the 'pd' law.*'sdre'"):
         make_law('pd', model, w, 0.06, adaptive=True)
     with pytest.raises(ValueError, match='not an option'):
         make_law('sdre', model, w, 0.06, adaptve=True)              # a misspelt option is refused
-    assert isinstance(make_law('lqr', model, w, 0.06, adaptive=False, pd_gains=None), LqrLaw)   # off: fine
+    assert isinstance(make_law('lqr', model, w, 0.06, adaptive=False, pd_gains=None),
+                      LqrLaw)  # off: fine
     # the registry holds every graph law, and the oracles once analysis.oracle is imported
     assert set(GRAPH_LAWS) | set(ORACLE_LAWS) <= set(LAW_REGISTRY)
     with pytest.raises(ValueError, match='kp'):
@@ -131,7 +135,8 @@ def test_oracle_needs_the_plant_state():
             law.compute(REST[None, :2], np.zeros((1, 2)), REST[None, :2], np.zeros((1, 2)))
         rest = SimpleNamespace(q=np.zeros((1, 10)), qd=np.zeros((1, 10)))
         law.observe(rest)
-        out = law.compute(REST[None, :2], np.zeros((1, 2)), REST[None, :2] + [[0, 1e-3]], np.zeros((1, 2)))
+        out = law.compute(REST[None, :2], np.zeros((1, 2)), REST[None, :2] + [[0, 1e-3]],
+                          np.zeros((1, 2)))
         assert out.ok.all() and np.all(np.isfinite(out.u)) and np.any(out.u != 0)
     finally:
         law.close()
@@ -144,7 +149,8 @@ W = Weights(1e6, 0.0, 1.6e4)
 @pytest.mark.parametrize('ff_at', ['x', 'ref'])
 def test_feedforward_on_the_reference_is_the_model_inversion(ff_at):
     """x = x_d: the feedback term vanishes and u = G₂⁻¹ (a_d − A₂₁ p_d − A₂₂ v_d), closed form."""
-    law = SdreFeedforwardLaw(LinearModel(**SPRING), W, 1e9, n_fingers=1, lowpass_hz=0.0, ff_at=ff_at)
+    law = SdreFeedforwardLaw(LinearModel(**SPRING), W, 1e9, n_fingers=1, lowpass_hz=0.0,
+                             ff_at=ff_at)
     p, v, a = sine_reference(0.07)
     out = law.compute(p, v, p, v, ref_acc=a)
     u = np.linalg.solve(SPRING['G2'], a[0] - SPRING['A21'] @ (p[0] - REST[:2]))
@@ -155,11 +161,13 @@ def test_feedforward_on_the_reference_is_the_model_inversion(ff_at):
 def test_feedforward_at_x_makes_the_models_error_dynamics_the_closed_loop_matrix():
     """ff_at='x' on a state-dependent model: ẋ − ẋ_d = (A(x) + G(x)K(x)) (x − x_d) exactly."""
     model = StiffeningModel()
-    law = SdreFeedforwardLaw(model, W, 1e9, n_fingers=3, lowpass_hz=0.0, method='reference', ff_at='x')
+    law = SdreFeedforwardLaw(model, W, 1e9, n_fingers=3, lowpass_hz=0.0, method='reference',
+                             ff_at='x')
     rng = np.random.default_rng(1)
     pos = REST[:2] + rng.normal(0, 3e-3, (3, 2))
     vel = rng.normal(0, 0.05, (3, 2))
-    ref, ref_vel, ref_acc = pos + rng.normal(0, 1e-3, (3, 2)), rng.normal(0, 0.05, (3, 2)), rng.normal(0, 1, (3, 2))
+    ref, ref_vel, ref_acc = (pos + rng.normal(0, 1e-3, (3, 2)), rng.normal(0, 0.05, (3, 2)),
+                             rng.normal(0, 1, (3, 2)))
     out = law.compute(pos, vel, ref, ref_vel, ref_acc=ref_acc)
     x = np.concatenate([pos - REST[:2], vel], 1)
     xd = np.concatenate([ref - REST[:2], ref_vel], 1)
@@ -188,16 +196,16 @@ def test_feedforward_with_bad_reference_acceleration_still_gives_finite_torque()
     acc = np.array([[np.nan, 1.0], [1e9, 0.0], [0.0, np.inf]])
     out = law.compute(pos, z, pos, z, ref_acc=acc)
     assert np.all(np.isfinite(out.u)) and np.all(np.abs(out.u) <= 0.05)
-    np.testing.assert_array_equal(out.fallback, [True, False, True])       # no feedforward there
-    np.testing.assert_array_equal(out.u[[0, 2]], 0.0)                      # on the reference, no a_d
+    np.testing.assert_array_equal(out.fallback, [True, False, True])     # no feedforward there
+    np.testing.assert_array_equal(out.u[[0, 2]], 0.0)                    # on the reference, no a_d
     assert out.saturated[1].any() and out.ok.all()
     law.reset()
-    none = law.compute(pos, z, pos + [[0, 1e-3]] * 3, z)                   # None: a_d = 0
+    none = law.compute(pos, z, pos + [[0, 1e-3]] * 3, z)                 # None: a_d = 0
     law.reset()
     zero = law.compute(pos, z, pos + [[0, 1e-3]] * 3, z, ref_acc=np.zeros((3, 2)))
     np.testing.assert_array_equal(none.u, zero.u)
     nan_state = law.compute(pos + [[np.nan, 0]] * 3, z, pos, z, ref_acc=np.ones((3, 2)))
-    np.testing.assert_array_equal(nan_state.u_unsat, 0.0)                 # no torque from a NaN state
+    np.testing.assert_array_equal(nan_state.u_unsat, 0.0)               # no torque from a NaN state
     assert np.all(np.isfinite(nan_state.u)) and not nan_state.ok.any() and nan_state.fallback.all()
     with pytest.raises(ValueError, match='ref_acc'):
         law.compute(pos, z, pos, z, ref_acc=np.zeros((2, 2)))
@@ -210,14 +218,16 @@ def test_pd_feedforward_adds_the_reference_acceleration_and_make_law_knows_the_n
     p, v, a = sine_reference(0.03)
     out = pd.compute(p, v, p + [[0, 1e-3]], v, ref_acc=a)
     np.testing.assert_allclose(G2 @ out.u[0], a[0] + [0, 2.0], rtol=1e-10)
-    plain = make_law('pd', LinearModel(G2=G2), W, 1e9, n_fingers=1, lowpass_hz=0.0, pd_gains=dict(kp=2000.0, kd=30.0))
-    np.testing.assert_allclose(G2 @ plain.compute(p, v, p + [[0, 1e-3]], v, ref_acc=a).u[0], [0, 2.0],
-                               atol=1e-12)                               # without feedforward: a_d unused
+    plain = make_law('pd', LinearModel(G2=G2), W, 1e9, n_fingers=1, lowpass_hz=0.0,
+                     pd_gains=dict(kp=2000.0, kd=30.0))
+    np.testing.assert_allclose(G2 @ plain.compute(p, v, p + [[0, 1e-3]], v, ref_acc=a).u[0],
+                               [0, 2.0], atol=1e-12)  # without feedforward: a_d unused
     assert isinstance(make_law('sdre_ff', LinearModel(), W, 0.06), SdreFeedforwardLaw)
     assert make_law('sdre_ff', LinearModel(), W, 0.06, ff_at='ref').ff_at == 'ref'
     with pytest.raises(ValueError, match='ff_at'):
         make_law('sdre_ff', LinearModel(), W, 0.06, ff_at='later')
-    with pytest.raises(ValueError, match=r"feedforward=True .* is not an option of the 'sdre' law.*'pd'"):
+    with pytest.raises(ValueError,
+                       match=r"feedforward=True .* is not an option of the 'sdre' law.*'pd'"):
         make_law('sdre', LinearModel(), W, 0.06, feedforward=True)
     oracle = make_law('oracle_ff', LinearModel(), W, 0.06, n_fingers=1)
     try:
@@ -227,7 +237,8 @@ def test_pd_feedforward_adds_the_reference_acceleration_and_make_law_knows_the_n
         oracle.observe(SimpleNamespace(q=np.zeros((1, 10)), qd=np.zeros((1, 10))))
         z = np.zeros((1, 2))
         still = oracle.compute(REST[None, :2], z, REST[None, :2], z, ref_acc=z).u
-        push = oracle.compute(REST[None, :2], z, REST[None, :2], z, ref_acc=np.array([[0.0, 1.0]])).u
+        push = oracle.compute(REST[None, :2], z, REST[None, :2], z,
+                              ref_acc=np.array([[0.0, 1.0]])).u
         assert np.all(np.isfinite(push)) and np.any(push != still)
     finally:
         oracle.close()

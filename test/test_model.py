@@ -1,4 +1,5 @@
-"""The SDC model: network shapes, A(x)/G(x) structure, real training, checkpoints and their refusal."""
+"""The SDC model: network shapes, A(x)/G(x) structure, real training, checkpoints and their
+refusal."""
 from dataclasses import asdict, replace
 import json
 
@@ -99,7 +100,8 @@ def test_sdcnet_output_shapes(hidden):
 
 
 def test_sdcnet_unstacks_columns():
-    """vec stacks columns: output k of NN_θ1 is [A21 A22][k % 2, k // 2], of NN_θ2 is G2[k % 2, k // 2]."""
+    """vec stacks columns: output k of NN_θ1 is [A21 A22][k % 2, k // 2], of NN_θ2 is
+    G2[k % 2, k // 2]."""
     torch.manual_seed(0)
     net = SDCNet()
     xs = torch.randn(3, 4)
@@ -113,7 +115,8 @@ def test_sdcnet_unstacks_columns():
 
 
 def test_A_and_G_have_the_companion_structure(model, data):
-    """A = [[0, I], [A21, A22]] and G = [[0], [G2]] for one state and for a batch (numpy in and out)."""
+    """A = [[0, I], [A21, A22]] and G = [[0], [G2]] for one state and for a batch (numpy in and
+    out)."""
     x = data['x_val'][::100]
     A, G = model.AG(x)
     assert isinstance(A, np.ndarray) and A.shape == (len(x), 4, 4) and G.shape == (len(x), 4, 2)
@@ -173,7 +176,8 @@ def test_training_lowers_the_validation_loss(trained, data):
     assert min(result.val_loss) < 0.6 * untrained, (untrained, result.val_loss)
     assert result.val_loss[-1] < result.val_loss[0] and result.train_loss[-1] < result.train_loss[0]
     assert result.val_loss[result.best_epoch] == min(result.val_loss)
-    assert scaled_loss(result.net, data, result.scales) == pytest.approx(min(result.val_loss), rel=1e-5)
+    assert scaled_loss(result.net, data, result.scales) == pytest.approx(min(result.val_loss),
+                                                                         rel=1e-5)
 
 
 def test_training_is_deterministic(data):
@@ -187,8 +191,8 @@ def test_training_is_deterministic(data):
 
 def test_train_rejects_wrong_shapes(data):
     with pytest.raises(ValueError, match=r'u must have shape \(N, 2\)'):
-        train(data['x'], data['u'][:, :1], data['acc'], data['x_val'], data['u_val'], data['acc_val'],
-              PRESETS['default'])
+        train(data['x'], data['u'][:, :1], data['acc'], data['x_val'], data['u_val'],
+              data['acc_val'], PRESETS['default'])
 
 
 # ----------------------------------------------------------------------------------------------
@@ -196,7 +200,8 @@ def test_train_rejects_wrong_shapes(data):
 # ----------------------------------------------------------------------------------------------
 
 def test_checkpoint_round_trip(checkpoint, trained, data, model, tmp_path):
-    """What save_checkpoint writes reads back unchanged, and a re-saved copy gives identical A, G."""
+    """What save_checkpoint writes reads back unchanged, and a re-saved copy gives identical
+    A, G."""
     result, settings = trained
     ckpt = read_checkpoint(checkpoint)
     assert ckpt['format_version'] == FORMAT_VERSION
@@ -243,12 +248,16 @@ def without(d, key):
 LAYOUT = 'does not match the network layout'
 BAD_CHECKPOINTS = {
     'format version': (lambda c: {**c, 'format_version': FORMAT_VERSION + 1},
-                       f'format version {FORMAT_VERSION + 1}, this package reads version {FORMAT_VERSION}'),
-    'declared hidden size': (lambda c: {**c, 'architecture': {**c['architecture'], 'hidden': 64}}, LAYOUT),
+                       f'format version {FORMAT_VERSION + 1}, this package reads version '
+                       f'{FORMAT_VERSION}'),
+    'declared hidden size': (lambda c: {**c, 'architecture': {**c['architecture'], 'hidden': 64}},
+                             LAYOUT),
     'weights of another size': (lambda c: {**c, 'state_dict': SDCNet(16).state_dict()}, LAYOUT),
-    'missing layer': (lambda c: {**c, 'state_dict': without(c['state_dict'], 'g_net.4.bias')}, LAYOUT),
+    'missing layer': (lambda c: {**c, 'state_dict': without(c['state_dict'], 'g_net.4.bias')},
+                      LAYOUT),
     'no architecture': (lambda c: without(c, 'architecture'), LAYOUT),
-    'scale shape': (lambda c: {**c, 'scales': {**c['scales'], 'x': torch.ones(3, dtype=torch.float64)}},
+    'scale shape': (lambda c: {**c, 'scales': {**c['scales'],
+                                               'x': torch.ones(3, dtype=torch.float64)}},
                     'scale x has shape'),
     'rest tip shape': (lambda c: {**c, 'rest_tip': torch.zeros(2)}, 'rest_tip has shape'),
     'not a dict': (lambda c: [1, 2, 3], 'is not a soft_gripper_sdre checkpoint'),
@@ -257,7 +266,8 @@ BAD_CHECKPOINTS = {
 
 @pytest.mark.parametrize('case', list(BAD_CHECKPOINTS))
 def test_read_checkpoint_refuses_a_wrong_layout(case, checkpoint, tmp_path):
-    """Another format version or network layout is a ModelFileError naming the file and the reason."""
+    """Another format version or network layout is a ModelFileError naming the file and the
+    reason."""
     edit, match = BAD_CHECKPOINTS[case]
     path = resave(tmp_path, checkpoint, edit)
     with pytest.raises(ModelFileError, match=match) as exc:
@@ -317,7 +327,8 @@ def test_read_checkpoint_says_a_corrupt_file_is_not_a_checkpoint(tmp_path, conte
     with pytest.raises(ModelFileError) as exc:
         read_checkpoint(path)
     message = str(exc.value)
-    assert message.startswith(f'model file {path} is not a checkpoint: a torch.save file is a zip archive')
+    assert message.startswith(f'model file {path} is not a checkpoint: a torch.save file is a '
+                              'zip archive')
     assert 'pickled' not in message and 'objects other than tensors' not in message
 
 
@@ -342,7 +353,8 @@ def test_default_model_loads_with_the_expected_input_matrix():
 @pytest.mark.parametrize('path', [DEFAULT_MODEL, DEFAULT_MODEL.with_name('paper_data.pt')])
 def test_fused_numpy_network_equals_the_torch_networks_in_double(path):
     """The fused evaluator (both MLPs side by side, scalings folded in, outputs reordered) gives the
-    physical blocks of the torch networks run in float64: A2_ij = s_a,i Â_ij / s_x,j, G2_ij = s_a,i Ĝ_ij / s_u,j."""
+    physical blocks of the torch networks run in float64: A2_ij = s_a,i Â_ij / s_x,j,
+    G2_ij = s_a,i Ĝ_ij / s_u,j."""
     ckpt = read_checkpoint(path)
     net = ckpt['net'].double()
     s = {k: v.numpy() for k, v in ckpt['scales'].items()}

@@ -25,14 +25,16 @@ def test_latency_window_summarises_the_last_samples_in_microseconds():
         w.add(ms * 1e-3)
     s = w.summary('lat_us')
     assert s == {'lat_us_p50': f'{np.percentile(np.arange(1, 101) * 1e3, 50):.0f}',
-                 'lat_us_p99': f'{np.percentile(np.arange(1, 101) * 1e3, 99):.0f}', 'lat_us_max': '100000'}
+                 'lat_us_p99': f'{np.percentile(np.arange(1, 101) * 1e3, 99):.0f}',
+                 'lat_us_max': '100000'}
     for _ in range(100):                           # the window forgets what it no longer holds
         w.add(2e-6)
     assert w.summary('lat_us') == {'lat_us_p50': '2', 'lat_us_p99': '2', 'lat_us_max': '2'}
     assert w.count == 200
     for ms in (7, 9):                              # the newest samples only, across the ring's end
         w.add(ms * 1e-3)
-    assert w.summary('new_us', last=2) == {'new_us_p50': '8000', 'new_us_p99': '8980', 'new_us_max': '9000'}
+    assert w.summary('new_us', last=2) == {'new_us_p50': '8000', 'new_us_p99': '8980',
+                                           'new_us_max': '9000'}
     assert w.summary('new_us', last=0) == {} and w.summary('all', last=10**6)['all_max'] == '9000'
 
 
@@ -123,7 +125,8 @@ def test_diagnostics_are_stamped_with_wall_time_and_named_by_the_full_node_name(
 
 def test_stepping_timing_reports_the_real_time_factor_cpu_per_step_and_latencies():
     clocks = {'wall': 100.0, 'cpu': 5.0, 'perf': 0.0}
-    timing = SteppingTiming(4, wall=lambda: clocks['wall'], cpu=lambda: clocks['cpu'], perf=lambda: clocks['perf'])
+    timing = SteppingTiming(4, wall=lambda: clocks['wall'], cpu=lambda: clocks['cpu'],
+                            perf=lambda: clocks['perf'])
     assert timing.report(0.0, 0) == {}                       # not started, nothing answered
     timing.start()
     for k in range(6):                                       # the ring wraps: k % 4

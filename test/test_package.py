@@ -57,7 +57,8 @@ def test_core_module_imports_no_ros(path):
 def test_torch_is_imported_by_the_learning_package_alone(path):
     if _rel(path).startswith('learning/'):
         return
-    assert 'torch' not in _imports(path), f'{_rel(path)}: torch belongs to soft_gripper_sdre.learning'
+    assert 'torch' not in _imports(path), (
+        f'{_rel(path)}: torch belongs to soft_gripper_sdre.learning')
 
 
 @pytest.mark.parametrize('path', ALL_MODULES, ids=_rel)
@@ -88,12 +89,14 @@ def test_no_module_imports_another_modules_private_names(path):
 def test_no_test_module_imports_another(path):
     """A test module is a leaf: what several of them share lives in conftest.py (fixtures) or in a
     helper module whose name does not start with ``test_``, so no test file depends on another's."""
-    tests = [module for module, _ in _imported_modules(path) if module.split('.')[0].startswith('test_')]
+    tests = [module for module, _ in _imported_modules(path)
+             if module.split('.')[0].startswith('test_')]
     assert not tests, f'{path.name} imports the test module(s) {tests}'
 
 
 def test_one_version_string():
-    xml_version = re.search(r'<version>([^<]+)</version>', (ROOT / 'package.xml').read_text()).group(1)
+    xml_version = re.search(r'<version>([^<]+)</version>',
+                            (ROOT / 'package.xml').read_text()).group(1)
     assert 'version=' not in (ROOT / 'setup.py').read_text().replace('version=_version()', '')
     from soft_gripper_sdre import __version__
     assert __version__ == xml_version
@@ -104,14 +107,16 @@ def test_config_files_are_ros_params_files(path):
     doc = yaml.safe_load(path.read_text())
     assert isinstance(doc, dict) and doc
     for node_name, section in doc.items():
-        assert set(section) == {'ros__parameters'}, f'{path.name}: {node_name} must hold only ros__parameters'
+        assert set(section) == {'ros__parameters'}, (
+            f'{path.name}: {node_name} must hold only ros__parameters')
 
 
 @pytest.mark.slow
 def test_colcon_build_installs_every_node(tmp_path):
     colcon = Path(sys.executable).parent / 'colcon'
     if not colcon.exists():
-        pytest.fail('colcon is not installed in the venv (requirements.txt pins colcon-common-extensions)')
+        pytest.fail('colcon is not installed in the venv (requirements.txt pins '
+                    'colcon-common-extensions)')
     src = tmp_path / 'ws' / 'src' / 'soft_gripper_sdre'
     shutil.copytree(ROOT, src, ignore=shutil.ignore_patterns(
         '.venv', '.git', 'build', 'install', 'log', 'runs', 'data', '*.egg-info', '__pycache__'))
@@ -122,8 +127,10 @@ def test_colcon_build_installs_every_node(tmp_path):
     install = tmp_path / 'ws' / 'install' / 'soft_gripper_sdre'
     for node in NODES:
         exe = install / 'lib' / 'soft_gripper_sdre' / node
-        assert exe.is_file() and os.access(exe, os.X_OK), f'{exe} missing: ros2 run would not find {node}'
-    assert (install / 'share' / 'ament_index' / 'resource_index' / 'packages' / 'soft_gripper_sdre').is_file()
+        assert exe.is_file() and os.access(exe, os.X_OK), (
+            f'{exe} missing: ros2 run would not find {node}')
+    assert (install / 'share' / 'ament_index' / 'resource_index' / 'packages'
+            / 'soft_gripper_sdre').is_file()
     assert (install / 'share' / 'soft_gripper_sdre' / 'package.xml').is_file()
     assert list((install / 'share' / 'soft_gripper_sdre' / 'config').glob('*.yaml'))
     assert (install / 'share' / 'soft_gripper_sdre' / 'launch' / 'grasp.launch.py').is_file(), \
@@ -148,13 +155,16 @@ def test_lost_commands_are_stepped_sooner_than_the_first_timeout_waits():
     def default(node, name):
         doc = yaml.safe_load((ROOT / 'config' / f'{node}.yaml').read_text())
         return next(iter(doc.values()))['ros__parameters'][name]
-    assert 10 * default('simulator', 'lost_command_wait') <= default('simulator', 'lockstep_timeout')
+    assert (10 * default('simulator', 'lost_command_wait')
+            <= default('simulator', 'lockstep_timeout'))
 
 
 def test_package_xml_declares_every_ros_package_the_code_imports():
     """A rosdep/colcon user gets every ROS package the nodes import from package.xml alone."""
-    declared = set(re.findall(r'<exec_depend>([^<]+)</exec_depend>', (ROOT / 'package.xml').read_text()))
-    ros_like = ('rclpy', 'rcl_interfaces', 'ament_index_python', 'builtin_interfaces', 'rosgraph_msgs')
+    declared = set(re.findall(r'<exec_depend>([^<]+)</exec_depend>',
+                              (ROOT / 'package.xml').read_text()))
+    ros_like = ('rclpy', 'rcl_interfaces', 'ament_index_python', 'builtin_interfaces',
+                'rosgraph_msgs')
     imported = {name for path in ALL_MODULES for name in _imports(path)
                 if name in ros_like or name.endswith('_msgs')}
     assert imported, 'the nodes import ROS packages; the scan found none'

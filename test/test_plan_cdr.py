@@ -15,7 +15,8 @@ CODECS = {n: PlanCodec(n) for n in (1, 4)}
 def plan(n, points, seed=0):
     rng = np.random.default_rng(seed)
     offsets = 5 * MS * np.arange(points, dtype=np.int64)
-    return (offsets, *(rng.standard_normal((points, n, 2)) * 10.0 ** rng.integers(-6, 3) for _ in range(3)))
+    return (offsets, *(rng.standard_normal((points, n, 2)) * 10.0 ** rng.integers(-6, 3)
+                       for _ in range(3)))
 
 
 def same(a, b) -> bool:

@@ -64,9 +64,11 @@ def test_missing_signal_file_is_a_usage_error(tmp_path, data_dir, run_main):
 
 def test_unknown_preset_is_a_usage_error(tmp_path, data_dir, run_main):
     """--preset outside the known ones: exit 2 listing the choices."""
-    proc = run_main(main, '--data', str(data_dir), '--out', str(tmp_path / 'out'), '--preset', 'turbo')
+    proc = run_main(main, '--data', str(data_dir), '--out', str(tmp_path / 'out'),
+                    '--preset', 'turbo')
     assert proc.returncode == 2
-    assert "invalid choice: 'turbo'" in proc.stderr and 'default' in proc.stderr and 'paper' in proc.stderr
+    assert ("invalid choice: 'turbo'" in proc.stderr and 'default' in proc.stderr
+            and 'paper' in proc.stderr)
     assert not (tmp_path / 'out').exists()
 
 
@@ -76,9 +78,10 @@ def test_zero_epochs_is_a_usage_error(tmp_path, data_dir, run_main):
     assert '--epochs must be >= 1' in proc.stderr
 
 
-@pytest.mark.parametrize('args, why', [(('--sv-penalty', '-1'), 'sv_penalty must be finite and >= 0'),
-                                       (('--sv-penalty', 'nan'), 'sv_penalty must be finite and >= 0'),
-                                       (('--sv-penalty', '1', '--sv-floor', '0'), 'sv_floor must be finite and > 0')])
+@pytest.mark.parametrize('args, why', [
+    (('--sv-penalty', '-1'), 'sv_penalty must be finite and >= 0'),
+    (('--sv-penalty', 'nan'), 'sv_penalty must be finite and >= 0'),
+    (('--sv-penalty', '1', '--sv-floor', '0'), 'sv_floor must be finite and > 0')])
 def test_bad_singular_value_penalty_is_a_usage_error(tmp_path, data_dir, args, why, run_main):
     proc = run_main(main, '--data', str(data_dir), '--out', str(tmp_path / 'out'), *args)
     assert proc.returncode == 2 and why in proc.stderr and 'Traceback' not in proc.stderr
@@ -95,7 +98,8 @@ def test_bad_patience_or_jitter_is_a_usage_error(tmp_path, data_dir, args, why, 
 
 
 def test_tiny_training_run_writes_model_metrics_and_figures(tmp_path, data_dir):
-    """3 epochs on collected data write a loadable model.pt, finite metrics.json and both figures."""
+    """3 epochs on collected data write a loadable model.pt, finite metrics.json and both
+    figures."""
     out = tmp_path / 'run'
     proc = run_train('--data', str(data_dir), '--out', str(out), '--epochs', '3', '--seed', '1')
     assert proc.returncode == 0, proc.stderr
@@ -112,7 +116,8 @@ def test_tiny_training_run_writes_model_metrics_and_figures(tmp_path, data_dir):
     assert set(metrics['u4_r2_true']) == set(metrics['u4_r2_ls_baseline']) == {'X', 'Y'}
     assert set(metrics['derivative_errors']) == set(SIGNALS)
     for err in metrics['derivative_errors'].values():
-        assert set(err) == {'vel_rmse', 'acc_rmse', 'acc_r2'} and all(len(v) == 2 for v in err.values())
+        assert (set(err) == {'vel_rmse', 'acc_rmse', 'acc_r2'}
+                and all(len(v) == 2 for v in err.values()))
     assert np.shape(metrics['G2_at_origin']) == (2, 2)
     assert metrics['best_val_loss'] > 0 and metrics['final_train_loss'] > 0
 

@@ -59,7 +59,7 @@ def test_the_simulation_stage_lowers_the_validation_simulation_error(trained):
     labels_only = trained.val_sim_error[SETTINGS.epochs - 1]
     assert len(trained.rollout_loss) == SETTINGS.rollout_epochs
     assert len(trained.val_sim_error) == SETTINGS.epochs + SETTINGS.rollout_epochs
-    assert trained.best_epoch >= SETTINGS.epochs             # the kept weights are a rollout epoch's
+    assert trained.best_epoch >= SETTINGS.epochs  # the kept weights are a rollout epoch's
     assert min(trained.val_sim_error) < 0.8 * labels_only
 
 

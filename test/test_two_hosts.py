@@ -34,7 +34,8 @@ from soft_gripper_sdre.tools.two_hosts import (
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
-PARAMETERS = {'trajectory': SHORT_GRASP, **{node: dict(values) for node, values in PATIENT_LOCKSTEP.items()}}
+PARAMETERS = {'trajectory': SHORT_GRASP,
+              **{node: dict(values) for node, values in PATIENT_LOCKSTEP.items()}}
 STEPS = int(round(DURATION / 1e-3))
 LINK_DOWN_S = 0.5
 
@@ -56,13 +57,15 @@ def host_pair():
 def _addresses(netns: str | None = None) -> set[str]:
     cmd = ['ip'] + (['-n', netns] if netns else []) + ['-j', 'addr', 'show']
     links = json.loads(subprocess.run(cmd, capture_output=True, text=True, check=True).stdout)
-    return {a['local'] for link in links for a in link.get('addr_info', []) if a.get('family') == 'inet'}
+    return {a['local'] for link in links for a in link.get('addr_info', [])
+            if a.get('family') == 'inet'}
 
 
 def _routes(netns: str) -> set[tuple[str, str]]:
     cmd = ['ip', '-n', netns, '-j', 'route', 'show', 'table', 'main']
-    return {(r['dst'], r['dev']) for r in json.loads(subprocess.run(cmd, capture_output=True, text=True,
-                                                                    check=True).stdout)}
+    return {(r['dst'], r['dev'])
+            for r in json.loads(subprocess.run(cmd, capture_output=True, text=True,
+                                               check=True).stdout)}
 
 
 @pytest.mark.timeout(420)
@@ -85,7 +88,8 @@ def test_split_graph_tracks_exactly_as_on_one_host(host_pair, tmp_path):
     for run in (one, two):
         assert all(code == 0 for code in run.exit_codes.values()), run.exit_codes
         assert trouble(run) == {}, trouble(run)
-        assert run.value('simulator', 'steps') == STEPS and run.value('simulator', 'commands') == STEPS
+        assert (run.value('simulator', 'steps') == STEPS
+                and run.value('simulator', 'commands') == STEPS)
     # no shared memory between the hosts: UDP only, and the loop's traffic crossed the link
     assert all(files == [] for files in extra['shared_memory'].values()), extra['shared_memory']
     assert set(extra['shared_memory']) == set(two.spec.names)
@@ -98,14 +102,17 @@ def test_split_graph_tracks_exactly_as_on_one_host(host_pair, tmp_path):
     assert paired['tips_identical'] and paired['torques_identical'], paired
     assert paired['instants'] >= 0.98 * (STEPS + 1), paired['instants']
     assert paired['tracking_identical'] and worst_pct(paired['two_hosts']) <= TARGET_PCT, paired
-    complete = all(n == got for run in (one, two) for n, got in published_and_recorded(run).values())
+    complete = all(n == got for run in (one, two)
+                   for n, got in published_and_recorded(run).values())
     if complete:             # then the report's figures over the whole run agree as well
-        assert report(one.bag, tmp_path / 'one')['fingers'] == report(two.bag, tmp_path / 'two')['fingers']
+        assert (report(one.bag, tmp_path / 'one')['fingers']
+                == report(two.bag, tmp_path / 'two')['fingers'])
     t1, t2 = timing(one), timing(two)
     assert 0 < t2['loop_latency_us_p50'] <= t2['loop_latency_us_p99'] and t2['real_time_factor'] > 0
-    print(f'one host: {t1["real_time_factor"]:.2f}× real time, latency p50 {t1["loop_latency_us_p50"]:.0f} / '
-          f'p99 {t1["loop_latency_us_p99"]:.0f} µs; two hosts: {t2["real_time_factor"]:.2f}×, p50 '
-          f'{t2["loop_latency_us_p50"]:.0f} / p99 {t2["loop_latency_us_p99"]:.0f} µs; over the link '
+    print(f'one host: {t1["real_time_factor"]:.2f}× real time, latency p50 '
+          f'{t1["loop_latency_us_p50"]:.0f} / p99 {t1["loop_latency_us_p99"]:.0f} µs; '
+          f'two hosts: {t2["real_time_factor"]:.2f}×, p50 {t2["loop_latency_us_p50"]:.0f} / '
+          f'p99 {t2["loop_latency_us_p99"]:.0f} µs; over the link '
           f'{extra["traffic"]["tx_bytes"]} B out, {extra["traffic"]["rx_bytes"]} B in')
 
 
@@ -116,18 +123,19 @@ def test_link_down_for_half_a_second_and_the_loop_resumes_by_itself(host_pair, t
     after that, nothing crashes or sends a non-finite torque, the loop resumes by itself when the
     link is back, and the bag and the counters say what was lost."""
     params = {**PARAMETERS, 'simulator': {'lockstep_timeout': 0.1}}
-    run, extra = run_split(host_pair, tmp_path, DURATION, params, fault_at=0.5, fault_seconds=LINK_DOWN_S,
-                           timeout=150.0)
+    run, extra = run_split(host_pair, tmp_path, DURATION, params, fault_at=0.5,
+                           fault_seconds=LINK_DOWN_S, timeout=150.0)
     fault = extra['fault']
     assert fault['down_wall'] is not None and fault['up_wall'] is not None, fault
     assert fault['up_wall'] - fault['down_wall'] >= LINK_DOWN_S
-    assert all(code == 0 for code in run.exit_codes.values()), run.exit_codes       # nothing crashed
+    assert all(code == 0 for code in run.exit_codes.values()), run.exit_codes  # nothing crashed
     assert finite_torques(run)
     timeouts = int(run.value('simulator', 'timeouts', 0.0))
     safe = int(run.value('simulator', 'safe_periods', 0.0))
     assert timeouts >= 1                                       # the simulator held while cut off,
     assert run.value('simulator', 'steps') == STEPS            # then stepped on and to the end
-    assert run.value('estimator', 'resets', 0.0) == 0 and run.value('controller', 'resets', 0.0) == 0
+    assert (run.value('estimator', 'resets', 0.0) == 0
+            and run.value('controller', 'resets', 0.0) == 0)
     # the bag's accounting: what the nodes counted as published against what the bag holds (the
     # recorder's readers keep a deep history, so the link's losses are resent to it); the loop's
     # own readers keep only the newest message, so what the estimator skipped while the link was
@@ -145,8 +153,9 @@ def test_link_down_for_half_a_second_and_the_loop_resumes_by_itself(host_pair, t
     # 100 ms windows even without a fault, docs/faults.md, which would hide the recovery). The
     # whole run's RMSE is printed, not judged: it counts the zero-torque periods of the outage,
     # and how many there are depends on the machine's pace while the link is down
-    contact = np.asarray(data.contacts.values)[np.clip(np.searchsorted(data.contacts.t, data.tips.t, 'right') - 1,
-                                                       0, len(data.contacts.t) - 1)] > 0
+    contact = np.asarray(data.contacts.values)[
+        np.clip(np.searchsorted(data.contacts.t, data.tips.t, 'right') - 1,
+                0, len(data.contacts.t) - 1)] > 0
     ref = data.reference.values[..., :2]
     valid = np.all(np.isfinite(ref.reshape(len(ref), -1)), axis=1)
     err = np.linalg.norm(data.tips.values - ref, axis=2)[valid]
@@ -155,14 +164,18 @@ def test_link_down_for_half_a_second_and_the_loop_resumes_by_itself(host_pair, t
     ends, ok = on_target(data.tips.t[valid], err, ~contact[valid], excursion)
     before = ends < fault['down_sim_time']
     assert before.any() and ok[before].all()
-    recovery = recovery_time(data.tips.t[valid], err, ~contact[valid], excursion, since=fault['down_sim_time'])
+    recovery = recovery_time(data.tips.t[valid], err, ~contact[valid], excursion,
+                             since=fault['down_sim_time'])
     assert recovery <= 0.5, recovery
     problems = trouble(run)
-    print(f'link down {LINK_DOWN_S} s at t = {fault["down_sim_time"]:.3f} s: {timeouts} lockstep timeouts, '
-          f'{safe} safe periods, {missed} missed by the estimator, '
-          f'counters {problems}, lost {lost}, recovery {recovery:.3f} s, worst finger {worst_pct(fingers):.2f} %')
-    record('link_down', injected=f'ip link set <veth> down for {LINK_DOWN_S} s at t ≈ {fault["down_sim_time"]:.2f} s '
-           '(graph split across two network namespaces, UDP only)', times=1, crashes=0, nonfinite_outputs=0,
+    print(f'link down {LINK_DOWN_S} s at t = {fault["down_sim_time"]:.3f} s: '
+          f'{timeouts} lockstep timeouts, {safe} safe periods, {missed} missed by the estimator, '
+          f'counters {problems}, lost {lost}, recovery {recovery:.3f} s, '
+          f'worst finger {worst_pct(fingers):.2f} %')
+    record('link_down', injected=f'ip link set <veth> down for {LINK_DOWN_S} s at t ≈ '
+                                 f'{fault["down_sim_time"]:.2f} s (graph split across two network '
+                                 'namespaces, UDP only)', times=1, crashes=0, nonfinite_outputs=0,
            messages_lost=sum(lost.values()), recovery_s=recovery,
-           notes=f'{timeouts} lockstep timeout(s) (held command), {safe} zero-torque safe period(s), '
+           notes=f'{timeouts} lockstep timeout(s) (held command), '
+                 f'{safe} zero-torque safe period(s), '
                  f'{missed} period(s) the estimator skipped; published − in the bag: {lost}')

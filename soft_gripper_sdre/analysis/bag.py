@@ -71,7 +71,8 @@ class _Malformed(ValueError):
 def _open(path: str | Path) -> AnyReader:
     path = Path(path)
     if not (path / 'metadata.yaml').is_file() and not path.is_file():
-        what = 'does not exist' if not path.exists() else 'is not a rosbag2 directory (no metadata.yaml)'
+        what = ('does not exist' if not path.exists()
+                else 'is not a rosbag2 directory (no metadata.yaml)')
         raise BagError(f'bag {path} {what}')
     try:
         return AnyReader([path], default_typestore=get_typestore(Stores.ROS2_JAZZY))
@@ -93,7 +94,8 @@ def topic_counts(path: str | Path) -> dict[str, int]:
         raise BagError(f'bag {path} cannot be read: {exc}') from None
 
 
-def read_bag(path: str | Path, topics: list[str] | None = None) -> dict[str, list[tuple[int, object]]]:
+def read_bag(path: str | Path,
+             topics: list[str] | None = None) -> dict[str, list[tuple[int, object]]]:
     """Deserialised messages per topic as ``(bag timestamp ns, message)`` in bag order.
 
     Args:
@@ -202,7 +204,8 @@ def _horizon(msg, names: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _joints(msg, names: tuple[str, ...]) -> np.ndarray:
-    """(n, 2, 10): angles and rates of ``<finger>/joint_j``, in that order whatever the message's."""
+    """(n, 2, 10): angles and rates of ``<finger>/joint_j``, in that order whatever the
+    message's."""
     per, n = 10, len(names)
     expected = [f'{name}/joint_{j}' for name in names for j in range(per)]
     idx = _order(msg.name, expected)
@@ -220,7 +223,8 @@ def _cube_pose(msg, names: tuple[str, ...]) -> np.ndarray:
     return np.array([p.x, p.y, p.z, q.x, q.y, q.z, q.w], dtype=float)
 
 
-def _collect(messages, parse, names: tuple[str, ...], skipped: dict[str, int], topic: str) -> tuple[np.ndarray, list]:
+def _collect(messages, parse, names: tuple[str, ...], skipped: dict[str, int],
+             topic: str) -> tuple[np.ndarray, list]:
     """Stamps [ns] and parsed values of the well-formed messages, sorted by stamp."""
     stamps, values = [], []
     for _, msg in messages:
@@ -248,8 +252,8 @@ def sample_reference(t_ns: np.ndarray, ref_stamps: np.ndarray,
         rows = np.flatnonzero(which == m)
         times, points = horizons[m]
         flat = points.reshape(len(times), -1)
-        out[rows] = np.stack([np.interp(t_ns[rows], times, flat[:, c]) for c in range(flat.shape[1])],
-                             axis=1).reshape(len(rows), n, 4)
+        out[rows] = np.stack([np.interp(t_ns[rows], times, flat[:, c])
+                              for c in range(flat.shape[1])], axis=1).reshape(len(rows), n, 4)
     return out
 
 
@@ -276,8 +280,8 @@ def extract_run(path: str | Path) -> Run:
     n = next((len(m.poses) for _, m in by_name[TIP_POSITIONS] if len(m.poses) > 0), 0)
     if not 0 < n <= len(FINGER_NAMES):
         raise BagError(f'bag {path}: no usable tip_positions message')
-    names = next((tuple(m.joint_names) for _, m in by_name[STATE_ESTIMATE] if len(m.joint_names) == n),
-                 FINGER_NAMES[:n])
+    names = next((tuple(m.joint_names) for _, m in by_name[STATE_ESTIMATE]
+                  if len(m.joint_names) == n), FINGER_NAMES[:n])
     skipped: dict[str, int] = {}
 
     def collect(topic: str, parse) -> tuple[np.ndarray, list]:

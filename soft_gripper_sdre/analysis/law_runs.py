@@ -2,10 +2,11 @@
 (the evaluation, :mod:`soft_gripper_sdre.tools.evaluate`, and the robustness grid,
 :mod:`soft_gripper_sdre.tools.robustness_grid`).
 
-The scores are taken on the *true* tip in free space (:class:`~soft_gripper_sdre.analysis.closed_loop.LoopResult`)
-and on the grasp. The worst-finger scores are over the fingers that have one (a finger that never
-leaves the cube has no free-space sample, one whose reference does not move no excursion); a
-finger whose loop diverged to NaN makes them NaN, so a diverged run never looks better than it is.
+The scores are taken on the *true* tip in free space
+(:class:`~soft_gripper_sdre.analysis.closed_loop.LoopResult`) and on the grasp. The worst-finger
+scores are over the fingers that have one (a finger that never leaves the cube has no free-space
+sample, one whose reference does not move no excursion); a finger whose loop diverged to NaN makes
+them NaN, so a diverged run never looks better than it is.
 """
 from __future__ import annotations
 
@@ -25,16 +26,17 @@ GRASP_CONTACT_SHARE = 0.9
 GRASP_CUBE_MOVE = 1e-3
 
 
-def run_law(name: str, model, weights: Weights, u_max: float, profile: GraspProfile, duration: float,
-            sim_config: SimConfig, sensor_delay: float = 0.0, progress: bool = False,
-            **options) -> LoopResult:
+def run_law(name: str, model, weights: Weights, u_max: float, profile: GraspProfile,
+            duration: float, sim_config: SimConfig, sensor_delay: float = 0.0,
+            progress: bool = False, **options) -> LoopResult:
     """Build the law ``name`` (:func:`~soft_gripper_sdre.control.laws.make_law` with ``options``),
     run the grasp ``profile`` for ``duration`` seconds of sim time on ``sim_config``'s plant and
     release what the law holds (the oracles hold a PyBullet client), whatever happens."""
     law = make_law(name, model, weights, u_max, **options)
     try:
-        return run_closed_loop(model, duration=duration, sim_config=sim_config, weights=weights, u_max=u_max,
-                               profile=profile, progress=progress, controller=law, sensor_delay=sensor_delay)
+        return run_closed_loop(model, duration=duration, sim_config=sim_config, weights=weights,
+                               u_max=u_max, profile=profile, progress=progress, controller=law,
+                               sensor_delay=sensor_delay)
     finally:
         close = getattr(law, 'close', None)
         if close is not None:
@@ -45,7 +47,8 @@ def grasp_success(result: LoopResult, profile: GraspProfile) -> tuple[bool, floa
     """(success, largest cube displacement [mm]): both grasping fingers touch the cube during at
     least 90 % of the hold phase and the cube moves less than 1 mm."""
     t = result.t
-    hold = (t >= profile.t_start + profile.t_close) & (t < profile.t_start + profile.t_close + profile.t_hold)
+    hold = ((t >= profile.t_start + profile.t_close)
+            & (t < profile.t_start + profile.t_close + profile.t_hold))
     touching = result.contact[hold][:, list(profile.grasp_fingers)].mean(axis=0)
     cube = result.cube[:, :3]
     if not np.all(np.isfinite(cube)):

@@ -1,4 +1,5 @@
-"""Tracking and grasp metrics (SI in, mm and % out), shared by the demo, the report and the tests."""
+"""Tracking and grasp metrics (SI in, mm and % out), shared by the demo, the report and the
+tests."""
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
@@ -36,7 +37,8 @@ def tracking_metrics(pos: np.ndarray, ref: np.ndarray, mask: np.ndarray,
     ref = np.asarray(ref, dtype=float)
     mask = np.asarray(mask, dtype=bool)
     if pos.shape != ref.shape or pos.ndim != 3 or pos.shape[2] != 2:
-        raise ValueError(f'pos and ref must both have shape (T, n, 2), got {pos.shape} and {ref.shape}')
+        raise ValueError(f'pos and ref must both have shape (T, n, 2), got {pos.shape} and '
+                         f'{ref.shape}')
     if mask.shape != pos.shape[:2]:
         raise ValueError(f'mask must have shape {pos.shape[:2]}, got {mask.shape}')
     excursion = np.broadcast_to(np.asarray(excursion, dtype=float), (pos.shape[1],))
@@ -45,7 +47,8 @@ def tracking_metrics(pos: np.ndarray, ref: np.ndarray, mask: np.ndarray,
     for i in range(pos.shape[1]):
         e = err[mask[:, i], i]
         if e.size == 0:
-            out.append(TrackingMetrics(float('nan'), float('nan'), excursion[i] * 1e3, float('nan'), 0))
+            out.append(TrackingMetrics(float('nan'), float('nan'), excursion[i] * 1e3, float('nan'),
+                                       0))
             continue
         rmse = float(np.sqrt(np.mean(e**2)))
         pct = 100.0 * rmse / excursion[i] if excursion[i] > 0 else float('nan')
@@ -70,8 +73,8 @@ def held_reference_error(pos: np.ndarray, ref_pos: np.ndarray, ref_vel: np.ndarr
     """
     pos, ref_pos, ref_vel = (np.asarray(a, dtype=float) for a in (pos, ref_pos, ref_vel))
     if not (pos.shape == ref_pos.shape == ref_vel.shape and pos.ndim == 3 and pos.shape[2] == 2):
-        raise ValueError(f'pos, ref_pos and ref_vel must all have shape (T, n, 2), got {pos.shape}, '
-                         f'{ref_pos.shape} and {ref_vel.shape}')
+        raise ValueError(f'pos, ref_pos and ref_vel must all have shape (T, n, 2), '
+                         f'got {pos.shape}, {ref_pos.shape} and {ref_vel.shape}')
     contact = np.asarray(contact, dtype=bool)
     if contact.shape != pos.shape[:2]:
         raise ValueError(f'contact must have shape {pos.shape[:2]}, got {contact.shape}')

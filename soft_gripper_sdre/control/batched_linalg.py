@@ -15,7 +15,8 @@ import numpy as np
 #: to (‖M‖_F², det M)
 _LEFT = np.array([0, 1, 2, 3, 0, 1, 2, 3])
 _RIGHT = np.array([0, 1, 2, 3, 3, 2, 1, 0])
-_FROBENIUS2_AND_DET = np.array([[1.0, 0.0]] * 4 + [[0.0, 0.5], [0.0, -0.5], [0.0, -0.5], [0.0, 0.5]])
+_FROBENIUS2_AND_DET = np.array([[1.0, 0.0]] * 4
+                               + [[0.0, 0.5], [0.0, -0.5], [0.0, -0.5], [0.0, 0.5]])
 
 
 def well_conditioned_2x2(M: np.ndarray, cond_max: float) -> tuple[np.ndarray, np.ndarray]:
@@ -25,7 +26,8 @@ def well_conditioned_2x2(M: np.ndarray, cond_max: float) -> tuple[np.ndarray, np
     non-finite M gives False. Call inside ``np.errstate(invalid='ignore')`` when M may hold NaN.
     """
     f = M.reshape(-1, 4)                                                    # [m00, m01, m10, m11]
-    fro2_det = (f.take(_LEFT, axis=1) * f.take(_RIGHT, axis=1)) @ _FROBENIUS2_AND_DET   # [‖M‖_F², det M]
+    fro2_det = (f.take(_LEFT, axis=1)
+                * f.take(_RIGHT, axis=1)) @ _FROBENIUS2_AND_DET  # [‖M‖_F², det M]
     det = fro2_det[:, 1]
     return fro2_det[:, 0] < (cond_max + 1.0 / cond_max) * np.abs(det), det
 
@@ -61,6 +63,7 @@ def _gufunc_or_portable():
         return portable_batched_solve
 
 
-#: ``batched_solve(L (m,k,k), b (m,k)) -> x (m,k)`` with L x = b per matrix, NaN where L is singular.
+#: ``batched_solve(L (m,k,k), b (m,k)) -> x (m,k)`` with L x = b per matrix, NaN where L is
+#: singular.
 #: It may warn about invalid values: call it inside ``np.errstate(invalid='ignore')``.
 batched_solve = _gufunc_or_portable()

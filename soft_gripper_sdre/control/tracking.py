@@ -5,7 +5,8 @@ Every law takes each finger's estimated tip position and velocity and its refere
 finger's base frame (SI, untranslated) and works in the model's translated coordinates (origin at
 the settled rest pose, where f(0) = 0),
 
-    x   = [X − X₀, Y − Y₀, Ẋ, Ẏ],        x_d = [X_d − X₀, Y_d − Y₀, Ẋ_d, Ẏ_d]       (:class:`RestFrame`),
+    x   = [X − X₀, Y − Y₀, Ẋ, Ẏ],
+    x_d = [X_d − X₀, Y_d − Y₀, Ẋ_d, Ẏ_d]       (:class:`RestFrame`),
 
 saturates its torques at ``u_max`` and passes them through the same first-order roll-off
 (:class:`RollOff`), so laws differ only in their own arithmetic. The laws are in
@@ -34,7 +35,8 @@ class Weights:
         for name in ('q_pos', 'q_vel'):
             v = getattr(self, name)
             if not np.isfinite(v) or v < 0.0:
-                raise ValueError(f'{name} must be finite and >= 0 (Q positive semi-definite), got {v!r}')
+                raise ValueError(f'{name} must be finite and >= 0 (Q positive semi-definite), '
+                                 f'got {v!r}')
         if not np.isfinite(self.r) or self.r <= 0.0:
             raise ValueError(f'r must be finite and > 0 (R positive definite), got {self.r!r}')
 
@@ -51,7 +53,8 @@ def paper_weights_si() -> tuple[np.ndarray, np.ndarray]:
     """The paper's Q = diag(2,2,2,2), R = diag(0.1,0.1) (sim units) in SI.
 
     Positions and velocities scale by 20 (x_sim = 20 x_si) and torques by 400, so the cost
-    x_simᵀ Q_sim x_sim + u_simᵀ R_sim u_sim equals x_siᵀ (400 Q_sim) x_si + u_siᵀ (160000 R_sim) u_si.
+    x_simᵀ Q_sim x_sim + u_simᵀ R_sim u_sim equals
+    x_siᵀ (400 Q_sim) x_si + u_siᵀ (160000 R_sim) u_si.
     """
     return (LENGTH_SCALE**2 * np.diag([2.0, 2.0, 2.0, 2.0]),
             TORQUE_SCALE**2 * np.diag([0.1, 0.1]))
@@ -63,7 +66,8 @@ DEFAULT_WEIGHTS = dict(q_pos=1.0e6, q_vel=0.0, r=1.6e4)
 #: first-order roll-off of the torque command [Hz]: cuts the loop's feed into the finger's
 #: unmodelled ~59 Hz bending mode (README), well above the 3 and 9 Hz modes the model captures
 DEFAULT_LOWPASS_HZ = 40.0
-#: the roll-off's corner is at most this fraction of the sampling rate 1/Δt (:func:`roll_off_corner_hz`)
+#: the roll-off's corner is at most this fraction of the sampling rate 1/Δt
+#: (:func:`roll_off_corner_hz`)
 ROLL_OFF_RATE_FRACTION = 0.1
 
 
@@ -164,7 +168,8 @@ class RestFrame:
         ref_vel, …] in the order given (the rows the compiled kernels take).
 
         Raises:
-            ValueError: when one is not (n, 2) (named as the law's inputs pos, vel, ref_pos, ref_vel).
+            ValueError: when one is not (n, 2) (named as the law's inputs pos, vel, ref_pos,
+                ref_vel).
         """
         z = None
         shape = (self.n, 2)
@@ -197,16 +202,19 @@ class LawStep:
 
 
 class Law(Protocol):
-    """A control law for n fingers: what the controller node, the in-process loop and the tools call.
+    """A control law for n fingers: what the controller node, the in-process loop and the tools
+    call.
 
-    A law that needs the plant's ground truth (the oracles, :mod:`soft_gripper_sdre.analysis.oracle`)
-    also has ``observe(truth)``, which the in-process loop calls before each :meth:`compute`.
+    A law that needs the plant's ground truth (the oracles,
+    :mod:`soft_gripper_sdre.analysis.oracle`) also has ``observe(truth)``, which the in-process
+    loop calls before each :meth:`compute`.
     """
 
     def compute(self, pos: np.ndarray, vel: np.ndarray, ref_pos: np.ndarray, ref_vel: np.ndarray,
                 ref_acc: np.ndarray | None = None) -> LawStep:
         """Torques for every finger from (n, 2) tip positions [m] and velocities [m/s], their
-        references, and the reference acceleration [m/s²] (used by the feedforward laws; None = 0)."""
+        references, and the reference acceleration [m/s²] (used by the feedforward laws;
+        None = 0)."""
 
     def reset(self) -> None:
         """Forget all state (warm starts, last valid gains, the filter), e.g. after a clock jump."""
@@ -223,7 +231,8 @@ class LawIO:
         lowpass_hz, dt: the roll-off's corner frequency [Hz] (0 = off) and the control period [s].
     """
 
-    def __init__(self, rest_tip, u_max: float, n_fingers: int, lowpass_hz: float, dt: float) -> None:
+    def __init__(self, rest_tip, u_max: float, n_fingers: int, lowpass_hz: float,
+                 dt: float) -> None:
         self.frame = RestFrame(rest_tip, n_fingers)
         if not (np.isfinite(u_max) and u_max > 0):
             raise ValueError(f'u_max must be finite and > 0, got {u_max!r}')

@@ -39,8 +39,10 @@ def _started_filter(x0: float, dt: float, jerk_psd: float, meas_std: float) -> K
     return kf
 
 
-def _best_on_grid(loglik, t: np.ndarray, pos: np.ndarray, meas_std: float, grid: np.ndarray | None) -> float:
-    """The jerk intensity on ``grid`` (default 1 … 1e8, a decade apart) that maximises ``loglik``."""
+def _best_on_grid(loglik, t: np.ndarray, pos: np.ndarray, meas_std: float,
+                  grid: np.ndarray | None) -> float:
+    """The jerk intensity on ``grid`` (default 1 … 1e8, a decade apart) that maximises
+    ``loglik``."""
     grid = np.logspace(0, 8, 9) if grid is None else np.asarray(grid, dtype=float)
     scores = [loglik(t, pos, q, meas_std) for q in grid]
     return float(grid[int(np.argmax(scores))])
@@ -65,7 +67,8 @@ def estimate_kinematics(t: np.ndarray, pos: np.ndarray, jerk_psd: float, meas_st
     if pos.ndim == 1:
         pos = pos[:, None]
     if t.ndim != 1 or pos.shape[0] != t.size or t.size < 3:
-        raise ValueError(f't must be (N,) and pos (N, d) with N >= 3, got {t.shape} and {pos.shape}')
+        raise ValueError(f't must be (N,) and pos (N, d) with N >= 3, got {t.shape} and '
+                         f'{pos.shape}')
     dt = float(np.median(np.diff(t)))
     if not np.allclose(np.diff(t), dt, rtol=1e-6, atol=1e-12):
         raise ValueError('t must be uniformly sampled')
@@ -114,7 +117,8 @@ def estimate_errors(vel_est: np.ndarray, acc_est: np.ndarray, vel_true: np.ndarr
 
 # -- irregular stamps (recordings of a real sensor) ------------------------------------------
 
-def _irregular_models(times: np.ndarray, jerk_psd: float) -> tuple[list[np.ndarray], list[np.ndarray]]:
+def _irregular_models(times: np.ndarray,
+                      jerk_psd: float) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """F and Σ_v of each step between consecutive ``times``: element i goes from i to i + 1."""
     Fs, Qs = [], []
     for h in np.diff(times).tolist():
@@ -157,7 +161,8 @@ def estimate_kinematics_irregular(t: np.ndarray, pos: np.ndarray, grid: np.ndarr
     if pos.ndim == 1:
         pos = pos[:, None]
     if t.ndim != 1 or pos.shape[0] != t.size or t.size < 3:
-        raise ValueError(f't must be (N,) and pos (N, d) with N >= 3, got {t.shape} and {pos.shape}')
+        raise ValueError(f't must be (N,) and pos (N, d) with N >= 3, got {t.shape} and '
+                         f'{pos.shape}')
     if np.any(np.diff(t) <= 0):
         raise ValueError('t must be strictly increasing')
     if grid.ndim != 1 or grid.size == 0 or grid[0] < t[0] or grid[-1] > t[-1]:
@@ -183,7 +188,8 @@ def estimate_kinematics_irregular(t: np.ndarray, pos: np.ndarray, grid: np.ndarr
     return out[0], out[1], out[2]
 
 
-def innovation_loglik_irregular(t: np.ndarray, pos: np.ndarray, jerk_psd: float, meas_std: float) -> float:
+def innovation_loglik_irregular(t: np.ndarray, pos: np.ndarray, jerk_psd: float,
+                                meas_std: float) -> float:
     """:func:`innovation_loglik` for unevenly spaced times ``t`` (a step per interval)."""
     t = np.asarray(t, dtype=float)
     Fs, Qs = _irregular_models(t, jerk_psd)

@@ -21,7 +21,8 @@ stage, whose free runs of ``rollout_val_seconds`` on the validation records miss
 
 Seeded and deterministic: the same data and settings give the same bits on the same machine kind
 and torch build (:data:`TRAIN_THREADS` intra-op threads, torch's deterministic algorithms only).
-The networks, the checkpoint's layout and reading it back are :mod:`soft_gripper_sdre.learning.model`.
+The networks, the checkpoint's layout and reading it back are
+:mod:`soft_gripper_sdre.learning.model`.
 """
 from __future__ import annotations
 
@@ -87,10 +88,13 @@ class TrainSettings:
     rest_weight: float = 10.0
 
     def __post_init__(self) -> None:
-        if self.patience is not None and not (isinstance(self.patience, int) and self.patience >= 1):
-            raise ValueError(f'patience must be an int >= 1 or None (run every epoch), got {self.patience!r}')
+        if self.patience is not None and not (isinstance(self.patience, int)
+                                              and self.patience >= 1):
+            raise ValueError(f'patience must be an int >= 1 or None (run every epoch), '
+                             f'got {self.patience!r}')
         if not (np.isfinite(self.sv_penalty) and self.sv_penalty >= 0.0):
-            raise ValueError(f'sv_penalty must be finite and >= 0 (0 = off), got {self.sv_penalty!r}')
+            raise ValueError(f'sv_penalty must be finite and >= 0 (0 = off), '
+                             f'got {self.sv_penalty!r}')
         for name in ('sv_floor', 'sv_box', 'rollout_seconds', 'rollout_lr', 'rest_weight',
                      'rollout_val_seconds'):
             v = getattr(self, name)
@@ -99,10 +103,11 @@ class TrainSettings:
         for name in ('rollout_epochs', 'rollout_overlap'):
             v = getattr(self, name)
             if not (isinstance(v, int) and v >= (0 if name == 'rollout_epochs' else 1)):
-                raise ValueError(f'{name} must be an int >= {0 if name == "rollout_epochs" else 1}, '
-                                 f'got {v!r}')
+                raise ValueError(f'{name} must be an int >= '
+                                 f'{0 if name == "rollout_epochs" else 1}, got {v!r}')
         if not (np.isfinite(self.rest_margin) and self.rest_margin >= 0.0):
-            raise ValueError(f'rest_margin must be finite and >= 0 (0 = off), got {self.rest_margin!r}')
+            raise ValueError(f'rest_margin must be finite and >= 0 (0 = off), '
+                             f'got {self.rest_margin!r}')
 
 
 PRESETS = {
@@ -200,7 +205,8 @@ class _Scales(NamedTuple):
     acc: torch.Tensor
 
 
-def _windows(runs: list[Run], seconds: float, overlap: int) -> list[tuple[float, torch.Tensor, ...]]:
+def _windows(runs: list[Run], seconds: float,
+             overlap: int) -> list[tuple[float, torch.Tensor, ...]]:
     """Windows of ``seconds`` (H samples) starting every H / ``overlap`` samples into each run,
     grouped by grid spacing: [(dt, starts (B, 4), inputs (B, H, 2), positions (B, H, 2))]."""
     groups: dict[float, list[list[np.ndarray]]] = {}
@@ -225,7 +231,8 @@ SIM_BOUND = 100.0
 SIM_ERROR_CAP = 100.0
 
 
-def _simulate(net: SDCNet, s: _Scales, x0: torch.Tensor, u: torch.Tensor, dt: float) -> torch.Tensor:
+def _simulate(net: SDCNet, s: _Scales, x0: torch.Tensor, u: torch.Tensor,
+              dt: float) -> torch.Tensor:
     """Positions (B, H, 2) of the model's RK4 runs from x0 (B, 4), inputs u (B, H, 2) held."""
     def f(x, uk):
         return torch.cat([x[:, 2:], net.accel(x / s.x, uk / s.u) * s.acc], dim=1)
@@ -237,7 +244,8 @@ def _simulate(net: SDCNet, s: _Scales, x0: torch.Tensor, u: torch.Tensor, dt: fl
         k2 = f(x + 0.5 * dt * k1, uk)
         k3 = f(x + 0.5 * dt * k2, uk)
         k4 = f(x + dt * k3, uk)
-        x = torch.maximum(torch.minimum(x + dt / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4), bound), -bound)
+        x = torch.maximum(torch.minimum(x + dt / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4), bound),
+                          -bound)
         out.append(x[:, :2])
     return torch.stack(out, dim=1)
 
@@ -289,7 +297,8 @@ def _rest_penalty(net: SDCNet, s: _Scales, settings: TrainSettings) -> torch.Ten
     return settings.rest_weight * torch.relu(real_parts() + settings.rest_margin).pow(2).sum()
 
 
-def _step(opt: torch.optim.Optimizer, loss: torch.Tensor, net: SDCNet, clip: float | None = None) -> bool:
+def _step(opt: torch.optim.Optimizer, loss: torch.Tensor, net: SDCNet,
+          clip: float | None = None) -> bool:
     """One optimiser step; a batch whose loss or gradient is not finite is skipped."""
     if not torch.isfinite(loss):
         return False
@@ -343,8 +352,10 @@ def _train_seeded(x, u, acc, x_val, u_val, acc_val, settings: TrainSettings, on_
             if settings.sv_penalty > 0:
                 # keep G2 invertible over the whole box, not only where the data lie
                 xs = (torch.rand(idx.numel(), 4, generator=gen) * 2 - 1) * settings.sv_box
-                smin = torch.linalg.svdvals(net.g_net(xs).reshape(-1, 2, 2).transpose(1, 2))[:, -1]   # G2 alone
-                loss = loss + settings.sv_penalty * torch.relu(settings.sv_floor - smin).pow(2).mean()
+                smin = torch.linalg.svdvals(
+                    net.g_net(xs).reshape(-1, 2, 2).transpose(1, 2))[:, -1]  # G2 alone
+                loss = loss + (settings.sv_penalty
+                               * torch.relu(settings.sv_floor - smin).pow(2).mean())
             loss = _with_rest_penalty(loss, net, st, settings)
             _step(opt, loss, net)
             total += loss.item() * idx.numel()
@@ -416,7 +427,8 @@ def save_checkpoint(path: Path, result: TrainResult, *, rest_tip: np.ndarray, dt
     """Write a self-describing checkpoint that ``torch.load(weights_only=True)`` can read."""
     ckpt = {
         'format_version': FORMAT_VERSION,
-        'architecture': {'hidden': settings.hidden, 'a_out': 8, 'g_out': 4, 'n_state': 4, 'n_input': 2},
+        'architecture': {'hidden': settings.hidden, 'a_out': 8, 'g_out': 4, 'n_state': 4,
+                         'n_input': 2},
         'state_dict': {k: v.detach().clone() for k, v in result.net.state_dict().items()},
         'scales': {k: torch.as_tensor(v, dtype=torch.float64) for k, v in result.scales.items()},
         'rest_tip': torch.as_tensor(np.asarray(rest_tip, dtype=float)),

@@ -89,14 +89,15 @@ class Layout:
         raw = serialize_message(msg)
         name = msg_type.__name__
         stamp_at = _find_once(raw, _STAMP.pack(sec, nanosec), 4, f'{name} stamp')
-        slots = np.array([(_find_once(raw, struct.pack('<d', v), 8, f'{name} slot {i}') - HEADER) // 8
-                          for i, v in enumerate(values.ravel().tolist())], dtype=np.intp)
+        slots = np.array([(_find_once(raw, struct.pack('<d', v), 8, f'{name} slot {i}') - HEADER)
+                          // 8 for i, v in enumerate(values.ravel().tolist())], dtype=np.intp)
         moving = np.zeros(len(raw), dtype=bool)
         moving[stamp_at:stamp_at + _STAMP.size] = True
         for s in slots:
             moving[HEADER + 8 * s:HEADER + 8 * s + 8] = True
         with _quiet_stderr():       # the typesupport prints a line for each count it cannot read
-            ignored = np.array([not moving[i] and _ignored(raw, i, msg, msg_type) for i in range(len(raw))])
+            ignored = np.array([not moving[i] and _ignored(raw, i, msg, msg_type)
+                                for i in range(len(raw))])
         # rclpy's buffer may end in slack the deserializer ignores; rmw sends typed messages
         # without it, so the layout ends at the last byte that is read (typed and raw then match)
         size = int(np.flatnonzero(~ignored)[-1]) + 1
@@ -104,7 +105,8 @@ class Layout:
         ignored = ignored[:size]
         moving = moving[:size]
         mask = np.where(moving | ignored, 0, 0xFF).astype(np.uint8)
-        template = bytes(np.frombuffer(raw[:size], np.uint8) & np.where(ignored, 0, 0xFF).astype(np.uint8))
+        template = bytes(np.frombuffer(raw[:size], np.uint8)
+                         & np.where(ignored, 0, 0xFF).astype(np.uint8))
         layout = cls(msg_type, template, mask, bytes(np.frombuffer(template, np.uint8) & mask),
                      stamp_at, slots, tuple(shape), len(raw))
         if deserialize_message(layout.encode(sec * cv.NS + nanosec, values), msg_type) != msg:
@@ -120,7 +122,8 @@ class Layout:
             return None
         sec, nanosec = _STAMP.unpack_from(data, self.stamp_at)
         words = np.frombuffer(data, '<f8', count=(size - HEADER) // 8, offset=HEADER)
-        return sec * cv.NS + nanosec, words[self.slots].reshape(self.shape)   # a copy: data is not kept
+        # a copy: data is not kept
+        return sec * cv.NS + nanosec, words[self.slots].reshape(self.shape)
 
     def encode(self, ns: int, values: np.ndarray) -> bytes:
         """The CDR bytes of the message stamped ``ns`` with slot ``values`` (of ``shape``)."""
@@ -133,10 +136,12 @@ class Layout:
 
 def leading_stamp(data: bytes) -> int | None:
     """The leading stamp [ns] of the CDR bytes of any stamped message (its header's or Clock's
-    time comes first), in either byte order; None if too short or negative (the recorder's index)."""
+    time comes first), in either byte order; None if too short or negative (the recorder's
+    index)."""
     if len(data) < HEADER + _STAMP.size:
         return None
-    sec, nanosec = struct.unpack_from('<iI' if data[1] & 1 else '>iI', data, HEADER)   # byte 1: 1 = LE
+    # byte 1: 1 = LE
+    sec, nanosec = struct.unpack_from('<iI' if data[1] & 1 else '>iI', data, HEADER)
     ns = sec * cv.NS + nanosec
     return ns if ns >= 0 else None
 
@@ -145,8 +150,8 @@ def _find_once(raw: bytes, pattern: bytes, align: int, what: str) -> int:
     """The one offset of ``pattern`` in ``raw`` that is ``align``-aligned after the header."""
     at = raw.find(pattern)
     if at < 0 or raw.count(pattern) != 1 or (at - HEADER) % align:
-        raise ValueError(f'{what}: the sentinel occurs {raw.count(pattern)} times (first at byte {at}); '
-                         f'expected once, {align}-aligned after the header')
+        raise ValueError(f'{what}: the sentinel occurs {raw.count(pattern)} times '
+                         f'(first at byte {at}); expected once, {align}-aligned after the header')
     return at
 
 

@@ -1,9 +1,9 @@
 """The controller node: tracking of every finger with the learned SDC model.
 
-The control law is the ``law`` parameter (:mod:`soft_gripper_sdre.control.laws`): ``sdre_ff`` (default:
-SDRE feedback plus model-inversion feedforward, with integral action unless ``integral_gain`` is 0),
-``sdre`` (the paper's law), ``lqr``, ``pd``, ``computed_torque``, or the Koopman baselines
-``koopman_mpc`` and ``koopman_lqr``.
+The control law is the ``law`` parameter (:mod:`soft_gripper_sdre.control.laws`): ``sdre_ff``
+(default: SDRE feedback plus model-inversion feedforward, with integral action unless
+``integral_gain`` is 0), ``sdre`` (the paper's law), ``lqr``, ``pd``, ``computed_torque``, or the
+Koopman baselines ``koopman_mpc`` and ``koopman_lqr``.
 
 Subscribes ``state_estimate`` (one message per control period, keeping only the newest) and
 ``grasp_reference`` (the planned grasp, once per plan); publishes ``torque_commands`` (one per
@@ -93,13 +93,13 @@ from soft_gripper_sdre.nodes.topics import (
 )
 
 PARAMS = (
-    Param('model_path', '', 'SDC model checkpoint (.pt); empty = the model shipped with the package',
-          read_only=True),
+    Param('model_path', '', 'SDC model checkpoint (.pt); empty = the model shipped with the '
+          'package', read_only=True),
     finger_names_param('the fingers controlled together: the joint names of state_estimate and '
                        'grasp_reference; torque_commands names <finger>/ax0, <finger>/ax1'),
-    Param('q_pos', DEFAULT_WEIGHTS['q_pos'], 'SDRE state weight on tip position, Q = diag(q_pos, q_pos, '
-          'q_vel, q_vel) (paper: 2 in sim units = 800 SI); every law but pd and computed_torque',
-          '1/m²', 0.0, 1e12),
+    Param('q_pos', DEFAULT_WEIGHTS['q_pos'], 'SDRE state weight on tip position, Q = diag(q_pos, '
+          'q_pos, q_vel, q_vel) (paper: 2 in sim units = 800 SI); every law but pd and '
+          'computed_torque', '1/m²', 0.0, 1e12),
     Param('q_vel', DEFAULT_WEIGHTS['q_vel'], 'SDRE state weight on tip velocity', 's²/m²', 0.0,
           1e12),
     Param('r', DEFAULT_WEIGHTS['r'], 'SDRE input weight, R = diag(r, r) (paper: 0.1 in sim units = '
@@ -107,33 +107,34 @@ PARAMS = (
     Param('torque_limit', 0.0625, 'saturation of each torque (0.0625 N·m = 25 sim units, the '
           'stable range of the physics step)', 'N·m', 1e-6, 1.0, read_only=True),
     Param('torque_lowpass_hz', DEFAULT_LOWPASS_HZ, 'first-order roll-off of the torque command '
-          '(keeps the loop out of the finger\'s ~59 Hz bending mode; 0 = off); its corner is capped '
-          'at a tenth of the control rate, 0.1 / control_period (10 Hz at 10 ms)', 'Hz', 0.0, 500.0,
-          read_only=True),
+          '(keeps the loop out of the finger\'s ~59 Hz bending mode; 0 = off); its corner is '
+          'capped at a tenth of the control rate, 0.1 / control_period (10 Hz at 10 ms)', 'Hz',
+          0.0, 500.0, read_only=True),
     Param('control_period', 0.001, 'period of the estimates (the roll-off filter\'s step)', 's',
           1e-4, 0.05, read_only=True),
     Param('solver', 'fast', 'Riccati solver: warm-started Newton–Kleinman or scipy reference',
           choices=('fast', 'reference'), read_only=True),
-    Param('law', DEFAULT_LAW, 'control law (soft_gripper_sdre.control.laws): learned SDRE, LQR frozen at the '
-          'origin, task-space PD, computed torque on the learned model; the oracle needs the plant\'s joint '
-          'state and runs in-process only '
+    Param('law', DEFAULT_LAW, 'control law (soft_gripper_sdre.control.laws): learned SDRE, LQR '
+          'frozen at the origin, task-space PD, computed torque on the learned model; the oracle '
+          'needs the plant\'s joint state and runs in-process only '
           '(tools/evaluate.py); sdre_ff: SDRE + model-inversion feedforward '
-          '(docs/results.md "Beyond the paper"); koopman_mpc, koopman_lqr: the Koopman baselines on '
-          'the shipped Koopman model (models/koopman.npz; docs/results.md "Koopman baseline")',
+          '(docs/results.md "Beyond the paper"); koopman_mpc, koopman_lqr: the Koopman baselines '
+          'on the shipped Koopman model (models/koopman.npz; docs/results.md "Koopman baseline")',
           choices=GRAPH_LAWS, read_only=True),
-    Param('state_weights', False, 'sdre only: state-dependent Q(x) that rises with the tracking error',
-          read_only=True),
+    Param('state_weights', False, 'sdre only: state-dependent Q(x) that rises with the tracking '
+          'error', read_only=True),
     Param('feedforward_at', 'x', "sdre_ff only: where the feedforward evaluates the learned model: "
           "'x' the estimated state (its error dynamics exactly linear), 'ref' the reference (no "
           'measurement noise reaches the model; what settings derived by training use)',
           choices=('x', 'ref'), read_only=True),
-    Param('integral_gain', DEFAULT_INTEGRAL['gain'], 'sdre_ff only: integral action on the tip position '
-          'error against the steady offset of joint friction, as a tip acceleration k_i ∫(p_d − p)dt '
-          'through the learned input map at rest; frozen while saturated, decaying while the error is '
-          'outside integral_band (pressing on the cube); 0 = off', '1/s³', 0.0, 1e8),
-    Param('integral_band', DEFAULT_INTEGRAL['band'], 'sdre_ff only: tip error beyond which the integral '
-          'stops integrating and decays (the reference is not reachable, e.g. inside the cube)', 'm',
-          1e-6, 0.1),
+    Param('integral_gain', DEFAULT_INTEGRAL['gain'], 'sdre_ff only: integral action on the tip '
+          'position error against the steady offset of joint friction, as a tip acceleration k_i '
+          '∫(p_d − p)dt through the learned input map at rest; frozen while saturated, decaying '
+          'while the error is outside integral_band (pressing on the cube); 0 = off', '1/s³', 0.0,
+          1e8),
+    Param('integral_band', DEFAULT_INTEGRAL['band'], 'sdre_ff only: tip error beyond which the '
+          'integral stops integrating and decays (the reference is not reachable, e.g. inside the '
+          'cube)', 'm', 1e-6, 0.1),
     Param('pd_kp', 0.0, 'pd and computed_torque only: the task-space gain on the tip position '
           "error, the error dynamics' natural frequency squared; 0 = the law's own tuned gain "
           f"({DEFAULT_PD['kp']:g} for pd, {DEFAULT_CT['kp']:g} for computed_torque)", '1/s²',
@@ -142,8 +143,8 @@ PARAMS = (
           f"0 = the law's own ({DEFAULT_PD['kd']:g} for pd, {DEFAULT_CT['kd']:g} for "
           'computed_torque)', '1/s', 0.0, 1e6),
     Param('estimate_watchdog', 0.5, 'wall time without a state_estimate after which the controller '
-          'reports ERROR (it sends nothing without an estimate: the simulator steps safely on its own)',
-          's', 1e-2, 600.0),
+          'reports ERROR (it sends nothing without an estimate: the simulator steps safely on its '
+          'own)', 's', 1e-2, 600.0),
     Param('reset_on_jump', 0.1, 'a stamp this far behind the last one (a simulator restart) resets '
           'the controller instead of being rejected (as in the estimator and trajectory node)', 's',
           1e-3, 1e6, read_only=True),
@@ -234,18 +235,22 @@ class ControllerNode(Node):
         self.diag.values['model'] = str(model.path)
         self.diag.values['law'] = p['law']
         self._show_gains()
-        self.diag.values['roll_off_hz'] = f'{roll_off_corner_hz(p["torque_lowpass_hz"], p["control_period"]):g}'
-        self._watchdog = self.create_timer(0.05, lambda: self._act(self.gate.on_wall_time(time.monotonic())))
+        self.diag.values['roll_off_hz'] = (
+            f'{roll_off_corner_hz(p["torque_lowpass_hz"], p["control_period"]):g}')
+        self._watchdog = self.create_timer(
+            0.05, lambda: self._act(self.gate.on_wall_time(time.monotonic())))
         self.diag.before_publish.append(self._compute_stats)
         integral_note = (f'; integral gain {p["integral_gain"]:g}' if self._uses('integral_gain')
                          else '')
         self.get_logger().info(
             f'model {model.path.name} (rest tip {1e3 * model.rest_tip[0]:.1f}, '
-            f'{1e3 * model.rest_tip[1]:.1f} mm{"; each finger at its own" if self.rest_shift is not None else ""}); '
+            f'{1e3 * model.rest_tip[1]:.1f} mm'
+            f'{"; each finger at its own" if self.rest_shift is not None else ""}); '
             f'{self.diag.values["weights"]}; '
             f'limit {p["torque_limit"]:g} N·m, rolled off at {self.diag.values["roll_off_hz"]} Hz; '
             f'{p["solver"]} solver; law {p["law"]}'
-            f'{" with Q(x)" if p["state_weights"] else ""}{integral_note}; fingers {", ".join(self.names)}'
+            f'{" with Q(x)" if p["state_weights"] else ""}{integral_note}; '
+            f'fingers {", ".join(self.names)}'
             + (f'; efforts also on {self.pub_effort.topic_name} for {", ".join(p["effort_joints"])}'
                if self.pub_effort is not None else ''))
 
@@ -291,8 +296,8 @@ class ControllerNode(Node):
             self.get_logger().warning(f'{topic}: time jumped back to {t:.3f} s; resetting')
             self.ctrl.reset()
         elif change is Change.ESTIMATES_LOST:
-            self._error(f'no state_estimate for {self.p["estimate_watchdog"]:g} s of wall time, the '
-                        f'last stamped t = {t:.4f} s: commanding nothing')
+            self._error(f'no state_estimate for {self.p["estimate_watchdog"]:g} s of wall time, '
+                        f'the last stamped t = {t:.4f} s: commanding nothing')
         elif change is Change.ESTIMATES_BACK:
             self.diag.set_status(OK, 'estimates are back; tracking')
             self.get_logger().info(f'state estimates are back at t = {t:.4f} s; tracking resumes')
@@ -316,7 +321,7 @@ class ControllerNode(Node):
             self.diag.count('nonfinite_torque')
             u = np.zeros_like(u)
         self.pub_cmd.publish(self.cdr_cmd.encode(stamp, u))
-        if self.pub_effort is not None:         # the same efforts in the joint order of ros2_control
+        if self.pub_effort is not None:  # the same efforts in the joint order of ros2_control
             self._effort_msg.data = u.ravel()[self.effort_order].tolist()
             self.pub_effort.publish(self._effort_msg)
         self.diag.good('commands', 'tracking')
@@ -411,7 +416,8 @@ class ControllerNode(Node):
 
 def count_solve(diag: Diagnostics, log: ThrottledLogger, out, stamp: int) -> None:
     """Count in ``diag`` what the law's output ``out`` for the instant ``stamp`` reports: failed
-    Riccati checks by kind, fallbacks (also a throttled warning), saturation, the largest residual."""
+    Riccati checks by kind, fallbacks (also a throttled warning), saturation, the largest
+    residual."""
     if not out.ok.all():
         diag.count('check_failures', int((~out.ok).sum()))
         for flag in Check:
@@ -420,7 +426,8 @@ def count_solve(diag: Diagnostics, log: ThrottledLogger, out, stamp: int) -> Non
                 diag.count(f'failed_{flag.name.lower()}', hits)
     if out.fallback.any():
         diag.count('fallbacks', int(out.fallback.sum()))
-        log.warn('fallback', f'Riccati checks failed for fingers {np.flatnonzero(out.fallback).tolist()} '
+        log.warn('fallback', f'Riccati checks failed for fingers '
+                 f'{np.flatnonzero(out.fallback).tolist()} '
                  f'at t = {stamp / cv.NS:.3f} s; using the last valid gains')
     if out.saturated.any():
         diag.count('saturated', int(out.saturated.sum()))

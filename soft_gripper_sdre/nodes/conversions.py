@@ -62,7 +62,8 @@ Fingers = int | Sequence[str]
 
 
 def finger_names(fingers: Fingers) -> tuple[str, ...]:
-    """The finger names ``fingers`` stands for: ``n`` → ``finger_0 .. finger_<n-1>``; names as given."""
+    """The finger names ``fingers`` stands for: ``n`` → ``finger_0 .. finger_<n-1>``; names as
+    given."""
     if isinstance(fingers, (int, np.integer)):
         return FINGER_NAMES[:int(fingers)]
     return tuple(fingers)
@@ -155,7 +156,8 @@ def fill_tips(msg: PoseArray, ns: int, tips: np.ndarray) -> None:
 
 
 def msg_to_tips(msg: PoseArray, fingers: Fingers) -> tuple[int, np.ndarray]:
-    """PoseArray → (stamp ns, (n, 3) tips [m]); pose i is finger i's, any frame_id and orientation."""
+    """PoseArray → (stamp ns, (n, 3) tips [m]); pose i is finger i's, any frame_id and
+    orientation."""
     n_fingers = len(finger_names(fingers))
     if len(msg.poses) != n_fingers:
         raise MessageError(f'tip_positions: expected {n_fingers} poses, got {len(msg.poses)}')
@@ -287,7 +289,8 @@ def msg_to_reference(msg: MultiDOFJointTrajectory, fingers: Fingers):
         if len(pt.transforms) != m or len(pt.velocities) != m or len(pt.accelerations) != m:
             raise MessageError('grasp_reference: a point does not hold one entry per finger')
         times.append(stamp + pt.time_from_start.sec * NS + pt.time_from_start.nanosec)
-        data.append([(tf.translation.x, tf.translation.y, tw.linear.x, tw.linear.y, ta.linear.x, ta.linear.y)
+        data.append([(tf.translation.x, tf.translation.y, tw.linear.x, tw.linear.y, ta.linear.x,
+                      ta.linear.y)
                      for tf, tw, ta in zip(pt.transforms, pt.velocities, pt.accelerations)])
     times = np.asarray(times, dtype=np.int64)
     if np.any(np.diff(times) <= 0):

@@ -28,7 +28,8 @@ import sys
 from typing import Any, Callable, Mapping, Sequence
 
 PACKAGE = 'soft_gripper_sdre'
-#: the source tree's parameter files (a colcon install has them under share/, see default_params_file)
+#: the source tree's parameter files (a colcon install has them under share/, see
+#: default_params_file)
 CONFIG_DIR = Path(__file__).resolve().parents[2] / 'config'
 #: sim time, as the simulator publishes it (nodes/topics.py CLOCK)
 CLOCK = '/clock'
@@ -125,7 +126,8 @@ def default_params_file(node: str) -> Path | None:
 
 
 def parameter_argument(key: str, value: Any) -> str:
-    """``key:=value`` for ``--ros-args -p``: booleans as YAML ``true``/``false``, lists in brackets."""
+    """``key:=value`` for ``--ros-args -p``: booleans as YAML ``true``/``false``, lists in
+    brackets."""
     if isinstance(value, bool):
         text = 'true' if value else 'false'
     elif isinstance(value, (list, tuple)):
@@ -168,7 +170,8 @@ class NodeSpec:
     """One node of the graph: what ``ros2 run`` / ``ros2 launch`` starts, and with what."""
 
     name: str                                   # node name
-    executable: str                             # console script = module under soft_gripper_sdre.nodes
+    executable: str                             # console script = module under
+                                                # soft_gripper_sdre.nodes
     namespace: str = ''                         # '' (root) or '/left_hand'
     params_file: Path | None = None             # a ROS parameters file keyed /**/<name>
     parameters: Mapping[str, Any] = field(default_factory=dict)     # overrides, after the files
@@ -202,7 +205,8 @@ class NodeSpec:
         return args
 
     def command(self, python: str = sys.executable) -> list[str]:
-        """The process that runs this node: ``python -m soft_gripper_sdre.nodes.<executable> --ros-args …``."""
+        """The process that runs this node:
+        ``python -m soft_gripper_sdre.nodes.<executable> --ros-args …``."""
         return [python, '-m', self.module, *self.ros_arguments()]
 
     def with_parameters(self, **parameters: Any) -> NodeSpec:
@@ -301,7 +305,8 @@ def grasp_graph(namespace: str = '', *, record: bool = True,
             own = dict(parameters.get(name, {}))
             if own.get('control_period', control_period) != control_period:
                 raise ValueError(f'control_period {control_period:g} s for the graph, but '
-                                 f'{own["control_period"]:g} s in the {name} parameters: set it once')
+                                 f'{own["control_period"]:g} s in the {name} parameters: '
+                                 'set it once')
             parameters[name] = {**own, 'control_period': float(control_period)}
     clock = clock or ('clock' if namespace else CLOCK)
     remappings = () if clock == CLOCK else ((CLOCK, clock),)

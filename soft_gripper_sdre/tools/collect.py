@@ -40,7 +40,8 @@ def collect_signal(name: str, config: SimConfig | None = None, duration: float =
     """Apply signal ``name`` to a fresh finger and return the dataset record (see module doc)."""
     config = config or SimConfig(scene='finger')
     if config.scene != 'finger':
-        raise ValueError(f"excitation data is collected on the 'finger' scene, got {config.scene!r}")
+        raise ValueError(f"excitation data is collected on the 'finger' scene, "
+                         f"got {config.scene!r}")
     dt = config.control_period
     n = int(round(duration / dt))
     t = np.arange(n) * dt
@@ -62,11 +63,13 @@ def collect_signal(name: str, config: SimConfig | None = None, duration: float =
         rest = sim.rest_tip[0].copy()
     return dict(t=t, u=u, rest_tip=rest, dt=np.float64(dt), signal=np.str_(name),
                 noise_std=np.float64(config.noise_std), seed=np.int64(config.seed),
-                format_version=np.int64(FORMAT_VERSION), sim_config=np.str_(config.to_json()), **rec)
+                format_version=np.int64(FORMAT_VERSION), sim_config=np.str_(config.to_json()),
+                **rec)
 
 
 def write_record(path: Path, record: dict[str, np.ndarray]) -> Path:
-    """Write one record as an uncompressed ``.npz`` (no pickled objects: load with allow_pickle=False)."""
+    """Write one record as an uncompressed ``.npz`` (no pickled objects: load with
+    allow_pickle=False)."""
     np.savez(path, **record)
     return path
 
@@ -109,7 +112,8 @@ def main(argv: list[str] | None = None) -> int:
 
     for i, name in enumerate(tqdm(args.signals, desc='signals', unit='signal')):
         # a different noise stream per signal, reproducible from --seed
-        record = collect_signal(name, replace(config, seed=args.seed + i), args.duration, progress=True)
+        record = collect_signal(name, replace(config, seed=args.seed + i), args.duration,
+                                progress=True)
         path = write_record(args.out / f'{name}.npz', record)
         tqdm.write(f'{path}: {record["t"].size} samples, tip range '
                    f'{1e3 * np.ptp(record["tip_true"], axis=0).round(2)} mm')

@@ -2,14 +2,17 @@
 model scored against the simulator's ground truth. Writes ``report.md``, ``evaluate.json`` and PNGs.
 
     python -m soft_gripper_sdre.tools.evaluate --out runs/evaluate          # (make evaluate)
-    python -m soft_gripper_sdre.tools.evaluate --out DIR --laws sdre lqr --trajectories fast --workers 1
-    python -m soft_gripper_sdre.tools.evaluate --out runs/evaluate --ray auto     # the runs on a Ray cluster
+    python -m soft_gripper_sdre.tools.evaluate --out DIR --laws sdre lqr --trajectories fast
+        --workers 1
+    python -m soft_gripper_sdre.tools.evaluate --out runs/evaluate --ray auto
+        # the runs on a Ray cluster
 
-It uses the in-process loop (:func:`soft_gripper_sdre.analysis.closed_loop.run_closed_loop`: the node
-graph's loop with the topics replaced by calls, lockstep, seeded noise), because the oracle needs
-the plant's joint state at every step. The runs are independent jobs on ``--workers`` processes
-(default: every core) or on the Ray cluster at ``--ray ADDRESS`` (:mod:`soft_gripper_sdre.tools.jobs`),
-with the same numbers wherever they run (but the compute time). The numbers:
+It uses the in-process loop (:func:`soft_gripper_sdre.analysis.closed_loop.run_closed_loop`: the
+node graph's loop with the topics replaced by calls, lockstep, seeded noise), because the oracle
+needs the plant's joint state at every step. The runs are independent jobs on ``--workers``
+processes (default: every core) or on the Ray cluster at ``--ray ADDRESS``
+(:mod:`soft_gripper_sdre.tools.jobs`), with the same numbers wherever they run (but the compute
+time). The numbers:
 
 * free-space RMSE and max of the 2-D tip error [mm] on the *true* tip (grasping fingers 0 and 2,
   and the worst of the four), where the finger does not touch the cube;
@@ -34,7 +37,8 @@ import numpy as np
 from soft_gripper_sdre.analysis import law_runs
 from soft_gripper_sdre.analysis.law_plots import plot_feedforward, plot_laws, plot_model_vs_truth
 
-# importing analysis.oracle registers the oracle laws ('oracle', 'oracle_exact', 'oracle_ff') with make_law
+# importing analysis.oracle registers the oracle laws ('oracle', 'oracle_exact', 'oracle_ff') with
+# make_law
 import soft_gripper_sdre.analysis.oracle  # noqa: F401
 from soft_gripper_sdre.control.laws import DEFAULT_CT, DEFAULT_PD, LAW_REGISTRY
 from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
@@ -61,7 +65,8 @@ LAW_SPECS = {
     'koopman_lqr': ('Koopman LQR', 'koopman_lqr', {}),
     'computed_torque': ('computed torque (learned model)', 'computed_torque', {}),
 }
-#: the laws whose PD gains tune_gains grids (LAW_SPECS keys): the gains they ship with, the grid's k_p and k_d
+#: the laws whose PD gains tune_gains grids (LAW_SPECS keys): the gains they ship with, the grid's
+#: k_p and k_d
 TUNABLE = {'pd': (DEFAULT_PD, (3e3, 1e4, 1.5e4, 2e4), (40.0, 150.0)),
            'computed_torque': (DEFAULT_CT, (5e3, 1.5e4, 3e4, 6e4), (40.0, 80.0, 150.0))}
 #: the grasp of the demo, and a faster one (30 mm in 0.5 s: peak 94 mm/s) that stresses the model
@@ -69,7 +74,8 @@ TRAJECTORIES = {
     'grasp': (GraspProfile(others='open'), 6.0),
     'fast': (GraspProfile(t_start=0.2, t_close=0.5, t_hold=0.5, t_open=0.5, others='open'), 2.0),
 }
-#: the paper-data model retrained with the singular-value penalty (docs/results.md "Beyond the paper")
+#: the paper-data model retrained with the singular-value penalty (docs/results.md "Beyond the
+#: paper")
 PAPER_DATA_SV_MODEL = PAPER_DATA_MODEL.with_name('paper_data_sv.pt')
 U_MAX = 0.0625
 NOISE = 5e-5
@@ -92,9 +98,9 @@ class RunSummary:
     held_mm: float = float('nan')  # held-reference error, mean over the fingers
 
 
-def run_law(key: str, trajectory: str, model: SDCModel, weights: Weights, duration: float | None = None,
-            progress: bool = False, pd_gains: dict | None = None, koopman_path: Path | None = None,
-            **law_options):
+def run_law(key: str, trajectory: str, model: SDCModel, weights: Weights,
+            duration: float | None = None, progress: bool = False, pd_gains: dict | None = None,
+            koopman_path: Path | None = None, **law_options):
     """One closed-loop run: (RunSummary, LoopResult). ``pd_gains`` go to a law that takes them,
     ``koopman_path`` (None = the shipped model) to the Koopman laws, ``law_options`` (e.g.
     ``integral_gain``) to make_law over the spec's."""
@@ -108,12 +114,14 @@ def run_law(key: str, trajectory: str, model: SDCModel, weights: Weights, durati
         opts['koopman_path'] = koopman_path
     if 'q_pos' in opts:
         weights = Weights(opts.pop('q_pos'), weights.q_vel, weights.r)
-    res = law_runs.run_law(name, model, weights, U_MAX, profile, dur, SimConfig(scene='hand', noise_std=NOISE),
-                           progress=progress, **opts)
-    return RunSummary(law=key, trajectory=trajectory, **law_runs.score(res, profile).pick(RunSummary)), res
+    res = law_runs.run_law(name, model, weights, U_MAX, profile, dur,
+                           SimConfig(scene='hand', noise_std=NOISE), progress=progress, **opts)
+    return RunSummary(law=key, trajectory=trajectory,
+                      **law_runs.score(res, profile).pick(RunSummary)), res
 
 
-def tune_gains(model: SDCModel, weights: Weights, law: str = 'pd', kps=None, kds=None, trajectory: str = 'grasp',
+def tune_gains(model: SDCModel, weights: Weights, law: str = 'pd', kps=None, kds=None,
+               trajectory: str = 'grasp',
                duration: float | None = None) -> list[tuple[float, float, float]]:
     """Grid over the PD gains (k_p, k_d) of ``law`` (a :data:`TUNABLE` key; None: its grid) on a
     trajectory: [(kp, kd, mean grasp-finger RMSE mm)]; a run that diverged or saturated > 5 % of the
@@ -125,13 +133,15 @@ def tune_gains(model: SDCModel, weights: Weights, law: str = 'pd', kps=None, kds
     rows = []
     for kp in kps:
         for kd in kds:
-            s, _ = run_law(law, trajectory, model, weights, duration=duration, pd_gains=dict(kp=kp, kd=kd))
+            s, _ = run_law(law, trajectory, model, weights, duration=duration,
+                           pd_gains=dict(kp=kp, kd=kd))
             bad = s.saturated_pct > 5.0 or not np.isfinite(s.rmse_mm_grasp)
             rows.append((kp, kd, float('inf') if bad else s.rmse_mm_grasp))
     return rows
 
 
-def tune_integral(model: SDCModel, weights: Weights, gains=(0.0, 3e4, 1e5, 3e5), trajectory: str = 'grasp',
+def tune_integral(model: SDCModel, weights: Weights, gains=(0.0, 3e4, 1e5, 3e5),
+                  trajectory: str = 'grasp',
                   duration: float | None = None) -> list[tuple[float, float, float]]:
     """The default law's integral gain k_i over a grid: [(k_i, mean grasp-finger RMSE mm,
     held-reference error mm)]."""
@@ -170,7 +180,8 @@ def run_law_job(context: LawRunsContext, job: tuple[str, str]):
 
 
 def run_laws(laws, trajectories, model_path: Path | None = None, koopman_path: Path | None = None,
-             duration: float | None = None, runner: jobs.Runner = jobs.Runner(), progress: bool = True):
+             duration: float | None = None, runner: jobs.Runner = jobs.Runner(),
+             progress: bool = True):
     """Every law of ``laws`` (LAW_SPECS keys) on every trajectory, with the default weights:
     ([RunSummary], {trajectory: {law: LoopResult}}), in the order trajectory by trajectory. The
     runs are independent jobs (:mod:`~soft_gripper_sdre.tools.jobs`, on ``runner``); each result
@@ -179,7 +190,7 @@ def run_laws(laws, trajectories, model_path: Path | None = None, koopman_path: P
     from soft_gripper_sdre.control.compiled import warm_up
     from soft_gripper_sdre.learning.koopman import DEFAULT_KOOPMAN
     from soft_gripper_sdre.learning.model import DEFAULT_MODEL
-    warm_up()                      # the kernels into numba's cache once, before the workers load them
+    warm_up()  # the kernels into numba's cache once, before the workers load them
     context = LawRunsContext(jobs.FileBlob.read(model_path or DEFAULT_MODEL),
                              jobs.FileBlob.read(koopman_path or DEFAULT_KOOPMAN), duration)
     todo = [(t, k) for t in trajectories for k in laws]
@@ -242,7 +253,8 @@ def score_model(model: SDCModel, signal: str = 'u4', seconds: float = 4.0, every
         ang = angle_difference(column_angles(r['G2_learned']), column_angles(G))
         mag = np.linalg.norm(r['G2_learned'], axis=-2) / np.linalg.norm(G, axis=-2)
         rel = np.linalg.norm(r['G2_learned'] - G, axis=(1, 2)) / np.linalg.norm(G, axis=(1, 2))
-        return dict(angle_median_deg=np.median(ang, 0).tolist(), magnitude_ratio_median=np.median(mag, 0).tolist(),
+        return dict(angle_median_deg=np.median(ang, 0).tolist(),
+                    magnitude_ratio_median=np.median(mag, 0).tolist(),
                     rel_frobenius_median=float(np.median(rel)))
     stats = dict(
         signal=signal, samples=int(r['t'].size),
@@ -252,14 +264,17 @@ def score_model(model: SDCModel, signal: str = 'u4', seconds: float = 4.0, every
         r2_learned_vs_exact=r2(r['acc_exact'], r['acc_learned']),
         r2_learned_vs_proj=r2(r['acc_proj'], r['acc_learned']),
         g2_vs_exact=g2_err(r['G2_exact']), g2_vs_proj=g2_err(r['G2_proj']),
-        drift_r2_vs_exact=r2(r['f_exact'], r['f_learned']), drift_r2_vs_proj=r2(r['f_proj'], r['f_learned']),
+        drift_r2_vs_exact=r2(r['f_exact'], r['f_learned']),
+        drift_r2_vs_proj=r2(r['f_proj'], r['f_learned']),
         # the SDC factorisation is not unique: similar products A(x)x from different matrices
-        a_rel_diff_median=float(np.median(np.linalg.norm(r['A_learned'] - r['A_oracle'], axis=(1, 2))
-                                          / np.linalg.norm(r['A_oracle'], axis=(1, 2)))))
+        a_rel_diff_median=float(np.median(
+            np.linalg.norm(r['A_learned'] - r['A_oracle'], axis=(1, 2))
+            / np.linalg.norm(r['A_oracle'], axis=(1, 2)))))
     return dict(stats=stats, samples=r)
 
 
-def workspace_check_failures(model: SDCModel, weights: Weights, n: int = 9, speeds=(0.0, 0.1)) -> float:
+def workspace_check_failures(model: SDCModel, weights: Weights, n: int = 9,
+                             speeds=(0.0, 0.1)) -> float:
     """Share [%] of a grid of states (tip X ±10 mm, Y −35…+45 mm around rest; speeds in each
     direction) where an SDRE step on the learned model fails a Riccati check."""
     return workspace_survey(model, weights, n, speeds)['check_fail_pct']
@@ -287,17 +302,20 @@ def workspace_survey(model: SDCModel, weights: Weights, n: int = 9, speeds=(0.0,
 
 
 # -- report ---------------------------------------------------------------------------------------
-def law_figures(results: dict, summaries: list[RunSummary], trajectory: str, out: Path) -> list[str]:
+def law_figures(results: dict, summaries: list[RunSummary], trajectory: str,
+                out: Path) -> list[str]:
     """The figures of one trajectory's runs (``results``: law key → LoopResult) in ``out``: every
     law (RMSE and grasp success from ``summaries``), and the feedforward law against the paper's
     law and the PD when it ran."""
     labels = {key: LAW_SPECS[key][0] for key in results}
-    scores = {s.law: (s.rmse_mm_grasp, s.grasp_success) for s in summaries if s.trajectory == trajectory}
+    scores = {s.law: (s.rmse_mm_grasp, s.grasp_success) for s in summaries
+              if s.trajectory == trajectory}
     names = [plot_laws(results, labels, scores, trajectory, out / f'{trajectory}_laws.png').name]
     ff = [k for k in ('sdre', 'pd', 'pd_ff', 'oracle_ff', 'sdre_ff') if k in results]
     if 'sdre_ff' in ff:
         names.append(plot_feedforward({k: results[k] for k in ff}, labels, trajectory,
-                                      out / f'{trajectory}_feedforward.png', highlight='sdre_ff').name)
+                                      out / f'{trajectory}_feedforward.png',
+                                      highlight='sdre_ff').name)
     return names
 
 
@@ -305,29 +323,31 @@ def _fmt(v, f='.3f'):
     return 'diverged' if not np.isfinite(v) else format(v, f)
 
 
-def write_report(out: Path, summaries: list[RunSummary], figures: list[str], model_stats: dict | None,
-                 workspace: dict | None, expectation: dict) -> Path:
+def write_report(out: Path, summaries: list[RunSummary], figures: list[str],
+                 model_stats: dict | None, workspace: dict | None, expectation: dict) -> Path:
     lines = ['# Beyond the paper: evaluation report', '',
-             'Generated by `python -m soft_gripper_sdre.tools.evaluate` (in-process loop, lockstep, '
-             f'{NOISE * 1e3:g} mm tip noise, seed 0; errors on the true tip).', '']
+             'Generated by `python -m soft_gripper_sdre.tools.evaluate` (in-process loop, '
+             f'lockstep, {NOISE * 1e3:g} mm tip noise, seed 0; errors on the true tip).', '']
     for traj in dict.fromkeys(s.trajectory for s in summaries):
         p, dur = TRAJECTORIES[traj]
-        lines += [f'## {traj}: close {p.close_distance * 1e3:g} mm in {p.t_close:g} s, hold {p.t_hold:g} s, '
-                  f'open in {p.t_open:g} s ({dur:g} s run)', '',
-                  '| law | RMSE grasp fingers [mm] | max grasp [mm] | worst-finger RMSE [mm] | max any [mm] '
-                  '| held-reference error [mm] | torque RMS [N·m] | saturated | grasp | cube moved [mm] '
-                  '| check failures '
+        lines += [f'## {traj}: close {p.close_distance * 1e3:g} mm in {p.t_close:g} s, '
+                  f'hold {p.t_hold:g} s, open in {p.t_open:g} s ({dur:g} s run)', '',
+                  '| law | RMSE grasp fingers [mm] | max grasp [mm] | worst-finger RMSE [mm] '
+                  '| max any [mm] | held-reference error [mm] | torque RMS [N·m] | saturated '
+                  '| grasp | cube moved [mm] | check failures '
                   '| compute [µs/step] |',
-                  '| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | :---: | ---: | ---: | ---: |']
+                  '| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | :---: | ---: | ---: '
+                  '| ---: |']
         for s in summaries:
             if s.trajectory != traj:
                 continue
-            lines.append(f'| {LAW_SPECS[s.law][0]} | {_fmt(s.rmse_mm_grasp)} | {_fmt(s.max_mm_grasp, ".2f")} | '
+            lines.append(f'| {LAW_SPECS[s.law][0]} | {_fmt(s.rmse_mm_grasp)} | '
+                         f'{_fmt(s.max_mm_grasp, ".2f")} | '
                          f'{_fmt(s.rmse_mm_worst)} | {_fmt(s.max_mm_all, ".2f")} | '
                          f'{"n/a" if np.isnan(s.held_mm) else _fmt(s.held_mm)} | '
                          f'{s.effort_rms_nm:.4f} | '
-                         f'{s.saturated_pct:.1f} % | {"yes" if s.grasp_success else "no"} | {s.cube_mm:.2f} | '
-                         f'{s.check_fail_pct:.2f} % | {s.compute_us:.0f} |')
+                         f'{s.saturated_pct:.1f} % | {"yes" if s.grasp_success else "no"} | '
+                         f'{s.cube_mm:.2f} | {s.check_fail_pct:.2f} % | {s.compute_us:.0f} |')
         lines += ['']
         for f in figures:
             if f.startswith(traj):
@@ -339,8 +359,8 @@ def write_report(out: Path, summaries: list[RunSummary], figures: list[str], mod
     if model_stats:
         s = model_stats
         lines += ['## The learned model against the ground truth', '',
-                  f'Held-out signal {s["signal"]} on the hand-mounted finger, {s["samples"]} states. '
-                  'R² per axis (X, Y):', '',
+                  f'Held-out signal {s["signal"]} on the hand-mounted finger, '
+                  f'{s["samples"]} states. R² per axis (X, Y):', '',
                   '| compared | R² X | R² Y |', '| --- | ---: | ---: |']
         for key, label in (('r2_learned_vs_sim', 'learned ẍ vs simulator'),
                            ('r2_exact_vs_sim', 'exact ẍ (friction off) vs simulator'),
@@ -350,25 +370,32 @@ def write_report(out: Path, summaries: list[RunSummary], figures: list[str], mod
                            ('drift_r2_vs_exact', 'learned drift A(x)x vs exact f'),
                            ('drift_r2_vs_proj', 'learned drift A(x)x vs projected f')):
             lines.append(f'| {label} | {s[key][0]:.3f} | {s[key][1]:.3f} |')
-        lines += ['', f'The drifts agree better than the matrices: [A₂₁ A₂₂] learned vs the oracle\'s '
-                  f'(projected) factorisation differ by {s["a_rel_diff_median"]:.2f} (median relative '
-                  'Frobenius) — the SDC factorisation is not unique.', '',
-                  '| learned G2 vs | column angle error (median, ax0 / ax1) | magnitude ratio (median) '
-                  '| relative Frobenius error (median) |', '| --- | ---: | ---: | ---: |']
-        for key, label in (('g2_vs_exact', 'exact J M⁻¹ B'), ('g2_vs_proj', 'projected S M_r⁻¹ Φᵀ B')):
+        lines += ['', f'The drifts agree better than the matrices: [A₂₁ A₂₂] learned vs the '
+                  f'oracle\'s (projected) factorisation differ by {s["a_rel_diff_median"]:.2f} '
+                  '(median relative Frobenius) — the SDC factorisation is not unique.', '',
+                  '| learned G2 vs | column angle error (median, ax0 / ax1) '
+                  '| magnitude ratio (median) | relative Frobenius error (median) |',
+                  '| --- | ---: | ---: | ---: |']
+        for key, label in (('g2_vs_exact', 'exact J M⁻¹ B'),
+                           ('g2_vs_proj', 'projected S M_r⁻¹ Φᵀ B')):
             g = s[key]
-            lines.append(f'| {label} | {g["angle_median_deg"][0]:.1f}° / {g["angle_median_deg"][1]:.1f}° | '
-                         f'{g["magnitude_ratio_median"][0]:.2f} / {g["magnitude_ratio_median"][1]:.2f} | '
+            lines.append(f'| {label} | {g["angle_median_deg"][0]:.1f}° / '
+                         f'{g["angle_median_deg"][1]:.1f}° | '
+                         f'{g["magnitude_ratio_median"][0]:.2f} / '
+                         f'{g["magnitude_ratio_median"][1]:.2f} | '
                          f'{g["rel_frobenius_median"]:.2f} |')
         lines += ['', '![model vs truth](model_vs_truth.png)', '']
     if workspace:
         lines += ['## Riccati checks on a workspace grid', '',
                   'Tip X ±10 mm, Y −35…+45 mm around rest (9 × 9), at rest and at 0.1 m/s in four '
-                  'directions; one SDRE step (scipy solver, every check of Remarks 2–3) per state.', '',
-                  '| model | check failures | smallest σ_min(G2) [m/s² per N·m] | largest cond(G2) |',
+                  'directions; one SDRE step (scipy solver, every check of Remarks 2–3) per '
+                  'state.', '',
+                  '| model | check failures | smallest σ_min(G2) [m/s² per N·m] '
+                  '| largest cond(G2) |',
                   '| --- | ---: | ---: | ---: |']
         for k, v in workspace.items():
-            lines.append(f'| {k} | {v["check_fail_pct"]:.2f} % | {v["min_sv"]:.3g} | {v["max_cond"]:.3g} |')
+            lines.append(f'| {k} | {v["check_fail_pct"]:.2f} % | {v["min_sv"]:.3g} | '
+                         f'{v["max_cond"]:.3g} |')
         lines.append('')
     path = out / 'report.md'
     path.write_text('\n'.join(lines) + '\n')
@@ -387,7 +414,8 @@ def expectation_verdict(summaries: list[RunSummary]) -> dict:
             continue
         pairs = [('sdre', 'SDRE', 'oracle')]
         if 'sdre_ff' in by:
-            pairs.append(('sdre_ff', 'SDRE + feedforward', 'oracle_ff' if 'oracle_ff' in by else 'oracle'))
+            pairs.append(('sdre_ff', 'SDRE + feedforward',
+                          'oracle_ff' if 'oracle_ff' in by else 'oracle'))
         for law, label, oracle in pairs:
             beats = by[law] < by['lqr'] and by[law] < by['pd']
             ratio = by[law] / by[oracle] if by[oracle] > 0 else float('nan')
@@ -402,16 +430,22 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     ap.add_argument('--out', type=Path, default=Path('runs/evaluate'))
     ap.add_argument('--laws', nargs='+', default=list(LAW_SPECS), choices=list(LAW_SPECS))
-    ap.add_argument('--trajectories', nargs='+', default=list(TRAJECTORIES), choices=list(TRAJECTORIES))
-    ap.add_argument('--duration', type=float, default=None, help='override every run\'s duration [s]')
-    ap.add_argument('--no-model-score', action='store_true', help='skip the ground-truth model scoring')
+    ap.add_argument('--trajectories', nargs='+', default=list(TRAJECTORIES),
+                    choices=list(TRAJECTORIES))
+    ap.add_argument('--duration', type=float, default=None,
+                    help='override every run\'s duration [s]')
+    ap.add_argument('--no-model-score', action='store_true',
+                    help='skip the ground-truth model scoring')
     ap.add_argument('--tune', choices=[*TUNABLE, 'integral'], default=None,
-                    help='print the tuning grid of this law\'s PD gains (or of the default law\'s integral gain) '
-                         'on both trajectories and exit')
-    ap.add_argument('--tune-pd', dest='tune', action='store_const', const='pd', help='the same as --tune pd')
-    ap.add_argument('--model', type=Path, default=None, help='checkpoint (default: the shipped model)')
+                    help='print the tuning grid of this law\'s PD gains (or of the default law\'s '
+                         'integral gain) on both trajectories and exit')
+    ap.add_argument('--tune-pd', dest='tune', action='store_const', const='pd',
+                    help='the same as --tune pd')
+    ap.add_argument('--model', type=Path, default=None,
+                    help='checkpoint (default: the shipped model)')
     ap.add_argument('--koopman', type=Path, default=None,
-                    help='Koopman model of the koopman_* laws (default: the shipped one; tools.koopman writes one)')
+                    help='Koopman model of the koopman_* laws (default: the shipped one; '
+                         'tools.koopman writes one)')
     jobs.add_arguments(ap)
     args = ap.parse_args(argv)
     runner = jobs.runner_from_args(ap, args)
@@ -426,27 +460,30 @@ def main(argv=None) -> int:
     weights = Weights(**DEFAULT_WEIGHTS)
     if args.tune == 'integral':
         for traj in args.trajectories:
-            for gain, rmse, held in tune_integral(model, weights, trajectory=traj, duration=args.duration):
-                print(f'{traj} integral_gain={gain:g}: grasp-finger RMSE {rmse:.4f} mm, held-reference error '
-                      f'{held:.4f} mm')
+            for gain, rmse, held in tune_integral(model, weights, trajectory=traj,
+                                                  duration=args.duration):
+                print(f'{traj} integral_gain={gain:g}: grasp-finger RMSE {rmse:.4f} mm, '
+                      f'held-reference error {held:.4f} mm')
         return 0
     if args.tune:
         for traj in args.trajectories:
-            for kp, kd, rmse in tune_gains(model, weights, args.tune, trajectory=traj, duration=args.duration):
+            for kp, kd, rmse in tune_gains(model, weights, args.tune, trajectory=traj,
+                                           duration=args.duration):
                 print(f'{traj} {args.tune} kp={kp:g} kd={kd:g}: grasp-finger RMSE {rmse:.4f} mm')
         print(f'shipped: {TUNABLE[args.tune][0]}')
         return 0
     try:
         with jobs.session(runner):
             args.out.mkdir(parents=True, exist_ok=True)
-            summaries, results = run_laws(args.laws, args.trajectories, args.model, args.koopman, args.duration,
-                                          runner)
+            summaries, results = run_laws(args.laws, args.trajectories, args.model, args.koopman,
+                                          args.duration, runner)
     except jobs.JobsError as exc:
         ap.error(f'--ray: {exc}')
     figures = []
     for s in summaries:
-        print(f'{s.trajectory:6s} {s.law:15s} RMSE {s.rmse_mm_grasp:.3f} mm, max {s.max_mm_all:.2f} mm, '
-              f'held {s.held_mm:.3f} mm, checks failed {s.check_fail_pct:.2f} %, {s.compute_us:.0f} µs/step')
+        print(f'{s.trajectory:6s} {s.law:15s} RMSE {s.rmse_mm_grasp:.3f} mm, '
+              f'max {s.max_mm_all:.2f} mm, held {s.held_mm:.3f} mm, '
+              f'checks failed {s.check_fail_pct:.2f} %, {s.compute_us:.0f} µs/step')
     for traj, res in results.items():
         figures += law_figures(res, summaries, traj, args.out)
     model_stats = workspace = None
@@ -457,7 +494,8 @@ def main(argv=None) -> int:
         workspace = {'default (shipped)': workspace_survey(SDCModel(), weights),
                      'paper_data (shipped)': workspace_survey(SDCModel(PAPER_DATA_MODEL), weights)}
         if PAPER_DATA_SV_MODEL.is_file():
-            workspace['paper_data_sv (shipped, σ-penalty)'] = workspace_survey(SDCModel(PAPER_DATA_SV_MODEL), weights)
+            workspace['paper_data_sv (shipped, σ-penalty)'] = workspace_survey(
+                SDCModel(PAPER_DATA_SV_MODEL), weights)
         if args.model is not None:
             workspace[str(args.model)] = workspace_survey(model, weights)
     verdict = expectation_verdict(summaries)

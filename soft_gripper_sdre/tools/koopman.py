@@ -46,10 +46,11 @@ def true_series(path: Path) -> dict[str, np.ndarray]:
     with np.load(path, allow_pickle=False) as f:
         missing = {'tip_true', 'vel_true', 'acc_true'} - set(f.files)
         if missing:
-            raise DatasetError(f'{path}: has no simulator truth ({sorted(missing)}); collect it with tools.collect')
+            raise DatasetError(f'{path}: has no simulator truth ({sorted(missing)}); collect it '
+                               'with tools.collect')
         rest = f['rest_tip'][:2]
-        return dict(pos=f['tip_true'][:, :2] - rest, vel=f['vel_true'][:, :2], acc=f['acc_true'][:, :2],
-                    u=f['u'], dt=float(f['dt']))
+        return dict(pos=f['tip_true'][:, :2] - rest, vel=f['vel_true'][:, :2],
+                    acc=f['acc_true'][:, :2], u=f['u'], dt=float(f['dt']))
 
 
 def koopman_r2(model: KoopmanModel, truth: dict, rows: np.ndarray | None = None) -> list[float]:
@@ -68,8 +69,10 @@ def sdc_r2(sdc, truth: dict) -> list[float]:
 
 
 def fit_from_directory(data: Path, settings: KoopmanSettings = KoopmanSettings(),
-                       names: tuple[str, ...] = DATA_VARIANTS['identifying']) -> tuple[KoopmanModel, dict]:
-    """Fit on ``names`` in ``data`` (KF + RTS states as tools.train) and score on u4: (model, metrics).
+                       names: tuple[str, ...] = DATA_VARIANTS['identifying']
+                       ) -> tuple[KoopmanModel, dict]:
+    """Fit on ``names`` in ``data`` (KF + RTS states as tools.train) and score on u4:
+    (model, metrics).
 
     Raises:
         DatasetError: a record is missing or unusable.
@@ -86,11 +89,13 @@ def fit_from_directory(data: Path, settings: KoopmanSettings = KoopmanSettings()
     label_acc = np.vstack([est[n]['acc'][:-1] for n in names])
     truth = true_series(Path(data) / f'{VALIDATION}.npz')
     metrics = dict(
-        observables=dict(delays_periods=list(settings.delays), degree=settings.degree, n_z=model.n_z),
+        observables=dict(delays_periods=list(settings.delays), degree=settings.degree,
+                         n_z=model.n_z),
         ridge=settings.ridge,
         train_r2_vs_labels=r2_score(label_acc, train_acc).tolist(),
         u4_r2_true=koopman_r2(model, truth),
-        u4_r2_true_whole_record=koopman_r2(model, truth, np.arange(model.max_delay, len(truth['u']))),
+        u4_r2_true_whole_record=koopman_r2(model, truth,
+                                           np.arange(model.max_delay, len(truth['u']))),
         max_abs_eigenvalue=float(np.abs(np.linalg.eigvals(model.A)).max()))
     model.info['metrics'] = metrics
     return model, metrics
@@ -105,7 +110,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--compare-sdc', action='store_true',
                     help='also score the shipped SDC model (score_model and on the record)')
     ap.add_argument('--delays', type=int, nargs='*', default=list(KoopmanSettings.delays),
-                    help='delay coordinates of the position [control periods] (default: %(default)s)')
+                    help='delay coordinates of the position [control periods] '
+                         '(default: %(default)s)')
     ap.add_argument('--degree', type=int, default=KoopmanSettings.degree,
                     help='highest degree of the state monomials, 1 = none (default: %(default)s)')
     ap.add_argument('--ridge', type=float, default=KoopmanSettings.ridge,
@@ -127,14 +133,16 @@ def main(argv: list[str] | None = None) -> int:
         from soft_gripper_sdre.learning.model import SDCModel
         from soft_gripper_sdre.tools.evaluate import score_model
         sdc = SDCModel()
-        metrics['sdc_u4_r2_true_on_record'] = sdc_r2(sdc, true_series(args.data / f'{VALIDATION}.npz'))
+        metrics['sdc_u4_r2_true_on_record'] = sdc_r2(sdc,
+                                                     true_series(args.data / f'{VALIDATION}.npz'))
         metrics['sdc_u4_r2_score_model'] = score_model(sdc)['stats']['r2_learned_vs_sim']
     path = model.save(args.out / 'koopman.npz')
     (args.out / 'metrics.json').write_text(json.dumps(metrics, indent=2))
     r2 = metrics['u4_r2_true']
-    print(f'Koopman model: {model.n_z} observables (delays {list(model.settings.delays)} periods, degree '
-          f'{model.settings.degree}), ridge {model.settings.ridge:g}')
-    print(f'u4 R² vs the simulator\'s acceleration (score_model\'s samples): X {r2[0]:.3f}  Y {r2[1]:.3f}')
+    print(f'Koopman model: {model.n_z} observables (delays {list(model.settings.delays)} periods, '
+          f'degree {model.settings.degree}), ridge {model.settings.ridge:g}')
+    print(f'u4 R² vs the simulator\'s acceleration (score_model\'s samples): '
+          f'X {r2[0]:.3f}  Y {r2[1]:.3f}')
     if args.compare_sdc:
         s = metrics['sdc_u4_r2_score_model']
         print(f'shipped SDC model, same samples: X {s[0]:.3f}  Y {s[1]:.3f}')

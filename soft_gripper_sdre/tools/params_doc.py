@@ -54,19 +54,22 @@ def node_table(node: str) -> str:
 def render() -> str:
     """The whole parameter reference page."""
     head = ('# Node parameters\n\n'
-            'Generated from the nodes\' declarations by `python -m soft_gripper_sdre.tools.params_doc`; '
-            'do not edit by hand. Every node also prints its table with `--help`.\n\n'
-            'Values come from `config/<node>.yaml` (keys `/**/<node>`, so they apply in any namespace), '
-            '`--params-file` or `-p name:=value`. A bad value stops the node at start-up with a message '
-            'naming the parameter (exit status 2). Parameters marked "runtime" can be changed with '
-            '`ros2 param set`; a refused change returns its reason and the old value stays in force. '
-            'Units are SI.\n\n')
+            'Generated from the nodes\' declarations by '
+            '`python -m soft_gripper_sdre.tools.params_doc`; do not edit by hand. Every node also '
+            'prints its table with `--help`.\n\n'
+            'Values come from `config/<node>.yaml` (keys `/**/<node>`, so they apply in any '
+            'namespace), `--params-file` or `-p name:=value`. A bad value stops the node at '
+            'start-up with a message naming the parameter (exit status 2). Parameters marked '
+            '"runtime" can be changed with `ros2 param set`; a refused change returns its reason '
+            'and the old value stays in force. Units are SI.\n\n')
     return head + '\n'.join(node_table(n) for n in NODES)
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.params_doc', description=__doc__.split('\n')[0])
-    ap.add_argument('--out', type=Path, default=DEFAULT_OUT, help='output file (default %(default)s); - for stdout')
+    ap = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.params_doc',
+                                 description=__doc__.split('\n')[0])
+    ap.add_argument('--out', type=Path, default=DEFAULT_OUT,
+                    help='output file (default %(default)s); - for stdout')
     a = ap.parse_args(argv)
     text = render()
     if str(a.out) == '-':

@@ -1,6 +1,7 @@
 """Training from rosbag2 recordings: the ``--bag`` path of ``tools.train``.
 
-    python -m soft_gripper_sdre.tools.train --bag runs/bags/train --val-bag runs/bags/val/u4 --out runs/train_bags
+    python -m soft_gripper_sdre.tools.train --bag runs/bags/train --val-bag runs/bags/val/u4
+        --out runs/train_bags
 
 Every ``--bag`` (a rosbag2 directory, or a directory of them) is read and checked first
 (:mod:`soft_gripper_sdre.analysis.bag_dataset`); a bad one ends the tool with exit status 2 and a
@@ -77,7 +78,8 @@ def expand_bag_paths(paths: list[Path]) -> list[Path]:
 
 def load_bags(paths: list[Path], tips_topic: str, torques_topic: str, min_duration: float,
               finger: int | None) -> list[tuple[Recording, list[int]]]:
-    """Every bag read and checked, with the fingers to learn from (``finger``, or every excited one).
+    """Every bag read and checked, with the fingers to learn from (``finger``, or every excited
+    one).
 
     Raises:
         BagDataError: a bag cannot be used (named), or no finger of it was excited.
@@ -94,7 +96,8 @@ def load_bags(paths: list[Path], tips_topic: str, torques_topic: str, min_durati
                 raise BagDataError(f'bag {path}: finger {finger} received only zero torque')
             excited = [finger]
         if not excited:
-            raise BagDataError(f'bag {path}: every torque in {rec.torques_topic} is zero (nothing was excited)')
+            raise BagDataError(f'bag {path}: every torque in {rec.torques_topic} is zero '
+                               '(nothing was excited)')
         loaded.append((rec, excited))
     return loaded
 
@@ -127,8 +130,9 @@ def _finger_name(rec: Recording, finger: int) -> str:
     return rec.finger_names[finger] if finger < len(rec.finger_names) else FINGER_NAMES[finger]
 
 
-def label_bags(loaded: list[tuple[Recording, list[int]]], jerk: float | None, meas_std: float | None,
-               gap_periods: float = DEFAULT_GAP_PERIODS) -> tuple[list[FingerSamples], list[dict], np.ndarray]:
+def label_bags(loaded: list[tuple[Recording, list[int]]], jerk: float | None,
+               meas_std: float | None, gap_periods: float = DEFAULT_GAP_PERIODS
+               ) -> tuple[list[FingerSamples], list[dict], np.ndarray]:
     """Samples of every (bag, finger), the provenance of each bag, and the first rest tip (3,).
 
     ``jerk`` None: the KF/RTS jerk intensity of each (bag, finger) tuned by likelihood on its own
@@ -141,7 +145,8 @@ def label_bags(loaded: list[tuple[Recording, list[int]]], jerk: float | None, me
         info = rec.describe()
         info['fingers'] = {}
         for f in fingers:
-            rest, sigma, n_settle = (settle_estimates if meas_std is not None else settle_noise)(rec, f)
+            rest, sigma, n_settle = (settle_estimates if meas_std is not None
+                                     else settle_noise)(rec, f)
             used = meas_std if meas_std is not None else sigma
             q = jerk if jerk is not None else tune_jerk(rec, f, used)
             got = label_finger(rec, f, q, used, rest, gap_periods)
@@ -214,14 +219,17 @@ def params_yaml(derived: loop_settings.Derivation, model_path: Path, finger_name
             params_file_key('trajectory'): {'ros__parameters': _plain(plan)}}
     head = (f'# Estimator and controller settings derived from {source} by tools.train\n'
             f'# (closed-loop bandwidth {d.bandwidth_hz:g} Hz), and the move they were checked on:\n'
-            f'# {1e3 * derived.facts.travel:.3g} mm at {derived.facts.direction:.0f}° from +X toward +Y '
-            '(trajectory: close_distance, side_distance;\n'
-            '# contact_distance = close_distance: the whole move scored as free space). How they are\n'
-            '# derived and checked: docs/own_gripper.md. Use: --ros-args --params-file <this file>\n')
+            f'# {1e3 * derived.facts.travel:.3g} mm at {derived.facts.direction:.0f}° from +X '
+            'toward +Y (trajectory: close_distance, side_distance;\n'
+            '# contact_distance = close_distance: the whole move scored as free space). How they '
+            'are\n'
+            '# derived and checked: docs/own_gripper.md. Use: --ros-args --params-file '
+            '<this file>\n')
     return head + yaml.safe_dump(body, sort_keys=False)
 
 
-def train_from_bags(train_paths: list[Path], val_paths: list[Path], out: Path, settings: TrainSettings, *,
+def train_from_bags(train_paths: list[Path], val_paths: list[Path], out: Path,
+                    settings: TrainSettings, *,
                     tips_topic: str, torques_topic: str, min_duration: float, finger: int | None,
                     meas_std: float | None, jerk_psd: float | None) -> dict:
     """Read, label, train, validate, judge, derive the loop's settings and write (module doc);
@@ -250,7 +258,8 @@ def train_from_bags(train_paths: list[Path], val_paths: list[Path], out: Path, s
     bar = tqdm(total=settings.epochs + settings.rollout_epochs, desc=f'train ({settings.preset})',
                unit='epoch')
     result = train(x, u, acc, x_val, u_val, acc_val, settings,
-                   lambda epoch, tl, vl: (bar.update(1), bar.set_postfix(train=f'{tl:.3g}', val=f'{vl:.3g}')),
+                   lambda epoch, tl, vl: (bar.update(1),
+                                          bar.set_postfix(train=f'{tl:.3g}', val=f'{vl:.3g}')),
                    runs=runs(samples), val_runs=runs(val_samples))
     bar.close()
 
@@ -263,8 +272,8 @@ def train_from_bags(train_paths: list[Path], val_paths: list[Path], out: Path, s
     finger_names = list(rec0.finger_names)
     staging = Path(tempfile.mkdtemp(prefix=f'.{out.name}.partial-', dir=out.parent))
     try:
-        ckpt = save_checkpoint(staging / 'model.pt', result, rest_tip=rest_tip, dt=dt, settings=settings,
-                               data=data_info)
+        ckpt = save_checkpoint(staging / 'model.pt', result, rest_tip=rest_tip, dt=dt,
+                               settings=settings, data=data_info)
         model = SDCModel(ckpt)
         pred = model.xdot(x_val, u_val)[:, 2:]
         r2 = r2_score(acc_val, pred).tolist()
@@ -284,15 +293,18 @@ def train_from_bags(train_paths: list[Path], val_paths: list[Path], out: Path, s
             'rollout_epochs_run': len(result.rollout_loss),
             'best_val_sim_error': min(result.val_sim_error) if result.val_sim_error else None,
             'train_seconds': round(result.seconds, 1),
-            'val_r2_labels': {'X': r2[0], 'Y': r2[1]}, 'val_r2_ls_baseline': {'X': r2_ls[0], 'Y': r2_ls[1]},
+            'val_r2_labels': {'X': r2[0], 'Y': r2[1]},
+            'val_r2_ls_baseline': {'X': r2_ls[0], 'Y': r2_ls[1]},
             'G2_at_origin': G2.tolist(),
-            'G2_column_angles_deg': [float(np.degrees(np.arctan2(G2[1, j], G2[0, j]))) for j in range(2)],
+            'G2_column_angles_deg': [float(np.degrees(np.arctan2(G2[1, j], G2[0, j])))
+                                     for j in range(2)],
             'final_train_loss': result.train_loss[-1], 'best_val_loss': min(result.val_loss),
             'train_samples': int(len(x)), 'validation_samples': int(len(x_val)),
             'noise_std': noise, 'fitness': _plain(fitness.summary()),
             'derived_settings': _plain(derived.summary()) if derived is not None else None,
         }
-        save_checkpoint(ckpt, result, rest_tip=rest_tip, dt=dt, settings=settings, data=data_info, metrics=metrics)
+        save_checkpoint(ckpt, result, rest_tip=rest_tip, dt=dt, settings=settings, data=data_info,
+                        metrics=metrics)
         (staging / 'metrics.json').write_text(json.dumps(metrics, indent=2))
         plot_loss(result.train_loss, result.val_loss, staging / 'fig2_loss.png',
                   title=f'Training loss from bags, {settings.preset} preset')
@@ -305,7 +317,8 @@ def train_from_bags(train_paths: list[Path], val_paths: list[Path], out: Path, s
                 ', '.join(str(p) for p in train_paths)))
             outputs.append(PARAMS_FILE)
         out.mkdir(parents=True, exist_ok=True)
-        (out / PARAMS_FILE).unlink(missing_ok=True)      # never a file from another model beside this one
+        # never a file from another model beside this one
+        (out / PARAMS_FILE).unlink(missing_ok=True)
         for name in outputs:
             os.replace(staging / name, out / name)
     finally:
@@ -313,12 +326,13 @@ def train_from_bags(train_paths: list[Path], val_paths: list[Path], out: Path, s
     print(f'validation R² vs the KF + RTS labels: X {r2[0]:.3f}  Y {r2[1]:.3f}   '
           f'(3rd-order least squares: X {r2_ls[0]:.3f}  Y {r2_ls[1]:.3f})')
     if min(r2 + r2_ls) < 0.0:
-        print('  (below 0: the validation labels vary less than the predictions miss them. Where the '
-              'baseline is below 0 too, the labels are mostly noise or smoothed flat at this signal\'s '
-              'speed; the free run below judges the model on the recorded positions instead)')
+        print('  (below 0: the validation labels vary less than the predictions miss them. Where '
+              'the baseline is below 0 too, the labels are mostly noise or smoothed flat at this '
+              'signal\'s speed; the free run below judges the model on the recorded positions '
+              'instead)')
     print(f'G2 at the origin [m/s² per N·m]: {np.round(G2, 1).tolist()}')
-    print(f'training: {len(result.train_loss)} epochs on {len(x)} samples from {len(provenance)} bag(s) '
-          f'in {result.seconds:.1f} s; wrote {out}')
+    print(f'training: {len(result.train_loss)} epochs on {len(x)} samples from '
+          f'{len(provenance)} bag(s) in {result.seconds:.1f} s; wrote {out}')
     report_fitness(fitness, derived, out)
     return metrics
 
@@ -332,8 +346,9 @@ def report_fitness(fitness: model_fitness.Fitness, derived, out: Path) -> None:
           f'{100 * run.relative:.0f} % of the validation motion')
     if not fitness.fit:
         print('THE MODEL IS NOT FIT TO CONTROL: ' + '; '.join(fitness.reasons) + '.\n'
-              f'  {PARAMS_FILE} was not written. Record longer or richer excitation (docs/own_gripper.md),'
-              ' check the settle phase and the noise level, then train again.')
+              f'  {PARAMS_FILE} was not written. Record longer or richer excitation '
+              '(docs/own_gripper.md), check the settle phase and the noise level, then train '
+              'again.')
         return
     if derived is None or derived.settings is None:
         why = derived.reason if derived is not None and derived.reason else \
@@ -343,17 +358,20 @@ def report_fitness(fitness: model_fitness.Fitness, derived, out: Path) -> None:
     d = derived.settings
     checks = ', '.join(f'{law} {100 * c.rmse_rel:.2f} %' for law, c in derived.checks.items())
     print(f'model fit to control. {out / PARAMS_FILE}: control_period {d.control_period:g} s, '
-          f'meas_std {d.meas_std:.3g} m, accel_psd {d.accel_psd:.3g}, bandwidth {d.bandwidth_hz:g} Hz '
+          f'meas_std {d.meas_std:.3g} m, accel_psd {d.accel_psd:.3g}, '
+          f'bandwidth {d.bandwidth_hz:g} Hz '
           f'(q_pos {d.q_pos:.3g}, r {d.r:.3g}), torque_limit {d.torque_limit:.3g} N·m, '
           f'roll-off {d.torque_lowpass_hz:g} Hz, integral {d.integral_gain:.3g} / '
           f'{1e3 * d.integral_band:.2f} mm; closed loop on the model, error / travel '
           f'{1e3 * derived.facts.travel:.2f} mm: {checks}')
     close, side = derived.facts.move()
-    print(f'the checked move: {1e3 * derived.facts.travel:.2f} mm at {derived.facts.direction:.0f}° from +X '
+    print(f'the checked move: {1e3 * derived.facts.travel:.2f} mm at '
+          f'{derived.facts.direction:.0f}° from +X '
           f'toward +Y, close_distance {1e3 * close:.2f} mm and side_distance {1e3 * side:.2f} mm '
           f'(the trajectory section of {PARAMS_FILE}); a longer move is not checked')
     paper, needs = derived.paper_law, derived.paper_law['needs_bandwidth_hz']
-    print(f'the paper\'s law (sdre) on these settings holds {100 * paper["hold_offset"]:.0f} % short of the '
-          f'move: its cost weighs the torque that holds the finger against its spring; within '
-          f'{100 * paper["share"]:.0f} % it needs ' + (f'a {needs:.3g} Hz loop' if needs else 'over 1 kHz')
+    print(f'the paper\'s law (sdre) on these settings holds {100 * paper["hold_offset"]:.0f} % '
+          f'short of the move: its cost weighs the torque that holds the finger against its '
+          f'spring; within {100 * paper["share"]:.0f} % it needs '
+          + (f'a {needs:.3g} Hz loop' if needs else 'over 1 kHz')
           + ' (docs/own_gripper.md). The default law, sdre_ff, has no such offset')

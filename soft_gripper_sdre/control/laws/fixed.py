@@ -34,7 +34,8 @@ class LqrLaw:
 
 
 class PdLaw:
-    """Task-space PD: u = G₂(0)⁻¹ [k_p (p_d − p) + k_d (ṗ_d − ṗ)], G₂(0) the learned input map at rest.
+    """Task-space PD: u = G₂(0)⁻¹ [k_p (p_d − p) + k_d (ṗ_d − ṗ)], G₂(0) the learned input map
+    at rest.
 
     The inverse input map turns the desired tip acceleration into torques (so one pair of gains
     serves both axes, whose torque-to-tip gains differ by 40×); no model of the drift is used.
@@ -43,8 +44,9 @@ class PdLaw:
     u = G₂(0)⁻¹ [a_d + k_p (p_d − p) + k_d (ṗ_d − ṗ)], still no drift.
     """
 
-    def __init__(self, model, u_max: float, kp: float = DEFAULT_PD['kp'], kd: float = DEFAULT_PD['kd'],
-                 n_fingers: int = 4, lowpass_hz: float = DEFAULT_LOWPASS_HZ, dt: float = 1e-3,
+    def __init__(self, model, u_max: float, kp: float = DEFAULT_PD['kp'],
+                 kd: float = DEFAULT_PD['kd'], n_fingers: int = 4,
+                 lowpass_hz: float = DEFAULT_LOWPASS_HZ, dt: float = 1e-3,
                  feedforward: bool = False) -> None:
         self.io = LawIO(model.rest_tip, u_max, n_fingers, lowpass_hz, dt)
         self.feedforward = bool(feedforward)

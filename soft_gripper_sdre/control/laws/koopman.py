@@ -6,7 +6,8 @@ gets, (p_d, ṗ_d, p̈_d) at t_k, with constant acceleration,
 p_d(t_k + τ) = p_d + ṗ_d τ + ½ p̈_d τ² (also backwards, for the delay coordinates), and lifted,
 z_d(τ) = ψ(p_d(τ), ṗ_d(τ), p_d(τ − delays)). Its input is the lifted model's inversion along it,
 
-    u_d(τ) = argmin_u ‖z_d(τ + h) − A_h z_d(τ) − B_h u‖²_P = (B_hᵀ P B_h)⁻¹ B_hᵀ P (z_d(τ + h) − A_h z_d(τ))
+    u_d(τ) = argmin_u ‖z_d(τ + h) − A_h z_d(τ) − B_h u‖²_P
+           = (B_hᵀ P B_h)⁻¹ B_hᵀ P (z_d(τ + h) − A_h z_d(τ))
 
 (h the law's step, P the LQR cost-to-go below), the lifted counterpart of ``sdre_ff``'s
 feedforward. The cost is the SDRE's, in SI and per second of time: Q = diag(q_pos, q_pos, q_vel,
@@ -71,25 +72,25 @@ class LiftedTracking:
         except (ValueError, np.linalg.LinAlgError) as exc:
             raise ValueError(f'no stabilising LQR on the lifted model ({exc})') from None
         BtP = self.B.T @ self.P
-        self.K = -np.linalg.solve(self.R + BtP @ self.B, BtP @ self.A)          # u = u_d + K (z − z_d)
-        self.ff = np.linalg.solve(BtP @ self.B, BtP)                             # u_d = ff (z⁺ − A z)
+        self.K = -np.linalg.solve(self.R + BtP @ self.B, BtP @ self.A)       # u = u_d + K (z − z_d)
+        self.ff = np.linalg.solve(BtP @ self.B, BtP)                         # u_d = ff (z⁺ − A z)
 
     def reference(self, xd: np.ndarray, ref_acc: np.ndarray, points: int) -> np.ndarray:
         """Lifted reference z_d at t + j·h, j = 0 … points−1: (n, points, n_z) from x_d (n, 4)
         (translated) and p̈_d (n, 2), extrapolated with constant acceleration."""
         m = self.model
-        tau = self.h * np.arange(points)                                          # (J,)
-        delays = m.dt * np.asarray(m.settings.delays, dtype=float)                # (D,)
+        tau = self.h * np.arange(points)                                     # (J,)
+        delays = m.dt * np.asarray(m.settings.delays, dtype=float)           # (D,)
         n = len(xd)
 
-        def pos(t):                                                               # t (…) → (n, …, 2)
+        def pos(t):                                                          # t (…) → (n, …, 2)
             t = t[None, ..., None]
             shape = (n,) + (1,) * (t.ndim - 2) + (2,)
             return (xd[:, :2].reshape(shape) + xd[:, 2:].reshape(shape) * t
                     + 0.5 * ref_acc.reshape(shape) * t * t)
         x = np.concatenate([pos(tau), xd[:, None, 2:] + ref_acc[:, None, :] * tau[None, :, None]],
-                           axis=-1)                                               # (n, J, 4)
-        delayed = pos(tau[:, None] - delays[None, :])                             # (n, J, D, 2)
+                           axis=-1)                                          # (n, J, 4)
+        delayed = pos(tau[:, None] - delays[None, :])                        # (n, J, D, 2)
         return m.lift(x, delayed)
 
     def feedforward(self, zd: np.ndarray) -> np.ndarray:
@@ -172,11 +173,12 @@ class KoopmanLqrLaw:
 
 
 class KoopmanMpcLaw(KoopmanLqrLaw):
-    """Koopman MPC: the box-constrained QP over ``horizon`` blocks of ``block`` periods (module doc)."""
+    """Koopman MPC: the box-constrained QP over ``horizon`` blocks of ``block`` periods (module
+    doc)."""
 
     def __init__(self, koopman: KoopmanModel, weights: Weights, u_max: float, n_fingers: int = 4,
-                 lowpass_hz: float = DEFAULT_LOWPASS_HZ, dt: float = 1e-3, horizon: int = MPC_HORIZON,
-                 block: int = MPC_BLOCK) -> None:
+                 lowpass_hz: float = DEFAULT_LOWPASS_HZ, dt: float = 1e-3,
+                 horizon: int = MPC_HORIZON, block: int = MPC_BLOCK) -> None:
         super().__init__(koopman, weights, u_max, n_fingers, lowpass_hz, dt)
         if int(horizon) != horizon or horizon < 1:
             raise ValueError(f'horizon must be an integer >= 1 (blocks), got {horizon!r}')
@@ -186,13 +188,13 @@ class KoopmanMpcLaw(KoopmanLqrLaw):
         powers = [np.eye(nz)]
         for _ in range(N):
             powers.append(t.A @ powers[-1])
-        self.Phi = np.concatenate(powers[1:], axis=0)                            # (N nz, nz): z_{j+1}
+        self.Phi = np.concatenate(powers[1:], axis=0)                          # (N nz, nz): z_{j+1}
         Gamma = np.zeros((N * nz, 2 * N))
         for j in range(N):
             for i in range(j + 1):
                 Gamma[j * nz:(j + 1) * nz, 2 * i:2 * i + 2] = powers[j - i] @ t.B
         W = np.kron(np.eye(N), t.Qz)
-        W[-nz:, -nz:] = t.P                                                      # terminal cost-to-go
+        W[-nz:, -nz:] = t.P                                                    # terminal cost-to-go
         Rbar = np.kron(np.eye(N), t.R)
         self.qp = BoxQP(Gamma.T @ W @ Gamma + Rbar, self.io.u_max)
         self.WGamma, self.Rbar = W @ Gamma, Rbar
@@ -201,7 +203,7 @@ class KoopmanMpcLaw(KoopmanLqrLaw):
         """g (n, 2N) of the condensed QP from z (n, nz), the lifted reference at the N+1 block
         starts zd (n, N+1, nz) and its inputs ud (n, N, 2)."""
         n = len(z)
-        E = (z @ self.Phi.T) - zd[:, 1:].reshape(n, -1)                          # free response − z_d
+        E = (z @ self.Phi.T) - zd[:, 1:].reshape(n, -1)                        # free response − z_d
         return E @ self.WGamma - ud.reshape(n, -1) @ self.Rbar
 
     def compute(self, pos, vel, ref_pos, ref_vel, ref_acc=None) -> LawStep:
@@ -217,4 +219,5 @@ class KoopmanMpcLaw(KoopmanLqrLaw):
 def check_period(koopman: KoopmanModel, dt: float) -> None:
     """The delay coordinates count control periods: the law's must be the model's."""
     if not np.isclose(koopman.dt, dt, rtol=1e-9):
-        raise ValueError(f'the Koopman model was fitted at a {koopman.dt:g} s period, the law runs at {dt:g} s')
+        raise ValueError(f'the Koopman model was fitted at a {koopman.dt:g} s period, the law runs '
+                         f'at {dt:g} s')
