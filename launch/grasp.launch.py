@@ -1,8 +1,8 @@
 """The grasp graph for ``ros2 launch`` on a ROS 2 Jazzy install.
 
     ros2 launch soft_gripper_sdre grasp.launch.py [namespace:=left_hand] [duration:=6.0]
-        [control_period:=0.005] [mode:=pipelined] [law:=sdre_ff] [noise:=0.05] [seed:=0] [record:=true]
-        [output:=runs/grasp_bag] [startup_timeout:=300] [params_file:=my_params.yaml]
+        [control_period:=0.005] [mode:=pipelined] [law:=sdre_ff] [noise:=0.05] [seed:=0]
+        [record:=true] [output:=runs/grasp_bag] [startup_timeout:=300] [params_file:=my_params.yaml]
 
 Starts the recorder (with ``record:=true``), the estimator, the trajectory node, the controller
 and the simulator of :func:`soft_gripper_sdre.nodes.graph.grasp_graph`, the same description the
@@ -93,9 +93,9 @@ def _params_file(text: str):
     return path.resolve()
 
 
-def grasp_nodes(namespace: str = '', duration: str = '6.0', control_period: str = '', mode: str = '',
-                law: str = '', noise: str = '', seed: str = '', record: str = 'false',
-                output: str = '', startup_timeout: str = '300',
+def grasp_nodes(namespace: str = '', duration: str = '6.0', control_period: str = '',
+                mode: str = '', law: str = '', noise: str = '', seed: str = '',
+                record: str = 'false', output: str = '', startup_timeout: str = '300',
                 params_file: str = '') -> list[dict]:
     """The launch arguments (strings, as launch gives them) → one dict per node, for
     ``launch_ros.actions.Node(**d)``: package, executable, name, namespace (relative, None at the
@@ -104,8 +104,8 @@ def grasp_nodes(namespace: str = '', duration: str = '6.0', control_period: str 
 
     Raises:
         ValueError: naming the argument: not a number, a boolean, a namespace or a law where one
-            is needed, a number or mode outside the simulator's limits, a control period outside 0.001
-            to 0.01 s, or a parameters file that cannot be read as one.
+            is needed, a number or mode outside the simulator's limits, a control period outside
+            0.001 to 0.01 s, or a parameters file that cannot be read as one.
     """
     from soft_gripper_sdre.control.laws import GRAPH_LAWS
 

@@ -52,7 +52,8 @@ def tracking_error(t: np.ndarray, tips: np.ndarray, contact: np.ndarray, profile
 
 
 def on_target(t: np.ndarray, err: np.ndarray, free: np.ndarray, excursion: np.ndarray,
-              window: float = WINDOW, target_pct: float = TARGET_PCT) -> tuple[np.ndarray, np.ndarray]:
+              window: float = WINDOW,
+              target_pct: float = TARGET_PCT) -> tuple[np.ndarray, np.ndarray]:
     """Whether every finger's moving free-space RMSE (over ``window``) is under ``target_pct`` %
     of its excursion: (window end times, bool) per sample from the first full window on.
 
@@ -114,14 +115,16 @@ def _fmt(value, unit: str = '') -> str:
 
 def table(directory: Path) -> str:
     """The README table of every record in ``directory``."""
-    rows = ['| # | fault | injected | times | crashes | non-finite outputs | messages lost | recovery '
-            '(sim time) | notes |', '| ---: | --- | --- | ---: | ---: | ---: | ---: | ---: | --- |']
+    rows = ['| # | fault | injected | times | crashes | non-finite outputs | messages lost | '
+            'recovery (sim time) | notes |',
+            '| ---: | --- | --- | ---: | ---: | ---: | ---: | ---: | --- |']
     records = [json.loads(path.read_text()) for path in directory.glob('*.json')]
     order = list(ITEMS)
     records.sort(key=lambda r: order.index(r['fault']) if r['fault'] in order else len(order))
     for r in records:
         rec = r.get('recovery_s')
-        rows.append(f'| {ITEMS.get(r["fault"], "")} | {r["fault"]} | {r["injected"]} | {r["times"]} | {r.get("crashes", 0)} | '
+        rows.append(f'| {ITEMS.get(r["fault"], "")} | {r["fault"]} | {r["injected"]} | '
+                    f'{r["times"]} | {r.get("crashes", 0)} | '
                     f'{r.get("nonfinite_outputs", 0)} | {_fmt(r.get("messages_lost"))} | '
                     f'{_fmt(rec, " s")} | {r.get("notes", "")} |')
     return '\n'.join(rows)

@@ -81,7 +81,8 @@ def test_a_new_plan_replaces_the_old_one():
 
 
 @pytest.mark.parametrize('plan_first', [True, False])
-def test_the_answers_do_not_depend_on_whether_the_plan_or_the_first_estimate_arrives_first(plan_first):
+def test_the_answers_do_not_depend_on_whether_the_plan_or_the_first_estimate_arrives_first(
+        plan_first):
     """Lockstep has one estimate in flight: the plan comes just before or just after the first."""
     def run(plan_first):
         gate = make_gate()
@@ -91,10 +92,12 @@ def test_the_answers_do_not_depend_on_whether_the_plan_or_the_first_estimate_arr
             if k == 0:
                 events.insert(0 if plan_first else 1, ('plan', 0))
             for kind, t in events:
-                out = gate.on_plan(*plan(points=200)) if kind == 'plan' else gate.on_estimate(t, estimate(k), wall=0.0)
+                out = (gate.on_plan(*plan(points=200)) if kind == 'plan'
+                       else gate.on_estimate(t, estimate(k), wall=0.0))
                 if out.answer is not None:
                     a, p = out.answer, out.answer.plan
-                    sampled.append((a.stamp, *sample_plan(p.times, p.pos, p.vel, p.acc, a.stamp, with_acc=True)))
+                    sampled.append((a.stamp, *sample_plan(p.times, p.pos, p.vel, p.acc, a.stamp,
+                                                          with_acc=True)))
         return sampled
 
     got, reference = run(plan_first), run(True)
@@ -156,7 +159,8 @@ def test_a_new_runs_plan_that_beats_the_new_runs_first_estimate_is_kept():
     gate.on_plan(*plan())
     gate.on_estimate(2000 * MS, estimate(), wall=0.0)
     gate.on_plan(*plan(offset=1.0))                                  # the restart's plan, early
-    gate.on_estimate(2001 * MS, estimate(), wall=0.0)                # an old run's estimate in flight
+    gate.on_estimate(2001 * MS, estimate(), wall=0.0)                # an old run's estimate in
+                                                                     # flight
     out = gate.on_estimate(0, estimate(), wall=0.0)
     assert out.notices[0].change is Change.RESET
     assert out.answer.stamp == 0 and out.answer.plan.pos[0, 0, 0] > 0.5

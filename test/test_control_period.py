@@ -19,7 +19,8 @@ pytestmark = pytest.mark.ros
 ], ids=['5ms', '10ms'])
 def test_the_graph_runs_and_tracks_at_a_longer_period(tmp_path, period_ms, rmse_mm, max_mm):
     period = period_ms * 1e-3
-    result = run_demo(tmp_path, duration=6.0, timeout=150, progress=False, period=period, render=False)
+    result = run_demo(tmp_path, duration=6.0, timeout=150, progress=False, period=period,
+                      render=False)
     assert all(code == 0 for code in result['run']['exit_codes'].values()), result['run']
     assert result['run']['control_period_s'] == period
     steps = round(6.0 / period)
@@ -28,8 +29,10 @@ def test_the_graph_runs_and_tracks_at_a_longer_period(tmp_path, period_ms, rmse_
     assert counts['/torque_commands'] in (steps, steps + 1), counts
     # the estimator and the controller expect the simulator's period: no gap, no skip, no warning
     estimator = last_diagnostics(tmp_path / 'bag', 'estimator')
-    assert int(estimator['estimates']) == int(estimator['received']) in (steps, steps + 1), estimator
-    assert int(estimator.get('gaps', 0)) == 0 and float(estimator['stamp_period_ms']) == period_ms, estimator
+    assert (int(estimator['estimates']) == int(estimator['received'])
+            in (steps, steps + 1)), estimator
+    assert (int(estimator.get('gaps', 0)) == 0
+            and float(estimator['stamp_period_ms']) == period_ms), estimator
     controller = last_diagnostics(tmp_path / 'bag', 'controller')
     assert int(controller.get('skipped_estimates', 0)) == 0, controller
     assert float(controller['roll_off_hz']) == pytest.approx(min(40.0, 0.1 / period))

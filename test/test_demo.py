@@ -22,12 +22,14 @@ def test_demo_runs_the_graph_as_processes_and_writes_a_readable_bag(tmp_path):
     assert counts['/tip_positions'] == 1001 and counts['/clock'] == 101, counts
     assert counts['/state_estimate'] in (1000, 1001), counts
     assert counts['/torque_commands'] in (1000, 1001), counts
-    assert counts['/grasp_reference'] == 1 and counts['/cube_contacts'] >= 100   # the whole plan, once
+    # the whole plan, once
+    assert counts['/grasp_reference'] == 1 and counts['/cube_contacts'] >= 100
     assert (tmp_path / 'bag' / 'metadata.yaml').is_file()
     assert list((tmp_path / 'bag').glob('*.mcap'))
     assert all(code == 0 for code in result['run']['exit_codes'].values()), result['run']
     run = result['run']        # the simulator's final diagnostics, read back from the bag
-    assert 0 < run['real_time_factor'] and 0 < run['loop_latency_us_p50'] <= run['loop_latency_us_p99']
+    assert (0 < run['real_time_factor']
+            and 0 < run['loop_latency_us_p50'] <= run['loop_latency_us_p99'])
     for name in ('fig5_positions.png', 'fig6_velocities.png', 'fig7_torques.png'):
         assert (tmp_path / name).read_bytes()[:8] == b'\x89PNG\r\n\x1a\n'
     saved = json.loads((tmp_path / 'metrics.json').read_text())
@@ -80,7 +82,8 @@ def test_demo_command_line_refuses_bad_usage_with_exit_2_and_no_traceback(tmp_pa
 def test_a_node_that_dies_is_named_with_its_own_log_and_no_bag_is_left(tmp_path):
     """run_demo on a corrupt model (past the CLI's check): the controller exits at start-up."""
     with pytest.raises(RuntimeError) as exc:
-        run_demo(tmp_path, duration=1.0, model=_corrupt_model(tmp_path), timeout=120, progress=False)
+        run_demo(tmp_path, duration=1.0, model=_corrupt_model(tmp_path), timeout=120,
+                 progress=False)
     message = str(exc.value)
     assert message.startswith('the controller node exited with status')
     assert 'last lines of controller.log' in message and 'is not a checkpoint' in message
@@ -88,14 +91,17 @@ def test_a_node_that_dies_is_named_with_its_own_log_and_no_bag_is_left(tmp_path)
 
 
 @pytest.mark.parametrize('controller, expected, absent', [
-    ({'law': 'sdre_ff', 'max_residual': 3e-9, 'fallback_fraction': 0.0, 'check_failure_fraction': 0.01,
-      'compute_us_mean': 40.0}, '  Riccati: checks failed on 1.00% of solves, fallbacks 0.00%, max residual '
-                                '3.0e-09; compute 40 µs mean per 1-finger step', 'no per-step'),
+    ({'law': 'sdre_ff', 'max_residual': 3e-9, 'fallback_fraction': 0.0,
+      'check_failure_fraction': 0.01, 'compute_us_mean': 40.0},
+     '  Riccati: checks failed on 1.00% of solves, fallbacks 0.00%, max residual '
+     '3.0e-09; compute 40 µs mean per 1-finger step', 'no per-step'),
     ({'law': 'pd', 'fallback_fraction': 0.0, 'check_failure_fraction': 0.0, 'compute_us_mean': 9.0},
      '  pd (no per-step Riccati solve): compute 9 µs mean per 1-finger step', 'residual'),
 ])
-def test_summary_reports_the_riccati_checks_only_for_laws_that_solve_one(controller, expected, absent, tmp_path):
-    finger = {'rmse_mm': 0.1, 'rmse_pct': 1.0, 'excursion_mm': 10.0, 'max_mm': 0.2, 'contact_fraction': 0.0}
+def test_summary_reports_the_riccati_checks_only_for_laws_that_solve_one(controller, expected,
+                                                                         absent, tmp_path):
+    finger = {'rmse_mm': 0.1, 'rmse_pct': 1.0, 'excursion_mm': 10.0, 'max_mm': 0.2,
+              'contact_fraction': 0.0}
     result = {'run': {'sim_duration_s': 1.0, 'wall_s': 2.0, 'real_time_factor': 0.5},
               'fingers': {'finger_0': finger}, 'controller': controller}
     text = summary(result, tmp_path)

@@ -28,7 +28,8 @@ def test_jacobian_and_input_matrix_match_the_simulators_finite_differences(fd):
     d = fd.evaluate(truth.q[0], truth.qd[0])
     np.testing.assert_allclose(d.J, J[:2], atol=1e-8)
     np.testing.assert_allclose(d.G2, J[:2] @ np.linalg.solve(M, B), rtol=1e-6)
-    np.testing.assert_allclose(d.tip_vel, truth.tip_vel[0, :2], rtol=0.05)   # the sim's tip lags a substep
+    # the sim's tip lags a substep
+    np.testing.assert_allclose(d.tip_vel, truth.tip_vel[0, :2], rtol=0.05)
 
 
 def test_predicted_tip_acceleration_matches_the_simulator_over_one_short_step(fd):

@@ -113,13 +113,15 @@ def test_crashed_node_is_restarted_and_the_grasp_recovers(victim, tmp_path):
     # of wall time still leaves AFTER to recover in; without the trajectory node the loop runs on
     # at full speed while the restarted one starts up and sends its plan again
     duration = 3.5 if victim in IN_THE_LOOP else 5.0
-    params = {'recorder': {'output': str(bag), 'topics': [TIP_POSITIONS, TORQUE_COMMANDS, STATE_ESTIMATE,
-                                                          GRASP_REFERENCE, CUBE_CONTACTS, DIAGNOSTICS]},
+    params = {'recorder': {'output': str(bag),
+                           'topics': [TIP_POSITIONS, TORQUE_COMMANDS, STATE_ESTIMATE,
+                                      GRASP_REFERENCE, CUBE_CONTACTS, DIAGNOSTICS]},
               'estimator': {}, 'trajectory': dict(SHORT), 'controller': {},
               # a lockstep wait above a loaded machine's stalls (the dead victim's outage outlasts
               # it); with the trajectory node as the victim the loop must never time out, while
               # the restart competes with the loop for the cores and can stall it for over a second
-              'simulator': {'duration': duration, 'lockstep_timeout': 0.2 if victim in IN_THE_LOOP else 5.0,
+              'simulator': {'duration': duration,
+                            'lockstep_timeout': 0.2 if victim in IN_THE_LOOP else 5.0,
                             'on_timeout': 'hold'}}
     with ros_context() as (ctx, executor), Graph(env, tmp_path / 'logs') as graph:
         probe = Probe(ctx)
@@ -129,7 +131,8 @@ def test_crashed_node_is_restarted_and_the_grasp_recovers(victim, tmp_path):
         got = probe.received
         for node in ('recorder', 'estimator', 'trajectory', 'controller'):
             graph.start(node, params[node])
-        assert spin_until(executor, lambda: _recorder_hears(got[DIAGNOSTICS], OUTPUT.values()), 90.0), \
+        assert spin_until(executor,
+                          lambda: _recorder_hears(got[DIAGNOSTICS], OUTPUT.values()), 90.0), \
             {n: p.log_tail(300) for n, p in graph.procs.items()}
         _start_simulator_once_recorded(graph, executor, probe, params['simulator'], 4,
                                        topics=(TIP_POSITIONS, CUBE_CONTACTS))
@@ -138,8 +141,10 @@ def test_crashed_node_is_restarted_and_the_grasp_recovers(victim, tmp_path):
             return {n: p.alive() for n, p in graph.procs.items()}
 
         assert spin_until(executor, lambda: (got[TIP_POSITIONS] and _stamp(got[TIP_POSITIONS][-1])
-                                             >= KILL_AT * cv.NS) or not all(alive().values()), 120.0)
-        assert all(alive().values()), {n: p.log_tail(500) for n, p in graph.procs.items() if not p.alive()}
+                                             >= KILL_AT * cv.NS) or not all(alive().values()),
+                          120.0)
+        assert all(alive().values()), {n: p.log_tail(500) for n, p in graph.procs.items()
+                                       if not p.alive()}
         restart = dict(params[victim])
         if victim == 'trajectory':     # the restarted node must not take the bent tips as its rest
             restart['rest_pose'] = _last_diagnostics(got[DIAGNOSTICS], 'trajectory')['rest_pose']
@@ -176,7 +181,8 @@ def test_crashed_node_is_restarted_and_the_grasp_recovers(victim, tmp_path):
     safe = int(last['simulator'].get('safe_periods', 0))
     forces = np.asarray([m.effort for _, m in data['/cube_contacts']])
     k = np.minimum(t // (10 * MS), len(forces) - 1)
-    err, free, excursion = tracking_error(t / cv.NS, tips, forces[k] > 0, GraspProfile(**SHORT), tips[0])
+    err, free, excursion = tracking_error(t / cv.NS, tips, forces[k] > 0, GraspProfile(**SHORT),
+                                          tips[0])
     ends, ok = on_target(t / cv.NS, err, free, excursion)
     assert ok[ends < KILL_AT].all()                # on target before the crash
     if victim in IN_THE_LOOP:
@@ -184,7 +190,8 @@ def test_crashed_node_is_restarted_and_the_grasp_recovers(victim, tmp_path):
         # miss the restarted one's first messages: the recorder discovers the new process after
         # the controller may have) ...
         out = [_stamp(m) for _, m in data['/' + OUTPUT[victim]]]
-        seen_ns = next(a for a, b in zip(out, out[1:]) if b - a > GAP and a >= (KILL_AT - 0.05) * cv.NS)
+        seen_ns = next(a for a, b in zip(out, out[1:])
+                       if b - a > GAP and a >= (KILL_AT - 0.05) * cv.NS)
         # ... from the killed process's last output in the bag. The bag may lack its very last
         # outputs (a SIGKILLed writer cannot resend what the recorder missed), but each one the
         # loop got shows as a command of its stamp, one per period (the controller stamps its
@@ -204,8 +211,8 @@ def test_crashed_node_is_restarted_and_the_grasp_recovers(victim, tmp_path):
         rec = recovery_time(t / cv.NS, err, free, excursion, since=back_ns / cv.NS)
         outage_s = (back_ns - killed_ns) / cv.NS
         assert back_ns / cv.NS + AFTER <= duration   # a full second left to recover in
-        notes = (f'{timeouts} period held by the simulator (lockstep_timeout), {safe} stepped with zero '
-                 f'torque; tracking again {outage_s:.3f} s of sim time after its last output')
+        notes = (f'{timeouts} period held by the simulator (lockstep_timeout), {safe} stepped with '
+                 f'zero torque; tracking again {outage_s:.3f} s of sim time after its last output')
     else:
         # the controller keeps the plan: the loop never breaks, and the restarted node (given
         # the rest pose) publishes the same plan again
@@ -214,17 +221,21 @@ def test_crashed_node_is_restarted_and_the_grasp_recovers(victim, tmp_path):
         # every period stepped on its own command, by the simulator's count (the bag may miss some
         # a starved recorder dropped)
         sim = last['simulator']
-        assert (timeouts, safe, int(sim.get('late_command', 0)), int(sim['commands'])) == (0, 0, 0, steps), sim
+        assert (timeouts, safe, int(sim.get('late_command', 0)),
+                int(sim['commands'])) == (0, 0, 0, steps), sim
         killed_ns = back_ns = killed_at_ns
         rec = recovery_time(t / cv.NS, err, free, excursion, since=KILL_AT)
-        notes = ('every period stepped on its own command: the controller tracks the plan it has; the '
-                 'restarted node, given the rest pose, sends the same plan again')
-    print(f'{victim}: last output at {killed_ns / cv.NS:.3f} s, tracking at {back_ns / cv.NS:.3f} s, '
+        notes = ('every period stepped on its own command: the controller tracks the plan it has; '
+                 'the restarted node, given the rest pose, sends the same plan again')
+    print(f'{victim}: last output at {killed_ns / cv.NS:.3f} s, '
+          f'tracking at {back_ns / cv.NS:.3f} s, '
           f'recovery {rec:.3f} s; timeouts {timeouts}, safe periods {safe}, lost {lost}')
     assert rec <= 1.0, rec
-    record(f'crashed_{victim}', injected=f'SIGKILL of the {victim} process at t ≈ {killed_ns / cv.NS:.2f} s '
+    record(f'crashed_{victim}',
+           injected=f'SIGKILL of the {victim} process at t ≈ {killed_ns / cv.NS:.2f} s '
            '(closing), then restarted', times=1, crashes=0, nonfinite_outputs=0, messages_lost=lost,
-           recovery_s=rec, notes=notes + (f'; the recorder missed {lost} tips (from t = {missing[0] / cv.NS:.3f} s)'
+           recovery_s=rec, notes=notes + (f'; the recorder missed {lost} tips '
+                                          f'(from t = {missing[0] / cv.NS:.3f} s)'
                                           if lost else ''))
 
 
@@ -250,7 +261,8 @@ def test_recording_a_10s_grasp_loses_nothing_and_signals_leave_readable_bags(tmp
     env = ros_env()
     logs = tmp_path / 'logs'
     logs.mkdir()
-    bags = {'full': tmp_path / 'full', 'SIGINT': tmp_path / 'sigint', 'SIGTERM': tmp_path / 'sigterm'}
+    bags = {'full': tmp_path / 'full', 'SIGINT': tmp_path / 'sigint',
+            'SIGTERM': tmp_path / 'sigterm'}
     with ros_context() as (ctx, executor), Graph(env, logs) as graph:
         probe = Probe(ctx)
         tips_sub = probe.listen(PoseArray, TIP_POSITIONS, LOOP_QOS)
@@ -268,9 +280,12 @@ def test_recording_a_10s_grasp_loses_nothing_and_signals_leave_readable_bags(tmp
                 for s in msg.status:
                     if 'recorder' in s.name:
                         seen[s.name] = {kv.key: kv.value for kv in s.values}
-            return len(seen) == 3 and all(int(v.get(f'publishers /{t}', 0)) > 0 for v in seen.values()
-                                          for t in (STATE_ESTIMATE, TORQUE_COMMANDS, GRASP_REFERENCE))
-        assert spin_until(executor, recorders_wired, 90.0), [p.log_tail(300) for p in graph.procs.values()]
+            return len(seen) == 3 and all(int(v.get(f'publishers /{t}', 0)) > 0
+                                          for v in seen.values()
+                                          for t in (STATE_ESTIMATE, TORQUE_COMMANDS,
+                                                    GRASP_REFERENCE))
+        assert spin_until(executor, recorders_wired, 90.0), [p.log_tail(300)
+                                                             for p in graph.procs.values()]
         _start_simulator_once_recorded(graph, executor, probe, {'duration': duration}, 6,
                                        ('recorder', 'recorder_sigint', 'recorder_sigterm'))
         signalled = {}
@@ -295,7 +310,8 @@ def test_recording_a_10s_grasp_loses_nothing_and_signals_leave_readable_bags(tmp
     steps = int(last['simulator']['steps'])
     assert steps == int(round(duration / 1e-3))
     published = {'/clock': steps // 10 + 1, '/tip_positions': steps + 1,
-                 '/joint_states': steps // 10 + 1, '/cube_pose': steps // 10 + 1, '/cube_contacts': steps // 10 + 1,
+                 '/joint_states': steps // 10 + 1, '/cube_pose': steps // 10 + 1,
+                 '/cube_contacts': steps // 10 + 1,
                  '/state_estimate': int(last['estimator']['estimates']),
                  '/torque_commands': int(last['controller']['commands']),
                  '/grasp_reference': int(last['trajectory']['references'])}
@@ -308,12 +324,15 @@ def test_recording_a_10s_grasp_loses_nothing_and_signals_leave_readable_bags(tmp
             stamps = [_stamp(m) for _, m in part[topic]]
             assert stamps == [_stamp(m) for _, m in full[topic][:len(stamps)]], (sig, topic)
         tips = [_stamp(m) for _, m in part['/tip_positions']]
-        assert tips == list(range(0, tips[-1] + 1, MS)) and tips[-1] >= at - 20 * MS, (sig, tips[-1], at)
-    record('recording', injected=f'3 recorders on a {duration:g} s grasp at 1 ms (5-process graph); '
+        assert (tips == list(range(0, tips[-1] + 1, MS))
+                and tips[-1] >= at - 20 * MS), (sig, tips[-1], at)
+    record('recording',
+           injected=f'3 recorders on a {duration:g} s grasp at 1 ms (5-process graph); '
            'SIGINT to one at ~3 s, SIGTERM to one at ~6 s', times=1, crashes=0, nonfinite_outputs=0,
            messages_lost=sum(lost.values()), recovery_s=None,
-           notes=f'{sum(published.values())} messages published = in the full bag; the signalled bags '
-                 f'open and hold every loop message up to t = {signalled["SIGINT"] / cv.NS:.3f} s and '
+           notes=f'{sum(published.values())} messages published = in the full bag; the signalled '
+                 'bags open and hold every loop message up to '
+                 f't = {signalled["SIGINT"] / cv.NS:.3f} s and '
                  f'{signalled["SIGTERM"] / cv.NS:.3f} s')
 
 
@@ -326,8 +345,10 @@ def test_restarted_simulator_clock_jumps_back_and_every_node_resets(tmp_path):
     sim_params = {'min_tip_subscribers': 3, 'lockstep_timeout': 1.0}
     with ros_context() as (ctx, executor), Graph(env, tmp_path / 'logs') as graph:
         probe = Probe(ctx)
-        for t, msg, qos in ((TIP_POSITIONS, PoseArray, LOOP_QOS), (TORQUE_COMMANDS, JointState, LOOP_QOS),
-                            (CUBE_CONTACTS, JointState, STREAM_QOS), (DIAGNOSTICS, DiagnosticArray, STREAM_QOS)):
+        for t, msg, qos in ((TIP_POSITIONS, PoseArray, LOOP_QOS),
+                            (TORQUE_COMMANDS, JointState, LOOP_QOS),
+                            (CUBE_CONTACTS, JointState, STREAM_QOS),
+                            (DIAGNOSTICS, DiagnosticArray, STREAM_QOS)):
             probe.listen(msg, t, deep(qos))
         executor.add_node(probe)
         got = probe.received
@@ -347,7 +368,8 @@ def test_restarted_simulator_clock_jumps_back_and_every_node_resets(tmp_path):
         alive = {n: p.alive() for n, p in graph.procs.items() if n != 'simulator'}
         codes = graph.stop_all()
         spin_until(executor, lambda: False, 1.0)
-        diag = {n: _last_diagnostics(got[DIAGNOSTICS], n) for n in ('estimator', 'trajectory', 'controller')}
+        diag = {n: _last_diagnostics(got[DIAGNOSTICS], n)
+                for n in ('estimator', 'trajectory', 'controller')}
     assert all(alive.values()) and all(c == 0 for c in codes.values()), (alive, codes)
     resets = {n: int(d.get('resets', 0)) for n, d in diag.items()}
     assert all(r >= 1 for r in resets.values()), resets
@@ -363,14 +385,17 @@ def test_restarted_simulator_clock_jumps_back_and_every_node_resets(tmp_path):
     tips = np.asarray(tips)[..., :2]
     contacts = _last_run(got[CUBE_CONTACTS])                  # at 100 Hz: the newest at or before t
     c_t = np.asarray([_stamp(m) for m in contacts])
-    forces = np.asarray([m.effort for m in contacts])[np.maximum(np.searchsorted(c_t, t, 'right') - 1, 0)]
-    err, free, excursion = tracking_error(t / cv.NS, tips, forces > 0, GraspProfile(**SHORT), tips[0])
+    forces = np.asarray([m.effort for m in contacts])[
+        np.maximum(np.searchsorted(c_t, t, 'right') - 1, 0)]
+    err, free, excursion = tracking_error(t / cv.NS, tips, forces > 0, GraspProfile(**SHORT),
+                                          tips[0])
     ends, ok = on_target(t / cv.NS, err, free, excursion)
-    assert ok.all(), (f'off target in windows ending {ends[~ok].min():.3f} … {ends[~ok].max():.3f} s; '
+    assert ok.all(), (f'off target in windows ending {ends[~ok].min():.3f} … '
+                      f'{ends[~ok].max():.3f} s; '
                       f'worst free-space error {1e3 * np.where(free, err, 0).max(axis=0)} mm, '
                       f'excursion {1e3 * excursion} mm, {len(missing)} tips missing')
     record('clock_jump_back', injected='SIGKILL of the simulator at t ≈ 0.3 s and a new one from '
            't = 0 (5-process graph)', times=1, crashes=0, nonfinite_outputs=0, messages_lost=None,
            recovery_s=0.0, notes=f'resets: estimator {resets["estimator"]}, trajectory '
-           f'{resets["trajectory"]}, controller {resets["controller"]}; the new grasp on target from '
-           'its first window')
+           f'{resets["trajectory"]}, controller {resets["controller"]}; the new grasp on target '
+           'from its first window')

@@ -22,7 +22,8 @@ def test_hermite_on_a_5ms_grid_reproduces_the_trajectory_anywhere():
     rng = np.random.default_rng(0)
     t_ns = np.concatenate([rng.integers(0, times[-1], 3000),
                            # around the phase changes, where the acceleration steps
-                           np.array([0.5, 2.5, 3.5, 5.5]).repeat(50) * NS + rng.integers(-6e6, 6e6, 200)])
+                           np.array([0.5, 2.5, 3.5, 5.5]).repeat(50) * NS
+                           + rng.integers(-6e6, 6e6, 200)])
     got = [sample_horizon(times, pos, vel, acc, int(t)) for t in t_ns]
     ref = traj.sample(t_ns / NS)
     np.testing.assert_allclose([g[0] for g in got], ref.pos, rtol=0, atol=1e-6)
@@ -48,8 +49,10 @@ def test_cubic_motion_is_interpolated_exactly():
     times = np.round(t * NS).astype(np.int64)
     for tq in (0.001, 0.0075, 0.0199):
         p, v = sample_horizon(times, pos, vel, acc, int(round(tq * NS)))
-        np.testing.assert_allclose(p[0], c[0] + tq * c[1] + tq**2 * c[2] + tq**3 * c[3], rtol=0, atol=1e-15)
-        np.testing.assert_allclose(v[0], c[1] + 2 * tq * c[2] + 3 * tq**2 * c[3], rtol=0, atol=1e-13)
+        np.testing.assert_allclose(p[0], c[0] + tq * c[1] + tq**2 * c[2] + tq**3 * c[3],
+                                   rtol=0, atol=1e-15)
+        np.testing.assert_allclose(v[0], c[1] + 2 * tq * c[2] + 3 * tq**2 * c[3],
+                                   rtol=0, atol=1e-13)
 
 
 def test_a_one_point_horizon_is_sampled_at_its_point_only():
@@ -95,7 +98,8 @@ def test_acceleration_on_request_is_the_derivative_of_the_velocity_interpolant()
         np.testing.assert_allclose(a[0], 2 * c[2] + 6 * tq * c[3], rtol=0, atol=1e-9)
         assert len(sample_horizon(times, pos, vel, acc, int(round(tq * NS)))) == 2
     for k in range(len(t)):
-        np.testing.assert_allclose(sample_horizon(times, pos, vel, acc, int(times[k]), with_acc=True)[2],
+        np.testing.assert_allclose(sample_horizon(times, pos, vel, acc, int(times[k]),
+                                                  with_acc=True)[2],
                                    acc[k], rtol=0, atol=1e-9)
     one = sample_horizon(times[:1], pos[:1], vel[:1], acc[:1], int(times[0]), with_acc=True)
     np.testing.assert_array_equal(one[2], acc[0])

@@ -57,7 +57,8 @@ def test_duplicate_old_and_future_stamps_are_refused(stamp, key):
     np.testing.assert_array_equal(s.held, torque(2))       # on_bad_command='hold'
 
 
-@pytest.mark.parametrize('u', [np.zeros((N + 1, 2)), np.zeros(2 * N), np.array([[np.nan, 0.0], [0.0, 0.0]]),
+@pytest.mark.parametrize('u', [np.zeros((N + 1, 2)), np.zeros(2 * N),
+                               np.array([[np.nan, 0.0], [0.0, 0.0]]),
                                np.array([[0.0, np.inf], [0.0, 0.0]])])
 def test_wrong_size_or_non_finite_torques_are_refused(u):
     s = started()
@@ -159,7 +160,8 @@ def test_a_deadline_that_moves_within_a_period_gets_its_own_two_looks():
     overdue(s, 10.5)                                      # timeout: period 1 held, commands lost
     s.await_command(10.5)
     assert s.on_wall_time(10.52) is None                  # period 2: first look past 10.51
-    s.on_command(1 * MS, torque(5))                       # a late answer: the loop is slow, not dead
+    s.on_command(1 * MS, torque(5))                       # a late answer: the loop is slow, not
+                                                          # dead
     assert not s.lost and s.deadline == pytest.approx(11.0)
     assert s.on_wall_time(11.0) is None and s.k == 2      # the new deadline's first look
     np.testing.assert_array_equal(s.on_wall_time(11.0), torque(4))
@@ -204,12 +206,13 @@ def test_realtime_steps_each_period_with_the_newest_command_and_counts_late_peri
     out = s.on_command(1 * MS, torque(1))
     assert out.step is None and out.refused is None           # applied by the next period
     np.testing.assert_array_equal(s.on_period(), torque(1))   # period 1: its own command
-    np.testing.assert_array_equal(s.on_period(), torque(1))   # period 2: one period of transport delay
+    np.testing.assert_array_equal(s.on_period(), torque(1))   # period 2: one period of transport
+                                                              # delay
     assert s.counters['late_periods'] == 1
     np.testing.assert_array_equal(s.on_period(), torque(1))   # period 3: held, and late
     assert s.counters['late_periods'] == 2 and s.k == 4
-    s.on_command(2 * MS, torque(2))                           # newer, for a period long past: applied,
-    np.testing.assert_array_equal(s.on_period(), torque(2))   # but period 4 is still late
+    s.on_command(2 * MS, torque(2))                           # newer, for a period long past:
+    np.testing.assert_array_equal(s.on_period(), torque(2))   # applied, but period 4 is still late
     assert s.counters['late_periods'] == 3
     assert s.on_wall_time(1e9) is None and s.counters['timeouts'] == 0   # no lockstep timeout
 
@@ -278,9 +281,9 @@ def _waiting_rules_trace(mode: str) -> list:
         s.await_command(1.0 + k)
     trace += [s.on_command(1 * MS, torque(9)).refused, s.on_command(5 * MS, torque(9)).refused,
               s.on_command(2 * MS, torque(np.nan)).refused]
-    trace += [s.on_wall_time(3.49), s.on_wall_time(3.5), s.on_wall_time(3.5)]   # period 2 times out
+    trace += [s.on_wall_time(3.49), s.on_wall_time(3.5), s.on_wall_time(3.5)]  # period 2 times out
     s.await_command(3.5)
-    trace += [s.on_wall_time(3.51), s.on_wall_time(3.51), s.lost]               # period 3 lost: zero
+    trace += [s.on_wall_time(3.51), s.on_wall_time(3.51), s.lost]              # period 3 lost: zero
     s.await_command(3.51)
     out = s.on_command(3 * MS, torque(7))                # period 3's late answer: the loop is back
     trace += [out.step, out.resumed, s.lost, s.deadline]
@@ -302,7 +305,8 @@ def test_pipelined_keeps_every_waiting_rule_of_lockstep():
         else:
             assert a == b, f'entry {i}: lockstep {a!r}, pipelined {b!r}'
     counters = lock[-1]                                  # and the script did exercise every rule
-    assert counters['timeouts'] == 1 and counters['safe_periods'] == 1 and counters['late_command'] >= 1
+    assert (counters['timeouts'] == 1 and counters['safe_periods'] == 1
+            and counters['late_command'] >= 1)
     assert counters['steps'] == 7 and lock[-3] == 7 and lock[-4] is True
 
 
@@ -312,7 +316,8 @@ def test_only_pipelined_steps_at_the_start_with_zero_torque():
     pipe = Stepping(N, MS, mode='pipelined')
     assert pipe.pipelined
     np.testing.assert_array_equal(pipe.start(), np.zeros((N, 2)))
-    assert pipe.k == 0 and 'steps' not in pipe.counters   # the period is still 0's, awaiting its command
+    assert pipe.k == 0 and 'steps' not in pipe.counters   # the period is still 0's, awaiting its
+                                                          # command
     for mode in ('lockstep', 'realtime'):
         s = Stepping(N, MS, mode=mode)
         assert s.start() is None and not s.pipelined

@@ -94,7 +94,8 @@ def test_free_run_needs_a_window_of_data():
 def test_the_weights_place_the_loop_bandwidth_where_asked():
     """q_pos = r ω⁴ / (s₁ s₂): on ẍ = G₂u the LQR poles' geometric mean modulus is ω."""
     model = LinearModel(k=0.0, c=0.0)
-    facts = ls.DataFacts(period=1e-3, noise_std=5e-5, travel=5e-3, torque_limit=0.02, accel_psd_ml=1.0)
+    facts = ls.DataFacts(period=1e-3, noise_std=5e-5, travel=5e-3, torque_limit=0.02,
+                         accel_psd_ml=1.0)
     for hz in (2.0, 8.0):
         s = ls.settings_for(model, facts, hz, 1.0)
         A, G = (a[0] for a in model.AG(np.zeros(4)))
@@ -128,7 +129,8 @@ def test_settings_derived_for_the_shipped_model_pass_their_checks(shipped):
     check's move on the model, never saturate at rest, and the paper's law is checked too (three
     of the bandwidths, to keep the test short: each costs five runs and up to six more with the
     input gain off)."""
-    facts = ls.DataFacts(period=5e-3, noise_std=5e-5, travel=0.01, torque_limit=0.03, accel_psd_ml=100.0)
+    facts = ls.DataFacts(period=5e-3, noise_std=5e-5, travel=0.01, torque_limit=0.03,
+                         accel_psd_ml=100.0)
     derived = ls.derive(shipped, facts, bandwidths=(2.0, 4.0, 8.0))
     assert derived.settings is not None
     d = derived.settings
@@ -169,7 +171,8 @@ def test_the_closing_direction_is_where_the_data_moved_most():
     facts = ls.data_facts(tips, u, 5e-3, 5e-5, [(np.arange(100) * 5e-3, tips[:100])])
     assert facts.direction == ls.closing_direction(tips)
     along = tips @ ls.unit_vector(facts.direction)
-    assert facts.travel == pytest.approx(ls.TRAVEL_SHARE * np.percentile(along, ls.REACH_PERCENTILE))
+    assert facts.travel == pytest.approx(ls.TRAVEL_SHARE
+                                         * np.percentile(along, ls.REACH_PERCENTILE))
     close, side = facts.move()
     assert close > 0 and side < 0 and math.hypot(close, side) == pytest.approx(facts.travel)
     traj = ls.check_move(facts)
@@ -183,12 +186,14 @@ def test_the_checked_move_shrinks_to_what_half_the_torque_limit_holds():
     Along the inputs' common direction the same limit holds far more."""
     model = LinearModel(g2=((300.0, 280.0), (40.0, 80.0)))
     per_m = np.abs(np.linalg.solve(model.g2, [0.0, model.k])).max()     # N·m per m held
-    facts = ls.DataFacts(period=5e-3, noise_std=5e-5, travel=0.01, torque_limit=0.02, accel_psd_ml=1.0)
+    facts = ls.DataFacts(period=5e-3, noise_std=5e-5, travel=0.01, torque_limit=0.02,
+                         accel_psd_ml=1.0)
     held = ls.holdable_travel(model, facts)
     assert ls.HOLD_SHARE * facts.torque_limit / per_m - facts.travel / ls.HOLD_GRID < held \
         <= ls.HOLD_SHARE * facts.torque_limit / per_m
     axis = np.linalg.svd(model.g2)[0][:, 0]
-    along = ls.DataFacts(**{**facts.__dict__, 'direction': math.degrees(math.atan2(*np.abs(axis)[::-1]))})
+    along = ls.DataFacts(**{**facts.__dict__,
+                            'direction': math.degrees(math.atan2(*np.abs(axis)[::-1]))})
     assert ls.holdable_travel(model, along) > 5 * held
     roomy = ls.DataFacts(**{**facts.__dict__, 'torque_limit': 10.0})
     assert ls.holdable_travel(model, roomy) == roomy.travel          # the reach's share, uncut
@@ -215,7 +220,8 @@ class DragBeyond(LinearModel):
 
 def test_a_move_no_setting_passes_on_is_halved_until_one_does():
     model = DragBeyond(c=40.0)
-    facts = ls.DataFacts(period=5e-3, noise_std=1e-5, travel=4e-3, torque_limit=0.02, accel_psd_ml=1.0)
+    facts = ls.DataFacts(period=5e-3, noise_std=1e-5, travel=4e-3, torque_limit=0.02,
+                         accel_psd_ml=1.0)
     assert ls.holdable_travel(model, facts) == facts.travel
     derived = ls.derive(model, facts, bandwidths=(4.0,))
     travels = [row['travel'] for row in derived.candidates]
@@ -231,7 +237,8 @@ def test_a_move_no_setting_passes_on_is_halved_until_one_does():
 def test_no_setting_passes_on_a_finger_the_torque_cannot_hold(shipped):
     """A torque limit far below what the move needs: the move it could hold is under the noise,
     nothing is run and nothing is derived, and the reason says so."""
-    facts = ls.DataFacts(period=5e-3, noise_std=5e-5, travel=0.03, torque_limit=1e-5, accel_psd_ml=100.0)
+    facts = ls.DataFacts(period=5e-3, noise_std=5e-5, travel=0.03, torque_limit=1e-5,
+                         accel_psd_ml=100.0)
     derived = ls.derive(shipped, facts)
     assert derived.settings is None and derived.checks == {} and derived.candidates == []
     assert 'torque limit' in derived.reason
@@ -244,10 +251,11 @@ def test_the_paper_laws_hold_offset_is_the_spring_against_the_loop():
     g, th = 300.0, 0.4
     rot = np.array([[math.cos(th), -math.sin(th)], [math.sin(th), math.cos(th)]])
     model = LinearModel(k=(2 * np.pi * 5.0) ** 2, c=6.0, g2=g * rot)
-    facts = ls.DataFacts(period=1e-3, noise_std=5e-5, travel=2e-3, torque_limit=0.05, accel_psd_ml=1.0,
-                         direction=70.0)
+    facts = ls.DataFacts(period=1e-3, noise_std=5e-5, travel=2e-3, torque_limit=0.05,
+                         accel_psd_ml=1.0, direction=70.0)
     for hz in (2.5, 5.0, 5.0 * 3 ** 0.5, 10.0):
-        assert ls.paper_law_offset(model, facts, hz) == pytest.approx(1 / (1 + (hz / 5.0) ** 4), rel=1e-6)
+        assert ls.paper_law_offset(model, facts, hz) == pytest.approx(1 / (1 + (hz / 5.0) ** 4),
+                                                                      rel=1e-6)
     assert ls.paper_law_bandwidth(model, facts, 0.1) == pytest.approx(5.0 * 3 ** 0.5, rel=1e-6)
 
     s = ls.settings_for(model, facts, 5.0, 1.0)
@@ -259,7 +267,8 @@ def test_the_paper_laws_hold_offset_is_the_spring_against_the_loop():
                            if law == 'sdre_ff' else {}))
         x = np.zeros((1, 4))
         for _ in range(3000):
-            u = ctrl.compute(model.rest_tip[:2] + x[:, :2], x[:, 2:], goal[None], np.zeros((1, 2))).u
+            u = ctrl.compute(model.rest_tip[:2] + x[:, :2], x[:, 2:], goal[None],
+                             np.zeros((1, 2))).u
             x = mf.rk4_step(model, x, u, 1e-3)
         held[law] = np.linalg.norm(model.rest_tip[:2] + x[0, :2] - goal) / facts.travel
     assert held['sdre'] == pytest.approx(0.5, abs=0.01), held        # f_c = f_n: half the move

@@ -14,8 +14,8 @@ NODES = ('simulator', 'estimator', 'controller', 'trajectory', 'recorder', 'exci
 
 def _run(node, *args, tmp_path):
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
-    return subprocess.run([sys.executable, '-m', f'soft_gripper_sdre.nodes.{node}', *args], cwd=tmp_path,
-                          env=env, capture_output=True, text=True, timeout=60)
+    return subprocess.run([sys.executable, '-m', f'soft_gripper_sdre.nodes.{node}', *args],
+                          cwd=tmp_path, env=env, capture_output=True, text=True, timeout=60)
 
 
 @pytest.mark.parametrize('node, flag', [(node, '--help') for node in NODES] + [('simulator', '-h')])
@@ -28,7 +28,8 @@ def test_help_lists_every_parameter_and_exits_zero(node, flag, tmp_path):
     for p in params:
         assert f'  {p.name} = {p.default!r}' in out.stdout
     assert 'Traceback' not in out.stderr
-    assert not list(tmp_path.iterdir()), 'help must not start the node (the recorder would write a bag)'
+    assert not list(tmp_path.iterdir()), ('help must not start the node (the recorder would '
+                                          'write a bag)')
 
 
 @pytest.mark.parametrize('content, expected', [
@@ -50,7 +51,8 @@ def test_bad_params_file_exits_2_naming_the_problem(content, expected, tmp_path)
 def test_bad_ros_argument_exits_2_without_traceback(tmp_path):
     out = _run('estimator', '--ros-args', '-r', ':=bad', tmp_path=tmp_path)
     assert out.returncode == 2
-    assert 'estimator: cannot start with these arguments' in out.stderr and "remap rule" in out.stderr
+    assert ('estimator: cannot start with these arguments' in out.stderr
+            and "remap rule" in out.stderr)
     assert 'Traceback' not in out.stderr
 
 

@@ -23,9 +23,9 @@ def model():
 
 # the paper's law, the node's default, the baselines (Koopman too), computed torque and Q(x): the
 # ``law`` / ``state_weights`` parameters
-@pytest.mark.parametrize('law, weights', [('sdre', False), ('sdre_ff', False), ('lqr', False), ('pd', False),
-                                          ('computed_torque', False), ('sdre', True), ('koopman_mpc', False),
-                                          ('koopman_lqr', False)])
+@pytest.mark.parametrize('law, weights', [('sdre', False), ('sdre_ff', False), ('lqr', False),
+                                          ('pd', False), ('computed_torque', False), ('sdre', True),
+                                          ('koopman_mpc', False), ('koopman_lqr', False)])
 def test_torques_match_the_offline_law_and_close_the_fingers(model, law, weights):
     rest = np.repeat(model.rest_tip[None, :2], 4, 0)
     offline = make_law(law, model, Weights(**DEFAULT_WEIGHTS), TORQUE_LIMIT, adaptive=weights)
@@ -42,7 +42,8 @@ def test_torques_match_the_offline_law_and_close_the_fingers(model, law, weights
         for k, msg in enumerate(commands(probe)):
             stamp, u = cv.msg_to_torques(msg, 4)
             assert stamp == k * MS                      # stamped with the estimate's time
-            expected = offline.compute(rest, np.zeros((4, 2)), ref_pos, np.zeros((4, 2)), ref_acc=zero_acc).u
+            expected = offline.compute(rest, np.zeros((4, 2)), ref_pos, np.zeros((4, 2)),
+                                       ref_acc=zero_acc).u
             np.testing.assert_allclose(u, expected, rtol=1e-9, atol=1e-12)
         # +Y (towards the palm) is reached with negative ax0 torque on every finger
         assert np.all(u[:, 0] < 0)
@@ -153,7 +154,8 @@ def test_a_controller_that_fell_behind_answers_only_the_newest_estimate(model):
     ({'q_pos': -1.0}, ''),
     ({'solver': 'magic'}, ''),
 ])
-def test_runtime_parameter_changes_are_refused_with_the_reason_and_the_old_value_stays(model, changes, needle):
+def test_runtime_parameter_changes_are_refused_with_the_reason_and_the_old_value_stays(
+        model, changes, needle):
     from rclpy.parameter import Parameter
     with ros_context() as (ctx, executor):
         node = ControllerNode(context=ctx)
@@ -204,7 +206,7 @@ def test_time_jumping_back_resets_instead_of_rejecting(model):
         assert spin_until(executor, lambda: len(commands(probe)) == 1)
         send_estimate(executor, node, est_pub, estimate(0, rest))        # restart: 2 s back
         assert node.diag.counters['resets'] == 1 and node.gate.plan is None
-        assert not spin_until(executor, lambda: len(commands(probe)) > 1, 0.3)   # waits for its plan
+        assert not spin_until(executor, lambda: len(commands(probe)) > 1, 0.3)  # waits for its plan
         ref_pub.publish(horizon(rest, 0, close_mm=3.0)[0])
         assert spin_until(executor, lambda: len(commands(probe)) == 2)
         assert cv.msg_to_torques(commands(probe)[1], 4)[0] == 0

@@ -20,7 +20,8 @@ pytestmark = pytest.mark.ros
 MS = 1_000_000
 CONFIG = Path(__file__).resolve().parents[1] / 'config' / 'trajectory.yaml'
 FAST = FAST_GRASP
-REST = np.array([[0.001, -0.002, 0.109], [0.0, -0.003, 0.108], [-0.001, -0.002, 0.109], [0.0, 0.001, 0.11]])
+REST = np.array([[0.001, -0.002, 0.109], [0.0, -0.003, 0.108], [-0.001, -0.002, 0.109],
+                 [0.0, 0.001, 0.11]])
 
 
 def send(executor, node, pub, msg) -> None:
@@ -93,7 +94,8 @@ def test_bad_tip_messages_are_counted_and_a_restart_takes_a_new_rest_pose():
         assert node.diag.counters['resets'] == 0 and node.sub is None
         tick(executor, node, probe, 0)                               # restarted simulator
         assert node.diag.counters['resets'] == 1
-        assert spin_until(executor, lambda: pub.get_subscription_count() > 0, 5.0)   # listening again
+        # listening again
+        assert spin_until(executor, lambda: pub.get_subscription_count() > 0, 5.0)
         moved = REST + 0.002
         send(executor, node, pub, cv.tips_to_msg(1 * MS, moved))
         refs = references(executor, node, probe)
@@ -113,16 +115,19 @@ def test_close_to_plans_every_grasping_finger_to_the_same_closed_y():
         check_plan(plan, rest, close_to=0.0261, **FAST)
         pos = plan[2]
         np.testing.assert_allclose(pos[:, [0, 2], 1].max(axis=0), 0.0261)
-        np.testing.assert_allclose(np.ptp(pos[:, [0, 2], 1], axis=0), [0.0281, 0.0311])   # each its own travel
+        # each its own travel
+        np.testing.assert_allclose(np.ptp(pos[:, [0, 2], 1], axis=0), [0.0281, 0.0311])
 
 
 @pytest.mark.parametrize('params, name', [
-    (dict(horizon_step=0.0), 'horizon_step'), (dict(horizon_step=1e-4, t_hold=10.0), 'horizon_step'),
+    (dict(horizon_step=0.0), 'horizon_step'),
+    (dict(horizon_step=1e-4, t_hold=10.0), 'horizon_step'),
     (dict(t_close=0.0), 't_close'), (dict(t_start=-1.0), 't_start'),
     (dict(grasp_fingers=[0, 0]), 'grasp_fingers'), (dict(grasp_fingers=[0, 4]), 'grasp_fingers'),
     (dict(grasp_fingers=[1, 3], finger_names=['left', 'right']), 'grasp_fingers'),
     (dict(finger_names=['left', 'right']), 'grasp_fingers'), (dict(others='close'), 'others'),
-    (dict(close_distance=float('nan')), 'close_distance'), (dict(grasp_fingers='0,2'), 'grasp_fingers'),
+    (dict(close_distance=float('nan')), 'close_distance'),
+    (dict(grasp_fingers='0,2'), 'grasp_fingers'),
     (dict(rest_pose='0.0, 0.01'), 'rest_pose'), (dict(rest_pose='a b c d e f g h'), 'rest_pose'),
     (dict(rest_pose=' '.join(['nan'] * 8)), 'rest_pose'), (dict(close_to='near'), 'close_to'),
     (dict(close_to='0.5'), 'close_to'), (dict(close_to='nan'), 'close_to'),

@@ -110,7 +110,8 @@ def test_two_runs_started_at_once_give_the_same_torques_and_bags_from_t_0(tmp_pa
             bag = tmp_path / f'bag{run}'
             spec = grasp_graph(parameters={'recorder': {'output': str(bag)},
                                            'simulator': {'duration': RUN,
-                                                         'min_diagnostics_subscribers': 2}})   # monitor, recorder
+                                                         # monitor, recorder
+                                                         'min_diagnostics_subscribers': 2}})
             codes = _run_all_at_once(spec, env, tmp_path / f'logs{run}')
             assert all(c == 0 for c in codes.values()), codes
             monitor.poll()

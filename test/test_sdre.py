@@ -68,7 +68,8 @@ def test_fast_path_matches_reference_on_a_sequence():
         x, xd = rng.normal(size=(4, 4)) * 1e-3, rng.normal(size=(4, 4)) * 1e-3
         a, b = fast.step(A, G, x, xd), ref.step(A, G, x, xd)
         assert a.ok.all() and b.ok.all()
-        # the fast path's stated tolerance (test_sdre_fast.py U_TOL): 1e-4 of the step's largest torque
+        # the fast path's stated tolerance (test_sdre_fast.py U_TOL): 1e-4 of the step's largest
+        # torque
         np.testing.assert_allclose(a.u, b.u, rtol=0, atol=1e-4 * np.abs(b.u).max())
     assert fast.exact_solves <= 8            # cold start, then Newton–Kleinman
     assert fast.fallbacks == 0
@@ -80,7 +81,7 @@ def test_singular_input_matrix_falls_back_to_last_valid_gains():
         c = SdreController(Q, R, 0.5, n=1, method=method)
         good = c.step(A_DI[None], G_DI[None], np.ones((1, 4)) * 0.1, np.zeros((1, 4)))
         G_bad = np.zeros((1, 4, 2))
-        G_bad[0, 2:, :] = [[1.0, 1.0], [1.0, 1.0]]          # rank 1: Y and X not independently actuated
+        G_bad[0, 2:, :] = [[1.0, 1.0], [1.0, 1.0]]  # rank 1: Y and X not independently actuated
         out = c.step(A_DI[None], G_bad, np.ones((1, 4)) * 0.1, np.zeros((1, 4)))
         assert out.fallback[0] and not out.ok[0] and out.failed_checks[0] & Check.STABILIZABLE
         np.testing.assert_allclose(out.K, good.K)
@@ -146,8 +147,9 @@ def test_sdre_law_roll_off_is_a_first_order_filter():
 
 
 def test_pbh_tests_find_an_unstable_mode_that_the_input_or_the_output_misses():
-    """A double integrator per axis: stabilisable through both inputs, not when one axis is unactuated;
-    detectable from both positions, not from the velocities alone (the positions drift unseen)."""
+    """A double integrator per axis: stabilisable through both inputs, not when one axis is
+    unactuated; detectable from both positions, not from the velocities alone (the positions drift
+    unseen)."""
     assert is_stabilizable(A_DI, G_DI)
     assert not is_stabilizable(A_DI, G_DI[:, :1])
     assert is_detectable(A_DI, np.hstack([np.eye(2), np.zeros((2, 2))]))

@@ -92,15 +92,18 @@ def test_fast_torques_equal_the_reference_at_random_states(model):
         vel = rng.uniform(-0.05, 0.05, (N, 2))
         goal = model.rest_tip[:2] + rng.uniform(-8e-3, 8e-3, (N, 2))
         fast.compute(pos, vel, goal, zero)                 # warm start near the state
-        pos2, vel2 = pos + 1e-4 * rng.standard_normal((N, 2)), vel + 5e-3 * rng.standard_normal((N, 2))
+        pos2, vel2 = (pos + 1e-4 * rng.standard_normal((N, 2)),
+                      vel + 5e-3 * rng.standard_normal((N, 2)))
         a, b = fast.compute(pos2, vel2, goal, zero), ref.compute(pos2, vel2, goal, zero)
         assert a.ok.all() and b.ok.all() and a.nk_iterations.min() >= 1
-        np.testing.assert_allclose(a.u_unsat, b.u_unsat, rtol=0, atol=REGRESSION_TOL * np.abs(b.u_unsat).max())
+        np.testing.assert_allclose(a.u_unsat, b.u_unsat, rtol=0,
+                                   atol=REGRESSION_TOL * np.abs(b.u_unsat).max())
         np.testing.assert_allclose(a.P, b.P, rtol=0, atol=U_TOL * np.abs(b.P).max())
 
 
 def test_closed_form_condition_test_equals_the_svd():
-    """The 2×2 condition test without an SVD, batched (the reference path) and compiled (the kernels)."""
+    """The 2×2 condition test without an SVD, batched (the reference path) and compiled (the
+    kernels)."""
     rng = np.random.default_rng(5)
     M = rng.normal(size=(2000, 2, 2))
     M[:500, 1] = M[:500, 0] * (1 + 10.0 ** rng.uniform(-12, -4, (500, 1)))   # near-singular
@@ -131,7 +134,9 @@ def test_batched_solve_equals_the_public_solve_and_flags_failures_with_nan():
             assert x.shape == b.shape
             assert list(np.isfinite(x).all(axis=1)) == [True, False, False, True, True, True]
             good = [0, 3, 4, 5]
-            np.testing.assert_allclose(x[good], np.linalg.solve(L[good], b[good][..., None])[..., 0], rtol=1e-12)
+            np.testing.assert_allclose(x[good],
+                                       np.linalg.solve(L[good], b[good][..., None])[..., 0],
+                                       rtol=1e-12)
 
 
 def sdc_plant(model, rng):
@@ -155,20 +160,23 @@ def test_fast_path_rejects_the_anti_stabilising_solution(model):
     x, a, g = sdc_plant(model, rng)
     warm(ctrl, a, g, x)
     A, G = full_sdc_matrices(a, g)
-    anti = np.stack([-care(-A[i], G[i], W.Q, W.R) for i in range(N)])          # A − S P⁻ anti-Hurwitz
-    assert np.all(np.linalg.eigvals(A - G @ np.linalg.solve(W.R, G.transpose(0, 2, 1)) @ anti).real > 0)
+    anti = np.stack([-care(-A[i], G[i], W.Q, W.R) for i in range(N)])  # A − S P⁻ anti-Hurwitz
+    assert np.all(np.linalg.eigvals(A - G @ np.linalg.solve(W.R, G.transpose(0, 2, 1))
+                                    @ anti).real > 0)
     ctrl.warm_start(anti)
     before = ctrl.exact_solves
     out = ctrl.step_sdc(a, g, x, np.zeros((N, 4)))
-    ref = SdreController(W.Q, W.R, 0.0625, n=N, method='reference').step_sdc(a, g, x, np.zeros((N, 4)))
+    ref = SdreController(W.Q, W.R, 0.0625, n=N,
+                         method='reference').step_sdc(a, g, x, np.zeros((N, 4)))
     assert out.ok.all() and ctrl.exact_solves == before + N and np.all(out.nk_iterations == 0)
-    assert not out.failed_checks.any()                   # the exact path's checks are the final word
+    assert not out.failed_checks.any()  # the exact path's checks are the final word
     np.testing.assert_allclose(out.K, ref.K, rtol=1e-9)
     assert ctrl.step_sdc(a, g, x, np.zeros((N, 4))).nk_iterations.min() >= 1    # back on the kernel
 
 
 def test_fast_path_checks_still_trigger(model):
-    """Singular G2 (not stabilisable), NaN from the model, NaN state: flagged, fallback, finite u."""
+    """Singular G2 (not stabilisable), NaN from the model, NaN state: flagged, fallback, finite
+    u."""
     rng = np.random.default_rng(4)
     W = Weights(**DEFAULT_WEIGHTS)
     ctrl = SdreController(W.Q, W.R, 0.0625, n=N)
@@ -208,7 +216,7 @@ def test_stop_rule_trace_bound_holds_for_a_newton_kleinman_step(model):
         P_star = care(A[i], G[i], Q, R)
         for scale in (1e-1, 1e-2, 1e-3):
             E = rng.standard_normal((4, 4))
-            P_k = P_star * (1.0 + scale * (E + E.T) / 2)              # a nearby symmetric warm start
+            P_k = P_star * (1.0 + scale * (E + E.T) / 2)  # a nearby symmetric warm start
             A_k = A[i] - S[i] @ P_k
             P_next = solve_continuous_lyapunov(A_k.T, -(Q + P_k @ S[i] @ P_k))
             res = np.linalg.norm(P_next @ A[i] + A[i].T @ P_next + Q - P_next @ S[i] @ P_next)
@@ -259,15 +267,20 @@ def test_fast_path_without_the_fused_network_and_weights_it_cannot_take(model):
     pos, vel, ref, ref_vel = trajectory_states(model, 40, (5e-5, 5e-3), seed=4)
     w = Weights(**DEFAULT_WEIGHTS)
     blocks, fused, reference = (SdreLaw(m, w, 0.0625, method=meth, lowpass_hz=0.0)
-                                for m, meth in ((BlocksOnly(), 'fast'), (model, 'fast'), (model, 'reference')))
+                                for m, meth in ((BlocksOnly(), 'fast'), (model, 'fast'),
+                                                (model, 'reference')))
     assert blocks.network is None and fused.network is not None and blocks.sdre.fast
     for k in range(len(pos)):
-        b, f, r = (law.compute(pos[k], vel[k], ref[k], ref_vel[k]) for law in (blocks, fused, reference))
-        np.testing.assert_allclose(b.u_unsat, f.u_unsat, rtol=0, atol=1e-9 * np.abs(f.u_unsat).max())
-        np.testing.assert_allclose(b.u_unsat, r.u_unsat, rtol=0, atol=U_TOL * np.abs(r.u_unsat).max())
+        b, f, r = (law.compute(pos[k], vel[k], ref[k], ref_vel[k])
+                   for law in (blocks, fused, reference))
+        np.testing.assert_allclose(b.u_unsat, f.u_unsat, rtol=0,
+                                   atol=1e-9 * np.abs(f.u_unsat).max())
+        np.testing.assert_allclose(b.u_unsat, r.u_unsat, rtol=0,
+                                   atol=U_TOL * np.abs(r.u_unsat).max())
     assert blocks.sdre.exact_solves == N
     velocity_only = Weights(0.0, 1.0, 1.0)
-    fast, ref_law = (SdreLaw(model, velocity_only, 0.0625, method=m, lowpass_hz=0.0) for m in ('fast', 'reference'))
+    fast, ref_law = (SdreLaw(model, velocity_only, 0.0625, method=m, lowpass_hz=0.0)
+                     for m in ('fast', 'reference'))
     assert not fast.sdre.fast and fast.network is None
     for k in range(5):
         a, b = (law.compute(pos[k], vel[k], ref[k], ref_vel[k]) for law in (fast, ref_law))
@@ -283,7 +296,8 @@ def test_general_matrices_take_the_exact_path():
     Q, R = np.eye(4), np.eye(2)
     fast, ref = SdreController(Q, R, 10.0, n=N), SdreController(Q, R, 10.0, n=N, method='reference')
     for _ in range(3):
-        a, b = fast.step(A, G, np.ones((N, 4)), np.zeros((N, 4))), ref.step(A, G, np.ones((N, 4)), np.zeros((N, 4)))
+        a, b = (fast.step(A, G, np.ones((N, 4)), np.zeros((N, 4))),
+                ref.step(A, G, np.ones((N, 4)), np.zeros((N, 4))))
         np.testing.assert_array_equal(a.u, b.u)
         assert np.all(a.nk_iterations == 0)
     assert fast.exact_solves == 3 * N

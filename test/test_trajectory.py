@@ -4,7 +4,8 @@ import pytest
 
 from soft_gripper_sdre.control.trajectory import GraspProfile, GraspTrajectory
 
-REST = np.array([[0.0, -0.002, 0.109], [0.001, -0.002, 0.109], [0.0, -0.002, 0.109], [0.0, 0.0, 0.1]])
+REST = np.array([[0.0, -0.002, 0.109], [0.001, -0.002, 0.109], [0.0, -0.002, 0.109],
+                 [0.0, 0.0, 0.1]])
 
 
 def test_starts_and_ends_at_rest_and_reaches_target():
@@ -24,7 +25,8 @@ def test_derivatives_match_finite_differences():
     traj = GraspTrajectory(REST, GraspProfile(side_distance=0.003, others='open'))
     dt = 1e-5
     t = np.linspace(0.0, traj.profile.duration + 0.5, 3001)
-    t = t[(np.abs(t - 0.5) > 2e-3) & (np.abs(t - 2.5) > 2e-3) & (np.abs(t - 3.5) > 2e-3) & (np.abs(t - 5.5) > 2e-3)]
+    t = t[(np.abs(t - 0.5) > 2e-3) & (np.abs(t - 2.5) > 2e-3) & (np.abs(t - 3.5) > 2e-3)
+          & (np.abs(t - 5.5) > 2e-3)]
     r, rp, rm = traj.sample(t), traj.sample(t + dt), traj.sample(t - dt)
     np.testing.assert_allclose((rp.pos - rm.pos) / (2 * dt), r.vel, atol=1e-7)
     np.testing.assert_allclose((rp.vel - rm.vel) / (2 * dt), r.acc, atol=1e-5)
@@ -33,7 +35,8 @@ def test_derivatives_match_finite_differences():
 def test_position_and_velocity_continuous_at_phase_changes():
     traj = GraspTrajectory(REST)
     p = traj.profile
-    for t_switch in (p.t_start, p.t_start + p.t_close, p.t_start + p.t_close + p.t_hold, p.duration):
+    for t_switch in (p.t_start, p.t_start + p.t_close, p.t_start + p.t_close + p.t_hold,
+                     p.duration):
         a, b = traj.sample(t_switch - 1e-9), traj.sample(t_switch + 1e-9)
         np.testing.assert_allclose(a.pos, b.pos, atol=1e-9)
         np.testing.assert_allclose(a.vel, b.vel, atol=1e-9)
@@ -66,7 +69,8 @@ def test_close_to_anchors_the_closed_pose_whatever_the_rest_and_moves_the_face_w
     mask = traj.free_space(t)
     # the cube face stands at one Y for both: the squeeze before close_to; free space ends a margin
     # before the reference reaches it (compared away from that boundary, where rounding decides)
-    clear_below = prof.close_to - (prof.close_distance - prof.contact_distance) - prof.contact_margin
+    clear_below = (prof.close_to - (prof.close_distance - prof.contact_distance)
+                   - prof.contact_margin)
     y = traj.sample(t).pos[:, :, 1]
     for finger in (0, 2):
         far = np.abs(y[:, finger] - clear_below) > 1e-9

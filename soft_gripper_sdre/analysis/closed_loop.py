@@ -49,7 +49,8 @@ class LoopResult:
     t: np.ndarray                 # (T,) s
     pos: np.ndarray               # (T, n, 2) true tip position [m]
     vel: np.ndarray               # (T, n, 2) true tip velocity [m/s]
-    meas: np.ndarray              # (T, n, 2) measured tip position the estimator got (delayed by sensor_delay) [m]
+    meas: np.ndarray              # (T, n, 2) measured tip position the estimator got (delayed by
+                                  # sensor_delay) [m]
     est: np.ndarray               # (T, n, 4) KF estimate [m, m/s]
     ref_pos: np.ndarray           # (T, n, 2)
     ref_vel: np.ndarray           # (T, n, 2)
@@ -65,7 +66,8 @@ class LoopResult:
     metrics: list[TrackingMetrics] = field(default_factory=list)
     step_seconds: float = 0.0     # wall time of the loop itself (after the simulator's settle) [s]
     period_seconds: np.ndarray | None = None   # (T,) wall time of each period of the loop [s]
-    law_seconds: np.ndarray | None = None      # (T,) wall time of the law each period (observe + compute) [s]
+    law_seconds: np.ndarray | None = None      # (T,) wall time of the law each period (observe +
+                                               # compute) [s]
 
 
 def run_closed_loop(model, *, duration: float, sim_config: SimConfig | None = None,
@@ -117,9 +119,11 @@ def run_closed_loop(model, *, duration: float, sim_config: SimConfig | None = No
             fifo.append(sim.measure()[:, :2])
             z = fifo[0]
             if traj is None:
-                fifo.extend([z] * delay_steps)  # before d measurements exist, the sensor repeats the first
+                # before d measurements exist, the sensor repeats the first
+                fifo.extend([z] * delay_steps)
                 traj = GraspTrajectory(z, profile)
-                refs = traj.sample(np.arange(steps) * dt)     # the whole reference at once (t_k = k Δt)
+                # the whole reference at once (t_k = k Δt)
+                refs = traj.sample(np.arange(steps) * dt)
             x_hat = tips.on_tips(k * period_ns, z).estimate
             if x_hat is None:
                 raise RuntimeError(f'the simulator measured tips the estimator refuses at '
@@ -128,7 +132,8 @@ def run_closed_loop(model, *, duration: float, sim_config: SimConfig | None = No
             t_law = clock()
             if observe is not None:
                 observe(truth)
-            out = ctrl.compute(x_hat[:, :2], x_hat[:, 2:], refs.pos[k], refs.vel[k], ref_acc=refs.acc[k])
+            out = ctrl.compute(x_hat[:, :2], x_hat[:, 2:], refs.pos[k], refs.vel[k],
+                               ref_acc=refs.acc[k])
             law_seconds[k] = clock() - t_law
             sim.step(out.u)
             rec['t'].append(truth.t)
@@ -143,15 +148,17 @@ def run_closed_loop(model, *, duration: float, sim_config: SimConfig | None = No
             rec['residual'].append(out.residual)
             rec['contact'].append(truth.finger_cube_contact if truth.finger_cube_contact is not None
                                   else np.zeros(n, dtype=bool))
-            rec['cube'].append(truth.cube_pose if truth.cube_pose is not None else np.full(7, np.nan))
+            rec['cube'].append(truth.cube_pose if truth.cube_pose is not None
+                               else np.full(7, np.nan))
             stamps[k + 1] = clock()
     arrays = {k: np.asarray(v) for k, v in rec.items()}
     arrays['ref_pos'], arrays['ref_vel'] = refs.pos[:steps], refs.vel[:steps]
     free = traj.free_space(arrays['t']) & ~arrays['contact']
     excursion = traj.peak_excursion()
     periods = np.diff(stamps)
-    result = LoopResult(**arrays, free_space=free, excursion=excursion, step_seconds=float(periods.sum()),
-                        period_seconds=periods, law_seconds=law_seconds)
+    result = LoopResult(**arrays, free_space=free, excursion=excursion,
+                        step_seconds=float(periods.sum()), period_seconds=periods,
+                        law_seconds=law_seconds)
     result.metrics = tracking_metrics(result.pos, result.ref_pos, free, excursion)
     return result
 
@@ -160,13 +167,15 @@ def delay_in_periods(delay: float, period: float) -> int:
     """A sensor delay [s] as a whole number of control periods.
 
     Raises:
-        ValueError: the delay is negative, not finite or not a whole number of periods (within 1e-9).
+        ValueError: the delay is negative, not finite or not a whole number of periods (within
+            1e-9).
     """
     if not (isinstance(delay, (int, float)) and math.isfinite(delay) and delay >= 0):
         raise ValueError(f'sensor_delay must be a finite number >= 0 s, got {delay!r}')
     steps = round(delay / period)
     if abs(steps * period - delay) > 1e-9:
-        raise ValueError(f'sensor_delay must be a whole number of control periods ({period:g} s), got {delay!r} s')
+        raise ValueError(f'sensor_delay must be a whole number of control periods ({period:g} s), '
+                         f'got {delay!r} s')
     return int(steps)
 
 

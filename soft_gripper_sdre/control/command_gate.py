@@ -115,7 +115,8 @@ class CommandGate:
         self.estimates_lost = False
 
     # -- inputs ------------------------------------------------------------------------------
-    def on_plan(self, times: np.ndarray, pos: np.ndarray, vel: np.ndarray, acc: np.ndarray) -> Outcome:
+    def on_plan(self, times: np.ndarray, pos: np.ndarray, vel: np.ndarray,
+                acc: np.ndarray) -> Outcome:
         """A validated plan (``times`` absolute, increasing): it replaces the stored one, and the
         waiting estimate is answered if the plan covers it."""
         self.plan = Plan(int(times[0]), int(times[-1]), times, pos, vel, acc)
@@ -138,7 +139,8 @@ class CommandGate:
                 f'state_estimate: stamp {stamp} ns is not newer than the last accepted {last} ns'))
         elif last >= 0 and stamp - last <= self.reset_jump_ns:
             # the nearest whole number of periods: a jittery source's steps are not exact multiples
-            self.counters['skipped_estimates'] += max(0, (stamp - last + self.period_ns // 2) // self.period_ns - 1)
+            self.counters['skipped_estimates'] += max(
+                0, (stamp - last + self.period_ns // 2) // self.period_ns - 1)
         self.last_estimate_ns = stamp
         self.last_heard = wall
         if self.estimates_lost:

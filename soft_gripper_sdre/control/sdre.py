@@ -1,7 +1,7 @@
 """The SDRE supervisor: the paper's law u = K(x) x + K_s(x) x_d (eq. 22, saturated) for n fingers.
 
-K, K_s and the checks are those of eq. 23–24 and Remarks 2–3 (:mod:`~soft_gripper_sdre.control.riccati`).
-Two paths compute them:
+K, K_s and the checks are those of eq. 23–24 and Remarks 2–3
+(:mod:`~soft_gripper_sdre.control.riccati`). Two paths compute them:
 
 * ``method='fast'``: the compiled kernels (:mod:`~soft_gripper_sdre.control.compiled`: warm-started
   Newton–Kleinman on the SDC form with the structure's checks, the gains and the law in one call);
@@ -109,8 +109,8 @@ class SdreController:
         self._cost = riccati_cost(self.Q, self.R)
         # the kernel's detectability argument needs Q ≻ 0 or Q's position block ≻ 0
         self.fast = method == 'fast' and (self._cost.q_definite or self._cost.q_position_definite)
-        self.settings = SdreSettings.of(self.Q, self.R, self.u_max, self.residual_tol, self.cond_max,
-                                        int(max_nk_iterations))
+        self.settings = SdreSettings.of(self.Q, self.R, self.u_max, self.residual_tol,
+                                        self.cond_max, int(max_nk_iterations))
         self.state, self.outputs = SdreState.cold(self.n), SdreOutputs.empty(self.n)
         # the feedforward's two flags as the rows of one array: one count says whether all are set
         self._feedforward_flags = np.zeros((2, self.n), dtype=np.bool_)
@@ -118,7 +118,8 @@ class SdreController:
                                               np.zeros((self.n, 2, 2)), *self._feedforward_flags)
         self._nominal = None
         if nominal is not None:
-            K0, Ks0, _ = sdre_gains(np.asarray(nominal[0], float), np.asarray(nominal[1], float), self.Q, self.R)
+            K0, Ks0, _ = sdre_gains(np.asarray(nominal[0], float), np.asarray(nominal[1], float),
+                                    self.Q, self.R)
             self._nominal = (K0, Ks0)
         self.reset()
 
@@ -140,7 +141,8 @@ class SdreController:
     def step(self, A, G, x, x_d) -> LawStep:
         """Torques for every finger: A (n,4,4), G (n,4,2), x (n,4), x_d (n,4), translated SI."""
         n = self.n
-        A, G, x, x_d = _checked(A=(A, (n, 4, 4)), G=(G, (n, 4, 2)), x=(x, (n, 4)), x_d=(x_d, (n, 4)))
+        A, G, x, x_d = _checked(A=(A, (n, 4, 4)), G=(G, (n, 4, 2)), x=(x, (n, 4)),
+                                x_d=(x_d, (n, 4)))
         sdc = self.method == 'fast' and in_sdc_form(A, G)
         if self.fast and sdc:
             return self.step_sdc(A[:, 2:, :], G[:, 2:, :], x, x_d)
@@ -150,7 +152,8 @@ class SdreController:
         """:meth:`step` for a model in SDC form, given only its lower rows:
         A2 = [A21 A22] (n,2,4) and G2 (n,2,2), so that A = [[0, I], A2] and G = [[0], G2]."""
         n = self.n
-        A2, G2, x, x_d = _checked(A2=(A2, (n, 2, 4)), G2=(G2, (n, 2, 2)), x=(x, (n, 4)), x_d=(x_d, (n, 4)))
+        A2, G2, x, x_d = _checked(A2=(A2, (n, 2, 4)), G2=(G2, (n, 2, 2)), x=(x, (n, 4)),
+                                  x_d=(x_d, (n, 4)))
         if not self.fast:
             return self._reference_step(*full_sdc_matrices(A2, G2), x, x_d, self.method == 'fast')
         out = self.outputs
@@ -173,8 +176,8 @@ class SdreController:
         model at x or (``ff_at_reference``) at x_d. :attr:`feedforward` holds u_ff and which fingers
         had a finite state and a usable feedforward; the step's ``ok`` also needs the first, its
         ``fallback`` is set without either (``fallbacks`` counts the feedback's alone)."""
-        feedforward_step(z, origin, ff_at_reference, *network, *self.settings, *self.state, *self.outputs,
-                         *self.feedforward)
+        feedforward_step(z, origin, ff_at_reference, *network, *self.settings, *self.state,
+                         *self.outputs, *self.feedforward)
 
         def error_states():
             x, x_d = rest_frame_states(z, origin)
@@ -200,15 +203,15 @@ class SdreController:
         if accepted != self.n:
             x, x_d = feedback_states()
             self._exact_path(x, x_d, failed, iterations, P)
-            if feedforward:                                   # u = u_ff + K e, as the kernel composes it
+            if feedforward:  # u = u_ff + K e, as the kernel composes it
                 ff = self.feedforward
                 v = ff.u_ff + out.u_unsat
                 v[~(np.isfinite(v) & ff.state_finite[:, None])] = 0.0
                 out.u_unsat[:] = v
                 np.clip(v, -self.u_max, self.u_max, out=out.u)
             accepted = np.count_nonzero(s.warm)
-        return self._record(out.u.copy(), out.u_unsat.copy(), s.K.copy(), s.Ks.copy(), P, out.residual.copy(),
-                            s.warm.copy(), failed, iterations, accepted)
+        return self._record(out.u.copy(), out.u_unsat.copy(), s.K.copy(), s.Ks.copy(), P,
+                            out.residual.copy(), s.warm.copy(), failed, iterations, accepted)
 
     def _exact_path(self, x, x_d, failed, iterations, P) -> None:
         """scipy and the general checks for each finger the kernel handed back with usable inputs;
@@ -220,13 +223,15 @@ class SdreController:
         idx = np.flatnonzero(~s.warm & ((failed & _FINAL_BITS) == 0))
         if idx.size:
             A, G = full_sdc_matrices(out.a2[idx], out.g2[idx])
-            P_exact, checked, solves = solve_and_check(A, G, np.ones(idx.size, dtype=bool), True, self._cost,
-                                                       self.residual_tol, self.cond_max)
+            P_exact, checked, solves = solve_and_check(A, G, np.ones(idx.size, dtype=bool), True,
+                                                       self._cost, self.residual_tol, self.cond_max)
             self.exact_solves += solves
-            failed[idx], iterations[idx], P[idx], out.residual[idx] = checked.failed, 0, P_exact, checked.residual
+            (failed[idx], iterations[idx], P[idx],
+             out.residual[idx]) = checked.failed, 0, P_exact, checked.residual
             ok = checked.ok
             accepted = idx[ok]
-            s.P[accepted], s.K[accepted], s.Ks[accepted], s.warm[accepted] = P_exact[ok], checked.K[ok], checked.Ks[ok], True
+            (s.P[accepted], s.K[accepted], s.Ks[accepted],
+             s.warm[accepted]) = P_exact[ok], checked.K[ok], checked.Ks[ok], True
         finite = _finite_rows(out.a2, out.g2, x, x_d)
         tracking_torques(s.K, s.Ks, x, x_d, finite, self.settings.u_max, out.u, out.u_unsat)
 
@@ -236,7 +241,8 @@ class SdreController:
         ``sdc``: test stabilisability in the SDC form (cond(G2)) instead of by PBH."""
         self.steps += 1
         finite = _finite_rows(A, G, x, x_d)
-        P, checked, solves = solve_and_check(A, G, finite, sdc, self._cost, self.residual_tol, self.cond_max)
+        P, checked, solves = solve_and_check(A, G, finite, sdc, self._cost, self.residual_tol,
+                                             self.cond_max)
         self.exact_solves += solves
         ok, s = checked.ok, self.state
         s.K[ok], s.Ks[ok], s.P[ok], s.warm[:] = checked.K[ok], checked.Ks[ok], P[ok], ok
@@ -250,7 +256,8 @@ class SdreController:
         return self._record(u, u_unsat, K, Ks, P, checked.residual, ok, checked.failed,
                             np.zeros(self.n, dtype=np.int64), np.count_nonzero(ok))
 
-    def _record(self, u, u_unsat, K, Ks, P, residual, ok, failed, iterations, accepted: int) -> LawStep:
+    def _record(self, u, u_unsat, K, Ks, P, residual, ok, failed, iterations,
+                accepted: int) -> LawStep:
         """The step's :class:`LawStep` (arrays the caller owns); the counters. ``accepted``: how
         many fingers are ``ok``."""
         fallbacks = self.n - accepted
@@ -259,5 +266,6 @@ class SdreController:
             for name, bit in _CHECK_BITS:
                 self.check_failures[name] += int(np.count_nonzero(failed & bit))
         # u = clip(u_unsat) with u_unsat finite: u ≠ u_unsat ⇔ |u_unsat| > u_max
-        return LawStep(u=u, u_unsat=u_unsat, K=K, Ks=Ks, P=P, residual=residual, ok=ok, fallback=~ok,
-                       failed_checks=failed, saturated=u != u_unsat, nk_iterations=iterations)
+        return LawStep(u=u, u_unsat=u_unsat, K=K, Ks=Ks, P=P, residual=residual, ok=ok,
+                       fallback=~ok, failed_checks=failed, saturated=u != u_unsat,
+                       nk_iterations=iterations)

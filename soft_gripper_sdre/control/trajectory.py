@@ -1,4 +1,5 @@
-"""The grasp reference: two opposite fingers close on the cube along a smooth sinusoid and open again.
+"""The grasp reference: two opposite fingers close on the cube along a smooth sinusoid and open
+again.
 
 Every finger's reference lives in its own base frame (SI, untranslated): it starts at the finger's
 rest tip position and moves by a scalar profile ``s(t) ∈ [0, 1]`` along a fixed direction,
@@ -88,7 +89,8 @@ class GraspProfile:
             raise ValueError(f'others must be one of {OTHERS_MODES}, got {self.others!r}')
         if len(set(self.grasp_fingers)) != len(self.grasp_fingers) or any(
                 not 0 <= i < 4 for i in self.grasp_fingers):
-            raise ValueError(f'grasp_fingers must be distinct indices in 0..3, got {self.grasp_fingers!r}')
+            raise ValueError('grasp_fingers must be distinct indices in 0..3, '
+                             f'got {self.grasp_fingers!r}')
 
     @property
     def duration(self) -> float:
@@ -154,7 +156,8 @@ class GraspTrajectory:
             raise ValueError('rest contains non-finite values')
         if any(i >= rest.shape[0] for i in self.profile.grasp_fingers):
             raise ValueError(
-                f'grasp_fingers {self.profile.grasp_fingers} out of range for {rest.shape[0]} fingers')
+                f'grasp_fingers {self.profile.grasp_fingers} out of range for '
+                f'{rest.shape[0]} fingers')
         object.__setattr__(self, 'rest', rest[:, :2].copy())
 
     @property
@@ -208,6 +211,7 @@ class GraspTrajectory:
         mask = np.ones((t.size, self.n_fingers), dtype=bool)
         for i in p.grasp_fingers:
             travel = self.travel(i)
-            face = p.contact_distance if p.close_to is None else p.contact_distance + travel - p.close_distance
+            face = (p.contact_distance if p.close_to is None
+                    else p.contact_distance + travel - p.close_distance)
             mask[:, i] = s * travel < face - p.contact_margin
         return mask

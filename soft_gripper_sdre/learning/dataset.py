@@ -66,10 +66,12 @@ def load_record(path: Path) -> Record:
         raise DatasetError(f'{path}: missing arrays {missing}')
     n = arrays['t'].shape[0] if arrays['t'].ndim == 1 else -1
     if n < 10:
-        raise DatasetError(f'{path}: t must be a 1-D array of at least 10 samples, got shape {arrays["t"].shape}')
+        raise DatasetError(f'{path}: t must be a 1-D array of at least 10 samples, '
+                           f'got shape {arrays["t"].shape}')
     for key, width in WIDTH.items():
         if key in arrays and arrays[key].shape != (n, width):
-            raise DatasetError(f'{path}: {key} must have shape ({n}, {width}), got {arrays[key].shape}')
+            raise DatasetError(f'{path}: {key} must have shape ({n}, {width}), '
+                               f'got {arrays[key].shape}')
     if arrays['rest_tip'].shape != (3,) or not np.all(np.isfinite(arrays['rest_tip'])):
         raise DatasetError(f'{path}: rest_tip must be 3 finite numbers, got {arrays["rest_tip"]!r}')
     try:
@@ -91,12 +93,13 @@ def load_record(path: Path) -> Record:
         edges = np.flatnonzero(np.diff(np.concatenate([[0], finite.astype(int), [0]])))
         runs = edges.reshape(-1, 2)
         if len(runs) == 0:
-            raise DatasetError(f'{path}: fewer than 10 consecutive finite samples (every sample holds NaN/Inf)')
+            raise DatasetError(f'{path}: fewer than 10 consecutive finite samples '
+                               '(every sample holds NaN/Inf)')
         start, stop = max(runs, key=lambda r: r[1] - r[0])
         if stop - start < 10:
             raise DatasetError(f'{path}: fewer than 10 consecutive finite samples')
-        log.warning('%s: %d samples with NaN/Inf; keeping the longest finite run [%d, %d) (%d dropped)',
-                    path, bad, start, stop, n - (stop - start))
+        log.warning('%s: %d samples with NaN/Inf; keeping the longest finite run [%d, %d) '
+                    '(%d dropped)', path, bad, start, stop, n - (stop - start))
         arrays = {k: (v[start:stop] if k in keys else v) for k, v in arrays.items()}
     return Record(name=path.stem, t=arrays['t'], u=arrays['u'], tip=arrays['tip'],
                   rest_tip=arrays['rest_tip'], dt=dt, vel_true=arrays.get('vel_true'),
@@ -109,8 +112,10 @@ def load_records(directory: Path, names: list[str]) -> dict[str, Record]:
     first = next(iter(records.values()))
     for r in records.values():
         if not np.isclose(r.dt, first.dt, rtol=1e-9):
-            raise DatasetError(f'{r.name}.npz: dt = {r.dt} s differs from {first.name}.npz ({first.dt} s)')
+            raise DatasetError(f'{r.name}.npz: dt = {r.dt} s differs from {first.name}.npz '
+                               f'({first.dt} s)')
         if not np.allclose(r.rest_tip, first.rest_tip, atol=1e-4):
             raise DatasetError(f'{r.name}.npz: rest_tip {r.rest_tip} differs from {first.name}.npz '
-                               f'({first.rest_tip}); all records must come from the same finger mount')
+                               f'({first.rest_tip}); all records must come from the same finger '
+                               'mount')
     return records

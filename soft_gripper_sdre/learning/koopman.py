@@ -53,8 +53,10 @@ class KoopmanSettings:
     ridge: float = 1e-8                    # α per sample, on standardised columns
 
     def __post_init__(self) -> None:
-        if any(int(d) != d or d < 1 for d in self.delays) or len(set(self.delays)) != len(self.delays):
-            raise ValueError(f'delays must be distinct integers >= 1 (control periods), got {self.delays!r}')
+        if (any(int(d) != d or d < 1 for d in self.delays)
+                or len(set(self.delays)) != len(self.delays)):
+            raise ValueError('delays must be distinct integers >= 1 (control periods), '
+                             f'got {self.delays!r}')
         if int(self.degree) != self.degree or not 1 <= self.degree <= 4:
             raise ValueError(f'degree must be an integer in 1..4, got {self.degree!r}')
         if not (np.isfinite(self.ridge) and self.ridge >= 0):
@@ -63,7 +65,8 @@ class KoopmanSettings:
 
 def monomial_indices(degree: int) -> list[tuple[int, ...]]:
     """Index tuples of the monomials of degree 2 … ``degree`` in the 4 scaled state components."""
-    return [c for d in range(2, degree + 1) for c in itertools.combinations_with_replacement(range(4), d)]
+    return [c for d in range(2, degree + 1)
+            for c in itertools.combinations_with_replacement(range(4), d)]
 
 
 class KoopmanModel:
@@ -82,7 +85,8 @@ class KoopmanModel:
         self.settings = settings
         self.monomials = monomial_indices(settings.degree)
         # the monomials as one gather: index 4 is a column of ones padding lower degrees
-        self.monomial_table = np.array([c + (4,) * (settings.degree - len(c)) for c in self.monomials],
+        self.monomial_table = np.array([c + (4,) * (settings.degree - len(c))
+                                        for c in self.monomials],
                                        dtype=int).reshape(len(self.monomials), settings.degree)
         self.n_z = 4 + 2 * len(settings.delays) + len(self.monomials)
         self.A = np.array(A, dtype=float)
@@ -92,8 +96,8 @@ class KoopmanModel:
         self.dt = float(dt)
         self.info = dict(info or {})
         if self.A.shape != (self.n_z, self.n_z) or self.B.shape != (self.n_z, 2):
-            raise ValueError(f'A must be ({self.n_z}, {self.n_z}) and B ({self.n_z}, 2) for {settings}, '
-                             f'got {self.A.shape} and {self.B.shape}')
+            raise ValueError(f'A must be ({self.n_z}, {self.n_z}) and B ({self.n_z}, 2) '
+                             f'for {settings}, got {self.A.shape} and {self.B.shape}')
         if self.state_scale.shape != (4,) or not np.all(self.state_scale > 0):
             raise ValueError(f'state_scale must be 4 positive numbers, got {state_scale!r}')
         if self.rest_tip.size < 2 or not (np.isfinite(self.dt) and self.dt > 0):
@@ -111,8 +115,9 @@ class KoopmanModel:
         return max(self.settings.delays, default=0)
 
     def lift(self, x: np.ndarray, delayed_pos: np.ndarray) -> np.ndarray:
-        """Observables z (…, n_z) from the translated state x (…, 4) = [p − p₀, ṗ] and the translated
-        positions ``delayed_pos`` (…, n_delays, 2) at the model's delays (in ``settings.delays`` order)."""
+        """Observables z (…, n_z) from the translated state x (…, 4) = [p − p₀, ṗ] and the
+        translated positions ``delayed_pos`` (…, n_delays, 2) at the model's delays (in
+        ``settings.delays`` order)."""
         s = np.asarray(x, dtype=float) / self.state_scale
         d = np.asarray(delayed_pos, dtype=float) / self.state_scale[:2]
         parts = [s, d.reshape(d.shape[:-2] + (-1,))]
@@ -127,7 +132,8 @@ class KoopmanModel:
         pos, vel = np.asarray(pos, dtype=float), np.asarray(vel, dtype=float)
         padded = np.concatenate([np.repeat(pos[:1], self.max_delay, axis=0), pos])
         n = len(pos)
-        delayed = np.stack([padded[self.max_delay - d:self.max_delay - d + n] for d in self.settings.delays]
+        delayed = np.stack([padded[self.max_delay - d:self.max_delay - d + n]
+                            for d in self.settings.delays]
                            or [np.empty((n, 0))], axis=1).reshape(n, -1, 2)
         return self.lift(np.hstack([pos, vel]), delayed)
 
@@ -158,7 +164,8 @@ class KoopmanModel:
         """
         path = Path(path) if path is not None else DEFAULT_KOOPMAN
         if not path.is_file():
-            raise KoopmanFileError(f'{path}: no such Koopman model file (python -m soft_gripper_sdre.tools.koopman '
+            raise KoopmanFileError(f'{path}: no such Koopman model file '
+                                   '(python -m soft_gripper_sdre.tools.koopman '
                                    '--data DIR --out DIR writes one)')
         try:
             with np.load(path, allow_pickle=False) as f:
@@ -170,11 +177,11 @@ class KoopmanModel:
         if missing:
             raise KoopmanFileError(f'{path}: missing arrays {sorted(missing)}')
         if int(arrays['format_version']) != FORMAT_VERSION:
-            raise KoopmanFileError(f'{path}: format version {int(arrays["format_version"])}, this code reads '
-                                   f'{FORMAT_VERSION}')
+            raise KoopmanFileError(f'{path}: format version {int(arrays["format_version"])}, '
+                                   f'this code reads {FORMAT_VERSION}')
         try:
-            settings = KoopmanSettings(tuple(int(d) for d in arrays['delays']), int(arrays['degree']),
-                                       float(arrays['ridge']))
+            settings = KoopmanSettings(tuple(int(d) for d in arrays['delays']),
+                                       int(arrays['degree']), float(arrays['ridge']))
             info = json.loads(str(arrays['info'])) if 'info' in arrays else {}
             return cls(arrays['A'], arrays['B'], arrays['state_scale'], arrays['rest_tip'],
                        float(arrays['dt']), settings, info)
@@ -183,7 +190,8 @@ class KoopmanModel:
 
 
 def fit_koopman(series: list[tuple[np.ndarray, np.ndarray, np.ndarray]], rest_tip, dt: float,
-                settings: KoopmanSettings = KoopmanSettings(), info: dict | None = None) -> KoopmanModel:
+                settings: KoopmanSettings = KoopmanSettings(),
+                info: dict | None = None) -> KoopmanModel:
     """Fit the lifted model to records by ridge least squares (module doc).
 
     Args:
@@ -197,7 +205,8 @@ def fit_koopman(series: list[tuple[np.ndarray, np.ndarray, np.ndarray]], rest_ti
     if not series:
         raise ValueError('fit_koopman needs at least one record')
     for i, (p, v, u) in enumerate(series):
-        if not (np.shape(p) == np.shape(v) == np.shape(u) and np.ndim(p) == 2 and np.shape(p)[1] == 2):
+        if not (np.shape(p) == np.shape(v) == np.shape(u) and np.ndim(p) == 2
+                and np.shape(p)[1] == 2):
             raise ValueError(f'record {i}: pos, vel and u must each be (N, 2), got '
                              f'{np.shape(p)}, {np.shape(v)}, {np.shape(u)}')
         if not all(np.all(np.isfinite(a)) for a in (p, v, u)):

@@ -31,8 +31,8 @@ message is either accepted (``estimates``) or rejected under one reason, so ``re
 
 Rejected messages raise a throttled warning naming the problem; nothing is published for them
 and the filter is untouched. A step of up to 1.5 nominal periods is neither counted nor
-reported, so a clean source whose stamps jitter by ±20 % keeps the node OK. ``stamp_period_ms`` in /diagnostics is the mean
-stamp step accepted since the previous status.
+reported, so a clean source whose stamps jitter by ±20 % keeps the node OK. ``stamp_period_ms``
+in /diagnostics is the mean stamp step accepted since the previous status.
 """
 from __future__ import annotations
 
@@ -83,10 +83,10 @@ PARAMS = (
           'quietly (counted); a longer one is also reported as a dropout', 's', 1e-4, 1.0),
     Param('reset_on_jump', RESET_ON_JUMP, 'a stamp jump larger than this (either direction) resets '
           'the filter; shorter gaps are predicted through, hence the bound', 's', 1e-3, 1.0),
-    Param('tips_reliability', 'reliable', "reliability of the tip_positions subscription: 'reliable' "
-          "(the simulator: lockstep loses no period) or 'best_effort', which also matches a driver "
-          'that publishes with the sensor-data QoS', choices=('reliable', 'best_effort'),
-          read_only=True),
+    Param('tips_reliability', 'reliable', "reliability of the tip_positions subscription: "
+          "'reliable' (the simulator: lockstep loses no period) or 'best_effort', which also "
+          'matches a driver that publishes with the sensor-data QoS',
+          choices=('reliable', 'best_effort'), read_only=True),
 )
 
 #: the counters every received message is counted under exactly one of
@@ -103,8 +103,8 @@ class EstimatorNode(Node):
         self.names = tuple(p['finger_names'])
         self.n = len(self.names)
         try:
-            self.kf = ConstantVelocityKF(p['control_period'], p['accel_psd'], p['meas_std'], n=self.n,
-                                         process_noise=p['process_noise'])
+            self.kf = ConstantVelocityKF(p['control_period'], p['accel_psd'], p['meas_std'],
+                                         n=self.n, process_noise=p['process_noise'])
         except ValueError as exc:
             raise ParameterError(str(exc)) from None
         warm_up()       # compiled (or loaded from the cache) before any topic shows the node ready
@@ -119,7 +119,8 @@ class EstimatorNode(Node):
         self.pub = self.create_publisher(MultiDOFJointTrajectory, STATE_ESTIMATE, LOOP_QOS)
         tips_qos = copy.copy(NEWEST_QOS)
         tips_qos.reliability = ReliabilityPolicy[p['tips_reliability'].upper()]
-        self.sub = self.create_subscription(PoseArray, TIP_POSITIONS, self.on_tips, tips_qos, raw=True)
+        self.sub = self.create_subscription(PoseArray, TIP_POSITIONS, self.on_tips, tips_qos,
+                                            raw=True)
         self.diag = Diagnostics(self)
         self.filter = TipFilter(self.kf, _ns(p['control_period']), _ns(p['reset_on_jump']),
                                 _ns(p['max_bridge']), counters=self.diag.counters)
@@ -128,7 +129,8 @@ class EstimatorNode(Node):
         self.diag.values['process_noise'] = p['process_noise']
         self.diag.before_publish.append(self._stamp_stats)
         self.get_logger().info(
-            f'{self.n} fingers ({", ".join(self.names)}), nominal period {1e3 * p["control_period"]:g} ms, q = {p["accel_psd"]:g} '
+            f'{self.n} fingers ({", ".join(self.names)}), '
+            f'nominal period {1e3 * p["control_period"]:g} ms, q = {p["accel_psd"]:g} '
             f'(m/s²)²/Hz, σ = {1e3 * p["meas_std"]:g} mm, {p["process_noise"]} process noise')
 
     @property

@@ -108,33 +108,35 @@ DESCRIPTION_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
 PARAMS = (
     Param('mode', 'lockstep', 'stepping mode: lockstep (each period steps on its own command), '
           'pipelined (lockstep\'s rules, the physics stepped with the previous period\'s command '
-          'while the current one is computed: one period of sensing-to-actuation delay) or realtime '
-          '(a wall timer steps with the newest command)', choices=MODES, read_only=True),
+          'while the current one is computed: one period of sensing-to-actuation delay) or '
+          'realtime (a wall timer steps with the newest command)', choices=MODES, read_only=True),
     Param('scene', 'hand', 'what to simulate', choices=('hand', 'finger'), read_only=True),
     Param('control_period', 0.001, 'sim time per step; commands are held over it', 's',
           1e-4, 0.05, read_only=True),
-    Param('physics_substeps', 0, 'physics steps per control period; 0 = the fewest of at most 0.5 ms '
-          '(2 at 1 ms, 20 at 10 ms: 0.5 ms keeps |u| <= 25 sim units stable)', '', 0, 100, read_only=True),
+    Param('physics_substeps', 0, 'physics steps per control period; 0 = the fewest of at most '
+          '0.5 ms (2 at 1 ms, 20 at 10 ms: 0.5 ms keeps |u| <= 25 sim units stable)', '', 0, 100,
+          read_only=True),
     Param('torque_limit', 0.1, 'actuator limit; commands are clipped to ±limit', 'N·m', 1e-4, 1.0,
           read_only=True),
-    Param('noise_std', 5e-5, 'Gaussian noise on measured tip positions (0.05 mm: a fingertip tracker)',
-          'm', 0.0, 0.01, read_only=True),
+    Param('noise_std', 5e-5, 'Gaussian noise on measured tip positions (0.05 mm: a fingertip '
+          'tracker)', 'm', 0.0, 0.01, read_only=True),
     Param('seed', 0, 'seed of the measurement noise', '', 0, 2**31 - 1, read_only=True),
     Param('settle_time', 0.5, 'time at u = 0 before t = 0 (defines the rest pose)', 's', 0.0, 10.0,
           read_only=True),
     Param('with_cube', True, 'hand scene: put the cube on the palm', read_only=True),
     finger_names_param('the fingers the node exposes, in message order: pose i of tip_positions, '
                        'torque_commands <finger>/ax0|ax1, joint_states <finger>/joint_<j>'),
-    Param('hand_fingers', [0, 1, 2, 3], "which of the scene's fingers each of finger_names is (hand: "
-          "0 to 3, 0 and 2 face each other across the cube; finger scene: 0); one per name, each "
-          'once. The fingers not listed stay in the scene at zero torque', read_only=True),
-    Param('lockstep_timeout', 0.5, 'lockstep, pipelined: wall time to wait for a command before stepping anyway '
-          '(at the watchdog\'s second look past it, at most 20 ms later)',
+    Param('hand_fingers', [0, 1, 2, 3], "which of the scene's fingers each of finger_names is "
+          "(hand: 0 to 3, 0 and 2 face each other across the cube; finger scene: 0); one per name, "
+          'each once. The fingers not listed stay in the scene at zero torque', read_only=True),
+    Param('lockstep_timeout', 0.5, 'lockstep, pipelined: wall time to wait for a command before '
+          'stepping anyway (at the watchdog\'s second look past it, at most 20 ms later)',
           's', 1e-3, 60.0),
     Param('on_timeout', 'hold', 'lockstep, pipelined: command used when none arrived in time',
           choices=('hold', 'zero')),
-    Param('lost_command_wait', 0.01, 'lockstep, pipelined: after a timeout, wall time each period waits for its '
-          'command before it steps with zero torque, until commands arrive again', 's', 1e-3, 60.0),
+    Param('lost_command_wait', 0.01, 'lockstep, pipelined: after a timeout, wall time each period '
+          'waits for its command before it steps with zero torque, until commands arrive again',
+          's', 1e-3, 60.0),
     Param('hold_limit', 0.005, 'realtime: how old (sim time) the newest command may be and still '
           'be held; an older one is replaced by zero torque', 's', 0.0, 60.0),
     Param('on_bad_command', 'hold', 'what replaces a rejected command', choices=('hold', 'zero')),
@@ -144,18 +146,19 @@ PARAMS = (
           'step: a command publisher, the tip subscribers and, with wait_for_nodes, the whole '
           'graph; after it a simulator with wait_for_nodes gives up (exit status 1), one without '
           'starts with what is there', 's', 0.0, 600.0, read_only=True),
-    Param('min_tip_subscribers', 1, 'start-up: tip_positions subscribers to wait for (the demo waits '
-          'for the estimator, the trajectory node and the recorder)', '', 0, 100, read_only=True),
+    Param('min_tip_subscribers', 1, 'start-up: tip_positions subscribers to wait for (the demo '
+          'waits for the estimator, the trajectory node and the recorder)', '', 0, 100,
+          read_only=True),
     Param('wait_for_nodes', '', "start-up: the graph's other nodes, comma-separated, of "
           f"{', '.join(n for n in GRASP_NODES if n != 'simulator')} (grasp_graph and the launch "
           'file name them): the first step waits until each has reported on /diagnostics and every '
           "writer and reader of the graph has matched its peers; '' = no such wait",
           read_only=True, rule=lambda text: _waited_nodes_problem(text)),
-    Param('min_diagnostics_subscribers', 0, 'start-up: /diagnostics subscribers of other nodes to wait '
-          'for (a monitor that reads the final counters of a short run must be matched before it begins)',
-          '', 0, 100, read_only=True),
-    Param('state_rate', 100.0, 'rate of joint_states, cube_pose and cube_contacts in sim time', 'Hz',
-          1.0, 1000.0, read_only=True),
+    Param('min_diagnostics_subscribers', 0, 'start-up: /diagnostics subscribers of other nodes to '
+          'wait for (a monitor that reads the final counters of a short run must be matched before '
+          'it begins)', '', 0, 100, read_only=True),
+    Param('state_rate', 100.0, 'rate of joint_states, cube_pose and cube_contacts in sim time',
+          'Hz', 1.0, 1000.0, read_only=True),
     Param('clock_rate', 100.0, 'rate of /clock in sim time (the tips carry every period\'s stamp)',
           'Hz', 1.0, 1000.0, read_only=True),
     Param('marker_rate', 10.0, "hand scene: rate of the hand's MarkerArray on markers, in wall "
@@ -202,8 +205,8 @@ class SimulatorNode(Node):
         self.pub_cube = self.create_publisher(PoseStamped, CUBE_POSE, STREAM_QOS)
         self.pub_contacts = self.create_publisher(JointState, CUBE_CONTACTS, STREAM_QOS)
         self._start_live_view(p)
-        self.sub_cmd = self.create_subscription(JointState, TORQUE_COMMANDS, self.on_command, NEWEST_QOS,
-                                                raw=True)
+        self.sub_cmd = self.create_subscription(JointState, TORQUE_COMMANDS, self.on_command,
+                                                NEWEST_QOS, raw=True)
         self.log = ThrottledLogger(self.get_logger())
         self.diag = Diagnostics(self)
         self.stepping = Stepping(
@@ -224,7 +227,8 @@ class SimulatorNode(Node):
         self._startup_timer = self.create_timer(0.01, self._try_start)
         self.get_logger().info(
             f'{p["scene"]} scene settled; {p["mode"]} at {1e3 * p["control_period"]:g} ms, '
-            f'{self.sim.config.physics_substeps} physics substeps, noise σ = {1e3 * p["noise_std"]:g} mm')
+            f'{self.sim.config.physics_substeps} physics substeps, '
+            f'noise σ = {1e3 * p["noise_std"]:g} mm')
 
     @property
     def done(self) -> bool:
@@ -258,7 +262,8 @@ class SimulatorNode(Node):
             problems.append('no torque_commands writer')
         readers = self.diag.subscription_count() - (self._sub_diag is not None)   # not its own
         if readers < self.p['min_diagnostics_subscribers']:
-            problems.append(f'{readers} of {self.p["min_diagnostics_subscribers"]} /diagnostics readers')
+            problems.append(f'{readers} of {self.p["min_diagnostics_subscribers"]} '
+                            '/diagnostics readers')
         if self.waited:
             prefix = self.get_namespace().rstrip('/')
             reports = {'simulator': wiring(self)} | {n: self._reports.get(f'{prefix}/{n}')
@@ -294,9 +299,10 @@ class SimulatorNode(Node):
             self._stepper = self.create_timer(self.p['control_period'], self._on_period)
         else:
             self._watchdog = self.create_timer(
-                min(0.01, self.p['lockstep_timeout'] / 4, self.p['lost_command_wait'] / 2), self._check_timeout)
+                min(0.01, self.p['lockstep_timeout'] / 4, self.p['lost_command_wait'] / 2),
+                self._check_timeout)
         self.publish_state()
-        if first is not None:                # pipelined: t_0 → t_1 while the tips of t_0 are answered
+        if first is not None:  # pipelined: t_0 → t_1 while the tips of t_0 are answered
             self._physics(first)
 
     # -- commands and stepping ---------------------------------------------------------------
@@ -312,10 +318,12 @@ class SimulatorNode(Node):
             self.timing.answered(outcome.first_answer)
         if outcome.refused:
             self.diag.problem(outcome.refused, f'rejected: {outcome.reason}')
-        elif self.timing.wall_start is not None and 'first_command_monotonic_s' not in self.diag.values:
+        elif (self.timing.wall_start is not None
+                and 'first_command_monotonic_s' not in self.diag.values):
             now = time.monotonic()          # (the first tips went out at the timing's start)
             self.diag.values['first_command_monotonic_s'] = f'{now:.6f}'
-            self.diag.values['first_command_after_tips_ms'] = f'{1e3 * (now - self.timing.wall_start):.1f}'
+            self.diag.values['first_command_after_tips_ms'] = (
+                f'{1e3 * (now - self.timing.wall_start):.1f}')
         if outcome.resumed:
             self.diag.set_status(OK, 'torque_commands are back')
             self.get_logger().info(f'torque_commands are back at t = {stamp / cv.NS:.4f} s '
@@ -324,7 +332,8 @@ class SimulatorNode(Node):
 
     def _check_timeout(self) -> None:
         lost = self.stepping.lost
-        t = self.stepping.now_ns / cv.NS     # the period awaited (pipelined: the physics is one ahead)
+        # the period awaited (pipelined: the physics is one ahead)
+        t = self.stepping.now_ns / cv.NS
         u = self.stepping.on_wall_time(time.monotonic())
         if u is None:
             return
@@ -336,7 +345,8 @@ class SimulatorNode(Node):
             self.diag.set_status(WARN, f'command timeout at t = {t:.3f} s; '
                                  f'{"holding the last command" if hold else "zero torque"}')
             self.log.warn('timeout', f'no torque_commands for t = {t:.3f} s within '
-                          f'{self.p["lockstep_timeout"]} s; {"holding last" if hold else "applying zero"}')
+                          f'{self.p["lockstep_timeout"]} s; '
+                          f'{"holding last" if hold else "applying zero"}')
         self._step(u)
 
     def _on_period(self) -> None:
@@ -438,7 +448,8 @@ class SimulatorNode(Node):
         if k % self.state_every == 0:
             truth = self.sim.truth()
             on = self.mounted        # the exposed fingers
-            self.pub_joints.publish(cv.joint_states_msg(ns, self.joint_names, truth.q[on], truth.qd[on]))
+            self.pub_joints.publish(cv.joint_states_msg(ns, self.joint_names, truth.q[on],
+                                                        truth.qd[on]))
             if truth.cube_pose is not None:
                 self.pub_cube.publish(cube_pose_msg(ns, truth.cube_pose))
                 self.pub_contacts.publish(cv.contacts_msg(ns, truth.contact_force[on], self.names))
@@ -499,7 +510,8 @@ def cube_pose_msg(ns: int, pose: np.ndarray) -> PoseStamped:
     msg.header.frame_id = 'hand'
     c = pose.tolist()
     msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = c[:3]
-    msg.pose.orientation.x, msg.pose.orientation.y, msg.pose.orientation.z, msg.pose.orientation.w = c[3:]
+    (msg.pose.orientation.x, msg.pose.orientation.y, msg.pose.orientation.z,
+     msg.pose.orientation.w) = c[3:]
     return msg
 
 

@@ -75,32 +75,36 @@ MAX_PLAN_POINTS = 20_000
 PARAMS = (
     finger_names_param('the fingers: pose i of tip_positions is finger i; the joint names of '
                        'grasp_reference'),
-    Param('t_start', _DEFAULTS.t_start, 'hold at rest before the fingers move', 's', 0.0, 1e4, read_only=True),
-    Param('t_close', _DEFAULTS.t_close, 'duration of the closing motion', 's', 1e-3, 1e4, read_only=True),
+    Param('t_start', _DEFAULTS.t_start, 'hold at rest before the fingers move', 's', 0.0, 1e4,
+          read_only=True),
+    Param('t_close', _DEFAULTS.t_close, 'duration of the closing motion', 's', 1e-3, 1e4,
+          read_only=True),
     Param('t_hold', _DEFAULTS.t_hold, 'time spent closed', 's', 0.0, 1e4, read_only=True),
-    Param('t_open', _DEFAULTS.t_open, 'duration of the opening motion', 's', 1e-3, 1e4, read_only=True),
-    Param('close_distance', _DEFAULTS.close_distance, 'travel of the grasping fingers along +Y (toward '
-          'the cube)', 'm', -0.1, 0.1, read_only=True),
-    Param('side_distance', _DEFAULTS.side_distance, 'travel of the grasping fingers along X while closing',
-          'm', -0.1, 0.1, read_only=True),
-    Param('open_distance', _DEFAULTS.open_distance, "travel of the other fingers along −Y when others = "
-          "'open'", 'm', -0.1, 0.1, read_only=True),
-    Param('close_to', '', "where the grasping fingers close to along Y in their base frames, anchoring the "
-          "closed pose to the hand: each travels close_to − its rest Y (e.g. the learned model's rest Y + "
-          "close_distance, so a finger that rests elsewhere still reaches the cube); '' = close_distance "
-          'from rest', 'm', read_only=True),
-    Param('contact_distance', _DEFAULTS.contact_distance, 'travel along +Y at which a grasping tip touches '
-          'the cube (scoring only)', 'm', -0.1, 0.1, read_only=True),
-    Param('contact_margin', _DEFAULTS.contact_margin, 'clearance from the cube below which a phase is no '
-          'longer free space (scoring only)', 'm', 0.0, 0.1, read_only=True),
-    Param('grasp_fingers', list(_DEFAULTS.grasp_fingers), 'indices into finger_names of the fingers '
-          'that close on the object (two opposite ones in the hand)', read_only=True),
-    Param('others', 'open', 'what the non-grasping fingers do', choices=OTHERS_MODES, read_only=True),
+    Param('t_open', _DEFAULTS.t_open, 'duration of the opening motion', 's', 1e-3, 1e4,
+          read_only=True),
+    Param('close_distance', _DEFAULTS.close_distance, 'travel of the grasping fingers along +Y '
+          '(toward the cube)', 'm', -0.1, 0.1, read_only=True),
+    Param('side_distance', _DEFAULTS.side_distance, 'travel of the grasping fingers along X while '
+          'closing', 'm', -0.1, 0.1, read_only=True),
+    Param('open_distance', _DEFAULTS.open_distance, "travel of the other fingers along −Y when "
+          "others = 'open'", 'm', -0.1, 0.1, read_only=True),
+    Param('close_to', '', "where the grasping fingers close to along Y in their base frames, "
+          "anchoring the closed pose to the hand: each travels close_to − its rest Y (e.g. the "
+          "learned model's rest Y + close_distance, so a finger that rests elsewhere still reaches "
+          "the cube); '' = close_distance from rest", 'm', read_only=True),
+    Param('contact_distance', _DEFAULTS.contact_distance, 'travel along +Y at which a grasping tip '
+          'touches the cube (scoring only)', 'm', -0.1, 0.1, read_only=True),
+    Param('contact_margin', _DEFAULTS.contact_margin, 'clearance from the cube below which a phase '
+          'is no longer free space (scoring only)', 'm', 0.0, 0.1, read_only=True),
+    Param('grasp_fingers', list(_DEFAULTS.grasp_fingers), 'indices into finger_names of the '
+          'fingers that close on the object (two opposite ones in the hand)', read_only=True),
+    Param('others', 'open', 'what the non-grasping fingers do', choices=OTHERS_MODES,
+          read_only=True),
     Param('horizon_step', 0.005, 'spacing of the absolute time grid of the plan\'s points', 's',
           1e-4, 1.0, read_only=True),
     Param('rest_pose', '', "rest tips as 'x0, y0, x1, y1, …' (finger base frames); '' = the first "
-          "tip message. Give it when restarting the node mid-run: the tips then are not at rest", 'm',
-          read_only=True),
+          "tip message. Give it when restarting the node mid-run: the tips then are not at rest",
+          'm', read_only=True),
     Param('start_at', '', "when the plan starts (its origin), an absolute time in s on the "
           "clock of the tip stamps, e.g. '1767225600.25'; '' = the stamp of the tips the rest "
           "pose is taken from, or 0 with rest_pose. Give it, with rest_pose, when restarting the "
@@ -134,7 +138,8 @@ def _close_to(text: str) -> float | None:
     except ValueError:
         value = math.nan
     if not (math.isfinite(value) and abs(value) <= 0.1):
-        raise ParameterError(f"parameter 'close_to': {text!r} is not a coordinate in [-0.1, 0.1] m (or '')")
+        raise ParameterError(f"parameter 'close_to': {text!r} is not a coordinate in "
+                             "[-0.1, 0.1] m (or '')")
     return value
 
 
@@ -169,8 +174,8 @@ def _profile(p: dict) -> GraspProfile:
         raise ParameterError(f'parameter {name!r}: {exc}') from None
     names = p['finger_names']
     if any(i >= len(names) for i in profile.grasp_fingers):
-        raise ParameterError(f"parameter 'grasp_fingers': {list(profile.grasp_fingers)} are not all "
-                             f'indices into finger_names {names} (0 to {len(names) - 1})')
+        raise ParameterError(f"parameter 'grasp_fingers': {list(profile.grasp_fingers)} are not "
+                             f'all indices into finger_names {names} (0 to {len(names) - 1})')
     return profile
 
 
@@ -195,8 +200,9 @@ class TrajectoryNode(Node):
         self.step_ns = int(round(p['horizon_step'] * cv.NS))
         points = len(plan_offsets(self.profile.duration, self.step_ns, limit=MAX_PLAN_POINTS + 1))
         if points > MAX_PLAN_POINTS:
-            raise ParameterError(f"parameter 'horizon_step': a grasp of {self.profile.duration:g} s on a "
-                                 f"{p['horizon_step']:g} s grid needs more than {MAX_PLAN_POINTS} points "
+            raise ParameterError("parameter 'horizon_step': a grasp of "
+                                 f"{self.profile.duration:g} s on a {p['horizon_step']:g} s grid "
+                                 f'needs more than {MAX_PLAN_POINTS} points '
                                  '(one message); take a coarser grid')
         self.jump_ns = int(round(p['reset_on_jump'] * cv.NS))
         self.fixed_rest = _rest_pose(p['rest_pose'], self.n)
@@ -209,7 +215,7 @@ class TrajectoryNode(Node):
         self.traj: GraspTrajectory | None = None
         self.clock_ns = -1                      # newest /clock stamp
         self.sub = None                         # the tip subscription, while a rest pose is wanted
-        self.cdr_tips = cdr.tips_codec(self.names)     # CDR bytes read at fixed offsets (nodes/cdr.py)
+        self.cdr_tips = cdr.tips_codec(self.names)  # CDR bytes read at fixed offsets (nodes/cdr.py)
         self.cdr_clock = cdr.clock_codec()
         self.cdr_plan = PlanCodec(self.names)
         self.pub = self.create_publisher(MultiDOFJointTrajectory, GRASP_REFERENCE, REFERENCE_QOS)
@@ -235,7 +241,7 @@ class TrajectoryNode(Node):
 
     # -- inputs ------------------------------------------------------------------------------
     def on_tips(self, data: bytes) -> None:
-        if self.traj is not None:               # already planned: the subscription is on its way out
+        if self.traj is not None:  # already planned: the subscription is on its way out
             return
         try:
             stamp, tips = self.cdr_tips.decode(data)
@@ -267,7 +273,8 @@ class TrajectoryNode(Node):
         self.diag.count('ticks')
         self.diag.problem('resets', f'/clock jumped back from {self.clock_ns / cv.NS:.4f} s to '
                           f'{stamp / cv.NS:.4f} s: a restarted simulator; '
-                          + ('planning again' if self.fixed_rest is not None else 'taking a new rest pose'))
+                          + ('planning again' if self.fixed_rest is not None
+                             else 'taking a new rest pose'))
         self.clock_ns = self.run_start = stamp
         if self.fixed_rest is not None:
             self._plan(self.fixed_rest, 'given', self._given_origin())

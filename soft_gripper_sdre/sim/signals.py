@@ -59,7 +59,8 @@ def _broadband(f_lo: float, f_hi: float, per_axis: int, axis0_first: bool, peak:
 
     def signal(t):
         t = np.asarray(t, dtype=float)
-        axes = [amp * np.sin(2 * np.pi * np.multiply.outer(t, f) + phases).sum(axis=-1) for f in sets]
+        axes = [amp * np.sin(2 * np.pi * np.multiply.outer(t, f) + phases).sum(axis=-1)
+                for f in sets]
         return torque_to_si(np.stack(axes, axis=-1))
     return signal
 

@@ -37,14 +37,20 @@ RECORDED = ['tip_positions', 'torque_commands', '/clock', '/diagnostics']
 
 
 def _parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.excite', description=__doc__.split('\n')[0])
-    ap.add_argument('--out', type=Path, required=True, help='directory of the bags (one per signal)')
+    ap = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.excite',
+                                 description=__doc__.split('\n')[0])
+    ap.add_argument('--out', type=Path, required=True,
+                    help='directory of the bags (one per signal)')
     ap.add_argument('--signals', nargs='+', default=['u1', 'u2', 'u3', 'x1', 'x2'],
                     help='signals to play: built-in or from --spec-file (default: %(default)s)')
-    ap.add_argument('--spec-file', type=Path, default=None, help='YAML file of user-defined signals')
-    ap.add_argument('--one-bag', action='store_true', help='play every signal in one run and one bag')
-    ap.add_argument('--settle', type=float, default=0.5, help='zero torque before each signal [s] (default %(default)s)')
-    ap.add_argument('--duration', type=float, default=None, help='length of each signal [s] (default: its own)')
+    ap.add_argument('--spec-file', type=Path, default=None,
+                    help='YAML file of user-defined signals')
+    ap.add_argument('--one-bag', action='store_true',
+                    help='play every signal in one run and one bag')
+    ap.add_argument('--settle', type=float, default=0.5,
+                    help='zero torque before each signal [s] (default %(default)s)')
+    ap.add_argument('--duration', type=float, default=None,
+                    help='length of each signal [s] (default: its own)')
     ap.add_argument('--torque-limit', type=float, default=0.1, help='N·m (default %(default)s)')
     ap.add_argument('--amplitude', type=float, default=1.0,
                     help='scale on every signal before the clip, --level fixed '
@@ -59,12 +65,15 @@ def _parser() -> argparse.ArgumentParser:
                     help='--level auto: the peak excursion aimed at, as a fraction of '
                          '--max-excursion (default %(default)s)')
     ap.add_argument('--scene', choices=('finger', 'hand'), default='finger',
-                    help='one finger mounted as in the hand (as tools.collect), or the hand without its cube')
-    ap.add_argument('--finger', type=int, default=-1, help='hand scene: excite only this finger (default: all)')
+                    help='one finger mounted as in the hand (as tools.collect), or the hand '
+                         'without its cube')
+    ap.add_argument('--finger', type=int, default=-1,
+                    help='hand scene: excite only this finger (default: all)')
     ap.add_argument('--noise', type=float, default=0.05, metavar='MM',
                     help='tip measurement noise σ [mm] (default %(default)s)')
     ap.add_argument('--seed', type=int, default=0, help='noise seed of the first run (+1 per run)')
-    ap.add_argument('--domain-id', type=int, default=None, help='ROS_DOMAIN_ID (default: env or random)')
+    ap.add_argument('--domain-id', type=int, default=None,
+                    help='ROS_DOMAIN_ID (default: env or random)')
     ap.add_argument('--timeout', type=float, default=600.0, help='wall-clock limit per run [s]')
     return ap
 
@@ -119,7 +128,8 @@ def record_run(out: Path, signals: list[str], a: argparse.Namespace, seed: int, 
     """One graph run playing ``signals`` into the bag ``out/<signals[0]>``.
 
     Raises:
-        RuntimeError: a node failed, the graph did not connect or the run timed out (no bag is left).
+        RuntimeError: a node failed, the graph did not connect or the run timed out (no bag is
+            left).
     """
     bag, logs = out / signals[0], out / 'logs' / signals[0]
     names = [FINGER_NAMES[0]] if a.scene == 'finger' else list(FINGER_NAMES)
@@ -131,8 +141,9 @@ def record_run(out: Path, signals: list[str], a: argparse.Namespace, seed: int, 
         excitation['duration'] = a.duration
     if a.spec_file is not None:
         excitation['spec_file'] = str(a.spec_file.resolve())
-    simulator = {'scene': a.scene, 'noise_std': a.noise * 1e-3, 'seed': seed, 'min_tip_subscribers': 2,
-                 'finger_names': names, 'hand_fingers': list(range(len(names)))}
+    simulator = {'scene': a.scene, 'noise_std': a.noise * 1e-3, 'seed': seed,
+                 'min_tip_subscribers': 2, 'finger_names': names,
+                 'hand_fingers': list(range(len(names)))}
     if a.scene == 'hand':
         simulator['with_cube'] = False
     monitor = DiagnosticsMonitor(env, f'excite_monitor_{signals[0]}')
@@ -145,18 +156,22 @@ def record_run(out: Path, signals: list[str], a: argparse.Namespace, seed: int, 
                 dead = [p.name for p in graph.procs.values() if not p.alive()]
                 if dead or time.monotonic() > deadline:
                     who = dead[0] if dead else 'recorder'
-                    raise RuntimeError(f'the graph did not connect ({who} {"exited" if dead else "sees no excitation"}); '
+                    raise RuntimeError('the graph did not connect '
+                                       f'({who} {"exited" if dead else "sees no excitation"}); '
                                        f'last lines of {who}.log:\n{graph.procs[who].log_tail()}')
                 monitor.poll()
                 time.sleep(0.05)
-            graph.start_node(NodeSpec('simulator', 'simulator', params_file=default_params_file('simulator'),
+            graph.start_node(NodeSpec('simulator', 'simulator',
+                                      params_file=default_params_file('simulator'),
                                       parameters=simulator))
             code = graph.wait('excitation', a.timeout, monitor.poll)
             if code != 0:
-                dead = next((p.name for p in graph.procs.values() if not p.alive() and p.name != 'excitation'),
+                dead = next((p.name for p in graph.procs.values()
+                             if not p.alive() and p.name != 'excitation'),
                             'excitation')
                 why = 'timed out' if code is None and dead == 'excitation' else f'{dead} failed'
-                raise RuntimeError(f'the run of {", ".join(signals)} {why}; last lines of {dead}.log:\n'
+                raise RuntimeError(f'the run of {", ".join(signals)} {why}; '
+                                   f'last lines of {dead}.log:\n'
                                    f'{graph.procs[dead].log_tail()}')
             graph.stop('simulator')
     except RuntimeError:
@@ -183,7 +198,8 @@ def main(argv: list[str] | None = None) -> int:
         except RuntimeError as exc:
             print(f'error: {exc}', file=sys.stderr)
             return 1
-        print(f'{bag}: {", ".join(signals)} recorded in {time.monotonic() - t0:.1f} s wall', flush=True)
+        print(f'{bag}: {", ".join(signals)} recorded in {time.monotonic() - t0:.1f} s wall',
+              flush=True)
     return 0
 
 

@@ -1,6 +1,8 @@
-"""Learned G2 vs the simulator's true input matrix J M⁻¹ B, at the rest pose and across the workspace.
+"""Learned G2 vs the simulator's true input matrix J M⁻¹ B,
+at the rest pose and across the workspace.
 
-    python -m soft_gripper_sdre.tools.input_matrix [--models default paper_data PATH ...] [--out DIR]
+    python -m soft_gripper_sdre.tools.input_matrix [--models default paper_data PATH ...]
+        [--out DIR]
 
 For each model: the column directions of G2 and of J M⁻¹ B (tip acceleration per N·m, friction
 off) at the rest pose and at the static poses held by a 3 × 3 grid of torques (±10 sim units =
@@ -44,7 +46,8 @@ def main(argv: list[str] | None = None) -> int:
         err = s.angle_error
         results[name] = {
             'data': model.data.get('variant') if isinstance(model.data, dict) else None,
-            'u4_r2_true': model.metrics.get('u4_r2_true') if isinstance(model.metrics, dict) else None,
+            'u4_r2_true': model.metrics.get('u4_r2_true') if isinstance(model.metrics, dict)
+                          else None,
             'rest': {'true_deg': column_angles(s.true[rest]).tolist(),
                      'learned_deg': column_angles(s.learned[rest]).tolist(),
                      'error_deg': err[rest].tolist(),
@@ -55,15 +58,17 @@ def main(argv: list[str] | None = None) -> int:
                           'median_error_deg': np.median(err, axis=0).tolist(),
                           'max_error_deg': err.max(axis=0).tolist()},
         }
-    print('| model | training data | u4 R² X / Y | G2 columns at rest (learned vs true) | direction error at rest | median error over the workspace |')
+    print('| model | training data | u4 R² X / Y | G2 columns at rest (learned vs true) '
+          '| direction error at rest | median error over the workspace |')
     print('| --- | --- | --- | --- | --- | --- |')
     for name, r in results.items():
         r2 = r['u4_r2_true'] or {}
         lr, tr, e = r['rest']['learned_deg'], r['rest']['true_deg'], r['rest']['error_deg']
         w = r['workspace']['median_error_deg']
-        print(f'| {name} | {r["data"]} | {r2.get("X", float("nan")):.3f} / {r2.get("Y", float("nan")):.3f} | '
-              f'{lr[0]:.1f}°, {lr[1]:.1f}° vs {tr[0]:.1f}°, {tr[1]:.1f}° | {e[0]:.1f}°, {e[1]:.1f}° | '
-              f'{w[0]:.1f}°, {w[1]:.1f}° |')
+        print(f'| {name} | {r["data"]} | '
+              f'{r2.get("X", float("nan")):.3f} / {r2.get("Y", float("nan")):.3f} | '
+              f'{lr[0]:.1f}°, {lr[1]:.1f}° vs {tr[0]:.1f}°, {tr[1]:.1f}° | '
+              f'{e[0]:.1f}°, {e[1]:.1f}° | {w[0]:.1f}°, {w[1]:.1f}° |')
     if a.out:
         a.out.mkdir(parents=True, exist_ok=True)
         (a.out / 'input_matrix.json').write_text(json.dumps(results, indent=2) + '\n')

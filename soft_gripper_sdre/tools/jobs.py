@@ -1,4 +1,5 @@
-"""Independent jobs of a sweep, run on this machine's cores or on a Ray cluster, with the same results.
+"""Independent jobs of a sweep, run on this machine's cores or on a Ray cluster, with the same
+results.
 
 The sweeps (:mod:`~soft_gripper_sdre.tools.seeds`, :mod:`~soft_gripper_sdre.tools.evaluate`,
 :mod:`~soft_gripper_sdre.tools.robustness`) are lists of jobs that do not depend on each other: a
@@ -67,7 +68,8 @@ class Runner:
         if not (isinstance(self.workers, int) and self.workers >= 1):
             raise ValueError(f'workers must be an int >= 1, got {self.workers!r}')
         if self.ray is not None and not _ADDRESS.match(self.ray):
-            raise ValueError(f'ray must be auto, local, HOST:PORT or ray://HOST:PORT, got {self.ray!r}')
+            raise ValueError('ray must be auto, local, HOST:PORT or ray://HOST:PORT, '
+                             f'got {self.ray!r}')
 
     def describe(self) -> str:
         if self.ray == 'local':
@@ -90,11 +92,13 @@ def add_arguments(parser: argparse.ArgumentParser, default_workers: int | None =
     """``--workers N`` (default: every core) and ``--ray ADDRESS`` on ``parser``."""
     default = default_workers or os.cpu_count() or 1
     parser.add_argument('--workers', type=int, default=default,
-                        help='worker processes of this machine (default: every core, %(default)s; 1 runs the '
-                             'jobs in this process); with --ray local, the CPUs of the Ray instance')
+                        help='worker processes of this machine (default: every core, %(default)s; '
+                             '1 runs the jobs in this process); with --ray local, the CPUs of the '
+                             'Ray instance')
     parser.add_argument('--ray', metavar='ADDRESS', default=None,
-                        help='run the jobs as Ray tasks instead: on the cluster at ADDRESS (auto: the one '
-                             'this machine joined with `ray start`; HOST:PORT; ray://HOST:PORT) or on a new '
+                        help='run the jobs as Ray tasks instead: on the cluster at ADDRESS (auto: '
+                             'the one this machine joined with `ray start`; HOST:PORT; '
+                             'ray://HOST:PORT) or on a new '
                              f'Ray instance of this machine (local); needs ray ({RAY_INSTALL})')
 
 
@@ -105,7 +109,8 @@ def runner_from_args(parser: argparse.ArgumentParser, args: argparse.Namespace) 
         parser.error(f'--workers must be >= 1, got {args.workers}')
     if args.ray is not None:
         if not _ADDRESS.match(args.ray):
-            parser.error(f'--ray must be auto, local, HOST:PORT or ray://HOST:PORT, got {args.ray!r}')
+            parser.error('--ray must be auto, local, HOST:PORT or ray://HOST:PORT, '
+                         f'got {args.ray!r}')
         missing = ray_available()
         if missing is not None:
             parser.error(f'--ray needs the optional dependency ray ({RAY_INSTALL}): {missing}')
@@ -154,10 +159,10 @@ def blob_dir() -> Path:
 
 
 # -- running ------------------------------------------------------------------------------------
-def run_jobs(fn: Callable[[Any, Any], Any], jobs: Sequence, context: Any = None, runner: Runner = Runner(),
-             desc: str = 'jobs', progress: bool = True) -> list:
-    """``[fn(context, job) for job in jobs]``, run where ``runner`` says; the results in the order of
-    ``jobs``.
+def run_jobs(fn: Callable[[Any, Any], Any], jobs: Sequence, context: Any = None,
+             runner: Runner = Runner(), desc: str = 'jobs', progress: bool = True) -> list:
+    """``[fn(context, job) for job in jobs]``, run where ``runner`` says; the results in the order
+    of ``jobs``.
 
     ``fn`` must be a module-level function (the workers import it by name); ``context`` (shared by
     every job, sent once per worker) and the jobs must pickle. An exception in a job is raised here
@@ -284,8 +289,8 @@ def _check_reachable(address: str, timeout: float = 5.0) -> None:
         with socket.create_connection((host, int(port)), timeout=timeout):
             pass
     except OSError as exc:
-        raise JobsError(f'nothing answers at {address} ({exc.strerror or exc}); start the head there with '
-                        '`ray start --head`, or give its address') from None
+        raise JobsError(f'nothing answers at {address} ({exc.strerror or exc}); start the head '
+                        'there with `ray start --head`, or give its address') from None
 
 
 def _run_ray(fn, jobs: list, context, runner: Runner, bar) -> list:

@@ -93,7 +93,8 @@ def _true_tips(run: Run, t: np.ndarray):
 
 def report(bag_path: str | Path, out_dir: str | Path, torque_limit: float | None = None,
            render: bool = False) -> dict:
-    """Write the figures and metrics.json of the run in ``bag_path`` to ``out_dir``; return the metrics.
+    """Write the figures and metrics.json of the run in ``bag_path`` to ``out_dir``; return the
+    metrics.
 
     Args:
         bag_path: rosbag2 directory recorded from the graph.
@@ -145,12 +146,14 @@ def report(bag_path: str | Path, out_dir: str | Path, torque_limit: float | None
     if torque_limit is not None:
         hit = np.abs(u) >= torque_limit * (1.0 - 1e-9)          # (T, n, 2)
         saturation = {'limit_Nm': float(torque_limit), 'commands': int(len(u)),
-                      'saturated': {name: int(hit[:, i].any(axis=1).sum()) for i, name in enumerate(names)}}
+                      'saturated': {name: int(hit[:, i].any(axis=1).sum())
+                                    for i, name in enumerate(names)}}
 
     metrics = _json_safe({
         'bag': str(Path(bag_path)),
         'start_s': float(t[0]), 'end_s': float(t[-1]), 'samples': int(len(t)),
-        'free_space': 'cube contact force == 0' if has_contacts else 'all samples (no cube_contacts)',
+        'free_space': 'cube contact force == 0' if has_contacts
+                      else 'all samples (no cube_contacts)',
         'fingers': fingers,
         'cube_max_displacement_mm': cube_mm,
         'torque_saturation': saturation,
@@ -163,7 +166,8 @@ def report(bag_path: str | Path, out_dir: str | Path, torque_limit: float | None
         ref_true = interpolate(t, ref, t_true)
         contact_true = hold(t, contact, t_true)
         true_metrics = tracking_metrics(pos_true, ref_true[..., :2], ~contact_true, excursion)
-        held_true = held_reference_error(pos_true, ref_true[..., :2], ref_true[..., 2:4], contact_true)
+        held_true = held_reference_error(pos_true, ref_true[..., :2], ref_true[..., 2:4],
+                                         contact_true)
         for i, name in enumerate(names):
             metrics['fingers'][name]['true_tip'] = _json_safe(dict(true_metrics[i].as_dict(),
                                                                    held_mm=float(held_true[i])))
@@ -173,8 +177,10 @@ def report(bag_path: str | Path, out_dir: str | Path, torque_limit: float | None
         achieved = ('measured tip (with sensor noise)', t, pos, vel)
     label, t_act, pos_act, vel_act = achieved
     plot_tracking(t, ref[..., :2], t_act, pos_act, out / FIGURES[0], quantity='position',
-                  achieved_label=label, finger_names=names, contact=contact if has_contacts else None,
-                  title=f'Fig. 5  Tip position: desired vs {label.split(" (")[0]} [mm from the start]')
+                  achieved_label=label, finger_names=names,
+                  contact=contact if has_contacts else None,
+                  title=f'Fig. 5  Tip position: desired vs {label.split(" (")[0]} '
+                        '[mm from the start]')
     vel_label = label if truth is not None else 'Kalman-filter estimate (state_estimate)'
     plot_tracking(t, ref[..., 2:4], t_act, vel_act, out / FIGURES[1], quantity='velocity',
                   achieved_label=vel_label.replace('tip', 'tip velocity', 1), finger_names=names,
@@ -198,9 +204,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('bag', type=Path, help='rosbag2 directory of a run')
     parser.add_argument('--out', required=True, type=Path, help='output directory')
     parser.add_argument('--torque-limit', type=float, default=None,
-                        help='actuator limit [N·m] (the simulator\'s torque_limit) to count saturation')
+                        help='actuator limit [N·m] (the simulator\'s torque_limit) to count '
+                             'saturation')
     parser.add_argument('--render', action='store_true',
-                        help='also draw the hand: Fig. 1, Fig. 4 and grasp.gif (needs joint_states)')
+                        help='also draw the hand: Fig. 1, Fig. 4 and grasp.gif '
+                             '(needs joint_states)')
     args = parser.parse_args(argv)
     if args.torque_limit is not None and not args.torque_limit > 0:
         parser.error(f'--torque-limit must be > 0 N·m, got {args.torque_limit}')
@@ -215,7 +223,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f'{metrics["samples"]} samples, t = {metrics["start_s"]:.3f} … {metrics["end_s"]:.3f} s; '
           f'free space: {metrics["free_space"]}')
     for name, m in metrics['fingers'].items():
-        print(f'  {name}: RMSE {_fmt(m["rmse_mm"], ".3f", " mm")} ({_fmt(m["rmse_pct"], ".1f", " %")} of '
+        print(f'  {name}: RMSE {_fmt(m["rmse_mm"], ".3f", " mm")} '
+              f'({_fmt(m["rmse_pct"], ".1f", " %")} of '
               f'{_fmt(m["excursion_mm"], ".1f", " mm")}), max {_fmt(m["max_mm"], ".3f", " mm")}, '
               f'contact {_fmt(m["contact_fraction"], ".0%")}')
     print(f'  cube moved at most {_fmt(metrics["cube_max_displacement_mm"], ".2f", " mm")}')

@@ -1,9 +1,11 @@
-"""The spread of the learned model and of the grasp over training seeds and rounding-level changes of
-the training data, with the shipped model placed in it.
+"""The spread of the learned model and of the grasp over training seeds and rounding-level changes
+of the training data, with the shipped model placed in it.
 
-    python -m soft_gripper_sdre.tools.seeds --data data/excitation --out runs/seeds --demo     # (make seeds)
-    python -m soft_gripper_sdre.tools.seeds --data DIR --out DIR --seeds 2 --draws 0 --set epochs=3 --duration 0.3
-    python -m soft_gripper_sdre.tools.seeds --data DIR --out DIR --ray auto                   # on a Ray cluster
+    python -m soft_gripper_sdre.tools.seeds --data data/excitation --out runs/seeds --demo
+        # (make seeds)
+    python -m soft_gripper_sdre.tools.seeds --data DIR --out DIR --seeds 2 --draws 0 --set epochs=3
+        --duration 0.3
+    python -m soft_gripper_sdre.tools.seeds --data DIR --out DIR --ray auto  # on a Ray cluster
 
 One model per training seed s (0 … ``--seeds`` − 1, ``train --seed``) and data draw d: draw 0 is the
 data as collected, draw d ≥ 1 the training states and labels times 1 + J·N(0, 1) drawn with seed d
@@ -59,7 +61,8 @@ SHIPPED = 'shipped'
 
 @dataclass(frozen=True)
 class ModelJob:
-    """Train seed ``seed`` on draw ``draw`` of the data and score it; ``seed`` None scores the shipped model."""
+    """Train seed ``seed`` on draw ``draw`` of the data and score it; ``seed`` None scores the
+    shipped model."""
 
     seed: int | None
     draw: int = 0
@@ -73,7 +76,8 @@ class ModelJob:
 
 @dataclass(frozen=True)
 class SweepContext:
-    """What every job shares: the labelled data, the training settings, the jitter, the tracking runs."""
+    """What every job shares: the labelled data, the training settings, the jitter, the tracking
+    runs."""
 
     data: object                   # tools.train.LabelledData
     settings: object               # learning.training.TrainSettings
@@ -112,7 +116,8 @@ def weights_sha256(path: Path) -> str:
 
 
 def tracking_runs(model, laws, trajectories, duration) -> list[dict]:
-    """Every law on every trajectory, in-process, as ``make evaluate`` runs them (RunSummary dicts)."""
+    """Every law on every trajectory, in-process, as ``make evaluate`` runs them (RunSummary
+    dicts)."""
     from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
     from soft_gripper_sdre.tools.evaluate import run_law
     weights = Weights(**DEFAULT_WEIGHTS)
@@ -133,16 +138,16 @@ def run_model_job(context: SweepContext, job: ModelJob) -> ModelOutcome:
     if job.seed is None:
         model = SDCModel()
         tracking = tracking_runs(model, context.laws, context.trajectories, context.duration)
-        return ModelOutcome(job.name, None, 0, None, dict(model.metrics), weights_sha256(DEFAULT_MODEL), tracking,
-                            time.perf_counter() - start)
+        return ModelOutcome(job.name, None, 0, None, dict(model.metrics),
+                            weights_sha256(DEFAULT_MODEL), tracking, time.perf_counter() - start)
     settings = replace(context.settings, seed=job.seed)
     jitter = context.jitter if job.draw else 0.0
     with tempfile.TemporaryDirectory(prefix='sgs-seeds-') as tmp:
         path, metrics, _, _ = fit(context.data, settings, Path(tmp) / 'model.pt', jitter, job.draw)
         model = SDCModel(path)
         tracking = tracking_runs(model, context.laws, context.trajectories, context.duration)
-        return ModelOutcome(job.name, job.seed, job.draw, path.read_bytes(), metrics, weights_sha256(path), tracking,
-                            time.perf_counter() - start)
+        return ModelOutcome(job.name, job.seed, job.draw, path.read_bytes(), metrics,
+                            weights_sha256(path), tracking, time.perf_counter() - start)
 
 
 # -- the demo on the node graph -----------------------------------------------------------------
@@ -168,7 +173,8 @@ def demo_figures(result: dict) -> dict:
             'fallback_fraction': controller.get('fallback_fraction', float('nan'))}
 
 
-def run_demos(models: dict[str, Path], out: Path, domain_id: int | None, progress: bool) -> dict[str, dict]:
+def run_demos(models: dict[str, Path], out: Path, domain_id: int | None,
+              progress: bool) -> dict[str, dict]:
     """The grasp demo with each model (name → checkpoint; None: the shipped one), one after the
     other: name → :func:`demo_figures`."""
     from soft_gripper_sdre.tools.demo import run_demo
@@ -188,7 +194,8 @@ def spread(values) -> dict:
     v = np.asarray([x for x in values if x is not None and math.isfinite(x)], dtype=float)
     if v.size == 0:
         return dict(n=0, mean=float('nan'), sd=float('nan'), min=float('nan'), max=float('nan'))
-    return dict(n=int(v.size), mean=float(v.mean()), sd=float(v.std(ddof=1)) if v.size > 1 else float('nan'),
+    return dict(n=int(v.size), mean=float(v.mean()),
+                sd=float(v.std(ddof=1)) if v.size > 1 else float('nan'),
                 min=float(v.min()), max=float(v.max()))
 
 
@@ -213,8 +220,8 @@ def model_row(outcome: ModelOutcome, demo: dict | None) -> dict:
            'r2_x': m['u4_r2_true']['X'], 'r2_y': m['u4_r2_true']['Y'],
            'g2_00': g2[0, 0], 'g2_01': g2[0, 1], 'g2_10': g2[1, 0], 'g2_11': g2[1, 1],
            'angle_0': m['G2_column_angles_deg'][0], 'angle_1': m['G2_column_angles_deg'][1],
-           'best_epoch': m['best_epoch'], 'epochs_run': m['epochs_run'], 'best_val_loss': m['best_val_loss'],
-           'weights_sha256': outcome.weights_sha256}
+           'best_epoch': m['best_epoch'], 'epochs_run': m['epochs_run'],
+           'best_val_loss': m['best_val_loss'], 'weights_sha256': outcome.weights_sha256}
     for run in outcome.tracking:
         prefix = f'{run["law"]}_{run["trajectory"]}'
         row[f'{prefix}_rmse_mm'] = run['rmse_mm_grasp']
@@ -227,9 +234,10 @@ def model_row(outcome: ModelOutcome, demo: dict | None) -> dict:
     return row
 
 
-#: the figures summarised, with their labels and formats (the tracking keys are added per law and trajectory)
-ACCURACY = [('r2_x', 'u4 R² X', '.4f'), ('r2_y', 'u4 R² Y', '.4f'),
-            ('g2_00', 'G2[0][0]', '.1f'), ('g2_01', 'G2[0][1]', '.1f'), ('g2_10', 'G2[1][0]', '.1f'),
+#: the figures summarised, with their labels and formats (the tracking keys are added per law and
+#: trajectory)
+ACCURACY = [('r2_x', 'u4 R² X', '.4f'), ('r2_y', 'u4 R² Y', '.4f'), ('g2_00', 'G2[0][0]', '.1f'),
+            ('g2_01', 'G2[0][1]', '.1f'), ('g2_10', 'G2[1][0]', '.1f'),
             ('g2_11', 'G2[1][1]', '.1f'), ('angle_0', 'G2 column 0 angle [°]', '.2f'),
             ('angle_1', 'G2 column 1 angle [°]', '.2f'), ('best_epoch', 'best epoch', '.0f')]
 DEMO = [('demo_grasping_mm', 'demo: grasping fingers, measured tip [mm]', '.3f'),
@@ -244,8 +252,8 @@ def figure_keys(rows: list[dict], laws, trajectories) -> list[tuple[str, str, st
     keys = list(ACCURACY)
     for trajectory in trajectories:
         for law in laws:
-            keys.append((f'{law}_{trajectory}_rmse_mm', f'`{law}` on the {trajectory}: RMSE grasping fingers [mm]',
-                         '.4f'))
+            keys.append((f'{law}_{trajectory}_rmse_mm',
+                         f'`{law}` on the {trajectory}: RMSE grasping fingers [mm]', '.4f'))
     keys += [k for k in DEMO if any(k[0] in r for r in rows)]
     return keys
 
@@ -260,12 +268,14 @@ def summarise(rows: list[dict], keys) -> dict:
     out = {}
     for key, _, _ in keys:
         every = spread(r.get(key) for r in trained)
-        entry = {'seeds': spread(r.get(key) for r in draw0), 'draws_sd': within_seed_sd(trained, key), 'all': every}
+        entry = {'seeds': spread(r.get(key) for r in draw0),
+                 'draws_sd': within_seed_sd(trained, key), 'all': every}
         if shipped is not None and shipped.get(key) is not None:
             v = shipped[key]
             values = [r[key] for r in trained if r.get(key) is not None and math.isfinite(r[key])]
             entry['shipped'] = {'value': v,
-                                'z': (v - every['mean']) / every['sd'] if every['sd'] and every['sd'] > 0 else float('nan'),
+                                'z': (v - every['mean']) / every['sd']
+                                     if every['sd'] and every['sd'] > 0 else float('nan'),
                                 'below': sum(x < v for x in values), 'of': len(values)}
         out[key] = entry
     return out
@@ -285,33 +295,38 @@ def _f(value, fmt) -> str:
 def markdown(rows: list[dict], summary: dict, keys, command: str, facts: dict) -> str:
     lines = ['# The model and the grasp over training seeds and data draws', '',
              f'Command: `{command}`', '',
-             f'{facts["models"]} trained models: seeds {facts["seeds"]}, draws 0–{facts["draws"]} (draw 0: the data '
-             f'as collected; draw d: states and labels × (1 + {facts["jitter"]:g}·N(0, 1)), seed d); training '
+             f'{facts["models"]} trained models: seeds {facts["seeds"]}, draws 0–{facts["draws"]} '
+             '(draw 0: the data as collected; draw d: states and labels × '
+             f'(1 + {facts["jitter"]:g}·N(0, 1)), seed d); training '
              f'settings {facts["settings"]}; data fingerprint {facts["fingerprint"][:12]}; '
-             f'jobs on {facts["runner"]}, {facts["wall_s"]:.0f} s wall; kernels {facts["kernels"]}.', '',
+             f'jobs on {facts["runner"]}, {facts["wall_s"]:.0f} s wall; '
+             f'kernels {facts["kernels"]}.', '',
              '## Spread', '',
-             '| figure | over seeds (draw 0): mean ± sd | min – max | over draws of a seed: sd | every model: mean ± sd '
-             '| min – max | shipped | shipped: z, models below it |',
+             '| figure | over seeds (draw 0): mean ± sd | min – max | over draws of a seed: sd '
+             '| every model: mean ± sd | min – max | shipped | shipped: z, models below it |',
              '| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |']
     for key, label, fmt in keys:
         e = summary[key]
         s, a = e['seeds'], e['all']
         shipped = e.get('shipped')
-        place = (f'{_f(shipped["z"], "+.2f")}, {shipped["below"]}/{shipped["of"]}' if shipped else '–')
+        place = (f'{_f(shipped["z"], "+.2f")}, {shipped["below"]}/{shipped["of"]}' if shipped
+                 else '–')
         fine = _finer(fmt)
-        lines.append(f'| {label} | {_f(s["mean"], fmt)} ± {_f(s["sd"], fine)} | {_f(s["min"], fmt)} – {_f(s["max"], fmt)} '
+        lines.append(f'| {label} | {_f(s["mean"], fmt)} ± {_f(s["sd"], fine)} '
+                     f'| {_f(s["min"], fmt)} – {_f(s["max"], fmt)} '
                      f'| {_f(e["draws_sd"], fine)} | {_f(a["mean"], fmt)} ± {_f(a["sd"], fine)} '
-                     f'| {_f(a["min"], fmt)} – {_f(a["max"], fmt)} | {_f(shipped["value"], fmt) if shipped else "–"} '
-                     f'| {place} |')
+                     f'| {_f(a["min"], fmt)} – {_f(a["max"], fmt)} '
+                     f'| {_f(shipped["value"], fmt) if shipped else "–"} | {place} |')
     lines += ['', '## Every model', '',
               '| model | ' + ' | '.join(label for _, label, _ in keys) + ' |',
               '| --- |' + ' ---: |' * len(keys)]
     for r in rows:
-        lines.append(f'| {r["name"]} | ' + ' | '.join(_f(r.get(key), fmt) for key, _, fmt in keys) + ' |')
+        lines.append(f'| {r["name"]} | ' +
+                     ' | '.join(_f(r.get(key), fmt) for key, _, fmt in keys) + ' |')
     same = facts.get('seed0_is_shipped')
     if same is not None:
-        lines += ['', f'Seed 0 on draw 0 {"is" if same else "is NOT"} the shipped model bit for bit '
-                      '(sha256 of the network weights).']
+        lines += ['', f'Seed 0 on draw 0 {"is" if same else "is NOT"} the shipped model bit for '
+                      'bit (sha256 of the network weights).']
     return '\n'.join(lines) + '\n'
 
 
@@ -325,7 +340,8 @@ def _settings_from(parser, assignments: list[str]):
     for item in assignments:
         key, sep, text = item.partition('=')
         if not sep or key not in SETTABLE:
-            parser.error(f'--set takes KEY=VALUE with KEY one of {", ".join(SETTABLE)}, got {item!r}')
+            parser.error(f'--set takes KEY=VALUE with KEY one of {", ".join(SETTABLE)}, '
+                         f'got {item!r}')
         try:
             if key == 'patience':
                 value = None if text.lower() == 'none' else int(text)
@@ -354,24 +370,35 @@ def _settings_from(parser, assignments: list[str]):
 
 def _parser() -> argparse.ArgumentParser:
     from soft_gripper_sdre.tools.evaluate import LAW_SPECS, TRAJECTORIES
-    ap = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.seeds', description=__doc__.split('\n\n')[0])
+    ap = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.seeds',
+                                 description=__doc__.split('\n\n')[0])
     ap.add_argument('--data', type=Path, default=Path('data/excitation'),
-                    help='directory with the <signal>.npz files of tools.collect (default %(default)s)')
-    ap.add_argument('--out', type=Path, default=Path('runs/seeds'), help='output directory (default %(default)s)')
-    ap.add_argument('--seeds', type=int, default=5, help='training seeds 0 … N−1 (default %(default)s)')
+                    help='directory with the <signal>.npz files of tools.collect '
+                         '(default %(default)s)')
+    ap.add_argument('--out', type=Path, default=Path('runs/seeds'),
+                    help='output directory (default %(default)s)')
+    ap.add_argument('--seeds', type=int, default=5,
+                    help='training seeds 0 … N−1 (default %(default)s)')
     ap.add_argument('--draws', type=int, default=2,
-                    help='jittered draws of the data per seed, besides the data as collected (default %(default)s)')
+                    help='jittered draws of the data per seed, besides the data as collected '
+                         '(default %(default)s)')
     ap.add_argument('--jitter', type=float, default=1e-9,
-                    help='relative size of a draw\'s perturbation, as train --jitter (default %(default)g)')
+                    help='relative size of a draw\'s perturbation, as train --jitter '
+                         '(default %(default)g)')
     ap.add_argument('--set', action='append', default=[], metavar='KEY=VALUE',
-                    help=f'change a training setting of the default preset ({", ".join(SETTABLE)}), e.g. '
-                         '--set weight_decay=1e-4; repeatable')
-    ap.add_argument('--laws', nargs='*', default=list(DEFAULT_LAWS), choices=list(LAW_SPECS), metavar='LAW',
-                    help=f'make evaluate\'s laws to track with (default: {" ".join(DEFAULT_LAWS)}; --laws alone: no tracking)')
-    ap.add_argument('--trajectories', nargs='+', default=list(TRAJECTORIES), choices=list(TRAJECTORIES))
-    ap.add_argument('--duration', type=float, default=None, help='override every tracking run\'s duration [s]')
-    ap.add_argument('--demo', action='store_true', help='also run the grasp demo over the node graph with every model')
-    ap.add_argument('--domain-id', type=int, default=None, help='ROS_DOMAIN_ID of the demos (default: env or random)')
+                    help='change a training setting of the default preset '
+                         f'({", ".join(SETTABLE)}), e.g. --set weight_decay=1e-4; repeatable')
+    ap.add_argument('--laws', nargs='*', default=list(DEFAULT_LAWS), choices=list(LAW_SPECS),
+                    metavar='LAW', help='make evaluate\'s laws to track with (default: '
+                                        f'{" ".join(DEFAULT_LAWS)}; --laws alone: no tracking)')
+    ap.add_argument('--trajectories', nargs='+', default=list(TRAJECTORIES),
+                    choices=list(TRAJECTORIES))
+    ap.add_argument('--duration', type=float, default=None,
+                    help='override every tracking run\'s duration [s]')
+    ap.add_argument('--demo', action='store_true',
+                    help='also run the grasp demo over the node graph with every model')
+    ap.add_argument('--domain-id', type=int, default=None,
+                    help='ROS_DOMAIN_ID of the demos (default: env or random)')
     ap.add_argument('--no-progress', action='store_true', help='no progress bars')
     jobs.add_arguments(ap)
     return ap
@@ -414,18 +441,21 @@ def main(argv=None) -> int:
     unpinned = pinned_kernels(os.environ)
     if unpinned:
         print('note: the math kernels are not pinned as make model pins them (' +
-              ' '.join(f'{k}={v}' for k, v in unpinned.items()) + '; make seeds sets them): on this CPU the models '
-              'may differ from the shipped one at rounding level', file=sys.stderr)
+              ' '.join(f'{k}={v}' for k, v in unpinned.items()) + '; make seeds sets them): on '
+              'this CPU the models may differ from the shipped one at rounding level',
+              file=sys.stderr)
     try:
         with jobs.session(runner):
             from soft_gripper_sdre.control.compiled import warm_up
-            warm_up()                     # the kernels into numba's cache once, before the workers load them
+            warm_up()  # the kernels into numba's cache once, before the workers load them
             data = label_records(records, 'identifying', progress=progress)
-            context = SweepContext(data, settings, args.jitter, tuple(args.laws), tuple(args.trajectories),
-                                   args.duration)
-            todo = [ModelJob(None)] + [ModelJob(s, d) for s in range(args.seeds) for d in range(args.draws + 1)]
+            context = SweepContext(data, settings, args.jitter, tuple(args.laws),
+                                   tuple(args.trajectories), args.duration)
+            todo = [ModelJob(None)] + [ModelJob(s, d) for s in range(args.seeds)
+                                       for d in range(args.draws + 1)]
             start = time.monotonic()
-            outcomes = jobs.run_jobs(run_model_job, todo, context, runner, desc='seeds', progress=progress)
+            outcomes = jobs.run_jobs(run_model_job, todo, context, runner, desc='seeds',
+                                     progress=progress)
             wall = time.monotonic() - start
     except jobs.JobsError as exc:
         ap.error(f'--ray: {exc}')
@@ -439,34 +469,42 @@ def main(argv=None) -> int:
             paths[o.name].write_bytes(o.checkpoint)
             (args.out / o.name / 'metrics.json').write_text(json.dumps(o.metrics, indent=2))
     facts = {'models': len(outcomes) - 1, 'seeds': f'0–{args.seeds - 1}', 'draws': args.draws,
-             'jitter': args.jitter, 'settings': 'default preset' + (' with ' + ', '.join(args.set) if args.set else ''),
-             'fingerprint': fingerprint(data.x, data.u, data.acc), 'runner': runner.describe(), 'wall_s': wall,
-             'kernels': ' '.join(f'{k}={os.environ[k]}' for k in jobs.KERNEL_ENV if k in os.environ) or 'as detected'}
+             'jitter': args.jitter,
+             'settings': 'default preset' + (' with ' + ', '.join(args.set) if args.set else ''),
+             'fingerprint': fingerprint(data.x, data.u, data.acc), 'runner': runner.describe(),
+             'wall_s': wall,
+             'kernels': ' '.join(f'{k}={os.environ[k]}' for k in jobs.KERNEL_ENV if k in os.environ)
+                        or 'as detected'}
     text = write_results(args.out, outcomes, {}, args, command, facts)
     if args.demo:
         try:
             demos = run_demos(paths, args.out, args.domain_id, progress)
         except RuntimeError as exc:
-            print(f'{text}\nthe demos failed, the tables above are without them: {exc}', file=sys.stderr)
+            print(f'{text}\nthe demos failed, the tables above are without them: {exc}',
+                  file=sys.stderr)
             return 1
         text = write_results(args.out, outcomes, demos, args, command, facts)
     print(text)
     return 0
 
 
-def write_results(out: Path, outcomes: list[ModelOutcome], demos: dict, args, command: str, facts: dict) -> str:
-    """seeds.json and seeds.md in ``out`` from the jobs' outcomes and the demos' figures; the tables."""
+def write_results(out: Path, outcomes: list[ModelOutcome], demos: dict, args, command: str,
+                  facts: dict) -> str:
+    """seeds.json and seeds.md in ``out`` from the jobs' outcomes and the demos' figures; the
+    tables."""
     rows = [model_row(o, demos.get(o.name)) for o in outcomes]
     keys = figure_keys(rows, args.laws, args.trajectories)
     summary = summarise(rows, keys)
     shipped = next(r for r in rows if r['seed'] is None)
     seed0 = next((r for r in rows if r['seed'] == 0 and r['draw'] == 0), None)
-    facts = dict(facts, seed0_is_shipped=None if seed0 is None else seed0['weights_sha256'] == shipped['weights_sha256'])
+    facts = dict(facts, seed0_is_shipped=None if seed0 is None
+                 else seed0['weights_sha256'] == shipped['weights_sha256'])
     text = markdown(rows, summary, keys, command, facts)
     (out / 'seeds.json').write_text(json.dumps(
         dict(command=command, facts=facts, summary=summary, models=rows,
              tracking={o.name: o.tracking for o in outcomes},
-             job_seconds={o.name: round(o.job_seconds, 1) for o in outcomes}), indent=2, default=float))
+             job_seconds={o.name: round(o.job_seconds, 1) for o in outcomes}),
+        indent=2, default=float))
     (out / 'seeds.md').write_text(text)
     return text
 

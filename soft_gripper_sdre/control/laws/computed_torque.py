@@ -21,8 +21,8 @@ class ComputedTorqueLaw:
 
     The model's tip acceleration is then exactly ë = −k_p e − k_d ė (e = p − p_d): the same
     linearisation as :class:`~soft_gripper_sdre.control.laws.feedforward.SdreFeedforwardLaw` with
-    ``ff_at='x'``, whose u = G₂(x)⁻¹(a_d − A₂(x)x_d) + K(x)(x − x_d) puts the Riccati gains K(x) where
-    this law puts −G₂(x)⁻¹(A₂(x) + [k_p I, k_d I]). It is the same model inversion
+    ``ff_at='x'``, whose u = G₂(x)⁻¹(a_d − A₂(x)x_d) + K(x)(x − x_d) puts the Riccati gains K(x)
+    where this law puts −G₂(x)⁻¹(A₂(x) + [k_p I, k_d I]). It is the same model inversion
     (:func:`~soft_gripper_sdre.control.laws.feedforward.model_inversion` at x with the desired
     acceleration a_d − k_p e − k_d ė), with no Riccati equation.
 
@@ -38,8 +38,9 @@ class ComputedTorqueLaw:
         n_fingers, lowpass_hz, dt, method: as for the other laws.
     """
 
-    def __init__(self, model, u_max: float, kp: float = DEFAULT_CT['kp'], kd: float = DEFAULT_CT['kd'],
-                 n_fingers: int = 4, lowpass_hz: float = DEFAULT_LOWPASS_HZ, dt: float = 1e-3,
+    def __init__(self, model, u_max: float, kp: float = DEFAULT_CT['kp'],
+                 kd: float = DEFAULT_CT['kd'], n_fingers: int = 4,
+                 lowpass_hz: float = DEFAULT_LOWPASS_HZ, dt: float = 1e-3,
                  method: str = 'fast') -> None:
         self.io = LawIO(model.rest_tip, u_max, n_fingers, lowpass_hz, dt)
         if not (np.isfinite(kp) and kp > 0 and np.isfinite(kd) and kd >= 0):
@@ -69,8 +70,8 @@ class ComputedTorqueLaw:
         if self.network is not None:
             x = compiled.kernel_array(x)
             compiled.sdc_forward(x, *self.network, self._a2, self._g2)
-            compiled.model_inversion(self._a2, self._g2, x, compiled.kernel_array(a_des), CT_COND_MAX,
-                                     self._u, self._usable)
+            compiled.model_inversion(self._a2, self._g2, x, compiled.kernel_array(a_des),
+                                     CT_COND_MAX, self._u, self._usable)
             return self._u.copy(), self._usable.copy()
         blocks = getattr(self.model, 'sdc_blocks', None)
         if blocks is not None:

@@ -51,8 +51,9 @@ def reference_acceleration(ref_acc, n: int) -> tuple[np.ndarray, np.ndarray]:
     return a, finite
 
 
-def combine_feedforward(io: LawIO, feedback: LawStep, A2: np.ndarray, G2: np.ndarray, x_d: np.ndarray,
-                        finite: np.ndarray, ref_acc, u_extra: np.ndarray | None = None) -> LawStep:
+def combine_feedforward(io: LawIO, feedback: LawStep, A2: np.ndarray, G2: np.ndarray,
+                        x_d: np.ndarray, finite: np.ndarray, ref_acc,
+                        u_extra: np.ndarray | None = None) -> LawStep:
     """u = u_ff + K e (+ ``u_extra``, e.g. an integral term, before saturation): ``feedback`` is
     the SDRE's step on (e = x − x_d, x_d = 0), whose u_unsat = K(x) e; (A2, G2) the SDC lower rows
     the feedforward inverts (:func:`model_inversion`). A finger without feedforward (singular G₂,
@@ -66,7 +67,8 @@ def combine_feedforward(io: LawIO, feedback: LawStep, A2: np.ndarray, G2: np.nda
     out = io.finish(u_unsat, finite)
     out.ok, out.fallback = feedback.ok & finite, feedback.fallback | ~finite | ~ff_ok
     out.failed_checks, out.residual = feedback.failed_checks, feedback.residual
-    out.K, out.Ks, out.P, out.nk_iterations = feedback.K, feedback.Ks, feedback.P, feedback.nk_iterations
+    out.K, out.Ks, out.P, out.nk_iterations = (feedback.K, feedback.Ks, feedback.P,
+                                               feedback.nk_iterations)
     return out
 
 
@@ -97,8 +99,9 @@ class SdreFeedforwardLaw:
 
     ``integral_gain`` k_i > 0 adds integral action on the position error before saturation,
     u += k_i G₂(0)⁻¹ ∫(p_d − p)dt, integrating only while the finger is unsaturated and its error
-    is within ``integral_band`` [m] (:class:`~soft_gripper_sdre.control.laws.integral.IntegralAction`);
-    0 leaves the law without it, arithmetic unchanged.
+    is within ``integral_band`` [m]
+    (:class:`~soft_gripper_sdre.control.laws.integral.IntegralAction`); 0 leaves the law without
+    it, arithmetic unchanged.
     """
 
     def __init__(self, model, weights: Weights, u_max: float, n_fingers: int = 4,
@@ -116,11 +119,13 @@ class SdreFeedforwardLaw:
         self.network = compiled_network(model) if self.sdre.fast else None
         self._no_acc = np.zeros((self.n_fingers, 2))
         if not (np.isfinite(integral_gain) and integral_gain >= 0):
-            raise ValueError(f'integral_gain must be finite and >= 0 (0 = off), got {integral_gain!r}')
+            raise ValueError('integral_gain must be finite and >= 0 (0 = off), '
+                             f'got {integral_gain!r}')
         self.integral = None
         if integral_gain > 0:
             _, G0 = model.AG(np.zeros(4))
-            self.integral = IntegralAction(G0[0, 2:, :], integral_gain, integral_band, u_max, self.n_fingers, dt)
+            self.integral = IntegralAction(G0[0, 2:, :], integral_gain, integral_band, u_max,
+                                           self.n_fingers, dt)
 
     def reset(self) -> None:
         self.io.reset()
@@ -158,11 +163,13 @@ class SdreFeedforwardLaw:
         if ref_acc is None:
             ref_acc = self._no_acc
         elif np.shape(ref_acc) != (self.n_fingers, 2):
-            raise ValueError(f'ref_acc must have shape ({self.n_fingers}, 2), got {np.shape(ref_acc)}')
+            raise ValueError(f'ref_acc must have shape ({self.n_fingers}, 2), '
+                             f'got {np.shape(ref_acc)}')
         z = self.io.frame.stacked(pos, vel, ref_pos, ref_vel, ref_acc)
         out = self.sdre.track_feedforward(self.network, self.io.origin, self.ff_at == 'ref', z)
         if self.integral is not None:       # the integral and the roll-off in one compiled call
-            self.integral.apply_and_roll_off(out, z, self.sdre.feedforward.state_finite, self.io.roll_off)
+            self.integral.apply_and_roll_off(out, z, self.sdre.feedforward.state_finite,
+                                             self.io.roll_off)
         else:
             out.u = self.io.roll_off(out.u)
         return out
