@@ -28,20 +28,23 @@ def tips_messages(stamps_ns, tips) -> list:
     """(stamp, PoseArray) per row of ``tips`` (T, n, 3) [m]."""
     out = []
     for ns, tip in zip(stamps_ns, np.asarray(tips, dtype=float)):
-        poses = [T['geometry_msgs/msg/Pose'](position=T['geometry_msgs/msg/Point'](x=p[0], y=p[1], z=p[2]),
-                                             orientation=T['geometry_msgs/msg/Quaternion'](x=0.0, y=0.0, z=0.0, w=1.0))
+        poses = [T['geometry_msgs/msg/Pose'](
+                     position=T['geometry_msgs/msg/Point'](x=p[0], y=p[1], z=p[2]),
+                     orientation=T['geometry_msgs/msg/Quaternion'](x=0.0, y=0.0, z=0.0, w=1.0))
                  for p in tip.tolist()]
         out.append((int(ns), T[POSE_ARRAY](header=_header(ns, 'finger_bases'), poses=poses)))
     return out
 
 
 def torque_messages(stamps_ns, torques, names=None) -> list:
-    """(stamp, JointState) per row of ``torques`` (C, n, 2) [N·m]; ``names`` replaces the joint names."""
+    """(stamp, JointState) per row of ``torques`` (C, n, 2) [N·m]; ``names`` replaces the joint
+    names."""
     out = []
     for ns, u in zip(stamps_ns, np.asarray(torques, dtype=float)):
         joint = names or [f'finger_{i}/ax{a}' for i in range(u.shape[0]) for a in range(2)]
-        out.append((int(ns), T[JOINT_STATE](header=_header(ns), name=list(joint), position=np.empty(0),
-                                            velocity=np.empty(0), effort=u.ravel().copy())))
+        out.append((int(ns), T[JOINT_STATE](header=_header(ns), name=list(joint),
+                                            position=np.empty(0), velocity=np.empty(0),
+                                            effort=u.ravel().copy())))
     return out
 
 
@@ -62,7 +65,8 @@ def write_bag(path: Path, topics: dict[str, list]) -> Path:
 
 
 def excitation_bag(path: Path, seconds: float = 2.0, period_ns: int = MS, n_fingers: int = 1,
-                   tips_topic: str = '/tip_positions', torques_topic: str = '/torque_commands') -> Path:
+                   tips_topic: str = '/tip_positions',
+                   torques_topic: str = '/torque_commands') -> Path:
     """A clean recording: tips and commands every ``period_ns`` for ``seconds``, a smooth motion
     under a sine torque."""
     stamps = np.arange(int(round(seconds * 1e9 / period_ns))) * period_ns

@@ -31,7 +31,8 @@ EPOCHS = 5
 
 
 def run_tool(tool, *args, timeout):
-    proc = subprocess.run([sys.executable, '-m', f'soft_gripper_sdre.tools.{tool}', *map(str, args)],
+    proc = subprocess.run([sys.executable, '-m', f'soft_gripper_sdre.tools.{tool}',
+                           *map(str, args)],
                           capture_output=True, text=True, timeout=timeout, env=dict(os.environ))
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-3000:]
     return proc
@@ -48,7 +49,8 @@ def npz_record(name: str) -> tuple[Record, dict]:
 def test_bags_from_the_graph_train_the_model_the_npz_path_trains(tmp_path):
     bags = tmp_path / 'bags'
     run_tool('excite', '--out', bags, '--signals', 'x1', 'u4', '--duration', SECONDS, '--settle', 0,
-             '--noise', 0, '--domain-id', os.environ['ROS_DOMAIN_ID'], '--timeout', 120, timeout=260)
+             '--noise', 0, '--domain-id', os.environ['ROS_DOMAIN_ID'], '--timeout', 120,
+             timeout=260)
 
     # the same data: the graph's lockstep run is the in-process collection, sample for sample
     npz = {name: npz_record(name) for name in ('x1', 'u4')}
@@ -73,15 +75,17 @@ def test_bags_from_the_graph_train_the_model_the_npz_path_trains(tmp_path):
 
     # train from the bags with the CLI, and on the npz records with the same settings
     out = tmp_path / 'model'
-    run_tool('train', '--bag', bags / 'x1', '--val-bag', bags / 'u4', '--out', out, '--epochs', EPOCHS,
-             '--meas-std', 0, '--jerk-psd', JERK, '--preset', 'default', timeout=200)
+    run_tool('train', '--bag', bags / 'x1', '--val-bag', bags / 'u4', '--out', out,
+             '--epochs', EPOCHS, '--meas-std', 0, '--jerk-psd', JERK, '--preset', 'default',
+             timeout=200)
     metrics = json.loads((out / 'metrics.json').read_text())
     assert metrics['source'] == 'rosbag2' and metrics['train_samples'] == npz['x1'][0].t.size
     x, v = labelled['x1'], labelled['u4']
     settings = replace(PRESETS['default'], epochs=EPOCHS)
     result = train(x['x'], x['u'], x['acc'], v['x'], v['u'], v['acc'], settings)
-    npz_model = SDCModel(save_checkpoint(tmp_path / 'npz.pt', result, rest_tip=npz['x1'][0].rest_tip,
-                                         dt=0.001, settings=settings, data={}))
+    npz_model = SDCModel(save_checkpoint(tmp_path / 'npz.pt', result,
+                                         rest_tip=npz['x1'][0].rest_tip, dt=0.001,
+                                         settings=settings, data={}))
     npz_r2 = r2_score(npz['u4'][0].acc_true[:, :2], npz_model.xdot(v['x'], v['u'])[:, 2:])
     bag_model = SDCModel(out / 'model.pt')
     bag_r2 = r2_score(npz['u4'][0].acc_true[:, :2], bag_model.xdot(v['x'], v['u'])[:, 2:])

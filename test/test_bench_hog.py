@@ -9,7 +9,8 @@ def window(sim_time, steps, late, p50=None, p99=None, safe=0):
     values = {'sim_time': f'{sim_time:.3f}', 'steps': str(steps), 'late_periods': str(late),
               'safe_periods': str(safe), 'mode': 'realtime'}
     if p50 is not None:
-        values.update(recent_latency_us_p50=str(p50), recent_latency_us_p99=str(p99), recent_latency_us_max=str(p99))
+        values.update(recent_latency_us_p50=str(p50), recent_latency_us_p99=str(p99),
+                      recent_latency_us_max=str(p99))
     return values
 
 
@@ -23,10 +24,12 @@ def test_windows_are_split_around_the_hog_and_summed_per_phase():
                window(6.2 + SETTLE_S, 8200, 1222, 1000, 2200, safe=100),
                window(7.2 + SETTLE_S, 9200, 1232, 900, 2100, safe=100)]
     f = phase_figures(history, 4.5, 5.2)
-    assert f['before'] == {'windows': 1, 'late': 0.02, 'safe': 0.0, 'p50': 1200.0, 'p99': 2500.0, 'max': 2500.0}
+    assert f['before'] == {'windows': 1, 'late': 0.02, 'safe': 0.0, 'p50': 1200.0, 'p99': 2500.0,
+                           'max': 2500.0}
     assert f['during']['windows'] == 2 and math.isclose(f['during']['late'], 670 / 2000)
     assert f['during']['safe'] == 0.05 and f['during']['p99'] == 40000.0
-    assert f['after']['windows'] == 2 and math.isclose(f['after']['late'], 0.01) and f['after']['safe'] == 0.0
+    assert (f['after']['windows'] == 2 and math.isclose(f['after']['late'], 0.01)
+            and f['after']['safe'] == 0.0)
     assert f['after']['p50'] == 1000.0               # the median of the windows' p50 (upper of two)
 
 

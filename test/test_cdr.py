@@ -20,11 +20,13 @@ def _codecs(n):
     """(codec, slow builder, slow reader, value shape) of each loop topic for n fingers."""
     return {
         'tips': (cdr.tips_codec(n), cv.tips_to_msg, lambda m: cv.msg_to_tips(m, n), (n, 3)),
-        'estimate': (cdr.estimate_codec(n), lambda ns, x: cv.estimate_to_msg(ns, x[:, :2], x[:, 2:]),
+        'estimate': (cdr.estimate_codec(n),
+                     lambda ns, x: cv.estimate_to_msg(ns, x[:, :2], x[:, 2:]),
                      lambda m: cv.msg_to_estimate(m, n), (n, 4)),
-        'torques': (cdr.torques_codec(n), cv.torques_to_msg, lambda m: cv.msg_to_torques(m, n), (n, 2)),
-        'clock': (cdr.clock_codec(), lambda ns, _v: cv.clock_msg(ns), lambda m: (cv.from_time(m.clock), np.empty(0)),
-                  (0,)),
+        'torques': (cdr.torques_codec(n), cv.torques_to_msg, lambda m: cv.msg_to_torques(m, n),
+                    (n, 2)),
+        'clock': (cdr.clock_codec(), lambda ns, _v: cv.clock_msg(ns),
+                  lambda m: (cv.from_time(m.clock), np.empty(0)), (0,)),
     }
 
 
@@ -172,7 +174,8 @@ def test_non_finite_values_are_refused_on_the_fast_path_with_the_slow_paths_word
 def test_bytes_that_are_not_the_type_are_a_message_error_naming_the_topic():
     codec = CODECS[4]['tips'][0]
     for junk in (b'', b'\x00\x01', b'\x00\x01\x00\x00' + b'\xff' * 40):
-        with pytest.raises(cv.MessageError, match=r'^tip_positions: \d+ bytes that do not deserialize'):
+        with pytest.raises(cv.MessageError,
+                           match=r'^tip_positions: \d+ bytes that do not deserialize'):
             codec.decode(junk)
 
 
@@ -185,9 +188,11 @@ def test_a_message_without_a_fixed_layout_is_refused_when_learned():
 @pytest.mark.ros
 def test_raw_bytes_over_dds_reach_typed_subscribers_and_typed_messages_take_the_fast_path():
     c = CODECS[4]
-    topics = {TIP_POSITIONS: ('tips', PoseArray), STATE_ESTIMATE: ('estimate', MultiDOFJointTrajectory),
+    topics = {TIP_POSITIONS: ('tips', PoseArray),
+              STATE_ESTIMATE: ('estimate', MultiDOFJointTrajectory),
               TORQUE_COMMANDS: ('torques', JointState), 'clock_test': ('clock', Clock)}
-    values = {name: np.random.default_rng(9).standard_normal(c[name][3]) for name, _ in topics.values()}
+    values = {name: np.random.default_rng(9).standard_normal(c[name][3])
+              for name, _ in topics.values()}
     with ros_context() as (ctx, executor):
         typed, raw = Probe(ctx, 'typed'), Probe(ctx, 'raw')
         pubs_raw, pubs_typed, got_raw = {}, {}, {}
@@ -199,8 +204,10 @@ def test_raw_bytes_over_dds_reach_typed_subscribers_and_typed_messages_take_the_
             pubs_typed[topic] = typed.create_publisher(msg_type, topic, LOOP_QOS)
         executor.add_node(typed)
         executor.add_node(raw)
-        assert spin_until(executor, lambda: all(p.get_subscription_count() == 2
-                                                for p in (*pubs_raw.values(), *pubs_typed.values())), 10.0)
+        assert spin_until(executor,
+                          lambda: all(p.get_subscription_count() == 2
+                                      for p in (*pubs_raw.values(), *pubs_typed.values())),
+                          10.0)
         for topic, (name, _) in topics.items():
             codec, build, _, _ = c[name]
             pubs_raw[topic].publish(codec.encode(NS, values[name]))       # our bytes

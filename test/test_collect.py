@@ -22,7 +22,8 @@ def test_collect_writes_aligned_dataset(tmp_path):
             assert n == 300 and float(d['dt']) == 1e-3 and str(d['signal']) == name
             assert int(d['format_version']) == 1
             np.testing.assert_allclose(d['u'], get_signal(name)(d['t']))
-            for key, width in (('tip', 3), ('tip_true', 3), ('vel_true', 3), ('acc_true', 3), ('q', 10)):
+            for key, width in (('tip', 3), ('tip_true', 3), ('vel_true', 3), ('acc_true', 3),
+                               ('q', 10)):
                 assert d[key].shape == (n, width)
             # acc_true[k] is the response to u[k]: the velocity change over [t_k, t_k+Δt)
             np.testing.assert_allclose(d['acc_true'][:-1], np.diff(d['vel_true'], axis=0) / 1e-3,

@@ -69,7 +69,8 @@ def test_shapes_beyond_the_adoption_limit_stay_slow_and_correct():
     tips = np.array([[0.01, 0.02, 0.0], [0.03, 0.04, 0.0]])
     frames = [f'frame_{i}' for i in range(cdr.MAX_ADOPTED + 2)]
     for frame in frames * 2:
-        assert np.array_equal(codec.decode(serialize_message(cv.tips_to_msg(MS, tips, frame)))[1], tips)
+        assert np.array_equal(codec.decode(serialize_message(cv.tips_to_msg(MS, tips, frame)))[1],
+                              tips)
     assert len(codec.adopted) == cdr.MAX_ADOPTED
     assert codec.fallbacks == len(frames) + 2       # the last two shapes, both times
 
@@ -100,7 +101,8 @@ def test_effort_order_maps_each_joint_to_its_torque():
     assert u.ravel()[order].tolist() == [4.0, 1.0, 3.0, 2.0]
     for joints, needle in [(EFFORT_JOINTS[:3], 'no joint carries left/ax1'),
                            (EFFORT_JOINTS + ['left/ax0'], "'left/ax0' appears more than once"),
-                           (['finger_0/ax0'] + EFFORT_JOINTS[1:], "'finger_0/ax0' is not a torque")]:
+                           (['finger_0/ax0'] + EFFORT_JOINTS[1:],
+                            "'finger_0/ax0' is not a torque")]:
         with pytest.raises(ValueError, match=needle):
             cv.effort_array_order(joints, ('left', 'right'))
 
@@ -113,10 +115,12 @@ def test_float64_multi_array_holds_the_joint_state_efforts_in_the_controllers_jo
     rest = np.repeat(SDCModel().rest_tip[None, :2], 2, 0)
     with ros_context() as (ctx, executor):
         node, probe, est_pub, ref_pub = make_controller(
-            ctx, executor, finger_names=list(names), effort_topic=EFFORT_TOPIC, effort_joints=EFFORT_JOINTS)
+            ctx, executor, finger_names=list(names), effort_topic=EFFORT_TOPIC,
+            effort_joints=EFFORT_JOINTS)
         # every message, for the comparison below (reliable, volatile, as ros2_control subscribes)
-        probe.listen(Float64MultiArray, EFFORT_TOPIC, QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE,
-                                                                 durability=DurabilityPolicy.VOLATILE))
+        probe.listen(Float64MultiArray, EFFORT_TOPIC,
+                     QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE,
+                                durability=DurabilityPolicy.VOLATILE))
         # and a subscriber with the QoS of ros2_control's forward_command_controller (system
         # default: its history keeps about the newest message only)
         controller_like = Probe(ctx, 'forward_command_controller')
@@ -145,7 +149,8 @@ def test_float64_multi_array_holds_the_joint_state_efforts_in_the_controllers_jo
         assert np.all(np.isfinite(np.asarray([a.data for a in arrays])))
         assert all(any(v != 0.0 for v in a.data) for a in arrays)
         assert spin_until(executor, lambda: controller_like.received[EFFORT_TOPIC])
-        assert list(controller_like.received[EFFORT_TOPIC][-1].data) in [list(a.data) for a in arrays]
+        assert (list(controller_like.received[EFFORT_TOPIC][-1].data)
+                in [list(a.data) for a in arrays])
 
 
 @pytest.mark.ros
@@ -153,9 +158,11 @@ def test_float64_multi_array_holds_the_joint_state_efforts_in_the_controllers_jo
     ('controller', dict(finger_names=['left', 'right'], effort_topic=EFFORT_TOPIC),
      "'finger_0/ax0' is not a torque of these fingers (the torques are left/ax0"),
     ('controller', dict(finger_names=['left', 'left']), 'names must be distinct'),
-    ('trajectory', dict(finger_names=['left', 'right']), "grasp_fingers': [0, 2] are not all indices"),
+    ('trajectory', dict(finger_names=['left', 'right']),
+     "grasp_fingers': [0, 2] are not all indices"),
     ('estimator', dict(finger_names=['a', 'b', 'c', 'd', 'e']), 'needs 1 to 4 names'),
-    ('simulator', dict(finger_names=['left', 'right']), "hand_fingers': [0, 1, 2, 3] has 4 entries"),
+    ('simulator', dict(finger_names=['left', 'right']),
+     "hand_fingers': [0, 1, 2, 3] has 4 entries"),
 ])
 def test_bad_finger_parameters_stop_the_node_naming_the_problem(node, params, needle):
     """A ParameterError, with which the node's process exits with status 2 naming it (that path:
@@ -177,8 +184,8 @@ def test_two_named_fingers_run_the_whole_graph_as_processes(tmp_path):
     from soft_gripper_sdre.analysis.bag import extract_run, read_bag
     from soft_gripper_sdre.tools.demo import run_demo
 
-    result = run_demo(tmp_path, duration=1.5, timeout=120, progress=False, fingers={'left': 0, 'right': 2},
-                      render=False)
+    result = run_demo(tmp_path, duration=1.5, timeout=120, progress=False,
+                      fingers={'left': 0, 'right': 2}, render=False)
     assert all(code == 0 for code in result['run']['exit_codes'].values()), result['run']
     assert list(result['fingers']) == ['left', 'right']
     run = extract_run(tmp_path / 'bag')

@@ -20,7 +20,8 @@ TARGET_PCT = 5.0
 
 @pytest.fixture(scope='module')
 def pipelined_run():
-    return run_graph(DURATION, simulator=dict(mode='pipelined'), trajectory=dict(SHORT, others='open'))
+    return run_graph(DURATION, simulator=dict(mode='pipelined'),
+                     trajectory=dict(SHORT, others='open'))
 
 
 def test_pipelined_graph_meets_the_free_space_tracking_target(pipelined_run):
@@ -44,7 +45,8 @@ def test_the_graph_steps_the_physics_one_period_behind_its_commands(pipelined_ru
     tips the graph published, bit for bit: the command that answered t_(k−1) drove t_k → t_(k+1)."""
     run = pipelined_run
     steps = len(run.t)
-    np.testing.assert_allclose(run.t, np.arange(steps) * 1e-3, rtol=0, atol=1e-12)   # every period, in order
+    np.testing.assert_allclose(run.t, np.arange(steps) * 1e-3, rtol=0,
+                               atol=1e-12)  # every period, in order
     with GripperSim(run.simulator.sim.config) as sim:
         tips = [sim.measure()[:, :2]]
         for u in [np.zeros_like(run.torques[0])] + list(run.torques[:steps - 2]):
@@ -63,7 +65,8 @@ def _bag_series(bag):
     cmds = sorted(topics['/torque_commands'], key=lambda e: stamp(e[1]))
     tips = sorted(topics['/tip_positions'], key=lambda e: stamp(e[1]))
     assert all(list(m.name) == list(cmds[0][1].name) for _, m in cmds)
-    return (np.array([stamp(m) for _, m in cmds]), np.array([np.asarray(m.effort).reshape(-1, 2) for _, m in cmds]),
+    return (np.array([stamp(m) for _, m in cmds]),
+            np.array([np.asarray(m.effort).reshape(-1, 2) for _, m in cmds]),
             np.array([[[p.position.x, p.position.y] for p in m.poses] for _, m in tips]))
 
 
@@ -82,7 +85,8 @@ def test_pipelined_demo_grasp_meets_the_readme_targets_and_repeats_bit_for_bit(t
         assert f['rmse_pct'] <= TARGET_PCT, (name, f)
     touching = [f['contact_fraction'] > 0 for f in full['fingers'].values()]
     assert touching == [True, False, True, False]
-    short = run_demo(tmp_path / 'short', duration=1.5, timeout=300, progress=False, mode='pipelined')
+    short = run_demo(tmp_path / 'short', duration=1.5, timeout=300, progress=False,
+                     mode='pipelined')
     assert short['run']['exit_codes'] == full['run']['exit_codes']
     t1, u1, tips1 = _bag_series(tmp_path / 'full' / 'bag')
     t2, u2, tips2 = _bag_series(tmp_path / 'short' / 'bag')

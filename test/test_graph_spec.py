@@ -23,26 +23,32 @@ from soft_gripper_sdre.nodes.topics import CLOCK, TOPIC_TYPES
 def test_the_description_imports_no_ros_client_library():
     """A launch file, a test or a supervisor in another network namespace reads it without rclpy."""
     tree = ast.parse(Path(graph.__file__).read_text(encoding='utf-8'))
-    modules = {a.name.split('.')[0] for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
-    modules |= {n.module.split('.')[0] for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.module}
-    assert modules <= {'__future__', 'dataclasses', 'pathlib', 're', 'sys', 'typing', 'ament_index_python'}, modules
+    modules = {a.name.split('.')[0]
+               for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
+    modules |= {n.module.split('.')[0]
+                for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.module}
+    assert modules <= {'__future__', 'dataclasses', 'pathlib', 're', 'sys', 'typing',
+                       'ament_index_python'}, modules
     assert graph.CLOCK == CLOCK
 
 
 def test_root_graph_command_lines_are_those_ros2_run_takes():
     """The root namespace adds nothing: the params file, then each override (the demo's nodes)."""
     spec = grasp_graph(parameters={'recorder': {'output': '/tmp/bag'},
-                                   'simulator': {'duration': 6.0, 'min_tip_subscribers': 3, 'noise_std': 1e-4},
+                                   'simulator': {'duration': 6.0, 'min_tip_subscribers': 3,
+                                                 'noise_std': 1e-4},
                                    'controller': {'law': 'sdre'}})
     assert spec.names == GRASP_NODES and spec.lead == 'simulator'
     commands = {n.name: n.command('python') for n in spec.nodes}
-    assert commands['simulator'] == ['python', '-m', 'soft_gripper_sdre.nodes.simulator', '--ros-args', '--params-file',
+    assert commands['simulator'] == ['python', '-m', 'soft_gripper_sdre.nodes.simulator',
+                                     '--ros-args', '--params-file',
                                      str(default_params_file('simulator')), '-p', 'duration:=6.0',
                                      '-p', 'min_tip_subscribers:=3', '-p', 'noise_std:=0.0001',
                                      '-p',
                                      'wait_for_nodes:=recorder,estimator,trajectory,controller']
-    assert commands['estimator'] == ['python', '-m', 'soft_gripper_sdre.nodes.estimator', '--ros-args',
-                                     '--params-file', str(default_params_file('estimator'))]
+    assert commands['estimator'] == ['python', '-m', 'soft_gripper_sdre.nodes.estimator',
+                                     '--ros-args', '--params-file',
+                                     str(default_params_file('estimator'))]
     assert commands['controller'][-2:] == ['-p', 'law:=sdre']
     assert all(n.params_file is not None and n.params_file.is_file() for n in spec.nodes)
 
@@ -50,8 +56,8 @@ def test_root_graph_command_lines_are_those_ros2_run_takes():
 def test_the_simulator_waits_for_the_tip_readers_the_graph_has():
     assert grasp_graph().node('simulator').parameters['min_tip_subscribers'] == 3
     assert grasp_graph(record=False).node('simulator').parameters['min_tip_subscribers'] == 2
-    assert grasp_graph(parameters={'simulator': {'min_tip_subscribers': 5}}).node('simulator').parameters[
-        'min_tip_subscribers'] == 5
+    assert (grasp_graph(parameters={'simulator': {'min_tip_subscribers': 5}})
+            .node('simulator').parameters['min_tip_subscribers'] == 5)
     assert 'recorder' not in grasp_graph(record=False).names
 
 
@@ -60,20 +66,22 @@ def test_a_hand_in_a_namespace_gets_its_own_clock():
     assert spec.namespace == '/left_hand'
     for node in spec.nodes:
         args = node.ros_arguments()
-        assert args[:3] == ['--ros-args', '-r', '__ns:=/left_hand'] and args[-2:] == ['-r', '/clock:=clock']
+        assert (args[:3] == ['--ros-args', '-r', '__ns:=/left_hand']
+                and args[-2:] == ['-r', '/clock:=clock'])
         assert node.full_name == f'/left_hand/{node.name}'
     assert '-p' in spec.node('trajectory').ros_arguments()
     assert 'grasp_fingers:=[1,3]' in spec.node('trajectory').ros_arguments()
     assert spec.topic('/clock') == '/left_hand/clock'
     assert spec.topic('tip_positions') == '/left_hand/tip_positions'
     assert spec.topic('/diagnostics') == '/diagnostics'
-    shared = grasp_graph('left_hand', clock='/clock')         # one simulator per domain: the usual /clock
+    shared = grasp_graph('left_hand', clock='/clock')  # one simulator per domain: the usual /clock
     assert shared.remappings == () and shared.topic('/clock') == '/clock'
     assert grasp_graph().topic('/clock') == '/clock' and grasp_graph().remappings == ()
 
 
 @pytest.mark.parametrize('text, expected', [('', ''), ('/', ''), ('left_hand', '/left_hand'),
-                                            ('/left_hand/', '/left_hand'), ('robot1/hand_2', '/robot1/hand_2')])
+                                            ('/left_hand/', '/left_hand'),
+                                            ('robot1/hand_2', '/robot1/hand_2')])
 def test_namespaces_are_normalised(text, expected):
     assert normalize_namespace(text) == expected
 
@@ -94,14 +102,18 @@ def test_parameters_for_a_node_the_graph_lacks_are_refused():
 def test_one_control_period_reaches_every_node_that_declares_one():
     import importlib
     declares = {name for name in GRASP_NODES
-                if any(p.name == 'control_period' for p in importlib.import_module(f'soft_gripper_sdre.nodes.{name}').PARAMS)}
+                if any(p.name == 'control_period'
+                       for p in importlib.import_module(f'soft_gripper_sdre.nodes.{name}').PARAMS)}
     assert declares == set(graph.PERIOD_NODES)
     spec = grasp_graph(control_period=0.005, parameters={'controller': {'law': 'sdre'}})
     assert {n.name: n.parameters.get('control_period') for n in spec.nodes} == {
-        'recorder': None, 'estimator': 0.005, 'trajectory': None, 'controller': 0.005, 'simulator': 0.005}
+        'recorder': None, 'estimator': 0.005, 'trajectory': None, 'controller': 0.005,
+        'simulator': 0.005}
     assert spec.node('controller').parameters['law'] == 'sdre'
-    assert '-p' in spec.node('estimator').ros_arguments() and 'control_period:=0.005' in spec.node('estimator').ros_arguments()
-    with pytest.raises(ValueError, match='control_period 0.005 s for the graph, but 0.002 s in the estimator'):
+    assert ('-p' in spec.node('estimator').ros_arguments()
+            and 'control_period:=0.005' in spec.node('estimator').ros_arguments())
+    with pytest.raises(ValueError,
+                       match='control_period 0.005 s for the graph, but 0.002 s in the estimator'):
         grasp_graph(control_period=0.005, parameters={'estimator': {'control_period': 0.002}})
 
 

@@ -1,5 +1,6 @@
-"""The sweeps' jobs (tools.jobs): in this process, on a pool of processes and on a real Ray instance,
-with the same numbers; the seed sweep (tools.seeds) end to end; the command lines' refusals."""
+"""The sweeps' jobs (tools.jobs): in this process, on a pool of processes and on a real Ray
+instance, with the same numbers; the seed sweep (tools.seeds) end to end; the command lines'
+refusals."""
 import hashlib
 import importlib
 import json
@@ -24,7 +25,8 @@ from soft_gripper_sdre.tools.train import DATA_VARIANTS, VALIDATION
 
 RAY_MISSING = jobs.ray_available()
 needs_ray = pytest.mark.skipif(RAY_MISSING is not None,
-                               reason=f'ray is not installed: the optional Ray runner is not tested ({jobs.RAY_INSTALL})')
+                               reason='ray is not installed: the optional Ray runner is not '
+                                      f'tested ({jobs.RAY_INSTALL})')
 TOOLS = ('seeds', 'evaluate', 'robustness')
 
 
@@ -36,7 +38,8 @@ def test_in_process_and_pool_give_the_same_results_in_job_order(tmp_path):
     serial = jobs.run_jobs(draw, range(6), context, jobs.Runner(1), progress=False)
     pooled = jobs.run_jobs(draw, range(6), context, jobs.Runner(2), progress=False)
     assert [r[:2] for r in serial] == [r[:2] for r in pooled] == [
-        (float(np.random.default_rng(j).standard_normal() * 2.5), hashlib.sha256(source.read_bytes()).hexdigest())
+        (float(np.random.default_rng(j).standard_normal() * 2.5),
+         hashlib.sha256(source.read_bytes()).hexdigest())
         for j in range(6)]
     assert {pid for *_, pid in serial} == {os.getpid()}
     assert os.getpid() not in {pid for *_, pid in pooled}
@@ -52,12 +55,14 @@ def test_a_failing_job_raises_here():
 
 
 def test_the_workers_get_the_drivers_kernel_variables():
-    env = {'OPENBLAS_CORETYPE': 'Haswell', 'ATEN_CPU_CAPABILITY': 'avx2', 'HOME': '/root', 'PATH': '/bin'}
+    env = {'OPENBLAS_CORETYPE': 'Haswell', 'ATEN_CPU_CAPABILITY': 'avx2', 'HOME': '/root',
+           'PATH': '/bin'}
     assert jobs.worker_env(env) == {'OPENBLAS_CORETYPE': 'Haswell', 'ATEN_CPU_CAPABILITY': 'avx2'}
 
 
 @pytest.mark.parametrize('workers, ray, why', [(0, None, 'workers'), (1.5, None, 'workers'),
-                                               (1, 'not an address', 'ray must be'), (1, 'host:99999999', 'ray must be')])
+                                               (1, 'not an address', 'ray must be'),
+                                               (1, 'host:99999999', 'ray must be')])
 def test_runner_refuses_bad_values(workers, ray, why):
     with pytest.raises(ValueError, match=why):
         jobs.Runner(workers, ray)
@@ -73,12 +78,13 @@ def test_nothing_listening_at_the_address_is_found_before_ray_is_asked():
 
 # -- the command lines -----------------------------------------------------------------------------
 def run_tool(tool, *args, timeout=60, env=None):
-    return subprocess.run([sys.executable, '-m', f'soft_gripper_sdre.tools.{tool}', *args], capture_output=True,
-                          text=True, timeout=timeout, env=env)
+    return subprocess.run([sys.executable, '-m', f'soft_gripper_sdre.tools.{tool}', *args],
+                          capture_output=True, text=True, timeout=timeout, env=env)
 
 
 def refusal(tool, args, capsys) -> str:
-    """Run the tool's main in this process on ``args``, which it must refuse with status 2; its stderr."""
+    """Run the tool's main in this process on ``args``, which it must refuse with status 2; its
+    stderr."""
     module = importlib.import_module(f'soft_gripper_sdre.tools.{tool}')
     try:
         code = module.main(list(args))
@@ -90,7 +96,8 @@ def refusal(tool, args, capsys) -> str:
 
 @pytest.mark.parametrize('tool', TOOLS)
 @pytest.mark.parametrize('args, why', [(('--workers', '0'), '--workers must be >= 1'),
-                                       (('--ray', 'http://head'), '--ray must be auto, local, HOST:PORT')])
+                                       (('--ray', 'http://head'),
+                                        '--ray must be auto, local, HOST:PORT')])
 def test_bad_runner_arguments_exit_2_before_anything_starts(tmp_path, capsys, tool, args, why):
     out = tmp_path / 'out'
     assert why in refusal(tool, ('--out', str(out), *args), capsys)
@@ -99,11 +106,13 @@ def test_bad_runner_arguments_exit_2_before_anything_starts(tmp_path, capsys, to
 
 def test_a_refusal_is_a_message_without_a_traceback(tmp_path):
     proc = run_tool('seeds', '--out', str(tmp_path / 'out'), '--workers', '0')
-    assert proc.returncode == 2 and '--workers must be >= 1' in proc.stderr and 'Traceback' not in proc.stderr
+    assert (proc.returncode == 2 and '--workers must be >= 1' in proc.stderr
+            and 'Traceback' not in proc.stderr)
     assert not (tmp_path / 'out').exists()
 
 
-@pytest.mark.skipif(RAY_MISSING is None, reason='ray is installed: the refusal without it cannot be seen here')
+@pytest.mark.skipif(RAY_MISSING is None,
+                    reason='ray is installed: the refusal without it cannot be seen here')
 @pytest.mark.parametrize('tool', TOOLS)
 def test_ray_without_ray_installed_is_a_usage_error(tmp_path, capsys, tool):
     err = refusal(tool, ('--out', str(tmp_path / 'out'), '--ray', 'auto'), capsys)
@@ -118,7 +127,8 @@ def test_no_ray_cluster_at_the_address_is_a_usage_error(tmp_path, capsys, tool, 
         s.bind(('127.0.0.1', 0))
         port = s.getsockname()[1]
         extra = ('--data', str(data_dir)) if tool == 'seeds' else ()
-        err = refusal(tool, ('--out', str(tmp_path / 'out'), '--ray', f'127.0.0.1:{port}', *extra), capsys)
+        err = refusal(tool, ('--out', str(tmp_path / 'out'), '--ray', f'127.0.0.1:{port}',
+                             *extra), capsys)
     assert f'--ray: nothing answers at 127.0.0.1:{port}' in err
     assert not (tmp_path / 'out').exists()
 
@@ -127,12 +137,15 @@ def test_no_ray_cluster_at_the_address_is_a_usage_error(tmp_path, capsys, tool, 
                                        (('--draws', '-1'), '--draws must be in [0, 1000]'),
                                        (('--jitter', '0'), '--jitter must be in (0, 1e-3)'),
                                        (('--set', 'epochs=0'), '--set epochs must be >= 1'),
-                                       (('--set', 'seed=3'), '--set takes KEY=VALUE with KEY one of'),
+                                       (('--set', 'seed=3'),
+                                        '--set takes KEY=VALUE with KEY one of'),
                                        (('--set', 'lr=fast'), "--set lr: 'fast' is not a float"),
-                                       (('--set', 'sv_penalty=-1'), 'sv_penalty must be finite and >= 0'),
+                                       (('--set', 'sv_penalty=-1'),
+                                        'sv_penalty must be finite and >= 0'),
                                        (('--laws', 'mpc'), "invalid choice: 'mpc'"),
                                        (('--duration', '0'), '--duration must be > 0 s'),
-                                       (('--domain-id', '300'), '--domain-id must be a ROS domain ID')])
+                                       (('--domain-id', '300'),
+                                        '--domain-id must be a ROS domain ID')])
 def test_seeds_refuses_bad_arguments(tmp_path, capsys, data_dir, args, why):
     out = tmp_path / 'out'
     assert why in refusal('seeds', ('--data', str(data_dir), '--out', str(out), *args), capsys)
@@ -140,7 +153,8 @@ def test_seeds_refuses_bad_arguments(tmp_path, capsys, data_dir, args, why):
 
 
 def test_seeds_refuses_a_data_directory_without_the_signals(tmp_path, capsys):
-    err = refusal('seeds', ('--data', str(tmp_path / 'nothing'), '--out', str(tmp_path / 'out')), capsys)
+    err = refusal('seeds', ('--data', str(tmp_path / 'nothing'), '--out', str(tmp_path / 'out')),
+                  capsys)
     assert 'no such dataset file' in err and not (tmp_path / 'out').exists()
 
 
@@ -150,13 +164,14 @@ def data_dir(tmp_path_factory):
     """0.5 s of every signal of the default variant, written as the collect tool writes them."""
     out = tmp_path_factory.mktemp('excitation')
     for i, name in enumerate(DATA_VARIANTS['identifying'] + (VALIDATION,)):
-        write_record(out / f'{name}.npz', collect_signal(name, SimConfig(scene='finger', seed=i), duration=0.5))
+        write_record(out / f'{name}.npz',
+                     collect_signal(name, SimConfig(scene='finger', seed=i), duration=0.5))
     return out
 
 
 #: two seeds, one jittered draw, three epochs, the default law on 0.2 s of the fast grasp
-SWEEP = ('--seeds', '2', '--draws', '1', '--set', 'epochs=3', '--laws', 'sdre_ff', '--trajectories', 'fast',
-         '--duration', '0.2', '--no-progress')
+SWEEP = ('--seeds', '2', '--draws', '1', '--set', 'epochs=3', '--laws', 'sdre_ff',
+         '--trajectories', 'fast', '--duration', '0.2', '--no-progress')
 
 
 def sweep_numbers(out) -> dict:
@@ -170,37 +185,42 @@ def sweep_numbers(out) -> dict:
 @pytest.fixture(scope='module')
 def pooled_sweep(tmp_path_factory, data_dir):
     out = tmp_path_factory.mktemp('seeds') / 'pool'
-    proc = run_tool('seeds', '--data', str(data_dir), '--out', str(out), *SWEEP, '--workers', '2', timeout=300)
+    proc = run_tool('seeds', '--data', str(data_dir), '--out', str(out), *SWEEP, '--workers', '2',
+                    timeout=300)
     assert proc.returncode == 0, proc.stderr
     return out, proc.stdout
 
 
 @pytest.mark.slow
 @pytest.mark.timeout(400)
-def test_seed_sweep_trains_and_scores_every_model_and_the_shipped_one(pooled_sweep, data_dir, tmp_path):
+def test_seed_sweep_trains_and_scores_every_model_and_the_shipped_one(pooled_sweep, data_dir,
+                                                                      tmp_path):
     out, printed = pooled_sweep
     numbers = sweep_numbers(out)
     names = [m['name'] for m in numbers['models']]
     assert names == ['shipped', 'seed0', 'seed0_draw1', 'seed1', 'seed1_draw1']
     shas = {m['name']: m['weights_sha256'] for m in numbers['models']}
-    assert len(set(shas.values())) == 5                       # every seed and every draw is its own model
+    assert len(set(shas.values())) == 5  # every seed and every draw is its own model
     for m in numbers['models']:
         assert np.isfinite([m['r2_x'], m['r2_y'], m['g2_01'], m['sdre_ff_fast_rmse_mm']]).all()
         if m['name'] != 'shipped':
             assert (out / m['name'] / 'model.pt').is_file() and m['epochs_run'] == 3
     shipped = next(m for m in numbers['models'] if m['name'] == 'shipped')
     from soft_gripper_sdre.learning.model import DEFAULT_MODEL
-    assert shipped['r2_x'] == json.loads(DEFAULT_MODEL.with_suffix('.json').read_text())['u4_r2_true']['X']
+    assert (shipped['r2_x']
+            == json.loads(DEFAULT_MODEL.with_suffix('.json').read_text())['u4_r2_true']['X'])
     r2x = numbers['summary']['r2_x']
     values = [m['r2_x'] for m in numbers['models'][1:]]
     assert r2x['all']['n'] == 4 and r2x['all']['mean'] == pytest.approx(np.mean(values))
     assert r2x['all']['sd'] == pytest.approx(np.std(values, ddof=1))
     assert r2x['seeds']['n'] == 2 and r2x['shipped']['of'] == 4
-    assert '| u4 R² X |' in printed and (out / 'seeds.md').read_text() == printed.rstrip('\n') + '\n'
+    assert ('| u4 R² X |' in printed
+            and (out / 'seeds.md').read_text() == printed.rstrip('\n') + '\n')
     # train.py with the same seed, jitter and draw trains the same model, bit for bit
     from soft_gripper_sdre.tools.seeds import weights_sha256
-    proc = run_tool('train', '--data', str(data_dir), '--out', str(tmp_path / 'train'), '--epochs', '3',
-                    '--seed', '1', '--jitter', '1e-9', '--jitter-seed', '1', timeout=120)
+    proc = run_tool('train', '--data', str(data_dir), '--out', str(tmp_path / 'train'),
+                    '--epochs', '3', '--seed', '1', '--jitter', '1e-9', '--jitter-seed', '1',
+                    timeout=120)
     assert proc.returncode == 0, proc.stderr
     assert weights_sha256(tmp_path / 'train' / 'model.pt') == shas['seed1_draw1']
 
@@ -209,8 +229,8 @@ def test_seed_sweep_trains_and_scores_every_model_and_the_shipped_one(pooled_swe
 @pytest.mark.timeout(400)
 def test_seed_sweep_gives_the_same_numbers_in_one_process(pooled_sweep, data_dir, tmp_path):
     out, _ = pooled_sweep
-    proc = run_tool('seeds', '--data', str(data_dir), '--out', str(tmp_path / 'serial'), *SWEEP, '--workers', '1',
-                    timeout=300)
+    proc = run_tool('seeds', '--data', str(data_dir), '--out', str(tmp_path / 'serial'), *SWEEP,
+                    '--workers', '1', timeout=300)
     assert proc.returncode == 0, proc.stderr
     assert sweep_numbers(tmp_path / 'serial') == sweep_numbers(out)
 
@@ -224,15 +244,16 @@ def free_port() -> int:
 
 @pytest.fixture(scope='module')
 def ray_head():
-    """A Ray head started as a user would (`ray start --head --block`) on a free port of this machine,
-    two CPUs, token authentication off (loopback test cluster); its address. SIGTERM to the
-    blocking `ray start` process ends every process it started."""
-    temp = tempfile.mkdtemp(prefix='sgs-ray-')       # short: Ray's socket paths must fit 107 characters
+    """A Ray head started as a user would (`ray start --head --block`) on a free port of this
+    machine, two CPUs, token authentication off (loopback test cluster); its address. SIGTERM to
+    the blocking `ray start` process ends every process it started."""
+    temp = tempfile.mkdtemp(prefix='sgs-ray-')  # short: Ray's socket paths must fit 107 characters
     port = free_port()
     env = dict(os.environ, RAY_AUTH_MODE='disabled')
     log = open(os.path.join(temp, 'ray_start.log'), 'w')
-    head = subprocess.Popen([sys.executable, '-m', 'ray.scripts.scripts', 'start', '--head', '--block',
-                             f'--port={port}', '--num-cpus=2', '--include-dashboard=false', '--disable-usage-stats',
+    head = subprocess.Popen([sys.executable, '-m', 'ray.scripts.scripts', 'start', '--head',
+                             '--block', f'--port={port}', '--num-cpus=2',
+                             '--include-dashboard=false', '--disable-usage-stats',
                              f'--temp-dir={temp}'], stdout=log, stderr=subprocess.STDOUT, env=env,
                             start_new_session=True)
     try:
@@ -243,7 +264,8 @@ def ray_head():
                 break
             except OSError:
                 if head.poll() is not None or time.monotonic() > deadline:
-                    raise RuntimeError(f'ray start did not come up: {open(log.name).read()[-2000:]}')
+                    raise RuntimeError('ray start did not come up: '
+                                       f'{open(log.name).read()[-2000:]}')
                 time.sleep(0.5)
         yield f'127.0.0.1:{port}', env
     finally:
@@ -260,11 +282,12 @@ def ray_head():
 @needs_ray
 @pytest.mark.slow
 @pytest.mark.timeout(600)
-def test_seed_sweep_on_a_ray_cluster_gives_the_pool_numbers(pooled_sweep, data_dir, tmp_path, ray_head):
+def test_seed_sweep_on_a_ray_cluster_gives_the_pool_numbers(pooled_sweep, data_dir, tmp_path,
+                                                            ray_head):
     address, env = ray_head
     out, _ = pooled_sweep
-    proc = run_tool('seeds', '--data', str(data_dir), '--out', str(tmp_path / 'ray'), *SWEEP, '--ray', address,
-                    timeout=500, env=env)
+    proc = run_tool('seeds', '--data', str(data_dir), '--out', str(tmp_path / 'ray'), *SWEEP,
+                    '--ray', address, timeout=500, env=env)
     assert proc.returncode == 0, proc.stderr
     assert f'jobs on the Ray cluster at {address}' in proc.stdout
     assert sweep_numbers(tmp_path / 'ray') == sweep_numbers(out)
@@ -276,10 +299,11 @@ def test_seed_sweep_on_a_ray_cluster_gives_the_pool_numbers(pooled_sweep, data_d
 def test_evaluate_and_robustness_on_a_ray_cluster_give_the_pool_numbers(tmp_path, ray_head):
     address, env = ray_head
     for tool, args, result, key in (
-            ('evaluate', ('--laws', 'sdre_ff', 'pd', '--trajectories', 'fast', '--duration', '0.3', '--no-model-score'),
-             'evaluate.json', 'runs'),
-            ('robustness', ('--laws', 'sdre_ff', '--variations', 'nominal', 'delay_2ms', '--trajectories', 'fast',
-                            '--duration', '0.3'), 'robustness.json', 'runs')):
+            ('evaluate', ('--laws', 'sdre_ff', 'pd', '--trajectories', 'fast', '--duration', '0.3',
+                          '--no-model-score'), 'evaluate.json', 'runs'),
+            ('robustness', ('--laws', 'sdre_ff', '--variations', 'nominal', 'delay_2ms',
+                            '--trajectories', 'fast', '--duration', '0.3'),
+             'robustness.json', 'runs')):
         numbers = []
         for where in (('--workers', '2'), ('--ray', address)):
             out = tmp_path / f'{tool}{where[0]}'

@@ -30,7 +30,8 @@ def short_records():
     for name in ('x1', 'u1'):
         rec = collect_signal(name, duration=2.0)
         rest = rec['rest_tip'][:2]
-        out.append((rec['tip_true'][:, :2] - rest, rec['vel_true'][:, :2], rec['u'], rec['acc_true'][:, :2]))
+        out.append((rec['tip_true'][:, :2] - rest, rec['vel_true'][:, :2], rec['u'],
+                    rec['acc_true'][:, :2]))
     return out, rec['rest_tip'], float(rec['dt'])
 
 
@@ -39,7 +40,8 @@ def fit(short_records, settings=KoopmanSettings()):
     return fit_koopman([r[:3] for r in records], rest, dt, settings)
 
 
-def test_fit_on_collected_data_predicts_the_acceleration_and_is_deterministic(short_records, tmp_path):
+def test_fit_on_collected_data_predicts_the_acceleration_and_is_deterministic(short_records,
+                                                                              tmp_path):
     model = fit(short_records)
     (x1, u1) = short_records[0]
     r2_x1 = r2_score(x1[3], model.predict_acceleration(*x1[:3]))
@@ -78,9 +80,9 @@ def test_bad_model_files_and_settings_are_refused_with_the_reason(tmp_path):
 
 
 def test_tool_refuses_bad_arguments_before_reading_anything(tmp_path, run_main):
-    proc = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.koopman', '--data', str(tmp_path),
-                           '--out', str(tmp_path / 'o'), '--degree', '9'], capture_output=True, text=True,
-                          timeout=50)
+    proc = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.koopman',
+                           '--data', str(tmp_path), '--out', str(tmp_path / 'o'), '--degree', '9'],
+                          capture_output=True, text=True, timeout=50)
     assert proc.returncode == 2 and 'degree' in proc.stderr and 'Traceback' not in proc.stderr
     from soft_gripper_sdre.tools.koopman import main
     proc = run_main(main, '--data', tmp_path, '--out', tmp_path / 'o')        # (in this process)
@@ -132,7 +134,8 @@ def test_box_qp_solves_a_small_problem_to_its_brute_force_optimum():
     U, active = BoxQP(H, 1.0).solve(g)
     grid = np.linspace(-1, 1, 2001)
     a, b = np.meshgrid(grid, grid, indexing='ij')
-    cost = 0.5 * (H[0, 0] * a * a + 2 * H[0, 1] * a * b + H[1, 1] * b * b) + g[0, 0] * a + g[0, 1] * b
+    cost = (0.5 * (H[0, 0] * a * a + 2 * H[0, 1] * a * b + H[1, 1] * b * b) + g[0, 0] * a
+            + g[0, 1] * b)
     i, j = np.unravel_index(np.argmin(cost), cost.shape)
     assert active[0]
     np.testing.assert_allclose(U[0], [grid[i], grid[j]], atol=1.5e-3)
@@ -172,7 +175,8 @@ def test_measured_ordering_on_the_fast_grasp():
     runs = {k: ev.run_law(k, 'fast', model, WEIGHTS, duration=1.5)[0]
             for k in ('koopman_mpc', 'koopman_lqr', 'sdre_ff', 'pd')}
     rmse = {k: s.rmse_mm_grasp for k, s in runs.items()}
-    assert runs['koopman_mpc'].saturated_pct == 0.0 and runs['koopman_mpc'].grasp_success, runs['koopman_mpc']
+    assert (runs['koopman_mpc'].saturated_pct == 0.0
+            and runs['koopman_mpc'].grasp_success), runs['koopman_mpc']
     assert rmse['sdre_ff'] < 0.5 * rmse['koopman_mpc'], rmse
     assert rmse['koopman_mpc'] < 0.7 * rmse['pd'], rmse
     assert rmse['koopman_lqr'] <= rmse['koopman_mpc'] < 1.2 * rmse['koopman_lqr'], rmse
@@ -186,10 +190,12 @@ def test_bad_inputs_give_finite_flagged_torques(name):
     rest = np.repeat(koopman.rest_tip[None, :2], 3, 0)
     pos, vel, ref = rest.copy(), np.zeros((3, 2)), rest + [0.0, 0.004]
     acc = np.zeros((3, 2))
-    clean = make_law(name, None, WEIGHTS, U_MAX, n_fingers=3, lowpass_hz=0.0).compute(pos, vel, ref, vel, acc)
+    clean = make_law(name, None, WEIGHTS, U_MAX, n_fingers=3,
+                     lowpass_hz=0.0).compute(pos, vel, ref, vel, acc)
     pos[0, 0], acc[1, 1] = np.nan, np.inf
-    out = make_law(name, None, WEIGHTS, U_MAX, n_fingers=3, lowpass_hz=0.0).compute(pos, vel, ref, vel, acc)
+    out = make_law(name, None, WEIGHTS, U_MAX, n_fingers=3,
+                   lowpass_hz=0.0).compute(pos, vel, ref, vel, acc)
     assert np.all(np.isfinite(out.u)) and np.all(np.abs(out.u) <= U_MAX)
     np.testing.assert_array_equal(out.u[0], 0.0)
-    np.testing.assert_allclose(out.u[1:], clean.u[1:])         # p̈_d = inf taken as 0, as the clean run's
+    np.testing.assert_allclose(out.u[1:], clean.u[1:])  # p̈_d = inf taken as 0, as the clean run's
     assert out.fallback.tolist() == [True, True, False] and not out.ok[0]

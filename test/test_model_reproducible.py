@@ -34,12 +34,14 @@ def data():
     accelerations."""
     def arrays(name):
         r = collect_signal(name, SimConfig(scene='finger'), duration=0.5)
-        return np.hstack([r['tip_true'][:, :2] - r['rest_tip'][:2], r['vel_true'][:, :2]]), r['u'], r['acc_true'][:, :2]
+        return (np.hstack([r['tip_true'][:, :2] - r['rest_tip'][:2], r['vel_true'][:, :2]]), r['u'],
+                r['acc_true'][:, :2])
     return arrays('x1') + arrays('u4')
 
 
 def test_the_default_preset_runs_its_whole_budget(data):
-    """No early stop (patience None): every epoch runs, and the best validation epoch's weights are kept."""
+    """No early stop (patience None): every epoch runs, and the best validation epoch's weights are
+    kept."""
     assert PRESETS['default'].patience is None and PRESETS['paper'].patience is None
     result = train(*data, replace(PRESETS['default'], epochs=12))
     assert len(result.val_loss) == 12
@@ -69,7 +71,8 @@ def test_training_fixes_its_thread_count_and_restores_the_callers(data):
         for threads in (1, 2):
             torch.set_num_threads(threads)
             results.append(train(*data, settings))
-            assert torch.get_num_threads() == threads and not torch.are_deterministic_algorithms_enabled()
+            assert (torch.get_num_threads() == threads
+                    and not torch.are_deterministic_algorithms_enabled())
     finally:
         torch.set_num_threads(old_threads)
     a, b = results

@@ -44,7 +44,8 @@ def test_feedforward_law_gets_the_reference_acceleration_from_the_horizon():
     times = 5 * MS * np.arange(21)
     t = times[:, None, None] / 1e9
     a = np.array([0.0, 0.5])                                     # m/s² towards the palm
-    pos, vel, acc = rest[None] + 0.5 * a * t ** 2, a * t * np.ones((1, 4, 1)), np.broadcast_to(a, (21, 4, 2))
+    pos, vel, acc = (rest[None] + 0.5 * a * t ** 2, a * t * np.ones((1, 4, 1)),
+                     np.broadcast_to(a, (21, 4, 2)))
     with ros_context() as (ctx, executor):
         node, probe, est_pub, ref_pub = make_controller(ctx, executor, law='sdre_ff')
         ref_pub.publish(cv.reference_to_msg(0, times, pos, vel, acc))
@@ -57,7 +58,8 @@ def test_feedforward_law_gets_the_reference_acceleration_from_the_horizon():
             _, u = cv.msg_to_torques(msg, 4)
             p, v, ad = sample_horizon(times, pos, vel, acc, s, with_acc=True)
             z = np.zeros((4, 2))
-            np.testing.assert_allclose(u, with_acc.compute(rest, z, p, v, ref_acc=ad).u, rtol=1e-9, atol=1e-12)
+            np.testing.assert_allclose(u, with_acc.compute(rest, z, p, v, ref_acc=ad).u, rtol=1e-9,
+                                       atol=1e-12)
             assert not np.allclose(u, without.compute(rest, z, p, v).u, rtol=1e-3, atol=0)
 
 
@@ -68,8 +70,9 @@ def test_integral_gain_switches_the_default_laws_integral_action_and_other_laws_
             executor.add_node(n)
             return n.ctrl
         default = node()
-        assert default.integral.gain == DEFAULT_INTEGRAL['gain'] and default.integral.band == DEFAULT_INTEGRAL['band']
-        assert node(integral_gain=0.0).integral is None                  # the law without integral action
+        assert (default.integral.gain == DEFAULT_INTEGRAL['gain']
+                and default.integral.band == DEFAULT_INTEGRAL['band'])
+        assert node(integral_gain=0.0).integral is None  # the law without integral action
         tuned = node(integral_gain=2e4, integral_band=1e-3).integral
         assert (tuned.gain, tuned.band) == (2e4, 1e-3)
         assert isinstance(node(law='computed_torque', integral_gain=5e4), ComputedTorqueLaw)

@@ -20,13 +20,16 @@ REST = np.array([[0.0, -0.0105, 0.1076]])
 
 def start(ctx, executor, **params):
     params.setdefault('min_command_subscribers', 1)      # the probe is the only subscriber
-    node = ExcitationNode(context=ctx, parameter_overrides=overrides(finger_names=['finger_0'], **params))
+    node = ExcitationNode(context=ctx,
+                          parameter_overrides=overrides(finger_names=['finger_0'], **params))
     probe = Probe(ctx)
     pub = probe.create_publisher(PoseArray, TIP_POSITIONS, LOOP_QOS)
     probe.listen(JointState, TORQUE_COMMANDS, deep(LOOP_QOS))
     executor.add_node(node)
     executor.add_node(probe)
-    assert spin_until(executor, lambda: pub.get_subscription_count() > 0 and node.pub_cmd.get_subscription_count() > 0, 20.0)
+    assert spin_until(executor,
+                      lambda: (pub.get_subscription_count() > 0
+                               and node.pub_cmd.get_subscription_count() > 0), 20.0)
     return node, probe, pub
 
 
@@ -46,7 +49,7 @@ def test_each_tip_message_is_answered_with_the_torque_for_its_stamp_then_zero_at
         node, probe, pub = start(ctx, executor, signals=['x1'], duration=0.02, settle_time=0.005,
                                  settle_samples=5)
         plan = ExcitationPlan([builtin_signal('x1', 0.02)], 0.005, 1)
-        start_ns = 7 * MS                      # plan time starts at the first tips, whatever its stamp
+        start_ns = 7 * MS  # plan time starts at the first tips, whatever its stamp
         for k in range(30):
             assert send_tips(executor, probe, pub, start_ns + k * MS), f'tips {k} not answered'
             if node.done:
@@ -117,7 +120,8 @@ def test_a_restarted_driver_is_a_fault():
 
 def test_an_excited_tip_moving_too_far_is_a_fault():
     with ros_context() as (ctx, executor):
-        node, probe, pub = start(ctx, executor, signals=['u2'], settle_time=0.0, max_excursion=0.002)
+        node, probe, pub = start(ctx, executor, signals=['u2'], settle_time=0.0,
+                                 max_excursion=0.002)
         assert send_tips(executor, probe, pub, 0)
         assert send_tips(executor, probe, pub, MS, REST + [[0.0, 0.001, 0.0]])
         assert not node.done
@@ -160,5 +164,6 @@ def test_timer_timing_publishes_on_the_clock_and_stops_with_zero():
 def test_bad_parameters_stop_the_node_at_start_up(params, message):
     with ros_context() as (ctx, _executor):
         with pytest.raises(ParameterError) as info:
-            ExcitationNode(context=ctx, parameter_overrides=overrides(finger_names=['finger_0'], **params))
+            ExcitationNode(context=ctx,
+                           parameter_overrides=overrides(finger_names=['finger_0'], **params))
         assert message in str(info.value)

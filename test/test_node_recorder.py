@@ -48,7 +48,8 @@ def start_recorder(ctx, executor, tmp_path, topics):
     pubs = {t: probe.create_publisher(msg_type, t, topic_qos(t)) for t, msg_type in topics.items()}
     executor.add_node(rec)
     executor.add_node(probe)
-    assert spin_until(executor, lambda: all(p.get_subscription_count() > 0 for p in pubs.values()), 20.0)
+    assert spin_until(executor,
+                      lambda: all(p.get_subscription_count() > 0 for p in pubs.values()), 20.0)
     return rec, pubs
 
 
@@ -59,25 +60,28 @@ def publish_and_wait(executor, rec, pub, msg, topic):
 
 
 def test_bag_holds_exactly_the_published_messages(tmp_path):
-    topics = {CLOCK: Clock, TIP_POSITIONS: PoseArray, TORQUE_COMMANDS: JointState, CUBE_CONTACTS: JointState}
+    topics = {CLOCK: Clock, TIP_POSITIONS: PoseArray, TORQUE_COMMANDS: JointState,
+              CUBE_CONTACTS: JointState}
     with ros_context() as (ctx, executor):
         rec, pubs = start_recorder(ctx, executor, tmp_path, topics)
         for k in range(N):
             ns = k * MS
-            for topic, msg in ((CLOCK, cv.clock_msg(ns)), (TIP_POSITIONS, cv.tips_to_msg(ns, TIPS[k])),
+            for topic, msg in ((CLOCK, cv.clock_msg(ns)),
+                               (TIP_POSITIONS, cv.tips_to_msg(ns, TIPS[k])),
                                (TORQUE_COMMANDS, cv.torques_to_msg(ns, TORQUES[k])),
                                (CUBE_CONTACTS, cv.contacts_msg(ns, FORCES[k]))):
                 publish_and_wait(executor, rec, pubs[topic], msg, '/' + topic.lstrip('/'))
         assert rec.diag.counters['messages /tip_positions'] == N
         rec.close()
-        rec.close()                                         # idempotent (common.run may close again)
+        rec.close()                                       # idempotent (common.run may close again)
         pubs[TIP_POSITIONS].publish(cv.tips_to_msg(N * MS, TIPS[0]))    # after close: ignored
         for _ in range(20):
             executor.spin_once(timeout_sec=0.01)
 
     bag = tmp_path / 'bag'
     assert (bag / 'metadata.yaml').is_file() and len(list(bag.glob('*.mcap'))) == 1
-    assert topic_counts(bag) == {'/clock': N, '/cube_contacts': N, '/tip_positions': N, '/torque_commands': N}
+    assert topic_counts(bag) == {'/clock': N, '/cube_contacts': N, '/tip_positions': N,
+                                 '/torque_commands': N}
     data = read_bag(bag)
     stamps = [k * MS for k in range(N)]
     clock = data['/clock']
@@ -86,7 +90,8 @@ def test_bag_holds_exactly_the_published_messages(tmp_path):
     assert [t for t, _ in tips] == stamps                   # entry time = header stamp (sim time)
     for (_, m), expected in zip(tips, TIPS):
         assert m.header.frame_id == 'finger_bases'
-        np.testing.assert_array_equal([(p.position.x, p.position.y, p.position.z) for p in m.poses], expected)
+        np.testing.assert_array_equal([(p.position.x, p.position.y, p.position.z) for p in m.poses],
+                                      expected)
     torques = data['/torque_commands']
     for (_, m), expected in zip(torques, TORQUES):
         assert list(m.name) == cv.torque_names(4)
@@ -98,19 +103,20 @@ def test_bag_holds_exactly_the_published_messages(tmp_path):
 
 def test_entry_times_stay_in_sim_time(tmp_path):
     """Before /clock: held back; wall-time or unset stamps: the latest /clock value."""
-    topics = {CLOCK: Clock, TIP_POSITIONS: PoseArray, CUBE_CONTACTS: JointState, DIAGNOSTICS: DiagnosticArray}
+    topics = {CLOCK: Clock, TIP_POSITIONS: PoseArray, CUBE_CONTACTS: JointState,
+              DIAGNOSTICS: DiagnosticArray}
     now = 2500 * MS
     with ros_context() as (ctx, executor):
         rec, pubs = start_recorder(ctx, executor, tmp_path, topics)
         wall = DiagnosticArray()
         wall.header.stamp = cv.to_time(time.time_ns())
-        publish_and_wait(executor, rec, pubs[DIAGNOSTICS], wall, DIAGNOSTICS)          # before /clock
+        publish_and_wait(executor, rec, pubs[DIAGNOSTICS], wall, DIAGNOSTICS)  # before /clock
         publish_and_wait(executor, rec, pubs[TIP_POSITIONS], cv.tips_to_msg(now - MS, TIPS[0]),
                          '/tip_positions')
         publish_and_wait(executor, rec, pubs[CLOCK], cv.clock_msg(now), CLOCK)
         unset = cv.contacts_msg(0, FORCES[0])
         publish_and_wait(executor, rec, pubs[CUBE_CONTACTS], unset, '/cube_contacts')
-        publish_and_wait(executor, rec, pubs[DIAGNOSTICS], wall, DIAGNOSTICS)          # after /clock
+        publish_and_wait(executor, rec, pubs[DIAGNOSTICS], wall, DIAGNOSTICS)  # after /clock
         rec.close()
     data = read_bag(tmp_path / 'bag')
     assert [t for t, _ in data['/diagnostics']] == [now, now]
@@ -230,11 +236,13 @@ def test_leading_stamp_reads_the_time_of_any_stamped_message_and_survives_junk()
     assert leading_stamp(serialize_message(cv.clock_msg(12))) == 12
     assert leading_stamp(serialize_message(cv.clock_msg(0))) == 0
     assert leading_stamp(b'\x00\x01') is None
-    assert leading_stamp(b'\x00\x01\x00\x00' + bytes.fromhex('ffffffff00000000')) is None       # sec = -1
+    assert leading_stamp(b'\x00\x01\x00\x00'
+                         + bytes.fromhex('ffffffff00000000')) is None  # sec = -1
 
 
 def _run_node(args, **kwargs):
-    return subprocess.Popen([sys.executable, '-m', 'soft_gripper_sdre.nodes.recorder', '--ros-args', *args],
+    return subprocess.Popen([sys.executable, '-m', 'soft_gripper_sdre.nodes.recorder', '--ros-args',
+                             *args],
                             env=dict(os.environ), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True, **kwargs)
 
@@ -250,13 +258,15 @@ def test_recorder_process_stopped_by_signal_leaves_a_readable_bag(tmp_path, sig)
             diags = probe.received[DIAGNOSTICS]
             pub = probe.create_publisher(PoseArray, TIP_POSITIONS, topic_qos(TIP_POSITIONS))
             executor.add_node(probe)
-            assert spin_until(executor, lambda: pub.get_subscription_count() > 0, 20.0), 'recorder not up'
+            assert spin_until(executor, lambda: pub.get_subscription_count() > 0,
+                              20.0), 'recorder not up'
             for k in range(5):
                 pub.publish(cv.tips_to_msg(k * MS, TIPS[k]))
 
             def recorded_all() -> bool:       # the recorder's own count, from its /diagnostics
                 return any(kv.key == 'messages /tip_positions' and kv.value == '5'
-                           for msg in diags for s in msg.status if s.name == '/recorder' for kv in s.values)
+                           for msg in diags for s in msg.status if s.name == '/recorder'
+                           for kv in s.values)
             assert spin_until(executor, recorded_all, 20.0)
         proc.send_signal(sig)
         out, err = proc.communicate(timeout=20)

@@ -50,7 +50,8 @@ def answer_tips(executor, probe, pub, u, steps, start=0):
 
 
 @pytest.mark.parametrize('u, tip_axis, sign', [
-    ([[0.01, 0.0]], 1, -1), ([[-0.01, 0.0]], 1, +1), ([[0.0, 0.01]], 0, +1), ([[0.0, -0.01]], 0, -1)])
+    ([[0.01, 0.0]], 1, -1), ([[-0.01, 0.0]], 1, +1), ([[0.0, 0.01]], 0, +1),
+    ([[0.0, -0.01]], 0, -1)])
 def test_finger_moves_the_expected_way_in_lockstep(u, tip_axis, sign):
     with ros_context() as (ctx, executor):
         sim, probe, pub = make_loop(ctx, executor)
@@ -68,8 +69,8 @@ def test_lockstep_holds_on_a_timeout_then_steps_lost_periods_with_zero_until_com
 
     from soft_gripper_sdre.nodes.common import ERROR, OK
     with ros_context() as (ctx, executor):
-        sim, probe, pub = make_loop(ctx, executor, mode=mode, lockstep_timeout=0.05, on_timeout='hold',
-                                    lost_command_wait=5.0)
+        sim, probe, pub = make_loop(ctx, executor, mode=mode, lockstep_timeout=0.05,
+                                    on_timeout='hold', lost_command_wait=5.0)
         answer_tips(executor, probe, pub, [[0.02, 0.0]], 5)
         c = sim.diag.counters
         assert spin_until(executor, lambda: c['timeouts'] == 1, 10.0)          # no deadlock
@@ -77,7 +78,8 @@ def test_lockstep_holds_on_a_timeout_then_steps_lost_periods_with_zero_until_com
         np.testing.assert_allclose(sim.sim.truth().u_applied, [[0.02, 0.0]])   # the timeout holds
         assert c['safe_periods'] == 0
         assert sim.set_parameters([Parameter('lost_command_wait', value=0.005)])[0].successful
-        assert spin_until(executor, lambda: c['safe_periods'] >= 5, 10.0)   # lost: zero, period by period
+        # lost: zero, period by period
+        assert spin_until(executor, lambda: c['safe_periods'] >= 5, 10.0)
         assert c['timeouts'] == 1
         np.testing.assert_array_equal(sim.sim.truth().u_applied, 0.0)
         assert sim.diag.level == ERROR and 'zero torque' in sim.diag.message
@@ -171,7 +173,8 @@ def test_bad_commands_are_rejected_counted_and_never_stepped():
         c = sim.diag.counters
         for i, m in enumerate(bad):        # one at a time: the simulator keeps only the newest
             pub.publish(m)
-            assert spin_until(executor, lambda: c['bad_command'] + c['stale_command'] + c['future_command'] > i, 10.0)
+            assert spin_until(executor, lambda: c['bad_command'] + c['stale_command']
+                              + c['future_command'] > i, 10.0)
         assert c['bad_command'] == 4 and c['stale_command'] == 1 and c['future_command'] == 1
         assert sim.stepping.k == 2                          # none of them stepped the simulator
         assert np.all(np.isfinite(sim.sim.truth().q))
@@ -197,10 +200,12 @@ def test_realtime_mode_steps_without_commands():
 @pytest.mark.parametrize('params, name', [
     (dict(mode='warp'), "'mode': mode must be one of .*'pipelined'.*got 'warp'"),
     (dict(control_period=-0.001), 'control_period'),
-    (dict(noise_std=1.0), 'noise_std'), (dict(scene='arm'), 'scene'), (dict(physics_substeps=1.5), 'physics_substeps'),
-    (dict(scene='finger'), 'hand_fingers'), (dict(finger_names=['a', 'b'], hand_fingers=[0, 0]), 'hand_fingers'),
+    (dict(noise_std=1.0), 'noise_std'), (dict(scene='arm'), 'scene'),
+    (dict(physics_substeps=1.5), 'physics_substeps'), (dict(scene='finger'), 'hand_fingers'),
+    (dict(finger_names=['a', 'b'], hand_fingers=[0, 0]), 'hand_fingers'),
     (dict(finger_names=['a', 'b'], hand_fingers=[0, 4]), 'hand_fingers'),
-    (dict(finger_names=['left', 'left']), 'finger_names'), (dict(finger_names=['0left']), 'finger_names')])
+    (dict(finger_names=['left', 'left']), 'finger_names'),
+    (dict(finger_names=['0left']), 'finger_names')])
 def test_bad_parameters_fail_at_startup_naming_the_parameter(params, name):
     with ros_context() as (ctx, executor):
         with pytest.raises(ParameterError, match=name):
@@ -210,7 +215,8 @@ def test_bad_parameters_fail_at_startup_naming_the_parameter(params, name):
 def test_runtime_parameter_refusal_keeps_the_old_value():
     from rclpy.parameter import Parameter
     with ros_context() as (ctx, executor):
-        sim = SimulatorNode(context=ctx, parameter_overrides=overrides(**FINGER_SCENE, startup_timeout=0.0))
+        sim = SimulatorNode(context=ctx,
+                            parameter_overrides=overrides(**FINGER_SCENE, startup_timeout=0.0))
         executor.add_node(sim)
         res = sim.set_parameters([Parameter('on_timeout', value='explode')])[0]
         assert not res.successful and 'on_timeout' in res.reason

@@ -1,4 +1,5 @@
-"""The shipped parameter files apply to their node under any namespace (real rclpy, no DDS traffic)."""
+"""The shipped parameter files apply to their node under any namespace (real rclpy, no DDS
+traffic)."""
 import importlib
 from pathlib import Path
 
@@ -18,8 +19,8 @@ NODE_CLASSES = {
 }
 #: per node, a parameter whose value the test changes in a copy of the shipped file
 CHANGED = {
-    'simulator': ('noise_std', 1.5e-4), 'estimator': ('meas_std', 1.5e-4), 'controller': ('r', 2.0e4),
-    'trajectory': ('t_hold', 1.5), 'recorder': ('output', 'bag'),
+    'simulator': ('noise_std', 1.5e-4), 'estimator': ('meas_std', 1.5e-4),
+    'controller': ('r', 2.0e4), 'trajectory': ('t_hold', 1.5), 'recorder': ('output', 'bag'),
 }
 
 
@@ -27,7 +28,8 @@ CHANGED = {
 @pytest.mark.parametrize('node', sorted(NODE_CLASSES))
 def test_shipped_params_file_applies_under_any_namespace(node, namespace, tmp_path):
     doc = yaml.safe_load((CONFIG / f'{node}.yaml').read_text())
-    assert list(doc) == [params_file_key(node)], 'the shipped file must match the node in every namespace'
+    assert list(doc) == [params_file_key(node)], ('the shipped file must match the node in '
+                                                  'every namespace')
     name, value = CHANGED[node]
     if node == 'recorder':                       # a bag directory that does not exist yet
         value = str(tmp_path / value)

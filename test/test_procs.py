@@ -20,13 +20,15 @@ def test_one_poll_takes_every_message_that_has_arrived():
             assert spin_until(executor, lambda: pub.get_subscription_count() > 0, 20.0)
             for i in range(20):
                 msg = DiagnosticArray()
-                msg.status = [DiagnosticStatus(name=f'/node_{i}', values=[KeyValue(key='k', value=str(i))])]
+                msg.status = [DiagnosticStatus(name=f'/node_{i}',
+                                               values=[KeyValue(key='k', value=str(i))])]
                 pub.publish(msg)
             # acknowledged: all 20 are in the monitor's reader, none taken yet
             assert pub.wait_for_all_acked(Duration(seconds=10.0))
             assert monitor.values == {}
             monitor.poll()
             assert sorted(monitor.values) == sorted(f'node_{i}' for i in range(20))
-            assert monitor.get('node_7', 'k') == 7.0 and monitor.get('node_7', 'missing', -1.0) == -1.0
+            assert (monitor.get('node_7', 'k') == 7.0
+                    and monitor.get('node_7', 'missing', -1.0) == -1.0)
     finally:
         monitor.close()

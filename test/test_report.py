@@ -86,14 +86,17 @@ def cube_pose_msg(ns):
 
 
 def write_bag(path: Path, messages: dict[str, list], batch: int = 25) -> None:
-    """Record ``{topic: [msg, ...]}``: publish to a RecorderNode in batches well within the queues."""
+    """Record ``{topic: [msg, ...]}``: publish to a RecorderNode in batches well within the
+    queues."""
     with ros_context() as (ctx, executor):
-        rec = RecorderNode(context=ctx, parameter_overrides=overrides(output=str(path), topics=list(messages)))
+        rec = RecorderNode(context=ctx,
+                           parameter_overrides=overrides(output=str(path), topics=list(messages)))
         probe = Probe(ctx)
         pubs = {t: probe.create_publisher(TOPIC_TYPES[t], t, topic_qos(t)) for t in messages}
         executor.add_node(rec)
         executor.add_node(probe)
-        assert spin_until(executor, lambda: all(p.get_subscription_count() > 0 for p in pubs.values()), 20.0)
+        assert spin_until(executor,
+                          lambda: all(p.get_subscription_count() > 0 for p in pubs.values()), 20.0)
         for topic, msgs in messages.items():
             for start in range(0, len(msgs), batch):
                 for msg in msgs[start:start + batch]:
@@ -118,7 +121,8 @@ def run_messages() -> dict[str, list]:
         offsets = np.arange(11) * 10 * MS
         pos_d, vel_d = ref_state(ns + offsets)
         refs.append(cv.reference_to_msg(ns, offsets, pos_d, vel_d, np.zeros_like(pos_d)))
-    contacts = [cv.contacts_msg(ns, [0.0, 2.0 if in_contact(ns) else 0.0, 0.0, 0.0]) for ns in STATE_STAMPS]
+    contacts = [cv.contacts_msg(ns, [0.0, 2.0 if in_contact(ns) else 0.0, 0.0, 0.0])
+                for ns in STATE_STAMPS]
     return {'tip_positions': tips, 'state_estimate': estimates, 'torque_commands': commands + [bad],
             'grasp_reference': refs, 'cube_contacts': contacts,
             'cube_pose': [cube_pose_msg(ns) for ns in STATE_STAMPS]}
@@ -142,7 +146,8 @@ def test_extract_run_gives_the_arrays_that_were_written(bag):
     assert np.isnan(ref[:10]).all()                                 # before the first horizon
     pos_d, vel_d = ref_state(T_TIPS[10:])
     np.testing.assert_allclose(ref[10:, :, :2], pos_d, atol=1e-12)
-    on_points = (T_TIPS[10:] % (10 * MS)) == 0                      # velocity kinks lie between points
+    on_points = (T_TIPS[10:] % (10 * MS)) == 0                      # velocity kinks lie between
+                                                                    # points
     np.testing.assert_allclose(ref[10:, :, 2:][on_points], vel_d[on_points], atol=1e-12)
     assert run.counts['/tip_positions'] == 500 and run.counts['/torque_commands'] == 501
 
@@ -154,25 +159,30 @@ def test_sample_reference_uses_the_latest_horizon_and_interpolates():
     out = sample_reference(t, np.array([0, 5]) * MS, [first, second])
     assert np.isnan(out[0]).all()
     np.testing.assert_array_equal(out[1:3, 0], 0.0)                 # only the first is in force
-    np.testing.assert_allclose(out[3:, 0, 0], [1.0, 2.0, 3.0, 3.0])  # then the second, held at its end
+    np.testing.assert_allclose(out[3:, 0, 0], [1.0, 2.0, 3.0, 3.0])  # then the second, held at
+                                                                     # its end
 
 
 def test_report_metrics_match_the_errors_built_in(bag, tmp_path):
     m = report_tool.report(bag, tmp_path / 'out', torque_limit=LIMIT)
     f = m['fingers']
     assert m['samples'] == 490 and m['start_s'] == pytest.approx(0.010)
-    assert f['finger_0']['rmse_mm'] == pytest.approx(1.0) and f['finger_0']['max_mm'] == pytest.approx(1.0)
+    assert (f['finger_0']['rmse_mm'] == pytest.approx(1.0)
+            and f['finger_0']['max_mm'] == pytest.approx(1.0))
     # excursion from the reference's first point (1 mm up the ramp at 10 ms) to its 20 mm peak
     assert f['finger_0']['excursion_mm'] == pytest.approx(19.0)
     assert f['finger_0']['rmse_pct'] == pytest.approx(100.0 / 19.0)
     # finger 1: the 10 mm error in contact is not free space
-    assert f['finger_1']['rmse_mm'] == pytest.approx(1.0) and f['finger_1']['max_mm'] == pytest.approx(1.0)
-    assert f['finger_1']['samples'] == 390 and f['finger_1']['contact_fraction'] == pytest.approx(100 / 490)
+    assert (f['finger_1']['rmse_mm'] == pytest.approx(1.0)
+            and f['finger_1']['max_mm'] == pytest.approx(1.0))
+    assert (f['finger_1']['samples'] == 390
+            and f['finger_1']['contact_fraction'] == pytest.approx(100 / 490))
     assert f['finger_2']['rmse_mm'] == pytest.approx(0.0, abs=1e-9)
     assert f['finger_3']['rmse_mm'] == pytest.approx(0.5) and f['finger_3']['rmse_pct'] is None
     assert all(f[name]['contact_fraction'] == 0.0 for name in ('finger_0', 'finger_2', 'finger_3'))
     assert m['cube_max_displacement_mm'] == pytest.approx(5.0)
-    assert m['torque_saturation']['saturated'] == {'finger_0': 50, 'finger_1': 0, 'finger_2': 1, 'finger_3': 0}
+    assert m['torque_saturation']['saturated'] == {'finger_0': 50, 'finger_1': 0, 'finger_2': 1,
+                                                   'finger_3': 0}
     assert m['message_counts']['/grasp_reference'] == 25 and m['message_counts']['/cube_pose'] == 50
     assert m['skipped_messages'] == {'torque_commands': 1}
     assert json.loads((tmp_path / 'out' / 'metrics.json').read_text()) == m
@@ -191,9 +201,9 @@ def test_report_without_contacts_scores_every_sample(tmp_path):
 
 def test_report_cli_writes_real_pngs_and_metrics(bag, tmp_path):
     out = tmp_path / 'figs'
-    proc = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.report', str(bag), '--out', str(out),
-                           '--torque-limit', str(LIMIT)], env=dict(os.environ), capture_output=True,
-                          text=True, timeout=50)
+    proc = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.report', str(bag),
+                           '--out', str(out), '--torque-limit', str(LIMIT)],
+                          env=dict(os.environ), capture_output=True, text=True, timeout=50)
     assert proc.returncode == 0, proc.stderr
     assert 'finger_0: RMSE 1.000 mm' in proc.stdout
     for name in report_tool.FIGURES:
@@ -205,9 +215,9 @@ def test_report_cli_writes_real_pngs_and_metrics(bag, tmp_path):
 
 def test_report_cli_bad_bag_exits_2(tmp_path):
     missing = tmp_path / 'no_such_bag'
-    proc = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.report', str(missing), '--out',
-                           str(tmp_path / 'out')], env=dict(os.environ), capture_output=True, text=True,
-                          timeout=50)
+    proc = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.report', str(missing),
+                           '--out', str(tmp_path / 'out')], env=dict(os.environ),
+                          capture_output=True, text=True, timeout=50)
     assert proc.returncode == 2 and str(missing) in proc.stderr and 'does not exist' in proc.stderr
 
 
@@ -221,7 +231,8 @@ def test_bad_bags_are_named_in_the_error(tmp_path, capsys):
         read_bag(tmp_path / 'broken')
     messages = run_messages()
     write_bag(tmp_path / 'tips_only', {'tip_positions': messages['tip_positions']})
-    with pytest.raises(BagError, match=r'tips_only lacks topic\(s\) state_estimate, grasp_reference'):
+    with pytest.raises(BagError,
+                       match=r'tips_only lacks topic\(s\) state_estimate, grasp_reference'):
         extract_run(tmp_path / 'tips_only')
     with pytest.raises(BagError, match='no topic'):
         read_bag(tmp_path / 'tips_only', ['grasp_reference'])

@@ -1,5 +1,5 @@
-"""Robustness to the plant: each variation changes the simulated plant or sensor as it says, the grid
-gives the same numbers whatever the number of workers, the CLI refuses bad arguments, and the
+"""Robustness to the plant: each variation changes the simulated plant or sensor as it says, the
+grid gives the same numbers whatever the number of workers, the CLI refuses bad arguments, and the
 default law keeps the claims of docs/results.md "Robustness to the plant" on a shortened grasp."""
 import json
 import math
@@ -25,13 +25,14 @@ from soft_gripper_sdre.tools.robustness_grid import VARIATIONS, Case, grid_laws,
 
 def tip_deflection_mm(u, seconds: float = 1.5, **scales) -> float:
     """How far a torque ``u`` held ``seconds`` moves the upright finger's tip from rest [mm]."""
-    with GripperSim(SimConfig(scene='finger', mount_roll_deg=0.0, plant=PlantVariation(**scales))) as sim:
+    with GripperSim(SimConfig(scene='finger', mount_roll_deg=0.0,
+                              plant=PlantVariation(**scales))) as sim:
         for _ in range(int(round(seconds / sim.config.control_period))):
             sim.step(np.asarray([u]))
         return float(np.linalg.norm(sim.truth().tip_pos[0] - sim.rest_tip[0])) * 1e3
 
 
-# -- the variations change the plant ----------------------------------------------------------------
+# -- the variations change the plant ---------------------------------------------------------------
 #: a held ax0 torque [N·m] that bends the finger well beyond its friction band
 BENDING_TORQUE = np.array([-0.01, 0.0])
 
@@ -46,9 +47,11 @@ def nominal_bending():
 
 
 @pytest.mark.parametrize('scale', [1.2, 0.8])
-def test_stiffness_scale_changes_the_rest_deflection_as_the_linearised_finger_predicts(scale, nominal_bending):
+def test_stiffness_scale_changes_the_rest_deflection_as_the_linearised_finger_predicts(
+        scale, nominal_bending):
     """±20 % stiffness: the tip's rest deflection under a held ax0 torque changes by the ratio the
-    nominal finger's linearisation predicts with its springs scaled (gravity's stiffness unchanged)."""
+    nominal finger's linearisation predicts with its springs scaled (gravity's stiffness
+    unchanged)."""
     (_, K, B, J), nominal_mm = nominal_bending
     springs = np.diag(JOINT_STIFFNESS) / TORQUE_SCALE
 
@@ -72,8 +75,10 @@ def test_friction_scale_changes_how_far_a_small_torque_moves_the_finger():
 
 def test_tip_mass_scale_makes_the_tip_heavier_and_the_finger_slower():
     with GripperSim(SimConfig(scene='finger')) as nominal, \
-            GripperSim(SimConfig(scene='finger', plant=PlantVariation(tip_mass_scale=1.5))) as heavy:
-        info = pb.getDynamicsInfo(heavy.finger_bodies[0], TIP_LINK, physicsClientId=heavy.physics_client)
+            GripperSim(SimConfig(scene='finger',
+                                 plant=PlantVariation(tip_mass_scale=1.5))) as heavy:
+        info = pb.getDynamicsInfo(heavy.finger_bodies[0], TIP_LINK,
+                                  physicsClientId=heavy.physics_client)
         assert info[0] == pytest.approx(1.5 * TIP_MASS)
         assert info[2] == pytest.approx((1.5 * TIP_INERTIA,) * 3)
         ratio = linear_modes(heavy)[:2] / linear_modes(nominal)[:2]
@@ -83,16 +88,19 @@ def test_tip_mass_scale_makes_the_tip_heavier_and_the_finger_slower():
 def test_cube_mass_scale_makes_the_cube_press_five_times_harder_on_the_palm():
     forces = []
     for scale in (1.0, 5.0):
-        with GripperSim(SimConfig(scene='hand', plant=PlantVariation(cube_mass_scale=scale))) as sim:
-            forces.append(sum(c[9] for c in pb.getContactPoints(sim.cube_body, physicsClientId=sim.physics_client)))
+        with GripperSim(SimConfig(scene='hand',
+                                  plant=PlantVariation(cube_mass_scale=scale))) as sim:
+            forces.append(sum(c[9] for c in pb.getContactPoints(
+                sim.cube_body, physicsClientId=sim.physics_client)))
     assert forces[1] == pytest.approx(5.0 * forces[0], rel=1e-6)
 
 
 def test_nominal_plant_variation_is_the_default_and_bad_scales_are_refused():
     assert SimConfig().plant == PlantVariation() and PlantVariation().is_nominal
     assert PlantVariation(friction_scale=2.0).describe() == 'friction ×2'
-    for bad in (dict(stiffness_scale=0.0), dict(friction_scale=-1.0), dict(tip_mass_scale=float('nan')),
-                dict(cube_mass_scale=100.0), dict(stiffness_scale='1')):
+    for bad in (dict(stiffness_scale=0.0), dict(friction_scale=-1.0),
+                dict(tip_mass_scale=float('nan')), dict(cube_mass_scale=100.0),
+                dict(stiffness_scale='1')):
         with pytest.raises(ValueError, match=next(iter(bad))):
             PlantVariation(**bad)
     with pytest.raises(ValueError, match='plant'):
@@ -104,12 +112,13 @@ def test_sensor_delay_feeds_the_estimator_the_measurement_of_d_periods_before(de
     """Without noise the measurement is the true tip, so the estimator's input must be the true
     tip d periods earlier (the first one until d exist)."""
     model = SDCModel()
-    res = run_closed_loop(model, duration=0.05, sim_config=SimConfig(scene='hand'), weights=Weights(**DEFAULT_WEIGHTS),
-                          u_max=0.0625, sensor_delay=delay)
+    res = run_closed_loop(model, duration=0.05, sim_config=SimConfig(scene='hand'),
+                          weights=Weights(**DEFAULT_WEIGHTS), u_max=0.0625, sensor_delay=delay)
     d = delay_in_periods(delay, 1e-3)
     assert d == round(delay * 1e3)
     np.testing.assert_array_equal(res.meas[d:], res.pos[:len(res.pos) - d])
-    np.testing.assert_array_equal(res.meas[:d + 1], np.broadcast_to(res.pos[0], (d + 1,) + res.pos.shape[1:]))
+    np.testing.assert_array_equal(res.meas[:d + 1],
+                                  np.broadcast_to(res.pos[0], (d + 1,) + res.pos.shape[1:]))
 
 
 @pytest.mark.parametrize('bad', [-0.001, 0.0015, float('nan'), float('inf')])
@@ -119,7 +128,8 @@ def test_a_sensor_delay_that_is_not_a_whole_number_of_periods_is_refused(bad):
 
 
 def test_noise_variations_set_the_simulator_noise():
-    assert VARIATIONS['noise_0.1mm'].noise_std == 1e-4 and VARIATIONS['noise_0.2mm'].noise_std == 2e-4
+    assert (VARIATIONS['noise_0.1mm'].noise_std == 1e-4
+            and VARIATIONS['noise_0.2mm'].noise_std == 2e-4)
     with GripperSim(SimConfig(scene='hand', noise_std=VARIATIONS['noise_0.2mm'].noise_std)) as sim:
         errors = []
         for _ in range(500):
@@ -154,8 +164,9 @@ def test_cli_refuses_bad_arguments_before_starting(tmp_path, capsys, args, messa
 
 def test_cli_refusal_exits_2_without_a_traceback(tmp_path):
     out = tmp_path / 'out'
-    proc = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.robustness', '--out', str(out),
-                           '--laws', 'no_such_law'], capture_output=True, text=True, timeout=50)
+    proc = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.robustness',
+                           '--out', str(out), '--laws', 'no_such_law'],
+                          capture_output=True, text=True, timeout=50)
     assert proc.returncode == 2
     assert "invalid choice: 'no_such_law'" in proc.stderr and 'Traceback' not in proc.stderr
     assert not out.exists()
@@ -171,21 +182,25 @@ def test_run_grid_refuses_bad_workers_and_unknown_names():
 def test_table_and_figure_from_results(tmp_path):
     from soft_gripper_sdre.tools.robustness_grid import CaseResult
     nan = float('nan')
-    results = [CaseResult('sdre_ff', 'nominal', 'grasp', 0.08, 1.4, 0.2, True, 0.03, 0.0, 0.0, 30.0),
+    results = [CaseResult('sdre_ff', 'nominal', 'grasp', 0.08, 1.4, 0.2, True, 0.03, 0.0, 0.0,
+                          30.0),
                CaseResult('pd', 'nominal', 'grasp', 0.22, 2.6, 0.6, True, 0.02, 0.0, 0.0, 30.0),
-               CaseResult('sdre_ff', 'delay_2ms', 'grasp', 0.1, 1.6, 0.3, True, 0.03, 0.0, 0.0, 30.0),
+               CaseResult('sdre_ff', 'delay_2ms', 'grasp', 0.1, 1.6, 0.3, True, 0.03, 0.0, 0.0,
+                          30.0),
                CaseResult('pd', 'delay_2ms', 'grasp', nan, nan, nan, False, 20.0, 90.0, 0.0, 30.0)]
     table = robustness.markdown_table(results, 'grasp')
     assert '| nominal plant | 0.080 mm (1.40 %) ✓ | 0.220 mm (2.60 %) ✓ |' in table
     assert '| sensor delay 2 ms | 0.100 mm (1.60 %) ✓ | diverged ✗ |' in table
-    path = robustness.plot_grid(results, tmp_path / 'r.png', 'python -m soft_gripper_sdre.tools.robustness')
+    path = robustness.plot_grid(results, tmp_path / 'r.png',
+                                'python -m soft_gripper_sdre.tools.robustness')
     assert path.stat().st_size > 10_000
 
 
-# -- real runs ---------------------------------------------------------------------------------------
+# -- real runs -------------------------------------------------------------------------------------
 def result_bits(results) -> str:
     """Every number of every result, exactly (NaN compares equal here, unlike in ==)."""
-    return json.dumps([[r.law, r.variation, *(v.hex() if isinstance(v, float) else v for v in vars(r).values())]
+    return json.dumps([[r.law, r.variation,
+                        *(v.hex() if isinstance(v, float) else v for v in vars(r).values())]
                        for r in results])
 
 
@@ -203,7 +218,8 @@ def test_grid_numbers_do_not_depend_on_the_number_of_workers():
 
 
 #: the plants whose finger rests ~3 mm further from the cube than the nominal one, so that the
-#: grasp's 30 mm travel from rest stops short of the cube (docs/results.md "Robustness to the plant")
+#: grasp's 30 mm travel from rest stops short of the cube (docs/results.md "Robustness to the
+#: plant")
 SAGGING = ('stiffness_-20', 'friction_x0.5', 'tip_mass_+50')
 
 
@@ -213,21 +229,23 @@ def claims_grid():
     its hold (3.6 s), with the plan's travel from rest and with the plan anchored to the hand; the
     PD with a 2 ms delay and with 0.1 mm noise, and computed torque and the default law with a 2 ms
     delay, on the fast grasp through its hold (1.3 s)."""
-    cases = [Case(DEFAULT_LAW, variation, 'grasp', 3.6, anchored=anchored) for anchored in (False, True)
-             for variation in VARIATIONS]
+    cases = [Case(DEFAULT_LAW, variation, 'grasp', 3.6, anchored=anchored)
+             for anchored in (False, True) for variation in VARIATIONS]
     cases += [Case('pd', variation, 'fast', 1.3) for variation in ('delay_2ms', 'noise_0.1mm')]
     cases += [Case(law, 'delay_2ms', 'fast', 1.3) for law in ('computed_torque', DEFAULT_LAW)]
     results = run_grid(cases, 2, progress=False)
     assert not [r.error for r in results if r.error]
-    return {(r.law, r.variation, r.trajectory) + (('anchored',) if r.anchored else ()): r for r in results}
+    return {(r.law, r.variation, r.trajectory) + (('anchored',) if r.anchored else ()): r
+            for r in results}
 
 
 @pytest.mark.slow
 @pytest.mark.timeout(360)      # the first user of claims_grid: its runs count here
-def test_default_law_keeps_the_grasp_on_every_plant_that_rests_where_the_nominal_one_does(claims_grid):
+def test_default_law_keeps_the_grasp_on_every_plant_that_rests_where_the_nominal_one_does(
+        claims_grid):
     for variation in VARIATIONS:
         r = claims_grid[DEFAULT_LAW, variation, 'grasp']
-        assert r.saturated_pct < 1.0 and r.rmse_mm_grasp < 0.4, r        # < 1.4 % of the 30 mm travel
+        assert r.saturated_pct < 1.0 and r.rmse_mm_grasp < 0.4, r  # < 1.4 % of the 30 mm travel
         if variation not in SAGGING:
             assert r.grasp_success, r
 
@@ -240,7 +258,8 @@ def test_on_the_sagging_plants_the_travel_from_rest_stops_short_of_the_cube(clai
 
 
 @pytest.mark.slow
-def test_default_law_keeps_the_grasp_on_every_variation_with_the_plan_anchored_to_the_hand(claims_grid):
+def test_default_law_keeps_the_grasp_on_every_variation_with_the_plan_anchored_to_the_hand(
+        claims_grid):
     """The robustness target: the grasping fingers close to the nominal finger's closed pose
     (close_to = the model's rest Y + 30 mm) wherever the plant's finger rests."""
     for variation in VARIATIONS:
@@ -259,8 +278,10 @@ def test_default_law_stays_within_5_percent_on_every_variation(claims_grid):
 
 
 @pytest.mark.slow
-def test_computed_torque_diverges_with_a_2_ms_delay_where_the_default_law_keeps_the_grasp(claims_grid):
-    stiff, default = (claims_grid[law, 'delay_2ms', 'fast'] for law in ('computed_torque', DEFAULT_LAW))
+def test_computed_torque_diverges_with_a_2_ms_delay_where_the_default_law_keeps_the_grasp(
+        claims_grid):
+    stiff, default = (claims_grid[law, 'delay_2ms', 'fast']
+                      for law in ('computed_torque', DEFAULT_LAW))
     assert not stiff.grasp_success and stiff.rmse_pct_worst > 20.0, stiff
     assert default.grasp_success and default.rmse_pct_worst <= robustness.TARGET_PCT, default
 

@@ -9,9 +9,11 @@ too short). :func:`label_finger` then turns one finger's tips into the training 
 ``tools.train``:
 
 * tip stamps that are evenly spaced (a lockstep simulator) are used as they are, through the
-  same KF + RTS as the ``.npz`` path (:func:`~soft_gripper_sdre.learning.derivatives.estimate_kinematics`);
+  same KF + RTS as the ``.npz`` path
+  (:func:`~soft_gripper_sdre.learning.derivatives.estimate_kinematics`);
   jittery or gappy ones go through a filter with a step per interval, evaluated on a uniform grid
-  at the median tip period (:func:`~soft_gripper_sdre.learning.derivatives.estimate_kinematics_irregular`);
+  at the median tip period
+  (:func:`~soft_gripper_sdre.learning.derivatives.estimate_kinematics_irregular`);
 * a gap longer than ``gap_periods`` median tip periods splits the tips into separate stretches;
 * the command is held from its stamp to the next one (zero-order hold) onto each sample time;
   samples before the first command, from the last one on (how long a driver held it is not
@@ -76,9 +78,11 @@ class Recording:
             d = np.diff(stamps) / NS
             period = float(np.median(d))
             return {'topic': topic, 'type': msg_type, 'messages': int(stamps.size),
-                    'rate_hz': round(1.0 / period, 3), 'period_jitter': round(float(np.std(d) / period), 4),
+                    'rate_hz': round(1.0 / period, 3),
+                    'period_jitter': round(float(np.std(d) / period), 4),
                     'gaps': int(np.count_nonzero(d > 1.5 * period)),
-                    'first_s': stamps[0] / NS, 'duration_s': round((stamps[-1] - stamps[0]) / NS, 6)}
+                    'first_s': stamps[0] / NS,
+                    'duration_s': round((stamps[-1] - stamps[0]) / NS, 6)}
         return {'path': str(self.path.resolve()), 'n_fingers': self.n_fingers,
                 'tips': stream(self.tip_ns, self.tips_topic, TIPS_TYPE),
                 'torques': stream(self.cmd_ns, self.torques_topic, TORQUES_TYPE)}
@@ -121,15 +125,15 @@ def _check_finite(path: Path, topic: str, stamps: np.ndarray, values: np.ndarray
     bad = ~np.all(np.isfinite(values.reshape(len(values), -1)), axis=1)
     if bad.any():
         i = int(np.flatnonzero(bad)[0])
-        raise BagDataError(f'bag {path}: {topic} holds NaN or Inf in {int(bad.sum())} message(s), the '
-                           f'first stamped {stamps[i] / NS:.6f} s')
+        raise BagDataError(f'bag {path}: {topic} holds NaN or Inf in {int(bad.sum())} message(s), '
+                           f'the first stamped {stamps[i] / NS:.6f} s')
 
 
 def _tips(path: Path, topic: str, messages: list) -> tuple[np.ndarray, np.ndarray]:
     n = len(messages[0][1].poses)
     if not 1 <= n <= len(FINGER_NAMES):
-        raise BagDataError(f'bag {path}: {topic} messages hold {n} poses; expected 1 to {len(FINGER_NAMES)} '
-                           '(one per finger)')
+        raise BagDataError(f'bag {path}: {topic} messages hold {n} poses; '
+                           f'expected 1 to {len(FINGER_NAMES)} (one per finger)')
     stamps, values = [], []
     for i, (_, msg) in enumerate(messages):
         if len(msg.poses) != n:
@@ -162,14 +166,16 @@ def _torques(path: Path, topic: str, messages: list, n: int) -> tuple[np.ndarray
         if sorted(names) != sorted(expected) or len(msg.effort) != len(names):
             raise BagDataError(f'bag {path}: {topic} message {i} names {names[:8]} with '
                                f'{len(msg.effort)} efforts; expected the {len(expected)} joints '
-                               f'{expected} of the {n} finger(s) in tip_positions, each with an effort')
+                               f'{expected} of the {n} finger(s) in tip_positions, '
+                               'each with an effort')
         effort = np.asarray(msg.effort, dtype=float)
         stamps.append(_stamp(msg))
         values.append(effort[[names.index(name) for name in expected]].reshape(n, 2))
     return np.asarray(stamps, dtype=np.int64), np.asarray(values, dtype=float)
 
 
-def read_recording(path: str | Path, tips_topic: str = TIP_POSITIONS, torques_topic: str = TORQUE_COMMANDS,
+def read_recording(path: str | Path, tips_topic: str = TIP_POSITIONS,
+                   torques_topic: str = TORQUE_COMMANDS,
                    min_duration: float = DEFAULT_MIN_DURATION) -> Recording:
     """Read and check the tips and commands of the bag ``path`` (topic names with or without the
     leading '/'; a namespaced recording is found by the last name component).
@@ -191,7 +197,8 @@ def read_recording(path: str | Path, tips_topic: str = TIP_POSITIONS, torques_to
     if len(messages) != 2:
         raise BagDataError(f'bag {path}: {tips_topic!r} and {torques_topic!r} name the same topic')
     (tips_name, tip_msgs), (torques_name, cmd_msgs) = messages.items()
-    for topic, msgs, expected in ((tips_name, tip_msgs, TIPS_TYPE), (torques_name, cmd_msgs, TORQUES_TYPE)):
+    for topic, msgs, expected in ((tips_name, tip_msgs, TIPS_TYPE),
+                                  (torques_name, cmd_msgs, TORQUES_TYPE)):
         if msgs:
             _check_type(path, topic, msgs, expected)
         if len(msgs) < MIN_SAMPLES:
@@ -205,8 +212,9 @@ def read_recording(path: str | Path, tips_topic: str = TIP_POSITIONS, torques_to
     inside = (tip_ns >= cmd_ns[0]) & (tip_ns <= cmd_ns[-1])
     span = (tip_ns[inside][-1] - tip_ns[inside][0]) / NS if inside.sum() > 1 else 0.0
     if inside.sum() < MIN_SAMPLES or span < min_duration:
-        raise BagDataError(f'bag {path}: too short: {int(inside.sum())} tips over {span:.3f} s while '
-                           f'commands were given ({cmd_ns[0] / NS:.3f} to {cmd_ns[-1] / NS:.3f} s); at '
+        raise BagDataError(f'bag {path}: too short: {int(inside.sum())} tips over {span:.3f} s '
+                           f'while commands were given ({cmd_ns[0] / NS:.3f} to '
+                           f'{cmd_ns[-1] / NS:.3f} s); at '
                            f'least {MIN_SAMPLES} tips over {min_duration:g} s needed')
     names = tuple(j.rsplit('/', 1)[0] for j in torque_joint_order(list(cmd_msgs[0][1].name))[::2])
     return Recording(path, tips_name, torques_name, tip_ns, tips, cmd_ns, torques, names)
@@ -214,7 +222,8 @@ def read_recording(path: str | Path, tips_topic: str = TIP_POSITIONS, torques_to
 
 # -- from a recording to samples --------------------------------------------------------------
 
-def hold_commands(cmd_ns: np.ndarray, values: np.ndarray, t_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def hold_commands(cmd_ns: np.ndarray, values: np.ndarray,
+                  t_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Zero-order hold: the command in force at each time ``t_ns`` (the last one stamped at or
     before it) and its age [ns]; NaN values and age −1 before the first command."""
     which = np.searchsorted(cmd_ns, t_ns, side='right') - 1
@@ -283,9 +292,11 @@ def tip_stretches(rec: Recording, gap_periods: float = DEFAULT_GAP_PERIODS) -> l
     return [slice(a, b) for a, b in zip(edges[:-1], edges[1:]) if b - a >= MIN_SAMPLES]
 
 
-def label_finger(rec: Recording, finger: int, jerk_psd: float, meas_std: float, rest_tip: np.ndarray,
+def label_finger(rec: Recording, finger: int, jerk_psd: float, meas_std: float,
+                 rest_tip: np.ndarray,
                  gap_periods: float = DEFAULT_GAP_PERIODS) -> list[FingerSamples]:
-    """Training samples of ``finger`` (module doc): one :class:`FingerSamples` per stretch of tips."""
+    """Training samples of ``finger`` (module doc): one :class:`FingerSamples` per stretch of
+    tips."""
     cmd_period = float(np.median(np.diff(rec.cmd_ns)))
     tip_period = float(np.median(np.diff(rec.tip_ns)))
     out = []
@@ -298,17 +309,21 @@ def label_finger(rec: Recording, finger: int, jerk_psd: float, meas_std: float, 
             pos, vel, acc = derivatives.estimate_kinematics(t, xy, jerk_psd, meas_std, smooth=True)
             resampled = False
         else:
-            grid_ns = t_ns[0] + np.arange(int((t_ns[-1] - t_ns[0]) // tip_period) + 1) * int(round(tip_period))
-            pos, vel, acc = derivatives.estimate_kinematics_irregular(t, xy, grid_ns / NS, jerk_psd, meas_std)
+            grid_ns = (t_ns[0] + np.arange(int((t_ns[-1] - t_ns[0]) // tip_period) + 1)
+                       * int(round(tip_period)))
+            pos, vel, acc = derivatives.estimate_kinematics_irregular(t, xy, grid_ns / NS,
+                                                                      jerk_psd, meas_std)
             resampled = True
         u, age = hold_commands(rec.cmd_ns - rec.tip_ns[0], rec.torques[:, finger], grid_ns)
         # how long the last command was held is unknown (the driver may hold or drop it)
-        keep = (age >= 0) & (age <= gap_periods * cmd_period) & (grid_ns < rec.cmd_ns[-1] - rec.tip_ns[0])
+        keep = ((age >= 0) & (age <= gap_periods * cmd_period)
+                & (grid_ns < rec.cmd_ns[-1] - rec.tip_ns[0]))
         if keep.sum() < MIN_SAMPLES:
             continue
         x = np.hstack([pos - rest_tip[:2], vel])
         out.append(FingerSamples(
-            f'{rec.path.name}/{rec.finger_names[finger]}#{k}', grid_ns[keep] / NS, x[keep], u[keep], acc[keep],
+            f'{rec.path.name}/{rec.finger_names[finger]}#{k}', grid_ns[keep] / NS, x[keep], u[keep],
+            acc[keep],
             {'resampled': resampled, 'samples': int(keep.sum()), 'left_out': int((~keep).sum()),
              'span_s': [float(grid_ns[keep][0] / NS), float(grid_ns[keep][-1] / NS)]}))
     return out

@@ -30,7 +30,8 @@ def _is_oracle(key: str) -> bool:
     return key.startswith('oracle')
 
 
-def detail_laws(scores: dict[str, tuple[float, bool]], highlight: str, paper: str = 'sdre') -> list[str]:
+def detail_laws(scores: dict[str, tuple[float, bool]], highlight: str,
+                paper: str = 'sdre') -> list[str]:
     """The laws whose traces are drawn: ``highlight``, the paper's law and the best other law (by
     RMSE) that neither knows the plant nor is a variant of ``highlight`` (``<highlight>_…``), of
     those that ran."""
@@ -41,10 +42,12 @@ def detail_laws(scores: dict[str, tuple[float, bool]], highlight: str, paper: st
     return chosen + rivals[:1]
 
 
-def _bars(ax, scores: dict[str, tuple[float, bool]], labels: dict[str, str], highlight: str) -> None:
+def _bars(ax, scores: dict[str, tuple[float, bool]], labels: dict[str, str],
+          highlight: str) -> None:
     """Horizontal bars of RMSE, best at the top (log scale); a lost grasp hatched, a diverged run
     drawn to the axis' end and named."""
-    order = sorted(scores, key=lambda k: (not np.isfinite(scores[k][0]), scores[k][0]), reverse=True)
+    order = sorted(scores, key=lambda k: (not np.isfinite(scores[k][0]), scores[k][0]),
+                   reverse=True)
     finite = [v for v, _ in scores.values() if np.isfinite(v) and v < DIVERGED_MM]
     lo = 10 ** np.floor(np.log10(min(finite))) if finite else 1e-2
     for row, key in enumerate(order):
@@ -92,7 +95,7 @@ def plot_laws(results: dict, labels: dict, scores: dict[str, tuple[float, bool]]
     ax_e.set_ylim(1e-3, 1e1)
     ax_e.set_ylabel('finger 0 tip error [mm]\n(in contact while closed)')
     ax_e.set_xlabel('time [s]   (true tip from the simulator)')
-    ax_y.legend(loc='center', fontsize=7, framealpha=0.9)     # below the closed fingers: no data there
+    ax_y.legend(loc='center', fontsize=7, framealpha=0.9)  # below the closed fingers: no data there
     fig.suptitle(f'{trajectory}: every law on the same plant, reference and noise', y=0.99)
     fig.subplots_adjust(left=0.2, right=0.98, top=0.88, bottom=0.1)
     path = Path(path)
@@ -101,7 +104,8 @@ def plot_laws(results: dict, labels: dict, scores: dict[str, tuple[float, bool]]
     return path
 
 
-def plot_feedforward(results: dict, labels: dict, trajectory: str, path, highlight: str = 'sdre_ff') -> Path:
+def plot_feedforward(results: dict, labels: dict, trajectory: str, path,
+                     highlight: str = 'sdre_ff') -> Path:
     """A feedforward law (``highlight``, drawn thicker) against the others in ``results``: both
     grasping fingers' tip errors (log scale), the legend above the panels."""
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.2), sharex=True, sharey=True)
@@ -122,7 +126,8 @@ def plot_feedforward(results: dict, labels: dict, trajectory: str, path, highlig
     handles, names = axes[0].get_legend_handles_labels()
     fig.legend(handles, names, loc='upper center', bbox_to_anchor=(0.5, 0.93), ncol=len(names),
                fontsize=8, frameon=False)
-    fig.suptitle(f'{trajectory}: SDRE + model-inversion feedforward against the paper\'s law and the PD')
+    fig.suptitle(f'{trajectory}: SDRE + model-inversion feedforward against the paper\'s law '
+                 'and the PD')
     fig.tight_layout(rect=(0, 0, 1, 0.88))
     path = Path(path)
     fig.savefig(path, dpi=100)
@@ -132,7 +137,8 @@ def plot_feedforward(results: dict, labels: dict, trajectory: str, path, highlig
 
 def plot_model_vs_truth(samples: dict, path) -> Path:
     """The learned task-space acceleration against the simulator's, the exact and the projected
-    one: ``samples`` holds t (T,) [s] and acc_sim, acc_exact, acc_proj, acc_learned (T, 2) [m/s²]."""
+    one: ``samples`` holds t (T,) [s] and acc_sim, acc_exact, acc_proj, acc_learned (T, 2)
+    [m/s²]."""
     fig, axes = plt.subplots(2, 1, figsize=(11, 6.4), sharex=True)
     traces = (('acc_sim', 'simulator (measured)', dict(color='k', lw=1.2)),
               ('acc_exact', 'exact J̇q̇ + JM⁻¹(Bu − Kq − Cq̇ − g)', dict(color='C0', lw=0.9)),

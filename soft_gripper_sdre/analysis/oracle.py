@@ -58,7 +58,8 @@ class OracleSdreLaw:
 
     def _observed(self):
         if self._AG is None:
-            raise RuntimeError(f'{type(self).__name__}.compute needs observe(truth) first (the plant state)')
+            raise RuntimeError(f'{type(self).__name__}.compute needs observe(truth) first '
+                               '(the plant state)')
         return self._AG
 
     def compute(self, pos, vel, ref_pos, ref_vel, ref_acc=None) -> LawStep:
@@ -77,7 +78,8 @@ class OracleSdreLaw:
 
 class OracleFeedforwardLaw(OracleSdreLaw):
     """:class:`~soft_gripper_sdre.control.laws.SdreFeedforwardLaw` on the oracle's true (projected)
-    SDC pair, which exists only at the plant's state: u = G₂(q)⁻¹ (a_d − [A(q) x_d]₃,₄) + K(q)(x − x_d)."""
+    SDC pair, which exists only at the plant's state:
+    u = G₂(q)⁻¹ (a_d − [A(q) x_d]₃,₄) + K(q)(x − x_d)."""
 
     def compute(self, pos, vel, ref_pos, ref_vel, ref_acc=None) -> LawStep:
         A, G = self._observed()

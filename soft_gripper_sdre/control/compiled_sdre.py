@@ -1,8 +1,8 @@
 """The SDRE kernels compiled with numba (``@njit``, plain loops over fingers, no Python objects):
 the fused SDC network, one finger's warm-started Newton–Kleinman solve with its structured checks
 and gains, and the laws built on them for n fingers. The data layout, the state they update and
-:func:`~soft_gripper_sdre.control.compiled.warm_up` are in :mod:`soft_gripper_sdre.control.compiled`;
-the derivations in docs/design/compiled_kernel.md.
+:func:`~soft_gripper_sdre.control.compiled.warm_up` are in
+:mod:`soft_gripper_sdre.control.compiled`; the derivations in docs/design/compiled_kernel.md.
 
 All the SDRE kernels live in this one file because numba's on-disk cache is keyed on the source
 file of the function compiled: a kernel calling into another file would keep a stale copy of it.
@@ -16,7 +16,8 @@ import numpy as np
 kernel = njit(cache=True, error_model='numpy', nogil=True)
 
 #: the bits of riccati.Check (written out: the compiled code keeps the values it was compiled with)
-STABILIZABLE, HURWITZ, ACL_SINGULAR, SOLVE_FAILED, NONFINITE, RESIDUAL, P_NOT_PD = 1, 4, 8, 16, 32, 64, 128
+(STABILIZABLE, HURWITZ, ACL_SINGULAR, SOLVE_FAILED, NONFINITE, RESIDUAL,
+ P_NOT_PD) = 1, 4, 8, 16, 32, 64, 128
 
 # A symmetric 4×4 P has 10 unknowns: its upper triangle row by row, entry e = (ROW[e], COL[e]);
 # SYM[i, j] is the unknown holding P[i, j] = P[j, i].
@@ -31,9 +32,9 @@ SYM[ROW, COL] = SYM[COL, ROW] = np.arange(10)
 
 @kernel
 def well_conditioned(M, c_max):
-    """cond₂(M) < c_max for a 2×2 M, without an SVD: with σ₁ ≥ σ₂, σ₁² + σ₂² = ‖M‖_F² and σ₁σ₂ = |det M|,
-    so κ + 1/κ = ‖M‖_F² / |det M| and κ < c_max ⇔ ‖M‖_F² < (c_max + 1/c_max) |det M|. False for a
-    singular or non-finite M."""
+    """cond₂(M) < c_max for a 2×2 M, without an SVD: with σ₁ ≥ σ₂, σ₁² + σ₂² = ‖M‖_F² and
+    σ₁σ₂ = |det M|, so κ + 1/κ = ‖M‖_F² / |det M| and κ < c_max ⇔ ‖M‖_F² < (c_max + 1/c_max)
+    |det M|. False for a singular or non-finite M."""
     fro2 = M[0, 0] ** 2 + M[0, 1] ** 2 + M[1, 0] ** 2 + M[1, 1] ** 2
     det = M[0, 0] * M[1, 1] - M[0, 1] * M[1, 0]
     return fro2 < (c_max + 1.0 / c_max) * abs(det)
@@ -103,7 +104,8 @@ def lyapunov_operator(A, L):
 
 @kernel
 def quadratic_term(P, W, WP, PSP):
-    """S P's lower rows WP = W P_low (2, 4) and P S P = P_lowᵀ W P_low (4, 4), S = [[0, 0], [0, W]]."""
+    """S P's lower rows WP = W P_low (2, 4) and P S P = P_lowᵀ W P_low (4, 4),
+    S = [[0, 0], [0, W]]."""
     for r in range(2):
         for c in range(4):
             WP[r, c] = W[r, 0] * P[2, c] + W[r, 1] * P[3, c]
@@ -263,14 +265,15 @@ def sdre_gains(a2, g2, finite, q, r_inv, residual_tol, cond_max, max_iterations,
     and the checks; the state (P, warm, K, Ks) is updated in place.
 
     The warm fingers iterate together and stop at the first iteration where Σ ⟨Δ_low, W Δ_low⟩ <
-    residual_tol ‖Q‖_F / 2 over them; a finger whose solve fails leaves the sum. A finger keeps its previous K, K_s and ends with warm False when it was cold
-    or any check failed (``failed``: the Check bits; NONFINITE and STABILIZABLE hold for cold
-    fingers too).
+    residual_tol ‖Q‖_F / 2 over them; a finger whose solve fails leaves the sum. A finger keeps its
+    previous K, K_s and ends with warm False when it was cold or any check failed (``failed``: the
+    Check bits; NONFINITE and STABILIZABLE hold for cold fingers too).
     """
     n = a2.shape[0]
     A, W, B = np.zeros((n, 4, 4)), np.empty((n, 2, 2)), np.empty((n, 2, 2))
     WP, PSP = np.empty((n, 2, 4)), np.empty((n, 4, 4))
-    A_k, N, work, L, p = np.empty((4, 4)), np.empty((4, 4)), np.zeros((4, 4)), np.empty((10, 10)), np.empty(10)
+    A_k, N, work, L, p = (np.empty((4, 4)), np.empty((4, 4)), np.zeros((4, 4)), np.empty((10, 10)),
+                          np.empty(10))
     C, Kn, Ksn = np.empty((2, 2)), np.empty((2, 4)), np.empty((2, 4))
     q_norm = max(np.sqrt(np.sum(q * q)), 1e-300)
     half_tol_q = 0.5 * residual_tol * q_norm
@@ -279,7 +282,7 @@ def sdre_gains(a2, g2, finite, q, r_inv, residual_tol, cond_max, max_iterations,
         residual[i], iterations[i], failed[i] = np.nan, 0, 0
         if not finite[i]:
             failed[i] = NONFINITE
-        elif not well_conditioned(g2[i], cond_max):                # rank [G, AG] = 4 iff G2 invertible
+        elif not well_conditioned(g2[i], cond_max):        # rank [G, AG] = 4 iff G2 invertible
             failed[i] = STABILIZABLE
         solving[i] = warm[i] and failed[i] == 0
         warm[i] = False
@@ -307,8 +310,8 @@ def sdre_gains(a2, g2, finite, q, r_inv, residual_tol, cond_max, max_iterations,
     for i in range(n):
         if not solving[i]:
             continue
-        failed[i], residual[i] = finger_checks(A[i], q, P[i], WP[i], PSP[i], residual_tol, q_norm, cond_max,
-                                               C, N, work)
+        failed[i], residual[i] = finger_checks(A[i], q, P[i], WP[i], PSP[i], residual_tol, q_norm,
+                                               cond_max, C, N, work)
         if failed[i] == 0:
             finger_gains(B[i], P[i], C, q, Kn, Ksn)
             if np.all(np.isfinite(Kn)) and np.all(np.isfinite(Ksn)):
@@ -337,8 +340,9 @@ def tracking_torques(K, Ks, x, x_d, finite, u_max, u, u_unsat):
 @kernel
 def sdre_step(x, x_d, q, r_inv, u_max, residual_tol, cond_max, max_iterations, P, warm, K, Ks,
               a2, g2, u, u_unsat, residual, iterations, failed):
-    """One step of the SDRE tracking law for the SDC blocks a2, g2 at x (:meth:`SdreController.step_sdc`
-    for warm fingers; the caller solves exactly the fingers that end with warm False)."""
+    """One step of the SDRE tracking law for the SDC blocks a2, g2 at x
+    (:meth:`SdreController.step_sdc` for warm fingers; the caller solves exactly the fingers that
+    end with warm False)."""
     n = x.shape[0]
     finite = np.empty(n, dtype=np.bool_)
     for i in range(n):
@@ -350,7 +354,8 @@ def sdre_step(x, x_d, q, r_inv, u_max, residual_tol, cond_max, max_iterations, P
 
 @kernel
 def rest_frame_states(z, origin, x, x_d):
-    """x = [p − p₀, ṗ], x_d = [p_d − p₀, ṗ_d] (n, 4) from the rows z = [p, ṗ, p_d, ṗ_d, …] (RestFrame.states)."""
+    """x = [p − p₀, ṗ], x_d = [p_d − p₀, ṗ_d] (n, 4) from the rows z = [p, ṗ, p_d, ṗ_d, …]
+    (RestFrame.states)."""
     for i in range(z.shape[0]):
         for k in range(2):
             x[i, k], x[i, 2 + k] = z[i, k] - origin[k], z[i, 2 + k]
@@ -391,7 +396,8 @@ def model_inversion(a2, g2, x_d, a_d, cond_max, u_ff, usable):
 @kernel
 def feedforward_step(z, origin, ff_at_reference, w1, b1, w2, b2, w3, b3,
                      q, r_inv, u_max, residual_tol, cond_max, max_iterations, P, warm, K, Ks,
-                     a2, g2, u, u_unsat, residual, iterations, failed, u_ff, a2_ff, g2_ff, state_finite, ff_usable):
+                     a2, g2, u, u_unsat, residual, iterations, failed, u_ff, a2_ff, g2_ff,
+                     state_finite, ff_usable):
     """SdreFeedforwardLaw.compute before its roll-off:
 
         u = u_ff + K(x) e,   e = x − x_d,   u_ff = G2(z)⁻¹ (a_d − A2(z) x_d),   z = x or x_d

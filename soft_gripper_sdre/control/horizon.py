@@ -32,10 +32,12 @@ def sample_horizon(times_ns: np.ndarray, pos: np.ndarray, vel: np.ndarray, acc: 
 
     Args:
         times_ns: (h,) strictly increasing absolute point times [ns] (as
-            :func:`~soft_gripper_sdre.nodes.conversions.msg_to_reference` guarantees; not re-checked).
+            :func:`~soft_gripper_sdre.nodes.conversions.msg_to_reference` guarantees; not
+            re-checked).
         pos, vel, acc: (h, n, 2) positions [m], velocities [m/s], accelerations [m/s²].
         t_ns: the sample time [ns], within ``[times_ns[0], times_ns[-1]]``.
-        with_acc: also return the acceleration (the feedforward laws of :mod:`soft_gripper_sdre.control.laws`).
+        with_acc: also return the acceleration (the feedforward laws of
+            :mod:`soft_gripper_sdre.control.laws`).
 
     Returns:
         (pos (n, 2), vel (n, 2)) at ``t_ns``; (pos, vel, acc (n, 2)) with ``with_acc``.
@@ -47,7 +49,8 @@ def sample_horizon(times_ns: np.ndarray, pos: np.ndarray, vel: np.ndarray, acc: 
     h = len(times_ns) if times_ns.ndim == 1 else 0
     pos, vel, acc = (np.asarray(a, dtype=float) for a in (pos, vel, acc))
     shapes = {a.shape for a in (pos, vel, acc)}
-    if h == 0 or len(shapes) != 1 or len(shape := shapes.pop()) != 3 or shape[0] != h or shape[2] != 2:
+    if (h == 0 or len(shapes) != 1 or len(shape := shapes.pop()) != 3 or shape[0] != h
+            or shape[2] != 2):
         raise ValueError(f'times_ns must be (h,) and pos, vel, acc (h, n, 2) alike; got '
                          f'{times_ns.shape}, {pos.shape}, {vel.shape}, {acc.shape}')
     t_ns = int(t_ns)

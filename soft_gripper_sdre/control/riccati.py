@@ -7,8 +7,9 @@ For each finger, with A = A(x), G = G(x) from the learned model (the paper's eq.
 
 and the checks of Remarks 2–3, each a bit of :class:`Check`: (A, G) stabilisable, (A, Q^½)
 detectable, everything finite, P symmetric positive definite with a small residual, A_cl Hurwitz
-and invertible. These hold for any (A, G); the compiled kernels (:mod:`~soft_gripper_sdre.control.compiled`)
-have cheaper versions for the SDC structure, A = [[0, I], [A21 A22]] and G = [[0], [G2]].
+and invertible. These hold for any (A, G); the compiled kernels
+(:mod:`~soft_gripper_sdre.control.compiled`) have cheaper versions for the SDC structure,
+A = [[0, I], [A21 A22]] and G = [[0], [G2]].
 """
 from __future__ import annotations
 
@@ -22,7 +23,8 @@ from soft_gripper_sdre.control.batched_linalg import well_conditioned_2x2
 
 
 class Check(IntFlag):
-    """The SDRE's checks: bits of :attr:`~soft_gripper_sdre.control.tracking.LawStep.failed_checks`."""
+    """The SDRE's checks: bits of
+    :attr:`~soft_gripper_sdre.control.tracking.LawStep.failed_checks`."""
 
     STABILIZABLE = 1
     DETECTABLE = 2
@@ -60,7 +62,8 @@ def in_sdc_form(A: np.ndarray, G: np.ndarray) -> bool:
 
 
 def full_sdc_matrices(A2: np.ndarray, G2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """A = [[0, I], A2] (n, 4, 4) and G = [[0], G2] (n, 4, 2) from the lower rows A2 (n, 2, 4), G2 (n, 2, 2)."""
+    """A = [[0, I], A2] (n, 4, 4) and G = [[0], G2] (n, 4, 2) from the lower rows A2 (n, 2, 4),
+    G2 (n, 2, 2)."""
     n = A2.shape[0]
     A = np.zeros((n, 4, 4))
     A[:, :2, :] = SDC_TOP_ROWS
@@ -71,7 +74,8 @@ def full_sdc_matrices(A2: np.ndarray, G2: np.ndarray) -> tuple[np.ndarray, np.nd
 
 
 def is_stabilizable(A: np.ndarray, B: np.ndarray, tol: float = 1e-9) -> bool:
-    """(A, B) stabilisable by the PBH test: rank [A − λI, B] = n for every eigenvalue λ of A with Re λ ≥ 0."""
+    """(A, B) stabilisable by the PBH test: rank [A − λI, B] = n for every eigenvalue λ of A with
+    Re λ ≥ 0."""
     n = A.shape[0]
     for lam in np.linalg.eigvals(A):
         if lam.real >= -tol:
@@ -170,8 +174,9 @@ class CheckedGains:
     failed: np.ndarray           # (n,) bits of Check
 
 
-def checked_gains(A: np.ndarray, G: np.ndarray, P: np.ndarray, usable: np.ndarray, failed: np.ndarray,
-                  cost: RiccatiCost, residual_tol: float, cond_max: float) -> CheckedGains:
+def checked_gains(A: np.ndarray, G: np.ndarray, P: np.ndarray, usable: np.ndarray,
+                  failed: np.ndarray, cost: RiccatiCost, residual_tol: float,
+                  cond_max: float) -> CheckedGains:
     """K, K_s from P (n, 4, 4) and every check of eq. 23–24 and Remark 2, finger by finger.
 
     ``usable`` and ``failed`` are :func:`solvability`'s answer (``failed`` is updated in place); P
@@ -205,8 +210,8 @@ def checked_gains(A: np.ndarray, G: np.ndarray, P: np.ndarray, usable: np.ndarra
         ok_inv = s[invertible[s]]
         if ok_inv.size:
             # K_s = −R⁻¹ Gᵀ A_cl⁻ᵀ Q
-            Ks[ok_inv] = -Rinv_Gt[ok_inv] @ np.linalg.solve(A_cl[ok_inv].transpose(0, 2, 1),
-                                                            np.broadcast_to(cost.Q, (ok_inv.size, 4, 4)))
+            Ks[ok_inv] = -Rinv_Gt[ok_inv] @ np.linalg.solve(
+                A_cl[ok_inv].transpose(0, 2, 1), np.broadcast_to(cost.Q, (ok_inv.size, 4, 4)))
     failed[solved & ~hurwitz] |= Check.HURWITZ
     failed[solved & ~invertible] |= Check.ACL_SINGULAR
     ok = failed == 0

@@ -152,11 +152,13 @@ class SteppingTiming:
     received), over the whole run (``loop_latency_us_*``) and since the previous report
     (``recent_latency_us_*``). The clocks are arguments so the arithmetic can be checked."""
 
-    def __init__(self, periods: int, wall=time.monotonic, cpu=time.process_time, perf=time.perf_counter) -> None:
+    def __init__(self, periods: int, wall=time.monotonic, cpu=time.process_time,
+                 perf=time.perf_counter) -> None:
         self._wall, self._cpu, self._perf = wall, cpu, perf
         self.latency = LatencyWindow()
         self._reported = 0                      # latency samples in the previous report
-        self._sent = np.zeros(periods)          # perf clock when the tips of period k went out, at k % periods
+        self._sent = np.zeros(periods)          # perf clock when the tips of period k went out, at
+                                                # k % periods
         self.wall_start: float | None = None    # wall clock at the first step
         self._wall_end = self._cpu_start = self._cpu_end = None
 
@@ -184,7 +186,8 @@ class SteppingTiming:
                 cpu = (self._cpu_end or self._cpu()) - self._cpu_start
                 out['cpu_per_step_us'] = f'{1e6 * cpu / steps:.0f}'
         out.update(self.latency.summary('loop_latency_us'))
-        out.update(self.latency.summary('recent_latency_us', last=self.latency.count - self._reported))
+        out.update(self.latency.summary('recent_latency_us',
+                                        last=self.latency.count - self._reported))
         self._reported = self.latency.count
         return out
 
@@ -215,7 +218,8 @@ def flush(node: Node, timeout: float = 2.0) -> bool:
     so a slow reader of a loop topic must not use up the time they get."""
     deadline = time.monotonic() + timeout
     acked = True
-    for pub in sorted(node.publishers, key=lambda pub: pub.topic_name != '/' + DIAGNOSTICS.lstrip('/')):
+    for pub in sorted(node.publishers,
+                      key=lambda pub: pub.topic_name != '/' + DIAGNOSTICS.lstrip('/')):
         left = max(0.0, deadline - time.monotonic())
         acked &= pub.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9)))
     return acked
@@ -247,7 +251,8 @@ def run(node_factory: Callable[..., Node | tuple[Node, ...]], args: list[str] | 
     try:
         rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
     except RuntimeError as exc:               # rcl refused the ROS arguments (an RCLError)
-        sys.stderr.write(f'{executable}: cannot start with these arguments: {str(exc).splitlines()[0]}\n')
+        sys.stderr.write(f'{executable}: cannot start with these arguments: '
+                         f'{str(exc).splitlines()[0]}\n')
         return USAGE_ERROR
     stop: list[int] = []
     for sig in (signal.SIGINT, signal.SIGTERM):

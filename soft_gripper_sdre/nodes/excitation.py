@@ -90,17 +90,17 @@ PARAMS = (
     Param('settle_samples', 100, 'the first settle phase goes on past settle_time until this many '
           'tip messages were heard since the start (with settle_time > 0; 0 = settle_time alone)',
           '', 0, 1_000_000, read_only=True),
-    finger_names_param('the fingers: pose i of tip_positions is finger i; the torque_commands names '
-                       'are <finger>/ax0, <finger>/ax1'),
-    Param('finger', -1, 'the finger to excite, an index into finger_names (-1 = all); the others get '
-          'zero torque', '', -1, 3, read_only=True),
+    finger_names_param('the fingers: pose i of tip_positions is finger i; the torque_commands '
+                       'names are <finger>/ax0, <finger>/ax1'),
+    Param('finger', -1, 'the finger to excite, an index into finger_names (-1 = all); the others '
+          'get zero torque', '', -1, 3, read_only=True),
     Param('torque_limit', 0.1, 'every torque is clipped to ±limit (0.1 N·m: the simulator\'s '
           'actuator limit; the paper\'s signals peak at 0.0675)', 'N·m', 1e-6, 1.0, read_only=True),
     Param('timing', 'tips', 'answer each tip message with the torque for its stamp, or publish on '
           'a timer of the node\'s clock', choices=('tips', 'timer'), read_only=True),
     Param('period', 0.001, 'timer timing: the command period', 's', 1e-4, 1.0, read_only=True),
-    Param('tips_timeout', 1.0, 'wall time without tip_positions after which the run stops as a fault',
-          's', 0.01, 600.0, read_only=True),
+    Param('tips_timeout', 1.0, 'wall time without tip_positions after which the run stops as a '
+          'fault', 's', 0.01, 600.0, read_only=True),
     Param('startup_timeout', 60.0, 'wall time to wait for the first tip_positions message and for '
           'min_command_subscribers', 's', 0.1, 3600.0, read_only=True),
     Param('min_command_subscribers', 2, 'start only once torque_commands has this many matched '
@@ -109,8 +109,8 @@ PARAMS = (
     Param('reset_on_jump', 0.1, 'tip stamps jumping back by more than this (a restarted driver) '
           'stop the run as a fault', 's', 1e-3, 1e6, read_only=True),
     Param('stop_wait', 0.2, 'shutdown, tips timing: wall time to wait for one more tip message to '
-          'answer with zero torque (then zero goes out stamped with the newest tips)', 's', 0.0, 10.0,
-          read_only=True),
+          'answer with zero torque (then zero goes out stamped with the newest tips)',
+          's', 0.0, 10.0, read_only=True),
     Param('max_excursion', 0.0, 'stop as a fault when an excited tip moves further than this from '
           'its starting position (0 = off; level auto needs it)', 'm', 0.0, 1.0, read_only=True),
     Param('amplitude', 1.0, 'level fixed: every signal (built-in or spec_file) is multiplied by '
@@ -139,11 +139,13 @@ class ExcitationNode(Node):
         self.names = tuple(p['finger_names'])
         self.n = len(self.names)
         if p['finger'] >= self.n:
-            raise ParameterError(f"parameter 'finger': {p['finger']} is not a finger of finger_names "
-                                 f'{list(self.names)} (indices 0 to {self.n - 1}, or -1 for all)')
+            raise ParameterError(f"parameter 'finger': {p['finger']} is not a finger of "
+                                 f'finger_names {list(self.names)} (indices 0 to {self.n - 1}, '
+                                 'or -1 for all)')
         finger = None if p['finger'] < 0 else p['finger']
         try:
-            signals = resolve_signals(list(p['signals']), p['spec_file'] or None, p['duration'] or None)
+            signals = resolve_signals(list(p['signals']), p['spec_file'] or None,
+                                      p['duration'] or None)
             self.plan = ExcitationPlan(signals, p['settle_time'], self.n, finger, p['torque_limit'],
                                        p['amplitude'])
         except (SignalSpecError, ValueError) as exc:
@@ -151,7 +153,8 @@ class ExcitationNode(Node):
         self.search = self._level_search(finger) if p['level'] == 'auto' else None
         self.plan_offset = 0.0                  # run time at which plan time 0 is [s]
         self.settle_tips = 0                    # tips answered before the first non-zero torque
-        self.settle_heard = 0                   # tips heard since the start, in the first settle phase
+        self.settle_heard = 0                   # tips heard since the start, in the first settle
+                                                # phase
         self.settle_extended = False            # the first settle phase outlasted settle_time
         self.settle_shift: float | None = None  # its extension [s], once it is over
         self.excited = False                    # a non-zero torque went out
@@ -231,7 +234,8 @@ class ExcitationNode(Node):
                 self.fault(f'tip stamps jumped back from {self.last_ns / cv.NS:.4f} s to '
                            f'{stamp / cv.NS:.4f} s (a restarted driver?)', stamp)
             else:
-                self.diag.problem('old_tips', f'rejected: stamp {stamp} ns is not newer than {self.last_ns} ns')
+                self.diag.problem('old_tips', f'rejected: stamp {stamp} ns is not newer than '
+                                              f'{self.last_ns} ns')
             return
         self.last_ns, self.last_heard = stamp, time.monotonic()
         self.newest_tips = tips
@@ -252,8 +256,8 @@ class ExcitationNode(Node):
             self.get_logger().info(f'tip_positions at t = {stamp / cv.NS:.4f} s with {subscribers} '
                                    f'{TORQUE_COMMANDS} subscriber(s): the run starts')
         if self.p['max_excursion'] > 0 and self._excursion(tips) > self.p['max_excursion']:
-            self.fault(f'a tip moved {1e3 * self._excursion(tips):.2f} mm from its start, more than '
-                       f'max_excursion ({1e3 * self.p["max_excursion"]:g} mm)', stamp)
+            self.fault(f'a tip moved {1e3 * self._excursion(tips):.2f} mm from its start, '
+                       f'more than max_excursion ({1e3 * self.p["max_excursion"]:g} mm)', stamp)
             return
         if self.p['timing'] == 'tips':
             self._advance(stamp, (stamp - self.start_ns) / cv.NS, tips)
@@ -287,7 +291,8 @@ class ExcitationNode(Node):
                        f't = {self.last_ns / cv.NS:.4f} s', self.last_ns)
 
     def _excursion(self, tips: np.ndarray) -> float:
-        """The largest distance of an excited tip from its starting position [m] (NaN counts as far)."""
+        """The largest distance of an excited tip from its starting position [m] (NaN counts as
+        far)."""
         rows = slice(None) if self.plan.finger is None else [self.plan.finger]
         d = np.linalg.norm(tips[rows] - self.rest[rows], axis=-1)
         return float(np.inf if not np.all(np.isfinite(d)) else d.max())
@@ -295,7 +300,8 @@ class ExcitationNode(Node):
     # -- outputs -----------------------------------------------------------------------------
     def _settled(self, t: float) -> float | None:
         """Run time ``t`` [s] less the extension of the first settle phase, or None while that
-        phase is extended (it lasts ``settle_time`` and until ``settle_samples`` tips were heard)."""
+        phase is extended (it lasts ``settle_time`` and until ``settle_samples`` tips were
+        heard)."""
         if self.settle_shift is None:
             settle = self.p['settle_time']
             if t < settle:
@@ -365,8 +371,8 @@ class ExcitationNode(Node):
         if self.settle_tips < MIN_SETTLE_SAMPLES:
             self.get_logger().warn(
                 f'only {self.settle_tips} tip message(s) answered with zero torque before the '
-                f'first non-zero torque; training estimates the noise level from {MIN_SETTLE_SAMPLES} or '
-                'more (a longer settle_time, or give train --meas-std)')
+                'first non-zero torque; training estimates the noise level from '
+                f'{MIN_SETTLE_SAMPLES} or more (a longer settle_time, or give train --meas-std)')
 
     def _play(self, stamp: int, t: float) -> None:
         """Publish the plan's torque for plan time ``t`` stamped ``stamp``, or stop at its end."""
@@ -409,7 +415,8 @@ class ExcitationNode(Node):
         if self.stopped or not self.context.ok():
             return
         if self.p['timing'] == 'timer' and self.start_ns is not None:
-            self.stop(max(self.get_clock().now().nanoseconds, self.answered_ns + 1), 'stopped on shutdown')
+            self.stop(max(self.get_clock().now().nanoseconds, self.answered_ns + 1),
+                      'stopped on shutdown')
         elif self.executor is not None and self.start_ns is not None:
             self.stopping = True
             deadline = time.monotonic() + self.p['stop_wait']

@@ -68,7 +68,8 @@ class SignalSpecError(ValueError):
 
 @dataclass(frozen=True)
 class Signal:
-    """A named excitation: ``torque(t)`` maps times (N,) [s] from its start to torques (N, 2) [N·m]."""
+    """A named excitation: ``torque(t)`` maps times (N,) [s] from its start to torques (N, 2)
+    [N·m]."""
 
     name: str
     duration: float
@@ -97,7 +98,8 @@ def _number(value: Any, where: str, low: float, high: float, *, open_low: bool =
     return float(value)
 
 
-def _numbers(value: Any, where: str, low: float, high: float, *, open_low: bool = False) -> list[float]:
+def _numbers(value: Any, where: str, low: float, high: float, *,
+             open_low: bool = False) -> list[float]:
     if not isinstance(value, list) or not value:
         raise SignalSpecError(f'{where} must be a non-empty list of numbers, got {value!r}')
     return [_number(v, f'{where}[{i}]', low, high, open_low=open_low) for i, v in enumerate(value)]
@@ -119,12 +121,13 @@ def _fields(block: Any, where: str, required: tuple[str, ...], optional: tuple[s
 def _multisine_axis(block: Any, where: str) -> TorqueFunction:
     block = _fields(block, where, ('amplitudes', 'frequencies'), ('phases', 'offset'))
     amps = _numbers(block['amplitudes'], f'{where}.amplitudes', 0.0, MAX_TORQUE)
-    freqs = _numbers(block['frequencies'], f'{where}.frequencies', 0.0, MAX_FREQUENCY, open_low=True)
+    freqs = _numbers(block['frequencies'], f'{where}.frequencies', 0.0, MAX_FREQUENCY,
+                     open_low=True)
     phases = (_numbers(block['phases'], f'{where}.phases', -1e3, 1e3) if 'phases' in block
               else [0.0] * len(amps))
     if not len(amps) == len(freqs) == len(phases):
-        raise SignalSpecError(f'{where}: amplitudes, frequencies and phases must have the same length, '
-                              f'got {len(amps)}, {len(freqs)} and {len(phases)}')
+        raise SignalSpecError(f'{where}: amplitudes, frequencies and phases must have the same '
+                              f'length, got {len(amps)}, {len(freqs)} and {len(phases)}')
     offset = _number(block.get('offset', 0.0), f'{where}.offset', -MAX_TORQUE, MAX_TORQUE)
     terms = list(zip(amps, freqs, phases))
     return lambda t: offset + sum(a * np.sin(2 * np.pi * f * t + p) for a, f, p in terms)
@@ -139,7 +142,8 @@ def _chirp_axis(block: Any, where: str, duration: float) -> TorqueFunction:
     offset = _number(block.get('offset', 0.0), f'{where}.offset', -MAX_TORQUE, MAX_TORQUE)
     method = block.get('method', 'linear')
     if method not in CHIRP_METHODS:
-        raise SignalSpecError(f'{where}.method must be one of {list(CHIRP_METHODS)}, got {method!r}')
+        raise SignalSpecError(f'{where}.method must be one of {list(CHIRP_METHODS)}, '
+                              f'got {method!r}')
     if method == 'logarithmic' and f0 != f1:
         k = f1 / f0                # instantaneous frequency f0·k^(t/T): phase is its integral
         scale = 2 * np.pi * f0 * duration / math.log(k)
@@ -161,7 +165,8 @@ def _signal_from_spec(name: str, block: Any, source: str) -> Signal:
         raise SignalSpecError(f'{where}.kind must be one of {list(KINDS)}, got {kind!r}')
     duration = _number(block['duration'], f'{where}.duration', 0.0, MAX_DURATION, open_low=True)
     if not any(axis in block for axis in AXES):
-        raise SignalSpecError(f'{where}: define ax0, ax1 or both (an axis left out gets zero torque)')
+        raise SignalSpecError(f'{where}: define ax0, ax1 or both '
+                              '(an axis left out gets zero torque)')
     axes = []
     for axis in AXES:
         if axis not in block:
@@ -235,7 +240,8 @@ def resolve_signals(names: Sequence[str], spec_file: str | Path | None = None,
         else:
             known = list(SIGNALS) + list(user)
             raise SignalSpecError(f'unknown signal {name!r}; known: {", ".join(known)}'
-                                  + ('' if spec_file else ' (user-defined signals need a spec file)'))
+                                  + ('' if spec_file
+                                     else ' (user-defined signals need a spec file)'))
         if duration is not None:
             signal = Signal(signal.name, float(duration), signal.torque)
         out.append(signal)
@@ -246,7 +252,8 @@ def resolve_signals(names: Sequence[str], spec_file: str | Path | None = None,
 
 @dataclass(frozen=True)
 class Segment:
-    """One signal of a plan: it runs over [start, start + duration) of plan time, after its settle."""
+    """One signal of a plan: it runs over [start, start + duration) of plan time, after its
+    settle."""
 
     signal: Signal
     start: float
@@ -357,7 +364,8 @@ class ExcitationPlan:
         return t >= self.duration
 
     def torques(self, t: float) -> np.ndarray:
-        """The (n_fingers, 2) torque at plan time ``t`` [s] (zero while settling and after the end)."""
+        """The (n_fingers, 2) torque at plan time ``t`` [s] (zero while settling and after the
+        end)."""
         u = np.zeros((self.n_fingers, 2))
         seg = self.segment_at(t)
         if seg is None:

@@ -9,8 +9,8 @@ the full actuator torque of that axis:
     τ_j = u[axis(j)] − k_axis(j) · q_j,        B = [[1,0],[0,1],[1,0],…] ∈ R^{10×2}.
 
 Inside this module everything is in SoMo's scaled world (1 length unit = 0.05 m, torques ×400,
-gravity 196.2 units/s²); the public API is SI (:mod:`soft_gripper_sdre.sim.units`): torques in N·m in,
-tip positions in metres out, each in its finger's own base frame.
+gravity 196.2 units/s²); the public API is SI (:mod:`soft_gripper_sdre.sim.units`): torques in
+N·m in, tip positions in metres out, each in its finger's own base frame.
 """
 from __future__ import annotations
 
@@ -79,9 +79,11 @@ def _finger_links(prefix: str = '', tip_mass_scale: float = 1.0) -> list[str]:
            f'{_box((0.64, 0.64, 0.20), (0, 0, 0.10))}</link>']
     for j in range(N_JOINTS):
         if j == TIP_LINK:
-            inertial = _inertial(TIP_MASS * tip_mass_scale, (0, 0, 0.083612), (TIP_INERTIA * tip_mass_scale,) * 3)
+            inertial = _inertial(TIP_MASS * tip_mass_scale, (0, 0, 0.083612),
+                                 (TIP_INERTIA * tip_mass_scale,) * 3)
         elif JOINT_AXIS[j] == 0:
-            inertial = _inertial(0.00294294, (0, -0.00012, 0.0002), (8.2616e-5, 1.06513e-4, 8.2616e-5))
+            inertial = _inertial(0.00294294, (0, -0.00012, 0.0002),
+                                 (8.2616e-5, 1.06513e-4, 8.2616e-5))
         else:
             inertial = _inertial(0.00294294, (0, 0, 0.0002), (6.3664e-5, 8.7560e-5, 8.2616e-5))
         height = 0.10 if j in (0, TIP_LINK) else 0.20
@@ -101,7 +103,8 @@ def _finger_links(prefix: str = '', tip_mass_scale: float = 1.0) -> list[str]:
         axis = '1 0 0' if JOINT_AXIS[j] == 0 else '0 1 0'
         parent_link = f'{prefix}base' if j == 0 else f'{prefix}link{j - 1}'
         out.append(f'<joint name="{prefix}joint{j}" type="revolute"><parent link="{parent_link}"/>'
-                   f'<child link="{prefix}link{j}"/><origin xyz="{xyz[0]} {xyz[1]} {xyz[2]}" rpy="0 0 0"/>'
+                   f'<child link="{prefix}link{j}"/>'
+                   f'<origin xyz="{xyz[0]} {xyz[1]} {xyz[2]}" rpy="0 0 0"/>'
                    f'<axis xyz="{axis}"/><limit lower="-3.141592" upper="3.141592" effort="1000" '
                    f'velocity="1000"/></joint>')
     return out
@@ -114,7 +117,8 @@ def finger_urdf(tip_mass_scale: float = 1.0) -> str:
         _finger_links(tip_mass_scale=tip_mass_scale)) + '\n</robot>\n'
 
 
-def load_fingers(client: int, poses: list[tuple[tuple, tuple]], tip_mass_scale: float = 1.0) -> list[int]:
+def load_fingers(client: int, poses: list[tuple[tuple, tuple]],
+                 tip_mass_scale: float = 1.0) -> list[int]:
     """Load one finger (:func:`finger_urdf`, fixed base, inertia from the file) per base pose.
 
     Args:
@@ -129,8 +133,9 @@ def load_fingers(client: int, poses: list[tuple[tuple, tuple]], tip_mass_scale: 
     with tempfile.TemporaryDirectory(prefix='sgs_urdf_') as d:
         path = Path(d) / 'finger.urdf'
         path.write_text(finger_urdf(tip_mass_scale))
-        return [pb.loadURDF(str(path), pos, orn, useFixedBase=True, flags=pb.URDF_USE_INERTIA_FROM_FILE,
-                            physicsClientId=client) for pos, orn in poses]
+        return [pb.loadURDF(str(path), pos, orn, useFixedBase=True,
+                            flags=pb.URDF_USE_INERTIA_FROM_FILE, physicsClientId=client)
+                for pos, orn in poses]
 
 
 def finger_base_rpy(i: int) -> tuple[float, float, float]:

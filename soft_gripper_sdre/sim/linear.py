@@ -1,4 +1,5 @@
-"""The simulated finger linearised about its pose, friction off (ground truth for analysis and tests).
+"""The simulated finger linearised about its pose, friction off (ground truth for analysis and
+tests).
 
 M δq̈ + K δq = B u with the tip δp = J δq, in SI, from PyBullet's own rigid-body model of the
 finger scene of :class:`~soft_gripper_sdre.sim.hand.GripperSim`.

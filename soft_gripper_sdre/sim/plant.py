@@ -46,8 +46,10 @@ class PlantVariation:
         for f in fields(self):
             value = getattr(self, f.name)
             smallest = 0.0 if f.name == 'friction_scale' else 1e-3
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and smallest <= value <= MAX_SCALE):
-                raise ValueError(f'{f.name} must be a finite number in [{smallest:g}, {MAX_SCALE:g}], got {value!r}')
+            if not (isinstance(value, (int, float)) and math.isfinite(value)
+                    and smallest <= value <= MAX_SCALE):
+                raise ValueError(f'{f.name} must be a finite number in '
+                                 f'[{smallest:g}, {MAX_SCALE:g}], got {value!r}')
 
     @property
     def is_nominal(self) -> bool:

@@ -25,7 +25,7 @@ import sys
 import tempfile
 import time
 
-os.environ.setdefault('OMP_NUM_THREADS', '1')      # before numpy loads BLAS: one thread, as the nodes
+os.environ.setdefault('OMP_NUM_THREADS', '1')  # before numpy loads BLAS: one thread, as the nodes
 import numpy as np  # noqa: E402
 
 Row = tuple[str, str, str]
@@ -96,9 +96,11 @@ def bench_control(loop, law: str, repeats: int, ref_steps: int) -> dict[str, flo
     model, w = SDCModel(), Weights(**DEFAULT_WEIGHTS)
     T, n = loop.est.shape[:2]
     acc = np.gradient(loop.ref_vel, loop.t, axis=0)            # the moving reference's acceleration
-    rows = [tuple(np.ascontiguousarray(a) for a in (loop.est[k, :, :2], loop.est[k, :, 2:], loop.ref_pos[k],
-                                                    loop.ref_vel[k], acc[k])) for k in range(T)]
-    stacked = [np.concatenate(r[:4] if law == 'sdre' else r, axis=1) for r in rows]      # the kernel's z
+    rows = [tuple(np.ascontiguousarray(a) for a in (loop.est[k, :, :2], loop.est[k, :, 2:],
+                                                    loop.ref_pos[k], loop.ref_vel[k], acc[k]))
+            for k in range(T)]
+    stacked = [np.concatenate(r[:4] if law == 'sdre' else r, axis=1)
+               for r in rows]                               # the kernel's z
     paired = set(np.linspace(1, T - 1, min(ref_steps, T - 1)).astype(int).tolist())
     origin = np.array(model.rest_tip[:2], dtype=np.float64)
     t: dict[str, list[float]] = {k: [] for k in ('fast', 'fast_paired', 'reference', 'kernel')}
@@ -120,7 +122,8 @@ def bench_control(loop, law: str, repeats: int, ref_steps: int) -> dict[str, flo
             if law == 'sdre':
                 tracking_step(stacked[k], origin, *fast.network, *s.settings, *state, *out)
             else:
-                feedforward_step(stacked[k], origin, False, *fast.network, *s.settings, *state, *out, *ff)
+                feedforward_step(stacked[k], origin, False, *fast.network, *s.settings, *state,
+                                 *out, *ff)
             t2 = clock()
             if k == 0:
                 continue
@@ -163,13 +166,16 @@ def bench_kf(loop, repeats: int) -> float:
 def compile_seconds() -> dict[str, float]:
     """Seconds for ``import compiled`` and ``warm_up()`` in a fresh interpreter, with an empty numba
     cache (``cold``: compiling every kernel) and again with the cache that run left (``cached``)."""
-    code = ('import time; t0 = time.perf_counter(); from soft_gripper_sdre.control import compiled; '
-            't1 = time.perf_counter(); compiled.warm_up(); t2 = time.perf_counter(); print(t1 - t0, t2 - t1)')
+    code = ('import time; t0 = time.perf_counter(); '
+            'from soft_gripper_sdre.control import compiled; '
+            't1 = time.perf_counter(); compiled.warm_up(); t2 = time.perf_counter(); '
+            'print(t1 - t0, t2 - t1)')
     out = {}
     with tempfile.TemporaryDirectory(prefix='sgs_numba_cache_') as cache:
         env = dict(os.environ, NUMBA_CACHE_DIR=cache)
         for name in ('cold', 'cached'):
-            res = subprocess.run([sys.executable, '-c', code], env=env, capture_output=True, text=True, check=True)
+            res = subprocess.run([sys.executable, '-c', code], env=env, capture_output=True,
+                                 text=True, check=True)
             out[f'{name} import'], out[f'{name} warm_up'] = map(float, res.stdout.split())
     return out
 
@@ -192,17 +198,19 @@ def graph_startup(timeout: float = 120.0) -> float:
     context = Context()
     rclpy.init(context=context)
     node = Node('bench_startup', context=context)
-    node.create_subscription(JointState, TORQUE_COMMANDS, lambda _: first or first.append(time.monotonic()),
-                             LOOP_QOS)
+    node.create_subscription(JointState, TORQUE_COMMANDS,
+                             lambda _: first or first.append(time.monotonic()), LOOP_QOS)
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(node)
     try:
-        with tempfile.TemporaryDirectory(prefix='sgs_startup_') as logs, Graph(env, Path(logs)) as graph:
+        with (tempfile.TemporaryDirectory(prefix='sgs_startup_') as logs,
+              Graph(env, Path(logs)) as graph):
             t0 = time.monotonic()
             for name in ('estimator', 'trajectory', 'controller'):
                 graph.start(name)
             graph.start('simulator', {'duration': 0.5, 'min_tip_subscribers': 2})
-            while not first and time.monotonic() < t0 + timeout and all(p.alive() for p in graph.procs.values()):
+            while (not first and time.monotonic() < t0 + timeout
+                   and all(p.alive() for p in graph.procs.values())):
                 executor.spin_once(timeout_sec=0.05)
             if not first:
                 raise RuntimeError(f'no torque command within {timeout:g} s: '
@@ -228,7 +236,8 @@ def bench_idle(loop, law: str = 'sdre_ff') -> dict[str, float]:
     from soft_gripper_sdre.learning.model import SDCModel
     model, w = SDCModel(), Weights(**DEFAULT_WEIGHTS)
     laws = {k: make_law(law, model, w, 0.0625, n_fingers=4) for k in ('idle', 'flushed', 'busy')}
-    before = {'idle': lambda: time.sleep(1e-3), 'flushed': np.ones(8_000_000).sum, 'busy': lambda: None}
+    before = {'idle': lambda: time.sleep(1e-3), 'flushed': np.ones(8_000_000).sum,
+              'busy': lambda: None}
     acc = np.zeros((loop.est.shape[1], 2))
     clock, t = time.perf_counter, {k: [] for k in laws}
     for k in range(len(loop.est)):
@@ -258,14 +267,17 @@ def graph_rows(quick: bool, figures: dict[str, float] | None = None) -> list[Row
     except ModuleNotFoundError as exc:
         if exc.name != 'soft_gripper_sdre.tools.bench_graph':
             raise
-        return [('node graph', 'not measured', '`soft_gripper_sdre.tools.bench_graph` is not installed')]
+        return [('node graph', 'not measured',
+                 '`soft_gripper_sdre.tools.bench_graph` is not installed')]
     return list(module.rows(quick, figures=figures))
 
 
-def floor_rows(hand: float, hop_us: float, kf: float, control: float, figures: dict[str, float]) -> list[Row]:
+def floor_rows(hand: float, hop_us: float, kf: float, control: float,
+               figures: dict[str, float]) -> list[Row]:
     """Each mode of the graph against its floor, from figures of this run: the physics of a period
     ``hand`` [s], one DDS hop one way ``hop_us`` [µs], the KF and controller compute ``kf``,
-    ``control`` [s], and the graph runs' ``figures`` (:func:`soft_gripper_sdre.tools.bench_graph.mode_rows`).
+    ``control`` [s], and the graph runs' ``figures``
+    (:func:`soft_gripper_sdre.tools.bench_graph.mode_rows`).
 
     In strict lockstep nothing overlaps, so a period can be no shorter than the sum of the
     physics, the three hops and the compute. Pipelined, the physics of one period runs while the
@@ -292,12 +304,14 @@ def floor_rows(hand: float, hop_us: float, kf: float, control: float, figures: d
          '(KF + sdre_ff, back to back)'),
         ('lockstep graph period against its floor',
          f'{us(lock)} = {lock / lockstep_floor:.2f}× the floor',
-         f'1 ms / {figures.get("lockstep_rtf", float("nan")):.2f}× real time (the lockstep row); the rest is what '
-         'the three processes add beyond their hop: waking up, /diagnostics, cold caches, the machine\'s other load'),
+         f'1 ms / {figures.get("lockstep_rtf", float("nan")):.2f}× real time (the lockstep row); '
+         'the rest is what the three processes add beyond their hop: waking up, /diagnostics, '
+         'cold caches, the machine\'s other load'),
         ('floor of a pipelined period: the larger of physics and three hops + compute',
          f'{us(pipelined_floor)} ({1e-3 / pipelined_floor:.2f}× real time)',
-         f'physics {us(hand)} beside three hops + compute {us(hops + compute)}: the physics of t_k → t_(k+1) runs '
-         f'while the tips of t_k are answered; and on {cores} cores every process\'s CPU of a period '
+         f'physics {us(hand)} beside three hops + compute {us(hops + compute)}: '
+         'the physics of t_k → t_(k+1) runs while the tips of t_k are answered; '
+         f'and on {cores} cores every process\'s CPU of a period '
          f'({cpu:.0f} µs in the pipelined run) needs at least {cpu / cores:.0f} µs'),
         ('pipelined graph period against its floor',
          f'{us(pipe)} = {pipe / pipelined_floor:.2f}× the floor',
@@ -316,7 +330,8 @@ def floor_table(quick: bool, repeats: int) -> list[Row]:
     us = lambda s: f'{s * 1e6:.0f} µs'          # noqa: E731
     load = lambda: f'load average {os.getloadavg()[0]:.1f}'    # noqa: E731
     hand = bench_sim('hand', 0.5 if quick else 2.0, 5)
-    out: list[Row] = [('simulator step, hand + cube', f'{us(hand)} ({1e-3 / hand:.2f}× real time)', load())]
+    out: list[Row] = [('simulator step, hand + cube', f'{us(hand)} ({1e-3 / hand:.2f}× real time)',
+                       load())]
     loop = default_grasp(1.0 if quick else 2.0, noise_std=5e-5)
     kf = bench_kf(loop, 1 if quick else 3)
     ctrl = bench_control(loop, 'sdre_ff', 1 if quick else 2, 20)
@@ -328,7 +343,8 @@ def floor_table(quick: bool, repeats: int) -> list[Row]:
                 f'{raw["p50"]:.0f} / {raw["p99"]:.0f} µs', f'p50 / p99 one way; {load()}'))
     seconds = 1.0 if quick else 3.0
     figures: dict[str, float] = {}
-    out += mode_rows(mode_runs(seconds, repeats, layouts=('lockstep', 'pipelined', 'pipelined_composed')),
+    out += mode_rows(mode_runs(seconds, repeats,
+                               layouts=('lockstep', 'pipelined', 'pipelined_composed')),
                      seconds, figures)
     return out + floor_rows(hand, raw['p50'], kf, ctrl['fast'], figures)
 
@@ -362,30 +378,37 @@ def rows(quick: bool) -> list[Row]:
     for law in ('sdre', 'sdre_ff'):
         ctrl = bench_control(loop, law, 1 if quick else 2, 100 if quick else 300)
         out += [(f'controller compute, {law}, 4 fingers (compiled)', us(ctrl['fast']),
-                 f'{ctrl["reference"] / ctrl["fast_paired"]:.0f}× faster than the reference on the same steps; states '
-                 f'of the closed loop below (0.05 mm noise): {ctrl["iterations"]:.2f} Newton–Kleinman iterations '
-                 f'per step, {100 * ctrl["exact"]:.1f} % exact solves; torques within {ctrl["difference"]:.1e} of '
+                 f'{ctrl["reference"] / ctrl["fast_paired"]:.0f}× faster than the reference '
+                 'on the same steps; states of the closed loop below (0.05 mm noise): '
+                 f'{ctrl["iterations"]:.2f} Newton–Kleinman iterations per step, '
+                 f'{100 * ctrl["exact"]:.1f} % exact solves; '
+                 f'torques within {ctrl["difference"]:.1e} of '
                  "the largest of the reference's; the kernel call alone "
                  f'{us(ctrl["kernel"])}'),
                 (f'controller compute, {law}, 4 fingers (scipy reference)', us(ctrl['reference']),
                  'scipy solve_continuous_are per finger, general checks')]
-    clean = bench_control(default_grasp(1.0 if quick else 2.0, noise_std=0.0), 'sdre', 1, 50 if quick else 200)
+    clean = bench_control(default_grasp(1.0 if quick else 2.0, noise_std=0.0), 'sdre', 1,
+                          50 if quick else 200)
     out.append(('controller compute, sdre, 4 fingers (compiled), clean states', us(clean['fast']),
-                f'{clean["reference"] / clean["fast_paired"]:.0f}× faster than the reference, same steps; the same '
-                f'loop without measurement noise: {clean["iterations"]:.2f} iterations per step'))
+                f'{clean["reference"] / clean["fast_paired"]:.0f}× faster than the reference, '
+                'same steps; the same loop without measurement noise: '
+                f'{clean["iterations"]:.2f} iterations per step'))
     kf = bench_kf(loop, 1 if quick else 3)
     out.append(('KF step, 4 fingers (compiled)', us(kf),
                 'predict + Joseph-form update, the closed loop\'s measurements'))
     cold = bench_idle(loop)
-    out.append(('controller compute, sdre_ff (the graph\'s law), cold', f'{us(cold["idle"])} / {us(cold["flushed"])}',
-                f'after 1 ms of sleep / after 64 MB of other memory traffic, against {us(cold["busy"])} back '
-                f'to back on the same states ({cold["idle"] / cold["busy"]:.1f}× / {cold["flushed"] / cold["busy"]:.1f}×): '
-                'a node that waits for each estimate while other processes use its core runs it cold'))
+    out.append(('controller compute, sdre_ff (the graph\'s law), cold',
+                f'{us(cold["idle"])} / {us(cold["flushed"])}',
+                'after 1 ms of sleep / after 64 MB of other memory traffic, '
+                f'against {us(cold["busy"])} back to back on the same states '
+                f'({cold["idle"] / cold["busy"]:.1f}× / {cold["flushed"] / cold["busy"]:.1f}×): '
+                'a node that waits for each estimate while other processes use its core '
+                'runs it cold'))
     period = float(np.median(loop.period_seconds))
     out.append(('closed loop in-process (sim + KF + controller)', f'{1e-3 / period:.2f}× real time',
                 f'median period {us(period)}; over the whole {T * 1e-3:.0f} s run '
-                f'{T * 1e-3 / loop.step_seconds:.2f}× (load bursts included); hand + cube, 0.05 mm noise, '
-                'stepping only'))
+                f'{T * 1e-3 / loop.step_seconds:.2f}× (load bursts included); '
+                'hand + cube, 0.05 mm noise, stepping only'))
     figures: dict[str, float] = {}
     out += graph_rows(quick, figures)
     if 'hop_p50_us' in figures:
@@ -396,21 +419,25 @@ def rows(quick: bool) -> list[Row]:
         out.append(('compiled kernels: import + warm_up(), empty cache / cached',
                     f'{compiled["cold import"] + compiled["cold warm_up"]:.1f} s / '
                     f'{compiled["cached import"] + compiled["cached warm_up"]:.1f} s',
-                    'a fresh interpreter with NUMBA_CACHE_DIR empty, then again with what it left; of which '
-                    f'importing numba and the kernels {compiled["cold import"]:.1f} s / '
+                    'a fresh interpreter with NUMBA_CACHE_DIR empty, then again with what it left; '
+                    f'of which importing numba and the kernels {compiled["cold import"]:.1f} s / '
                     f'{compiled["cached import"]:.1f} s'))
-    out.append(('graph start-up (processes launched → first torque command)', f'{graph_startup():.1f} s',
-                'simulator, estimator, trajectory, controller started together on the shipped configuration, '
-                "numba's cache filled (make's kernels stamp)"))
-    # training is timed by the train tool itself: a fresh `make model` run, else the shipped model's record
+    out.append(('graph start-up (processes launched → first torque command)',
+                f'{graph_startup():.1f} s',
+                'simulator, estimator, trajectory, controller started together on the shipped '
+                "configuration, numba's cache filled (make's kernels stamp)"))
+    # training is timed by the train tool itself: a fresh `make model` run, else the shipped
+    # model's record
     trained = Path('runs/train/metrics.json')
-    source = trained if trained.is_file() else Path(__file__).resolve().parents[1] / 'models' / 'default.json'
+    source = (trained if trained.is_file()
+              else Path(__file__).resolve().parents[1] / 'models' / 'default.json')
     if source.is_file():
         m = json.loads(source.read_text())
         out.append((f'training, {m["preset"]} preset ({m["epochs_run"]} epochs)',
                     f'{m["train_seconds"]:.0f} s',
-                    'as measured by `make model` (runs/train/metrics.json)' if source == trained else
-                    'as recorded with the shipped model (models/default.json), not re-run here'))
+                    'as measured by `make model` (runs/train/metrics.json)' if source == trained
+                    else 'as recorded with the shipped model (models/default.json), '
+                         'not re-run here'))
     collect = bench_collect(1.0 if quick else 3.0)
     out.append(('data collection, one finger', f'{collect:.2f}× real time',
                 'one excitation signal with ground truth, 0.5 s settle included'))
@@ -420,29 +447,35 @@ def rows(quick: bool) -> list[Row]:
 def markdown(table: list[Row], quick: bool) -> str:
     load = os.getloadavg()[0]
     lines = ['# Benchmarks', '',
-             'Reproduce: `make bench` (= `python -m soft_gripper_sdre.tools.bench --write BENCHMARKS.md`).',
-             f'Measured {time.strftime("%Y-%m-%d")} on {platform.machine()}, {os.cpu_count()} cores, '
-             f'Python {platform.python_version()}, a shared machine (other jobs running; load average '
-             f'{load:.1f} at the end of the run)'
+             'Reproduce: `make bench` '
+             '(= `python -m soft_gripper_sdre.tools.bench --write BENCHMARKS.md`).',
+             f'Measured {time.strftime("%Y-%m-%d")} on {platform.machine()}, {os.cpu_count()} '
+             f'cores, Python {platform.python_version()}, a shared machine (other jobs running; '
+             f'load average {load:.1f} at the end of the run)'
              + (', short runs (`--quick`)' if quick else '')
              + ': compare the ratios, which are measured in one run.', '',
              '| what | figure | note |', '| --- | ---: | --- |']
     lines += [f'| {n} | {v} | {note} |' for n, v, note in table]
-    lines += ['', 'The controller and KF rows replay the estimates and references of the in-process closed '
-              'loop (hand + cube, default weights and 40 Hz roll-off), so the fast path\'s warm starts are as far '
-              'off as in the loop; the first, cold step is left out. The closed-loop row times the stepping only, '
-              'not the simulator\'s construction and settle; its figure is 1 ms over the median period. Training '
-              'is timed by the train tool itself; data collection includes the finger\'s 0.5 s settle.']
+    lines += ['', 'The controller and KF rows replay the estimates and references of the '
+              'in-process closed loop (hand + cube, default weights and 40 Hz roll-off), so the '
+              'fast path\'s warm starts are as far off as in the loop; the first, cold step is '
+              'left out. The closed-loop row times the stepping only, not the simulator\'s '
+              'construction and settle; its figure is 1 ms over the median period. '
+              'Training is timed by the train tool itself; data collection includes the '
+              'finger\'s 0.5 s settle.']
     return '\n'.join(lines) + '\n'
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.bench', description=__doc__.split('\n')[0])
-    ap.add_argument('--write', type=Path, default=None, help='also write the results as Markdown here')
+    ap = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.bench',
+                                 description=__doc__.split('\n')[0])
+    ap.add_argument('--write', type=Path, default=None,
+                    help='also write the results as Markdown here')
     ap.add_argument('--quick', action='store_true', help='shorter runs (smoke test)')
     ap.add_argument('--floor', type=int, default=None, metavar='REPEATS',
-                    help='only the floor rows: physics, compute, one hop, and the graph in lockstep and '
-                         'pipelined mode alternating REPEATS times (prints; --write is refused)')
+                    help='only the floor rows: physics, compute, one hop, and the graph in '
+                         'lockstep and pipelined mode alternating REPEATS times '
+                         '(prints; --write is refused)')
     a = ap.parse_args(argv)
     if a.floor is not None and (a.floor < 1 or a.write):
         ap.error('--floor takes a number of repeats >= 1 and prints only (no --write)')

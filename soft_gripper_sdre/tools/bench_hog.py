@@ -32,15 +32,18 @@ class CpuHog:
     def __init__(self, at: float, seconds: float) -> None:
         self.at, self.seconds = at, seconds
         self.procs: list[subprocess.Popen] = []
-        self.span: tuple[float, float] | None = None     # sim time the monitor saw at its start, end
+        self.span: tuple[float, float] | None = None  # sim time the monitor saw at its start, end
         self._start = 0.0
 
     def poll(self, monitor) -> None:
-        """Start the hog once the monitor's simulator sim time reaches ``at``; note when it ended."""
+        """Start the hog once the monitor's simulator sim time reaches ``at``; note when it
+        ended."""
         sim_time = monitor.get('simulator', 'sim_time')
         if not self.procs and sim_time >= self.at:
-            busy = f'import time\nend = time.monotonic() + {self.seconds}\nwhile time.monotonic() < end: pass'
-            self.procs = [subprocess.Popen([sys.executable, '-c', busy]) for _ in range(os.cpu_count() or 1)]
+            busy = (f'import time\nend = time.monotonic() + {self.seconds}\n'
+                    'while time.monotonic() < end: pass')
+            self.procs = [subprocess.Popen([sys.executable, '-c', busy])
+                          for _ in range(os.cpu_count() or 1)]
             self._start = sim_time
         elif self.procs and self.span is None and all(p.poll() is not None for p in self.procs):
             self.span = (self._start, sim_time)
@@ -53,7 +56,8 @@ class CpuHog:
             proc.wait()
 
 
-def phase_figures(history: list[dict[str, str]], hog_start: float, hog_end: float) -> dict[str, dict[str, float]]:
+def phase_figures(history: list[dict[str, str]], hog_start: float,
+                  hog_end: float) -> dict[str, dict[str, float]]:
     """Lateness and latency of the phases of a run with a hog from ``hog_start`` to ``hog_end``
     [s of sim time], from the simulator's successive /diagnostics ``history``.
 
@@ -71,7 +75,8 @@ def phase_figures(history: list[dict[str, str]], hog_start: float, hog_end: floa
         begin, end = prev.get('sim_time', 0.0), cur.get('sim_time', 0.0)
         if end <= begin:
             continue
-        phase = ('before' if SETTLE_S <= begin and end <= hog_start else 'after' if begin >= hog_end + SETTLE_S
+        phase = ('before' if SETTLE_S <= begin and end <= hog_start
+                 else 'after' if begin >= hog_end + SETTLE_S
                  else 'during' if begin < hog_end and end > hog_start else None)
         if phase:
             phases[phase].append((prev, cur))
@@ -80,10 +85,14 @@ def phase_figures(history: list[dict[str, str]], hog_start: float, hog_end: floa
         def total(key: str) -> float:
             return sum(cur.get(key, 0.0) - prev.get(key, 0.0) for prev, cur in windows)
         steps = total('steps')
-        p50 = sorted(cur['recent_latency_us_p50'] for _, cur in windows if 'recent_latency_us_p50' in cur)
-        out[phase] = {'windows': len(windows), 'late': total('late_periods') / steps if steps else nan,
+        p50 = sorted(cur['recent_latency_us_p50'] for _, cur in windows
+                     if 'recent_latency_us_p50' in cur)
+        out[phase] = {'windows': len(windows),
+                      'late': total('late_periods') / steps if steps else nan,
                       'safe': total('safe_periods') / steps if steps else nan,
                       'p50': p50[len(p50) // 2] if p50 else nan,
-                      'p99': max((cur.get('recent_latency_us_p99', nan) for _, cur in windows), default=nan),
-                      'max': max((cur.get('recent_latency_us_max', nan) for _, cur in windows), default=nan)}
+                      'p99': max((cur.get('recent_latency_us_p99', nan) for _, cur in windows),
+                                 default=nan),
+                      'max': max((cur.get('recent_latency_us_max', nan) for _, cur in windows),
+                                 default=nan)}
     return out

@@ -41,7 +41,8 @@ def message_to_dict(value):
 
 
 class EchoNode(Node):
-    """Subscribe one topic; print each message (or the rate) until ``count`` messages or ``timeout``."""
+    """Subscribe one topic; print each message (or the rate) until ``count`` messages or
+    ``timeout``."""
 
     def __init__(self, topic: str, rate: bool = False, count: int | None = None,
                  timeout: float | None = None, **kwargs) -> None:
@@ -53,7 +54,8 @@ class EchoNode(Node):
         self.exit_code = 0
         self._window_start = time.monotonic()
         self._window_count = 0
-        self.create_subscription(TOPIC_TYPES[topic], topic, self._on_raw if rate else self._on_message,
+        self.create_subscription(TOPIC_TYPES[topic], topic,
+                                 self._on_raw if rate else self._on_message,
                                  topic_qos(topic), raw=rate)
         if rate:
             self.create_timer(1.0, self._print_rate)
@@ -82,7 +84,8 @@ class EchoNode(Node):
         elapsed, n = now - self._window_start, self._window_count
         self._window_start, self._window_count = now, 0
         if n:
-            print(f'average rate: {n / elapsed:.2f} Hz ({n} messages in {elapsed:.2f} s)', flush=True)
+            print(f'average rate: {n / elapsed:.2f} Hz ({n} messages in {elapsed:.2f} s)',
+                  flush=True)
         else:
             print(f'no new messages on {self.resolve_topic_name(self.topic)}', flush=True)
 

@@ -1,6 +1,7 @@
 """Several hands on one ROS domain: one grasp graph per namespace, all running at once.
 
-    python -m soft_gripper_sdre.tools.hands --hands left_hand right_hand --duration 6 --out runs/hands
+    python -m soft_gripper_sdre.tools.hands --hands left_hand right_hand --duration 6
+        --out runs/hands
 
 starts, for each hand, the graph of :func:`soft_gripper_sdre.nodes.graph.grasp_graph` in its own
 namespace (five processes: recorder, estimator, trajectory, controller, simulator), with its own
@@ -33,17 +34,20 @@ CONNECT_TIMEOUT = 90.0
 #: lockstep that waits out a node starved of CPU (many processes on few cores, at start-up
 #: especially) instead of stepping without its command, so two runs of one grasp step alike and
 #: any timeout is a fault; the controller's estimate watchdog stays longer than the simulator's wait
-PATIENT_LOCKSTEP = {'simulator': {'lockstep_timeout': 2.0}, 'controller': {'estimate_watchdog': 5.0}}
+PATIENT_LOCKSTEP = {'simulator': {'lockstep_timeout': 2.0},
+                    'controller': {'estimate_watchdog': 5.0}}
 #: counters that say a message was refused, lost, late or out of order, or a node started over
-TROUBLE = ('stale_command', 'future_command', 'late_command', 'bad_command', 'timeouts', 'safe_periods',
-           'late_periods', 'resets', 'duplicate', 'out_of_order', 'bad_message', 'dropouts', 'gaps',
-           'missed_periods', 'late_start', 'old_estimate', 'old_reference', 'skipped_estimates',
-           'unanswered_estimates', 'nonfinite_torque', 'bad_estimate', 'bad_reference', 'bad_clock')
+TROUBLE = ('stale_command', 'future_command', 'late_command', 'bad_command', 'timeouts',
+           'safe_periods', 'late_periods', 'resets', 'duplicate', 'out_of_order', 'bad_message',
+           'dropouts', 'gaps', 'missed_periods', 'late_start', 'old_estimate', 'old_reference',
+           'skipped_estimates', 'unanswered_estimates', 'nonfinite_torque', 'bad_estimate',
+           'bad_reference', 'bad_clock')
 
 
 @dataclass(frozen=True)
 class Placement:
-    """Where a node's process runs: behind ``prefix`` (none: here), with ``env`` (None: the run's)."""
+    """Where a node's process runs: behind ``prefix`` (none: here), with ``env`` (None: the
+    run's)."""
 
     prefix: tuple[str, ...] = ()
     env: dict[str, str] | None = None
@@ -74,7 +78,8 @@ class GraphRun:
         """The recorder's bag directory, if the graph records."""
         if 'recorder' not in self.spec.names:
             return None
-        output = self.diagnostics.get('recorder', {}).get('output') or self.spec.node('recorder').parameters.get('output')
+        output = (self.diagnostics.get('recorder', {}).get('output')
+                  or self.spec.node('recorder').parameters.get('output'))
         return Path(output) if output else None
 
 
@@ -106,7 +111,8 @@ def _failure(what: str, graphs: Sequence[Graph], name: str | None = None) -> Run
     for graph in graphs:
         for key, proc in graph.procs.items():
             if (name is None and not proc.alive()) or key == name:
-                return RuntimeError(f'{what}: {graph.log_dir.name}/{key} (exit status {proc.popen.returncode}); '
+                return RuntimeError(f'{what}: {graph.log_dir.name}/{key} '
+                                    f'(exit status {proc.popen.returncode}); '
                                     f'last lines of its log {proc.log_path}:\n{proc.log_tail()}')
     return RuntimeError(what)
 
@@ -142,7 +148,8 @@ def run_graphs(specs: Sequence[GraphSpec], env: dict[str, str], log_dir: Path, *
     specs = [s if 'min_diagnostics_subscribers' in s.node(s.lead).parameters
              else s.with_parameters(s.lead, min_diagnostics_subscribers=readers) for s in specs]
     monitor = DiagnosticsMonitor(env, monitor_name)
-    graphs = [Graph(env, Path(log_dir) / (s.namespace.strip('/').replace('/', '_') or 'root')) for s in specs]
+    graphs = [Graph(env, Path(log_dir) / (s.namespace.strip('/').replace('/', '_') or 'root'))
+              for s in specs]
     wall: dict[int, float] = {}
     during: dict[int, dict] = {}
     try:
@@ -156,8 +163,8 @@ def run_graphs(specs: Sequence[GraphSpec], env: dict[str, str], log_dir: Path, *
             if any(not p.alive() for g in graphs for p in g.procs.values()):
                 raise _failure('a node exited before the graph connected', graphs)
             if time.monotonic() > deadline:
-                raise RuntimeError(f'the graphs did not connect within {CONNECT_TIMEOUT:g} s; heard from '
-                                   f'{sorted(monitor.by_full_name)}; logs in {log_dir}')
+                raise RuntimeError(f'the graphs did not connect within {CONNECT_TIMEOUT:g} s; '
+                                   f'heard from {sorted(monitor.by_full_name)}; logs in {log_dir}')
             monitor.poll()
             time.sleep(0.05)
         started = time.monotonic()
@@ -171,11 +178,13 @@ def run_graphs(specs: Sequence[GraphSpec], env: dict[str, str], log_dir: Path, *
                 if id(graph) in codes:
                     continue
                 if not lead.alive() and lead.popen.returncode != 0:
-                    raise _failure(f'the {spec.lead} of {spec.namespace or "/"} failed', graphs, spec.lead)
+                    raise _failure(f'the {spec.lead} of {spec.namespace or "/"} failed', graphs,
+                                   spec.lead)
                 if lead.alive() and not _finished(spec, monitor):
                     continue
                 wall[id(graph)] = time.monotonic() - started
-                during[id(graph)] = {n.name: dict(monitor.by_full_name.get(n.full_name, {})) for n in spec.nodes}
+                during[id(graph)] = {n.name: dict(monitor.by_full_name.get(n.full_name, {}))
+                                     for n in spec.nodes}
                 codes[id(graph)] = {}
                 # the simulator has taken its last step: the loop nodes are told to stop at once
                 # (the controller before its clock watchdog fires while the simulator closes),
@@ -187,7 +196,8 @@ def run_graphs(specs: Sequence[GraphSpec], env: dict[str, str], log_dir: Path, *
             if any(not p.alive() for s, g in running for p in g.procs.values() if p.name != s.lead):
                 raise _failure('a node died during the run', [g for _, g in running])
             if time.monotonic() - started > timeout:
-                raise RuntimeError(f'the run did not finish within {timeout:g} s of wall time; logs in {log_dir}')
+                raise RuntimeError(f'the run did not finish within {timeout:g} s of wall time; '
+                                   f'logs in {log_dir}')
             monitor.poll()
             if on_poll is not None:
                 on_poll(monitor, graphs)
@@ -202,9 +212,10 @@ def run_graphs(specs: Sequence[GraphSpec], env: dict[str, str], log_dir: Path, *
                                                else _exit_code(graph, node.name))
                 monitor.poll()
         monitor.spin_until(lambda: False, 0.5)
-        return [GraphRun(spec, {n.name: dict(monitor.by_full_name.get(n.full_name, {})) for n in spec.nodes},
-                         codes[id(graph)], wall[id(graph)], {k: p.popen.pid for k, p in graph.procs.items()},
-                         during[id(graph)])
+        return [GraphRun(spec, {n.name: dict(monitor.by_full_name.get(n.full_name, {}))
+                                for n in spec.nodes},
+                         codes[id(graph)], wall[id(graph)],
+                         {k: p.popen.pid for k, p in graph.procs.items()}, during[id(graph)])
                 for spec, graph in zip(specs, graphs)]
     finally:
         for graph in graphs:
@@ -248,13 +259,18 @@ def hand_graphs(hands: Sequence[str], out: Path, duration: float, *, record: boo
 
 
 def _parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.hands', description=__doc__.split('\n')[0])
+    ap = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.hands',
+                                 description=__doc__.split('\n')[0])
     ap.add_argument('--hands', nargs='+', default=['left_hand', 'right_hand'], metavar='NAMESPACE',
                     help='one namespace per hand (default: %(default)s)')
-    ap.add_argument('--out', type=Path, default=Path('runs/hands'), help='output directory (default %(default)s)')
-    ap.add_argument('--duration', type=float, default=6.0, help='sim time to run [s] (default %(default)s)')
-    ap.add_argument('--domain-id', type=int, default=None, help='ROS_DOMAIN_ID (default: env or random)')
-    ap.add_argument('--timeout', type=float, default=900.0, help='wall-clock limit [s] (default %(default)s)')
+    ap.add_argument('--out', type=Path, default=Path('runs/hands'),
+                    help='output directory (default %(default)s)')
+    ap.add_argument('--duration', type=float, default=6.0,
+                    help='sim time to run [s] (default %(default)s)')
+    ap.add_argument('--domain-id', type=int, default=None,
+                    help='ROS_DOMAIN_ID (default: env or random)')
+    ap.add_argument('--timeout', type=float, default=900.0,
+                    help='wall-clock limit [s] (default %(default)s)')
     return ap
 
 
@@ -275,7 +291,8 @@ def main(argv: list[str] | None = None) -> int:
         shutil.rmtree(a.out / hand.strip('/') / 'bag', ignore_errors=True)
     specs = hand_graphs(hands, a.out, a.duration, parameters=PATIENT_LOCKSTEP)
     try:
-        runs = run_graphs(specs, ros_env(a.domain_id), a.out / 'logs', timeout=a.timeout, monitor_name='hands_monitor')
+        runs = run_graphs(specs, ros_env(a.domain_id), a.out / 'logs', timeout=a.timeout,
+                          monitor_name='hands_monitor')
     except RuntimeError as exc:
         print(f'error: {exc}', file=sys.stderr)
         return 1
@@ -284,17 +301,21 @@ def main(argv: list[str] | None = None) -> int:
         hand = run.spec.namespace
         metrics = report(run.bag, a.out / hand.strip('/'))
         summary[hand] = {'fingers': metrics['fingers'], 'wall_s': run.wall_s,
-                         **{k: run.value('simulator', k) for k in ('real_time_factor', 'steps', 'loop_latency_us_p50',
-                                                                   'loop_latency_us_p99')},
+                         **{k: run.value('simulator', k)
+                            for k in ('real_time_factor', 'steps', 'loop_latency_us_p50',
+                                      'loop_latency_us_p99')},
                          'commands': run.value('controller', 'commands'), 'trouble': trouble(run)}
         print(f'{hand}: {a.duration:g} s of sim time in {run.wall_s:.1f} s wall '
               f'({summary[hand]["real_time_factor"]:.2f}× real time, loop latency p50 '
-              f'{summary[hand]["loop_latency_us_p50"]:.0f} µs, p99 {summary[hand]["loop_latency_us_p99"]:.0f} µs), '
-              f'{int(summary[hand]["steps"])} steps, {int(summary[hand]["commands"])} commands of its own '
+              f'{summary[hand]["loop_latency_us_p50"]:.0f} µs, '
+              f'p99 {summary[hand]["loop_latency_us_p99"]:.0f} µs), '
+              f'{int(summary[hand]["steps"])} steps, {int(summary[hand]["commands"])} commands '
+              'of its own '
               f'controller; refused, late or lost: {summary[hand]["trouble"] or "none"}')
         for name, f in metrics['fingers'].items():
             pct = 'n/a' if f['rmse_pct'] is None else f'{f["rmse_pct"]:.2f} %'
-            print(f'  {name}: free-space RMSE {f["rmse_mm"]:.3f} mm ({pct} of {f["excursion_mm"]:.1f} mm)')
+            print(f'  {name}: free-space RMSE {f["rmse_mm"]:.3f} mm '
+                  f'({pct} of {f["excursion_mm"]:.1f} mm)')
     (a.out / 'hands.json').write_text(json.dumps(summary, indent=2, default=float))
     print(f'bags, figures and metrics in {a.out}/<hand>/')
     return 0

@@ -30,7 +30,8 @@ class SdreLaw:
             :class:`soft_gripper_sdre.learning.model.SDCModel`); if it also has
             ``sdc_blocks(x) -> ([A21 A22] (n,2,4), G2 (n,2,2))``, only those lower rows are used,
             and if it has ``fused_network`` (the arrays of
-            :class:`~soft_gripper_sdre.control.compiled.SdcNetwork`), the compiled step evaluates it.
+            :class:`~soft_gripper_sdre.control.compiled.SdcNetwork`), the compiled step evaluates
+            it.
         weights: SDRE weights (SI).
         u_max: torque saturation per input [N·m].
         n_fingers: number of fingers controlled together.
@@ -40,14 +41,16 @@ class SdreLaw:
     """
 
     def __init__(self, model, weights: Weights, u_max: float, n_fingers: int = 4,
-                 method: str = 'fast', lowpass_hz: float = DEFAULT_LOWPASS_HZ, dt: float = 1e-3) -> None:
+                 method: str = 'fast', lowpass_hz: float = DEFAULT_LOWPASS_HZ,
+                 dt: float = 1e-3) -> None:
         self.model = model
         self.weights = weights
         self.n_fingers = int(n_fingers)
         try:
             self.frame = RestFrame(model.rest_tip, self.n_fingers)
         except ValueError:
-            raise ValueError(f'model.rest_tip must hold a finite rest position, got {model.rest_tip!r}') from None
+            raise ValueError('model.rest_tip must hold a finite rest position, '
+                             f'got {model.rest_tip!r}') from None
         self.sdre = SdreController(weights.Q, weights.R, u_max, n=self.n_fingers, method=method)
         self._blocks = getattr(model, 'sdc_blocks', None)
         self.network = compiled_network(model) if self.sdre.fast else None
@@ -75,7 +78,8 @@ class SdreLaw:
             the SDRE step (``u`` (n, 2) [N·m], gains, checks, fallbacks).
         """
         if self.network is not None:                 # the compiled step, network included
-            out = self.sdre.track(self.network, self.frame.origin, self.frame.stacked(pos, vel, ref_pos, ref_vel))
+            out = self.sdre.track(self.network, self.frame.origin,
+                                  self.frame.stacked(pos, vel, ref_pos, ref_vel))
         else:
             x, xd = self.frame.states(pos, vel, ref_pos, ref_vel)   # f(0) = 0 at rest
             if self._blocks is not None:             # a model in SDC form: only its lower rows
