@@ -1,5 +1,4 @@
-"""Learned G2 vs the simulator's true input matrix J M⁻¹ B,
-at the rest pose and across the workspace.
+"""Learned G2 vs the true input matrix J M⁻¹ B, at the rest pose and across the workspace.
 
     python -m soft_gripper_sdre.tools.input_matrix [--models default paper_data PATH ...]
         [--out DIR]
