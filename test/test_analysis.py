@@ -4,12 +4,11 @@ import numpy as np
 import pytest
 
 from soft_gripper_sdre.analysis.ground_truth import (
-    angle_difference,
-    column_angles,
     input_matrix_survey,
     linear_finger,
     loop_spectral_radius,
 )
+from soft_gripper_sdre.analysis.metrics import angle_difference, column_angles
 from soft_gripper_sdre.control.tracking import Weights
 from soft_gripper_sdre.learning.model import PAPER_DATA_MODEL, SDCModel
 

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.linalg import expm
 
+from soft_gripper_sdre.analysis.metrics import angle_difference, column_angles
 from soft_gripper_sdre.control.kf import ConstantVelocityKF
 from soft_gripper_sdre.control.riccati import sdre_gains
 from soft_gripper_sdre.control.tracking import RollOff
@@ -46,17 +47,6 @@ def true_tips(joints: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             for i in range(joints.shape[1]):
                 pos[k, i], vel[k, i] = finger.tip_state(joints[k, i, 0], joints[k, i, 1])
     return pos, vel
-
-
-def column_angles(G2: np.ndarray) -> np.ndarray:
-    """Direction [deg] of each column of G2 (…, 2, 2) in the (X, Y) plane."""
-    G2 = np.asarray(G2, dtype=float)
-    return np.degrees(np.arctan2(G2[..., 1, :], G2[..., 0, :]))
-
-
-def angle_difference(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """|a − b| wrapped to [0, 180] degrees."""
-    return np.abs((np.asarray(a) - np.asarray(b) + 180.0) % 360.0 - 180.0)
 
 
 @dataclass

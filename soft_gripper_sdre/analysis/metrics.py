@@ -107,3 +107,14 @@ def poly_features(x: np.ndarray, u: np.ndarray, degree: int = 3) -> np.ndarray:
         for combo in itertools.combinations_with_replacement(range(z.shape[1]), d):
             cols.append(np.prod(z[:, combo], axis=1))
     return np.stack(cols, axis=1)
+
+
+def column_angles(G2: np.ndarray) -> np.ndarray:
+    """Direction [deg] of each column of G2 (…, 2, 2) in the (X, Y) plane."""
+    G2 = np.asarray(G2, dtype=float)
+    return np.degrees(np.arctan2(G2[..., 1, :], G2[..., 0, :]))
+
+
+def angle_difference(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """|a − b| wrapped to [0, 180] degrees."""
+    return np.abs((np.asarray(a) - np.asarray(b) + 180.0) % 360.0 - 180.0)

@@ -208,7 +208,7 @@ def score_model(model: SDCModel, signal: str = 'u4', seconds: float = 4.0, every
     ``every``-th step: the learned ẍ = A(x)x + G(x)u with the exact, the projected and the
     simulator's measured tip acceleration; the learned G2 with J M⁻¹ B and with its projection;
     the learned drift A(x)x with the true f. Returns the samples and summary statistics."""
-    from soft_gripper_sdre.analysis.ground_truth import angle_difference, column_angles
+    from soft_gripper_sdre.analysis.metrics import angle_difference, column_angles
     from soft_gripper_sdre.sim.dynamics import FingerDynamics, oracle_sdc
     from soft_gripper_sdre.sim.hand import GripperSim
     from soft_gripper_sdre.sim.signals import get_signal

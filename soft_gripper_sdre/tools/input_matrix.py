@@ -26,7 +26,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="'default', 'paper_data' or checkpoint paths")
     ap.add_argument('--out', type=Path, default=None, help='also write input_matrix.json here')
     a = ap.parse_args(argv)
-    from soft_gripper_sdre.analysis.ground_truth import column_angles, input_matrix_survey
+    from soft_gripper_sdre.analysis.ground_truth import input_matrix_survey
+    from soft_gripper_sdre.analysis.metrics import column_angles
     from soft_gripper_sdre.learning.model import (
         DEFAULT_MODEL,
         PAPER_DATA_MODEL,

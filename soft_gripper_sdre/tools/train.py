@@ -9,9 +9,11 @@ With ``--bag`` the data come from rosbag2 recordings of ``tip_positions`` and ``
 :mod:`soft_gripper_sdre.tools.train_bags`. The rest of this text is about ``--data``.
 
 Writes OUT/model.pt (checkpoint), OUT/metrics.json, OUT/fig2_loss.png (the paper's Figure 2) and
-OUT/fig3_accel_u4.png (Figure 3). ``--install`` also copies the checkpoint and its metrics into the
-package as the shipped default model. Training labels are the KF + RTS estimates from the measured
-tip positions; validation (u4) is scored against the simulator's true accelerations.
+OUT/fig3_accel_u4.png (Figure 3), all together or none (the pipeline both paths share:
+:mod:`~soft_gripper_sdre.analysis.training_run`). ``--install`` also copies the checkpoint and
+its metrics into the package as the shipped default model. Training labels are the KF + RTS
+estimates from the measured tip positions; validation (u4) is scored against the simulator's true
+accelerations.
 """
 from __future__ import annotations
 
@@ -26,12 +28,11 @@ import sys
 import numpy as np
 from tqdm import tqdm
 
-from soft_gripper_sdre.analysis.metrics import poly_features, r2_score
-from soft_gripper_sdre.analysis.plots import plot_accel, plot_loss
+from soft_gripper_sdre.analysis import training_run
 from soft_gripper_sdre.learning import derivatives
 from soft_gripper_sdre.learning.dataset import DatasetError, Record, load_records
-from soft_gripper_sdre.learning.model import DEFAULT_MODEL, SDCModel, set_torch_threads
-from soft_gripper_sdre.learning.training import PRESETS, fingerprint, save_checkpoint, train
+from soft_gripper_sdre.learning.model import DEFAULT_MODEL, set_torch_threads
+from soft_gripper_sdre.learning.training import PRESETS, fingerprint, train
 
 #: training signals per data variant; validation is always u4
 DATA_VARIANTS = {'paper': ('u1', 'u2', 'u3'), 'identifying': ('u1', 'u2', 'u3', 'x1', 'x2')}
@@ -121,10 +122,10 @@ def jittered(x: np.ndarray, acc: np.ndarray, jitter: float,
 
 
 def fit(data: LabelledData, settings, path: Path, jitter: float = 0.0, jitter_seed: int = 0,
-        on_epoch=None) -> tuple[Path, dict, object, np.ndarray]:
+        on_epoch=None) -> tuple[Path, dict, object, training_run.Scores]:
     """Train on ``data`` (jittered by ``jitter`` when > 0, :func:`jittered`), write the checkpoint
-    with its metrics to ``path`` and score it: (path, metrics, the TrainResult, the validation
-    signal's predicted acceleration)."""
+    with its metrics to ``path`` and score it against the simulator's true accelerations of the
+    validation signal: (path, metrics, the TrainResult, the scores)."""
     x, u, acc = data.x, data.u, data.acc
     if jitter > 0:
         x, acc = jittered(x, acc, jitter, jitter_seed)
@@ -135,40 +136,18 @@ def fit(data: LabelledData, settings, path: Path, jitter: float = 0.0, jitter_se
                  'jerk_psd': data.jerk_psd, 'noise_std': data.noise_std}
     if jitter > 0:
         data_info['jitter'] = {'relative': jitter, 'seed': jitter_seed}
-    ckpt_path = save_checkpoint(path, result, rest_tip=data.rest_tip, dt=data.dt, settings=settings,
-                                data=data_info)
-    model = SDCModel(ckpt_path)
 
-    # validation against the simulator's TRUE accelerations
-    acc_true = data.acc_true
-    pred = model.xdot(val['x'], val['u'])[:, 2:]
-    r2 = r2_score(acc_true, pred).tolist()
-    feats = poly_features(x, u)
-    coef, *_ = np.linalg.lstsq(feats, acc, rcond=None)
-    r2_ls = r2_score(acc_true, poly_features(val['x'], val['u']) @ coef).tolist()
-    _, G = model.AG(np.zeros(4))
-    G2 = G[0, 2:, :]
-    angles = [float(np.degrees(np.arctan2(G2[1, j], G2[0, j]))) for j in range(2)]
-    metrics = {
-        'preset': settings.preset, 'variant': data.variant, 'seed': settings.seed,
-        'epochs_run': len(result.train_loss),
-        'best_epoch': result.best_epoch, 'train_seconds': round(result.seconds, 1),
-        'u4_r2_true': {'X': r2[0], 'Y': r2[1]},
-        'u4_r2_ls_baseline': {'X': r2_ls[0], 'Y': r2_ls[1]},
-        'u4_true_variance_below_10hz': dict(zip('XY', low_frequency_share(acc_true, data.val_dt))),
-        'derivative_errors': data.derivative_errors,
-        'G2_at_origin': G2.tolist(), 'G2_column_angles_deg': angles,
-        'final_train_loss': result.train_loss[-1], 'best_val_loss': min(result.val_loss),
-    }
-    save_checkpoint(ckpt_path, result, rest_tip=data.rest_tip, dt=data.dt, settings=settings,
-                    data=data_info, metrics=metrics)
-    return ckpt_path, metrics, result, pred
-
-
-def _usage_error(parser, message):
-    parser.print_usage(sys.stderr)
-    print(f'{parser.prog}: error: {message}', file=sys.stderr)
-    raise SystemExit(2)
+    def describe(model, scores: training_run.Scores) -> dict:
+        return {**scores.common_metrics(settings, result), 'variant': data.variant,
+                'u4_r2_true': dict(zip('XY', scores.r2)),
+                'u4_r2_ls_baseline': dict(zip('XY', scores.r2_ls)),
+                'u4_true_variance_below_10hz': dict(zip('XY', low_frequency_share(data.acc_true,
+                                                                                  data.val_dt))),
+                'derivative_errors': data.derivative_errors}
+    _, scores, metrics = training_run.checkpoint(
+        path, result, settings, rest_tip=data.rest_tip, dt=data.dt, data=data_info,
+        train=(x, u, acc), val=(val['x'], val['u']), acc_ref=data.acc_true, describe=describe)
+    return Path(path), metrics, result, scores
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -234,42 +213,41 @@ def main(argv: list[str] | None = None) -> int:
     settings = replace(PRESETS[args.preset], seed=args.seed)
     if args.rollout_epochs is not None:
         if not bags or args.rollout_epochs < 0:
-            _usage_error(parser, '--rollout-epochs takes an int >= 0 and needs --bag (the '
+            parser.error('--rollout-epochs takes an int >= 0 and needs --bag (the '
                                  'simulation stage trains on contiguous records)')
         settings = replace(settings, rollout_epochs=args.rollout_epochs)
     elif settings.rollout_epochs and not bags:
-        _usage_error(parser, f'the {args.preset} preset trains on contiguous records: give --bag')
+        parser.error(f'the {args.preset} preset trains on contiguous records: give --bag')
     if args.epochs is not None:
         if args.epochs < 1:
-            _usage_error(parser, '--epochs must be >= 1')
+            parser.error('--epochs must be >= 1')
         settings = replace(settings, epochs=args.epochs)
     if args.patience is not None:
         try:
             settings = replace(settings, patience=args.patience)
         except ValueError as exc:
-            _usage_error(parser, f'--patience: {exc}')
+            parser.error(f'--patience: {exc}')
     if not (np.isfinite(args.jitter) and 0.0 <= args.jitter < 1e-3):
-        _usage_error(parser, f'--jitter must be in [0, 1e-3), got {args.jitter}')
+        parser.error(f'--jitter must be in [0, 1e-3), got {args.jitter}')
     if args.sv_penalty != 0:
         try:
             settings = replace(settings, sv_penalty=args.sv_penalty, sv_floor=args.sv_floor)
         except ValueError as exc:
-            _usage_error(parser, f'--sv-penalty/--sv-floor: {exc}')
+            parser.error(f'--sv-penalty/--sv-floor: {exc}')
     if args.bag or args.val_bag:
         return _main_bags(parser, args, settings)
     if args.data is None:
-        _usage_error(parser,
-                     'give --data DIR (.npz files) or --bag DIR ... --val-bag DIR (rosbag2)')
+        parser.error('give --data DIR (.npz files) or --bag DIR ... --val-bag DIR (rosbag2)')
     variant = args.variant or ('paper' if args.preset == 'paper' else 'identifying')
     names = list(DATA_VARIANTS[variant]) + [VALIDATION]
     try:
         records = load_records(args.data, names)
     except DatasetError as exc:
-        _usage_error(parser, str(exc))
+        parser.error(str(exc))
     try:
         args.out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        _usage_error(parser, f'cannot create output directory {args.out}: {exc.strerror}')
+        parser.error(f'cannot create output directory {args.out}: {exc.strerror}')
 
     data = label_records(records, variant, args.jerk_psd)
     print(f'KF/RTS white-jerk intensity q = {data.jerk_psd:g} (m/s³)²/Hz')
@@ -279,20 +257,17 @@ def main(argv: list[str] | None = None) -> int:
         bar.update(1)
         bar.set_postfix(train=f'{tl:.3g}', val=f'{vl:.3g}')
 
-    ckpt_path, metrics, result, pred = fit(data, settings, args.out / 'model.pt', args.jitter,
-                                           args.jitter_seed, on_epoch)
-    bar.close()
-    r2, r2_ls, G2 = (metrics['u4_r2_true'], metrics['u4_r2_ls_baseline'],
-                     np.asarray(metrics['G2_at_origin']))
-    v_rec = records[VALIDATION]
-    (args.out / 'metrics.json').write_text(json.dumps(metrics, indent=2))
-    plot_loss(result.train_loss, result.val_loss, args.out / 'fig2_loss.png',
-              title=f'Training loss, {args.preset} preset ({variant} data)')
-    plot_accel(v_rec.t, data.acc_true, pred, args.out / 'fig3_accel_u4.png', r2=[r2['X'], r2['Y']],
-               title=f'u4 validation, {args.preset} preset: predicted (dashed) vs true (solid)')
-    print(f'u4 R² vs true acceleration: X {r2["X"]:.3f}  Y {r2["Y"]:.3f}   '
-          f'(3rd-order least squares: X {r2_ls["X"]:.3f}  Y {r2_ls["Y"]:.3f})')
-    print(f'G2 at the origin [m/s² per N·m]: {np.round(G2, 1).tolist()}')
+    with training_run.staged(args.out) as stage:
+        _, metrics, result, scores = fit(data, settings, stage / 'model.pt', args.jitter,
+                                         args.jitter_seed, on_epoch)
+        bar.close()
+        training_run.write_report(
+            stage, result, metrics, scores, records[VALIDATION].t, data.acc_true,
+            loss_title=f'Training loss, {args.preset} preset ({variant} data)',
+            accel_file='fig3_accel_u4.png',
+            accel_title=f'u4 validation, {args.preset} preset: predicted (dashed) vs true (solid)')
+    ckpt_path = args.out / 'model.pt'
+    print('\n'.join(scores.lines('u4 R² vs true acceleration')))
     print(f'training: {len(result.train_loss)} epochs in {result.seconds:.1f} s; wrote {args.out}')
     if args.install:
         DEFAULT_MODEL.parent.mkdir(parents=True, exist_ok=True)
@@ -309,32 +284,31 @@ def _main_bags(parser: argparse.ArgumentParser, args: argparse.Namespace, settin
     from soft_gripper_sdre.tools.train_bags import train_from_bags
 
     if args.data is not None:
-        _usage_error(parser, '--data and --bag exclude each other')
+        parser.error('--data and --bag exclude each other')
     if not args.bag or not args.val_bag:
-        _usage_error(parser,
-                     '--bag needs --val-bag (the validation recording) and the other way round')
+        parser.error('--bag needs --val-bag (the validation recording) and the other way round')
     if args.variant is not None or args.jitter > 0:
-        _usage_error(parser, '--variant and --jitter apply to --data only')
+        parser.error('--variant and --jitter apply to --data only')
     if args.meas_std is not None and not (np.isfinite(args.meas_std) and 0 <= args.meas_std < 0.01):
-        _usage_error(parser, f'--meas-std must be in [0, 0.01) m, got {args.meas_std}')
+        parser.error(f'--meas-std must be in [0, 0.01) m, got {args.meas_std}')
     if not (np.isfinite(args.min_duration) and args.min_duration > 0):
-        _usage_error(parser, f'--min-duration must be > 0 s, got {args.min_duration}')
+        parser.error(f'--min-duration must be > 0 s, got {args.min_duration}')
     if args.finger is not None and not 0 <= args.finger < 4:
-        _usage_error(parser, f'--finger must be in [0, 3], got {args.finger}')
+        parser.error(f'--finger must be in [0, 3], got {args.finger}')
     if args.jerk_psd is not None and not (np.isfinite(args.jerk_psd) and args.jerk_psd > 0):
-        _usage_error(parser, f'--jerk-psd must be > 0, got {args.jerk_psd}')
+        parser.error(f'--jerk-psd must be > 0, got {args.jerk_psd}')
     if args.out.exists() and not args.out.is_dir():
-        _usage_error(parser, f'--out {args.out} exists and is not a directory')
+        parser.error(f'--out {args.out} exists and is not a directory')
     try:
         args.out.parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        _usage_error(parser, f'cannot create the parent of {args.out}: {exc.strerror}')
+        parser.error(f'cannot create the parent of {args.out}: {exc.strerror}')
     try:
         train_from_bags(args.bag, args.val_bag, args.out, settings, tips_topic=args.tips_topic,
                         torques_topic=args.torques_topic, min_duration=args.min_duration,
                         finger=args.finger, meas_std=args.meas_std, jerk_psd=args.jerk_psd)
     except BagDataError as exc:
-        _usage_error(parser, str(exc))
+        parser.error(str(exc))
     if args.install:
         DEFAULT_MODEL.parent.mkdir(parents=True, exist_ok=True)
         shutil.copyfile(args.out / 'model.pt', DEFAULT_MODEL)

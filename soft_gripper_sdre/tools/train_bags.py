@@ -17,18 +17,14 @@ against the validation bags' own KF + RTS labels (a recording has no true accele
 """
 from __future__ import annotations
 
-import json
-import os
 from pathlib import Path
-import shutil
-import tempfile
 
 import numpy as np
 from tqdm import tqdm
 import yaml
 
 from soft_gripper_sdre import FINGER_NAMES
-from soft_gripper_sdre.analysis import loop_settings, model_fitness
+from soft_gripper_sdre.analysis import loop_settings, model_fitness, training_run
 from soft_gripper_sdre.analysis.bag_dataset import (
     DEFAULT_GAP_PERIODS,
     MIN_SAMPLES,
@@ -43,15 +39,11 @@ from soft_gripper_sdre.analysis.bag_dataset import (
     settle_noise,
     tip_stretches,
 )
-from soft_gripper_sdre.analysis.metrics import poly_features, r2_score
-from soft_gripper_sdre.analysis.plots import plot_accel, plot_loss
 from soft_gripper_sdre.learning import derivatives
-from soft_gripper_sdre.learning.model import SDCModel
 from soft_gripper_sdre.learning.training import (
     Run,
     TrainSettings,
     fingerprint,
-    save_checkpoint,
     train,
 )
 
@@ -59,7 +51,6 @@ from soft_gripper_sdre.learning.training import (
 TUNE_SAMPLES = 2000
 #: white-jerk intensities tried [(m/s³)²/Hz]: from a slow, soft finger's to a fast, stiff one's
 JERK_GRID = np.logspace(-3, 7, 11)
-OUTPUTS = ('model.pt', 'metrics.json', 'fig2_loss.png', 'fig3_accel_val.png')
 #: written only for a model fit to control whose settings passed their closed-loop check
 PARAMS_FILE = 'params.yaml'
 
@@ -269,17 +260,10 @@ def train_from_bags(train_paths: list[Path], val_paths: list[Path], out: Path,
                  'fingerprint': fingerprint(x, u, acc), 'jerk_psd': float(jerk),
                  'noise_std': float(noise)}
     dt = float(np.median(np.diff(rec0.tip_ns)) / 1e9)
-    finger_names = list(rec0.finger_names)
-    staging = Path(tempfile.mkdtemp(prefix=f'.{out.name}.partial-', dir=out.parent))
-    try:
-        ckpt = save_checkpoint(staging / 'model.pt', result, rest_tip=rest_tip, dt=dt,
-                               settings=settings, data=data_info)
-        model = SDCModel(ckpt)
-        pred = model.xdot(x_val, u_val)[:, 2:]
-        r2 = r2_score(acc_val, pred).tolist()
-        coef, *_ = np.linalg.lstsq(poly_features(x, u), acc, rcond=None)
-        r2_ls = r2_score(acc_val, poly_features(x_val, u_val) @ coef).tolist()
-        G2 = model.AG(np.zeros(4))[1][0, 2:, :]
+    judged: dict = {}
+
+    def describe(model, scores: training_run.Scores) -> dict:
+        """The bag path's metrics, with the model's verdict and, for a fit one, the settings."""
         fitness = model_fitness.judge(model, validation_segments(val_samples))
         derived = None
         if fitness.fit:
@@ -287,53 +271,40 @@ def train_from_bags(train_paths: list[Path], val_paths: list[Path], out: Path,
                                              [tuning_stretch(rec, f[0]) for rec, f in train_set])
             derived = loop_settings.derive(model, facts, progress=lambda text: print(
                 f'  closed-loop check on the model: {text}', flush=True))
-        metrics = {
-            'source': 'rosbag2', 'preset': settings.preset, 'seed': settings.seed,
-            'epochs_run': len(result.train_loss), 'best_epoch': result.best_epoch,
-            'rollout_epochs_run': len(result.rollout_loss),
-            'best_val_sim_error': min(result.val_sim_error) if result.val_sim_error else None,
-            'train_seconds': round(result.seconds, 1),
-            'val_r2_labels': {'X': r2[0], 'Y': r2[1]},
-            'val_r2_ls_baseline': {'X': r2_ls[0], 'Y': r2_ls[1]},
-            'G2_at_origin': G2.tolist(),
-            'G2_column_angles_deg': [float(np.degrees(np.arctan2(G2[1, j], G2[0, j])))
-                                     for j in range(2)],
-            'final_train_loss': result.train_loss[-1], 'best_val_loss': min(result.val_loss),
-            'train_samples': int(len(x)), 'validation_samples': int(len(x_val)),
-            'noise_std': noise, 'fitness': _plain(fitness.summary()),
-            'derived_settings': _plain(derived.summary()) if derived is not None else None,
-        }
-        save_checkpoint(ckpt, result, rest_tip=rest_tip, dt=dt, settings=settings, data=data_info,
-                        metrics=metrics)
-        (staging / 'metrics.json').write_text(json.dumps(metrics, indent=2))
-        plot_loss(result.train_loss, result.val_loss, staging / 'fig2_loss.png',
-                  title=f'Training loss from bags, {settings.preset} preset')
-        plot_accel(t_val, acc_val, pred, staging / 'fig3_accel_val.png', r2=r2,
-                   title='validation bags: predicted (dashed) vs KF + RTS labels (solid)')
-        outputs = list(OUTPUTS)
+        judged.update(fitness=fitness, derived=derived)
+        return {**scores.common_metrics(settings, result), 'source': 'rosbag2',
+                'rollout_epochs_run': len(result.rollout_loss),
+                'best_val_sim_error': min(result.val_sim_error) if result.val_sim_error else None,
+                'val_r2_labels': dict(zip('XY', scores.r2)),
+                'val_r2_ls_baseline': dict(zip('XY', scores.r2_ls)),
+                'train_samples': int(len(x)), 'validation_samples': int(len(x_val)),
+                'noise_std': noise, 'fitness': _plain(fitness.summary()),
+                'derived_settings': _plain(derived.summary()) if derived is not None else None}
+
+    # never a params.yaml from another model beside this one
+    with training_run.staged(out, stale=(PARAMS_FILE,)) as stage:
+        _, scores, metrics = training_run.checkpoint(
+            stage / 'model.pt', result, settings, rest_tip=rest_tip, dt=dt, data=data_info,
+            train=(x, u, acc), val=(x_val, u_val), acc_ref=acc_val, describe=describe)
+        training_run.write_report(
+            stage, result, metrics, scores, t_val, acc_val,
+            loss_title=f'Training loss from bags, {settings.preset} preset',
+            accel_file='fig3_accel_val.png',
+            accel_title='validation bags: predicted (dashed) vs KF + RTS labels (solid)')
+        derived = judged['derived']
         if derived is not None and derived.settings is not None:
-            (staging / PARAMS_FILE).write_text(params_yaml(
-                derived, out / 'model.pt', finger_names,
+            (stage / PARAMS_FILE).write_text(params_yaml(
+                derived, out / 'model.pt', list(rec0.finger_names),
                 ', '.join(str(p) for p in train_paths)))
-            outputs.append(PARAMS_FILE)
-        out.mkdir(parents=True, exist_ok=True)
-        # never a file from another model beside this one
-        (out / PARAMS_FILE).unlink(missing_ok=True)
-        for name in outputs:
-            os.replace(staging / name, out / name)
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
-    print(f'validation R² vs the KF + RTS labels: X {r2[0]:.3f}  Y {r2[1]:.3f}   '
-          f'(3rd-order least squares: X {r2_ls[0]:.3f}  Y {r2_ls[1]:.3f})')
-    if min(r2 + r2_ls) < 0.0:
+    print('\n'.join(scores.lines('validation R² vs the KF + RTS labels')))
+    if min(scores.r2 + scores.r2_ls) < 0.0:
         print('  (below 0: the validation labels vary less than the predictions miss them. Where '
               'the baseline is below 0 too, the labels are mostly noise or smoothed flat at this '
               'signal\'s speed; the free run below judges the model on the recorded positions '
               'instead)')
-    print(f'G2 at the origin [m/s² per N·m]: {np.round(G2, 1).tolist()}')
     print(f'training: {len(result.train_loss)} epochs on {len(x)} samples from '
           f'{len(provenance)} bag(s) in {result.seconds:.1f} s; wrote {out}')
-    report_fitness(fitness, derived, out)
+    report_fitness(judged['fitness'], derived, out)
     return metrics
 
 

@@ -1,0 +1,112 @@
+"""One training run from its result to the files a user keeps, for both of ``tools.train``'s
+paths (``.npz`` records and rosbag2 recordings) and the seed sweep.
+
+:func:`checkpoint` writes the checkpoint, loads it back as the controller will, scores it
+(:func:`score`: R² of the predicted accelerations, the cubic least-squares baseline on the same
+data, the input map at rest) and writes it again with the metrics the caller builds from those
+scores. :func:`write_report` adds ``metrics.json`` and the loss and validation figures, and
+:func:`staged` makes a run's files appear in the output directory together or not at all.
+"""
+from __future__ import annotations
+
+from contextlib import contextmanager
+from dataclasses import dataclass
+import json
+import os
+from pathlib import Path
+import shutil
+import tempfile
+from typing import Callable, Iterator
+
+import numpy as np
+
+from soft_gripper_sdre.analysis.metrics import column_angles, poly_features, r2_score
+from soft_gripper_sdre.analysis.plots import plot_accel, plot_loss
+from soft_gripper_sdre.learning.model import SDCModel
+from soft_gripper_sdre.learning.training import TrainResult, TrainSettings, save_checkpoint
+
+
+@dataclass
+class Scores:
+    """How a trained model fits: its predicted accelerations on the validation states
+    (``pred``), their R² against the reference accelerations per axis (``r2``), the same for
+    the cubic least-squares baseline fitted on the training data (``r2_ls``), and G₂ at rest."""
+
+    pred: np.ndarray
+    r2: list[float]
+    r2_ls: list[float]
+    G2: np.ndarray
+
+    def common_metrics(self, settings: TrainSettings, result: TrainResult) -> dict:
+        """The metrics every path reports the same way."""
+        return {'preset': settings.preset, 'seed': settings.seed,
+                'epochs_run': len(result.train_loss), 'best_epoch': result.best_epoch,
+                'train_seconds': round(result.seconds, 1), 'G2_at_origin': self.G2.tolist(),
+                'G2_column_angles_deg': column_angles(self.G2).tolist(),
+                'final_train_loss': result.train_loss[-1], 'best_val_loss': min(result.val_loss)}
+
+    def lines(self, against: str) -> list[str]:
+        """What training prints of them; ``against`` names the reference accelerations."""
+        r2, ls = self.r2, self.r2_ls
+        return [f'{against}: X {r2[0]:.3f}  Y {r2[1]:.3f}   '
+                f'(3rd-order least squares: X {ls[0]:.3f}  Y {ls[1]:.3f})',
+                f'G2 at the origin [m/s² per N·m]: {np.round(self.G2, 1).tolist()}']
+
+
+def score(model: SDCModel, train: tuple[np.ndarray, ...], val: tuple[np.ndarray, np.ndarray],
+          acc_ref: np.ndarray) -> Scores:
+    """:class:`Scores` of ``model``: ``train`` = (x, u, acc) the baseline is fitted on, ``val`` =
+    (x, u) of the validation states, ``acc_ref`` their reference accelerations (the simulator's
+    true ones, or the validation labels)."""
+    x, u, acc = train
+    pred = model.xdot(*val)[:, 2:]
+    coef, *_ = np.linalg.lstsq(poly_features(x, u), acc, rcond=None)
+    return Scores(pred, r2_score(acc_ref, pred).tolist(),
+                  r2_score(acc_ref, poly_features(*val) @ coef).tolist(),
+                  model.AG(np.zeros(4))[1][0, 2:, :])
+
+
+def checkpoint(path: Path, result: TrainResult, settings: TrainSettings, *,
+               rest_tip: np.ndarray, dt: float, data: dict, train: tuple[np.ndarray, ...],
+               val: tuple[np.ndarray, np.ndarray], acc_ref: np.ndarray,
+               describe: Callable[[SDCModel, Scores], dict]) -> tuple[SDCModel, Scores, dict]:
+    """Write ``result`` to ``path``, load it back, :func:`score` it, and write it again with
+    ``describe(model, scores)`` as its metrics; returns (model, scores, metrics)."""
+    path = save_checkpoint(path, result, rest_tip=rest_tip, dt=dt, settings=settings, data=data)
+    model = SDCModel(path)
+    scores = score(model, train, val, acc_ref)
+    metrics = describe(model, scores)
+    save_checkpoint(path, result, rest_tip=rest_tip, dt=dt, settings=settings, data=data,
+                    metrics=metrics)
+    return model, scores, metrics
+
+
+def write_report(directory: Path, result: TrainResult, metrics: dict, scores: Scores,
+                 t_val: np.ndarray, acc_ref: np.ndarray, *, loss_title: str, accel_file: str,
+                 accel_title: str) -> None:
+    """``metrics.json``, ``fig2_loss.png`` (training and validation loss per epoch) and the
+    validation signal's predicted against reference accelerations (``accel_file``)."""
+    directory = Path(directory)
+    (directory / 'metrics.json').write_text(json.dumps(metrics, indent=2))
+    plot_loss(result.train_loss, result.val_loss, directory / 'fig2_loss.png', title=loss_title)
+    plot_accel(t_val, acc_ref, scores.pred, directory / accel_file, r2=scores.r2, title=accel_title)
+
+
+@contextmanager
+def staged(out: Path, stale: tuple[str, ...] = ()) -> Iterator[Path]:
+    """A directory beside ``out`` to write a run's files into; when the block ends without an
+    error, every file in it replaces its namesake in ``out`` (created if need be), after the
+    files named in ``stale`` are removed from ``out`` (no file of an older run is left beside the
+    new ones). On an error ``out`` is left as it was."""
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    stage = Path(tempfile.mkdtemp(prefix=f'.{out.name}.partial-', dir=out.parent))
+    try:
+        yield stage
+        out.mkdir(parents=True, exist_ok=True)
+        for name in stale:
+            (out / name).unlink(missing_ok=True)
+        for item in sorted(stage.iterdir()):
+            os.replace(item, out / item.name)
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
