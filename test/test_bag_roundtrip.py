@@ -17,11 +17,11 @@ import pytest
 from soft_gripper_sdre.analysis.bag_dataset import label_finger, read_recording, settle_estimates
 from soft_gripper_sdre.analysis.metrics import r2_score
 from soft_gripper_sdre.learning.dataset import Record
+from soft_gripper_sdre.learning.labels import states
 from soft_gripper_sdre.learning.model import SDCModel
 from soft_gripper_sdre.learning.training import PRESETS, save_checkpoint, train
 from soft_gripper_sdre.sim.hand import SimConfig
 from soft_gripper_sdre.tools.collect import collect_signal
-from soft_gripper_sdre.tools.train import states
 
 pytestmark = pytest.mark.ros
 

@@ -18,10 +18,10 @@ from jobs_helpers import draw, fail_on_three
 import numpy as np
 import pytest
 
+from soft_gripper_sdre.learning.labels import DATA_VARIANTS, VALIDATION
 from soft_gripper_sdre.sim.hand import SimConfig
 from soft_gripper_sdre.tools import jobs
 from soft_gripper_sdre.tools.collect import collect_signal, write_record
-from soft_gripper_sdre.tools.train import DATA_VARIANTS, VALIDATION
 
 RAY_MISSING = jobs.ray_available()
 needs_ray = pytest.mark.skipif(RAY_MISSING is not None,

@@ -9,10 +9,11 @@ import sys
 import numpy as np
 import pytest
 
+from soft_gripper_sdre.learning.labels import DATA_VARIANTS, VALIDATION
 from soft_gripper_sdre.learning.model import SDCModel
 from soft_gripper_sdre.sim.hand import SimConfig
 from soft_gripper_sdre.tools.collect import collect_signal, write_record
-from soft_gripper_sdre.tools.train import DATA_VARIANTS, VALIDATION, main
+from soft_gripper_sdre.tools.train import main
 
 SIGNALS = DATA_VARIANTS['identifying'] + (VALIDATION,)
 PNG_MAGIC = b'\x89PNG\r\n\x1a\n'

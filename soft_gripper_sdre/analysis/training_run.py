@@ -1,5 +1,6 @@
 """One training run from its result to the files a user keeps, for both of ``tools.train``'s
-paths (``.npz`` records and rosbag2 recordings) and the seed sweep.
+paths (``.npz`` records and rosbag2 recordings) and the seed sweep (:func:`fit`: the ``.npz``
+records' labels to a scored checkpoint).
 
 :func:`checkpoint` writes the checkpoint, loads it back as the controller will, scores it
 (:func:`score`: R² of the predicted accelerations, the cubic least-squares baseline on the same
@@ -22,8 +23,20 @@ import numpy as np
 
 from soft_gripper_sdre.analysis.metrics import column_angles, poly_features, r2_score
 from soft_gripper_sdre.analysis.plots import plot_accel, plot_loss
+from soft_gripper_sdre.learning.labels import (
+    VALIDATION,
+    LabelledData,
+    jittered,
+    low_frequency_share,
+)
 from soft_gripper_sdre.learning.model import SDCModel
-from soft_gripper_sdre.learning.training import TrainResult, TrainSettings, save_checkpoint
+from soft_gripper_sdre.learning.training import (
+    TrainResult,
+    TrainSettings,
+    fingerprint,
+    save_checkpoint,
+    train,
+)
 
 
 @dataclass
@@ -90,6 +103,36 @@ def write_report(directory: Path, result: TrainResult, metrics: dict, scores: Sc
     (directory / 'metrics.json').write_text(json.dumps(metrics, indent=2))
     plot_loss(result.train_loss, result.val_loss, directory / 'fig2_loss.png', title=loss_title)
     plot_accel(t_val, acc_ref, scores.pred, directory / accel_file, r2=scores.r2, title=accel_title)
+
+
+def fit(data: LabelledData, settings: TrainSettings, path: Path, jitter: float = 0.0,
+        jitter_seed: int = 0, on_epoch=None) -> tuple[Path, dict, TrainResult, Scores]:
+    """Train on ``data`` (jittered by ``jitter`` when > 0,
+    :func:`~soft_gripper_sdre.learning.labels.jittered`), write the checkpoint with its metrics to
+    ``path`` and score it against the simulator's true accelerations of the validation signal:
+    (path, metrics, the TrainResult, the scores)."""
+    x, u, acc = data.x, data.u, data.acc
+    if jitter > 0:
+        x, acc = jittered(x, acc, jitter, jitter_seed)
+    val = data.val
+    result = train(x, u, acc, val['x'], val['u'], val['acc'], settings, on_epoch)
+    data_info = {'variant': data.variant, 'train_signals': data.train_signals,
+                 'validation': VALIDATION, 'fingerprint': fingerprint(x, u, acc),
+                 'jerk_psd': data.jerk_psd, 'noise_std': data.noise_std}
+    if jitter > 0:
+        data_info['jitter'] = {'relative': jitter, 'seed': jitter_seed}
+
+    def describe(model, scores: Scores) -> dict:
+        return {**scores.common_metrics(settings, result), 'variant': data.variant,
+                'u4_r2_true': dict(zip('XY', scores.r2)),
+                'u4_r2_ls_baseline': dict(zip('XY', scores.r2_ls)),
+                'u4_true_variance_below_10hz': dict(zip('XY', low_frequency_share(data.acc_true,
+                                                                                  data.val_dt))),
+                'derivative_errors': data.derivative_errors}
+    _, scores, metrics = checkpoint(
+        path, result, settings, rest_tip=data.rest_tip, dt=data.dt, data=data_info,
+        train=(x, u, acc), val=(val['x'], val['u']), acc_ref=data.acc_true, describe=describe)
+    return Path(path), metrics, result, scores
 
 
 @contextmanager

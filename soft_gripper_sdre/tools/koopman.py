@@ -30,7 +30,7 @@ from soft_gripper_sdre.learning.koopman import (
     KoopmanSettings,
     fit_koopman,
 )
-from soft_gripper_sdre.tools.train import DATA_VARIANTS, VALIDATION, states, tuned_jerk_psd
+from soft_gripper_sdre.learning.labels import DATA_VARIANTS, VALIDATION, states, tuned_jerk_psd
 
 #: score_model's samples: every 10th step of the first 4 s, from step 10 on
 SCORE_EVERY, SCORE_SECONDS = 10, 4.0

@@ -131,8 +131,8 @@ def tracking_runs(model, laws, trajectories, duration) -> list[dict]:
 
 def run_model_job(context: SweepContext, job: ModelJob) -> ModelOutcome:
     """Train and score one model (a job of :func:`~soft_gripper_sdre.tools.jobs.run_jobs`)."""
+    from soft_gripper_sdre.analysis.training_run import fit
     from soft_gripper_sdre.learning.model import DEFAULT_MODEL, SDCModel, set_torch_threads
-    from soft_gripper_sdre.tools.train import fit
     set_torch_threads(1)
     start = time.perf_counter()
     if job.seed is None:
@@ -422,7 +422,7 @@ def parse_args(argv=None):
     settings = _settings_from(ap, args.set)
     runner = jobs.runner_from_args(ap, args)
     from soft_gripper_sdre.learning.dataset import DatasetError, load_records
-    from soft_gripper_sdre.tools.train import DATA_VARIANTS, VALIDATION
+    from soft_gripper_sdre.learning.labels import DATA_VARIANTS, VALIDATION
     try:
         records = load_records(args.data, list(DATA_VARIANTS['identifying']) + [VALIDATION])
     except DatasetError as exc:
@@ -434,9 +434,9 @@ def main(argv=None) -> int:
     ap, args, settings, runner, records = parse_args(argv)
     command = 'python -m soft_gripper_sdre.tools.seeds ' + ' '.join(
         shlex.quote(a) for a in (sys.argv[1:] if argv is None else argv))
+    from soft_gripper_sdre.learning.labels import label_records
     from soft_gripper_sdre.learning.training import fingerprint
     from soft_gripper_sdre.tools.procs import pinned_kernels
-    from soft_gripper_sdre.tools.train import label_records
     progress = not args.no_progress
     unpinned = pinned_kernels(os.environ)
     if unpinned:

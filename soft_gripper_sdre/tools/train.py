@@ -18,7 +18,7 @@ accelerations.
 from __future__ import annotations
 
 import argparse
-from dataclasses import dataclass, replace
+from dataclasses import replace
 import json
 import logging
 from pathlib import Path
@@ -29,125 +29,11 @@ import numpy as np
 from tqdm import tqdm
 
 from soft_gripper_sdre.analysis import training_run
-from soft_gripper_sdre.learning import derivatives
-from soft_gripper_sdre.learning.dataset import DatasetError, Record, load_records
+from soft_gripper_sdre.analysis.training_run import fit
+from soft_gripper_sdre.learning.dataset import DatasetError, load_records
+from soft_gripper_sdre.learning.labels import DATA_VARIANTS, VALIDATION, label_records
 from soft_gripper_sdre.learning.model import DEFAULT_MODEL, set_torch_threads
-from soft_gripper_sdre.learning.training import PRESETS, fingerprint, train
-
-#: training signals per data variant; validation is always u4
-DATA_VARIANTS = {'paper': ('u1', 'u2', 'u3'), 'identifying': ('u1', 'u2', 'u3', 'x1', 'x2')}
-VALIDATION = 'u4'
-
-
-def states(record: Record, jerk_psd: float) -> dict[str, np.ndarray]:
-    """Translated state x = [X−X₀, Y−Y₀, Ẋ, Ẏ], input and acceleration labels from the KF + RTS."""
-    pos, vel, acc = derivatives.estimate_kinematics(record.t, record.tip[:, :2], jerk_psd,
-                                                    record.noise_std, smooth=True)
-    x = np.hstack([pos - record.rest_tip[:2], vel])
-    return {'x': x, 'u': record.u, 'acc': acc, 'vel': vel}
-
-
-def tuned_jerk_psd(record: Record) -> float:
-    """The KF/RTS white-jerk intensity picked by likelihood on the first 2 s of ``record`` (the
-    first training record: the labels of every model fitted to the same data)."""
-    seg = slice(0, min(2000, record.t.size))
-    return derivatives.tune_jerk_psd(record.t[seg], record.tip[seg, :2], record.noise_std,
-                                     np.logspace(1, 7, 7))
-
-
-def low_frequency_share(acc: np.ndarray, dt: float, cutoff: float = 10.0) -> list[float]:
-    """Share of each column's variance below ``cutoff`` Hz."""
-    a = acc - acc.mean(axis=0)
-    power = np.abs(np.fft.rfft(a, axis=0)) ** 2
-    f = np.fft.rfftfreq(len(a), dt)
-    return (power[f < cutoff].sum(axis=0) / power.sum(axis=0)).tolist()
-
-
-@dataclass
-class LabelledData:
-    """The ``--data`` records as training sees them: the training arrays of every training signal,
-    stacked, and the validation signal, labelled by the KF + RTS (:func:`label_records`)."""
-
-    variant: str
-    train_signals: list[str]
-    x: np.ndarray                  # (N, 4) translated states
-    u: np.ndarray                  # (N, 2) torques
-    acc: np.ndarray                # (N, 2) acceleration labels
-    val: dict[str, np.ndarray]     # :func:`states` of the validation signal
-    # (M, 2) the validation signal's true acceleration (its labels without one)
-    acc_true: np.ndarray
-    val_dt: float
-    jerk_psd: float
-    rest_tip: np.ndarray
-    dt: float
-    noise_std: float
-    derivative_errors: dict
-
-
-def label_records(records: dict[str, Record], variant: str, jerk_psd: float | None = None,
-                  progress: bool = True) -> LabelledData:
-    """Label ``records`` (``DATA_VARIANTS[variant]`` and the validation signal) with the KF + RTS at
-    ``jerk_psd`` (None: :func:`tuned_jerk_psd` on the first training record)."""
-    names = list(DATA_VARIANTS[variant]) + [VALIDATION]
-    first = records[names[0]]
-    jerk = jerk_psd if jerk_psd is not None else tuned_jerk_psd(first)
-    est = {}
-    deriv_err = {}
-    for name in tqdm(names, desc='KF + RTS', unit='signal', disable=not progress):
-        est[name] = states(records[name], jerk)
-        r = records[name]
-        if r.acc_true is not None:
-            deriv_err[name] = derivatives.estimate_errors(est[name]['vel'], est[name]['acc'],
-                                                          r.vel_true[:, :2], r.acc_true[:, :2])
-    train_names = names[:-1]
-    val, v_rec = est[VALIDATION], records[VALIDATION]
-    return LabelledData(
-        variant=variant, train_signals=train_names,
-        x=np.vstack([est[n]['x'] for n in train_names]),
-        u=np.vstack([est[n]['u'] for n in train_names]),
-        acc=np.vstack([est[n]['acc'] for n in train_names]), val=val,
-        acc_true=v_rec.acc_true[:, :2] if v_rec.acc_true is not None else val['acc'],
-        val_dt=v_rec.dt, jerk_psd=float(jerk), rest_tip=first.rest_tip, dt=first.dt,
-        noise_std=float(first.noise_std), derivative_errors=deriv_err)
-
-
-def jittered(x: np.ndarray, acc: np.ndarray, jitter: float,
-             seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """(x, acc) times 1 + ``jitter``·N(0, 1) elementwise (labels first, then states, from one
-    generator seeded with ``seed``): the same data, other float roundings."""
-    rng = np.random.default_rng(seed)
-    acc = acc * (1.0 + jitter * rng.standard_normal(acc.shape))
-    x = x * (1.0 + jitter * rng.standard_normal(x.shape))
-    return x, acc
-
-
-def fit(data: LabelledData, settings, path: Path, jitter: float = 0.0, jitter_seed: int = 0,
-        on_epoch=None) -> tuple[Path, dict, object, training_run.Scores]:
-    """Train on ``data`` (jittered by ``jitter`` when > 0, :func:`jittered`), write the checkpoint
-    with its metrics to ``path`` and score it against the simulator's true accelerations of the
-    validation signal: (path, metrics, the TrainResult, the scores)."""
-    x, u, acc = data.x, data.u, data.acc
-    if jitter > 0:
-        x, acc = jittered(x, acc, jitter, jitter_seed)
-    val = data.val
-    result = train(x, u, acc, val['x'], val['u'], val['acc'], settings, on_epoch)
-    data_info = {'variant': data.variant, 'train_signals': data.train_signals,
-                 'validation': VALIDATION, 'fingerprint': fingerprint(x, u, acc),
-                 'jerk_psd': data.jerk_psd, 'noise_std': data.noise_std}
-    if jitter > 0:
-        data_info['jitter'] = {'relative': jitter, 'seed': jitter_seed}
-
-    def describe(model, scores: training_run.Scores) -> dict:
-        return {**scores.common_metrics(settings, result), 'variant': data.variant,
-                'u4_r2_true': dict(zip('XY', scores.r2)),
-                'u4_r2_ls_baseline': dict(zip('XY', scores.r2_ls)),
-                'u4_true_variance_below_10hz': dict(zip('XY', low_frequency_share(data.acc_true,
-                                                                                  data.val_dt))),
-                'derivative_errors': data.derivative_errors}
-    _, scores, metrics = training_run.checkpoint(
-        path, result, settings, rest_tip=data.rest_tip, dt=data.dt, data=data_info,
-        train=(x, u, acc), val=(val['x'], val['u']), acc_ref=data.acc_true, describe=describe)
-    return Path(path), metrics, result, scores
+from soft_gripper_sdre.learning.training import PRESETS
 
 
 def main(argv: list[str] | None = None) -> int:
