@@ -59,7 +59,7 @@ def weights():
 def loop(request, model, weights):
     """A short in-process grasp (fingers moving from 50 ms on), its estimates to replay."""
     profile = GraspProfile(t_start=0.05, t_close=0.4, t_hold=0.1, others='open')
-    return run_closed_loop(model, duration=0.6, weights=weights, u_max=U_MAX, profile=profile,
+    return run_closed_loop(make_law('sdre', model, weights, U_MAX), duration=0.6, profile=profile,
                            sim_config=SimConfig(scene='hand', noise_std=request.param))
 
 

@@ -53,12 +53,10 @@ def test_graph_reproduces_the_in_process_loop(graph_run):
     assert noise == 5e-5
     assert graph_run.controller.p['law'] == DEFAULT_LAW
     model, weights = SDCModel(), Weights(**DEFAULT_WEIGHTS)
-    ref = run_closed_loop(model, duration=DURATION,
+    ref = run_closed_loop(make_law(DEFAULT_LAW, model, weights, LIMIT), duration=DURATION,
                           sim_config=SimConfig(scene='hand', noise_std=noise,
                                                seed=graph_run.simulator.p['seed']),
-                          weights=weights, u_max=LIMIT,
-                          profile=GraspProfile(**SHORT, others='open'),
-                          controller=make_law(DEFAULT_LAW, model, weights, LIMIT))
+                          profile=GraspProfile(**SHORT, others='open'))
     np.testing.assert_allclose(graph_run.t, ref.t, atol=1e-12)
     # until a finger touches the cube the two agree to micrometres; contact then amplifies the
     # reference's interpolation difference, but not beyond a fraction of the tracking error

@@ -11,7 +11,7 @@ import pybullet as pb
 import pytest
 
 from soft_gripper_sdre.analysis.closed_loop import delay_in_periods, run_closed_loop
-from soft_gripper_sdre.control.laws import DEFAULT_LAW, LAW_REGISTRY, LawEntry
+from soft_gripper_sdre.control.laws import DEFAULT_LAW, LAW_REGISTRY, LawEntry, make_law
 from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
 from soft_gripper_sdre.learning.model import SDCModel
 from soft_gripper_sdre.sim.finger import JOINT_STIFFNESS, TIP_INERTIA, TIP_LINK, TIP_MASS
@@ -112,8 +112,9 @@ def test_sensor_delay_feeds_the_estimator_the_measurement_of_d_periods_before(de
     """Without noise the measurement is the true tip, so the estimator's input must be the true
     tip d periods earlier (the first one until d exist)."""
     model = SDCModel()
-    res = run_closed_loop(model, duration=0.05, sim_config=SimConfig(scene='hand'),
-                          weights=Weights(**DEFAULT_WEIGHTS), u_max=0.0625, sensor_delay=delay)
+    law = make_law('sdre', model, Weights(**DEFAULT_WEIGHTS), 0.0625)
+    res = run_closed_loop(law, duration=0.05, sim_config=SimConfig(scene='hand'),
+                          sensor_delay=delay)
     d = delay_in_periods(delay, 1e-3)
     assert d == round(delay * 1e3)
     np.testing.assert_array_equal(res.meas[d:], res.pos[:len(res.pos) - d])

@@ -26,9 +26,8 @@ import numpy as np
 
 from soft_gripper_sdre.analysis.metrics import TrackingMetrics, tracking_metrics
 from soft_gripper_sdre.control.kf import ConstantVelocityKF
-from soft_gripper_sdre.control.laws import SdreLaw
 from soft_gripper_sdre.control.tip_filter import MAX_BRIDGE, NS, RESET_ON_JUMP, TipFilter
-from soft_gripper_sdre.control.tracking import DEFAULT_LOWPASS_HZ, Law, Weights
+from soft_gripper_sdre.control.tracking import Law, Weights
 from soft_gripper_sdre.control.trajectory import GraspProfile, GraspTrajectory
 from soft_gripper_sdre.sim.hand import GripperSim, SimConfig
 
@@ -70,23 +69,23 @@ class LoopResult:
                                                # compute) [s]
 
 
-def run_closed_loop(model, *, duration: float, sim_config: SimConfig | None = None,
-                    weights: Weights, u_max: float, profile: GraspProfile | None = None,
-                    estimator: EstimatorSettings | None = None, method: str = 'fast',
-                    lowpass_hz: float = DEFAULT_LOWPASS_HZ, progress: bool = False,
-                    controller: Law | None = None, sensor_delay: float = 0.0) -> LoopResult:
-    """Run the grasp for ``duration`` seconds of sim time and return everything recorded.
+def run_closed_loop(law: Law, *, duration: float, sim_config: SimConfig | None = None,
+                    profile: GraspProfile | None = None, estimator: EstimatorSettings | None = None,
+                    progress: bool = False, sensor_delay: float = 0.0) -> LoopResult:
+    """Run the grasp under ``law`` for ``duration`` seconds of sim time and return everything
+    recorded.
 
-    ``controller``: optional :class:`~soft_gripper_sdre.control.tracking.Law` used instead of the
-    paper's learned SDRE (:mod:`soft_gripper_sdre.control.laws`); every law gets the reference
-    acceleration, and one with an ``observe(truth)`` method gets the plant's ground truth before
-    each step (the oracles, :mod:`soft_gripper_sdre.analysis.oracle`).
+    ``law``: a :class:`~soft_gripper_sdre.control.tracking.Law` for as many fingers as the scene
+    has, at its control period (:func:`~soft_gripper_sdre.control.laws.make_law`); every law gets
+    the reference acceleration, and one with an ``observe(truth)`` method gets the plant's ground
+    truth before each step (the oracles, :mod:`soft_gripper_sdre.analysis.oracle`).
 
     ``sensor_delay`` [s]: age of the measurement the estimator gets, a whole number of control
     periods (0: the measurement of the same period, as on the node graph in lockstep).
 
     Raises:
-        ValueError: ``sensor_delay`` is negative, not finite or not a whole number of periods.
+        ValueError: ``sensor_delay`` is negative, not finite or not a whole number of periods;
+            the law controls another number of fingers than the scene has.
     """
     sim_config = sim_config or SimConfig(scene='hand')
     profile = profile or GraspProfile()
@@ -100,8 +99,10 @@ def run_closed_loop(model, *, duration: float, sim_config: SimConfig | None = No
                                 process_noise=estimator.process_noise)
         period_ns = int(round(dt * NS))
         tips = TipFilter(kf, period_ns, int(round(RESET_ON_JUMP * NS)), int(round(MAX_BRIDGE * NS)))
-        ctrl = controller if controller is not None else SdreLaw(
-            model, weights, u_max, n_fingers=n, method=method, lowpass_hz=lowpass_hz, dt=dt)
+        if getattr(law, 'n_fingers', n) != n:
+            raise ValueError(f'the law controls {law.n_fingers} fingers, the '
+                             f'{sim_config.scene!r} scene has {n}')
+        ctrl = law
         observe = getattr(ctrl, 'observe', None)
         rec = {k: [] for k in ('t', 'pos', 'vel', 'meas', 'est', 'u', 'ok', 'fallback', 'saturated',
                                'residual', 'contact', 'cube')}
@@ -182,8 +183,9 @@ def delay_in_periods(delay: float, period: float) -> int:
 def default_grasp(seconds: float, noise_std: float) -> LoopResult:
     """The grasp closed in-process on the default settings (hand, KF, fast SDRE, roll-off): the
     loop the benchmarks time and replay."""
+    from soft_gripper_sdre.control.laws import make_law
     from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS
     from soft_gripper_sdre.learning.model import SDCModel
-    return run_closed_loop(SDCModel(), duration=seconds, weights=Weights(**DEFAULT_WEIGHTS),
-                           u_max=0.0625, profile=GraspProfile(others='open'),
+    law = make_law('sdre', SDCModel(), Weights(**DEFAULT_WEIGHTS), 0.0625)
+    return run_closed_loop(law, duration=seconds, profile=GraspProfile(others='open'),
                            sim_config=SimConfig(scene='hand', noise_std=noise_std))

@@ -32,11 +32,10 @@ def run_law(name: str, model, weights: Weights, u_max: float, profile: GraspProf
     """Build the law ``name`` (:func:`~soft_gripper_sdre.control.laws.make_law` with ``options``),
     run the grasp ``profile`` for ``duration`` seconds of sim time on ``sim_config``'s plant and
     release what the law holds (the oracles hold a PyBullet client), whatever happens."""
-    law = make_law(name, model, weights, u_max, **options)
+    law = make_law(name, model, weights, u_max, dt=sim_config.control_period, **options)
     try:
-        return run_closed_loop(model, duration=duration, sim_config=sim_config, weights=weights,
-                               u_max=u_max, profile=profile, progress=progress, controller=law,
-                               sensor_delay=sensor_delay)
+        return run_closed_loop(law, duration=duration, sim_config=sim_config, profile=profile,
+                               progress=progress, sensor_delay=sensor_delay)
     finally:
         close = getattr(law, 'close', None)
         if close is not None:

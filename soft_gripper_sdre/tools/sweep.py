@@ -42,6 +42,7 @@ def main(argv: list[str] | None = None) -> int:
     from soft_gripper_sdre.analysis.closed_loop import EstimatorSettings, run_closed_loop
     from soft_gripper_sdre.analysis.ground_truth import linear_finger, loop_spectral_radius
     from soft_gripper_sdre.analysis.plots import plot_sweep
+    from soft_gripper_sdre.control.laws import make_law
     from soft_gripper_sdre.control.tracking import DEFAULT_LOWPASS_HZ, DEFAULT_WEIGHTS, Weights
     from soft_gripper_sdre.control.trajectory import GraspProfile
     from soft_gripper_sdre.learning.model import SDCModel, set_torch_threads
@@ -57,9 +58,9 @@ def main(argv: list[str] | None = None) -> int:
     combos = [(q, s, f) for f in lowpass for s in a.noise for q in a.q_pos]
     for q, sigma, fc in tqdm(combos, desc='sweep', unit='run'):
         w = Weights(q, DEFAULT_WEIGHTS['q_vel'], DEFAULT_WEIGHTS['r'])
-        r = run_closed_loop(model, duration=a.duration, weights=w, u_max=0.0625,
+        r = run_closed_loop(make_law('sdre', model, w, 0.0625, lowpass_hz=fc), duration=a.duration,
                             sim_config=SimConfig(scene='hand', noise_std=sigma),
-                            profile=GraspProfile(others='open'), estimator=est, lowpass_hz=fc)
+                            profile=GraspProfile(others='open'), estimator=est)
         pct = [m.rmse_pct for m in r.metrics]
         rho, freq = loop_spectral_radius(plant, model, w.Q, w.R, est.accel_psd, est.meas_std,
                                          lowpass_hz=fc)
