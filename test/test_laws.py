@@ -6,7 +6,12 @@ import numpy as np
 import pytest
 from sdc_models import REST, StiffeningModel, sine_reference, track_sine
 
-from soft_gripper_sdre.analysis.oracle import ORACLE_LAWS, OracleFeedforwardLaw, OracleSdreLaw
+from soft_gripper_sdre.analysis.oracle import (
+    ORACLE_LAWS,
+    OracleFeedforwardLaw,
+    OracleSdreLaw,
+    register_oracle_laws,
+)
 from soft_gripper_sdre.control.laws import (
     GRAPH_LAWS,
     LAW_REGISTRY,
@@ -105,7 +110,8 @@ def test_make_law_names_and_options():
         make_law('sdre', model, w, 0.06, adaptve=True)              # a misspelt option is refused
     assert isinstance(make_law('lqr', model, w, 0.06, adaptive=False, pd_gains=None),
                       LqrLaw)  # off: fine
-    # the registry holds every graph law, and the oracles once analysis.oracle is imported
+    # the registry holds every graph law, and the oracles once registered
+    register_oracle_laws()
     assert set(GRAPH_LAWS) | set(ORACLE_LAWS) <= set(LAW_REGISTRY)
     with pytest.raises(ValueError, match='kp'):
         PdLaw(model, 0.06, kp=-1.0)
@@ -229,6 +235,7 @@ def test_pd_feedforward_adds_the_reference_acceleration_and_make_law_knows_the_n
     with pytest.raises(ValueError,
                        match=r"feedforward=True .* is not an option of the 'sdre' law.*'pd'"):
         make_law('sdre', LinearModel(), W, 0.06, feedforward=True)
+    register_oracle_laws()
     oracle = make_law('oracle_ff', LinearModel(), W, 0.06, n_fingers=1)
     try:
         assert isinstance(oracle, OracleFeedforwardLaw)

@@ -93,6 +93,9 @@ def _oracle(s: LawSettings, law=OracleSdreLaw, reduced: bool = True) -> OracleSd
                lowpass_hz=s.lowpass_hz, dt=s.dt, reduced=reduced)
 
 
-register_law('oracle', _oracle)
-register_law('oracle_exact', lambda s: _oracle(s, reduced=False))
-register_law('oracle_ff', lambda s: _oracle(s, law=OracleFeedforwardLaw))
+def register_oracle_laws() -> None:
+    """Make :data:`ORACLE_LAWS` known to :func:`~soft_gripper_sdre.control.laws.make_law` (a tool
+    that runs them calls this first; calling it again changes nothing)."""
+    register_law('oracle', _oracle)
+    register_law('oracle_exact', lambda s: _oracle(s, reduced=False))
+    register_law('oracle_ff', lambda s: _oracle(s, law=OracleFeedforwardLaw))

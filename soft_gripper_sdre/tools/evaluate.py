@@ -36,16 +36,15 @@ import numpy as np
 
 from soft_gripper_sdre.analysis import law_runs
 from soft_gripper_sdre.analysis.law_plots import plot_feedforward, plot_laws, plot_model_vs_truth
-
-# importing analysis.oracle registers the oracle laws ('oracle', 'oracle_exact', 'oracle_ff') with
-# make_law
-import soft_gripper_sdre.analysis.oracle  # noqa: F401
+from soft_gripper_sdre.analysis.oracle import register_oracle_laws
 from soft_gripper_sdre.control.laws import DEFAULT_CT, DEFAULT_PD, LAW_REGISTRY
 from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
 from soft_gripper_sdre.control.trajectory import GraspProfile
 from soft_gripper_sdre.learning.model import PAPER_DATA_MODEL, ModelFileError, SDCModel
 from soft_gripper_sdre.sim.hand import SimConfig
 from soft_gripper_sdre.tools import jobs
+
+register_oracle_laws()          # the comparison includes the laws on the plant's true dynamics
 
 #: (label, law name, make_law options)
 LAW_SPECS = {

@@ -19,9 +19,8 @@ from dataclasses import dataclass, field, replace
 
 from soft_gripper_sdre.analysis import law_runs
 
-# importing analysis.oracle adds the oracle laws to the registry (they know the nominal plant's
-# dynamics, so the grid leaves them out unless asked)
-from soft_gripper_sdre.analysis.oracle import ORACLE_LAWS
+# the oracle laws know the nominal plant's dynamics, so the grid leaves them out unless asked
+from soft_gripper_sdre.analysis.oracle import ORACLE_LAWS, register_oracle_laws
 from soft_gripper_sdre.control.laws import LAW_REGISTRY
 from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
 from soft_gripper_sdre.learning.model import DEFAULT_MODEL, SDCModel
@@ -29,6 +28,8 @@ from soft_gripper_sdre.sim.hand import SimConfig
 from soft_gripper_sdre.sim.plant import PlantVariation
 from soft_gripper_sdre.tools.evaluate import NOISE, TRAJECTORIES, U_MAX
 from soft_gripper_sdre.tools.jobs import FileBlob, Runner, run_jobs
+
+register_oracle_laws()          # asked for by name (--laws), never by default
 
 
 @dataclass(frozen=True)

@@ -25,7 +25,8 @@ roll-off, so a comparison differs only in the law:
 
 The oracle laws (``oracle``, ``oracle_exact``, ``oracle_ff``: the SDRE on the simulator's true
 dynamics) are evaluation yardsticks that need the plant's ground truth; they live in
-:mod:`soft_gripper_sdre.analysis.oracle`, which adds them to this registry when it is imported.
+:mod:`soft_gripper_sdre.analysis.oracle`, whose ``register_oracle_laws()`` adds them to this
+registry.
 """
 from __future__ import annotations
 
@@ -182,7 +183,7 @@ def make_law(name: str, model, weights: Weights, u_max: float, n_fingers: int = 
     entry = LAW_REGISTRY.get(name)
     if entry is None:
         raise ValueError(f'unknown law {name!r}; known: {tuple(LAW_REGISTRY)} (the oracle laws '
-                         'are known once soft_gripper_sdre.analysis.oracle is imported)')
+                         'are known after analysis.oracle.register_oracle_laws())')
     taken = {}
     for key, value in options.items():
         if key in entry.options:
