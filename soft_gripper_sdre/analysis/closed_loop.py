@@ -99,8 +99,9 @@ def run_closed_loop(law: Law, *, duration: float, sim_config: SimConfig | None =
                                 process_noise=estimator.process_noise)
         period_ns = int(round(dt * NS))
         tips = TipFilter(kf, period_ns, int(round(RESET_ON_JUMP * NS)), int(round(MAX_BRIDGE * NS)))
-        if getattr(law, 'n_fingers', n) != n:
-            raise ValueError(f'the law controls {law.n_fingers} fingers, the '
+        io = getattr(law, 'io', None)          # every law of control/laws has one
+        if io is not None and io.n_fingers != n:
+            raise ValueError(f'the law controls {io.n_fingers} fingers, the '
                              f'{sim_config.scene!r} scene has {n}')
         ctrl = law
         observe = getattr(ctrl, 'observe', None)

@@ -9,8 +9,6 @@ from soft_gripper_sdre.control.tracking import (
     DEFAULT_LOWPASS_HZ,
     LawIO,
     LawStep,
-    RestFrame,
-    RollOff,
     Weights,
 )
 
@@ -45,26 +43,20 @@ class SdreLaw:
                  dt: float = 1e-3) -> None:
         self.model = model
         self.weights = weights
-        self.n_fingers = int(n_fingers)
-        try:
-            self.frame = RestFrame(model.rest_tip, self.n_fingers)
-        except ValueError:
-            raise ValueError('model.rest_tip must hold a finite rest position, '
-                             f'got {model.rest_tip!r}') from None
-        self.sdre = SdreController(weights.Q, weights.R, u_max, n=self.n_fingers, method=method)
+        self.io = LawIO(model.rest_tip, u_max, n_fingers, lowpass_hz, dt)
+        self.sdre = SdreController(weights.Q, weights.R, u_max, n=self.io.n_fingers, method=method)
         self._blocks = getattr(model, 'sdc_blocks', None)
         self.network = compiled_network(model) if self.sdre.fast else None
-        self.roll_off = RollOff(lowpass_hz, dt)
 
     @property
     def origin(self) -> np.ndarray:
         """(2,) rest tip position the model's coordinates are translated by [m]."""
-        return self.frame.origin
+        return self.io.origin
 
     def reset(self) -> None:
         """Forget warm starts, last valid gains and the filter state (e.g. after a clock jump)."""
         self.sdre.reset()
-        self.roll_off.reset()
+        self.io.reset()
 
     def compute(self, pos: np.ndarray, vel: np.ndarray, ref_pos: np.ndarray, ref_vel: np.ndarray,
                 ref_acc: np.ndarray | None = None) -> LawStep:
@@ -77,17 +69,18 @@ class SdreLaw:
         Returns:
             the SDRE step (``u`` (n, 2) [N·m], gains, checks, fallbacks).
         """
+        frame = self.io.frame
         if self.network is not None:                 # the compiled step, network included
-            out = self.sdre.track(self.network, self.frame.origin,
-                                  self.frame.stacked(pos, vel, ref_pos, ref_vel))
+            out = self.sdre.track(self.network, frame.origin,
+                                  frame.stacked(pos, vel, ref_pos, ref_vel))
         else:
-            x, xd = self.frame.states(pos, vel, ref_pos, ref_vel)   # f(0) = 0 at rest
+            x, xd = frame.states(pos, vel, ref_pos, ref_vel)   # f(0) = 0 at rest
             if self._blocks is not None:             # a model in SDC form: only its lower rows
                 out = self.sdre.step_sdc(*self._blocks(x), x, xd)
             else:
                 out = self.sdre.step(*self.model.AG(x), x, xd)
         # keeps the loop from feeding the finger's unmodelled bending modes (README, "Noise")
-        out.u = self.roll_off(out.u)
+        out.u = self.io.roll_off(out.u)
         return out
 
 
@@ -119,8 +112,9 @@ class AdaptiveSdreLaw:
         level = round(float(np.log2(gain)) * 8) / 8
         if level not in self._levels:
             w = Weights(self.weights.q_pos * 2 ** level, self.weights.q_vel, self.weights.r)
-            self._levels[level] = SdreLaw(self.model, w, self.io.u_max, n_fingers=self.io.n_fingers,
-                                          method=self.method, lowpass_hz=0.0)
+            self._levels[level] = SdreLaw(self.model, w, self.io.u_max,
+                                          n_fingers=self.io.n_fingers, method=self.method,
+                                          lowpass_hz=0.0)
         return self._levels[level]
 
     def reset(self) -> None:
