@@ -30,7 +30,7 @@ $(KERNELS): $(STAMP) $(wildcard soft_gripper_sdre/control/compiled*.py)
 kernels: $(KERNELS)
 
 demo: $(KERNELS)
-	$(PY) -m soft_gripper_sdre.tools.demo --out $(OUT)
+	$(PY) -m soft_gripper_sdre.tools.graph.demo --out $(OUT)
 
 test: $(KERNELS)
 	$(PY) -m pytest -v
@@ -46,9 +46,9 @@ model: export OPENBLAS_CORETYPE = Haswell
 model: export MKL_CBWR = AVX2,STRICT
 model: export ATEN_CPU_CAPABILITY = avx2
 model: $(STAMP)
-	$(PY) -m soft_gripper_sdre.tools.collect --out data/excitation
-	$(PY) -m soft_gripper_sdre.tools.train --data data/excitation --out runs/train --install
-	$(PY) -m soft_gripper_sdre.tools.koopman --data data/excitation --out runs/koopman --install
+	$(PY) -m soft_gripper_sdre.tools.learning.collect --out data/excitation
+	$(PY) -m soft_gripper_sdre.tools.learning.train --data data/excitation --out runs/train --install
+	$(PY) -m soft_gripper_sdre.tools.learning.koopman --data data/excitation --out runs/koopman --install
 
 # The same model learned over the ROS interfaces, as on a robot: the excitation node plays each
 # identification signal on the simulator node while the recorder records (one bag per signal),
@@ -56,48 +56,48 @@ model: $(STAMP)
 BAGS ?= runs/bags
 model-from-bags: $(STAMP)
 	rm -rf $(BAGS)
-	$(PY) -m soft_gripper_sdre.tools.excite --out $(BAGS)/train --signals u1 u2 u3 x1 x2
-	$(PY) -m soft_gripper_sdre.tools.excite --out $(BAGS)/val --signals u4
-	$(PY) -m soft_gripper_sdre.tools.train --bag $(BAGS)/train --val-bag $(BAGS)/val --out runs/train_bags --preset default
+	$(PY) -m soft_gripper_sdre.tools.graph.excite --out $(BAGS)/train --signals u1 u2 u3 x1 x2
+	$(PY) -m soft_gripper_sdre.tools.graph.excite --out $(BAGS)/val --signals u4
+	$(PY) -m soft_gripper_sdre.tools.learning.train --bag $(BAGS)/train --val-bag $(BAGS)/val --out runs/train_bags --preset default
 
 bench: $(KERNELS)
-	$(PY) -m soft_gripper_sdre.tools.bench --write BENCHMARKS.md
+	$(PY) -m soft_gripper_sdre.tools.benchmarks.bench --write BENCHMARKS.md
 
 # the deployment loop alone (a driver stand-in, the estimator and the controller; part of bench):
 # make bench-deploy DEPLOY_ARGS='--variants base composed shm composed+shm --rate 1000'
 .PHONY: bench-deploy
 DEPLOY_ARGS ?=
 bench-deploy: $(KERNELS)
-	$(PY) -m soft_gripper_sdre.tools.bench_deploy $(DEPLOY_ARGS)
+	$(PY) -m soft_gripper_sdre.tools.benchmarks.bench_deploy $(DEPLOY_ARGS)
 
 # the graph in lockstep and pipelined mode beside their floors (the floor rows of bench alone):
 # make bench-floor FLOOR_REPEATS=3
 .PHONY: bench-floor
 FLOOR_REPEATS ?= 3
 bench-floor: $(KERNELS)
-	$(PY) -m soft_gripper_sdre.tools.bench --floor $(FLOOR_REPEATS)
+	$(PY) -m soft_gripper_sdre.tools.benchmarks.bench --floor $(FLOOR_REPEATS)
 
 # README "Noise, gains and the finger's bending modes" and "Identifying G2"
 sweep: $(KERNELS)
-	$(PY) -m soft_gripper_sdre.tools.sweep --out runs/sweep
+	$(PY) -m soft_gripper_sdre.tools.judging.sweep --out runs/sweep
 
 input-matrix: $(STAMP)
-	$(PY) -m soft_gripper_sdre.tools.input_matrix --out runs/input_matrix
+	$(PY) -m soft_gripper_sdre.tools.judging.input_matrix --out runs/input_matrix
 
 # The sweeps run their jobs on every core, or as Ray tasks on a cluster with RAY=ADDRESS
-# (make evaluate RAY=auto; make ray installs the optional Ray first; tools/jobs.py)
+# (make evaluate RAY=auto; make ray installs the optional Ray first; tools/judging/jobs.py)
 RUNNER = $(if $(RAY),--ray $(RAY))
 
 # README "Beyond the paper": every law on the grasp and a fast grasp, the model vs ground truth
 .PHONY: evaluate
 evaluate: $(KERNELS)
-	$(PY) -m soft_gripper_sdre.tools.evaluate --out runs/evaluate $(RUNNER)
+	$(PY) -m soft_gripper_sdre.tools.judging.evaluate --out runs/evaluate $(RUNNER)
 
 # docs/results.md "Robustness to the plant": every registered law (oracles aside) on the grasp and
 # the fast grasp, on plants and sensors the model was not trained on, over every core
 .PHONY: robustness
 robustness: $(KERNELS)
-	$(PY) -m soft_gripper_sdre.tools.robustness --out runs/robustness $(RUNNER)
+	$(PY) -m soft_gripper_sdre.tools.judging.robustness --out runs/robustness $(RUNNER)
 
 # README "What it achieves" and docs/model.md "Over training seeds": the model and the grasp over 5
 # training seeds x 3 draws of the data (as collected, and twice with its float roundings moved),
@@ -107,8 +107,8 @@ seeds: export OPENBLAS_CORETYPE = Haswell
 seeds: export MKL_CBWR = AVX2,STRICT
 seeds: export ATEN_CPU_CAPABILITY = avx2
 seeds: $(KERNELS)
-	test -f data/excitation/x2.npz || $(PY) -m soft_gripper_sdre.tools.collect --out data/excitation
-	$(PY) -m soft_gripper_sdre.tools.seeds --data data/excitation --out runs/seeds --seeds 5 --draws 2 --demo $(RUNNER)
+	test -f data/excitation/x2.npz || $(PY) -m soft_gripper_sdre.tools.learning.collect --out data/excitation
+	$(PY) -m soft_gripper_sdre.tools.judging.seeds --data data/excitation --out runs/seeds --seeds 5 --draws 2 --demo $(RUNNER)
 
 # the optional Ray runner of the sweeps (requirements-ray.txt; README "Dependencies")
 .PHONY: ray
@@ -120,17 +120,17 @@ ray: $(STAMP)
 .PHONY: foreign
 foreign: $(KERNELS)
 	rm -rf runs/foreign
-	-$(PY) -m soft_gripper_sdre.tools.foreign --plant tendon3 --out runs/foreign/tendon3
-	-$(PY) -m soft_gripper_sdre.tools.foreign --plant stiff2 --out runs/foreign/stiff2
+	-$(PY) -m soft_gripper_sdre.tools.graph.foreign --plant tendon3 --out runs/foreign/tendon3
+	-$(PY) -m soft_gripper_sdre.tools.graph.foreign --plant stiff2 --out runs/foreign/stiff2
 
 # docs/deployment.md: two hands on one ROS domain, each in its own namespace with its own clock
 two-hands: $(KERNELS)
-	$(PY) -m soft_gripper_sdre.tools.hands --out runs/hands
+	$(PY) -m soft_gripper_sdre.tools.graph.hands --out runs/hands
 
 # docs/deployment.md: the graph split across two hosts (two network namespaces joined by a veth
 # pair; needs root and iproute2), beside the same grasp on one host, then with the link cut 0.5 s
 two-hosts: $(KERNELS)
-	$(PY) -m soft_gripper_sdre.tools.two_hosts --out runs/two_hosts
+	$(PY) -m soft_gripper_sdre.tools.graph.two_hosts --out runs/two_hosts
 
 # The lock is pip's own resolution (a dry-run report), so every line names a
 # distribution the index serves (pip freeze would also list the dist-info

@@ -44,7 +44,7 @@ setup(
     entry_points={
         'console_scripts': [f'{name} = {target}' for name, target in NODES.items()]
         + [
-            'sgs_echo = soft_gripper_sdre.tools.echo:main',
+            'sgs_echo = soft_gripper_sdre.tools.graph.echo:main',
         ],
     },
 )

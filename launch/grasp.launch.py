@@ -171,7 +171,7 @@ def generate_launch_description():
     from launch_ros.actions import Node
 
     from launch import LaunchDescription
-    from soft_gripper_sdre.tools.procs import pinned_kernels
+    from soft_gripper_sdre.tools.graph.procs import pinned_kernels
 
     def watch(name):
         def on_exit(event, context):

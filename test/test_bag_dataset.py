@@ -15,7 +15,7 @@ from soft_gripper_sdre.analysis.bag_dataset import (
     tip_stretches,
 )
 from soft_gripper_sdre.learning.model import read_checkpoint
-from soft_gripper_sdre.tools import train as train_tool
+from soft_gripper_sdre.tools.learning import train as train_tool
 
 N = 2000
 STAMPS = np.arange(N) * MS
@@ -138,8 +138,8 @@ def test_the_cli_exits_2_without_a_traceback(tmp_path):
     """The real process: exit status 2, the message, no traceback, no output directory."""
     bag = _bag(tmp_path, tips=_nan_tips())
     out = tmp_path / 'out'
-    proc = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.train', '--bag', str(bag),
-                           '--val-bag', str(bag), '--out', str(out)],
+    proc = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.learning.train',
+                           '--bag', str(bag), '--val-bag', str(bag), '--out', str(out)],
                           capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2, proc.stderr
     assert 'holds NaN or Inf' in proc.stderr and 'Traceback' not in proc.stderr
@@ -284,7 +284,7 @@ def test_the_labels_filter_is_tuned_on_the_excited_tips_not_on_the_rest_before_t
     """A driver idle for longer than the tuning window, a settle phase, then a fast motion: the
     window starts at the first non-zero torque, and picks the motion's intensity, not the rest's."""
     from soft_gripper_sdre.learning import derivatives
-    from soft_gripper_sdre.tools.train_bags import (
+    from soft_gripper_sdre.tools.learning.train_bags import (
         JERK_GRID,
         TUNE_SAMPLES,
         tune_jerk,

@@ -21,7 +21,7 @@ from soft_gripper_sdre.learning.labels import states
 from soft_gripper_sdre.learning.model import SDCModel
 from soft_gripper_sdre.learning.training import PRESETS, save_checkpoint, train
 from soft_gripper_sdre.sim.hand import SimConfig
-from soft_gripper_sdre.tools.collect import collect_signal
+from soft_gripper_sdre.tools.learning.collect import collect_signal
 
 pytestmark = pytest.mark.ros
 
@@ -48,8 +48,9 @@ def npz_record(name: str) -> tuple[Record, dict]:
 @pytest.mark.timeout(300)
 def test_bags_from_the_graph_train_the_model_the_npz_path_trains(tmp_path):
     bags = tmp_path / 'bags'
-    run_tool('excite', '--out', bags, '--signals', 'x1', 'u4', '--duration', SECONDS, '--settle', 0,
-             '--noise', 0, '--domain-id', os.environ['ROS_DOMAIN_ID'], '--timeout', 120,
+    run_tool('graph.excite', '--out', bags, '--signals', 'x1', 'u4', '--duration', SECONDS,
+             '--settle', 0, '--noise', 0, '--domain-id', os.environ['ROS_DOMAIN_ID'],
+             '--timeout', 120,
              timeout=260)
 
     # the same data: the graph's lockstep run is the in-process collection, sample for sample
@@ -75,7 +76,7 @@ def test_bags_from_the_graph_train_the_model_the_npz_path_trains(tmp_path):
 
     # train from the bags with the CLI, and on the npz records with the same settings
     out = tmp_path / 'model'
-    run_tool('train', '--bag', bags / 'x1', '--val-bag', bags / 'u4', '--out', out,
+    run_tool('learning.train', '--bag', bags / 'x1', '--val-bag', bags / 'u4', '--out', out,
              '--epochs', EPOCHS, '--meas-std', 0, '--jerk-psd', JERK, '--preset', 'default',
              timeout=200)
     metrics = json.loads((out / 'metrics.json').read_text())

@@ -5,8 +5,13 @@ import os
 
 import pytest
 
-from soft_gripper_sdre.tools.bench import floor_rows
-from soft_gripper_sdre.tools.bench_deploy import replay_tips, run_deploy, summary, variant_settings
+from soft_gripper_sdre.tools.benchmarks.bench import floor_rows
+from soft_gripper_sdre.tools.benchmarks.bench_deploy import (
+    replay_tips,
+    run_deploy,
+    summary,
+    variant_settings,
+)
 
 
 @pytest.fixture(scope='module')

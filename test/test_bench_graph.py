@@ -1,7 +1,7 @@
 """The graph benchmarks measure what they claim: real processes over DDS, figures from the nodes."""
 import pytest
 
-from soft_gripper_sdre.tools.bench_graph import (
+from soft_gripper_sdre.tools.benchmarks.bench_graph import (
     SIM_TOPICS,
     hog_run,
     hop,
@@ -9,7 +9,7 @@ from soft_gripper_sdre.tools.bench_graph import (
     recorder_loss,
     run_graph,
 )
-from soft_gripper_sdre.tools.bench_hog import PHASES
+from soft_gripper_sdre.tools.benchmarks.bench_hog import PHASES
 
 pytestmark = pytest.mark.ros
 

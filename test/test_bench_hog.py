@@ -1,7 +1,8 @@
-"""The CPU-hog benchmark's figures (tools/bench_hog.py) from a made-up /diagnostics history."""
+"""The CPU-hog benchmark's figures (tools/benchmarks/bench_hog.py) from a made-up /diagnostics
+history."""
 import math
 
-from soft_gripper_sdre.tools.bench_hog import SETTLE_S, phase_figures
+from soft_gripper_sdre.tools.benchmarks.bench_hog import SETTLE_S, phase_figures
 
 
 def window(sim_time, steps, late, p50=None, p99=None, safe=0):

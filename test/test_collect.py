@@ -8,7 +8,7 @@ from soft_gripper_sdre.sim.signals import get_signal
 
 
 def run_collect(*args, cwd=None):
-    return subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.collect', *args],
+    return subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.learning.collect', *args],
                           capture_output=True, text=True, timeout=50, cwd=cwd)
 
 

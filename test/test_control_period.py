@@ -4,7 +4,7 @@ up to the longest period the loop accepts."""
 import pytest
 
 from soft_gripper_sdre.analysis.bag import topic_counts
-from soft_gripper_sdre.tools.demo import last_diagnostics, run_demo
+from soft_gripper_sdre.tools.graph.demo import last_diagnostics, run_demo
 
 pytestmark = pytest.mark.ros
 

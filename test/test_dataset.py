@@ -6,7 +6,7 @@ import pytest
 
 from soft_gripper_sdre.learning.dataset import DatasetError, load_record, load_records
 from soft_gripper_sdre.sim.hand import SimConfig
-from soft_gripper_sdre.tools.collect import collect_signal, write_record
+from soft_gripper_sdre.tools.learning.collect import collect_signal, write_record
 
 N = 300
 

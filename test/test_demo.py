@@ -6,7 +6,7 @@ import sys
 import pytest
 
 from soft_gripper_sdre.analysis.bag import topic_counts
-from soft_gripper_sdre.tools.demo import main, run_demo, summary
+from soft_gripper_sdre.tools.graph.demo import main, run_demo, summary
 
 pytestmark = pytest.mark.ros
 
@@ -72,8 +72,9 @@ def test_demo_bad_usage_exits_2_before_starting_anything(args, needle, tmp_path,
 def test_demo_command_line_refuses_bad_usage_with_exit_2_and_no_traceback(tmp_path):
     """The refusals above, through ``python -m`` once."""
     out = tmp_path / 'out'
-    proc = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.demo', '--out', str(out),
-                           '--duration', '-1'], capture_output=True, text=True, timeout=60)
+    proc = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.graph.demo',
+                           '--out', str(out), '--duration', '-1'],
+                          capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2 and '--duration must be > 0' in proc.stderr, proc.stderr
     assert 'Traceback' not in proc.stderr
     assert not out.exists()

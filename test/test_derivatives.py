@@ -5,7 +5,7 @@ import pytest
 
 from soft_gripper_sdre.learning import derivatives
 from soft_gripper_sdre.sim.hand import SimConfig
-from soft_gripper_sdre.tools.collect import collect_signal
+from soft_gripper_sdre.tools.learning.collect import collect_signal
 
 DT = 1e-3
 NOISE_STD = 5e-6     # 5 µm tip measurement noise

@@ -12,7 +12,7 @@ def run_tool(module, *args):
 
 
 def test_sweep_writes_json_figure_and_table(tmp_path):
-    proc = run_tool('sweep', '--out', str(tmp_path), '--q-pos', '1e6', '--noise', '0',
+    proc = run_tool('judging.sweep', '--out', str(tmp_path), '--q-pos', '1e6', '--noise', '0',
                     '--lowpass', '0', '40', '--duration', '0.3')
     assert proc.returncode == 0, proc.stderr[-2000:]
     rows = json.loads((tmp_path / 'sweep.json').read_text())
@@ -26,13 +26,13 @@ def test_sweep_writes_json_figure_and_table(tmp_path):
 
 
 def test_sweep_bad_arguments_exit_2(tmp_path):
-    proc = run_tool('sweep', '--out', str(tmp_path), '--q-pos', '-1')
+    proc = run_tool('judging.sweep', '--out', str(tmp_path), '--q-pos', '-1')
     assert proc.returncode == 2 and 'q_pos' in proc.stderr
 
 
 @pytest.mark.slow
 def test_input_matrix_tool_reports_both_shipped_models(tmp_path):
-    proc = run_tool('input_matrix', '--out', str(tmp_path))
+    proc = run_tool('judging.input_matrix', '--out', str(tmp_path))
     assert proc.returncode == 0, proc.stderr[-2000:]
     result = json.loads((tmp_path / 'input_matrix.json').read_text())
     assert set(result) == {'default', 'paper_data'}
@@ -42,6 +42,6 @@ def test_input_matrix_tool_reports_both_shipped_models(tmp_path):
 
 
 def test_input_matrix_tool_refuses_a_missing_model(tmp_path, run_main):
-    from soft_gripper_sdre.tools.input_matrix import main
+    from soft_gripper_sdre.tools.judging.input_matrix import main
     proc = run_main(main, '--models', tmp_path / 'none.pt')      # (python -m: the test above)
     assert proc.returncode == 2 and 'none.pt' in proc.stderr

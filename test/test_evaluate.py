@@ -6,7 +6,7 @@ import pytest
 
 from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
 from soft_gripper_sdre.learning.model import PAPER_DATA_MODEL, SDCModel
-from soft_gripper_sdre.tools import evaluate as ev
+from soft_gripper_sdre.tools.judging import evaluate as ev
 
 
 @pytest.fixture(scope='module')
@@ -162,7 +162,7 @@ def test_command_line_writes_the_report(tmp_path, run_main):
     import subprocess
     import sys
     out = tmp_path / 'ev'
-    proc = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.evaluate',
+    proc = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.judging.evaluate',
                            '--out', str(out),
                            '--laws', 'lqr', 'pd', '--trajectories', 'fast', '--duration', '0.4',
                            '--no-model-score'], capture_output=True, text=True, timeout=300)

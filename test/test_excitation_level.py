@@ -59,7 +59,7 @@ def test_clip_share_and_the_largest_unclipped_amplitude():
 
 @pytest.mark.parametrize('name', list(SIGNALS))
 def test_the_search_lands_the_signal_near_the_target_off_the_clip(name):
-    """One signal per run (one bag per signal, as tools.excite records them)."""
+    """One signal per run (one bag per signal, as tools.graph.excite records them)."""
     max_excursion, target = 0.02, 0.5
     goal = target * max_excursion
     plan = ExcitationPlan([builtin_signal(name)], 0.5, 1, torque_limit=0.1)

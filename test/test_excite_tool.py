@@ -1,4 +1,4 @@
-"""tools.excite: the excitation level's arguments refused before anything starts (exit 2, the
+"""tools.graph.excite: the excitation level's arguments refused before anything starts (exit 2, the
 argument named, nothing written), and ``--level auto`` over the node graph (slow): the excitation
 node probes the simulated finger, then plays the signal near the target, off the clip, with the
 amplitude in the recorded /diagnostics."""
@@ -11,7 +11,7 @@ import pytest
 
 from soft_gripper_sdre.analysis.bag import read_bag
 from soft_gripper_sdre.analysis.bag_dataset import read_recording, settle_noise
-from soft_gripper_sdre.tools import excite
+from soft_gripper_sdre.tools.graph import excite
 
 BAD = [
     (['--amplitude', '0'], '--amplitude must be in [1e-6, 100], got 0.0'),
@@ -55,7 +55,7 @@ def test_a_bad_level_parameter_exits_the_node_2_without_a_traceback(tmp_path):
 @pytest.mark.timeout(400)
 def test_level_auto_on_the_simulated_finger(tmp_path):
     bags = tmp_path / 'bags'
-    proc = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.excite',
+    proc = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.graph.excite',
                            '--out', str(bags),
                            '--signals', 'u1', '--duration', '2', '--level', 'auto',
                            '--max-excursion', '20', '--domain-id', os.environ['ROS_DOMAIN_ID'],

@@ -1,7 +1,7 @@
 """Fault injection on the multi-process graph: crashed nodes, and recording under load and signals.
 
-Every node is its own process (what ``ros2 run`` starts, ``tools/procs.py``); a probe node in the
-test process listens to the loop. A victim is killed with SIGKILL mid-grasp and started again;
+Every node is its own process (what ``ros2 run`` starts, ``tools/graph/procs.py``); a probe node in
+the test process listens to the loop. A victim is killed with SIGKILL mid-grasp and started again;
 the lockstep simulator holds the first missing period (``on_timeout``) and steps the later ones
 with zero torque meanwhile, the graph resumes, no torque is non-finite, and tracking comes back on
 target. Slow: each run is tens of seconds of wall time.
@@ -30,7 +30,7 @@ from soft_gripper_sdre.nodes.topics import (
     TIP_POSITIONS,
     TORQUE_COMMANDS,
 )
-from soft_gripper_sdre.tools.procs import Graph, ros_env
+from soft_gripper_sdre.tools.graph.procs import Graph, ros_env
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 

@@ -182,7 +182,7 @@ def test_bad_finger_parameters_stop_the_node_naming_the_problem(node, params, ne
 @pytest.mark.timeout(150)
 def test_two_named_fingers_run_the_whole_graph_as_processes(tmp_path):
     from soft_gripper_sdre.analysis.bag import extract_run, read_bag
-    from soft_gripper_sdre.tools.demo import run_demo
+    from soft_gripper_sdre.tools.graph.demo import run_demo
 
     result = run_demo(tmp_path, duration=1.5, timeout=120, progress=False,
                       fingers={'left': 0, 'right': 2}, render=False)

@@ -1,5 +1,5 @@
-"""tools.foreign: the README's own-gripper recipe over DDS on a gripper unlike the package's own
-(sim/foreign.py through the plant_driver node)."""
+"""tools.graph.foreign: the README's own-gripper recipe over DDS on a gripper unlike the package's
+own (sim/foreign.py through the plant_driver node)."""
 import json
 import math
 import os
@@ -16,7 +16,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def _tool(*args, timeout=60):
-    return subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.foreign', *args],
+    return subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.graph.foreign', *args],
                           capture_output=True, text=True, timeout=timeout, cwd=ROOT,
                           env={**os.environ, 'PYTHONUNBUFFERED': '1'})
 

@@ -76,7 +76,7 @@ def test_pipelined_demo_grasp_meets_the_readme_targets_and_repeats_bit_for_bit(t
     """The demo grasp (6 s, five processes, the shipped defaults) in pipelined mode: every
     finger's free-space RMSE within the README's 5 % target, and a second, shorter run sends the
     same torques and measures the same tips as the first, whatever the scheduling."""
-    from soft_gripper_sdre.tools.demo import last_diagnostics, run_demo
+    from soft_gripper_sdre.tools.graph.demo import last_diagnostics, run_demo
     full = run_demo(tmp_path / 'full', duration=6.0, timeout=500, progress=False, mode='pipelined')
     assert full['run']['mode'] == 'pipelined'
     sim = last_diagnostics(tmp_path / 'full' / 'bag', 'simulator')

@@ -4,9 +4,9 @@ Ten node processes (two recorders, estimators, trajectory nodes, controllers and
 lockstep; the two hands run different grasps (fingers 0 and 2 close on the left, 1 and 3 on the
 right), so a message of one hand taken by the other would show in the tracking as well as in the
 counters. The simulators wait patiently for their commands
-(:data:`~soft_gripper_sdre.tools.hands.PATIENT_LOCKSTEP`): ten processes on two shared cores can
-starve one for longer than the default lockstep timeout at start-up, and the test then demands no
-timeout at all. Slow: tens of seconds of wall time.
+(:data:`~soft_gripper_sdre.tools.graph.hands.PATIENT_LOCKSTEP`): ten processes on two shared cores
+can starve one for longer than the default lockstep timeout at start-up, and the test then demands
+no timeout at all. Slow: tens of seconds of wall time.
 """
 from __future__ import annotations
 
@@ -15,14 +15,14 @@ import pytest
 
 from soft_gripper_sdre.analysis.bag import read_bag, topic_counts
 from soft_gripper_sdre.nodes.graph import RECORDED_BEFORE_START, grasp_graph
-from soft_gripper_sdre.tools.hands import (
+from soft_gripper_sdre.tools.graph.hands import (
     PATIENT_LOCKSTEP,
     published_and_recorded,
     run_graphs,
     trouble,
 )
-from soft_gripper_sdre.tools.procs import ros_env
-from soft_gripper_sdre.tools.report import report
+from soft_gripper_sdre.tools.graph.procs import ros_env
+from soft_gripper_sdre.tools.judging.report import report
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 

@@ -1,5 +1,5 @@
-"""The sweeps' jobs (tools.jobs): in this process, on a pool of processes and on a real Ray
-instance, with the same numbers; the seed sweep (tools.seeds) end to end; the command lines'
+"""The sweeps' jobs (tools.judging.jobs): in this process, on a pool of processes and on a real Ray
+instance, with the same numbers; the seed sweep (tools.judging.seeds) end to end; the command lines'
 refusals."""
 import hashlib
 import importlib
@@ -20,14 +20,16 @@ import pytest
 
 from soft_gripper_sdre.learning.labels import DATA_VARIANTS, VALIDATION
 from soft_gripper_sdre.sim.hand import SimConfig
-from soft_gripper_sdre.tools import jobs
-from soft_gripper_sdre.tools.collect import collect_signal, write_record
+from soft_gripper_sdre.tools.judging import jobs
+from soft_gripper_sdre.tools.learning.collect import collect_signal, write_record
 
 RAY_MISSING = jobs.ray_available()
 needs_ray = pytest.mark.skipif(RAY_MISSING is not None,
                                reason='ray is not installed: the optional Ray runner is not '
                                       f'tested ({jobs.RAY_INSTALL})')
 TOOLS = ('seeds', 'evaluate', 'robustness')
+#: the wing of soft_gripper_sdre.tools each tool run here lives in
+WING = {'seeds': 'judging', 'evaluate': 'judging', 'robustness': 'judging', 'train': 'learning'}
 
 
 # -- the runner ------------------------------------------------------------------------------------
@@ -78,14 +80,15 @@ def test_nothing_listening_at_the_address_is_found_before_ray_is_asked():
 
 # -- the command lines -----------------------------------------------------------------------------
 def run_tool(tool, *args, timeout=60, env=None):
-    return subprocess.run([sys.executable, '-m', f'soft_gripper_sdre.tools.{tool}', *args],
+    return subprocess.run([sys.executable, '-m', f'soft_gripper_sdre.tools.{WING[tool]}.{tool}',
+                           *args],
                           capture_output=True, text=True, timeout=timeout, env=env)
 
 
 def refusal(tool, args, capsys) -> str:
     """Run the tool's main in this process on ``args``, which it must refuse with status 2; its
     stderr."""
-    module = importlib.import_module(f'soft_gripper_sdre.tools.{tool}')
+    module = importlib.import_module(f'soft_gripper_sdre.tools.{WING[tool]}.{tool}')
     try:
         code = module.main(list(args))
     except SystemExit as exc:
@@ -217,7 +220,7 @@ def test_seed_sweep_trains_and_scores_every_model_and_the_shipped_one(pooled_swe
     assert ('| u4 R² X |' in printed
             and (out / 'seeds.md').read_text() == printed.rstrip('\n') + '\n')
     # train.py with the same seed, jitter and draw trains the same model, bit for bit
-    from soft_gripper_sdre.tools.seeds import weights_sha256
+    from soft_gripper_sdre.tools.judging.seeds import weights_sha256
     proc = run_tool('train', '--data', str(data_dir), '--out', str(tmp_path / 'train'),
                     '--epochs', '3', '--seed', '1', '--jitter', '1e-9', '--jitter-seed', '1',
                     timeout=120)

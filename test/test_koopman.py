@@ -17,7 +17,7 @@ from soft_gripper_sdre.learning.koopman import (
     fit_koopman,
 )
 from soft_gripper_sdre.sim.hand import GripperSim, SimConfig
-from soft_gripper_sdre.tools.collect import collect_signal
+from soft_gripper_sdre.tools.learning.collect import collect_signal
 
 U_MAX = 0.0625
 WEIGHTS = Weights(**DEFAULT_WEIGHTS)
@@ -80,11 +80,11 @@ def test_bad_model_files_and_settings_are_refused_with_the_reason(tmp_path):
 
 
 def test_tool_refuses_bad_arguments_before_reading_anything(tmp_path, run_main):
-    proc = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.koopman',
+    proc = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.learning.koopman',
                            '--data', str(tmp_path), '--out', str(tmp_path / 'o'), '--degree', '9'],
                           capture_output=True, text=True, timeout=50)
     assert proc.returncode == 2 and 'degree' in proc.stderr and 'Traceback' not in proc.stderr
-    from soft_gripper_sdre.tools.koopman import main
+    from soft_gripper_sdre.tools.learning.koopman import main
     proc = run_main(main, '--data', tmp_path, '--out', tmp_path / 'o')        # (in this process)
     assert proc.returncode == 2 and 'u1.npz' in proc.stderr
 
@@ -170,7 +170,7 @@ def test_measured_ordering_on_the_fast_grasp():
     MPC, the Koopman MPC ahead of the PD, and the MPC no better than its LQR while the box never
     binds."""
     from soft_gripper_sdre.learning.model import SDCModel
-    from soft_gripper_sdre.tools import evaluate as ev
+    from soft_gripper_sdre.tools.judging import evaluate as ev
     model = SDCModel()
     runs = {k: ev.run_law(k, 'fast', model, WEIGHTS, duration=1.5)[0]
             for k in ('koopman_mpc', 'koopman_lqr', 'sdre_ff', 'pd')}

@@ -23,7 +23,7 @@ from soft_gripper_sdre.learning.training import (
     train,
 )
 from soft_gripper_sdre.sim.hand import SimConfig
-from soft_gripper_sdre.tools.collect import collect_signal
+from soft_gripper_sdre.tools.learning.collect import collect_signal
 
 TRAIN_SIGNALS = ('u1', 'u2', 'x1', 'x2')
 EPOCHS = 15

@@ -4,8 +4,8 @@ reproducing the shipped model from nothing.
 Training is deterministic on one machine (one thread, deterministic algorithms, seeded shuffles).
 Across machines the bits part in the math libraries' CPU-specific kernels: OpenBLAS picks its
 matrix kernels by CPU (the KF/RTS labels differ at 1e-12 between its Haswell and SkylakeX
-kernels), MKL and ATen theirs for training. ``tools.procs.PINNED_KERNELS`` fixes each of them to
-one code path that every x86-64 machine with AVX2 and FMA runs; with them the slow test demands
+kernels), MKL and ATen theirs for training. ``tools.graph.procs.PINNED_KERNELS`` fixes each of them
+to one code path that every x86-64 machine with AVX2 and FMA runs; with them the slow test demands
 the shipped checkpoint bit for bit (the same data fingerprint, epochs, u4 R² and weights as
 soft_gripper_sdre/models/default.pt and its default.json). On every machine, pinned or not, it
 demands the model within :data:`BAND` of the shipped one: the spread measured by perturbing the
@@ -24,8 +24,8 @@ import torch
 from soft_gripper_sdre.learning.model import DEFAULT_MODEL, read_checkpoint
 from soft_gripper_sdre.learning.training import PRESETS, TrainSettings, train
 from soft_gripper_sdre.sim.hand import SimConfig
-from soft_gripper_sdre.tools.collect import collect_signal
-from soft_gripper_sdre.tools.procs import PINNED_KERNELS, cpu_runs_pinned_kernels, ros_env
+from soft_gripper_sdre.tools.graph.procs import PINNED_KERNELS, cpu_runs_pinned_kernels, ros_env
+from soft_gripper_sdre.tools.learning.collect import collect_signal
 
 
 @pytest.fixture(scope='module')
@@ -163,7 +163,7 @@ def test_the_pinned_kernels_are_the_ones_numpy_and_torch_run():
 
 
 def test_the_graph_processes_get_the_pinned_kernels_unless_the_caller_set_its_own(monkeypatch):
-    """The demo's, the runners' and the tests' node processes (tools.procs.ros_env) run the
+    """The demo's, the runners' and the tests' node processes (tools.graph.procs.ros_env) run the
     pinned kernels where the CPU has them; a variable set by the caller is kept."""
     monkeypatch.setenv('MKL_CBWR', 'COMPATIBLE')
     monkeypatch.delenv('OPENBLAS_CORETYPE', raising=False)
@@ -190,8 +190,8 @@ def test_collect_then_train_reproduces_the_shipped_checkpoint(tmp_path):
     pinned = cpu_runs_pinned_kernels()
     env = {**os.environ, **(PINNED_KERNELS if pinned else {})}
     data, out = tmp_path / 'excitation', tmp_path / 'train'
-    run_tool('collect', '--out', str(data), timeout=300, env=env)
-    run_tool('train', '--data', str(data), '--out', str(out), timeout=800, env=env)
+    run_tool('learning.collect', '--out', str(data), timeout=300, env=env)
+    run_tool('learning.train', '--data', str(data), '--out', str(out), timeout=800, env=env)
 
     shipped = json.loads(DEFAULT_MODEL.with_suffix('.json').read_text())
     metrics = json.loads((out / 'metrics.json').read_text())

@@ -28,7 +28,7 @@ from soft_gripper_sdre.nodes.topics import (
     TIP_POSITIONS,
     TORQUE_COMMANDS,
 )
-from soft_gripper_sdre.tools import echo
+from soft_gripper_sdre.tools.graph import echo
 
 pytestmark = pytest.mark.ros
 
@@ -313,8 +313,8 @@ def test_bad_parameters_fail_at_startup_naming_the_parameter(tmp_path, params, m
 # -- echo ------------------------------------------------------------------------------------
 
 def test_echo_once_prints_the_message_as_yaml():
-    proc = subprocess.Popen([sys.executable, '-m', 'soft_gripper_sdre.tools.echo', 'cube_contacts',
-                             '--once', '--timeout', '30'], env=dict(os.environ),
+    proc = subprocess.Popen([sys.executable, '-m', 'soft_gripper_sdre.tools.graph.echo',
+                             'cube_contacts', '--once', '--timeout', '30'], env=dict(os.environ),
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         with ros_context() as (ctx, executor):

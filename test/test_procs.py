@@ -5,7 +5,7 @@ from rclpy.duration import Duration
 from rosutil import Probe, ros_context, spin_until
 
 from soft_gripper_sdre.nodes.topics import DIAGNOSTICS, STREAM_QOS
-from soft_gripper_sdre.tools.procs import DiagnosticsMonitor, ros_env
+from soft_gripper_sdre.tools.graph.procs import DiagnosticsMonitor, ros_env
 
 pytestmark = pytest.mark.ros
 

@@ -24,7 +24,7 @@ from soft_gripper_sdre.nodes.graph import (
     readiness_problem,
     wiring_key,
 )
-from soft_gripper_sdre.tools.procs import DiagnosticsMonitor, Graph, ros_env
+from soft_gripper_sdre.tools.graph.procs import DiagnosticsMonitor, Graph, ros_env
 
 RUN = 0.3           # s of sim time per run
 

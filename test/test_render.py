@@ -25,7 +25,7 @@ from soft_gripper_sdre.analysis.render import (
     visible,
 )
 from soft_gripper_sdre.sim.hand import GripperSim, SimConfig
-from soft_gripper_sdre.tools import render as render_tool
+from soft_gripper_sdre.tools.judging import render as render_tool
 
 DURATION, EVERY = 1.6, 10          # s of sim time; joint states every 10 ms
 CLOSE = -0.035                     # u_ax0 [N·m] of the grasping fingers after the ramp
@@ -150,7 +150,7 @@ def test_default_instants_are_the_papers_within_the_run():
     (['b', '--out', 'x', '--hand-fingers', 'a,b'], 'hand fingers'),
 ])
 def test_cli_refuses_bad_input(args, message, tmp_path):
-    proc = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.render', *args],
+    proc = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.judging.render', *args],
                           capture_output=True, text=True, cwd=tmp_path, timeout=60)
     assert proc.returncode == 2
     assert message in proc.stderr

@@ -21,7 +21,7 @@ from soft_gripper_sdre.analysis.bag import BagError, extract_run, read_bag, samp
 from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.recorder import RecorderNode, topic_qos
 from soft_gripper_sdre.nodes.topics import TOPIC_TYPES
-from soft_gripper_sdre.tools import report as report_tool
+from soft_gripper_sdre.tools.judging import report as report_tool
 
 pytestmark = pytest.mark.ros
 
@@ -201,7 +201,7 @@ def test_report_without_contacts_scores_every_sample(tmp_path):
 
 def test_report_cli_writes_real_pngs_and_metrics(bag, tmp_path):
     out = tmp_path / 'figs'
-    proc = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.report', str(bag),
+    proc = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.judging.report', str(bag),
                            '--out', str(out), '--torque-limit', str(LIMIT)],
                           env=dict(os.environ), capture_output=True, text=True, timeout=50)
     assert proc.returncode == 0, proc.stderr
@@ -215,8 +215,8 @@ def test_report_cli_writes_real_pngs_and_metrics(bag, tmp_path):
 
 def test_report_cli_bad_bag_exits_2(tmp_path):
     missing = tmp_path / 'no_such_bag'
-    proc = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.report', str(missing),
-                           '--out', str(tmp_path / 'out')], env=dict(os.environ),
+    proc = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.judging.report',
+                           str(missing), '--out', str(tmp_path / 'out')], env=dict(os.environ),
                           capture_output=True, text=True, timeout=50)
     assert proc.returncode == 2 and str(missing) in proc.stderr and 'does not exist' in proc.stderr
 

@@ -19,8 +19,8 @@ from soft_gripper_sdre.sim.hand import GripperSim, SimConfig
 from soft_gripper_sdre.sim.linear import linear_modes, linearize
 from soft_gripper_sdre.sim.plant import PlantVariation
 from soft_gripper_sdre.sim.units import TORQUE_SCALE
-from soft_gripper_sdre.tools import robustness
-from soft_gripper_sdre.tools.robustness_grid import VARIATIONS, Case, grid_laws, run_grid
+from soft_gripper_sdre.tools.judging import robustness
+from soft_gripper_sdre.tools.judging.robustness_grid import VARIATIONS, Case, grid_laws, run_grid
 
 
 def tip_deflection_mm(u, seconds: float = 1.5, **scales) -> float:
@@ -165,7 +165,7 @@ def test_cli_refuses_bad_arguments_before_starting(tmp_path, capsys, args, messa
 
 def test_cli_refusal_exits_2_without_a_traceback(tmp_path):
     out = tmp_path / 'out'
-    proc = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.robustness',
+    proc = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.judging.robustness',
                            '--out', str(out), '--laws', 'no_such_law'],
                           capture_output=True, text=True, timeout=50)
     assert proc.returncode == 2
@@ -181,7 +181,7 @@ def test_run_grid_refuses_bad_workers_and_unknown_names():
 
 
 def test_table_and_figure_from_results(tmp_path):
-    from soft_gripper_sdre.tools.robustness_grid import CaseResult
+    from soft_gripper_sdre.tools.judging.robustness_grid import CaseResult
     nan = float('nan')
     results = [CaseResult('sdre_ff', 'nominal', 'grasp', 0.08, 1.4, 0.2, True, 0.03, 0.0, 0.0,
                           30.0),
@@ -193,7 +193,7 @@ def test_table_and_figure_from_results(tmp_path):
     assert '| nominal plant | 0.080 mm (1.40 %) ✓ | 0.220 mm (2.60 %) ✓ |' in table
     assert '| sensor delay 2 ms | 0.100 mm (1.60 %) ✓ | diverged ✗ |' in table
     path = robustness.plot_grid(results, tmp_path / 'r.png',
-                                'python -m soft_gripper_sdre.tools.robustness')
+                                'python -m soft_gripper_sdre.tools.judging.robustness')
     assert path.stat().st_size > 10_000
 
 

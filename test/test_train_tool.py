@@ -12,15 +12,15 @@ import pytest
 from soft_gripper_sdre.learning.labels import DATA_VARIANTS, VALIDATION
 from soft_gripper_sdre.learning.model import SDCModel
 from soft_gripper_sdre.sim.hand import SimConfig
-from soft_gripper_sdre.tools.collect import collect_signal, write_record
-from soft_gripper_sdre.tools.train import main
+from soft_gripper_sdre.tools.learning.collect import collect_signal, write_record
+from soft_gripper_sdre.tools.learning.train import main
 
 SIGNALS = DATA_VARIANTS['identifying'] + (VALIDATION,)
 PNG_MAGIC = b'\x89PNG\r\n\x1a\n'
 
 
 def run_train(*args, cwd=None):
-    return subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.train', *args],
+    return subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.learning.train', *args],
                           capture_output=True, text=True, timeout=50, cwd=cwd)
 
 

@@ -1,5 +1,5 @@
-"""The training pipeline both ``tools.train`` paths share (analysis/training_run.py): a run's
-files appear together or not at all, and the scores are those of the checkpoint as loaded."""
+"""The training pipeline both ``tools.learning.train`` paths share (analysis/training_run.py): a
+run's files appear together or not at all, and the scores are those of the checkpoint as loaded."""
 from dataclasses import replace
 
 import numpy as np

@@ -6,7 +6,7 @@ stamps of their own: :func:`read_recording` reads and checks them, and refuses a
 give training data with a :class:`BagDataError` naming the bag, the topic and the problem
 (missing topics, wrong types, too few or non-finite values, stamps that do not increase, a run
 too short). :func:`label_finger` then turns one finger's tips into the training samples of
-``tools.train``:
+``tools.learning.train``:
 
 * tip stamps that are evenly spaced (a lockstep simulator) are used as they are, through the
   same KF + RTS as the ``.npz`` path

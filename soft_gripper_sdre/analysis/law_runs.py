@@ -1,6 +1,6 @@
 """One control law on the in-process loop, run and scored the same way wherever laws are compared
-(the evaluation, :mod:`soft_gripper_sdre.tools.evaluate`, and the robustness grid,
-:mod:`soft_gripper_sdre.tools.robustness_grid`).
+(the evaluation, :mod:`soft_gripper_sdre.tools.judging.evaluate`, and the robustness grid,
+:mod:`soft_gripper_sdre.tools.judging.robustness_grid`).
 
 The scores are taken on the *true* tip in free space
 (:class:`~soft_gripper_sdre.analysis.closed_loop.LoopResult`) and on the grasp. The worst-finger

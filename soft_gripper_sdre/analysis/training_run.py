@@ -1,6 +1,6 @@
-"""One training run from its result to the files a user keeps, for both of ``tools.train``'s
-paths (``.npz`` records and rosbag2 recordings) and the seed sweep (:func:`fit`: the ``.npz``
-records' labels to a scored checkpoint).
+"""One training run from its result to the files a user keeps, for both of
+``tools.learning.train``'s paths (``.npz`` records and rosbag2 recordings) and the seed sweep
+(:func:`fit`: the ``.npz`` records' labels to a scored checkpoint).
 
 :func:`checkpoint` writes the checkpoint, loads it back as the controller will, scores it
 (:func:`score`: R² of the predicted accelerations, the cubic least-squares baseline on the same

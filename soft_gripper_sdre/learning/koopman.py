@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 FORMAT_VERSION = 1
-#: the model shipped with the package (tools/koopman.py --install writes it)
+#: the model shipped with the package (tools/learning/koopman.py --install writes it)
 DEFAULT_KOOPMAN = Path(__file__).resolve().parent.parent / 'models' / 'koopman.npz'
 
 
@@ -165,7 +165,7 @@ class KoopmanModel:
         path = Path(path) if path is not None else DEFAULT_KOOPMAN
         if not path.is_file():
             raise KoopmanFileError(f'{path}: no such Koopman model file '
-                                   '(python -m soft_gripper_sdre.tools.koopman '
+                                   '(python -m soft_gripper_sdre.tools.learning.koopman '
                                    '--data DIR --out DIR writes one)')
         try:
             with np.load(path, allow_pickle=False) as f:

@@ -1,4 +1,4 @@
-"""Training labels of the simulator's ``.npz`` records (``tools.collect``): the KF + RTS
+"""Training labels of the simulator's ``.npz`` records (``tools.learning.collect``): the KF + RTS
 estimates of each signal's states and accelerations, the signals that train and the one that
 validates, and the rounding-level jitter of the seed sweep's data draws.
 """

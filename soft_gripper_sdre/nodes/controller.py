@@ -117,7 +117,7 @@ PARAMS = (
     Param('law', DEFAULT_LAW, 'control law (soft_gripper_sdre.control.laws): learned SDRE, LQR '
           'frozen at the origin, task-space PD, computed torque on the learned model; the oracle '
           'needs the plant\'s joint state and runs in-process only '
-          '(tools/evaluate.py); sdre_ff: SDRE + model-inversion feedforward '
+          '(tools/judging/evaluate.py); sdre_ff: SDRE + model-inversion feedforward '
           '(docs/results.md "Beyond the paper"); koopman_mpc, koopman_lqr: the Koopman baselines '
           'on the shipped Koopman model (models/koopman.npz; docs/results.md "Koopman baseline")',
           choices=GRAPH_LAWS, read_only=True),

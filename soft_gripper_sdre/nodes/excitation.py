@@ -4,7 +4,8 @@ Plays ``signals`` in order (the paper's u1..u4, the identifying x1, x2, or multi
 from the YAML ``spec_file``, :mod:`soft_gripper_sdre.sim.excitation`), each after ``settle_time``
 of zero torque (the first one also until ``settle_samples`` tips were heard, below), on
 ``finger`` or on every finger, scaled by ``amplitude`` and clipped to ``torque_limit``; a recorder
-running meanwhile captures ``tip_positions`` and ``torque_commands`` for ``tools.train --bag``.
+running meanwhile captures ``tip_positions`` and ``torque_commands`` for
+``tools.learning.train --bag``.
 
 Start: the run begins only once ``torque_commands`` has ``min_command_subscribers`` matched
 subscribers (default 2: the driver and the recorder), so no command is sent before the recorder

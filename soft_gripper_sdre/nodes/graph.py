@@ -3,7 +3,7 @@ overrides, remappings and namespace.
 
 One description serves every way the graph is started:
 
-* :class:`soft_gripper_sdre.tools.procs.Graph` starts each node as the process
+* :class:`soft_gripper_sdre.tools.graph.procs.Graph` starts each node as the process
   ``python -m soft_gripper_sdre.nodes.<executable> --ros-args ...`` (:meth:`NodeSpec.command`): the
   demo, the graph benchmarks, the multi-hand and multi-host runs and the tests;
 * ``launch/grasp.launch.py`` turns the same specs into ``launch_ros`` nodes for ``ros2 launch``.

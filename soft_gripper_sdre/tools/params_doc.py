@@ -67,7 +67,7 @@ def render() -> str:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.params_doc',
-                                 description=__doc__.split('\n')[0])
+                                 description=__doc__.split('\n\n')[0])
     ap.add_argument('--out', type=Path, default=DEFAULT_OUT,
                     help='output file (default %(default)s); - for stdout')
     a = ap.parse_args(argv)

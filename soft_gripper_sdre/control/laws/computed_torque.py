@@ -8,7 +8,8 @@ from soft_gripper_sdre.control.laws.feedforward import model_inversion, referenc
 from soft_gripper_sdre.control.tracking import DEFAULT_LOWPASS_HZ, LawIO, LawStep
 
 #: tuned gains (natural frequency² [1/s²] and 2ζω [1/s] of the linearised error dynamics);
-#: ``python -m soft_gripper_sdre.tools.evaluate --tune computed_torque`` reproduces the tuning grid
+#: ``python -m soft_gripper_sdre.tools.judging.evaluate --tune computed_torque`` reproduces the
+#: tuning grid
 DEFAULT_CT = dict(kp=1.5e4, kd=80.0)
 #: largest condition number of G₂(x) the inversion accepts (as the feedforward's)
 CT_COND_MAX = 1e8

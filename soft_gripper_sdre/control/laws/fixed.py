@@ -8,7 +8,7 @@ from soft_gripper_sdre.control.riccati import sdre_gains
 from soft_gripper_sdre.control.tracking import DEFAULT_LOWPASS_HZ, LawIO, LawStep, Weights
 
 #: tuned task-space PD gains (natural frequency² and 2ζω of the error dynamics, 1/s² and 1/s);
-#: tools/evaluate.py --tune-pd reproduces the tuning grid
+#: tools/judging/evaluate.py --tune-pd reproduces the tuning grid
 DEFAULT_PD = dict(kp=1.5e4, kd=40.0)
 
 

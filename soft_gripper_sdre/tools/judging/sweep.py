@@ -1,6 +1,6 @@
 """Tracking vs position weight under measurement noise, and why high gains fail.
 
-    python -m soft_gripper_sdre.tools.sweep --out runs/sweep
+    python -m soft_gripper_sdre.tools.judging.sweep --out runs/sweep
 
 For each position weight q_pos and noise σ it runs the grasp in-process (sim → KF → SDRE, the
 node graph's loop without the topics; R and q_vel at their defaults) and scores the free-space
@@ -20,8 +20,8 @@ import numpy as np
 
 
 def _parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.sweep',
-                                 description=__doc__.split('\n')[0])
+    ap = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.judging.sweep',
+                                 description=__doc__.split('\n\n')[0])
     ap.add_argument('--out', type=Path, default=Path('runs/sweep'))
     ap.add_argument('--q-pos', type=float, nargs='+', default=[2.5e5, 5e5, 1e6, 2e6, 4e6])
     ap.add_argument('--noise', type=float, nargs='+', default=[0.0, 5e-5, 2e-4], help='σ [m]')

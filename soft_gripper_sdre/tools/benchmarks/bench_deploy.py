@@ -1,6 +1,6 @@
 """The deployment loop's benchmark: a minimal driver stand-in with the estimator and the controller.
 
-    python -m soft_gripper_sdre.tools.bench_deploy [--quick] [--seconds S] [--repeats N]
+    python -m soft_gripper_sdre.tools.benchmarks.bench_deploy [--quick] [--seconds S] [--repeats N]
         [--rate 1000 500] [--variants base shm composed ...]
 
 On a robot the simulator is replaced by the robot's driver, a light process that publishes the
@@ -43,7 +43,7 @@ import time
 import numpy as np
 
 from soft_gripper_sdre.nodes.graph import NodeSpec, default_params_file
-from soft_gripper_sdre.tools.procs import Graph, ros_env
+from soft_gripper_sdre.tools.graph.procs import Graph, ros_env
 
 #: periods before the measured window: discovery, the plan, the first cold steps
 WARMUP_S = 2.0
@@ -278,7 +278,7 @@ def run_deploy(period: float, seconds: float, tips: Path, *, record: bool = Fals
                     else {'estimator': (ESTIMATOR_UP,), 'controller': (CONTROLLER_UP,)})
         pids = {name: proc.popen.pid for name, proc in graph.procs.items()}
         readers = 2 + record
-        cmd = [sys.executable, '-m', 'soft_gripper_sdre.tools.bench_deploy', '--driver',
+        cmd = [sys.executable, '-m', 'soft_gripper_sdre.tools.benchmarks.bench_deploy', '--driver',
                json.dumps({'period': period, 'warmup': warmup, 'seconds': seconds,
                            'tips': str(tips), 'readers': readers, 'pids': pids})]
         drv = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
@@ -306,7 +306,7 @@ def run_deploy(period: float, seconds: float, tips: Path, *, record: bool = Fals
 
 
 def _popen(graph: Graph, key: str, cmd: list[str], env: dict[str, str]):
-    from soft_gripper_sdre.tools.procs import NodeProcess
+    from soft_gripper_sdre.tools.graph.procs import NodeProcess
     graph.log_dir.mkdir(parents=True, exist_ok=True)
     log_path = graph.log_dir / f'{key}.log'
     with open(log_path, 'w', encoding='utf-8') as log:
@@ -394,8 +394,8 @@ def rows(quick: bool = False) -> list[tuple[str, str, str]]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.bench_deploy',
-                                 description=__doc__.split('\n')[0])
+    ap = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.benchmarks.bench_deploy',
+                                 description=__doc__.split('\n\n')[0])
     ap.add_argument('--driver', default=None, help=argparse.SUPPRESS)     # the driver process
     ap.add_argument('--quick', action='store_true', help='short runs, once each')
     ap.add_argument('--seconds', type=float, default=None, help='measured seconds per run')

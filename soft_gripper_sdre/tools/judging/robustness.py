@@ -2,24 +2,26 @@
 sensors it was not trained on. Writes ``robustness.md`` (the table), ``robustness.json`` and
 ``robustness.png`` (the figure) in ``--out``.
 
-    python -m soft_gripper_sdre.tools.robustness --out runs/robustness          # (make robustness)
-    python -m soft_gripper_sdre.tools.robustness --out DIR --laws sdre_ff pd
+    python -m soft_gripper_sdre.tools.judging.robustness --out runs/robustness
+        # (make robustness)
+    python -m soft_gripper_sdre.tools.judging.robustness --out DIR --laws sdre_ff pd
         --variations nominal friction_x2 --workers 2
-    python -m soft_gripper_sdre.tools.robustness --out runs/robustness --ray auto
+    python -m soft_gripper_sdre.tools.judging.robustness --out runs/robustness --ray auto
         # on a Ray cluster
 
 The laws are every registered law but the oracles (``--laws`` may name those too: they know the
 nominal plant's dynamics, and are marked † in the outputs); the variations are
-:data:`soft_gripper_sdre.tools.robustness_grid.VARIATIONS`. Each run is the in-process closed loop
-of ``make evaluate`` (the same noise, seed, saturation and roll-off), scored on the true tip:
+:data:`soft_gripper_sdre.tools.judging.robustness_grid.VARIATIONS`. Each run is the in-process
+closed loop of ``make evaluate`` (the same noise, seed, saturation and roll-off), scored on the true
+tip:
 
 * free-space RMSE: mean over the grasping fingers [mm], and the worst finger's as a % of its peak
   excursion (the ≤ 5 % target of docs/results.md);
 * grasp: both grasping fingers touch the cube ≥ 90 % of the hold and the cube moves < 1 mm.
 
 The runs are spread over ``--workers`` processes (default: every core), or over the Ray cluster
-at ``--ray ADDRESS`` (:mod:`soft_gripper_sdre.tools.jobs`); the numbers do not depend on how many
-or where.
+at ``--ray ADDRESS`` (:mod:`soft_gripper_sdre.tools.judging.jobs`); the numbers do not depend on how
+many or where.
 """
 from __future__ import annotations
 
@@ -36,9 +38,9 @@ import numpy as np
 
 from soft_gripper_sdre.analysis.oracle import ORACLE_LAWS
 from soft_gripper_sdre.learning.model import ModelFileError, SDCModel
-from soft_gripper_sdre.tools import jobs
-from soft_gripper_sdre.tools.evaluate import TRAJECTORIES
-from soft_gripper_sdre.tools.robustness_grid import (
+from soft_gripper_sdre.tools.judging import jobs
+from soft_gripper_sdre.tools.judging.evaluate import TRAJECTORIES
+from soft_gripper_sdre.tools.judging.robustness_grid import (
     VARIATIONS,
     Case,
     CaseResult,
@@ -47,7 +49,7 @@ from soft_gripper_sdre.tools.robustness_grid import (
     run_grid,
 )
 
-PROG = 'python -m soft_gripper_sdre.tools.robustness'
+PROG = 'python -m soft_gripper_sdre.tools.judging.robustness'
 #: the free-space target: worst-finger RMSE as a share of its peak excursion [%] (docs/results.md)
 TARGET_PCT = 5.0
 
@@ -175,7 +177,7 @@ def plot_grid(results: list[CaseResult], path: Path, command: str) -> Path:
 
 
 def parse_args(argv=None) -> argparse.Namespace:
-    ap = argparse.ArgumentParser(prog=PROG, description=__doc__.split('\n')[0])
+    ap = argparse.ArgumentParser(prog=PROG, description=__doc__.split('\n\n')[0])
     ap.add_argument('--out', type=Path, default=Path('runs/robustness'))
     ap.add_argument('--laws', nargs='+', default=grid_laws(), choices=known_laws(), metavar='LAW',
                     help='registered law names (default: every one but the oracles; '
@@ -211,7 +213,7 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 def main(argv=None) -> int:
     args = parse_args(argv)
-    command = 'python -m soft_gripper_sdre.tools.robustness ' + ' '.join(
+    command = 'python -m soft_gripper_sdre.tools.judging.robustness ' + ' '.join(
         shlex.quote(a) for a in (sys.argv[1:] if argv is None else argv))
     close = None if args.close_mm is None else args.close_mm * 1e-3
     cases = [Case(law, variation, traj, args.duration, close, args.anchored)

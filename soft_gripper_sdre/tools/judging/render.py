@@ -1,6 +1,6 @@
 """The paper's Figs. 1 and 4 and an animation of the grasp, drawn from a recorded run.
 
-    python -m soft_gripper_sdre.tools.render BAG --out DIR [--instants 1.5 1.75 2 2.75]
+    python -m soft_gripper_sdre.tools.judging.render BAG --out DIR [--instants 1.5 1.75 2 2.75]
         [--no-gif] [--fps 12] [--gif-width 400] [--hand-fingers 0,2]
 
 Replays the run's ``joint_states`` and ``cube_pose`` in the simulator's own hand, rendered by
@@ -202,7 +202,7 @@ def _hand_fingers(text: str) -> tuple[int, ...]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.render',
+    parser = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.judging.render',
                                      description=__doc__.split('\n\n')[0])
     parser.add_argument('bag', type=Path, help='rosbag2 directory of a run (with joint_states)')
     parser.add_argument('--out', required=True, type=Path, help='output directory')

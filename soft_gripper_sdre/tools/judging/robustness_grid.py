@@ -4,14 +4,15 @@ A case is one law on one trajectory with one :class:`Variation` of the plant or 
 case runs the in-process closed loop
 (:func:`soft_gripper_sdre.analysis.closed_loop.run_closed_loop`: the node graph's loop with the
 topics replaced by calls, the KF, lockstep, seeded noise) like
-:mod:`soft_gripper_sdre.tools.evaluate`, with the model trained on the nominal finger, and is scored
-on the true tip in free space and on the grasp (:mod:`soft_gripper_sdre.analysis.law_runs`).
+:mod:`soft_gripper_sdre.tools.judging.evaluate`, with the model trained on the nominal finger, and
+is scored on the true tip in free space and on the grasp
+(:mod:`soft_gripper_sdre.analysis.law_runs`).
 
 The cases are independent, so :func:`run_grid` runs them as jobs
-(:mod:`soft_gripper_sdre.tools.jobs`): on a pool of spawned worker processes or on a Ray cluster,
-each worker with its own simulator, law and copy of the model. A case's result depends on the case
-only (every simulator starts from the same seed, every law is built fresh), so the grid gives the
-same numbers, bit for bit, whatever the number of workers and wherever they run.
+(:mod:`soft_gripper_sdre.tools.judging.jobs`): on a pool of spawned worker processes or on a Ray
+cluster, each worker with its own simulator, law and copy of the model. A case's result depends on
+the case only (every simulator starts from the same seed, every law is built fresh), so the grid
+gives the same numbers, bit for bit, whatever the number of workers and wherever they run.
 """
 from __future__ import annotations
 
@@ -26,8 +27,8 @@ from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
 from soft_gripper_sdre.learning.model import DEFAULT_MODEL, SDCModel
 from soft_gripper_sdre.sim.hand import SimConfig
 from soft_gripper_sdre.sim.plant import PlantVariation
-from soft_gripper_sdre.tools.evaluate import NOISE, TRAJECTORIES, U_MAX
-from soft_gripper_sdre.tools.jobs import FileBlob, Runner, run_jobs
+from soft_gripper_sdre.tools.judging.evaluate import NOISE, TRAJECTORIES, U_MAX
+from soft_gripper_sdre.tools.judging.jobs import FileBlob, Runner, run_jobs
 
 register_oracle_laws()          # asked for by name (--laws), never by default
 
@@ -35,7 +36,8 @@ register_oracle_laws()          # asked for by name (--laws), never by default
 @dataclass(frozen=True)
 class Variation:
     """A plant or sensor the model was not trained on: the plant's scales, the tip noise [m] and the
-    sensor delay [s] (the nominal values are those of :mod:`soft_gripper_sdre.tools.evaluate`)."""
+    sensor delay [s] (the nominal values are those of
+    :mod:`soft_gripper_sdre.tools.judging.evaluate`)."""
 
     label: str
     plant: PlantVariation = field(default_factory=PlantVariation)
@@ -142,8 +144,9 @@ def _model_of(blob: FileBlob) -> SDCModel:
 
 
 def run_case_job(model: FileBlob, case: Case) -> CaseResult:
-    """One case as a job of :func:`~soft_gripper_sdre.tools.jobs.run_jobs` (the model's file travels
-    with it); a run that fails is a result with its ``error``, so the rest of the grid is kept."""
+    """One case as a job of :func:`~soft_gripper_sdre.tools.judging.jobs.run_jobs` (the model's file
+    travels with it); a run that fails is a result with its ``error``, so the rest of the grid is
+    kept."""
     try:
         return run_case(case, _model_of(model))
     except Exception as exc:  # noqa: BLE001 — one failing law must not lose the rest of the grid
@@ -159,15 +162,16 @@ def run_grid(cases: list[Case], workers: int | Runner, model_path=None,
     """Run every case; the results in the order of ``cases``.
 
     ``workers``: the number of spawned worker processes of this machine (1: this process), or a
-    :class:`~soft_gripper_sdre.tools.jobs.Runner` (a pool, or a Ray cluster). The model's file
-    (``model_path``; None: the shipped one) goes with the cases, and each worker loads it once and
-    builds a simulator and a law per case. The compiled kernels are loaded into numba's on-disk
+    :class:`~soft_gripper_sdre.tools.judging.jobs.Runner` (a pool, or a Ray cluster). The model's
+    file (``model_path``; None: the shipped one) goes with the cases, and each worker loads it once
+    and builds a simulator and a law per case. The compiled kernels are loaded into numba's on-disk
     cache here first, so that the workers of this machine load them instead of each compiling them.
     ``progress``: a bar on stderr.
 
     Raises:
         ValueError: ``workers`` < 1, or a case names an unknown law, variation or trajectory.
-        soft_gripper_sdre.tools.jobs.JobsError: a Ray runner without ray or without its cluster.
+        soft_gripper_sdre.tools.judging.jobs.JobsError: a Ray runner without ray or without its
+            cluster.
     """
     runner = (workers if isinstance(workers, Runner)
               else Runner(workers) if isinstance(workers, int) else None)

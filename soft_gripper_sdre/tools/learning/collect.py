@@ -1,6 +1,6 @@
 """Run excitation signals on one finger and write the dataset (one ``.npz`` per signal).
 
-    python -m soft_gripper_sdre.tools.collect --signals u1 u2 u3 u4 --out data/excitation
+    python -m soft_gripper_sdre.tools.learning.collect --signals u1 u2 u3 u4 --out data/excitation
 
 Each record starts from a freshly built finger settled 0.5 s at u = 0, then applies u[k] over
 [t_k, t_k + Δt) for 10 s at Δt = 1 ms. The finger is mounted like a hand finger (rolled 15°), so
@@ -81,7 +81,7 @@ def _usage_error(parser: argparse.ArgumentParser, message: str):
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.collect',
+    parser = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.learning.collect',
                                      description=__doc__.split('\n\n')[0])
     parser.add_argument('--signals', nargs='+', default=list(DEFAULT_SIGNALS),
                         help=f'signals to run (known: {", ".join(SIGNALS)}; default: %(default)s)')

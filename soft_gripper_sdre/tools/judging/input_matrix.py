@@ -1,6 +1,6 @@
 """Learned G2 vs the true input matrix J M⁻¹ B, at the rest pose and across the workspace.
 
-    python -m soft_gripper_sdre.tools.input_matrix [--models default paper_data PATH ...]
+    python -m soft_gripper_sdre.tools.judging.input_matrix [--models default paper_data PATH ...]
         [--out DIR]
 
 For each model: the column directions of G2 and of J M⁻¹ B (tip acceleration per N·m, friction
@@ -20,8 +20,8 @@ GRID = np.array([[a, b] for a in (-0.025, 0.0, 0.025) for b in (-0.025, 0.0, 0.0
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.input_matrix',
-                                 description=__doc__.split('\n')[0])
+    ap = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.judging.input_matrix',
+                                 description=__doc__.split('\n\n')[0])
     ap.add_argument('--models', nargs='+', default=['default', 'paper_data'],
                     help="'default', 'paper_data' or checkpoint paths")
     ap.add_argument('--out', type=Path, default=None, help='also write input_matrix.json here')

@@ -1,12 +1,13 @@
 """Learn the SDC model from excitation data: derivative estimates, training, validation, figures.
 
-    python -m soft_gripper_sdre.tools.train --data data/excitation --out runs/train [--preset paper]
-    python -m soft_gripper_sdre.tools.train --bag DIR [--bag DIR ...] --val-bag DIR
+    python -m soft_gripper_sdre.tools.learning.train --data data/excitation --out runs/train
+        [--preset paper]
+    python -m soft_gripper_sdre.tools.learning.train --bag DIR [--bag DIR ...] --val-bag DIR
         --out runs/train_bags
 
 With ``--bag`` the data come from rosbag2 recordings of ``tip_positions`` and ``torque_commands``
 (the excitation node and a recorder, on the simulator or a robot):
-:mod:`soft_gripper_sdre.tools.train_bags`. The rest of this text is about ``--data``.
+:mod:`soft_gripper_sdre.tools.learning.train_bags`. The rest of this text is about ``--data``.
 
 Writes OUT/model.pt (checkpoint), OUT/metrics.json, OUT/fig2_loss.png (the paper's Figure 2) and
 OUT/fig3_accel_u4.png (Figure 3), all together or none (the pipeline both paths share:
@@ -37,10 +38,10 @@ from soft_gripper_sdre.learning.training import PRESETS
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.train',
+    parser = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.learning.train',
                                      description=__doc__.split('\n\n')[0])
     parser.add_argument('--data', type=Path,
-                        help='directory with <signal>.npz files (tools.collect)')
+                        help='directory with <signal>.npz files (tools.learning.collect)')
     parser.add_argument('--out', required=True, type=Path, help='output directory')
     bags = parser.add_argument_group('training from rosbag2 recordings (instead of --data)')
     bags.add_argument('--bag', type=Path, action='append', metavar='DIR',
@@ -165,9 +166,9 @@ def main(argv: list[str] | None = None) -> int:
 
 def _main_bags(parser: argparse.ArgumentParser, args: argparse.Namespace, settings) -> int:
     """The ``--bag`` path: arguments checked, then
-    :func:`~soft_gripper_sdre.tools.train_bags.train_from_bags`."""
+    :func:`~soft_gripper_sdre.tools.learning.train_bags.train_from_bags`."""
     from soft_gripper_sdre.analysis.bag_dataset import BagDataError
-    from soft_gripper_sdre.tools.train_bags import train_from_bags
+    from soft_gripper_sdre.tools.learning.train_bags import train_from_bags
 
     if args.data is not None:
         parser.error('--data and --bag exclude each other')

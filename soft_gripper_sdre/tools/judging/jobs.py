@@ -1,10 +1,11 @@
 """Independent jobs of a sweep, run on this machine's cores or on a Ray cluster, with the same
 results.
 
-The sweeps (:mod:`~soft_gripper_sdre.tools.seeds`, :mod:`~soft_gripper_sdre.tools.evaluate`,
-:mod:`~soft_gripper_sdre.tools.robustness`) are lists of jobs that do not depend on each other: a
-training run, a closed-loop run of one law. :func:`run_jobs` runs ``fn(context, job)`` for every
-job and returns the results in the order of the jobs:
+The sweeps (:mod:`~soft_gripper_sdre.tools.judging.seeds`,
+:mod:`~soft_gripper_sdre.tools.judging.evaluate`,
+:mod:`~soft_gripper_sdre.tools.judging.robustness`) are lists of jobs that do not depend on each
+other: a training run, a closed-loop run of one law. :func:`run_jobs` runs ``fn(context, job)`` for
+every job and returns the results in the order of the jobs:
 
 * ``Runner(workers=1)``: one after the other in this process;
 * ``Runner(workers=N)``: on a pool of N spawned worker processes of this machine;
@@ -39,7 +40,7 @@ import sys
 import tempfile
 from typing import Any, Callable, Iterator, Sequence
 
-from soft_gripper_sdre.tools.procs import PINNED_KERNELS
+from soft_gripper_sdre.tools.graph.procs import PINNED_KERNELS
 
 #: the Ray release the sweeps were tested with (README "Dependencies")
 RAY_VERSION = '2.60.0'

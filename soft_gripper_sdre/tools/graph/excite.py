@@ -1,15 +1,15 @@
 """Record identification runs over the node graph: excitation node + simulator node + recorder.
 
-    python -m soft_gripper_sdre.tools.excite --out runs/bags/train --signals u1 u2 u3 x1 x2
-    python -m soft_gripper_sdre.tools.excite --out runs/bags/val --signals u4
+    python -m soft_gripper_sdre.tools.graph.excite --out runs/bags/train --signals u1 u2 u3 x1 x2
+    python -m soft_gripper_sdre.tools.graph.excite --out runs/bags/val --signals u4
 
 For each signal a fresh graph is started (so every run begins from the settled finger, as
-``tools.collect``'s records do): the recorder (``tip_positions``, ``torque_commands``, ``/clock``,
-``/diagnostics``), the excitation node playing the signal after ``--settle`` seconds of zero
-torque, and the simulator in lockstep; the tool waits for the excitation node to finish, then stops
-the others. ``OUT/<signal>/`` is the signal's rosbag2 directory and ``OUT/logs/<signal>/`` holds the
-node logs; ``tools.train --bag OUT`` reads every bag in ``OUT``. ``--one-bag`` plays all signals
-in one run into ``OUT/<first signal>/`` instead.
+``tools.learning.collect``'s records do): the recorder (``tip_positions``, ``torque_commands``,
+``/clock``, ``/diagnostics``), the excitation node playing the signal after ``--settle`` seconds of
+zero torque, and the simulator in lockstep; the tool waits for the excitation node to finish, then
+stops the others. ``OUT/<signal>/`` is the signal's rosbag2 directory and ``OUT/logs/<signal>/``
+holds the node logs; ``tools.learning.train --bag OUT`` reads every bag in ``OUT``. ``--one-bag``
+plays all signals in one run into ``OUT/<first signal>/`` instead.
 
 ``--amplitude`` scales every signal before ``--torque-limit`` clips it; ``--level auto`` lets the
 excitation node choose the amplitude on the finger instead (probes aiming at ``--level-target`` ×
@@ -31,14 +31,14 @@ import time
 from soft_gripper_sdre import FINGER_NAMES
 from soft_gripper_sdre.nodes.graph import NodeSpec, default_params_file
 from soft_gripper_sdre.sim.excitation import SignalSpecError, resolve_signals
-from soft_gripper_sdre.tools.procs import DiagnosticsMonitor, Graph, ros_env
+from soft_gripper_sdre.tools.graph.procs import DiagnosticsMonitor, Graph, ros_env
 
 RECORDED = ['tip_positions', 'torque_commands', '/clock', '/diagnostics']
 
 
 def _parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.excite',
-                                 description=__doc__.split('\n')[0])
+    ap = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.graph.excite',
+                                 description=__doc__.split('\n\n')[0])
     ap.add_argument('--out', type=Path, required=True,
                     help='directory of the bags (one per signal)')
     ap.add_argument('--signals', nargs='+', default=['u1', 'u2', 'u3', 'x1', 'x2'],
@@ -65,8 +65,8 @@ def _parser() -> argparse.ArgumentParser:
                     help='--level auto: the peak excursion aimed at, as a fraction of '
                          '--max-excursion (default %(default)s)')
     ap.add_argument('--scene', choices=('finger', 'hand'), default='finger',
-                    help='one finger mounted as in the hand (as tools.collect), or the hand '
-                         'without its cube')
+                    help='one finger mounted as in the hand (as tools.learning.collect), or the '
+                         'hand without its cube')
     ap.add_argument('--finger', type=int, default=-1,
                     help='hand scene: excite only this finger (default: all)')
     ap.add_argument('--noise', type=float, default=0.05, metavar='MM',

@@ -1,7 +1,7 @@
 """The README's own-gripper recipe, end to end, on a gripper the package has never seen.
 
-    python -m soft_gripper_sdre.tools.foreign --plant tendon3 --out runs/foreign/tendon3
-    python -m soft_gripper_sdre.tools.foreign --plant stiff2 --out runs/foreign/stiff2
+    python -m soft_gripper_sdre.tools.graph.foreign --plant tendon3 --out runs/foreign/tendon3
+    python -m soft_gripper_sdre.tools.graph.foreign --plant stiff2 --out runs/foreign/stiff2
 
 The gripper is the ``plant_driver`` node (two fingers of :mod:`soft_gripper_sdre.sim.foreign`,
 served like a lab's driver: wall-clock loop, best-effort tips stamped with wall time, jitter,
@@ -12,7 +12,8 @@ by hand (``--bags`` reuses an earlier run's recordings and starts at step 2):
 1. **identify** — recorder + excitation node, one bag per signal: u1 with ``level:=auto`` (the
    amplitude found by probing the finger to half of ``max_excursion``), then x1 x2 b1 b2 and the
    validation signal u4 at that amplitude;
-2. **train** — ``tools.train --bag … --val-bag …``: the model, its verdict and ``params.yaml``;
+2. **train** — ``tools.learning.train --bag … --val-bag …``: the model, its verdict and
+   ``params.yaml``;
 3. **deploy** — estimator, controller and trajectory node on ``params.yaml``: both fingers close
    along the move the settings were checked for (the way the finger moved most in the
    identification data, by at most half its reach that way: a learned model is only known where
@@ -39,7 +40,7 @@ import numpy as np
 import yaml
 
 from soft_gripper_sdre.control.horizon import sample_plan
-from soft_gripper_sdre.tools.procs import DiagnosticsMonitor, Graph, ros_env
+from soft_gripper_sdre.tools.graph.procs import DiagnosticsMonitor, Graph, ros_env
 
 
 @dataclass(frozen=True)
@@ -64,8 +65,8 @@ BEST_EFFORT = {'tips_reliability': 'best_effort'}
 
 
 def _parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.foreign',
-                                 description=__doc__.split('\n')[0])
+    ap = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.graph.foreign',
+                                 description=__doc__.split('\n\n')[0])
     ap.add_argument('--plant', choices=sorted(SETUPS), required=True, help='the foreign gripper')
     ap.add_argument('--out', type=Path, required=True, help='output directory (must not exist)')
     ap.add_argument('--laws', nargs='+', default=['sdre_ff', 'sdre'],
@@ -242,7 +243,8 @@ def main(argv: list[str] | None = None) -> int:
             metrics['identification'] = {'bags': str(a.bags)}
 
         t0 = time.monotonic()
-        cmd = [sys.executable, '-m', 'soft_gripper_sdre.tools.train', '--bag', str(bags / 'train'),
+        cmd = [sys.executable, '-m', 'soft_gripper_sdre.tools.learning.train',
+               '--bag', str(bags / 'train'),
                '--val-bag', str(bags / 'val'), '--out', str(out / 'model')]
         if a.epochs is not None:
             cmd += ['--epochs', str(a.epochs)]

@@ -1,10 +1,10 @@
 """Benchmarks of the node graph as processes: lockstep speed, CPU and latency, realtime lateness
 (also through a CPU hog), start-up, recorder loss.
 
-    python -m soft_gripper_sdre.tools.bench_graph [--quick] [--graph-only]
+    python -m soft_gripper_sdre.tools.benchmarks.bench_graph [--quick] [--graph-only]
         [--executor events|single]
 
-prints the rows that :mod:`soft_gripper_sdre.tools.bench` appends to BENCHMARKS.md
+prints the rows that :mod:`soft_gripper_sdre.tools.benchmarks.bench` appends to BENCHMARKS.md
 (:func:`rows`). Every figure comes from the nodes' own /diagnostics, read by a monitor node, or
 from /proc (CPU time of each process while the simulator stepped):
 
@@ -36,8 +36,13 @@ import tempfile
 import time
 
 from soft_gripper_sdre.nodes.graph import GraphSpec, grasp_graph
-from soft_gripper_sdre.tools.bench_hog import PHASES, SETTLE_S, CpuHog, phase_figures
-from soft_gripper_sdre.tools.procs import WIRED_BEFORE_START, DiagnosticsMonitor, Graph, ros_env
+from soft_gripper_sdre.tools.benchmarks.bench_hog import PHASES, SETTLE_S, CpuHog, phase_figures
+from soft_gripper_sdre.tools.graph.procs import (
+    WIRED_BEFORE_START,
+    DiagnosticsMonitor,
+    Graph,
+    ros_env,
+)
 
 LOOP_NODES = ('estimator', 'trajectory', 'controller')
 #: a ping-pong round unanswered this long [s] sends its ping again (see :func:`hop`)
@@ -101,7 +106,7 @@ def hog_run(seconds: float, hog_at: float, hog_seconds: float = 1.0, executor: s
     """The realtime graph for ``seconds`` of sim time, with one busy process per core for
     ``hog_seconds`` of wall time from ``hog_at`` of sim time on.
 
-    Returns :func:`~soft_gripper_sdre.tools.bench_hog.phase_figures` of the simulator's
+    Returns :func:`~soft_gripper_sdre.tools.benchmarks.bench_hog.phase_figures` of the simulator's
     /diagnostics: for each of :data:`PHASES`, lateness and loop latency.
     """
     hog = CpuHog(hog_at, hog_seconds)
@@ -214,7 +219,7 @@ def _start_composed(graph: Graph, controller, estimator) -> None:
     import sys
 
     from soft_gripper_sdre.nodes.controller import WITH_ESTIMATOR
-    from soft_gripper_sdre.tools.procs import NodeProcess
+    from soft_gripper_sdre.tools.graph.procs import NodeProcess
     cmd = [sys.executable, '-m', controller.module, WITH_ESTIMATOR, *controller.ros_arguments(),
            *estimator.ros_arguments()[1:]]
     graph.log_dir.mkdir(parents=True, exist_ok=True)
@@ -322,8 +327,8 @@ def hop(executor: str, count: int = 2000, raw: bool = False) -> dict[str, float]
     env = ros_env()
     env[EXECUTOR_ENV] = executor
     os.environ.update({k: env[k] for k in ('ROS_DOMAIN_ID', 'ROS_AUTOMATIC_DISCOVERY_RANGE')})
-    echo = subprocess.Popen([sys.executable, '-m', 'soft_gripper_sdre.tools.bench_graph', '--echo',
-                             str(count)] + ['--raw'] * raw,
+    echo = subprocess.Popen([sys.executable, '-m', 'soft_gripper_sdre.tools.benchmarks.bench_graph',
+                             '--echo', str(count)] + ['--raw'] * raw,
                             env=env, stdout=subprocess.PIPE, text=True)
     ctx = Context()
     rclpy.init(context=ctx)
@@ -459,10 +464,10 @@ def rows(quick: bool = False, executor: str | None = None, graph_only: bool = Fa
          figures: dict[str, float] | None = None) -> list[tuple[str, str, str]]:
     """(what, figure, note) rows for BENCHMARKS.md. ``graph_only``: the graph runs alone, without
     the DDS hops, the SingleThreadedExecutor run and the recorder run. ``figures``, if given, gets
-    the numbers the floor rows of :mod:`soft_gripper_sdre.tools.bench` compare: the lockstep and
-    pipelined real-time factors and CPU per period (``lockstep_rtf``, ``pipelined_rtf``,
-    ``lockstep_cpu_us``, ``pipelined_cpu_us``: :func:`mode_rows`) and the raw-CDR hop's one-way
-    p50 [µs] (``hop_p50_us``)."""
+    the numbers the floor rows of :mod:`soft_gripper_sdre.tools.benchmarks.bench` compare: the
+    lockstep and pipelined real-time factors and CPU per period (``lockstep_rtf``,
+    ``pipelined_rtf``, ``lockstep_cpu_us``, ``pipelined_cpu_us``: :func:`mode_rows`) and the raw-CDR
+    hop's one-way p50 [µs] (``hop_p50_us``)."""
     nan = float('nan')
     seconds, real_s = (1.0, 3.0) if quick else (3.0, 20.0)
     runs = mode_runs(seconds, 1 if quick else 3,
@@ -544,8 +549,8 @@ def rows(quick: bool = False, executor: str | None = None, graph_only: bool = Fa
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.bench_graph',
-                                 description=__doc__.split('\n')[0])
+    ap = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.benchmarks.bench_graph',
+                                 description=__doc__.split('\n\n')[0])
     ap.add_argument('--quick', action='store_true', help='shorter runs (smoke test)')
     ap.add_argument('--graph-only', action='store_true',
                     help='only the graph runs: no DDS hops, SingleThreadedExecutor run or '

@@ -1,11 +1,12 @@
 """The spread of the learned model and of the grasp over training seeds and rounding-level changes
 of the training data, with the shipped model placed in it.
 
-    python -m soft_gripper_sdre.tools.seeds --data data/excitation --out runs/seeds --demo
+    python -m soft_gripper_sdre.tools.judging.seeds --data data/excitation --out runs/seeds --demo
         # (make seeds)
-    python -m soft_gripper_sdre.tools.seeds --data DIR --out DIR --seeds 2 --draws 0 --set epochs=3
-        --duration 0.3
-    python -m soft_gripper_sdre.tools.seeds --data DIR --out DIR --ray auto  # on a Ray cluster
+    python -m soft_gripper_sdre.tools.judging.seeds --data DIR --out DIR --seeds 2 --draws 0
+        --set epochs=3 --duration 0.3
+    python -m soft_gripper_sdre.tools.judging.seeds --data DIR --out DIR --ray auto
+        # on a Ray cluster
 
 One model per training seed s (0 … ``--seeds`` − 1, ``train --seed``) and data draw d: draw 0 is the
 data as collected, draw d ≥ 1 the training states and labels times 1 + J·N(0, 1) drawn with seed d
@@ -14,7 +15,7 @@ CPU's kernels do, and nothing else). ``train --seed s --jitter J --jitter-seed d
 model bit for bit. Each model is scored like the shipped one:
 
 * its accuracy: u4 R² X / Y against the simulator's true acceleration, G2 at the origin and the
-  directions of its columns (:mod:`~soft_gripper_sdre.tools.train`'s metrics);
+  directions of its columns (:mod:`~soft_gripper_sdre.tools.learning.train`'s metrics);
 * its tracking: ``make evaluate``'s in-process closed loop (lockstep, 0.05 mm of noise, seed 0),
   free-space RMSE of the grasping fingers on the true tip for each law of ``--laws`` (the default
   ``sdre_ff`` and the paper's ``sdre``) on each trajectory of ``--trajectories``;
@@ -27,8 +28,8 @@ with the data of ``make model`` and its pinned kernels (``make seeds`` sets them
 draw 0 is the shipped one bit for bit.
 
 Training and tracking one model is one job; the jobs run on ``--workers`` processes of this
-machine, or as Ray tasks with ``--ray ADDRESS`` (:mod:`~soft_gripper_sdre.tools.jobs`), with the
-same numbers. The demos need DDS on this machine and run here, after the jobs.
+machine, or as Ray tasks with ``--ray ADDRESS`` (:mod:`~soft_gripper_sdre.tools.judging.jobs`), with
+the same numbers. The demos need DDS on this machine and run here, after the jobs.
 
 Writes ``OUT/<model>/model.pt`` and ``metrics.json`` per model (``seed3``, ``seed3_draw1``),
 ``OUT/seeds.json`` (every number) and ``OUT/seeds.md`` (the tables), and prints the tables.
@@ -49,7 +50,7 @@ import time
 
 import numpy as np
 
-from soft_gripper_sdre.tools import jobs
+from soft_gripper_sdre.tools.judging import jobs
 
 #: the training settings ``--set`` may change (the seed is ``--seeds``', the preset is the default)
 SETTABLE = ('epochs', 'lr', 'batch_size', 'cosine', 'scale', 'weight_decay', 'patience', 'hidden',
@@ -79,7 +80,7 @@ class SweepContext:
     """What every job shares: the labelled data, the training settings, the jitter, the tracking
     runs."""
 
-    data: object                   # tools.train.LabelledData
+    data: object                   # tools.learning.train.LabelledData
     settings: object               # learning.training.TrainSettings
     jitter: float
     laws: tuple[str, ...]
@@ -119,7 +120,7 @@ def tracking_runs(model, laws, trajectories, duration) -> list[dict]:
     """Every law on every trajectory, in-process, as ``make evaluate`` runs them (RunSummary
     dicts)."""
     from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
-    from soft_gripper_sdre.tools.evaluate import run_law
+    from soft_gripper_sdre.tools.judging.evaluate import run_law
     weights = Weights(**DEFAULT_WEIGHTS)
     out = []
     for trajectory in trajectories:
@@ -130,7 +131,8 @@ def tracking_runs(model, laws, trajectories, duration) -> list[dict]:
 
 
 def run_model_job(context: SweepContext, job: ModelJob) -> ModelOutcome:
-    """Train and score one model (a job of :func:`~soft_gripper_sdre.tools.jobs.run_jobs`)."""
+    """Train and score one model (a job of
+    :func:`~soft_gripper_sdre.tools.judging.jobs.run_jobs`)."""
     from soft_gripper_sdre.analysis.training_run import fit
     from soft_gripper_sdre.learning.model import DEFAULT_MODEL, SDCModel, set_torch_threads
     set_torch_threads(1)
@@ -152,8 +154,8 @@ def run_model_job(context: SweepContext, job: ModelJob) -> ModelOutcome:
 
 # -- the demo on the node graph -----------------------------------------------------------------
 def demo_figures(result: dict) -> dict:
-    """``make demo``'s figures of one :func:`~soft_gripper_sdre.tools.demo.run_demo` result: the
-    worst finger of each pair (grasping 0 and 2, opening 1 and 3), measured and true tip."""
+    """``make demo``'s figures of one :func:`~soft_gripper_sdre.tools.graph.demo.run_demo` result:
+    the worst finger of each pair (grasping 0 and 2, opening 1 and 3), measured and true tip."""
     from soft_gripper_sdre.nodes.graph import CUBE_FINGERS
     fingers = list(result['fingers'].values())
     grasping = [fingers[i] for i in CUBE_FINGERS]
@@ -177,7 +179,7 @@ def run_demos(models: dict[str, Path], out: Path, domain_id: int | None,
               progress: bool) -> dict[str, dict]:
     """The grasp demo with each model (name → checkpoint; None: the shipped one), one after the
     other: name → :func:`demo_figures`."""
-    from soft_gripper_sdre.tools.demo import run_demo
+    from soft_gripper_sdre.tools.graph.demo import run_demo
     figures = {}
     for i, (name, path) in enumerate(models.items()):
         if progress:
@@ -369,11 +371,11 @@ def _settings_from(parser, assignments: list[str]):
 
 
 def _parser() -> argparse.ArgumentParser:
-    from soft_gripper_sdre.tools.evaluate import LAW_SPECS, TRAJECTORIES
-    ap = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.seeds',
+    from soft_gripper_sdre.tools.judging.evaluate import LAW_SPECS, TRAJECTORIES
+    ap = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.judging.seeds',
                                  description=__doc__.split('\n\n')[0])
     ap.add_argument('--data', type=Path, default=Path('data/excitation'),
-                    help='directory with the <signal>.npz files of tools.collect '
+                    help='directory with the <signal>.npz files of tools.learning.collect '
                          '(default %(default)s)')
     ap.add_argument('--out', type=Path, default=Path('runs/seeds'),
                     help='output directory (default %(default)s)')
@@ -432,11 +434,11 @@ def parse_args(argv=None):
 
 def main(argv=None) -> int:
     ap, args, settings, runner, records = parse_args(argv)
-    command = 'python -m soft_gripper_sdre.tools.seeds ' + ' '.join(
+    command = 'python -m soft_gripper_sdre.tools.judging.seeds ' + ' '.join(
         shlex.quote(a) for a in (sys.argv[1:] if argv is None else argv))
     from soft_gripper_sdre.learning.labels import label_records
     from soft_gripper_sdre.learning.training import fingerprint
-    from soft_gripper_sdre.tools.procs import pinned_kernels
+    from soft_gripper_sdre.tools.graph.procs import pinned_kernels
     progress = not args.no_progress
     unpinned = pinned_kernels(os.environ)
     if unpinned:

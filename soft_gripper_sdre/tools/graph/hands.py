@@ -1,16 +1,16 @@
 """Several hands on one ROS domain: one grasp graph per namespace, all running at once.
 
-    python -m soft_gripper_sdre.tools.hands --hands left_hand right_hand --duration 6
+    python -m soft_gripper_sdre.tools.graph.hands --hands left_hand right_hand --duration 6
         --out runs/hands
 
 starts, for each hand, the graph of :func:`soft_gripper_sdre.nodes.graph.grasp_graph` in its own
 namespace (five processes: recorder, estimator, trajectory, controller, simulator), with its own
 sim time on ``/<hand>/clock``; runs them together in lockstep for ``--duration`` seconds of sim
 time; stops everything; and writes per hand ``OUT/<hand>/bag`` (rosbag2) and the report of
-:mod:`soft_gripper_sdre.tools.report` (figures and ``metrics.json``), then prints a summary.
+:mod:`soft_gripper_sdre.tools.judging.report` (figures and ``metrics.json``), then prints a summary.
 
 :func:`run_graphs` is the runner underneath, also for one graph spread over several hosts
-(:mod:`soft_gripper_sdre.tools.two_hosts`): a ``place`` function tells, per node, the command
+(:mod:`soft_gripper_sdre.tools.graph.two_hosts`): a ``place`` function tells, per node, the command
 prefix (e.g. ``ip netns exec <host>``) and the environment its process gets.
 """
 from __future__ import annotations
@@ -27,7 +27,7 @@ import time
 from typing import Callable, Sequence
 
 from soft_gripper_sdre.nodes.graph import GraphSpec, NodeSpec, grasp_graph, readiness_problem
-from soft_gripper_sdre.tools.procs import DiagnosticsMonitor, Graph, ros_env
+from soft_gripper_sdre.tools.graph.procs import DiagnosticsMonitor, Graph, ros_env
 
 #: wall time for the graphs to connect before the simulators start [s]
 CONNECT_TIMEOUT = 90.0
@@ -259,8 +259,8 @@ def hand_graphs(hands: Sequence[str], out: Path, duration: float, *, record: boo
 
 
 def _parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.hands',
-                                 description=__doc__.split('\n')[0])
+    ap = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.graph.hands',
+                                 description=__doc__.split('\n\n')[0])
     ap.add_argument('--hands', nargs='+', default=['left_hand', 'right_hand'], metavar='NAMESPACE',
                     help='one namespace per hand (default: %(default)s)')
     ap.add_argument('--out', type=Path, default=Path('runs/hands'),
@@ -276,7 +276,7 @@ def _parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     from soft_gripper_sdre.nodes.graph import normalize_namespace
-    from soft_gripper_sdre.tools.report import report
+    from soft_gripper_sdre.tools.judging.report import report
     ap = _parser()
     a = ap.parse_args(argv)
     try:

@@ -1,6 +1,6 @@
 """Figures 5–7 and tracking metrics of a recorded run.
 
-    python -m soft_gripper_sdre.tools.report BAG --out DIR [--torque-limit 0.1] [--render]
+    python -m soft_gripper_sdre.tools.judging.report BAG --out DIR [--torque-limit 0.1] [--render]
 
 Writes DIR/fig5_positions.png and fig6_velocities.png (the reference against the true tip, from the
 simulator's joint states in the bag; the measured tip where the bag has no joint_states),
@@ -188,7 +188,7 @@ def report(bag_path: str | Path, out_dir: str | Path, torque_limit: float | None
                   title=f'Fig. 6  Tip velocity: desired vs {vel_label.split(" (")[0]} velocity')
     plot_torques(t_u, u, out / FIGURES[2], names, u_max=torque_limit)
     if render and run.joints is not None:
-        from soft_gripper_sdre.tools.render import render_run
+        from soft_gripper_sdre.tools.judging.render import render_run
         metrics['render'] = render_run(bag_path, out, run=run)
     (out / METRICS).write_text(json.dumps(metrics, indent=2) + '\n', encoding='utf-8')
     return metrics
@@ -199,7 +199,7 @@ def _fmt(value: float | None, spec: str, unit: str = '') -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.report',
+    parser = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.judging.report',
                                      description=__doc__.split('\n\n')[0])
     parser.add_argument('bag', type=Path, help='rosbag2 directory of a run')
     parser.add_argument('--out', required=True, type=Path, help='output directory')

@@ -1,7 +1,7 @@
 """The grasp demo: the whole node graph as separate processes, in lockstep (or ``--mode``), \
 recorded and reported.
 
-    python -m soft_gripper_sdre.tools.demo --out runs/demo
+    python -m soft_gripper_sdre.tools.graph.demo --out runs/demo
 
 starts the recorder, the estimator, the controller, the trajectory node and the simulator (each the
 process ``ros2 run soft_gripper_sdre <node>`` would start, with its ``config/<node>.yaml``), runs
@@ -28,12 +28,12 @@ import time
 from soft_gripper_sdre.control.laws import GRAPH_LAWS
 from soft_gripper_sdre.nodes.graph import CUBE_FINGERS, PERIOD_RANGE, finger_parameters, grasp_graph
 from soft_gripper_sdre.sim.lockstep import MODES
-from soft_gripper_sdre.tools.procs import DiagnosticsMonitor, Graph, ros_env
+from soft_gripper_sdre.tools.graph.procs import DiagnosticsMonitor, Graph, ros_env
 
 
 def _parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.demo',
-                                 description=__doc__.split('\n')[0])
+    ap = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.graph.demo',
+                                 description=__doc__.split('\n\n')[0])
     ap.add_argument('--out', type=Path, default=Path('runs/demo'),
                     help='output directory (default %(default)s)')
     ap.add_argument('--duration', type=float, default=6.0,
@@ -85,7 +85,7 @@ def run_demo(out: Path, duration: float, model: Path | None = None, noise: float
     Raises:
         RuntimeError: a node failed or the run did not finish within ``timeout`` (logs are kept).
     """
-    from soft_gripper_sdre.tools.report import report
+    from soft_gripper_sdre.tools.judging.report import report
 
     out = Path(out)
     bag = out / 'bag'
@@ -181,7 +181,7 @@ def _simulator_period(spec) -> float:
     """The control period the graph ``spec`` runs at: its override, else config/simulator.yaml's."""
     import yaml
 
-    from soft_gripper_sdre.tools.procs import default_params_file
+    from soft_gripper_sdre.tools.graph.procs import default_params_file
     node = spec.node('simulator')
     if 'control_period' in node.parameters:
         return node.parameters['control_period']
@@ -192,7 +192,7 @@ def _simulator_period(spec) -> float:
 def _controller_limit() -> float:
     import yaml
 
-    from soft_gripper_sdre.tools.procs import default_params_file
+    from soft_gripper_sdre.tools.graph.procs import default_params_file
     path = default_params_file('controller')
     return float(yaml.safe_load(path.read_text())['/**/controller']['ros__parameters'][
         'torque_limit'])

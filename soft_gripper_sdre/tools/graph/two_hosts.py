@@ -1,7 +1,7 @@
 """The grasp graph across two hosts: the simulator and the recorder on one, the estimator, the
 trajectory node and the controller on the other, joined by one network link.
 
-    sudo python -m soft_gripper_sdre.tools.two_hosts --out runs/two_hosts [--duration 6]
+    sudo python -m soft_gripper_sdre.tools.graph.two_hosts --out runs/two_hosts [--duration 6]
         [--link-fault 0.5]
 
 On one Linux machine the two hosts are two network namespaces joined by a veth pair whose
@@ -42,7 +42,7 @@ import threading
 import time
 
 from soft_gripper_sdre.nodes.graph import GraphSpec, NodeSpec, grasp_graph
-from soft_gripper_sdre.tools.hands import (
+from soft_gripper_sdre.tools.graph.hands import (
     PATIENT_LOCKSTEP,
     GraphRun,
     Placement,
@@ -50,7 +50,7 @@ from soft_gripper_sdre.tools.hands import (
     run_graphs,
     trouble,
 )
-from soft_gripper_sdre.tools.procs import ros_env
+from soft_gripper_sdre.tools.graph.procs import ros_env
 
 SIM_ADDRESS = '10.231.0.1'
 CTL_ADDRESS = '10.231.0.2'
@@ -269,7 +269,8 @@ def run_split(pair: HostPair, out: Path, duration: float, parameters: dict[str, 
     env = pair.env(pair.sim_ns, ros_env())
     with open(out / 'supervisor.log', 'w', encoding='utf-8') as log:
         code = subprocess.run([*pair.exec_prefix(pair.sim_ns), sys.executable, '-m',
-                               'soft_gripper_sdre.tools.two_hosts', '--supervise', str(job_path)],
+                               'soft_gripper_sdre.tools.graph.two_hosts', '--supervise',
+                               str(job_path)],
                               env=env, stdout=log, stderr=subprocess.STDOUT,
                               stdin=subprocess.DEVNULL, timeout=timeout + 180).returncode
     after = pair.traffic()
@@ -324,7 +325,7 @@ def paired_tracking(one: GraphRun, two: GraphRun) -> dict:
 
     from soft_gripper_sdre.analysis.bag import extract_run
     from soft_gripper_sdre.analysis.metrics import tracking_metrics
-    from soft_gripper_sdre.tools.report import hold
+    from soft_gripper_sdre.tools.judging.report import hold
     runs = [extract_run(run.bag) for run in (one, two)]
     common, ia, ib = np.intersect1d(runs[0].tips.t, runs[1].tips.t, return_indices=True)
     u_common, ua, ub = np.intersect1d(runs[0].torques.t, runs[1].torques.t, return_indices=True)
@@ -348,7 +349,7 @@ def paired_tracking(one: GraphRun, two: GraphRun) -> dict:
 def compare(one: GraphRun, two: GraphRun, extra: dict, faulted: tuple[GraphRun, dict] | None,
             out: Path) -> dict:
     """The figures of the three runs side by side (tracking from each bag's report)."""
-    from soft_gripper_sdre.tools.report import report
+    from soft_gripper_sdre.tools.judging.report import report
     fingers = {name: report(run.bag, Path(out) / name)['fingers']
                for name, run in (('one_host', one), ('two_hosts', two))}
     result = {
@@ -421,7 +422,7 @@ def summary(result: dict) -> str:
 
 
 def _parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.two_hosts',
+    ap = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.graph.two_hosts',
                                  description=__doc__.split('\n\n')[0].replace('\n', ' '))
     ap.add_argument('--out', type=Path, default=Path('runs/two_hosts'),
                     help='output directory (default %(default)s)')

@@ -1,7 +1,7 @@
-"""Training from rosbag2 recordings: the ``--bag`` path of ``tools.train``.
+"""Training from rosbag2 recordings: the ``--bag`` path of ``tools.learning.train``.
 
-    python -m soft_gripper_sdre.tools.train --bag runs/bags/train --val-bag runs/bags/val/u4
-        --out runs/train_bags
+    python -m soft_gripper_sdre.tools.learning.train --bag runs/bags/train
+        --val-bag runs/bags/val/u4 --out runs/train_bags
 
 Every ``--bag`` (a rosbag2 directory, or a directory of them) is read and checked first
 (:mod:`soft_gripper_sdre.analysis.bag_dataset`); a bad one ends the tool with exit status 2 and a
@@ -208,7 +208,7 @@ def params_yaml(derived: loop_settings.Derivation, model_path: Path, finger_name
     body = {params_file_key('estimator'): {'ros__parameters': _plain(est)},
             params_file_key('controller'): {'ros__parameters': _plain(ctrl)},
             params_file_key('trajectory'): {'ros__parameters': _plain(plan)}}
-    head = (f'# Estimator and controller settings derived from {source} by tools.train\n'
+    head = (f'# Estimator and controller settings derived from {source} by tools.learning.train\n'
             f'# (closed-loop bandwidth {d.bandwidth_hz:g} Hz), and the move they were checked on:\n'
             f'# {1e3 * derived.facts.travel:.3g} mm at {derived.facts.direction:.0f}° from +X '
             'toward +Y (trajectory: close_distance, side_distance;\n'

@@ -1,15 +1,16 @@
 """Benchmarks: the control core's costs, the simulator, the closed loop in-process and as a graph.
 
-    python -m soft_gripper_sdre.tools.bench [--write BENCHMARKS.md] [--quick] [--floor REPEATS]
+    python -m soft_gripper_sdre.tools.benchmarks.bench [--write BENCHMARKS.md] [--quick]
+        [--floor REPEATS]
 
 Prints a table of (what, figure, note) rows; ``--write`` also renders it as Markdown with the
 machine facts and the command. Every figure is a median over repeated timings; where two paths
 compete (the compiled controller vs the scipy reference) they are timed interleaved in the same
 run and their ratio is reported, since the machine is shared and absolute numbers drift. The
 start-up rows time numba's compilation from an empty cache and the graph's start-up on a filled one.
-The node-graph rows come from :mod:`soft_gripper_sdre.tools.bench_graph` when it is installed
-(``rows(quick) -> [(what, figure, note)]``). ``--floor REPEATS`` measures only what the floor rows
-compare (:func:`floor_table`): a few minutes instead of the whole table's hour.
+The node-graph rows come from :mod:`soft_gripper_sdre.tools.benchmarks.bench_graph` when it is
+installed (``rows(quick) -> [(what, figure, note)]``). ``--floor REPEATS`` measures only what the
+floor rows compare (:func:`floor_table`): a few minutes instead of the whole table's hour.
 """
 from __future__ import annotations
 
@@ -191,7 +192,7 @@ def graph_startup(timeout: float = 120.0) -> float:
     from sensor_msgs.msg import JointState
 
     from soft_gripper_sdre.nodes.topics import LOOP_QOS, TORQUE_COMMANDS
-    from soft_gripper_sdre.tools.procs import Graph, ros_env
+    from soft_gripper_sdre.tools.graph.procs import Graph, ros_env
     env = ros_env()
     os.environ.update({k: env[k] for k in ('ROS_DOMAIN_ID', 'ROS_AUTOMATIC_DISCOVERY_RANGE')})
     first: list[float] = []
@@ -253,7 +254,7 @@ def bench_idle(loop, law: str = 'sdre_ff') -> dict[str, float]:
 
 def bench_collect(seconds: float) -> float:
     """Real-time factor of collecting one excitation signal (finger scene, settle included)."""
-    from soft_gripper_sdre.tools.collect import collect_signal
+    from soft_gripper_sdre.tools.learning.collect import collect_signal
     t0 = time.perf_counter()
     collect_signal('u1', duration=seconds)
     return seconds / (time.perf_counter() - t0)
@@ -261,14 +262,14 @@ def bench_collect(seconds: float) -> float:
 
 def graph_rows(quick: bool, figures: dict[str, float] | None = None) -> list[Row]:
     """The node-graph rows, if the graph benchmark module is installed (``figures``: see
-    :func:`soft_gripper_sdre.tools.bench_graph.rows`)."""
+    :func:`soft_gripper_sdre.tools.benchmarks.bench_graph.rows`)."""
     try:
-        module = importlib.import_module('soft_gripper_sdre.tools.bench_graph')
+        module = importlib.import_module('soft_gripper_sdre.tools.benchmarks.bench_graph')
     except ModuleNotFoundError as exc:
-        if exc.name != 'soft_gripper_sdre.tools.bench_graph':
+        if exc.name != 'soft_gripper_sdre.tools.benchmarks.bench_graph':
             raise
         return [('node graph', 'not measured',
-                 '`soft_gripper_sdre.tools.bench_graph` is not installed')]
+                 '`soft_gripper_sdre.tools.benchmarks.bench_graph` is not installed')]
     return list(module.rows(quick, figures=figures))
 
 
@@ -277,7 +278,7 @@ def floor_rows(hand: float, hop_us: float, kf: float, control: float,
     """Each mode of the graph against its floor, from figures of this run: the physics of a period
     ``hand`` [s], one DDS hop one way ``hop_us`` [µs], the KF and controller compute ``kf``,
     ``control`` [s], and the graph runs' ``figures``
-    (:func:`soft_gripper_sdre.tools.bench_graph.mode_rows`).
+    (:func:`soft_gripper_sdre.tools.benchmarks.bench_graph.mode_rows`).
 
     In strict lockstep nothing overlaps, so a period can be no shorter than the sum of the
     physics, the three hops and the compute. Pipelined, the physics of one period runs while the
@@ -326,7 +327,7 @@ def floor_table(quick: bool, repeats: int) -> list[Row]:
     in pipelined mode and pipelined with the estimator and the controller in one process, taking
     turns ``repeats`` times, each row with the load it ran under."""
     from soft_gripper_sdre.analysis.closed_loop import default_grasp
-    from soft_gripper_sdre.tools.bench_graph import hop, mode_rows, mode_runs
+    from soft_gripper_sdre.tools.benchmarks.bench_graph import hop, mode_rows, mode_runs
     us = lambda s: f'{s * 1e6:.0f} µs'          # noqa: E731
     load = lambda: f'load average {os.getloadavg()[0]:.1f}'    # noqa: E731
     hand = bench_sim('hand', 0.5 if quick else 2.0, 5)
@@ -350,8 +351,8 @@ def floor_table(quick: bool, repeats: int) -> list[Row]:
 
 
 def deploy_rows(quick: bool) -> list[Row]:
-    """The deployment loop's rows (:mod:`soft_gripper_sdre.tools.bench_deploy`)."""
-    from soft_gripper_sdre.tools.bench_deploy import rows as deploy
+    """The deployment loop's rows (:mod:`soft_gripper_sdre.tools.benchmarks.bench_deploy`)."""
+    from soft_gripper_sdre.tools.benchmarks.bench_deploy import rows as deploy
     return deploy(quick)
 
 
@@ -448,7 +449,7 @@ def markdown(table: list[Row], quick: bool) -> str:
     load = os.getloadavg()[0]
     lines = ['# Benchmarks', '',
              'Reproduce: `make bench` '
-             '(= `python -m soft_gripper_sdre.tools.bench --write BENCHMARKS.md`).',
+             '(= `python -m soft_gripper_sdre.tools.benchmarks.bench --write BENCHMARKS.md`).',
              f'Measured {time.strftime("%Y-%m-%d")} on {platform.machine()}, {os.cpu_count()} '
              f'cores, Python {platform.python_version()}, a shared machine (other jobs running; '
              f'load average {load:.1f} at the end of the run)'
@@ -467,8 +468,8 @@ def markdown(table: list[Row], quick: bool) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.bench',
-                                 description=__doc__.split('\n')[0])
+    ap = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.benchmarks.bench',
+                                 description=__doc__.split('\n\n')[0])
     ap.add_argument('--write', type=Path, default=None,
                     help='also write the results as Markdown here')
     ap.add_argument('--quick', action='store_true', help='shorter runs (smoke test)')

@@ -1,14 +1,15 @@
 """Fit the Koopman baseline (EDMD with inputs) to the excitation data the SDC model learns from.
 
-    python -m soft_gripper_sdre.tools.koopman --data data/excitation --out runs/koopman [--install]
+    python -m soft_gripper_sdre.tools.learning.koopman --data data/excitation --out runs/koopman
+        [--install]
 
 Training records u1, u2, u3, x1, x2 (the shipped SDC model's), validation u4; states and labels
-are the same KF + RTS estimates from the measured tips that tools.train uses. Writes
+are the same KF + RTS estimates from the measured tips that tools.learning.train uses. Writes
 OUT/koopman.npz and OUT/metrics.json; ``--install`` copies the model into the package as the
 shipped one (:data:`~soft_gripper_sdre.learning.koopman.DEFAULT_KOOPMAN`). Deterministic.
 
-The u4 R² is scored as :func:`soft_gripper_sdre.tools.evaluate.score_model` scores the SDC model:
-the predicted mean acceleration over a period at the simulator's true state, against the
+The u4 R² is scored as :func:`soft_gripper_sdre.tools.judging.evaluate.score_model` scores the SDC
+model: the predicted mean acceleration over a period at the simulator's true state, against the
 simulator's, at every 10th step of the first 4 s (399 states). ``--compare-sdc`` also scores the
 shipped SDC model both ways (score_model itself, and on the record) to show they agree.
 """
@@ -37,7 +38,7 @@ SCORE_EVERY, SCORE_SECONDS = 10, 4.0
 
 
 def score_rows(dt: float) -> np.ndarray:
-    """The record rows :func:`~soft_gripper_sdre.tools.evaluate.score_model` samples."""
+    """The record rows :func:`~soft_gripper_sdre.tools.judging.evaluate.score_model` samples."""
     return np.arange(SCORE_EVERY, int(round(SCORE_SECONDS / dt)), SCORE_EVERY)
 
 
@@ -47,7 +48,7 @@ def true_series(path: Path) -> dict[str, np.ndarray]:
         missing = {'tip_true', 'vel_true', 'acc_true'} - set(f.files)
         if missing:
             raise DatasetError(f'{path}: has no simulator truth ({sorted(missing)}); collect it '
-                               'with tools.collect')
+                               'with tools.learning.collect')
         rest = f['rest_tip'][:2]
         return dict(pos=f['tip_true'][:, :2] - rest, vel=f['vel_true'][:, :2],
                     acc=f['acc_true'][:, :2], u=f['u'], dt=float(f['dt']))
@@ -71,7 +72,7 @@ def sdc_r2(sdc, truth: dict) -> list[float]:
 def fit_from_directory(data: Path, settings: KoopmanSettings = KoopmanSettings(),
                        names: tuple[str, ...] = DATA_VARIANTS['identifying']
                        ) -> tuple[KoopmanModel, dict]:
-    """Fit on ``names`` in ``data`` (KF + RTS states as tools.train) and score on u4:
+    """Fit on ``names`` in ``data`` (KF + RTS states as tools.learning.train) and score on u4:
     (model, metrics).
 
     Raises:
@@ -102,7 +103,7 @@ def fit_from_directory(data: Path, settings: KoopmanSettings = KoopmanSettings()
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.koopman',
+    ap = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.learning.koopman',
                                  description=__doc__.split('\n\n')[0])
     ap.add_argument('--data', required=True, type=Path, help='directory with <signal>.npz files')
     ap.add_argument('--out', required=True, type=Path, help='output directory')
@@ -131,7 +132,7 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f'cannot create output directory {args.out}: {exc.strerror}')
     if args.compare_sdc:
         from soft_gripper_sdre.learning.model import SDCModel
-        from soft_gripper_sdre.tools.evaluate import score_model
+        from soft_gripper_sdre.tools.judging.evaluate import score_model
         sdc = SDCModel()
         metrics['sdc_u4_r2_true_on_record'] = sdc_r2(sdc,
                                                      true_series(args.data / f'{VALIDATION}.npz'))

@@ -1,10 +1,11 @@
 """A CPU hog for the realtime graph benchmark, and the figures of the run around it.
 
 :class:`CpuHog` starts one busy process per core once the simulator's sim time reaches a given
-instant (polled with the benchmark's :class:`~soft_gripper_sdre.tools.procs.DiagnosticsMonitor`);
-:func:`phase_figures` splits the simulator's successive /diagnostics into the windows before,
-during and after it, and sums each phase's lateness and loop latency. Used by
-:func:`soft_gripper_sdre.tools.bench_graph.hog_run` and its test.
+instant (polled with the benchmark's
+:class:`~soft_gripper_sdre.tools.graph.procs.DiagnosticsMonitor`); :func:`phase_figures` splits the
+simulator's successive /diagnostics into the windows before, during and after it, and sums each
+phase's lateness and loop latency. Used by
+:func:`soft_gripper_sdre.tools.benchmarks.bench_graph.hog_run` and its test.
 """
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """Print the messages or the rate of one topic of the graph (``ros2 topic echo`` / ``hz`` for pip).
 
-    python -m soft_gripper_sdre.tools.echo TOPIC [--rate] [--once | --count N] [--timeout SEC]
+    python -m soft_gripper_sdre.tools.graph.echo TOPIC [--rate] [--once | --count N] [--timeout SEC]
 
 The message type and QoS come from the topic table (nodes/topics.py), so only the graph's topics
 are known. Messages print as YAML documents separated by ``---``; with ``--rate`` the average rate

@@ -1,0 +1,1 @@
+"""Tools that measure speed: the benchmarks behind BENCHMARKS.md."""

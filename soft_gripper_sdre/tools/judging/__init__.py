@@ -1,0 +1,1 @@
+"""Tools that judge results: law comparisons, robustness, sweeps, reports of recorded runs."""

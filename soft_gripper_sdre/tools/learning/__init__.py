@@ -1,0 +1,1 @@
+"""Tools that make data and models: excitation records, training, the Koopman baseline."""
