@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from scipy.linalg import solve_continuous_are
 
+from soft_gripper_sdre.analysis import data_facts as df
 from soft_gripper_sdre.analysis import loop_settings as ls
 from soft_gripper_sdre.analysis import model_fitness as mf
 from soft_gripper_sdre.control.laws import make_law
@@ -114,7 +115,7 @@ def test_the_estimator_intensity_is_picked_by_likelihood():
     vel = np.cumsum(rng.normal(0, math.sqrt(q * dt), (3000, 2)), axis=0)
     pos = np.cumsum(vel * dt, axis=0) + rng.normal(0, sigma, (3000, 2))
     t = np.arange(3000) * dt
-    assert ls.tune_accel_psd(t, pos, sigma, np.logspace(-1, 3, 5)) == pytest.approx(q)
+    assert df.tune_accel_psd(t, pos, sigma, np.logspace(-1, 3, 5)) == pytest.approx(q)
 
 
 @pytest.fixture(scope='module')
@@ -166,13 +167,13 @@ def test_the_closing_direction_is_where_the_data_moved_most():
     tips = u @ model.g2.T / model.k                            # held still: k p = G₂ u
     axis = np.linalg.svd(model.g2)[0][:, 0]
     expected = math.degrees(math.atan2(abs(axis[1]), -abs(axis[0])))     # −X, +Y quadrant
-    assert ls.closing_direction(tips) == pytest.approx(expected, abs=0.5)
-    assert ls.closing_direction(-tips) == pytest.approx(expected, abs=0.5)
-    facts = ls.data_facts(tips, u, 5e-3, 5e-5, [(np.arange(100) * 5e-3, tips[:100])])
-    assert facts.direction == ls.closing_direction(tips)
-    along = tips @ ls.unit_vector(facts.direction)
-    assert facts.travel == pytest.approx(ls.TRAVEL_SHARE
-                                         * np.percentile(along, ls.REACH_PERCENTILE))
+    assert df.closing_direction(tips) == pytest.approx(expected, abs=0.5)
+    assert df.closing_direction(-tips) == pytest.approx(expected, abs=0.5)
+    facts = df.data_facts(tips, u, 5e-3, 5e-5, [(np.arange(100) * 5e-3, tips[:100])])
+    assert facts.direction == df.closing_direction(tips)
+    along = tips @ df.unit_vector(facts.direction)
+    assert facts.travel == pytest.approx(df.TRAVEL_SHARE
+                                         * np.percentile(along, df.REACH_PERCENTILE))
     close, side = facts.move()
     assert close > 0 and side < 0 and math.hypot(close, side) == pytest.approx(facts.travel)
     traj = ls.check_move(facts)

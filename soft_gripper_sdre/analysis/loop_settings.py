@@ -11,7 +11,7 @@ control_period     the median tip period of the recordings
 meas_std           the measurement noise σ of the settle phase
 accel_psd          the estimator's white-acceleration intensity, picked in the check
                    among fractions of the value that best explains the recorded tips
-torque_limit       :data:`TORQUE_MARGIN` × the largest torque of the excitation
+torque_limit       ``data_facts.TORQUE_MARGIN`` × the largest torque of the excitation
 q_pos, r           a closed-loop bandwidth f_c through the learned input map at rest:
                    for ẍ ≈ G₂u, LQR places each direction i at ω_i = (q_pos s_i² / r)^¼
                    (s_i the singular values of G₂(0)), so with r = 1/u_max² the weights
@@ -44,13 +44,14 @@ of these runs; the lowest score wins, and then the next lower bandwidth when it 
 :data:`PREFER_SLOWER` of it, for margin against what the model does not know.
 
 The move goes along the direction the finger moved most in the identification data (the
-principal axis of its tips about the rest pose, turned toward +Y: :func:`closing_direction`), the
-way it bends when driven. Two inputs whose tip directions are close (12–13° on both foreign
-fingers) move the tip across that axis only with opposing torques, far larger than the
-excitation's: a move along pure +Y, 35–50° off the axis on those fingers, is out of the
-limit's range beyond a fraction of a millimetre, and a check along it measures saturation, not the
-settings. The move's travel is the smaller of :data:`TRAVEL_SHARE` of the data's reach along the
-direction and the largest displacement the learned model holds still there with
+principal axis of its tips about the rest pose, turned toward +Y:
+:func:`~soft_gripper_sdre.analysis.data_facts.closing_direction`), the way it bends when driven.
+Two inputs whose tip directions are close (12–13° on both foreign fingers) move the tip across
+that axis only with opposing torques, far larger than the excitation's: a move along pure +Y,
+35–50° off the axis on those fingers, is out of the limit's range beyond a fraction of a
+millimetre, and a check along it measures saturation, not the settings. The move's travel is the
+smaller of ``data_facts.TRAVEL_SHARE`` of the data's reach along the direction and the largest
+displacement the learned model holds still there with
 :data:`HOLD_SHARE` of the torque limit (:func:`holdable_travel`: at rest the model needs
 u = −G₂(x)⁻¹ (A(x)x)₂). When no candidate passes along it, the search is made again along
 :data:`TRAVEL_SHRINK` of it: near the edge of its data a learned model can hold still yet snap
@@ -73,8 +74,9 @@ import math
 import numpy as np
 
 from soft_gripper_sdre.analysis import model_fitness
+from soft_gripper_sdre.analysis.data_facts import DataFacts
 from soft_gripper_sdre.analysis.model_fitness import rk4_step
-from soft_gripper_sdre.control.kf import ConstantVelocityKF, cv_matrices
+from soft_gripper_sdre.control.kf import ConstantVelocityKF
 from soft_gripper_sdre.control.laws import make_law
 from soft_gripper_sdre.control.riccati import sdre_gains
 from soft_gripper_sdre.control.tracking import Weights
@@ -99,10 +101,6 @@ GAIN_ERRORS = (0.5, 2.0)
 KEEP_NOMINAL = 0.05
 KEEP_ROBUST = 0.5
 PREFER_SLOWER = 1.5
-#: the check's move: along the data's principal direction by a share of the data's reach that way
-#: (the 99th percentile of the tips projected on it), on the trajectory node's default timing
-TRAVEL_SHARE = 0.5
-REACH_PERCENTILE = 99.0
 #: the check's move holds still with at most this share of the torque limit (the rest is the
 #: feedback's), and is at least this many σ of measurement noise
 HOLD_SHARE = 0.5
@@ -112,8 +110,6 @@ MIN_TRAVEL_NOISE = 10.0
 TRAVEL_SHRINK = 0.5
 #: displacements tried for the holdable travel, as shares of the reach's travel
 HOLD_GRID = 40
-#: the torque limit is this many times the largest torque of the excitation
-TORQUE_MARGIN = 2.0
 CHECK_PROFILE = dict(t_start=0.5, t_close=2.0, t_hold=1.0, t_open=2.0)
 #: where the derived sdre_ff evaluates the model for its feedforward (module doc)
 FEEDFORWARD_AT = 'ref'
@@ -121,37 +117,6 @@ FEEDFORWARD_AT = 'ref'
 MAX_STEP = 2.5e-3
 #: the share of the travel the paper's law is asked to reach (:func:`paper_law_bandwidth`)
 PAPER_LAW_SHARE = 0.1
-
-
-def unit_vector(degrees: float) -> np.ndarray:
-    """(cos, sin) of an angle from +X toward +Y [deg]."""
-    a = math.radians(degrees)
-    return np.array([math.cos(a), math.sin(a)])
-
-
-@dataclass(frozen=True)
-class DataFacts:
-    """What the recordings say about the finger (SI)."""
-
-    period: float                 # median tip period [s]
-    noise_std: float              # measurement σ [m]
-    travel: float                 # length of the move the check makes along ``direction`` [m]
-    torque_limit: float           # the loop's torque limit [N·m]
-    accel_psd_ml: float           # the CV model's likelihood-best intensity [(m/s²)²/Hz]
-    # TRAVEL_SHARE of the data's reach that way [m] (None: travel)
-    reach_travel: float | None = None
-    direction: float = 90.0       # of the move, from +X toward +Y [deg] (90: closing along +Y)
-
-    @property
-    def unit(self) -> np.ndarray:
-        """The move's direction as a unit vector (X, Y)."""
-        return unit_vector(self.direction)
-
-    def move(self) -> tuple[float, float]:
-        """The move as the trajectory node's ``(close_distance, side_distance)`` [m]: its Y and X
-        parts."""
-        x, y = self.travel * self.unit
-        return float(y), float(x)
 
 
 @dataclass(frozen=True)
@@ -440,62 +405,3 @@ def _search(model, facts: DataFacts, bandwidths: tuple[float, ...], rows: list[d
             if row['robust_ok']:
                 kept.append((row['score'], hz, cand))
     return kept
-
-
-# -- what the data say -----------------------------------------------------------------------
-
-def cv_loglik(t: np.ndarray, pos: np.ndarray, accel_psd: float, meas_std: float) -> float:
-    """Innovation log-likelihood of tips ``pos`` (N, 2) at times ``t`` under the estimator's
-    constant-velocity model (each axis on its own)."""
-    R = meas_std ** 2
-    ll = 0.0
-    for axis in range(pos.shape[1]):
-        x = np.array([pos[0, axis], 0.0])
-        P = np.diag([R, 1.0])
-        for k in range(1, len(t)):
-            F, Q = cv_matrices(t[k] - t[k - 1], accel_psd)
-            F, Q = F[np.ix_([0, 2], [0, 2])], Q[np.ix_([0, 2], [0, 2])]
-            x = F @ x
-            P = F @ P @ F.T + Q
-            S = P[0, 0] + R
-            v = pos[k, axis] - x[0]
-            ll -= 0.5 * (math.log(2 * math.pi * S) + v * v / S)
-            K = P[:, 0] / S
-            x = x + K * v
-            P = P - np.outer(K, P[0, :])
-    return ll
-
-
-def tune_accel_psd(t: np.ndarray, pos: np.ndarray, meas_std: float,
-                   grid: np.ndarray | None = None) -> float:
-    """The estimator's intensity that best explains the tips (:func:`cv_loglik` on a log grid)."""
-    grid = np.logspace(-3, 5, 17) if grid is None else grid
-    sigma = max(meas_std, 1e-7)
-    return float(max(grid, key=lambda q: cv_loglik(t, pos, q, sigma)))
-
-
-def closing_direction(positions: np.ndarray) -> float:
-    """The direction [deg from +X toward +Y, in [0, 180)] the tips ``positions`` (N, 2), as
-    displacements from the rest pose, moved most: the principal axis of their second moment about
-    the rest, turned toward +Y (the closing side; toward +X when it lies along X)."""
-    p = np.asarray(positions, dtype=float)
-    _, vecs = np.linalg.eigh(p.T @ p)
-    x, y = vecs[:, -1]
-    if y < 0 or (y == 0 and x < 0):
-        x, y = -x, -y
-    return float(math.degrees(math.atan2(y, x)))
-
-
-def data_facts(positions: np.ndarray, torques: np.ndarray, period: float, noise_std: float,
-               tune: list[tuple[np.ndarray, np.ndarray]]) -> DataFacts:
-    """:class:`DataFacts` from the training samples: translated positions (N, 2), held torques
-    (N, 2), the tip period, the measured σ, and (t, tips) of stretches to tune the estimator on
-    (the largest intensity any of them asks for: the loop must follow the fastest motion)."""
-    direction = closing_direction(positions)
-    along = positions @ unit_vector(direction)
-    travel = TRAVEL_SHARE * max(float(np.percentile(along, REACH_PERCENTILE)), 0.0)
-    limit = TORQUE_MARGIN * float(np.percentile(np.abs(torques).max(axis=1), 99.9))
-    psd = max(tune_accel_psd(t, tips, noise_std) for t, tips in tune)
-    return DataFacts(period=float(period), noise_std=float(noise_std), travel=float(travel),
-                     torque_limit=limit, accel_psd_ml=psd, reach_travel=float(travel),
-                     direction=direction)

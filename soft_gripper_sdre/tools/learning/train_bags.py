@@ -39,6 +39,7 @@ from soft_gripper_sdre.analysis.bag_dataset import (
     settle_noise,
     tip_stretches,
 )
+from soft_gripper_sdre.analysis.data_facts import data_facts
 from soft_gripper_sdre.learning import derivatives
 from soft_gripper_sdre.learning.training import (
     Run,
@@ -267,7 +268,7 @@ def train_from_bags(train_paths: list[Path], val_paths: list[Path], out: Path,
         fitness = model_fitness.judge(model, validation_segments(val_samples))
         derived = None
         if fitness.fit:
-            facts = loop_settings.data_facts(x[:, :2], u, dt, noise,
+            facts = data_facts(x[:, :2], u, dt, noise,
                                              [tuning_stretch(rec, f[0]) for rec, f in train_set])
             derived = loop_settings.derive(model, facts, progress=lambda text: print(
                 f'  closed-loop check on the model: {text}', flush=True))
