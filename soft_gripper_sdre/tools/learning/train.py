@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 from dataclasses import replace
-import json
 import logging
 from pathlib import Path
 import shutil
@@ -34,10 +33,10 @@ from soft_gripper_sdre.analysis.training_run import fit
 from soft_gripper_sdre.learning.dataset import DatasetError, load_records
 from soft_gripper_sdre.learning.labels import DATA_VARIANTS, VALIDATION, label_records
 from soft_gripper_sdre.learning.model import DEFAULT_MODEL, set_torch_threads
-from soft_gripper_sdre.learning.training import PRESETS
+from soft_gripper_sdre.learning.training import PRESETS, TrainSettings
 
 
-def main(argv: list[str] | None = None) -> int:
+def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.learning.train',
                                      description=__doc__.split('\n\n')[0])
     parser.add_argument('--data', type=Path,
@@ -91,17 +90,36 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--install', action='store_true',
                         help=f'copy the checkpoint to the package as the shipped model '
                              f'({DEFAULT_MODEL.name})')
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = _parser()
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format='%(levelname)s %(message)s')
     set_torch_threads(1)
+    settings = _settings(parser, args)
+    if args.bag or args.val_bag:
+        _main_bags(parser, args, settings)
+    else:
+        _main_data(parser, args, settings)
+    if args.install:
+        DEFAULT_MODEL.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(args.out / 'model.pt', DEFAULT_MODEL)
+        shutil.copyfile(args.out / 'metrics.json', DEFAULT_MODEL.with_suffix('.json'))
+        print(f'installed as {DEFAULT_MODEL}')
+    return 0
 
+
+def _settings(parser: argparse.ArgumentParser, args: argparse.Namespace) -> TrainSettings:
+    """The preset with the command line's overrides (``args.preset`` set to the one used)."""
     bags = bool(args.bag or args.val_bag)
     args.preset = args.preset or ('gripper' if bags else 'default')
     settings = replace(PRESETS[args.preset], seed=args.seed)
     if args.rollout_epochs is not None:
         if not bags or args.rollout_epochs < 0:
             parser.error('--rollout-epochs takes an int >= 0 and needs --bag (the '
-                                 'simulation stage trains on contiguous records)')
+                         'simulation stage trains on contiguous records)')
         settings = replace(settings, rollout_epochs=args.rollout_epochs)
     elif settings.rollout_epochs and not bags:
         parser.error(f'the {args.preset} preset trains on contiguous records: give --bag')
@@ -121,8 +139,12 @@ def main(argv: list[str] | None = None) -> int:
             settings = replace(settings, sv_penalty=args.sv_penalty, sv_floor=args.sv_floor)
         except ValueError as exc:
             parser.error(f'--sv-penalty/--sv-floor: {exc}')
-    if args.bag or args.val_bag:
-        return _main_bags(parser, args, settings)
+    return settings
+
+
+def _main_data(parser: argparse.ArgumentParser, args: argparse.Namespace,
+               settings: TrainSettings) -> None:
+    """The ``--data`` path: the records read and labelled, the model trained and written."""
     if args.data is None:
         parser.error('give --data DIR (.npz files) or --bag DIR ... --val-bag DIR (rosbag2)')
     variant = args.variant or ('paper' if args.preset == 'paper' else 'identifying')
@@ -153,18 +175,12 @@ def main(argv: list[str] | None = None) -> int:
             loss_title=f'Training loss, {args.preset} preset ({variant} data)',
             accel_file='fig3_accel_u4.png',
             accel_title=f'u4 validation, {args.preset} preset: predicted (dashed) vs true (solid)')
-    ckpt_path = args.out / 'model.pt'
     print('\n'.join(scores.lines('u4 R² vs true acceleration')))
     print(f'training: {len(result.train_loss)} epochs in {result.seconds:.1f} s; wrote {args.out}')
-    if args.install:
-        DEFAULT_MODEL.parent.mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(ckpt_path, DEFAULT_MODEL)
-        DEFAULT_MODEL.with_suffix('.json').write_text(json.dumps(metrics, indent=2))
-        print(f'installed as {DEFAULT_MODEL}')
-    return 0
 
 
-def _main_bags(parser: argparse.ArgumentParser, args: argparse.Namespace, settings) -> int:
+def _main_bags(parser: argparse.ArgumentParser, args: argparse.Namespace,
+               settings: TrainSettings) -> None:
     """The ``--bag`` path: arguments checked, then
     :func:`~soft_gripper_sdre.tools.learning.train_bags.train_from_bags`."""
     from soft_gripper_sdre.analysis.bag_dataset import BagDataError
@@ -196,12 +212,6 @@ def _main_bags(parser: argparse.ArgumentParser, args: argparse.Namespace, settin
                         finger=args.finger, meas_std=args.meas_std, jerk_psd=args.jerk_psd)
     except BagDataError as exc:
         parser.error(str(exc))
-    if args.install:
-        DEFAULT_MODEL.parent.mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(args.out / 'model.pt', DEFAULT_MODEL)
-        shutil.copyfile(args.out / 'metrics.json', DEFAULT_MODEL.with_suffix('.json'))
-        print(f'installed as {DEFAULT_MODEL}')
-    return 0
 
 
 if __name__ == '__main__':
