@@ -132,3 +132,16 @@ def test_tiny_training_run_writes_model_metrics_and_figures(tmp_path, data_dir):
     for name in ('fig2_loss.png', 'fig3_accel_u4.png'):
         raw = (out / name).read_bytes()
         assert raw.startswith(PNG_MAGIC) and len(raw) > 10_000, name
+
+
+def test_install_copies_the_written_checkpoint_and_its_metrics(data_dir, tmp_path, monkeypatch):
+    """``--install`` puts the run's model.pt and metrics.json where the package's shipped model
+    lives (here a temporary stand-in for it), byte for byte."""
+    from soft_gripper_sdre.tools.learning import train
+    shipped = tmp_path / 'models' / 'default.pt'
+    monkeypatch.setattr(train, 'DEFAULT_MODEL', shipped)
+    out = tmp_path / 'run'
+    assert main(['--data', str(data_dir), '--out', str(out), '--epochs', '1', '--install']) == 0
+    assert shipped.read_bytes() == (out / 'model.pt').read_bytes()
+    assert shipped.with_suffix('.json').read_text() == (out / 'metrics.json').read_text()
+    assert json.loads(shipped.with_suffix('.json').read_text())['epochs_run'] == 1
