@@ -4,12 +4,12 @@ import pytest
 from soft_gripper_sdre.tools.benchmarks.bench_graph import (
     SIM_TOPICS,
     hog_run,
-    hop,
     mode_rows,
     recorder_loss,
     run_graph,
 )
 from soft_gripper_sdre.tools.benchmarks.bench_hog import PHASES
+from soft_gripper_sdre.tools.benchmarks.hop import hop
 
 pytestmark = pytest.mark.ros
 

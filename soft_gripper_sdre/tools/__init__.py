@@ -8,7 +8,7 @@
   the seed sweep, the weight sweep, the input matrix, reports and figures of a recorded run, and
   the job runner the sweeps share;
 * :mod:`~soft_gripper_sdre.tools.benchmarks` — how fast: ``make bench`` and its graph, deployment
-  and CPU-hog parts.
+  and CPU-hog parts, one DDS hop.
 
 ``params_doc`` (the parameter reference in docs/) stays here.
 """

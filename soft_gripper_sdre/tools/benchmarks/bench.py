@@ -327,7 +327,8 @@ def floor_table(quick: bool, repeats: int) -> list[Row]:
     in pipelined mode and pipelined with the estimator and the controller in one process, taking
     turns ``repeats`` times, each row with the load it ran under."""
     from soft_gripper_sdre.analysis.closed_loop import default_grasp
-    from soft_gripper_sdre.tools.benchmarks.bench_graph import hop, mode_rows, mode_runs
+    from soft_gripper_sdre.tools.benchmarks.bench_graph import mode_rows, mode_runs
+    from soft_gripper_sdre.tools.benchmarks.hop import hop
     us = lambda s: f'{s * 1e6:.0f} µs'          # noqa: E731
     load = lambda: f'load average {os.getloadavg()[0]:.1f}'    # noqa: E731
     hand = bench_sim('hand', 0.5 if quick else 2.0, 5)

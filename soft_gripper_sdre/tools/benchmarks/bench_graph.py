@@ -37,6 +37,7 @@ import time
 
 from soft_gripper_sdre.nodes.graph import GraphSpec, grasp_graph
 from soft_gripper_sdre.tools.benchmarks.bench_hog import PHASES, SETTLE_S, CpuHog, phase_figures
+from soft_gripper_sdre.tools.benchmarks.hop import hop
 from soft_gripper_sdre.tools.graph.procs import (
     WIRED_BEFORE_START,
     DiagnosticsMonitor,
@@ -45,8 +46,6 @@ from soft_gripper_sdre.tools.graph.procs import (
 )
 
 LOOP_NODES = ('estimator', 'trajectory', 'controller')
-#: a ping-pong round unanswered this long [s] sends its ping again (see :func:`hop`)
-RESEND_S = 1.0
 #: topics the simulator publishes once per step when state_rate and clock_rate are 1 kHz
 #: (and at t = 0)
 SIM_TOPICS = ('/clock', '/tip_positions', '/joint_states', '/cube_pose', '/cube_contacts')
@@ -246,151 +245,6 @@ def recorder_loss(seconds: float, executor: str | None = None,
     return {t: (n, counts.get(t, 0)) for t, n in published(d).items()}
 
 
-def _echo(count: int, raw: bool = False) -> int:
-    """The far end of :func:`hop`: answer the tip messages stamped 0 … ``count - 1`` on
-    ``bench_pong``, print the CPU seconds this process spent per message, and go when the pinging
-    side says so with a ping stamped ``count``. ``raw``: receive the CDR bytes, decode and encode
-    them as the loop nodes do (nodes/cdr.py); otherwise republish the message rclpy built."""
-    from geometry_msgs.msg import PoseArray
-    import rclpy
-    from rclpy.node import Node
-
-    from soft_gripper_sdre.nodes import cdr
-    from soft_gripper_sdre.nodes import conversions as cv
-    from soft_gripper_sdre.nodes.common import make_executor
-    from soft_gripper_sdre.nodes.topics import LOOP_QOS
-    codec = cdr.tips_codec(4) if raw else None     # learned before any DDS entity exists
-    rclpy.init()
-    node = Node('bench_echo')
-    pub = node.create_publisher(PoseArray, 'bench_pong', LOOP_QOS)
-    seen = {'n': 0, 'cpu': [0.0, 0.0], 'last': -1}
-
-    def on_ping(msg) -> None:
-        if raw:
-            stamp, tips = codec.decode(msg)
-        else:
-            stamp = cv.from_time(msg.header.stamp)
-        if stamp >= count:
-            seen['last'] = stamp                     # goodbye: every pong has arrived
-            return
-        if seen['n'] == 0:
-            seen['cpu'][0] = time.process_time()     # CPU from the first message on
-        seen['n'] += 1
-        pub.publish(codec.encode(stamp, tips) if raw else msg)
-        if stamp == count - 1:
-            seen['cpu'][1] = time.process_time()
-    node.create_subscription(PoseArray, 'bench_ping', on_ping, LOOP_QOS, raw=raw)
-    executor = make_executor()
-    executor.add_node(node)
-    # a last pong published just before this writer is destroyed can be lost, and the pinging
-    # side would wait out its deadline: so this side waits for the goodbye
-    deadline = time.monotonic() + 120.0
-    while seen['last'] < count and time.monotonic() < deadline:
-        executor.spin_once(timeout_sec=0.1)
-    end = seen['cpu'][1] or time.process_time()     # (the last round unanswered: up to now)
-    cpu = (end - seen['cpu'][0]) / max(seen['n'] - 1, 1)
-    print(f'cpu_per_message {cpu:.9f}', flush=True)
-    executor.shutdown()
-    node.destroy_node()
-    rclpy.try_shutdown()
-    return 0
-
-
-def hop(executor: str, count: int = 2000, raw: bool = False) -> dict[str, float]:
-    """One DDS hop with the graph's own message and executor, between two processes.
-
-    A ping-pong of ``tip_positions``-sized PoseArrays: half the round trip is the latency of one
-    hop (publish → callback in the other process → publish back); the echo process reports its CPU
-    per message (receive + publish; with ``raw`` as CDR bytes decoded and encoded by nodes/cdr.py,
-    as the loop nodes do). Returns µs: ``p50``, ``p99`` of one hop, ``cpu``; and the counts
-    ``rounds`` (answered, of ``count``) and ``resent``.
-
-    Round k's ping is stamped k ns and only the pong with that stamp ends it. Discovery is not
-    symmetric: our reader can have matched the echo's writer before that writer has matched our
-    reader, and a pong published then is dropped (volatile). So a round unanswered for
-    ``RESEND_S`` sends its ping again (with a fresh start time); a late duplicate pong is ignored.
-    A ping stamped ``count`` tells the echo that every pong has arrived.
-    """
-    import subprocess
-    import sys
-
-    from geometry_msgs.msg import PoseArray
-    import numpy as np
-    import rclpy
-    from rclpy.context import Context
-    from rclpy.node import Node
-
-    from soft_gripper_sdre.nodes import conversions as cv
-    from soft_gripper_sdre.nodes.common import EXECUTOR_ENV, make_executor
-    from soft_gripper_sdre.nodes.topics import LOOP_QOS
-
-    env = ros_env()
-    env[EXECUTOR_ENV] = executor
-    os.environ.update({k: env[k] for k in ('ROS_DOMAIN_ID', 'ROS_AUTOMATIC_DISCOVERY_RANGE')})
-    echo = subprocess.Popen([sys.executable, '-m', 'soft_gripper_sdre.tools.benchmarks.bench_graph',
-                             '--echo', str(count)] + ['--raw'] * raw,
-                            env=env, stdout=subprocess.PIPE, text=True)
-    ctx = Context()
-    rclpy.init(context=ctx)
-    node = Node('bench_ping', context=ctx)
-    ex = make_executor(executor, context=ctx)
-    msg = cv.tips_to_msg(0, np.zeros((4, 3)))
-    rtt = np.zeros(count)
-    state = {'k': 0, 't0': 0.0, 'resent': 0}
-    pub = node.create_publisher(PoseArray, 'bench_ping', LOOP_QOS)
-
-    def ping() -> None:
-        cv.set_time(msg.header.stamp, state['k'])
-        state['t0'] = time.perf_counter()
-        pub.publish(msg)
-
-    def on_pong(pong) -> None:
-        now = time.perf_counter()
-        if cv.from_time(pong.header.stamp) != state['k']:
-            return                                   # the answer to a resent ping's first copy
-        rtt[state['k']] = now - state['t0']
-        state['k'] += 1
-        if state['k'] < count:
-            ping()
-    sub = node.create_subscription(PoseArray, 'bench_pong', on_pong, LOOP_QOS)
-    ex.add_node(node)
-    try:
-        deadline = time.monotonic() + 30.0
-        while (sub.get_publisher_count() == 0
-               or pub.get_subscription_count() == 0) and time.monotonic() < deadline:
-            ex.spin_once(timeout_sec=0.05)
-        ping()
-        deadline = time.monotonic() + 120.0
-        while state['k'] < count and time.monotonic() < deadline:
-            k = state['k']
-            ex.spin_once(timeout_sec=0.1)
-            if state['k'] == k < count and time.perf_counter() - state['t0'] > RESEND_S:
-                state['resent'] += 1
-                ping()
-        rounds = state['k']
-        state['k'] = count                           # goodbye (see _echo), again if unheard
-        for _ in range(30):
-            ping()
-            try:
-                out, _ = echo.communicate(timeout=RESEND_S)
-                break
-            except subprocess.TimeoutExpired:
-                continue
-        else:
-            out = ''
-    finally:
-        if echo.poll() is None:
-            echo.kill()
-        ex.shutdown()
-        node.destroy_node()
-        rclpy.try_shutdown(context=ctx)
-    cpu = next((float(line.split()[1]) for line in out.splitlines()
-                if line.startswith('cpu_per_message')), float('nan'))
-    one_way = 0.5e6 * rtt[:rounds]
-    return {'p50': float(np.percentile(one_way, 50)), 'p99': float(np.percentile(one_way, 99)),
-            'cpu': 1e6 * cpu, 'rounds': rounds, 'resent': state['resent']}
-
-
 #: the graph layouts :func:`mode_runs` can alternate: (simulator mode, estimator + controller in
 #: one process), and the words of their rows
 LAYOUTS = {'lockstep': ('lockstep', False, '4 processes, lockstep'),
@@ -555,14 +409,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--graph-only', action='store_true',
                     help='only the graph runs: no DDS hops, SingleThreadedExecutor run or '
                          'recorder run')
-    ap.add_argument('--echo', type=int, default=None, help=argparse.SUPPRESS)   # hop()'s far end
-    ap.add_argument('--raw', action='store_true', help=argparse.SUPPRESS)       # … with raw CDR
     ap.add_argument('--executor', choices=('events', 'single'), default=None,
                     help='executor of the node processes '
                          '(default: $SOFT_GRIPPER_EXECUTOR or events)')
     a = ap.parse_args(argv)
-    if a.echo is not None:
-        return _echo(a.echo, a.raw)
     table = rows(a.quick, a.executor, a.graph_only)
     width = max(len(r[0]) for r in table)
     for name, value, note in table:

@@ -1,0 +1,176 @@
+"""One DDS hop between two processes, with the graph's own message, QoS and executor: the rclpy
+floor of a loop period (``make bench``'s hop rows).
+
+:func:`hop` pings from this process; the far end is this module run as a program,
+``python -m soft_gripper_sdre.tools.benchmarks.hop COUNT [--raw]`` (:func:`echo`).
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import time
+
+from soft_gripper_sdre.tools.graph.procs import ros_env
+
+#: a ping-pong round unanswered this long [s] sends its ping again (see :func:`hop`)
+RESEND_S = 1.0
+
+
+def echo(count: int, raw: bool = False) -> int:
+    """The far end of :func:`hop`: answer the tip messages stamped 0 … ``count - 1`` on
+    ``bench_pong``, print the CPU seconds this process spent per message, and go when the pinging
+    side says so with a ping stamped ``count``. ``raw``: receive the CDR bytes, decode and encode
+    them as the loop nodes do (nodes/cdr.py); otherwise republish the message rclpy built."""
+    from geometry_msgs.msg import PoseArray
+    import rclpy
+    from rclpy.node import Node
+
+    from soft_gripper_sdre.nodes import cdr
+    from soft_gripper_sdre.nodes import conversions as cv
+    from soft_gripper_sdre.nodes.common import make_executor
+    from soft_gripper_sdre.nodes.topics import LOOP_QOS
+    codec = cdr.tips_codec(4) if raw else None     # learned before any DDS entity exists
+    rclpy.init()
+    node = Node('bench_echo')
+    pub = node.create_publisher(PoseArray, 'bench_pong', LOOP_QOS)
+    seen = {'n': 0, 'cpu': [0.0, 0.0], 'last': -1}
+
+    def on_ping(msg) -> None:
+        if raw:
+            stamp, tips = codec.decode(msg)
+        else:
+            stamp = cv.from_time(msg.header.stamp)
+        if stamp >= count:
+            seen['last'] = stamp                     # goodbye: every pong has arrived
+            return
+        if seen['n'] == 0:
+            seen['cpu'][0] = time.process_time()     # CPU from the first message on
+        seen['n'] += 1
+        pub.publish(codec.encode(stamp, tips) if raw else msg)
+        if stamp == count - 1:
+            seen['cpu'][1] = time.process_time()
+    node.create_subscription(PoseArray, 'bench_ping', on_ping, LOOP_QOS, raw=raw)
+    executor = make_executor()
+    executor.add_node(node)
+    # a last pong published just before this writer is destroyed can be lost, and the pinging
+    # side would wait out its deadline: so this side waits for the goodbye
+    deadline = time.monotonic() + 120.0
+    while seen['last'] < count and time.monotonic() < deadline:
+        executor.spin_once(timeout_sec=0.1)
+    end = seen['cpu'][1] or time.process_time()     # (the last round unanswered: up to now)
+    cpu = (end - seen['cpu'][0]) / max(seen['n'] - 1, 1)
+    print(f'cpu_per_message {cpu:.9f}', flush=True)
+    executor.shutdown()
+    node.destroy_node()
+    rclpy.try_shutdown()
+    return 0
+
+
+def hop(executor: str, count: int = 2000, raw: bool = False) -> dict[str, float]:
+    """One DDS hop with the graph's own message and executor, between two processes.
+
+    A ping-pong of ``tip_positions``-sized PoseArrays: half the round trip is the latency of one
+    hop (publish → callback in the other process → publish back); the echo process reports its CPU
+    per message (receive + publish; with ``raw`` as CDR bytes decoded and encoded by nodes/cdr.py,
+    as the loop nodes do). Returns µs: ``p50``, ``p99`` of one hop, ``cpu``; and the counts
+    ``rounds`` (answered, of ``count``) and ``resent``.
+
+    Round k's ping is stamped k ns and only the pong with that stamp ends it. Discovery is not
+    symmetric: our reader can have matched the echo's writer before that writer has matched our
+    reader, and a pong published then is dropped (volatile). So a round unanswered for
+    ``RESEND_S`` sends its ping again (with a fresh start time); a late duplicate pong is ignored.
+    A ping stamped ``count`` tells the echo that every pong has arrived.
+    """
+    import subprocess
+    import sys
+
+    from geometry_msgs.msg import PoseArray
+    import numpy as np
+    import rclpy
+    from rclpy.context import Context
+    from rclpy.node import Node
+
+    from soft_gripper_sdre.nodes import conversions as cv
+    from soft_gripper_sdre.nodes.common import EXECUTOR_ENV, make_executor
+    from soft_gripper_sdre.nodes.topics import LOOP_QOS
+
+    env = ros_env()
+    env[EXECUTOR_ENV] = executor
+    os.environ.update({k: env[k] for k in ('ROS_DOMAIN_ID', 'ROS_AUTOMATIC_DISCOVERY_RANGE')})
+    echo = subprocess.Popen([sys.executable, '-m', 'soft_gripper_sdre.tools.benchmarks.hop',
+                             str(count)] + ['--raw'] * raw,
+                            env=env, stdout=subprocess.PIPE, text=True)
+    ctx = Context()
+    rclpy.init(context=ctx)
+    node = Node('bench_ping', context=ctx)
+    ex = make_executor(executor, context=ctx)
+    msg = cv.tips_to_msg(0, np.zeros((4, 3)))
+    rtt = np.zeros(count)
+    state = {'k': 0, 't0': 0.0, 'resent': 0}
+    pub = node.create_publisher(PoseArray, 'bench_ping', LOOP_QOS)
+
+    def ping() -> None:
+        cv.set_time(msg.header.stamp, state['k'])
+        state['t0'] = time.perf_counter()
+        pub.publish(msg)
+
+    def on_pong(pong) -> None:
+        now = time.perf_counter()
+        if cv.from_time(pong.header.stamp) != state['k']:
+            return                                   # the answer to a resent ping's first copy
+        rtt[state['k']] = now - state['t0']
+        state['k'] += 1
+        if state['k'] < count:
+            ping()
+    sub = node.create_subscription(PoseArray, 'bench_pong', on_pong, LOOP_QOS)
+    ex.add_node(node)
+    try:
+        deadline = time.monotonic() + 30.0
+        while (sub.get_publisher_count() == 0
+               or pub.get_subscription_count() == 0) and time.monotonic() < deadline:
+            ex.spin_once(timeout_sec=0.05)
+        ping()
+        deadline = time.monotonic() + 120.0
+        while state['k'] < count and time.monotonic() < deadline:
+            k = state['k']
+            ex.spin_once(timeout_sec=0.1)
+            if state['k'] == k < count and time.perf_counter() - state['t0'] > RESEND_S:
+                state['resent'] += 1
+                ping()
+        rounds = state['k']
+        state['k'] = count                           # goodbye (see echo), again if unheard
+        for _ in range(30):
+            ping()
+            try:
+                out, _ = echo.communicate(timeout=RESEND_S)
+                break
+            except subprocess.TimeoutExpired:
+                continue
+        else:
+            out = ''
+    finally:
+        if echo.poll() is None:
+            echo.kill()
+        ex.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
+    cpu = next((float(line.split()[1]) for line in out.splitlines()
+                if line.startswith('cpu_per_message')), float('nan'))
+    one_way = 0.5e6 * rtt[:rounds]
+    return {'p50': float(np.percentile(one_way, 50)), 'p99': float(np.percentile(one_way, 99)),
+            'cpu': 1e6 * cpu, 'rounds': rounds, 'resent': state['resent']}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.benchmarks.hop',
+                                 description="the far end of hop(): answers COUNT pings")
+    ap.add_argument('count', type=int, help='pings to answer (stamped 0 … COUNT − 1)')
+    ap.add_argument('--raw', action='store_true', help='decode and encode the CDR bytes')
+    a = ap.parse_args(argv)
+    if a.count < 1:
+        ap.error(f'COUNT must be >= 1, got {a.count}')
+    return echo(a.count, a.raw)
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())
