@@ -11,8 +11,9 @@ from rosbags.typesys import Stores, get_typestore
 from rosutil import Probe, overrides, ros_context, spin_until
 from sensor_msgs.msg import JointState
 
+from soft_gripper_sdre.nodes.live_view import MARKERS, ROBOT_DESCRIPTION
 from soft_gripper_sdre.nodes.recorder import RecorderNode
-from soft_gripper_sdre.nodes.simulator import MARKERS, ROBOT_DESCRIPTION, SimulatorNode
+from soft_gripper_sdre.nodes.simulator import SimulatorNode
 from soft_gripper_sdre.nodes.topics import JOINT_STATES, LOOP_QOS, TORQUE_COMMANDS
 from soft_gripper_sdre.sim.hand_description import HandKinematics, tip_link
 
@@ -42,8 +43,8 @@ def test_markers_and_robot_description_reach_an_mcap_bag(tmp_path):
         executor.add_node(rec)
         executor.add_node(sim)
         # the recorder has matched all three before the simulator may start (a command writer)
-        assert spin_until(executor, lambda: min(sim.pub_markers.get_subscription_count(),
-                                                sim.pub_description.get_subscription_count(),
+        assert spin_until(executor, lambda: min(sim.live.pub_markers.get_subscription_count(),
+                                                sim.live.pub_description.get_subscription_count(),
                                                 sim.pub_joints.get_subscription_count()) > 0, 30.0)
         probe = Probe(ctx)
         probe.create_publisher(JointState, TORQUE_COMMANDS, LOOP_QOS)

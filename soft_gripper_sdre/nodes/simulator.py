@@ -50,13 +50,8 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseArray, PoseStamped
 import numpy as np
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-from rclpy.serialization import deserialize_message
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
-from std_msgs.msg import String
-from trajectory_msgs.msg import MultiDOFJointTrajectory
-from visualization_msgs.msg import MarkerArray
 
 from soft_gripper_sdre.nodes import cdr
 from soft_gripper_sdre.nodes import conversions as cv
@@ -71,7 +66,7 @@ from soft_gripper_sdre.nodes.common import (
     wiring,
 )
 from soft_gripper_sdre.nodes.graph import GRASP_NODES, readiness_problem
-from soft_gripper_sdre.nodes.markers import HandMarkers
+from soft_gripper_sdre.nodes.live_view import LiveView
 from soft_gripper_sdre.nodes.params import (
     Param,
     ParameterError,
@@ -85,25 +80,18 @@ from soft_gripper_sdre.nodes.topics import (
     CUBE_CONTACTS,
     CUBE_POSE,
     DIAGNOSTICS,
-    GRASP_REFERENCE,
     JOINT_STATES,
     LOOP_QOS,
     NEWEST_QOS,
-    REFERENCE_QOS,
     STREAM_QOS,
     TIP_POSITIONS,
     TORQUE_COMMANDS,
 )
 from soft_gripper_sdre.sim.finger import FINGER_BASE_POSITIONS, N_JOINTS
 from soft_gripper_sdre.sim.hand import GripperSim, SimConfig
-from soft_gripper_sdre.sim.hand_description import hand_urdf
 from soft_gripper_sdre.sim.lockstep import LATENCY_PERIODS, MODES, Stepping
 
 _NO_VALUES = np.empty(0)       # /clock carries only its stamp
-#: the live 3-D view: the hand as markers, and its URDF for a late-joining viewer
-MARKERS, ROBOT_DESCRIPTION = 'markers', 'robot_description'
-DESCRIPTION_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 PARAMS = (
     Param('mode', 'lockstep', 'stepping mode: lockstep (each period steps on its own command), '
@@ -204,7 +192,9 @@ class SimulatorNode(Node):
         self.pub_joints = self.create_publisher(JointState, JOINT_STATES, STREAM_QOS)
         self.pub_cube = self.create_publisher(PoseStamped, CUBE_POSE, STREAM_QOS)
         self.pub_contacts = self.create_publisher(JointState, CUBE_CONTACTS, STREAM_QOS)
-        self._start_live_view(p)
+        self.live = (LiveView(self, self.names, self.mounted, marker_rate=p['marker_rate'],
+                              with_cube=p['with_cube'], with_references=p['marker_references'],
+                              now=self._shown) if p['scene'] == 'hand' else None)
         self.sub_cmd = self.create_subscription(JointState, TORQUE_COMMANDS, self.on_command,
                                                 NEWEST_QOS, raw=True)
         self.log = ThrottledLogger(self.get_logger())
@@ -393,49 +383,6 @@ class SimulatorNode(Node):
             self.diag.publish()
             self.get_logger().info(f'duration reached after {k} steps; stopping')
 
-    # -- the live 3-D view ------------------------------------------------------------------
-    def _start_live_view(self, p: dict) -> None:
-        """Hand scene: the URDF on robot_description (transient local, once), and the markers
-        on a wall timer at ``marker_rate`` (the MarkerArray laid out once: nodes/markers.py)."""
-        self._markers = self._reference_raw = None
-        if p['scene'] != 'hand':
-            return
-        urdf = hand_urdf(self.names, self.mounted)
-        self.pub_description = self.create_publisher(String, ROBOT_DESCRIPTION, DESCRIPTION_QOS)
-        self.pub_description.publish(String(data=urdf))
-        if p['marker_rate'] <= 0:
-            return
-        self._markers = HandMarkers(urdf, self.names, self.mounted, with_cube=p['with_cube'],
-                                    with_references=p['marker_references'])
-        self.pub_markers = self.create_publisher(MarkerArray, MARKERS, STREAM_QOS)
-        if p['marker_references']:
-            self._sub_reference = self.create_subscription(
-                MultiDOFJointTrajectory, GRASP_REFERENCE, self._on_reference, REFERENCE_QOS,
-                raw=True)
-        self._marker_timer = self.create_timer(1.0 / p['marker_rate'], self.publish_markers)
-
-    def _on_reference(self, data: bytes) -> None:
-        self._reference_raw = data          # decoded only when the markers go out
-
-    def _reference_now(self, ns: int) -> np.ndarray | None:
-        """Each exposed finger's reference X, Y [m] at sim time ``ns`` from the newest plan."""
-        if self._reference_raw is None:
-            return None
-        try:
-            _, times, pos, _, _ = cv.msg_to_reference(
-                deserialize_message(self._reference_raw, MultiDOFJointTrajectory), self.names)
-        except (cv.MessageError, ValueError):
-            return None
-        return pos[int(np.clip(np.searchsorted(times, ns), 0, len(times) - 1))]
-
-    def publish_markers(self) -> None:
-        """The hand's markers now, if anyone subscribes."""
-        if self._markers is None or self.pub_markers.get_subscription_count() == 0:
-            return
-        ns, truth = self._physics_k * self.stepping.period_ns, self.sim.truth()
-        self.pub_markers.publish(self._markers.encode(ns, truth.q[self.mounted], truth.cube_pose,
-                                                      self._reference_now(ns)))
-
     # -- publishing --------------------------------------------------------------------------
     def publish_state(self) -> None:
         k, ns = self.stepping.k, self.stepping.now_ns
@@ -461,6 +408,10 @@ class SimulatorNode(Node):
         t = self.stepping.now_ns / cv.NS
         kept = {k: v for k, v in self.diag.values.items() if not k.startswith('recent_')}
         self.diag.values = kept | {'sim_time': f'{t:.3f}'} | self.timing.report(t, self.stepping.k)
+
+    def _shown(self) -> tuple[int, object]:
+        """What the live view draws: the sim time [ns] the physics is at, and its truth."""
+        return self._physics_k * self.stepping.period_ns, self.sim.truth()
 
     def close(self) -> None:
         self.sim.close()
