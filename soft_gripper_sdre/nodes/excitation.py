@@ -77,6 +77,7 @@ from soft_gripper_sdre.sim.excitation import (
     SignalSpecError,
     resolve_signals,
 )
+from soft_gripper_sdre.sim.settle import SettlePhase
 from soft_gripper_sdre.sim.signals import SIGNALS
 
 PARAMS = (
@@ -153,12 +154,7 @@ class ExcitationNode(Node):
             raise ParameterError(str(exc)) from None
         self.search = self._level_search(finger) if p['level'] == 'auto' else None
         self.plan_offset = 0.0                  # run time at which plan time 0 is [s]
-        self.settle_tips = 0                    # tips answered before the first non-zero torque
-        self.settle_heard = 0                   # tips heard since the start, in the first settle
-                                                # phase
-        self.settle_extended = False            # the first settle phase outlasted settle_time
-        self.settle_shift: float | None = None  # its extension [s], once it is over
-        self.excited = False                    # a non-zero torque went out
+        self.settle = SettlePhase(p['settle_time'], p['settle_samples'])
         self.newest_tips: np.ndarray | None = None
         self.done = False
         self.exit_code = 0
@@ -262,8 +258,8 @@ class ExcitationNode(Node):
             return
         if self.p['timing'] == 'tips':
             self._advance(stamp, (stamp - self.start_ns) / cv.NS, tips)
-        if self.settle_shift is None:           # (counted after its own answer: tips timing
-            self.settle_heard += 1              # answers it before it counts)
+        self.settle.heard_tips()                # (counted after its own answer: tips timing
+                                                # answers it before it counts)
 
     def _on_tick(self) -> None:
         if self.stopped or self.start_ns is None:
@@ -299,27 +295,13 @@ class ExcitationNode(Node):
         return float(np.inf if not np.all(np.isfinite(d)) else d.max())
 
     # -- outputs -----------------------------------------------------------------------------
-    def _settled(self, t: float) -> float | None:
-        """Run time ``t`` [s] less the extension of the first settle phase, or None while that
-        phase is extended (it lasts ``settle_time`` and until ``settle_samples`` tips were
-        heard)."""
-        if self.settle_shift is None:
-            settle = self.p['settle_time']
-            if t < settle:
-                return t
-            if settle > 0 and self.settle_heard < self.p['settle_samples']:
-                self.settle_extended = True
-                return None
-            self.settle_shift = t - settle if self.settle_extended else 0.0
-            if self.settle_extended:
-                self.diag.values['settle_extended'] = f'{self.settle_shift:.3f}'
-        return t - self.settle_shift
-
     def _advance(self, stamp: int, t: float, tips: np.ndarray) -> None:
         """Publish the torque for run time ``t`` [s] stamped ``stamp``: zero while the first
         settle phase is extended, then the level search's while it runs (``tips``: the newest),
         then the plan's."""
-        t = self._settled(t)
+        t = self.settle.run_time(t)
+        if self.settle.extended and self.settle.shift is not None:
+            self.diag.values['settle_extended'] = f'{self.settle.shift:.3f}'
         if t is None:
             u = np.zeros((self.n, 2))
             self.diag.values.update(signal='settle', plan_time='')
@@ -358,20 +340,17 @@ class ExcitationNode(Node):
     def _note_settle(self, u: np.ndarray) -> None:
         """Count the zero-torque answers before the first non-zero torque; warn at that torque if
         they are too few for training to estimate the noise level."""
-        if self.excited:
+        settle = self.settle
+        if not settle.answered(u):
             return
-        if not np.any(u != 0.0):
-            self.settle_tips += 1
-            return
-        self.excited = True
-        self.diag.values['settle_tips'] = str(self.settle_tips)
-        extended = (f', settle phase extended by {self.settle_shift:.3f} s for settle_samples'
-                    if self.settle_extended else '')
-        self.get_logger().info(f'first non-zero torque after {self.settle_tips} tip message(s) '
+        self.diag.values['settle_tips'] = str(settle.zero_answers)
+        extended = (f', settle phase extended by {settle.shift:.3f} s for settle_samples'
+                    if settle.extended else '')
+        self.get_logger().info(f'first non-zero torque after {settle.zero_answers} tip message(s) '
                                f'answered with zero torque{extended}')
-        if self.settle_tips < MIN_SETTLE_SAMPLES:
+        if settle.zero_answers < MIN_SETTLE_SAMPLES:
             self.get_logger().warn(
-                f'only {self.settle_tips} tip message(s) answered with zero torque before the '
+                f'only {settle.zero_answers} tip message(s) answered with zero torque before the '
                 'first non-zero torque; training estimates the noise level from '
                 f'{MIN_SETTLE_SAMPLES} or more (a longer settle_time, or give train --meas-std)')
 
