@@ -4,7 +4,7 @@ up to the longest period the loop accepts."""
 import pytest
 
 from soft_gripper_sdre.analysis.bag import topic_counts
-from soft_gripper_sdre.tools.graph.demo import last_diagnostics, run_demo
+from soft_gripper_sdre.tools.graph.demo import DemoGraph, last_diagnostics, run_demo
 
 pytestmark = pytest.mark.ros
 
@@ -19,7 +19,7 @@ pytestmark = pytest.mark.ros
 ], ids=['5ms', '10ms'])
 def test_the_graph_runs_and_tracks_at_a_longer_period(tmp_path, period_ms, rmse_mm, max_mm):
     period = period_ms * 1e-3
-    result = run_demo(tmp_path, duration=6.0, timeout=150, progress=False, period=period,
+    result = run_demo(tmp_path, 6.0, DemoGraph(period=period), timeout=150, progress=False,
                       render=False)
     assert all(code == 0 for code in result['run']['exit_codes'].values()), result['run']
     assert result['run']['control_period_s'] == period

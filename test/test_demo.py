@@ -6,7 +6,7 @@ import sys
 import pytest
 
 from soft_gripper_sdre.analysis.bag import topic_counts
-from soft_gripper_sdre.tools.graph.demo import main, run_demo, summary
+from soft_gripper_sdre.tools.graph.demo import DemoGraph, main, run_demo, summary
 
 pytestmark = pytest.mark.ros
 
@@ -83,7 +83,7 @@ def test_demo_command_line_refuses_bad_usage_with_exit_2_and_no_traceback(tmp_pa
 def test_a_node_that_dies_is_named_with_its_own_log_and_no_bag_is_left(tmp_path):
     """run_demo on a corrupt model (past the CLI's check): the controller exits at start-up."""
     with pytest.raises(RuntimeError) as exc:
-        run_demo(tmp_path, duration=1.0, model=_corrupt_model(tmp_path), timeout=120,
+        run_demo(tmp_path, 1.0, DemoGraph(model=_corrupt_model(tmp_path)), timeout=120,
                  progress=False)
     message = str(exc.value)
     assert message.startswith('the controller node exited with status')

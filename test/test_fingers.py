@@ -182,10 +182,10 @@ def test_bad_finger_parameters_stop_the_node_naming_the_problem(node, params, ne
 @pytest.mark.timeout(150)
 def test_two_named_fingers_run_the_whole_graph_as_processes(tmp_path):
     from soft_gripper_sdre.analysis.bag import extract_run, read_bag
-    from soft_gripper_sdre.tools.graph.demo import run_demo
+    from soft_gripper_sdre.tools.graph.demo import DemoGraph, run_demo
 
-    result = run_demo(tmp_path, duration=1.5, timeout=120, progress=False,
-                      fingers={'left': 0, 'right': 2}, render=False)
+    result = run_demo(tmp_path, 1.5, DemoGraph(fingers={'left': 0, 'right': 2}), timeout=120,
+                      progress=False, render=False)
     assert all(code == 0 for code in result['run']['exit_codes'].values()), result['run']
     assert list(result['fingers']) == ['left', 'right']
     run = extract_run(tmp_path / 'bag')

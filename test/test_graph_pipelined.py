@@ -76,8 +76,9 @@ def test_pipelined_demo_grasp_meets_the_readme_targets_and_repeats_bit_for_bit(t
     """The demo grasp (6 s, five processes, the shipped defaults) in pipelined mode: every
     finger's free-space RMSE within the README's 5 % target, and a second, shorter run sends the
     same torques and measures the same tips as the first, whatever the scheduling."""
-    from soft_gripper_sdre.tools.graph.demo import last_diagnostics, run_demo
-    full = run_demo(tmp_path / 'full', duration=6.0, timeout=500, progress=False, mode='pipelined')
+    from soft_gripper_sdre.tools.graph.demo import DemoGraph, last_diagnostics, run_demo
+    full = run_demo(tmp_path / 'full', 6.0, DemoGraph(mode='pipelined'), timeout=500,
+                    progress=False)
     assert full['run']['mode'] == 'pipelined'
     sim = last_diagnostics(tmp_path / 'full' / 'bag', 'simulator')
     assert float(sim.get('timeouts', 0)) == 0 and float(sim['steps']) == 6000
@@ -85,8 +86,8 @@ def test_pipelined_demo_grasp_meets_the_readme_targets_and_repeats_bit_for_bit(t
         assert f['rmse_pct'] <= TARGET_PCT, (name, f)
     touching = [f['contact_fraction'] > 0 for f in full['fingers'].values()]
     assert touching == [True, False, True, False]
-    short = run_demo(tmp_path / 'short', duration=1.5, timeout=300, progress=False,
-                     mode='pipelined')
+    short = run_demo(tmp_path / 'short', 1.5, DemoGraph(mode='pipelined'), timeout=300,
+                     progress=False)
     assert short['run']['exit_codes'] == full['run']['exit_codes']
     t1, u1, tips1 = _bag_series(tmp_path / 'full' / 'bag')
     t2, u2, tips2 = _bag_series(tmp_path / 'short' / 'bag')

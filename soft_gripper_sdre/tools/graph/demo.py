@@ -19,6 +19,7 @@ failed run is removed.
 from __future__ import annotations
 
 import argparse
+from dataclasses import dataclass
 import json
 from pathlib import Path
 import shutil
@@ -26,7 +27,13 @@ import sys
 import time
 
 from soft_gripper_sdre.control.laws import GRAPH_LAWS
-from soft_gripper_sdre.nodes.graph import CUBE_FINGERS, PERIOD_RANGE, finger_parameters, grasp_graph
+from soft_gripper_sdre.nodes.graph import (
+    CUBE_FINGERS,
+    PERIOD_RANGE,
+    GraphSpec,
+    finger_parameters,
+    grasp_graph,
+)
 from soft_gripper_sdre.sim.lockstep import MODES
 from soft_gripper_sdre.tools.graph.procs import DiagnosticsMonitor, Graph, ros_env
 
@@ -72,15 +79,55 @@ def _parser() -> argparse.ArgumentParser:
     return ap
 
 
-def run_demo(out: Path, duration: float, model: Path | None = None, noise: float | None = None,
-             seed: int | None = None, domain_id: int | None = None, timeout: float = 600.0,
-             progress: bool = True, law: str | None = None, fingers: dict[str, int] | None = None,
-             period: float | None = None, integral_gain: float | None = None,
-             mode: str | None = None, render: bool = True) -> dict:
-    """Run the graph, write bag/figures/metrics under ``out``; returns the report (plus run facts).
-    ``period`` [s] is the control period of every node of the loop (None: the config files');
-    ``mode`` the simulator's stepping (None: its config file's); ``render``: also draw the hand
-    (Figs. 1 and 4, the animation) beside the tracking figures.
+@dataclass(frozen=True)
+class DemoGraph:
+    """What the demo's graph runs, beyond the shipped configuration (None: the config files').
+
+    ``model`` a checkpoint; ``noise`` the tips' σ [m]; ``seed`` the simulator's; ``law`` the
+    controller's; ``fingers`` name → hand finger; ``period`` [s] the control period of every node
+    of the loop; ``integral_gain`` the default law's; ``mode`` the simulator's stepping."""
+
+    model: Path | None = None
+    noise: float | None = None
+    seed: int | None = None
+    law: str | None = None
+    fingers: dict[str, int] | None = None
+    period: float | None = None
+    integral_gain: float | None = None
+    mode: str | None = None
+
+    def spec(self, bag: Path, duration: float) -> GraphSpec:
+        """The grasp graph recording into ``bag`` for ``duration`` s of sim time."""
+        params = {
+            'recorder': {'output': str(bag)},
+            'estimator': {},
+            'controller': {'model_path': str(self.model.resolve())} if self.model else {},
+            'trajectory': {},
+            # the first run after an install compiles the control kernels (about a minute)
+            # before the controller and the estimator report ready
+            'simulator': {'duration': duration, 'min_tip_subscribers': 3,
+                          'startup_timeout': 120.0},
+        }
+        for node, key, value in (('simulator', 'noise_std', self.noise),
+                                 ('simulator', 'seed', self.seed),
+                                 ('controller', 'law', self.law),
+                                 ('simulator', 'mode', self.mode),
+                                 ('controller', 'integral_gain',
+                                  None if self.integral_gain is None
+                                  else float(self.integral_gain))):
+            if value is not None:
+                params[node][key] = value
+        for node, values in (finger_parameters(self.fingers) if self.fingers else {}).items():
+            params[node].update(values)
+        return grasp_graph(parameters=params, control_period=self.period)
+
+
+def run_demo(out: Path, duration: float, graph: DemoGraph = DemoGraph(), *,
+             domain_id: int | None = None, timeout: float = 600.0, progress: bool = True,
+             render: bool = True) -> dict:
+    """Run ``graph`` for ``duration`` s of sim time, write bag/figures/metrics under ``out``;
+    returns the report (plus run facts). ``render``: also draw the hand (Figs. 1 and 4, the
+    animation) beside the tracking figures.
 
     Raises:
         RuntimeError: a node failed or the run did not finish within ``timeout`` (logs are kept).
@@ -93,29 +140,37 @@ def run_demo(out: Path, duration: float, model: Path | None = None, noise: float
         shutil.rmtree(bag)  # the demo owns its output directory; the recorder needs a new one
     out.mkdir(parents=True, exist_ok=True)
     env = ros_env(domain_id)
-    params = {
-        'recorder': {'output': str(bag)},
-        'estimator': {},
-        'controller': {'model_path': str(model.resolve())} if model else {},
-        'trajectory': {},
-        # the first run after an install compiles the control kernels (about a minute) before
-        # the controller and the estimator report ready
-        'simulator': {'duration': duration, 'min_tip_subscribers': 3, 'startup_timeout': 120.0},
-    }
-    if noise is not None:
-        params['simulator']['noise_std'] = noise
-    if seed is not None:
-        params['simulator']['seed'] = seed
-    if law is not None:
-        params['controller']['law'] = law
-    if integral_gain is not None:
-        params['controller']['integral_gain'] = float(integral_gain)
-    if mode is not None:
-        params['simulator']['mode'] = mode
-    for node, values in (finger_parameters(fingers) if fingers else {}).items():
-        params[node].update(values)
-    spec = grasp_graph(parameters=params, control_period=period)
+    spec = graph.spec(bag, duration)
+    wall, stopped = _run_graph(spec, env, out, duration, timeout, progress)
+    t_report = time.monotonic()
+    if progress:
+        print('reading the bag and drawing the figures ...', file=sys.stderr, flush=True)
+    result = report(bag, out, torque_limit=_controller_limit(), render=render)
+    result['controller'] = controller_stats(bag, len(result['fingers']))
+    sim_diag = last_diagnostics(bag, 'simulator')
+    stepping_rtf = sim_diag.get('real_time_factor')
+    result['run'] = {'sim_duration_s': duration, 'control_period_s': float(_simulator_period(spec)),
+                     'mode': sim_diag.get('mode', graph.mode),
+                     'wall_s': round(wall, 2),
+                     'report_wall_s': round(time.monotonic() - t_report, 2),
+                     'real_time_factor': float(stepping_rtf) if stepping_rtf else None,
+                     **{f'loop_latency_us_{k}': float(sim_diag[f'loop_latency_us_{k}'])
+                        for k in ('p50', 'p99') if f'loop_latency_us_{k}' in sim_diag},
+                     'exit_codes': stopped,
+                     'domain_id': int(env['ROS_DOMAIN_ID'])}
+    (out / 'metrics.json').write_text(json.dumps(result, indent=2, default=float))
+    return result
 
+
+def _run_graph(spec: GraphSpec, env: dict[str, str], out: Path, duration: float, timeout: float,
+               progress: bool) -> tuple[float, dict[str, int]]:
+    """Start every node of ``spec``, wait for the simulator to finish, stop the rest; returns the
+    wall time [s] and every node's exit code. On a failure the bag is removed.
+
+    Raises:
+        RuntimeError: a node failed or the run timed out, naming it and quoting its log.
+    """
+    bag = out / 'bag'
     if progress:
         print(f'starting the node graph ({", ".join(spec.names)}) on ROS_DOMAIN_ID '
               f'{env["ROS_DOMAIN_ID"]}, logs in {out / "logs"} ...', file=sys.stderr, flush=True)
@@ -157,24 +212,7 @@ def run_demo(out: Path, duration: float, model: Path | None = None, noise: float
         raise RuntimeError(f'the {culprit} node exited with status {status} (exit codes '
                            f'{stopped}); last lines of {culprit}.log:\n'
                            f'{graph.procs[culprit].log_tail()}')
-    t_report = time.monotonic()
-    if progress:
-        print('reading the bag and drawing the figures ...', file=sys.stderr, flush=True)
-    result = report(bag, out, torque_limit=_controller_limit(), render=render)
-    result['controller'] = controller_stats(bag, len(result['fingers']))
-    sim_diag = last_diagnostics(bag, 'simulator')
-    stepping_rtf = sim_diag.get('real_time_factor')
-    result['run'] = {'sim_duration_s': duration, 'control_period_s': float(_simulator_period(spec)),
-                     'mode': sim_diag.get('mode', mode),
-                     'wall_s': round(wall, 2),
-                     'report_wall_s': round(time.monotonic() - t_report, 2),
-                     'real_time_factor': float(stepping_rtf) if stepping_rtf else None,
-                     **{f'loop_latency_us_{k}': float(sim_diag[f'loop_latency_us_{k}'])
-                        for k in ('p50', 'p99') if f'loop_latency_us_{k}' in sim_diag},
-                     'exit_codes': stopped,
-                     'domain_id': int(env['ROS_DOMAIN_ID'])}
-    (out / 'metrics.json').write_text(json.dumps(result, indent=2, default=float))
-    return result
+    return wall, stopped
 
 
 def _simulator_period(spec) -> float:
@@ -346,11 +384,13 @@ def main(argv: list[str] | None = None) -> int:
     if problem:
         ap.error(problem)
     try:
-        result = run_demo(a.out, a.duration, a.model, None if a.noise is None else a.noise * 1e-3,
-                          a.seed, a.domain_id, a.timeout, progress=not a.no_progress, law=a.law,
+        graph = DemoGraph(model=a.model, noise=None if a.noise is None else a.noise * 1e-3,
+                          seed=a.seed, law=a.law,
                           fingers=parse_fingers(a.fingers) if a.fingers else None,
                           period=None if a.period is None else a.period * 1e-3,
                           integral_gain=a.integral_gain, mode=a.mode)
+        result = run_demo(a.out, a.duration, graph, domain_id=a.domain_id, timeout=a.timeout,
+                          progress=not a.no_progress)
     except RuntimeError as exc:
         print(f'error: {exc}', file=sys.stderr)
         return 1

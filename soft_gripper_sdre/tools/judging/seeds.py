@@ -179,12 +179,13 @@ def run_demos(models: dict[str, Path], out: Path, domain_id: int | None,
               progress: bool) -> dict[str, dict]:
     """The grasp demo with each model (name → checkpoint; None: the shipped one), one after the
     other: name → :func:`demo_figures`."""
-    from soft_gripper_sdre.tools.graph.demo import run_demo
+    from soft_gripper_sdre.tools.graph.demo import DemoGraph, run_demo
     figures = {}
     for i, (name, path) in enumerate(models.items()):
         if progress:
             print(f'demo {i + 1}/{len(models)}: {name}', file=sys.stderr, flush=True)
-        result = run_demo(out / name / 'demo', 6.0, model=path, domain_id=domain_id, progress=False)
+        result = run_demo(out / name / 'demo', 6.0, DemoGraph(model=path), domain_id=domain_id,
+                          progress=False)
         figures[name] = demo_figures(result)
     return figures
 
