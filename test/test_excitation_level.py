@@ -6,9 +6,8 @@ import numpy as np
 import pytest
 from spring_finger import NOISE, RATE, REST, SpringDamper
 
-from soft_gripper_sdre.analysis import bag_dataset
-from soft_gripper_sdre.sim import excitation
-from soft_gripper_sdre.sim.excitation import ExcitationPlan, LevelSearch, builtin_signal
+from soft_gripper_sdre.sim.excitation import ExcitationPlan, LevelSearch
+from soft_gripper_sdre.sim.signal_specs import builtin_signal
 from soft_gripper_sdre.sim.signals import BROADBAND_SIGNALS, SIGNALS
 
 
@@ -133,6 +132,3 @@ def test_bad_search_arguments_are_named(kwargs, message):
         LevelSearch(**args)
     assert message in str(info.value)
 
-
-def test_the_node_and_training_need_the_same_settle_samples():
-    assert excitation.MIN_SETTLE_SAMPLES == bag_dataset.MIN_SETTLE_SAMPLES

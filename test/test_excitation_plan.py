@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 import yaml
 
-from soft_gripper_sdre.sim.excitation import (
-    ExcitationPlan,
+from soft_gripper_sdre.sim.excitation import ExcitationPlan
+from soft_gripper_sdre.sim.signal_specs import (
     SignalSpecError,
     builtin_signal,
     load_signal_specs,

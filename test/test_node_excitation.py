@@ -10,7 +10,8 @@ from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.excitation import ExcitationNode
 from soft_gripper_sdre.nodes.params import ParameterError
 from soft_gripper_sdre.nodes.topics import LOOP_QOS, TIP_POSITIONS, TORQUE_COMMANDS
-from soft_gripper_sdre.sim.excitation import ExcitationPlan, builtin_signal
+from soft_gripper_sdre.sim.excitation import ExcitationPlan
+from soft_gripper_sdre.sim.signal_specs import builtin_signal
 
 pytestmark = pytest.mark.ros
 

@@ -38,6 +38,7 @@ from soft_gripper_sdre.analysis.bag import (
     topic_counts,
 )
 from soft_gripper_sdre.learning import derivatives
+from soft_gripper_sdre.sim.settle import MIN_SETTLE_SAMPLES  # the excitation node's too
 
 TIPS_TYPE = 'geometry_msgs/msg/PoseArray'
 TORQUES_TYPE = 'sensor_msgs/msg/JointState'
@@ -47,8 +48,6 @@ MIN_SAMPLES = 20
 #: a tip gap of more than this many median periods splits a recording; a command older than this
 #: many command periods is not held
 DEFAULT_GAP_PERIODS = 10.0
-#: settle samples needed to estimate the measurement noise
-MIN_SETTLE_SAMPLES = 10
 
 
 class BagDataError(BagError):

@@ -1,7 +1,7 @@
 """The excitation node: plays identification torques on ``torque_commands`` and exits when done.
 
 Plays ``signals`` in order (the paper's u1..u4, the identifying x1, x2, or multisines and chirps
-from the YAML ``spec_file``, :mod:`soft_gripper_sdre.sim.excitation`), each after ``settle_time``
+from the YAML ``spec_file``, :mod:`soft_gripper_sdre.sim.signal_specs`), each after ``settle_time``
 of zero torque (the first one also until ``settle_samples`` tips were heard, below), on
 ``finger`` or on every finger, scaled by ``amplitude`` and clipped to ``torque_limit``; a recorder
 running meanwhile captures ``tip_positions`` and ``torque_commands`` for
@@ -70,21 +70,16 @@ from soft_gripper_sdre.nodes.params import (
     with_reliability,
 )
 from soft_gripper_sdre.nodes.topics import LOOP_QOS, NEWEST_QOS, TIP_POSITIONS, TORQUE_COMMANDS
-from soft_gripper_sdre.sim.excitation import (
-    MIN_SETTLE_SAMPLES,
-    ExcitationPlan,
-    LevelSearch,
-    SignalSpecError,
-    resolve_signals,
-)
-from soft_gripper_sdre.sim.settle import SettlePhase
+from soft_gripper_sdre.sim.excitation import ExcitationPlan, LevelSearch
+from soft_gripper_sdre.sim.settle import MIN_SETTLE_SAMPLES, SettlePhase
+from soft_gripper_sdre.sim.signal_specs import SignalSpecError, resolve_signals
 from soft_gripper_sdre.sim.signals import SIGNALS
 
 PARAMS = (
     Param('signals', ['u1'], f'signals to play in order, each after the settle phase: built-in '
           f'({", ".join(SIGNALS)}) or named in spec_file', read_only=True),
     Param('spec_file', '', 'YAML file of user-defined multisines and chirps (see '
-          'soft_gripper_sdre/sim/excitation.py); empty = built-in signals only', read_only=True),
+          'soft_gripper_sdre/sim/signal_specs.py); empty = built-in signals only', read_only=True),
     Param('duration', 0.0, 'length of each signal (0 = its own: 10 s for the built-in ones)', 's',
           0.0, 3600.0, read_only=True),
     Param('settle_time', 0.5, 'zero torque before each signal (the first one also gives the rest '

@@ -10,6 +10,9 @@ from __future__ import annotations
 
 import numpy as np
 
+#: zero-torque tips a settle phase needs for training to estimate the noise level from it
+MIN_SETTLE_SAMPLES = 10
+
 
 class SettlePhase:
     """The first settle phase and the zero-torque answers before the first torque.

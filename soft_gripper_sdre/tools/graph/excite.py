@@ -30,7 +30,7 @@ import time
 
 from soft_gripper_sdre import FINGER_NAMES
 from soft_gripper_sdre.nodes.graph import NodeSpec, default_params_file
-from soft_gripper_sdre.sim.excitation import SignalSpecError, resolve_signals
+from soft_gripper_sdre.sim.signal_specs import SignalSpecError, resolve_signals
 from soft_gripper_sdre.tools.graph.procs import DiagnosticsMonitor, Graph, ros_env
 
 RECORDED = ['tip_positions', 'torque_commands', '/clock', '/diagnostics']
