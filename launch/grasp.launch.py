@@ -3,6 +3,7 @@
     ros2 launch soft_gripper_sdre grasp.launch.py [namespace:=left_hand] [duration:=6.0]
         [control_period:=0.005] [mode:=pipelined] [law:=sdre_ff] [noise:=0.05] [seed:=0]
         [record:=true] [output:=runs/grasp_bag] [startup_timeout:=300] [params_file:=my_params.yaml]
+        [composed:=true]
 
 Starts the recorder (with ``record:=true``), the estimator, the trajectory node, the controller
 and the simulator of :func:`soft_gripper_sdre.nodes.graph.grasp_graph`, the same description the
@@ -48,6 +49,8 @@ ARGUMENTS = (
      'first'),
     ('params_file', '', "a ROS parameters file of your own, given to every node after its shipped "
      "config/<node>.yaml (sections /**/<node> or /**); '' = none"),
+    ('composed', 'false', "run the estimator in the controller's process (controller "
+     '--with-estimator): one process and one DDS hop fewer per period'),
 )
 
 _TRUE, _FALSE = ('true', '1', 'yes', 'on'), ('false', '0', 'no', 'off', '')
@@ -96,11 +99,13 @@ def _params_file(text: str):
 def grasp_nodes(namespace: str = '', duration: str = '6.0', control_period: str = '',
                 mode: str = '', law: str = '', noise: str = '', seed: str = '',
                 record: str = 'false', output: str = '', startup_timeout: str = '300',
-                params_file: str = '') -> list[dict]:
-    """The launch arguments (strings, as launch gives them) → one dict per node, for
+                params_file: str = '', composed: str = 'false') -> list[dict]:
+    """The launch arguments (strings, as launch gives them) → one dict per process, for
     ``launch_ros.actions.Node(**d)``: package, executable, name, namespace (relative, None at the
     root), parameters (the shipped params-file path, the user's, then a dict of overrides),
-    remappings.
+    remappings; with ``composed:=true`` the controller's process also runs the estimator
+    (``arguments`` ['--with-estimator'], both nodes' files and overrides, and no ``name``, which
+    launch_ros would give every node of the process).
 
     Raises:
         ValueError: naming the argument: not a number, a boolean, a namespace or a law where one
@@ -109,9 +114,7 @@ def grasp_nodes(namespace: str = '', duration: str = '6.0', control_period: str 
     """
     from soft_gripper_sdre.control.laws import GRAPH_LAWS
 
-    if record.strip().lower() not in _TRUE + _FALSE:
-        raise ValueError(f"launch argument record:={record!r} must be 'true' or 'false'")
-    recording = record.strip().lower() in _TRUE
+    recording, composing = _boolean('record', record), _boolean('composed', composed)
     simulator = {'duration': _number('duration', duration),
                  'startup_timeout': _number('startup_timeout', startup_timeout)}
     _within('duration', duration, simulator['duration'], 'duration')
@@ -141,13 +144,26 @@ def grasp_nodes(namespace: str = '', duration: str = '6.0', control_period: str 
                              f'{PERIOD_RANGE[0]:g} to {PERIOD_RANGE[1]:g} s')
     extra = [_params_file(params_file.strip())] if params_file.strip() else []
     spec = grasp_graph(namespace, record=recording, parameters=parameters, control_period=period,
-                       params_files=extra)
-    return [{'package': PACKAGE, 'executable': node.executable, 'name': node.name,
-             'namespace': node.namespace.lstrip('/') or None,
-             'parameters': [str(f) for f in (node.params_file, *node.more_params_files) if f]
-             + ([dict(node.parameters)] if node.parameters else []),
-             'remappings': [tuple(rule) for rule in node.remappings]}
-            for node in spec.nodes]
+                       params_files=extra, composed=composing)
+    return [_launched(node) for node in spec.nodes]
+
+
+def _boolean(name: str, text: str) -> bool:
+    if text.strip().lower() not in _TRUE + _FALSE:
+        raise ValueError(f"launch argument {name}:={text!r} must be 'true' or 'false'")
+    return text.strip().lower() in _TRUE
+
+
+def _launched(node) -> dict:
+    """``launch_ros.actions.Node`` keywords for the process of ``node`` (a NodeSpec)."""
+    launched = {'package': PACKAGE, 'executable': node.executable, 'name': node.name,
+                'namespace': node.namespace.lstrip('/') or None,
+                'parameters': [str(f) for f in node.params_files]
+                + ([dict(node.overrides)] if node.overrides else []),
+                'remappings': [tuple(rule) for rule in node.remappings]}
+    if node.flags:
+        launched.update(name=None, arguments=list(node.flags))
+    return launched
 
 
 def exit_verdict(node: str, returncode: int, shutting_down: bool,
@@ -188,7 +204,8 @@ def generate_launch_description():
         values = {name: LaunchConfiguration(name).perform(context) for name, _, _ in ARGUMENTS}
         # the math kernels every AVX2 machine runs alike, as the demo's processes get them
         env = pinned_kernels()
-        return [Node(**node, output='screen', emulate_tty=True, on_exit=watch(node['name']),
+        return [Node(**node, output='screen', emulate_tty=True,
+                     on_exit=watch(node['name'] or node['executable']),
                      sigterm_timeout=str(CLOSE_TIMEOUT), additional_env=env or None)
                 for node in grasp_nodes(**values)]
 

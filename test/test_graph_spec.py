@@ -140,3 +140,58 @@ def test_rcl_resolves_every_topic_as_the_description_says(namespace):
             node.destroy_node()
         finally:
             rclpy.try_shutdown(context=ctx)
+
+
+def test_a_composed_graph_runs_the_estimator_in_the_controllers_process():
+    """``composed``: no estimator process; the controller's takes ``--with-estimator``, both
+    nodes' shipped files, then the user's, then the overrides; the estimator is still a node of
+    the graph (the simulator waits for it)."""
+    mine = Path('/tmp/mine.yaml')
+    spec = grasp_graph(composed=True, control_period=0.002, params_files=[mine])
+    assert [n.name for n in spec.nodes] == ['recorder', 'trajectory', 'controller', 'simulator']
+    assert spec.names == ('recorder', 'trajectory', 'controller', 'estimator', 'simulator')
+    assert spec.node('estimator').executable == 'estimator'
+    assert 'estimator' in spec.node('simulator').parameters['wait_for_nodes'].split(',')
+    command = spec.node('controller').command('python')
+    assert command[:5] == ['python', '-m', 'soft_gripper_sdre.nodes.controller',
+                           '--with-estimator', '--ros-args']
+    files = [command[i + 1] for i, a in enumerate(command) if a == '--params-file']
+    assert files == [str(default_params_file('controller')),
+                     str(default_params_file('estimator')), str(mine)]
+    assert command[-2:] == ['-p', 'control_period:=0.002']
+    tuned = spec.with_parameters('estimator', max_bridge=0.02)
+    assert tuned.node('estimator').parameters['max_bridge'] == 0.02
+    assert tuned.node('controller').command('python')[-2:] == ['-p', 'max_bridge:=0.02']
+    assert [n.name for n in spec.without('recorder').nodes] == ['trajectory', 'controller',
+                                                                'simulator']
+
+
+def test_composing_refuses_what_one_process_cannot_hold():
+    with pytest.raises(ValueError, match='set control_period to different values'):
+        grasp_graph(parameters={'estimator': {'control_period': 0.001},
+                                'controller': {'control_period': 0.002}}, composed=True)
+    with pytest.raises(ValueError, match='needs the nodes estimator and controller'):
+        grasp_graph().without('estimator').composed()
+
+
+def test_rcl_gives_each_node_of_the_composed_process_its_own_parameters(tmp_path):
+    """The composed command's ROS arguments, parsed by rcl with the two nodes in one context:
+    each takes its own section of each file, the user's file after the shipped ones."""
+    mine = tmp_path / 'mine.yaml'
+    mine.write_text('/**/estimator:\n  ros__parameters:\n    max_bridge: 0.02\n'
+                    '/**/controller:\n  ros__parameters:\n    law: sdre\n')
+    host = grasp_graph('left_hand', composed=True, params_files=[mine]).node('controller')
+    ctx = Context()
+    rclpy.init(args=['node', *host.ros_arguments()], context=ctx)
+    try:
+        estimator = Node('estimator', context=ctx)
+        controller = Node('controller', context=ctx)
+        assert estimator.declare_parameter('max_bridge', 0.0).value == 0.02
+        assert estimator.declare_parameter('meas_std', 0.0).value == 5e-5     # estimator.yaml
+        assert controller.declare_parameter('law', '').value == 'sdre'
+        assert controller.declare_parameter('max_bridge', 0.0).value == 0.0   # not its section
+        assert controller.get_fully_qualified_name() == '/left_hand/controller'
+        for node in (estimator, controller):
+            node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=ctx)

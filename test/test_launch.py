@@ -137,6 +137,25 @@ def test_a_users_params_file_comes_after_the_shipped_one_and_before_the_argument
     assert nodes[2]['parameters'][2] == {'law': 'sdre'}
 
 
+def test_composed_runs_the_estimator_in_the_controllers_process(launch_module, tmp_path):
+    """``composed:=true``: three processes without the recorder; the controller's takes
+    ``--with-estimator`` and both nodes' files, and has no ``name`` (launch_ros would rename
+    every node of the process with it)."""
+    mine = tmp_path / 'mine.yaml'
+    mine.write_text('/**/estimator:\n  ros__parameters:\n    max_bridge: 0.02\n')
+    nodes = launch_module.grasp_nodes(composed='true', control_period='0.002',
+                                      params_file=str(mine))
+    assert [n['executable'] for n in nodes] == ['trajectory', 'controller', 'simulator']
+    host = nodes[1]
+    assert host['name'] is None and host['arguments'] == ['--with-estimator']
+    assert [Path(f).name for f in host['parameters'][:3]] == ['controller.yaml', 'estimator.yaml',
+                                                              'mine.yaml']
+    assert host['parameters'][3] == {'control_period': 0.002}
+    assert 'arguments' not in nodes[0] and 'arguments' not in launch_module.grasp_nodes()[2]
+    with pytest.raises(ValueError, match="composed:='yes please' must be 'true' or 'false'"):
+        launch_module.grasp_nodes(composed='yes please')
+
+
 @pytest.mark.parametrize('text, needle', [('[1, 2]', 'is not a ROS parameters file'),
                                           ('a: [', 'is not YAML')])
 def test_a_params_file_that_is_not_one_is_named(launch_module, tmp_path, text, needle):

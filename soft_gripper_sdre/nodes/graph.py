@@ -47,6 +47,11 @@ TIP_READERS = ('recorder', 'estimator', 'trajectory')
 #: the simulator starts stepping, so the bag holds the run from its first instant
 RECORDED_BEFORE_START = ('state_estimate', 'torque_commands', 'grasp_reference')
 
+#: a node another node's process can run beside itself → (the host, the host's flag): the estimator
+#: in the controller's process hands each estimate to the controller without a DDS hop, still
+#: publishing it for everyone else (docs/performance.md "The deployment loop")
+HOSTS = {'estimator': ('controller', '--with-estimator')}
+
 #: the hand's two fingers that face each other across the cube: the grasping pair of the hand
 CUBE_FINGERS = (0, 2)
 
@@ -177,6 +182,7 @@ class NodeSpec:
     parameters: Mapping[str, Any] = field(default_factory=dict)     # overrides, after the files
     remappings: tuple[tuple[str, str], ...] = ()
     more_params_files: tuple[Path, ...] = ()    # a user's parameter files, after params_file
+    hosted: tuple[NodeSpec, ...] = ()           # nodes run in this node's process (HOSTS)
 
     @property
     def full_name(self) -> str:
@@ -187,27 +193,47 @@ class NodeSpec:
     def module(self) -> str:
         return f'{PACKAGE}.nodes.{self.executable}'
 
+    @property
+    def flags(self) -> tuple[str, ...]:
+        """The executable's flags before ``--ros-args``: one per hosted node."""
+        return tuple(HOSTS[node.name][1] for node in self.hosted)
+
+    @property
+    def params_files(self) -> tuple[Path, ...]:
+        """Every parameters file the process reads, in order: each node's shipped one (this
+        node's, then its hosted nodes'), then the user's, without repeats; each node takes its
+        own section of each."""
+        nodes = (self, *self.hosted)
+        files = (*(n.params_file for n in nodes), *(f for n in nodes for f in n.more_params_files))
+        return tuple(dict.fromkeys(f for f in files if f is not None))
+
+    @property
+    def overrides(self) -> dict[str, Any]:
+        """The process's ``-p`` overrides: the hosted nodes' and this node's together. A ``-p``
+        reaches every node of a process, so :meth:`GraphSpec.composed` refuses two nodes that
+        set one name to different values."""
+        return {k: v for node in (*self.hosted, self) for k, v in node.parameters.items()}
+
     def ros_arguments(self) -> list[str]:
         """``--ros-args`` and everything after it: namespace and node name (when not the
-        executable's own), the parameters file, each override, each remapping."""
+        executable's own), the parameters files, each override, each remapping."""
         args = ['--ros-args']
         if self.namespace:
             args += ['-r', f'__ns:={self.namespace}']
         if self.name != self.executable:
             args += ['-r', f'__node:={self.name}']
-        for path in (self.params_file, *self.more_params_files):
-            if path is not None:
-                args += ['--params-file', str(path)]
-        for key, value in self.parameters.items():
+        for path in self.params_files:
+            args += ['--params-file', str(path)]
+        for key, value in self.overrides.items():
             args += ['-p', parameter_argument(key, value)]
         for source, target in self.remappings:
             args += ['-r', f'{source}:={target}']
         return args
 
     def command(self, python: str = sys.executable) -> list[str]:
-        """The process that runs this node:
-        ``python -m soft_gripper_sdre.nodes.<executable> --ros-args …``."""
-        return [python, '-m', self.module, *self.ros_arguments()]
+        """The process that runs this node (and its hosted ones):
+        ``python -m soft_gripper_sdre.nodes.<executable> [flags] --ros-args …``."""
+        return [python, '-m', self.module, *self.flags, *self.ros_arguments()]
 
     def with_parameters(self, **parameters: Any) -> NodeSpec:
         """The same node with ``parameters`` added to (or replacing) its overrides."""
@@ -225,13 +251,16 @@ class GraphSpec:
 
     @property
     def names(self) -> tuple[str, ...]:
-        return tuple(n.name for n in self.nodes)
+        """Every node's name, hosted ones included."""
+        return tuple(n.name for spec in self.nodes for n in (spec, *spec.hosted))
 
     def node(self, name: str) -> NodeSpec:
-        """The node called ``name``; KeyError if the graph has none."""
+        """The node called ``name``, also one hosted in another's process; KeyError if the graph
+        has none."""
         for spec in self.nodes:
-            if spec.name == name:
-                return spec
+            for node in (spec, *spec.hosted):
+                if node.name == name:
+                    return node
         raise KeyError(f'the graph has no node {name!r} (nodes: {", ".join(self.names)})')
 
     def topic(self, name: str) -> str:
@@ -245,10 +274,41 @@ class GraphSpec:
         return absolute
 
     def with_parameters(self, node: str, **parameters: Any) -> GraphSpec:
-        """The same graph with ``parameters`` added to ``node``'s overrides."""
+        """The same graph with ``parameters`` added to ``node``'s overrides (a hosted node's
+        too)."""
         self.node(node)
-        return replace(self, nodes=tuple(n.with_parameters(**parameters) if n.name == node else n
-                                         for n in self.nodes))
+
+        def updated(spec: NodeSpec) -> NodeSpec:
+            spec = spec.with_parameters(**parameters) if spec.name == node else spec
+            return replace(spec, hosted=tuple(updated(h) for h in spec.hosted))
+        return replace(self, nodes=tuple(updated(n) for n in self.nodes))
+
+    def composed(self) -> GraphSpec:
+        """The same graph with every node of :data:`HOSTS` run in its host's process
+        (``controller --with-estimator``): one process and one DDS hop fewer per period.
+
+        Raises:
+            ValueError: a node to host or its host is missing or renamed (``-r __node:=`` would
+                rename every node of the process), or the two set one parameter to different
+                values (a ``-p`` reaches both).
+        """
+        nodes = list(self.nodes)
+        for guest, (host, _flag) in HOSTS.items():
+            index = {n.name: i for i, n in enumerate(nodes)}
+            if guest not in index or host not in index:
+                raise ValueError(f'composing needs the nodes {guest} and {host}; the graph has '
+                                 f'{", ".join(self.names)}')
+            g, h = nodes[index[guest]], nodes[index[host]]
+            if g.name != g.executable or h.name != h.executable:
+                raise ValueError(f'composing needs {guest} and {host} under their own names')
+            clash = sorted(k for k in set(g.parameters) & set(h.parameters)
+                           if g.parameters[k] != h.parameters[k])
+            if clash:
+                raise ValueError(f'{guest} and {host} would share a process but set '
+                                 f'{", ".join(clash)} to different values')
+            nodes[index[host]] = replace(h, hosted=(*h.hosted, g))
+            del nodes[index[guest]]
+        return replace(self, nodes=tuple(nodes))
 
     def without(self, *names: str) -> GraphSpec:
         """The graph without the nodes ``names`` (e.g. the recorder); the simulator no longer
@@ -257,6 +317,7 @@ class GraphSpec:
         for node in self.nodes:
             if node.name in names:
                 continue
+            node = replace(node, hosted=tuple(h for h in node.hosted if h.name not in names))
             waited = node.parameters.get('wait_for_nodes')
             if node.name == 'simulator' and isinstance(waited, str):
                 kept = ','.join(n for n in waited.split(',') if n and n not in names)
@@ -270,7 +331,7 @@ class GraphSpec:
 def grasp_graph(namespace: str = '', *, record: bool = True,
                 parameters: Mapping[str, Mapping[str, Any]] | None = None,
                 clock: str | None = None, control_period: float | None = None,
-                params_files: Sequence[Path | str] = ()) -> GraphSpec:
+                params_files: Sequence[Path | str] = (), composed: bool = False) -> GraphSpec:
     """The grasp graph: recorder (if ``record``), estimator, trajectory, controller, simulator.
 
     Args:
@@ -286,6 +347,7 @@ def grasp_graph(namespace: str = '', *, record: bool = True,
             controller's roll-off and skip count); None keeps the parameter files' (1 ms).
         params_files: a user's ROS parameter files, given to every node after its shipped one
             (each node takes its own section, ``/**/<node>`` or ``/**``), before ``parameters``.
+        composed: run the estimator in the controller's process (:meth:`GraphSpec.composed`).
 
     The simulator waits for the graph's other nodes by :func:`readiness_problem`
     (``wait_for_nodes``), unless told otherwise.
@@ -318,4 +380,5 @@ def grasp_graph(namespace: str = '', *, record: bool = True,
     extra = tuple(Path(f) for f in params_files)
     nodes = tuple(NodeSpec(name, name, namespace, default_params_file(name),
                            dict(parameters.get(name, {})), remappings, extra) for name in names)
-    return GraphSpec(namespace, nodes, remappings)
+    graph = GraphSpec(namespace, nodes, remappings)
+    return graph.composed() if composed else graph
