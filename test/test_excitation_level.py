@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from spring_finger import NOISE, RATE, REST, SpringDamper
 
-from soft_gripper_sdre.sim.excitation import ExcitationPlan, LevelSearch
+from soft_gripper_sdre.sim.excitation import ExcitationPlan, LevelSearch, LevelSettings
 from soft_gripper_sdre.sim.signal_specs import builtin_signal
 from soft_gripper_sdre.sim.signals import BROADBAND_SIGNALS, SIGNALS
 
@@ -62,7 +62,8 @@ def test_the_search_lands_the_signal_near_the_target_off_the_clip(name):
     max_excursion, target = 0.02, 0.5
     goal = target * max_excursion
     plan = ExcitationPlan([builtin_signal(name)], 0.5, 1, torque_limit=0.1)
-    search = LevelSearch(plan.peak_torque, 0.1, max_excursion, 1, target=target, settle_time=0.5)
+    search = LevelSearch(plan.peak_torque, 0.1, max_excursion, 1,
+                         settings=LevelSettings(target=target, settle_time=0.5))
     run_search(search, SpringDamper())
     amps = [p.amplitude for p in search.probes]
     assert amps[0] == 0.05 and all(b > a for a, b in zip(amps, amps[1:]))
@@ -84,7 +85,7 @@ def test_the_search_lands_the_signal_near_the_target_off_the_clip(name):
 
 def test_a_stiff_finger_stops_the_search_at_the_torque_limit():
     plan = ExcitationPlan([builtin_signal('x1')], 0.5, 1, torque_limit=0.02)
-    search = LevelSearch(plan.peak_torque, 0.02, 0.02, 1, settle_time=0.5)
+    search = LevelSearch(plan.peak_torque, 0.02, 0.02, 1, settings=LevelSettings(settle_time=0.5))
     run_search(search, SpringDamper(gain=0.01))
     largest = plan.largest_unclipped_amplitude()
     assert search.probes[-1].amplitude == pytest.approx(largest)
@@ -96,15 +97,16 @@ def test_a_stiff_finger_stops_the_search_at_the_torque_limit():
 
 def test_a_soft_finger_is_scaled_down_from_the_first_probe():
     plan = ExcitationPlan([builtin_signal('u1')], 0.5, 1)
-    search = LevelSearch(plan.peak_torque, 0.1, 0.02, 1, settle_time=0.5, start=0.2)
+    search = LevelSearch(plan.peak_torque, 0.1, 0.02, 1,
+                         settings=LevelSettings(settle_time=0.5, start=0.2))
     run_search(search, SpringDamper())
     [probe] = search.probes
     assert probe.excursion > 0.01 and search.amplitude < 0.2
 
 
 def test_probes_excite_only_the_chosen_finger_and_zero_settles_between():
-    search = LevelSearch(np.array([0.06, 0.03]), 0.1, 0.02, 3, finger=1, settle_time=0.5,
-                         probe_time=2.0)
+    search = LevelSearch(np.array([0.06, 0.03]), 0.1, 0.02, 3, finger=1,
+                         settings=LevelSettings(settle_time=0.5, probe_time=2.0))
     tips = np.tile(REST, (3, 1))
     assert np.all(search.step(0.1, tips) == 0.0)                  # the first settle
     u = search.step(0.5 + 0.25, tips)                             # a quarter period in
@@ -115,20 +117,20 @@ def test_probes_excite_only_the_chosen_finger_and_zero_settles_between():
     assert np.all(search.step(0.5 + 2.2, tips) == 0.0)            # settling after the probe
 
 
-@pytest.mark.parametrize('kwargs, message', [
-    (dict(peak=np.zeros(2)), 'peak must be'),
-    (dict(max_excursion=0.0), 'max_excursion must be finite and > 0'),
-    (dict(target=1.5), 'target must be in (0, 1]'),
-    (dict(start=0.0), 'start must be finite and > 0'),
-    (dict(ratio=1.0), 'ratio must be finite and > 1'),
-    (dict(probe_time=0.0), 'probe_time must be finite and > 0'),
-    (dict(settle_time=0.0), 'settle_time must be finite and > 0'),
-    (dict(finger=2), 'finger must be in [0, 0]'),
+@pytest.mark.parametrize('kwargs, settings, message', [
+    (dict(peak=np.zeros(2)), {}, 'peak must be'),
+    (dict(max_excursion=0.0), {}, 'max_excursion must be finite and > 0'),
+    ({}, dict(target=1.5), 'target must be in (0, 1]'),
+    ({}, dict(start=0.0), 'start must be finite and > 0'),
+    ({}, dict(ratio=1.0), 'ratio must be finite and > 1'),
+    ({}, dict(probe_time=0.0), 'probe_time must be finite and > 0'),
+    ({}, dict(settle_time=0.0), 'settle_time must be finite and > 0'),
+    (dict(finger=2), {}, 'finger must be in [0, 0]'),
 ])
-def test_bad_search_arguments_are_named(kwargs, message):
+def test_bad_search_arguments_are_named(kwargs, settings, message):
     args = dict(peak=np.array([0.06, 0.06]), torque_limit=0.1, max_excursion=0.02, n_fingers=1)
     args.update(kwargs)
     with pytest.raises(ValueError) as info:
-        LevelSearch(**args)
+        LevelSearch(**args, settings=LevelSettings(**settings))
     assert message in str(info.value)
 

@@ -70,7 +70,7 @@ from soft_gripper_sdre.nodes.params import (
     with_reliability,
 )
 from soft_gripper_sdre.nodes.topics import LOOP_QOS, NEWEST_QOS, TIP_POSITIONS, TORQUE_COMMANDS
-from soft_gripper_sdre.sim.excitation import ExcitationPlan, LevelSearch
+from soft_gripper_sdre.sim.excitation import ExcitationPlan, LevelSearch, LevelSettings
 from soft_gripper_sdre.sim.settle import MIN_SETTLE_SAMPLES, SettlePhase
 from soft_gripper_sdre.sim.signal_specs import SignalSpecError, resolve_signals
 from soft_gripper_sdre.sim.signals import SIGNALS
@@ -205,9 +205,9 @@ class ExcitationNode(Node):
         if not peak.max() > 0:
             raise ParameterError("parameter 'signals': every signal is zero; level auto has "
                                  'nothing to scale')
-        return LevelSearch(peak, p['torque_limit'], p['max_excursion'], self.n, finger,
-                           target=p['level_target'], start=p['level_start'],
-                           probe_time=p['level_probe_time'], settle_time=p['settle_time'])
+        settings = LevelSettings(target=p['level_target'], start=p['level_start'],
+                                 probe_time=p['level_probe_time'], settle_time=p['settle_time'])
+        return LevelSearch(peak, p['torque_limit'], p['max_excursion'], self.n, finger, settings)
 
     def _clip_text(self) -> str:
         return f'{100 * self.plan.clip_share():.1f} % of the signals\' samples at the torque limit'

@@ -47,7 +47,8 @@ from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.common import OK, WARN, Diagnostics, LatencyWindow, run
 from soft_gripper_sdre.nodes.params import Param, ParameterError, declare_all, on_runtime_change
 from soft_gripper_sdre.nodes.topics import LOOP_QOS, NEWEST_QOS, TIP_POSITIONS, TORQUE_COMMANDS
-from soft_gripper_sdre.sim.foreign import PAIRS, plant_pair
+from soft_gripper_sdre.sim.foreign import plant_pair
+from soft_gripper_sdre.sim.foreign_params import PAIRS
 
 #: the noise-free tips, for scoring (same type and stamps as tip_positions)
 TRUE_TIP_POSITIONS = 'true_tip_positions'

@@ -175,6 +175,28 @@ class Probe:
     excursion: float
 
 
+@dataclass(frozen=True)
+class LevelSettings:
+    """How a :class:`LevelSearch` probes and when it stops (its doc uses these names); the search
+    checks them.
+
+    Attributes:
+        target: the goal as a share of the largest excursion, in (0, 1].
+        start: the first probe's amplitude a_0.
+        ratio: the most an amplitude grows from one probe to the next (> 1).
+        probe_time: the duration of a probe [s].
+        settle_time: the zero torque before the first probe and after each [s].
+        close: a probe whose excursion is at least this share of the goal ends the search.
+    """
+
+    target: float = 0.5
+    start: float = 0.05
+    ratio: float = 2.0
+    probe_time: float = 2.0
+    settle_time: float = 0.5
+    close: float = 0.8
+
+
 class LevelSearch:
     """Choose the signals' amplitude from probes on the finger (module doc).
 
@@ -189,20 +211,21 @@ class LevelSearch:
     e_k ≥ ``close`` × g, or at the largest amplitude (the signals' peak at the torque limit),
     the search ends; otherwise a_{k+1} = min(``ratio`` a_k, a_k g / e_k, largest). The chosen
     amplitude is a_k g / e_k, at most ``ratio`` a_k and at most the largest amplitude, so the
-    signals stay off the clip.
+    signals stay off the clip. ``target``, ``start``, ``ratio``, ``probe_time``, ``settle_time``
+    and ``close`` are the ``settings`` (:class:`LevelSettings`).
 
     Drive it with :meth:`step` for each tip message (or each tick, with the newest tips);
     ``done`` then ``amplitude`` and ``end`` (the search time at which it ended) give the result.
 
     Raises:
-        ValueError: a bad argument (named).
+        ValueError: a bad argument or setting (named).
     """
 
     def __init__(self, peak: np.ndarray, torque_limit: float, max_excursion: float,
-                 n_fingers: int, finger: int | None = None, *, target: float = 0.5,
-                 start: float = 0.05, ratio: float = 2.0, probe_time: float = 2.0,
-                 settle_time: float = 0.5, close: float = 0.8) -> None:
+                 n_fingers: int, finger: int | None = None,
+                 settings: LevelSettings = LevelSettings()) -> None:
         peak = np.asarray(peak, dtype=float)
+        s = settings
         checks = (
             ('peak', peak.shape == (2,) and bool(np.all(np.isfinite(peak)))
              and bool(np.all(peak >= 0)) and bool(peak.max() > 0),
@@ -211,12 +234,13 @@ class LevelSearch:
              'finite and > 0 N·m'),
             ('max_excursion', math.isfinite(max_excursion) and max_excursion > 0,
              'finite and > 0 m'),
-            ('target', 0 < target <= 1, 'in (0, 1]'),
-            ('start', math.isfinite(start) and start > 0, 'finite and > 0'),
-            ('ratio', math.isfinite(ratio) and ratio > 1, 'finite and > 1'),
-            ('probe_time', math.isfinite(probe_time) and probe_time > 0, 'finite and > 0 s'),
-            ('settle_time', math.isfinite(settle_time) and settle_time > 0, 'finite and > 0 s'),
-            ('close', 0 < close <= 1, 'in (0, 1]'),
+            ('target', 0 < s.target <= 1, 'in (0, 1]'),
+            ('start', math.isfinite(s.start) and s.start > 0, 'finite and > 0'),
+            ('ratio', math.isfinite(s.ratio) and s.ratio > 1, 'finite and > 1'),
+            ('probe_time', math.isfinite(s.probe_time) and s.probe_time > 0, 'finite and > 0 s'),
+            ('settle_time', math.isfinite(s.settle_time) and s.settle_time > 0,
+             'finite and > 0 s'),
+            ('close', 0 < s.close <= 1, 'in (0, 1]'),
         )
         for name, ok, what in checks:
             if not ok:
@@ -226,17 +250,17 @@ class LevelSearch:
         self.peak = peak
         self.n_fingers = n_fingers
         self.rows = list(range(n_fingers)) if finger is None else [finger]
-        self.goal = float(target) * float(max_excursion)
+        self.goal = float(s.target) * float(max_excursion)
         self.largest = float(torque_limit) / float(peak.max())
-        self.ratio, self.close = float(ratio), float(close)
-        self.probe_time, self.settle_time = float(probe_time), float(settle_time)
+        self.ratio, self.close = float(s.ratio), float(s.close)
+        self.probe_time, self.settle_time = float(s.probe_time), float(s.settle_time)
         self.probes: list[Probe] = []
         self.rest: np.ndarray | None = None
         self.amplitude: float | None = None
         self.end: float | None = None
         self._rest_sum = np.zeros((len(self.rows), 3))
         self._rest_n = 0
-        self._a = min(float(start), self.largest)
+        self._a = min(float(s.start), self.largest)
         self._start = self.settle_time          # search time of the current probe's start
         self._excursion = 0.0
 

@@ -1,8 +1,8 @@
 """The simulated finger or four-finger hand, stepped at the control period (no ROS).
 
-:class:`GripperSim` builds the scene of :mod:`soft_gripper_sdre.sim.finger` in its own PyBullet
-DIRECT client and exposes it in SI: torques in N·m in, tip positions in metres out, each in its
-finger's own base frame.
+:class:`GripperSim` builds the scene of :mod:`soft_gripper_sdre.sim.finger`
+(:func:`~soft_gripper_sdre.sim.scene.build_scene`) in its own PyBullet DIRECT client and exposes it
+in SI: torques in N·m in, tip positions in metres out, each in its finger's own base frame.
 
 Physics step: the stiffest linearised mode of the finger is ~329 Hz, and holding u = [25, 25]
 sim units turns chaotic with 1 ms semi-implicit steps, so every control period is split into
@@ -20,23 +20,15 @@ import numpy as np
 import pybullet as pb
 
 from soft_gripper_sdre.sim.finger import (
-    CUBE,
-    FINGER_BASE_POSITIONS,
-    FINGER_FRICTION,
-    FINGER_RESTITUTION,
-    FRICTION_TORQUE,
     JOINT_SPRINGS,
     N_JOINTS,
-    PALM,
     SCENES,
     TIP_LINK,
     WORLD_GRAVITY,
     DirectClient,
-    finger_base_rpy,
-    load_fingers,
-    rpy_matrix,
 )
 from soft_gripper_sdre.sim.plant import PlantVariation
+from soft_gripper_sdre.sim.scene import build_scene
 from soft_gripper_sdre.sim.units import LENGTH_SCALE, TORQUE_SCALE
 
 #: the longest physics step the default substeps allow [s]
@@ -142,56 +134,19 @@ class GripperSim(DirectClient):
 
     # -- world construction ------------------------------------------------------------------
     def _build(self) -> None:
-        cfg, cid, plant = self.config, self._client, self.config.plant
+        cfg, cid = self.config, self._client
         # (axis, k) of every joint with the plant's stiffness, read by every physics step
-        self._springs = tuple((axis, k * plant.stiffness_scale) for axis, k in JOINT_SPRINGS)
+        self._springs = tuple((axis, k * cfg.plant.stiffness_scale) for axis, k in JOINT_SPRINGS)
         pb.resetSimulation(physicsClientId=cid)
         pb.setGravity(*WORLD_GRAVITY, physicsClientId=cid)
         pb.setTimeStep(cfg.physics_dt, physicsClientId=cid)
         pb.setPhysicsEngineParameter(numSolverIterations=50, physicsClientId=cid)
-        if cfg.scene == 'finger':
-            rpys = [(math.radians(cfg.mount_roll_deg), 0.0, 0.0)]
-            positions = [(0.0, 0.0, 0.0)]
-        else:
-            rpys = [finger_base_rpy(i) for i in range(4)]
-            positions = list(FINGER_BASE_POSITIONS)
-        # One multibody per finger: four 10-DoF chains solve far faster than one 40-DoF body
-        # (the joint-friction motors are constraints whose cost grows with the body's DoF).
-        self._bodies = load_fingers(cid, [(pos, pb.getQuaternionFromEuler(rpy))
-                                          for pos, rpy in zip(positions, rpys)],
-                                    tip_mass_scale=plant.tip_mass_scale)
-        self._base_pos = np.array(positions, dtype=float)
-        self._base_rot = np.stack([rpy_matrix(rpy) for rpy in rpys])
+        self._scene = build_scene(cid, cfg.scene, cfg.mount_roll_deg, cfg.with_cube, cfg.plant)
+        self._bodies, self._cube = self._scene.fingers, self._scene.cube
         # per finger: p₀ and the columns of R (the rows of Rᵀ) as Python floats, for _read_state
         self._frames = [(p0.tolist(), R.T.tolist())
-                        for p0, R in zip(self._base_pos, self._base_rot)]
-        self._cube = self._palm = None
-        if cfg.scene == 'hand':
-            shape = pb.createCollisionShape(pb.GEOM_CYLINDER, radius=PALM['radius'],
-                                            height=PALM['length'], physicsClientId=cid)
-            # the palm is fixed to the world (mass 0 = static); its nominal mass is irrelevant then
-            self._palm = pb.createMultiBody(0.0, shape, -1, PALM['center'], physicsClientId=cid)
-            pb.changeDynamics(self._palm, -1, lateralFriction=PALM['friction'], physicsClientId=cid)
-            if cfg.with_cube:
-                half = CUBE['size'] / 2
-                shape = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=[half] * 3,
-                                                physicsClientId=cid)
-                visual = pb.createVisualShape(pb.GEOM_BOX, halfExtents=[half] * 3,
-                                              rgbaColor=[0, 0.8, 0, 1], physicsClientId=cid)
-                self._cube = pb.createMultiBody(CUBE['mass'] * plant.cube_mass_scale, shape, visual,
-                                                CUBE['center'], physicsClientId=cid)
-                pb.changeDynamics(self._cube, -1, lateralFriction=CUBE['friction'],
-                                  physicsClientId=cid)
+                        for p0, R in zip(self._scene.base_pos, self._scene.base_rot)]
         self._joint_list = list(range(N_JOINTS))
-        zeros, friction = [0.0] * N_JOINTS, [FRICTION_TORQUE * plant.friction_scale] * N_JOINTS
-        for body in self._bodies:
-            for link in range(-1, N_JOINTS):
-                pb.changeDynamics(body, link, lateralFriction=FINGER_FRICTION,
-                                  restitution=FINGER_RESTITUTION, physicsClientId=cid)
-            # joint friction: a velocity-0 motor with a force limit, active under torque control too
-            pb.setJointMotorControlArray(body, self._joint_list, pb.VELOCITY_CONTROL,
-                                         targetVelocities=zeros, forces=friction,
-                                         physicsClientId=cid)
 
     def reset(self) -> None:
         """Build a fresh world, settle ``settle_time`` at u = 0, and set t = 0 there."""
@@ -300,7 +255,7 @@ class GripperSim(DirectClient):
     @property
     def base_poses(self) -> tuple[np.ndarray, np.ndarray]:
         """Each finger's base frame in the world: positions (n, 3) [m] and rotations (n, 3, 3)."""
-        return self._base_pos / LENGTH_SCALE, self._base_rot.copy()
+        return self._scene.base_pos / LENGTH_SCALE, self._scene.base_rot.copy()
 
     def measure(self) -> np.ndarray:
         """(n, 3) measured tip positions [m] (noisy when ``noise_std`` > 0; one draw per step)."""
