@@ -292,9 +292,9 @@ def startup_rows(quick: bool) -> list[Row]:
 def training_rows() -> list[Row]:
     """Training's duration, as the train tool itself timed it: a fresh `make model` run's
     (runs/train/metrics.json), else the shipped model's record; no row without either."""
+    from soft_gripper_sdre.learning.model import DEFAULT_MODEL
     trained = Path('runs/train/metrics.json')
-    source = (trained if trained.is_file()
-              else Path(__file__).resolve().parents[1] / 'models' / 'default.json')
+    source = trained if trained.is_file() else DEFAULT_MODEL.with_suffix('.json')
     if not source.is_file():
         return []
     m = json.loads(source.read_text())
