@@ -1,14 +1,9 @@
 """The graph benchmarks measure what they claim: real processes over DDS, figures from the nodes."""
 import pytest
 
-from soft_gripper_sdre.tools.benchmarks.bench_graph import (
-    SIM_TOPICS,
-    hog_run,
-    mode_rows,
-    recorder_loss,
-    run_graph,
-)
+from soft_gripper_sdre.tools.benchmarks.bench_graph import hog_run, mode_rows, recorder_loss
 from soft_gripper_sdre.tools.benchmarks.bench_hog import PHASES
+from soft_gripper_sdre.tools.benchmarks.graph_run import SIM_TOPICS, run_graph
 from soft_gripper_sdre.tools.benchmarks.hop import hop
 
 pytestmark = pytest.mark.ros

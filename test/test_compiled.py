@@ -153,9 +153,9 @@ def test_feedforward_faults_match_the_reference(model, weights):
 
 
 def test_bench_times_the_compiled_laws_against_the_reference(loop):
-    """tools/bench's controller rows: both laws replayed, the reference on the paired steps, the
-    torques compared there."""
-    from soft_gripper_sdre.tools.benchmarks.bench import bench_control, bench_kf
+    """tools/benchmarks/bench_compute's controller rows: both laws replayed, the reference on the
+    paired steps, the torques compared there."""
+    from soft_gripper_sdre.tools.benchmarks.bench_compute import bench_control, bench_kf
     for law in ('sdre', 'sdre_ff'):
         r = bench_control(loop, law, repeats=1, ref_steps=10)
         assert all(r[k] > 0 for k in ('fast', 'fast_paired', 'reference', 'kernel'))

@@ -5,7 +5,8 @@
 
 Prints a table of (what, figure, note) rows; ``--write`` also renders it as Markdown with the
 machine facts and the command. Every figure is a median over repeated timings; where two paths
-compete (the compiled controller vs the scipy reference) they are timed interleaved in the same
+compete (the compiled controller vs the scipy reference:
+:mod:`soft_gripper_sdre.tools.benchmarks.bench_compute`) they are timed interleaved in the same
 run and their ratio is reported, since the machine is shared and absolute numbers drift. The
 start-up rows time numba's compilation from an empty cache and the graph's start-up on a filled one.
 The node-graph rows come from :mod:`soft_gripper_sdre.tools.benchmarks.bench_graph` when it is
@@ -29,7 +30,16 @@ import time
 os.environ.setdefault('OMP_NUM_THREADS', '1')  # before numpy loads BLAS: one thread, as the nodes
 import numpy as np  # noqa: E402
 
-Row = tuple[str, str, str]
+from soft_gripper_sdre.tools.benchmarks.bench_compute import (  # noqa: E402
+    Row,
+    bench_control,
+    bench_kf,
+)
+from soft_gripper_sdre.tools.benchmarks.bench_compute import rows as compute_rows  # noqa: E402
+
+
+def _us(seconds: float) -> str:
+    return f'{seconds * 1e6:.0f} µs'
 
 
 def _median_time(fn, repeats: int, inner: int) -> float:
@@ -70,98 +80,6 @@ def bench_markers(repeats: int) -> float:
             truth = sim.truth()
             markers.encode(0, truth.q, truth.cube_pose)
         return _median_time(update, repeats, 50)
-
-
-def bench_control(loop, law: str, repeats: int, ref_steps: int) -> dict[str, float]:
-    """``law``'s compute, compiled (the fast path) against the scipy reference, on the states of a
-    closed-loop run (replayed).
-
-    The fast law (which warm-starts from the step before) runs every step, and right after it the
-    bare kernel call (``tracking_step`` / ``feedforward_step``) from the same warm start; the
-    reference runs on ``ref_steps`` steps spread over the run, each timed right after the fast one
-    on the same state, so the ratio compares the two under the same load. Returns medians of
-    per-step wall times [s] (the first, cold step left out), the fast path's mean Newton–Kleinman
-    iterations per step, its share of exact solves, and the largest difference of the unsaturated
-    torques to the reference's relative to the largest of those.
-    """
-    from soft_gripper_sdre.control.compiled import (
-        FeedforwardOutputs,
-        SdreOutputs,
-        SdreState,
-        feedforward_step,
-        tracking_step,
-    )
-    from soft_gripper_sdre.control.laws import make_law
-    from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
-    from soft_gripper_sdre.learning.model import SDCModel
-    model, w = SDCModel(), Weights(**DEFAULT_WEIGHTS)
-    T, n = loop.est.shape[:2]
-    acc = np.gradient(loop.ref_vel, loop.t, axis=0)            # the moving reference's acceleration
-    rows = [tuple(np.ascontiguousarray(a) for a in (loop.est[k, :, :2], loop.est[k, :, 2:],
-                                                    loop.ref_pos[k], loop.ref_vel[k], acc[k]))
-            for k in range(T)]
-    stacked = [np.concatenate(r[:4] if law == 'sdre' else r, axis=1)
-               for r in rows]                               # the kernel's z
-    paired = set(np.linspace(1, T - 1, min(ref_steps, T - 1)).astype(int).tolist())
-    origin = np.array(model.rest_tip[:2], dtype=np.float64)
-    t: dict[str, list[float]] = {k: [] for k in ('fast', 'fast_paired', 'reference', 'kernel')}
-    iterations, worst, scale = [], 0.0, 0.0
-    clock = time.perf_counter
-    for _ in range(repeats):
-        fast = make_law(law, model, w, 0.0625, n_fingers=n, method='fast')
-        ref = make_law(law, model, w, 0.0625, n_fingers=n, method='reference')
-        s = fast.sdre
-        integral = getattr(fast, 'integral', None)
-        state, out, ff = SdreState.cold(n), SdreOutputs.empty(n), FeedforwardOutputs.empty(n)
-        for k, (pos, vel, ref_pos, ref_vel, ref_acc) in enumerate(rows):
-            for src, dst in zip(s.state, state):
-                dst[:] = src                              # the warm start the law starts from
-            xi = None if integral is None else integral.xi.copy()
-            t0 = clock()
-            step = fast.compute(pos, vel, ref_pos, ref_vel, ref_acc=ref_acc)
-            t1 = clock()
-            if law == 'sdre':
-                tracking_step(stacked[k], origin, *fast.network, *s.settings, *state, *out)
-            else:
-                feedforward_step(stacked[k], origin, False, *fast.network, *s.settings, *state,
-                                 *out, *ff)
-            t2 = clock()
-            if k == 0:
-                continue
-            iterations.append(int(step.nk_iterations.max()))
-            t['fast'].append(t1 - t0)
-            t['kernel'].append(t2 - t1)
-            if k in paired:
-                if xi is not None:                        # the reference from the same integral
-                    ref.integral.xi[:] = xi
-                t0 = clock()
-                reference = ref.compute(pos, vel, ref_pos, ref_vel, ref_acc=ref_acc)
-                t['reference'].append(clock() - t0)
-                t['fast_paired'].append(t['fast'][-1])
-                worst = max(worst, float(np.abs(step.u_unsat - reference.u_unsat).max()))
-                scale = max(scale, float(np.abs(reference.u_unsat).max()))
-    result = {k: float(np.median(v)) for k, v in t.items()}
-    result['iterations'] = float(np.mean(iterations))
-    result['exact'] = float(np.mean(np.array(iterations) == 0))
-    result['difference'] = worst / scale
-    return result
-
-
-def bench_kf(loop, repeats: int) -> float:
-    """Median wall time of one ConstantVelocityKF step for every finger (compiled) [s], on the
-    loop's measurements."""
-    from soft_gripper_sdre.control.kf import ConstantVelocityKF
-    meas = [np.ascontiguousarray(z) for z in loop.meas]
-    samples = []
-    clock = time.perf_counter
-    for _ in range(repeats):
-        kf = ConstantVelocityKF(1e-3, 1.0, 5e-5, n=meas[0].shape[0])
-        kf.reset(meas[0])
-        for z in meas[1:]:
-            t0 = clock()
-            kf.step(z)
-            samples.append(clock() - t0)
-    return float(np.median(samples))
 
 
 def compile_seconds() -> dict[str, float]:
@@ -223,35 +141,6 @@ def graph_startup(timeout: float = 120.0) -> float:
         rclpy.try_shutdown(context=context)
 
 
-def bench_idle(loop, law: str = 'sdre_ff') -> dict[str, float]:
-    """The graph's law on the closed loop's states, as a node runs it: median compute [s] right
-    after 1 ms of sleep (``idle``: a node waiting for its next estimate), right after sweeping
-    64 MB of memory (``flushed``: other processes ran on the core meanwhile, as in the graph), and
-    back to back (``busy``: as the replays above).
-
-    Three instances of the law step through the same states, one after the other at each step, so
-    all see the same warm starts and the same load.
-    """
-    from soft_gripper_sdre.control.laws import make_law
-    from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
-    from soft_gripper_sdre.learning.model import SDCModel
-    model, w = SDCModel(), Weights(**DEFAULT_WEIGHTS)
-    laws = {k: make_law(law, model, w, 0.0625, n_fingers=4) for k in ('idle', 'flushed', 'busy')}
-    before = {'idle': lambda: time.sleep(1e-3), 'flushed': np.ones(8_000_000).sum,
-              'busy': lambda: None}
-    acc = np.zeros((loop.est.shape[1], 2))
-    clock, t = time.perf_counter, {k: [] for k in laws}
-    for k in range(len(loop.est)):
-        args = (loop.est[k, :, :2], loop.est[k, :, 2:], loop.ref_pos[k], loop.ref_vel[k])
-        for name, ctl in laws.items():
-            before[name]()
-            t0 = clock()
-            ctl.compute(*args, ref_acc=acc)
-            if k:
-                t[name].append(clock() - t0)
-    return {k: float(np.median(v)) for k, v in t.items()}
-
-
 def bench_collect(seconds: float) -> float:
     """Real-time factor of collecting one excitation signal (finger scene, settle included)."""
     from soft_gripper_sdre.tools.learning.collect import collect_signal
@@ -290,7 +179,6 @@ def floor_rows(hand: float, hop_us: float, kf: float, control: float,
     lockstep_floor = hand + hops + compute
     pipelined_floor = max(hand, hops + compute)
     cores = os.cpu_count() or 1
-    us = lambda s: f'{s * 1e6:.0f} µs'          # noqa: E731
 
     def period(mode: str) -> float:
         rtf = figures.get(f'{mode}_rtf', float('nan'))
@@ -299,23 +187,23 @@ def floor_rows(hand: float, hop_us: float, kf: float, control: float,
     cpu = figures.get('pipelined_cpu_us', float('nan'))
     return [
         ('floor of a lockstep period: physics + three rclpy hops + compute',
-         f'{us(lockstep_floor)} ({1e-3 / lockstep_floor:.2f}× real time)',
-         f'physics alone {us(hand)} (the hand + cube row), three hops {3 * hop_us:.0f} µs (3 × the '
-         f'raw-CDR hop\'s p50, each with its node\'s receive and send), compute {us(compute)} '
-         '(KF + sdre_ff, back to back)'),
+         f'{_us(lockstep_floor)} ({1e-3 / lockstep_floor:.2f}× real time)',
+         f'physics alone {_us(hand)} (the hand + cube row), three hops {3 * hop_us:.0f} µs '
+         '(3 × the raw-CDR hop\'s p50, each with its node\'s receive and send), compute '
+         f'{_us(compute)} (KF + sdre_ff, back to back)'),
         ('lockstep graph period against its floor',
-         f'{us(lock)} = {lock / lockstep_floor:.2f}× the floor',
+         f'{_us(lock)} = {lock / lockstep_floor:.2f}× the floor',
          f'1 ms / {figures.get("lockstep_rtf", float("nan")):.2f}× real time (the lockstep row); '
          'the rest is what the three processes add beyond their hop: waking up, /diagnostics, '
          'cold caches, the machine\'s other load'),
         ('floor of a pipelined period: the larger of physics and three hops + compute',
-         f'{us(pipelined_floor)} ({1e-3 / pipelined_floor:.2f}× real time)',
-         f'physics {us(hand)} beside three hops + compute {us(hops + compute)}: '
+         f'{_us(pipelined_floor)} ({1e-3 / pipelined_floor:.2f}× real time)',
+         f'physics {_us(hand)} beside three hops + compute {_us(hops + compute)}: '
          'the physics of t_k → t_(k+1) runs while the tips of t_k are answered; '
          f'and on {cores} cores every process\'s CPU of a period '
          f'({cpu:.0f} µs in the pipelined run) needs at least {cpu / cores:.0f} µs'),
         ('pipelined graph period against its floor',
-         f'{us(pipe)} = {pipe / pipelined_floor:.2f}× the floor',
+         f'{_us(pipe)} = {pipe / pipelined_floor:.2f}× the floor',
          f'1 ms / {figures.get("pipelined_rtf", float("nan")):.2f}× real time (the pipelined row); '
          f'the lockstep run\'s period is {lock / pipe:.2f}× this one'),
     ]
@@ -329,17 +217,16 @@ def floor_table(quick: bool, repeats: int) -> list[Row]:
     from soft_gripper_sdre.analysis.closed_loop import default_grasp
     from soft_gripper_sdre.tools.benchmarks.bench_graph import mode_rows, mode_runs
     from soft_gripper_sdre.tools.benchmarks.hop import hop
-    us = lambda s: f'{s * 1e6:.0f} µs'          # noqa: E731
     load = lambda: f'load average {os.getloadavg()[0]:.1f}'    # noqa: E731
     hand = bench_sim('hand', 0.5 if quick else 2.0, 5)
-    out: list[Row] = [('simulator step, hand + cube', f'{us(hand)} ({1e-3 / hand:.2f}× real time)',
+    out: list[Row] = [('simulator step, hand + cube', f'{_us(hand)} ({1e-3 / hand:.2f}× real time)',
                        load())]
     loop = default_grasp(1.0 if quick else 2.0, noise_std=5e-5)
     kf = bench_kf(loop, 1 if quick else 3)
     ctrl = bench_control(loop, 'sdre_ff', 1 if quick else 2, 20)
-    out += [('KF step, 4 fingers (compiled)', us(kf), load()),
-            ('controller compute, sdre_ff, 4 fingers (compiled)', us(ctrl['fast']),
-             f'the kernel call alone {us(ctrl["kernel"])}; {load()}')]
+    out += [('KF step, 4 fingers (compiled)', _us(kf), load()),
+            ('controller compute, sdre_ff, 4 fingers (compiled)', _us(ctrl['fast']),
+             f'the kernel call alone {_us(ctrl["kernel"])}; {load()}')]
     raw = hop('events', 1000 if quick else 3000, raw=True)
     out.append(('one DDS hop, tip_positions as raw CDR (nodes/cdr.py), EventsExecutor',
                 f'{raw["p50"]:.0f} / {raw["p99"]:.0f} µs', f'p50 / p99 one way; {load()}'))
@@ -357,66 +244,37 @@ def deploy_rows(quick: bool) -> list[Row]:
     return deploy(quick)
 
 
-def rows(quick: bool) -> list[Row]:
-    """Every row of the table, measured now."""
-    out: list[Row] = []
-    us = lambda s: f'{s * 1e6:.0f} µs'          # noqa: E731
-    # simulator alone
+def simulator_rows(quick: bool) -> tuple[list[Row], float]:
+    """The simulator's rows: one finger, the hand + cube and the hand's markers; and the hand's
+    period [s], which the floor rows compare."""
     finger = bench_sim('finger', 1.0 if quick else 4.0, 5)
     hand = bench_sim('hand', 0.5 if quick else 2.0, 5)
-    out += [('simulator step, one finger', f'{us(finger)} ({1e-3 / finger:.2f}× real time)',
-             '1 ms period, 2 physics substeps; SoMo reports 6–8× for one finger'),
-            ('simulator step, hand + cube', f'{us(hand)} ({1e-3 / hand:.2f}× real time)',
-             f'{hand / finger:.1f}× one finger')]
     marker = bench_markers(5)
-    out.append(('simulator markers, hand (one update)', us(marker),
-                'ground truth + forward kinematics + MarkerArray bytes, on a wall timer; at the '
-                f'default marker_rate 10 Hz {100 * 10 * marker / (1000 * hand):.1f} % of the hand '
-                "simulator's stepping at 1 kHz (publishing the 12 KB adds a DDS write)"))
-    # the closed loop on the default settings (0.05 mm measurement noise), then its states replayed
-    from soft_gripper_sdre.analysis.closed_loop import default_grasp
-    loop = default_grasp(1.0 if quick else 3.0, noise_std=5e-5)
+    return [('simulator step, one finger', f'{_us(finger)} ({1e-3 / finger:.2f}× real time)',
+             '1 ms period, 2 physics substeps; SoMo reports 6–8× for one finger'),
+            ('simulator step, hand + cube', f'{_us(hand)} ({1e-3 / hand:.2f}× real time)',
+             f'{hand / finger:.1f}× one finger'),
+            ('simulator markers, hand (one update)', _us(marker),
+             'ground truth + forward kinematics + MarkerArray bytes, on a wall timer; at the '
+             f'default marker_rate 10 Hz {100 * 10 * marker / (1000 * hand):.1f} % of the hand '
+             "simulator's stepping at 1 kHz (publishing the 12 KB adds a DDS write)")], hand
+
+
+def closed_loop_row(loop) -> Row:
+    """The in-process closed loop's speed: 1 ms over its median period, and over the whole run."""
     T = len(loop.t)
-    for law in ('sdre', 'sdre_ff'):
-        ctrl = bench_control(loop, law, 1 if quick else 2, 100 if quick else 300)
-        out += [(f'controller compute, {law}, 4 fingers (compiled)', us(ctrl['fast']),
-                 f'{ctrl["reference"] / ctrl["fast_paired"]:.0f}× faster than the reference '
-                 'on the same steps; states of the closed loop below (0.05 mm noise): '
-                 f'{ctrl["iterations"]:.2f} Newton–Kleinman iterations per step, '
-                 f'{100 * ctrl["exact"]:.1f} % exact solves; '
-                 f'torques within {ctrl["difference"]:.1e} of '
-                 "the largest of the reference's; the kernel call alone "
-                 f'{us(ctrl["kernel"])}'),
-                (f'controller compute, {law}, 4 fingers (scipy reference)', us(ctrl['reference']),
-                 'scipy solve_continuous_are per finger, general checks')]
-    clean = bench_control(default_grasp(1.0 if quick else 2.0, noise_std=0.0), 'sdre', 1,
-                          50 if quick else 200)
-    out.append(('controller compute, sdre, 4 fingers (compiled), clean states', us(clean['fast']),
-                f'{clean["reference"] / clean["fast_paired"]:.0f}× faster than the reference, '
-                'same steps; the same loop without measurement noise: '
-                f'{clean["iterations"]:.2f} iterations per step'))
-    kf = bench_kf(loop, 1 if quick else 3)
-    out.append(('KF step, 4 fingers (compiled)', us(kf),
-                'predict + Joseph-form update, the closed loop\'s measurements'))
-    cold = bench_idle(loop)
-    out.append(('controller compute, sdre_ff (the graph\'s law), cold',
-                f'{us(cold["idle"])} / {us(cold["flushed"])}',
-                'after 1 ms of sleep / after 64 MB of other memory traffic, '
-                f'against {us(cold["busy"])} back to back on the same states '
-                f'({cold["idle"] / cold["busy"]:.1f}× / {cold["flushed"] / cold["busy"]:.1f}×): '
-                'a node that waits for each estimate while other processes use its core '
-                'runs it cold'))
     period = float(np.median(loop.period_seconds))
-    out.append(('closed loop in-process (sim + KF + controller)', f'{1e-3 / period:.2f}× real time',
-                f'median period {us(period)}; over the whole {T * 1e-3:.0f} s run '
-                f'{T * 1e-3 / loop.step_seconds:.2f}× (load bursts included); '
-                'hand + cube, 0.05 mm noise, stepping only'))
-    figures: dict[str, float] = {}
-    out += graph_rows(quick, figures)
-    if 'hop_p50_us' in figures:
-        out += floor_rows(hand, figures['hop_p50_us'], kf, ctrl['fast'], figures)
-    out += deploy_rows(quick)
-    if not quick:                # compiling from an empty cache takes about a minute
+    return ('closed loop in-process (sim + KF + controller)', f'{1e-3 / period:.2f}× real time',
+            f'median period {_us(period)}; over the whole {T * 1e-3:.0f} s run '
+            f'{T * 1e-3 / loop.step_seconds:.2f}× (load bursts included); '
+            'hand + cube, 0.05 mm noise, stepping only')
+
+
+def startup_rows(quick: bool) -> list[Row]:
+    """The start-up rows: numba's compilation from an empty cache and from the one it left (not
+    with ``quick``: it takes about a minute), and the graph's start-up to its first torque."""
+    out: list[Row] = []
+    if not quick:
         compiled = compile_seconds()
         out.append(('compiled kernels: import + warm_up(), empty cache / cached',
                     f'{compiled["cold import"] + compiled["cold warm_up"]:.1f} s / '
@@ -428,18 +286,41 @@ def rows(quick: bool) -> list[Row]:
                 f'{graph_startup():.1f} s',
                 'simulator, estimator, trajectory, controller started together on the shipped '
                 "configuration, numba's cache filled (make's kernels stamp)"))
-    # training is timed by the train tool itself: a fresh `make model` run, else the shipped
-    # model's record
+    return out
+
+
+def training_rows() -> list[Row]:
+    """Training's duration, as the train tool itself timed it: a fresh `make model` run's
+    (runs/train/metrics.json), else the shipped model's record; no row without either."""
+    from soft_gripper_sdre.learning.model import DEFAULT_MODEL
     trained = Path('runs/train/metrics.json')
-    source = (trained if trained.is_file()
-              else Path(__file__).resolve().parents[1] / 'models' / 'default.json')
-    if source.is_file():
-        m = json.loads(source.read_text())
-        out.append((f'training, {m["preset"]} preset ({m["epochs_run"]} epochs)',
-                    f'{m["train_seconds"]:.0f} s',
-                    'as measured by `make model` (runs/train/metrics.json)' if source == trained
-                    else 'as recorded with the shipped model (models/default.json), '
-                         'not re-run here'))
+    source = trained if trained.is_file() else DEFAULT_MODEL.with_suffix('.json')
+    if not source.is_file():
+        return []
+    m = json.loads(source.read_text())
+    return [(f'training, {m["preset"]} preset ({m["epochs_run"]} epochs)',
+             f'{m["train_seconds"]:.0f} s',
+             'as measured by `make model` (runs/train/metrics.json)' if source == trained
+             else 'as recorded with the shipped model (models/default.json), not re-run here')]
+
+
+def rows(quick: bool) -> list[Row]:
+    """Every row of the table, measured now: the simulator; the compute and the closed loop on
+    the default settings (0.05 mm measurement noise), its states replayed; the node graph, each
+    of its modes against its floor, the deployment loop; start-up, training, data collection."""
+    from soft_gripper_sdre.analysis.closed_loop import default_grasp
+    out, hand = simulator_rows(quick)
+    loop = default_grasp(1.0 if quick else 3.0, noise_std=5e-5)
+    figures: dict[str, float] = {}
+    out += compute_rows(loop, quick, figures)
+    out.append(closed_loop_row(loop))
+    out += graph_rows(quick, figures)
+    if 'hop_p50_us' in figures:
+        out += floor_rows(hand, figures['hop_p50_us'], figures['kf_s'], figures['control_s'],
+                          figures)
+    out += deploy_rows(quick)
+    out += startup_rows(quick)
+    out += training_rows()
     collect = bench_collect(1.0 if quick else 3.0)
     out.append(('data collection, one finger', f'{collect:.2f}× real time',
                 'one excitation signal with ground truth, 0.5 s settle included'))

@@ -8,13 +8,14 @@ measured tips every period and applies the newest command. This benchmark puts t
 driver we can write in Python in that place, so what it measures is the estimator, the
 controller and rclpy/Fast DDS between them:
 
-* **the driver** (its own process, :func:`driver`) publishes ``tip_positions`` on an absolute
-  wall-clock schedule (1 kHz or 500 Hz) from CDR bytes built before the run (no message object,
-  no serialization per period: as cheap as a C++ driver's publisher), and takes
-  ``torque_commands`` as raw bytes, reading only each command's stamp. The tips are the measured
-  tips of the in-process closed loop (hand + cube, 0.05 mm noise, the default grasp), replayed,
-  so the estimator and the controller see the states and the Newton–Kleinman iterations of the
-  real grasp; they are stamped k·period from 0, as the simulator stamps them.
+* **the driver** (its own process: :mod:`soft_gripper_sdre.tools.benchmarks.deploy_driver`)
+  publishes ``tip_positions`` on an absolute wall-clock schedule (1 kHz or 500 Hz) from CDR bytes
+  built before the run (no message object, no serialization per period: as cheap as a C++
+  driver's publisher), and takes ``torque_commands`` as raw bytes, reading only each command's
+  stamp. The tips are the measured tips of the in-process closed loop (hand + cube, 0.05 mm
+  noise, the default grasp), replayed, so the estimator and the controller see the states and the
+  Newton–Kleinman iterations of the real grasp; they are stamped k·period from 0, as the
+  simulator stamps them.
 * **the graph**: the estimator, the trajectory node (the plan, once) and the controller as
   separate processes on their shipped parameters (``control_period`` = the driver's period),
   optionally the recorder (all topics into an MCAP bag), or the estimator and the controller
@@ -30,25 +31,22 @@ scheduling); see :data:`VARIANTS`.
 from __future__ import annotations
 
 import argparse
-import ctypes
 import json
 import os
 from pathlib import Path
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 
 import numpy as np
 
 from soft_gripper_sdre.nodes.graph import NodeSpec, default_params_file
+from soft_gripper_sdre.tools.benchmarks.deploy_driver import driver
 from soft_gripper_sdre.tools.graph.procs import Graph, ros_env
 
 #: periods before the measured window: discovery, the plan, the first cold steps
 WARMUP_S = 2.0
-#: the driver's wait for the command of its last tick, after its last tick [s]
-DRAIN_S = 0.2
 #: the estimator's and the controller's start-up log lines begin so (their kernels are loaded)
 ESTIMATOR_UP, CONTROLLER_UP = ']: 4 fingers (', ']: model '
 #: variant → (what it changes, environment additions, options)
@@ -72,140 +70,6 @@ def variant_settings(name: str) -> tuple[str, dict[str, str], dict]:
     env = {k: v for _, e, _ in parts for k, v in e.items()}
     options = {k: v for _, _, o in parts for k, v in o.items()}
     return '; '.join(what for what, _, _ in parts), env, options
-
-
-# -- the driver stand-in ------------------------------------------------------------------------
-
-def _schedstat_ns(pid: int) -> int:
-    """Nanoseconds ``pid`` (all its threads) has run on a CPU (``/proc/<pid>/schedstat``)."""
-    try:
-        return int(Path(f'/proc/{pid}/schedstat').read_text().split()[0])
-    except (OSError, ValueError, IndexError):
-        return -1
-
-
-def _timer_slack(ns: int) -> None:
-    """This thread's timer slack (Linux prctl PR_SET_TIMERSLACK), so sleeps end on time."""
-    try:
-        ctypes.CDLL(None, use_errno=True).prctl(29, ctypes.c_ulong(ns), 0, 0, 0)
-    except (OSError, AttributeError):
-        pass
-
-
-def driver(period: float, warmup: float, seconds: float, tips_path: Path, readers: int,
-           pids: dict[str, int]) -> dict:
-    """The driver stand-in (run in its own process): publish the tips of ``tips_path`` every
-    ``period`` on an absolute schedule, time the commands, return the figures.
-
-    Waits until ``readers`` subscribers have matched ``tip_positions`` and a publisher has matched
-    ``torque_commands``, ticks for ``warmup`` + ``seconds``, and measures the last ``seconds``:
-    lateness, latency, and the CPU of every process in ``pids`` (name → pid) and its own.
-    """
-    from geometry_msgs.msg import PoseArray
-    import rclpy
-    from rclpy.experimental import EventsExecutor
-    from rclpy.node import Node
-    from sensor_msgs.msg import JointState
-
-    from soft_gripper_sdre.nodes import cdr
-    from soft_gripper_sdre.nodes.topics import LOOP_QOS, TIP_POSITIONS, TORQUE_COMMANDS
-
-    tips = np.load(tips_path)
-    period_ns = int(round(period * 1e9))
-    stride = int(round(period / 1e-3))
-    total = int(round((warmup + seconds) / period))
-    first = int(round(warmup / period))
-    if (total - 1) * stride >= len(tips):
-        raise ValueError(f'{tips_path} holds {len(tips)} ms of tips, {total * stride} needed')
-    codec = cdr.tips_codec(tips.shape[1])
-    messages = [codec.encode(k * period_ns, tips[k * stride]) for k in range(total)]
-    sent = np.zeros(total)              # perf_counter at each tick's publish (0: skipped)
-    received = np.zeros(total)          # perf_counter when the command stamped k arrived
-    newest = [-1]                       # the newest period answered
-    late = np.zeros(total, dtype=bool)
-    wake = np.zeros(total)              # how late each tick woke [s]
-    perf = time.perf_counter
-    _timer_slack(1000)
-
-    rclpy.init()
-    node = Node('deploy_driver')
-    pub = node.create_publisher(PoseArray, TIP_POSITIONS, LOOP_QOS)
-
-    def on_command(data: bytes) -> None:
-        now = perf()
-        stamp = cdr.leading_stamp(data)
-        if stamp is None:
-            return
-        k = stamp // period_ns
-        if 0 <= k < total and not received[k]:
-            received[k] = now
-            if k > newest[0]:
-                newest[0] = k
-    sub = node.create_subscription(JointState, TORQUE_COMMANDS, on_command, LOOP_QOS, raw=True)
-    executor = EventsExecutor()
-    executor.add_node(node)
-    stop = threading.Event()
-
-    def spin() -> None:
-        while not stop.is_set():
-            executor.spin_once(timeout_sec=0.05)
-    spinner = threading.Thread(target=spin, daemon=True)
-    spinner.start()
-    deadline = time.monotonic() + 60.0
-    while (pub.get_subscription_count() < readers or sub.get_publisher_count() < 1) \
-            and time.monotonic() < deadline:
-        time.sleep(0.01)
-    matched = pub.get_subscription_count(), sub.get_publisher_count()
-    time.sleep(0.2)                     # both sides of every match settled
-    cpu0: dict[str, int] = {}
-    watched = {**pids, 'driver': os.getpid()}
-    skipped = 0
-    t0 = perf() + 0.01
-    k = 0
-    while k < total:
-        due = t0 + k * period
-        now = perf()
-        if now < due:
-            time.sleep(due - now)
-            now = perf()
-        behind = int((now - t0) / period) - k
-        if behind > 0:                  # woke more than a period late: skip, as a timer does
-            skipped += behind
-            k += behind
-            if k >= total:
-                break
-            due = t0 + k * period
-        if k >= first and not cpu0:
-            cpu0 = {name: _schedstat_ns(pid) for name, pid in watched.items()}
-            first = k
-        wake[k] = now - due
-        late[k] = newest[0] < k - 1
-        sent[k] = perf()
-        pub.publish(messages[k])
-        k += 1
-    cpu1 = {name: _schedstat_ns(pid) for name, pid in watched.items()}
-    time.sleep(DRAIN_S)
-    stop.set()
-    spinner.join()
-    executor.shutdown()
-    node.destroy_node()
-    rclpy.try_shutdown()
-    window = np.arange(first, total)
-    ticked = window[sent[window] > 0]
-    answered = ticked[received[ticked] > 0]
-    latency = 1e6 * (received[answered] - sent[answered])
-    periods = total - first
-    cpu = {name: (cpu1[name] - cpu0.get(name, cpu1[name])) / 1e3 / periods for name in cpu1}
-    return {
-        'periods': periods, 'ticks': int(len(ticked)), 'skipped': skipped,
-        'late': int(late[ticked].sum()), 'unanswered': int(len(ticked) - len(answered)),
-        'late_pct': 100.0 * float(late[ticked].sum()) / max(len(ticked), 1),
-        'latency_p50': float(np.percentile(latency, 50)) if len(latency) else float('nan'),
-        'latency_p99': float(np.percentile(latency, 99)) if len(latency) else float('nan'),
-        'latency_max': float(latency.max()) if len(latency) else float('nan'),
-        'wake_p99': 1e6 * float(np.percentile(wake[ticked], 99)),
-        'cpu_us': cpu, 'matched': matched,
-    }
 
 
 # -- the run ------------------------------------------------------------------------------------
@@ -255,7 +119,8 @@ def _spec(name: str, parameters: dict) -> NodeSpec:
 
 def run_deploy(period: float, seconds: float, tips: Path, *, record: bool = False,
                variant: str = 'base', warmup: float = WARMUP_S) -> dict:
-    """One run of the deployment loop (see the module doc); returns :func:`driver`'s figures plus
+    """One run of the deployment loop (see the module doc); returns
+    :func:`~soft_gripper_sdre.tools.benchmarks.deploy_driver.driver`'s figures plus
     ``variant``, ``rate_hz``, ``record`` and ``load`` (the 1-minute load average at the end)."""
     _, extra_env, options = variant_settings(variant)
     env = {**ros_env(), **extra_env}

@@ -66,6 +66,69 @@ def echo(count: int, raw: bool = False) -> int:
     return 0
 
 
+class _Pinger:
+    """The pinging side of :func:`hop` on ``node``: round k's ping is stamped k ns, and only the
+    pong with that stamp ends it, its round trip in ``rtt[k]`` [s]."""
+
+    def __init__(self, node, count: int) -> None:
+        from geometry_msgs.msg import PoseArray
+        import numpy as np
+
+        from soft_gripper_sdre.nodes import conversions as cv
+        from soft_gripper_sdre.nodes.topics import LOOP_QOS
+        self._cv, self.count = cv, count
+        self.msg = cv.tips_to_msg(0, np.zeros((4, 3)))
+        self.rtt = np.zeros(count)
+        self.k, self.t0, self.resent = 0, 0.0, 0
+        self.pub = node.create_publisher(PoseArray, 'bench_ping', LOOP_QOS)
+        self.sub = node.create_subscription(PoseArray, 'bench_pong', self.on_pong, LOOP_QOS)
+
+    def ping(self) -> None:
+        self._cv.set_time(self.msg.header.stamp, self.k)
+        self.t0 = time.perf_counter()
+        self.pub.publish(self.msg)
+
+    def on_pong(self, pong) -> None:
+        now = time.perf_counter()
+        if self._cv.from_time(pong.header.stamp) != self.k:
+            return                                   # the answer to a resent ping's first copy
+        self.rtt[self.k] = now - self.t0
+        self.k += 1
+        if self.k < self.count:
+            self.ping()
+
+    def rounds(self, ex) -> int:
+        """Once both sides have matched, ping every round in turn with ``ex`` spinning, a round
+        unanswered for :data:`RESEND_S` pinged again; returns the rounds answered."""
+        deadline = time.monotonic() + 30.0
+        while (self.sub.get_publisher_count() == 0
+               or self.pub.get_subscription_count() == 0) and time.monotonic() < deadline:
+            ex.spin_once(timeout_sec=0.05)
+        self.ping()
+        deadline = time.monotonic() + 120.0
+        while self.k < self.count and time.monotonic() < deadline:
+            k = self.k
+            ex.spin_once(timeout_sec=0.1)
+            if self.k == k < self.count and time.perf_counter() - self.t0 > RESEND_S:
+                self.resent += 1
+                self.ping()
+        return self.k
+
+    def goodbye(self, far_end) -> str:
+        """Ping stamped ``count`` (see :func:`echo`), again until the ``far_end`` process ends;
+        returns what it printed ('' if it never did)."""
+        import subprocess
+        self.k = self.count
+        for _ in range(30):
+            self.ping()
+            try:
+                out, _ = far_end.communicate(timeout=RESEND_S)
+                return out
+            except subprocess.TimeoutExpired:
+                continue
+        return ''
+
+
 def hop(executor: str, count: int = 2000, raw: bool = False) -> dict[str, float]:
     """One DDS hop with the graph's own message and executor, between two processes.
 
@@ -84,15 +147,12 @@ def hop(executor: str, count: int = 2000, raw: bool = False) -> dict[str, float]
     import subprocess
     import sys
 
-    from geometry_msgs.msg import PoseArray
     import numpy as np
     import rclpy
     from rclpy.context import Context
     from rclpy.node import Node
 
-    from soft_gripper_sdre.nodes import conversions as cv
     from soft_gripper_sdre.nodes.common import EXECUTOR_ENV, make_executor
-    from soft_gripper_sdre.nodes.topics import LOOP_QOS
 
     env = ros_env()
     env[EXECUTOR_ENV] = executor
@@ -104,50 +164,11 @@ def hop(executor: str, count: int = 2000, raw: bool = False) -> dict[str, float]
     rclpy.init(context=ctx)
     node = Node('bench_ping', context=ctx)
     ex = make_executor(executor, context=ctx)
-    msg = cv.tips_to_msg(0, np.zeros((4, 3)))
-    rtt = np.zeros(count)
-    state = {'k': 0, 't0': 0.0, 'resent': 0}
-    pub = node.create_publisher(PoseArray, 'bench_ping', LOOP_QOS)
-
-    def ping() -> None:
-        cv.set_time(msg.header.stamp, state['k'])
-        state['t0'] = time.perf_counter()
-        pub.publish(msg)
-
-    def on_pong(pong) -> None:
-        now = time.perf_counter()
-        if cv.from_time(pong.header.stamp) != state['k']:
-            return                                   # the answer to a resent ping's first copy
-        rtt[state['k']] = now - state['t0']
-        state['k'] += 1
-        if state['k'] < count:
-            ping()
-    sub = node.create_subscription(PoseArray, 'bench_pong', on_pong, LOOP_QOS)
+    pinger = _Pinger(node, count)
     ex.add_node(node)
     try:
-        deadline = time.monotonic() + 30.0
-        while (sub.get_publisher_count() == 0
-               or pub.get_subscription_count() == 0) and time.monotonic() < deadline:
-            ex.spin_once(timeout_sec=0.05)
-        ping()
-        deadline = time.monotonic() + 120.0
-        while state['k'] < count and time.monotonic() < deadline:
-            k = state['k']
-            ex.spin_once(timeout_sec=0.1)
-            if state['k'] == k < count and time.perf_counter() - state['t0'] > RESEND_S:
-                state['resent'] += 1
-                ping()
-        rounds = state['k']
-        state['k'] = count                           # goodbye (see echo), again if unheard
-        for _ in range(30):
-            ping()
-            try:
-                out, _ = echo.communicate(timeout=RESEND_S)
-                break
-            except subprocess.TimeoutExpired:
-                continue
-        else:
-            out = ''
+        rounds = pinger.rounds(ex)
+        out = pinger.goodbye(echo)
     finally:
         if echo.poll() is None:
             echo.kill()
@@ -156,9 +177,9 @@ def hop(executor: str, count: int = 2000, raw: bool = False) -> dict[str, float]
         rclpy.try_shutdown(context=ctx)
     cpu = next((float(line.split()[1]) for line in out.splitlines()
                 if line.startswith('cpu_per_message')), float('nan'))
-    one_way = 0.5e6 * rtt[:rounds]
+    one_way = 0.5e6 * pinger.rtt[:rounds]
     return {'p50': float(np.percentile(one_way, 50)), 'p99': float(np.percentile(one_way, 99)),
-            'cpu': 1e6 * cpu, 'rounds': rounds, 'resent': state['resent']}
+            'cpu': 1e6 * cpu, 'rounds': rounds, 'resent': pinger.resent}
 
 
 def main(argv: list[str] | None = None) -> int:
