@@ -1,6 +1,7 @@
 """The grasp graph across two hosts: the simulator and the recorder in one Linux network
 namespace, the estimator, the trajectory node and the controller in another, joined by a veth
-pair (tools/graph/two_hosts.py). Fast DDS over UDPv4 only, discovery SUBNET + a static peer.
+pair (tools/graph/netns.py; the runs: tools/graph/two_hosts.py). Fast DDS over UDPv4 only,
+discovery SUBNET + a static peer.
 
 Needs root and iproute2 (skipped otherwise, with the reason). Each test makes its own pair of
 namespaces with a random tag and removes them whatever happens. Slow: each run is tens of
@@ -18,18 +19,15 @@ import pytest
 
 from soft_gripper_sdre.analysis.bag import extract_run
 from soft_gripper_sdre.tools.graph.hands import PATIENT_LOCKSTEP, published_and_recorded, trouble
-from soft_gripper_sdre.tools.graph.two_hosts import (
+from soft_gripper_sdre.tools.graph.host_comparison import finite_torques, paired_tracking, timing
+from soft_gripper_sdre.tools.graph.netns import (
     CTL_ADDRESS,
     MULTICAST_ROUTE,
     SIM_ADDRESS,
     HostPair,
-    finite_torques,
     netns_unavailable,
-    paired_tracking,
-    run_one_host,
-    run_split,
-    timing,
 )
+from soft_gripper_sdre.tools.graph.two_hosts import run_one_host, run_split
 from soft_gripper_sdre.tools.judging.report import report
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]

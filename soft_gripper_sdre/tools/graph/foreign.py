@@ -225,6 +225,56 @@ def identify(a: argparse.Namespace, env: dict, bags: Path) -> dict:
     return {'amplitude': amplitude, 'wall_s': round(time.monotonic() - t0, 1)}
 
 
+def train(a: argparse.Namespace, env: dict, bags: Path, out: Path) -> tuple[dict, str]:
+    """Step 2 (module doc): ``tools.learning.train`` on ``bags``' train/ and val/ into
+    ``out/model``, its output kept in ``out/train.log``; returns the model's ``metrics.json`` and
+    the tool's stdout."""
+    cmd = [sys.executable, '-m', 'soft_gripper_sdre.tools.learning.train',
+           '--bag', str(bags / 'train'),
+           '--val-bag', str(bags / 'val'), '--out', str(out / 'model')]
+    if a.epochs is not None:
+        cmd += ['--epochs', str(a.epochs)]
+    if a.rollout_epochs is not None:
+        cmd += ['--rollout-epochs', str(a.rollout_epochs)]
+    done = subprocess.run(cmd, env=env, capture_output=True, text=True)
+    (out / 'train.log').write_text(done.stdout + done.stderr, encoding='utf-8')
+    if done.returncode != 0:
+        raise RuntimeError(f'training failed (exit {done.returncode}):\n'
+                           f'{done.stderr[-2000:]}')
+    return json.loads((out / 'model' / 'metrics.json').read_text()), done.stdout
+
+
+def settings_file(out: Path, trained: dict) -> Path:
+    """The ``params.yaml`` training wrote into ``out/model``; a RuntimeError saying why (from its
+    ``metrics.json``, ``trained``) if it wrote none."""
+    params = out / 'model' / 'params.yaml'
+    if not params.exists():
+        why = trained['fitness']['reasons'] or [
+            (trained.get('derived_settings') or {}).get('reason') or
+            'the model is fit to control, but no controller setting passed the closed-loop '
+            'check on it (metrics.json: derived_settings)']
+        raise RuntimeError('training wrote no params.yaml: ' + '; '.join(why))
+    return params
+
+
+def deploy_laws(a: argparse.Namespace, env: dict, out: Path, params: Path, facts: dict,
+                metrics: dict) -> None:
+    """Steps 3 and 4 (module doc) for each of ``--laws`` in turn on ``params``, along the move
+    the settings were checked for (``facts``, from the training's derived settings): deploy,
+    score, print. ``metrics['deploy']`` takes each law's score as it comes."""
+    limit = yaml.safe_load(params.read_text())['/**/controller']['ros__parameters'][
+        'torque_limit']
+    travel = float(facts['travel'])
+    metrics['deploy'] = {'travel': travel, 'direction_deg': facts['direction']}
+    for i, law in enumerate(a.laws):
+        bag = deploy(a, env, out / f'deploy_{law}', params, law, a.seed + 10 + i)
+        metrics['deploy'][law] = score(bag, travel, limit)
+        s = metrics['deploy'][law]
+        print(f'{law}: RMSE {s["rmse_mm"]} mm = {s["rmse_pct_of_travel"]} % of the '
+              f'{1e3 * travel:.2f} mm travel at {facts["direction"]:.0f}°; saturated at rest '
+              f'{100 * s["saturated_at_rest"]:.1f} %', flush=True)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = _parser()
     a = ap.parse_args(argv)
@@ -243,43 +293,14 @@ def main(argv: list[str] | None = None) -> int:
             metrics['identification'] = {'bags': str(a.bags)}
 
         t0 = time.monotonic()
-        cmd = [sys.executable, '-m', 'soft_gripper_sdre.tools.learning.train',
-               '--bag', str(bags / 'train'),
-               '--val-bag', str(bags / 'val'), '--out', str(out / 'model')]
-        if a.epochs is not None:
-            cmd += ['--epochs', str(a.epochs)]
-        if a.rollout_epochs is not None:
-            cmd += ['--rollout-epochs', str(a.rollout_epochs)]
-        train = subprocess.run(cmd, env=env, capture_output=True, text=True)
-        (out / 'train.log').write_text(train.stdout + train.stderr, encoding='utf-8')
-        if train.returncode != 0:
-            raise RuntimeError(f'training failed (exit {train.returncode}):\n'
-                               f'{train.stderr[-2000:]}')
-        trained = json.loads((out / 'model' / 'metrics.json').read_text())
+        trained, stdout = train(a, env, bags, out)
         metrics['training'] = {k: trained[k] for k in ('val_r2_labels', 'fitness',
                                                        'derived_settings', 'noise_std',
                                                        'train_samples')}
         metrics['training']['wall_s'] = round(time.monotonic() - t0, 1)
-        params = out / 'model' / 'params.yaml'
-        if not params.exists():
-            why = trained['fitness']['reasons'] or [
-                (trained.get('derived_settings') or {}).get('reason') or
-                'the model is fit to control, but no controller setting passed the closed-loop '
-                'check on it (metrics.json: derived_settings)']
-            raise RuntimeError('training wrote no params.yaml: ' + '; '.join(why))
-        print(train.stdout.strip().splitlines()[-1], flush=True)
-        limit = yaml.safe_load(params.read_text())['/**/controller']['ros__parameters'][
-            'torque_limit']
-        facts = trained['derived_settings']['facts']
-        travel = float(facts['travel'])
-        metrics['deploy'] = {'travel': travel, 'direction_deg': facts['direction']}
-        for i, law in enumerate(a.laws):
-            bag = deploy(a, env, out / f'deploy_{law}', params, law, a.seed + 10 + i)
-            metrics['deploy'][law] = score(bag, travel, limit)
-            s = metrics['deploy'][law]
-            print(f'{law}: RMSE {s["rmse_mm"]} mm = {s["rmse_pct_of_travel"]} % of the '
-                  f'{1e3 * travel:.2f} mm travel at {facts["direction"]:.0f}°; saturated at rest '
-                  f'{100 * s["saturated_at_rest"]:.1f} %', flush=True)
+        params = settings_file(out, trained)
+        print(stdout.strip().splitlines()[-1], flush=True)
+        deploy_laws(a, env, out, params, trained['derived_settings']['facts'], metrics)
     except RuntimeError as exc:
         print(f'error: {exc}', file=sys.stderr)
         return 1

@@ -24,7 +24,7 @@ import signal
 import subprocess
 import sys
 import time
-from typing import Callable, Sequence
+from typing import Callable, NamedTuple, Sequence
 
 from soft_gripper_sdre.nodes.graph import GraphSpec, NodeSpec, grasp_graph, readiness_problem
 from soft_gripper_sdre.tools.graph.procs import DiagnosticsMonitor, Graph, ros_env
@@ -142,85 +142,134 @@ def run_graphs(specs: Sequence[GraphSpec], env: dict[str, str], log_dir: Path, *
             names the node and quotes its log (the logs are kept).
     """
     place = place or (lambda spec: Placement())
-    # the simulators wait for every /diagnostics reader (this monitor and each recorder), so a
-    # short run's final counters reach them
-    readers = 1 + sum('recorder' in s.names for s in specs)
-    specs = [s if 'min_diagnostics_subscribers' in s.node(s.lead).parameters
-             else s.with_parameters(s.lead, min_diagnostics_subscribers=readers) for s in specs]
+    specs = _waiting_for_readers(specs)
     monitor = DiagnosticsMonitor(env, monitor_name)
     graphs = [Graph(env, Path(log_dir) / (s.namespace.strip('/').replace('/', '_') or 'root'))
               for s in specs]
-    wall: dict[int, float] = {}
-    during: dict[int, dict] = {}
     try:
         for spec, graph in zip(specs, graphs):
-            for node in spec.nodes:
-                if node.name != spec.lead:
-                    where = place(node)
-                    graph.start_node(node, prefix=where.prefix, env=where.env)
-        deadline = time.monotonic() + CONNECT_TIMEOUT
-        while not all(_connected(s, monitor) for s in specs):
-            if any(not p.alive() for g in graphs for p in g.procs.values()):
-                raise _failure('a node exited before the graph connected', graphs)
-            if time.monotonic() > deadline:
-                raise RuntimeError(f'the graphs did not connect within {CONNECT_TIMEOUT:g} s; '
-                                   f'heard from {sorted(monitor.by_full_name)}; logs in {log_dir}')
-            monitor.poll()
-            time.sleep(0.05)
+            _start(graph, [node for node in spec.nodes if node.name != spec.lead], place)
+        _await_connection(specs, graphs, monitor, log_dir)
         started = time.monotonic()
         for spec, graph in zip(specs, graphs):
-            where = place(spec.node(spec.lead))
-            graph.start_node(spec.node(spec.lead), prefix=where.prefix, env=where.env)
-        codes: dict[int, dict[str, int]] = {}
-        while len(codes) < len(specs):
-            for spec, graph in zip(specs, graphs):
-                lead = graph.procs[spec.lead]
-                if id(graph) in codes:
-                    continue
-                if not lead.alive() and lead.popen.returncode != 0:
-                    raise _failure(f'the {spec.lead} of {spec.namespace or "/"} failed', graphs,
-                                   spec.lead)
-                if lead.alive() and not _finished(spec, monitor):
-                    continue
-                wall[id(graph)] = time.monotonic() - started
-                during[id(graph)] = {n.name: dict(monitor.by_full_name.get(n.full_name, {}))
-                                     for n in spec.nodes}
-                codes[id(graph)] = {}
-                # the simulator has taken its last step: the loop nodes are told to stop at once
-                # (the controller before its clock watchdog fires while the simulator closes),
-                # without waiting for them while other graphs still run
-                for node in reversed(spec.nodes):
-                    if node.name not in (spec.lead, 'recorder'):
-                        graph.procs[node.name].popen.send_signal(signal.SIGINT)
-            running = [(s, g) for s, g in zip(specs, graphs) if id(g) not in codes]
-            if any(not p.alive() for s, g in running for p in g.procs.values() if p.name != s.lead):
-                raise _failure('a node died during the run', [g for _, g in running])
-            if time.monotonic() - started > timeout:
-                raise RuntimeError(f'the run did not finish within {timeout:g} s of wall time; '
-                                   f'logs in {log_dir}')
-            monitor.poll()
-            if on_poll is not None:
-                on_poll(monitor, graphs)
-            time.sleep(0.05)
-        # then each graph in reverse start order, the recorder last: it receives the others'
-        # final counters (and so does the monitor). The simulator and the signalled nodes are
-        # on their way out: a second signal could land after the interpreter has restored the
-        # default handlers and kill the process, so they are only waited for
-        for spec, graph in zip(specs, graphs):
-            for node in reversed(spec.nodes):
-                codes[id(graph)][node.name] = (graph.stop(node.name) if node.name == 'recorder'
-                                               else _exit_code(graph, node.name))
-                monitor.poll()
+            _start(graph, [spec.node(spec.lead)], place)
+        ends = _await_leads(specs, graphs, monitor, started, timeout, on_poll, log_dir)
+        codes = [_stop_in_order(spec, graph, monitor) for spec, graph in zip(specs, graphs)]
         monitor.spin_until(lambda: False, 0.5)
-        return [GraphRun(spec, {n.name: dict(monitor.by_full_name.get(n.full_name, {}))
-                                for n in spec.nodes},
-                         codes[id(graph)], wall[id(graph)],
-                         {k: p.popen.pid for k, p in graph.procs.items()}, during[id(graph)])
-                for spec, graph in zip(specs, graphs)]
+        return [GraphRun(spec, _last_heard(spec, monitor), code, end.wall_s,
+                         {k: p.popen.pid for k, p in graph.procs.items()}, end.during_run)
+                for spec, graph, code, end in zip(specs, graphs, codes, ends)]
     finally:
         for graph in graphs:
             graph.stop_all()
         monitor.close()
+
+
+def _waiting_for_readers(specs: Sequence[GraphSpec]) -> list[GraphSpec]:
+    """``specs`` with each lead (simulator) waiting at start-up for every /diagnostics reader, the
+    monitor of :func:`run_graphs` and each recorder, so a short run's final counters reach them
+    (a lead's own setting is kept)."""
+    readers = 1 + sum('recorder' in s.names for s in specs)
+    return [s if 'min_diagnostics_subscribers' in s.node(s.lead).parameters
+            else s.with_parameters(s.lead, min_diagnostics_subscribers=readers) for s in specs]
+
+
+def _start(graph: Graph, nodes: Sequence[NodeSpec],
+           place: Callable[[NodeSpec], Placement]) -> None:
+    """Start ``nodes`` in ``graph``, each where ``place`` puts it."""
+    for node in nodes:
+        where = place(node)
+        graph.start_node(node, prefix=where.prefix, env=where.env)
+
+
+def _last_heard(spec: GraphSpec, monitor: DiagnosticsMonitor) -> dict[str, dict[str, str]]:
+    """Node name → the /diagnostics values the monitor last heard from that node of ``spec``."""
+    return {n.name: dict(monitor.by_full_name.get(n.full_name, {})) for n in spec.nodes}
+
+
+def _await_connection(specs: Sequence[GraphSpec], graphs: Sequence[Graph],
+                      monitor: DiagnosticsMonitor, log_dir: Path) -> None:
+    """Poll until every graph is connected (:func:`_connected`), within :data:`CONNECT_TIMEOUT`.
+
+    Raises:
+        RuntimeError: a node exited first, or the time ran out.
+    """
+    deadline = time.monotonic() + CONNECT_TIMEOUT
+    while not all(_connected(s, monitor) for s in specs):
+        if any(not p.alive() for g in graphs for p in g.procs.values()):
+            raise _failure('a node exited before the graph connected', graphs)
+        if time.monotonic() > deadline:
+            raise RuntimeError(f'the graphs did not connect within {CONNECT_TIMEOUT:g} s; '
+                               f'heard from {sorted(monitor.by_full_name)}; logs in {log_dir}')
+        monitor.poll()
+        time.sleep(0.05)
+
+
+class _LeadEnd(NamedTuple):
+    """A graph at its lead's last step: the wall time since the leads started [s] and what each
+    of its nodes had last reported then."""
+
+    wall_s: float
+    during_run: dict[str, dict[str, str]]
+
+
+def _await_leads(specs: Sequence[GraphSpec], graphs: list[Graph],
+                 monitor: DiagnosticsMonitor, started: float, timeout: float,
+                 on_poll: Callable[[DiagnosticsMonitor, list[Graph]], None] | None,
+                 log_dir: Path) -> list[_LeadEnd]:
+    """Poll (and call ``on_poll``) until every graph's lead has taken its last step; as soon as
+    one has, its graph's loop nodes are told to stop (:func:`_stop_loop_nodes`).
+
+    Raises:
+        RuntimeError: a lead failed, another node of a running graph died, or more than
+            ``timeout`` s of wall time passed since ``started``.
+    """
+    ends: dict[int, _LeadEnd] = {}
+    while len(ends) < len(specs):
+        for i, (spec, graph) in enumerate(zip(specs, graphs)):
+            lead = graph.procs[spec.lead]
+            if i in ends:
+                continue
+            if not lead.alive() and lead.popen.returncode != 0:
+                raise _failure(f'the {spec.lead} of {spec.namespace or "/"} failed', graphs,
+                               spec.lead)
+            if lead.alive() and not _finished(spec, monitor):
+                continue
+            ends[i] = _LeadEnd(time.monotonic() - started, _last_heard(spec, monitor))
+            _stop_loop_nodes(spec, graph)
+        running = [(s, g) for i, (s, g) in enumerate(zip(specs, graphs)) if i not in ends]
+        if any(not p.alive() for s, g in running for p in g.procs.values() if p.name != s.lead):
+            raise _failure('a node died during the run', [g for _, g in running])
+        if time.monotonic() - started > timeout:
+            raise RuntimeError(f'the run did not finish within {timeout:g} s of wall time; '
+                               f'logs in {log_dir}')
+        monitor.poll()
+        if on_poll is not None:
+            on_poll(monitor, graphs)
+        time.sleep(0.05)
+    return [ends[i] for i in range(len(specs))]
+
+
+def _stop_loop_nodes(spec: GraphSpec, graph: Graph) -> None:
+    """The lead (simulator) has taken its last step: the loop nodes are told to stop at once (the
+    controller before its clock watchdog fires while the simulator closes), without waiting for
+    them while other graphs still run."""
+    for node in reversed(spec.nodes):
+        if node.name not in (spec.lead, 'recorder'):
+            graph.procs[node.name].popen.send_signal(signal.SIGINT)
+
+
+def _stop_in_order(spec: GraphSpec, graph: Graph, monitor: DiagnosticsMonitor) -> dict[str, int]:
+    """Every node's exit code, the graph taken in reverse start order, the recorder last: it
+    receives the others' final counters (and so does the monitor). The lead and the signalled
+    nodes are on their way out: a second signal could land after the interpreter has restored the
+    default handlers and kill the process, so they are only waited for."""
+    codes = {}
+    for node in reversed(spec.nodes):
+        codes[node.name] = (graph.stop(node.name) if node.name == 'recorder'
+                            else _exit_code(graph, node.name))
+        monitor.poll()
+    return codes
 
 
 def published_and_recorded(run: GraphRun) -> dict[str, tuple[int | None, int]]:
