@@ -79,7 +79,8 @@ def test_the_node_waits_for_the_recorder_so_the_bag_holds_the_settle_phase(tmp_p
         rec = recorder(ctx, tmp_path / 'bag')           # the recorder comes late
         executor.add_node(rec)
         assert spin_until(executor, lambda: node.done, 30.0)
-        assert node.exit_code == 0 and node.settle.zero_answers >= node.p['settle_samples'] == 100
+        assert node.exit_code == 0
+        assert node.run.settle.zero_answers >= node.p['settle_samples'] == 100
         executor.remove_node(rec)
         rec.close()
         rec.destroy_node()          # (ros_context destroys only the executor's nodes)
@@ -100,7 +101,7 @@ def test_a_run_started_before_the_recorder_loses_the_settle_phase_and_training_s
         node = excitation(ctx, min_command_subscribers=1)
         executor.add_node(driver)
         executor.add_node(node)
-        assert spin_until(executor, lambda: node.settle.excited, 20.0)
+        assert spin_until(executor, lambda: node.run.settle.excited, 20.0)
         assert spin_until(executor, lambda: node.diag.values.get('plan_time', '') > '0.6', 20.0)
         rec = recorder(ctx, tmp_path / 'bag')
         executor.add_node(rec)
@@ -157,7 +158,7 @@ def test_level_auto_probes_the_finger_then_plays_the_signal_near_the_target(tmp_
         executor.remove_node(rec)
         rec.close()
         rec.destroy_node()          # (ros_context destroys only the executor's nodes)
-    search = node.search
+    search = node.run.search
     assert search.done and len(search.probes) >= 2
     assert node.diag.values['amplitude'] == f'{search.amplitude:.6g}'
     assert float(node.diag.values['clip_share']) == 0.0

@@ -1,9 +1,9 @@
 """A model learned from several fingers knows each one's rest, and the controller puts every finger
-into the model's frame by it (nodes/controller.rest_shift)."""
+into the model's frame by it (nodes/tracking_step.rest_shift)."""
 import numpy as np
 
 from soft_gripper_sdre.learning.model import SDCModel
-from soft_gripper_sdre.nodes.controller import rest_shift
+from soft_gripper_sdre.nodes.tracking_step import rest_shift
 
 
 class TwoFingerModel:

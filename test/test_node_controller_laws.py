@@ -68,7 +68,7 @@ def test_integral_gain_switches_the_default_laws_integral_action_and_other_laws_
         def node(**params):
             n = ControllerNode(context=ctx, parameter_overrides=overrides(**params))
             executor.add_node(n)
-            return n.ctrl
+            return n.tuning.law
         default = node()
         assert (default.integral.gain == DEFAULT_INTEGRAL['gain']
                 and default.integral.band == DEFAULT_INTEGRAL['band'])

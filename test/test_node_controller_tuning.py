@@ -96,11 +96,12 @@ def test_sdre_weights_and_integral_set_at_runtime_retune_the_default_law():
         assert node.get_parameter('r').value == 8000.0
         assert node.get_parameter('integral_band').value == 5e-4
         assert set_parameters(executor, probe, integral_gain=0.0) == [(True, '')]
-        assert node.ctrl.integral is None and node.diag.values['integral'].startswith('gain=0 ')
+        assert node.tuning.law.integral is None
+        assert node.diag.values['integral'].startswith('gain=0 ')
         # a gain the law does not use is taken, and changes nothing
-        law = node.ctrl
+        law = node.tuning.law
         assert set_parameters(executor, probe, pd_kd=5.0) == [(True, '')]
-        assert node.ctrl is law
+        assert node.tuning.law is law
         c = node.diag.counters
         assert c['commands'] == c['estimates'] and c['nonfinite_torque'] == 0
 
@@ -108,9 +109,9 @@ def test_sdre_weights_and_integral_set_at_runtime_retune_the_default_law():
 def test_computed_torque_takes_its_own_gains_by_default():
     with ros_context() as (ctx, executor):
         node, probe, torque = start(ctx, executor, law='computed_torque')
-        assert (node.ctrl.kp, node.ctrl.kd) == (DEFAULT_CT['kp'], DEFAULT_CT['kd'])
+        assert (node.tuning.law.kp, node.tuning.law.kd) == (DEFAULT_CT['kp'], DEFAULT_CT['kd'])
         assert set_parameters(executor, probe, pd_kd=20.0) == [(True, '')]
-        assert (node.ctrl.kp, node.ctrl.kd) == (DEFAULT_CT['kp'], 20.0)
+        assert (node.tuning.law.kp, node.tuning.law.kd) == (DEFAULT_CT['kp'], 20.0)
         assert np.all(np.isfinite(torque()))
 
 
@@ -147,10 +148,10 @@ def test_feedforward_at_the_reference_is_the_law_the_node_runs():
     with ros_context() as (ctx, executor):
         node, probe, torque = start(ctx, executor, law='sdre_ff', feedforward_at='ref',
                                     torque_lowpass_hz=0.0, integral_gain=0.0)
-        assert node.ctrl.ff_at == 'ref'
+        assert node.tuning.law.ff_at == 'ref'
         u = torque()
         p = node.p
-        pos, vel, acc = node._sample(node.gate.plan, 1 * MS)
+        pos, vel, acc = node.step.sample(node.gate.plan, 1 * MS)
         twins = {at: make_law('sdre_ff', node.model, Weights(p['q_pos'], p['q_vel'], p['r']),
                               p['torque_limit'], n_fingers=4, method=p['solver'], lowpass_hz=0.0,
                               dt=p['control_period'], ff_at=at, integral_gain=0.0)

@@ -81,7 +81,7 @@ def test_too_few_tips_in_settle_time_extend_the_settle_phase_and_shift_the_plan(
         for k, (_, u) in enumerate(got[6:-1], start=6):
             np.testing.assert_array_equal(u, plan.torques(k * period / 1e9 - shift))
         assert len(got) == 6 + 4 + 1 and np.any(got[7][1] != 0.0)
-        assert node.done and node.exit_code == 0 and node.settle.zero_answers >= 6
+        assert node.done and node.exit_code == 0 and node.run.settle.zero_answers >= 6
         assert node.diag.values['settle_extended'] == '0.020'
 
 

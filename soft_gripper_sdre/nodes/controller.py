@@ -16,8 +16,11 @@ Which estimate is answered, and when, is decided by
 :class:`~soft_gripper_sdre.control.command_gate.CommandGate`: each estimate is answered with the
 plan once one covers its stamp; when estimates stop the controller sends nothing (the simulator
 steps safely on its own) and a wall-time watchdog reports ERROR after ``estimate_watchdog``
-(docs/design/loop_rules.md). This module is the ROS side: parameters, topics, conversions, status
-and logs.
+(docs/design/loop_rules.md). The law the parameters build, and its retuning, are
+:class:`~soft_gripper_sdre.nodes.law_tuning.LawTuning`'s; the arithmetic from an answered
+estimate to its torque (the plan sampled, each finger in the model's frame, the law timed) is
+:class:`~soft_gripper_sdre.nodes.tracking_step.TrackingStep`'s. This module is the ROS side:
+parameters, topics, conversions, status and logs.
 
 **Tuning at runtime.** ``q_pos``, ``q_vel``, ``r``, ``integral_gain``, ``integral_band``, ``pd_kp``
 and ``pd_kd`` may be changed while the node runs (``ros2 param set /controller q_pos 2e6``). A
@@ -51,30 +54,25 @@ from trajectory_msgs.msg import MultiDOFJointTrajectory
 
 from soft_gripper_sdre import FINGER_NAMES
 from soft_gripper_sdre.control.command_gate import Change, CommandGate, Notice, Outcome, Plan
-from soft_gripper_sdre.control.compiled import plan_sample, warm_up
-from soft_gripper_sdre.control.horizon import sample_plan
+from soft_gripper_sdre.control.compiled import warm_up
 from soft_gripper_sdre.control.laws import (
     DEFAULT_CT,
     DEFAULT_INTEGRAL,
     DEFAULT_LAW,
     DEFAULT_PD,
     GRAPH_LAWS,
-    LAW_REGISTRY,
-    hand_over,
-    make_law,
-    pd_gains,
 )
 from soft_gripper_sdre.control.riccati import Check
 from soft_gripper_sdre.control.tracking import (
     DEFAULT_LOWPASS_HZ,
     DEFAULT_WEIGHTS,
-    Weights,
     roll_off_corner_hz,
 )
 from soft_gripper_sdre.learning.model import ModelFileError, SDCModel, set_torch_threads
 from soft_gripper_sdre.nodes import cdr
 from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.common import ERROR, OK, Diagnostics, ThrottledLogger, run
+from soft_gripper_sdre.nodes.law_tuning import LawTuning
 from soft_gripper_sdre.nodes.params import (
     Param,
     ParameterError,
@@ -91,6 +89,7 @@ from soft_gripper_sdre.nodes.topics import (
     STATE_ESTIMATE,
     TORQUE_COMMANDS,
 )
+from soft_gripper_sdre.nodes.tracking_step import TrackingStep
 
 PARAMS = (
     Param('model_path', '', 'SDC model checkpoint (.pt); empty = the model shipped with the '
@@ -157,24 +156,6 @@ PARAMS = (
 )
 
 
-#: the parameters that may be changed while the node runs and retune the law
-TUNABLE = ('q_pos', 'q_vel', 'r', 'integral_gain', 'integral_band', 'pd_kp', 'pd_kd')
-#: the laws whose gains are not from the SDRE weights
-FIXED_GAIN_LAWS = ('pd', 'computed_torque')
-
-
-def rest_shift(model, names: tuple[str, ...]) -> np.ndarray | None:
-    """(n, 2) p₀ − p₀ᶠ per finger: added to a finger's tip and reference, it puts the finger's own
-    rest p₀ᶠ where the model's coordinates have theirs, p₀ (a model learned from several fingers
-    that rest apart, each translated by its own rest in training); None when the model does not
-    know every finger's rest, or they all rest where it does."""
-    rests = model.finger_rests
-    if not all(name in rests for name in names):
-        return None
-    shift = np.array([model.rest_tip[:2] - rests[name][:2] for name in names])
-    return shift if np.any(shift != 0.0) else None
-
-
 class ControllerNode(Node):
     """SDRE tracking controller on topics (see module doc)."""
 
@@ -185,41 +166,45 @@ class ControllerNode(Node):
         p = declare_all(self, PARAMS)
         self.p = p
         set_torch_threads(1)
-        try:
-            model = SDCModel(Path(p['model_path']).expanduser() if p['model_path'] else None)
-        except ModelFileError as exc:
-            raise ParameterError(f'model_path: {exc}') from None
-        self.model = model
+        self.model = load_model(p['model_path'])
         self.names = tuple(p['finger_names'])
         self.n = len(self.names)
-        self.rest_shift = rest_shift(model, self.names)
         self.effort_order = None            # index into u.ravel() of each effort_topic entry
         if p['effort_topic']:
             try:
                 self.effort_order = cv.effort_array_order(p['effort_joints'], self.names)
             except ValueError as exc:
                 raise ParameterError(f'parameter \'effort_joints\': {exc}') from None
-        self._retuned = None                # the law built by an accepted runtime change
-        on_runtime_change(self, PARAMS, validate=self._validate, apply=self._apply)
         try:
-            self.ctrl = self._build_law(p)
+            self.tuning = LawTuning(self.model, self.n, p)
         except ValueError as exc:
             raise ParameterError(f'law/state_weights/integral_gain/pd_kp/pd_kd: {exc}') from None
+        on_runtime_change(self, PARAMS, validate=self.tuning.check, apply=self._apply)
         warm_up()       # compiled (or loaded from the cache) before any topic shows the node ready
+        self.step = TrackingStep(self.model, self.names)
         self.done = False
         self.exit_code = 0
-        self._compute_s = []
-        self._plan: Plan | None = None      # the plan the contiguous copies below are of
-        self._plan_arrays: tuple = ()
+        self._open_topics(subscribe_estimates)
+        self.log = ThrottledLogger(self.get_logger())
+        self.diag = Diagnostics(self)
+        self.gate = CommandGate(_ns(p['control_period']), _ns(p['reset_on_jump']),
+                                p['estimate_watchdog'], counters=self.diag.counters)
+        self._show_settings()
+        self._watchdog = self.create_timer(
+            0.05, lambda: self._act(self.gate.on_wall_time(time.monotonic())))
+        self._log_start()
 
-        # the per-period messages travel as CDR bytes read / written at fixed offsets (nodes/cdr.py)
+    def _open_topics(self, subscribe_estimates: bool) -> None:
+        """The publishers and subscriptions; the per-period messages travel as CDR bytes read /
+        written at fixed offsets (nodes/cdr.py)."""
         self.cdr_estimate = cdr.estimate_codec(self.names)
         self.cdr_cmd = cdr.torques_codec(self.names)
         self.cdr_plan = PlanCodec(self.names)
         self.pub_cmd = self.create_publisher(JointState, TORQUE_COMMANDS, LOOP_QOS)
         self.pub_effort = self._effort_msg = None
         if self.effort_order is not None:
-            self.pub_effort = self.create_publisher(Float64MultiArray, p['effort_topic'], LOOP_QOS)
+            self.pub_effort = self.create_publisher(Float64MultiArray, self.p['effort_topic'],
+                                                    LOOP_QOS)
             self._effort_msg = Float64MultiArray()      # layout: no dims, data_offset 0
         self.sub_est = None
         if subscribe_estimates:
@@ -227,25 +212,28 @@ class ControllerNode(Node):
                                                     self.on_estimate, NEWEST_QOS, raw=True)
         self.sub_ref = self.create_subscription(MultiDOFJointTrajectory, GRASP_REFERENCE,
                                                 self.on_reference, REFERENCE_QOS, raw=True)
-        self.log = ThrottledLogger(self.get_logger())
-        self.diag = Diagnostics(self)
-        self.gate = CommandGate(_ns(p['control_period']), _ns(p['reset_on_jump']),
-                                p['estimate_watchdog'], counters=self.diag.counters)
+
+    def _show_settings(self) -> None:
+        """The model, the law and its values in force, in /diagnostics (compute times too, as
+        they come)."""
+        p, values = self.p, self.diag.values
         cdr.watch(self.diag, self.cdr_estimate, self.cdr_plan)
-        self.diag.values['model'] = str(model.path)
-        self.diag.values['law'] = p['law']
-        self._show_gains()
-        self.diag.values['roll_off_hz'] = (
-            f'{roll_off_corner_hz(p["torque_lowpass_hz"], p["control_period"]):g}')
-        self._watchdog = self.create_timer(
-            0.05, lambda: self._act(self.gate.on_wall_time(time.monotonic())))
+        values['model'] = str(self.model.path)
+        values['law'] = p['law']
+        values.update(self.tuning.shown())
+        corner = roll_off_corner_hz(p['torque_lowpass_hz'], p['control_period'])
+        values['roll_off_hz'] = f'{corner:g}'
         self.diag.before_publish.append(self._compute_stats)
-        integral_note = (f'; integral gain {p["integral_gain"]:g}' if self._uses('integral_gain')
-                         else '')
+
+    def _log_start(self) -> None:
+        """One line of what runs: the model, the weights, the limit, the law, the fingers."""
+        p, model = self.p, self.model
+        integral_note = (f'; integral gain {p["integral_gain"]:g}'
+                         if self.tuning.uses('integral_gain') else '')
         self.get_logger().info(
             f'model {model.path.name} (rest tip {1e3 * model.rest_tip[0]:.1f}, '
             f'{1e3 * model.rest_tip[1]:.1f} mm'
-            f'{"; each finger at its own" if self.rest_shift is not None else ""}); '
+            f'{"; each finger at its own" if self.step.rest_shift is not None else ""}); '
             f'{self.diag.values["weights"]}; '
             f'limit {p["torque_limit"]:g} N·m, rolled off at {self.diag.values["roll_off_hz"]} Hz; '
             f'{p["solver"]} solver; law {p["law"]}'
@@ -294,7 +282,7 @@ class ControllerNode(Node):
         change, t = notice.change, notice.t_ns / cv.NS
         if change is Change.RESET:
             self.get_logger().warning(f'{topic}: time jumped back to {t:.3f} s; resetting')
-            self.ctrl.reset()
+            self.tuning.law.reset()
         elif change is Change.ESTIMATES_LOST:
             self._error(f'no state_estimate for {self.p["estimate_watchdog"]:g} s of wall time, '
                         f'the last stamped t = {t:.4f} s: commanding nothing')
@@ -307,111 +295,46 @@ class ControllerNode(Node):
         self.diag.set_status(ERROR, why)
         self.get_logger().error(why)
 
-    # -- the law -----------------------------------------------------------------------------
     def _control(self, stamp: int, x: np.ndarray, plan: Plan) -> None:
-        ref_pos, ref_vel, ref_acc = self._sample(plan, stamp)
-        pos = x[:, :2]
-        if self.rest_shift is not None:         # each finger into the model's frame
-            pos, ref_pos = pos + self.rest_shift, ref_pos + self.rest_shift
-        t0 = time.perf_counter()
-        out = self.ctrl.compute(pos, x[:, 2:], ref_pos, ref_vel, ref_acc=ref_acc)
-        self._compute_s.append(time.perf_counter() - t0)
-        u = out.u
-        if not np.isfinite(u).all():        # the core guarantees this; keep the promise here too
+        command = self.step.command(self.tuning.law, stamp, x, plan)
+        if command.replaced:
             self.diag.count('nonfinite_torque')
-            u = np.zeros_like(u)
+        u = command.u
         self.pub_cmd.publish(self.cdr_cmd.encode(stamp, u))
         if self.pub_effort is not None:  # the same efforts in the joint order of ros2_control
             self._effort_msg.data = u.ravel()[self.effort_order].tolist()
             self.pub_effort.publish(self._effort_msg)
         self.diag.good('commands', 'tracking')
-        count_solve(self.diag, self.log, out, stamp)
+        count_solve(self.diag, self.log, command.out, stamp)
 
-    def _sample(self, plan: Plan, stamp: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The plan's position, velocity and acceleration (n, 2) at ``stamp``: :func:`sample_plan`
-        compiled (the same bits), on the plan's arrays made contiguous once per plan."""
-        if plan is not self._plan:
-            self._plan = plan
-            self._plan_arrays = (np.ascontiguousarray(plan.times, dtype=np.int64),
-                                 *(np.ascontiguousarray(a, dtype=np.float64)
-                                   for a in (plan.pos, plan.vel, plan.acc)))
-        out = np.empty((3, self.n, 2))
-        if plan_sample(*self._plan_arrays, stamp, out[0], out[1], out[2]):
-            return out[0], out[1], out[2]
-        return sample_plan(plan.times, plan.pos, plan.vel, plan.acc, stamp, with_acc=True)
-
-    # -- the law and its tuning --------------------------------------------------------------
-    def _uses(self, name: str) -> bool:
-        """Whether the law in use reads the tunable parameter ``name``."""
-        options = LAW_REGISTRY[self.p['law']].options
-        if name in ('q_pos', 'q_vel', 'r'):
-            return self.p['law'] not in FIXED_GAIN_LAWS
-        if name in ('integral_gain', 'integral_band'):
-            return 'integral_gain' in options
-        return name in ('pd_kp', 'pd_kd') and 'pd_gains' in options
-
-    def _build_law(self, p: dict):
-        """The control law of the parameters ``p``.
-
-        Raises:
-            ValueError: a value the law refuses (the message names it).
-        """
-        options = LAW_REGISTRY[p['law']].options
-        extra = {}
-        if 'integral_gain' in options:
-            extra.update(integral_gain=p['integral_gain'], integral_band=p['integral_band'])
-        if 'ff_at' in options:
-            extra['ff_at'] = p['feedforward_at']
-        if 'pd_gains' in options:
-            extra['pd_gains'] = pd_gains(p['law'], p['pd_kp'], p['pd_kd'])
-        return make_law(p['law'], self.model, Weights(p['q_pos'], p['q_vel'], p['r']),
-                        p['torque_limit'], n_fingers=self.n, method=p['solver'],
-                        lowpass_hz=p['torque_lowpass_hz'], dt=p['control_period'],
-                        adaptive=p['state_weights'], **extra)
-
-    def _show_gains(self) -> None:
-        """The tunable values in force, in /diagnostics."""
-        p, values = self.p, self.diag.values
-        values['weights'] = f'q_pos={p["q_pos"]:g} q_vel={p["q_vel"]:g} r={p["r"]:g}'
-        values['integral'] = f'gain={p["integral_gain"]:g} band={p["integral_band"]:g}'
-        gains = pd_gains(p['law'], p['pd_kp'], p['pd_kd'])
-        values['pd_gains'] = f'kp={gains["kp"]:g} kd={gains["kd"]:g}'
-
-    def _validate(self, new: dict) -> str | None:
-        """Why the runtime change ``new`` is refused, or None; an accepted change to a value the
-        law uses builds the law it will run (:meth:`_apply` puts it in force)."""
-        self._retuned = None
-        if not any(self._uses(name) for name in TUNABLE if name in new):
-            return None
-        try:
-            self._retuned = self._build_law({**self.p, **new})
-        except ValueError as exc:
-            return f'{", ".join(sorted(new))}: {exc}'
-        return None
-
+    # -- tuning and statistics ---------------------------------------------------------------
     def _apply(self, new: dict) -> None:
+        """An accepted runtime change: the watchdog, and the law retuned (logged, shown)."""
         self.p.update(new)
         self.gate.watchdog = self.p['estimate_watchdog']
-        tuned = {name: new[name] for name in TUNABLE if name in new}
-        if not tuned:
-            return
-        changes = ', '.join(f'{name} = {value:g}' for name, value in tuned.items())
-        if self._retuned is None:
-            self.get_logger().info(f'{changes}: not used by the {self.p["law"]} law, no effect')
-        else:
-            hand_over(self.ctrl, self._retuned)
-            self.ctrl, self._retuned = self._retuned, None
-            self.get_logger().info(f'{changes}: the {self.p["law"]} law is retuned from the next '
-                                   'estimate')
-        self._show_gains()
+        note = self.tuning.apply(new)
+        if note is not None:
+            self.get_logger().info(note)
+            self.diag.values.update(self.tuning.shown())
 
     def _compute_stats(self) -> None:
         """Mean and max compute time [µs] since the last /diagnostics, into its values."""
-        if self._compute_s:
-            c = np.asarray(self._compute_s) * 1e6
-            self.diag.values['compute_us_mean'] = f'{c.mean():.0f}'
-            self.diag.values['compute_us_max'] = f'{c.max():.0f}'
-            self._compute_s.clear()
+        times = self.step.take_compute_us()
+        if times is not None:
+            self.diag.values['compute_us_mean'] = f'{times[0]:.0f}'
+            self.diag.values['compute_us_max'] = f'{times[1]:.0f}'
+
+
+def load_model(path: str) -> SDCModel:
+    """The SDC model of the ``model_path`` parameter (empty: the shipped one).
+
+    Raises:
+        ParameterError: a missing or bad model file (the message names the file).
+    """
+    try:
+        return SDCModel(Path(path).expanduser() if path else None)
+    except ModelFileError as exc:
+        raise ParameterError(f'model_path: {exc}') from None
 
 
 def count_solve(diag: Diagnostics, log: ThrottledLogger, out, stamp: int) -> None:

@@ -47,6 +47,11 @@ jumping back by more than ``reset_on_jump`` (a restarted driver), and an excited
 than ``max_excursion`` from where it was at the start. Malformed or old tip messages are
 counted, warned about (throttled) and not answered. Counters and the signal being played go to
 /diagnostics.
+
+The torque at each run time is :class:`~soft_gripper_sdre.sim.excitation_run.ExcitationRun`'s
+(settle, probes, plan); what /diagnostics and the log show of the run is
+:class:`~soft_gripper_sdre.nodes.excitation_report.RunReport`'s. This module is the ROS side:
+parameters, tips and their stamps, timing, the start and the stops.
 """
 from __future__ import annotations
 
@@ -61,6 +66,7 @@ from sensor_msgs.msg import JointState
 from soft_gripper_sdre.nodes import cdr
 from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.common import ERROR, OK, Diagnostics, run
+from soft_gripper_sdre.nodes.excitation_report import ACTIVITY, RunReport
 from soft_gripper_sdre.nodes.params import (
     Param,
     ParameterError,
@@ -71,7 +77,8 @@ from soft_gripper_sdre.nodes.params import (
 )
 from soft_gripper_sdre.nodes.topics import LOOP_QOS, NEWEST_QOS, TIP_POSITIONS, TORQUE_COMMANDS
 from soft_gripper_sdre.sim.excitation import ExcitationPlan, LevelSearch, LevelSettings
-from soft_gripper_sdre.sim.settle import MIN_SETTLE_SAMPLES, SettlePhase
+from soft_gripper_sdre.sim.excitation_run import ExcitationRun, Phase
+from soft_gripper_sdre.sim.settle import SettlePhase
 from soft_gripper_sdre.sim.signal_specs import SignalSpecError, resolve_signals
 from soft_gripper_sdre.sim.signals import SIGNALS
 
@@ -135,21 +142,7 @@ class ExcitationNode(Node):
         self.p = p
         self.names = tuple(p['finger_names'])
         self.n = len(self.names)
-        if p['finger'] >= self.n:
-            raise ParameterError(f"parameter 'finger': {p['finger']} is not a finger of "
-                                 f'finger_names {list(self.names)} (indices 0 to {self.n - 1}, '
-                                 'or -1 for all)')
-        finger = None if p['finger'] < 0 else p['finger']
-        try:
-            signals = resolve_signals(list(p['signals']), p['spec_file'] or None,
-                                      p['duration'] or None)
-            self.plan = ExcitationPlan(signals, p['settle_time'], self.n, finger, p['torque_limit'],
-                                       p['amplitude'])
-        except (SignalSpecError, ValueError) as exc:
-            raise ParameterError(str(exc)) from None
-        self.search = self._level_search(finger) if p['level'] == 'auto' else None
-        self.plan_offset = 0.0                  # run time at which plan time 0 is [s]
-        self.settle = SettlePhase(p['settle_time'], p['settle_samples'])
+        self.run = excitation_run(p, self.n)
         self.newest_tips: np.ndarray | None = None
         self.done = False
         self.exit_code = 0
@@ -158,7 +151,6 @@ class ExcitationNode(Node):
         self.last_ns = -1                       # newest accepted tip stamp
         self.answered_ns = -1                   # stamp of the last command published
         self.last_heard: float | None = None    # wall time of the newest accepted tips
-        self.rest: np.ndarray | None = None     # tips at the start, for max_excursion
         self.stopping = False                   # shutdown: answer the next tips with zero
         self.stopped = False                    # the final zero went out
         self._deadline = time.monotonic() + p['startup_timeout']
@@ -170,47 +162,11 @@ class ExcitationNode(Node):
             with_reliability(NEWEST_QOS, p['tips_reliability']), raw=True)
         self.diag = Diagnostics(self)
         cdr.watch(self.diag, self.cdr_tips)
-        self.diag.values.update(signal='waiting for tip_positions', level=p['level'],
-                                plan_duration=f'{self.plan.duration:.3f}')
-        if self.search is None:
-            self.diag.values.update(amplitude=f'{p["amplitude"]:g}',
-                                    clip_share=f'{self.plan.clip_share():.4f}')
+        self.report = RunReport(self.diag, self.get_logger(), self.run, p)
         self._watchdog = self.create_timer(0.05, self._check_watchdog)
         if p['timing'] == 'timer':
             self._ticker = self.create_timer(p['period'], self._on_tick, clock=self.get_clock())
-        names = ', '.join(s.name for s in signals)
-        where = 'every finger' if p['finger'] < 0 else self.names[p['finger']]
-        level = (f'amplitude {p["amplitude"]:g} ({self._clip_text()})' if self.search is None else
-                 f'amplitude by probes aiming at {1e3 * self.search.goal:g} mm')
-        self.get_logger().info(
-            f'{names} on {where} of {self.n}, '
-            f'{p["settle_time"]:g} s settle before each, |u| <= {p["torque_limit"]:g} N·m, '
-            f'{level}, {self.plan.duration:g} s in all; {p["timing"]} timing; starting once '
-            f'{TORQUE_COMMANDS} has {p["min_command_subscribers"]} subscriber(s)')
-
-    def _level_search(self, finger: int | None) -> LevelSearch:
-        """The amplitude search of ``level: auto`` (cross-checks its parameters)."""
-        p = self.p
-        for name, bad, why in (
-                ('max_excursion', p['max_excursion'] <= 0,
-                 'level auto needs max_excursion > 0 (it aims at level_target × max_excursion)'),
-                ('settle_time', p['settle_time'] <= 0,
-                 'level auto needs settle_time > 0 (the rest pose the probes are measured from)'),
-                ('amplitude', p['amplitude'] != 1.0,
-                 f'{p["amplitude"]:g} with level auto, which chooses the amplitude itself; leave '
-                 'amplitude at 1.0, or use level fixed')):
-            if bad:
-                raise ParameterError(f'parameter {name!r}: {why}')
-        peak = self.plan.peak_torque
-        if not peak.max() > 0:
-            raise ParameterError("parameter 'signals': every signal is zero; level auto has "
-                                 'nothing to scale')
-        settings = LevelSettings(target=p['level_target'], start=p['level_start'],
-                                 probe_time=p['level_probe_time'], settle_time=p['settle_time'])
-        return LevelSearch(peak, p['torque_limit'], p['max_excursion'], self.n, finger, settings)
-
-    def _clip_text(self) -> str:
-        return f'{100 * self.plan.clip_share():.1f} % of the signals\' samples at the torque limit'
+        self.report.log_start(self.names)
 
     # -- inputs ------------------------------------------------------------------------------
     def on_tips(self, data: bytes) -> None:
@@ -235,26 +191,34 @@ class ExcitationNode(Node):
         if self.stopping:
             self.stop(stamp, 'stopped on shutdown')
             return
-        if self.start_ns is None:
-            subscribers = self.pub_cmd.get_subscription_count()
-            self.diag.values['command_subscribers'] = str(subscribers)
-            if subscribers < self.p['min_command_subscribers']:
-                self.diag.values['signal'] = (f'waiting for {self.p["min_command_subscribers"]} '
-                                              f'{TORQUE_COMMANDS} subscribers')
-                if self.p['timing'] == 'tips':
-                    self._publish(stamp, np.zeros((self.n, 2)))
-                return
-            self.start_ns, self.rest = stamp, tips.copy()
-            self.get_logger().info(f'tip_positions at t = {stamp / cv.NS:.4f} s with {subscribers} '
-                                   f'{TORQUE_COMMANDS} subscriber(s): the run starts')
-        if self.p['max_excursion'] > 0 and self._excursion(tips) > self.p['max_excursion']:
-            self.fault(f'a tip moved {1e3 * self._excursion(tips):.2f} mm from its start, '
+        if self.start_ns is None and not self._start(stamp, tips):
+            return
+        excursion = self.run.excursion(tips) if self.p['max_excursion'] > 0 else 0.0
+        if excursion > self.p['max_excursion']:
+            self.fault(f'a tip moved {1e3 * excursion:.2f} mm from its start, '
                        f'more than max_excursion ({1e3 * self.p["max_excursion"]:g} mm)', stamp)
             return
         if self.p['timing'] == 'tips':
             self._advance(stamp, (stamp - self.start_ns) / cv.NS, tips)
-        self.settle.heard_tips()                # (counted after its own answer: tips timing
+        self.run.settle.heard_tips()            # (counted after its own answer: tips timing
                                                 # answers it before it counts)
+
+    def _start(self, stamp: int, tips: np.ndarray) -> bool:
+        """Start the run at these tips once ``torque_commands`` has min_command_subscribers;
+        until then answer them with zero (tips timing). Whether it started."""
+        subscribers = self.pub_cmd.get_subscription_count()
+        self.diag.values['command_subscribers'] = str(subscribers)
+        if subscribers < self.p['min_command_subscribers']:
+            self.diag.values['signal'] = (f'waiting for {self.p["min_command_subscribers"]} '
+                                          f'{TORQUE_COMMANDS} subscribers')
+            if self.p['timing'] == 'tips':
+                self._publish(stamp, np.zeros((self.n, 2)))
+            return False
+        self.start_ns = stamp
+        self.run.start(tips)
+        self.get_logger().info(f'tip_positions at t = {stamp / cv.NS:.4f} s with {subscribers} '
+                               f'{TORQUE_COMMANDS} subscriber(s): the run starts')
+        return True
 
     def _on_tick(self) -> None:
         if self.stopped or self.start_ns is None:
@@ -282,85 +246,17 @@ class ExcitationNode(Node):
             self.fault(f'no tip_positions for {self.p["tips_timeout"]:g} s of wall time since '
                        f't = {self.last_ns / cv.NS:.4f} s', self.last_ns)
 
-    def _excursion(self, tips: np.ndarray) -> float:
-        """The largest distance of an excited tip from its starting position [m] (NaN counts as
-        far)."""
-        rows = slice(None) if self.plan.finger is None else [self.plan.finger]
-        d = np.linalg.norm(tips[rows] - self.rest[rows], axis=-1)
-        return float(np.inf if not np.all(np.isfinite(d)) else d.max())
-
     # -- outputs -----------------------------------------------------------------------------
     def _advance(self, stamp: int, t: float, tips: np.ndarray) -> None:
-        """Publish the torque for run time ``t`` [s] stamped ``stamp``: zero while the first
-        settle phase is extended, then the level search's while it runs (``tips``: the newest),
-        then the plan's."""
-        t = self.settle.run_time(t)
-        if self.settle.extended and self.settle.shift is not None:
-            self.diag.values['settle_extended'] = f'{self.settle.shift:.3f}'
-        if t is None:
-            u = np.zeros((self.n, 2))
-            self.diag.values.update(signal='settle', plan_time='')
-            self._note_settle(u)
-            self._publish(stamp, u)
-            self.diag.good('commands', 'settling until settle_samples tips were heard')
+        """Publish the run's torque for run time ``t`` [s] stamped ``stamp`` (``tips``: the
+        newest), or stop at the end of the plan."""
+        step = self.run.at(t, tips)
+        self.report.step(step)
+        if step.phase is Phase.OVER:
+            self.stop(stamp, f'finished: {self.run.plan.duration:g} s played')
             return
-        search = self.search
-        if search is not None and not search.done:
-            u = search.step(t, tips)
-            if not search.done:
-                probe = len(search.probes) + 1
-                self.diag.values.update(
-                    signal=f'level probe {probe}' if t >= search.settle_time else 'settle',
-                    level=f'auto: probe {probe} at amplitude {search.current:.4g}', plan_time='')
-                self._note_settle(u)
-                self._publish(stamp, u)
-                self.diag.good('commands', 'probing the level')
-                return
-            self._level_chosen()
-        self._play(stamp, t - self.plan_offset)
-
-    def _level_chosen(self) -> None:
-        """Scale the plan to the amplitude the search chose; plan time 0 is where it ended."""
-        search = self.search
-        self.plan = self.plan.scaled(search.amplitude)
-        self.plan_offset = search.end
-        probes = ', '.join(f'{pr.amplitude:.4g} → {1e3 * pr.excursion:.2f} mm'
-                           for pr in search.probes)
-        self.diag.values.update(level='auto: chosen', amplitude=f'{search.amplitude:.6g}',
-                                clip_share=f'{self.plan.clip_share():.4f}', probes=probes)
-        self.get_logger().info(f'level probes (amplitude → peak excursion): {probes}; amplitude '
-                               f'{search.amplitude:.4g} for {1e3 * search.goal:g} mm, '
-                               f'{self._clip_text()}')
-
-    def _note_settle(self, u: np.ndarray) -> None:
-        """Count the zero-torque answers before the first non-zero torque; warn at that torque if
-        they are too few for training to estimate the noise level."""
-        settle = self.settle
-        if not settle.answered(u):
-            return
-        self.diag.values['settle_tips'] = str(settle.zero_answers)
-        extended = (f', settle phase extended by {settle.shift:.3f} s for settle_samples'
-                    if settle.extended else '')
-        self.get_logger().info(f'first non-zero torque after {settle.zero_answers} tip message(s) '
-                               f'answered with zero torque{extended}')
-        if settle.zero_answers < MIN_SETTLE_SAMPLES:
-            self.get_logger().warn(
-                f'only {settle.zero_answers} tip message(s) answered with zero torque before the '
-                'first non-zero torque; training estimates the noise level from '
-                f'{MIN_SETTLE_SAMPLES} or more (a longer settle_time, or give train --meas-std)')
-
-    def _play(self, stamp: int, t: float) -> None:
-        """Publish the plan's torque for plan time ``t`` stamped ``stamp``, or stop at its end."""
-        if self.plan.finished(t):
-            self.stop(stamp, f'finished: {self.plan.duration:g} s played')
-            return
-        seg = self.plan.segment_at(t)
-        self.diag.values['signal'] = seg.signal.name if seg is not None else 'settle'
-        self.diag.values['plan_time'] = f'{t:.3f}'
-        u = self.plan.torques(t)
-        self._note_settle(u)
-        self._publish(stamp, u)
-        self.diag.good('commands', 'playing')
+        self._publish(stamp, step.u)
+        self.diag.good('commands', ACTIVITY[step.phase])
 
     def _publish(self, stamp: int, u: np.ndarray) -> None:
         self.pub_cmd.publish(self.cdr_cmd.encode(stamp, u))
@@ -400,6 +296,55 @@ class ExcitationNode(Node):
         if not self.stopped:          # no tips came: zero for the newest stamp heard
             self.stop(max(self.last_ns, 0), 'stopped on shutdown')
         self.pub_cmd.wait_for_all_acked(Duration(seconds=1))
+
+
+def excitation_run(p: dict, n: int) -> ExcitationRun:
+    """The run the node's parameters ``p`` describe for ``n`` fingers: the plan of its signals,
+    the first settle phase and, with ``level: auto``, the amplitude search.
+
+    Raises:
+        ParameterError: a bad finger, signal, spec file or level setting (the message names it).
+    """
+    if p['finger'] >= n:
+        raise ParameterError(f"parameter 'finger': {p['finger']} is not a finger of "
+                             f'finger_names {list(p["finger_names"])} (indices 0 to {n - 1}, '
+                             'or -1 for all)')
+    finger = None if p['finger'] < 0 else p['finger']
+    try:
+        signals = resolve_signals(list(p['signals']), p['spec_file'] or None,
+                                  p['duration'] or None)
+        plan = ExcitationPlan(signals, p['settle_time'], n, finger, p['torque_limit'],
+                              p['amplitude'])
+    except (SignalSpecError, ValueError) as exc:
+        raise ParameterError(str(exc)) from None
+    search = level_search(p, plan, finger) if p['level'] == 'auto' else None
+    return ExcitationRun(plan, SettlePhase(p['settle_time'], p['settle_samples']), search)
+
+
+def level_search(p: dict, plan: ExcitationPlan, finger: int | None) -> LevelSearch:
+    """The amplitude search of ``level: auto`` for ``plan`` (cross-checks its parameters).
+
+    Raises:
+        ParameterError: a setting level auto cannot work with (the message names it).
+    """
+    for name, bad, why in (
+            ('max_excursion', p['max_excursion'] <= 0,
+             'level auto needs max_excursion > 0 (it aims at level_target × max_excursion)'),
+            ('settle_time', p['settle_time'] <= 0,
+             'level auto needs settle_time > 0 (the rest pose the probes are measured from)'),
+            ('amplitude', p['amplitude'] != 1.0,
+             f'{p["amplitude"]:g} with level auto, which chooses the amplitude itself; leave '
+             'amplitude at 1.0, or use level fixed')):
+        if bad:
+            raise ParameterError(f'parameter {name!r}: {why}')
+    peak = plan.peak_torque
+    if not peak.max() > 0:
+        raise ParameterError("parameter 'signals': every signal is zero; level auto has "
+                             'nothing to scale')
+    settings = LevelSettings(target=p['level_target'], start=p['level_start'],
+                             probe_time=p['level_probe_time'], settle_time=p['settle_time'])
+    return LevelSearch(peak, p['torque_limit'], p['max_excursion'], plan.n_fingers, finger,
+                       settings)
 
 
 def main(args=None) -> int:

@@ -2,10 +2,10 @@
 
 An :class:`ExcitationPlan` plays a list of :class:`Signal` one after the other, each after a
 settle phase at zero torque, on one finger or on all of them, scaled by an amplitude and then
-clipped to a torque limit; after the last signal every torque is zero. It is the excitation
-node's logic without ROS: the node asks :meth:`ExcitationPlan.torques` for the torque at the time
-since the run began. :meth:`ExcitationPlan.clip_share` says how much of the signals sits on the
-clip at an amplitude.
+clipped to a torque limit; after the last signal every torque is zero. The excitation node's
+run (:class:`~soft_gripper_sdre.sim.excitation_run.ExcitationRun`) asks
+:meth:`ExcitationPlan.torques` for the torque at the plan's time. :meth:`ExcitationPlan.clip_share`
+says how much of the signals sits on the clip at an amplitude.
 
 A :class:`LevelSearch` chooses the amplitude on the finger itself, before the plan: after a
 settle phase (the rest pose) it plays short probes at amplitudes rising geometrically, each

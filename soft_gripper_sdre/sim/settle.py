@@ -1,5 +1,5 @@
 """The first settle phase of an identification run, as rules on run times and torques (ROS-free;
-the excitation node holds one).
+the excitation run, :class:`~soft_gripper_sdre.sim.excitation_run.ExcitationRun`, holds one).
 
 The phase lasts ``settle_time`` of run time and, with ``settle_time`` > 0, until ``samples`` tip
 messages were heard since the start: a driver that delivers fewer in ``settle_time`` extends it,

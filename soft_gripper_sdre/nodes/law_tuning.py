@@ -1,0 +1,110 @@
+"""The controller node's law as its parameters build it, and the rules for retuning it while the
+node runs (no ROS: the node holds a :class:`LawTuning` and reports what it returns).
+
+The parameters are the node's (``law``, ``q_pos``, ``integral_gain``, ``pd_kp``, …); each law
+reads only its own (:data:`~soft_gripper_sdre.control.laws.LAW_REGISTRY` options). A runtime
+change is checked by building the law with the new values, so a refused one leaves the old law
+and values in force; an accepted one replaces the law after
+:func:`~soft_gripper_sdre.control.laws.hand_over` gave the new law the state that keeps the
+command continuous (the roll-off's last output, the integral's torque). A change to a value the
+law does not read is taken and has no effect.
+"""
+from __future__ import annotations
+
+from soft_gripper_sdre.control.laws import LAW_REGISTRY, hand_over, make_law, pd_gains
+from soft_gripper_sdre.control.tracking import Law, Weights
+
+#: the parameters that may be changed while the node runs and retune the law
+TUNABLE = ('q_pos', 'q_vel', 'r', 'integral_gain', 'integral_band', 'pd_kp', 'pd_kd')
+#: the laws whose gains are not from the SDRE weights
+FIXED_GAIN_LAWS = ('pd', 'computed_torque')
+#: every node parameter the law is built from
+LAW_PARAMS = ('law', 'solver', 'torque_limit', 'torque_lowpass_hz', 'control_period',
+              'state_weights', 'feedforward_at', *TUNABLE)
+
+
+class LawTuning:
+    """The law in force, built from the node's parameters, and its runtime retuning.
+
+    Args:
+        model: the learned SDC model every law is built on.
+        n_fingers: the fingers controlled together.
+        params: the node's parameters (at least :data:`LAW_PARAMS`).
+
+    Raises:
+        ValueError: a value the law refuses (the message names it).
+    """
+
+    def __init__(self, model, n_fingers: int, params: dict) -> None:
+        self.model = model
+        self.n = n_fingers
+        self.params = {name: params[name] for name in LAW_PARAMS}
+        self.law: Law = self.build(self.params)
+        self._retuned: Law | None = None    # the law built by an accepted runtime change
+
+    @property
+    def name(self) -> str:
+        return self.params['law']
+
+    def build(self, p: dict) -> Law:
+        """The control law of the parameters ``p``.
+
+        Raises:
+            ValueError: a value the law refuses (the message names it).
+        """
+        options = LAW_REGISTRY[p['law']].options
+        extra = {}
+        if 'integral_gain' in options:
+            extra.update(integral_gain=p['integral_gain'], integral_band=p['integral_band'])
+        if 'ff_at' in options:
+            extra['ff_at'] = p['feedforward_at']
+        if 'pd_gains' in options:
+            extra['pd_gains'] = pd_gains(p['law'], p['pd_kp'], p['pd_kd'])
+        return make_law(p['law'], self.model, Weights(p['q_pos'], p['q_vel'], p['r']),
+                        p['torque_limit'], n_fingers=self.n, method=p['solver'],
+                        lowpass_hz=p['torque_lowpass_hz'], dt=p['control_period'],
+                        adaptive=p['state_weights'], **extra)
+
+    def uses(self, name: str) -> bool:
+        """Whether the law in use reads the tunable parameter ``name``."""
+        options = LAW_REGISTRY[self.name].options
+        if name in ('q_pos', 'q_vel', 'r'):
+            return self.name not in FIXED_GAIN_LAWS
+        if name in ('integral_gain', 'integral_band'):
+            return 'integral_gain' in options
+        return name in ('pd_kp', 'pd_kd') and 'pd_gains' in options
+
+    def check(self, new: dict) -> str | None:
+        """Why the runtime change ``new`` (parameter name → value) is refused, or None; an
+        accepted change to a value the law uses builds the law it will run (:meth:`apply` puts
+        it in force)."""
+        self._retuned = None
+        if not any(self.uses(name) for name in TUNABLE if name in new):
+            return None
+        try:
+            self._retuned = self.build({**self.params, **new})
+        except ValueError as exc:
+            return f'{", ".join(sorted(new))}: {exc}'
+        return None
+
+    def apply(self, new: dict) -> str | None:
+        """Put the change ``new`` that :meth:`check` accepted in force; what it did, for the log
+        (None: it changed no tunable value)."""
+        tuned = {name: new[name] for name in TUNABLE if name in new}
+        if not tuned:
+            return None
+        self.params.update(tuned)
+        changes = ', '.join(f'{name} = {value:g}' for name, value in tuned.items())
+        if self._retuned is None:
+            return f'{changes}: not used by the {self.name} law, no effect'
+        hand_over(self.law, self._retuned)
+        self.law, self._retuned = self._retuned, None
+        return f'{changes}: the {self.name} law is retuned from the next estimate'
+
+    def shown(self) -> dict[str, str]:
+        """The tunable values in force, as /diagnostics shows them."""
+        p = self.params
+        gains = pd_gains(p['law'], p['pd_kp'], p['pd_kd'])
+        return {'weights': f'q_pos={p["q_pos"]:g} q_vel={p["q_vel"]:g} r={p["r"]:g}',
+                'integral': f'gain={p["integral_gain"]:g} band={p["integral_band"]:g}',
+                'pd_gains': f'kp={gains["kp"]:g} kd={gains["kd"]:g}'}
