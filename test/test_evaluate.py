@@ -4,6 +4,7 @@ import json
 import numpy as np
 import pytest
 
+from soft_gripper_sdre.analysis.ground_truth import score_model
 from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
 from soft_gripper_sdre.learning.model import PAPER_DATA_MODEL, SDCModel
 from soft_gripper_sdre.tools.judging import evaluate as ev
@@ -101,7 +102,7 @@ def test_run_law_leaves_the_law_specs_as_they_were(model):
 
 
 def test_model_scoring_against_the_ground_truth(model):
-    stats = ev.score_model(model, seconds=1.0, every=20)['stats']
+    stats = score_model(model, seconds=1.0, every=20)['stats']
     assert stats['samples'] == 49
     # the learned model predicts the simulator's acceleration on the held-out signal
     assert stats['r2_learned_vs_sim'][1] > 0.9

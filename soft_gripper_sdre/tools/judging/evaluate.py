@@ -36,6 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from soft_gripper_sdre.analysis import law_runs
+from soft_gripper_sdre.analysis.ground_truth import score_model
 from soft_gripper_sdre.analysis.law_plots import plot_feedforward, plot_laws, plot_model_vs_truth
 from soft_gripper_sdre.analysis.oracle import register_oracle_laws
 from soft_gripper_sdre.control.laws import DEFAULT_CT, DEFAULT_PD, LAW_REGISTRY
@@ -201,77 +202,6 @@ def run_laws(laws, trajectories, model_path: Path | None = None, koopman_path: P
         summaries.append(summary)
         results.setdefault(traj, {})[key] = result
     return summaries, results
-
-
-# -- the learned model against the ground truth ---------------------------------------------------
-def score_model(model: SDCModel, signal: str = 'u4', seconds: float = 4.0, every: int = 10) -> dict:
-    """Drive the (hand-mounted) finger with a held-out excitation signal and compare, at every
-    ``every``-th step: the learned ẍ = A(x)x + G(x)u with the exact, the projected and the
-    simulator's measured tip acceleration; the learned G2 with J M⁻¹ B and with its projection;
-    the learned drift A(x)x with the true f. Returns the samples and summary statistics."""
-    from soft_gripper_sdre.analysis.metrics import angle_difference, column_angles
-    from soft_gripper_sdre.sim.dynamics import FingerDynamics, oracle_sdc
-    from soft_gripper_sdre.sim.hand import GripperSim
-    from soft_gripper_sdre.sim.signals import get_signal
-    rows = {k: [] for k in ('t', 'x', 'u', 'acc_sim', 'acc_exact', 'acc_proj', 'acc_learned',
-                            'G2_exact', 'G2_proj', 'G2_learned', 'f_exact', 'f_proj', 'f_learned',
-                            'A_learned', 'A_oracle')}
-    sig = get_signal(signal)
-    with GripperSim(SimConfig(scene='finger')) as sim, FingerDynamics() as fd:
-        steps = int(round(seconds / sim.config.control_period))
-        u_all = sig(np.arange(steps) * sim.config.control_period)
-        for k in range(steps):
-            u = u_all[k]
-            if k % every == 0 and k > 0:
-                tr = sim.truth()
-                d = fd.evaluate(tr.q[0], tr.qd[0])
-                x = np.concatenate([tr.tip_pos[0, :2] - model.rest_tip[:2], tr.tip_vel[0, :2]])
-                A, G = model.AG(x)
-                sim.step(u[None])
-                rows['t'].append(sim.t)
-                rows['x'].append(x)
-                rows['u'].append(u)
-                rows['acc_sim'].append(sim.truth().tip_acc[0, :2])
-                rows['acc_exact'].append(d.accel(u))
-                rows['acc_proj'].append(d.reduced().accel(u))
-                rows['acc_learned'].append((A[0] @ x + G[0] @ u)[2:])
-                rows['G2_exact'].append(d.G2)
-                rows['G2_proj'].append(d.G2_r)
-                rows['G2_learned'].append(G[0, 2:])
-                rows['f_exact'].append(d.f)
-                rows['f_proj'].append(d.f_pos_r + d.f_vel_r)
-                rows['f_learned'].append((A[0] @ x)[2:])
-                rows['A_learned'].append(A[0, 2:])
-                rows['A_oracle'].append(oracle_sdc(d, model.rest_tip)[0][2:])
-            else:
-                sim.step(u[None])
-    r = {k: np.asarray(v) for k, v in rows.items()}
-
-    def r2(y, yhat):
-        return (1.0 - ((y - yhat) ** 2).sum(0) / ((y - y.mean(0)) ** 2).sum(0)).tolist()
-
-    def g2_err(G):
-        ang = angle_difference(column_angles(r['G2_learned']), column_angles(G))
-        mag = np.linalg.norm(r['G2_learned'], axis=-2) / np.linalg.norm(G, axis=-2)
-        rel = np.linalg.norm(r['G2_learned'] - G, axis=(1, 2)) / np.linalg.norm(G, axis=(1, 2))
-        return dict(angle_median_deg=np.median(ang, 0).tolist(),
-                    magnitude_ratio_median=np.median(mag, 0).tolist(),
-                    rel_frobenius_median=float(np.median(rel)))
-    stats = dict(
-        signal=signal, samples=int(r['t'].size),
-        r2_learned_vs_sim=r2(r['acc_sim'], r['acc_learned']),
-        r2_exact_vs_sim=r2(r['acc_sim'], r['acc_exact']),
-        r2_proj_vs_sim=r2(r['acc_sim'], r['acc_proj']),
-        r2_learned_vs_exact=r2(r['acc_exact'], r['acc_learned']),
-        r2_learned_vs_proj=r2(r['acc_proj'], r['acc_learned']),
-        g2_vs_exact=g2_err(r['G2_exact']), g2_vs_proj=g2_err(r['G2_proj']),
-        drift_r2_vs_exact=r2(r['f_exact'], r['f_learned']),
-        drift_r2_vs_proj=r2(r['f_proj'], r['f_learned']),
-        # the SDC factorisation is not unique: similar products A(x)x from different matrices
-        a_rel_diff_median=float(np.median(
-            np.linalg.norm(r['A_learned'] - r['A_oracle'], axis=(1, 2))
-            / np.linalg.norm(r['A_oracle'], axis=(1, 2)))))
-    return dict(stats=stats, samples=r)
 
 
 def workspace_check_failures(model: SDCModel, weights: Weights, n: int = 9,
