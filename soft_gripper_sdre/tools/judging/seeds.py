@@ -120,7 +120,7 @@ def tracking_runs(model, laws, trajectories, duration) -> list[dict]:
     """Every law on every trajectory, in-process, as ``make evaluate`` runs them (RunSummary
     dicts)."""
     from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
-    from soft_gripper_sdre.tools.judging.evaluate import run_law
+    from soft_gripper_sdre.tools.judging.evaluation_runs import run_law
     weights = Weights(**DEFAULT_WEIGHTS)
     out = []
     for trajectory in trajectories:
@@ -372,7 +372,7 @@ def _settings_from(parser, assignments: list[str]):
 
 
 def _parser() -> argparse.ArgumentParser:
-    from soft_gripper_sdre.tools.judging.evaluate import LAW_SPECS, TRAJECTORIES
+    from soft_gripper_sdre.tools.judging.evaluation_runs import LAW_SPECS, TRAJECTORIES
     ap = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.judging.seeds',
                                  description=__doc__.split('\n\n')[0])
     ap.add_argument('--data', type=Path, default=Path('data/excitation'),
