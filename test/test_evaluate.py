@@ -4,9 +4,11 @@ import json
 import numpy as np
 import pytest
 
+from soft_gripper_sdre.analysis.ground_truth import score_model
 from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
 from soft_gripper_sdre.learning.model import PAPER_DATA_MODEL, SDCModel
 from soft_gripper_sdre.tools.judging import evaluate as ev
+from soft_gripper_sdre.tools.judging.evaluation_runs import LAW_SPECS, RunSummary, run_law
 
 
 @pytest.fixture(scope='module')
@@ -21,7 +23,7 @@ def fast_runs(model):
     acceleration) and computed torque, on the first 1.5 s of the fast grasp (closing, holding, half
     the opening), with the default noise and weights."""
     w = Weights(**DEFAULT_WEIGHTS)
-    return {k: ev.run_law(k, 'fast', model, w, duration=1.5)[0]
+    return {k: run_law(k, 'fast', model, w, duration=1.5)[0]
             for k in ('sdre', 'lqr', 'pd', 'oracle', 'sdre_ff', 'oracle_ff', 'pd_ff', 'sdre_ff_noi',
                       'computed_torque')}
 
@@ -94,14 +96,14 @@ def test_computed_torque_tracks_at_least_as_well_as_the_riccati_gains_on_the_sam
 def test_run_law_leaves_the_law_specs_as_they_were(model):
     """A spec's options (q_pos here) are taken from a copy: the same law runs the same way twice."""
     import copy
-    before = copy.deepcopy(ev.LAW_SPECS)
-    ev.run_law('sdre_4e6', 'fast', model, Weights(**DEFAULT_WEIGHTS), duration=0.005,
+    before = copy.deepcopy(LAW_SPECS)
+    run_law('sdre_4e6', 'fast', model, Weights(**DEFAULT_WEIGHTS), duration=0.005,
                integral_gain=None)
-    assert ev.LAW_SPECS == before
+    assert LAW_SPECS == before
 
 
 def test_model_scoring_against_the_ground_truth(model):
-    stats = ev.score_model(model, seconds=1.0, every=20)['stats']
+    stats = score_model(model, seconds=1.0, every=20)['stats']
     assert stats['samples'] == 49
     # the learned model predicts the simulator's acceleration on the held-out signal
     assert stats['r2_learned_vs_sim'][1] > 0.9
@@ -116,7 +118,7 @@ def test_workspace_grid_checks(model):
 
 
 def test_report_is_written(tmp_path):
-    s = ev.RunSummary('lqr', 'fast', 1.0, 2.0, 1.1, 2.1, 0.01, 0.0, True, 0.1, 0.0, 50.0)
+    s = RunSummary('lqr', 'fast', 1.0, 2.0, 1.1, 2.1, 0.01, 0.0, True, 0.1, 0.0, 50.0)
     ws = {'default': dict(check_fail_pct=0.0, min_sv=200.0, max_cond=4.0)}
     path = ev.write_report(tmp_path, [s], ['fast_laws.png'], None, ws, {'x': 'y'})
     text = path.read_text()
@@ -124,8 +126,8 @@ def test_report_is_written(tmp_path):
     assert json.dumps(ev.expectation_verdict([s])) == '{}'       # needs all four laws
 
 
-def _summary(law: str, rmse: float, success: bool = True) -> ev.RunSummary:
-    return ev.RunSummary(law, 'fast', rmse, 2 * rmse, rmse, 2 * rmse, 0.01, 0.0, success, 0.1,
+def _summary(law: str, rmse: float, success: bool = True) -> RunSummary:
+    return RunSummary(law, 'fast', rmse, 2 * rmse, rmse, 2 * rmse, 0.01, 0.0, success, 0.1,
                          0.0, 50.0)
 
 

@@ -220,7 +220,7 @@ def test_seed_sweep_trains_and_scores_every_model_and_the_shipped_one(pooled_swe
     assert ('| u4 R² X |' in printed
             and (out / 'seeds.md').read_text() == printed.rstrip('\n') + '\n')
     # train.py with the same seed, jitter and draw trains the same model, bit for bit
-    from soft_gripper_sdre.tools.judging.seeds import weights_sha256
+    from soft_gripper_sdre.learning.model import weights_sha256
     proc = run_tool('train', '--data', str(data_dir), '--out', str(tmp_path / 'train'),
                     '--epochs', '3', '--seed', '1', '--jitter', '1e-9', '--jitter-seed', '1',
                     timeout=120)

@@ -170,9 +170,9 @@ def test_measured_ordering_on_the_fast_grasp():
     MPC, the Koopman MPC ahead of the PD, and the MPC no better than its LQR while the box never
     binds."""
     from soft_gripper_sdre.learning.model import SDCModel
-    from soft_gripper_sdre.tools.judging import evaluate as ev
+    from soft_gripper_sdre.tools.judging.evaluation_runs import run_law
     model = SDCModel()
-    runs = {k: ev.run_law(k, 'fast', model, WEIGHTS, duration=1.5)[0]
+    runs = {k: run_law(k, 'fast', model, WEIGHTS, duration=1.5)[0]
             for k in ('koopman_mpc', 'koopman_lqr', 'sdre_ff', 'pd')}
     rmse = {k: s.rmse_mm_grasp for k, s in runs.items()}
     assert (runs['koopman_mpc'].saturated_pct == 0.0

@@ -10,7 +10,7 @@ from soft_gripper_sdre.analysis.closed_loop import LoopResult
 from soft_gripper_sdre.analysis.law_runs import grasp_success, score
 from soft_gripper_sdre.analysis.metrics import TrackingMetrics
 from soft_gripper_sdre.control.trajectory import GraspProfile
-from soft_gripper_sdre.tools.judging.evaluate import RunSummary
+from soft_gripper_sdre.tools.judging.evaluation_runs import RunSummary
 from soft_gripper_sdre.tools.judging.robustness_grid import CaseResult
 
 PROFILE = GraspProfile(t_start=0.1, t_close=0.2, t_hold=0.3, t_open=0.2)   # hold: 0.3 ≤ t < 0.6

@@ -5,6 +5,9 @@
 * :func:`input_matrix_survey` — the finger's true input matrix J M⁻¹ B (tip acceleration per unit
   torque, friction off) at static poses across the workspace, beside the learned G2 at the same
   states: column directions and magnitudes.
+* :func:`score_model` — the learned model along a held-out excitation signal against the
+  simulator's measured, the exact and the projected dynamics: R² of the acceleration and of the
+  drift, the error of G2 and how far the learned SDC matrices lie from the oracle's.
 * :func:`loop_spectral_radius` — the sampled loop (ZOH plant, steady-state constant-velocity KF,
   frozen SDRE gains, the roll-off) closed around the *full* linearised 10-joint finger with
   friction off, at any control period: the growth per step of its least stable mode. It explains
@@ -21,9 +24,10 @@ from soft_gripper_sdre.analysis.metrics import angle_difference, column_angles
 from soft_gripper_sdre.control.kf import ConstantVelocityKF
 from soft_gripper_sdre.control.riccati import sdre_gains
 from soft_gripper_sdre.control.tracking import RollOff
-from soft_gripper_sdre.sim.dynamics import FingerDynamics
+from soft_gripper_sdre.sim.dynamics import FingerDynamics, oracle_sdc
 from soft_gripper_sdre.sim.hand import GripperSim, SimConfig
 from soft_gripper_sdre.sim.linear import linearize
+from soft_gripper_sdre.sim.signals import get_signal
 
 
 def true_tips(joints: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -85,6 +89,97 @@ def input_matrix_survey(model, torques: np.ndarray, settle: float = 2.0) -> Inpu
         rows['true'].append(J[:2] @ np.linalg.solve(M, B))
         rows['learned'].append(model.AG(x)[1][0, 2:, :])
     return InputMatrixSurvey(**{k: np.asarray(v) for k, v in rows.items()})
+
+
+#: what :func:`score_model` records at each sample: the time, state and torque, the tip
+#: acceleration (measured by the simulator, exact, projected, learned), G2 (exact J M⁻¹ B,
+#: projected, learned), the drift f (exact, projected, learned A(x)x) and [A₂₁ A₂₂] (learned, the
+#: oracle's)
+MODEL_SAMPLES = ('t', 'x', 'u', 'acc_sim', 'acc_exact', 'acc_proj', 'acc_learned', 'G2_exact',
+                 'G2_proj', 'G2_learned', 'f_exact', 'f_proj', 'f_learned', 'A_learned',
+                 'A_oracle')
+
+
+def score_model(model, signal: str = 'u4', seconds: float = 4.0, every: int = 10) -> dict:
+    """Drive the (hand-mounted) finger with a held-out excitation signal and compare, at every
+    ``every``-th step: the learned ẍ = A(x)x + G(x)u with the exact, the projected and the
+    simulator's measured tip acceleration; the learned G2 with J M⁻¹ B and with its projection;
+    the learned drift A(x)x with the true f. Returns the samples (:data:`MODEL_SAMPLES`, arrays)
+    and their summary statistics (:func:`model_truth_stats`)."""
+    rows = {k: [] for k in MODEL_SAMPLES}
+    sig = get_signal(signal)
+    with GripperSim(SimConfig(scene='finger')) as sim, FingerDynamics() as fd:
+        steps = int(round(seconds / sim.config.control_period))
+        u_all = sig(np.arange(steps) * sim.config.control_period)
+        for k in range(steps):
+            if k % every == 0 and k > 0:
+                _sample_step(rows, sim, fd, model, u_all[k])
+            else:
+                sim.step(u_all[k][None])
+    r = {k: np.asarray(v) for k, v in rows.items()}
+    return dict(stats=model_truth_stats(r, signal), samples=r)
+
+
+def _sample_step(rows: dict, sim: GripperSim, fd: FingerDynamics, model, u: np.ndarray) -> None:
+    """Take one step with torque ``u`` and append its :data:`MODEL_SAMPLES` to ``rows``: the model
+    and the dynamics at the state before the step, the simulator's acceleration over it."""
+    tr = sim.truth()
+    d = fd.evaluate(tr.q[0], tr.qd[0])
+    x = np.concatenate([tr.tip_pos[0, :2] - model.rest_tip[:2], tr.tip_vel[0, :2]])
+    A, G = model.AG(x)
+    sim.step(u[None])
+    rows['t'].append(sim.t)
+    rows['x'].append(x)
+    rows['u'].append(u)
+    rows['acc_sim'].append(sim.truth().tip_acc[0, :2])
+    rows['acc_exact'].append(d.accel(u))
+    rows['acc_proj'].append(d.reduced().accel(u))
+    rows['acc_learned'].append((A[0] @ x + G[0] @ u)[2:])
+    rows['G2_exact'].append(d.G2)
+    rows['G2_proj'].append(d.G2_r)
+    rows['G2_learned'].append(G[0, 2:])
+    rows['f_exact'].append(d.f)
+    rows['f_proj'].append(d.f_pos_r + d.f_vel_r)
+    rows['f_learned'].append((A[0] @ x)[2:])
+    rows['A_learned'].append(A[0, 2:])
+    rows['A_oracle'].append(oracle_sdc(d, model.rest_tip)[0][2:])
+
+
+def _r2(y: np.ndarray, yhat: np.ndarray) -> list[float]:
+    """R² of ``yhat`` against ``y`` per column: 1 − Σ(y − ŷ)² / Σ(y − ȳ)²."""
+    return (1.0 - ((y - yhat) ** 2).sum(0) / ((y - y.mean(0)) ** 2).sum(0)).tolist()
+
+
+def _g2_errors(learned: np.ndarray, G: np.ndarray) -> dict:
+    """Medians over the samples of the learned G2's column direction error [deg] and magnitude
+    ratio against ``G``, and of the relative Frobenius error."""
+    ang = angle_difference(column_angles(learned), column_angles(G))
+    mag = np.linalg.norm(learned, axis=-2) / np.linalg.norm(G, axis=-2)
+    rel = np.linalg.norm(learned - G, axis=(1, 2)) / np.linalg.norm(G, axis=(1, 2))
+    return dict(angle_median_deg=np.median(ang, 0).tolist(),
+                magnitude_ratio_median=np.median(mag, 0).tolist(),
+                rel_frobenius_median=float(np.median(rel)))
+
+
+def model_truth_stats(r: dict, signal: str) -> dict:
+    """The figures of :func:`score_model`'s samples ``r``: R² of the accelerations and drifts per
+    axis, G2's errors, and the median relative difference of the learned [A₂₁ A₂₂] from the
+    oracle's."""
+    return dict(
+        signal=signal, samples=int(r['t'].size),
+        r2_learned_vs_sim=_r2(r['acc_sim'], r['acc_learned']),
+        r2_exact_vs_sim=_r2(r['acc_sim'], r['acc_exact']),
+        r2_proj_vs_sim=_r2(r['acc_sim'], r['acc_proj']),
+        r2_learned_vs_exact=_r2(r['acc_exact'], r['acc_learned']),
+        r2_learned_vs_proj=_r2(r['acc_proj'], r['acc_learned']),
+        g2_vs_exact=_g2_errors(r['G2_learned'], r['G2_exact']),
+        g2_vs_proj=_g2_errors(r['G2_learned'], r['G2_proj']),
+        drift_r2_vs_exact=_r2(r['f_exact'], r['f_learned']),
+        drift_r2_vs_proj=_r2(r['f_proj'], r['f_learned']),
+        # the SDC factorisation is not unique: similar products A(x)x from different matrices
+        a_rel_diff_median=float(np.median(
+            np.linalg.norm(r['A_learned'] - r['A_oracle'], axis=(1, 2))
+            / np.linalg.norm(r['A_oracle'], axis=(1, 2)))))
 
 
 def linear_finger(dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

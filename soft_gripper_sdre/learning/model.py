@@ -21,6 +21,7 @@ networks as one fused network of three matmuls.
 """
 from __future__ import annotations
 
+import hashlib
 from pathlib import Path
 import pickle
 import re
@@ -132,6 +133,19 @@ def read_checkpoint(path: Path) -> dict:
             f'model file {path} does not match the network layout: {exc}'[:400]) from None
     ckpt['net'] = net
     return ckpt
+
+
+def weights_sha256(path: Path) -> str:
+    """sha256 over the checkpoint's network weights (every tensor of the state dict, by name): two
+    checkpoints with the same value are the same model bit for bit, whatever else they record."""
+    state = read_checkpoint(path)['state_dict']
+    h = hashlib.sha256()
+    for key in sorted(state):
+        a = state[key].detach().cpu().numpy()
+        h.update(key.encode())
+        h.update(str((a.shape, a.dtype.str)).encode())
+        h.update(np.ascontiguousarray(a).tobytes())
+    return h.hexdigest()
 
 
 def _fused_layers(sd: dict[str, np.ndarray],

@@ -29,249 +29,32 @@ compute time). The numbers:
 from __future__ import annotations
 
 import argparse
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 import json
 from pathlib import Path
 
 import numpy as np
 
-from soft_gripper_sdre.analysis import law_runs
+from soft_gripper_sdre.analysis.ground_truth import score_model
 from soft_gripper_sdre.analysis.law_plots import plot_feedforward, plot_laws, plot_model_vs_truth
-from soft_gripper_sdre.analysis.oracle import register_oracle_laws
-from soft_gripper_sdre.control.laws import DEFAULT_CT, DEFAULT_PD, LAW_REGISTRY
 from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
-from soft_gripper_sdre.control.trajectory import GraspProfile
 from soft_gripper_sdre.learning.model import PAPER_DATA_MODEL, ModelFileError, SDCModel
-from soft_gripper_sdre.sim.hand import SimConfig
 from soft_gripper_sdre.tools.judging import jobs
+from soft_gripper_sdre.tools.judging.evaluation_runs import (
+    LAW_SPECS,
+    NOISE,
+    TRAJECTORIES,
+    TUNABLE,
+    U_MAX,
+    RunSummary,
+    run_laws,
+    tune_gains,
+    tune_integral,
+)
 
-register_oracle_laws()          # the comparison includes the laws on the plant's true dynamics
-
-#: (label, law name, make_law options)
-LAW_SPECS = {
-    'sdre': ('learned SDRE', 'sdre', {}),
-    'sdre_qx': ('learned SDRE, Q(x)', 'sdre', {'adaptive': True}),
-    'sdre_4e6': ('learned SDRE, q_pos 4e6', 'sdre', {'q_pos': 4e6}),
-    'lqr': ('LQR at the origin', 'lqr', {}),
-    'pd': ('task-space PD', 'pd', {}),
-    'oracle': ('oracle SDRE (projected truth)', 'oracle', {}),
-    'oracle_exact': ('oracle SDRE (exact eq. 13)', 'oracle_exact', {}),
-    'sdre_ff': ('learned SDRE + feedforward', 'sdre_ff', {}),
-    'sdre_ff_noi': ('learned SDRE + feedforward, no integral', 'sdre_ff', {'integral_gain': 0.0}),
-    'sdre_ff_ref': ('learned SDRE + feedforward at x_d', 'sdre_ff', {'ff_at': 'ref'}),
-    'pd_ff': ('task-space PD + p̈_d', 'pd', {'feedforward': True}),
-    'oracle_ff': ('oracle SDRE + feedforward', 'oracle_ff', {}),
-    'koopman_mpc': ('Koopman MPC', 'koopman_mpc', {}),
-    'koopman_lqr': ('Koopman LQR', 'koopman_lqr', {}),
-    'computed_torque': ('computed torque (learned model)', 'computed_torque', {}),
-}
-#: the laws whose PD gains tune_gains grids (LAW_SPECS keys): the gains they ship with, the grid's
-#: k_p and k_d
-TUNABLE = {'pd': (DEFAULT_PD, (3e3, 1e4, 1.5e4, 2e4), (40.0, 150.0)),
-           'computed_torque': (DEFAULT_CT, (5e3, 1.5e4, 3e4, 6e4), (40.0, 80.0, 150.0))}
-#: the grasp of the demo, and a faster one (30 mm in 0.5 s: peak 94 mm/s) that stresses the model
-TRAJECTORIES = {
-    'grasp': (GraspProfile(others='open'), 6.0),
-    'fast': (GraspProfile(t_start=0.2, t_close=0.5, t_hold=0.5, t_open=0.5, others='open'), 2.0),
-}
 #: the paper-data model retrained with the singular-value penalty (docs/results.md "Beyond the
 #: paper")
 PAPER_DATA_SV_MODEL = PAPER_DATA_MODEL.with_name('paper_data_sv.pt')
-U_MAX = 0.0625
-NOISE = 5e-5
-
-
-@dataclass
-class RunSummary:
-    law: str
-    trajectory: str
-    rmse_mm_grasp: float          # mean over the grasping fingers
-    max_mm_grasp: float
-    rmse_mm_worst: float          # worst finger
-    max_mm_all: float
-    effort_rms_nm: float
-    saturated_pct: float
-    grasp_success: bool
-    cube_mm: float
-    check_fail_pct: float
-    compute_us: float
-    held_mm: float = float('nan')  # held-reference error, mean over the fingers
-
-
-def run_law(key: str, trajectory: str, model: SDCModel, weights: Weights,
-            duration: float | None = None, progress: bool = False, pd_gains: dict | None = None,
-            koopman_path: Path | None = None, **law_options):
-    """One closed-loop run: (RunSummary, LoopResult). ``pd_gains`` go to a law that takes them,
-    ``koopman_path`` (None = the shipped model) to the Koopman laws, ``law_options`` (e.g.
-    ``integral_gain``) to make_law over the spec's."""
-    _, name, opts = LAW_SPECS[key]
-    opts = dict(opts, **law_options)
-    profile, dur = TRAJECTORIES[trajectory]
-    dur = duration or dur
-    if pd_gains and 'pd_gains' in LAW_REGISTRY[name].options:
-        opts = dict(opts, pd_gains=pd_gains)
-    if koopman_path is not None and name.startswith('koopman'):
-        opts['koopman_path'] = koopman_path
-    if 'q_pos' in opts:
-        weights = Weights(opts.pop('q_pos'), weights.q_vel, weights.r)
-    res = law_runs.run_law(name, model, weights, U_MAX, profile, dur,
-                           SimConfig(scene='hand', noise_std=NOISE), progress=progress, **opts)
-    return RunSummary(law=key, trajectory=trajectory,
-                      **law_runs.score(res, profile).pick(RunSummary)), res
-
-
-def tune_gains(model: SDCModel, weights: Weights, law: str = 'pd', kps=None, kds=None,
-               trajectory: str = 'grasp',
-               duration: float | None = None) -> list[tuple[float, float, float]]:
-    """Grid over the PD gains (k_p, k_d) of ``law`` (a :data:`TUNABLE` key; None: its grid) on a
-    trajectory: [(kp, kd, mean grasp-finger RMSE mm)]; a run that diverged or saturated > 5 % of the
-    steps = inf."""
-    if law not in TUNABLE:
-        raise ValueError(f'law must be one of {tuple(TUNABLE)}, got {law!r}')
-    _, grid_kps, grid_kds = TUNABLE[law]
-    kps, kds = kps or grid_kps, kds or grid_kds
-    rows = []
-    for kp in kps:
-        for kd in kds:
-            s, _ = run_law(law, trajectory, model, weights, duration=duration,
-                           pd_gains=dict(kp=kp, kd=kd))
-            bad = s.saturated_pct > 5.0 or not np.isfinite(s.rmse_mm_grasp)
-            rows.append((kp, kd, float('inf') if bad else s.rmse_mm_grasp))
-    return rows
-
-
-def tune_integral(model: SDCModel, weights: Weights, gains=(0.0, 3e4, 1e5, 3e5),
-                  trajectory: str = 'grasp',
-                  duration: float | None = None) -> list[tuple[float, float, float]]:
-    """The default law's integral gain k_i over a grid: [(k_i, mean grasp-finger RMSE mm,
-    held-reference error mm)]."""
-    rows = []
-    for gain in gains:
-        s, _ = run_law('sdre_ff', trajectory, model, weights, duration=duration, integral_gain=gain)
-        rows.append((gain, s.rmse_mm_grasp, s.held_mm))
-    return rows
-
-
-# -- every law, as independent jobs ---------------------------------------------------------------
-@dataclass(frozen=True)
-class LawRunsContext:
-    """What the law runs share: the model's and the Koopman model's files (they travel with the
-    jobs, :class:`~soft_gripper_sdre.tools.judging.jobs.FileBlob`) and the duration override."""
-
-    model: jobs.FileBlob
-    koopman: jobs.FileBlob
-    duration: float | None
-
-
-#: the SDC models this process has loaded, by the sha256 of their file
-_models: dict[str, SDCModel] = {}
-
-
-def run_law_job(context: LawRunsContext, job: tuple[str, str]):
-    """One law on one trajectory, (RunSummary, LoopResult), as a job of
-    :func:`~soft_gripper_sdre.tools.judging.jobs.run_jobs` (``job``: (trajectory, LAW_SPECS
-    key))."""
-    from soft_gripper_sdre.control.compiled import warm_up
-    warm_up()                      # a new worker loads the kernels here, not inside the timed law
-    trajectory, key = job
-    if context.model.digest not in _models:
-        _models[context.model.digest] = SDCModel(context.model.path())
-    return run_law(key, trajectory, _models[context.model.digest], Weights(**DEFAULT_WEIGHTS),
-                   duration=context.duration, koopman_path=context.koopman.path())
-
-
-def run_laws(laws, trajectories, model_path: Path | None = None, koopman_path: Path | None = None,
-             duration: float | None = None, runner: jobs.Runner = jobs.Runner(),
-             progress: bool = True):
-    """Every law of ``laws`` (LAW_SPECS keys) on every trajectory, with the default weights:
-    ([RunSummary], {trajectory: {law: LoopResult}}), in the order trajectory by trajectory. The
-    runs are independent jobs (:mod:`~soft_gripper_sdre.tools.judging.jobs`, on ``runner``); each
-    result depends on its run only, so the numbers do not depend on the runner (but ``compute_us``,
-    the law's wall time, does on the load)."""
-    from soft_gripper_sdre.control.compiled import warm_up
-    from soft_gripper_sdre.learning.koopman import DEFAULT_KOOPMAN
-    from soft_gripper_sdre.learning.model import DEFAULT_MODEL
-    warm_up()  # the kernels into numba's cache once, before the workers load them
-    context = LawRunsContext(jobs.FileBlob.read(model_path or DEFAULT_MODEL),
-                             jobs.FileBlob.read(koopman_path or DEFAULT_KOOPMAN), duration)
-    todo = [(t, k) for t in trajectories for k in laws]
-    out = jobs.run_jobs(run_law_job, todo, context, runner, desc='evaluate', progress=progress)
-    summaries, results = [], {}
-    for (traj, key), (summary, result) in zip(todo, out):
-        summaries.append(summary)
-        results.setdefault(traj, {})[key] = result
-    return summaries, results
-
-
-# -- the learned model against the ground truth ---------------------------------------------------
-def score_model(model: SDCModel, signal: str = 'u4', seconds: float = 4.0, every: int = 10) -> dict:
-    """Drive the (hand-mounted) finger with a held-out excitation signal and compare, at every
-    ``every``-th step: the learned ẍ = A(x)x + G(x)u with the exact, the projected and the
-    simulator's measured tip acceleration; the learned G2 with J M⁻¹ B and with its projection;
-    the learned drift A(x)x with the true f. Returns the samples and summary statistics."""
-    from soft_gripper_sdre.analysis.metrics import angle_difference, column_angles
-    from soft_gripper_sdre.sim.dynamics import FingerDynamics, oracle_sdc
-    from soft_gripper_sdre.sim.hand import GripperSim
-    from soft_gripper_sdre.sim.signals import get_signal
-    rows = {k: [] for k in ('t', 'x', 'u', 'acc_sim', 'acc_exact', 'acc_proj', 'acc_learned',
-                            'G2_exact', 'G2_proj', 'G2_learned', 'f_exact', 'f_proj', 'f_learned',
-                            'A_learned', 'A_oracle')}
-    sig = get_signal(signal)
-    with GripperSim(SimConfig(scene='finger')) as sim, FingerDynamics() as fd:
-        steps = int(round(seconds / sim.config.control_period))
-        u_all = sig(np.arange(steps) * sim.config.control_period)
-        for k in range(steps):
-            u = u_all[k]
-            if k % every == 0 and k > 0:
-                tr = sim.truth()
-                d = fd.evaluate(tr.q[0], tr.qd[0])
-                x = np.concatenate([tr.tip_pos[0, :2] - model.rest_tip[:2], tr.tip_vel[0, :2]])
-                A, G = model.AG(x)
-                sim.step(u[None])
-                rows['t'].append(sim.t)
-                rows['x'].append(x)
-                rows['u'].append(u)
-                rows['acc_sim'].append(sim.truth().tip_acc[0, :2])
-                rows['acc_exact'].append(d.accel(u))
-                rows['acc_proj'].append(d.reduced().accel(u))
-                rows['acc_learned'].append((A[0] @ x + G[0] @ u)[2:])
-                rows['G2_exact'].append(d.G2)
-                rows['G2_proj'].append(d.G2_r)
-                rows['G2_learned'].append(G[0, 2:])
-                rows['f_exact'].append(d.f)
-                rows['f_proj'].append(d.f_pos_r + d.f_vel_r)
-                rows['f_learned'].append((A[0] @ x)[2:])
-                rows['A_learned'].append(A[0, 2:])
-                rows['A_oracle'].append(oracle_sdc(d, model.rest_tip)[0][2:])
-            else:
-                sim.step(u[None])
-    r = {k: np.asarray(v) for k, v in rows.items()}
-
-    def r2(y, yhat):
-        return (1.0 - ((y - yhat) ** 2).sum(0) / ((y - y.mean(0)) ** 2).sum(0)).tolist()
-
-    def g2_err(G):
-        ang = angle_difference(column_angles(r['G2_learned']), column_angles(G))
-        mag = np.linalg.norm(r['G2_learned'], axis=-2) / np.linalg.norm(G, axis=-2)
-        rel = np.linalg.norm(r['G2_learned'] - G, axis=(1, 2)) / np.linalg.norm(G, axis=(1, 2))
-        return dict(angle_median_deg=np.median(ang, 0).tolist(),
-                    magnitude_ratio_median=np.median(mag, 0).tolist(),
-                    rel_frobenius_median=float(np.median(rel)))
-    stats = dict(
-        signal=signal, samples=int(r['t'].size),
-        r2_learned_vs_sim=r2(r['acc_sim'], r['acc_learned']),
-        r2_exact_vs_sim=r2(r['acc_sim'], r['acc_exact']),
-        r2_proj_vs_sim=r2(r['acc_sim'], r['acc_proj']),
-        r2_learned_vs_exact=r2(r['acc_exact'], r['acc_learned']),
-        r2_learned_vs_proj=r2(r['acc_proj'], r['acc_learned']),
-        g2_vs_exact=g2_err(r['G2_exact']), g2_vs_proj=g2_err(r['G2_proj']),
-        drift_r2_vs_exact=r2(r['f_exact'], r['f_learned']),
-        drift_r2_vs_proj=r2(r['f_proj'], r['f_learned']),
-        # the SDC factorisation is not unique: similar products A(x)x from different matrices
-        a_rel_diff_median=float(np.median(
-            np.linalg.norm(r['A_learned'] - r['A_oracle'], axis=(1, 2))
-            / np.linalg.norm(r['A_oracle'], axis=(1, 2)))))
-    return dict(stats=stats, samples=r)
 
 
 def workspace_check_failures(model: SDCModel, weights: Weights, n: int = 9,
@@ -324,80 +107,98 @@ def _fmt(v, f='.3f'):
     return 'diverged' if not np.isfinite(v) else format(v, f)
 
 
+def _law_row(s: RunSummary) -> str:
+    return (f'| {LAW_SPECS[s.law][0]} | {_fmt(s.rmse_mm_grasp)} | '
+            f'{_fmt(s.max_mm_grasp, ".2f")} | '
+            f'{_fmt(s.rmse_mm_worst)} | {_fmt(s.max_mm_all, ".2f")} | '
+            f'{"n/a" if np.isnan(s.held_mm) else _fmt(s.held_mm)} | '
+            f'{s.effort_rms_nm:.4f} | '
+            f'{s.saturated_pct:.1f} % | {"yes" if s.grasp_success else "no"} | '
+            f'{s.cube_mm:.2f} | {s.check_fail_pct:.2f} % | {s.compute_us:.0f} |')
+
+
+def _trajectory_section(traj: str, summaries: list[RunSummary], figures: list[str]) -> list[str]:
+    """The grasp ``traj``: its timing, every law's row, and its figures."""
+    p, dur = TRAJECTORIES[traj]
+    lines = [f'## {traj}: close {p.close_distance * 1e3:g} mm in {p.t_close:g} s, '
+             f'hold {p.t_hold:g} s, open in {p.t_open:g} s ({dur:g} s run)', '',
+             '| law | RMSE grasp fingers [mm] | max grasp [mm] | worst-finger RMSE [mm] '
+             '| max any [mm] | held-reference error [mm] | torque RMS [N·m] | saturated '
+             '| grasp | cube moved [mm] | check failures '
+             '| compute [µs/step] |',
+             '| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | :---: | ---: | ---: '
+             '| ---: |']
+    lines += [_law_row(s) for s in summaries if s.trajectory == traj]
+    lines += ['']
+    for f in figures:
+        if f.startswith(traj):
+            lines += [f'![{traj}]({f})', '']
+    return lines
+
+
+def _model_section(s: dict) -> list[str]:
+    """The learned model against the ground truth (:func:`score_model`'s statistics ``s``)."""
+    lines = ['## The learned model against the ground truth', '',
+             f'Held-out signal {s["signal"]} on the hand-mounted finger, '
+             f'{s["samples"]} states. R² per axis (X, Y):', '',
+             '| compared | R² X | R² Y |', '| --- | ---: | ---: |']
+    for key, label in (('r2_learned_vs_sim', 'learned ẍ vs simulator'),
+                       ('r2_exact_vs_sim', 'exact ẍ (friction off) vs simulator'),
+                       ('r2_proj_vs_sim', 'projected ẍ vs simulator'),
+                       ('r2_learned_vs_exact', 'learned ẍ vs exact'),
+                       ('r2_learned_vs_proj', 'learned ẍ vs projected'),
+                       ('drift_r2_vs_exact', 'learned drift A(x)x vs exact f'),
+                       ('drift_r2_vs_proj', 'learned drift A(x)x vs projected f')):
+        lines.append(f'| {label} | {s[key][0]:.3f} | {s[key][1]:.3f} |')
+    lines += ['', f'The drifts agree better than the matrices: [A₂₁ A₂₂] learned vs the '
+              f'oracle\'s (projected) factorisation differ by {s["a_rel_diff_median"]:.2f} '
+              '(median relative Frobenius) — the SDC factorisation is not unique.', '',
+              '| learned G2 vs | column angle error (median, ax0 / ax1) '
+              '| magnitude ratio (median) | relative Frobenius error (median) |',
+              '| --- | ---: | ---: | ---: |']
+    for key, label in (('g2_vs_exact', 'exact J M⁻¹ B'),
+                       ('g2_vs_proj', 'projected S M_r⁻¹ Φᵀ B')):
+        g = s[key]
+        lines.append(f'| {label} | {g["angle_median_deg"][0]:.1f}° / '
+                     f'{g["angle_median_deg"][1]:.1f}° | '
+                     f'{g["magnitude_ratio_median"][0]:.2f} / '
+                     f'{g["magnitude_ratio_median"][1]:.2f} | '
+                     f'{g["rel_frobenius_median"]:.2f} |')
+    return lines + ['', '![model vs truth](model_vs_truth.png)', '']
+
+
+def _workspace_section(workspace: dict) -> list[str]:
+    """The Riccati checks on the workspace grid (model label → :func:`workspace_survey`)."""
+    lines = ['## Riccati checks on a workspace grid', '',
+             'Tip X ±10 mm, Y −35…+45 mm around rest (9 × 9), at rest and at 0.1 m/s in four '
+             'directions; one SDRE step (scipy solver, every check of Remarks 2–3) per '
+             'state.', '',
+             '| model | check failures | smallest σ_min(G2) [m/s² per N·m] '
+             '| largest cond(G2) |',
+             '| --- | ---: | ---: | ---: |']
+    for k, v in workspace.items():
+        lines.append(f'| {k} | {v["check_fail_pct"]:.2f} % | {v["min_sv"]:.3g} | '
+                     f'{v["max_cond"]:.3g} |')
+    return lines + ['']
+
+
 def write_report(out: Path, summaries: list[RunSummary], figures: list[str],
                  model_stats: dict | None, workspace: dict | None, expectation: dict) -> Path:
+    """``out/report.md``: per trajectory every law's figures, the expectation's verdict, and, when
+    given, the model against the ground truth and the workspace checks."""
     lines = ['# Beyond the paper: evaluation report', '',
              'Generated by `python -m soft_gripper_sdre.tools.judging.evaluate` (in-process loop, '
              f'lockstep, {NOISE * 1e3:g} mm tip noise, seed 0; errors on the true tip).', '']
     for traj in dict.fromkeys(s.trajectory for s in summaries):
-        p, dur = TRAJECTORIES[traj]
-        lines += [f'## {traj}: close {p.close_distance * 1e3:g} mm in {p.t_close:g} s, '
-                  f'hold {p.t_hold:g} s, open in {p.t_open:g} s ({dur:g} s run)', '',
-                  '| law | RMSE grasp fingers [mm] | max grasp [mm] | worst-finger RMSE [mm] '
-                  '| max any [mm] | held-reference error [mm] | torque RMS [N·m] | saturated '
-                  '| grasp | cube moved [mm] | check failures '
-                  '| compute [µs/step] |',
-                  '| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | :---: | ---: | ---: '
-                  '| ---: |']
-        for s in summaries:
-            if s.trajectory != traj:
-                continue
-            lines.append(f'| {LAW_SPECS[s.law][0]} | {_fmt(s.rmse_mm_grasp)} | '
-                         f'{_fmt(s.max_mm_grasp, ".2f")} | '
-                         f'{_fmt(s.rmse_mm_worst)} | {_fmt(s.max_mm_all, ".2f")} | '
-                         f'{"n/a" if np.isnan(s.held_mm) else _fmt(s.held_mm)} | '
-                         f'{s.effort_rms_nm:.4f} | '
-                         f'{s.saturated_pct:.1f} % | {"yes" if s.grasp_success else "no"} | '
-                         f'{s.cube_mm:.2f} | {s.check_fail_pct:.2f} % | {s.compute_us:.0f} |')
-        lines += ['']
-        for f in figures:
-            if f.startswith(traj):
-                lines += [f'![{traj}]({f})', '']
+        lines += _trajectory_section(traj, summaries, figures)
     lines += ['## The expectation', '']
     for k, v in expectation.items():
         lines.append(f'- {k}: **{v}**')
     lines.append('')
     if model_stats:
-        s = model_stats
-        lines += ['## The learned model against the ground truth', '',
-                  f'Held-out signal {s["signal"]} on the hand-mounted finger, '
-                  f'{s["samples"]} states. R² per axis (X, Y):', '',
-                  '| compared | R² X | R² Y |', '| --- | ---: | ---: |']
-        for key, label in (('r2_learned_vs_sim', 'learned ẍ vs simulator'),
-                           ('r2_exact_vs_sim', 'exact ẍ (friction off) vs simulator'),
-                           ('r2_proj_vs_sim', 'projected ẍ vs simulator'),
-                           ('r2_learned_vs_exact', 'learned ẍ vs exact'),
-                           ('r2_learned_vs_proj', 'learned ẍ vs projected'),
-                           ('drift_r2_vs_exact', 'learned drift A(x)x vs exact f'),
-                           ('drift_r2_vs_proj', 'learned drift A(x)x vs projected f')):
-            lines.append(f'| {label} | {s[key][0]:.3f} | {s[key][1]:.3f} |')
-        lines += ['', f'The drifts agree better than the matrices: [A₂₁ A₂₂] learned vs the '
-                  f'oracle\'s (projected) factorisation differ by {s["a_rel_diff_median"]:.2f} '
-                  '(median relative Frobenius) — the SDC factorisation is not unique.', '',
-                  '| learned G2 vs | column angle error (median, ax0 / ax1) '
-                  '| magnitude ratio (median) | relative Frobenius error (median) |',
-                  '| --- | ---: | ---: | ---: |']
-        for key, label in (('g2_vs_exact', 'exact J M⁻¹ B'),
-                           ('g2_vs_proj', 'projected S M_r⁻¹ Φᵀ B')):
-            g = s[key]
-            lines.append(f'| {label} | {g["angle_median_deg"][0]:.1f}° / '
-                         f'{g["angle_median_deg"][1]:.1f}° | '
-                         f'{g["magnitude_ratio_median"][0]:.2f} / '
-                         f'{g["magnitude_ratio_median"][1]:.2f} | '
-                         f'{g["rel_frobenius_median"]:.2f} |')
-        lines += ['', '![model vs truth](model_vs_truth.png)', '']
+        lines += _model_section(model_stats)
     if workspace:
-        lines += ['## Riccati checks on a workspace grid', '',
-                  'Tip X ±10 mm, Y −35…+45 mm around rest (9 × 9), at rest and at 0.1 m/s in four '
-                  'directions; one SDRE step (scipy solver, every check of Remarks 2–3) per '
-                  'state.', '',
-                  '| model | check failures | smallest σ_min(G2) [m/s² per N·m] '
-                  '| largest cond(G2) |',
-                  '| --- | ---: | ---: | ---: |']
-        for k, v in workspace.items():
-            lines.append(f'| {k} | {v["check_fail_pct"]:.2f} % | {v["min_sv"]:.3g} | '
-                         f'{v["max_cond"]:.3g} |')
-        lines.append('')
+        lines += _workspace_section(workspace)
     path = out / 'report.md'
     path.write_text('\n'.join(lines) + '\n')
     return path
@@ -427,7 +228,7 @@ def expectation_verdict(summaries: list[RunSummary]) -> dict:
     return out
 
 
-def main(argv=None) -> int:
+def _parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     ap.add_argument('--out', type=Path, default=Path('runs/evaluate'))
     ap.add_argument('--laws', nargs='+', default=list(LAW_SPECS), choices=list(LAW_SPECS))
@@ -448,6 +249,43 @@ def main(argv=None) -> int:
                     help='Koopman model of the koopman_* laws (default: the shipped one; '
                          'tools.learning.koopman writes one)')
     jobs.add_arguments(ap)
+    return ap
+
+
+def _print_tuning(tune: str, trajectories, model: SDCModel, weights: Weights,
+                  duration: float | None) -> None:
+    """``--tune``: the grid of a law's PD gains, or of the default law's integral gain."""
+    if tune == 'integral':
+        for traj in trajectories:
+            for gain, rmse, held in tune_integral(model, weights, trajectory=traj,
+                                                  duration=duration):
+                print(f'{traj} integral_gain={gain:g}: grasp-finger RMSE {rmse:.4f} mm, '
+                      f'held-reference error {held:.4f} mm')
+        return
+    for traj in trajectories:
+        for kp, kd, rmse in tune_gains(model, weights, tune, trajectory=traj, duration=duration):
+            print(f'{traj} {tune} kp={kp:g} kd={kd:g}: grasp-finger RMSE {rmse:.4f} mm')
+    print(f'shipped: {TUNABLE[tune][0]}')
+
+
+def _score_models(model: SDCModel, model_path: Path | None, weights: Weights,
+                  out: Path) -> tuple[dict, dict]:
+    """The model against the ground truth (its statistics; ``model_vs_truth.png`` in ``out``) and
+    the workspace checks of the shipped models and of ``model_path`` if given."""
+    scored = score_model(model)
+    plot_model_vs_truth(scored['samples'], out / 'model_vs_truth.png')
+    workspace = {'default (shipped)': workspace_survey(SDCModel(), weights),
+                 'paper_data (shipped)': workspace_survey(SDCModel(PAPER_DATA_MODEL), weights)}
+    if PAPER_DATA_SV_MODEL.is_file():
+        workspace['paper_data_sv (shipped, σ-penalty)'] = workspace_survey(
+            SDCModel(PAPER_DATA_SV_MODEL), weights)
+    if model_path is not None:
+        workspace[str(model_path)] = workspace_survey(model, weights)
+    return scored['stats'], workspace
+
+
+def main(argv=None) -> int:
+    ap = _parser()
     args = ap.parse_args(argv)
     runner = jobs.runner_from_args(ap, args)
     if args.koopman is not None and not args.koopman.is_file():
@@ -459,19 +297,8 @@ def main(argv=None) -> int:
     except ModelFileError as exc:
         ap.error(f'--model: {exc}')
     weights = Weights(**DEFAULT_WEIGHTS)
-    if args.tune == 'integral':
-        for traj in args.trajectories:
-            for gain, rmse, held in tune_integral(model, weights, trajectory=traj,
-                                                  duration=args.duration):
-                print(f'{traj} integral_gain={gain:g}: grasp-finger RMSE {rmse:.4f} mm, '
-                      f'held-reference error {held:.4f} mm')
-        return 0
     if args.tune:
-        for traj in args.trajectories:
-            for kp, kd, rmse in tune_gains(model, weights, args.tune, trajectory=traj,
-                                           duration=args.duration):
-                print(f'{traj} {args.tune} kp={kp:g} kd={kd:g}: grasp-finger RMSE {rmse:.4f} mm')
-        print(f'shipped: {TUNABLE[args.tune][0]}')
+        _print_tuning(args.tune, args.trajectories, model, weights, args.duration)
         return 0
     try:
         with jobs.session(runner):
@@ -480,25 +307,15 @@ def main(argv=None) -> int:
                                           args.duration, runner)
     except jobs.JobsError as exc:
         ap.error(f'--ray: {exc}')
-    figures = []
     for s in summaries:
         print(f'{s.trajectory:6s} {s.law:15s} RMSE {s.rmse_mm_grasp:.3f} mm, '
               f'max {s.max_mm_all:.2f} mm, held {s.held_mm:.3f} mm, '
               f'checks failed {s.check_fail_pct:.2f} %, {s.compute_us:.0f} µs/step')
-    for traj, res in results.items():
-        figures += law_figures(res, summaries, traj, args.out)
+    figures = [name for traj, res in results.items()
+               for name in law_figures(res, summaries, traj, args.out)]
     model_stats = workspace = None
     if not args.no_model_score:
-        scored = score_model(model)
-        model_stats = scored['stats']
-        plot_model_vs_truth(scored['samples'], args.out / 'model_vs_truth.png')
-        workspace = {'default (shipped)': workspace_survey(SDCModel(), weights),
-                     'paper_data (shipped)': workspace_survey(SDCModel(PAPER_DATA_MODEL), weights)}
-        if PAPER_DATA_SV_MODEL.is_file():
-            workspace['paper_data_sv (shipped, σ-penalty)'] = workspace_survey(
-                SDCModel(PAPER_DATA_SV_MODEL), weights)
-        if args.model is not None:
-            workspace[str(args.model)] = workspace_survey(model, weights)
+        model_stats, workspace = _score_models(model, args.model, weights, args.out)
     verdict = expectation_verdict(summaries)
     (args.out / 'evaluate.json').write_text(json.dumps(
         dict(runs=[asdict(s) for s in summaries], expectation=verdict, model=model_stats,
@@ -506,7 +323,6 @@ def main(argv=None) -> int:
     path = write_report(args.out, summaries, figures, model_stats, workspace, verdict)
     print(path.read_text())
     return 0
-
 
 if __name__ == '__main__':
     raise SystemExit(main())

@@ -32,6 +32,7 @@ import json
 import math
 from pathlib import Path
 import sys
+from typing import NamedTuple
 
 import numpy as np
 
@@ -79,6 +80,43 @@ def _start(run: Run, path) -> int:
     return int(np.argmax(valid))
 
 
+class _Span(NamedTuple):
+    """The run from its start, on the tip samples' times: the measured tips and what they are
+    scored against."""
+
+    t: np.ndarray              # (T,) [s]
+    pos: np.ndarray            # (T, n, 2) measured tips [m]
+    ref: np.ndarray            # (T, n, 4) reference position and velocity
+    vel: np.ndarray            # (T, n, 2) the estimator's tip velocity
+    contact: np.ndarray        # (T, n) the finger touches the cube (all False without contacts)
+    has_contacts: bool
+    t_u: np.ndarray            # (U,) the torque commands within the span [s]
+    u: np.ndarray              # (U, n, 2) [N·m]
+
+    @property
+    def excursion(self) -> np.ndarray:
+        """(n,) the reference's peak distance from its first point [m]."""
+        return np.linalg.norm(self.ref[..., :2] - self.ref[0, :, :2], axis=2).max(axis=0)
+
+
+def _span(run: Run, path) -> _Span:
+    """The run from its first tip sample with a reference in force (``path`` names the bag in the
+    error when there is none)."""
+    k0 = _start(run, path)
+    t = run.tips.t[k0:]
+    has_contacts = run.contacts is not None
+    if has_contacts:
+        contact = hold(run.contacts.t, run.contacts.values, t) > 0.0
+    else:
+        contact = np.zeros((len(t), run.n_fingers), dtype=bool)
+    # commands outside the recorded run (e.g. a controller's zero torques, stamped with its own
+    # clock, after the simulator stopped) are not part of it
+    keep_u = (run.torques.t >= t[0]) & (run.torques.t <= t[-1])
+    return _Span(t, run.tips.values[k0:], run.reference.values[k0:],
+                 interpolate(run.estimate.t, run.estimate.values[..., 2:4], t), contact,
+                 has_contacts, run.torques.t[keep_u], run.torques.values[keep_u])
+
+
 def _true_tips(run: Run, t: np.ndarray):
     """(t, pos, vel) of the true tips over the run's span from its joint states, or None."""
     if run.joints is None:
@@ -89,6 +127,74 @@ def _true_tips(run: Run, t: np.ndarray):
     from soft_gripper_sdre.analysis.ground_truth import true_tips
     pos, vel = true_tips(run.joints.values[keep])
     return run.joints.t[keep], pos, vel
+
+
+def _finger_metrics(span: _Span, names: list[str]) -> dict[str, dict]:
+    """Per finger: the measured tips' free-space tracking figures, the share of samples in
+    contact and the held-reference error."""
+    ref = span.ref
+    tracking = tracking_metrics(span.pos, ref[..., :2], ~span.contact, span.excursion)
+    held = held_reference_error(span.pos, ref[..., :2], ref[..., 2:4], span.contact)
+    fingers = {}
+    for i, name in enumerate(names):
+        fingers[name] = tracking[i].as_dict()
+        fingers[name]['contact_fraction'] = (float(span.contact[:, i].mean())
+                                             if span.has_contacts else None)
+        fingers[name]['held_mm'] = float(held[i])
+    return fingers
+
+
+def _true_tip_metrics(span: _Span, truth, names: list[str]) -> dict[str, dict]:
+    """Per finger: the same figures on the true tips ``truth`` (t, pos, vel), with the reference
+    interpolated and the contact held onto their times."""
+    t_true, pos_true, _ = truth
+    ref_true = interpolate(span.t, span.ref, t_true)
+    contact_true = hold(span.t, span.contact, t_true)
+    true_metrics = tracking_metrics(pos_true, ref_true[..., :2], ~contact_true, span.excursion)
+    held_true = held_reference_error(pos_true, ref_true[..., :2], ref_true[..., 2:4],
+                                     contact_true)
+    return {name: _json_safe(dict(true_metrics[i].as_dict(), held_mm=float(held_true[i])))
+            for i, name in enumerate(names)}
+
+
+def _cube_mm(run: Run) -> float | None:
+    """The cube's largest displacement from its first pose [mm], None without cube_pose."""
+    if run.cube_pose is None:
+        return None
+    p = run.cube_pose.values[:, :3]
+    return 1e3 * float(np.linalg.norm(p - p[0], axis=1).max())
+
+
+def _saturation(u: np.ndarray, torque_limit: float | None, names: list[str]) -> dict | None:
+    """How many commands reached ``torque_limit`` in either axis, per finger (None: no limit)."""
+    if torque_limit is None:
+        return None
+    hit = np.abs(u) >= torque_limit * (1.0 - 1e-9)          # (T, n, 2)
+    return {'limit_Nm': float(torque_limit), 'commands': int(len(u)),
+            'saturated': {name: int(hit[:, i].any(axis=1).sum()) for i, name in enumerate(names)}}
+
+
+def _plot_figures(out: Path, span: _Span, truth, names: list[str],
+                  torque_limit: float | None) -> None:
+    """Figs. 5–7: the reference against the true tip where ``truth`` is given, else against the
+    measured tip and the estimator's velocity; the torque commands."""
+    if truth is not None:
+        label = 'true tip (simulator ground truth: forward kinematics of joint_states)'
+        t_act, pos_act, vel_act = truth
+    else:
+        label = 'measured tip (with sensor noise)'
+        t_act, pos_act, vel_act = span.t, span.pos, span.vel
+    contact = span.contact if span.has_contacts else None
+    plot_tracking(span.t, span.ref[..., :2], t_act, pos_act, out / FIGURES[0],
+                  quantity='position', achieved_label=label, finger_names=names, contact=contact,
+                  title=f'Fig. 5  Tip position: desired vs {label.split(" (")[0]} '
+                        '[mm from the start]')
+    vel_label = label if truth is not None else 'Kalman-filter estimate (state_estimate)'
+    plot_tracking(span.t, span.ref[..., 2:4], t_act, vel_act, out / FIGURES[1],
+                  quantity='velocity', achieved_label=vel_label.replace('tip', 'tip velocity', 1),
+                  finger_names=names, contact=contact,
+                  title=f'Fig. 6  Tip velocity: desired vs {vel_label.split(" (")[0]} velocity')
+    plot_torques(span.t_u, span.u, out / FIGURES[2], names, u_max=torque_limit)
 
 
 def report(bag_path: str | Path, out_dir: str | Path, torque_limit: float | None = None,
@@ -110,83 +216,24 @@ def report(bag_path: str | Path, out_dir: str | Path, torque_limit: float | None
     run = extract_run(bag_path)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    n = run.n_fingers
-    names = list(run.finger_names) or list(FINGER_NAMES[:n])
-
-    k0 = _start(run, bag_path)
-    t = run.tips.t[k0:]
-    pos = run.tips.values[k0:]
-    ref = run.reference.values[k0:]
-    vel = interpolate(run.estimate.t, run.estimate.values[..., 2:4], t)
-    has_contacts = run.contacts is not None
-    if has_contacts:
-        contact = hold(run.contacts.t, run.contacts.values, t) > 0.0
-    else:
-        contact = np.zeros((len(t), n), dtype=bool)
-    # commands outside the recorded run (e.g. a controller's zero torques, stamped with its own
-    # clock, after the simulator stopped) are not part of it
-    keep_u = (run.torques.t >= t[0]) & (run.torques.t <= t[-1])
-    t_u, u = run.torques.t[keep_u], run.torques.values[keep_u]
-
-    excursion = np.linalg.norm(ref[..., :2] - ref[0, :, :2], axis=2).max(axis=0)
-    tracking = tracking_metrics(pos, ref[..., :2], ~contact, excursion)
-    held = held_reference_error(pos, ref[..., :2], ref[..., 2:4], contact)
-    fingers = {}
-    for i, name in enumerate(names):
-        fingers[name] = tracking[i].as_dict()
-        fingers[name]['contact_fraction'] = float(contact[:, i].mean()) if has_contacts else None
-        fingers[name]['held_mm'] = float(held[i])
-
-    cube_mm = None
-    if run.cube_pose is not None:
-        p = run.cube_pose.values[:, :3]
-        cube_mm = 1e3 * float(np.linalg.norm(p - p[0], axis=1).max())
-
-    saturation = None
-    if torque_limit is not None:
-        hit = np.abs(u) >= torque_limit * (1.0 - 1e-9)          # (T, n, 2)
-        saturation = {'limit_Nm': float(torque_limit), 'commands': int(len(u)),
-                      'saturated': {name: int(hit[:, i].any(axis=1).sum())
-                                    for i, name in enumerate(names)}}
-
+    names = list(run.finger_names) or list(FINGER_NAMES[:run.n_fingers])
+    span = _span(run, bag_path)
     metrics = _json_safe({
         'bag': str(Path(bag_path)),
-        'start_s': float(t[0]), 'end_s': float(t[-1]), 'samples': int(len(t)),
-        'free_space': 'cube contact force == 0' if has_contacts
+        'start_s': float(span.t[0]), 'end_s': float(span.t[-1]), 'samples': int(len(span.t)),
+        'free_space': 'cube contact force == 0' if span.has_contacts
                       else 'all samples (no cube_contacts)',
-        'fingers': fingers,
-        'cube_max_displacement_mm': cube_mm,
-        'torque_saturation': saturation,
+        'fingers': _finger_metrics(span, names),
+        'cube_max_displacement_mm': _cube_mm(run),
+        'torque_saturation': _saturation(span.u, torque_limit, names),
         'message_counts': run.counts,
         'skipped_messages': run.skipped,
     })
-    truth = _true_tips(run, t)
+    truth = _true_tips(run, span.t)
     if truth is not None:
-        t_true, pos_true, vel_true = truth
-        ref_true = interpolate(t, ref, t_true)
-        contact_true = hold(t, contact, t_true)
-        true_metrics = tracking_metrics(pos_true, ref_true[..., :2], ~contact_true, excursion)
-        held_true = held_reference_error(pos_true, ref_true[..., :2], ref_true[..., 2:4],
-                                         contact_true)
-        for i, name in enumerate(names):
-            metrics['fingers'][name]['true_tip'] = _json_safe(dict(true_metrics[i].as_dict(),
-                                                                   held_mm=float(held_true[i])))
-        achieved = ('true tip (simulator ground truth: forward kinematics of joint_states)', t_true,
-                    pos_true, vel_true)
-    else:
-        achieved = ('measured tip (with sensor noise)', t, pos, vel)
-    label, t_act, pos_act, vel_act = achieved
-    plot_tracking(t, ref[..., :2], t_act, pos_act, out / FIGURES[0], quantity='position',
-                  achieved_label=label, finger_names=names,
-                  contact=contact if has_contacts else None,
-                  title=f'Fig. 5  Tip position: desired vs {label.split(" (")[0]} '
-                        '[mm from the start]')
-    vel_label = label if truth is not None else 'Kalman-filter estimate (state_estimate)'
-    plot_tracking(t, ref[..., 2:4], t_act, vel_act, out / FIGURES[1], quantity='velocity',
-                  achieved_label=vel_label.replace('tip', 'tip velocity', 1), finger_names=names,
-                  contact=contact if has_contacts else None,
-                  title=f'Fig. 6  Tip velocity: desired vs {vel_label.split(" (")[0]} velocity')
-    plot_torques(t_u, u, out / FIGURES[2], names, u_max=torque_limit)
+        for name, figures in _true_tip_metrics(span, truth, names).items():
+            metrics['fingers'][name]['true_tip'] = figures
+    _plot_figures(out, span, truth, names, torque_limit)
     if render and run.joints is not None:
         from soft_gripper_sdre.tools.judging.render import render_run
         metrics['render'] = render_run(bag_path, out, run=run)

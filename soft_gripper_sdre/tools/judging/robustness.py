@@ -39,7 +39,7 @@ import numpy as np
 from soft_gripper_sdre.analysis.oracle import ORACLE_LAWS
 from soft_gripper_sdre.learning.model import ModelFileError, SDCModel
 from soft_gripper_sdre.tools.judging import jobs
-from soft_gripper_sdre.tools.judging.evaluate import TRAJECTORIES
+from soft_gripper_sdre.tools.judging.evaluation_runs import TRAJECTORIES
 from soft_gripper_sdre.tools.judging.robustness_grid import (
     VARIATIONS,
     Case,

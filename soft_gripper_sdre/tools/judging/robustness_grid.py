@@ -27,7 +27,7 @@ from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
 from soft_gripper_sdre.learning.model import DEFAULT_MODEL, SDCModel
 from soft_gripper_sdre.sim.hand import SimConfig
 from soft_gripper_sdre.sim.plant import PlantVariation
-from soft_gripper_sdre.tools.judging.evaluate import NOISE, TRAJECTORIES, U_MAX
+from soft_gripper_sdre.tools.judging.evaluation_runs import NOISE, TRAJECTORIES, U_MAX
 from soft_gripper_sdre.tools.judging.jobs import FileBlob, Runner, run_jobs
 
 register_oracle_laws()          # asked for by name (--laws), never by default
@@ -37,7 +37,7 @@ register_oracle_laws()          # asked for by name (--laws), never by default
 class Variation:
     """A plant or sensor the model was not trained on: the plant's scales, the tip noise [m] and the
     sensor delay [s] (the nominal values are those of
-    :mod:`soft_gripper_sdre.tools.judging.evaluate`)."""
+    :mod:`soft_gripper_sdre.tools.judging.evaluation_runs`)."""
 
     label: str
     plant: PlantVariation = field(default_factory=PlantVariation)

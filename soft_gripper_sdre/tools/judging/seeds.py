@@ -27,129 +27,40 @@ The shipped model (``models/default.pt``) is scored the same way and placed in t
 with the data of ``make model`` and its pinned kernels (``make seeds`` sets them), seed 0's model on
 draw 0 is the shipped one bit for bit.
 
-Training and tracking one model is one job; the jobs run on ``--workers`` processes of this
-machine, or as Ray tasks with ``--ray ADDRESS`` (:mod:`~soft_gripper_sdre.tools.judging.jobs`), with
-the same numbers. The demos need DDS on this machine and run here, after the jobs.
+Training and tracking one model is one job (:mod:`~soft_gripper_sdre.tools.judging.seed_jobs`);
+the jobs run on ``--workers`` processes of this machine, or as Ray tasks with ``--ray ADDRESS``
+(:mod:`~soft_gripper_sdre.tools.judging.jobs`), with the same numbers. The demos need DDS on this
+machine and run here, after the jobs.
 
 Writes ``OUT/<model>/model.pt`` and ``metrics.json`` per model (``seed3``, ``seed3_draw1``),
-``OUT/seeds.json`` (every number) and ``OUT/seeds.md`` (the tables), and prints the tables.
+``OUT/seeds.json`` (every number) and ``OUT/seeds.md`` (the tables,
+:mod:`~soft_gripper_sdre.tools.judging.seed_tables`), and prints the tables.
 """
 from __future__ import annotations
 
 import argparse
-from dataclasses import asdict, dataclass, fields, replace
-import hashlib
+from dataclasses import fields, replace
 import json
 import math
 import os
 from pathlib import Path
 import shlex
 import sys
-import tempfile
 import time
 
-import numpy as np
-
 from soft_gripper_sdre.tools.judging import jobs
+from soft_gripper_sdre.tools.judging.seed_jobs import (
+    ModelJob,
+    ModelOutcome,
+    SweepContext,
+    run_model_job,
+)
+from soft_gripper_sdre.tools.judging.seed_tables import write_results
 
 #: the training settings ``--set`` may change (the seed is ``--seeds``', the preset is the default)
 SETTABLE = ('epochs', 'lr', 'batch_size', 'cosine', 'scale', 'weight_decay', 'patience', 'hidden',
             'sv_penalty', 'sv_floor', 'sv_box')
 DEFAULT_LAWS = ('sdre_ff', 'sdre')
-#: the shipped model's row
-SHIPPED = 'shipped'
-
-
-@dataclass(frozen=True)
-class ModelJob:
-    """Train seed ``seed`` on draw ``draw`` of the data and score it; ``seed`` None scores the
-    shipped model."""
-
-    seed: int | None
-    draw: int = 0
-
-    @property
-    def name(self) -> str:
-        if self.seed is None:
-            return SHIPPED
-        return f'seed{self.seed}' + (f'_draw{self.draw}' if self.draw else '')
-
-
-@dataclass(frozen=True)
-class SweepContext:
-    """What every job shares: the labelled data, the training settings, the jitter, the tracking
-    runs."""
-
-    data: object                   # tools.learning.train.LabelledData
-    settings: object               # learning.training.TrainSettings
-    jitter: float
-    laws: tuple[str, ...]
-    trajectories: tuple[str, ...]
-    duration: float | None
-
-
-@dataclass
-class ModelOutcome:
-    """One model: its checkpoint (None for the shipped one), its training metrics, the sha256 of its
-    weights, and its tracking runs (``evaluate.RunSummary`` as dicts)."""
-
-    name: str
-    seed: int | None
-    draw: int
-    checkpoint: bytes | None
-    metrics: dict
-    weights_sha256: str
-    tracking: list[dict]
-    job_seconds: float
-
-
-def weights_sha256(path: Path) -> str:
-    """sha256 over the checkpoint's network weights (every tensor of the state dict, by name)."""
-    from soft_gripper_sdre.learning.model import read_checkpoint
-    state = read_checkpoint(path)['state_dict']
-    h = hashlib.sha256()
-    for key in sorted(state):
-        a = state[key].detach().cpu().numpy()
-        h.update(key.encode())
-        h.update(str((a.shape, a.dtype.str)).encode())
-        h.update(np.ascontiguousarray(a).tobytes())
-    return h.hexdigest()
-
-
-def tracking_runs(model, laws, trajectories, duration) -> list[dict]:
-    """Every law on every trajectory, in-process, as ``make evaluate`` runs them (RunSummary
-    dicts)."""
-    from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
-    from soft_gripper_sdre.tools.judging.evaluate import run_law
-    weights = Weights(**DEFAULT_WEIGHTS)
-    out = []
-    for trajectory in trajectories:
-        for law in laws:
-            summary, _ = run_law(law, trajectory, model, weights, duration=duration)
-            out.append(asdict(summary))
-    return out
-
-
-def run_model_job(context: SweepContext, job: ModelJob) -> ModelOutcome:
-    """Train and score one model (a job of
-    :func:`~soft_gripper_sdre.tools.judging.jobs.run_jobs`)."""
-    from soft_gripper_sdre.analysis.training_run import fit
-    from soft_gripper_sdre.learning.model import DEFAULT_MODEL, SDCModel, set_torch_threads
-    set_torch_threads(1)
-    start = time.perf_counter()
-    if job.seed is None:
-        model = SDCModel()
-        tracking = tracking_runs(model, context.laws, context.trajectories, context.duration)
-        return ModelOutcome(job.name, None, 0, None, dict(model.metrics),
-                            weights_sha256(DEFAULT_MODEL), tracking, time.perf_counter() - start)
-    settings = replace(context.settings, seed=job.seed)
-    jitter = context.jitter if job.draw else 0.0
-    with tempfile.TemporaryDirectory(prefix='sgs-seeds-') as tmp:
-        path, metrics, _, _ = fit(context.data, settings, Path(tmp) / 'model.pt', jitter, job.draw)
-        model = SDCModel(path)
-        tracking = tracking_runs(model, context.laws, context.trajectories, context.duration)
-        return ModelOutcome(job.name, job.seed, job.draw, path.read_bytes(), metrics,
-                            weights_sha256(path), tracking, time.perf_counter() - start)
 
 
 # -- the demo on the node graph -----------------------------------------------------------------
@@ -188,149 +99,6 @@ def run_demos(models: dict[str, Path], out: Path, domain_id: int | None,
                           progress=False)
         figures[name] = demo_figures(result)
     return figures
-
-
-# -- statistics and tables ----------------------------------------------------------------------
-def spread(values) -> dict:
-    """n, mean, sample standard deviation (ddof 1; NaN for fewer than two), min and max of the
-    finite ``values``."""
-    v = np.asarray([x for x in values if x is not None and math.isfinite(x)], dtype=float)
-    if v.size == 0:
-        return dict(n=0, mean=float('nan'), sd=float('nan'), min=float('nan'), max=float('nan'))
-    return dict(n=int(v.size), mean=float(v.mean()),
-                sd=float(v.std(ddof=1)) if v.size > 1 else float('nan'),
-                min=float(v.min()), max=float(v.max()))
-
-
-def within_seed_sd(rows: list[dict], key: str) -> float:
-    """The pooled standard deviation over the draws of each seed (the rounding-level spread alone):
-    sqrt(Σ_s Σ_d (v − mean_s)² / Σ_s (n_s − 1)); NaN without a seed of two draws."""
-    by_seed: dict[int, list[float]] = {}
-    for r in rows:
-        v = r.get(key)
-        if r['seed'] is not None and v is not None and math.isfinite(v):
-            by_seed.setdefault(r['seed'], []).append(v)
-    ss = sum(float(np.sum((np.asarray(v) - np.mean(v)) ** 2)) for v in by_seed.values())
-    dof = sum(len(v) - 1 for v in by_seed.values())
-    return math.sqrt(ss / dof) if dof > 0 else float('nan')
-
-
-def model_row(outcome: ModelOutcome, demo: dict | None) -> dict:
-    """The flat figures of one model."""
-    m = outcome.metrics
-    g2 = np.asarray(m['G2_at_origin'], dtype=float)
-    row = {'name': outcome.name, 'seed': outcome.seed, 'draw': outcome.draw,
-           'r2_x': m['u4_r2_true']['X'], 'r2_y': m['u4_r2_true']['Y'],
-           'g2_00': g2[0, 0], 'g2_01': g2[0, 1], 'g2_10': g2[1, 0], 'g2_11': g2[1, 1],
-           'angle_0': m['G2_column_angles_deg'][0], 'angle_1': m['G2_column_angles_deg'][1],
-           'best_epoch': m['best_epoch'], 'epochs_run': m['epochs_run'],
-           'best_val_loss': m['best_val_loss'], 'weights_sha256': outcome.weights_sha256}
-    for run in outcome.tracking:
-        prefix = f'{run["law"]}_{run["trajectory"]}'
-        row[f'{prefix}_rmse_mm'] = run['rmse_mm_grasp']
-        row[f'{prefix}_held_mm'] = run['held_mm']
-        row[f'{prefix}_cube_mm'] = run['cube_mm']
-        row[f'{prefix}_grasp'] = run['grasp_success']
-        row[f'{prefix}_check_fail_pct'] = run['check_fail_pct']
-    for key, value in (demo or {}).items():
-        row[f'demo_{key}'] = value
-    return row
-
-
-#: the figures summarised, with their labels and formats (the tracking keys are added per law and
-#: trajectory)
-ACCURACY = [('r2_x', 'u4 R² X', '.4f'), ('r2_y', 'u4 R² Y', '.4f'), ('g2_00', 'G2[0][0]', '.1f'),
-            ('g2_01', 'G2[0][1]', '.1f'), ('g2_10', 'G2[1][0]', '.1f'),
-            ('g2_11', 'G2[1][1]', '.1f'), ('angle_0', 'G2 column 0 angle [°]', '.2f'),
-            ('angle_1', 'G2 column 1 angle [°]', '.2f'), ('best_epoch', 'best epoch', '.0f')]
-DEMO = [('demo_grasping_mm', 'demo: grasping fingers, measured tip [mm]', '.3f'),
-        ('demo_opening_mm', 'demo: opening fingers, measured tip [mm]', '.3f'),
-        ('demo_grasping_true_mm', 'demo: grasping fingers, true tip [mm]', '.3f'),
-        ('demo_opening_true_mm', 'demo: opening fingers, true tip [mm]', '.3f'),
-        ('demo_held_true_mm', 'demo: held-reference error, worst finger [mm]', '.3f'),
-        ('demo_cube_mm', 'demo: cube moved [mm]', '.2f')]
-
-
-def figure_keys(rows: list[dict], laws, trajectories) -> list[tuple[str, str, str]]:
-    keys = list(ACCURACY)
-    for trajectory in trajectories:
-        for law in laws:
-            keys.append((f'{law}_{trajectory}_rmse_mm',
-                         f'`{law}` on the {trajectory}: RMSE grasping fingers [mm]', '.4f'))
-    keys += [k for k in DEMO if any(k[0] in r for r in rows)]
-    return keys
-
-
-def summarise(rows: list[dict], keys) -> dict:
-    """Per figure: the spread over seeds on the collected data (draw 0), the pooled spread over the
-    draws of one seed, the spread over every trained model, and the shipped model's value with its
-    place among the trained models (z-score against all, and how many lie below it)."""
-    trained = [r for r in rows if r['seed'] is not None]
-    draw0 = [r for r in trained if r['draw'] == 0]
-    shipped = next((r for r in rows if r['seed'] is None), None)
-    out = {}
-    for key, _, _ in keys:
-        every = spread(r.get(key) for r in trained)
-        entry = {'seeds': spread(r.get(key) for r in draw0),
-                 'draws_sd': within_seed_sd(trained, key), 'all': every}
-        if shipped is not None and shipped.get(key) is not None:
-            v = shipped[key]
-            values = [r[key] for r in trained if r.get(key) is not None and math.isfinite(r[key])]
-            entry['shipped'] = {'value': v,
-                                'z': (v - every['mean']) / every['sd']
-                                     if every['sd'] and every['sd'] > 0 else float('nan'),
-                                'below': sum(x < v for x in values), 'of': len(values)}
-        out[key] = entry
-    return out
-
-
-def _finer(fmt: str) -> str:
-    """The format of a spread: one decimal more than its figure's (``.3f`` → ``.4f``)."""
-    return f'.{int(fmt[1:-1]) + 1}f' if fmt.endswith('f') and fmt[1:-1].isdigit() else fmt
-
-
-def _f(value, fmt) -> str:
-    if value is None or (isinstance(value, float) and not math.isfinite(value)):
-        return '–'
-    return format(value, fmt)
-
-
-def markdown(rows: list[dict], summary: dict, keys, command: str, facts: dict) -> str:
-    lines = ['# The model and the grasp over training seeds and data draws', '',
-             f'Command: `{command}`', '',
-             f'{facts["models"]} trained models: seeds {facts["seeds"]}, draws 0–{facts["draws"]} '
-             '(draw 0: the data as collected; draw d: states and labels × '
-             f'(1 + {facts["jitter"]:g}·N(0, 1)), seed d); training '
-             f'settings {facts["settings"]}; data fingerprint {facts["fingerprint"][:12]}; '
-             f'jobs on {facts["runner"]}, {facts["wall_s"]:.0f} s wall; '
-             f'kernels {facts["kernels"]}.', '',
-             '## Spread', '',
-             '| figure | over seeds (draw 0): mean ± sd | min – max | over draws of a seed: sd '
-             '| every model: mean ± sd | min – max | shipped | shipped: z, models below it |',
-             '| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |']
-    for key, label, fmt in keys:
-        e = summary[key]
-        s, a = e['seeds'], e['all']
-        shipped = e.get('shipped')
-        place = (f'{_f(shipped["z"], "+.2f")}, {shipped["below"]}/{shipped["of"]}' if shipped
-                 else '–')
-        fine = _finer(fmt)
-        lines.append(f'| {label} | {_f(s["mean"], fmt)} ± {_f(s["sd"], fine)} '
-                     f'| {_f(s["min"], fmt)} – {_f(s["max"], fmt)} '
-                     f'| {_f(e["draws_sd"], fine)} | {_f(a["mean"], fmt)} ± {_f(a["sd"], fine)} '
-                     f'| {_f(a["min"], fmt)} – {_f(a["max"], fmt)} '
-                     f'| {_f(shipped["value"], fmt) if shipped else "–"} | {place} |')
-    lines += ['', '## Every model', '',
-              '| model | ' + ' | '.join(label for _, label, _ in keys) + ' |',
-              '| --- |' + ' ---: |' * len(keys)]
-    for r in rows:
-        lines.append(f'| {r["name"]} | ' +
-                     ' | '.join(_f(r.get(key), fmt) for key, _, fmt in keys) + ' |')
-    same = facts.get('seed0_is_shipped')
-    if same is not None:
-        lines += ['', f'Seed 0 on draw 0 {"is" if same else "is NOT"} the shipped model bit for '
-                      'bit (sha256 of the network weights).']
-    return '\n'.join(lines) + '\n'
 
 
 # -- the command line ---------------------------------------------------------------------------
@@ -372,7 +140,7 @@ def _settings_from(parser, assignments: list[str]):
 
 
 def _parser() -> argparse.ArgumentParser:
-    from soft_gripper_sdre.tools.judging.evaluate import LAW_SPECS, TRAJECTORIES
+    from soft_gripper_sdre.tools.judging.evaluation_runs import LAW_SPECS, TRAJECTORIES
     ap = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.judging.seeds',
                                  description=__doc__.split('\n\n')[0])
     ap.add_argument('--data', type=Path, default=Path('data/excitation'),
@@ -433,20 +201,51 @@ def parse_args(argv=None):
     return ap, args, settings, runner, records
 
 
-def main(argv=None) -> int:
-    ap, args, settings, runner, records = parse_args(argv)
-    command = 'python -m soft_gripper_sdre.tools.judging.seeds ' + ' '.join(
-        shlex.quote(a) for a in (sys.argv[1:] if argv is None else argv))
-    from soft_gripper_sdre.learning.labels import label_records
-    from soft_gripper_sdre.learning.training import fingerprint
+def _note_unpinned_kernels() -> None:
+    """Say on stderr when the math kernels are not pinned as ``make model`` pins them."""
     from soft_gripper_sdre.tools.graph.procs import pinned_kernels
-    progress = not args.no_progress
     unpinned = pinned_kernels(os.environ)
     if unpinned:
         print('note: the math kernels are not pinned as make model pins them (' +
               ' '.join(f'{k}={v}' for k, v in unpinned.items()) + '; make seeds sets them): on '
               'this CPU the models may differ from the shipped one at rounding level',
               file=sys.stderr)
+
+
+def _save_models(out: Path, outcomes: list[ModelOutcome]) -> dict[str, Path | None]:
+    """Each trained model's ``model.pt`` and ``metrics.json`` under ``out/<name>``: name → its
+    checkpoint (None: the shipped model)."""
+    paths: dict[str, Path | None] = {}
+    for o in outcomes:
+        paths[o.name] = None
+        if o.checkpoint is not None:
+            (out / o.name).mkdir(parents=True, exist_ok=True)
+            paths[o.name] = out / o.name / 'model.pt'
+            paths[o.name].write_bytes(o.checkpoint)
+            (out / o.name / 'metrics.json').write_text(json.dumps(o.metrics, indent=2))
+    return paths
+
+
+def _sweep_facts(args, outcomes: list[ModelOutcome], data, runner: jobs.Runner,
+                 wall: float) -> dict:
+    """How the models were made, for the head of the tables."""
+    from soft_gripper_sdre.learning.training import fingerprint
+    return {'models': len(outcomes) - 1, 'seeds': f'0–{args.seeds - 1}', 'draws': args.draws,
+            'jitter': args.jitter,
+            'settings': 'default preset' + (' with ' + ', '.join(args.set) if args.set else ''),
+            'fingerprint': fingerprint(data.x, data.u, data.acc), 'runner': runner.describe(),
+            'wall_s': wall,
+            'kernels': ' '.join(f'{k}={os.environ[k]}' for k in jobs.KERNEL_ENV if k in os.environ)
+                       or 'as detected'}
+
+
+def main(argv=None) -> int:
+    ap, args, settings, runner, records = parse_args(argv)
+    command = 'python -m soft_gripper_sdre.tools.judging.seeds ' + ' '.join(
+        shlex.quote(a) for a in (sys.argv[1:] if argv is None else argv))
+    from soft_gripper_sdre.learning.labels import label_records
+    progress = not args.no_progress
+    _note_unpinned_kernels()
     try:
         with jobs.session(runner):
             from soft_gripper_sdre.control.compiled import warm_up
@@ -463,21 +262,8 @@ def main(argv=None) -> int:
     except jobs.JobsError as exc:
         ap.error(f'--ray: {exc}')
     args.out.mkdir(parents=True, exist_ok=True)
-    paths: dict[str, Path | None] = {}
-    for o in outcomes:
-        paths[o.name] = None
-        if o.checkpoint is not None:
-            (args.out / o.name).mkdir(parents=True, exist_ok=True)
-            paths[o.name] = args.out / o.name / 'model.pt'
-            paths[o.name].write_bytes(o.checkpoint)
-            (args.out / o.name / 'metrics.json').write_text(json.dumps(o.metrics, indent=2))
-    facts = {'models': len(outcomes) - 1, 'seeds': f'0–{args.seeds - 1}', 'draws': args.draws,
-             'jitter': args.jitter,
-             'settings': 'default preset' + (' with ' + ', '.join(args.set) if args.set else ''),
-             'fingerprint': fingerprint(data.x, data.u, data.acc), 'runner': runner.describe(),
-             'wall_s': wall,
-             'kernels': ' '.join(f'{k}={os.environ[k]}' for k in jobs.KERNEL_ENV if k in os.environ)
-                        or 'as detected'}
+    paths = _save_models(args.out, outcomes)
+    facts = _sweep_facts(args, outcomes, data, runner, wall)
     text = write_results(args.out, outcomes, {}, args, command, facts)
     if args.demo:
         try:
@@ -489,27 +275,6 @@ def main(argv=None) -> int:
         text = write_results(args.out, outcomes, demos, args, command, facts)
     print(text)
     return 0
-
-
-def write_results(out: Path, outcomes: list[ModelOutcome], demos: dict, args, command: str,
-                  facts: dict) -> str:
-    """seeds.json and seeds.md in ``out`` from the jobs' outcomes and the demos' figures; the
-    tables."""
-    rows = [model_row(o, demos.get(o.name)) for o in outcomes]
-    keys = figure_keys(rows, args.laws, args.trajectories)
-    summary = summarise(rows, keys)
-    shipped = next(r for r in rows if r['seed'] is None)
-    seed0 = next((r for r in rows if r['seed'] == 0 and r['draw'] == 0), None)
-    facts = dict(facts, seed0_is_shipped=None if seed0 is None
-                 else seed0['weights_sha256'] == shipped['weights_sha256'])
-    text = markdown(rows, summary, keys, command, facts)
-    (out / 'seeds.json').write_text(json.dumps(
-        dict(command=command, facts=facts, summary=summary, models=rows,
-             tracking={o.name: o.tracking for o in outcomes},
-             job_seconds={o.name: round(o.job_seconds, 1) for o in outcomes}),
-        indent=2, default=float))
-    (out / 'seeds.md').write_text(text)
-    return text
 
 
 if __name__ == '__main__':

@@ -8,7 +8,7 @@ are the same KF + RTS estimates from the measured tips that tools.learning.train
 OUT/koopman.npz and OUT/metrics.json; ``--install`` copies the model into the package as the
 shipped one (:data:`~soft_gripper_sdre.learning.koopman.DEFAULT_KOOPMAN`). Deterministic.
 
-The u4 R² is scored as :func:`soft_gripper_sdre.tools.judging.evaluate.score_model` scores the SDC
+The u4 R² is scored as :func:`soft_gripper_sdre.analysis.ground_truth.score_model` scores the SDC
 model: the predicted mean acceleration over a period at the simulator's true state, against the
 simulator's, at every 10th step of the first 4 s (399 states). ``--compare-sdc`` also scores the
 shipped SDC model both ways (score_model itself, and on the record) to show they agree.
@@ -38,7 +38,7 @@ SCORE_EVERY, SCORE_SECONDS = 10, 4.0
 
 
 def score_rows(dt: float) -> np.ndarray:
-    """The record rows :func:`~soft_gripper_sdre.tools.judging.evaluate.score_model` samples."""
+    """The record rows :func:`~soft_gripper_sdre.analysis.ground_truth.score_model` samples."""
     return np.arange(SCORE_EVERY, int(round(SCORE_SECONDS / dt)), SCORE_EVERY)
 
 
@@ -131,8 +131,8 @@ def main(argv: list[str] | None = None) -> int:
     except OSError as exc:
         ap.error(f'cannot create output directory {args.out}: {exc.strerror}')
     if args.compare_sdc:
+        from soft_gripper_sdre.analysis.ground_truth import score_model
         from soft_gripper_sdre.learning.model import SDCModel
-        from soft_gripper_sdre.tools.judging.evaluate import score_model
         sdc = SDCModel()
         metrics['sdc_u4_r2_true_on_record'] = sdc_r2(sdc,
                                                      true_series(args.data / f'{VALIDATION}.npz'))
