@@ -235,17 +235,8 @@ def run(node_factory: Callable[..., Node | tuple[Node, ...]], args: list[str] | 
     module's ``PARAMS``. SIGTERM is handled like SIGINT. A :class:`ParameterError` at construction
     is logged and the process exits with status 2; other construction errors exit 1.
     """
-    # Our own SIGINT handling keeps the context alive while the node closes, so it can still
-    # publish its final diagnostics and, for the recorder, finish the bag. The handler only sets a
-    # flag: an exception raised inside a callback would be logged by the EventsExecutor as a
-    # failing callback; instead the loop sees the flag within one spin_once timeout. So no
-    # KeyboardInterrupt is raised once the handlers are installed (before anything can fail).
     argv = list(sys.argv if args is None else args)
-    module = sys.modules.get(node_factory.__module__)
-    summary = ((getattr(module, '__doc__', None) or '').strip().splitlines() or [''])[0]
-    spec = getattr(module, '__spec__', None)      # the module's own name also under python -m
-    executable = (spec.name if spec is not None else node_factory.__module__).rsplit('.', 1)[-1]
-    status = settle_command_line(argv[1:], executable, summary, getattr(module, 'PARAMS', ()))
+    executable, status = _settle_command_line(node_factory, argv)
     if status is not None:
         return status
     try:
@@ -254,9 +245,7 @@ def run(node_factory: Callable[..., Node | tuple[Node, ...]], args: list[str] | 
         sys.stderr.write(f'{executable}: cannot start with these arguments: '
                          f'{str(exc).splitlines()[0]}\n')
         return USAGE_ERROR
-    stop: list[int] = []
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda signum, _frame: stop.append(signum))
+    stop = _stop_on_signals()
     nodes: tuple[Node, ...] = ()
     executor = None
     code = 0
@@ -279,19 +268,51 @@ def run(node_factory: Callable[..., Node | tuple[Node, ...]], args: list[str] | 
     except ExternalShutdownException:       # the context was shut down from elsewhere
         pass
     finally:
-        for node in nodes:
-            diag = getattr(node, 'diag', None)
-            if isinstance(diag, Diagnostics) and rclpy.ok():
-                diag.publish()                  # final counters, for recorders still listening
-            if rclpy.ok():
-                flush(node)
-            close = getattr(node, 'close', None)
-            if close is not None:
-                close()
-            if executor is not None:
-                executor.remove_node(node)
-            node.destroy_node()
-        if executor is not None:
-            executor.shutdown()
-        rclpy.try_shutdown()
+        _shut_down(nodes, executor)
     return code
+
+
+def _settle_command_line(node_factory: Callable, argv: list[str]) -> tuple[str, int | None]:
+    """The executable's name, and the exit status if the command line is settled already
+    (``--help``, a bad parameter file: :func:`~soft_gripper_sdre.nodes.cli.settle_command_line`
+    with the node module's first docstring line and ``PARAMS``), else None."""
+    module = sys.modules.get(node_factory.__module__)
+    summary = ((getattr(module, '__doc__', None) or '').strip().splitlines() or [''])[0]
+    spec = getattr(module, '__spec__', None)      # the module's own name also under python -m
+    executable = (spec.name if spec is not None else node_factory.__module__).rsplit('.', 1)[-1]
+    return executable, settle_command_line(argv[1:], executable, summary,
+                                           getattr(module, 'PARAMS', ()))
+
+
+def _stop_on_signals() -> list[int]:
+    """Handle SIGINT and SIGTERM by appending the signal to the returned list.
+
+    Our own SIGINT handling keeps the context alive while the node closes, so it can still
+    publish its final diagnostics and, for the recorder, finish the bag. The handler only sets a
+    flag: an exception raised inside a callback would be logged by the EventsExecutor as a
+    failing callback; instead the loop sees the flag within one spin_once timeout. So no
+    KeyboardInterrupt is raised once the handlers are installed (before anything can fail)."""
+    stop: list[int] = []
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda signum, _frame: stop.append(signum))
+    return stop
+
+
+def _shut_down(nodes: tuple[Node, ...], executor: Executor | None) -> None:
+    """Close down in order: each node's final /diagnostics, what it published acknowledged
+    (:func:`flush`), its ``close()`` and removal; then the executor and rclpy's context."""
+    for node in nodes:
+        diag = getattr(node, 'diag', None)
+        if isinstance(diag, Diagnostics) and rclpy.ok():
+            diag.publish()                  # final counters, for recorders still listening
+        if rclpy.ok():
+            flush(node)
+        close = getattr(node, 'close', None)
+        if close is not None:
+            close()
+        if executor is not None:
+            executor.remove_node(node)
+        node.destroy_node()
+    if executor is not None:
+        executor.shutdown()
+    rclpy.try_shutdown()
