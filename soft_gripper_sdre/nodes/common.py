@@ -150,7 +150,9 @@ class SteppingTiming:
     """How fast a stepping loop runs, for /diagnostics: its real-time factor, this process's CPU
     time per step and the loop latency (tips for period k sent → the first command stamped k
     received), over the whole run (``loop_latency_us_*``) and since the previous report
-    (``recent_latency_us_*``). The clocks are arguments so the arithmetic can be checked."""
+    (``recent_latency_us_*``); and when the first command was accepted
+    (``first_command_monotonic_s`` on the wall clock, ``first_command_after_tips_ms`` from the
+    first tips). The clocks are arguments so the arithmetic can be checked."""
 
     def __init__(self, periods: int, wall=time.monotonic, cpu=time.process_time,
                  perf=time.perf_counter) -> None:
@@ -161,6 +163,7 @@ class SteppingTiming:
                                                 # k % periods
         self.wall_start: float | None = None    # wall clock at the first step
         self._wall_end = self._cpu_start = self._cpu_end = None
+        self._first_command: float | None = None    # wall clock at the first accepted command
 
     def start(self) -> None:
         self.wall_start, self._cpu_start = self._wall(), self._cpu()
@@ -175,6 +178,11 @@ class SteppingTiming:
         """The first command for the tips of period ``k`` arrived."""
         self.latency.add(self._perf() - self._sent[k % len(self._sent)])
 
+    def accepted(self) -> None:
+        """A command was accepted; the first one after the start is reported."""
+        if self.wall_start is not None and self._first_command is None:
+            self._first_command = self._wall()
+
     def report(self, sim_time: float, steps: int) -> dict[str, str]:
         """The values for /diagnostics after ``steps`` steps, ``sim_time`` [s] of sim time."""
         out = {}
@@ -185,6 +193,10 @@ class SteppingTiming:
             if steps:
                 cpu = (self._cpu_end or self._cpu()) - self._cpu_start
                 out['cpu_per_step_us'] = f'{1e6 * cpu / steps:.0f}'
+        if self._first_command is not None:
+            out['first_command_monotonic_s'] = f'{self._first_command:.6f}'
+            out['first_command_after_tips_ms'] = (
+                f'{1e3 * (self._first_command - self.wall_start):.1f}')
         out.update(self.latency.summary('loop_latency_us'))
         out.update(self.latency.summary('recent_latency_us',
                                         last=self.latency.count - self._reported))

@@ -308,12 +308,8 @@ class SimulatorNode(Node):
             self.timing.answered(outcome.first_answer)
         if outcome.refused:
             self.diag.problem(outcome.refused, f'rejected: {outcome.reason}')
-        elif (self.timing.wall_start is not None
-                and 'first_command_monotonic_s' not in self.diag.values):
-            now = time.monotonic()          # (the first tips went out at the timing's start)
-            self.diag.values['first_command_monotonic_s'] = f'{now:.6f}'
-            self.diag.values['first_command_after_tips_ms'] = (
-                f'{1e3 * (now - self.timing.wall_start):.1f}')
+        else:
+            self.timing.accepted()
         if outcome.resumed:
             self.diag.set_status(OK, 'torque_commands are back')
             self.get_logger().info(f'torque_commands are back at t = {stamp / cv.NS:.4f} s '
