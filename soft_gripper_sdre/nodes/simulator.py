@@ -3,7 +3,8 @@
 It exposes the fingers ``finger_names``, each one of the scene's fingers (``hand_fingers``: a
 2-finger gripper is the hand's opposite fingers 0 and 2); the others stay at zero torque.
 Publishes ``tip_positions`` (each control period), ``/clock`` (``clock_rate``, 100 Hz of sim time
-by default), ``joint_states``, ``cube_pose``, ``cube_contacts`` (``state_rate``) and
+by default), ``joint_states``, ``cube_pose``, ``cube_contacts`` (``state_rate``; these are the
+plant's topics, :class:`~soft_gripper_sdre.nodes.state_publisher.StatePublisher`) and
 ``/diagnostics``; subscribes ``torque_commands`` (keeping only the newest). Per period it sends
 one loop message and receives one. The hand scene also publishes the live 3-D view
 (docs/visualization.md): its URDF on ``robot_description`` once, and the hand as ``markers`` on a
@@ -47,10 +48,8 @@ from __future__ import annotations
 import time
 
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import PoseArray, PoseStamped
 import numpy as np
 from rclpy.node import Node
-from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 
 from soft_gripper_sdre.nodes import cdr
@@ -74,24 +73,11 @@ from soft_gripper_sdre.nodes.params import (
     finger_names_param,
     on_runtime_change,
 )
-from soft_gripper_sdre.nodes.topics import (
-    CLOCK,
-    CLOCK_QOS,
-    CUBE_CONTACTS,
-    CUBE_POSE,
-    DIAGNOSTICS,
-    JOINT_STATES,
-    LOOP_QOS,
-    NEWEST_QOS,
-    STREAM_QOS,
-    TIP_POSITIONS,
-    TORQUE_COMMANDS,
-)
-from soft_gripper_sdre.sim.finger import FINGER_BASE_POSITIONS, N_JOINTS
+from soft_gripper_sdre.nodes.state_publisher import StatePublisher, periods_between
+from soft_gripper_sdre.nodes.topics import DIAGNOSTICS, NEWEST_QOS, STREAM_QOS, TORQUE_COMMANDS
+from soft_gripper_sdre.sim.finger import FINGER_BASE_POSITIONS
 from soft_gripper_sdre.sim.hand import GripperSim, SimConfig
 from soft_gripper_sdre.sim.lockstep import LATENCY_PERIODS, MODES, Stepping
-
-_NO_VALUES = np.empty(0)       # /clock carries only its stamp
 
 PARAMS = (
     Param('mode', 'lockstep', 'stepping mode: lockstep (each period steps on its own command), '
@@ -176,25 +162,18 @@ class SimulatorNode(Node):
         except ValueError as exc:
             raise ParameterError(str(exc)) from None
         self._u_scene = np.zeros((self.sim.n_fingers, 2))   # the fingers not exposed stay at zero
-        self.joint_names = [f'{name}/joint_{j}' for name in self.names for j in range(N_JOINTS)]
-        self.state_every = max(1, int(round(1.0 / (p['state_rate'] * p['control_period']))))
-        self.clock_every = max(1, int(round(1.0 / (p['clock_rate'] * p['control_period']))))
         self.exit_code = 0
         self.timing = SteppingTiming(LATENCY_PERIODS)
         self._physics_k = 0           # the physics' period: the tips' one, or one ahead (pipelined)
-
-        # the per-period messages travel as CDR bytes written / read at fixed offsets (nodes/cdr.py)
-        self.cdr_clock = cdr.clock_codec()
-        self.cdr_tips = cdr.tips_codec(self.names)
-        self.cdr_cmd = cdr.torques_codec(self.names)
-        self.pub_clock = self.create_publisher(Clock, CLOCK, CLOCK_QOS)
-        self.pub_tips = self.create_publisher(PoseArray, TIP_POSITIONS, LOOP_QOS)
-        self.pub_joints = self.create_publisher(JointState, JOINT_STATES, STREAM_QOS)
-        self.pub_cube = self.create_publisher(PoseStamped, CUBE_POSE, STREAM_QOS)
-        self.pub_contacts = self.create_publisher(JointState, CUBE_CONTACTS, STREAM_QOS)
+        self.state_out = StatePublisher(
+            self, self.sim, self.names, self.mounted, timing=self.timing,
+            clock_every=periods_between(p['clock_rate'], p['control_period']),
+            state_every=periods_between(p['state_rate'], p['control_period']))
         self.live = (LiveView(self, self.names, self.mounted, marker_rate=p['marker_rate'],
                               with_cube=p['with_cube'], with_references=p['marker_references'],
                               now=self._shown) if p['scene'] == 'hand' else None)
+        # the commands arrive as CDR bytes read at fixed offsets (nodes/cdr.py)
+        self.cdr_cmd = cdr.torques_codec(self.names)
         self.sub_cmd = self.create_subscription(JointState, TORQUE_COMMANDS, self.on_command,
                                                 NEWEST_QOS, raw=True)
         self.log = ThrottledLogger(self.get_logger())
@@ -245,7 +224,8 @@ class SimulatorNode(Node):
     def start_problem(self) -> str | None:
         """What the first step still waits for (module doc), or None."""
         problems = []
-        tips, commands = self.pub_tips.get_subscription_count(), self.sub_cmd.get_publisher_count()
+        tips = self.state_out.pub_tips.get_subscription_count()
+        commands = self.sub_cmd.get_publisher_count()
         if tips < self.p['min_tip_subscribers']:
             problems.append(f'{tips} of {self.p["min_tip_subscribers"]} tip_positions readers')
         if commands < 1:
@@ -381,21 +361,11 @@ class SimulatorNode(Node):
 
     # -- publishing --------------------------------------------------------------------------
     def publish_state(self) -> None:
+        """The current period's tips, then (the command wait armed) /clock and the state."""
         k, ns = self.stepping.k, self.stepping.now_ns
-        tips = self.cdr_tips.encode(ns, self.sim.measure()[self.mounted])
-        self.timing.tips_sent(k)
-        self.pub_tips.publish(tips)         # first: the loop's critical path starts here
+        self.state_out.tips(k, ns)          # first: the loop's critical path starts here
         self.stepping.await_command(time.monotonic())
-        if k % self.clock_every == 0:
-            self.pub_clock.publish(self.cdr_clock.encode(ns, _NO_VALUES))
-        if k % self.state_every == 0:
-            truth = self.sim.truth()
-            on = self.mounted        # the exposed fingers
-            self.pub_joints.publish(cv.joint_states_msg(ns, self.joint_names, truth.q[on],
-                                                        truth.qd[on]))
-            if truth.cube_pose is not None:
-                self.pub_cube.publish(cube_pose_msg(ns, truth.cube_pose))
-                self.pub_contacts.publish(cv.contacts_msg(ns, truth.contact_force[on], self.names))
+        self.state_out.streams(k, ns)
         if self.diag.level == WARN and k % 1000 == 0:
             self.diag.set_status(OK, 'stepping')
 
@@ -448,18 +418,6 @@ def exposed_fingers(names, hand_fingers, scene: str) -> np.ndarray:
         raise ParameterError(f"parameter 'hand_fingers': {hand_fingers} out of range: the {scene} "
                              f'scene has {scene_fingers} finger(s), 0 to {scene_fingers - 1}')
     return np.array(hand_fingers, dtype=np.intp)
-
-
-def cube_pose_msg(ns: int, pose: np.ndarray) -> PoseStamped:
-    """The cube's pose [x, y, z, qx, qy, qz, qw] in the hand frame at ``ns``."""
-    msg = PoseStamped()
-    msg.header.stamp = cv.to_time(ns)
-    msg.header.frame_id = 'hand'
-    c = pose.tolist()
-    msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = c[:3]
-    (msg.pose.orientation.x, msg.pose.orientation.y, msg.pose.orientation.z,
-     msg.pose.orientation.w) = c[3:]
-    return msg
 
 
 def main(args=None) -> int:
