@@ -33,7 +33,8 @@ and, given ``wait_for_nodes`` (the graph's other nodes, as
 :func:`~soft_gripper_sdre.nodes.graph.readiness_problem` over their /diagnostics: each of them
 has reported, and every writer and reader of the graph has matched its peers. Without
 ``wait_for_nodes`` it starts after ``startup_timeout`` with what is there (a warning); with it,
-it gives up instead, naming what is missing, with exit status 1.
+it gives up instead, naming what is missing, with exit status 1
+(:class:`~soft_gripper_sdre.nodes.start_gate.StartGate`).
 
 /diagnostics also carries the real-time factor of the stepping, this process's CPU time per
 step (``cpu_per_step_us``) and the loop latency: the wall time from publishing ``tip_positions``
@@ -47,7 +48,6 @@ from __future__ import annotations
 
 import time
 
-from diagnostic_msgs.msg import DiagnosticArray
 import numpy as np
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
@@ -62,9 +62,8 @@ from soft_gripper_sdre.nodes.common import (
     SteppingTiming,
     ThrottledLogger,
     run,
-    wiring,
 )
-from soft_gripper_sdre.nodes.graph import GRASP_NODES, readiness_problem
+from soft_gripper_sdre.nodes.graph import GRASP_NODES
 from soft_gripper_sdre.nodes.live_view import LiveView
 from soft_gripper_sdre.nodes.params import (
     Param,
@@ -73,8 +72,9 @@ from soft_gripper_sdre.nodes.params import (
     finger_names_param,
     on_runtime_change,
 )
+from soft_gripper_sdre.nodes.start_gate import StartGate, StartRule, waited_nodes_problem
 from soft_gripper_sdre.nodes.state_publisher import StatePublisher, periods_between
-from soft_gripper_sdre.nodes.topics import DIAGNOSTICS, NEWEST_QOS, STREAM_QOS, TORQUE_COMMANDS
+from soft_gripper_sdre.nodes.topics import NEWEST_QOS, TORQUE_COMMANDS
 from soft_gripper_sdre.sim.finger import FINGER_BASE_POSITIONS
 from soft_gripper_sdre.sim.hand import GripperSim, SimConfig
 from soft_gripper_sdre.sim.lockstep import LATENCY_PERIODS, MODES, Stepping
@@ -127,7 +127,7 @@ PARAMS = (
           f"{', '.join(n for n in GRASP_NODES if n != 'simulator')} (grasp_graph and the launch "
           'file name them): the first step waits until each has reported on /diagnostics and every '
           "writer and reader of the graph has matched its peers; '' = no such wait",
-          read_only=True, rule=lambda text: _waited_nodes_problem(text)),
+          read_only=True, rule=waited_nodes_problem),
     Param('min_diagnostics_subscribers', 0, 'start-up: /diagnostics subscribers of other nodes to '
           'wait for (a monitor that reads the final counters of a short run must be matched before '
           'it begins)', '', 0, 100, read_only=True),
@@ -162,7 +162,6 @@ class SimulatorNode(Node):
         except ValueError as exc:
             raise ParameterError(str(exc)) from None
         self._u_scene = np.zeros((self.sim.n_fingers, 2))   # the fingers not exposed stay at zero
-        self.exit_code = 0
         self.timing = SteppingTiming(LATENCY_PERIODS)
         self._physics_k = 0           # the physics' period: the tips' one, or one ahead (pipelined)
         self.state_out = StatePublisher(
@@ -187,13 +186,8 @@ class SimulatorNode(Node):
         self.diag.before_publish.append(self._refresh_diagnostics)
         self.diag.values['mode'] = p['mode']
         self.diag.values['scene'] = p['scene']
-        self._startup_deadline = time.monotonic() + p['startup_timeout']
-        self.waited = waited_nodes(p['wait_for_nodes'])
-        self._gave_up = False
-        self._reports: dict[str, dict[str, str]] = {}      # /diagnostics values by full name
-        self._sub_diag = (self.create_subscription(DiagnosticArray, DIAGNOSTICS, self._on_report,
-                                                   STREAM_QOS) if self.waited else None)
-        self._startup_timer = self.create_timer(0.01, self._try_start)
+        self.gate = StartGate(self, StartRule.from_params(p), tips=self.state_out.pub_tips,
+                              commands=self.sub_cmd, diag=self.diag, start=self._start)
         self.get_logger().info(
             f'{p["scene"]} scene settled; {p["mode"]} at {1e3 * p["control_period"]:g} ms, '
             f'{self.sim.config.physics_substeps} physics substeps, '
@@ -203,7 +197,12 @@ class SimulatorNode(Node):
     def done(self) -> bool:
         """The run reached its ``duration``, or the graph never got ready (the process then
         exits)."""
-        return self.stepping.done or self._gave_up
+        return self.stepping.done or self.gate.gave_up
+
+    @property
+    def exit_code(self) -> int:
+        """1 when the graph never got ready (with ``wait_for_nodes``), else 0."""
+        return int(self.gate.gave_up)
 
     def _apply(self, new: dict) -> None:
         self.p.update(new)
@@ -216,53 +215,9 @@ class SimulatorNode(Node):
     def _hold_periods(self) -> int:
         return int(round(self.p['hold_limit'] / self.p['control_period']))
 
-    # -- start-up ----------------------------------------------------------------------------
-    def _on_report(self, msg: DiagnosticArray) -> None:
-        for status in msg.status:
-            self._reports[status.name] = {kv.key: kv.value for kv in status.values}
-
-    def start_problem(self) -> str | None:
-        """What the first step still waits for (module doc), or None."""
-        problems = []
-        tips = self.state_out.pub_tips.get_subscription_count()
-        commands = self.sub_cmd.get_publisher_count()
-        if tips < self.p['min_tip_subscribers']:
-            problems.append(f'{tips} of {self.p["min_tip_subscribers"]} tip_positions readers')
-        if commands < 1:
-            problems.append('no torque_commands writer')
-        readers = self.diag.subscription_count() - (self._sub_diag is not None)   # not its own
-        if readers < self.p['min_diagnostics_subscribers']:
-            problems.append(f'{readers} of {self.p["min_diagnostics_subscribers"]} '
-                            '/diagnostics readers')
-        if self.waited:
-            prefix = self.get_namespace().rstrip('/')
-            reports = {'simulator': wiring(self)} | {n: self._reports.get(f'{prefix}/{n}')
-                                                     for n in self.waited}
-            graph = readiness_problem(('simulator', *self.waited), reports, self.resolve_topic_name)
-            if graph:
-                problems.append(graph)
-        return '; '.join(problems) or None
-
-    def _try_start(self) -> None:
-        problem = self.start_problem()
-        if problem and time.monotonic() < self._startup_deadline:
-            return
-        self._startup_timer.cancel()
-        if problem and self.waited:
-            self.get_logger().error(f'the graph was not ready within startup_timeout '
-                                    f'({self.p["startup_timeout"]:g} s): {problem}; giving up')
-            self.diag.set_status(ERROR, f'the graph was not ready: {problem}')
-            self.exit_code, self._gave_up = 1, True
-            return
-        if problem:
-            self.get_logger().warning(f'starting with an incomplete graph after startup_timeout: '
-                                      f'{problem}')
-        elif self.waited:
-            self.get_logger().info(f'the graph is wired and ready ({", ".join(self.waited)}); '
-                                   'stepping')
-        if self._sub_diag is not None:
-            self.destroy_subscription(self._sub_diag)
-            self._sub_diag = None
+    def _start(self) -> None:
+        """The graph is ready (:class:`~soft_gripper_sdre.nodes.start_gate.StartGate`): the first
+        tips go out, and the timers that step on (realtime) or watch for timeouts start."""
         first = self.stepping.start()
         self.timing.start()
         if self.p['mode'] == 'realtime':
@@ -381,22 +336,6 @@ class SimulatorNode(Node):
 
     def close(self) -> None:
         self.sim.close()
-
-
-def waited_nodes(text: str) -> tuple[str, ...]:
-    """``wait_for_nodes`` as names: ``'recorder, estimator'`` → ``('recorder', 'estimator')``."""
-    return tuple(name.strip() for name in text.split(',') if name.strip())
-
-
-def _waited_nodes_problem(text: str) -> str | None:
-    names = waited_nodes(text)
-    known = [n for n in GRASP_NODES if n != 'simulator']
-    unknown = [n for n in names if n not in known]
-    if unknown:
-        return f'{unknown[0]!r} is not a node of the grasp graph ({", ".join(known)})'
-    if len(set(names)) != len(names):
-        return f'{text!r} names a node twice'
-    return None
 
 
 def exposed_fingers(names, hand_fingers, scene: str) -> np.ndarray:
