@@ -153,14 +153,7 @@ class SimulatorNode(Node):
         on_runtime_change(self, PARAMS, apply=self._apply)
         self.names = tuple(p['finger_names'])
         self.mounted = exposed_fingers(self.names, p['hand_fingers'], p['scene'])
-        try:
-            self.sim = GripperSim(SimConfig(
-                scene=p['scene'], control_period=p['control_period'],
-                physics_substeps=p['physics_substeps'] or None, torque_limit=p['torque_limit'],
-                noise_std=p['noise_std'], seed=p['seed'], settle_time=p['settle_time'],
-                with_cube=p['with_cube']))
-        except ValueError as exc:
-            raise ParameterError(str(exc)) from None
+        self.sim = settled_scene(p)
         self._u_scene = np.zeros((self.sim.n_fingers, 2))   # the fingers not exposed stay at zero
         self.timing = SteppingTiming(LATENCY_PERIODS)
         self._physics_k = 0           # the physics' period: the tips' one, or one ahead (pipelined)
@@ -180,8 +173,7 @@ class SimulatorNode(Node):
         self.stepping = Stepping(
             len(self.names), int(round(p['control_period'] * cv.NS)), p['mode'],
             int(round(p['duration'] / p['control_period'])) if p['duration'] > 0 else None,
-            p['lockstep_timeout'], p['on_timeout'], p['on_bad_command'], p['lost_command_wait'],
-            self._hold_periods(), counters=self.diag.counters)
+            counters=self.diag.counters, **stepping_rules(p))
         cdr.watch(self.diag, self.cdr_cmd)
         self.diag.before_publish.append(self._refresh_diagnostics)
         self.diag.values['mode'] = p['mode']
@@ -206,14 +198,8 @@ class SimulatorNode(Node):
 
     def _apply(self, new: dict) -> None:
         self.p.update(new)
-        self.stepping.timeout = self.p['lockstep_timeout']
-        self.stepping.on_timeout = self.p['on_timeout']
-        self.stepping.on_bad_command = self.p['on_bad_command']
-        self.stepping.lost_command_wait = self.p['lost_command_wait']
-        self.stepping.hold_periods = self._hold_periods()
-
-    def _hold_periods(self) -> int:
-        return int(round(self.p['hold_limit'] / self.p['control_period']))
+        for name, value in stepping_rules(self.p).items():
+            setattr(self.stepping, name, value)
 
     def _start(self) -> None:
         """The graph is ready (:class:`~soft_gripper_sdre.nodes.start_gate.StartGate`): the first
@@ -336,6 +322,30 @@ class SimulatorNode(Node):
 
     def close(self) -> None:
         self.sim.close()
+
+
+def settled_scene(p: dict) -> GripperSim:
+    """The scene the parameters ``p`` describe, settled.
+
+    Raises:
+        ParameterError: the scene refused a value.
+    """
+    try:
+        return GripperSim(SimConfig(
+            scene=p['scene'], control_period=p['control_period'],
+            physics_substeps=p['physics_substeps'] or None, torque_limit=p['torque_limit'],
+            noise_std=p['noise_std'], seed=p['seed'], settle_time=p['settle_time'],
+            with_cube=p['with_cube']))
+    except ValueError as exc:
+        raise ParameterError(str(exc)) from None
+
+
+def stepping_rules(p: dict) -> dict:
+    """The :class:`~soft_gripper_sdre.sim.lockstep.Stepping` attributes that the parameters
+    ``p`` set and that may change at runtime, by name."""
+    return dict(timeout=p['lockstep_timeout'], on_timeout=p['on_timeout'],
+                on_bad_command=p['on_bad_command'], lost_command_wait=p['lost_command_wait'],
+                hold_periods=int(round(p['hold_limit'] / p['control_period'])))
 
 
 def exposed_fingers(names, hand_fingers, scene: str) -> np.ndarray:
