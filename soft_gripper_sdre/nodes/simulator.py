@@ -54,17 +54,10 @@ from sensor_msgs.msg import JointState
 
 from soft_gripper_sdre.nodes import cdr
 from soft_gripper_sdre.nodes import conversions as cv
-from soft_gripper_sdre.nodes.common import (
-    ERROR,
-    OK,
-    WARN,
-    Diagnostics,
-    SteppingTiming,
-    ThrottledLogger,
-    run,
-)
+from soft_gripper_sdre.nodes.common import ERROR, Diagnostics, SteppingTiming, run
 from soft_gripper_sdre.nodes.graph import GRASP_NODES
 from soft_gripper_sdre.nodes.live_view import LiveView
+from soft_gripper_sdre.nodes.loop_status import LoopStatus
 from soft_gripper_sdre.nodes.params import (
     Param,
     ParameterError,
@@ -168,12 +161,12 @@ class SimulatorNode(Node):
         self.cdr_cmd = cdr.torques_codec(self.names)
         self.sub_cmd = self.create_subscription(JointState, TORQUE_COMMANDS, self.on_command,
                                                 NEWEST_QOS, raw=True)
-        self.log = ThrottledLogger(self.get_logger())
         self.diag = Diagnostics(self)
         self.stepping = Stepping(
             len(self.names), int(round(p['control_period'] * cv.NS)), p['mode'],
             int(round(p['duration'] / p['control_period'])) if p['duration'] > 0 else None,
             counters=self.diag.counters, **stepping_rules(p))
+        self.status = LoopStatus(self, self.diag, self.stepping)
         cdr.watch(self.diag, self.cdr_cmd)
         self.diag.before_publish.append(self._refresh_diagnostics)
         self.diag.values['mode'] = p['mode']
@@ -201,9 +194,10 @@ class SimulatorNode(Node):
         for name, value in stepping_rules(self.p).items():
             setattr(self.stepping, name, value)
 
+    # -- start-up ----------------------------------------------------------------------------
     def _start(self) -> None:
-        """The graph is ready (:class:`~soft_gripper_sdre.nodes.start_gate.StartGate`): the first
-        tips go out, and the timers that step on (realtime) or watch for timeouts start."""
+        """The first step may go (:class:`~soft_gripper_sdre.nodes.start_gate.StartGate`): the
+        first tips go out, and the timer that steps (realtime) or watches for timeouts starts."""
         first = self.stepping.start()
         self.timing.start()
         if self.p['mode'] == 'realtime':
@@ -232,9 +226,7 @@ class SimulatorNode(Node):
         else:
             self.timing.accepted()
         if outcome.resumed:
-            self.diag.set_status(OK, 'torque_commands are back')
-            self.get_logger().info(f'torque_commands are back at t = {stamp / cv.NS:.4f} s '
-                                   f'({self.diag.counters["safe_periods"]} safe periods so far)')
+            self.status.back(stamp)
         self._step(outcome.step)
 
     def _check_timeout(self) -> None:
@@ -244,23 +236,17 @@ class SimulatorNode(Node):
         u = self.stepping.on_wall_time(time.monotonic())
         if u is None:
             return
-        if lost:
-            if self.diag.level != ERROR:
-                self._commands_lost(f'each period waits {self.p["lost_command_wait"]:g} s')
-        else:
-            hold = self.p['on_timeout'] == 'hold'
-            self.diag.set_status(WARN, f'command timeout at t = {t:.3f} s; '
-                                 f'{"holding the last command" if hold else "zero torque"}')
-            self.log.warn('timeout', f'no torque_commands for t = {t:.3f} s within '
-                          f'{self.p["lockstep_timeout"]} s; '
-                          f'{"holding last" if hold else "applying zero"}')
+        if not lost:
+            self.status.timed_out(t, self.p['on_timeout'] == 'hold', self.p['lockstep_timeout'])
+        elif self.diag.level != ERROR:               # once per spell
+            self.status.lost(f'each period waits {self.p["lost_command_wait"]:g} s')
         self._step(u)
 
     def _on_period(self) -> None:
         lost = self.stepping.lost
         u = self.stepping.on_period()
         if self.stepping.lost and not lost:
-            self._commands_lost(f'the newest is older than hold_limit ({self.p["hold_limit"]:g} s)')
+            self.status.lost(f'the newest is older than hold_limit ({self.p["hold_limit"]:g} s)')
         self._step(u)
 
     def _physics(self, u: np.ndarray) -> None:
@@ -268,13 +254,6 @@ class SimulatorNode(Node):
         self._u_scene[self.mounted] = u
         self.sim.step(self._u_scene)
         self._physics_k += 1
-
-    def _commands_lost(self, how: str) -> None:
-        """Commands are lost: report ERROR (status and a throttled log) once per spell."""
-        t = self.stepping.lost_since_ns / cv.NS
-        why = f'no torque_commands since t = {t:.4f} s: stepping with zero torque ({how})'
-        self.diag.set_status(ERROR, why)
-        self.log.warn('lost', why)
 
     def _step(self, u: np.ndarray | None) -> None:
         """The period moved on with ``u`` (finite: validated on receipt, or held or zero), if any:
@@ -295,10 +274,7 @@ class SimulatorNode(Node):
                 self.timing.finish()
             self.publish_state()
         if self.done:
-            k = self.stepping.k
-            self.diag.set_status(OK, f'finished {k} steps')
-            self.diag.publish()
-            self.get_logger().info(f'duration reached after {k} steps; stopping')
+            self.status.finished(self.stepping.k)
 
     # -- publishing --------------------------------------------------------------------------
     def publish_state(self) -> None:
@@ -307,8 +283,7 @@ class SimulatorNode(Node):
         self.state_out.tips(k, ns)          # first: the loop's critical path starts here
         self.stepping.await_command(time.monotonic())
         self.state_out.streams(k, ns)
-        if self.diag.level == WARN and k % 1000 == 0:
-            self.diag.set_status(OK, 'stepping')
+        self.status.stepped(k)
 
     def _refresh_diagnostics(self) -> None:
         """Sim time, real-time factor of the stepping and loop latency, before each /diagnostics."""
