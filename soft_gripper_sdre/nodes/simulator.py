@@ -286,7 +286,8 @@ class SimulatorNode(Node):
         self.status.stepped(k)
 
     def _refresh_diagnostics(self) -> None:
-        """Sim time, real-time factor of the stepping and loop latency, before each /diagnostics."""
+        """Sim time and the stepping's timing (real-time factor, loop latency, the first command),
+        before each /diagnostics."""
         t = self.stepping.now_ns / cv.NS
         kept = {k: v for k, v in self.diag.values.items() if not k.startswith('recent_')}
         self.diag.values = kept | {'sim_time': f'{t:.3f}'} | self.timing.report(t, self.stepping.k)
