@@ -43,9 +43,10 @@ def test_markers_and_robot_description_reach_an_mcap_bag(tmp_path):
         executor.add_node(rec)
         executor.add_node(sim)
         # the recorder has matched all three before the simulator may start (a command writer)
-        assert spin_until(executor, lambda: min(sim.live.pub_markers.get_subscription_count(),
-                                                sim.live.pub_description.get_subscription_count(),
-                                                sim.pub_joints.get_subscription_count()) > 0, 30.0)
+        assert spin_until(executor, lambda: min(
+            sim.live.pub_markers.get_subscription_count(),
+            sim.live.pub_description.get_subscription_count(),
+            sim.state_out.pub_joints.get_subscription_count()) > 0, 30.0)
         probe = Probe(ctx)
         probe.create_publisher(JointState, TORQUE_COMMANDS, LOOP_QOS)
         executor.add_node(probe)

@@ -142,3 +142,18 @@ def test_stepping_timing_reports_the_real_time_factor_cpu_per_step_and_latencies
     clocks['wall'] = 200.0                                   # after the end, the run's figures stay
     again = timing.report(1.0, 500)
     assert again['real_time_factor'] == '0.5000' and 'recent_latency_us_p50' not in again
+
+
+def test_stepping_timing_reports_the_first_command_accepted_after_the_start():
+    clocks = {'wall': 100.0}
+    timing = SteppingTiming(4, wall=lambda: clocks['wall'])
+    timing.accepted()                                        # before the start: not counted
+    assert 'first_command_monotonic_s' not in timing.report(0.0, 0)
+    timing.start()
+    clocks['wall'] = 100.25
+    timing.accepted()
+    clocks['wall'] = 101.0
+    timing.accepted()                                        # the later ones change nothing
+    out = timing.report(0.0, 0)
+    assert out['first_command_monotonic_s'] == '100.250000'
+    assert out['first_command_after_tips_ms'] == '250.0'

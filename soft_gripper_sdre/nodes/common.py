@@ -150,7 +150,9 @@ class SteppingTiming:
     """How fast a stepping loop runs, for /diagnostics: its real-time factor, this process's CPU
     time per step and the loop latency (tips for period k sent → the first command stamped k
     received), over the whole run (``loop_latency_us_*``) and since the previous report
-    (``recent_latency_us_*``). The clocks are arguments so the arithmetic can be checked."""
+    (``recent_latency_us_*``); and when the first command was accepted
+    (``first_command_monotonic_s`` on the wall clock, ``first_command_after_tips_ms`` from the
+    first tips). The clocks are arguments so the arithmetic can be checked."""
 
     def __init__(self, periods: int, wall=time.monotonic, cpu=time.process_time,
                  perf=time.perf_counter) -> None:
@@ -161,6 +163,7 @@ class SteppingTiming:
                                                 # k % periods
         self.wall_start: float | None = None    # wall clock at the first step
         self._wall_end = self._cpu_start = self._cpu_end = None
+        self._first_command: float | None = None    # wall clock at the first accepted command
 
     def start(self) -> None:
         self.wall_start, self._cpu_start = self._wall(), self._cpu()
@@ -175,6 +178,11 @@ class SteppingTiming:
         """The first command for the tips of period ``k`` arrived."""
         self.latency.add(self._perf() - self._sent[k % len(self._sent)])
 
+    def accepted(self) -> None:
+        """A command was accepted; the first one after the start is reported."""
+        if self.wall_start is not None and self._first_command is None:
+            self._first_command = self._wall()
+
     def report(self, sim_time: float, steps: int) -> dict[str, str]:
         """The values for /diagnostics after ``steps`` steps, ``sim_time`` [s] of sim time."""
         out = {}
@@ -185,6 +193,10 @@ class SteppingTiming:
             if steps:
                 cpu = (self._cpu_end or self._cpu()) - self._cpu_start
                 out['cpu_per_step_us'] = f'{1e6 * cpu / steps:.0f}'
+        if self._first_command is not None:
+            out['first_command_monotonic_s'] = f'{self._first_command:.6f}'
+            out['first_command_after_tips_ms'] = (
+                f'{1e3 * (self._first_command - self.wall_start):.1f}')
         out.update(self.latency.summary('loop_latency_us'))
         out.update(self.latency.summary('recent_latency_us',
                                         last=self.latency.count - self._reported))
@@ -235,17 +247,8 @@ def run(node_factory: Callable[..., Node | tuple[Node, ...]], args: list[str] | 
     module's ``PARAMS``. SIGTERM is handled like SIGINT. A :class:`ParameterError` at construction
     is logged and the process exits with status 2; other construction errors exit 1.
     """
-    # Our own SIGINT handling keeps the context alive while the node closes, so it can still
-    # publish its final diagnostics and, for the recorder, finish the bag. The handler only sets a
-    # flag: an exception raised inside a callback would be logged by the EventsExecutor as a
-    # failing callback; instead the loop sees the flag within one spin_once timeout. So no
-    # KeyboardInterrupt is raised once the handlers are installed (before anything can fail).
     argv = list(sys.argv if args is None else args)
-    module = sys.modules.get(node_factory.__module__)
-    summary = ((getattr(module, '__doc__', None) or '').strip().splitlines() or [''])[0]
-    spec = getattr(module, '__spec__', None)      # the module's own name also under python -m
-    executable = (spec.name if spec is not None else node_factory.__module__).rsplit('.', 1)[-1]
-    status = settle_command_line(argv[1:], executable, summary, getattr(module, 'PARAMS', ()))
+    executable, status = _settle_command_line(node_factory, argv)
     if status is not None:
         return status
     try:
@@ -254,9 +257,7 @@ def run(node_factory: Callable[..., Node | tuple[Node, ...]], args: list[str] | 
         sys.stderr.write(f'{executable}: cannot start with these arguments: '
                          f'{str(exc).splitlines()[0]}\n')
         return USAGE_ERROR
-    stop: list[int] = []
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda signum, _frame: stop.append(signum))
+    stop = _stop_on_signals()
     nodes: tuple[Node, ...] = ()
     executor = None
     code = 0
@@ -279,19 +280,51 @@ def run(node_factory: Callable[..., Node | tuple[Node, ...]], args: list[str] | 
     except ExternalShutdownException:       # the context was shut down from elsewhere
         pass
     finally:
-        for node in nodes:
-            diag = getattr(node, 'diag', None)
-            if isinstance(diag, Diagnostics) and rclpy.ok():
-                diag.publish()                  # final counters, for recorders still listening
-            if rclpy.ok():
-                flush(node)
-            close = getattr(node, 'close', None)
-            if close is not None:
-                close()
-            if executor is not None:
-                executor.remove_node(node)
-            node.destroy_node()
-        if executor is not None:
-            executor.shutdown()
-        rclpy.try_shutdown()
+        _shut_down(nodes, executor)
     return code
+
+
+def _settle_command_line(node_factory: Callable, argv: list[str]) -> tuple[str, int | None]:
+    """The executable's name, and the exit status if the command line is settled already
+    (``--help``, a bad parameter file: :func:`~soft_gripper_sdre.nodes.cli.settle_command_line`
+    with the node module's first docstring line and ``PARAMS``), else None."""
+    module = sys.modules.get(node_factory.__module__)
+    summary = ((getattr(module, '__doc__', None) or '').strip().splitlines() or [''])[0]
+    spec = getattr(module, '__spec__', None)      # the module's own name also under python -m
+    executable = (spec.name if spec is not None else node_factory.__module__).rsplit('.', 1)[-1]
+    return executable, settle_command_line(argv[1:], executable, summary,
+                                           getattr(module, 'PARAMS', ()))
+
+
+def _stop_on_signals() -> list[int]:
+    """Handle SIGINT and SIGTERM by appending the signal to the returned list.
+
+    Our own SIGINT handling keeps the context alive while the node closes, so it can still
+    publish its final diagnostics and, for the recorder, finish the bag. The handler only sets a
+    flag: an exception raised inside a callback would be logged by the EventsExecutor as a
+    failing callback; instead the loop sees the flag within one spin_once timeout. So no
+    KeyboardInterrupt is raised once the handlers are installed (before anything can fail)."""
+    stop: list[int] = []
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda signum, _frame: stop.append(signum))
+    return stop
+
+
+def _shut_down(nodes: tuple[Node, ...], executor: Executor | None) -> None:
+    """Close down in order: each node's final /diagnostics, what it published acknowledged
+    (:func:`flush`), its ``close()`` and removal; then the executor and rclpy's context."""
+    for node in nodes:
+        diag = getattr(node, 'diag', None)
+        if isinstance(diag, Diagnostics) and rclpy.ok():
+            diag.publish()                  # final counters, for recorders still listening
+        if rclpy.ok():
+            flush(node)
+        close = getattr(node, 'close', None)
+        if close is not None:
+            close()
+        if executor is not None:
+            executor.remove_node(node)
+        node.destroy_node()
+    if executor is not None:
+        executor.shutdown()
+    rclpy.try_shutdown()

@@ -11,7 +11,7 @@ import re
 from typing import Sequence
 
 from builtin_interfaces.msg import Duration, Time
-from geometry_msgs.msg import Pose, PoseArray, Transform, Twist
+from geometry_msgs.msg import Pose, PoseArray, PoseStamped, Transform, Twist
 import numpy as np
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
@@ -189,7 +189,7 @@ def msg_to_torques(msg: JointState, fingers: Fingers) -> tuple[int, np.ndarray]:
     return from_time(msg.header.stamp), check_finite(effort, TORQUES_WHAT)
 
 
-# -- joint states and contacts ---------------------------------------------------------------
+# -- joint states, contacts and the cube ----------------------------------------------------
 
 def joint_states_msg(ns: int, names: list[str], q: np.ndarray, qd: np.ndarray) -> JointState:
     msg = JointState()
@@ -206,6 +206,18 @@ def contacts_msg(ns: int, force: np.ndarray, fingers: Fingers | None = None) -> 
     msg.header.stamp = to_time(ns)
     msg.name = list(finger_names(len(force) if fingers is None else fingers))
     msg.effort = np.asarray(force, dtype=float).tolist()
+    return msg
+
+
+def cube_pose_msg(ns: int, pose: np.ndarray) -> PoseStamped:
+    """The cube's pose [x, y, z, qx, qy, qz, qw] in the hand frame at ``ns``."""
+    msg = PoseStamped()
+    msg.header.stamp = to_time(ns)
+    msg.header.frame_id = 'hand'
+    c = pose.tolist()
+    msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = c[:3]
+    (msg.pose.orientation.x, msg.pose.orientation.y, msg.pose.orientation.z,
+     msg.pose.orientation.w) = c[3:]
     return msg
 
 

@@ -19,6 +19,7 @@ No rclpy here: the bytes are built and checked with rosbags alone.
 from __future__ import annotations
 
 import struct
+from typing import NamedTuple
 
 import numpy as np
 from rosbags.typesys import Stores, get_typestore
@@ -71,6 +72,45 @@ def _vec3(cls: str, xyz) -> object:
     return _T[cls](x=float(xyz[0]), y=float(xyz[1]), z=float(xyz[2]))
 
 
+def _find_all(raw: bytes, pattern: bytes, expected: int) -> list[int]:
+    """Every offset of ``pattern`` in ``raw``; there must be ``expected`` of them."""
+    found, at = [], raw.find(pattern)
+    while at >= 0:
+        found.append(at)
+        at = raw.find(pattern, at + 1)
+    if len(found) != expected:
+        raise ValueError(f'MarkerArray template: a sentinel occurs {len(found)} times, '
+                         f'expected {expected}')
+    return found
+
+
+def _offsets(raw: bytes, values) -> np.ndarray:
+    """The byte offset of each float64 sentinel of ``values`` in ``raw`` (each occurs once)."""
+    found = []
+    for v in values:
+        (at,) = _find_all(raw, struct.pack('<d', v), 1)
+        found.append(at)
+    return np.array(found, dtype=np.intp).reshape(-1)
+
+
+def _colour(link: str, grasping: set[str]) -> str:
+    """A link's colour: the palm's, a finger base's, or its finger's (grasping or not)."""
+    if link == ROOT:
+        return 'palm'
+    if link.endswith('/base'):
+        return 'base'
+    return 'grasping' if link.split('/')[0] in grasping else 'other'
+
+
+class _Slots(NamedTuple):
+    """The sentinels standing for the template's moving fields, by namespace."""
+
+    links: list[list[float]]        # per visual: position, orientation [x, y, z, w]
+    cube: list[float]               # its pose, or none without the cube
+    tips: list[float]               # x, y, z per finger
+    references: list[float]         # x, y, z per finger, or none without references
+
+
 class HandMarkers:
     """The hand's MarkerArray as CDR bytes, laid out once, rewritten per update.
 
@@ -87,24 +127,38 @@ class HandMarkers:
         self.kin = HandKinematics(urdf)
         self.names = list(finger_names)
         self._joint_names = [[joint_name(n, j) for j in range(10)] for n in self.names]
-        grasping = {n for n, i in zip(self.names, hand_fingers) if int(i) in GRASPING}
+        self.with_cube, self.with_references = with_cube, with_references
+        markers, slots = self._layout({n for n, i in zip(self.names, hand_fingers)
+                                       if int(i) in GRASPING})
+        self.count = len(markers)
+        # serialised once with sentinels in the moving fields: where they land, encode writes
+        raw = bytes(STORE.serialize_cdr(_T[MARKER_ARRAY](markers=markers), MARKER_ARRAY))
+        self._stamps = _find_all(raw, _SENTINEL_STAMP, self.count)
+        n = len(self.names)
+        self._link_at = _offsets(raw, [v for pose in slots.links for v in pose]).reshape(-1, 7)
+        self._cube_at = _offsets(raw, slots.cube)
+        self._tip_at = _offsets(raw, slots.tips).reshape(n, 3)
+        self._ref_at = _offsets(raw, slots.references).reshape(-1, 3)
+        self._buf = bytearray(raw)
+        self._words = np.frombuffer(self._buf, np.uint8)
+        self._write_rest(len(slots.links))
+        self._tip_com = [self.kin.com[tip_link(n)] for n in self.names]
+        self._visual_origins = np.stack([v.origin for v in self.kin.visuals])
+        self.stamp(0)
+
+    def _layout(self, grasping: set[str]) -> tuple[list, _Slots]:
+        """The markers, each moving field a sentinel, in namespace order: links, cube, tips,
+        references (``grasping``: the fingers drawn in the grasping colour)."""
         marks = _Sentinels()
         markers = []
         link_slots = []
         for k, visual in enumerate(self.kin.visuals):
-            finger = visual.link.split('/')[0]
-            if visual.link == ROOT:
-                colour = 'palm'
-            elif visual.link.endswith('/base'):
-                colour = 'base'
-            else:
-                colour = 'grasping' if finger in grasping else 'other'
             pose = marks.take(7)
             link_slots.append(pose)
-            markers.append(self._marker('links', k, _KINDS[visual.kind], colour, visual.size, pose))
-        self.with_cube = with_cube
+            markers.append(self._marker('links', k, _KINDS[visual.kind],
+                                        _colour(visual.link, grasping), visual.size, pose))
         cube_slots = []
-        if with_cube:
+        if self.with_cube:
             cube_slots = marks.take(7)
             markers.append(self._marker('cube', 0, CUBE_KIND, 'cube',
                                         (CUBE['size'] / LENGTH_SCALE,) * 3, cube_slots))
@@ -112,52 +166,23 @@ class HandMarkers:
         tip_slots = marks.take(3 * n)
         markers.append(self._marker('tips', 0, SPHERE_LIST, 'tips', (TIP_DIAMETER,) * 3,
                                     None, tip_slots))
-        self.with_references = with_references
         ref_slots = []
-        if with_references:
+        if self.with_references:
             ref_slots = marks.take(3 * n)
             markers.append(self._marker('references', 0, SPHERE_LIST, 'references',
                                         (REFERENCE_DIAMETER,) * 3, None, ref_slots))
-        self.count = len(markers)
-        raw = bytes(STORE.serialize_cdr(_T[MARKER_ARRAY](markers=markers), MARKER_ARRAY))
-        self._stamps = self._find_all(raw, _SENTINEL_STAMP, self.count)
+        return markers, _Slots(link_slots, cube_slots, tip_slots, ref_slots)
 
-        def offsets(values) -> np.ndarray:
-            found = []
-            for v in values:
-                (at,) = self._find_all(raw, struct.pack('<d', v), 1)
-                found.append(at)
-            return np.array(found, dtype=np.intp).reshape(-1)
-
-        self._link_at = offsets([v for pose in link_slots for v in pose]).reshape(-1, 7)
-        self._cube_at = offsets(cube_slots)
-        self._tip_at = offsets(tip_slots).reshape(n, 3)
-        self._ref_at = offsets(ref_slots).reshape(-1, 3)
-        self._buf = bytearray(raw)
-        self._words = np.frombuffer(self._buf, np.uint8)
-        # a valid message before the first update: identity orientations, everything at 0
-        rest = np.zeros((len(link_slots), 7))
+    def _write_rest(self, links: int) -> None:
+        """A valid message before the first update: identity orientations, everything at 0."""
+        rest = np.zeros((links, 7))
         rest[:, 6] = 1.0
         self._write(self._link_at, rest)
-        if with_cube:
+        if self.with_cube:
             self._write(self._cube_at, np.array([0, 0, 0, 0, 0, 0, 1.0]))
-        self._write(self._tip_at, np.zeros((n, 3)))
-        if with_references:
-            self._write(self._ref_at, np.zeros((n, 3)))
-        self._tip_com = [self.kin.com[tip_link(n)] for n in self.names]
-        self._visual_origins = np.stack([v.origin for v in self.kin.visuals])
-        self.stamp(0)
-
-    @staticmethod
-    def _find_all(raw: bytes, pattern: bytes, expected: int) -> list[int]:
-        found, at = [], raw.find(pattern)
-        while at >= 0:
-            found.append(at)
-            at = raw.find(pattern, at + 1)
-        if len(found) != expected:
-            raise ValueError(f'MarkerArray template: a sentinel occurs {len(found)} times, '
-                             f'expected {expected}')
-        return found
+        self._write(self._tip_at, np.zeros((len(self.names), 3)))
+        if self.with_references:
+            self._write(self._ref_at, np.zeros((len(self.names), 3)))
 
     @staticmethod
     def _marker(ns: str, marker_id: int, kind: int, colour: str, size, pose=None, points=()):

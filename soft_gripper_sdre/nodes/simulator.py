@@ -3,7 +3,8 @@
 It exposes the fingers ``finger_names``, each one of the scene's fingers (``hand_fingers``: a
 2-finger gripper is the hand's opposite fingers 0 and 2); the others stay at zero torque.
 Publishes ``tip_positions`` (each control period), ``/clock`` (``clock_rate``, 100 Hz of sim time
-by default), ``joint_states``, ``cube_pose``, ``cube_contacts`` (``state_rate``) and
+by default), ``joint_states``, ``cube_pose``, ``cube_contacts`` (``state_rate``; these are the
+plant's topics, :class:`~soft_gripper_sdre.nodes.state_publisher.StatePublisher`) and
 ``/diagnostics``; subscribes ``torque_commands`` (keeping only the newest). Per period it sends
 one loop message and receives one. The hand scene also publishes the live 3-D view
 (docs/visualization.md): its URDF on ``robot_description`` once, and the hand as ``markers`` on a
@@ -32,7 +33,8 @@ and, given ``wait_for_nodes`` (the graph's other nodes, as
 :func:`~soft_gripper_sdre.nodes.graph.readiness_problem` over their /diagnostics: each of them
 has reported, and every writer and reader of the graph has matched its peers. Without
 ``wait_for_nodes`` it starts after ``startup_timeout`` with what is there (a warning); with it,
-it gives up instead, naming what is missing, with exit status 1.
+it gives up instead, naming what is missing, with exit status 1
+(:class:`~soft_gripper_sdre.nodes.start_gate.StartGate`).
 
 /diagnostics also carries the real-time factor of the stepping, this process's CPU time per
 step (``cpu_per_step_us``) and the loop latency: the wall time from publishing ``tip_positions``
@@ -46,27 +48,16 @@ from __future__ import annotations
 
 import time
 
-from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import PoseArray, PoseStamped
 import numpy as np
 from rclpy.node import Node
-from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 
 from soft_gripper_sdre.nodes import cdr
 from soft_gripper_sdre.nodes import conversions as cv
-from soft_gripper_sdre.nodes.common import (
-    ERROR,
-    OK,
-    WARN,
-    Diagnostics,
-    SteppingTiming,
-    ThrottledLogger,
-    run,
-    wiring,
-)
-from soft_gripper_sdre.nodes.graph import GRASP_NODES, readiness_problem
+from soft_gripper_sdre.nodes.common import ERROR, Diagnostics, SteppingTiming, run
+from soft_gripper_sdre.nodes.graph import GRASP_NODES
 from soft_gripper_sdre.nodes.live_view import LiveView
+from soft_gripper_sdre.nodes.loop_status import LoopStatus
 from soft_gripper_sdre.nodes.params import (
     Param,
     ParameterError,
@@ -74,24 +65,12 @@ from soft_gripper_sdre.nodes.params import (
     finger_names_param,
     on_runtime_change,
 )
-from soft_gripper_sdre.nodes.topics import (
-    CLOCK,
-    CLOCK_QOS,
-    CUBE_CONTACTS,
-    CUBE_POSE,
-    DIAGNOSTICS,
-    JOINT_STATES,
-    LOOP_QOS,
-    NEWEST_QOS,
-    STREAM_QOS,
-    TIP_POSITIONS,
-    TORQUE_COMMANDS,
-)
-from soft_gripper_sdre.sim.finger import FINGER_BASE_POSITIONS, N_JOINTS
+from soft_gripper_sdre.nodes.start_gate import StartGate, StartRule, waited_nodes_problem
+from soft_gripper_sdre.nodes.state_publisher import StatePublisher, periods_between
+from soft_gripper_sdre.nodes.topics import NEWEST_QOS, TORQUE_COMMANDS
+from soft_gripper_sdre.sim.finger import FINGER_BASE_POSITIONS
 from soft_gripper_sdre.sim.hand import GripperSim, SimConfig
 from soft_gripper_sdre.sim.lockstep import LATENCY_PERIODS, MODES, Stepping
-
-_NO_VALUES = np.empty(0)       # /clock carries only its stamp
 
 PARAMS = (
     Param('mode', 'lockstep', 'stepping mode: lockstep (each period steps on its own command), '
@@ -141,7 +120,7 @@ PARAMS = (
           f"{', '.join(n for n in GRASP_NODES if n != 'simulator')} (grasp_graph and the launch "
           'file name them): the first step waits until each has reported on /diagnostics and every '
           "writer and reader of the graph has matched its peers; '' = no such wait",
-          read_only=True, rule=lambda text: _waited_nodes_problem(text)),
+          read_only=True, rule=waited_nodes_problem),
     Param('min_diagnostics_subscribers', 0, 'start-up: /diagnostics subscribers of other nodes to '
           'wait for (a monitor that reads the final counters of a short run must be matched before '
           'it begins)', '', 0, 100, read_only=True),
@@ -167,54 +146,33 @@ class SimulatorNode(Node):
         on_runtime_change(self, PARAMS, apply=self._apply)
         self.names = tuple(p['finger_names'])
         self.mounted = exposed_fingers(self.names, p['hand_fingers'], p['scene'])
-        try:
-            self.sim = GripperSim(SimConfig(
-                scene=p['scene'], control_period=p['control_period'],
-                physics_substeps=p['physics_substeps'] or None, torque_limit=p['torque_limit'],
-                noise_std=p['noise_std'], seed=p['seed'], settle_time=p['settle_time'],
-                with_cube=p['with_cube']))
-        except ValueError as exc:
-            raise ParameterError(str(exc)) from None
+        self.sim = settled_scene(p)
         self._u_scene = np.zeros((self.sim.n_fingers, 2))   # the fingers not exposed stay at zero
-        self.joint_names = [f'{name}/joint_{j}' for name in self.names for j in range(N_JOINTS)]
-        self.state_every = max(1, int(round(1.0 / (p['state_rate'] * p['control_period']))))
-        self.clock_every = max(1, int(round(1.0 / (p['clock_rate'] * p['control_period']))))
-        self.exit_code = 0
         self.timing = SteppingTiming(LATENCY_PERIODS)
         self._physics_k = 0           # the physics' period: the tips' one, or one ahead (pipelined)
-
-        # the per-period messages travel as CDR bytes written / read at fixed offsets (nodes/cdr.py)
-        self.cdr_clock = cdr.clock_codec()
-        self.cdr_tips = cdr.tips_codec(self.names)
-        self.cdr_cmd = cdr.torques_codec(self.names)
-        self.pub_clock = self.create_publisher(Clock, CLOCK, CLOCK_QOS)
-        self.pub_tips = self.create_publisher(PoseArray, TIP_POSITIONS, LOOP_QOS)
-        self.pub_joints = self.create_publisher(JointState, JOINT_STATES, STREAM_QOS)
-        self.pub_cube = self.create_publisher(PoseStamped, CUBE_POSE, STREAM_QOS)
-        self.pub_contacts = self.create_publisher(JointState, CUBE_CONTACTS, STREAM_QOS)
+        self.state_out = StatePublisher(
+            self, self.sim, self.names, self.mounted, timing=self.timing,
+            clock_every=periods_between(p['clock_rate'], p['control_period']),
+            state_every=periods_between(p['state_rate'], p['control_period']))
         self.live = (LiveView(self, self.names, self.mounted, marker_rate=p['marker_rate'],
                               with_cube=p['with_cube'], with_references=p['marker_references'],
                               now=self._shown) if p['scene'] == 'hand' else None)
+        # the commands arrive as CDR bytes read at fixed offsets (nodes/cdr.py)
+        self.cdr_cmd = cdr.torques_codec(self.names)
         self.sub_cmd = self.create_subscription(JointState, TORQUE_COMMANDS, self.on_command,
                                                 NEWEST_QOS, raw=True)
-        self.log = ThrottledLogger(self.get_logger())
         self.diag = Diagnostics(self)
         self.stepping = Stepping(
             len(self.names), int(round(p['control_period'] * cv.NS)), p['mode'],
             int(round(p['duration'] / p['control_period'])) if p['duration'] > 0 else None,
-            p['lockstep_timeout'], p['on_timeout'], p['on_bad_command'], p['lost_command_wait'],
-            self._hold_periods(), counters=self.diag.counters)
+            counters=self.diag.counters, **stepping_rules(p))
+        self.status = LoopStatus(self, self.diag, self.stepping)
         cdr.watch(self.diag, self.cdr_cmd)
         self.diag.before_publish.append(self._refresh_diagnostics)
         self.diag.values['mode'] = p['mode']
         self.diag.values['scene'] = p['scene']
-        self._startup_deadline = time.monotonic() + p['startup_timeout']
-        self.waited = waited_nodes(p['wait_for_nodes'])
-        self._gave_up = False
-        self._reports: dict[str, dict[str, str]] = {}      # /diagnostics values by full name
-        self._sub_diag = (self.create_subscription(DiagnosticArray, DIAGNOSTICS, self._on_report,
-                                                   STREAM_QOS) if self.waited else None)
-        self._startup_timer = self.create_timer(0.01, self._try_start)
+        self.gate = StartGate(self, StartRule.from_params(p), tips=self.state_out.pub_tips,
+                              commands=self.sub_cmd, diag=self.diag, start=self._start)
         self.get_logger().info(
             f'{p["scene"]} scene settled; {p["mode"]} at {1e3 * p["control_period"]:g} ms, '
             f'{self.sim.config.physics_substeps} physics substeps, '
@@ -224,65 +182,22 @@ class SimulatorNode(Node):
     def done(self) -> bool:
         """The run reached its ``duration``, or the graph never got ready (the process then
         exits)."""
-        return self.stepping.done or self._gave_up
+        return self.stepping.done or self.gate.gave_up
+
+    @property
+    def exit_code(self) -> int:
+        """1 when the graph never got ready (with ``wait_for_nodes``), else 0."""
+        return int(self.gate.gave_up)
 
     def _apply(self, new: dict) -> None:
         self.p.update(new)
-        self.stepping.timeout = self.p['lockstep_timeout']
-        self.stepping.on_timeout = self.p['on_timeout']
-        self.stepping.on_bad_command = self.p['on_bad_command']
-        self.stepping.lost_command_wait = self.p['lost_command_wait']
-        self.stepping.hold_periods = self._hold_periods()
-
-    def _hold_periods(self) -> int:
-        return int(round(self.p['hold_limit'] / self.p['control_period']))
+        for name, value in stepping_rules(self.p).items():
+            setattr(self.stepping, name, value)
 
     # -- start-up ----------------------------------------------------------------------------
-    def _on_report(self, msg: DiagnosticArray) -> None:
-        for status in msg.status:
-            self._reports[status.name] = {kv.key: kv.value for kv in status.values}
-
-    def start_problem(self) -> str | None:
-        """What the first step still waits for (module doc), or None."""
-        problems = []
-        tips, commands = self.pub_tips.get_subscription_count(), self.sub_cmd.get_publisher_count()
-        if tips < self.p['min_tip_subscribers']:
-            problems.append(f'{tips} of {self.p["min_tip_subscribers"]} tip_positions readers')
-        if commands < 1:
-            problems.append('no torque_commands writer')
-        readers = self.diag.subscription_count() - (self._sub_diag is not None)   # not its own
-        if readers < self.p['min_diagnostics_subscribers']:
-            problems.append(f'{readers} of {self.p["min_diagnostics_subscribers"]} '
-                            '/diagnostics readers')
-        if self.waited:
-            prefix = self.get_namespace().rstrip('/')
-            reports = {'simulator': wiring(self)} | {n: self._reports.get(f'{prefix}/{n}')
-                                                     for n in self.waited}
-            graph = readiness_problem(('simulator', *self.waited), reports, self.resolve_topic_name)
-            if graph:
-                problems.append(graph)
-        return '; '.join(problems) or None
-
-    def _try_start(self) -> None:
-        problem = self.start_problem()
-        if problem and time.monotonic() < self._startup_deadline:
-            return
-        self._startup_timer.cancel()
-        if problem and self.waited:
-            self.get_logger().error(f'the graph was not ready within startup_timeout '
-                                    f'({self.p["startup_timeout"]:g} s): {problem}; giving up')
-            self.diag.set_status(ERROR, f'the graph was not ready: {problem}')
-            self.exit_code, self._gave_up = 1, True
-            return
-        if problem:
-            self.get_logger().warning(f'starting with an incomplete graph after startup_timeout: '
-                                      f'{problem}')
-        elif self.waited:
-            self.get_logger().info(f'the graph is wired and ready ({", ".join(self.waited)}); '
-                                   'stepping')
-        if self._sub_diag is not None:
-            self.destroy_subscription(self._sub_diag)
-            self._sub_diag = None
+    def _start(self) -> None:
+        """The first step may go (:class:`~soft_gripper_sdre.nodes.start_gate.StartGate`): the
+        first tips go out, and the timer that steps (realtime) or watches for timeouts starts."""
         first = self.stepping.start()
         self.timing.start()
         if self.p['mode'] == 'realtime':
@@ -308,16 +223,10 @@ class SimulatorNode(Node):
             self.timing.answered(outcome.first_answer)
         if outcome.refused:
             self.diag.problem(outcome.refused, f'rejected: {outcome.reason}')
-        elif (self.timing.wall_start is not None
-                and 'first_command_monotonic_s' not in self.diag.values):
-            now = time.monotonic()          # (the first tips went out at the timing's start)
-            self.diag.values['first_command_monotonic_s'] = f'{now:.6f}'
-            self.diag.values['first_command_after_tips_ms'] = (
-                f'{1e3 * (now - self.timing.wall_start):.1f}')
+        else:
+            self.timing.accepted()
         if outcome.resumed:
-            self.diag.set_status(OK, 'torque_commands are back')
-            self.get_logger().info(f'torque_commands are back at t = {stamp / cv.NS:.4f} s '
-                                   f'({self.diag.counters["safe_periods"]} safe periods so far)')
+            self.status.back(stamp)
         self._step(outcome.step)
 
     def _check_timeout(self) -> None:
@@ -327,23 +236,17 @@ class SimulatorNode(Node):
         u = self.stepping.on_wall_time(time.monotonic())
         if u is None:
             return
-        if lost:
-            if self.diag.level != ERROR:
-                self._commands_lost(f'each period waits {self.p["lost_command_wait"]:g} s')
-        else:
-            hold = self.p['on_timeout'] == 'hold'
-            self.diag.set_status(WARN, f'command timeout at t = {t:.3f} s; '
-                                 f'{"holding the last command" if hold else "zero torque"}')
-            self.log.warn('timeout', f'no torque_commands for t = {t:.3f} s within '
-                          f'{self.p["lockstep_timeout"]} s; '
-                          f'{"holding last" if hold else "applying zero"}')
+        if not lost:
+            self.status.timed_out(t, self.p['on_timeout'] == 'hold', self.p['lockstep_timeout'])
+        elif self.diag.level != ERROR:               # once per spell
+            self.status.lost(f'each period waits {self.p["lost_command_wait"]:g} s')
         self._step(u)
 
     def _on_period(self) -> None:
         lost = self.stepping.lost
         u = self.stepping.on_period()
         if self.stepping.lost and not lost:
-            self._commands_lost(f'the newest is older than hold_limit ({self.p["hold_limit"]:g} s)')
+            self.status.lost(f'the newest is older than hold_limit ({self.p["hold_limit"]:g} s)')
         self._step(u)
 
     def _physics(self, u: np.ndarray) -> None:
@@ -351,13 +254,6 @@ class SimulatorNode(Node):
         self._u_scene[self.mounted] = u
         self.sim.step(self._u_scene)
         self._physics_k += 1
-
-    def _commands_lost(self, how: str) -> None:
-        """Commands are lost: report ERROR (status and a throttled log) once per spell."""
-        t = self.stepping.lost_since_ns / cv.NS
-        why = f'no torque_commands since t = {t:.4f} s: stepping with zero torque ({how})'
-        self.diag.set_status(ERROR, why)
-        self.log.warn('lost', why)
 
     def _step(self, u: np.ndarray | None) -> None:
         """The period moved on with ``u`` (finite: validated on receipt, or held or zero), if any:
@@ -378,33 +274,20 @@ class SimulatorNode(Node):
                 self.timing.finish()
             self.publish_state()
         if self.done:
-            k = self.stepping.k
-            self.diag.set_status(OK, f'finished {k} steps')
-            self.diag.publish()
-            self.get_logger().info(f'duration reached after {k} steps; stopping')
+            self.status.finished(self.stepping.k)
 
     # -- publishing --------------------------------------------------------------------------
     def publish_state(self) -> None:
+        """The current period's tips, then (the command wait armed) /clock and the state."""
         k, ns = self.stepping.k, self.stepping.now_ns
-        tips = self.cdr_tips.encode(ns, self.sim.measure()[self.mounted])
-        self.timing.tips_sent(k)
-        self.pub_tips.publish(tips)         # first: the loop's critical path starts here
+        self.state_out.tips(k, ns)          # first: the loop's critical path starts here
         self.stepping.await_command(time.monotonic())
-        if k % self.clock_every == 0:
-            self.pub_clock.publish(self.cdr_clock.encode(ns, _NO_VALUES))
-        if k % self.state_every == 0:
-            truth = self.sim.truth()
-            on = self.mounted        # the exposed fingers
-            self.pub_joints.publish(cv.joint_states_msg(ns, self.joint_names, truth.q[on],
-                                                        truth.qd[on]))
-            if truth.cube_pose is not None:
-                self.pub_cube.publish(cube_pose_msg(ns, truth.cube_pose))
-                self.pub_contacts.publish(cv.contacts_msg(ns, truth.contact_force[on], self.names))
-        if self.diag.level == WARN and k % 1000 == 0:
-            self.diag.set_status(OK, 'stepping')
+        self.state_out.streams(k, ns)
+        self.status.stepped(k)
 
     def _refresh_diagnostics(self) -> None:
-        """Sim time, real-time factor of the stepping and loop latency, before each /diagnostics."""
+        """Sim time and the stepping's timing (real-time factor, loop latency, the first command),
+        before each /diagnostics."""
         t = self.stepping.now_ns / cv.NS
         kept = {k: v for k, v in self.diag.values.items() if not k.startswith('recent_')}
         self.diag.values = kept | {'sim_time': f'{t:.3f}'} | self.timing.report(t, self.stepping.k)
@@ -417,20 +300,28 @@ class SimulatorNode(Node):
         self.sim.close()
 
 
-def waited_nodes(text: str) -> tuple[str, ...]:
-    """``wait_for_nodes`` as names: ``'recorder, estimator'`` → ``('recorder', 'estimator')``."""
-    return tuple(name.strip() for name in text.split(',') if name.strip())
+def settled_scene(p: dict) -> GripperSim:
+    """The scene the parameters ``p`` describe, settled.
+
+    Raises:
+        ParameterError: the scene refused a value.
+    """
+    try:
+        return GripperSim(SimConfig(
+            scene=p['scene'], control_period=p['control_period'],
+            physics_substeps=p['physics_substeps'] or None, torque_limit=p['torque_limit'],
+            noise_std=p['noise_std'], seed=p['seed'], settle_time=p['settle_time'],
+            with_cube=p['with_cube']))
+    except ValueError as exc:
+        raise ParameterError(str(exc)) from None
 
 
-def _waited_nodes_problem(text: str) -> str | None:
-    names = waited_nodes(text)
-    known = [n for n in GRASP_NODES if n != 'simulator']
-    unknown = [n for n in names if n not in known]
-    if unknown:
-        return f'{unknown[0]!r} is not a node of the grasp graph ({", ".join(known)})'
-    if len(set(names)) != len(names):
-        return f'{text!r} names a node twice'
-    return None
+def stepping_rules(p: dict) -> dict:
+    """The :class:`~soft_gripper_sdre.sim.lockstep.Stepping` attributes that the parameters
+    ``p`` set and that may change at runtime, by name."""
+    return dict(timeout=p['lockstep_timeout'], on_timeout=p['on_timeout'],
+                on_bad_command=p['on_bad_command'], lost_command_wait=p['lost_command_wait'],
+                hold_periods=int(round(p['hold_limit'] / p['control_period'])))
 
 
 def exposed_fingers(names, hand_fingers, scene: str) -> np.ndarray:
@@ -452,18 +343,6 @@ def exposed_fingers(names, hand_fingers, scene: str) -> np.ndarray:
         raise ParameterError(f"parameter 'hand_fingers': {hand_fingers} out of range: the {scene} "
                              f'scene has {scene_fingers} finger(s), 0 to {scene_fingers - 1}')
     return np.array(hand_fingers, dtype=np.intp)
-
-
-def cube_pose_msg(ns: int, pose: np.ndarray) -> PoseStamped:
-    """The cube's pose [x, y, z, qx, qy, qz, qw] in the hand frame at ``ns``."""
-    msg = PoseStamped()
-    msg.header.stamp = cv.to_time(ns)
-    msg.header.frame_id = 'hand'
-    c = pose.tolist()
-    msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = c[:3]
-    (msg.pose.orientation.x, msg.pose.orientation.y, msg.pose.orientation.z,
-     msg.pose.orientation.w) = c[3:]
-    return msg
 
 
 def main(args=None) -> int:
