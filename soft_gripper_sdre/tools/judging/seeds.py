@@ -81,7 +81,7 @@ class SweepContext:
     runs."""
 
     data: object                   # tools.learning.train.LabelledData
-    settings: object               # learning.training.TrainSettings
+    settings: object               # learning.train_settings.TrainSettings
     jitter: float
     laws: tuple[str, ...]
     trajectories: tuple[str, ...]
@@ -336,7 +336,7 @@ def markdown(rows: list[dict], summary: dict, keys, command: str, facts: dict) -
 # -- the command line ---------------------------------------------------------------------------
 def _settings_from(parser, assignments: list[str]):
     """The default preset with ``--set KEY=VALUE`` applied; a bad one is a usage error."""
-    from soft_gripper_sdre.learning.training import PRESETS
+    from soft_gripper_sdre.learning.train_settings import PRESETS
     settings = PRESETS['default']
     types = {f.name: type(getattr(settings, f.name)) for f in fields(settings)}
     changes = {}

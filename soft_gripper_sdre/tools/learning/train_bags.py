@@ -41,12 +41,9 @@ from soft_gripper_sdre.analysis.bag_dataset import (
 )
 from soft_gripper_sdre.analysis.data_facts import data_facts
 from soft_gripper_sdre.learning import derivatives
-from soft_gripper_sdre.learning.training import (
-    Run,
-    TrainSettings,
-    fingerprint,
-    train,
-)
+from soft_gripper_sdre.learning.rollout import Run
+from soft_gripper_sdre.learning.train_settings import TrainSettings
+from soft_gripper_sdre.learning.training import fingerprint, train
 
 #: samples of a recording's first stretch its jerk intensity is tuned on
 TUNE_SAMPLES = 2000
