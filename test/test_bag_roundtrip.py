@@ -19,7 +19,8 @@ from soft_gripper_sdre.analysis.metrics import r2_score
 from soft_gripper_sdre.learning.dataset import Record
 from soft_gripper_sdre.learning.labels import states
 from soft_gripper_sdre.learning.model import SDCModel
-from soft_gripper_sdre.learning.training import PRESETS, save_checkpoint, train
+from soft_gripper_sdre.learning.train_settings import PRESETS
+from soft_gripper_sdre.learning.training import save_checkpoint, train
 from soft_gripper_sdre.sim.hand import SimConfig
 from soft_gripper_sdre.tools.learning.collect import collect_signal
 

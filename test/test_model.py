@@ -15,8 +15,8 @@ from soft_gripper_sdre.learning.model import (
     SDCNet,
     read_checkpoint,
 )
+from soft_gripper_sdre.learning.train_settings import PRESETS
 from soft_gripper_sdre.learning.training import (
-    PRESETS,
     TrainResult,
     fingerprint,
     save_checkpoint,

@@ -5,7 +5,8 @@ from dataclasses import replace
 import numpy as np
 import torch
 
-from soft_gripper_sdre.learning.training import PRESETS, train
+from soft_gripper_sdre.learning.train_settings import PRESETS
+from soft_gripper_sdre.learning.training import train
 
 
 def _data(n, seed):

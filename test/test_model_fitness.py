@@ -1,5 +1,6 @@
 """The model's fitness for control (analysis/model_fitness.py) and the loop settings derived from
-data (analysis/loop_settings.py): on SDC models of known structure and on the shipped model."""
+data (analysis/loop_settings.py, the torques that hold the model still: analysis/holding.py): on
+SDC models of known structure and on the shipped model."""
 import math
 
 import numpy as np
@@ -7,6 +8,7 @@ import pytest
 from scipy.linalg import solve_continuous_are
 
 from soft_gripper_sdre.analysis import data_facts as df
+from soft_gripper_sdre.analysis import holding
 from soft_gripper_sdre.analysis import loop_settings as ls
 from soft_gripper_sdre.analysis import model_fitness as mf
 from soft_gripper_sdre.control.laws import make_law
@@ -155,7 +157,7 @@ def test_the_hold_torque_is_the_spring_over_the_input_map():
     """Held still at p the linear model needs G₂u = k p: u = G₂⁻¹ k p, in any direction."""
     model = LinearModel()
     points = np.array([[0.0, 1e-3], [0.0, 2e-3], [2e-3, -1e-3]])
-    u = ls.hold_torques(model, points)
+    u = holding.hold_torques(model, points)
     np.testing.assert_allclose(u, np.linalg.solve(model.g2, model.k * points.T).T, rtol=1e-9)
 
 
@@ -189,15 +191,15 @@ def test_the_checked_move_shrinks_to_what_half_the_torque_limit_holds():
     per_m = np.abs(np.linalg.solve(model.g2, [0.0, model.k])).max()     # N·m per m held
     facts = ls.DataFacts(period=5e-3, noise_std=5e-5, travel=0.01, torque_limit=0.02,
                          accel_psd_ml=1.0)
-    held = ls.holdable_travel(model, facts)
-    assert ls.HOLD_SHARE * facts.torque_limit / per_m - facts.travel / ls.HOLD_GRID < held \
-        <= ls.HOLD_SHARE * facts.torque_limit / per_m
+    held = holding.holdable_travel(model, facts)
+    most = holding.HOLD_SHARE * facts.torque_limit / per_m
+    assert most - facts.travel / holding.HOLD_GRID < held <= most
     axis = np.linalg.svd(model.g2)[0][:, 0]
     along = ls.DataFacts(**{**facts.__dict__,
                             'direction': math.degrees(math.atan2(*np.abs(axis)[::-1]))})
-    assert ls.holdable_travel(model, along) > 5 * held
+    assert holding.holdable_travel(model, along) > 5 * held
     roomy = ls.DataFacts(**{**facts.__dict__, 'torque_limit': 10.0})
-    assert ls.holdable_travel(model, roomy) == roomy.travel          # the reach's share, uncut
+    assert holding.holdable_travel(model, roomy) == roomy.travel          # the reach's share, uncut
     weak = ls.DataFacts(**{**facts.__dict__, 'torque_limit': 1e-6})
     derived = ls.derive(model, weak)
     assert derived.settings is None and derived.candidates == []
@@ -223,7 +225,7 @@ def test_a_move_no_setting_passes_on_is_halved_until_one_does():
     model = DragBeyond(c=40.0)
     facts = ls.DataFacts(period=5e-3, noise_std=1e-5, travel=4e-3, torque_limit=0.02,
                          accel_psd_ml=1.0)
-    assert ls.holdable_travel(model, facts) == facts.travel
+    assert holding.holdable_travel(model, facts) == facts.travel
     derived = ls.derive(model, facts, bandwidths=(4.0,))
     travels = [row['travel'] for row in derived.candidates]
     assert travels[0] == 4e-3 and travels[-1] == 2e-3 and set(travels) == {4e-3, 2e-3}

@@ -22,7 +22,8 @@ import pytest
 import torch
 
 from soft_gripper_sdre.learning.model import DEFAULT_MODEL, read_checkpoint
-from soft_gripper_sdre.learning.training import PRESETS, TrainSettings, train
+from soft_gripper_sdre.learning.train_settings import PRESETS, TrainSettings
+from soft_gripper_sdre.learning.training import train
 from soft_gripper_sdre.sim.hand import SimConfig
 from soft_gripper_sdre.tools.graph.procs import PINNED_KERNELS, cpu_runs_pinned_kernels, ros_env
 from soft_gripper_sdre.tools.learning.collect import collect_signal

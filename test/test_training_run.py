@@ -8,7 +8,8 @@ import pytest
 from soft_gripper_sdre.analysis import training_run
 from soft_gripper_sdre.analysis.metrics import poly_features, r2_score
 from soft_gripper_sdre.learning.model import SDCModel
-from soft_gripper_sdre.learning.training import PRESETS, train
+from soft_gripper_sdre.learning.train_settings import PRESETS
+from soft_gripper_sdre.learning.training import train
 
 
 def test_a_staged_run_replaces_the_old_files_and_removes_the_stale_ones(tmp_path):

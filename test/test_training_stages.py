@@ -9,7 +9,9 @@ import torch
 
 from soft_gripper_sdre.learning import derivatives
 from soft_gripper_sdre.learning.model import SDCModel
-from soft_gripper_sdre.learning.training import PRESETS, Run, TrainSettings, save_checkpoint, train
+from soft_gripper_sdre.learning.rollout import Run
+from soft_gripper_sdre.learning.train_settings import PRESETS, TrainSettings
+from soft_gripper_sdre.learning.training import save_checkpoint, train
 from soft_gripper_sdre.sim.signals import SIGNALS
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(400)]

@@ -103,66 +103,103 @@ def run_closed_loop(law: Law, *, duration: float, sim_config: SimConfig | None =
         if io is not None and io.n_fingers != n:
             raise ValueError(f'the law controls {io.n_fingers} fingers, the '
                              f'{sim_config.scene!r} scene has {n}')
-        ctrl = law
-        observe = getattr(ctrl, 'observe', None)
-        rec = {k: [] for k in ('t', 'pos', 'vel', 'meas', 'est', 'u', 'ok', 'fallback', 'saturated',
-                               'residual', 'contact', 'cube')}
-        traj = None
         iterator = range(steps)
         if progress:
             from tqdm import tqdm
             iterator = tqdm(iterator, desc='closed loop', unit='step', mininterval=0.5)
-        clock = time.perf_counter
-        stamps = np.empty(steps + 1)
-        law_seconds = np.empty(steps)
-        stamps[0] = clock()
-        fifo = deque(maxlen=delay_steps + 1)     # the last d + 1 measurements, oldest first
+        loop = _GraspLoop(sim, law, tips, delay_steps, profile, steps, dt)
         for k in iterator:
-            fifo.append(sim.measure()[:, :2])
-            z = fifo[0]
-            if traj is None:
-                # before d measurements exist, the sensor repeats the first
-                fifo.extend([z] * delay_steps)
-                traj = GraspTrajectory(z, profile)
-                # the whole reference at once (t_k = k Δt)
-                refs = traj.sample(np.arange(steps) * dt)
-            x_hat = tips.on_tips(k * period_ns, z).estimate
-            if x_hat is None:
-                raise RuntimeError(f'the simulator measured tips the estimator refuses at '
-                                   f't = {k * dt:g} s: {z.tolist()}')
-            truth = sim.truth()
-            t_law = clock()
-            if observe is not None:
-                observe(truth)
-            out = ctrl.compute(x_hat[:, :2], x_hat[:, 2:], refs.pos[k], refs.vel[k],
+            loop.period(k)
+    return loop.result()
+
+
+#: the series a run records each period: the LoopResult fields of the same names
+_RECORDED = ('t', 'pos', 'vel', 'meas', 'est', 'u', 'ok', 'fallback', 'saturated', 'residual',
+             'contact', 'cube')
+
+
+class _GraspLoop:
+    """One run between its periods: the sensor's FIFO of measurements, the reference (sampled
+    once the first measurement gives the rest pose), what is recorded and the wall-clock stamps
+    of the periods and the law."""
+
+    def __init__(self, sim: GripperSim, law: Law, tips: TipFilter, delay_steps: int,
+                 profile: GraspProfile, steps: int, dt: float) -> None:
+        self.sim, self.law, self.tips, self.profile, self.steps = sim, law, tips, profile, steps
+        self.observe = getattr(law, 'observe', None)
+        self.dt, self.period_ns, self.delay_steps = dt, tips.period_ns, delay_steps
+        self.fifo = deque(maxlen=delay_steps + 1)     # the last d + 1 measurements, oldest first
+        self.traj, self.refs = None, None
+        self.rec = {k: [] for k in _RECORDED}
+        self.clock = time.perf_counter
+        self.stamps = np.empty(steps + 1)
+        self.law_seconds = np.empty(steps)
+        self.stamps[0] = self.clock()
+
+    def period(self, k: int) -> None:
+        """Steps 1–4 of the module doc at t_k = k Δt, recorded."""
+        z = self._measure()
+        if self.traj is None:
+            self.traj = GraspTrajectory(z, self.profile)
+            # the whole reference at once (t_k = k Δt)
+            self.refs = self.traj.sample(np.arange(self.steps) * self.dt)
+        x_hat = self.tips.on_tips(k * self.period_ns, z).estimate
+        if x_hat is None:
+            raise RuntimeError(f'the simulator measured tips the estimator refuses at '
+                               f't = {k * self.dt:g} s: {z.tolist()}')
+        truth = self.sim.truth()
+        t_law = self.clock()
+        if self.observe is not None:
+            self.observe(truth)
+        refs = self.refs
+        out = self.law.compute(x_hat[:, :2], x_hat[:, 2:], refs.pos[k], refs.vel[k],
                                ref_acc=refs.acc[k])
-            law_seconds[k] = clock() - t_law
-            sim.step(out.u)
-            rec['t'].append(truth.t)
-            rec['pos'].append(truth.tip_pos[:, :2])
-            rec['vel'].append(truth.tip_vel[:, :2])
-            rec['meas'].append(z)
-            rec['est'].append(x_hat)
-            rec['u'].append(out.u)
-            rec['ok'].append(out.ok)
-            rec['fallback'].append(out.fallback)
-            rec['saturated'].append(out.saturated)
-            rec['residual'].append(out.residual)
-            rec['contact'].append(truth.finger_cube_contact if truth.finger_cube_contact is not None
-                                  else np.zeros(n, dtype=bool))
-            rec['cube'].append(truth.cube_pose if truth.cube_pose is not None
-                               else np.full(7, np.nan))
-            stamps[k + 1] = clock()
-    arrays = {k: np.asarray(v) for k, v in rec.items()}
-    arrays['ref_pos'], arrays['ref_vel'] = refs.pos[:steps], refs.vel[:steps]
-    free = traj.free_space(arrays['t']) & ~arrays['contact']
-    excursion = traj.peak_excursion()
-    periods = np.diff(stamps)
-    result = LoopResult(**arrays, free_space=free, excursion=excursion,
-                        step_seconds=float(periods.sum()), period_seconds=periods,
-                        law_seconds=law_seconds)
-    result.metrics = tracking_metrics(result.pos, result.ref_pos, free, excursion)
-    return result
+        self.law_seconds[k] = self.clock() - t_law
+        self.sim.step(out.u)
+        self._record(truth, z, x_hat, out)
+        self.stamps[k + 1] = self.clock()
+
+    def _measure(self) -> np.ndarray:
+        """The tips the estimator gets this period: those measured d periods ago."""
+        first = not self.fifo
+        self.fifo.append(self.sim.measure()[:, :2])
+        if first:
+            # before d measurements exist, the sensor repeats the first
+            self.fifo.extend([self.fifo[0]] * self.delay_steps)
+        return self.fifo[0]
+
+    def _record(self, truth, z: np.ndarray, x_hat: np.ndarray, out) -> None:
+        """The period's truth, measurement, estimate and law outputs (no cube: no contact, and
+        a NaN pose)."""
+        rec, n = self.rec, len(z)
+        rec['t'].append(truth.t)
+        rec['pos'].append(truth.tip_pos[:, :2])
+        rec['vel'].append(truth.tip_vel[:, :2])
+        rec['meas'].append(z)
+        rec['est'].append(x_hat)
+        rec['u'].append(out.u)
+        rec['ok'].append(out.ok)
+        rec['fallback'].append(out.fallback)
+        rec['saturated'].append(out.saturated)
+        rec['residual'].append(out.residual)
+        rec['contact'].append(truth.finger_cube_contact if truth.finger_cube_contact is not None
+                              else np.zeros(n, dtype=bool))
+        rec['cube'].append(truth.cube_pose if truth.cube_pose is not None
+                           else np.full(7, np.nan))
+
+    def result(self) -> LoopResult:
+        """Everything recorded, with the free-space samples and the tracking metrics."""
+        arrays = {k: np.asarray(v) for k, v in self.rec.items()}
+        steps = self.steps
+        arrays['ref_pos'], arrays['ref_vel'] = self.refs.pos[:steps], self.refs.vel[:steps]
+        free = self.traj.free_space(arrays['t']) & ~arrays['contact']
+        excursion = self.traj.peak_excursion()
+        periods = np.diff(self.stamps)
+        result = LoopResult(**arrays, free_space=free, excursion=excursion,
+                            step_seconds=float(periods.sum()), period_seconds=periods,
+                            law_seconds=self.law_seconds)
+        result.metrics = tracking_metrics(result.pos, result.ref_pos, free, excursion)
+        return result
 
 
 def delay_in_periods(delay: float, period: float) -> int:

@@ -51,8 +51,8 @@ that axis only with opposing torques, far larger than the excitation's: a move a
 35–50° off the axis on those fingers, is out of the limit's range beyond a fraction of a
 millimetre, and a check along it measures saturation, not the settings. The move's travel is the
 smaller of ``data_facts.TRAVEL_SHARE`` of the data's reach along the direction and the largest
-displacement the learned model holds still there with
-:data:`HOLD_SHARE` of the torque limit (:func:`holdable_travel`: at rest the model needs
+displacement the learned model holds still there with ``holding.HOLD_SHARE`` of the torque limit
+(:func:`~soft_gripper_sdre.analysis.holding.holdable_travel`: at rest the model needs
 u = −G₂(x)⁻¹ (A(x)x)₂). When no candidate passes along it, the search is made again along
 :data:`TRAVEL_SHRINK` of it: near the edge of its data a learned model can hold still yet snap
 in motion (the tendon finger's model, 2 mm out along its axis, jumps 1 mm under every loop, and
@@ -75,6 +75,7 @@ import numpy as np
 
 from soft_gripper_sdre.analysis import model_fitness
 from soft_gripper_sdre.analysis.data_facts import DataFacts
+from soft_gripper_sdre.analysis.holding import HOLD_SHARE, hold_torques, holdable_travel
 from soft_gripper_sdre.analysis.model_fitness import rk4_step
 from soft_gripper_sdre.control.kf import ConstantVelocityKF
 from soft_gripper_sdre.control.laws import make_law
@@ -101,15 +102,11 @@ GAIN_ERRORS = (0.5, 2.0)
 KEEP_NOMINAL = 0.05
 KEEP_ROBUST = 0.5
 PREFER_SLOWER = 1.5
-#: the check's move holds still with at most this share of the torque limit (the rest is the
-#: feedback's), and is at least this many σ of measurement noise
-HOLD_SHARE = 0.5
+#: the check's move is at least this many σ of measurement noise
 MIN_TRAVEL_NOISE = 10.0
 #: when no candidate passes along the move, the check is made again along this share of it (a
 #: learned model is least known near the edge of its data), down to MIN_TRAVEL_NOISE σ
 TRAVEL_SHRINK = 0.5
-#: displacements tried for the holdable travel, as shares of the reach's travel
-HOLD_GRID = 40
 CHECK_PROFILE = dict(t_start=0.5, t_close=2.0, t_hold=1.0, t_open=2.0)
 #: where the derived sdre_ff evaluates the model for its feedforward (module doc)
 FEEDFORWARD_AT = 'ref'
@@ -274,29 +271,6 @@ def paper_law_bandwidth(model, facts: DataFacts, share: float = PAPER_LAW_SHARE)
         mid = math.sqrt(lo * hi)
         lo, hi = (mid, hi) if paper_law_offset(model, facts, mid) > share else (lo, mid)
     return hi
-
-
-def hold_torques(model, points: np.ndarray) -> np.ndarray:
-    """(N, 2) torques that hold the learned model still at the displacements ``points`` (N, 2)
-    from its rest: u = −G₂(x)⁻¹ (A(x)x)₂, from ẋ = A(x)x + G(x)u being affine in u."""
-    n = len(points)
-    x = np.zeros((n, 4))
-    x[:, :2] = points
-    free = model_fitness.xdot(model, x, np.zeros((n, 2)))[:, 2:]
-    G2 = np.stack([model_fitness.xdot(model, x, np.tile(e, (n, 1)))[:, 2:] - free
-                   for e in np.eye(2)], axis=2)
-    return -np.stack([np.linalg.lstsq(g, f, rcond=None)[0] for g, f in zip(G2, free)])
-
-
-def holdable_travel(model, facts: DataFacts) -> float:
-    """The largest displacement along ``facts.direction``, up to ``facts.travel``, that every
-    smaller one included the model holds with :data:`HOLD_SHARE` of ``facts.torque_limit``."""
-    lengths = facts.travel * np.arange(1, HOLD_GRID + 1) / HOLD_GRID
-    need = np.abs(hold_torques(model, np.outer(lengths, facts.unit))).max(axis=1)
-    over = np.flatnonzero(~(need <= HOLD_SHARE * facts.torque_limit))    # NaN counts as over
-    if not over.size:
-        return facts.travel
-    return float(lengths[over[0] - 1]) if over[0] > 0 else 0.0
 
 
 @dataclass

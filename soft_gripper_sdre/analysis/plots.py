@@ -50,33 +50,22 @@ def plot_tracking(t_ref, ref, t_act, act, path, *, quantity: str, achieved_label
                                          for a in range(2)], -1)
                                for i in range(n)], 1)
     error = 1e3 * np.linalg.norm(act - desired_on_act, axis=2)                # (S, n)
+    # the error axes are scaled to free space: in contact the reference lies inside the cube,
+    # off that scale on purpose
+    free = np.ones((len(t_act), n), dtype=bool)
+    if contact is not None:
+        free = ~contact[np.clip(np.searchsorted(t_ref, t_act) - 1, 0, len(t_ref) - 1)]
     fig, axes = plt.subplots(n, 3, figsize=(12, 2.0 * n + 1.2), sharex=True, squeeze=False,
                              gridspec_kw={'width_ratios': [1, 1, 0.8]})
     for i in range(n):
         for a in range(2):
-            ax = axes[i, a]
-            d = 1e3 * (ref[:, i, a] - origin[i, a])
-            y = 1e3 * (act[:, i, a] - origin[i, a])
-            ax.plot(t_ref, d, color='0.15', lw=1.6, label='desired (reference)')
-            ax.plot(t_act, y, color='C1', lw=1.0, ls='--', label=achieved_label)
-            _span_limits(ax, np.concatenate([d, y]), min_span)
-            ax.set_ylabel(f'{names[i]}  {AXES[a]}{"" if position else " rate"} [{unit}]',
-                          fontsize=8)
-        err_ax = axes[i, 2]
-        err_ax.plot(t_act, error[:, i], color='C3', lw=0.9,
-                    label=f'|achieved − desired| (2-D) [{unit}]')
-        free = np.ones(len(t_act), dtype=bool)
-        if contact is not None:                  # scaled to free space: in contact the reference
-            touching = contact[np.clip(np.searchsorted(t_ref, t_act) - 1, 0, len(t_ref) - 1), i]
-            free = ~touching                      # lies inside the cube, off this scale on purpose
-        scale = float(np.nanmax(error[free, i])) if free.any() else float(np.nanmax(error[:, i]))
-        top = max(scale * 1.25, 0.05 if position else 1.0)
-        err_ax.set_ylim(0, top)
-        if np.nanmax(error[:, i]) > top:
-            err_ax.text(0.5, 0.93,
-                        f'in contact: up to {np.nanmax(error[:, i]):.2g} {unit} (off scale)',
-                        transform=err_ax.transAxes, ha='center', va='top', fontsize=7, color='0.3')
-        err_ax.set_ylabel(f'error [{unit}]', fontsize=8)
+            _draw_component(axes[i, a], (t_ref, 1e3 * (ref[:, i, a] - origin[i, a])),
+                            (t_act, 1e3 * (act[:, i, a] - origin[i, a])), achieved_label,
+                            min_span)
+            axes[i, a].set_ylabel(f'{names[i]}  {AXES[a]}{"" if position else " rate"} [{unit}]',
+                                  fontsize=8)
+        _draw_error(axes[i, 2], t_act, error[:, i], free[:, i], unit,
+                    0.05 if position else 1.0)
         if contact is not None and np.any(contact[:, i]):
             for ax in axes[i]:
                 ax.fill_between(t_ref, 0, 1, where=contact[:, i], color='0.85', alpha=0.7, lw=0,
@@ -84,6 +73,34 @@ def plot_tracking(t_ref, ref, t_act, act, path, *, quantity: str, achieved_label
         for ax in axes[i]:
             ax.grid(alpha=0.3)
             ax.tick_params(labelsize=8)
+    return _save_tracking(fig, axes, title, Path(path))
+
+
+def _draw_component(ax, desired: tuple, achieved: tuple, achieved_label: str,
+                    min_span: float) -> None:
+    """One axis of one finger: the desired and the achieved (t, value) traces."""
+    ax.plot(*desired, color='0.15', lw=1.6, label='desired (reference)')
+    ax.plot(*achieved, color='C1', lw=1.0, ls='--', label=achieved_label)
+    _span_limits(ax, np.concatenate([desired[1], achieved[1]]), min_span)
+
+
+def _draw_error(ax, t: np.ndarray, error: np.ndarray, free: np.ndarray, unit: str,
+                least_top: float) -> None:
+    """One finger's 2-D error, scaled to its samples in free space (all of them when it is never
+    free), with a note when a larger error in contact is off the scale."""
+    ax.plot(t, error, color='C3', lw=0.9, label=f'|achieved − desired| (2-D) [{unit}]')
+    scale = float(np.nanmax(error[free])) if free.any() else float(np.nanmax(error))
+    top = max(scale * 1.25, least_top)
+    ax.set_ylim(0, top)
+    if np.nanmax(error) > top:
+        ax.text(0.5, 0.93, f'in contact: up to {np.nanmax(error):.2g} {unit} (off scale)',
+                transform=ax.transAxes, ha='center', va='top', fontsize=7, color='0.3')
+    ax.set_ylabel(f'error [{unit}]', fontsize=8)
+
+
+def _save_tracking(fig, axes, title: str, path: Path) -> Path:
+    """The columns' titles, one legend over the figure for every trace kind, and the file."""
+    n = axes.shape[0]
     axes[0, 0].set_title('X (side)', fontsize=9)
     axes[0, 1].set_title('Y (grasp)', fontsize=9)
     axes[0, 2].set_title('tracking error', fontsize=9)
@@ -97,7 +114,6 @@ def plot_tracking(t_ref, ref, t_act, act, path, *, quantity: str, achieved_label
     for ax in axes[-1]:
         ax.set_xlabel('time [s]')
     fig.tight_layout(rect=(0, 0, 1, 1 - 0.75 / (2.0 * n + 1.2)))
-    path = Path(path)
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path

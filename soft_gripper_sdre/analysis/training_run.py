@@ -30,13 +30,8 @@ from soft_gripper_sdre.learning.labels import (
     low_frequency_share,
 )
 from soft_gripper_sdre.learning.model import SDCModel
-from soft_gripper_sdre.learning.training import (
-    TrainResult,
-    TrainSettings,
-    fingerprint,
-    save_checkpoint,
-    train,
-)
+from soft_gripper_sdre.learning.train_settings import TrainSettings
+from soft_gripper_sdre.learning.training import TrainResult, fingerprint, save_checkpoint, train
 
 
 @dataclass

@@ -42,6 +42,16 @@ def load_record(path: Path) -> Record:
         DatasetError: missing, truncated or not an npz, missing arrays, wrong shapes, bad Δt.
     """
     path = Path(path)
+    arrays = _read_arrays(path)
+    n, dt, noise_std = _check_arrays(path, arrays)
+    arrays = _longest_finite_run(path, arrays, n)
+    return Record(name=path.stem, t=arrays['t'], u=arrays['u'], tip=arrays['tip'],
+                  rest_tip=arrays['rest_tip'], dt=dt, vel_true=arrays.get('vel_true'),
+                  acc_true=arrays.get('acc_true'), noise_std=noise_std)
+
+
+def _read_arrays(path: Path) -> dict[str, np.ndarray]:
+    """Every array of the archive at ``path``, read without unpickling anything."""
     if not path.is_file():
         raise DatasetError(f'{path}: no such dataset file')
     try:
@@ -54,13 +64,18 @@ def load_record(path: Path) -> Record:
                            '(corrupt, or another kind of file)')
     try:
         with np.load(path, allow_pickle=False) as d:
-            arrays = {k: d[k] for k in d.files}
+            return {k: d[k] for k in d.files}
     except (ValueError, zipfile.BadZipFile, OSError, EOFError) as exc:
         if isinstance(exc, ValueError) and 'allow_pickle' in str(exc):
             # an object array: unpickling it could run code
             raise DatasetError(f'{path}: holds pickled objects, refused unread (a dataset is plain '
                                'numeric arrays)') from None
         raise DatasetError(f'{path}: unreadable or truncated ({exc})') from None
+
+
+def _check_arrays(path: Path, arrays: dict[str, np.ndarray]) -> tuple[int, float, float]:
+    """The record's sample count, Δt [s] and noise σ [m], once its arrays are found complete, of
+    matching shapes and on a uniform grid of Δt."""
     missing = [k for k in REQUIRED if k not in arrays]
     if missing:
         raise DatasetError(f'{path}: missing arrays {missing}')
@@ -83,27 +98,31 @@ def load_record(path: Path) -> Record:
         raise DatasetError(f'{path}: dt must be > 0, got {dt}')
     if not np.allclose(np.diff(arrays['t']), dt, rtol=1e-6, atol=1e-12):
         raise DatasetError(f'{path}: t is not sampled at dt = {dt} s')
+    return n, dt, noise_std
+
+
+def _longest_finite_run(path: Path, arrays: dict[str, np.ndarray],
+                        n: int) -> dict[str, np.ndarray]:
+    """``arrays`` with the time series cut to their longest run of finite samples (the derivative
+    estimate needs a uniform grid), with a warning when that drops any."""
     keys = ['t', 'u', 'tip'] + [k for k in ('vel_true', 'acc_true') if k in arrays]
     finite = np.ones(n, dtype=bool)
     for k in keys:
         finite &= np.all(np.isfinite(arrays[k].reshape(n, -1)), axis=1)
-    if not finite.all():
-        bad = int((~finite).sum())
-        # the derivative estimate needs a uniform grid: keep the longest finite run
-        edges = np.flatnonzero(np.diff(np.concatenate([[0], finite.astype(int), [0]])))
-        runs = edges.reshape(-1, 2)
-        if len(runs) == 0:
-            raise DatasetError(f'{path}: fewer than 10 consecutive finite samples '
-                               '(every sample holds NaN/Inf)')
-        start, stop = max(runs, key=lambda r: r[1] - r[0])
-        if stop - start < 10:
-            raise DatasetError(f'{path}: fewer than 10 consecutive finite samples')
-        log.warning('%s: %d samples with NaN/Inf; keeping the longest finite run [%d, %d) '
-                    '(%d dropped)', path, bad, start, stop, n - (stop - start))
-        arrays = {k: (v[start:stop] if k in keys else v) for k, v in arrays.items()}
-    return Record(name=path.stem, t=arrays['t'], u=arrays['u'], tip=arrays['tip'],
-                  rest_tip=arrays['rest_tip'], dt=dt, vel_true=arrays.get('vel_true'),
-                  acc_true=arrays.get('acc_true'), noise_std=noise_std)
+    if finite.all():
+        return arrays
+    bad = int((~finite).sum())
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], finite.astype(int), [0]])))
+    runs = edges.reshape(-1, 2)
+    if len(runs) == 0:
+        raise DatasetError(f'{path}: fewer than 10 consecutive finite samples '
+                           '(every sample holds NaN/Inf)')
+    start, stop = max(runs, key=lambda r: r[1] - r[0])
+    if stop - start < 10:
+        raise DatasetError(f'{path}: fewer than 10 consecutive finite samples')
+    log.warning('%s: %d samples with NaN/Inf; keeping the longest finite run [%d, %d) '
+                '(%d dropped)', path, bad, start, stop, n - (stop - start))
+    return {k: (v[start:stop] if k in keys else v) for k, v in arrays.items()}
 
 
 def load_records(directory: Path, names: list[str]) -> dict[str, Record]:

@@ -21,8 +21,9 @@ stage, whose free runs of ``rollout_val_seconds`` on the validation records miss
 
 Seeded and deterministic: the same data and settings give the same bits on the same machine kind
 and torch build (:data:`TRAIN_THREADS` intra-op threads, torch's deterministic algorithms only).
-The networks, the checkpoint's layout and reading it back are
-:mod:`soft_gripper_sdre.learning.model`.
+The settings and their presets are :mod:`soft_gripper_sdre.learning.train_settings`; the model's
+simulation of the records and L_sim, :mod:`soft_gripper_sdre.learning.rollout`; the networks, the
+checkpoint's layout and reading it back, :mod:`soft_gripper_sdre.learning.model`.
 """
 from __future__ import annotations
 
@@ -37,96 +38,13 @@ from typing import Callable, Iterator, NamedTuple
 import numpy as np
 import torch
 
-from soft_gripper_sdre.learning.model import FORMAT_VERSION, HIDDEN, SDCNet
+from soft_gripper_sdre.learning.model import FORMAT_VERSION, SDCNet
+from soft_gripper_sdre.learning.rollout import Run, Scales, sim_error, val_sim_error, windows
+from soft_gripper_sdre.learning.train_settings import TrainSettings
 
 #: intra-op threads while training: the order of torch's reductions, and so every weight's bits,
 #: depends on it
 TRAIN_THREADS = 1
-
-
-@dataclass(frozen=True)
-class TrainSettings:
-    """A training preset. ``paper``: Adam 1e-5, 70 epochs, unscaled, as published.
-
-    ``patience``: stop after this many epochs without a new best validation loss; None runs the
-    whole budget. The default preset runs it: its cosine schedule anneals the learning rate to zero
-    over the budget, while a stop decided by the noisy mid-schedule validation curve can fall
-    tens of epochs earlier or later when the data change at rounding level, and so give another
-    model. Either way the weights of the best validation epoch are kept.
-    """
-
-    preset: str = 'default'
-    epochs: int = 300
-    lr: float = 1e-3
-    batch_size: int = 256
-    cosine: bool = True
-    scale: bool = True
-    weight_decay: float = 0.0
-    patience: int | None = None
-    seed: int = 0
-    hidden: int = HIDDEN
-    #: controllability-aware learning (README "Beyond the paper"): weight of the penalty
-    #: mean(relu(σ_floor − σ_min(G2(x)))²) on G2's smallest singular value at states drawn uniformly
-    #: from a box of ±sv_box (scaled units: data standard deviations) each batch; 0 = off
-    sv_penalty: float = 0.0
-    sv_floor: float = 0.3
-    sv_box: float = 3.0
-    #: simulation-error stage (module doc): epochs (0 = off), window length [s], learning rate,
-    #: and how many windows cover each sample (their starts are H / overlap samples apart, so
-    #: the cost per epoch does not grow with the rate)
-    rollout_epochs: int = 0
-    rollout_seconds: float = 0.1
-    rollout_lr: float = 3e-4
-    rollout_overlap: int = 5
-    #: the epochs are scored by free runs of this length [s] on the validation records, as long
-    #: as the verdict's (analysis/model_fitness.py): 0.1 s runs of a slow signal cannot tell a
-    #: quasi-static model from the finger
-    rollout_val_seconds: float = 1.0
-    #: stable learned rest (module doc): A(0)'s eigenvalues kept left of −rest_margin [1/s]
-    #: (0 = off) by a penalty of this weight
-    rest_margin: float = 0.0
-    rest_weight: float = 10.0
-
-    def __post_init__(self) -> None:
-        if self.patience is not None and not (isinstance(self.patience, int)
-                                              and self.patience >= 1):
-            raise ValueError(f'patience must be an int >= 1 or None (run every epoch), '
-                             f'got {self.patience!r}')
-        if not (np.isfinite(self.sv_penalty) and self.sv_penalty >= 0.0):
-            raise ValueError(f'sv_penalty must be finite and >= 0 (0 = off), '
-                             f'got {self.sv_penalty!r}')
-        for name in ('sv_floor', 'sv_box', 'rollout_seconds', 'rollout_lr', 'rest_weight',
-                     'rollout_val_seconds'):
-            v = getattr(self, name)
-            if not (np.isfinite(v) and v > 0.0):
-                raise ValueError(f'{name} must be finite and > 0, got {v!r}')
-        for name in ('rollout_epochs', 'rollout_overlap'):
-            v = getattr(self, name)
-            if not (isinstance(v, int) and v >= (0 if name == 'rollout_epochs' else 1)):
-                raise ValueError(f'{name} must be an int >= '
-                                 f'{0 if name == "rollout_epochs" else 1}, got {v!r}')
-        if not (np.isfinite(self.rest_margin) and self.rest_margin >= 0.0):
-            raise ValueError(f'rest_margin must be finite and >= 0 (0 = off), '
-                             f'got {self.rest_margin!r}')
-
-
-PRESETS = {
-    'default': TrainSettings(),
-    'paper': TrainSettings(preset='paper', epochs=70, lr=1e-5, batch_size=64, cosine=False,
-                           scale=False),
-    # a gripper of your own (docs/own_gripper.md): labels, then the simulation error, rest kept
-    # stable
-    'gripper': TrainSettings(preset='gripper', rollout_epochs=40, rest_margin=1.0),
-}
-
-
-class Run(NamedTuple):
-    """A contiguous record on a uniform grid for the simulation stage: estimated states x (N, 4)
-    (translated, SI), the held inputs u (N, 2) [N·m] and the grid spacing dt [s]."""
-
-    x: np.ndarray
-    u: np.ndarray
-    dt: float
 
 
 @dataclass
@@ -199,83 +117,20 @@ def train(x: np.ndarray, u: np.ndarray, acc: np.ndarray, x_val: np.ndarray, u_va
         return _train_seeded(x, u, acc, x_val, u_val, acc_val, settings, on_epoch, runs, val_runs)
 
 
-class _Scales(NamedTuple):
+class _Labelled(NamedTuple):
+    """States, inputs and acceleration labels in the networks' scaled units."""
+
     x: torch.Tensor
     u: torch.Tensor
     acc: torch.Tensor
 
 
-def _windows(runs: list[Run], seconds: float,
-             overlap: int) -> list[tuple[float, torch.Tensor, ...]]:
-    """Windows of ``seconds`` (H samples) starting every H / ``overlap`` samples into each run,
-    grouped by grid spacing: [(dt, starts (B, 4), inputs (B, H, 2), positions (B, H, 2))]."""
-    groups: dict[float, list[list[np.ndarray]]] = {}
-    for run in runs:
-        h = max(int(round(seconds / run.dt)), 1)
-        starts = range(0, len(run.x) - h, max(h // overlap, 1))
-        if not starts:
-            continue
-        got = groups.setdefault(float(run.dt), [[], [], []])
-        got[0] += [run.x[i] for i in starts]
-        got[1] += [run.u[i:i + h] for i in starts]
-        got[2] += [run.x[i + 1:i + h + 1, :2] for i in starts]
-    f32 = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32)  # noqa: E731
-    return [(dt, f32(x0), f32(u), f32(p)) for dt, (x0, u, p) in sorted(groups.items())]
+def _label_loss(net: SDCNet, data: _Labelled) -> torch.Tensor:
+    """Eq. 18: the mean squared acceleration residual."""
+    return ((net.accel(data.x, data.u) - data.acc) ** 2).sum(dim=1).mean()
 
 
-#: a simulated state is held within this many data standard deviations, so a diverging run
-#: stays finite (its window then counts at most :data:`SIM_ERROR_CAP`, and passes no gradient)
-SIM_BOUND = 100.0
-#: a window's simulation error counts at most this (scaled units: a run off by ten standard
-#: deviations of the data), so one diverged window does not hide how the others do
-SIM_ERROR_CAP = 100.0
-
-
-def _simulate(net: SDCNet, s: _Scales, x0: torch.Tensor, u: torch.Tensor,
-              dt: float) -> torch.Tensor:
-    """Positions (B, H, 2) of the model's RK4 runs from x0 (B, 4), inputs u (B, H, 2) held."""
-    def f(x, uk):
-        return torch.cat([x[:, 2:], net.accel(x / s.x, uk / s.u) * s.acc], dim=1)
-    bound = SIM_BOUND * s.x
-    x, out = x0, []
-    for k in range(u.shape[1]):
-        uk = u[:, k]
-        k1 = f(x, uk)
-        k2 = f(x + 0.5 * dt * k1, uk)
-        k3 = f(x + 0.5 * dt * k2, uk)
-        k4 = f(x + dt * k3, uk)
-        x = torch.maximum(torch.minimum(x + dt / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4), bound),
-                          -bound)
-        out.append(x[:, :2])
-    return torch.stack(out, dim=1)
-
-
-def _window_errors(net: SDCNet, s: _Scales, dt: float, x0, u, p) -> torch.Tensor:
-    """Each window's L_sim (module doc), positions in units of their scale, capped at
-    :data:`SIM_ERROR_CAP`."""
-    err = (((_simulate(net, s, x0, u, dt) - p) / s.x[:2]) ** 2).sum(dim=-1).mean(dim=1)
-    return err.clamp(max=SIM_ERROR_CAP)
-
-
-def _sim_error(net: SDCNet, s: _Scales, dt: float, x0, u, p) -> torch.Tensor:
-    """L_sim of a batch of windows."""
-    return _window_errors(net, s, dt, x0, u, p).mean()
-
-
-def _val_sim_error(net: SDCNet, s: _Scales, windows) -> float:
-    """L_sim over every validation window, each window's error capped at
-    :data:`SIM_ERROR_CAP` (a diverged run counts as the cap)."""
-    total, count = 0.0, 0
-    with torch.no_grad():
-        for dt, x0, u, p in windows:
-            err = _window_errors(net, s, dt, x0, u, p)
-            err = torch.where(torch.isfinite(err), err, torch.full_like(err, SIM_ERROR_CAP))
-            total += float(err.sum())
-            count += err.numel()
-    return total / count
-
-
-def _with_rest_penalty(loss: torch.Tensor, net: SDCNet, s: _Scales,
+def _with_rest_penalty(loss: torch.Tensor, net: SDCNet, s: Scales,
                        settings: TrainSettings) -> torch.Tensor:
     """``loss`` + L_rest (module doc) when the penalty is on and some eigenvalue of A(0) is right
     of −rest_margin (eigenvalues' gradients are only taken where they are needed)."""
@@ -285,7 +140,7 @@ def _with_rest_penalty(loss: torch.Tensor, net: SDCNet, s: _Scales,
     return loss if rest is None else loss + rest
 
 
-def _rest_penalty(net: SDCNet, s: _Scales, settings: TrainSettings) -> torch.Tensor | None:
+def _rest_penalty(net: SDCNet, s: Scales, settings: TrainSettings) -> torch.Tensor | None:
     """L_rest (module doc), or None when every eigenvalue of A(0) is already left of the margin."""
     def real_parts():
         a0 = net(torch.zeros(1, 4))[0][0] * s.acc[:, None] / s.x[None, :]   # [A21 A22] at rest, SI
@@ -315,101 +170,140 @@ def _step(opt: torch.optim.Optimizer, loss: torch.Tensor, net: SDCNet,
 
 def _train_seeded(x, u, acc, x_val, u_val, acc_val, settings: TrainSettings, on_epoch, runs,
                   val_runs) -> TrainResult:
-    torch.manual_seed(settings.seed)
-    gen = torch.Generator().manual_seed(settings.seed)
     s = _scales(x, u, acc, settings.scale)
-    st = _Scales(*(torch.as_tensor(s[k], dtype=torch.float32) for k in ('x', 'u', 'acc')))
     t = lambda a, k: torch.as_tensor(a / s[k], dtype=torch.float32)  # noqa: E731
-    X, U, Y = t(x, 'x'), t(u, 'u'), t(acc, 'acc')
-    Xv, Uv, Yv = t(x_val, 'x'), t(u_val, 'u'), t(acc_val, 'acc')
-    net = SDCNet(settings.hidden)
-    opt = torch.optim.Adam(net.parameters(), lr=settings.lr, weight_decay=settings.weight_decay)
-    sched = (torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=settings.epochs)
-             if settings.cosine else None)
-    result = TrainResult(net, s)
+    train_set = _Labelled(t(x, 'x'), t(u, 'u'), t(acc, 'acc'))
+    val_set = _Labelled(t(x_val, 'x'), t(u_val, 'u'), t(acc_val, 'acc'))
     simulating = settings.rollout_epochs > 0
-    val_windows = _windows(val_runs, settings.rollout_val_seconds, 1) if simulating else []
-    best, best_state, since_best = math.inf, None, 0
-
-    def keep_if_best(epoch: int, score: float) -> bool:
-        nonlocal best, best_state, since_best
-        if score < best:
-            best, since_best, result.best_epoch = score, 0, epoch
-            best_state = {k: v.clone() for k, v in net.state_dict().items()}
-            return False
-        since_best += 1
-        return settings.patience is not None and since_best >= settings.patience
-
+    run = _Training(settings, s, on_epoch,
+                    windows(val_runs, settings.rollout_val_seconds, 1) if simulating else [])
     start = time.perf_counter()
-    n = X.shape[0]
-    for epoch in range(settings.epochs):
-        net.train()
-        perm = torch.randperm(n, generator=gen)
+    run.label_stage(train_set, val_set)
+    if simulating:
+        run.simulation_stage(runs)
+    run.keep_best()
+    run.result.seconds = time.perf_counter() - start
+    return run.result
+
+
+class _Training:
+    """One seeded run of both stages on the same networks: the generator of the shuffles (and of
+    the singular-value penalty's states), and the best-scoring epoch so far, whose weights are
+    the result's; the patience rule counts across both stages."""
+
+    def __init__(self, settings: TrainSettings, scales: dict[str, np.ndarray],
+                 on_epoch: Callable[[int, float, float], None] | None, val_windows: list) -> None:
+        self.settings, self.on_epoch, self.val_windows = settings, on_epoch, val_windows
+        torch.manual_seed(settings.seed)                      # the networks' initial weights
+        self.gen = torch.Generator().manual_seed(settings.seed)
+        self.st = Scales(*(torch.as_tensor(scales[k], dtype=torch.float32)
+                           for k in ('x', 'u', 'acc')))
+        self.net = SDCNet(settings.hidden)
+        self.result = TrainResult(self.net, scales)
+        self.best, self.best_state, self.since_best = math.inf, None, 0
+
+    def keep_if_best(self, epoch: int, score: float) -> bool:
+        """Keep the weights when ``score`` is the lowest yet; True when patience has run out."""
+        if score < self.best:
+            self.best, self.since_best, self.result.best_epoch = score, 0, epoch
+            self.best_state = {k: v.clone() for k, v in self.net.state_dict().items()}
+            return False
+        self.since_best += 1
+        return self.settings.patience is not None and self.since_best >= self.settings.patience
+
+    def keep_best(self) -> None:
+        """Load the kept weights into the networks."""
+        if self.best_state is not None:
+            self.net.load_state_dict(self.best_state)
+
+    def label_stage(self, train_set: _Labelled, val_set: _Labelled) -> None:
+        """The label epochs (eq. 18), each scored by its validation loss, or by its validation
+        simulation error when the simulation stage follows."""
+        settings, net, result = self.settings, self.net, self.result
+        opt = torch.optim.Adam(net.parameters(), lr=settings.lr,
+                               weight_decay=settings.weight_decay)
+        sched = (torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=settings.epochs)
+                 if settings.cosine else None)
+        for epoch in range(settings.epochs):
+            net.train()
+            train_loss = self._label_epoch(opt, train_set)
+            if sched is not None:
+                sched.step()
+            net.eval()
+            with torch.no_grad():
+                val = float(_label_loss(net, val_set))
+            result.train_loss.append(train_loss)
+            result.val_loss.append(val)
+            if self.on_epoch is not None:
+                self.on_epoch(epoch, train_loss, val)
+            score = val
+            if settings.rollout_epochs > 0:
+                score = val_sim_error(net, self.st, self.val_windows)
+                result.val_sim_error.append(score)
+            if self.keep_if_best(epoch, score):
+                break
+
+    def _label_epoch(self, opt: torch.optim.Optimizer, data: _Labelled) -> float:
+        """One pass over the shuffled training set in batches; returns the mean loss."""
+        settings = self.settings
+        n = data.x.shape[0]
+        perm = torch.randperm(n, generator=self.gen)
         total = 0.0
         for i in range(0, n, settings.batch_size):
             idx = perm[i:i + settings.batch_size]
-            loss = ((net.accel(X[idx], U[idx]) - Y[idx]) ** 2).sum(dim=1).mean()   # eq. 18
+            loss = _label_loss(self.net, _Labelled(data.x[idx], data.u[idx], data.acc[idx]))
             if settings.sv_penalty > 0:
-                # keep G2 invertible over the whole box, not only where the data lie
-                xs = (torch.rand(idx.numel(), 4, generator=gen) * 2 - 1) * settings.sv_box
-                smin = torch.linalg.svdvals(
-                    net.g_net(xs).reshape(-1, 2, 2).transpose(1, 2))[:, -1]  # G2 alone
-                loss = loss + (settings.sv_penalty
-                               * torch.relu(settings.sv_floor - smin).pow(2).mean())
-            loss = _with_rest_penalty(loss, net, st, settings)
-            _step(opt, loss, net)
+                loss = loss + self._sv_penalty(idx.numel())
+            loss = _with_rest_penalty(loss, self.net, self.st, settings)
+            _step(opt, loss, self.net)
             total += loss.item() * idx.numel()
-        if sched is not None:
+        return total / n
+
+    def _sv_penalty(self, count: int) -> torch.Tensor:
+        """sv_penalty · mean(relu(σ_floor − σ_min(G2(x)))²) at ``count`` states drawn uniformly
+        from the box of ±sv_box: G2 kept invertible over the whole box, not only where the data
+        lie."""
+        settings = self.settings
+        xs = (torch.rand(count, 4, generator=self.gen) * 2 - 1) * settings.sv_box
+        smin = torch.linalg.svdvals(
+            self.net.g_net(xs).reshape(-1, 2, 2).transpose(1, 2))[:, -1]     # G2 alone
+        return settings.sv_penalty * torch.relu(settings.sv_floor - smin).pow(2).mean()
+
+    def simulation_stage(self, runs: list[Run]) -> None:
+        """The rollout epochs (module doc), continuing from the label stage's last weights."""
+        settings, net, result = self.settings, self.net, self.result
+        batches = windows(runs, settings.rollout_seconds, settings.rollout_overlap)
+        opt = torch.optim.Adam(net.parameters(), lr=settings.rollout_lr)
+        sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=settings.rollout_epochs)
+        first = len(result.train_loss)
+        for epoch in range(settings.rollout_epochs):
+            net.train()
+            train_loss = self._rollout_epoch(opt, batches)
             sched.step()
-        net.eval()
-        with torch.no_grad():
-            val = float(((net.accel(Xv, Uv) - Yv) ** 2).sum(dim=1).mean())
-        result.train_loss.append(total / n)
-        result.val_loss.append(val)
-        if on_epoch is not None:
-            on_epoch(epoch, total / n, val)
-        score = val
-        if simulating:
-            score = _val_sim_error(net, st, val_windows)
-            result.val_sim_error.append(score)
-        if keep_if_best(epoch, score):
-            break
-    if simulating:
-        _simulation_stage(net, st, runs, val_windows, settings, gen, result, on_epoch, keep_if_best)
-    if best_state is not None:
-        net.load_state_dict(best_state)
-    result.seconds = time.perf_counter() - start
-    return result
+            net.eval()
+            val = val_sim_error(net, self.st, self.val_windows)
+            result.rollout_loss.append(train_loss)
+            result.val_sim_error.append(val)
+            if self.on_epoch is not None:
+                self.on_epoch(first + epoch, train_loss, val)
+            if self.keep_if_best(first + epoch, val):
+                break
 
-
-def _simulation_stage(net, st: _Scales, runs, val_windows, settings: TrainSettings, gen, result,
-                      on_epoch, keep_if_best) -> None:
-    """The rollout epochs (module doc), continuing from the label stage's last weights."""
-    windows = _windows(runs, settings.rollout_seconds, settings.rollout_overlap)
-    opt = torch.optim.Adam(net.parameters(), lr=settings.rollout_lr)
-    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=settings.rollout_epochs)
-    first = len(result.train_loss)
-    for epoch in range(settings.rollout_epochs):
-        net.train()
+    def _rollout_epoch(self, opt: torch.optim.Optimizer, batches: list) -> float:
+        """One pass over every window, shuffled within each grid spacing; returns the mean L_sim
+        of the batches that stepped."""
+        size = self.settings.batch_size
         total, count = 0.0, 0
-        for dt, x0, u, p in windows:
-            perm = torch.randperm(x0.shape[0], generator=gen)
-            for i in range(0, len(perm), settings.batch_size):
-                idx = perm[i:i + settings.batch_size]
-                loss = _with_rest_penalty(_sim_error(net, st, dt, x0[idx], u[idx], p[idx]), net, st,
-                                          settings)
-                if _step(opt, loss, net, clip=1.0):
+        for dt, x0, u, p in batches:
+            perm = torch.randperm(x0.shape[0], generator=self.gen)
+            for i in range(0, len(perm), size):
+                idx = perm[i:i + size]
+                loss = _with_rest_penalty(sim_error(self.net, self.st, dt, x0[idx], u[idx], p[idx]),
+                                          self.net, self.st, self.settings)
+                if _step(opt, loss, self.net, clip=1.0):
                     total += loss.item() * idx.numel()
                     count += idx.numel()
-        sched.step()
-        net.eval()
-        val = _val_sim_error(net, st, val_windows)
-        result.rollout_loss.append(total / max(count, 1))
-        result.val_sim_error.append(val)
-        if on_epoch is not None:
-            on_epoch(first + epoch, total / max(count, 1), val)
-        if keep_if_best(first + epoch, val):
-            break
+        return total / max(count, 1)
 
 
 def fingerprint(*arrays: np.ndarray) -> str:

@@ -37,7 +37,7 @@ class SweepContext:
     runs."""
 
     data: object                   # tools.learning.train.LabelledData
-    settings: object               # learning.training.TrainSettings
+    settings: object               # learning.train_settings.TrainSettings
     jitter: float
     laws: tuple[str, ...]
     trajectories: tuple[str, ...]

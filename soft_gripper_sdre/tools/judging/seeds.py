@@ -104,7 +104,7 @@ def run_demos(models: dict[str, Path], out: Path, domain_id: int | None,
 # -- the command line ---------------------------------------------------------------------------
 def _settings_from(parser, assignments: list[str]):
     """The default preset with ``--set KEY=VALUE`` applied; a bad one is a usage error."""
-    from soft_gripper_sdre.learning.training import PRESETS
+    from soft_gripper_sdre.learning.train_settings import PRESETS
     settings = PRESETS['default']
     types = {f.name: type(getattr(settings, f.name)) for f in fields(settings)}
     changes = {}

@@ -33,7 +33,7 @@ from soft_gripper_sdre.analysis.training_run import fit
 from soft_gripper_sdre.learning.dataset import DatasetError, load_records
 from soft_gripper_sdre.learning.labels import DATA_VARIANTS, VALIDATION, label_records
 from soft_gripper_sdre.learning.model import DEFAULT_MODEL, set_torch_threads
-from soft_gripper_sdre.learning.training import PRESETS, TrainSettings
+from soft_gripper_sdre.learning.train_settings import PRESETS, TrainSettings
 
 
 def _parser() -> argparse.ArgumentParser:

@@ -17,6 +17,7 @@ against the validation bags' own KF + RTS labels (a recording has no true accele
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -41,12 +42,9 @@ from soft_gripper_sdre.analysis.bag_dataset import (
 )
 from soft_gripper_sdre.analysis.data_facts import data_facts
 from soft_gripper_sdre.learning import derivatives
-from soft_gripper_sdre.learning.training import (
-    Run,
-    TrainSettings,
-    fingerprint,
-    train,
-)
+from soft_gripper_sdre.learning.rollout import Run
+from soft_gripper_sdre.learning.train_settings import TrainSettings
+from soft_gripper_sdre.learning.training import TrainResult, fingerprint, train
 
 #: samples of a recording's first stretch its jerk intensity is tuned on
 TUNE_SAMPLES = 2000
@@ -232,6 +230,84 @@ def train_from_bags(train_paths: list[Path], val_paths: list[Path], out: Path,
     """
     train_set = load_bags(train_paths, tips_topic, torques_topic, min_duration, finger)
     val_set = load_bags(val_paths, tips_topic, torques_topic, min_duration, finger)
+    data = _label_sets(train_set, val_set, jerk_psd, meas_std)
+    bar = tqdm(total=settings.epochs + settings.rollout_epochs, desc=f'train ({settings.preset})',
+               unit='epoch')
+    result = train(data.x, data.u, data.acc, data.x_val, data.u_val, data.acc_val, settings,
+                   lambda epoch, tl, vl: (bar.update(1),
+                                          bar.set_postfix(train=f'{tl:.3g}', val=f'{vl:.3g}')),
+                   runs=runs(data.samples), val_runs=runs(data.val_samples))
+    bar.close()
+    verdict = _Verdict(data, settings, result)
+    # never a params.yaml from another model beside this one
+    with training_run.staged(out, stale=(PARAMS_FILE,)) as stage:
+        _, scores, metrics = training_run.checkpoint(
+            stage / 'model.pt', result, settings, rest_tip=data.rest_tip, dt=data.dt,
+            data=data.info(tips_topic, torques_topic), train=(data.x, data.u, data.acc),
+            val=(data.x_val, data.u_val), acc_ref=data.acc_val, describe=verdict.describe)
+        training_run.write_report(
+            stage, result, metrics, scores, data.t_val, data.acc_val,
+            loss_title=f'Training loss from bags, {settings.preset} preset',
+            accel_file='fig3_accel_val.png',
+            accel_title='validation bags: predicted (dashed) vs KF + RTS labels (solid)')
+        derived = verdict.derived
+        if derived is not None and derived.settings is not None:
+            (stage / PARAMS_FILE).write_text(params_yaml(
+                derived, out / 'model.pt', list(train_set[0][0].finger_names),
+                ', '.join(str(p) for p in train_paths)))
+    print('\n'.join(scores.lines('validation R² vs the KF + RTS labels')))
+    if min(scores.r2 + scores.r2_ls) < 0.0:
+        print('  (below 0: the validation labels vary less than the predictions miss them. Where '
+              'the baseline is below 0 too, the labels are mostly noise or smoothed flat at this '
+              'signal\'s speed; the free run below judges the model on the recorded positions '
+              'instead)')
+    print(f'training: {len(result.train_loss)} epochs on {len(data.x)} samples from '
+          f'{len(data.provenance)} bag(s) in {result.seconds:.1f} s; wrote {out}')
+    report_fitness(verdict.fitness, derived, out)
+    return metrics
+
+
+@dataclass
+class _BagData:
+    """The labelled bags: their samples, stacked for training, with their provenance, the first
+    rest tip (3,), the measurement σ [m] and the labels' jerk intensity [(m/s³)²/Hz]."""
+
+    train_set: list[tuple[Recording, list[int]]]
+    samples: list[FingerSamples]
+    val_samples: list[FingerSamples]
+    provenance: list[dict]
+    val_provenance: list[dict]
+    rest_tip: np.ndarray
+    noise: float
+    jerk: float
+
+    def __post_init__(self) -> None:
+        _, self.x, self.u, self.acc = _stack(self.samples)
+        self.t_val, self.x_val, self.u_val, self.acc_val = _stack(self.val_samples)
+
+    @property
+    def dt(self) -> float:
+        """The first training bag's median tip period [s]."""
+        return float(np.median(np.diff(self.train_set[0][0].tip_ns)) / 1e9)
+
+    def info(self, tips_topic: str, torques_topic: str) -> dict:
+        """The checkpoint's ``data``: where the samples came from."""
+        return {'source': 'rosbag2', 'topics': {'tips': tips_topic, 'torques': torques_topic},
+                'bags': self.provenance, 'validation_bags': self.val_provenance,
+                'train_samples': int(len(self.x)), 'validation_samples': int(len(self.x_val)),
+                'fingerprint': fingerprint(self.x, self.u, self.acc), 'jerk_psd': float(self.jerk),
+                'noise_std': float(self.noise)}
+
+
+def _label_sets(train_set: list[tuple[Recording, list[int]]],
+                val_set: list[tuple[Recording, list[int]]], jerk_psd: float | None,
+                meas_std: float | None) -> _BagData:
+    """Both sets labelled (:func:`label_bags`), saying which jerk intensity the labels used.
+
+    Raises:
+        BagDataError: the first bag has no settle phase to measure the noise on, or a set gave
+            no samples.
+    """
     rec0, fingers0 = train_set[0]
     noise = meas_std if meas_std is not None else settle_noise(rec0, fingers0[0])[1]
     samples, provenance, rest_tip = label_bags(tqdm(train_set, desc='bags: KF + RTS', unit='bag'),
@@ -244,69 +320,40 @@ def train_from_bags(train_paths: list[Path], val_paths: list[Path], out: Path,
              f'tuned per bag and finger, {min(tuned):g} to {max(tuned):g}'))
     if not samples or not val_samples:
         raise BagDataError('no training samples' if not samples else 'no validation samples')
-    _, x, u, acc = _stack(samples)
-    t_val, x_val, u_val, acc_val = _stack(val_samples)
+    return _BagData(train_set, samples, val_samples, provenance, val_provenance, rest_tip, noise,
+                    jerk)
 
-    bar = tqdm(total=settings.epochs + settings.rollout_epochs, desc=f'train ({settings.preset})',
-               unit='epoch')
-    result = train(x, u, acc, x_val, u_val, acc_val, settings,
-                   lambda epoch, tl, vl: (bar.update(1),
-                                          bar.set_postfix(train=f'{tl:.3g}', val=f'{vl:.3g}')),
-                   runs=runs(samples), val_runs=runs(val_samples))
-    bar.close()
 
-    data_info = {'source': 'rosbag2', 'topics': {'tips': tips_topic, 'torques': torques_topic},
-                 'bags': provenance, 'validation_bags': val_provenance,
-                 'train_samples': int(len(x)), 'validation_samples': int(len(x_val)),
-                 'fingerprint': fingerprint(x, u, acc), 'jerk_psd': float(jerk),
-                 'noise_std': float(noise)}
-    dt = float(np.median(np.diff(rec0.tip_ns)) / 1e9)
-    judged: dict = {}
+class _Verdict:
+    """The checkpoint's ``describe`` (:func:`~soft_gripper_sdre.analysis.training_run.checkpoint`):
+    the bag path's metrics, with the model's fitness for control and, for a fit model, the loop
+    settings derived for it, both kept for the parameter file and the report."""
 
-    def describe(model, scores: training_run.Scores) -> dict:
-        """The bag path's metrics, with the model's verdict and, for a fit one, the settings."""
-        fitness = model_fitness.judge(model, validation_segments(val_samples))
-        derived = None
-        if fitness.fit:
-            facts = data_facts(x[:, :2], u, dt, noise,
-                                             [tuning_stretch(rec, f[0]) for rec, f in train_set])
-            derived = loop_settings.derive(model, facts, progress=lambda text: print(
+    def __init__(self, data: _BagData, settings: TrainSettings, result: TrainResult) -> None:
+        self.data, self.settings, self.result = data, settings, result
+        self.fitness: model_fitness.Fitness | None = None
+        self.derived: loop_settings.Derivation | None = None
+
+    def describe(self, model, scores: training_run.Scores) -> dict:
+        """The metrics of ``model``, scored as ``scores``; judges it and, when fit, derives its
+        settings on the way."""
+        data, result = self.data, self.result
+        self.fitness = model_fitness.judge(model, validation_segments(data.val_samples))
+        self.derived = None
+        if self.fitness.fit:
+            facts = data_facts(data.x[:, :2], data.u, data.dt, data.noise,
+                               [tuning_stretch(rec, f[0]) for rec, f in data.train_set])
+            self.derived = loop_settings.derive(model, facts, progress=lambda text: print(
                 f'  closed-loop check on the model: {text}', flush=True))
-        judged.update(fitness=fitness, derived=derived)
-        return {**scores.common_metrics(settings, result), 'source': 'rosbag2',
+        derived = self.derived
+        return {**scores.common_metrics(self.settings, result), 'source': 'rosbag2',
                 'rollout_epochs_run': len(result.rollout_loss),
                 'best_val_sim_error': min(result.val_sim_error) if result.val_sim_error else None,
                 'val_r2_labels': dict(zip('XY', scores.r2)),
                 'val_r2_ls_baseline': dict(zip('XY', scores.r2_ls)),
-                'train_samples': int(len(x)), 'validation_samples': int(len(x_val)),
-                'noise_std': noise, 'fitness': _plain(fitness.summary()),
+                'train_samples': int(len(data.x)), 'validation_samples': int(len(data.x_val)),
+                'noise_std': data.noise, 'fitness': _plain(self.fitness.summary()),
                 'derived_settings': _plain(derived.summary()) if derived is not None else None}
-
-    # never a params.yaml from another model beside this one
-    with training_run.staged(out, stale=(PARAMS_FILE,)) as stage:
-        _, scores, metrics = training_run.checkpoint(
-            stage / 'model.pt', result, settings, rest_tip=rest_tip, dt=dt, data=data_info,
-            train=(x, u, acc), val=(x_val, u_val), acc_ref=acc_val, describe=describe)
-        training_run.write_report(
-            stage, result, metrics, scores, t_val, acc_val,
-            loss_title=f'Training loss from bags, {settings.preset} preset',
-            accel_file='fig3_accel_val.png',
-            accel_title='validation bags: predicted (dashed) vs KF + RTS labels (solid)')
-        derived = judged['derived']
-        if derived is not None and derived.settings is not None:
-            (stage / PARAMS_FILE).write_text(params_yaml(
-                derived, out / 'model.pt', list(rec0.finger_names),
-                ', '.join(str(p) for p in train_paths)))
-    print('\n'.join(scores.lines('validation R² vs the KF + RTS labels')))
-    if min(scores.r2 + scores.r2_ls) < 0.0:
-        print('  (below 0: the validation labels vary less than the predictions miss them. Where '
-              'the baseline is below 0 too, the labels are mostly noise or smoothed flat at this '
-              'signal\'s speed; the free run below judges the model on the recorded positions '
-              'instead)')
-    print(f'training: {len(result.train_loss)} epochs on {len(x)} samples from '
-          f'{len(provenance)} bag(s) in {result.seconds:.1f} s; wrote {out}')
-    report_fitness(judged['fitness'], derived, out)
-    return metrics
 
 
 def report_fitness(fitness: model_fitness.Fitness, derived, out: Path) -> None:
