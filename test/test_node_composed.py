@@ -17,6 +17,8 @@ from trajectory_msgs.msg import MultiDOFJointTrajectory
 
 from soft_gripper_sdre.learning.model import SDCModel
 from soft_gripper_sdre.nodes import conversions as cv
+from soft_gripper_sdre.nodes.common import wiring
+from soft_gripper_sdre.nodes.composition import with_estimator
 from soft_gripper_sdre.nodes.controller import ControllerNode
 from soft_gripper_sdre.nodes.estimator import EstimatorNode
 from soft_gripper_sdre.nodes.topics import (
@@ -37,10 +39,12 @@ def _loop(composed: bool, tips: np.ndarray, rest: np.ndarray):
     """Tips (k, n, 3) through the estimator and the controller, one period at a time: the
     commands and the estimates a probe received, as (stamp, array) lists."""
     with ros_context() as (ctx, executor):
-        est = EstimatorNode(context=ctx)
-        ctl = ControllerNode(context=ctx, subscribe_estimates=not composed)
         if composed:
-            est.listeners.append(ctl.take_estimate)
+            est, ctl = with_estimator(lambda: ControllerNode(context=ctx,
+                                                             subscribe_estimates=False),
+                                      lambda controller: controller.take_estimate, context=ctx)
+        else:
+            est, ctl = EstimatorNode(context=ctx), ControllerNode(context=ctx)
         probe = Probe(ctx)
         probe.listen(JointState, TORQUE_COMMANDS, deep(LOOP_QOS))
         probe.listen(MultiDOFJointTrajectory, STATE_ESTIMATE, deep(LOOP_QOS))
@@ -59,6 +63,11 @@ def _loop(composed: bool, tips: np.ndarray, rest: np.ndarray):
             assert spin_until(executor, lambda: len(probe.received[TORQUE_COMMANDS]) == k + 1
                               and len(probe.received[STATE_ESTIMATE]) == k + 1, 5.0)
         subscribed = {s.topic_name for s in ctl.subscriptions}
+        # the start rule's counts: the estimate's readers (the probe and the controller, over DDS
+        # or in-process) and the controller's writers of it, the same in both layouts
+        links = {k: v for node in (est, ctl) for k, v in wiring(node).items()
+                 if k.endswith(STATE_ESTIMATE)}
+        assert links == {f'readers /{STATE_ESTIMATE}': '2', f'writers /{STATE_ESTIMATE}': '1'}
         commands = [cv.msg_to_torques(m, 4) for m in probe.received[TORQUE_COMMANDS]]
         estimates = [cv.msg_to_estimate(m, est.names) for m in probe.received[STATE_ESTIMATE]]
         return commands, estimates, subscribed, dict(ctl.diag.counters)
@@ -104,3 +113,21 @@ def test_the_controller_process_runs_the_estimator_too_with_the_flag(tmp_path):
     finally:
         if proc.poll() is None:
             proc.kill()
+
+
+def test_the_composed_command_line_takes_either_nodes_parameters_and_no_other():
+    """A ``-p`` reaches both nodes of the process, so ``--with-estimator`` accepts the estimator's
+    names beside the controller's and refuses the rest before anything starts; ``--help`` lists
+    both."""
+    command = [sys.executable, '-m', 'soft_gripper_sdre.nodes.controller', '--with-estimator']
+    shown = subprocess.run([*command, '--help'], capture_output=True, text=True, timeout=60)
+    assert shown.returncode == 0 and 'q_pos' in shown.stdout and 'max_bridge' in shown.stdout
+    refused = subprocess.run([*command, '--ros-args', '-p', 'tips_reliability:=best_effort',
+                              '-p', 'max_bridg:=0.02'], capture_output=True, text=True,
+                             timeout=60)
+    assert refused.returncode == 2 and "unknown parameter 'max_bridg'" in refused.stderr
+    assert 'Traceback' not in refused.stderr and 'tips_reliability' not in refused.stderr.split(
+        '(this node has')[0]
+    alone = subprocess.run([*command[:-1], '--ros-args', '-p', 'max_bridge:=0.02'],
+                           capture_output=True, text=True, timeout=60)
+    assert alone.returncode == 2 and "unknown parameter 'max_bridge'" in alone.stderr

@@ -7,7 +7,7 @@ import os
 import signal
 import sys
 import time
-from typing import Callable
+from typing import Callable, Sequence
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 import numpy as np
@@ -20,7 +20,7 @@ from rclpy.signals import SignalHandlerOptions
 
 from soft_gripper_sdre.nodes.cli import USAGE_ERROR, settle_command_line
 from soft_gripper_sdre.nodes.graph import wiring_key
-from soft_gripper_sdre.nodes.params import ParameterError
+from soft_gripper_sdre.nodes.params import Param, ParameterError
 from soft_gripper_sdre.nodes.topics import DIAGNOSTICS, STREAM_QOS
 
 OK, WARN, ERROR = DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR
@@ -110,12 +110,16 @@ class Diagnostics:
 def wiring(node: Node) -> dict[str, str]:
     """The matched counts of ``node``'s topics, as /diagnostics carries them for the start rule
     (:func:`soft_gripper_sdre.nodes.graph.readiness_problem`): per publisher the readers it has
-    matched, per subscription the writers (ROS's own /diagnostics and /parameter_events aside)."""
+    matched, per subscription the writers (ROS's own /diagnostics and /parameter_events aside),
+    plus the links the node has inside its process (``node.in_process_wiring``, the same keys: the
+    estimator handing its estimates to a controller beside it)."""
     skip = {DIAGNOSTICS, '/parameter_events', '/rosout'}
     out = {wiring_key('readers', pub.topic_name): str(pub.get_subscription_count())
            for pub in node.publishers if pub.topic_name not in skip}
     out.update({wiring_key('writers', sub.topic_name): str(sub.get_publisher_count())
                 for sub in node.subscriptions if sub.topic_name not in skip})
+    for key, count in getattr(node, 'in_process_wiring', {}).items():
+        out[key] = str(int(out.get(key, 0)) + count)
     return dict(sorted(out.items()))
 
 
@@ -237,18 +241,20 @@ def flush(node: Node, timeout: float = 2.0) -> bool:
     return acked
 
 
-def run(node_factory: Callable[..., Node | tuple[Node, ...]], args: list[str] | None = None) -> int:
+def run(node_factory: Callable[..., Node | tuple[Node, ...]], args: list[str] | None = None,
+        params: Sequence[Param] | None = None) -> int:
     """``main()`` of every node: init → construct → spin until shutdown or ``node.done`` → clean up.
 
     ``node_factory`` builds one node, or several that share the process and its one executor (the
     first ``done`` ends them all; the exit status is the largest of theirs).
     ``args`` is the whole command line (program name first; default ``sys.argv``). ``--help`` and
-    bad parameter files are settled first (:mod:`soft_gripper_sdre.nodes.cli`), from the node
-    module's ``PARAMS``. SIGTERM is handled like SIGINT. A :class:`ParameterError` at construction
-    is logged and the process exits with status 2; other construction errors exit 1.
+    bad parameter files are settled first (:mod:`soft_gripper_sdre.nodes.cli`), from ``params``
+    (default: the node module's ``PARAMS``). SIGTERM is handled like SIGINT. A
+    :class:`ParameterError` at construction is logged and the process exits with status 2; other
+    construction errors exit 1.
     """
     argv = list(sys.argv if args is None else args)
-    executable, status = _settle_command_line(node_factory, argv)
+    executable, status = _settle_command_line(node_factory, argv, params)
     if status is not None:
         return status
     try:
@@ -284,16 +290,18 @@ def run(node_factory: Callable[..., Node | tuple[Node, ...]], args: list[str] | 
     return code
 
 
-def _settle_command_line(node_factory: Callable, argv: list[str]) -> tuple[str, int | None]:
+def _settle_command_line(node_factory: Callable, argv: list[str],
+                         params: Sequence[Param] | None) -> tuple[str, int | None]:
     """The executable's name, and the exit status if the command line is settled already
     (``--help``, a bad parameter file: :func:`~soft_gripper_sdre.nodes.cli.settle_command_line`
-    with the node module's first docstring line and ``PARAMS``), else None."""
+    with the node module's first docstring line and ``params`` or its ``PARAMS``), else None."""
     module = sys.modules.get(node_factory.__module__)
     summary = ((getattr(module, '__doc__', None) or '').strip().splitlines() or [''])[0]
     spec = getattr(module, '__spec__', None)      # the module's own name also under python -m
     executable = (spec.name if spec is not None else node_factory.__module__).rsplit('.', 1)[-1]
-    return executable, settle_command_line(argv[1:], executable, summary,
-                                           getattr(module, 'PARAMS', ()))
+    if params is None:
+        params = getattr(module, 'PARAMS', ())
+    return executable, settle_command_line(argv[1:], executable, summary, params)
 
 
 def _stop_on_signals() -> list[int]:

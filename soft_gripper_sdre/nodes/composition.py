@@ -25,16 +25,17 @@ HostNode = TypeVar('HostNode', bound=Node)
 
 
 def with_estimator(make_host: Callable[[], HostNode],
-                   taker: Callable[[HostNode], Callable[[int, np.ndarray], None]]
-                   ) -> tuple[Node, HostNode]:
+                   taker: Callable[[HostNode], Callable[[int, np.ndarray], None]],
+                   **estimator_kwargs) -> tuple[Node, HostNode]:
     """(the estimator, the host) as two nodes of one process: ``make_host()`` builds the host
     (without a ``state_estimate`` subscription of its own), ``taker(host)`` is what gets each
-    estimate (stamp [ns], the (n, 4) state). Both count the link in their /diagnostics wiring (a
+    estimate (stamp [ns], the (n, 4) state); ``estimator_kwargs`` go to the estimator's
+    constructor (``context=``). Both count the link in their /diagnostics wiring (a
     reader of the estimator's estimates, a writer of the host's), so the graph's start rule sees
     the loop wired as with two processes."""
     host = make_host()
     try:
-        estimator = EstimatorNode()
+        estimator = EstimatorNode(**estimator_kwargs)
     except BaseException:
         host.destroy_node()
         raise

@@ -72,6 +72,7 @@ from soft_gripper_sdre.learning.model import ModelFileError, SDCModel, set_torch
 from soft_gripper_sdre.nodes import cdr
 from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.common import ERROR, OK, Diagnostics, ThrottledLogger, run
+from soft_gripper_sdre.nodes.composition import WITH_ESTIMATOR, composed_params, with_estimator
 from soft_gripper_sdre.nodes.law_tuning import LawTuning
 from soft_gripper_sdre.nodes.params import (
     Param,
@@ -363,34 +364,20 @@ def _ns(seconds: float) -> int:
     return int(round(seconds * cv.NS))
 
 
-#: the command-line flag that runs the estimator node in the controller's process
-WITH_ESTIMATOR = '--with-estimator'
-
-
-def with_estimator() -> tuple[Node, Node]:
-    """The estimator and the controller as two nodes of one process: each estimate is handed to
-    the controller in-process (no DDS hop, no second process to wake) and still published on
-    ``state_estimate``; the controller has no ``state_estimate`` subscription."""
-    from soft_gripper_sdre.nodes.estimator import EstimatorNode
-    controller = ControllerNode(subscribe_estimates=False)
-    try:
-        estimator = EstimatorNode()
-    except BaseException:
-        controller.destroy_node()
-        raise
-    estimator.listeners.append(controller.take_estimate)
-    return estimator, controller
-
-
 def main(args=None) -> int:
     """``controller [--with-estimator] [--ros-args ...]``; with the flag the process also runs the
-    estimator node (:func:`with_estimator`; ``-p`` takes the controller's parameter names, the
-    estimator's own come from its parameters file)."""
+    estimator node (:func:`~soft_gripper_sdre.nodes.composition.with_estimator`; ``-p`` reaches
+    both nodes, each taking the names it declares, and each takes its own section of a
+    parameters file)."""
     argv = list(sys.argv if args is None else args)
-    if WITH_ESTIMATOR in argv:
-        argv.remove(WITH_ESTIMATOR)
-        return run(with_estimator, argv)
-    return run(ControllerNode, argv)
+    if WITH_ESTIMATOR not in argv:
+        return run(ControllerNode, argv)
+    argv.remove(WITH_ESTIMATOR)
+
+    def composed() -> tuple[Node, Node]:
+        return with_estimator(lambda: ControllerNode(subscribe_estimates=False),
+                              lambda controller: controller.take_estimate)
+    return run(composed, argv, composed_params(PARAMS))
 
 
 if __name__ == '__main__':

@@ -31,6 +31,7 @@ scheduling); see :data:`VARIANTS`.
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 import json
 import os
 from pathlib import Path
@@ -130,10 +131,8 @@ def run_deploy(period: float, seconds: float, tips: Path, *, record: bool = Fals
         if record:
             graph.start_node(_spec('recorder', {'output': str(Path(tmp) / 'bag')}))
         if options.get('composed'):
-            spec = _spec('controller', timing)
-            cmd = [sys.executable, '-m', spec.module, '--with-estimator', *spec.ros_arguments(),
-                   '--params-file', str(default_params_file('estimator'))]
-            graph.procs['controller'] = _popen(graph, 'controller', cmd, env)
+            graph.start_node(replace(_spec('controller', timing),
+                                     hosted=(_spec('estimator', timing),)))
         else:
             graph.start_node(_spec('estimator', timing))
             graph.start_node(_spec('controller', timing))
@@ -168,16 +167,6 @@ def run_deploy(period: float, seconds: float, tips: Path, *, record: bool = Fals
     if fifo is not None:
         result['fifo_granted'] = fifo
     return result
-
-
-def _popen(graph: Graph, key: str, cmd: list[str], env: dict[str, str]):
-    from soft_gripper_sdre.tools.graph.procs import NodeProcess
-    graph.log_dir.mkdir(parents=True, exist_ok=True)
-    log_path = graph.log_dir / f'{key}.log'
-    with open(log_path, 'w', encoding='utf-8') as log:
-        popen = subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT,
-                                 stdin=subprocess.DEVNULL)
-    return NodeProcess(key, popen, log_path)
 
 
 def _wait_ready(graph: Graph, ready: dict[str, tuple[str, ...]], timeout: float = 120.0) -> None:

@@ -89,15 +89,12 @@ def run_graph(seconds: float, *, mode: str = 'lockstep', record: Path | None = N
                             **fast}}
     if record:
         params['recorder'] = {'output': str(record)}
-    if composed:     # the readiness rule expects a controller that reads state_estimate itself
-        params['simulator']['wait_for_nodes'] = 'recorder,trajectory' if record else 'trajectory'
-    spec = grasp_graph(record=bool(record), parameters=params)
+    spec = grasp_graph(record=bool(record), parameters=params, composed=composed)
     monitor = DiagnosticsMonitor(env, 'bench_monitor')
     steps = int(round(seconds / 0.001))
     try:
         cpu, launched = _run_processes(graph_env=env, monitor=monitor, spec=spec, record=record,
-                                       steps=steps, timeout=timeout, during=during,
-                                       composed=composed)
+                                       steps=steps, timeout=timeout, during=during)
     finally:
         monitor.close()
     out = {node: _numbers(values) for node, values in monitor.values.items()}
@@ -112,21 +109,16 @@ def run_graph(seconds: float, *, mode: str = 'lockstep', record: Path | None = N
 
 
 def _run_processes(graph_env: dict[str, str], monitor: DiagnosticsMonitor, spec: GraphSpec,
-                   record: Path | None, steps: int, timeout: float, during=None,
-                   composed: bool = False) -> tuple[dict[str, float], float]:
+                   record: Path | None, steps: int, timeout: float,
+                   during=None) -> tuple[dict[str, float], float]:
     """:func:`run_graph`'s processes: start, step, drain, stop; returns CPU seconds per node
     while the simulator stepped, and the monotonic time the processes were launched."""
     with (tempfile.TemporaryDirectory(prefix='sgs_bench_graph_') as logs,
           Graph(graph_env, Path(logs)) as graph):
-        names = spec.names[:-1]
+        names = [n for n in spec.names if n != 'simulator']
         launched = time.monotonic()
         for node in spec.nodes[:-1]:
-            if composed and node.name == 'estimator':
-                continue                    # it runs in the controller's process
-            if composed and node.name == 'controller':
-                _start_composed(graph, node, spec.node('estimator'))
-            else:
-                graph.start_node(node)
+            graph.start_node(node)
         # every node is up (its diagnostics arrive) before the simulator starts stepping
         monitor.spin_until(lambda: all(n in monitor.values for n in names)
                            or any(not p.alive() for p in graph.procs.values()), 60.0)
@@ -164,21 +156,3 @@ def _run_processes(graph_env: dict[str, str], monitor: DiagnosticsMonitor, spec:
             graph.stop('recorder')
         monitor.spin_until(lambda: False, 0.5)
     return cpu, launched
-
-
-def _start_composed(graph: Graph, controller, estimator) -> None:
-    """``controller --with-estimator`` as the controller's process, the estimator node reading
-    its own parameters file (and overrides)."""
-    import subprocess
-    import sys
-
-    from soft_gripper_sdre.nodes.controller import WITH_ESTIMATOR
-    from soft_gripper_sdre.tools.graph.procs import NodeProcess
-    cmd = [sys.executable, '-m', controller.module, WITH_ESTIMATOR, *controller.ros_arguments(),
-           *estimator.ros_arguments()[1:]]
-    graph.log_dir.mkdir(parents=True, exist_ok=True)
-    log_path = graph.log_dir / 'controller.log'
-    with open(log_path, 'w', encoding='utf-8') as log:
-        popen = subprocess.Popen(cmd, env=graph.env, stdout=log, stderr=subprocess.STDOUT,
-                                 stdin=subprocess.DEVNULL)
-    graph.procs['controller'] = NodeProcess('controller', popen, log_path)

@@ -66,6 +66,9 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument('--integral-gain', type=float, default=None, metavar='KI',
                     help='the default law\'s integral gain [1/s³], 0 = off '
                          '(default: config/controller.yaml)')
+    ap.add_argument('--composed', action='store_true',
+                    help='run the estimator in the controller\'s process (controller '
+                         '--with-estimator): one process and one DDS hop fewer per period')
     ap.add_argument('--domain-id', type=int, default=None,
                     help='ROS_DOMAIN_ID (default: env or random)')
     ap.add_argument('--timeout', type=float, default=600.0,
@@ -80,7 +83,8 @@ class DemoGraph:
 
     ``model`` a checkpoint; ``noise`` the tips' σ [m]; ``seed`` the simulator's; ``law`` the
     controller's; ``fingers`` name → hand finger; ``period`` [s] the control period of every node
-    of the loop; ``integral_gain`` the default law's; ``mode`` the simulator's stepping."""
+    of the loop; ``integral_gain`` the default law's; ``mode`` the simulator's stepping;
+    ``composed`` the estimator in the controller's process (:meth:`GraphSpec.composed`)."""
 
     model: Path | None = None
     noise: float | None = None
@@ -90,6 +94,7 @@ class DemoGraph:
     period: float | None = None
     integral_gain: float | None = None
     mode: str | None = None
+    composed: bool = False
 
     def spec(self, bag: Path, duration: float) -> GraphSpec:
         """The grasp graph recording into ``bag`` for ``duration`` s of sim time."""
@@ -114,7 +119,7 @@ class DemoGraph:
                 params[node][key] = value
         for node, values in (finger_parameters(self.fingers) if self.fingers else {}).items():
             params[node].update(values)
-        return grasp_graph(parameters=params, control_period=self.period)
+        return grasp_graph(parameters=params, control_period=self.period, composed=self.composed)
 
 
 def run_demo(out: Path, duration: float, graph: DemoGraph = DemoGraph(), *,
@@ -312,7 +317,7 @@ def main(argv: list[str] | None = None) -> int:
                           seed=a.seed, law=a.law,
                           fingers=parse_fingers(a.fingers) if a.fingers else None,
                           period=None if a.period is None else a.period * 1e-3,
-                          integral_gain=a.integral_gain, mode=a.mode)
+                          integral_gain=a.integral_gain, mode=a.mode, composed=a.composed)
         result = run_demo(a.out, a.duration, graph, domain_id=a.domain_id, timeout=a.timeout,
                           progress=not a.no_progress)
     except RuntimeError as exc:
