@@ -19,7 +19,6 @@ from soft_gripper_sdre.control.compiled import (
     SdcNetwork,
     SdreOutputs,
     SdreSettings,
-    SdreState,
     kf_step,
     model_inversion,
     sdc_forward,
@@ -197,9 +196,9 @@ def solved_state(weights, a, g, x):
 
 def kernel_step(state, settings, a, g, x):
     """sdre_step from a copy of ``state``: (the state after it, its outputs)."""
-    state, out = SdreState(*(s.copy() for s in state)), SdreOutputs.empty(N)
+    state, out = state.copy(), SdreOutputs(N)
     out.a2[:], out.g2[:] = a, g
-    sdre_step(x, np.zeros((N, 4)), *settings, *state, *out)
+    sdre_step(x, np.zeros((N, 4)), settings.records, state.records, out.records)
     return state, out
 
 
@@ -218,7 +217,8 @@ def test_anti_stabilising_and_garbage_warm_starts_are_rejected_then_solved_exact
                          method='reference').step_sdc(a, g, x, zero)
     state, settings = solved_state(weights, a, g, x)
     for name, P0 in starts.items():
-        start = SdreState(P0, *state[1:])
+        start = state.copy()
+        start.P[:] = P0
         after, out = kernel_step(start, settings, a, g, x)
         # every finger rejected, with a reason
         assert not after.warm.any() and out.failed.all(), name

@@ -3,11 +3,15 @@
 The kernels (:mod:`~soft_gripper_sdre.control.compiled_sdre`,
 :mod:`~soft_gripper_sdre.control.compiled_kf`, :mod:`~soft_gripper_sdre.control.compiled_integral`,
 :mod:`~soft_gripper_sdre.control.compiled_horizon`)
-take float64 / bool / int64 C-contiguous arrays and scalars, write their results into arrays the
-caller owns and update the controller's state in place. Their parameters come in the groups below,
-whose fields are the parameters in order, so a caller holds four tuples and splats them:
+take float64 / bool / int64 C-contiguous arrays, record arrays and scalars, write their results
+into arrays the caller owns and update the controller's state in place. The SDRE kernels' settings,
+state and outputs are record arrays (:class:`KernelRecords`: one record per finger, one for the
+settings), the network one packed array (:class:`SdcNetwork`), so a caller passes a few arrays:
 
-    tracking_step(z, origin, *network, *settings, *state, *outputs)
+    tracking_step(z, origin, *network, settings.records, state.records, outputs.records)
+
+numba types a record array by its dtype, once per call, where it would type a tuple of arrays
+field by field (docs/design/compiled_kernel.md, "Data layout").
 
 For the SDC form A = [[0, I], [a]], G = [[0], [G2]] (a = [A21 A22]) and each finger:
 
@@ -27,7 +31,7 @@ The kernels are importable from here as well as from their modules.
 """
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import ClassVar, NamedTuple, Self
 
 import numpy as np
 
@@ -48,28 +52,35 @@ from soft_gripper_sdre.control.compiled_sdre import (
     tracking_torques,
 )
 
-__all__ = ['SdcNetwork', 'SdreSettings', 'SdreState', 'SdreOutputs', 'FeedforwardOutputs',
-           'compiled_network', 'kernel_array', 'warm_up',
+__all__ = ['KernelRecords', 'SdcNetwork', 'SdreSettings', 'SdreState', 'SdreOutputs',
+           'FeedforwardOutputs', 'compiled_network', 'kernel_array', 'warm_up',
            'sdc_forward', 'sdre_gains', 'tracking_torques', 'sdre_step', 'tracking_step',
            'model_inversion', 'feedforward_step', 'kf_step', 'kf_step_dt', 'integral_step',
            'integral_update', 'integral_roll_off', 'plan_sample']
 
+#: the kernels' float type, in the record dtypes
+F8 = np.float64
+
 
 class SdcNetwork(NamedTuple):
-    """The fused SDC network: x (4) ↦ relu(x w1 + b1) ↦ relu(· w2 + b2) ↦ · w3 + b3 =
-    [a (8), G2 (4)]."""
+    """The fused SDC network packed for the kernels: x (4) ↦ relu(x w1 + b1) ↦ relu(· w2 + b2) ↦
+    · w3 + b3 = [a (8), G2 (4)], with w1 (4, h), b1 (h,), w2 (h, h), b2 (h,), w3 (h, 12), b3 (12,)
+    one after the other in ``weights`` and h = ``hidden``."""
 
-    w1: np.ndarray     # (4, h)
-    b1: np.ndarray     # (h,)
-    w2: np.ndarray     # (h, h)
-    b2: np.ndarray     # (h,)
-    w3: np.ndarray     # (h, 12)
-    b3: np.ndarray     # (12,)
+    weights: np.ndarray    # (h² + 18 h + 12,) float64
+    hidden: int
+
+    @classmethod
+    def pack(cls, w1, b1, w2, b2, w3, b3) -> SdcNetwork:
+        """The layers' arrays (float64) packed in that order."""
+        layers = (w1, b1, w2, b2, w3, b3)
+        return cls(np.concatenate([np.asarray(a, dtype=F8).ravel() for a in layers]),
+                   int(np.shape(b1)[0]))
 
     @classmethod
     def of(cls, model) -> SdcNetwork:
-        """The arrays of a model with ``fused_network`` (an SDCModel)."""
-        return cls(*model.fused_network)
+        """The network of a model with ``fused_network`` (an SDCModel)."""
+        return cls.pack(*model.fused_network)
 
 
 def kernel_array(a, dtype=np.float64) -> np.ndarray:
@@ -85,103 +96,106 @@ def compiled_network(model) -> SdcNetwork | None:
     return SdcNetwork.of(model) if hasattr(model, 'fused_network') else None
 
 
-class SdreSettings(NamedTuple):
-    """Weights and limits: what SdreController takes, in the types the kernels are compiled for."""
+class KernelRecords:
+    """``n`` records of the class's ``dtype`` in one array, ``records``, which is what a kernel
+    takes; each field is also an attribute, an (n, …) view of ``records`` (strided, sharing its
+    memory) for the Python side to read and write. The dtypes are C-aligned, so the compiled code
+    reads each field at its natural alignment."""
 
-    q: np.ndarray          # (4, 4) Q
-    r_inv: np.ndarray      # (2, 2) R⁻¹
-    u_max: np.ndarray      # (2,) torque limits [N·m]
-    residual_tol: float    # largest accepted ‖Res‖_F / ‖Q‖_F
-    cond_max: float        # largest accepted condition number of G2 and of C
-    # Newton–Kleinman iterations before the finger is handed to the exact path
-    max_iterations: int
+    dtype: ClassVar[np.dtype]
+
+    def __init__(self, n: int) -> None:
+        self.records = np.zeros(n, dtype=self.dtype)
+        for name in self.dtype.names:
+            setattr(self, name, self.records[name])
+
+    def copy(self) -> Self:
+        """Another set of records holding the same values."""
+        twin = type(self)(len(self.records))
+        twin.records[:] = self.records
+        return twin
+
+
+class SdreSettings(KernelRecords):
+    """Weights and limits, one record: what SdreController takes, in the types the kernels are
+    compiled for."""
+
+    dtype = np.dtype([('q', F8, (4, 4)),          # Q
+                      ('r_inv', F8, (2, 2)),      # R⁻¹
+                      ('u_max', F8, (2,)),        # torque limits [N·m]
+                      ('residual_tol', F8),       # largest accepted ‖Res‖_F / ‖Q‖_F
+                      ('cond_max', F8),           # largest accepted condition number of G2 and C
+                      # Newton–Kleinman iterations before the finger is handed to the exact path
+                      ('max_iterations', np.int64)], align=True)
 
     @classmethod
     def of(cls, Q, R, u_max, residual_tol: float = 1e-6, cond_max: float = 1e8,
            max_iterations: int = 5) -> SdreSettings:
         """From SdreController's arguments (Q, R, u_max scalar or (2,), and its defaults)."""
-        Q, R = np.array(Q, dtype=np.float64), np.array(R, dtype=np.float64)
-        u_max = np.array(np.broadcast_to(np.asarray(u_max, dtype=np.float64), (2,)))
-        return cls(Q, np.linalg.inv(R), u_max, float(residual_tol), float(cond_max),
-                   int(max_iterations))
-
-    @property
-    def riccati(self) -> tuple:
-        """The settings :func:`~soft_gripper_sdre.control.compiled_sdre.sdre_gains` takes (all but
-        u_max)."""
-        return self.q, self.r_inv, self.residual_tol, self.cond_max, self.max_iterations
+        settings = cls(1)
+        settings.q[0], settings.r_inv[0] = Q, np.linalg.inv(np.asarray(R, dtype=F8))
+        settings.u_max[0] = np.broadcast_to(np.asarray(u_max, dtype=F8), (2,))
+        settings.residual_tol[0], settings.cond_max[0] = float(residual_tol), float(cond_max)
+        settings.max_iterations[0] = int(max_iterations)
+        return settings
 
 
-class SdreState(NamedTuple):
-    """What the controller carries from one step to the next (updated in place)."""
+class SdreState(KernelRecords):
+    """What the controller carries from one step to the next, per finger (updated in place;
+    all zero and cold when made)."""
 
-    P: np.ndarray          # (n, 4, 4) the last solution: the warm start
-    warm: np.ndarray       # (n,) bool: P holds an accepted solution
-    K: np.ndarray          # (n, 2, 4) gains in use: the last accepted ones (zero before any)
-    Ks: np.ndarray         # (n, 2, 4)
-
-    @classmethod
-    def cold(cls, n: int) -> SdreState:
-        return cls(np.zeros((n, 4, 4)), np.zeros(n, dtype=np.bool_), np.zeros((n, 2, 4)),
-                   np.zeros((n, 2, 4)))
+    dtype = np.dtype([('P', F8, (4, 4)),          # the last solution: the warm start
+                      ('K', F8, (2, 4)),          # gains in use: the last accepted, zero before any
+                      ('Ks', F8, (2, 4)),
+                      ('warm', np.bool_)],        # P holds an accepted solution
+                     align=True)
 
 
-class SdreOutputs(NamedTuple):
-    """One step's results (overwritten by every step)."""
+class SdreOutputs(KernelRecords):
+    """One step's results per finger (overwritten by every step)."""
 
-    a2: np.ndarray           # (n, 2, 4) the model's [A21 A22] at x
-    g2: np.ndarray           # (n, 2, 2) G2 at x
-    u: np.ndarray            # (n, 2) saturated torques
-    u_unsat: np.ndarray      # (n, 2)
-    residual: np.ndarray     # (n,) ‖Res‖_F / ‖Q‖_F of the new P (NaN where not solved)
-    iterations: np.ndarray   # (n,) int64 Newton–Kleinman iterations run (0: not solved here)
-    failed: np.ndarray       # (n,) int64 Check bits of the checks that failed
-
-    @classmethod
-    def empty(cls, n: int) -> SdreOutputs:
-        return cls(np.zeros((n, 2, 4)), np.zeros((n, 2, 2)), np.zeros((n, 2)), np.zeros((n, 2)),
-                   np.zeros(n), np.zeros(n, dtype=np.int64), np.zeros(n, dtype=np.int64))
+    dtype = np.dtype([('a2', F8, (2, 4)),         # the model's [A21 A22] at x
+                      ('g2', F8, (2, 2)),         # G2 at x
+                      ('u', F8, (2,)),            # saturated torques
+                      ('u_unsat', F8, (2,)),
+                      ('residual', F8),           # ‖Res‖_F / ‖Q‖_F of the new P (NaN: not solved)
+                      ('iterations', np.int64),   # Newton–Kleinman iterations run (0: not here)
+                      ('failed', np.int64)],      # Check bits of the checks that failed
+                     align=True)
 
 
-class FeedforwardOutputs(NamedTuple):
+class FeedforwardOutputs(KernelRecords):
     """What :func:`~soft_gripper_sdre.control.compiled_sdre.feedforward_step` adds to
-    SdreOutputs."""
+    SdreOutputs, per finger."""
 
-    u_ff: np.ndarray           # (n, 2) the feedforward part of u_unsat (0 where not usable)
-    a2_ff: np.ndarray          # (n, 2, 4) the model's blocks where the feedforward evaluates it
-    g2_ff: np.ndarray          # (n, 2, 2)
-    state_finite: np.ndarray   # (n,) bool: the finger's state and reference were finite
-    ff_usable: np.ndarray      # (n,) bool: G2 there was well conditioned, u_ff and a_d finite
-
-    @classmethod
-    def empty(cls, n: int) -> FeedforwardOutputs:
-        return cls(np.zeros((n, 2)), np.zeros((n, 2, 4)), np.zeros((n, 2, 2)),
-                   np.zeros(n, dtype=np.bool_), np.zeros(n, dtype=np.bool_))
+    dtype = np.dtype([('u_ff', F8, (2,)),         # the feedforward part of u_unsat (0: not usable)
+                      ('a2_ff', F8, (2, 4)),      # the model's blocks where the feedforward is
+                      ('g2_ff', F8, (2, 2)),      # evaluated
+                      ('state_finite', np.bool_),  # the finger's state and reference were finite
+                      ('ff_usable', np.bool_)],   # G2 there well conditioned, u_ff and a_d finite
+                     align=True)
 
 
 def warm_up() -> None:
     """Compile (or load from numba's cache) every kernel at the types the controller uses: call it
     before a node reports ready, so that no step pays for compilation."""
     n = 1
-    network = SdcNetwork(np.zeros((4, 2)), np.zeros(2), np.zeros((2, 2)), np.zeros(2),
-                         np.zeros((2, 12)), np.zeros(12))
-    settings = SdreSettings.of(np.eye(4), np.eye(2), 1.0)
-    state, out = SdreState.cold(n), SdreOutputs.empty(n)
-    rows, ones = np.zeros((n, 2)), np.ones(n, dtype=np.bool_)
-    sdc_forward(np.zeros((n, 4)), *network, out.a2, out.g2)
-    sdre_gains(out.a2, out.g2, ones, *settings.riccati, *state, out.residual, out.iterations,
-               out.failed)
-    tracking_torques(state.K, state.Ks, np.zeros((n, 4)), np.zeros((n, 4)), ones, settings.u_max,
-                     out.u, out.u_unsat)
-    sdre_step(np.zeros((n, 4)), np.zeros((n, 4)), *settings, *state, *out)
-    model_inversion(out.a2, out.g2, np.zeros((n, 4)), rows, settings.cond_max, rows.copy(),
+    network = SdcNetwork.pack(np.zeros((4, 2)), np.zeros(2), np.zeros((2, 2)), np.zeros(2),
+                              np.zeros((2, 12)), np.zeros(12))
+    records = (SdreSettings.of(np.eye(4), np.eye(2), 1.0).records, SdreState(n).records,
+               SdreOutputs(n).records)
+    x, rows, ones = np.zeros((n, 4)), np.zeros((n, 2)), np.ones(n, dtype=np.bool_)
+    sdc_forward(x, *network, np.zeros((n, 2, 4)), np.zeros((n, 2, 2)))
+    sdre_gains(ones, *records)
+    tracking_torques(x, x.copy(), ones, *records)
+    sdre_step(x, x.copy(), *records)
+    model_inversion(np.zeros((n, 2, 4)), np.zeros((n, 2, 2)), x, rows, 1e8, rows.copy(),
                     ones.copy())
-    tracking_step(np.zeros((n, 8)), np.zeros(2), *network, *settings, *state, *out)
-    feedforward_step(np.zeros((n, 10)), np.zeros(2), False, *network, *settings, *state, *out,
-                     *FeedforwardOutputs.empty(n))
-    kf_step(np.zeros((n, 4)), np.zeros((n, 4, 4)), rows, ones, np.eye(4), np.eye(4), np.eye(2))
-    kf_step_dt(np.zeros((n, 4)), np.zeros((n, 4, 4)), rows, ones, 1e-3, 1.0, 0.0, np.eye(4),
-               np.eye(4), np.eye(2))
+    tracking_step(np.zeros((n, 8)), np.zeros(2), *network, *records)
+    feedforward_step(np.zeros((n, 10)), np.zeros(2), False, *network, *records,
+                     FeedforwardOutputs(n).records)
+    kf_step(x, np.zeros((n, 4, 4)), rows, ones, np.eye(4), np.eye(4), np.eye(2))
+    kf_step_dt(x, np.zeros((n, 4, 4)), rows, ones, 1e-3, 1.0, 0.0, np.eye(4), np.eye(4), np.eye(2))
     saturated = np.zeros((n, 2), dtype=np.bool_)
     integral_step(rows.copy(), np.eye(2), np.eye(2), 1e-3, 1e-3, 0.9, 1.0, rows, ones, rows.copy(),
                   rows.copy(), saturated)

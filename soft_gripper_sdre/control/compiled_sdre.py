@@ -1,8 +1,9 @@
 """The SDRE kernels compiled with numba (``@njit``, plain loops over fingers, no Python objects):
 the fused SDC network, one finger's warm-started Newton–Kleinman solve with its structured checks
-and gains, and the laws built on them for n fingers. The data layout, the state they update and
-:func:`~soft_gripper_sdre.control.compiled.warm_up` are in
-:mod:`soft_gripper_sdre.control.compiled`; the derivations in docs/design/compiled_kernel.md.
+and gains, and the laws built on them for n fingers. They take the settings, state and outputs as
+record arrays, one record per finger (:mod:`soft_gripper_sdre.control.compiled` defines them and
+:func:`~soft_gripper_sdre.control.compiled.warm_up`); the derivations are in
+docs/design/compiled_kernel.md.
 
 All the SDRE kernels live in this one file because numba's on-disk cache is keyed on the source
 file of the function compiled: a kernel calling into another file would keep a stale copy of it.
@@ -150,14 +151,16 @@ def newton_kleinman_step(A, W, q, P, WP, PSP, A_k, L, p):
 
 
 @kernel
-def finger_checks(A, q, P, WP, PSP, residual_tol, q_norm, cond_max, C, N, work):
-    """(failed Check bits, relative residual) of one finger's solution P, A_cl = A − S P.
+def finger_checks(A, P, WP, PSP, settings, q_norm, C, N, work):
+    """(failed Check bits, relative residual) of one finger's solution P, A_cl = A − S P, with the
+    settings record's Q, residual_tol and cond_max.
 
     * residual ‖PA + AᵀP + Q − P S P‖_F / ‖Q‖_F < residual_tol, formed directly from P;
     * P ≻ 0 and N = Q + P S P − 2 tol ‖Q‖_F I ≻ 0 prove A_cl Hurwitz: A_clᵀP + PA_cl = −(N + margin
       − Res) and ‖Res‖₂ < tol ‖Q‖_F (Lyapunov; docs/design/compiled_kernel.md);
     * A_cl = [[0, I], [C, ·]] is invertible with cond(C) < cond_max, the only inverse K_s uses.
     """
+    q, residual_tol = settings.q, settings.residual_tol
     failed = 0
     for i in range(4):
         for j in range(4):
@@ -186,7 +189,7 @@ def finger_checks(A, q, P, WP, PSP, residual_tol, q_norm, cond_max, C, N, work):
     for r in range(2):
         for c in range(2):
             C[r, c] = A[2 + r, c] - WP[r, c]
-    if not well_conditioned(C, cond_max):
+    if not well_conditioned(C, settings.cond_max):
         failed |= ACL_SINGULAR
     return failed, residual
 
@@ -205,52 +208,111 @@ def finger_gains(B, P, C, q, K, Ks):
             Ks[r, c] = -(B[r, 0] * ciq0 + B[r, 1] * ciq1)
 
 
+@kernel
+def finger_setup(a2, g2, r_inv, P, A, W, B, WP, PSP):
+    """One finger's matrices for Newton–Kleinman, in place: A = [[0, I], [a2]] (A zero on entry),
+    B = R⁻¹ G2ᵀ, W = G2 R⁻¹ G2ᵀ, and WP, PSP of the warm start P (:func:`quadratic_term`)."""
+    for r in range(2):
+        for c in range(2):
+            B[r, c] = r_inv[r, 0] * g2[c, 0] + r_inv[r, 1] * g2[c, 1]          # R⁻¹ G2ᵀ
+    for r in range(2):
+        for c in range(2):
+            W[r, c] = g2[r, 0] * B[0, c] + g2[r, 1] * B[1, c]                  # G2 R⁻¹ G2ᵀ
+    A[0, 2] = A[1, 3] = 1.0                                          # Ẋ, Ẏ rows: [0 I]
+    A[2:, :] = a2
+    quadratic_term(P, W, WP, PSP)
+
+
+@kernel
+def finger_accept(A, B, WP, PSP, settings, q_norm, state, out, work):
+    """The checks on one finger's solution, its state record's P (:func:`finger_checks`, bits and
+    residual into its outputs record ``out``); if it passes them all and its gains are finite, they
+    become the state's K, K_s and ``warm`` is True, else the state keeps its gains and ``warm`` is
+    False. ``work``: scratch (C (2, 2), N (4, 4), Cholesky (4, 4), K (2, 4), K_s (2, 4))."""
+    C, N, cholesky, K, Ks = work
+    out.failed, out.residual = finger_checks(A, state.P, WP, PSP, settings, q_norm, C, N, cholesky)
+    if out.failed == 0:
+        finger_gains(B, state.P, C, settings.q, K, Ks)
+        if np.all(np.isfinite(K)) and np.all(np.isfinite(Ks)):
+            state.K[:], state.Ks[:] = K, Ks
+        else:
+            out.failed = NONFINITE
+    state.warm = out.failed == 0
+
+
 # ----------------------------------------------------------------------------------------------
 # the SDC networks
 # ----------------------------------------------------------------------------------------------
 
 @kernel
-def sdc_forward(x, w1, b1, w2, b2, w3, b3, a2, g2):
-    """a2 (n, 2, 4) = [A21 A22](x) and g2 (n, 2, 2) = G2(x) for states x (n, 4): the fused network.
+def network_arrays(network, hidden):
+    """(layers, scratch) of the packed network: the layers w1 (4, h), b1 (h,), w2 (h, h), b2 (h,),
+    w3 (h, 12), b3 (12,) as views of ``network``, which holds them one after the other
+    (h = ``hidden``); the activations h1 (h,), h2 (h,), out (12,) that :func:`finger_blocks` works
+    in, three arrays so that the compiler knows a store to one leaves the others unchanged."""
+    h = hidden
+    e1 = 4 * h
+    e2 = e1 + h
+    e3 = e2 + h * h
+    e4 = e3 + h
+    e5 = e4 + 12 * h
+    layers = (network[:e1].reshape((4, h)), network[e1:e2], network[e2:e3].reshape((h, h)),
+              network[e3:e4], network[e4:e5].reshape((h, 12)), network[e5:e5 + 12])
+    return layers, (np.empty(h), np.empty(h), np.empty(12))
+
+
+@kernel
+def finger_blocks(x, layers, scratch, a2, g2):
+    """a2 (2, 4) = [A21 A22](x) and g2 (2, 2) = G2(x) for one state x (4,): the fused network
+    (``layers`` and ``scratch`` from :func:`network_arrays`).
 
     A negative hidden unit (ReLU: 0) is skipped; NaN is not, so a non-finite state gives
     non-finite blocks.
     """
+    w1, b1, w2, b2, w3, b3 = layers
+    h1, h2, out = scratch
     hidden = b1.shape[0]
-    h1, h2, out = np.empty(hidden), np.empty(hidden), np.empty(12)
-    for i in range(x.shape[0]):
-        h1[:] = b1
-        for k in range(4):
-            for j in range(hidden):
-                h1[j] += x[i, k] * w1[k, j]
-        h2[:] = b2
-        for k in range(hidden):
-            if h1[k] < 0.0:
-                continue                                   # relu(h) = 0
-            for j in range(hidden):
-                h2[j] += h1[k] * w2[k, j]
-        out[:] = b3
-        for k in range(hidden):
-            if h2[k] < 0.0:
-                continue
-            for j in range(12):
-                out[j] += h2[k] * w3[k, j]
-        for r in range(2):
-            for c in range(4):
-                a2[i, r, c] = out[4 * r + c]
-            for c in range(2):
-                g2[i, r, c] = out[8 + 2 * r + c]
+    h1[:] = b1
+    for k in range(4):
+        for j in range(hidden):
+            h1[j] += x[k] * w1[k, j]
+    h2[:] = b2
+    for k in range(hidden):
+        if h1[k] < 0.0:
+            continue                                   # relu(h) = 0
+        for j in range(hidden):
+            h2[j] += h1[k] * w2[k, j]
+    out[:] = b3
+    for k in range(hidden):
+        if h2[k] < 0.0:
+            continue
+        for j in range(12):
+            out[j] += h2[k] * w3[k, j]
+    for r in range(2):
+        for c in range(4):
+            a2[r, c] = out[4 * r + c]
+        for c in range(2):
+            g2[r, c] = out[8 + 2 * r + c]
 
 
 @kernel
-def finite_finger(a2, g2, x, x_d, i):
-    """Every model output and state entry of finger i is finite."""
+def sdc_forward(x, network, hidden, a2, g2):
+    """a2 (n, 2, 4) = [A21 A22](x) and g2 (n, 2, 2) = G2(x) for states x (n, 4): the fused network,
+    packed (:func:`network_arrays`)."""
+    layers, scratch = network_arrays(network, hidden)
+    for i in range(x.shape[0]):
+        finger_blocks(x[i], layers, scratch, a2[i], g2[i])
+
+
+@kernel
+def finite_finger(a2, g2, x, x_d):
+    """Every model output and state entry of one finger is finite."""
     ok = True
     for r in range(2):
         for c in range(4):
-            ok &= np.isfinite(a2[i, r, c]) and np.isfinite(x[i, c]) and np.isfinite(x_d[i, c])
+            ok &= np.isfinite(a2[r, c]) and np.isfinite(x[c]) and np.isfinite(x_d[c])
         for c in range(2):
-            ok &= np.isfinite(g2[i, r, c])
+            ok &= np.isfinite(g2[r, c])
     return ok
 
 
@@ -259,97 +321,82 @@ def finite_finger(a2, g2, x, x_d, i):
 # ----------------------------------------------------------------------------------------------
 
 @kernel
-def sdre_gains(a2, g2, finite, q, r_inv, residual_tol, cond_max, max_iterations, P, warm, K, Ks,
-               residual, iterations, failed):
+def sdre_gains(finite, settings, state, outputs):
     """Gains of every warm finger with finite inputs (``finite``) by warm-started Newton–Kleinman
-    and the checks; the state (P, warm, K, Ks) is updated in place.
+    and the checks, on the blocks a2, g2 in ``outputs``; the state records (P, warm, K, Ks) are
+    updated in place.
 
     The warm fingers iterate together and stop at the first iteration where Σ ⟨Δ_low, W Δ_low⟩ <
     residual_tol ‖Q‖_F / 2 over them; a finger whose solve fails leaves the sum. A finger keeps its
     previous K, K_s and ends with warm False when it was cold or any check failed (``failed``: the
     Check bits; NONFINITE and STABILIZABLE hold for cold fingers too).
     """
-    n = a2.shape[0]
+    s = settings[0]
+    n = state.shape[0]
     A, W, B = np.zeros((n, 4, 4)), np.empty((n, 2, 2)), np.empty((n, 2, 2))
     WP, PSP = np.empty((n, 2, 4)), np.empty((n, 4, 4))
-    A_k, N, work, L, p = (np.empty((4, 4)), np.empty((4, 4)), np.zeros((4, 4)), np.empty((10, 10)),
-                          np.empty(10))
-    C, Kn, Ksn = np.empty((2, 2)), np.empty((2, 4)), np.empty((2, 4))
-    q_norm = max(np.sqrt(np.sum(q * q)), 1e-300)
-    half_tol_q = 0.5 * residual_tol * q_norm
+    A_k, L, p = np.empty((4, 4)), np.empty((10, 10)), np.empty(10)
+    work = (np.empty((2, 2)), np.empty((4, 4)), np.zeros((4, 4)), np.empty((2, 4)),
+            np.empty((2, 4)))
+    q_norm = max(np.sqrt(np.sum(s.q * s.q)), 1e-300)
+    half_tol_q = 0.5 * s.residual_tol * q_norm
     solving = np.zeros(n, dtype=np.bool_)
     for i in range(n):
-        residual[i], iterations[i], failed[i] = np.nan, 0, 0
+        st, out = state[i], outputs[i]
+        out.residual, out.iterations, out.failed = np.nan, 0, 0
         if not finite[i]:
-            failed[i] = NONFINITE
-        elif not well_conditioned(g2[i], cond_max):        # rank [G, AG] = 4 iff G2 invertible
-            failed[i] = STABILIZABLE
-        solving[i] = warm[i] and failed[i] == 0
-        warm[i] = False
-        if not solving[i]:
-            continue
-        for r in range(2):
-            for c in range(2):
-                B[i, r, c] = r_inv[r, 0] * g2[i, c, 0] + r_inv[r, 1] * g2[i, c, 1]     # R⁻¹ G2ᵀ
-        for r in range(2):
-            for c in range(2):
-                W[i, r, c] = g2[i, r, 0] * B[i, 0, c] + g2[i, r, 1] * B[i, 1, c]     # G2 R⁻¹ G2ᵀ
-        A[i, 0, 2] = A[i, 1, 3] = 1.0                                # Ẋ, Ẏ rows: [0 I]
-        A[i, 2:, :] = a2[i]
-        quadratic_term(P[i], W[i], WP[i], PSP[i])
-    for iteration in range(1, max_iterations + 1):
+            out.failed = NONFINITE
+        elif not well_conditioned(out.g2, s.cond_max):      # rank [G, AG] = 4 iff G2 invertible
+            out.failed = STABILIZABLE
+        solving[i] = st.warm and out.failed == 0
+        st.warm = False
+        if solving[i]:
+            finger_setup(out.a2, out.g2, s.r_inv, st.P, A[i], W[i], B[i], WP[i], PSP[i])
+    for iteration in range(1, s.max_iterations + 1):
         total = 0.0
         for i in range(n):
-            if solving[i] and np.isfinite(P[i, 0, 0]):               # (a failed solve leaves P NaN)
-                bound = newton_kleinman_step(A[i], W[i], q, P[i], WP[i], PSP[i], A_k, L, p)
-                iterations[i] = iteration
+            P = state[i].P
+            if solving[i] and np.isfinite(P[0, 0]):                  # (a failed solve leaves P NaN)
+                bound = newton_kleinman_step(A[i], W[i], s.q, P, WP[i], PSP[i], A_k, L, p)
+                outputs[i].iterations = iteration
                 if np.isfinite(bound):
                     total += bound
         if total < half_tol_q:
             break
     for i in range(n):
-        if not solving[i]:
-            continue
-        failed[i], residual[i] = finger_checks(A[i], q, P[i], WP[i], PSP[i], residual_tol, q_norm,
-                                               cond_max, C, N, work)
-        if failed[i] == 0:
-            finger_gains(B[i], P[i], C, q, Kn, Ksn)
-            if np.all(np.isfinite(Kn)) and np.all(np.isfinite(Ksn)):
-                K[i], Ks[i] = Kn, Ksn
-            else:
-                failed[i] = NONFINITE
-        warm[i] = failed[i] == 0
+        if solving[i]:
+            finger_accept(A[i], B[i], WP[i], PSP[i], s, q_norm, state[i], outputs[i], work)
 
 
 @kernel
-def tracking_torques(K, Ks, x, x_d, finite, u_max, u, u_unsat):
-    """u = K x + K_s x_d (eq. 22) saturated to ±u_max; zero for a finger whose inputs are not all
-    finite, and wherever the product is not finite."""
+def tracking_torques(x, x_d, finite, settings, state, outputs):
+    """u = K x + K_s x_d (eq. 22) with the state's gains, saturated to ±u_max, into ``outputs``;
+    zero for a finger whose inputs are not all finite, and wherever the product is not finite."""
+    u_max = settings[0].u_max
     for i in range(x.shape[0]):
+        K, Ks, out = state[i].K, state[i].Ks, outputs[i]
         for r in range(2):
             v = 0.0
             if finite[i]:
                 for c in range(4):
-                    v += K[i, r, c] * x[i, c] + Ks[i, r, c] * x_d[i, c]
+                    v += K[r, c] * x[i, c] + Ks[r, c] * x_d[i, c]
                 if not np.isfinite(v):
                     v = 0.0
-            u_unsat[i, r] = v
-            u[i, r] = min(max(v, -u_max[r]), u_max[r])
+            out.u_unsat[r] = v
+            out.u[r] = min(max(v, -u_max[r]), u_max[r])
 
 
 @kernel
-def sdre_step(x, x_d, q, r_inv, u_max, residual_tol, cond_max, max_iterations, P, warm, K, Ks,
-              a2, g2, u, u_unsat, residual, iterations, failed):
-    """One step of the SDRE tracking law for the SDC blocks a2, g2 at x
+def sdre_step(x, x_d, settings, state, outputs):
+    """One step of the SDRE tracking law for the SDC blocks a2, g2 at x in ``outputs``
     (:meth:`SdreController.step_sdc` for warm fingers; the caller solves exactly the fingers that
     end with warm False)."""
     n = x.shape[0]
     finite = np.empty(n, dtype=np.bool_)
     for i in range(n):
-        finite[i] = finite_finger(a2, g2, x, x_d, i)
-    sdre_gains(a2, g2, finite, q, r_inv, residual_tol, cond_max, max_iterations, P, warm, K, Ks,
-               residual, iterations, failed)
-    tracking_torques(K, Ks, x, x_d, finite, u_max, u, u_unsat)
+        finite[i] = finite_finger(outputs[i].a2, outputs[i].g2, x[i], x_d[i])
+    sdre_gains(finite, settings, state, outputs)
+    tracking_torques(x, x_d, finite, settings, state, outputs)
 
 
 @kernel
@@ -363,80 +410,85 @@ def rest_frame_states(z, origin, x, x_d):
 
 
 @kernel
-def tracking_step(z, origin, w1, b1, w2, b2, w3, b3,
-                  q, r_inv, u_max, residual_tol, cond_max, max_iterations, P, warm, K, Ks,
-                  a2, g2, u, u_unsat, residual, iterations, failed):
+def tracking_step(z, origin, network, hidden, settings, state, outputs):
     """SdreLaw.compute before its roll-off: the paper's law on the model's blocks at the estimated
     states, z (n, 8) = [p, ṗ, p_d, ṗ_d] the base-frame positions and velocities of the estimate and
-    the reference, origin = the rest tip p₀ (2,)."""
+    the reference, origin = the rest tip p₀ (2,), the packed network of ``hidden`` units."""
     n = z.shape[0]
     x, x_d = np.empty((n, 4)), np.empty((n, 4))
     rest_frame_states(z, origin, x, x_d)
-    sdc_forward(x, w1, b1, w2, b2, w3, b3, a2, g2)
-    sdre_step(x, x_d, q, r_inv, u_max, residual_tol, cond_max, max_iterations, P, warm, K, Ks,
-              a2, g2, u, u_unsat, residual, iterations, failed)
+    layers, scratch = network_arrays(network, hidden)
+    for i in range(n):
+        finger_blocks(x[i], layers, scratch, outputs[i].a2, outputs[i].g2)
+    sdre_step(x, x_d, settings, state, outputs)
+
+
+@kernel
+def finger_inversion(a2, g2, x_d, a_d, cond_max, u_ff):
+    """u_ff (2,) = G2⁻¹ (a_d − A2 x_d) for one finger; whether it is usable: zero and False where
+    cond(G2) ≥ cond_max or the result is not finite."""
+    r0, r1 = a_d[0], a_d[1]
+    for c in range(4):
+        r0 -= a2[0, c] * x_d[c]
+        r1 -= a2[1, c] * x_d[c]
+    det = g2[0, 0] * g2[1, 1] - g2[0, 1] * g2[1, 0]
+    u0, u1 = (g2[1, 1] * r0 - g2[0, 1] * r1) / det, (g2[0, 0] * r1 - g2[1, 0] * r0) / det
+    usable = well_conditioned(g2, cond_max) and np.isfinite(u0) and np.isfinite(u1)
+    u_ff[0], u_ff[1] = (u0, u1) if usable else (0.0, 0.0)
+    return usable
 
 
 @kernel
 def model_inversion(a2, g2, x_d, a_d, cond_max, u_ff, usable):
-    """u_ff = G2⁻¹ (a_d − A2 x_d) (laws.model_inversion): zero and ``usable`` False where
-    cond(G2) ≥ cond_max or the result is not finite."""
+    """u_ff = G2⁻¹ (a_d − A2 x_d) (laws.model_inversion) for n fingers: zero and ``usable`` False
+    where cond(G2) ≥ cond_max or the result is not finite."""
     for i in range(x_d.shape[0]):
-        r0, r1 = a_d[i, 0], a_d[i, 1]
-        for c in range(4):
-            r0 -= a2[i, 0, c] * x_d[i, c]
-            r1 -= a2[i, 1, c] * x_d[i, c]
-        g = g2[i]
-        det = g[0, 0] * g[1, 1] - g[0, 1] * g[1, 0]
-        u0, u1 = (g[1, 1] * r0 - g[0, 1] * r1) / det, (g[0, 0] * r1 - g[1, 0] * r0) / det
-        usable[i] = well_conditioned(g, cond_max) and np.isfinite(u0) and np.isfinite(u1)
-        u_ff[i, 0], u_ff[i, 1] = (u0, u1) if usable[i] else (0.0, 0.0)
+        usable[i] = finger_inversion(a2[i], g2[i], x_d[i], a_d[i], cond_max, u_ff[i])
 
 
 @kernel
-def feedforward_step(z, origin, ff_at_reference, w1, b1, w2, b2, w3, b3,
-                     q, r_inv, u_max, residual_tol, cond_max, max_iterations, P, warm, K, Ks,
-                     a2, g2, u, u_unsat, residual, iterations, failed, u_ff, a2_ff, g2_ff,
-                     state_finite, ff_usable):
+def feedforward_step(z, origin, ff_at_reference, network, hidden, settings, state, outputs,
+                     feedforward):
     """SdreFeedforwardLaw.compute before its roll-off:
 
         u = u_ff + K(x) e,   e = x − x_d,   u_ff = G2(z)⁻¹ (a_d − A2(z) x_d),   z = x or x_d
 
     (``ff_at_reference``: z = x_d), from the rows z (n, 10) = [p, ṗ, p_d, ṗ_d, a_d] (base frames). A
     finger whose state or reference is not finite is solved at x = x_d = 0 and gets u = 0
-    (``state_finite`` False); a non-finite a_d counts as zero. ``ff_usable``: the feedforward acted
-    and a_d was finite. u_ff: the feedforward part of u_unsat; a2_ff, g2_ff: the blocks at z.
+    (``state_finite`` False in its ``feedforward`` record); a non-finite a_d counts as zero. The
+    ``feedforward`` records also get ``ff_usable`` (the feedforward acted and a_d was finite), u_ff
+    (the feedforward part of u_unsat) and a2_ff, g2_ff (the blocks at z).
     """
     n = z.shape[0]
     x, x_d, e, zero = np.empty((n, 4)), np.empty((n, 4)), np.empty((n, 4)), np.zeros((n, 4))
     a_d, finite = np.empty((n, 2)), np.empty(n, dtype=np.bool_)
     rest_frame_states(z, origin, x, x_d)
+    layers, scratch = network_arrays(network, hidden)
     for i in range(n):
-        state_finite[i] = np.all(np.isfinite(x[i])) and np.all(np.isfinite(x_d[i]))
-        if not state_finite[i]:
+        out, ff = outputs[i], feedforward[i]
+        ff.state_finite = np.all(np.isfinite(x[i])) and np.all(np.isfinite(x_d[i]))
+        if not ff.state_finite:
             x[i], x_d[i] = 0.0, 0.0
-    sdc_forward(x, w1, b1, w2, b2, w3, b3, a2, g2)
-    if ff_at_reference:
-        sdc_forward(x_d, w1, b1, w2, b2, w3, b3, a2_ff, g2_ff)
-    else:
-        a2_ff[:], g2_ff[:] = a2, g2
-    for i in range(n):
+        finger_blocks(x[i], layers, scratch, out.a2, out.g2)
+        if ff_at_reference:
+            finger_blocks(x_d[i], layers, scratch, ff.a2_ff, ff.g2_ff)
+        else:
+            ff.a2_ff[:], ff.g2_ff[:] = out.a2, out.g2
         e[i] = x[i] - x_d[i]
-        finite[i] = finite_finger(a2, g2, e, zero, i)
-    sdre_gains(a2, g2, finite, q, r_inv, residual_tol, cond_max, max_iterations, P, warm, K, Ks,
-               residual, iterations, failed)
-    tracking_torques(K, Ks, e, zero, finite, u_max, u, u_unsat)          # u_unsat = K e
-    acc_finite = np.empty(n, dtype=np.bool_)
+        finite[i] = finite_finger(out.a2, out.g2, e[i], zero[i])
+    sdre_gains(finite, settings, state, outputs)
+    tracking_torques(e, zero, finite, settings, state, outputs)          # u_unsat = K e
+    s = settings[0]
     for i in range(n):
-        acc_finite[i] = np.isfinite(z[i, 8]) and np.isfinite(z[i, 9])
+        out, ff = outputs[i], feedforward[i]
+        acc_finite = np.isfinite(z[i, 8]) and np.isfinite(z[i, 9])
         for r in range(2):
-            a_d[i, r] = z[i, 8 + r] if acc_finite[i] else 0.0
-    model_inversion(a2_ff, g2_ff, x_d, a_d, cond_max, u_ff, ff_usable)
-    for i in range(n):
-        ff_usable[i] &= acc_finite[i]
+            a_d[i, r] = z[i, 8 + r] if acc_finite else 0.0
+        usable = finger_inversion(ff.a2_ff, ff.g2_ff, x_d[i], a_d[i], s.cond_max, ff.u_ff)
+        ff.ff_usable = usable and acc_finite
         for r in range(2):
-            v = u_ff[i, r] + u_unsat[i, r]
-            if not (state_finite[i] and np.isfinite(v)):
+            v = ff.u_ff[r] + out.u_unsat[r]
+            if not (ff.state_finite and np.isfinite(v)):
                 v = 0.0
-            u_unsat[i, r] = v
-            u[i, r] = min(max(v, -u_max[r]), u_max[r])
+            out.u_unsat[r] = v
+            out.u[r] = min(max(v, -s.u_max[r]), s.u_max[r])

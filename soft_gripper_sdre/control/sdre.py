@@ -111,11 +111,8 @@ class SdreController:
         self.fast = method == 'fast' and (self._cost.q_definite or self._cost.q_position_definite)
         self.settings = SdreSettings.of(self.Q, self.R, self.u_max, self.residual_tol,
                                         self.cond_max, int(max_nk_iterations))
-        self.state, self.outputs = SdreState.cold(self.n), SdreOutputs.empty(self.n)
-        # the feedforward's two flags as the rows of one array: one count says whether all are set
-        self._feedforward_flags = np.zeros((2, self.n), dtype=np.bool_)
-        self.feedforward = FeedforwardOutputs(np.zeros((self.n, 2)), np.zeros((self.n, 2, 4)),
-                                              np.zeros((self.n, 2, 2)), *self._feedforward_flags)
+        self.state, self.outputs = SdreState(self.n), SdreOutputs(self.n)
+        self.feedforward = FeedforwardOutputs(self.n)
         self._nominal = None
         if nominal is not None:
             K0, Ks0, _ = sdre_gains(np.asarray(nominal[0], float), np.asarray(nominal[1], float),
@@ -158,7 +155,7 @@ class SdreController:
             return self._reference_step(*full_sdc_matrices(A2, G2), x, x_d, self.method == 'fast')
         out = self.outputs
         out.a2[:], out.g2[:] = A2, G2
-        sdre_step(x, x_d, *self.settings, *self.state, *out)
+        sdre_step(x, x_d, self.settings.records, self.state.records, out.records)
         return self._settle(lambda: (x, x_d))
 
     def track(self, network: SdcNetwork, origin: np.ndarray, z: np.ndarray) -> LawStep:
@@ -166,7 +163,8 @@ class SdreController:
         x_d = [p_d − p₀, ṗ_d] (``fast`` only): z (n, 8) = [p, ṗ, p_d, ṗ_d], a C-contiguous float64
         array of base-frame positions and velocities (:meth:`RestFrame.stacked
         <soft_gripper_sdre.control.tracking.RestFrame.stacked>`), ``origin`` p₀ (2,)."""
-        tracking_step(z, origin, *network, *self.settings, *self.state, *self.outputs)
+        tracking_step(z, origin, *network, self.settings.records, self.state.records,
+                      self.outputs.records)
         return self._settle(lambda: rest_frame_states(z, origin))
 
     def track_feedforward(self, network: SdcNetwork, origin: np.ndarray, ff_at_reference: bool,
@@ -176,17 +174,17 @@ class SdreController:
         model at x or (``ff_at_reference``) at x_d. :attr:`feedforward` holds u_ff and which fingers
         had a finite state and a usable feedforward; the step's ``ok`` also needs the first, its
         ``fallback`` is set without either (``fallbacks`` counts the feedback's alone)."""
-        feedforward_step(z, origin, ff_at_reference, *network, *self.settings, *self.state,
-                         *self.outputs, *self.feedforward)
+        ff = self.feedforward
+        feedforward_step(z, origin, ff_at_reference, *network, self.settings.records,
+                         self.state.records, self.outputs.records, ff.records)
 
         def error_states():
             x, x_d = rest_frame_states(z, origin)
             x -= x_d
-            x[~self.feedforward.state_finite] = 0.0           # solved at x = x_d = 0
+            x[~ff.state_finite] = 0.0                         # solved at x = x_d = 0
             return x, np.zeros_like(x)
         step = self._settle(error_states, feedforward=True)
-        if np.count_nonzero(self._feedforward_flags) != self._feedforward_flags.size:
-            ff = self.feedforward
+        if np.count_nonzero(ff.state_finite) + np.count_nonzero(ff.ff_usable) != 2 * self.n:
             step.ok &= ff.state_finite
             step.fallback |= ~ff.state_finite | ~ff.ff_usable
         return step
@@ -233,7 +231,7 @@ class SdreController:
             (s.P[accepted], s.K[accepted], s.Ks[accepted],
              s.warm[accepted]) = P_exact[ok], checked.K[ok], checked.Ks[ok], True
         finite = _finite_rows(out.a2, out.g2, x, x_d)
-        tracking_torques(s.K, s.Ks, x, x_d, finite, self.settings.u_max, out.u, out.u_unsat)
+        tracking_torques(x, x_d, finite, self.settings.records, s.records, out.records)
 
     # -- the reference path ------------------------------------------------------------------
     def _reference_step(self, A, G, x, x_d, sdc: bool) -> LawStep:

@@ -27,9 +27,9 @@ class SdreLaw:
         model: object with ``AG(x) -> (A (n,4,4), G (n,4,2))`` and ``rest_tip`` (3,) [m] (an
             :class:`soft_gripper_sdre.learning.model.SDCModel`); if it also has
             ``sdc_blocks(x) -> ([A21 A22] (n,2,4), G2 (n,2,2))``, only those lower rows are used,
-            and if it has ``fused_network`` (the arrays of
-            :class:`~soft_gripper_sdre.control.compiled.SdcNetwork`), the compiled step evaluates
-            it.
+            and if it has ``fused_network`` (the layers
+            :class:`~soft_gripper_sdre.control.compiled.SdcNetwork` packs), the compiled step
+            evaluates it.
         weights: SDRE weights (SI).
         u_max: torque saturation per input [N·m].
         n_fingers: number of fingers controlled together.

@@ -87,20 +87,20 @@ def _replay_once(fast, ref, replay: _Replay, times: _ReplayTimes) -> None:
     t, n = times.t, replay.steps[0][0].shape[0]
     s = fast.sdre
     integral = getattr(fast, 'integral', None)
-    state, out, ff = SdreState.cold(n), SdreOutputs.empty(n), FeedforwardOutputs.empty(n)
+    state, out, ff = SdreState(n), SdreOutputs(n), FeedforwardOutputs(n)
     clock = time.perf_counter
     for k, (pos, vel, ref_pos, ref_vel, ref_acc) in enumerate(replay.steps):
-        for src, dst in zip(s.state, state):
-            dst[:] = src                              # the warm start the law starts from
+        state.records[:] = s.state.records            # the warm start the law starts from
         xi = None if integral is None else integral.xi.copy()
         t0 = clock()
         step = fast.compute(pos, vel, ref_pos, ref_vel, ref_acc=ref_acc)
         t1 = clock()
         if replay.law == 'sdre':
-            tracking_step(replay.z[k], replay.origin, *fast.network, *s.settings, *state, *out)
+            tracking_step(replay.z[k], replay.origin, *fast.network, s.settings.records,
+                          state.records, out.records)
         else:
-            feedforward_step(replay.z[k], replay.origin, False, *fast.network, *s.settings,
-                             *state, *out, *ff)
+            feedforward_step(replay.z[k], replay.origin, False, *fast.network, s.settings.records,
+                             state.records, out.records, ff.records)
         t2 = clock()
         if k == 0:
             continue
