@@ -53,7 +53,7 @@ from soft_gripper_sdre.control.compiled_sdre import (
 )
 
 __all__ = ['KernelRecords', 'SdcNetwork', 'SdreSettings', 'SdreState', 'SdreOutputs',
-           'FeedforwardOutputs', 'compiled_network', 'kernel_array', 'warm_up',
+           'FeedforwardOutputs', 'IntegralSettings', 'compiled_network', 'kernel_array', 'warm_up',
            'sdc_forward', 'sdre_gains', 'tracking_torques', 'sdre_step', 'tracking_step',
            'model_inversion', 'feedforward_step', 'kf_step', 'kf_step_dt', 'integral_step',
            'integral_update', 'integral_roll_off', 'plan_sample']
@@ -176,6 +176,28 @@ class FeedforwardOutputs(KernelRecords):
                      align=True)
 
 
+class IntegralSettings(KernelRecords):
+    """The integral action's constants, one record
+    (:class:`~soft_gripper_sdre.control.laws.integral.IntegralAction`)."""
+
+    dtype = np.dtype([('to_torque', F8, (2, 2)),  # u_I = to_torque ξ
+                      ('from_torque', F8, (2, 2)),  # ξ = from_torque u_I
+                      ('dt', F8),                 # control period [s]
+                      ('band', F8),               # error norm inside which ξ integrates [m]
+                      ('decay', F8),              # ξ's factor per step outside the band
+                      ('u_max', F8)], align=True)  # bound on each torque of u_I [N·m]
+
+    @classmethod
+    def of(cls, to_torque, from_torque, dt: float, band: float, decay: float,
+           u_max: float) -> IntegralSettings:
+        """From IntegralAction's constants (u_I = to_torque ξ, ξ = from_torque u_I)."""
+        settings = cls(1)
+        settings.to_torque[0], settings.from_torque[0] = to_torque, from_torque
+        settings.dt[0], settings.band[0], settings.decay[0], settings.u_max[0] = (dt, band, decay,
+                                                                                  u_max)
+        return settings
+
+
 def warm_up() -> None:
     """Compile (or load from numba's cache) every kernel at the types the controller uses: call it
     before a node reports ready, so that no step pays for compilation."""
@@ -196,12 +218,12 @@ def warm_up() -> None:
                      FeedforwardOutputs(n).records)
     kf_step(x, np.zeros((n, 4, 4)), rows, ones, np.eye(4), np.eye(4), np.eye(2))
     kf_step_dt(x, np.zeros((n, 4, 4)), rows, ones, 1e-3, 1.0, 0.0, np.eye(4), np.eye(4), np.eye(2))
+    integral = IntegralSettings.of(np.eye(2), np.eye(2), 1e-3, 1e-3, 0.9, 1.0).records
     saturated = np.zeros((n, 2), dtype=np.bool_)
-    integral_step(rows.copy(), np.eye(2), np.eye(2), 1e-3, 1e-3, 0.9, 1.0, rows, ones, rows.copy(),
-                  rows.copy(), saturated)
-    integral_update(rows.copy(), np.eye(2), np.eye(2), 1e-3, 1e-3, 0.9, 1.0, rows, saturated, ones)
-    integral_roll_off(rows.copy(), np.eye(2), np.eye(2), 1e-3, 1e-3, 0.9, 1.0, np.zeros((n, 10)),
-                      ones, rows.copy(), rows.copy(), saturated, 0.5, 0.5, rows.copy(), True)
+    integral_step(rows.copy(), integral, rows, ones, rows.copy(), rows.copy(), saturated)
+    integral_update(rows.copy(), integral, rows, saturated, ones)
+    integral_roll_off(rows.copy(), integral, np.zeros((n, 10)), ones, rows.copy(), rows.copy(),
+                      saturated, 0.5, rows.copy(), True)
     plan = np.zeros((2, n, 2))
     plan_sample(np.array([0, 1], dtype=np.int64), plan, plan, plan, 0, rows.copy(), rows.copy(),
                 rows.copy())

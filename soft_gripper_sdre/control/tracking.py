@@ -122,11 +122,11 @@ class RollOff:
             self._u = v
         return v
 
-    def kernel_args(self, v: np.ndarray) -> tuple[float, float, np.ndarray, bool]:
-        """(α, 1 − α, the previous output, whether there is one) for a compiled step that rolls
-        off ``v`` in place as :meth:`__call__` would (before the first output the previous one is
-        ``v`` itself, unused); then :meth:`keep` the result."""
-        return self.alpha, self._beta, v if self._u is None else self._u, self._u is not None
+    def kernel_args(self, v: np.ndarray) -> tuple[float, np.ndarray, bool]:
+        """(α, the previous output, whether there is one) for a compiled step that rolls off ``v``
+        in place as :meth:`__call__` would, with 1 − α formed as here (before the first output the
+        previous one is ``v`` itself, unused); then :meth:`keep` the result."""
+        return self.alpha, v if self._u is None else self._u, self._u is not None
 
     def keep(self, u: np.ndarray) -> None:
         """``u`` was rolled off in place (:meth:`kernel_args`): it is the filter's last output."""

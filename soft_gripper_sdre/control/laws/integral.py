@@ -7,6 +7,7 @@ import math
 import numpy as np
 
 from soft_gripper_sdre.control.compiled import (
+    IntegralSettings,
     integral_roll_off,
     integral_step,
     integral_update,
@@ -68,6 +69,8 @@ class IntegralAction:
         self.to_torque = self.gain * np.linalg.inv(g2)          # u_I = to_torque ξ
         self.from_torque = g2 / self.gain                        # ξ = from_torque u_I
         self.decay = math.exp(-self.dt / INTEGRAL_LEAK_S)
+        self.settings = IntegralSettings.of(self.to_torque, self.from_torque, self.dt, self.band,
+                                            self.decay, self.u_max).records
         self.xi = np.zeros((int(n_fingers), 2))                  # ∫ (p_d − p) dt [m·s]
 
     def reset(self) -> None:
@@ -84,9 +87,8 @@ class IntegralAction:
         for name in ('u', 'u_unsat', 'saturated'):
             setattr(step, name, kernel_array(getattr(step, name),
                                              np.bool_ if name == 'saturated' else np.float64))
-        integral_step(self.xi, self.to_torque, self.from_torque, self.dt, self.band, self.decay,
-                      self.u_max, kernel_array(error), kernel_array(finite, np.bool_), step.u_unsat,
-                      step.u, step.saturated)
+        integral_step(self.xi, self.settings, kernel_array(error), kernel_array(finite, np.bool_),
+                      step.u_unsat, step.u, step.saturated)
 
     def apply_and_roll_off(self, step: LawStep, z: np.ndarray, finite: np.ndarray,
                            roll_off: RollOff) -> None:
@@ -94,15 +96,13 @@ class IntegralAction:
         then ``roll_off`` of ``step.u`` in place, all in one compiled call: the same arithmetic as
         :meth:`apply` followed by ``step.u = roll_off(step.u)``. ``step``'s ``u``, ``u_unsat`` and
         ``saturated`` must be arrays the kernels take (a compiled step's own)."""
-        alpha, beta, previous, has_previous = roll_off.kernel_args(step.u)
-        integral_roll_off(self.xi, self.to_torque, self.from_torque, self.dt, self.band, self.decay,
-                          self.u_max, z, finite, step.u_unsat, step.u, step.saturated, alpha, beta,
-                          previous, has_previous)
+        alpha, previous, has_previous = roll_off.kernel_args(step.u)
+        integral_roll_off(self.xi, self.settings, z, kernel_array(finite, np.bool_), step.u_unsat,
+                          step.u, step.saturated, alpha, previous, has_previous)
         roll_off.keep(step.u)
 
     def update(self, error: np.ndarray, saturated: np.ndarray, finite: np.ndarray) -> None:
         """One step of ξ from the error p − p_d (n, 2) [m], the (n, 2) saturation of the command
         that used it, and which fingers' inputs were finite (the rules in the class docstring)."""
-        integral_update(self.xi, self.to_torque, self.from_torque, self.dt, self.band, self.decay,
-                        self.u_max, kernel_array(error), kernel_array(saturated, np.bool_),
-                        kernel_array(finite, np.bool_))
+        integral_update(self.xi, self.settings, kernel_array(error),
+                        kernel_array(saturated, np.bool_), kernel_array(finite, np.bool_))
