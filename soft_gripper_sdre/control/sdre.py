@@ -78,7 +78,36 @@ def rest_frame_states(z: np.ndarray, origin: np.ndarray) -> tuple[np.ndarray, np
             np.concatenate((z[:, 4:6] - origin, z[:, 6:8]), axis=1))
 
 
-class SdreController:
+class SdreCounters:
+    """What the SDRE supervisor counts over its steps, and the step's record, which counts them.
+
+    ``steps``; ``fallbacks``: finger-steps on which a finger failed a check (non-finite inputs
+    included) and kept its last valid gains; ``exact_solves``: the fingers scipy solved;
+    ``check_failures``: per :class:`Check`, the finger-steps that failed it.
+    """
+
+    n: int    # the number of fingers
+
+    def reset_counters(self) -> None:
+        self.steps = self.fallbacks = self.exact_solves = 0
+        self.check_failures = {c.name: 0 for c in Check}
+
+    def _record(self, u, u_unsat, K, Ks, P, residual, ok, failed, iterations,
+                accepted: int) -> LawStep:
+        """The step's :class:`LawStep` (arrays the caller owns), counted. ``accepted``: how many
+        fingers are ``ok``."""
+        fallbacks = self.n - accepted
+        if fallbacks:                     # a finger with a failed check is never ok
+            self.fallbacks += fallbacks
+            for name, bit in _CHECK_BITS:
+                self.check_failures[name] += int(np.count_nonzero(failed & bit))
+        # u = clip(u_unsat) with u_unsat finite: u ≠ u_unsat ⇔ |u_unsat| > u_max
+        return LawStep(u=u, u_unsat=u_unsat, K=K, Ks=Ks, P=P, residual=residual, ok=ok,
+                       fallback=~ok, failed_checks=failed, saturated=u != u_unsat,
+                       nk_iterations=iterations)
+
+
+class SdreController(SdreCounters):
     """The SDRE tracking law for ``n`` fingers with fallbacks and counters.
 
     Args:
@@ -93,8 +122,8 @@ class SdreController:
         max_nk_iterations: most Newton–Kleinman iterations per step before the exact path.
         nominal: optional (A0, G0) whose gains serve as the fallback before any valid step.
 
-    ``fast`` says whether the compiled kernels serve this controller. Counters: ``steps``,
-    ``fallbacks`` (finger-steps), ``exact_solves``, ``check_failures`` (per :class:`Check`).
+    ``fast`` says whether the compiled kernels serve this controller; the counters are those of
+    :class:`SdreCounters`.
     """
 
     def __init__(self, Q, R, u_max, n: int = 4, method: str = 'fast', residual_tol: float = 1e-6,
@@ -125,8 +154,7 @@ class SdreController:
         s = self.state
         s.P[:], s.warm[:] = 0.0, False
         s.K[:], s.Ks[:] = (0.0, 0.0) if self._nominal is None else self._nominal
-        self.steps = self.fallbacks = self.exact_solves = 0
-        self.check_failures = {c.name: 0 for c in Check}
+        self.reset_counters()
 
     def warm_start(self, P) -> None:
         """Start every finger's next fast step from P (n, 4, 4) instead of its last solution (the
@@ -253,17 +281,3 @@ class SdreController:
         u = np.clip(u_unsat, -self.u_max, self.u_max)
         return self._record(u, u_unsat, K, Ks, P, checked.residual, ok, checked.failed,
                             np.zeros(self.n, dtype=np.int64), np.count_nonzero(ok))
-
-    def _record(self, u, u_unsat, K, Ks, P, residual, ok, failed, iterations,
-                accepted: int) -> LawStep:
-        """The step's :class:`LawStep` (arrays the caller owns); the counters. ``accepted``: how
-        many fingers are ``ok``."""
-        fallbacks = self.n - accepted
-        if fallbacks:                     # a finger with a failed check is never ok
-            self.fallbacks += fallbacks
-            for name, bit in _CHECK_BITS:
-                self.check_failures[name] += int(np.count_nonzero(failed & bit))
-        # u = clip(u_unsat) with u_unsat finite: u ≠ u_unsat ⇔ |u_unsat| > u_max
-        return LawStep(u=u, u_unsat=u_unsat, K=K, Ks=Ks, P=P, residual=residual, ok=ok,
-                       fallback=~ok, failed_checks=failed, saturated=u != u_unsat,
-                       nk_iterations=iterations)
