@@ -28,6 +28,10 @@ bits; the supervisor (:class:`~soft_gripper_sdre.control.sdre.SdreController`) s
 (scipy) and writes P, K, K_s and ``warm`` into the state. :func:`warm_up` compiles (or loads from
 numba's cache) every kernel at these types: a process calls it before its first real-time step.
 The kernels are importable from here as well as from their modules.
+
+Importing this module holds numba's on-disk cache of the kernels to the kernel modules' sources as
+a whole (:func:`~soft_gripper_sdre.control.compiled_cache.invalidate_stale_cache`), so kernels are
+imported through here (or after it), never run before it.
 """
 from __future__ import annotations
 
@@ -35,6 +39,7 @@ from typing import ClassVar, NamedTuple, Self
 
 import numpy as np
 
+from soft_gripper_sdre.control.compiled_cache import invalidate_stale_cache
 from soft_gripper_sdre.control.compiled_horizon import plan_sample
 from soft_gripper_sdre.control.compiled_integral import (
     integral_roll_off,
@@ -227,3 +232,7 @@ def warm_up() -> None:
     plan = np.zeros((2, n, 2))
     plan_sample(np.array([0, 1], dtype=np.int64), plan, plan, plan, 0, rows.copy(), rows.copy(),
                 rows.copy())
+
+
+# before any kernel runs: numba's cache of them held to the kernel modules' sources as a whole
+invalidate_stale_cache()

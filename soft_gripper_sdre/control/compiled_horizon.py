@@ -1,13 +1,9 @@
 """The controller's plan sample compiled with numba: :func:`.horizon.sample_plan` with the
 acceleration, the same arithmetic in the same order, so its results are the same bits.
-
-Its own file: numba's on-disk cache is keyed on the source file of the function compiled.
 """
 from __future__ import annotations
 
-from numba import njit
-
-kernel = njit(cache=True, error_model='numpy', nogil=True)
+from soft_gripper_sdre.control.compiled_cache import kernel
 
 NS = 1_000_000_000
 

@@ -3,15 +3,12 @@
 its constants come as one record of
 :class:`~soft_gripper_sdre.control.compiled.IntegralSettings`: to_torque, from_torque, dt, band,
 decay, u_max).
-
-Its own file: numba's on-disk cache is keyed on the source file of the function compiled.
 """
 from __future__ import annotations
 
-from numba import njit
 import numpy as np
 
-kernel = njit(cache=True, error_model='numpy', nogil=True)
+from soft_gripper_sdre.control.compiled_cache import kernel
 
 
 @kernel

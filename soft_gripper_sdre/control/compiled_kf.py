@@ -10,14 +10,13 @@ Per finger, with F, Σ_v from :func:`~soft_gripper_sdre.control.kf.cv_matrices`,
 
 A finger whose measurement is not valid or not finite only predicts. :func:`kf_step` takes F and Σ_v
 built once for a fixed step; :func:`kf_step_dt` builds them for each call's Δt (a source whose
-stamps are not evenly spaced). Both live in this one file: numba's on-disk cache is keyed on the
-source file of the function compiled.
+stamps are not evenly spaced).
 """
 from __future__ import annotations
 
 import numpy as np
 
-from soft_gripper_sdre.control.compiled_sdre import kernel
+from soft_gripper_sdre.control.compiled_cache import kernel
 
 
 @kernel

@@ -4,17 +4,12 @@ and gains, and the laws built on them for n fingers. They take the settings, sta
 record arrays, one record per finger (:mod:`soft_gripper_sdre.control.compiled` defines them and
 :func:`~soft_gripper_sdre.control.compiled.warm_up`); the derivations are in
 docs/design/compiled_kernel.md.
-
-All the SDRE kernels live in this one file because numba's on-disk cache is keyed on the source
-file of the function compiled: a kernel calling into another file would keep a stale copy of it.
 """
 from __future__ import annotations
 
-from numba import njit
 import numpy as np
 
-#: every kernel: cached on disk, IEEE division (x / 0 = ±inf or NaN, never an exception), no GIL
-kernel = njit(cache=True, error_model='numpy', nogil=True)
+from soft_gripper_sdre.control.compiled_cache import kernel
 
 #: the bits of riccati.Check (written out: the compiled code keeps the values it was compiled with)
 (STABILIZABLE, HURWITZ, ACL_SINGULAR, SOLVE_FAILED, NONFINITE, RESIDUAL,
