@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from soft_gripper_sdre.analysis.closed_loop import run_closed_loop
-from soft_gripper_sdre.control import compiled, compiled_sdre
+from soft_gripper_sdre.control import compiled, compiled_riccati
 from soft_gripper_sdre.control.compiled import (
     SdcNetwork,
     SdreOutputs,
@@ -75,7 +75,7 @@ def fast_and_reference(law, model, weights, **options):
 def test_check_bits_are_those_of_riccati_check():
     for name in ('STABILIZABLE', 'HURWITZ', 'ACL_SINGULAR', 'SOLVE_FAILED', 'NONFINITE', 'RESIDUAL',
                  'P_NOT_PD'):
-        assert getattr(compiled_sdre, name) == int(Check[name])
+        assert getattr(compiled_riccati, name) == int(Check[name])
 
 
 def test_network_equals_the_numpy_model(model):

@@ -1,12 +1,16 @@
 """The controller's per-step work compiled with numba: how to call the kernels, what they keep.
 
-The kernels (:mod:`~soft_gripper_sdre.control.compiled_sdre`,
-:mod:`~soft_gripper_sdre.control.compiled_kf`, :mod:`~soft_gripper_sdre.control.compiled_integral`,
-:mod:`~soft_gripper_sdre.control.compiled_horizon`)
-take float64 / bool / int64 C-contiguous arrays, record arrays and scalars, write their results
-into arrays the caller owns and update the controller's state in place. The SDRE kernels' settings,
-state and outputs are record arrays (:class:`KernelRecords`: one record per finger, one for the
-settings), the network one packed array (:class:`SdcNetwork`), so a caller passes a few arrays:
+The kernels — the SDRE laws' steps (:mod:`~soft_gripper_sdre.control.compiled_sdre`) on
+Newton–Kleinman with the checks (:mod:`~soft_gripper_sdre.control.compiled_riccati`), the fused
+network (:mod:`~soft_gripper_sdre.control.compiled_sdc_network`) and small dense linear algebra
+(:mod:`~soft_gripper_sdre.control.compiled_linalg`); the Kalman filter
+(:mod:`~soft_gripper_sdre.control.compiled_kf`), the integral action
+(:mod:`~soft_gripper_sdre.control.compiled_integral`) and the plan sample
+(:mod:`~soft_gripper_sdre.control.compiled_horizon`) — take float64 / bool / int64 C-contiguous
+arrays, record arrays and scalars, write their results into arrays the caller owns and update the
+controller's state in place. The SDRE kernels' settings, state and outputs are record arrays
+(:class:`KernelRecords`: one record per finger, one for the settings), the network one packed array
+(:class:`SdcNetwork`), so a caller passes a few arrays:
 
     tracking_step(z, origin, *network, settings.records, state.records, outputs.records)
 
@@ -30,8 +34,8 @@ numba's cache) every kernel at these types: a process calls it before its first 
 The kernels are importable from here as well as from their modules.
 
 Importing this module holds numba's on-disk cache of the kernels to the kernel modules' sources as
-a whole (:func:`~soft_gripper_sdre.control.compiled_cache.invalidate_stale_cache`), so kernels are
-imported through here (or after it), never run before it.
+a whole (:func:`~soft_gripper_sdre.control.compiled_cache.invalidate_stale_cache`): no kernel runs
+before this module is imported.
 """
 from __future__ import annotations
 
@@ -47,11 +51,11 @@ from soft_gripper_sdre.control.compiled_integral import (
     integral_update,
 )
 from soft_gripper_sdre.control.compiled_kf import kf_step, kf_step_dt
+from soft_gripper_sdre.control.compiled_riccati import sdre_gains
+from soft_gripper_sdre.control.compiled_sdc_network import sdc_forward
 from soft_gripper_sdre.control.compiled_sdre import (
     feedforward_step,
     model_inversion,
-    sdc_forward,
-    sdre_gains,
     sdre_step,
     tracking_step,
     tracking_torques,

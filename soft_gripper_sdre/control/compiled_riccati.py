@@ -1,0 +1,196 @@
+"""One finger's warm-started Newton–Kleinman solve of the SDRE with the SDC structure's checks and
+gains, and the solve for n fingers (:func:`sdre_gains`), compiled with numba: the fast counterpart
+of :mod:`~soft_gripper_sdre.control.riccati`. They take the settings, state and outputs as record
+arrays, one record per finger (:mod:`~soft_gripper_sdre.control.compiled`); the derivations are in
+docs/design/compiled_kernel.md, "One step, per finger".
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from soft_gripper_sdre.control.compiled_cache import kernel
+from soft_gripper_sdre.control.compiled_linalg import (
+    COL,
+    ROW,
+    SYM,
+    lyapunov_operator,
+    positive_definite,
+    quadratic_term,
+    solve_in_place,
+    well_conditioned,
+)
+
+#: the bits of riccati.Check, written out in a kernel module: the compiled code keeps the values it
+#: was compiled with, and the kernels' cache follows the kernel modules' sources alone
+(STABILIZABLE, HURWITZ, ACL_SINGULAR, SOLVE_FAILED, NONFINITE, RESIDUAL,
+ P_NOT_PD) = 1, 4, 8, 16, 32, 64, 128
+
+
+@kernel
+def newton_kleinman_step(A, W, q, P, WP, PSP, A_k, L, p):
+    """One Newton–Kleinman step for one SDC finger, in place: P_k → P_k+1, the solution of
+
+        A_kᵀ P_k+1 + P_k+1 A_k = −(Q + P_k S P_k),   A_k = A − S P_k,
+
+    a 10×10 system in P's upper triangle; WP = W P_low and PSP = P S P follow P (they must hold
+    those of P_k on entry). Returns ⟨Δ_low, W Δ_low⟩ (Δ = P_k+1 − P_k), which bounds
+    ‖Res(P_k+1)‖_F since Res(P_k+1) = −Δ S Δ; NaN (and P NaN) when the solve fails.
+    """
+    A_k[:, :] = A
+    for r in range(2):
+        for c in range(4):
+            A_k[2 + r, c] -= WP[r, c]                                # A_k = A − S P_k
+    lyapunov_operator(A_k, L)
+    for e in range(10):
+        p[e] = -(q[ROW[e], COL[e]] + PSP[ROW[e], COL[e]])           # −(Q + P_k S P_k)
+    if not solve_in_place(L, p):
+        P[:, :] = np.nan
+        return np.nan
+    bound = 0.0                                                      # ⟨Δ_low, W Δ_low⟩
+    for c in range(4):
+        d0, d1 = p[SYM[2, c]] - P[2, c], p[SYM[3, c]] - P[3, c]
+        bound += d0 * (W[0, 0] * d0 + W[0, 1] * d1) + d1 * (W[1, 0] * d0 + W[1, 1] * d1)
+    for i in range(4):
+        for j in range(4):
+            P[i, j] = p[SYM[i, j]]
+    quadratic_term(P, W, WP, PSP)
+    return bound
+
+
+@kernel
+def finger_checks(A, P, WP, PSP, settings, q_norm, C, N, work):
+    """(failed Check bits, relative residual) of one finger's solution P, A_cl = A − S P, with the
+    settings record's Q, residual_tol and cond_max.
+
+    * residual ‖PA + AᵀP + Q − P S P‖_F / ‖Q‖_F < residual_tol, formed directly from P;
+    * P ≻ 0 and N = Q + P S P − 2 tol ‖Q‖_F I ≻ 0 prove A_cl Hurwitz: A_clᵀP + PA_cl = −(N + margin
+      − Res) and ‖Res‖₂ < tol ‖Q‖_F (Lyapunov; docs/design/compiled_kernel.md);
+    * A_cl = [[0, I], [C, ·]] is invertible with cond(C) < cond_max, the only inverse K_s uses.
+    """
+    q, residual_tol = settings.q, settings.residual_tol
+    failed = 0
+    for i in range(4):
+        for j in range(4):
+            if not np.isfinite(P[i, j]):
+                return SOLVE_FAILED, np.nan
+    res2 = 0.0
+    for i in range(4):
+        for j in range(4):
+            pa, ap = 0.0, 0.0
+            for m in range(4):
+                pa += P[i, m] * A[m, j]
+                ap += A[m, i] * P[m, j]
+            r = pa + ap + q[i, j] - PSP[i, j]
+            res2 += r * r
+    residual = np.sqrt(res2) / q_norm
+    if not residual < residual_tol:
+        failed |= RESIDUAL
+    if not positive_definite(P, work):
+        failed |= P_NOT_PD
+    margin = 2.0 * residual_tol * q_norm
+    for i in range(4):
+        for j in range(4):
+            N[i, j] = q[i, j] + PSP[i, j] - (margin if i == j else 0.0)
+    if not positive_definite(N, work):
+        failed |= HURWITZ
+    for r in range(2):
+        for c in range(2):
+            C[r, c] = A[2 + r, c] - WP[r, c]
+    if not well_conditioned(C, settings.cond_max):
+        failed |= ACL_SINGULAR
+    return failed, residual
+
+
+@kernel
+def finger_gains(B, P, C, q, K, Ks):
+    """K = −B P_low and K_s = −B C⁻ᵀ Q[:2, :] with B = R⁻¹ G2ᵀ (eq. 23 in the SDC form:
+    Gᵀ A_cl⁻ᵀ = G2ᵀ [C⁻ᵀ, 0]); C⁻ᵀ = [[c11, −c10], [−c01, c00]] / det C."""
+    det = C[0, 0] * C[1, 1] - C[0, 1] * C[1, 0]
+    c00, c01, c10, c11 = C[1, 1] / det, -C[1, 0] / det, -C[0, 1] / det, C[0, 0] / det
+    for r in range(2):
+        for c in range(4):
+            K[r, c] = -(B[r, 0] * P[2, c] + B[r, 1] * P[3, c])
+            ciq0 = c00 * q[0, c] + c01 * q[1, c]                    # (C⁻ᵀ Q[:2, :])[0, c]
+            ciq1 = c10 * q[0, c] + c11 * q[1, c]
+            Ks[r, c] = -(B[r, 0] * ciq0 + B[r, 1] * ciq1)
+
+
+@kernel
+def finger_setup(a2, g2, r_inv, P, A, W, B, WP, PSP):
+    """One finger's matrices for Newton–Kleinman, in place: A = [[0, I], [a2]] (A zero on entry),
+    B = R⁻¹ G2ᵀ, W = G2 R⁻¹ G2ᵀ, and WP, PSP of the warm start P (:func:`quadratic_term`)."""
+    for r in range(2):
+        for c in range(2):
+            B[r, c] = r_inv[r, 0] * g2[c, 0] + r_inv[r, 1] * g2[c, 1]          # R⁻¹ G2ᵀ
+    for r in range(2):
+        for c in range(2):
+            W[r, c] = g2[r, 0] * B[0, c] + g2[r, 1] * B[1, c]                  # G2 R⁻¹ G2ᵀ
+    A[0, 2] = A[1, 3] = 1.0                                          # Ẋ, Ẏ rows: [0 I]
+    A[2:, :] = a2
+    quadratic_term(P, W, WP, PSP)
+
+
+@kernel
+def finger_accept(A, B, WP, PSP, settings, q_norm, state, out, work):
+    """The checks on one finger's solution, its state record's P (:func:`finger_checks`, bits and
+    residual into its outputs record ``out``); if it passes them all and its gains are finite, they
+    become the state's K, K_s and ``warm`` is True, else the state keeps its gains and ``warm`` is
+    False. ``work``: scratch (C (2, 2), N (4, 4), Cholesky (4, 4), K (2, 4), K_s (2, 4))."""
+    C, N, cholesky, K, Ks = work
+    out.failed, out.residual = finger_checks(A, state.P, WP, PSP, settings, q_norm, C, N, cholesky)
+    if out.failed == 0:
+        finger_gains(B, state.P, C, settings.q, K, Ks)
+        if np.all(np.isfinite(K)) and np.all(np.isfinite(Ks)):
+            state.K[:], state.Ks[:] = K, Ks
+        else:
+            out.failed = NONFINITE
+    state.warm = out.failed == 0
+
+
+@kernel
+def sdre_gains(finite, settings, state, outputs):
+    """Gains of every warm finger with finite inputs (``finite``) by warm-started Newton–Kleinman
+    and the checks, on the blocks a2, g2 in ``outputs``; the state records (P, warm, K, Ks) are
+    updated in place.
+
+    The warm fingers iterate together and stop at the first iteration where Σ ⟨Δ_low, W Δ_low⟩ <
+    residual_tol ‖Q‖_F / 2 over them; a finger whose solve fails leaves the sum. A finger keeps its
+    previous K, K_s and ends with warm False when it was cold or any check failed (``failed``: the
+    Check bits; NONFINITE and STABILIZABLE hold for cold fingers too).
+    """
+    s = settings[0]
+    n = state.shape[0]
+    A, W, B = np.zeros((n, 4, 4)), np.empty((n, 2, 2)), np.empty((n, 2, 2))
+    WP, PSP = np.empty((n, 2, 4)), np.empty((n, 4, 4))
+    A_k, L, p = np.empty((4, 4)), np.empty((10, 10)), np.empty(10)
+    work = (np.empty((2, 2)), np.empty((4, 4)), np.zeros((4, 4)), np.empty((2, 4)),
+            np.empty((2, 4)))
+    q_norm = max(np.sqrt(np.sum(s.q * s.q)), 1e-300)
+    half_tol_q = 0.5 * s.residual_tol * q_norm
+    solving = np.zeros(n, dtype=np.bool_)
+    for i in range(n):
+        st, out = state[i], outputs[i]
+        out.residual, out.iterations, out.failed = np.nan, 0, 0
+        if not finite[i]:
+            out.failed = NONFINITE
+        elif not well_conditioned(out.g2, s.cond_max):      # rank [G, AG] = 4 iff G2 invertible
+            out.failed = STABILIZABLE
+        solving[i] = st.warm and out.failed == 0
+        st.warm = False
+        if solving[i]:
+            finger_setup(out.a2, out.g2, s.r_inv, st.P, A[i], W[i], B[i], WP[i], PSP[i])
+    for iteration in range(1, s.max_iterations + 1):
+        total = 0.0
+        for i in range(n):
+            P = state[i].P
+            if solving[i] and np.isfinite(P[0, 0]):                  # (a failed solve leaves P NaN)
+                bound = newton_kleinman_step(A[i], W[i], s.q, P, WP[i], PSP[i], A_k, L, p)
+                outputs[i].iterations = iteration
+                if np.isfinite(bound):
+                    total += bound
+        if total < half_tol_q:
+            break
+    for i in range(n):
+        if solving[i]:
+            finger_accept(A[i], B[i], WP[i], PSP[i], s, q_norm, state[i], outputs[i], work)
+
