@@ -142,9 +142,9 @@ def test_the_checkpoint_round_trips_the_shape_bounds_and_networks(trained):
         model.AG(np.zeros(n + 1))
 
 
-def test_the_simulation_stage_and_the_rest_penalty_run_for_any_shape():
-    """The rollout epochs and the stable-rest penalty work on a (3, 3) finger: the kept rest's
-    eigenvalues lie left of the margin."""
+def test_the_simulation_stage_runs_for_any_shape():
+    """The rollout epochs on records of a (3, 3) finger: positions of three coordinates driven by
+    three held inputs, every epoch's validation simulation error finite."""
     from soft_gripper_sdre.learning.rollout import Run
     d, m = 3, 3
     G2, bounds = SYSTEMS[(d, m)]
@@ -159,17 +159,40 @@ def test_the_simulation_stage_and_the_rest_penalty_run_for_any_shape():
         x[k + 1, :d] = x[k, :d] + dt * x[k + 1, d:]
     acc[-1] = -STIFFNESS * x[-1, :d] - DAMPING * x[-1, d:] + G2 @ u[-1]
     half = steps // 2
-    settings = replace(PRESETS['gripper'], epochs=5, rollout_epochs=3, rollout_val_seconds=0.2,
-                       rest_margin=5.0)
+    settings = replace(PRESETS['gripper'], epochs=5, rollout_epochs=3, rollout_val_seconds=0.2)
     result = train(x[:half], u[:half], acc[:half], x[half:], u[half:], acc[half:], settings,
                    runs=[Run(x[:half], u[:half], dt)], val_runs=[Run(x[half:], u[half:], dt)],
                    shape=FingerShape(d, m))
-    assert len(result.rollout_loss) == 3 and np.all(np.isfinite(result.val_sim_error))
-    net, s = result.net, result.scales
-    with torch.no_grad():
-        a0 = net(torch.zeros(1, 2 * d))[0][0].numpy() * s['acc'][:, None] / s['x'][None, :]
-    A0 = np.vstack([np.hstack([np.zeros((d, d)), np.eye(d)]), a0])
-    assert np.linalg.eigvals(A0).real.max() < 0
+    assert len(result.rollout_loss) == 3 and len(result.val_sim_error) == 8
+    assert np.all(np.isfinite(result.val_sim_error)) and np.all(np.isfinite(result.rollout_loss))
+
+
+def test_the_rest_penalty_moves_a_3d_rest_left():
+    """L_rest of a (3, 3) network: positive while A(0) (6 × 6) has an eigenvalue right of the
+    margin, and its gradient steps move the rightmost eigenvalue left."""
+    from soft_gripper_sdre.learning.rollout import Scales
+    from soft_gripper_sdre.learning.training import _rest_penalty
+    torch.manual_seed(0)
+    net = SDCNet(shape=FingerShape(3, 3))
+    s = Scales(torch.full((6,), 0.1), torch.ones(3), torch.full((3,), 10.0))
+    settings = replace(PRESETS['default'], rest_margin=50.0)
+
+    def rightmost():
+        with torch.no_grad():
+            a0 = net(torch.zeros(1, 6))[0][0] * s.acc[:, None] / s.x[None, :]
+        A0 = np.vstack([np.hstack([np.zeros((3, 3)), np.eye(3)]), a0.numpy()])
+        return np.linalg.eigvals(A0).real.max()
+
+    before = rightmost()
+    assert before > -50.0
+    opt = torch.optim.Adam(net.parameters(), lr=1e-3)
+    for _ in range(30):
+        loss = _rest_penalty(net, s, settings)
+        assert loss is not None and float(loss.detach()) > 0
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    assert rightmost() < before - 1.0
 
 
 def test_the_singular_value_penalty_runs_on_a_non_square_g2():
@@ -214,8 +237,14 @@ BAD_SHAPES = {
     'task dimension 4': (lambda c: {**c, 'shape': {'d': 4, 'm': 1}}, 'shape: the task dimension d'),
     'no inputs': (lambda c: {**c, 'shape': {'d': 2, 'm': 0}}, 'shape: the number of inputs m'),
     'shape not a mapping': (lambda c: {**c, 'shape': [2, 1]}, 'shape: expected a mapping'),
-    'shape of other weights': (lambda c: {**c, 'shape': {'d': 3, 'm': 3}},
-                               'does not match the network layout'),
+    'shape of other declared sizes': (
+        lambda c: {**c, 'shape': {'d': 3, 'm': 3}, 'input_bounds': None},
+        r'does not match the network layout: architecture n_state = 4, the shape \(d=3, m=3\)'),
+    'shape of other weights': (
+        lambda c: {**c, 'shape': {'d': 3, 'm': 1}, 'architecture': {'hidden': 32}},
+        '(?s)does not match the network layout: .*size mismatch'),
+    'bounds of another shape': (lambda c: {**c, 'shape': {'d': 3, 'm': 3}},
+                                r'input_bounds name 1 input\(s\), the shape \(d=3, m=3\) has 3'),
     'declared sizes of another shape': (
         lambda c: {**c, 'architecture': {**c['architecture'], 'n_input': 2}},
         'architecture n_input = 2, the shape'),
