@@ -59,10 +59,11 @@ def _parser() -> argparse.ArgumentParser:
                       help='tip measurement noise σ [m] for the KF/RTS and the derived estimator '
                            '(default: estimated from the settle phase at zero torque; a bag '
                            'without one is refused)')
-    bags.add_argument('--task-dim', choices=('auto', '2', '3'), default='auto',
+    bags.add_argument('--task-dim', choices=('auto', '2', '3'), default='2',
                       help='coordinates of the tip the model learns: 2 (x, y) or 3 (x, y, z); '
                            "auto: 3 when a tip's z moves in the training bags (planar drivers "
-                           'publish z = 0), else 2 (default %(default)s)')
+                           "publish z = 0), else 2. Default %(default)s: this package's hand "
+                           "is learned in x, y though its simulated tips' z moves")
     bags.add_argument('--input-lower', type=float, nargs='+', metavar='U',
                       help='lower bound of each input, one value per input in the SI unit of its '
                            'command (N·m, N, Pa), recorded in the checkpoint; with '
