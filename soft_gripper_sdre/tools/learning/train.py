@@ -7,7 +7,12 @@
 
 With ``--bag`` the data come from rosbag2 recordings of ``tip_positions`` and ``torque_commands``
 (the excitation node and a recorder, on the simulator or a robot):
-:mod:`soft_gripper_sdre.tools.learning.train_bags`. The rest of this text is about ``--data``.
+:mod:`soft_gripper_sdre.tools.learning.train_bags`. A finger of any shape is learned that way: its
+m inputs (1 to 4) are the command's names ``<finger>/ax<k>``, ``--task-dim`` says whether the tip
+has 2 coordinates (x, y; the default) or 3 (x, y, z; ``auto``: 3 when a tip's z moves), and
+``--input-lower``/``--input-upper`` give each input's bounds for the checkpoint (default: the
+range the commands spanned, widened to hold 0). The rest of this text is about ``--data``, the
+hand's records (a planar tip, two torques).
 
 Writes OUT/model.pt (checkpoint), OUT/metrics.json, OUT/fig2_loss.png (the paper's Figure 2) and
 OUT/fig3_accel_u4.png (Figure 3), all together or none (the pipeline both paths share:
