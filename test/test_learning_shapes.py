@@ -394,6 +394,14 @@ def test_bags_of_different_input_counts_are_refused_naming_both(tmp_path):
         finger_shape(one, three)
 
 
+def test_commands_of_more_fingers_than_tips_are_refused(tmp_path):
+    """Two fingers of one input each named, one tip: not one finger of two inputs."""
+    bag = shape_bag(tmp_path / 'two', d=2, m=2, names=['finger_0/ax0', 'finger_1/ax0'])
+    with pytest.raises(BagDataError, match=r"names \['finger_0/ax0', 'finger_1/ax0'\]; "
+                                           r"expected .* for each of the 1 finger"):
+        read_recording(bag)
+
+
 def test_commands_with_a_gap_in_the_input_numbers_are_refused(tmp_path):
     bag = shape_bag(tmp_path / 'gap', d=2, m=2, names=['finger_0/ax0', 'finger_0/ax2'])
     with pytest.raises(BagDataError, match=r"names \['finger_0/ax0', 'finger_0/ax2'\]; "
