@@ -511,3 +511,23 @@ def test_the_train_tool_learns_a_one_input_3d_finger_from_bags(tmp_path, capsys)
     assert model.shape == FingerShape(3, 1)
     assert model.input_bounds.lower[0] == 0.0 and 1.9 < model.input_bounds.upper[0] <= 2.0
     assert 'finger shape: 1 input(s)' in capsys.readouterr().out
+
+
+def test_hand_bags_train_the_hands_shape_with_the_given_bounds(tmp_path, capsys):
+    """Bags of two-torque fingers with a planar tip: a (2, 2) model whose checkpoint records the
+    bounds given on the command line."""
+    from bag_writing import excitation_bag
+    train_bag = excitation_bag(tmp_path / 'train', seconds=2.0)
+    val_bag = excitation_bag(tmp_path / 'val', seconds=1.5)
+    out = tmp_path / 'out'
+    assert train_tool.main(['--bag', str(train_bag), '--val-bag', str(val_bag), '--out', str(out),
+                            '--epochs', '2', '--rollout-epochs', '0', '--jerk-psd', '1e4',
+                            '--meas-std', '1e-6', '--input-lower', '-0.05', '-0.03',
+                            '--input-upper', '0.05', '0.03']) == 0
+    model = SDCModel(out / 'model.pt')
+    assert model.shape == HAND_SHAPE
+    assert model.input_bounds == InputBounds([-0.05, -0.03], [0.05, 0.03])
+    assert model.data['input_bounds'] == {'lower': [-0.05, -0.03], 'upper': [0.05, 0.03]}
+    printed = capsys.readouterr().out
+    assert 'finger shape: 2 input(s) (ax0 [-0.05, 0.05], ax1 [-0.03, 0.03]), a tip of 2' in printed
+    assert "z moves" not in printed

@@ -283,7 +283,8 @@ def recorded_bounds(recordings: list[Recording]) -> InputBounds:
         if not lower[k] < upper[k]:
             raise BagDataError(f'input ax{k} was 0 in every command of '
                                + ', '.join(str(rec.path) for rec in recordings)
-                               + ': nothing to learn its effect from')
+                               + ': nothing to learn its effect from, nor its bounds (give '
+                               '--input-lower/--input-upper to train regardless)')
     return InputBounds(lower, upper)
 
 
