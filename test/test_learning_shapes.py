@@ -531,3 +531,48 @@ def test_hand_bags_train_the_hands_shape_with_the_given_bounds(tmp_path, capsys)
     printed = capsys.readouterr().out
     assert 'finger shape: 2 input(s) (ax0 [-0.05, 0.05], ax1 [-0.03, 0.03]), a tip of 2' in printed
     assert "z moves" not in printed
+
+
+# -- the Koopman baseline's model for other shapes ---------------------------------------------
+
+def _koopman_records(d: int, m: int, n: int = 3000, seed: int = 0):
+    """(pos, vel, u) of the known system of shape (d, m), exact semi-implicit Euler at 1 kHz."""
+    G2, bounds = SYSTEMS[(d, m)]
+    rng = np.random.default_rng(seed)
+    u = np.repeat(bounds.lower + 2 * bounds.half_span * rng.random((n // 25, m)), 25, axis=0)
+    p, v = np.zeros((n, d)), np.zeros((n, d))
+    for k in range(n - 1):
+        v[k + 1] = v[k] + 1e-3 * (-STIFFNESS * p[k] - DAMPING * v[k] + G2 @ u[k])
+        p[k + 1] = p[k] + 1e-3 * v[k + 1]
+    return p, v, u
+
+
+@pytest.mark.parametrize('d, m', [(3, 3), (2, 1)])
+def test_the_koopman_model_fits_and_round_trips_any_shape(d, m, tmp_path):
+    from soft_gripper_sdre.learning.koopman import KoopmanModel, KoopmanSettings, fit_koopman
+    p, v, u = _koopman_records(d, m)
+    model = fit_koopman([(p, v, u)], np.zeros(3), 1e-3, KoopmanSettings(delays=(2,), degree=2))
+    n_s = 2 * d
+    assert (model.d, model.m) == (d, m) and model.B.shape == (model.n_z, m)
+    assert model.n_z == n_s + d + n_s * (n_s + 1) // 2 and model.C.shape == (n_s, model.n_z)
+    acc = model.predict_acceleration(p[:-1], v[:-1], u[:-1])
+    true = (v[1:] - v[:-1]) / 1e-3
+    assert acc.shape == (len(p) - 1, d)
+    assert np.sqrt(np.mean((acc - true) ** 2)) < 0.05 * np.sqrt(np.mean(true ** 2))
+    again = KoopmanModel.load(model.save(tmp_path / 'k.npz'))
+    np.testing.assert_array_equal(again.B, model.B)
+    assert (again.d, again.m) == (d, m)
+
+
+def test_the_koopman_model_refuses_shapes_it_cannot_take():
+    from soft_gripper_sdre.learning.koopman import KoopmanModel, KoopmanSettings, fit_koopman
+    s = KoopmanSettings(degree=1)
+    with pytest.raises(ValueError, match=r'state_scale must be 2d positive numbers .* \(4 or 6\)'):
+        KoopmanModel(np.eye(5), np.zeros((5, 1)), np.ones(5), np.zeros(3), 1e-3, s)
+    with pytest.raises(ValueError, match=r'B \(6, m\), m = 1 to 4 inputs'):
+        KoopmanModel(np.eye(6), np.zeros((6, 5)), np.ones(6), np.zeros(3), 1e-3, s)
+    p, v, u = _koopman_records(2, 1, n=500)
+    with pytest.raises(ValueError, match=r'record 1: pos and vel must each be \(N, d\)'):
+        fit_koopman([(p, v, u), (p, v, np.hstack([u, u]))], np.zeros(3), 1e-3, s)
+    with pytest.raises(ValueError, match=r'record 0: .*got \(500, 4\)'):
+        fit_koopman([(np.hstack([p, p]), np.hstack([v, v]), u)], np.zeros(3), 1e-3, s)
