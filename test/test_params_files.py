@@ -164,3 +164,19 @@ def test_a_namespaced_node_is_checked_against_the_sections_that_reach_it(tmp_pat
     assert "unknown parameter 'storag' for node /left_hand/recorder" in out.stderr
     assert 'storage' not in out.stderr.split('has:')[0]
     assert not (tmp_path / 'bag').exists()
+
+
+def test_each_node_of_a_composed_process_checks_its_own_sections(tmp_path):
+    """controller --with-estimator: the estimator refuses a key its section names and the
+    controller's section is the controller's."""
+    path = tmp_path / 'mine.yaml'
+    path.write_text('/**/controller:\n  ros__parameters:\n    law: pd\n'
+                    '/**/estimator:\n  ros__parameters:\n    max_bridg: 0.1\n')
+    out = _run('controller', '--with-estimator', '--ros-args',
+               '--params-file', str(ROOT / 'config' / 'controller.yaml'),
+               '--params-file', str(ROOT / 'config' / 'estimator.yaml'),
+               '--params-file', str(path), cwd=tmp_path)
+    assert out.returncode == 2, out.stderr
+    assert (f"unknown parameter 'max_bridg' for node /estimator in {path} (section "
+            "'/**/estimator', line 6)") in out.stderr
+    assert 'law' not in out.stderr.split('bad parameter')[-1]
