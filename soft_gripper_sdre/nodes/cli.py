@@ -18,11 +18,9 @@ from typing import Iterable, TextIO
 import yaml
 
 from soft_gripper_sdre.nodes.params import Param, use_params_files
+from soft_gripper_sdre.nodes.params_files import ROS_PARAMETER_PREFIXES, ROS_PARAMETERS
 
 HELP_FLAGS = ('-h', '--help')
-#: parameters every rclpy node has besides its own, and prefixes of those it may have
-ROS_PARAMETERS = ('use_sim_time', 'start_type_description_service')
-ROS_PARAMETER_PREFIXES = ('qos_overrides.',)
 #: exit status of a refused command line
 USAGE_ERROR = 2
 
