@@ -300,3 +300,41 @@ def test_the_executable_serves_a_stand_in_capture_over_dds(tmp_path):
         proc.send_signal(signal.SIGINT)
         _, err = proc.communicate(timeout=30)
     assert proc.returncode == 0, err
+
+
+def test_the_estimator_takes_the_mocap_tips_at_the_captures_rate():
+    """A 120 Hz capture of two bodies → mocap_tips → the estimator of two fingers: one estimate
+    per frame on the frame's stamp, every message accepted, the estimates on the tips in the
+    base frames."""
+    from trajectory_msgs.msg import MultiDOFJointTrajectory
+
+    from soft_gripper_sdre.nodes.estimator import MESSAGE_OUTCOMES, EstimatorNode
+    from soft_gripper_sdre.nodes.topics import STATE_ESTIMATE
+
+    period = int(round(1e9 / 120))
+    rng = np.random.default_rng(2)
+    with ros_context() as (ctx, executor):
+        m = Mocap(ctx, executor)
+        est = EstimatorNode(context=ctx, parameter_overrides=overrides(
+            finger_names=['left', 'right'], control_period=1.0 / 120))
+        m.reader.listen(MultiDOFJointTrajectory, STATE_ESTIMATE, deep(LOOP_QOS))
+        executor.add_node(est)
+        assert spin_until(executor, lambda: m.node.pub.get_subscription_count() == 2
+                          and est.pub.get_subscription_count() > 0, 20.0)
+        frames = []
+        for k in range(60):
+            left = np.array([0.1, 0.0, 0.2]) + [0.002 * math.sin(k / 10), 0.03, 0.0]
+            right = np.array([-0.1, 0.05, 0.2]) + [0.0, 0.03, 0.001 * k]
+            left += rng.normal(0.0, 2e-5, 3)
+            ns = T0 + k * period
+            m.frame(ns, left, right)
+            frames.append((ns, expected_tips(left, right)))
+            assert spin_until(executor, lambda: est.diag.counters['estimates'] > k, 5.0)
+        e = est.diag.counters
+        assert e['received'] == 60 == sum(e[key] for key in MESSAGE_OUTCOMES) == e['estimates']
+        got = m.reader.received[STATE_ESTIMATE]
+        assert spin_until(executor, lambda: len(got) == 60, 5.0)
+        estimates = [cv.msg_to_estimate(msg, ['left', 'right']) for msg in got]
+        assert [s for s, _ in estimates] == [ns for ns, _ in frames]
+        x = np.array([x for _, x in estimates])
+        np.testing.assert_allclose(x[:, :, :2], [t[:, :2] for _, t in frames], atol=2e-4)
