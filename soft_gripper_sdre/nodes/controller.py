@@ -23,7 +23,7 @@ estimate to its torque (the plan sampled, each finger in the model's frame, the 
 parameters, topics, conversions, status and logs.
 
 **Tuning at runtime.** ``q_pos``, ``q_vel``, ``r``, ``integral_gain``, ``integral_band``, ``pd_kp``
-and ``pd_kd`` may be changed while the node runs (``ros2 param set /controller q_pos 2e6``). A
+and ``pd_kd`` may be changed while the node runs (``ros2 param set /controller q_pos 2.0e+6``). A
 change is checked by building the law with the new values: a refused one returns its reason and
 the old values stay in force. An accepted one takes effect at the next estimate: parameter
 changes are executor callbacks like the estimates, so they never run inside a control step. The
