@@ -194,10 +194,15 @@ class ControllerNode(Node):
         set_torch_threads(1)
         self.model = load_model(p['model_path'])
         self.shape = shape_of(self.model)
-        #: the bounds the law was given (None: ±torque_limit, the law's own), and those in force
-        self.law_bounds = input_bounds(p, self.shape.m)
-        self.bounds = (InputBounds.symmetric(p['torque_limit'], self.shape.m)
-                       if self.law_bounds is None else self.law_bounds)
+        #: the bounds in force, and those the law is given besides its ±limit (None: the
+        #: symmetric bounds of input_lower / input_upper, or ±torque_limit, are that limit)
+        self.bounds = input_bounds(p, self.shape.m)
+        self.law_bounds = self.bounds
+        limit = p['torque_limit']
+        if self.bounds is None:
+            self.bounds = InputBounds.symmetric(limit, self.shape.m)
+        elif self.bounds.symmetric_limit is not None:
+            limit, self.law_bounds = self.bounds.symmetric_limit, None
         self.names = tuple(p['finger_names'])
         self.n = len(self.names)
         self.effort_order = None            # index into u.ravel() of each effort_topic entry
@@ -208,7 +213,8 @@ class ControllerNode(Node):
             except ValueError as exc:
                 raise ParameterError(f'parameter \'effort_joints\': {exc}') from None
         try:
-            self.tuning = LawTuning(self.model, self.n, p, bounds=self.law_bounds)
+            self.tuning = LawTuning(self.model, self.n, {**p, 'torque_limit': limit},
+                                    bounds=self.law_bounds)
         except ValueError as exc:
             raise ParameterError(f'law/state_weights/integral_gain/pd_kp/pd_kd: {exc}') from None
         on_runtime_change(self, PARAMS, validate=self.tuning.check, apply=self._apply)
@@ -266,7 +272,7 @@ class ControllerNode(Node):
                          if self.tuning.uses('integral_gain') else '')
         rest = ', '.join(f'{1e3 * v:.1f}' for v in model.rest_tip[:self.shape.d])
         shape = '' if self.shape == HAND_SHAPE else f'{self.shape}; '
-        limit = (f'limit {p["torque_limit"]:g} N·m' if self.law_bounds is None
+        limit = (f'limit {self.tuning.params["torque_limit"]:g} N·m' if self.law_bounds is None
                  else f'inputs {self.bounds}')
         self.get_logger().info(
             f'model {model.path.name} ({shape}rest tip {rest} mm'
