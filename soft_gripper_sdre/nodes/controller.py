@@ -77,6 +77,7 @@ from soft_gripper_sdre.control.tracking import (
     DEFAULT_LOWPASS_HZ,
     DEFAULT_WEIGHTS,
     roll_off_corner_hz,
+    shape_of,
 )
 from soft_gripper_sdre.learning.model import ModelFileError, SDCModel, set_torch_threads
 from soft_gripper_sdre.nodes import cdr
@@ -102,12 +103,6 @@ from soft_gripper_sdre.nodes.topics import (
 )
 from soft_gripper_sdre.nodes.tracking_step import TrackingStep
 from soft_gripper_sdre.sim.shape import HAND_SHAPE, InputBounds, ShapeError
-
-try:
-    from soft_gripper_sdre.control.tracking import shape_of
-except ImportError:        # a stand-in until control.tracking infers the shape of any model
-    def shape_of(model):
-        return getattr(model, 'shape', HAND_SHAPE)
 
 PARAMS = (
     Param('model_path', '', 'SDC model checkpoint (.pt); empty = the model shipped with the '
@@ -441,6 +436,26 @@ def _ns(seconds: float) -> int:
     return int(round(seconds * cv.NS))
 
 
+def composed(**kwargs) -> tuple[Node, Node]:
+    """The estimator and the controller of ``controller --with-estimator``, two nodes of one
+    process (``kwargs``: to both constructors, e.g. ``context=``).
+
+    Raises:
+        ParameterError: as either node raises it, or the estimator's ``task_dim`` is not the
+            model's task dimension.
+    """
+    estimator, controller = with_estimator(
+        lambda: ControllerNode(subscribe_estimates=False, **kwargs),
+        lambda controller: controller.take_estimate, **kwargs)
+    if estimator.d != controller.shape.d:
+        ours, theirs = estimator.d, controller.shape.d
+        estimator.destroy_node()
+        controller.destroy_node()
+        raise ParameterError(f"parameter 'task_dim': the estimator filters {ours}-D tips but the "
+                             f'model is of {theirs}-D tips; give task_dim {theirs}')
+    return estimator, controller
+
+
 def main(args=None) -> int:
     """``controller [--with-estimator] [--ros-args ...]``; with the flag the process also runs the
     estimator node (:func:`~soft_gripper_sdre.nodes.composition.with_estimator`; ``-p`` reaches
@@ -451,16 +466,6 @@ def main(args=None) -> int:
         return run(ControllerNode, argv)
     argv.remove(WITH_ESTIMATOR)
 
-    def composed() -> tuple[Node, Node]:
-        estimator, controller = with_estimator(lambda: ControllerNode(subscribe_estimates=False),
-                                               lambda controller: controller.take_estimate)
-        if estimator.d != controller.shape.d:
-            d = controller.shape.d
-            estimator.destroy_node()
-            controller.destroy_node()
-            raise ParameterError(f"parameter 'task_dim': the estimator filters {estimator.d}-D "
-                                 f'tips but the model is of {d}-D tips; give task_dim {d}')
-        return estimator, controller
     return run(composed, argv, composed_params(PARAMS))
 
 
