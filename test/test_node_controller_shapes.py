@@ -68,7 +68,10 @@ def checkpoint(request, tmp_path_factory):
 
 
 def _bounds_params(bounds: InputBounds) -> dict:
-    return dict(input_lower=', '.join(f'{v:g}' for v in bounds.lower),
+    """The bounds as parameters: the lower ones a list of doubles (a YAML list), the upper ones a
+    string; one bound alone a plain number."""
+    lower = [float(v) for v in bounds.lower]
+    return dict(input_lower=lower[0] if len(lower) == 1 else lower,
                 input_upper=', '.join(f'{v:g}' for v in bounds.upper))
 
 
@@ -182,3 +185,26 @@ def test_the_composed_controller_filters_the_models_tips_and_refuses_another_tas
             u = cv.msg_to_torques(cmd, NAMES, shape.m)[1]
             assert np.isfinite(u).all() and bounds.contains(u)
         assert est.filter.kf.x.shape == (2, 2 * d)
+
+
+@pytest.mark.parametrize('node, args, needle', [
+    ('controller', ['-p', 'input_lower:=0', '-p', 'input_upper:=0.05'],      # int, double
+     "'input_lower', 'input_upper': the finger has 2 input(s); got 1 lower and 1 upper"),
+    ('controller', ['-p', 'input_lower:=[0.0, 0.01]', '-p', 'input_upper:=[0.01, 0.01]'],
+     'input ax1: the lower bound must be below the upper one'),
+    ('estimator', ['-p', 'task_dim:=4'], 'task_dim'),
+    ('trajectory', ['-p', 'direction:=[0.0, 1.0, 0.0]'], "'direction': needs task_dim = 2 values"),
+    ('trajectory', ['-p', 'close_path:=[0.001, .nan]'], "'close_path'"),
+])
+def test_bad_shape_parameters_exit_2_naming_them(node, args, needle, tmp_path):
+    """Real processes: exit status 2, the message names the parameters, no traceback."""
+    import os
+    import subprocess
+    import sys
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
+    out = subprocess.run([sys.executable, '-m', f'soft_gripper_sdre.nodes.{node}', '--ros-args',
+                          *args], cwd=tmp_path, env=env, capture_output=True, text=True,
+                         timeout=120)
+    assert out.returncode == 2, out.stderr
+    assert needle in out.stderr and 'Traceback' not in out.stderr
+    assert not list(tmp_path.iterdir())

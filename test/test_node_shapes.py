@@ -360,8 +360,11 @@ def test_controller_with_symmetric_input_bounds_is_the_law_at_that_limit(model):
     (dict(input_lower='0', input_upper='0.01'), '2 input(s); got 1 lower and 1 upper'),
     (dict(input_lower='0, 0, 0', input_upper='1, 1, 1'), '2 input(s)'),
     (dict(input_lower='0.01, 0', input_upper='0.01, 0.01'), 'input ax0: the lower bound'),
-    (dict(input_lower='0, nan', input_upper='1, 1'), 'input ax1: bounds must be finite'),
+    (dict(input_lower='0, nan', input_upper='1, 1'), "'input_lower': '0, nan' holds a value that"),
     (dict(input_lower='zero, 0', input_upper='1, 1'), "'input_lower'"),
+    (dict(input_lower=0, input_upper=[1.0]), '2 input(s); got 1 lower and 1 upper'),
+    (dict(input_lower=[0.0, float('inf')], input_upper=[1.0, 1.0]), "'input_lower'"),
+    (dict(input_lower=[True, False], input_upper=[1.0, 1.0]), "'input_lower'"),
     (dict(effort_topic='/efforts', effort_joints=['finger_0/ax2']), 'effort_joints'),
 ])
 def test_controller_refuses_bad_input_bounds_naming_them(params, needle):
@@ -401,3 +404,30 @@ def _plan_of(times, pos):
     h = len(times)
     p = np.repeat(pos[None], h, 0)
     return Plan(int(times[0]), int(times[-1]), times, p, np.zeros_like(p), np.zeros_like(p))
+
+
+# -- markers ----------------------------------------------------------------------------------
+
+def test_markers_draw_a_3d_reference_at_its_own_z():
+    """A planar reference is drawn at its tip's height; a 3-D one where its z says."""
+    from soft_gripper_sdre.nodes.markers import HandMarkers, decode
+    from soft_gripper_sdre.sim.hand_description import hand_urdf
+    names = list(cv.finger_names(4))
+    markers = HandMarkers(hand_urdf(), names, range(4), with_references=True)
+    q = np.zeros((4, 10))
+    links = markers.kin.link_poses({f'{n}/joint_{j}': 0.0 for n in names for j in range(10)})
+
+    def points(refs):
+        msg = decode(markers.encode(0, q, None, refs))
+        by_ns = {m.ns: m for m in msg.markers}
+        return [np.array([[p.x, p.y, p.z] for p in by_ns[ns].points])
+                for ns in ('tips', 'references')]
+
+    tips, _ = points(None)
+    step = np.array([0.0, 0.002, 0.001])
+    local = np.array([links[f'{n}/base'][:3, :3].T @ (tips[i] - links[f'{n}/base'][:3, 3])
+                      for i, n in enumerate(names)]) + step
+    for refs, lift in ((local, step), (local[:, :2], step * [1, 1, 0])):
+        _, drawn = points(refs)
+        expected = np.array([links[f'{n}/base'][:3, :3] @ lift for n in names])
+        np.testing.assert_allclose(drawn - tips, expected, atol=1e-12)

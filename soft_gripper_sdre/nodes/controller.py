@@ -90,6 +90,8 @@ from soft_gripper_sdre.nodes.params import (
     ParameterError,
     declare_all,
     finger_names_param,
+    numbers,
+    numbers_param,
     on_runtime_change,
 )
 from soft_gripper_sdre.nodes.plan_cdr import PlanCodec
@@ -120,12 +122,12 @@ PARAMS = (
     Param('torque_limit', 0.0625, 'saturation of each torque (0.0625 N·m = 25 sim units, the '
           'stable range of the physics step) when input_lower and input_upper are empty', 'N·m',
           1e-6, 1.0, read_only=True),
-    Param('input_lower', '', "lower bound of each of the model's m inputs, as 'l0, l1, …' in "
-          "each input's SI unit (e.g. '0' for a pneumatic chamber or a tendon); '' with "
-          'input_upper \'\' = -torque_limit on each input', read_only=True),
-    Param('input_upper', '', "upper bound of each of the model's m inputs, as 'u0, u1, …' (each "
-          "above its lower bound); '' with input_lower '' = torque_limit on each input",
-          read_only=True),
+    numbers_param('input_lower', "lower bound of each of the model's m inputs in its SI unit, a "
+                  "list [l0, l1, …] (e.g. [0.0] for a pneumatic chamber or a tendon); '' with "
+                  "input_upper '' = -torque_limit on each input"),
+    numbers_param('input_upper', "upper bound of each of the model's m inputs, a list "
+                  "[u0, u1, …], each above its lower bound; '' with input_lower '' = "
+                  'torque_limit on each input'),
     Param('torque_lowpass_hz', DEFAULT_LOWPASS_HZ, 'first-order roll-off of the torque command '
           '(keeps the loop out of the finger\'s ~59 Hz bending mode; 0 = off); its corner is '
           'capped at a tenth of the control rate, 0.1 / control_period (10 Hz at 10 ms)', 'Hz',
@@ -376,7 +378,7 @@ def input_bounds(p: dict, m: int) -> InputBounds | None:
         ParameterError: a list that is not numbers, one list empty and the other not, not one
             value per input, or an empty interval (the message names the parameters).
     """
-    lower, upper = (_numbers(p[name], name) for name in ('input_lower', 'input_upper'))
+    lower, upper = (numbers(p[name], name) for name in ('input_lower', 'input_upper'))
     if lower is None and upper is None:
         return None
     if lower is None or upper is None:
@@ -386,16 +388,6 @@ def input_bounds(p: dict, m: int) -> InputBounds | None:
         return InputBounds.parse(lower, upper, m, "parameters 'input_lower', 'input_upper'")
     except ShapeError as exc:
         raise ParameterError(str(exc)) from None
-
-
-def _numbers(text: str, name: str) -> list[float] | None:
-    """The numbers of a list parameter ('a, b, …'; '' = None)."""
-    if not text.strip():
-        return None
-    try:
-        return [float(v) for v in text.replace(',', ' ').split()]
-    except ValueError:
-        raise ParameterError(f'parameter {name!r}: {text!r} is not a list of numbers') from None
 
 
 def load_model(path: str) -> SDCModel:
