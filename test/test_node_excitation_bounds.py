@@ -14,7 +14,6 @@ from sensor_msgs.msg import JointState
 
 from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.excitation import ExcitationNode
-from soft_gripper_sdre.nodes.input_commands import msg_to_inputs
 from soft_gripper_sdre.nodes.params import ParameterError
 from soft_gripper_sdre.nodes.topics import LOOP_QOS, TIP_POSITIONS, TORQUE_COMMANDS
 from soft_gripper_sdre.sim.excitation import ExcitationPlan
@@ -66,7 +65,7 @@ def test_one_sided_inputs_are_played_from_rest_into_their_bounds(m, lower, upper
         msgs = probe.received[TORQUE_COMMANDS]
         assert all(list(msg.name) == [f'{f}/ax{k}' for f in NAMES for k in range(m)]
                    for msg in msgs)
-        got = [msg_to_inputs(msg, NAMES, m) for msg in msgs]
+        got = [cv.msg_to_torques(msg, NAMES, m) for msg in msgs]
     plan = ExcitationPlan(resolve_signals(signals, duration=0.1, m=m), 0.02, 2, amplitude=1.5,
                           bounds=bounds)
     for k, (stamp, u) in enumerate(got[:-1]):
@@ -90,9 +89,19 @@ def test_symmetric_bounds_on_two_inputs_are_the_hands_torque_limit():
     assert np.abs(u).max() == 0.03 and np.all(u[:, :, 0] == u[:, :, 1])
 
 
+def test_one_chambers_bounds_given_as_plain_numbers():
+    with ros_context() as (ctx, _executor):
+        node = ExcitationNode(context=ctx, parameter_overrides=overrides(
+            finger_names=NAMES, input_lower=0, input_upper=60000))
+        assert node.m == 1 and node.run.plan.map.bounds == InputBounds([0.0], [60000.0])
+        node.destroy_node()
+
+
 @pytest.mark.parametrize('params, message', [
     (dict(input_lower=[0.0, 0.0], input_upper=[4.0, 4.0, 4.0]),
-     "parameters 'input_lower', 'input_upper': the finger has 2 input(s); got 2 lower and 3 upper"),
+     "parameters 'input_lower', 'input_upper': 2 lower and 3 upper bound(s)"),
+    (dict(input_upper=[4.0, 4.0]), 'give both (one value per input) or neither'),
+    (dict(input_lower='0 nan', input_upper=[4.0, 4.0]), 'holds a value that is not finite'),
     (dict(input_lower=[0.0] * 5, input_upper=[1.0] * 5),
      'input bounds: 5 inputs; a finger has 1 to 4'),
     (dict(input_lower=[0.0, 2.0], input_upper=[1.0, 1.0]),
