@@ -43,6 +43,13 @@ def test_the_built_in_signals_as_shares_for_one_to_four_inputs(name):
         input_signal('u9', 2)
 
 
+def test_one_input_gets_two_different_broadband_and_identifying_signals():
+    """b1/b2 and x1/x2 on one input are not the same record twice: uncorrelated."""
+    for a, b in (('b1', 'b2'), ('x1', 'x2')):
+        corr = np.corrcoef(input_signal(a, 1)(T)[:, 0], input_signal(b, 1)(T)[:, 0])[0, 1]
+        assert abs(corr) < 0.1, (a, b, corr)
+
+
 def _inputs(plan, dt=0.004):
     return np.array([plan.torques(t) for t in np.arange(0.0, plan.duration + 0.2, dt)])
 
