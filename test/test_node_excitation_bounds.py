@@ -9,7 +9,7 @@ import sys
 from geometry_msgs.msg import PoseArray
 import numpy as np
 import pytest
-from rosutil import Probe, deep, overrides, ros_context, spin_until
+from rosutil import Probe, deep, drain, overrides, ros_context, spin_until
 from sensor_msgs.msg import JointState
 
 from soft_gripper_sdre.nodes import conversions as cv
@@ -131,3 +131,40 @@ def test_bad_bounds_exit_2_naming_them():
                           capture_output=True, text=True, timeout=60, env=dict(os.environ))
     assert proc.returncode == 2, proc.stderr
     assert "'input_lower', 'input_upper'" in proc.stderr and 'Traceback' not in proc.stderr
+
+
+@pytest.mark.parametrize('plant, rate, lower, upper', [
+    ('pneumatic1', 100.0, [0.0], [60000.0]),
+    ('trunk3', 250.0, [0.0, 0.0, 0.0], [4.0, 4.0, 4.0]),
+])
+def test_the_excitation_drives_a_foreign_gripper_without_a_command_clipped(plant, rate, lower,
+                                                                           upper):
+    """The excitation node answering the plant driver's best-effort tips with the gripper's
+    bounds: every command decodes (no bad ones), none is clipped by the driver, the true tips
+    move by millimetres, and the run ends with the rest inputs applied."""
+    from soft_gripper_sdre.nodes.plant_driver import TRUE_TIP_POSITIONS, PlantDriverNode
+    with ros_context('events') as (ctx, executor):
+        driver = PlantDriverNode(context=ctx, parameter_overrides=overrides(
+            finger_names=NAMES, plant=plant, rate=rate, command_timeout=0.5))
+        probe = Probe(ctx)
+        truth = []
+        probe.create_subscription(PoseArray, TRUE_TIP_POSITIONS, truth.append, deep(LOOP_QOS))
+        executor.add_node(driver)
+        executor.add_node(probe)
+        node = ExcitationNode(context=ctx, parameter_overrides=overrides(
+            finger_names=NAMES, signals=['x1'], duration=1.5, settle_time=0.3, settle_samples=10,
+            input_lower=lower, input_upper=upper, min_command_subscribers=1,
+            tips_reliability='best_effort'))
+        executor.add_node(node)
+        assert spin_until(executor, lambda: node.done, 30.0)
+        drain(executor, 0.3)
+        c = driver.diag.counters
+        assert node.exit_code == 0
+        assert c['commands'] > 0.8 * rate * 1.8 and c['bad_commands'] == 0
+        assert c['clipped_commands'] == 0 and c['nonfinite_commands'] == 0
+        np.testing.assert_array_equal(driver.applied, np.zeros((2, len(lower))))
+    d = 2 if plant == 'pneumatic1' else 3
+    tips = np.array([[[p.position.x, p.position.y, p.position.z][:d] for p in m.poses]
+                     for m in truth])
+    rest = tips[0]
+    assert np.max(np.linalg.norm(tips - rest, axis=-1)) > 2e-3
