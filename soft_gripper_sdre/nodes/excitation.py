@@ -111,7 +111,8 @@ PARAMS = (
     Param('finger', -1, 'the finger to excite, an index into finger_names (-1 = all); the others '
           'get zero torque', '', -1, 3, read_only=True),
     Param('torque_limit', 0.1, 'every torque is clipped to ±limit (0.1 N·m: the simulator\'s '
-          'actuator limit; the paper\'s signals peak at 0.0675)', 'N·m', 1e-6, 1.0, read_only=True),
+          'actuator limit; the paper\'s signals peak at 0.0675); the hand\'s two inputs, unless '
+          'input_lower / input_upper give the bounds', 'N·m', 1e-6, 1.0, read_only=True),
     numbers_param('input_lower', 'lower bound of each input in its SI unit (N·m, Pa, N), a list '
                   "[u0, u1, …] of 1 to 4 values: the finger's inputs; '' with input_upper '' = "
                   '−torque_limit on 2 inputs (the hand)'),
