@@ -2,6 +2,8 @@
 shares for 1 to 4 inputs, plans that keep every input in its interval (about the middle of a
 two-sided one, from the rest value into a one-sided one), spec files with ax0..ax<m−1>, and the
 level search on the real pneumatic (m = 1) and trunk (m = 3) fingers of sim/foreign_presets."""
+import dataclasses
+
 import numpy as np
 import pytest
 import yaml
@@ -180,3 +182,8 @@ def test_level_auto_needs_one_kind_of_signal_with_bounds(tmp_path):
         plan.probe_inputs()
     with pytest.raises(ValueError, match='probe inputs need a plan with bounds'):
         ExcitationPlan([builtin_signal('u1')], 0.0, 1).probe_inputs()
+    probe = ExcitationPlan(resolve_signals(['u1'], m=3), 0.0, 1, bounds=TENDONS).probe_inputs()
+    for bad in (dataclasses.replace(probe, largest=0.0),
+                dataclasses.replace(probe, swing=np.zeros(3))):
+        with pytest.raises(ValueError, match='room within their bounds'):
+            LevelSearch(np.ones(2), 1.0, 0.01, 1, inputs=bad)
