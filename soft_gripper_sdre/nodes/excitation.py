@@ -53,9 +53,10 @@ Stops: at the end of the plan, on shutdown (SIGINT/SIGTERM) and on a fault, zero
 published before the node exits (status 0 at the end of the plan, 1 after a fault). Faults: no
 tips for ``tips_timeout`` of wall time (or none at all within ``startup_timeout``), tip stamps
 jumping back by more than ``reset_on_jump`` (a restarted driver), and an excited tip moving more
-than ``max_excursion`` from where it was at the start. Malformed or old tip messages are
-counted, warned about (throttled) and not answered. Counters and the signal being played go to
-/diagnostics.
+than ``max_excursion`` from where it was at the start (the distance in x, y and z: a 3-D tip's z
+counts, a planar one's is 0; the level search measures its excursions the same way).
+Malformed or old tip messages are counted, warned about (throttled) and not answered. Counters
+and the signal being played go to /diagnostics.
 
 The torque at each run time is :class:`~soft_gripper_sdre.sim.excitation_run.ExcitationRun`'s
 (settle, probes, plan); what /diagnostics and the log show of the run is
