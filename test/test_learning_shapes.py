@@ -142,9 +142,9 @@ def test_the_checkpoint_round_trips_the_shape_bounds_and_networks(trained):
         model.AG(np.zeros(n + 1))
 
 
-def test_the_simulation_stage_and_the_rest_penalty_run_for_any_shape():
-    """The rollout epochs and the stable-rest penalty work on a (3, 3) finger: the kept rest's
-    eigenvalues lie left of the margin."""
+def test_the_simulation_stage_runs_for_any_shape():
+    """The rollout epochs on records of a (3, 3) finger: positions of three coordinates driven by
+    three held inputs, every epoch's validation simulation error finite."""
     from soft_gripper_sdre.learning.rollout import Run
     d, m = 3, 3
     G2, bounds = SYSTEMS[(d, m)]
@@ -159,17 +159,40 @@ def test_the_simulation_stage_and_the_rest_penalty_run_for_any_shape():
         x[k + 1, :d] = x[k, :d] + dt * x[k + 1, d:]
     acc[-1] = -STIFFNESS * x[-1, :d] - DAMPING * x[-1, d:] + G2 @ u[-1]
     half = steps // 2
-    settings = replace(PRESETS['gripper'], epochs=5, rollout_epochs=3, rollout_val_seconds=0.2,
-                       rest_margin=5.0)
+    settings = replace(PRESETS['gripper'], epochs=5, rollout_epochs=3, rollout_val_seconds=0.2)
     result = train(x[:half], u[:half], acc[:half], x[half:], u[half:], acc[half:], settings,
                    runs=[Run(x[:half], u[:half], dt)], val_runs=[Run(x[half:], u[half:], dt)],
                    shape=FingerShape(d, m))
-    assert len(result.rollout_loss) == 3 and np.all(np.isfinite(result.val_sim_error))
-    net, s = result.net, result.scales
-    with torch.no_grad():
-        a0 = net(torch.zeros(1, 2 * d))[0][0].numpy() * s['acc'][:, None] / s['x'][None, :]
-    A0 = np.vstack([np.hstack([np.zeros((d, d)), np.eye(d)]), a0])
-    assert np.linalg.eigvals(A0).real.max() < 0
+    assert len(result.rollout_loss) == 3 and len(result.val_sim_error) == 8
+    assert np.all(np.isfinite(result.val_sim_error)) and np.all(np.isfinite(result.rollout_loss))
+
+
+def test_the_rest_penalty_moves_a_3d_rest_left():
+    """L_rest of a (3, 3) network: positive while A(0) (6 × 6) has an eigenvalue right of the
+    margin, and its gradient steps move the rightmost eigenvalue left."""
+    from soft_gripper_sdre.learning.rollout import Scales
+    from soft_gripper_sdre.learning.training import _rest_penalty
+    torch.manual_seed(0)
+    net = SDCNet(shape=FingerShape(3, 3))
+    s = Scales(torch.full((6,), 0.1), torch.ones(3), torch.full((3,), 10.0))
+    settings = replace(PRESETS['default'], rest_margin=50.0)
+
+    def rightmost():
+        with torch.no_grad():
+            a0 = net(torch.zeros(1, 6))[0][0] * s.acc[:, None] / s.x[None, :]
+        A0 = np.vstack([np.hstack([np.zeros((3, 3)), np.eye(3)]), a0.numpy()])
+        return np.linalg.eigvals(A0).real.max()
+
+    before = rightmost()
+    assert before > -50.0
+    opt = torch.optim.Adam(net.parameters(), lr=1e-3)
+    for _ in range(30):
+        loss = _rest_penalty(net, s, settings)
+        assert loss is not None and float(loss.detach()) > 0
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    assert rightmost() < before - 1.0
 
 
 def test_the_singular_value_penalty_runs_on_a_non_square_g2():
@@ -214,8 +237,14 @@ BAD_SHAPES = {
     'task dimension 4': (lambda c: {**c, 'shape': {'d': 4, 'm': 1}}, 'shape: the task dimension d'),
     'no inputs': (lambda c: {**c, 'shape': {'d': 2, 'm': 0}}, 'shape: the number of inputs m'),
     'shape not a mapping': (lambda c: {**c, 'shape': [2, 1]}, 'shape: expected a mapping'),
-    'shape of other weights': (lambda c: {**c, 'shape': {'d': 3, 'm': 3}},
-                               'does not match the network layout'),
+    'shape of other declared sizes': (
+        lambda c: {**c, 'shape': {'d': 3, 'm': 3}, 'input_bounds': None},
+        r'does not match the network layout: architecture n_state = 4, the shape \(d=3, m=3\)'),
+    'shape of other weights': (
+        lambda c: {**c, 'shape': {'d': 3, 'm': 1}, 'architecture': {'hidden': 32}},
+        '(?s)does not match the network layout: .*size mismatch'),
+    'bounds of another shape': (lambda c: {**c, 'shape': {'d': 3, 'm': 3}},
+                                r'input_bounds name 1 input\(s\), the shape \(d=3, m=3\) has 3'),
     'declared sizes of another shape': (
         lambda c: {**c, 'architecture': {**c['architecture'], 'n_input': 2}},
         'architecture n_input = 2, the shape'),
@@ -335,7 +364,7 @@ def test_a_one_input_3d_bag_trains_a_model_of_its_shape(tmp_path):
     val_bag = shape_bag(tmp_path / 'val', seconds=2.0, seed=1)
     train_set = load_bags([train_bag], 'tip_positions', 'torque_commands', 1.0, None)
     val_set = load_bags([val_bag], 'tip_positions', 'torque_commands', 1.0, None)
-    shape, bounds = finger_shape(train_set, val_set)
+    shape, bounds = finger_shape(train_set, val_set, 'auto')
     assert shape == FingerShape(3, 1) and bounds.lower[0] == 0.0
     data = _label_sets(train_set, val_set, 1e4, None, shape, bounds)
     assert data.x.shape[1] == 6 and data.u.shape[1] == 1 and data.acc.shape[1] == 3
@@ -427,3 +456,50 @@ def test_shape_arguments_apply_to_bags_only(args, tmp_path, capsys):
 def test_bounds_that_cannot_be_used_are_shape_errors():
     with pytest.raises(ShapeError, match='the finger has 1 input'):
         InputBounds.parse([0.0, 0.0], [1.0, 1.0], 1, '--input-lower/--input-upper')
+
+
+def test_recorded_bounds_hold_zero_and_refuse_an_input_never_commanded(tmp_path):
+    """Commands of 0.5 … 2 (no settle phase) give [0, 2]: the rest input 0 is inside; an input
+    that was 0 throughout is refused by name."""
+    stamps = np.arange(1500) * MS
+    tips = np.zeros((1500, 1, 3))
+    tips[:, 0, 0] = 1e-3 * np.sin(np.linspace(0, 9, 1500))
+    u = np.stack([0.5 + 1.5 * np.linspace(0, 1, 1500), np.zeros(1500)], axis=1)
+    bag = write_bag(tmp_path / 'b', {'/tip_positions': tips_messages(stamps, tips),
+                                     '/torque_commands': _commands(stamps, u)})
+    rec = read_recording(bag)
+    with pytest.raises(BagDataError, match=r'input ax1 was 0 in every command of .*b: nothing'):
+        recorded_bounds([rec])
+    one = read_recording(write_bag(tmp_path / 'one', {
+        '/tip_positions': tips_messages(stamps, tips),
+        '/torque_commands': _commands(stamps, u[:, :1])}))
+    bounds = recorded_bounds([one])
+    assert bounds.lower[0] == 0.0 and bounds.upper[0] == 2.0 and np.all(bounds.rest == 0.0)
+
+
+def test_a_moving_z_learned_in_2d_by_default_says_so(tmp_path, capsys):
+    sets = [load_bags([shape_bag(tmp_path / name, d=3, m=1, seed=seed)], 'tip_positions',
+                      'torque_commands', 1.0, None) for seed, name in enumerate(('t', 'v'))]
+    shape, _ = finger_shape(*sets)
+    assert shape == FingerShape(2, 1)
+    assert "note: the tips' z moves in 1 training bag(s)" in capsys.readouterr().out
+    assert finger_shape(*sets, task_dim='auto')[0] == FingerShape(3, 1)
+    assert capsys.readouterr().out == ''
+
+
+@pytest.mark.xfail(raises=ValueError, strict=True,
+                   reason="analysis/model_fitness.py (branch any-settings) judges the hand's "
+                          "shape only: its rest check evaluates A at a state of 4 zeros")
+def test_the_train_tool_learns_a_one_input_3d_finger_from_bags(tmp_path, capsys):
+    """README's command on bags of a (3, 1) finger with --task-dim auto: model.pt of that shape
+    with the recorded bounds [0, 2]."""
+    train_bag = shape_bag(tmp_path / 'train', d=3, m=1, seed=0)
+    val_bag = shape_bag(tmp_path / 'val', d=3, m=1, seconds=2.5, seed=1)
+    out = tmp_path / 'out'
+    assert train_tool.main(['--bag', str(train_bag), '--val-bag', str(val_bag), '--out', str(out),
+                            '--task-dim', 'auto', '--epochs', '20', '--rollout-epochs', '0',
+                            '--jerk-psd', '1e4']) == 0
+    model = SDCModel(out / 'model.pt')
+    assert model.shape == FingerShape(3, 1)
+    assert model.input_bounds.lower[0] == 0.0 and 1.9 < model.input_bounds.upper[0] <= 2.0
+    assert 'finger shape: 1 input(s)' in capsys.readouterr().out

@@ -269,16 +269,18 @@ def task_dimension(recordings: list[Recording], requested: str | int = 'auto') -
 
 def recorded_bounds(recordings: list[Recording]) -> InputBounds:
     """Per input, the range [min, max] the recorded commands spanned over every finger of every
-    recording (the settle phase's zeros included, so a one-sided input's range reaches 0).
+    recording, widened to hold 0: the model's rest is the finger settled at zero input (the
+    settle phase), so 0 is an input the actuator delivers; a one-sided input's range is
+    [0, max] or [min, 0].
 
     Raises:
-        BagDataError: an input whose commands never changed (naming it and the recordings).
+        BagDataError: an input that was 0 in every command (naming it and the recordings).
     """
     u = np.concatenate([rec.torques.reshape(-1, rec.n_inputs) for rec in recordings])
-    lower, upper = u.min(axis=0), u.max(axis=0)
+    lower, upper = np.minimum(u.min(axis=0), 0.0), np.maximum(u.max(axis=0), 0.0)
     for k in range(u.shape[1]):
         if not lower[k] < upper[k]:
-            raise BagDataError(f'input ax{k} was {lower[k]:g} in every command of '
+            raise BagDataError(f'input ax{k} was 0 in every command of '
                                + ', '.join(str(rec.path) for rec in recordings)
                                + ': nothing to learn its effect from')
     return InputBounds(lower, upper)
