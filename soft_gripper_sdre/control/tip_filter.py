@@ -48,6 +48,19 @@ RESET_ON_JUMP = 0.1
 MAX_BRIDGE = 0.05
 
 
+def make_kf(dt: float, accel_psd: float, meas_std: float, n: int,
+            process_noise: str = 'independent', d: int = 2) -> ConstantVelocityKF:
+    """The constant-velocity KF of ``n`` fingers whose tips have ``d`` coordinates (2 or 3): for
+    d = 2 built exactly as the hand's loop builds it (its compiled step).
+
+    Raises:
+        ValueError: a value the filter refuses (d not 2 or 3 among them).
+    """
+    if d == 2:
+        return ConstantVelocityKF(dt, accel_psd, meas_std, n=n, process_noise=process_noise)
+    return ConstantVelocityKF(dt, accel_psd, meas_std, n=n, process_noise=process_noise, d=d)
+
+
 class Change(enum.Enum):
     """A change the caller reports (log, and for RESET and DROPOUT a counted problem)."""
 
@@ -69,7 +82,7 @@ class Notice(NamedTuple):
 class Outcome:
     """What one measurement leads to: notices first (in order), then a refusal or an estimate."""
 
-    estimate: np.ndarray | None = None   # (n, 4) to publish with the measurement's stamp (a copy)
+    estimate: np.ndarray | None = None   # (n, 2d) to publish with the measurement's stamp (a copy)
     refused: str | None = None           # counter key of a refused message
     reason: str = ''                     # why it was refused
     notices: tuple[Notice, ...] = ()
@@ -79,7 +92,8 @@ class TipFilter:
     """The estimator's first-message, reset, order, gap and dropout rules (module doc).
 
     Args:
-        kf: the filter to initialise and step; its ``n`` is the number of fingers.
+        kf: the filter to initialise and step (:func:`make_kf`); its ``n`` is the number of
+            fingers, its ``d`` the tips' coordinates.
         period_ns: the source's nominal period [ns]: it decides which stamp steps are gaps and
             which lie on the nominal grid.
         reset_jump_ns: a stamp jump larger than this (either direction) resets the filter.
@@ -94,6 +108,7 @@ class TipFilter:
     def __init__(self, kf: ConstantVelocityKF, period_ns: int, reset_jump_ns: int,
                  max_bridge_ns: int, counters: Counter | None = None) -> None:
         self.kf = kf
+        self.d = kf.d
         self.period_ns = int(period_ns)
         self.gap_ns = int(GAP_PERIODS * self.period_ns)
         self.reset_jump_ns = int(reset_jump_ns)
@@ -104,10 +119,11 @@ class TipFilter:
         self._steps = [0, 0]                   # accepted steps since take_mean_step: count, sum
 
     def on_tips(self, stamp: int, z: np.ndarray) -> Outcome:
-        """The measured tip positions ``z`` (n, 2) [m] stamped ``stamp`` [ns]."""
-        if z.shape != (self.kf.n, 2) or not np.isfinite(z).all():
+        """The measured tip positions ``z`` (n, d) [m] stamped ``stamp`` [ns]."""
+        if z.shape != (self.kf.n, self.d) or not np.isfinite(z).all():
             return Outcome(refused='bad_message', reason=(
-                f'tip positions {z.shape}, or not finite; expected ({self.kf.n}, 2) finite values'))
+                f'tip positions {z.shape}, or not finite; expected ({self.kf.n}, {self.d}) '
+                'finite values'))
         last = self.last_ns
         if last is None:
             return self._initialise(stamp, z)

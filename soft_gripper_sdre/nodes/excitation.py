@@ -40,13 +40,23 @@ Timing (``timing``):
 * ``timer``: a timer on the node's clock publishes the torque for the clock's time every
   ``period``, stamped with that time, for drivers that want commands at their own rate.
 
+Inputs (``input_lower``, ``input_upper``): by default the hand's two torques, clipped to
+±``torque_limit``. Given one value each per input (1 to 4 inputs, in the input's unit: N·m, Pa,
+N), the node plays for that many inputs and publishes ``<finger>/ax<k>`` for k < m, never
+outside [input_lower[k], input_upper[k]]: the built-in signals as shares of each interval, about
+its middle for a two-sided input and from its rest value (the bound nearest zero) into it for a
+one-sided one, a chamber or a tendon; a spec file's signals as inputs in their units, clipped
+(:mod:`soft_gripper_sdre.sim.excitation`). "Zero torque" below is then every input at rest.
+Symmetric bounds on two inputs are the hand's ±torque_limit.
+
 Stops: at the end of the plan, on shutdown (SIGINT/SIGTERM) and on a fault, zero torque is
 published before the node exits (status 0 at the end of the plan, 1 after a fault). Faults: no
 tips for ``tips_timeout`` of wall time (or none at all within ``startup_timeout``), tip stamps
 jumping back by more than ``reset_on_jump`` (a restarted driver), and an excited tip moving more
-than ``max_excursion`` from where it was at the start. Malformed or old tip messages are
-counted, warned about (throttled) and not answered. Counters and the signal being played go to
-/diagnostics.
+than ``max_excursion`` from where it was at the start (the distance in x, y and z: a 3-D tip's z
+counts, a planar one's is 0; the level search measures its excursions the same way).
+Malformed or old tip messages are counted, warned about (throttled) and not answered. Counters
+and the signal being played go to /diagnostics.
 
 The torque at each run time is :class:`~soft_gripper_sdre.sim.excitation_run.ExcitationRun`'s
 (settle, probes, plan); what /diagnostics and the log show of the run is
@@ -72,6 +82,8 @@ from soft_gripper_sdre.nodes.params import (
     ParameterError,
     declare_all,
     finger_names_param,
+    numbers,
+    numbers_param,
     tips_reliability_param,
     with_reliability,
 )
@@ -79,7 +91,8 @@ from soft_gripper_sdre.nodes.topics import LOOP_QOS, NEWEST_QOS, TIP_POSITIONS, 
 from soft_gripper_sdre.sim.excitation import ExcitationPlan, LevelSearch, LevelSettings
 from soft_gripper_sdre.sim.excitation_run import ExcitationRun, Phase
 from soft_gripper_sdre.sim.settle import SettlePhase
-from soft_gripper_sdre.sim.signal_specs import SignalSpecError, resolve_signals
+from soft_gripper_sdre.sim.shape import InputBounds, ShapeError
+from soft_gripper_sdre.sim.signal_specs import MAX_TORQUE, SignalSpecError, resolve_signals
 from soft_gripper_sdre.sim.signals import SIGNALS
 
 PARAMS = (
@@ -99,7 +112,13 @@ PARAMS = (
     Param('finger', -1, 'the finger to excite, an index into finger_names (-1 = all); the others '
           'get zero torque', '', -1, 3, read_only=True),
     Param('torque_limit', 0.1, 'every torque is clipped to ±limit (0.1 N·m: the simulator\'s '
-          'actuator limit; the paper\'s signals peak at 0.0675)', 'N·m', 1e-6, 1.0, read_only=True),
+          'actuator limit; the paper\'s signals peak at 0.0675); the hand\'s two inputs, unless '
+          'input_lower / input_upper give the bounds', 'N·m', 1e-6, 1.0, read_only=True),
+    numbers_param('input_lower', 'lower bound of each input in its SI unit (N·m, Pa, N), a list '
+                  "[u0, u1, …] of 1 to 4 values: the finger's inputs; '' with input_upper '' = "
+                  '−torque_limit on 2 inputs (the hand)'),
+    numbers_param('input_upper', 'upper bound of each input, a list [u0, u1, …], each above its '
+                  "lower bound; '' with input_lower '' = torque_limit on 2 inputs (the hand)"),
     Param('timing', 'tips', 'answer each tip message with the torque for its stamp, or publish on '
           'a timer of the node\'s clock', choices=('tips', 'timer'), read_only=True),
     Param('period', 0.001, 'timer timing: the command period', 's', 1e-4, 1.0, read_only=True),
@@ -143,6 +162,7 @@ class ExcitationNode(Node):
         self.names = tuple(p['finger_names'])
         self.n = len(self.names)
         self.run = excitation_run(p, self.n)
+        self.m = self.run.plan.m
         self.newest_tips: np.ndarray | None = None
         self.done = False
         self.exit_code = 0
@@ -155,7 +175,7 @@ class ExcitationNode(Node):
         self.stopped = False                    # the final zero went out
         self._deadline = time.monotonic() + p['startup_timeout']
         self.cdr_tips = cdr.tips_codec(self.names)
-        self.cdr_cmd = cdr.torques_codec(self.names)
+        self.cdr_cmd = cdr.torques_codec(self.names, self.m)
         self.pub_cmd = self.create_publisher(JointState, TORQUE_COMMANDS, LOOP_QOS)
         self.sub_tips = self.create_subscription(
             PoseArray, TIP_POSITIONS, self.on_tips,
@@ -212,7 +232,7 @@ class ExcitationNode(Node):
             self.diag.values['signal'] = (f'waiting for {self.p["min_command_subscribers"]} '
                                           f'{TORQUE_COMMANDS} subscribers')
             if self.p['timing'] == 'tips':
-                self._publish(stamp, np.zeros((self.n, 2)))
+                self._publish(stamp, self.run.plan.rest_inputs())
             return False
         self.start_ns = stamp
         self.run.start(tips)
@@ -266,7 +286,7 @@ class ExcitationNode(Node):
         """Publish zero torque stamped ``stamp`` and end the run (the node exits)."""
         if self.stopped:
             return
-        self._publish(stamp, np.zeros((self.n, 2)))
+        self._publish(stamp, self.run.plan.rest_inputs())
         self.stopped = self.done = True
         self.diag.values['signal'] = 'stopped'
         self.diag.set_status(level, why)
@@ -310,15 +330,48 @@ def excitation_run(p: dict, n: int) -> ExcitationRun:
                              f'finger_names {list(p["finger_names"])} (indices 0 to {n - 1}, '
                              'or -1 for all)')
     finger = None if p['finger'] < 0 else p['finger']
+    bounds = input_bounds(p)
+    m = None if bounds is None else bounds.m
+    limit = MAX_TORQUE if bounds is None else max(
+        MAX_TORQUE, 10 * float(np.abs(np.concatenate([bounds.lower, bounds.upper])).max()))
     try:
         signals = resolve_signals(list(p['signals']), p['spec_file'] or None,
-                                  p['duration'] or None)
+                                  p['duration'] or None, m, limit)
         plan = ExcitationPlan(signals, p['settle_time'], n, finger, p['torque_limit'],
-                              p['amplitude'])
+                              p['amplitude'], bounds)
     except (SignalSpecError, ValueError) as exc:
         raise ParameterError(str(exc)) from None
     search = level_search(p, plan, finger) if p['level'] == 'auto' else None
     return ExcitationRun(plan, SettlePhase(p['settle_time'], p['settle_samples']), search)
+
+
+def input_bounds(p: dict) -> InputBounds | None:
+    """The bounds ``input_lower`` / ``input_upper`` give, or None for the hand's ±torque_limit
+    on two inputs (both empty, or symmetric bounds on two inputs: then they replace
+    torque_limit).
+
+    Raises:
+        ParameterError: a list that is not numbers, one list empty and the other not, different
+            lengths, not 1 to 4 inputs, or an empty interval (the message names the parameters).
+    """
+    lower, upper = (numbers(p[name], name) for name in ('input_lower', 'input_upper'))
+    if lower is None and upper is None:
+        return None
+    what = "parameters 'input_lower', 'input_upper'"
+    if lower is None or upper is None:
+        raise ParameterError(f'{what}: give both (one value per input) or neither '
+                             '(±torque_limit on 2 inputs)')
+    if len(lower) != len(upper):
+        raise ParameterError(f'{what}: {len(lower)} lower and {len(upper)} upper bound(s); give '
+                             'one of each per input')
+    try:
+        bounds = InputBounds.parse(lower, upper, len(lower), what)
+    except ShapeError as exc:
+        raise ParameterError(str(exc)) from None
+    if bounds.m == 2 and bounds.symmetric_limit is not None:
+        p['torque_limit'] = bounds.symmetric_limit
+        return None
+    return bounds
 
 
 def level_search(p: dict, plan: ExcitationPlan, finger: int | None) -> LevelSearch:
@@ -343,8 +396,14 @@ def level_search(p: dict, plan: ExcitationPlan, finger: int | None) -> LevelSear
                              'nothing to scale')
     settings = LevelSettings(target=p['level_target'], start=p['level_start'],
                              probe_time=p['level_probe_time'], settle_time=p['settle_time'])
+    inputs = None
+    if plan.map is not None:
+        try:
+            inputs = plan.probe_inputs()
+        except ValueError as exc:
+            raise ParameterError(f"parameter 'signals': {exc}") from None
     return LevelSearch(peak, p['torque_limit'], p['max_excursion'], plan.n_fingers, finger,
-                       settings)
+                       settings, inputs)
 
 
 def main(args=None) -> int:

@@ -9,6 +9,11 @@ its reason and the old value stays in force.
 A whole number given for a floating-point parameter (``-p max_excursion:=0``, ``0`` in a parameters
 file, or an integer in a runtime change) is taken as that float: ROS types ``0`` as an integer, and
 a parameter declared with a float default would refuse it. Any other type is refused.
+
+The node's sections of the command line's parameters files are checked before anything is
+declared (:mod:`soft_gripper_sdre.nodes.params_files`): a value of the wrong type or a key the
+node does not declare is refused naming the key, the node and the file, since rcl would drop the
+one or ignore the other without a word.
 """
 from __future__ import annotations
 
@@ -33,6 +38,10 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 
 from soft_gripper_sdre import FINGER_NAMES
 from soft_gripper_sdre.nodes.conversions import MAX_FINGERS, finger_names_problem
+from soft_gripper_sdre.nodes.params_files import file_problems, package_parameter_names
+
+#: the ``--params-file`` files of this process's command line, in order (:func:`use_params_files`)
+_PARAMS_FILES: list[str] = []
 
 
 class ParameterError(ValueError):
@@ -128,15 +137,46 @@ def _as_float(param: Parameter) -> Parameter:
     return param
 
 
+def use_params_files(paths: Iterable[str]) -> None:
+    """Name the ``--params-file`` files of the process's command line, which :func:`declare_all`
+    checks each node's sections of (set by
+    :func:`soft_gripper_sdre.nodes.cli.settle_command_line`)."""
+    _PARAMS_FILES[:] = [str(p) for p in paths]
+
+
+def check_params_files(node: Node, params: Iterable[Param],
+                       paths: Iterable[str] | None = None) -> None:
+    """Refuse a wrong-typed value or an unknown key in ``node``'s sections of ``paths`` (default:
+    the files of :func:`use_params_files`), and warn of a wildcard section's key that no node of
+    the package declares (:mod:`~soft_gripper_sdre.nodes.params_files`).
+
+    Raises:
+        ParameterError: naming the key, the node and the file.
+    """
+    paths = list(_PARAMS_FILES if paths is None else paths)
+    if not paths:
+        return
+    declared = {p.name: p.default for p in params}
+    fqn = node.get_fully_qualified_name()
+    package = package_parameter_names()
+    for path in paths:
+        for problem in file_problems(fqn, declared, path, package):
+            if problem.refuse:
+                raise ParameterError(problem.message)
+            node.get_logger().warning(problem.message)
+
+
 def declare_all(node: Node, params: Iterable[Param]) -> dict[str, Any]:
     """Declare ``params`` on ``node`` (overrides come from --params-file / -p / parameter_overrides)
     and return their values. A whole number given for a float parameter is taken as that float,
-    at start-up and in later changes (module doc).
+    at start-up and in later changes; the parameters files are checked first (module doc).
 
     Raises:
-        ParameterError: a value is out of range, of the wrong type or not an allowed choice.
+        ParameterError: a value is out of range, of the wrong type or not an allowed choice; a
+            parameters file gives the node a value of the wrong type or a key it does not declare.
     """
     params = list(params)
+    check_params_files(node, params)
     floats = {p.name for p in params if _is_float(p)}
     # rclpy keeps the -p / --params-file / parameter_overrides values here until declaration, and
     # has no public way to read them
