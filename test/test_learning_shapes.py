@@ -576,3 +576,57 @@ def test_the_koopman_model_refuses_shapes_it_cannot_take():
         fit_koopman([(p, v, u), (p, v, np.hstack([u, u]))], np.zeros(3), 1e-3, s)
     with pytest.raises(ValueError, match=r'record 0: .*got \(500, 4\)'):
         fit_koopman([(np.hstack([p, p]), np.hstack([v, v]), u)], np.zeros(3), 1e-3, s)
+
+
+# -- the parameter file of a finger of another shape -------------------------------------------
+
+def _derivation():
+    """Settings and a checked move as loop_settings.derive returns them for a fit model."""
+    from soft_gripper_sdre.analysis.data_facts import DataFacts
+    from soft_gripper_sdre.analysis.loop_settings import Derivation, LoopSettings
+    settings = LoopSettings(control_period=0.005, meas_std=1e-5, accel_psd=10.0, q_pos=1e6,
+                            q_vel=1.0, r=1.0, torque_limit=2.0, torque_lowpass_hz=40.0,
+                            integral_gain=5.0, integral_band=1e-3, pd_kp=100.0, pd_kd=1.0,
+                            bandwidth_hz=4.0)
+    facts = DataFacts(period=0.005, noise_std=1e-5, travel=0.01, torque_limit=2.0,
+                      accel_psd_ml=10.0)
+    return Derivation(settings, {}, [], facts)
+
+
+def _declared(node: str) -> dict:
+    import yaml
+
+    from soft_gripper_sdre.nodes.graph import default_params_file
+    doc = yaml.safe_load(default_params_file(node).read_text(encoding='utf-8'))
+    return next(iter(doc.values()))['ros__parameters']
+
+
+@pytest.mark.parametrize('shape, bounds, extra', [
+    (HAND_SHAPE, InputBounds([-0.0199, -0.01], [0.02, 0.01]), {}),
+    (FingerShape(3, 3), InputBounds([0.0] * 3, [2.0] * 3),
+     {'estimator': {'task_dim': 3}, 'trajectory': {'task_dim': 3},
+      'controller': {'input_lower': [0.0] * 3, 'input_upper': [2.0] * 3}}),
+    (FingerShape(2, 1), InputBounds([0.0], [2e5]),
+     {'controller': {'input_lower': [0.0], 'input_upper': [2e5]}}),
+])
+def test_the_parameter_file_carries_the_shape_the_nodes_take(shape, bounds, extra, tmp_path):
+    """A 3-D tip: task_dim 3 for the estimator and the trajectory node; one-sided inputs: the
+    controller's input_lower/input_upper. Bidirectional inputs keep ±torque_limit, so the hand's
+    file is the one written without a shape. Every node takes its section as declared."""
+    import yaml
+
+    from soft_gripper_sdre.nodes.params_files import file_problems
+    from soft_gripper_sdre.tools.learning.train_bags import params_yaml
+    derived = _derivation()
+    text = params_yaml(derived, tmp_path / 'model.pt', ['finger_0'], 'bags', shape, bounds)
+    plain = params_yaml(derived, tmp_path / 'model.pt', ['finger_0'], 'bags')
+    doc = {key.rsplit('/', 1)[-1]: v['ros__parameters'] for key, v in yaml.safe_load(text).items()}
+    base = {key.rsplit('/', 1)[-1]: v['ros__parameters']
+            for key, v in yaml.safe_load(plain).items()}
+    for node in ('estimator', 'controller', 'trajectory'):
+        assert doc[node] == {**base[node], **extra.get(node, {})}, node
+        path = tmp_path / 'params.yaml'
+        path.write_text(text)
+        assert file_problems(f'/{node}', _declared(node), str(path)) == [], node
+    if not extra:
+        assert text == plain

@@ -53,7 +53,7 @@ from soft_gripper_sdre.learning import derivatives
 from soft_gripper_sdre.learning.rollout import Run
 from soft_gripper_sdre.learning.train_settings import TrainSettings
 from soft_gripper_sdre.learning.training import TrainResult, fingerprint, train
-from soft_gripper_sdre.sim.shape import FingerShape, InputBounds, ShapeError
+from soft_gripper_sdre.sim.shape import HAND_SHAPE, FingerShape, InputBounds, ShapeError
 
 #: samples of a recording's first stretch its jerk intensity is tuned on
 TUNE_SAMPLES = 2000
@@ -199,9 +199,13 @@ def tuning_stretch(rec: Recording, finger: int, dims: int = 2) -> tuple[np.ndarr
 
 
 def params_yaml(derived: loop_settings.Derivation, model_path: Path, finger_names: list[str],
-                source: str) -> str:
+                source: str, shape: FingerShape = HAND_SHAPE,
+                bounds: InputBounds | None = None) -> str:
     """The parameter file of the estimator, the controller and the trajectory node's checked move
-    for ``derived`` settings."""
+    for ``derived`` settings, for a finger of ``shape`` whose inputs the data were recorded
+    within ``bounds``: a 3-D tip gives the estimator and the trajectory node ``task_dim: 3``, and
+    bounds with a one-sided input (a chamber, a tendon) give the controller ``input_lower`` and
+    ``input_upper`` (bidirectional inputs are bounded by the derived ±``torque_limit``)."""
     from soft_gripper_sdre.nodes.params import params_file_key
     d = derived.settings
     est = {'finger_names': finger_names, 'control_period': d.control_period,
@@ -212,8 +216,13 @@ def params_yaml(derived: loop_settings.Derivation, model_path: Path, finger_name
             'torque_lowpass_hz': d.torque_lowpass_hz,
             'integral_gain': d.integral_gain, 'integral_band': d.integral_band,
             'feedforward_at': d.feedforward_at, 'pd_kp': d.pd_kp, 'pd_kd': d.pd_kd}
+    if bounds is not None and bool(np.any(bounds.one_sided)):
+        record = bounds.to_record()
+        ctrl['input_lower'], ctrl['input_upper'] = record['lower'], record['upper']
     close, side = derived.facts.move()
     plan = {'close_distance': close, 'side_distance': side, 'contact_distance': close}
+    if shape.d == 3:
+        est['task_dim'] = plan['task_dim'] = 3
     body = {params_file_key('estimator'): {'ros__parameters': _plain(est)},
             params_file_key('controller'): {'ros__parameters': _plain(ctrl)},
             params_file_key('trajectory'): {'ros__parameters': _plain(plan)}}
@@ -277,7 +286,7 @@ def train_from_bags(train_paths: list[Path], val_paths: list[Path], out: Path,
         if derived is not None and derived.settings is not None:
             (stage / PARAMS_FILE).write_text(params_yaml(
                 derived, out / 'model.pt', list(train_set[0][0].finger_names),
-                ', '.join(str(p) for p in train_paths)))
+                ', '.join(str(p) for p in train_paths), shape, bounds))
     print(f'finger shape: {shape.m} input(s) ({bounds}), a tip of {shape.d} coordinates '
           f'({", ".join(shape.axes)})')
     print('\n'.join(scores.lines('validation R² vs the KF + RTS labels')))
