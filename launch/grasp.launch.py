@@ -159,12 +159,13 @@ def _check_sections(text: str, path, nodes) -> None:
     (:mod:`soft_gripper_sdre.nodes.params_files`); here before any node starts."""
     import importlib
 
+    from soft_gripper_sdre.nodes.params import declared_types
     from soft_gripper_sdre.nodes.params_files import file_problems, package_parameter_names
 
     package = package_parameter_names()
     for node in nodes:
         params = importlib.import_module(node.module).PARAMS
-        declared = {p.name: p.default for p in params}
+        declared = declared_types(params)
         for problem in file_problems(node.full_name, declared, str(path), package):
             if problem.refuse:
                 raise ValueError(f'launch argument params_file:={text!r}: {problem.message}')

@@ -1,6 +1,7 @@
-"""The hand does not move: the default model's laws give the torques recorded for them on the hand's
-closed loop (test/data/hand_law_steps.npz: each step's law inputs and torques over the first 0.6-1.5 s
-of the grasp with 0.05 mm noise), to 1e-9 N·m, whatever the shape-generic code around them does."""
+"""The hand does not move: the default model's laws give the torques recorded for them on the
+hand's closed loop (test/data/hand_law_steps.npz: each step's law inputs and torques over the first
+0.6-1.5 s of the grasp with 0.05 mm noise), to 1e-9 N·m, whatever the shape-generic code around
+them does."""
 from pathlib import Path
 
 import numpy as np

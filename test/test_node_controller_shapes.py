@@ -187,7 +187,7 @@ def test_the_composed_controller_filters_the_models_tips_and_refuses_another_tas
 @pytest.mark.parametrize('node, args, needle', [
     ('controller', ['-p', 'input_lower:=[0.0]', '-p', 'input_upper:=[0.05]'],
      "'input_lower', 'input_upper': the finger has 2 input(s); got 1 lower and 1 upper"),
-    ('controller', ['-p', 'input_lower:=0'], "parameter 'input_lower'"),
+    ('controller', ['-p', 'input_lower:=0'], 'got 1 lower and 0 upper'),
     ('controller', ['-p', 'input_lower:=[0.0, 0.01]', '-p', 'input_upper:=[0.01, 0.01]'],
      'input ax1: the lower bound must be below the upper one'),
     ('estimator', ['-p', 'task_dim:=4'], 'task_dim'),

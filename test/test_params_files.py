@@ -14,6 +14,7 @@ import rclpy
 from rclpy.context import Context
 from rclpy.node import Node
 
+from soft_gripper_sdre.nodes.params import declared_types
 from soft_gripper_sdre.nodes.params_files import (
     file_problems,
     package_parameter_names,
@@ -80,7 +81,7 @@ def test_sections_apply_to_the_nodes_rcl_gives_them_to(key, fqn, tmp_path):
 @pytest.mark.parametrize('node', NODES)
 def test_the_shipped_files_pass_their_own_nodes_check(node):
     params = importlib.import_module(f'soft_gripper_sdre.nodes.{node}').PARAMS
-    declared = {p.name: p.default for p in params}
+    declared = declared_types(params)
     path = ROOT / 'config' / f'{node}.yaml'
     assert file_problems(f'/{node}', declared, str(path), package_parameter_names()) == []
     assert set(declared) <= package_parameter_names()

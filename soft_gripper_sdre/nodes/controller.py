@@ -84,13 +84,14 @@ from soft_gripper_sdre.nodes import cdr
 from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.common import ERROR, OK, Diagnostics, ThrottledLogger, run
 from soft_gripper_sdre.nodes.composition import WITH_ESTIMATOR, composed_params, with_estimator
-from soft_gripper_sdre.nodes.input_commands import UNSET, bounds_params
 from soft_gripper_sdre.nodes.law_tuning import LawTuning
 from soft_gripper_sdre.nodes.params import (
     Param,
     ParameterError,
     declare_all,
     finger_names_param,
+    numbers,
+    numbers_param,
     on_runtime_change,
 )
 from soft_gripper_sdre.nodes.plan_cdr import PlanCodec
@@ -121,7 +122,11 @@ PARAMS = (
     Param('torque_limit', 0.0625, 'saturation of each torque (0.0625 N·m = 25 sim units, the '
           'stable range of the physics step) when input_lower and input_upper are unset', 'N·m',
           1e-6, 1.0, read_only=True),
-    *bounds_params("±torque_limit on each of the model's inputs"),
+    numbers_param('input_lower', 'lower bound of each input in its SI unit (N·m, Pa, N), one '
+                  "per input of the model, a list [u0, u1, …]; '' with input_upper '' = "
+                  "±torque_limit on each of the model's inputs"),
+    numbers_param('input_upper', 'upper bound of each input, a list [u0, u1, …], each above its '
+                  "lower bound; '' with input_lower '' = ±torque_limit"),
     Param('torque_lowpass_hz', DEFAULT_LOWPASS_HZ, 'first-order roll-off of the torque command '
           '(keeps the loop out of the finger\'s ~59 Hz bending mode; 0 = off); its corner is '
           'capped at a tenth of the control rate, 0.1 / control_period (10 Hz at 10 ms)', 'Hz',
@@ -366,15 +371,16 @@ class ControllerNode(Node):
 
 def input_bounds(p: dict, m: int) -> InputBounds | None:
     """The bounds of ``input_lower`` / ``input_upper`` for a finger of ``m`` inputs; None when
-    both are unset ([0.0]: ±``torque_limit`` on each input).
+    both are unset ('': ±``torque_limit`` on each input).
 
     Raises:
         ParameterError: not one value per input, a bound not finite, or an empty interval (the
             message names the parameters).
     """
-    lower, upper = list(p['input_lower']), list(p['input_upper'])
-    if lower == UNSET and upper == UNSET:
+    lower, upper = (numbers(p[name], name) for name in ('input_lower', 'input_upper'))
+    if lower is None and upper is None:
         return None
+    lower, upper = lower or [], upper or []
     try:
         return InputBounds.parse(lower, upper, m, "parameters 'input_lower', 'input_upper'")
     except ShapeError as exc:

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import copy
 from dataclasses import dataclass, field
+import math
 from typing import Any, Callable, Iterable
 
 from rcl_interfaces.msg import (
@@ -38,7 +39,11 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 
 from soft_gripper_sdre import FINGER_NAMES
 from soft_gripper_sdre.nodes.conversions import MAX_FINGERS, finger_names_problem
-from soft_gripper_sdre.nodes.params_files import file_problems, package_parameter_names
+from soft_gripper_sdre.nodes.params_files import (
+    ANY_TYPE,
+    file_problems,
+    package_parameter_names,
+)
 
 #: the ``--params-file`` files of this process's command line, in order (:func:`use_params_files`)
 _PARAMS_FILES: list[str] = []
@@ -62,12 +67,16 @@ class Param:
     read_only: bool = False
     #: a further check of the value: why it is refused, or None
     rule: Callable[[Any], str | None] | None = field(default=None, compare=False)
+    #: a list of numbers given in any form (:func:`numbers_param`): any type is taken at
+    #: declaration and read by :func:`numbers`
+    dynamic: bool = False
 
     def descriptor(self) -> ParameterDescriptor:
         text = self.description + (f' [{self.units}]' if self.units else '')
         if self.choices:
             text += f' (one of: {", ".join(map(str, self.choices))})'
-        d = ParameterDescriptor(name=self.name, description=text, read_only=self.read_only)
+        d = ParameterDescriptor(name=self.name, description=text, read_only=self.read_only,
+                                dynamic_typing=self.dynamic)
         if self.min is not None or self.max is not None:
             lo = self.min if self.min is not None else -1e300
             hi = self.max if self.max is not None else 1e300
@@ -107,6 +116,43 @@ def finger_names_param(description: str) -> Param:
                  read_only=True)
 
 
+def numbers_param(name: str, description: str, units: str = '') -> Param:
+    """A read-only list of numbers, empty by default: given as a YAML or ``-p`` list
+    (``[0.0, 1.5]``, whole numbers too), one number (``0``) or a string (``'0, 1.5'``); read with
+    :func:`numbers`."""
+    return Param(name, '', description, units, read_only=True, dynamic=True)
+
+
+def numbers(value: Any, name: str) -> list[float] | None:
+    """The finite numbers of a :func:`numbers_param` value, or None when it is empty.
+
+    Raises:
+        ParameterError: a value that is not numbers, or one that is not finite (naming ``name``).
+    """
+    if isinstance(value, str):
+        if not value.strip():
+            return None
+        try:
+            values = [float(v) for v in value.replace(',', ' ').split()]
+        except ValueError:
+            raise ParameterError(f'parameter {name!r}: {value!r} is not a list of '
+                                 'numbers') from None
+    elif isinstance(value, bool):
+        raise ParameterError(f'parameter {name!r}: {value!r} is not a list of numbers')
+    elif isinstance(value, (int, float)):
+        values = [float(value)]
+    else:
+        items = list(value)
+        if not items:
+            return None
+        if any(isinstance(v, (bool, str, bytes)) for v in items):
+            raise ParameterError(f'parameter {name!r}: {items!r} is not a list of numbers')
+        values = [float(v) for v in items]
+    if not all(math.isfinite(v) for v in values):
+        raise ParameterError(f'parameter {name!r}: {value!r} holds a value that is not finite')
+    return values
+
+
 #: the choices of ``tips_reliability`` (:func:`tips_reliability_param`)
 RELIABILITIES = ('reliable', 'best_effort')
 
@@ -144,6 +190,12 @@ def use_params_files(paths: Iterable[str]) -> None:
     _PARAMS_FILES[:] = [str(p) for p in paths]
 
 
+def declared_types(params: Iterable[Param]) -> dict[str, Any]:
+    """Each parameter's default for the parameters-file check, :data:`ANY_TYPE
+    <soft_gripper_sdre.nodes.params_files.ANY_TYPE>` for a dynamically typed one."""
+    return {p.name: ANY_TYPE if p.dynamic else p.default for p in params}
+
+
 def check_params_files(node: Node, params: Iterable[Param],
                        paths: Iterable[str] | None = None) -> None:
     """Refuse a wrong-typed value or an unknown key in ``node``'s sections of ``paths`` (default:
@@ -156,7 +208,7 @@ def check_params_files(node: Node, params: Iterable[Param],
     paths = list(_PARAMS_FILES if paths is None else paths)
     if not paths:
         return
-    declared = {p.name: p.default for p in params}
+    declared = declared_types(params)
     fqn = node.get_fully_qualified_name()
     package = package_parameter_names()
     for path in paths:

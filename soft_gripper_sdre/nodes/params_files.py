@@ -138,10 +138,16 @@ def _flatten(mapping: yaml.MappingNode, prefix: str = '') -> Iterable[tuple[str,
             yield name, value
 
 
+#: the default :func:`type_problem` is given for a dynamically typed parameter: any value fits
+ANY_TYPE = object()
+
+
 def type_problem(value: Any, default: Any) -> str | None:
     """Why ``value`` (rcl's reading) cannot be a parameter whose default is ``default``, or
     None. A whole number is a float (nodes/params.py), a list must hold the default's element
-    type (an empty default list takes strings)."""
+    type (an empty default list takes strings); every value fits :data:`ANY_TYPE`."""
+    if default is ANY_TYPE:
+        return None
     def fits(v, d) -> bool:
         if isinstance(d, bool):
             return isinstance(v, bool)

@@ -55,12 +55,13 @@ from soft_gripper_sdre.control.trajectory import OTHERS_MODES, GraspProfile, Gra
 from soft_gripper_sdre.nodes import cdr
 from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.common import Diagnostics, run
-from soft_gripper_sdre.nodes.input_commands import UNSET
 from soft_gripper_sdre.nodes.params import (
     Param,
     ParameterError,
     declare_all,
     finger_names_param,
+    numbers,
+    numbers_param,
     on_runtime_change,
     tips_reliability_param,
     with_reliability,
@@ -92,13 +93,12 @@ PARAMS = (
           read_only=True),
     Param('task_dim', 2, "the tips' task dimension: 2 plans in (X, Y), the tips' z ignored; 3 "
           'plans in (X, Y, Z)', '', 2, 3, read_only=True),
-    Param('direction', list(UNSET), 'the direction the grasping fingers close along, task_dim '
-          'values [x, y(, z)] (normalised); [0.0] (the default) = +Y, toward the cube',
-          read_only=True),
-    Param('close_path', list(UNSET), 'waypoints the grasping fingers close through instead of '
-          'the straight move, relative to rest: task_dim values per point, [x0, y0, x1, y1, …] '
-          "(the last is the closed pose; e.g. the curve a one-input finger's tip can reach); "
-          '[0.0] (the default) = the straight move along direction', 'm', read_only=True),
+    numbers_param('direction', 'the direction the grasping fingers close along, task_dim '
+                  "values [x, y(, z)] (normalised); '' (the default) = +Y, toward the cube"),
+    numbers_param('close_path', 'waypoints the grasping fingers close through instead of the '
+                  'straight move, relative to rest: task_dim values per point, [x0, y0, x1, y1, '
+                  "…] (the last is the closed pose; e.g. the curve a one-input finger's tip can "
+                  "reach); '' (the default) = the straight move along direction", 'm'),
     Param('close_distance', _DEFAULTS.close_distance, 'travel of the grasping fingers along +Y '
           '(direction; toward the cube)', 'm', -0.1, 0.1, read_only=True),
     Param('side_distance', _DEFAULTS.side_distance, 'travel of the grasping fingers along X while '
@@ -188,8 +188,8 @@ def _profile(p: dict) -> GraspProfile:
     values['close_to'] = _close_to(values['close_to'])
     d = int(p['task_dim'])
     for name, per in (('direction', 'values'), ('close_path', 'values per waypoint')):
-        given = [float(v) for v in values[name]]
-        if given == UNSET:
+        given = numbers(values[name], name)
+        if given is None:
             values[name] = None
             continue
         if len(given) % d or (name == 'direction' and len(given) != d):
