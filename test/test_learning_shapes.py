@@ -594,11 +594,11 @@ def _derivation():
 
 
 def _declared(node: str) -> dict:
-    import yaml
+    """The parameters the node declares, as its parameters-file check takes them."""
+    import importlib
 
-    from soft_gripper_sdre.nodes.graph import default_params_file
-    doc = yaml.safe_load(default_params_file(node).read_text(encoding='utf-8'))
-    return next(iter(doc.values()))['ros__parameters']
+    from soft_gripper_sdre.nodes.params import declared_types
+    return declared_types(importlib.import_module(f'soft_gripper_sdre.nodes.{node}').PARAMS)
 
 
 @pytest.mark.parametrize('shape, bounds, extra', [
@@ -628,5 +628,10 @@ def test_the_parameter_file_carries_the_shape_the_nodes_take(shape, bounds, extr
         path = tmp_path / 'params.yaml'
         path.write_text(text)
         assert file_problems(f'/{node}', _declared(node), str(path)) == [], node
+    if 'controller' in extra:
+        from soft_gripper_sdre.nodes.params import numbers
+        got = InputBounds.parse(numbers(doc['controller']['input_lower'], 'input_lower'),
+                                numbers(doc['controller']['input_upper'], 'input_upper'), shape.m)
+        assert got == bounds
     if not extra:
         assert text == plain
