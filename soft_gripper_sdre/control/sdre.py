@@ -150,14 +150,12 @@ class SdreController(SdreCounters):
     def __init__(self, Q, R, u_max, n: int = 4, method: str = 'fast', residual_tol: float = 1e-6,
                  cond_max: float = 1e8, max_nk_iterations: int = 5, nominal=None,
                  bounds: InputBounds | None = None) -> None:
-        if bounds is not None:
-            if not isinstance(bounds, InputBounds):
-                raise ValueError(f'bounds must be InputBounds, got {bounds!r}')
-            u_max = np.maximum(-bounds.lower, bounds.upper)
-        self.Q, self.R, self.u_max = checked_weights(Q, R, u_max)
+        self.Q, self.R, self.u_max = checked_weights(Q, R, 1.0 if bounds is not None else u_max)
         self.shape = FingerShape(self.Q.shape[0] // 2, self.R.shape[0])
-        self.bounds = (InputBounds(-self.u_max, self.u_max) if bounds is None
-                       else law_bounds(self.shape, 0.0, bounds))
+        if bounds is not None:
+            bounds = law_bounds(self.shape, 0.0, bounds)
+            self.u_max = np.maximum(-bounds.lower, bounds.upper)
+        self.bounds = InputBounds(-self.u_max, self.u_max) if bounds is None else bounds
         self.hand = hand_path(self.shape, self.bounds)
         self._lower, self._upper = (-self.u_max, self.u_max) if self.hand else (
             self.bounds.lower, self.bounds.upper)
