@@ -378,3 +378,10 @@ def test_kf_for_a_3d_tip(process_noise):
     kf3.step(np.full((2, 3), np.nan))
     np.testing.assert_allclose(kf3.x[:, :3], x[:, :3] + 1e-3 * x[:, 3:], rtol=1e-12)
     assert np.all(np.linalg.eigvalsh(kf3.P) > 0)
+
+
+def test_oracle_laws_refuse_bounds_other_than_the_simulated_hands():
+    from soft_gripper_sdre.analysis.oracle import register_oracle_laws
+    register_oracle_laws()
+    with pytest.raises(ShapeError, match="oracle laws are the simulated hand's"):
+        make_law('oracle_ff', ShapedModel(2, 2), W, U_MAX, bounds=SHAPES[(2, 2)])
