@@ -385,3 +385,31 @@ def test_oracle_laws_refuse_bounds_other_than_the_simulated_hands():
     register_oracle_laws()
     with pytest.raises(ShapeError, match="oracle laws are the simulated hand's"):
         make_law('oracle_ff', ShapedModel(2, 2), W, U_MAX, bounds=SHAPES[(2, 2)])
+
+
+def test_symmetric_bounds_for_the_hand_are_the_hands_law_and_hand_over_keeps_the_integral():
+    """Bounds ±u_max on the hand's shape give the law bounds=None gives, bit for bit; on the
+    general path hand_over carries the reachable integral's torque to a law of another gain."""
+    from soft_gripper_sdre.control.laws import hand_over
+    model = ShapedModel(2, 2)
+    plain = make_law('sdre_ff', model, W, U_MAX, n_fingers=2, dt=DT)
+    bounded = make_law('sdre_ff', model, W, 0.01, n_fingers=2, dt=DT,
+                       bounds=InputBounds.symmetric(U_MAX, 2))
+    assert bounded.io.hand and bounded.io.u_max == U_MAX
+    rng = np.random.default_rng(4)
+    saturated = False
+    for _ in range(5):
+        args = [REST[:2] + rng.normal(0, 1e-3, (2, 2)), rng.normal(0, 1e-2, (2, 2)),
+                REST[:2] + rng.normal(0, 1e-2, (2, 2)), rng.normal(0, 1e-2, (2, 2))]
+        a, b = plain.compute(*args), bounded.compute(*args)
+        np.testing.assert_array_equal(a.u, b.u)
+        saturated |= a.saturated.any()
+    assert saturated                                  # the bounds' limit, not u_max, in force
+    bounds = SHAPES[(3, 2)]
+    old, new = (make_law('sdre_ff', ShapedModel(3, 2), W, U_MAX, n_fingers=1, dt=DT,
+                         bounds=bounds, integral_gain=k, integral_band=1.0) for k in (1e5, 4e5))
+    for _ in range(50):
+        old.compute(REST[None, :3] + 1e-4, np.zeros((1, 3)), REST[None, :3], np.zeros((1, 3)))
+    assert np.abs(old.integral.torque()).max() > 1e-5
+    hand_over(old, new)
+    np.testing.assert_allclose(new.integral.torque(), old.integral.torque(), rtol=1e-12)
