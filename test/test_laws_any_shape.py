@@ -413,3 +413,21 @@ def test_symmetric_bounds_for_the_hand_are_the_hands_law_and_hand_over_keeps_the
     assert np.abs(old.integral.torque()).max() > 1e-5
     hand_over(old, new)
     np.testing.assert_allclose(new.integral.torque(), old.integral.torque(), rtol=1e-12)
+
+
+def test_the_general_fast_path_warm_starts_and_gives_the_reference_torques():
+    """Off the hand's path 'fast' takes Newton–Kleinman from each finger's last solution (scipy
+    only for the first step, or where the warm start fails a check) and gives scipy's torques."""
+    model = ShapedModel(3, 2)
+    fast, ref = (make_law('sdre', model, W, U_MAX, n_fingers=2, dt=DT, method=m,
+                          bounds=SHAPES[(3, 2)]) for m in ('fast', 'reference'))
+    rng = np.random.default_rng(8)
+    for k in range(30):
+        args = [REST[:3] + rng.normal(0, 2e-3, (2, 3)), rng.normal(0, 2e-2, (2, 3)),
+                REST[:3] + rng.normal(0, 2e-3, (2, 3)), np.zeros((2, 3))]
+        a, b = fast.compute(*args), ref.compute(*args)
+        assert a.ok.all() and b.ok.all()
+        np.testing.assert_allclose(a.u_unsat, b.u_unsat, rtol=1e-6, atol=1e-12)
+        if k == 10:                                   # a warm start that cannot converge
+            fast.sdre.state.P[0] = -np.eye(6)
+    assert fast.sdre.exact_solves == 3 and ref.sdre.exact_solves == 60
