@@ -279,7 +279,7 @@ class TrajectoryNode(Node):
         self.tips_qos = with_reliability(LOOP_QOS, p['tips_reliability'])
         self.origin_ns: int | None = None       # the plan's origin, once planned
         self.run_start: int | None = None       # where /clock jumped back to (a new run's start)
-        self.waiting_since: float | None = None  # wall time the plan began to wait for the controller
+        self.waiting_since: float | None = None  # wall time the plan began to wait
         self._warned_at = 0.0                   # wall time of the last WARN about that wait
         on_runtime_change(self, PARAMS, apply=self._apply)
 
