@@ -1,0 +1,137 @@
+"""Start the driver, the recorder and the excitation node in any order: every bag holds its
+settle phase (the excitation waits for the recorder's report of both topics), over real DDS.
+
+A bag of a run that never started is removed when the recorder is told which topic the run
+writes (``discard_without``), so the same output can be given again.
+"""
+import random
+
+import numpy as np
+import pytest
+from rosutil import overrides, ros_context, spin_until
+from spring_finger import SpringDamper
+from test_excitation_start import Driver
+
+from soft_gripper_sdre.analysis.bag_dataset import read_recording, settle_noise
+from soft_gripper_sdre.nodes.excitation import ExcitationNode
+from soft_gripper_sdre.nodes.params import ParameterError
+from soft_gripper_sdre.nodes.recorder import RecorderNode
+
+pytestmark = pytest.mark.ros
+
+SETTLE_SAMPLES = 60
+NODES = ('driver', 'recorder', 'excitation')
+
+
+def build(name: str, ctx, bag, seed: int):
+    if name == 'driver':
+        return Driver(ctx, SpringDamper(), seed)
+    if name == 'recorder':
+        return RecorderNode(context=ctx, parameter_overrides=overrides(
+            output=str(bag), topics=['tip_positions', 'torque_commands'],
+            discard_without='torque_commands'))
+    return ExcitationNode(context=ctx, parameter_overrides=overrides(
+        finger_names=['finger_0'], signals=['u1'], duration=1.0, settle_time=0.2,
+        settle_samples=SETTLE_SAMPLES, amplitude=0.1, tips_timeout=5.0))
+
+
+def record_once(tmp_path, rng: random.Random, k: int):
+    """One recording with the nodes started in a random order with random delays; the bag."""
+    bag = tmp_path / f'bag{k}'
+    order = rng.sample(NODES, 3)
+    with ros_context() as (ctx, executor):
+        nodes = {}
+        for name in order:
+            spin_until(executor, lambda: False, rng.uniform(0.0, 0.4))
+            nodes[name] = build(name, ctx, bag, k)
+            executor.add_node(nodes[name])
+        exc, rec = nodes['excitation'], nodes['recorder']
+        assert spin_until(executor, lambda: exc.done, 30.0), (order, exc.diag.values)
+        assert exc.exit_code == 0, (order, exc.diag.message)
+        sent = exc.diag.counters['commands']
+        spin_until(executor, lambda: rec.counts['/torque_commands'] >= sent, 5.0)
+        executor.remove_node(rec)
+        rec.close()
+        rec.destroy_node()
+    return order, read_recording(bag)
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(600)
+def test_twenty_recordings_started_in_random_orders_all_hold_their_settle_phase(tmp_path):
+    rng = random.Random(20)
+    for k in range(20):
+        order, rec = record_once(tmp_path, rng, k)
+        _, _, n = settle_noise(rec, 0)            # raises for a bag without a settle phase
+        assert n >= SETTLE_SAMPLES, (k, order, n)
+        first = np.flatnonzero(np.any(rec.torques[:, 0] != 0.0, axis=1))
+        assert first.size, (k, order)
+
+
+@pytest.mark.timeout(120)
+def test_three_recordings_in_random_orders_hold_their_settle_phase(tmp_path):
+    rng = random.Random(3)
+    for k in range(3):
+        order, rec = record_once(tmp_path, rng, k)
+        assert settle_noise(rec, 0)[2] >= SETTLE_SAMPLES, (k, order)
+
+
+@pytest.mark.timeout(60)
+def test_the_run_waits_for_the_recorders_report_and_fails_naming_it(tmp_path):
+    with ros_context() as (ctx, executor):
+        driver = Driver(ctx, SpringDamper())
+        exc = ExcitationNode(context=ctx, parameter_overrides=overrides(
+            finger_names=['finger_0'], signals=['u1'], duration=0.3, startup_timeout=1.5,
+            min_command_subscribers=2, recorder_node='bag_writer'))
+        # a recorder of another name: its commands reader counts, its report is not the one
+        rec = RecorderNode(context=ctx, parameter_overrides=overrides(
+            output=str(tmp_path / 'bag'), topics=['tip_positions', 'torque_commands']))
+        for node in (driver, exc, rec):
+            executor.add_node(node)
+        assert spin_until(executor, lambda: exc.done, 20.0)
+        assert exc.start_ns is None and exc.exit_code == 1
+        assert 'the recorder /bag_writer to receive' in exc.diag.message
+        assert exc.diag.counters['commands'] == 0 and np.all(driver.u == 0.0)
+        executor.remove_node(rec)
+        rec.close()
+        rec.destroy_node()
+
+
+def test_a_bag_without_the_runs_commands_is_removed_and_the_output_free_again(tmp_path):
+    bag = tmp_path / 'bag'
+    with ros_context() as (ctx, executor):
+        driver = Driver(ctx, SpringDamper())
+        rec = RecorderNode(context=ctx, parameter_overrides=overrides(
+            output=str(bag), topics=['tip_positions', 'torque_commands'],
+            discard_without='torque_commands'))
+        executor.add_node(driver)
+        executor.add_node(rec)
+        assert spin_until(executor, lambda: rec.counts['/tip_positions'] > 20, 10.0)
+        assert bag.exists()
+        executor.remove_node(rec)
+        rec.close()
+        rec.destroy_node()
+        assert not bag.exists()
+        again = RecorderNode(context=ctx, parameter_overrides=overrides(     # the same output
+            output=str(bag), topics=['tip_positions', 'torque_commands']))
+        again.close()                       # without discard_without: kept, tips or not
+        again.destroy_node()
+        assert (bag / 'metadata.yaml').exists()
+
+
+@pytest.mark.parametrize('params, named', [
+    (dict(recorder_node='/recorder'), 'recorder_node'),
+    (dict(recorder_node='9r'), 'recorder_node'),
+])
+def test_bad_recorder_node_is_refused_naming_it(params, named):
+    with ros_context() as (ctx, _):
+        with pytest.raises(ParameterError, match=named):
+            ExcitationNode(context=ctx, parameter_overrides=overrides(**params))
+
+
+def test_bad_discard_without_is_refused_naming_it(tmp_path):
+    with ros_context() as (ctx, _):
+        with pytest.raises(ParameterError, match='discard_without'):
+            RecorderNode(context=ctx, parameter_overrides=overrides(
+                output=str(tmp_path / 'bag'), discard_without='not a topic!'))
+        assert not (tmp_path / 'bag').exists()
