@@ -39,9 +39,10 @@ A run that never started need leave no bag: with ``discard_without`` naming a re
 is removed at exit, with a warning, so the same ``output`` can be given again (an excitation
 node that refused its arguments leaves only the driver's tips). By default every bag is kept.
 
-The first message of each topic is reported on /diagnostics at
-once (``messages <topic>``), not at the next 1 Hz report: the excitation node starts its run only
-once the recorder has received both its tips and its commands.
+The first message of each topic is reported on /diagnostics at once (``messages <topic>``), not
+at the next 1 Hz report, unless the recorder records /diagnostics itself (its bag would hold the
+extra report): the excitation node starts its run only once the recorder has received both its
+tips and its commands.
 
 Messages missing from a stream are counted per topic from its publisher's stamps
 (:class:`GapCounter`; ROS 2 headers carry no sequence counter): each stamped topic with one
@@ -408,7 +409,7 @@ class RecorderNode(Node):
                 self.clock_ns = stamp
             self.counts[topic] += 1
             self.diag.count(f'messages {topic}')
-            if self.counts[topic] == 1:
+            if self.counts[topic] == 1 and DIAGNOSTICS not in self.counts:
                 self.diag.publish()             # the first: at once (module doc)
             gaps = self.gaps.get(topic)
             if gaps is not None and stamp is not None and self._single.get(topic, True):
