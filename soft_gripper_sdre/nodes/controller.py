@@ -92,8 +92,14 @@ from soft_gripper_sdre.control.tracking import (
 from soft_gripper_sdre.learning.model import ModelFileError, SDCModel, set_torch_threads
 from soft_gripper_sdre.nodes import cdr
 from soft_gripper_sdre.nodes import conversions as cv
+from soft_gripper_sdre.nodes.cli import format_help, wants_help
 from soft_gripper_sdre.nodes.common import ERROR, OK, WARN, Diagnostics, ThrottledLogger, run
-from soft_gripper_sdre.nodes.composition import WITH_ESTIMATOR, composed_params, with_estimator
+from soft_gripper_sdre.nodes.composition import (
+    WITH_ESTIMATOR,
+    composed_help,
+    composed_params,
+    with_estimator,
+)
 from soft_gripper_sdre.nodes.law_tuning import LawTuning
 from soft_gripper_sdre.nodes.params import (
     Param,
@@ -176,9 +182,10 @@ PARAMS = (
     Param('estimate_watchdog', 0.5, 'wall time without a state_estimate after which the controller '
           'reports ERROR (it sends nothing without an estimate: the simulator steps safely on its '
           'own)', 's', 1e-2, 600.0),
-    Param('reset_on_jump', 0.1, 'a stamp this far behind the last one (a simulator restart) resets '
-          'the controller instead of being rejected (as in the estimator and trajectory node)', 's',
-          1e-3, 1e6, read_only=True),
+    Param('reset_on_jump', 0.1, 'a state_estimate stamp this far behind the last one (a simulator '
+          'restart) resets the controller instead of being rejected; one this far ahead is '
+          'counted (estimate_jumps) and warned about. The estimator resets its filter on a jump '
+          'either way (its own reset_on_jump)', 's', 1e-3, 1e6, read_only=True),
     Param('effort_topic', '', 'also publish each command as std_msgs/Float64MultiArray here, as a '
           'ros2_control forward_command_controller with the effort interface reads it '
           "(/<controller_name>/commands); '' = off", read_only=True),
@@ -499,15 +506,29 @@ def composed(**kwargs) -> tuple[Node, Node]:
     return estimator, controller
 
 
+#: the summary of ``controller --help`` (with and without the flag)
+HELP_SUMMARY = (f'{__doc__.strip().splitlines()[0]}\n{WITH_ESTIMATOR}: also run the estimator '
+                "node in this process, handing it each estimate without a DDS hop (two nodes, "
+                f"one process; 'controller {WITH_ESTIMATOR} --help' lists its parameters too).")
+
+
 def main(args=None) -> int:
     """``controller [--with-estimator] [--ros-args ...]``; with the flag the process also runs the
     estimator node (:func:`~soft_gripper_sdre.nodes.composition.with_estimator`; ``-p`` reaches
     both nodes, each taking the names it declares, and each takes its own section of a
-    parameters file)."""
+    parameters file). ``--help`` says so, and with the flag lists the estimator's parameters
+    too."""
     argv = list(sys.argv if args is None else args)
-    if WITH_ESTIMATOR not in argv:
+    composed_run = WITH_ESTIMATOR in argv
+    if composed_run:
+        argv.remove(WITH_ESTIMATOR)
+    if wants_help(argv[1:]):
+        sys.stdout.write(composed_help('controller', HELP_SUMMARY, PARAMS) if composed_run
+                         else format_help('controller', HELP_SUMMARY, PARAMS,
+                                          f'[{WITH_ESTIMATOR}] '))
+        return 0
+    if not composed_run:
         return run(ControllerNode, argv)
-    argv.remove(WITH_ESTIMATOR)
 
     return run(composed, argv, composed_params(PARAMS))
 

@@ -89,9 +89,11 @@ PARAMS = (
     Param('process_noise', 'independent', "process-noise direction: one noise per axis, or the "
           "paper's D = [0 0 1 1]ᵀ", choices=PROCESS_NOISE_MODELS, read_only=True),
     Param('max_bridge', MAX_BRIDGE, 'a gap in the stamps up to this long is predicted through '
-          'quietly (counted); a longer one is also reported as a dropout', 's', 1e-4, 1.0),
-    Param('reset_on_jump', RESET_ON_JUMP, 'a stamp jump larger than this (either direction) resets '
-          'the filter; shorter gaps are predicted through, hence the bound', 's', 1e-3, 1.0),
+          'quietly (counted); a longer one, up to reset_on_jump, is predicted through and reported '
+          'as a dropout (WARN)', 's', 1e-4, 1.0),
+    Param('reset_on_jump', RESET_ON_JUMP, 'a tip stamp jump larger than this, either direction '
+          '(forward: an outage, e.g. a stalled driver or a starved estimator; back: a restart), '
+          'resets the filter (WARN); shorter gaps are predicted through', 's', 1e-3, 1.0),
     Param('tips_reliability', 'reliable', "reliability of the tip_positions subscription: "
           "'reliable' (the simulator: lockstep loses no period) or 'best_effort', which also "
           'matches a driver that publishes with the sensor-data QoS',
