@@ -5,19 +5,47 @@ A bag of a run that never started is removed when the recorder is told which top
 writes (``discard_without``), so the same output can be given again.
 """
 import random
+import time
 
+from geometry_msgs.msg import PoseArray
 import numpy as np
 import pytest
+from rclpy.node import Node
 from rosutil import overrides, ros_context, spin_until
-from spring_finger import SpringDamper
-from test_excitation_start import Driver
+from sensor_msgs.msg import JointState
+from spring_finger import RATE, SpringDamper
 
 from soft_gripper_sdre.analysis.bag_dataset import read_recording, settle_noise
+from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.excitation import ExcitationNode
 from soft_gripper_sdre.nodes.params import ParameterError
 from soft_gripper_sdre.nodes.recorder import RecorderNode
+from soft_gripper_sdre.nodes.topics import LOOP_QOS, TIP_POSITIONS, TORQUE_COMMANDS
 
 pytestmark = pytest.mark.ros
+
+
+class Driver(Node):
+    """A lab's driver at ``RATE`` on a wall timer: the spring-damper finger's tips stamped with
+    wall time (1 % of them lost), the plant stepped with the newest command."""
+
+    def __init__(self, context, plant: SpringDamper, seed: int = 0) -> None:
+        super().__init__('lab_driver', context=context)
+        self.plant = plant
+        self.rng = np.random.default_rng(seed)
+        self.u = np.zeros(2)
+        self.pub = self.create_publisher(PoseArray, TIP_POSITIONS, LOOP_QOS)
+        self.create_subscription(JointState, TORQUE_COMMANDS, self._on_command, LOOP_QOS)
+        self.create_timer(1.0 / RATE, self._tick)
+
+    def _on_command(self, msg) -> None:
+        self.u = cv.msg_to_torques(msg, 1)[1][0]
+
+    def _tick(self) -> None:
+        if self.rng.random() >= 0.01:
+            self.pub.publish(cv.tips_to_msg(time.time_ns(), self.plant.tips()))
+        self.plant.step(self.u)
+
 
 SETTLE_SAMPLES = 60
 NODES = ('driver', 'recorder', 'excitation')
