@@ -163,3 +163,38 @@ def test_bad_discard_without_is_refused_naming_it(tmp_path):
             RecorderNode(context=ctx, parameter_overrides=overrides(
                 output=str(tmp_path / 'bag'), discard_without='not a topic!'))
         assert not (tmp_path / 'bag').exists()
+
+
+def test_the_first_message_of_each_topic_is_reported_at_once_and_kept_out_of_its_own_bag(tmp_path):
+    from diagnostic_msgs.msg import DiagnosticArray
+    from rclpy.serialization import deserialize_message
+    from rosbags.rosbag2 import Reader
+    from rosutil import Probe, deep
+
+    from soft_gripper_sdre.nodes.topics import DIAGNOSTICS, STREAM_QOS
+
+    bag = tmp_path / 'bag'
+    with ros_context() as (ctx, executor):
+        rec = RecorderNode(context=ctx, parameter_overrides=overrides(
+            output=str(bag), topics=['tip_positions', 'torque_commands', '/diagnostics']))
+        probe = Probe(ctx)
+        reports = probe.listen(DiagnosticArray, DIAGNOSTICS, deep(STREAM_QOS))
+        executor.add_node(rec)
+        executor.add_node(probe)
+        assert spin_until(executor, lambda: reports.get_publisher_count() > 0
+                          and rec._subs['/diagnostics'].get_publisher_count() > 0, 10.0)
+        got = probe.received[DIAGNOSTICS]
+        driver = Driver(ctx, SpringDamper())
+        executor.add_node(driver)
+        marked = lambda: [kv.value for m in got for s in m.status if s.name == '/recorder'  # noqa
+                          for kv in s.values if kv.key == 'report']
+        assert spin_until(executor, lambda: marked() == ['first /tip_positions'], 0.5), marked()
+        spin_until(executor, lambda: False, 1.2)        # a 1 Hz report of its own too
+        executor.remove_node(rec)
+        rec.close()
+        rec.destroy_node()
+    with Reader(bag) as reader:
+        own = [deserialize_message(raw, DiagnosticArray).status[0]
+               for conn, _, raw in reader.messages() if conn.topic == '/diagnostics']
+    own = [s for s in own if s.name == '/recorder']
+    assert own and not [s for s in own if any(kv.key == 'report' for kv in s.values)]

@@ -40,9 +40,10 @@ is removed at exit, with a warning, so the same ``output`` can be given again (a
 node that refused its arguments leaves only the driver's tips). By default every bag is kept.
 
 The first message of each topic is reported on /diagnostics at once (``messages <topic>``), not
-at the next 1 Hz report, unless the recorder records /diagnostics itself (its bag would hold the
-extra report): the excitation node starts its run only once the recorder has received both its
-tips and its commands.
+at the next 1 Hz report: the excitation node starts its run only once the recorder has received
+both its tips and its commands. Such a report carries ``report: first <topic>``, and a recorder
+that records /diagnostics leaves its own of them out of the bag, which holds what it would
+without them.
 
 Messages missing from a stream are counted per topic from its publisher's stamps
 (:class:`GapCounter`; ROS 2 headers carry no sequence counter): each stamped topic with one
@@ -70,9 +71,11 @@ import shutil
 import statistics
 import time
 
+from diagnostic_msgs.msg import DiagnosticArray
 import rclpy
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.serialization import deserialize_message
 from rosbags.interfaces import (
     Qos,
     QosDurability,
@@ -325,6 +328,7 @@ class RecorderNode(Node):
         self._single: dict[str, bool] = {}
         self._lost_reported = 0                 # messages lost at the previous /diagnostics
         self._loss_warn = False                 # the WARN in /diagnostics is the losses'
+        self._own_reports = 0                   # marked reports of its own still to leave out
         self.diag.before_publish.append(self._report_losses)
         tips_qos = with_reliability(LOOP_QOS, p['tips_reliability'])
         for name, topic in known.items():
@@ -403,14 +407,16 @@ class RecorderNode(Node):
         """Write one serialized message; never raises (bad input is counted and logged)."""
         if self._writer is None:
             return
+        if self._own_reports and topic == DIAGNOSTICS and self._is_own_report(data):
+            return
         try:
             stamp = cdr.leading_stamp(data) if stamped else None
             if is_clock and stamp is not None:
                 self.clock_ns = stamp
             self.counts[topic] += 1
             self.diag.count(f'messages {topic}')
-            if self.counts[topic] == 1 and DIAGNOSTICS not in self.counts:
-                self.diag.publish()             # the first: at once (module doc)
+            if self.counts[topic] == 1:
+                self._report_now(topic)
             gaps = self.gaps.get(topic)
             if gaps is not None and stamp is not None and self._single.get(topic, True):
                 before = gaps.last
@@ -429,6 +435,22 @@ class RecorderNode(Node):
         except Exception as exc:  # noqa: BLE001 — a recorder must survive anything it receives
             self.diag.count('errors')
             self.log.warn('receive', f'{topic}: message not recorded: {exc!r}')
+
+    def _report_now(self, topic: str) -> None:
+        """Publish /diagnostics at once, marked ``report: first <topic>`` (module doc)."""
+        self.diag.values['report'] = f'first {topic}'
+        self.diag.publish()
+        del self.diag.values['report']
+        if DIAGNOSTICS in self.counts:
+            self._own_reports += 1
+
+    def _is_own_report(self, data: bytes) -> bool:
+        """Whether ``data`` is one of this node's marked reports (then it is not recorded)."""
+        msg = deserialize_message(data, DiagnosticArray)
+        own = any(status.name == self.get_fully_qualified_name()
+                  and any(kv.key == 'report' for kv in status.values) for status in msg.status)
+        self._own_reports -= own
+        return own
 
     def _lost(self, topic: str, gaps: GapCounter, lost: int, before: int, stamp: int) -> None:
         """Count ``lost`` messages of ``topic`` missing between the stamps ``before`` and
