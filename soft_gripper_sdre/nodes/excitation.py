@@ -218,6 +218,10 @@ class ExcitationNode(Node):
         if p['timing'] == 'timer':
             self._ticker = self.create_timer(p['period'], self._on_tick, clock=self.get_clock())
         self.report.log_start(self.names)
+        if self.recorder is not None:
+            self.get_logger().info(f'... and once the recorder {self.recorder} reports on '
+                                   f'/diagnostics that it received {TIP_POSITIONS} and '
+                                   f"{TORQUE_COMMANDS} (recorder_node; '' waits for no report)")
 
     # -- inputs ------------------------------------------------------------------------------
     def on_tips(self, data: bytes) -> None:
