@@ -139,3 +139,24 @@ def test_bad_start_settings_are_refused_naming_the_parameter(params, named):
     with ros_context() as (ctx, _):
         with pytest.raises(ParameterError, match=named):
             TrajectoryNode(context=ctx, parameter_overrides=overrides(**params))
+
+
+@pytest.mark.parametrize('node, arg, named', [
+    ('trajectory', 'start_when:=never', 'start_when'),
+    ('trajectory', 'controller_node:=a/b', 'controller_node'),
+    ('excitation', 'recorder_node:=9r', 'recorder_node'),
+    ('recorder', 'discard_without:=not a topic!', 'discard_without'),
+])
+def test_bad_start_values_exit_2_naming_them_without_a_traceback(node, arg, named, tmp_path):
+    import os
+    import subprocess
+    import sys
+    out = subprocess.run([sys.executable, '-m', f'soft_gripper_sdre.nodes.{node}', '--ros-args',
+                          '-p', arg, '-p', f'output:={tmp_path / "bag"}'] if node == 'recorder'
+                         else [sys.executable, '-m', f'soft_gripper_sdre.nodes.{node}',
+                               '--ros-args', '-p', arg],
+                         capture_output=True, text=True, timeout=60, cwd=tmp_path,
+                         env=dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST'))
+    assert out.returncode == 2, out.stderr
+    assert named in out.stderr and 'Traceback' not in out.stderr
+    assert not list(tmp_path.iterdir())            # nothing written (no bag)
