@@ -198,3 +198,29 @@ def test_the_first_message_of_each_topic_is_reported_at_once_and_kept_out_of_its
                for conn, _, raw in reader.messages() if conn.topic == '/diagnostics']
     own = [s for s in own if s.name == '/recorder']
     assert own and not [s for s in own if any(kv.key == 'report' for kv in s.values)]
+
+
+@pytest.mark.timeout(60)
+def test_timer_timing_sends_zero_on_its_timer_while_it_waits_for_the_recorder(tmp_path):
+    bag = tmp_path / 'bag'
+    with ros_context() as (ctx, executor):
+        driver = Driver(ctx, SpringDamper())
+        exc = ExcitationNode(context=ctx, parameter_overrides=overrides(
+            finger_names=['finger_0'], signals=['u1'], duration=1.0, settle_time=0.2,
+            settle_samples=SETTLE_SAMPLES, amplitude=0.1, tips_timeout=5.0, timing='timer',
+            period=0.005))
+        for node in (driver, exc):
+            executor.add_node(node)
+        assert spin_until(executor, lambda: exc.diag.counters['tips'] > 20, 10.0)
+        spin_until(executor, lambda: False, 0.3)
+        assert exc.start_ns is None and 'waiting for 2' in exc.diag.values['signal']
+        rec = build('recorder', ctx, bag, 0)
+        executor.add_node(rec)
+        assert spin_until(executor, lambda: exc.start_ns is not None, 10.0), exc.diag.values
+        assert rec.counts['/torque_commands'] > 0           # the zeros sent while it waited
+        assert spin_until(executor, lambda: exc.done, 20.0) and exc.exit_code == 0
+        spin_until(executor, lambda: False, 0.2)
+        executor.remove_node(rec)
+        rec.close()
+        rec.destroy_node()
+    assert settle_noise(read_recording(bag), 0)[2] >= SETTLE_SAMPLES
