@@ -68,7 +68,10 @@ def make_estimator(ctx, executor, **params):
 
 def make_trajectory(ctx, executor, **params):
     """Trajectory node + a probe publishing tip_positions and /clock (``probe.clock``) and recording
-    grasp_reference: ``(node, probe, tip publisher)``, matched."""
+    grasp_reference: ``(node, probe, tip publisher)``, matched. The probe plays the driver and no
+    controller is there: the plan starts at the first tips (``start_when: tips``) unless the
+    caller says otherwise."""
+    params.setdefault('start_when', 'tips')
     node = TrajectoryNode(context=ctx, parameter_overrides=overrides(**params))
     probe = Probe(ctx)
     probe.listen(MultiDOFJointTrajectory, GRASP_REFERENCE, deep(REFERENCE_QOS))

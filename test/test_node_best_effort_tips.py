@@ -37,8 +37,8 @@ def test_a_best_effort_wall_time_driver_is_heard_by_every_tip_reader(tmp_path):
     with ros_context() as (ctx, executor):
         rec = RecorderNode(context=ctx, parameter_overrides=overrides(
             output=str(tmp_path / 'bag'), **BEST_EFFORT))
-        traj = TrajectoryNode(context=ctx,
-                              parameter_overrides=overrides(**BEST_EFFORT, **FAST_GRASP))
+        traj = TrajectoryNode(context=ctx, parameter_overrides=overrides(  # no controller here
+            start_when='tips', **BEST_EFFORT, **FAST_GRASP))
         exc = ExcitationNode(context=ctx, parameter_overrides=overrides(
             signals=['x1'], duration=0.1, settle_time=0.02, settle_samples=0, **BEST_EFFORT))
         driver = Probe(ctx, 'driver')

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from pathlib import Path
 import sys
-from typing import Iterable, TextIO
+from typing import Iterable, Sequence, TextIO
 
 import yaml
 
@@ -89,13 +89,30 @@ def params_file_problem(path: str) -> str | None:
     return None
 
 
-def format_help(executable: str, summary: str, params: Iterable[Param]) -> str:
-    """The ``--help`` text: usage, what the node does, and every parameter with its default."""
-    lines = [f'usage: ros2 run soft_gripper_sdre {executable} [--help] '
+def wants_help(argv: list[str]) -> bool:
+    """Whether the command line (without the program name) asks for ``--help`` / ``-h``."""
+    return any(a in HELP_FLAGS for a in split_ros_args(argv)[0])
+
+
+def format_help(executable: str, summary: str, params: Iterable[Param], flags: str = '',
+                sections: Sequence[tuple[str, Iterable[Param]]] = ()) -> str:
+    """The ``--help`` text: usage (with the executable's own ``flags``, e.g.
+    ``'[--with-estimator] '``), what the node does, every parameter with its default, then each
+    of ``sections``: (heading, parameters) of another node the command line runs."""
+    lines = [f'usage: ros2 run soft_gripper_sdre {executable} {flags}[--help] '
              '[--ros-args [--params-file FILE] [-p NAME:=VALUE ...] [-r FROM:=TO ...]]', '']
     if summary:
         lines += [summary, '']
     lines.append('parameters (default; units; range or choices):')
+    _param_lines(lines, params)
+    for heading, more in sections:
+        lines += ['', heading]
+        _param_lines(lines, more)
+    return '\n'.join(lines) + '\n'
+
+
+def _param_lines(lines: list[str], params: Iterable[Param]) -> None:
+    """Two lines per parameter: name, default and limits; the description."""
     for p in params:
         limits = []
         if p.units:
@@ -109,7 +126,6 @@ def format_help(executable: str, summary: str, params: Iterable[Param]) -> str:
         extra = f'; {"; ".join(limits)}' if limits else ''
         lines.append(f'  {p.name} = {p.default!r}{extra}')
         lines.append(f'      {p.description}{" (read-only)" if p.read_only else ""}')
-    return '\n'.join(lines) + '\n'
 
 
 def settle_command_line(argv: list[str], executable: str, summary: str, params: Iterable[Param],

@@ -13,6 +13,7 @@ from typing import Callable, Sequence, TypeVar
 import numpy as np
 from rclpy.node import Node
 
+from soft_gripper_sdre.nodes.cli import format_help
 from soft_gripper_sdre.nodes.estimator import PARAMS as ESTIMATOR_PARAMS
 from soft_gripper_sdre.nodes.estimator import EstimatorNode
 from soft_gripper_sdre.nodes.graph import HOSTS, wiring_key
@@ -44,6 +45,20 @@ def with_estimator(make_host: Callable[[], HostNode],
     estimator.in_process_wiring = {wiring_key('readers', topic): 1}
     host.in_process_wiring = {wiring_key('writers', topic): 1}
     return estimator, host
+
+
+def composed_help(executable: str, summary: str, host_params: Sequence[Param]) -> str:
+    """``<host> --with-estimator --help``: the host's parameters, then the estimator's, every
+    one with its own meaning; a name both declare is said to reach both nodes."""
+    own = {p.name for p in host_params}
+    shared = [p.name for p in ESTIMATOR_PARAMS if p.name in own]
+    heading = ("parameters of the estimator node in this process (-p NAME:=VALUE reaches both "
+               "nodes, each taking the names it declares: "
+               + (f"{', '.join(shared)} set both, each with its own meaning above and below; "
+                  if shared else '')
+               + "a parameters file's /**/estimator section sets the estimator's alone):")
+    return format_help(executable, summary, host_params, f'{WITH_ESTIMATOR} ',
+                       [(heading, ESTIMATOR_PARAMS)])
 
 
 def composed_params(host_params: Sequence[Param]) -> tuple[Param, ...]:

@@ -44,6 +44,16 @@ reset. The change is logged, and /diagnostics shows the values
 in force (``weights``, ``integral``, ``pd_gains``). A value the law does not use (``pd_kp`` for
 ``sdre_ff``) is taken and has no effect.
 
+**Falling behind is loud.** An estimate the controller never saw (its reader keeps only the
+newest, so a controller starved of CPU skips to the present) shows as a gap in the estimates'
+stamps, counted as ``skipped_estimates``; a forward jump over ``reset_on_jump`` is counted as
+``estimate_jumps`` instead, with a throttled warning. At each /diagnostics report, when more than
+:data:`SKIP_WARN_SHARE` of the periods since the previous report (and at least
+:data:`SKIP_WARN_MIN`) were skipped, the status goes to WARN and the log warns with the counts
+(``skipped_estimates`` in the window and in all; the cure: give the loop its cores,
+docs/faults.md); a report without that goes back to OK. A few lost messages upstream (a driver
+dropping 1 % of its tips) stay below it.
+
 Nothing bad reaches the actuators: malformed, non-finite, wrong-size or old messages are rejected
 (throttled warning, counted) and produce no torque; the SDRE core falls back to the last valid
 gains when a Riccati check fails and saturates at ``torque_limit``; a torque that is still not
@@ -82,8 +92,14 @@ from soft_gripper_sdre.control.tracking import (
 from soft_gripper_sdre.learning.model import ModelFileError, SDCModel, set_torch_threads
 from soft_gripper_sdre.nodes import cdr
 from soft_gripper_sdre.nodes import conversions as cv
-from soft_gripper_sdre.nodes.common import ERROR, OK, Diagnostics, ThrottledLogger, run
-from soft_gripper_sdre.nodes.composition import WITH_ESTIMATOR, composed_params, with_estimator
+from soft_gripper_sdre.nodes.cli import format_help, wants_help
+from soft_gripper_sdre.nodes.common import ERROR, OK, WARN, Diagnostics, ThrottledLogger, run
+from soft_gripper_sdre.nodes.composition import (
+    WITH_ESTIMATOR,
+    composed_help,
+    composed_params,
+    with_estimator,
+)
 from soft_gripper_sdre.nodes.law_tuning import LawTuning
 from soft_gripper_sdre.nodes.params import (
     Param,
@@ -166,9 +182,10 @@ PARAMS = (
     Param('estimate_watchdog', 0.5, 'wall time without a state_estimate after which the controller '
           'reports ERROR (it sends nothing without an estimate: the simulator steps safely on its '
           'own)', 's', 1e-2, 600.0),
-    Param('reset_on_jump', 0.1, 'a stamp this far behind the last one (a simulator restart) resets '
-          'the controller instead of being rejected (as in the estimator and trajectory node)', 's',
-          1e-3, 1e6, read_only=True),
+    Param('reset_on_jump', 0.1, 'a state_estimate stamp this far behind the last one (a simulator '
+          'restart) resets the controller instead of being rejected; one this far ahead is '
+          'counted (estimate_jumps) and warned about. The estimator resets its filter on a jump '
+          'either way (its own reset_on_jump)', 's', 1e-3, 1e6, read_only=True),
     Param('effort_topic', '', 'also publish each command as std_msgs/Float64MultiArray here, as a '
           'ros2_control forward_command_controller with the effort interface reads it '
           "(/<controller_name>/commands); '' = off", read_only=True),
@@ -176,6 +193,12 @@ PARAMS = (
           "forward_command_controller, in the order of its 'joints' list, the input that drives "
           "it (<finger>/ax<k>, k below the model's inputs m); every input once", read_only=True),
 )
+
+
+#: a /diagnostics window in which more than this share of the periods was skipped is a WARN
+SKIP_WARN_SHARE = 0.1
+#: ... and at least this many estimates skipped in it
+SKIP_WARN_MIN = 10
 
 
 class ControllerNode(Node):
@@ -260,6 +283,9 @@ class ControllerNode(Node):
         corner = roll_off_corner_hz(p['torque_lowpass_hz'], p['control_period'])
         values['roll_off_hz'] = f'{corner:g}'
         self.diag.before_publish.append(self._compute_stats)
+        self.diag.before_publish.append(self._judge_skips)
+        self._window = (0, 0)           # (estimates, skipped_estimates) at the previous report
+        self._behind = False            # the WARN in /diagnostics is the skipped estimates'
 
     def _log_start(self) -> None:
         """One line of what runs: the model, the weights, the limit, the law, the fingers."""
@@ -296,12 +322,23 @@ class ControllerNode(Node):
         except cv.MessageError as exc:
             self._reject('bad_estimate', str(exc))
             return
-        self._act(self.gate.on_estimate(stamp, x, time.monotonic()), STATE_ESTIMATE)
+        self._estimate(stamp, x)
 
     def take_estimate(self, stamp: int, x: np.ndarray) -> None:
         """The estimate (n, 2d) stamped ``stamp`` [ns], handed over in-process by an estimator
         node of the same process and executor: answered as if it had come on the topic."""
+        self._estimate(stamp, x)
+
+    def _estimate(self, stamp: int, x: np.ndarray) -> None:
+        last = self.gate.last_estimate_ns
         self._act(self.gate.on_estimate(stamp, x, time.monotonic()), STATE_ESTIMATE)
+        if last >= 0 and stamp - last > self.gate.reset_jump_ns:
+            self.diag.count('estimate_jumps')
+            self.log.warn('estimate_jumps', f'state_estimate stamps jumped forward by '
+                          f'{(stamp - last) / 1e6:.1f} ms (more than reset_on_jump) to t = '
+                          f'{stamp / cv.NS:.4f} s: no estimate came in between (a stalled '
+                          f'driver, estimator or controller); '
+                          f'{self.diag.counters["estimate_jumps"]} such jump(s) in all')
 
     def _reject(self, key: str, why: str) -> None:
         self.diag.problem(key, f'rejected: {why}')
@@ -367,6 +404,30 @@ class ControllerNode(Node):
         unreachable = self.step.take_unreachable()
         if unreachable is not None:
             self.diag.values['unreachable_max'] = f'{unreachable:.3g}'
+
+
+    def _judge_skips(self) -> None:
+        """Before each /diagnostics: WARN with the counts when the estimates skipped since the
+        previous report pass :data:`SKIP_WARN_SHARE` of the periods (module doc), OK again
+        after a report without that."""
+        c = self.diag.counters
+        estimates, skipped = c['estimates'], c['skipped_estimates']
+        new_estimates, new_skipped = estimates - self._window[0], skipped - self._window[1]
+        self._window = (estimates, skipped)
+        periods = new_estimates + new_skipped
+        behind = new_skipped >= SKIP_WARN_MIN and new_skipped > SKIP_WARN_SHARE * periods
+        self.diag.values['skipped_share'] = f'{new_skipped / periods:.3f}' if periods else '0'
+        if behind:
+            why = (f'falling behind: {new_skipped} of {periods} estimates skipped since the last '
+                   f'report ({skipped} in all); give the loop its cores (docs/faults.md)')
+            self.get_logger().warning(why)
+            if self.diag.level != ERROR:
+                self.diag.set_status(WARN, why)
+                self._behind = True
+        elif self._behind:
+            self._behind = False
+            if self.diag.level == WARN:
+                self.diag.set_status(OK, f'tracking; {skipped} estimates skipped earlier')
 
 
 def input_bounds(p: dict, m: int) -> InputBounds | None:
@@ -445,15 +506,29 @@ def composed(**kwargs) -> tuple[Node, Node]:
     return estimator, controller
 
 
+#: the summary of ``controller --help`` (with and without the flag)
+HELP_SUMMARY = (f'{__doc__.strip().splitlines()[0]}\n{WITH_ESTIMATOR}: also run the estimator '
+                "node in this process, handing it each estimate without a DDS hop (two nodes, "
+                f"one process; 'controller {WITH_ESTIMATOR} --help' lists its parameters too).")
+
+
 def main(args=None) -> int:
     """``controller [--with-estimator] [--ros-args ...]``; with the flag the process also runs the
     estimator node (:func:`~soft_gripper_sdre.nodes.composition.with_estimator`; ``-p`` reaches
     both nodes, each taking the names it declares, and each takes its own section of a
-    parameters file)."""
+    parameters file). ``--help`` says so, and with the flag lists the estimator's parameters
+    too."""
     argv = list(sys.argv if args is None else args)
-    if WITH_ESTIMATOR not in argv:
+    composed_run = WITH_ESTIMATOR in argv
+    if composed_run:
+        argv.remove(WITH_ESTIMATOR)
+    if wants_help(argv[1:]):
+        sys.stdout.write(composed_help('controller', HELP_SUMMARY, PARAMS) if composed_run
+                         else format_help('controller', HELP_SUMMARY, PARAMS,
+                                          f'[{WITH_ESTIMATOR}] '))
+        return 0
+    if not composed_run:
         return run(ControllerNode, argv)
-    argv.remove(WITH_ESTIMATOR)
 
     return run(composed, argv, composed_params(PARAMS))
 

@@ -22,11 +22,14 @@ message is either accepted (``estimates``) or rejected under one reason, so ``re
 
 * a step of more than 1.5 nominal periods is a gap: messages were lost. Up to ``max_bridge``
   seconds the filter predicts through it quietly (counted: ``gaps``, and ``missed_periods``, the
-  nominal periods without a message); a longer one is a dropout, reported with a throttled
-  warning (``dropouts``) and still predicted through;
-* a jump of more than ``reset_on_jump`` seconds, forwards (an outage too long to predict through)
-  or backwards (the simulator restarting at t = 0), resets the filter (``resets``, logged) and
-  the measurement initialises it again;
+  nominal periods without a message); a longer one, up to ``reset_on_jump``, is a dropout,
+  reported (WARN, a throttled warning with the counts: ``dropouts``) and still predicted
+  through;
+* a jump of more than ``reset_on_jump`` seconds, forwards (an outage too long to predict through:
+  a stalled driver, or this node starved of CPU on a busy machine) or backwards (the simulator
+  restarting at t = 0), resets the filter (``resets``, WARN, a throttled warning with the count)
+  and the measurement initialises it again. So what is predicted through is bounded by
+  ``reset_on_jump``, not by ``max_bridge``;
 * a stamp equal to the last accepted one is rejected (``duplicate``), an older one within
   ``reset_on_jump`` (a late message, overtaken by a newer one) too (``out_of_order``);
 * malformed messages (wrong number of poses, NaN/Inf) are rejected (``bad_message``).
@@ -86,9 +89,11 @@ PARAMS = (
     Param('process_noise', 'independent', "process-noise direction: one noise per axis, or the "
           "paper's D = [0 0 1 1]ᵀ", choices=PROCESS_NOISE_MODELS, read_only=True),
     Param('max_bridge', MAX_BRIDGE, 'a gap in the stamps up to this long is predicted through '
-          'quietly (counted); a longer one is also reported as a dropout', 's', 1e-4, 1.0),
-    Param('reset_on_jump', RESET_ON_JUMP, 'a stamp jump larger than this (either direction) resets '
-          'the filter; shorter gaps are predicted through, hence the bound', 's', 1e-3, 1.0),
+          'quietly (counted); a longer one, up to reset_on_jump, is predicted through and reported '
+          'as a dropout (WARN)', 's', 1e-4, 1.0),
+    Param('reset_on_jump', RESET_ON_JUMP, 'a tip stamp jump larger than this, either direction '
+          '(forward: an outage, e.g. a stalled driver or a starved estimator; back: a restart), '
+          'resets the filter (WARN); shorter gaps are predicted through', 's', 1e-3, 1.0),
     Param('tips_reliability', 'reliable', "reliability of the tip_positions subscription: "
           "'reliable' (the simulator: lockstep loses no period) or 'best_effort', which also "
           'matches a driver that publishes with the sensor-data QoS',
@@ -178,13 +183,23 @@ class EstimatorNode(Node):
 
     def _report(self, notice: Notice) -> None:
         change, t, last = notice.change, notice.t_ns / cv.NS, notice.last_ns
+        c = self.diag.counters
         if change is Change.RESET:
-            self.diag.problem('resets', f'tip_positions stamp jumped from {last / cv.NS:.4f} s to '
-                              f'{t:.4f} s (more than reset_on_jump); filter reset')
+            jump_ms = (notice.t_ns - last) / 1e6
+            why = ('back: a restarted driver or simulator' if jump_ms < 0 else
+                   'forward: an outage too long to predict through (a stalled driver, or this '
+                   'node starved of CPU)')
+            self.diag.problem('resets', f'tip_positions stamp jumped {why}, from '
+                              f'{last / cv.NS:.4f} s to {t:.4f} s ({jump_ms:+.1f} ms, more '
+                              f'than reset_on_jump {1e3 * self.p["reset_on_jump"]:g} ms); '
+                              'filter reset '
+                              f'({c["resets"] + 1} reset(s) in all)')
         elif change is Change.DROPOUT:
             gap_ms = (notice.t_ns - last) / 1e6
             self.diag.problem('dropouts', f'no tip_positions for {gap_ms:.1f} ms (more than '
-                              f'max_bridge) before t = {t:.4f} s; predicting through it')
+                              f'max_bridge) before t = {t:.4f} s; predicting through it '
+                              f'({c["dropouts"] + 1} dropout(s), {c["missed_periods"]} missed '
+                              'period(s) in all)')
         elif change is Change.INITIALISED:
             self.get_logger().info(f'filter initialised at t = {t:.4f} s')
 

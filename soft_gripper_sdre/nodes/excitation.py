@@ -8,10 +8,17 @@ running meanwhile captures ``tip_positions`` and ``torque_commands`` for
 ``tools.learning.train --bag``.
 
 Start: the run begins only once ``torque_commands`` has ``min_command_subscribers`` matched
-subscribers (default 2: the driver and the recorder), so no command is sent before the recorder
-hears it; until then each tip message is answered with zero torque. Plan time starts at the
-first tips after that, so the recording holds the whole settle phase (the rest pose and the noise
-level for training). Not matched within ``startup_timeout`` is a fault.
+subscribers (default 2: the driver and the recorder) and, with 2 or more and a ``recorder_node``,
+once that recorder reports on /diagnostics that it has received both topics it records for
+training: ``messages /tip_positions`` and ``messages /torque_commands`` at least 1 (the names as
+this node resolves them). A matched command reader alone is not enough: the recorder's tips
+reader may match the driver seconds later, and a bag whose first tips come after its first
+commands has no settle phase. Until then each tip message is answered with zero torque (tips
+timing; timer timing publishes zero on its timer once tips were heard), which is what the
+recorder first hears of the commands. Plan time starts at the first tips after that, so the
+recording holds the whole settle phase (the rest pose and the noise level for training). So the
+driver, the recorder and this node may start in any order. Not ready within ``startup_timeout``
+is a fault naming what was missing; /diagnostics shows ``signal`` 'waiting for …' meanwhile.
 
 Settle: the first settle phase (before the first probe of ``level: auto`` or the first signal)
 lasts ``settle_time`` of tip stamps and, with ``settle_time`` > 0, until the node has heard at
@@ -65,8 +72,10 @@ parameters, tips and their stamps, timing, the start and the stops.
 """
 from __future__ import annotations
 
+import re
 import time
 
+from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseArray
 import numpy as np
 from rclpy.duration import Duration
@@ -87,7 +96,14 @@ from soft_gripper_sdre.nodes.params import (
     tips_reliability_param,
     with_reliability,
 )
-from soft_gripper_sdre.nodes.topics import LOOP_QOS, NEWEST_QOS, TIP_POSITIONS, TORQUE_COMMANDS
+from soft_gripper_sdre.nodes.topics import (
+    DIAGNOSTICS,
+    LOOP_QOS,
+    NEWEST_QOS,
+    STREAM_QOS,
+    TIP_POSITIONS,
+    TORQUE_COMMANDS,
+)
 from soft_gripper_sdre.sim.excitation import ExcitationPlan, LevelSearch, LevelSettings
 from soft_gripper_sdre.sim.excitation_run import ExcitationRun, Phase
 from soft_gripper_sdre.sim.settle import SettlePhase
@@ -128,6 +144,12 @@ PARAMS = (
           'min_command_subscribers', 's', 0.1, 3600.0, read_only=True),
     Param('min_command_subscribers', 2, 'start only once torque_commands has this many matched '
           'subscribers (2: the driver and the recorder; 1 without a recorder)', '', 0, 64,
+          read_only=True),
+    Param('recorder_node', 'recorder', 'with min_command_subscribers >= 2: the recorder in this '
+          "node's namespace whose /diagnostics must show messages of tip_positions and "
+          "torque_commands received before the run starts; '' = wait for no report",
+          rule=lambda name: None if re.fullmatch(r'([A-Za-z][A-Za-z0-9_]*)?', name) else
+          f'{name!r} is not a node name (a letter, then letters, digits and _; or empty)',
           read_only=True),
     Param('reset_on_jump', 0.1, 'tip stamps jumping back by more than this (a restarted driver) '
           'stop the run as a fault', 's', 1e-3, 1e6, read_only=True),
@@ -182,11 +204,24 @@ class ExcitationNode(Node):
             with_reliability(NEWEST_QOS, p['tips_reliability']), raw=True)
         self.diag = Diagnostics(self)
         cdr.watch(self.diag, self.cdr_tips)
+        #: the recorder whose report the start waits for (its full name), and its newest values
+        self.recorder = None
+        if p['recorder_node'] and p['min_command_subscribers'] >= 2:
+            self.recorder = f'{self.get_namespace().rstrip("/")}/{p["recorder_node"]}'
+        self.recorder_values: dict[str, str] = {}
+        self.recorded = tuple(f'messages {self.resolve_topic_name(t)}'
+                              for t in (TIP_POSITIONS, TORQUE_COMMANDS))
+        self.sub_diag = (self.create_subscription(DiagnosticArray, DIAGNOSTICS, self._on_report,
+                                                  STREAM_QOS) if self.recorder else None)
         self.report = RunReport(self.diag, self.get_logger(), self.run, p)
         self._watchdog = self.create_timer(0.05, self._check_watchdog)
         if p['timing'] == 'timer':
             self._ticker = self.create_timer(p['period'], self._on_tick, clock=self.get_clock())
         self.report.log_start(self.names)
+        if self.recorder is not None:
+            self.get_logger().info(f'... and once the recorder {self.recorder} reports on '
+                                   f'/diagnostics that it received {TIP_POSITIONS} and '
+                                   f"{TORQUE_COMMANDS} (recorder_node; '' waits for no report)")
 
     # -- inputs ------------------------------------------------------------------------------
     def on_tips(self, data: bytes) -> None:
@@ -223,27 +258,56 @@ class ExcitationNode(Node):
         self.run.settle.heard_tips()            # (counted after its own answer: tips timing
                                                 # answers it before it counts)
 
-    def _start(self, stamp: int, tips: np.ndarray) -> bool:
-        """Start the run at these tips once ``torque_commands`` has min_command_subscribers;
-        until then answer them with zero (tips timing). Whether it started."""
+    def _on_report(self, msg: DiagnosticArray) -> None:
+        for status in msg.status:
+            if status.name == self.recorder:
+                self.recorder_values = {kv.key: kv.value for kv in status.values}
+
+    def start_problem(self) -> str | None:
+        """What the run still waits for (module doc, "Start"), or None."""
         subscribers = self.pub_cmd.get_subscription_count()
         self.diag.values['command_subscribers'] = str(subscribers)
         if subscribers < self.p['min_command_subscribers']:
-            self.diag.values['signal'] = (f'waiting for {self.p["min_command_subscribers"]} '
-                                          f'{TORQUE_COMMANDS} subscribers')
+            return (f'{self.p["min_command_subscribers"]} {TORQUE_COMMANDS} subscribers '
+                    f'({subscribers} matched)')
+        if self.recorder is not None:
+            missing = [key.split(' ', 1)[1] for key in self.recorded
+                       if _count(self.recorder_values.get(key)) < 1]
+            if missing:
+                heard = 'no report yet' if not self.recorder_values else 'none of ' + ', '.join(
+                    missing)
+                return f'the recorder {self.recorder} to receive {" and ".join(missing)} ({heard})'
+        return None
+
+    def _start(self, stamp: int, tips: np.ndarray) -> bool:
+        """Start the run at these tips once nothing is missing (:meth:`start_problem`); until
+        then answer them with zero (tips timing). Whether it started."""
+        problem = self.start_problem()
+        if problem is not None:
+            self.diag.values['signal'] = f'waiting for {problem}'
             if self.p['timing'] == 'tips':
                 self._publish(stamp, self.run.plan.rest_inputs())
             return False
         self.start_ns = stamp
         self.run.start(tips)
+        if self.sub_diag is not None:
+            self.destroy_subscription(self.sub_diag)
+            self.sub_diag = None
+        subscribers = self.diag.values['command_subscribers']
+        recorder = (f' and the recorder {self.recorder} hearing both topics' if self.recorder
+                    else '')
         self.get_logger().info(f'tip_positions at t = {stamp / cv.NS:.4f} s with {subscribers} '
-                               f'{TORQUE_COMMANDS} subscriber(s): the run starts')
+                               f'{TORQUE_COMMANDS} subscriber(s){recorder}: the run starts')
         return True
 
     def _on_tick(self) -> None:
-        if self.stopped or self.start_ns is None:
+        if self.stopped:
             return
         now = self.get_clock().now().nanoseconds
+        if self.start_ns is None:           # waiting to start: zero, once the driver is heard
+            if self.newest_tips is not None and now > self.answered_ns:
+                self._publish(now, self.run.plan.rest_inputs())
+            return
         if self.clock_start_ns is None:
             self.clock_start_ns = now
         if now <= self.answered_ns:
@@ -258,6 +322,13 @@ class ExcitationNode(Node):
             self.fault(f'no tip_positions within startup_timeout ({self.p["startup_timeout"]:g} s)',
                        max(self.last_ns, 0))
         elif self.start_ns is None and now > self._deadline:
+            problem = self.start_problem()
+            if problem is not None and problem.startswith('the recorder'):
+                self.fault(f'still waiting for {problem} after startup_timeout '
+                           f'({self.p["startup_timeout"]:g} s): start the recorder '
+                           f'({self.recorder}), or set recorder_node to its name or to \'\'',
+                           self.last_ns)
+                return
             self.fault(f'{TORQUE_COMMANDS} has {self.pub_cmd.get_subscription_count()} matched '
                        f'subscriber(s) after startup_timeout ({self.p["startup_timeout"]:g} s); '
                        f'min_command_subscribers is {self.p["min_command_subscribers"]}: start the '
@@ -316,6 +387,14 @@ class ExcitationNode(Node):
         if not self.stopped:          # no tips came: zero for the newest stamp heard
             self.stop(max(self.last_ns, 0), 'stopped on shutdown')
         self.pub_cmd.wait_for_all_acked(Duration(seconds=1))
+
+
+def _count(value: str | None) -> int:
+    """A count of a /diagnostics report (0 when absent or not a number)."""
+    try:
+        return int(value) if value is not None else 0
+    except ValueError:
+        return 0
 
 
 def excitation_run(p: dict, n: int) -> ExcitationRun:

@@ -132,8 +132,10 @@ def default_params_file(node: str) -> Path | None:
 
 def parameter_argument(key: str, value: Any) -> str:
     """``key:=value`` for ``--ros-args -p``: booleans as YAML ``true``/``false``, lists in
-    brackets."""
-    if isinstance(value, bool):
+    brackets, the empty string as YAML ``''`` (rcl refuses ``key:=``)."""
+    if value == '':
+        text = "''"
+    elif isinstance(value, bool):
         text = 'true' if value else 'false'
     elif isinstance(value, (list, tuple)):
         text = '[' + ','.join(repr(v) if isinstance(v, str) else str(v) for v in value) + ']'

@@ -12,11 +12,13 @@ N). A steady-clock timer ticks at ``rate``; each tick
    ``torque_commands``, clipped to the bounds (the preset's, narrowed by ``torque_limit`` and
    by ``input_lower`` / ``input_upper``). A command received more than ``command_timeout`` ago
    (wall time) is replaced by the rest input (zero; a one-sided input's bound nearest zero:
-   a vented chamber, slack tendons) (``stale_ticks``), as is the absence of any command
-   (``idle_ticks``);
+   a vented chamber, slack tendons) (``stale_ticks``: WARN in /diagnostics and a throttled
+   warning with the command's age and the count: the finger springs back, so on a busy machine
+   this is the first thing to look for), as is the absence of any command (``idle_ticks``);
 2. advances both plants by the wall time elapsed since the previous tick, at most
    :data:`MAX_STEP_PERIODS` periods (a longer stall is not made up; ``late_ticks`` counts ticks
-   more than 1.5 periods after the previous one);
+   more than 1.5 periods after the previous one, with a throttled warning giving the interval
+   and the count, and WARN in /diagnostics while they grow);
 3. measures the tips at wall time t_m (``time.time_ns()``) and stamps them t_m + δ, δ uniform in
    ±``stamp_jitter``: ``tip_positions`` carries the tips plus Gaussian noise of ``noise_std``
    per axis, published with the sensor-data QoS (best effort: a reliable reader does not match
@@ -51,7 +53,14 @@ from sensor_msgs.msg import JointState
 
 from soft_gripper_sdre.nodes import cdr
 from soft_gripper_sdre.nodes import conversions as cv
-from soft_gripper_sdre.nodes.common import OK, WARN, Diagnostics, LatencyWindow, run
+from soft_gripper_sdre.nodes.common import (
+    OK,
+    WARN,
+    Diagnostics,
+    LatencyWindow,
+    ThrottledLogger,
+    run,
+)
 from soft_gripper_sdre.nodes.params import (
     Param,
     ParameterError,
@@ -148,6 +157,8 @@ class PlantDriverNode(Node):
         self.done = False
         self._last_stamp = 0
         self._intervals = LatencyWindow(2000)
+        self.log = ThrottledLogger(self.get_logger())
+        self._late_reported = 0             # late_ticks at the previous /diagnostics
 
         self.cdr_tips = cdr.tips_codec(self.names)
         self.cdr_cmd = cdr.torques_codec(self.names, self.m)
@@ -203,10 +214,15 @@ class PlantDriverNode(Node):
         if self.command_received is None:
             self.diag.count('idle_ticks')
             return self.rest_input.copy()
-        if now - self.command_received > self.p['command_timeout']:
+        age = now - self.command_received
+        if age > self.p['command_timeout']:
             self.diag.count('stale_ticks')
-            if self.diag.level == OK:
+            if self.diag.level == OK or self.diag.message.startswith('late ticks'):
                 self.diag.set_status(WARN, 'torque_commands stale: zero torque')
+            self.log.warn('stale', f'the newest torque_commands is {1e3 * age:.1f} ms old (more '
+                          f'than command_timeout {1e3 * self.p["command_timeout"]:g} ms): '
+                          'applying the rest input, the finger springs back; '
+                          f'{self.diag.counters["stale_ticks"]} stale tick(s) in all')
             return self.rest_input.copy()
         if self.diag.level == WARN and self.diag.message.startswith('torque_commands stale'):
             self.diag.set_status(OK, 'driving')
@@ -220,6 +236,9 @@ class PlantDriverNode(Node):
         self._intervals.add(elapsed)
         if elapsed > LATE_PERIODS * self.period:
             self.diag.count('late_ticks')
+            self.log.warn('late', f'tick {1e3 * elapsed:.1f} ms after the previous one (period '
+                          f'{1e3 * self.period:g} ms): the driver was starved of CPU; '
+                          f'{self.diag.counters["late_ticks"]} late tick(s) in all')
         dt = min(elapsed, MAX_STEP_PERIODS * self.period)
         self.applied = self._torque(now)
         for plant, u in zip(self.plants, self.applied):
@@ -248,6 +267,13 @@ class PlantDriverNode(Node):
                                    'stopping')
 
     def _refresh_diagnostics(self) -> None:
+        late = self.diag.counters['late_ticks']
+        if late > self._late_reported and self.diag.level == OK:
+            self.diag.set_status(WARN, f'late ticks (a busy machine): {late - self._late_reported} '
+                                 f'since the last report, {late} in all')
+        elif late == self._late_reported and self.diag.message.startswith('late ticks'):
+            self.diag.set_status(OK, 'driving')
+        self._late_reported = late
         self.diag.values['plant_time'] = f'{self.plant_time:.3f}'
         if self.command_received is not None:
             age = time.monotonic() - self.command_received

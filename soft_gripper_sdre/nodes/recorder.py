@@ -34,6 +34,17 @@ there is no /clock):
   ``SKEW_NS`` of the wall clock (a driver stamping with wall time). At most ``MAX_PENDING``
   messages or ``CLOCK_WAIT_S`` of wall time are held; without /clock among the topics nothing is.
 
+A run that never started need leave no bag: with ``discard_without`` naming a recorded topic
+(the identification recipe gives ``torque_commands``), a bag in which that topic got no message
+is removed at exit, with a warning, so the same ``output`` can be given again (an excitation
+node that refused its arguments leaves only the driver's tips). By default every bag is kept.
+
+The first message of each topic is reported on /diagnostics at once (``messages <topic>``), not
+at the next 1 Hz report: the excitation node starts its run only once the recorder has received
+both its tips and its commands. Such a report carries ``report: first <topic>``, and a recorder
+that records /diagnostics leaves its own of them out of the bag, which holds what it would
+without them.
+
 Messages missing from a stream are counted per topic from its publisher's stamps
 (:class:`GapCounter`; ROS 2 headers carry no sequence counter): each stamped topic with one
 publisher learns its period as the median step of its recent stamps, and a step over
@@ -56,12 +67,15 @@ import functools
 import importlib
 import os
 from pathlib import Path
+import shutil
 import statistics
 import time
 
+from diagnostic_msgs.msg import DiagnosticArray
 import rclpy
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.serialization import deserialize_message
 from rosbags.interfaces import (
     Qos,
     QosDurability,
@@ -172,6 +186,8 @@ PARAMS = (
           '(namespaced, remapped, your own), subscribed with the type the graph reports once a '
           'publisher appears', read_only=True),
     Param('storage', 'mcap', 'rosbag2 storage plugin', choices=tuple(STORAGES), read_only=True),
+    Param('discard_without', '', 'at exit, remove the bag if this recorded topic got no message '
+          "(a run that never started; e.g. torque_commands); '' = keep every bag", read_only=True),
     tips_reliability_param(),
 )
 
@@ -279,6 +295,16 @@ class RecorderNode(Node):
                 self._waiting.append(resolved)
             else:
                 known[resolved] = topic
+        self.discard_without = None              # resolved name, if recorded
+        if p['discard_without'].strip():
+            try:
+                wanted = self.resolve_topic_name(find_topic(p['discard_without'])
+                                                 or p['discard_without'].strip())
+            except Exception as exc:            # noqa: BLE001 — rclpy raises its RCLError here
+                raise ParameterError(f"parameter 'discard_without': {p['discard_without']!r} is "
+                                     f'not a topic name: {str(exc).splitlines()[0]}') from None
+            if wanted in known or wanted in self._waiting:
+                self.discard_without = wanted
         self.path = _output_path(p['output'])
         self._writer: Writer | None = Writer(self.path, version=Writer.VERSION_LATEST,
                                              storage_plugin=STORAGES[p['storage']])
@@ -302,6 +328,7 @@ class RecorderNode(Node):
         self._single: dict[str, bool] = {}
         self._lost_reported = 0                 # messages lost at the previous /diagnostics
         self._loss_warn = False                 # the WARN in /diagnostics is the losses'
+        self._own_reports = 0                   # marked reports of its own still to leave out
         self.diag.before_publish.append(self._report_losses)
         tips_qos = with_reliability(LOOP_QOS, p['tips_reliability'])
         for name, topic in known.items():
@@ -380,12 +407,16 @@ class RecorderNode(Node):
         """Write one serialized message; never raises (bad input is counted and logged)."""
         if self._writer is None:
             return
+        if self._own_reports and topic == DIAGNOSTICS and self._is_own_report(data):
+            return
         try:
             stamp = cdr.leading_stamp(data) if stamped else None
             if is_clock and stamp is not None:
                 self.clock_ns = stamp
             self.counts[topic] += 1
             self.diag.count(f'messages {topic}')
+            if self.counts[topic] == 1:
+                self._report_now(topic)
             gaps = self.gaps.get(topic)
             if gaps is not None and stamp is not None and self._single.get(topic, True):
                 before = gaps.last
@@ -404,6 +435,22 @@ class RecorderNode(Node):
         except Exception as exc:  # noqa: BLE001 — a recorder must survive anything it receives
             self.diag.count('errors')
             self.log.warn('receive', f'{topic}: message not recorded: {exc!r}')
+
+    def _report_now(self, topic: str) -> None:
+        """Publish /diagnostics at once, marked ``report: first <topic>`` (module doc)."""
+        self.diag.values['report'] = f'first {topic}'
+        self.diag.publish()
+        del self.diag.values['report']
+        if DIAGNOSTICS in self.counts:
+            self._own_reports += 1
+
+    def _is_own_report(self, data: bytes) -> bool:
+        """Whether ``data`` is one of this node's marked reports (then it is not recorded)."""
+        msg = deserialize_message(data, DiagnosticArray)
+        own = any(status.name == self.get_fully_qualified_name()
+                  and any(kv.key == 'report' for kv in status.values) for status in msg.status)
+        self._own_reports -= own
+        return own
 
     def _lost(self, topic: str, gaps: GapCounter, lost: int, before: int, stamp: int) -> None:
         """Count ``lost`` messages of ``topic`` missing between the stamps ``before`` and
@@ -466,6 +513,12 @@ class RecorderNode(Node):
             writer.close()
         except (OSError, WriterError) as exc:
             logger.error(f'closing {self.path} failed: {exc}')
+            return
+        if self.discard_without is not None and not self.counts.get(self.discard_without):
+            shutil.rmtree(self.path, ignore_errors=True)
+            logger.warning(f'removed {self.path}: no message of {self.discard_without} (a run '
+                           f'that never started; {sum(self.counts.values())} other message(s)); '
+                           "set discard_without to '' to keep such a bag")
             return
         logger.info(f'wrote {sum(self.counts.values())} messages to {self.path}')
         lost = {name: g for name, g in self.gaps.items() if g.lost}

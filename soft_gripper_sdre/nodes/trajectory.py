@@ -8,6 +8,21 @@ message (as in :func:`soft_gripper_sdre.analysis.closed_loop.run_closed_loop`), 
 or recorder that starts later still gets it), and the tip subscription is dropped: the node
 receives nothing per control period.
 
+**The plan starts when its controller can answer** (``start_when``). With ``controller`` (the
+default) the rest pose and the origin are taken from the first tips heard once the graph shows a
+controller ready to answer: a node named ``controller_node`` in this node's namespace subscribes
+the plan (the controller opens its topics only after its model is loaded and its kernels compiled)
+and ``state_estimate`` has a writer (an estimator, or the controller's own with
+``--with-estimator``). The controller answers nothing before it has a plan, so the node cannot wait
+for a command; it waits for that subscription instead, and the controller's first command follows
+the plan's origin by the loop's latency. Tips heard before are not planned from (``early_tips``);
+the wait goes to the log (at the start, then a WARN every ``WAIT_WARN_S`` of wall time) and to
+/diagnostics (``start_when``, ``waiting_for``, ``waited_s``). With ``tips`` the plan starts at the
+first tips whatever the graph holds (a test without a controller, a controller of another name).
+In the simulator's lockstep graph both give the same plan: the simulator sends its first tips only
+once every node is wired (docs/design/loop_rules.md, "Start"), so the controller is there and the
+plan starts at 0. With ``rest_pose`` the plan goes out at once either way.
+
 **Time comes from the data.** The plan starts at its origin: the stamp of the tips the rest pose
 is taken from, whatever clock the driver stamps with (sim time from 0, or wall time), or the
 ``start_at`` parameter; with ``rest_pose`` and without ``start_at`` the origin is 0. The plan
@@ -44,6 +59,8 @@ from __future__ import annotations
 from dataclasses import fields
 import decimal
 import math
+import re
+import time
 
 from geometry_msgs.msg import PoseArray
 import numpy as np
@@ -73,6 +90,7 @@ from soft_gripper_sdre.nodes.topics import (
     GRASP_REFERENCE,
     LOOP_QOS,
     REFERENCE_QOS,
+    STATE_ESTIMATE,
     TIP_POSITIONS,
 )
 
@@ -80,6 +98,15 @@ _DEFAULTS = GraspProfile()     # the parameters' defaults
 PROFILE_FIELDS = tuple(f.name for f in fields(GraspProfile))
 #: most points a plan may hold: it is one message (about 640 bytes a point for four fingers)
 MAX_PLAN_POINTS = 20_000
+#: start_when controller: a WARN in the log every this much wall time while the plan waits [s]
+WAIT_WARN_S = 10.0
+
+def _node_name_problem(name: str) -> str | None:
+    """Why ``name`` is not a ROS node name (a letter, then letters, digits and '_'), or None."""
+    if re.fullmatch(r'[A-Za-z][A-Za-z0-9_]*', name):
+        return None
+    return f'{name!r} is not a node name (a letter, then letters, digits and _)'
+
 
 PARAMS = (
     finger_names_param('the fingers: pose i of tip_positions is finger i; the joint names of '
@@ -129,6 +156,13 @@ PARAMS = (
           'node mid-run', 's', read_only=True),
     Param('reset_on_jump', 0.1, 'a backwards /clock jump larger than this (a restarted simulator) '
           'takes a new rest pose', 's', 1e-3, 1e3),
+    Param('start_when', 'controller', "when the plan starts: 'controller' at the first tips heard "
+          'once a controller (controller_node) subscribes the plan and state_estimate has a '
+          "writer; 'tips' at the first tips, whatever the graph holds", choices=('controller',
+                                                                                  'tips'),
+          read_only=True),
+    Param('controller_node', 'controller', "start_when controller: the name of the controller "
+          "node in this node's namespace", rule=_node_name_problem, read_only=True),
     tips_reliability_param(),
 )
 
@@ -245,6 +279,8 @@ class TrajectoryNode(Node):
         self.tips_qos = with_reliability(LOOP_QOS, p['tips_reliability'])
         self.origin_ns: int | None = None       # the plan's origin, once planned
         self.run_start: int | None = None       # where /clock jumped back to (a new run's start)
+        self.waiting_since: float | None = None  # wall time the plan began to wait
+        self._warned_at = 0.0                   # wall time of the last WARN about that wait
         on_runtime_change(self, PARAMS, apply=self._apply)
 
         self.traj: GraspTrajectory | None = None
@@ -259,6 +295,8 @@ class TrajectoryNode(Node):
         self._drop_timer = self.create_timer(0.001, self._drop_tips, autostart=False)
         self.diag = Diagnostics(self)
         cdr.watch(self.diag, self.cdr_tips, self.cdr_clock)
+        self.diag.values['start_when'] = p['start_when']
+        self.estimate_topic = self.resolve_topic_name(STATE_ESTIMATE)
         pr = self.profile
         self.get_logger().info(
             f'grasp with fingers {[self.names[i] for i in pr.grasp_fingers]}, others {pr.others}: '
@@ -284,6 +322,18 @@ class TrajectoryNode(Node):
             self.diag.problem('bad_message', f'rejected: {exc}')
             return
         self.diag.count('tips')
+        if self.p['start_when'] == 'controller':
+            problem = self.controller_problem()
+            if problem is not None:
+                self._wait(problem, stamp)
+                return
+            if self.waiting_since is not None:
+                waited = time.monotonic() - self.waiting_since
+                self.diag.values['waited_s'] = f'{waited:.3f}'
+                self.get_logger().info(f'the controller is ready after {waited:.3f} s of wall '
+                                       'time: planning from the next tips')
+            self.waiting_since = None
+            self.diag.values['waiting_for'] = ''
         origin = self.fixed_start
         if origin is None:
             origin = stamp if self.run_start is None else min(self.run_start, stamp)
@@ -294,6 +344,35 @@ class TrajectoryNode(Node):
                               'restarting mid-run)')
         self._drop_timer.reset()
         self._plan(tips[:, :self.d], f'from the tips at t = {format_time(stamp)} s', origin)
+
+    def controller_problem(self) -> str | None:
+        """What the plan waits for with ``start_when: controller`` (the graph as this node sees
+        it), or None: the controller is ready to answer."""
+        name, ns = self.p['controller_node'], self.get_namespace()
+        readers = self.get_subscriptions_info_by_topic(self.pub.topic_name)
+        full = f'{ns.rstrip("/")}/{name}'
+        if not any(r.node_name == name and r.node_namespace == ns for r in readers):
+            return f'the controller {full} to subscribe {self.pub.topic_name}'
+        if self.count_publishers(self.estimate_topic) == 0:
+            return f'a writer of {self.estimate_topic} (the estimator)'
+        return None
+
+    def _wait(self, problem: str, stamp: int) -> None:
+        """Tips at ``stamp`` heard while the controller is not ready: not planned from; the wait
+        in /diagnostics and the log."""
+        now = time.monotonic()
+        self.diag.count('early_tips')
+        self.diag.values['waiting_for'] = problem
+        if self.waiting_since is None:
+            self.waiting_since = self._warned_at = now
+            self.get_logger().info(f'tip_positions at t = {format_time(stamp)} s: the plan waits '
+                                   f'for {problem} (start_when controller)')
+        elif now - self._warned_at >= WAIT_WARN_S:
+            self._warned_at = now
+            self.get_logger().warning(f'the plan has waited {now - self.waiting_since:.1f} s of '
+                                      f'wall time for {problem}; start the controller, or set '
+                                      'start_when tips')
+        self.diag.values['waited_s'] = f'{now - self.waiting_since:.3f}'
 
     def on_clock(self, data: bytes) -> None:
         try:

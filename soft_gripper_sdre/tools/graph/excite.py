@@ -136,7 +136,11 @@ def record_run(out: Path, signals: list[str], a: argparse.Namespace, seed: int, 
     excitation = {'signals': signals, 'settle_time': a.settle, 'torque_limit': a.torque_limit,
                   'finger_names': names, 'finger': a.finger, 'amplitude': a.amplitude,
                   'level': a.level, 'level_target': a.level_target,
-                  'max_excursion': a.max_excursion * 1e-3}
+                  'max_excursion': a.max_excursion * 1e-3,
+                  # the simulator's start rule (min_tip_subscribers 2) holds its first tips until
+                  # the recorder's reader is matched, so the run starts at t = 0 as the in-process
+                  # collection does, without waiting for the recorder's report
+                  'recorder_node': ''}
     if a.duration is not None:
         excitation['duration'] = a.duration
     if a.spec_file is not None:
