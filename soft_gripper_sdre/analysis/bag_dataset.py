@@ -1,12 +1,15 @@
 """Excitation recordings (rosbag2) → training samples of the SDC model.
 
-A recording holds ``tip_positions`` (geometry_msgs/PoseArray, pose i = finger i's tip) and
-``torque_commands`` (sensor_msgs/JointState, efforts named ``finger_i/ax0|ax1``) at any rates, on
-stamps of their own: :func:`read_recording` reads and checks them, and refuses a bag that cannot
-give training data with a :class:`BagDataError` naming the bag, the topic and the problem
-(missing topics, wrong types, too few or non-finite values, stamps that do not increase, a run
-too short). :func:`label_finger` then turns one finger's tips into the training samples of
-``tools.learning.train``:
+A recording holds ``tip_positions`` (geometry_msgs/PoseArray, pose i = finger i's tip, position
+x, y and z) and ``torque_commands`` (sensor_msgs/JointState, efforts named ``<finger>/ax<k>`` for
+the m inputs k = 0 … m − 1 of each finger, in each input's SI unit) at any rates, on stamps of
+their own: :func:`read_recording` reads and checks them, and refuses a bag that cannot give
+training data with a :class:`BagDataError` naming the bag, the topic and the problem (missing
+topics, wrong types, too few or non-finite values, stamps that do not increase, command names
+that are not m contiguous inputs per finger, a run too short). The number of inputs m is what the
+command's names say; the task dimension d (2: the tips' x, y; 3: x, y, z) is the caller's
+(:func:`task_dimension`: 3 when a tip's z moves). :func:`label_finger` then turns one finger's
+tips into the training samples of ``tools.learning.train``:
 
 * tip stamps that are evenly spaced (a lockstep simulator) are used as they are, through the
   same KF + RTS as the ``.npz`` path
@@ -18,8 +21,10 @@ too short). :func:`label_finger` then turns one finger's tips into the training 
 * the command is held from its stamp to the next one (zero-order hold) onto each sample time;
   samples before the first command, from the last one on (how long a driver held it is not
   known), or holding a command older than ``gap_periods`` command periods are left out;
-* the rest pose and the measurement noise come from the leading stretch of zero torque (the
-  excitation node's settle phase): the mean tip, and σ from successive differences.
+* the rest pose and the measurement noise come from the leading stretch of zero command (the
+  excitation node's settle phase): the mean tip, and σ from successive differences of its d
+  coordinates. The state is x = [p − p₀, ṗ] (2d) with p₀ that rest, so f(0) = 0 for every
+  finger, one-sided inputs (a chamber, a tendon, whose data lie about a mid level) included.
 """
 from __future__ import annotations
 
@@ -39,6 +44,7 @@ from soft_gripper_sdre.analysis.bag import (
 )
 from soft_gripper_sdre.learning import derivatives
 from soft_gripper_sdre.sim.settle import MIN_SETTLE_SAMPLES  # the excitation node's too
+from soft_gripper_sdre.sim.shape import MAX_INPUTS, InputBounds
 
 TIPS_TYPE = 'geometry_msgs/msg/PoseArray'
 TORQUES_TYPE = 'sensor_msgs/msg/JointState'
@@ -64,12 +70,23 @@ class Recording:
     tip_ns: np.ndarray           # (T,) int64, strictly increasing
     tips: np.ndarray             # (T, n, 3) [m]
     cmd_ns: np.ndarray           # (C,) int64, strictly increasing
-    torques: np.ndarray          # (C, n, 2) [N·m]
+    torques: np.ndarray          # (C, n, m) each input's SI unit (N·m, N, Pa)
     finger_names: tuple[str, ...] = ()   # as the torque names give them, in tip order
+    joint_names: tuple[str, ...] = ()    # the command's names in finger, then input order
 
     @property
     def n_fingers(self) -> int:
         return self.tips.shape[1]
+
+    @property
+    def n_inputs(self) -> int:
+        """m: the inputs of each finger, as the command's names ``<finger>/ax<k>`` give them."""
+        return self.torques.shape[2]
+
+    def z_moves(self) -> bool:
+        """Some finger's tip z is not one value throughout (a planar driver publishes z = 0)."""
+        z = self.tips[:, :, 2]
+        return bool(np.any(z != z[:1]))
 
     def describe(self) -> dict:
         """Provenance: topics, counts, median rates, jitter, gaps and spans (for the checkpoint)."""
@@ -83,19 +100,21 @@ class Recording:
                     'first_s': stamps[0] / NS,
                     'duration_s': round((stamps[-1] - stamps[0]) / NS, 6)}
         return {'path': str(self.path.resolve()), 'n_fingers': self.n_fingers,
+                'n_inputs': self.n_inputs,
                 'tips': stream(self.tip_ns, self.tips_topic, TIPS_TYPE),
                 'torques': stream(self.cmd_ns, self.torques_topic, TORQUES_TYPE)}
 
 
 @dataclass
 class FingerSamples:
-    """One finger's training samples from one recording: states, inputs and labels (SI)."""
+    """One finger's training samples from one recording: states, inputs and labels (SI), for a
+    task dimension d and m inputs."""
 
     name: str
     t: np.ndarray                # (N,) s from the first tip of the recording
-    x: np.ndarray                # (N, 4) [X − X₀, Y − Y₀, Ẋ, Ẏ]
-    u: np.ndarray                # (N, 2) held command
-    acc: np.ndarray              # (N, 2) KF + RTS acceleration labels
+    x: np.ndarray                # (N, 2d) [p − p₀, ṗ]: the hand's [X − X₀, Y − Y₀, Ẋ, Ẏ]
+    u: np.ndarray                # (N, m) held command
+    acc: np.ndarray              # (N, d) KF + RTS acceleration labels
     info: dict = field(default_factory=dict)
 
 
@@ -144,32 +163,38 @@ def _tips(path: Path, topic: str, messages: list) -> tuple[np.ndarray, np.ndarra
 
 
 def torque_joint_order(names: list[str]) -> list[str]:
-    """The joints of a torque message in finger order: ``<finger>/ax0``, ``<finger>/ax1`` for each
-    finger in the order its names first appear (the order of the finger names the graph was
-    given, as pose i of the tips is finger i); [] when the names are not of that form."""
+    """The joints of a torque message in finger order: ``<finger>/ax0`` … ``<finger>/ax<m−1>``
+    for each finger in the order its names first appear (the order of the finger names the graph
+    was given, as pose i of the tips is finger i); [] when the names are not of that form (every
+    finger the same number m of inputs, 1 to 4, numbered contiguously from 0)."""
     fingers = list(dict.fromkeys(name.rsplit('/', 1)[0] for name in names))
-    expected = [f'{finger}/ax{a}' for finger in fingers for a in range(2)]
+    m = len(names) // len(fingers) if fingers else 0
+    if not 1 <= m <= MAX_INPUTS:
+        return []
+    expected = [f'{finger}/ax{a}' for finger in fingers for a in range(m)]
     return expected if sorted(names) == sorted(expected) else []
 
 
 def _torques(path: Path, topic: str, messages: list, n: int) -> tuple[np.ndarray, np.ndarray]:
     first = list(messages[0][1].name)
     expected = torque_joint_order(first)
-    if len(expected) != 2 * n:
-        raise BagDataError(f'bag {path}: {topic} message 0 names {first[:8]}; expected '
-                           f"'<finger>/ax0' and '<finger>/ax1' for each of the {n} finger(s) in "
-                           f'tip_positions (e.g. {FINGER_NAMES[0]}/ax0)')
+    if not expected or len(expected) % n or len(expected) // n > MAX_INPUTS:
+        raise BagDataError(f'bag {path}: {topic} message 0 names {first[:12]}; expected '
+                           f"'<finger>/ax0' … '<finger>/ax<m-1>' for each of the {n} finger(s) in "
+                           f'tip_positions, the same m (1 to {MAX_INPUTS}) for every finger and '
+                           f'k numbered from 0 without a gap (e.g. {FINGER_NAMES[0]}/ax0)')
+    m = len(expected) // n
     stamps, values = [], []
     for i, (_, msg) in enumerate(messages):
         names = list(msg.name)
         if sorted(names) != sorted(expected) or len(msg.effort) != len(names):
-            raise BagDataError(f'bag {path}: {topic} message {i} names {names[:8]} with '
+            raise BagDataError(f'bag {path}: {topic} message {i} names {names[:12]} with '
                                f'{len(msg.effort)} efforts; expected the {len(expected)} joints '
                                f'{expected} of the {n} finger(s) in tip_positions, '
                                'each with an effort')
         effort = np.asarray(msg.effort, dtype=float)
         stamps.append(_stamp(msg))
-        values.append(effort[[names.index(name) for name in expected]].reshape(n, 2))
+        values.append(effort[[names.index(name) for name in expected]].reshape(n, m))
     return np.asarray(stamps, dtype=np.int64), np.asarray(values, dtype=float)
 
 
@@ -215,8 +240,67 @@ def read_recording(path: str | Path, tips_topic: str = TIP_POSITIONS,
                            f'while commands were given ({cmd_ns[0] / NS:.3f} to '
                            f'{cmd_ns[-1] / NS:.3f} s); at '
                            f'least {MIN_SAMPLES} tips over {min_duration:g} s needed')
-    names = tuple(j.rsplit('/', 1)[0] for j in torque_joint_order(list(cmd_msgs[0][1].name))[::2])
-    return Recording(path, tips_name, torques_name, tip_ns, tips, cmd_ns, torques, names)
+    joints = torque_joint_order(list(cmd_msgs[0][1].name))
+    names = tuple(j.rsplit('/', 1)[0] for j in joints[::torques.shape[2]])
+    return Recording(path, tips_name, torques_name, tip_ns, tips, cmd_ns, torques, names,
+                     tuple(joints))
+
+
+def task_dimension(recordings: list[Recording], requested: str | int = 'auto') -> int:
+    """The task dimension d of training on ``recordings``: ``requested`` 2 or 3 as given, or
+    'auto': 3 when some tip's z moves in some recording (:meth:`Recording.z_moves`), else 2.
+
+    Raises:
+        BagDataError: 3 requested while no tip's z moves in any recording (naming them), or a
+            value other than 'auto', 2 or 3.
+    """
+    moves = [rec for rec in recordings if rec.z_moves()]
+    if requested == 'auto':
+        return 3 if moves else 2
+    if requested not in (2, 3, '2', '3'):
+        raise BagDataError(f'task dimension must be auto, 2 or 3, got {requested!r}')
+    d = int(requested)
+    if d == 3 and not moves:
+        raise BagDataError('task dimension 3, but no tip\'s z moves in '
+                           + ', '.join(str(rec.path) for rec in recordings)
+                           + ' (planar tips: give 2 or auto)')
+    return d
+
+
+def recorded_bounds(recordings: list[Recording]) -> InputBounds:
+    """Per input, the range [min, max] the recorded commands spanned over every finger of every
+    recording (the settle phase's zeros included, so a one-sided input's range reaches 0).
+
+    Raises:
+        BagDataError: an input whose commands never changed (naming it and the recordings).
+    """
+    u = np.concatenate([rec.torques.reshape(-1, rec.n_inputs) for rec in recordings])
+    lower, upper = u.min(axis=0), u.max(axis=0)
+    for k in range(u.shape[1]):
+        if not lower[k] < upper[k]:
+            raise BagDataError(f'input ax{k} was {lower[k]:g} in every command of '
+                               + ', '.join(str(rec.path) for rec in recordings)
+                               + ': nothing to learn its effect from')
+    return InputBounds(lower, upper)
+
+
+def check_within(recordings: list[Recording], bounds: InputBounds, what: str) -> None:
+    """Every recorded command lies within ``bounds``.
+
+    Raises:
+        BagDataError: naming ``what`` (the bounds' source), the recording, the input and the
+            command outside.
+    """
+    for rec in recordings:
+        u = rec.torques.reshape(-1, rec.n_inputs)
+        span = bounds.upper - bounds.lower
+        out = (u < bounds.lower - 1e-9 * span) | (u > bounds.upper + 1e-9 * span)
+        if out.any():
+            k = int(np.flatnonzero(out.any(axis=0))[0])
+            worst = u[out[:, k], k]
+            raise BagDataError(f'{what}: bag {rec.path} commands input ax{k} '
+                               f'{worst.min():g} … {worst.max():g}, outside '
+                               f'[{bounds.lower[k]:g}, {bounds.upper[k]:g}]')
 
 
 # -- from a recording to samples --------------------------------------------------------------
@@ -245,10 +329,12 @@ def first_torque_ns(rec: Recording, finger: int) -> int | None:
     return int(rec.cmd_ns[nonzero[0]]) if nonzero.size else None
 
 
-def settle_estimates(rec: Recording, finger: int) -> tuple[np.ndarray, float | None, int]:
+def settle_estimates(rec: Recording, finger: int,
+                     dims: int = 2) -> tuple[np.ndarray, float | None, int]:
     """(rest tip (3,), measurement σ [m] or None, settle samples) of ``finger`` from the tips
     stamped from the first command until its first non-zero torque (the first tip at or after
-    the first command when there are none); σ needs :data:`MIN_SETTLE_SAMPLES` of them."""
+    the first command when there are none); σ, the mean over the first ``dims`` coordinates,
+    needs :data:`MIN_SETTLE_SAMPLES` of them."""
     onset = first_torque_ns(rec, finger)
     end = onset if onset is not None else rec.cmd_ns[-1] + 1
     settle = (rec.tip_ns >= rec.cmd_ns[0]) & (rec.tip_ns < end)
@@ -258,11 +344,11 @@ def settle_estimates(rec: Recording, finger: int) -> tuple[np.ndarray, float | N
         return rec.tips[first, finger].copy(), None, 0
     sigma = None
     if len(tips) >= MIN_SETTLE_SAMPLES:
-        sigma = float(np.mean(np.std(np.diff(tips[:, :2], axis=0), axis=0)) / np.sqrt(2.0))
+        sigma = float(np.mean(np.std(np.diff(tips[:, :dims], axis=0), axis=0)) / np.sqrt(2.0))
     return tips.mean(axis=0), sigma, len(tips)
 
 
-def settle_noise(rec: Recording, finger: int) -> tuple[np.ndarray, float, int]:
+def settle_noise(rec: Recording, finger: int, dims: int = 2) -> tuple[np.ndarray, float, int]:
     """(rest tip (3,), measurement σ [m], settle samples) of ``finger``, as
     :func:`settle_estimates`, for training that takes the noise level from the bag.
 
@@ -271,7 +357,7 @@ def settle_noise(rec: Recording, finger: int) -> tuple[np.ndarray, float, int]:
             stamped from the first command until the finger's first non-zero torque), naming the
             bag and the finger and saying what to do.
     """
-    rest, sigma, n = settle_estimates(rec, finger)
+    rest, sigma, n = settle_estimates(rec, finger, dims)
     if sigma is None:
         name = rec.finger_names[finger] if finger < len(rec.finger_names) else f'finger {finger}'
         raise BagDataError(
@@ -292,17 +378,17 @@ def tip_stretches(rec: Recording, gap_periods: float = DEFAULT_GAP_PERIODS) -> l
 
 
 def label_finger(rec: Recording, finger: int, jerk_psd: float, meas_std: float,
-                 rest_tip: np.ndarray,
-                 gap_periods: float = DEFAULT_GAP_PERIODS) -> list[FingerSamples]:
-    """Training samples of ``finger`` (module doc): one :class:`FingerSamples` per stretch of
-    tips."""
+                 rest_tip: np.ndarray, gap_periods: float = DEFAULT_GAP_PERIODS,
+                 dims: int = 2) -> list[FingerSamples]:
+    """Training samples of ``finger`` (module doc) for the task dimension ``dims`` (the tips'
+    first d coordinates): one :class:`FingerSamples` per stretch of tips."""
     cmd_period = float(np.median(np.diff(rec.cmd_ns)))
     tip_period = float(np.median(np.diff(rec.tip_ns)))
     out = []
     for k, stretch in enumerate(tip_stretches(rec, gap_periods)):
         t_ns = rec.tip_ns[stretch] - rec.tip_ns[0]
         t = t_ns / NS
-        xy = rec.tips[stretch, finger, :2]
+        xy = rec.tips[stretch, finger, :dims]
         if derivatives.is_uniform(t):
             grid_ns = t_ns
             pos, vel, acc = derivatives.estimate_kinematics(t, xy, jerk_psd, meas_std, smooth=True)
@@ -319,7 +405,7 @@ def label_finger(rec: Recording, finger: int, jerk_psd: float, meas_std: float,
                 & (grid_ns < rec.cmd_ns[-1] - rec.tip_ns[0]))
         if keep.sum() < MIN_SAMPLES:
             continue
-        x = np.hstack([pos - rest_tip[:2], vel])
+        x = np.hstack([pos - rest_tip[:dims], vel])
         out.append(FingerSamples(
             f'{rec.path.name}/{rec.finger_names[finger]}#{k}', grid_ns[keep] / NS, x[keep], u[keep],
             acc[keep],

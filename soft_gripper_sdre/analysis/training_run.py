@@ -32,13 +32,15 @@ from soft_gripper_sdre.learning.labels import (
 from soft_gripper_sdre.learning.model import SDCModel
 from soft_gripper_sdre.learning.train_settings import TrainSettings
 from soft_gripper_sdre.learning.training import TrainResult, fingerprint, save_checkpoint, train
+from soft_gripper_sdre.sim.shape import AXIS_NAMES, InputBounds
 
 
 @dataclass
 class Scores:
     """How a trained model fits: its predicted accelerations on the validation states
-    (``pred``), their R² against the reference accelerations per axis (``r2``), the same for
-    the cubic least-squares baseline fitted on the training data (``r2_ls``), and G₂ at rest."""
+    (``pred``, (N, d)), their R² against the reference accelerations per axis (``r2``, d), the
+    same for the cubic least-squares baseline fitted on the training data (``r2_ls``), and G₂ at
+    rest (d, m)."""
 
     pred: np.ndarray
     r2: list[float]
@@ -55,10 +57,11 @@ class Scores:
 
     def lines(self, against: str) -> list[str]:
         """What training prints of them; ``against`` names the reference accelerations."""
-        r2, ls = self.r2, self.r2_ls
-        return [f'{against}: X {r2[0]:.3f}  Y {r2[1]:.3f}   '
-                f'(3rd-order least squares: X {ls[0]:.3f}  Y {ls[1]:.3f})',
-                f'G2 at the origin [m/s² per N·m]: {np.round(self.G2, 1).tolist()}']
+        axes = AXIS_NAMES[:len(self.r2)]
+        model = '  '.join(f'{a} {v:.3f}' for a, v in zip(axes, self.r2))
+        baseline = '  '.join(f'{a} {v:.3f}' for a, v in zip(axes, self.r2_ls))
+        return [f'{against}: {model}   (3rd-order least squares: {baseline})',
+                f'G2 at the origin [m/s² per unit input]: {np.round(self.G2, 1).tolist()}']
 
 
 def score(model: SDCModel, train: tuple[np.ndarray, ...], val: tuple[np.ndarray, np.ndarray],
@@ -67,25 +70,29 @@ def score(model: SDCModel, train: tuple[np.ndarray, ...], val: tuple[np.ndarray,
     (x, u) of the validation states, ``acc_ref`` their reference accelerations (the simulator's
     true ones, or the validation labels)."""
     x, u, acc = train
-    pred = model.xdot(*val)[:, 2:]
+    d = model.shape.d
+    pred = model.xdot(*val)[:, d:]
     coef, *_ = np.linalg.lstsq(poly_features(x, u), acc, rcond=None)
     return Scores(pred, r2_score(acc_ref, pred).tolist(),
                   r2_score(acc_ref, poly_features(*val) @ coef).tolist(),
-                  model.AG(np.zeros(4))[1][0, 2:, :])
+                  model.AG(np.zeros(model.shape.n_state))[1][0, d:, :])
 
 
 def checkpoint(path: Path, result: TrainResult, settings: TrainSettings, *,
                rest_tip: np.ndarray, dt: float, data: dict, train: tuple[np.ndarray, ...],
                val: tuple[np.ndarray, np.ndarray], acc_ref: np.ndarray,
-               describe: Callable[[SDCModel, Scores], dict]) -> tuple[SDCModel, Scores, dict]:
-    """Write ``result`` to ``path``, load it back, :func:`score` it, and write it again with
+               describe: Callable[[SDCModel, Scores], dict],
+               input_bounds: InputBounds | None = None) -> tuple[SDCModel, Scores, dict]:
+    """Write ``result`` to ``path`` (with ``input_bounds``, the bounds the data were recorded
+    under, None when not known), load it back, :func:`score` it, and write it again with
     ``describe(model, scores)`` as its metrics; returns (model, scores, metrics)."""
-    path = save_checkpoint(path, result, rest_tip=rest_tip, dt=dt, settings=settings, data=data)
+    path = save_checkpoint(path, result, rest_tip=rest_tip, dt=dt, settings=settings, data=data,
+                           input_bounds=input_bounds)
     model = SDCModel(path)
     scores = score(model, train, val, acc_ref)
     metrics = describe(model, scores)
     save_checkpoint(path, result, rest_tip=rest_tip, dt=dt, settings=settings, data=data,
-                    metrics=metrics)
+                    metrics=metrics, input_bounds=input_bounds)
     return model, scores, metrics
 
 

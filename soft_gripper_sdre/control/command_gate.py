@@ -38,14 +38,14 @@ class Plan(NamedTuple):
     start: int
     end: int
     times: np.ndarray            # (h,) strictly increasing [ns]
-    pos: np.ndarray              # (h, n, 2) [m]
-    vel: np.ndarray              # (h, n, 2) [m/s]
-    acc: np.ndarray              # (h, n, 2) [m/s²]
+    pos: np.ndarray              # (h, n, d) [m]
+    vel: np.ndarray              # (h, n, d) [m/s]
+    acc: np.ndarray              # (h, n, d) [m/s²]
 
 
 @dataclass(frozen=True, slots=True)
 class Answer:
-    """Compute and publish the law's torque for ``estimate`` (n, 4) tracking ``plan``, stamped
+    """Compute and publish the law's torque for ``estimate`` (n, 2d) tracking ``plan``, stamped
     ``stamp``."""
 
     stamp: int
@@ -129,7 +129,7 @@ class CommandGate:
         return NOTHING
 
     def on_estimate(self, stamp: int, x: np.ndarray, wall: float) -> Outcome:
-        """A validated state estimate (n, 4) stamped ``stamp``, received at wall time ``wall``."""
+        """A validated state estimate (n, 2d) stamped ``stamp``, received at wall time ``wall``."""
         notices = []
         last = self.last_estimate_ns
         if stamp < last - self.reset_jump_ns:

@@ -34,13 +34,14 @@ def sample_horizon(times_ns: np.ndarray, pos: np.ndarray, vel: np.ndarray, acc: 
         times_ns: (h,) strictly increasing absolute point times [ns] (as
             :func:`~soft_gripper_sdre.nodes.conversions.msg_to_reference` guarantees; not
             re-checked).
-        pos, vel, acc: (h, n, 2) positions [m], velocities [m/s], accelerations [m/s²].
+        pos, vel, acc: (h, n, d) positions [m], velocities [m/s], accelerations [m/s²] of tips
+            of task dimension d (2 or 3).
         t_ns: the sample time [ns], within ``[times_ns[0], times_ns[-1]]``.
         with_acc: also return the acceleration (the feedforward laws of
             :mod:`soft_gripper_sdre.control.laws`).
 
     Returns:
-        (pos (n, 2), vel (n, 2)) at ``t_ns``; (pos, vel, acc (n, 2)) with ``with_acc``.
+        (pos (n, d), vel (n, d)) at ``t_ns``; (pos, vel, acc (n, d)) with ``with_acc``.
 
     Raises:
         ValueError: ``t_ns`` is outside the horizon, or the arrays' shapes do not agree.
@@ -50,9 +51,9 @@ def sample_horizon(times_ns: np.ndarray, pos: np.ndarray, vel: np.ndarray, acc: 
     pos, vel, acc = (np.asarray(a, dtype=float) for a in (pos, vel, acc))
     shapes = {a.shape for a in (pos, vel, acc)}
     if (h == 0 or len(shapes) != 1 or len(shape := shapes.pop()) != 3 or shape[0] != h
-            or shape[2] != 2):
-        raise ValueError(f'times_ns must be (h,) and pos, vel, acc (h, n, 2) alike; got '
-                         f'{times_ns.shape}, {pos.shape}, {vel.shape}, {acc.shape}')
+            or shape[2] not in (2, 3)):
+        raise ValueError(f'times_ns must be (h,) and pos, vel, acc (h, n, 2) or (h, n, 3) alike; '
+                         f'got {times_ns.shape}, {pos.shape}, {vel.shape}, {acc.shape}')
     t_ns = int(t_ns)
     t_first, t_last = int(times_ns[0]), int(times_ns[-1])
     if not t_first <= t_ns <= t_last:

@@ -7,9 +7,10 @@ For each finger, with A = A(x), G = G(x) from the learned model (the paper's eq.
 
 and the checks of Remarks 2–3, each a bit of :class:`Check`: (A, G) stabilisable, (A, Q^½)
 detectable, everything finite, P symmetric positive definite with a small residual, A_cl Hurwitz
-and invertible. These hold for any (A, G); the compiled kernels
-(:mod:`~soft_gripper_sdre.control.compiled`) have cheaper versions for the SDC structure,
-A = [[0, I], [A21 A22]] and G = [[0], [G2]].
+and invertible. These hold for any (A, G) of any size: a state of 2d (d = 2 or 3 tip coordinates)
+and m inputs (the finger's :class:`~soft_gripper_sdre.sim.shape.FingerShape`); the compiled kernels
+(:mod:`~soft_gripper_sdre.control.compiled`) have cheaper versions for the hand's SDC structure,
+A = [[0, I], [A21 A22]] and G = [[0], [G2]] with 2×2 blocks.
 """
 from __future__ import annotations
 
@@ -41,6 +42,12 @@ _I2 = np.eye(2)
 SDC_TOP_ROWS = np.hstack([np.zeros((2, 2)), _I2])
 
 
+def sdc_top_rows(d: int) -> np.ndarray:
+    """(d, 2d) the rows of A that the SDC form fixes, ṗ = [0 I] x (:data:`SDC_TOP_ROWS` for
+    d = 2)."""
+    return SDC_TOP_ROWS if d == 2 else np.hstack([np.zeros((d, d)), np.eye(d)])
+
+
 def care(A: np.ndarray, B: np.ndarray, Q: np.ndarray, R: np.ndarray) -> np.ndarray:
     """Stabilising solution of PA + AᵀP + Q − PBR⁻¹BᵀP = 0 (reference: scipy, one system)."""
     return solve_continuous_are(A, B, Q, R)
@@ -57,19 +64,20 @@ def sdre_gains(A, G, Q, R) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def in_sdc_form(A: np.ndarray, G: np.ndarray) -> bool:
-    """Every (A (n, 4, 4), G (n, 4, 2)) has the SDC form's top rows: A[:2] = [0 I], G[:2] = 0."""
-    return bool((A[:, :2, :] == SDC_TOP_ROWS).all()) and not G[:, :2, :].any()
+    """Every (A (n, 2d, 2d), G (n, 2d, m)) has the SDC form's top rows: A[:d] = [0 I], G[:d] = 0."""
+    d = A.shape[1] // 2
+    return bool((A[:, :d, :] == sdc_top_rows(d)).all()) and not G[:, :d, :].any()
 
 
 def full_sdc_matrices(A2: np.ndarray, G2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """A = [[0, I], A2] (n, 4, 4) and G = [[0], G2] (n, 4, 2) from the lower rows A2 (n, 2, 4),
-    G2 (n, 2, 2)."""
-    n = A2.shape[0]
-    A = np.zeros((n, 4, 4))
-    A[:, :2, :] = SDC_TOP_ROWS
-    A[:, 2:, :] = A2
-    G = np.zeros((n, 4, 2))
-    G[:, 2:, :] = G2
+    """A = [[0, I], A2] (n, 2d, 2d) and G = [[0], G2] (n, 2d, m) from the lower rows A2 (n, d, 2d),
+    G2 (n, d, m)."""
+    n, d, m = G2.shape
+    A = np.zeros((n, 2 * d, 2 * d))
+    A[:, :d, :] = sdc_top_rows(d)
+    A[:, d:, :] = A2
+    G = np.zeros((n, 2 * d, m))
+    G[:, d:, :] = G2
     return A, G
 
 
@@ -92,22 +100,32 @@ def is_detectable(A: np.ndarray, C: np.ndarray, tol: float = 1e-9) -> bool:
 
 
 def checked_weights(Q, R, u_max) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(Q (4, 4), R (2, 2), u_max (2,)) as float arrays.
+    """(Q (2d, 2d), R (m, m), u_max (m,)) as float arrays, for a state of 2d (d = 2 or 3) and m
+    inputs (1 to 4) read from the sizes of Q and R.
 
     Raises:
-        ValueError: Q is not symmetric PSD, R not symmetric PD, or u_max not finite and > 0.
+        ValueError: Q is not a symmetric PSD matrix of size 4 or 6, R not a symmetric PD matrix of
+            size 1 to 4, or u_max not finite and > 0 (a scalar or one per input).
     """
     Q = np.asarray(Q, dtype=float)
     R = np.asarray(R, dtype=float)
-    if Q.shape != (4, 4) or not np.all(np.isfinite(Q)):
-        raise ValueError(f'Q must be a finite (4, 4) matrix, got shape {Q.shape}')
+    if (Q.ndim != 2 or Q.shape[0] != Q.shape[1] or Q.shape[0] not in (4, 6)
+            or not np.all(np.isfinite(Q))):
+        raise ValueError(f'Q must be a finite (2d, 2d) matrix with d = 2 or 3, got shape {Q.shape}')
     if not np.allclose(Q, Q.T) or np.linalg.eigvalsh(Q).min() < -1e-12 * max(1.0, np.abs(Q).max()):
         raise ValueError('Q must be symmetric positive semi-definite')
-    if R.shape != (2, 2) or not np.all(np.isfinite(R)):
-        raise ValueError(f'R must be a finite (2, 2) matrix, got shape {R.shape}')
+    if (R.ndim != 2 or R.shape[0] != R.shape[1] or not 1 <= R.shape[0] <= 4
+            or not np.all(np.isfinite(R))):
+        raise ValueError(f'R must be a finite (m, m) matrix with m = 1 to 4 inputs, got shape '
+                         f'{R.shape}')
     if not np.allclose(R, R.T) or np.linalg.eigvalsh(R).min() <= 0:
         raise ValueError('R must be symmetric positive definite')
-    u_max = np.broadcast_to(np.asarray(u_max, dtype=float), (2,)).copy()
+    m = R.shape[0]
+    try:
+        u_max = np.broadcast_to(np.asarray(u_max, dtype=float), (m,)).copy()
+    except ValueError:
+        raise ValueError(f'u_max must be a scalar or one limit per input ({m}), got '
+                         f'{u_max!r}') from None
     if not np.all(np.isfinite(u_max)) or np.any(u_max <= 0):
         raise ValueError(f'u_max must be finite and > 0, got {u_max}')
     return Q, R, u_max
@@ -117,23 +135,24 @@ def checked_weights(Q, R, u_max) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 class RiccatiCost:
     """The weights and what the general checks derive from them once (:func:`riccati_cost`)."""
 
-    Q: np.ndarray                 # (4, 4) symmetric PSD
-    R: np.ndarray                 # (2, 2) symmetric PD
+    Q: np.ndarray                 # (2d, 2d) symmetric PSD
+    R: np.ndarray                 # (m, m) symmetric PD
     R_inv: np.ndarray
     q_norm: float                 # ‖Q‖_F (at least 1e-300)
     q_half: np.ndarray            # Q^½
     q_definite: bool              # Q ≻ 0
-    q_position_definite: bool     # Q's position block Q[:2, :2] ≻ 0
+    q_position_definite: bool     # Q's position block Q[:d, :d] ≻ 0
 
 
 def riccati_cost(Q: np.ndarray, R: np.ndarray) -> RiccatiCost:
     """:class:`RiccatiCost` of weights already checked by :func:`checked_weights`."""
     scale = 1e-12 * max(1.0, np.abs(Q).max())
+    d = Q.shape[0] // 2
     w, V = np.linalg.eigh(Q)
     return RiccatiCost(Q=Q, R=R, R_inv=np.linalg.inv(R), q_norm=max(np.linalg.norm(Q), 1e-300),
                        q_half=V @ np.diag(np.sqrt(np.clip(w, 0, None))) @ V.T,
                        q_definite=bool(np.linalg.eigvalsh(Q).min() > scale),
-                       q_position_definite=bool(np.linalg.eigvalsh(Q[:2, :2]).min() > scale))
+                       q_position_definite=bool(np.linalg.eigvalsh(Q[:d, :d]).min() > scale))
 
 
 def solvability(A: np.ndarray, G: np.ndarray, finite: np.ndarray, sdc: bool, cost: RiccatiCost,
@@ -141,21 +160,36 @@ def solvability(A: np.ndarray, G: np.ndarray, finite: np.ndarray, sdc: bool, cos
     """Remark 3 for n fingers: (usable (n,), failed (n,) bits of STABILIZABLE and DETECTABLE).
 
     A finger is usable when it is ``finite``, (A, G) is stabilisable and (A, Q^½) detectable. In
-    SDC form (``sdc``) stabilisable means G2 invertible, tested as cond(G2) < cond_max; otherwise
-    the PBH test. Detectability holds for Q ≻ 0, and for a Q whose position block is ≻ 0 when A has
-    the SDC rows [0 I] (Q^½ sees X, Y and, through those rows, their rates); else the PBH test.
+    the hand's SDC form (``sdc``, 2×2 G2) stabilisable means G2 invertible, tested as
+    cond(G2) < cond_max; in another SDC form, G2 (d, m) of full row rank (cond(G2) < cond_max over
+    its d singular values) makes it controllable and a G2 of lower rank (one input, a 2-D tip)
+    takes the PBH test; outside the SDC form the PBH test. Detectability holds for Q ≻ 0, and for
+    a Q whose position block is ≻ 0 when A has the SDC rows [0 I] (Q^½ sees p and, through those
+    rows, its rate); else the PBH test.
     """
     n = A.shape[0]
+    d = A.shape[1] // 2
     failed = np.zeros(n, dtype=int)
-    if sdc:
+    if sdc and G.shape[1:] == (4, 2):
         with np.errstate(all='ignore'):
             stab = finite & well_conditioned_2x2(G[:, 2:, :], cond_max)[0]
+    elif sdc:
+        full_rank = np.zeros(n, dtype=bool)
+        if G.shape[2] >= d and finite.any():
+            sv = np.linalg.svd(np.where(finite[:, None, None], G[:, d:, :], 0.0),
+                               compute_uv=False)
+            with np.errstate(all='ignore'):
+                full_rank = finite & (sv[:, 0] < cond_max * sv[:, d - 1])
+        stab = np.array([bool(full_rank[i]) or (bool(finite[i])
+                                                and is_stabilizable(A[i], G[i]))
+                         for i in range(n)], dtype=bool).reshape(n)
     else:
         stab = np.array([finite[i] and is_stabilizable(A[i], G[i]) for i in range(n)])
     failed[finite & ~stab] |= Check.STABILIZABLE
     if cost.q_definite:
         detect = np.ones(n, dtype=bool)
-    elif cost.q_position_definite and np.all(A[:, :2, :2] == 0.0) and np.all(A[:, :2, 2:] == _I2):
+    elif (cost.q_position_definite and np.all(A[:, :d, :d] == 0.0)
+          and np.all(A[:, :d, d:] == np.eye(d))):
         detect = np.ones(n, dtype=bool)
     else:
         detect = np.array([finite[i] and is_detectable(A[i], cost.q_half) for i in range(n)])
@@ -167,8 +201,8 @@ def solvability(A: np.ndarray, G: np.ndarray, finite: np.ndarray, sdc: bool, cos
 class CheckedGains:
     """The gains of eq. 23 for n fingers and the checks they passed (:func:`checked_gains`)."""
 
-    K: np.ndarray                # (n, 2, 4)
-    Ks: np.ndarray               # (n, 2, 4)
+    K: np.ndarray                # (n, m, 2d)
+    Ks: np.ndarray               # (n, m, 2d)
     residual: np.ndarray         # (n,) ‖Res‖_F / ‖Q‖_F, NaN where there is no solution
     ok: np.ndarray               # (n,) every check passed and the gains are finite
     failed: np.ndarray           # (n,) bits of Check
@@ -177,7 +211,7 @@ class CheckedGains:
 def checked_gains(A: np.ndarray, G: np.ndarray, P: np.ndarray, usable: np.ndarray,
                   failed: np.ndarray, cost: RiccatiCost, residual_tol: float,
                   cond_max: float) -> CheckedGains:
-    """K, K_s from P (n, 4, 4) and every check of eq. 23–24 and Remark 2, finger by finger.
+    """K, K_s from P (n, 2d, 2d) and every check of eq. 23–24 and Remark 2, finger by finger.
 
     ``usable`` and ``failed`` are :func:`solvability`'s answer (``failed`` is updated in place); P
     is NaN where no solution was found. Checks: solved (P finite), residual < residual_tol, P ≻ 0,
@@ -196,12 +230,12 @@ def checked_gains(A: np.ndarray, G: np.ndarray, P: np.ndarray, usable: np.ndarra
         pd[solved] = np.linalg.eigvalsh(Psafe[solved]).min(axis=1) > 0
     failed[solved & ~pd] |= Check.P_NOT_PD
 
-    Rinv_Gt = cost.R_inv @ G.transpose(0, 2, 1)                  # (n, 2, 4)
+    Rinv_Gt = cost.R_inv @ G.transpose(0, 2, 1)                  # (n, m, 2d)
     K = -Rinv_Gt @ Psafe                                         # K = −R⁻¹GᵀP
     A_cl = A + G @ K                                             # A − G R⁻¹ Gᵀ P
     hurwitz = np.zeros(n, dtype=bool)
     invertible = np.zeros(n, dtype=bool)
-    Ks = np.zeros((n, 2, 4))
+    Ks = np.zeros(K.shape)
     if solved.any():
         s = np.flatnonzero(solved)
         hurwitz[s] = np.all(np.linalg.eigvals(A_cl[s]).real < 0, axis=1)
@@ -211,7 +245,8 @@ def checked_gains(A: np.ndarray, G: np.ndarray, P: np.ndarray, usable: np.ndarra
         if ok_inv.size:
             # K_s = −R⁻¹ Gᵀ A_cl⁻ᵀ Q
             Ks[ok_inv] = -Rinv_Gt[ok_inv] @ np.linalg.solve(
-                A_cl[ok_inv].transpose(0, 2, 1), np.broadcast_to(cost.Q, (ok_inv.size, 4, 4)))
+                A_cl[ok_inv].transpose(0, 2, 1),
+                np.broadcast_to(cost.Q, (ok_inv.size,) + cost.Q.shape))
     failed[solved & ~hurwitz] |= Check.HURWITZ
     failed[solved & ~invertible] |= Check.ACL_SINGULAR
     ok = failed == 0
@@ -225,14 +260,14 @@ def solve_and_check(A: np.ndarray, G: np.ndarray, finite: np.ndarray, sdc: bool,
     usable finger and every check of :func:`checked_gains`.
 
     ``finite`` (n,) says which fingers' A, G and states are finite (the others are flagged
-    NONFINITE and not solved; their A, G may hold anything). Returns (P (n, 4, 4), NaN where not
+    NONFINITE and not solved; their A, G may hold anything). Returns (P (n, 2d, 2d), NaN where not
     solved; the checked gains; how many scipy solves were attempted).
     """
     A = np.where(finite[:, None, None], A, 0.0)
     G = np.where(finite[:, None, None], G, 0.0)
     usable, failed = solvability(A, G, finite, sdc, cost, cond_max)
     failed[~finite] |= Check.NONFINITE
-    P = np.full((A.shape[0], 4, 4), np.nan)
+    P = np.full(A.shape, np.nan)
     solves = np.flatnonzero(usable)
     for i in solves:
         try:

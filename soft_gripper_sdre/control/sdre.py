@@ -11,6 +11,12 @@ K, K_s and the checks are those of eq. 23–24 and Remarks 2–3
   which the SDC form does not prove detectability, take the reference path.
 * ``method='reference'``: scipy and the general checks for every finger, every step.
 
+The compiled kernels are the hand's (d = 2, m = 2, bounds ±u_max:
+:func:`~soft_gripper_sdre.control.tracking.hand_path`); a controller of any other shape (a state
+of 2d, m inputs, read from the sizes of Q and R) or bounds runs the reference path whichever
+``method`` is asked for, with ``'fast'`` still meaning that its inputs are in SDC form (the
+stabilisability test on G2's rank instead of the PBH test where G2 has full row rank).
+
 The supervisor owns the state the kernels update (warm starts, the gains in use), the exact path
 and the counters: a finger whose step fails any check uses its last valid gains (fallback), or a
 nominal model's before it has any, or zero torque, and ``u`` is always finite.
@@ -43,7 +49,8 @@ from soft_gripper_sdre.control.riccati import (
     sdre_gains,
     solve_and_check,
 )
-from soft_gripper_sdre.control.tracking import LawStep
+from soft_gripper_sdre.control.tracking import LawStep, hand_path, law_bounds
+from soft_gripper_sdre.sim.shape import FingerShape, InputBounds
 
 METHODS = ('fast', 'reference')
 _CHECK_BITS = tuple((c.name, int(c)) for c in Check)
@@ -69,6 +76,18 @@ def _finite_rows(*arrays: np.ndarray) -> np.ndarray:
     for a in arrays:
         finite &= np.isfinite(a.reshape(a.shape[0], -1)).all(axis=1)
     return finite
+
+
+class GeneralState:
+    """The state the reference path keeps for ``n`` fingers of any shape: the last accepted P
+    (n, 2d, 2d), the gains in use K, K_s (n, m, 2d) and whether P holds an accepted solution."""
+
+    def __init__(self, n: int, shape: FingerShape) -> None:
+        k = shape.n_state
+        self.P = np.zeros((n, k, k))
+        self.K = np.zeros((n, shape.m, k))
+        self.Ks = np.zeros((n, shape.m, k))
+        self.warm = np.zeros(n, dtype=bool)
 
 
 def rest_frame_states(z: np.ndarray, origin: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -111,9 +130,9 @@ class SdreController(SdreCounters):
     """The SDRE tracking law for ``n`` fingers with fallbacks and counters.
 
     Args:
-        Q: (4, 4) state weight, symmetric PSD (SI).
-        R: (2, 2) input weight, symmetric PD (SI).
-        u_max: torque saturation per input [N·m] (scalar or (2,)).
+        Q: (2d, 2d) state weight, symmetric PSD (SI); d = 2 or 3 (the hand: 4 × 4).
+        R: (m, m) input weight, symmetric PD (SI); m = 1 to 4 inputs (the hand: 2 × 2).
+        u_max: saturation ±u_max per input [N·m] (scalar or (m,)) where ``bounds`` is None.
         n: number of fingers.
         method: ``'fast'`` or ``'reference'``.
         residual_tol: largest accepted relative Riccati residual.
@@ -121,14 +140,27 @@ class SdreController(SdreCounters):
             lower-left block, the only part of A_cl whose inverse the law uses).
         max_nk_iterations: most Newton–Kleinman iterations per step before the exact path.
         nominal: optional (A0, G0) whose gains serve as the fallback before any valid step.
+        bounds: per-input [lower, upper] the torques are clipped to (None: ±``u_max``).
 
-    ``fast`` says whether the compiled kernels serve this controller; the counters are those of
-    :class:`SdreCounters`.
+    ``shape`` is the finger's (from Q and R), ``bounds`` what the torques are clipped to, ``hand``
+    whether the hand's code serves it (:func:`~soft_gripper_sdre.control.tracking.hand_path`) and
+    ``fast`` whether the compiled kernels do; the counters are those of :class:`SdreCounters`.
     """
 
     def __init__(self, Q, R, u_max, n: int = 4, method: str = 'fast', residual_tol: float = 1e-6,
-                 cond_max: float = 1e8, max_nk_iterations: int = 5, nominal=None) -> None:
+                 cond_max: float = 1e8, max_nk_iterations: int = 5, nominal=None,
+                 bounds: InputBounds | None = None) -> None:
+        if bounds is not None:
+            if not isinstance(bounds, InputBounds):
+                raise ValueError(f'bounds must be InputBounds, got {bounds!r}')
+            u_max = np.maximum(-bounds.lower, bounds.upper)
         self.Q, self.R, self.u_max = checked_weights(Q, R, u_max)
+        self.shape = FingerShape(self.Q.shape[0] // 2, self.R.shape[0])
+        self.bounds = (InputBounds(-self.u_max, self.u_max) if bounds is None
+                       else law_bounds(self.shape, 0.0, bounds))
+        self.hand = hand_path(self.shape, self.bounds)
+        self._lower, self._upper = (-self.u_max, self.u_max) if self.hand else (
+            self.bounds.lower, self.bounds.upper)
         if method not in METHODS:
             raise ValueError(f'method must be one of {METHODS}, got {method!r}')
         self.n, self.method = int(n), method
@@ -137,11 +169,16 @@ class SdreController(SdreCounters):
             raise ValueError(f'max_nk_iterations must be >= 1, got {max_nk_iterations!r}')
         self._cost = riccati_cost(self.Q, self.R)
         # the kernel's detectability argument needs Q ≻ 0 or Q's position block ≻ 0
-        self.fast = method == 'fast' and (self._cost.q_definite or self._cost.q_position_definite)
-        self.settings = SdreSettings.of(self.Q, self.R, self.u_max, self.residual_tol,
-                                        self.cond_max, int(max_nk_iterations))
-        self.state, self.outputs = SdreState(self.n), SdreOutputs(self.n)
-        self.feedforward = FeedforwardOutputs(self.n)
+        self.fast = (method == 'fast' and self.hand
+                     and (self._cost.q_definite or self._cost.q_position_definite))
+        if self.hand:
+            self.settings = SdreSettings.of(self.Q, self.R, self.u_max, self.residual_tol,
+                                            self.cond_max, int(max_nk_iterations))
+            self.state, self.outputs = SdreState(self.n), SdreOutputs(self.n)
+            self.feedforward = FeedforwardOutputs(self.n)
+        else:                                   # the reference path's state alone
+            self.settings = self.outputs = self.feedforward = None
+            self.state = GeneralState(self.n, self.shape)
         self._nominal = None
         if nominal is not None:
             K0, Ks0, _ = sdre_gains(np.asarray(nominal[0], float), np.asarray(nominal[1], float),
@@ -157,17 +194,18 @@ class SdreController(SdreCounters):
         self.reset_counters()
 
     def warm_start(self, P) -> None:
-        """Start every finger's next fast step from P (n, 4, 4) instead of its last solution (the
+        """Start every finger's next fast step from P (n, 2d, 2d) instead of its last solution (the
         kernel's checks still decide whether the result is used)."""
-        self.state.P[:] = _checked(P=(P, (self.n, 4, 4)))[0]
+        self.state.P[:] = _checked(P=(P, self.state.P.shape))[0]
         self.state.warm[:] = True
 
     # -- the steps ---------------------------------------------------------------------------
     def step(self, A, G, x, x_d) -> LawStep:
-        """Torques for every finger: A (n,4,4), G (n,4,2), x (n,4), x_d (n,4), translated SI."""
-        n = self.n
-        A, G, x, x_d = _checked(A=(A, (n, 4, 4)), G=(G, (n, 4, 2)), x=(x, (n, 4)),
-                                x_d=(x_d, (n, 4)))
+        """Torques for every finger: A (n,2d,2d), G (n,2d,m), x (n,2d), x_d (n,2d), translated SI
+        (the hand: 2d = 4, m = 2)."""
+        n, k, m = self.n, self.shape.n_state, self.shape.m
+        A, G, x, x_d = _checked(A=(A, (n, k, k)), G=(G, (n, k, m)), x=(x, (n, k)),
+                                x_d=(x_d, (n, k)))
         sdc = self.method == 'fast' and in_sdc_form(A, G)
         if self.fast and sdc:
             return self.step_sdc(A[:, 2:, :], G[:, 2:, :], x, x_d)
@@ -175,10 +213,10 @@ class SdreController(SdreCounters):
 
     def step_sdc(self, A2, G2, x, x_d) -> LawStep:
         """:meth:`step` for a model in SDC form, given only its lower rows:
-        A2 = [A21 A22] (n,2,4) and G2 (n,2,2), so that A = [[0, I], A2] and G = [[0], G2]."""
-        n = self.n
-        A2, G2, x, x_d = _checked(A2=(A2, (n, 2, 4)), G2=(G2, (n, 2, 2)), x=(x, (n, 4)),
-                                  x_d=(x_d, (n, 4)))
+        A2 = [A21 A22] (n,d,2d) and G2 (n,d,m), so that A = [[0, I], A2] and G = [[0], G2]."""
+        n, d, m = self.n, self.shape.d, self.shape.m
+        A2, G2, x, x_d = _checked(A2=(A2, (n, d, 2 * d)), G2=(G2, (n, d, m)), x=(x, (n, 2 * d)),
+                                  x_d=(x_d, (n, 2 * d)))
         if not self.fast:
             return self._reference_step(*full_sdc_matrices(A2, G2), x, x_d, self.method == 'fast')
         out = self.outputs
@@ -278,6 +316,6 @@ class SdreController(SdreCounters):
         u_unsat = np.einsum('nij,nj->ni', K, xs) + np.einsum('nij,nj->ni', Ks, xds)   # eq. 22
         u_unsat = np.where(np.isfinite(u_unsat), u_unsat, 0.0)
         u_unsat[~finite] = 0.0            # no torque from a state we cannot read
-        u = np.clip(u_unsat, -self.u_max, self.u_max)
+        u = np.clip(u_unsat, self._lower, self._upper)
         return self._record(u, u_unsat, K, Ks, P, checked.residual, ok, checked.failed,
                             np.zeros(self.n, dtype=np.int64), np.count_nonzero(ok))

@@ -5,12 +5,18 @@ Every law takes each finger's estimated tip position and velocity and its refere
 finger's base frame (SI, untranslated) and works in the model's translated coordinates (origin at
 the settled rest pose, where f(0) = 0),
 
-    x   = [X − X₀, Y − Y₀, Ẋ, Ẏ],
-    x_d = [X_d − X₀, Y_d − Y₀, Ẋ_d, Ẏ_d]       (:class:`RestFrame`),
+    x   = [p − p₀, ṗ],    x_d = [p_d − p₀, ṗ_d]       (:class:`RestFrame`),
 
-saturates its torques at ``u_max`` and passes them through the same first-order roll-off
-(:class:`RollOff`), so laws differ only in their own arithmetic. The laws are in
+with p the tip's d coordinates (X, Y or X, Y, Z: the model's
+:class:`~soft_gripper_sdre.sim.shape.FingerShape`, :func:`shape_of`), clips its m inputs to their
+:class:`~soft_gripper_sdre.sim.shape.InputBounds` and passes them through the same first-order
+roll-off (:class:`RollOff`), so laws differ only in their own arithmetic. The laws are in
 :mod:`soft_gripper_sdre.control.laws`.
+
+Which arithmetic a law runs is one rule, :func:`hand_path`: the hand's shape (d = 2, m = 2) with
+bounds ±u_max on both inputs takes the hand's code (the compiled kernels with ``method='fast'``,
+its 2×2 numpy otherwise); every other shape or bounds takes the general code (numpy and scipy for
+any d, m and per-input bounds).
 """
 from __future__ import annotations
 
@@ -20,12 +26,35 @@ from typing import Protocol
 import numpy as np
 
 from soft_gripper_sdre.control.riccati import Check
+from soft_gripper_sdre.sim.shape import HAND_SHAPE, FingerShape, InputBounds, ShapeError
 from soft_gripper_sdre.sim.units import LENGTH_SCALE, TORQUE_SCALE
+
+
+class WeightMatrix(np.ndarray):
+    """A weight matrix of the hand's size that also builds the matrix of another size:
+    ``weights.Q`` is the hand's (4, 4) Q and ``weights.Q(d)`` the (2d, 2d) one; ``weights.R`` the
+    hand's (2, 2) R and ``weights.R(m)`` the (m, m) one (:class:`Weights`)."""
+
+    def __new__(cls, build, size: int) -> 'WeightMatrix':
+        out = np.asarray(build(size), dtype=float).view(cls)
+        out._build = build
+        return out
+
+    def __array_finalize__(self, obj) -> None:
+        self._build = getattr(obj, '_build', None)
+
+    def __call__(self, size: int) -> np.ndarray:
+        """The weight matrix for task dimension d (Q) or m inputs (R), a plain array."""
+        return np.asarray(self._build(size), dtype=float)
 
 
 @dataclass(frozen=True)
 class Weights:
-    """Diagonal SDRE weights in SI: Q = diag(q_pos, q_pos, q_vel, q_vel), R = diag(r, r)."""
+    """Diagonal SDRE weights in SI: Q = diag(q_pos·I_d, q_vel·I_d), R = r·I_m.
+
+    ``Q`` and ``R`` are the hand's (d = 2, m = 2) matrices, diag(q_pos, q_pos, q_vel, q_vel) and
+    diag(r, r); ``Q(d)`` and ``R(m)`` those of another shape (:class:`WeightMatrix`).
+    """
 
     q_pos: float
     q_vel: float
@@ -40,13 +69,27 @@ class Weights:
         if not np.isfinite(self.r) or self.r <= 0.0:
             raise ValueError(f'r must be finite and > 0 (R positive definite), got {self.r!r}')
 
-    @property
-    def Q(self) -> np.ndarray:
-        return np.diag([self.q_pos, self.q_pos, self.q_vel, self.q_vel])
+    def _q(self, d: int) -> np.ndarray:
+        d = FingerShape(d, 1).d
+        return np.diag([self.q_pos] * d + [self.q_vel] * d)
+
+    def _r(self, m: int) -> np.ndarray:
+        m = FingerShape(2, m).m
+        return np.diag([self.r] * m)
 
     @property
-    def R(self) -> np.ndarray:
-        return np.diag([self.r, self.r])
+    def Q(self) -> WeightMatrix:
+        """The hand's (4, 4) state weight; ``Q(d)``: the (2d, 2d) one."""
+        return WeightMatrix(self._q, HAND_SHAPE.d)
+
+    @property
+    def R(self) -> WeightMatrix:
+        """The hand's (2, 2) input weight; ``R(m)``: the (m, m) one."""
+        return WeightMatrix(self._r, HAND_SHAPE.m)
+
+    def for_shape(self, shape: FingerShape) -> tuple[np.ndarray, np.ndarray]:
+        """(Q (2d, 2d), R (m, m)) for ``shape``; the hand's are :attr:`Q` and :attr:`R`."""
+        return self.Q(shape.d), self.R(shape.m)
 
 
 def paper_weights_si() -> tuple[np.ndarray, np.ndarray]:
@@ -134,45 +177,113 @@ class RollOff:
             self._u = u
 
 
+def shape_of(model) -> FingerShape:
+    """The finger shape a model controls: ``model.shape`` where it has one (an
+    :class:`~soft_gripper_sdre.learning.model.SDCModel`), else inferred from ``model.AG`` on a zero
+    state: the d (2, then 3) for which AG(0 (1, 2d)) answers A (1, 2d, 2d) and G (1, 2d, m).
+
+    Raises:
+        ShapeError: the model has neither a shape nor an AG answering like that, or the shape it
+            has is not a :class:`~soft_gripper_sdre.sim.shape.FingerShape`.
+    """
+    shape = getattr(model, 'shape', None)
+    if shape is not None:
+        if not isinstance(shape, FingerShape):
+            raise ShapeError(f'model.shape must be a FingerShape, got {shape!r}')
+        return shape
+    AG = getattr(model, 'AG', None)
+    if AG is None:
+        raise ShapeError(f'the model ({type(model).__name__}) has neither a shape nor AG(x)')
+    answers = []
+    for d in (2, 3):
+        n = 2 * d
+        try:
+            A, G = AG(np.zeros((1, n)))
+            a_shape, g_shape = np.shape(A), np.shape(G)
+        except Exception as exc:        # a model of another d may fail on this state in any way
+            answers.append(f'd={d}: {type(exc).__name__}')
+            continue
+        if (len(a_shape) == 3 and a_shape == (1, n, n) and len(g_shape) == 3
+                and g_shape[:2] == (1, n)):
+            return FingerShape(d, g_shape[2])
+        answers.append(f'd={d}: A {a_shape}, G {g_shape}')
+    raise ShapeError(f'cannot tell the shape of the model ({type(model).__name__}): AG on a zero '
+                     f'state gave {"; ".join(answers)}')
+
+
+def hand_path(shape: FingerShape, bounds: InputBounds) -> bool:
+    """The one rule that picks a law's arithmetic: True for the hand's shape (d = 2, m = 2) with
+    the same limit ±u_max on both inputs, whose laws run the hand's code (the compiled kernels with
+    ``method='fast'``, its 2×2 numpy with ``'reference'``); False for every other shape or bounds,
+    whose laws run the general code (numpy and scipy for any d, m and per-input bounds)."""
+    return shape == HAND_SHAPE and bounds.symmetric_limit is not None
+
+
+def law_bounds(shape: FingerShape, u_max: float, bounds: InputBounds | None) -> InputBounds:
+    """The bounds a law clips its inputs to: ``bounds``, or ±``u_max`` on each of the shape's m
+    inputs when None.
+
+    Raises:
+        ShapeError: ``bounds`` is not an InputBounds of m inputs, or (None) ``u_max`` is not
+            finite and > 0.
+    """
+    if bounds is None:
+        if not (isinstance(u_max, (int, float, np.integer, np.floating))
+                and np.isfinite(u_max) and u_max > 0):
+            raise ShapeError(f'u_max must be finite and > 0, got {u_max!r}')
+        return InputBounds.symmetric(u_max, shape.m)
+    if not isinstance(bounds, InputBounds):
+        raise ShapeError(f'bounds must be InputBounds (lower, upper per input), got {bounds!r}')
+    if bounds.m != shape.m:
+        raise ShapeError(f'bounds: the model has {shape.m} input(s) ({shape}), the bounds have '
+                         f'{bounds.m} ({bounds})')
+    return bounds
+
+
 class RestFrame:
     """The model's translated coordinates: origin at the settled rest tip p₀, where f(0) = 0.
 
         x = [p − p₀, ṗ],    x_d = [p_d − p₀, ṗ_d]
 
     Args:
-        rest_tip: the model's rest tip position (at least X₀, Y₀) [m].
+        rest_tip: the model's rest tip position (at least its first d coordinates) [m].
         n: number of fingers.
+        d: the tip's dimension (2: X, Y; 3: X, Y, Z).
     """
 
-    def __init__(self, rest_tip, n: int) -> None:
+    def __init__(self, rest_tip, n: int, d: int = 2) -> None:
+        d = FingerShape(d, 1).d
         rest = np.asarray(rest_tip, dtype=float).reshape(-1)
-        if rest.size < 2 or not np.all(np.isfinite(rest[:2])):
-            raise ValueError(f'rest_tip must hold a finite rest position, got {rest_tip!r}')
-        self.origin = rest[:2].copy()
+        if rest.size < d or not np.all(np.isfinite(rest[:d])):
+            raise ValueError(f'rest_tip must hold a finite rest position of {d} coordinates, '
+                             f'got {rest_tip!r}')
+        self.d = d
+        self.origin = rest[:d].copy()
         self.n = int(n)
         # [p₀, 0, p₀, 0] for every finger (an array of z's shape: no broadcasting in z −= shift)
-        self._shift = np.tile(np.concatenate([self.origin, [0.0, 0.0]] * 2), (self.n, 1))
+        self._shift = np.tile(np.concatenate([self.origin, np.zeros(d)] * 2), (self.n, 1))
 
     def states(self, pos, vel, ref_pos, ref_vel) -> tuple[np.ndarray, np.ndarray]:
-        """(x, x_d), each (n, 4), from (n, 2) positions and velocities in the base frames.
+        """(x, x_d), each (n, 2d), from (n, d) positions and velocities in the base frames.
 
         Raises:
-            ValueError: when an input is not (n, 2).
+            ValueError: when an input is not (n, d).
         """
         z = self.stacked(pos, vel, ref_pos, ref_vel)
         z -= self._shift
-        return z[:, :4], z[:, 4:]
+        n_state = 2 * self.d
+        return z[:, :n_state], z[:, n_state:]
 
     def stacked(self, *arrays) -> np.ndarray:
-        """The (n, 2) arrays side by side as one new (n, 2k) float64 array: [pos, vel, ref_pos,
+        """The (n, d) arrays side by side as one new (n, dk) float64 array: [pos, vel, ref_pos,
         ref_vel, …] in the order given (the rows the compiled kernels take).
 
         Raises:
-            ValueError: when one is not (n, 2) (named as the law's inputs pos, vel, ref_pos,
+            ValueError: when one is not (n, d) (named as the law's inputs pos, vel, ref_pos,
                 ref_vel).
         """
         z = None
-        shape = (self.n, 2)
+        shape = (self.n, self.d)
         if all(np.shape(a) == shape for a in arrays):
             try:
                 z = np.concatenate(arrays, axis=1, dtype=float)
@@ -184,21 +295,42 @@ class RestFrame:
         return z
 
 
+_NO_DEMAND: dict[int, np.ndarray] = {}
+
+
+def no_unreachable(n: int) -> np.ndarray:
+    """(n,) read-only zeros: the :attr:`LawStep.unreachable` of a law without feedforward."""
+    z = _NO_DEMAND.get(n)
+    if z is None:
+        z = np.zeros(n)
+        z.flags.writeable = False
+        _NO_DEMAND[n] = z
+    return z
+
+
 @dataclass
 class LawStep:
-    """One step of a law for n fingers. The SDRE laws also fill the last four fields."""
+    """One step of a law for n fingers with m inputs each. The SDRE laws also fill K, Ks, P and
+    nk_iterations; the laws that invert the model fill ``unreachable`` (zeros otherwise)."""
 
-    u: np.ndarray                # (n, 2) saturated, rolled-off torques [N·m], always finite
-    u_unsat: np.ndarray          # (n, 2) before saturation
+    u: np.ndarray                # (n, m) clipped, rolled-off inputs [N·m, N, Pa, …], always finite
+    u_unsat: np.ndarray          # (n, m) before clipping to the bounds
     ok: np.ndarray               # (n,) the law's own checks passed
     fallback: np.ndarray         # (n,) a fallback was used (last valid gains, zero, no feedforward)
     failed_checks: np.ndarray    # (n,) int bitmask of :class:`Check` (0 for laws without checks)
-    saturated: np.ndarray        # (n, 2)
+    saturated: np.ndarray        # (n, m) u_unsat outside the input's bounds
     residual: np.ndarray         # (n,) relative Riccati residual (0 for closed-form laws)
-    K: np.ndarray | None = None              # (n, 2, 4) SDRE gains in use
-    Ks: np.ndarray | None = None             # (n, 2, 4)
-    P: np.ndarray | None = None              # (n, 4, 4) Riccati solution (NaN where it failed)
+    K: np.ndarray | None = None              # (n, m, 2d) SDRE gains in use
+    Ks: np.ndarray | None = None             # (n, m, 2d)
+    P: np.ndarray | None = None              # (n, 2d, 2d) Riccati solution (NaN where it failed)
     nk_iterations: np.ndarray | None = None  # (n,) Newton–Kleinman iterations (0 = exact solve)
+    #: (n,) [m/s²] the norm of the part of the model inversion's acceleration demand no input can
+    #: reach, ‖(I − G₂G₂⁺) d‖ (0 where G₂ has full row rank, and for laws without an inversion)
+    unreachable: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.unreachable is None:
+            self.unreachable = no_unreachable(len(self.ok))
 
 
 class Law(Protocol):
@@ -222,27 +354,37 @@ class Law(Protocol):
 
 class LawIO:
     """The plumbing a law composes around its own arithmetic: the translated states in (non-finite
-    rows zeroed), saturation at ``u_max`` and the :class:`RollOff` out.
+    rows zeroed), clipping to the input bounds and the :class:`RollOff` out.
 
     Args:
-        rest_tip: the model's rest tip position (at least X₀, Y₀) [m].
-        u_max: torque saturation [N·m], finite and > 0.
+        rest_tip: the model's rest tip position (at least its first d coordinates) [m].
+        u_max: the inputs' limit ±u_max [N·m] where ``bounds`` is None, finite and > 0.
         n_fingers: number of fingers.
         lowpass_hz, dt: the roll-off's corner frequency [Hz] (0 = off) and the control period [s].
+        shape: the finger's shape (None: the hand's, d = 2, m = 2).
+        bounds: per-input [lower, upper] (None: ±``u_max`` on each input, :func:`law_bounds`).
+
+    ``bounds`` is what the law clips to; ``hand`` says whether it runs the hand's code
+    (:func:`hand_path`); ``u_max`` is the largest magnitude any input may take.
     """
 
     def __init__(self, rest_tip, u_max: float, n_fingers: int, lowpass_hz: float,
-                 dt: float) -> None:
-        self.frame = RestFrame(rest_tip, n_fingers)
-        if not (np.isfinite(u_max) and u_max > 0):
+                 dt: float, shape: FingerShape | None = None,
+                 bounds: InputBounds | None = None) -> None:
+        self.shape = HAND_SHAPE if shape is None else shape
+        self.frame = RestFrame(rest_tip, n_fingers, self.shape.d)
+        if bounds is None and not (np.isfinite(u_max) and u_max > 0):
             raise ValueError(f'u_max must be finite and > 0, got {u_max!r}')
-        self.u_max = float(u_max)
+        self.bounds = law_bounds(self.shape, u_max, bounds)
+        self.hand = hand_path(self.shape, self.bounds)
+        self.u_max = (float(u_max) if bounds is None
+                      else float(np.max(np.maximum(-self.bounds.lower, self.bounds.upper))))
         self.n_fingers = int(n_fingers)
         self.roll_off = RollOff(lowpass_hz, dt)
 
     @property
     def origin(self) -> np.ndarray:
-        """(2,) rest tip position the model's coordinates are translated by [m]."""
+        """(d,) rest tip position the model's coordinates are translated by [m]."""
         return self.frame.origin
 
     def reset(self) -> None:
@@ -257,12 +399,18 @@ class LawIO:
             xd[~finite] = 0.0
         return x, xd, finite
 
+    def clip(self, u_unsat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(u, saturated): ``u_unsat`` (n, m) clipped to the bounds, and where it was outside."""
+        b = self.bounds
+        return np.clip(u_unsat, b.lower, b.upper), (u_unsat < b.lower) | (u_unsat > b.upper)
+
     def finish(self, u_unsat: np.ndarray, finite: np.ndarray) -> LawStep:
-        """The step of a law without Riccati checks: u_unsat zeroed where not finite, saturated,
-        rolled off; a non-finite finger is flagged (NONFINITE) and counts as a fallback."""
+        """The step of a law without Riccati checks: u_unsat zeroed where not finite, clipped to
+        the bounds, rolled off; a non-finite finger is flagged (NONFINITE) and counts as a
+        fallback. A zeroed input lies at the input's :attr:`InputBounds.rest` once clipped."""
         u_unsat = np.where(np.isfinite(u_unsat) & finite[:, None], u_unsat, 0.0)
-        u = self.roll_off(np.clip(u_unsat, -self.u_max, self.u_max))
-        saturated = np.abs(u_unsat) > self.u_max
+        u, saturated = self.clip(u_unsat)
+        u = self.roll_off(u)
         return LawStep(u=u, u_unsat=u_unsat, ok=finite.copy(), fallback=~finite,
                        failed_checks=np.where(finite, 0, int(Check.NONFINITE)), saturated=saturated,
                        residual=np.zeros(self.n_fingers))

@@ -2,19 +2,26 @@
 checkpoint, and the numpy model the controller evaluates (training:
 :mod:`soft_gripper_sdre.learning.training`).
 
-State x = [X − X₀, Y − Y₀, Ẋ, Ẏ] (SI, translated so that the settled rest pose is the origin and
-f(0) = 0), input u = [u_ax0, u_ax1] [N·m]:
+A finger of shape (d, m) (:class:`~soft_gripper_sdre.sim.shape.FingerShape`: a tip of d = 2 or 3
+coordinates, m = 1 to 4 inputs) has the state x = [p − p₀, ṗ] ∈ R^2d (SI, translated so that the
+settled rest pose p₀ is the origin and f(0) = 0) and the input u ∈ R^m (each in its actuator's SI
+unit: N·m, N, Pa):
 
     ẋ = A(x) x + G(x) u,   A = [[0, I], [A21(x), A22(x)]],   G = [[0], [G2(x)]],
-    vec([A21 A22]) = NN_θ1(x) ∈ R⁸,   vec(G2) = NN_θ2(x) ∈ R⁴      (vec stacks columns)
+    vec([A21 A22]) = NN_θ1(x) ∈ R^2d²,   vec(G2) = NN_θ2(x) ∈ R^dm      (vec stacks columns)
 
-each network three fully connected layers (4 → 32 → 32 → out) with ReLU between. The loss is
-eq. 18, mean ‖ẋ − A(x)x − G(x)u‖²; its first two rows are Ẋ − Ẋ ≡ 0, so only the acceleration
-rows carry information and the loss is the mean squared acceleration residual.
+each network three fully connected layers (2d → 32 → 32 → out) with ReLU between. The hand of
+this package is d = 2, m = 2: x = [X − X₀, Y − Y₀, Ẋ, Ẏ], u = [u_ax0, u_ax1] [N·m], 8 + 4
+outputs. The loss is eq. 18, mean ‖ẋ − A(x)x − G(x)u‖²; its first d rows are ṗ − ṗ ≡ 0, so only
+the acceleration rows carry information and the loss is the mean squared acceleration residual.
 
 With scaling (the default preset) the networks see x / s_x and predict scaled accelerations
-ẍ / s_a from scaled inputs u / s_u; the physical matrices follow exactly,
+p̈ / s_a from scaled inputs u / s_u; the physical matrices follow exactly,
 A_ij = s_a,i Â_ij / s_x,j and G2_ij = s_a,i Ĝ_ij / s_u,j, so the model keeps the paper's form.
+
+A checkpoint carries its shape (``'shape': {'d', 'm'}``) and the bounds of the inputs its data
+were recorded under (``'input_bounds': {'lower', 'upper'}``, or None when not known); one without
+the keys is the hand's (2, 2).
 
 :class:`SDCModel` evaluates a checkpoint with plain numpy (no torch at control time): the two
 networks as one fused network of three matmuls.
@@ -31,6 +38,13 @@ import torch
 from torch import nn
 
 from soft_gripper_sdre.learning.dataset import ZIP_MAGIC
+from soft_gripper_sdre.sim.shape import (
+    HAND_SHAPE,
+    FingerShape,
+    InputBounds,
+    ShapeError,
+    shape_from_record,
+)
 
 FORMAT_VERSION = 1
 HIDDEN = 32
@@ -63,21 +77,26 @@ def mlp(n_in: int, n_out: int, hidden: int = HIDDEN) -> nn.Sequential:
 
 
 class SDCNet(nn.Module):
-    """NN_θ1 (A21, A22) and NN_θ2 (G2), in scaled units."""
+    """NN_θ1 (A21, A22) and NN_θ2 (G2) of a finger of ``shape``, in scaled units: a_net maps the
+    state (2d) to vec([A21 A22]) (2d²), g_net to vec(G2) (dm), both vecs column-stacked."""
 
-    def __init__(self, hidden: int = HIDDEN) -> None:
+    def __init__(self, hidden: int = HIDDEN, shape: FingerShape = HAND_SHAPE) -> None:
         super().__init__()
-        self.a_net = mlp(4, 8, hidden)
-        self.g_net = mlp(4, 4, hidden)
+        self.shape = shape
+        a_out, g_out = shape.network_outputs
+        self.a_net = mlp(shape.n_state, a_out, hidden)
+        self.g_net = mlp(shape.n_state, g_out, hidden)
 
     def forward(self, xs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Scaled state (B, 4) → [A21 A22] (B, 2, 4) and G2 (B, 2, 2) (column-stacked vec⁻¹)."""
-        a = self.a_net(xs).reshape(-1, 4, 2).transpose(1, 2)
-        g = self.g_net(xs).reshape(-1, 2, 2).transpose(1, 2)
+        """Scaled state (B, 2d) → [A21 A22] (B, d, 2d) and G2 (B, d, m) (column-stacked
+        vec⁻¹)."""
+        d, m = self.shape.d, self.shape.m
+        a = self.a_net(xs).reshape(-1, 2 * d, d).transpose(1, 2)
+        g = self.g_net(xs).reshape(-1, m, d).transpose(1, 2)
         return a, g
 
     def accel(self, xs: torch.Tensor, us: torch.Tensor) -> torch.Tensor:
-        """Scaled ẍ = [A21 A22] x + G2 u."""
+        """Scaled p̈ = [A21 A22] x + G2 u: (B, d) from states (B, 2d) and inputs (B, m)."""
         a, g = self(xs)
         return (a @ xs.unsqueeze(-1) + g @ us.unsqueeze(-1)).squeeze(-1)
 
@@ -91,7 +110,13 @@ def read_checkpoint(path: Path) -> dict:
 
     Raises:
         ModelFileError: missing, unreadable or truncated, carrying pickled objects, another format
-            version, or other network sizes.
+            version, a shape or input bounds that cannot be used or do not agree, or network sizes
+            or scales other than the shape's.
+
+    Returns:
+        The checkpoint's plain data with ``'net'`` (the :class:`SDCNet` loaded), ``'shape'`` (its
+        :class:`~soft_gripper_sdre.sim.shape.FingerShape`) and ``'input_bounds'`` (its
+        :class:`~soft_gripper_sdre.sim.shape.InputBounds`, or None).
     """
     path = Path(path)
     if not path.is_file():
@@ -119,20 +144,50 @@ def read_checkpoint(path: Path) -> dict:
     if ckpt['format_version'] != FORMAT_VERSION:
         raise ModelFileError(f'model file {path} has format version {ckpt["format_version"]}, '
                              f'this package reads version {FORMAT_VERSION}')
+    shape, bounds = _checkpoint_shape(path, ckpt)
     try:
         hidden = int(ckpt['architecture']['hidden'])
-        net = SDCNet(hidden)
+        _check_architecture(ckpt['architecture'], shape)
+        net = SDCNet(hidden, shape)
         net.load_state_dict(ckpt['state_dict'])
-        for key, n in (('x', 4), ('u', 2), ('acc', 2)):
+        for key, n in (('x', shape.n_state), ('u', shape.m), ('acc', shape.d)):
             if tuple(ckpt['scales'][key].shape) != (n,):
-                raise ValueError(f'scale {key} has shape {tuple(ckpt["scales"][key].shape)}')
+                raise ValueError(f'scale {key} has shape {tuple(ckpt["scales"][key].shape)}, '
+                                 f'the shape ({shape}) needs ({n},)')
         if tuple(ckpt['rest_tip'].shape) != (3,):
             raise ValueError(f'rest_tip has shape {tuple(ckpt["rest_tip"].shape)}')
     except (KeyError, RuntimeError, ValueError, TypeError) as exc:
         raise ModelFileError(
             f'model file {path} does not match the network layout: {exc}'[:400]) from None
     ckpt['net'] = net
+    ckpt['shape'], ckpt['input_bounds'] = shape, bounds
     return ckpt
+
+
+def _checkpoint_shape(path: Path, ckpt: dict) -> tuple[FingerShape, InputBounds | None]:
+    """The checkpoint's shape (the hand's without a ``'shape'`` key) and input bounds (None
+    without an ``'input_bounds'`` key, or with None there), checked against each other."""
+    try:
+        shape = shape_from_record(ckpt.get('shape'), 'shape')
+        record = ckpt.get('input_bounds')
+        bounds = None if record is None else InputBounds.from_record(record, 'input_bounds')
+    except ShapeError as exc:
+        raise ModelFileError(f'model file {path}: {exc}'[:400]) from None
+    if bounds is not None and bounds.m != shape.m:
+        raise ModelFileError(f'model file {path}: input_bounds name {bounds.m} input(s), the '
+                             f'shape ({shape}) has {shape.m}')
+    return shape, bounds
+
+
+def _check_architecture(arch: dict, shape: FingerShape) -> None:
+    """ValueError when the sizes the checkpoint declares (``n_state``, ``n_input``, ``a_out``,
+    ``g_out``, those present) are not those of ``shape``."""
+    a_out, g_out = shape.network_outputs
+    for key, want in (('n_state', shape.n_state), ('n_input', shape.m), ('a_out', a_out),
+                      ('g_out', g_out)):
+        if key in arch and arch[key] != want:
+            raise ValueError(f'architecture {key} = {arch[key]!r}, the shape ({shape}) '
+                             f'needs {want}')
 
 
 def weights_sha256(path: Path) -> str:
@@ -148,15 +203,15 @@ def weights_sha256(path: Path) -> str:
     return h.hexdigest()
 
 
-def _fused_layers(sd: dict[str, np.ndarray],
-                  s: dict[str, np.ndarray]) -> list[tuple[np.ndarray, np.ndarray]]:
+def _fused_layers(sd: dict[str, np.ndarray], s: dict[str, np.ndarray],
+                  shape: FingerShape = HAND_SHAPE) -> list[tuple[np.ndarray, np.ndarray]]:
     """NN_θ1 and NN_θ2 as one network in physical units, for evaluation with three matmuls.
 
     The two networks take the same input, so they run side by side: layer 1 stacks their weights
-    (4 → 2·32), layers 2 and 3 are block-diagonal. The scalings fold into the weights: the input
+    (2d → 2·32), layers 2 and 3 are block-diagonal. The scalings fold into the weights: the input
     x / s_x into layer 1's rows, and the output factors (A_ij = s_a,i Â_ij / s_x,j,
     G2_ij = s_a,i Ĝ_ij / s_u,j) into layer 3's columns, which are also reordered from the networks'
-    column-stacked vec to row-major [A21 A22] (8) then G2 (4).
+    column-stacked vec to row-major [A21 A22] (d × 2d) then G2 (d × m); the hand's 8 then 4.
 
     Returns:
         [(w1, b1), (w2, b2), (w3, b3)] with h ↦ relu(h w1 + b1) ↦ relu(· w2 + b2) ↦ · w3 + b3.
@@ -165,25 +220,27 @@ def _fused_layers(sd: dict[str, np.ndarray],
     (a1, c1), (a2, c2), (a3, c3) = (layer('a_net', i) for i in (0, 2, 4))
     (g1, d1), (g2, d2), (g3, d3) = (layer('g_net', i) for i in (0, 2, 4))
     ha, hg = a1.shape[1], g1.shape[1]
+    d, m = shape.d, shape.m
+    a_out, g_out = shape.network_outputs
     w1 = np.hstack([a1, g1]) / s['x'][:, None]
     b1 = np.concatenate([c1, d1])
     w2 = np.zeros((ha + hg, ha + hg))
     w2[:ha, :ha], w2[ha:, ha:] = a2, g2
     b2 = np.concatenate([c2, d2])
-    w3 = np.zeros((ha + hg, 12))
-    b3 = np.zeros(12)
-    # output k of NN_θ1 is [A21 A22][k % 2, k // 2] (column-stacked vec), of NN_θ2 is
-    # G2[k % 2, k // 2]
-    for k in range(8):
-        r, c = k % 2, k // 2
+    w3 = np.zeros((ha + hg, a_out + g_out))
+    b3 = np.zeros(a_out + g_out)
+    # output k of NN_θ1 is [A21 A22][k % d, k // d] (column-stacked vec), of NN_θ2 is
+    # G2[k % d, k // d]
+    for k in range(a_out):
+        r, c = k % d, k // d
         f = s['acc'][r] / s['x'][c]
-        w3[:ha, 4 * r + c] = f * a3[:, k]
-        b3[4 * r + c] = f * c3[k]
-    for k in range(4):
-        r, c = k % 2, k // 2
+        w3[:ha, 2 * d * r + c] = f * a3[:, k]
+        b3[2 * d * r + c] = f * c3[k]
+    for k in range(g_out):
+        r, c = k % d, k // d
         f = s['acc'][r] / s['u'][c]
-        w3[ha:, 8 + 2 * r + c] = f * g3[:, k]
-        b3[8 + 2 * r + c] = f * d3[k]
+        w3[ha:, a_out + m * r + c] = f * g3[:, k]
+        b3[a_out + m * r + c] = f * d3[k]
     return [(np.ascontiguousarray(w1), b1), (w2, b2), (w3, b3)]
 
 
@@ -214,14 +271,22 @@ class SDCModel:
 
     Args:
         path: checkpoint file; None loads the default model shipped with the package.
+
+    Attributes:
+        shape: the finger's :class:`~soft_gripper_sdre.sim.shape.FingerShape` (d, m).
+        input_bounds: the :class:`~soft_gripper_sdre.sim.shape.InputBounds` the training data
+            were recorded under, or None when the checkpoint does not say (the hand's).
+        rest_tip: (3,) the settled rest tip [m]; the model's origin is ``rest_tip[:d]``.
     """
 
     def __init__(self, path: Path | str | None = None) -> None:
         self.path = Path(path) if path is not None else DEFAULT_MODEL
         ckpt = read_checkpoint(self.path)
+        self.shape: FingerShape = ckpt['shape']
+        self.input_bounds: InputBounds | None = ckpt['input_bounds']
         sd = {k: v.detach().double().numpy() for k, v in ckpt['state_dict'].items()}
         s = {k: v.numpy() for k, v in ckpt['scales'].items()}
-        self._layers = _fused_layers(sd, s)
+        self._layers = _fused_layers(sd, s, self.shape)
         self._net = _homogeneous(self._layers)
         self._b1 = {}  # layer 1's bias repeated for small batches of n states (no broadcasting)
         self.rest_tip = ckpt['rest_tip'].numpy().astype(float)
@@ -243,7 +308,8 @@ class SDCModel:
         return {name: np.mean(np.asarray(v, dtype=float), axis=0) for name, v in rests.items()}
 
     def sdc_blocks(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The learned blocks for states x (4,) or (n, 4): [A21 A22] (n, 2, 4) and G2 (n, 2, 2).
+        """The learned blocks for states x (2d,) or (n, 2d): [A21 A22] (n, d, 2d) and G2
+        (n, d, m); the hand's (n, 2, 4) and (n, 2, 2).
 
         Both networks run as one: three matmuls with ReLU between (see :func:`_fused_layers`; the
         biases of layers 2 and 3 ride on a constant hidden unit, :func:`_homogeneous`).
@@ -252,8 +318,9 @@ class SDCModel:
         if x.ndim == 1:
             x = x[None]
         n, width = x.shape if x.ndim == 2 else (0, 0)
-        if width != 4:
-            raise ValueError(f'x must have shape (4,) or (n, 4), got {x.shape}')
+        d, m, ns = self.shape.d, self.shape.m, self.shape.n_state
+        if width != ns:
+            raise ValueError(f'x must have shape ({ns},) or (n, {ns}), got {x.shape}')
         w1, b1, W2, W3 = self._net
         if n <= 16:
             b1 = self._b1.get(n)
@@ -265,28 +332,32 @@ class SDCModel:
         h = h @ W2                               # [h w₂ + b₂, 1]
         np.maximum(h, 0.0, out=h)
         out = h @ W3                             # h w₃ + b₃
-        return out[:, :8].reshape(n, 2, 4), out[:, 8:].reshape(n, 2, 2)
+        a_out = 2 * d * d
+        return out[:, :a_out].reshape(n, d, ns), out[:, a_out:].reshape(n, d, m)
 
     @property
     def fused_network(self) -> tuple[np.ndarray, ...]:
         """Copies of the fused network's arrays (w1, b1, w2, b2, w3, b3), float64 and C-contiguous.
 
-        h ↦ relu(x w1 + b1) ↦ relu(· w2 + b2) ↦ · w3 + b3 maps states x (n, 4) to (n, 12): row-major
-        [A21 A22] (8) then G2 (4), in SI (:func:`_fused_layers`). For evaluators outside this
-        package's numpy path, such as the compiled control kernels, which take the arrays as inputs.
+        h ↦ relu(x w1 + b1) ↦ relu(· w2 + b2) ↦ · w3 + b3 maps states x (n, 2d) to
+        (n, 2d² + dm): row-major [A21 A22] then G2, in SI (:func:`_fused_layers`); the hand's
+        (n, 4) to (n, 12), 8 then 4. For evaluators outside this package's numpy path, such as
+        the compiled control kernels, which take the arrays as inputs.
         """
         return tuple(np.array(a, dtype=np.float64, order='C')
                      for layer in self._layers for a in layer)
 
     def AG(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """A(x) (n, 4, 4) and G(x) (n, 4, 2) for states x (4,) or (n, 4)."""
+        """A(x) (n, 2d, 2d) and G(x) (n, 2d, m) for states x (2d,) or (n, 2d)."""
         a, g = self.sdc_blocks(x)
         n = a.shape[0]
-        A = np.zeros((n, 4, 4))
-        A[:, 0, 2] = A[:, 1, 3] = 1.0          # Ẋ, Ẏ rows: [0 I]
-        A[:, 2:, :] = a
-        G = np.zeros((n, 4, 2))
-        G[:, 2:, :] = g
+        d, ns = self.shape.d, self.shape.n_state
+        A = np.zeros((n, ns, ns))
+        for i in range(d):
+            A[:, i, d + i] = 1.0               # ṗ rows: [0 I]
+        A[:, d:, :] = a
+        G = np.zeros((n, ns, self.shape.m))
+        G[:, d:, :] = g
         return A, G
 
     def A(self, x: np.ndarray) -> np.ndarray:
@@ -296,7 +367,7 @@ class SDCModel:
         return self.AG(x)[1]
 
     def xdot(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """ẋ = A(x) x + G(x) u for (n, 4) states and (n, 2) inputs."""
+        """ẋ = A(x) x + G(x) u for (n, 2d) states and (n, m) inputs."""
         x = np.atleast_2d(np.asarray(x, dtype=float))
         u = np.atleast_2d(np.asarray(u, dtype=float))
         A, G = self.AG(x)

@@ -28,8 +28,8 @@ SIM_ERROR_CAP = 100.0
 
 
 class Run(NamedTuple):
-    """A contiguous record on a uniform grid for the simulation stage: estimated states x (N, 4)
-    (translated, SI), the held inputs u (N, 2) [N·m] and the grid spacing dt [s]."""
+    """A contiguous record on a uniform grid for the simulation stage: estimated states x (N, 2d)
+    (translated, SI), the held inputs u (N, m) (SI) and the grid spacing dt [s]."""
 
     x: np.ndarray
     u: np.ndarray
@@ -37,8 +37,8 @@ class Run(NamedTuple):
 
 
 class Scales(NamedTuple):
-    """The data's standard deviations (SI) that make the networks' units: state (4,), input (2,),
-    acceleration (2,)."""
+    """The data's standard deviations (SI) that make the networks' units: state (2d,), input
+    (m,), acceleration (d,)."""
 
     x: torch.Tensor
     u: torch.Tensor
@@ -48,7 +48,7 @@ class Scales(NamedTuple):
 def windows(runs: list[Run], seconds: float,
             overlap: int) -> list[tuple[float, torch.Tensor, ...]]:
     """Windows of ``seconds`` (H samples) starting every H / ``overlap`` samples into each run,
-    grouped by grid spacing: [(dt, starts (B, 4), inputs (B, H, 2), positions (B, H, 2))]."""
+    grouped by grid spacing: [(dt, starts (B, 2d), inputs (B, H, m), positions (B, H, d))]."""
     groups: dict[float, list[list[np.ndarray]]] = {}
     for run in runs:
         h = max(int(round(seconds / run.dt)), 1)
@@ -58,16 +58,19 @@ def windows(runs: list[Run], seconds: float,
         got = groups.setdefault(float(run.dt), [[], [], []])
         got[0] += [run.x[i] for i in starts]
         got[1] += [run.u[i:i + h] for i in starts]
-        got[2] += [run.x[i + 1:i + h + 1, :2] for i in starts]
+        d = run.x.shape[1] // 2
+        got[2] += [run.x[i + 1:i + h + 1, :d] for i in starts]
     f32 = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32)  # noqa: E731
     return [(dt, f32(x0), f32(u), f32(p)) for dt, (x0, u, p) in sorted(groups.items())]
 
 
 def simulate(net: SDCNet, s: Scales, x0: torch.Tensor, u: torch.Tensor,
              dt: float) -> torch.Tensor:
-    """Positions (B, H, 2) of the model's RK4 runs from x0 (B, 4), inputs u (B, H, 2) held."""
+    """Positions (B, H, d) of the model's RK4 runs from x0 (B, 2d), inputs u (B, H, m) held."""
+    d = net.shape.d
+
     def f(x, uk):
-        return torch.cat([x[:, 2:], net.accel(x / s.x, uk / s.u) * s.acc], dim=1)
+        return torch.cat([x[:, d:], net.accel(x / s.x, uk / s.u) * s.acc], dim=1)
     bound = SIM_BOUND * s.x
     x, out = x0, []
     for k in range(u.shape[1]):
@@ -78,14 +81,15 @@ def simulate(net: SDCNet, s: Scales, x0: torch.Tensor, u: torch.Tensor,
         k4 = f(x + dt * k3, uk)
         x = torch.maximum(torch.minimum(x + dt / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4), bound),
                           -bound)
-        out.append(x[:, :2])
+        out.append(x[:, :d])
     return torch.stack(out, dim=1)
 
 
 def window_errors(net: SDCNet, s: Scales, dt: float, x0, u, p) -> torch.Tensor:
     """Each window's L_sim (module doc), positions in units of their scale, capped at
     :data:`SIM_ERROR_CAP`."""
-    err = (((simulate(net, s, x0, u, dt) - p) / s.x[:2]) ** 2).sum(dim=-1).mean(dim=1)
+    d = net.shape.d
+    err = (((simulate(net, s, x0, u, dt) - p) / s.x[:d]) ** 2).sum(dim=-1).mean(dim=1)
     return err.clamp(max=SIM_ERROR_CAP)
 
 

@@ -41,6 +41,7 @@ import torch
 from soft_gripper_sdre.learning.model import FORMAT_VERSION, SDCNet
 from soft_gripper_sdre.learning.rollout import Run, Scales, sim_error, val_sim_error, windows
 from soft_gripper_sdre.learning.train_settings import TrainSettings
+from soft_gripper_sdre.sim.shape import HAND_SHAPE, FingerShape, InputBounds
 
 #: intra-op threads while training: the order of torch's reductions, and so every weight's bits,
 #: depends on it
@@ -62,8 +63,9 @@ class TrainResult:
 
 
 def _scales(x: np.ndarray, u: np.ndarray, acc: np.ndarray, scale: bool) -> dict[str, np.ndarray]:
+    """Each column's standard deviation (1 where a column does not vary), or ones unscaled."""
     if not scale:
-        return {'x': np.ones(4), 'u': np.ones(2), 'acc': np.ones(2)}
+        return {'x': np.ones(x.shape[1]), 'u': np.ones(u.shape[1]), 'acc': np.ones(acc.shape[1])}
     std = lambda a: np.where(a.std(axis=0) > 0, a.std(axis=0), 1.0)  # noqa: E731
     return {'x': std(x), 'u': std(u), 'acc': std(acc)}
 
@@ -87,7 +89,8 @@ def deterministic_torch(threads: int = TRAIN_THREADS) -> Iterator[None]:
 def train(x: np.ndarray, u: np.ndarray, acc: np.ndarray, x_val: np.ndarray, u_val: np.ndarray,
           acc_val: np.ndarray, settings: TrainSettings,
           on_epoch: Callable[[int, float, float], None] | None = None,
-          runs: list[Run] | None = None, val_runs: list[Run] | None = None) -> TrainResult:
+          runs: list[Run] | None = None, val_runs: list[Run] | None = None,
+          shape: FingerShape = HAND_SHAPE) -> TrainResult:
     """Fit the SDC networks to accelerations (eq. 18), then, when the settings say so, to their
     own simulation of the records (module doc).
 
@@ -95,18 +98,26 @@ def train(x: np.ndarray, u: np.ndarray, acc: np.ndarray, x_val: np.ndarray, u_va
     kind and torch build (:data:`TRAIN_THREADS` threads, deterministic algorithms only).
 
     Args:
-        x, u, acc: training states (N, 4), inputs (N, 2), acceleration labels (N, 2), SI.
+        x, u, acc: training states (N, 2d), inputs (N, m), acceleration labels (N, d), SI, of a
+            finger of shape (d, m) (the hand: (N, 4), (N, 2), (N, 2)).
         x_val, u_val, acc_val: validation set; the weights of the best validation epoch are kept.
         settings: the preset.
         on_epoch: called with (epoch, train loss, validation loss) for progress display; in the
             simulation stage the epochs count on and the losses are the simulation errors.
         runs, val_runs: the contiguous training and validation records, needed by the
             simulation stage (``settings.rollout_epochs`` > 0) and otherwise unused.
+        shape: the finger's shape (d, m), which sizes the networks (default: the hand's).
+
+    Raises:
+        ValueError: an array whose width is not the shape's (naming it), or the simulation stage
+            without records long enough.
     """
-    for name, a, w in (('x', x, 4), ('u', u, 2), ('acc', acc, 2), ('x_val', x_val, 4),
-                       ('u_val', u_val, 2), ('acc_val', acc_val, 2)):
+    ns, m, d = shape.n_state, shape.m, shape.d
+    for name, a, w in (('x', x, ns), ('u', u, m), ('acc', acc, d), ('x_val', x_val, ns),
+                       ('u_val', u_val, m), ('acc_val', acc_val, d)):
         if a.ndim != 2 or a.shape[1] != w:
-            raise ValueError(f'{name} must have shape (N, {w}), got {a.shape}')
+            raise ValueError(f'{name} must have shape (N, {w}) for the shape {shape}, '
+                             f'got {a.shape}')
     if settings.rollout_epochs > 0:
         for name, given, seconds in (('runs', runs, settings.rollout_seconds),
                                      ('val_runs', val_runs, settings.rollout_val_seconds)):
@@ -114,7 +125,8 @@ def train(x: np.ndarray, u: np.ndarray, acc: np.ndarray, x_val: np.ndarray, u_va
                 raise ValueError(f'the simulation stage needs {name}: records longer than '
                                  f'{seconds:g} s')
     with deterministic_torch():
-        return _train_seeded(x, u, acc, x_val, u_val, acc_val, settings, on_epoch, runs, val_runs)
+        return _train_seeded(x, u, acc, x_val, u_val, acc_val, settings, on_epoch, runs, val_runs,
+                             shape)
 
 
 class _Labelled(NamedTuple):
@@ -142,9 +154,11 @@ def _with_rest_penalty(loss: torch.Tensor, net: SDCNet, s: Scales,
 
 def _rest_penalty(net: SDCNet, s: Scales, settings: TrainSettings) -> torch.Tensor | None:
     """L_rest (module doc), or None when every eigenvalue of A(0) is already left of the margin."""
+    d = net.shape.d
+
     def real_parts():
-        a0 = net(torch.zeros(1, 4))[0][0] * s.acc[:, None] / s.x[None, :]   # [A21 A22] at rest, SI
-        top = torch.cat([torch.zeros(2, 2), torch.eye(2)], dim=1)
+        a0 = net(torch.zeros(1, 2 * d))[0][0] * s.acc[:, None] / s.x[None, :]  # [A21 A22], SI
+        top = torch.cat([torch.zeros(d, d), torch.eye(d)], dim=1)
         return torch.linalg.eigvals(torch.cat([top, a0], dim=0)).real
     with torch.no_grad():
         if float(real_parts().max()) + settings.rest_margin <= 0:
@@ -169,14 +183,14 @@ def _step(opt: torch.optim.Optimizer, loss: torch.Tensor, net: SDCNet,
 
 
 def _train_seeded(x, u, acc, x_val, u_val, acc_val, settings: TrainSettings, on_epoch, runs,
-                  val_runs) -> TrainResult:
+                  val_runs, shape: FingerShape) -> TrainResult:
     s = _scales(x, u, acc, settings.scale)
     t = lambda a, k: torch.as_tensor(a / s[k], dtype=torch.float32)  # noqa: E731
     train_set = _Labelled(t(x, 'x'), t(u, 'u'), t(acc, 'acc'))
     val_set = _Labelled(t(x_val, 'x'), t(u_val, 'u'), t(acc_val, 'acc'))
     simulating = settings.rollout_epochs > 0
     run = _Training(settings, s, on_epoch,
-                    windows(val_runs, settings.rollout_val_seconds, 1) if simulating else [])
+                    windows(val_runs, settings.rollout_val_seconds, 1) if simulating else [], shape)
     start = time.perf_counter()
     run.label_stage(train_set, val_set)
     if simulating:
@@ -192,13 +206,14 @@ class _Training:
     the result's; the patience rule counts across both stages."""
 
     def __init__(self, settings: TrainSettings, scales: dict[str, np.ndarray],
-                 on_epoch: Callable[[int, float, float], None] | None, val_windows: list) -> None:
+                 on_epoch: Callable[[int, float, float], None] | None, val_windows: list,
+                 shape: FingerShape) -> None:
         self.settings, self.on_epoch, self.val_windows = settings, on_epoch, val_windows
         torch.manual_seed(settings.seed)                      # the networks' initial weights
         self.gen = torch.Generator().manual_seed(settings.seed)
         self.st = Scales(*(torch.as_tensor(scales[k], dtype=torch.float32)
                            for k in ('x', 'u', 'acc')))
-        self.net = SDCNet(settings.hidden)
+        self.net = SDCNet(settings.hidden, shape)
         self.result = TrainResult(self.net, scales)
         self.best, self.best_state, self.since_best = math.inf, None, 0
 
@@ -263,10 +278,10 @@ class _Training:
         """sv_penalty · mean(relu(σ_floor − σ_min(G2(x)))²) at ``count`` states drawn uniformly
         from the box of ±sv_box: G2 kept invertible over the whole box, not only where the data
         lie."""
-        settings = self.settings
-        xs = (torch.rand(count, 4, generator=self.gen) * 2 - 1) * settings.sv_box
+        settings, shape = self.settings, self.net.shape
+        xs = (torch.rand(count, shape.n_state, generator=self.gen) * 2 - 1) * settings.sv_box
         smin = torch.linalg.svdvals(
-            self.net.g_net(xs).reshape(-1, 2, 2).transpose(1, 2))[:, -1]     # G2 alone
+            self.net.g_net(xs).reshape(-1, shape.m, shape.d).transpose(1, 2))[:, -1]  # G2 alone
         return settings.sv_penalty * torch.relu(settings.sv_floor - smin).pow(2).mean()
 
     def simulation_stage(self, runs: list[Run]) -> None:
@@ -317,12 +332,26 @@ def fingerprint(*arrays: np.ndarray) -> str:
 
 
 def save_checkpoint(path: Path, result: TrainResult, *, rest_tip: np.ndarray, dt: float,
-                    settings: TrainSettings, data: dict, metrics: dict | None = None) -> Path:
-    """Write a self-describing checkpoint that ``torch.load(weights_only=True)`` can read."""
+                    settings: TrainSettings, data: dict, metrics: dict | None = None,
+                    input_bounds: InputBounds | None = None) -> Path:
+    """Write a self-describing checkpoint that ``torch.load(weights_only=True)`` can read: the
+    networks' shape (``result.net.shape``) and ``input_bounds``, the bounds the data were
+    recorded under (None: not known), beside the weights, scales and provenance.
+
+    Raises:
+        ValueError: ``input_bounds`` of another number of inputs than the networks'.
+    """
+    shape = result.net.shape
+    if input_bounds is not None and input_bounds.m != shape.m:
+        raise ValueError(f'input_bounds name {input_bounds.m} input(s), the networks have '
+                         f'{shape.m}')
+    a_out, g_out = shape.network_outputs
     ckpt = {
         'format_version': FORMAT_VERSION,
-        'architecture': {'hidden': settings.hidden, 'a_out': 8, 'g_out': 4, 'n_state': 4,
-                         'n_input': 2},
+        'architecture': {'hidden': settings.hidden, 'a_out': a_out, 'g_out': g_out,
+                         'n_state': shape.n_state, 'n_input': shape.m},
+        'shape': shape.to_record(),
+        'input_bounds': None if input_bounds is None else input_bounds.to_record(),
         'state_dict': {k: v.detach().clone() for k, v in result.net.state_dict().items()},
         'scales': {k: torch.as_tensor(v, dtype=torch.float64) for k, v in result.scales.items()},
         'rest_tip': torch.as_tensor(np.asarray(rest_tip, dtype=float)),

@@ -266,9 +266,10 @@ def tips_codec(fingers: cv.Fingers) -> LoopCodec:
                      (n, 3), cv.TIPS_WHAT, refill=cv.fill_tips)
 
 
-def estimate_codec(fingers: cv.Fingers) -> LoopCodec:
-    """``state_estimate``: (n, 4) [X, Y, Ẋ, Ẏ]; joint names = the finger names (decoded in our
-    order whatever the publisher's), one point, z = 0."""
+def estimate_codec(fingers: cv.Fingers, d: int = 2) -> LoopCodec:
+    """``state_estimate``: (n, 2d) [p; ṗ] of tips of task dimension ``d`` ([X, Y, Ẋ, Ẏ] with
+    z = 0 for d = 2; [X, Y, Z, Ẋ, Ẏ, Ż] for d = 3); joint names = the finger names (decoded in
+    our order whatever the publisher's), one point."""
     names = cv.finger_names(fingers)
 
     def refill(msg, ns: int, x: np.ndarray) -> None:
@@ -277,19 +278,22 @@ def estimate_codec(fingers: cv.Fingers) -> LoopCodec:
         for name, row in zip(names, x.tolist()):
             j = msg.joint_names.index(name)
             t, v = point.transforms[j].translation, point.velocities[j].linear
-            t.x, t.y, v.x, v.y = row
+            if d == 2:
+                t.x, t.y, v.x, v.y = row
+            else:
+                t.x, t.y, t.z, v.x, v.y, v.z = row
 
     return LoopCodec(STATE_ESTIMATE, cv.MultiDOFJointTrajectory,
-                     lambda ns, x: cv.estimate_to_msg(ns, x[:, :2], x[:, 2:], names),
-                     lambda m: cv.msg_to_estimate(m, names), (len(names), 4), cv.ESTIMATE_WHAT,
-                     refill=refill)
+                     lambda ns, x: cv.estimate_to_msg(ns, x[:, :d], x[:, d:], names),
+                     lambda m: cv.msg_to_estimate(m, names, d), (len(names), 2 * d),
+                     cv.ESTIMATE_WHAT, refill=refill)
 
 
-def torques_codec(fingers: cv.Fingers) -> LoopCodec:
-    """``torque_commands``: (n, 2) efforts [N·m] named <finger>/ax0|ax1 (decoded in our order
-    whatever the publisher's)."""
+def torques_codec(fingers: cv.Fingers, m: int = 2) -> LoopCodec:
+    """``torque_commands``: (n, m) efforts [N·m, or each input's SI unit] named
+    ``<finger>/ax0`` … ``<finger>/ax<m−1>`` (decoded in our order whatever the publisher's)."""
     names = cv.finger_names(fingers)
-    torques = cv.torque_names(names)
+    torques = cv.torque_names(names, m)
 
     def refill(msg, ns: int, u: np.ndarray) -> None:
         cv.set_time(msg.header.stamp, ns)
@@ -299,8 +303,8 @@ def torques_codec(fingers: cv.Fingers) -> LoopCodec:
         msg.effort = effort
 
     return LoopCodec(TORQUE_COMMANDS, cv.JointState, lambda ns, u: cv.torques_to_msg(ns, u, names),
-                     lambda m: cv.msg_to_torques(m, names), (len(names), 2), cv.TORQUES_WHAT,
-                     refill=refill)
+                     lambda msg: cv.msg_to_torques(msg, names, m), (len(names), m),
+                     cv.TORQUES_WHAT, refill=refill)
 
 
 def clock_codec() -> LoopCodec:

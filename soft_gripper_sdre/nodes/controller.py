@@ -12,6 +12,16 @@ joint order of a ros2_control ``forward_command_controller``, ``effort_joints``)
 ``/diagnostics`` (solves, Riccati check failures, fallbacks, saturation, compute
 time, skipped estimates).
 
+**The finger's shape comes from the model.** The checkpoint's task dimension d (2: a planar tip,
+3: a 3-D tip, read from the estimates' and the plan's z) and number of inputs m make the messages:
+``torque_commands`` names ``<finger>/ax0`` … ``<finger>/ax<m−1>``. Each input k is bounded by
+``[input_lower[k], input_upper[k]]`` (one value per input, in the input's SI unit; a pneumatic
+chamber 0..p_max, a tendon 0..T_max); both empty bound each of the model's inputs by
+±``torque_limit``. Lists that do not give one value per input, or an empty interval, end the node
+at start-up naming the parameters. /diagnostics shows the shape, the bounds and, for a finger
+whose inputs cannot reach every direction (m < d), the largest part of the plan's acceleration
+no input can reach (``unreachable_max``, m/s²).
+
 Which estimate is answered, and when, is decided by
 :class:`~soft_gripper_sdre.control.command_gate.CommandGate`: each estimate is answered with the
 plan once one covers its stamp; when estimates stop the controller sends nothing (the simulator
@@ -91,12 +101,20 @@ from soft_gripper_sdre.nodes.topics import (
     TORQUE_COMMANDS,
 )
 from soft_gripper_sdre.nodes.tracking_step import TrackingStep
+from soft_gripper_sdre.sim.shape import HAND_SHAPE, InputBounds, ShapeError
+
+try:
+    from soft_gripper_sdre.control.tracking import shape_of
+except ImportError:        # a stand-in until control.tracking infers the shape of any model
+    def shape_of(model):
+        return getattr(model, 'shape', HAND_SHAPE)
 
 PARAMS = (
     Param('model_path', '', 'SDC model checkpoint (.pt); empty = the model shipped with the '
           'package', read_only=True),
     finger_names_param('the fingers controlled together: the joint names of state_estimate and '
-                       'grasp_reference; torque_commands names <finger>/ax0, <finger>/ax1'),
+                       'grasp_reference; torque_commands names <finger>/ax0 … <finger>/ax<m-1> '
+                       "(m: the model's inputs)"),
     Param('q_pos', DEFAULT_WEIGHTS['q_pos'], 'SDRE state weight on tip position, Q = diag(q_pos, '
           'q_pos, q_vel, q_vel) (paper: 2 in sim units = 800 SI); every law but pd and '
           'computed_torque', '1/m²', 0.0, 1e12),
@@ -105,7 +123,14 @@ PARAMS = (
     Param('r', DEFAULT_WEIGHTS['r'], 'SDRE input weight, R = diag(r, r) (paper: 0.1 in sim units = '
           '16000 SI)', '1/(N·m)²', 1e-12, 1e12),
     Param('torque_limit', 0.0625, 'saturation of each torque (0.0625 N·m = 25 sim units, the '
-          'stable range of the physics step)', 'N·m', 1e-6, 1.0, read_only=True),
+          'stable range of the physics step) when input_lower and input_upper are empty', 'N·m',
+          1e-6, 1.0, read_only=True),
+    Param('input_lower', '', "lower bound of each of the model's m inputs, as 'l0, l1, …' in "
+          "each input's SI unit (e.g. '0' for a pneumatic chamber or a tendon); '' with "
+          'input_upper \'\' = -torque_limit on each input', read_only=True),
+    Param('input_upper', '', "upper bound of each of the model's m inputs, as 'u0, u1, …' (each "
+          "above its lower bound); '' with input_lower '' = torque_limit on each input",
+          read_only=True),
     Param('torque_lowpass_hz', DEFAULT_LOWPASS_HZ, 'first-order roll-off of the torque command '
           '(keeps the loop out of the finger\'s ~59 Hz bending mode; 0 = off); its corner is '
           'capped at a tenth of the control rate, 0.1 / control_period (10 Hz at 10 ms)', 'Hz',
@@ -152,8 +177,8 @@ PARAMS = (
           'ros2_control forward_command_controller with the effort interface reads it '
           "(/<controller_name>/commands); '' = off", read_only=True),
     Param('effort_joints', cv.torque_names(FINGER_NAMES), 'effort_topic: for each joint of the '
-          "forward_command_controller, in the order of its 'joints' list, the torque that drives "
-          'it (<finger>/ax0 or <finger>/ax1); every torque once', read_only=True),
+          "forward_command_controller, in the order of its 'joints' list, the input that drives "
+          "it (<finger>/ax<k>, k below the model's inputs m); every input once", read_only=True),
 )
 
 
@@ -168,21 +193,27 @@ class ControllerNode(Node):
         self.p = p
         set_torch_threads(1)
         self.model = load_model(p['model_path'])
+        self.shape = shape_of(self.model)
+        #: the bounds the law was given (None: ±torque_limit, the law's own), and those in force
+        self.law_bounds = input_bounds(p, self.shape.m)
+        self.bounds = (InputBounds.symmetric(p['torque_limit'], self.shape.m)
+                       if self.law_bounds is None else self.law_bounds)
         self.names = tuple(p['finger_names'])
         self.n = len(self.names)
         self.effort_order = None            # index into u.ravel() of each effort_topic entry
         if p['effort_topic']:
             try:
-                self.effort_order = cv.effort_array_order(p['effort_joints'], self.names)
+                self.effort_order = cv.effort_array_order(p['effort_joints'], self.names,
+                                                          self.shape.m)
             except ValueError as exc:
                 raise ParameterError(f'parameter \'effort_joints\': {exc}') from None
         try:
-            self.tuning = LawTuning(self.model, self.n, p)
+            self.tuning = LawTuning(self.model, self.n, p, bounds=self.law_bounds)
         except ValueError as exc:
             raise ParameterError(f'law/state_weights/integral_gain/pd_kp/pd_kd: {exc}') from None
         on_runtime_change(self, PARAMS, validate=self.tuning.check, apply=self._apply)
         warm_up()       # compiled (or loaded from the cache) before any topic shows the node ready
-        self.step = TrackingStep(self.model, self.names)
+        self.step = TrackingStep(self.model, self.names, self.shape, self.law_bounds)
         self.done = False
         self.exit_code = 0
         self._open_topics(subscribe_estimates)
@@ -198,9 +229,9 @@ class ControllerNode(Node):
     def _open_topics(self, subscribe_estimates: bool) -> None:
         """The publishers and subscriptions; the per-period messages travel as CDR bytes read /
         written at fixed offsets (nodes/cdr.py)."""
-        self.cdr_estimate = cdr.estimate_codec(self.names)
-        self.cdr_cmd = cdr.torques_codec(self.names)
-        self.cdr_plan = PlanCodec(self.names)
+        self.cdr_estimate = cdr.estimate_codec(self.names, self.shape.d)
+        self.cdr_cmd = cdr.torques_codec(self.names, self.shape.m)
+        self.cdr_plan = PlanCodec(self.names, self.shape.d)
         self.pub_cmd = self.create_publisher(JointState, TORQUE_COMMANDS, LOOP_QOS)
         self.pub_effort = self._effort_msg = None
         if self.effort_order is not None:
@@ -220,6 +251,8 @@ class ControllerNode(Node):
         p, values = self.p, self.diag.values
         cdr.watch(self.diag, self.cdr_estimate, self.cdr_plan)
         values['model'] = str(self.model.path)
+        values['shape'] = str(self.shape)
+        values['input_bounds'] = str(self.bounds)
         values['law'] = p['law']
         values.update(self.tuning.shown())
         corner = roll_off_corner_hz(p['torque_lowpass_hz'], p['control_period'])
@@ -231,12 +264,15 @@ class ControllerNode(Node):
         p, model = self.p, self.model
         integral_note = (f'; integral gain {p["integral_gain"]:g}'
                          if self.tuning.uses('integral_gain') else '')
+        rest = ', '.join(f'{1e3 * v:.1f}' for v in model.rest_tip[:self.shape.d])
+        shape = '' if self.shape == HAND_SHAPE else f'{self.shape}; '
+        limit = (f'limit {p["torque_limit"]:g} N·m' if self.law_bounds is None
+                 else f'inputs {self.bounds}')
         self.get_logger().info(
-            f'model {model.path.name} (rest tip {1e3 * model.rest_tip[0]:.1f}, '
-            f'{1e3 * model.rest_tip[1]:.1f} mm'
+            f'model {model.path.name} ({shape}rest tip {rest} mm'
             f'{"; each finger at its own" if self.step.rest_shift is not None else ""}); '
             f'{self.diag.values["weights"]}; '
-            f'limit {p["torque_limit"]:g} N·m, rolled off at {self.diag.values["roll_off_hz"]} Hz; '
+            f'{limit}, rolled off at {self.diag.values["roll_off_hz"]} Hz; '
             f'{p["solver"]} solver; law {p["law"]}'
             f'{" with Q(x)" if p["state_weights"] else ""}{integral_note}; '
             f'fingers {", ".join(self.names)}'
@@ -261,7 +297,7 @@ class ControllerNode(Node):
         self._act(self.gate.on_estimate(stamp, x, time.monotonic()), STATE_ESTIMATE)
 
     def take_estimate(self, stamp: int, x: np.ndarray) -> None:
-        """The estimate (n, 4) stamped ``stamp`` [ns], handed over in-process by an estimator
+        """The estimate (n, 2d) stamped ``stamp`` [ns], handed over in-process by an estimator
         node of the same process and executor: answered as if it had come on the topic."""
         self._act(self.gate.on_estimate(stamp, x, time.monotonic()), STATE_ESTIMATE)
 
@@ -300,6 +336,8 @@ class ControllerNode(Node):
         command = self.step.command(self.tuning.law, stamp, x, plan)
         if command.replaced:
             self.diag.count('nonfinite_torque')
+        if command.clipped:
+            self.diag.count('clipped_command')
         u = command.u
         self.pub_cmd.publish(self.cdr_cmd.encode(stamp, u))
         if self.pub_effort is not None:  # the same efforts in the joint order of ros2_control
@@ -324,6 +362,39 @@ class ControllerNode(Node):
         if times is not None:
             self.diag.values['compute_us_mean'] = f'{times[0]:.0f}'
             self.diag.values['compute_us_max'] = f'{times[1]:.0f}'
+        unreachable = self.step.take_unreachable()
+        if unreachable is not None:
+            self.diag.values['unreachable_max'] = f'{unreachable:.3g}'
+
+
+def input_bounds(p: dict, m: int) -> InputBounds | None:
+    """The bounds of ``input_lower`` / ``input_upper`` for a finger of ``m`` inputs; None when
+    both are empty (±``torque_limit`` on each input).
+
+    Raises:
+        ParameterError: a list that is not numbers, one list empty and the other not, not one
+            value per input, or an empty interval (the message names the parameters).
+    """
+    lower, upper = (_numbers(p[name], name) for name in ('input_lower', 'input_upper'))
+    if lower is None and upper is None:
+        return None
+    if lower is None or upper is None:
+        raise ParameterError("parameters 'input_lower', 'input_upper': give both (one value per "
+                             "input) or neither (±torque_limit)")
+    try:
+        return InputBounds.parse(lower, upper, m, "parameters 'input_lower', 'input_upper'")
+    except ShapeError as exc:
+        raise ParameterError(str(exc)) from None
+
+
+def _numbers(text: str, name: str) -> list[float] | None:
+    """The numbers of a list parameter ('a, b, …'; '' = None)."""
+    if not text.strip():
+        return None
+    try:
+        return [float(v) for v in text.replace(',', ' ').split()]
+    except ValueError:
+        raise ParameterError(f'parameter {name!r}: {text!r} is not a list of numbers') from None
 
 
 def load_model(path: str) -> SDCModel:
@@ -375,8 +446,15 @@ def main(args=None) -> int:
     argv.remove(WITH_ESTIMATOR)
 
     def composed() -> tuple[Node, Node]:
-        return with_estimator(lambda: ControllerNode(subscribe_estimates=False),
-                              lambda controller: controller.take_estimate)
+        estimator, controller = with_estimator(lambda: ControllerNode(subscribe_estimates=False),
+                                               lambda controller: controller.take_estimate)
+        if estimator.d != controller.shape.d:
+            d = controller.shape.d
+            estimator.destroy_node()
+            controller.destroy_node()
+            raise ParameterError(f"parameter 'task_dim': the estimator filters {estimator.d}-D "
+                                 f'tips but the model is of {d}-D tips; give task_dim {d}')
+        return estimator, controller
     return run(composed, argv, composed_params(PARAMS))
 
 

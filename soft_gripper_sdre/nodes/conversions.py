@@ -75,7 +75,7 @@ def finger_names_problem(names: Sequence[str]) -> str | None:
     One rule for every node: the number of fingers is the number of names, 1 to
     :data:`MAX_FINGERS`; each name is a ROS name token (letters, digits, underscores, not
     starting with a digit), used as is in ``state_estimate`` / ``grasp_reference`` joint names
-    and as ``<name>/ax0``, ``<name>/ax1`` in ``torque_commands``; no name twice.
+    and as ``<name>/ax0`` … ``<name>/ax<m−1>`` in ``torque_commands``; no name twice.
     """
     names = list(names)
     if not 1 <= len(names) <= MAX_FINGERS:
@@ -89,14 +89,15 @@ def finger_names_problem(names: Sequence[str]) -> str | None:
     return None
 
 
-def torque_names(fingers: Fingers) -> list[str]:
-    """``<finger>/ax0``, ``<finger>/ax1`` for each finger, in the order of u.ravel()."""
-    return list(_torque_names(finger_names(fingers)))
+def torque_names(fingers: Fingers, m: int = 2) -> list[str]:
+    """``<finger>/ax0`` … ``<finger>/ax<m−1>`` for each finger (``m`` inputs each; the hand's 2),
+    in the order of u.ravel()."""
+    return list(_torque_names(finger_names(fingers), m))
 
 
 @functools.lru_cache(maxsize=None)
-def _torque_names(names: tuple[str, ...]) -> tuple[str, ...]:
-    return tuple(f'{name}/ax{a}' for name in names for a in range(2))
+def _torque_names(names: tuple[str, ...], m: int = 2) -> tuple[str, ...]:
+    return tuple(f'{name}/ax{a}' for name in names for a in range(m))
 
 
 def _order(names, expected, what: str) -> np.ndarray | slice:
@@ -139,7 +140,8 @@ TIPS_WHAT, TORQUES_WHAT, ESTIMATE_WHAT = 'tip_positions', 'torque_commands effor
 # -- tip positions (PoseArray) ---------------------------------------------------------------
 
 def tips_to_msg(ns: int, tips: np.ndarray, frame_id: str = 'finger_bases') -> PoseArray:
-    """(n, 3) tip positions [m] → PoseArray; pose i is finger i's tip in its own base frame."""
+    """(n, 3) tip positions [m] → PoseArray; pose i is finger i's tip in its own base frame
+    ((n, 2) planar tips: z = 0)."""
     msg = PoseArray()
     msg.header.frame_id = frame_id
     msg.poses = [Pose() for _ in range(len(tips))]
@@ -150,14 +152,17 @@ def tips_to_msg(ns: int, tips: np.ndarray, frame_id: str = 'finger_bases') -> Po
 def fill_tips(msg: PoseArray, ns: int, tips: np.ndarray) -> None:
     """Overwrite the stamp and the positions of a PoseArray from :func:`tips_to_msg` in place."""
     set_time(msg.header.stamp, ns)
-    for pose, (x, y, z) in zip(msg.poses, np.asarray(tips, dtype=float).tolist()):
+    tips = np.asarray(tips, dtype=float)
+    if tips.shape[-1] == 2:
+        tips = np.asarray(_pad3(tips))
+    for pose, (x, y, z) in zip(msg.poses, tips.tolist()):
         p = pose.position
         p.x, p.y, p.z = x, y, z
 
 
 def msg_to_tips(msg: PoseArray, fingers: Fingers) -> tuple[int, np.ndarray]:
     """PoseArray → (stamp ns, (n, 3) tips [m]); pose i is finger i's, any frame_id and
-    orientation."""
+    orientation. A finger of task dimension d uses the first d columns (z only when d = 3)."""
     n_fingers = len(finger_names(fingers))
     if len(msg.poses) != n_fingers:
         raise MessageError(f'tip_positions: expected {n_fingers} poses, got {len(msg.poses)}')
@@ -168,24 +173,27 @@ def msg_to_tips(msg: PoseArray, fingers: Fingers) -> tuple[int, np.ndarray]:
 # -- torque commands (JointState effort) -----------------------------------------------------
 
 def torques_to_msg(ns: int, u: np.ndarray, fingers: Fingers | None = None) -> JointState:
-    """(n, 2) torques [N·m] → JointState named <finger>/ax0|ax1 with efforts (``fingers``:
-    the names, default finger_0..)."""
+    """(n, m) inputs (torques [N·m], or each input's SI unit) → JointState named
+    ``<finger>/ax0`` … ``<finger>/ax<m−1>`` with efforts (``fingers``: the names, default
+    finger_0..)."""
     u = np.asarray(u, dtype=float)
     msg = JointState()
     set_time(msg.header.stamp, ns)
-    msg.name = list(_torque_names(finger_names(u.shape[0] if fingers is None else fingers)))
+    msg.name = list(_torque_names(finger_names(u.shape[0] if fingers is None else fingers),
+                                  u.shape[1]))
     msg.effort = u.ravel().tolist()
     return msg
 
 
-def msg_to_torques(msg: JointState, fingers: Fingers) -> tuple[int, np.ndarray]:
-    """JointState → (stamp ns, (n, 2) torques [N·m]), ordered by name whatever the message order."""
+def msg_to_torques(msg: JointState, fingers: Fingers, m: int = 2) -> tuple[int, np.ndarray]:
+    """JointState → (stamp ns, (n, m) efforts [N·m or the inputs' SI unit]) of fingers with
+    ``m`` inputs each, ordered by name whatever the message order."""
     names = finger_names(fingers)
     n_fingers = len(names)
     if len(msg.effort) != len(msg.name):
         raise MessageError(f'torque_commands: {len(msg.name)} names but {len(msg.effort)} efforts')
-    idx = _order(msg.name, _torque_names(names), 'torque_commands')
-    effort = np.asarray(msg.effort, dtype=float)[idx].reshape(n_fingers, 2)
+    idx = _order(msg.name, _torque_names(names, m), 'torque_commands')
+    effort = np.asarray(msg.effort, dtype=float)[idx].reshape(n_fingers, m)
     return from_time(msg.header.stamp), check_finite(effort, TORQUES_WHAT)
 
 
@@ -263,23 +271,31 @@ def estimate_to_msg(ns: int, pos: np.ndarray, vel: np.ndarray,
     return msg
 
 
-def msg_to_estimate(msg: MultiDOFJointTrajectory, fingers: Fingers) -> tuple[int, np.ndarray]:
-    """One-point MultiDOFJointTrajectory → (stamp ns, (n, 4) [X, Y, Ẋ, Ẏ]) in the order of
-    ``fingers``, whatever the message's joint order."""
+def msg_to_estimate(msg: MultiDOFJointTrajectory, fingers: Fingers,
+                    d: int = 2) -> tuple[int, np.ndarray]:
+    """One-point MultiDOFJointTrajectory → (stamp ns, (n, 2d) [p; ṗ]: [X, Y, Ẋ, Ẏ] for d = 2,
+    [X, Y, Z, Ẋ, Ẏ, Ż] for d = 3) in the order of ``fingers``, whatever the message's joint
+    order."""
     idx = _order(msg.joint_names, list(finger_names(fingers)), 'state_estimate')
     if len(msg.points) != 1:
         raise MessageError(f'state_estimate: expected 1 point, got {len(msg.points)}')
     pt = msg.points[0]
     if len(pt.transforms) != len(msg.joint_names) or len(pt.velocities) != len(msg.joint_names):
         raise MessageError('state_estimate: transforms/velocities do not match joint_names')
-    x = np.array([(tf.translation.x, tf.translation.y, tw.linear.x, tw.linear.y)
-                  for tf, tw in zip(pt.transforms, pt.velocities)], dtype=float)[idx]
+    if d == 2:
+        x = np.array([(tf.translation.x, tf.translation.y, tw.linear.x, tw.linear.y)
+                      for tf, tw in zip(pt.transforms, pt.velocities)], dtype=float)[idx]
+    else:
+        x = np.array([(tf.translation.x, tf.translation.y, tf.translation.z,
+                       tw.linear.x, tw.linear.y, tw.linear.z)
+                      for tf, tw in zip(pt.transforms, pt.velocities)], dtype=float)[idx]
     return from_time(msg.header.stamp), check_finite(x, ESTIMATE_WHAT)
 
 
 def reference_to_msg(ns: int, offsets_ns, pos, vel, acc,
                      fingers: Fingers | None = None) -> MultiDOFJointTrajectory:
-    """Horizon of h points (offsets from the stamp) × n fingers: pos, vel, acc (h, n, 2|3)."""
+    """Horizon of h points (offsets from the stamp) × n fingers: pos, vel, acc (h, n, 2|3)
+    (z = 0 for planar tips)."""
     msg = MultiDOFJointTrajectory()
     msg.header.stamp = to_time(ns)
     msg.joint_names = list(finger_names(np.asarray(pos).shape[1] if fingers is None else fingers))
@@ -288,9 +304,9 @@ def reference_to_msg(ns: int, offsets_ns, pos, vel, acc,
     return msg
 
 
-def msg_to_reference(msg: MultiDOFJointTrajectory, fingers: Fingers):
-    """Horizon message → (stamp ns, times ns (h,), pos, vel, acc (h, n, 2)), fingers in the order
-    of ``fingers``."""
+def msg_to_reference(msg: MultiDOFJointTrajectory, fingers: Fingers, d: int = 2):
+    """Horizon message → (stamp ns, times ns (h,), pos, vel, acc (h, n, d)), fingers in the order
+    of ``fingers``; d = 3 reads z too."""
     idx = _order(msg.joint_names, list(finger_names(fingers)), 'grasp_reference')
     if not msg.points:
         raise MessageError('grasp_reference: no points')
@@ -301,29 +317,34 @@ def msg_to_reference(msg: MultiDOFJointTrajectory, fingers: Fingers):
         if len(pt.transforms) != m or len(pt.velocities) != m or len(pt.accelerations) != m:
             raise MessageError('grasp_reference: a point does not hold one entry per finger')
         times.append(stamp + pt.time_from_start.sec * NS + pt.time_from_start.nanosec)
-        data.append([(tf.translation.x, tf.translation.y, tw.linear.x, tw.linear.y, ta.linear.x,
-                      ta.linear.y)
-                     for tf, tw, ta in zip(pt.transforms, pt.velocities, pt.accelerations)])
+        if d == 2:
+            data.append([(tf.translation.x, tf.translation.y, tw.linear.x, tw.linear.y,
+                          ta.linear.x, ta.linear.y)
+                         for tf, tw, ta in zip(pt.transforms, pt.velocities, pt.accelerations)])
+        else:
+            data.append([(tf.translation.x, tf.translation.y, tf.translation.z, tw.linear.x,
+                          tw.linear.y, tw.linear.z, ta.linear.x, ta.linear.y, ta.linear.z)
+                         for tf, tw, ta in zip(pt.transforms, pt.velocities, pt.accelerations)])
     times = np.asarray(times, dtype=np.int64)
     if np.any(np.diff(times) <= 0):
         raise MessageError('grasp_reference: point times are not increasing')
-    d = check_finite(np.asarray(data, dtype=float)[:, idx], 'grasp_reference')
-    return stamp, times, d[..., 0:2], d[..., 2:4], d[..., 4:6]
+    a = check_finite(np.asarray(data, dtype=float)[:, idx], 'grasp_reference')
+    return stamp, times, a[..., 0:d], a[..., d:2 * d], a[..., 2 * d:3 * d]
 
 
 # -- efforts for a ros2_control forward_command_controller (Float64MultiArray) ---------------
 
-def effort_array_order(joints: Sequence[str], fingers: Fingers) -> np.ndarray:
-    """Index into ``u.ravel()`` of the torque each of ``joints`` carries, in that order.
+def effort_array_order(joints: Sequence[str], fingers: Fingers, m: int = 2) -> np.ndarray:
+    """Index into ``u.ravel()`` of the input each of ``joints`` carries, in that order.
 
     ``joints`` names, for each joint of a ros2_control ``forward_command_controller`` (effort
-    interface) in the order of its ``joints`` list, the torque that drives it: ``<finger>/ax0`` or
-    ``<finger>/ax1``. Every torque of ``fingers`` appears exactly once.
+    interface) in the order of its ``joints`` list, the input that drives it: ``<finger>/ax<k>``,
+    k < ``m``. Every input of ``fingers`` appears exactly once.
 
     Raises:
         ValueError: an unknown or repeated torque name, or a torque left out.
     """
-    torques = _torque_names(finger_names(fingers))
+    torques = _torque_names(finger_names(fingers), m)
     joints = list(joints)
     unknown = [j for j in joints if j not in torques]
     if unknown:

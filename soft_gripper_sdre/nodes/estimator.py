@@ -2,7 +2,9 @@
 
 Subscribes ``tip_positions`` (keeping only the newest: after a busy moment it goes on from the
 present, predicting through what it skipped); publishes one ``state_estimate`` per accepted
-measurement, stamped with the measurement's stamp, and ``/diagnostics``. The rules are
+measurement, stamped with the measurement's stamp, and ``/diagnostics``. ``task_dim`` says how
+many coordinates of each tip are filtered: 2 (X, Y; the hand's planar tips, z ignored) or 3
+(X, Y, Z); the estimate is [p; ṗ] of that many axes per finger. The rules are
 :class:`~soft_gripper_sdre.control.tip_filter.TipFilter`'s, which the in-process loop
 (:func:`soft_gripper_sdre.analysis.closed_loop.run_closed_loop`) shares: the first measurement
 (after start or a reset) initialises the filter at the measured positions with zero velocity and
@@ -46,7 +48,7 @@ from rclpy.qos import ReliabilityPolicy
 from trajectory_msgs.msg import MultiDOFJointTrajectory
 
 from soft_gripper_sdre.control.compiled import warm_up
-from soft_gripper_sdre.control.kf import PROCESS_NOISE_MODELS, ConstantVelocityKF
+from soft_gripper_sdre.control.kf import PROCESS_NOISE_MODELS
 from soft_gripper_sdre.control.tip_filter import (
     MAX_BRIDGE,
     RESET_ON_JUMP,
@@ -54,6 +56,7 @@ from soft_gripper_sdre.control.tip_filter import (
     Notice,
     Outcome,
     TipFilter,
+    make_kf,
 )
 from soft_gripper_sdre.nodes import cdr
 from soft_gripper_sdre.nodes import conversions as cv
@@ -70,6 +73,9 @@ from soft_gripper_sdre.nodes.topics import LOOP_QOS, NEWEST_QOS, STATE_ESTIMATE,
 PARAMS = (
     finger_names_param('the fingers: pose i of tip_positions is finger i; the joint names of '
                        'state_estimate'),
+    Param('task_dim', 2, "coordinates of each tip the filter estimates: 2 (X, Y: a planar tip, "
+          "tip_positions' z ignored) or 3 (X, Y, Z: a 3-D tip); state_estimate then carries z",
+          '', 2, 3, read_only=True),
     Param('control_period', 0.001, 'nominal period of the tip measurements: a stamp step over 1.5 '
           'periods is a gap (each KF step\'s Δt is the stamp difference)', 's', 1e-4, 0.05,
           read_only=True),
@@ -102,9 +108,10 @@ class EstimatorNode(Node):
         self.p = p
         self.names = tuple(p['finger_names'])
         self.n = len(self.names)
+        self.d = int(p['task_dim'])
         try:
-            self.kf = ConstantVelocityKF(p['control_period'], p['accel_psd'], p['meas_std'],
-                                         n=self.n, process_noise=p['process_noise'])
+            self.kf = make_kf(p['control_period'], p['accel_psd'], p['meas_std'], self.n,
+                              p['process_noise'], self.d)
         except ValueError as exc:
             raise ParameterError(str(exc)) from None
         warm_up()       # compiled (or loaded from the cache) before any topic shows the node ready
@@ -114,7 +121,7 @@ class EstimatorNode(Node):
         self.listeners: list[Callable[[int, np.ndarray], None]] = []
         # both messages travel as CDR bytes read / written at fixed offsets (nodes/cdr.py)
         self.cdr_tips = cdr.tips_codec(self.names)
-        self.cdr_estimate = cdr.estimate_codec(self.names)
+        self.cdr_estimate = cdr.estimate_codec(self.names, self.d)
 
         self.pub = self.create_publisher(MultiDOFJointTrajectory, STATE_ESTIMATE, LOOP_QOS)
         tips_qos = copy.copy(NEWEST_QOS)
@@ -127,9 +134,10 @@ class EstimatorNode(Node):
         on_runtime_change(self, PARAMS, apply=self._apply)
         cdr.watch(self.diag, self.cdr_tips)
         self.diag.values['process_noise'] = p['process_noise']
+        self.diag.values['task_dim'] = str(self.d)
         self.diag.before_publish.append(self._stamp_stats)
         self.get_logger().info(
-            f'{self.n} fingers ({", ".join(self.names)}), '
+            f'{self.n} fingers ({", ".join(self.names)}), {self.d}-D tips, '
             f'nominal period {1e3 * p["control_period"]:g} ms, q = {p["accel_psd"]:g} '
             f'(m/s²)²/Hz, σ = {1e3 * p["meas_std"]:g} mm, {p["process_noise"]} process noise')
 
@@ -156,7 +164,7 @@ class EstimatorNode(Node):
         except cv.MessageError as exc:
             self.diag.problem('bad_message', f'rejected: {exc}')
             return
-        self._act(stamp, self.filter.on_tips(stamp, tips[:, :2]))
+        self._act(stamp, self.filter.on_tips(stamp, tips[:, :self.d]))
 
     def _act(self, stamp: int, outcome: Outcome) -> None:
         """Report the filter's notices, then publish its estimate or refuse the message."""

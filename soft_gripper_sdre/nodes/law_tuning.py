@@ -30,14 +30,16 @@ class LawTuning:
         model: the learned SDC model every law is built on.
         n_fingers: the fingers controlled together.
         params: the node's parameters (at least :data:`LAW_PARAMS`).
+        bounds: the bounds of each of the model's inputs; None = ±``torque_limit`` on each.
 
     Raises:
         ValueError: a value the law refuses (the message names it).
     """
 
-    def __init__(self, model, n_fingers: int, params: dict) -> None:
+    def __init__(self, model, n_fingers: int, params: dict, bounds=None) -> None:
         self.model = model
         self.n = n_fingers
+        self.bounds = bounds
         self.params = {name: params[name] for name in LAW_PARAMS}
         self.law: Law = self.build(self.params)
         self._retuned: Law | None = None    # the law built by an accepted runtime change
@@ -63,7 +65,7 @@ class LawTuning:
         return make_law(p['law'], self.model, Weights(p['q_pos'], p['q_vel'], p['r']),
                         p['torque_limit'], n_fingers=self.n, method=p['solver'],
                         lowpass_hz=p['torque_lowpass_hz'], dt=p['control_period'],
-                        adaptive=p['state_weights'], **extra)
+                        adaptive=p['state_weights'], bounds=self.bounds, **extra)
 
     def uses(self, name: str) -> bool:
         """Whether the law in use reads the tunable parameter ``name``."""

@@ -38,8 +38,9 @@ def _pad(offset: int, align: int) -> int:
 
 
 class PlanCodec:
-    """A plan of the fingers ``fingers`` (names, or a count for finger_0..) ↔ CDR bytes of its
-    MultiDOFJointTrajectory (module doc).
+    """A plan of the fingers ``fingers`` (names, or a count for finger_0..) with tips of task
+    dimension ``d`` (2: X, Y with z = 0; 3: X, Y, Z) ↔ CDR bytes of its MultiDOFJointTrajectory
+    (module doc).
 
     ``fallbacks`` counts the messages read the slow way.
 
@@ -47,9 +48,12 @@ class PlanCodec:
         ValueError: at construction, if the self-check against rclpy's serialization fails.
     """
 
-    def __init__(self, fingers: cv.Fingers) -> None:
+    def __init__(self, fingers: cv.Fingers, d: int = 2) -> None:
         self.names = list(cv.finger_names(fingers))
         self.n = len(self.names)
+        if d not in (2, 3):
+            raise ValueError(f'{GRASP_REFERENCE}: the task dimension must be 2 or 3, got {d!r}')
+        self.d = d
         self.fallbacks = 0
         prefix, padding = bytearray(), []   # frame_id '' and the joint names, after the stamp
         fields = [_U32.pack(1) + b'\x00', _U32.pack(len(self.names))]
@@ -93,7 +97,7 @@ class PlanCodec:
 
     # -- reading -----------------------------------------------------------------------------
     def decode(self, data: bytes) -> tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """(stamp ns, times ns (h,), pos, vel, acc (h, n, 2)) of serialized ``data``.
+        """(stamp ns, times ns (h,), pos, vel, acc (h, n, d)) of serialized ``data``.
 
         Raises:
             conversions.MessageError: as
@@ -108,14 +112,15 @@ class PlanCodec:
             except Exception:      # rclpy's RMWError: not CDR of this type
                 raise cv.MessageError(f'{WHAT}: {len(data)} bytes that do not deserialize as '
                                       'MultiDOFJointTrajectory') from None
-            return cv.msg_to_reference(msg, self.names)
+            return cv.msg_to_reference(msg, self.names, self.d)
         stamp, times, transforms, velocities, accelerations = fast
         if np.any(np.diff(times) <= 0):
             raise cv.MessageError(f'{WHAT}: point times are not increasing')
-        data_xy = np.concatenate([transforms[..., :2], velocities[..., :2],
-                                  accelerations[..., :2]], axis=2)
-        cv.check_finite(data_xy, WHAT)
-        return stamp, times, data_xy[..., 0:2], data_xy[..., 2:4], data_xy[..., 4:6]
+        d = self.d
+        values = np.concatenate([transforms[..., :d], velocities[..., :d],
+                                 accelerations[..., :d]], axis=2)
+        cv.check_finite(values, WHAT)
+        return stamp, times, values[..., 0:d], values[..., d:2 * d], values[..., 2 * d:3 * d]
 
     def _read(self, data: bytes):
         """The stamp, point times and (h, n, words) blocks of ``data``, or None when it is not a
@@ -164,13 +169,13 @@ class PlanCodec:
         """Our bytes are rclpy's message and our reading of rclpy's bytes is the slow one."""
         rng = np.random.default_rng(0)
         offsets = np.array([0, 5_000_000, 1_000_000_123], dtype=np.int64)
-        pos, vel, acc = (rng.standard_normal((3, self.n, 2)) for _ in range(3))
+        pos, vel, acc = (rng.standard_normal((3, self.n, self.d)) for _ in range(3))
         ns = 7 * cv.NS + 123
         msg = cv.reference_to_msg(ns, offsets, pos, vel, acc, self.names)
         ours = self.encode(ns, offsets, pos, vel, acc)
         theirs = serialize_message(msg)
         read = self._read(theirs)
-        slow = cv.msg_to_reference(msg, self.names)
+        slow = cv.msg_to_reference(msg, self.names, self.d)
         if (deserialize_message(ours, cv.MultiDOFJointTrajectory) != msg or read is None
                 or self._read(ours) is None
                 or not all(np.array_equal(a, b) for a, b in zip(self.decode(theirs), slow))):

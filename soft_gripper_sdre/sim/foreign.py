@@ -22,12 +22,14 @@ moments μⱼ = mⱼcⱼ + (Σ_{k>j} mₖ + m_t) lⱼ, in absolute angles the ch
 where τᵢ is the torque at joint i (τₙ = 0); in joint coordinates the mass matrix is
 M_q = Sᵀ D S. The joint torques are
 
-    τ = Bᵀ u − k ∘ (q − q_r) − k₃ ∘ (q − q_r)³ − c ∘ q̇ − σ ∘ z,     u = clip(u, ±torque_limit),
+    τ = Bᵀ a − k ∘ (q − q_r) − k₃ ∘ (q − q_r)³ − c ∘ q̇ − σ ∘ z,     u = clip(u, [u_lo, u_hi]),
 
-with B ∈ R^{2×n} the transmission (tendon moment arm over the actuator's pulley radius: both
-actuators reach every joint), q_r the spring rest angles, k and k₃ linear and hardening
-stiffness, c viscous damping. Coulomb friction of level F_c is the smooth Dahl model, one
-bristle deflection zᵢ per joint:
+with B ∈ R^{m×n} the transmission (a tendon's moment arm over the actuator's pulley radius, or a
+chamber's torque per pascal at each joint: every actuator reaches every joint), q_r the spring
+rest angles, k and k₃ linear and hardening stiffness, c viscous damping. The delivered input a
+is the clipped command u, or with an actuator lag τ_a > 0 (``input_lag``) follows it,
+ȧ = (u − a) / τ_a, a state of its own (a chamber's pressure behind its valve). Coulomb
+friction of level F_c is the smooth Dahl model, one bristle deflection zᵢ per joint:
 
     ż = q̇ − v(q̇) σ z / F_c,     v(q̇) = v_s tanh(|q̇| / v_s) ≈ |q̇| below v_s,
 
@@ -39,12 +41,14 @@ sub-microsecond steps.) The energy
 
     E = ½ q̇ᵀ M_q q̇ − g Σ mᵢ x_cᵢ − g m_t x_tip + Σ (½ kᵢΔqᵢ² + ¼ k₃ᵢΔqᵢ⁴ + ½ σᵢ zᵢ²)
 
-obeys dE/dt = uᵀB q̇ − Σ cᵢq̇ᵢ² − Σ σᵢ² zᵢ² v(q̇ᵢ) / F_cᵢ, so it only falls without input.
-The state (q, q̇, z) is integrated by fixed-step RK4 with the plant's own ``substep``, fine
-against its fastest linearised mode and its bristle relaxation rate σ v(q̇) / F_c.
+obeys dE/dt = aᵀB q̇ − Σ cᵢq̇ᵢ² − Σ σᵢ² zᵢ² v(q̇ᵢ) / F_cᵢ, so it only falls without input.
+The state (q, q̇, z), with a lag also a, is integrated by fixed-step RK4 with the plant's own
+``substep``, fine against its fastest linearised mode and its bristle relaxation rate
+σ v(q̇) / F_c.
 
 The parameters and the presets (two grippers of two fingers each) are in
-:mod:`soft_gripper_sdre.sim.foreign_params`; the state derivative the RK4 steps evaluate is
+:mod:`soft_gripper_sdre.sim.foreign_params`, the one-chamber pneumatic fingers in
+:mod:`soft_gripper_sdre.sim.foreign_pneumatic`; the state derivative the RK4 steps evaluate is
 :mod:`soft_gripper_sdre.sim.foreign_dynamics`'s.
 """
 from __future__ import annotations
@@ -60,23 +64,27 @@ from soft_gripper_sdre.sim.foreign_params import PAIRS, PLANTS, FingerParams
 
 @dataclass
 class FingerState:
-    """Joint angles q [rad], rates q̇ [rad/s], Dahl bristle deflections z [rad], time t [s]."""
+    """Joint angles q [rad], rates q̇ [rad/s], Dahl bristle deflections z [rad], time t [s], and
+    with an actuator lag the delivered inputs a (m,) [input unit] (None: no lag)."""
 
     q: np.ndarray
     qd: np.ndarray
     z: np.ndarray
     t: float = 0.0
+    a: np.ndarray | None = None
 
     def copy(self) -> 'FingerState':
-        return FingerState(self.q.copy(), self.qd.copy(), self.z.copy(), self.t)
+        return FingerState(self.q.copy(), self.qd.copy(), self.z.copy(), self.t,
+                           None if self.a is None else self.a.copy())
 
 
 class FingerPlant:
     """One planar finger (module doc), stepped in real or simulated time.
 
-    ``reset()`` puts it at rest: the static equilibrium under gravity and springs at u = 0, no
-    friction load. ``step(u, dt)`` advances ``dt`` seconds at the held input ``u`` (2,) [N·m];
-    ``tip()`` is the tip (x, y) [m] in the base frame.
+    ``reset()`` puts it at rest: the static equilibrium under gravity and springs at the rest
+    input (each input's value nearest 0), no friction load. ``step(u, dt)`` advances ``dt``
+    seconds at the held input ``u`` (m,) [input unit]; ``tip()`` is the tip (x, y) [m] in the
+    base frame. ``shape`` (d = 2, m) and ``bounds`` are the parameters'.
     """
 
     def __init__(self, params: FingerParams) -> None:
@@ -87,7 +95,12 @@ class FingerPlant:
         self.dynamics = ChainDynamics(p)
         #: the state's time derivative: written out for two and three joints, general otherwise
         self.derivative = self.dynamics.derivative
-        self._b = np.array(p.transmission, dtype=float)        # (2, n)
+        self._b = np.array(p.transmission, dtype=float)        # (m, n)
+        #: the finger's shape (a planar tip, m inputs) and its inputs' bounds
+        self.shape = p.shape
+        self.bounds = p.bounds
+        self.m = p.m
+        self._lo, self._hi = self.bounds.lower, self.bounds.upper
         self.state = FingerState(np.zeros(n), np.zeros(n), np.zeros(n))
         self.rest_q = self.equilibrium()
         self.rest_tip = self.tip_of(self.rest_q)
@@ -125,15 +138,16 @@ class FingerPlant:
         hess = s.T @ np.diag(gmu * np.cos(theta)) @ s + np.diag(k + 3 * k3 * dq ** 2)
         return grad, hess
 
-    def equilibrium(self, u=(0.0, 0.0)) -> np.ndarray:
-        """Joint angles where gravity, springs and the held input ``u`` balance, without friction:
-        Newton's method on ∂V/∂q = Bᵀu from the springs' rest angles.
+    def equilibrium(self, u=None) -> np.ndarray:
+        """Joint angles where gravity, springs and the held input ``u`` (m,) (default: the rest
+        input) balance, without friction: Newton's method on ∂V/∂q = Bᵀu from the springs' rest
+        angles.
 
         Raises:
             RuntimeError: Newton's method did not converge.
         """
-        tau = self._b.T @ np.clip(np.asarray(u, dtype=float), -self.params.torque_limit,
-                                  self.params.torque_limit)
+        u = self.bounds.rest if u is None else np.asarray(u, dtype=float)
+        tau = self._b.T @ np.clip(u, self._lo, self._hi)
         q = np.asarray(self.params.rest_angles, dtype=float).copy()
         for _ in range(100):
             grad, hess = self._potential_gradient(q, tau)
@@ -170,14 +184,17 @@ class FingerPlant:
         return omega / (2 * np.pi), zeta
 
     def static_gain(self) -> np.ndarray:
-        """∂tip/∂u (2, 2) [m/(N·m)] at rest, frictionless: J K_q⁻¹ Bᵀ; column j is input j's."""
+        """∂tip/∂u (2, m) [m per input unit] at rest, frictionless: J K_q⁻¹ Bᵀ; column j is
+        input j's."""
         _, hess = self._potential_gradient(self.rest_q, np.zeros(self.n))
         return self.tip_jacobian(self.rest_q) @ np.linalg.solve(hess, self._b.T)
 
     # -- state and energy ------------------------------------------------------------------
     def reset(self) -> None:
-        """At rest: the equilibrium under gravity and springs, at rest, no bristle load, t = 0."""
-        self.state = FingerState(self.rest_q.copy(), np.zeros(self.n), np.zeros(self.n))
+        """At rest: the equilibrium under gravity and springs, at rest, no bristle load, t = 0
+        (with an actuator lag: delivering the rest input)."""
+        self.state = FingerState(self.rest_q.copy(), np.zeros(self.n), np.zeros(self.n),
+                                 a=self.bounds.rest.copy() if self.params.input_lag > 0 else None)
 
     def energy(self) -> float:
         """E [J] of the module doc (kinetic, gravity, springs, bristles), zero-referenced at
@@ -194,21 +211,27 @@ class FingerPlant:
 
     # -- stepping --------------------------------------------------------------------------
     def step(self, u, dt: float) -> None:
-        """Advance ``dt`` [s] with the input ``u`` (2,) [N·m] held (clipped to ±torque_limit),
-        in RK4 steps of at most ``substep``.
+        """Advance ``dt`` [s] with the input ``u`` (m,) held (clipped to the bounds), in RK4
+        steps of at most ``substep``.
 
         Raises:
-            ValueError: ``u`` is not two finite numbers, or ``dt`` is negative or not finite.
+            ValueError: ``u`` is not m finite numbers, or ``dt`` is negative or not finite.
         """
         u = np.asarray(u, dtype=float)
-        if u.shape != (2,) or not np.all(np.isfinite(u)):
-            raise ValueError(f'u must be two finite torques [N·m], got {u!r}')
+        if u.shape != (self.m,) or not np.all(np.isfinite(u)):
+            what = 'two finite torques [N·m]' if self.m == 2 else f'{self.m} finite input(s)'
+            raise ValueError(f'u must be {what}, got {u!r}')
         if not (math.isfinite(dt) and dt >= 0):
             raise ValueError(f'dt must be a finite duration >= 0 s, got {dt!r}')
         if dt == 0:
             return
+        if self.params.input_lag > 0:
+            self._step_lagged(np.clip(u, self._lo, self._hi), dt)
+            return
         lim = self.params.torque_limit
-        tau_in = (self._b.T @ np.clip(u, -lim, lim)).tolist()
+        u = np.clip(u, -lim, lim) if self.params.lower_limits is None else np.clip(
+            u, self._lo, self._hi)
+        tau_in = (self._b.T @ u).tolist()
         steps = max(1, math.ceil(dt / self.params.substep - 1e-9))
         h = dt / steps
         st = self.state
@@ -225,17 +248,46 @@ class FingerPlant:
         self.state = FingerState(np.array(x[:n]), np.array(x[n:2 * n]), np.array(x[2 * n:]),
                                  st.t + dt)
 
+    def _step_lagged(self, u: np.ndarray, dt: float) -> None:
+        """:meth:`step` with the actuator lag: RK4 on [q, q̇, z, a] with ȧ = (u − a) / τ_a."""
+        steps = max(1, math.ceil(dt / self.params.substep - 1e-9))
+        h = dt / steps
+        st = self.state
+        n3, rate = 3 * self.n, 1.0 / self.params.input_lag
+        bt = self._b.T.tolist()                 # (n, m)
+        target = u.tolist()
+        f = self.derivative
+
+        def g(x):
+            a = x[n3:]
+            tau = [sum(b * ak for b, ak in zip(row, a)) for row in bt]
+            return f(x[:n3], tau) + [rate * (c - ak) for c, ak in zip(target, a)]
+
+        x = st.q.tolist() + st.qd.tolist() + st.z.tolist() + st.a.tolist()
+        for _ in range(steps):
+            k1 = g(x)
+            k2 = g([a + 0.5 * h * b for a, b in zip(x, k1)])
+            k3 = g([a + 0.5 * h * b for a, b in zip(x, k2)])
+            k4 = g([a + h * b for a, b in zip(x, k3)])
+            x = [a + h / 6 * (b1 + 2 * b2 + 2 * b3 + b4)
+                 for a, b1, b2, b3, b4 in zip(x, k1, k2, k3, k4)]
+        n = self.n
+        self.state = FingerState(np.array(x[:n]), np.array(x[n:2 * n]), np.array(x[2 * n:n3]),
+                                 st.t + dt, np.array(x[n3:]))
+
 
 def plant_pair(kind: str) -> tuple[FingerPlant, FingerPlant]:
     """The two fingers of a gripper, at rest: ``'tendon3'`` → (index, thumb), ``'stiff2'`` →
-    (a, b).
+    (a, b); and the grippers of :mod:`soft_gripper_sdre.sim.foreign_presets` (``pneumatic1``,
+    ``trunk3``).
 
     Raises:
         ValueError: an unknown kind.
     """
-    if kind not in PAIRS:
-        raise ValueError(f'unknown plant kind {kind!r}: expected one of {", ".join(PAIRS)}')
-    return tuple(FingerPlant(PLANTS[name]()) for name in PAIRS[kind])
+    if kind in PAIRS:
+        return tuple(FingerPlant(PLANTS[name]()) for name in PAIRS[kind])
+    from soft_gripper_sdre.sim import foreign_presets  # it builds on this module
+    return foreign_presets.plant_pair(kind)
 
 
 def input_angle(gain: np.ndarray) -> float:

@@ -39,14 +39,24 @@ v(q̇) = v_s tanh(|q̇|/v_s) bounds the bristles' relaxation rate σv/F_c, which
 from __future__ import annotations
 
 from dataclasses import dataclass
+import math
 from typing import Callable
+
+from soft_gripper_sdre.sim.shape import MAX_INPUTS, FingerShape, InputBounds
 
 GRAVITY = 9.81
 
 
 @dataclass(frozen=True)
 class FingerParams:
-    """A planar serial-link finger; per-joint tuples have one entry per joint (SI units)."""
+    """A planar serial-link finger; per-joint tuples have one entry per joint (SI units).
+
+    The m inputs (1 to 4, the rows of ``transmission``) are in the actuator's unit: torques
+    [N·m] for a tendon motor, pressures [Pa] for a chamber (B then in N·m/Pa). Input k is
+    clipped to [``lower_limits[k]``, ``torque_limit``], or to ±``torque_limit`` without
+    ``lower_limits``. With ``input_lag`` > 0 the delivered input follows the commanded one
+    through a first-order lag of that time constant (a chamber's pressure, a motor's current).
+    """
 
     name: str
     lengths: tuple[float, ...]           # m
@@ -59,10 +69,12 @@ class FingerParams:
     coulomb: tuple[float, ...]           # N·m, F_c (0 = no friction at that joint)
     presliding: tuple[float, ...]        # N·m/rad, σ, the Dahl bristle stiffness
     friction_speed: float                # rad/s, v_s: friction turns viscous above it
-    transmission: tuple[tuple[float, ...], tuple[float, ...]]   # B, 2 × n, dimensionless
-    torque_limit: float                  # N·m, |u| is clipped to it
+    transmission: tuple[tuple[float, ...], ...]   # B, m × n: joint torque per unit input
+    torque_limit: float                  # input unit (N·m, Pa), each input's upper bound
     substep: float                       # s, the RK4 step
     gravity: float = GRAVITY             # m/s², along +X
+    lower_limits: tuple[float, ...] | None = None   # per input; None: −torque_limit
+    input_lag: float = 0.0               # s, first-order lag of the delivered input (0: none)
 
     def __post_init__(self) -> None:
         n = len(self.lengths)
@@ -72,8 +84,20 @@ class FingerParams:
             if len(getattr(self, name)) != n:
                 raise ValueError(f'{self.name}: {name} has {len(getattr(self, name))} entries, '
                                  f'expected one per joint ({n})')
-        if len(self.transmission) != 2 or any(len(row) != n for row in self.transmission):
-            raise ValueError(f'{self.name}: transmission must be 2 × {n}')
+        m = len(self.transmission)
+        if not 1 <= m <= MAX_INPUTS or any(len(row) != n for row in self.transmission):
+            raise ValueError(f'{self.name}: transmission must be m × {n} with m = 1 to '
+                             f'{MAX_INPUTS} inputs')
+        if self.lower_limits is not None and (
+                len(self.lower_limits) != m
+                or not all(math.isfinite(v) and v < self.torque_limit for v in self.lower_limits)):
+            raise ValueError(f'{self.name}: lower_limits must hold one finite bound per input '
+                             f'({m}), each below torque_limit')
+        if not (math.isfinite(self.input_lag) and self.input_lag >= 0):
+            raise ValueError(f'{self.name}: input_lag must be finite and >= 0 s')
+        if 0 < self.input_lag < 4 * self.substep:
+            raise ValueError(f'{self.name}: input_lag {self.input_lag} s is too short for RK4 '
+                             f'steps of {self.substep} s (keep it >= 4 substeps)')
         if min(self.lengths) <= 0 or min(self.masses) <= 0 or self.tip_mass < 0:
             raise ValueError(f'{self.name}: lengths and masses must be positive')
         if min(self.stiffness) <= 0 or min(self.damping) < 0 or min(self.hardening) < 0:
@@ -93,6 +117,23 @@ class FingerParams:
     @property
     def n(self) -> int:
         return len(self.lengths)
+
+    @property
+    def m(self) -> int:
+        """The number of inputs (rows of the transmission)."""
+        return len(self.transmission)
+
+    @property
+    def shape(self) -> FingerShape:
+        """A planar tip (d = 2) and m inputs."""
+        return FingerShape(2, self.m)
+
+    @property
+    def bounds(self) -> InputBounds:
+        """Each input's interval: [lower_limits, torque_limit], or ±torque_limit."""
+        if self.lower_limits is None:
+            return InputBounds.symmetric(self.torque_limit, self.m)
+        return InputBounds(self.lower_limits, (self.torque_limit,) * self.m)
 
 
 # -- the presets -----------------------------------------------------------------------------

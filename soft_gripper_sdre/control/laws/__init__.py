@@ -23,6 +23,14 @@ roll-off, so a comparison differs only in the law:
   u = G₂(x)⁻¹(a_d − A₂(x)x − k_p e − k_d ė) (:class:`ComputedTorqueLaw`;
   ``pd_gains=dict(kp=…, kd=…)``): ``sdre_ff`` without the Riccati equation.
 
+Every law but the Koopman baselines works for any finger shape (d, m) the model has
+(:func:`~soft_gripper_sdre.control.tracking.shape_of`) and clips to per-input ``bounds``
+(:class:`~soft_gripper_sdre.sim.shape.InputBounds`; None = ±``u_max`` on each input). The hand's
+shape with ±u_max bounds runs the hand's code (the compiled kernels with ``method='fast'``), any
+other the general numpy/scipy code: the one rule is
+:func:`~soft_gripper_sdre.control.tracking.hand_path`. The Koopman baselines are the hand's and
+refuse another shape or bounds.
+
 The oracle laws (``oracle``, ``oracle_exact``, ``oracle_ff``: the SDRE on the simulator's true
 dynamics) are evaluation yardsticks that need the plant's ground truth; they live in
 :mod:`soft_gripper_sdre.analysis.oracle`, whose ``register_oracle_laws()`` adds them to this
@@ -39,8 +47,16 @@ from soft_gripper_sdre.control.laws.feedforward import FF_AT, SdreFeedforwardLaw
 from soft_gripper_sdre.control.laws.fixed import DEFAULT_PD, LqrLaw, PdLaw
 from soft_gripper_sdre.control.laws.integral import DEFAULT_INTEGRAL, IntegralAction
 from soft_gripper_sdre.control.laws.koopman import KoopmanLqrLaw, KoopmanMpcLaw
-from soft_gripper_sdre.control.tracking import DEFAULT_LOWPASS_HZ, Law, Weights
+from soft_gripper_sdre.control.tracking import (
+    DEFAULT_LOWPASS_HZ,
+    Law,
+    Weights,
+    hand_path,
+    law_bounds,
+    shape_of,
+)
 from soft_gripper_sdre.learning.koopman import KoopmanFileError, KoopmanModel
+from soft_gripper_sdre.sim.shape import HAND_SHAPE, InputBounds, ShapeError
 
 __all__ = ['AdaptiveSdreLaw', 'ComputedTorqueLaw', 'DEFAULT_CT', 'DEFAULT_INTEGRAL', 'DEFAULT_LAW',
            'DEFAULT_PD', 'FF_AT', 'GRAPH_LAWS', 'IntegralAction', 'KoopmanLqrLaw', 'KoopmanMpcLaw',
@@ -61,11 +77,12 @@ class LawSettings:
 
     model: object                 # the learned SDC model (AG, rest_tip, optionally sdc_blocks)
     weights: Weights
-    u_max: float                  # torque saturation [N·m]
+    u_max: float                  # torque saturation [N·m] where bounds is None
     n_fingers: int = 4
     method: str = 'fast'          # the SDRE solver: 'fast' or 'reference'
     lowpass_hz: float = DEFAULT_LOWPASS_HZ
     dt: float = 1e-3              # control period [s]
+    bounds: InputBounds | None = None   # per-input [lower, upper]; None: ±u_max on each input
 
 
 class LawEntry(NamedTuple):
@@ -78,7 +95,7 @@ class LawEntry(NamedTuple):
 def _sdre(s: LawSettings, adaptive: bool = False) -> Law:
     law = AdaptiveSdreLaw if adaptive else SdreLaw
     return law(s.model, s.weights, s.u_max, n_fingers=s.n_fingers, method=s.method,
-               lowpass_hz=s.lowpass_hz, dt=s.dt)
+               lowpass_hz=s.lowpass_hz, dt=s.dt, bounds=s.bounds)
 
 
 def _sdre_ff(s: LawSettings, ff_at: str = 'x', integral_gain: float | None = None,
@@ -87,28 +104,37 @@ def _sdre_ff(s: LawSettings, ff_at: str = 'x', integral_gain: float | None = Non
     band = DEFAULT_INTEGRAL['band'] if integral_band is None else integral_band
     return SdreFeedforwardLaw(s.model, s.weights, s.u_max, n_fingers=s.n_fingers, method=s.method,
                               lowpass_hz=s.lowpass_hz, dt=s.dt, ff_at=ff_at, integral_gain=gain,
-                              integral_band=band)
+                              integral_band=band, bounds=s.bounds)
 
 
 def _lqr(s: LawSettings) -> Law:
     return LqrLaw(s.model, s.weights, s.u_max, n_fingers=s.n_fingers, lowpass_hz=s.lowpass_hz,
-                  dt=s.dt)
+                  dt=s.dt, bounds=s.bounds)
 
 
 def _pd(s: LawSettings, pd_gains: dict | None = None, feedforward: bool = False) -> Law:
     return PdLaw(s.model, s.u_max, n_fingers=s.n_fingers, lowpass_hz=s.lowpass_hz, dt=s.dt,
-                 feedforward=feedforward, **(pd_gains or DEFAULT_PD))
+                 feedforward=feedforward, bounds=s.bounds, **(pd_gains or DEFAULT_PD))
 
 
 def _koopman(s: LawSettings, law=KoopmanMpcLaw, koopman_path=None) -> Law:
+    shape = shape_of(s.model)
+    if not hand_path(shape, law_bounds(shape, s.u_max, s.bounds)):
+        raise ShapeError(f'the Koopman laws are the hand\'s ({HAND_SHAPE}, bounds ±u_max on both '
+                         f'inputs); this model has {shape}'
+                         + ('' if s.bounds is None else f' and bounds {s.bounds}'))
     try:
         koopman = KoopmanModel.load(koopman_path)
     except KoopmanFileError as exc:
         raise ValueError(f'koopman_path: {exc}') from None
-    return law(koopman, s.weights, s.u_max, n_fingers=s.n_fingers, lowpass_hz=s.lowpass_hz, dt=s.dt)
+    u_max = s.u_max if s.bounds is None else s.bounds.symmetric_limit
+    return law(koopman, s.weights, u_max, n_fingers=s.n_fingers, lowpass_hz=s.lowpass_hz, dt=s.dt)
+
+
 def _computed_torque(s: LawSettings, pd_gains: dict | None = None) -> Law:
     return ComputedTorqueLaw(s.model, s.u_max, n_fingers=s.n_fingers, lowpass_hz=s.lowpass_hz,
-                             dt=s.dt, method=s.method, **(pd_gains or DEFAULT_CT))
+                             dt=s.dt, method=s.method, bounds=s.bounds,
+                             **(pd_gains or DEFAULT_CT))
 
 
 #: what the options of the laws below mean (for error messages)
@@ -171,14 +197,18 @@ def register_law(name: str, build: Callable[..., Law], options: tuple[str, ...] 
 
 def make_law(name: str, model, weights: Weights, u_max: float, n_fingers: int = 4,
              method: str = 'fast', lowpass_hz: float = DEFAULT_LOWPASS_HZ, dt: float = 1e-3,
-             **options) -> Law:
+             bounds: InputBounds | None = None, **options) -> Law:
     """The law registered as ``name`` with the shared settings and its own ``options``.
 
-    An option the law does not take is refused unless it is off (None or False), so callers can
-    pass e.g. ``adaptive=False`` to any law.
+    ``bounds``: per-input [lower, upper] the law clips to, one per input of the model (None: ±u_max
+    on each). An option the law does not take is refused unless it is off (None or False), so
+    callers can pass e.g. ``adaptive=False`` to any law.
 
     Raises:
-        ValueError: unknown law, or an option the law does not take, or a bad setting.
+        ValueError: unknown law, or an option the law does not take, or a bad setting
+            (:class:`~soft_gripper_sdre.sim.shape.ShapeError`, a ValueError, for a model whose
+            shape cannot be told, bounds of another number of inputs, or a shape the law does
+            not take).
     """
     entry = LAW_REGISTRY.get(name)
     if entry is None:
@@ -193,5 +223,7 @@ def make_law(name: str, model, weights: Weights, u_max: float, n_fingers: int = 
             meaning = f' ({_OPTION_MEANINGS[key]})' if key in _OPTION_MEANINGS else ''
             raise ValueError(f'{key}={value!r}{meaning} is not an option of the {name!r} law; '
                              f'laws that take it: {owners or "none"}')
-    return entry.build(LawSettings(model, weights, u_max, n_fingers, method, lowpass_hz, dt),
-                       **taken)
+    if bounds is not None:
+        law_bounds(shape_of(model), u_max, bounds)           # the bounds fit the model's inputs
+    return entry.build(LawSettings(model, weights, u_max, n_fingers, method, lowpass_hz, dt,
+                                   bounds), **taken)

@@ -4,8 +4,13 @@ from __future__ import annotations
 import numpy as np
 
 from soft_gripper_sdre.control import compiled
-from soft_gripper_sdre.control.laws.feedforward import model_inversion, reference_acceleration
-from soft_gripper_sdre.control.tracking import DEFAULT_LOWPASS_HZ, LawIO, LawStep
+from soft_gripper_sdre.control.laws.feedforward import (
+    model_inversion,
+    pseudo_inversion,
+    reference_acceleration,
+)
+from soft_gripper_sdre.control.tracking import DEFAULT_LOWPASS_HZ, LawIO, LawStep, shape_of
+from soft_gripper_sdre.sim.shape import InputBounds
 
 #: tuned gains (natural frequency² [1/s²] and 2ζω [1/s] of the linearised error dynamics);
 #: ``python -m soft_gripper_sdre.tools.judging.evaluate --tune computed_torque`` reproduces the
@@ -37,18 +42,27 @@ class ComputedTorqueLaw:
         u_max: torque saturation per input [N·m].
         kp, kd: gains on the position [1/s²] and velocity [1/s] error, finite, kp > 0, kd ≥ 0.
         n_fingers, lowpass_hz, dt, method: as for the other laws.
+        bounds: per-input [lower, upper] (None: ±``u_max`` on each of the model's inputs).
+
+    Any shape (d, m): off the hand's path (:func:`~soft_gripper_sdre.control.tracking.hand_path`)
+    G₂(x)⁻¹ is the pseudo-inverse G₂(x)⁺
+    (:func:`~soft_gripper_sdre.control.laws.feedforward.pseudo_inversion`: least squares where an
+    input is missing, minimum norm where one is spare), and the part of the demanded acceleration
+    no input can reach is the step's ``unreachable``.
     """
 
     def __init__(self, model, u_max: float, kp: float = DEFAULT_CT['kp'],
                  kd: float = DEFAULT_CT['kd'], n_fingers: int = 4,
                  lowpass_hz: float = DEFAULT_LOWPASS_HZ, dt: float = 1e-3,
-                 method: str = 'fast') -> None:
-        self.io = LawIO(model.rest_tip, u_max, n_fingers, lowpass_hz, dt)
+                 method: str = 'fast', bounds: InputBounds | None = None) -> None:
+        self.io = LawIO(model.rest_tip, u_max, n_fingers, lowpass_hz, dt, shape_of(model), bounds)
         if not (np.isfinite(kp) and kp > 0 and np.isfinite(kd) and kd >= 0):
             raise ValueError(f'kp must be > 0 and kd >= 0 (finite), got kp={kp!r}, kd={kd!r}')
         self.model, self.kp, self.kd = model, float(kp), float(kd)
         n = self.io.n_fingers
-        self.network = compiled.compiled_network(model) if method == 'fast' else None
+        self.network = (compiled.compiled_network(model) if method == 'fast' and self.io.hand
+                        else None)
+        self._unreachable = None
         self._a2, self._g2 = np.zeros((n, 2, 4)), np.zeros((n, 2, 2))
         self._u, self._usable = np.zeros((n, 2)), np.zeros(n, dtype=np.bool_)
 
@@ -57,27 +71,35 @@ class ComputedTorqueLaw:
 
     def compute(self, pos, vel, ref_pos, ref_vel, ref_acc=None) -> LawStep:
         x, xd, finite = self.io.states(pos, vel, ref_pos, ref_vel)
-        a_d, acc_ok = reference_acceleration(ref_acc, self.io.n_fingers)
+        d = self.io.shape.d
+        a_d, acc_ok = reference_acceleration(ref_acc, self.io.n_fingers, d)
         e = x - xd
-        a_des = a_d - self.kp * e[:, :2] - self.kd * e[:, 2:]              # a_d − k_p e − k_d ė
+        a_des = a_d - self.kp * e[:, :d] - self.kd * e[:, d:]              # a_d − k_p e − k_d ė
         u, usable = self.invert(x, a_des)
         step = self.io.finish(u, finite)
         step.ok &= usable
         step.fallback |= ~usable | ~acc_ok
+        if self._unreachable is not None:
+            step.unreachable = np.where(finite, self._unreachable, 0.0)
         return step
 
     def invert(self, x: np.ndarray, a_des: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(u (n,2), usable (n,)): u = G₂(x)⁻¹ (a_des − A₂(x) x), the model evaluated at x (n,4)."""
+        """(u (n,m), usable (n,)): u = G₂(x)⁻¹ (a_des − A₂(x) x), the model evaluated at x (n,2d)
+        (G₂(x)⁺ off the hand's path, whose unreachable demand the next step reports)."""
         if self.network is not None:
             x = compiled.kernel_array(x)
             compiled.sdc_forward(x, *self.network, self._a2, self._g2)
             compiled.model_inversion(self._a2, self._g2, x, compiled.kernel_array(a_des),
                                      CT_COND_MAX, self._u, self._usable)
             return self._u.copy(), self._usable.copy()
+        d = self.io.shape.d
         blocks = getattr(self.model, 'sdc_blocks', None)
         if blocks is not None:
             A2, G2 = blocks(x)
         else:
             A, G = self.model.AG(x)
-            A2, G2 = A[:, 2:, :], G[:, 2:, :]
-        return model_inversion(A2, G2, x, a_des, CT_COND_MAX)
+            A2, G2 = A[:, d:, :], G[:, d:, :]
+        if self.io.hand:
+            return model_inversion(A2, G2, x, a_des, CT_COND_MAX)
+        u, usable, self._unreachable = pseudo_inversion(A2, G2, x, a_des, CT_COND_MAX)
+        return u, usable

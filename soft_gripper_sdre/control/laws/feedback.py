@@ -10,7 +10,9 @@ from soft_gripper_sdre.control.tracking import (
     LawIO,
     LawStep,
     Weights,
+    shape_of,
 )
+from soft_gripper_sdre.sim.shape import InputBounds
 
 
 class SdreLaw:
@@ -36,21 +38,33 @@ class SdreLaw:
         method: ``'fast'`` (the compiled kernels) or ``'reference'`` (scipy).
         lowpass_hz, dt: the command's :class:`~soft_gripper_sdre.control.tracking.RollOff` (0 = off)
             and the control period [s].
+        bounds: per-input [lower, upper] (None: ±``u_max`` on each of the model's inputs).
+
+    Any shape (d, m) (:func:`~soft_gripper_sdre.control.tracking.shape_of`): the state is 2d, the
+    weights ``weights.Q(d)``, ``weights.R(m)``, and u = K x + K_s x_d with K, K_s (m, 2d) (eq.
+    22–24 as they stand); off the hand's path
+    (:func:`~soft_gripper_sdre.control.tracking.hand_path`) the supervisor solves with scipy.
     """
 
     def __init__(self, model, weights: Weights, u_max: float, n_fingers: int = 4,
                  method: str = 'fast', lowpass_hz: float = DEFAULT_LOWPASS_HZ,
-                 dt: float = 1e-3) -> None:
+                 dt: float = 1e-3, bounds: InputBounds | None = None) -> None:
         self.model = model
         self.weights = weights
-        self.io = LawIO(model.rest_tip, u_max, n_fingers, lowpass_hz, dt)
-        self.sdre = SdreController(weights.Q, weights.R, u_max, n=self.io.n_fingers, method=method)
+        shape = shape_of(model)
+        self.io = LawIO(model.rest_tip, u_max, n_fingers, lowpass_hz, dt, shape, bounds)
+        if self.io.hand:
+            self.sdre = SdreController(weights.Q, weights.R, u_max, n=self.io.n_fingers,
+                                       method=method)
+        else:
+            self.sdre = SdreController(*weights.for_shape(shape), u_max, n=self.io.n_fingers,
+                                       method=method, bounds=self.io.bounds)
         self._blocks = getattr(model, 'sdc_blocks', None)
         self.network = compiled_network(model) if self.sdre.fast else None
 
     @property
     def origin(self) -> np.ndarray:
-        """(2,) rest tip position the model's coordinates are translated by [m]."""
+        """(d,) rest tip position the model's coordinates are translated by [m]."""
         return self.io.origin
 
     def reset(self) -> None:
@@ -63,11 +77,11 @@ class SdreLaw:
         """Torques for every finger (the law does not use ``ref_acc``).
 
         Args:
-            pos, vel: (n, 2) estimated tip position [m] and velocity [m/s] in each base frame.
-            ref_pos, ref_vel: (n, 2) reference position and velocity, same frames.
+            pos, vel: (n, d) estimated tip position [m] and velocity [m/s] in each base frame.
+            ref_pos, ref_vel: (n, d) reference position and velocity, same frames.
 
         Returns:
-            the SDRE step (``u`` (n, 2) [N·m], gains, checks, fallbacks).
+            the SDRE step (``u`` (n, m), gains, checks, fallbacks).
         """
         frame = self.io.frame
         if self.network is not None:                 # the compiled step, network included
@@ -99,8 +113,10 @@ class AdaptiveSdreLaw:
 
     def __init__(self, model, weights: Weights, u_max: float, n_fingers: int = 4,
                  method: str = 'fast', lowpass_hz: float = DEFAULT_LOWPASS_HZ, dt: float = 1e-3,
-                 e_ref: float = 1e-3, gain_max: float = 4.0) -> None:
-        self.io = LawIO(model.rest_tip, u_max, n_fingers, lowpass_hz, dt)
+                 e_ref: float = 1e-3, gain_max: float = 4.0,
+                 bounds: InputBounds | None = None) -> None:
+        self.io = LawIO(model.rest_tip, u_max, n_fingers, lowpass_hz, dt, shape_of(model), bounds)
+        self.bounds = bounds
         if not (np.isfinite(e_ref) and e_ref > 0 and np.isfinite(gain_max) and gain_max >= 1):
             raise ValueError(f'e_ref must be > 0 and gain_max >= 1, got {e_ref!r}, {gain_max!r}')
         self.model, self.weights, self.method = model, weights, method
@@ -114,7 +130,7 @@ class AdaptiveSdreLaw:
             w = Weights(self.weights.q_pos * 2 ** level, self.weights.q_vel, self.weights.r)
             self._levels[level] = SdreLaw(self.model, w, self.io.u_max,
                                           n_fingers=self.io.n_fingers, method=self.method,
-                                          lowpass_hz=0.0)
+                                          lowpass_hz=0.0, bounds=self.bounds)
         return self._levels[level]
 
     def reset(self) -> None:

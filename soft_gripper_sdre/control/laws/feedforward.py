@@ -5,9 +5,20 @@ import numpy as np
 
 from soft_gripper_sdre.control.batched_linalg import batched_solve, well_conditioned_2x2
 from soft_gripper_sdre.control.compiled import compiled_network
-from soft_gripper_sdre.control.laws.integral import DEFAULT_INTEGRAL, IntegralAction
+from soft_gripper_sdre.control.laws.integral import (
+    DEFAULT_INTEGRAL,
+    IntegralAction,
+    ReachableIntegralAction,
+)
 from soft_gripper_sdre.control.sdre import SdreController
-from soft_gripper_sdre.control.tracking import DEFAULT_LOWPASS_HZ, LawIO, LawStep, Weights
+from soft_gripper_sdre.control.tracking import (
+    DEFAULT_LOWPASS_HZ,
+    LawIO,
+    LawStep,
+    Weights,
+    shape_of,
+)
+from soft_gripper_sdre.sim.shape import InputBounds
 
 #: where the feedforward's model is evaluated (:class:`SdreFeedforwardLaw`)
 FF_AT = ('x', 'ref')
@@ -34,18 +45,50 @@ def model_inversion(A2: np.ndarray, G2: np.ndarray, x_d: np.ndarray, a_d: np.nda
     return u, usable
 
 
-def reference_acceleration(ref_acc, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """(a_d (n,2), finite (n,)) from a law's ``ref_acc``: None = zero acceleration; non-finite
+def pseudo_inversion(A2: np.ndarray, G2: np.ndarray, x_d: np.ndarray, a_d: np.ndarray,
+                     cond_max: float = 1e8) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`model_inversion` for any shape: u_ff = G₂⁺ (a_d − A₂ x_d) for n fingers with A₂
+    (n, d, 2d), G₂ (n, d, m), x_d (n, 2d), a_d (n, d).
+
+    G₂⁺ is the pseudo-inverse: exact where G₂ is square and regular, the least-squares input where
+    m < d (the demand's part outside G₂'s range is not chased), the minimum-norm input where m > d.
+    Returns (u_ff (n, m), usable (n,), unreachable (n,)): fingers whose G₂ is ill conditioned
+    (σ_max ≥ ``cond_max`` σ_min over its min(d, m) singular values, or zero) or whose inputs are
+    not finite get u_ff = 0, usable False; ``unreachable`` [m/s²] is the norm of the demand's part
+    outside G₂'s range, ‖(I − G₂G₂⁺)(a_d − A₂ x_d)‖ (singular values below σ_max / ``cond_max``
+    counted as zero; 0 where the inputs are not finite).
+    """
+    n, d, m = G2.shape
+    rhs = a_d - (A2 @ x_d[:, :, None])[:, :, 0]                       # a_d − A₂ x_d
+    finite = np.isfinite(G2).all(axis=(1, 2)) & np.isfinite(rhs).all(axis=1)
+    G = np.where(finite[:, None, None], G2, 0.0)
+    r = np.where(finite[:, None], rhs, 0.0)
+    U, sv, Vt = np.linalg.svd(G, full_matrices=False)    # (n, d, k), (n, k), (n, k, m), k=min(d,m)
+    c = np.einsum('ndk,nd->nk', U, r)                                  # Uᵀ r
+    with np.errstate(all='ignore'):
+        usable = finite & (sv[:, 0] > 0.0) & (sv[:, 0] < cond_max * sv[:, -1])
+        coef = np.where(usable[:, None], c / np.where(sv > 0.0, sv, 1.0), 0.0)
+    u = np.einsum('nkm,nk->nm', Vt, coef)                              # V Σ⁻¹ Uᵀ r
+    usable &= np.isfinite(u).all(axis=1)
+    u[~usable] = 0.0
+    in_range = sv > sv[:, :1] / cond_max                               # numerical rank
+    reached = np.einsum('ndk,nk->nd', U, np.where(in_range, c, 0.0))   # U Uᵀ r on the range
+    unreachable = np.where(finite, np.linalg.norm(r - reached, axis=1), 0.0)
+    return u, usable, unreachable
+
+
+def reference_acceleration(ref_acc, n: int, d: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """(a_d (n,d), finite (n,)) from a law's ``ref_acc``: None = zero acceleration; non-finite
     rows become zero.
 
     Raises:
-        ValueError: ``ref_acc`` is not (n, 2).
+        ValueError: ``ref_acc`` is not (n, d).
     """
     if ref_acc is None:
-        return np.zeros((n, 2)), np.ones(n, dtype=bool)
+        return np.zeros((n, d)), np.ones(n, dtype=bool)
     a = np.array(ref_acc, dtype=float)
-    if a.shape != (n, 2):
-        raise ValueError(f'ref_acc must have shape ({n}, 2), got {a.shape}')
+    if a.shape != (n, d):
+        raise ValueError(f'ref_acc must have shape ({n}, {d}), got {a.shape}')
     finite = np.all(np.isfinite(a), axis=1)
     a[~finite] = 0.0
     return a, finite
@@ -54,12 +97,18 @@ def reference_acceleration(ref_acc, n: int) -> tuple[np.ndarray, np.ndarray]:
 def combine_feedforward(io: LawIO, feedback: LawStep, A2: np.ndarray, G2: np.ndarray,
                         x_d: np.ndarray, finite: np.ndarray, ref_acc,
                         u_extra: np.ndarray | None = None) -> LawStep:
-    """u = u_ff + K e (+ ``u_extra``, e.g. an integral term, before saturation): ``feedback`` is
+    """u = u_ff + K e (+ ``u_extra``, e.g. an integral term, before clipping): ``feedback`` is
     the SDRE's step on (e = x − x_d, x_d = 0), whose u_unsat = K(x) e; (A2, G2) the SDC lower rows
-    the feedforward inverts (:func:`model_inversion`). A finger without feedforward (singular G₂,
-    non-finite ``ref_acc``) is flagged ``fallback``."""
-    a_d, acc_ok = reference_acceleration(ref_acc, io.n_fingers)
-    u_ff, ff_ok = model_inversion(A2, G2, x_d, a_d)
+    the feedforward inverts (:func:`model_inversion` on the hand's path, ``io.hand``, else
+    :func:`pseudo_inversion`, whose unreachable demand the step reports). A finger without
+    feedforward (singular G₂, non-finite ``ref_acc``) is flagged ``fallback``."""
+    a_d, acc_ok = reference_acceleration(ref_acc, io.n_fingers, io.shape.d)
+    unreachable = None
+    if io.hand:
+        u_ff, ff_ok = model_inversion(A2, G2, x_d, a_d)
+    else:
+        u_ff, ff_ok, unreachable = pseudo_inversion(A2, G2, x_d, a_d)
+        unreachable = np.where(finite & acc_ok, unreachable, 0.0)
     ff_ok &= acc_ok
     u_unsat = u_ff + feedback.u_unsat                                 # u = u_ff + K(x) e
     if u_extra is not None:
@@ -69,6 +118,8 @@ def combine_feedforward(io: LawIO, feedback: LawStep, A2: np.ndarray, G2: np.nda
     out.failed_checks, out.residual = feedback.failed_checks, feedback.residual
     out.K, out.Ks, out.P, out.nk_iterations = (feedback.K, feedback.Ks, feedback.P,
                                                feedback.nk_iterations)
+    if unreachable is not None:
+        out.unreachable = unreachable
     return out
 
 
@@ -102,30 +153,51 @@ class SdreFeedforwardLaw:
     is within ``integral_band`` [m]
     (:class:`~soft_gripper_sdre.control.laws.integral.IntegralAction`); 0 leaves the law without
     it, arithmetic unchanged.
+
+    Any shape and bounds (``bounds``; None = ±``u_max`` on each input): off the hand's path
+    (:func:`~soft_gripper_sdre.control.tracking.hand_path`) the feedforward is u_ff = G₂⁺(a_d −
+    A₂ x_d) (:func:`pseudo_inversion`: least squares where an input is missing, minimum norm where
+    one is spare), the part of the demand no input can reach is reported in the step's
+    ``unreachable`` and not chased, and the integral acts on what the inputs can reach
+    (:class:`~soft_gripper_sdre.control.laws.integral.ReachableIntegralAction`, anti-windup per
+    input and per direction, one-sided bounds included).
     """
 
     def __init__(self, model, weights: Weights, u_max: float, n_fingers: int = 4,
                  method: str = 'fast', lowpass_hz: float = DEFAULT_LOWPASS_HZ, dt: float = 1e-3,
                  ff_at: str = 'x', integral_gain: float = DEFAULT_INTEGRAL['gain'],
-                 integral_band: float = DEFAULT_INTEGRAL['band']) -> None:
-        self.io = LawIO(model.rest_tip, u_max, n_fingers, lowpass_hz, dt)
+                 integral_band: float = DEFAULT_INTEGRAL['band'],
+                 bounds: InputBounds | None = None) -> None:
+        shape = shape_of(model)
+        self.io = LawIO(model.rest_tip, u_max, n_fingers, lowpass_hz, dt, shape, bounds)
         if ff_at not in FF_AT:
             raise ValueError(f'ff_at must be one of {FF_AT}, got {ff_at!r}')
         self.model, self.weights, self.ff_at = model, weights, ff_at
         self.n_fingers = self.io.n_fingers
-        self.sdre = SdreController(weights.Q, weights.R, u_max, n=self.n_fingers, method=method)
-        self._zero = np.zeros((self.n_fingers, 4))          # x_d of the feedback step: K e only
+        if self.io.hand:
+            self.sdre = SdreController(weights.Q, weights.R, u_max, n=self.n_fingers,
+                                       method=method)
+        else:
+            self.sdre = SdreController(*weights.for_shape(shape), u_max, n=self.n_fingers,
+                                       method=method, bounds=self.io.bounds)
+        self._zero = np.zeros((self.n_fingers, shape.n_state))  # x_d of the feedback step: K e
         self._zero.flags.writeable = False
         self.network = compiled_network(model) if self.sdre.fast else None
-        self._no_acc = np.zeros((self.n_fingers, 2))
+        self._no_acc = np.zeros((self.n_fingers, shape.d))
         if not (np.isfinite(integral_gain) and integral_gain >= 0):
             raise ValueError('integral_gain must be finite and >= 0 (0 = off), '
                              f'got {integral_gain!r}')
         self.integral = None
         if integral_gain > 0:
-            _, G0 = model.AG(np.zeros(4))
-            self.integral = IntegralAction(G0[0, 2:, :], integral_gain, integral_band, u_max,
-                                           self.n_fingers, dt)
+            d = shape.d
+            _, G0 = model.AG(np.zeros(shape.n_state))
+            if self.io.hand:
+                self.integral = IntegralAction(G0[0, 2:, :], integral_gain, integral_band, u_max,
+                                               self.n_fingers, dt)
+            else:
+                self.integral = ReachableIntegralAction(G0[0, d:, :], integral_gain,
+                                                        integral_band, self.io.bounds,
+                                                        self.n_fingers, dt)
 
     def reset(self) -> None:
         self.io.reset()
@@ -141,13 +213,14 @@ class SdreFeedforwardLaw:
         # the model's SDC lower rows at x (the gains) and where the feedforward evaluates it:
         # one batched call for x and x_d with ff_at='ref'
         z = x if self.ff_at == 'x' else np.concatenate([x, xd])
+        d = self.io.shape.d
         blocks = getattr(self.model, 'sdc_blocks', None)
         if blocks is not None:
             A2, G2 = blocks(z)
             step = self.sdre.step_sdc(A2[:n], G2[:n], x - xd, self._zero)      # u_unsat = K(x) e
         else:                                       # a model with AG only (any structure)
             A, G = self.model.AG(z)
-            A2, G2 = A[:, 2:, :], G[:, 2:, :]
+            A2, G2 = A[:, d:, :], G[:, d:, :]
             step = self.sdre.step(A[:n], G[:n], x - xd, self._zero)
         if self.ff_at == 'ref':
             A2, G2 = A2[n:], G2[n:]
@@ -155,7 +228,10 @@ class SdreFeedforwardLaw:
             return combine_feedforward(self.io, step, A2, G2, xd, finite, ref_acc)
         u_i = np.where(finite[:, None], self.integral.torque(), 0.0)
         out = combine_feedforward(self.io, step, A2, G2, xd, finite, ref_acc, u_extra=u_i)
-        self.integral.update(x[:, :2] - xd[:, :2], out.saturated, finite)
+        if self.io.hand:
+            self.integral.update(x[:, :2] - xd[:, :2], out.saturated, finite)
+        else:
+            self.integral.update(x[:, :d] - xd[:, :d], out.u_unsat, finite)
         return out
 
     def _compiled_step(self, pos, vel, ref_pos, ref_vel, ref_acc) -> LawStep:

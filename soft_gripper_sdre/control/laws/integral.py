@@ -14,6 +14,7 @@ from soft_gripper_sdre.control.compiled import (
     kernel_array,
 )
 from soft_gripper_sdre.control.tracking import LawStep, RollOff
+from soft_gripper_sdre.sim.shape import InputBounds
 
 #: the default law's integral action: gain k_i [1/s³] (0 = off) and the error band [m] inside which
 #: it integrates; docs/results.md "Integral action" has the tuning behind them
@@ -106,3 +107,80 @@ class IntegralAction:
         that used it, and which fingers' inputs were finite (the rules in the class docstring)."""
         integral_update(self.xi, self.settings, kernel_array(error),
                         kernel_array(saturated, np.bool_), kernel_array(finite, np.bool_))
+
+
+class ReachableIntegralAction:
+    """:class:`IntegralAction` for any shape and per-input bounds (the laws' general path):
+
+        u_I = k_i G₂(0)⁺ ξ,    ξ = ∫ Π (p_d − p) dt,    Π = G₂(0) G₂(0)⁺,
+
+    G₂(0) (d, m) the learned input map at rest and G₂(0)⁺ its pseudo-inverse. ξ integrates only the
+    part of the error the inputs can reach (Π projects onto G₂(0)'s range: all of it where G₂(0)
+    has full row rank; one direction for one input and a 2-D tip), so a reference the finger cannot
+    reach is not chased into saturation. The rules per finger:
+
+    * **an input at its bound that ξ would push further** (u_unsat at or above the upper bound with
+      the step raising that input, or at or below the lower one with the step lowering it): ξ is
+      frozen. This is anti-windup per input and per direction: a one-sided input resting at 0
+      (a chamber, a tendon) does not freeze ξ while the step would raise it;
+    * **error outside the band** (‖p − p_d‖ > ``band``): ξ decays with time constant
+      :data:`INTEGRAL_LEAK_S`, as :class:`IntegralAction`'s;
+    * a finger whose state is not finite: ξ is left as it is (the caller gives it no u_I).
+
+    ξ is also bounded so that each input of u_I lies within ±max(|lower|, |upper|) of that input.
+
+    Args:
+        g2_rest: (d, m) the learned G₂ at rest [m/s² per input unit], finite and not zero.
+        gain: k_i [1/s³], finite and > 0.
+        band: the error norm [m] inside which ξ integrates, finite and > 0.
+        bounds: the inputs' bounds.
+        n_fingers: number of fingers.
+        dt: control period [s].
+    """
+
+    def __init__(self, g2_rest, gain: float, band: float, bounds: InputBounds, n_fingers: int,
+                 dt: float) -> None:
+        if not (math.isfinite(gain) and gain > 0):
+            raise ValueError(f'integral gain must be finite and > 0 (0 = no integral action), '
+                             f'got {gain!r}')
+        if not (math.isfinite(band) and band > 0):
+            raise ValueError(f'integral band must be finite and > 0 m, got {band!r}')
+        g2 = np.asarray(g2_rest, dtype=float)
+        if (g2.ndim != 2 or g2.shape[1] != bounds.m or not np.all(np.isfinite(g2))
+                or not np.any(g2)):
+            raise ValueError(f'g2_rest must be a finite, non-zero (d, {bounds.m}) input map, '
+                             f'got {g2_rest!r}')
+        self.gain, self.band, self.dt = float(gain), float(band), float(dt)
+        self.bounds = bounds
+        pinv = np.linalg.pinv(g2, rcond=1e-8)
+        self.to_torque = self.gain * pinv                        # u_I = to_torque ξ  (m, d)
+        self.from_torque = g2 / self.gain                        # ξ = from_torque u_I on range
+        self.projector = g2 @ pinv                               # Π (d, d)
+        self.limit = np.maximum(np.abs(bounds.lower), np.abs(bounds.upper))
+        self.decay = math.exp(-self.dt / INTEGRAL_LEAK_S)
+        self.xi = np.zeros((int(n_fingers), g2.shape[0]))        # ∫ Π (p_d − p) dt [m·s]
+
+    def reset(self) -> None:
+        self.xi[:] = 0.0
+
+    def torque(self) -> np.ndarray:
+        """(n, m) u_I = k_i G₂(0)⁺ ξ from the integral so far."""
+        return self.xi @ self.to_torque.T
+
+    def update(self, error: np.ndarray, u_unsat: np.ndarray, finite: np.ndarray) -> None:
+        """One step of ξ from the error p − p_d (n, d) [m], the (n, m) command before clipping
+        that used it (u_I included), and which fingers' inputs were finite (the class's rules)."""
+        error = np.where(finite[:, None], error, 0.0)
+        inside = finite & (np.einsum('nd,nd->n', error, error) <= self.band * self.band)
+        step = -self.dt * error @ self.projector.T                 # Δξ = Δt Π (p_d − p)
+        du = step @ self.to_torque.T                               # what it adds to each input
+        b = self.bounds
+        pushes = ((u_unsat >= b.upper) & (du > 0.0)) | ((u_unsat <= b.lower) & (du < 0.0))
+        grow = inside & ~pushes.any(axis=1)
+        self.xi[grow] += step[grow]
+        leak = finite & ~inside
+        self.xi[leak] *= self.decay
+        u_i = self.torque()
+        over = finite & np.any(np.abs(u_i) > self.limit, axis=1)
+        if over.any():
+            self.xi[over] = np.clip(u_i[over], -self.limit, self.limit) @ self.from_torque.T

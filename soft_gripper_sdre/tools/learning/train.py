@@ -59,6 +59,16 @@ def _parser() -> argparse.ArgumentParser:
                       help='tip measurement noise σ [m] for the KF/RTS and the derived estimator '
                            '(default: estimated from the settle phase at zero torque; a bag '
                            'without one is refused)')
+    bags.add_argument('--task-dim', choices=('auto', '2', '3'), default='auto',
+                      help='coordinates of the tip the model learns: 2 (x, y) or 3 (x, y, z); '
+                           "auto: 3 when a tip's z moves in the training bags (planar drivers "
+                           'publish z = 0), else 2 (default %(default)s)')
+    bags.add_argument('--input-lower', type=float, nargs='+', metavar='U',
+                      help='lower bound of each input, one value per input in the SI unit of its '
+                           'command (N·m, N, Pa), recorded in the checkpoint; with '
+                           '--input-upper (default: the range the recorded commands spanned)')
+    bags.add_argument('--input-upper', type=float, nargs='+', metavar='U',
+                      help='upper bound of each input, one value per input (see --input-lower)')
     bags.add_argument('--min-duration', type=float, default=1.0,
                       help='refuse a bag with less commanded time than this [s] '
                            '(default %(default)s)')
@@ -147,6 +157,9 @@ def _main_data(parser: argparse.ArgumentParser, args: argparse.Namespace,
     """The ``--data`` path: the records read and labelled, the model trained and written."""
     if args.data is None:
         parser.error('give --data DIR (.npz files) or --bag DIR ... --val-bag DIR (rosbag2)')
+    if args.task_dim != 'auto' or args.input_lower is not None or args.input_upper is not None:
+        parser.error('--task-dim, --input-lower and --input-upper apply to --bag only (the .npz '
+                     "records are the hand's: a planar tip, two torques)")
     variant = args.variant or ('paper' if args.preset == 'paper' else 'identifying')
     names = list(DATA_VARIANTS[variant]) + [VALIDATION]
     try:
@@ -184,6 +197,7 @@ def _main_bags(parser: argparse.ArgumentParser, args: argparse.Namespace,
     """The ``--bag`` path: arguments checked, then
     :func:`~soft_gripper_sdre.tools.learning.train_bags.train_from_bags`."""
     from soft_gripper_sdre.analysis.bag_dataset import BagDataError
+    from soft_gripper_sdre.sim.shape import ShapeError
     from soft_gripper_sdre.tools.learning.train_bags import train_from_bags
 
     if args.data is not None:
@@ -200,6 +214,9 @@ def _main_bags(parser: argparse.ArgumentParser, args: argparse.Namespace,
         parser.error(f'--finger must be in [0, 3], got {args.finger}')
     if args.jerk_psd is not None and not (np.isfinite(args.jerk_psd) and args.jerk_psd > 0):
         parser.error(f'--jerk-psd must be > 0, got {args.jerk_psd}')
+    if (args.input_lower is None) != (args.input_upper is None):
+        parser.error('--input-lower and --input-upper go together: one value per input each '
+                     '(or neither: the range the recorded commands spanned)')
     if args.out.exists() and not args.out.is_dir():
         parser.error(f'--out {args.out} exists and is not a directory')
     try:
@@ -209,8 +226,10 @@ def _main_bags(parser: argparse.ArgumentParser, args: argparse.Namespace,
     try:
         train_from_bags(args.bag, args.val_bag, args.out, settings, tips_topic=args.tips_topic,
                         torques_topic=args.torques_topic, min_duration=args.min_duration,
-                        finger=args.finger, meas_std=args.meas_std, jerk_psd=args.jerk_psd)
-    except BagDataError as exc:
+                        finger=args.finger, meas_std=args.meas_std, jerk_psd=args.jerk_psd,
+                        task_dim=args.task_dim if args.task_dim == 'auto' else int(args.task_dim),
+                        input_lower=args.input_lower, input_upper=args.input_upper)
+    except (BagDataError, ShapeError) as exc:
         parser.error(str(exc))
 
 

@@ -5,9 +5,13 @@
 
 Every ``--bag`` (a rosbag2 directory, or a directory of them) is read and checked first
 (:mod:`soft_gripper_sdre.analysis.bag_dataset`); a bad one ends the tool with exit status 2 and a
-message naming it before anything is written. Each excited finger of each bag gives training
-samples: KF + RTS states and acceleration labels on the tip stamps (or on a uniform grid when the
-stamps jitter), the command held onto them, the state translated by that finger's rest pose.
+message naming it before anything is written. The finger's shape comes from the bags: m inputs
+from the command's names ``<finger>/ax<k>`` (the same m in every bag), the task dimension d from
+``task_dim`` (auto: 3 when a tip's z moves, else 2); the input bounds the checkpoint records are
+the given ones, which every recorded command must respect, or the range the commands spanned.
+Each excited finger of each bag gives training samples: KF + RTS states and acceleration labels
+on the tip stamps (or on a uniform grid when the stamps jitter), the command held onto them, the
+state translated by that finger's rest pose.
 The checkpoint's ``data`` records the provenance: every bag with its topics, types, message
 counts, rates, jitter, gaps, durations, fingers, rest poses, noise levels and sample counts.
 
@@ -32,12 +36,15 @@ from soft_gripper_sdre.analysis.bag_dataset import (
     BagDataError,
     FingerSamples,
     Recording,
+    check_within,
     excited_fingers,
     first_torque_ns,
     label_finger,
     read_recording,
+    recorded_bounds,
     settle_estimates,
     settle_noise,
+    task_dimension,
     tip_stretches,
 )
 from soft_gripper_sdre.analysis.data_facts import data_facts
@@ -45,6 +52,7 @@ from soft_gripper_sdre.learning import derivatives
 from soft_gripper_sdre.learning.rollout import Run
 from soft_gripper_sdre.learning.train_settings import TrainSettings
 from soft_gripper_sdre.learning.training import TrainResult, fingerprint, train
+from soft_gripper_sdre.sim.shape import FingerShape, InputBounds, ShapeError
 
 #: samples of a recording's first stretch its jerk intensity is tuned on
 TUNE_SAMPLES = 2000
@@ -92,10 +100,10 @@ def load_bags(paths: list[Path], tips_topic: str, torques_topic: str, min_durati
     return loaded
 
 
-def tune_jerk(rec: Recording, finger: int, meas_std: float) -> float:
+def tune_jerk(rec: Recording, finger: int, meas_std: float, dims: int = 2) -> float:
     """The KF/RTS jerk intensity of ``finger`` tuned by likelihood on its first excited tips
-    (:func:`tuning_stretch`)."""
-    t, xy = tuning_stretch(rec, finger)
+    (:func:`tuning_stretch`), their first ``dims`` coordinates."""
+    t, xy = tuning_stretch(rec, finger, dims)
     if derivatives.is_uniform(t):
         return derivatives.tune_jerk_psd(t, xy, meas_std, JERK_GRID)
     return derivatives.tune_jerk_psd_irregular(t, xy, meas_std, JERK_GRID)
@@ -121,9 +129,10 @@ def _finger_name(rec: Recording, finger: int) -> str:
 
 
 def label_bags(loaded: list[tuple[Recording, list[int]]], jerk: float | None,
-               meas_std: float | None, gap_periods: float = DEFAULT_GAP_PERIODS
+               meas_std: float | None, gap_periods: float = DEFAULT_GAP_PERIODS, dims: int = 2
                ) -> tuple[list[FingerSamples], list[dict], np.ndarray]:
-    """Samples of every (bag, finger), the provenance of each bag, and the first rest tip (3,).
+    """Samples of every (bag, finger) for the task dimension ``dims``, the provenance of each
+    bag, and the first rest tip (3,).
 
     ``jerk`` None: the KF/RTS jerk intensity of each (bag, finger) tuned by likelihood on its own
     tips (:func:`tune_jerk`): a slow signal's labels want a smoother filter than a fast one's,
@@ -136,10 +145,10 @@ def label_bags(loaded: list[tuple[Recording, list[int]]], jerk: float | None,
         info['fingers'] = {}
         for f in fingers:
             rest, sigma, n_settle = (settle_estimates if meas_std is not None
-                                     else settle_noise)(rec, f)
+                                     else settle_noise)(rec, f, dims)
             used = meas_std if meas_std is not None else sigma
-            q = jerk if jerk is not None else tune_jerk(rec, f, used)
-            got = label_finger(rec, f, q, used, rest, gap_periods)
+            q = jerk if jerk is not None else tune_jerk(rec, f, used, dims)
+            got = label_finger(rec, f, q, used, rest, gap_periods, dims)
             samples += got
             first_rest = rest if first_rest is None else first_rest
             info['fingers'][_finger_name(rec, f)] = {
@@ -172,11 +181,11 @@ def runs(samples: list[FingerSamples]) -> list[Run]:
     return [Run(x, u, float(np.median(np.diff(t)))) for t, x, u in validation_segments(samples)]
 
 
-def tuning_stretch(rec: Recording, finger: int) -> tuple[np.ndarray, np.ndarray]:
-    """(t [s], tips (N, 2)) of ``finger``'s first :data:`TUNE_SAMPLES` excited tips: from its first
-    non-zero torque on, within the stretch of tips (no long gap) that holds it; the whole first
-    stretch when it has no tips from then on. The tips at rest before it (a driver's idle time,
-    the settle phase) would tune the estimator to a finger that does not move."""
+def tuning_stretch(rec: Recording, finger: int, dims: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """(t [s], tips (N, dims)) of ``finger``'s first :data:`TUNE_SAMPLES` excited tips: from its
+    first non-zero torque on, within the stretch of tips (no long gap) that holds it; the whole
+    first stretch when it has no tips from then on. The tips at rest before it (a driver's idle
+    time, the settle phase) would tune the estimator to a finger that does not move."""
     onset = first_torque_ns(rec, finger)
     onset = rec.tip_ns[0] if onset is None else onset
     stretches = tip_stretches(rec)
@@ -185,7 +194,7 @@ def tuning_stretch(rec: Recording, finger: int) -> tuple[np.ndarray, np.ndarray]
     moving = idx[rec.tip_ns[idx] >= onset]
     idx = (moving if len(moving) >= MIN_SAMPLES else idx)[:TUNE_SAMPLES]
     ns = rec.tip_ns[idx]
-    return (ns - ns[0]) / 1e9, rec.tips[idx, finger, :2]
+    return (ns - ns[0]) / 1e9, rec.tips[idx, finger, :dims]
 
 
 def params_yaml(derived: loop_settings.Derivation, model_path: Path, finger_names: list[str],
@@ -221,22 +230,34 @@ def params_yaml(derived: loop_settings.Derivation, model_path: Path, finger_name
 def train_from_bags(train_paths: list[Path], val_paths: list[Path], out: Path,
                     settings: TrainSettings, *,
                     tips_topic: str, torques_topic: str, min_duration: float, finger: int | None,
-                    meas_std: float | None, jerk_psd: float | None) -> dict:
+                    meas_std: float | None, jerk_psd: float | None, task_dim: str | int = 'auto',
+                    input_lower: list[float] | None = None,
+                    input_upper: list[float] | None = None) -> dict:
     """Read, label, train, validate, judge, derive the loop's settings and write (module doc);
     returns the metrics.
 
+    Args:
+        task_dim: 'auto', 2 or 3 (:func:`~soft_gripper_sdre.analysis.bag_dataset.task_dimension`
+            on the training bags).
+        input_lower, input_upper: one bound per input (both or neither): the bounds the
+            checkpoint records; None: the range the training bags' commands spanned.
+
     Raises:
-        BagDataError: a bag cannot be used (before anything is written).
+        BagDataError: a bag cannot be used, the bags disagree on the number of inputs, the task
+            dimension does not fit them, or a command lies outside the given bounds (before
+            anything is written).
+        ShapeError: input bounds that cannot be used (naming ``--input-lower/--input-upper``).
     """
     train_set = load_bags(train_paths, tips_topic, torques_topic, min_duration, finger)
     val_set = load_bags(val_paths, tips_topic, torques_topic, min_duration, finger)
-    data = _label_sets(train_set, val_set, jerk_psd, meas_std)
+    shape, bounds = finger_shape(train_set, val_set, task_dim, input_lower, input_upper)
+    data = _label_sets(train_set, val_set, jerk_psd, meas_std, shape, bounds)
     bar = tqdm(total=settings.epochs + settings.rollout_epochs, desc=f'train ({settings.preset})',
                unit='epoch')
     result = train(data.x, data.u, data.acc, data.x_val, data.u_val, data.acc_val, settings,
                    lambda epoch, tl, vl: (bar.update(1),
                                           bar.set_postfix(train=f'{tl:.3g}', val=f'{vl:.3g}')),
-                   runs=runs(data.samples), val_runs=runs(data.val_samples))
+                   runs=runs(data.samples), val_runs=runs(data.val_samples), shape=shape)
     bar.close()
     verdict = _Verdict(data, settings, result)
     # never a params.yaml from another model beside this one
@@ -244,7 +265,8 @@ def train_from_bags(train_paths: list[Path], val_paths: list[Path], out: Path,
         _, scores, metrics = training_run.checkpoint(
             stage / 'model.pt', result, settings, rest_tip=data.rest_tip, dt=data.dt,
             data=data.info(tips_topic, torques_topic), train=(data.x, data.u, data.acc),
-            val=(data.x_val, data.u_val), acc_ref=data.acc_val, describe=verdict.describe)
+            val=(data.x_val, data.u_val), acc_ref=data.acc_val, describe=verdict.describe,
+            input_bounds=bounds)
         training_run.write_report(
             stage, result, metrics, scores, data.t_val, data.acc_val,
             loss_title=f'Training loss from bags, {settings.preset} preset',
@@ -255,6 +277,8 @@ def train_from_bags(train_paths: list[Path], val_paths: list[Path], out: Path,
             (stage / PARAMS_FILE).write_text(params_yaml(
                 derived, out / 'model.pt', list(train_set[0][0].finger_names),
                 ', '.join(str(p) for p in train_paths)))
+    print(f'finger shape: {shape.m} input(s) ({bounds}), a tip of {shape.d} coordinates '
+          f'({", ".join(shape.axes)})')
     print('\n'.join(scores.lines('validation R² vs the KF + RTS labels')))
     if min(scores.r2 + scores.r2_ls) < 0.0:
         print('  (below 0: the validation labels vary less than the predictions miss them. Where '
@@ -265,6 +289,46 @@ def train_from_bags(train_paths: list[Path], val_paths: list[Path], out: Path,
           f'{len(data.provenance)} bag(s) in {result.seconds:.1f} s; wrote {out}')
     report_fitness(verdict.fitness, derived, out)
     return metrics
+
+
+def finger_shape(train_set: list[tuple[Recording, list[int]]],
+                 val_set: list[tuple[Recording, list[int]]], task_dim: str | int = 'auto',
+                 input_lower: list[float] | None = None,
+                 input_upper: list[float] | None = None) -> tuple[FingerShape, InputBounds]:
+    """The shape of the finger the bags recorded and the bounds of its inputs.
+
+    m is the number of inputs every bag's command names per finger; d is
+    :func:`~soft_gripper_sdre.analysis.bag_dataset.task_dimension` of the training bags; the
+    bounds are ``input_lower``/``input_upper`` (one value per input), which every command of
+    every bag must respect, or the range the training bags' commands spanned
+    (:func:`~soft_gripper_sdre.analysis.bag_dataset.recorded_bounds`).
+
+    Raises:
+        BagDataError: bags with different numbers of inputs (naming the bags and their command
+            names), d = 3 for planar tips, a command outside the given bounds, an input that
+            never changed.
+        ShapeError: bounds of the wrong count or empty, or only one of the two lists given.
+    """
+    recs = [rec for rec, _ in train_set + val_set]
+    first = recs[0]
+    for rec in recs[1:]:
+        if rec.n_inputs != first.n_inputs:
+            raise BagDataError(f'bag {rec.path} commands {rec.n_inputs} input(s) per finger '
+                               f'({list(rec.joint_names)[:8]}), bag {first.path} '
+                               f'{first.n_inputs} ({list(first.joint_names)[:8]}): every bag '
+                               'must record the same finger')
+    d = task_dimension([rec for rec, _ in train_set], task_dim)
+    shape = FingerShape(d, first.n_inputs)
+    what = '--input-lower/--input-upper'
+    if (input_lower is None) != (input_upper is None):
+        raise ShapeError(f'{what}: give both, one value per input, or neither (the range the '
+                         'commands spanned)')
+    if input_lower is None:
+        bounds = recorded_bounds([rec for rec, _ in train_set])
+    else:
+        bounds = InputBounds.parse(input_lower, input_upper, shape.m, what)
+        check_within(recs, bounds, what)
+    return shape, bounds
 
 
 @dataclass
@@ -280,6 +344,8 @@ class _BagData:
     rest_tip: np.ndarray
     noise: float
     jerk: float
+    shape: FingerShape
+    bounds: InputBounds
 
     def __post_init__(self) -> None:
         _, self.x, self.u, self.acc = _stack(self.samples)
@@ -296,12 +362,13 @@ class _BagData:
                 'bags': self.provenance, 'validation_bags': self.val_provenance,
                 'train_samples': int(len(self.x)), 'validation_samples': int(len(self.x_val)),
                 'fingerprint': fingerprint(self.x, self.u, self.acc), 'jerk_psd': float(self.jerk),
-                'noise_std': float(self.noise)}
+                'noise_std': float(self.noise), 'shape': self.shape.to_record(),
+                'input_bounds': self.bounds.to_record()}
 
 
 def _label_sets(train_set: list[tuple[Recording, list[int]]],
                 val_set: list[tuple[Recording, list[int]]], jerk_psd: float | None,
-                meas_std: float | None) -> _BagData:
+                meas_std: float | None, shape: FingerShape, bounds: InputBounds) -> _BagData:
     """Both sets labelled (:func:`label_bags`), saying which jerk intensity the labels used.
 
     Raises:
@@ -309,10 +376,11 @@ def _label_sets(train_set: list[tuple[Recording, list[int]]],
             no samples.
     """
     rec0, fingers0 = train_set[0]
-    noise = meas_std if meas_std is not None else settle_noise(rec0, fingers0[0])[1]
+    d = shape.d
+    noise = meas_std if meas_std is not None else settle_noise(rec0, fingers0[0], d)[1]
     samples, provenance, rest_tip = label_bags(tqdm(train_set, desc='bags: KF + RTS', unit='bag'),
-                                               jerk_psd, meas_std)
-    val_samples, val_provenance, _ = label_bags(val_set, jerk_psd, meas_std)
+                                               jerk_psd, meas_std, dims=d)
+    val_samples, val_provenance, _ = label_bags(val_set, jerk_psd, meas_std, dims=d)
     tuned = [f['jerk_psd'] for bag in provenance for f in bag['fingers'].values()]
     jerk = jerk_psd if jerk_psd is not None else float(np.median(tuned))
     print('KF/RTS white-jerk intensity q [(m/s³)²/Hz]: '
@@ -321,7 +389,7 @@ def _label_sets(train_set: list[tuple[Recording, list[int]]],
     if not samples or not val_samples:
         raise BagDataError('no training samples' if not samples else 'no validation samples')
     return _BagData(train_set, samples, val_samples, provenance, val_provenance, rest_tip, noise,
-                    jerk)
+                    jerk, shape, bounds)
 
 
 class _Verdict:
@@ -341,16 +409,17 @@ class _Verdict:
         self.fitness = model_fitness.judge(model, validation_segments(data.val_samples))
         self.derived = None
         if self.fitness.fit:
-            facts = data_facts(data.x[:, :2], data.u, data.dt, data.noise,
-                               [tuning_stretch(rec, f[0]) for rec, f in data.train_set])
+            d = data.shape.d
+            facts = data_facts(data.x[:, :d], data.u, data.dt, data.noise,
+                               [tuning_stretch(rec, f[0], d) for rec, f in data.train_set])
             self.derived = loop_settings.derive(model, facts, progress=lambda text: print(
                 f'  closed-loop check on the model: {text}', flush=True))
         derived = self.derived
         return {**scores.common_metrics(self.settings, result), 'source': 'rosbag2',
                 'rollout_epochs_run': len(result.rollout_loss),
                 'best_val_sim_error': min(result.val_sim_error) if result.val_sim_error else None,
-                'val_r2_labels': dict(zip('XY', scores.r2)),
-                'val_r2_ls_baseline': dict(zip('XY', scores.r2_ls)),
+                'val_r2_labels': dict(zip(data.shape.axes, scores.r2)),
+                'val_r2_ls_baseline': dict(zip(data.shape.axes, scores.r2_ls)),
                 'train_samples': int(len(data.x)), 'validation_samples': int(len(data.x_val)),
                 'noise_std': data.noise, 'fitness': _plain(self.fitness.summary()),
                 'derived_settings': _plain(derived.summary()) if derived is not None else None}
