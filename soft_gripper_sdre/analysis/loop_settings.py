@@ -273,6 +273,32 @@ def check_move(facts: DataFacts) -> GraspTrajectory | PathMove:
     return PathMove(facts.waypoints(), profile)
 
 
+class _SpatialKF:
+    """The estimator's constant-velocity KF on a 3-D tip for one finger: with independent
+    process noise its axes decouple, so X, Y run in one planar KF and Z in another (fed a
+    constant second coordinate). ``x`` (1, 6) = [p; v]."""
+
+    def __init__(self, dt: float, accel_psd: float, meas_std: float) -> None:
+        self.xy = ConstantVelocityKF(dt, accel_psd, meas_std, n=1)
+        self.z = ConstantVelocityKF(dt, accel_psd, meas_std, n=1)
+        self.x = np.zeros((1, 6))
+
+    def _join(self) -> np.ndarray:
+        a, b = self.xy.x, self.z.x
+        self.x = np.array([[a[0, 0], a[0, 1], b[0, 0], a[0, 2], a[0, 3], b[0, 2]]])
+        return self.x.copy()
+
+    def reset(self, z: np.ndarray) -> None:
+        self.xy.reset(z[:, :2])
+        self.z.reset(np.array([[z[0, 2], 0.0]]))
+        self._join()
+
+    def step(self, z: np.ndarray) -> np.ndarray:
+        self.xy.step(z[:, :2])
+        self.z.step(np.array([[z[0, 2], 0.0]]))
+        return self._join()
+
+
 def _rest_share(u: np.ndarray, bounds: InputBounds) -> np.ndarray:
     """|u − rest| as a share of the input's range away from its rest value, per input."""
     rest = bounds.rest
@@ -313,8 +339,8 @@ def check_on_model(model, settings: LoopSettings, facts: DataFacts, law: str = '
         options.update(pd_gains=dict(kp=settings.pd_kp, kd=settings.pd_kd))
     ctrl = make_law(law, model, settings.weights(), settings.torque_limit, n_fingers=1,
                     lowpass_hz=settings.torque_lowpass_hz, dt=dt, **options)
-    kf = ConstantVelocityKF(dt, settings.accel_psd, settings.meas_std, n=1,
-                            **({} if d == 2 else {'dim': d}))
+    kf = (ConstantVelocityKF(dt, settings.accel_psd, settings.meas_std, n=1) if d == 2
+          else _SpatialKF(dt, settings.accel_psd, settings.meas_std))
     plant = model if gain_error == 1.0 else _GainError(model, gain_error)
     rng = np.random.default_rng(seed)
     x = np.zeros((1, 2 * d))

@@ -23,7 +23,7 @@ import itertools
 
 import numpy as np
 
-from soft_gripper_sdre.sim.shape import TASK_DIMENSIONS, FingerShape, ShapeError
+from soft_gripper_sdre.sim.shape import FingerShape
 
 #: a free run whose error is above this share of the validation positions' spread is not fit
 FREE_RUN_LIMIT = 0.5
@@ -36,24 +36,13 @@ REST_RETURN = 0.5
 
 def model_shape(model) -> FingerShape:
     """The finger's shape of ``model``: its ``shape`` (a learned model), else read off the
-    blocks its ``AG`` returns at rest (a model that has only ``AG``): A (1, 2d, 2d), G (1, 2d, m).
+    blocks its ``AG`` returns at rest (:func:`~soft_gripper_sdre.control.tracking.shape_of`).
 
     Raises:
-        ShapeError: ``AG`` gives blocks of no finger's shape at any task dimension.
+        ShapeError: the model has no shape and ``AG`` answers with blocks of no finger's shape.
     """
-    shape = getattr(model, 'shape', None)
-    if isinstance(shape, FingerShape):
-        return shape
-    for d in TASK_DIMENSIONS:
-        try:
-            A, G = model.AG(np.zeros((1, 2 * d)))
-        except (ValueError, IndexError):
-            continue
-        A, G = np.asarray(A), np.asarray(G)
-        if A.shape[-2:] == (2 * d, 2 * d) and G.ndim >= 2 and G.shape[-2] == 2 * d:
-            return FingerShape(d, G.shape[-1])
-    raise ShapeError(f'the model {type(model).__name__}: AG gives blocks of no finger shape '
-                     '(A (2d, 2d) and G (2d, m) for d in 2, 3)')
+    from soft_gripper_sdre.control.tracking import shape_of
+    return shape_of(model)
 
 
 def xdot(model, x: np.ndarray, u: np.ndarray) -> np.ndarray:
