@@ -25,6 +25,13 @@ new run's first tips). With ``rest_pose`` it publishes its plan again. The contr
 plan made for the old run. A ``start_at`` that was given stays. Malformed tip or clock messages
 (wrong number of poses, NaN/Inf) are rejected with a throttled warning and counted.
 
+**The finger's shape.** ``task_dim`` is the tips' task dimension d: 2 plans in (X, Y) (the
+tips' z ignored), 3 in (X, Y, Z) (the plan then carries z). The grasping fingers close along
+``direction`` (d values; '' = +Y), or through the waypoints of ``close_path`` (d values per
+point, relative to rest; e.g. the curve a one-input finger's tip can reach, taken from its data),
+and the others open along −``direction`` (:class:`~soft_gripper_sdre.control.trajectory.
+GraspTrajectory`).
+
 A node restarted mid-run (after a crash) must not take the tips it first sees as the rest pose
 and their stamp as the start: the fingers are wherever the grasp left them. Pass the values the
 first instance published in its ``/diagnostics`` (``rest_pose`` and ``start_at``) as parameters;
@@ -82,8 +89,16 @@ PARAMS = (
     Param('t_hold', _DEFAULTS.t_hold, 'time spent closed', 's', 0.0, 1e4, read_only=True),
     Param('t_open', _DEFAULTS.t_open, 'duration of the opening motion', 's', 1e-3, 1e4,
           read_only=True),
+    Param('task_dim', 2, "the tips' task dimension: 2 plans in (X, Y), the tips' z ignored; 3 "
+          'plans in (X, Y, Z)', '', 2, 3, read_only=True),
+    Param('direction', '', "the direction the grasping fingers close along, task_dim values "
+          "'x, y[, z]' (normalised); '' = +Y (toward the cube)", read_only=True),
+    Param('close_path', '', "waypoints the grasping fingers close through instead of the "
+          "straight move, relative to rest: task_dim values per point, 'x0, y0, x1, y1, …' (the "
+          "last is the closed pose; e.g. the curve a one-input finger's tip can reach); '' = the "
+          'straight move along direction', 'm', read_only=True),
     Param('close_distance', _DEFAULTS.close_distance, 'travel of the grasping fingers along +Y '
-          '(toward the cube)', 'm', -0.1, 0.1, read_only=True),
+          '(direction; toward the cube)', 'm', -0.1, 0.1, read_only=True),
     Param('side_distance', _DEFAULTS.side_distance, 'travel of the grasping fingers along X while '
           'closing', 'm', -0.1, 0.1, read_only=True),
     Param('open_distance', _DEFAULTS.open_distance, "travel of the other fingers along −Y when "
@@ -102,7 +117,8 @@ PARAMS = (
           read_only=True),
     Param('horizon_step', 0.005, 'spacing of the absolute time grid of the plan\'s points', 's',
           1e-4, 1.0, read_only=True),
-    Param('rest_pose', '', "rest tips as 'x0, y0, x1, y1, …' (finger base frames); '' = the first "
+    Param('rest_pose', '', "rest tips as 'x0, y0, x1, y1, …' (finger base frames; x, y, z of each "
+          "with task_dim 3); '' = the first "
           "tip message. Give it when restarting the node mid-run: the tips then are not at rest",
           'm', read_only=True),
     Param('start_at', '', "when the plan starts (its origin), an absolute time in s on the "
@@ -115,18 +131,32 @@ PARAMS = (
 )
 
 
-def _rest_pose(text: str, n: int) -> np.ndarray | None:
-    """The (n, 2) rest pose of the ``rest_pose`` parameter, or None if it is empty."""
+def _numbers(text: str, name: str) -> np.ndarray | None:
+    """The finite numbers of the list parameter ``name`` ('a, b, …'), or None if it is empty."""
+    if not text.strip():
+        return None
+    try:
+        values = np.array([float(v) for v in text.replace(',', ' ').split()])
+    except ValueError:
+        raise ParameterError(f'parameter {name!r}: {text!r} is not a list of numbers') from None
+    if not np.all(np.isfinite(values)):
+        raise ParameterError(f'parameter {name!r}: {text!r} holds a value that is not finite')
+    return values
+
+
+def _rest_pose(text: str, n: int, d: int = 2) -> np.ndarray | None:
+    """The (n, d) rest pose of the ``rest_pose`` parameter, or None if it is empty."""
     if not text.strip():
         return None
     try:
         values = np.array([float(v) for v in text.replace(',', ' ').split()])
     except ValueError:
         raise ParameterError(f"parameter 'rest_pose': {text!r} is not a list of numbers") from None
-    if values.size != 2 * n or not np.all(np.isfinite(values)):
-        raise ParameterError(f"parameter 'rest_pose': needs {2 * n} finite numbers (x, y of each "
-                             f'finger), got {text!r}')
-    return values.reshape(n, 2)
+    if values.size != d * n or not np.all(np.isfinite(values)):
+        axes = 'x, y' if d == 2 else 'x, y, z'
+        raise ParameterError(f"parameter 'rest_pose': needs {d * n} finite numbers ({axes} of "
+                             f'each finger), got {text!r}')
+    return values.reshape(n, d)
 
 
 def _close_to(text: str) -> float | None:
@@ -167,6 +197,14 @@ def _profile(p: dict) -> GraspProfile:
     values = {name: p[name] for name in PROFILE_FIELDS}
     values['grasp_fingers'] = tuple(int(i) for i in values['grasp_fingers'])
     values['close_to'] = _close_to(values['close_to'])
+    d = int(p['task_dim'])
+    for name, per in (('direction', 'values'), ('close_path', 'values per waypoint')):
+        given = _numbers(values[name], name)
+        if given is not None and (given.size == 0 or given.size % d
+                                  or (name == 'direction' and given.size != d)):
+            raise ParameterError(f'parameter {name!r}: needs task_dim = {d} {per}, got '
+                                 f'{values[name]!r}')
+        values[name] = None if given is None else tuple(given.tolist())
     try:
         profile = GraspProfile(**values)
     except ValueError as exc:
@@ -176,6 +214,12 @@ def _profile(p: dict) -> GraspProfile:
     if any(i >= len(names) for i in profile.grasp_fingers):
         raise ParameterError(f"parameter 'grasp_fingers': {list(profile.grasp_fingers)} are not "
                              f'all indices into finger_names {names} (0 to {len(names) - 1})')
+    try:
+        GraspTrajectory(np.zeros((len(names), d)), profile, d)
+    except ValueError as exc:
+        name = next((f for f in ('close_path', 'direction') if str(exc).startswith(f)),
+                    'grasp profile')
+        raise ParameterError(f'parameter {name!r}: {exc}') from None
     return profile
 
 
@@ -196,6 +240,7 @@ class TrajectoryNode(Node):
         self.p = p
         self.names = tuple(p['finger_names'])
         self.n = len(self.names)
+        self.d = int(p['task_dim'])
         self.profile = _profile(p)
         self.step_ns = int(round(p['horizon_step'] * cv.NS))
         points = len(plan_offsets(self.profile.duration, self.step_ns, limit=MAX_PLAN_POINTS + 1))
@@ -205,7 +250,7 @@ class TrajectoryNode(Node):
                                  f'needs more than {MAX_PLAN_POINTS} points '
                                  '(one message); take a coarser grid')
         self.jump_ns = int(round(p['reset_on_jump'] * cv.NS))
-        self.fixed_rest = _rest_pose(p['rest_pose'], self.n)
+        self.fixed_rest = _rest_pose(p['rest_pose'], self.n, self.d)
         self.fixed_start = _start_at(p['start_at'])
         self.tips_qos = with_reliability(LOOP_QOS, p['tips_reliability'])
         self.origin_ns: int | None = None       # the plan's origin, once planned
@@ -217,7 +262,7 @@ class TrajectoryNode(Node):
         self.sub = None                         # the tip subscription, while a rest pose is wanted
         self.cdr_tips = cdr.tips_codec(self.names)  # CDR bytes read at fixed offsets (nodes/cdr.py)
         self.cdr_clock = cdr.clock_codec()
-        self.cdr_plan = PlanCodec(self.names)
+        self.cdr_plan = PlanCodec(self.names, self.d)
         self.pub = self.create_publisher(MultiDOFJointTrajectory, GRASP_REFERENCE, REFERENCE_QOS)
         self.sub_clock = self.create_subscription(Clock, CLOCK, self.on_clock, CLOCK_QOS, raw=True)
         # the tip subscription is dropped outside its own callback, by this timer
@@ -258,7 +303,7 @@ class TrajectoryNode(Node):
                               't_start): taking them as the rest pose (give rest_pose when '
                               'restarting mid-run)')
         self._drop_timer.reset()
-        self._plan(tips, f'from the tips at t = {format_time(stamp)} s', origin)
+        self._plan(tips[:, :self.d], f'from the tips at t = {format_time(stamp)} s', origin)
 
     def on_clock(self, data: bytes) -> None:
         try:
@@ -303,7 +348,7 @@ class TrajectoryNode(Node):
     def _plan(self, rest: np.ndarray, source: str, origin: int) -> None:
         """Plan the grasp from ``rest`` starting at ``origin`` [ns] and publish it (``source`` says
         where the rest came from)."""
-        self.traj = GraspTrajectory(rest, self.profile)
+        self.traj = GraspTrajectory(rest, self.profile, self.d)
         self.origin_ns = origin
         # both round-trip: a node restarted with these values plans the very same points
         self.diag.values['rest_pose'] = ', '.join(repr(v) for v in self.traj.rest.ravel().tolist())
@@ -313,7 +358,8 @@ class TrajectoryNode(Node):
         ref = self.traj.sample(offsets / cv.NS)          # relative times: the same at any origin
         self.pub.publish(self.cdr_plan.encode(origin, offsets, ref.pos, ref.vel, ref.acc))
         self.diag.count('references')
-        mm = ', '.join(f'({1e3 * x:.2f}, {1e3 * y:.2f})' for x, y in self.traj.rest.tolist())
+        mm = ', '.join('(' + ', '.join(f'{1e3 * v:.2f}' for v in row) + ')'
+                       for row in self.traj.rest.tolist())
         self.get_logger().info(f'planned {len(offsets)} points from t = {format_time(origin)} s '
                                f'over {offsets[-1] / cv.NS:g} s from the rest pose {source} [mm]: '
                                f'{mm}')
