@@ -34,6 +34,8 @@ NEWTON_ITERATIONS = 30
 NEWTON_TOL = 1e-9
 #: finite-difference step of the curve's Jacobian [m]
 JACOBIAN_STEP = 1e-6
+#: an input within this share of its range outside a bound still counts as within it (rounding)
+AT_BOUND = 1e-9
 
 
 def input_map(model, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -86,7 +88,8 @@ def holdable_travel(model, facts: DataFacts) -> float:
         over = np.flatnonzero(~(need <= HOLD_SHARE * facts.torque_limit))   # NaN counts as over
     else:
         box = hold_bounds(facts.bounds)
-        inside = np.all((u >= box.lower) & (u <= box.upper), axis=1)     # NaN counts as over
+        tol = AT_BOUND * (box.upper - box.lower)          # rounding at a one-sided input's rest
+        inside = np.all((u >= box.lower - tol) & (u <= box.upper + tol), axis=1)   # NaN: over
         over = np.flatnonzero(~inside)
     if not over.size:
         return facts.travel
@@ -117,7 +120,8 @@ class EquilibriumCurve:
 
     def holdable_length(self, box: InputBounds) -> float:
         """The arc length [m] up to which every input of the curve lies within ``box``."""
-        inside = np.all((self.inputs >= box.lower - 1e-15) & (self.inputs <= box.upper + 1e-15),
+        tol = AT_BOUND * (box.upper - box.lower)
+        inside = np.all((self.inputs >= box.lower - tol) & (self.inputs <= box.upper + tol),
                         axis=1)
         out = np.flatnonzero(~inside)
         return float(self.arc[out[0] - 1] if out.size and out[0] > 0 else

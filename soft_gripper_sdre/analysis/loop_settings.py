@@ -89,7 +89,7 @@ from soft_gripper_sdre.control.kf import ConstantVelocityKF
 from soft_gripper_sdre.control.laws import make_law
 from soft_gripper_sdre.control.riccati import sdre_gains
 from soft_gripper_sdre.control.tracking import Weights
-from soft_gripper_sdre.control.trajectory import GraspProfile, GraspTrajectory, ReferenceSample
+from soft_gripper_sdre.control.trajectory import GraspProfile, GraspTrajectory
 from soft_gripper_sdre.sim.shape import InputBounds
 
 #: closed-loop bandwidths tried [Hz], kept below a :data:`RATE_FRACTION` of the sampling rate
@@ -214,63 +214,34 @@ class _GainError:
         return model_fitness.xdot(self.model, x, self.k * np.asarray(u))
 
 
-def raised_cosine(t: np.ndarray, p: GraspProfile) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The trajectory node's progress s(t) ∈ [0, 1] along the move and its first two time
-    derivatives: a raised cosine out over ``t_close`` after ``t_start``, held ``t_hold``, and
-    back over ``t_open`` (:mod:`~soft_gripper_sdre.control.trajectory`)."""
-    t = np.asarray(t, dtype=float)
-    s, sd, sdd = np.zeros_like(t), np.zeros_like(t), np.zeros_like(t)
-    t1, t2 = p.t_start, p.t_start + p.t_close
-    t3, t4 = t2 + p.t_hold, t2 + p.t_hold + p.t_open
-    for lo, hi, span, sign in ((t1, t2, p.t_close, 1.0), (t3, t4, p.t_open, -1.0)):
-        on = (t >= lo) & (t < hi)
-        w = math.pi / span
-        tau = t[on] - lo
-        s[on] = 0.5 * (1.0 - sign * np.cos(w * tau))
-        sd[on] = sign * 0.5 * w * np.sin(w * tau)
-        sdd[on] = sign * 0.5 * w * w * np.cos(w * tau)
-    s[(t >= t2) & (t < t3)] = 1.0
-    return s, sd, sdd
-
-
-@dataclass(frozen=True)
-class PathMove:
-    """A move through ``waypoints`` (K, d) relative to rest, from rest on, at the progress
-    :func:`raised_cosine` along their polyline by arc length: p = c(s L), ṗ = c′ ṡ L,
-    p̈ = c′ s̈ L (c′ the unit tangent of the segment; the waypoints are dense enough that the
-    polyline's corners are neglected)."""
-
-    waypoints: np.ndarray
-    profile: GraspProfile
-
-    def sample(self, t) -> ReferenceSample:
-        """Reference at times ``t`` (T,): arrays (T, 1, d) relative to rest."""
-        wp = np.asarray(self.waypoints, dtype=float)
-        seg = np.diff(wp, axis=0)
-        lengths = np.linalg.norm(seg, axis=1)
-        arc = np.concatenate([[0.0], np.cumsum(lengths)])
-        total = float(arc[-1])
-        s, sd, sdd = raised_cosine(np.atleast_1d(t), self.profile)
-        at = s * total
-        pos = np.stack([np.interp(at, arc, wp[:, i]) for i in range(wp.shape[1])], axis=1)
-        k = np.clip(np.searchsorted(arc, at, side='right') - 1, 0, len(seg) - 1)
-        tangent = seg[k] / np.where(lengths[k] > 0, lengths[k], 1.0)[:, None]
-        vel = tangent * (sd * total)[:, None]
-        acc = tangent * (sdd * total)[:, None]
-        return ReferenceSample(pos[:, None], vel[:, None], acc[:, None])
-
-
-def check_move(facts: DataFacts) -> GraspTrajectory | PathMove:
-    """The check's reference for one finger at the model's rest: a raised-cosine move of
-    ``facts.travel`` along ``facts.direction`` (a planar straight move: the trajectory node's
-    ``close_distance`` and ``side_distance``), along ``facts.axis`` (3-D), or through
-    ``facts.path`` (a curved move), held, and back (:data:`CHECK_PROFILE`)."""
-    close, side = facts.move()
-    profile = GraspProfile(close_distance=close, side_distance=side, grasp_fingers=(0,),
-                           others='hold', contact_distance=close, **CHECK_PROFILE)
+def check_move(facts: DataFacts) -> GraspTrajectory:
+    """The check's reference for one finger at the model's rest: the trajectory node's
+    raised-cosine move of ``facts.travel`` along ``facts.direction`` (planar:
+    ``close_distance`` and ``side_distance``), along ``facts.axis`` (3-D: ``direction``), or
+    through ``facts.path`` (``close_path``), held, and back (:data:`CHECK_PROFILE`)."""
     if facts.d == 2 and facts.path is None:
+        close, side = facts.move()
+        profile = GraspProfile(close_distance=close, side_distance=side, grasp_fingers=(0,),
+                               others='hold', contact_distance=close, **CHECK_PROFILE)
         return GraspTrajectory(np.zeros((1, 2)), profile)
-    return PathMove(facts.waypoints(), profile)
+    plan = _plan(facts)
+    profile = GraspProfile(close_distance=plan['close_distance'],
+                           contact_distance=plan['contact_distance'], grasp_fingers=(0,),
+                           others='hold', direction=tuple(plan['direction']),
+                           close_path=(tuple(plan['close_path']) if 'close_path' in plan
+                                       else None), **CHECK_PROFILE)
+    return GraspTrajectory(np.zeros((1, facts.d)), profile, dim=facts.d)
+
+
+def _plan(facts: DataFacts) -> dict:
+    """The trajectory node's parameters of a 3-D or curved move: ``direction`` (the straight
+    move's unit direction, or the chord of the curve), ``close_distance`` (its length, or the
+    curve's arc length) and ``close_path`` (the curve's waypoints after the rest, flat)."""
+    plan = {'task_dim': facts.d, 'direction': [float(v) for v in facts.unit],
+            'close_distance': float(facts.travel), 'contact_distance': float(facts.travel)}
+    if facts.path is not None:
+        plan['close_path'] = [float(v) for v in np.asarray(facts.path)[1:].reshape(-1)]
+    return plan
 
 
 class _SpatialKF:
@@ -449,8 +420,9 @@ class Derivation:
         straight move as ``close_distance`` and ``side_distance``); another shape adds
         ``task_dim`` (estimator, trajectory), ``input_lower``/``input_upper`` (controller) for
         per-input bounds, and the move as ``direction`` (d values, the unit direction) with
-        ``close_distance`` its length, or as ``close_path`` (d values per waypoint, relative to
-        rest, flat) for a curved move.
+        ``close_distance`` its length, and for a curved move ``close_path`` (d values per
+        waypoint after the rest, relative to it, flat; ``direction`` its chord), both as the
+        node's text ``'x, y[, z], …'``.
 
         Raises:
             ValueError: no settings were derived (:attr:`reason`).
@@ -474,12 +446,9 @@ class Derivation:
             plan = {'close_distance': close, 'side_distance': side, 'contact_distance': close}
         else:
             est['task_dim'] = f.d
-            plan = {'task_dim': f.d, 'close_distance': float(f.travel),
-                    'contact_distance': float(f.travel)}
-            if f.path is None:
-                plan['direction'] = [float(v) for v in f.unit]
-            else:
-                plan['close_path'] = [float(v) for v in np.asarray(f.path).reshape(-1)]
+            # the trajectory node reads both as text, 'x, y[, z], …'
+            plan = {k: (', '.join(repr(v) for v in value) if isinstance(value, list) else value)
+                    for k, value in _plan(f).items()}
         return {'estimator': est, 'controller': ctrl, 'trajectory': plan}
 
     def move_text(self) -> str:
