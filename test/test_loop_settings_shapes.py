@@ -161,7 +161,8 @@ def test_a_straight_move_off_the_curve_is_never_the_one_checked():
     derived = ls.derive(model, _chamber_facts(direction=90.0), bandwidths=())
     assert derived.settings is None and derived.facts.path is not None
     end = np.asarray(derived.facts.path[-1])
-    assert np.abs(model.statics(end, holding.hold_torques(model, end[None])[0, 0])).max() < 1e-6
+    u = holding.hold_torques(model, end[None])[0, 0]
+    assert np.abs(model.statics(end, u)).max() < 1e-3 * model.g[0] * u        # on the curve
     u = holding.hold_torques(model, np.array([[0.0, 2e-3]]))
     free, G2 = holding.input_map(model, np.array([[0.0, 2e-3]]))
     assert np.linalg.norm(free[0] + G2[0] @ u[0]) > 1.0        # no input holds (0, 2 mm)
