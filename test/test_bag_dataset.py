@@ -85,8 +85,8 @@ BAD_BAGS = {
                     '/torque_commands holds NaN or Inf in 1 message(s)'),
     'torques of other joints': (dict(torques=torque_messages(STAMPS, TORQUES,
                                                              names=['left', 'right'])),
-                                "names ['left', 'right']; expected '<finger>/ax0' and "
-                                "'<finger>/ax1' for each of the 1"),
+                                "names ['left', 'right']; expected '<finger>/ax0' … "
+                                "'<finger>/ax<m-1>' for each of the 1"),
     'poses per message change': (dict(tips=_changing_poses()),
                                  '/tip_positions message 50 holds 2 poses, the first held 1'),
     'nothing excited': (dict(torques=torque_messages(STAMPS, np.zeros_like(TORQUES))),

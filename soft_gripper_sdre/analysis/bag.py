@@ -6,12 +6,16 @@ namespaced recording ('/sim/tip_positions') is found by its last name component 
 
 :func:`extract_run` turns one run into SI arrays on each topic's own time axis (header stamps, sim
 time, seconds); malformed messages (wrong sizes or names — the recorder keeps whatever was sent)
-are skipped and counted.
+are skipped and counted. The finger's shape comes from the run: its m inputs from the command
+names ``<finger>/ax<k>``, its task dimension d from the estimates (3 when any estimate carries a
+z, which a planar estimator leaves 0).
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+import functools
 from pathlib import Path
+import re
 
 import numpy as np
 from rosbags.highlevel import AnyReader, AnyReaderError
@@ -48,10 +52,10 @@ class Series:
 class Run:
     """One recorded run as arrays (see :func:`extract_run`)."""
 
-    tips: Series                 # (T, n, 2) tip X, Y [m] in each finger's base frame
-    estimate: Series             # (T, n, 4) X, Y [m], Ẋ, Ẏ [m/s]
-    torques: Series              # (T, n, 2) commanded u_ax0, u_ax1 [N·m]
-    reference: Series            # on the tip times: (T, n, 4) X_d, Y_d [m], Ẋ_d, Ẏ_d [m/s]
+    tips: Series                 # (T, n, d) tip X, Y (, Z) [m] in each finger's base frame
+    estimate: Series             # (T, n, 2d) X, Y (, Z) [m], Ẋ, Ẏ (, Ż) [m/s]
+    torques: Series              # (T, n, m) commanded u_ax0 … u_ax<m−1> [N·m or the input's unit]
+    reference: Series            # on the tip times: (T, n, 2d) p_d [m], ṗ_d [m/s]
     contacts: Series | None      # (T, n) normal force of each finger on the cube [N]
     cube_pose: Series | None     # (T, 7) x, y, z [m], qx, qy, qz, qw
     joints: Series | None = None  # (T, n, 2, 10) each finger's joint angles [rad] and rates [rad/s]
@@ -62,6 +66,16 @@ class Run:
     @property
     def n_fingers(self) -> int:
         return self.tips.values.shape[1]
+
+    @property
+    def task_dim(self) -> int:
+        """The tips' task dimension d."""
+        return self.tips.values.shape[2]
+
+    @property
+    def n_inputs(self) -> int:
+        """The inputs m of each finger."""
+        return self.torques.values.shape[2]
 
 
 class _Malformed(ValueError):
@@ -150,18 +164,48 @@ def _order(names, expected: list[str]) -> list[int]:
     return [names.index(n) for n in expected]
 
 
-def _tips(msg, names: tuple[str, ...]) -> np.ndarray:
+def _tips(msg, names: tuple[str, ...], d: int = 2) -> np.ndarray:
     n = len(names)
     if len(msg.poses) != n:
         raise _Malformed(f'{len(msg.poses)} poses, expected {n}')
-    return np.array([(p.position.x, p.position.y) for p in msg.poses], dtype=float)
+    if d == 2:
+        return np.array([(p.position.x, p.position.y) for p in msg.poses], dtype=float)
+    return np.array([(p.position.x, p.position.y, p.position.z) for p in msg.poses], dtype=float)
 
 
-def _torques(msg, names: tuple[str, ...]) -> np.ndarray:
-    torques = [f'{name}/ax{a}' for name in names for a in range(2)]
+def _torques(msg, names: tuple[str, ...], m: int = 2) -> np.ndarray:
+    torques = [f'{name}/ax{a}' for name in names for a in range(m)]
     if len(msg.effort) != len(msg.name):
         raise _Malformed('names and efforts differ in length')
-    return np.asarray(msg.effort, dtype=float)[_order(msg.name, torques)].reshape(len(names), 2)
+    return np.asarray(msg.effort, dtype=float)[_order(msg.name, torques)].reshape(len(names), m)
+
+
+_INPUT_NAME = re.compile(r'(.+)/ax(\d+)')
+
+
+def _inputs(messages, names: tuple[str, ...]) -> int:
+    """The inputs m per finger of the first command whose names are ``<finger>/ax<k>`` of
+    ``names`` with k = 0 … m−1 for every finger (2, the hand's, when none is)."""
+    for _, msg in messages:
+        found = [_INPUT_NAME.fullmatch(name) for name in msg.name]
+        if not found or not all(found):
+            continue
+        per: dict[str, set[int]] = {}
+        for match in found:
+            per.setdefault(match.group(1), set()).add(int(match.group(2)))
+        counts = {len(ks) for ks in per.values()}
+        if set(per) == set(names) and len(counts) == 1:
+            m = counts.pop()
+            if all(ks == set(range(m)) for ks in per.values()):
+                return m
+    return 2
+
+
+def _planar(messages) -> bool:
+    """No state_estimate carries a z (position or velocity): the estimator's tips are planar."""
+    return not any(tf.translation.z != 0.0 or tw.linear.z != 0.0
+                   for _, msg in messages for pt in msg.points[:1]
+                   for tf, tw in zip(pt.transforms, pt.velocities))
 
 
 def _contacts(msg, names: tuple[str, ...]) -> np.ndarray:
@@ -170,8 +214,8 @@ def _contacts(msg, names: tuple[str, ...]) -> np.ndarray:
     return np.asarray(msg.effort, dtype=float)[_order(msg.name, list(names))]
 
 
-def _points(msg, names: tuple[str, ...]) -> np.ndarray:
-    """(h, n, 4) [X, Y, Ẋ, Ẏ] of every point of a MultiDOFJointTrajectory."""
+def _points(msg, names: tuple[str, ...], d: int = 2) -> np.ndarray:
+    """(h, n, 2d) [p; ṗ] of every point of a MultiDOFJointTrajectory ([X, Y, Ẋ, Ẏ] for d = 2)."""
     n = len(names)
     idx = _order(msg.joint_names, list(names))
     if not msg.points:
@@ -180,24 +224,29 @@ def _points(msg, names: tuple[str, ...]) -> np.ndarray:
     for pt in msg.points:
         if len(pt.transforms) != n or len(pt.velocities) != n:
             raise _Malformed('a point does not hold one entry per finger')
-        out.append([(pt.transforms[j].translation.x, pt.transforms[j].translation.y,
-                     pt.velocities[j].linear.x, pt.velocities[j].linear.y) for j in idx])
+        if d == 2:
+            out.append([(pt.transforms[j].translation.x, pt.transforms[j].translation.y,
+                         pt.velocities[j].linear.x, pt.velocities[j].linear.y) for j in idx])
+        else:
+            out.append([(pt.transforms[j].translation.x, pt.transforms[j].translation.y,
+                         pt.transforms[j].translation.z, pt.velocities[j].linear.x,
+                         pt.velocities[j].linear.y, pt.velocities[j].linear.z) for j in idx])
     return np.asarray(out, dtype=float)
 
 
-def _estimate(msg, names: tuple[str, ...]) -> np.ndarray:
-    points = _points(msg, names)
+def _estimate(msg, names: tuple[str, ...], d: int = 2) -> np.ndarray:
+    points = _points(msg, names, d)
     if len(points) != 1:
         raise _Malformed(f'{len(points)} points, expected 1')
     return points[0]
 
 
-def _horizon(msg, names: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
-    """Absolute point times [ns] (h,) and states (h, n, 4) of a reference horizon."""
+def _horizon(msg, names: tuple[str, ...], d: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """Absolute point times [ns] (h,) and states (h, n, 2d) of a reference horizon."""
     stamp = _stamp(msg)
     times = np.array([stamp + int(pt.time_from_start.sec) * NS + int(pt.time_from_start.nanosec)
                       for pt in msg.points], dtype=np.int64)
-    points = _points(msg, names)
+    points = _points(msg, names, d)
     if np.any(np.diff(times) <= 0):
         raise _Malformed('point times are not increasing')
     return times, points
@@ -240,20 +289,20 @@ def _collect(messages, parse, names: tuple[str, ...], skipped: dict[str, int],
 
 def sample_reference(t_ns: np.ndarray, ref_stamps: np.ndarray,
                      horizons: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
-    """The reference in force at each time ``t_ns``: (T, n, 4), NaN before the first message.
+    """The reference in force at each time ``t_ns``: (T, n, 2d), NaN before the first message.
 
     For each time the latest message stamped at or before it is used; its points are interpolated
     linearly between the two whose absolute times bracket the time (held at the horizon's end).
     """
-    n = horizons[0][1].shape[1] if horizons else 0
-    out = np.full((len(t_ns), n, 4), np.nan)
+    n, k = horizons[0][1].shape[1:] if horizons else (0, 4)
+    out = np.full((len(t_ns), n, k), np.nan)
     which = np.searchsorted(ref_stamps, t_ns, side='right') - 1
     for m in np.unique(which[which >= 0]):
         rows = np.flatnonzero(which == m)
         times, points = horizons[m]
         flat = points.reshape(len(times), -1)
         out[rows] = np.stack([np.interp(t_ns[rows], times, flat[:, c])
-                              for c in range(flat.shape[1])], axis=1).reshape(len(rows), n, 4)
+                              for c in range(flat.shape[1])], axis=1).reshape(len(rows), n, k)
     return out
 
 
@@ -261,8 +310,10 @@ def extract_run(path: str | Path) -> Run:
     """One run of the graph from a bag, as arrays (shapes in :class:`Run`).
 
     The number of fingers n comes from the first tip_positions message with poses, their names
-    from the first state_estimate message with n joint names (finger_0.. if there is none). The
-    reference is sampled at the tip times by :func:`sample_reference`.
+    from the first state_estimate message with n joint names (finger_0.. if there is none), the
+    inputs m from the first command named ``<finger>/ax0`` … ``<finger>/ax<m−1>`` (2 if none is),
+    the task dimension d from the estimates (3 when any carries a z). The reference is sampled at
+    the tip times by :func:`sample_reference`.
 
     Raises:
         BagError: the bag is missing or unreadable, lacks one of :data:`REQUIRED_TOPICS`, or holds
@@ -296,11 +347,13 @@ def extract_run(path: str | Path) -> Run:
         stamps, values = collect(topic, parse)
         return Series(stamps / NS, np.asarray(values))
 
-    tip_ns, tips = collect(TIP_POSITIONS, _tips)
-    ref_ns, horizons = collect(GRASP_REFERENCE, _horizon)
+    d = 2 if _planar(by_name[STATE_ESTIMATE]) else 3
+    m = _inputs(by_name[TORQUE_COMMANDS], names)
+    tip_ns, tips = collect(TIP_POSITIONS, functools.partial(_tips, d=d))
+    ref_ns, horizons = collect(GRASP_REFERENCE, functools.partial(_horizon, d=d))
     return Run(tips=Series(tip_ns / NS, np.asarray(tips)),
-               estimate=series(STATE_ESTIMATE, _estimate),
-               torques=series(TORQUE_COMMANDS, _torques),
+               estimate=series(STATE_ESTIMATE, functools.partial(_estimate, d=d)),
+               torques=series(TORQUE_COMMANDS, functools.partial(_torques, m=m)),
                reference=Series(tip_ns / NS, sample_reference(tip_ns, ref_ns, horizons)),
                contacts=series(CUBE_CONTACTS, _contacts), cube_pose=series(CUBE_POSE, _cube_pose),
                joints=series(JOINT_STATES, _joints), counts=counts, skipped=skipped,

@@ -32,7 +32,6 @@ from __future__ import annotations
 from collections import Counter
 from dataclasses import dataclass
 import enum
-import inspect
 from typing import NamedTuple
 
 import numpy as np
@@ -50,79 +49,16 @@ MAX_BRIDGE = 0.05
 
 
 def make_kf(dt: float, accel_psd: float, meas_std: float, n: int,
-            process_noise: str = 'independent', d: int = 2):
-    """The constant-velocity KF of ``n`` fingers whose tips have ``d`` coordinates (2 or 3).
-
-    d = 2 is :class:`~soft_gripper_sdre.control.kf.ConstantVelocityKF` as the hand uses it (its
-    compiled step). d = 3 is that filter built for three axes where it takes ``d``; where it does
-    not, :class:`AxisPairsKF` (a temporary stand-in, exact for independent axes).
+            process_noise: str = 'independent', d: int = 2) -> ConstantVelocityKF:
+    """The constant-velocity KF of ``n`` fingers whose tips have ``d`` coordinates (2 or 3): for
+    d = 2 built exactly as the hand's loop builds it (its compiled step).
 
     Raises:
-        ValueError: a value the filter refuses, or d not 2 or 3.
+        ValueError: a value the filter refuses (d not 2 or 3 among them).
     """
     if d == 2:
         return ConstantVelocityKF(dt, accel_psd, meas_std, n=n, process_noise=process_noise)
-    if d != 3:
-        raise ValueError(f'the task dimension must be 2 or 3, got {d!r}')
-    if 'd' in inspect.signature(ConstantVelocityKF).parameters:
-        return ConstantVelocityKF(dt, accel_psd, meas_std, n=n, process_noise=process_noise, d=d)
-    return AxisPairsKF(dt, accel_psd, meas_std, n, process_noise)
-
-
-class AxisPairsKF:
-    """A constant-velocity KF of ``n`` 3-D tips from two planar
-    :class:`~soft_gripper_sdre.control.kf.ConstantVelocityKF`: one on (X, Y), one on (Z, Z) whose
-    first axis is kept. With independent process noise on each axis (``'independent'``), a
-    diagonal Σ_r and a diagonal initial covariance, the axes of the planar filter never couple, so
-    this is exactly the 3-axis filter.
-
-    A stand-in while :class:`~soft_gripper_sdre.control.kf.ConstantVelocityKF` takes no ``d``;
-    ``x`` (n, 6) = [X, Y, Z, Ẋ, Ẏ, Ż].
-
-    Raises:
-        ValueError: ``process_noise='paper'`` (one noise driving every axis couples them), or a
-            value the planar filter refuses.
-    """
-
-    d = 3
-
-    def __init__(self, dt: float, accel_psd: float, meas_std: float, n: int,
-                 process_noise: str = 'independent') -> None:
-        if process_noise != 'independent':
-            raise ValueError(f"parameter 'process_noise': {process_noise!r} couples the axes; "
-                             "a 3-D tip (task_dim 3) takes 'independent'")
-        self.xy = ConstantVelocityKF(dt, accel_psd, meas_std, n=n, process_noise=process_noise)
-        self.zz = ConstantVelocityKF(dt, accel_psd, meas_std, n=n, process_noise=process_noise)
-        self.dt, self.n = self.xy.dt, self.xy.n
-
-    @property
-    def x(self) -> np.ndarray:
-        """(n, 6) the estimate [p; ṗ]."""
-        xy, zz = self.xy.x, self.zz.x
-        return np.column_stack([xy[:, :2], zz[:, 0], xy[:, 2:], zz[:, 2]])
-
-    def reset(self, z0: np.ndarray | None = None) -> None:
-        """Start over at positions z0 (n, 3) (zero if None), zero velocity."""
-        if z0 is None:
-            self.xy.reset()
-            self.zz.reset()
-            return
-        z0 = np.asarray(z0, dtype=float)
-        if z0.shape != (self.n, 3):
-            raise ValueError(f'z0 must have shape ({self.n}, 3), got {z0.shape}')
-        self.xy.reset(z0[:, :2])
-        self.zz.reset(z0[:, [2, 2]])
-
-    def step(self, z: np.ndarray, valid: np.ndarray | None = None,
-             dt: float | None = None) -> np.ndarray:
-        """Predict over ``dt`` (None: the filter's own) and update with z (n, 3); rows with
-        ``valid`` False only predict. Returns a copy of x̂ (n, 6)."""
-        z = np.asarray(z, dtype=float)
-        if z.shape != (self.n, 3):
-            raise ValueError(f'z must have shape ({self.n}, 3), got {z.shape}')
-        self.xy.step(z[:, :2], valid, dt)
-        self.zz.step(z[:, [2, 2]], valid, dt)
-        return self.x
+    return ConstantVelocityKF(dt, accel_psd, meas_std, n=n, process_noise=process_noise, d=d)
 
 
 class Change(enum.Enum):
@@ -157,7 +93,7 @@ class TipFilter:
 
     Args:
         kf: the filter to initialise and step (:func:`make_kf`); its ``n`` is the number of
-            fingers, its ``d`` (2 when it has none) the tips' coordinates.
+            fingers, its ``d`` the tips' coordinates.
         period_ns: the source's nominal period [ns]: it decides which stamp steps are gaps and
             which lie on the nominal grid.
         reset_jump_ns: a stamp jump larger than this (either direction) resets the filter.
@@ -172,7 +108,7 @@ class TipFilter:
     def __init__(self, kf: ConstantVelocityKF, period_ns: int, reset_jump_ns: int,
                  max_bridge_ns: int, counters: Counter | None = None) -> None:
         self.kf = kf
-        self.d = int(getattr(kf, 'd', 2))
+        self.d = kf.d
         self.period_ns = int(period_ns)
         self.gap_ns = int(GAP_PERIODS * self.period_ns)
         self.reset_jump_ns = int(reset_jump_ns)

@@ -179,12 +179,13 @@ class RollOff:
 
 def shape_of(model) -> FingerShape:
     """The finger shape a model controls: ``model.shape`` where it has one (an
-    :class:`~soft_gripper_sdre.learning.model.SDCModel`), else inferred from ``model.AG`` on a zero
-    state: the d (2, then 3) for which AG(0 (1, 2d)) answers A (1, 2d, 2d) and G (1, 2d, m).
+    :class:`~soft_gripper_sdre.learning.model.SDCModel`), else inferred on a zero state from
+    ``model.AG`` (the d, 2 then 3, for which AG(0 (1, 2d)) answers A (1, 2d, 2d) and G (1, 2d, m))
+    or, for a model with only ``sdc_blocks``, from its lower rows (A2 (1, d, 2d), G2 (1, d, m)).
 
     Raises:
-        ShapeError: the model has neither a shape nor an AG answering like that, or the shape it
-            has is not a :class:`~soft_gripper_sdre.sim.shape.FingerShape`.
+        ShapeError: the model has no shape and neither AG nor sdc_blocks answering like that, or
+            the shape it has is not a :class:`~soft_gripper_sdre.sim.shape.FingerShape`.
     """
     shape = getattr(model, 'shape', None)
     if shape is not None:
@@ -192,23 +193,26 @@ def shape_of(model) -> FingerShape:
             raise ShapeError(f'model.shape must be a FingerShape, got {shape!r}')
         return shape
     AG = getattr(model, 'AG', None)
-    if AG is None:
-        raise ShapeError(f'the model ({type(model).__name__}) has neither a shape nor AG(x)')
+    blocks = getattr(model, 'sdc_blocks', None)
+    if AG is None and blocks is None:
+        raise ShapeError(f'the model ({type(model).__name__}) has neither a shape nor AG(x) or '
+                         'sdc_blocks(x)')
     answers = []
     for d in (2, 3):
         n = 2 * d
         try:
-            A, G = AG(np.zeros((1, n)))
+            A, G = (AG if AG is not None else blocks)(np.zeros((1, n)))
             a_shape, g_shape = np.shape(A), np.shape(G)
         except Exception as exc:        # a model of another d may fail on this state in any way
             answers.append(f'd={d}: {type(exc).__name__}')
             continue
-        if (len(a_shape) == 3 and a_shape == (1, n, n) and len(g_shape) == 3
-                and g_shape[:2] == (1, n)):
+        rows = n if AG is not None else d
+        if (len(a_shape) == 3 and a_shape == (1, rows, n) and len(g_shape) == 3
+                and g_shape[:2] == (1, rows)):
             return FingerShape(d, g_shape[2])
-        answers.append(f'd={d}: A {a_shape}, G {g_shape}')
-    raise ShapeError(f'cannot tell the shape of the model ({type(model).__name__}): AG on a zero '
-                     f'state gave {"; ".join(answers)}')
+        answers.append(f'd={d}: {a_shape}, {g_shape}')
+    raise ShapeError(f'cannot tell the shape of the model ({type(model).__name__}): on a zero '
+                     f'state it gave {"; ".join(answers)}')
 
 
 def hand_path(shape: FingerShape, bounds: InputBounds) -> bool:

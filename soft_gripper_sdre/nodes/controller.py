@@ -77,6 +77,7 @@ from soft_gripper_sdre.control.tracking import (
     DEFAULT_LOWPASS_HZ,
     DEFAULT_WEIGHTS,
     roll_off_corner_hz,
+    shape_of,
 )
 from soft_gripper_sdre.learning.model import ModelFileError, SDCModel, set_torch_threads
 from soft_gripper_sdre.nodes import cdr
@@ -89,6 +90,8 @@ from soft_gripper_sdre.nodes.params import (
     ParameterError,
     declare_all,
     finger_names_param,
+    numbers,
+    numbers_param,
     on_runtime_change,
 )
 from soft_gripper_sdre.nodes.plan_cdr import PlanCodec
@@ -102,12 +105,6 @@ from soft_gripper_sdre.nodes.topics import (
 )
 from soft_gripper_sdre.nodes.tracking_step import TrackingStep
 from soft_gripper_sdre.sim.shape import HAND_SHAPE, InputBounds, ShapeError
-
-try:
-    from soft_gripper_sdre.control.tracking import shape_of
-except ImportError:        # a stand-in until control.tracking infers the shape of any model
-    def shape_of(model):
-        return getattr(model, 'shape', HAND_SHAPE)
 
 PARAMS = (
     Param('model_path', '', 'SDC model checkpoint (.pt); empty = the model shipped with the '
@@ -125,12 +122,12 @@ PARAMS = (
     Param('torque_limit', 0.0625, 'saturation of each torque (0.0625 N·m = 25 sim units, the '
           'stable range of the physics step) when input_lower and input_upper are empty', 'N·m',
           1e-6, 1.0, read_only=True),
-    Param('input_lower', '', "lower bound of each of the model's m inputs, as 'l0, l1, …' in "
-          "each input's SI unit (e.g. '0' for a pneumatic chamber or a tendon); '' with "
-          'input_upper \'\' = -torque_limit on each input', read_only=True),
-    Param('input_upper', '', "upper bound of each of the model's m inputs, as 'u0, u1, …' (each "
-          "above its lower bound); '' with input_lower '' = torque_limit on each input",
-          read_only=True),
+    numbers_param('input_lower', "lower bound of each of the model's m inputs in its SI unit, a "
+                  "list [l0, l1, …] (e.g. [0.0] for a pneumatic chamber or a tendon); '' with "
+                  "input_upper '' = -torque_limit on each input"),
+    numbers_param('input_upper', "upper bound of each of the model's m inputs, a list "
+                  "[u0, u1, …], each above its lower bound; '' with input_lower '' = "
+                  'torque_limit on each input'),
     Param('torque_lowpass_hz', DEFAULT_LOWPASS_HZ, 'first-order roll-off of the torque command '
           '(keeps the loop out of the finger\'s ~59 Hz bending mode; 0 = off); its corner is '
           'capped at a tenth of the control rate, 0.1 / control_period (10 Hz at 10 ms)', 'Hz',
@@ -194,10 +191,15 @@ class ControllerNode(Node):
         set_torch_threads(1)
         self.model = load_model(p['model_path'])
         self.shape = shape_of(self.model)
-        #: the bounds the law was given (None: ±torque_limit, the law's own), and those in force
-        self.law_bounds = input_bounds(p, self.shape.m)
-        self.bounds = (InputBounds.symmetric(p['torque_limit'], self.shape.m)
-                       if self.law_bounds is None else self.law_bounds)
+        #: the bounds in force, and those the law is given besides its ±limit (None: the
+        #: symmetric bounds of input_lower / input_upper, or ±torque_limit, are that limit)
+        self.bounds = input_bounds(p, self.shape.m)
+        self.law_bounds = self.bounds
+        limit = p['torque_limit']
+        if self.bounds is None:
+            self.bounds = InputBounds.symmetric(limit, self.shape.m)
+        elif self.bounds.symmetric_limit is not None:
+            limit, self.law_bounds = self.bounds.symmetric_limit, None
         self.names = tuple(p['finger_names'])
         self.n = len(self.names)
         self.effort_order = None            # index into u.ravel() of each effort_topic entry
@@ -208,7 +210,8 @@ class ControllerNode(Node):
             except ValueError as exc:
                 raise ParameterError(f'parameter \'effort_joints\': {exc}') from None
         try:
-            self.tuning = LawTuning(self.model, self.n, p, bounds=self.law_bounds)
+            self.tuning = LawTuning(self.model, self.n, {**p, 'torque_limit': limit},
+                                    bounds=self.law_bounds)
         except ValueError as exc:
             raise ParameterError(f'law/state_weights/integral_gain/pd_kp/pd_kd: {exc}') from None
         on_runtime_change(self, PARAMS, validate=self.tuning.check, apply=self._apply)
@@ -266,7 +269,7 @@ class ControllerNode(Node):
                          if self.tuning.uses('integral_gain') else '')
         rest = ', '.join(f'{1e3 * v:.1f}' for v in model.rest_tip[:self.shape.d])
         shape = '' if self.shape == HAND_SHAPE else f'{self.shape}; '
-        limit = (f'limit {p["torque_limit"]:g} N·m' if self.law_bounds is None
+        limit = (f'limit {self.tuning.params["torque_limit"]:g} N·m' if self.law_bounds is None
                  else f'inputs {self.bounds}')
         self.get_logger().info(
             f'model {model.path.name} ({shape}rest tip {rest} mm'
@@ -375,7 +378,7 @@ def input_bounds(p: dict, m: int) -> InputBounds | None:
         ParameterError: a list that is not numbers, one list empty and the other not, not one
             value per input, or an empty interval (the message names the parameters).
     """
-    lower, upper = (_numbers(p[name], name) for name in ('input_lower', 'input_upper'))
+    lower, upper = (numbers(p[name], name) for name in ('input_lower', 'input_upper'))
     if lower is None and upper is None:
         return None
     if lower is None or upper is None:
@@ -385,16 +388,6 @@ def input_bounds(p: dict, m: int) -> InputBounds | None:
         return InputBounds.parse(lower, upper, m, "parameters 'input_lower', 'input_upper'")
     except ShapeError as exc:
         raise ParameterError(str(exc)) from None
-
-
-def _numbers(text: str, name: str) -> list[float] | None:
-    """The numbers of a list parameter ('a, b, …'; '' = None)."""
-    if not text.strip():
-        return None
-    try:
-        return [float(v) for v in text.replace(',', ' ').split()]
-    except ValueError:
-        raise ParameterError(f'parameter {name!r}: {text!r} is not a list of numbers') from None
 
 
 def load_model(path: str) -> SDCModel:
@@ -435,6 +428,26 @@ def _ns(seconds: float) -> int:
     return int(round(seconds * cv.NS))
 
 
+def composed(**kwargs) -> tuple[Node, Node]:
+    """The estimator and the controller of ``controller --with-estimator``, two nodes of one
+    process (``kwargs``: to both constructors, e.g. ``context=``).
+
+    Raises:
+        ParameterError: as either node raises it, or the estimator's ``task_dim`` is not the
+            model's task dimension.
+    """
+    estimator, controller = with_estimator(
+        lambda: ControllerNode(subscribe_estimates=False, **kwargs),
+        lambda controller: controller.take_estimate, **kwargs)
+    if estimator.d != controller.shape.d:
+        ours, theirs = estimator.d, controller.shape.d
+        estimator.destroy_node()
+        controller.destroy_node()
+        raise ParameterError(f"parameter 'task_dim': the estimator filters {ours}-D tips but the "
+                             f'model is of {theirs}-D tips; give task_dim {theirs}')
+    return estimator, controller
+
+
 def main(args=None) -> int:
     """``controller [--with-estimator] [--ros-args ...]``; with the flag the process also runs the
     estimator node (:func:`~soft_gripper_sdre.nodes.composition.with_estimator`; ``-p`` reaches
@@ -445,16 +458,6 @@ def main(args=None) -> int:
         return run(ControllerNode, argv)
     argv.remove(WITH_ESTIMATOR)
 
-    def composed() -> tuple[Node, Node]:
-        estimator, controller = with_estimator(lambda: ControllerNode(subscribe_estimates=False),
-                                               lambda controller: controller.take_estimate)
-        if estimator.d != controller.shape.d:
-            d = controller.shape.d
-            estimator.destroy_node()
-            controller.destroy_node()
-            raise ParameterError(f"parameter 'task_dim': the estimator filters {estimator.d}-D "
-                                 f'tips but the model is of {d}-D tips; give task_dim {d}')
-        return estimator, controller
     return run(composed, argv, composed_params(PARAMS))
 
 

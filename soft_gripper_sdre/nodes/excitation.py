@@ -40,6 +40,15 @@ Timing (``timing``):
 * ``timer``: a timer on the node's clock publishes the torque for the clock's time every
   ``period``, stamped with that time, for drivers that want commands at their own rate.
 
+Inputs (``input_lower``, ``input_upper``): by default the hand's two torques, clipped to
+±``torque_limit``. Given one value each per input (1 to 4 inputs, in the input's unit: N·m, Pa,
+N), the node plays for that many inputs and publishes ``<finger>/ax<k>`` for k < m, never
+outside [input_lower[k], input_upper[k]]: the built-in signals as shares of each interval, about
+its middle for a two-sided input and from its rest value (the bound nearest zero) into it for a
+one-sided one, a chamber or a tendon; a spec file's signals as inputs in their units, clipped
+(:mod:`soft_gripper_sdre.sim.excitation`). "Zero torque" below is then every input at rest.
+Symmetric bounds on two inputs are the hand's ±torque_limit.
+
 Stops: at the end of the plan, on shutdown (SIGINT/SIGTERM) and on a fault, zero torque is
 published before the node exits (status 0 at the end of the plan, 1 after a fault). Faults: no
 tips for ``tips_timeout`` of wall time (or none at all within ``startup_timeout``), tip stamps
@@ -67,6 +76,7 @@ from soft_gripper_sdre.nodes import cdr
 from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.common import ERROR, OK, Diagnostics, run
 from soft_gripper_sdre.nodes.excitation_report import ACTIVITY, RunReport
+from soft_gripper_sdre.nodes.input_commands import bounds_params, given_bounds, inputs_codec
 from soft_gripper_sdre.nodes.params import (
     Param,
     ParameterError,
@@ -79,7 +89,8 @@ from soft_gripper_sdre.nodes.topics import LOOP_QOS, NEWEST_QOS, TIP_POSITIONS, 
 from soft_gripper_sdre.sim.excitation import ExcitationPlan, LevelSearch, LevelSettings
 from soft_gripper_sdre.sim.excitation_run import ExcitationRun, Phase
 from soft_gripper_sdre.sim.settle import SettlePhase
-from soft_gripper_sdre.sim.signal_specs import SignalSpecError, resolve_signals
+from soft_gripper_sdre.sim.shape import InputBounds
+from soft_gripper_sdre.sim.signal_specs import MAX_TORQUE, SignalSpecError, resolve_signals
 from soft_gripper_sdre.sim.signals import SIGNALS
 
 PARAMS = (
@@ -100,6 +111,7 @@ PARAMS = (
           'get zero torque', '', -1, 3, read_only=True),
     Param('torque_limit', 0.1, 'every torque is clipped to ±limit (0.1 N·m: the simulator\'s '
           'actuator limit; the paper\'s signals peak at 0.0675)', 'N·m', 1e-6, 1.0, read_only=True),
+    *bounds_params('±torque_limit on each of 2 inputs (the hand)'),
     Param('timing', 'tips', 'answer each tip message with the torque for its stamp, or publish on '
           'a timer of the node\'s clock', choices=('tips', 'timer'), read_only=True),
     Param('period', 0.001, 'timer timing: the command period', 's', 1e-4, 1.0, read_only=True),
@@ -143,6 +155,7 @@ class ExcitationNode(Node):
         self.names = tuple(p['finger_names'])
         self.n = len(self.names)
         self.run = excitation_run(p, self.n)
+        self.m = self.run.plan.m
         self.newest_tips: np.ndarray | None = None
         self.done = False
         self.exit_code = 0
@@ -155,7 +168,7 @@ class ExcitationNode(Node):
         self.stopped = False                    # the final zero went out
         self._deadline = time.monotonic() + p['startup_timeout']
         self.cdr_tips = cdr.tips_codec(self.names)
-        self.cdr_cmd = cdr.torques_codec(self.names)
+        self.cdr_cmd = inputs_codec(self.names, self.m)
         self.pub_cmd = self.create_publisher(JointState, TORQUE_COMMANDS, LOOP_QOS)
         self.sub_tips = self.create_subscription(
             PoseArray, TIP_POSITIONS, self.on_tips,
@@ -212,7 +225,7 @@ class ExcitationNode(Node):
             self.diag.values['signal'] = (f'waiting for {self.p["min_command_subscribers"]} '
                                           f'{TORQUE_COMMANDS} subscribers')
             if self.p['timing'] == 'tips':
-                self._publish(stamp, np.zeros((self.n, 2)))
+                self._publish(stamp, self.run.plan.rest_inputs())
             return False
         self.start_ns = stamp
         self.run.start(tips)
@@ -266,7 +279,7 @@ class ExcitationNode(Node):
         """Publish zero torque stamped ``stamp`` and end the run (the node exits)."""
         if self.stopped:
             return
-        self._publish(stamp, np.zeros((self.n, 2)))
+        self._publish(stamp, self.run.plan.rest_inputs())
         self.stopped = self.done = True
         self.diag.values['signal'] = 'stopped'
         self.diag.set_status(level, why)
@@ -310,15 +323,33 @@ def excitation_run(p: dict, n: int) -> ExcitationRun:
                              f'finger_names {list(p["finger_names"])} (indices 0 to {n - 1}, '
                              'or -1 for all)')
     finger = None if p['finger'] < 0 else p['finger']
+    bounds = input_bounds(p)
+    m = None if bounds is None else bounds.m
+    limit = MAX_TORQUE if bounds is None else max(
+        MAX_TORQUE, 10 * float(np.abs(np.concatenate([bounds.lower, bounds.upper])).max()))
     try:
         signals = resolve_signals(list(p['signals']), p['spec_file'] or None,
-                                  p['duration'] or None)
+                                  p['duration'] or None, m, limit)
         plan = ExcitationPlan(signals, p['settle_time'], n, finger, p['torque_limit'],
-                              p['amplitude'])
+                              p['amplitude'], bounds)
     except (SignalSpecError, ValueError) as exc:
         raise ParameterError(str(exc)) from None
     search = level_search(p, plan, finger) if p['level'] == 'auto' else None
     return ExcitationRun(plan, SettlePhase(p['settle_time'], p['settle_samples']), search)
+
+
+def input_bounds(p: dict) -> InputBounds | None:
+    """The bounds ``input_lower`` / ``input_upper`` give, or None for the hand's ±torque_limit
+    on two inputs (unset, or symmetric bounds on two inputs: then they replace torque_limit).
+
+    Raises:
+        ParameterError: bad bounds (the message names both parameters).
+    """
+    bounds = given_bounds(p)
+    if bounds is not None and bounds.m == 2 and bounds.symmetric_limit is not None:
+        p['torque_limit'] = bounds.symmetric_limit
+        return None
+    return bounds
 
 
 def level_search(p: dict, plan: ExcitationPlan, finger: int | None) -> LevelSearch:
@@ -343,8 +374,14 @@ def level_search(p: dict, plan: ExcitationPlan, finger: int | None) -> LevelSear
                              'nothing to scale')
     settings = LevelSettings(target=p['level_target'], start=p['level_start'],
                              probe_time=p['level_probe_time'], settle_time=p['settle_time'])
+    inputs = None
+    if plan.map is not None:
+        try:
+            inputs = plan.probe_inputs()
+        except ValueError as exc:
+            raise ParameterError(f"parameter 'signals': {exc}") from None
     return LevelSearch(peak, p['torque_limit'], p['max_excursion'], plan.n_fingers, finger,
-                       settings)
+                       settings, inputs)
 
 
 def main(args=None) -> int:

@@ -40,9 +40,11 @@ class RunReport:
         where = 'every finger' if p['finger'] < 0 else names[p['finger']]
         level = (f'amplitude {p["amplitude"]:g} ({self._clip_text()})' if search is None else
                  f'amplitude by probes aiming at {1e3 * search.goal:g} mm')
+        within = (f'|u| <= {p["torque_limit"]:g} N·m' if plan.map is None
+                  else f'{plan.m} input(s) within {plan.map.bounds}')
         self.log.info(
             f'{signals} on {where} of {len(names)}, '
-            f'{p["settle_time"]:g} s settle before each, |u| <= {p["torque_limit"]:g} N·m, '
+            f'{p["settle_time"]:g} s settle before each, {within}, '
             f'{level}, {plan.duration:g} s in all; {p["timing"]} timing; starting once '
             f'{TORQUE_COMMANDS} has {p["min_command_subscribers"]} subscriber(s)')
 
@@ -100,5 +102,6 @@ class RunReport:
                 f'{MIN_SETTLE_SAMPLES} or more (a longer settle_time, or give train --meas-std)')
 
     def _clip_text(self) -> str:
-        return (f"{100 * self.run.plan.clip_share():.1f} % of the signals' samples at the torque "
-                'limit')
+        plan = self.run.plan
+        return (f"{100 * plan.clip_share():.1f} % of the signals' samples at the "
+                + ('torque limit' if plan.map is None else 'bounds'))

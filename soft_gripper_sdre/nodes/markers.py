@@ -227,7 +227,8 @@ class HandMarkers:
                references: np.ndarray | None = None) -> bytes:
         """The MarkerArray's CDR bytes at sim time ``ns`` [ns] for joint angles ``q`` (n, 10)
         [rad] of the fingers, the cube's pose [x, y, z (m), qx, qy, qz, qw] and the references
-        (n, 2) [m] in each finger's base frame (a non-finite row keeps its last value)."""
+        (n, 2) or (n, 3) [m] in each finger's base frame (a non-finite row keeps its last value;
+        a planar reference is drawn at its tip's height in the base frame, a 3-D one at its z)."""
         positions = {name: angle for names, row in zip(self._joint_names, np.asarray(q).tolist())
                      for name, angle in zip(names, row)}
         links = self.kin.link_poses(positions)
@@ -243,7 +244,7 @@ class HandMarkers:
                 if not np.all(np.isfinite(refs[i])):
                     continue
                 R, p0 = links[f'{name}/base'][:3, :3], links[f'{name}/base'][:3, 3]
-                z = (R.T @ (tips[i] - p0))[2]
+                z = (R.T @ (tips[i] - p0))[2] if refs.shape[1] == 2 else refs[i, 2]
                 self._write(self._ref_at[i], R @ [refs[i, 0], refs[i, 1], z] + p0)
         if self.with_cube and cube_pose is not None:
             self._write(self._cube_at, np.asarray(cube_pose, dtype=float)[:7])

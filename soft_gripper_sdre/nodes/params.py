@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import copy
 from dataclasses import dataclass, field
+import math
 from typing import Any, Callable, Iterable
 
 from rcl_interfaces.msg import (
@@ -53,12 +54,16 @@ class Param:
     read_only: bool = False
     #: a further check of the value: why it is refused, or None
     rule: Callable[[Any], str | None] | None = field(default=None, compare=False)
+    #: a list of numbers given in any form (:func:`numbers_param`): any type is taken at
+    #: declaration and read by :func:`numbers`
+    dynamic: bool = False
 
     def descriptor(self) -> ParameterDescriptor:
         text = self.description + (f' [{self.units}]' if self.units else '')
         if self.choices:
             text += f' (one of: {", ".join(map(str, self.choices))})'
-        d = ParameterDescriptor(name=self.name, description=text, read_only=self.read_only)
+        d = ParameterDescriptor(name=self.name, description=text, read_only=self.read_only,
+                                dynamic_typing=self.dynamic)
         if self.min is not None or self.max is not None:
             lo = self.min if self.min is not None else -1e300
             hi = self.max if self.max is not None else 1e300
@@ -96,6 +101,42 @@ def finger_names_param(description: str) -> Param:
     return Param('finger_names', list(FINGER_NAMES), description + '; as many names as fingers '
                  f'(1 to {MAX_FINGERS}), each a ROS name token', rule=finger_names_problem,
                  read_only=True)
+
+
+def numbers_param(name: str, description: str, units: str = '') -> Param:
+    """A read-only list of numbers, empty by default: given as a YAML or ``-p`` list
+    (``[0.0, 1.5]``), one number (``0``) or a string (``'0, 1.5'``); read with :func:`numbers`."""
+    return Param(name, '', description, units, read_only=True, dynamic=True)
+
+
+def numbers(value: Any, name: str) -> list[float] | None:
+    """The finite numbers of a :func:`numbers_param` value, or None when it is empty.
+
+    Raises:
+        ParameterError: a value that is not numbers, or one that is not finite (naming ``name``).
+    """
+    if isinstance(value, str):
+        if not value.strip():
+            return None
+        try:
+            values = [float(v) for v in value.replace(',', ' ').split()]
+        except ValueError:
+            raise ParameterError(f'parameter {name!r}: {value!r} is not a list of '
+                                 'numbers') from None
+    elif isinstance(value, bool):
+        raise ParameterError(f'parameter {name!r}: {value!r} is not a list of numbers')
+    elif isinstance(value, (int, float)):
+        values = [float(value)]
+    else:
+        items = list(value)
+        if not items:
+            return None
+        if any(isinstance(v, (bool, str, bytes)) for v in items):
+            raise ParameterError(f'parameter {name!r}: {items!r} is not a list of numbers')
+        values = [float(v) for v in items]
+    if not all(math.isfinite(v) for v in values):
+        raise ParameterError(f'parameter {name!r}: {value!r} holds a value that is not finite')
+    return values
 
 
 #: the choices of ``tips_reliability`` (:func:`tips_reliability_param`)

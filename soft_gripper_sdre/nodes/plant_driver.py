@@ -1,14 +1,19 @@
 """The plant driver node: a gripper of two foreign fingers served the way a lab's driver would.
 
 It stands in for a real robot's driver in front of the node graph (README, "Use with your own
-gripper"): the fingers are the planar plants of :mod:`soft_gripper_sdre.sim.foreign` (``plant``:
-``tendon3`` or ``stiff2``), and the loop runs on the wall clock, not in lockstep. A steady-clock
-timer ticks at ``rate``; each tick
+gripper"): the fingers are the plants of :mod:`soft_gripper_sdre.sim.foreign_presets`
+(``plant``: ``tendon3`` or ``stiff2``, planar with two torques; ``pneumatic1``, planar with one
+chamber pressure; ``trunk3``, a 3-D tip with three tendon tensions), and the loop runs on the
+wall clock, not in lockstep. The gripper's shape gives the command's m inputs and the tip's d
+coordinates; its bounds give each input's interval [lower, upper] in the input's unit (N·m, Pa,
+N). A steady-clock timer ticks at ``rate``; each tick
 
-1. takes the newest command (zero-order hold): the efforts ``<finger>/ax0``, ``<finger>/ax1`` of
-   ``torque_commands``, clipped to ±``torque_limit``. A command received more than
-   ``command_timeout`` ago (wall time) is replaced by zero torque (``stale_ticks``), as is the
-   absence of any command (``idle_ticks``);
+1. takes the newest command (zero-order hold): the efforts ``<finger>/ax<k>`` for k < m of
+   ``torque_commands``, clipped to the bounds (the preset's, narrowed by ``torque_limit`` and
+   by ``input_lower`` / ``input_upper``). A command received more than ``command_timeout`` ago
+   (wall time) is replaced by the rest input (zero; a one-sided input's bound nearest zero:
+   a vented chamber, slack tendons) (``stale_ticks``), as is the absence of any command
+   (``idle_ticks``);
 2. advances both plants by the wall time elapsed since the previous tick, at most
    :data:`MAX_STEP_PERIODS` periods (a longer stall is not made up; ``late_ticks`` counts ticks
    more than 1.5 periods after the previous one);
@@ -19,14 +24,16 @@ timer ticks at ``rate``; each tick
    these messages are not published (``dropped``), at random; ``true_tip_positions`` carries
    the noise-free tips of every tick with the same stamps (reliable), for scoring.
 
-Pose i is finger i's tip (x, y, 0) in its base frame (sim/foreign.py: X down the hanging finger,
-Y toward the palm). Nothing publishes /clock: every stamp is wall time.
+Pose i is finger i's tip in its base frame (sim/foreign.py: X down the hanging finger, Y toward
+the palm; Z = X × Y): (x, y, 0) for a planar finger, (x, y, z) for a 3-D one. Nothing publishes
+/clock: every stamp is wall time.
 
-Commands are never trusted: one that does not decode (unknown, missing or duplicate names,
-sizes) is counted (``bad_commands``) with a throttled warning and the previous command stays in
-force; one with a NaN or Inf effort is counted (``nonfinite_commands``) and zero torque is
-applied. /diagnostics (1 Hz) carries these counters and ``ticks``, ``published``,
-``commands``, ``clipped_commands``, the plant time, the command's age and the tick intervals.
+Commands are never trusted: one that does not decode (unknown, missing or duplicate names — a
+command for another number of inputs —, sizes) is counted (``bad_commands``) with a throttled
+warning and the previous command stays in force; one with a NaN or Inf effort is counted
+(``nonfinite_commands``) and the rest input is applied. /diagnostics (1 Hz) carries these
+counters and ``ticks``, ``published``, ``commands``, ``clipped_commands``, the plant time, the
+command's age, the tick intervals, the shape and the bounds.
 The node stops at ``duration`` of wall time (exit 0) or on SIGINT / SIGTERM.
 """
 from __future__ import annotations
@@ -45,10 +52,11 @@ from sensor_msgs.msg import JointState
 from soft_gripper_sdre.nodes import cdr
 from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.common import OK, WARN, Diagnostics, LatencyWindow, run
+from soft_gripper_sdre.nodes.input_commands import bounds_params, given_bounds, inputs_codec
 from soft_gripper_sdre.nodes.params import Param, ParameterError, declare_all, on_runtime_change
 from soft_gripper_sdre.nodes.topics import LOOP_QOS, NEWEST_QOS, TIP_POSITIONS, TORQUE_COMMANDS
-from soft_gripper_sdre.sim.foreign import plant_pair
-from soft_gripper_sdre.sim.foreign_params import PAIRS
+from soft_gripper_sdre.sim.foreign_presets import GRIPPERS, plant_pair
+from soft_gripper_sdre.sim.shape import InputBounds
 
 #: the noise-free tips, for scoring (same type and stamps as tip_positions)
 TRUE_TIP_POSITIONS = 'true_tip_positions'
@@ -68,12 +76,13 @@ def _two_names(names) -> str | None:
 
 
 PARAMS = (
-    Param('plant', 'tendon3', 'the gripper, from sim/foreign.py: tendon3 (an index and a thumb, '
-          'soft three-link tendon fingers) or stiff2 (two fast two-link fingers)',
-          choices=tuple(PAIRS), read_only=True),
+    Param('plant', 'tendon3', 'the gripper, from sim/foreign_presets.py: tendon3 (an index and a '
+          'thumb, soft three-link tendon fingers), stiff2 (two fast two-link fingers), pneumatic1 '
+          '(one chamber each: one input, 0..60 kPa, planar tip) or trunk3 (three-tendon '
+          'segments: three inputs, 0..4 N, 3-D tip)', choices=tuple(GRIPPERS), read_only=True),
     Param('finger_names', ['index', 'thumb'], 'the fingers in message order (pose i of the tips, '
-          'torque_commands <finger>/ax0|ax1); two names, each a ROS name token', rule=_two_names,
-          read_only=True),
+          'torque_commands <finger>/ax<k> for k < m); two names, each a ROS name token',
+          rule=_two_names, read_only=True),
     Param('rate', 200.0, 'ticks per second: plants advanced, tips measured and published', 'Hz',
           100.0, 1000.0, read_only=True),
     Param('stamp_jitter', 4e-4, 'each tip_positions stamp is the measurement time plus a uniform '
@@ -86,8 +95,12 @@ PARAMS = (
     Param('seed', 0, 'seed of the noise, the jitter and the drops', '', 0, 2**31 - 1,
           read_only=True),
     Param('torque_limit', 0.0, "commands are clipped to ±torque_limit; 0 = each finger's "
-          'actuator limit (tendon3 0.02, stiff2 0.25 N·m), which also caps a larger value',
+          'actuator limit (tendon3 0.02, stiff2 0.25 N·m), which also caps a larger value; for the '
+          'symmetric presets only (pneumatic1, trunk3: input_lower / input_upper)',
           'N·m', 0.0, 1.0, read_only=True),
+    *bounds_params("the preset's bounds (tendon3 ±0.02 N·m, stiff2 ±0.25 N·m, pneumatic1 0 "
+                   'to 60000 Pa, trunk3 0 to 4 N); given, they narrow them (each within the '
+                   "preset's)"),
     Param('duration', 0.0, 'stop after this much wall time and exit (0 = run until shut down)',
           's', 0.0, 1e6, read_only=True),
     Param('command_timeout', 0.05, 'a command received longer ago than this (wall time) is '
@@ -110,21 +123,25 @@ class PlantDriverNode(Node):
         on_runtime_change(self, PARAMS, apply=self.p.update)
         self.names = tuple(p['finger_names'])
         self.plants = plant_pair(p['plant'])
-        limits = np.array([f.params.torque_limit for f in self.plants])
-        self.limit = np.minimum(limits, p['torque_limit']) if p['torque_limit'] > 0 else limits
+        self.shape = self.plants[0].shape
+        self.m, self.d = self.shape.m, self.shape.d
+        #: per finger and input the bounds commands are clipped to (n, m)
+        self.lower, self.upper = finger_bounds(self.plants, p)
+        #: per finger the input held without a command (n, m): the nearest to zero
+        self.rest_input = np.clip(0.0, self.lower, self.upper)
         self.rng = np.random.default_rng(p['seed'])
-        #: the command in force (n, 2) [N·m] and its receipt (monotonic s; None: none yet)
-        self.command = np.zeros((N_FINGERS, 2))
+        #: the command in force (n, m) and its receipt (monotonic s; None: none yet)
+        self.command = self.rest_input.copy()
         self.command_received: float | None = None
-        #: the torque of the last tick (n, 2) [N·m]
-        self.applied = np.zeros((N_FINGERS, 2))
+        #: the input of the last tick (n, m) [input unit]
+        self.applied = self.rest_input.copy()
         self.plant_time = 0.0
         self.done = False
         self._last_stamp = 0
         self._intervals = LatencyWindow(2000)
 
         self.cdr_tips = cdr.tips_codec(self.names)
-        self.cdr_cmd = cdr.torques_codec(self.names)
+        self.cdr_cmd = inputs_codec(self.names, self.m)
         self.pub_tips = self.create_publisher(PoseArray, TIP_POSITIONS, qos_profile_sensor_data)
         self.pub_truth = self.create_publisher(PoseArray, TRUE_TIP_POSITIONS, LOOP_QOS)
         self.sub_cmd = self.create_subscription(JointState, TORQUE_COMMANDS, self.on_command,
@@ -133,14 +150,21 @@ class PlantDriverNode(Node):
         cdr.watch(self.diag, self.cdr_cmd)
         self.diag.before_publish.append(self._refresh_diagnostics)
         self.diag.values['plant'] = p['plant']
+        self.diag.values['shape'] = str(self.shape)
+        self.diag.values['bounds'] = '; '.join(
+            str(InputBounds(lo, hi)) for lo, hi in zip(self.lower, self.upper))
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         self._started = self._last_tick = time.monotonic()
         self._timer = self.create_timer(self.period, self._tick, clock=steady)
         freqs = ', '.join(f'{f.params.name} {f.natural_frequencies()[0]:.1f} Hz'
                           for f in self.plants)
+        if self.m == 2 and np.array_equal(self.lower, -self.upper):
+            limits = f'torque limit {", ".join(f"{x:g}" for x in self.upper[:, 0])} N·m'
+        else:
+            limits = f'{self.m} input(s), bounds {self.diag.values["bounds"]}'
         self.get_logger().info(
             f'driving {p["plant"]} ({freqs}) as {", ".join(self.names)} at {p["rate"]:g} Hz '
-            f'on the wall clock; torque limit {", ".join(f"{x:g}" for x in self.limit)} N·m')
+            f'on the wall clock; {limits}; tips in {self.d} dimensions')
 
     # -- commands ----------------------------------------------------------------------------
     def on_command(self, data: bytes) -> None:
@@ -149,14 +173,14 @@ class PlantDriverNode(Node):
             _stamp, u = self.cdr_cmd.decode(data)
         except cv.MessageError as exc:
             if _has_nonfinite_effort(data):
-                self._take(np.zeros((N_FINGERS, 2)))
+                self._take(self.rest_input.copy())
                 self.diag.problem('nonfinite_commands', f'torque_commands with NaN or Inf: '
-                                  f'zero torque ({exc})')
+                                  f'the rest input ({exc})')
             else:
                 self.diag.problem('bad_commands', f'rejected: {exc}; the previous command '
                                   'stays in force')
             return
-        clipped = np.clip(u, -self.limit[:, None], self.limit[:, None])
+        clipped = np.clip(u, self.lower, self.upper)
         if np.any(clipped != u):
             self.diag.count('clipped_commands')
         self._take(clipped)
@@ -166,15 +190,15 @@ class PlantDriverNode(Node):
         self.command_received = time.monotonic()
 
     def _torque(self, now: float) -> np.ndarray:
-        """The torque to hold over this tick: the command, or zero if none or stale."""
+        """The input to hold over this tick: the command, or the rest input if none or stale."""
         if self.command_received is None:
             self.diag.count('idle_ticks')
-            return np.zeros((N_FINGERS, 2))
+            return self.rest_input.copy()
         if now - self.command_received > self.p['command_timeout']:
             self.diag.count('stale_ticks')
             if self.diag.level == OK:
                 self.diag.set_status(WARN, 'torque_commands stale: zero torque')
-            return np.zeros((N_FINGERS, 2))
+            return self.rest_input.copy()
         if self.diag.level == WARN and self.diag.message.startswith('torque_commands stale'):
             self.diag.set_status(OK, 'driving')
         return self.command
@@ -197,11 +221,12 @@ class PlantDriverNode(Node):
         stamp = max(stamp, self._last_stamp + 1)   # a tick that catches up after a stall is early
         self._last_stamp = stamp
         self.diag.count('ticks')
+        d = self.d
         truth = np.zeros((N_FINGERS, 3))
-        truth[:, :2] = [plant.tip() for plant in self.plants]
+        truth[:, :d] = [plant.tip() for plant in self.plants]
         self.pub_truth.publish(self.cdr_tips.encode(stamp, truth))
         measured = truth.copy()
-        measured[:, :2] += self.rng.normal(0.0, self.p['noise_std'], (N_FINGERS, 2))
+        measured[:, :d] += self.rng.normal(0.0, self.p['noise_std'], (N_FINGERS, d))
         if self.rng.random() < self.p['drop_fraction']:
             self.diag.count('dropped')
         else:
@@ -219,6 +244,39 @@ class PlantDriverNode(Node):
             age = time.monotonic() - self.command_received
             self.diag.values['command_age_ms'] = f'{1e3 * age:.1f}'
         self.diag.values.update(self._intervals.summary('tick_interval_us'))
+
+
+def finger_bounds(plants, p: dict) -> tuple[np.ndarray, np.ndarray]:
+    """Per finger and input the (lower, upper) bounds (n, m) of the commands: each finger's
+    actuator bounds, narrowed to ±``torque_limit`` (if > 0: symmetric presets only) and to
+    ``input_lower`` / ``input_upper`` (if given).
+
+    Raises:
+        ParameterError: ``torque_limit`` for a preset with one-sided inputs, or ``input_lower``
+            / ``input_upper`` not one value per input or outside the preset's bounds (the
+            message names them).
+    """
+    m = plants[0].shape.m
+    lower = np.array([f.bounds.lower for f in plants])
+    upper = np.array([f.bounds.upper for f in plants])
+    if p['torque_limit'] > 0:
+        if any(f.bounds.symmetric_limit is None for f in plants):
+            raise ParameterError(f"parameter 'torque_limit': plant {p['plant']!r} has inputs "
+                                 f'that are not ±a limit ({plants[0].bounds}); narrow them with '
+                                 'input_lower / input_upper')
+        lower = np.maximum(lower, -p['torque_limit'])
+        upper = np.minimum(upper, p['torque_limit'])
+    given = given_bounds(p)
+    if given is None:
+        return lower, upper
+    if given.m != m:
+        raise ParameterError(f"parameters 'input_lower', 'input_upper': plant {p['plant']!r} has "
+                             f'{m} input(s) per finger; got {given.m} bound(s)')
+    if np.any(given.lower < lower) or np.any(given.upper > upper):
+        raise ParameterError(f"parameters 'input_lower', 'input_upper': [{given}] reaches beyond "
+                             f"the plant's bounds [{plants[0].bounds}]")
+    return np.broadcast_to(given.lower, lower.shape).copy(), np.broadcast_to(
+        given.upper, upper.shape).copy()
 
 
 def _has_nonfinite_effort(data: bytes) -> bool:

@@ -60,6 +60,8 @@ from soft_gripper_sdre.nodes.params import (
     ParameterError,
     declare_all,
     finger_names_param,
+    numbers,
+    numbers_param,
     on_runtime_change,
     tips_reliability_param,
     with_reliability,
@@ -91,12 +93,12 @@ PARAMS = (
           read_only=True),
     Param('task_dim', 2, "the tips' task dimension: 2 plans in (X, Y), the tips' z ignored; 3 "
           'plans in (X, Y, Z)', '', 2, 3, read_only=True),
-    Param('direction', '', "the direction the grasping fingers close along, task_dim values "
-          "'x, y[, z]' (normalised); '' = +Y (toward the cube)", read_only=True),
-    Param('close_path', '', "waypoints the grasping fingers close through instead of the "
-          "straight move, relative to rest: task_dim values per point, 'x0, y0, x1, y1, …' (the "
-          "last is the closed pose; e.g. the curve a one-input finger's tip can reach); '' = the "
-          'straight move along direction', 'm', read_only=True),
+    numbers_param('direction', "the direction the grasping fingers close along, task_dim "
+                  "values [x, y(, z)] (normalised); '' = +Y (toward the cube)"),
+    numbers_param('close_path', "waypoints the grasping fingers close through instead of the "
+                  "straight move, relative to rest: task_dim values per point, "
+                  "[x0, y0, x1, y1, …] (the last is the closed pose; e.g. the curve a one-input "
+                  "finger's tip can reach); '' = the straight move along direction", 'm'),
     Param('close_distance', _DEFAULTS.close_distance, 'travel of the grasping fingers along +Y '
           '(direction; toward the cube)', 'm', -0.1, 0.1, read_only=True),
     Param('side_distance', _DEFAULTS.side_distance, 'travel of the grasping fingers along X while '
@@ -129,19 +131,6 @@ PARAMS = (
           'takes a new rest pose', 's', 1e-3, 1e3),
     tips_reliability_param(),
 )
-
-
-def _numbers(text: str, name: str) -> np.ndarray | None:
-    """The finite numbers of the list parameter ``name`` ('a, b, …'), or None if it is empty."""
-    if not text.strip():
-        return None
-    try:
-        values = np.array([float(v) for v in text.replace(',', ' ').split()])
-    except ValueError:
-        raise ParameterError(f'parameter {name!r}: {text!r} is not a list of numbers') from None
-    if not np.all(np.isfinite(values)):
-        raise ParameterError(f'parameter {name!r}: {text!r} holds a value that is not finite')
-    return values
 
 
 def _rest_pose(text: str, n: int, d: int = 2) -> np.ndarray | None:
@@ -199,12 +188,11 @@ def _profile(p: dict) -> GraspProfile:
     values['close_to'] = _close_to(values['close_to'])
     d = int(p['task_dim'])
     for name, per in (('direction', 'values'), ('close_path', 'values per waypoint')):
-        given = _numbers(values[name], name)
-        if given is not None and (given.size == 0 or given.size % d
-                                  or (name == 'direction' and given.size != d)):
+        given = numbers(values[name], name)
+        if given is not None and (len(given) % d or (name == 'direction' and len(given) != d)):
             raise ParameterError(f'parameter {name!r}: needs task_dim = {d} {per}, got '
                                  f'{values[name]!r}')
-        values[name] = None if given is None else tuple(given.tolist())
+        values[name] = None if given is None else tuple(given)
     try:
         profile = GraspProfile(**values)
     except ValueError as exc:

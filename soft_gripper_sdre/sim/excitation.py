@@ -15,6 +15,20 @@ target, assuming a roughly linear response (see the class).
 
 The signals are the built-in ones or those of a YAML file
 (:mod:`soft_gripper_sdre.sim.signal_specs`).
+
+**Inputs with bounds.** Without ``bounds`` a plan drives the hand's two torques, clipped to
+±``torque_limit``. With ``bounds`` (:class:`~soft_gripper_sdre.sim.shape.InputBounds`, m
+inputs) each input k gets, at amplitude a,
+
+    u_k = b_k + a (o_k + g_k s_k(t)),   clipped to [lower_k, upper_k],
+
+where s is the signal: for a built-in one the share of the interval (``Signal.share``,
+:func:`~soft_gripper_sdre.sim.signals.input_signal`), with b_k the middle of a two-sided
+interval (o_k = 0, g_k its half-width), or for a one-sided input (a chamber, a tendon) its rest
+value, the bound nearest zero, and o_k = ±g_k = ±half the width toward the interval: the
+input moves from its rest value into the interval, never past it; for a spec file's signal the
+input itself (b = o = 0, g = 1). Settling and after the end, and on the fingers not excited,
+each input holds its rest value.
 """
 from __future__ import annotations
 
@@ -25,6 +39,7 @@ from typing import Sequence
 
 import numpy as np
 
+from soft_gripper_sdre.sim.shape import InputBounds
 from soft_gripper_sdre.sim.signal_specs import Signal
 
 #: rate [Hz] at which the signals are sampled for their peaks and their share at the clip
@@ -46,24 +61,55 @@ class Segment:
         return self.start + self.signal.duration
 
 
+class InputMap:
+    """How a plan turns a signal into inputs (module doc): u = b + a (o + g ∘ s), clipped.
+
+    Args:
+        bounds: the inputs' intervals.
+    """
+
+    def __init__(self, bounds: InputBounds) -> None:
+        self.bounds = bounds
+        self.m = bounds.m
+        self.rest = bounds.rest
+        one = bounds.one_sided
+        toward = np.where(bounds.upper > 0, 1.0, -1.0)      # a one-sided input's interval
+        self.share_base = np.where(one, self.rest, bounds.mid)
+        self.share_gain = np.where(one, 0.5 * (bounds.upper - bounds.lower), bounds.half_span)
+        self.share_offset = np.where(one, toward * self.share_gain, 0.0)
+
+    def terms(self, signal: Signal) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(b, o, g) (m,) for ``signal``."""
+        if signal.share:
+            return self.share_base, self.share_offset, self.share_gain
+        return np.zeros(self.m), np.zeros(self.m), np.ones(self.m)
+
+    def inputs(self, signal: Signal, s: np.ndarray, amplitude: float) -> np.ndarray:
+        """The inputs (…, m) for the signal's values ``s`` (…, m) at ``amplitude``, clipped."""
+        b, o, g = self.terms(signal)
+        return self.bounds.clip(b + amplitude * (o + g * s))
+
+
 class ExcitationPlan:
     """Settle, signal, settle, signal, … then zero torque (module doc).
 
     Args:
         signals: played in this order.
-        settle_time: zero torque before each signal [s].
-        n_fingers: the torque is (n_fingers, 2).
-        finger: the finger that is excited (None: all); the others get zero.
-        torque_limit: each torque is clipped to ±torque_limit [N·m].
+        settle_time: zero torque (the rest inputs) before each signal [s].
+        n_fingers: the torque is (n_fingers, 2), or (n_fingers, m) with ``bounds``.
+        finger: the finger that is excited (None: all); the others get zero (the rest inputs).
+        torque_limit: each torque is clipped to ±torque_limit [N·m] (without ``bounds``).
         amplitude: each signal's torque is multiplied by this before the clip.
+        bounds: the m inputs' intervals (module doc); None: the hand's ±torque_limit on two.
 
     Raises:
-        ValueError: no signals, or a bad settle time, finger, limit or amplitude.
+        ValueError: no signals, or a bad settle time, finger, limit or amplitude, or a signal
+            for another number of inputs.
     """
 
     def __init__(self, signals: Sequence[Signal], settle_time: float, n_fingers: int,
                  finger: int | None = None, torque_limit: float = 0.1,
-                 amplitude: float = 1.0) -> None:
+                 amplitude: float = 1.0, bounds: InputBounds | None = None) -> None:
         if not signals:
             raise ValueError('an excitation plan needs at least one signal')
         if not (math.isfinite(settle_time) and settle_time >= 0):
@@ -78,6 +124,16 @@ class ExcitationPlan:
             raise ValueError(f'amplitude must be finite and > 0, got {amplitude!r}')
         self.n_fingers = n_fingers
         self.finger = finger
+        #: the inputs' map (None: the hand's torques) and their number
+        self.map = None if bounds is None else InputMap(bounds)
+        self.m = 2 if bounds is None else bounds.m
+        self.rest = np.zeros(2) if bounds is None else self.map.rest
+        if self.map is not None:
+            for signal in signals:
+                got = np.shape(signal.torque(np.zeros(1)))
+                if got != (1, self.m):
+                    raise ValueError(f'signal {signal.name!r} gives {got[-1]} input(s); the '
+                                     f'finger has {self.m}')
         self.torque_limit = float(torque_limit)
         self.amplitude = float(amplitude)
         self.settle_time = float(settle_time)
@@ -104,7 +160,17 @@ class ExcitationPlan:
 
     def _sampled(self) -> tuple[np.ndarray, np.ndarray]:
         """Per-axis peak |torque| (2,) of the signals at amplitude 1, unclipped, and each
-        sample's larger |torque| of the two axes, the signals sampled at :data:`SAMPLE_RATE`."""
+        sample's larger |torque| of the two axes, the signals sampled at :data:`SAMPLE_RATE`.
+        With bounds: every sample's b and o + g ∘ s (N, m) (module doc)."""
+        if self._samples is None and self.map is not None:
+            base, swing = [], []
+            for seg in self.segments:
+                n = max(1, int(math.ceil(seg.signal.duration * SAMPLE_RATE)))
+                s = seg.signal.torque(np.arange(n) / SAMPLE_RATE)
+                b, o, g = self.map.terms(seg.signal)
+                swing.append(o + g * np.where(np.isfinite(s), s, 0.0))
+                base.append(np.broadcast_to(b, swing[-1].shape))
+            self._samples = (np.concatenate(base), np.concatenate(swing))
         if self._samples is None:
             peak, larger = np.zeros(2), []
             for seg in self.segments:
@@ -119,19 +185,34 @@ class ExcitationPlan:
 
     @property
     def peak_torque(self) -> np.ndarray:
-        """The signals' largest |torque| per axis (2,) [N·m] at amplitude 1, before the clip."""
+        """The signals' largest |torque| per axis (2,) [N·m] at amplitude 1, before the clip
+        (with bounds: the largest |o + g ∘ s| per input (m,))."""
+        if self.map is not None:
+            return np.abs(self._sampled()[1]).max(axis=0)
         return self._sampled()[0].copy()
 
     def clip_share(self, amplitude: float | None = None) -> float:
         """The share of the signals' samples (at :data:`SAMPLE_RATE`, settle phases left out)
         at the clip, on either axis, at ``amplitude`` (default: the plan's)."""
         a = self.amplitude if amplitude is None else float(amplitude)
+        if self.map is not None:
+            base, swing = self._sampled()
+            u = base + a * swing
+            out = (u > self.map.bounds.upper) | (u < self.map.bounds.lower)
+            return float(np.count_nonzero(out.any(axis=1)) / len(u))
         larger = self._sampled()[1]
         return float(np.count_nonzero(a * larger >= self.torque_limit) / larger.size)
 
     def largest_unclipped_amplitude(self) -> float:
-        """The amplitude at which the signals' peak just reaches the torque limit (inf: the
-        signals are zero)."""
+        """The amplitude at which the signals' peak just reaches the torque limit, or with
+        bounds the first bound (inf: the signals are zero)."""
+        if self.map is not None:
+            base, swing = self._sampled()
+            room = np.where(swing > 0, self.map.bounds.upper - base,
+                            np.where(swing < 0, self.map.bounds.lower - base, np.inf))
+            with np.errstate(divide='ignore', invalid='ignore'):
+                limits = np.where(swing != 0, room / swing, np.inf)
+            return float(max(0.0, limits.min()))
         peak = float(self._sampled()[0].max())
         return self.torque_limit / peak if peak > 0 else math.inf
 
@@ -146,9 +227,15 @@ class ExcitationPlan:
         """Whether plan time ``t`` lies past the last signal."""
         return t >= self.duration
 
+    def rest_inputs(self) -> np.ndarray:
+        """(n_fingers, m) every input at rest: zero torque, a vented chamber, a slack tendon."""
+        return np.tile(self.rest, (self.n_fingers, 1))
+
     def torques(self, t: float) -> np.ndarray:
         """The (n_fingers, 2) torque at plan time ``t`` [s] (zero while settling and after the
-        end)."""
+        end); with bounds (n_fingers, m) inputs (the rest inputs then)."""
+        if self.map is not None:
+            return self._inputs(t)
         u = np.zeros((self.n_fingers, 2))
         seg = self.segment_at(t)
         if seg is None:
@@ -161,6 +248,53 @@ class ExcitationPlan:
         else:
             u[self.finger] = value
         return u
+
+    def _inputs(self, t: float) -> np.ndarray:
+        u = self.rest_inputs()
+        seg = self.segment_at(t)
+        if seg is None:
+            return u
+        s = seg.signal.torque(np.array([t - seg.start]))[0]
+        value = self.map.inputs(seg.signal, np.where(np.isfinite(s), s, 0.0), self.amplitude)
+        if self.finger is None:
+            u[:] = value
+        else:
+            u[self.finger] = value
+        return u
+
+    def probe_inputs(self) -> 'ProbeInputs':
+        """What a :class:`LevelSearch` probes with for this plan's bounds (module doc, class
+        doc): the first signal's b and o, its peak swing g ∘ max|s| per input and the largest
+        unclipped amplitude.
+
+        Raises:
+            ValueError: no bounds, or signals of both kinds (built-in shares and a spec file's
+                inputs), whose probes would differ.
+        """
+        if self.map is None:
+            raise ValueError('probe inputs need a plan with bounds')
+        kinds = {seg.signal.share for seg in self.segments}
+        if len(kinds) > 1:
+            raise ValueError('level auto with input bounds needs the signals all built-in or '
+                             'all from spec_file')
+        first = self.segments[0].signal
+        b, o, g = self.map.terms(first)
+        _, swing = self._sampled()
+        peak = np.abs(swing - o).max(axis=0)
+        return ProbeInputs(self.map.bounds, b, o, peak, self.largest_unclipped_amplitude())
+
+
+@dataclass(frozen=True)
+class ProbeInputs:
+    """A :class:`LevelSearch`'s probe on bounded inputs: at amplitude a and pattern w (m,)
+    in [−1, 1], u = clip(base + a (offset + swing ∘ w)); ``largest`` is the amplitude the
+    search does not exceed."""
+
+    bounds: InputBounds
+    base: np.ndarray
+    offset: np.ndarray
+    swing: np.ndarray
+    largest: float
 
 
 # -- choosing the amplitude ------------------------------------------------------------------
@@ -205,7 +339,10 @@ class LevelSearch:
     by ``settle_time`` of zero torque; its excursion e_k is the largest distance of an excited tip
     from rest over both. A probe is the signals' peak torque per axis, ``peak``, times a_k times a
     sine of two periods, the axes in phase over the first and in opposite phase over the second,
-    so both axes reach their peaks with either relative sign.
+    so both axes reach their peaks with either relative sign. With bounded inputs
+    (``inputs``, :class:`ProbeInputs`) the probe is base + a (offset + swing ∘ w) clipped, w
+    the same sine on every input over the first period and of alternating sign from input to
+    input over the second, and the largest amplitude is ``inputs.largest``.
 
     With the goal g = ``target`` × ``max_excursion``: a_0 = ``start``; after a probe with
     e_k ≥ ``close`` × g, or at the largest amplitude (the signals' peak at the torque limit),
@@ -223,7 +360,12 @@ class LevelSearch:
 
     def __init__(self, peak: np.ndarray, torque_limit: float, max_excursion: float,
                  n_fingers: int, finger: int | None = None,
-                 settings: LevelSettings = LevelSettings()) -> None:
+                 settings: LevelSettings = LevelSettings(),
+                 inputs: ProbeInputs | None = None) -> None:
+        self.inputs = inputs
+        if inputs is not None:
+            peak = np.array([1.0, 1.0]) if inputs.swing.max() > 0 else np.zeros(2)
+            torque_limit = inputs.largest if 0 < inputs.largest < math.inf else 1.0
         peak = np.asarray(peak, dtype=float)
         s = settings
         checks = (
@@ -252,6 +394,9 @@ class LevelSearch:
         self.rows = list(range(n_fingers)) if finger is None else [finger]
         self.goal = float(s.target) * float(max_excursion)
         self.largest = float(torque_limit) / float(peak.max())
+        m = 2 if inputs is None else inputs.bounds.m
+        self._rest = np.zeros(2) if inputs is None else inputs.bounds.rest
+        self._alternate = np.array([1.0, -1.0]) if inputs is None else (-1.0) ** np.arange(m)
         self.ratio, self.close = float(s.ratio), float(s.close)
         self.probe_time, self.settle_time = float(s.probe_time), float(s.settle_time)
         self.probes: list[Probe] = []
@@ -274,16 +419,26 @@ class LevelSearch:
         return self._a
 
     def probe_torque(self, s: float, amplitude: float) -> np.ndarray:
-        """A probe's torque (2,) [N·m] at ``s`` seconds from its start (zero outside it)."""
+        """A probe's torque (2,) [N·m] at ``s`` seconds from its start (zero outside it); with
+        bounded inputs the inputs (m,) (the rest inputs outside it)."""
         if not 0 <= s < self.probe_time:
-            return np.zeros(2)
+            return self._rest.copy()
         w = math.sin(4 * math.pi * s / self.probe_time)
-        return amplitude * self.peak * np.array([w, w if s < self.probe_time / 2 else -w])
+        if self.inputs is None:
+            return amplitude * self.peak * np.array([w, w if s < self.probe_time / 2 else -w])
+        pattern = w if s < self.probe_time / 2 else w * self._alternate
+        p = self.inputs
+        return p.bounds.clip(p.base + amplitude * (p.offset + p.swing * pattern))
+
+    def rest_inputs(self) -> np.ndarray:
+        """(n_fingers, m) every input at rest."""
+        return np.tile(self._rest, (self.n_fingers, 1))
 
     def step(self, t: float, tips: np.ndarray) -> np.ndarray:
         """Take the tips (n_fingers, 3) [m] measured at search time ``t`` [s]; return the
-        torque (n_fingers, 2) [N·m] to apply now (zero once done)."""
-        u = np.zeros((self.n_fingers, 2))
+        torque (n_fingers, 2) [N·m] to apply now (zero once done; with bounded inputs (n, m),
+        the rest inputs)."""
+        u = self.rest_inputs()
         if self.done:
             return u
         rows = np.asarray(tips, dtype=float)[self.rows, :3]

@@ -11,7 +11,8 @@ Run time starts at the run's first tips. The run is, in order:
    with its time 0 where the search ended (without a search: as given, from run time 0);
 
 then the run is over. Every torque of the three phases is counted by the settle phase, which
-knows the zero-torque answers before the first non-zero one (training's noise level). The tips at
+knows the zero-torque answers before the first non-zero one (training's noise level); with
+bounded inputs "zero" is the rest inputs (a vented chamber, slack tendons). The tips at
 the run's start are kept: how far an excited tip moved from them is the run's excursion.
 """
 from __future__ import annotations
@@ -39,7 +40,7 @@ class RunStep(NamedTuple):
 
     phase: Phase
     t: float | None          # search time (PROBE), plan time (PLAY, OVER); None while SETTLE
-    u: np.ndarray | None     # the torque (n, 2) [N·m]; None when OVER
+    u: np.ndarray | None     # the torque (n, 2) [N·m] or inputs (n, m); None when OVER
     first_torque: bool       # ``u`` is the first non-zero torque of the run
     level_chosen: bool       # the search chose the amplitude at this step (the plan is scaled)
 
@@ -76,7 +77,7 @@ class ExcitationRun:
         """The run at run time ``t`` [s] (``tips``: the newest, which the search measures)."""
         t = self.settle.run_time(t)
         if t is None:
-            return self._answer(Phase.SETTLE, None, np.zeros((self.plan.n_fingers, 2)))
+            return self._answer(Phase.SETTLE, None, self.plan.rest_inputs())
         search, chosen = self.search, False
         if search is not None and not search.done:
             u = search.step(t, tips)
@@ -92,4 +93,4 @@ class ExcitationRun:
 
     def _answer(self, phase: Phase, t: float | None, u: np.ndarray,
                 chosen: bool = False) -> RunStep:
-        return RunStep(phase, t, u, self.settle.answered(u), chosen)
+        return RunStep(phase, t, u, self.settle.answered(u - self.plan.rest), chosen)

@@ -15,15 +15,15 @@ palm; same gravity, springs, damping and Dahl friction, same energy and RK4 step
 
 The finger is meant to be served at 100 Hz (the driver's ``rate``), as pneumatic grippers are.
 
-=============  =============  ===============  =====  ======  ===========  =========
-preset         rest tip [mm]  modes [Hz]       ζ₁     τ_p     p_max [kPa]  reach [mm]
-=============  =============  ===============  =====  ======  ===========  =========
-pneumatic1_a   (104.8, 7.8)   4.3, 16.0, 45.9  0.18   40 ms   60           35.8
-pneumatic1_b   (104.9, 7.2)   3.3, 14.5, 43.4  0.16   60 ms   60           26.4
-=============  =============  ===============  =====  ======  ===========  =========
+=============  =============  ================  =====  =====  ===========  ==========
+preset         rest tip [mm]  modes [Hz]        ζ₁     τ_p    p_max [kPa]  reach [mm]
+=============  =============  ================  =====  =====  ===========  ==========
+pneumatic1_a   (104.6, 7.8)   4.1, 22.4, 63.6   0.16   40 ms  60           24.1
+pneumatic1_b   (104.7, 7.1)   3.4, 22.6, 67.3   0.12   60 ms  60           18.3
+=============  =============  ================  =====  =====  ===========  ==========
 
-(reach: how far the tip moves from rest at p_max, held, frictionless; the static gain at rest
-is ``FingerPlant.static_gain()``, (2, 1) in m/Pa, pointing toward +Y.)
+(reach: how far the tip moves from rest at p_max, held, frictionless; the static gain at rest,
+``FingerPlant.static_gain()``, (2, 1) in m/Pa, is 0.40 (a) and 0.30 (b) mm per kPa, toward +Y.)
 
 * ``pneumatic1_a``: three segments of 45/35/25 mm and 10/7/5 g, a 5 g tip; elastomer springs of
   0.10/0.07/0.05 N·m/rad curling it slightly (0.05 rad per joint) at rest; the chamber gives

@@ -49,12 +49,12 @@ frequencies and the first modal damping ratio of the frictionless segment linear
 tendon (the columns' norms; frictionless, at rest, :meth:`TrunkPlant.static_gain`, whose 3 × 3
 has full rank):
 
-=========  =============  ================  =====  ===========  =====  ================
-preset     rest tip [mm]  modes [Hz]        ζ₁     mm per N     T_max  σ_min/σ_max gain
-=========  =============  ================  =====  ===========  =====  ================
-trunk3_a   (120.5, 0, 0)  5.1, 5.1, 22.5    0.10   7.3 (each)   4 N    0.23
-trunk3_b   (120.7, 0, 0)  4.0, 4.0, 18.4    0.09   5.9 (each)   4 N    0.24
-=========  =============  ================  =====  ===========  =====  ================
+=========  =============  ================  =====  ============  =====  ================
+preset     rest tip [mm]  modes [Hz]        ζ₁     mm per N      T_max  σ_min/σ_max gain
+=========  =============  ================  =====  ============  =====  ================
+trunk3_a   (120.5, 0, 0)  5.1, 5.1, 22.5    0.10   6.7 (each)    4 N    0.36
+trunk3_b   (120.7, 0, 0)  4.4, 4.4, 18.4    0.09   4.6 (each)    4 N    0.40
+=========  =============  ================  =====  ============  =====  ================
 
 * ``trunk3_a``: a 120 mm backbone, tendons at 12 mm and 0°/120°/240° (tendon 0 on the palm's
   side, +Y), a 30 g tip; k_b = 0.10 N·m/rad, k_a = 600 N/m; Dahl friction 2 mN·m in bending and

@@ -10,6 +10,16 @@ splits between its two columns: any G2 with the same row sums fits it equally we
 identification signals ``x1`` and ``x2`` drive the two torques independently — multisines on
 disjoint, incommensurate frequency sets per axis, so the two inputs are uncorrelated over the
 record and each takes both signs — with peaks inside the paper's ±25 sim-unit range.
+
+**Fingers of m inputs** (1 to 4) with per-input bounds take the same signals as shares of their
+intervals (:func:`input_signal`): each signal in sim units divided by :data:`REFERENCE` (40 sim
+units, the simulator's 0.1 N·m actuator limit, so u1 peaks at 0.625), for m inputs: u1..u4 the
+same on every input; x1, x2 multisines on disjoint, incommensurate frequency sets per input (the
+hand's two sets, then two more); b1, b2 the broadband multisine with its m·12 frequencies dealt
+to the inputs in turn (b2 starting one input later). The excitation plan maps a share s to an
+input about the middle of a two-sided interval, or from the rest value into a one-sided one
+(:mod:`soft_gripper_sdre.sim.excitation`). For two inputs the shares are the hand's signals
+over 0.1 N·m.
 """
 from __future__ import annotations
 
@@ -85,6 +95,78 @@ SIGNALS: dict[str, Callable[[np.ndarray], np.ndarray]] = {
     'b1': _broadband(0.2, 30.0, 12, True),
     'b2': _broadband(0.2, 30.0, 12, False),
 }
+
+#: the sim-unit value a share of 1 stands for (the simulator's 0.1 N·m actuator limit)
+REFERENCE = 40.0
+
+#: x1 and x2 per input: (amplitudes, frequencies [Hz], phases) in sim units; the hand's two
+#: inputs first, then two more on frequencies of their own
+_X_AXES = {
+    'x1': (((10, 6, 4), (0.3, 0.9, 1.7), (0.0, 1.0, 2.0)),
+           ((9, 6, 4), (0.5, 1.3, 2.3), (0.5, 2.5, 4.0)),
+           ((9, 6, 4), (0.4, 1.1, 1.9), (1.0, 3.0, 0.3)),
+           ((9, 6, 4), (0.7, 1.5, 2.9), (2.2, 0.4, 5.0))),
+    'x2': (((9, 6, 4), (0.5, 1.3, 2.3), (1.5, 0.2, 3.0)),
+           ((10, 6, 4), (0.3, 0.9, 1.7), (2.0, 4.0, 0.7)),
+           ((9, 6, 4), (0.7, 1.5, 2.9), (0.9, 2.1, 4.4)),
+           ((9, 6, 4), (0.4, 1.1, 1.9), (3.3, 1.2, 0.1))),
+}
+_PAPER = {
+    'u1': lambda t: 25 * s(pi * t),
+    'u2': lambda t: 25 * s(0.5 * pi * t) + 2,
+    'u3': lambda t: 10 * s(2 * pi * t) + 15 * s(pi * t),
+    'u4': lambda t: 6 * s(3 * pi * t) + 7 * s(2 * pi * t) + 8 * s(pi * t),
+}
+
+
+def _broadband_shares(f_lo: float, f_hi: float, per_axis: int, m: int, first: int,
+                      peak: float = 25.0) -> Callable[[np.ndarray], np.ndarray]:
+    """:func:`_broadband` for ``m`` inputs as shares: m·``per_axis`` log-spaced frequencies
+    dealt to the inputs in turn, input ``first`` taking the lowest, Schroeder phases, scaled so
+    the largest input peaks at ``peak`` sim units over the record, over :data:`REFERENCE`."""
+    freqs = np.geomspace(f_lo, f_hi, m * per_axis)
+    sets = [freqs[(k - first) % m::m] for k in range(m)]
+    k = np.arange(1, per_axis + 1)
+    phases = -np.pi * k * (k - 1) / per_axis
+    t = np.arange(int(DURATION * 1000)) * 1e-3
+    raw = [np.sin(2 * np.pi * f[:, None] * t + phases[:, None]).sum(axis=0) for f in sets]
+    amp = peak / max(np.abs(r).max() for r in raw) / REFERENCE
+
+    def signal(t):
+        t = np.asarray(t, dtype=float)
+        return np.stack([amp * np.sin(2 * np.pi * np.multiply.outer(t, f) + phases).sum(axis=-1)
+                         for f in sets], axis=-1)
+    return signal
+
+
+def input_signal(name: str, m: int) -> Callable[[np.ndarray], np.ndarray]:
+    """The built-in signal ``name`` for ``m`` inputs as shares of each input's interval: t (N,)
+    [s] → (N, m), within ±1 (module doc).
+
+    Raises:
+        KeyError: unknown name (the message lists the known ones).
+        ValueError: ``m`` not 1 to 4.
+    """
+    get_signal(name)
+    if not (isinstance(m, (int, np.integer)) and 1 <= m <= 4):
+        raise ValueError(f'the number of inputs m must be 1 to 4, got {m!r}')
+    if name in _PAPER:
+        f = _PAPER[name]
+
+        def paper(t):
+            v = f(np.asarray(t, dtype=float)) / REFERENCE
+            return np.stack([v] * m, axis=-1)
+        return paper
+    if name in _X_AXES:
+        axes = _X_AXES[name][:m]
+
+        def multisine(t):
+            t = np.asarray(t, dtype=float)
+            return np.stack([sum(a * np.sin(2 * np.pi * f * t + p) for a, f, p in zip(*axis))
+                             for axis in axes], axis=-1) / REFERENCE
+        return multisine
+    return _broadband_shares(0.2, 30.0, 12, m, 0 if name == 'b1' else 1 % m)
+
 
 PAPER_SIGNALS = ('u1', 'u2', 'u3', 'u4')
 IDENTIFYING_SIGNALS = ('x1', 'x2')

@@ -1,0 +1,210 @@
+"""The controller node (and ``controller --with-estimator``) over real DDS for fingers unlike the
+hand: a one-chamber planar finger (d = 2, m = 1, pressure 0..2e5 Pa) and a three-tendon 3-D
+segment (d = 3, m = 3, pull-only tendons 0..2 N), each with a model really trained on a known
+SDC system."""
+from dataclasses import replace
+
+from geometry_msgs.msg import PoseArray
+from node_harness import MS, make_controller
+import numpy as np
+import pytest
+from rosutil import Probe, deep, overrides, ros_context, spin_until
+from sensor_msgs.msg import JointState
+import torch
+from trajectory_msgs.msg import MultiDOFJointTrajectory
+
+from soft_gripper_sdre.control.laws import make_law
+from soft_gripper_sdre.control.tracking import Weights
+from soft_gripper_sdre.learning.model import SDCModel
+from soft_gripper_sdre.learning.train_settings import PRESETS
+from soft_gripper_sdre.learning.training import save_checkpoint, train
+from soft_gripper_sdre.nodes import conversions as cv
+from soft_gripper_sdre.nodes.controller import ControllerNode, composed
+from soft_gripper_sdre.nodes.params import ParameterError
+from soft_gripper_sdre.nodes.topics import (
+    GRASP_REFERENCE,
+    LOOP_QOS,
+    REFERENCE_QOS,
+    TIP_POSITIONS,
+    TORQUE_COMMANDS,
+)
+from soft_gripper_sdre.sim.shape import FingerShape, InputBounds
+
+pytestmark = pytest.mark.ros
+
+NAMES = ['index', 'thumb']
+#: G2 [m/s² per unit input] and the inputs' bounds of each known system
+SYSTEMS = {
+    (2, 1): (np.array([[5e-6], [-2e-6]]), InputBounds([0.0], [2e5])),
+    (3, 3): (np.array([[0.6, -0.3, -0.3], [0.0, 0.52, -0.52], [0.2, 0.2, 0.2]]),
+             InputBounds([0.0] * 3, [2.0] * 3)),
+}
+STIFFNESS, DAMPING = 400.0, 20.0       # p̈ = −k p − c ṗ + G2 u
+WEIGHTS = dict(q_pos=8e5, q_vel=0.0, r=1e-6)
+
+
+def _data(d: int, m: int, n: int, seed: int):
+    G2, bounds = SYSTEMS[(d, m)]
+    rng = np.random.default_rng(seed)
+    u = bounds.lower + (bounds.upper - bounds.lower) * rng.random((n, m))
+    scale = np.abs(G2 @ bounds.half_span).max() / STIFFNESS
+    p = scale * rng.standard_normal((n, d))
+    v = 10 * scale * rng.standard_normal((n, d))
+    return np.hstack([p, v]), u, -STIFFNESS * p - DAMPING * v + u @ G2.T
+
+
+@pytest.fixture(scope='module', params=list(SYSTEMS), ids=lambda s: f'd{s[0]}m{s[1]}')
+def checkpoint(request, tmp_path_factory):
+    """(shape, bounds, the path of a model trained on the system of that shape)."""
+    d, m = request.param
+    torch.set_num_threads(1)
+    settings = replace(PRESETS['default'], epochs=20)
+    result = train(*_data(d, m, 2000, 0), *_data(d, m, 400, 1), settings,
+                   shape=FingerShape(d, m))
+    path = tmp_path_factory.mktemp('shape') / 'model.pt'
+    save_checkpoint(path, result, rest_tip=np.zeros(3), dt=1e-3, settings=settings,
+                    data={'source': 'test'}, input_bounds=SYSTEMS[(d, m)][1])
+    return FingerShape(d, m), SYSTEMS[(d, m)][1], path
+
+
+def _bounds_params(bounds: InputBounds) -> dict:
+    """The bounds as parameters: the lower ones a list of doubles (a YAML list), the upper ones a
+    string; one bound alone a plain number."""
+    lower = [float(v) for v in bounds.lower]
+    return dict(input_lower=lower[0] if len(lower) == 1 else lower,
+                input_upper=', '.join(f'{v:g}' for v in bounds.upper))
+
+
+def _plan(d: int, start_ns: int = 0, points: int = 21):
+    """A constant reference 2 mm from rest along each axis (both fingers); (message, (2, d))."""
+    target = np.full((2, d), 0.002)
+    target[1] *= -1
+    pos = np.repeat(target[None], points, 0)
+    zeros = np.zeros_like(pos)
+    offsets = 5 * MS * np.arange(points)
+    return cv.reference_to_msg(start_ns, offsets, pos, zeros, zeros, NAMES), target
+
+
+def test_commands_name_m_inputs_stay_within_the_bounds_and_are_the_offline_law(checkpoint):
+    shape, bounds, path = checkpoint
+    d, m = shape.d, shape.m
+    model = SDCModel(path)
+    assert model.shape == shape
+    offline = make_law('sdre_ff', model, Weights(**WEIGHTS), 0.0625, n_fingers=2, bounds=bounds)
+    rng = np.random.default_rng(3)
+    with ros_context() as (ctx, executor):
+        node, probe, est_pub, ref_pub = make_controller(
+            ctx, executor, model_path=str(path), finger_names=NAMES, **WEIGHTS,
+            **_bounds_params(bounds))
+        values = node.diag.values
+        assert values['shape'] == f'd={d}, m={m}' and values['input_bounds'] == str(bounds)
+        msg, target = _plan(d)
+        ref_pub.publish(msg)
+        assert spin_until(executor, lambda: node.diag.counters['references'] == 1)
+        states = []
+        for k in range(6):
+            x = np.hstack([rng.normal(scale=0.003, size=(2, d)), rng.normal(scale=0.02,
+                                                                             size=(2, d))])
+            if k == 5:
+                x[1, 0] = np.nan                              # refused: no command for it
+            states.append(x)
+            before = node.diag.counters['estimates'] + node.diag.counters['bad_estimate']
+            est_pub.publish(cv.estimate_to_msg(k * MS, x[:, :d], x[:, d:], NAMES))
+            assert spin_until(executor, lambda: node.diag.counters['estimates']
+                              + node.diag.counters['bad_estimate'] > before, 5.0)
+        assert spin_until(executor, lambda: len(probe.received[TORQUE_COMMANDS]) == 5)
+        assert node.diag.counters['bad_estimate'] == 1
+        node.diag.publish()
+        got = probe.received[TORQUE_COMMANDS]
+        assert list(got[0].name) == cv.torque_names(NAMES, m)
+        zeros = np.zeros((2, d))
+        for k, cmd in enumerate(got):
+            stamp, u = cv.msg_to_torques(cmd, NAMES, m)
+            assert stamp == k * MS and u.shape == (2, m)
+            assert np.isfinite(u).all() and bounds.contains(u)
+            x = states[k]
+            want = offline.compute(x[:, :d], x[:, d:], target, zeros, ref_acc=zeros)
+            np.testing.assert_allclose(u, want.u, rtol=1e-9, atol=1e-12 * bounds.upper.max())
+        if m < d:      # one input for a planar tip: what it cannot reach is shown
+            assert float(values['unreachable_max']) > 0.0
+        else:
+            assert 'unreachable_max' not in values
+
+
+def test_bounds_of_another_input_count_than_the_models_are_refused_naming_them(checkpoint):
+    shape, bounds, path = checkpoint
+    wrong = InputBounds.symmetric(1.0, 2 if shape.m == 1 else 1)
+    with ros_context() as (ctx, _executor):
+        with pytest.raises(ParameterError) as info:
+            ControllerNode(context=ctx, parameter_overrides=overrides(
+                model_path=str(path), **_bounds_params(wrong)))
+    assert "'input_lower', 'input_upper'" in str(info.value)
+    assert f'the finger has {shape.m} input(s)' in str(info.value)
+
+
+def test_effort_joints_name_the_models_inputs(checkpoint):
+    shape, bounds, path = checkpoint
+    joints = cv.torque_names(NAMES, shape.m)[::-1]
+    with ros_context() as (ctx, _executor):
+        node = ControllerNode(context=ctx, parameter_overrides=overrides(
+            model_path=str(path), finger_names=NAMES, effort_topic='/efforts',
+            effort_joints=joints, **_bounds_params(bounds)))
+        assert node.effort_order.tolist() == list(range(2 * shape.m))[::-1]
+        node.destroy_node()
+        with pytest.raises(ParameterError, match='effort_joints'):
+            ControllerNode(context=ctx, parameter_overrides=overrides(
+                model_path=str(path), finger_names=NAMES, effort_topic='/efforts',
+                effort_joints=cv.torque_names(NAMES, shape.m + 1), **_bounds_params(bounds)))
+
+
+def test_the_composed_controller_filters_the_models_tips_and_refuses_another_task_dim(checkpoint):
+    shape, bounds, path = checkpoint
+    d = shape.d
+    params = dict(model_path=str(path), finger_names=NAMES, **_bounds_params(bounds))
+    with ros_context() as (ctx, _executor):
+        with pytest.raises(ParameterError, match=f"'task_dim'.*give task_dim {d}"):
+            composed(context=ctx, parameter_overrides=overrides(task_dim=5 - d, **params))
+    with ros_context() as (ctx, executor):
+        est, ctl = composed(context=ctx, parameter_overrides=overrides(task_dim=d, **params))
+        probe = Probe(ctx)
+        probe.listen(JointState, TORQUE_COMMANDS, deep(LOOP_QOS))
+        tip_pub = probe.create_publisher(PoseArray, TIP_POSITIONS, LOOP_QOS)
+        ref_pub = probe.create_publisher(MultiDOFJointTrajectory, GRASP_REFERENCE, REFERENCE_QOS)
+        for node in (est, ctl, probe):
+            executor.add_node(node)
+        assert spin_until(executor, lambda: tip_pub.get_subscription_count() == 1
+                          and ref_pub.get_subscription_count() == 1
+                          and ctl.pub_cmd.get_subscription_count() == 1, 20.0)
+        ref_pub.publish(_plan(d)[0])
+        assert spin_until(executor, lambda: ctl.diag.counters['references'] == 1)
+        tips = np.array([[0.001, -0.002, 0.003], [0.0, 0.001, -0.001]])
+        for k in range(5):
+            tip_pub.publish(cv.tips_to_msg(k * MS, tips + 1e-4 * k))
+            assert spin_until(executor, lambda: len(probe.received[TORQUE_COMMANDS]) == k + 1)
+        for cmd in probe.received[TORQUE_COMMANDS]:
+            u = cv.msg_to_torques(cmd, NAMES, shape.m)[1]
+            assert np.isfinite(u).all() and bounds.contains(u)
+        assert est.filter.kf.x.shape == (2, 2 * d)
+
+
+@pytest.mark.parametrize('node, args, needle', [
+    ('controller', ['-p', 'input_lower:=0', '-p', 'input_upper:=0.05'],      # int, double
+     "'input_lower', 'input_upper': the finger has 2 input(s); got 1 lower and 1 upper"),
+    ('controller', ['-p', 'input_lower:=[0.0, 0.01]', '-p', 'input_upper:=[0.01, 0.01]'],
+     'input ax1: the lower bound must be below the upper one'),
+    ('estimator', ['-p', 'task_dim:=4'], 'task_dim'),
+    ('trajectory', ['-p', 'direction:=[0.0, 1.0, 0.0]'], "'direction': needs task_dim = 2 values"),
+    ('trajectory', ['-p', 'close_path:=[0.001, .nan]'], "'close_path'"),
+])
+def test_bad_shape_parameters_exit_2_naming_them(node, args, needle, tmp_path):
+    """Real processes: exit status 2, the message names the parameters, no traceback."""
+    import os
+    import subprocess
+    import sys
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
+    out = subprocess.run([sys.executable, '-m', f'soft_gripper_sdre.nodes.{node}', '--ros-args',
+                          *args], cwd=tmp_path, env=env, capture_output=True, text=True,
+                         timeout=120)
+    assert out.returncode == 2, out.stderr
+    assert needle in out.stderr and 'Traceback' not in out.stderr
+    assert not list(tmp_path.iterdir())
