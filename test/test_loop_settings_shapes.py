@@ -295,3 +295,16 @@ def test_params_of_a_derivation_without_settings_say_why():
     facts = _chamber_facts()
     with pytest.raises(ValueError, match='no settings were derived: excite'):
         ls.Derivation(None, {}, [], facts, reason='excite with larger torques').params(['a'])
+
+
+def test_the_in_process_loop_refuses_a_law_of_another_shape_than_its_simulator():
+    """The in-process loop simulates the hand (d = 2, m = 2): a one-chamber law is refused
+    before the simulator starts, naming both shapes."""
+    from soft_gripper_sdre.analysis.closed_loop import law_shape, run_closed_loop
+    from soft_gripper_sdre.control.laws import make_law
+    from soft_gripper_sdre.control.tracking import Weights
+    law = make_law('sdre', OneChamber(), Weights(1.0, 0.0, 1.0), P_MAX, n_fingers=4,
+                   bounds=InputBounds([0.0], [P_MAX]))
+    assert law_shape(law) == FingerShape(2, 1)
+    with pytest.raises(ShapeError, match=r'shape \(d=2, m=1\).*hand\'s \(d=2, m=2\)'):
+        run_closed_loop(law, duration=0.1)
