@@ -447,8 +447,9 @@ def report_fitness(fitness: model_fitness.Fitness, derived, out: Path) -> None:
     print(f'model fit to control. {out / PARAMS_FILE}: control_period {d.control_period:g} s, '
           f'meas_std {d.meas_std:.3g} m, accel_psd {d.accel_psd:.3g}, '
           f'bandwidth {d.bandwidth_hz:g} Hz '
-          f'(q_pos {d.q_pos:.3g}, r {d.r:.3g}), torque_limit {d.torque_limit:.3g} N·m, '
-          f'roll-off {d.torque_lowpass_hz:g} Hz, integral {d.integral_gain:.3g} / '
+          f'(q_pos {d.q_pos:.3g}, r {d.r:.3g}), torque_limit {d.torque_limit:.3g} '
+          + ('N·m, ' if derived.facts.bounds is None else '(the inputs\' unit), ')
+          + f'roll-off {d.torque_lowpass_hz:g} Hz, integral {d.integral_gain:.3g} / '
           f'{1e3 * d.integral_band:.2f} mm; closed loop on the model, error / travel '
           f'{1e3 * derived.facts.travel:.2f} mm: {checks}')
     close, side = derived.facts.move()
