@@ -143,6 +143,7 @@ def test_a_one_input_finger_is_checked_along_the_curve_it_can_hold():
     params = derived.params(['a', 'b'])
     assert params['controller']['input_lower'] == [0.0]
     assert params['controller']['input_upper'] == [P_MAX]
+    assert 'torque_limit' not in params['controller']      # the bounds replace it
     plan = params['trajectory']
     waypoints = np.array([float(v) for v in plan['close_path'].split(',')]).reshape(-1, 2)
     np.testing.assert_array_equal(waypoints, path[1:])

@@ -417,12 +417,12 @@ class Derivation:
         'controller': {…}, 'trajectory': {…}}`` (the controller's ``model_path`` is the caller's).
 
         The hand's shape with symmetric bounds gets the parameters it always had (the planar
-        straight move as ``close_distance`` and ``side_distance``); another shape adds
-        ``task_dim`` (estimator, trajectory), ``input_lower``/``input_upper`` (controller) for
-        per-input bounds, and the move as ``direction`` (d values, the unit direction) with
-        ``close_distance`` its length, and for a curved move ``close_path`` (d values per
-        waypoint after the rest, relative to it, flat; ``direction`` its chord), both as the
-        node's text ``'x, y[, z], …'``.
+        straight move as ``close_distance`` and ``side_distance``). Another shape adds
+        ``task_dim`` (estimator, trajectory) and, for per-input bounds, the controller's
+        ``input_lower``/``input_upper`` in place of ``torque_limit``. Its move is ``direction``
+        (d values, the unit direction) with ``close_distance`` its length, and for a curved move
+        ``close_path`` (d values per waypoint after the rest, relative to it, flat; then
+        ``direction`` is its chord), both as the node's text ``'x, y[, z], …'``.
 
         Raises:
             ValueError: no settings were derived (:attr:`reason`).
@@ -439,6 +439,8 @@ class Derivation:
                 'integral_gain': d.integral_gain, 'integral_band': d.integral_band,
                 'feedforward_at': d.feedforward_at, 'pd_kp': d.pd_kp, 'pd_kd': d.pd_kd}
         if f.bounds is not None:
+            # the bounds replace the symmetric limit (the node's torque_limit is in N·m)
+            del ctrl['torque_limit']
             ctrl['input_lower'] = [float(v) for v in f.bounds.lower]
             ctrl['input_upper'] = [float(v) for v in f.bounds.upper]
         if f.d == 2 and f.path is None:
