@@ -173,7 +173,7 @@ def test_the_recipe_runs_end_to_end_on_the_one_chamber_pneumatic_finger(tmp_path
     assert 0 < facts['bounds']['upper'][0] <= 60e3
     params = yaml.safe_load((out / 'model' / 'params.yaml').read_text())
     plan = params['/**/trajectory']['ros__parameters']
-    waypoints = [float(v) for v in plan['close_path'].split(',')]
+    waypoints = plan['close_path']
     assert len(waypoints) == 2 * (len(facts['path']) - 1)
     assert plan['close_distance'] == pytest.approx(facts['travel'])
     ctrl = params['/**/controller']['ros__parameters']
