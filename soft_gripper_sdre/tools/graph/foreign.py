@@ -269,6 +269,10 @@ def score(bag: Path, travel: float, bounds: InputBounds, d: int = 2,
             errs.append(np.linalg.norm(tip - ref, axis=1))
     for _, m in by['torque_commands']:
         u = np.asarray(m.effort, dtype=float)
+        if u.size != n * bounds.m:
+            raise RuntimeError(f'{bag}: a torque command of {u.size} efforts ({list(m.name)}) '
+                               f'for {n} finger(s) of {bounds.m} input(s): another graph on '
+                               'this ROS domain?')
         cmds.append(u.reshape(-1, bounds.m))               # <finger>/ax0 … ax<m−1>, by finger
         if start <= stamp(m) < start + T_START * 1e9:
             rest_cmds.append(u)
