@@ -21,6 +21,7 @@ NODES = {
     'recorder': 'soft_gripper_sdre.nodes.recorder:main',
     'excitation': 'soft_gripper_sdre.nodes.excitation:main',
     'plant_driver': 'soft_gripper_sdre.nodes.plant_driver:main',
+    'mocap_tips': 'soft_gripper_sdre.nodes.mocap_tips:main',
 }
 
 setup(

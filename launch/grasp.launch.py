@@ -12,12 +12,13 @@ package's share directory, then the user's ``params_file``, then the overrides t
 for, and in a namespace its own clock (``/clock`` remapped to ``<namespace>/clock``).
 
 Every argument is checked before any node starts (the law against the controller's own choices,
-the numbers against the simulator's limits, the parameters file read as YAML); a bad one ends
-the launch with an error naming it. The simulator takes its first step once the whole graph is
-wired and ready (:func:`soft_gripper_sdre.nodes.graph.readiness_problem`). The launch ends when
-the simulator finishes (after ``duration`` seconds of sim time; ``duration:=0`` runs until
-Ctrl-C), or as soon as any node exits on its own before that: then with an error naming the node
-and its status (:func:`exit_verdict`), so ``ros2 launch`` exits non-zero.
+the numbers against the simulator's limits, the parameters file read as YAML and each node's
+sections of it against the parameters the node declares: a value of the wrong type or an unknown
+key); a bad one ends the launch with an error naming it. The simulator takes its first step once
+the whole graph is wired and ready (:func:`soft_gripper_sdre.nodes.graph.readiness_problem`). The
+launch ends when the simulator finishes (after ``duration`` seconds of sim time; ``duration:=0``
+runs until Ctrl-C), or as soon as any node exits on its own before that: then with an error
+naming the node and its status (:func:`exit_verdict`), so ``ros2 launch`` exits non-zero.
 
 The namespace is passed to launch_ros as a relative one, so an including launch file's
 ``PushRosNamespace`` still applies. :func:`grasp_nodes` is the node list as plain data (package,
@@ -110,7 +111,8 @@ def grasp_nodes(namespace: str = '', duration: str = '6.0', control_period: str 
     Raises:
         ValueError: naming the argument: not a number, a boolean, a namespace or a law where one
             is needed, a number or mode outside the simulator's limits, a control period outside
-            0.001 to 0.01 s, or a parameters file that cannot be read as one.
+            0.001 to 0.01 s, a parameters file that cannot be read as one, or one that gives a
+            node of the graph a value of the wrong type or a key it does not declare.
     """
     from soft_gripper_sdre.control.laws import GRAPH_LAWS
 
@@ -145,7 +147,28 @@ def grasp_nodes(namespace: str = '', duration: str = '6.0', control_period: str 
     extra = [_params_file(params_file.strip())] if params_file.strip() else []
     spec = grasp_graph(namespace, record=recording, parameters=parameters, control_period=period,
                        params_files=extra, composed=composing)
+    for path in extra:
+        _check_sections(params_file, path, [n for node in spec.nodes
+                                            for n in (node, *node.hosted)])
     return [_launched(node) for node in spec.nodes]
+
+
+def _check_sections(text: str, path, nodes) -> None:
+    """Refuse the user's parameters file if it gives a node of the graph a value of the wrong
+    type or a key the node does not declare, as the node itself would at start-up
+    (:mod:`soft_gripper_sdre.nodes.params_files`); here before any node starts."""
+    import importlib
+
+    from soft_gripper_sdre.nodes.params import declared_types
+    from soft_gripper_sdre.nodes.params_files import file_problems, package_parameter_names
+
+    package = package_parameter_names()
+    for node in nodes:
+        params = importlib.import_module(node.module).PARAMS
+        declared = declared_types(params)
+        for problem in file_problems(node.full_name, declared, str(path), package):
+            if problem.refuse:
+                raise ValueError(f'launch argument params_file:={text!r}: {problem.message}')
 
 
 def _boolean(name: str, text: str) -> bool:

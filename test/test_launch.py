@@ -165,6 +165,33 @@ def test_a_params_file_that_is_not_one_is_named(launch_module, tmp_path, text, n
         launch_module.grasp_nodes(params_file=str(bad))
 
 
+@pytest.mark.parametrize('text, needle', [
+    ('/**/controller:\n  ros__parameters:\n    q_pos: abc\n',
+     "parameter 'q_pos' for node /left_hand/controller in {path} (section '/**/controller', "
+     "line 3): 'abc' is not a float"),
+    ('/**/estimator:\n  ros__parameters:\n    q_pos: 2.0\n',
+     "unknown parameter 'q_pos' for node /left_hand/estimator in {path}"),
+])
+@pytest.mark.parametrize('composed', ['false', 'true'])
+def test_a_params_file_wrong_for_a_node_is_refused_before_any_starts(launch_module, tmp_path,
+                                                                     text, needle, composed):
+    """The shipped file comes first, so rcl would keep its float and drop the string unheard."""
+    mine = tmp_path / 'mine.yaml'
+    mine.write_text(text)
+    with pytest.raises(ValueError) as err:
+        launch_module.grasp_nodes(namespace='left_hand', params_file=str(mine), composed=composed)
+    assert str(err.value).startswith(f"launch argument params_file:='{mine}': ")
+    assert needle.format(path=mine.resolve()) in str(err.value)
+
+
+def test_a_whole_graphs_params_file_is_taken(launch_module, tmp_path):
+    mine = tmp_path / 'mine.yaml'
+    mine.write_text('/**:\n  ros__parameters:\n    finger_names: [a, b, c, d]\n'
+                    '    q_pos: 2.0\n/**/controller:\n  ros__parameters:\n    law: pd\n')
+    nodes = launch_module.grasp_nodes(params_file=str(mine), record='true')
+    assert all(str(mine.resolve()) in node['parameters'] for node in nodes)
+
+
 @pytest.mark.parametrize('node, code, shutting_down, verdict', [
     ('simulator', 0, False, ('done', 'the simulator finished')),
     ('simulator', 1, False, ('failed', 'the simulator node exited with status 1')),

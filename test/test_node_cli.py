@@ -9,7 +9,7 @@ import pytest
 from soft_gripper_sdre.nodes.cli import params_files, split_ros_args
 
 NODES = ('simulator', 'estimator', 'controller', 'trajectory', 'recorder', 'excitation',
-         'plant_driver')
+         'plant_driver', 'mocap_tips')
 
 
 def _run(node, *args, tmp_path):

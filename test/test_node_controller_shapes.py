@@ -68,11 +68,8 @@ def checkpoint(request, tmp_path_factory):
 
 
 def _bounds_params(bounds: InputBounds) -> dict:
-    """The bounds as parameters: the lower ones a list of doubles (a YAML list), the upper ones a
-    string; one bound alone a plain number."""
-    lower = [float(v) for v in bounds.lower]
-    return dict(input_lower=lower[0] if len(lower) == 1 else lower,
-                input_upper=', '.join(f'{v:g}' for v in bounds.upper))
+    return dict(input_lower=[float(v) for v in bounds.lower],
+                input_upper=[float(v) for v in bounds.upper])
 
 
 def _plan(d: int, start_ns: int = 0, points: int = 21):
@@ -188,8 +185,9 @@ def test_the_composed_controller_filters_the_models_tips_and_refuses_another_tas
 
 
 @pytest.mark.parametrize('node, args, needle', [
-    ('controller', ['-p', 'input_lower:=0', '-p', 'input_upper:=0.05'],      # int, double
+    ('controller', ['-p', 'input_lower:=[0.0]', '-p', 'input_upper:=[0.05]'],
      "'input_lower', 'input_upper': the finger has 2 input(s); got 1 lower and 1 upper"),
+    ('controller', ['-p', 'input_lower:=0'], 'got 1 lower and 0 upper'),
     ('controller', ['-p', 'input_lower:=[0.0, 0.01]', '-p', 'input_upper:=[0.01, 0.01]'],
      'input ax1: the lower bound must be below the upper one'),
     ('estimator', ['-p', 'task_dim:=4'], 'task_dim'),

@@ -242,7 +242,7 @@ def test_trajectory_node_plans_a_3d_grasp_along_its_direction():
     with ros_context() as (ctx, executor):
         node, probe, pub = make_trajectory(
             ctx, executor, finger_names=list(NAMES), grasp_fingers=[0, 1], task_dim=3,
-            direction='0, 3, 4', **FAST_GRASP)
+            direction=[0.0, 3.0, 4.0], **FAST_GRASP)
         pub.publish(cv.tips_to_msg(0, REST3))
         stamp, times, pos, vel, acc = _plan(executor, node, probe, 3)
     assert pos.shape[1:] == (2, 3)
@@ -267,7 +267,7 @@ def test_trajectory_node_closes_a_finger_along_its_close_path():
     with ros_context() as (ctx, executor):
         node, probe, pub = make_trajectory(
             ctx, executor, finger_names=list(NAMES), grasp_fingers=[0], others='hold',
-            close_path=', '.join(f'{v:g}' for v in path.ravel()), horizon_step=0.001,
+            close_path=path.ravel().tolist(), horizon_step=0.001,
             **FAST_GRASP)
         pub.publish(cv.tips_to_msg(0, REST3))
         stamp, times, pos, vel, acc = _plan(executor, node, probe, 2)
@@ -290,15 +290,15 @@ def test_trajectory_node_closes_a_finger_along_its_close_path():
 @pytest.mark.ros
 @pytest.mark.parametrize('params, needle', [
     (dict(task_dim=4), 'task_dim'),
-    (dict(direction='0, 1, 0'), 'direction'),                 # 3 values for a planar tip
-    (dict(direction='0, 0'), 'direction'),
-    (dict(direction='0, nan'), 'direction'),
+    (dict(direction=[0.0, 1.0, 0.0]), 'direction'),           # 3 values for a planar tip
+    (dict(direction=[0.0, 0.0]), 'direction'),
+    (dict(direction=[0.0, float('nan')]), 'direction'),
     (dict(direction='up'), 'direction'),
-    (dict(task_dim=3, direction='0, 1'), 'direction'),
-    (dict(close_path='0.001, 0.002, 0.003'), 'close_path'),   # not 2 per point
-    (dict(close_path='0.001, inf'), 'close_path'),
-    (dict(close_path='0, 0, 0.001, 0.002'), 'close_path'),    # a first waypoint at rest
-    (dict(close_path='a, b'), 'close_path'),
+    (dict(task_dim=3, direction=[0.0, 1.0]), 'direction'),
+    (dict(close_path=[0.001, 0.002, 0.003]), 'close_path'),   # not 2 per point
+    (dict(close_path=[0.001, float('inf')]), 'close_path'),
+    (dict(close_path=[0.0, 0.0, 0.001, 0.002]), 'close_path'),    # a first waypoint at rest
+    (dict(close_path=['a', 'b']), 'close_path'),
     (dict(task_dim=3, rest_pose='0, 0, 0, 0, 0, 0, 0, 0'), 'rest_pose'),
 ])
 def test_trajectory_node_refuses_bad_shape_parameters_naming_them(params, needle):
@@ -334,7 +334,7 @@ def test_controller_with_symmetric_input_bounds_is_the_law_at_that_limit(model):
     offline = make_law('sdre_ff', model, Weights(**DEFAULT_WEIGHTS), limit)
     with ros_context() as (ctx, executor):
         node, probe, est_pub, ref_pub = make_controller(
-            ctx, executor, input_lower='-0.02, -0.02', input_upper='0.02 0.02')
+            ctx, executor, input_lower=[-0.02, -0.02], input_upper=[0.02, 0.02])
         assert node.diag.values['input_bounds'] == 'ax0 [-0.02, 0.02], ax1 [-0.02, 0.02]'
         assert node.diag.values['shape'] == 'd=2, m=2'
         ref_msg, ref_pos = horizon(rest, 0, close_mm=20.0)
@@ -355,16 +355,14 @@ def test_controller_with_symmetric_input_bounds_is_the_law_at_that_limit(model):
 
 @pytest.mark.ros
 @pytest.mark.parametrize('params, needle', [
-    (dict(input_lower='0'), "'input_lower', 'input_upper': give both"),
-    (dict(input_upper='0.01, 0.01'), "'input_lower', 'input_upper': give both"),
-    (dict(input_lower='0', input_upper='0.01'), '2 input(s); got 1 lower and 1 upper'),
-    (dict(input_lower='0, 0, 0', input_upper='1, 1, 1'), '2 input(s)'),
-    (dict(input_lower='0.01, 0', input_upper='0.01, 0.01'), 'input ax0: the lower bound'),
-    (dict(input_lower='0, nan', input_upper='1, 1'), "'input_lower': '0, nan' holds a value that"),
-    (dict(input_lower='zero, 0', input_upper='1, 1'), "'input_lower'"),
-    (dict(input_lower=0, input_upper=[1.0]), '2 input(s); got 1 lower and 1 upper'),
-    (dict(input_lower=[0.0, float('inf')], input_upper=[1.0, 1.0]), "'input_lower'"),
-    (dict(input_lower=[True, False], input_upper=[1.0, 1.0]), "'input_lower'"),
+    (dict(input_lower=[0.01]), '2 input(s); got 1 lower and 0 upper'),      # upper unset
+    (dict(input_lower=[0.0], input_upper=[0.01]), '2 input(s); got 1 lower and 1 upper'),
+    (dict(input_lower=[0.0, 0.0, 0.0], input_upper=[1.0, 1.0, 1.0]), '2 input(s)'),
+    (dict(input_lower=[0.01, 0.0], input_upper=[0.01, 0.01]), 'input ax0: the lower bound'),
+    (dict(input_lower=[0.0, float('nan')], input_upper=[1.0, 1.0]),
+     "parameter 'input_lower': [0.0, nan] holds a value that is not finite"),
+    (dict(input_lower='0, zero', input_upper=[1.0, 1.0]), "'input_lower'"),
+    (dict(input_lower=0, input_upper=[1.0, 1.0]), '2 input(s); got 1 lower and 2 upper'),
     (dict(effort_topic='/efforts', effort_joints=['finger_0/ax2']), 'effort_joints'),
 ])
 def test_controller_refuses_bad_input_bounds_naming_them(params, needle):

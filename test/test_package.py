@@ -20,7 +20,7 @@ ALL_MODULES = sorted(PKG.rglob('*.py'))
 TEST_MODULES = sorted((ROOT / 'test').glob('test_*.py'))
 ROS_PREFIXES = ('rclpy', 'rosidl', 'rosgraph_msgs', 'builtin_interfaces')
 NODES = ('simulator', 'estimator', 'controller', 'trajectory', 'recorder', 'excitation',
-         'plant_driver')
+         'plant_driver', 'mocap_tips')
 
 
 def _imported_modules(path: Path) -> list[tuple[str, tuple[str, ...]]]:

@@ -15,7 +15,6 @@ from rosutil import Probe, deep, drain, overrides, ros_context, spin_until
 from sensor_msgs.msg import JointState
 
 from soft_gripper_sdre.nodes import conversions as cv
-from soft_gripper_sdre.nodes.input_commands import inputs_to_msg
 from soft_gripper_sdre.nodes.params import ParameterError
 from soft_gripper_sdre.nodes.plant_driver import TRUE_TIP_POSITIONS, PlantDriverNode
 from soft_gripper_sdre.nodes.topics import LOOP_QOS, TORQUE_COMMANDS
@@ -58,7 +57,7 @@ def _hold(executor, node, pub, u, seconds: float, truth) -> np.ndarray:
     0.2 s."""
     start = time.monotonic()
     while time.monotonic() - start < seconds:
-        _send(executor, node, pub, inputs_to_msg(time.time_ns(), u, NAMES))
+        _send(executor, node, pub, cv.torques_to_msg(time.time_ns(), u, NAMES))
         drain(executor, 0.05)
     end = cv.from_time(truth[-1].header.stamp)
     settled = [m for m in truth if cv.from_time(m.header.stamp) > end - 0.2e9]
@@ -94,12 +93,12 @@ def test_pneumatic_fingers_take_one_pressure_each_clipped_to_0_to_p_max():
             assert moved @ predicted[i] > 0.99 * np.linalg.norm(moved) * np.linalg.norm(
                 predicted[i])
 
-        _send(executor, node, pub, inputs_to_msg(time.time_ns(), [[-1e4], [2 * P_MAX]], NAMES))
+        _send(executor, node, pub, cv.torques_to_msg(time.time_ns(), [[-1e4], [2 * P_MAX]], NAMES))
         assert c['clipped_commands'] == 1
         _after_a_tick(executor, node)
         np.testing.assert_array_equal(node.applied, [[0.0], [P_MAX]])
 
-        _send(executor, node, pub, inputs_to_msg(time.time_ns(), np.full((2, 2), 1e3), NAMES))
+        _send(executor, node, pub, cv.torques_to_msg(time.time_ns(), np.full((2, 2), 1e3), NAMES))
         _send(executor, node, pub, cv.torques_to_msg(time.time_ns(), np.zeros((2, 2)), NAMES))
         assert c['bad_commands'] == 2, 'ax1 is no input of a one-chamber finger'
         _after_a_tick(executor, node)
@@ -127,12 +126,12 @@ def test_trunk_segments_take_three_tensions_and_move_their_tips_in_3d():
             moved = tips[i] - f.rest_tip
             assert abs(moved[2]) > 3e-3, 'the tip leaves the plane'
             np.testing.assert_allclose(moved, predicted[i], atol=0.05 * np.linalg.norm(moved))
-        _send(executor, node, pub, inputs_to_msg(time.time_ns(), [[-1.0, 9.0, 0.5],
+        _send(executor, node, pub, cv.torques_to_msg(time.time_ns(), [[-1.0, 9.0, 0.5],
                                                                   [1.0, 1.0, 1.0]], NAMES))
         assert c['clipped_commands'] == 1
         _after_a_tick(executor, node)
         np.testing.assert_array_equal(node.applied, [[0.0, 4.0, 0.5], [1.0, 1.0, 1.0]])
-        _send(executor, node, pub, inputs_to_msg(time.time_ns(), [[np.nan, 1.0, 1.0],
+        _send(executor, node, pub, cv.torques_to_msg(time.time_ns(), [[np.nan, 1.0, 1.0],
                                                                   [1.0, 1.0, 1.0]], NAMES))
         assert c['nonfinite_commands'] == 1
         _after_a_tick(executor, node)
@@ -145,14 +144,15 @@ def test_input_bounds_narrow_the_presets_and_must_fit_them():
                                input_lower=[0.5, 0.0, 0.0], input_upper=[2.0, 3.0, 1.0])
         np.testing.assert_array_equal(node.lower, [[0.5, 0.0, 0.0]] * 2)
         np.testing.assert_array_equal(node.applied, [[0.5, 0.0, 0.0]] * 2, 'the rest input')
-        _send(executor, node, pub, inputs_to_msg(time.time_ns(), np.full((2, 3), 2.5), NAMES))
+        _send(executor, node, pub, cv.torques_to_msg(time.time_ns(), np.full((2, 3), 2.5), NAMES))
         _after_a_tick(executor, node)
         np.testing.assert_array_equal(node.applied, [[2.0, 2.5, 1.0]] * 2)
     bad = [
         (dict(plant='trunk3', input_lower=[0.0, 0.0], input_upper=[1.0, 1.0]),
-         "'input_lower', 'input_upper': plant 'trunk3' has 3 input(s) per finger; got 2"),
+         "'input_lower', 'input_upper' (plant 'trunk3'): the finger has 3 input(s); got 2 lower"),
         (dict(plant='trunk3', input_lower=[0.0, 0.0], input_upper=[1.0, 1.0, 1.0]),
-         "'input_lower', 'input_upper': the finger has 2 input(s); got 2 lower and 3 upper"),
+         "'input_lower', 'input_upper' (plant 'trunk3'): the finger has 3 input(s); got 2 lower "
+         'and 3 upper'),
         (dict(plant='trunk3', input_lower=[-1.0, 0.0, 0.0], input_upper=[1.0, 1.0, 1.0]),
          "reaches beyond the plant's bounds"),
         (dict(plant='pneumatic1', input_lower=[0.0], input_upper=[1e6]),
@@ -161,6 +161,10 @@ def test_input_bounds_narrow_the_presets_and_must_fit_them():
          'input ax0: the lower bound must be below the upper one'),
         (dict(plant='pneumatic1', torque_limit=0.01), "parameter 'torque_limit': plant "
          "'pneumatic1' has inputs that are not ±a limit"),
+        (dict(plant='trunk3', input_lower=[0.0, 0.0, 0.0]),
+         "'input_lower', 'input_upper': give both (one value per input) or neither"),
+        (dict(plant='trunk3', input_lower='0, 0, x', input_upper=[1.0, 1.0, 1.0]),
+         "parameter 'input_lower': '0, 0, x' is not a list of numbers"),
     ]
     for params, message in bad:
         with ros_context() as (ctx, _), pytest.raises(ParameterError) as info:
@@ -169,10 +173,24 @@ def test_input_bounds_narrow_the_presets_and_must_fit_them():
         assert message in str(info.value), (params, str(info.value))
 
 
+def test_a_lab_writes_one_chambers_bounds_as_plain_numbers():
+    """``-p input_lower:=0 -p input_upper:=30000`` (integers) and the string form both narrow
+    the chamber to 0..30 kPa."""
+    for lower, upper in ((0, 30000), ('0', '30000.0')):
+        with ros_context() as (ctx, _):
+            node = PlantDriverNode(context=ctx, parameter_overrides=overrides(
+                finger_names=NAMES, plant='pneumatic1', input_lower=lower, input_upper=upper))
+            np.testing.assert_array_equal(node.upper, [[30000.0], [30000.0]])
+            np.testing.assert_array_equal(node.lower, [[0.0], [0.0]])
+            node.destroy_node()
+
+
 @pytest.mark.parametrize('args, name', [
     (['plant:=trunk9'], "'plant'"),
     (['plant:=pneumatic1', 'input_lower:=[0.0, 0.0]', 'input_upper:=[1.0, 1.0]'],
      "'input_lower', 'input_upper'"),
+    (['plant:=pneumatic1', 'input_lower:=0', 'input_upper:=70000'],
+     "reaches beyond the plant's bounds"),
 ])
 def test_bad_plants_and_bounds_exit_2_naming_them(args, name):
     proc = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.nodes.plant_driver',

@@ -178,7 +178,8 @@ def torque_joint_order(names: list[str]) -> list[str]:
 def _torques(path: Path, topic: str, messages: list, n: int) -> tuple[np.ndarray, np.ndarray]:
     first = list(messages[0][1].name)
     expected = torque_joint_order(first)
-    if not expected or len(expected) % n or len(expected) // n > MAX_INPUTS:
+    named = len(dict.fromkeys(name.rsplit('/', 1)[0] for name in expected))
+    if not expected or named != n:
         raise BagDataError(f'bag {path}: {topic} message 0 names {first[:12]}; expected '
                            f"'<finger>/ax0' … '<finger>/ax<m-1>' for each of the {n} finger(s) in "
                            f'tip_positions, the same m (1 to {MAX_INPUTS}) for every finger and '
@@ -269,18 +270,21 @@ def task_dimension(recordings: list[Recording], requested: str | int = 'auto') -
 
 def recorded_bounds(recordings: list[Recording]) -> InputBounds:
     """Per input, the range [min, max] the recorded commands spanned over every finger of every
-    recording (the settle phase's zeros included, so a one-sided input's range reaches 0).
+    recording, widened to hold 0: the model's rest is the finger settled at zero input (the
+    settle phase), so 0 is an input the actuator delivers; a one-sided input's range is
+    [0, max] or [min, 0].
 
     Raises:
-        BagDataError: an input whose commands never changed (naming it and the recordings).
+        BagDataError: an input that was 0 in every command (naming it and the recordings).
     """
     u = np.concatenate([rec.torques.reshape(-1, rec.n_inputs) for rec in recordings])
-    lower, upper = u.min(axis=0), u.max(axis=0)
+    lower, upper = np.minimum(u.min(axis=0), 0.0), np.maximum(u.max(axis=0), 0.0)
     for k in range(u.shape[1]):
         if not lower[k] < upper[k]:
-            raise BagDataError(f'input ax{k} was {lower[k]:g} in every command of '
+            raise BagDataError(f'input ax{k} was 0 in every command of '
                                + ', '.join(str(rec.path) for rec in recordings)
-                               + ': nothing to learn its effect from')
+                               + ': nothing to learn its effect from, nor its bounds (give '
+                               '--input-lower/--input-upper to train regardless)')
     return InputBounds(lower, upper)
 
 

@@ -58,10 +58,11 @@ class Scores:
     def lines(self, against: str) -> list[str]:
         """What training prints of them; ``against`` names the reference accelerations."""
         axes = AXIS_NAMES[:len(self.r2)]
+        unit = 'N·m' if self.G2.shape == (2, 2) else 'unit of input'   # two torques: the hand
         model = '  '.join(f'{a} {v:.3f}' for a, v in zip(axes, self.r2))
         baseline = '  '.join(f'{a} {v:.3f}' for a, v in zip(axes, self.r2_ls))
         return [f'{against}: {model}   (3rd-order least squares: {baseline})',
-                f'G2 at the origin [m/s² per unit input]: {np.round(self.G2, 1).tolist()}']
+                f'G2 at the origin [m/s² per {unit}]: {np.round(self.G2, 1).tolist()}']
 
 
 def score(model: SDCModel, train: tuple[np.ndarray, ...], val: tuple[np.ndarray, np.ndarray],

@@ -5,7 +5,9 @@ and unknown parameters.
 touching ROS. A ``--params-file`` that is missing or is not a ROS parameters file is refused with
 a message naming the file and the problem and exit status 2, before ``rclpy.init`` (whose own
 parser would end in a traceback). So is a ``-p NAME:=VALUE`` that names no parameter of the node:
-ROS would ignore it without a word, and the node would run on the default.
+ROS would ignore it without a word, and the node would run on the default. The files' contents
+are checked against each node's own parameters once the node is made
+(:func:`soft_gripper_sdre.nodes.params.check_params_files`).
 """
 from __future__ import annotations
 
@@ -15,12 +17,10 @@ from typing import Iterable, TextIO
 
 import yaml
 
-from soft_gripper_sdre.nodes.params import Param
+from soft_gripper_sdre.nodes.params import Param, use_params_files
+from soft_gripper_sdre.nodes.params_files import ROS_PARAMETER_PREFIXES, ROS_PARAMETERS
 
 HELP_FLAGS = ('-h', '--help')
-#: parameters every rclpy node has besides its own, and prefixes of those it may have
-ROS_PARAMETERS = ('use_sim_time', 'start_type_description_service')
-ROS_PARAMETER_PREFIXES = ('qos_overrides.',)
 #: exit status of a refused command line
 USAGE_ERROR = 2
 
@@ -131,4 +131,5 @@ def settle_command_line(argv: list[str], executable: str, summary: str, params: 
         if problem:
             err.write(f'{executable}: {problem}\n')
             return USAGE_ERROR
+    use_params_files(params_files(ros))
     return None

@@ -16,7 +16,7 @@ time, skipped estimates).
 3: a 3-D tip, read from the estimates' and the plan's z) and number of inputs m make the messages:
 ``torque_commands`` names ``<finger>/ax0`` … ``<finger>/ax<m−1>``. Each input k is bounded by
 ``[input_lower[k], input_upper[k]]`` (one value per input, in the input's SI unit; a pneumatic
-chamber 0..p_max, a tendon 0..T_max); both empty bound each of the model's inputs by
+chamber 0..p_max, a tendon 0..T_max); both [0.0] (unset) bound each of the model's inputs by
 ±``torque_limit``. Lists that do not give one value per input, or an empty interval, end the node
 at start-up naming the parameters. /diagnostics shows the shape, the bounds and, for a finger
 whose inputs cannot reach every direction (m < d), the largest part of the plan's acceleration
@@ -33,7 +33,7 @@ estimate to its torque (the plan sampled, each finger in the model's frame, the 
 parameters, topics, conversions, status and logs.
 
 **Tuning at runtime.** ``q_pos``, ``q_vel``, ``r``, ``integral_gain``, ``integral_band``, ``pd_kp``
-and ``pd_kd`` may be changed while the node runs (``ros2 param set /controller q_pos 2e6``). A
+and ``pd_kd`` may be changed while the node runs (``ros2 param set /controller q_pos 2.0e+6``). A
 change is checked by building the law with the new values: a refused one returns its reason and
 the old values stay in force. An accepted one takes effect at the next estimate: parameter
 changes are executor callbacks like the estimates, so they never run inside a control step. The
@@ -120,14 +120,13 @@ PARAMS = (
     Param('r', DEFAULT_WEIGHTS['r'], 'SDRE input weight, R = diag(r, r) (paper: 0.1 in sim units = '
           '16000 SI)', '1/(N·m)²', 1e-12, 1e12),
     Param('torque_limit', 0.0625, 'saturation of each torque (0.0625 N·m = 25 sim units, the '
-          'stable range of the physics step) when input_lower and input_upper are empty', 'N·m',
+          'stable range of the physics step) when input_lower and input_upper are unset', 'N·m',
           1e-6, 1.0, read_only=True),
-    numbers_param('input_lower', "lower bound of each of the model's m inputs in its SI unit, a "
-                  "list [l0, l1, …] (e.g. [0.0] for a pneumatic chamber or a tendon); '' with "
-                  "input_upper '' = -torque_limit on each input"),
-    numbers_param('input_upper', "upper bound of each of the model's m inputs, a list "
-                  "[u0, u1, …], each above its lower bound; '' with input_lower '' = "
-                  'torque_limit on each input'),
+    numbers_param('input_lower', 'lower bound of each input in its SI unit (N·m, Pa, N), one '
+                  "per input of the model, a list [u0, u1, …]; '' with input_upper '' = "
+                  "±torque_limit on each of the model's inputs"),
+    numbers_param('input_upper', 'upper bound of each input, a list [u0, u1, …], each above its '
+                  "lower bound; '' with input_lower '' = ±torque_limit"),
     Param('torque_lowpass_hz', DEFAULT_LOWPASS_HZ, 'first-order roll-off of the torque command '
           '(keeps the loop out of the finger\'s ~59 Hz bending mode; 0 = off); its corner is '
           'capped at a tenth of the control rate, 0.1 / control_period (10 Hz at 10 ms)', 'Hz',
@@ -372,18 +371,16 @@ class ControllerNode(Node):
 
 def input_bounds(p: dict, m: int) -> InputBounds | None:
     """The bounds of ``input_lower`` / ``input_upper`` for a finger of ``m`` inputs; None when
-    both are empty (±``torque_limit`` on each input).
+    both are unset ('': ±``torque_limit`` on each input).
 
     Raises:
-        ParameterError: a list that is not numbers, one list empty and the other not, not one
-            value per input, or an empty interval (the message names the parameters).
+        ParameterError: not one value per input, a bound not finite, or an empty interval (the
+            message names the parameters).
     """
     lower, upper = (numbers(p[name], name) for name in ('input_lower', 'input_upper'))
     if lower is None and upper is None:
         return None
-    if lower is None or upper is None:
-        raise ParameterError("parameters 'input_lower', 'input_upper': give both (one value per "
-                             "input) or neither (±torque_limit)")
+    lower, upper = lower or [], upper or []
     try:
         return InputBounds.parse(lower, upper, m, "parameters 'input_lower', 'input_upper'")
     except ShapeError as exc:

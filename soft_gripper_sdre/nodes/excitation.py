@@ -53,9 +53,10 @@ Stops: at the end of the plan, on shutdown (SIGINT/SIGTERM) and on a fault, zero
 published before the node exits (status 0 at the end of the plan, 1 after a fault). Faults: no
 tips for ``tips_timeout`` of wall time (or none at all within ``startup_timeout``), tip stamps
 jumping back by more than ``reset_on_jump`` (a restarted driver), and an excited tip moving more
-than ``max_excursion`` from where it was at the start. Malformed or old tip messages are
-counted, warned about (throttled) and not answered. Counters and the signal being played go to
-/diagnostics.
+than ``max_excursion`` from where it was at the start (the distance in x, y and z: a 3-D tip's z
+counts, a planar one's is 0; the level search measures its excursions the same way).
+Malformed or old tip messages are counted, warned about (throttled) and not answered. Counters
+and the signal being played go to /diagnostics.
 
 The torque at each run time is :class:`~soft_gripper_sdre.sim.excitation_run.ExcitationRun`'s
 (settle, probes, plan); what /diagnostics and the log show of the run is
@@ -76,12 +77,13 @@ from soft_gripper_sdre.nodes import cdr
 from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.common import ERROR, OK, Diagnostics, run
 from soft_gripper_sdre.nodes.excitation_report import ACTIVITY, RunReport
-from soft_gripper_sdre.nodes.input_commands import bounds_params, given_bounds, inputs_codec
 from soft_gripper_sdre.nodes.params import (
     Param,
     ParameterError,
     declare_all,
     finger_names_param,
+    numbers,
+    numbers_param,
     tips_reliability_param,
     with_reliability,
 )
@@ -89,7 +91,7 @@ from soft_gripper_sdre.nodes.topics import LOOP_QOS, NEWEST_QOS, TIP_POSITIONS, 
 from soft_gripper_sdre.sim.excitation import ExcitationPlan, LevelSearch, LevelSettings
 from soft_gripper_sdre.sim.excitation_run import ExcitationRun, Phase
 from soft_gripper_sdre.sim.settle import SettlePhase
-from soft_gripper_sdre.sim.shape import InputBounds
+from soft_gripper_sdre.sim.shape import InputBounds, ShapeError
 from soft_gripper_sdre.sim.signal_specs import MAX_TORQUE, SignalSpecError, resolve_signals
 from soft_gripper_sdre.sim.signals import SIGNALS
 
@@ -110,8 +112,13 @@ PARAMS = (
     Param('finger', -1, 'the finger to excite, an index into finger_names (-1 = all); the others '
           'get zero torque', '', -1, 3, read_only=True),
     Param('torque_limit', 0.1, 'every torque is clipped to ±limit (0.1 N·m: the simulator\'s '
-          'actuator limit; the paper\'s signals peak at 0.0675)', 'N·m', 1e-6, 1.0, read_only=True),
-    *bounds_params('±torque_limit on each of 2 inputs (the hand)'),
+          'actuator limit; the paper\'s signals peak at 0.0675); the hand\'s two inputs, unless '
+          'input_lower / input_upper give the bounds', 'N·m', 1e-6, 1.0, read_only=True),
+    numbers_param('input_lower', 'lower bound of each input in its SI unit (N·m, Pa, N), a list '
+                  "[u0, u1, …] of 1 to 4 values: the finger's inputs; '' with input_upper '' = "
+                  '−torque_limit on 2 inputs (the hand)'),
+    numbers_param('input_upper', 'upper bound of each input, a list [u0, u1, …], each above its '
+                  "lower bound; '' with input_lower '' = torque_limit on 2 inputs (the hand)"),
     Param('timing', 'tips', 'answer each tip message with the torque for its stamp, or publish on '
           'a timer of the node\'s clock', choices=('tips', 'timer'), read_only=True),
     Param('period', 0.001, 'timer timing: the command period', 's', 1e-4, 1.0, read_only=True),
@@ -168,7 +175,7 @@ class ExcitationNode(Node):
         self.stopped = False                    # the final zero went out
         self._deadline = time.monotonic() + p['startup_timeout']
         self.cdr_tips = cdr.tips_codec(self.names)
-        self.cdr_cmd = inputs_codec(self.names, self.m)
+        self.cdr_cmd = cdr.torques_codec(self.names, self.m)
         self.pub_cmd = self.create_publisher(JointState, TORQUE_COMMANDS, LOOP_QOS)
         self.sub_tips = self.create_subscription(
             PoseArray, TIP_POSITIONS, self.on_tips,
@@ -340,13 +347,28 @@ def excitation_run(p: dict, n: int) -> ExcitationRun:
 
 def input_bounds(p: dict) -> InputBounds | None:
     """The bounds ``input_lower`` / ``input_upper`` give, or None for the hand's ±torque_limit
-    on two inputs (unset, or symmetric bounds on two inputs: then they replace torque_limit).
+    on two inputs (both empty, or symmetric bounds on two inputs: then they replace
+    torque_limit).
 
     Raises:
-        ParameterError: bad bounds (the message names both parameters).
+        ParameterError: a list that is not numbers, one list empty and the other not, different
+            lengths, not 1 to 4 inputs, or an empty interval (the message names the parameters).
     """
-    bounds = given_bounds(p)
-    if bounds is not None and bounds.m == 2 and bounds.symmetric_limit is not None:
+    lower, upper = (numbers(p[name], name) for name in ('input_lower', 'input_upper'))
+    if lower is None and upper is None:
+        return None
+    what = "parameters 'input_lower', 'input_upper'"
+    if lower is None or upper is None:
+        raise ParameterError(f'{what}: give both (one value per input) or neither '
+                             '(±torque_limit on 2 inputs)')
+    if len(lower) != len(upper):
+        raise ParameterError(f'{what}: {len(lower)} lower and {len(upper)} upper bound(s); give '
+                             'one of each per input')
+    try:
+        bounds = InputBounds.parse(lower, upper, len(lower), what)
+    except ShapeError as exc:
+        raise ParameterError(str(exc)) from None
+    if bounds.m == 2 and bounds.symmetric_limit is not None:
         p['torque_limit'] = bounds.symmetric_limit
         return None
     return bounds

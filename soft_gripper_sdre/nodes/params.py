@@ -9,6 +9,11 @@ its reason and the old value stays in force.
 A whole number given for a floating-point parameter (``-p max_excursion:=0``, ``0`` in a parameters
 file, or an integer in a runtime change) is taken as that float: ROS types ``0`` as an integer, and
 a parameter declared with a float default would refuse it. Any other type is refused.
+
+The node's sections of the command line's parameters files are checked before anything is
+declared (:mod:`soft_gripper_sdre.nodes.params_files`): a value of the wrong type or a key the
+node does not declare is refused naming the key, the node and the file, since rcl would drop the
+one or ignore the other without a word.
 """
 from __future__ import annotations
 
@@ -34,6 +39,14 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 
 from soft_gripper_sdre import FINGER_NAMES
 from soft_gripper_sdre.nodes.conversions import MAX_FINGERS, finger_names_problem
+from soft_gripper_sdre.nodes.params_files import (
+    ANY_TYPE,
+    file_problems,
+    package_parameter_names,
+)
+
+#: the ``--params-file`` files of this process's command line, in order (:func:`use_params_files`)
+_PARAMS_FILES: list[str] = []
 
 
 class ParameterError(ValueError):
@@ -105,7 +118,8 @@ def finger_names_param(description: str) -> Param:
 
 def numbers_param(name: str, description: str, units: str = '') -> Param:
     """A read-only list of numbers, empty by default: given as a YAML or ``-p`` list
-    (``[0.0, 1.5]``), one number (``0``) or a string (``'0, 1.5'``); read with :func:`numbers`."""
+    (``[0.0, 1.5]``, whole numbers too), one number (``0``) or a string (``'0, 1.5'``); read with
+    :func:`numbers`."""
     return Param(name, '', description, units, read_only=True, dynamic=True)
 
 
@@ -169,15 +183,52 @@ def _as_float(param: Parameter) -> Parameter:
     return param
 
 
+def use_params_files(paths: Iterable[str]) -> None:
+    """Name the ``--params-file`` files of the process's command line, which :func:`declare_all`
+    checks each node's sections of (set by
+    :func:`soft_gripper_sdre.nodes.cli.settle_command_line`)."""
+    _PARAMS_FILES[:] = [str(p) for p in paths]
+
+
+def declared_types(params: Iterable[Param]) -> dict[str, Any]:
+    """Each parameter's default for the parameters-file check, :data:`ANY_TYPE
+    <soft_gripper_sdre.nodes.params_files.ANY_TYPE>` for a dynamically typed one."""
+    return {p.name: ANY_TYPE if p.dynamic else p.default for p in params}
+
+
+def check_params_files(node: Node, params: Iterable[Param],
+                       paths: Iterable[str] | None = None) -> None:
+    """Refuse a wrong-typed value or an unknown key in ``node``'s sections of ``paths`` (default:
+    the files of :func:`use_params_files`), and warn of a wildcard section's key that no node of
+    the package declares (:mod:`~soft_gripper_sdre.nodes.params_files`).
+
+    Raises:
+        ParameterError: naming the key, the node and the file.
+    """
+    paths = list(_PARAMS_FILES if paths is None else paths)
+    if not paths:
+        return
+    declared = declared_types(params)
+    fqn = node.get_fully_qualified_name()
+    package = package_parameter_names()
+    for path in paths:
+        for problem in file_problems(fqn, declared, path, package):
+            if problem.refuse:
+                raise ParameterError(problem.message)
+            node.get_logger().warning(problem.message)
+
+
 def declare_all(node: Node, params: Iterable[Param]) -> dict[str, Any]:
     """Declare ``params`` on ``node`` (overrides come from --params-file / -p / parameter_overrides)
     and return their values. A whole number given for a float parameter is taken as that float,
-    at start-up and in later changes (module doc).
+    at start-up and in later changes; the parameters files are checked first (module doc).
 
     Raises:
-        ParameterError: a value is out of range, of the wrong type or not an allowed choice.
+        ParameterError: a value is out of range, of the wrong type or not an allowed choice; a
+            parameters file gives the node a value of the wrong type or a key it does not declare.
     """
     params = list(params)
+    check_params_files(node, params)
     floats = {p.name for p in params if _is_float(p)}
     # rclpy keeps the -p / --params-file / parameter_overrides values here until declaration, and
     # has no public way to read them

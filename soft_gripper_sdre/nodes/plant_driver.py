@@ -52,11 +52,17 @@ from sensor_msgs.msg import JointState
 from soft_gripper_sdre.nodes import cdr
 from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.common import OK, WARN, Diagnostics, LatencyWindow, run
-from soft_gripper_sdre.nodes.input_commands import bounds_params, given_bounds, inputs_codec
-from soft_gripper_sdre.nodes.params import Param, ParameterError, declare_all, on_runtime_change
+from soft_gripper_sdre.nodes.params import (
+    Param,
+    ParameterError,
+    declare_all,
+    numbers,
+    numbers_param,
+    on_runtime_change,
+)
 from soft_gripper_sdre.nodes.topics import LOOP_QOS, NEWEST_QOS, TIP_POSITIONS, TORQUE_COMMANDS
 from soft_gripper_sdre.sim.foreign_presets import GRIPPERS, plant_pair
-from soft_gripper_sdre.sim.shape import InputBounds
+from soft_gripper_sdre.sim.shape import InputBounds, ShapeError
 
 #: the noise-free tips, for scoring (same type and stamps as tip_positions)
 TRUE_TIP_POSITIONS = 'true_tip_positions'
@@ -98,9 +104,12 @@ PARAMS = (
           'actuator limit (tendon3 0.02, stiff2 0.25 N·m), which also caps a larger value; for the '
           'symmetric presets only (pneumatic1, trunk3: input_lower / input_upper)',
           'N·m', 0.0, 1.0, read_only=True),
-    *bounds_params("the preset's bounds (tendon3 ±0.02 N·m, stiff2 ±0.25 N·m, pneumatic1 0 "
-                   'to 60000 Pa, trunk3 0 to 4 N); given, they narrow them (each within the '
-                   "preset's)"),
+    numbers_param('input_lower', "lower bound of each input in its SI unit, a list [u0, u1, …] "
+                  "within the preset's bounds; '' with input_upper '' = the preset's (tendon3 "
+                  '−0.02 N·m, stiff2 −0.25 N·m, pneumatic1 0 Pa, trunk3 0 N)'),
+    numbers_param('input_upper', "upper bound of each input, a list [u0, u1, …] within the "
+                  "preset's bounds, each above its lower bound; '' with input_lower '' = the "
+                  "preset's (tendon3 0.02 N·m, stiff2 0.25 N·m, pneumatic1 60000 Pa, trunk3 4 N)"),
     Param('duration', 0.0, 'stop after this much wall time and exit (0 = run until shut down)',
           's', 0.0, 1e6, read_only=True),
     Param('command_timeout', 0.05, 'a command received longer ago than this (wall time) is '
@@ -141,7 +150,7 @@ class PlantDriverNode(Node):
         self._intervals = LatencyWindow(2000)
 
         self.cdr_tips = cdr.tips_codec(self.names)
-        self.cdr_cmd = inputs_codec(self.names, self.m)
+        self.cdr_cmd = cdr.torques_codec(self.names, self.m)
         self.pub_tips = self.create_publisher(PoseArray, TIP_POSITIONS, qos_profile_sensor_data)
         self.pub_truth = self.create_publisher(PoseArray, TRUE_TIP_POSITIONS, LOOP_QOS)
         self.sub_cmd = self.create_subscription(JointState, TORQUE_COMMANDS, self.on_command,
@@ -266,17 +275,35 @@ def finger_bounds(plants, p: dict) -> tuple[np.ndarray, np.ndarray]:
                                  'input_lower / input_upper')
         lower = np.maximum(lower, -p['torque_limit'])
         upper = np.minimum(upper, p['torque_limit'])
-    given = given_bounds(p)
+    given = input_bounds(p, m, p['plant'])
     if given is None:
         return lower, upper
-    if given.m != m:
-        raise ParameterError(f"parameters 'input_lower', 'input_upper': plant {p['plant']!r} has "
-                             f'{m} input(s) per finger; got {given.m} bound(s)')
     if np.any(given.lower < lower) or np.any(given.upper > upper):
         raise ParameterError(f"parameters 'input_lower', 'input_upper': [{given}] reaches beyond "
                              f"the plant's bounds [{plants[0].bounds}]")
     return np.broadcast_to(given.lower, lower.shape).copy(), np.broadcast_to(
         given.upper, upper.shape).copy()
+
+
+def input_bounds(p: dict, m: int, plant: str) -> InputBounds | None:
+    """The bounds of ``input_lower`` / ``input_upper`` for the ``m`` inputs of ``plant``; None
+    when both are empty.
+
+    Raises:
+        ParameterError: a list that is not numbers, one list empty and the other not, not one
+            value per input, or an empty interval (the message names the parameters).
+    """
+    lower, upper = (numbers(p[name], name) for name in ('input_lower', 'input_upper'))
+    if lower is None and upper is None:
+        return None
+    what = "parameters 'input_lower', 'input_upper'"
+    if lower is None or upper is None:
+        raise ParameterError(f"{what}: give both (one value per input) or neither (the preset's "
+                             'bounds)')
+    try:
+        return InputBounds.parse(lower, upper, m, f'{what} (plant {plant!r})')
+    except ShapeError as exc:
+        raise ParameterError(str(exc)) from None
 
 
 def _has_nonfinite_effort(data: bytes) -> bool:

@@ -33,15 +33,30 @@ there is no /clock):
   without sim time: a message of a topic other than ``WALL_TIME_TOPICS`` stamped within
   ``SKEW_NS`` of the wall clock (a driver stamping with wall time). At most ``MAX_PENDING``
   messages or ``CLOCK_WAIT_S`` of wall time are held; without /clock among the topics nothing is.
+
+Messages missing from a stream are counted per topic from its publisher's stamps
+(:class:`GapCounter`; ROS 2 headers carry no sequence counter): each stamped topic with one
+publisher learns its period as the median step of its recent stamps, and a step over
+``GAP_FACTOR`` periods counts the periods it skipped as lost. A loss is either a message the
+recorder never got (DDS, or a queue that overflowed while it was starved of CPU) or one the
+publisher never sent (a node that skipped a period); the publisher's own counts in its
+/diagnostics tell which. The counts go to /diagnostics (``lost <topic>``, and the learned
+``period <topic>``), which is at WARN, naming the topics, in every report while losses grow and
+back at OK after a report without a new one; the log WARNs with the counts (throttled), and the
+run's totals are logged when the bag is closed. Topics stamped with wall time by several nodes
+(``WALL_TIME_TOPICS``), unstamped ones and a topic while it has several publishers are not
+judged; a stamp that goes back (a restarted publisher) starts the stream afresh.
 """
 from __future__ import annotations
 
+from collections import deque
 import copy
 from datetime import datetime
 import functools
 import importlib
 import os
 from pathlib import Path
+import statistics
 import time
 
 import rclpy
@@ -59,7 +74,7 @@ from rosbags.rosbag2 import StoragePlugin, Writer, WriterError
 from rosbags.typesys import Stores, get_typestore
 
 from soft_gripper_sdre.nodes import cdr
-from soft_gripper_sdre.nodes.common import ERROR, OK, Diagnostics, ThrottledLogger, run
+from soft_gripper_sdre.nodes.common import ERROR, OK, WARN, Diagnostics, ThrottledLogger, run
 from soft_gripper_sdre.nodes.params import (
     Param,
     ParameterError,
@@ -99,6 +114,56 @@ GRAPH_POLL_S = 0.1
 #: a moment (a busy machine) catches up instead of losing the oldest messages
 RECORD_DEPTH = 1000
 STORAGES = {'mcap': StoragePlugin.MCAP, 'sqlite3': StoragePlugin.SQLITE3}
+#: a stamp step over this many periods is a gap: the periods it skipped are lost messages
+GAP_FACTOR = 1.5
+#: stamp steps the period is the median of, and how many a stream needs before it is judged
+PERIOD_WINDOW = 64
+PERIOD_LEARN = 8
+
+
+class GapCounter:
+    """Messages missing from one stream, from the stamps [ns] of the messages that arrived.
+
+    The nominal period is the median of the last ``PERIOD_WINDOW`` positive stamp steps, first
+    taken after ``PERIOD_LEARN`` of them (a loss before that is not seen) and taken again every
+    ``PERIOD_WINDOW // 2`` steps, so a stream that changes its rate is followed (one that slows
+    down counts losses until the window holds the new rate, at most ``PERIOD_WINDOW`` steps). A
+    step over
+    ``GAP_FACTOR`` periods counts ``round(step / period) - 1`` lost messages (at least one). A
+    repeated stamp is ignored; a stamp before the previous one (a restarted publisher) starts the
+    stream afresh from it, keeping its period.
+    """
+
+    def __init__(self) -> None:
+        self.last: int | None = None            # the newest stamp [ns]
+        self.period: float | None = None        # the learned period [ns]
+        self.lost = 0                           # messages lost in all
+        self.gaps = 0                           # steps that lost messages
+        self._steps: deque = deque(maxlen=PERIOD_WINDOW)
+        self._since = 0                         # steps since the period was taken
+
+    def add(self, stamp: int) -> int:
+        """Take the next message's stamp [ns]; the number of messages lost just before it."""
+        last, self.last = self.last, stamp
+        if last is None or stamp <= last:
+            return 0
+        step = stamp - last
+        lost = 0
+        if self.period is not None and step > GAP_FACTOR * self.period:
+            lost = max(1, round(step / self.period) - 1)
+            self.lost += lost
+            self.gaps += 1
+        self._steps.append(step)
+        self._since += 1
+        if ((self.period is None and len(self._steps) >= PERIOD_LEARN)
+                or self._since >= PERIOD_WINDOW // 2):
+            self.period = float(statistics.median(self._steps))
+            self._since = 0
+        return lost
+
+    def restart(self) -> None:
+        """Forget the newest stamp (another publisher came or went): judge from the next one."""
+        self.last = None
 
 PARAMS = (
     Param('output', '', 'bag directory to create; must not exist yet '
@@ -231,6 +296,13 @@ class RecorderNode(Node):
         self.log = ThrottledLogger(self.get_logger())
         self.diag = Diagnostics(self)
         self._subs: dict = {}
+        #: per stamped topic, the messages missing from its stream; judged while it has one
+        #: publisher (``_single``, refreshed with the matched counts)
+        self.gaps: dict[str, GapCounter] = {}
+        self._single: dict[str, bool] = {}
+        self._lost_reported = 0                 # messages lost at the previous /diagnostics
+        self._loss_warn = False                 # the WARN in /diagnostics is the losses'
+        self.diag.before_publish.append(self._report_losses)
         tips_qos = with_reliability(LOOP_QOS, p['tips_reliability'])
         for name, topic in known.items():
             qos = tips_qos if topic == TIP_POSITIONS else topic_qos(topic)
@@ -249,7 +321,11 @@ class RecorderNode(Node):
         conn = self._writer.add_connection(name, type_name(msg_class), typestore=self._typestore,
                                            offered_qos_profiles=[_bag_qos(qos)])
         self.counts[name] = 0
-        callback = functools.partial(self._on_message, name, conn, _is_stamped(msg_class), is_clock)
+        stamped = _is_stamped(msg_class)
+        if stamped and name not in WALL_TIME_TOPICS:
+            self.gaps[name] = GapCounter()
+            self.diag.counters[f'lost {name}'] = 0
+        callback = functools.partial(self._on_message, name, conn, stamped, is_clock)
         deep = copy.copy(qos)
         deep.depth = RECORD_DEPTH           # history depth is not part of QoS matching
         self._subs[name] = self.create_subscription(msg_class, name, callback, deep, raw=True)
@@ -290,7 +366,12 @@ class RecorderNode(Node):
         """Matched publishers per topic in /diagnostics ('publishers /topic'), so a supervisor
         can start the simulator only once everything it records is connected."""
         for name, sub in self._subs.items():
-            self.diag.values[f'publishers {name}'] = str(sub.get_publisher_count())
+            count = sub.get_publisher_count()
+            self.diag.values[f'publishers {name}'] = str(count)
+            single = count <= 1
+            if name in self.gaps and single != self._single.get(name, True):
+                self.gaps[name].restart()
+            self._single[name] = single
         for name in self._waiting:
             self.diag.values[f'publishers {name}'] = '0'
 
@@ -305,6 +386,12 @@ class RecorderNode(Node):
                 self.clock_ns = stamp
             self.counts[topic] += 1
             self.diag.count(f'messages {topic}')
+            gaps = self.gaps.get(topic)
+            if gaps is not None and stamp is not None and self._single.get(topic, True):
+                before = gaps.last
+                lost = gaps.add(stamp)
+                if lost:
+                    self._lost(topic, gaps, lost, before, stamp)
             wall_ns = time.time_ns()
             if self._pending is None:
                 self._write(conn, self._entry_time(stamp, wall_ns), data)
@@ -317,6 +404,32 @@ class RecorderNode(Node):
         except Exception as exc:  # noqa: BLE001 — a recorder must survive anything it receives
             self.diag.count('errors')
             self.log.warn('receive', f'{topic}: message not recorded: {exc!r}')
+
+    def _lost(self, topic: str, gaps: GapCounter, lost: int, before: int, stamp: int) -> None:
+        """Count ``lost`` messages of ``topic`` missing between the stamps ``before`` and
+        ``stamp`` [ns], and warn (throttled per topic)."""
+        self.diag.count(f'lost {topic}', lost)
+        self.log.warn(f'lost {topic}', f'{topic}: {lost} message(s) missing between stamps '
+                      f'{before / 1e9:.6f} and {stamp / 1e9:.6f} s (period '
+                      f'{gaps.period / 1e6:.3f} ms); {gaps.lost} lost of this topic in all')
+
+    def _report_losses(self) -> None:
+        """Before each /diagnostics: the learned periods, and WARN naming the topics while their
+        losses grow (OK again after a report without a new loss; an ERROR stays)."""
+        for name, gaps in self.gaps.items():
+            if gaps.period is not None:
+                self.diag.values[f'period {name}'] = f'{gaps.period / 1e6:.3f} ms'
+        total = sum(g.lost for g in self.gaps.values())
+        if total > self._lost_reported and self.diag.level != ERROR:
+            topics = ', '.join(f'{name} {g.lost}' for name, g in self.gaps.items() if g.lost)
+            self.diag.set_status(WARN, f'{total - self._lost_reported} message(s) lost since the '
+                                 f'last report; lost in all: {topics}')
+            self._loss_warn = True
+        elif self._loss_warn and self.diag.level == WARN:
+            self.diag.set_status(OK, f'recording {len(self._subs) + len(self._waiting)} topics; '
+                                 f'{total} message(s) lost earlier, none since the last report')
+            self._loss_warn = False
+        self._lost_reported = total
 
     def _entry_time(self, stamp: int | None, wall_ns: int) -> int:
         """Bag timestamp [ns] of a message (the rule in the module doc)."""
@@ -355,6 +468,10 @@ class RecorderNode(Node):
             logger.error(f'closing {self.path} failed: {exc}')
             return
         logger.info(f'wrote {sum(self.counts.values())} messages to {self.path}')
+        lost = {name: g for name, g in self.gaps.items() if g.lost}
+        if lost:
+            logger.warning('messages missing from the streams (stamp gaps): ' + ', '.join(
+                f'{name} {g.lost} in {g.gaps} gap(s)' for name, g in lost.items()))
 
 
 def main(args=None) -> int:

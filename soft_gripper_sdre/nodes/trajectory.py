@@ -27,10 +27,10 @@ plan made for the old run. A ``start_at`` that was given stays. Malformed tip or
 
 **The finger's shape.** ``task_dim`` is the tips' task dimension d: 2 plans in (X, Y) (the
 tips' z ignored), 3 in (X, Y, Z) (the plan then carries z). The grasping fingers close along
-``direction`` (d values; '' = +Y), or through the waypoints of ``close_path`` (d values per
-point, relative to rest; e.g. the curve a one-input finger's tip can reach, taken from its data),
-and the others open along −``direction`` (:class:`~soft_gripper_sdre.control.trajectory.
-GraspTrajectory`).
+``direction`` (d values; [0.0] = +Y), or through the waypoints of ``close_path`` (d values per
+point, relative to rest; [0.0] = none; e.g. the curve a one-input finger's tip can reach, taken
+from its data), and the others open along −``direction``
+(:class:`~soft_gripper_sdre.control.trajectory.GraspTrajectory`).
 
 A node restarted mid-run (after a crash) must not take the tips it first sees as the rest pose
 and their stamp as the start: the fingers are wherever the grasp left them. Pass the values the
@@ -93,12 +93,12 @@ PARAMS = (
           read_only=True),
     Param('task_dim', 2, "the tips' task dimension: 2 plans in (X, Y), the tips' z ignored; 3 "
           'plans in (X, Y, Z)', '', 2, 3, read_only=True),
-    numbers_param('direction', "the direction the grasping fingers close along, task_dim "
-                  "values [x, y(, z)] (normalised); '' = +Y (toward the cube)"),
-    numbers_param('close_path', "waypoints the grasping fingers close through instead of the "
-                  "straight move, relative to rest: task_dim values per point, "
-                  "[x0, y0, x1, y1, …] (the last is the closed pose; e.g. the curve a one-input "
-                  "finger's tip can reach); '' = the straight move along direction", 'm'),
+    numbers_param('direction', 'the direction the grasping fingers close along, task_dim '
+                  "values [x, y(, z)] (normalised); '' (the default) = +Y, toward the cube"),
+    numbers_param('close_path', 'waypoints the grasping fingers close through instead of the '
+                  'straight move, relative to rest: task_dim values per point, [x0, y0, x1, y1, '
+                  "…] (the last is the closed pose; e.g. the curve a one-input finger's tip can "
+                  "reach); '' (the default) = the straight move along direction", 'm'),
     Param('close_distance', _DEFAULTS.close_distance, 'travel of the grasping fingers along +Y '
           '(direction; toward the cube)', 'm', -0.1, 0.1, read_only=True),
     Param('side_distance', _DEFAULTS.side_distance, 'travel of the grasping fingers along X while '
@@ -189,10 +189,12 @@ def _profile(p: dict) -> GraspProfile:
     d = int(p['task_dim'])
     for name, per in (('direction', 'values'), ('close_path', 'values per waypoint')):
         given = numbers(values[name], name)
-        if given is not None and (len(given) % d or (name == 'direction' and len(given) != d)):
-            raise ParameterError(f'parameter {name!r}: needs task_dim = {d} {per}, got '
-                                 f'{values[name]!r}')
-        values[name] = None if given is None else tuple(given)
+        if given is None:
+            values[name] = None
+            continue
+        if len(given) % d or (name == 'direction' and len(given) != d):
+            raise ParameterError(f'parameter {name!r}: needs task_dim = {d} {per}, got {given}')
+        values[name] = tuple(given)
     try:
         profile = GraspProfile(**values)
     except ValueError as exc:

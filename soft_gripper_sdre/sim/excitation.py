@@ -342,7 +342,8 @@ class LevelSearch:
     so both axes reach their peaks with either relative sign. With bounded inputs
     (``inputs``, :class:`ProbeInputs`) the probe is base + a (offset + swing ∘ w) clipped, w
     the same sine on every input over the first period and of alternating sign from input to
-    input over the second, and the largest amplitude is ``inputs.largest``.
+    input over the second, and the largest amplitude is ``inputs.largest`` (``peak`` and
+    ``torque_limit`` are not used then).
 
     With the goal g = ``target`` × ``max_excursion``: a_0 = ``start``; after a probe with
     e_k ≥ ``close`` × g, or at the largest amplitude (the signals' peak at the torque limit),
@@ -363,9 +364,11 @@ class LevelSearch:
                  settings: LevelSettings = LevelSettings(),
                  inputs: ProbeInputs | None = None) -> None:
         self.inputs = inputs
-        if inputs is not None:
-            peak = np.array([1.0, 1.0]) if inputs.swing.max() > 0 else np.zeros(2)
-            torque_limit = inputs.largest if 0 < inputs.largest < math.inf else 1.0
+        if inputs is not None:          # the probe's own scale: peak and torque_limit unused
+            if not (0 < inputs.largest < math.inf and inputs.swing.max() > 0):
+                raise ValueError('the signals must move the inputs and have room within their '
+                                 f'bounds (largest amplitude {inputs.largest!r})')
+            peak, torque_limit = np.ones(2), inputs.largest
         peak = np.asarray(peak, dtype=float)
         s = settings
         checks = (

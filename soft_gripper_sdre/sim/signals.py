@@ -15,8 +15,9 @@ record and each takes both signs — with peaks inside the paper's ±25 sim-unit
 intervals (:func:`input_signal`): each signal in sim units divided by :data:`REFERENCE` (40 sim
 units, the simulator's 0.1 N·m actuator limit, so u1 peaks at 0.625), for m inputs: u1..u4 the
 same on every input; x1, x2 multisines on disjoint, incommensurate frequency sets per input (the
-hand's two sets, then two more); b1, b2 the broadband multisine with its m·12 frequencies dealt
-to the inputs in turn (b2 starting one input later). The excitation plan maps a share s to an
+hand's two sets, then two more); b1, b2 the broadband multisine with its 12 frequencies per
+input dealt to the inputs in turn (b2 starting one input later; for one input b1 and b2 take
+the alternate frequencies of two). The excitation plan maps a share s to an
 input about the middle of a two-sided interval, or from the rest value into a one-sided one
 (:mod:`soft_gripper_sdre.sim.excitation`). For two inputs the shares are the hand's signals
 over 0.1 N·m.
@@ -121,11 +122,13 @@ _PAPER = {
 
 def _broadband_shares(f_lo: float, f_hi: float, per_axis: int, m: int, first: int,
                       peak: float = 25.0) -> Callable[[np.ndarray], np.ndarray]:
-    """:func:`_broadband` for ``m`` inputs as shares: m·``per_axis`` log-spaced frequencies
-    dealt to the inputs in turn, input ``first`` taking the lowest, Schroeder phases, scaled so
-    the largest input peaks at ``peak`` sim units over the record, over :data:`REFERENCE`."""
-    freqs = np.geomspace(f_lo, f_hi, m * per_axis)
-    sets = [freqs[(k - first) % m::m] for k in range(m)]
+    """:func:`_broadband` for ``m`` inputs as shares: g·``per_axis`` log-spaced frequencies
+    (g = max(m, 2) groups) dealt to the groups in turn, input k taking group k − ``first``
+    (mod g), Schroeder phases, scaled so the largest input peaks at ``peak`` sim units over the
+    record, over :data:`REFERENCE`. (One input: b1 takes the frequencies b2 leaves.)"""
+    groups = max(m, 2)
+    freqs = np.geomspace(f_lo, f_hi, groups * per_axis)
+    sets = [freqs[(k - first) % groups::groups] for k in range(m)]
     k = np.arange(1, per_axis + 1)
     phases = -np.pi * k * (k - 1) / per_axis
     t = np.arange(int(DURATION * 1000)) * 1e-3
@@ -165,7 +168,7 @@ def input_signal(name: str, m: int) -> Callable[[np.ndarray], np.ndarray]:
             return np.stack([sum(a * np.sin(2 * np.pi * f * t + p) for a, f, p in zip(*axis))
                              for axis in axes], axis=-1) / REFERENCE
         return multisine
-    return _broadband_shares(0.2, 30.0, 12, m, 0 if name == 'b1' else 1 % m)
+    return _broadband_shares(0.2, 30.0, 12, m, 0 if name == 'b1' else 1)
 
 
 PAPER_SIGNALS = ('u1', 'u2', 'u3', 'u4')

@@ -16,7 +16,7 @@ import sys
 from soft_gripper_sdre.nodes.params import Param
 
 NODES = ('simulator', 'estimator', 'trajectory', 'controller', 'recorder', 'excitation',
-         'plant_driver')
+         'plant_driver', 'mocap_tips')
 DEFAULT_OUT = Path('docs/parameters.md')
 
 
@@ -59,7 +59,9 @@ def render() -> str:
             'prints its table with `--help`.\n\n'
             'Values come from `config/<node>.yaml` (keys `/**/<node>`, so they apply in any '
             'namespace), `--params-file` or `-p name:=value`. A bad value stops the node at '
-            'start-up with a message naming the parameter (exit status 2). Parameters marked '
+            'start-up with a message naming the parameter (exit status 2); so does a value of '
+            'the wrong type, or a key the node does not declare, in its section of a parameters '
+            'file, naming the key, the node and the file. Parameters marked '
             '"runtime" can be changed with `ros2 param set`; a refused change returns its reason '
             'and the old value stays in force. Units are SI.\n\n')
     return head + '\n'.join(node_table(n) for n in NODES)

@@ -7,8 +7,9 @@ Every ``--bag`` (a rosbag2 directory, or a directory of them) is read and checke
 (:mod:`soft_gripper_sdre.analysis.bag_dataset`); a bad one ends the tool with exit status 2 and a
 message naming it before anything is written. The finger's shape comes from the bags: m inputs
 from the command's names ``<finger>/ax<k>`` (the same m in every bag), the task dimension d from
-``task_dim`` (auto: 3 when a tip's z moves, else 2); the input bounds the checkpoint records are
-the given ones, which every recorded command must respect, or the range the commands spanned.
+``task_dim`` (2 by default; auto: 3 when a tip's z moves, else 2); the input bounds the
+checkpoint records are the given ones, which every recorded command must respect, or the range
+the commands spanned, widened to hold 0 (the rest input).
 Each excited finger of each bag gives training samples: KF + RTS states and acceleration labels
 on the tip stamps (or on a uniform grid when the stamps jitter), the command held onto them, the
 state translated by that finger's rest pose.
@@ -228,15 +229,15 @@ def params_yaml(derived: loop_settings.Derivation, model_path: Path, finger_name
 def train_from_bags(train_paths: list[Path], val_paths: list[Path], out: Path,
                     settings: TrainSettings, *,
                     tips_topic: str, torques_topic: str, min_duration: float, finger: int | None,
-                    meas_std: float | None, jerk_psd: float | None, task_dim: str | int = 'auto',
+                    meas_std: float | None, jerk_psd: float | None, task_dim: str | int = 2,
                     input_lower: list[float] | None = None,
                     input_upper: list[float] | None = None) -> dict:
     """Read, label, train, validate, judge, derive the loop's settings and write (module doc);
     returns the metrics.
 
     Args:
-        task_dim: 'auto', 2 or 3 (:func:`~soft_gripper_sdre.analysis.bag_dataset.task_dimension`
-            on the training bags).
+        task_dim: 2, 3 or 'auto' (:func:`~soft_gripper_sdre.analysis.bag_dataset.task_dimension`
+            on the training bags); 2 with a tip whose z moves prints a note saying so.
         input_lower, input_upper: one bound per input (both or neither): the bounds the
             checkpoint records; None: the range the training bags' commands spanned.
 
@@ -290,7 +291,7 @@ def train_from_bags(train_paths: list[Path], val_paths: list[Path], out: Path,
 
 
 def finger_shape(train_set: list[tuple[Recording, list[int]]],
-                 val_set: list[tuple[Recording, list[int]]], task_dim: str | int = 'auto',
+                 val_set: list[tuple[Recording, list[int]]], task_dim: str | int = 2,
                  input_lower: list[float] | None = None,
                  input_upper: list[float] | None = None) -> tuple[FingerShape, InputBounds]:
     """The shape of the finger the bags recorded and the bounds of its inputs.
@@ -316,6 +317,12 @@ def finger_shape(train_set: list[tuple[Recording, list[int]]],
                                f'{first.n_inputs} ({list(first.joint_names)[:8]}): every bag '
                                'must record the same finger')
     d = task_dimension([rec for rec, _ in train_set], task_dim)
+    moving = [rec for rec, _ in train_set if rec.z_moves()]
+    if d == 2 and moving:
+        z = np.concatenate([rec.tips[:, :, 2] - rec.tips[:1, :, 2] for rec in moving])
+        print(f"note: the tips' z moves in {len(moving)} training bag(s) (by up to "
+              f'{1e3 * float(np.abs(z).max()):.3g} mm); this model learns x and y only '
+              '(--task-dim 3 or auto learns z too)')
     shape = FingerShape(d, first.n_inputs)
     what = '--input-lower/--input-upper'
     if (input_lower is None) != (input_upper is None):
