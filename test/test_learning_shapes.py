@@ -495,9 +495,6 @@ def test_a_moving_z_learned_in_2d_by_default_says_so(tmp_path, capsys):
     assert capsys.readouterr().out == ''
 
 
-@pytest.mark.xfail(raises=ValueError, strict=True,
-                   reason="analysis/model_fitness.py (branch any-settings) judges the hand's "
-                          "shape only: its rest check evaluates A at a state of 4 zeros")
 def test_the_train_tool_learns_a_one_input_3d_finger_from_bags(tmp_path, capsys):
     """README's command on bags of a (3, 1) finger with --task-dim auto: model.pt of that shape
     with the recorded bounds [0, 2]."""
