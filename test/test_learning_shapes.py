@@ -495,9 +495,6 @@ def test_a_moving_z_learned_in_2d_by_default_says_so(tmp_path, capsys):
     assert capsys.readouterr().out == ''
 
 
-@pytest.mark.xfail(raises=ValueError, strict=True,
-                   reason="analysis/model_fitness.py (branch any-settings) judges the hand's "
-                          "shape only: its rest check evaluates A at a state of 4 zeros")
 def test_the_train_tool_learns_a_one_input_3d_finger_from_bags(tmp_path, capsys):
     """README's command on bags of a (3, 1) finger with --task-dim auto: model.pt of that shape
     with the recorded bounds [0, 2]."""
@@ -601,37 +598,44 @@ def _declared(node: str) -> dict:
     return declared_types(importlib.import_module(f'soft_gripper_sdre.nodes.{node}').PARAMS)
 
 
-@pytest.mark.parametrize('shape, bounds, extra', [
-    (HAND_SHAPE, InputBounds([-0.0199, -0.01], [0.02, 0.01]), {}),
-    (FingerShape(3, 3), InputBounds([0.0] * 3, [2.0] * 3),
-     {'estimator': {'task_dim': 3}, 'trajectory': {'task_dim': 3},
+@pytest.mark.parametrize('facts, extra', [
+    ({}, {}),
+    ({'axis': (0.0, 0.6, -0.8), 'bounds': InputBounds([0.0] * 3, [2.0] * 3)},
+     {'estimator': {'task_dim': 3},
+      'trajectory': {'task_dim': 3, 'direction': [0.0, 0.6, -0.8], 'close_distance': 0.01},
       'controller': {'input_lower': [0.0] * 3, 'input_upper': [2.0] * 3}}),
-    (FingerShape(2, 1), InputBounds([0.0], [2e5]),
-     {'controller': {'input_lower': [0.0], 'input_upper': [2e5]}}),
+    ({'bounds': InputBounds([0.0], [2e5]), 'path': ((0.0, 0.0), (1e-3, 2e-3), (1e-3, 5e-3))},
+     {'estimator': {'task_dim': 2},
+      'trajectory': {'task_dim': 2, 'close_path': [1e-3, 2e-3, 1e-3, 5e-3]},
+      'controller': {'input_lower': [0.0], 'input_upper': [2e5]}}),
 ])
-def test_the_parameter_file_carries_the_shape_the_nodes_take(shape, bounds, extra, tmp_path):
-    """A 3-D tip: task_dim 3 for the estimator and the trajectory node; one-sided inputs: the
-    controller's input_lower/input_upper. Bidirectional inputs keep ±torque_limit, so the hand's
-    file is the one written without a shape. Every node takes its section as declared."""
+def test_the_parameter_file_carries_the_shape_the_nodes_take(facts, extra, tmp_path):
+    """A 3-D move: task_dim 3 for the estimator and the trajectory node, and its direction;
+    one-sided inputs: the controller's input_lower/input_upper in place of torque_limit; a curved
+    move: the trajectory node's close_path. The hand's file (no bounds, a planar straight move)
+    is as it always was. Every node takes its section as declared."""
+    from dataclasses import replace
+
     import yaml
 
     from soft_gripper_sdre.nodes.params_files import file_problems
     from soft_gripper_sdre.tools.learning.train_bags import params_yaml
     derived = _derivation()
-    text = params_yaml(derived, tmp_path / 'model.pt', ['finger_0'], 'bags', shape, bounds)
-    plain = params_yaml(derived, tmp_path / 'model.pt', ['finger_0'], 'bags')
+    derived = replace(derived, facts=replace(derived.facts, **facts))
+    text = params_yaml(derived, tmp_path / 'model.pt', ['finger_0'], 'bags')
     doc = {key.rsplit('/', 1)[-1]: v['ros__parameters'] for key, v in yaml.safe_load(text).items()}
-    base = {key.rsplit('/', 1)[-1]: v['ros__parameters']
-            for key, v in yaml.safe_load(plain).items()}
     for node in ('estimator', 'controller', 'trajectory'):
-        assert doc[node] == {**base[node], **extra.get(node, {})}, node
+        for key, value in extra.get(node, {}).items():
+            assert doc[node][key] == pytest.approx(value), (node, key)
         path = tmp_path / 'params.yaml'
         path.write_text(text)
         assert file_problems(f'/{node}', _declared(node), str(path)) == [], node
     if 'controller' in extra:
         from soft_gripper_sdre.nodes.params import numbers
         got = InputBounds.parse(numbers(doc['controller']['input_lower'], 'input_lower'),
-                                numbers(doc['controller']['input_upper'], 'input_upper'), shape.m)
-        assert got == bounds
+                                numbers(doc['controller']['input_upper'], 'input_upper'),
+                                facts['bounds'].m)
+        assert got == facts['bounds'] and 'torque_limit' not in doc['controller']
     if not extra:
-        assert text == plain
+        assert set(doc['trajectory']) == {'close_distance', 'side_distance', 'contact_distance'}
+        assert 'task_dim' not in doc['estimator'] and 'input_lower' not in doc['controller']

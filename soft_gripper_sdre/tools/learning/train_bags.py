@@ -53,7 +53,7 @@ from soft_gripper_sdre.learning import derivatives
 from soft_gripper_sdre.learning.rollout import Run
 from soft_gripper_sdre.learning.train_settings import TrainSettings
 from soft_gripper_sdre.learning.training import TrainResult, fingerprint, train
-from soft_gripper_sdre.sim.shape import HAND_SHAPE, FingerShape, InputBounds, ShapeError
+from soft_gripper_sdre.sim.shape import FingerShape, InputBounds, ShapeError
 
 #: samples of a recording's first stretch its jerk intensity is tuned on
 TUNE_SAMPLES = 2000
@@ -199,37 +199,26 @@ def tuning_stretch(rec: Recording, finger: int, dims: int = 2) -> tuple[np.ndarr
 
 
 def params_yaml(derived: loop_settings.Derivation, model_path: Path, finger_names: list[str],
-                source: str, shape: FingerShape = HAND_SHAPE,
-                bounds: InputBounds | None = None) -> str:
+                source: str) -> str:
     """The parameter file of the estimator, the controller and the trajectory node's checked move
-    for ``derived`` settings, for a finger of ``shape`` whose inputs the data were recorded
-    within ``bounds``: a 3-D tip gives the estimator and the trajectory node ``task_dim: 3``, and
-    bounds with a one-sided input (a chamber, a tendon) give the controller ``input_lower`` and
-    ``input_upper`` (bidirectional inputs are bounded by the derived ±``torque_limit``)."""
+    for ``derived`` settings (:meth:`~soft_gripper_sdre.analysis.loop_settings.Derivation.params`
+    with the controller's ``model_path``)."""
     from soft_gripper_sdre.nodes.params import params_file_key
-    d = derived.settings
-    est = {'finger_names': finger_names, 'control_period': d.control_period,
-           'meas_std': d.meas_std, 'accel_psd': d.accel_psd}
-    ctrl = {'model_path': str(model_path.resolve()), 'finger_names': finger_names,
-            'control_period': d.control_period, 'q_pos': d.q_pos,
-            'q_vel': d.q_vel, 'r': d.r, 'torque_limit': d.torque_limit,
-            'torque_lowpass_hz': d.torque_lowpass_hz,
-            'integral_gain': d.integral_gain, 'integral_band': d.integral_band,
-            'feedforward_at': d.feedforward_at, 'pd_kp': d.pd_kp, 'pd_kd': d.pd_kd}
-    if bounds is not None and bool(np.any(bounds.one_sided)):
-        record = bounds.to_record()
-        ctrl['input_lower'], ctrl['input_upper'] = record['lower'], record['upper']
-    close, side = derived.facts.move()
-    plan = {'close_distance': close, 'side_distance': side, 'contact_distance': close}
-    if shape.d == 3:
-        est['task_dim'] = plan['task_dim'] = 3
-    body = {params_file_key('estimator'): {'ros__parameters': _plain(est)},
-            params_file_key('controller'): {'ros__parameters': _plain(ctrl)},
-            params_file_key('trajectory'): {'ros__parameters': _plain(plan)}}
+    d, facts = derived.settings, derived.facts
+    nodes = derived.params(finger_names)
+    nodes['controller'] = {'model_path': str(model_path.resolve()), **nodes['controller']}
+    body = {params_file_key(node): {'ros__parameters': _plain(values)}
+            for node, values in nodes.items()}
+    if facts.d == 2 and facts.path is None:
+        move = (f'# {1e3 * facts.travel:.3g} mm at {facts.direction:.0f}° from +X '
+                'toward +Y (trajectory: close_distance, side_distance;\n')
+    else:
+        move = (f'# {derived.move_text()}\n# (trajectory: '
+                + ('close_path, waypoints relative to rest' if facts.path is not None else
+                   'direction and close_distance') + ';\n')
     head = (f'# Estimator and controller settings derived from {source} by tools.learning.train\n'
             f'# (closed-loop bandwidth {d.bandwidth_hz:g} Hz), and the move they were checked on:\n'
-            f'# {1e3 * derived.facts.travel:.3g} mm at {derived.facts.direction:.0f}° from +X '
-            'toward +Y (trajectory: close_distance, side_distance;\n'
+            + move +
             '# contact_distance = close_distance: the whole move scored as free space). How they '
             'are\n'
             '# derived and checked: docs/own_gripper.md. Use: --ros-args --params-file '
@@ -286,7 +275,7 @@ def train_from_bags(train_paths: list[Path], val_paths: list[Path], out: Path,
         if derived is not None and derived.settings is not None:
             (stage / PARAMS_FILE).write_text(params_yaml(
                 derived, out / 'model.pt', list(train_set[0][0].finger_names),
-                ', '.join(str(p) for p in train_paths), shape, bounds))
+                ', '.join(str(p) for p in train_paths)))
     print(f'finger shape: {shape.m} input(s) ({bounds}), a tip of {shape.d} coordinates '
           f'({", ".join(shape.axes)})')
     print('\n'.join(scores.lines('validation R² vs the KF + RTS labels')))
@@ -427,7 +416,8 @@ class _Verdict:
         if self.fitness.fit:
             d = data.shape.d
             facts = data_facts(data.x[:, :d], data.u, data.dt, data.noise,
-                               [tuning_stretch(rec, f[0], d) for rec, f in data.train_set])
+                               [tuning_stretch(rec, f[0], d) for rec, f in data.train_set],
+                               bounds=data.bounds)
             self.derived = loop_settings.derive(model, facts, progress=lambda text: print(
                 f'  closed-loop check on the model: {text}', flush=True))
         derived = self.derived
@@ -464,15 +454,22 @@ def report_fitness(fitness: model_fitness.Fitness, derived, out: Path) -> None:
     print(f'model fit to control. {out / PARAMS_FILE}: control_period {d.control_period:g} s, '
           f'meas_std {d.meas_std:.3g} m, accel_psd {d.accel_psd:.3g}, '
           f'bandwidth {d.bandwidth_hz:g} Hz '
-          f'(q_pos {d.q_pos:.3g}, r {d.r:.3g}), torque_limit {d.torque_limit:.3g} N·m, '
-          f'roll-off {d.torque_lowpass_hz:g} Hz, integral {d.integral_gain:.3g} / '
+          f'(q_pos {d.q_pos:.3g}, r {d.r:.3g}), torque_limit {d.torque_limit:.3g} '
+          + ('N·m, ' if derived.facts.bounds is None else '(the inputs\' unit), ')
+          + f'roll-off {d.torque_lowpass_hz:g} Hz, integral {d.integral_gain:.3g} / '
           f'{1e3 * d.integral_band:.2f} mm; closed loop on the model, error / travel '
           f'{1e3 * derived.facts.travel:.2f} mm: {checks}')
     close, side = derived.facts.move()
-    print(f'the checked move: {1e3 * derived.facts.travel:.2f} mm at '
-          f'{derived.facts.direction:.0f}° from +X '
-          f'toward +Y, close_distance {1e3 * close:.2f} mm and side_distance {1e3 * side:.2f} mm '
-          f'(the trajectory section of {PARAMS_FILE}); a longer move is not checked')
+    if derived.facts.d == 2 and derived.facts.path is None:
+        print(f'the checked move: {1e3 * derived.facts.travel:.2f} mm at '
+              f'{derived.facts.direction:.0f}° from +X toward +Y, close_distance '
+              f'{1e3 * close:.2f} mm and side_distance {1e3 * side:.2f} mm '
+              f'(the trajectory section of {PARAMS_FILE}); a longer move is not checked')
+    else:
+        print(f'the checked move: {derived.move_text()} (the trajectory section of '
+              f'{PARAMS_FILE}); a longer move is not checked')
+    if derived.facts.bounds is not None:
+        print(f'the loop\'s input bounds: {derived.facts.bounds} (input_lower, input_upper)')
     paper, needs = derived.paper_law, derived.paper_law['needs_bandwidth_hz']
     print(f'the paper\'s law (sdre) on these settings holds {100 * paper["hold_offset"]:.0f} % '
           f'short of the move: its cost weighs the torque that holds the finger against its '
