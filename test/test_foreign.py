@@ -11,6 +11,9 @@ import pytest
 import yaml
 
 from soft_gripper_sdre.analysis.bag_dataset import read_recording, settle_noise
+from soft_gripper_sdre.sim.foreign_presets import GRIPPERS, RATES
+from soft_gripper_sdre.sim.shape import InputBounds, ShapeError
+from soft_gripper_sdre.tools.graph import foreign
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -36,6 +39,30 @@ def test_bad_arguments_exit_2_before_anything_starts(tmp_path, args, message):
     r = _tool(*full)
     assert r.returncode == 2 and message in r.stderr and 'Traceback' not in r.stderr
     assert not out.exists()
+
+
+def test_every_gripper_has_its_lab_setup_and_one_sided_actuators_give_their_bounds():
+    assert set(foreign.SETUPS) == set(GRIPPERS)
+    assert all(foreign.SETUPS[k].rate == RATES[k] for k in GRIPPERS)
+    assert foreign.SETUPS['pneumatic1'].rate == 100.0
+    assert 200.0 <= foreign.SETUPS['trunk3'].rate <= 500.0
+    assert foreign.actuator_bounds('tendon3') == {} == foreign.actuator_bounds('stiff2')
+    assert foreign.actuator_bounds('pneumatic1') == {'input_lower': [0.0],
+                                                     'input_upper': [60e3]}
+    assert foreign.actuator_bounds('trunk3') == {'input_lower': [0.0] * 3,
+                                                 'input_upper': [4.0] * 3}
+
+
+def test_the_controller_bounds_come_from_the_parameter_file(tmp_path):
+    params = tmp_path / 'params.yaml'
+    ctrl = {'torque_limit': 0.05}
+    params.write_text(yaml.safe_dump({'/**/controller': {'ros__parameters': ctrl}}))
+    assert foreign.controller_bounds(params, 2) == InputBounds.symmetric(0.05, 2)
+    ctrl.update(input_lower=[0.0], input_upper=[3e4])
+    params.write_text(yaml.safe_dump({'/**/controller': {'ros__parameters': ctrl}}))
+    assert foreign.controller_bounds(params, 1) == InputBounds([0.0], [3e4])
+    with pytest.raises(ShapeError, match='params.yaml: input_lower/input_upper: the finger has 3'):
+        foreign.controller_bounds(params, 3)
 
 
 def test_an_existing_output_is_never_overwritten(tmp_path):
@@ -111,3 +138,47 @@ def test_the_recipe_runs_end_to_end_on_the_tendon_finger(tmp_path):
     # misses by several travels)
     pct = score['rmse_pct_of_travel']
     assert min(pct) < 25.0 and max(pct) < 100.0, score
+
+
+@pytest.mark.slow
+@pytest.mark.ros
+@pytest.mark.timeout(1800)
+def test_the_recipe_runs_end_to_end_on_the_one_chamber_pneumatic_finger(tmp_path):
+    """The same recipe on a finger of one input (a chamber, 0 to 60 kPa, a pressure lag) and a
+    planar tip at 100 Hz: the excitation and training get the chamber's bounds, the model has
+    shape (2, 1), the checked move follows the curve of the model's equilibria (params.yaml's
+    close_path), and the deployed grasp never commands outside the bounds nor sits at 60 kPa at
+    rest. Training is shortened as above."""
+    out = tmp_path / 'pneumatic1'
+    r = _tool('--plant', 'pneumatic1', '--out', str(out), '--laws', 'sdre_ff', '--epochs', '40',
+              '--rollout-epochs', '10', timeout=1700)
+    assert r.returncode in (0, 1), r.stderr[-3000:]
+    metrics = json.loads((out / 'metrics.json').read_text())
+    assert 0 < metrics['identification']['amplitude'] <= 1
+    for meta in sorted((out / 'bags').glob('*/*/metadata.yaml')):
+        rec = read_recording(meta.parent)
+        assert rec.n_inputs == 1
+        u = rec.torques.reshape(-1)
+        assert u.min() >= 0.0 and u.max() <= 60e3                  # the chamber only pushes
+    training = metrics['training']
+    assert training['fitness']['fit_for_control'], training['fitness']['reasons']
+    derived = training['derived_settings']
+    facts = derived['facts']
+    if r.returncode == 1:
+        assert derived['settings'] is None
+        assert not (out / 'model' / 'params.yaml').exists()
+        return
+    assert len(facts['path']) >= 2 and facts['bounds']['lower'] == [0.0]
+    assert 0 < facts['bounds']['upper'][0] <= 60e3
+    params = yaml.safe_load((out / 'model' / 'params.yaml').read_text())
+    plan = params['/**/trajectory']['ros__parameters']
+    waypoints = [float(v) for v in plan['close_path'].split(',')]
+    assert len(waypoints) == 2 * (len(facts['path']) - 1)
+    assert plan['close_distance'] == pytest.approx(facts['travel'])
+    ctrl = params['/**/controller']['ros__parameters']
+    assert ctrl['input_lower'] == [0.0] and ctrl['input_upper'] == facts['bounds']['upper']
+    score = metrics['deploy']['sdre_ff']
+    assert score['samples'] > 200 and score['commands'] > 200
+    assert score['outside_bounds'] == 0 and score['outside_plant_bounds'] == 0
+    assert score['saturated_at_rest'] == 0.0
+    assert max(score['rmse_pct_of_travel']) < 100.0, score

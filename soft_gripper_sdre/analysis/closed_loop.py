@@ -13,6 +13,11 @@ with the same rules, so a lockstep run of the graph reproduces it:
    from x̂_k;
 4. the simulator holds u_k over [t_k, t_k + Δt).
 
+The loop runs in the law's task dimension d and its m inputs (its ``io.shape``; a law without
+one is the hand's, d = 2, m = 2): the tips' first d coordinates, a reference in d coordinates,
+commands of m inputs. The simulator is the hand (:class:`~soft_gripper_sdre.sim.hand.GripperSim`,
+d = 2, m = 2), so a law of another shape is refused before anything runs.
+
 It is used by the tests, the tuning sweeps and the benchmarks; the demo runs the real node graph.
 """
 from __future__ import annotations
@@ -30,6 +35,10 @@ from soft_gripper_sdre.control.tip_filter import MAX_BRIDGE, NS, RESET_ON_JUMP, 
 from soft_gripper_sdre.control.tracking import Law, Weights
 from soft_gripper_sdre.control.trajectory import GraspProfile, GraspTrajectory
 from soft_gripper_sdre.sim.hand import GripperSim, SimConfig
+from soft_gripper_sdre.sim.shape import HAND_SHAPE, FingerShape, ShapeError
+
+#: the shape of the fingers the in-process simulator has
+SIM_SHAPE = HAND_SHAPE
 
 
 @dataclass(frozen=True)
@@ -46,17 +55,17 @@ class LoopResult:
     """Time series of one closed-loop run, sampled at every control period (T samples)."""
 
     t: np.ndarray                 # (T,) s
-    pos: np.ndarray               # (T, n, 2) true tip position [m]
-    vel: np.ndarray               # (T, n, 2) true tip velocity [m/s]
-    meas: np.ndarray              # (T, n, 2) measured tip position the estimator got (delayed by
+    pos: np.ndarray               # (T, n, d) true tip position [m]
+    vel: np.ndarray               # (T, n, d) true tip velocity [m/s]
+    meas: np.ndarray              # (T, n, d) measured tip position the estimator got (delayed by
                                   # sensor_delay) [m]
-    est: np.ndarray               # (T, n, 4) KF estimate [m, m/s]
-    ref_pos: np.ndarray           # (T, n, 2)
-    ref_vel: np.ndarray           # (T, n, 2)
-    u: np.ndarray                 # (T, n, 2) applied torque [N·m]
+    est: np.ndarray               # (T, n, 2d) KF estimate [m, m/s]
+    ref_pos: np.ndarray           # (T, n, d)
+    ref_vel: np.ndarray           # (T, n, d)
+    u: np.ndarray                 # (T, n, m) applied input [N·m, or the input's SI unit]
     ok: np.ndarray                # (T, n) all Riccati checks passed
     fallback: np.ndarray          # (T, n) fallback gains used
-    saturated: np.ndarray         # (T, n, 2)
+    saturated: np.ndarray         # (T, n, m)
     residual: np.ndarray          # (T, n) relative CARE residual
     contact: np.ndarray           # (T, n) finger touches the cube (hand scene), else False
     cube: np.ndarray              # (T, 7) cube pose, NaN without a cube
@@ -86,7 +95,14 @@ def run_closed_loop(law: Law, *, duration: float, sim_config: SimConfig | None =
     Raises:
         ValueError: ``sensor_delay`` is negative, not finite or not a whole number of periods;
             the law controls another number of fingers than the scene has.
+        ShapeError: the law controls fingers of another shape than the simulator's
+            (:data:`SIM_SHAPE`).
     """
+    shape = law_shape(law)
+    if shape != SIM_SHAPE:
+        raise ShapeError(f'the law controls fingers of shape ({shape}); the in-process simulator '
+                         f'has the hand\'s ({SIM_SHAPE}): run it on the node graph with its '
+                         'driver')
     sim_config = sim_config or SimConfig(scene='hand')
     profile = profile or GraspProfile()
     estimator = estimator or EstimatorSettings()
@@ -107,7 +123,7 @@ def run_closed_loop(law: Law, *, duration: float, sim_config: SimConfig | None =
         if progress:
             from tqdm import tqdm
             iterator = tqdm(iterator, desc='closed loop', unit='step', mininterval=0.5)
-        loop = _GraspLoop(sim, law, tips, delay_steps, profile, steps, dt)
+        loop = _GraspLoop(sim, law, tips, delay_steps, profile, steps, dt, shape.d)
         for k in iterator:
             loop.period(k)
     return loop.result()
@@ -124,8 +140,9 @@ class _GraspLoop:
     of the periods and the law."""
 
     def __init__(self, sim: GripperSim, law: Law, tips: TipFilter, delay_steps: int,
-                 profile: GraspProfile, steps: int, dt: float) -> None:
+                 profile: GraspProfile, steps: int, dt: float, d: int = 2) -> None:
         self.sim, self.law, self.tips, self.profile, self.steps = sim, law, tips, profile, steps
+        self.d = d
         self.observe = getattr(law, 'observe', None)
         self.dt, self.period_ns, self.delay_steps = dt, tips.period_ns, delay_steps
         self.fifo = deque(maxlen=delay_steps + 1)     # the last d + 1 measurements, oldest first
@@ -140,7 +157,8 @@ class _GraspLoop:
         """Steps 1–4 of the module doc at t_k = k Δt, recorded."""
         z = self._measure()
         if self.traj is None:
-            self.traj = GraspTrajectory(z, self.profile)
+            self.traj = (GraspTrajectory(z, self.profile) if self.d == 2
+                         else GraspTrajectory(z, self.profile, dim=self.d))
             # the whole reference at once (t_k = k Δt)
             self.refs = self.traj.sample(np.arange(self.steps) * self.dt)
         x_hat = self.tips.on_tips(k * self.period_ns, z).estimate
@@ -152,7 +170,8 @@ class _GraspLoop:
         if self.observe is not None:
             self.observe(truth)
         refs = self.refs
-        out = self.law.compute(x_hat[:, :2], x_hat[:, 2:], refs.pos[k], refs.vel[k],
+        d = self.d
+        out = self.law.compute(x_hat[:, :d], x_hat[:, d:], refs.pos[k], refs.vel[k],
                                ref_acc=refs.acc[k])
         self.law_seconds[k] = self.clock() - t_law
         self.sim.step(out.u)
@@ -162,7 +181,7 @@ class _GraspLoop:
     def _measure(self) -> np.ndarray:
         """The tips the estimator gets this period: those measured d periods ago."""
         first = not self.fifo
-        self.fifo.append(self.sim.measure()[:, :2])
+        self.fifo.append(self.sim.measure()[:, :self.d])
         if first:
             # before d measurements exist, the sensor repeats the first
             self.fifo.extend([self.fifo[0]] * self.delay_steps)
@@ -173,8 +192,8 @@ class _GraspLoop:
         a NaN pose)."""
         rec, n = self.rec, len(z)
         rec['t'].append(truth.t)
-        rec['pos'].append(truth.tip_pos[:, :2])
-        rec['vel'].append(truth.tip_vel[:, :2])
+        rec['pos'].append(truth.tip_pos[:, :self.d])
+        rec['vel'].append(truth.tip_vel[:, :self.d])
         rec['meas'].append(z)
         rec['est'].append(x_hat)
         rec['u'].append(out.u)
@@ -200,6 +219,12 @@ class _GraspLoop:
                             law_seconds=self.law_seconds)
         result.metrics = tracking_metrics(result.pos, result.ref_pos, free, excursion)
         return result
+
+
+def law_shape(law: Law) -> FingerShape:
+    """The finger shape ``law`` controls: its ``io.shape``, else the hand's."""
+    shape = getattr(getattr(law, 'io', None), 'shape', None)
+    return shape if isinstance(shape, FingerShape) else HAND_SHAPE
 
 
 def delay_in_periods(delay: float, period: float) -> int:

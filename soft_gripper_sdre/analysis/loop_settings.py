@@ -75,13 +75,22 @@ import numpy as np
 
 from soft_gripper_sdre.analysis import model_fitness
 from soft_gripper_sdre.analysis.data_facts import DataFacts
-from soft_gripper_sdre.analysis.holding import HOLD_SHARE, hold_torques, holdable_travel
-from soft_gripper_sdre.analysis.model_fitness import rk4_step
+from soft_gripper_sdre.analysis.holding import (
+    HOLD_SHARE,
+    EquilibriumCurve,
+    equilibrium_curve,
+    hold_bounds,
+    hold_torques,
+    holdable_travel,
+    loop_bounds,
+)
+from soft_gripper_sdre.analysis.model_fitness import model_shape, rk4_step
 from soft_gripper_sdre.control.kf import ConstantVelocityKF
 from soft_gripper_sdre.control.laws import make_law
 from soft_gripper_sdre.control.riccati import sdre_gains
 from soft_gripper_sdre.control.tracking import Weights
 from soft_gripper_sdre.control.trajectory import GraspProfile, GraspTrajectory
+from soft_gripper_sdre.sim.shape import InputBounds
 
 #: closed-loop bandwidths tried [Hz], kept below a :data:`RATE_FRACTION` of the sampling rate
 BANDWIDTHS_HZ = (0.5, 1.0, 2.0, 4.0, 8.0, 16.0, 32.0)
@@ -114,6 +123,10 @@ FEEDFORWARD_AT = 'ref'
 MAX_STEP = 2.5e-3
 #: the share of the travel the paper's law is asked to reach (:func:`paper_law_bandwidth`)
 PAPER_LAW_SHARE = 0.1
+#: waypoints of a curved move (the trajectory node's ``close_path``)
+PATH_POINTS = 16
+#: an input within this share of its range of a bound counts as at the bound [-]
+AT_BOUND = 1e-9
 
 
 @dataclass(frozen=True)
@@ -145,30 +158,43 @@ class CheckResult:
 
     law: str
     rmse_rel: float               # RMSE of the true tip / travel (inf when it diverged)
-    rest_saturated: float         # share of periods at the limit while held at rest
-    rest_torque: float            # largest |u| / limit while held at rest
-    saturated: float              # share of periods at the limit over the whole run
+    rest_saturated: float         # share of periods at a bound while held at rest (a one-sided
+                                  # input's rest bound, where it rests, does not count)
+    rest_torque: float            # largest |u − rest| / its range while held at rest
+    saturated: float              # share of periods at a bound over the whole run
     diverged: bool
+    outside: int = 0              # commands outside the bounds (a law must never give one)
+    unreachable: float = 0.0      # largest demand no input could reach [m/s²] (LawStep)
 
     @property
     def ok(self) -> bool:
-        return not self.diverged and self.rest_saturated == 0.0 and self.rest_torque < 0.5
+        return (not self.diverged and self.rest_saturated == 0.0 and self.rest_torque < 0.5
+                and self.outside == 0)
 
 
 def fastest_mode_hz(model) -> float:
     """The natural frequency |λ| / 2π [Hz] of the learned A(0)'s fastest oscillating mode (an
     eigenvalue with an imaginary part); 0 when none oscillates."""
-    lam = np.linalg.eigvals(model.AG(np.zeros(4))[0][0])
+    lam = np.linalg.eigvals(model.AG(np.zeros(model_shape(model).n_state))[0][0])
     lam = lam[lam.imag > 0]
     return float(np.abs(lam).max() / (2 * math.pi)) if lam.size else 0.0
 
 
+def input_gain(model) -> float:
+    """g² for the weights: the squared geometric mean of G₂(0)'s singular values (s₁ s₂ for two
+    inputs on a planar tip; s₁² for one input)."""
+    shape = model_shape(model)
+    s = np.linalg.svd(model.AG(np.zeros(shape.n_state))[1][0, shape.d:, :], compute_uv=False)
+    if len(s) == 2:
+        return float(s[0] * s[1])
+    return float(np.prod(s)) ** (2.0 / len(s))
+
+
 def settings_for(model, facts: DataFacts, bandwidth_hz: float, accel_psd: float) -> LoopSettings:
     """The settings of one candidate (module doc's table)."""
-    s = np.linalg.svd(model.AG(np.zeros(4))[1][0, 2:, :], compute_uv=False)
     w = 2 * math.pi * bandwidth_hz
     r = 1.0 / facts.torque_limit ** 2
-    q_pos = r * w ** 4 / max(float(s[0] * s[1]), 1e-12)
+    q_pos = r * w ** 4 / max(input_gain(model), 1e-12)
     band = max(BAND_TRAVEL * abs(facts.travel), 10 * facts.noise_std)
     return LoopSettings(
         control_period=facts.period, meas_std=max(facts.noise_std, 1e-7), accel_psd=accel_psd,
@@ -189,59 +215,138 @@ class _GainError:
 
 
 def check_move(facts: DataFacts) -> GraspTrajectory:
-    """The check's reference for one finger at the model's rest: a raised-cosine move of
-    ``facts.travel`` along ``facts.direction``, held, and back (:data:`CHECK_PROFILE`)."""
-    close, side = facts.move()
-    profile = GraspProfile(close_distance=close, side_distance=side, grasp_fingers=(0,),
-                           others='hold', contact_distance=close, **CHECK_PROFILE)
-    return GraspTrajectory(np.zeros((1, 2)), profile)
+    """The check's reference for one finger at the model's rest: the trajectory node's
+    raised-cosine move of ``facts.travel`` along ``facts.direction`` (planar:
+    ``close_distance`` and ``side_distance``), along ``facts.axis`` (3-D: ``direction``), or
+    through ``facts.path`` (``close_path``), held, and back (:data:`CHECK_PROFILE`)."""
+    if facts.d == 2 and facts.path is None:
+        close, side = facts.move()
+        profile = GraspProfile(close_distance=close, side_distance=side, grasp_fingers=(0,),
+                               others='hold', contact_distance=close, **CHECK_PROFILE)
+        return GraspTrajectory(np.zeros((1, 2)), profile)
+    plan = _plan(facts)
+    profile = GraspProfile(close_distance=plan['close_distance'],
+                           contact_distance=plan['contact_distance'], grasp_fingers=(0,),
+                           others='hold', direction=tuple(plan['direction']),
+                           close_path=(tuple(plan['close_path']) if 'close_path' in plan
+                                       else None), **CHECK_PROFILE)
+    return GraspTrajectory(np.zeros((1, facts.d)), profile, dim=facts.d)
+
+
+def _plan(facts: DataFacts) -> dict:
+    """The trajectory node's parameters of a 3-D or curved move: ``direction`` (the straight
+    move's unit direction, or the chord of the curve), ``close_distance`` (its length, or the
+    curve's arc length) and ``close_path`` (the curve's waypoints after the rest, flat)."""
+    plan = {'task_dim': facts.d, 'direction': [float(v) for v in facts.unit],
+            'close_distance': float(facts.travel), 'contact_distance': float(facts.travel)}
+    if facts.path is not None:
+        plan['close_path'] = [float(v) for v in np.asarray(facts.path)[1:].reshape(-1)]
+    return plan
+
+
+class _SpatialKF:
+    """The estimator's constant-velocity KF on a 3-D tip for one finger: with independent
+    process noise its axes decouple, so X, Y run in one planar KF and Z in another (fed a
+    constant second coordinate). ``x`` (1, 6) = [p; v]."""
+
+    def __init__(self, dt: float, accel_psd: float, meas_std: float) -> None:
+        self.xy = ConstantVelocityKF(dt, accel_psd, meas_std, n=1)
+        self.z = ConstantVelocityKF(dt, accel_psd, meas_std, n=1)
+        self.x = np.zeros((1, 6))
+
+    def _join(self) -> np.ndarray:
+        a, b = self.xy.x, self.z.x
+        self.x = np.array([[a[0, 0], a[0, 1], b[0, 0], a[0, 2], a[0, 3], b[0, 2]]])
+        return self.x.copy()
+
+    def reset(self, z: np.ndarray) -> None:
+        self.xy.reset(z[:, :2])
+        self.z.reset(np.array([[z[0, 2], 0.0]]))
+        self._join()
+
+    def step(self, z: np.ndarray) -> np.ndarray:
+        self.xy.step(z[:, :2])
+        self.z.step(np.array([[z[0, 2], 0.0]]))
+        return self._join()
+
+
+def _rest_share(u: np.ndarray, bounds: InputBounds) -> np.ndarray:
+    """|u − rest| as a share of the input's range away from its rest value, per input."""
+    rest = bounds.rest
+    room = np.maximum(bounds.upper - rest, rest - bounds.lower)
+    return np.abs(u - rest) / room
+
+
+def _at_bound(u: np.ndarray, bounds: InputBounds) -> np.ndarray:
+    """(…,) any input at a bound that is not its rest value (a chamber resting at 0 is not
+    saturated)."""
+    tol = AT_BOUND * (bounds.upper - bounds.lower)
+    rest = bounds.rest
+    low = (u <= bounds.lower + tol) & (bounds.lower != rest)
+    high = (u >= bounds.upper - tol) & (bounds.upper != rest)
+    return np.any(low | high, axis=-1)
 
 
 def check_on_model(model, settings: LoopSettings, facts: DataFacts, law: str = 'sdre_ff',
                    gain_error: float = 1.0, seed: int = 0, delay: int = 1) -> CheckResult:
     """Run ``law`` with ``settings`` on the learned model as the plant (module doc): measured
-    noise, the estimator, the command ``delay`` periods late, along :func:`check_move`."""
+    noise, the estimator, the command ``delay`` periods late, along :func:`check_move`, within
+    ``facts.bounds`` (±``facts.torque_limit`` when None); a command outside them is counted
+    (:attr:`CheckResult.outside`) and fails the check."""
+    shape = model_shape(model)
+    d, m = shape.d, shape.m
+    bounds = loop_bounds(facts, m)
     dt = settings.control_period
     traj = check_move(facts)
     steps = int(round(traj.profile.duration / dt)) + 1
     t = np.arange(steps) * dt
     ref = traj.sample(t)
-    rest = model.rest_tip[:2]
-    options = {}
+    rest = model.rest_tip[:d]
+    options = {} if facts.bounds is None else {'bounds': facts.bounds}
     if law == 'sdre_ff':
-        options = dict(integral_gain=settings.integral_gain, integral_band=settings.integral_band,
-                       ff_at=settings.feedforward_at)
+        options.update(integral_gain=settings.integral_gain,
+                       integral_band=settings.integral_band, ff_at=settings.feedforward_at)
     elif law in ('pd', 'computed_torque'):
-        options = dict(pd_gains=dict(kp=settings.pd_kp, kd=settings.pd_kd))
+        options.update(pd_gains=dict(kp=settings.pd_kp, kd=settings.pd_kd))
     ctrl = make_law(law, model, settings.weights(), settings.torque_limit, n_fingers=1,
                     lowpass_hz=settings.torque_lowpass_hz, dt=dt, **options)
-    kf = ConstantVelocityKF(dt, settings.accel_psd, settings.meas_std, n=1)
+    kf = (ConstantVelocityKF(dt, settings.accel_psd, settings.meas_std, n=1) if d == 2
+          else _SpatialKF(dt, settings.accel_psd, settings.meas_std))
     plant = model if gain_error == 1.0 else _GainError(model, gain_error)
     rng = np.random.default_rng(seed)
-    x = np.zeros((1, 4))
-    pending = [np.zeros((1, 2))] * delay
-    pos = np.empty((steps, 2))
-    u_hist = np.empty((steps, 2))
+    x = np.zeros((1, 2 * d))
+    pending = [np.array(bounds.rest[None], dtype=float) if facts.bounds is not None
+               else np.zeros((1, m))] * delay
+    pos = np.empty((steps, d))
+    u_hist = np.empty((steps, m))
     sat = np.zeros(steps, dtype=bool)
+    outside, unreachable = 0, 0.0
     bound = 20 * abs(facts.travel) + 0.01
     substeps = math.ceil(dt / MAX_STEP - 1e-9)
     for k in range(steps):
-        z = rest + x[:, :2] + facts.noise_std * rng.standard_normal((1, 2))
+        z = rest + x[:, :d] + facts.noise_std * rng.standard_normal((1, d))
         xh = kf.step(z) if k else (kf.reset(z), kf.x.copy())[1]
-        out = ctrl.compute(xh[:, :2], xh[:, 2:], rest + ref.pos[k], ref.vel[k], ref_acc=ref.acc[k])
+        out = ctrl.compute(xh[:, :d], xh[:, d:], rest + ref.pos[k], ref.vel[k], ref_acc=ref.acc[k])
         pending.append(out.u)
         u = pending.pop(0)
         for _ in range(substeps):
             x = rk4_step(plant, x, u, dt / substeps)
-        pos[k], u_hist[k], sat[k] = x[0, :2], out.u[0], bool(np.any(out.saturated))
-        if not (np.all(np.isfinite(x)) and np.abs(x[0, :2]).max() < bound):
-            return CheckResult(law, math.inf, 1.0, math.inf, 1.0, True)
+        pos[k], u_hist[k] = x[0, :d], out.u[0]
+        if facts.bounds is None:
+            sat[k] = bool(np.any(out.saturated))
+        else:
+            sat[k] = bool(_at_bound(out.u[0], bounds))
+            outside += int(not (np.all(np.isfinite(out.u)) and bounds.contains(out.u, tol=1e-12)))
+            unreachable = max(unreachable, float(np.max(getattr(out, 'unreachable', 0.0))))
+        if not (np.all(np.isfinite(x)) and np.abs(x[0, :d]).max() < bound):
+            return CheckResult(law, math.inf, 1.0, math.inf, 1.0, True, outside, unreachable)
     err = np.linalg.norm(pos - ref.pos[:, 0], axis=1)
     at_rest = t < traj.profile.t_start
+    rest_torque = (float(np.abs(u_hist[at_rest]).max() / settings.torque_limit)
+                   if facts.bounds is None else float(_rest_share(u_hist[at_rest], bounds).max()))
     return CheckResult(law, float(np.sqrt(np.mean(err ** 2)) / abs(facts.travel)),
-                       float(sat[at_rest].mean()),
-                       float(np.abs(u_hist[at_rest]).max() / settings.torque_limit),
-                       float(sat.mean()), False)
+                       float(sat[at_rest].mean()), rest_torque, float(sat.mean()), False,
+                       outside, unreachable)
 
 
 def paper_law_offset(model, facts: DataFacts, bandwidth_hz: float) -> float:
@@ -253,12 +358,16 @@ def paper_law_offset(model, facts: DataFacts, bandwidth_hz: float) -> float:
     ẍ = −ω_n² p + g u with q/r = ω_c⁴/g² the share is 1 / (1 + (ω_c/ω_n)⁴) exactly, so a tenth
     needs ω_c ≥ √3 ω_n whatever Q and R. ``sdre_ff``'s feedforward and integral remove it.
     """
-    A, G = (a[0] for a in model.AG(np.zeros((1, 4))))
+    shape = model_shape(model)
+    d = shape.d
+    A, G = (a[0] for a in model.AG(np.zeros((1, shape.n_state))))
     cost = settings_for(model, facts, bandwidth_hz, facts.accel_psd_ml).weights()
-    K, Ks, _ = sdre_gains(A, G, cost.Q, cost.R)
-    x_d = np.concatenate([facts.unit, np.zeros(2)])
+    Q = np.diag([cost.q_pos] * d + [cost.q_vel] * d)
+    R = cost.r * np.eye(shape.m)
+    K, Ks, _ = sdre_gains(A, G, Q, R)
+    x_d = np.concatenate([facts.unit, np.zeros(d)])
     x = -np.linalg.solve(A + G @ K, G @ (Ks @ x_d))
-    return float(np.linalg.norm((x_d - x)[:2]))
+    return float(np.linalg.norm((x_d - x)[:d]))
 
 
 def paper_law_bandwidth(model, facts: DataFacts, share: float = PAPER_LAW_SHARE) -> float:
@@ -288,8 +397,13 @@ class Derivation:
     paper_law: dict | None = None
 
     def summary(self) -> dict:
+        facts = asdict(replace(self.facts, bounds=None))
+        facts['bounds'] = self.facts.bounds.to_record() if self.facts.bounds is not None else None
+        for key in ('axis', 'path', 'bounds'):
+            if facts[key] is None:
+                del facts[key]              # the hand's planar straight move: as it always was
         return {'settings': asdict(self.settings) if self.settings else None,
-                'reason': self.reason, 'facts': asdict(self.facts), 'paper_law': self.paper_law,
+                'reason': self.reason, 'facts': facts, 'paper_law': self.paper_law,
                 'checks': {k: asdict(v) for k, v in self.checks.items()},
                 'candidates': self.candidates,
                 'rules': {'bandwidths_hz': list(BANDWIDTHS_HZ), 'gain_errors': list(GAIN_ERRORS),
@@ -298,35 +412,100 @@ class Derivation:
                           'travel_shrink': TRAVEL_SHRINK,
                           'check_profile': CHECK_PROFILE, 'delay_periods': 1}}
 
+    def params(self, finger_names: list[str]) -> dict:
+        """The nodes' parameters for these settings as plain data: ``{'estimator': {…},
+        'controller': {…}, 'trajectory': {…}}`` (the controller's ``model_path`` is the caller's).
+
+        The hand's shape with symmetric bounds gets the parameters it always had (the planar
+        straight move as ``close_distance`` and ``side_distance``). Another shape adds
+        ``task_dim`` (estimator, trajectory) and, for per-input bounds, the controller's
+        ``input_lower``/``input_upper`` in place of ``torque_limit``. Its move is ``direction``
+        (d values, the unit direction) with ``close_distance`` its length, and for a curved move
+        ``close_path`` (d values per waypoint after the rest, relative to it, flat; then
+        ``direction`` is its chord), both as the node's text ``'x, y[, z], …'``.
+
+        Raises:
+            ValueError: no settings were derived (:attr:`reason`).
+        """
+        d, f = self.settings, self.facts
+        if d is None:
+            raise ValueError(f'no settings were derived: {self.reason or "no candidate passed"}')
+        names = list(finger_names)
+        est = {'finger_names': names, 'control_period': d.control_period,
+               'meas_std': d.meas_std, 'accel_psd': d.accel_psd}
+        ctrl = {'finger_names': names, 'control_period': d.control_period, 'q_pos': d.q_pos,
+                'q_vel': d.q_vel, 'r': d.r, 'torque_limit': d.torque_limit,
+                'torque_lowpass_hz': d.torque_lowpass_hz,
+                'integral_gain': d.integral_gain, 'integral_band': d.integral_band,
+                'feedforward_at': d.feedforward_at, 'pd_kp': d.pd_kp, 'pd_kd': d.pd_kd}
+        if f.bounds is not None:
+            # the bounds replace the symmetric limit (the node's torque_limit is in N·m)
+            del ctrl['torque_limit']
+            ctrl['input_lower'] = [float(v) for v in f.bounds.lower]
+            ctrl['input_upper'] = [float(v) for v in f.bounds.upper]
+        if f.d == 2 and f.path is None:
+            close, side = f.move()
+            plan = {'close_distance': close, 'side_distance': side, 'contact_distance': close}
+        else:
+            est['task_dim'] = f.d
+            # the trajectory node reads both as text, 'x, y[, z], …'
+            plan = {k: (', '.join(repr(v) for v in value) if isinstance(value, list) else value)
+                    for k, value in _plan(f).items()}
+        return {'estimator': est, 'controller': ctrl, 'trajectory': plan}
+
+    def move_text(self) -> str:
+        """The checked move in words: its length and where it goes."""
+        f = self.facts
+        if f.path is not None:
+            end = 1e3 * np.asarray(f.path[-1])
+            return (f'{1e3 * f.travel:.3g} mm along the curve of the model\'s equilibria under '
+                    f'constant inputs, to ({", ".join(f"{v:.3g}" for v in end)}) mm from rest')
+        if f.d == 3:
+            return (f'{1e3 * f.travel:.3g} mm along ({", ".join(f"{v:.3f}" for v in f.unit)})')
+        return f'{1e3 * f.travel:.3g} mm at {f.direction:.0f}° from +X toward +Y'
+
 
 def derive(model, facts: DataFacts, laws: tuple[str, ...] = ('sdre_ff', 'sdre'),
            progress=None, bandwidths: tuple[float, ...] = BANDWIDTHS_HZ) -> Derivation:
     """Pick the bandwidth (among ``bandwidths``), the estimator's intensity and the integral gain
     by closed-loop runs on the model (module doc); ``settings`` is None when no candidate passes
     or no move can be checked (``reason``). ``progress(text)`` hears each run."""
+    shape = model_shape(model)
+    _check_facts(facts, shape)
     reach = facts.travel if facts.reach_travel is None else facts.reach_travel
-    facts = replace(facts, travel=holdable_travel(model, replace(facts, travel=reach)),
-                    reach_travel=reach)
-    way = f'{facts.direction:.0f}° from +X toward +Y'
+    curve = None
+    if shape.m < shape.d:
+        # the finger holds still only on its equilibria: the move follows them
+        curve = equilibrium_curve(model, loop_bounds(facts, shape.m), facts.unit)
+        held = min(reach, curve.holdable_length(hold_bounds(loop_bounds(facts, shape.m))))
+        facts = _along_curve(replace(facts, reach_travel=reach), curve, held)
+        way = 'the curve of the model\'s equilibria under constant inputs'
+    else:
+        facts = replace(facts, travel=holdable_travel(model, replace(facts, travel=reach)),
+                        reach_travel=reach)
+        way = (f'{facts.direction:.0f}° from +X toward +Y' if facts.d == 2 else
+               f'({", ".join(f"{v:.3f}" for v in facts.unit)})')
+    limit = (f'the torque limit {facts.torque_limit:.3g} N·m' if facts.bounds is None else
+             f'the input range {facts.bounds}')
     if facts.travel < MIN_TRAVEL_NOISE * facts.noise_std:
         need = np.abs(hold_torques(model,
                                    MIN_TRAVEL_NOISE * facts.noise_std * facts.unit[None])).max()
         return Derivation(None, {}, [], facts, reason=(
             f'the model holds at most {1e3 * facts.travel:.3g} mm along {way} with '
-            f'{HOLD_SHARE:g} of the torque limit {facts.torque_limit:.3g} N·m, under '
+            f'{HOLD_SHARE:g} of {limit}, under '
             f'{MIN_TRAVEL_NOISE:g} σ of noise ({1e3 * MIN_TRAVEL_NOISE * facts.noise_std:.3g} mm, '
             f'which needs {need:.3g} N·m): excite with larger torques'))
     say = progress if progress is not None else (lambda text: None)
     say(f'move of {1e3 * facts.travel:.3g} mm along {way} (half the reach {1e3 * reach:.3g} mm, '
-        f'or what the model holds with {HOLD_SHARE:g} of the torque limit '
-        f'{facts.torque_limit:.3g} N·m)')
+        f'or what the model holds with {HOLD_SHARE:g} of {limit})')
     rows: list[dict] = []
     while True:
         kept = _search(model, facts, bandwidths, rows, say)
         shorter = TRAVEL_SHRINK * facts.travel
         if kept or shorter < MIN_TRAVEL_NOISE * facts.noise_std:
             break
-        facts = replace(facts, travel=shorter)
+        facts = (replace(facts, travel=shorter) if curve is None
+                 else _along_curve(facts, curve, shorter))
         say(f'no setting passed: a move of {1e3 * shorter:.3g} mm')
     if not kept:
         return Derivation(None, {}, rows, facts)
@@ -340,6 +519,37 @@ def derive(model, facts: DataFacts, laws: tuple[str, ...] = ('sdre_ff', 'sdre'),
              'share': PAPER_LAW_SHARE,
              'needs_bandwidth_hz': needs if math.isfinite(needs) else None}     # None: over 1 kHz
     return Derivation(chosen, checks, rows, facts, paper_law=paper)
+
+
+def _check_facts(facts: DataFacts, shape) -> None:
+    """``facts`` fit a model of ``shape``: the move's dimension and the bounds' inputs.
+
+    Raises:
+        ShapeError: the move has another dimension than the model's tip, or the bounds another
+            number of inputs than the model.
+    """
+    from soft_gripper_sdre.sim.shape import ShapeError
+    if facts.d != shape.d:
+        raise ShapeError(f'the move is {facts.d}-D (DataFacts.axis), the model\'s tip '
+                         f'{shape.d}-D ({shape})')
+    if facts.bounds is not None and facts.bounds.m != shape.m:
+        raise ShapeError(f'input bounds: {facts.bounds.m} input(s) (DataFacts.bounds) for a '
+                         f'model of {shape.m} ({shape})')
+    for name in ('period', 'noise_std', 'torque_limit', 'accel_psd_ml'):
+        value = getattr(facts, name)
+        least = 0.0 if name == 'noise_std' else math.nextafter(0.0, 1.0)
+        if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= least):
+            raise ShapeError(f'DataFacts.{name} must be finite and '
+                             f'{">= 0" if name == "noise_std" else "> 0"}, got {value!r}')
+
+
+def _along_curve(facts: DataFacts, curve: EquilibriumCurve, length: float) -> DataFacts:
+    """``facts`` with the move ``length`` [m] along ``curve`` from rest (:data:`PATH_POINTS`
+    waypoints; no path when the curve is shorter than a micrometre)."""
+    length = min(float(length), float(curve.arc[-1]))
+    if length < 1e-6:
+        return replace(facts, travel=max(length, 0.0), path=None)
+    return replace(facts, travel=length, path=curve.cut(length, PATH_POINTS))
 
 
 def _search(model, facts: DataFacts, bandwidths: tuple[float, ...], rows: list[dict],

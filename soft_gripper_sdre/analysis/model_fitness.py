@@ -19,8 +19,11 @@ the closed loop lives near rest. Three checks look at that:
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
+import itertools
 
 import numpy as np
+
+from soft_gripper_sdre.sim.shape import FingerShape
 
 #: a free run whose error is above this share of the validation positions' spread is not fit
 FREE_RUN_LIMIT = 0.5
@@ -31,8 +34,20 @@ REST_SECONDS = 3.0
 REST_RETURN = 0.5
 
 
+def model_shape(model) -> FingerShape:
+    """The finger's shape of ``model``: its ``shape`` (a learned model), else read off the
+    blocks its ``AG`` returns at rest (:func:`~soft_gripper_sdre.control.tracking.shape_of`).
+
+    Raises:
+        ShapeError: the model has no shape and ``AG`` answers with blocks of no finger's shape.
+    """
+    from soft_gripper_sdre.control.tracking import shape_of
+    return shape_of(model)
+
+
 def xdot(model, x: np.ndarray, u: np.ndarray) -> np.ndarray:
-    """ẋ = A(x)x + G(x)u for a batch (the model's own ``xdot`` where it has one, else from AG)."""
+    """ẋ = A(x)x + G(x)u for a batch x (n, 2d), u (n, m) (the model's own ``xdot`` where it has
+    one, else from AG)."""
     own = getattr(model, 'xdot', None)
     if own is not None:
         return own(x, u)
@@ -41,7 +56,7 @@ def xdot(model, x: np.ndarray, u: np.ndarray) -> np.ndarray:
 
 
 def rk4_step(model, x: np.ndarray, u: np.ndarray, dt: float) -> np.ndarray:
-    """One classical Runge–Kutta step of ẋ = A(x)x + G(x)u for a batch x (n, 4), u (n, 2) held."""
+    """One classical Runge–Kutta step of ẋ = A(x)x + G(x)u for a batch x (n, 2d), u (n, m) held."""
     k1 = xdot(model, x, u)
     k2 = xdot(model, x + 0.5 * dt * k1, u)
     k3 = xdot(model, x + 0.5 * dt * k2, u)
@@ -51,9 +66,9 @@ def rk4_step(model, x: np.ndarray, u: np.ndarray, dt: float) -> np.ndarray:
 
 def simulate(model, x0: np.ndarray, u: np.ndarray, dt: float, substeps: int = 2,
              bound: float = 1.0) -> np.ndarray:
-    """Open-loop trajectories of a batch: x0 (n, 4), inputs u (T, n, 2) held over each ``dt``.
+    """Open-loop trajectories of a batch: x0 (n, 2d), inputs u (T, n, m) held over each ``dt``.
 
-    Returns (T + 1, n, 4); a trajectory that leaves ``bound`` [m or m/s] or stops being finite is
+    Returns (T + 1, n, 2d); a trajectory that leaves ``bound`` [m or m/s] or stops being finite is
     NaN from there on (a diverging model is not followed to overflow).
     """
     x = np.array(x0, dtype=float)
@@ -87,18 +102,35 @@ class RestCheck:
         return d
 
 
+def rest_offsets(d: int) -> np.ndarray:
+    """(k, d) unit directions the free run from rest starts along: for a planar tip ±X, ±Y and
+    the diagonals (eight); for a 3-D tip ±X, ±Y, ±Z and the eight corners of the cube (14)."""
+    if d == 2:
+        angles = np.arange(8) * np.pi / 4
+        return np.stack([np.cos(angles), np.sin(angles)], axis=1)
+    axes = np.concatenate([np.eye(d), -np.eye(d)])
+    corners = np.array(list(itertools.product((-1.0, 1.0), repeat=d))) / np.sqrt(d)
+    return np.concatenate([axes, corners])
+
+
 def rest_stability(model, offset: float, dt: float = 1e-3,
                    seconds: float = REST_SECONDS) -> RestCheck:
-    """Eigenvalues of A(0) and a free run of ``seconds`` from eight offsets of ``offset`` [m]
-    around rest (±X, ±Y and the diagonals, zero velocity, zero input)."""
-    A = model.AG(np.zeros(4))[0][0]
+    """Eigenvalues of A(0) and a free run of ``seconds`` from offsets of ``offset`` [m] around
+    rest along :func:`rest_offsets` (zero velocity, the input at zero)."""
+    shape = model_shape(model)
+    d = shape.d
+    A = model.AG(np.zeros(shape.n_state))[0][0]
     eig = np.linalg.eigvals(A)
-    angles = np.arange(8) * np.pi / 4
-    x0 = np.zeros((8, 4))
-    x0[:, 0], x0[:, 1] = offset * np.cos(angles), offset * np.sin(angles)
+    dirs = rest_offsets(d)
+    x0 = np.zeros((len(dirs), shape.n_state))
+    if d == 2:
+        x0[:, 0], x0[:, 1] = offset * dirs[:, 0], offset * dirs[:, 1]
+    else:
+        x0[:, :d] = offset * dirs
     steps = int(round(seconds / dt))
-    traj = simulate(model, x0, np.zeros((steps, 8, 2)), dt, bound=max(1.0, 100 * offset))
-    end = np.linalg.norm(traj[-1, :, :2], axis=1) / offset
+    traj = simulate(model, x0, np.zeros((steps, len(dirs), shape.m)), dt,
+                    bound=max(1.0, 100 * offset))
+    end = np.linalg.norm(traj[-1, :, :d], axis=1) / offset
     returned = float(np.nanmax(np.where(np.isfinite(end), end, np.inf)))
     max_real = float(eig.real.max())
     hz = sorted(float(abs(e) / (2 * np.pi)) for e in eig if e.imag > 0)
@@ -123,17 +155,18 @@ class FreeRun:
 
 def free_run_error(model, segments: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
                    window: float = 1.0, substeps: int = 2) -> FreeRun:
-    """Free-run error over validation ``segments``: each (t (N,), x (N, 4), u (N, 2)) on a
+    """Free-run error over validation ``segments``: each (t (N,), x (N, 2d), u (N, m)) on a
     uniform grid, x the estimated (translated) states. Every window of ``window`` seconds starts
     from the estimated state and is driven by the held inputs."""
     starts, inputs, targets, dts = [], [], [], []
+    d = np.shape(segments[0][1])[1] // 2 if segments else 2
     for t, x, u in segments:
         dt = float(np.median(np.diff(t)))
         n = max(int(round(window / dt)), 1)
         for i in range(0, len(t) - n, n):
             starts.append(x[i])
             inputs.append(u[i:i + n])
-            targets.append(x[i + 1:i + n + 1, :2])
+            targets.append(x[i + 1:i + n + 1, :d])
             dts.append(dt)
     if not starts:
         raise ValueError(f'no validation segment is longer than the {window:g} s window')
@@ -142,15 +175,15 @@ def free_run_error(model, segments: list[tuple[np.ndarray, np.ndarray, np.ndarra
         pick = [i for i, d in enumerate(dts) if d == dt]
         length = min(len(inputs[i]) for i in pick)
         u = np.stack([inputs[i][:length] for i in pick], axis=1)
-        run = simulate(model, np.stack([starts[i] for i in pick]), u, dt, substeps)[1:, :, :2]
+        run = simulate(model, np.stack([starts[i] for i in pick]), u, dt, substeps)[1:, :, :d]
         target = np.stack([targets[i][:length] for i in pick], axis=1)
         bad = ~np.all(np.isfinite(run), axis=(0, 2))
         diverged += int(bad.sum())
         err = run - target
         err[:, bad] = 10 * np.nanmax(np.abs(target))     # a diverged window counts as far off
-        errors.append(err.reshape(-1, 2))
+        errors.append(err.reshape(-1, d))
     err = np.concatenate(errors)
-    pos = np.concatenate([x[:, :2] for _, x, _ in segments])
+    pos = np.concatenate([x[:, :d] for _, x, _ in segments])
     spread = float(np.sqrt(np.mean(np.sum((pos - pos.mean(axis=0)) ** 2, axis=1))))
     rmse = float(np.sqrt(np.mean(np.sum(err ** 2, axis=1))))
     return FreeRun(window, len(starts), rmse, spread, rmse / spread if spread > 0 else np.inf,

@@ -2,12 +2,18 @@
 
     python -m soft_gripper_sdre.tools.graph.foreign --plant tendon3 --out runs/foreign/tendon3
     python -m soft_gripper_sdre.tools.graph.foreign --plant stiff2 --out runs/foreign/stiff2
+    python -m soft_gripper_sdre.tools.graph.foreign --plant pneumatic1 --out runs/foreign/pneumatic1
+    python -m soft_gripper_sdre.tools.graph.foreign --plant trunk3 --out runs/foreign/trunk3
 
-The gripper is the ``plant_driver`` node (two fingers of :mod:`soft_gripper_sdre.sim.foreign`,
-served like a lab's driver: wall-clock loop, best-effort tips stamped with wall time, jitter,
-dropped messages, noise). Every step is what README "Use with your own gripper" tells a user
-to run, as separate processes over DDS, with the settings the tools produce and nothing tuned
-by hand (``--bags`` reuses an earlier run's recordings and starts at step 2):
+The gripper is the ``plant_driver`` node (two fingers of a preset of
+:mod:`soft_gripper_sdre.sim.foreign_presets`, served like a lab's driver: wall-clock loop,
+best-effort tips stamped with wall time, jitter, dropped messages, noise): ``tendon3`` and
+``stiff2`` (two torques, a planar tip), ``pneumatic1`` (one chamber, 0 to 60 kPa, a planar tip, at
+100 Hz) and ``trunk3`` (three pull-only tendons, 0 to 4 N, a 3-D tip, at 250 Hz). Every step is
+what README "Use with your own gripper" tells a user to run, as separate processes over DDS,
+with the settings the tools produce and nothing tuned by hand (``--bags`` reuses an earlier
+run's recordings and starts at step 2); a lab with one-sided actuators gives their bounds
+(``input_lower``/``input_upper``) to the excitation and to training, as the preset's:
 
 1. **identify** — recorder + excitation node, one bag per signal: u1 with ``level:=auto`` (the
    amplitude found by probing the finger to half of ``max_excursion``), then x1 x2 b1 b2 and the
@@ -17,10 +23,13 @@ by hand (``--bags`` reuses an earlier run's recordings and starts at step 2):
 3. **deploy** — estimator, controller and trajectory node on ``params.yaml``: both fingers close
    along the move the settings were checked for (the way the finger moved most in the
    identification data, by at most half its reach that way: a learned model is only known where
-   the data went), the recorder; once per law (``--laws``);
+   the data went; a one-input finger along the curve of the model's equilibria,
+   ``close_path``), the recorder; once per law (``--laws``);
 4. **score** — from each deployment's bag: the RMSE of the driver's true tips
-   (``true_tip_positions``) against the plan, as a share of the travel, and the share of
-   commands at the torque limit while the plan holds at rest.
+   (``true_tip_positions``, in the tip's d coordinates) against the plan, as a share of the
+   travel, the share of commands at a bound (not an input's rest bound: a vented chamber, a slack
+   tendon) while the plan holds at rest, and the commands outside the controller's bounds
+   (``params.yaml``) or the gripper's, which must be none.
 
 ``OUT/metrics.json`` holds every figure, ``OUT/<step>/logs`` the node logs. Arguments are checked
 before anything starts (exit 2); a failed step ends the tool with exit status 1 and names it.
@@ -40,6 +49,8 @@ import numpy as np
 import yaml
 
 from soft_gripper_sdre.control.horizon import sample_plan
+from soft_gripper_sdre.sim.foreign_presets import RATES, gripper_bounds, gripper_shape
+from soft_gripper_sdre.sim.shape import InputBounds
 from soft_gripper_sdre.tools.graph.procs import DiagnosticsMonitor, Graph, ros_env
 
 
@@ -52,9 +63,13 @@ class Setup:
     max_excursion: float
 
 
-#: the two foreign grippers, as their lab would set them up
-SETUPS = {'tendon3': Setup(rate=200.0, max_excursion=0.016),
-          'stiff2': Setup(rate=500.0, max_excursion=0.008)}
+#: the foreign grippers, as their lab would set them up (the rate its driver serves; a
+#: excursion well within the finger's reach: pneumatic1 24/18 mm at 60 kPa, trunk3 27/18 mm at
+#: 4 N on one tendon)
+SETUPS = {'tendon3': Setup(rate=RATES['tendon3'], max_excursion=0.016),
+          'stiff2': Setup(rate=RATES['stiff2'], max_excursion=0.008),
+          'pneumatic1': Setup(rate=RATES['pneumatic1'], max_excursion=0.016),
+          'trunk3': Setup(rate=RATES['trunk3'], max_excursion=0.016)}
 FINGERS = ['index', 'thumb']
 TRAIN_SIGNALS = ['u1', 'x1', 'x2', 'b1', 'b2']
 #: the grasp: trajectory node defaults (hold 0.5 s at rest, close 2 s, hold 1 s, open 2 s)
@@ -109,6 +124,17 @@ def _driver(a: argparse.Namespace, seed: int) -> dict:
     return {'plant': a.plant, 'finger_names': FINGERS, 'rate': SETUPS[a.plant].rate, 'seed': seed}
 
 
+def actuator_bounds(plant: str) -> dict:
+    """What a lab with one-sided actuators tells the excitation and training: the preset's
+    bounds as ``input_lower``/``input_upper``; nothing for the symmetric torque grippers (their
+    recipe as it always was)."""
+    bounds = gripper_bounds(plant)
+    if bounds.symmetric_limit is not None:
+        return {}
+    return {'input_lower': [float(v) for v in bounds.lower],
+            'input_upper': [float(v) for v in bounds.upper]}
+
+
 def _fail(graph: Graph, who: str, what: str) -> RuntimeError:
     return RuntimeError(f'{what}; last lines of {who}.log:\n{graph.procs[who].log_tail()}')
 
@@ -132,7 +158,7 @@ def excite(a: argparse.Namespace, env: dict, bag: Path, signals: list[str], leve
                         f'identification run {bag.name}: the recorder hears no tips')
         graph.start('excitation', {'signals': signals, 'finger_names': FINGERS,
                                    'max_excursion': setup.max_excursion, 'tips_timeout': 5.0,
-                                   **BEST_EFFORT, **level})
+                                   **BEST_EFFORT, **level, **actuator_bounds(a.plant)})
         code = graph.wait('excitation', 600.0)
         if code != 0:
             who = next((p.name for p in graph.procs.values()
@@ -172,8 +198,20 @@ def deploy(a: argparse.Namespace, env: dict, out: Path, params: Path, law: str, 
     return bag
 
 
-def score(bag: Path, travel: float, torque_limit: float) -> dict:
-    """Tracking of the deployed grasp from its bag (module doc)."""
+def controller_bounds(params: Path, m: int) -> InputBounds:
+    """The bounds the controller of ``params`` commands within: its ``input_lower`` and
+    ``input_upper``, or ±``torque_limit`` on each of the ``m`` inputs."""
+    ctrl = yaml.safe_load(params.read_text())['/**/controller']['ros__parameters']
+    if 'input_lower' in ctrl:
+        return InputBounds.parse(ctrl['input_lower'], ctrl['input_upper'], m,
+                                 f'{params}: input_lower/input_upper')
+    return InputBounds.symmetric(ctrl['torque_limit'], m)
+
+
+def score(bag: Path, travel: float, bounds: InputBounds, d: int = 2,
+          plant_bounds: InputBounds | None = None) -> dict:
+    """Tracking of the deployed grasp from its bag (module doc): ``bounds`` the controller's,
+    ``plant_bounds`` the gripper's (None: the controller's), ``d`` the tip's coordinates."""
     from soft_gripper_sdre.analysis.bag import read_bag
     msgs = read_bag(bag, ['true_tip_positions', 'grasp_reference', 'torque_commands'])
     by = {k.lstrip('/'): v for k, v in msgs.items()}
@@ -182,31 +220,53 @@ def score(bag: Path, travel: float, torque_limit: float) -> dict:
                       for p in plan.points])
     times += plan.header.stamp.sec * 10**9 + plan.header.stamp.nanosec
     n = len(plan.joint_names)
-    pos = np.array([[[t.translation.x, t.translation.y] for t in p.transforms]
+    pos = np.array([[[t.translation.x, t.translation.y, t.translation.z][:d]
+                     for t in p.transforms] for p in plan.points])
+    vel = np.array([[[v.linear.x, v.linear.y, v.linear.z][:d] for v in p.velocities]
                     for p in plan.points])
-    vel = np.array([[[v.linear.x, v.linear.y] for v in p.velocities] for p in plan.points])
-    acc = np.array([[[v.linear.x, v.linear.y] for v in p.accelerations] for p in plan.points])
+    acc = np.array([[[v.linear.x, v.linear.y, v.linear.z][:d] for v in p.accelerations]
+                    for p in plan.points])
     stamp = lambda m: m.header.stamp.sec * 10**9 + m.header.stamp.nanosec  # noqa: E731
     start, stop = int(times[0]), int(times[0] + GRASP_SECONDS * 1e9)
-    errs, rest_cmds = [], []
+    errs, rest_cmds, cmds = [], [], []
     for _, m in by['true_tip_positions']:
         t = stamp(m)
         if start <= t <= stop:
             ref = sample_plan(times, pos, vel, acc, t)[0]
-            tip = np.array([[p.position.x, p.position.y] for p in m.poses[:n]])
+            tip = np.array([[p.position.x, p.position.y, p.position.z][:d] for p in m.poses[:n]])
             errs.append(np.linalg.norm(tip - ref, axis=1))
     for _, m in by['torque_commands']:
+        u = np.asarray(m.effort, dtype=float)
+        cmds.append(u.reshape(-1, bounds.m))               # <finger>/ax0 … ax<m−1>, by finger
         if start <= stamp(m) < start + T_START * 1e9:
-            rest_cmds.append(np.abs(np.asarray(m.effort)))
+            rest_cmds.append(u)
     errs = np.array(errs)
     rmse = np.sqrt(np.mean(errs ** 2, axis=0))
-    rest = np.array(rest_cmds) if rest_cmds else np.zeros((0, 2 * n))
+    cmds = np.concatenate(cmds) if cmds else np.zeros((0, bounds.m))
+    limit = bounds.symmetric_limit
+    if limit is not None:                              # the torque grippers: |u| at the limit
+        rest = np.abs(np.array(rest_cmds)) if rest_cmds else np.zeros((0, bounds.m * n))
+        at_rest = float(np.mean(rest >= limit * (1 - 1e-9))) if rest.size else 0.0
+        largest = float(np.abs(rest).max()) if rest.size else 0.0
+    else:                                              # at a bound other than the input's rest
+        rest = (np.concatenate([u.reshape(-1, bounds.m) for u in rest_cmds]) if rest_cmds
+                else np.zeros((0, bounds.m)))
+        tol = 1e-9 * (bounds.upper - bounds.lower)
+        at = (((rest <= bounds.lower + tol) & (bounds.lower != bounds.rest))
+              | ((rest >= bounds.upper - tol) & (bounds.upper != bounds.rest)))
+        at_rest = float(np.mean(at)) if rest.size else 0.0
+        largest = float(np.abs(rest - bounds.rest).max()) if rest.size else 0.0
+
+    def outside(b: InputBounds) -> int:
+        span = 1e-9 * (b.upper - b.lower)
+        return int(np.sum(~np.isfinite(cmds) | (cmds < b.lower - span) | (cmds > b.upper + span)))
+
     return {'rmse_mm': (1e3 * rmse).round(4).tolist(),
             'rmse_pct_of_travel': (100 * rmse / travel).round(3).tolist(),
             'max_mm': (1e3 * errs.max(axis=0)).round(4).tolist(), 'samples': int(len(errs)),
-            'saturated_at_rest': (float(np.mean(rest >= torque_limit * (1 - 1e-9)))
-                                  if rest.size else 0.0),
-            'largest_torque_at_rest': float(rest.max()) if rest.size else 0.0}
+            'saturated_at_rest': at_rest, 'largest_torque_at_rest': largest,
+            'commands': int(len(cmds)), 'outside_bounds': outside(bounds),
+            'outside_plant_bounds': outside(plant_bounds if plant_bounds is not None else bounds)}
 
 
 def identify(a: argparse.Namespace, env: dict, bags: Path) -> dict:
@@ -232,6 +292,10 @@ def train(a: argparse.Namespace, env: dict, bags: Path, out: Path) -> tuple[dict
     cmd = [sys.executable, '-m', 'soft_gripper_sdre.tools.learning.train',
            '--bag', str(bags / 'train'),
            '--val-bag', str(bags / 'val'), '--out', str(out / 'model')]
+    bounds = actuator_bounds(a.plant)
+    if bounds:
+        cmd += ['--input-lower', *map(repr, bounds['input_lower']),
+                '--input-upper', *map(repr, bounds['input_upper'])]
     if a.epochs is not None:
         cmd += ['--epochs', str(a.epochs)]
     if a.rollout_epochs is not None:
@@ -257,22 +321,34 @@ def settings_file(out: Path, trained: dict) -> Path:
     return params
 
 
+def move_text(facts: dict) -> str:
+    """The checked move of the derived settings' ``facts`` in words."""
+    travel = 1e3 * float(facts['travel'])
+    if facts.get('path'):
+        return f'{travel:.2f} mm along the curve of the model\'s equilibria'
+    if facts.get('axis'):
+        return f'{travel:.2f} mm along ({", ".join(f"{v:.3f}" for v in facts["axis"])})'
+    return f'{travel:.2f} mm travel at {facts["direction"]:.0f}°'
+
+
 def deploy_laws(a: argparse.Namespace, env: dict, out: Path, params: Path, facts: dict,
                 metrics: dict) -> None:
     """Steps 3 and 4 (module doc) for each of ``--laws`` in turn on ``params``, along the move
     the settings were checked for (``facts``, from the training's derived settings): deploy,
     score, print. ``metrics['deploy']`` takes each law's score as it comes."""
-    limit = yaml.safe_load(params.read_text())['/**/controller']['ros__parameters'][
-        'torque_limit']
+    shape = gripper_shape(a.plant)
+    bounds = controller_bounds(params, shape.m)
     travel = float(facts['travel'])
-    metrics['deploy'] = {'travel': travel, 'direction_deg': facts['direction']}
+    metrics['deploy'] = {'travel': travel, 'direction_deg': facts['direction'],
+                         'bounds': bounds.to_record()}
     for i, law in enumerate(a.laws):
         bag = deploy(a, env, out / f'deploy_{law}', params, law, a.seed + 10 + i)
-        metrics['deploy'][law] = score(bag, travel, limit)
+        metrics['deploy'][law] = score(bag, travel, bounds, shape.d, gripper_bounds(a.plant))
         s = metrics['deploy'][law]
         print(f'{law}: RMSE {s["rmse_mm"]} mm = {s["rmse_pct_of_travel"]} % of the '
-              f'{1e3 * travel:.2f} mm travel at {facts["direction"]:.0f}°; saturated at rest '
-              f'{100 * s["saturated_at_rest"]:.1f} %', flush=True)
+              f'{move_text(facts)}; at a bound at rest {100 * s["saturated_at_rest"]:.1f} %; '
+              f'{s["outside_bounds"]} of {s["commands"]} commands outside the bounds',
+              flush=True)
 
 
 def main(argv: list[str] | None = None) -> int:

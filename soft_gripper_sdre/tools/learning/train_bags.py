@@ -201,26 +201,24 @@ def tuning_stretch(rec: Recording, finger: int, dims: int = 2) -> tuple[np.ndarr
 def params_yaml(derived: loop_settings.Derivation, model_path: Path, finger_names: list[str],
                 source: str) -> str:
     """The parameter file of the estimator, the controller and the trajectory node's checked move
-    for ``derived`` settings."""
+    for ``derived`` settings (:meth:`~soft_gripper_sdre.analysis.loop_settings.Derivation.params`
+    with the controller's ``model_path``)."""
     from soft_gripper_sdre.nodes.params import params_file_key
-    d = derived.settings
-    est = {'finger_names': finger_names, 'control_period': d.control_period,
-           'meas_std': d.meas_std, 'accel_psd': d.accel_psd}
-    ctrl = {'model_path': str(model_path.resolve()), 'finger_names': finger_names,
-            'control_period': d.control_period, 'q_pos': d.q_pos,
-            'q_vel': d.q_vel, 'r': d.r, 'torque_limit': d.torque_limit,
-            'torque_lowpass_hz': d.torque_lowpass_hz,
-            'integral_gain': d.integral_gain, 'integral_band': d.integral_band,
-            'feedforward_at': d.feedforward_at, 'pd_kp': d.pd_kp, 'pd_kd': d.pd_kd}
-    close, side = derived.facts.move()
-    plan = {'close_distance': close, 'side_distance': side, 'contact_distance': close}
-    body = {params_file_key('estimator'): {'ros__parameters': _plain(est)},
-            params_file_key('controller'): {'ros__parameters': _plain(ctrl)},
-            params_file_key('trajectory'): {'ros__parameters': _plain(plan)}}
+    d, facts = derived.settings, derived.facts
+    nodes = derived.params(finger_names)
+    nodes['controller'] = {'model_path': str(model_path.resolve()), **nodes['controller']}
+    body = {params_file_key(node): {'ros__parameters': _plain(values)}
+            for node, values in nodes.items()}
+    if facts.d == 2 and facts.path is None:
+        move = (f'# {1e3 * facts.travel:.3g} mm at {facts.direction:.0f}° from +X '
+                'toward +Y (trajectory: close_distance, side_distance;\n')
+    else:
+        move = (f'# {derived.move_text()}\n# (trajectory: '
+                + ('close_path, waypoints relative to rest' if facts.path is not None else
+                   'direction and close_distance') + ';\n')
     head = (f'# Estimator and controller settings derived from {source} by tools.learning.train\n'
             f'# (closed-loop bandwidth {d.bandwidth_hz:g} Hz), and the move they were checked on:\n'
-            f'# {1e3 * derived.facts.travel:.3g} mm at {derived.facts.direction:.0f}° from +X '
-            'toward +Y (trajectory: close_distance, side_distance;\n'
+            + move +
             '# contact_distance = close_distance: the whole move scored as free space). How they '
             'are\n'
             '# derived and checked: docs/own_gripper.md. Use: --ros-args --params-file '
@@ -418,7 +416,8 @@ class _Verdict:
         if self.fitness.fit:
             d = data.shape.d
             facts = data_facts(data.x[:, :d], data.u, data.dt, data.noise,
-                               [tuning_stretch(rec, f[0], d) for rec, f in data.train_set])
+                               [tuning_stretch(rec, f[0], d) for rec, f in data.train_set],
+                               bounds=data.bounds)
             self.derived = loop_settings.derive(model, facts, progress=lambda text: print(
                 f'  closed-loop check on the model: {text}', flush=True))
         derived = self.derived
@@ -455,15 +454,22 @@ def report_fitness(fitness: model_fitness.Fitness, derived, out: Path) -> None:
     print(f'model fit to control. {out / PARAMS_FILE}: control_period {d.control_period:g} s, '
           f'meas_std {d.meas_std:.3g} m, accel_psd {d.accel_psd:.3g}, '
           f'bandwidth {d.bandwidth_hz:g} Hz '
-          f'(q_pos {d.q_pos:.3g}, r {d.r:.3g}), torque_limit {d.torque_limit:.3g} N·m, '
-          f'roll-off {d.torque_lowpass_hz:g} Hz, integral {d.integral_gain:.3g} / '
+          f'(q_pos {d.q_pos:.3g}, r {d.r:.3g}), torque_limit {d.torque_limit:.3g} '
+          + ('N·m, ' if derived.facts.bounds is None else '(the inputs\' unit), ')
+          + f'roll-off {d.torque_lowpass_hz:g} Hz, integral {d.integral_gain:.3g} / '
           f'{1e3 * d.integral_band:.2f} mm; closed loop on the model, error / travel '
           f'{1e3 * derived.facts.travel:.2f} mm: {checks}')
     close, side = derived.facts.move()
-    print(f'the checked move: {1e3 * derived.facts.travel:.2f} mm at '
-          f'{derived.facts.direction:.0f}° from +X '
-          f'toward +Y, close_distance {1e3 * close:.2f} mm and side_distance {1e3 * side:.2f} mm '
-          f'(the trajectory section of {PARAMS_FILE}); a longer move is not checked')
+    if derived.facts.d == 2 and derived.facts.path is None:
+        print(f'the checked move: {1e3 * derived.facts.travel:.2f} mm at '
+              f'{derived.facts.direction:.0f}° from +X toward +Y, close_distance '
+              f'{1e3 * close:.2f} mm and side_distance {1e3 * side:.2f} mm '
+              f'(the trajectory section of {PARAMS_FILE}); a longer move is not checked')
+    else:
+        print(f'the checked move: {derived.move_text()} (the trajectory section of '
+              f'{PARAMS_FILE}); a longer move is not checked')
+    if derived.facts.bounds is not None:
+        print(f'the loop\'s input bounds: {derived.facts.bounds} (input_lower, input_upper)')
     paper, needs = derived.paper_law, derived.paper_law['needs_bandwidth_hz']
     print(f'the paper\'s law (sdre) on these settings holds {100 * paper["hold_offset"]:.0f} % '
           f'short of the move: its cost weighs the torque that holds the finger against its '
