@@ -145,9 +145,13 @@ PARAMS = (
           'max_excursion', '', 0.05, 1.0, read_only=True),
     Param('level_start', 0.05, 'level auto: the amplitude of the first probe (then up to twice the '
           'last per probe)', '', 1e-6, 100.0, read_only=True),
-    Param('level_probe_time', 2.0, 'level auto: the length of each probe (two periods of a sine '
-          'at the signals\' peak torque; settle_time at zero after each)', 's', 0.1, 60.0,
-          read_only=True),
+    Param('level_probe_time', 2.0, 'level auto: the length of each probe (level_per signal: the '
+          'signal\'s first seconds; plan: two periods of a sine at the signals\' peak torque; '
+          'settle_time at zero after each)', 's', 0.1, 60.0, read_only=True),
+    Param('level_per', 'signal', 'level auto: signal = each signal its own amplitude, probed '
+          'with its own start (the first probe of each at the level of the one before); plan = '
+          'one amplitude for every signal, probed with a sine at their peak torque',
+          choices=('signal', 'plan'), read_only=True),
     tips_reliability_param(),
 )
 
@@ -273,7 +277,7 @@ class ExcitationNode(Node):
         step = self.run.at(t, tips)
         self.report.step(step)
         if step.phase is Phase.OVER:
-            self.stop(stamp, f'finished: {self.run.plan.duration:g} s played')
+            self.stop(stamp, f'finished: {self.run.whole.duration:g} s played')
             return
         self._publish(stamp, step.u)
         self.diag.good('commands', ACTIVITY[step.phase])
@@ -341,8 +345,11 @@ def excitation_run(p: dict, n: int) -> ExcitationRun:
                               p['amplitude'], bounds)
     except (SignalSpecError, ValueError) as exc:
         raise ParameterError(str(exc)) from None
+    settle = SettlePhase(p['settle_time'], p['settle_samples'])
+    if p['level'] == 'auto' and p.get('level_per', 'plan') == 'signal':
+        return ExcitationRun(plan, settle, per_signal=signal_searches(p, plan, finger))
     search = level_search(p, plan, finger) if p['level'] == 'auto' else None
-    return ExcitationRun(plan, SettlePhase(p['settle_time'], p['settle_samples']), search)
+    return ExcitationRun(plan, settle, search)
 
 
 def input_bounds(p: dict) -> InputBounds | None:
@@ -374,12 +381,8 @@ def input_bounds(p: dict) -> InputBounds | None:
     return bounds
 
 
-def level_search(p: dict, plan: ExcitationPlan, finger: int | None) -> LevelSearch:
-    """The amplitude search of ``level: auto`` for ``plan`` (cross-checks its parameters).
-
-    Raises:
-        ParameterError: a setting level auto cannot work with (the message names it).
-    """
+def _check_level(p: dict) -> None:
+    """Raises ParameterError for a setting level auto cannot work with (naming it)."""
     for name, bad, why in (
             ('max_excursion', p['max_excursion'] <= 0,
              'level auto needs max_excursion > 0 (it aims at level_target × max_excursion)'),
@@ -390,12 +393,53 @@ def level_search(p: dict, plan: ExcitationPlan, finger: int | None) -> LevelSear
              'amplitude at 1.0, or use level fixed')):
         if bad:
             raise ParameterError(f'parameter {name!r}: {why}')
+
+
+def _level_settings(p: dict, start: float | None = None) -> LevelSettings:
+    return LevelSettings(target=p['level_target'],
+                         start=p['level_start'] if start is None else start,
+                         probe_time=p['level_probe_time'], settle_time=p['settle_time'])
+
+
+def signal_searches(p: dict, plan: ExcitationPlan, finger: int | None):
+    """The searches of ``level: auto`` with ``level_per: signal`` for ``plan``'s signals: a
+    factory (the signal's plan, the amplitude to start at or None) -> its
+    :class:`LevelSearch`, probing with the signal itself (cross-checks the parameters and that
+    every signal can probe its own level).
+
+    Raises:
+        ParameterError: a setting level auto cannot work with, or a signal zero over its probe
+            or without room within the limits (the message names it).
+    """
+    _check_level(p)
+    for j in range(len(plan.segments)):
+        try:
+            plan.signal_plan(j).own_probe(p['level_probe_time'])
+        except ValueError as exc:
+            raise ParameterError(f"parameter 'signals': {exc}") from None
+
+    def make(single: ExcitationPlan, start: float | None) -> LevelSearch:
+        probe = single.own_probe(p['level_probe_time'])
+        if start is not None:
+            start = min(start, probe.largest)
+        return LevelSearch(np.ones(2), 1.0, p['max_excursion'], single.n_fingers, finger,
+                           _level_settings(p, start), signal=probe)
+    return make
+
+
+def level_search(p: dict, plan: ExcitationPlan, finger: int | None) -> LevelSearch:
+    """The amplitude search of ``level: auto`` with ``level_per: plan`` for ``plan``
+    (cross-checks its parameters).
+
+    Raises:
+        ParameterError: a setting level auto cannot work with (the message names it).
+    """
+    _check_level(p)
     peak = plan.peak_torque
     if not peak.max() > 0:
         raise ParameterError("parameter 'signals': every signal is zero; level auto has "
                              'nothing to scale')
-    settings = LevelSettings(target=p['level_target'], start=p['level_start'],
-                             probe_time=p['level_probe_time'], settle_time=p['settle_time'])
+    settings = _level_settings(p)
     inputs = None
     if plan.map is not None:
         try:

@@ -262,6 +262,40 @@ class ExcitationPlan:
             u[self.finger] = value
         return u
 
+    def signal_plan(self, j: int) -> 'ExcitationPlan':
+        """The plan of signal ``j`` alone: its settle phase, then the signal (the same fingers,
+        limit, amplitude and bounds)."""
+        plan = copy.copy(self)
+        plan.segments = (Segment(self.segments[j].signal, self.settle_time),)
+        plan.duration = self.settle_time + self.segments[j].signal.duration
+        plan._samples = None
+        return plan
+
+    def own_probe(self, probe_time: float) -> 'SignalProbe':
+        """The probe of a :class:`LevelSearch` that plays this plan's first signal itself: its
+        first ``probe_time`` seconds (class doc of :class:`SignalProbe`).
+
+        Raises:
+            ValueError: the signal is zero over the probe, or the plan has no room for it.
+        """
+        sig = self.segments[0].signal
+        n = max(1, int(math.ceil(sig.duration * SAMPLE_RATE)))
+        s = sig.torque(np.arange(n) / SAMPLE_RATE)
+        s = np.where(np.isfinite(s), s, 0.0)
+        if self.map is None:
+            swing = np.abs(s)
+        else:
+            _, o, g = self.map.terms(sig)
+            swing = np.abs(o + g * s)
+        head = swing[:max(1, int(math.ceil(min(probe_time, sig.duration) * SAMPLE_RATE)))]
+        if not head.max() > 0:
+            raise ValueError(f'signal {sig.name!r} is zero over its first {probe_time:g} s: '
+                             'it cannot probe its own level')
+        largest = self.largest_unclipped_amplitude()
+        if not 0 < largest < math.inf:
+            raise ValueError(f'signal {sig.name!r} has no room within the limit')
+        return SignalProbe(self, float(swing.max() / head.max()), largest)
+
     def probe_inputs(self) -> 'ProbeInputs':
         """What a :class:`LevelSearch` probes with for this plan's bounds (module doc, class
         doc): the first signal's b and o, its peak swing g ∘ max|s| per input and the largest
@@ -295,6 +329,30 @@ class ProbeInputs:
     offset: np.ndarray
     swing: np.ndarray
     largest: float
+
+
+@dataclass(frozen=True)
+class SignalProbe:
+    """A :class:`LevelSearch`'s probe made of the signal it levels: the single-signal ``plan``'s
+    signal from its start, at the probe's amplitude (clipped as the plan clips). A signal's
+    strongest moment may come after the probe: ``correction`` (>= 1) is the signal's peak over
+    its peak within the probe (|s| for the hand's torques, |o + g ∘ s| for bounded inputs), and
+    the search takes a probe's excursion times ``correction`` as what the whole signal would
+    move the tip (a quasi-static scaling). ``largest`` is the amplitude at which the signal
+    reaches the limit (the search does not exceed it)."""
+
+    plan: 'ExcitationPlan'
+    correction: float
+    largest: float
+
+    def inputs(self, s: float, amplitude: float) -> np.ndarray:
+        """The torque (2,) or inputs (m,) at ``s`` seconds into the signal at ``amplitude``."""
+        plan, seg = self.plan, self.plan.segments[0]
+        value = seg.signal.torque(np.array([s]))[0]
+        value = np.where(np.isfinite(value), value, 0.0)
+        if plan.map is not None:
+            return plan.map.inputs(seg.signal, value, amplitude)
+        return np.clip(value * amplitude, -plan.torque_limit, plan.torque_limit)
 
 
 # -- choosing the amplitude ------------------------------------------------------------------
@@ -343,7 +401,11 @@ class LevelSearch:
     (``inputs``, :class:`ProbeInputs`) the probe is base + a (offset + swing ∘ w) clipped, w
     the same sine on every input over the first period and of alternating sign from input to
     input over the second, and the largest amplitude is ``inputs.largest`` (``peak`` and
-    ``torque_limit`` are not used then).
+    ``torque_limit`` are not used then). With ``signal`` (:class:`SignalProbe`) the probe is the
+    signal being levelled itself, its first ``probe_time`` seconds at a_k (the level per
+    signal), each probe's excursion is taken times ``signal.correction`` and the largest
+    amplitude is ``signal.largest`` (``peak``, ``torque_limit`` and ``inputs`` are not used
+    then).
 
     With the goal g = ``target`` × ``max_excursion``: a_0 = ``start``; after a probe with
     e_k ≥ ``close`` × g, or at the largest amplitude (the signals' peak at the torque limit),
@@ -362,9 +424,19 @@ class LevelSearch:
     def __init__(self, peak: np.ndarray, torque_limit: float, max_excursion: float,
                  n_fingers: int, finger: int | None = None,
                  settings: LevelSettings = LevelSettings(),
-                 inputs: ProbeInputs | None = None) -> None:
+                 inputs: ProbeInputs | None = None, signal: SignalProbe | None = None) -> None:
         self.inputs = inputs
-        if inputs is not None:          # the probe's own scale: peak and torque_limit unused
+        self.signal = signal
+        self.correction = 1.0 if signal is None else float(signal.correction)
+        if signal is not None:          # the signal's own scale: peak and torque_limit unused
+            m = signal.plan.m
+            inputs = None
+            self._signal_rest = signal.plan.rest.copy()
+            peak, torque_limit = np.ones(2), signal.largest
+            if not (math.isfinite(self.correction) and self.correction >= 1):
+                raise ValueError(f'signal probe correction must be finite and >= 1, got '
+                                 f'{self.correction!r}')
+        elif inputs is not None:        # the probe's own scale: peak and torque_limit unused
             if not (0 < inputs.largest < math.inf and inputs.swing.max() > 0):
                 raise ValueError('the signals must move the inputs and have room within their '
                                  f'bounds (largest amplitude {inputs.largest!r})')
@@ -399,6 +471,8 @@ class LevelSearch:
         self.largest = float(torque_limit) / float(peak.max())
         m = 2 if inputs is None else inputs.bounds.m
         self._rest = np.zeros(2) if inputs is None else inputs.bounds.rest
+        if signal is not None:
+            m, self._rest = signal.plan.m, self._signal_rest
         self._alternate = np.array([1.0, -1.0]) if inputs is None else (-1.0) ** np.arange(m)
         self.ratio, self.close = float(s.ratio), float(s.close)
         self.probe_time, self.settle_time = float(s.probe_time), float(s.settle_time)
@@ -426,6 +500,8 @@ class LevelSearch:
         bounded inputs the inputs (m,) (the rest inputs outside it)."""
         if not 0 <= s < self.probe_time:
             return self._rest.copy()
+        if self.signal is not None:
+            return self.signal.inputs(s, amplitude)
         w = math.sin(4 * math.pi * s / self.probe_time)
         if self.inputs is None:
             return amplitude * self.peak * np.array([w, w if s < self.probe_time / 2 else -w])
@@ -462,8 +538,8 @@ class LevelSearch:
         return u
 
     def _finish_probe(self) -> None:
-        a, e = self._a, self._excursion
-        self.probes.append(Probe(a, self._start, e))
+        a, e = self._a, self._excursion * self.correction
+        self.probes.append(Probe(a, self._start, self._excursion))
         self._start += self.probe_time + self.settle_time
         self._excursion = 0.0
         if e >= self.close * self.goal or a >= self.largest * (1 - 1e-9):
