@@ -23,14 +23,22 @@ the same tips holds at least ``settle_samples`` of them before the first non-zer
 training takes the noise level from. The tips answered with zero go to /diagnostics
 (``settle_tips``) and the log at the first non-zero torque.
 
-Level (``level``): ``fixed`` plays the signals at ``amplitude``. ``auto`` first searches the
+Level (``level``): ``fixed`` plays the signals at ``amplitude``. ``auto`` searches the
 amplitude on the finger (:class:`~soft_gripper_sdre.sim.excitation.LevelSearch`): after the settle
 phase, probes at amplitudes rising from ``level_start``, each ``level_probe_time`` long and
 followed by ``settle_time`` at zero, until a probe moves an excited tip ``level_target`` ×
-``max_excursion`` from rest (or reaches the torque limit); the signals are then played at the
-amplitude that scales the response to that target, kept off the clip. The probes are published
-and recorded like the signals. The amplitude, the probes and the share of the signals' samples
-at the clip go to the log and /diagnostics (``amplitude``, ``probes``, ``clip_share``).
+``max_excursion`` from rest (or reaches the torque limit); the signal is then played at the
+amplitude that scales the response to that target, kept off the clip. With ``level_per:
+signal`` (the default) each signal is levelled on its own, just before it plays: its probes are
+the signal itself, its first ``level_probe_time`` seconds, each excursion taken times the
+signal's peak over its peak within the probe
+(:meth:`~soft_gripper_sdre.sim.excitation.ExcitationPlan.own_probe`), the first probe at the
+amplitude the signal before was played at (so usually one or two probes each), because one
+amplitude for every signal leaves the weaker or faster ones short of the target. With
+``level_per: plan`` one search before the first signal probes with a sine at the signals' peak
+torque and every signal is played at its amplitude. The probes are published and recorded like
+the signals. The amplitude, the probes and the share of the signals' samples at the clip go to
+the log and /diagnostics (``amplitude``, ``probes``, ``clip_share``; ``levels``: each signal's).
 
 Timing (``timing``):
 
@@ -145,13 +153,14 @@ PARAMS = (
           'max_excursion', '', 0.05, 1.0, read_only=True),
     Param('level_start', 0.05, 'level auto: the amplitude of the first probe (then up to twice the '
           'last per probe)', '', 1e-6, 100.0, read_only=True),
-    Param('level_probe_time', 2.0, 'level auto: the length of each probe (level_per signal: the '
-          'signal\'s first seconds; plan: two periods of a sine at the signals\' peak torque; '
-          'settle_time at zero after each)', 's', 0.1, 60.0, read_only=True),
+    Param('level_probe_time', 2.0, 'level auto: the length of each probe (level_per signal: '
+          "the signal's first seconds; plan: two periods of a "
+          "sine at the signals' peak torque; settle_time at zero after each)", 's', 0.1, 60.0,
+          read_only=True),
     Param('level_per', 'signal', 'level auto: signal = each signal its own amplitude, probed '
-          'with its own start (the first probe of each at the level of the one before); plan = '
-          'one amplitude for every signal, probed with a sine at their peak torque',
-          choices=('signal', 'plan'), read_only=True),
+          'with its own first seconds (the first probe of each at the level of the one '
+          'before); plan = one amplitude for every signal, probed with a sine at their peak '
+          'torque', choices=('signal', 'plan'), read_only=True),
     tips_reliability_param(),
 )
 

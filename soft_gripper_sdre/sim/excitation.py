@@ -331,6 +331,10 @@ class ProbeInputs:
     largest: float
 
 
+#: the most a signal's measured response may scale its probe's excursion
+MAX_RATIO = 4.0
+
+
 @dataclass(frozen=True)
 class SignalProbe:
     """A :class:`LevelSearch`'s probe made of the signal it levels: the single-signal ``plan``'s
@@ -344,6 +348,56 @@ class SignalProbe:
     plan: 'ExcitationPlan'
     correction: float
     largest: float
+
+    def signal_inputs(self, times: np.ndarray, amplitude: float) -> np.ndarray:
+        """The torques or inputs (N, m) of the whole signal at ``times`` (N,) [s] and
+        ``amplitude``, as the plan plays them."""
+        plan, sig = self.plan, self.plan.segments[0].signal
+        value = sig.torque(np.asarray(times, dtype=float))
+        value = np.where(np.isfinite(value), value, 0.0)
+        if plan.map is not None:
+            return plan.map.inputs(sig, value, amplitude)
+        return np.clip(value * amplitude, -plan.torque_limit, plan.torque_limit)
+
+    def response_ratio(self, times: np.ndarray, moved: np.ndarray, inputs: np.ndarray,
+                       amplitude: float) -> float | None:
+        """The signal's measured response (module doc): from one probe's record, the tip's
+        displacement ``moved`` (N, 3) [m] from rest and the inputs (N, m) applied at ``times``
+        (N,) [s], fit y_k = a1 y_{k−1} + a2 y_{k−2} + B1 x_{k−1} + B2 x_{k−2} per coordinate (x:
+        the inputs from rest) and return the peak |y| it predicts for the whole signal at
+        ``amplitude`` over the peak it predicts for the probe, within [1, :data:`MAX_RATIO`];
+        None when the record is too short or the fit is unstable or degenerate."""
+        times, moved, inputs = (np.asarray(v, dtype=float) for v in (times, moved, inputs))
+        if len(times) < 30 or not (np.all(np.isfinite(moved)) and np.all(np.isfinite(inputs))):
+            return None
+        from scipy.signal import lfilter
+        dt = float(np.median(np.diff(times)))
+        if not dt > 0:
+            return None
+        rest = self.plan.rest
+        x = inputs - rest
+        grid = np.arange(0.0, self.plan.segments[0].signal.duration, dt)
+        x_full = self.signal_inputs(grid, amplitude) - rest
+        full, probe = np.zeros((len(grid), 3)), np.zeros((len(x), 3))
+        for c in range(3):
+            y = moved[:, c]
+            if not np.ptp(y) > 0:
+                continue
+            reg = np.column_stack([y[1:-1], y[:-2], x[1:-1], x[:-2]])
+            coef, *_ = np.linalg.lstsq(reg, y[2:], rcond=None)
+            a1, a2, b = coef[0], coef[1], coef[2:].reshape(2, -1)
+            if not (np.all(np.isfinite(coef)) and np.all(np.abs(np.roots([1.0, -a1, -a2])) < 1)):
+                return None
+            den = [1.0, -a1, -a2]
+            for j in range(x.shape[1]):
+                num = [0.0, b[0, j], b[1, j]]
+                full[:, c] += lfilter(num, den, x_full[:, j])
+                probe[:, c] += lfilter(num, den, x[:, j])
+        seen = float(np.linalg.norm(probe, axis=1).max())
+        if not seen > 0:
+            return None
+        ratio = float(np.linalg.norm(full, axis=1).max()) / seen
+        return min(max(ratio, 1.0), MAX_RATIO) if math.isfinite(ratio) else None
 
     def inputs(self, s: float, amplitude: float) -> np.ndarray:
         """The torque (2,) or inputs (m,) at ``s`` seconds into the signal at ``amplitude``."""
@@ -477,6 +531,9 @@ class LevelSearch:
         self.ratio, self.close = float(s.ratio), float(s.close)
         self.probe_time, self.settle_time = float(s.probe_time), float(s.settle_time)
         self.probes: list[Probe] = []
+        #: per probe the factor its excursion was taken times (the signal's response, 1 without)
+        self.ratios: list[float] = []
+        self._record: list[tuple[float, np.ndarray, np.ndarray]] = []
         self.rest: np.ndarray | None = None
         self.amplitude: float | None = None
         self.end: float | None = None
@@ -535,10 +592,21 @@ class LevelSearch:
         d = np.linalg.norm(rows - self.rest, axis=-1)
         self._excursion = max(self._excursion, float(d.max()) if np.all(np.isfinite(d)) else 0.0)
         u[self.rows] = self.probe_torque(t - self._start, self._a)
+        if self.signal is not None:
+            self._record.append((t, rows - self.rest, u[self.rows[0]].copy()))
         return u
 
     def _finish_probe(self) -> None:
-        a, e = self._a, self._excursion * self.correction
+        ratio = None
+        if self.signal is not None and self._record:
+            times = np.array([r[0] for r in self._record])
+            moved = np.array([r[1] for r in self._record])           # (N, rows, 3)
+            row = int(np.argmax(np.nanmax(np.linalg.norm(moved, axis=-1), axis=0)))
+            ratio = self.signal.response_ratio(times, moved[:, row],
+                                               np.array([r[2] for r in self._record]), self._a)
+            self._record = []
+        self.ratios.append(self.correction if ratio is None else ratio)
+        a, e = self._a, self._excursion * self.ratios[-1]
         self.probes.append(Probe(a, self._start, self._excursion))
         self._start += self.probe_time + self.settle_time
         self._excursion = 0.0
