@@ -30,9 +30,10 @@ followed by ``settle_time`` at zero, until a probe moves an excited tip ``level_
 ``max_excursion`` from rest (or reaches the torque limit); the signal is then played at the
 amplitude that scales the response to that target, kept off the clip. With ``level_per:
 signal`` (the default) each signal is levelled on its own, just before it plays: its probes are
-the signal itself, its first ``level_probe_time`` seconds, each excursion taken times the
-signal's peak over its peak within the probe
-(:meth:`~soft_gripper_sdre.sim.excitation.ExcitationPlan.own_probe`), the first probe at the
+the signal itself, its first ``level_probe_time`` seconds, each excursion scaled by the
+signal's measured response (the whole signal's peak excursion over the probe's, as a linear model
+fit on the probe's record predicts them:
+:meth:`~soft_gripper_sdre.sim.excitation.SignalProbe.response_ratio`), the first probe at the
 amplitude the signal before was played at (so usually one or two probes each), because one
 amplitude for every signal leaves the weaker or faster ones short of the target. With
 ``level_per: plan`` one search before the first signal probes with a sine at the signals' peak
@@ -56,6 +57,10 @@ its middle for a two-sided input and from its rest value (the bound nearest zero
 one-sided one, a chamber or a tendon; a spec file's signals as inputs in their units, clipped
 (:mod:`soft_gripper_sdre.sim.excitation`). "Zero torque" below is then every input at rest.
 Symmetric bounds on two inputs are the hand's ±torque_limit.
+
+Driver limits: a driver that reports its bounds on /diagnostics (``plant_driver``) narrower
+than this node's limits, or a rising count of commands it clipped, gets a WARN
+(:mod:`soft_gripper_sdre.nodes.driver_limits`): give the excitation the driver's limit.
 
 Stops: at the end of the plan, on shutdown (SIGINT/SIGTERM) and on a fault, zero torque is
 published before the node exits (status 0 at the end of the plan, 1 after a fault). Faults: no
@@ -84,6 +89,7 @@ from sensor_msgs.msg import JointState
 from soft_gripper_sdre.nodes import cdr
 from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.common import ERROR, OK, Diagnostics, run
+from soft_gripper_sdre.nodes.driver_limits import DriverLimits
 from soft_gripper_sdre.nodes.excitation_report import ACTIVITY, RunReport
 from soft_gripper_sdre.nodes.params import (
     Param,
@@ -196,6 +202,10 @@ class ExcitationNode(Node):
         self.diag = Diagnostics(self)
         cdr.watch(self.diag, self.cdr_tips)
         self.report = RunReport(self.diag, self.get_logger(), self.run, p)
+        plan = self.run.whole
+        limits = ((plan.map.bounds.lower, plan.map.bounds.upper) if plan.map is not None else
+                  (np.full(2, -plan.torque_limit), np.full(2, plan.torque_limit)))
+        self.driver_limits = DriverLimits(self, *limits, self.diag)
         self._watchdog = self.create_timer(0.05, self._check_watchdog)
         if p['timing'] == 'timer':
             self._ticker = self.create_timer(p['period'], self._on_tick, clock=self.get_clock())

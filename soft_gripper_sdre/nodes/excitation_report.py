@@ -89,11 +89,10 @@ class RunReport:
         if self.run.per_signal is not None:
             name = self.run.plan.segments[0].signal.name
             self.diag.values['levels'] = ', '.join(f'{n} {a:.4g}' for n, a in self.run.levels)
-            scaled = ('' if search.correction == 1.0 else
-                      f' (its peak comes after the probe: excursions taken × '
-                      f'{search.correction:.3g})')
+            scaled = ', '.join(f'{r:.3g}' for r in search.ratios)
             self.log.info(f'level of {name}: probes of its first {search.probe_time:g} s '
-                          f'(amplitude → peak excursion) {probes}{scaled}; amplitude '
+                          f'(amplitude → peak excursion) {probes}, taken × {scaled} for the '
+                          f'whole signal (its measured response); amplitude '
                           f'{search.amplitude:.4g} for {1e3 * search.goal:g} mm, '
                           f'{self._clip_text()}')
             return

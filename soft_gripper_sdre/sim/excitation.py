@@ -13,6 +13,17 @@ followed by a settle phase, measures each probe's peak excursion from rest, and 
 probe moves the tip to near a target distance; the amplitude then scales the signals to that
 target, assuming a roughly linear response (see the class).
 
+**The level per signal.** One amplitude for every signal leaves the weaker or faster signals
+short of the target (and a sine probe at the signals' peak says little about a multisine's
+response). A search can instead level one signal (:meth:`ExcitationPlan.signal_plan`) with
+probes made of the signal itself (:meth:`ExcitationPlan.own_probe`, :class:`SignalProbe`): its
+first ``probe_time`` seconds. A signal's strongest response may come later than its start (slow
+components adding up), so each probe's excursion is scaled by the signal's measured response:
+a second-order ARX model per tip coordinate fit on the probe's own record (inputs and tips)
+predicts the whole signal's peak excursion over the probe's
+(:meth:`SignalProbe.response_ratio`, within [1, :data:`MAX_RATIO`]); where the fit is unstable
+or degenerate, the ratio of the signal's peak input swing to the probe's stands in.
+
 The signals are the built-in ones or those of a YAML file
 (:mod:`soft_gripper_sdre.sim.signal_specs`).
 
@@ -340,9 +351,9 @@ class SignalProbe:
     """A :class:`LevelSearch`'s probe made of the signal it levels: the single-signal ``plan``'s
     signal from its start, at the probe's amplitude (clipped as the plan clips). A signal's
     strongest moment may come after the probe: ``correction`` (>= 1) is the signal's peak over
-    its peak within the probe (|s| for the hand's torques, |o + g ∘ s| for bounded inputs), and
-    the search takes a probe's excursion times ``correction`` as what the whole signal would
-    move the tip (a quasi-static scaling). ``largest`` is the amplitude at which the signal
+    its peak within the probe (|s| for the hand's torques, |o + g ∘ s| for bounded inputs), the
+    quasi-static scaling the search takes a probe's excursion times when
+    :meth:`response_ratio` has no answer. ``largest`` is the amplitude at which the signal
     reaches the limit (the search does not exceed it)."""
 
     plan: 'ExcitationPlan'
@@ -457,9 +468,10 @@ class LevelSearch:
     input over the second, and the largest amplitude is ``inputs.largest`` (``peak`` and
     ``torque_limit`` are not used then). With ``signal`` (:class:`SignalProbe`) the probe is the
     signal being levelled itself, its first ``probe_time`` seconds at a_k (the level per
-    signal), each probe's excursion is taken times ``signal.correction`` and the largest
-    amplitude is ``signal.largest`` (``peak``, ``torque_limit`` and ``inputs`` are not used
-    then).
+    signal), each probe's excursion is taken times the signal's measured response
+    (:meth:`SignalProbe.response_ratio` on the probe's record of inputs and tips, else
+    ``signal.correction``; ``ratios``) and the largest amplitude is ``signal.largest``
+    (``peak``, ``torque_limit`` and ``inputs`` are not used then).
 
     With the goal g = ``target`` × ``max_excursion``: a_0 = ``start``; after a probe with
     e_k ≥ ``close`` × g, or at the largest amplitude (the signals' peak at the torque limit),
