@@ -24,16 +24,16 @@ NAMES = ['index', 'thumb']
 def params_file(path: Path, drop: tuple[str, ...] = (), **plan) -> Path:
     """A params.yaml as training writes it, for the package's model on two fingers of tendon3
     (200 Hz, ±0.02 N·m), with a short plan."""
-    trajectory = {'finger_names': NAMES, 'grasp_fingers': [0, 1], 'others': 'hold',
+    trajectory = {'finger_names': list(NAMES), 'grasp_fingers': [0, 1], 'others': 'hold',
                   't_start': 0.5, 't_close': 1.0, 't_hold': 0.5, 't_open': 1.0,
                   'close_distance': 0.002, 'side_distance': 0.0, 'contact_distance': 0.002,
                   **plan}
     for key in drop:
         trajectory.pop(key)
-    body = {'/**/estimator': {'ros__parameters': {'finger_names': NAMES,
+    body = {'/**/estimator': {'ros__parameters': {'finger_names': list(NAMES),
                                                   'control_period': 0.005}},
             '/**/controller': {'ros__parameters': {'model_path': str(MODEL),
-                                                   'finger_names': NAMES,
+                                                   'finger_names': list(NAMES),
                                                    'control_period': 0.005,
                                                    'torque_limit': 0.02}},
             '/**/trajectory': {'ros__parameters': trajectory}}
@@ -97,10 +97,10 @@ def test_the_score_refuses_bad_inputs_and_a_bag_without_its_topics(tmp_path):
                             (dict(d=4), 'd must be 2 or 3'),
                             (dict(plan_seconds=float('nan')), 'plan_seconds must be'),
                             (dict(rest_seconds=-1.0), 'rest_seconds must be')):
-        args = dict(travel=0.01, bounds=b, d=2, plan_seconds=3.0, rest_seconds=0.5, **kwargs)
+        args = {**dict(travel=0.01, bounds=b, d=2, plan_seconds=3.0, rest_seconds=0.5), **kwargs}
         with pytest.raises(ScoreError, match=message):
             score_run(tmp_path / 'nobag', **args)
-    with pytest.raises(ScoreError, match='cannot be read'):
+    with pytest.raises(ScoreError, match='nobag does not exist'):
         score_run(tmp_path / 'nobag', 0.01, b, 2, 3.0, 0.5)
 
 
