@@ -123,3 +123,26 @@ def test_one_command_deploys_records_ends_with_the_plan_and_scores_it(tmp_path):
     assert all(np.isfinite(score['rmse_pct_of_travel']))
     assert f'{score["rmse_pct_of_travel"]} % of the 2 mm travel' in r.stdout
     assert (out / 'bag').is_dir() and (out / 'logs' / 'controller.log').is_file()
+
+
+@pytest.mark.parametrize('facts', [
+    dict(travel=2e-3, torque_limit=0.02, direction=120.0),                   # the planar move
+    dict(travel=3e-3, torque_limit=4.0, axis=(0.0, 0.6, 0.8),
+         bounds=InputBounds([0.0] * 3, [4.0] * 3)),                          # a 3-D tip
+])
+def test_the_params_training_writes_hold_what_the_deployment_reads(tmp_path, facts):
+    from soft_gripper_sdre.analysis import loop_settings as ls
+    from soft_gripper_sdre.tools.graph.deploy import Settings
+    from soft_gripper_sdre.tools.learning.train_bags import params_yaml
+    facts = ls.DataFacts(period=5e-3, noise_std=5e-5, accel_psd_ml=1.0, **facts)
+    settings = ls.LoopSettings(5e-3, 5e-5, 1.0, 1e6, 1e3, 1.0, facts.torque_limit, 50.0, 0.0,
+                               1e-3, 1.0, 0.1, 2.0)
+    path = tmp_path / 'params.yaml'
+    path.write_text(params_yaml(ls.Derivation(settings, {}, [], facts), MODEL, NAMES, 'bags'))
+    plan = yaml.safe_load(path.read_text())['/**/trajectory']['ros__parameters']
+    assert plan['finger_names'] == NAMES and plan['grasp_fingers'] == [0, 1]
+    assert plan['others'] == 'hold'
+    got = Settings(path)
+    assert got.finger_names == NAMES and got.plan_seconds == 5.5 and got.rest_seconds == 0.5
+    assert got.travel == pytest.approx(facts.travel, rel=1e-9) and got.d == facts.d
+    assert got.bounds == (facts.bounds or InputBounds.symmetric(0.02, 2))
