@@ -346,6 +346,18 @@ class ProbeInputs:
 MAX_RATIO = 4.0
 
 
+def _arx_response(a1: float, a2: float, b: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """y_k = a1 y_{k−1} + a2 y_{k−2} + b[0] · x_{k−1} + b[1] · x_{k−2} from rest, for the inputs
+    ``x`` (N, m); ``b`` (2, m)."""
+    drive = np.zeros(len(x))
+    drive[1:] += x[:-1] @ b[0]
+    drive[2:] += x[:-2] @ b[1]
+    y = [0.0, 0.0]
+    for v in drive.tolist():
+        y.append(a1 * y[-1] + a2 * y[-2] + v)
+    return np.array(y[2:])
+
+
 @dataclass(frozen=True)
 class SignalProbe:
     """A :class:`LevelSearch`'s probe made of the signal it levels: the single-signal ``plan``'s
@@ -381,7 +393,6 @@ class SignalProbe:
         times, moved, inputs = (np.asarray(v, dtype=float) for v in (times, moved, inputs))
         if len(times) < 30 or not (np.all(np.isfinite(moved)) and np.all(np.isfinite(inputs))):
             return None
-        from scipy.signal import lfilter
         dt = float(np.median(np.diff(times)))
         if not dt > 0:
             return None
@@ -399,11 +410,8 @@ class SignalProbe:
             a1, a2, b = coef[0], coef[1], coef[2:].reshape(2, -1)
             if not (np.all(np.isfinite(coef)) and np.all(np.abs(np.roots([1.0, -a1, -a2])) < 1)):
                 return None
-            den = [1.0, -a1, -a2]
-            for j in range(x.shape[1]):
-                num = [0.0, b[0, j], b[1, j]]
-                full[:, c] += lfilter(num, den, x_full[:, j])
-                probe[:, c] += lfilter(num, den, x[:, j])
+            full[:, c] = _arx_response(a1, a2, b, x_full)
+            probe[:, c] = _arx_response(a1, a2, b, x)
         seen = float(np.linalg.norm(probe, axis=1).max())
         if not seen > 0:
             return None
