@@ -147,11 +147,12 @@ def test_the_recipe_runs_end_to_end_on_the_one_chamber_pneumatic_finger(tmp_path
     """The same recipe on a finger of one input (a chamber, 0 to 60 kPa, a pressure lag) and a
     planar tip at 100 Hz: the excitation and training get the chamber's bounds, the model has
     shape (2, 1), the checked move follows the curve of the model's equilibria (params.yaml's
-    close_path), and the deployed grasp never commands outside the bounds nor sits at 60 kPa at
-    rest. Training is shortened as above."""
+    close_path), and the deployed grasp never commands outside the bounds nor sits at a bound
+    other than the vented chamber at rest. The preset's full training (about 5 minutes): trained
+    40 + 10 epochs, the model's rest drifted off (not fit). The deployed error is bounded loosely:
+    the derived estimator is too slow for this finger (docs/own_gripper.md: 39-50 % of travel)."""
     out = tmp_path / 'pneumatic1'
-    r = _tool('--plant', 'pneumatic1', '--out', str(out), '--laws', 'sdre_ff', '--epochs', '40',
-              '--rollout-epochs', '10', timeout=1700)
+    r = _tool('--plant', 'pneumatic1', '--out', str(out), '--laws', 'sdre_ff', timeout=1700)
     assert r.returncode in (0, 1), r.stderr[-3000:]
     metrics = json.loads((out / 'metrics.json').read_text())
     assert all(0 < a <= 1 for a in metrics['identification']['amplitude'].values())
@@ -172,7 +173,7 @@ def test_the_recipe_runs_end_to_end_on_the_one_chamber_pneumatic_finger(tmp_path
     assert 0 < facts['bounds']['upper'][0] <= 60e3
     params = yaml.safe_load((out / 'model' / 'params.yaml').read_text())
     plan = params['/**/trajectory']['ros__parameters']
-    waypoints = [float(v) for v in plan['close_path'].split(',')]
+    waypoints = plan['close_path']
     assert len(waypoints) == 2 * (len(facts['path']) - 1)
     assert plan['close_distance'] == pytest.approx(facts['travel'])
     ctrl = params['/**/controller']['ros__parameters']

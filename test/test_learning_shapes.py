@@ -394,6 +394,14 @@ def test_bags_of_different_input_counts_are_refused_naming_both(tmp_path):
         finger_shape(one, three)
 
 
+def test_commands_of_more_fingers_than_tips_are_refused(tmp_path):
+    """Two fingers of one input each named, one tip: not one finger of two inputs."""
+    bag = shape_bag(tmp_path / 'two', d=2, m=2, names=['finger_0/ax0', 'finger_1/ax0'])
+    with pytest.raises(BagDataError, match=r"names \['finger_0/ax0', 'finger_1/ax0'\]; "
+                                           r"expected .* for each of the 1 finger"):
+        read_recording(bag)
+
+
 def test_commands_with_a_gap_in_the_input_numbers_are_refused(tmp_path):
     bag = shape_bag(tmp_path / 'gap', d=2, m=2, names=['finger_0/ax0', 'finger_0/ax2'])
     with pytest.raises(BagDataError, match=r"names \['finger_0/ax0', 'finger_0/ax2'\]; "
@@ -503,3 +511,134 @@ def test_the_train_tool_learns_a_one_input_3d_finger_from_bags(tmp_path, capsys)
     assert model.shape == FingerShape(3, 1)
     assert model.input_bounds.lower[0] == 0.0 and 1.9 < model.input_bounds.upper[0] <= 2.0
     assert 'finger shape: 1 input(s)' in capsys.readouterr().out
+
+
+def test_hand_bags_train_the_hands_shape_with_the_given_bounds(tmp_path, capsys):
+    """Bags of two-torque fingers with a planar tip: a (2, 2) model whose checkpoint records the
+    bounds given on the command line."""
+    from bag_writing import excitation_bag
+    train_bag = excitation_bag(tmp_path / 'train', seconds=2.0)
+    val_bag = excitation_bag(tmp_path / 'val', seconds=1.5)
+    out = tmp_path / 'out'
+    assert train_tool.main(['--bag', str(train_bag), '--val-bag', str(val_bag), '--out', str(out),
+                            '--epochs', '2', '--rollout-epochs', '0', '--jerk-psd', '1e4',
+                            '--meas-std', '1e-6', '--input-lower', '-0.05', '-0.03',
+                            '--input-upper', '0.05', '0.03']) == 0
+    model = SDCModel(out / 'model.pt')
+    assert model.shape == HAND_SHAPE
+    assert model.input_bounds == InputBounds([-0.05, -0.03], [0.05, 0.03])
+    assert model.data['input_bounds'] == {'lower': [-0.05, -0.03], 'upper': [0.05, 0.03]}
+    printed = capsys.readouterr().out
+    assert 'finger shape: 2 input(s) (ax0 [-0.05, 0.05], ax1 [-0.03, 0.03]), a tip of 2' in printed
+    assert "z moves" not in printed
+
+
+# -- the Koopman baseline's model for other shapes ---------------------------------------------
+
+def _koopman_records(d: int, m: int, n: int = 3000, seed: int = 0):
+    """(pos, vel, u) of the known system of shape (d, m), exact semi-implicit Euler at 1 kHz."""
+    G2, bounds = SYSTEMS[(d, m)]
+    rng = np.random.default_rng(seed)
+    u = np.repeat(bounds.lower + 2 * bounds.half_span * rng.random((n // 25, m)), 25, axis=0)
+    p, v = np.zeros((n, d)), np.zeros((n, d))
+    for k in range(n - 1):
+        v[k + 1] = v[k] + 1e-3 * (-STIFFNESS * p[k] - DAMPING * v[k] + G2 @ u[k])
+        p[k + 1] = p[k] + 1e-3 * v[k + 1]
+    return p, v, u
+
+
+@pytest.mark.parametrize('d, m', [(3, 3), (2, 1)])
+def test_the_koopman_model_fits_and_round_trips_any_shape(d, m, tmp_path):
+    from soft_gripper_sdre.learning.koopman import KoopmanModel, KoopmanSettings, fit_koopman
+    p, v, u = _koopman_records(d, m)
+    model = fit_koopman([(p, v, u)], np.zeros(3), 1e-3, KoopmanSettings(delays=(2,), degree=2))
+    n_s = 2 * d
+    assert (model.d, model.m) == (d, m) and model.B.shape == (model.n_z, m)
+    assert model.n_z == n_s + d + n_s * (n_s + 1) // 2 and model.C.shape == (n_s, model.n_z)
+    acc = model.predict_acceleration(p[:-1], v[:-1], u[:-1])
+    true = (v[1:] - v[:-1]) / 1e-3
+    assert acc.shape == (len(p) - 1, d)
+    assert np.sqrt(np.mean((acc - true) ** 2)) < 0.05 * np.sqrt(np.mean(true ** 2))
+    again = KoopmanModel.load(model.save(tmp_path / 'k.npz'))
+    np.testing.assert_array_equal(again.B, model.B)
+    assert (again.d, again.m) == (d, m)
+
+
+def test_the_koopman_model_refuses_shapes_it_cannot_take():
+    from soft_gripper_sdre.learning.koopman import KoopmanModel, KoopmanSettings, fit_koopman
+    s = KoopmanSettings(degree=1)
+    with pytest.raises(ValueError, match=r'state_scale must be 2d positive numbers .* \(4 or 6\)'):
+        KoopmanModel(np.eye(5), np.zeros((5, 1)), np.ones(5), np.zeros(3), 1e-3, s)
+    with pytest.raises(ValueError, match=r'B \(6, m\), m = 1 to 4 inputs'):
+        KoopmanModel(np.eye(6), np.zeros((6, 5)), np.ones(6), np.zeros(3), 1e-3, s)
+    p, v, u = _koopman_records(2, 1, n=500)
+    with pytest.raises(ValueError, match=r'record 1: pos and vel must each be \(N, d\)'):
+        fit_koopman([(p, v, u), (p, v, np.hstack([u, u]))], np.zeros(3), 1e-3, s)
+    with pytest.raises(ValueError, match=r'record 0: .*got \(500, 4\)'):
+        fit_koopman([(np.hstack([p, p]), np.hstack([v, v]), u)], np.zeros(3), 1e-3, s)
+
+
+# -- the parameter file of a finger of another shape -------------------------------------------
+
+def _derivation():
+    """Settings and a checked move as loop_settings.derive returns them for a fit model."""
+    from soft_gripper_sdre.analysis.data_facts import DataFacts
+    from soft_gripper_sdre.analysis.loop_settings import Derivation, LoopSettings
+    settings = LoopSettings(control_period=0.005, meas_std=1e-5, accel_psd=10.0, q_pos=1e6,
+                            q_vel=1.0, r=1.0, torque_limit=2.0, torque_lowpass_hz=40.0,
+                            integral_gain=5.0, integral_band=1e-3, pd_kp=100.0, pd_kd=1.0,
+                            bandwidth_hz=4.0)
+    facts = DataFacts(period=0.005, noise_std=1e-5, travel=0.01, torque_limit=2.0,
+                      accel_psd_ml=10.0)
+    return Derivation(settings, {}, [], facts)
+
+
+def _declared(node: str) -> dict:
+    """The parameters the node declares, as its parameters-file check takes them."""
+    import importlib
+
+    from soft_gripper_sdre.nodes.params import declared_types
+    return declared_types(importlib.import_module(f'soft_gripper_sdre.nodes.{node}').PARAMS)
+
+
+@pytest.mark.parametrize('facts, extra', [
+    ({}, {}),
+    ({'axis': (0.0, 0.6, -0.8), 'bounds': InputBounds([0.0] * 3, [2.0] * 3)},
+     {'estimator': {'task_dim': 3},
+      'trajectory': {'task_dim': 3, 'direction': [0.0, 0.6, -0.8], 'close_distance': 0.01},
+      'controller': {'input_lower': [0.0] * 3, 'input_upper': [2.0] * 3}}),
+    ({'bounds': InputBounds([0.0], [2e5]), 'path': ((0.0, 0.0), (1e-3, 2e-3), (1e-3, 5e-3))},
+     {'estimator': {'task_dim': 2},
+      'trajectory': {'task_dim': 2, 'close_path': [1e-3, 2e-3, 1e-3, 5e-3]},
+      'controller': {'input_lower': [0.0], 'input_upper': [2e5]}}),
+])
+def test_the_parameter_file_carries_the_shape_the_nodes_take(facts, extra, tmp_path):
+    """A 3-D move: task_dim 3 for the estimator and the trajectory node, and its direction;
+    one-sided inputs: the controller's input_lower/input_upper in place of torque_limit; a curved
+    move: the trajectory node's close_path. The hand's file (no bounds, a planar straight move)
+    is as it always was. Every node takes its section as declared."""
+    from dataclasses import replace
+
+    import yaml
+
+    from soft_gripper_sdre.nodes.params_files import file_problems
+    from soft_gripper_sdre.tools.learning.train_bags import params_yaml
+    derived = _derivation()
+    derived = replace(derived, facts=replace(derived.facts, **facts))
+    text = params_yaml(derived, tmp_path / 'model.pt', ['finger_0'], 'bags')
+    doc = {key.rsplit('/', 1)[-1]: v['ros__parameters'] for key, v in yaml.safe_load(text).items()}
+    for node in ('estimator', 'controller', 'trajectory'):
+        for key, value in extra.get(node, {}).items():
+            assert doc[node][key] == pytest.approx(value), (node, key)
+        path = tmp_path / 'params.yaml'
+        path.write_text(text)
+        assert file_problems(f'/{node}', _declared(node), str(path)) == [], node
+    if 'controller' in extra:
+        from soft_gripper_sdre.nodes.params import numbers
+        got = InputBounds.parse(numbers(doc['controller']['input_lower'], 'input_lower'),
+                                numbers(doc['controller']['input_upper'], 'input_upper'),
+                                facts['bounds'].m)
+        assert got == facts['bounds'] and 'torque_limit' not in doc['controller']
+    if not extra:
+        assert set(doc['trajectory']) == {'close_distance', 'side_distance', 'contact_distance'}
+        assert 'task_dim' not in doc['estimator'] and 'input_lower' not in doc['controller']

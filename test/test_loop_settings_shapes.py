@@ -145,7 +145,7 @@ def test_a_one_input_finger_is_checked_along_the_curve_it_can_hold():
     assert params['controller']['input_upper'] == [P_MAX]
     assert 'torque_limit' not in params['controller']      # the bounds replace it
     plan = params['trajectory']
-    waypoints = np.array([float(v) for v in plan['close_path'].split(',')]).reshape(-1, 2)
+    waypoints = np.array(plan['close_path']).reshape(-1, 2)
     np.testing.assert_array_equal(waypoints, path[1:])
     assert plan['close_distance'] == facts.travel and 'side_distance' not in plan
     assert params['estimator']['task_dim'] == 2
@@ -183,7 +183,7 @@ def test_a_three_tendon_segment_is_checked_in_3d_within_its_pull_only_bounds():
     np.testing.assert_allclose(held, derived.facts.travel * derived.facts.unit, atol=1e-12)
     params = derived.params(['a', 'b'])
     assert params['estimator']['task_dim'] == 3 and params['trajectory']['task_dim'] == 3
-    direction = [float(v) for v in params['trajectory']['direction'].split(',')]
+    direction = params['trajectory']['direction']
     np.testing.assert_allclose(direction, derived.facts.unit)
     assert params['controller']['input_lower'] == [0.0] * 3
     # the hold inputs of the move are tendon 0 alone, within half its range

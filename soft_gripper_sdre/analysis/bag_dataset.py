@@ -178,7 +178,8 @@ def torque_joint_order(names: list[str]) -> list[str]:
 def _torques(path: Path, topic: str, messages: list, n: int) -> tuple[np.ndarray, np.ndarray]:
     first = list(messages[0][1].name)
     expected = torque_joint_order(first)
-    if not expected or len(expected) % n or len(expected) // n > MAX_INPUTS:
+    named = len(dict.fromkeys(name.rsplit('/', 1)[0] for name in expected))
+    if not expected or named != n:
         raise BagDataError(f'bag {path}: {topic} message 0 names {first[:12]}; expected '
                            f"'<finger>/ax0' … '<finger>/ax<m-1>' for each of the {n} finger(s) in "
                            f'tip_positions, the same m (1 to {MAX_INPUTS}) for every finger and '
@@ -282,7 +283,8 @@ def recorded_bounds(recordings: list[Recording]) -> InputBounds:
         if not lower[k] < upper[k]:
             raise BagDataError(f'input ax{k} was 0 in every command of '
                                + ', '.join(str(rec.path) for rec in recordings)
-                               + ': nothing to learn its effect from')
+                               + ': nothing to learn its effect from, nor its bounds (give '
+                               '--input-lower/--input-upper to train regardless)')
     return InputBounds(lower, upper)
 
 

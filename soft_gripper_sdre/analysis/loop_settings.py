@@ -422,7 +422,7 @@ class Derivation:
         ``input_lower``/``input_upper`` in place of ``torque_limit``. Its move is ``direction``
         (d values, the unit direction) with ``close_distance`` its length, and for a curved move
         ``close_path`` (d values per waypoint after the rest, relative to it, flat; then
-        ``direction`` is its chord), both as the node's text ``'x, y[, z], …'``.
+        ``direction`` is its chord), both lists of floats.
 
         Raises:
             ValueError: no settings were derived (:attr:`reason`).
@@ -448,9 +448,7 @@ class Derivation:
             plan = {'close_distance': close, 'side_distance': side, 'contact_distance': close}
         else:
             est['task_dim'] = f.d
-            # the trajectory node reads both as text, 'x, y[, z], …'
-            plan = {k: (', '.join(repr(v) for v in value) if isinstance(value, list) else value)
-                    for k, value in _plan(f).items()}
+            plan = _plan(f)
         return {'estimator': est, 'controller': ctrl, 'trajectory': plan}
 
     def move_text(self) -> str:

@@ -17,8 +17,15 @@ import numpy as np
 from soft_gripper_sdre.control.laws import LawSettings, register_law
 from soft_gripper_sdre.control.laws.feedforward import combine_feedforward
 from soft_gripper_sdre.control.sdre import SdreController
-from soft_gripper_sdre.control.tracking import DEFAULT_LOWPASS_HZ, LawIO, LawStep, Weights
+from soft_gripper_sdre.control.tracking import (
+    DEFAULT_LOWPASS_HZ,
+    LawIO,
+    LawStep,
+    Weights,
+    hand_path,
+)
 from soft_gripper_sdre.sim.dynamics import FingerDynamics, oracle_sdc
+from soft_gripper_sdre.sim.shape import HAND_SHAPE, ShapeError
 
 #: the law names this module registers
 ORACLE_LAWS = ('oracle', 'oracle_exact', 'oracle_ff')
@@ -89,7 +96,11 @@ class OracleFeedforwardLaw(OracleSdreLaw):
 
 
 def _oracle(s: LawSettings, law=OracleSdreLaw, reduced: bool = True) -> OracleSdreLaw:
-    return law(s.model.rest_tip, s.weights, s.u_max, n_fingers=s.n_fingers, method=s.method,
+    if s.bounds is not None and not hand_path(HAND_SHAPE, s.bounds):
+        raise ShapeError(f'the oracle laws are the simulated hand\'s (±u_max on both inputs); '
+                         f'got bounds {s.bounds}')
+    u_max = s.u_max if s.bounds is None else s.bounds.symmetric_limit
+    return law(s.model.rest_tip, s.weights, u_max, n_fingers=s.n_fingers, method=s.method,
                lowpass_hz=s.lowpass_hz, dt=s.dt, reduced=reduced)
 
 

@@ -52,8 +52,9 @@ def score_run(bag: Path, travel: float, bounds: InputBounds, d: int, plan_second
         |u − rest| at rest), ``commands``, ``outside_bounds``, ``outside_plant_bounds``.
 
     Raises:
-        ScoreError: the bag lacks the plan, commands or tips within the plan, or the arguments
-            are bad (named).
+        ScoreError: the bag lacks the plan, commands or tips within the plan, holds a command
+            of another size than the plan's fingers × the bounds' inputs, or the arguments are
+            bad (named).
     """
     from soft_gripper_sdre.analysis.bag import BagError, read_bag, topic_counts
     for name, ok, what in (('travel', np.isfinite(travel) and travel > 0, 'finite and > 0 m'),
@@ -98,7 +99,12 @@ def score_run(bag: Path, travel: float, bounds: InputBounds, d: int, plan_second
         raise ScoreError(f'bag {bag}: no {tips_topic} message within the plan '
                          f'({plan_seconds:g} s from its first point)')
     for _, m in by['torque_commands']:
-        u = np.asarray(m.effort, dtype=float).reshape(-1, bounds.m)   # by finger
+        u = np.asarray(m.effort, dtype=float)
+        if u.size != n * bounds.m:
+            raise ScoreError(f'{bag}: a torque command of {u.size} efforts ({list(m.name)}) '
+                             f'for {n} finger(s) of {bounds.m} input(s): another graph on this '
+                             'ROS domain?')
+        u = u.reshape(-1, bounds.m)                                    # by finger
         cmds.append(u)
         if start <= _ns(m.header.stamp) < start + rest_seconds * 1e9:
             rest_cmds.append(u)

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from enum import IntFlag
 
 import numpy as np
-from scipy.linalg import solve_continuous_are
+from scipy.linalg import solve_continuous_are, solve_continuous_lyapunov
 
 from soft_gripper_sdre.control.batched_linalg import well_conditioned_2x2
 
@@ -254,24 +254,70 @@ def checked_gains(A: np.ndarray, G: np.ndarray, P: np.ndarray, usable: np.ndarra
     return CheckedGains(K=K, Ks=Ks, residual=residual, ok=ok, failed=failed)
 
 
+def newton_kleinman(A: np.ndarray, G: np.ndarray, P0: np.ndarray, cost: RiccatiCost,
+                    iterations: int) -> np.ndarray:
+    """The CARE's stabilising solution for one system by Newton–Kleinman from a warm start P0:
+
+        K = R⁻¹ Gᵀ P_k,   (A − G K)ᵀ P_k+1 + P_k+1 (A − G K) = −(Q + Kᵀ R K)
+
+    for at most ``iterations`` Lyapunov solves, stopping when an iterate changes by less than
+    1e-12 of its norm. NaN where a solve fails; the caller's checks decide whether it is used."""
+    P = P0
+    try:
+        for _ in range(iterations):
+            K = cost.R_inv @ G.T @ P
+            Ak = A - G @ K
+            P_next = solve_continuous_lyapunov(Ak.T, -(cost.Q + K.T @ cost.R @ K))
+            done = np.linalg.norm(P_next - P) <= 1e-12 * np.linalg.norm(P_next)
+            P = P_next
+            if done:
+                break
+    except (np.linalg.LinAlgError, ValueError):
+        return np.full(P0.shape, np.nan)
+    return 0.5 * (P + P.T)
+
+
 def solve_and_check(A: np.ndarray, G: np.ndarray, finite: np.ndarray, sdc: bool, cost: RiccatiCost,
-                    residual_tol: float, cond_max: float) -> tuple[np.ndarray, CheckedGains, int]:
+                    residual_tol: float, cond_max: float, warm: tuple | None = None
+                    ) -> tuple[np.ndarray, CheckedGains, int]:
     """The reference path for n fingers: Remark 3 (:func:`solvability`), scipy's solution for every
     usable finger and every check of :func:`checked_gains`.
 
     ``finite`` (n,) says which fingers' A, G and states are finite (the others are flagged
-    NONFINITE and not solved; their A, G may hold anything). Returns (P (n, 2d, 2d), NaN where not
-    solved; the checked gains; how many scipy solves were attempted).
+    NONFINITE and not solved; their A, G may hold anything). ``warm`` = (P (n, 2d, 2d), which (n,),
+    iterations): those usable fingers first take :func:`newton_kleinman` from P, and scipy solves
+    only the ones whose result fails a check. Returns (P (n, 2d, 2d), NaN where not solved; the
+    checked gains; how many scipy solves were attempted).
     """
     A = np.where(finite[:, None, None], A, 0.0)
     G = np.where(finite[:, None, None], G, 0.0)
     usable, failed = solvability(A, G, finite, sdc, cost, cond_max)
     failed[~finite] |= Check.NONFINITE
     P = np.full(A.shape, np.nan)
-    solves = np.flatnonzero(usable)
+    if warm is not None:
+        P_warm, warm_rows, iterations = warm
+        tried = usable & warm_rows
+        for i in np.flatnonzero(tried):
+            P[i] = newton_kleinman(A[i], G[i], P_warm[i], cost, iterations)
+        trial = checked_gains(A, G, P, tried, failed.copy(), cost, residual_tol, cond_max)
+        trial.ok &= tried | ~usable             # a usable finger not tried is solved below
+        solves = np.flatnonzero(usable & ~trial.ok)
+        if solves.size == 0:
+            return P, trial, 0
+        P[solves] = np.nan
+    else:
+        solves = np.flatnonzero(usable)
     for i in solves:
         try:
             P[i] = care(A[i], G[i], cost.Q, cost.R)
         except (np.linalg.LinAlgError, ValueError):
             pass                                     # stays NaN: SOLVE_FAILED
-    return P, checked_gains(A, G, P, usable, failed, cost, residual_tol, cond_max), len(solves)
+    if warm is None:
+        return P, checked_gains(A, G, P, usable, failed, cost, residual_tol, cond_max), len(solves)
+    exact = np.zeros(len(A), dtype=bool)
+    exact[solves] = True
+    checked = checked_gains(A[exact], G[exact], P[exact], usable[exact], failed[exact], cost,
+                            residual_tol, cond_max)
+    for name in ('K', 'Ks', 'residual', 'ok', 'failed'):
+        getattr(trial, name)[exact] = getattr(checked, name)
+    return P, trial, len(solves)

@@ -13,9 +13,13 @@ K, K_s and the checks are those of eq. 23–24 and Remarks 2–3
 
 The compiled kernels are the hand's (d = 2, m = 2, bounds ±u_max:
 :func:`~soft_gripper_sdre.control.tracking.hand_path`); a controller of any other shape (a state
-of 2d, m inputs, read from the sizes of Q and R) or bounds runs the reference path whichever
-``method`` is asked for, with ``'fast'`` still meaning that its inputs are in SDC form (the
-stabilisability test on G2's rank instead of the PBH test where G2 has full row rank).
+of 2d, m inputs, read from the sizes of Q and R) or bounds runs the reference path's checks
+whichever ``method`` is asked for. With ``'fast'`` its inputs are taken in SDC form (the
+stabilisability test on G2's rank instead of the PBH test where G2 has full row rank) and each
+finger with an accepted solution starts from it: Newton–Kleinman in numpy
+(:func:`~soft_gripper_sdre.control.riccati.newton_kleinman`, at most ``max_nk_iterations``
+Lyapunov solves), scipy's CARE only where that fails a check. ``'reference'`` solves every finger
+with scipy.
 
 The supervisor owns the state the kernels update (warm starts, the gains in use), the exact path
 and the counters: a finger whose step fails any check uses its last valid gains (fallback), or a
@@ -150,14 +154,12 @@ class SdreController(SdreCounters):
     def __init__(self, Q, R, u_max, n: int = 4, method: str = 'fast', residual_tol: float = 1e-6,
                  cond_max: float = 1e8, max_nk_iterations: int = 5, nominal=None,
                  bounds: InputBounds | None = None) -> None:
-        if bounds is not None:
-            if not isinstance(bounds, InputBounds):
-                raise ValueError(f'bounds must be InputBounds, got {bounds!r}')
-            u_max = np.maximum(-bounds.lower, bounds.upper)
-        self.Q, self.R, self.u_max = checked_weights(Q, R, u_max)
+        self.Q, self.R, self.u_max = checked_weights(Q, R, 1.0 if bounds is not None else u_max)
         self.shape = FingerShape(self.Q.shape[0] // 2, self.R.shape[0])
-        self.bounds = (InputBounds(-self.u_max, self.u_max) if bounds is None
-                       else law_bounds(self.shape, 0.0, bounds))
+        if bounds is not None:
+            bounds = law_bounds(self.shape, 0.0, bounds)
+            self.u_max = np.maximum(-bounds.lower, bounds.upper)
+        self.bounds = InputBounds(-self.u_max, self.u_max) if bounds is None else bounds
         self.hand = hand_path(self.shape, self.bounds)
         self._lower, self._upper = (-self.u_max, self.u_max) if self.hand else (
             self.bounds.lower, self.bounds.upper)
@@ -167,6 +169,7 @@ class SdreController(SdreCounters):
         self.residual_tol, self.cond_max = float(residual_tol), float(cond_max)
         if int(max_nk_iterations) < 1:
             raise ValueError(f'max_nk_iterations must be >= 1, got {max_nk_iterations!r}')
+        self.max_nk_iterations = int(max_nk_iterations)
         self._cost = riccati_cost(self.Q, self.R)
         # the kernel's detectability argument needs Q ≻ 0 or Q's position block ≻ 0
         self.fast = (method == 'fast' and self.hand
@@ -305,8 +308,11 @@ class SdreController(SdreCounters):
         ``sdc``: test stabilisability in the SDC form (cond(G2)) instead of by PBH."""
         self.steps += 1
         finite = _finite_rows(A, G, x, x_d)
+        # off the hand's path 'fast' warm-starts each finger from its last accepted solution
+        warm = (None if self.hand or self.method != 'fast'
+                else (self.state.P, self.state.warm, self.max_nk_iterations))
         P, checked, solves = solve_and_check(A, G, finite, sdc, self._cost, self.residual_tol,
-                                             self.cond_max)
+                                             self.cond_max, warm)
         self.exact_solves += solves
         ok, s = checked.ok, self.state
         s.K[ok], s.Ks[ok], s.P[ok], s.warm[:] = checked.K[ok], checked.Ks[ok], P[ok], ok

@@ -117,8 +117,13 @@ def _pd(s: LawSettings, pd_gains: dict | None = None, feedforward: bool = False)
                  feedforward=feedforward, bounds=s.bounds, **(pd_gains or DEFAULT_PD))
 
 
+def _model_shape(model):
+    """The model's shape; no model (the Koopman laws need none) is the hand's."""
+    return HAND_SHAPE if model is None else shape_of(model)
+
+
 def _koopman(s: LawSettings, law=KoopmanMpcLaw, koopman_path=None) -> Law:
-    shape = shape_of(s.model)
+    shape = _model_shape(s.model)
     if not hand_path(shape, law_bounds(shape, s.u_max, s.bounds)):
         raise ShapeError(f'the Koopman laws are the hand\'s ({HAND_SHAPE}, bounds ±u_max on both '
                          f'inputs); this model has {shape}'
@@ -224,6 +229,6 @@ def make_law(name: str, model, weights: Weights, u_max: float, n_fingers: int = 
             raise ValueError(f'{key}={value!r}{meaning} is not an option of the {name!r} law; '
                              f'laws that take it: {owners or "none"}')
     if bounds is not None:
-        law_bounds(shape_of(model), u_max, bounds)           # the bounds fit the model's inputs
+        law_bounds(_model_shape(model), u_max, bounds)      # the bounds fit the model's inputs
     return entry.build(LawSettings(model, weights, u_max, n_fingers, method, lowpass_hz, dt,
                                    bounds), **taken)

@@ -54,8 +54,8 @@ class SdreLaw:
         shape = shape_of(model)
         self.io = LawIO(model.rest_tip, u_max, n_fingers, lowpass_hz, dt, shape, bounds)
         if self.io.hand:
-            self.sdre = SdreController(weights.Q, weights.R, u_max, n=self.io.n_fingers,
-                                       method=method)
+            self.sdre = SdreController(weights.Q, weights.R, self.io.u_max,
+                                       n=self.io.n_fingers, method=method)
         else:
             self.sdre = SdreController(*weights.for_shape(shape), u_max, n=self.io.n_fingers,
                                        method=method, bounds=self.io.bounds)

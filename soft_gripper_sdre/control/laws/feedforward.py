@@ -175,7 +175,7 @@ class SdreFeedforwardLaw:
         self.model, self.weights, self.ff_at = model, weights, ff_at
         self.n_fingers = self.io.n_fingers
         if self.io.hand:
-            self.sdre = SdreController(weights.Q, weights.R, u_max, n=self.n_fingers,
+            self.sdre = SdreController(weights.Q, weights.R, self.io.u_max, n=self.n_fingers,
                                        method=method)
         else:
             self.sdre = SdreController(*weights.for_shape(shape), u_max, n=self.n_fingers,
@@ -192,8 +192,8 @@ class SdreFeedforwardLaw:
             d = shape.d
             _, G0 = model.AG(np.zeros(shape.n_state))
             if self.io.hand:
-                self.integral = IntegralAction(G0[0, 2:, :], integral_gain, integral_band, u_max,
-                                               self.n_fingers, dt)
+                self.integral = IntegralAction(G0[0, 2:, :], integral_gain, integral_band,
+                                               self.io.u_max, self.n_fingers, dt)
             else:
                 self.integral = ReachableIntegralAction(G0[0, d:, :], integral_gain,
                                                         integral_band, self.io.bounds,

@@ -39,8 +39,11 @@ from __future__ import annotations
 
 import argparse
 from dataclasses import dataclass
+import fcntl
 import json
+import os
 from pathlib import Path
+import random
 import re
 import subprocess
 import sys
@@ -76,6 +79,35 @@ T_START, GRASP_SECONDS = 0.5, 5.5
 DEPLOY_TOPICS = ['tip_positions', 'true_tip_positions', 'state_estimate', 'grasp_reference',
                  'torque_commands']
 BEST_EFFORT = {'tips_reliability': 'best_effort'}
+#: the ROS domain IDs a run may take, and the lock file each is held by while in use (the test
+#: sessions' own: test/conftest.py)
+DOMAIN_IDS = (*range(1, 102), *range(215, 233))
+DOMAIN_LOCK = '/tmp/soft_gripper_sdre_ros_domain_{}.lock'
+
+
+def claim_domain(given: int | None) -> tuple[int | None, int | None]:
+    """(the ROS domain ID of the run, the descriptor of its held lock): ``given`` or the
+    environment's ``ROS_DOMAIN_ID`` as they are; else the first of :data:`DOMAIN_IDS`, in random
+    order, whose lock no test session or other run holds, so that no other graph on the machine
+    talks into this one. The lock goes with this process. (None, None): every one is taken."""
+    if given is not None:
+        return given, None
+    if os.environ.get('ROS_DOMAIN_ID', '').isdigit() and int(os.environ['ROS_DOMAIN_ID']):
+        return int(os.environ['ROS_DOMAIN_ID']), None
+    ids = list(DOMAIN_IDS)
+    random.SystemRandom().shuffle(ids)
+    for domain_id in ids:
+        try:
+            fd = os.open(DOMAIN_LOCK.format(domain_id), os.O_RDONLY | os.O_CREAT, 0o644)
+        except OSError:
+            continue
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            os.close(fd)
+            continue
+        return domain_id, fd
+    return None, None
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -220,8 +252,11 @@ def score(bag: Path, travel: float, bounds: InputBounds, d: int = 2,
     :func:`~soft_gripper_sdre.analysis.run_score.score_run` over the grasp): ``bounds`` the
     controller's, ``plant_bounds`` the gripper's (None: the controller's), ``d`` the tip's
     coordinates."""
-    from soft_gripper_sdre.analysis.run_score import score_run
-    return score_run(bag, travel, bounds, d, GRASP_SECONDS, T_START, plant_bounds)
+    from soft_gripper_sdre.analysis.run_score import ScoreError, score_run
+    try:
+        return score_run(bag, travel, bounds, d, GRASP_SECONDS, T_START, plant_bounds)
+    except ScoreError as exc:
+        raise RuntimeError(str(exc)) from None
 
 
 def identify(a: argparse.Namespace, env: dict, bags: Path) -> dict:
@@ -314,7 +349,8 @@ def main(argv: list[str] | None = None) -> int:
     problem = argument_problem(a)
     if problem:
         ap.error(problem)
-    env = ros_env(a.domain_id)
+    domain_id, _lock = claim_domain(a.domain_id)
+    env = ros_env(domain_id)
     out = a.out
     metrics: dict = {'plant': a.plant, 'setup': SETUPS[a.plant].__dict__, 'fingers': FINGERS}
     bags = a.bags or out / 'bags'

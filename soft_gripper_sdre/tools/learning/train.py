@@ -64,11 +64,11 @@ def _parser() -> argparse.ArgumentParser:
                       help='tip measurement noise σ [m] for the KF/RTS and the derived estimator '
                            '(default: estimated from the settle phase at zero torque; a bag '
                            'without one is refused)')
-    bags.add_argument('--task-dim', choices=('auto', '2', '3'), default='2',
+    bags.add_argument('--task-dim', choices=('auto', '2', '3'), default=None,
                       help='coordinates of the tip the model learns: 2 (x, y) or 3 (x, y, z); '
                            "auto: 3 when a tip's z moves in the training bags (planar drivers "
-                           "publish z = 0), else 2. Default %(default)s: this package's hand "
-                           "is learned in x, y though its simulated tips' z moves")
+                           "publish z = 0), else 2. Default 2: this package's hand is learned "
+                           "in x, y though its simulated tips' z moves")
     bags.add_argument('--input-lower', type=float, nargs='+', metavar='U',
                       help='lower bound of each input, one value per input in the SI unit of its '
                            'command (N·m, N, Pa), recorded in the checkpoint; with '
@@ -163,7 +163,7 @@ def _main_data(parser: argparse.ArgumentParser, args: argparse.Namespace,
     """The ``--data`` path: the records read and labelled, the model trained and written."""
     if args.data is None:
         parser.error('give --data DIR (.npz files) or --bag DIR ... --val-bag DIR (rosbag2)')
-    if args.task_dim != 'auto' or args.input_lower is not None or args.input_upper is not None:
+    if args.task_dim is not None or args.input_lower is not None or args.input_upper is not None:
         parser.error('--task-dim, --input-lower and --input-upper apply to --bag only (the .npz '
                      "records are the hand's: a planar tip, two torques)")
     variant = args.variant or ('paper' if args.preset == 'paper' else 'identifying')
@@ -233,7 +233,7 @@ def _main_bags(parser: argparse.ArgumentParser, args: argparse.Namespace,
         train_from_bags(args.bag, args.val_bag, args.out, settings, tips_topic=args.tips_topic,
                         torques_topic=args.torques_topic, min_duration=args.min_duration,
                         finger=args.finger, meas_std=args.meas_std, jerk_psd=args.jerk_psd,
-                        task_dim=args.task_dim if args.task_dim == 'auto' else int(args.task_dim),
+                        task_dim=('auto' if args.task_dim == 'auto' else int(args.task_dim or 2)),
                         input_lower=args.input_lower, input_upper=args.input_upper)
     except (BagDataError, ShapeError) as exc:
         parser.error(str(exc))
