@@ -60,6 +60,7 @@ def _tool(*args, timeout=60, env=None):
     ('no_names', [], 'finger_names must be a list of 1 to 4 names'),
     ('no_travel', [], 'close_distance > 0'),
     ('exists', [], 'exists already'),
+    ('bad_domain', [], "ROS_DOMAIN_ID 'lab' is not a domain number"),
 ])
 def test_bad_arguments_exit_2_naming_them_with_nothing_written(tmp_path, make, args, message):
     src = tmp_path / 'src'
@@ -67,7 +68,7 @@ def test_bad_arguments_exit_2_naming_them_with_nothing_written(tmp_path, make, a
     path = src / 'params.yaml'
     if make == 'text':
         path.write_text('just: text\n')
-    elif make == 'ok' or make == 'exists':
+    elif make in ('ok', 'exists', 'bad_domain'):
         params_file(path)
     elif make == 'no_times':
         params_file(path, drop=('t_hold', 't_open'))
@@ -84,7 +85,8 @@ def test_bad_arguments_exit_2_naming_them_with_nothing_written(tmp_path, make, a
     if make == 'exists':
         out.mkdir()
     before = sorted(p.name for p in src.iterdir())
-    r = _tool(*(['--params', str(path)] if make else []), '--out', str(out), *args)
+    env = {**os.environ, 'ROS_DOMAIN_ID': 'lab'} if make == 'bad_domain' else None
+    r = _tool(*(['--params', str(path)] if make else []), '--out', str(out), *args, env=env)
     assert r.returncode == 2, r.stderr
     assert message in r.stderr and 'Traceback' not in r.stderr, r.stderr
     assert sorted(p.name for p in src.iterdir()) == before

@@ -16,7 +16,8 @@ the plan as a share of the travel (on ``true_tip_positions`` when the driver pub
 the measured tips), the share of commands at a bound while the plan holds at rest, and the
 commands outside the controller's bounds.
 
-Every node reads the tips best effort (which also matches a reliable driver). ``OUT`` (default:
+Every node reads the tips best effort (which also matches a reliable driver); the nodes run on
+the caller's ROS domain (or ``--domain-id``) with the caller's DDS settings. ``OUT`` (default:
 ``deploy_<law>`` beside ``params.yaml``) gets ``bag/``, ``logs/`` and ``score.json``. Bad
 arguments or a ``params.yaml`` without what the deployment needs: exit 2, nothing started and
 nothing written; a node that fails or a bag that cannot be scored: exit 1, naming it.
@@ -27,6 +28,7 @@ import argparse
 import json
 import math
 from pathlib import Path
+import re
 import sys
 import time
 
@@ -142,6 +144,10 @@ def check(a: argparse.Namespace) -> tuple[Settings | None, str | None]:
         return None, f'--startup-timeout must be in [1, 3600] s, got {a.startup_timeout}'
     if a.domain_id is not None and not 0 <= a.domain_id <= 232:
         return None, f'--domain-id must be in [0, 232], got {a.domain_id}'
+    import os
+    if a.domain_id is None and not re.fullmatch(r'\d{0,3}', os.environ.get('ROS_DOMAIN_ID', '')):
+        return None, (f'ROS_DOMAIN_ID {os.environ["ROS_DOMAIN_ID"]!r} is not a domain number; '
+                      'set it to one, or give --domain-id')
     try:
         settings = Settings(a.params)
     except ValueError as exc:
@@ -154,12 +160,19 @@ def check(a: argparse.Namespace) -> tuple[Settings | None, str | None]:
 
 
 def _env(domain_id: int | None) -> dict:
+    """The nodes' environment: the caller's DDS settings as they are (the driver may run on
+    another host: no discovery range is imposed), the domain ``--domain-id`` or the caller's
+    (0 by default, as ROS), and the graph's pinned kernels."""
     import os
 
     from soft_gripper_sdre.tools.graph.procs import ros_env
-    if domain_id is None and 'ROS_DOMAIN_ID' not in os.environ:
-        domain_id = 0                   # the lab's driver runs on the default domain
-    return ros_env(domain_id)
+    if domain_id is None:
+        domain_id = int(os.environ.get('ROS_DOMAIN_ID') or 0)
+    env = ros_env(domain_id)
+    env.pop('ROS_AUTOMATIC_DISCOVERY_RANGE')
+    if 'ROS_AUTOMATIC_DISCOVERY_RANGE' in os.environ:
+        env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE']
+    return env
 
 
 def deploy(a: argparse.Namespace, s: Settings) -> Path:
