@@ -108,8 +108,9 @@ def test_one_chambers_bounds_given_as_plain_numbers():
      'input ax1: the lower bound must be below the upper one, got [2.0, 1.0]'),
     (dict(input_lower=[0.0], input_upper=[1.0], signals=['mine'], spec_file='/no/such.yaml'),
      'signal file /no/such.yaml does not exist'),
-    (dict(input_lower=[0.0], input_upper=[1.0], level='auto', max_excursion=0.01,
-          signals=['u1', 'mine'], spec_file='SPEC'), 'all built-in or all from spec_file'),
+    (dict(input_lower=[0.0], input_upper=[1.0], level='auto', level_per='plan',
+          max_excursion=0.01, signals=['u1', 'mine'], spec_file='SPEC'),
+     'all built-in or all from spec_file'),
 ])
 def test_bad_bounds_stop_the_node_at_start_up_naming_them(params, message, tmp_path):
     if params.get('spec_file') == 'SPEC':

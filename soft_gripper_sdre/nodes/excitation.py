@@ -30,14 +30,23 @@ the same tips holds at least ``settle_samples`` of them before the first non-zer
 training takes the noise level from. The tips answered with zero go to /diagnostics
 (``settle_tips``) and the log at the first non-zero torque.
 
-Level (``level``): ``fixed`` plays the signals at ``amplitude``. ``auto`` first searches the
+Level (``level``): ``fixed`` plays the signals at ``amplitude``. ``auto`` searches the
 amplitude on the finger (:class:`~soft_gripper_sdre.sim.excitation.LevelSearch`): after the settle
 phase, probes at amplitudes rising from ``level_start``, each ``level_probe_time`` long and
 followed by ``settle_time`` at zero, until a probe moves an excited tip ``level_target`` ×
-``max_excursion`` from rest (or reaches the torque limit); the signals are then played at the
-amplitude that scales the response to that target, kept off the clip. The probes are published
-and recorded like the signals. The amplitude, the probes and the share of the signals' samples
-at the clip go to the log and /diagnostics (``amplitude``, ``probes``, ``clip_share``).
+``max_excursion`` from rest (or reaches the torque limit); the signal is then played at the
+amplitude that scales the response to that target, kept off the clip. With ``level_per:
+signal`` (the default) each signal is levelled on its own, just before it plays: its probes are
+the signal itself, its first ``level_probe_time`` seconds, each excursion scaled by the
+signal's measured response (the whole signal's peak excursion over the probe's, as a linear model
+fit on the probe's record predicts them:
+:meth:`~soft_gripper_sdre.sim.excitation.SignalProbe.response_ratio`), the first probe at the
+amplitude the signal before was played at (so usually one or two probes each), because one
+amplitude for every signal leaves the weaker or faster ones short of the target. With
+``level_per: plan`` one search before the first signal probes with a sine at the signals' peak
+torque and every signal is played at its amplitude. The probes are published and recorded like
+the signals. The amplitude, the probes and the share of the signals' samples at the clip go to
+the log and /diagnostics (``amplitude``, ``probes``, ``clip_share``; ``levels``: each signal's).
 
 Timing (``timing``):
 
@@ -55,6 +64,10 @@ its middle for a two-sided input and from its rest value (the bound nearest zero
 one-sided one, a chamber or a tendon; a spec file's signals as inputs in their units, clipped
 (:mod:`soft_gripper_sdre.sim.excitation`). "Zero torque" below is then every input at rest.
 Symmetric bounds on two inputs are the hand's ±torque_limit.
+
+Driver limits: a driver that reports its bounds on /diagnostics (``plant_driver``) narrower
+than this node's limits, or a rising count of commands it clipped, gets a WARN
+(:mod:`soft_gripper_sdre.nodes.driver_limits`): give the excitation the driver's limit.
 
 Stops: at the end of the plan, on shutdown (SIGINT/SIGTERM) and on a fault, zero torque is
 published before the node exits (status 0 at the end of the plan, 1 after a fault). Faults: no
@@ -85,6 +98,7 @@ from sensor_msgs.msg import JointState
 from soft_gripper_sdre.nodes import cdr
 from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.common import ERROR, OK, Diagnostics, run
+from soft_gripper_sdre.nodes.driver_limits import DriverLimits
 from soft_gripper_sdre.nodes.excitation_report import ACTIVITY, RunReport
 from soft_gripper_sdre.nodes.params import (
     Param,
@@ -167,9 +181,14 @@ PARAMS = (
           'max_excursion', '', 0.05, 1.0, read_only=True),
     Param('level_start', 0.05, 'level auto: the amplitude of the first probe (then up to twice the '
           'last per probe)', '', 1e-6, 100.0, read_only=True),
-    Param('level_probe_time', 2.0, 'level auto: the length of each probe (two periods of a sine '
-          'at the signals\' peak torque; settle_time at zero after each)', 's', 0.1, 60.0,
+    Param('level_probe_time', 2.0, 'level auto: the length of each probe (level_per signal: '
+          "the signal's first seconds; plan: two periods of a "
+          "sine at the signals' peak torque; settle_time at zero after each)", 's', 0.1, 60.0,
           read_only=True),
+    Param('level_per', 'signal', 'level auto: signal = each signal its own amplitude, probed '
+          'with its own first seconds (the first probe of each at the level of the one '
+          'before); plan = one amplitude for every signal, probed with a sine at their peak '
+          'torque', choices=('signal', 'plan'), read_only=True),
     tips_reliability_param(),
 )
 
@@ -214,6 +233,10 @@ class ExcitationNode(Node):
         self.sub_diag = (self.create_subscription(DiagnosticArray, DIAGNOSTICS, self._on_report,
                                                   STREAM_QOS) if self.recorder else None)
         self.report = RunReport(self.diag, self.get_logger(), self.run, p)
+        plan = self.run.whole
+        limits = ((plan.map.bounds.lower, plan.map.bounds.upper) if plan.map is not None else
+                  (np.full(2, -plan.torque_limit), np.full(2, plan.torque_limit)))
+        self.driver_limits = DriverLimits(self, *limits, self.diag)
         self._watchdog = self.create_timer(0.05, self._check_watchdog)
         if p['timing'] == 'timer':
             self._ticker = self.create_timer(p['period'], self._on_tick, clock=self.get_clock())
@@ -344,7 +367,7 @@ class ExcitationNode(Node):
         step = self.run.at(t, tips)
         self.report.step(step)
         if step.phase is Phase.OVER:
-            self.stop(stamp, f'finished: {self.run.plan.duration:g} s played')
+            self.stop(stamp, f'finished: {self.run.whole.duration:g} s played')
             return
         self._publish(stamp, step.u)
         self.diag.good('commands', ACTIVITY[step.phase])
@@ -420,8 +443,11 @@ def excitation_run(p: dict, n: int) -> ExcitationRun:
                               p['amplitude'], bounds)
     except (SignalSpecError, ValueError) as exc:
         raise ParameterError(str(exc)) from None
+    settle = SettlePhase(p['settle_time'], p['settle_samples'])
+    if p['level'] == 'auto' and p.get('level_per', 'plan') == 'signal':
+        return ExcitationRun(plan, settle, per_signal=signal_searches(p, plan, finger))
     search = level_search(p, plan, finger) if p['level'] == 'auto' else None
-    return ExcitationRun(plan, SettlePhase(p['settle_time'], p['settle_samples']), search)
+    return ExcitationRun(plan, settle, search)
 
 
 def input_bounds(p: dict) -> InputBounds | None:
@@ -453,12 +479,8 @@ def input_bounds(p: dict) -> InputBounds | None:
     return bounds
 
 
-def level_search(p: dict, plan: ExcitationPlan, finger: int | None) -> LevelSearch:
-    """The amplitude search of ``level: auto`` for ``plan`` (cross-checks its parameters).
-
-    Raises:
-        ParameterError: a setting level auto cannot work with (the message names it).
-    """
+def _check_level(p: dict) -> None:
+    """Raises ParameterError for a setting level auto cannot work with (naming it)."""
     for name, bad, why in (
             ('max_excursion', p['max_excursion'] <= 0,
              'level auto needs max_excursion > 0 (it aims at level_target × max_excursion)'),
@@ -469,12 +491,53 @@ def level_search(p: dict, plan: ExcitationPlan, finger: int | None) -> LevelSear
              'amplitude at 1.0, or use level fixed')):
         if bad:
             raise ParameterError(f'parameter {name!r}: {why}')
+
+
+def _level_settings(p: dict, start: float | None = None) -> LevelSettings:
+    return LevelSettings(target=p['level_target'],
+                         start=p['level_start'] if start is None else start,
+                         probe_time=p['level_probe_time'], settle_time=p['settle_time'])
+
+
+def signal_searches(p: dict, plan: ExcitationPlan, finger: int | None):
+    """The searches of ``level: auto`` with ``level_per: signal`` for ``plan``'s signals: a
+    factory (the signal's plan, the amplitude to start at or None) -> its
+    :class:`LevelSearch`, probing with the signal itself (cross-checks the parameters and that
+    every signal can probe its own level).
+
+    Raises:
+        ParameterError: a setting level auto cannot work with, or a signal zero over its probe
+            or without room within the limits (the message names it).
+    """
+    _check_level(p)
+    for j in range(len(plan.segments)):
+        try:
+            plan.signal_plan(j).own_probe(p['level_probe_time'])
+        except ValueError as exc:
+            raise ParameterError(f"parameter 'signals': {exc}") from None
+
+    def make(single: ExcitationPlan, start: float | None) -> LevelSearch:
+        probe = single.own_probe(p['level_probe_time'])
+        if start is not None:
+            start = min(start, probe.largest)
+        return LevelSearch(np.ones(2), 1.0, p['max_excursion'], single.n_fingers, finger,
+                           _level_settings(p, start), signal=probe)
+    return make
+
+
+def level_search(p: dict, plan: ExcitationPlan, finger: int | None) -> LevelSearch:
+    """The amplitude search of ``level: auto`` with ``level_per: plan`` for ``plan``
+    (cross-checks its parameters).
+
+    Raises:
+        ParameterError: a setting level auto cannot work with (the message names it).
+    """
+    _check_level(p)
     peak = plan.peak_torque
     if not peak.max() > 0:
         raise ParameterError("parameter 'signals': every signal is zero; level auto has "
                              'nothing to scale')
-    settings = LevelSettings(target=p['level_target'], start=p['level_start'],
-                             probe_time=p['level_probe_time'], settle_time=p['settle_time'])
+    settings = _level_settings(p)
     inputs = None
     if plan.map is not None:
         try:

@@ -27,7 +27,7 @@ class RunReport:
     def __init__(self, diag: Diagnostics, log, run: ExcitationRun, p: dict) -> None:
         self.diag, self.log, self.run, self.p = diag, log, run, p
         diag.values.update(signal='waiting for tip_positions', level=p['level'],
-                           plan_duration=f'{run.plan.duration:.3f}')
+                           plan_duration=f'{run.whole.duration:.3f}')
         if run.search is None:
             diag.values.update(amplitude=f'{p["amplitude"]:g}',
                                clip_share=f'{run.plan.clip_share():.4f}')
@@ -36,16 +36,19 @@ class RunReport:
         """One line of what will run (``names``: the fingers): the signals, the finger, the
         limit, the level, the timing."""
         p, plan, search = self.p, self.run.plan, self.run.search
-        signals = ', '.join(seg.signal.name for seg in plan.segments)
+        signals = ', '.join(seg.signal.name for seg in self.run.whole.segments)
         where = 'every finger' if p['finger'] < 0 else names[p['finger']]
         level = (f'amplitude {p["amplitude"]:g} ({self._clip_text()})' if search is None else
-                 f'amplitude by probes aiming at {1e3 * search.goal:g} mm')
+                 f'amplitude by probes aiming at {1e3 * search.goal:g} mm'
+                 + (', each signal its own' if self.run.per_signal is not None else ''))
         within = (f'|u| <= {p["torque_limit"]:g} N·m' if plan.map is None
                   else f'{plan.m} input(s) within {plan.map.bounds}')
         self.log.info(
             f'{signals} on {where} of {len(names)}, '
             f'{p["settle_time"]:g} s settle before each, {within}, '
-            f'{level}, {plan.duration:g} s in all; {p["timing"]} timing; starting once '
+            f'{level}, {self.run.whole.duration:g} s in all'
+            + (' and the probes' if search is not None else '')
+            + f'; {p["timing"]} timing; starting once '
             f'{TORQUE_COMMANDS} has {p["min_command_subscribers"]} subscriber(s)')
 
     def step(self, step: RunStep) -> None:
@@ -83,6 +86,16 @@ class RunReport:
                            for pr in search.probes)
         self.diag.values.update(level='auto: chosen', amplitude=f'{search.amplitude:.6g}',
                                 clip_share=f'{self.run.plan.clip_share():.4f}', probes=probes)
+        if self.run.per_signal is not None:
+            name = self.run.plan.segments[0].signal.name
+            self.diag.values['levels'] = ', '.join(f'{n} {a:.4g}' for n, a in self.run.levels)
+            scaled = ', '.join(f'{r:.3g}' for r in search.ratios)
+            self.log.info(f'level of {name}: probes of its first {search.probe_time:g} s '
+                          f'(amplitude → peak excursion) {probes}, taken × {scaled} for the '
+                          f'whole signal (its measured response); amplitude '
+                          f'{search.amplitude:.4g} for {1e3 * search.goal:g} mm, '
+                          f'{self._clip_text()}')
+            return
         self.log.info(f'level probes (amplitude → peak excursion): {probes}; amplitude '
                       f'{search.amplitude:.4g} for {1e3 * search.goal:g} mm, {self._clip_text()}')
 

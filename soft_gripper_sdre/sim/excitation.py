@@ -13,6 +13,17 @@ followed by a settle phase, measures each probe's peak excursion from rest, and 
 probe moves the tip to near a target distance; the amplitude then scales the signals to that
 target, assuming a roughly linear response (see the class).
 
+**The level per signal.** One amplitude for every signal leaves the weaker or faster signals
+short of the target (and a sine probe at the signals' peak says little about a multisine's
+response). A search can instead level one signal (:meth:`ExcitationPlan.signal_plan`) with
+probes made of the signal itself (:meth:`ExcitationPlan.own_probe`, :class:`SignalProbe`): its
+first ``probe_time`` seconds. A signal's strongest response may come later than its start (slow
+components adding up), so each probe's excursion is scaled by the signal's measured response:
+a second-order ARX model per tip coordinate fit on the probe's own record (inputs and tips)
+predicts the whole signal's peak excursion over the probe's
+(:meth:`SignalProbe.response_ratio`, within [1, :data:`MAX_RATIO`]); where the fit is unstable
+or degenerate, the ratio of the signal's peak input swing to the probe's stands in.
+
 The signals are the built-in ones or those of a YAML file
 (:mod:`soft_gripper_sdre.sim.signal_specs`).
 
@@ -262,6 +273,40 @@ class ExcitationPlan:
             u[self.finger] = value
         return u
 
+    def signal_plan(self, j: int) -> 'ExcitationPlan':
+        """The plan of signal ``j`` alone: its settle phase, then the signal (the same fingers,
+        limit, amplitude and bounds)."""
+        plan = copy.copy(self)
+        plan.segments = (Segment(self.segments[j].signal, self.settle_time),)
+        plan.duration = self.settle_time + self.segments[j].signal.duration
+        plan._samples = None
+        return plan
+
+    def own_probe(self, probe_time: float) -> 'SignalProbe':
+        """The probe of a :class:`LevelSearch` that plays this plan's first signal itself: its
+        first ``probe_time`` seconds (class doc of :class:`SignalProbe`).
+
+        Raises:
+            ValueError: the signal is zero over the probe, or the plan has no room for it.
+        """
+        sig = self.segments[0].signal
+        n = max(1, int(math.ceil(sig.duration * SAMPLE_RATE)))
+        s = sig.torque(np.arange(n) / SAMPLE_RATE)
+        s = np.where(np.isfinite(s), s, 0.0)
+        if self.map is None:
+            swing = np.abs(s)
+        else:
+            _, o, g = self.map.terms(sig)
+            swing = np.abs(o + g * s)
+        head = swing[:max(1, int(math.ceil(min(probe_time, sig.duration) * SAMPLE_RATE)))]
+        if not head.max() > 0:
+            raise ValueError(f'signal {sig.name!r} is zero over its first {probe_time:g} s: '
+                             'it cannot probe its own level')
+        largest = self.largest_unclipped_amplitude()
+        if not 0 < largest < math.inf:
+            raise ValueError(f'signal {sig.name!r} has no room within the limit')
+        return SignalProbe(self, float(swing.max() / head.max()), largest)
+
     def probe_inputs(self) -> 'ProbeInputs':
         """What a :class:`LevelSearch` probes with for this plan's bounds (module doc, class
         doc): the first signal's b and o, its peak swing g ∘ max|s| per input and the largest
@@ -295,6 +340,92 @@ class ProbeInputs:
     offset: np.ndarray
     swing: np.ndarray
     largest: float
+
+
+#: the most a signal's measured response may scale its probe's excursion
+MAX_RATIO = 4.0
+
+
+def _arx_response(a1: float, a2: float, b: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """y_k = a1 y_{k−1} + a2 y_{k−2} + b[0] · x_{k−1} + b[1] · x_{k−2} from rest, for the inputs
+    ``x`` (N, m); ``b`` (2, m)."""
+    drive = np.zeros(len(x))
+    drive[1:] += x[:-1] @ b[0]
+    drive[2:] += x[:-2] @ b[1]
+    y = [0.0, 0.0]
+    for v in drive.tolist():
+        y.append(a1 * y[-1] + a2 * y[-2] + v)
+    return np.array(y[2:])
+
+
+@dataclass(frozen=True)
+class SignalProbe:
+    """A :class:`LevelSearch`'s probe made of the signal it levels: the single-signal ``plan``'s
+    signal from its start, at the probe's amplitude (clipped as the plan clips). A signal's
+    strongest moment may come after the probe: ``correction`` (>= 1) is the signal's peak over
+    its peak within the probe (|s| for the hand's torques, |o + g ∘ s| for bounded inputs), the
+    quasi-static scaling the search takes a probe's excursion times when
+    :meth:`response_ratio` has no answer. ``largest`` is the amplitude at which the signal
+    reaches the limit (the search does not exceed it)."""
+
+    plan: 'ExcitationPlan'
+    correction: float
+    largest: float
+
+    def signal_inputs(self, times: np.ndarray, amplitude: float) -> np.ndarray:
+        """The torques or inputs (N, m) of the whole signal at ``times`` (N,) [s] and
+        ``amplitude``, as the plan plays them."""
+        plan, sig = self.plan, self.plan.segments[0].signal
+        value = sig.torque(np.asarray(times, dtype=float))
+        value = np.where(np.isfinite(value), value, 0.0)
+        if plan.map is not None:
+            return plan.map.inputs(sig, value, amplitude)
+        return np.clip(value * amplitude, -plan.torque_limit, plan.torque_limit)
+
+    def response_ratio(self, times: np.ndarray, moved: np.ndarray, inputs: np.ndarray,
+                       amplitude: float) -> float | None:
+        """The signal's measured response (module doc): from one probe's record, the tip's
+        displacement ``moved`` (N, 3) [m] from rest and the inputs (N, m) applied at ``times``
+        (N,) [s], fit y_k = a1 y_{k−1} + a2 y_{k−2} + B1 x_{k−1} + B2 x_{k−2} per coordinate (x:
+        the inputs from rest) and return the peak |y| it predicts for the whole signal at
+        ``amplitude`` over the peak it predicts for the probe, within [1, :data:`MAX_RATIO`];
+        None when the record is too short or the fit is unstable or degenerate."""
+        times, moved, inputs = (np.asarray(v, dtype=float) for v in (times, moved, inputs))
+        if len(times) < 30 or not (np.all(np.isfinite(moved)) and np.all(np.isfinite(inputs))):
+            return None
+        dt = float(np.median(np.diff(times)))
+        if not dt > 0:
+            return None
+        rest = self.plan.rest
+        x = inputs - rest
+        grid = np.arange(0.0, self.plan.segments[0].signal.duration, dt)
+        x_full = self.signal_inputs(grid, amplitude) - rest
+        full, probe = np.zeros((len(grid), 3)), np.zeros((len(x), 3))
+        for c in range(3):
+            y = moved[:, c]
+            if not np.ptp(y) > 0:
+                continue
+            reg = np.column_stack([y[1:-1], y[:-2], x[1:-1], x[:-2]])
+            coef, *_ = np.linalg.lstsq(reg, y[2:], rcond=None)
+            a1, a2, b = coef[0], coef[1], coef[2:].reshape(2, -1)
+            if not (np.all(np.isfinite(coef)) and np.all(np.abs(np.roots([1.0, -a1, -a2])) < 1)):
+                return None
+            full[:, c] = _arx_response(a1, a2, b, x_full)
+            probe[:, c] = _arx_response(a1, a2, b, x)
+        seen = float(np.linalg.norm(probe, axis=1).max())
+        if not seen > 0:
+            return None
+        ratio = float(np.linalg.norm(full, axis=1).max()) / seen
+        return min(max(ratio, 1.0), MAX_RATIO) if math.isfinite(ratio) else None
+
+    def inputs(self, s: float, amplitude: float) -> np.ndarray:
+        """The torque (2,) or inputs (m,) at ``s`` seconds into the signal at ``amplitude``."""
+        plan, seg = self.plan, self.plan.segments[0]
+        value = seg.signal.torque(np.array([s]))[0]
+        value = np.where(np.isfinite(value), value, 0.0)
+        if plan.map is not None:
+            return plan.map.inputs(seg.signal, value, amplitude)
+        return np.clip(value * amplitude, -plan.torque_limit, plan.torque_limit)
 
 
 # -- choosing the amplitude ------------------------------------------------------------------
@@ -343,7 +474,12 @@ class LevelSearch:
     (``inputs``, :class:`ProbeInputs`) the probe is base + a (offset + swing ∘ w) clipped, w
     the same sine on every input over the first period and of alternating sign from input to
     input over the second, and the largest amplitude is ``inputs.largest`` (``peak`` and
-    ``torque_limit`` are not used then).
+    ``torque_limit`` are not used then). With ``signal`` (:class:`SignalProbe`) the probe is the
+    signal being levelled itself, its first ``probe_time`` seconds at a_k (the level per
+    signal), each probe's excursion is taken times the signal's measured response
+    (:meth:`SignalProbe.response_ratio` on the probe's record of inputs and tips, else
+    ``signal.correction``; ``ratios``) and the largest amplitude is ``signal.largest``
+    (``peak``, ``torque_limit`` and ``inputs`` are not used then).
 
     With the goal g = ``target`` × ``max_excursion``: a_0 = ``start``; after a probe with
     e_k ≥ ``close`` × g, or at the largest amplitude (the signals' peak at the torque limit),
@@ -362,9 +498,19 @@ class LevelSearch:
     def __init__(self, peak: np.ndarray, torque_limit: float, max_excursion: float,
                  n_fingers: int, finger: int | None = None,
                  settings: LevelSettings = LevelSettings(),
-                 inputs: ProbeInputs | None = None) -> None:
+                 inputs: ProbeInputs | None = None, signal: SignalProbe | None = None) -> None:
         self.inputs = inputs
-        if inputs is not None:          # the probe's own scale: peak and torque_limit unused
+        self.signal = signal
+        self.correction = 1.0 if signal is None else float(signal.correction)
+        if signal is not None:          # the signal's own scale: peak and torque_limit unused
+            m = signal.plan.m
+            inputs = None
+            self._signal_rest = signal.plan.rest.copy()
+            peak, torque_limit = np.ones(2), signal.largest
+            if not (math.isfinite(self.correction) and self.correction >= 1):
+                raise ValueError(f'signal probe correction must be finite and >= 1, got '
+                                 f'{self.correction!r}')
+        elif inputs is not None:        # the probe's own scale: peak and torque_limit unused
             if not (0 < inputs.largest < math.inf and inputs.swing.max() > 0):
                 raise ValueError('the signals must move the inputs and have room within their '
                                  f'bounds (largest amplitude {inputs.largest!r})')
@@ -399,10 +545,15 @@ class LevelSearch:
         self.largest = float(torque_limit) / float(peak.max())
         m = 2 if inputs is None else inputs.bounds.m
         self._rest = np.zeros(2) if inputs is None else inputs.bounds.rest
+        if signal is not None:
+            m, self._rest = signal.plan.m, self._signal_rest
         self._alternate = np.array([1.0, -1.0]) if inputs is None else (-1.0) ** np.arange(m)
         self.ratio, self.close = float(s.ratio), float(s.close)
         self.probe_time, self.settle_time = float(s.probe_time), float(s.settle_time)
         self.probes: list[Probe] = []
+        #: per probe the factor its excursion was taken times (the signal's response, 1 without)
+        self.ratios: list[float] = []
+        self._record: list[tuple[float, np.ndarray, np.ndarray]] = []
         self.rest: np.ndarray | None = None
         self.amplitude: float | None = None
         self.end: float | None = None
@@ -426,6 +577,8 @@ class LevelSearch:
         bounded inputs the inputs (m,) (the rest inputs outside it)."""
         if not 0 <= s < self.probe_time:
             return self._rest.copy()
+        if self.signal is not None:
+            return self.signal.inputs(s, amplitude)
         w = math.sin(4 * math.pi * s / self.probe_time)
         if self.inputs is None:
             return amplitude * self.peak * np.array([w, w if s < self.probe_time / 2 else -w])
@@ -459,11 +612,22 @@ class LevelSearch:
         d = np.linalg.norm(rows - self.rest, axis=-1)
         self._excursion = max(self._excursion, float(d.max()) if np.all(np.isfinite(d)) else 0.0)
         u[self.rows] = self.probe_torque(t - self._start, self._a)
+        if self.signal is not None:
+            self._record.append((t, rows - self.rest, u[self.rows[0]].copy()))
         return u
 
     def _finish_probe(self) -> None:
-        a, e = self._a, self._excursion
-        self.probes.append(Probe(a, self._start, e))
+        ratio = None
+        if self.signal is not None and self._record:
+            times = np.array([r[0] for r in self._record])
+            moved = np.array([r[1] for r in self._record])           # (N, rows, 3)
+            row = int(np.argmax(np.nanmax(np.linalg.norm(moved, axis=-1), axis=0)))
+            ratio = self.signal.response_ratio(times, moved[:, row],
+                                               np.array([r[2] for r in self._record]), self._a)
+            self._record = []
+        self.ratios.append(self.correction if ratio is None else ratio)
+        a, e = self._a, self._excursion * self.ratios[-1]
+        self.probes.append(Probe(a, self._start, self._excursion))
         self._start += self.probe_time + self.settle_time
         self._excursion = 0.0
         if e >= self.close * self.goal or a >= self.largest * (1 - 1e-9):

@@ -15,9 +15,10 @@ with the settings the tools produce and nothing tuned by hand (``--bags`` reuses
 run's recordings and starts at step 2); a lab with one-sided actuators gives their bounds
 (``input_lower``/``input_upper``) to the excitation and to training, as the preset's:
 
-1. **identify** — recorder + excitation node, one bag per signal: u1 with ``level:=auto`` (the
-   amplitude found by probing the finger to half of ``max_excursion``), then x1 x2 b1 b2 and the
-   validation signal u4 at that amplitude;
+1. **identify** — recorder + excitation node, one bag per signal (u1 x1 x2 b1 b2 and the
+   validation signal u4), each with ``level:=auto`` (its amplitude found by probing the finger
+   with the signal's start to half of ``max_excursion``; the first probe at u1's amplitude,
+   ``level_start``) and the driver's limit (``torque_limit`` or the one-sided bounds);
 2. **train** — ``tools.learning.train --bag … --val-bag …``: the model, its verdict and
    ``params.yaml``;
 3. **deploy** — estimator, controller and trajectory node on ``params.yaml``: both fingers close
@@ -48,10 +49,8 @@ import subprocess
 import sys
 import time
 
-import numpy as np
 import yaml
 
-from soft_gripper_sdre.control.horizon import sample_plan
 from soft_gripper_sdre.sim.foreign_presets import RATES, gripper_bounds, gripper_shape
 from soft_gripper_sdre.sim.shape import InputBounds
 from soft_gripper_sdre.tools.graph.procs import DiagnosticsMonitor, Graph, ros_env
@@ -167,6 +166,13 @@ def actuator_bounds(plant: str) -> dict:
             'input_upper': [float(v) for v in bounds.upper]}
 
 
+def excitation_limit(plant: str) -> dict:
+    """The excitation's limit, the driver's: the one-sided bounds (:func:`actuator_bounds`), or
+    the torque grippers' ``torque_limit`` (what the driver clamps at)."""
+    limit = gripper_bounds(plant).symmetric_limit
+    return {'torque_limit': float(limit)} if limit is not None else actuator_bounds(plant)
+
+
 def _fail(graph: Graph, who: str, what: str) -> RuntimeError:
     return RuntimeError(f'{what}; last lines of {who}.log:\n{graph.procs[who].log_tail()}')
 
@@ -190,7 +196,7 @@ def excite(a: argparse.Namespace, env: dict, bag: Path, signals: list[str], leve
                         f'identification run {bag.name}: the recorder hears no tips')
         graph.start('excitation', {'signals': signals, 'finger_names': FINGERS,
                                    'max_excursion': setup.max_excursion, 'tips_timeout': 5.0,
-                                   **BEST_EFFORT, **level, **actuator_bounds(a.plant)})
+                                   **BEST_EFFORT, **level, **excitation_limit(a.plant)})
         code = graph.wait('excitation', 600.0)
         if code != 0:
             who = next((p.name for p in graph.procs.values()
@@ -242,83 +248,33 @@ def controller_bounds(params: Path, m: int) -> InputBounds:
 
 def score(bag: Path, travel: float, bounds: InputBounds, d: int = 2,
           plant_bounds: InputBounds | None = None) -> dict:
-    """Tracking of the deployed grasp from its bag (module doc): ``bounds`` the controller's,
-    ``plant_bounds`` the gripper's (None: the controller's), ``d`` the tip's coordinates."""
-    from soft_gripper_sdre.analysis.bag import read_bag
-    msgs = read_bag(bag, ['true_tip_positions', 'grasp_reference', 'torque_commands'])
-    by = {k.lstrip('/'): v for k, v in msgs.items()}
-    plan = by['grasp_reference'][-1][1]
-    times = np.array([p.time_from_start.sec * 10**9 + p.time_from_start.nanosec
-                      for p in plan.points])
-    times += plan.header.stamp.sec * 10**9 + plan.header.stamp.nanosec
-    n = len(plan.joint_names)
-    pos = np.array([[[t.translation.x, t.translation.y, t.translation.z][:d]
-                     for t in p.transforms] for p in plan.points])
-    vel = np.array([[[v.linear.x, v.linear.y, v.linear.z][:d] for v in p.velocities]
-                    for p in plan.points])
-    acc = np.array([[[v.linear.x, v.linear.y, v.linear.z][:d] for v in p.accelerations]
-                    for p in plan.points])
-    stamp = lambda m: m.header.stamp.sec * 10**9 + m.header.stamp.nanosec  # noqa: E731
-    start, stop = int(times[0]), int(times[0] + GRASP_SECONDS * 1e9)
-    errs, rest_cmds, cmds = [], [], []
-    for _, m in by['true_tip_positions']:
-        t = stamp(m)
-        if start <= t <= stop:
-            ref = sample_plan(times, pos, vel, acc, t)[0]
-            tip = np.array([[p.position.x, p.position.y, p.position.z][:d] for p in m.poses[:n]])
-            errs.append(np.linalg.norm(tip - ref, axis=1))
-    for _, m in by['torque_commands']:
-        u = np.asarray(m.effort, dtype=float)
-        if u.size != n * bounds.m:
-            raise RuntimeError(f'{bag}: a torque command of {u.size} efforts ({list(m.name)}) '
-                               f'for {n} finger(s) of {bounds.m} input(s): another graph on '
-                               'this ROS domain?')
-        cmds.append(u.reshape(-1, bounds.m))               # <finger>/ax0 … ax<m−1>, by finger
-        if start <= stamp(m) < start + T_START * 1e9:
-            rest_cmds.append(u)
-    errs = np.array(errs)
-    rmse = np.sqrt(np.mean(errs ** 2, axis=0))
-    cmds = np.concatenate(cmds) if cmds else np.zeros((0, bounds.m))
-    limit = bounds.symmetric_limit
-    if limit is not None:                              # the torque grippers: |u| at the limit
-        rest = np.abs(np.array(rest_cmds)) if rest_cmds else np.zeros((0, bounds.m * n))
-        at_rest = float(np.mean(rest >= limit * (1 - 1e-9))) if rest.size else 0.0
-        largest = float(np.abs(rest).max()) if rest.size else 0.0
-    else:                                              # at a bound other than the input's rest
-        rest = (np.concatenate([u.reshape(-1, bounds.m) for u in rest_cmds]) if rest_cmds
-                else np.zeros((0, bounds.m)))
-        tol = 1e-9 * (bounds.upper - bounds.lower)
-        at = (((rest <= bounds.lower + tol) & (bounds.lower != bounds.rest))
-              | ((rest >= bounds.upper - tol) & (bounds.upper != bounds.rest)))
-        at_rest = float(np.mean(at)) if rest.size else 0.0
-        largest = float(np.abs(rest - bounds.rest).max()) if rest.size else 0.0
-
-    def outside(b: InputBounds) -> int:
-        span = 1e-9 * (b.upper - b.lower)
-        return int(np.sum(~np.isfinite(cmds) | (cmds < b.lower - span) | (cmds > b.upper + span)))
-
-    return {'rmse_mm': (1e3 * rmse).round(4).tolist(),
-            'rmse_pct_of_travel': (100 * rmse / travel).round(3).tolist(),
-            'max_mm': (1e3 * errs.max(axis=0)).round(4).tolist(), 'samples': int(len(errs)),
-            'saturated_at_rest': at_rest, 'largest_torque_at_rest': largest,
-            'commands': int(len(cmds)), 'outside_bounds': outside(bounds),
-            'outside_plant_bounds': outside(plant_bounds if plant_bounds is not None else bounds)}
+    """Tracking of the deployed grasp from its bag (module doc;
+    :func:`~soft_gripper_sdre.analysis.run_score.score_run` over the grasp): ``bounds`` the
+    controller's, ``plant_bounds`` the gripper's (None: the controller's), ``d`` the tip's
+    coordinates."""
+    from soft_gripper_sdre.analysis.run_score import ScoreError, score_run
+    try:
+        return score_run(bag, travel, bounds, d, GRASP_SECONDS, T_START, plant_bounds)
+    except ScoreError as exc:
+        raise RuntimeError(str(exc)) from None
 
 
 def identify(a: argparse.Namespace, env: dict, bags: Path) -> dict:
-    """Step 1 (module doc): the level search on u1, then one bag per signal at its amplitude."""
+    """Step 1 (module doc): one bag per signal, each at its own level (``level:=auto``: probes
+    of the signal's start), the first probe of each at u1's amplitude."""
     t0 = time.monotonic()
-    log = excite(a, env, bags / 'train' / TRAIN_SIGNALS[0], TRAIN_SIGNALS[:1], {'level': 'auto'},
-                 a.seed)
-    found = re.search(r'; amplitude ([0-9.eE+-]+) for', log)
-    if found is None:
-        raise RuntimeError('the excitation node did not report the amplitude it chose')
-    amplitude = float(found.group(1))
-    for i, signal in enumerate(TRAIN_SIGNALS[1:] + ['u4']):
+    amplitudes, level = {}, {'level': 'auto'}
+    for i, signal in enumerate(TRAIN_SIGNALS + ['u4']):
         bag = bags / ('train' if signal != 'u4' else 'val') / signal
-        excite(a, env, bag, [signal], {'amplitude': amplitude}, a.seed + 1 + i)
-    print(f'identified at amplitude {amplitude:.4g} in {time.monotonic() - t0:.0f} s', flush=True)
-    return {'amplitude': amplitude, 'wall_s': round(time.monotonic() - t0, 1)}
+        log = excite(a, env, bag, [signal], level, a.seed + i)
+        found = re.search(r'; amplitude ([0-9.eE+-]+) for', log)
+        if found is None:
+            raise RuntimeError(f'the excitation node did not report the amplitude it chose for '
+                               f'{signal}')
+        amplitudes[signal] = float(found.group(1))
+        level = {'level': 'auto', 'level_start': amplitudes[TRAIN_SIGNALS[0]]}
+    print(f'identified at amplitudes {amplitudes} in {time.monotonic() - t0:.0f} s', flush=True)
+    return {'amplitude': amplitudes, 'wall_s': round(time.monotonic() - t0, 1)}
 
 
 def train(a: argparse.Namespace, env: dict, bags: Path, out: Path) -> tuple[dict, str]:

@@ -49,6 +49,7 @@ from soft_gripper_sdre.analysis.bag_dataset import (
     tip_stretches,
 )
 from soft_gripper_sdre.analysis.data_facts import data_facts
+from soft_gripper_sdre.control.trajectory import GraspProfile
 from soft_gripper_sdre.learning import derivatives
 from soft_gripper_sdre.learning.rollout import Run
 from soft_gripper_sdre.learning.train_settings import TrainSettings
@@ -207,6 +208,13 @@ def params_yaml(derived: loop_settings.Derivation, model_path: Path, finger_name
     d, facts = derived.settings, derived.facts
     nodes = derived.params(finger_names)
     nodes['controller'] = {'model_path': str(model_path.resolve()), **nodes['controller']}
+    # the trajectory node's fingers and plan (every finger grasps; the plan's length is the sum
+    # of its times), which tools.graph.deploy reads
+    plan = GraspProfile()
+    nodes['trajectory'] = {'finger_names': list(finger_names),
+                           'grasp_fingers': list(range(len(finger_names))), 'others': 'hold',
+                           't_start': plan.t_start, 't_close': plan.t_close,
+                           't_hold': plan.t_hold, 't_open': plan.t_open, **nodes['trajectory']}
     body = {params_file_key(node): {'ros__parameters': _plain(values)}
             for node, values in nodes.items()}
     if facts.d == 2 and facts.path is None:

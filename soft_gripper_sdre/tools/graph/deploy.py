@@ -1,0 +1,263 @@
+"""Deploy a trained model on the lab's running driver, record the grasp and score it: one command.
+
+    python -m soft_gripper_sdre.tools.graph.deploy --params runs/mine/params.yaml \
+        [--law L] [--out DIR]
+
+Against a driver already serving ``tip_positions`` and taking ``torque_commands`` (the lab's, or
+``plant_driver``), it starts, as separate processes over DDS, the composed loop (``controller
+--with-estimator`` on ``params.yaml``, with the law ``--law``, default ``sdre_ff``: the law the
+settings were derived for), the recorder and, once the loop has come up, the trajectory node on
+``params.yaml`` (its fingers, the move the settings were checked on, the plan's timing; every
+finger grasps, none opens). It ends when the plan ends (its length from ``params.yaml``: t_start +
+t_close + t_hold + t_open, plus ``--tail`` seconds), stops the nodes (the controller last sends
+nothing, and the driver's stale-command rule takes over), and prints the score of the run from
+the bag (:func:`~soft_gripper_sdre.analysis.run_score.score_run`): the RMSE of the tips against
+the plan as a share of the travel (on ``true_tip_positions`` when the driver publishes them, else
+the measured tips), the share of commands at a bound while the plan holds at rest, and the
+commands outside the controller's bounds.
+
+Every node reads the tips best effort (which also matches a reliable driver); the nodes run on
+the caller's ROS domain (or ``--domain-id``) with the caller's DDS settings. ``OUT`` (default:
+``deploy_<law>`` beside ``params.yaml``) gets ``bag/``, ``logs/`` and ``score.json``. Bad
+arguments or a ``params.yaml`` without what the deployment needs: exit 2, nothing started and
+nothing written; a node that fails or a bag that cannot be scored: exit 1, naming it.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+import re
+import sys
+import time
+
+import yaml
+
+from soft_gripper_sdre.sim.shape import InputBounds, ShapeError
+
+#: the trajectory node's timing keys, whose sum is the plan's length
+PLAN_TIMES = ('t_start', 't_close', 't_hold', 't_open')
+#: what the deployment records
+TOPICS = ['tip_positions', 'true_tip_positions', 'state_estimate', 'grasp_reference',
+          'torque_commands']
+BEST_EFFORT = {'tips_reliability': 'best_effort'}
+#: the key of a node's section in a parameters file
+SECTION = '/**/{}'
+
+
+class Settings:
+    """What ``params.yaml`` tells the deployment (module doc).
+
+    Raises:
+        ValueError: the file is missing, not YAML, or lacks a section or key the deployment
+            needs (the message names the file and the key).
+    """
+
+    def __init__(self, path: Path) -> None:
+        if not path.is_file():
+            raise ValueError(f'--params {path}: no such file')
+        try:
+            data = yaml.safe_load(path.read_text(encoding='utf-8'))
+        except (yaml.YAMLError, UnicodeDecodeError) as exc:
+            raise ValueError(f'--params {path}: not YAML ({exc})') from None
+        sections = {}
+        for node in ('estimator', 'controller', 'trajectory'):
+            section = (data or {}).get(SECTION.format(node)) if isinstance(data, dict) else None
+            values = section.get('ros__parameters') if isinstance(section, dict) else None
+            if not isinstance(values, dict):
+                raise ValueError(f'--params {path}: no {SECTION.format(node)} ros__parameters '
+                                 'section (the file tools.learning.train writes has one per '
+                                 'node)')
+            sections[node] = values
+        self.path = path
+        ctrl, plan = sections['controller'], sections['trajectory']
+        names = plan.get('finger_names', ctrl.get('finger_names'))
+        if not (isinstance(names, list) and 1 <= len(names) <= 4
+                and all(isinstance(n, str) and n for n in names)):
+            raise ValueError(f'--params {path}: finger_names must be a list of 1 to 4 names, '
+                             f'got {names!r}')
+        self.finger_names = names
+        missing = [k for k in PLAN_TIMES if k not in plan]
+        if missing:
+            raise ValueError(f'--params {path}: the trajectory section has no {", ".join(missing)}'
+                             ' (the plan\'s length; train again, or add them)')
+        times = [plan[k] for k in PLAN_TIMES]
+        if not all(isinstance(t, (int, float)) and math.isfinite(t) and t >= 0 for t in times):
+            raise ValueError(f'--params {path}: {", ".join(PLAN_TIMES)} must be numbers >= 0 s, '
+                             f'got {times!r}')
+        self.plan_seconds = float(sum(times))
+        self.rest_seconds = float(plan['t_start'])
+        self.d = int(plan.get('task_dim', 2))
+        close = plan.get('close_distance')
+        side = plan.get('side_distance', 0.0) if self.d == 2 and 'close_path' not in plan else 0.0
+        if not (isinstance(close, (int, float)) and isinstance(side, (int, float))
+                and math.hypot(close, side) > 0):
+            raise ValueError(f'--params {path}: the trajectory section needs close_distance > 0 '
+                             f'(the travel scored against), got {close!r}')
+        self.travel = float(math.hypot(close, side))
+        try:
+            self.bounds = controller_bounds(ctrl, path)
+        except (ShapeError, KeyError, TypeError) as exc:
+            raise ValueError(f'--params {path}: the controller\'s bounds: {exc}') from None
+
+
+def controller_bounds(ctrl: dict, path: Path) -> InputBounds:
+    """The bounds the controller section ``ctrl`` commands within: its ``input_lower`` and
+    ``input_upper``, or ±``torque_limit`` on the hand's two torques."""
+    if 'input_lower' in ctrl or 'input_upper' in ctrl:
+        lower, upper = ctrl['input_lower'], ctrl['input_upper']
+        return InputBounds.parse(lower, upper, len(lower), f'{path}: input_lower/input_upper')
+    limit = ctrl['torque_limit']
+    if not (isinstance(limit, (int, float)) and limit > 0):
+        raise ShapeError(f'torque_limit must be > 0, got {limit!r}')
+    return InputBounds.symmetric(float(limit), 2)
+
+
+def _parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.graph.deploy',
+                                 description=__doc__.split('\n\n')[0])
+    ap.add_argument('--params', type=Path, required=True,
+                    help='the params.yaml training wrote (tools.learning.train --out DIR)')
+    ap.add_argument('--law', default='sdre_ff', help='the control law (default: %(default)s)')
+    ap.add_argument('--out', type=Path, default=None,
+                    help='output directory, must not exist (default: deploy_<law> beside '
+                         '--params)')
+    ap.add_argument('--tail', type=float, default=1.0,
+                    help='seconds recorded after the plan ends (default: %(default)s)')
+    ap.add_argument('--startup-timeout', type=float, default=120.0,
+                    help='seconds for the loop to come up and the plan to start '
+                         '(default: %(default)s)')
+    ap.add_argument('--domain-id', type=int, default=None,
+                    help='ROS_DOMAIN_ID (default: the environment\'s)')
+    return ap
+
+
+def check(a: argparse.Namespace) -> tuple[Settings | None, str | None]:
+    """The deployment's settings, or what is wrong with the arguments."""
+    from soft_gripper_sdre.control.laws import GRAPH_LAWS
+    if a.law not in GRAPH_LAWS:
+        return None, f'--law: unknown law {a.law!r}; known: {", ".join(GRAPH_LAWS)}'
+    if not (math.isfinite(a.tail) and 0 <= a.tail <= 600):
+        return None, f'--tail must be in [0, 600] s, got {a.tail}'
+    if not (math.isfinite(a.startup_timeout) and 1 <= a.startup_timeout <= 3600):
+        return None, f'--startup-timeout must be in [1, 3600] s, got {a.startup_timeout}'
+    if a.domain_id is not None and not 0 <= a.domain_id <= 232:
+        return None, f'--domain-id must be in [0, 232], got {a.domain_id}'
+    import os
+    if a.domain_id is None and not re.fullmatch(r'\d{0,3}', os.environ.get('ROS_DOMAIN_ID', '')):
+        return None, (f'ROS_DOMAIN_ID {os.environ["ROS_DOMAIN_ID"]!r} is not a domain number; '
+                      'set it to one, or give --domain-id')
+    try:
+        settings = Settings(a.params)
+    except ValueError as exc:
+        return None, str(exc)
+    if a.out is None:
+        a.out = a.params.resolve().parent / f'deploy_{a.law}'
+    if a.out.exists():
+        return None, f'--out {a.out} exists already (nothing is overwritten)'
+    return settings, None
+
+
+def _env(domain_id: int | None) -> dict:
+    """The nodes' environment: the caller's DDS settings as they are (the driver may run on
+    another host: no discovery range is imposed), the domain ``--domain-id`` or the caller's
+    (0 by default, as ROS), and the graph's pinned kernels."""
+    import os
+
+    from soft_gripper_sdre.tools.graph.procs import ros_env
+    if domain_id is None:
+        domain_id = int(os.environ.get('ROS_DOMAIN_ID') or 0)
+    env = ros_env(domain_id)
+    env.pop('ROS_AUTOMATIC_DISCOVERY_RANGE')
+    if 'ROS_AUTOMATIC_DISCOVERY_RANGE' in os.environ:
+        env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE']
+    return env
+
+
+def deploy(a: argparse.Namespace, s: Settings) -> Path:
+    """Start the loop, the recorder and the plan; return the bag once the plan has ended.
+
+    Raises:
+        RuntimeError: a node exited, or the loop or the plan did not start in time (named, with
+            the end of its log).
+    """
+    from soft_gripper_sdre.nodes.graph import NodeSpec
+    from soft_gripper_sdre.tools.graph.procs import DiagnosticsMonitor, Graph
+    env = _env(a.domain_id)
+    bag = a.out / 'bag'
+    params = s.path.resolve()
+    fingers = {'finger_names': s.finger_names}
+
+    def fail(graph: Graph, who: str, what: str) -> RuntimeError:
+        return RuntimeError(f'{what}; last lines of {who}.log:\n{graph.procs[who].log_tail()}')
+
+    def watch(graph: Graph) -> None:
+        dead = [p.name for p in graph.procs.values() if not p.alive()]
+        if dead:
+            raise fail(graph, dead[0], f'{dead[0]} exited (status '
+                                       f'{graph.procs[dead[0]].popen.returncode})')
+
+    monitor = DiagnosticsMonitor(env, 'deploy_monitor')
+    try:
+        with Graph(env, a.out / 'logs') as graph:
+            graph.start('recorder', {'output': str(bag), 'topics': TOPICS, **BEST_EFFORT})
+            estimator = NodeSpec('estimator', 'estimator', params_file=params,
+                                 parameters={**BEST_EFFORT, **fingers})
+            graph.start_node(NodeSpec('controller', 'controller', params_file=params,
+                                      parameters={'law': a.law, **fingers},
+                                      hosted=(estimator,)))
+            deadline = time.monotonic() + a.startup_timeout
+            while not all(n in monitor.values for n in ('estimator', 'controller', 'recorder')):
+                watch(graph)
+                if time.monotonic() > deadline:
+                    raise fail(graph, 'controller', 'the loop did not come up within '
+                                                    f'--startup-timeout ({a.startup_timeout:g} s)')
+                monitor.spin_until(lambda: False, 0.1)
+            graph.start('trajectory', {**fingers, 'grasp_fingers': list(range(len(fingers[
+                'finger_names']))), 'others': 'hold', **BEST_EFFORT}, params_file=params)
+            while monitor.get('recorder', 'messages /grasp_reference') <= 0:
+                watch(graph)
+                if time.monotonic() > deadline:
+                    raise fail(graph, 'trajectory', 'no plan recorded within --startup-timeout '
+                                                    f'({a.startup_timeout:g} s)')
+                monitor.spin_until(lambda: False, 0.1)
+            end = time.monotonic() + s.plan_seconds + a.tail
+            print(f'plan started: {s.plan_seconds:g} s, {len(s.finger_names)} finger(s) with '
+                  f'{a.law}', flush=True)
+            while time.monotonic() < end:
+                watch(graph)
+                monitor.spin_until(lambda: False, 0.1)
+            for name in ('trajectory', 'controller', 'recorder'):
+                graph.stop(name)
+    finally:
+        monitor.close()
+    return bag
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = _parser()
+    a = ap.parse_args(argv)
+    settings, problem = check(a)
+    if problem:
+        ap.error(problem)
+    from soft_gripper_sdre.analysis.run_score import ScoreError, score_run
+    try:
+        bag = deploy(a, settings)
+        score = score_run(bag, settings.travel, settings.bounds, settings.d,
+                          settings.plan_seconds, settings.rest_seconds)
+    except (RuntimeError, ScoreError) as exc:
+        print(f'error: {exc}', file=sys.stderr)
+        return 1
+    score = {'law': a.law, 'params': str(settings.path), 'travel_m': settings.travel,
+             'plan_seconds': settings.plan_seconds, **score}
+    (a.out / 'score.json').write_text(json.dumps(score, indent=2))
+    print(f'{a.law}: RMSE {score["rmse_mm"]} mm = {score["rmse_pct_of_travel"]} % of the '
+          f'{1e3 * settings.travel:.3g} mm travel (on {score["tips_topic"]}); at a bound at rest '
+          f'{100 * score["saturated_at_rest"]:.1f} %; {score["outside_bounds"]} of '
+          f'{score["commands"]} commands outside the bounds; {a.out}', flush=True)
+    return 0
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

@@ -1,0 +1,150 @@
+"""tools.graph.deploy: one command from params.yaml to a scored run. Bad arguments and parameter
+files exit 2 naming what is wrong, nothing written; the score's bad inputs are refused (no ROS);
+and the deployment over DDS against plant_driver (slow): the loop, the plan and the recorder
+started, the run ended with the plan, the score printed and kept."""
+import json
+import os
+from pathlib import Path
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import yaml
+
+from soft_gripper_sdre.analysis.run_score import ScoreError, score_run
+from soft_gripper_sdre.sim.shape import InputBounds
+from soft_gripper_sdre.tools.graph.procs import Graph, ros_env
+
+ROOT = Path(__file__).resolve().parents[1]
+MODEL = ROOT / 'soft_gripper_sdre' / 'models' / 'default.pt'
+NAMES = ['index', 'thumb']
+
+
+def params_file(path: Path, drop: tuple[str, ...] = (), **plan) -> Path:
+    """A params.yaml as training writes it, for the package's model on two fingers of tendon3
+    (200 Hz, ±0.02 N·m), with a short plan."""
+    trajectory = {'finger_names': list(NAMES), 'grasp_fingers': [0, 1], 'others': 'hold',
+                  't_start': 0.5, 't_close': 1.0, 't_hold': 0.5, 't_open': 1.0,
+                  'close_distance': 0.002, 'side_distance': 0.0, 'contact_distance': 0.002,
+                  **plan}
+    for key in drop:
+        trajectory.pop(key)
+    body = {'/**/estimator': {'ros__parameters': {'finger_names': list(NAMES),
+                                                  'control_period': 0.005}},
+            '/**/controller': {'ros__parameters': {'model_path': str(MODEL),
+                                                   'finger_names': list(NAMES),
+                                                   'control_period': 0.005,
+                                                   'torque_limit': 0.02}},
+            '/**/trajectory': {'ros__parameters': trajectory}}
+    path.write_text(yaml.safe_dump(body, sort_keys=False))
+    return path
+
+
+def _tool(*args, timeout=60, env=None):
+    return subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.graph.deploy', *args],
+                          capture_output=True, text=True, timeout=timeout, cwd=ROOT,
+                          env=env or {**os.environ, 'PYTHONUNBUFFERED': '1'})
+
+
+@pytest.mark.parametrize('make, args, message', [
+    (None, [], '--params', ),
+    ('none', [], 'no such file'),
+    ('text', [], 'no /**/estimator ros__parameters section'),
+    ('ok', ['--law', 'bogus'], "--law: unknown law 'bogus'"),
+    ('ok', ['--tail', '-1'], '--tail must be in [0, 600]'),
+    ('ok', ['--startup-timeout', 'nan'], '--startup-timeout must be in [1, 3600]'),
+    ('ok', ['--domain-id', '500'], '--domain-id must be in [0, 232]'),
+    ('no_times', [], 'the trajectory section has no t_hold, t_open'),
+    ('bad_time', [], 't_start, t_close, t_hold, t_open must be numbers >= 0 s'),
+    ('no_names', [], 'finger_names must be a list of 1 to 4 names'),
+    ('no_travel', [], 'close_distance > 0'),
+    ('exists', [], 'exists already'),
+    ('bad_domain', [], "ROS_DOMAIN_ID 'lab' is not a domain number"),
+])
+def test_bad_arguments_exit_2_naming_them_with_nothing_written(tmp_path, make, args, message):
+    src = tmp_path / 'src'
+    src.mkdir()
+    path = src / 'params.yaml'
+    if make == 'text':
+        path.write_text('just: text\n')
+    elif make in ('ok', 'exists', 'bad_domain'):
+        params_file(path)
+    elif make == 'no_times':
+        params_file(path, drop=('t_hold', 't_open'))
+    elif make == 'bad_time':
+        params_file(path, t_start='soon')
+    elif make == 'no_names':
+        params_file(path, finger_names=[])
+        data = yaml.safe_load(path.read_text())
+        data['/**/controller']['ros__parameters'].pop('finger_names')
+        path.write_text(yaml.safe_dump(data))
+    elif make == 'no_travel':
+        params_file(path, close_distance=0.0)
+    out = tmp_path / 'out'
+    if make == 'exists':
+        out.mkdir()
+    before = sorted(p.name for p in src.iterdir())
+    env = {**os.environ, 'ROS_DOMAIN_ID': 'lab'} if make == 'bad_domain' else None
+    r = _tool(*(['--params', str(path)] if make else []), '--out', str(out), *args, env=env)
+    assert r.returncode == 2, r.stderr
+    assert message in r.stderr and 'Traceback' not in r.stderr, r.stderr
+    assert sorted(p.name for p in src.iterdir()) == before
+    assert make == 'exists' or not out.exists()
+
+
+def test_the_score_refuses_bad_inputs_and_a_bag_without_its_topics(tmp_path):
+    b = InputBounds.symmetric(0.02, 2)
+    for kwargs, message in ((dict(travel=0.0), 'travel must be finite and > 0 m'),
+                            (dict(d=4), 'd must be 2 or 3'),
+                            (dict(plan_seconds=float('nan')), 'plan_seconds must be'),
+                            (dict(rest_seconds=-1.0), 'rest_seconds must be')):
+        args = {**dict(travel=0.01, bounds=b, d=2, plan_seconds=3.0, rest_seconds=0.5), **kwargs}
+        with pytest.raises(ScoreError, match=message):
+            score_run(tmp_path / 'nobag', **args)
+    with pytest.raises(ScoreError, match='nobag does not exist'):
+        score_run(tmp_path / 'nobag', 0.01, b, 2, 3.0, 0.5)
+
+
+@pytest.mark.slow
+def test_one_command_deploys_records_ends_with_the_plan_and_scores_it(tmp_path):
+    env = ros_env()
+    params = params_file(tmp_path / 'params.yaml')
+    out = tmp_path / 'run'
+    with Graph(env, tmp_path / 'driver_logs') as graph:
+        graph.start('plant_driver', {'plant': 'tendon3', 'finger_names': NAMES, 'rate': 200.0},
+                    params_file=None)
+        r = _tool('--params', str(params), '--out', str(out), timeout=400, env=env)
+        assert graph.procs['plant_driver'].alive()
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert 'plan started: 3 s, 2 finger(s) with sdre_ff' in r.stdout
+    score = json.loads((out / 'score.json').read_text())
+    assert score['tips_topic'] == 'true_tip_positions' and score['plan_seconds'] == 3.0
+    assert score['samples'] > 0.8 * 3.0 * 200 and score['commands'] > 0
+    assert score['outside_bounds'] == 0 and len(score['rmse_mm']) == 2
+    assert all(np.isfinite(score['rmse_pct_of_travel']))
+    assert f'{score["rmse_pct_of_travel"]} % of the 2 mm travel' in r.stdout
+    assert (out / 'bag').is_dir() and (out / 'logs' / 'controller.log').is_file()
+
+
+@pytest.mark.parametrize('facts', [
+    dict(travel=2e-3, torque_limit=0.02, direction=120.0),                   # the planar move
+    dict(travel=3e-3, torque_limit=4.0, axis=(0.0, 0.6, 0.8),
+         bounds=InputBounds([0.0] * 3, [4.0] * 3)),                          # a 3-D tip
+])
+def test_the_params_training_writes_hold_what_the_deployment_reads(tmp_path, facts):
+    from soft_gripper_sdre.analysis import loop_settings as ls
+    from soft_gripper_sdre.tools.graph.deploy import Settings
+    from soft_gripper_sdre.tools.learning.train_bags import params_yaml
+    facts = ls.DataFacts(period=5e-3, noise_std=5e-5, accel_psd_ml=1.0, **facts)
+    settings = ls.LoopSettings(5e-3, 5e-5, 1.0, 1e6, 1e3, 1.0, facts.torque_limit, 50.0, 0.0,
+                               1e-3, 1.0, 0.1, 2.0)
+    path = tmp_path / 'params.yaml'
+    path.write_text(params_yaml(ls.Derivation(settings, {}, [], facts), MODEL, NAMES, 'bags'))
+    plan = yaml.safe_load(path.read_text())['/**/trajectory']['ros__parameters']
+    assert plan['finger_names'] == NAMES and plan['grasp_fingers'] == [0, 1]
+    assert plan['others'] == 'hold'
+    got = Settings(path)
+    assert got.finger_names == NAMES and got.plan_seconds == 5.5 and got.rest_seconds == 0.5
+    assert got.travel == pytest.approx(facts.travel, rel=1e-9) and got.d == facts.d
+    assert got.bounds == (facts.bounds or InputBounds.symmetric(0.02, 2))
