@@ -95,6 +95,8 @@ def test_network_equals_the_numpy_model(model):
 # the laws on the fast path against the reference
 # ----------------------------------------------------------------------------------------------
 
+@pytest.mark.slow
+@pytest.mark.timeout(240)
 def test_sdre_law_equals_the_reference_along_a_closed_loop(model, weights, loop):
     fast, ref = fast_and_reference('sdre', model, weights)
     out_f, out_r = replay(fast, loop), replay(ref, loop)
@@ -118,6 +120,8 @@ def test_sdre_law_equals_the_reference_along_a_closed_loop(model, weights, loop)
     assert fast.sdre.exact_solves == N and fast.sdre.steps == len(out_f)
 
 
+@pytest.mark.slow
+@pytest.mark.timeout(240)
 @pytest.mark.parametrize('ff_at', ['x', 'ref'])
 def test_feedforward_law_equals_the_reference_along_a_closed_loop(model, weights, loop, ff_at):
     acc = np.gradient(loop.ref_vel, 1e-3, axis=0)  # a moving reference's acceleration
