@@ -3,7 +3,7 @@
 K, K_s and the checks are those of eq. 23–24 and Remarks 2–3
 (:mod:`~soft_gripper_sdre.control.riccati`). Two paths compute them:
 
-* ``method='fast'``: the compiled kernels (:mod:`~soft_gripper_sdre.control.compiled`: warm-started
+* ``method='fast'``: the compiled kernels (:mod:`~soft_gripper_sdre.control.kernels`: warm-started
   Newton–Kleinman on the SDC form with the structure's checks, the gains and the law in one call);
   a finger the kernel hands back (cold: first step or its last step was rejected; or a failed
   check) takes the exact path alone: scipy's solver and the general checks, after which its
@@ -32,7 +32,7 @@ from typing import Callable
 
 import numpy as np
 
-from soft_gripper_sdre.control.compiled import (
+from soft_gripper_sdre.control.kernels import (
     FeedforwardOutputs,
     SdcNetwork,
     SdreOutputs,

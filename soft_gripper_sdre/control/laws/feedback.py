@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from soft_gripper_sdre.control.compiled import compiled_network
+from soft_gripper_sdre.control.kernels import compiled_network
 from soft_gripper_sdre.control.sdre import SdreController
 from soft_gripper_sdre.control.tracking import (
     DEFAULT_LOWPASS_HZ,
@@ -30,7 +30,7 @@ class SdreLaw:
             :class:`soft_gripper_sdre.learning.model.SDCModel`); if it also has
             ``sdc_blocks(x) -> ([A21 A22] (n,2,4), G2 (n,2,2))``, only those lower rows are used,
             and if it has ``fused_network`` (the layers
-            :class:`~soft_gripper_sdre.control.compiled.SdcNetwork` packs), the compiled step
+            :class:`~soft_gripper_sdre.control.kernels.SdcNetwork` packs), the compiled step
             evaluates it.
         weights: SDRE weights (SI).
         u_max: torque saturation per input [N·m].

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 
 from soft_gripper_sdre.control.batched_linalg import batched_solve, well_conditioned_2x2
-from soft_gripper_sdre.control.compiled import compiled_network
+from soft_gripper_sdre.control.kernels import compiled_network
 from soft_gripper_sdre.control.laws.integral import (
     DEFAULT_INTEGRAL,
     IntegralAction,

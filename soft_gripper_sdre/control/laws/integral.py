@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 
-from soft_gripper_sdre.control.compiled import (
+from soft_gripper_sdre.control.kernels import (
     IntegralSettings,
     integral_roll_off,
     integral_step,

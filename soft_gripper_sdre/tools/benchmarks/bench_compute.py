@@ -77,7 +77,7 @@ def _replay_once(fast, ref, replay: _Replay, times: _ReplayTimes) -> None:
     """One pass over ``replay`` into ``times``: the fast law every step and right after it the
     bare kernel call from the same warm start; on the paired steps the reference, from the same
     integral, right after the fast law."""
-    from soft_gripper_sdre.control.compiled import (
+    from soft_gripper_sdre.control.kernels import (
         FeedforwardOutputs,
         SdreOutputs,
         SdreState,

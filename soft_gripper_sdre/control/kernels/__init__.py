@@ -1,12 +1,12 @@
 """The controller's per-step work compiled with numba: how to call the kernels, what they keep.
 
-The kernels — the SDRE laws' steps (:mod:`~soft_gripper_sdre.control.compiled_sdre`) on
-Newton–Kleinman with the checks (:mod:`~soft_gripper_sdre.control.compiled_riccati`), the fused
-network (:mod:`~soft_gripper_sdre.control.compiled_sdc_network`) and small dense linear algebra
-(:mod:`~soft_gripper_sdre.control.compiled_linalg`); the Kalman filter
-(:mod:`~soft_gripper_sdre.control.compiled_kf`), the integral action
-(:mod:`~soft_gripper_sdre.control.compiled_integral`) and the plan sample
-(:mod:`~soft_gripper_sdre.control.compiled_horizon`) — take float64 / bool / int64 C-contiguous
+The kernels — the SDRE laws' steps (:mod:`~soft_gripper_sdre.control.kernels.sdre`) on
+Newton–Kleinman with the checks (:mod:`~soft_gripper_sdre.control.kernels.riccati`), the fused
+network (:mod:`~soft_gripper_sdre.control.kernels.sdc_network`) and small dense linear algebra
+(:mod:`~soft_gripper_sdre.control.kernels.linalg`); the Kalman filter
+(:mod:`~soft_gripper_sdre.control.kernels.kf`), the integral action
+(:mod:`~soft_gripper_sdre.control.kernels.integral`) and the plan sample
+(:mod:`~soft_gripper_sdre.control.kernels.horizon`) — take float64 / bool / int64 C-contiguous
 arrays, record arrays and scalars, write their results into arrays the caller owns and update the
 controller's state in place. The SDRE kernels' settings, state and outputs are record arrays
 (:class:`KernelRecords`: one record per finger, one for the settings), the network one packed array
@@ -33,9 +33,10 @@ bits; the supervisor (:class:`~soft_gripper_sdre.control.sdre.SdreController`) s
 numba's cache) every kernel at these types: a process calls it before its first real-time step.
 The kernels are importable from here as well as from their modules.
 
-Importing this module holds numba's on-disk cache of the kernels to the kernel modules' sources as
-a whole (:func:`~soft_gripper_sdre.control.compiled_cache.invalidate_stale_cache`): no kernel runs
-before this module is imported.
+Importing this package (which importing any of its modules does first) holds numba's on-disk cache
+of the kernels to the kernel modules' sources as a whole
+(:func:`~soft_gripper_sdre.control.kernels.cache.invalidate_stale_cache`): no kernel runs before
+the rule.
 """
 from __future__ import annotations
 
@@ -43,17 +44,17 @@ from typing import ClassVar, NamedTuple, Self
 
 import numpy as np
 
-from soft_gripper_sdre.control.compiled_cache import invalidate_stale_cache
-from soft_gripper_sdre.control.compiled_horizon import plan_sample
-from soft_gripper_sdre.control.compiled_integral import (
+from soft_gripper_sdre.control.kernels.cache import invalidate_stale_cache
+from soft_gripper_sdre.control.kernels.horizon import plan_sample
+from soft_gripper_sdre.control.kernels.integral import (
     integral_roll_off,
     integral_step,
     integral_update,
 )
-from soft_gripper_sdre.control.compiled_kf import kf_step, kf_step_dt
-from soft_gripper_sdre.control.compiled_riccati import sdre_gains
-from soft_gripper_sdre.control.compiled_sdc_network import sdc_forward
-from soft_gripper_sdre.control.compiled_sdre import (
+from soft_gripper_sdre.control.kernels.kf import kf_step, kf_step_dt
+from soft_gripper_sdre.control.kernels.riccati import sdre_gains
+from soft_gripper_sdre.control.kernels.sdc_network import sdc_forward
+from soft_gripper_sdre.control.kernels.sdre import (
     feedforward_step,
     model_inversion,
     sdre_step,
@@ -174,7 +175,7 @@ class SdreOutputs(KernelRecords):
 
 
 class FeedforwardOutputs(KernelRecords):
-    """What :func:`~soft_gripper_sdre.control.compiled_sdre.feedforward_step` adds to
+    """What :func:`~soft_gripper_sdre.control.kernels.sdre.feedforward_step` adds to
     SdreOutputs, per finger."""
 
     dtype = np.dtype([('u_ff', F8, (2,)),         # the feedforward part of u_unsat (0: not usable)
