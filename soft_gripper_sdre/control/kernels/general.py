@@ -14,10 +14,11 @@ serves every shape. Each kernel does what the general numpy path does
   (:func:`finger_newton_kleinman`; :func:`~soft_gripper_sdre.control.riccati.newton_kleinman`'s
   iteration and rule), each Lyapunov equation solved as the linear system of P's upper triangle,
   k(k + 1)/2 unknowns;
-* the general checks on the result, those of :func:`~soft_gripper_sdre.control.riccati.
-  checked_gains` (P finite, the relative residual, P ≻ 0 by its eigenvalues, A_cl Hurwitz by its
-  eigenvalues, cond(A_cl) < cond_max) and the gains K = −R⁻¹GᵀP, K_s = −R⁻¹GᵀA_cl⁻ᵀQ
-  (:func:`finger_general_checks`);
+* the checks of :func:`~soft_gripper_sdre.control.riccati.checked_gains` on the result (P finite,
+  the relative residual, P ≻ 0, A_cl Hurwitz, cond(A_cl) < cond_max; Hurwitz and the condition
+  number first by cheap sufficient tests, then, where those do not prove them, by the
+  eigenvalues and singular values as numpy decides) and the gains K = −R⁻¹GᵀP,
+  K_s = −R⁻¹GᵀA_cl⁻ᵀQ (:func:`finger_general_checks`);
 * the torques u = K x + K_s x_d clipped to the bounds (:func:`general_torques`), the feedforward
   u_ff = G2⁺(a_d − A2 x_d) with its unreachable part (:func:`finger_pseudo_inversion`), the
   reachable integral's step (:func:`reachable_integral_update`).
@@ -205,15 +206,73 @@ def all_finite(M):
 
 
 @kernel
+def cholesky_exists(S, work):
+    """S ≻ 0 for a symmetric k × k S: its Cholesky factor (built in ``work``, k × k) exists."""
+    k = S.shape[0]
+    for j in range(k):
+        d = S[j, j]
+        for c in range(j):
+            d -= work[j, c] * work[j, c]
+        if not d > 0.0:                                        # also False for NaN
+            return False
+        work[j, j] = np.sqrt(d)
+        for i in range(j + 1, k):
+            s = S[i, j]
+            for c in range(j):
+                s -= work[i, c] * work[j, c]
+            work[i, j] = s / work[j, j]
+    return True
+
+
+@kernel
+def invert_in_place(M, out):
+    """out = M⁻¹ for a small square M by Gauss–Jordan elimination with partial pivoting (M is
+    overwritten); False when a pivot is zero or not finite."""
+    n = M.shape[0]
+    out[:, :] = 0.0
+    for i in range(n):
+        out[i, i] = 1.0
+    for col in range(n):
+        pivot, big = col, abs(M[col, col])
+        for r in range(col + 1, n):
+            if abs(M[r, col]) > big:
+                pivot, big = r, abs(M[r, col])
+        if not (0.0 < big < np.inf):
+            return False
+        if pivot != col:
+            for c in range(n):
+                M[col, c], M[pivot, c] = M[pivot, c], M[col, c]
+                out[col, c], out[pivot, c] = out[pivot, c], out[col, c]
+        inv = 1.0 / M[col, col]
+        for c in range(n):
+            M[col, c] *= inv
+            out[col, c] *= inv
+        for r in range(n):
+            if r != col and M[r, col] != 0.0:
+                f = M[r, col]
+                for c in range(n):
+                    M[r, c] -= f * M[col, c]
+                    out[r, c] -= f * out[col, c]
+    return True
+
+
+@kernel
 def finger_general_checks(A, g2, B, P, q, q_norm, residual_tol, cond_max, K, Ks):
-    """(failed Check bits, relative residual) of one finger's solution P (k × k) by the general
-    checks (riccati.checked_gains), and its gains into K, K_s (m, k) where A_cl is invertible:
+    """(failed Check bits, relative residual) of one finger's solution P (k × k) by the checks of
+    riccati.checked_gains, and its gains into K, K_s (m, k) where A_cl is invertible:
 
     * P finite (else SOLVE_FAILED, residual NaN);
-    * ‖PA + AᵀP + Q − P G R⁻¹ Gᵀ P‖_F / ‖Q‖_F < residual_tol (RESIDUAL);
-    * the smallest eigenvalue of P > 0 (P_NOT_PD);
-    * every eigenvalue of A_cl = A + G K has a negative real part (HURWITZ);
-    * cond₂(A_cl) < cond_max (ACL_SINGULAR), and then K_s = −R⁻¹ Gᵀ A_cl⁻ᵀ Q.
+    * ‖PA + AᵀP + Q − P S P‖_F / ‖Q‖_F < residual_tol, S = G R⁻¹ Gᵀ (RESIDUAL);
+    * P ≻ 0 (P_NOT_PD): its Cholesky factor exists;
+    * A_cl = A + G K Hurwitz (HURWITZ): proven where P ≻ 0, the residual passed and
+      N = Q + P S P − 2 tol ‖Q‖_F I ≻ 0 (A_clᵀP + PA_cl = −(Q + PSP − Res), the hand kernels'
+      argument), else decided by A_cl's eigenvalues;
+    * cond₂(A_cl) < cond_max (ACL_SINGULAR): proven by cond₂ ≤ ‖A_cl‖_F ‖A_cl⁻¹‖_F < cond_max
+      with A_cl⁻¹ = [[−C⁻¹D, C⁻¹], [I, 0]] for A_cl = [[0, I], [C, D]], else decided by the
+      singular values. Then K_s = −R⁻¹ Gᵀ A_cl⁻ᵀ Q, which is −R⁻¹ G2ᵀ C⁻ᵀ Q[:d, :].
+
+    Each proof only ever accepts what the exact test accepts; where it fails the exact test
+    decides, so a finger's bits are those of the eigenvalue and singular-value tests.
     """
     k, d, m = A.shape[0], g2.shape[0], g2.shape[1]
     if not all_finite(P):
@@ -225,6 +284,7 @@ def finger_general_checks(A, g2, B, P, q, q_norm, residual_tol, cond_max, K, Ks)
             for c in range(m):
                 s += g2[a, c] * B[c, b]
             W[a, b] = s
+    PSP = np.empty((k, k))                                     # P S P = P_lowᵀ W P_low
     res2 = 0.0
     for i in range(k):
         for j in range(k):
@@ -232,19 +292,21 @@ def finger_general_checks(A, g2, B, P, q, q_norm, residual_tol, cond_max, K, Ks)
             for c in range(k):
                 pa += P[i, c] * A[c, j]
                 ap += A[c, i] * P[c, j]
-            psp = 0.0                                          # (P S P)_ij = P_low,iᵀ W P_low,j
+            psp = 0.0
             for a in range(d):
                 t = 0.0
                 for b in range(d):
                     t += W[a, b] * P[d + b, j]
                 psp += P[d + a, i] * t
+            PSP[i, j] = psp
             v = pa + ap + q[i, j] - psp
             res2 += v * v
     residual = np.sqrt(res2) / q_norm
     failed = 0
     if not residual < residual_tol:
         failed |= RESIDUAL
-    if not np.linalg.eigvalsh(P.copy()).min() > 0.0:
+    work = np.zeros((k, k))
+    if not cholesky_exists(P, work):
         failed |= P_NOT_PD
     for a in range(m):
         for c in range(k):
@@ -261,22 +323,54 @@ def finger_general_checks(A, g2, B, P, q, q_norm, residual_tol, cond_max, K, Ks)
             A_cl[d + rr, c] += s                                # A + G K
     if not all_finite(A_cl):
         return failed | HURWITZ | ACL_SINGULAR, residual
-    eig = np.linalg.eigvals(A_cl.astype(np.complex128))
-    for v in eig:
-        if not v.real < 0.0:
-            failed |= HURWITZ
-            break
-    sv = np.linalg.svd(A_cl)[1]
-    if not sv[0] < cond_max * sv[k - 1]:                       # cond₂ = σ_max / σ_min
-        failed |= ACL_SINGULAR
+    proven = False
+    if failed == 0:
+        margin = 2.0 * residual_tol * q_norm
+        N = q + PSP
+        for i in range(k):
+            N[i, i] -= margin
+        proven = cholesky_exists(N, work)
+    if not proven:
+        for v in np.linalg.eigvals(A_cl.astype(np.complex128)):
+            if not v.real < 0.0:
+                failed |= HURWITZ
+                break
+    C_inv = np.empty((d, d))
+    C = A_cl[d:, :d].copy()
+    fro2, inv2 = 0.0, float(d)                                 # ‖A_cl‖²_F, ‖A_cl⁻¹‖²_F
+    invertible = invert_in_place(C, C_inv)
+    if invertible:
+        for i in range(k):
+            for j in range(k):
+                fro2 += A_cl[i, j] * A_cl[i, j]
+        for i in range(d):
+            for j in range(d):
+                inv2 += C_inv[i, j] * C_inv[i, j]
+                s = 0.0
+                for c in range(d):
+                    s += C_inv[i, c] * A_cl[d + c, d + j]
+                inv2 += s * s                                  # (C⁻¹ D)_ij
+    if not (invertible and np.sqrt(fro2 * inv2) < cond_max):
+        sv = np.linalg.svd(A_cl)[1]
+        if not sv[0] < cond_max * sv[k - 1]:                   # cond₂ = σ_max / σ_min
+            return failed | ACL_SINGULAR, residual
+        X = np.linalg.solve(A_cl.T.copy(), q.copy())           # A_cl⁻ᵀ Q
+        for a in range(m):
+            for c in range(k):
+                s = 0.0
+                for rr in range(d):
+                    s += B[a, rr] * X[d + rr, c]
+                Ks[a, c] = -s
         return failed, residual
-    X = np.linalg.solve(A_cl.T.copy(), q.copy())               # A_cl⁻ᵀ Q
     for a in range(m):
         for c in range(k):
             s = 0.0
             for rr in range(d):
-                s += B[a, rr] * X[d + rr, c]
-            Ks[a, c] = -s                                       # −R⁻¹ Gᵀ A_cl⁻ᵀ Q
+                t = 0.0
+                for j in range(d):
+                    t += C_inv[j, rr] * q[j, c]                # (C⁻ᵀ Q[:d, :])_rr,c
+                s += B[a, rr] * t
+            Ks[a, c] = -s                                       # −R⁻¹ G2ᵀ C⁻ᵀ Q[:d, :]
     return failed, residual
 
 
