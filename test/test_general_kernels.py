@@ -249,10 +249,26 @@ def test_the_laws_of_every_shape_compile_nothing_after_warm_up():
     assert {k.py_func.__name__: len(k.signatures) for k in kernels.cache.KERNELS} == counts
 
 
-def test_the_compiled_switch_is_refused_nowhere_and_off_the_fast_method_unused():
+def test_the_general_kernels_serve_only_the_fast_method_with_detectable_weights():
     model = FusedShapedModel(3, 3)
     ref = SdreLaw(model, W, U_MAX, n_fingers=1, method='reference', bounds=CASES[(3, 3)])
     assert not ref.sdre.general_kernels and ref.network is None
     velocity_only = SdreLaw(model, Weights(0.0, 1.0, 1.0), U_MAX, n_fingers=1,
                             bounds=CASES[(3, 3)])
     assert not velocity_only.sdre.general_kernels          # no detectability argument: numpy
+
+
+def test_the_general_kernels_check_bits_are_riccatis():
+    for name in ('HURWITZ', 'ACL_SINGULAR', 'SOLVE_FAILED', 'NONFINITE', 'RESIDUAL', 'P_NOT_PD'):
+        assert getattr(general, name) == int(Check[name])
+
+
+def test_the_bench_times_the_3d_controller_against_the_numpy_path_in_one_run():
+    """tools/benchmarks/bench_compute's (d = 3, m = 3) rows: both paths on the same steps, five
+    repeats each, the same torques, the compiled one faster."""
+    from soft_gripper_sdre.tools.benchmarks.bench_compute import bench_shaped
+    r = bench_shaped(2, repeats=5, steps=40, numpy_every=4)
+    assert all(len(r[k]) == 5 for k in ('compiled', 'compiled_paired', 'numpy', 'iterations'))
+    assert r['difference'] < 1e-7
+    assert np.median(r['numpy']) > 2.0 * np.median(r['compiled_paired'])
+    assert 1.0 <= np.median(r['iterations']) <= 5.0
