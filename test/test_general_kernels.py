@@ -272,3 +272,17 @@ def test_the_bench_times_the_3d_controller_against_the_numpy_path_in_one_run():
     assert r['difference'] < 1e-7
     assert np.median(r['numpy']) > 2.0 * np.median(r['compiled_paired'])
     assert 1.0 <= np.median(r['iterations']) <= 5.0
+
+
+def test_bad_settings_of_the_general_path_are_refused_naming_them():
+    model = FusedShapedModel(3, 3)
+    with pytest.raises(ValueError, match='compiled must be True or False'):
+        SdreLaw(model, W, U_MAX, n_fingers=1, bounds=CASES[(3, 3)], compiled='yes')
+    for compiled in (True, False):
+        law = SdreFeedforwardLaw(model, W, U_MAX, n_fingers=2, bounds=CASES[(3, 3)],
+                                 compiled=compiled)
+        args = (np.tile(REST, (2, 1)), np.zeros((2, 3)), np.tile(REST, (2, 1)), np.zeros((2, 3)))
+        with pytest.raises(ValueError, match=r'ref_acc must have shape \(2, 3\)'):
+            law.compute(*args, ref_acc=np.zeros((2, 2)))
+        with pytest.raises(ValueError, match='pos, vel, ref_pos, ref_vel'):
+            law.compute(args[0][:, :2], *args[1:])

@@ -185,6 +185,8 @@ class SdreController(SdreCounters):
         self.max_nk_iterations = int(max_nk_iterations)
         self._cost = riccati_cost(self.Q, self.R)
         # the kernel's detectability argument needs Q ≻ 0 or Q's position block ≻ 0
+        if not isinstance(compiled, (bool, np.bool_)):
+            raise ValueError(f'compiled must be True or False, got {compiled!r}')
         detectable = self._cost.q_definite or self._cost.q_position_definite
         self.fast = method == 'fast' and self.hand and detectable
         self.general_kernels = (method == 'fast' and not self.hand and bool(compiled)
