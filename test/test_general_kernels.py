@@ -286,3 +286,31 @@ def test_bad_settings_of_the_general_path_are_refused_naming_them():
             law.compute(*args, ref_acc=np.zeros((2, 2)))
         with pytest.raises(ValueError, match='pos, vel, ref_pos, ref_vel'):
             law.compute(args[0][:, :2], *args[1:])
+
+
+def test_the_pseudo_inversion_kernel_is_numpys_well_and_ill_conditioned():
+    """The closed form (a well conditioned G2), the SVD (conditioned worse, or rank deficient)
+    and the refusals (singular, zero, not finite) against laws.feedforward.pseudo_inversion."""
+    from soft_gripper_sdre.control.laws.feedforward import pseudo_inversion
+    rng = np.random.default_rng(7)
+    for d, m in INPUT_MAPS:
+        G2 = rng.normal(size=(7, d, m))
+        k = min(d, m)
+        U, _, Vt = np.linalg.svd(G2[1], full_matrices=False)
+        G2[1] = U @ np.diag(np.logspace(0, -6, k)) @ Vt          # cond 1e6: the SVD, usable
+        G2[2] = U @ np.diag(np.logspace(0, -12, k)) @ Vt         # cond 1e12: refused
+        G2[3] = 0.0
+        G2[4, 0, 0] = np.nan
+        if k > 1:
+            G2[5] = np.outer(G2[5, :, 0], G2[5, 0, :])           # rank one
+        A2, xd = rng.normal(size=(7, d, 2 * d)), rng.normal(size=(7, 2 * d))
+        ad = rng.normal(size=(7, d))
+        u, usable, unreachable = pseudo_inversion(A2, G2, xd, ad)
+        for i in range(7):
+            ui = np.zeros(m)
+            ok, unreach = general.finger_pseudo_inversion(A2[i], G2[i], xd[i], ad[i], 1e8, ui)
+            assert ok == usable[i], (d, m, i)
+            np.testing.assert_allclose(ui, u[i], rtol=1e-9, atol=1e-9 * np.abs(u[i]).max())
+            np.testing.assert_allclose(unreach, unreachable[i], rtol=1e-7, atol=1e-9)
+        assert usable[[0, 1, 6]].all() and not usable[[3, 4]].any()
+        assert usable[2] == (k == 1)                 # one singular value: nothing to compare

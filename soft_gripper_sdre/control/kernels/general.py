@@ -45,6 +45,10 @@ from soft_gripper_sdre.control.kernels.linalg import solve_in_place
 (HURWITZ, ACL_SINGULAR, SOLVE_FAILED, NONFINITE, RESIDUAL, P_NOT_PD) = 4, 8, 16, 32, 64, 128
 #: Newton–Kleinman stops when ‖P_k+1 − P_k‖_F ≤ this × ‖P_k+1‖_F (riccati.newton_kleinman's rule)
 NK_STEP_TOL = 1e-12
+#: the feedforward's closed form serves a G2 whose Gram matrix's bound ‖M‖_F‖M⁻¹‖_F is below this
+#: (cond₂(G2) below about 1e4: the normal equations then lose at most some 1e-8 of the input);
+#: a worse conditioned one takes the SVD
+PROVEN_GRAM_COND = 1e8
 
 
 @kernel
@@ -521,10 +525,11 @@ def general_feedforward_gains(z, origin, ff_at_reference, network, hidden, q, r,
 @kernel
 def finger_pseudo_inversion(a2, g2, x_d, a_d, cond_max, u_ff):
     """u_ff (m,) = G2⁺ (a_d − A2 x_d) for one finger (laws.feedforward.pseudo_inversion): returns
-    (usable, unreachable). Zero and not usable where G2 or the demand is not finite, G2 is zero or
-    σ_max ≥ cond_max σ_min over its min(d, m) singular values, or the result is not finite;
-    ``unreachable`` [m/s²] = ‖(I − U Uᵀ) r‖ over the singular vectors above σ_max / cond_max (0
-    where the inputs are not finite)."""
+    (usable, unreachable). A well conditioned G2 of full rank takes the closed form of its Gram
+    matrix (:data:`PROVEN_GRAM_COND`), any other the SVD. Zero and not usable where G2 or the
+    demand is not finite, G2 is zero or σ_max ≥ cond_max σ_min over its min(d, m) singular values,
+    or the result is not finite; ``unreachable`` [m/s²] = ‖(I − U Uᵀ) r‖ over the singular vectors
+    above σ_max / cond_max (0 where the inputs are not finite)."""
     d, m = g2.shape[0], g2.shape[1]
     rhs = np.empty(d)
     finite = all_finite(g2)
@@ -537,6 +542,62 @@ def finger_pseudo_inversion(a2, g2, x_d, a_d, cond_max, u_ff):
     u_ff[:] = 0.0
     if not finite:
         return False, 0.0
+    # G2 of full rank, proven well conditioned through M = G2 G2ᵀ (m ≥ d) or G2ᵀ G2 (m < d):
+    # cond₂(G2)² = cond₂(M) ≤ ‖M‖_F ‖M⁻¹‖_F; then G2⁺ = G2ᵀ M⁻¹ or M⁻¹ G2ᵀ, and the demand
+    # outside G2's range is r − G2 u_ff (none where m ≥ d). Else the SVD decides, as numpy does.
+    wide = m >= d
+    nm = d if wide else m
+    M, M_inv = np.empty((nm, nm)), np.empty((nm, nm))
+    fro2 = 0.0
+    for a in range(nm):
+        for b in range(nm):
+            s = 0.0
+            if wide:
+                for c in range(m):
+                    s += g2[a, c] * g2[b, c]
+            else:
+                for c in range(d):
+                    s += g2[c, a] * g2[c, b]
+            M[a, b] = s
+            fro2 += s * s
+    if invert_in_place(M, M_inv):
+        inv2 = 0.0
+        for a in range(nm):
+            for b in range(nm):
+                inv2 += M_inv[a, b] * M_inv[a, b]
+        if np.sqrt(fro2 * inv2) < min(cond_max * cond_max, PROVEN_GRAM_COND):
+            y = np.zeros(nm)
+            for a in range(nm):
+                s = 0.0
+                for b in range(nm):
+                    if wide:
+                        s += M_inv[a, b] * rhs[b]
+                    else:
+                        t = 0.0
+                        for c in range(d):
+                            t += g2[c, b] * rhs[c]
+                        s += M_inv[a, b] * t                    # (G2ᵀG2)⁻¹ G2ᵀ r
+                y[a] = s
+            usable = True
+            for a in range(m):
+                if wide:
+                    s = 0.0
+                    for c in range(d):
+                        s += g2[c, a] * y[c]                    # G2ᵀ (G2G2ᵀ)⁻¹ r
+                else:
+                    s = y[a]
+                u_ff[a] = s
+                usable = usable and np.isfinite(s)
+            if not usable:
+                u_ff[:] = 0.0
+            unreachable = 0.0
+            if not wide:
+                for rr in range(d):
+                    s = rhs[rr]
+                    for a in range(m):
+                        s -= g2[rr, a] * u_ff[a]
+                    unreachable += s * s
+            return usable, np.sqrt(unreachable)
     U, sv, Vt = np.linalg.svd(g2.copy(), full_matrices=False)
     nk = sv.shape[0]
     c = np.empty(nk)

@@ -188,6 +188,7 @@ class SdreFeedforwardLaw:
         self.network = (compiled_network(model) if self.sdre.fast or self.sdre.general_kernels
                         else None)
         self._no_acc = np.zeros((self.n_fingers, shape.d))
+        self._no_integral = no_integral(self.n_fingers, shape.d, shape.m)
         if not (np.isfinite(integral_gain) and integral_gain >= 0):
             raise ValueError('integral_gain must be finite and >= 0 (0 = off), '
                              f'got {integral_gain!r}')
@@ -243,13 +244,13 @@ class SdreFeedforwardLaw:
     def _general_compiled_step(self, pos, vel, ref_pos, ref_vel, ref_acc) -> LawStep:
         """:meth:`compute` off the hand's path in the general kernels (the same law, flags and
         integral as the numpy general path), then the roll-off."""
-        n, d, m = self.n_fingers, self.io.shape.d, self.io.shape.m
+        n, d = self.n_fingers, self.io.shape.d
         if ref_acc is None:
             ref_acc = self._no_acc
         elif np.shape(ref_acc) != (n, d):
             raise ValueError(f'ref_acc must have shape ({n}, {d}), got {np.shape(ref_acc)}')
         z = self.io.frame.stacked(pos, vel, ref_pos, ref_vel, ref_acc)
-        integral = (no_integral(n, d, m) if self.integral is None
+        integral = (self._no_integral if self.integral is None
                     else self.integral.kernel_args())
         out = self.sdre.track_feedforward_general(self.network, self.io.origin,
                                                   self.ff_at == 'ref', z, integral)
