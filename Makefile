@@ -9,7 +9,7 @@ PY      := $(VENV)/bin/python
 STAMP   := $(VENV)/.installed
 # numba's on-disk cache of the compiled control kernels, filled once (compiling takes about a
 # minute; every process started later loads them from the cache in about a second)
-KERNELS := soft_gripper_sdre/control/__pycache__/kernels.stamp
+KERNELS := soft_gripper_sdre/control/kernels/__pycache__/kernels.stamp
 OUT     ?= runs/demo
 
 .PHONY: demo test test-fast venv kernels model model-from-bags bench sweep input-matrix lock clean two-hands two-hosts
@@ -23,8 +23,8 @@ $(STAMP): requirements.txt setup.py setup.cfg package.xml
 
 venv: $(STAMP)
 
-$(KERNELS): $(STAMP) $(wildcard soft_gripper_sdre/control/compiled*.py)
-	$(PY) -c 'from soft_gripper_sdre.control.compiled import warm_up; warm_up()'
+$(KERNELS): $(STAMP) $(wildcard soft_gripper_sdre/control/kernels/*.py)
+	$(PY) -c 'from soft_gripper_sdre.control.kernels import warm_up; warm_up()'
 	mkdir -p $(@D) && touch $@
 
 kernels: $(KERNELS)

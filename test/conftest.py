@@ -67,7 +67,7 @@ def pytest_sessionstart(session):
     """Compile the control kernels into numba's on-disk cache, or load them from it, before the
     first test: outside every test's time limit, and before the node processes that graph tests
     start, which then load them from the cache instead of each compiling them."""
-    from soft_gripper_sdre.control.compiled import warm_up
+    from soft_gripper_sdre.control.kernels import warm_up
     warm_up()
 
 

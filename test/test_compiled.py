@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 from soft_gripper_sdre.analysis.closed_loop import run_closed_loop
-from soft_gripper_sdre.control import compiled, compiled_riccati
-from soft_gripper_sdre.control.compiled import (
+from soft_gripper_sdre.control import kernels as compiled
+from soft_gripper_sdre.control.kernels import (
     SdcNetwork,
     SdreOutputs,
     SdreSettings,
@@ -25,6 +25,7 @@ from soft_gripper_sdre.control.compiled import (
     sdre_step,
     warm_up,
 )
+from soft_gripper_sdre.control.kernels import riccati as compiled_riccati
 from soft_gripper_sdre.control.kf import ConstantVelocityKF
 from soft_gripper_sdre.control.laws import make_law
 from soft_gripper_sdre.control.laws import model_inversion as numpy_model_inversion
@@ -338,7 +339,7 @@ def test_warm_up_leaves_one_signature_per_kernel_and_the_laws_add_none(model, we
 def test_warm_up_compiles_once_then_loads_from_the_cache(tmp_path):
     """Two fresh interpreters with one numba cache directory: the first compiles every kernel, the
     second loads every one of them from the cache (no compilation)."""
-    code = ('from soft_gripper_sdre.control import compiled as c; c.warm_up(); '
+    code = ('from soft_gripper_sdre.control import kernels as c; c.warm_up(); '
             f'ks = [getattr(c, name) for name in {KERNELS!r}]; '
             'print(sum(len(k.stats.cache_misses) for k in ks), '
             'sum(sum(k.stats.cache_hits.values()) for k in ks))')

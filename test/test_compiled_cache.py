@@ -1,11 +1,11 @@
 """numba's on-disk cache of the kernels held to the kernel modules' sources as a whole
-(control/compiled_cache.py): the digest covers every kernel module, an edit of a callee's module
+(control/kernels/cache.py): the digest covers every kernel module, an edit of a callee's module
 reaches its callers in another module, and an unchanged tree loads from the cache.
 
 The slow tests run fresh interpreters on a copy of the kernel modules in a package tree of their
 own, with a kernel pair of two more modules (a caller and, in another file, the callee it calls),
 defined with the package's decorator, and NUMBA_CACHE_DIR in a temporary directory: importing
-control.compiled there runs the rule as it runs in the package, and only the pair compiles.
+control.kernels there runs the rule as it runs in the package, and only the pair compiles.
 """
 import inspect
 import json
@@ -17,8 +17,8 @@ import sys
 
 import pytest
 
-from soft_gripper_sdre.control import compiled  # noqa: F401  (runs the rule)
-from soft_gripper_sdre.control.compiled_cache import (
+import soft_gripper_sdre.control.kernels  # noqa: F401  (runs the rule)
+from soft_gripper_sdre.control.kernels.cache import (
     DIGEST_FILE,
     KERNELS,
     cache_directories,
@@ -27,7 +27,7 @@ from soft_gripper_sdre.control.compiled_cache import (
     source_digest,
 )
 
-CALLEE = '''from soft_gripper_sdre.control.compiled_cache import kernel
+CALLEE = '''from soft_gripper_sdre.control.kernels.cache import kernel
 
 OFFSET = {offset}
 
@@ -36,8 +36,8 @@ OFFSET = {offset}
 def callee(x):
     return x + OFFSET
 '''
-CALLER = '''from soft_gripper_sdre.control.compiled_cache import kernel
-from soft_gripper_sdre.control.compiled_pair_callee import callee
+CALLER = '''from soft_gripper_sdre.control.kernels.cache import kernel
+from soft_gripper_sdre.control.kernels.pair_callee import callee
 
 
 @kernel
@@ -45,23 +45,23 @@ def caller(x):
     return 2.0 * callee(x)
 '''
 #: in a fresh interpreter: the caller's value at 1 and its cache hits and misses
-PROBE = ('import json; from soft_gripper_sdre.control import compiled, compiled_pair_caller as m; '
+PROBE = ('import json; from soft_gripper_sdre.control.kernels import pair_caller as m; '
          'value = m.caller(1.0); s = m.caller.stats; '
          'print(json.dumps([value, sum(s.cache_hits.values()), sum(s.cache_misses.values())]))')
 
 
 def kernel_tree(root: Path, offset: float) -> Path:
-    """soft_gripper_sdre/control under ``root`` with the kernel modules and the pair (the callee
-    adding ``offset``); its control directory."""
-    control = root / 'soft_gripper_sdre' / 'control'
-    control.mkdir(parents=True)
-    for package in (control.parent, control):
+    """soft_gripper_sdre/control/kernels under ``root`` with the kernel modules and the pair (the
+    callee adding ``offset``); its kernels directory."""
+    kernels = root / 'soft_gripper_sdre' / 'control' / 'kernels'
+    kernels.mkdir(parents=True)
+    for package in (kernels.parent.parent, kernels.parent):
         (package / '__init__.py').write_text('')
     for path in kernel_sources():
-        shutil.copyfile(path, control / path.name)
-    (control / 'compiled_pair_callee.py').write_text(CALLEE.format(offset=offset))
-    (control / 'compiled_pair_caller.py').write_text(CALLER)
-    return control
+        shutil.copyfile(path, kernels / path.name)
+    (kernels / 'pair_callee.py').write_text(CALLEE.format(offset=offset))
+    (kernels / 'pair_caller.py').write_text(CALLER)
+    return kernels
 
 
 def start(root: Path, cache: Path) -> subprocess.Popen:
@@ -88,23 +88,24 @@ def digest_files(cache: Path) -> list[Path]:
 
 def test_the_digest_covers_every_kernel_module(tmp_path):
     """Every kernel is defined in a module the digest reads, every such module is imported (its
-    kernels registered) by control.compiled, and a new kernel module or an edit of one changes the
-    digest; a module of another name does not."""
+    kernels registered) by control.kernels, and a new kernel module or an edit of one changes the
+    digest; a file that is not a module does not."""
     sources = kernel_sources()
     assert {Path(inspect.getfile(k.py_func)) for k in KERNELS} <= set(sources)
-    assert {'compiled.py', 'compiled_cache.py', 'compiled_sdre.py', 'compiled_kf.py'} <= {
+    assert {'__init__.py', 'cache.py', 'sdre.py', 'kf.py', 'general.py'} <= {
         p.name for p in sources}
-    assert all(f'soft_gripper_sdre.control.{p.stem}' in sys.modules for p in sources)
+    assert all(f'soft_gripper_sdre.control.kernels.{p.stem}'.removesuffix('.__init__')
+               in sys.modules for p in sources)
     copy = kernel_tree(tmp_path, 1.0)
-    for extra in ('compiled_pair_callee.py', 'compiled_pair_caller.py'):
+    for extra in ('pair_callee.py', 'pair_caller.py'):
         (copy / extra).unlink()
     assert source_digest(copy) == source_digest()
-    (copy / 'kf.py').write_text('X = 1\n')
+    (copy / 'notes.txt').write_text('X = 1\n')
     assert source_digest(copy) == source_digest()
-    (copy / 'compiled_new.py').write_text('')
+    (copy / 'new.py').write_text('')
     with_new = source_digest(copy)
     assert with_new != source_digest()
-    kf = copy / 'compiled_kf.py'
+    kf = copy / 'kf.py'
     kf.write_bytes(kf.read_bytes().replace(b'Joseph form', b'Joseph-form'))
     assert source_digest(copy) not in (with_new, source_digest())
 
@@ -125,7 +126,7 @@ def test_an_edit_of_a_callees_module_reaches_its_caller_in_another(tmp_path):
     root, cache = tmp_path / 'tree', tmp_path / 'cache'
     control = kernel_tree(root, offset=1.0)
     assert probe(root, cache) == (4.0, 0, 1)
-    (control / 'compiled_pair_callee.py').write_text(CALLEE.format(offset=2.0))
+    (control / 'pair_callee.py').write_text(CALLEE.format(offset=2.0))
     together = [start(root, cache) for _ in range(2)]
     assert [result(process)[0] for process in together] == [6.0, 6.0]
     assert probe(root, cache) == (6.0, 1, 0)

@@ -1,8 +1,8 @@
 """The controller's compiled plan sample gives the bits of horizon.sample_plan."""
 import numpy as np
 
-from soft_gripper_sdre.control.compiled import plan_sample
 from soft_gripper_sdre.control.horizon import sample_plan
+from soft_gripper_sdre.control.kernels import plan_sample
 
 
 def _plan(rng, points: int, n: int = 4, regular: bool = False):

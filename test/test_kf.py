@@ -131,7 +131,7 @@ def test_a_step_of_the_filters_own_dt_is_the_fixed_step_bit_for_bit():
 
 
 def test_compiled_matrices_agree_with_cv_matrices():
-    from soft_gripper_sdre.control.compiled import kf_step_dt
+    from soft_gripper_sdre.control.kernels import kf_step_dt
     for model, coupling in (('independent', 0.0), ('paper', 1.0)):
         for dt in (1e-4, 8.3e-3, 0.05):
             F, Q = np.empty((4, 4)), np.empty((4, 4))

@@ -19,7 +19,7 @@ from soft_gripper_sdre.control.batched_linalg import (
     portable_batched_solve,
     well_conditioned_2x2,
 )
-from soft_gripper_sdre.control.compiled_linalg import well_conditioned
+from soft_gripper_sdre.control.kernels.linalg import well_conditioned
 from soft_gripper_sdre.control.laws import SdreLaw
 from soft_gripper_sdre.control.riccati import Check, care, full_sdc_matrices
 from soft_gripper_sdre.control.sdre import SdreController

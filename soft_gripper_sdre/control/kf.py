@@ -25,7 +25,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.linalg import solve_discrete_are
 
-from soft_gripper_sdre.control.compiled import kernel_array, kf_step, kf_step_dt
+from soft_gripper_sdre.control.kernels import kernel_array, kf_step, kf_step_dt
 from soft_gripper_sdre.sim.shape import FingerShape
 
 PROCESS_NOISE_MODELS = ('independent', 'paper')
@@ -47,7 +47,7 @@ def cv_matrices(dt: float, accel_psd: float, process_noise: str = 'independent',
 
 class ConstantVelocityKF:
     """Constant-velocity KF for ``n`` fingers at once; each step is one call of the compiled
-    :func:`~soft_gripper_sdre.control.compiled_kf.kf_step`.
+    :func:`~soft_gripper_sdre.control.kernels.kf.kf_step`.
 
     Args:
         dt: sample period [s].

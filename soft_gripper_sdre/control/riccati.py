@@ -9,7 +9,7 @@ and the checks of Remarks 2–3, each a bit of :class:`Check`: (A, G) stabilisab
 detectable, everything finite, P symmetric positive definite with a small residual, A_cl Hurwitz
 and invertible. These hold for any (A, G) of any size: a state of 2d (d = 2 or 3 tip coordinates)
 and m inputs (the finger's :class:`~soft_gripper_sdre.sim.shape.FingerShape`); the compiled kernels
-(:mod:`~soft_gripper_sdre.control.compiled`) have cheaper versions for the hand's SDC structure,
+(:mod:`~soft_gripper_sdre.control.kernels`) have cheaper versions for the hand's SDC structure,
 A = [[0, I], [A21 A22]] and G = [[0], [G2]] with 2×2 blocks.
 """
 from __future__ import annotations

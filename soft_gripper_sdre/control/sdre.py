@@ -3,7 +3,7 @@
 K, K_s and the checks are those of eq. 23–24 and Remarks 2–3
 (:mod:`~soft_gripper_sdre.control.riccati`). Two paths compute them:
 
-* ``method='fast'``: the compiled kernels (:mod:`~soft_gripper_sdre.control.compiled`: warm-started
+* ``method='fast'``: the compiled kernels (:mod:`~soft_gripper_sdre.control.kernels`: warm-started
   Newton–Kleinman on the SDC form with the structure's checks, the gains and the law in one call);
   a finger the kernel hands back (cold: first step or its last step was rejected; or a failed
   check) takes the exact path alone: scipy's solver and the general checks, after which its
@@ -11,15 +11,18 @@ K, K_s and the checks are those of eq. 23–24 and Remarks 2–3
   which the SDC form does not prove detectability, take the reference path.
 * ``method='reference'``: scipy and the general checks for every finger, every step.
 
-The compiled kernels are the hand's (d = 2, m = 2, bounds ±u_max:
+The hand's kernels serve the hand (d = 2, m = 2, bounds ±u_max:
 :func:`~soft_gripper_sdre.control.tracking.hand_path`); a controller of any other shape (a state
 of 2d, m inputs, read from the sizes of Q and R) or bounds runs the reference path's checks
 whichever ``method`` is asked for. With ``'fast'`` its inputs are taken in SDC form (the
 stabilisability test on G2's rank instead of the PBH test where G2 has full row rank) and each
-finger with an accepted solution starts from it: Newton–Kleinman in numpy
-(:func:`~soft_gripper_sdre.control.riccati.newton_kleinman`, at most ``max_nk_iterations``
-Lyapunov solves), scipy's CARE only where that fails a check. ``'reference'`` solves every finger
-with scipy.
+finger with an accepted solution starts from it: Newton–Kleinman (at most ``max_nk_iterations``
+Lyapunov solves), scipy's CARE only where that fails a check. The general kernels
+(:mod:`~soft_gripper_sdre.control.kernels.general`) do that step, its checks and the torques in
+compiled code (``compiled=True``, the default, with weights whose Q or position block is ≻ 0:
+``general_kernels``), numpy does it otherwise
+(:func:`~soft_gripper_sdre.control.riccati.newton_kleinman`); the two give the same torques to
+rounding. ``'reference'`` solves every finger with scipy.
 
 The supervisor owns the state the kernels update (warm starts, the gains in use), the exact path
 and the counters: a finger whose step fails any check uses its last valid gains (fallback), or a
@@ -32,13 +35,19 @@ from typing import Callable
 
 import numpy as np
 
-from soft_gripper_sdre.control.compiled import (
+from soft_gripper_sdre.control.kernels import (
     FeedforwardOutputs,
+    GeneralOutputs,
     SdcNetwork,
     SdreOutputs,
     SdreSettings,
     SdreState,
     feedforward_step,
+    general_feedforward_finish,
+    general_feedforward_gains,
+    general_step_gains,
+    general_torques,
+    general_tracking_gains,
     kernel_array,
     sdre_step,
     tracking_step,
@@ -145,15 +154,19 @@ class SdreController(SdreCounters):
         max_nk_iterations: most Newton–Kleinman iterations per step before the exact path.
         nominal: optional (A0, G0) whose gains serve as the fallback before any valid step.
         bounds: per-input [lower, upper] the torques are clipped to (None: ±``u_max``).
+        compiled: off the hand's path with ``'fast'``, whether the general kernels run the
+            warm-started step (True) or numpy does (False, the yardstick of the tests and the
+            benchmark).
 
     ``shape`` is the finger's (from Q and R), ``bounds`` what the torques are clipped to, ``hand``
-    whether the hand's code serves it (:func:`~soft_gripper_sdre.control.tracking.hand_path`) and
-    ``fast`` whether the compiled kernels do; the counters are those of :class:`SdreCounters`.
+    whether the hand's code serves it (:func:`~soft_gripper_sdre.control.tracking.hand_path`),
+    ``fast`` whether the hand's compiled kernels do and ``general_kernels`` whether the general
+    ones do; the counters are those of :class:`SdreCounters`.
     """
 
     def __init__(self, Q, R, u_max, n: int = 4, method: str = 'fast', residual_tol: float = 1e-6,
                  cond_max: float = 1e8, max_nk_iterations: int = 5, nominal=None,
-                 bounds: InputBounds | None = None) -> None:
+                 bounds: InputBounds | None = None, compiled: bool = True) -> None:
         self.Q, self.R, self.u_max = checked_weights(Q, R, 1.0 if bounds is not None else u_max)
         self.shape = FingerShape(self.Q.shape[0] // 2, self.R.shape[0])
         if bounds is not None:
@@ -162,7 +175,7 @@ class SdreController(SdreCounters):
         self.bounds = InputBounds(-self.u_max, self.u_max) if bounds is None else bounds
         self.hand = hand_path(self.shape, self.bounds)
         self._lower, self._upper = (-self.u_max, self.u_max) if self.hand else (
-            self.bounds.lower, self.bounds.upper)
+            kernel_array(self.bounds.lower), kernel_array(self.bounds.upper))
         if method not in METHODS:
             raise ValueError(f'method must be one of {METHODS}, got {method!r}')
         self.n, self.method = int(n), method
@@ -172,8 +185,12 @@ class SdreController(SdreCounters):
         self.max_nk_iterations = int(max_nk_iterations)
         self._cost = riccati_cost(self.Q, self.R)
         # the kernel's detectability argument needs Q ≻ 0 or Q's position block ≻ 0
-        self.fast = (method == 'fast' and self.hand
-                     and (self._cost.q_definite or self._cost.q_position_definite))
+        if not isinstance(compiled, (bool, np.bool_)):
+            raise ValueError(f'compiled must be True or False, got {compiled!r}')
+        detectable = self._cost.q_definite or self._cost.q_position_definite
+        self.fast = method == 'fast' and self.hand and detectable
+        self.general_kernels = (method == 'fast' and not self.hand and bool(compiled)
+                                and detectable)
         if self.hand:
             self.settings = SdreSettings.of(self.Q, self.R, self.u_max, self.residual_tol,
                                             self.cond_max, int(max_nk_iterations))
@@ -182,6 +199,11 @@ class SdreController(SdreCounters):
         else:                                   # the reference path's state alone
             self.settings = self.outputs = self.feedforward = None
             self.state = GeneralState(self.n, self.shape)
+        self.general = (GeneralOutputs(self.n, self.shape.d, self.shape.m)
+                        if self.general_kernels else None)
+        # the general kernels' settings: Q, R, R⁻¹, residual_tol, cond_max, max_iterations
+        self._general_settings = (self.Q.copy(), self.R.copy(), kernel_array(self._cost.R_inv),
+                                  self.residual_tol, self.cond_max, self.max_nk_iterations)
         self._nominal = None
         if nominal is not None:
             K0, Ks0, _ = sdre_gains(np.asarray(nominal[0], float), np.asarray(nominal[1], float),
@@ -212,6 +234,9 @@ class SdreController(SdreCounters):
         sdc = self.method == 'fast' and in_sdc_form(A, G)
         if self.fast and sdc:
             return self.step_sdc(A[:, 2:, :], G[:, 2:, :], x, x_d)
+        if self.general_kernels and sdc:
+            d = self.shape.d
+            return self.step_sdc(A[:, d:, :], G[:, d:, :], x, x_d)
         return self._reference_step(A, G, x, x_d, sdc)
 
     def step_sdc(self, A2, G2, x, x_d) -> LawStep:
@@ -220,6 +245,12 @@ class SdreController(SdreCounters):
         n, d, m = self.n, self.shape.d, self.shape.m
         A2, G2, x, x_d = _checked(A2=(A2, (n, d, 2 * d)), G2=(G2, (n, d, m)), x=(x, (n, 2 * d)),
                                   x_d=(x_d, (n, 2 * d)))
+        if self.general_kernels:
+            o = self.general
+            o.a2[:], o.g2[:] = A2, G2
+            general_step_gains(x, x_d, o.a2, o.g2, *self._general_settings, *self._state_arrays(),
+                               o.finite, o.P, o.residual, o.iterations, o.failed)
+            return self._settle_general(x, x_d)
         if not self.fast:
             return self._reference_step(*full_sdc_matrices(A2, G2), x, x_d, self.method == 'fast')
         out = self.outputs
@@ -257,6 +288,85 @@ class SdreController(SdreCounters):
             step.ok &= ff.state_finite
             step.fallback |= ~ff.state_finite | ~ff.ff_usable
         return step
+
+    # -- the general kernels (any shape and bounds) --------------------------------------------
+    def _state_arrays(self) -> tuple:
+        s = self.state
+        return s.P, s.K, s.Ks, s.warm
+
+    def track_general(self, network: SdcNetwork, origin: np.ndarray, z: np.ndarray) -> LawStep:
+        """:meth:`track` for any shape (``general_kernels`` only): z (n, 4d) = [p, ṗ, p_d, ṗ_d],
+        ``origin`` p₀ (d,), the fused network of the model's shape."""
+        o = self.general
+        general_tracking_gains(z, origin, *network, *self._general_settings,
+                               *self._state_arrays(), o.a2, o.g2, o.x, o.x_d, o.finite, o.P,
+                               o.residual, o.iterations, o.failed)
+        return self._settle_general(o.x, o.x_d)
+
+    def track_feedforward_general(self, network: SdcNetwork, origin: np.ndarray,
+                                  ff_at_reference: bool, z: np.ndarray,
+                                  integral: tuple) -> LawStep:
+        """The feedforward law's step before its roll-off for any shape (``general_kernels``
+        only; :func:`~soft_gripper_sdre.control.laws.feedforward.combine_feedforward` on the
+        general path): z (n, 5d) = [p, ṗ, p_d, ṗ_d, a_d], u = G₂⁺(a_d − A₂ x_d) + K(x) e (+ the
+        reachable integral's u_I), clipped to the bounds. ``integral``: the integral's kernel
+        arguments (:meth:`ReachableIntegralAction.kernel_args
+        <soft_gripper_sdre.control.laws.integral.ReachableIntegralAction.kernel_args>`, or
+        :func:`~soft_gripper_sdre.control.kernels.no_integral`), whose ξ is updated in place.
+        The step's ``ok`` needs a finite state too; ``fallback`` is set without one or without a
+        usable feedforward; ``unreachable`` is the demand no input reaches."""
+        o = self.general
+        general_feedforward_gains(z, origin, ff_at_reference, *network, *self._general_settings,
+                                  *self._state_arrays(), o.a2, o.g2, o.a2_ff, o.g2_ff, o.x,
+                                  o.x_d, o.e, o.state_finite, o.finite, o.P, o.residual,
+                                  o.iterations, o.failed)
+        failed, iterations, P, residual, accepted = self._exact_general()
+        s = self.state
+        general_feedforward_finish(z, o.x_d, o.e, o.state_finite, o.finite, s.K, o.a2_ff,
+                                   o.g2_ff, self.cond_max, self._lower, self._upper, *integral,
+                                   o.u_ff, o.ff_usable, o.unreachable, o.u_unsat, o.u,
+                                   o.saturated)
+        step = self._record(o.u.copy(), o.u_unsat.copy(), s.K.copy(), s.Ks.copy(), P, residual,
+                            s.warm.copy(), failed, iterations, accepted)
+        step.saturated = o.saturated.copy()
+        step.ok &= o.state_finite
+        step.fallback |= ~o.state_finite | ~o.ff_usable
+        step.unreachable = o.unreachable.copy()
+        return step
+
+    def _exact_general(self):
+        """After a general kernel's gains: scipy and the general checks for every finger it
+        handed back (cold, failed or not finite); an accepted solution becomes its state. Counts
+        the step; returns the step's (failed, iterations, P, residual) and how many fingers hold
+        accepted gains."""
+        s, o = self.state, self.general
+        self.steps += 1
+        failed, iterations = o.failed.copy(), o.iterations.copy()
+        P, residual = o.P.copy(), o.residual.copy()
+        accepted = np.count_nonzero(s.warm)
+        if accepted != self.n:
+            idx = np.flatnonzero(~s.warm)
+            A, G = full_sdc_matrices(o.a2[idx], o.g2[idx])
+            P_exact, checked, solves = solve_and_check(A, G, o.finite[idx], True, self._cost,
+                                                       self.residual_tol, self.cond_max)
+            self.exact_solves += solves
+            failed[idx], iterations[idx], P[idx], residual[idx] = (checked.failed, 0, P_exact,
+                                                                   checked.residual)
+            ok = checked.ok
+            good = idx[ok]
+            s.P[good], s.K[good], s.Ks[good], s.warm[good] = (P_exact[ok], checked.K[ok],
+                                                              checked.Ks[ok], True)
+            accepted = np.count_nonzero(s.warm)
+        return failed, iterations, P, residual, accepted
+
+    def _settle_general(self, x: np.ndarray, x_d: np.ndarray) -> LawStep:
+        """The step's record after a general kernel's gains at (x, x_d): the exact path for the
+        fingers it handed back, then every finger's torques with the gains in use."""
+        failed, iterations, P, residual, accepted = self._exact_general()
+        s, o = self.state, self.general
+        general_torques(x, x_d, o.finite, s.K, s.Ks, self._lower, self._upper, o.u_unsat, o.u)
+        return self._record(o.u.copy(), o.u_unsat.copy(), s.K.copy(), s.Ks.copy(), P, residual,
+                            s.warm.copy(), failed, iterations, accepted)
 
     # -- after a kernel ----------------------------------------------------------------------
     def _settle(self, feedback_states: Callable[[], tuple[np.ndarray, np.ndarray]],

@@ -74,7 +74,7 @@ from trajectory_msgs.msg import MultiDOFJointTrajectory
 
 from soft_gripper_sdre import FINGER_NAMES
 from soft_gripper_sdre.control.command_gate import Change, CommandGate, Notice, Outcome, Plan
-from soft_gripper_sdre.control.compiled import warm_up
+from soft_gripper_sdre.control.kernels import warm_up
 from soft_gripper_sdre.control.laws import (
     DEFAULT_CT,
     DEFAULT_INTEGRAL,

@@ -50,7 +50,7 @@ from rclpy.node import Node
 from rclpy.qos import ReliabilityPolicy
 from trajectory_msgs.msg import MultiDOFJointTrajectory
 
-from soft_gripper_sdre.control.compiled import warm_up
+from soft_gripper_sdre.control.kernels import warm_up
 from soft_gripper_sdre.control.kf import PROCESS_NOISE_MODELS
 from soft_gripper_sdre.control.tip_filter import (
     MAX_BRIDGE,

@@ -2,7 +2,7 @@
 its command gate and its publishers (no ROS).
 
 The plan is sampled at the estimate's stamp by the compiled kernel
-(:func:`~soft_gripper_sdre.control.compiled.plan_sample`, the same bits as
+(:func:`~soft_gripper_sdre.control.kernels.plan_sample`, the same bits as
 :func:`~soft_gripper_sdre.control.horizon.sample_plan`, which takes over where the kernel declines)
 on the plan's arrays made contiguous once per plan. For a model learned from several fingers that
 rest apart, each finger's tip and reference are moved into the model's frame
@@ -23,8 +23,8 @@ from typing import NamedTuple
 import numpy as np
 
 from soft_gripper_sdre.control.command_gate import Plan
-from soft_gripper_sdre.control.compiled import plan_sample
 from soft_gripper_sdre.control.horizon import sample_plan
+from soft_gripper_sdre.control.kernels import plan_sample
 from soft_gripper_sdre.control.tracking import Law, LawStep
 from soft_gripper_sdre.sim.shape import HAND_SHAPE, FingerShape, InputBounds
 

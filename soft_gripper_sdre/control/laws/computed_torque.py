@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from soft_gripper_sdre.control import compiled
+from soft_gripper_sdre.control import kernels as compiled
 from soft_gripper_sdre.control.laws.feedforward import (
     model_inversion,
     pseudo_inversion,

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from soft_gripper_sdre.control.compiled import compiled_network
+from soft_gripper_sdre.control.kernels import compiled_network
 from soft_gripper_sdre.control.sdre import SdreController
 from soft_gripper_sdre.control.tracking import (
     DEFAULT_LOWPASS_HZ,
@@ -30,7 +30,7 @@ class SdreLaw:
             :class:`soft_gripper_sdre.learning.model.SDCModel`); if it also has
             ``sdc_blocks(x) -> ([A21 A22] (n,2,4), G2 (n,2,2))``, only those lower rows are used,
             and if it has ``fused_network`` (the layers
-            :class:`~soft_gripper_sdre.control.compiled.SdcNetwork` packs), the compiled step
+            :class:`~soft_gripper_sdre.control.kernels.SdcNetwork` packs), the compiled step
             evaluates it.
         weights: SDRE weights (SI).
         u_max: torque saturation per input [N·m].
@@ -43,12 +43,15 @@ class SdreLaw:
     Any shape (d, m) (:func:`~soft_gripper_sdre.control.tracking.shape_of`): the state is 2d, the
     weights ``weights.Q(d)``, ``weights.R(m)``, and u = K x + K_s x_d with K, K_s (m, 2d) (eq.
     22–24 as they stand); off the hand's path
-    (:func:`~soft_gripper_sdre.control.tracking.hand_path`) the supervisor solves with scipy.
+    (:func:`~soft_gripper_sdre.control.tracking.hand_path`) the supervisor runs the general path
+    (with ``method='fast'`` the general kernels, network included, unless ``compiled`` is False:
+    numpy).
     """
 
     def __init__(self, model, weights: Weights, u_max: float, n_fingers: int = 4,
                  method: str = 'fast', lowpass_hz: float = DEFAULT_LOWPASS_HZ,
-                 dt: float = 1e-3, bounds: InputBounds | None = None) -> None:
+                 dt: float = 1e-3, bounds: InputBounds | None = None,
+                 compiled: bool = True) -> None:
         self.model = model
         self.weights = weights
         shape = shape_of(model)
@@ -58,9 +61,10 @@ class SdreLaw:
                                        n=self.io.n_fingers, method=method)
         else:
             self.sdre = SdreController(*weights.for_shape(shape), u_max, n=self.io.n_fingers,
-                                       method=method, bounds=self.io.bounds)
+                                       method=method, bounds=self.io.bounds, compiled=compiled)
         self._blocks = getattr(model, 'sdc_blocks', None)
-        self.network = compiled_network(model) if self.sdre.fast else None
+        self.network = (compiled_network(model) if self.sdre.fast or self.sdre.general_kernels
+                        else None)
 
     @property
     def origin(self) -> np.ndarray:
@@ -85,8 +89,9 @@ class SdreLaw:
         """
         frame = self.io.frame
         if self.network is not None:                 # the compiled step, network included
-            out = self.sdre.track(self.network, frame.origin,
-                                  frame.stacked(pos, vel, ref_pos, ref_vel))
+            z = frame.stacked(pos, vel, ref_pos, ref_vel)
+            out = (self.sdre.track(self.network, frame.origin, z) if self.io.hand
+                   else self.sdre.track_general(self.network, frame.origin, z))
         else:
             x, xd = frame.states(pos, vel, ref_pos, ref_vel)   # f(0) = 0 at rest
             if self._blocks is not None:             # a model in SDC form: only its lower rows

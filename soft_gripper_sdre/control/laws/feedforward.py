@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 
 from soft_gripper_sdre.control.batched_linalg import batched_solve, well_conditioned_2x2
-from soft_gripper_sdre.control.compiled import compiled_network
+from soft_gripper_sdre.control.kernels import compiled_network, no_integral
 from soft_gripper_sdre.control.laws.integral import (
     DEFAULT_INTEGRAL,
     IntegralAction,
@@ -160,14 +160,17 @@ class SdreFeedforwardLaw:
     one is spare), the part of the demand no input can reach is reported in the step's
     ``unreachable`` and not chased, and the integral acts on what the inputs can reach
     (:class:`~soft_gripper_sdre.control.laws.integral.ReachableIntegralAction`, anti-windup per
-    input and per direction, one-sided bounds included).
+    input and per direction, one-sided bounds included). With ``method='fast'`` and a model with
+    ``fused_network`` that step runs in the general kernels, network included
+    (:meth:`~soft_gripper_sdre.control.sdre.SdreController.track_feedforward_general`), unless
+    ``compiled`` is False (numpy).
     """
 
     def __init__(self, model, weights: Weights, u_max: float, n_fingers: int = 4,
                  method: str = 'fast', lowpass_hz: float = DEFAULT_LOWPASS_HZ, dt: float = 1e-3,
                  ff_at: str = 'x', integral_gain: float = DEFAULT_INTEGRAL['gain'],
                  integral_band: float = DEFAULT_INTEGRAL['band'],
-                 bounds: InputBounds | None = None) -> None:
+                 bounds: InputBounds | None = None, compiled: bool = True) -> None:
         shape = shape_of(model)
         self.io = LawIO(model.rest_tip, u_max, n_fingers, lowpass_hz, dt, shape, bounds)
         if ff_at not in FF_AT:
@@ -179,11 +182,13 @@ class SdreFeedforwardLaw:
                                        method=method)
         else:
             self.sdre = SdreController(*weights.for_shape(shape), u_max, n=self.n_fingers,
-                                       method=method, bounds=self.io.bounds)
+                                       method=method, bounds=self.io.bounds, compiled=compiled)
         self._zero = np.zeros((self.n_fingers, shape.n_state))  # x_d of the feedback step: K e
         self._zero.flags.writeable = False
-        self.network = compiled_network(model) if self.sdre.fast else None
+        self.network = (compiled_network(model) if self.sdre.fast or self.sdre.general_kernels
+                        else None)
         self._no_acc = np.zeros((self.n_fingers, shape.d))
+        self._no_integral = no_integral(self.n_fingers, shape.d, shape.m)
         if not (np.isfinite(integral_gain) and integral_gain >= 0):
             raise ValueError('integral_gain must be finite and >= 0 (0 = off), '
                              f'got {integral_gain!r}')
@@ -207,6 +212,8 @@ class SdreFeedforwardLaw:
 
     def compute(self, pos, vel, ref_pos, ref_vel, ref_acc=None) -> LawStep:
         if self.network is not None:
+            if not self.io.hand:
+                return self._general_compiled_step(pos, vel, ref_pos, ref_vel, ref_acc)
             return self._compiled_step(pos, vel, ref_pos, ref_vel, ref_acc)
         x, xd, finite = self.io.states(pos, vel, ref_pos, ref_vel)
         n = self.n_fingers
@@ -232,6 +239,22 @@ class SdreFeedforwardLaw:
             self.integral.update(x[:, :2] - xd[:, :2], out.saturated, finite)
         else:
             self.integral.update(x[:, :d] - xd[:, :d], out.u_unsat, finite)
+        return out
+
+    def _general_compiled_step(self, pos, vel, ref_pos, ref_vel, ref_acc) -> LawStep:
+        """:meth:`compute` off the hand's path in the general kernels (the same law, flags and
+        integral as the numpy general path), then the roll-off."""
+        n, d = self.n_fingers, self.io.shape.d
+        if ref_acc is None:
+            ref_acc = self._no_acc
+        elif np.shape(ref_acc) != (n, d):
+            raise ValueError(f'ref_acc must have shape ({n}, {d}), got {np.shape(ref_acc)}')
+        z = self.io.frame.stacked(pos, vel, ref_pos, ref_vel, ref_acc)
+        integral = (self._no_integral if self.integral is None
+                    else self.integral.kernel_args())
+        out = self.sdre.track_feedforward_general(self.network, self.io.origin,
+                                                  self.ff_at == 'ref', z, integral)
+        out.u = self.io.roll_off(out.u)
         return out
 
     def _compiled_step(self, pos, vel, ref_pos, ref_vel, ref_acc) -> LawStep:

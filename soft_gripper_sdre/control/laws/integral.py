@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 
-from soft_gripper_sdre.control.compiled import (
+from soft_gripper_sdre.control.kernels import (
     IntegralSettings,
     integral_roll_off,
     integral_step,
@@ -159,9 +159,19 @@ class ReachableIntegralAction:
         self.limit = np.maximum(np.abs(bounds.lower), np.abs(bounds.upper))
         self.decay = math.exp(-self.dt / INTEGRAL_LEAK_S)
         self.xi = np.zeros((int(n_fingers), g2.shape[0]))        # ∫ Π (p_d − p) dt [m·s]
+        self._to_torque, self._from_torque, self._projector, self._limit = (
+            kernel_array(a) for a in (self.to_torque, self.from_torque, self.projector,
+                                      self.limit))
 
     def reset(self) -> None:
         self.xi[:] = 0.0
+
+    def kernel_args(self) -> tuple:
+        """What :func:`~soft_gripper_sdre.control.kernels.general.general_feedforward_finish`
+        takes for this integral: (True, ξ (updated in place), to_torque, from_torque, Π, the
+        inputs' limits, Δt, band, decay)."""
+        return (True, self.xi, self._to_torque, self._from_torque, self._projector, self._limit,
+                self.dt, self.band, self.decay)
 
     def torque(self) -> np.ndarray:
         """(n, m) u_I = k_i G₂(0)⁺ ξ from the integral so far."""

@@ -83,10 +83,11 @@ def bench_markers(repeats: int) -> float:
 
 
 def compile_seconds() -> dict[str, float]:
-    """Seconds for ``import compiled`` and ``warm_up()`` in a fresh interpreter, with an empty numba
-    cache (``cold``: compiling every kernel) and again with the cache that run left (``cached``)."""
+    """Seconds for ``import control.kernels`` and ``warm_up()`` in a fresh interpreter, with an
+    empty numba cache (``cold``: compiling every kernel) and again with the cache that run left
+    (``cached``)."""
     code = ('import time; t0 = time.perf_counter(); '
-            'from soft_gripper_sdre.control import compiled; '
+            'from soft_gripper_sdre.control import kernels as compiled; '
             't1 = time.perf_counter(); compiled.warm_up(); t2 = time.perf_counter(); '
             'print(t1 - t0, t2 - t1)')
     out = {}

@@ -6,6 +6,10 @@ estimates, references and measurements), so the fast path's warm starts are as f
 the loop; the first, cold step is left out. Where two paths compete they are timed interleaved,
 step by step on the same state, so their ratio holds under the machine's shifting load.
 :func:`rows` gives the rows :mod:`soft_gripper_sdre.tools.benchmarks.bench` writes.
+
+Beside the hand's, the controller of a finger with a 3-D tip and three inputs (d = 3, m = 3) on
+the general path (:func:`bench_shaped`): the general kernels against the numpy general path, each
+row the median of at least five repeats with their min–max.
 """
 from __future__ import annotations
 
@@ -77,7 +81,7 @@ def _replay_once(fast, ref, replay: _Replay, times: _ReplayTimes) -> None:
     """One pass over ``replay`` into ``times``: the fast law every step and right after it the
     bare kernel call from the same warm start; on the paired steps the reference, from the same
     integral, right after the fast law."""
-    from soft_gripper_sdre.control.compiled import (
+    from soft_gripper_sdre.control.kernels import (
         FeedforwardOutputs,
         SdreOutputs,
         SdreState,
@@ -189,6 +193,184 @@ def bench_idle(loop, law: str = 'sdre_ff') -> dict[str, float]:
     return {k: float(np.median(v)) for k, v in t.items()}
 
 
+#: the hidden units per network of the (d, m) bench model, as the package's SDC networks have
+SHAPED_HIDDEN = 32
+#: the (d, m) bench: control period [s], reference amplitude [m] and frequency [Hz], estimate
+#: noise [m], input limit (each input ±, in the input's unit)
+SHAPED_DT, SHAPED_AMPLITUDE, SHAPED_HZ, SHAPED_NOISE, SHAPED_U_MAX = 1e-3, 2e-3, 1.0, 5e-5, 0.05
+
+
+class ShapedBenchModel:
+    """An SDC model of shape (d, m) built as the package's are: two networks of
+    :data:`SHAPED_HIDDEN` units fused into one (``fused_network``, the layout of
+    :attr:`SDCModel.fused_network <soft_gripper_sdre.learning.model.SDCModel.fused_network>`),
+    evaluated in numpy by :meth:`sdc_blocks`. Its weights are random but fixed (``seed``), about a
+    stiff, damped finger: the blocks at rest are A21 = −diag(300, 900, 600)[:d] [1/s²],
+    A22 = −2 I [1/s], a G2 of rank min(d, m) (some 500 m/s² per input unit), and the hidden units
+    vary them by some ten percent over millimetres. The per-step cost of a law on it is that of a
+    trained model of the shape; it stands in for one (no (3, 3) model is shipped)."""
+
+    def __init__(self, d: int, m: int, seed: int = 0) -> None:
+        from soft_gripper_sdre.sim.shape import FingerShape
+        self.shape = FingerShape(d, m)
+        self.d, self.m = d, m
+        self.rest_tip = np.array([0.01, -0.02, 0.3])
+        rng = np.random.default_rng(seed)
+        k, h = 2 * d, 2 * SHAPED_HIDDEN
+        n_out = 2 * d * d + d * m
+        a21 = -np.diag([300.0, 900.0, 600.0][:d])
+        g2 = 500.0 * (np.eye(d, m) + 0.2 * rng.uniform(-1, 1, (d, m)))
+        rest = np.concatenate([np.hstack([a21, -2.0 * np.eye(d)]).ravel(), g2.ravel()])
+        w1 = rng.normal(0, 1.0, (k, h)) * np.r_[np.full(d, 300.0), np.full(d, 3.0)][:, None]
+        w2 = rng.normal(0, 0.3, (h, h))
+        w3 = rng.normal(0, 0.05 / np.sqrt(h), (h, n_out)) * np.abs(rest)[None, :]
+        self._layers = [w1, rng.normal(0, 0.5, h), w2, rng.normal(0, 0.3, h), w3,
+                        np.zeros(n_out)]
+        self._layers[5] = rest - self._out(np.zeros((1, k)))[0]         # the rest blocks at 0
+
+    def _out(self, x: np.ndarray) -> np.ndarray:
+        w1, b1, w2, b2, w3, b3 = self._layers
+        return np.maximum(np.maximum(x @ w1 + b1, 0.0) @ w2 + b2, 0.0) @ w3 + b3
+
+    @property
+    def fused_network(self) -> tuple[np.ndarray, ...]:
+        return tuple(np.array(a, dtype=np.float64) for a in self._layers)
+
+    def sdc_blocks(self, x) -> tuple[np.ndarray, np.ndarray]:
+        d, m = self.d, self.m
+        out = self._out(np.atleast_2d(np.asarray(x, dtype=float)))
+        return out[:, :2 * d * d].reshape(-1, d, 2 * d), out[:, 2 * d * d:].reshape(-1, d, m)
+
+    def AG(self, x) -> tuple[np.ndarray, np.ndarray]:
+        d = self.d
+        a2, g2 = self.sdc_blocks(x)
+        A = np.zeros((len(a2), 2 * d, 2 * d))
+        A[:, :d, d:] = np.eye(d)
+        A[:, d:, :] = a2
+        G = np.zeros((len(a2), 2 * d, self.m))
+        G[:, d:, :] = g2
+        return A, G
+
+
+def shaped_loop(model: ShapedBenchModel, n: int, steps: int, seed: int = 0) -> list[tuple]:
+    """The law's arguments at each step of a closed loop of ``n`` fingers on ``model`` (the plant
+    is the model, 5 semi-implicit Euler substeps a period) under the compiled sdre_ff law: each
+    finger tracks its own 3-D circle-and-bob of :data:`SHAPED_AMPLITUDE`, its estimate carrying
+    :data:`SHAPED_NOISE` of white noise. Returns (pos, vel, ref_pos, ref_vel, ref_acc) per step,
+    each (n, d), contiguous."""
+    from soft_gripper_sdre.control.laws import SdreFeedforwardLaw
+    from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
+    from soft_gripper_sdre.sim.shape import InputBounds
+    d, m = model.d, model.m
+    law = SdreFeedforwardLaw(model, Weights(**DEFAULT_WEIGHTS), SHAPED_U_MAX, n_fingers=n,
+                             dt=SHAPED_DT, bounds=InputBounds.symmetric(SHAPED_U_MAX, m))
+    rng = np.random.default_rng(seed)
+    w = 2 * np.pi * SHAPED_HZ
+    phase = np.linspace(0.0, np.pi, n)[:, None] + np.arange(d)[None, :] * (np.pi / 2)
+    x = np.zeros((n, 2 * d))
+    origin = model.rest_tip[:d]
+    out = []
+    for k in range(steps):
+        t = k * SHAPED_DT
+        ref = origin + SHAPED_AMPLITUDE * np.sin(w * t + phase)
+        ref_v = SHAPED_AMPLITUDE * w * np.cos(w * t + phase)
+        ref_a = -SHAPED_AMPLITUDE * w * w * np.sin(w * t + phase)
+        est = x[:, :d] + origin + SHAPED_NOISE * rng.standard_normal((n, d))
+        args = tuple(np.ascontiguousarray(a) for a in (est, x[:, d:].copy(), ref, ref_v, ref_a))
+        u = law.compute(*args[:4], ref_acc=args[4]).u
+        for _ in range(5):
+            a2, g2 = model.sdc_blocks(x)
+            acc = np.einsum('nij,nj->ni', a2, x) + np.einsum('nij,nj->ni', g2, u)
+            x[:, d:] += SHAPED_DT / 5 * acc
+            x[:, :d] += SHAPED_DT / 5 * x[:, d:]
+        out.append(args)
+    return out
+
+
+def bench_shaped(n: int, repeats: int, steps: int, numpy_every: int, d: int = 3,
+                 m: int = 3) -> dict[str, object]:
+    """sdre_ff for ``n`` fingers of shape (d, m) on the general path: the general kernels
+    (``compiled``) against the numpy general path (``numpy``), replaying :func:`shaped_loop`'s
+    states, ``repeats`` times with fresh laws.
+
+    The compiled law runs every step; on every ``numpy_every``-th step the numpy law runs right
+    after it on the same state and from the same integral, so their ratio holds under the same
+    load; on the other steps the numpy law takes the compiled law's warm starts, so that each
+    timed step of both starts from the same P. Returns per path the median per-step wall time [s]
+    of each repeat (the first, cold step left out), the compiled path's on the paired steps, its
+    mean Newton–Kleinman iterations per finger, and the largest difference of the unsaturated
+    torques relative to the largest of the numpy path's."""
+    from soft_gripper_sdre.control.laws import SdreFeedforwardLaw
+    from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
+    from soft_gripper_sdre.sim.shape import InputBounds
+    model = ShapedBenchModel(d, m)
+    replay = shaped_loop(model, n, steps)
+    w, bounds = Weights(**DEFAULT_WEIGHTS), InputBounds.symmetric(SHAPED_U_MAX, m)
+    result = {'compiled': [], 'compiled_paired': [], 'numpy': [], 'iterations': []}
+    worst = scale = 0.0
+    clock = time.perf_counter
+    for _ in range(repeats):
+        laws = [SdreFeedforwardLaw(model, w, SHAPED_U_MAX, n_fingers=n, dt=SHAPED_DT,
+                                   bounds=bounds, compiled=c) for c in (True, False)]
+        t = {'compiled': [], 'compiled_paired': [], 'numpy': []}
+        iterations = []
+        for k, (pos, vel, ref, ref_v, ref_a) in enumerate(replay):
+            xi = laws[0].integral.xi.copy()
+            t0 = clock()
+            fast = laws[0].compute(pos, vel, ref, ref_v, ref_acc=ref_a)
+            t1 = clock()
+            laws[1].integral.xi[:] = xi
+            if k % numpy_every == 0 or k == 0:
+                t2 = clock()
+                slow = laws[1].compute(pos, vel, ref, ref_v, ref_acc=ref_a)
+                t3 = clock()
+                if k:
+                    t['numpy'].append(t3 - t2)
+                    t['compiled_paired'].append(t1 - t0)
+                    worst = max(worst, float(np.abs(fast.u_unsat - slow.u_unsat).max()))
+                    scale = max(scale, float(np.abs(slow.u_unsat).max()))
+            else:
+                laws[1].sdre.warm_start(laws[0].sdre.state.P)    # numpy warm as the kernels
+                laws[1].sdre.state.warm[:] = laws[0].sdre.state.warm
+            if k:
+                t['compiled'].append(t1 - t0)
+                iterations.append(float(fast.nk_iterations.mean()))
+        for key, v in t.items():
+            result[key].append(float(np.median(v)))
+        result['iterations'].append(float(np.mean(iterations)))
+    result['difference'] = worst / max(scale, 1e-300)
+    return result
+
+
+def _spread_us(samples: list[float]) -> str:
+    """The median of the repeats' figures and their min–max [µs]."""
+    lo, mid, hi = (float(np.min(samples)), float(np.median(samples)), float(np.max(samples)))
+    return f'{mid * 1e6:.0f} µs ({lo * 1e6:.0f}–{hi * 1e6:.0f})'
+
+
+def shaped_rows(quick: bool) -> list[Row]:
+    """The (d = 3, m = 3) controller rows: sdre_ff for 2 and 4 fingers on the general path,
+    compiled and numpy, each the median (min–max) of at least 5 repeats."""
+    out: list[Row] = []
+    repeats, steps = (5, 300) if quick else (7, 1000)
+    for n in (2, 4):
+        r = bench_shaped(n, repeats, steps, numpy_every=4 if quick else 5)
+        ratios = [a / b for a, b in zip(r['numpy'], r['compiled_paired'])]
+        out += [(f'controller compute, sdre_ff, (d = 3, m = 3), {n} fingers (compiled)',
+                 _spread_us(r['compiled']),
+                 f'median (min–max) of {repeats} repeats; the general kernels, '
+                 f'{np.median(ratios):.0f}× ({min(ratios):.0f}–{max(ratios):.0f}×) faster than '
+                 'the numpy general path on the same steps; a closed loop of a synthetic 3-D, '
+                 'three-input model (0.05 mm noise): '
+                 f'{np.median(r["iterations"]):.2f} Newton–Kleinman iterations per finger and '
+                 f"step; torques within {r['difference']:.1e} of the largest of the numpy path's"),
+                (f'controller compute, sdre_ff, (d = 3, m = 3), {n} fingers (numpy general path)',
+                 _spread_us(r['numpy']),
+                 f'median (min–max) of {repeats} repeats; Newton–Kleinman in numpy/scipy, '
+                 'general checks, pseudo-inverse feedforward')]
+    return out
+
+
 def rows(loop, quick: bool, figures: dict[str, float] | None = None) -> list[Row]:
     """The compute rows of BENCHMARKS.md, on the states of ``loop`` (the noisy closed loop) and of
     a clean one: both laws compiled and as the reference, ``sdre`` on clean states, the KF, and
@@ -214,6 +396,7 @@ def rows(loop, quick: bool, figures: dict[str, float] | None = None) -> list[Row
                 f'{clean["reference"] / clean["fast_paired"]:.0f}× faster than the reference, '
                 'same steps; the same loop without measurement noise: '
                 f'{clean["iterations"]:.2f} iterations per step'))
+    out += shaped_rows(quick)
     kf = bench_kf(loop, 1 if quick else 3)
     out.append(('KF step, 4 fingers (compiled)', _us(kf),
                 'predict + Joseph-form update, the closed loop\'s measurements'))

@@ -151,7 +151,7 @@ def run_law_job(context: LawRunsContext, job: tuple[str, str]):
     """One law on one trajectory, (RunSummary, LoopResult), as a job of
     :func:`~soft_gripper_sdre.tools.judging.jobs.run_jobs` (``job``: (trajectory, LAW_SPECS
     key))."""
-    from soft_gripper_sdre.control.compiled import warm_up
+    from soft_gripper_sdre.control.kernels import warm_up
     warm_up()                      # a new worker loads the kernels here, not inside the timed law
     trajectory, key = job
     if context.model.digest not in _models:
@@ -168,7 +168,7 @@ def run_laws(laws, trajectories, model_path: Path | None = None, koopman_path: P
     runs are independent jobs (:mod:`~soft_gripper_sdre.tools.judging.jobs`, on ``runner``); each
     result depends on its run only, so the numbers do not depend on the runner (but ``compute_us``,
     the law's wall time, does on the load)."""
-    from soft_gripper_sdre.control.compiled import warm_up
+    from soft_gripper_sdre.control.kernels import warm_up
     from soft_gripper_sdre.learning.koopman import DEFAULT_KOOPMAN
     from soft_gripper_sdre.learning.model import DEFAULT_MODEL
     warm_up()  # the kernels into numba's cache once, before the workers load them

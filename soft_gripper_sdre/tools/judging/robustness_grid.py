@@ -183,7 +183,7 @@ def run_grid(cases: list[Case], workers: int | Runner, model_path=None,
                                    (case.trajectory, TRAJECTORIES, 'trajectory')):
             if value not in known:
                 raise ValueError(f'unknown {what} {value!r}; known: {list(known)}')
-    from soft_gripper_sdre.control.compiled import warm_up
+    from soft_gripper_sdre.control.kernels import warm_up
     warm_up()
     return run_jobs(run_case_job, cases, FileBlob.read(model_path or DEFAULT_MODEL), runner,
                     desc='robustness', progress=progress)

@@ -248,7 +248,7 @@ def main(argv=None) -> int:
     _note_unpinned_kernels()
     try:
         with jobs.session(runner):
-            from soft_gripper_sdre.control.compiled import warm_up
+            from soft_gripper_sdre.control.kernels import warm_up
             warm_up()  # the kernels into numba's cache once, before the workers load them
             data = label_records(records, 'identifying', progress=progress)
             context = SweepContext(data, settings, args.jitter, tuple(args.laws),

@@ -1,12 +1,12 @@
 """The controller's per-step work compiled with numba: how to call the kernels, what they keep.
 
-The kernels — the SDRE laws' steps (:mod:`~soft_gripper_sdre.control.compiled_sdre`) on
-Newton–Kleinman with the checks (:mod:`~soft_gripper_sdre.control.compiled_riccati`), the fused
-network (:mod:`~soft_gripper_sdre.control.compiled_sdc_network`) and small dense linear algebra
-(:mod:`~soft_gripper_sdre.control.compiled_linalg`); the Kalman filter
-(:mod:`~soft_gripper_sdre.control.compiled_kf`), the integral action
-(:mod:`~soft_gripper_sdre.control.compiled_integral`) and the plan sample
-(:mod:`~soft_gripper_sdre.control.compiled_horizon`) — take float64 / bool / int64 C-contiguous
+The kernels — the SDRE laws' steps (:mod:`~soft_gripper_sdre.control.kernels.sdre`) on
+Newton–Kleinman with the checks (:mod:`~soft_gripper_sdre.control.kernels.riccati`), the fused
+network (:mod:`~soft_gripper_sdre.control.kernels.sdc_network`) and small dense linear algebra
+(:mod:`~soft_gripper_sdre.control.kernels.linalg`); the Kalman filter
+(:mod:`~soft_gripper_sdre.control.kernels.kf`), the integral action
+(:mod:`~soft_gripper_sdre.control.kernels.integral`) and the plan sample
+(:mod:`~soft_gripper_sdre.control.kernels.horizon`) — take float64 / bool / int64 C-contiguous
 arrays, record arrays and scalars, write their results into arrays the caller owns and update the
 controller's state in place. The SDRE kernels' settings, state and outputs are record arrays
 (:class:`KernelRecords`: one record per finger, one for the settings), the network one packed array
@@ -33,9 +33,10 @@ bits; the supervisor (:class:`~soft_gripper_sdre.control.sdre.SdreController`) s
 numba's cache) every kernel at these types: a process calls it before its first real-time step.
 The kernels are importable from here as well as from their modules.
 
-Importing this module holds numba's on-disk cache of the kernels to the kernel modules' sources as
-a whole (:func:`~soft_gripper_sdre.control.compiled_cache.invalidate_stale_cache`): no kernel runs
-before this module is imported.
+Importing this package (which importing any of its modules does first) holds numba's on-disk cache
+of the kernels to the kernel modules' sources as a whole
+(:func:`~soft_gripper_sdre.control.kernels.cache.invalidate_stale_cache`): no kernel runs before
+the rule.
 """
 from __future__ import annotations
 
@@ -43,17 +44,25 @@ from typing import ClassVar, NamedTuple, Self
 
 import numpy as np
 
-from soft_gripper_sdre.control.compiled_cache import invalidate_stale_cache
-from soft_gripper_sdre.control.compiled_horizon import plan_sample
-from soft_gripper_sdre.control.compiled_integral import (
+from soft_gripper_sdre.control.kernels.cache import invalidate_stale_cache
+from soft_gripper_sdre.control.kernels.general import (
+    general_feedforward_finish,
+    general_feedforward_gains,
+    general_step_gains,
+    general_torques,
+    general_tracking_gains,
+    shaped_forward,
+)
+from soft_gripper_sdre.control.kernels.horizon import plan_sample
+from soft_gripper_sdre.control.kernels.integral import (
     integral_roll_off,
     integral_step,
     integral_update,
 )
-from soft_gripper_sdre.control.compiled_kf import kf_step, kf_step_dt
-from soft_gripper_sdre.control.compiled_riccati import sdre_gains
-from soft_gripper_sdre.control.compiled_sdc_network import sdc_forward
-from soft_gripper_sdre.control.compiled_sdre import (
+from soft_gripper_sdre.control.kernels.kf import kf_step, kf_step_dt
+from soft_gripper_sdre.control.kernels.riccati import sdre_gains
+from soft_gripper_sdre.control.kernels.sdc_network import sdc_forward
+from soft_gripper_sdre.control.kernels.sdre import (
     feedforward_step,
     model_inversion,
     sdre_step,
@@ -65,7 +74,9 @@ __all__ = ['KernelRecords', 'SdcNetwork', 'SdreSettings', 'SdreState', 'SdreOutp
            'FeedforwardOutputs', 'IntegralSettings', 'compiled_network', 'kernel_array', 'warm_up',
            'sdc_forward', 'sdre_gains', 'tracking_torques', 'sdre_step', 'tracking_step',
            'model_inversion', 'feedforward_step', 'kf_step', 'kf_step_dt', 'integral_step',
-           'integral_update', 'integral_roll_off', 'plan_sample']
+           'integral_update', 'integral_roll_off', 'plan_sample', 'GeneralOutputs',
+           'general_step_gains', 'general_tracking_gains', 'general_feedforward_gains',
+           'general_feedforward_finish', 'general_torques', 'shaped_forward']
 
 #: the kernels' float type, in the record dtypes
 F8 = np.float64
@@ -174,7 +185,7 @@ class SdreOutputs(KernelRecords):
 
 
 class FeedforwardOutputs(KernelRecords):
-    """What :func:`~soft_gripper_sdre.control.compiled_sdre.feedforward_step` adds to
+    """What :func:`~soft_gripper_sdre.control.kernels.sdre.feedforward_step` adds to
     SdreOutputs, per finger."""
 
     dtype = np.dtype([('u_ff', F8, (2,)),         # the feedforward part of u_unsat (0: not usable)
@@ -207,6 +218,66 @@ class IntegralSettings(KernelRecords):
         return settings
 
 
+class GeneralOutputs:
+    """One step's arrays of the general kernels (:mod:`~soft_gripper_sdre.control.kernels.general`)
+    for ``n`` fingers of d tip coordinates and m inputs, overwritten by every step: plain
+    C-contiguous arrays, each an argument of its own (their sizes vary with the shape, which a
+    record dtype would fix).
+
+    a2, a2_ff (n, d, 2d) and g2, g2_ff (n, d, m): the model's blocks at x and where the feedforward
+    evaluates it; x, x_d, e (n, 2d): the states and the error; state_finite, finite (n,): the
+    finger's state, and the feedback step's blocks and states, were finite; P (n, 2d, 2d), residual,
+    iterations, failed (n,): the solve's record; u, u_unsat, u_ff (n, m), saturated (n, m),
+    ff_usable, unreachable (n,): the command.
+    """
+
+    def __init__(self, n: int, d: int, m: int) -> None:
+        k = 2 * d
+        self.a2, self.a2_ff = np.zeros((n, d, k)), np.zeros((n, d, k))
+        self.g2, self.g2_ff = np.zeros((n, d, m)), np.zeros((n, d, m))
+        self.x, self.x_d, self.e = np.zeros((n, k)), np.zeros((n, k)), np.zeros((n, k))
+        self.state_finite, self.finite = np.zeros(n, np.bool_), np.zeros(n, np.bool_)
+        self.P = np.zeros((n, k, k))
+        self.residual = np.zeros(n)
+        self.iterations, self.failed = np.zeros(n, np.int64), np.zeros(n, np.int64)
+        self.u, self.u_unsat, self.u_ff = np.zeros((n, m)), np.zeros((n, m)), np.zeros((n, m))
+        self.saturated = np.zeros((n, m), np.bool_)
+        self.ff_usable, self.unreachable = np.zeros(n, np.bool_), np.zeros(n)
+
+
+def no_integral(n: int, d: int, m: int) -> tuple:
+    """The integral arguments of :func:`~soft_gripper_sdre.control.kernels.general.
+    general_feedforward_finish` for a law without integral action (``integral`` False; arrays of
+    the types the kernel is compiled for)."""
+    return (False, np.zeros((n, d)), np.zeros((m, d)), np.zeros((d, m)), np.zeros((d, d)),
+            np.zeros(m), 0.0, 0.0, 0.0)
+
+
+def warm_up_general(d: int = 3, m: int = 2) -> None:
+    """Compile (or load) the general kernels: one compilation serves every (d, m), the sizes
+    being the arrays' (the types are the same)."""
+    n, k = 1, 2 * d
+    h = 2
+    network = SdcNetwork.pack(np.zeros((k, h)), np.zeros(h), np.zeros((h, h)), np.zeros(h),
+                              np.zeros((h, 2 * d * d + d * m)), np.zeros(2 * d * d + d * m))
+    o = GeneralOutputs(n, d, m)
+    settings = (np.eye(k), np.eye(m), np.eye(m), 1e-6, 1e8, 5)
+    state = (np.zeros((n, k, k)), np.zeros((n, m, k)), np.zeros((n, m, k)), np.ones(n, np.bool_))
+    record = (o.finite, o.P, o.residual, o.iterations, o.failed)
+    shaped_forward(o.x, *network, o.a2, o.g2)
+    general_step_gains(o.x, o.x_d, o.a2, o.g2, *settings, *state, *record)
+    general_tracking_gains(np.zeros((n, 4 * d)), np.zeros(d), *network, *settings, *state, o.a2,
+                           o.g2, o.x, o.x_d, *record)
+    general_feedforward_gains(np.zeros((n, 5 * d)), np.zeros(d), False, *network, *settings,
+                              *state, o.a2, o.g2, o.a2_ff, o.g2_ff, o.x, o.x_d, o.e,
+                              o.state_finite, *record)
+    bounds = (-np.ones(m), np.ones(m))
+    general_torques(o.x, o.x_d, o.finite, state[1], state[2], *bounds, o.u_unsat, o.u)
+    general_feedforward_finish(np.zeros((n, 5 * d)), o.x_d, o.e, o.state_finite, o.finite,
+                               state[1], o.a2_ff, o.g2_ff, 1e8, *bounds, *no_integral(n, d, m),
+                               o.u_ff, o.ff_usable, o.unreachable, o.u_unsat, o.u, o.saturated)
+
+
 def warm_up() -> None:
     """Compile (or load from numba's cache) every kernel at the types the controller uses: call it
     before a node reports ready, so that no step pays for compilation."""
@@ -236,6 +307,7 @@ def warm_up() -> None:
     plan = np.zeros((2, n, 2))
     plan_sample(np.array([0, 1], dtype=np.int64), plan, plan, plan, 0, rows.copy(), rows.copy(),
                 rows.copy())
+    warm_up_general()
 
 
 # before any kernel runs: numba's cache of them held to the kernel modules' sources as a whole

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from soft_gripper_sdre.control.compiled_cache import kernel
+from soft_gripper_sdre.control.kernels.cache import kernel
 
 
 @kernel

@@ -1,15 +1,15 @@
 """One finger's warm-started Newton–Kleinman solve of the SDRE with the SDC structure's checks and
 gains, and the solve for n fingers (:func:`sdre_gains`), compiled with numba: the fast counterpart
 of :mod:`~soft_gripper_sdre.control.riccati`. They take the settings, state and outputs as record
-arrays, one record per finger (:mod:`~soft_gripper_sdre.control.compiled`); the derivations are in
+arrays, one record per finger (:mod:`~soft_gripper_sdre.control.kernels`); the derivations are in
 docs/design/compiled_kernel.md, "One step, per finger".
 """
 from __future__ import annotations
 
 import numpy as np
 
-from soft_gripper_sdre.control.compiled_cache import kernel
-from soft_gripper_sdre.control.compiled_linalg import (
+from soft_gripper_sdre.control.kernels.cache import kernel
+from soft_gripper_sdre.control.kernels.linalg import (
     COL,
     ROW,
     SYM,

@@ -4,11 +4,12 @@ numba keys a cached kernel on its own source file alone: a kernel that calls a k
 file keeps, in its cached machine code, the callee as it was compiled, after the callee's file
 changed (numba issue #1833). So the cache is held to the kernel modules as a whole: every kernel is
 defined with :func:`kernel`, which registers its dispatcher, and :func:`invalidate_stale_cache`
-(run at the import of :mod:`~soft_gripper_sdre.control.compiled`, before any kernel runs) imports
-every kernel module, compares the digest of their sources (:func:`source_digest`, this file's
-included, so a change of the decorator's options counts too) with the one kept in the kernels'
-cache directory, and where they differ empties every kernel's cache index before it writes the new
-digest. docs/design/compiled_kernel.md, "Compilation and the cache".
+(run at the import of :mod:`~soft_gripper_sdre.control.kernels`, before any kernel runs) imports
+every kernel module (every module of this package), compares the digest of their sources
+(:func:`source_digest`, this file's included, so a change of the decorator's options counts too)
+with the one kept in the kernels' cache directory, and where they differ empties every kernel's
+cache index before it writes the new digest. docs/design/compiled_kernel.md, "Compilation and the
+cache".
 """
 from __future__ import annotations
 
@@ -20,10 +21,11 @@ import tempfile
 
 from numba import njit
 
-#: the directory of the kernel modules
+#: the directory of the kernel modules: this package's
 HERE = Path(__file__).resolve().parent
-#: the kernel modules, by name, in that directory
-SOURCES = 'compiled*.py'
+#: the kernel modules, by name, in that directory: every module of the package, its
+#: ``__init__.py`` (the record dtypes, :func:`~soft_gripper_sdre.control.kernels.warm_up`) included
+SOURCES = '*.py'
 #: the file, in the kernels' cache directory, that holds the digest the cache was filled for
 DIGEST_FILE = 'kernel_sources.sha256'
 
@@ -42,7 +44,7 @@ def kernel(py_func):
 
 
 def kernel_sources(directory: Path = HERE) -> list[Path]:
-    """The kernel modules in ``directory`` (``compiled*.py``), sorted by name."""
+    """The kernel modules in ``directory`` (every ``*.py``), sorted by name."""
     return sorted(Path(directory).glob(SOURCES))
 
 
@@ -58,11 +60,12 @@ def source_digest(directory: Path = HERE) -> str:
 
 
 def import_kernel_modules() -> None:
-    """Import every kernel module of this package (:func:`kernel_sources`), which registers its
-    kernels."""
+    """Import every kernel module of this package (:func:`kernel_sources`; the package itself is
+    the one importing them), which registers its kernels."""
     package = __name__.rpartition('.')[0]
     for path in kernel_sources():
-        importlib.import_module(f'{package}.{path.stem}')
+        if path.stem != '__init__':
+            importlib.import_module(f'{package}.{path.stem}')
 
 
 def cache_directories() -> dict[str, list]:

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from soft_gripper_sdre.control.compiled_cache import kernel
+from soft_gripper_sdre.control.kernels.cache import kernel
 
 # A symmetric 4×4 P has 10 unknowns: its upper triangle row by row, entry e = (ROW[e], COL[e]);
 # SYM[i, j] is the unknown holding P[i, j] = P[j, i].

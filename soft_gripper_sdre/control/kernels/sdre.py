@@ -2,18 +2,18 @@
 objects): the tracking law on given SDC blocks (:func:`sdre_step`) and on the fused network
 (:func:`tracking_step`), the model inversion and the feedforward law (:func:`feedforward_step`).
 They take the settings, state and outputs as record arrays, one record per finger
-(:mod:`soft_gripper_sdre.control.compiled` defines them and
-:func:`~soft_gripper_sdre.control.compiled.warm_up`); the derivations are in
+(:mod:`soft_gripper_sdre.control.kernels` defines them and
+:func:`~soft_gripper_sdre.control.kernels.warm_up`); the derivations are in
 docs/design/compiled_kernel.md.
 """
 from __future__ import annotations
 
 import numpy as np
 
-from soft_gripper_sdre.control.compiled_cache import kernel
-from soft_gripper_sdre.control.compiled_linalg import well_conditioned
-from soft_gripper_sdre.control.compiled_riccati import sdre_gains
-from soft_gripper_sdre.control.compiled_sdc_network import finger_blocks, network_arrays
+from soft_gripper_sdre.control.kernels.cache import kernel
+from soft_gripper_sdre.control.kernels.linalg import well_conditioned
+from soft_gripper_sdre.control.kernels.riccati import sdre_gains
+from soft_gripper_sdre.control.kernels.sdc_network import finger_blocks, network_arrays
 
 
 @kernel

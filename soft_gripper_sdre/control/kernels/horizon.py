@@ -1,9 +1,10 @@
-"""The controller's plan sample compiled with numba: :func:`.horizon.sample_plan` with the
-acceleration, the same arithmetic in the same order, so its results are the same bits.
+"""The controller's plan sample compiled with numba:
+:func:`~soft_gripper_sdre.control.horizon.sample_plan` with the acceleration, the same arithmetic
+in the same order, so its results are the same bits.
 """
 from __future__ import annotations
 
-from soft_gripper_sdre.control.compiled_cache import kernel
+from soft_gripper_sdre.control.kernels.cache import kernel
 
 NS = 1_000_000_000
 

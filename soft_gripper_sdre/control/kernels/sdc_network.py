@@ -1,12 +1,12 @@
 """The fused SDC network compiled with numba: x ↦ [A21 A22](x), G2(x) for one finger
 (:func:`finger_blocks`) and for n (:func:`sdc_forward`), on the network packed in one array
-(:class:`~soft_gripper_sdre.control.compiled.SdcNetwork`).
+(:class:`~soft_gripper_sdre.control.kernels.SdcNetwork`).
 """
 from __future__ import annotations
 
 import numpy as np
 
-from soft_gripper_sdre.control.compiled_cache import kernel
+from soft_gripper_sdre.control.kernels.cache import kernel
 
 
 @kernel

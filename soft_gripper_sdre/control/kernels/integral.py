@@ -1,14 +1,14 @@
 """The integral action's per-step arithmetic compiled with numba
 (:class:`~soft_gripper_sdre.control.laws.integral.IntegralAction` holds the state and the rules;
 its constants come as one record of
-:class:`~soft_gripper_sdre.control.compiled.IntegralSettings`: to_torque, from_torque, dt, band,
+:class:`~soft_gripper_sdre.control.kernels.IntegralSettings`: to_torque, from_torque, dt, band,
 decay, u_max).
 """
 from __future__ import annotations
 
 import numpy as np
 
-from soft_gripper_sdre.control.compiled_cache import kernel
+from soft_gripper_sdre.control.kernels.cache import kernel
 
 
 @kernel
