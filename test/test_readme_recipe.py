@@ -344,7 +344,7 @@ def controller_q_pos() -> float:
 @pytest.mark.slow
 @pytest.mark.ros
 @pytest.mark.timeout(2400)
-def test_the_readme_recipe_identifies_trains_and_deploys_as_written(shell, tmp_path):
+def test_the_readme_recipe_identifies_trains_and_deploys_as_written(shell):
     """README's own-gripper block, every line as written: step 1 records bags/train/u1 (and, as
     its comment says, u4 into bags/val/u4 the same way: the two lines with the signal and the
     bag's name changed, nothing else), each with its settle phase; step 2 trains on those two
@@ -392,3 +392,28 @@ def assert_scored(out: Path, params: Path) -> None:
     assert score['commands'] > 0 and score['samples'] > 0
     assert score['outside_bounds'] == 0 == score['outside_plant_bounds']
     assert (out / 'bag' / 'metadata.yaml').is_file()
+
+
+@pytest.mark.ros
+@pytest.mark.timeout(900)
+def test_the_jazzy_install_block_runs_the_graph_as_written(shell):
+    """README "Running it on a ROS 2 Jazzy install": from ``P=$(ros2 pkg prefix …)`` on, every
+    line as written (the workspace's clone, pip and colcon lines before it are a ROS install's:
+    test_package.py builds the package with colcon). The estimator, trajectory node, controller
+    and the echo run in the background, the simulator's 6 s to its end (exit 0); the echo prints
+    the controller's torques; every node stops cleanly on Ctrl-C."""
+    (block,) = bash_blocks(section(README, 'Running it on a ROS 2 Jazzy install'))
+    lines = [line for line in block.splitlines() if line.strip()]
+    start = next(i for i, line in enumerate(lines) if line.startswith('P=$(ros2 pkg prefix'))
+    shell.prelude = lines[start]
+    runs = lines[start + 1:]
+    assert [line.split()[:3] for line in runs] == [
+        ['ros2', 'run', 'soft_gripper_sdre']] * 4 + [['ros2', 'topic', 'echo']]
+    (simulator,) = [line for line in runs if ' simulator ' in line]
+    background = [shell.start(line) for line in runs if line != simulator]
+    rc, out = shell.run(simulator)
+    assert rc == 0, out[-3000:]
+    outputs = [shell.stop(p) for p in background]
+    assert all(rc == 0 for rc, _ in outputs), [o[-2000:] for _, o in outputs]
+    echoed = outputs[-1][1]
+    assert echoed.count('finger_0/ax0') > 100 and 'effort' in echoed, echoed[-2000:]
