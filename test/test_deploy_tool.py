@@ -8,6 +8,7 @@ from pathlib import Path
 import subprocess
 import sys
 
+from deploy_params import MODEL, NAMES, params_file
 import numpy as np
 import pytest
 import yaml
@@ -17,28 +18,6 @@ from soft_gripper_sdre.sim.shape import InputBounds
 from soft_gripper_sdre.tools.graph.procs import Graph, ros_env
 
 ROOT = Path(__file__).resolve().parents[1]
-MODEL = ROOT / 'soft_gripper_sdre' / 'models' / 'default.pt'
-NAMES = ['index', 'thumb']
-
-
-def params_file(path: Path, drop: tuple[str, ...] = (), **plan) -> Path:
-    """A params.yaml as training writes it, for the package's model on two fingers of tendon3
-    (200 Hz, ±0.02 N·m), with a short plan."""
-    trajectory = {'finger_names': list(NAMES), 'grasp_fingers': [0, 1], 'others': 'hold',
-                  't_start': 0.5, 't_close': 1.0, 't_hold': 0.5, 't_open': 1.0,
-                  'close_distance': 0.002, 'side_distance': 0.0, 'contact_distance': 0.002,
-                  **plan}
-    for key in drop:
-        trajectory.pop(key)
-    body = {'/**/estimator': {'ros__parameters': {'finger_names': list(NAMES),
-                                                  'control_period': 0.005}},
-            '/**/controller': {'ros__parameters': {'model_path': str(MODEL),
-                                                   'finger_names': list(NAMES),
-                                                   'control_period': 0.005,
-                                                   'torque_limit': 0.02}},
-            '/**/trajectory': {'ros__parameters': trajectory}}
-    path.write_text(yaml.safe_dump(body, sort_keys=False))
-    return path
 
 
 def _tool(*args, timeout=60, env=None):

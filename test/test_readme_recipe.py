@@ -24,11 +24,11 @@ import signal
 import subprocess
 import sys
 
+from deploy_params import params_file
 import pytest
 from rcl_interfaces.srv import GetParameters
 import rclpy
 from rosutil import ros_context, spin_until
-from test_deploy_tool import params_file
 import yaml
 
 from soft_gripper_sdre.analysis.bag_dataset import read_recording, settle_noise
@@ -351,7 +351,7 @@ def test_the_readme_recipe_identifies_trains_and_deploys_as_written(shell):
     bags, as written (two bags instead of six: the shortest data that still runs every stage of
     training; its verdict on so little data may be "not fit"); step 3 deploys, as written, on
     training's params.yaml, or when training judged the model unfit, on a params.yaml standing in
-    for it (the package's model on tendon3, a short plan: tests/test_deploy_tool.py's); then
+    for it (the package's model on tendon3, a short plan: test/deploy_params.py's); then
     docs/own_gripper.md's deploy line, as written, on the same file."""
     prelude, (recorder, excitation, train, deploy) = commands(the_readme_recipe())
     shell.prelude = prelude
