@@ -106,8 +106,8 @@ def tune_jerk(rec: Recording, finger: int, meas_std: float, dims: int = 2) -> fl
     (:func:`tuning_stretch`), their first ``dims`` coordinates."""
     t, xy = tuning_stretch(rec, finger, dims)
     if derivatives.is_uniform(t):
-        return derivatives.tune_jerk_psd(t, xy, meas_std, JERK_GRID)
-    return derivatives.tune_jerk_psd_irregular(t, xy, meas_std, JERK_GRID)
+        return derivatives.tune_jerk_psd(t, xy, meas_std, JERK_GRID, compiled=True)
+    return derivatives.tune_jerk_psd_irregular(t, xy, meas_std, JERK_GRID, compiled=True)
 
 
 def _plain(value):
