@@ -57,9 +57,12 @@ class TrainResult:
     best_epoch: int = 0
     seconds: float = 0.0
     #: the simulation stage (empty when off): its training loss per epoch, and the validation
-    #: simulation error per epoch of both stages
+    #: simulation error per epoch of both stages (NaN for a label epoch not scored,
+    #: ``TrainSettings.score_every``)
     rollout_loss: list[float] = field(default_factory=list)
     val_sim_error: list[float] = field(default_factory=list)
+    #: wall time of each stage [s]: ``label_stage``, ``simulation_stage`` (0 when off)
+    timings: dict[str, float] = field(default_factory=dict)
 
 
 def _scales(x: np.ndarray, u: np.ndarray, acc: np.ndarray, scale: bool) -> dict[str, np.ndarray]:
@@ -193,10 +196,13 @@ def _train_seeded(x, u, acc, x_val, u_val, acc_val, settings: TrainSettings, on_
                     windows(val_runs, settings.rollout_val_seconds, 1) if simulating else [], shape)
     start = time.perf_counter()
     run.label_stage(train_set, val_set)
+    labelled = time.perf_counter()
     if simulating:
         run.simulation_stage(runs)
     run.keep_best()
-    run.result.seconds = time.perf_counter() - start
+    end = time.perf_counter()
+    run.result.seconds = end - start
+    run.result.timings = {'label_stage': labelled - start, 'simulation_stage': end - labelled}
     return run.result
 
 
@@ -253,6 +259,9 @@ class _Training:
                 self.on_epoch(epoch, train_loss, val)
             score = val
             if settings.rollout_epochs > 0:
+                if (epoch + 1) % settings.score_every and epoch != settings.epochs - 1:
+                    result.val_sim_error.append(math.nan)
+                    continue
                 score = val_sim_error(net, self.st, self.val_windows)
                 result.val_sim_error.append(score)
             if self.keep_if_best(epoch, score):
@@ -305,9 +314,9 @@ class _Training:
                 break
 
     def _rollout_epoch(self, opt: torch.optim.Optimizer, batches: list) -> float:
-        """One pass over every window, shuffled within each grid spacing; returns the mean L_sim
-        of the batches that stepped."""
-        size = self.settings.batch_size
+        """One pass over every window, shuffled within each grid spacing, in batches of
+        ``rollout_batch_size`` windows; returns the mean L_sim of the batches that stepped."""
+        size = self.settings.rollout_batch_size or self.settings.batch_size
         total, count = 0.0, 0
         for dt, x0, u, p in batches:
             perm = torch.randperm(x0.shape[0], generator=self.gen)
