@@ -24,6 +24,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+import time
 
 import numpy as np
 from tqdm import tqdm
@@ -258,10 +259,13 @@ def train_from_bags(train_paths: list[Path], val_paths: list[Path], out: Path,
             anything is written).
         ShapeError: input bounds that cannot be used (naming ``--input-lower/--input-upper``).
     """
+    clock = Stages()
     train_set = load_bags(train_paths, tips_topic, torques_topic, min_duration, finger)
     val_set = load_bags(val_paths, tips_topic, torques_topic, min_duration, finger)
     shape, bounds = finger_shape(train_set, val_set, task_dim, input_lower, input_upper)
+    clock.lap('read')
     data = _label_sets(train_set, val_set, jerk_psd, meas_std, shape, bounds)
+    clock.lap('labels')
     bar = tqdm(total=settings.epochs + settings.rollout_epochs, desc=f'train ({settings.preset})',
                unit='epoch')
     result = train(data.x, data.u, data.acc, data.x_val, data.u_val, data.acc_val, settings,
@@ -269,7 +273,9 @@ def train_from_bags(train_paths: list[Path], val_paths: list[Path], out: Path,
                                           bar.set_postfix(train=f'{tl:.3g}', val=f'{vl:.3g}')),
                    runs=runs(data.samples), val_runs=runs(data.val_samples), shape=shape)
     bar.close()
-    verdict = _Verdict(data, settings, result)
+    clock.lap('training')
+    clock.seconds.update(result.timings)
+    verdict = _Verdict(data, settings, result, clock)
     # never a params.yaml from another model beside this one
     with training_run.staged(out, stale=(PARAMS_FILE,)) as stage:
         _, scores, metrics = training_run.checkpoint(
@@ -277,6 +283,8 @@ def train_from_bags(train_paths: list[Path], val_paths: list[Path], out: Path,
             data=data.info(tips_topic, torques_topic), train=(data.x, data.u, data.acc),
             val=(data.x_val, data.u_val), acc_ref=data.acc_val, describe=verdict.describe,
             input_bounds=bounds)
+        clock.lap('checkpoint')
+        metrics['timings'] = clock.record()
         training_run.write_report(
             stage, result, metrics, scores, data.t_val, data.acc_val,
             loss_title=f'Training loss from bags, {settings.preset} preset',
@@ -287,6 +295,7 @@ def train_from_bags(train_paths: list[Path], val_paths: list[Path], out: Path,
             (stage / PARAMS_FILE).write_text(params_yaml(
                 derived, out / 'model.pt', list(train_set[0][0].finger_names),
                 ', '.join(str(p) for p in train_paths), shape, bounds))
+    clock.lap('report')
     print(f'finger shape: {shape.m} input(s) ({bounds}), a tip of {shape.d} coordinates '
           f'({", ".join(shape.axes)})')
     print('\n'.join(scores.lines('validation R² vs the KF + RTS labels')))
@@ -298,6 +307,7 @@ def train_from_bags(train_paths: list[Path], val_paths: list[Path], out: Path,
     print(f'training: {len(result.train_loss)} epochs on {len(data.x)} samples from '
           f'{len(data.provenance)} bag(s) in {result.seconds:.1f} s; wrote {out}')
     report_fitness(verdict.fitness, derived, out)
+    print(clock.line())
     return metrics
 
 
@@ -345,6 +355,41 @@ def finger_shape(train_set: list[tuple[Recording, list[int]]],
         bounds = InputBounds.parse(input_lower, input_upper, shape.m, what)
         check_within(recs, bounds, what)
     return shape, bounds
+
+
+class Stages:
+    """Wall time per stage of a run [s], each lap the time since the previous one; a stage
+    lapped again adds to its time."""
+
+    #: the stages in the order they run, as ``metrics.json``'s ``timings`` names them: reading
+    #: and checking the bags, the KF + RTS labels, training (of which ``label_stage`` and
+    #: ``simulation_stage``), writing and scoring the checkpoint, the fitness verdict, the
+    #: closed-loop checks of the candidate settings, the report (the figures and files; printed,
+    #: not in ``metrics.json``, which it writes)
+    ORDER = ('read', 'labels', 'training', 'label_stage', 'simulation_stage', 'checkpoint',
+             'fitness', 'loop_settings', 'report')
+
+    def __init__(self) -> None:
+        self.start = self.last = time.perf_counter()
+        self.seconds: dict[str, float] = {}
+
+    def lap(self, stage: str) -> None:
+        now = time.perf_counter()
+        self.seconds[stage] = self.seconds.get(stage, 0.0) + now - self.last
+        self.last = now
+
+    def record(self) -> dict[str, float]:
+        """Each stage's seconds (rounded to ms) in :data:`ORDER`, and ``total`` since the start."""
+        out = {k: round(self.seconds[k], 3) for k in self.ORDER if k in self.seconds}
+        out['total'] = round(time.perf_counter() - self.start, 3)
+        return out
+
+    def line(self) -> str:
+        """What the tool prints of them."""
+        rec = self.record()
+        total = rec.pop('total')
+        return (f'stages [s], {total:.1f} in all: '
+                + ', '.join(f'{k} {v:.1f}' for k, v in rec.items()))
 
 
 @dataclass
@@ -413,8 +458,10 @@ class _Verdict:
     the bag path's metrics, with the model's fitness for control and, for a fit model, the loop
     settings derived for it, both kept for the parameter file and the report."""
 
-    def __init__(self, data: _BagData, settings: TrainSettings, result: TrainResult) -> None:
+    def __init__(self, data: _BagData, settings: TrainSettings, result: TrainResult,
+                 clock: Stages | None = None) -> None:
         self.data, self.settings, self.result = data, settings, result
+        self.clock = clock if clock is not None else Stages()
         self.fitness: model_fitness.Fitness | None = None
         self.derived: loop_settings.Derivation | None = None
 
@@ -422,7 +469,9 @@ class _Verdict:
         """The metrics of ``model``, scored as ``scores``; judges it and, when fit, derives its
         settings on the way."""
         data, result = self.data, self.result
+        self.clock.lap('checkpoint')
         self.fitness = model_fitness.judge(model, validation_segments(data.val_samples))
+        self.clock.lap('fitness')
         self.derived = None
         if self.fitness.fit:
             d = data.shape.d
@@ -430,6 +479,7 @@ class _Verdict:
                                [tuning_stretch(rec, f[0], d) for rec, f in data.train_set])
             self.derived = loop_settings.derive(model, facts, progress=lambda text: print(
                 f'  closed-loop check on the model: {text}', flush=True))
+            self.clock.lap('loop_settings')
         derived = self.derived
         return {**scores.common_metrics(self.settings, result), 'source': 'rosbag2',
                 'rollout_epochs_run': len(result.rollout_loss),
