@@ -2,7 +2,6 @@
 settings that make the bag path's training cheaper (checked when made, and doing what they say),
 the stage timings (real KF + RTS, real torch training)."""
 from dataclasses import replace
-import math
 import time
 
 import numpy as np
@@ -124,10 +123,12 @@ def test_score_every_scores_only_those_label_epochs_and_the_last_and_keeps_a_sco
                        rollout_val_seconds=0.5, rollout_batch_size=64)
     result = train(x[:half], u[:half], acc[:half], x[half:], u[half:], acc[half:], settings,
                    runs=runs, val_runs=val_runs, shape=FingerShape(2, 2))
-    scored = [i for i, v in enumerate(result.val_sim_error) if not math.isnan(v)]
-    assert scored == [2, 5, 6, 7, 8]              # every third label epoch, the last, the rollouts
-    assert len(result.rollout_loss) == 2 and len(result.train_loss) == 7
-    assert result.best_epoch in scored
+    assert result.scored_epochs == [0, 3, 6, 7, 8]    # the first, every third, the last label
+    assert len(result.rollout_loss) == 2 and len(result.train_loss) == 7      # epoch; rollouts
+    sim = result.val_sim_error
+    assert len(sim) == 9 and sim[1] == sim[2] == sim[0] and sim[4] == sim[5] == sim[3]
+    assert len(set(sim[i] for i in result.scored_epochs)) == 5    # each scored epoch its own run
+    assert result.best_epoch in result.scored_epochs
     assert set(result.timings) == {'label_stage', 'simulation_stage'}
     assert all(v > 0 for v in result.timings.values())
     assert sum(result.timings.values()) == pytest.approx(result.seconds, rel=1e-6)

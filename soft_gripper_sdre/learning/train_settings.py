@@ -49,9 +49,9 @@ class TrainSettings:
     #: as the verdict's (analysis/model_fitness.py): 0.1 s runs of a slow signal cannot tell a
     #: quasi-static model from the finger
     rollout_val_seconds: float = 1.0
-    #: with the simulation stage on, the label epochs are scored by those free runs every
-    #: ``score_every``-th epoch and at the last one (an epoch not scored records NaN and is not
-    #: kept): the free runs step the networks sequentially and cost more than an epoch of labels
+    #: with the simulation stage on, the label epochs are scored by those free runs at the first,
+    #: every ``score_every``-th and the last epoch (an epoch not scored is not kept): the free runs
+    #: step the networks sequentially and cost more than an epoch of labels
     score_every: int = 1
     #: windows per batch of the simulation stage (None: ``batch_size``)
     rollout_batch_size: int | None = None
@@ -93,6 +93,10 @@ PRESETS = {
     'paper': TrainSettings(preset='paper', epochs=70, lr=1e-5, batch_size=64, cosine=False,
                            scale=False),
     # a gripper of your own (docs/own_gripper.md): labels, then the simulation error, rest kept
-    # stable
-    'gripper': TrainSettings(preset='gripper', rollout_epochs=40, rest_margin=1.0),
+    # stable; sized for a lab's iteration (docs/own_gripper.md, "What training costs"): 100 label
+    # epochs in batches of 512, scored every fifth, then 30 simulation epochs over windows that
+    # cover each sample once, 128 a batch
+    'gripper': TrainSettings(preset='gripper', epochs=100, lr=1.5e-3, batch_size=512,
+                             score_every=5, rollout_epochs=30, rollout_overlap=1,
+                             rollout_batch_size=128, rest_margin=1.0),
 }

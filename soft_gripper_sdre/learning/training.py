@@ -57,10 +57,11 @@ class TrainResult:
     best_epoch: int = 0
     seconds: float = 0.0
     #: the simulation stage (empty when off): its training loss per epoch, and the validation
-    #: simulation error per epoch of both stages (NaN for a label epoch not scored,
-    #: ``TrainSettings.score_every``)
+    #: simulation error per epoch of both stages (a label epoch not scored,
+    #: ``TrainSettings.score_every``, repeats the last score), with the epochs scored
     rollout_loss: list[float] = field(default_factory=list)
     val_sim_error: list[float] = field(default_factory=list)
+    scored_epochs: list[int] = field(default_factory=list)
     #: wall time of each stage [s]: ``label_stage``, ``simulation_stage`` (0 when off)
     timings: dict[str, float] = field(default_factory=dict)
 
@@ -259,11 +260,12 @@ class _Training:
                 self.on_epoch(epoch, train_loss, val)
             score = val
             if settings.rollout_epochs > 0:
-                if (epoch + 1) % settings.score_every and epoch != settings.epochs - 1:
-                    result.val_sim_error.append(math.nan)
+                if epoch % settings.score_every and epoch != settings.epochs - 1:
+                    result.val_sim_error.append(result.val_sim_error[-1])
                     continue
                 score = val_sim_error(net, self.st, self.val_windows)
                 result.val_sim_error.append(score)
+                result.scored_epochs.append(epoch)
             if self.keep_if_best(epoch, score):
                 break
 
@@ -308,6 +310,7 @@ class _Training:
             val = val_sim_error(net, self.st, self.val_windows)
             result.rollout_loss.append(train_loss)
             result.val_sim_error.append(val)
+            result.scored_epochs.append(first + epoch)
             if self.on_epoch is not None:
                 self.on_epoch(first + epoch, train_loss, val)
             if self.keep_if_best(first + epoch, val):

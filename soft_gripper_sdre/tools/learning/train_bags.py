@@ -483,8 +483,7 @@ class _Verdict:
         derived = self.derived
         return {**scores.common_metrics(self.settings, result), 'source': 'rosbag2',
                 'rollout_epochs_run': len(result.rollout_loss),
-                'best_val_sim_error': (float(np.nanmin(result.val_sim_error))
-                                       if result.val_sim_error else None),
+                'best_val_sim_error': min(result.val_sim_error) if result.val_sim_error else None,
                 'val_r2_labels': dict(zip(data.shape.axes, scores.r2)),
                 'val_r2_ls_baseline': dict(zip(data.shape.axes, scores.r2_ls)),
                 'train_samples': int(len(data.x)), 'validation_samples': int(len(data.x_val)),
