@@ -132,3 +132,20 @@ def test_score_every_scores_only_those_label_epochs_and_the_last_and_keeps_a_sco
     assert set(result.timings) == {'label_stage', 'simulation_stage'}
     assert all(v > 0 for v in result.timings.values())
     assert sum(result.timings.values()) == pytest.approx(result.seconds, rel=1e-6)
+
+
+def test_stages_add_laps_in_order_and_print_training_with_its_own_stages():
+    from soft_gripper_sdre.analysis.training_run import Stages
+    clock = Stages()
+    clock.lap('labels')
+    time.sleep(0.01)
+    clock.lap('checkpoint')
+    first = clock.seconds['checkpoint']
+    clock.lap('checkpoint')                             # a second lap adds to the first
+    clock.seconds.update(training=2.0, label_stage=0.5, simulation_stage=1.5)
+    rec = clock.record()
+    assert list(rec) == ['labels', 'training', 'label_stage', 'simulation_stage', 'checkpoint',
+                         'total']
+    assert first >= 0.01 and rec['checkpoint'] >= round(first, 3)
+    assert rec['total'] >= rec['labels'] + rec['checkpoint']
+    assert 'training 2.0 (label_stage 0.5, simulation_stage 1.5), checkpoint' in clock.line()

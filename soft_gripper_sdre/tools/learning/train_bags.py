@@ -24,7 +24,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-import time
 
 import numpy as np
 from tqdm import tqdm
@@ -259,7 +258,7 @@ def train_from_bags(train_paths: list[Path], val_paths: list[Path], out: Path,
             anything is written).
         ShapeError: input bounds that cannot be used (naming ``--input-lower/--input-upper``).
     """
-    clock = Stages()
+    clock = training_run.Stages()
     train_set = load_bags(train_paths, tips_topic, torques_topic, min_duration, finger)
     val_set = load_bags(val_paths, tips_topic, torques_topic, min_duration, finger)
     shape, bounds = finger_shape(train_set, val_set, task_dim, input_lower, input_upper)
@@ -357,41 +356,6 @@ def finger_shape(train_set: list[tuple[Recording, list[int]]],
     return shape, bounds
 
 
-class Stages:
-    """Wall time per stage of a run [s], each lap the time since the previous one; a stage
-    lapped again adds to its time."""
-
-    #: the stages in the order they run, as ``metrics.json``'s ``timings`` names them: reading
-    #: and checking the bags, the KF + RTS labels, training (of which ``label_stage`` and
-    #: ``simulation_stage``), writing and scoring the checkpoint, the fitness verdict, the
-    #: closed-loop checks of the candidate settings, the report (the figures and files; printed,
-    #: not in ``metrics.json``, which it writes)
-    ORDER = ('read', 'labels', 'training', 'label_stage', 'simulation_stage', 'checkpoint',
-             'fitness', 'loop_settings', 'report')
-
-    def __init__(self) -> None:
-        self.start = self.last = time.perf_counter()
-        self.seconds: dict[str, float] = {}
-
-    def lap(self, stage: str) -> None:
-        now = time.perf_counter()
-        self.seconds[stage] = self.seconds.get(stage, 0.0) + now - self.last
-        self.last = now
-
-    def record(self) -> dict[str, float]:
-        """Each stage's seconds (rounded to ms) in :data:`ORDER`, and ``total`` since the start."""
-        out = {k: round(self.seconds[k], 3) for k in self.ORDER if k in self.seconds}
-        out['total'] = round(time.perf_counter() - self.start, 3)
-        return out
-
-    def line(self) -> str:
-        """What the tool prints of them."""
-        rec = self.record()
-        total = rec.pop('total')
-        return (f'stages [s], {total:.1f} in all: '
-                + ', '.join(f'{k} {v:.1f}' for k, v in rec.items()))
-
-
 @dataclass
 class _BagData:
     """The labelled bags: their samples, stacked for training, with their provenance, the first
@@ -459,9 +423,9 @@ class _Verdict:
     settings derived for it, both kept for the parameter file and the report."""
 
     def __init__(self, data: _BagData, settings: TrainSettings, result: TrainResult,
-                 clock: Stages | None = None) -> None:
+                 clock: training_run.Stages | None = None) -> None:
         self.data, self.settings, self.result = data, settings, result
-        self.clock = clock if clock is not None else Stages()
+        self.clock = clock if clock is not None else training_run.Stages()
         self.fitness: model_fitness.Fitness | None = None
         self.derived: loop_settings.Derivation | None = None
 
