@@ -1,5 +1,6 @@
 """Training data from rosbag2 recordings: every bad bag refused by name, and jittery, gappy,
 differently stamped recordings labelled right (real bags written with rosbags, real KF + RTS)."""
+import json
 import subprocess
 import sys
 
@@ -278,6 +279,13 @@ def test_training_on_a_jittery_bag_records_the_provenance(tmp_path):
     assert bag['fingers']['finger_1']['stretches'][0]['resampled'] is True
     assert (data['noise_std'] == 1e-6
             and data['train_samples'] == bag['fingers']['finger_1']['samples'])
+    timings = json.loads((out / 'metrics.json').read_text())['timings']
+    assert list(timings) == ['read', 'labels', 'training', 'label_stage', 'simulation_stage',
+                             'checkpoint', 'fitness', 'total']     # the model is not fit: no checks
+    assert all(v >= 0 for v in timings.values())
+    assert timings['label_stage'] + timings['simulation_stage'] <= timings['training']
+    assert sum(v for k, v in timings.items()
+               if k not in ('label_stage', 'simulation_stage', 'total')) <= timings['total']
 
 
 def test_the_labels_filter_is_tuned_on_the_excited_tips_not_on_the_rest_before_them(tmp_path):

@@ -17,6 +17,8 @@ tips into the training samples of ``tools.learning.train``:
   jittery or gappy ones go through a filter with a step per interval, evaluated on a uniform grid
   at the median tip period
   (:func:`~soft_gripper_sdre.learning.derivatives.estimate_kinematics_irregular`);
+* both run compiled (:mod:`~soft_gripper_sdre.learning.compiled_labels`: filterpy's estimates
+  to rounding), and so does the likelihood that tunes the jerk intensity;
 * a gap longer than ``gap_periods`` median tip periods splits the tips into separate stretches;
 * the command is held from its stamp to the next one (zero-order hold) onto each sample time;
   samples before the first command, from the last one on (how long a driver held it is not
@@ -395,13 +397,15 @@ def label_finger(rec: Recording, finger: int, jerk_psd: float, meas_std: float,
         xy = rec.tips[stretch, finger, :dims]
         if derivatives.is_uniform(t):
             grid_ns = t_ns
-            pos, vel, acc = derivatives.estimate_kinematics(t, xy, jerk_psd, meas_std, smooth=True)
+            pos, vel, acc = derivatives.estimate_kinematics(t, xy, jerk_psd, meas_std, smooth=True,
+                                                            compiled=True)
             resampled = False
         else:
             grid_ns = (t_ns[0] + np.arange(int((t_ns[-1] - t_ns[0]) // tip_period) + 1)
                        * int(round(tip_period)))
             pos, vel, acc = derivatives.estimate_kinematics_irregular(t, xy, grid_ns / NS,
-                                                                      jerk_psd, meas_std)
+                                                                      jerk_psd, meas_std,
+                                                                      compiled=True)
             resampled = True
         u, age = hold_commands(rec.cmd_ns - rec.tip_ns[0], rec.torques[:, finger], grid_ns)
         # how long the last command was held is unknown (the driver may hold or drop it)

@@ -6,7 +6,8 @@
 (:func:`score`: R² of the predicted accelerations, the cubic least-squares baseline on the same
 data, the input map at rest) and writes it again with the metrics the caller builds from those
 scores. :func:`write_report` adds ``metrics.json`` and the loss and validation figures, and
-:func:`staged` makes a run's files appear in the output directory together or not at all.
+:func:`staged` makes a run's files appear in the output directory together or not at all;
+:class:`Stages` times the run's stages.
 """
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ import os
 from pathlib import Path
 import shutil
 import tempfile
+import time
 from typing import Callable, Iterator
 
 import numpy as np
@@ -33,6 +35,43 @@ from soft_gripper_sdre.learning.model import SDCModel
 from soft_gripper_sdre.learning.train_settings import TrainSettings
 from soft_gripper_sdre.learning.training import TrainResult, fingerprint, save_checkpoint, train
 from soft_gripper_sdre.sim.shape import AXIS_NAMES, InputBounds
+
+
+class Stages:
+    """Wall time per stage of a run [s] (``metrics.json``'s ``timings``), each lap the time since
+    the previous one; a stage lapped again adds to its time."""
+
+    #: the stages in the order they run, as ``metrics.json``'s ``timings`` names them: reading
+    #: and checking the records or bags, the KF + RTS labels, training (of which
+    #: ``label_stage`` and ``simulation_stage``), writing and scoring the checkpoint, the
+    #: fitness verdict and the closed-loop checks of the candidate settings (the bag path), the
+    #: report (the figures and files; printed, not in ``metrics.json``, which it writes)
+    ORDER = ('read', 'labels', 'training', 'label_stage', 'simulation_stage', 'checkpoint',
+             'fitness', 'loop_settings', 'report')
+
+    def __init__(self) -> None:
+        self.start = self.last = time.perf_counter()
+        self.seconds: dict[str, float] = {}
+
+    def lap(self, stage: str) -> None:
+        now = time.perf_counter()
+        self.seconds[stage] = self.seconds.get(stage, 0.0) + now - self.last
+        self.last = now
+
+    def record(self) -> dict[str, float]:
+        """Each stage's seconds (rounded to ms) in :data:`ORDER`, and ``total`` since the start."""
+        out = {k: round(self.seconds[k], 3) for k in self.ORDER if k in self.seconds}
+        out['total'] = round(time.perf_counter() - self.start, 3)
+        return out
+
+    def line(self) -> str:
+        """What the tool prints of them: ``training``'s own stages in brackets after it."""
+        rec = self.record()
+        total = rec.pop('total')
+        inner = [f'{k} {rec.pop(k):.1f}' for k in ('label_stage', 'simulation_stage') if k in rec]
+        parts = [f'{k} {v:.1f}' + (f' ({", ".join(inner)})' if k == 'training' and inner else '')
+                 for k, v in rec.items()]
+        return f'stages [s], {total:.1f} in all: ' + ', '.join(parts)
 
 
 @dataclass

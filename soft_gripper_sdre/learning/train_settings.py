@@ -49,6 +49,12 @@ class TrainSettings:
     #: as the verdict's (analysis/model_fitness.py): 0.1 s runs of a slow signal cannot tell a
     #: quasi-static model from the finger
     rollout_val_seconds: float = 1.0
+    #: with the simulation stage on, the label epochs are scored by those free runs at the first,
+    #: every ``score_every``-th and the last epoch (an epoch not scored is not kept): the free runs
+    #: step the networks sequentially and cost more than an epoch of labels
+    score_every: int = 1
+    #: windows per batch of the simulation stage (None: ``batch_size``)
+    rollout_batch_size: int | None = None
     #: stable learned rest (:mod:`~soft_gripper_sdre.learning.training`): A(0)'s eigenvalues
     #: kept left of −rest_margin [1/s] (0 = off) by a penalty of this weight
     rest_margin: float = 0.0
@@ -67,11 +73,16 @@ class TrainSettings:
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0.0):
                 raise ValueError(f'{name} must be finite and > 0, got {v!r}')
-        for name in ('rollout_epochs', 'rollout_overlap'):
+        for name in ('rollout_epochs', 'rollout_overlap', 'score_every', 'batch_size',
+                     'rollout_batch_size'):
             v = getattr(self, name)
-            if not (isinstance(v, int) and v >= (0 if name == 'rollout_epochs' else 1)):
-                raise ValueError(f'{name} must be an int >= '
-                                 f'{0 if name == "rollout_epochs" else 1}, got {v!r}')
+            if name == 'rollout_batch_size' and v is None:
+                continue
+            low = 0 if name == 'rollout_epochs' else 1
+            if not (isinstance(v, int) and not isinstance(v, bool) and v >= low):
+                raise ValueError(f'{name} must be an int >= {low}'
+                                 + (' or None' if name == 'rollout_batch_size' else '')
+                                 + f', got {v!r}')
         if not (np.isfinite(self.rest_margin) and self.rest_margin >= 0.0):
             raise ValueError(f'rest_margin must be finite and >= 0 (0 = off), '
                              f'got {self.rest_margin!r}')
@@ -82,6 +93,10 @@ PRESETS = {
     'paper': TrainSettings(preset='paper', epochs=70, lr=1e-5, batch_size=64, cosine=False,
                            scale=False),
     # a gripper of your own (docs/own_gripper.md): labels, then the simulation error, rest kept
-    # stable
-    'gripper': TrainSettings(preset='gripper', rollout_epochs=40, rest_margin=1.0),
+    # stable; sized for a lab's iteration (docs/own_gripper.md, "What training costs"): 100 label
+    # epochs in batches of 512, scored every fifth, then 30 simulation epochs over windows that
+    # cover each sample once, 128 a batch
+    'gripper': TrainSettings(preset='gripper', epochs=100, lr=1.5e-3, batch_size=512,
+                             score_every=5, rollout_epochs=30, rollout_overlap=1,
+                             rollout_batch_size=128, rest_margin=1.0),
 }

@@ -57,9 +57,13 @@ class TrainResult:
     best_epoch: int = 0
     seconds: float = 0.0
     #: the simulation stage (empty when off): its training loss per epoch, and the validation
-    #: simulation error per epoch of both stages
+    #: simulation error per epoch of both stages (a label epoch not scored,
+    #: ``TrainSettings.score_every``, repeats the last score), with the epochs scored
     rollout_loss: list[float] = field(default_factory=list)
     val_sim_error: list[float] = field(default_factory=list)
+    scored_epochs: list[int] = field(default_factory=list)
+    #: wall time of each stage [s]: ``label_stage``, ``simulation_stage`` (0 when off)
+    timings: dict[str, float] = field(default_factory=dict)
 
 
 def _scales(x: np.ndarray, u: np.ndarray, acc: np.ndarray, scale: bool) -> dict[str, np.ndarray]:
@@ -193,10 +197,13 @@ def _train_seeded(x, u, acc, x_val, u_val, acc_val, settings: TrainSettings, on_
                     windows(val_runs, settings.rollout_val_seconds, 1) if simulating else [], shape)
     start = time.perf_counter()
     run.label_stage(train_set, val_set)
+    labelled = time.perf_counter()
     if simulating:
         run.simulation_stage(runs)
     run.keep_best()
-    run.result.seconds = time.perf_counter() - start
+    end = time.perf_counter()
+    run.result.seconds = end - start
+    run.result.timings = {'label_stage': labelled - start, 'simulation_stage': end - labelled}
     return run.result
 
 
@@ -253,8 +260,12 @@ class _Training:
                 self.on_epoch(epoch, train_loss, val)
             score = val
             if settings.rollout_epochs > 0:
+                if epoch % settings.score_every and epoch != settings.epochs - 1:
+                    result.val_sim_error.append(result.val_sim_error[-1])
+                    continue
                 score = val_sim_error(net, self.st, self.val_windows)
                 result.val_sim_error.append(score)
+                result.scored_epochs.append(epoch)
             if self.keep_if_best(epoch, score):
                 break
 
@@ -299,15 +310,16 @@ class _Training:
             val = val_sim_error(net, self.st, self.val_windows)
             result.rollout_loss.append(train_loss)
             result.val_sim_error.append(val)
+            result.scored_epochs.append(first + epoch)
             if self.on_epoch is not None:
                 self.on_epoch(first + epoch, train_loss, val)
             if self.keep_if_best(first + epoch, val):
                 break
 
     def _rollout_epoch(self, opt: torch.optim.Optimizer, batches: list) -> float:
-        """One pass over every window, shuffled within each grid spacing; returns the mean L_sim
-        of the batches that stepped."""
-        size = self.settings.batch_size
+        """One pass over every window, shuffled within each grid spacing, in batches of
+        ``rollout_batch_size`` windows; returns the mean L_sim of the batches that stepped."""
+        size = self.settings.rollout_batch_size or self.settings.batch_size
         total, count = 0.0, 0
         for dt, x0, u, p in batches:
             perm = torch.randperm(x0.shape[0], generator=self.gen)

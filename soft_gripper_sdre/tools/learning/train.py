@@ -168,6 +168,7 @@ def _main_data(parser: argparse.ArgumentParser, args: argparse.Namespace,
                      "records are the hand's: a planar tip, two torques)")
     variant = args.variant or ('paper' if args.preset == 'paper' else 'identifying')
     names = list(DATA_VARIANTS[variant]) + [VALIDATION]
+    clock = training_run.Stages()
     try:
         records = load_records(args.data, names)
     except DatasetError as exc:
@@ -177,7 +178,9 @@ def _main_data(parser: argparse.ArgumentParser, args: argparse.Namespace,
     except OSError as exc:
         parser.error(f'cannot create output directory {args.out}: {exc.strerror}')
 
+    clock.lap('read')
     data = label_records(records, variant, args.jerk_psd)
+    clock.lap('labels')
     print(f'KF/RTS white-jerk intensity q = {data.jerk_psd:g} (m/s³)²/Hz')
     bar = tqdm(total=settings.epochs, desc=f'train ({args.preset})', unit='epoch')
 
@@ -189,6 +192,9 @@ def _main_data(parser: argparse.ArgumentParser, args: argparse.Namespace,
         _, metrics, result, scores = fit(data, settings, stage / 'model.pt', args.jitter,
                                          args.jitter_seed, on_epoch)
         bar.close()
+        clock.seconds.update(training=result.seconds, **result.timings)
+        clock.lap('checkpoint')
+        clock.seconds['checkpoint'] -= result.seconds
         training_run.write_report(
             stage, result, metrics, scores, records[VALIDATION].t, data.acc_true,
             loss_title=f'Training loss, {args.preset} preset ({variant} data)',
@@ -196,6 +202,8 @@ def _main_data(parser: argparse.ArgumentParser, args: argparse.Namespace,
             accel_title=f'u4 validation, {args.preset} preset: predicted (dashed) vs true (solid)')
     print('\n'.join(scores.lines('u4 R² vs true acceleration')))
     print(f'training: {len(result.train_loss)} epochs in {result.seconds:.1f} s; wrote {args.out}')
+    clock.lap('report')
+    print(clock.line())
 
 
 def _main_bags(parser: argparse.ArgumentParser, args: argparse.Namespace,

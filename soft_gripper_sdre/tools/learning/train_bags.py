@@ -107,8 +107,8 @@ def tune_jerk(rec: Recording, finger: int, meas_std: float, dims: int = 2) -> fl
     (:func:`tuning_stretch`), their first ``dims`` coordinates."""
     t, xy = tuning_stretch(rec, finger, dims)
     if derivatives.is_uniform(t):
-        return derivatives.tune_jerk_psd(t, xy, meas_std, JERK_GRID)
-    return derivatives.tune_jerk_psd_irregular(t, xy, meas_std, JERK_GRID)
+        return derivatives.tune_jerk_psd(t, xy, meas_std, JERK_GRID, compiled=True)
+    return derivatives.tune_jerk_psd_irregular(t, xy, meas_std, JERK_GRID, compiled=True)
 
 
 def _plain(value):
@@ -255,10 +255,13 @@ def train_from_bags(train_paths: list[Path], val_paths: list[Path], out: Path,
             anything is written).
         ShapeError: input bounds that cannot be used (naming ``--input-lower/--input-upper``).
     """
+    clock = training_run.Stages()
     train_set = load_bags(train_paths, tips_topic, torques_topic, min_duration, finger)
     val_set = load_bags(val_paths, tips_topic, torques_topic, min_duration, finger)
     shape, bounds = finger_shape(train_set, val_set, task_dim, input_lower, input_upper)
+    clock.lap('read')
     data = _label_sets(train_set, val_set, jerk_psd, meas_std, shape, bounds)
+    clock.lap('labels')
     bar = tqdm(total=settings.epochs + settings.rollout_epochs, desc=f'train ({settings.preset})',
                unit='epoch')
     result = train(data.x, data.u, data.acc, data.x_val, data.u_val, data.acc_val, settings,
@@ -266,7 +269,9 @@ def train_from_bags(train_paths: list[Path], val_paths: list[Path], out: Path,
                                           bar.set_postfix(train=f'{tl:.3g}', val=f'{vl:.3g}')),
                    runs=runs(data.samples), val_runs=runs(data.val_samples), shape=shape)
     bar.close()
-    verdict = _Verdict(data, settings, result)
+    clock.lap('training')
+    clock.seconds.update(result.timings)
+    verdict = _Verdict(data, settings, result, clock)
     # never a params.yaml from another model beside this one
     with training_run.staged(out, stale=(PARAMS_FILE,)) as stage:
         _, scores, metrics = training_run.checkpoint(
@@ -274,6 +279,8 @@ def train_from_bags(train_paths: list[Path], val_paths: list[Path], out: Path,
             data=data.info(tips_topic, torques_topic), train=(data.x, data.u, data.acc),
             val=(data.x_val, data.u_val), acc_ref=data.acc_val, describe=verdict.describe,
             input_bounds=bounds)
+        clock.lap('checkpoint')
+        metrics['timings'] = clock.record()
         training_run.write_report(
             stage, result, metrics, scores, data.t_val, data.acc_val,
             loss_title=f'Training loss from bags, {settings.preset} preset',
@@ -284,6 +291,7 @@ def train_from_bags(train_paths: list[Path], val_paths: list[Path], out: Path,
             (stage / PARAMS_FILE).write_text(params_yaml(
                 derived, out / 'model.pt', list(train_set[0][0].finger_names),
                 ', '.join(str(p) for p in train_paths)))
+    clock.lap('report')
     print(f'finger shape: {shape.m} input(s) ({bounds}), a tip of {shape.d} coordinates '
           f'({", ".join(shape.axes)})')
     print('\n'.join(scores.lines('validation R² vs the KF + RTS labels')))
@@ -295,6 +303,7 @@ def train_from_bags(train_paths: list[Path], val_paths: list[Path], out: Path,
     print(f'training: {len(result.train_loss)} epochs on {len(data.x)} samples from '
           f'{len(data.provenance)} bag(s) in {result.seconds:.1f} s; wrote {out}')
     report_fitness(verdict.fitness, derived, out)
+    print(clock.line())
     return metrics
 
 
@@ -410,8 +419,10 @@ class _Verdict:
     the bag path's metrics, with the model's fitness for control and, for a fit model, the loop
     settings derived for it, both kept for the parameter file and the report."""
 
-    def __init__(self, data: _BagData, settings: TrainSettings, result: TrainResult) -> None:
+    def __init__(self, data: _BagData, settings: TrainSettings, result: TrainResult,
+                 clock: training_run.Stages | None = None) -> None:
         self.data, self.settings, self.result = data, settings, result
+        self.clock = clock if clock is not None else training_run.Stages()
         self.fitness: model_fitness.Fitness | None = None
         self.derived: loop_settings.Derivation | None = None
 
@@ -419,7 +430,9 @@ class _Verdict:
         """The metrics of ``model``, scored as ``scores``; judges it and, when fit, derives its
         settings on the way."""
         data, result = self.data, self.result
+        self.clock.lap('checkpoint')
         self.fitness = model_fitness.judge(model, validation_segments(data.val_samples))
+        self.clock.lap('fitness')
         self.derived = None
         if self.fitness.fit:
             d = data.shape.d
@@ -428,6 +441,7 @@ class _Verdict:
                                bounds=data.bounds)
             self.derived = loop_settings.derive(model, facts, progress=lambda text: print(
                 f'  closed-loop check on the model: {text}', flush=True))
+            self.clock.lap('loop_settings')
         derived = self.derived
         return {**scores.common_metrics(self.settings, result), 'source': 'rosbag2',
                 'rollout_epochs_run': len(result.rollout_loss),
