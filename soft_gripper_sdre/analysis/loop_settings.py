@@ -43,6 +43,15 @@ model: two fingers that share one model differ by about that much). Its score is
 of these runs; the lowest score wins, and then the next lower bandwidth when it scores within
 :data:`PREFER_SLOWER` of it, for margin against what the model does not know.
 
+A finger whose motion follows its inputs later than its model's does (an actuator the model
+does not have: a chamber's pressure lag, a valve's dead time) rings under settings this check
+passed: trained on accelerations that come late, the model is slower and better damped than the
+finger, and the smoothest estimator wins on it. The check therefore applies its commands as much
+later again as the recordings show (:func:`unmodelled_delay`: the lag of the peak of the
+cross-correlation of the recorded tip velocity with the model's free run under the same inputs,
+:attr:`DataFacts.input_delay`), in whole periods. The hand's shape with two-sided inputs keeps
+the one period of its rule.
+
 The move goes along the direction the finger moved most in the identification data (the
 principal axis of its tips about the rest pose, turned toward +Y:
 :func:`~soft_gripper_sdre.analysis.data_facts.closing_direction`), the way it bends when driven.
