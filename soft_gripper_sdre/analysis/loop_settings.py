@@ -43,14 +43,12 @@ model: two fingers that share one model differ by about that much). Its score is
 of these runs; the lowest score wins, and then the next lower bandwidth when it scores within
 :data:`PREFER_SLOWER` of it, for margin against what the model does not know.
 
-A finger whose motion follows its inputs later than its model's does (an actuator the model
-does not have: a chamber's pressure lag, a valve's dead time) rings under settings this check
-passed: trained on accelerations that come late, the model is slower and better damped than the
-finger, and the smoothest estimator wins on it. The check therefore applies its commands as much
-later again as the recordings show (:func:`unmodelled_delay`: the lag of the peak of the
-cross-correlation of the recorded tip velocity with the model's free run under the same inputs,
-:attr:`DataFacts.input_delay`), in whole periods. The hand's shape with two-sided inputs keeps
-the one period of its rule.
+A finger whose motion follows its inputs later than its model's does (a dead time the model
+does not have) can ring under settings a check without that delay passed. The check therefore
+applies its commands as much later again as the recordings show (:func:`unmodelled_delay`: the
+lag of the peak of the cross-correlation of the recorded tip velocity with the model's free run
+under the same inputs, :attr:`DataFacts.input_delay`), in whole periods. The hand's shape with
+two-sided inputs keeps the one period of its rule.
 
 The move goes along the direction the finger moved most in the identification data (the
 principal axis of its tips about the rest pose, turned toward +Y:
@@ -377,10 +375,10 @@ def unmodelled_delay(model, t: np.ndarray, u: np.ndarray, tips: np.ndarray,
     The model runs free from its rest under the recorded inputs held
     between tips; the delay is the lag, within ``max_delay``, at which the cross-correlation of
     the recorded tip velocity with the model's peaks (refined by a parabola through the peak and
-    its neighbours; 0 when the finger leads). An actuator the model does not have (a chamber's
-    pressure lag, a valve's dead time) shows here: the model, trained on accelerations that
-    follow the inputs late, is slower and better damped than the finger, but its motion still
-    starts with the input.
+    its neighbours; 0 when the finger leads). A dead time the model does not have (a valve's, a
+    driver's) shows here in full; a lag the training absorbed into slower, better damped
+    dynamics does not (the one-chamber finger's 40/60 ms pressure lag: 0 ms on every bag, the
+    model's velocity 0–2 periods behind the finger's; docs/own_gripper.md).
 
     Args:
         t: (N,) tip times [s], increasing.
