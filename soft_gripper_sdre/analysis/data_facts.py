@@ -41,9 +41,14 @@ class DataFacts:
     inputs than tip coordinates: :func:`~soft_gripper_sdre.analysis.holding.equilibrium_curve`),
     waypoints relative to rest from rest on, ``travel`` its arc length; None is the straight move.
 
+    ``input_delay`` is how much later the finger moves than its model under the same inputs
+    (:func:`~soft_gripper_sdre.analysis.loop_settings.unmodelled_delay`); the closed-loop check
+    applies its commands that much later.
+
     Raises:
-        ShapeError: ``axis`` not of 2 or 3 finite values of unit length, or ``path`` not of
-            waypoints of as many values as the move's direction.
+        ShapeError: ``axis`` not of 2 or 3 finite values of unit length, ``path`` not of
+            waypoints of as many values as the move's direction, or ``input_delay`` negative or
+            not finite.
     """
 
     period: float                 # median tip period [s]
@@ -57,6 +62,8 @@ class DataFacts:
     axis: tuple[float, ...] | None = None          # the move's unit direction, d values
     bounds: InputBounds | None = None              # the loop's per-input bounds
     path: tuple[tuple[float, ...], ...] | None = None   # (K, d) waypoints of a curved move [m]
+    # the input-to-motion delay the model lacks [s] (loop_settings.unmodelled_delay; 0: none)
+    input_delay: float = 0.0
 
     def __post_init__(self) -> None:
         if self.axis is not None:
@@ -73,6 +80,10 @@ class DataFacts:
                 raise ShapeError(f'the move\'s path must hold at least two finite waypoints of '
                                  f'{self.d} values, got shape {p.shape}')
             object.__setattr__(self, 'path', tuple(tuple(float(v) for v in q) for q in p))
+        if not (isinstance(self.input_delay, (int, float)) and math.isfinite(self.input_delay)
+                and self.input_delay >= 0):
+            raise ShapeError(f'the input delay must be finite and >= 0 s, got '
+                             f'{self.input_delay!r}')
 
     @property
     def unit(self) -> np.ndarray:

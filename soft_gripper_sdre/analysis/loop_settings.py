@@ -43,6 +43,13 @@ model: two fingers that share one model differ by about that much). Its score is
 of these runs; the lowest score wins, and then the next lower bandwidth when it scores within
 :data:`PREFER_SLOWER` of it, for margin against what the model does not know.
 
+A finger whose motion follows its inputs later than its model's does (a dead time the model
+does not have) can ring under settings a check without that delay passed. The check therefore
+applies its commands as much later again as the recordings show (:func:`unmodelled_delay`: the
+lag of the peak of the cross-correlation of the recorded tip velocity with the model's free run
+under the same inputs, :attr:`DataFacts.input_delay`), in whole periods. The hand's shape with
+two-sided inputs keeps the one period of its rule.
+
 The move goes along the direction the finger moved most in the identification data (the
 principal axis of its tips about the rest pose, turned toward +Y:
 :func:`~soft_gripper_sdre.analysis.data_facts.closing_direction`), the way it bends when driven.
@@ -90,7 +97,7 @@ from soft_gripper_sdre.control.laws import make_law
 from soft_gripper_sdre.control.riccati import sdre_gains
 from soft_gripper_sdre.control.tracking import Weights
 from soft_gripper_sdre.control.trajectory import GraspProfile, GraspTrajectory
-from soft_gripper_sdre.sim.shape import InputBounds
+from soft_gripper_sdre.sim.shape import HAND_SHAPE, InputBounds
 
 #: closed-loop bandwidths tried [Hz], kept below a :data:`RATE_FRACTION` of the sampling rate
 BANDWIDTHS_HZ = (0.5, 1.0, 2.0, 4.0, 8.0, 16.0, 32.0)
@@ -127,6 +134,10 @@ PAPER_LAW_SHARE = 0.1
 PATH_POINTS = 16
 #: an input within this share of its range of a bound counts as at the bound [-]
 AT_BOUND = 1e-9
+#: the longest input-to-motion delay the model can lack that :func:`unmodelled_delay` looks for [s]
+MAX_DELAY = 0.25
+#: :func:`unmodelled_delay` needs at least this many periods of excitation
+MIN_DELAY_SAMPLES = 100
 
 
 @dataclass(frozen=True)
@@ -290,13 +301,15 @@ def _at_bound(u: np.ndarray, bounds: InputBounds) -> np.ndarray:
 def check_on_model(model, settings: LoopSettings, facts: DataFacts, law: str = 'sdre_ff',
                    gain_error: float = 1.0, seed: int = 0, delay: int = 1) -> CheckResult:
     """Run ``law`` with ``settings`` on the learned model as the plant (module doc): measured
-    noise, the estimator, the command ``delay`` periods late, along :func:`check_move`, within
-    ``facts.bounds`` (±``facts.torque_limit`` when None); a command outside them is counted
+    noise, the estimator, the command ``delay`` periods late and ``facts.input_delay`` later
+    still (rounded to whole periods), along :func:`check_move`, within ``facts.bounds``
+    (±``facts.torque_limit`` when None); a command outside them is counted
     (:attr:`CheckResult.outside`) and fails the check."""
     shape = model_shape(model)
     d, m = shape.d, shape.m
     bounds = loop_bounds(facts, m)
     dt = settings.control_period
+    delay += delay_periods(facts.input_delay, dt)
     traj = check_move(facts)
     steps = int(round(traj.profile.duration / dt)) + 1
     t = np.arange(steps) * dt
@@ -347,6 +360,81 @@ def check_on_model(model, settings: LoopSettings, facts: DataFacts, law: str = '
     return CheckResult(law, float(np.sqrt(np.mean(err ** 2)) / abs(facts.travel)),
                        float(sat[at_rest].mean()), rest_torque, float(sat.mean()), False,
                        outside, unreachable)
+
+
+def delay_periods(input_delay: float, period: float) -> int:
+    """The whole periods of ``period`` [s] nearest ``input_delay`` [s] (0 for no delay)."""
+    return int(round(input_delay / period)) if input_delay > 0 else 0
+
+
+def unmodelled_delay(model, t: np.ndarray, u: np.ndarray, tips: np.ndarray,
+                     max_delay: float = MAX_DELAY) -> float:
+    """The input-to-motion delay [s] the learned model lacks: how much later the finger's tip
+    moves than the model's under the same inputs.
+
+    The model runs free from its rest under the recorded inputs held
+    between tips; the delay is the lag, within ``max_delay``, at which the cross-correlation of
+    the recorded tip velocity with the model's peaks (refined by a parabola through the peak and
+    its neighbours; 0 when the finger leads). A dead time the model does not have (a valve's, a
+    driver's) shows here in full; a lag the training absorbed into slower, better damped
+    dynamics does not (the one-chamber finger's 40/60 ms pressure lag: 0 ms on every bag, the
+    model's velocity 0–2 periods behind the finger's; docs/own_gripper.md).
+
+    Args:
+        t: (N,) tip times [s], increasing.
+        u: (N, m) the inputs held at those times [their SI unit].
+        tips: (N, d) the recorded tips [m], the first at the finger's rest (the stretch
+            starts at the first input off rest).
+
+    Raises:
+        ShapeError: arrays of other shapes than the model's, fewer than
+            :data:`MIN_DELAY_SAMPLES` tips, times not increasing, or values not finite.
+    """
+    from soft_gripper_sdre.sim.shape import ShapeError
+    shape = model_shape(model)
+    d, m = shape.d, shape.m
+    t = np.asarray(t, dtype=float).reshape(-1)
+    u = np.asarray(u, dtype=float)
+    tips = np.asarray(tips, dtype=float)
+    if u.shape != (len(t), m) or tips.shape != (len(t), d):
+        raise ShapeError(f'excitation: {len(t)} times need inputs ({len(t)}, {m}) and tips '
+                         f'({len(t)}, {d}) for a model of {shape}, got {u.shape} and '
+                         f'{tips.shape}')
+    if len(t) < MIN_DELAY_SAMPLES:
+        raise ShapeError(f'excitation: at least {MIN_DELAY_SAMPLES} tips needed, got {len(t)}')
+    if not (np.all(np.isfinite(t)) and np.all(np.isfinite(u)) and np.all(np.isfinite(tips))):
+        raise ShapeError('excitation: times, inputs and tips must be finite')
+    if not np.all(np.diff(t) > 0):
+        raise ShapeError('excitation: the times must increase')
+    dt = float(np.median(np.diff(t)))
+    grid = t[0] + dt * np.arange(int((t[-1] - t[0]) / dt + 1e-9) + 1)
+    # the input in force at each grid time (a tip stamped a rounding error later counts as at it)
+    held = u[np.clip(np.searchsorted(t, grid + 1e-6 * dt, side='right') - 1, 0, len(t) - 1)]
+    pos = np.stack([np.interp(grid, t, tips[:, k]) for k in range(d)], axis=1)
+    pos = pos - pos[0]
+    x0 = np.zeros((1, 2 * d))
+    run = model_fitness.simulate(model, x0, held[:-1, None, :], dt,
+                                 substeps=max(1, math.ceil(dt / MAX_STEP - 1e-9)))[:, 0, :d]
+    alive = int(np.argmin(np.all(np.isfinite(run), axis=1))) if not np.all(
+        np.isfinite(run)) else len(run)
+    n = alive - 1
+    lags = int(max_delay / dt + 1e-9)
+    if n < MIN_DELAY_SAMPLES or lags < 1:
+        return 0.0
+    v_data = np.diff(pos[:alive], axis=0)
+    v_model = np.diff(run[:alive], axis=0)
+    v_data = v_data - v_data.mean(axis=0)
+    v_model = v_model - v_model.mean(axis=0)
+    lags = min(lags, n // 2)
+    corr = np.array([np.sum(v_data[k:] * v_model[:n - k]) / (n - k) for k in range(lags + 1)])
+    k = int(np.argmax(corr))
+    shift = float(k)
+    if 0 < k < lags:
+        lo, mid, hi = corr[k - 1], corr[k], corr[k + 1]
+        bend = lo - 2 * mid + hi
+        if bend < 0:
+            shift += 0.5 * (lo - hi) / bend
+    return max(shift, 0.0) * dt
 
 
 def paper_law_offset(model, facts: DataFacts, bandwidth_hz: float) -> float:
@@ -402,6 +490,8 @@ class Derivation:
         for key in ('axis', 'path', 'bounds'):
             if facts[key] is None:
                 del facts[key]              # the hand's planar straight move: as it always was
+        if facts['input_delay'] == 0.0:
+            del facts['input_delay']
         return {'settings': asdict(self.settings) if self.settings else None,
                 'reason': self.reason, 'facts': facts, 'paper_law': self.paper_law,
                 'checks': {k: asdict(v) for k, v in self.checks.items()},
@@ -410,7 +500,9 @@ class Derivation:
                           'keep_nominal': KEEP_NOMINAL, 'keep_robust': KEEP_ROBUST,
                           'hold_share': HOLD_SHARE, 'min_travel_noise': MIN_TRAVEL_NOISE,
                           'travel_shrink': TRAVEL_SHRINK,
-                          'check_profile': CHECK_PROFILE, 'delay_periods': 1}}
+                          'check_profile': CHECK_PROFILE,
+                          'delay_periods': 1 + delay_periods(self.facts.input_delay,
+                                                             self.facts.period)}}
 
     def params(self, finger_names: list[str]) -> dict:
         """The nodes' parameters for these settings as plain data: ``{'estimator': {…},
@@ -464,12 +556,26 @@ class Derivation:
 
 
 def derive(model, facts: DataFacts, laws: tuple[str, ...] = ('sdre_ff', 'sdre'),
-           progress=None, bandwidths: tuple[float, ...] = BANDWIDTHS_HZ) -> Derivation:
+           progress=None, bandwidths: tuple[float, ...] = BANDWIDTHS_HZ,
+           excitation: list[tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None
+           ) -> Derivation:
     """Pick the bandwidth (among ``bandwidths``), the estimator's intensity and the integral gain
     by closed-loop runs on the model (module doc); ``settings`` is None when no candidate passes
-    or no move can be checked (``reason``). ``progress(text)`` hears each run."""
+    or no move can be checked (``reason``). ``progress(text)`` hears each run.
+
+    ``excitation``: stretches (t [s], inputs (N, m), tips (N, d) [m]) of the recordings. For any
+    finger but the hand's shape with two-sided inputs, the check's commands come
+    ``facts.input_delay`` late, the longest :func:`unmodelled_delay` of these stretches (the
+    hand's shape with two-sided inputs keeps the one period of its rule).
+    """
     shape = model_shape(model)
     _check_facts(facts, shape)
+    if excitation and not (shape == HAND_SHAPE and facts.bounds is None):
+        facts = replace(facts, input_delay=max(unmodelled_delay(model, *e) for e in excitation))
+        if progress is not None:
+            progress(f'the finger moves {1e3 * facts.input_delay:.3g} ms after the model: '
+                     f'the check applies its commands '
+                     f'{1 + delay_periods(facts.input_delay, facts.period)} period(s) late')
     reach = facts.travel if facts.reach_travel is None else facts.reach_travel
     curve = None
     if shape.m < shape.d:

@@ -188,15 +188,34 @@ def tuning_stretch(rec: Recording, finger: int, dims: int = 2) -> tuple[np.ndarr
     first non-zero torque on, within the stretch of tips (no long gap) that holds it; the whole
     first stretch when it has no tips from then on. The tips at rest before it (a driver's idle
     time, the settle phase) would tune the estimator to a finger that does not move."""
+    idx = _tuning_index(rec, finger)
+    ns = rec.tip_ns[idx]
+    return (ns - ns[0]) / 1e9, rec.tips[idx, finger, :dims]
+
+
+def _tuning_index(rec: Recording, finger: int) -> np.ndarray:
+    """The tip indices of :func:`tuning_stretch`."""
     onset = first_torque_ns(rec, finger)
     onset = rec.tip_ns[0] if onset is None else onset
     stretches = tip_stretches(rec)
     chosen = next((s for s in stretches if rec.tip_ns[s.stop - 1] >= onset), stretches[0])
     idx = np.arange(chosen.start, chosen.stop)
     moving = idx[rec.tip_ns[idx] >= onset]
-    idx = (moving if len(moving) >= MIN_SAMPLES else idx)[:TUNE_SAMPLES]
+    return (moving if len(moving) >= MIN_SAMPLES else idx)[:TUNE_SAMPLES]
+
+
+def excitation_stretch(rec: Recording, finger: int, dims: int = 2,
+                       rest: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray,
+                                                                np.ndarray]:
+    """(t [s], inputs (N, m), tips (N, dims)) of :func:`tuning_stretch`'s tips with the command
+    in force at each (the last one stamped at or before it; ``rest`` (m,), zeros by default,
+    before the first), for :func:`~soft_gripper_sdre.analysis.loop_settings.unmodelled_delay`."""
+    idx = _tuning_index(rec, finger)
     ns = rec.tip_ns[idx]
-    return (ns - ns[0]) / 1e9, rec.tips[idx, finger, :dims]
+    at = np.searchsorted(rec.cmd_ns, ns, side='right') - 1
+    before = np.zeros(rec.n_inputs) if rest is None else np.asarray(rest, dtype=float)
+    u = np.where((at >= 0)[:, None], rec.torques[np.maximum(at, 0), finger, :], before)
+    return (ns - ns[0]) / 1e9, u, rec.tips[idx, finger, :dims]
 
 
 def params_yaml(derived: loop_settings.Derivation, model_path: Path, finger_names: list[str],
@@ -439,8 +458,10 @@ class _Verdict:
             facts = data_facts(data.x[:, :d], data.u, data.dt, data.noise,
                                [tuning_stretch(rec, f[0], d) for rec, f in data.train_set],
                                bounds=data.bounds)
+            rest = None if data.bounds is None else data.bounds.rest
             self.derived = loop_settings.derive(model, facts, progress=lambda text: print(
-                f'  closed-loop check on the model: {text}', flush=True))
+                f'  closed-loop check on the model: {text}', flush=True), excitation=[
+                    excitation_stretch(rec, f[0], d, rest) for rec, f in data.train_set])
             self.clock.lap('loop_settings')
         derived = self.derived
         return {**scores.common_metrics(self.settings, result), 'source': 'rosbag2',
