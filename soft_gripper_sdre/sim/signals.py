@@ -15,8 +15,9 @@ record and each takes both signs — with peaks inside the paper's ±25 sim-unit
 intervals (:func:`input_signal`): each signal in sim units divided by :data:`REFERENCE` (40 sim
 units, the simulator's 0.1 N·m actuator limit, so u1 peaks at 0.625), for m inputs: u1..u3 the
 same on every input, and u4 too for one or two inputs; for three or four inputs u4 plays on input
-k the same waveform delayed by k/m of its period (:data:`U4_PERIOD`, :func:`u4_delays`); x1, x2 multisines on disjoint, incommensurate frequency sets per input (the
-hand's two sets, then two more); b1, b2 the broadband multisine with its 12 frequencies per
+k the same waveform delayed by k/m of its period (:data:`U4_PERIOD`, :func:`u4_delays`); x1,
+x2 multisines on disjoint, incommensurate frequency sets per input (the hand's two sets, then
+two more); b1, b2 the broadband multisine with its 12 frequencies per
 input dealt to the inputs in turn (b2 starting one input later; for one input b1 and b2 take
 the alternate frequencies of two). The excitation plan maps a share s to an
 input about the middle of a two-sided interval, or from the rest value into a one-sided one
