@@ -21,8 +21,8 @@ run's recordings and starts at step 2); a lab with one-sided actuators gives the
    ``level:=auto`` (its amplitude found by probing the finger with the signal's start to half
    of ``max_excursion``; the first probe at u1's amplitude, ``level_start``) and the driver's
    limit (``torque_limit`` or the one-sided bounds);
-2. **train** — ``tools.learning.train --bag … --val-bag …``: the model, its verdict and
-   ``params.yaml``;
+2. **train** — ``tools.learning.train --bag … --val-bag …`` (``--task-dim 3`` for trunk3's
+   3-D tip): the model, its verdict and ``params.yaml``;
 3. **deploy** — estimator, controller and trajectory node on ``params.yaml``: both fingers close
    along the move the settings were checked for (the way the finger moved most in the
    identification data, by at most half its reach that way: a learned model is only known where
@@ -286,6 +286,8 @@ def train(a: argparse.Namespace, env: dict, bags: Path, out: Path) -> tuple[dict
     cmd = [sys.executable, '-m', 'soft_gripper_sdre.tools.learning.train',
            '--bag', str(bags / 'train'),
            '--val-bag', str(bags / 'val'), '--out', str(out / 'model')]
+    if gripper_shape(a.plant).d == 3:           # README: a 3-D tip: --task-dim 3
+        cmd += ['--task-dim', '3']
     bounds = actuator_bounds(a.plant)
     if bounds:
         cmd += ['--input-lower', *map(repr, bounds['input_lower']),
