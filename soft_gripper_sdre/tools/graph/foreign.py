@@ -279,14 +279,14 @@ def identify(a: argparse.Namespace, env: dict, bags: Path) -> dict:
     return {'amplitude': amplitudes, 'wall_s': round(time.monotonic() - t0, 1)}
 
 
-def train(a: argparse.Namespace, env: dict, bags: Path, out: Path) -> tuple[dict, str]:
-    """Step 2 (module doc): ``tools.learning.train`` on ``bags``' train/ and val/ into
-    ``out/model``, its output kept in ``out/train.log``; returns the model's ``metrics.json`` and
-    the tool's stdout."""
+def train_command(a: argparse.Namespace, bags: Path, out: Path) -> list[str]:
+    """The README's training command for ``a.plant`` on ``bags``' train/ and val/ into
+    ``out/model``: ``--task-dim 3`` for a 3-D tip, the one-sided actuators' bounds
+    (:func:`actuator_bounds`), and ``--epochs``/``--rollout-epochs`` when given."""
     cmd = [sys.executable, '-m', 'soft_gripper_sdre.tools.learning.train',
            '--bag', str(bags / 'train'),
            '--val-bag', str(bags / 'val'), '--out', str(out / 'model')]
-    if gripper_shape(a.plant).d == 3:           # README: a 3-D tip: --task-dim 3
+    if gripper_shape(a.plant).d == 3:
         cmd += ['--task-dim', '3']
     bounds = actuator_bounds(a.plant)
     if bounds:
@@ -296,6 +296,13 @@ def train(a: argparse.Namespace, env: dict, bags: Path, out: Path) -> tuple[dict
         cmd += ['--epochs', str(a.epochs)]
     if a.rollout_epochs is not None:
         cmd += ['--rollout-epochs', str(a.rollout_epochs)]
+    return cmd
+
+
+def train(a: argparse.Namespace, env: dict, bags: Path, out: Path) -> tuple[dict, str]:
+    """Step 2 (module doc): :func:`train_command` run, its output kept in ``out/train.log``;
+    returns the model's ``metrics.json`` and the tool's stdout."""
+    cmd = train_command(a, bags, out)
     done = subprocess.run(cmd, env=env, capture_output=True, text=True)
     (out / 'train.log').write_text(done.stdout + done.stderr, encoding='utf-8')
     if done.returncode != 0:
