@@ -13,12 +13,13 @@ from soft_gripper_sdre.sim.foreign_pneumatic import P_MAX
 from soft_gripper_sdre.sim.foreign_presets import make_plant
 from soft_gripper_sdre.sim.shape import InputBounds
 from soft_gripper_sdre.sim.signal_specs import (
+    Signal,
     SignalSpecError,
     builtin_signal,
     parse_signal_specs,
     resolve_signals,
 )
-from soft_gripper_sdre.sim.signals import SIGNALS, input_signal
+from soft_gripper_sdre.sim.signals import REFERENCE, SIGNALS, U4_PERIOD, input_signal, u4_delays
 
 T = np.arange(0.0, 10.0, 1e-3)
 CHAMBER = InputBounds([0.0], [P_MAX])
@@ -28,14 +29,15 @@ TENDONS = InputBounds(np.zeros(3), np.full(3, 4.0))
 @pytest.mark.parametrize('name', list(SIGNALS))
 def test_the_built_in_signals_as_shares_for_one_to_four_inputs(name):
     """Two inputs: the hand's torques over 0.1 N·m; every m: within ±1, the paper's signals the
-    same on every input, the identifying and broadband ones uncorrelated between inputs."""
+    same on every input (u4 only for one or two inputs: test_u4_is_staggered_…), the identifying
+    and broadband ones uncorrelated between inputs."""
     np.testing.assert_allclose(input_signal(name, 2)(T) * 0.1, SIGNALS[name](T), atol=1e-15)
     for m in (1, 2, 3, 4):
         s = input_signal(name, m)(T)
         assert s.shape == (T.size, m) and np.abs(s).max() <= 1.0 and np.abs(s).max() > 0.3
-        if name.startswith('u'):
+        if name.startswith('u') and (name != 'u4' or m <= 2):
             assert np.all(s == s[:, :1])
-        elif m > 1:
+        elif m > 1 and name != 'u4':
             corr = np.corrcoef(s.T) - np.eye(m)
             assert np.abs(corr).max() < 0.2, (m, corr)
             assert np.all(s.min(axis=0) < -0.2) and np.all(s.max(axis=0) > 0.2)
@@ -43,6 +45,49 @@ def test_the_built_in_signals_as_shares_for_one_to_four_inputs(name):
         input_signal(name, 5)
     with pytest.raises(KeyError, match='known signals'):
         input_signal('u9', 2)
+
+
+@pytest.mark.parametrize('m', [3, 4])
+def test_u4_is_staggered_over_three_or_four_inputs(m):
+    """Input k plays u4 delayed by k/m of its 2 s period: each input u4's own values; the
+    inputs no longer equal, their mean over the inputs only u4's 1.5 Hz part for three inputs
+    (its 0.5 and 1 Hz parts cancel) and nothing for four."""
+    one = input_signal('u4', 1)
+    s = input_signal('u4', m)(T)
+    assert s.shape == (T.size, m)
+    np.testing.assert_array_equal(u4_delays(m), np.arange(m) * U4_PERIOD / m)
+    for k in range(m):
+        np.testing.assert_allclose(s[:, k], one(T - k * U4_PERIOD / m)[:, 0], atol=1e-15)
+        np.testing.assert_allclose(np.abs(s[:, k]).max(), np.abs(one(T)).max(), rtol=1e-3)
+    common = 6 * np.sin(3 * np.pi * T) / REFERENCE if m == 3 else np.zeros_like(T)
+    np.testing.assert_allclose(s.mean(axis=1), common, atol=1e-12)
+    assert np.abs(np.corrcoef(s.T) - np.eye(m)).max() < 0.5
+    np.testing.assert_array_equal(input_signal('u4', m)(0.25), s[250])
+    np.testing.assert_array_equal(u4_delays(2), [0.0, 0.0])
+    np.testing.assert_array_equal(u4_delays(1), [0.0])
+
+
+def test_staggered_u4_bends_the_trunk_segment_where_u4_alike_only_shortens_it():
+    """On the real three-tendon segment (trunk3_a, from slack at the level the recipe's search
+    found, 0.45): u4 alike on the three tendons moves the tip along the segment's axis alone;
+    staggered, the same tendons within [0, 4 N] bend it across the axis in both directions by
+    more than half its motion along it."""
+    one = input_signal('u4', 1)
+    alike = Signal('u4', 4.0, lambda t: np.repeat(one(t), 3, axis=-1), share=True)
+    spread = {}
+    for name, signal in (('staggered', builtin_signal('u4', 4.0, m=3)), ('alike', alike)):
+        plant = make_plant('trunk3_a')
+        plan = ExcitationPlan([signal], 0.5, 1, bounds=TENDONS).scaled(0.45)
+        tips, dt = [], 0.004
+        for k in range(int(plan.duration / dt)):
+            u = plan.torques(k * dt)[0]
+            assert TENDONS.contains(u)
+            plant.step(u, dt)
+            tips.append(plant.tip() - plant.rest_tip)
+        spread[name] = np.std(tips, axis=0)          # (x along the segment, y, z) [m]
+    assert np.all(spread['alike'][1:] < 1e-9) and spread['alike'][0] > 1e-3
+    assert np.all(spread['staggered'][1:] > 0.5 * spread['staggered'][0])
+    assert np.all(spread['staggered'][1:] > 0.5e-3)
 
 
 def test_one_input_gets_two_different_broadband_and_identifying_signals():

@@ -53,6 +53,24 @@ def test_every_gripper_has_its_lab_setup_and_one_sided_actuators_give_their_boun
                                                  'input_upper': [4.0] * 3}
 
 
+def test_the_training_command_is_the_readmes_for_each_gripper(tmp_path):
+    """A 3-D tip (trunk3) is trained with --task-dim 3 (README: a 3-D tip: --task-dim 3), the
+    planar grippers with the default; one-sided actuators give their bounds."""
+    def command(plant, *extra):
+        a = foreign._parser().parse_args(['--plant', plant, '--out', str(tmp_path / 'o'), *extra])
+        return foreign.train_command(a, tmp_path / 'bags', tmp_path / 'o')
+
+    trunk = command('trunk3')
+    assert trunk[trunk.index('--task-dim') + 1] == '3'
+    assert trunk[trunk.index('--input-upper') + 1:] == ['4.0'] * 3
+    assert trunk[trunk.index('--bag') + 1] == str(tmp_path / 'bags' / 'train')
+    for plant in ('tendon3', 'stiff2', 'pneumatic1'):
+        assert '--task-dim' not in command(plant)
+    assert '--input-lower' not in command('tendon3')
+    tail = command('stiff2', '--epochs', '5', '--rollout-epochs', '0')[-4:]
+    assert tail == ['--epochs', '5', '--rollout-epochs', '0']
+
+
 def test_the_controller_bounds_come_from_the_parameter_file(tmp_path):
     params = tmp_path / 'params.yaml'
     ctrl = {'torque_limit': 0.05}

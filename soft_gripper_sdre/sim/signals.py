@@ -13,14 +13,26 @@ record and each takes both signs — with peaks inside the paper's ±25 sim-unit
 
 **Fingers of m inputs** (1 to 4) with per-input bounds take the same signals as shares of their
 intervals (:func:`input_signal`): each signal in sim units divided by :data:`REFERENCE` (40 sim
-units, the simulator's 0.1 N·m actuator limit, so u1 peaks at 0.625), for m inputs: u1..u4 the
-same on every input; x1, x2 multisines on disjoint, incommensurate frequency sets per input (the
-hand's two sets, then two more); b1, b2 the broadband multisine with its 12 frequencies per
+units, the simulator's 0.1 N·m actuator limit, so u1 peaks at 0.625), for m inputs: u1..u3 the
+same on every input, and u4 too for one or two inputs; for three or four inputs u4 plays on input
+k the same waveform delayed by k/m of its period (:data:`U4_PERIOD`, :func:`u4_delays`); x1,
+x2 multisines on disjoint, incommensurate frequency sets per input (the hand's two sets, then
+two more); b1, b2 the broadband multisine with its 12 frequencies per
 input dealt to the inputs in turn (b2 starting one input later; for one input b1 and b2 take
 the alternate frequencies of two). The excitation plan maps a share s to an
 input about the middle of a two-sided interval, or from the rest value into a one-sided one
 (:mod:`soft_gripper_sdre.sim.excitation`). For two inputs the shares are the hand's signals
 over 0.1 N·m.
+
+**Why u4 is staggered for more than two inputs.** u4 is the recipe's validation signal. A finger
+bends in at most two directions; with more inputs than that, inputs driven alike mostly act
+against each other (three tendons at 120° pulled alike shorten a segment and hardly bend it), so
+a validation record with every input equal moves the tip little and tests one direction of
+input space. Delayed by k/m of the 2 s period, the three components of u4 (0.5, 1 and 1.5 Hz)
+reach the inputs at phases 2πjk/m (j = 1, 2, 3): for m = 3 the 0.5 and 1 Hz components sum to
+zero over the inputs (a tip that circles) and the 1.5 Hz one stays common to all (the
+shortening), for m = 4 none is common. Every input plays u4's own values, so its peak and its
+level are u4's.
 """
 from __future__ import annotations
 
@@ -120,6 +132,19 @@ _PAPER = {
 }
 
 
+#: the period of u4 [s] (its components are at 0.5, 1 and 1.5 Hz)
+U4_PERIOD = 2.0
+
+
+def u4_delays(m: int) -> np.ndarray:
+    """The delay [s] of u4 on each of ``m`` inputs (module doc): 0 on every input for one or two
+    inputs (the hand's u4, both torques equal), k·:data:`U4_PERIOD`/m on input k for three or
+    four."""
+    if m <= 2:
+        return np.zeros(m)
+    return np.arange(m) * U4_PERIOD / m
+
+
 def _broadband_shares(f_lo: float, f_hi: float, per_axis: int, m: int, first: int,
                       peak: float = 25.0) -> Callable[[np.ndarray], np.ndarray]:
     """:func:`_broadband` for ``m`` inputs as shares: g·``per_axis`` log-spaced frequencies
@@ -153,6 +178,13 @@ def input_signal(name: str, m: int) -> Callable[[np.ndarray], np.ndarray]:
     get_signal(name)
     if not (isinstance(m, (int, np.integer)) and 1 <= m <= 4):
         raise ValueError(f'the number of inputs m must be 1 to 4, got {m!r}')
+    if name == 'u4' and m > 2:
+        f, delays = _PAPER[name], u4_delays(m)
+
+        def staggered(t):
+            t = np.asarray(t, dtype=float)
+            return f(np.subtract.outer(t, delays)) / REFERENCE
+        return staggered
     if name in _PAPER:
         f = _PAPER[name]
 

@@ -16,11 +16,13 @@ run's recordings and starts at step 2); a lab with one-sided actuators gives the
 (``input_lower``/``input_upper``) to the excitation and to training, as the preset's:
 
 1. **identify** — recorder + excitation node, one bag per signal (u1 x1 x2 b1 b2 and the
-   validation signal u4), each with ``level:=auto`` (its amplitude found by probing the finger
-   with the signal's start to half of ``max_excursion``; the first probe at u1's amplitude,
-   ``level_start``) and the driver's limit (``torque_limit`` or the one-sided bounds);
-2. **train** — ``tools.learning.train --bag … --val-bag …``: the model, its verdict and
-   ``params.yaml``;
+   validation signal u4, on trunk3's three tendons staggered by a third of its period each so
+   that it bends the segment: :func:`~soft_gripper_sdre.sim.signals.u4_delays`), each with
+   ``level:=auto`` (its amplitude found by probing the finger with the signal's start to half
+   of ``max_excursion``; the first probe at u1's amplitude, ``level_start``) and the driver's
+   limit (``torque_limit`` or the one-sided bounds);
+2. **train** — ``tools.learning.train --bag … --val-bag …`` (``--task-dim 3`` for trunk3's
+   3-D tip): the model, its verdict and ``params.yaml``;
 3. **deploy** — estimator, controller and trajectory node on ``params.yaml``: both fingers close
    along the move the settings were checked for (the way the finger moved most in the
    identification data, by at most half its reach that way: a learned model is only known where
@@ -277,13 +279,15 @@ def identify(a: argparse.Namespace, env: dict, bags: Path) -> dict:
     return {'amplitude': amplitudes, 'wall_s': round(time.monotonic() - t0, 1)}
 
 
-def train(a: argparse.Namespace, env: dict, bags: Path, out: Path) -> tuple[dict, str]:
-    """Step 2 (module doc): ``tools.learning.train`` on ``bags``' train/ and val/ into
-    ``out/model``, its output kept in ``out/train.log``; returns the model's ``metrics.json`` and
-    the tool's stdout."""
+def train_command(a: argparse.Namespace, bags: Path, out: Path) -> list[str]:
+    """The README's training command for ``a.plant`` on ``bags``' train/ and val/ into
+    ``out/model``: ``--task-dim 3`` for a 3-D tip, the one-sided actuators' bounds
+    (:func:`actuator_bounds`), and ``--epochs``/``--rollout-epochs`` when given."""
     cmd = [sys.executable, '-m', 'soft_gripper_sdre.tools.learning.train',
            '--bag', str(bags / 'train'),
            '--val-bag', str(bags / 'val'), '--out', str(out / 'model')]
+    if gripper_shape(a.plant).d == 3:
+        cmd += ['--task-dim', '3']
     bounds = actuator_bounds(a.plant)
     if bounds:
         cmd += ['--input-lower', *map(repr, bounds['input_lower']),
@@ -292,6 +296,13 @@ def train(a: argparse.Namespace, env: dict, bags: Path, out: Path) -> tuple[dict
         cmd += ['--epochs', str(a.epochs)]
     if a.rollout_epochs is not None:
         cmd += ['--rollout-epochs', str(a.rollout_epochs)]
+    return cmd
+
+
+def train(a: argparse.Namespace, env: dict, bags: Path, out: Path) -> tuple[dict, str]:
+    """Step 2 (module doc): :func:`train_command` run, its output kept in ``out/train.log``;
+    returns the model's ``metrics.json`` and the tool's stdout."""
+    cmd = train_command(a, bags, out)
     done = subprocess.run(cmd, env=env, capture_output=True, text=True)
     (out / 'train.log').write_text(done.stdout + done.stderr, encoding='utf-8')
     if done.returncode != 0:
