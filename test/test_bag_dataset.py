@@ -283,9 +283,11 @@ def test_training_on_a_jittery_bag_records_the_provenance(tmp_path):
     assert list(timings) == ['read', 'labels', 'training', 'label_stage', 'simulation_stage',
                              'checkpoint', 'fitness', 'total']     # the model is not fit: no checks
     assert all(v >= 0 for v in timings.values())
-    assert timings['label_stage'] + timings['simulation_stage'] <= timings['training']
-    assert sum(v for k, v in timings.items()
-               if k not in ('label_stage', 'simulation_stage', 'total')) <= timings['total']
+    # each stage is kept to 1 ms: their sums may pass the whole by that rounding
+    assert timings['label_stage'] + timings['simulation_stage'] <= timings['training'] + 1e-3
+    stages = [v for k, v in timings.items()
+              if k not in ('label_stage', 'simulation_stage', 'total')]
+    assert sum(stages) <= timings['total'] + 1e-3 * len(stages)
 
 
 def test_the_labels_filter_is_tuned_on_the_excited_tips_not_on_the_rest_before_them(tmp_path):
