@@ -5,9 +5,9 @@ hand's; bad values refused naming them."""
 from dataclasses import replace
 import math
 
+from chamber_models import P_MAX, OneChamber, _chamber_facts
 import numpy as np
 import pytest
-from test_loop_settings_shapes import P_MAX, OneChamber, _chamber_facts
 
 from soft_gripper_sdre.analysis import loop_settings as ls
 from soft_gripper_sdre.analysis import model_fitness as mf

@@ -5,6 +5,14 @@ m = 3, pull-only tendons), each checked in closed loop on the model with the rea
 its one-sided bounds; bad values refused naming them."""
 import math
 
+from chamber_models import (
+    P_MAX,
+    T_MAX,
+    OneChamber,
+    ThreeTendons,
+    _chamber_facts,
+    _tendon_facts,
+)
 import numpy as np
 import pytest
 
@@ -13,75 +21,6 @@ from soft_gripper_sdre.analysis import holding
 from soft_gripper_sdre.analysis import loop_settings as ls
 from soft_gripper_sdre.analysis import model_fitness as mf
 from soft_gripper_sdre.sim.shape import FingerShape, InputBounds, ShapeError
-
-P_MAX = 6e4                                     # the chamber's pressure range [Pa]
-T_MAX = 4.0                                     # the tendons' tension range [N]
-
-
-class OneChamber:
-    """d = 2, m = 1: ẍ = −k_i (1 + (p_i/a_i)²) p_i − c v + g u, springs hardening at different
-    lengths along X and Y, so the equilibria under a constant pressure lie on a curve."""
-
-    rest_tip = np.array([0.0, 0.06, 0.0])
-    k, a, c = (900.0, 1600.0), (3e-3, 8e-3), 12.0
-    g = (1.5e-4, 1.0e-4)                        # [m/s² per Pa]
-
-    def AG(self, x):
-        x = np.atleast_2d(x)
-        if x.shape[1] != 4:
-            raise ValueError('a planar finger')
-        n = len(x)
-        A = np.zeros((n, 4, 4))
-        A[:, 0, 2] = A[:, 1, 3] = 1.0
-        for i in range(2):
-            A[:, 2 + i, i] = -self.k[i] * (1 + (x[:, i] / self.a[i]) ** 2)
-            A[:, 2 + i, 2 + i] = -self.c
-        G = np.zeros((n, 4, 1))
-        G[:, 2, 0], G[:, 3, 0] = self.g
-        return A, G
-
-    def statics(self, p: np.ndarray, u: float) -> np.ndarray:
-        """k(p) p − g u at rest: zero on an equilibrium [m/s²]."""
-        return np.array([self.k[i] * (1 + (p[i] / self.a[i]) ** 2) * p[i] - self.g[i] * u
-                         for i in range(2)])
-
-
-class ThreeTendons:
-    """d = 3, m = 3: ẍ = −k p − c v + G₂ u, tendon i pulling the tip toward its angle 120° apart
-    and shortening the segment (−Z)."""
-
-    rest_tip = np.array([0.0, 0.0, 0.1])
-    k, c = 1200.0, 15.0
-
-    def __init__(self) -> None:
-        ang = np.deg2rad([90.0, 210.0, 330.0])
-        self.g2 = 0.8 * np.stack([np.cos(ang), np.sin(ang), -0.4 * np.ones(3)])   # [m/s² per N]
-
-    def AG(self, x):
-        x = np.atleast_2d(x)
-        if x.shape[1] != 6:
-            raise ValueError('a 3-D finger')
-        n = len(x)
-        A = np.zeros((n, 6, 6))
-        A[:, :3, 3:] = np.eye(3)
-        A[:, 3:, :3] = -self.k * np.eye(3)
-        A[:, 3:, 3:] = -self.c * np.eye(3)
-        G = np.zeros((n, 6, 3))
-        G[:, 3:, :] = self.g2
-        return A, G
-
-
-def _chamber_facts(travel=6e-3, **kw) -> ls.DataFacts:
-    return ls.DataFacts(period=0.01, noise_std=2e-5, travel=travel, torque_limit=P_MAX,
-                        accel_psd_ml=1.0, direction=kw.pop('direction', 60.0),
-                        bounds=InputBounds([0.0], [P_MAX]), **kw)
-
-
-def _tendon_facts(model) -> ls.DataFacts:
-    axis = model.g2[:, 0] / np.linalg.norm(model.g2[:, 0])       # tendon 0 alone, held still
-    return ls.DataFacts(period=0.01, noise_std=2e-5, travel=3e-3, torque_limit=T_MAX,
-                        accel_psd_ml=10.0, axis=tuple(axis),
-                        bounds=InputBounds(np.zeros(3), np.full(3, T_MAX)))
 
 
 def test_the_shape_is_read_off_models_that_only_have_AG():
