@@ -23,6 +23,15 @@ DEFAULT_INTEGRAL = dict(gain=1.0e5, band=5e-4)
 INTEGRAL_LEAK_S = 0.1
 
 
+def _check_gain_and_band(gain: float, band: float) -> None:
+    """ValueError naming ``gain`` or ``band`` unless each is finite and > 0."""
+    if not (math.isfinite(gain) and gain > 0):
+        raise ValueError(f'integral gain must be finite and > 0 (0 = no integral action), '
+                         f'got {gain!r}')
+    if not (math.isfinite(band) and band > 0):
+        raise ValueError(f'integral band must be finite and > 0 m, got {band!r}')
+
+
 class IntegralAction:
     """u_I = k_i G₂(0)⁻¹ ξ,  ξ = ∫ (p_d − p) dt  per finger, with conditional integration.
 
@@ -54,11 +63,7 @@ class IntegralAction:
 
     def __init__(self, g2_rest, gain: float, band: float, u_max: float, n_fingers: int,
                  dt: float) -> None:
-        if not (math.isfinite(gain) and gain > 0):
-            raise ValueError(f'integral gain must be finite and > 0 (0 = no integral action), '
-                             f'got {gain!r}')
-        if not (math.isfinite(band) and band > 0):
-            raise ValueError(f'integral band must be finite and > 0 m, got {band!r}')
+        _check_gain_and_band(gain, band)
         if not (math.isfinite(u_max) and u_max > 0):
             raise ValueError(f'u_max must be finite and > 0, got {u_max!r}')
         g2 = np.asarray(g2_rest, dtype=float)
@@ -140,11 +145,7 @@ class ReachableIntegralAction:
 
     def __init__(self, g2_rest, gain: float, band: float, bounds: InputBounds, n_fingers: int,
                  dt: float) -> None:
-        if not (math.isfinite(gain) and gain > 0):
-            raise ValueError(f'integral gain must be finite and > 0 (0 = no integral action), '
-                             f'got {gain!r}')
-        if not (math.isfinite(band) and band > 0):
-            raise ValueError(f'integral band must be finite and > 0 m, got {band!r}')
+        _check_gain_and_band(gain, band)
         g2 = np.asarray(g2_rest, dtype=float)
         if (g2.ndim != 2 or g2.shape[1] != bounds.m or not np.all(np.isfinite(g2))
                 or not np.any(g2)):
