@@ -58,7 +58,7 @@ import math
 
 import numpy as np
 
-from soft_gripper_sdre.sim.foreign_dynamics import ChainDynamics
+from soft_gripper_sdre.sim.foreign_dynamics import ChainDynamics, rk4
 from soft_gripper_sdre.sim.foreign_params import PAIRS, PLANTS, FingerParams
 
 
@@ -232,18 +232,9 @@ class FingerPlant:
         u = np.clip(u, -lim, lim) if self.params.lower_limits is None else np.clip(
             u, self._lo, self._hi)
         tau_in = (self._b.T @ u).tolist()
-        steps = max(1, math.ceil(dt / self.params.substep - 1e-9))
-        h = dt / steps
         st = self.state
-        x = st.q.tolist() + st.qd.tolist() + st.z.tolist()
-        f = self.derivative
-        for _ in range(steps):
-            k1 = f(x, tau_in)
-            k2 = f([a + 0.5 * h * b for a, b in zip(x, k1)], tau_in)
-            k3 = f([a + 0.5 * h * b for a, b in zip(x, k2)], tau_in)
-            k4 = f([a + h * b for a, b in zip(x, k3)], tau_in)
-            x = [a + h / 6 * (b1 + 2 * b2 + 2 * b3 + b4)
-                 for a, b1, b2, b3, b4 in zip(x, k1, k2, k3, k4)]
+        x = rk4(self.derivative, st.q.tolist() + st.qd.tolist() + st.z.tolist(), tau_in, dt,
+                self.params.substep)
         n = self.n
         self.state = FingerState(np.array(x[:n]), np.array(x[n:2 * n]), np.array(x[2 * n:]),
                                  st.t + dt)

@@ -18,6 +18,20 @@ import math
 from soft_gripper_sdre.sim.foreign_params import FingerParams
 
 
+def rk4(f, x: list[float], u: list[float], dt: float, substep: float) -> list[float]:
+    """``x`` advanced by ``dt`` under the held input ``u`` with fixed-step RK4 of
+    ``f(x, u) -> ẋ``: dt split into the fewest equal steps no longer than ``substep``."""
+    steps = max(1, math.ceil(dt / substep - 1e-9))
+    h = dt / steps
+    for _ in range(steps):
+        k1 = f(x, u)
+        k2 = f([a + 0.5 * h * b for a, b in zip(x, k1)], u)
+        k3 = f([a + 0.5 * h * b for a, b in zip(x, k2)], u)
+        k4 = f([a + h * b for a, b in zip(x, k3)], u)
+        x = [a + h / 6 * (b1 + 2 * b2 + 2 * b3 + b4)
+             for a, b1, b2, b3, b4 in zip(x, k1, k2, k3, k4)]
+    return x
+
 class ChainDynamics:
     """The state derivative of the chain ``params`` describes (module doc).
 

@@ -70,6 +70,7 @@ from typing import Callable
 
 import numpy as np
 
+from soft_gripper_sdre.sim.foreign_dynamics import rk4
 from soft_gripper_sdre.sim.foreign_params import GRAVITY
 from soft_gripper_sdre.sim.shape import FingerShape, InputBounds
 
@@ -351,18 +352,9 @@ class TrunkPlant:
         if dt == 0:
             return
         q_in = (self._b @ self.bounds.clip(tension)).tolist()
-        steps = max(1, math.ceil(dt / self.params.substep - 1e-9))
-        h = dt / steps
         st = self.state
-        x = st.p.tolist() + st.v.tolist() + st.z.tolist()
-        f = self.derivative
-        for _ in range(steps):
-            k1 = f(x, q_in)
-            k2 = f([a + 0.5 * h * b for a, b in zip(x, k1)], q_in)
-            k3 = f([a + 0.5 * h * b for a, b in zip(x, k2)], q_in)
-            k4 = f([a + h * b for a, b in zip(x, k3)], q_in)
-            x = [a + h / 6 * (b1 + 2 * b2 + 2 * b3 + b4)
-                 for a, b1, b2, b3, b4 in zip(x, k1, k2, k3, k4)]
+        x = rk4(self.derivative, st.p.tolist() + st.v.tolist() + st.z.tolist(), q_in, dt,
+                self.params.substep)
         if not all(map(math.isfinite, x)) or x[0] <= 0:
             raise FloatingPointError(f'{self.params.name}: the state left the model '
                                      f'(tip {x[:3]}): a step too coarse?')
