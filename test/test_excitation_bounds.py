@@ -1,7 +1,7 @@
 """Excitation for fingers of m inputs with per-input bounds (no ROS): the built-in signals as
 shares for 1 to 4 inputs, plans that keep every input in its interval (about the middle of a
 two-sided one, from the rest value into a one-sided one), spec files with ax0..ax<m−1>, and the
-level search on the real pneumatic (m = 1) and trunk (m = 3) fingers of sim/foreign_presets."""
+level search on the real pneumatic (m = 1) and trunk (m = 3) fingers of sim/plants/presets."""
 import dataclasses
 
 import numpy as np
@@ -9,8 +9,8 @@ import pytest
 import yaml
 
 from soft_gripper_sdre.sim.excitation import ExcitationPlan, LevelSearch, LevelSettings
-from soft_gripper_sdre.sim.foreign_pneumatic import P_MAX
-from soft_gripper_sdre.sim.foreign_presets import make_plant
+from soft_gripper_sdre.sim.plants.pneumatic import P_MAX
+from soft_gripper_sdre.sim.plants.presets import make_plant
 from soft_gripper_sdre.sim.shape import InputBounds
 from soft_gripper_sdre.sim.signal_specs import (
     Signal,

@@ -9,7 +9,7 @@ from soft_gripper_sdre.nodes.excitation import PARAMS, excitation_run
 from soft_gripper_sdre.nodes.params import ParameterError
 from soft_gripper_sdre.sim.excitation import ExcitationPlan
 from soft_gripper_sdre.sim.excitation_run import Phase
-from soft_gripper_sdre.sim.foreign_presets import RATES, make_plant
+from soft_gripper_sdre.sim.plants.presets import RATES, make_plant
 from soft_gripper_sdre.sim.signal_specs import builtin_signal
 
 

@@ -1,5 +1,5 @@
 """tools.graph.foreign: the README's own-gripper recipe over DDS on a gripper unlike the package's
-own (sim/foreign.py through the plant_driver node)."""
+own (sim/plants/chain.py through the plant_driver node)."""
 import json
 import math
 import os
@@ -11,7 +11,7 @@ import pytest
 import yaml
 
 from soft_gripper_sdre.analysis.bag_dataset import read_recording, settle_noise
-from soft_gripper_sdre.sim.foreign_presets import GRIPPERS, RATES
+from soft_gripper_sdre.sim.plants.presets import GRIPPERS, RATES
 from soft_gripper_sdre.sim.shape import InputBounds, ShapeError
 from soft_gripper_sdre.tools.graph import foreign
 

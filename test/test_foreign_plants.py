@@ -1,12 +1,12 @@
-"""The foreign fingers (soft_gripper_sdre/sim/foreign*.py): rest, energy, conditioning of the
+"""The foreign fingers (soft_gripper_sdre/sim/plants/): rest, energy, conditioning of the
 inputs, step-size convergence, friction and speed, on every preset (no ROS)."""
 import dataclasses
 
 import numpy as np
 import pytest
 
-from soft_gripper_sdre.sim.foreign import FingerPlant, FingerState, input_angle, plant_pair
-from soft_gripper_sdre.sim.foreign_params import PAIRS, PLANTS, FingerParams
+from soft_gripper_sdre.sim.plants.chain import FingerPlant, FingerState, input_angle, plant_pair
+from soft_gripper_sdre.sim.plants.chain_params import PAIRS, PLANTS, FingerParams
 
 UM = 1e-6
 

@@ -1,5 +1,5 @@
-"""The foreign fingers unlike the hand (soft_gripper_sdre/sim/foreign_pneumatic.py,
-foreign_trunk.py, foreign_presets.py): the one-chamber pneumatic finger (one one-sided input, a
+"""The foreign fingers unlike the hand (soft_gripper_sdre/sim/plants/pneumatic.py,
+trunk.py, presets.py): the one-chamber pneumatic finger (one one-sided input, a
 pressure lag) and the three-tendon segment (a 3-D tip, three pull-only inputs): rest, energy,
 bounds, lag, the trunk's kinematics and static gain, long random inputs, and bad values (no
 ROS)."""
@@ -9,17 +9,17 @@ import math
 import numpy as np
 import pytest
 
-from soft_gripper_sdre.sim.foreign import FingerPlant, FingerState, plant_pair
-from soft_gripper_sdre.sim.foreign_params import PLANTS, FingerParams
-from soft_gripper_sdre.sim.foreign_pneumatic import P_MAX, PNEUMATIC
-from soft_gripper_sdre.sim.foreign_presets import (
+from soft_gripper_sdre.sim.plants.chain import FingerPlant, FingerState, plant_pair
+from soft_gripper_sdre.sim.plants.chain_params import PLANTS, FingerParams
+from soft_gripper_sdre.sim.plants.pneumatic import P_MAX, PNEUMATIC
+from soft_gripper_sdre.sim.plants.presets import (
     GRIPPERS,
     RATES,
     gripper_bounds,
     gripper_shape,
     make_plant,
 )
-from soft_gripper_sdre.sim.foreign_trunk import (
+from soft_gripper_sdre.sim.plants.trunk import (
     TRUNKS,
     TrunkParams,
     TrunkPlant,

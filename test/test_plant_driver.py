@@ -27,7 +27,7 @@ from soft_gripper_sdre.nodes.topics import (
     TIP_POSITIONS,
     TORQUE_COMMANDS,
 )
-from soft_gripper_sdre.sim.foreign import plant_pair
+from soft_gripper_sdre.sim.plants.chain import plant_pair
 
 pytestmark = pytest.mark.ros
 

@@ -18,8 +18,8 @@ from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.params import ParameterError
 from soft_gripper_sdre.nodes.plant_driver import TRUE_TIP_POSITIONS, PlantDriverNode
 from soft_gripper_sdre.nodes.topics import LOOP_QOS, TORQUE_COMMANDS
-from soft_gripper_sdre.sim.foreign_pneumatic import P_MAX
-from soft_gripper_sdre.sim.foreign_presets import plant_pair
+from soft_gripper_sdre.sim.plants.pneumatic import P_MAX
+from soft_gripper_sdre.sim.plants.presets import plant_pair
 
 pytestmark = pytest.mark.ros
 

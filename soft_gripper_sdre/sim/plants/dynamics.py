@@ -4,8 +4,8 @@
 
     ẋ = f(x, τ_in),     x = [q, q̇, z],     τ_in = Bᵀu,
 
-the dynamics and the Dahl friction of :mod:`soft_gripper_sdre.sim.foreign` (whose module doc
-derives them), for :class:`~soft_gripper_sdre.sim.foreign.FingerPlant`'s RK4 steps, four calls
+the dynamics and the Dahl friction of :mod:`soft_gripper_sdre.sim.plants.chain` (whose module doc
+derives them), for :class:`~soft_gripper_sdre.sim.plants.chain.FingerPlant`'s RK4 steps, four calls
 per substep. It works on Python floats and lists, not numpy: for two or three joints, the sizes
 of the presets, that is several times faster; and for two or three joints the equations are
 written out, ~3× faster again than the general n-joint form.
@@ -15,7 +15,7 @@ from __future__ import annotations
 from itertools import accumulate
 import math
 
-from soft_gripper_sdre.sim.foreign_params import FingerParams
+from soft_gripper_sdre.sim.plants.chain_params import FingerParams
 
 
 def rk4(f, x: list[float], u: list[float], dt: float, substep: float) -> list[float]:

@@ -47,9 +47,9 @@ The state (q, q̇, z), with a lag also a, is integrated by fixed-step RK4 with t
 σ v(q̇) / F_c.
 
 The parameters and the presets (two grippers of two fingers each) are in
-:mod:`soft_gripper_sdre.sim.foreign_params`, the one-chamber pneumatic fingers in
-:mod:`soft_gripper_sdre.sim.foreign_pneumatic`; the state derivative the RK4 steps evaluate is
-:mod:`soft_gripper_sdre.sim.foreign_dynamics`'s.
+:mod:`soft_gripper_sdre.sim.plants.chain_params`, the one-chamber pneumatic fingers in
+:mod:`soft_gripper_sdre.sim.plants.pneumatic`; the state derivative the RK4 steps evaluate is
+:mod:`soft_gripper_sdre.sim.plants.dynamics`'s.
 """
 from __future__ import annotations
 
@@ -58,8 +58,8 @@ import math
 
 import numpy as np
 
-from soft_gripper_sdre.sim.foreign_dynamics import ChainDynamics, rk4
-from soft_gripper_sdre.sim.foreign_params import PAIRS, PLANTS, FingerParams
+from soft_gripper_sdre.sim.plants.chain_params import PAIRS, PLANTS, FingerParams
+from soft_gripper_sdre.sim.plants.dynamics import ChainDynamics, rk4
 
 
 @dataclass
@@ -269,7 +269,7 @@ class FingerPlant:
 
 def plant_pair(kind: str) -> tuple[FingerPlant, FingerPlant]:
     """The two fingers of a gripper, at rest: ``'tendon3'`` → (index, thumb), ``'stiff2'`` →
-    (a, b); and the grippers of :mod:`soft_gripper_sdre.sim.foreign_presets` (``pneumatic1``,
+    (a, b); and the grippers of :mod:`soft_gripper_sdre.sim.plants.presets` (``pneumatic1``,
     ``trunk3``).
 
     Raises:
@@ -277,8 +277,8 @@ def plant_pair(kind: str) -> tuple[FingerPlant, FingerPlant]:
     """
     if kind in PAIRS:
         return tuple(FingerPlant(PLANTS[name]()) for name in PAIRS[kind])
-    from soft_gripper_sdre.sim import foreign_presets  # it builds on this module
-    return foreign_presets.plant_pair(kind)
+    from soft_gripper_sdre.sim.plants import presets  # it builds on this module
+    return presets.plant_pair(kind)
 
 
 def input_angle(gain: np.ndarray) -> float:

@@ -2,7 +2,7 @@
 
 A soft pneumatic finger (an elastomer bellows or fibre-reinforced actuator) bends one way when
 its chamber is pressurised and springs back when it is vented. It is modelled as the chain of
-:mod:`soft_gripper_sdre.sim.foreign` (same frame: X down the hanging finger, Y toward the
+:mod:`soft_gripper_sdre.sim.plants.chain` (same frame: X down the hanging finger, Y toward the
 palm; same gravity, springs, damping and Dahl friction, same energy and RK4 step) with
 
 * one input u, the commanded chamber pressure [Pa] (gauge), clipped to [0, p_max]: a chamber
@@ -34,7 +34,7 @@ pneumatic1_b   (104.7, 7.1)   3.4, 22.6, 67.3   0.12   60 ms  60           18.3
 """
 from __future__ import annotations
 
-from soft_gripper_sdre.sim.foreign_params import FingerParams
+from soft_gripper_sdre.sim.plants.chain_params import FingerParams
 
 #: the chamber's largest gauge pressure [Pa]
 P_MAX = 60e3
@@ -64,5 +64,5 @@ def pneumatic1_b() -> FingerParams:
         lower_limits=(0.0,), input_lag=0.06)
 
 
-#: preset name → its parameters (a plant: ``sim.foreign.FingerPlant(PNEUMATIC[name]())``)
+#: preset name → its parameters (a plant: ``sim.plants.chain.FingerPlant(PNEUMATIC[name]())``)
 PNEUMATIC = {'pneumatic1_a': pneumatic1_a, 'pneumatic1_b': pneumatic1_b}

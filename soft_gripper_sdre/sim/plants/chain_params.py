@@ -1,15 +1,15 @@
 """What a foreign finger is: :class:`FingerParams`, and the presets two grippers are made of.
 
-The parameters are the terms of the model in :mod:`soft_gripper_sdre.sim.foreign` (frame,
+The parameters are the terms of the model in :mod:`soft_gripper_sdre.sim.plants.chain` (frame,
 dynamics, Dahl friction, RK4 step); :class:`FingerParams` checks them, down to whether ``substep``
 is fine enough for the friction's bristles.
 
 **The presets** (:data:`PLANTS`; :data:`PAIRS` names a gripper's two fingers). Measured on
-:class:`~soft_gripper_sdre.sim.foreign.FingerPlant`: the rest tip (x, y); the natural frequencies
+:class:`~.chain.FingerPlant`: the rest tip (x, y); the natural frequencies
 and modal damping ratios of the frictionless finger linearised at rest (``modes``); the static tip
 displacement per mN·m on each input, frictionless (``static_gain``), the direction of each input's
 tip motion (from +X toward +Y) and the angle between the two
-(:func:`~soft_gripper_sdre.sim.foreign.input_angle`):
+(:func:`~soft_gripper_sdre.sim.plants.chain.input_angle`):
 
 =============  =============  ================  =====  ============  ==========  =====
 preset         rest tip [mm]  modes [Hz]        ζ₁     mm per mN·m   directions  angle
@@ -184,10 +184,10 @@ def stiff2_b() -> FingerParams:
         transmission=((1.0, 0.2), (0.3, 1.0)), torque_limit=0.25, substep=2e-4)
 
 
-#: preset name → its parameters (a plant: ``sim.foreign.FingerPlant(PLANTS[name]())``)
+#: preset name → its parameters (a plant: ``sim.plants.chain.FingerPlant(PLANTS[name]())``)
 PLANTS: dict[str, Callable[[], FingerParams]] = {
     'tendon3_index': tendon3_index, 'tendon3_thumb': tendon3_thumb,
     'stiff2_a': stiff2_a, 'stiff2_b': stiff2_b,
 }
-#: gripper kind → the presets of its two fingers (the fingers: ``sim.foreign.plant_pair(kind)``)
+#: gripper kind → the presets of its two fingers (the fingers: ``chain.plant_pair(kind)``)
 PAIRS = {'tendon3': ('tendon3_index', 'tendon3_thumb'), 'stiff2': ('stiff2_a', 'stiff2_b')}

@@ -35,7 +35,7 @@ coordinates the mass matrix is m I, without Coriolis terms:
 
 with K = diag(k_b, k_b, k_a) the backbone's bending and axial stiffness about the straight,
 unloaded q₀ = (0, 0, L₀), C = diag(c_b, c_b, c_a) its damping, and the Dahl friction of
-:mod:`soft_gripper_sdre.sim.foreign` on each configuration coordinate (the tendons in their
+:mod:`soft_gripper_sdre.sim.plants.chain` on each configuration coordinate (the tendons in their
 guides): ż = q̇ − v(q̇) σ z / F_c, v(q̇) = v_s tanh(|q̇| / v_s), per coordinate. The energy
 
     E = ½ m |ṗ|² − m g x + ½ k_b |β|² + ½ k_a (L − L₀)² + Σ ½ σⱼ zⱼ²
@@ -70,8 +70,8 @@ from typing import Callable
 
 import numpy as np
 
-from soft_gripper_sdre.sim.foreign_dynamics import rk4
-from soft_gripper_sdre.sim.foreign_params import GRAVITY
+from soft_gripper_sdre.sim.plants.chain_params import GRAVITY
+from soft_gripper_sdre.sim.plants.dynamics import rk4
 from soft_gripper_sdre.sim.shape import FingerShape, InputBounds
 
 #: below this ρ/x the tip's inverse kinematics use their series about the straight segment
@@ -243,7 +243,7 @@ class TrunkState:
 
 class TrunkPlant:
     """One three-tendon segment (module doc), stepped in real or simulated time, with the
-    interface of :class:`~soft_gripper_sdre.sim.foreign.FingerPlant`: ``reset()``,
+    interface of :class:`~soft_gripper_sdre.sim.plants.chain.FingerPlant`: ``reset()``,
     ``step(T, dt)`` with the tensions T (3,) [N], ``tip()`` (3,) [m], ``rest_tip``, ``shape``
     (d = 3, m = 3), ``bounds`` ([0, T_max] each)."""
 

@@ -1,7 +1,7 @@
 """Every foreign gripper by name: the planar two-input fingers (``tendon3``, ``stiff2``:
-:mod:`soft_gripper_sdre.sim.foreign_params`), the one-chamber pneumatic fingers (``pneumatic1``:
-:mod:`soft_gripper_sdre.sim.foreign_pneumatic`) and the three-tendon continuum segments with a
-3-D tip (``trunk3``: :mod:`soft_gripper_sdre.sim.foreign_trunk`); two fingers per gripper.
+:mod:`~.chain_params`), the one-chamber pneumatic fingers (``pneumatic1``:
+:mod:`soft_gripper_sdre.sim.plants.pneumatic`) and the three-tendon continuum segments with a
+3-D tip (``trunk3``: :mod:`soft_gripper_sdre.sim.plants.trunk`); two fingers per gripper.
 
 Each gripper knows its finger's shape (:class:`~soft_gripper_sdre.sim.shape.FingerShape`) and
 its inputs' bounds (:class:`~soft_gripper_sdre.sim.shape.InputBounds`, the tighter of its two
@@ -22,10 +22,10 @@ from typing import Callable, Union
 
 import numpy as np
 
-from soft_gripper_sdre.sim.foreign import FingerPlant
-from soft_gripper_sdre.sim.foreign_params import PAIRS, PLANTS, FingerParams
-from soft_gripper_sdre.sim.foreign_pneumatic import PNEUMATIC
-from soft_gripper_sdre.sim.foreign_trunk import TRUNKS, TrunkParams, TrunkPlant
+from soft_gripper_sdre.sim.plants.chain import FingerPlant
+from soft_gripper_sdre.sim.plants.chain_params import PAIRS, PLANTS, FingerParams
+from soft_gripper_sdre.sim.plants.pneumatic import PNEUMATIC
+from soft_gripper_sdre.sim.plants.trunk import TRUNKS, TrunkParams, TrunkPlant
 from soft_gripper_sdre.sim.shape import FingerShape, InputBounds
 
 Plant = Union[FingerPlant, TrunkPlant]
