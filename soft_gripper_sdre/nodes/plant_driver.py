@@ -1,7 +1,7 @@
 """The plant driver node: a gripper of two foreign fingers served the way a lab's driver would.
 
 It stands in for a real robot's driver in front of the node graph (README, "Use with your own
-gripper"): the fingers are the plants of :mod:`soft_gripper_sdre.sim.foreign_presets`
+gripper"): the fingers are the plants of :mod:`soft_gripper_sdre.sim.plants.presets`
 (``plant``: ``tendon3`` or ``stiff2``, planar with two torques; ``pneumatic1``, planar with one
 chamber pressure; ``trunk3``, a 3-D tip with three tendon tensions), and the loop runs on the
 wall clock, not in lockstep. The gripper's shape gives the command's m inputs and the tip's d
@@ -26,7 +26,7 @@ N). A steady-clock timer ticks at ``rate``; each tick
    these messages are not published (``dropped``), at random; ``true_tip_positions`` carries
    the noise-free tips of every tick with the same stamps (reliable), for scoring.
 
-Pose i is finger i's tip in its base frame (sim/foreign.py: X down the hanging finger, Y toward
+Pose i is finger i's tip in its base frame (sim/plants/chain.py: X down the hanging finger, Y toward
 the palm; Z = X × Y): (x, y, 0) for a planar finger, (x, y, z) for a 3-D one. Nothing publishes
 /clock: every stamp is wall time.
 
@@ -70,7 +70,7 @@ from soft_gripper_sdre.nodes.params import (
     on_runtime_change,
 )
 from soft_gripper_sdre.nodes.topics import LOOP_QOS, NEWEST_QOS, TIP_POSITIONS, TORQUE_COMMANDS
-from soft_gripper_sdre.sim.foreign_presets import GRIPPERS, plant_pair
+from soft_gripper_sdre.sim.plants.presets import GRIPPERS, plant_pair
 from soft_gripper_sdre.sim.shape import InputBounds, ShapeError
 
 #: the noise-free tips, for scoring (same type and stamps as tip_positions)
@@ -91,7 +91,7 @@ def _two_names(names) -> str | None:
 
 
 PARAMS = (
-    Param('plant', 'tendon3', 'the gripper, from sim/foreign_presets.py: tendon3 (an index and a '
+    Param('plant', 'tendon3', 'the gripper, from sim/plants/presets.py: tendon3 (an index and a '
           'thumb, soft three-link tendon fingers), stiff2 (two fast two-link fingers), pneumatic1 '
           '(one chamber each: one input, 0..60 kPa, planar tip) or trunk3 (three-tendon '
           'segments: three inputs, 0..4 N, 3-D tip)', choices=tuple(GRIPPERS), read_only=True),
