@@ -61,6 +61,7 @@ from soft_gripper_sdre.control.laws.feedforward import FF_AT, SdreFeedforwardLaw
 from soft_gripper_sdre.control.laws.fixed import DEFAULT_PD, LqrLaw, PdLaw
 from soft_gripper_sdre.control.laws.computed_torque import DEFAULT_CT, ComputedTorqueLaw
 from soft_gripper_sdre.control.laws.koopman import KoopmanLqrLaw, KoopmanMpcLaw
+from soft_gripper_sdre.control.laws import smc  # noqa: F401  (registers the law)
 # isort: on
 from soft_gripper_sdre.control.laws.integral import DEFAULT_INTEGRAL, IntegralAction
 from soft_gripper_sdre.control.tracking import Law
