@@ -25,6 +25,7 @@ The namespace is passed to launch_ros as a relative one, so an including launch 
 executable, name, namespace, parameters, remappings); the launch packages are imported only
 inside :func:`generate_launch_description`.
 """
+from soft_gripper_sdre.control.laws import GRAPH_LAWS
 from soft_gripper_sdre.nodes.graph import PACKAGE, PERIOD_RANGE, grasp_graph
 
 #: (name, default, description) of each launch argument
@@ -38,8 +39,8 @@ ARGUMENTS = (
     ('mode', '', "the simulator's stepping: lockstep, pipelined (the physics one period behind the "
      "commands, stepped while they are computed) or realtime ('' = config/simulator.yaml, "
      'lockstep)'),
-    ('law', '', "control law of the controller (sdre_ff, sdre, lqr, pd, computed_torque, "
-     "koopman_mpc, koopman_lqr; '' = config/controller.yaml)"),
+    ('law', '', f"control law of the controller ({', '.join(GRAPH_LAWS)}: the laws the files of "
+     "soft_gripper_sdre/control/laws register for the graph; '' = config/controller.yaml)"),
     ('noise', '', "tip measurement noise σ [mm] ('' = config/simulator.yaml, 0.05 mm)"),
     ('seed', '', "seed of the measurement noise ('' = config/simulator.yaml)"),
     ('record', 'false', 'record every topic of the graph to a rosbag2 (MCAP) directory'),
@@ -114,8 +115,6 @@ def grasp_nodes(namespace: str = '', duration: str = '6.0', control_period: str 
             0.001 to 0.01 s, a parameters file that cannot be read as one, or one that gives a
             node of the graph a value of the wrong type or a key it does not declare.
     """
-    from soft_gripper_sdre.control.laws import GRAPH_LAWS
-
     recording, composing = _boolean('record', record), _boolean('composed', composed)
     simulator = {'duration': _number('duration', duration),
                  'startup_timeout': _number('startup_timeout', startup_timeout)}
