@@ -166,6 +166,24 @@ def test_it_tracks_the_grasp_on_the_hands_shipped_model_in_the_in_process_loop(h
     assert min(m.excursion_mm for m in smc.metrics) > 1.0        # the fingers did move
 
 
+@pytest.mark.slow
+@pytest.mark.timeout(300)
+def test_it_keeps_the_grasp_of_the_default_plan_on_the_hand(hand_model):
+    """The whole default grasp in-process (close on the cube, hold, open): both grasping
+    fingers touch it through the hold and it stays put, every command within the limit."""
+    from soft_gripper_sdre.analysis.closed_loop import run_closed_loop
+    from soft_gripper_sdre.analysis.law_runs import score
+    from soft_gripper_sdre.control.trajectory import GraspProfile
+    from soft_gripper_sdre.sim.hand import SimConfig
+    profile = GraspProfile()
+    run = run_closed_loop(make_law('smc', hand_model, W, TORQUE_LIMIT), duration=5.5,
+                          profile=profile, sim_config=SimConfig(scene='hand', noise_std=5e-5))
+    s = score(run, profile)
+    assert s.grasp_success and s.cube_mm < 0.2
+    assert s.rmse_mm_worst < 0.1 and s.saturated_pct == 0.0
+    assert np.isfinite(run.u).all() and np.abs(run.u).max() <= TORQUE_LIMIT
+
+
 @pytest.mark.parametrize('shape', SHAPES, ids=SHAPE_IDS)
 def test_it_tracks_a_reachable_reference_on_fingers_of_any_shape(shape):
     """The model's own response to an input within the bounds is followed to within 1 % of its

@@ -21,7 +21,9 @@ from soft_gripper_sdre.sim.shape import InputBounds
 #: inside the layer the error dynamics have the real poles −λ and −k/φ (both 80 rad/s: k_p =
 #: λk/φ = 6400 1/s², k_d = λ + k/φ = 160 1/s), and a model error of up to k is rejected. Tuned on
 #: the hand's shipped model in the in-process grasp (0.65 s, 0.05 mm noise): a worst-finger RMS
-#: error of 0.04 mm, as computed torque's; a higher k/φ or λ rings through the 40 Hz roll-off
+#: error of 0.04 mm, as computed torque's; a higher k/φ or λ rings through the 40 Hz roll-off.
+#: On the whole default grasp it holds the cube (moved 0.05 mm) at a grasping-finger RMS error of
+#: 0.048 mm with sdre_ff's effort (sdre_ff: 0.021 mm; computed_torque: 0.035 mm, cube 0.26 mm)
 SMC_DEFAULTS = dict(lam=80.0, k=4.0, phi=0.05)
 #: largest condition number of G₂(x) the inversion accepts (as computed torque's)
 SMC_COND_MAX = 1e8
