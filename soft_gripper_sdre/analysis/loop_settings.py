@@ -216,21 +216,16 @@ def settings_for(model, facts: DataFacts, bandwidth_hz: float, accel_psd: float)
 
 
 class ModelPlant:
-    """The learned model as the check's plant, for one finger: ẋ = A(x)x + k G(x)u_a with the
-    input map scaled by ``gain_error`` k (a robustness plant) and, with ``input_lag`` τ > 0, the
-    inputs reaching it through a first-order lag, u̇_a = (u − u_a) / τ, from ``rest_input``
-    (otherwise u_a = u). RK4 steps of at most :data:`MAX_STEP`. ``tip()`` is the tip in the
-    model's frame: ``model.rest_tip`` plus the state's position."""
+    """The learned model as the check's plant, for one finger: ẋ = A(x)x + k G(x)u with the
+    input map scaled by ``gain_error`` k (1: the model itself; else a robustness plant), in RK4
+    steps of at most :data:`MAX_STEP`. ``tip()`` is the tip in the model's frame:
+    ``model.rest_tip`` plus the state's position."""
 
-    def __init__(self, model, gain_error: float = 1.0, input_lag: float = 0.0,
-                 rest_input=None) -> None:
+    def __init__(self, model, gain_error: float = 1.0) -> None:
         shape = model_shape(model)
-        self.model, self.k, self.lag = model, float(gain_error), float(input_lag)
+        self.model, self.k, self.d = model, float(gain_error), shape.d
         self.rest = np.asarray(model.rest_tip, dtype=float)[:shape.d]
-        self.d = shape.d
         self.x = np.zeros((1, shape.n_state))
-        self.u_a = (np.zeros((1, shape.m)) if rest_input is None
-                    else np.array(rest_input, dtype=float).reshape(1, shape.m))
 
     def xdot(self, x, u):
         return model_fitness.xdot(self.model, x, self.k * np.asarray(u) if self.k != 1.0 else u)
@@ -241,17 +236,8 @@ class ModelPlant:
     def step(self, u: np.ndarray, dt: float) -> None:
         """Hold ``u`` (1, m) over ``dt`` [s]."""
         substeps = math.ceil(dt / MAX_STEP - 1e-9)
-        h = dt / substeps
-        if self.lag > 0:
-            # the lag's exact discretisation over each substep, the input held at its midpoint
-            decay = math.exp(-h / self.lag)
-            for _ in range(substeps):
-                mid = u + (self.u_a - u) * math.exp(-0.5 * h / self.lag)
-                self.x = rk4_step(self, self.x, mid, h)
-                self.u_a = u + (self.u_a - u) * decay
-            return
         for _ in range(substeps):
-            self.x = rk4_step(self, self.x, u, h)
+            self.x = rk4_step(self, self.x, u, dt / substeps)
 
 
 def check_move(facts: DataFacts) -> GraspTrajectory:
@@ -337,8 +323,8 @@ def check_on_model(model, settings: LoopSettings, facts: DataFacts, law: str = '
     (:attr:`CheckResult.outside`) and fails the check.
 
     ``plant``: another plant for the same loop, with ``tip()`` (d,) [m] and ``step(u (1, m),
-    dt)``, e.g. a :class:`ModelPlant` with an input lag, or a finger of
-    :mod:`soft_gripper_sdre.sim.plants` behind an adapter; the move starts from its tip at rest.
+    dt)``, e.g. a finger of :mod:`soft_gripper_sdre.sim.plants` behind an adapter (the recipe's
+    grippers in process, docs/own_gripper.md); the move starts from its tip at rest.
     None: ``ModelPlant(model, gain_error)``."""
     shape = model_shape(model)
     d, m = shape.d, shape.m
