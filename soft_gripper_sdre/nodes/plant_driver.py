@@ -61,17 +61,17 @@ from soft_gripper_sdre.nodes.common import (
     ThrottledLogger,
     run,
 )
+from soft_gripper_sdre.nodes.driver_limits import given_bounds
 from soft_gripper_sdre.nodes.params import (
     Param,
     ParameterError,
     declare_all,
-    numbers,
     numbers_param,
     on_runtime_change,
 )
 from soft_gripper_sdre.nodes.topics import LOOP_QOS, NEWEST_QOS, TIP_POSITIONS, TORQUE_COMMANDS
 from soft_gripper_sdre.sim.plants.presets import GRIPPERS, plant_pair
-from soft_gripper_sdre.sim.shape import InputBounds, ShapeError
+from soft_gripper_sdre.sim.shape import InputBounds
 
 #: the noise-free tips, for scoring (same type and stamps as tip_positions)
 TRUE_TIP_POSITIONS = 'true_tip_positions'
@@ -301,7 +301,7 @@ def finger_bounds(plants, p: dict) -> tuple[np.ndarray, np.ndarray]:
                                  'input_lower / input_upper')
         lower = np.maximum(lower, -p['torque_limit'])
         upper = np.minimum(upper, p['torque_limit'])
-    given = input_bounds(p, m, p['plant'])
+    given = given_bounds(p, m, "the preset's bounds", f" (plant {p['plant']!r})")
     if given is None:
         return lower, upper
     if np.any(given.lower < lower) or np.any(given.upper > upper):
@@ -309,27 +309,6 @@ def finger_bounds(plants, p: dict) -> tuple[np.ndarray, np.ndarray]:
                              f"the plant's bounds [{plants[0].bounds}]")
     return np.broadcast_to(given.lower, lower.shape).copy(), np.broadcast_to(
         given.upper, upper.shape).copy()
-
-
-def input_bounds(p: dict, m: int, plant: str) -> InputBounds | None:
-    """The bounds of ``input_lower`` / ``input_upper`` for the ``m`` inputs of ``plant``; None
-    when both are empty.
-
-    Raises:
-        ParameterError: a list that is not numbers, one list empty and the other not, not one
-            value per input, or an empty interval (the message names the parameters).
-    """
-    lower, upper = (numbers(p[name], name) for name in ('input_lower', 'input_upper'))
-    if lower is None and upper is None:
-        return None
-    what = "parameters 'input_lower', 'input_upper'"
-    if lower is None or upper is None:
-        raise ParameterError(f"{what}: give both (one value per input) or neither (the preset's "
-                             'bounds)')
-    try:
-        return InputBounds.parse(lower, upper, m, f'{what} (plant {plant!r})')
-    except ShapeError as exc:
-        raise ParameterError(str(exc)) from None
 
 
 def _has_nonfinite_effort(data: bytes) -> bool:
