@@ -139,6 +139,8 @@ from soft_gripper_sdre.sim.shape import InputBounds
 from soft_gripper_sdre.sim.signal_specs import MAX_TORQUE, SignalSpecError, resolve_signals
 from soft_gripper_sdre.sim.signals import SIGNALS
 
+#: the plan's torque limit where it goes unused (with bounds of the inputs) and none was given
+PLAN_TORQUE_LIMIT = 0.1
 #: while waiting for the driver's bounds, a line in the log this often [s of wall time]
 WAIT_LOG_PERIOD = 5.0
 
@@ -563,8 +565,8 @@ def excitation_run(p: dict, n: int, bounds: InputBounds | None = None) -> Excita
     try:
         signals = resolve_signals(list(p['signals']), p['spec_file'] or None,
                                   p['duration'] or None, m, limit)
-        plan = ExcitationPlan(signals, p['settle_time'], n, finger, p['torque_limit'],
-                              p['amplitude'], bounds)
+        plan = ExcitationPlan(signals, p['settle_time'], n, finger,
+                              p['torque_limit'] or PLAN_TORQUE_LIMIT, p['amplitude'], bounds)
     except (SignalSpecError, ValueError) as exc:
         raise ParameterError(str(exc)) from None
     settle = SettlePhase(p['settle_time'], p['settle_samples'])
