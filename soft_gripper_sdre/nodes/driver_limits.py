@@ -15,11 +15,11 @@ there). :class:`DriverLimits` reads these reports for the excitation node:
   that read (:func:`parse_bounds`: the tightest interval of each input over the fingers) are
   handed to ``take``: the excitation's limit is the driver's.
 * Once it has a limit, a driver whose bounds do not contain it (or that has another number of
-  inputs) is handed to ``refuse``, with a message naming both and the parameter to change, and
-  the node refuses to go on: the driver would clip the signals into other
-  signals than the ones recorded as sent, and the level search would probe amplitudes the finger
-  never received. A driver wider than the limit is fine (the limit is the user's choice). The
-  bounds of the newest driver read are ``driver_bounds`` in /diagnostics.
+  inputs) is handed to ``refuse``, with a message naming both and the parameter to change (the
+  excitation stops as a fault): the driver would clip the signals into other signals than the
+  ones recorded as sent, and the level search would probe amplitudes the finger never received.
+  A driver wider than the limit is fine (the limit is the user's choice). The newest bounds read
+  are ``driver_bounds`` in /diagnostics.
 * A ``bounds`` value that does not read is ignored with one WARN per driver and value: the node
   goes on waiting, or keeps its limit.
 * The driver's ``clipped_commands`` rising: a WARN with the count (at most one per

@@ -35,7 +35,9 @@ command for another number of inputs —, sizes) is counted (``bad_commands``) w
 warning and the previous command stays in force; one with a NaN or Inf effort is counted
 (``nonfinite_commands``) and the rest input is applied. /diagnostics (1 Hz) carries these
 counters and ``ticks``, ``published``, ``commands``, ``clipped_commands``, the plant time, the
-command's age, the tick intervals, the shape and the bounds.
+command's age, the tick intervals, the shape and the bounds (``bounds``: ``ax0 [lower, upper],
+…`` per finger joined by ``;``, which the excitation node takes as its limit when none is given:
+:mod:`soft_gripper_sdre.nodes.driver_limits`).
 The node stops at ``duration`` of wall time (exit 0) or on SIGINT / SIGTERM.
 """
 from __future__ import annotations
