@@ -263,3 +263,21 @@ def test_bad_limit_values_exit_2_naming_them_without_a_traceback(arg, named, tmp
     assert out.returncode == 2, out.stderr
     assert named in out.stderr and 'Traceback' not in out.stderr
     assert not list(tmp_path.iterdir())            # nothing written
+
+
+def test_a_spec_file_in_the_drivers_units_waits_for_the_drivers_bounds(tmp_path):
+    """A one-chamber spec in Pa (far above any torque) is not refused before the driver's bounds
+    are known, and plays within them once they are."""
+    path = tmp_path / 'p.yaml'
+    path.write_text('signals:\n  puff: {kind: chirp, duration: 1.0, '
+                    'ax0: {amplitude: 20000.0, offset: 30000.0, f0: 0.5, f1: 2.0}}\n')
+    with ros_context() as (ctx, executor):
+        lab = StandIn(ctx)
+        node = excitation(ctx, signals=['puff'], spec_file=str(path))
+        executor.add_node(lab)
+        executor.add_node(node)
+        assert spin_until(executor, lambda: lab.pub.get_subscription_count() > 0, 10.0)
+        lab.report(bounds='ax0 [0, 60000]; ax0 [0, 60000]')
+        assert spin_until(executor, lambda: node.run is not None, 5.0)
+        assert not node.done and node.m == 1
+        assert node.run.plan.map.bounds == InputBounds([0.0], [60000.0])

@@ -141,6 +141,8 @@ from soft_gripper_sdre.sim.signals import SIGNALS
 
 #: the plan's torque limit where it goes unused (with bounds of the inputs) and none was given
 PLAN_TORQUE_LIMIT = 0.1
+#: the bounds of any input for the checks before the driver's are known [the input's unit]
+ANY_BOUND = 1e12
 #: while waiting for the driver's bounds, a line in the log this often [s of wall time]
 WAIT_LOG_PERIOD = 5.0
 
@@ -604,9 +606,10 @@ def check_without_limit(p: dict, n: int) -> None:
     if p['level'] == 'auto':
         _check_level(p)
     problem = None
-    for m in (2, 1, 3, 4):
+    for m in (2, 1, 3, 4):       # bounds wide enough for any spec file's amplitudes and offsets
+        wide = InputBounds(np.full(m, -ANY_BOUND), np.full(m, 2 * ANY_BOUND))
         try:
-            excitation_run(dict(p), n, InputBounds.symmetric(1.0, m))
+            excitation_run(dict(p), n, wide)
             return
         except ParameterError as exc:
             problem = problem or exc
