@@ -281,3 +281,19 @@ def test_a_spec_file_in_the_drivers_units_waits_for_the_drivers_bounds(tmp_path)
         assert spin_until(executor, lambda: node.run is not None, 5.0)
         assert not node.done and node.m == 1
         assert node.run.plan.map.bounds == InputBounds([0.0], [60000.0])
+
+
+def test_driver_bounds_timeout_0_waits_without_end_until_a_driver_reports():
+    with ros_context() as (ctx, executor):
+        lab = StandIn(ctx)
+        node = excitation(ctx, driver_bounds_timeout=0.0)
+        node._waiting_since -= 3600.0                 # as if it had waited an hour already
+        executor.add_node(lab)
+        executor.add_node(node)
+        drain(executor, 0.5)
+        assert not node.done and node.run is None and node.exit_code == 0
+        assert spin_until(executor, lambda: lab.pub.get_subscription_count() > 0, 10.0)
+        lab.report(bounds='ax0 [-0.05, 0.05], ax1 [-0.05, 0.05]')
+        assert spin_until(executor, lambda: node.run is not None, 5.0)
+        assert node.run.plan.map is None and node.run.plan.torque_limit == 0.05
+        assert node.diag.values['limit'] == 'ax0 [-0.05, 0.05], ax1 [-0.05, 0.05]'
