@@ -62,9 +62,10 @@ class StandIn(Probe):
 
 
 @pytest.mark.parametrize('plant', ['tendon3', 'pneumatic1', 'trunk3'])
-def test_without_a_limit_the_excitation_plays_within_the_drivers_bounds(plant):
+def test_without_a_limit_the_excitation_plays_within_the_drivers_bounds(plant, capfd):
     """No torque_limit, no input bounds: the driver's reported bounds are the limit (the ±
-    torques the hand's way, one chamber, three tendons); the run ends with nothing clipped."""
+    torques the hand's way, one chamber, three tendons), which /diagnostics and the start-up line
+    say; the run ends with nothing clipped."""
     bounds = PRESETS[plant][1]
     with ros_context('events') as (ctx, executor):
         drv = driver(ctx, plant)
@@ -87,6 +88,9 @@ def test_without_a_limit_the_excitation_plays_within_the_drivers_bounds(plant):
         assert drv.diag.counters.get('clipped_commands', 0) == 0
         assert drv.diag.counters.get('bad_commands', 0) == 0
         assert drv.diag.counters['commands'] > 50
+    log = capfd.readouterr().err
+    assert f'within {bounds} (limit_source driver: the bounds of /plant_driver)' in log or (
+        '|u| <= 0.02 N·m (limit_source driver: the bounds of /plant_driver)' in log), log
 
 
 def test_the_hands_simulator_reports_its_limit_and_the_excitation_plays_the_same_torques():
@@ -119,7 +123,7 @@ def test_the_hands_simulator_reports_its_limit_and_the_excitation_plays_the_same
     assert np.abs(np.concatenate([u for _, u in played])).max() == 0.1     # at the clip
 
 
-def test_a_given_limit_wins_over_the_drivers_wider_one():
+def test_a_given_limit_wins_over_the_drivers_wider_one(capfd):
     with ros_context('events') as (ctx, executor):
         drv = driver(ctx, 'tendon3')
         node = excitation(ctx, torque_limit=0.01, signals=['u1'])
@@ -132,6 +136,7 @@ def test_a_given_limit_wins_over_the_drivers_wider_one():
         assert node.driver_limits.reported and not node.driver_limits.refused
         assert node.diag.values['driver_bounds'].startswith('ax0 [-0.02, 0.02]')
         assert drv.diag.counters.get('clipped_commands', 0) == 0
+    assert '|u| <= 0.01 N·m (limit_source parameter)' in capfd.readouterr().err
 
 
 @pytest.mark.parametrize('given, named', [

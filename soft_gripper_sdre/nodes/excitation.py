@@ -308,8 +308,8 @@ class ExcitationNode(Node):
     def _source_text(self) -> str:
         """Where the limit came from, for the log."""
         if self.limit_source == 'driver':
-            return f'the limit of the driver {self.limit_driver} (limit_source driver)'
-        return 'the limit given (limit_source parameter)'
+            return f'limit_source driver: the bounds of {self.limit_driver}'
+        return 'limit_source parameter'
 
     def _driver_text(self) -> str:
         namespace = self.get_namespace()
