@@ -8,20 +8,24 @@ import numpy as np
 import pytest
 
 from soft_gripper_sdre.analysis import loop_settings as ls
+from soft_gripper_sdre.analysis.model_fitness import model_shape
 from soft_gripper_sdre.sim.plants.presets import plant_pair
 
 
 class Finger:
-    """A preset's finger as the check's plant: its tip's first d coordinates [m]."""
+    """A preset's finger as the check's plant: its tip's first d coordinates [m], moved into the
+    model's frame (its rest where the model's is, as the controller node moves each finger by
+    its own rest)."""
 
-    def __init__(self, plant, d: int) -> None:
-        self.plant, self.d = plant, d
+    def __init__(self, plant, model) -> None:
+        self.plant, self.d = plant, model_shape(model).d
         plant.reset()
+        self.shift = np.asarray(model.rest_tip, float)[:self.d] - plant.tip()[:self.d]
         self.rest = self.tip()
         self.farthest = 0.0                     # the largest distance from rest so far [m]
 
     def tip(self):
-        return np.asarray(self.plant.tip(), dtype=float)[:self.d]
+        return np.asarray(self.plant.tip(), dtype=float)[:self.d] + self.shift
 
     def step(self, u, dt):
         self.plant.step(np.asarray(u, dtype=float).reshape(-1), dt)
@@ -58,7 +62,7 @@ def test_the_model_as_an_explicit_plant_gives_the_checks_own_numbers(case, gain)
 
 def test_a_real_finger_runs_in_the_same_loop_from_its_own_rest(case):
     model, facts, settings = case
-    finger = Finger(plant_pair('pneumatic1')[0], 2)
+    finger = Finger(plant_pair('pneumatic1')[0], model)
     result = ls.check_on_model(model, settings, facts, plant=finger)
     assert math.isfinite(result.rmse_rel) and not result.diverged
     assert result.outside == 0                 # the law kept the chamber within its bounds
