@@ -38,8 +38,8 @@ ARGUMENTS = (
     ('mode', '', "the simulator's stepping: lockstep, pipelined (the physics one period behind the "
      "commands, stepped while they are computed) or realtime ('' = config/simulator.yaml, "
      'lockstep)'),
-    ('law', '', "control law of the controller (sdre_ff, sdre, lqr, pd, computed_torque, "
-     "koopman_mpc, koopman_lqr; '' = config/controller.yaml)"),
+    ('law', '', "control law of the controller, one the files of soft_gripper_sdre/control/laws "
+     "register for the graph ('' = config/controller.yaml)"),
     ('noise', '', "tip measurement noise σ [mm] ('' = config/simulator.yaml, 0.05 mm)"),
     ('seed', '', "seed of the measurement noise ('' = config/simulator.yaml)"),
     ('record', 'false', 'record every topic of the graph to a rosbag2 (MCAP) directory'),
@@ -59,6 +59,16 @@ _TRUE, _FALSE = ('true', '1', 'yes', 'on'), ('false', '0', 'no', 'off', '')
 #: its readers' acknowledgements, the recorder its bag) before launch sends SIGTERM; measured 1 to
 #: 5.5 s on two loaded cores, more than launch's default of 5 s
 CLOSE_TIMEOUT = 15
+
+
+def argument_help(name: str, text: str) -> str:
+    """The help of the launch argument ``name`` (``text`` from :data:`ARGUMENTS`): the ``law``
+    argument's lists the laws the registry holds for the graph
+    (:data:`~soft_gripper_sdre.control.laws.GRAPH_LAWS`, imported here, when launching)."""
+    if name != 'law':
+        return text
+    from soft_gripper_sdre.control.laws import GRAPH_LAWS
+    return f'{text}: {", ".join(GRAPH_LAWS)}'
 
 
 def _number(name: str, text: str, kind=float):
@@ -233,6 +243,7 @@ def generate_launch_description():
                 for node in grasp_nodes(**values)]
 
     return LaunchDescription(
-        [DeclareLaunchArgument(name, default_value=default, description=text)
+        [DeclareLaunchArgument(name, default_value=default,
+                               description=argument_help(name, text))
          for name, default, text in ARGUMENTS]
         + [OpaqueFunction(function=nodes)])

@@ -15,8 +15,8 @@ from soft_gripper_sdre.sim.signal_specs import builtin_signal
 
 def params(**kw) -> dict:
     p = {q.name: q.default for q in PARAMS}
-    p.update(finger_names=['a'], finger=-1, input_lower='', input_upper='', settle_time=0.5,
-             settle_samples=0, level='auto', max_excursion=0.016)
+    p.update(finger_names=['a'], finger=-1, input_lower='', input_upper='', torque_limit=0.1,
+             settle_time=0.5, settle_samples=0, level='auto', max_excursion=0.016)
     p.update(kw)
     return p
 

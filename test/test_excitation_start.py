@@ -56,7 +56,7 @@ def excitation(ctx, **params):
     # tips_timeout above the default 1 s: the driver ticks in the test's own executor, which a
     # loaded machine can stall for a second or more
     base = dict(finger_names=['finger_0'], signals=['u1'], duration=1.0, settle_time=0.5,
-                amplitude=0.1, tips_timeout=5.0)
+                amplitude=0.1, tips_timeout=5.0, torque_limit=0.1)
     base.update(params)
     return ExcitationNode(context=ctx, parameter_overrides=overrides(**base))
 

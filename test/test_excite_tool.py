@@ -25,6 +25,9 @@ BAD = [
      '--level auto needs --settle > 0'),
     (['--level', 'auto', '--max-excursion', '20', '--amplitude', '0.5'],
      '--amplitude is chosen by --level auto'),
+    # wider than the simulator's clip: the excitation node would refuse it only once running
+    (['--torque-limit', '0.2'], '--torque-limit must be in (0, 0.1] N·m (the simulator clips'),
+    (['--torque-limit', '0'], '--torque-limit must be in (0, 0.1] N·m'),
 ]
 
 

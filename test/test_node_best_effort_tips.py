@@ -40,7 +40,8 @@ def test_a_best_effort_wall_time_driver_is_heard_by_every_tip_reader(tmp_path):
         traj = TrajectoryNode(context=ctx, parameter_overrides=overrides(  # no controller here
             start_when='tips', **BEST_EFFORT, **FAST_GRASP))
         exc = ExcitationNode(context=ctx, parameter_overrides=overrides(
-            signals=['x1'], duration=0.1, settle_time=0.02, settle_samples=0, **BEST_EFFORT))
+            signals=['x1'], duration=0.1, settle_time=0.02, settle_samples=0, torque_limit=0.1,
+            **BEST_EFFORT))
         driver = Probe(ctx, 'driver')
         tips = driver.create_publisher(PoseArray, TIP_POSITIONS, qos_profile_sensor_data)
         driver.listen(JointState, TORQUE_COMMANDS, deep(LOOP_QOS))

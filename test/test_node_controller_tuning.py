@@ -118,7 +118,7 @@ def test_computed_torque_takes_its_own_gains_by_default():
 def test_the_tunable_parameters_are_the_runtime_ones():
     runtime = {p.name for p in PARAMS if not p.read_only}
     assert runtime == {'q_pos', 'q_vel', 'r', 'integral_gain', 'integral_band', 'pd_kp', 'pd_kd',
-                       'estimate_watchdog'}
+                       'smc_lambda', 'smc_k', 'smc_phi', 'estimate_watchdog'}
 
 
 def test_hand_over_keeps_the_command_continuous():

@@ -1,6 +1,7 @@
 """The excitation against the driver's limits (nodes/driver_limits.py): the driver's reported
-bounds read, a driver narrower than the excitation warned about and its clipped commands
-counted, a matching limit left alone (real plant_driver and excitation nodes over DDS)."""
+bounds read, a matching limit left alone, each signal levelled within the driver's limit (real
+plant_driver and excitation nodes over DDS; where the limit comes from, a driver narrower than
+the limit given and clipped commands: test_excitation_limit.py)."""
 import numpy as np
 import pytest
 from rosutil import drain, overrides, ros_context, spin_until
@@ -25,9 +26,9 @@ def test_a_bounds_value_that_does_not_read_is_not_used(text):
     assert parse_bounds(text) is None
 
 
-@pytest.mark.parametrize('torque_limit, warned', [(0.1, True), (0.02, False)])
-def test_a_driver_narrower_than_the_excitation_is_warned_about_and_its_clips_counted(
-        torque_limit, warned):
+def test_a_limit_matching_the_drivers_is_left_alone_and_nothing_is_clipped():
+    """torque_limit given at the driver's 0.02 N·m: no refusal, no clipped command (a limit
+    wider than the driver's is refused: test_excitation_limit.py)."""
     from soft_gripper_sdre.nodes.plant_driver import PlantDriverNode
     with ros_context('events') as (ctx, executor):
         driver = PlantDriverNode(context=ctx, parameter_overrides=overrides(
@@ -35,20 +36,15 @@ def test_a_driver_narrower_than_the_excitation_is_warned_about_and_its_clips_cou
         executor.add_node(driver)
         node = ExcitationNode(context=ctx, parameter_overrides=overrides(
             finger_names=NAMES, signals=['u1'], duration=1.5, settle_time=0.3,
-            settle_samples=10, torque_limit=torque_limit, min_command_subscribers=1,
+            settle_samples=10, torque_limit=0.02, min_command_subscribers=1,
             tips_reliability='best_effort'))
         executor.add_node(node)
         assert spin_until(executor, lambda: node.done, 30.0)
         drain(executor, 1.5)                      # the driver's last report
-        clipped = driver.diag.counters.get('clipped_commands', 0)
-        assert node.exit_code == 0
-        assert node.driver_limits.warned_bounds is warned
-        assert ('driver_bounds' in node.diag.values) is warned
-        if warned:                                # u1 peaks at 0.0625 N·m, the driver takes 0.02
-            assert node.diag.values['driver_bounds'].startswith('ax0 [-0.02, 0.02]')
-            assert clipped > 0 and int(node.diag.values['driver_clipped']) > 0
-        else:
-            assert clipped == 0 and 'driver_clipped' not in node.diag.values
+        assert node.exit_code == 0 and not node.driver_limits.refused
+        assert node.diag.values['driver_bounds'].startswith('ax0 [-0.02, 0.02]')
+        assert driver.diag.counters.get('clipped_commands', 0) == 0
+        assert 'driver_clipped' not in node.diag.values
 
 
 def test_each_signal_gets_its_own_level_on_the_drivers_gripper_over_dds():
@@ -80,7 +76,7 @@ def test_each_signal_gets_its_own_level_on_the_drivers_gripper_over_dds():
         levels = node.diag.values['levels']
         assert levels.startswith('u1 ') and ', b1 ' in levels
         assert driver.diag.counters.get('clipped_commands', 0) == 0
-        assert not node.driver_limits.warned_bounds
+        assert not node.driver_limits.refused
         stamps = np.array([m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec for m in truth])
         tips = np.array([[m.poses[0].position.x, m.poses[0].position.y] for m in truth])
     start = node.start_ns / 1e9

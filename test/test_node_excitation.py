@@ -21,6 +21,7 @@ REST = np.array([[0.0, -0.0105, 0.1076]])
 
 def start(ctx, executor, **params):
     params.setdefault('min_command_subscribers', 1)      # the probe is the only subscriber
+    params.setdefault('torque_limit', 0.1)               # the probe reports no bounds
     node = ExcitationNode(context=ctx,
                           parameter_overrides=overrides(finger_names=['finger_0'], **params))
     probe = Probe(ctx)

@@ -59,7 +59,7 @@ def build(name: str, ctx, bag, seed: int):
             output=str(bag), topics=['tip_positions', 'torque_commands'],
             discard_without='torque_commands'))
     return ExcitationNode(context=ctx, parameter_overrides=overrides(
-        finger_names=['finger_0'], signals=['u1'], duration=1.0, settle_time=0.2,
+        finger_names=['finger_0'], signals=['u1'], torque_limit=0.1, duration=1.0, settle_time=0.2,
         settle_samples=SETTLE_SAMPLES, amplitude=0.1, tips_timeout=5.0))
 
 
@@ -109,8 +109,8 @@ def test_the_run_waits_for_the_recorders_report_and_fails_naming_it(tmp_path):
     with ros_context() as (ctx, executor):
         driver = Driver(ctx, SpringDamper())
         exc = ExcitationNode(context=ctx, parameter_overrides=overrides(
-            finger_names=['finger_0'], signals=['u1'], duration=0.3, startup_timeout=1.5,
-            min_command_subscribers=2, recorder_node='bag_writer'))
+            finger_names=['finger_0'], signals=['u1'], torque_limit=0.1, duration=0.3,
+            startup_timeout=1.5, min_command_subscribers=2, recorder_node='bag_writer'))
         # a recorder of another name: its commands reader counts, its report is not the one
         rec = RecorderNode(context=ctx, parameter_overrides=overrides(
             output=str(tmp_path / 'bag'), topics=['tip_positions', 'torque_commands']))
@@ -206,9 +206,9 @@ def test_timer_timing_sends_zero_on_its_timer_while_it_waits_for_the_recorder(tm
     with ros_context() as (ctx, executor):
         driver = Driver(ctx, SpringDamper())
         exc = ExcitationNode(context=ctx, parameter_overrides=overrides(
-            finger_names=['finger_0'], signals=['u1'], duration=1.0, settle_time=0.2,
-            settle_samples=SETTLE_SAMPLES, amplitude=0.1, tips_timeout=5.0, timing='timer',
-            period=0.005))
+            finger_names=['finger_0'], signals=['u1'], torque_limit=0.1, duration=1.0,
+            settle_time=0.2, settle_samples=SETTLE_SAMPLES, amplitude=0.1, tips_timeout=5.0,
+            timing='timer', period=0.005))
         for node in (driver, exc):
             executor.add_node(node)
         assert spin_until(executor, lambda: exc.diag.counters['tips'] > 20, 10.0)

@@ -221,14 +221,29 @@ def settings_for(model, facts: DataFacts, bandwidth_hz: float, accel_psd: float)
         integral_band=band, pd_kp=w ** 2, pd_kd=2 * PD_DAMPING * w, bandwidth_hz=bandwidth_hz)
 
 
-class _GainError:
-    """The learned model with its input map scaled: ẋ = A(x)x + k G(x)u (a robustness plant)."""
+class ModelPlant:
+    """The learned model as the check's plant, for one finger: ẋ = A(x)x + k G(x)u with the
+    input map scaled by ``gain_error`` k (1: the model itself; else a robustness plant), in RK4
+    steps of at most :data:`MAX_STEP`. ``tip()`` is the tip in the model's frame:
+    ``model.rest_tip`` plus the state's position."""
 
-    def __init__(self, model, k: float) -> None:
-        self.model, self.k = model, k
+    def __init__(self, model, gain_error: float = 1.0) -> None:
+        shape = model_shape(model)
+        self.model, self.k, self.d = model, float(gain_error), shape.d
+        self.rest = np.asarray(model.rest_tip, dtype=float)[:shape.d]
+        self.x = np.zeros((1, shape.n_state))
 
     def xdot(self, x, u):
-        return model_fitness.xdot(self.model, x, self.k * np.asarray(u))
+        return model_fitness.xdot(self.model, x, self.k * np.asarray(u) if self.k != 1.0 else u)
+
+    def tip(self) -> np.ndarray:
+        return self.rest + self.x[0, :self.d]
+
+    def step(self, u: np.ndarray, dt: float) -> None:
+        """Hold ``u`` (1, m) over ``dt`` [s]."""
+        substeps = math.ceil(dt / MAX_STEP - 1e-9)
+        for _ in range(substeps):
+            self.x = rk4_step(self, self.x, u, dt / substeps)
 
 
 def check_move(facts: DataFacts) -> GraspTrajectory:
@@ -305,12 +320,18 @@ def _at_bound(u: np.ndarray, bounds: InputBounds) -> np.ndarray:
 
 
 def check_on_model(model, settings: LoopSettings, facts: DataFacts, law: str = 'sdre_ff',
-                   gain_error: float = 1.0, seed: int = 0, delay: int = 1) -> CheckResult:
+                   gain_error: float = 1.0, seed: int = 0, delay: int = 1,
+                   plant=None) -> CheckResult:
     """Run ``law`` with ``settings`` on the learned model as the plant (module doc): measured
     noise, the estimator, the command ``delay`` periods late and ``facts.input_delay`` later
     still (rounded to whole periods), along :func:`check_move`, within ``facts.bounds``
     (±``facts.torque_limit`` when None); a command outside them is counted
-    (:attr:`CheckResult.outside`) and fails the check."""
+    (:attr:`CheckResult.outside`) and fails the check.
+
+    ``plant``: another plant for the same loop, with ``tip()`` (d,) [m] and ``step(u (1, m),
+    dt)``, e.g. a finger of :mod:`soft_gripper_sdre.sim.plants` behind an adapter (the recipe's
+    grippers in process, docs/own_gripper.md); the move starts from its tip at rest.
+    None: ``ModelPlant(model, gain_error)``."""
     shape = model_shape(model)
     d, m = shape.d, shape.m
     bounds = loop_bounds(facts, m)
@@ -320,7 +341,9 @@ def check_on_model(model, settings: LoopSettings, facts: DataFacts, law: str = '
     steps = int(round(traj.profile.duration / dt)) + 1
     t = np.arange(steps) * dt
     ref = traj.sample(t)
-    rest = model.rest_tip[:d]
+    if plant is None:
+        plant = ModelPlant(model, gain_error)
+    rest = np.array(plant.tip(), dtype=float)
     options = {} if facts.bounds is None else {'bounds': facts.bounds}
     if law == 'sdre_ff':
         options.update(integral_gain=settings.integral_gain,
@@ -331,9 +354,7 @@ def check_on_model(model, settings: LoopSettings, facts: DataFacts, law: str = '
                     lowpass_hz=settings.torque_lowpass_hz, dt=dt, **options)
     kf = (ConstantVelocityKF(dt, settings.accel_psd, settings.meas_std, n=1) if d == 2
           else _SpatialKF(dt, settings.accel_psd, settings.meas_std))
-    plant = model if gain_error == 1.0 else _GainError(model, gain_error)
     rng = np.random.default_rng(seed)
-    x = np.zeros((1, 2 * d))
     pending = [np.array(bounds.rest[None], dtype=float) if facts.bounds is not None
                else np.zeros((1, m))] * delay
     pos = np.empty((steps, d))
@@ -341,23 +362,22 @@ def check_on_model(model, settings: LoopSettings, facts: DataFacts, law: str = '
     sat = np.zeros(steps, dtype=bool)
     outside, unreachable = 0, 0.0
     bound = 20 * abs(facts.travel) + 0.01
-    substeps = math.ceil(dt / MAX_STEP - 1e-9)
+    tip = rest
     for k in range(steps):
-        z = rest + x[:, :d] + facts.noise_std * rng.standard_normal((1, d))
+        z = tip[None] + facts.noise_std * rng.standard_normal((1, d))
         xh = kf.step(z) if k else (kf.reset(z), kf.x.copy())[1]
         out = ctrl.compute(xh[:, :d], xh[:, d:], rest + ref.pos[k], ref.vel[k], ref_acc=ref.acc[k])
         pending.append(out.u)
-        u = pending.pop(0)
-        for _ in range(substeps):
-            x = rk4_step(plant, x, u, dt / substeps)
-        pos[k], u_hist[k] = x[0, :d], out.u[0]
+        plant.step(pending.pop(0), dt)
+        tip = np.array(plant.tip(), dtype=float)
+        pos[k], u_hist[k] = tip - rest, out.u[0]
         if facts.bounds is None:
             sat[k] = bool(np.any(out.saturated))
         else:
             sat[k] = bool(_at_bound(out.u[0], bounds))
             outside += int(not (np.all(np.isfinite(out.u)) and bounds.contains(out.u, tol=1e-12)))
             unreachable = max(unreachable, float(np.max(getattr(out, 'unreachable', 0.0))))
-        if not (np.all(np.isfinite(x)) and np.abs(x[0, :d]).max() < bound):
+        if not (np.all(np.isfinite(tip)) and np.abs(pos[k]).max() < bound):
             return CheckResult(law, math.inf, 1.0, math.inf, 1.0, True, outside, unreachable)
     err = np.linalg.norm(pos - ref.pos[:, 0], axis=1)
     at_rest = t < traj.profile.t_start

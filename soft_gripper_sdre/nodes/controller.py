@@ -2,8 +2,11 @@
 
 The control law is the ``law`` parameter (:mod:`soft_gripper_sdre.control.laws`): ``sdre_ff``
 (default: SDRE feedback plus model-inversion feedforward, with integral action unless
-``integral_gain`` is 0), ``sdre`` (the paper's law), ``lqr``, ``pd``, ``computed_torque``, or the
-Koopman baselines ``koopman_mpc`` and ``koopman_lqr``.
+``integral_gain`` is 0), ``sdre`` (the paper's law), or any other law the law files register for
+the graph (:data:`~soft_gripper_sdre.control.laws.GRAPH_LAWS`). Each law file declares the
+parameters its law reads (:class:`~soft_gripper_sdre.control.laws.registry.LawParam`); this
+node's :data:`PARAMS` take them from the registry, so ``--help``, docs/parameters.md and
+config/controller.yaml list them with their units, ranges and whether they may change at runtime.
 
 Subscribes ``state_estimate`` (one message per control period, keeping only the newest) and
 ``grasp_reference`` (the planned grasp, once per plan); publishes ``torque_commands`` (one per
@@ -32,8 +35,9 @@ estimate to its torque (the plan sampled, each finger in the model's frame, the 
 :class:`~soft_gripper_sdre.nodes.tracking_step.TrackingStep`'s. This module is the ROS side:
 parameters, topics, conversions, status and logs.
 
-**Tuning at runtime.** ``q_pos``, ``q_vel``, ``r``, ``integral_gain``, ``integral_band``, ``pd_kp``
-and ``pd_kd`` may be changed while the node runs (``ros2 param set /controller q_pos 2.0e+6``). A
+**Tuning at runtime.** The laws' runtime parameters (``q_pos``, ``q_vel``, ``r``, ``integral_gain``,
+``integral_band``, ``pd_kp``, ``pd_kd``, …: :data:`~soft_gripper_sdre.nodes.law_tuning.TUNABLE`)
+may be changed while the node runs (``ros2 param set /controller q_pos 2.0e+6``). A
 change is checked by building the law with the new values: a refused one returns its reason and
 the old values stay in force. An accepted one takes effect at the next estimate: parameter
 changes are executor callbacks like the estimates, so they never run inside a control step. The
@@ -41,7 +45,7 @@ law is built again with the new values and handed the state that keeps the comma
 (the roll-off's last output, the integral's torque:
 :func:`~soft_gripper_sdre.control.laws.hand_over`); the SDRE solves afresh, as after a
 reset. The change is logged, and /diagnostics shows the values
-in force (``weights``, ``integral``, ``pd_gains``). A value the law does not use (``pd_kp`` for
+in force (``weights``, ``integral``, ``pd_gains``, …). A value the law does not use (``pd_kp`` for
 ``sdre_ff``) is taken and has no effect.
 
 **Falling behind is loud.** An estimate the controller never saw (its reader keeps only the
@@ -75,20 +79,10 @@ from trajectory_msgs.msg import MultiDOFJointTrajectory
 from soft_gripper_sdre import FINGER_NAMES
 from soft_gripper_sdre.control.command_gate import Change, CommandGate, Notice, Outcome, Plan
 from soft_gripper_sdre.control.kernels import warm_up
-from soft_gripper_sdre.control.laws import (
-    DEFAULT_CT,
-    DEFAULT_INTEGRAL,
-    DEFAULT_LAW,
-    DEFAULT_PD,
-    GRAPH_LAWS,
-)
+from soft_gripper_sdre.control.laws import DEFAULT_LAW, GRAPH_LAWS, LAW_REGISTRY
+from soft_gripper_sdre.control.laws.registry import LawParam, law_params, node_description
 from soft_gripper_sdre.control.riccati import Check
-from soft_gripper_sdre.control.tracking import (
-    DEFAULT_LOWPASS_HZ,
-    DEFAULT_WEIGHTS,
-    roll_off_corner_hz,
-    shape_of,
-)
+from soft_gripper_sdre.control.tracking import DEFAULT_LOWPASS_HZ, roll_off_corner_hz, shape_of
 from soft_gripper_sdre.learning.model import ModelFileError, SDCModel, set_torch_threads
 from soft_gripper_sdre.nodes import cdr
 from soft_gripper_sdre.nodes import conversions as cv
@@ -122,19 +116,26 @@ from soft_gripper_sdre.nodes.topics import (
 from soft_gripper_sdre.nodes.tracking_step import TrackingStep
 from soft_gripper_sdre.sim.shape import HAND_SHAPE, InputBounds, ShapeError
 
+
+def _node_params(shared: bool) -> tuple[Param, ...]:
+    """The node parameters the graph laws read, as their files declare them
+    (:func:`~soft_gripper_sdre.control.laws.registry.law_params`): ``shared`` the settings every
+    law is built from (the SDRE weights), else the law-specific ones; runtime ones tunable."""
+    return tuple(_declared(p) for p in law_params() if (not p.option) == shared)
+
+
+def _declared(p: LawParam) -> Param:
+    return Param(p.name, p.default, node_description(p), p.units, p.min, p.max, p.choices,
+                 read_only=not p.runtime)
+
+
 PARAMS = (
     Param('model_path', '', 'SDC model checkpoint (.pt); empty = the model shipped with the '
           'package', read_only=True),
     finger_names_param('the fingers controlled together: the joint names of state_estimate and '
                        'grasp_reference; torque_commands names <finger>/ax0 … <finger>/ax<m-1> '
                        "(m: the model's inputs)"),
-    Param('q_pos', DEFAULT_WEIGHTS['q_pos'], 'SDRE state weight on tip position, Q = diag(q_pos, '
-          'q_pos, q_vel, q_vel) (paper: 2 in sim units = 800 SI); every law but pd and '
-          'computed_torque', '1/m²', 0.0, 1e12),
-    Param('q_vel', DEFAULT_WEIGHTS['q_vel'], 'SDRE state weight on tip velocity', 's²/m²', 0.0,
-          1e12),
-    Param('r', DEFAULT_WEIGHTS['r'], 'SDRE input weight, R = diag(r, r) (paper: 0.1 in sim units = '
-          '16000 SI)', '1/(N·m)²', 1e-12, 1e12),
+    *_node_params(shared=True),
     Param('torque_limit', 0.0625, 'saturation of each torque (0.0625 N·m = 25 sim units, the '
           'stable range of the physics step) when input_lower and input_upper are unset', 'N·m',
           1e-6, 1.0, read_only=True),
@@ -151,34 +152,11 @@ PARAMS = (
           1e-4, 0.05, read_only=True),
     Param('solver', 'fast', 'Riccati solver: warm-started Newton–Kleinman or scipy reference',
           choices=('fast', 'reference'), read_only=True),
-    Param('law', DEFAULT_LAW, 'control law (soft_gripper_sdre.control.laws): learned SDRE, LQR '
-          'frozen at the origin, task-space PD, computed torque on the learned model; the oracle '
-          'needs the plant\'s joint state and runs in-process only '
-          '(tools/judging/evaluate.py); sdre_ff: SDRE + model-inversion feedforward '
-          '(docs/results.md "Beyond the paper"); koopman_mpc, koopman_lqr: the Koopman baselines '
-          'on the shipped Koopman model (models/koopman.npz; docs/results.md "Koopman baseline")',
-          choices=GRAPH_LAWS, read_only=True),
-    Param('state_weights', False, 'sdre only: state-dependent Q(x) that rises with the tracking '
-          'error', read_only=True),
-    Param('feedforward_at', 'x', "sdre_ff only: where the feedforward evaluates the learned model: "
-          "'x' the estimated state (its error dynamics exactly linear), 'ref' the reference (no "
-          'measurement noise reaches the model; what settings derived by training use)',
-          choices=('x', 'ref'), read_only=True),
-    Param('integral_gain', DEFAULT_INTEGRAL['gain'], 'sdre_ff only: integral action on the tip '
-          'position error against the steady offset of joint friction, as a tip acceleration k_i '
-          '∫(p_d − p)dt through the learned input map at rest; frozen while saturated, decaying '
-          'while the error is outside integral_band (pressing on the cube); 0 = off', '1/s³', 0.0,
-          1e8),
-    Param('integral_band', DEFAULT_INTEGRAL['band'], 'sdre_ff only: tip error beyond which the '
-          'integral stops integrating and decays (the reference is not reachable, e.g. inside the '
-          'cube)', 'm', 1e-6, 0.1),
-    Param('pd_kp', 0.0, 'pd and computed_torque only: the task-space gain on the tip position '
-          "error, the error dynamics' natural frequency squared; 0 = the law's own tuned gain "
-          f"({DEFAULT_PD['kp']:g} for pd, {DEFAULT_CT['kp']:g} for computed_torque)", '1/s²',
-          0.0, 1e9),
-    Param('pd_kd', 0.0, 'pd and computed_torque only: the gain on the tip velocity error, 2ζω; '
-          f"0 = the law's own ({DEFAULT_PD['kd']:g} for pd, {DEFAULT_CT['kd']:g} for "
-          'computed_torque)', '1/s', 0.0, 1e6),
+    Param('law', DEFAULT_LAW, 'control law (soft_gripper_sdre.control.laws); ' + '; '.join(
+        f'{name}: {LAW_REGISTRY[name].summary}' for name in GRAPH_LAWS) + '; the oracle needs '
+        "the plant's joint state and runs in-process only (tools/judging/evaluate.py)",
+        choices=GRAPH_LAWS, read_only=True),
+    *_node_params(shared=False),
     Param('estimate_watchdog', 0.5, 'wall time without a state_estimate after which the controller '
           'reports ERROR (it sends nothing without an estimate: the simulator steps safely on its '
           'own)', 's', 1e-2, 600.0),
@@ -235,7 +213,8 @@ class ControllerNode(Node):
             self.tuning = LawTuning(self.model, self.n, {**p, 'torque_limit': limit},
                                     bounds=self.law_bounds)
         except ValueError as exc:
-            raise ParameterError(f'law/state_weights/integral_gain/pd_kp/pd_kd: {exc}') from None
+            names = '/'.join(['law', *(q.name for q in LAW_REGISTRY[p['law']].params)])
+            raise ParameterError(f'{names}: {exc}') from None
         on_runtime_change(self, PARAMS, validate=self.tuning.check, apply=self._apply)
         warm_up()       # compiled (or loaded from the cache) before any topic shows the node ready
         self.step = TrackingStep(self.model, self.names, self.shape, self.law_bounds)

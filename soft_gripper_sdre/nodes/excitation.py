@@ -3,7 +3,7 @@
 Plays ``signals`` in order (the paper's u1..u4, the identifying x1, x2, or multisines and chirps
 from the YAML ``spec_file``, :mod:`soft_gripper_sdre.sim.signal_specs`), each after ``settle_time``
 of zero torque (the first one also until ``settle_samples`` tips were heard, below), on
-``finger`` or on every finger, scaled by ``amplitude`` and clipped to ``torque_limit``; a recorder
+``finger`` or on every finger, scaled by ``amplitude`` and clipped to the limit (below); a recorder
 running meanwhile captures ``tip_positions`` and ``torque_commands`` for
 ``tools.learning.train --bag``.
 
@@ -56,18 +56,33 @@ Timing (``timing``):
 * ``timer``: a timer on the node's clock publishes the torque for the clock's time every
   ``period``, stamped with that time, for drivers that want commands at their own rate.
 
-Inputs (``input_lower``, ``input_upper``): by default the hand's two torques, clipped to
-±``torque_limit``. Given one value each per input (1 to 4 inputs, in the input's unit: N·m, Pa,
-N), the node plays for that many inputs and publishes ``<finger>/ax<k>`` for k < m, never
-outside [input_lower[k], input_upper[k]]: the built-in signals as shares of each interval, about
-its middle for a two-sided input and from its rest value (the bound nearest zero) into it for a
-one-sided one, a chamber or a tendon; a spec file's signals as inputs in their units, clipped
-(:mod:`soft_gripper_sdre.sim.excitation`). "Zero torque" below is then every input at rest.
-Symmetric bounds on two inputs are the hand's ±torque_limit.
+Limit (``limit_source`` in /diagnostics and the start-up line): given as a parameter
+(``input_lower`` / ``input_upper``, else ``torque_limit`` > 0: ``parameter``), or else the
+driver's (``driver``, the default: ``torque_limit`` 0 and both lists empty): the node then waits,
+before it listens to the tips or sends anything, for a driver in its namespace to report its
+bounds on /diagnostics (``plant_driver`` and the simulator node do;
+:mod:`soft_gripper_sdre.nodes.driver_limits`) and plays within the tightest interval of each
+input over the driver's fingers. Meanwhile /diagnostics shows ``signal`` 'waiting for the
+driver's bounds' and a WARN every :data:`WAIT_LOG_PERIOD` says what it waits for and which
+parameters to give instead; no report within ``driver_bounds_timeout`` (0: wait forever) is a
+fault (exit status 1), and a parameter the run cannot be built with for the driver's inputs
+(a spec file's signals for another number of inputs) ends the node with exit status 2. A
+``bounds`` value that does not read is ignored with a warning.
 
-Driver limits: a driver that reports its bounds on /diagnostics (``plant_driver``) narrower
-than this node's limits, or a rising count of commands it clipped, gets a WARN
-(:mod:`soft_gripper_sdre.nodes.driver_limits`): give the excitation the driver's limit.
+Inputs: for the hand, two torques clipped to ±``torque_limit``. Bounds of 1 to 4 inputs (in the
+input's unit: N·m, Pa, N) make the node play for that many inputs and publish
+``<finger>/ax<k>`` for k < m, never outside [lower[k], upper[k]]: the built-in signals as shares
+of each interval, about its middle for a two-sided input and from its rest value (the bound
+nearest zero) into it for a one-sided one, a chamber or a tendon; a spec file's signals as
+inputs in their units, clipped (:mod:`soft_gripper_sdre.sim.excitation`). "Zero torque" below is
+then every input at rest. Symmetric bounds on two inputs are the hand's ±torque_limit.
+
+Driver limits: a driver in the namespace whose reported bounds do not contain a limit given as a
+parameter (or that takes another number of inputs) is refused: the node stops as a fault (exit
+status 1, the error naming both limits and the parameter), before the run or during it, for the
+driver would clip the signals into others than the ones recorded as sent. A driver wider than
+the limit given is fine. A rising count of commands the driver clipped gets a WARN with the
+count (``driver_clipped``).
 
 Stops: at the end of the plan, on shutdown (SIGINT/SIGTERM) and on a fault, zero torque is
 published before the node exits (status 0 at the end of the plan, 1 after a fault). Faults: no
@@ -98,14 +113,13 @@ from sensor_msgs.msg import JointState
 from soft_gripper_sdre.nodes import cdr
 from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.common import ERROR, OK, Diagnostics, run
-from soft_gripper_sdre.nodes.driver_limits import DriverLimits
+from soft_gripper_sdre.nodes.driver_limits import DriverLimits, given_bounds
 from soft_gripper_sdre.nodes.excitation_report import ACTIVITY, RunReport
 from soft_gripper_sdre.nodes.params import (
     Param,
     ParameterError,
     declare_all,
     finger_names_param,
-    numbers,
     numbers_param,
     tips_reliability_param,
     with_reliability,
@@ -121,9 +135,16 @@ from soft_gripper_sdre.nodes.topics import (
 from soft_gripper_sdre.sim.excitation import ExcitationPlan, LevelSearch, LevelSettings
 from soft_gripper_sdre.sim.excitation_run import ExcitationRun, Phase
 from soft_gripper_sdre.sim.settle import SettlePhase
-from soft_gripper_sdre.sim.shape import InputBounds, ShapeError
+from soft_gripper_sdre.sim.shape import InputBounds
 from soft_gripper_sdre.sim.signal_specs import MAX_TORQUE, SignalSpecError, resolve_signals
 from soft_gripper_sdre.sim.signals import SIGNALS
+
+#: the plan's torque limit where it goes unused (with bounds of the inputs) and none was given
+PLAN_TORQUE_LIMIT = 0.1
+#: the bounds of any input for the checks before the driver's are known [the input's unit]
+ANY_BOUND = 1e12
+#: while waiting for the driver's bounds, a line in the log this often [s of wall time]
+WAIT_LOG_PERIOD = 5.0
 
 PARAMS = (
     Param('signals', ['u1'], f'signals to play in order, each after the settle phase: built-in '
@@ -141,14 +162,20 @@ PARAMS = (
                        'names are <finger>/ax0, <finger>/ax1'),
     Param('finger', -1, 'the finger to excite, an index into finger_names (-1 = all); the others '
           'get zero torque', '', -1, 3, read_only=True),
-    Param('torque_limit', 0.1, 'every torque is clipped to ±limit (0.1 N·m: the simulator\'s '
-          'actuator limit; the paper\'s signals peak at 0.0675); the hand\'s two inputs, unless '
-          'input_lower / input_upper give the bounds', 'N·m', 1e-6, 1.0, read_only=True),
+    Param('torque_limit', 0.0, "the hand's two torques: every torque is clipped to ±limit (the "
+          "simulator's actuator limit is 0.1 N·m; the paper's signals peak at 0.0675); 0 = the "
+          "driver's limit, from its bounds on /diagnostics (see driver_bounds_timeout), unless "
+          'input_lower / input_upper give the bounds', 'N·m', 0.0, 1.0, read_only=True),
     numbers_param('input_lower', 'lower bound of each input in its SI unit (N·m, Pa, N), a list '
                   "[u0, u1, …] of 1 to 4 values: the finger's inputs; '' with input_upper '' = "
-                  '−torque_limit on 2 inputs (the hand)'),
+                  "−torque_limit on 2 inputs (the hand), or the driver's with torque_limit 0"),
     numbers_param('input_upper', 'upper bound of each input, a list [u0, u1, …], each above its '
-                  "lower bound; '' with input_lower '' = torque_limit on 2 inputs (the hand)"),
+                  "lower bound; '' with input_lower '' = torque_limit on 2 inputs (the hand), "
+                  "or the driver's with torque_limit 0"),
+    Param('driver_bounds_timeout', 60.0, "no limit given (torque_limit 0, input_lower / "
+          "input_upper ''): wall time to wait for a driver in this node's namespace to report "
+          "its bounds on /diagnostics before stopping as a fault (exit status 1); 0 = wait "
+          'forever', 's', 0.0, 86400.0, read_only=True),
     Param('timing', 'tips', 'answer each tip message with the torque for its stamp, or publish on '
           'a timer of the node\'s clock', choices=('tips', 'timer'), read_only=True),
     Param('period', 0.001, 'timer timing: the command period', 's', 1e-4, 1.0, read_only=True),
@@ -202,8 +229,15 @@ class ExcitationNode(Node):
         self.p = p
         self.names = tuple(p['finger_names'])
         self.n = len(self.names)
-        self.run = excitation_run(p, self.n)
-        self.m = self.run.plan.m
+        given = given_limit(p)
+        if given is None:
+            check_without_limit(p, self.n)
+        #: the run (None while the limit is awaited from the driver), its number of inputs,
+        #: where its limit came from ('parameter' or 'driver') and the driver it came from
+        self.run: ExcitationRun | None = None
+        self.m: int | None = None
+        self.limit_source = 'parameter' if given is not None else 'driver'
+        self.limit_driver: str | None = None
         self.newest_tips: np.ndarray | None = None
         self.done = False
         self.exit_code = 0
@@ -214,15 +248,16 @@ class ExcitationNode(Node):
         self.last_heard: float | None = None    # wall time of the newest accepted tips
         self.stopping = False                   # shutdown: answer the next tips with zero
         self.stopped = False                    # the final zero went out
-        self._deadline = time.monotonic() + p['startup_timeout']
+        self._waiting_since = time.monotonic()  # for the driver's bounds
+        self._wait_logged = self._waiting_since
+        self._deadline = self._waiting_since + p['startup_timeout']
         self.cdr_tips = cdr.tips_codec(self.names)
-        self.cdr_cmd = cdr.torques_codec(self.names, self.m)
+        self.cdr_cmd = None
         self.pub_cmd = self.create_publisher(JointState, TORQUE_COMMANDS, LOOP_QOS)
-        self.sub_tips = self.create_subscription(
-            PoseArray, TIP_POSITIONS, self.on_tips,
-            with_reliability(NEWEST_QOS, p['tips_reliability']), raw=True)
+        self.sub_tips = None
         self.diag = Diagnostics(self)
         cdr.watch(self.diag, self.cdr_tips)
+        self.diag.values['limit_source'] = self.limit_source
         #: the recorder whose report the start waits for (its full name), and its newest values
         self.recorder = None
         if p['recorder_node'] and p['min_command_subscribers'] >= 2:
@@ -232,19 +267,83 @@ class ExcitationNode(Node):
                               for t in (TIP_POSITIONS, TORQUE_COMMANDS))
         self.sub_diag = (self.create_subscription(DiagnosticArray, DIAGNOSTICS, self._on_report,
                                                   STREAM_QOS) if self.recorder else None)
-        self.report = RunReport(self.diag, self.get_logger(), self.run, p)
-        plan = self.run.whole
-        limits = ((plan.map.bounds.lower, plan.map.bounds.upper) if plan.map is not None else
-                  (np.full(2, -plan.torque_limit), np.full(2, plan.torque_limit)))
-        self.driver_limits = DriverLimits(self, *limits, self.diag)
+        self.report: RunReport | None = None
+        self.driver_limits = DriverLimits(self, self.diag, None, take=self._take_driver_limit,
+                                          refuse=self._refuse_limit)
         self._watchdog = self.create_timer(0.05, self._check_watchdog)
+        if given is not None:
+            self._configure(given)
+        else:
+            self.diag.values.update(signal="waiting for the driver's bounds", limit='')
+            self.get_logger().info(
+                f"no limit given (torque_limit 0, input_lower / input_upper ''): waiting for the "
+                f"driver's bounds on /diagnostics ({self._driver_text()}){self._timeout_text()}")
+
+    def _configure(self, bounds: InputBounds) -> None:
+        """Build the run within ``bounds`` and start listening to the tips (the commands' names
+        follow its number of inputs).
+
+        Raises:
+            ParameterError: a parameter the run cannot be built with (the message names it).
+        """
+        self.run = excitation_run(self.p, self.n, bounds)
+        self.m = self.run.plan.m
+        self.cdr_cmd = cdr.torques_codec(self.names, self.m)
+        p = self.p
+        self.sub_tips = self.create_subscription(
+            PoseArray, TIP_POSITIONS, self.on_tips,
+            with_reliability(NEWEST_QOS, p['tips_reliability']), raw=True)
+        self.report = RunReport(self.diag, self.get_logger(), self.run, p)
+        self.diag.values['limit'] = str(bounds)
+        self.driver_limits.use(bounds)
+        self._deadline = time.monotonic() + p['startup_timeout']
         if p['timing'] == 'timer':
             self._ticker = self.create_timer(p['period'], self._on_tick, clock=self.get_clock())
-        self.report.log_start(self.names)
+        self.report.log_start(self.names, self._source_text())
         if self.recorder is not None:
             self.get_logger().info(f'... and once the recorder {self.recorder} reports on '
                                    f'/diagnostics that it received {TIP_POSITIONS} and '
                                    f"{TORQUE_COMMANDS} (recorder_node; '' waits for no report)")
+
+    def _source_text(self) -> str:
+        """Where the limit came from, for the log."""
+        if self.limit_source == 'driver':
+            return f'limit_source driver: the bounds of {self.limit_driver}'
+        return 'limit_source parameter'
+
+    def _driver_text(self) -> str:
+        namespace = self.get_namespace()
+        return (f"a node in the namespace {namespace} reporting 'bounds', as plant_driver and "
+                'the simulator node do; or give torque_limit (± torques on two inputs) or '
+                'input_lower / input_upper')
+
+    def _timeout_text(self) -> str:
+        timeout = self.p['driver_bounds_timeout']
+        return (f'; giving up after driver_bounds_timeout ({timeout:g} s)' if timeout > 0
+                else '; waiting without end (driver_bounds_timeout 0)')
+
+    def _take_driver_limit(self, driver: str, bounds: InputBounds, text: str) -> None:
+        """The driver ``driver`` reported ``bounds`` (``text``) while none were given: the
+        excitation's limit is theirs (a parameter the run cannot be built with ends the node
+        with exit status 2)."""
+        if self.run is not None or self.done:
+            return
+        self.limit_driver = driver
+        try:
+            self._configure(bounds)
+        except ParameterError as exc:
+            self.get_logger().fatal(f'bad parameter: {exc} (for the bounds of the driver '
+                                    f'{driver}: {text})')
+            self.diag.set_status(ERROR, f'bad parameter: {exc}')
+            self.exit_code, self.done, self.stopped = 2, True, True
+            return
+        self.get_logger().info(f'the limit is the driver {driver}\'s: {bounds} (its bounds on '
+                               '/diagnostics, the tightest over its fingers; limit_source driver)')
+
+    def _refuse_limit(self, why: str) -> None:
+        """A driver does not take the whole limit: stop as a fault before (or while) sending
+        what it would clip."""
+        self.fault(why, max(self.last_ns, 0))
 
     # -- inputs ------------------------------------------------------------------------------
     def on_tips(self, data: bytes) -> None:
@@ -341,6 +440,9 @@ class ExcitationNode(Node):
         if self.stopped:
             return
         now = time.monotonic()
+        if self.run is None:
+            self._check_driver_wait(now)
+            return
         if self.last_heard is None and now > self._deadline:
             self.fault(f'no tip_positions within startup_timeout ({self.p["startup_timeout"]:g} s)',
                        max(self.last_ns, 0))
@@ -359,6 +461,23 @@ class ExcitationNode(Node):
         elif self.last_heard is not None and now - self.last_heard > self.p['tips_timeout']:
             self.fault(f'no tip_positions for {self.p["tips_timeout"]:g} s of wall time since '
                        f't = {self.last_ns / cv.NS:.4f} s', self.last_ns)
+
+    def _check_driver_wait(self, now: float) -> None:
+        """Waiting for the driver's bounds: a line every :data:`WAIT_LOG_PERIOD`, and the fault
+        at ``driver_bounds_timeout``."""
+        waited = now - self._waiting_since
+        timeout = self.p['driver_bounds_timeout']
+        if 0 < timeout < waited:
+            ignored = self.diag.values.get('driver_bounds_ignored')
+            heard = f' (ignored, not bounds: {ignored})' if ignored else ''
+            self.fault(f"no driver reported its bounds on /diagnostics{heard} within "
+                       f'driver_bounds_timeout ({timeout:g} s): give the limit as torque_limit '
+                       '(± torques on two inputs) or input_lower / input_upper, start the driver, '
+                       'or set driver_bounds_timeout 0 to wait without end', max(self.last_ns, 0))
+        elif now - self._wait_logged >= WAIT_LOG_PERIOD:
+            self._wait_logged = now
+            self.get_logger().warn(f"still waiting for the driver's bounds on /diagnostics after "
+                                   f'{waited:.0f} s ({self._driver_text()}){self._timeout_text()}')
 
     # -- outputs -----------------------------------------------------------------------------
     def _advance(self, stamp: int, t: float, tips: np.ndarray) -> None:
@@ -380,7 +499,8 @@ class ExcitationNode(Node):
         """Publish zero torque stamped ``stamp`` and end the run (the node exits)."""
         if self.stopped:
             return
-        self._publish(stamp, self.run.plan.rest_inputs())
+        if self.run is not None:            # (without a run nothing was ever sent)
+            self._publish(stamp, self.run.plan.rest_inputs())
         self.stopped = self.done = True
         self.diag.values['signal'] = 'stopped'
         self.diag.set_status(level, why)
@@ -397,7 +517,7 @@ class ExcitationNode(Node):
         """The shutdown stop (run() calls this on SIGINT/SIGTERM and after the end): unless the
         final zero went out, answer the next tips with zero (tips timing; waiting at most
         ``stop_wait``) or publish it on the clock now, and wait until it is delivered."""
-        if self.stopped or not self.context.ok():
+        if self.stopped or not self.context.ok() or self.run is None:
             return
         if self.p['timing'] == 'timer' and self.start_ns is not None:
             self.stop(max(self.get_clock().now().nanoseconds, self.answered_ns + 1),
@@ -420,27 +540,35 @@ def _count(value: str | None) -> int:
         return 0
 
 
-def excitation_run(p: dict, n: int) -> ExcitationRun:
-    """The run the node's parameters ``p`` describe for ``n`` fingers: the plan of its signals,
-    the first settle phase and, with ``level: auto``, the amplitude search.
+def excitation_run(p: dict, n: int, bounds: InputBounds | None = None) -> ExcitationRun:
+    """The run the node's parameters ``p`` describe for ``n`` fingers within ``bounds`` (None:
+    the limit the parameters give, :func:`given_limit`): the plan of its signals, the first
+    settle phase and, with ``level: auto``, the amplitude search. Symmetric bounds on two inputs
+    are the hand's ±``torque_limit`` (``p['torque_limit']`` is set to theirs).
 
     Raises:
-        ParameterError: a bad finger, signal, spec file or level setting (the message names it).
+        ParameterError: a bad finger, signal, spec file or level setting, or no limit at all
+            (the message names it).
     """
-    if p['finger'] >= n:
-        raise ParameterError(f"parameter 'finger': {p['finger']} is not a finger of "
-                             f'finger_names {list(p["finger_names"])} (indices 0 to {n - 1}, '
-                             'or -1 for all)')
+    if bounds is None:
+        bounds = given_limit(p)
+        if bounds is None:
+            raise ParameterError("parameters 'torque_limit', 'input_lower', 'input_upper': no "
+                                 "limit given (torque_limit 0, input_lower / input_upper ''), "
+                                 "and none from a driver")
+    _check_finger(p, n)
     finger = None if p['finger'] < 0 else p['finger']
-    bounds = input_bounds(p)
+    if bounds.m == 2 and bounds.symmetric_limit is not None:
+        p['torque_limit'] = bounds.symmetric_limit
+        bounds = None
     m = None if bounds is None else bounds.m
     limit = MAX_TORQUE if bounds is None else max(
         MAX_TORQUE, 10 * float(np.abs(np.concatenate([bounds.lower, bounds.upper])).max()))
     try:
         signals = resolve_signals(list(p['signals']), p['spec_file'] or None,
                                   p['duration'] or None, m, limit)
-        plan = ExcitationPlan(signals, p['settle_time'], n, finger, p['torque_limit'],
-                              p['amplitude'], bounds)
+        plan = ExcitationPlan(signals, p['settle_time'], n, finger,
+                              p['torque_limit'] or PLAN_TORQUE_LIMIT, p['amplitude'], bounds)
     except (SignalSpecError, ValueError) as exc:
         raise ParameterError(str(exc)) from None
     settle = SettlePhase(p['settle_time'], p['settle_samples'])
@@ -450,33 +578,49 @@ def excitation_run(p: dict, n: int) -> ExcitationRun:
     return ExcitationRun(plan, settle, search)
 
 
-def input_bounds(p: dict) -> InputBounds | None:
-    """The bounds ``input_lower`` / ``input_upper`` give, or None for the hand's ±torque_limit
-    on two inputs (both empty, or symmetric bounds on two inputs: then they replace
-    torque_limit).
+def given_limit(p: dict) -> InputBounds | None:
+    """The limit the parameters ``p`` give: ``input_lower`` / ``input_upper`` (1 to 4 inputs),
+    else ±``torque_limit`` on the hand's two inputs; None when neither is given (torque_limit 0,
+    both lists empty): the limit is then the driver's.
 
     Raises:
         ParameterError: a list that is not numbers, one list empty and the other not, different
             lengths, not 1 to 4 inputs, or an empty interval (the message names the parameters).
     """
-    lower, upper = (numbers(p[name], name) for name in ('input_lower', 'input_upper'))
-    if lower is None and upper is None:
-        return None
-    what = "parameters 'input_lower', 'input_upper'"
-    if lower is None or upper is None:
-        raise ParameterError(f'{what}: give both (one value per input) or neither '
-                             '(±torque_limit on 2 inputs)')
-    if len(lower) != len(upper):
-        raise ParameterError(f'{what}: {len(lower)} lower and {len(upper)} upper bound(s); give '
-                             'one of each per input')
-    try:
-        bounds = InputBounds.parse(lower, upper, len(lower), what)
-    except ShapeError as exc:
-        raise ParameterError(str(exc)) from None
-    if bounds.m == 2 and bounds.symmetric_limit is not None:
-        p['torque_limit'] = bounds.symmetric_limit
-        return None
+    bounds = given_bounds(p, neither="±torque_limit on 2 inputs, or the driver's limit")
+    if bounds is None and p['torque_limit'] > 0:
+        return InputBounds.symmetric(p['torque_limit'], 2)
     return bounds
+
+
+def check_without_limit(p: dict, n: int) -> None:
+    """Check what can be checked of the parameters ``p`` for ``n`` fingers before the driver's
+    bounds are known: the finger, the level settings, and the signals (each the built-in or the
+    spec file's for some number of inputs from 1 to 4, whatever the bounds); the rest is
+    checked when the bounds arrive.
+
+    Raises:
+        ParameterError: the first problem found (the message names it).
+    """
+    _check_finger(p, n)
+    if p['level'] == 'auto':
+        _check_level(p)
+    problem = None
+    for m in (2, 1, 3, 4):       # bounds wide enough for any spec file's amplitudes and offsets
+        wide = InputBounds(np.full(m, -ANY_BOUND), np.full(m, 2 * ANY_BOUND))
+        try:
+            excitation_run(dict(p), n, wide)
+            return
+        except ParameterError as exc:
+            problem = problem or exc
+    raise problem
+
+
+def _check_finger(p: dict, n: int) -> None:
+    if p['finger'] >= n:
+        raise ParameterError(f"parameter 'finger': {p['finger']} is not a finger of "
+                             f'finger_names {list(p["finger_names"])} (indices 0 to {n - 1}, '
+                             'or -1 for all)')
 
 
 def _check_level(p: dict) -> None:

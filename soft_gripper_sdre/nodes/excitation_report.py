@@ -1,7 +1,7 @@
 """What the excitation node shows of its run: the /diagnostics values and the log lines at the
-start, at each step (the signal or probe being played, the plan time), when the level search has
-chosen the amplitude, and at the first non-zero torque (how many zero-torque answers training
-will find before it)."""
+start (with where its limit came from), at each step (the signal or probe being played, the plan
+time), when the level search has chosen the amplitude, and at the first non-zero torque (how
+many zero-torque answers training will find before it)."""
 from __future__ import annotations
 
 from soft_gripper_sdre.nodes.common import Diagnostics
@@ -32,9 +32,9 @@ class RunReport:
             diag.values.update(amplitude=f'{p["amplitude"]:g}',
                                clip_share=f'{run.plan.clip_share():.4f}')
 
-    def log_start(self, names: tuple[str, ...]) -> None:
+    def log_start(self, names: tuple[str, ...], source: str) -> None:
         """One line of what will run (``names``: the fingers): the signals, the finger, the
-        limit, the level, the timing."""
+        limit and where it came from (``source``), the level, the timing."""
         p, plan, search = self.p, self.run.plan, self.run.search
         signals = ', '.join(seg.signal.name for seg in self.run.whole.segments)
         where = 'every finger' if p['finger'] < 0 else names[p['finger']]
@@ -45,7 +45,7 @@ class RunReport:
                   else f'{plan.m} input(s) within {plan.map.bounds}')
         self.log.info(
             f'{signals} on {where} of {len(names)}, '
-            f'{p["settle_time"]:g} s settle before each, {within}, '
+            f'{p["settle_time"]:g} s settle before each, {within} ({source}), '
             f'{level}, {self.run.whole.duration:g} s in all'
             + (' and the probes' if search is not None else '')
             + f'; {p["timing"]} timing; starting once '

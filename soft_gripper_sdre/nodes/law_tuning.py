@@ -2,7 +2,10 @@
 node runs (no ROS: the node holds a :class:`LawTuning` and reports what it returns).
 
 The parameters are the node's (``law``, ``q_pos``, ``integral_gain``, ``pd_kp``, …); each law
-reads only its own (:data:`~soft_gripper_sdre.control.laws.LAW_REGISTRY` options). A runtime
+reads only those its file declares (:class:`~soft_gripper_sdre.control.laws.registry.LawParam`,
+the :data:`~soft_gripper_sdre.control.laws.LAW_REGISTRY` entry's ``params``), and the registry
+maps them to the law's options (:func:`~soft_gripper_sdre.control.laws.registry.node_options`).
+The runtime parameters are those the law files declare ``runtime``. A runtime
 change is checked by building the law with the new values, so a refused one leaves the old law
 and values in force; an accepted one replaces the law after
 :func:`~soft_gripper_sdre.control.laws.hand_over` gave the new law the state that keeps the
@@ -11,16 +14,16 @@ law does not read is taken and has no effect.
 """
 from __future__ import annotations
 
-from soft_gripper_sdre.control.laws import LAW_REGISTRY, hand_over, make_law, pd_gains
+from soft_gripper_sdre.control.laws import LAW_REGISTRY, hand_over, make_law
+from soft_gripper_sdre.control.laws.registry import law_params, node_options, shown_values
 from soft_gripper_sdre.control.tracking import Law, Weights
 
-#: the parameters that may be changed while the node runs and retune the law
-TUNABLE = ('q_pos', 'q_vel', 'r', 'integral_gain', 'integral_band', 'pd_kp', 'pd_kd')
-#: the laws whose gains are not from the SDRE weights
-FIXED_GAIN_LAWS = ('pd', 'computed_torque')
+#: the parameters that may be changed while the node runs and retune the law (the law files'
+#: runtime parameters)
+TUNABLE = tuple(p.name for p in law_params() if p.runtime)
 #: every node parameter the law is built from
 LAW_PARAMS = ('law', 'solver', 'torque_limit', 'torque_lowpass_hz', 'control_period',
-              'state_weights', 'feedforward_at', *TUNABLE)
+              *(p.name for p in law_params()))
 
 
 class LawTuning:
@@ -54,27 +57,14 @@ class LawTuning:
         Raises:
             ValueError: a value the law refuses (the message names it).
         """
-        options = LAW_REGISTRY[p['law']].options
-        extra = {}
-        if 'integral_gain' in options:
-            extra.update(integral_gain=p['integral_gain'], integral_band=p['integral_band'])
-        if 'ff_at' in options:
-            extra['ff_at'] = p['feedforward_at']
-        if 'pd_gains' in options:
-            extra['pd_gains'] = pd_gains(p['law'], p['pd_kp'], p['pd_kd'])
         return make_law(p['law'], self.model, Weights(p['q_pos'], p['q_vel'], p['r']),
                         p['torque_limit'], n_fingers=self.n, method=p['solver'],
                         lowpass_hz=p['torque_lowpass_hz'], dt=p['control_period'],
-                        adaptive=p['state_weights'], bounds=self.bounds, **extra)
+                        bounds=self.bounds, **node_options(p['law'], p))
 
     def uses(self, name: str) -> bool:
-        """Whether the law in use reads the tunable parameter ``name``."""
-        options = LAW_REGISTRY[self.name].options
-        if name in ('q_pos', 'q_vel', 'r'):
-            return self.name not in FIXED_GAIN_LAWS
-        if name in ('integral_gain', 'integral_band'):
-            return 'integral_gain' in options
-        return name in ('pd_kp', 'pd_kd') and 'pd_gains' in options
+        """Whether the law in use reads the parameter ``name`` (its file declares it)."""
+        return any(p.name == name for p in LAW_REGISTRY[self.name].params)
 
     def check(self, new: dict) -> str | None:
         """Why the runtime change ``new`` (parameter name → value) is refused, or None; an
@@ -104,9 +94,7 @@ class LawTuning:
         return f'{changes}: the {self.name} law is retuned from the next estimate'
 
     def shown(self) -> dict[str, str]:
-        """The tunable values in force, as /diagnostics shows them."""
-        p = self.params
-        gains = pd_gains(p['law'], p['pd_kp'], p['pd_kd'])
-        return {'weights': f'q_pos={p["q_pos"]:g} q_vel={p["q_vel"]:g} r={p["r"]:g}',
-                'integral': f'gain={p["integral_gain"]:g} band={p["integral_band"]:g}',
-                'pd_gains': f'kp={gains["kp"]:g} kd={gains["kd"]:g}'}
+        """The tunable values in force, as /diagnostics shows them (``weights``,
+        ``integral``, ``pd_gains``, …: :func:`~soft_gripper_sdre.control.laws.registry.
+        shown_values`)."""
+        return shown_values(self.name, self.params)

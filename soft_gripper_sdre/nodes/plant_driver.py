@@ -1,7 +1,7 @@
 """The plant driver node: a gripper of two foreign fingers served the way a lab's driver would.
 
 It stands in for a real robot's driver in front of the node graph (README, "Use with your own
-gripper"): the fingers are the plants of :mod:`soft_gripper_sdre.sim.foreign_presets`
+gripper"): the fingers are the plants of :mod:`soft_gripper_sdre.sim.plants.presets`
 (``plant``: ``tendon3`` or ``stiff2``, planar with two torques; ``pneumatic1``, planar with one
 chamber pressure; ``trunk3``, a 3-D tip with three tendon tensions), and the loop runs on the
 wall clock, not in lockstep. The gripper's shape gives the command's m inputs and the tip's d
@@ -26,7 +26,7 @@ N). A steady-clock timer ticks at ``rate``; each tick
    these messages are not published (``dropped``), at random; ``true_tip_positions`` carries
    the noise-free tips of every tick with the same stamps (reliable), for scoring.
 
-Pose i is finger i's tip in its base frame (sim/foreign.py: X down the hanging finger, Y toward
+Pose i is finger i's tip in its base frame (sim/plants/chain.py: X down the hanging finger, Y toward
 the palm; Z = X × Y): (x, y, 0) for a planar finger, (x, y, z) for a 3-D one. Nothing publishes
 /clock: every stamp is wall time.
 
@@ -35,7 +35,9 @@ command for another number of inputs —, sizes) is counted (``bad_commands``) w
 warning and the previous command stays in force; one with a NaN or Inf effort is counted
 (``nonfinite_commands``) and the rest input is applied. /diagnostics (1 Hz) carries these
 counters and ``ticks``, ``published``, ``commands``, ``clipped_commands``, the plant time, the
-command's age, the tick intervals, the shape and the bounds.
+command's age, the tick intervals, the shape and the bounds (``bounds``: ``ax0 [lower, upper],
+…`` per finger joined by ``;``, which the excitation node takes as its limit when none is given:
+:mod:`soft_gripper_sdre.nodes.driver_limits`).
 The node stops at ``duration`` of wall time (exit 0) or on SIGINT / SIGTERM.
 """
 from __future__ import annotations
@@ -61,17 +63,17 @@ from soft_gripper_sdre.nodes.common import (
     ThrottledLogger,
     run,
 )
+from soft_gripper_sdre.nodes.driver_limits import given_bounds
 from soft_gripper_sdre.nodes.params import (
     Param,
     ParameterError,
     declare_all,
-    numbers,
     numbers_param,
     on_runtime_change,
 )
 from soft_gripper_sdre.nodes.topics import LOOP_QOS, NEWEST_QOS, TIP_POSITIONS, TORQUE_COMMANDS
-from soft_gripper_sdre.sim.foreign_presets import GRIPPERS, plant_pair
-from soft_gripper_sdre.sim.shape import InputBounds, ShapeError
+from soft_gripper_sdre.sim.plants.presets import GRIPPERS, plant_pair
+from soft_gripper_sdre.sim.shape import InputBounds
 
 #: the noise-free tips, for scoring (same type and stamps as tip_positions)
 TRUE_TIP_POSITIONS = 'true_tip_positions'
@@ -91,7 +93,7 @@ def _two_names(names) -> str | None:
 
 
 PARAMS = (
-    Param('plant', 'tendon3', 'the gripper, from sim/foreign_presets.py: tendon3 (an index and a '
+    Param('plant', 'tendon3', 'the gripper, from sim/plants/presets.py: tendon3 (an index and a '
           'thumb, soft three-link tendon fingers), stiff2 (two fast two-link fingers), pneumatic1 '
           '(one chamber each: one input, 0..60 kPa, planar tip) or trunk3 (three-tendon '
           'segments: three inputs, 0..4 N, 3-D tip)', choices=tuple(GRIPPERS), read_only=True),
@@ -301,7 +303,7 @@ def finger_bounds(plants, p: dict) -> tuple[np.ndarray, np.ndarray]:
                                  'input_lower / input_upper')
         lower = np.maximum(lower, -p['torque_limit'])
         upper = np.minimum(upper, p['torque_limit'])
-    given = input_bounds(p, m, p['plant'])
+    given = given_bounds(p, m, "the preset's bounds", f" (plant {p['plant']!r})")
     if given is None:
         return lower, upper
     if np.any(given.lower < lower) or np.any(given.upper > upper):
@@ -309,27 +311,6 @@ def finger_bounds(plants, p: dict) -> tuple[np.ndarray, np.ndarray]:
                              f"the plant's bounds [{plants[0].bounds}]")
     return np.broadcast_to(given.lower, lower.shape).copy(), np.broadcast_to(
         given.upper, upper.shape).copy()
-
-
-def input_bounds(p: dict, m: int, plant: str) -> InputBounds | None:
-    """The bounds of ``input_lower`` / ``input_upper`` for the ``m`` inputs of ``plant``; None
-    when both are empty.
-
-    Raises:
-        ParameterError: a list that is not numbers, one list empty and the other not, not one
-            value per input, or an empty interval (the message names the parameters).
-    """
-    lower, upper = (numbers(p[name], name) for name in ('input_lower', 'input_upper'))
-    if lower is None and upper is None:
-        return None
-    what = "parameters 'input_lower', 'input_upper'"
-    if lower is None or upper is None:
-        raise ParameterError(f"{what}: give both (one value per input) or neither (the preset's "
-                             'bounds)')
-    try:
-        return InputBounds.parse(lower, upper, m, f'{what} (plant {plant!r})')
-    except ShapeError as exc:
-        raise ParameterError(str(exc)) from None
 
 
 def _has_nonfinite_effort(data: bytes) -> bool:

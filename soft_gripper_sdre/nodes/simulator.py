@@ -42,7 +42,10 @@ for t_k to receiving the first command stamped t_k, as p50 / p99 / max [µs] ove
 10 000 answered periods (``loop_latency_us_*``) and over those since the previous /diagnostics
 (``recent_latency_us_*``);
 and when the first command was accepted (``first_command_monotonic_s``, this machine's monotonic
-clock, and ``first_command_after_tips_ms``, from the first tips).
+clock, and ``first_command_after_tips_ms``, from the first tips). Like a driver, it reports the
+interval its commands are clipped to as ``bounds``: ``ax0 [-limit, limit], ax1 [-limit, limit]``
+per exposed finger (``torque_limit``), joined by ``;``, which the excitation node takes as its
+limit when none is given (:mod:`soft_gripper_sdre.nodes.driver_limits`).
 """
 from __future__ import annotations
 
@@ -71,6 +74,7 @@ from soft_gripper_sdre.nodes.topics import NEWEST_QOS, TORQUE_COMMANDS
 from soft_gripper_sdre.sim.finger import FINGER_BASE_POSITIONS
 from soft_gripper_sdre.sim.hand import GripperSim, SimConfig
 from soft_gripper_sdre.sim.lockstep import LATENCY_PERIODS, MODES, Stepping
+from soft_gripper_sdre.sim.shape import InputBounds
 
 PARAMS = (
     Param('mode', 'lockstep', 'stepping mode: lockstep (each period steps on its own command), '
@@ -171,6 +175,8 @@ class SimulatorNode(Node):
         self.diag.before_publish.append(self._refresh_diagnostics)
         self.diag.values['mode'] = p['mode']
         self.diag.values['scene'] = p['scene']
+        self.diag.values['bounds'] = '; '.join(
+            str(InputBounds.symmetric(p['torque_limit'], 2)) for _ in self.names)
         self.gate = StartGate(self, StartRule.from_params(p), tips=self.state_out.pub_tips,
                               commands=self.sub_cmd, diag=self.diag, start=self._start)
         self.get_logger().info(

@@ -31,6 +31,12 @@ other the general numpy/scipy code: the one rule is
 :func:`~soft_gripper_sdre.control.tracking.hand_path`. The Koopman baselines are the hand's and
 refuse another shape or bounds.
 
+Each law file declares its node parameters (:class:`~.registry.LawParam`) and registers itself
+(:func:`~.registry.register_law`, :mod:`~soft_gripper_sdre.control.laws.registry`): importing
+this package imports the law files, in the order below, which is the registry's (the controller's
+law choices and parameters). docs/design/laws.md "Adding a law" says what a law file
+declares.
+
 The oracle laws (``oracle``, ``oracle_exact``, ``oracle_ff``: the SDRE on the simulator's true
 dynamics) are evaluation yardsticks that need the plant's ground truth; they live in
 :mod:`soft_gripper_sdre.analysis.oracle`, whose ``register_oracle_laws()`` adds them to this
@@ -38,130 +44,41 @@ registry.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Callable, NamedTuple
-
-from soft_gripper_sdre.control.laws.computed_torque import DEFAULT_CT, ComputedTorqueLaw
+# the law files register themselves as they are imported, in this order (the registry's)
+# isort: off
+from soft_gripper_sdre.control.laws.registry import (
+    LAW_REGISTRY,
+    WEIGHT_PARAMS,
+    LawEntry,
+    LawParam,
+    LawSettings,
+    graph_laws,
+    make_law,
+    register_law,
+)
 from soft_gripper_sdre.control.laws.feedback import AdaptiveSdreLaw, SdreLaw
 from soft_gripper_sdre.control.laws.feedforward import FF_AT, SdreFeedforwardLaw, model_inversion
 from soft_gripper_sdre.control.laws.fixed import DEFAULT_PD, LqrLaw, PdLaw
-from soft_gripper_sdre.control.laws.integral import DEFAULT_INTEGRAL, IntegralAction
+from soft_gripper_sdre.control.laws.computed_torque import DEFAULT_CT, ComputedTorqueLaw
 from soft_gripper_sdre.control.laws.koopman import KoopmanLqrLaw, KoopmanMpcLaw
-from soft_gripper_sdre.control.tracking import (
-    DEFAULT_LOWPASS_HZ,
-    Law,
-    Weights,
-    hand_path,
-    law_bounds,
-    shape_of,
-)
-from soft_gripper_sdre.learning.koopman import KoopmanFileError, KoopmanModel
-from soft_gripper_sdre.sim.shape import HAND_SHAPE, InputBounds, ShapeError
+from soft_gripper_sdre.control.laws import smc  # noqa: F401  (registers the law)
+# isort: on
+from soft_gripper_sdre.control.laws.integral import DEFAULT_INTEGRAL, IntegralAction
+from soft_gripper_sdre.control.tracking import Law
 
 __all__ = ['AdaptiveSdreLaw', 'ComputedTorqueLaw', 'DEFAULT_CT', 'DEFAULT_INTEGRAL', 'DEFAULT_LAW',
            'DEFAULT_PD', 'FF_AT', 'GRAPH_LAWS', 'IntegralAction', 'KoopmanLqrLaw', 'KoopmanMpcLaw',
-           'LAW_REGISTRY', 'LawEntry', 'LawSettings', 'LqrLaw', 'PdLaw', 'SdreFeedforwardLaw',
-           'SdreLaw', 'hand_over', 'make_law', 'model_inversion', 'pd_gains', 'register_law']
+           'LAW_REGISTRY', 'LawEntry', 'LawParam', 'LawSettings', 'LqrLaw', 'PdLaw',
+           'SdreFeedforwardLaw', 'SdreLaw', 'WEIGHT_PARAMS', 'hand_over', 'make_law',
+           'model_inversion', 'pd_gains', 'register_law']
 
-#: the laws that run on the node graph (the oracles need the plant's joint state: in-process only;
-#: the Koopman laws load the shipped Koopman model beside the SDC one)
-GRAPH_LAWS = ('sdre', 'sdre_ff', 'lqr', 'pd', 'computed_torque', 'koopman_mpc', 'koopman_lqr')
+#: the laws that run on the node graph, as their files registered them (the oracles need the
+#: plant's joint state: in-process only; the Koopman laws load the shipped Koopman model beside
+#: the SDC one)
+GRAPH_LAWS = graph_laws()
 #: the controller node's default: the learned SDRE with model-inversion feedforward (README
 #: "Beyond the paper"); 'sdre' is the paper's law
 DEFAULT_LAW = 'sdre_ff'
-
-
-@dataclass(frozen=True)
-class LawSettings:
-    """What every law is built from (:func:`make_law`'s shared arguments)."""
-
-    model: object                 # the learned SDC model (AG, rest_tip, optionally sdc_blocks)
-    weights: Weights
-    u_max: float                  # torque saturation [N·m] where bounds is None
-    n_fingers: int = 4
-    method: str = 'fast'          # the SDRE solver: 'fast' or 'reference'
-    lowpass_hz: float = DEFAULT_LOWPASS_HZ
-    dt: float = 1e-3              # control period [s]
-    bounds: InputBounds | None = None   # per-input [lower, upper]; None: ±u_max on each input
-
-
-class LawEntry(NamedTuple):
-    """A registered law: ``build(settings, **options)`` and the names of the options it takes."""
-
-    build: Callable[..., Law]
-    options: tuple[str, ...] = ()
-
-
-def _sdre(s: LawSettings, adaptive: bool = False) -> Law:
-    law = AdaptiveSdreLaw if adaptive else SdreLaw
-    return law(s.model, s.weights, s.u_max, n_fingers=s.n_fingers, method=s.method,
-               lowpass_hz=s.lowpass_hz, dt=s.dt, bounds=s.bounds)
-
-
-def _sdre_ff(s: LawSettings, ff_at: str = 'x', integral_gain: float | None = None,
-             integral_band: float | None = None) -> Law:
-    gain = DEFAULT_INTEGRAL['gain'] if integral_gain is None else integral_gain
-    band = DEFAULT_INTEGRAL['band'] if integral_band is None else integral_band
-    return SdreFeedforwardLaw(s.model, s.weights, s.u_max, n_fingers=s.n_fingers, method=s.method,
-                              lowpass_hz=s.lowpass_hz, dt=s.dt, ff_at=ff_at, integral_gain=gain,
-                              integral_band=band, bounds=s.bounds)
-
-
-def _lqr(s: LawSettings) -> Law:
-    return LqrLaw(s.model, s.weights, s.u_max, n_fingers=s.n_fingers, lowpass_hz=s.lowpass_hz,
-                  dt=s.dt, bounds=s.bounds)
-
-
-def _pd(s: LawSettings, pd_gains: dict | None = None, feedforward: bool = False) -> Law:
-    return PdLaw(s.model, s.u_max, n_fingers=s.n_fingers, lowpass_hz=s.lowpass_hz, dt=s.dt,
-                 feedforward=feedforward, bounds=s.bounds, **(pd_gains or DEFAULT_PD))
-
-
-def _model_shape(model):
-    """The model's shape; no model (the Koopman laws need none) is the hand's."""
-    return HAND_SHAPE if model is None else shape_of(model)
-
-
-def _koopman(s: LawSettings, law=KoopmanMpcLaw, koopman_path=None) -> Law:
-    shape = _model_shape(s.model)
-    if not hand_path(shape, law_bounds(shape, s.u_max, s.bounds)):
-        raise ShapeError(f'the Koopman laws are the hand\'s ({HAND_SHAPE}, bounds ±u_max on both '
-                         f'inputs); this model has {shape}'
-                         + ('' if s.bounds is None else f' and bounds {s.bounds}'))
-    try:
-        koopman = KoopmanModel.load(koopman_path)
-    except KoopmanFileError as exc:
-        raise ValueError(f'koopman_path: {exc}') from None
-    u_max = s.u_max if s.bounds is None else s.bounds.symmetric_limit
-    return law(koopman, s.weights, u_max, n_fingers=s.n_fingers, lowpass_hz=s.lowpass_hz, dt=s.dt)
-
-
-def _computed_torque(s: LawSettings, pd_gains: dict | None = None) -> Law:
-    return ComputedTorqueLaw(s.model, s.u_max, n_fingers=s.n_fingers, lowpass_hz=s.lowpass_hz,
-                             dt=s.dt, method=s.method, bounds=s.bounds,
-                             **(pd_gains or DEFAULT_CT))
-
-
-#: what the options of the laws below mean (for error messages)
-_OPTION_MEANINGS = {'adaptive': 'state-dependent weights Q(x)',
-                    'ff_at': 'where the feedforward evaluates the model',
-                    'integral_gain': 'the integral action\'s gain',
-                    'integral_band': 'the integral action\'s error band',
-                    'pd_gains': 'the PD gains',
-                    'feedforward': 'the reference acceleration added to the PD',
-                    'koopman_path': 'the Koopman model file'}
-
-#: law name → how to build it; :func:`register_law` adds to it
-LAW_REGISTRY: dict[str, LawEntry] = {
-    'sdre': LawEntry(_sdre, ('adaptive',)),
-    'sdre_ff': LawEntry(_sdre_ff, ('ff_at', 'integral_gain', 'integral_band')),
-    'lqr': LawEntry(_lqr),
-    'pd': LawEntry(_pd, ('pd_gains', 'feedforward')),
-    'koopman_mpc': LawEntry(_koopman, ('koopman_path',)),
-    'koopman_lqr': LawEntry(lambda s, koopman_path=None: _koopman(s, KoopmanLqrLaw, koopman_path),
-                            ('koopman_path',)),
-    'computed_torque': LawEntry(_computed_torque, ('pd_gains',)),
-}
 
 
 def pd_gains(law: str, kp: float = 0.0, kd: float = 0.0) -> dict:
@@ -192,43 +109,3 @@ def hand_over(old: Law, new: Law) -> None:
         new_i.xi[:] = old_i.xi * (old_i.gain / new_i.gain)         # the same u_I = k_i G₂⁻¹ ξ
     if hasattr(old, 'history') and hasattr(new, 'history'):
         new.history = old.history
-
-
-def register_law(name: str, build: Callable[..., Law], options: tuple[str, ...] = ()) -> None:
-    """Make ``make_law(name, …)`` build ``build(settings, **options)`` (replacing an earlier
-    entry)."""
-    LAW_REGISTRY[name] = LawEntry(build, tuple(options))
-
-
-def make_law(name: str, model, weights: Weights, u_max: float, n_fingers: int = 4,
-             method: str = 'fast', lowpass_hz: float = DEFAULT_LOWPASS_HZ, dt: float = 1e-3,
-             bounds: InputBounds | None = None, **options) -> Law:
-    """The law registered as ``name`` with the shared settings and its own ``options``.
-
-    ``bounds``: per-input [lower, upper] the law clips to, one per input of the model (None: ±u_max
-    on each). An option the law does not take is refused unless it is off (None or False), so
-    callers can pass e.g. ``adaptive=False`` to any law.
-
-    Raises:
-        ValueError: unknown law, or an option the law does not take, or a bad setting
-            (:class:`~soft_gripper_sdre.sim.shape.ShapeError`, a ValueError, for a model whose
-            shape cannot be told, bounds of another number of inputs, or a shape the law does
-            not take).
-    """
-    entry = LAW_REGISTRY.get(name)
-    if entry is None:
-        raise ValueError(f'unknown law {name!r}; known: {tuple(LAW_REGISTRY)} (the oracle laws '
-                         'are known after analysis.oracle.register_oracle_laws())')
-    taken = {}
-    for key, value in options.items():
-        if key in entry.options:
-            taken[key] = value
-        elif value is not None and value is not False:
-            owners = [n for n, e in LAW_REGISTRY.items() if key in e.options]
-            meaning = f' ({_OPTION_MEANINGS[key]})' if key in _OPTION_MEANINGS else ''
-            raise ValueError(f'{key}={value!r}{meaning} is not an option of the {name!r} law; '
-                             f'laws that take it: {owners or "none"}')
-    if bounds is not None:
-        law_bounds(_model_shape(model), u_max, bounds)      # the bounds fit the model's inputs
-    return entry.build(LawSettings(model, weights, u_max, n_fingers, method, lowpass_hz, dt,
-                                   bounds), **taken)

@@ -9,6 +9,8 @@ from soft_gripper_sdre.control.laws.feedforward import (
     pseudo_inversion,
     reference_acceleration,
 )
+from soft_gripper_sdre.control.laws.fixed import PD_PARAMS
+from soft_gripper_sdre.control.laws.registry import LawSettings, register_law
 from soft_gripper_sdre.control.tracking import DEFAULT_LOWPASS_HZ, LawIO, LawStep, shape_of
 from soft_gripper_sdre.sim.shape import InputBounds
 
@@ -103,3 +105,14 @@ class ComputedTorqueLaw:
             return model_inversion(A2, G2, x, a_des, CT_COND_MAX)
         u, usable, self._unreachable = pseudo_inversion(A2, G2, x, a_des, CT_COND_MAX)
         return u, usable
+
+
+def _computed_torque(s: LawSettings, pd_gains: dict | None = None) -> ComputedTorqueLaw:
+    return ComputedTorqueLaw(s.model, s.u_max, n_fingers=s.n_fingers, lowpass_hz=s.lowpass_hz,
+                             dt=s.dt, method=s.method, bounds=s.bounds,
+                             **(pd_gains or DEFAULT_CT))
+
+
+register_law('computed_torque', _computed_torque, params=PD_PARAMS, graph=True,
+             summary='computed torque (feedback linearisation) on the learned model',
+             own={'pd_kp': DEFAULT_CT['kp'], 'pd_kd': DEFAULT_CT['kd']})

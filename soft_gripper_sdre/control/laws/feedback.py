@@ -4,6 +4,12 @@ from __future__ import annotations
 import numpy as np
 
 from soft_gripper_sdre.control.kernels import compiled_network
+from soft_gripper_sdre.control.laws.registry import (
+    WEIGHT_PARAMS,
+    LawParam,
+    LawSettings,
+    register_law,
+)
 from soft_gripper_sdre.control.sdre import SdreController
 from soft_gripper_sdre.control.tracking import (
     DEFAULT_LOWPASS_HZ,
@@ -151,3 +157,19 @@ class AdaptiveSdreLaw:
         out = self._controller(self.gain).compute(pos, vel, ref_pos, ref_vel)
         out.u = self.io.roll_off(out.u)
         return out
+
+
+#: ``state_weights``: the ``sdre`` law's ``adaptive`` option
+STATE_WEIGHTS = LawParam('state_weights', False, 'state-dependent Q(x) that rises with the '
+                         'tracking error', option='adaptive', strict=True)
+
+
+def _sdre(s: LawSettings, adaptive: bool = False):
+    law = AdaptiveSdreLaw if adaptive else SdreLaw
+    return law(s.model, s.weights, s.u_max, n_fingers=s.n_fingers, method=s.method,
+               lowpass_hz=s.lowpass_hz, dt=s.dt, bounds=s.bounds)
+
+
+register_law('sdre', _sdre, params=(*WEIGHT_PARAMS, STATE_WEIGHTS), graph=True,
+             summary="the paper's learned SDRE", meanings={'adaptive': 'state-dependent weights '
+                                                           'Q(x)'})

@@ -10,6 +10,12 @@ from soft_gripper_sdre.control.laws.integral import (
     IntegralAction,
     ReachableIntegralAction,
 )
+from soft_gripper_sdre.control.laws.registry import (
+    WEIGHT_PARAMS,
+    LawParam,
+    LawSettings,
+    register_law,
+)
 from soft_gripper_sdre.control.sdre import SdreController
 from soft_gripper_sdre.control.tracking import (
     DEFAULT_LOWPASS_HZ,
@@ -272,3 +278,37 @@ class SdreFeedforwardLaw:
         else:
             out.u = self.io.roll_off(out.u)
         return out
+
+
+#: the ``sdre_ff`` law's node parameters besides the weights
+FF_PARAMS = (
+    LawParam('feedforward_at', 'x', "where the feedforward evaluates the learned model: 'x' the "
+             "estimated state (its error dynamics exactly linear), 'ref' the reference (no "
+             'measurement noise reaches the model; what settings derived by training use)',
+             choices=FF_AT, option='ff_at'),
+    LawParam('integral_gain', DEFAULT_INTEGRAL['gain'], 'integral action on the tip position '
+             'error against the steady offset of joint friction, as a tip acceleration k_i '
+             '∫(p_d − p)dt through the learned input map at rest; frozen while saturated, '
+             'decaying while the error is outside integral_band (pressing on the cube); 0 = off',
+             '1/s³', 0.0, 1e8, runtime=True, option='integral_gain', shown=('integral', 'gain')),
+    LawParam('integral_band', DEFAULT_INTEGRAL['band'], 'tip error beyond which the integral '
+             'stops integrating and decays (the reference is not reachable, e.g. inside the '
+             'cube)', 'm', 1e-6, 0.1, runtime=True, option='integral_band',
+             shown=('integral', 'band')),
+)
+
+
+def _sdre_ff(s: LawSettings, ff_at: str = 'x', integral_gain: float | None = None,
+             integral_band: float | None = None) -> SdreFeedforwardLaw:
+    gain = DEFAULT_INTEGRAL['gain'] if integral_gain is None else integral_gain
+    band = DEFAULT_INTEGRAL['band'] if integral_band is None else integral_band
+    return SdreFeedforwardLaw(s.model, s.weights, s.u_max, n_fingers=s.n_fingers, method=s.method,
+                              lowpass_hz=s.lowpass_hz, dt=s.dt, ff_at=ff_at, integral_gain=gain,
+                              integral_band=band, bounds=s.bounds)
+
+
+register_law('sdre_ff', _sdre_ff, params=(*WEIGHT_PARAMS, *FF_PARAMS), graph=True,
+             summary='SDRE + model-inversion feedforward (docs/results.md "Beyond the paper")',
+             meanings={'ff_at': 'where the feedforward evaluates the model',
+                       'integral_gain': 'the integral action\'s gain',
+                       'integral_band': 'the integral action\'s error band'})

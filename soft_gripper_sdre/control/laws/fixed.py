@@ -4,6 +4,12 @@ from __future__ import annotations
 import numpy as np
 
 from soft_gripper_sdre.control.laws.feedforward import reference_acceleration
+from soft_gripper_sdre.control.laws.registry import (
+    WEIGHT_PARAMS,
+    LawParam,
+    LawSettings,
+    register_law,
+)
 from soft_gripper_sdre.control.riccati import sdre_gains
 from soft_gripper_sdre.control.tracking import (
     DEFAULT_LOWPASS_HZ,
@@ -108,3 +114,35 @@ class PdLaw:
         step = self.io.finish(a_des @ self.Ginv.T, finite)                    # u = G₂(0)⁻¹ a_des
         step.fallback |= ~acc_ok
         return step
+
+
+#: the task-space PD gains of ``pd`` and ``computed_torque`` (their ``pd_gains`` option; 0 = the
+#: law's own tuned gain)
+PD_PARAMS = (
+    LawParam('pd_kp', 0.0, "the task-space gain on the tip position error, the error dynamics' "
+             "natural frequency squared; 0 = the law's own tuned gain", '1/s²', 0.0, 1e9,
+             runtime=True, option='pd_gains', key='kp', zero_is_own=True,
+             shown=('pd_gains', 'kp')),
+    LawParam('pd_kd', 0.0, "the gain on the tip velocity error, 2ζω; 0 = the law's own", '1/s',
+             0.0, 1e6, runtime=True, option='pd_gains', key='kd', zero_is_own=True,
+             shown=('pd_gains', 'kd')),
+)
+
+
+def _lqr(s: LawSettings) -> LqrLaw:
+    return LqrLaw(s.model, s.weights, s.u_max, n_fingers=s.n_fingers, lowpass_hz=s.lowpass_hz,
+                  dt=s.dt, bounds=s.bounds)
+
+
+def _pd(s: LawSettings, pd_gains: dict | None = None, feedforward: bool = False) -> PdLaw:
+    return PdLaw(s.model, s.u_max, n_fingers=s.n_fingers, lowpass_hz=s.lowpass_hz, dt=s.dt,
+                 feedforward=feedforward, bounds=s.bounds, **(pd_gains or DEFAULT_PD))
+
+
+register_law('lqr', _lqr, params=WEIGHT_PARAMS, graph=True,
+             summary='LQR frozen at the origin of the learned model')
+register_law('pd', _pd, ('feedforward',), params=PD_PARAMS, graph=True,
+             summary='task-space PD through the learned input map at rest',
+             own={'pd_kp': DEFAULT_PD['kp'], 'pd_kd': DEFAULT_PD['kd']},
+             meanings={'pd_gains': 'the PD gains',
+                       'feedforward': 'the reference acceleration added to the PD'})

@@ -36,8 +36,22 @@ from scipy.linalg import cho_factor, cho_solve, solve_discrete_are, solve_triang
 from scipy.optimize import lsq_linear
 
 from soft_gripper_sdre.control.laws.feedforward import reference_acceleration
-from soft_gripper_sdre.control.tracking import DEFAULT_LOWPASS_HZ, LawIO, LawStep, Weights
-from soft_gripper_sdre.learning.koopman import KoopmanModel
+from soft_gripper_sdre.control.laws.registry import (
+    WEIGHT_PARAMS,
+    LawSettings,
+    model_shape,
+    register_law,
+)
+from soft_gripper_sdre.control.tracking import (
+    DEFAULT_LOWPASS_HZ,
+    LawIO,
+    LawStep,
+    Weights,
+    hand_path,
+    law_bounds,
+)
+from soft_gripper_sdre.learning.koopman import KoopmanFileError, KoopmanModel
+from soft_gripper_sdre.sim.shape import HAND_SHAPE, ShapeError
 
 #: the MPC's defaults: N blocks of ``block`` control periods (a 20 ms horizon at 1 ms)
 MPC_HORIZON = 10
@@ -221,3 +235,29 @@ def check_period(koopman: KoopmanModel, dt: float) -> None:
     if not np.isclose(koopman.dt, dt, rtol=1e-9):
         raise ValueError(f'the Koopman model was fitted at a {koopman.dt:g} s period, the law runs '
                          f'at {dt:g} s')
+
+
+def _koopman(s: LawSettings, law=KoopmanMpcLaw, koopman_path=None):
+    shape = model_shape(s.model)
+    if not hand_path(shape, law_bounds(shape, s.u_max, s.bounds)):
+        raise ShapeError(f'the Koopman laws are the hand\'s ({HAND_SHAPE}, bounds ±u_max on both '
+                         f'inputs); this model has {shape}'
+                         + ('' if s.bounds is None else f' and bounds {s.bounds}'))
+    try:
+        koopman = KoopmanModel.load(koopman_path)
+    except KoopmanFileError as exc:
+        raise ValueError(f'koopman_path: {exc}') from None
+    u_max = s.u_max if s.bounds is None else s.bounds.symmetric_limit
+    return law(koopman, s.weights, u_max, n_fingers=s.n_fingers, lowpass_hz=s.lowpass_hz, dt=s.dt)
+
+
+def _koopman_lqr(s: LawSettings, koopman_path=None):
+    return _koopman(s, KoopmanLqrLaw, koopman_path)
+
+
+register_law('koopman_mpc', _koopman, ('koopman_path',), params=WEIGHT_PARAMS, graph=True,
+             summary='the Koopman baseline\'s linear MPC on the shipped Koopman model '
+             '(models/koopman.npz; docs/results.md "Koopman baseline")',
+             meanings={'koopman_path': 'the Koopman model file'})
+register_law('koopman_lqr', _koopman_lqr, ('koopman_path',), params=WEIGHT_PARAMS, graph=True,
+             summary='the Koopman baseline\'s LQR on the same lifted model')

@@ -30,8 +30,12 @@ import time
 
 from soft_gripper_sdre import FINGER_NAMES
 from soft_gripper_sdre.nodes.graph import NodeSpec, default_params_file
+from soft_gripper_sdre.sim.hand import SimConfig
 from soft_gripper_sdre.sim.signal_specs import SignalSpecError, resolve_signals
 from soft_gripper_sdre.tools.graph.procs import DiagnosticsMonitor, Graph, ros_env
+
+#: the simulator's actuator limit [N·m]: the excitation's limit may not exceed it
+SIM_LIMIT = SimConfig().torque_limit
 
 RECORDED = ['tip_positions', 'torque_commands', '/clock', '/diagnostics']
 
@@ -88,8 +92,9 @@ def argument_problem(a: argparse.Namespace) -> str | None:
         return f'--settle must be in [0, 600] s, got {a.settle}'
     if a.duration is not None and not 0 < a.duration <= 3600:
         return f'--duration must be in (0, 3600] s, got {a.duration}'
-    if not 0 < a.torque_limit <= 1.0:
-        return f'--torque-limit must be in (0, 1] N·m, got {a.torque_limit}'
+    if not 0 < a.torque_limit <= SIM_LIMIT:
+        return (f'--torque-limit must be in (0, {SIM_LIMIT:g}] N·m (the simulator clips to '
+                f'±{SIM_LIMIT:g}), got {a.torque_limit}')
     if not 1e-6 <= a.amplitude <= 100:
         return f'--amplitude must be in [1e-6, 100], got {a.amplitude}'
     if not 0 <= a.max_excursion <= 1000:

@@ -6,7 +6,7 @@
     python -m soft_gripper_sdre.tools.graph.foreign --plant trunk3 --out runs/foreign/trunk3
 
 The gripper is the ``plant_driver`` node (two fingers of a preset of
-:mod:`soft_gripper_sdre.sim.foreign_presets`, served like a lab's driver: wall-clock loop,
+:mod:`soft_gripper_sdre.sim.plants.presets`, served like a lab's driver: wall-clock loop,
 best-effort tips stamped with wall time, jitter, dropped messages, noise): ``tendon3`` and
 ``stiff2`` (two torques, a planar tip), ``pneumatic1`` (one chamber, 0 to 60 kPa, a planar tip, at
 100 Hz) and ``trunk3`` (three pull-only tendons, 0 to 4 N, a 3-D tip, at 250 Hz). Every step is
@@ -53,7 +53,7 @@ import time
 
 import yaml
 
-from soft_gripper_sdre.sim.foreign_presets import RATES, gripper_bounds, gripper_shape
+from soft_gripper_sdre.sim.plants.presets import RATES, gripper_bounds, gripper_shape
 from soft_gripper_sdre.sim.shape import InputBounds
 from soft_gripper_sdre.tools.graph.procs import DiagnosticsMonitor, Graph, ros_env
 
