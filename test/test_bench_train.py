@@ -58,3 +58,12 @@ def test_bad_arguments_are_refused_with_status_2_and_nothing_written(tmp_path, a
     assert proc.returncode == 2
     assert message in proc.stderr and 'Traceback' not in proc.stderr
     assert not out.exists() and not (tmp_path / 'runs').exists()
+
+
+def test_the_stages_are_read_off_the_tools_line():
+    out = ('training: 3 epochs\nstages [s], 452.7 in all: read 0.1, labels 19.4, training 426.2 '
+           '(label_stage 426.2, simulation_stage 0.0), checkpoint 4.1, report 3.1\n')
+    assert bench_train.printed_stages(out) == {
+        'read': 0.1, 'labels': 19.4, 'training': 426.2, 'label_stage': 426.2,
+        'simulation_stage': 0.0, 'checkpoint': 4.1, 'report': 3.1, 'total': 452.7}
+    assert bench_train.printed_stages('no such line\n') == {}

@@ -8,9 +8,10 @@ time as the tool itself records it (``metrics.json``'s ``timings``), with its sp
 A case is the hand's ``--data`` directory of .npz records (the default preset, the shipped
 model's recipe) or a directory of bags with ``train/`` and ``val/`` inside (``train --bag``, the
 gripper preset), named ``NAME=DIR``. Each run is a fresh process, the cases one after another,
-each case's runs in a row. A row gives the total's median and min–max over the runs, each stage's
-median and its share of the median total, and the 1-minute load average (median and min–max,
-read before each run): the machine is shared, and a run beside other work is slower.
+each case's runs in a row, its stages read off the tool's ``stages [s]`` line (``--bag`` also
+keeps them in ``metrics.json``). A row gives the total's median and min–max over the runs, each
+stage's median and its share of the median total, and the 1-minute load average (median and
+min–max, read before each run): the machine is shared, and a run beside other work is slower.
 ``--write`` keeps the rows as JSON, which ``tools.benchmarks.bench`` (``make bench``) puts in
 BENCHMARKS.md (:func:`rows`).
 """
@@ -20,6 +21,7 @@ import argparse
 import json
 import os
 from pathlib import Path
+import re
 import shutil
 import statistics
 import subprocess
@@ -53,12 +55,10 @@ def run_once(args: list[str], out: Path) -> dict:
         raise RuntimeError(f'train {" ".join(args)} failed (exit {proc.returncode}): '
                            f'{proc.stderr[-1500:]}')
     metrics = json.loads((out / 'metrics.json').read_text())
-    timings = dict(metrics['timings'])
-    if 'report' not in timings:             # printed only: read it off the tool's last line
-        for line in proc.stdout.splitlines()[::-1]:
-            if line.startswith('stages [s]') and ' report ' in line:
-                timings['report'] = float(line.rsplit(' report ', 1)[1].split()[0].rstrip(','))
-                break
+    # the tool's line has every stage (the report's too, which metrics.json cannot hold)
+    timings = {**metrics.get('timings', {}), **printed_stages(proc.stdout)}
+    if 'total' not in timings:
+        raise RuntimeError(f'train {" ".join(args)} printed no stages line')
     fitness = metrics.get('fitness') or {}
     derived = metrics.get('derived_settings') or {}
     return {'timings': timings, 'load': load, 'wall': wall,
@@ -67,6 +67,18 @@ def run_once(args: list[str], out: Path) -> dict:
                             if 'free_run' in fitness else None),
             'bandwidth_hz': (derived.get('settings') or {}).get('bandwidth_hz'),
             'epochs_run': metrics.get('epochs_run')}
+
+
+def printed_stages(stdout: str) -> dict[str, float]:
+    """The stages [s] of the train tool's last ``stages [s], <total> in all: <stage> <s>, …``
+    line, with ``total``; {} when it printed none."""
+    for line in stdout.splitlines()[::-1]:
+        head, sep, rest = line.partition(' in all: ')
+        if line.startswith('stages [s], ') and sep:
+            stages = dict(re.findall(r'([a-z_]+) ([0-9.]+)', rest))
+            return {**{k: float(v) for k, v in stages.items()},
+                    'total': float(head.split(', ')[1])}
+    return {}
 
 
 def summary(name: str, runs: list[dict]) -> dict:
