@@ -24,6 +24,7 @@ def test_a_row_gives_the_median_and_spread_of_the_total_each_stages_share_and_th
     s = bench_train.summary('tendon3', RUNS)
     assert s['total'] == [60.0, 50.0, 90.0] and s['load'] == [2.0, 1.0, 4.0] and s['runs'] == 3
     assert s['stages']['labels'] == {'median': 1.5, 'share': 1.5 / 60.0}
+    assert [t['total'] for t in s['timings']] == [60.0, 50.0, 90.0]
     assert s['stages']['loop_settings']['median'] == 40.0
     assert list(s['stages']) == ['labels', 'label_stage', 'loop_settings']   # tool's order
     what, figure, note = bench_train.row_text(s)

@@ -82,9 +82,10 @@ def printed_stages(stdout: str) -> dict[str, float]:
 
 
 def summary(name: str, runs: list[dict]) -> dict:
-    """A case's row: the runs' total (median, min, max) [s], each stage's median [s] and share of
-    the median total, the load (median, min, max), and what the runs gave (verdicts, free-run
-    errors, chosen bandwidths)."""
+    """A case's row: the runs' total (median, min, max) [s], each stage's median [s] and that
+    median's share of the median total (medians of different runs: the shares need not add up
+    to 1), the load (median, min, max), what the runs gave (verdicts, free-run errors, chosen
+    bandwidths) and every run's timings."""
     totals = [r['timings']['total'] for r in runs]
     loads = [r['load'] for r in runs]
     median = statistics.median(totals)
@@ -97,7 +98,8 @@ def summary(name: str, runs: list[dict]) -> dict:
     return {'case': name, 'runs': len(runs), 'total': [median, min(totals), max(totals)],
             'load': [statistics.median(loads), min(loads), max(loads)], 'stages': stages,
             'fit': [r['fit'] for r in runs], 'free_run_mm': [r['free_run_mm'] for r in runs],
-            'bandwidth_hz': [r['bandwidth_hz'] for r in runs]}
+            'bandwidth_hz': [r['bandwidth_hz'] for r in runs],
+            'timings': [r['timings'] for r in runs]}
 
 
 def row_text(s: dict) -> tuple[str, str, str]:
