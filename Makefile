@@ -60,8 +60,18 @@ model-from-bags: $(STAMP)
 	$(PY) -m soft_gripper_sdre.tools.graph.excite --out $(BAGS)/val --signals u4
 	$(PY) -m soft_gripper_sdre.tools.learning.train --bag $(BAGS)/train --val-bag $(BAGS)/val --out runs/train_bags --preset default
 
-bench: $(KERNELS)
+bench: $(KERNELS) bench-train
 	$(PY) -m soft_gripper_sdre.tools.benchmarks.bench --write BENCHMARKS.md
+
+# training's stages, 5 runs per case with their spread and the load (part of bench; its rows go to
+# BENCHMARKS.md through runs/bench_train.json). The hand's records are collected when missing;
+# add the foreign grippers' bags (directories with train/ and val/), e.g.
+# make bench-train BENCH_TRAIN_ARGS="--hand-data data/excitation --bags 'tendon3, 200 Hz=runs/t3'"
+BENCH_TRAIN_ARGS ?= --hand-data data/excitation
+.PHONY: bench-train
+bench-train: $(KERNELS)
+	test -d data/excitation || $(PY) -m soft_gripper_sdre.tools.learning.collect --out data/excitation
+	$(PY) -m soft_gripper_sdre.tools.benchmarks.bench_train $(BENCH_TRAIN_ARGS) --write runs/bench_train.json
 
 # the deployment loop alone (a driver stand-in, the estimator and the controller; part of bench):
 # make bench-deploy DEPLOY_ARGS='--variants base composed shm composed+shm --rate 1000'

@@ -149,3 +149,50 @@ def test_stages_add_laps_in_order_and_print_training_with_its_own_stages():
     assert first >= 0.01 and rec['checkpoint'] >= round(first, 3)
     assert rec['total'] >= rec['labels'] + rec['checkpoint']
     assert 'training 2.0 (label_stage 0.5, simulation_stage 1.5), checkpoint' in clock.line()
+
+
+def _scored_net(shape, seed: int = 0, gain: float = 1.0):
+    """Seeded networks of ``shape`` (their weights times ``gain``), the data's scales, and
+    validation windows of a random record."""
+    import torch
+
+    from soft_gripper_sdre.learning.model import SDCNet
+    from soft_gripper_sdre.learning.rollout import Scales, windows
+    torch.manual_seed(seed)
+    net = SDCNet(shape=shape)
+    with torch.no_grad():
+        for p in net.parameters():
+            p.mul_(gain)
+    rng = np.random.default_rng(seed)
+    n, dt = 600, 0.005
+    x = np.cumsum(rng.normal(0, 1e-4, (n, shape.n_state)), axis=0)
+    u = np.repeat(rng.uniform(-0.1, 0.1, (n // 30, shape.m)), 30, axis=0)
+    s = Scales(*(torch.as_tensor(a.std(axis=0), dtype=torch.float32) for a in (x, u, x[:, :2])))
+    return net, s, windows([Run(x, u, dt)], 0.5, 1)
+
+
+@pytest.mark.parametrize('shape', [FingerShape(2, 2), FingerShape(3, 3), FingerShape(2, 1)])
+def test_the_numpy_score_is_the_torch_runs_to_float32_rounding(shape):
+    """The validation free runs scored with the fused float64 network in numpy
+    (rollout.val_sim_error) against the torch runs the simulation stage trains on
+    (rollout.window_errors), window by window; a diverging network counts the cap in both."""
+    import torch
+
+    from soft_gripper_sdre.learning import rollout
+    from soft_gripper_sdre.learning.rollout import Scales
+    net, s, val = _scored_net(shape)
+    s = Scales(s.x, s.u, torch.ones(shape.d) * s.x[:shape.d].mean())
+    layers = rollout.fused_network(net, s)
+    for dt, x0, u, p in val:
+        with torch.no_grad():
+            ref = rollout.window_errors(net, s, dt, x0, u, p).double().numpy()
+        got = rollout.window_errors_numpy(layers, shape.d, s, dt, x0, u, p)
+        assert got.shape == ref.shape and np.all(got > 0)
+        assert np.all(ref < rollout.SIM_ERROR_CAP)               # runs that stayed, not caps
+        np.testing.assert_allclose(got, ref, rtol=2e-4)
+    with torch.no_grad():
+        ref = float(np.mean(np.concatenate([rollout.window_errors(net, s, *w).numpy()
+                                            for w in val])))
+    assert rollout.val_sim_error(net, s, val) == pytest.approx(ref, rel=2e-4)
+    wild, _, _ = _scored_net(shape, gain=40.0)               # runs that leave the bound
+    assert rollout.val_sim_error(wild, s, val) == pytest.approx(rollout.SIM_ERROR_CAP)

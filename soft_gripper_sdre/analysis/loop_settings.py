@@ -75,8 +75,11 @@ says how fast a loop it needs, and the derivation reports both (:attr:`Derivatio
 """
 from __future__ import annotations
 
+from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import asdict, dataclass, replace
 import math
+import multiprocessing
+import os
 
 import numpy as np
 
@@ -138,6 +141,9 @@ AT_BOUND = 1e-9
 MAX_DELAY = 0.25
 #: :func:`unmodelled_delay` needs at least this many periods of excitation
 MIN_DELAY_SAMPLES = 100
+#: processes that run the candidates' closed-loop checks side by side (:class:`CheckRunner`;
+#: capped by the machine's CPUs, 1 = in this process)
+CHECK_WORKERS = 2
 
 
 @dataclass(frozen=True)
@@ -577,11 +583,14 @@ class Derivation:
 
 def derive(model, facts: DataFacts, laws: tuple[str, ...] = ('sdre_ff', 'sdre'),
            progress=None, bandwidths: tuple[float, ...] = BANDWIDTHS_HZ,
-           excitation: list[tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None
-           ) -> Derivation:
+           excitation: list[tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None,
+           workers: int = CHECK_WORKERS) -> Derivation:
     """Pick the bandwidth (among ``bandwidths``), the estimator's intensity and the integral gain
     by closed-loop runs on the model (module doc); ``settings`` is None when no candidate passes
     or no move can be checked (``reason``). ``progress(text)`` hears each run.
+
+    ``workers``: processes that run the checks side by side (:class:`CheckRunner`); every
+    number gives the same runs, rows, messages (in the same order) and choice.
 
     ``excitation``: stretches (t [s], inputs (N, m), tips (N, d) [m]) of the recordings. For any
     finger but the hand's shape with two-sided inputs, the check's commands come
@@ -623,22 +632,26 @@ def derive(model, facts: DataFacts, laws: tuple[str, ...] = ('sdre_ff', 'sdre'),
     say(f'move of {1e3 * facts.travel:.3g} mm along {way} (half the reach {1e3 * reach:.3g} mm, '
         f'or what the model holds with {HOLD_SHARE:g} of {limit})')
     rows: list[dict] = []
-    while True:
-        kept = _search(model, facts, bandwidths, rows, say)
-        shorter = TRAVEL_SHRINK * facts.travel
-        if kept or shorter < MIN_TRAVEL_NOISE * facts.noise_std:
-            break
-        facts = (replace(facts, travel=shorter) if curve is None
-                 else _along_curve(facts, curve, shorter))
-        say(f'no setting passed: a move of {1e3 * shorter:.3g} mm')
-    if not kept:
-        return Derivation(None, {}, rows, facts)
-    kept.sort(key=lambda c: (c[0], c[1]))
-    best = kept[0]
-    slower = [c for c in kept if c[1] < best[1] and c[0] <= PREFER_SLOWER * best[0]]
-    chosen = max(slower, key=lambda c: (c[1], -c[0]))[2] if slower else best[2]
-    checks = {law: check_on_model(model, chosen, facts, law=law) for law in laws}
-    needs = paper_law_bandwidth(model, facts)
+    with CheckRunner(model, workers) as runner:
+        while True:
+            kept = _search(runner, facts, bandwidths, rows, say)
+            shorter = TRAVEL_SHRINK * facts.travel
+            if kept or shorter < MIN_TRAVEL_NOISE * facts.noise_std:
+                break
+            facts = (replace(facts, travel=shorter) if curve is None
+                     else _along_curve(facts, curve, shorter))
+            say(f'no setting passed: a move of {1e3 * shorter:.3g} mm')
+        if not kept:
+            return Derivation(None, {}, rows, facts)
+        kept.sort(key=lambda c: (c[0], c[1]))
+        best = kept[0]
+        slower = [c for c in kept if c[1] < best[1] and c[0] <= PREFER_SLOWER * best[0]]
+        chosen, nominal = (max(slower, key=lambda c: (c[1], -c[0])) if slower else best)[2:]
+        # the default law's nominal check of the chosen settings is the one the search ran
+        runs = {law: (None if law == 'sdre_ff' else runner.submit(chosen, facts, law=law))
+                for law in laws}
+        needs = paper_law_bandwidth(model, facts)
+        checks = {law: nominal if run is None else run.result() for law, run in runs.items()}
     paper = {'hold_offset': paper_law_offset(model, facts, chosen.bandwidth_hz),
              'share': PAPER_LAW_SHARE,
              'needs_bandwidth_hz': needs if math.isfinite(needs) else None}     # None: over 1 kHz
@@ -676,15 +689,78 @@ def _along_curve(facts: DataFacts, curve: EquilibriumCurve, length: float) -> Da
     return replace(facts, travel=length, path=curve.cut(length, PATH_POINTS))
 
 
-def _search(model, facts: DataFacts, bandwidths: tuple[float, ...], rows: list[dict],
-            say) -> list[tuple[float, float, LoopSettings]]:
+#: the model a :class:`CheckRunner`'s worker process checks on (set when the worker starts)
+_WORKER_MODEL = None
+
+
+def _start_worker(model) -> None:
+    global _WORKER_MODEL
+    _WORKER_MODEL = model
+
+
+def _worker_check(settings: LoopSettings, facts: DataFacts, law: str,
+                  gain_error: float) -> CheckResult:
+    return check_on_model(_WORKER_MODEL, settings, facts, law=law, gain_error=gain_error)
+
+
+class CheckRunner:
+    """Runs :func:`check_on_model` of one model for the search, in this process or in
+    ``workers`` forked processes side by side (each check is seeded and independent of the
+    others, so where it runs does not change its result).
+
+    The workers inherit the model when they are forked (it is not pickled); the checks' settings,
+    facts and results travel by pickle. One worker, one CPU, or a platform that cannot fork runs
+    every check here, when it is submitted. Use as a context manager: the workers end with it.
+    """
+
+    def __init__(self, model, workers: int = CHECK_WORKERS) -> None:
+        if not (isinstance(workers, int) and not isinstance(workers, bool) and workers >= 1):
+            raise ValueError(f'workers must be an int >= 1, got {workers!r}')
+        self.model = model
+        self.workers = min(workers, os.cpu_count() or 1)
+        if 'fork' not in multiprocessing.get_all_start_methods():
+            self.workers = 1
+        self._pool = (ProcessPoolExecutor(self.workers, multiprocessing.get_context('fork'),
+                                          initializer=_start_worker, initargs=(model,))
+                      if self.workers > 1 else None)
+
+    def submit(self, settings: LoopSettings, facts: DataFacts, law: str = 'sdre_ff',
+               gain_error: float = 1.0) -> Future:
+        """The check's future :class:`CheckResult` (already done when run here)."""
+        if self._pool is not None:
+            return self._pool.submit(_worker_check, settings, facts, law, gain_error)
+        done: Future = Future()
+        done.set_result(check_on_model(self.model, settings, facts, law=law,
+                                       gain_error=gain_error))
+        return done
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool = None
+
+    def __enter__(self) -> CheckRunner:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def _search(runner: CheckRunner, facts: DataFacts, bandwidths: tuple[float, ...],
+            rows: list[dict], say) -> list[tuple[float, float, LoopSettings, CheckResult]]:
     """The candidates along ``facts``' move (module doc), each run appended to ``rows``; returns
-    the kept ones as (score, bandwidth, settings)."""
+    the kept ones as (score, bandwidth, settings, nominal check).
+
+    The checks are submitted to ``runner`` as soon as the rule knows they will run (the next
+    bandwidth's intensities beside this one's integral gains and robustness runs) and their
+    results are taken in the rule's order, so rows, messages and choice are those of one check
+    after another."""
+    model = runner.model
     kept = []
 
-    def run(cand: LoopSettings) -> tuple[CheckResult, LoopSettings, dict]:
+    def record(cand: LoopSettings, nominal: CheckResult) -> tuple[CheckResult, LoopSettings,
+                                                                  dict]:
         """The nominal check of ``cand``, recorded as a new row of ``rows``."""
-        nominal = check_on_model(model, cand, facts)
         rows.append({'travel': facts.travel, 'bandwidth_hz': cand.bandwidth_hz,
                      'accel_psd': cand.accel_psd, 'integral_gain': cand.integral_gain,
                      'nominal': asdict(nominal)})
@@ -693,23 +769,44 @@ def _search(model, facts: DataFacts, bandwidths: tuple[float, ...], rows: list[d
                                             f'{100 * nominal.rmse_rel:.2f} % of travel'))
         return nominal, cand, rows[-1]
 
-    for hz in [b for b in bandwidths if b <= RATE_FRACTION / facts.period]:
-        tried = [run(settings_for(model, facts, hz, frac * facts.accel_psd_ml))
+    def passes(nominal: CheckResult) -> bool:
+        return nominal.ok and nominal.rmse_rel <= KEEP_NOMINAL
+
+    def robust(cand: LoopSettings) -> list[Future]:
+        return [runner.submit(cand, facts, gain_error=g) for g in GAIN_ERRORS]
+
+    def intensities(hz: float) -> list[tuple[LoopSettings, Future]]:
+        cands = [settings_for(model, facts, hz, frac * facts.accel_psd_ml)
                  for frac in ACCEL_PSD_FRACTIONS]
+        return [(c, runner.submit(c, facts)) for c in cands]
+
+    todo = [b for b in bandwidths if b <= RATE_FRACTION / facts.period]
+    ahead = intensities(todo[0]) if todo else []
+    for i, hz in enumerate(todo):
+        tried = [record(cand, run.result()) for cand, run in ahead]
         if all(nominal.diverged for nominal, _, _ in tried):
             break                  # every estimator diverged: a faster loop has less margin still
         lead = min(tried, key=lambda c: (not c[0].ok, c[0].rmse_rel))
         w = 2 * math.pi * hz
         # the other intensities are not run with the input gain off
-        tried = [lead] + [run(replace(lead[1], integral_gain=w ** 3 / divisor))
-                          for divisor in INTEGRAL_DIVISORS[1:]]
-        for nominal, cand, row in tried:
-            if not (nominal.ok and nominal.rmse_rel <= KEEP_NOMINAL):
+        stronger = [replace(lead[1], integral_gain=w ** 3 / divisor)
+                    for divisor in INTEGRAL_DIVISORS[1:]]
+        runs = [runner.submit(cand, facts) for cand in stronger]
+        checks = {0: robust(lead[1])} if passes(lead[0]) else {}
+        ahead = intensities(todo[i + 1]) if i + 1 < len(todo) else []
+        tried = [lead] + [record(cand, run.result()) for cand, run in zip(stronger, runs)]
+        for k, (nominal, cand, _) in enumerate(tried[1:], 1):
+            if passes(nominal):
+                checks[k] = robust(cand)
+        for k, (nominal, cand, row) in enumerate(tried):
+            if k not in checks:
                 continue
-            runs = [check_on_model(model, cand, facts, gain_error=g) for g in GAIN_ERRORS]
-            row['robust'] = [asdict(r) for r in runs]
-            row['robust_ok'] = all(r.ok and r.rmse_rel <= KEEP_ROBUST for r in runs)
-            row['score'] = max([nominal.rmse_rel] + [r.rmse_rel for r in runs])
+            results = [run.result() for run in checks[k]]
+            row['robust'] = [asdict(r) for r in results]
+            row['robust_ok'] = all(r.ok and r.rmse_rel <= KEEP_ROBUST for r in results)
+            row['score'] = max([nominal.rmse_rel] + [r.rmse_rel for r in results])
             if row['robust_ok']:
-                kept.append((row['score'], hz, cand))
+                kept.append((row['score'], hz, cand, nominal))
+    for _, run in ahead:
+        run.cancel()
     return kept

@@ -291,9 +291,13 @@ def startup_rows(quick: bool) -> list[Row]:
 
 
 def training_rows() -> list[Row]:
-    """Training's duration, as the train tool itself timed it: a fresh `make model` run's
-    (runs/train/metrics.json), else the shipped model's record; no row without either."""
+    """Training's duration, as the train tool itself timed it: the runs of `make bench-train`
+    (runs/bench_train.json, :mod:`~soft_gripper_sdre.tools.benchmarks.bench_train`), else a fresh
+    `make model` run's (runs/train/metrics.json), else the shipped model's record."""
     from soft_gripper_sdre.learning.model import DEFAULT_MODEL
+    from soft_gripper_sdre.tools.benchmarks import bench_train
+    if bench_train.rows():
+        return bench_train.rows()
     trained = Path('runs/train/metrics.json')
     source = trained if trained.is_file() else DEFAULT_MODEL.with_suffix('.json')
     if not source.is_file():

@@ -37,7 +37,7 @@ from soft_gripper_sdre.analysis import training_run
 from soft_gripper_sdre.analysis.training_run import fit
 from soft_gripper_sdre.learning.dataset import DatasetError, load_records
 from soft_gripper_sdre.learning.labels import DATA_VARIANTS, VALIDATION, label_records
-from soft_gripper_sdre.learning.model import DEFAULT_MODEL, set_torch_threads
+from soft_gripper_sdre.learning.model import DEFAULT_MODEL, set_blas_threads, set_torch_threads
 from soft_gripper_sdre.learning.train_settings import PRESETS, TrainSettings
 
 
@@ -114,6 +114,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format='%(levelname)s %(message)s')
     set_torch_threads(1)
+    set_blas_threads(1)
     settings = _settings(parser, args)
     if args.bag or args.val_bag:
         _main_bags(parser, args, settings)
