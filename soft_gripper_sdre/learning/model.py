@@ -246,7 +246,7 @@ def weights_sha256(path: Path) -> str:
     return h.hexdigest()
 
 
-def _fused_layers(sd: dict[str, np.ndarray], s: dict[str, np.ndarray],
+def fused_layers(sd: dict[str, np.ndarray], s: dict[str, np.ndarray],
                   shape: FingerShape = HAND_SHAPE) -> list[tuple[np.ndarray, np.ndarray]]:
     """NN_θ1 and NN_θ2 as one network in physical units, for evaluation with three matmuls.
 
@@ -329,7 +329,7 @@ class SDCModel:
         self.input_bounds: InputBounds | None = ckpt['input_bounds']
         sd = {k: v.detach().double().numpy() for k, v in ckpt['state_dict'].items()}
         s = {k: v.numpy() for k, v in ckpt['scales'].items()}
-        self._layers = _fused_layers(sd, s, self.shape)
+        self._layers = fused_layers(sd, s, self.shape)
         self._net = _homogeneous(self._layers)
         self._b1 = {}  # layer 1's bias repeated for small batches of n states (no broadcasting)
         self.rest_tip = ckpt['rest_tip'].numpy().astype(float)
@@ -354,7 +354,7 @@ class SDCModel:
         """The learned blocks for states x (2d,) or (n, 2d): [A21 A22] (n, d, 2d) and G2
         (n, d, m); the hand's (n, 2, 4) and (n, 2, 2).
 
-        Both networks run as one: three matmuls with ReLU between (see :func:`_fused_layers`; the
+        Both networks run as one: three matmuls with ReLU between (see :func:`fused_layers`; the
         biases of layers 2 and 3 ride on a constant hidden unit, :func:`_homogeneous`).
         """
         x = np.asarray(x, dtype=float)
@@ -383,7 +383,7 @@ class SDCModel:
         """Copies of the fused network's arrays (w1, b1, w2, b2, w3, b3), float64 and C-contiguous.
 
         h ↦ relu(x w1 + b1) ↦ relu(· w2 + b2) ↦ · w3 + b3 maps states x (n, 2d) to
-        (n, 2d² + dm): row-major [A21 A22] then G2, in SI (:func:`_fused_layers`); the hand's
+        (n, 2d² + dm): row-major [A21 A22] then G2, in SI (:func:`fused_layers`); the hand's
         (n, 4) to (n, 12), 8 then 4. For evaluators outside this package's numpy path, such as
         the compiled control kernels, which take the arrays as inputs.
         """

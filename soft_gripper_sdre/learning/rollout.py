@@ -17,7 +17,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from soft_gripper_sdre.learning.model import SDCNet, _fused_layers
+from soft_gripper_sdre.learning.model import SDCNet, fused_layers
 
 #: a simulated state is held within this many data standard deviations, so a diverging run
 #: stays finite (its window then counts at most :data:`SIM_ERROR_CAP`, and passes no gradient)
@@ -118,10 +118,10 @@ def val_sim_error(net: SDCNet, s: Scales, val_windows) -> float:
 
 def fused_network(net: SDCNet, s: Scales) -> list[tuple[np.ndarray, np.ndarray]]:
     """The networks' current weights as the deployed model's three float64 layers in SI units
-    (:func:`~soft_gripper_sdre.learning.model._fused_layers`)."""
+    (:func:`~soft_gripper_sdre.learning.model.fused_layers`)."""
     sd = {k: v.detach().double().numpy() for k, v in net.state_dict().items()}
     scales = {k: getattr(s, k).detach().double().numpy() for k in ('x', 'u', 'acc')}
-    return _fused_layers(sd, scales, net.shape)
+    return fused_layers(sd, scales, net.shape)
 
 
 def simulate_numpy(layers: list[tuple[np.ndarray, np.ndarray]], d: int, s: Scales, x0, u,
