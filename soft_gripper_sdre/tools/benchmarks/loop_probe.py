@@ -8,8 +8,10 @@ A process started with ``SGS_PROBE=<dir>`` and this package's probe directory fi
 * every **subscription callback**: topic, entry and exit, and the message's leading stamp [ns] when
   it comes as raw CDR bytes (``Node.create_subscription`` wrapped);
 * every **publish**: topic, start and end, the stamp of raw bytes (``Publisher.publish`` wrapped);
-* every **bag write** of the recorder: start and duration (``rosbags`` ``Writer.write`` wrapped);
-* the **executor's spins**: each ``spin_once`` call's start and end (``EventsExecutor.spin_once``).
+* every **bag write** of the recorder: start and duration (``rosbags`` ``Writer.write`` wrapped).
+
+The executor's wake-up is what lies between the driver's publish and the callback's entry (rclpy's
+EventsExecutor is C++, its wait cannot be wrapped from Python).
 
 Each record goes into a preallocated numpy array (no Python object per event, so the probe does
 not feed the collector it watches); at exit the arrays are saved to
@@ -68,7 +70,7 @@ def _stamp(data) -> float:
 def install(out_dir: str | os.PathLike) -> None:
     """Start recording in this process (see the module doc); the records are saved at exit."""
     perf = time.perf_counter
-    gcs, cbs, pubs, writes, spins = Events(3), Events(4), Events(4), Events(2), Events(2)
+    gcs, cbs, pubs, writes = Events(3), Events(4), Events(4), Events(2)
     started: list[float] = [0.0]
 
     def on_gc(phase: str, info: dict) -> None:
@@ -106,20 +108,6 @@ def install(out_dir: str | os.PathLike) -> None:
     Publisher.publish = timed_publish
 
     try:
-        from rclpy.experimental import EventsExecutor
-        spin_once = EventsExecutor.spin_once
-
-        def timed_spin_once(self, *args, **kwargs):
-            t0 = perf()
-            try:
-                return spin_once(self, *args, **kwargs)
-            finally:
-                spins.add(t0, perf())
-        EventsExecutor.spin_once = timed_spin_once
-    except ImportError:
-        pass
-
-    try:
         from rosbags.rosbag2 import Writer
         write = Writer.write
 
@@ -136,7 +124,7 @@ def install(out_dir: str | os.PathLike) -> None:
     def save() -> None:
         tag = 'driver' if '--driver' in sys.argv else Path(sys.argv[0] or 'python').stem
         np.savez(Path(out_dir) / f'{tag}-{os.getpid()}.npz', gc=gcs.rows(), callbacks=cbs.rows(),
-                 publishes=pubs.rows(), writes=writes.rows(), spins=spins.rows())
+                 publishes=pubs.rows(), writes=writes.rows())
     atexit.register(save)
 
 
