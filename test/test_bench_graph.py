@@ -83,7 +83,7 @@ def test_mode_rows_report_the_median_run_with_the_range_and_the_loads():
     assert 'controller --with-estimator' in composed and 'median' not in composed_note
     assert 'simulator / trajectory / controller 600 / 300 / 300 µs (sum 1200)' in composed_note
     assert 'lockstep' in lock and 'pipelined' in pipe
-    assert lock_rtf == '0.60× real time' and pipe_rtf == '1.00× real time'
+    assert lock_rtf == '0.60× real time (0.50–0.70)' and pipe_rtf == '1.00× real time (0.90–1.10)'
     assert ('0.60×, 0.50×, 0.70× at load 1.0, 2.0, 3.0' in lock_note
             and '4 processes, lockstep' in lock)
     assert ('CPU per period simulator / estimator / trajectory / controller '

@@ -63,6 +63,9 @@ VARIANTS: dict[str, tuple[str, dict[str, str], dict]] = {
     'pinned': ('estimator and controller on core 1, driver and trajectory on core 0 (affinity)',
                {}, {'pinned': True}),
     'fifo': ('estimator, controller and driver at SCHED_FIFO priority 50', {}, {'fifo': True}),
+    'recorder_nice': ('the recorder at nice 10', {}, {'recorder_nice': 10}),
+    'recorder_batch': ('the recorder under SCHED_BATCH (no wake-up preemption)', {},
+                       {'recorder_batch': True}),
 }
 
 
@@ -116,6 +119,18 @@ def _fifo(pid: int, priority: int = 50) -> bool:
     return ok
 
 
+def _deprioritize(pid: int, nice: int = 0, batch: bool = False) -> None:
+    """Every thread of ``pid`` at ``nice``, and under SCHED_BATCH if ``batch``."""
+    for tid in _threads(pid):
+        try:
+            if batch:
+                os.sched_setscheduler(tid, os.SCHED_BATCH, os.sched_param(0))
+            if nice:
+                os.setpriority(os.PRIO_PROCESS, tid, nice)
+        except OSError:
+            pass
+
+
 def _spec(name: str, parameters: dict) -> NodeSpec:
     return NodeSpec(name, name, params_file=default_params_file(name), parameters=parameters)
 
@@ -149,6 +164,9 @@ def run_deploy(period: float, seconds: float, tips: Path, *, record: bool = Fals
         _wait_ready(graph, {'controller': (ESTIMATOR_UP, CONTROLLER_UP)} if options.get('composed')
                     else {'estimator': (ESTIMATOR_UP,), 'controller': (CONTROLLER_UP,)})
         pids = {name: proc.popen.pid for name, proc in graph.procs.items()}
+        if record and (options.get('recorder_nice') or options.get('recorder_batch')):
+            _deprioritize(pids['recorder'], options.get('recorder_nice', 0),
+                          options.get('recorder_batch', False))
         readers = 2 + record
         cmd = [sys.executable, '-m', 'soft_gripper_sdre.tools.benchmarks.bench_deploy', '--driver',
                json.dumps({'period': period, 'warmup': warmup, 'seconds': seconds,
@@ -294,6 +312,10 @@ def main(argv: list[str] | None = None) -> int:
                     help='record timestamps inside every process of each run under DIR and '
                          'print what made its late periods late (tools/benchmarks/loop_probe.py)')
     a = ap.parse_args(argv)
+    if a.probe is not None and a.probe.exists() and not a.probe.is_dir():
+        ap.error(f'--probe {a.probe}: not a directory')
+    if (a.repeats is not None and a.repeats < 1) or (a.seconds is not None and a.seconds <= 0):
+        ap.error('--repeats takes a count >= 1 and --seconds a duration > 0')
     if a.driver is not None:
         d = json.loads(a.driver)
         result = driver(d['period'], d['warmup'], d['seconds'], Path(d['tips']), d['readers'],

@@ -220,7 +220,8 @@ def late_causes(out_dir: Path, gc_min: float = 50e-6) -> dict:
         gc_ms = {tag: 1e3 * _overlap(g[:, 0], np.where(g[:, 1] >= gc_min, g[:, 1], 0), sent[j],
                                      hi) for tag, g in gcs.items()}
         write_ms = 1e3 * _overlap(writes[:, 0], writes[:, 1], sent[j], hi)
-        before = tips_cb[(tips_cb[:, 1] < t_in) & (tips_cb[:, 2] > sent[j])]
+        before = tips_cb[(tips_cb[:, 3] < j * period_ns) & (tips_cb[:, 1] < t_in)
+                         & (tips_cb[:, 2] > sent[j])]
         queued = len(before) > 0
         if any(v > 0 for v in gc_ms.values()):
             cause = 'gc'
@@ -234,14 +235,14 @@ def late_causes(out_dir: Path, gc_min: float = 50e-6) -> dict:
         detail.append((int(k), cause, {n: round(1e6 * v) if np.isfinite(v) else None
                                        for n, v in seg.items()},
                        {t: round(v, 2) for t, v in gc_ms.items() if v}, round(write_ms, 2)))
-    med = lambda xs: 1e6 * float(np.median(xs)) if xs else float('nan')  # noqa: E731
-    p99 = lambda xs: 1e6 * float(np.percentile(xs, 99)) if xs else float('nan')  # noqa: E731
+    med = lambda xs: round(1e6 * float(np.median(xs))) if xs else None  # noqa: E731
+    p99 = lambda xs: round(1e6 * float(np.percentile(xs, 99))) if xs else None  # noqa: E731
+    finite = lambda xs: [x for x in xs if np.isfinite(x)]  # noqa: E731
     summary = {
         'ticks': int((sent[first:] > 0).sum()), 'late': int(late[first:][sent[first:] > 0].sum()),
-        'median_us': {n: round(med(v)) for n, v in parts.items()},
-        'p99_us': {n: round(p99([x for x in v if np.isfinite(x)])) for n, v in parts.items()},
-        'late_median_us': {n: round(med([x for x in v if np.isfinite(x)]))
-                           for n, v in late_parts.items()},
+        'median_us': {n: med(v) for n, v in parts.items()},
+        'p99_us': {n: p99(finite(v)) for n, v in parts.items()},
+        'late_median_us': {n: med(finite(v)) for n, v in late_parts.items()},
         'cause': causes,
         'gc': {tag: (int(len(g)), round(1e3 * float(g[:, 1].sum()), 2),
                      round(1e3 * float(g[:, 1].max()), 2) if len(g) else 0.0)
