@@ -231,7 +231,7 @@ def floor_table(quick: bool, repeats: int) -> list[Row]:
     hands = bench_sim('hand', 0.5 if quick else 2.0, REPEATS)
     hand = median(hands)
     out: list[Row] = [('simulator step, hand + cube',
-                       f'{figure(hands)} ({1e-3 / hand:.2f}× real time)',
+                       f'{figure(hands)}; {1e-3 / hand:.2f}× real time',
                        f'median (min–max) of {REPEATS} runs; {load()}')]
     loop = default_grasp(1.0 if quick else 2.0, noise_std=5e-5)
     kf_runs: list[float] = []
@@ -268,10 +268,10 @@ def simulator_rows(quick: bool) -> tuple[list[Row], float]:
     hands = bench_sim('hand', hand_s, REPEATS)
     markers = bench_markers(REPEATS)
     finger, hand, marker = median(fingers), median(hands), median(markers)
-    return [('simulator step, one finger', f'{figure(fingers)} ({1e-3 / finger:.2f}× real time)',
+    return [('simulator step, one finger', f'{figure(fingers)}; {1e-3 / finger:.2f}× real time',
              f'1 ms period, 2 physics substeps; {REPEATS} runs of {finger_s / REPEATS:g} s of sim '
              'time each; SoMo reports 6–8× for one finger'),
-            ('simulator step, hand + cube', f'{figure(hands)} ({1e-3 / hand:.2f}× real time)',
+            ('simulator step, hand + cube', f'{figure(hands)}; {1e-3 / hand:.2f}× real time',
              f'{REPEATS} runs of {hand_s / REPEATS:g} s each; {hand / finger:.1f}× one finger'),
             ('simulator markers, hand (one update)', figure(markers),
              f'{REPEATS} runs of 50 updates; ground truth + forward kinematics + MarkerArray '

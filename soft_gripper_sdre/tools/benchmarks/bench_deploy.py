@@ -253,14 +253,17 @@ def describe(s: dict) -> tuple[str, str, str]:
 
 
 def measure(rates: list[int], variants: list[str], seconds: float, repeats: int,
-            record_too: bool, tips: Path, echo=print, probe: Path | None = None) -> list[dict]:
-    """:func:`summary` of ``repeats`` runs of every rate × variant × (recorder or not). The
+            record_too: bool | str, tips: Path, echo=print, probe: Path | None = None
+            ) -> list[dict]:
+    """:func:`summary` of ``repeats`` runs of every rate × variant × (recorder or not;
+    ``record_too='only'``: with the recorder only). The
     repeats go round all the configurations in turn, so a load that drifts meets each alike.
     ``probe``: each run records its processes' timestamps in a directory of its own there, and
     its :func:`~soft_gripper_sdre.tools.benchmarks.loop_probe.late_causes` are echoed and kept
     (``causes``)."""
     configs = [(rate, v, record) for rate in rates for v in variants
-               for record in ((False, True) if record_too else (False,))]
+               for record in ((False, True) if record_too is True
+                              else (True,) if record_too == 'only' else (False,))]
     runs: dict[tuple, list[dict]] = {c: [] for c in configs}
     for i in range(repeats):
         for rate, v, record in configs:
@@ -307,6 +310,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--variants', nargs='+', default=list(ROW_VARIANTS),
                     help=f'any of {", ".join(VARIANTS)}, or several joined by + (composed+fifo)')
     ap.add_argument('--no-recorder', action='store_true', help='only the runs without recorder')
+    ap.add_argument('--only-recorder', action='store_true', help='only the runs with the recorder')
     ap.add_argument('--tips', type=Path, default=None, help='cache of the replayed tips (.npy)')
     ap.add_argument('--probe', type=Path, default=None, metavar='DIR',
                     help='record timestamps inside every process of each run under DIR and '
@@ -327,7 +331,8 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory(prefix='sgs_deploy_tips_') as tmp:
         tips = a.tips or Path(tmp) / 'tips.npy'
         replay_tips(WARMUP_S + seconds + 1.0, tips)
-        measure(a.rate, a.variants, seconds, repeats, not a.no_recorder, tips, probe=a.probe)
+        measure(a.rate, a.variants, seconds, repeats,
+                'only' if a.only_recorder else not a.no_recorder, tips, probe=a.probe)
     return 0
 
 
