@@ -386,7 +386,18 @@ def markdown(table: list[Row], quick: bool, load: LoadWatch | None = None) -> st
               'left out. The closed-loop row times the stepping only, not the simulator\'s '
               'construction and settle; its figure is 1 ms over the median period. '
               'Training is timed by the train tool itself; data collection includes the '
-              'finger\'s 0.5 s settle.']
+              'finger\'s 0.5 s settle.', '',
+              'The deployment rows (`soft_gripper_sdre.tools.benchmarks.bench_deploy`) run a '
+              'driver stand-in (tips from prebuilt CDR bytes on an absolute wall-clock schedule, '
+              'the commands timed by their stamps) with the estimator, the trajectory node and '
+              'the controller, each run a 2 s warm-up and then the measured seconds its note '
+              'gives, the configurations taking turns run by run; every figure is the median '
+              'over the runs, the late share and the p99 with their min–max. CPU per period is '
+              'each process\'s `/proc/<pid>/schedstat` over the measured window. "One process" '
+              'is `controller --with-estimator` '
+              '([docs/performance.md](docs/performance.md#the-deployment-loop)); what makes a '
+              'period late, measured inside the processes (`bench_deploy --probe DIR`), is in '
+              '[docs/performance.md](docs/performance.md#what-makes-a-period-late).']
     return '\n'.join(lines) + '\n'
 
 

@@ -253,3 +253,49 @@ def late_causes(out_dir: Path, gc_min: float = 50e-6) -> dict:
         'detail': detail[:40],
     }
     return summary
+
+
+def graph_periods(out_dir: Path) -> dict:
+    """Where a period of the simulated graph goes, from a probed
+    :func:`~soft_gripper_sdre.tools.benchmarks.graph_run.run_graph` (estimator and controller as
+    separate processes): per period k (its tips' stamp), medians and p99 [µs] of
+
+    ``hop tips`` (the simulator's publish of the tips began → the estimator's callback entered),
+    ``estimator`` (→ its publish of the estimate returned), ``hop estimate`` (→ the controller's
+    callback entered), ``controller`` (→ its publish of the command returned), ``hop command``
+    (→ the simulator's command callback entered) and ``simulator`` (→ its publish of the next tips
+    began: physics and everything else it does in a period); with ``period`` (tips to tips), and
+    per process its collections in the stepping (count, total ms, longest ms)."""
+    procs = {}
+    for path in sorted(out_dir.glob('*-*.npz')):
+        procs[path.stem.rsplit('-', 1)[0]] = dict(np.load(path))
+    tips, est, cmd = (TOPICS.index(t) for t in ('/tip_positions', '/state_estimate',
+                                                '/torque_commands'))
+
+    def by_stamp(rows: np.ndarray, topic: int, column: int) -> dict[int, float]:
+        rows = rows[rows[:, 0] == topic]
+        return {int(s): t for s, t in zip(rows[:, 3], rows[:, column])}
+    sim, e, c = procs['simulator'], procs['estimator'], procs['controller']
+    marks = [by_stamp(sim['publishes'], tips, 1), by_stamp(e['callbacks'], tips, 1),
+             by_stamp(e['publishes'], est, 2), by_stamp(c['callbacks'], est, 1),
+             by_stamp(c['publishes'], cmd, 2), by_stamp(sim['callbacks'], cmd, 1)]
+    names = ('hop tips', 'estimator', 'hop estimate', 'controller', 'hop command', 'simulator')
+    stamps = sorted(set.intersection(*(set(m) for m in marks)))
+    seg: dict[str, list[float]] = {n: [] for n in (*names, 'period')}
+    for a, b in zip(stamps[:-1], stamps[1:]):
+        t = [m[a] for m in marks] + [marks[0][b]]
+        for name, t0, t1 in zip(names, t[:-1], t[1:]):
+            seg[name].append(t1 - t0)
+        seg['period'].append(t[-1] - t[0])
+    skip = len(stamps) // 10                      # the first tenth: start-up, cold caches
+    out = {n: (round(1e6 * float(np.median(v[skip:]))), round(1e6 * float(np.percentile(
+        v[skip:], 99)))) for n, v in seg.items() if len(v) > skip}
+    lo = marks[0][stamps[skip]] if stamps else 0.0
+    hi = marks[0][stamps[-1]] if stamps else 0.0
+    out['gc'] = {}
+    for tag, p in procs.items():
+        g = p['gc'][(p['gc'][:, 0] >= lo) & (p['gc'][:, 0] <= hi)]
+        out['gc'][tag] = (int(len(g)), round(1e3 * float(g[:, 1].sum()), 2),
+                          round(1e3 * float(g[:, 1].max()), 2) if len(g) else 0.0)
+    out['periods'] = max(len(stamps) - 1 - skip, 0)
+    return out
