@@ -7,7 +7,12 @@ import sys
 import numpy as np
 import pytest
 
-from soft_gripper_sdre.tools.benchmarks.loop_probe import TOPICS, late_causes, probe_env
+from soft_gripper_sdre.tools.benchmarks.loop_probe import (
+    TOPICS,
+    graph_periods,
+    late_causes,
+    probe_env,
+)
 from soft_gripper_sdre.tools.benchmarks.spread import LoadWatch, figure, span
 
 PERIOD = 1e-3
@@ -93,3 +98,32 @@ def test_a_figure_is_the_median_with_the_min_and_max():
     assert span([0.012, 0.031], 100, 1) == '1.2–3.1'
     watch = LoadWatch([0.4, 2.0, 1.3])
     assert watch.text() == 'load 0.4 → 1.3' and LoadWatch().text() == 'load not noted'
+
+
+def test_a_graph_period_splits_into_its_hops_and_nodes(tmp_path):
+    n = 100
+    stamps = np.arange(n) * PERIOD * 1e9
+    t0 = 5.0 + np.arange(n) * 1.2e-3                 # tips out every 1.2 ms
+    marks = [t0 + d for d in (0.0, 120e-6, 270e-6, 320e-6, 520e-6, 560e-6)]
+    marks[4][50] += 0.6e-3                           # one controller step 0.6 ms longer
+    marks[5][50] += 0.6e-3
+    est = TOPICS.index('/state_estimate')
+
+    def rows(topic, start, end):
+        return np.stack([np.full(n, topic), start, end, stamps], axis=1)
+    empty = {'gc': np.zeros((0, 3)), 'writes': np.zeros((0, 2))}
+    np.savez(tmp_path / 'simulator-1.npz', publishes=rows(TIPS, marks[0], marks[0] + 10e-6),
+             callbacks=rows(TORQUES, marks[5], marks[5] + 5e-6), **empty)
+    np.savez(tmp_path / 'estimator-2.npz', callbacks=rows(TIPS, marks[1], marks[2]),
+             publishes=rows(est, marks[2] - 30e-6, marks[2]), **empty)
+    np.savez(tmp_path / 'controller-3.npz', callbacks=rows(est, marks[3], marks[4]),
+             publishes=rows(TORQUES, marks[4] - 30e-6, marks[4]),
+             gc=np.array([[marks[3][50], 0.5e-3, 0]]), writes=np.zeros((0, 2)))
+    out = graph_periods(tmp_path)
+    assert out['hop tips'][0] == 120 and out['estimator'][0] == 150
+    assert out['hop estimate'][0] == 50 and out['controller'][0] == 200
+    assert out['hop command'][0] == 40 and out['simulator'][0] == 640
+    assert out['period'][0] == 1200
+    assert out['round trips longer than a period'] == 1
+    assert out['their parts']['controller'] == 800
+    assert out['gc']['controller'] == (1, 0.5, 0.5) and out['gc']['estimator'] == (0, 0.0, 0.0)

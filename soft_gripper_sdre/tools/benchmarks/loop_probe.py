@@ -255,7 +255,7 @@ def late_causes(out_dir: Path, gc_min: float = 50e-6) -> dict:
     return summary
 
 
-def graph_periods(out_dir: Path) -> dict:
+def graph_periods(out_dir: Path, period: float = 1e-3) -> dict:
     """Where a period of the simulated graph goes, from a probed
     :func:`~soft_gripper_sdre.tools.benchmarks.graph_run.run_graph` (estimator and controller as
     separate processes): per period k (its tips' stamp), medians and p99 [µs] of
@@ -264,8 +264,9 @@ def graph_periods(out_dir: Path) -> dict:
     ``estimator`` (→ its publish of the estimate returned), ``hop estimate`` (→ the controller's
     callback entered), ``controller`` (→ its publish of the command returned), ``hop command``
     (→ the simulator's command callback entered) and ``simulator`` (→ its publish of the next tips
-    began: physics and everything else it does in a period); with ``period`` (tips to tips), and
-    per process its collections in the stepping (count, total ms, longest ms)."""
+    began: physics and everything else it does in a period); with ``period`` (tips to tips), the
+    round trips (tips out → command in) longer than ``period`` [s] and the medians of their
+    parts, and per process its collections in the stepping (count, total ms, longest ms)."""
     procs = {}
     for path in sorted(out_dir.glob('*-*.npz')):
         procs[path.stem.rsplit('-', 1)[0]] = dict(np.load(path))
@@ -290,6 +291,12 @@ def graph_periods(out_dir: Path) -> dict:
     skip = len(stamps) // 10                      # the first tenth: start-up, cold caches
     out = {n: (round(1e6 * float(np.median(v[skip:]))), round(1e6 * float(np.percentile(
         v[skip:], 99)))) for n, v in seg.items() if len(v) > skip}
+    trip = np.sum([seg[n][skip:] for n in names[:5]], axis=0) if len(stamps) > skip + 1 else []
+    slow = np.asarray(trip) > period
+    out['round trips longer than a period'] = int(slow.sum())
+    if slow.any():
+        out['their parts'] = {n: round(1e6 * float(np.median(np.asarray(seg[n][skip:])[slow])))
+                              for n in names[:5]}
     lo = marks[0][stamps[skip]] if stamps else 0.0
     hi = marks[0][stamps[-1]] if stamps else 0.0
     out['gc'] = {}
