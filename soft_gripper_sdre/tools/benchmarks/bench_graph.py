@@ -148,21 +148,20 @@ def mode_rows(runs: dict[str, list[dict]], seconds: float,
     return out
 
 
-def _latency(d: dict, prefix: str = 'loop_latency_us') -> str:
-    """p50 / p99 / max of the latency figures ``<prefix>_*`` of a node's values ``d`` [µs]."""
-    nan = float('nan')
-    return ' / '.join(f'{d.get(f"{prefix}_{k}", nan):.0f}' for k in ('p50', 'p99', 'max')) + ' µs'
-
-
 def lockstep_rows(runs: dict[str, list[dict]], seconds: float) -> list[tuple[str, str, str]]:
-    """The lockstep rows of :func:`mode_runs`' ``runs``, from the run of median real-time factor:
-    its speed (with every run's, when there are several), latency, CPU per period, start-up."""
+    """The lockstep rows of :func:`mode_runs`' ``runs``: its speed (the run of median real-time
+    factor, with every run's), and its latency, CPU per period and start-up, each the median
+    (min–max) over the runs."""
     nan = float('nan')
     done = runs['lockstep']
-    lock_all = median_run(done)
-    lock = lock_all['simulator']
-    cpu = cpu_per_period(lock_all)
-    compute = lock_all['controller'].get('compute_us_mean', nan)
+    lock = median_run(done)['simulator']
+    sims = [d['simulator'] for d in done]
+    over = lambda key, src=sims: [v.get(key, nan) for v in src]   # noqa: E731
+    cpus = [cpu_per_period(d) for d in done]
+    cpu = {n: median([c[n] for c in cpus]) for n in cpus[0]}
+    latency = ' / '.join(figure(over(f'loop_latency_us_{k}'), scale=1)
+                         for k in ('p50', 'p99', 'max'))
+    runs_of = f'median (min–max) of {len(done)} runs of {seconds:g} s'
     return [
         ('node graph, 4 processes, lockstep 1 ms',
          f'{lock.get("real_time_factor", nan):.2f}× real time'
@@ -172,17 +171,18 @@ def lockstep_rows(runs: dict[str, list[dict]], seconds: float) -> list[tuple[str
          + (f'; median of {len(done)} runs taking turns with pipelined: '
             + ', '.join(f'{r["simulator"].get("real_time_factor", nan):.2f}×' for r in done)
             if len(done) > 1 else '')),
-        ('loop latency p50 / p99 / max, lockstep (tips out → torque back)', _latency(lock),
-         'measured in the simulator: 3 DDS hops + estimator + controller; the run of median '
-         'real-time factor'),
+        ('loop latency p50 / p99 / max, lockstep (tips out → torque back)', latency,
+         f'{runs_of}; measured in the simulator: 3 DDS hops + estimator + controller'),
         ('CPU per period, lockstep: simulator / estimator / trajectory / controller',
          ' / '.join(f'{c:.0f}' for c in cpu.values()) + ' µs',
-         f'sum {sum(cpu.values()):.0f} µs per 1 ms period on {os.cpu_count()} cores (the run of '
-         'median real-time factor); '
-         f'controller compute {compute:.0f} µs (mean of its last second)'),
-        ('start-up to the first torque, lockstep', f'{lock.get("startup_s", nan):.1f} s',
-         f'from launching the 4 processes; {lock.get("first_command_after_tips_ms", nan):.0f} '
-         'ms of it from the first tips to the first command'),
+         f'medians of {len(done)} runs (sums {span([sum(c.values()) for c in cpus])} µs) per '
+         f'1 ms period on {os.cpu_count()} cores; controller compute '
+         f'{figure(over("compute_us_mean", [d["controller"] for d in done]), scale=1)} (mean '
+         'of its last second)'),
+        ('start-up to the first torque, lockstep', figure(over('startup_s'), 's', 1, 1),
+         f'{runs_of}; from launching the 4 processes; '
+         f'{median(over("first_command_after_tips_ms")):.0f} ms of it from the first tips to '
+         'the first command'),
     ]
 
 
