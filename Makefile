@@ -81,9 +81,9 @@ bench-deploy: $(KERNELS)
 	$(PY) -m soft_gripper_sdre.tools.benchmarks.bench_deploy $(DEPLOY_ARGS)
 
 # the graph in lockstep and pipelined mode beside their floors (the floor rows of bench alone):
-# make bench-floor FLOOR_REPEATS=3
+# make bench-floor FLOOR_REPEATS=5
 .PHONY: bench-floor
-FLOOR_REPEATS ?= 3
+FLOOR_REPEATS ?= 5
 bench-floor: $(KERNELS)
 	$(PY) -m soft_gripper_sdre.tools.benchmarks.bench --floor $(FLOOR_REPEATS)
 

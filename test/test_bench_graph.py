@@ -1,7 +1,12 @@
 """The graph benchmarks measure what they claim: real processes over DDS, figures from the nodes."""
 import pytest
 
-from soft_gripper_sdre.tools.benchmarks.bench_graph import hog_run, mode_rows, recorder_loss
+from soft_gripper_sdre.tools.benchmarks.bench_graph import (
+    hog_run,
+    lockstep_rows,
+    mode_rows,
+    recorder_loss,
+)
 from soft_gripper_sdre.tools.benchmarks.bench_hog import PHASES
 from soft_gripper_sdre.tools.benchmarks.graph_run import SIM_TOPICS, run_graph
 from soft_gripper_sdre.tools.benchmarks.hop import hop
@@ -83,10 +88,25 @@ def test_mode_rows_report_the_median_run_with_the_range_and_the_loads():
     assert 'controller --with-estimator' in composed and 'median' not in composed_note
     assert 'simulator / trajectory / controller 600 / 300 / 300 µs (sum 1200)' in composed_note
     assert 'lockstep' in lock and 'pipelined' in pipe
-    assert lock_rtf == '0.60× real time' and pipe_rtf == '1.00× real time'
+    assert lock_rtf == '0.60× real time (0.50–0.70)' and pipe_rtf == '1.00× real time (0.90–1.10)'
     assert ('0.60×, 0.50×, 0.70× at load 1.0, 2.0, 3.0' in lock_note
             and '4 processes, lockstep' in lock)
     assert ('CPU per period simulator / estimator / trajectory / controller '
             '440 / 220 / 220 / 220 µs (sum 1100)' in pipe_note)
     assert figures == {'lockstep_rtf': 0.6, 'lockstep_cpu_us': 500.0, 'pipelined_rtf': 1.0,
                        'pipelined_cpu_us': 1100.0}
+
+
+def test_lockstep_rows_give_every_timing_as_the_median_of_the_runs_with_their_range():
+    runs = {'lockstep': [_run(0.6, 1.0, 100.0), _run(0.5, 2.0, 110.0), _run(0.7, 3.0, 130.0)]}
+    for i, d in enumerate(runs['lockstep']):
+        d['simulator'].update(loop_latency_us_p50=600.0 + 100 * i, loop_latency_us_max=5000.0,
+                              startup_s=6.0 + i, first_command_after_tips_ms=40.0)
+        d['controller']['compute_us_mean'] = 50.0 + i
+    speed, latency, cpu, startup = lockstep_rows(runs, 3.0)
+    assert speed[1] == '0.60× real time (0.50–0.70)'
+    assert latency[1] == '700 µs (600–800) / 900 µs (900–900) / 5000 µs (5000–5000)'
+    assert 'median (min–max) of 3 runs of 3 s' in latency[2]
+    assert cpu[1] == '220 / 110 / 110 / 110 µs'                   # each process's median
+    assert 'sums 500–650 µs' in cpu[2] and 'compute 51 µs (50–52)' in cpu[2]
+    assert startup[1] == '7.0 s (6.0–8.0)' and '40 ms of it' in startup[2]

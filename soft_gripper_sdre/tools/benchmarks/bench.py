@@ -4,7 +4,9 @@
         [--floor REPEATS]
 
 Prints a table of (what, figure, note) rows; ``--write`` also renders it as Markdown with the
-machine facts and the command. Every figure is a median over repeated timings; where two paths
+machine facts, the load before and after, and the command. Every timing row is the median and the
+min–max of at least :data:`~soft_gripper_sdre.tools.benchmarks.spread.REPEATS` runs
+(:mod:`~soft_gripper_sdre.tools.benchmarks.spread`), never the best of them; where two paths
 compete (the compiled controller vs the scipy reference:
 :mod:`soft_gripper_sdre.tools.benchmarks.bench_compute`) they are timed interleaved in the same
 run and their ratio is reported, since the machine is shared and absolute numbers drift. The
@@ -21,7 +23,6 @@ import json
 import os
 from pathlib import Path
 import platform
-import statistics
 import subprocess
 import sys
 import tempfile
@@ -36,25 +37,32 @@ from soft_gripper_sdre.tools.benchmarks.bench_compute import (  # noqa: E402
     bench_kf,
 )
 from soft_gripper_sdre.tools.benchmarks.bench_compute import rows as compute_rows  # noqa: E402
+from soft_gripper_sdre.tools.benchmarks.spread import (  # noqa: E402
+    REPEATS,
+    LoadWatch,
+    figure,
+    median,
+)
 
 
 def _us(seconds: float) -> str:
     return f'{seconds * 1e6:.0f} µs'
 
 
-def _median_time(fn, repeats: int, inner: int) -> float:
-    """Median over ``repeats`` of the mean wall time of ``inner`` calls [s]."""
+def _times(fn, repeats: int, inner: int) -> list[float]:
+    """Per repeat, the mean wall time of ``inner`` calls [s]."""
     samples = []
     for _ in range(repeats):
         t0 = time.perf_counter()
         for _ in range(inner):
             fn()
         samples.append((time.perf_counter() - t0) / inner)
-    return statistics.median(samples)
+    return samples
 
 
-def bench_sim(scene: str, seconds: float, repeats: int) -> float:
-    """Median wall time of one control period of the simulator alone (step + measure), u = 0 [s]."""
+def bench_sim(scene: str, seconds: float, repeats: int) -> list[float]:
+    """Per repeat (``seconds`` / ``repeats`` of sim time each), the mean wall time of one control
+    period of the simulator alone (step + measure), u = 0 [s]."""
     from soft_gripper_sdre.sim.hand import GripperSim, SimConfig
     with GripperSim(SimConfig(scene=scene)) as sim:
         u = np.zeros((sim.n_fingers, 2))
@@ -63,12 +71,13 @@ def bench_sim(scene: str, seconds: float, repeats: int) -> float:
         def period():
             sim.step(u)
             sim.measure()
-        return _median_time(period, repeats, steps)
+        return _times(period, repeats, steps)
 
 
-def bench_markers(repeats: int) -> float:
-    """Median wall time of one update of the simulator's hand markers (its ground truth, the
-    URDF's forward kinematics, the MarkerArray's CDR bytes: nodes/markers.py) [s]."""
+def bench_markers(repeats: int) -> list[float]:
+    """Per repeat, the mean wall time (of 50) of one update of the simulator's hand markers (its
+    ground truth, the URDF's forward kinematics, the MarkerArray's CDR bytes: nodes/markers.py)
+    [s]."""
     from soft_gripper_sdre import FINGER_NAMES
     from soft_gripper_sdre.nodes.markers import HandMarkers
     from soft_gripper_sdre.sim.hand import GripperSim, SimConfig
@@ -79,13 +88,13 @@ def bench_markers(repeats: int) -> float:
         def update():
             truth = sim.truth()
             markers.encode(0, truth.q, truth.cube_pose)
-        return _median_time(update, repeats, 50)
+        return _times(update, repeats, 50)
 
 
 def compile_seconds() -> dict[str, float]:
     """Seconds for ``import control.kernels`` and ``warm_up()`` in a fresh interpreter, with an
     empty numba cache (``cold``: compiling every kernel) and again with the cache that run left
-    (``cached``)."""
+    (``cached``): one run of each (:func:`startup_rows` repeats it)."""
     code = ('import time; t0 = time.perf_counter(); '
             'from soft_gripper_sdre.control import kernels as compiled; '
             't1 = time.perf_counter(); compiled.warm_up(); t2 = time.perf_counter(); '
@@ -214,29 +223,34 @@ def floor_table(quick: bool, repeats: int) -> list[Row]:
     """The floor rows alone, measured together (``--floor``): the hand's physics, the KF and
     ``sdre_ff`` compute on the closed loop's states, the raw-CDR hop, and the graph in lockstep,
     in pipelined mode and pipelined with the estimator and the controller in one process, taking
-    turns ``repeats`` times, each row with the load it ran under."""
+    turns ``repeats`` times; each row the median (min–max) of its runs, with the load it ran
+    under."""
     from soft_gripper_sdre.analysis.closed_loop import default_grasp
-    from soft_gripper_sdre.tools.benchmarks.bench_graph import mode_rows, mode_runs
-    from soft_gripper_sdre.tools.benchmarks.hop import hop
+    from soft_gripper_sdre.tools.benchmarks.bench_graph import hop_runs, mode_rows, mode_runs
     load = lambda: f'load average {os.getloadavg()[0]:.1f}'    # noqa: E731
-    hand = bench_sim('hand', 0.5 if quick else 2.0, 5)
-    out: list[Row] = [('simulator step, hand + cube', f'{_us(hand)} ({1e-3 / hand:.2f}× real time)',
-                       load())]
+    hands = bench_sim('hand', 0.5 if quick else 2.0, REPEATS)
+    hand = median(hands)
+    out: list[Row] = [('simulator step, hand + cube',
+                       f'{figure(hands)}; {1e-3 / hand:.2f}× real time',
+                       f'median (min–max) of {REPEATS} runs; {load()}')]
     loop = default_grasp(1.0 if quick else 2.0, noise_std=5e-5)
-    kf = bench_kf(loop, 1 if quick else 3)
-    ctrl = bench_control(loop, 'sdre_ff', 1 if quick else 2, 20)
-    out += [('KF step, 4 fingers (compiled)', _us(kf), load()),
-            ('controller compute, sdre_ff, 4 fingers (compiled)', _us(ctrl['fast']),
-             f'the kernel call alone {_us(ctrl["kernel"])}; {load()}')]
-    raw = hop('events', 1000 if quick else 3000, raw=True)
+    kf_runs: list[float] = []
+    bench_kf(loop, REPEATS, kf_runs)
+    ctrl = bench_control(loop, 'sdre_ff', REPEATS, 20)
+    out += [('KF step, 4 fingers (compiled)', figure(kf_runs, digits=1), load()),
+            ('controller compute, sdre_ff, 4 fingers (compiled)', figure(ctrl['runs']['fast']),
+             f'the kernel call alone {figure(ctrl["runs"]["kernel"])}; {load()}')]
+    raw = hop_runs('events', 300 if quick else 1000, raw=True)
     out.append(('one DDS hop, tip_positions as raw CDR (nodes/cdr.py), EventsExecutor',
-                f'{raw["p50"]:.0f} / {raw["p99"]:.0f} µs', f'p50 / p99 one way; {load()}'))
+                f'{figure(raw["p50"], scale=1)} / {figure(raw["p99"], scale=1)}',
+                f'p50 / p99 one way, median (min–max) of {len(raw["p50"])} runs; {load()}'))
     seconds = 1.0 if quick else 3.0
     figures: dict[str, float] = {}
     out += mode_rows(mode_runs(seconds, repeats,
                                layouts=('lockstep', 'pipelined', 'pipelined_composed')),
                      seconds, figures)
-    return out + floor_rows(hand, raw['p50'], kf, ctrl['fast'], figures)
+    return out + floor_rows(hand, median(raw['p50']), median(kf_runs),
+                            median(ctrl['runs']['fast']), figures)
 
 
 def deploy_rows(quick: bool) -> list[Row]:
@@ -246,47 +260,63 @@ def deploy_rows(quick: bool) -> list[Row]:
 
 
 def simulator_rows(quick: bool) -> tuple[list[Row], float]:
-    """The simulator's rows: one finger, the hand + cube and the hand's markers; and the hand's
-    period [s], which the floor rows compare."""
-    finger = bench_sim('finger', 1.0 if quick else 4.0, 5)
-    hand = bench_sim('hand', 0.5 if quick else 2.0, 5)
-    marker = bench_markers(5)
-    return [('simulator step, one finger', f'{_us(finger)} ({1e-3 / finger:.2f}× real time)',
-             '1 ms period, 2 physics substeps; SoMo reports 6–8× for one finger'),
-            ('simulator step, hand + cube', f'{_us(hand)} ({1e-3 / hand:.2f}× real time)',
-             f'{hand / finger:.1f}× one finger'),
-            ('simulator markers, hand (one update)', _us(marker),
-             'ground truth + forward kinematics + MarkerArray bytes, on a wall timer; at the '
+    """The simulator's rows: one finger, the hand + cube and the hand's markers, each the median
+    (min–max) of :data:`REPEATS` runs; and the hand's median period [s], which the floor rows
+    compare."""
+    finger_s, hand_s = (1.0, 0.5) if quick else (4.0, 2.0)
+    fingers = bench_sim('finger', finger_s, REPEATS)
+    hands = bench_sim('hand', hand_s, REPEATS)
+    markers = bench_markers(REPEATS)
+    finger, hand, marker = median(fingers), median(hands), median(markers)
+    return [('simulator step, one finger', f'{figure(fingers)}; {1e-3 / finger:.2f}× real time',
+             f'1 ms period, 2 physics substeps; {REPEATS} runs of {finger_s / REPEATS:g} s of sim '
+             'time each; SoMo reports 6–8× for one finger'),
+            ('simulator step, hand + cube', f'{figure(hands)}; {1e-3 / hand:.2f}× real time',
+             f'{REPEATS} runs of {hand_s / REPEATS:g} s each; {hand / finger:.1f}× one finger'),
+            ('simulator markers, hand (one update)', figure(markers),
+             f'{REPEATS} runs of 50 updates; ground truth + forward kinematics + MarkerArray '
+             'bytes, on a wall timer; at the '
              f'default marker_rate 10 Hz {100 * 10 * marker / (1000 * hand):.1f} % of the hand '
              "simulator's stepping at 1 kHz (publishing the 12 KB adds a DDS write)")], hand
 
 
-def closed_loop_row(loop) -> Row:
-    """The in-process closed loop's speed: 1 ms over its median period, and over the whole run."""
-    T = len(loop.t)
-    period = float(np.median(loop.period_seconds))
-    return ('closed loop in-process (sim + KF + controller)', f'{1e-3 / period:.2f}× real time',
-            f'median period {_us(period)}; over the whole {T * 1e-3:.0f} s run '
-            f'{T * 1e-3 / loop.step_seconds:.2f}× (load bursts included); '
-            'hand + cube, 0.05 mm noise, stepping only')
+def closed_loop_row(loops: list) -> Row:
+    """The in-process closed loop's speed over ``loops`` (runs of it): 1 ms over each run's
+    median period, and over each whole run; medians (min–max)."""
+    T = len(loops[0].t)
+    periods = [float(np.median(loop.period_seconds)) for loop in loops]
+    whole = [len(loop.t) * 1e-3 / loop.step_seconds for loop in loops]
+    speed = [1e-3 / p for p in periods]
+    return ('closed loop in-process (sim + KF + controller)',
+            f'{figure(speed, "× real time", 1, 2, sep="")}',
+            f'median (min–max) of {len(loops)} runs of {T * 1e-3:.0f} s; median period '
+            f'{figure(periods)}; over each whole run {figure(whole, "×", 1, 2, sep="")} (load '
+            'bursts included); hand + cube, 0.05 mm noise, stepping only')
 
 
 def startup_rows(quick: bool) -> list[Row]:
-    """The start-up rows: numba's compilation from an empty cache and from the one it left (not
-    with ``quick``: it takes about a minute), and the graph's start-up to its first torque."""
+    """The start-up rows, each the median (min–max) of :data:`REPEATS` runs: numba's compilation
+    from an empty cache and from the one it left (not with ``quick``: about a minute each), and
+    the graph's start-up to its first torque."""
     out: list[Row] = []
+    repeats = 2 if quick else REPEATS
     if not quick:
-        compiled = compile_seconds()
+        runs = [compile_seconds() for _ in range(repeats)]
+        total = {k: [r[f'{k} import'] + r[f'{k} warm_up'] for r in runs] for k in ('cold',
+                                                                                   'cached')}
+        imports = {k: [r[f'{k} import'] for r in runs] for k in ('cold', 'cached')}
         out.append(('compiled kernels: import + warm_up(), empty cache / cached',
-                    f'{compiled["cold import"] + compiled["cold warm_up"]:.1f} s / '
-                    f'{compiled["cached import"] + compiled["cached warm_up"]:.1f} s',
-                    'a fresh interpreter with NUMBA_CACHE_DIR empty, then again with what it left; '
-                    f'of which importing numba and the kernels {compiled["cold import"]:.1f} s / '
-                    f'{compiled["cached import"]:.1f} s'))
+                    f'{figure(total["cold"], "s", 1, 1)} / {figure(total["cached"], "s", 1, 1)}',
+                    f'median (min–max) of {repeats} runs; a fresh interpreter with '
+                    'NUMBA_CACHE_DIR empty, then again with what it left; of which importing '
+                    f'numba and the kernels {figure(imports["cold"], "s", 1, 1)} / '
+                    f'{figure(imports["cached"], "s", 1, 1)}'))
+    starts = [graph_startup() for _ in range(repeats)]
     out.append(('graph start-up (processes launched → first torque command)',
-                f'{graph_startup():.1f} s',
-                'simulator, estimator, trajectory, controller started together on the shipped '
-                "configuration, numba's cache filled (make's kernels stamp)"))
+                figure(starts, 's', 1, 1),
+                f'median (min–max) of {repeats} runs; simulator, estimator, trajectory, '
+                "controller started together on the shipped configuration, numba's cache filled "
+                "(make's kernels stamp)"))
     return out
 
 
@@ -309,16 +339,21 @@ def training_rows() -> list[Row]:
              else 'as recorded with the shipped model (models/default.json), not re-run here')]
 
 
-def rows(quick: bool) -> list[Row]:
+def rows(quick: bool, load: LoadWatch | None = None) -> list[Row]:
     """Every row of the table, measured now: the simulator; the compute and the closed loop on
     the default settings (0.05 mm measurement noise), its states replayed; the node graph, each
-    of its modes against its floor, the deployment loop; start-up, training, data collection."""
+    of its modes against its floor, the deployment loop; start-up, training, data collection.
+    ``load`` notes the load average before and after."""
     from soft_gripper_sdre.analysis.closed_loop import default_grasp
+    load = load or LoadWatch()
+    load.note()
     out, hand = simulator_rows(quick)
-    loop = default_grasp(1.0 if quick else 3.0, noise_std=5e-5)
+    loops = [default_grasp(1.0 if quick else 3.0, noise_std=5e-5)
+             for _ in range(2 if quick else REPEATS)]
     figures: dict[str, float] = {}
-    out += compute_rows(loop, quick, figures)
-    out.append(closed_loop_row(loop))
+    out += compute_rows(loops[0], quick, figures)
+    out.append(closed_loop_row(loops))
+    del loops[1:]
     out += graph_rows(quick, figures)
     if 'hop_p50_us' in figures:
         out += floor_rows(hand, figures['hop_p50_us'], figures['kf_s'], figures['control_s'],
@@ -326,22 +361,27 @@ def rows(quick: bool) -> list[Row]:
     out += deploy_rows(quick)
     out += startup_rows(quick)
     out += training_rows()
-    collect = bench_collect(1.0 if quick else 3.0)
-    out.append(('data collection, one finger', f'{collect:.2f}× real time',
-                'one excitation signal with ground truth, 0.5 s settle included'))
+    collects = [bench_collect(1.0 if quick else 3.0) for _ in range(2 if quick else REPEATS)]
+    out.append(('data collection, one finger', figure(collects, '× real time', 1, 2, sep=''),
+                f'median (min–max) of {len(collects)} runs; one excitation signal of '
+                f'{1.0 if quick else 3.0:g} s with ground truth, 0.5 s settle included'))
+    load.note()
     return out
 
 
-def markdown(table: list[Row], quick: bool) -> str:
-    load = os.getloadavg()[0]
+def markdown(table: list[Row], quick: bool, load: LoadWatch | None = None) -> str:
     lines = ['# Benchmarks', '',
              'Reproduce: `make bench` '
              '(= `python -m soft_gripper_sdre.tools.benchmarks.bench --write BENCHMARKS.md`).',
-             f'Measured {time.strftime("%Y-%m-%d")} on {platform.machine()}, {os.cpu_count()} '
-             f'cores, Python {platform.python_version()}, a shared machine (other jobs running; '
-             f'load average {load:.1f} at the end of the run)'
+             f'Measured {time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())} on '
+             f'{platform.machine()}, {os.cpu_count()} cores, Python '
+             f'{platform.python_version()}, a shared machine (other jobs running; 1-minute load '
+             f'average {(load or LoadWatch([os.getloadavg()[0]])).text().removeprefix("load ")} '
+             'from the start to the end of the run)'
              + (', short runs (`--quick`)' if quick else '')
-             + ': compare the ratios, which are measured in one run.', '',
+             + '. Every timing is the median of at least five runs with their min–max in '
+             'brackets (`tools/benchmarks/spread.py`), never the best run; the note says how '
+             'long each run is. Compare the ratios, which are measured in one run.', '',
              '| what | figure | note |', '| --- | ---: | --- |']
     lines += [f'| {n} | {v} | {note} |' for n, v, note in table]
     lines += ['', 'The controller and KF rows replay the estimates and references of the '
@@ -350,7 +390,18 @@ def markdown(table: list[Row], quick: bool) -> str:
               'left out. The closed-loop row times the stepping only, not the simulator\'s '
               'construction and settle; its figure is 1 ms over the median period. '
               'Training is timed by the train tool itself; data collection includes the '
-              'finger\'s 0.5 s settle.']
+              'finger\'s 0.5 s settle.', '',
+              'The deployment rows (`soft_gripper_sdre.tools.benchmarks.bench_deploy`) run a '
+              'driver stand-in (tips from prebuilt CDR bytes on an absolute wall-clock schedule, '
+              'the commands timed by their stamps) with the estimator, the trajectory node and '
+              'the controller, each run a 2 s warm-up and then the measured seconds its note '
+              'gives, the configurations taking turns run by run; every figure is the median '
+              'over the runs, the late share and the p99 with their min–max. CPU per period is '
+              'each process\'s `/proc/<pid>/schedstat` over the measured window. "One process" '
+              'is `controller --with-estimator` '
+              '([docs/performance.md](docs/performance.md#the-deployment-loop)); what makes a '
+              'period late, measured inside the processes (`bench_deploy --probe DIR`), is in '
+              '[docs/performance.md](docs/performance.md#what-makes-a-period-late).']
     return '\n'.join(lines) + '\n'
 
 
@@ -360,7 +411,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--write', type=Path, default=None,
                     help='also write the results as Markdown here')
     ap.add_argument('--quick', action='store_true', help='shorter runs (smoke test)')
-    ap.add_argument('--floor', type=int, default=None, metavar='REPEATS',
+    ap.add_argument('--floor', type=int, default=None, const=REPEATS, metavar='REPEATS', nargs='?',
                     help='only the floor rows: physics, compute, one hop, and the graph in '
                          'lockstep and pipelined mode alternating REPEATS times '
                          '(prints; --write is refused)')
@@ -369,12 +420,13 @@ def main(argv: list[str] | None = None) -> int:
         ap.error('--floor takes a number of repeats >= 1 and prints only (no --write)')
     from soft_gripper_sdre.learning.model import set_torch_threads
     set_torch_threads(1)
-    table = floor_table(a.quick, a.floor) if a.floor is not None else rows(a.quick)
+    load = LoadWatch()
+    table = floor_table(a.quick, a.floor) if a.floor is not None else rows(a.quick, load)
     width = max(len(r[0]) for r in table)
     for name, value, note in table:
         print(f'{name:<{width}}  {value:>28}  {note}')
     if a.write:
-        a.write.write_text(markdown(table, a.quick))
+        a.write.write_text(markdown(table, a.quick, load))
         print(f'wrote {a.write}')
     return 0
 

@@ -132,7 +132,9 @@ def bench_control(loop, law: str, repeats: int, ref_steps: int) -> dict[str, flo
     on the same state, so the ratio compares the two under the same load. Returns medians of
     per-step wall times [s] (the first, cold step left out), the fast path's mean Newton–Kleinman
     iterations per step, its share of exact solves, and the largest difference of the unsaturated
-    torques to the reference's relative to the largest of those.
+    torques to the reference's relative to the largest of those; and ``runs``: per repeat (a
+    replay with fresh laws) the medians of ``fast``, ``kernel`` and ``reference`` and the ratio
+    ``reference / fast_paired``.
     """
     from soft_gripper_sdre.control.laws import make_law
     from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
@@ -140,16 +142,26 @@ def bench_control(loop, law: str, repeats: int, ref_steps: int) -> dict[str, flo
     model, w = SDCModel(), Weights(**DEFAULT_WEIGHTS)
     n = loop.est.shape[1]
     replay, times = _Replay.of(loop, law, ref_steps, model), _ReplayTimes()
+    runs: dict[str, list[float]] = {'fast': [], 'kernel': [], 'reference': [], 'ratio': []}
     for _ in range(repeats):
         fast = make_law(law, model, w, 0.0625, n_fingers=n, method='fast')
         ref = make_law(law, model, w, 0.0625, n_fingers=n, method='reference')
-        _replay_once(fast, ref, replay, times)
-    return times.summary()
+        once = _ReplayTimes()
+        _replay_once(fast, ref, replay, once)
+        for key, v in once.t.items():
+            times.t[key] += v
+        times.iterations += once.iterations
+        times.worst, times.scale = max(times.worst, once.worst), max(times.scale, once.scale)
+        run = once.summary()
+        for key in ('fast', 'kernel', 'reference'):
+            runs[key].append(run[key])
+        runs['ratio'].append(run['reference'] / run['fast_paired'])
+    return {**times.summary(), 'runs': runs}
 
 
-def bench_kf(loop, repeats: int) -> float:
+def bench_kf(loop, repeats: int, runs: list[float] | None = None) -> float:
     """Median wall time of one ConstantVelocityKF step for every finger (compiled) [s], on the
-    loop's measurements."""
+    loop's measurements; ``runs``, if given, gets each repeat's median."""
     from soft_gripper_sdre.control.kf import ConstantVelocityKF
     meas = [np.ascontiguousarray(z) for z in loop.meas]
     samples = []
@@ -157,22 +169,35 @@ def bench_kf(loop, repeats: int) -> float:
     for _ in range(repeats):
         kf = ConstantVelocityKF(1e-3, 1.0, 5e-5, n=meas[0].shape[0])
         kf.reset(meas[0])
+        once = []
         for z in meas[1:]:
             t0 = clock()
             kf.step(z)
-            samples.append(clock() - t0)
+            once.append(clock() - t0)
+        samples += once
+        if runs is not None:
+            runs.append(float(np.median(once)))
     return float(np.median(samples))
 
 
-def bench_idle(loop, law: str = 'sdre_ff') -> dict[str, float]:
+def bench_idle(loop, law: str = 'sdre_ff', repeats: int = 1) -> dict[str, list[float]]:
     """The graph's law on the closed loop's states, as a node runs it: median compute [s] right
     after 1 ms of sleep (``idle``: a node waiting for its next estimate), right after sweeping
     64 MB of memory (``flushed``: other processes ran on the core meanwhile, as in the graph), and
-    back to back (``busy``: as the replays above).
+    back to back (``busy``: as the replays above); each a list of ``repeats`` runs, each run over
+    its own consecutive share of the loop's steps with fresh laws (the first, cold step left out).
 
     Three instances of the law step through the same states, one after the other at each step, so
     all see the same warm starts and the same load.
     """
+    T = len(loop.est)
+    bounds = np.linspace(0, T, repeats + 1).astype(int)
+    runs = [_idle_once(loop, law, range(a, b)) for a, b in zip(bounds[:-1], bounds[1:])]
+    return {k: [r[k] for r in runs] for k in runs[0]}
+
+
+def _idle_once(loop, law: str, steps: range) -> dict[str, float]:
+    """One run of :func:`bench_idle` over the loop's ``steps``."""
     from soft_gripper_sdre.control.laws import make_law
     from soft_gripper_sdre.control.tracking import DEFAULT_WEIGHTS, Weights
     from soft_gripper_sdre.learning.model import SDCModel
@@ -182,13 +207,13 @@ def bench_idle(loop, law: str = 'sdre_ff') -> dict[str, float]:
               'busy': lambda: None}
     acc = np.zeros((loop.est.shape[1], 2))
     clock, t = time.perf_counter, {k: [] for k in laws}
-    for k in range(len(loop.est)):
+    for k in steps:
         args = (loop.est[k, :, :2], loop.est[k, :, 2:], loop.ref_pos[k], loop.ref_vel[k])
         for name, ctl in laws.items():
             before[name]()
             t0 = clock()
             ctl.compute(*args, ref_acc=acc)
-            if k:
+            if k != steps[0]:
                 t[name].append(clock() - t0)
     return {k: float(np.median(v)) for k, v in t.items()}
 
@@ -374,40 +399,53 @@ def shaped_rows(quick: bool) -> list[Row]:
 def rows(loop, quick: bool, figures: dict[str, float] | None = None) -> list[Row]:
     """The compute rows of BENCHMARKS.md, on the states of ``loop`` (the noisy closed loop) and of
     a clean one: both laws compiled and as the reference, ``sdre`` on clean states, the KF, and
-    ``sdre_ff`` cold. ``figures``, if given, gets what the floor rows compare: the KF step
-    (``kf_s``) and ``sdre_ff``'s compiled compute (``control_s``) [s]."""
+    ``sdre_ff`` cold; each figure the median (min–max) of :data:`REPEATS` replays (two with
+    ``quick``), with the load before and after. ``figures``, if given, gets what the floor rows
+    compare: the KF step (``kf_s``) and ``sdre_ff``'s compiled compute (``control_s``) [s],
+    medians."""
     from soft_gripper_sdre.analysis.closed_loop import default_grasp
+    from soft_gripper_sdre.tools.benchmarks.spread import REPEATS, LoadWatch, figure, median
+    repeats = 2 if quick else REPEATS
     out: list[Row] = []
+    load = LoadWatch()
+    load.note()
     for law in ('sdre', 'sdre_ff'):
-        ctrl = bench_control(loop, law, 1 if quick else 2, 100 if quick else 300)
-        out += [(f'controller compute, {law}, 4 fingers (compiled)', _us(ctrl['fast']),
-                 f'{ctrl["reference"] / ctrl["fast_paired"]:.0f}× faster than the reference '
+        ctrl = bench_control(loop, law, repeats, 100 if quick else 300)
+        runs = ctrl['runs']
+        out += [(f'controller compute, {law}, 4 fingers (compiled)', figure(runs['fast']),
+                 f'{median(runs["ratio"]):.0f}× ({min(runs["ratio"]):.0f}–'
+                 f'{max(runs["ratio"]):.0f}×) faster than the reference '
                  'on the same steps; states of the closed loop below (0.05 mm noise): '
                  f'{ctrl["iterations"]:.2f} Newton–Kleinman iterations per step, '
                  f'{100 * ctrl["exact"]:.1f} % exact solves; '
                  f'torques within {ctrl["difference"]:.1e} of '
                  "the largest of the reference's; the kernel call alone "
-                 f'{_us(ctrl["kernel"])}'),
-                (f'controller compute, {law}, 4 fingers (scipy reference)', _us(ctrl['reference']),
+                 f'{figure(runs["kernel"])}'),
+                (f'controller compute, {law}, 4 fingers (scipy reference)',
+                 figure(runs['reference']),
                  'scipy solve_continuous_are per finger, general checks')]
-    clean = bench_control(default_grasp(1.0 if quick else 2.0, noise_std=0.0), 'sdre', 1,
+    clean = bench_control(default_grasp(1.0 if quick else 2.0, noise_std=0.0), 'sdre', repeats,
                           50 if quick else 200)
-    out.append(('controller compute, sdre, 4 fingers (compiled), clean states', _us(clean['fast']),
-                f'{clean["reference"] / clean["fast_paired"]:.0f}× faster than the reference, '
+    out.append(('controller compute, sdre, 4 fingers (compiled), clean states',
+                figure(clean['runs']['fast']),
+                f'{median(clean["runs"]["ratio"]):.0f}× faster than the reference, '
                 'same steps; the same loop without measurement noise: '
                 f'{clean["iterations"]:.2f} iterations per step'))
     out += shaped_rows(quick)
-    kf = bench_kf(loop, 1 if quick else 3)
-    out.append(('KF step, 4 fingers (compiled)', _us(kf),
+    kf_runs: list[float] = []
+    bench_kf(loop, repeats, kf_runs)
+    out.append(('KF step, 4 fingers (compiled)', figure(kf_runs, digits=1),
                 'predict + Joseph-form update, the closed loop\'s measurements'))
-    cold = bench_idle(loop)
+    cold = bench_idle(loop, repeats=repeats)
+    ratio = lambda k: median([a / b for a, b in zip(cold[k], cold['busy'])])  # noqa: E731
+    load.note()
     out.append(('controller compute, sdre_ff (the graph\'s law), cold',
-                f'{_us(cold["idle"])} / {_us(cold["flushed"])}',
+                f'{figure(cold["idle"])} / {figure(cold["flushed"])}',
                 'after 1 ms of sleep / after 64 MB of other memory traffic, '
-                f'against {_us(cold["busy"])} back to back on the same states '
-                f'({cold["idle"] / cold["busy"]:.1f}× / {cold["flushed"] / cold["busy"]:.1f}×): '
-                'a node that waits for each estimate while other processes use its core '
-                'runs it cold'))
+                f'against {figure(cold["busy"])} back to back on the same states '
+                f'({ratio("idle"):.1f}× / {ratio("flushed"):.1f}×), each run over its share of the '
+                'loop: a node that waits for each estimate while other processes use its core '
+                f'runs it cold; the compute rows ran at {load.text()}'))
     if figures is not None:
-        figures.update(kf_s=kf, control_s=ctrl['fast'])
+        figures.update(kf_s=median(kf_runs), control_s=median(ctrl['runs']['fast']))
     return out

@@ -44,6 +44,8 @@ import numpy as np
 
 from soft_gripper_sdre.nodes.graph import NodeSpec, default_params_file
 from soft_gripper_sdre.tools.benchmarks.deploy_driver import driver
+from soft_gripper_sdre.tools.benchmarks.loop_probe import late_causes, probe_env
+from soft_gripper_sdre.tools.benchmarks.spread import REPEATS, median, span
 from soft_gripper_sdre.tools.graph.procs import Graph, ros_env
 
 #: periods before the measured window: discovery, the plan, the first cold steps
@@ -61,6 +63,9 @@ VARIANTS: dict[str, tuple[str, dict[str, str], dict]] = {
     'pinned': ('estimator and controller on core 1, driver and trajectory on core 0 (affinity)',
                {}, {'pinned': True}),
     'fifo': ('estimator, controller and driver at SCHED_FIFO priority 50', {}, {'fifo': True}),
+    'recorder_nice': ('the recorder at nice 10', {}, {'recorder_nice': 10}),
+    'recorder_batch': ('the recorder under SCHED_BATCH (no wake-up preemption)', {},
+                       {'recorder_batch': True}),
 }
 
 
@@ -114,17 +119,35 @@ def _fifo(pid: int, priority: int = 50) -> bool:
     return ok
 
 
+def _deprioritize(pid: int, nice: int = 0, batch: bool = False) -> None:
+    """Every thread of ``pid`` at ``nice``, and under SCHED_BATCH if ``batch``."""
+    for tid in _threads(pid):
+        try:
+            if batch:
+                os.sched_setscheduler(tid, os.SCHED_BATCH, os.sched_param(0))
+            if nice:
+                os.setpriority(os.PRIO_PROCESS, tid, nice)
+        except OSError:
+            pass
+
+
 def _spec(name: str, parameters: dict) -> NodeSpec:
     return NodeSpec(name, name, params_file=default_params_file(name), parameters=parameters)
 
 
 def run_deploy(period: float, seconds: float, tips: Path, *, record: bool = False,
-               variant: str = 'base', warmup: float = WARMUP_S) -> dict:
+               variant: str = 'base', warmup: float = WARMUP_S, probe: Path | None = None
+               ) -> dict:
     """One run of the deployment loop (see the module doc); returns
     :func:`~soft_gripper_sdre.tools.benchmarks.deploy_driver.driver`'s figures plus
-    ``variant``, ``rate_hz``, ``record`` and ``load`` (the 1-minute load average at the end)."""
+    ``variant``, ``rate_hz``, ``record``, ``load`` (the 1-minute load average at the end) and
+    ``load_before`` (at the start). ``probe``: every process of the run records its timestamps
+    there (:mod:`~soft_gripper_sdre.tools.benchmarks.loop_probe`)."""
     _, extra_env, options = variant_settings(variant)
     env = {**ros_env(), **extra_env}
+    if probe is not None:
+        env = probe_env(env, probe)
+    load_before = os.getloadavg()[0]
     timing = {'control_period': float(period)}
     with tempfile.TemporaryDirectory(prefix='sgs_bench_deploy_') as tmp, \
             Graph(env, Path(tmp) / 'logs') as graph:
@@ -141,6 +164,9 @@ def run_deploy(period: float, seconds: float, tips: Path, *, record: bool = Fals
         _wait_ready(graph, {'controller': (ESTIMATOR_UP, CONTROLLER_UP)} if options.get('composed')
                     else {'estimator': (ESTIMATOR_UP,), 'controller': (CONTROLLER_UP,)})
         pids = {name: proc.popen.pid for name, proc in graph.procs.items()}
+        if record and (options.get('recorder_nice') or options.get('recorder_batch')):
+            _deprioritize(pids['recorder'], options.get('recorder_nice', 0),
+                          options.get('recorder_batch', False))
         readers = 2 + record
         cmd = [sys.executable, '-m', 'soft_gripper_sdre.tools.benchmarks.bench_deploy', '--driver',
                json.dumps({'period': period, 'warmup': warmup, 'seconds': seconds,
@@ -163,7 +189,7 @@ def run_deploy(period: float, seconds: float, tips: Path, *, record: bool = Fals
             raise RuntimeError(f'the driver failed ({drv.returncode}): {err[-2000:]}\n{tails}')
     result = json.loads(out.strip().splitlines()[-1])
     result.update(variant=variant, rate_hz=round(1.0 / period), record=record,
-                  load=os.getloadavg()[0])
+                  load=os.getloadavg()[0], load_before=load_before)
     if fifo is not None:
         result['fifo_granted'] = fifo
     return result
@@ -188,44 +214,66 @@ def _wait_ready(graph: Graph, ready: dict[str, tuple[str, ...]], timeout: float 
 # -- the table ----------------------------------------------------------------------------------
 
 def summary(runs: list[dict]) -> dict:
-    """The quietest run of repeated ones (lowest late share, then lowest p99), with the spread."""
-    best = min(runs, key=lambda r: (r['late_pct'], r['latency_p99']))
-    late = [r['late_pct'] for r in runs]
-    p99 = [r['latency_p99'] for r in runs]
-    return {**best, 'spread_late': (min(late), max(late)), 'spread_p99': (min(p99), max(p99)),
-            'loads': [round(r['load'], 1) for r in runs], 'repeats': len(runs)}
+    """Repeated runs of one configuration: each figure's median over the runs (``late_pct``,
+    ``latency_*``, ``cpu_us``), the runs' figures (``runs_late``, ``runs_p99``) and the loads
+    (``loads``: before the first run, after each run)."""
+    first = runs[0]
+    med = lambda key: median([r[key] for r in runs])    # noqa: E731
+    cpu = {name: median([r['cpu_us'].get(name, float('nan')) for r in runs])
+           for name in first['cpu_us']}
+    return {'rate_hz': first['rate_hz'], 'variant': first['variant'], 'record': first['record'],
+            'periods': first['periods'], 'seconds': first['periods'] / first['rate_hz'],
+            'late_pct': med('late_pct'), 'latency_p50': med('latency_p50'),
+            'latency_p99': med('latency_p99'), 'latency_max': med('latency_max'), 'cpu_us': cpu,
+            'runs_late': [r['late_pct'] for r in runs],
+            'runs_p99': [r['latency_p99'] for r in runs],
+            'loads': [round(first.get('load_before', first['load']), 1)]
+            + [round(r['load'], 1) for r in runs], 'repeats': len(runs)}
 
 
 def describe(s: dict) -> tuple[str, str, str]:
-    """(what, figure, note) of a :func:`summary`."""
+    """(what, figure, note) of a :func:`summary`: the medians, the late share's and the p99's
+    min–max over the runs, and the load."""
     cpu = s['cpu_us']
     loop = [n for n in ('estimator', 'controller') if n in cpu]
     parts = ' + '.join(f'{n} {cpu[n]:.0f}' for n in loop)
     total = sum(cpu[n] for n in loop)
     what = (f'deployment loop at {s["rate_hz"]} Hz, {variant_settings(s["variant"])[0]}'
             + (', with the recorder' if s['record'] else ''))
-    figure = (f'{s["late_pct"]:.2f} % late; {s["latency_p50"]:.0f} / {s["latency_p99"]:.0f} / '
+    figure = (f'{s["late_pct"]:.2f} % late ({span(s["runs_late"], digits=2)}); '
+              f'{s["latency_p50"]:.0f} / {s["latency_p99"]:.0f} ({span(s["runs_p99"])}) / '
               f'{s["latency_max"]:.0f} µs')
-    note = (f'latency p50 / p99 / max; CPU per period {parts} = {total:.0f} µs'
+    note = (f'median (min–max) of {s["repeats"]} runs of {s["seconds"]:g} s '
+            f'({s["periods"]} periods) each: late share; latency p50 / p99 / max; CPU per period '
+            f'{parts} = {total:.0f} µs'
             + (f', recorder {cpu["recorder"]:.0f}' if 'recorder' in cpu else '')
-            + f', driver {cpu["driver"]:.0f} µs; {s["periods"]} periods, best of {s["repeats"]} '
-            f'(late {s["spread_late"][0]:.2f}–{s["spread_late"][1]:.2f} %, p99 '
-            f'{s["spread_p99"][0]:.0f}–{s["spread_p99"][1]:.0f} µs; load {s["loads"]})')
+            + f', driver {cpu["driver"]:.0f} µs; load {s["loads"][0]} before, '
+            f'{s["loads"][1:]} after each run')
     return what, figure, note
 
 
 def measure(rates: list[int], variants: list[str], seconds: float, repeats: int,
-            record_too: bool, tips: Path, echo=print) -> list[dict]:
-    """:func:`summary` of ``repeats`` runs of every rate × variant × (recorder or not). The
-    repeats go round all the configurations in turn, so a load that drifts meets each alike."""
+            record_too: bool | str, tips: Path, echo=print, probe: Path | None = None
+            ) -> list[dict]:
+    """:func:`summary` of ``repeats`` runs of every rate × variant × (recorder or not;
+    ``record_too='only'``: with the recorder only). The
+    repeats go round all the configurations in turn, so a load that drifts meets each alike.
+    ``probe``: each run records its processes' timestamps in a directory of its own there, and
+    its :func:`~soft_gripper_sdre.tools.benchmarks.loop_probe.late_causes` are echoed and kept
+    (``causes``)."""
     configs = [(rate, v, record) for rate in rates for v in variants
-               for record in ((False, True) if record_too else (False,))]
+               for record in ((False, True) if record_too is True
+                              else (True,) if record_too == 'only' else (False,))]
     runs: dict[tuple, list[dict]] = {c: [] for c in configs}
-    for _ in range(repeats):
+    for i in range(repeats):
         for rate, v, record in configs:
-            runs[rate, v, record].append(run_deploy(1.0 / rate, seconds, tips, record=record,
-                                                    variant=v))
-            echo(json.dumps(runs[rate, v, record][-1]))
+            where = (None if probe is None
+                     else probe / f'{rate}-{v}{"-recorder" if record else ""}-{i}')
+            run = run_deploy(1.0 / rate, seconds, tips, record=record, variant=v, probe=where)
+            if where is not None:
+                run['causes'] = late_causes(where)
+            runs[rate, v, record].append(run)
+            echo(json.dumps(run))
     out = [summary(runs[c]) for c in configs]
     for s in out:
         echo(' | '.join(describe(s)))
@@ -234,15 +282,19 @@ def measure(rates: list[int], variants: list[str], seconds: float, repeats: int,
 
 #: the layouts :func:`rows` measures: the shipped one and the composed one
 ROW_VARIANTS = ('base', 'composed')
+#: the runs per configuration of :func:`rows`, and the measured seconds of each (after the warm-up)
+ROW_REPEATS, ROW_SECONDS = REPEATS, 6.0
 
 
 def rows(quick: bool = False) -> list[tuple[str, str, str]]:
     """The deployment rows of BENCHMARKS.md: each of :data:`ROW_VARIANTS` at 1 kHz and 500 Hz,
-    with and without the recorder, the best of three runs (one with ``quick``)."""
-    seconds = 3.0 if quick else 10.0
+    with and without the recorder, the median and min–max of :data:`ROW_REPEATS` runs of
+    :data:`ROW_SECONDS` each (one short run with ``quick``)."""
+    seconds = 3.0 if quick else ROW_SECONDS
     with tempfile.TemporaryDirectory(prefix='sgs_deploy_tips_') as tmp:
         tips = replay_tips(WARMUP_S + seconds + 1.0, Path(tmp) / 'tips.npy')
-        table = measure([1000, 500], list(ROW_VARIANTS), seconds, 1 if quick else 3, True, tips,
+        table = measure([1000, 500], list(ROW_VARIANTS), seconds, 1 if quick else ROW_REPEATS,
+                        True, tips,
                         echo=lambda _: None)
     return [describe(s) for s in table]
 
@@ -258,20 +310,29 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--variants', nargs='+', default=list(ROW_VARIANTS),
                     help=f'any of {", ".join(VARIANTS)}, or several joined by + (composed+fifo)')
     ap.add_argument('--no-recorder', action='store_true', help='only the runs without recorder')
+    ap.add_argument('--only-recorder', action='store_true', help='only the runs with the recorder')
     ap.add_argument('--tips', type=Path, default=None, help='cache of the replayed tips (.npy)')
+    ap.add_argument('--probe', type=Path, default=None, metavar='DIR',
+                    help='record timestamps inside every process of each run under DIR and '
+                         'print what made its late periods late (tools/benchmarks/loop_probe.py)')
     a = ap.parse_args(argv)
+    if a.probe is not None and a.probe.exists() and not a.probe.is_dir():
+        ap.error(f'--probe {a.probe}: not a directory')
+    if (a.repeats is not None and a.repeats < 1) or (a.seconds is not None and a.seconds <= 0):
+        ap.error('--repeats takes a count >= 1 and --seconds a duration > 0')
     if a.driver is not None:
         d = json.loads(a.driver)
         result = driver(d['period'], d['warmup'], d['seconds'], Path(d['tips']), d['readers'],
                         d['pids'])
         print(json.dumps(result), flush=True)
         return 0
-    seconds = a.seconds or (3.0 if a.quick else 10.0)
-    repeats = a.repeats or (1 if a.quick else 3)
+    seconds = a.seconds or (3.0 if a.quick else ROW_SECONDS)
+    repeats = a.repeats or (1 if a.quick else ROW_REPEATS)
     with tempfile.TemporaryDirectory(prefix='sgs_deploy_tips_') as tmp:
         tips = a.tips or Path(tmp) / 'tips.npy'
         replay_tips(WARMUP_S + seconds + 1.0, tips)
-        measure(a.rate, a.variants, seconds, repeats, not a.no_recorder, tips)
+        measure(a.rate, a.variants, seconds, repeats,
+                'only' if a.only_recorder else not a.no_recorder, tips, probe=a.probe)
     return 0
 
 

@@ -38,6 +38,7 @@ import tempfile
 from soft_gripper_sdre.tools.benchmarks.bench_hog import PHASES, SETTLE_S, CpuHog, phase_figures
 from soft_gripper_sdre.tools.benchmarks.graph_run import LOOP_NODES, published, run_graph
 from soft_gripper_sdre.tools.benchmarks.hop import hop
+from soft_gripper_sdre.tools.benchmarks.spread import REPEATS, LoadWatch, figure, median, span
 
 
 def hog_run(seconds: float, hog_at: float, hog_seconds: float = 1.0, executor: str | None = None,
@@ -115,10 +116,10 @@ def median_run(done: list[dict]) -> dict:
 
 def mode_rows(runs: dict[str, list[dict]], seconds: float,
               figures: dict[str, float] | None = None) -> list[tuple[str, str, str]]:
-    """The rows of :func:`mode_runs`: each layout's real-time factor (the median run, with the
-    range and the loads when there are several), latency and CPU per period (a composed
-    estimator's is the controller's). ``figures`` gets ``<layout>_rtf`` and ``<layout>_cpu_us``
-    (every process's CPU per period, summed)."""
+    """The rows of :func:`mode_runs`: each layout's real-time factor (the median run's, with the
+    min–max, every run's and the loads when there are several), latency and CPU per period (a
+    composed estimator's is the controller's). ``figures`` gets ``<layout>_rtf`` and
+    ``<layout>_cpu_us`` (every process's CPU per period, summed)."""
     nan = float('nan')
     out = []
     for mode, done in runs.items():
@@ -135,7 +136,8 @@ def mode_rows(runs: dict[str, list[dict]], seconds: float,
                   + ', '.join(f'{r["simulator"]["load"]:.1f}'
                               for r in done)) if len(done) > 1 else ''
         out.append((f'node graph, {LAYOUTS[mode][2]} 1 ms',
-                    f'{sim.get("real_time_factor", nan):.2f}× real time',
+                    f'{sim.get("real_time_factor", nan):.2f}× real time'
+                    + (f' ({span(rtfs, digits=2)})' if len(done) > 1 else ''),
                     f'{seconds:g} s of sim time; {int(sim.get("timeouts", 0))} timeouts; '
                     f'loop latency p50 / p99 {sim.get("loop_latency_us_p50", nan):.0f} / '
                     f'{sim.get("loop_latency_us_p99", nan):.0f} µs; '
@@ -146,83 +148,126 @@ def mode_rows(runs: dict[str, list[dict]], seconds: float,
     return out
 
 
-def _latency(d: dict, prefix: str = 'loop_latency_us') -> str:
-    """p50 / p99 / max of the latency figures ``<prefix>_*`` of a node's values ``d`` [µs]."""
-    nan = float('nan')
-    return ' / '.join(f'{d.get(f"{prefix}_{k}", nan):.0f}' for k in ('p50', 'p99', 'max')) + ' µs'
-
-
 def lockstep_rows(runs: dict[str, list[dict]], seconds: float) -> list[tuple[str, str, str]]:
-    """The lockstep rows of :func:`mode_runs`' ``runs``, from the run of median real-time factor:
-    its speed (with every run's, when there are several), latency, CPU per period, start-up."""
+    """The lockstep rows of :func:`mode_runs`' ``runs``: its speed (the run of median real-time
+    factor, with every run's), and its latency, CPU per period and start-up, each the median
+    (min–max) over the runs."""
     nan = float('nan')
     done = runs['lockstep']
-    lock_all = median_run(done)
-    lock = lock_all['simulator']
-    cpu = cpu_per_period(lock_all)
-    compute = lock_all['controller'].get('compute_us_mean', nan)
+    lock = median_run(done)['simulator']
+    sims = [d['simulator'] for d in done]
+    over = lambda key, src=sims: [v.get(key, nan) for v in src]   # noqa: E731
+    cpus = [cpu_per_period(d) for d in done]
+    cpu = {n: median([c[n] for c in cpus]) for n in cpus[0]}
+    latency = ' / '.join(figure(over(f'loop_latency_us_{k}'), scale=1)
+                         for k in ('p50', 'p99', 'max'))
+    runs_of = f'median (min–max) of {len(done)} runs of {seconds:g} s'
     return [
         ('node graph, 4 processes, lockstep 1 ms',
-         f'{lock.get("real_time_factor", nan):.2f}× real time',
+         f'{lock.get("real_time_factor", nan):.2f}× real time'
+         + (f' ({span([r["simulator"].get("real_time_factor", nan) for r in done], digits=2)})'
+            if len(done) > 1 else ''),
          f'{seconds:g} s of sim time; {int(lock.get("timeouts", 0))} timeouts'
          + (f'; median of {len(done)} runs taking turns with pipelined: '
             + ', '.join(f'{r["simulator"].get("real_time_factor", nan):.2f}×' for r in done)
             if len(done) > 1 else '')),
-        ('loop latency p50 / p99 / max, lockstep (tips out → torque back)', _latency(lock),
-         'measured in the simulator: 3 DDS hops + estimator + controller'),
+        ('loop latency p50 / p99 / max, lockstep (tips out → torque back)', latency,
+         f'{runs_of}; measured in the simulator: 3 DDS hops + estimator + controller'),
         ('CPU per period, lockstep: simulator / estimator / trajectory / controller',
          ' / '.join(f'{c:.0f}' for c in cpu.values()) + ' µs',
-         f'sum {sum(cpu.values()):.0f} µs per 1 ms period on {os.cpu_count()} cores; '
-         f'controller compute {compute:.0f} µs (mean of its last second)'),
-        ('start-up to the first torque, lockstep', f'{lock.get("startup_s", nan):.1f} s',
-         f'from launching the 4 processes; {lock.get("first_command_after_tips_ms", nan):.0f} '
-         'ms of it from the first tips to the first command'),
+         f'medians of {len(done)} runs (sums {span([sum(c.values()) for c in cpus])} µs) per '
+         f'1 ms period on {os.cpu_count()} cores; controller compute '
+         f'{figure(over("compute_us_mean", [d["controller"] for d in done]), scale=1)} (mean '
+         'of its last second)'),
+        ('start-up to the first torque, lockstep', figure(over('startup_s'), 's', 1, 1),
+         f'{runs_of}; from launching the 4 processes; '
+         f'{median(over("first_command_after_tips_ms")):.0f} ms of it from the first tips to '
+         'the first command'),
     ]
+
+
+#: the realtime rows: runs, seconds of sim time per run; the hog runs' length and the hog's start
+REALTIME_RUNS, REALTIME_S, HOG_S, HOG_AT = REPEATS, 6.0, 11.0, 5.0
 
 
 def realtime_rows(quick: bool, executor: str | None) -> list[tuple[str, str, str]]:
     """The realtime graph's rows, measured now: its late and safe periods, and its latency
-    before, during and after a CPU hog (:func:`hog_run`)."""
+    before, during and after a CPU hog (:func:`hog_run`); each figure the median (min–max) of
+    :data:`REALTIME_RUNS` runs (two short ones with ``quick``)."""
     nan = float('nan')
-    real_s = 3.0 if quick else 20.0
-    real = run_graph(real_s, mode='realtime', executor=executor)['simulator']
-    hog = hog_run(9.0 if quick else 14.0, 4.5 if quick else 6.0, executor=executor)
-    steps = max(real.get('steps', 1.0), 1.0)
+    runs = 2 if quick else REALTIME_RUNS
+    real_s, hog_s, hog_at = (2.0, 9.0, 4.5) if quick else (REALTIME_S, HOG_S, HOG_AT)
+    load = LoadWatch()
+    load.note()
+    reals = [run_graph(real_s, mode='realtime', executor=executor)['simulator']
+             for _ in range(runs)]
+    share = lambda d, k: 100 * d.get(k, 0.0) / max(d.get('steps', 1.0), 1.0)  # noqa: E731
+    lat = {k: [d.get(f'loop_latency_us_{k}', nan) for d in reals] for k in ('p50', 'p99', 'max')}
+    load.note()
+    hogs = [hog_run(hog_s, hog_at, executor=executor) for _ in range(runs)]
+    load.note()
+    per = lambda key: {p: [h[p][key] for h in hogs] for p in PHASES}   # noqa: E731
+    p50, p99, late = per('p50'), per('p99'), per('late')
     return [
-        (f'realtime mode at 1 kHz, {real_s:g} s: late periods',
-         f'{100 * real.get("late_periods", 0.0) / steps:.1f} %',
-         f'a period is late when its newest command answers tips older than the previous '
-         f'period\'s; {100 * real.get("safe_periods", 0.0) / steps:.2f} % stepped with zero torque '
-         f'(hold_limit); stepping at {real.get("real_time_factor", nan):.2f}× real time; '
-         f'latency p50 / p99 / max {_latency(real)}'),
+        ('realtime mode at 1 kHz: late periods',
+         figure([share(d, 'late_periods') for d in reals], '%', 1, 1),
+         f'median (min–max) of {runs} runs of {real_s:g} s; a period is late when its newest '
+         'command answers tips older than the previous period\'s; '
+         f'{median([share(d, "safe_periods") for d in reals]):.2f} % stepped with zero torque '
+         '(hold_limit); stepping at '
+         f'{figure([d.get("real_time_factor", nan) for d in reals], "×", 1, 2, sep="")} real '
+         f'time; latency p50 / p99 / max {figure(lat["p50"], scale=1)} / '
+         f'{figure(lat["p99"], scale=1)} / {figure(lat["max"], scale=1)}; load '
+         f'{load.seen[0]:.1f} → {load.seen[1]:.1f}'),
         ('realtime with a 1 s CPU hog on every core: latency p50 before / during / after',
-         ' / '.join(f'{hog[p]["p50"]:.0f}' for p in PHASES) + ' µs',
-         'late periods ' + ' / '.join(f'{100 * hog[p]["late"]:.1f}' for p in PHASES) + ' %, p99 '
-         + ' / '.join(f'{hog[p]["p99"]:.0f}' for p in PHASES) + f' µs; "after" from {SETTLE_S:g} s '
-         'of sim time past the hog'),
+         ' / '.join(f'{median(p50[p]):.0f}' for p in PHASES) + ' µs',
+         f'medians of {runs} runs of {hog_s:g} s, the hog from {hog_at:g} s: p50 ranges '
+         + ' / '.join(span(p50[p]) for p in PHASES) + ' µs; late periods '
+         + ' / '.join(f'{100 * median(late[p]):.1f} ({span(late[p], 100, 1)})' for p in PHASES)
+         + ' %, p99 ' + ' / '.join(f'{median(p99[p]):.0f} ({span(p99[p])})' for p in PHASES)
+         + f' µs; "after" from {SETTLE_S:g} s of sim time past the hog; load '
+         f'{load.seen[1]:.1f} → {load.seen[2]:.1f}'),
     ]
+
+
+def hop_runs(kind: str, count: int, raw: bool = False,
+             repeats: int = REPEATS) -> dict[str, list[float]]:
+    """:func:`~soft_gripper_sdre.tools.benchmarks.hop.hop` ``repeats`` times (each its own
+    pair of processes, ``count`` rounds): per figure (``p50``, ``p99``, ``cpu`` [µs]) every
+    run's."""
+    runs = [hop(kind, count, raw=raw) for _ in range(repeats)]
+    return {k: [r[k] for r in runs] for k in ('p50', 'p99', 'cpu')}
 
 
 def hop_rows(quick: bool, figures: dict[str, float] | None = None) -> list[tuple[str, str, str]]:
     """One DDS hop, measured now: ``tip_positions`` with the EventsExecutor, as raw CDR, and with
-    the SingleThreadedExecutor. ``figures``, if given, gets the raw-CDR hop's p50
-    (``hop_p50_us``)."""
-    count = 1000 if quick else 3000
-    ev, st = (hop(kind, count) for kind in ('events', 'single'))
-    ev_raw = hop('events', count, raw=True)
+    the SingleThreadedExecutor; each the median (min–max) of :data:`REPEATS` runs of 1000
+    rounds (two of 300 with ``quick``), the three kinds taking turns. ``figures``, if given,
+    gets the raw-CDR hop's median p50 (``hop_p50_us``)."""
+    count, repeats = (300, 2) if quick else (1000, REPEATS)
+    kinds = {'ev': ('events', False), 'st': ('single', False), 'raw': ('events', True)}
+    got: dict[str, list[dict]] = {k: [] for k in kinds}
+    for _ in range(repeats):
+        for key, (kind, raw) in kinds.items():
+            got[key].append(hop(kind, count, raw=raw))
+    ev, st, ev_raw = ({k: [r[k] for r in got[key]] for k in ('p50', 'p99', 'cpu')}
+                      for key in ('ev', 'st', 'raw'))
     if figures is not None:
-        figures['hop_p50_us'] = ev_raw['p50']
+        figures['hop_p50_us'] = median(ev_raw['p50'])
+    us = lambda xs: figure(xs, scale=1)  # noqa: E731
+    runs = f'median (min–max) of {repeats} runs of {count} round trips'
     return [
-        ('one DDS hop, tip_positions, EventsExecutor', f'{ev["p50"]:.0f} / {ev["p99"]:.0f} µs',
-         f'p50 / p99 one way (ping-pong of 2 processes); {ev["cpu"]:.0f} µs CPU per message '
-         f'received + sent'),
+        ('one DDS hop, tip_positions, EventsExecutor', f'{us(ev["p50"])} / {us(ev["p99"])}',
+         f'p50 / p99 one way (ping-pong of 2 processes), {runs}; {us(ev["cpu"])} CPU per '
+         'message received + sent'),
         ('one DDS hop, tip_positions as raw CDR (nodes/cdr.py), EventsExecutor',
-         f'{ev_raw["p50"]:.0f} / {ev_raw["p99"]:.0f} µs',
-         f'{ev_raw["cpu"]:.0f} µs CPU per message received, decoded, encoded and sent, '
-         f'as the loop nodes do'),
+         f'{us(ev_raw["p50"])} / {us(ev_raw["p99"])}',
+         f'{runs}; {us(ev_raw["cpu"])} CPU per message received, decoded, encoded and sent, '
+         'as the loop nodes do'),
         ('one DDS hop, tip_positions, SingleThreadedExecutor',
-         f'{st["p50"]:.0f} / {st["p99"]:.0f} µs',
-         f'{st["cpu"]:.0f} µs CPU per message: {st["cpu"] / ev["cpu"]:.1f}× the EventsExecutor\'s'),
+         f'{us(st["p50"])} / {us(st["p99"])}',
+         f'{runs}; {us(st["cpu"])} CPU per message: '
+         f'{median(st["cpu"]) / median(ev["cpu"]):.1f}× the EventsExecutor\'s'),
     ]
 
 
@@ -248,22 +293,24 @@ def rows(quick: bool = False, executor: str | None = None, graph_only: bool = Fa
     hop's one-way p50 [µs] (``hop_p50_us``)."""
     nan = float('nan')
     seconds = 1.0 if quick else 3.0
-    runs = mode_runs(seconds, 1 if quick else 3,
+    runs = mode_runs(seconds, 2 if quick else REPEATS,
                      executor=executor)      # one run of each swings 0.4–0.8×
     lock_speed, *lock_details = lockstep_rows(runs, seconds)
     table = [lock_speed, mode_rows(runs, seconds, figures)[1], *lock_details,
              *realtime_rows(quick, executor)]
     if graph_only:
         return table
-    single = (run_graph(seconds, executor='single')['simulator'] if executor != 'single'
-              else median_run(runs['lockstep'])['simulator'])
+    singles = ([run_graph(seconds, executor='single')['simulator']
+                for _ in range(2 if quick else REPEATS)] if executor != 'single'
+               else [d['simulator'] for d in runs['lockstep']])
     return [
         *hop_rows(quick, figures),
         *table[:2],
         ('node graph, lockstep, SingleThreadedExecutor in every node',
-         f'{single.get("real_time_factor", nan):.2f}× real time',
-         f'rclpy\'s default executor; loop latency p50 '
-         f'{single.get("loop_latency_us_p50", nan):.0f} µs'),
+         figure([d.get('real_time_factor', nan) for d in singles], '× real time', 1, 2, sep=''),
+         f'median (min–max) of {len(singles)} runs of {seconds:g} s; rclpy\'s default executor; '
+         'loop latency p50 '
+         f'{figure([d.get("loop_latency_us_p50", nan) for d in singles], scale=1)}'),
         *table[2:],
         recorder_row(quick, executor),
     ]

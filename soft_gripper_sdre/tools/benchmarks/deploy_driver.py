@@ -233,6 +233,10 @@ def driver(period: float, warmup: float, seconds: float, tips_path: Path, reader
         matched = _wait_matched(pub, sub, readers)
         ticks = _tick(pub, messages, schedule, commands, {**pids, 'driver': os.getpid()})
         time.sleep(DRAIN_S)
+    probe = os.environ.get('SGS_PROBE')
+    if probe:                           # loop_probe.late_causes joins these with the nodes' records
+        np.savez(Path(probe) / 'ticks.npz', sent=ticks.sent, late=ticks.late, wake=ticks.wake,
+                 received=commands.received, first=ticks.first, period=period)
     executor.shutdown()
     node.destroy_node()
     rclpy.try_shutdown()

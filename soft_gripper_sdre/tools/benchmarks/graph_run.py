@@ -62,12 +62,14 @@ def published(d: dict[str, dict[str, float]]) -> dict[str, int]:
 def run_graph(seconds: float, *, mode: str = 'lockstep', record: Path | None = None,
               all_at_1khz: bool = False, executor: str | None = None, composed: bool = False,
               timeout: float = 600.0, during=None,
-              history: dict[str, list] | None = None) -> dict[str, dict[str, float]]:
+              history: dict[str, list] | None = None,
+              probe: Path | None = None) -> dict[str, dict[str, float]]:
     """Run the loop processes (and the recorder into ``record``) for ``seconds`` of sim time;
     ``composed``: the estimator and the controller as one process (``controller --with-estimator``),
     whose CPU time is the controller's. ``during(monitor)`` is called about 10 times a second
     while the simulator steps; ``history``, if given, gets the monitor's /diagnostics history
-    (node → its successive values).
+    (node → its successive values). ``probe``: every process records its timestamps there
+    (:mod:`~soft_gripper_sdre.tools.benchmarks.loop_probe`, read by its :func:`graph_periods`).
 
     Returns every node's final /diagnostics values as floats (non-numeric values dropped), for
     each node its CPU time per step while the simulator stepped (``cpu_per_step_us``), and for the
@@ -77,9 +79,12 @@ def run_graph(seconds: float, *, mode: str = 'lockstep', record: Path | None = N
         RuntimeError: a node died or the run did not finish within ``timeout``.
     """
     from soft_gripper_sdre.nodes.common import EXECUTOR_ENV
+    from soft_gripper_sdre.tools.benchmarks.loop_probe import probe_env
     env = ros_env()
     if executor is not None:
         env[EXECUTOR_ENV] = executor
+    if probe is not None:
+        env = probe_env(env, probe)
     fast = {'state_rate': 1000.0, 'clock_rate': 1000.0} if all_at_1khz else {}
     params = {'estimator': {}, 'controller': {}, 'trajectory': {},
               'simulator': {'duration': seconds, 'mode': mode,
