@@ -22,7 +22,12 @@ torque_lowpass_hz  :data:`ROLL_OFF_RATIO` · max(f_c, the model's fastest oscill
                    rings (the tendon finger at 2 Hz: 300 % of travel with 8 Hz, 2.5 % with 20)
 integral_gain      k_i = ω_c³ / d, d in :data:`INTEGRAL_DIVISORS` (picked in the check: the
                    corner a decade under the loop's, or nearer); band :data:`BAND_TRAVEL` of
-                   the travel (≥ 10 σ)
+                   the travel (≥ 10 σ): the whole move, so the integral acts on the offset a
+                   finger's gain difference from its pooled model leaves (half the travel and
+                   more in the gain-error runs). A narrower band freezes the integral exactly
+                   there (``tendon3`` in process: 31 / 14 % of travel with a tenth of it, 5.2 /
+                   3.7 % with all of it). The recipe's plan has no contact; a grasp that presses
+                   into an object sets ``integral_band`` below the depth it presses
 pd_kp, pd_kd       ω_c² and 2 ζ ω_c with ζ = :data:`PD_DAMPING`, for ``pd``
 feedforward_at     ``ref``: the feedforward inverts the model on the reference. Evaluated
                    at the estimate, a model that depends on velocity (friction) turns the
@@ -111,7 +116,8 @@ ROLL_OFF_RATIO = 4.0
 #: integral gains tried, k_i = ω_c³ / divisor: the corner a decade under the loop's first, then
 #: nearer it (a stronger integral absorbs more of the model's gain error while a move goes on)
 INTEGRAL_DIVISORS = (10.0, 4.0, 2.0)
-BAND_TRAVEL = 0.1
+#: the integral's band as a share of the travel (module doc's table)
+BAND_TRAVEL = 1.0
 PD_DAMPING = 0.7
 #: the model's input gain off by these factors in the robustness runs
 GAIN_ERRORS = (0.5, 2.0)
