@@ -22,6 +22,60 @@ DEFAULT_CT = dict(kp=1.5e4, kd=80.0)
 CT_COND_MAX = 1e8
 
 
+class ModelInverse:
+    """u = G₂(x)⁻¹ (a_des − A₂(x) x) on the learned model for a law's fingers, and the law's step
+    from it: the inversion computed torque and sliding-mode control share.
+
+    On the hand's path (``io.hand``) G₂(x)⁻¹, with ``method='fast'`` and a model with
+    ``fused_network`` by the compiled network and inversion kernels; on any other shape the
+    pseudo-inverse G₂(x)⁺ (:func:`~soft_gripper_sdre.control.laws.feedforward.pseudo_inversion`),
+    whose unreachable demand the step reports. A finger whose G₂(x) has a condition number of
+    ``cond_max`` or more gets zero and is not ``usable``.
+    """
+
+    def __init__(self, model, io: LawIO, method: str, cond_max: float) -> None:
+        self.model, self.io, self.cond_max = model, io, cond_max
+        n = io.n_fingers
+        self.network = compiled.compiled_network(model) if method == 'fast' and io.hand else None
+        self._unreachable = None
+        self._a2, self._g2 = np.zeros((n, 2, 4)), np.zeros((n, 2, 2))
+        self._u, self._usable = np.zeros((n, 2)), np.zeros(n, dtype=np.bool_)
+
+    def __call__(self, x: np.ndarray, a_des: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(u (n, m), usable (n,)) for the states x (n, 2d) and the demanded accelerations
+        a_des (n, d)."""
+        if self.network is not None:
+            x = compiled.kernel_array(x)
+            compiled.sdc_forward(x, *self.network, self._a2, self._g2)
+            compiled.model_inversion(self._a2, self._g2, x, compiled.kernel_array(a_des),
+                                     self.cond_max, self._u, self._usable)
+            return self._u.copy(), self._usable.copy()
+        d = self.io.shape.d
+        blocks = getattr(self.model, 'sdc_blocks', None)
+        if blocks is not None:
+            A2, G2 = blocks(x)
+        else:
+            A, G = self.model.AG(x)
+            A2, G2 = A[:, d:, :], G[:, d:, :]
+        if self.io.hand:
+            return model_inversion(A2, G2, x, a_des, self.cond_max)
+        u, usable, self._unreachable = pseudo_inversion(A2, G2, x, a_des, self.cond_max)
+        return u, usable
+
+    def step(self, x: np.ndarray, a_des: np.ndarray, finite: np.ndarray,
+             acc_ok: np.ndarray) -> LawStep:
+        """The law's step for the demand a_des: the inversion through ``io.finish``, a finger
+        not ``usable`` or with an unusable reference acceleration (``acc_ok`` False) flagged
+        ``fallback``, the unreachable demand reported where the state is finite."""
+        u, usable = self(x, a_des)
+        step = self.io.finish(u, finite)
+        step.ok &= usable
+        step.fallback |= ~usable | ~acc_ok
+        if self._unreachable is not None:
+            step.unreachable = np.where(finite, self._unreachable, 0.0)
+        return step
+
+
 class ComputedTorqueLaw:
     """Computed torque with the learned SDC model (ẋ = A(x)x + G(x)u, lower rows A₂, G₂):
 
@@ -61,12 +115,12 @@ class ComputedTorqueLaw:
         if not (np.isfinite(kp) and kp > 0 and np.isfinite(kd) and kd >= 0):
             raise ValueError(f'kp must be > 0 and kd >= 0 (finite), got kp={kp!r}, kd={kd!r}')
         self.model, self.kp, self.kd = model, float(kp), float(kd)
-        n = self.io.n_fingers
-        self.network = (compiled.compiled_network(model) if method == 'fast' and self.io.hand
-                        else None)
-        self._unreachable = None
-        self._a2, self._g2 = np.zeros((n, 2, 4)), np.zeros((n, 2, 2))
-        self._u, self._usable = np.zeros((n, 2)), np.zeros(n, dtype=np.bool_)
+        self.inverse = ModelInverse(model, self.io, method, CT_COND_MAX)
+
+    @property
+    def network(self):
+        """The compiled network the inversion evaluates (None off the compiled path)."""
+        return self.inverse.network
 
     def reset(self) -> None:
         self.io.reset()
@@ -77,34 +131,7 @@ class ComputedTorqueLaw:
         a_d, acc_ok = reference_acceleration(ref_acc, self.io.n_fingers, d)
         e = x - xd
         a_des = a_d - self.kp * e[:, :d] - self.kd * e[:, d:]              # a_d − k_p e − k_d ė
-        u, usable = self.invert(x, a_des)
-        step = self.io.finish(u, finite)
-        step.ok &= usable
-        step.fallback |= ~usable | ~acc_ok
-        if self._unreachable is not None:
-            step.unreachable = np.where(finite, self._unreachable, 0.0)
-        return step
-
-    def invert(self, x: np.ndarray, a_des: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(u (n,m), usable (n,)): u = G₂(x)⁻¹ (a_des − A₂(x) x), the model evaluated at x (n,2d)
-        (G₂(x)⁺ off the hand's path, whose unreachable demand the next step reports)."""
-        if self.network is not None:
-            x = compiled.kernel_array(x)
-            compiled.sdc_forward(x, *self.network, self._a2, self._g2)
-            compiled.model_inversion(self._a2, self._g2, x, compiled.kernel_array(a_des),
-                                     CT_COND_MAX, self._u, self._usable)
-            return self._u.copy(), self._usable.copy()
-        d = self.io.shape.d
-        blocks = getattr(self.model, 'sdc_blocks', None)
-        if blocks is not None:
-            A2, G2 = blocks(x)
-        else:
-            A, G = self.model.AG(x)
-            A2, G2 = A[:, d:, :], G[:, d:, :]
-        if self.io.hand:
-            return model_inversion(A2, G2, x, a_des, CT_COND_MAX)
-        u, usable, self._unreachable = pseudo_inversion(A2, G2, x, a_des, CT_COND_MAX)
-        return u, usable
+        return self.inverse.step(x, a_des, finite, acc_ok)
 
 
 def _computed_torque(s: LawSettings, pd_gains: dict | None = None) -> ComputedTorqueLaw:

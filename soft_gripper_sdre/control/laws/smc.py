@@ -7,12 +7,8 @@ import math
 
 import numpy as np
 
-from soft_gripper_sdre.control import kernels as compiled
-from soft_gripper_sdre.control.laws.feedforward import (
-    model_inversion,
-    pseudo_inversion,
-    reference_acceleration,
-)
+from soft_gripper_sdre.control.laws.computed_torque import ModelInverse
+from soft_gripper_sdre.control.laws.feedforward import reference_acceleration
 from soft_gripper_sdre.control.laws.registry import LawParam, LawSettings, register_law
 from soft_gripper_sdre.control.tracking import DEFAULT_LOWPASS_HZ, LawIO, LawStep, shape_of
 from soft_gripper_sdre.sim.shape import InputBounds
@@ -90,13 +86,13 @@ class SmcLaw:
         _check(lam, k, phi)
         self.io = LawIO(model.rest_tip, u_max, n_fingers, lowpass_hz, dt, shape_of(model), bounds)
         self.model, self.lam, self.k, self.phi = model, float(lam), float(k), float(phi)
-        n, d = self.io.n_fingers, self.io.shape.d
-        self.network = (compiled.compiled_network(model) if method == 'fast' and self.io.hand
-                        else None)
-        self.surface = np.zeros((n, d))       # s of the last step [m/s]
-        self._unreachable = None
-        self._a2, self._g2 = np.zeros((n, 2, 4)), np.zeros((n, 2, 2))
-        self._u, self._usable = np.zeros((n, 2)), np.zeros(n, dtype=np.bool_)
+        self.inverse = ModelInverse(model, self.io, method, SMC_COND_MAX)
+        self.surface = np.zeros((self.io.n_fingers, self.io.shape.d))   # s of the last step [m/s]
+
+    @property
+    def network(self):
+        """The compiled network the inversion evaluates (None off the compiled path)."""
+        return self.inverse.network
 
     def reset(self) -> None:
         self.io.reset()
@@ -111,34 +107,7 @@ class SmcLaw:
         with np.errstate(invalid='ignore'):
             a_des = a_d - self.lam * e[:, d:] - self.k * np.clip(s / self.phi, -1.0, 1.0)
         self.surface = np.where(finite[:, None], s, 0.0)
-        u, usable = self.invert(x, a_des)
-        step = self.io.finish(u, finite)
-        step.ok &= usable
-        step.fallback |= ~usable | ~acc_ok
-        if self._unreachable is not None:
-            step.unreachable = np.where(finite, self._unreachable, 0.0)
-        return step
-
-    def invert(self, x: np.ndarray, a_des: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(u (n, m), usable (n,)): u = G₂(x)⁻¹ (a_des − A₂(x) x), the model evaluated at x (n, 2d)
-        (G₂(x)⁺ off the hand's path, whose unreachable demand the next step reports)."""
-        if self.network is not None:
-            x = compiled.kernel_array(x)
-            compiled.sdc_forward(x, *self.network, self._a2, self._g2)
-            compiled.model_inversion(self._a2, self._g2, x, compiled.kernel_array(a_des),
-                                     SMC_COND_MAX, self._u, self._usable)
-            return self._u.copy(), self._usable.copy()
-        d = self.io.shape.d
-        blocks = getattr(self.model, 'sdc_blocks', None)
-        if blocks is not None:
-            A2, G2 = blocks(x)
-        else:
-            A, G = self.model.AG(x)
-            A2, G2 = A[:, d:, :], G[:, d:, :]
-        if self.io.hand:
-            return model_inversion(A2, G2, x, a_des, SMC_COND_MAX)
-        u, usable, self._unreachable = pseudo_inversion(A2, G2, x, a_des, SMC_COND_MAX)
-        return u, usable
+        return self.inverse.step(x, a_des, finite, acc_ok)
 
 
 #: the law's node parameters (each feeds the make_law option of its name); runtime-tunable
