@@ -33,6 +33,7 @@ import math
 
 import numpy as np
 from scipy.linalg import expm
+from scipy.signal import lfilter
 
 from soft_gripper_sdre.analysis.model_fitness import FREE_RUN_LIMIT
 
@@ -139,8 +140,14 @@ def _lagged(t: np.ndarray, u: np.ndarray, lag: float) -> np.ndarray:
     delivered input at each sample, starting at the first command."""
     if lag <= 0:
         return u
-    w = np.array(u, dtype=float)
-    keep = np.exp(-np.diff(t) / lag)
+    u = np.asarray(u, dtype=float)
+    step = np.diff(t)
+    if len(step) and np.allclose(step, step[0], rtol=1e-6, atol=0.0):
+        # one period T: w[k] = a w[k−1] + (1 − a) u[k−1] from w[0] = u[0], a = exp(−T/τ)
+        a = math.exp(-step[0] / lag)
+        return u[0] + lfilter([0.0, 1.0 - a], [1.0, -a], u - u[0], axis=0)
+    w = np.array(u)
+    keep = np.exp(-step / lag)
     for k in range(1, len(t)):
         w[k] = keep[k - 1] * w[k - 1] + (1 - keep[k - 1]) * u[k - 1]
     return w

@@ -455,17 +455,17 @@ class _Verdict:
         self.clock.lap('fitness')
         self.derived = None
         if self.fitness.fit:
-            d = data.shape.d
-            facts = data_facts(data.x[:, :d], data.u, data.dt, data.noise,
-                               [tuning_stretch(rec, f[0], d) for rec, f in data.train_set],
-                               bounds=data.bounds)
-            rest = None if data.bounds is None else data.bounds.rest
             self.fingers, unfit = finger_fits.fit_fingers(data.samples, data.val_samples)
             for name in unfit:
                 print(f'  {name}: no linear fit of its own runs free within '
                       f'{100 * model_fitness.FREE_RUN_LIMIT:.0f} % of its validation motion; '
                       'the settings are checked on the model alone for it')
             self.clock.lap('finger_fits')
+            d = data.shape.d
+            facts = data_facts(data.x[:, :d], data.u, data.dt, data.noise,
+                               [tuning_stretch(rec, f[0], d) for rec, f in data.train_set],
+                               bounds=data.bounds)
+            rest = None if data.bounds is None else data.bounds.rest
             self.derived = loop_settings.derive(model, facts, progress=lambda text: print(
                 f'  closed-loop check on the model: {text}', flush=True), excitation=[
                     excitation_stretch(rec, f[0], d, rest) for rec, f in data.train_set],
