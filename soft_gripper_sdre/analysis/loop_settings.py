@@ -230,14 +230,18 @@ def settings_for(model, facts: DataFacts, bandwidth_hz: float, accel_psd: float)
 class ModelPlant:
     """The learned model as the check's plant, for one finger: ẋ = A(x)x + k G(x)u with the
     input map scaled by ``gain_error`` k (1: the model itself; else a robustness plant), in RK4
-    steps of at most :data:`MAX_STEP`. ``tip()`` is the tip in the model's frame:
-    ``model.rest_tip`` plus the state's position."""
+    steps of at most :data:`MAX_STEP` (compiled for a learned model). ``tip()`` is the tip in the
+    model's frame: ``model.rest_tip`` plus the state's position."""
 
-    def __init__(self, model, gain_error: float = 1.0) -> None:
+    def __init__(self, model, gain_error: float = 1.0, compiled: bool = True) -> None:
         shape = model_shape(model)
         self.model, self.k, self.d = model, float(gain_error), shape.d
         self.rest = np.asarray(model.rest_tip, dtype=float)[:shape.d]
         self.x = np.zeros((1, shape.n_state))
+        #: a learned model's steps run compiled (:class:`~soft_gripper_sdre.analysis.model_fitness.
+        #: CompiledRK4`; ``compiled`` False, or a model with its own ``AG``: numpy's RK4)
+        self.rk4 = (model_fitness.CompiledRK4(model)
+                    if compiled and model_fitness.CompiledRK4.fits(model) else None)
 
     def xdot(self, x, u):
         return model_fitness.xdot(self.model, x, self.k * np.asarray(u) if self.k != 1.0 else u)
@@ -248,6 +252,10 @@ class ModelPlant:
     def step(self, u: np.ndarray, dt: float) -> None:
         """Hold ``u`` (1, m) over ``dt`` [s]."""
         substeps = math.ceil(dt / MAX_STEP - 1e-9)
+        if self.rk4 is not None:
+            u = np.asarray(u, dtype=float).reshape(-1)
+            self.rk4.step(self.x[0], self.k * u if self.k != 1.0 else u, dt, substeps)
+            return
         for _ in range(substeps):
             self.x = rk4_step(self, self.x, u, dt / substeps)
 
