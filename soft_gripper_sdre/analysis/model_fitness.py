@@ -20,6 +20,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
 import itertools
+import math
 
 from numba import njit
 import numpy as np
@@ -127,9 +128,15 @@ class CompiledRK4:
     compiled: the whole of a held input's substeps in one call, a few microseconds, where the
     numpy path spends tens per evaluation of ẋ. The same arithmetic up to the order of the
     networks' sums (the closed-loop check's numbers agree to rounding:
-    test/test_fast_check.py)."""
+    test/test_compiled_check_plant.py)."""
 
     def __init__(self, model) -> None:
+        """Raises:
+            ValueError: ``model`` is not evaluated by its fused network alone (:meth:`fits`).
+        """
+        if not self.fits(model):
+            raise ValueError(f'CompiledRK4 needs a learned SDCModel (its fused network), got '
+                             f'{type(model).__name__}')
         shape = model_shape(model)
         self.d, self.m = shape.d, shape.m
         self.layers = tuple(np.ascontiguousarray(a, dtype=np.float64)
@@ -140,12 +147,29 @@ class CompiledRK4:
         """``model`` is evaluated by its fused network alone (a learned ``SDCModel``; a test
         model with its own ``AG`` or ``xdot`` is not)."""
         from soft_gripper_sdre.learning.model import SDCModel
-        return type(model).xdot is SDCModel.xdot and type(model).AG is SDCModel.AG \
-            and type(model).sdc_blocks is SDCModel.sdc_blocks
+        kind = type(model)
+        return all(getattr(kind, name, None) is getattr(SDCModel, name)
+                   for name in ('xdot', 'AG', 'sdc_blocks', 'fused_network'))
 
     def step(self, x: np.ndarray, u: np.ndarray, dt: float, substeps: int) -> None:
-        """x (2d,) advanced in place by ``substeps`` RK4 steps over ``dt`` [s], u (m,) held."""
-        _network_rk4(x, u, float(dt), int(substeps), *self.layers, self.d)
+        """x (2d,) float64 advanced in place by ``substeps`` RK4 steps over ``dt`` [s], u (m,)
+        held.
+
+        Raises:
+            ShapeError: x or u of another shape than the model's, or x not a float64 array.
+            ValueError: ``substeps`` not an int >= 1 or ``dt`` not finite and > 0.
+        """
+        if not (isinstance(x, np.ndarray) and x.dtype == np.float64
+                and x.shape == (2 * self.d,) and np.shape(u) == (self.m,)):
+            from soft_gripper_sdre.sim.shape import ShapeError
+            raise ShapeError(f'CompiledRK4.step: x must be a float64 array ({2 * self.d},) and u '
+                             f'({self.m},) for the model\'s shape (d={self.d}, m={self.m}), got '
+                             f'{np.shape(x)} and {np.shape(u)}')
+        if not (isinstance(substeps, int) and substeps >= 1 and math.isfinite(dt) and dt > 0):
+            raise ValueError(f'CompiledRK4.step: substeps must be an int >= 1 and dt finite and '
+                             f'> 0, got {substeps!r} and {dt!r}')
+        _network_rk4(x, np.asarray(u, dtype=np.float64), float(dt), substeps, *self.layers,
+                     self.d)
 
 
 def simulate(model, x0: np.ndarray, u: np.ndarray, dt: float, substeps: int = 2,
