@@ -13,6 +13,7 @@ from test_fast_checks import SHORT_PROFILE
 from test_learning_shapes import SYSTEMS, fit
 
 from soft_gripper_sdre.analysis import loop_settings as ls
+from soft_gripper_sdre.analysis import model_fitness
 from soft_gripper_sdre.analysis.model_fitness import CompiledRK4, rk4_step
 from soft_gripper_sdre.learning.model import DEFAULT_MODEL, SDCModel, set_blas_threads
 from soft_gripper_sdre.learning.training import save_checkpoint
@@ -183,3 +184,56 @@ def test_the_gain_error_scales_the_input_map(hand):
             slow.step(u, 5e-3)
         assert np.abs(fast.tip() - fast.rest).max() > 1e-7
         np.testing.assert_allclose(fast.tip(), slow.tip(), rtol=0, atol=1e-15)
+
+
+def test_a_compiled_run_is_simulates_to_rounding(hand, shaped):
+    for model in (hand, shaped):
+        shape = model.shape
+        t = 5e-3 * np.arange(400)[:, None]
+        wave = np.sin(2 * np.pi * (1.0 + np.arange(shape.m)) * t)          # smooth, one per input
+        bounds = model.input_bounds
+        u = 2e-3 * wave if bounds is None else bounds.mid + 0.5 * bounds.half_span * wave
+        x0 = np.zeros(shape.n_state)
+        ref = model_fitness.simulate(model, x0[None], u[:, None, :], 5e-3, substeps=2)[:, 0]
+        got = CompiledRK4(model).simulate(x0, u, 5e-3, substeps=2)
+        assert got.shape == ref.shape == (401, shape.n_state)
+        assert np.isfinite(ref).all() and np.abs(ref[-1]).max() > 0
+        np.testing.assert_allclose(got, ref, rtol=1e-9, atol=1e-15 * np.abs(ref).max())
+        # a run that leaves the bound is NaN from there on, as simulate's
+        bound = 0.5 * np.abs(ref).max()
+        ref = model_fitness.simulate(model, x0[None], u[:, None, :], 5e-3, 2, bound)[:, 0]
+        got = CompiledRK4(model).simulate(x0, u, 5e-3, 2, bound)
+        gone = ~np.isfinite(ref).all(axis=1)
+        assert gone.any() and not gone[0]
+        np.testing.assert_array_equal(~np.isfinite(got).all(axis=1), gone)
+
+
+def test_the_unmodelled_delay_is_measured_as_with_numpys_run(shaped, monkeypatch):
+    """unmodelled_delay runs a learned model compiled: the same delay as numpy's run."""
+    shape, dt, late = shaped.shape, 5e-3, 4
+    rng = np.random.default_rng(5)
+    u = np.repeat(rng.random((60, shape.m)), 10, axis=0)           # steps held 50 ms
+    u = shaped.input_bounds.lower + u * (shaped.input_bounds.upper - shaped.input_bounds.lower)
+    run = model_fitness.simulate(shaped, np.zeros((1, shape.n_state)), u[:-1, None, :], dt,
+                                 substeps=2)[:, 0, :shape.d]
+    tips = np.concatenate([np.zeros((late, shape.d)), run[:-late]])   # the finger 4 periods late
+    t = dt * np.arange(len(u))
+    fast = ls.unmodelled_delay(shaped, t, u, tips)
+    monkeypatch.setattr(CompiledRK4, 'fits', staticmethod(lambda model: False))
+    slow = ls.unmodelled_delay(shaped, t, u, tips)
+    assert fast == pytest.approx(slow, rel=1e-9)
+    assert fast == pytest.approx(late * dt, abs=0.5 * dt)
+
+
+@pytest.mark.parametrize('make, error, message', [
+    (lambda: (np.zeros(3), np.zeros((5, 2)), 5e-3, 1, 1.0), ShapeError,
+     r'x0 must be \(4,\) and u \(T, 2\).*got \(3,\) and \(5, 2\)'),
+    (lambda: (np.zeros(4), np.zeros(5), 5e-3, 1, 1.0), ShapeError, r'got \(4,\) and \(5,\)'),
+    (lambda: (np.zeros(4), np.zeros((5, 2)), 5e-3, 0, 1.0), ValueError,
+     'substeps must be an int >= 1'),
+    (lambda: (np.zeros(4), np.zeros((5, 2)), math.inf, 1, 1.0), ValueError, 'dt finite'),
+    (lambda: (np.zeros(4), np.zeros((5, 2)), 5e-3, 1, 0.0), ValueError, 'bound > 0, got 1'),
+])
+def test_bad_run_arguments_are_refused_naming_them(hand, make, error, message):
+    with pytest.raises(error, match=message):
+        CompiledRK4(hand).simulate(*make())

@@ -452,9 +452,13 @@ def unmodelled_delay(model, t: np.ndarray, u: np.ndarray, tips: np.ndarray,
     held = u[np.clip(np.searchsorted(t, grid + 1e-6 * dt, side='right') - 1, 0, len(t) - 1)]
     pos = np.stack([np.interp(grid, t, tips[:, k]) for k in range(d)], axis=1)
     pos = pos - pos[0]
-    x0 = np.zeros((1, 2 * d))
-    run = model_fitness.simulate(model, x0, held[:-1, None, :], dt,
-                                 substeps=max(1, math.ceil(dt / MAX_STEP - 1e-9)))[:, 0, :d]
+    substeps = max(1, math.ceil(dt / MAX_STEP - 1e-9))
+    if model_fitness.CompiledRK4.fits(model):          # a learned model: compiled
+        run = model_fitness.CompiledRK4(model).simulate(np.zeros(2 * d), held[:-1], dt,
+                                                        substeps)[:, :d]
+    else:
+        run = model_fitness.simulate(model, np.zeros((1, 2 * d)), held[:-1, None, :], dt,
+                                     substeps=substeps)[:, 0, :d]
     alive = int(np.argmin(np.all(np.isfinite(run), axis=1))) if not np.all(
         np.isfinite(run)) else len(run)
     n = alive - 1

@@ -123,6 +123,22 @@ def _network_rk4(x, u, dt, substeps, w1, b1, w2, b2, w3, b3, d):
             x[i] = x[i] + h / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i])
 
 
+@njit(cache=True, error_model='numpy', nogil=True)
+def _network_run(x0, u, dt, substeps, bound, w1, b1, w2, b2, w3, b3, d, out):
+    """out (T + 1, 2d): the run from x0 (2d,) under the inputs u (T, m), each held over ``dt``
+    [s] in ``substeps`` RK4 steps; NaN from the first state that leaves ``bound`` or is not
+    finite on (:func:`simulate`'s rule)."""
+    x = x0.copy()
+    out[:] = np.nan
+    out[0] = x
+    for k in range(u.shape[0]):
+        _network_rk4(x, u[k], dt, substeps, w1, b1, w2, b2, w3, b3, d)
+        for i in range(x.shape[0]):
+            if not (np.isfinite(x[i]) and abs(x[i]) < bound):
+                return
+        out[k + 1] = x
+
+
 class CompiledRK4:
     """:func:`rk4_step` for one state of a learned model (``SDCModel``: its ``fused_network``)
     compiled: the whole of a held input's substeps in one call, a few microseconds, where the
@@ -170,6 +186,32 @@ class CompiledRK4:
                              f'> 0, got {substeps!r} and {dt!r}')
         _network_rk4(x, np.asarray(u, dtype=np.float64), float(dt), substeps, *self.layers,
                      self.d)
+
+    def simulate(self, x0: np.ndarray, u: np.ndarray, dt: float, substeps: int = 2,
+                 bound: float = 1.0) -> np.ndarray:
+        """:func:`simulate` of one trajectory: from x0 (2d,) under u (T, m), each held over
+        ``dt`` [s]; returns (T + 1, 2d), NaN from where it leaves ``bound`` [m or m/s] or stops
+        being finite.
+
+        Raises:
+            ShapeError: x0 or u of another shape than the model's.
+            ValueError: ``substeps`` not an int >= 1, ``dt`` not finite and > 0, or ``bound``
+                not > 0.
+        """
+        x0 = np.asarray(x0, dtype=np.float64)
+        u = np.ascontiguousarray(u, dtype=np.float64)
+        if x0.shape != (2 * self.d,) or u.ndim != 2 or u.shape[1] != self.m:
+            from soft_gripper_sdre.sim.shape import ShapeError
+            raise ShapeError(f'CompiledRK4.simulate: x0 must be ({2 * self.d},) and u (T, '
+                             f'{self.m}) for the model\'s shape (d={self.d}, m={self.m}), got '
+                             f'{x0.shape} and {u.shape}')
+        if not (isinstance(substeps, int) and substeps >= 1 and math.isfinite(dt) and dt > 0
+                and bound > 0):
+            raise ValueError(f'CompiledRK4.simulate: substeps must be an int >= 1, dt finite and '
+                             f'> 0 and bound > 0, got {substeps!r}, {dt!r} and {bound!r}')
+        out = np.empty((u.shape[0] + 1, 2 * self.d))
+        _network_run(x0, u, float(dt), substeps, float(bound), *self.layers, self.d, out)
+        return out
 
 
 def simulate(model, x0: np.ndarray, u: np.ndarray, dt: float, substeps: int = 2,
