@@ -44,10 +44,11 @@ class Stages:
     #: the stages in the order they run, as ``metrics.json``'s ``timings`` names them: reading
     #: and checking the records or bags, the KF + RTS labels, training (of which
     #: ``label_stage`` and ``simulation_stage``), writing and scoring the checkpoint, the
-    #: fitness verdict and the closed-loop checks of the candidate settings (the bag path), the
-    #: report (the figures and files; printed, not in ``metrics.json``, which it writes)
+    #: fitness verdict, the fingers' own linear fits and the closed-loop checks of the candidate
+    #: settings (the bag path), the report (the figures and files; printed, not in
+    #: ``metrics.json``, which it writes)
     ORDER = ('read', 'labels', 'training', 'label_stage', 'simulation_stage', 'checkpoint',
-             'fitness', 'loop_settings', 'report')
+             'fitness', 'finger_fits', 'loop_settings', 'report')
 
     def __init__(self) -> None:
         self.start = self.last = time.perf_counter()

@@ -30,7 +30,7 @@ import time
 
 #: the stages the rows show, as metrics.json's ``timings`` names them
 STAGES = ('read', 'labels', 'label_stage', 'simulation_stage', 'checkpoint', 'fitness',
-          'loop_settings', 'report')
+          'finger_fits', 'loop_settings', 'report')
 #: where ``make bench`` finds the rows
 RESULTS = Path('runs/bench_train.json')
 

@@ -30,7 +30,7 @@ from tqdm import tqdm
 import yaml
 
 from soft_gripper_sdre import FINGER_NAMES
-from soft_gripper_sdre.analysis import loop_settings, model_fitness, training_run
+from soft_gripper_sdre.analysis import finger_fits, loop_settings, model_fitness, training_run
 from soft_gripper_sdre.analysis.bag_dataset import (
     DEFAULT_GAP_PERIODS,
     MIN_SAMPLES,
@@ -443,6 +443,7 @@ class _Verdict:
         self.data, self.settings, self.result = data, settings, result
         self.clock = clock if clock is not None else training_run.Stages()
         self.fitness: model_fitness.Fitness | None = None
+        self.fingers: list[finger_fits.LinearFinger] = []
         self.derived: loop_settings.Derivation | None = None
 
     def describe(self, model, scores: training_run.Scores) -> dict:
@@ -459,9 +460,16 @@ class _Verdict:
                                [tuning_stretch(rec, f[0], d) for rec, f in data.train_set],
                                bounds=data.bounds)
             rest = None if data.bounds is None else data.bounds.rest
+            self.fingers, unfit = finger_fits.fit_fingers(data.samples, data.val_samples)
+            for name in unfit:
+                print(f'  {name}: no linear fit of its own runs free within '
+                      f'{100 * model_fitness.FREE_RUN_LIMIT:.0f} % of its validation motion; '
+                      'the settings are checked on the model alone for it')
+            self.clock.lap('finger_fits')
             self.derived = loop_settings.derive(model, facts, progress=lambda text: print(
                 f'  closed-loop check on the model: {text}', flush=True), excitation=[
-                    excitation_stretch(rec, f[0], d, rest) for rec, f in data.train_set])
+                    excitation_stretch(rec, f[0], d, rest) for rec, f in data.train_set],
+                fingers=tuple(self.fingers))
             self.clock.lap('loop_settings')
         derived = self.derived
         return {**scores.common_metrics(self.settings, result), 'source': 'rosbag2',
@@ -471,6 +479,7 @@ class _Verdict:
                 'val_r2_ls_baseline': dict(zip(data.shape.axes, scores.r2_ls)),
                 'train_samples': int(len(data.x)), 'validation_samples': int(len(data.x_val)),
                 'noise_std': data.noise, 'fitness': _plain(self.fitness.summary()),
+                'finger_fits': _plain([fit.summary() for fit in self.fingers]),
                 'derived_settings': _plain(derived.summary()) if derived is not None else None}
 
 
