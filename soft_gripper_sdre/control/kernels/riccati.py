@@ -92,7 +92,16 @@ def finger_checks(A, P, WP, PSP, settings, q_norm, C, N, work):
         for j in range(4):
             N[i, j] = q[i, j] + PSP[i, j] - (margin if i == j else 0.0)
     if not positive_definite(N, work):
-        failed |= HURWITZ
+        # the Lyapunov argument is sufficient only: A_cl = A − S P's eigenvalues decide
+        A_cl = np.zeros((4, 4), dtype=np.complex128)
+        A_cl[0, 2] = A_cl[1, 3] = 1.0
+        for r in range(2):
+            for c in range(4):
+                A_cl[2 + r, c] = A[2 + r, c] - WP[r, c]
+        for v in np.linalg.eigvals(A_cl):
+            if not v.real < 0.0:
+                failed |= HURWITZ
+                break
     for r in range(2):
         for c in range(2):
             C[r, c] = A[2 + r, c] - WP[r, c]
