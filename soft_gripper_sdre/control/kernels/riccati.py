@@ -64,7 +64,9 @@ def finger_checks(A, P, WP, PSP, settings, q_norm, C, N, work):
 
     * residual ‖PA + AᵀP + Q − P S P‖_F / ‖Q‖_F < residual_tol, formed directly from P;
     * P ≻ 0 and N = Q + P S P − 2 tol ‖Q‖_F I ≻ 0 prove A_cl Hurwitz: A_clᵀP + PA_cl = −(N + margin
-      − Res) and ‖Res‖₂ < tol ‖Q‖_F (Lyapunov; docs/design/compiled_kernel.md);
+      − Res) and ‖Res‖₂ < tol ‖Q‖_F (Lyapunov; docs/design/compiled_kernel.md); where that
+      sufficient proof fails (a slow loop's Q = diag(q_pos I, 0) leaves N's velocity block
+      under the margin), A_cl = A − S P's eigenvalues decide, as in the general kernels;
     * A_cl = [[0, I], [C, ·]] is invertible with cond(C) < cond_max, the only inverse K_s uses.
     """
     q, residual_tol = settings.q, settings.residual_tol
