@@ -20,9 +20,10 @@ from soft_gripper_sdre.learning.model import set_blas_threads
 SHORT_PROFILE = dict(t_start=0.3, t_close=0.8, t_hold=0.3, t_open=0.8)
 
 
-def reference_search(runner, facts, bandwidths, rows, say):
+def reference_search(runner, facts, bandwidths, rows, say, fingers=()):
     """The search rule (module doc of loop_settings) as one check after another, each with
-    check_on_model."""
+    check_on_model (without fingers' own fits, as these tests derive)."""
+    assert not fingers
     model, kept = runner.model, []
 
     def run(cand):

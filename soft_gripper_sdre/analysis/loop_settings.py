@@ -244,14 +244,18 @@ def settings_for(model, facts: DataFacts, bandwidth_hz: float, accel_psd: float)
 class ModelPlant:
     """The learned model as the check's plant, for one finger: ẋ = A(x)x + k G(x)u with the
     input map scaled by ``gain_error`` k (1: the model itself; else a robustness plant), in RK4
-    steps of at most :data:`MAX_STEP`. ``tip()`` is the tip in the model's frame:
-    ``model.rest_tip`` plus the state's position."""
+    steps of at most :data:`MAX_STEP` (compiled for a learned model). ``tip()`` is the tip in the
+    model's frame: ``model.rest_tip`` plus the state's position."""
 
-    def __init__(self, model, gain_error: float = 1.0) -> None:
+    def __init__(self, model, gain_error: float = 1.0, compiled: bool = True) -> None:
         shape = model_shape(model)
         self.model, self.k, self.d = model, float(gain_error), shape.d
         self.rest = np.asarray(model.rest_tip, dtype=float)[:shape.d]
         self.x = np.zeros((1, shape.n_state))
+        #: a learned model's steps run compiled (:class:`~soft_gripper_sdre.analysis.model_fitness.
+        #: CompiledRK4`; ``compiled`` False, or a model with its own ``AG``: numpy's RK4)
+        self.rk4 = (model_fitness.CompiledRK4(model)
+                    if compiled and model_fitness.CompiledRK4.fits(model) else None)
 
     def xdot(self, x, u):
         return model_fitness.xdot(self.model, x, self.k * np.asarray(u) if self.k != 1.0 else u)
@@ -262,6 +266,10 @@ class ModelPlant:
     def step(self, u: np.ndarray, dt: float) -> None:
         """Hold ``u`` (1, m) over ``dt`` [s]."""
         substeps = math.ceil(dt / MAX_STEP - 1e-9)
+        if self.rk4 is not None:
+            u = np.asarray(u, dtype=float).reshape(-1)
+            self.rk4.step(self.x[0], self.k * u if self.k != 1.0 else u, dt, substeps)
+            return
         for _ in range(substeps):
             self.x = rk4_step(self, self.x, u, dt / substeps)
 
@@ -458,9 +466,13 @@ def unmodelled_delay(model, t: np.ndarray, u: np.ndarray, tips: np.ndarray,
     held = u[np.clip(np.searchsorted(t, grid + 1e-6 * dt, side='right') - 1, 0, len(t) - 1)]
     pos = np.stack([np.interp(grid, t, tips[:, k]) for k in range(d)], axis=1)
     pos = pos - pos[0]
-    x0 = np.zeros((1, 2 * d))
-    run = model_fitness.simulate(model, x0, held[:-1, None, :], dt,
-                                 substeps=max(1, math.ceil(dt / MAX_STEP - 1e-9)))[:, 0, :d]
+    substeps = max(1, math.ceil(dt / MAX_STEP - 1e-9))
+    if model_fitness.CompiledRK4.fits(model):          # a learned model: compiled
+        run = model_fitness.CompiledRK4(model).simulate(np.zeros(2 * d), held[:-1], dt,
+                                                        substeps)[:, :d]
+    else:
+        run = model_fitness.simulate(model, np.zeros((1, 2 * d)), held[:-1, None, :], dt,
+                                     substeps=substeps)[:, 0, :d]
     alive = int(np.argmin(np.all(np.isfinite(run), axis=1))) if not np.all(
         np.isfinite(run)) else len(run)
     n = alive - 1
