@@ -13,7 +13,8 @@ from soft_gripper_sdre.analysis import loop_settings as ls
 
 #: a shorter move than the derivation's (2.2 s instead of 5.5 s); the rule does not depend on it
 SHORT_PROFILE = dict(t_start=0.3, t_close=0.8, t_hold=0.3, t_open=0.8)
-BANDWIDTHS = (1.0, 2.0, 4.0)
+BANDWIDTHS = (2.0, 4.0)
+pytestmark = pytest.mark.timeout(900)
 
 
 @pytest.fixture(scope='module')
@@ -42,12 +43,12 @@ def test_every_intensity_is_tried_with_every_integral_gain(derived):
     assert sorted(rows) == list(BANDWIDTHS)
     for hz, tried in rows.items():
         w = 2 * math.pi * hz
-        want = {(pytest.approx(frac * facts.accel_psd_ml), pytest.approx(w ** 3 / div))
-                for frac in ls.ACCEL_PSD_FRACTIONS for div in ls.INTEGRAL_DIVISORS}
-        got = [(row['accel_psd'], row['integral_gain']) for row in tried]
-        assert len(got) == len(ls.ACCEL_PSD_FRACTIONS) * len(ls.INTEGRAL_DIVISORS)
-        for psd, gain in got:
-            assert any(psd == a and gain == b for a, b in want), (hz, psd, gain)
+        want = sorted((frac * facts.accel_psd_ml, w ** 3 / div)
+                      for frac in ls.ACCEL_PSD_FRACTIONS for div in ls.INTEGRAL_DIVISORS)
+        got = sorted((row['accel_psd'], row['integral_gain']) for row in tried)
+        assert len(got) == len(want)
+        assert [v for pair in got for v in pair] == pytest.approx(
+            [v for pair in want for v in pair], rel=1e-12)
         # the integral's last divisor puts k_i at the loop's ω_c³
         assert max(row['integral_gain'] for row in tried) == pytest.approx(w ** 3)
 
