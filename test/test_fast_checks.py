@@ -41,19 +41,21 @@ def reference_search(runner, facts, bandwidths, rows, say, fingers=()):
                  for frac in ls.ACCEL_PSD_FRACTIONS]
         if all(nominal.diverged for nominal, _, _ in tried):
             break
-        lead = min(tried, key=lambda c: (not c[0].ok, c[0].rmse_rel))
         w = 2 * math.pi * hz
-        tried = [lead] + [run(replace(lead[1], integral_gain=w ** 3 / divisor))
-                          for divisor in ls.INTEGRAL_DIVISORS[1:]]
+        tried += [run(replace(cand, integral_gain=w ** 3 / divisor))
+                  for _, cand, _ in list(tried) for divisor in ls.INTEGRAL_DIVISORS[1:]]
         for nominal, cand, row in tried:
             if not (nominal.ok and nominal.rmse_rel <= ls.KEEP_NOMINAL):
                 continue
             runs = [ls.check_on_model(model, cand, facts, gain_error=g) for g in ls.GAIN_ERRORS]
             row['robust'] = [asdict(r) for r in runs]
             row['robust_ok'] = all(r.ok and r.rmse_rel <= ls.KEEP_ROBUST for r in runs)
-            row['score'] = max([nominal.rmse_rel] + [r.rmse_rel for r in runs])
-            if row['robust_ok']:
-                kept.append((row['score'], hz, cand, nominal))
+            row['score'] = max([nominal.rmse_rel] + [r.rmse_rel for g, r in
+                                                     zip(ls.GAIN_ERRORS, runs) if g < 1])
+        if not any(nominal.diverged or any(r['diverged'] for r in row.get('robust', ()))
+                   for nominal, _, row in tried[:ls.MARGIN_INTENSITIES]):
+            kept += [(row['score'], hz, cand, nominal) for nominal, cand, row in tried
+                     if row.get('robust_ok', False)]
     return kept
 
 
