@@ -134,28 +134,37 @@ def _ringing(model) -> ff.LinearFinger:
 
 @pytest.mark.timeout(300)
 def test_a_loop_that_rings_on_a_finger_s_own_fit_is_not_chosen():
-    """On the model alone the 4 Hz candidates score best (their nominal and gain-error runs);
-    on the finger's fit they ring, so the 2 Hz loop is chosen. Every kept candidate's score is
-    the worst of its runs, the fit's included."""
+    """On the model alone the 4 Hz candidates score best (their nominal and lowered-gain runs);
+    on the finger's fit they ring, so a slower loop is chosen. Every kept candidate's score is
+    the worst of its nominal, lowered-gain and fit runs."""
     model = LinearChamber()
     derived = ls.derive(model, _chamber_facts(), bandwidths=(2.0, 4.0), laws=('sdre_ff',),
                         workers=1, fingers=(_ringing(model),))
     scored = [row for row in derived.candidates if 'score' in row]
-    assert {row['bandwidth_hz'] for row in scored} == {2.0, 4.0}
+    assert {2.0, 4.0} <= {row['bandwidth_hz'] for row in scored}
     for row in scored:
-        runs = ([row['nominal']['rmse_rel']] + [r['rmse_rel'] for r in row['robust']]
+        lowered = [r['rmse_rel'] for g, r in zip(ls.GAIN_ERRORS, row['robust']) if g < 1]
+        runs = ([row['nominal']['rmse_rel']] + lowered
                 + [r['rmse_rel'] for r in row['fingers'].values()])
         assert row['score'] == max(runs)
 
     def on_model(row):
-        return max([row['nominal']['rmse_rel']] + [r['rmse_rel'] for r in row['robust']])
+        return max([row['nominal']['rmse_rel']]
+                   + [r['rmse_rel'] for g, r in zip(ls.GAIN_ERRORS, row['robust']) if g < 1])
     best_on_model = min(scored, key=on_model)
     assert best_on_model['bandwidth_hz'] == 4.0
+    # at 4 Hz every loop does worse on the fit than the model's runs say, the best one rings
     fast = [row for row in scored if row['bandwidth_hz'] == 4.0]
-    ringing = [row['fingers']['slow'] for row in fast]
-    assert all(run['rmse_rel'] > ls.KEEP_ROBUST or run['diverged'] for run in ringing)
-    assert not any(row['robust_ok'] for row in fast)
-    assert derived.settings is not None and derived.settings.bandwidth_hz == 2.0
+    assert all(row['fingers']['slow']['rmse_rel'] > on_model(row) for row in fast)
+    ringing = best_on_model['fingers']['slow']
+    assert (ringing['rmse_rel'] > ls.KEEP_ROBUST or ringing['diverged'])
+    assert not best_on_model['robust_ok']
+    assert derived.settings is not None and derived.settings.bandwidth_hz < 4.0
+    chosen = next(row for row in scored if row['robust_ok']
+                  and row['bandwidth_hz'] == derived.settings.bandwidth_hz
+                  and row['accel_psd'] == derived.settings.accel_psd
+                  and row['integral_gain'] == derived.settings.integral_gain)
+    assert chosen['fingers']['slow']['rmse_rel'] <= ls.KEEP_ROBUST
     assert derived.checks['sdre_ff'].rmse_rel <= ls.KEEP_NOMINAL
 
 

@@ -45,9 +45,11 @@ integral gains. A candidate is kept when it tracks within :data:`KEEP_NOMINAL` o
 does not diverge, never saturates while the finger is held at rest, and still tracks within
 :data:`KEEP_ROBUST` when the model's input gain is off by the factors in :data:`GAIN_ERRORS` (the
 real finger is not the model: two fingers that share one model differ from it both ways). Its
-score is the worst error of its nominal run and the runs with the input gain lowered; the lowest
-score wins, and then the next lower bandwidth when it scores within :data:`PREFER_SLOWER` of it,
-for margin against what the model does not know.
+score is the worst error of its nominal run, the runs with the input gain lowered and its runs on
+the fingers' own fits (below); the bandwidths are tried an octave apart, then the best one's
+neighbours half an octave either side (:data:`REFINE_STEP`); the lowest score wins, and then the
+next lower bandwidth when it scores within :data:`PREFER_SLOWER` of it, for margin against what
+the model does not know.
 
 The two kinds of gain-error run measure different things. With the gain lowered the finger lags
 its feedforward by the offset a gain difference leaves, which the feedback of a loop slower than
@@ -150,6 +152,8 @@ from soft_gripper_sdre.sim.shape import HAND_SHAPE, InputBounds
 #: closed-loop bandwidths tried [Hz], kept below a :data:`RATE_FRACTION` of the sampling rate
 BANDWIDTHS_HZ = (0.5, 1.0, 2.0, 4.0, 8.0, 16.0, 32.0)
 RATE_FRACTION = 1 / 20
+#: the search then tries the best bandwidth's neighbours this factor either side (half an octave)
+REFINE_STEP = math.sqrt(2.0)
 #: estimator intensities tried, as fractions of the likelihood-best one
 ACCEL_PSD_FRACTIONS = (1.0, 0.1, 0.01)
 #: a bandwidth holds when its loop with the weakest integral diverges with none of these first
@@ -160,7 +164,7 @@ ROLL_OFF_RATIO = 4.0
 #: nearer it (a stronger integral absorbs more of the model's gain error while a move goes on).
 #: Along a move where the finger's own spring κ is stiffer than the loop (ω_c² < κ) the corner
 #: is k_i / (ω_c² + κ), below ω_c even at the last divisor (``trunk3``'s shortening: ω_c / 17)
-INTEGRAL_DIVISORS = (10.0, 4.0, 2.0, 1.0)
+INTEGRAL_DIVISORS = (10.0, 4.0, 2.0, 1.0, 0.5)
 #: the integral's band as a share of the travel (module doc's table)
 BAND_TRAVEL = 1.0
 PD_DAMPING = 0.7
@@ -723,6 +727,14 @@ def derive(model, facts: DataFacts, laws: tuple[str, ...] = ('sdre_ff', 'sdre'),
             say(f'no setting passed: a move of {1e3 * shorter:.3g} mm')
         if not kept:
             return Derivation(None, {}, rows, facts)
+        # the best bandwidth's neighbours half an octave either side (module doc)
+        best_hz = min(kept, key=lambda c: (c[0], c[1]))[1]
+        between = tuple(hz for hz in (best_hz / REFINE_STEP, best_hz * REFINE_STEP)
+                        if all(not math.isclose(hz, b, rel_tol=1e-6) for b in bandwidths))
+        if between:
+            say(f'half an octave either side of {best_hz:g} Hz: '
+                + ', '.join(f'{hz:.3g} Hz' for hz in between))
+            kept += _search(runner, facts, between, rows, say, tuple(fingers))
         kept.sort(key=lambda c: (c[0], c[1]))
         best = kept[0]
         slower = [c for c in kept if c[1] < best[1] and c[0] <= PREFER_SLOWER * best[0]]
@@ -901,14 +913,15 @@ def _search(runner: CheckRunner, facts: DataFacts, bandwidths: tuple[float, ...]
             if fingers:
                 row['fingers'] = {fit.name: asdict(r)
                                   for fit, r in zip(fingers, results[len(GAIN_ERRORS):])}
-                say(f'  {cand.bandwidth_hz:g} Hz, integral {cand.integral_gain:.3g} on the '
-                    'fingers\' own fits: ' + ', '.join(
+                say(f'  {cand.bandwidth_hz:g} Hz, accel_psd {cand.accel_psd:.3g}, integral '
+                    f'{cand.integral_gain:.3g} on the fingers\' own fits: ' + ', '.join(
                         f'{fit.name} ' + ('diverged' if r.diverged else
                                           f'{100 * r.rmse_rel:.2f} %')
                         for fit, r in zip(fingers, results[len(GAIN_ERRORS):])))
             row['robust_ok'] = all(r.ok and r.rmse_rel <= KEEP_ROBUST for r in results)
-            row['score'] = max([nominal.rmse_rel] + [r.rmse_rel for g, r in
-                                                     zip(GAIN_ERRORS, results) if g < 1])
+            row['score'] = max([nominal.rmse_rel]
+                               + [r.rmse_rel for g, r in zip(GAIN_ERRORS, results) if g < 1]
+                               + [r.rmse_rel for r in results[len(GAIN_ERRORS):]])
         # the bandwidth holds only when its loop with the weakest integral diverges with none of
         # the first MARGIN_INTENSITIES, on the model or with its input gain off (module doc)
         holds = not any(nominal.diverged or any(r['diverged'] for r in row.get('robust', ()))
