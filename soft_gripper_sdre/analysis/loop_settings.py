@@ -83,8 +83,9 @@ damping, and settings that track within 1 % on it ring on the fingers (``pneumat
 (:mod:`~soft_gripper_sdre.analysis.finger_fits`, fitted to its recordings by the training tool)
 sees it: when a lag makes the fit run free closer to the finger's validation recordings, every
 candidate the robustness runs try is also run on that fit, kept only within
-:data:`KEEP_ROBUST` and scored by it too (``pneumatic1``: 1 Hz and the strongest integral are
-chosen, 3.4 % / 4.3 % of travel on the fingers in process). A fit without a lag is not used: its
+:data:`KEEP_ROBUST` and scored by it too (``pneumatic1``: 1.41 Hz and the strongest integral are
+chosen, 3.5 % / 3.1 % of travel on the fingers in process, where the model's runs alone chose a
+2 Hz loop that rings on them). A fit without a lag is not used: its
 linear statics are not the finger's across the move (``tendon3``'s index fit misses every
 candidate's move by 75 % where the finger tracks within 5 %), and the model's gain-error runs
 already stand for the fingers' differences.
