@@ -167,8 +167,10 @@ def test_the_recipe_runs_end_to_end_on_the_one_chamber_pneumatic_finger(tmp_path
     shape (2, 1), the checked move follows the curve of the model's equilibria (params.yaml's
     close_path), and the deployed grasp never commands outside the bounds nor sits at a bound
     other than the vented chamber at rest. The preset's full training (about 5 minutes): trained
-    40 + 10 epochs, the model's rest drifted off (not fit). The deployed error is bounded loosely:
-    the derived estimator is too slow for this finger (docs/own_gripper.md: 39-50 % of travel)."""
+    40 + 10 epochs, the model's rest drifted off (not fit). Training finds each chamber's pressure
+    lag in its own fit (the valves' 40 and 60 ms as 50-60 and 80 ms) and checks the candidates on
+    those fits; the deployed grasp tracked within 4.2 % of travel over DDS on a quiet machine
+    (docs/own_gripper.md), bounded here at twice that for a loaded one."""
     out = tmp_path / 'pneumatic1'
     r = _tool('--plant', 'pneumatic1', '--out', str(out), '--laws', 'sdre_ff', timeout=1700)
     assert r.returncode in (0, 1), r.stderr[-3000:]
@@ -200,4 +202,7 @@ def test_the_recipe_runs_end_to_end_on_the_one_chamber_pneumatic_finger(tmp_path
     assert score['samples'] > 200 and score['commands'] > 200
     assert score['outside_bounds'] == 0 and score['outside_plant_bounds'] == 0
     assert score['saturated_at_rest'] == 0.0
-    assert max(score['rmse_pct_of_travel']) < 100.0, score
+    fits = json.loads((out / 'model' / 'metrics.json').read_text())['finger_fits']
+    assert [f['finger'] for f in fits] == foreign.FINGERS
+    assert all(0.02 <= f['lag_s'] <= 0.12 and f['free_run'] < 0.5 for f in fits), fits
+    assert max(score['rmse_pct_of_travel']) < 10.0, score
