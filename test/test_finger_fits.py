@@ -174,3 +174,16 @@ def test_a_fit_of_another_shape_is_refused_naming_it():
                             0.1, 5)
     with pytest.raises(ShapeError, match="finger fit 'index'.*m=2"):
         ls.derive(model, _chamber_facts(), bandwidths=(), fingers=(wrong,))
+
+
+def test_no_loop_is_tried_at_or_above_the_slowest_mode_of_the_fits():
+    """A fit without a lag takes no part in the runs, yet its slowest mode caps the bandwidths
+    (here 3.09 Hz: the 4 Hz loop is not tried)."""
+    model = LinearChamber()
+    said = []
+    fit = _finger(lag=0.0)
+    derived = ls.derive(model, _chamber_facts(), bandwidths=(4.0,), laws=('sdre_ff',), workers=1,
+                        fingers=(fit,), progress=said.append)
+    assert derived.settings is None and derived.candidates == []
+    assert any('slowest mode at 3.09 Hz' in text for text in said), said
+    assert any('no lag the model lacks' in text for text in said), said

@@ -49,7 +49,10 @@ score is the worst error of its nominal run, the runs with the input gain lowere
 the fingers' own fits (below); the bandwidths are tried an octave apart, then the best one's
 neighbours half an octave either side (:data:`REFINE_STEP`); the lowest score wins, and then the
 next lower bandwidth when it scores within :data:`PREFER_SLOWER` of it, for margin against what
-the model does not know.
+the model does not know. No loop is tried at or above the slowest mode of the fingers' own fits
+(below; any fit, with a lag or without): a loop that fast must shape a mode only the recordings
+know (``trunk3``'s model puts the bending modes at 10 Hz, the fits at 4.8–5.5 Hz as the fingers
+have them; a 5.66 Hz loop the model passed missed finger a's move by 115 % over DDS).
 
 The two kinds of gain-error run measure different things. With the gain lowered the finger lags
 its feedforward by the offset a gain difference leaves, which the feedback of a loop slower than
@@ -715,6 +718,12 @@ def derive(model, facts: DataFacts, laws: tuple[str, ...] = ('sdre_ff', 'sdre'),
             f'validation motion with an input lag of {1e3 * fit.lag:.3g} ms: '
             + ('each kept candidate is checked on it too' if fit.lag > 0 else
                'no lag the model lacks, the checks run on the model'))
+    modes = [hz for fit in fingers for hz in fit.summary()['modes_hz']]
+    if modes:
+        # a loop at a finger's own mode must shape it, and only its recordings know it (module doc)
+        bandwidths = tuple(b for b in bandwidths if b < min(modes))
+        say(f'the fingers\' own fits put their slowest mode at {min(modes):.3g} Hz: the loops '
+            'tried stay under it')
     fingers = tuple(fit for fit in fingers if fit.lag > 0)
     rows: list[dict] = []
     with CheckRunner(model, workers) as runner:
@@ -731,7 +740,8 @@ def derive(model, facts: DataFacts, laws: tuple[str, ...] = ('sdre_ff', 'sdre'),
         # the best bandwidth's neighbours half an octave either side (module doc)
         best_hz = min(kept, key=lambda c: (c[0], c[1]))[1]
         between = tuple(hz for hz in (best_hz / REFINE_STEP, best_hz * REFINE_STEP)
-                        if all(not math.isclose(hz, b, rel_tol=1e-6) for b in bandwidths))
+                        if all(not math.isclose(hz, b, rel_tol=1e-6) for b in bandwidths)
+                        and (not modes or hz < min(modes)))
         if between:
             say(f'half an octave either side of {best_hz:g} Hz: '
                 + ', '.join(f'{hz:.3g} Hz' for hz in between))
