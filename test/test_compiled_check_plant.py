@@ -6,11 +6,10 @@ them."""
 from dataclasses import asdict
 import math
 
-from chamber_models import OneChamber
+from chamber_models import SHORT_PROFILE, OneChamber
+from known_systems import SYSTEMS, fit
 import numpy as np
 import pytest
-from test_fast_checks import SHORT_PROFILE
-from test_learning_shapes import SYSTEMS, fit
 
 from soft_gripper_sdre.analysis import loop_settings as ls
 from soft_gripper_sdre.analysis import model_fitness

@@ -7,17 +7,13 @@ from dataclasses import asdict, replace
 import math
 import os
 
-from chamber_models import OneChamber, ThreeTendons, _chamber_facts, _tendon_facts
+from chamber_models import SHORT_PROFILE, OneChamber, ThreeTendons, _chamber_facts, _tendon_facts
 import numpy as np
 import pytest
 import scipy.linalg
 
 from soft_gripper_sdre.analysis import loop_settings as ls
 from soft_gripper_sdre.learning.model import set_blas_threads
-
-#: a shorter move than the derivation's (2.2 s instead of 5.5 s), so each test runs its many checks
-#: in seconds; the rule does not depend on the move's times
-SHORT_PROFILE = dict(t_start=0.3, t_close=0.8, t_hold=0.3, t_open=0.8)
 
 
 def reference_search(runner, facts, bandwidths, rows, say, fingers=()):

@@ -5,6 +5,7 @@ from dataclasses import replace
 import re
 
 from bag_writing import MS, tips_messages, write_bag
+from known_systems import DAMPING, STIFFNESS, SYSTEMS, fit, system_data
 import numpy as np
 import pytest
 import torch
@@ -33,41 +34,6 @@ from soft_gripper_sdre.tools.learning.train_bags import (
     load_bags,
     runs,
 )
-
-# -- known SDC systems -------------------------------------------------------------------------
-
-#: G2 of each shape [m/s² per unit input]: the directions training must find
-SYSTEMS = {
-    # one pneumatic chamber (0..2e5 Pa) bending a planar tip toward +X, a little −Y
-    (2, 1): (np.array([[5e-6], [-2e-6]]), InputBounds([0.0], [2e5])),
-    # three pull-only tendons (0..2 N) of a 3-D segment, 120° apart, each also lifting the tip
-    (3, 3): (np.array([[0.6, -0.3, -0.3], [0.0, 0.52, -0.52], [0.2, 0.2, 0.2]]),
-             InputBounds([0.0] * 3, [2.0] * 3)),
-    # three bidirectional motors on a planar tip (more inputs than coordinates)
-    (2, 3): (np.array([[0.5, 0.0, 0.35], [0.0, 0.5, -0.35]]), InputBounds.symmetric(0.5, 3)),
-}
-STIFFNESS, DAMPING = 400.0, 20.0       # p̈ = −k p − c ṗ + G2 u
-
-
-def system_data(d: int, m: int, n: int, seed: int):
-    """States (n, 2d), inputs (n, m) drawn within the bounds, and exact accelerations (n, d) of
-    the system of shape (d, m): positions about the rest the inputs' mid level holds."""
-    G2, bounds = SYSTEMS[(d, m)]
-    rng = np.random.default_rng(seed)
-    u = bounds.lower + (bounds.upper - bounds.lower) * rng.random((n, m))
-    mid = (G2 @ bounds.mid) / STIFFNESS                  # where the mid level settles
-    p = mid + 0.5 * np.abs(mid).max() * rng.standard_normal((n, d))
-    v = 10 * np.abs(mid).max() * rng.standard_normal((n, d))
-    acc = -STIFFNESS * p - DAMPING * v + u @ G2.T
-    return np.hstack([p, v]), u, acc
-
-
-def fit(d: int, m: int, epochs: int = 60, **changes):
-    """A short real training run on the known system of shape (d, m)."""
-    torch.set_num_threads(1)
-    data = system_data(d, m, 3000, 0) + system_data(d, m, 600, 1)
-    settings = replace(PRESETS['default'], epochs=epochs, **changes)
-    return train(*data, settings, shape=FingerShape(d, m)), settings, data
 
 
 @pytest.fixture(scope='module', params=list(SYSTEMS), ids=lambda s: f'd{s[0]}m{s[1]}')

@@ -7,13 +7,11 @@ laws and checks on a small SDC model of a three-tendon segment (test/chamber_mod
 from collections import defaultdict
 import math
 
-from chamber_models import ThreeTendons, _tendon_facts
+from chamber_models import SHORT_PROFILE, ThreeTendons, _tendon_facts
 import pytest
 
 from soft_gripper_sdre.analysis import loop_settings as ls
 
-#: a shorter move than the derivation's (2.2 s instead of 5.5 s); the rule does not depend on it
-SHORT_PROFILE = dict(t_start=0.3, t_close=0.8, t_hold=0.3, t_open=0.8)
 BANDWIDTHS = (2.0, 4.0)
 pytestmark = pytest.mark.timeout(900)
 
