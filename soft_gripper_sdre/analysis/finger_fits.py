@@ -101,13 +101,16 @@ class LinearFinger:
         ``rest_tip`` (d,) [m] of the model's frame."""
         return LinearFingerPlant(self, rest_tip, rest_input)
 
-    def summary(self) -> dict:
+    @property
+    def modes_hz(self) -> list[float]:
+        """The natural frequencies [Hz] of the fit's oscillating modes, ascending."""
         modes = np.linalg.eigvals(np.block([[np.zeros((self.d, self.d)), np.eye(self.d)],
                                             [self.K]]))
-        modes = modes[modes.imag > 0]
+        return sorted(float(abs(v) / (2 * math.pi)) for v in modes[modes.imag > 0])
+
+    def summary(self) -> dict:
         return {'finger': self.name, 'lag_s': self.lag, 'free_run': self.free_run,
-                'windows': self.windows,
-                'modes_hz': sorted(float(abs(v) / (2 * math.pi)) for v in modes)}
+                'windows': self.windows, 'modes_hz': self.modes_hz}
 
 
 class LinearFingerPlant:

@@ -151,7 +151,7 @@ from soft_gripper_sdre.control.laws import make_law
 from soft_gripper_sdre.control.riccati import sdre_gains
 from soft_gripper_sdre.control.tracking import Weights
 from soft_gripper_sdre.control.trajectory import GraspProfile, GraspTrajectory
-from soft_gripper_sdre.sim.shape import HAND_SHAPE, InputBounds
+from soft_gripper_sdre.sim.shape import HAND_SHAPE, InputBounds, ShapeError
 
 #: closed-loop bandwidths tried [Hz], kept below a :data:`RATE_FRACTION` of the sampling rate
 BANDWIDTHS_HZ = (0.5, 1.0, 2.0, 4.0, 8.0, 16.0, 32.0)
@@ -484,7 +484,6 @@ def unmodelled_delay(model, t: np.ndarray, u: np.ndarray, tips: np.ndarray,
         ShapeError: arrays of other shapes than the model's, fewer than
             :data:`MIN_DELAY_SAMPLES` tips, times not increasing, or values not finite.
     """
-    from soft_gripper_sdre.sim.shape import ShapeError
     shape = model_shape(model)
     d, m = shape.d, shape.m
     t = np.asarray(t, dtype=float).reshape(-1)
@@ -675,12 +674,7 @@ def derive(model, facts: DataFacts, laws: tuple[str, ...] = ('sdre_ff', 'sdre'),
     that found an input lag too, and is kept and scored the same way (module doc).
     """
     shape = model_shape(model)
-    _check_facts(facts, shape)
-    for fit in fingers:
-        if (fit.d, fit.m) != (shape.d, shape.m):
-            from soft_gripper_sdre.sim.shape import ShapeError
-            raise ShapeError(f'finger fit {fit.name!r} is of shape (d={fit.d}, m={fit.m}), the '
-                             f'model ({shape})')
+    _check_facts(facts, shape, fingers)
     if excitation and not (shape == HAND_SHAPE and facts.bounds is None):
         facts = replace(facts, input_delay=max(unmodelled_delay(model, *e) for e in excitation))
         if progress is not None:
@@ -718,7 +712,7 @@ def derive(model, facts: DataFacts, laws: tuple[str, ...] = ('sdre_ff', 'sdre'),
             f'validation motion with an input lag of {1e3 * fit.lag:.3g} ms: '
             + ('each kept candidate is checked on it too' if fit.lag > 0 else
                'no lag the model lacks, the checks run on the model'))
-    modes = [hz for fit in fingers for hz in fit.summary()['modes_hz']]
+    modes = [hz for fit in fingers for hz in fit.modes_hz]
     if modes:
         # a loop at a finger's own mode must shape it, and only its recordings know it (module doc)
         bandwidths = tuple(b for b in bandwidths if b < min(modes))
@@ -761,14 +755,18 @@ def derive(model, facts: DataFacts, laws: tuple[str, ...] = ('sdre_ff', 'sdre'),
     return Derivation(chosen, checks, rows, facts, paper_law=paper)
 
 
-def _check_facts(facts: DataFacts, shape) -> None:
-    """``facts`` fit a model of ``shape``: the move's dimension and the bounds' inputs.
+def _check_facts(facts: DataFacts, shape, fingers: tuple[LinearFinger, ...] = ()) -> None:
+    """``facts`` and the fingers' own fits fit a model of ``shape``: the move's dimension, the
+    bounds' inputs and each fit's (d, m).
 
     Raises:
-        ShapeError: the move has another dimension than the model's tip, or the bounds another
-            number of inputs than the model.
+        ShapeError: the move has another dimension than the model's tip, the bounds another
+            number of inputs than the model, or a fit another shape.
     """
-    from soft_gripper_sdre.sim.shape import ShapeError
+    for fit in fingers:
+        if (fit.d, fit.m) != (shape.d, shape.m):
+            raise ShapeError(f'finger fit {fit.name!r} is of shape (d={fit.d}, m={fit.m}), the '
+                             f'model ({shape})')
     if facts.d != shape.d:
         raise ShapeError(f'the move is {facts.d}-D (DataFacts.axis), the model\'s tip '
                          f'{shape.d}-D ({shape})')
