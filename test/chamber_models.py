@@ -78,3 +78,16 @@ def _tendon_facts(model) -> ls.DataFacts:
 
 #: a shorter check move than the derivation's (2.2 s instead of 5.5 s) for tests of the search
 SHORT_PROFILE = dict(t_start=0.3, t_close=0.8, t_hold=0.3, t_open=0.8)
+
+
+def held_inputs(n: int, high: float, seed: int = 0, start: int = 0) -> np.ndarray:
+    """(n, 1) inputs held for 5 to 30 samples each, uniform in [0, ``high``], 0 before sample
+    ``start``: a chamber's pressures as an excitation plays them."""
+    rng = np.random.default_rng(seed)
+    u = np.zeros((n, 1))
+    k = start
+    while k < n:
+        hold = int(rng.integers(5, 31))
+        u[k:k + hold] = rng.uniform(0.0, high)
+        k += hold
+    return u

@@ -6,7 +6,7 @@ than its model is not chosen."""
 from dataclasses import replace
 import math
 
-from chamber_models import OneChamber, _chamber_facts
+from chamber_models import OneChamber, _chamber_facts, held_inputs
 import numpy as np
 import pytest
 
@@ -29,14 +29,8 @@ def _finger(lag: float = 0.05, gain: float = 1.0, damping: float = 3.0) -> ff.Li
 def _record(fit: ff.LinearFinger, name: str, seconds: float, seed: int) -> FingerSamples:
     """``fit`` driven from rest by pressures held 50-300 ms each (0 to 40 kPa), sampled every DT
     with its exact state and acceleration, as labels of a finger that is the fit."""
-    rng = np.random.default_rng(seed)
     n = int(seconds / DT)
-    u = np.zeros((n, 1))
-    k = 20
-    while k < n:
-        hold = int(rng.integers(5, 31))
-        u[k:k + hold] = rng.uniform(0.0, 40e3)
-        k += hold
+    u = held_inputs(n, 40e3, seed, start=20)
     plant = fit.plant(np.zeros(2), np.zeros(1))
     x = np.empty((n, 4))
     acc = np.empty((n, 2))

@@ -5,7 +5,7 @@ hand's; bad values refused naming them."""
 from dataclasses import replace
 import math
 
-from chamber_models import P_MAX, OneChamber, _chamber_facts
+from chamber_models import P_MAX, OneChamber, _chamber_facts, held_inputs
 import numpy as np
 import pytest
 
@@ -18,15 +18,7 @@ DT = 0.01                                       # the chamber's tip period [s]
 
 def _excitation(seed: int = 0, seconds: float = 20.0) -> np.ndarray:
     """(N, 1) pressures held for 50 to 300 ms each, 0 to half the range [Pa]."""
-    rng = np.random.default_rng(seed)
-    n = int(seconds / DT)
-    u = np.empty((n, 1))
-    k = 0
-    while k < n:
-        hold = int(rng.integers(5, 31))
-        u[k:k + hold] = rng.uniform(0.0, 0.5 * P_MAX)
-        k += hold
-    return u
+    return held_inputs(int(seconds / DT), 0.5 * P_MAX, seed)
 
 
 def _finger(model, u: np.ndarray, dead: int = 0, lag: float = 0.0, noise: float = 2e-5,
