@@ -45,10 +45,16 @@ class DataFacts:
     (:func:`~soft_gripper_sdre.analysis.loop_settings.unmodelled_delay`); the closed-loop check
     applies its commands that much later.
 
+    ``input_gains`` maps each finger's name to how much more strongly its inputs act than the
+    model's (:func:`~soft_gripper_sdre.analysis.finger_fits.input_gains`; none: every finger is
+    the model). The law runs in the model's units and finger f receives v / g_f, so the check
+    runs the law within the bounds every finger delivers that way
+    (:meth:`~soft_gripper_sdre.sim.shape.InputBounds.through_gains`).
+
     Raises:
         ShapeError: ``axis`` not of 2 or 3 finite values of unit length, ``path`` not of
-            waypoints of as many values as the move's direction, or ``input_delay`` negative or
-            not finite.
+            waypoints of as many values as the move's direction, ``input_delay`` negative or
+            not finite, or an input gain not finite and > 0.
     """
 
     period: float                 # median tip period [s]
@@ -64,6 +70,8 @@ class DataFacts:
     path: tuple[tuple[float, ...], ...] | None = None   # (K, d) waypoints of a curved move [m]
     # the input-to-motion delay the model lacks [s] (loop_settings.unmodelled_delay; 0: none)
     input_delay: float = 0.0
+    # per finger name, its inputs' strength against the model's (finger_fits.input_gains)
+    input_gains: dict[str, float] | None = None
 
     def __post_init__(self) -> None:
         if self.axis is not None:
@@ -84,6 +92,14 @@ class DataFacts:
                 and self.input_delay >= 0):
             raise ShapeError(f'the input delay must be finite and >= 0 s, got '
                              f'{self.input_delay!r}')
+        if self.input_gains is not None:
+            gains = dict(self.input_gains)
+            bad = {k: v for k, v in gains.items() if not (
+                isinstance(k, str) and isinstance(v, (int, float)) and math.isfinite(v) and v > 0)}
+            if bad or not gains:
+                raise ShapeError(f'input gains must map finger names to finite gains > 0, got '
+                                 f'{self.input_gains!r}')
+            object.__setattr__(self, 'input_gains', {k: float(v) for k, v in gains.items()})
 
     @property
     def unit(self) -> np.ndarray:

@@ -33,14 +33,19 @@ import math
 
 import numpy as np
 from scipy.linalg import expm
-from scipy.signal import lfilter
+from scipy.signal import butter, filtfilt, lfilter
 
+from soft_gripper_sdre.analysis import model_fitness
 from soft_gripper_sdre.analysis.model_fitness import FREE_RUN_LIMIT
+from soft_gripper_sdre.sim.shape import INPUT_GAIN_RANGE
 
 #: the actuator lags tried [s]
 LAGS = (0.0, 0.01, 0.02, 0.03, 0.04, 0.05, 0.06, 0.08, 0.1, 0.12)
 #: the free runs that pick the lag are this long [s] (as the model's verdict runs them)
 WINDOW = 1.0
+#: a finger's input gain is read from its recordings below this frequency [Hz], where inertia and
+#: damping are small against the spring (under 2 % of it below first modes of 2 Hz and more)
+STATIC_HZ = 0.25
 
 
 def finger_of(sample) -> str:
@@ -95,11 +100,13 @@ class LinearFinger:
         return np.linalg.solve(self.K[:, :self.d], -(self.B @ np.asarray(u, dtype=float)
                                                      + self.c))
 
-    def plant(self, rest_tip: np.ndarray, rest_input: np.ndarray) -> LinearFingerPlant:
+    def plant(self, rest_tip: np.ndarray, rest_input: np.ndarray,
+              input_gain: float = 1.0) -> LinearFingerPlant:
         """The fit as the check's plant (:func:`~soft_gripper_sdre.analysis.loop_settings.
         check_on_model`'s ``plant``): at its equilibrium under ``rest_input`` (m,), its tip
-        ``rest_tip`` (d,) [m] of the model's frame."""
-        return LinearFingerPlant(self, rest_tip, rest_input)
+        ``rest_tip`` (d,) [m] of the model's frame; a command v of the law in the model's units
+        reaches it as v / ``input_gain`` (the finger's :func:`input_gains`)."""
+        return LinearFingerPlant(self, rest_tip, rest_input, input_gain)
 
     @property
     def modes_hz(self) -> list[float]:
@@ -114,12 +121,16 @@ class LinearFinger:
 
 
 class LinearFingerPlant:
-    """A :class:`LinearFinger` stepped exactly over each held command; ``tip()`` (d,) [m] is
-    ``rest_tip`` plus the displacement from the equilibrium it starts at."""
+    """A :class:`LinearFinger` stepped exactly over each held command, divided by
+    ``input_gain``; ``tip()`` (d,) [m] is ``rest_tip`` plus the displacement from the equilibrium
+    it starts at."""
 
-    def __init__(self, fit: LinearFinger, rest_tip: np.ndarray, rest_input: np.ndarray) -> None:
+    def __init__(self, fit: LinearFinger, rest_tip: np.ndarray, rest_input: np.ndarray,
+                 input_gain: float = 1.0) -> None:
         d, m = fit.d, fit.m
-        self.fit = fit
+        if not (math.isfinite(input_gain) and input_gain > 0):
+            raise ValueError(f'input_gain must be finite and > 0, got {input_gain!r}')
+        self.fit, self.gain = fit, float(input_gain)
         self.rest_tip = np.asarray(rest_tip, dtype=float)[:d]
         rest_input = np.asarray(rest_input, dtype=float).reshape(m)
         self.origin = fit.equilibrium(rest_input)
@@ -135,7 +146,8 @@ class LinearFingerPlant:
         if dt not in self._cache:
             self._cache[dt] = self.fit.discrete(dt)
         Ad, Bd = self._cache[dt]
-        self.z = Ad @ self.z + Bd @ np.asarray(u, dtype=float).reshape(-1)
+        u = np.asarray(u, dtype=float).reshape(-1)
+        self.z = Ad @ self.z + Bd @ (u / self.gain if self.gain != 1.0 else u)
 
 
 def _lagged(t: np.ndarray, u: np.ndarray, lag: float) -> np.ndarray:
@@ -228,3 +240,66 @@ def fit_fingers(train, val, lags: tuple[float, ...] = LAGS
                          [s for s in val if finger_of(s) == name], lags)
         (fits.append(fit) if fit is not None else missing.append(name))
     return fits, missing
+
+
+# -- each finger's input gain against the shared model ---------------------------------------
+
+@dataclass(frozen=True)
+class InputGain:
+    """How much more strongly a finger's inputs act than the shared model's: G₂ᶠ(x) ≈ g G₂(x).
+    ``gain`` is ``raw`` clipped into :data:`INPUT_GAIN_RANGE`."""
+
+    name: str
+    gain: float
+    raw: float
+    seconds: float              # of recordings it was read from [s]
+
+    @property
+    def clipped(self) -> bool:
+        return self.gain != self.raw
+
+    def summary(self) -> dict:
+        return {'finger': self.name, 'gain': self.gain, 'raw': self.raw, 'seconds': self.seconds}
+
+
+def input_gain(model, name: str, samples) -> InputGain | None:
+    """``name``'s input gain against ``model`` from its samples (train and validation alike:
+    :class:`~soft_gripper_sdre.analysis.bag_dataset.FingerSamples`), None when none is long
+    enough (1 / :data:`STATIC_HZ`) or its inputs did not move it.
+
+    The model is shared by fingers that differ (one lighter and softer, one stiffer), and the
+    difference that leaves an offset under a model-inversion feedforward is the static one: the
+    input that holds the finger at a displacement. Below :data:`STATIC_HZ` the recordings are
+    that balance, p̈ − (A(x)x)₂ = g G₂(x)u with the finger's inertia negligible, so g is the
+    least-squares ratio of the two sides, each low-passed (zero phase) over every sample:
+    g = Σ⟨a − f, h⟩ / Σ⟨h, h⟩ with a the labels, f = (A(x)x)₂ and h = G₂(x)u at the recorded
+    states and inputs. A sample's few left-out periods (a dropped tip) are far shorter than the
+    filter's time scale and are filtered over."""
+    num = den = seconds = 0.0
+    for s in samples:
+        dt = float(np.median(np.diff(s.t))) if len(s.t) > 1 else 0.0
+        if not (dt > 0 and s.t[-1] - s.t[0] >= 1.0 / STATIC_HZ):
+            continue
+        b, a = butter(2, 2 * STATIC_HZ * dt)
+        d = s.acc.shape[1]
+        free = model_fitness.xdot(model, s.x, np.zeros_like(s.u))[:, d:]
+        h = model_fitness.xdot(model, s.x, s.u)[:, d:] - free
+        r, h = filtfilt(b, a, s.acc - free, axis=0), filtfilt(b, a, h, axis=0)
+        num += float(np.sum(r * h))
+        den += float(np.sum(h * h))
+        seconds += float(s.t[-1] - s.t[0])
+    if not (den > 0 and math.isfinite(num / den) and num / den > 0):
+        return None
+    raw = num / den
+    return InputGain(name, float(np.clip(raw, *INPUT_GAIN_RANGE)), raw, seconds)
+
+
+def input_gains(model, samples) -> tuple[list[InputGain], list[str]]:
+    """Every finger's :func:`input_gain` from ``samples`` (train and validation together), in
+    the order the fingers first appear, and the names of the fingers none was read for."""
+    names = list(dict.fromkeys(finger_of(s) for s in samples))
+    gains, missing = [], []
+    for name in names:
+        gain = input_gain(model, name, [s for s in samples if finger_of(s) == name])
+        (gains.append(gain) if gain is not None else missing.append(name))
+    return gains, missing

@@ -32,6 +32,12 @@ CURVE_POINTS = 200
 #: Newton's iterations and tolerance [m/s²] at each point of the curve
 NEWTON_ITERATIONS = 30
 NEWTON_TOL = 1e-9
+#: halvings of a Newton step that does not lower the residual
+NEWTON_HALVINGS = 8
+#: halvings of the input's step where the curve's next equilibrium is not found from the last
+CONTINUATION_HALVINGS = 4
+#: past a fold, Newton starts this many of the curve's last steps ahead (:func:`_past_fold`)
+FOLD_STEPS = (2, 4, 8, 16, 32, 64)
 #: finite-difference step of the curve's Jacobian [m]
 JACOBIAN_STEP = 1e-6
 #: an input within this share of its range outside a bound still counts as within it (rounding)
@@ -61,11 +67,20 @@ def hold_torques(model, points: np.ndarray) -> np.ndarray:
     return -np.stack([np.linalg.lstsq(g, f, rcond=None)[0] for g, f in zip(G2, free)])
 
 
-def loop_bounds(facts: DataFacts, m: int) -> InputBounds:
-    """The bounds the loop runs within: ``facts.bounds``, else ±``facts.torque_limit`` on each of
-    the ``m`` inputs."""
+def actuator_bounds(facts: DataFacts, m: int) -> InputBounds:
+    """The bounds the actuators deliver: ``facts.bounds``, else ±``facts.torque_limit`` on each
+    of the ``m`` inputs."""
     return facts.bounds if facts.bounds is not None else InputBounds.symmetric(
         facts.torque_limit, m)
+
+
+def loop_bounds(facts: DataFacts, m: int) -> InputBounds:
+    """The bounds the loop's law runs within, in the model's input units: the actuators'
+    (:func:`actuator_bounds`), through the fingers' input gains when the facts have them
+    (:meth:`~soft_gripper_sdre.sim.shape.InputBounds.through_gains`: the commands every finger
+    delivers)."""
+    bounds = actuator_bounds(facts, m)
+    return bounds if not facts.input_gains else bounds.through_gains(facts.input_gains.values())
 
 
 def hold_bounds(bounds: InputBounds, share: float = HOLD_SHARE) -> InputBounds:
@@ -79,15 +94,16 @@ def hold_bounds(bounds: InputBounds, share: float = HOLD_SHARE) -> InputBounds:
 
 def holdable_travel(model, facts: DataFacts) -> float:
     """The largest displacement along ``facts.unit``, up to ``facts.travel``, that every smaller
-    one included the model holds with :data:`HOLD_SHARE` of the input range (of
-    ``facts.torque_limit`` when ``facts.bounds`` is None)."""
+    one included the model holds with :data:`HOLD_SHARE` of the loop's input range
+    (:func:`loop_bounds`: ±``facts.torque_limit`` when ``facts.bounds`` is None)."""
     lengths = facts.travel * np.arange(1, HOLD_GRID + 1) / HOLD_GRID
     u = hold_torques(model, np.outer(lengths, facts.unit))
+    bounds = loop_bounds(facts, u.shape[1])
     if facts.bounds is None:
         need = np.abs(u).max(axis=1)
-        over = np.flatnonzero(~(need <= HOLD_SHARE * facts.torque_limit))   # NaN counts as over
+        over = np.flatnonzero(~(need <= HOLD_SHARE * bounds.upper[0]))   # NaN counts as over
     else:
-        box = hold_bounds(facts.bounds)
+        box = hold_bounds(bounds)
         tol = AT_BOUND * (box.upper - box.lower)          # rounding at a one-sided input's rest
         inside = np.all((u >= box.lower - tol) & (u <= box.upper + tol), axis=1)   # NaN: over
         over = np.flatnonzero(~inside)
@@ -130,8 +146,9 @@ class EquilibriumCurve:
 
 def _equilibrium(model, u: np.ndarray, p0: np.ndarray) -> np.ndarray | None:
     """The equilibrium p near ``p0`` under the constant input ``u``: Newton on
-    (A(x)x + G(x)u)₂ = 0 at x = [p, 0] with a finite-difference Jacobian; None when it does
-    not converge."""
+    (A(x)x + G(x)u)₂ = 0 at x = [p, 0] with a finite-difference Jacobian, each step halved until
+    the residual falls (the learned networks are piecewise linear, and a full step across a
+    kink can cycle); None when it does not converge."""
     d = len(p0)
     p = np.array(p0, dtype=float)
 
@@ -139,21 +156,50 @@ def _equilibrium(model, u: np.ndarray, p0: np.ndarray) -> np.ndarray | None:
         free, G2 = input_map(model, points)
         return free + np.einsum('nij,j->ni', G2, u)
 
+    r = f(p[None])[0]
     for _ in range(NEWTON_ITERATIONS):
-        probe = np.vstack([p, p + JACOBIAN_STEP * np.eye(d)])
-        values = f(probe)
-        r = values[0]
         if not np.all(np.isfinite(r)):
             return None
-        if np.linalg.norm(r) < NEWTON_TOL:
+        norm = np.linalg.norm(r)
+        if norm < NEWTON_TOL:
             return p
-        J = (values[1:] - r).T / JACOBIAN_STEP
+        J = (f(p + JACOBIAN_STEP * np.eye(d)) - r).T / JACOBIAN_STEP
         try:
             step = np.linalg.solve(J, r)
         except np.linalg.LinAlgError:
             return None
-        p = p - step
-    return p if np.linalg.norm(f(p[None])[0]) < 1e3 * NEWTON_TOL else None
+        for _ in range(NEWTON_HALVINGS):
+            trial = p - step
+            r_trial = f(trial[None])[0]
+            if np.linalg.norm(r_trial) < norm:
+                break
+            step = 0.5 * step
+        p, r = trial, r_trial
+    return p if np.linalg.norm(r) < 1e3 * NEWTON_TOL else None
+
+
+def _continued(model, u0: np.ndarray, u1: np.ndarray, p0: np.ndarray,
+               halvings: int = CONTINUATION_HALVINGS) -> np.ndarray | None:
+    """The equilibrium under ``u1`` continued from ``p0``, the one under ``u0``: Newton from
+    ``p0``, or through the input halfway when that fails (a steep stretch of the curve, where
+    the equilibrium moves far for a small change of input), ``halvings`` deep; None when lost."""
+    p = _equilibrium(model, u1, p0)
+    if p is not None or halvings == 0:
+        return p
+    mid = 0.5 * (u0 + u1)
+    p = _continued(model, u0, mid, p0, halvings - 1)
+    return None if p is None else _continued(model, mid, u1, p, halvings - 1)
+
+
+def _past_fold(model, u: np.ndarray, p: np.ndarray, tangent: np.ndarray) -> np.ndarray | None:
+    """The equilibrium under ``u`` past a fold of the learned statics (the one near ``p`` is
+    lost and the curve goes on farther along): Newton from points ahead of ``p`` along the
+    curve's last step ``tangent``, 2 to 64 steps out; None when none converges."""
+    for k in FOLD_STEPS:
+        found = _equilibrium(model, u, p + k * tangent)
+        if found is not None:
+            return found
+    return None
 
 
 def equilibrium_curve(model, bounds: InputBounds, axis: np.ndarray,
@@ -163,8 +209,10 @@ def equilibrium_curve(model, bounds: InputBounds, axis: np.ndarray,
     bounds, in the input direction whose static displacement at rest, −A₂₁(0)⁻¹ G₂(0) w, points
     most along ``axis`` (d,) (the way the data moved most; for one input: toward the bound on
     ``axis``' side, the only side a one-sided input has). Each equilibrium solves
-    A₂₁(p) p + G₂(p) u = 0 by Newton from the one before; the curve ends where an equilibrium
-    is lost (no convergence, a jump of more than a tenth of the curve so far plus 1 mm).
+    A₂₁(p) p + G₂(p) u = 0 by Newton from the one before (through smaller input steps where the
+    curve is steep, and from points ahead along it past a fold of the learned statics); the
+    curve ends where an equilibrium is lost (no convergence, a jump of more than a tenth of the
+    curve so far plus 1 mm).
 
     Raises:
         ShapeError: ``bounds`` has another number of inputs than the model, or ``axis`` another
@@ -201,7 +249,9 @@ def equilibrium_curve(model, bounds: InputBounds, axis: np.ndarray,
     kept_u, kept_p = [us[0]], [start if start is not None else p]
     p = kept_p[0]
     for u in us[1:]:
-        nxt = _equilibrium(model, u, p)
+        nxt = _continued(model, kept_u[-1], u, p)
+        if nxt is None and len(kept_p) > 1:
+            nxt = _past_fold(model, u, p, p - kept_p[-2])
         if nxt is None:
             break
         so_far = float(np.linalg.norm(np.diff(np.array(kept_p), axis=0), axis=1).sum())

@@ -139,6 +139,7 @@ from soft_gripper_sdre.analysis.finger_fits import LinearFinger
 from soft_gripper_sdre.analysis.holding import (
     HOLD_SHARE,
     EquilibriumCurve,
+    actuator_bounds,
     equilibrium_curve,
     hold_bounds,
     hold_torques,
@@ -392,9 +393,10 @@ def check_on_model(model, settings: LoopSettings, facts: DataFacts, law: str = '
                    plant=None) -> CheckResult:
     """Run ``law`` with ``settings`` on the learned model as the plant (module doc): measured
     noise, the estimator, the command ``delay`` periods late and ``facts.input_delay`` later
-    still (rounded to whole periods), along :func:`check_move`, within ``facts.bounds``
-    (±``facts.torque_limit`` when None); a command outside them is counted
-    (:attr:`CheckResult.outside`) and fails the check.
+    still (rounded to whole periods), along :func:`check_move`, within the loop's bounds
+    (:func:`~soft_gripper_sdre.analysis.holding.loop_bounds`: ``facts.bounds``, or
+    ±``facts.torque_limit``, as every finger delivers them through its input gain); a command
+    outside them is counted (:attr:`CheckResult.outside`) and fails the check.
 
     ``plant``: another plant for the same loop, with ``tip()`` (d,) [m] and ``step(u (1, m),
     dt)``, e.g. a finger of :mod:`soft_gripper_sdre.sim.plants` behind an adapter (the recipe's
@@ -412,13 +414,15 @@ def check_on_model(model, settings: LoopSettings, facts: DataFacts, law: str = '
     if plant is None:
         plant = ModelPlant(model, gain_error)
     rest = np.array(plant.tip(), dtype=float)
-    options = {} if facts.bounds is None else {'bounds': facts.bounds}
+    # the law in the model's units, within what every finger delivers (loop_bounds)
+    limit = bounds.upper[0] if facts.bounds is None and facts.input_gains else settings.torque_limit
+    options = {} if facts.bounds is None else {'bounds': bounds}
     if law == 'sdre_ff':
         options.update(integral_gain=settings.integral_gain,
                        integral_band=settings.integral_band, ff_at=settings.feedforward_at)
     elif law in ('pd', 'computed_torque'):
         options.update(pd_gains=dict(kp=settings.pd_kp, kd=settings.pd_kd))
-    ctrl = make_law(law, model, settings.weights(), settings.torque_limit, n_fingers=1,
+    ctrl = make_law(law, model, settings.weights(), limit, n_fingers=1,
                     lowpass_hz=settings.torque_lowpass_hz, dt=dt, **options)
     kf = (ConstantVelocityKF(dt, settings.accel_psd, settings.meas_std, n=1) if d == 2
           else _SpatialKF(dt, settings.accel_psd, settings.meas_std))
@@ -449,7 +453,7 @@ def check_on_model(model, settings: LoopSettings, facts: DataFacts, law: str = '
             return CheckResult(law, math.inf, 1.0, math.inf, 1.0, True, outside, unreachable)
     err = np.linalg.norm(pos - ref.pos[:, 0], axis=1)
     at_rest = t < traj.profile.t_start
-    rest_torque = (float(np.abs(u_hist[at_rest]).max() / settings.torque_limit)
+    rest_torque = (float(np.abs(u_hist[at_rest]).max() / limit)
                    if facts.bounds is None else float(_rest_share(u_hist[at_rest], bounds).max()))
     return CheckResult(law, float(np.sqrt(np.mean(err ** 2)) / abs(facts.travel)),
                        float(sat[at_rest].mean()), rest_torque, float(sat.mean()), False,
@@ -584,7 +588,7 @@ class Derivation:
     def summary(self) -> dict:
         facts = asdict(replace(self.facts, bounds=None))
         facts['bounds'] = self.facts.bounds.to_record() if self.facts.bounds is not None else None
-        for key in ('axis', 'path', 'bounds'):
+        for key in ('axis', 'path', 'bounds', 'input_gains'):
             if facts[key] is None:
                 del facts[key]              # the hand's planar straight move: as it always was
         if facts['input_delay'] == 0.0:
@@ -632,6 +636,8 @@ class Derivation:
             del ctrl['torque_limit']
             ctrl['input_lower'] = [float(v) for v in f.bounds.lower]
             ctrl['input_upper'] = [float(v) for v in f.bounds.upper]
+        if f.input_gains:
+            ctrl['input_gains'] = [f.input_gains.get(name, 1.0) for name in names]
         if f.d == 2 and f.path is None:
             close, side = f.move()
             plan = {'close_distance': close, 'side_distance': side, 'contact_distance': close}
@@ -694,8 +700,10 @@ def derive(model, facts: DataFacts, laws: tuple[str, ...] = ('sdre_ff', 'sdre'),
                         reach_travel=reach)
         way = (f'{facts.direction:.0f}° from +X toward +Y' if facts.d == 2 else
                f'({", ".join(f"{v:.3f}" for v in facts.unit)})')
-    limit = (f'the torque limit {facts.torque_limit:.3g} N·m' if facts.bounds is None else
-             f'the input range {facts.bounds}')
+    limit = (f'the torque limit {loop_bounds(facts, shape.m).upper[0]:.3g} N·m'
+             if facts.bounds is None else f'the input range {loop_bounds(facts, shape.m)}')
+    if facts.input_gains:
+        limit += ' (what every finger delivers through its input gain)'
     if facts.travel < MIN_TRAVEL_NOISE * facts.noise_std:
         need = np.abs(hold_torques(model,
                                    MIN_TRAVEL_NOISE * facts.noise_std * facts.unit[None])).max()
@@ -807,13 +815,14 @@ def _worker_check(settings: LoopSettings, facts: DataFacts, law: str,
 def _check(model, settings: LoopSettings, facts: DataFacts, law: str, gain_error: float,
            finger: LinearFinger | None) -> CheckResult:
     """:func:`check_on_model` on the model (``finger`` None) or on ``finger``'s own fit as the
-    plant, from its equilibrium under the inputs' rest value at the model's rest tip."""
+    plant, from its equilibrium under the inputs' rest value at the model's rest tip, receiving
+    the law's commands through its input gain (``facts.input_gains``)."""
     if finger is None:
         return check_on_model(model, settings, facts, law=law, gain_error=gain_error)
-    rest_input = (loop_bounds(facts, finger.m).rest if facts.bounds is not None
-                  else np.zeros(finger.m))
-    return check_on_model(model, settings, facts, law=law,
-                          plant=finger.plant(np.asarray(model.rest_tip, dtype=float), rest_input))
+    rest_input = actuator_bounds(facts, finger.m).rest
+    gain = (facts.input_gains or {}).get(finger.name, 1.0)
+    return check_on_model(model, settings, facts, law=law, plant=finger.plant(
+        np.asarray(model.rest_tip, dtype=float), rest_input, input_gain=gain))
 
 
 class CheckRunner:

@@ -114,7 +114,7 @@ from soft_gripper_sdre.nodes.topics import (
     TORQUE_COMMANDS,
 )
 from soft_gripper_sdre.nodes.tracking_step import TrackingStep
-from soft_gripper_sdre.sim.shape import HAND_SHAPE, InputBounds, ShapeError
+from soft_gripper_sdre.sim.shape import HAND_SHAPE, INPUT_GAIN_RANGE, InputBounds, ShapeError
 
 
 def _node_params(shared: bool) -> tuple[Param, ...]:
@@ -144,6 +144,11 @@ PARAMS = (
                   "±torque_limit on each of the model's inputs"),
     numbers_param('input_upper', 'upper bound of each input, a list [u0, u1, …], each above its '
                   "lower bound; '' with input_lower '' = ±torque_limit"),
+    numbers_param('input_gains', 'per finger, in the order of finger_names, how much more '
+                  "strongly its inputs act than the model's (training reads it from each "
+                  "finger's recordings): the law runs in the model's units and the finger "
+                  'receives its command divided by its gain, within input_lower/input_upper; '
+                  "each in [0.5, 2]; '' = 1 for every finger"),
     Param('torque_lowpass_hz', DEFAULT_LOWPASS_HZ, 'first-order roll-off of the torque command '
           '(keeps the loop out of the finger\'s ~59 Hz bending mode; 0 = off); its corner is '
           'capped at a tenth of the control rate, 0.1 / control_period (10 Hz at 10 ms)', 'Hz',
@@ -202,6 +207,19 @@ class ControllerNode(Node):
             limit, self.law_bounds = self.bounds.symmetric_limit, None
         self.names = tuple(p['finger_names'])
         self.n = len(self.names)
+        #: per finger the strength of its inputs against the model's (None: all the model's)
+        self.gains = input_gains(p, self.n)
+        if self.gains is not None:
+            # the law in the model's units, within what every finger delivers
+            try:
+                seen = self.bounds.through_gains(self.gains)
+            except ShapeError as exc:
+                raise ParameterError(f"parameters 'input_gains', 'input_lower', 'input_upper': "
+                                     f'{exc}') from None
+            if self.law_bounds is None:
+                limit = seen.symmetric_limit
+            else:
+                self.law_bounds = seen
         self.effort_order = None            # index into u.ravel() of each effort_topic entry
         if p['effort_topic']:
             try:
@@ -217,7 +235,9 @@ class ControllerNode(Node):
             raise ParameterError(f'{names}: {exc}') from None
         on_runtime_change(self, PARAMS, validate=self.tuning.check, apply=self._apply)
         warm_up()       # compiled (or loaded from the cache) before any topic shows the node ready
-        self.step = TrackingStep(self.model, self.names, self.shape, self.law_bounds)
+        self.step = TrackingStep(self.model, self.names, self.shape,
+                                 self.law_bounds if self.gains is None else self.bounds,
+                                 input_gains=self.gains)
         self.done = False
         self.exit_code = 0
         self._open_topics(subscribe_estimates)
@@ -257,6 +277,9 @@ class ControllerNode(Node):
         values['model'] = str(self.model.path)
         values['shape'] = str(self.shape)
         values['input_bounds'] = str(self.bounds)
+        if self.gains is not None:
+            values['input_gains'] = ', '.join(f'{name} {g:g}'
+                                              for name, g in zip(self.names, self.gains))
         values['law'] = p['law']
         values.update(self.tuning.shown())
         corner = roll_off_corner_hz(p['torque_lowpass_hz'], p['control_period'])
@@ -283,6 +306,8 @@ class ControllerNode(Node):
             f'{p["solver"]} solver; law {p["law"]}'
             f'{" with Q(x)" if p["state_weights"] else ""}{integral_note}; '
             f'fingers {", ".join(self.names)}'
+            + (f' (input gains {self.diag.values["input_gains"]}; the limit in the model\'s '
+               'units)' if self.gains is not None else '')
             + (f'; efforts also on {self.pub_effort.topic_name} for {", ".join(p["effort_joints"])}'
                if self.pub_effort is not None else ''))
 
@@ -425,6 +450,27 @@ def input_bounds(p: dict, m: int) -> InputBounds | None:
         return InputBounds.parse(lower, upper, m, "parameters 'input_lower', 'input_upper'")
     except ShapeError as exc:
         raise ParameterError(str(exc)) from None
+
+
+def input_gains(p: dict, n: int) -> np.ndarray | None:
+    """(n,) the ``input_gains`` of ``n`` fingers; None when unset or every gain is 1.
+
+    Raises:
+        ParameterError: not one gain per finger, or a gain outside [0.5, 2] (naming it).
+    """
+    gains = numbers(p['input_gains'], 'input_gains')
+    if gains is None:
+        return None
+    if len(gains) != n:
+        raise ParameterError(f"parameter 'input_gains': one gain per finger of finger_names "
+                             f'({n}), got {len(gains)}: {gains}')
+    lo, hi = INPUT_GAIN_RANGE
+    bad = [g for g in gains if not lo <= g <= hi]
+    if bad:
+        raise ParameterError(f"parameter 'input_gains': each gain must lie in [{lo:g}, {hi:g}] "
+                             f"(a finger further from the model is not the model's finger: "
+                             f'train a model of its own), got {bad}')
+    return None if all(g == 1.0 for g in gains) else np.asarray(gains, dtype=float)
 
 
 def load_model(path: str) -> SDCModel:

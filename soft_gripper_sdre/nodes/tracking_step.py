@@ -6,7 +6,9 @@ The plan is sampled at the estimate's stamp by the compiled kernel
 :func:`~soft_gripper_sdre.control.horizon.sample_plan`, which takes over where the kernel declines)
 on the plan's arrays made contiguous once per plan. For a model learned from several fingers that
 rest apart, each finger's tip and reference are moved into the model's frame
-(:func:`rest_shift`). The law's compute is timed for /diagnostics, and a torque that is still
+(:func:`rest_shift`), and with ``input_gains`` each finger's command out of the model's units: the
+law commands the model, whose inputs act g_f times as weakly as finger f's, so the finger receives
+the law's command divided by g_f. The law's compute is timed for /diagnostics, and a torque that is still
 not finite (the law guarantees it is; the promise is kept here too) becomes each input's rest
 (zero for the hand's torques). With bounds of its own (one-sided inputs, say) a command is also
 clipped into them, should the law ever leave them.
@@ -59,11 +61,16 @@ class TrackingStep:
         shape: the finger's shape (the model's).
         bounds: bounds the command is clipped into besides the law's own saturation; None: the
             law's ±limit alone (the hand's loop, which the law keeps within it).
+        input_gains: (n,) per finger how much more strongly its inputs act than the model's
+            (None: every finger is the model's).
     """
 
     def __init__(self, model, names: tuple[str, ...], shape: FingerShape = HAND_SHAPE,
-                 bounds: InputBounds | None = None) -> None:
+                 bounds: InputBounds | None = None,
+                 input_gains: np.ndarray | None = None) -> None:
         self.n = len(names)
+        self.gains = None if input_gains is None else (
+            np.asarray(input_gains, dtype=float).reshape(self.n, 1))
         self.d = shape.d
         self.bounds = bounds
         self._rest_u = None if bounds is None else bounds.rest
@@ -93,7 +100,8 @@ class TrackingStep:
             if np.isfinite(out.u).all():
                 return Command(out.u, out, False)
             return Command(np.zeros_like(out.u), out, True)
-        u, replaced = out.u, not np.isfinite(out.u).all()
+        u = out.u if self.gains is None else out.u / self.gains
+        replaced = not np.isfinite(u).all()
         if replaced:
             u = np.where(np.isfinite(u), u, self._rest_u)
         clipped = not self.bounds.contains(u)

@@ -101,6 +101,9 @@ class FingerShape:
 
 #: the hand of this package: a planar tip, two bidirectional torques
 HAND_SHAPE = FingerShape(2, 2)
+#: the input gains a finger of a shared model may have against it (how much more strongly its
+#: inputs act); beyond, it is not that model's finger
+INPUT_GAIN_RANGE = (0.5, 2.0)
 
 
 @dataclass(frozen=True)
@@ -218,6 +221,29 @@ class InputBounds:
         """Every entry of ``u`` (…, m) lies within the bounds (by ``tol``)."""
         u = np.asarray(u, dtype=float)
         return bool(np.all(u >= self.lower - tol) & np.all(u <= self.upper + tol))
+
+    def through_gains(self, gains: Sequence[float]) -> 'InputBounds':
+        """The commands v, in a shared model's input units, that every finger can deliver when
+        finger f, whose inputs act ``gains[f]`` times as strongly as the model's, receives
+        v / g_f: per input [max_f g_f lower, min_f g_f upper] (bounds about zero: the bounds
+        times the smallest gain).
+
+        Raises:
+            ShapeError: no gains, a gain not finite and > 0, or no command every finger can
+                deliver (one-sided bounds away from zero, gains far apart).
+        """
+        g = np.asarray(list(gains), dtype=float).reshape(-1)
+        if g.size == 0 or not np.all(np.isfinite(g) & (g > 0)):
+            raise ShapeError(f'input gains must be finite and > 0, one per finger, got '
+                             f'{list(gains)!r}')
+        lo = np.max(g[:, None] * self.lower[None], axis=0)
+        hi = np.min(g[:, None] * self.upper[None], axis=0)
+        if not np.all(lo < hi):
+            k = int(np.flatnonzero(lo >= hi)[0])
+            raise ShapeError(f'input ax{k}: no command within [{self.lower[k]:g}, '
+                             f'{self.upper[k]:g}] reaches every finger through the input gains '
+                             f'{[float(v) for v in g]}')
+        return InputBounds(lo, hi)
 
     def __str__(self) -> str:
         return ', '.join(f'ax{k} [{lo:g}, {hi:g}]'

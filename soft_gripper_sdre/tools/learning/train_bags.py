@@ -22,7 +22,7 @@ against the validation bags' own KF + RTS labels (a recording has no true accele
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -54,7 +54,7 @@ from soft_gripper_sdre.learning import derivatives
 from soft_gripper_sdre.learning.rollout import Run
 from soft_gripper_sdre.learning.train_settings import TrainSettings
 from soft_gripper_sdre.learning.training import TrainResult, fingerprint, train
-from soft_gripper_sdre.sim.shape import FingerShape, InputBounds, ShapeError
+from soft_gripper_sdre.sim.shape import INPUT_GAIN_RANGE, FingerShape, InputBounds, ShapeError
 
 #: samples of a recording's first stretch its jerk intensity is tuned on
 TUNE_SAMPLES = 2000
@@ -444,6 +444,7 @@ class _Verdict:
         self.clock = clock if clock is not None else training_run.Stages()
         self.fitness: model_fitness.Fitness | None = None
         self.fingers: list[finger_fits.LinearFinger] = []
+        self.gains: list[finger_fits.InputGain] = []
         self.derived: loop_settings.Derivation | None = None
 
     def describe(self, model, scores: training_run.Scores) -> dict:
@@ -460,11 +461,15 @@ class _Verdict:
                 print(f'  {name}: no linear fit of its own runs free within '
                       f'{100 * model_fitness.FREE_RUN_LIMIT:.0f} % of its validation motion; '
                       'the settings are checked on the model alone for it')
+            self.gains, unread = finger_fits.input_gains(model, data.samples + data.val_samples)
+            report_gains(self.gains, unread)
             self.clock.lap('finger_fits')
             d = data.shape.d
             facts = data_facts(data.x[:, :d], data.u, data.dt, data.noise,
                                [tuning_stretch(rec, f[0], d) for rec, f in data.train_set],
                                bounds=data.bounds)
+            if self.gains:
+                facts = replace(facts, input_gains={g.name: g.gain for g in self.gains})
             rest = None if data.bounds is None else data.bounds.rest
             self.derived = loop_settings.derive(model, facts, progress=lambda text: print(
                 f'  closed-loop check on the model: {text}', flush=True), excitation=[
@@ -480,7 +485,22 @@ class _Verdict:
                 'train_samples': int(len(data.x)), 'validation_samples': int(len(data.x_val)),
                 'noise_std': data.noise, 'fitness': _plain(self.fitness.summary()),
                 'finger_fits': _plain([fit.summary() for fit in self.fingers]),
+                'input_gains': _plain([gain.summary() for gain in self.gains]),
                 'derived_settings': _plain(derived.summary()) if derived is not None else None}
+
+
+def report_gains(gains: list[finger_fits.InputGain], unread: list[str]) -> None:
+    """Say how strongly each finger's inputs act against the shared model."""
+    for g in gains:
+        print(f'  {g.name}: its inputs act {g.gain:.3g} times as strongly as the model\'s '
+              f'(read below {finger_fits.STATIC_HZ:g} Hz over {g.seconds:.0f} s of its '
+              'recordings); the controller divides its commands by that (input_gains)'
+              + (f'; the least-squares value {g.raw:.3g} lies outside '
+                 f'{list(INPUT_GAIN_RANGE)}: this finger is not the model\'s, train a model of '
+                 'its own' if g.clipped else ''))
+    for name in unread:
+        print(f'  {name}: no recording of {1 / finger_fits.STATIC_HZ:g} s or more moved it; its '
+              'input gain is the model\'s (1)')
 
 
 def report_fitness(fitness: model_fitness.Fitness, derived, out: Path) -> None:
