@@ -202,7 +202,14 @@ def test_the_recipe_runs_end_to_end_on_the_one_chamber_pneumatic_finger(tmp_path
     assert score['samples'] > 200 and score['commands'] > 200
     assert score['outside_bounds'] == 0 and score['outside_plant_bounds'] == 0
     assert score['saturated_at_rest'] == 0.0
-    fits = json.loads((out / 'model' / 'metrics.json').read_text())['finger_fits']
+    model_metrics = json.loads((out / 'model' / 'metrics.json').read_text())
+    fits = model_metrics['finger_fits']
     assert [f['finger'] for f in fits] == foreign.FINGERS
     assert all(0.02 <= f['lag_s'] <= 0.12 and f['free_run'] < 0.5 for f in fits), fits
+    # each chamber's static gain against the pooled model (0.87 / 1.06 in the runs measured),
+    # carried into the controller's parameters in the fingers' order
+    gains = model_metrics['input_gains']
+    assert [g['finger'] for g in gains] == foreign.FINGERS
+    assert all(0.7 < g['gain'] < 1.4 for g in gains), gains
+    assert ctrl['input_gains'] == [g['gain'] for g in gains]
     assert max(score['rmse_pct_of_travel']) < 10.0, score

@@ -128,6 +128,50 @@ def test_commands_name_m_inputs_stay_within_the_bounds_and_are_the_offline_law(c
             assert 'unreachable_max' not in values
 
 
+def test_each_finger_receives_the_laws_command_divided_by_its_input_gain(checkpoint):
+    """The law runs in the model's units within what both fingers deliver (the bounds through
+    the gains), and each finger's command is the law's divided by its gain, within its bounds."""
+    shape, bounds, path = checkpoint
+    d, m = shape.d, shape.m
+    gains = np.array([1.25, 0.8])
+    seen = bounds.through_gains(gains)
+    np.testing.assert_allclose(seen.upper, 0.8 * bounds.upper)
+    model = SDCModel(path)
+    offline = make_law('sdre_ff', model, Weights(**WEIGHTS), 0.0625, n_fingers=2, bounds=seen)
+    rng = np.random.default_rng(5)
+    with ros_context() as (ctx, executor):
+        node, probe, est_pub, ref_pub = make_controller(
+            ctx, executor, model_path=str(path), finger_names=NAMES, **WEIGHTS,
+            input_gains=[float(g) for g in gains], **_bounds_params(bounds))
+        assert node.diag.values['input_gains'] == 'index 1.25, thumb 0.8'
+        msg, target = _plan(d)
+        ref_pub.publish(msg)
+        assert spin_until(executor, lambda: node.diag.counters['references'] == 1)
+        states, high = [], 0
+        zeros = np.zeros((2, d))
+        for k in range(6):
+            # far from the plan: the law presses its bounds
+            x = np.hstack([rng.normal(scale=0.01, size=(2, d)), np.zeros((2, d))])
+            states.append(x)
+            est_pub.publish(cv.estimate_to_msg(k * MS, x[:, :d], x[:, d:], NAMES))
+            assert spin_until(executor, lambda: len(probe.received[TORQUE_COMMANDS]) == k + 1)
+        for k, cmd in enumerate(probe.received[TORQUE_COMMANDS]):
+            u = cv.msg_to_torques(cmd, NAMES, m)[1]
+            want = offline.compute(states[k][:, :d], states[k][:, d:], target, zeros,
+                                   ref_acc=zeros).u
+            np.testing.assert_allclose(u, want / gains[:, None], rtol=1e-9,
+                                       atol=1e-12 * bounds.upper.max())
+            assert bounds.contains(u, tol=1e-9 * bounds.upper.max())
+            high += int(np.any(np.isclose(want, seen.upper)))
+        assert high > 0         # some command at the shared bound: the thumb then at its own
+    with ros_context() as (ctx, _executor):
+        with pytest.raises(ParameterError) as info:
+            ControllerNode(context=ctx, parameter_overrides=overrides(
+                model_path=str(path), finger_names=NAMES, input_gains=[1.2], **_bounds_params(
+                    bounds)))
+    assert "'input_gains': one gain per finger of finger_names (2), got 1" in str(info.value)
+
+
 def test_bounds_of_another_input_count_than_the_models_are_refused_naming_them(checkpoint):
     shape, bounds, path = checkpoint
     wrong = InputBounds.symmetric(1.0, 2 if shape.m == 1 else 1)
@@ -190,6 +234,11 @@ def test_the_composed_controller_filters_the_models_tips_and_refuses_another_tas
     ('controller', ['-p', 'input_lower:=0'], 'got 1 lower and 0 upper'),
     ('controller', ['-p', 'input_lower:=[0.0, 0.01]', '-p', 'input_upper:=[0.01, 0.01]'],
      'input ax1: the lower bound must be below the upper one'),
+    ('controller', ['-p', 'input_gains:=[1.1, 0.9, 1.0]'],
+     "'input_gains': one gain per finger of finger_names (4), got 3"),
+    ('controller', ['-p', 'input_gains:=[1.1, 0.9, 1.0, 3.0]'],
+     "'input_gains': each gain must lie in [0.5, 2]"),
+    ('controller', ['-p', 'input_gains:=1.1 0.9 x 1.0'], "'input_gains': '1.1 0.9 x 1.0' is not"),
     ('estimator', ['-p', 'task_dim:=4'], 'task_dim'),
     ('trajectory', ['-p', 'direction:=[0.0, 1.0, 0.0]'], "'direction': needs task_dim = 2 values"),
     ('trajectory', ['-p', 'close_path:=[0.001, .nan]'], "'close_path'"),

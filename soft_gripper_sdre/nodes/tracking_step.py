@@ -6,12 +6,12 @@ The plan is sampled at the estimate's stamp by the compiled kernel
 :func:`~soft_gripper_sdre.control.horizon.sample_plan`, which takes over where the kernel declines)
 on the plan's arrays made contiguous once per plan. For a model learned from several fingers that
 rest apart, each finger's tip and reference are moved into the model's frame
-(:func:`rest_shift`), and with ``input_gains`` each finger's command out of the model's units: the
-law commands the model, whose inputs act g_f times as weakly as finger f's, so the finger receives
-the law's command divided by g_f. The law's compute is timed for /diagnostics, and a torque that is still
-not finite (the law guarantees it is; the promise is kept here too) becomes each input's rest
-(zero for the hand's torques). With bounds of its own (one-sided inputs, say) a command is also
-clipped into them, should the law ever leave them.
+(:func:`rest_shift`), and with ``input_gains`` each finger's command out of the model's units:
+the law commands the model, whose inputs act g_f times as weakly as finger f's, so the finger
+receives the law's command divided by g_f. The law's compute is timed for /diagnostics, and a
+torque that is still not finite (the law guarantees it is; the promise is kept here too) becomes
+each input's rest (zero for the hand's torques). With bounds of its own (one-sided inputs, say)
+a command is also clipped into them, should the law ever leave them.
 
 The finger's shape (task dimension d, inputs m) is the model's: the estimate is (n, 2d), the
 plan (h, n, d), the command (n, m). The hand's planar plans are sampled by the compiled kernel,
