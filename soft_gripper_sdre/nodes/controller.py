@@ -25,6 +25,13 @@ at start-up naming the parameters. /diagnostics shows the shape, the bounds and,
 whose inputs cannot reach every direction (m < d), the largest part of the plan's acceleration
 no input can reach (``unreachable_max``, m/s²).
 
+**Fingers that share one model** are not alike: ``input_gains`` gives per finger how much more
+strongly its inputs act than the model's (training reads it from each finger's recordings:
+:func:`~soft_gripper_sdre.analysis.finger_fits.input_gains`). The law then runs in the model's
+units, bounded by what every finger can deliver
+(:meth:`~soft_gripper_sdre.sim.shape.InputBounds.through_gains`), and each finger receives the
+law's command divided by its gain, clipped into the actuators' bounds.
+
 Which estimate is answered, and when, is decided by
 :class:`~soft_gripper_sdre.control.command_gate.CommandGate`: each estimate is answered with the
 plan once one covers its stamp; when estimates stop the controller sends nothing (the simulator
