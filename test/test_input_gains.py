@@ -13,7 +13,9 @@ from soft_gripper_sdre.analysis import finger_fits as ff
 from soft_gripper_sdre.analysis import loop_settings as ls
 from soft_gripper_sdre.analysis.bag_dataset import FingerSamples
 from soft_gripper_sdre.analysis.holding import equilibrium_curve, loop_bounds
-from soft_gripper_sdre.sim.shape import INPUT_GAIN_RANGE, InputBounds, ShapeError
+from soft_gripper_sdre.learning.model import SDCModel
+from soft_gripper_sdre.nodes.tracking_step import TrackingStep
+from soft_gripper_sdre.sim.shape import HAND_SHAPE, INPUT_GAIN_RANGE, InputBounds, ShapeError
 
 DT = 0.01
 
@@ -77,7 +79,8 @@ def test_each_fingers_static_gain_is_read_though_its_dynamics_differ():
     assert gains[1].gain == pytest.approx(0.8, rel=0.02)
     assert gains[0].seconds == pytest.approx(2 * 39.99, abs=0.01)
     assert gains[0].summary() == {'finger': 'index', 'gain': gains[0].gain,
-                                  'raw': gains[0].raw, 'seconds': gains[0].seconds}
+                                  'raw': gains[0].raw, 'seconds': gains[0].seconds,
+                                  'clipped': False}
 
 
 def test_a_finger_without_long_or_moving_recordings_has_no_gain_and_one_far_off_is_clipped():
@@ -87,12 +90,22 @@ def test_a_finger_without_long_or_moving_recordings_has_no_gain_and_one_far_off_
     far = _record(model, 'ring', 3.0, 1.0, 1.0, 20.0, 3)
     gains, missing = ff.input_gains(model, [short, still, far])
     assert missing == ['index', 'thumb']
-    assert gains[0].name == 'ring' and gains[0].clipped
+    assert gains[0].name == 'ring' and gains[0].clipped and gains[0].summary()['clipped']
     assert gains[0].gain == INPUT_GAIN_RANGE[1] and gains[0].raw == pytest.approx(3.0, rel=0.03)
+    # a finger moving against the model's input map: clipped to the range's foot, flagged
+    against = _record(model, 'pinky', -1.0, 1.0, 1.0, 20.0, 4)
+    (back,), _ = ff.input_gains(model, [against])
+    assert back.raw < 0 and back.clipped and back.gain == INPUT_GAIN_RANGE[0]
+    # every finger the controller will drive is in the check's bounds: an unread one as the model
+    by_finger = ff.gains_by_finger(gains, missing)
+    assert by_finger == {'ring': 2.0, 'index': 1.0, 'thumb': 1.0}
+    facts = _chamber_facts(input_gains=by_finger)
+    assert loop_bounds(facts, 1) == InputBounds([0.0], [P_MAX])     # the unread ones at 1
 
 
 def test_data_facts_refuse_bad_gains():
-    for bad in ({}, {'index': 0.0}, {'index': math.inf}, {3: 1.0}, {'index': 'x'}):
+    for bad in ({}, {'index': 0.0}, {'index': math.inf}, {3: 1.0}, {'index': 'x'},
+                {'index': True}):
         with pytest.raises(ShapeError, match='input gains must map finger names'):
             _chamber_facts(input_gains=bad)
     facts = _chamber_facts(input_gains={'index': 1, 'thumb': 0.8})
@@ -172,3 +185,13 @@ def test_the_equilibrium_curve_goes_on_past_a_fold_of_the_statics():
     for u, p in zip(curve.inputs, curve.points):                # every point an equilibrium
         A, G = model.AG(np.r_[p, 0.0, 0.0])
         np.testing.assert_allclose(A[0, 2:, :2] @ p + G[0, 2:, 0] * u[0], 0.0, atol=1e-6)
+
+
+def test_a_tracking_step_with_gains_needs_the_actuators_bounds():
+    model = SDCModel()
+    with pytest.raises(ValueError, match='input_gains must be one finite gain > 0 per finger'):
+        TrackingStep(model, ('a', 'b'), HAND_SHAPE, None, input_gains=[1.0, 1.1])
+    for bad in ([1.0], [1.0, 0.0], [1.0, math.nan]):
+        with pytest.raises(ValueError, match=r'per finger \(2\)'):
+            TrackingStep(model, ('a', 'b'), HAND_SHAPE, InputBounds.symmetric(0.05),
+                         input_gains=bad)

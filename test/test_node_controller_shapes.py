@@ -161,15 +161,48 @@ def test_each_finger_receives_the_laws_command_divided_by_its_input_gain(checkpo
                                    ref_acc=zeros).u
             np.testing.assert_allclose(u, want / gains[:, None], rtol=1e-9,
                                        atol=1e-12 * bounds.upper.max())
-            assert bounds.contains(u, tol=1e-9 * bounds.upper.max())
+            assert bounds.contains(u)
             high += int(np.any(np.isclose(want, seen.upper)))
         assert high > 0         # some command at the shared bound: the thumb then at its own
+        # ... which it reaches only to rounding: clipped into the bounds, not counted as clipped
+        assert node.diag.counters['clipped_command'] == 0
+        assert node.diag.values['law_bounds'] == str(seen)
     with ros_context() as (ctx, _executor):
         with pytest.raises(ParameterError) as info:
             ControllerNode(context=ctx, parameter_overrides=overrides(
                 model_path=str(path), finger_names=NAMES, input_gains=[1.2], **_bounds_params(
                     bounds)))
     assert "'input_gains': one gain per finger of finger_names (2), got 1" in str(info.value)
+
+
+def test_symmetric_bounds_through_input_gains_bound_the_law_by_the_smallest(checkpoint):
+    """Bounds ±U about zero (the hand's kind): the law runs with the limit g_min U, its own
+    saturation, and each finger receives its command divided by its gain."""
+    shape, bounds, path = checkpoint
+    d, m = shape.d, shape.m
+    limit = float(bounds.upper.max())
+    gains = np.array([0.9, 1.2])
+    model = SDCModel(path)
+    offline = make_law('sdre_ff', model, Weights(**WEIGHTS), 0.9 * limit, n_fingers=2)
+    with ros_context() as (ctx, executor):
+        node, probe, est_pub, ref_pub = make_controller(
+            ctx, executor, model_path=str(path), finger_names=NAMES, **WEIGHTS,
+            input_gains=[float(g) for g in gains],
+            **_bounds_params(InputBounds.symmetric(limit, m)))
+        assert node.law_bounds is None and node.diag.values['law_bounds'] == f'±{0.9 * limit:g}'
+        msg, target = _plan(d)
+        ref_pub.publish(msg)
+        assert spin_until(executor, lambda: node.diag.counters['references'] == 1)
+        x = np.hstack([np.full((2, d), 0.02), np.zeros((2, d))])       # far: at the limit
+        est_pub.publish(cv.estimate_to_msg(0, x[:, :d], x[:, d:], NAMES))
+        assert spin_until(executor, lambda: len(probe.received[TORQUE_COMMANDS]) == 1)
+        u = cv.msg_to_torques(probe.received[TORQUE_COMMANDS][0], NAMES, m)[1]
+        zeros = np.zeros((2, d))
+        want = offline.compute(x[:, :d], x[:, d:], target, zeros, ref_acc=zeros).u
+        assert np.isclose(np.abs(want).max(), 0.9 * limit)
+        np.testing.assert_allclose(u, want / gains[:, None], rtol=1e-9, atol=1e-12 * limit)
+        assert np.abs(u).max() <= limit
+        assert node.diag.counters['clipped_command'] == 0
 
 
 def test_bounds_of_another_input_count_than_the_models_are_refused_naming_them(checkpoint):

@@ -95,7 +95,8 @@ class DataFacts:
         if self.input_gains is not None:
             gains = dict(self.input_gains)
             bad = {k: v for k, v in gains.items() if not (
-                isinstance(k, str) and isinstance(v, (int, float)) and math.isfinite(v) and v > 0)}
+                isinstance(k, str) and isinstance(v, (int, float)) and not isinstance(v, bool)
+                and math.isfinite(v) and v > 0)}
             if bad or not gains:
                 raise ShapeError(f'input gains must map finger names to finite gains > 0, got '
                                  f'{self.input_gains!r}')

@@ -247,7 +247,7 @@ def fit_fingers(train, val, lags: tuple[float, ...] = LAGS
 @dataclass(frozen=True)
 class InputGain:
     """How much more strongly a finger's inputs act than the shared model's: G₂ᶠ(x) ≈ g G₂(x).
-    ``gain`` is ``raw`` clipped into :data:`INPUT_GAIN_RANGE`."""
+    ``gain`` is ``raw`` clipped into :data:`~soft_gripper_sdre.sim.shape.INPUT_GAIN_RANGE`."""
 
     name: str
     gain: float
@@ -259,13 +259,16 @@ class InputGain:
         return self.gain != self.raw
 
     def summary(self) -> dict:
-        return {'finger': self.name, 'gain': self.gain, 'raw': self.raw, 'seconds': self.seconds}
+        return {'finger': self.name, 'gain': self.gain, 'raw': self.raw, 'seconds': self.seconds,
+                'clipped': self.clipped}
 
 
 def input_gain(model, name: str, samples) -> InputGain | None:
     """``name``'s input gain against ``model`` from its samples (train and validation alike:
     :class:`~soft_gripper_sdre.analysis.bag_dataset.FingerSamples`), None when none is long
-    enough (1 / :data:`STATIC_HZ`) or its inputs did not move it.
+    enough (1 / :data:`STATIC_HZ`) or its inputs did not move it. A ratio outside
+    :data:`~soft_gripper_sdre.sim.shape.INPUT_GAIN_RANGE` (at or below zero too: a finger that
+    moves against the model's input map) is clipped into it, and :attr:`InputGain.clipped`.
 
     The model is shared by fingers that differ (one lighter and softer, one stiffer), and the
     difference that leaves an offset under a model-inversion feedforward is the static one: the
@@ -288,9 +291,10 @@ def input_gain(model, name: str, samples) -> InputGain | None:
         num += float(np.sum(r * h))
         den += float(np.sum(h * h))
         seconds += float(s.t[-1] - s.t[0])
-    if not (den > 0 and math.isfinite(num / den) and num / den > 0):
+    if not (den > 0 and math.isfinite(num / den)):
         return None
     raw = num / den
+    # a ratio at or below zero: the finger moves against the model's input map, far off the range
     return InputGain(name, float(np.clip(raw, *INPUT_GAIN_RANGE)), raw, seconds)
 
 
@@ -303,3 +307,10 @@ def input_gains(model, samples) -> tuple[list[InputGain], list[str]]:
         gain = input_gain(model, name, [s for s in samples if finger_of(s) == name])
         (gains.append(gain) if gain is not None else missing.append(name))
     return gains, missing
+
+
+def gains_by_finger(gains: list[InputGain], unread: list[str]) -> dict[str, float]:
+    """Every finger's gain by name for the check and the parameter file: the model's own (1) for
+    a finger none was read for, so the check bounds the law through every finger the controller
+    will (:meth:`~soft_gripper_sdre.sim.shape.InputBounds.through_gains`)."""
+    return {**{g.name: g.gain for g in gains}, **{name: 1.0 for name in unread}}

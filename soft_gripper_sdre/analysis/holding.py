@@ -174,6 +174,8 @@ def _equilibrium(model, u: np.ndarray, p0: np.ndarray) -> np.ndarray | None:
             if np.linalg.norm(r_trial) < norm:
                 break
             step = 0.5 * step
+        else:
+            break                               # no step lowers the residual: stuck
         p, r = trial, r_trial
     return p if np.linalg.norm(r) < 1e3 * NEWTON_TOL else None
 

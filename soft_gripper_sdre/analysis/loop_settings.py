@@ -258,7 +258,7 @@ def fastest_mode_hz(model) -> float:
     return float(np.abs(lam).max() / (2 * math.pi)) if lam.size else 0.0
 
 
-def input_gain(model) -> float:
+def input_gain_squared(model) -> float:
     """g² for the weights: the squared geometric mean of G₂(0)'s singular values (s₁ s₂ for two
     inputs on a planar tip; s₁² for one input)."""
     shape = model_shape(model)
@@ -272,7 +272,7 @@ def settings_for(model, facts: DataFacts, bandwidth_hz: float, accel_psd: float)
     """The settings of one candidate (module doc's table)."""
     w = 2 * math.pi * bandwidth_hz
     r = 1.0 / facts.torque_limit ** 2
-    q_pos = r * w ** 4 / max(input_gain(model), 1e-12)
+    q_pos = r * w ** 4 / max(input_gain_squared(model), 1e-12)
     band = max(BAND_TRAVEL * abs(facts.travel), 10 * facts.noise_std)
     return LoopSettings(
         control_period=facts.period, meas_std=max(facts.noise_std, 1e-7), accel_psd=accel_psd,
@@ -415,7 +415,9 @@ def check_on_model(model, settings: LoopSettings, facts: DataFacts, law: str = '
         plant = ModelPlant(model, gain_error)
     rest = np.array(plant.tip(), dtype=float)
     # the law in the model's units, within what every finger delivers (loop_bounds)
-    limit = bounds.upper[0] if facts.bounds is None and facts.input_gains else settings.torque_limit
+    limit = settings.torque_limit
+    if facts.bounds is None and facts.input_gains:
+        limit *= min(facts.input_gains.values())
     options = {} if facts.bounds is None else {'bounds': bounds}
     if law == 'sdre_ff':
         options.update(integral_gain=settings.integral_gain,

@@ -287,6 +287,8 @@ class ControllerNode(Node):
         if self.gains is not None:
             values['input_gains'] = ', '.join(f'{name} {g:g}'
                                               for name, g in zip(self.names, self.gains))
+            values['law_bounds'] = (str(self.law_bounds) if self.law_bounds is not None else
+                                    f'±{self.tuning.params["torque_limit"]:g}')
         values['law'] = p['law']
         values.update(self.tuning.shown())
         corner = roll_off_corner_hz(p['torque_lowpass_hz'], p['control_period'])
@@ -313,8 +315,9 @@ class ControllerNode(Node):
             f'{p["solver"]} solver; law {p["law"]}'
             f'{" with Q(x)" if p["state_weights"] else ""}{integral_note}; '
             f'fingers {", ".join(self.names)}'
-            + (f' (input gains {self.diag.values["input_gains"]}; the limit in the model\'s '
-               'units)' if self.gains is not None else '')
+            + (f' (input gains {self.diag.values["input_gains"]}; the law within '
+               f'{self.diag.values["law_bounds"]} in the model\'s units)'
+               if self.gains is not None else '')
             + (f'; efforts also on {self.pub_effort.topic_name} for {", ".join(p["effort_joints"])}'
                if self.pub_effort is not None else ''))
 

@@ -62,15 +62,27 @@ class TrackingStep:
         bounds: bounds the command is clipped into besides the law's own saturation; None: the
             law's ±limit alone (the hand's loop, which the law keeps within it).
         input_gains: (n,) per finger how much more strongly its inputs act than the model's
-            (None: every finger is the model's).
+            (None: every finger is the model's); they need ``bounds``, the actuators' own.
+
+    Raises:
+        ValueError: ``input_gains`` without ``bounds``, or not one finite gain > 0 per finger.
     """
 
     def __init__(self, model, names: tuple[str, ...], shape: FingerShape = HAND_SHAPE,
                  bounds: InputBounds | None = None,
                  input_gains: np.ndarray | None = None) -> None:
         self.n = len(names)
-        self.gains = None if input_gains is None else (
-            np.asarray(input_gains, dtype=float).reshape(self.n, 1))
+        self.gains = None
+        if input_gains is not None:
+            gains = np.asarray(input_gains, dtype=float).reshape(-1)
+            if bounds is None or gains.shape != (self.n,) or not np.all(np.isfinite(gains)
+                                                                         & (gains > 0)):
+                raise ValueError(f'input_gains must be one finite gain > 0 per finger ({self.n}) '
+                                 f'with the actuators\' bounds, got {input_gains!r} and bounds '
+                                 f'{bounds}')
+            self.gains = gains[:, None]
+            # a command at the law's shared bound lands on the actuator's to rounding
+            self._tol = 1e-9 * float(np.max(bounds.upper - bounds.lower))
         self.d = shape.d
         self.bounds = bounds
         self._rest_u = None if bounds is None else bounds.rest
@@ -106,6 +118,9 @@ class TrackingStep:
             u = np.where(np.isfinite(u), u, self._rest_u)
         clipped = not self.bounds.contains(u)
         if clipped:
+            # with input gains a command at the law's shared bound lands on the actuator's own
+            # only to rounding: clipped, and not counted
+            clipped = self.gains is None or not self.bounds.contains(u, tol=self._tol)
             u = self.bounds.clip(u)
         return Command(u, out, replaced, clipped)
 

@@ -226,7 +226,9 @@ class InputBounds:
         """The commands v, in a shared model's input units, that every finger can deliver when
         finger f, whose inputs act ``gains[f]`` times as strongly as the model's, receives
         v / g_f: per input [max_f g_f lower, min_f g_f upper] (bounds about zero: the bounds
-        times the smallest gain).
+        times the smallest gain). For bounds away from zero the fingers' rest values differ in
+        the model's units, and the loop rests at the shared lower bound: the weaker finger then
+        holds a little above its own rest.
 
         Raises:
             ShapeError: no gains, a gain not finite and > 0, or no command every finger can

@@ -469,7 +469,7 @@ class _Verdict:
                                [tuning_stretch(rec, f[0], d) for rec, f in data.train_set],
                                bounds=data.bounds)
             if self.gains:
-                facts = replace(facts, input_gains={g.name: g.gain for g in self.gains})
+                facts = replace(facts, input_gains=finger_fits.gains_by_finger(self.gains, unread))
             rest = None if data.bounds is None else data.bounds.rest
             self.derived = loop_settings.derive(model, facts, progress=lambda text: print(
                 f'  closed-loop check on the model: {text}', flush=True), excitation=[
@@ -495,9 +495,10 @@ def report_gains(gains: list[finger_fits.InputGain], unread: list[str]) -> None:
         print(f'  {g.name}: its inputs act {g.gain:.3g} times as strongly as the model\'s '
               f'(read below {finger_fits.STATIC_HZ:g} Hz over {g.seconds:.0f} s of its '
               'recordings); the controller divides its commands by that (input_gains)'
-              + (f'; the least-squares value {g.raw:.3g} lies outside '
-                 f'{list(INPUT_GAIN_RANGE)}: this finger is not the model\'s, train a model of '
-                 'its own' if g.clipped else ''))
+              + (f'; WARNING: the least-squares value {g.raw:.3g} lies outside '
+                 f'{list(INPUT_GAIN_RANGE)} and was clipped: this finger is not the model\'s '
+                 '(or moves against its input map); train a model of its own' if g.clipped
+                 else ''))
     for name in unread:
         print(f'  {name}: no recording of {1 / finger_fits.STATIC_HZ:g} s or more moved it; its '
               'input gain is the model\'s (1)')
