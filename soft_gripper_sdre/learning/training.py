@@ -46,6 +46,10 @@ from soft_gripper_sdre.sim.shape import HAND_SHAPE, FingerShape, InputBounds
 #: intra-op threads while training: the order of torch's reductions, and so every weight's bits,
 #: depends on it
 TRAIN_THREADS = 1
+#: Adam updates all the networks' tensors with one multi-tensor kernel per operation: the same
+#: arithmetic per element as one tensor at a time (the same weights, bit for bit), at a third of
+#: the step's cost, which on tensors this small is the operations' overhead
+FOREACH = True
 
 
 @dataclass
@@ -243,7 +247,7 @@ class _Training:
         simulation error when the simulation stage follows."""
         settings, net, result = self.settings, self.net, self.result
         opt = torch.optim.Adam(net.parameters(), lr=settings.lr,
-                               weight_decay=settings.weight_decay)
+                               weight_decay=settings.weight_decay, foreach=FOREACH)
         sched = (torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=settings.epochs)
                  if settings.cosine else None)
         for epoch in range(settings.epochs):
@@ -299,7 +303,7 @@ class _Training:
         """The rollout epochs (module doc), continuing from the label stage's last weights."""
         settings, net, result = self.settings, self.net, self.result
         batches = windows(runs, settings.rollout_seconds, settings.rollout_overlap)
-        opt = torch.optim.Adam(net.parameters(), lr=settings.rollout_lr)
+        opt = torch.optim.Adam(net.parameters(), lr=settings.rollout_lr, foreach=FOREACH)
         sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=settings.rollout_epochs)
         first = len(result.train_loss)
         for epoch in range(settings.rollout_epochs):
