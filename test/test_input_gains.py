@@ -176,11 +176,15 @@ class SnapThrough(OneChamber):
         return A, G
 
 
-def test_the_equilibrium_curve_goes_on_past_a_fold_of_the_statics():
+@pytest.mark.parametrize('b', [1e-3, 2e-3])
+def test_the_equilibrium_curve_goes_on_past_a_fold_of_the_statics(b):
+    """A snap of 0.65 or 1.3 mm: the longer one beyond the jump allowed between neighbouring
+    points of a curve 0.5 mm long so far (1.05 mm), kept as it goes on the curve's way."""
     model = SnapThrough()
+    model.b = b
     curve = equilibrium_curve(model, InputBounds([0.0], [P_MAX]), np.array([0.0, 1.0]))
     assert curve.inputs[-1, 0] == pytest.approx(P_MAX)          # to the bound
-    assert curve.points[-1, 1] > 1.5 * model.b
+    assert curve.points[-1, 1] > 1.2 * model.b
     assert np.diff(curve.points[:, 1]).max() > 0.5 * model.b    # the jump past the fold
     for u, p in zip(curve.inputs, curve.points):                # every point an equilibrium
         A, G = model.AG(np.r_[p, 0.0, 0.0])

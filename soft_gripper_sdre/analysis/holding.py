@@ -15,6 +15,7 @@ node's ``close_path``) follows the curve.
 from __future__ import annotations
 
 from dataclasses import dataclass
+import math
 
 import numpy as np
 
@@ -38,6 +39,10 @@ NEWTON_HALVINGS = 8
 CONTINUATION_HALVINGS = 4
 #: past a fold, Newton starts this many of the curve's last steps ahead (:func:`_past_fold`)
 FOLD_STEPS = (2, 4, 8, 16, 32, 64)
+#: the snap past a fold is kept when it goes within 45° of the curve's last step and is at most
+#: this many times the jump allowed between neighbouring points
+FOLD_ALIGN = math.cos(math.radians(45.0))
+FOLD_JUMP = 3.0
 #: finite-difference step of the curve's Jacobian [m]
 JACOBIAN_STEP = 1e-6
 #: an input within this share of its range outside a bound still counts as within it (rounding)
@@ -214,7 +219,8 @@ def equilibrium_curve(model, bounds: InputBounds, axis: np.ndarray,
     A₂₁(p) p + G₂(p) u = 0 by Newton from the one before (through smaller input steps where the
     curve is steep, and from points ahead along it past a fold of the learned statics); the
     curve ends where an equilibrium is lost (no convergence, a jump of more than a tenth of the
-    curve so far plus 1 mm).
+    curve so far plus 1 mm; past a fold, a snap that leaves the curve's way or is longer than
+    :data:`FOLD_JUMP` times that).
 
     Raises:
         ShapeError: ``bounds`` has another number of inputs than the model, or ``axis`` another
@@ -251,13 +257,22 @@ def equilibrium_curve(model, bounds: InputBounds, axis: np.ndarray,
     kept_u, kept_p = [us[0]], [start if start is not None else p]
     p = kept_p[0]
     for u in us[1:]:
-        nxt = _continued(model, kept_u[-1], u, p)
+        nxt, fold = _continued(model, kept_u[-1], u, p), False
         if nxt is None and len(kept_p) > 1:
-            nxt = _past_fold(model, u, p, p - kept_p[-2])
+            nxt, fold = _past_fold(model, u, p, p - kept_p[-2]), True
         if nxt is None:
             break
         so_far = float(np.linalg.norm(np.diff(np.array(kept_p), axis=0), axis=1).sum())
-        if np.linalg.norm(nxt - p) > 0.1 * so_far + 1e-3:
+        jump, allowed = nxt - p, 0.1 * so_far + 1e-3
+        if fold:
+            # a snap past a fold goes on the way the curve went: a jump along it, however far
+            # within FOLD_JUMP times the usual bound, is the same curve
+            tangent = p - kept_p[-2]
+            along = float(jump @ tangent) >= FOLD_ALIGN * float(np.linalg.norm(jump)
+                                                                * np.linalg.norm(tangent))
+            if not along or np.linalg.norm(jump) > FOLD_JUMP * allowed:
+                break
+        elif np.linalg.norm(jump) > allowed:
             break
         kept_u.append(u)
         kept_p.append(nxt)
