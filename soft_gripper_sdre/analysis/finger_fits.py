@@ -233,13 +233,23 @@ def fit_fingers(train, val, lags: tuple[float, ...] = LAGS
                 ) -> tuple[list[LinearFinger], list[str]]:
     """Every finger's fit (:func:`fit_finger`), in the order the fingers first appear in
     ``train``, and the names of the fingers no fit passed for."""
-    names = list(dict.fromkeys(finger_of(s) for s in train))
-    fits, missing = [], []
-    for name in names:
-        fit = fit_finger(name, [s for s in train if finger_of(s) == name],
-                         [s for s in val if finger_of(s) == name], lags)
-        (fits.append(fit) if fit is not None else missing.append(name))
-    return fits, missing
+    return _each_finger(train, lambda name: fit_finger(
+        name, _of(train, name), _of(val, name), lags))
+
+
+def _of(samples, name: str) -> list:
+    """The samples of finger ``name``."""
+    return [s for s in samples if finger_of(s) == name]
+
+
+def _each_finger(samples, read) -> tuple[list, list[str]]:
+    """``read(name)`` for every finger of ``samples`` in the order they first appear: what it
+    returned, and the names it returned None for."""
+    found, missing = [], []
+    for name in dict.fromkeys(finger_of(s) for s in samples):
+        got = read(name)
+        (found.append(got) if got is not None else missing.append(name))
+    return found, missing
 
 
 # -- each finger's input gain against the shared model ---------------------------------------
@@ -301,12 +311,7 @@ def input_gain(model, name: str, samples) -> InputGain | None:
 def input_gains(model, samples) -> tuple[list[InputGain], list[str]]:
     """Every finger's :func:`input_gain` from ``samples`` (train and validation together), in
     the order the fingers first appear, and the names of the fingers none was read for."""
-    names = list(dict.fromkeys(finger_of(s) for s in samples))
-    gains, missing = [], []
-    for name in names:
-        gain = input_gain(model, name, [s for s in samples if finger_of(s) == name])
-        (gains.append(gain) if gain is not None else missing.append(name))
-    return gains, missing
+    return _each_finger(samples, lambda name: input_gain(model, name, _of(samples, name)))
 
 
 def gains_by_finger(gains: list[InputGain], unread: list[str]) -> dict[str, float]:
