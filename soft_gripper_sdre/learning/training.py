@@ -38,6 +38,7 @@ from typing import Callable, Iterator, NamedTuple
 import numpy as np
 import torch
 
+from soft_gripper_sdre.learning import label_step
 from soft_gripper_sdre.learning.model import FORMAT_VERSION, SDCNet
 from soft_gripper_sdre.learning.rollout import Run, Scales, sim_error, val_sim_error, windows
 from soft_gripper_sdre.learning.train_settings import TrainSettings
@@ -174,6 +175,13 @@ def _rest_penalty(net: SDCNet, s: Scales, settings: TrainSettings) -> torch.Tens
     return settings.rest_weight * torch.relu(real_parts() + settings.rest_margin).pow(2).sum()
 
 
+def _gradients(loss: torch.Tensor, net: SDCNet) -> list[torch.Tensor]:
+    """``loss``'s gradient with respect to ``net.parameters()``, by autograd, in that order."""
+    net.zero_grad(set_to_none=True)
+    loss.backward()
+    return [p.grad for p in net.parameters()]
+
+
 def _step(opt: torch.optim.Optimizer, loss: torch.Tensor, net: SDCNet,
           clip: float | None = None) -> bool:
     """One optimiser step; a batch whose loss or gradient is not finite is skipped."""
@@ -246,15 +254,13 @@ class _Training:
         """The label epochs (eq. 18), each scored by its validation loss, or by its validation
         simulation error when the simulation stage follows."""
         settings, net, result = self.settings, self.net, self.result
-        opt = torch.optim.Adam(net.parameters(), lr=settings.lr,
-                               weight_decay=settings.weight_decay, foreach=FOREACH)
-        sched = (torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=settings.epochs)
-                 if settings.cosine else None)
+        opt = label_step.Adam(list(net.parameters()), settings.lr,
+                              weight_decay=settings.weight_decay)
         for epoch in range(settings.epochs):
             net.train()
             train_loss = self._label_epoch(opt, train_set)
-            if sched is not None:
-                sched.step()
+            if settings.cosine:
+                opt.lr = label_step.cosine_lr(opt.lr, epoch + 1, settings.epochs)
             net.eval()
             with torch.no_grad():
                 val = float(_label_loss(net, val_set))
@@ -273,20 +279,34 @@ class _Training:
             if self.keep_if_best(epoch, score):
                 break
 
-    def _label_epoch(self, opt: torch.optim.Optimizer, data: _Labelled) -> float:
-        """One pass over the shuffled training set in batches; returns the mean loss."""
-        settings = self.settings
+    def _label_epoch(self, opt: label_step.Adam, data: _Labelled) -> float:
+        """One pass over the shuffled training set in batches; returns the mean loss.
+
+        A batch with only the label loss takes its gradient in closed form
+        (:mod:`~soft_gripper_sdre.learning.label_step`); one with a penalty on, through autograd.
+        Either way Adam's update is the same arithmetic, and a batch whose loss is not finite is
+        skipped."""
+        settings, net = self.settings, self.net
         n = data.x.shape[0]
         perm = torch.randperm(n, generator=self.gen)
         total = 0.0
         for i in range(0, n, settings.batch_size):
             idx = perm[i:i + settings.batch_size]
-            loss = _label_loss(self.net, _Labelled(data.x[idx], data.u[idx], data.acc[idx]))
-            if settings.sv_penalty > 0:
-                loss = loss + self._sv_penalty(idx.numel())
-            loss = _with_rest_penalty(loss, self.net, self.st, settings)
-            _step(opt, loss, self.net)
-            total += loss.item() * idx.numel()
+            batch = _Labelled(data.x[idx], data.u[idx], data.acc[idx])
+            rest = _rest_penalty(net, self.st, settings) if settings.rest_margin > 0 else None
+            if settings.sv_penalty == 0 and rest is None:
+                loss, grads = label_step.label_loss_and_grads(net, *batch)
+            else:
+                loss = _label_loss(net, batch)
+                if settings.sv_penalty > 0:
+                    loss = loss + self._sv_penalty(idx.numel())
+                if rest is not None:
+                    loss = loss + rest
+                grads = _gradients(loss, net)
+            value = loss.item()
+            if math.isfinite(value):
+                opt.step(grads)
+            total += value * idx.numel()
         return total / n
 
     def _sv_penalty(self, count: int) -> torch.Tensor:

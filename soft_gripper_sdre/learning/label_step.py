@@ -1,0 +1,120 @@
+"""The label stage's step without autograd: eq. 18's gradient in closed form, Adam, and the cosine
+schedule, each the same arithmetic as torch's, so a label epoch gives the same weights bit for bit
+at about half the cost.
+
+A batch of the label stage is a few hundred states through two networks of three small layers; at
+that size a step's cost is torch's per-operation overhead, not arithmetic: recording the graph and
+running autograd's engine, and ``torch.optim.Adam``'s bookkeeping around its multi-tensor kernels.
+This module calls the kernels autograd and Adam would call, in the same order, and nothing else:
+
+* **The gradient** of L = mean_b ‖p̈̂_b − p̈_b‖² (scaled units; :class:`~soft_gripper_sdre.learning.
+  model.SDCNet`): with r = p̈̂ − p̈ and the residual's gradient g = (1/B)·2r, the network outputs'
+  gradients are outer products, ∂L/∂vec([A21 A22])_b = x_b ⊗ g_b and ∂L/∂vec(G2)_b = u_b ⊗ g_b
+  (single products: the batched matmuls autograd runs for them have an inner dimension of one),
+  and each layer y = h Wᵀ + c passes back ∂W = ∂yᵀ h, ∂c = Σ_b ∂y, ∂h = ∂y W, through each ReLU
+  where its output is positive (``threshold_backward``). These are the matrix products, in the
+  operand layouts, that ``AddmmBackward`` forms for ``nn.Linear`` (its weight enters transposed,
+  as a column-major operand, so ∂W comes out as ``∂yᵀ.mm(h)``).
+* **Adam**: torch's multi-tensor update (``foreach``, not capturable) with the step count kept as a
+  Python number: the bias corrections in double precision, the same ``_foreach`` calls.
+* **Cosine annealing**: torch's recursive form of the schedule (each epoch's rate from the last),
+  which differs from the closed form in the last bits.
+
+``test/test_label_step.py`` holds every piece to the bits of autograd, ``torch.optim.Adam`` and
+``CosineAnnealingLR`` on several finger shapes; the shipped checkpoint is reproduced from nothing
+through this path (``test/test_model_reproducible.py``).
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import nn
+
+from soft_gripper_sdre.learning.model import SDCNet
+
+
+def _layers(net: nn.Sequential) -> tuple[nn.Linear, nn.Linear, nn.Linear]:
+    """The three linear layers of :func:`~soft_gripper_sdre.learning.model.mlp` (ReLU between)."""
+    return net[0], net[2], net[4]
+
+
+def _forward(net: nn.Sequential, xs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor,
+                                                             torch.Tensor]:
+    """The network's output and its two hidden activations (after ReLU)."""
+    l1, l2, l3 = _layers(net)
+    h1 = torch.relu(nn.functional.linear(xs, l1.weight, l1.bias))
+    h2 = torch.relu(nn.functional.linear(h1, l2.weight, l2.bias))
+    return nn.functional.linear(h2, l3.weight, l3.bias), h1, h2
+
+
+def _backward(net: nn.Sequential, xs: torch.Tensor, h1: torch.Tensor, h2: torch.Tensor,
+              d_out: torch.Tensor) -> list[torch.Tensor]:
+    """The gradients of the network's weights and biases, in ``parameters()`` order, from its
+    output's gradient ``d_out``."""
+    _, l2, l3 = _layers(net)
+    d2 = torch.ops.aten.threshold_backward(d_out.mm(l3.weight), h2, 0)
+    d1 = torch.ops.aten.threshold_backward(d2.mm(l2.weight), h1, 0)
+    return [d1.t().mm(xs), d1.sum(0), d2.t().mm(h1), d2.sum(0), d_out.t().mm(h2), d_out.sum(0)]
+
+
+@torch.no_grad()
+def label_loss_and_grads(net: SDCNet, xs: torch.Tensor, us: torch.Tensor,
+                         acc: torch.Tensor) -> tuple[torch.Tensor, list[torch.Tensor]]:
+    """Eq. 18's loss on a batch (as ``training._label_loss``) and its gradient with respect to
+    ``net.parameters()``, in that order, without recording a graph."""
+    d, m = net.shape.d, net.shape.m
+    out_a, a1, a2 = _forward(net.a_net, xs)
+    out_g, g1, g2 = _forward(net.g_net, xs)
+    a = out_a.reshape(-1, 2 * d, d).transpose(1, 2)
+    g = out_g.reshape(-1, m, d).transpose(1, 2)
+    r = (a @ xs.unsqueeze(-1) + g @ us.unsqueeze(-1)).squeeze(-1) - acc
+    loss = (r ** 2).sum(dim=1).mean()
+    b = xs.shape[0]
+    d_r = (torch.ones((), dtype=r.dtype).expand(b) / b).unsqueeze(1).expand(b, d) * (2.0 * r)
+    d_a = (xs[:, :, None] * d_r[:, None, :]).reshape(b, 2 * d * d)      # vec, columns stacked
+    d_g = (us[:, :, None] * d_r[:, None, :]).reshape(b, m * d)
+    return loss, _backward(net.a_net, xs, a1, a2, d_a) + _backward(net.g_net, xs, g1, g2, d_g)
+
+
+class Adam:
+    """Adam over ``params`` (L2 ``weight_decay`` added to the gradient, as ``torch.optim.Adam``);
+    :meth:`step` takes the gradients as a list in ``params`` order. ``lr`` may be changed between
+    steps."""
+
+    def __init__(self, params: list[torch.Tensor], lr: float, betas: tuple[float, float] = (0.9, 0.999),
+                 eps: float = 1e-8, weight_decay: float = 0.0) -> None:
+        self.params, self.lr, self.eps, self.weight_decay = list(params), float(lr), eps, weight_decay
+        self.beta1, self.beta2 = betas
+        self.exp_avg = [torch.zeros_like(p, memory_format=torch.preserve_format)
+                        for p in self.params]
+        self.exp_avg_sq = [torch.zeros_like(p, memory_format=torch.preserve_format)
+                           for p in self.params]
+        self.steps = 0
+
+    @torch.no_grad()
+    def step(self, grads: list[torch.Tensor]) -> None:
+        self.steps += 1
+        if self.weight_decay != 0:
+            grads = torch._foreach_add(grads, self.params, alpha=self.weight_decay)
+        torch._foreach_lerp_(self.exp_avg, grads, 1 - self.beta1)
+        torch._foreach_mul_(self.exp_avg_sq, self.beta2)
+        torch._foreach_addcmul_(self.exp_avg_sq, grads, grads, 1 - self.beta2)
+        count = float(self.steps)
+        correction1 = 1 - self.beta1 ** count
+        correction2_sqrt = (1 - self.beta2 ** count) ** 0.5
+        n = len(self.params)
+        denom = torch._foreach_sqrt(self.exp_avg_sq)
+        torch._foreach_div_(denom, [correction2_sqrt] * n)
+        torch._foreach_add_(denom, self.eps)
+        torch._foreach_addcdiv_(self.params, self.exp_avg, denom,
+                                [(self.lr / correction1) * -1] * n)
+
+
+def cosine_lr(lr: float, epoch: int, epochs: int) -> float:
+    """The rate of ``epoch`` (1 … epochs) from the previous epoch's ``lr``, annealed to zero over
+    ``epochs`` (torch's ``CosineAnnealingLR`` with ``eta_min`` = 0, stepped once per epoch)."""
+    if (epoch - 1 - epochs) % (2 * epochs) == 0:
+        raise ValueError(f'epoch {epoch} is past the schedule of {epochs} epochs')
+    return ((1 + math.cos(math.pi * epoch / epochs))
+            / (1 + math.cos(math.pi * (epoch - 1) / epochs)) * (lr - 0) + 0)

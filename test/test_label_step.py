@@ -1,0 +1,144 @@
+"""The label stage's step without autograd (learning/label_step.py) against torch's own pieces, bit
+for bit: the closed-form gradient against autograd, Adam against ``torch.optim.Adam``, the
+schedule against ``CosineAnnealingLR``, and a whole label stage against one built from them."""
+from dataclasses import replace
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from soft_gripper_sdre.learning import label_step
+from soft_gripper_sdre.learning.model import SDCNet
+from soft_gripper_sdre.learning.train_settings import PRESETS
+from soft_gripper_sdre.learning.training import deterministic_torch, train
+from soft_gripper_sdre.sim.shape import FingerShape
+
+SHAPES = [FingerShape(2, 2), FingerShape(3, 3), FingerShape(2, 1), FingerShape(3, 1),
+          FingerShape(2, 4)]
+
+
+def batch(shape, size, seed):
+    g = torch.Generator().manual_seed(seed)
+    x = torch.randn(size, shape.n_state, generator=g)
+    u = torch.randn(size, shape.m, generator=g)
+    return x, u, torch.randn(size, shape.d, generator=g) + x[:, :shape.d]
+
+
+def autograd_loss_and_grads(net, xs, us, acc):
+    net.zero_grad(set_to_none=True)
+    loss = ((net.accel(xs, us) - acc) ** 2).sum(dim=1).mean()
+    loss.backward()
+    return loss.detach(), [p.grad for p in net.parameters()]
+
+
+@pytest.mark.parametrize('shape', SHAPES, ids=str)
+@pytest.mark.parametrize('size', [256, 80, 1])
+def test_the_closed_form_gradient_is_autograds_bit_for_bit(shape, size):
+    """Every weight's and bias's gradient and the loss, the same bits as autograd's, for every
+    finger shape and for batches whose size is not a power of two (the mean's 1/B rounds)."""
+    with deterministic_torch():
+        torch.manual_seed(size)
+        net = SDCNet(shape=shape)
+        data = batch(shape, size, seed=size)
+        loss, grads = label_step.label_loss_and_grads(net, *data)
+        ref_loss, ref_grads = autograd_loss_and_grads(net, *data)
+    assert torch.equal(loss, ref_loss)
+    assert len(grads) == len(ref_grads) == len(list(net.parameters()))
+    for got, want, p in zip(grads, ref_grads, net.parameters()):
+        assert got.shape == p.shape
+        assert torch.equal(got, want)
+    assert not any(p.grad is None for p in net.parameters())     # the reference ran
+    assert any(float(g.abs().max()) > 0 for g in grads)
+
+
+def test_the_closed_form_gradient_records_no_graph():
+    net = SDCNet()
+    loss, grads = label_step.label_loss_and_grads(net, *batch(net.shape, 16, seed=1))
+    assert loss.grad_fn is None and all(g.grad_fn is None for g in grads)
+    assert all(p.grad is None for p in net.parameters())
+
+
+@pytest.mark.parametrize('weight_decay', [0.0, 1e-3])
+def test_adam_is_torchs_multi_tensor_adam_bit_for_bit(weight_decay):
+    """Twenty steps with the rate changed between them: the same weights as
+    ``torch.optim.Adam(foreach=True)`` after every step."""
+    torch.manual_seed(3)
+    ours_net, ref_net = SDCNet(shape=FingerShape(3, 2)), SDCNet(shape=FingerShape(3, 2))
+    ref_net.load_state_dict(ours_net.state_dict())
+    ours = label_step.Adam(list(ours_net.parameters()), 1e-3, weight_decay=weight_decay)
+    ref = torch.optim.Adam(ref_net.parameters(), lr=1e-3, weight_decay=weight_decay, foreach=True)
+    with deterministic_torch():
+        for k in range(20):
+            data = batch(ours_net.shape, 64, seed=k)
+            _, grads = autograd_loss_and_grads(ours_net, *data)
+            ours.step(grads)
+            autograd_loss_and_grads(ref_net, *data)
+            ref.step()
+            ours.lr = ref.param_groups[0]['lr'] = 1e-3 * (0.9 ** (k + 1))
+            for a, b in zip(ours_net.parameters(), ref_net.parameters()):
+                assert torch.equal(a, b), f'step {k + 1}'
+
+
+def test_cosine_lr_is_torchs_recursive_schedule_bit_for_bit():
+    net = SDCNet()
+    opt = torch.optim.SGD(net.parameters(), lr=1.5e-3)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=300)
+    lr = 1.5e-3
+    for epoch in range(1, 301):
+        opt.step()
+        sched.step()
+        lr = label_step.cosine_lr(lr, epoch, 300)
+        assert lr == opt.param_groups[0]['lr'], f'epoch {epoch}'
+    assert lr == 0.0
+
+
+def test_cosine_lr_refuses_an_epoch_past_its_schedule():
+    with pytest.raises(ValueError, match='epoch 301 is past the schedule of 300'):
+        label_step.cosine_lr(1e-3, 301, 300)
+
+
+def reference_label_stage(x, u, acc, x_val, u_val, acc_val, settings, shape):
+    """The label stage built from autograd, torch.optim.Adam and CosineAnnealingLR, as
+    training.py ran it with them (same seeds, scaling and order)."""
+    scale = [np.where(a.std(axis=0) > 0, a.std(axis=0), 1.0) for a in (x, u, acc)]
+    tr = [torch.as_tensor(a / s, dtype=torch.float32) for a, s in zip((x, u, acc), scale)]
+    va = [torch.as_tensor(a / s, dtype=torch.float32) for a, s in zip((x_val, u_val, acc_val), scale)]
+    torch.manual_seed(settings.seed)
+    gen = torch.Generator().manual_seed(settings.seed)
+    net = SDCNet(settings.hidden, shape)
+    opt = torch.optim.Adam(net.parameters(), lr=settings.lr, foreach=True)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=settings.epochs)
+    best, best_state = math.inf, None
+    for _ in range(settings.epochs):
+        perm = torch.randperm(tr[0].shape[0], generator=gen)
+        for i in range(0, tr[0].shape[0], settings.batch_size):
+            idx = perm[i:i + settings.batch_size]
+            opt.zero_grad(set_to_none=True)
+            ((net.accel(tr[0][idx], tr[1][idx]) - tr[2][idx]) ** 2).sum(dim=1).mean().backward()
+            opt.step()
+        sched.step()
+        with torch.no_grad():
+            val = float(((net.accel(va[0], va[1]) - va[2]) ** 2).sum(dim=1).mean())
+        if val < best:
+            best, best_state = val, {k: v.clone() for k, v in net.state_dict().items()}
+    return best_state
+
+
+@pytest.mark.parametrize('shape', [FingerShape(2, 2), FingerShape(3, 1)], ids=str)
+def test_a_label_stage_gives_the_weights_of_autograd_and_torchs_adam(shape):
+    """Four epochs of the default preset (cosine schedule over them, batches of 256 and a last
+    batch of 104): train()'s weights are the reference stage's, bit for bit."""
+    rng = np.random.default_rng(7)
+    n, d, m = 2152, shape.d, shape.m
+    x = rng.normal(size=(n, 2 * d))
+    u = rng.normal(size=(n, m))
+    acc = -3 * x[:, :d] + u @ rng.normal(size=(m, d)) + 0.1 * rng.normal(size=(n, d))
+    val = (rng.normal(size=(300, 2 * d)), rng.normal(size=(300, m)), rng.normal(size=(300, d)))
+    settings = replace(PRESETS['default'], epochs=4)
+    with deterministic_torch():
+        want = reference_label_stage(x, u, acc, *val, settings, shape)
+    got = train(x, u, acc, *val, settings, shape=shape).net.state_dict()
+    assert set(got) == set(want)
+    for k in want:
+        assert torch.equal(got[k], want[k]), k
