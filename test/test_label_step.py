@@ -103,7 +103,8 @@ def reference_label_stage(x, u, acc, x_val, u_val, acc_val, settings, shape):
     training.py ran it with them (same seeds, scaling and order)."""
     scale = [np.where(a.std(axis=0) > 0, a.std(axis=0), 1.0) for a in (x, u, acc)]
     tr = [torch.as_tensor(a / s, dtype=torch.float32) for a, s in zip((x, u, acc), scale)]
-    va = [torch.as_tensor(a / s, dtype=torch.float32) for a, s in zip((x_val, u_val, acc_val), scale)]
+    va = [torch.as_tensor(a / s, dtype=torch.float32)
+          for a, s in zip((x_val, u_val, acc_val), scale)]
     torch.manual_seed(settings.seed)
     gen = torch.Generator().manual_seed(settings.seed)
     net = SDCNet(settings.hidden, shape)

@@ -82,9 +82,11 @@ class Adam:
     :meth:`step` takes the gradients as a list in ``params`` order. ``lr`` may be changed between
     steps."""
 
-    def __init__(self, params: list[torch.Tensor], lr: float, betas: tuple[float, float] = (0.9, 0.999),
-                 eps: float = 1e-8, weight_decay: float = 0.0) -> None:
-        self.params, self.lr, self.eps, self.weight_decay = list(params), float(lr), eps, weight_decay
+    def __init__(self, params: list[torch.Tensor], lr: float,
+                 betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-8,
+                 weight_decay: float = 0.0) -> None:
+        self.params, self.lr, self.eps = list(params), float(lr), eps
+        self.weight_decay = weight_decay
         self.beta1, self.beta2 = betas
         self.exp_avg = [torch.zeros_like(p, memory_format=torch.preserve_format)
                         for p in self.params]
