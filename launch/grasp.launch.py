@@ -3,7 +3,7 @@
     ros2 launch soft_gripper_sdre grasp.launch.py [namespace:=left_hand] [duration:=6.0]
         [control_period:=0.005] [mode:=pipelined] [law:=sdre_ff] [noise:=0.05] [seed:=0]
         [record:=true] [output:=runs/grasp_bag] [startup_timeout:=300] [params_file:=my_params.yaml]
-        [composed:=true]
+        [composed:=true] [realtime_priority:=50]
 
 Starts the recorder (with ``record:=true``), the estimator, the trajectory node, the controller
 and the simulator of :func:`soft_gripper_sdre.nodes.graph.grasp_graph`, the same description the
@@ -52,6 +52,9 @@ ARGUMENTS = (
      "config/<node>.yaml (sections /**/<node> or /**); '' = none"),
     ('composed', 'false', "run the estimator in the controller's process (controller "
      '--with-estimator): one process and one DDS hop fewer per period'),
+    ('realtime_priority', '0', 'run the simulator, the estimator and the controller under '
+     'SCHED_FIFO at this priority (1 to 98, behind chrt -f; 0 = ordinary scheduling): on time on a '
+     'busy machine; needs root, CAP_SYS_NICE or an rtprio limit'),
 )
 
 _TRUE, _FALSE = ('true', '1', 'yes', 'on'), ('false', '0', 'no', 'off', '')
@@ -110,19 +113,22 @@ def _params_file(text: str):
 def grasp_nodes(namespace: str = '', duration: str = '6.0', control_period: str = '',
                 mode: str = '', law: str = '', noise: str = '', seed: str = '',
                 record: str = 'false', output: str = '', startup_timeout: str = '300',
-                params_file: str = '', composed: str = 'false') -> list[dict]:
+                params_file: str = '', composed: str = 'false',
+                realtime_priority: str = '0') -> list[dict]:
     """The launch arguments (strings, as launch gives them) → one dict per process, for
     ``launch_ros.actions.Node(**d)``: package, executable, name, namespace (relative, None at the
     root), parameters (the shipped params-file path, the user's, then a dict of overrides),
     remappings; with ``composed:=true`` the controller's process also runs the estimator
     (``arguments`` ['--with-estimator'], both nodes' files and overrides, and no ``name``, which
-    launch_ros would give every node of the process).
+    launch_ros would give every node of the process); with ``realtime_priority:=N`` the loop's
+    processes get ``prefix`` 'chrt -f N'.
 
     Raises:
         ValueError: naming the argument: not a number, a boolean, a namespace or a law where one
             is needed, a number or mode outside the simulator's limits, a control period outside
             0.001 to 0.01 s, a parameters file that cannot be read as one, or one that gives a
-            node of the graph a value of the wrong type or a key it does not declare.
+            node of the graph a value of the wrong type or a key it does not declare; a
+            real-time priority out of range or not permitted for this user.
     """
     from soft_gripper_sdre.control.laws import GRAPH_LAWS
 
@@ -155,8 +161,14 @@ def grasp_nodes(namespace: str = '', duration: str = '6.0', control_period: str 
             raise ValueError(f'launch argument control_period:={control_period!r} must be from '
                              f'{PERIOD_RANGE[0]:g} to {PERIOD_RANGE[1]:g} s')
     extra = [_params_file(params_file.strip())] if params_file.strip() else []
+    priority = _number('realtime_priority', realtime_priority, int)
+    if priority:
+        from soft_gripper_sdre.nodes.scheduling import fifo_problem
+        problem = fifo_problem(priority)
+        if problem:
+            raise ValueError(f'launch argument realtime_priority:={realtime_priority!r}: {problem}')
     spec = grasp_graph(namespace, record=recording, parameters=parameters, control_period=period,
-                       params_files=extra, composed=composing)
+                       params_files=extra, composed=composing, realtime=priority)
     for path in extra:
         _check_sections(params_file, path, [n for node in spec.nodes
                                             for n in (node, *node.hosted)])
@@ -196,6 +208,8 @@ def _launched(node) -> dict:
                 'remappings': [tuple(rule) for rule in node.remappings]}
     if node.flags:
         launched.update(name=None, arguments=list(node.flags))
+    if node.realtime:
+        launched['prefix'] = ' '.join(node.prefix)
     return launched
 
 

@@ -3,6 +3,7 @@ estimator, trajectory and controller processes, figures from the driver and /pro
 rows' arithmetic."""
 import os
 
+import numpy as np
 import pytest
 
 from soft_gripper_sdre.tools.benchmarks.bench import floor_rows
@@ -14,6 +15,7 @@ from soft_gripper_sdre.tools.benchmarks.bench_deploy import (
     summary,
     variant_settings,
 )
+from soft_gripper_sdre.tools.benchmarks.deploy_driver import slow_ticks
 
 
 @pytest.fixture(scope='module')
@@ -71,7 +73,7 @@ def test_the_floor_is_the_sum_in_lockstep_and_the_larger_branch_pipelined():
 
 def _made_run(late: float, p99: float, load: float, cpu: float) -> dict:
     return {'periods': 6000, 'rate_hz': 1000, 'variant': 'composed', 'record': True,
-            'late_pct': late, 'latency_p50': 400.0, 'latency_p99': p99, 'latency_max': 4000.0,
+            'late_pct': late, 'slow_pct': late / 2, 'latency_p50': 400.0, 'latency_p99': p99, 'latency_max': 4000.0,
             'cpu_us': {'controller': cpu, 'recorder': 150.0, 'driver': 80.0},
             'load': load, 'load_before': load - 0.5}
 
@@ -84,7 +86,8 @@ def test_a_row_is_the_median_of_its_runs_with_their_range_and_load_never_the_bes
     assert s['late_pct'] == 1.0 and s['latency_p99'] == 1000.0 and s['repeats'] == 5
     assert s['cpu_us']['controller'] == 310.0 and s['loads'] == [0.5, 1.0, 2.0, 3.0, 1.5, 2.5]
     what, fig, note = describe(s)
-    assert fig == '1.00 % late (0.20–9.00); 400 / 1000 (800–4000) / 4000 µs'
+    assert fig == ("1.00 % late (0.20–9.00), the loop's own 0.50 % (0.10–4.50); "
+                   '400 / 1000 (800–4000) / 4000 µs')
     assert 'with the recorder' in what and 'one process' in what
     assert 'median (min–max) of 5 runs of 6 s (6000 periods)' in note and 'best' not in note
     assert 'load 0.5 before' in note
@@ -98,3 +101,27 @@ def test_the_command_refuses_bad_arguments_with_status_2(args, capsys):
     assert exc.value.code == 2
     err = capsys.readouterr().err
     assert 'usage:' in err and 'Traceback' not in err
+
+
+def test_the_loops_own_late_ticks_are_the_round_trips_longer_than_a_period():
+    """A tick is the loop's own late one when its command came back more than a period after its
+    tips, or never; a tick the stand-in skipped (not sent) is not counted."""
+    period = 1e-3
+    sent = np.array([1.0, 1.001, 0.0, 1.003, 1.004])
+    received = np.array([1.0004, 1.0025, 0.0, 0.0, 1.0049])
+    ticked = np.flatnonzero(sent > 0)
+    assert slow_ticks(sent, received, ticked, period).tolist() == [False, True, True, False]
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+@pytest.mark.timeout(300)
+def test_the_fifo_variant_starts_the_loop_and_the_driver_at_real_time_priority(tips):
+    from soft_gripper_sdre.nodes.scheduling import fifo_problem
+    refused = fifo_problem(50)
+    if refused:
+        pytest.skip(refused)
+    r = run_deploy(2e-3, 1.0, tips, variant='composed+fifo')
+    assert r['fifo_granted'] is True
+    assert r['unanswered'] <= r['ticks'] // 20 and r['matched'] == [2, 1]
+    assert 0 <= r['slow'] <= r['ticks']

@@ -29,6 +29,9 @@ def test_a_probed_process_saves_its_collections_and_publishes(tmp_path):
             'rclpy.init(); node = Node("probe_test")\n'
             'pub = node.create_publisher(String, "/torque_commands", 1)\n'
             'pub.publish(String(data="x"))\n'
+            'import time\n'
+            'timer = node.create_timer(0.001, lambda: time.sleep(0.002))\n'
+            'for _ in range(3): rclpy.spin_once(node, timeout_sec=0.1)\n'
             'node.destroy_node(); rclpy.shutdown()\n')
     env = probe_env({k: v for k, v in __import__('os').environ.items()}, tmp_path)
     subprocess.run([sys.executable, '-c', code], env=env, check=True, timeout=120)
@@ -38,6 +41,8 @@ def test_a_probed_process_saves_its_collections_and_publishes(tmp_path):
     assert (rec['gc'][:, 2] == 2).sum() >= 3                    # gc.collect() is generation 2
     (pub,) = rec['publishes'][rec['publishes'][:, 0] == TORQUES]
     assert pub[0] == TORQUES and pub[1] <= pub[2] and pub[3] == -1.0   # a typed message
+    assert len(rec['timers']) >= 2                                      # the timer's callbacks
+    assert (rec['timers'][:, 1] - rec['timers'][:, 0] >= 0.002).all()   # each slept 2 ms
 
 
 def _save_run(where, late_at: dict[int, str], n: int = 50) -> None:
@@ -47,14 +52,16 @@ def _save_run(where, late_at: dict[int, str], n: int = 50) -> None:
     sent = np.arange(n) * PERIOD + 10.0
     enter, done = sent + 100e-6, sent + 250e-6
     received = sent + 300e-6
-    gcs, writes = [], []
+    gcs, writes, timers = [], [], []
     for k, cause in late_at.items():
         j = k - 1
-        if cause in ('in', 'recorder'):        # the callback entered late
+        if cause in ('in', 'recorder', 'timer'):        # the callback entered late
             enter[j] += 0.8e-3
             done[j] += 0.8e-3
         if cause == 'recorder':
             writes.append((sent[j] + 50e-6, 0.7e-3))
+        if cause == 'timer':                             # /diagnostics ran in the loop process
+            timers.append((sent[j] + 50e-6, sent[j] + 750e-6))
         if cause == 'gc':
             gcs.append((sent[j] + 120e-6, 1.0e-3, 0))
         if cause in ('work', 'gc'):
@@ -71,12 +78,12 @@ def _save_run(where, late_at: dict[int, str], n: int = 50) -> None:
     cbs = np.stack([np.full(n, TIPS), enter, done, stamps], axis=1)
     pubs = np.stack([np.full(n, TORQUES), done - 20e-6, done, stamps], axis=1)
     np.savez(where / 'controller-1.npz', gc=np.array(gcs).reshape(-1, 3), callbacks=cbs,
-             publishes=pubs, writes=np.zeros((0, 2)))
+             publishes=pubs, writes=np.zeros((0, 2)), timers=np.array(timers).reshape(-1, 2))
     np.savez(where / 'recorder-2.npz', gc=np.zeros((0, 3)), callbacks=np.zeros((0, 4)),
              publishes=np.zeros((0, 4)), writes=np.array(writes).reshape(-1, 2))
 
 
-@pytest.mark.parametrize('cause', ['in', 'work', 'back', 'gc', 'recorder'])
+@pytest.mark.parametrize('cause', ['in', 'work', 'back', 'gc', 'recorder', 'timer'])
 def test_each_late_period_gets_the_cause_its_timestamps_show(tmp_path, cause):
     _save_run(tmp_path, {20: cause, 35: cause})
     out = late_causes(tmp_path)

@@ -18,6 +18,7 @@ from rclpy.experimental import EventsExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
+from soft_gripper_sdre.nodes import scheduling
 from soft_gripper_sdre.nodes.cli import USAGE_ERROR, settle_command_line
 from soft_gripper_sdre.nodes.graph import wiring_key
 from soft_gripper_sdre.nodes.params import Param, ParameterError
@@ -57,7 +58,9 @@ class Diagnostics:
     def __init__(self, node: Node, hardware_id: str = 'soft_gripper', period: float = 1.0) -> None:
         self.node = node
         self.counters: Counter = Counter()
-        self.values: dict[str, str] = {}
+        #: the process's scheduling (nodes/scheduling.py): whether the loop runs at real-time
+        #: priority is the first thing to know about late periods
+        self.values: dict[str, str] = {'scheduling': scheduling.describe()}
         self.level = OK
         self.message = 'ok'
         self._hardware_id = hardware_id

@@ -433,7 +433,9 @@ class ControllerNode(Node):
         self.diag.values['skipped_share'] = f'{new_skipped / periods:.3f}' if periods else '0'
         if behind:
             why = (f'falling behind: {new_skipped} of {periods} estimates skipped since the last '
-                   f'report ({skipped} in all); give the loop its cores (docs/faults.md)')
+                   f'report ({skipped} in all), running {self.diag.values["scheduling"]}; give the '
+                   f'loop its cores or real-time priority (docs/faults.md, '
+                   f'docs/performance.md "Real-time priority")')
             self.get_logger().warning(why)
             if self.diag.level != ERROR:
                 self.diag.set_status(WARN, why)

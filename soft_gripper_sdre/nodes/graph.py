@@ -39,6 +39,8 @@ CLOCK = '/clock'
 GRASP_NODES = ('recorder', 'estimator', 'trajectory', 'controller', 'simulator')
 #: the nodes that declare ``control_period``: :func:`grasp_graph` gives them all one value
 PERIOD_NODES = ('estimator', 'controller', 'simulator')
+#: the loop's processes, which :func:`grasp_graph` runs at real-time priority when asked
+REALTIME_NODES = ('simulator', 'estimator', 'controller')
 #: the control periods the grasp graph is run and measured at [s] (docs/results.md "Control rates")
 PERIOD_RANGE = (1e-3, 1e-2)
 #: the nodes that read ``tip_positions``, so the simulator waits for them before its first step
@@ -185,6 +187,8 @@ class NodeSpec:
     remappings: tuple[tuple[str, str], ...] = ()
     more_params_files: tuple[Path, ...] = ()    # a user's parameter files, after params_file
     hosted: tuple[NodeSpec, ...] = ()           # nodes run in this node's process (HOSTS)
+    realtime: int = 0                           # SCHED_FIFO priority of the process (0 = none;
+                                                # nodes/scheduling.py)
 
     @property
     def full_name(self) -> str:
@@ -234,8 +238,15 @@ class NodeSpec:
 
     def command(self, python: str = sys.executable) -> list[str]:
         """The process that runs this node (and its hosted ones):
-        ``python -m soft_gripper_sdre.nodes.<executable> [flags] --ros-args …``."""
-        return [python, '-m', self.module, *self.flags, *self.ros_arguments()]
+        ``[chrt -f <realtime>] python -m soft_gripper_sdre.nodes.<executable> [flags]
+        --ros-args …``."""
+        return [*self.prefix, python, '-m', self.module, *self.flags, *self.ros_arguments()]
+
+    @property
+    def prefix(self) -> tuple[str, ...]:
+        """What the process is started behind: ``chrt -f <realtime>`` at a real-time priority
+        (:mod:`soft_gripper_sdre.nodes.scheduling`), else nothing."""
+        return ('chrt', '-f', str(self.realtime)) if self.realtime else ()
 
     def with_parameters(self, **parameters: Any) -> NodeSpec:
         """The same node with ``parameters`` added to (or replacing) its overrides."""
@@ -308,7 +319,8 @@ class GraphSpec:
             if clash:
                 raise ValueError(f'{guest} and {host} would share a process but set '
                                  f'{", ".join(clash)} to different values')
-            nodes[index[host]] = replace(h, hosted=(*h.hosted, g))
+            nodes[index[host]] = replace(h, hosted=(*h.hosted, g),
+                                         realtime=max(h.realtime, g.realtime))
             del nodes[index[guest]]
         return replace(self, nodes=tuple(nodes))
 
@@ -333,7 +345,8 @@ class GraphSpec:
 def grasp_graph(namespace: str = '', *, record: bool = True,
                 parameters: Mapping[str, Mapping[str, Any]] | None = None,
                 clock: str | None = None, control_period: float | None = None,
-                params_files: Sequence[Path | str] = (), composed: bool = False) -> GraphSpec:
+                params_files: Sequence[Path | str] = (), composed: bool = False,
+                realtime: int = 0) -> GraphSpec:
     """The grasp graph: recorder (if ``record``), estimator, trajectory, controller, simulator.
 
     Args:
@@ -350,6 +363,9 @@ def grasp_graph(namespace: str = '', *, record: bool = True,
         params_files: a user's ROS parameter files, given to every node after its shipped one
             (each node takes its own section, ``/**/<node>`` or ``/**``), before ``parameters``.
         composed: run the estimator in the controller's process (:meth:`GraphSpec.composed`).
+        realtime: the SCHED_FIFO priority of the loop's processes (:data:`REALTIME_NODES`: the
+            simulator, the estimator, the controller; :mod:`~soft_gripper_sdre.nodes.scheduling`),
+            0 for none. The trajectory node and the recorder stay ordinary.
 
     The simulator waits for the graph's other nodes by :func:`readiness_problem`
     (``wait_for_nodes``), unless told otherwise.
@@ -381,6 +397,7 @@ def grasp_graph(namespace: str = '', *, record: bool = True,
     parameters['simulator'] = simulator
     extra = tuple(Path(f) for f in params_files)
     nodes = tuple(NodeSpec(name, name, namespace, default_params_file(name),
-                           dict(parameters.get(name, {})), remappings, extra) for name in names)
+                           dict(parameters.get(name, {})), remappings, extra,
+                           realtime=realtime if name in REALTIME_NODES else 0) for name in names)
     graph = GraphSpec(namespace, nodes, remappings)
     return graph.composed() if composed else graph

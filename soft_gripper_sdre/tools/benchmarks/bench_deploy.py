@@ -31,6 +31,7 @@ scheduling); see :data:`VARIANTS`.
 from __future__ import annotations
 
 import argparse
+from contextlib import contextmanager
 from dataclasses import replace
 import json
 import os
@@ -39,9 +40,11 @@ import subprocess
 import sys
 import tempfile
 import time
+from typing import Iterator
 
 import numpy as np
 
+from soft_gripper_sdre.nodes import scheduling
 from soft_gripper_sdre.nodes.graph import NodeSpec, default_params_file
 from soft_gripper_sdre.tools.benchmarks.deploy_driver import driver
 from soft_gripper_sdre.tools.benchmarks.loop_probe import late_causes, probe_env
@@ -62,7 +65,11 @@ VARIANTS: dict[str, tuple[str, dict[str, str], dict]] = {
     'composed': ('estimator + controller in one process, one executor', {}, {'composed': True}),
     'pinned': ('estimator and controller on core 1, driver and trajectory on core 0 (affinity)',
                {}, {'pinned': True}),
-    'fifo': ('estimator, controller and driver at SCHED_FIFO priority 50', {}, {'fifo': True}),
+    'fifo': ('estimator, controller and driver at SCHED_FIFO priority 50 (started behind chrt -f '
+             '50)', {}, {'fifo': 50}),
+    'loop_nice': ('estimator, controller and driver at nice -10', {}, {'loop_nice': -10}),
+    'hog': ('a busy machine: a CPU-bound process per core beside the loop, at nice 0', {},
+            {'hog': True}),
     'recorder_nice': ('the recorder at nice 10', {}, {'recorder_nice': 10}),
     'recorder_batch': ('the recorder under SCHED_BATCH (no wake-up preemption)', {},
                        {'recorder_batch': True}),
@@ -108,18 +115,7 @@ def _pin(pid: int, cpus: set[int]) -> None:
             pass
 
 
-def _fifo(pid: int, priority: int = 50) -> bool:
-    """Every thread of ``pid`` under SCHED_FIFO at ``priority``; False if refused."""
-    ok = True
-    for tid in _threads(pid):
-        try:
-            os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(priority))
-        except OSError:
-            ok = False
-    return ok
-
-
-def _deprioritize(pid: int, nice: int = 0, batch: bool = False) -> None:
+def _renice(pid: int, nice: int = 0, batch: bool = False) -> None:
     """Every thread of ``pid`` at ``nice``, and under SCHED_BATCH if ``batch``."""
     for tid in _threads(pid):
         try:
@@ -131,8 +127,22 @@ def _deprioritize(pid: int, nice: int = 0, batch: bool = False) -> None:
             pass
 
 
-def _spec(name: str, parameters: dict) -> NodeSpec:
-    return NodeSpec(name, name, params_file=default_params_file(name), parameters=parameters)
+@contextmanager
+def _hogs(on: bool) -> Iterator[None]:
+    """While the block runs, a CPU-bound process per core at nice 0 (``on``), killed after."""
+    procs = ([subprocess.Popen([sys.executable, '-c', 'while True: pass'])
+              for _ in range(os.cpu_count() or 1)] if on else [])
+    try:
+        yield
+    finally:
+        for proc in procs:
+            proc.kill()
+            proc.wait()
+
+
+def _spec(name: str, parameters: dict, realtime: int = 0) -> NodeSpec:
+    return NodeSpec(name, name, params_file=default_params_file(name), parameters=parameters,
+                    realtime=realtime)
 
 
 def run_deploy(period: float, seconds: float, tips: Path, *, record: bool = False,
@@ -149,49 +159,53 @@ def run_deploy(period: float, seconds: float, tips: Path, *, record: bool = Fals
         env = probe_env(env, probe)
     load_before = os.getloadavg()[0]
     timing = {'control_period': float(period)}
+    fifo = options.get('fifo', 0)
     with tempfile.TemporaryDirectory(prefix='sgs_bench_deploy_') as tmp, \
             Graph(env, Path(tmp) / 'logs') as graph:
         if record:
             graph.start_node(_spec('recorder', {'output': str(Path(tmp) / 'bag')}))
         if options.get('composed'):
-            graph.start_node(replace(_spec('controller', timing),
+            graph.start_node(replace(_spec('controller', timing, fifo),
                                      hosted=(_spec('estimator', timing),)))
         else:
-            graph.start_node(_spec('estimator', timing))
-            graph.start_node(_spec('controller', timing))
+            graph.start_node(_spec('estimator', timing, fifo))
+            graph.start_node(_spec('controller', timing, fifo))
         graph.start_node(_spec('trajectory', {}))
         loop = [n for n in ('estimator', 'controller') if n in graph.procs]
         _wait_ready(graph, {'controller': (ESTIMATOR_UP, CONTROLLER_UP)} if options.get('composed')
                     else {'estimator': (ESTIMATOR_UP,), 'controller': (CONTROLLER_UP,)})
         pids = {name: proc.popen.pid for name, proc in graph.procs.items()}
+        granted = all(scheduling.realtime(pids[name]) for name in loop)
         if record and (options.get('recorder_nice') or options.get('recorder_batch')):
-            _deprioritize(pids['recorder'], options.get('recorder_nice', 0),
-                          options.get('recorder_batch', False))
+            _renice(pids['recorder'], options.get('recorder_nice', 0),
+                    options.get('recorder_batch', False))
         readers = 2 + record
-        cmd = [sys.executable, '-m', 'soft_gripper_sdre.tools.benchmarks.bench_deploy', '--driver',
+        cmd = [*(('chrt', '-f', str(fifo)) if fifo else ()),
+               sys.executable, '-m', 'soft_gripper_sdre.tools.benchmarks.bench_deploy', '--driver',
                json.dumps({'period': period, 'warmup': warmup, 'seconds': seconds,
                            'tips': str(tips), 'readers': readers, 'pids': pids})]
-        drv = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                               text=True)
-        if options.get('pinned'):
-            time.sleep(1.0)
-            for name in loop:
-                _pin(pids[name], {1})
-            _pin(drv.pid, {0})
-            _pin(pids['trajectory'], {0})
-        fifo = None
-        if options.get('fifo'):
-            time.sleep(1.0)
-            fifo = all([_fifo(pids[name]) for name in loop] + [_fifo(drv.pid)])
-        out, err = drv.communicate(timeout=warmup + seconds + 120.0)
+        with _hogs(options.get('hog', False)):
+            drv = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                   text=True)
+            if options.get('pinned'):
+                time.sleep(1.0)
+                for name in loop:
+                    _pin(pids[name], {1})
+                _pin(drv.pid, {0})
+                _pin(pids['trajectory'], {0})
+            if options.get('loop_nice'):
+                time.sleep(1.0)
+                for pid in [pids[name] for name in loop] + [drv.pid]:
+                    _renice(pid, options['loop_nice'])
+            out, err = drv.communicate(timeout=warmup + seconds + 120.0)
         if drv.returncode != 0:
             tails = {n: p.log_tail(800) for n, p in graph.procs.items()}
             raise RuntimeError(f'the driver failed ({drv.returncode}): {err[-2000:]}\n{tails}')
     result = json.loads(out.strip().splitlines()[-1])
     result.update(variant=variant, rate_hz=round(1.0 / period), record=record,
                   load=os.getloadavg()[0], load_before=load_before)
-    if fifo is not None:
-        result['fifo_granted'] = fifo
+    if fifo:
+        result['fifo_granted'] = granted
     return result
 
 
@@ -223,9 +237,10 @@ def summary(runs: list[dict]) -> dict:
            for name in first['cpu_us']}
     return {'rate_hz': first['rate_hz'], 'variant': first['variant'], 'record': first['record'],
             'periods': first['periods'], 'seconds': first['periods'] / first['rate_hz'],
-            'late_pct': med('late_pct'), 'latency_p50': med('latency_p50'),
+            'late_pct': med('late_pct'), 'slow_pct': med('slow_pct'),
+            'latency_p50': med('latency_p50'),
             'latency_p99': med('latency_p99'), 'latency_max': med('latency_max'), 'cpu_us': cpu,
-            'runs_late': [r['late_pct'] for r in runs],
+            'runs_late': [r['late_pct'] for r in runs], 'runs_slow': [r['slow_pct'] for r in runs],
             'runs_p99': [r['latency_p99'] for r in runs],
             'loads': [round(first.get('load_before', first['load']), 1)]
             + [round(r['load'], 1) for r in runs], 'repeats': len(runs)}
@@ -240,11 +255,13 @@ def describe(s: dict) -> tuple[str, str, str]:
     total = sum(cpu[n] for n in loop)
     what = (f'deployment loop at {s["rate_hz"]} Hz, {variant_settings(s["variant"])[0]}'
             + (', with the recorder' if s['record'] else ''))
-    figure = (f'{s["late_pct"]:.2f} % late ({span(s["runs_late"], digits=2)}); '
+    figure = (f'{s["late_pct"]:.2f} % late ({span(s["runs_late"], digits=2)}), the loop\'s own '
+              f'{s["slow_pct"]:.2f} % ({span(s["runs_slow"], digits=2)}); '
               f'{s["latency_p50"]:.0f} / {s["latency_p99"]:.0f} ({span(s["runs_p99"])}) / '
               f'{s["latency_max"]:.0f} µs')
     note = (f'median (min–max) of {s["repeats"]} runs of {s["seconds"]:g} s '
-            f'({s["periods"]} periods) each: late share; latency p50 / p99 / max; CPU per period '
+            f'({s["periods"]} periods) each: late share at the driver\'s tick, and of the loop '
+            f'alone (round trips longer than a period); latency p50 / p99 / max; CPU per period '
             f'{parts} = {total:.0f} µs'
             + (f', recorder {cpu["recorder"]:.0f}' if 'recorder' in cpu else '')
             + f', driver {cpu["driver"]:.0f} µs; load {s["loads"][0]} before, '
@@ -280,23 +297,34 @@ def measure(rates: list[int], variants: list[str], seconds: float, repeats: int,
     return out
 
 
-#: the layouts :func:`rows` measures: the shipped one and the composed one
-ROW_VARIANTS = ('base', 'composed')
+#: the layouts :func:`rows` measures: the shipped one, the composed one, and the composed one at
+#: real-time priority (where this user may start one)
+ROW_VARIANTS = ('base', 'composed', 'composed+fifo')
+#: the busy machine's rows: the composed loop at 1 kHz with a CPU-bound process on every core,
+#: at ordinary and at real-time priority
+HOG_VARIANTS = ('composed+hog', 'composed+fifo+hog')
 #: the runs per configuration of :func:`rows`, and the measured seconds of each (after the warm-up)
 ROW_REPEATS, ROW_SECONDS = REPEATS, 6.0
 
 
 def rows(quick: bool = False) -> list[tuple[str, str, str]]:
     """The deployment rows of BENCHMARKS.md: each of :data:`ROW_VARIANTS` at 1 kHz and 500 Hz,
-    with and without the recorder, the median and min–max of :data:`ROW_REPEATS` runs of
-    :data:`ROW_SECONDS` each (one short run with ``quick``)."""
+    with and without the recorder, then :data:`HOG_VARIANTS` at 1 kHz without it; the median and
+    min–max of :data:`ROW_REPEATS` runs of :data:`ROW_SECONDS` each (one short run with
+    ``quick``). Without permission for SCHED_FIFO its rows say why instead."""
     seconds = 3.0 if quick else ROW_SECONDS
+    repeats = 1 if quick else ROW_REPEATS
+    refused = scheduling.fifo_problem(50)
+    variants = [v for v in ROW_VARIANTS if not (refused and 'fifo' in v)]
+    hogs = [v for v in HOG_VARIANTS if not (refused and 'fifo' in v)]
     with tempfile.TemporaryDirectory(prefix='sgs_deploy_tips_') as tmp:
         tips = replay_tips(WARMUP_S + seconds + 1.0, Path(tmp) / 'tips.npy')
-        table = measure([1000, 500], list(ROW_VARIANTS), seconds, 1 if quick else ROW_REPEATS,
-                        True, tips,
-                        echo=lambda _: None)
-    return [describe(s) for s in table]
+        table = measure([1000, 500], variants, seconds, repeats, True, tips, echo=lambda _: None)
+        table += measure([1000], hogs, seconds, repeats, False, tips, echo=lambda _: None)
+    out = [describe(s) for s in table]
+    if refused:
+        out.append(('deployment loop at SCHED_FIFO priority 50', 'not measured', refused))
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -21,6 +21,8 @@ from /proc (CPU time of each process while the simulator stepped), of runs of
   late when that command answers tips older than the previous period's (more than one period of
   transport delay, ``late_periods``), and safe when it is older than ``hold_limit`` and zero torque
   is applied instead.
+* **real-time priority**: the realtime and CPU hog rows again with the loop's processes (simulator,
+  estimator, controller) under SCHED_FIFO (``grasp_graph(realtime=…)``, started behind ``chrt``).
 * **CPU hog**: the same realtime graph while one busy process per core runs for a second; the
   latency and lateness of the windows before, during and after it (the simulator's
   ``recent_latency_us_*`` of each /diagnostics) show whether the loop comes back by itself.
@@ -35,6 +37,7 @@ import os
 from pathlib import Path
 import tempfile
 
+from soft_gripper_sdre.nodes.scheduling import fifo_problem
 from soft_gripper_sdre.tools.benchmarks.bench_hog import PHASES, SETTLE_S, CpuHog, phase_figures
 from soft_gripper_sdre.tools.benchmarks.graph_run import LOOP_NODES, published, run_graph
 from soft_gripper_sdre.tools.benchmarks.hop import hop
@@ -42,9 +45,10 @@ from soft_gripper_sdre.tools.benchmarks.spread import REPEATS, LoadWatch, figure
 
 
 def hog_run(seconds: float, hog_at: float, hog_seconds: float = 1.0, executor: str | None = None,
-            timeout: float = 600.0) -> dict[str, dict[str, float]]:
+            timeout: float = 600.0, realtime: int = 0) -> dict[str, dict[str, float]]:
     """The realtime graph for ``seconds`` of sim time, with one busy process per core for
-    ``hog_seconds`` of wall time from ``hog_at`` of sim time on.
+    ``hog_seconds`` of wall time from ``hog_at`` of sim time on; ``realtime``: the loop's
+    processes under SCHED_FIFO at that priority (0: none).
 
     Returns :func:`~soft_gripper_sdre.tools.benchmarks.bench_hog.phase_figures` of the simulator's
     /diagnostics: for each of :data:`PHASES`, lateness and loop latency.
@@ -52,7 +56,7 @@ def hog_run(seconds: float, hog_at: float, hog_seconds: float = 1.0, executor: s
     hog, history = CpuHog(hog_at, hog_seconds), {}
     try:
         run_graph(seconds, mode='realtime', executor=executor, timeout=timeout, during=hog.poll,
-                  history=history)
+                  history=history, realtime=realtime)
     finally:
         hog.stop()
     if hog.span is None:
@@ -188,28 +192,54 @@ def lockstep_rows(runs: dict[str, list[dict]], seconds: float) -> list[tuple[str
 
 #: the realtime rows: runs, seconds of sim time per run; the hog runs' length and the hog's start
 REALTIME_RUNS, REALTIME_S, HOG_S, HOG_AT = REPEATS, 6.0, 11.0, 5.0
+#: the real-time priority the realtime rows also run the loop's processes at
+REALTIME_PRIORITY = 50
 
 
 def realtime_rows(quick: bool, executor: str | None) -> list[tuple[str, str, str]]:
     """The realtime graph's rows, measured now: its late and safe periods, and its latency
     before, during and after a CPU hog (:func:`hog_run`); each figure the median (min–max) of
-    :data:`REALTIME_RUNS` runs (two short ones with ``quick``)."""
-    nan = float('nan')
+    :data:`REALTIME_RUNS` runs (two short ones with ``quick``), with the loop's processes at
+    ordinary scheduling and at SCHED_FIFO priority :data:`REALTIME_PRIORITY` (where this user may
+    start one; the runs of the two take turns)."""
     runs = 2 if quick else REALTIME_RUNS
     real_s, hog_s, hog_at = (2.0, 9.0, 4.5) if quick else (REALTIME_S, HOG_S, HOG_AT)
+    refused = fifo_problem(REALTIME_PRIORITY)
+    priorities = (0,) if refused else (0, REALTIME_PRIORITY)
     load = LoadWatch()
     load.note()
-    reals = [run_graph(real_s, mode='realtime', executor=executor)['simulator']
-             for _ in range(runs)]
+    reals = {p: [] for p in priorities}
+    for _ in range(runs):
+        for p in priorities:
+            reals[p].append(run_graph(real_s, mode='realtime', executor=executor,
+                                      realtime=p)['simulator'])
+    load.note()
+    hogs = {p: [] for p in priorities}
+    for _ in range(runs):
+        for p in priorities:
+            hogs[p].append(hog_run(hog_s, hog_at, executor=executor, realtime=p))
+    load.note()
+    out = []
+    for p in priorities:
+        at = f', the loop at SCHED_FIFO {p}' if p else ''
+        out += _realtime_figures(reals[p], hogs[p], at, real_s, hog_s, hog_at, load)
+    if refused:
+        out.append((f'realtime mode, the loop at SCHED_FIFO {REALTIME_PRIORITY}', 'not measured',
+                    refused))
+    return out
+
+
+def _realtime_figures(reals: list[dict], hogs: list[dict], at: str, real_s: float,
+                      hog_s: float, hog_at: float, load: LoadWatch) -> list[tuple[str, str, str]]:
+    """The two realtime rows (:func:`realtime_rows`) of one scheduling, ``at`` naming it."""
+    nan = float('nan')
+    runs = len(reals)
     share = lambda d, k: 100 * d.get(k, 0.0) / max(d.get('steps', 1.0), 1.0)  # noqa: E731
     lat = {k: [d.get(f'loop_latency_us_{k}', nan) for d in reals] for k in ('p50', 'p99', 'max')}
-    load.note()
-    hogs = [hog_run(hog_s, hog_at, executor=executor) for _ in range(runs)]
-    load.note()
     per = lambda key: {p: [h[p][key] for h in hogs] for p in PHASES}   # noqa: E731
     p50, p99, late = per('p50'), per('p99'), per('late')
     return [
-        ('realtime mode at 1 kHz: late periods',
+        (f'realtime mode at 1 kHz{at}: late periods',
          figure([share(d, 'late_periods') for d in reals], '%', 1, 1),
          f'median (min–max) of {runs} runs of {real_s:g} s; a period is late when its newest '
          'command answers tips older than the previous period\'s; '
@@ -219,7 +249,7 @@ def realtime_rows(quick: bool, executor: str | None) -> list[tuple[str, str, str
          f'time; latency p50 / p99 / max {figure(lat["p50"], scale=1)} / '
          f'{figure(lat["p99"], scale=1)} / {figure(lat["max"], scale=1)}; load '
          f'{load.seen[0]:.1f} → {load.seen[1]:.1f}'),
-        ('realtime with a 1 s CPU hog on every core: latency p50 before / during / after',
+        (f'realtime with a 1 s CPU hog on every core{at}: latency p50 before / during / after',
          ' / '.join(f'{median(p50[p]):.0f}' for p in PHASES) + ' µs',
          f'medians of {runs} runs of {hog_s:g} s, the hog from {hog_at:g} s: p50 ranges '
          + ' / '.join(span(p50[p]) for p in PHASES) + ' µs; late periods '

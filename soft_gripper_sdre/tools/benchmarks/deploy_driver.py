@@ -91,7 +91,13 @@ class Ticks:
     """What the ticking recorded: per tick the perf_counter at its publish (``sent``; 0: skipped),
     whether its newest command was late, how late it woke [s]; the ticks skipped; the first
     measured tick (past the warm-up, where a late wake-up may have skipped to); the CPU [ns] of
-    every watched process at that tick and at the end."""
+    every watched process at that tick and at the end; the period [s].
+
+    Two shares of late periods come out of them (:meth:`figures`): ``late``, the realtime rule at
+    the driver's tick (the newest command answers tips older than the tick before), which also
+    counts what the stand-in did to itself (a tick it skipped, tips it sent late because it woke
+    late, a command its own receive thread took late); and ``slow``, the loop's own share: ticks
+    whose command came back more than a period after their tips went out, or never."""
 
     sent: np.ndarray
     late: np.ndarray
@@ -100,6 +106,7 @@ class Ticks:
     first: int
     cpu0: dict[str, int]
     cpu1: dict[str, int]
+    period: float
 
     def figures(self, received: np.ndarray, matched: tuple[int, int]) -> dict:
         """The driver's figures over the measured window (see :func:`driver`), given when each
@@ -113,16 +120,26 @@ class Ticks:
         cpu = {name: (self.cpu1[name] - self.cpu0.get(name, self.cpu1[name])) / 1e3 / periods
                for name in self.cpu1}
         late = self.late[ticked]
+        slow = slow_ticks(self.sent, received, ticked, self.period)
         return {
             'periods': periods, 'ticks': int(len(ticked)), 'skipped': self.skipped,
             'late': int(late.sum()), 'unanswered': int(len(ticked) - len(answered)),
             'late_pct': 100.0 * float(late.sum()) / max(len(ticked), 1),
+            'slow': int(slow.sum()), 'slow_pct': 100.0 * float(slow.sum()) / max(len(ticked), 1),
             'latency_p50': float(np.percentile(latency, 50)) if len(latency) else float('nan'),
             'latency_p99': float(np.percentile(latency, 99)) if len(latency) else float('nan'),
             'latency_max': float(latency.max()) if len(latency) else float('nan'),
             'wake_p99': 1e6 * float(np.percentile(self.wake[ticked], 99)),
             'cpu_us': cpu, 'matched': matched,
         }
+
+
+def slow_ticks(sent: np.ndarray, received: np.ndarray, ticked: np.ndarray,
+               period: float) -> np.ndarray:
+    """Of the ``ticked`` ticks, those whose command came back more than ``period`` after their
+    tips were sent, or never."""
+    back = received[ticked]
+    return (back <= 0) | (back - sent[ticked] > period)
 
 
 def _tick(pub, messages: list, schedule: Schedule, commands: CommandLog,
@@ -160,7 +177,7 @@ def _tick(pub, messages: list, schedule: Schedule, commands: CommandLog,
         pub.publish(messages[k])
         k += 1
     cpu1 = {name: _schedstat_ns(pid) for name, pid in watched.items()}
-    return Ticks(sent, late, wake, skipped, first, cpu0, cpu1)
+    return Ticks(sent, late, wake, skipped, first, cpu0, cpu1, period)
 
 
 def _wait_matched(pub, sub, readers: int, timeout: float = 60.0) -> tuple[int, int]:

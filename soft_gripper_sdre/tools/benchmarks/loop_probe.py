@@ -8,6 +8,8 @@ A process started with ``SGS_PROBE=<dir>`` and this package's probe directory fi
 * every **subscription callback**: topic, entry and exit, and the message's leading stamp [ns] when
   it comes as raw CDR bytes (``Node.create_subscription`` wrapped);
 * every **publish**: topic, start and end, the stamp of raw bytes (``Publisher.publish`` wrapped);
+* every **timer callback**: entry and exit (``Node.create_timer`` wrapped: /diagnostics, watchdogs,
+  a driver's or simulator's stepping timer);
 * every **bag write** of the recorder: start and duration (``rosbags`` ``Writer.write`` wrapped).
 
 The executor's wake-up is what lies between the driver's publish and the callback's entry (rclpy's
@@ -70,7 +72,7 @@ def _stamp(data) -> float:
 def install(out_dir: str | os.PathLike) -> None:
     """Start recording in this process (see the module doc); the records are saved at exit."""
     perf = time.perf_counter
-    gcs, cbs, pubs, writes = Events(3), Events(4), Events(4), Events(2)
+    gcs, cbs, pubs, writes, timers = Events(3), Events(4), Events(4), Events(2), Events(2)
     started: list[float] = [0.0]
 
     def on_gc(phase: str, info: dict) -> None:
@@ -96,6 +98,18 @@ def install(out_dir: str | os.PathLike) -> None:
                 cbs.add(index, t0, perf(), _stamp(msg))
         return create(self, msg_type, topic, timed, *args, **kwargs)
     Node.create_subscription = create_subscription
+
+    create_timer = Node.create_timer
+
+    def create_timed_timer(self, period, callback, *args, **kwargs):
+        def timed():
+            t0 = perf()
+            try:
+                return callback()
+            finally:
+                timers.add(t0, perf())
+        return create_timer(self, period, timed, *args, **kwargs)
+    Node.create_timer = create_timed_timer
 
     publish = Publisher.publish
 
@@ -124,7 +138,7 @@ def install(out_dir: str | os.PathLike) -> None:
     def save() -> None:
         tag = 'driver' if '--driver' in sys.argv else Path(sys.argv[0] or 'python').stem
         np.savez(Path(out_dir) / f'{tag}-{os.getpid()}.npz', gc=gcs.rows(), callbacks=cbs.rows(),
-                 publishes=pubs.rows(), writes=writes.rows())
+                 publishes=pubs.rows(), writes=writes.rows(), timers=timers.rows())
     atexit.register(save)
 
 
@@ -165,6 +179,13 @@ def _overlap(starts: np.ndarray, durations: np.ndarray, lo: float, hi: float) ->
     return float(np.clip(b - a, 0.0, None).sum())
 
 
+def _durations(seconds: np.ndarray) -> tuple[int, float, float, float]:
+    """(count, median µs, p99.9 µs, max µs) of some events' durations."""
+    us = 1e6 * seconds
+    return (int(len(us)), round(float(np.median(us)), 1), round(float(np.percentile(us, 99.9)), 1),
+            round(float(us.max()), 1))
+
+
 def late_causes(out_dir: Path, gc_min: float = 50e-6) -> dict:
     """What made each late period of a probed deployment run late.
 
@@ -173,12 +194,14 @@ def late_causes(out_dir: Path, gc_min: float = 50e-6) -> dict:
     sent → the loop process's tips callback entered: DDS and the executor's wake-up), **work**
     (callback entry → the command's publish returned: decode, KF, law, encode, write) and
     **back** (→ the driver's callback took it). Over the round trip: the collections of every loop
-    process and the driver (ms, those longer than ``gc_min``), the recorder's bag writes (ms), and
-    whether the tips callback waited for the one before it (the process busy: queued).
+    process and the driver (ms, those longer than ``gc_min``), the loop processes' timer callbacks
+    (ms), the recorder's bag writes (ms), and whether the tips callback waited for the one before
+    it (the process busy: queued).
 
     Returns ``late`` (count), ``ticks``, the medians of in / work / back over all periods and over
     the late ones, and ``cause`` → count, each late period given to the first that holds: ``gc``
-    (a collection over it), ``queued``, ``recorder`` (its writes over the round trip > 0.2 ms),
+    (a collection over it), ``timer`` (a loop process's timer callbacks over the round trip
+    > 0.2 ms), ``queued``, ``recorder`` (its writes over the round trip > 0.2 ms),
     ``in`` / ``work`` / ``back`` (the longest part: scheduling, the process not running)."""
     ticks, procs = load(out_dir)
     period = float(ticks['period'])
@@ -197,6 +220,9 @@ def late_causes(out_dir: Path, gc_min: float = 50e-6) -> dict:
     gc_all = {tag: inside(p['gc']) for tag, p in procs.items()}
     gcs = {tag: g for tag, g in gc_all.items() if tag != 'recorder' and len(g)}
     writes = inside(procs.get('recorder', {}).get('writes', np.zeros((0, 2))))
+    timers_all = {tag: inside(p.get('timers', np.zeros((0, 2)))) for tag, p in procs.items()}
+    loop_timers = np.concatenate([timers_all[tag] for tag in ('estimator', 'controller')
+                                  if tag in timers_all] or [np.zeros((0, 2))])
     parts: dict[str, list] = {'in': [], 'work': [], 'back': []}
     late_parts: dict[str, list] = {'in': [], 'work': [], 'back': []}
     causes: dict[str, int] = {}
@@ -220,11 +246,15 @@ def late_causes(out_dir: Path, gc_min: float = 50e-6) -> dict:
         gc_ms = {tag: 1e3 * _overlap(g[:, 0], np.where(g[:, 1] >= gc_min, g[:, 1], 0), sent[j],
                                      hi) for tag, g in gcs.items()}
         write_ms = 1e3 * _overlap(writes[:, 0], writes[:, 1], sent[j], hi)
+        timer_ms = 1e3 * _overlap(loop_timers[:, 0], loop_timers[:, 1] - loop_timers[:, 0],
+                                  sent[j], hi)
         before = tips_cb[(tips_cb[:, 3] < j * period_ns) & (tips_cb[:, 1] < t_in)
                          & (tips_cb[:, 2] > sent[j])]
         queued = len(before) > 0
         if any(v > 0 for v in gc_ms.values()):
             cause = 'gc'
+        elif timer_ms > 0.2:
+            cause = 'timer'
         elif queued:
             cause = 'queued'
         elif write_ms > 0.2:
@@ -234,7 +264,8 @@ def late_causes(out_dir: Path, gc_min: float = 50e-6) -> dict:
         causes[cause] = causes.get(cause, 0) + 1
         detail.append((int(k), cause, {n: round(1e6 * v) if np.isfinite(v) else None
                                        for n, v in seg.items()},
-                       {t: round(v, 2) for t, v in gc_ms.items() if v}, round(write_ms, 2)))
+                       {t: round(v, 2) for t, v in gc_ms.items() if v}, round(write_ms, 2),
+                       round(timer_ms, 2)))
     med = lambda xs: round(1e6 * float(np.median(xs))) if xs else None  # noqa: E731
     p99 = lambda xs: round(1e6 * float(np.percentile(xs, 99))) if xs else None  # noqa: E731
     finite = lambda xs: [x for x in xs if np.isfinite(x)]  # noqa: E731
@@ -247,6 +278,7 @@ def late_causes(out_dir: Path, gc_min: float = 50e-6) -> dict:
         'gc': {tag: (int(len(g)), round(1e3 * float(g[:, 1].sum()), 2),
                      round(1e3 * float(g[:, 1].max()), 2) if len(g) else 0.0)
                for tag, g in gc_all.items()},
+        'timers': {tag: _durations(t[:, 1] - t[:, 0]) for tag, t in timers_all.items() if len(t)},
         'writes': ((int(len(writes)), round(1e6 * float(np.median(writes[:, 1])), 1),
                     round(1e6 * float(np.percentile(writes[:, 1], 99.9)), 1),
                     round(1e6 * float(writes[:, 1].max()), 1)) if len(writes) else None),

@@ -69,6 +69,11 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument('--composed', action='store_true',
                     help='run the estimator in the controller\'s process (controller '
                          '--with-estimator): one process and one DDS hop fewer per period')
+    ap.add_argument('--realtime', type=int, default=0, metavar='PRIORITY',
+                    help='run the simulator, the estimator and the controller under SCHED_FIFO '
+                         'at this priority (1 to 98, behind chrt -f; default: ordinary '
+                         'scheduling): on time on a busy machine; needs root, CAP_SYS_NICE or an '
+                         'rtprio limit (docs/performance.md "Real-time priority")')
     ap.add_argument('--domain-id', type=int, default=None,
                     help='ROS_DOMAIN_ID (default: env or random)')
     ap.add_argument('--timeout', type=float, default=600.0,
@@ -84,7 +89,8 @@ class DemoGraph:
     ``model`` a checkpoint; ``noise`` the tips' σ [m]; ``seed`` the simulator's; ``law`` the
     controller's; ``fingers`` name → hand finger; ``period`` [s] the control period of every node
     of the loop; ``integral_gain`` the default law's; ``mode`` the simulator's stepping;
-    ``composed`` the estimator in the controller's process (:meth:`GraphSpec.composed`)."""
+    ``composed`` the estimator in the controller's process (:meth:`GraphSpec.composed`);
+    ``realtime`` the SCHED_FIFO priority of the loop's processes (0: none)."""
 
     model: Path | None = None
     noise: float | None = None
@@ -95,6 +101,7 @@ class DemoGraph:
     integral_gain: float | None = None
     mode: str | None = None
     composed: bool = False
+    realtime: int = 0
 
     def spec(self, bag: Path, duration: float) -> GraphSpec:
         """The grasp graph recording into ``bag`` for ``duration`` s of sim time."""
@@ -119,7 +126,8 @@ class DemoGraph:
                 params[node][key] = value
         for node, values in (finger_parameters(self.fingers) if self.fingers else {}).items():
             params[node].update(values)
-        return grasp_graph(parameters=params, control_period=self.period, composed=self.composed)
+        return grasp_graph(parameters=params, control_period=self.period, composed=self.composed,
+                           realtime=self.realtime)
 
 
 def run_demo(out: Path, duration: float, graph: DemoGraph = DemoGraph(), *,
@@ -317,7 +325,8 @@ def main(argv: list[str] | None = None) -> int:
                           seed=a.seed, law=a.law,
                           fingers=parse_fingers(a.fingers) if a.fingers else None,
                           period=None if a.period is None else a.period * 1e-3,
-                          integral_gain=a.integral_gain, mode=a.mode, composed=a.composed)
+                          integral_gain=a.integral_gain, mode=a.mode, composed=a.composed,
+                          realtime=a.realtime)
         result = run_demo(a.out, a.duration, graph, domain_id=a.domain_id, timeout=a.timeout,
                           progress=not a.no_progress)
     except RuntimeError as exc:

@@ -37,6 +37,11 @@ def argument_problem(a: argparse.Namespace) -> str | None:
         return f'--domain-id must be a ROS domain ID in [0, 232], got {a.domain_id}'
     if not a.timeout > 0:
         return f'--timeout must be > 0 s, got {a.timeout}'
+    if a.realtime:
+        from soft_gripper_sdre.nodes.scheduling import fifo_problem
+        problem = fifo_problem(a.realtime)
+        if problem:
+            return f'--realtime {a.realtime}: {problem}'
     if a.fingers is not None:
         problem = fingers_problem(a.fingers)
         if problem:

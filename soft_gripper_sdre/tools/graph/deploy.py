@@ -1,20 +1,20 @@
 """Deploy a trained model on the lab's running driver, record the grasp and score it: one command.
 
     python -m soft_gripper_sdre.tools.graph.deploy --params runs/mine/params.yaml \
-        [--law L] [--out DIR]
+        [--law L] [--out DIR] [--realtime PRIORITY]
 
 Against a driver already serving ``tip_positions`` and taking ``torque_commands`` (the lab's, or
 ``plant_driver``), it starts, as separate processes over DDS, the composed loop (``controller
 --with-estimator`` on ``params.yaml``, with the law ``--law``, default ``sdre_ff``: the law the
-settings were derived for), the recorder and, once the loop has come up, the trajectory node on
-``params.yaml`` (its fingers, the move the settings were checked on, the plan's timing; every
-finger grasps, none opens). It ends when the plan ends (its length from ``params.yaml``: t_start +
-t_close + t_hold + t_open, plus ``--tail`` seconds), stops the nodes (the controller last sends
-nothing, and the driver's stale-command rule takes over), and prints the score of the run from
-the bag (:func:`~soft_gripper_sdre.analysis.run_score.score_run`): the RMSE of the tips against
-the plan as a share of the travel (on ``true_tip_positions`` when the driver publishes them, else
-the measured tips), the share of commands at a bound while the plan holds at rest, and the
-commands outside the controller's bounds.
+settings were derived for; with ``--realtime`` under SCHED_FIFO), the recorder and, once the loop
+has come up, the trajectory node on ``params.yaml`` (its fingers, the move the settings were checked
+on, the plan's timing; every finger grasps, none opens). It ends when the plan ends (its length from
+``params.yaml``: t_start + t_close + t_hold + t_open, plus ``--tail`` seconds), stops the nodes (the
+controller last sends nothing, and the driver's stale-command rule takes over), and prints the score
+of the run from the bag (:func:`~soft_gripper_sdre.analysis.run_score.score_run`): the RMSE of the
+tips against the plan as a share of the travel (on ``true_tip_positions`` when the driver publishes
+them, else the measured tips), the share of commands at a bound while the plan holds at rest, and
+the commands outside the controller's bounds.
 
 Every node reads the tips best effort (which also matches a reliable driver); the nodes run on
 the caller's ROS domain (or ``--domain-id``) with the caller's DDS settings. ``OUT`` (default:
@@ -128,6 +128,11 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument('--startup-timeout', type=float, default=120.0,
                     help='seconds for the loop to come up and the plan to start '
                          '(default: %(default)s)')
+    ap.add_argument('--realtime', type=int, default=0, metavar='PRIORITY',
+                    help='run the loop\'s process (the estimator and the controller) under '
+                         'SCHED_FIFO at this priority (1 to 98, behind chrt -f; default: ordinary '
+                         'scheduling): on time on a busy machine; needs root, CAP_SYS_NICE or an '
+                         'rtprio limit (docs/performance.md "Real-time priority")')
     ap.add_argument('--domain-id', type=int, default=None,
                     help='ROS_DOMAIN_ID (default: the environment\'s)')
     return ap
@@ -144,6 +149,11 @@ def check(a: argparse.Namespace) -> tuple[Settings | None, str | None]:
         return None, f'--startup-timeout must be in [1, 3600] s, got {a.startup_timeout}'
     if a.domain_id is not None and not 0 <= a.domain_id <= 232:
         return None, f'--domain-id must be in [0, 232], got {a.domain_id}'
+    if a.realtime:
+        from soft_gripper_sdre.nodes.scheduling import fifo_problem
+        problem = fifo_problem(a.realtime)
+        if problem:
+            return None, f'--realtime {a.realtime}: {problem}'
     import os
     if a.domain_id is None and not re.fullmatch(r'\d{0,3}', os.environ.get('ROS_DOMAIN_ID', '')):
         return None, (f'ROS_DOMAIN_ID {os.environ["ROS_DOMAIN_ID"]!r} is not a domain number; '
@@ -206,7 +216,7 @@ def deploy(a: argparse.Namespace, s: Settings) -> Path:
                                  parameters={**BEST_EFFORT, **fingers})
             graph.start_node(NodeSpec('controller', 'controller', params_file=params,
                                       parameters={'law': a.law, **fingers},
-                                      hosted=(estimator,)))
+                                      hosted=(estimator,), realtime=a.realtime))
             deadline = time.monotonic() + a.startup_timeout
             while not all(n in monitor.values for n in ('estimator', 'controller', 'recorder')):
                 watch(graph)
