@@ -73,7 +73,8 @@ def test_the_floor_is_the_sum_in_lockstep_and_the_larger_branch_pipelined():
 
 def _made_run(late: float, p99: float, load: float, cpu: float) -> dict:
     return {'periods': 6000, 'rate_hz': 1000, 'variant': 'composed', 'record': True,
-            'late_pct': late, 'slow_pct': late / 2, 'latency_p50': 400.0, 'latency_p99': p99, 'latency_max': 4000.0,
+            'late_pct': late, 'slow_pct': late / 2, 'latency_p50': 400.0, 'latency_p99': p99,
+            'latency_max': 4000.0,
             'cpu_us': {'controller': cpu, 'recorder': 150.0, 'driver': 80.0},
             'load': load, 'load_before': load - 0.5}
 
