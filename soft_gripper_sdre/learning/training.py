@@ -22,8 +22,10 @@ stage, whose free runs of ``rollout_val_seconds`` on the validation records miss
 Seeded and deterministic: the same data and settings give the same bits on the same machine kind
 and torch build (:data:`TRAIN_THREADS` intra-op threads, torch's deterministic algorithms only).
 The settings and their presets are :mod:`soft_gripper_sdre.learning.train_settings`; the model's
-simulation of the records and L_sim, :mod:`soft_gripper_sdre.learning.rollout`; the networks, the
-checkpoint's layout and reading it back, :mod:`soft_gripper_sdre.learning.model`.
+simulation of the records and L_sim, :mod:`soft_gripper_sdre.learning.rollout`; the label stage's
+step without autograd (the same bits at about half the cost), :mod:`soft_gripper_sdre.learning.
+label_step`; the networks, the checkpoint's layout and reading it back,
+:mod:`soft_gripper_sdre.learning.model`.
 """
 from __future__ import annotations
 
@@ -47,9 +49,9 @@ from soft_gripper_sdre.sim.shape import HAND_SHAPE, FingerShape, InputBounds
 #: intra-op threads while training: the order of torch's reductions, and so every weight's bits,
 #: depends on it
 TRAIN_THREADS = 1
-#: Adam updates all the networks' tensors with one multi-tensor kernel per operation: the same
-#: arithmetic per element as one tensor at a time (the same weights, bit for bit), with fewer
-#: operations per step (the optimiser's share of a label epoch falls; the epoch by about 5-10 %)
+#: the simulation stage's Adam updates all the networks' tensors with one multi-tensor kernel per
+#: operation: the same arithmetic per element as one tensor at a time, with fewer operations per
+#: step (the label stage's :class:`~soft_gripper_sdre.learning.label_step.Adam` calls the same)
 FOREACH = True
 
 
