@@ -1,7 +1,9 @@
 """Shared test set-up: DDS stays on loopback, each test session gets its own domain, the compiled
 kernels are in numba's cache before any test starts, and the fault tests' outcome records go to a
-directory of the session's own; ``run_main`` runs a command line in the test's process."""
+directory of the session's own; ``run_main`` runs a command line in the test's process;
+``launch_module`` is the launch file loaded without the launch packages."""
 import fcntl
+import importlib.util
 import os
 from pathlib import Path
 import random
@@ -82,6 +84,17 @@ def fault_records_dir(tmp_path_factory):
         directory = tmp_path_factory.mktemp('faults')
         patch.setenv(RECORDS_ENV, str(directory))
         yield directory
+
+
+@pytest.fixture(scope='session')
+def launch_module():
+    """launch/grasp.launch.py loaded as a module (it imports the launch packages only inside
+    ``generate_launch_description``, so its node list and checks load without them)."""
+    spec = importlib.util.spec_from_file_location(
+        'grasp_launch', Path(__file__).resolve().parents[1] / 'launch' / 'grasp.launch.py')
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
 @pytest.fixture

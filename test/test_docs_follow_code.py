@@ -76,15 +76,6 @@ def test_the_rule_refuses_what_ros2param_would_not_set(args, problem):
 
 # -- docs/deployment.md ----------------------------------------------------------------------
 
-@pytest.fixture(scope='module')
-def launch_module():
-    spec = importlib.util.spec_from_file_location('grasp_launch',
-                                                  ROOT / 'launch' / 'grasp.launch.py')
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 def test_every_count_of_the_launch_arguments_is_theirs(launch_module):
     text = DEPLOYMENT.read_text()
     counts = [int(n) for n in re.findall(r'the (\d+) (?:launch )?arguments', text)]

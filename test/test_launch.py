@@ -5,7 +5,6 @@ these tests load it in the project's environment (which has neither) and compare
 start with :func:`soft_gripper_sdre.nodes.graph.grasp_graph`.
 """
 import ast
-import importlib.util
 from pathlib import Path
 
 import pytest
@@ -13,14 +12,6 @@ import pytest
 from soft_gripper_sdre.nodes.graph import grasp_graph
 
 LAUNCH_FILE = Path(__file__).resolve().parents[1] / 'launch' / 'grasp.launch.py'
-
-
-@pytest.fixture(scope='module')
-def launch_module():
-    spec = importlib.util.spec_from_file_location('grasp_launch', LAUNCH_FILE)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def _as_launched(graph_spec) -> list[dict]:

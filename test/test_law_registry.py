@@ -3,7 +3,6 @@ registers itself, and the controller's PARAMS, its --help, LawTuning's tunables 
 mapping, docs/parameters.md, config/controller.yaml and the launch file's help follow from it; a
 law registered by a test shows up in each without an edit elsewhere; bad declarations are
 refused by name."""
-import importlib.util
 from pathlib import Path
 import re
 
@@ -109,11 +108,8 @@ def test_help_lists_each_law_parameter_with_its_units_and_range(capsys):
     assert 'one of ' + ', '.join(GRAPH_LAWS) in text
 
 
-def test_the_launch_files_law_argument_lists_every_graph_law():
-    spec = importlib.util.spec_from_file_location('grasp_launch',
-                                                  ROOT / 'launch' / 'grasp.launch.py')
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+def test_the_launch_files_law_argument_lists_every_graph_law(launch_module):
+    module = launch_module
     text = next(text for name, _, text in module.ARGUMENTS if name == 'law')
     assert module.argument_help('law', text).endswith(f': {", ".join(GRAPH_LAWS)}')
     assert module.argument_help('noise', 'σ') == 'σ'

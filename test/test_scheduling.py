@@ -2,9 +2,7 @@
 they start anything agrees with the kernel, a refusal says how to get the permission, a node
 started at a priority runs there with every thread and says so on /diagnostics, and the tools and
 the launch file refuse a bad priority."""
-import importlib.util
 import os
-from pathlib import Path
 import subprocess
 import sys
 
@@ -12,8 +10,6 @@ import pytest
 
 from soft_gripper_sdre.nodes import scheduling
 from soft_gripper_sdre.nodes.graph import NodeSpec, default_params_file, grasp_graph
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_describe_names_the_policy_and_its_priority_or_nice():
@@ -64,15 +60,6 @@ def test_the_graph_runs_the_loops_processes_behind_chrt_and_the_others_as_they_a
     composed = grasp_graph(realtime=30, composed=True).node('controller')
     assert composed.command('python')[:4] == ['chrt', '-f', '30', 'python']
     assert all(n.command('python')[0] == 'python' for n in grasp_graph().nodes)
-
-
-@pytest.fixture(scope='module')
-def launch_module():
-    spec = importlib.util.spec_from_file_location('grasp_launch',
-                                                  ROOT / 'launch' / 'grasp.launch.py')
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 @pytest.mark.parametrize('text, words', [('abc', 'is not a number'),

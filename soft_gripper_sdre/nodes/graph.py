@@ -174,6 +174,11 @@ def finger_parameters(fingers: Mapping[str, int]) -> dict[str, dict[str, Any]]:
             'controller': {'finger_names': names}}
 
 
+def realtime_prefix(priority: int) -> tuple[str, ...]:
+    """The command prefix that starts a process under SCHED_FIFO at ``priority`` (0: none)."""
+    return ('chrt', '-f', str(priority)) if priority else ()
+
+
 @dataclass(frozen=True)
 class NodeSpec:
     """One node of the graph: what ``ros2 run`` / ``ros2 launch`` starts, and with what."""
@@ -246,7 +251,7 @@ class NodeSpec:
     def prefix(self) -> tuple[str, ...]:
         """What the process is started behind: ``chrt -f <realtime>`` at a real-time priority
         (:mod:`soft_gripper_sdre.nodes.scheduling`), else nothing."""
-        return ('chrt', '-f', str(self.realtime)) if self.realtime else ()
+        return realtime_prefix(self.realtime)
 
     def with_parameters(self, **parameters: Any) -> NodeSpec:
         """The same node with ``parameters`` added to (or replacing) its overrides."""

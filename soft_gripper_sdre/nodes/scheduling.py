@@ -8,7 +8,7 @@ second for the ordinary ones (``/proc/sys/kernel/sched_rt_runtime_us``), and the
 fraction of a core. A process started behind ``chrt -f <priority>`` runs there with every thread
 it starts (the DDS threads included: a thread inherits its creator's policy), which is what the
 tools' ``--realtime`` and the launch file's ``realtime_priority`` do, and what a lab types in front
-of ``ros2 run`` (``NodeSpec.prefix`` in :mod:`soft_gripper_sdre.nodes.graph`).
+of ``ros2 run`` (:func:`soft_gripper_sdre.nodes.graph.realtime_prefix`).
 
 Setting SCHED_FIFO needs root, CAP_SYS_NICE, or an ``rtprio`` limit for the user
 (``/etc/security/limits.conf``: ``<user> - rtprio 98``, then a new login).

@@ -45,7 +45,7 @@ from typing import Iterator
 import numpy as np
 
 from soft_gripper_sdre.nodes import scheduling
-from soft_gripper_sdre.nodes.graph import NodeSpec, default_params_file
+from soft_gripper_sdre.nodes.graph import NodeSpec, default_params_file, realtime_prefix
 from soft_gripper_sdre.tools.benchmarks.deploy_driver import driver
 from soft_gripper_sdre.tools.benchmarks.loop_probe import late_causes, probe_env
 from soft_gripper_sdre.tools.benchmarks.spread import REPEATS, median, span
@@ -180,7 +180,7 @@ def run_deploy(period: float, seconds: float, tips: Path, *, record: bool = Fals
             _renice(pids['recorder'], options.get('recorder_nice', 0),
                     options.get('recorder_batch', False))
         readers = 2 + record
-        cmd = [*(('chrt', '-f', str(fifo)) if fifo else ()),
+        cmd = [*realtime_prefix(fifo),
                sys.executable, '-m', 'soft_gripper_sdre.tools.benchmarks.bench_deploy', '--driver',
                json.dumps({'period': period, 'warmup': warmup, 'seconds': seconds,
                            'tips': str(tips), 'readers': readers, 'pids': pids})]
