@@ -60,14 +60,16 @@ def test_variants_join_their_settings():
 
 def test_the_floor_is_the_sum_in_lockstep_and_the_larger_branch_pipelined():
     figures = {'lockstep_rtf': 0.5, 'pipelined_rtf': 0.8, 'pipelined_cpu_us': 1800.0}
-    (_, floor, _), (_, graph, _), (_, pipe_floor, note), (_, pipe, pipe_note) = floor_rows(
-        600e-6, 200.0, 3e-6, 47e-6, figures)
+    (_, floor, parts), (_, graph, _), (_, pipe_floor, note), (_, pipe, pipe_note) = floor_rows(
+        600e-6, 200.0, 3e-6, 47e-6, figures, rest=450e-6)
     assert floor.startswith('1250 µs (0.80× real time)')          # 600 + 3 × 200 + 50
+    # the grasp's physics counts, the scene at rest's is only shown
+    assert parts.startswith("physics 600 µs (the grasp's torques replayed; 450 µs at rest)")
     assert graph == '2000 µs = 1.60× the floor'
     assert pipe_floor.startswith('650 µs (1.54× real time)')      # max(600, 3 × 200 + 50)
     assert pipe == '1250 µs = 1.92× the floor' and 'period is 1.60× this one' in pipe_note
     assert f'needs at least {1800 / os.cpu_count():.0f} µs' in note  # 1800 µs of CPU over the cores
-    (_, pipe_floor, _) = floor_rows(900e-6, 200.0, 3e-6, 47e-6, figures)[2]
+    (_, pipe_floor, _) = floor_rows(900e-6, 200.0, 3e-6, 47e-6, figures, rest=450e-6)[2]
     assert pipe_floor.startswith('900 µs')                        # the physics is the longer branch
 
 

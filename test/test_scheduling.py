@@ -1,8 +1,9 @@
 """Real-time priority for the loop's processes (nodes/scheduling.py): the check the tools run before
 they start anything agrees with the kernel, a refusal says how to get the permission, a node
-started at a priority runs there with every thread and says so on /diagnostics, and the tools and
-the launch file refuse a bad priority."""
+started at a priority runs there with every thread, holds the CPU wake-up latency and says both on
+/diagnostics, and the tools, the launch file and the nodes refuse a bad priority or latency."""
 import os
+import struct
 import subprocess
 import sys
 
@@ -50,6 +51,76 @@ def test_an_unprivileged_user_is_told_how_to_get_the_permission():
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == ('SCHED_FIFO priority 50 is not permitted for this user: '
                                   + scheduling.HOW)
+
+
+def _device_latency() -> int | None:
+    """The machine's CPU wake-up latency request now [µs] (None: the device is not readable)."""
+    try:
+        with open(scheduling.CPU_LATENCY_DEVICE, 'rb') as f:
+            return struct.unpack('i', f.read(4))[0]
+    except OSError:
+        return None
+
+
+@pytest.mark.parametrize('text, us', [(None, 0), ('', 0), ('off', None), ('OFF', None),
+                                      ('0', 0), (' 25 ', 25), ('2000000000', 2_000_000_000)])
+def test_the_latency_asked_for_comes_from_the_environment(text, us):
+    env = {} if text is None else {scheduling.CPU_LATENCY_ENV: text}
+    assert scheduling.cpu_latency_request(env) == us
+
+
+@pytest.mark.parametrize('text', ['-1', 'abc', '1.5', '2000000001', '0x10'])
+def test_a_bad_latency_is_refused_naming_the_variable(text):
+    with pytest.raises(ValueError, match=f'{scheduling.CPU_LATENCY_ENV}={text!r}: expected off'):
+        scheduling.cpu_latency_request({scheduling.CPU_LATENCY_ENV: text})
+
+
+def test_a_hold_keeps_the_request_while_open_and_lets_go_when_closed():
+    if _device_latency() is None:
+        pytest.skip(f'{scheduling.CPU_LATENCY_DEVICE} is not readable here')
+    with scheduling.CpuLatencyHold(7) as hold:
+        assert hold.held and _device_latency() <= 7       # the machine's: the least of all holds
+    assert not hold.held
+    hold.close()                                            # twice is harmless
+    hold, said = scheduling.hold_cpu_latency({scheduling.CPU_LATENCY_ENV: '9'})
+    assert said == '9 µs, held by this process' and _device_latency() <= 9
+    hold.close()
+    assert scheduling.hold_cpu_latency({scheduling.CPU_LATENCY_ENV: 'off'}) == (
+        None, f'not held ({scheduling.CPU_LATENCY_ENV}=off)')
+
+
+def test_a_missing_device_is_reported_not_raised(tmp_path):
+    missing = tmp_path / 'no_such_device'
+    assert scheduling.hold_cpu_latency({}, device=str(missing)) == (
+        None, f'not held: {missing}: No such file or directory')
+    assert not missing.exists()
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason='needs root to drop to an unprivileged user')
+def test_an_unprivileged_user_is_told_how_to_hold_the_latency():
+    code = ('import os\n'
+            'from soft_gripper_sdre.nodes.scheduling import hold_cpu_latency\n'
+            'os.setgroups([]); os.setgid(65534); os.setuid(65534)\n'
+            'print(hold_cpu_latency({})[1])\n')
+    out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, timeout=60,
+                         cwd='/')
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == (f'not held: {scheduling.CPU_LATENCY_DEVICE} is not writable for '
+                                  f'this user; {scheduling.LATENCY_HOW}')
+
+
+def test_a_process_at_ordinary_priority_holds_nothing():
+    assert scheduling.process_cpu_latency() is None
+
+
+def test_a_node_refuses_a_bad_latency_with_status_2_at_any_priority():
+    env = dict(os.environ, **{scheduling.CPU_LATENCY_ENV: 'soon'})
+    out = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.nodes.estimator'], env=env,
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 2 and 'Traceback' not in out.stderr
+    assert out.stderr.strip() == (f"estimator: cannot start: {scheduling.CPU_LATENCY_ENV}='soon': "
+                                  'expected off or an integer number of microseconds from 0 to '
+                                  '2000000000')
 
 
 def test_the_graph_runs_the_loops_processes_behind_chrt_and_the_others_as_they_are():
@@ -107,6 +178,8 @@ def test_a_node_started_at_a_priority_runs_there_with_every_thread_and_reports_i
             assert monitor.spin_until(lambda: 'scheduling' in monitor.values.get('estimator', {}),
                                       120.0), proc.log_tail()
             assert monitor.values['estimator']['scheduling'] == 'SCHED_FIFO 20'
+            assert monitor.values['estimator']['cpu_latency'] == '0 µs, held by this process'
+            assert _device_latency() in (0, None)           # (None: not readable here)
             pid = proc.popen.pid
             threads = os.listdir(f'/proc/{pid}/task')
             assert len(threads) > 1                         # rclpy's and Fast DDS's threads

@@ -61,6 +61,9 @@ class Diagnostics:
         #: the process's scheduling (nodes/scheduling.py): whether the loop runs at real-time
         #: priority is the first thing to know about late periods
         self.values: dict[str, str] = {'scheduling': scheduling.describe()}
+        latency = scheduling.process_cpu_latency()
+        if latency is not None:                 # at real-time priority: the wake-up latency held
+            self.values['cpu_latency'] = latency
         self.level = OK
         self.message = 'ok'
         self._hardware_id = hardware_id
@@ -261,11 +264,21 @@ def run(node_factory: Callable[..., Node | tuple[Node, ...]], args: list[str] | 
     if status is not None:
         return status
     try:
+        scheduling.cpu_latency_request()          # a bad value is refused at any priority
+        latency = scheduling.process_cpu_latency()
+    except ValueError as exc:
+        sys.stderr.write(f'{executable}: cannot start: {exc}\n')
+        return USAGE_ERROR
+    try:
         rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
     except RuntimeError as exc:               # rcl refused the ROS arguments (an RCLError)
         sys.stderr.write(f'{executable}: cannot start with these arguments: '
                          f'{str(exc).splitlines()[0]}\n')
         return USAGE_ERROR
+    if latency is not None and latency.startswith('not held:'):
+        rclpy.logging.get_logger('soft_gripper_sdre').warning(
+            f'real-time priority, but the CPU wake-up latency is {latency}; each hop of the '
+            'loop costs more (docs/performance.md, "Waking up")')
     stop = _stop_on_signals()
     nodes: tuple[Node, ...] = ()
     executor = None

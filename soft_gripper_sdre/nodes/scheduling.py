@@ -12,11 +12,20 @@ of ``ros2 run`` (:func:`soft_gripper_sdre.nodes.graph.realtime_prefix`).
 
 Setting SCHED_FIFO needs root, CAP_SYS_NICE, or an ``rtprio`` limit for the user
 (``/etc/security/limits.conf``: ``<user> - rtprio 98``, then a new login).
+
+A process at real-time priority also asks the kernel to keep every CPU's wake-up latency low
+(:class:`CpuLatencyHold`, the PM QoS request cyclictest makes): an idle CPU then polls instead of
+halting, and a message that wakes a process of the loop is taken up at once. Each hop of the loop
+costs tens of microseconds less (docs/performance.md, "Waking up"). Writing the request needs
+root or write access to ``/dev/cpu_dma_latency`` (a udev rule); without it the process runs on,
+says so in its log and in /diagnostics (``cpu_latency``). ``SOFT_GRIPPER_CPU_LATENCY_US`` sets the
+latency asked for (default 0 µs) or ``off``.
 """
 from __future__ import annotations
 
 import os
 import shutil
+import struct
 
 #: the priorities a loop process may be given (99 is left to the kernel's own threads)
 FIFO_RANGE = (1, 98)
@@ -62,3 +71,105 @@ def fifo_problem(priority) -> str | None:
     return None
 
 
+
+
+#: the kernel's PM QoS request for CPU wake-up latency: while a process keeps this device open with
+#: a latency written to it, no CPU of the machine enters an idle state slower than that to leave
+CPU_LATENCY_DEVICE = '/dev/cpu_dma_latency'
+#: environment variable: the wake-up latency [µs] a process at real-time priority asks for, or off
+CPU_LATENCY_ENV = 'SOFT_GRIPPER_CPU_LATENCY_US'
+#: what a process at real-time priority asks for when the environment does not say
+DEFAULT_CPU_LATENCY_US = 0
+LATENCY_HOW = (f'run as root, or give the user write access to {CPU_LATENCY_DEVICE} (a udev rule: '
+               'KERNEL=="cpu_dma_latency", GROUP="<group>", MODE="0660")')
+
+
+class CpuLatencyHold:
+    """The machine's CPU wake-up latency held at ``us`` µs until :meth:`close` (or the process
+    ends: the kernel drops the request with the file).
+
+    Raises:
+        OSError: the device cannot be opened for writing (not Linux, or not permitted).
+    """
+
+    def __init__(self, us: int = DEFAULT_CPU_LATENCY_US, device: str = CPU_LATENCY_DEVICE) -> None:
+        self.us = us
+        self._fd: int | None = os.open(device, os.O_WRONLY)
+        try:
+            os.write(self._fd, struct.pack('i', us))
+        except OSError:
+            self.close()
+            raise
+
+    @property
+    def held(self) -> bool:
+        return self._fd is not None
+
+    def close(self) -> None:
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
+
+    def __enter__(self) -> 'CpuLatencyHold':
+        return self
+
+    def __exit__(self, *_exc) -> None:
+        self.close()
+
+
+def cpu_latency_request(environ=os.environ) -> int | None:
+    """The wake-up latency [µs] a process at real-time priority asks for: ``environ``'s
+    :data:`CPU_LATENCY_ENV`, else :data:`DEFAULT_CPU_LATENCY_US`; None for ``off``.
+
+    Raises:
+        ValueError: the variable is neither ``off`` nor an integer from 0 to 2000000000 µs.
+    """
+    text = environ.get(CPU_LATENCY_ENV, '').strip()
+    if not text:
+        return DEFAULT_CPU_LATENCY_US
+    if text.lower() == 'off':
+        return None
+    try:
+        us = int(text)
+    except ValueError:
+        us = -1
+    if not 0 <= us <= 2_000_000_000:
+        raise ValueError(f'{CPU_LATENCY_ENV}={text!r}: expected off or an integer number of '
+                         'microseconds from 0 to 2000000000')
+    return us
+
+
+def hold_cpu_latency(environ=os.environ,
+                     device: str = CPU_LATENCY_DEVICE) -> tuple[CpuLatencyHold | None, str]:
+    """What a process at real-time priority holds: (the hold, or None; the ``cpu_latency`` it
+    reports). Not permitted or not available is said, never raised.
+
+    Raises:
+        ValueError: a bad :data:`CPU_LATENCY_ENV` (:func:`cpu_latency_request`).
+    """
+    us = cpu_latency_request(environ)
+    if us is None:
+        return None, f'not held ({CPU_LATENCY_ENV}=off)'
+    try:
+        return CpuLatencyHold(us, device), f'{us} µs, held by this process'
+    except PermissionError:
+        return None, f'not held: {device} is not writable for this user; {LATENCY_HOW}'
+    except OSError as exc:
+        return None, f'not held: {device}: {exc.strerror}'
+
+
+_PROCESS_HOLD: list[tuple[CpuLatencyHold | None, str]] = []     # this process's, once asked
+
+
+def process_cpu_latency(environ=os.environ) -> str | None:
+    """This process's ``cpu_latency`` report: at real-time priority the hold made for it (once,
+    kept until the process ends, :func:`hold_cpu_latency`); None at ordinary priority.
+
+    Raises:
+        ValueError: a bad :data:`CPU_LATENCY_ENV`.
+    """
+    if not realtime():
+        return None
+    if not _PROCESS_HOLD:
+        _PROCESS_HOLD.append(hold_cpu_latency(environ))
+    return _PROCESS_HOLD[0][1]

@@ -74,6 +74,23 @@ def bench_sim(scene: str, seconds: float, repeats: int) -> list[float]:
         return _times(period, repeats, steps)
 
 
+def bench_grasp_physics(u: np.ndarray, repeats: int) -> list[float]:
+    """Per repeat, the mean wall time of one control period of the hand simulator (step +
+    measure) driven by ``u`` (steps, n, 2), the torques of a grasp closed in-process, from the
+    settled scene: the physics of the periods the graph runs, the fingers moving and the cube
+    touched (more work than the scene at rest, :func:`bench_sim`) [s]."""
+    from soft_gripper_sdre.sim.hand import GripperSim, SimConfig
+    samples = []
+    for _ in range(repeats):
+        with GripperSim(SimConfig(scene='hand')) as sim:
+            t0 = time.perf_counter()
+            for u_k in u:
+                sim.step(u_k)
+                sim.measure()
+            samples.append((time.perf_counter() - t0) / len(u))
+    return samples
+
+
 def bench_markers(repeats: int) -> list[float]:
     """Per repeat, the mean wall time (of 50) of one update of the simulator's hand markers (its
     ground truth, the URDF's forward kinematics, the MarkerArray's CDR bytes: nodes/markers.py)
@@ -172,11 +189,12 @@ def graph_rows(quick: bool, figures: dict[str, float] | None = None) -> list[Row
     return list(module.rows(quick, figures=figures))
 
 
-def floor_rows(hand: float, hop_us: float, kf: float, control: float,
-               figures: dict[str, float]) -> list[Row]:
+def floor_rows(physics: float, hop_us: float, kf: float, control: float,
+               figures: dict[str, float], rest: float) -> list[Row]:
     """Each mode of the graph against its floor, from figures of this run: the physics of a period
-    ``hand`` [s], one DDS hop one way ``hop_us`` [µs], the KF and controller compute ``kf``,
-    ``control`` [s], and the graph runs' ``figures``
+    of the grasp ``physics`` [s] (:func:`bench_grasp_physics`; ``rest``: the scene at rest's),
+    one DDS hop one way ``hop_us`` [µs], the KF and controller compute ``kf``, ``control`` [s],
+    and the graph runs' ``figures``
     (:func:`soft_gripper_sdre.tools.benchmarks.bench_graph.mode_rows`).
 
     In strict lockstep nothing overlaps, so a period can be no shorter than the sum of the
@@ -186,8 +204,8 @@ def floor_rows(hand: float, hop_us: float, kf: float, control: float,
     another); on ``os.cpu_count()`` cores it also needs every process's CPU of a period spread
     over them."""
     hops, compute = 3e-6 * hop_us, kf + control
-    lockstep_floor = hand + hops + compute
-    pipelined_floor = max(hand, hops + compute)
+    lockstep_floor = physics + hops + compute
+    pipelined_floor = max(physics, hops + compute)
     cores = os.cpu_count() or 1
 
     def period(mode: str) -> float:
@@ -198,7 +216,8 @@ def floor_rows(hand: float, hop_us: float, kf: float, control: float,
     return [
         ('floor of a lockstep period: physics + three rclpy hops + compute',
          f'{_us(lockstep_floor)} ({1e-3 / lockstep_floor:.2f}× real time)',
-         f'physics alone {_us(hand)} (the hand + cube row), three hops {3 * hop_us:.0f} µs '
+         f'physics {_us(physics)} (the grasp\'s torques replayed; {_us(rest)} at rest), three '
+         f'hops {3 * hop_us:.0f} µs '
          '(3 × the raw-CDR hop\'s p50, each with its node\'s receive and send), compute '
          f'{_us(compute)} (KF + sdre_ff, back to back)'),
         ('lockstep graph period against its floor',
@@ -208,7 +227,7 @@ def floor_rows(hand: float, hop_us: float, kf: float, control: float,
          'cold caches, the machine\'s other load'),
         ('floor of a pipelined period: the larger of physics and three hops + compute',
          f'{_us(pipelined_floor)} ({1e-3 / pipelined_floor:.2f}× real time)',
-         f'physics {_us(hand)} beside three hops + compute {_us(hops + compute)}: '
+         f'physics {_us(physics)} beside three hops + compute {_us(hops + compute)}: '
          'the physics of t_k → t_(k+1) runs while the tips of t_k are answered; '
          f'and on {cores} cores every process\'s CPU of a period '
          f'({cpu:.0f} µs in the pipelined run) needs at least {cpu / cores:.0f} µs'),
@@ -217,6 +236,17 @@ def floor_rows(hand: float, hop_us: float, kf: float, control: float,
          f'1 ms / {figures.get("pipelined_rtf", float("nan")):.2f}× real time (the pipelined row); '
          f'the lockstep run\'s period is {lock / pipe:.2f}× this one'),
     ]
+
+
+def grasp_physics_row(loop, seconds: float, note: str = '') -> tuple[Row, float]:
+    """The physics of the grasp's periods (:func:`bench_grasp_physics` on ``loop``'s torques,
+    :data:`REPEATS` times), and its median [s]."""
+    runs = bench_grasp_physics(loop.u, REPEATS)
+    return (('simulator step, hand + cube, the grasp\'s torques',
+             f'{figure(runs)}; {1e-3 / median(runs):.2f}× real time',
+             f'median (min–max) of {REPEATS} replays of the {seconds:g} s the graph runs (the '
+             'default grasp closed in-process, the cube touched): the physics the floor counts'
+             + (f'; {note}' if note else ''))), median(runs)
 
 
 def floor_table(quick: bool, repeats: int) -> list[Row]:
@@ -233,7 +263,10 @@ def floor_table(quick: bool, repeats: int) -> list[Row]:
     out: list[Row] = [('simulator step, hand + cube',
                        f'{figure(hands)}; {1e-3 / hand:.2f}× real time',
                        f'median (min–max) of {REPEATS} runs; {load()}')]
-    loop = default_grasp(1.0 if quick else 2.0, noise_std=5e-5)
+    seconds = 1.0 if quick else 3.0
+    loop = default_grasp(seconds, noise_std=5e-5)
+    row, physics = grasp_physics_row(loop, seconds, load())
+    out.append(row)
     kf_runs: list[float] = []
     bench_kf(loop, REPEATS, kf_runs)
     ctrl = bench_control(loop, 'sdre_ff', REPEATS, 20)
@@ -244,13 +277,12 @@ def floor_table(quick: bool, repeats: int) -> list[Row]:
     out.append(('one DDS hop, tip_positions as raw CDR (nodes/cdr.py), EventsExecutor',
                 f'{figure(raw["p50"], scale=1)} / {figure(raw["p99"], scale=1)}',
                 f'p50 / p99 one way, median (min–max) of {len(raw["p50"])} runs; {load()}'))
-    seconds = 1.0 if quick else 3.0
     figures: dict[str, float] = {}
     out += mode_rows(mode_runs(seconds, repeats,
                                layouts=('lockstep', 'pipelined', 'pipelined_composed')),
                      seconds, figures)
-    return out + floor_rows(hand, median(raw['p50']), median(kf_runs),
-                            median(ctrl['runs']['fast']), figures)
+    return out + floor_rows(physics, median(raw['p50']), median(kf_runs),
+                            median(ctrl['runs']['fast']), figures, rest=hand)
 
 
 def deploy_rows(quick: bool) -> list[Row]:
@@ -351,13 +383,15 @@ def rows(quick: bool, load: LoadWatch | None = None) -> list[Row]:
     loops = [default_grasp(1.0 if quick else 3.0, noise_std=5e-5)
              for _ in range(2 if quick else REPEATS)]
     figures: dict[str, float] = {}
+    row, physics = grasp_physics_row(loops[0], 1.0 if quick else 3.0)
+    out.append(row)
     out += compute_rows(loops[0], quick, figures)
     out.append(closed_loop_row(loops))
     del loops[1:]
     out += graph_rows(quick, figures)
     if 'hop_p50_us' in figures:
-        out += floor_rows(hand, figures['hop_p50_us'], figures['kf_s'], figures['control_s'],
-                          figures)
+        out += floor_rows(physics, figures['hop_p50_us'], figures['kf_s'], figures['control_s'],
+                          figures, rest=hand)
     out += deploy_rows(quick)
     out += startup_rows(quick)
     out += training_rows()

@@ -67,6 +67,8 @@ VARIANTS: dict[str, tuple[str, dict[str, str], dict]] = {
                {}, {'pinned': True}),
     'fifo': ('estimator, controller and driver at SCHED_FIFO priority 50 (started behind chrt -f '
              '50)', {}, {'fifo': 50}),
+    'nohold': ('at real-time priority without the CPU wake-up latency hold '
+               f'({scheduling.CPU_LATENCY_ENV}=off)', {scheduling.CPU_LATENCY_ENV: 'off'}, {}),
     'loop_nice': ('estimator, controller and driver at nice -10', {}, {'loop_nice': -10}),
     'hog': ('a busy machine: a CPU-bound process per core beside the loop, at nice 0', {},
             {'hog': True}),
