@@ -3,7 +3,7 @@
     ros2 launch soft_gripper_sdre grasp.launch.py [namespace:=left_hand] [duration:=6.0]
         [control_period:=0.005] [mode:=pipelined] [law:=sdre_ff] [noise:=0.05] [seed:=0]
         [record:=true] [output:=runs/grasp_bag] [startup_timeout:=300] [params_file:=my_params.yaml]
-        [composed:=true] [realtime_priority:=50]
+        [composed:=true] [realtime_priority:=50] [pin_cores:=true]
 
 Starts the recorder (with ``record:=true``), the estimator, the trajectory node, the controller
 and the simulator of :func:`soft_gripper_sdre.nodes.graph.grasp_graph`, the same description the
@@ -55,6 +55,9 @@ ARGUMENTS = (
     ('realtime_priority', '0', 'run the simulator, the estimator and the controller under '
      'SCHED_FIFO at this priority (1 to 98, behind chrt -f; 0 = ordinary scheduling): on time on a '
      'busy machine; needs root, CAP_SYS_NICE or an rtprio limit'),
+    ('pin_cores', 'false', 'run the simulator on one CPU and the estimator, the trajectory node '
+     'and the controller on another (behind taskset -c; needs two CPUs): each keeps its caches '
+     'from period to period'),
 )
 
 _TRUE, _FALSE = ('true', '1', 'yes', 'on'), ('false', '0', 'no', 'off', '')
@@ -114,21 +117,22 @@ def grasp_nodes(namespace: str = '', duration: str = '6.0', control_period: str 
                 mode: str = '', law: str = '', noise: str = '', seed: str = '',
                 record: str = 'false', output: str = '', startup_timeout: str = '300',
                 params_file: str = '', composed: str = 'false',
-                realtime_priority: str = '0') -> list[dict]:
+                realtime_priority: str = '0', pin_cores: str = 'false') -> list[dict]:
     """The launch arguments (strings, as launch gives them) → one dict per process, for
     ``launch_ros.actions.Node(**d)``: package, executable, name, namespace (relative, None at the
     root), parameters (the shipped params-file path, the user's, then a dict of overrides),
     remappings; with ``composed:=true`` the controller's process also runs the estimator
     (``arguments`` ['--with-estimator'], both nodes' files and overrides, and no ``name``, which
     launch_ros would give every node of the process); with ``realtime_priority:=N`` the loop's
-    processes get ``prefix`` 'chrt -f N'.
+    processes get ``prefix`` 'chrt -f N', with ``pin_cores:=true`` 'taskset -c <cpu>' before it.
 
     Raises:
         ValueError: naming the argument: not a number, a boolean, a namespace or a law where one
             is needed, a number or mode outside the simulator's limits, a control period outside
             0.001 to 0.01 s, a parameters file that cannot be read as one, or one that gives a
             node of the graph a value of the wrong type or a key it does not declare; a
-            real-time priority out of range or not permitted for this user.
+            real-time priority out of range or not permitted for this user; pinning on a
+            machine (or a process) with fewer than two CPUs.
     """
     from soft_gripper_sdre.control.laws import GRAPH_LAWS
 
@@ -167,8 +171,15 @@ def grasp_nodes(namespace: str = '', duration: str = '6.0', control_period: str 
         problem = fifo_problem(priority)
         if problem:
             raise ValueError(f'launch argument realtime_priority:={realtime_priority!r}: {problem}')
+    pinning = _boolean('pin_cores', pin_cores)
+    if pinning:
+        from soft_gripper_sdre.nodes.graph import pinned_cpus
+        try:
+            pinned_cpus()
+        except ValueError as exc:
+            raise ValueError(f'launch argument pin_cores:={pin_cores!r}: {exc}') from None
     spec = grasp_graph(namespace, record=recording, parameters=parameters, control_period=period,
-                       params_files=extra, composed=composing, realtime=priority)
+                       params_files=extra, composed=composing, realtime=priority, pin=pinning)
     for path in extra:
         _check_sections(params_file, path, [n for node in spec.nodes
                                             for n in (node, *node.hosted)])
@@ -208,7 +219,7 @@ def _launched(node) -> dict:
                 'remappings': [tuple(rule) for rule in node.remappings]}
     if node.flags:
         launched.update(name=None, arguments=list(node.flags))
-    if node.realtime:
+    if node.prefix:
         launched['prefix'] = ' '.join(node.prefix)
     return launched
 

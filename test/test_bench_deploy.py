@@ -71,6 +71,20 @@ def test_the_floor_is_the_sum_in_lockstep_and_the_larger_branch_pipelined():
     assert f'needs at least {1800 / os.cpu_count():.0f} µs' in note  # 1800 µs of CPU over the cores
     (_, pipe_floor, _) = floor_rows(900e-6, 200.0, 3e-6, 47e-6, figures, rest=450e-6)[2]
     assert pipe_floor.startswith('900 µs')                        # the physics is the longer branch
+    assert len(floor_rows(600e-6, 200.0, 3e-6, 47e-6, figures, rest=450e-6,
+                          scheduled=[('at SCHED_FIFO 50', 100.0, 'lockstep_fifo')])) == 4   # no run
+
+
+def test_lockstep_run_otherwise_is_held_against_a_floor_measured_the_same_way():
+    figures = {'lockstep_rtf': 0.5, 'pipelined_rtf': 0.8, 'pipelined_cpu_us': 1800.0,
+               'lockstep_fifo_rtf': 0.8}
+    *_, (what, floor, parts), (_, graph, note) = floor_rows(
+        600e-6, 200.0, 3e-6, 47e-6, figures, rest=450e-6,
+        scheduled=[('at SCHED_FIFO 50', 100.0, 'lockstep_fifo')])
+    assert what == 'floor of a lockstep period, at SCHED_FIFO 50' and 'three hops 300 µs' in parts
+    assert floor.startswith('950 µs (1.05× real time)')           # 600 + 3 × 100 + 50
+    assert graph == '1250 µs = 1.32× the floor'
+    assert '1.60× as fast as lockstep at ordinary priority' in note   # 2000 µs against 1250
 
 
 def _made_run(late: float, p99: float, load: float, cpu: float) -> dict:

@@ -1,7 +1,8 @@
-"""Real-time priority for the loop's processes (nodes/scheduling.py): the check the tools run before
-they start anything agrees with the kernel, a refusal says how to get the permission, a node
-started at a priority runs there with every thread, holds the CPU wake-up latency and says both on
-/diagnostics, and the tools, the launch file and the nodes refuse a bad priority or latency."""
+"""Real-time priority and CPUs for the loop's processes (nodes/scheduling.py, graph.pinned_cpus):
+the check the tools run before they start anything agrees with the kernel, a refusal says how to
+get the permission, a node started at a priority and on a CPU runs there with every thread, holds
+the CPU wake-up latency and says so on /diagnostics, and the tools, the launch file and the nodes
+refuse a bad priority, latency or pinning."""
 import os
 import struct
 import subprocess
@@ -10,7 +11,12 @@ import sys
 import pytest
 
 from soft_gripper_sdre.nodes import scheduling
-from soft_gripper_sdre.nodes.graph import NodeSpec, default_params_file, grasp_graph
+from soft_gripper_sdre.nodes.graph import (
+    NodeSpec,
+    default_params_file,
+    grasp_graph,
+    pinned_cpus,
+)
 
 
 def test_describe_names_the_policy_and_its_priority_or_nice():
@@ -133,6 +139,60 @@ def test_the_graph_runs_the_loops_processes_behind_chrt_and_the_others_as_they_a
     assert all(n.command('python')[0] == 'python' for n in grasp_graph().nodes)
 
 
+def test_pinning_puts_the_simulator_on_one_cpu_and_the_nodes_it_waits_for_on_another():
+    assert pinned_cpus([5, 3, 9]) == {'simulator': 3, 'estimator': 5, 'trajectory': 5,
+                                      'controller': 5}
+    with pytest.raises(ValueError, match=r'two CPUs of their own; this process may run on 1 \(2\)'):
+        pinned_cpus([2])
+    if len(os.sched_getaffinity(0)) < 2:
+        pytest.skip('one CPU here')
+    cpus = pinned_cpus()
+    spec = grasp_graph(realtime=50, pin=True)
+    for node in spec.nodes:
+        want = ['taskset', '-c', str(cpus[node.name])] if node.name in cpus else []
+        if node.name in ('simulator', 'estimator', 'controller'):
+            want += ['chrt', '-f', '50']
+        assert node.command('python')[:len(want) + 1] == [*want, 'python'], node.name
+    composed = grasp_graph(pin=True, composed=True).node('controller')
+    assert composed.cpus == (cpus['controller'],) and composed.hosted[0].name == 'estimator'
+
+
+def test_the_launch_file_and_the_demo_refuse_pinning_on_one_cpu(launch_module, tmp_path):
+    with pytest.raises(ValueError, match="pin_cores:='maybe' must be 'true' or 'false'"):
+        launch_module.grasp_nodes(pin_cores='maybe')
+    code = ('import os, sys\n'
+            'os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})\n'
+            'from soft_gripper_sdre.tools.graph.demo import main\n'
+            'sys.argv[0] = "demo"\n'
+            f'sys.exit(main(["--out", {str(tmp_path / "demo")!r}, "--pin"]))\n')
+    out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 2 and 'Traceback' not in out.stderr
+    assert '--pin: pinning puts the simulator and the loop on two CPUs of their own' in out.stderr
+    assert not any(tmp_path.iterdir())
+    code = ('import os, runpy\n'
+            'os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})\n'
+            f'launch = runpy.run_path({str(launch_module.__file__)!r})\n'
+            'try:\n'
+            '    launch["grasp_nodes"](pin_cores="true")\n'
+            'except ValueError as exc:\n'
+            '    print(exc)\n')
+    out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, timeout=120)
+    assert out.stdout.startswith("launch argument pin_cores:='true': pinning puts"), out.stderr
+
+
+def test_the_launch_file_pins_the_loop_before_its_priority(launch_module):
+    if len(os.sched_getaffinity(0)) < 2 or scheduling.fifo_problem(40):
+        pytest.skip('needs two CPUs and SCHED_FIFO')
+    cpus = pinned_cpus()
+    nodes = {n['executable']: n
+             for n in launch_module.grasp_nodes(realtime_priority='40', pin_cores='true')}
+    assert {k: n.get('prefix') for k, n in nodes.items()} == {
+        'simulator': f'taskset -c {cpus["simulator"]} chrt -f 40',
+        'estimator': f'taskset -c {cpus["estimator"]} chrt -f 40',
+        'trajectory': f'taskset -c {cpus["trajectory"]}',
+        'controller': f'taskset -c {cpus["controller"]} chrt -f 40'}
+
+
 @pytest.mark.parametrize('text, words', [('abc', 'is not a number'),
                                          ('99', 'must be an integer from 1 to 98')])
 def test_the_launch_file_refuses_a_bad_priority_before_any_node_starts(launch_module, text,
@@ -167,6 +227,7 @@ def test_the_tools_refuse_a_bad_priority_with_status_2(tmp_path, tool, value, wo
 def test_a_node_started_at_a_priority_runs_there_with_every_thread_and_reports_it(tmp_path):
     if scheduling.fifo_problem(20):
         pytest.skip(scheduling.fifo_problem(20))
+    cpu = max(os.sched_getaffinity(0))
     from soft_gripper_sdre.tools.graph.procs import DiagnosticsMonitor, Graph, ros_env
     env = ros_env()
     monitor = DiagnosticsMonitor(env, 'scheduling_monitor')
@@ -174,7 +235,7 @@ def test_a_node_started_at_a_priority_runs_there_with_every_thread_and_reports_i
         with Graph(env, tmp_path / 'logs') as graph:
             proc = graph.start_node(NodeSpec('estimator', 'estimator',
                                              params_file=default_params_file('estimator'),
-                                             realtime=20))
+                                             realtime=20, cpus=(cpu,)))
             assert monitor.spin_until(lambda: 'scheduling' in monitor.values.get('estimator', {}),
                                       120.0), proc.log_tail()
             assert monitor.values['estimator']['scheduling'] == 'SCHED_FIFO 20'
@@ -184,5 +245,7 @@ def test_a_node_started_at_a_priority_runs_there_with_every_thread_and_reports_i
             threads = os.listdir(f'/proc/{pid}/task')
             assert len(threads) > 1                         # rclpy's and Fast DDS's threads
             assert {scheduling.describe(int(t)) for t in threads} == {'SCHED_FIFO 20'}
+            assert {frozenset(os.sched_getaffinity(int(t))) for t in threads} == {
+                frozenset({cpu})}
     finally:
         monitor.close()

@@ -22,8 +22,10 @@ statuses named by each node's fully qualified name (``/left_hand/simulator``).
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+import os
 from pathlib import Path
 import re
+import shutil
 import sys
 from typing import Any, Callable, Mapping, Sequence
 
@@ -41,6 +43,10 @@ GRASP_NODES = ('recorder', 'estimator', 'trajectory', 'controller', 'simulator')
 PERIOD_NODES = ('estimator', 'controller', 'simulator')
 #: the loop's processes, which :func:`grasp_graph` runs at real-time priority when asked
 REALTIME_NODES = ('simulator', 'estimator', 'controller')
+#: with ``pin``: the plant on one core and the nodes it waits for on another (positions in the
+#: list of CPUs the process may use), so each process finds its caches as it left them from one
+#: period to the next (docs/performance.md, "Cores"); the recorder is left to the scheduler
+PIN_SLOTS = {'simulator': 0, 'estimator': 1, 'trajectory': 1, 'controller': 1}
 #: the control periods the grasp graph is run and measured at [s] (docs/results.md "Control rates")
 PERIOD_RANGE = (1e-3, 1e-2)
 #: the nodes that read ``tip_positions``, so the simulator waits for them before its first step
@@ -179,6 +185,27 @@ def realtime_prefix(priority: int) -> tuple[str, ...]:
     return ('chrt', '-f', str(priority)) if priority else ()
 
 
+def cpus_prefix(cpus: Sequence[int]) -> tuple[str, ...]:
+    """The command prefix that starts a process (every thread) on ``cpus`` (empty: anywhere)."""
+    return ('taskset', '-c', ','.join(str(c) for c in cpus)) if cpus else ()
+
+
+def pinned_cpus(available: Sequence[int] | None = None) -> dict[str, int]:
+    """Node → the CPU ``pin`` starts it on (:data:`PIN_SLOTS`), from ``available`` (default: the
+    CPUs this process may run on).
+
+    Raises:
+        ValueError: fewer than two CPUs, or no ``taskset`` (util-linux) on the PATH.
+    """
+    cpus = sorted(os.sched_getaffinity(0) if available is None else available)
+    if len(cpus) < len(set(PIN_SLOTS.values())):
+        raise ValueError(f'pinning puts the simulator and the loop on two CPUs of their own; this '
+                         f'process may run on {len(cpus)} ({", ".join(map(str, cpus))})')
+    if shutil.which('taskset') is None:
+        raise ValueError('pinning needs taskset (util-linux) on the PATH; it is not there')
+    return {name: cpus[slot] for name, slot in PIN_SLOTS.items()}
+
+
 @dataclass(frozen=True)
 class NodeSpec:
     """One node of the graph: what ``ros2 run`` / ``ros2 launch`` starts, and with what."""
@@ -194,6 +221,7 @@ class NodeSpec:
     hosted: tuple[NodeSpec, ...] = ()           # nodes run in this node's process (HOSTS)
     realtime: int = 0                           # SCHED_FIFO priority of the process (0 = none;
                                                 # nodes/scheduling.py)
+    cpus: tuple[int, ...] = ()                  # the CPUs the process runs on (() = any)
 
     @property
     def full_name(self) -> str:
@@ -242,16 +270,16 @@ class NodeSpec:
         return args
 
     def command(self, python: str = sys.executable) -> list[str]:
-        """The process that runs this node (and its hosted ones):
-        ``[chrt -f <realtime>] python -m soft_gripper_sdre.nodes.<executable> [flags]
+        """The process that runs this node (and its hosted ones): ``[taskset -c <cpus>]
+        [chrt -f <realtime>] python -m soft_gripper_sdre.nodes.<executable> [flags]
         --ros-args …``."""
         return [*self.prefix, python, '-m', self.module, *self.flags, *self.ros_arguments()]
 
     @property
     def prefix(self) -> tuple[str, ...]:
-        """What the process is started behind: ``chrt -f <realtime>`` at a real-time priority
-        (:mod:`soft_gripper_sdre.nodes.scheduling`), else nothing."""
-        return realtime_prefix(self.realtime)
+        """What the process is started behind: ``taskset -c <cpus>`` on its own CPUs, ``chrt -f
+        <realtime>`` at a real-time priority (:mod:`soft_gripper_sdre.nodes.scheduling`)."""
+        return (*cpus_prefix(self.cpus), *realtime_prefix(self.realtime))
 
     def with_parameters(self, **parameters: Any) -> NodeSpec:
         """The same node with ``parameters`` added to (or replacing) its overrides."""
@@ -325,7 +353,8 @@ class GraphSpec:
                 raise ValueError(f'{guest} and {host} would share a process but set '
                                  f'{", ".join(clash)} to different values')
             nodes[index[host]] = replace(h, hosted=(*h.hosted, g),
-                                         realtime=max(h.realtime, g.realtime))
+                                         realtime=max(h.realtime, g.realtime),
+                                         cpus=h.cpus or g.cpus)
             del nodes[index[guest]]
         return replace(self, nodes=tuple(nodes))
 
@@ -351,7 +380,7 @@ def grasp_graph(namespace: str = '', *, record: bool = True,
                 parameters: Mapping[str, Mapping[str, Any]] | None = None,
                 clock: str | None = None, control_period: float | None = None,
                 params_files: Sequence[Path | str] = (), composed: bool = False,
-                realtime: int = 0) -> GraphSpec:
+                realtime: int = 0, pin: bool = False) -> GraphSpec:
     """The grasp graph: recorder (if ``record``), estimator, trajectory, controller, simulator.
 
     Args:
@@ -371,15 +400,19 @@ def grasp_graph(namespace: str = '', *, record: bool = True,
         realtime: the SCHED_FIFO priority of the loop's processes (:data:`REALTIME_NODES`: the
             simulator, the estimator, the controller; :mod:`~soft_gripper_sdre.nodes.scheduling`),
             0 for none. The trajectory node and the recorder stay ordinary.
+        pin: the simulator on one CPU, the estimator, the trajectory node and the controller on
+            another (:func:`pinned_cpus`); the recorder anywhere.
 
     The simulator waits for the graph's other nodes by :func:`readiness_problem`
     (``wait_for_nodes``), unless told otherwise.
 
     Raises:
-        ValueError: a bad namespace, parameters for a node the graph does not have, or a
-            ``control_period`` that a node's own parameters contradict.
+        ValueError: a bad namespace, parameters for a node the graph does not have, a
+            ``control_period`` that a node's own parameters contradict, or ``pin`` where
+            :func:`pinned_cpus` cannot.
     """
     namespace = normalize_namespace(namespace)
+    cpus = pinned_cpus() if pin else {}
     names = GRASP_NODES if record else tuple(n for n in GRASP_NODES if n != 'recorder')
     parameters = dict(parameters or {})
     unknown = sorted(set(parameters) - set(names))
@@ -403,6 +436,7 @@ def grasp_graph(namespace: str = '', *, record: bool = True,
     extra = tuple(Path(f) for f in params_files)
     nodes = tuple(NodeSpec(name, name, namespace, default_params_file(name),
                            dict(parameters.get(name, {})), remappings, extra,
-                           realtime=realtime if name in REALTIME_NODES else 0) for name in names)
+                           realtime=realtime if name in REALTIME_NODES else 0,
+                           cpus=(cpus[name],) if name in cpus else ()) for name in names)
     graph = GraphSpec(namespace, nodes, remappings)
     return graph.composed() if composed else graph

@@ -27,6 +27,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from typing import Sequence
 
 os.environ.setdefault('OMP_NUM_THREADS', '1')  # before numpy loads BLAS: one thread, as the nodes
 import numpy as np  # noqa: E402
@@ -190,12 +191,15 @@ def graph_rows(quick: bool, figures: dict[str, float] | None = None) -> list[Row
 
 
 def floor_rows(physics: float, hop_us: float, kf: float, control: float,
-               figures: dict[str, float], rest: float) -> list[Row]:
+               figures: dict[str, float], rest: float,
+               scheduled: Sequence[tuple[str, float, str]] = ()) -> list[Row]:
     """Each mode of the graph against its floor, from figures of this run: the physics of a period
     of the grasp ``physics`` [s] (:func:`bench_grasp_physics`; ``rest``: the scene at rest's),
     one DDS hop one way ``hop_us`` [µs], the KF and controller compute ``kf``, ``control`` [s],
     and the graph runs' ``figures``
-    (:func:`soft_gripper_sdre.tools.benchmarks.bench_graph.mode_rows`).
+    (:func:`soft_gripper_sdre.tools.benchmarks.bench_graph.mode_rows`). ``scheduled``: lockstep
+    run otherwise (real-time priority, pinned), each (its words, the hop measured that way [µs],
+    its layout in ``figures``), against its own floor: every part measured as it runs there.
 
     In strict lockstep nothing overlaps, so a period can be no shorter than the sum of the
     physics, the three hops and the compute. Pipelined, the physics of one period runs while the
@@ -235,7 +239,25 @@ def floor_rows(physics: float, hop_us: float, kf: float, control: float,
          f'{_us(pipe)} = {pipe / pipelined_floor:.2f}× the floor',
          f'1 ms / {figures.get("pipelined_rtf", float("nan")):.2f}× real time (the pipelined row); '
          f'the lockstep run\'s period is {lock / pipe:.2f}× this one'),
-    ]
+    ] + [row for words, hop, layout in scheduled
+         for row in _scheduled_floor_rows(words, physics + compute, hop, period(layout), lock)]
+
+
+def _scheduled_floor_rows(words: str, physics_and_compute: float, hop_us: float, lock_at: float,
+                          lock: float) -> list[Row]:
+    """:func:`floor_rows`' two rows of lockstep run ``words`` (none without its run): the floor
+    with the hop as it runs there, and the graph's period ``lock_at`` against it."""
+    if not lock_at > 0:
+        return []
+    floor = physics_and_compute + 3e-6 * hop_us
+    return [(f'floor of a lockstep period, {words}',
+             f'{_us(floor)} ({1e-3 / floor:.2f}× real time)',
+             f'the same physics and compute; three hops {3 * hop_us:.0f} µs (3 × the raw-CDR '
+             'hop\'s p50 measured so)'),
+            (f'lockstep graph period, {words}, against its floor',
+             f'{_us(lock_at)} = {lock_at / floor:.2f}× the floor',
+             f'1 ms / {1e-3 / lock_at:.2f}× real time (its lockstep row); '
+             f'{lock / lock_at:.2f}× as fast as lockstep at ordinary priority')]
 
 
 def grasp_physics_row(loop, seconds: float, note: str = '') -> tuple[Row, float]:
@@ -256,7 +278,14 @@ def floor_table(quick: bool, repeats: int) -> list[Row]:
     turns ``repeats`` times; each row the median (min–max) of its runs, with the load it ran
     under."""
     from soft_gripper_sdre.analysis.closed_loop import default_grasp
-    from soft_gripper_sdre.tools.benchmarks.bench_graph import hop_runs, mode_rows, mode_runs
+    from soft_gripper_sdre.tools.benchmarks.bench_graph import (
+        LAYOUTS,
+        SCHEDULED,
+        hop_runs,
+        mode_rows,
+        mode_runs,
+        scheduled_layouts,
+    )
     load = lambda: f'load average {os.getloadavg()[0]:.1f}'    # noqa: E731
     hands = bench_sim('hand', 0.5 if quick else 2.0, REPEATS)
     hand = median(hands)
@@ -273,16 +302,20 @@ def floor_table(quick: bool, repeats: int) -> list[Row]:
     out += [('KF step, 4 fingers (compiled)', figure(kf_runs, digits=1), load()),
             ('controller compute, sdre_ff, 4 fingers (compiled)', figure(ctrl['runs']['fast']),
              f'the kernel call alone {figure(ctrl["runs"]["kernel"])}; {load()}')]
-    raw = hop_runs('events', 300 if quick else 1000, raw=True)
-    out.append(('one DDS hop, tip_positions as raw CDR (nodes/cdr.py), EventsExecutor',
-                f'{figure(raw["p50"], scale=1)} / {figure(raw["p99"], scale=1)}',
-                f'p50 / p99 one way, median (min–max) of {len(raw["p50"])} runs; {load()}'))
+    kinds = {'': (0, False), **{k: LAYOUTS[k][2:4] for k in scheduled_layouts()}}
+    hops = {k: hop_runs('events', 300 if quick else 1000, raw=True, realtime=priority, pin=pin)
+            for k, (priority, pin) in kinds.items()}
+    for k, raw in hops.items():
+        out.append(('one DDS hop, tip_positions as raw CDR (nodes/cdr.py), EventsExecutor'
+                    + (f', {SCHEDULED[k]}' if k else ''),
+                    f'{figure(raw["p50"], scale=1)} / {figure(raw["p99"], scale=1)}',
+                    f'p50 / p99 one way, median (min–max) of {len(raw["p50"])} runs; {load()}'))
     figures: dict[str, float] = {}
-    out += mode_rows(mode_runs(seconds, repeats,
-                               layouts=('lockstep', 'pipelined', 'pipelined_composed')),
-                     seconds, figures)
-    return out + floor_rows(physics, median(raw['p50']), median(kf_runs),
-                            median(ctrl['runs']['fast']), figures, rest=hand)
+    layouts = ('lockstep', 'pipelined', 'pipelined_composed', *scheduled_layouts())
+    out += mode_rows(mode_runs(seconds, repeats, layouts=layouts), seconds, figures)
+    return out + floor_rows(
+        physics, median(hops['']['p50']), median(kf_runs), median(ctrl['runs']['fast']), figures,
+        rest=hand, scheduled=[(SCHEDULED[k], median(hops[k]['p50']), k) for k in hops if k])
 
 
 def deploy_rows(quick: bool) -> list[Row]:
@@ -390,8 +423,12 @@ def rows(quick: bool, load: LoadWatch | None = None) -> list[Row]:
     del loops[1:]
     out += graph_rows(quick, figures)
     if 'hop_p50_us' in figures:
+        from soft_gripper_sdre.tools.benchmarks.bench_graph import SCHEDULED
         out += floor_rows(physics, figures['hop_p50_us'], figures['kf_s'], figures['control_s'],
-                          figures, rest=hand)
+                          figures, rest=hand,
+                          scheduled=[(words, figures[f'hop_{k}_p50_us'], k)
+                                     for k, words in SCHEDULED.items()
+                                     if f'hop_{k}_p50_us' in figures])
     out += deploy_rows(quick)
     out += startup_rows(quick)
     out += training_rows()

@@ -37,6 +37,7 @@ import os
 from pathlib import Path
 import tempfile
 
+from soft_gripper_sdre.nodes.graph import pinned_cpus
 from soft_gripper_sdre.nodes.scheduling import fifo_problem
 from soft_gripper_sdre.tools.benchmarks.bench_hog import PHASES, SETTLE_S, CpuHog, phase_figures
 from soft_gripper_sdre.tools.benchmarks.graph_run import LOOP_NODES, published, run_graph
@@ -82,12 +83,39 @@ def recorder_loss(seconds: float, executor: str | None = None,
     return {t: (n, counts.get(t, 0)) for t, n in published(d).items()}
 
 
+#: the real-time priority the realtime rows and the ``lockstep_fifo`` layout run the loop's
+#: processes at
+REALTIME_PRIORITY = 50
 #: the graph layouts :func:`mode_runs` can alternate: (simulator mode, estimator + controller in
-#: one process), and the words of their rows
-LAYOUTS = {'lockstep': ('lockstep', False, '4 processes, lockstep'),
-           'pipelined': ('pipelined', False, '4 processes, pipelined'),
-           'pipelined_composed': ('pipelined', True,
-                                  '3 processes (controller --with-estimator), pipelined')}
+#: one process, the loop's real-time priority or 0, pinned to two CPUs), and the words of their rows
+LAYOUTS = {'lockstep': ('lockstep', False, 0, False, '4 processes, lockstep'),
+           'pipelined': ('pipelined', False, 0, False, '4 processes, pipelined'),
+           'pipelined_composed': ('pipelined', True, 0, False,
+                                  '3 processes (controller --with-estimator), pipelined'),
+           'lockstep_fifo': ('lockstep', False, REALTIME_PRIORITY, False,
+                             f'4 processes, lockstep, the loop at SCHED_FIFO {REALTIME_PRIORITY} '
+                             '(CPU wake-up latency held)'),
+           'lockstep_fifo_pinned': ('lockstep', False, REALTIME_PRIORITY, True,
+                                    '4 processes, lockstep, at SCHED_FIFO '
+                                    f'{REALTIME_PRIORITY} and pinned (the simulator on one CPU, '
+                                    'the other nodes on another)')}
+#: the lockstep layouts run otherwise than the default, each also held against a floor measured
+#: the same way (its hop so): layout → the words of its rows
+SCHEDULED = {'lockstep_fifo': f'at SCHED_FIFO {REALTIME_PRIORITY}, the CPU wake-up latency held',
+             'lockstep_fifo_pinned': f'at SCHED_FIFO {REALTIME_PRIORITY}, the CPU wake-up latency '
+                                     'held, pinned to two CPUs'}
+
+
+def scheduled_layouts() -> tuple[str, ...]:
+    """The layouts of :data:`SCHEDULED` this user and machine can run (SCHED_FIFO permitted; two
+    CPUs and taskset for the pinned one)."""
+    if fifo_problem(REALTIME_PRIORITY):
+        return ()
+    try:
+        pinned_cpus()
+    except ValueError:
+        return ('lockstep_fifo',)
+    return tuple(SCHEDULED)
 
 
 def mode_runs(seconds: float, repeats: int = 1, executor: str | None = None,
@@ -99,8 +127,9 @@ def mode_runs(seconds: float, repeats: int = 1, executor: str | None = None,
     runs: dict[str, list[dict]] = {name: [] for name in layouts}
     for _ in range(repeats):
         for name, done in runs.items():
-            mode, composed, _ = LAYOUTS[name]
-            d = run_graph(seconds, mode=mode, executor=executor, composed=composed)
+            mode, composed, priority, pin, _ = LAYOUTS[name]
+            d = run_graph(seconds, mode=mode, executor=executor, composed=composed,
+                          realtime=priority, pin=pin)
             d['simulator']['load'] = os.getloadavg()[0]
             done.append(d)
     return runs
@@ -139,7 +168,7 @@ def mode_rows(runs: dict[str, list[dict]], seconds: float,
                   + ', '.join(f'{r:.2f}×' for r in rtfs) + ' at load '
                   + ', '.join(f'{r["simulator"]["load"]:.1f}'
                               for r in done)) if len(done) > 1 else ''
-        out.append((f'node graph, {LAYOUTS[mode][2]} 1 ms',
+        out.append((f'node graph, {LAYOUTS[mode][4]} 1 ms',
                     f'{sim.get("real_time_factor", nan):.2f}× real time'
                     + (f' ({span(rtfs, digits=2)})' if len(done) > 1 else ''),
                     f'{seconds:g} s of sim time; {int(sim.get("timeouts", 0))} timeouts; '
@@ -192,8 +221,6 @@ def lockstep_rows(runs: dict[str, list[dict]], seconds: float) -> list[tuple[str
 
 #: the realtime rows: runs, seconds of sim time per run; the hog runs' length and the hog's start
 REALTIME_RUNS, REALTIME_S, HOG_S, HOG_AT = REPEATS, 6.0, 11.0, 5.0
-#: the real-time priority the realtime rows also run the loop's processes at
-REALTIME_PRIORITY = 50
 
 
 def realtime_rows(quick: bool, executor: str | None) -> list[tuple[str, str, str]]:
@@ -260,30 +287,35 @@ def _realtime_figures(reals: list[dict], hogs: list[dict], at: str, real_s: floa
     ]
 
 
-def hop_runs(kind: str, count: int, raw: bool = False,
-             repeats: int = REPEATS) -> dict[str, list[float]]:
+def hop_runs(kind: str, count: int, raw: bool = False, repeats: int = REPEATS,
+             realtime: int = 0, pin: bool = False) -> dict[str, list[float]]:
     """:func:`~soft_gripper_sdre.tools.benchmarks.hop.hop` ``repeats`` times (each its own
-    pair of processes, ``count`` rounds): per figure (``p50``, ``p99``, ``cpu`` [µs]) every
-    run's."""
-    runs = [hop(kind, count, raw=raw) for _ in range(repeats)]
+    pair of processes, ``count`` rounds; ``realtime``: at that SCHED_FIFO priority; ``pin``: on
+    two CPUs of their own): per figure (``p50``, ``p99``, ``cpu`` [µs]) every run's."""
+    runs = [hop(kind, count, raw=raw, realtime=realtime, pin=pin) for _ in range(repeats)]
     return {k: [r[k] for r in runs] for k in ('p50', 'p99', 'cpu')}
 
 
 def hop_rows(quick: bool, figures: dict[str, float] | None = None) -> list[tuple[str, str, str]]:
-    """One DDS hop, measured now: ``tip_positions`` with the EventsExecutor, as raw CDR, and with
-    the SingleThreadedExecutor; each the median (min–max) of :data:`REPEATS` runs of 1000
-    rounds (two of 300 with ``quick``), the three kinds taking turns. ``figures``, if given,
-    gets the raw-CDR hop's median p50 (``hop_p50_us``)."""
+    """One DDS hop, measured now: ``tip_positions`` with the EventsExecutor, as raw CDR (also run
+    as each of :func:`scheduled_layouts` runs the loop), and with the SingleThreadedExecutor; each
+    the median (min–max) of :data:`REPEATS` runs of 1000 rounds (two of 300 with ``quick``), the
+    kinds taking turns. ``figures``, if given, gets the raw-CDR hop's median p50 (``hop_p50_us``,
+    and ``hop_<layout>_p50_us`` for each scheduled layout)."""
     count, repeats = (300, 2) if quick else (1000, REPEATS)
-    kinds = {'ev': ('events', False), 'st': ('single', False), 'raw': ('events', True)}
+    kinds = {'ev': ('events', False, 0, False), 'st': ('single', False, 0, False),
+             'raw': ('events', True, 0, False),
+             **{k: ('events', True, *LAYOUTS[k][2:4]) for k in scheduled_layouts()}}
     got: dict[str, list[dict]] = {k: [] for k in kinds}
     for _ in range(repeats):
-        for key, (kind, raw) in kinds.items():
-            got[key].append(hop(kind, count, raw=raw))
-    ev, st, ev_raw = ({k: [r[k] for r in got[key]] for k in ('p50', 'p99', 'cpu')}
-                      for key in ('ev', 'st', 'raw'))
+        for key, (kind, raw, priority, pin) in kinds.items():
+            got[key].append(hop(kind, count, raw=raw, realtime=priority, pin=pin))
+    runs_of = {key: {k: [r[k] for r in got[key]] for k in ('p50', 'p99', 'cpu')} for key in kinds}
+    ev, st, ev_raw = runs_of['ev'], runs_of['st'], runs_of['raw']
+    scheduled = [k for k in kinds if k in SCHEDULED]
     if figures is not None:
         figures['hop_p50_us'] = median(ev_raw['p50'])
+        figures.update({f'hop_{k}_p50_us': median(runs_of[k]['p50']) for k in scheduled})
     us = lambda xs: figure(xs, scale=1)  # noqa: E731
     runs = f'median (min–max) of {repeats} runs of {count} round trips'
     return [
@@ -294,6 +326,9 @@ def hop_rows(quick: bool, figures: dict[str, float] | None = None) -> list[tuple
          f'{us(ev_raw["p50"])} / {us(ev_raw["p99"])}',
          f'{runs}; {us(ev_raw["cpu"])} CPU per message received, decoded, encoded and sent, '
          'as the loop nodes do'),
+        *[(f'the same, {SCHEDULED[k]}', f'{us(runs_of[k]["p50"])} / {us(runs_of[k]["p99"])}',
+           f'{runs}; {us(runs_of[k]["cpu"])} CPU per message; both processes as the loop\'s run '
+           'so (nodes/scheduling.py, graph.pinned_cpus)') for k in scheduled],
         ('one DDS hop, tip_positions, SingleThreadedExecutor',
          f'{us(st["p50"])} / {us(st["p99"])}',
          f'{runs}; {us(st["cpu"])} CPU per message: '
@@ -323,25 +358,26 @@ def rows(quick: bool = False, executor: str | None = None, graph_only: bool = Fa
     hop's one-way p50 [µs] (``hop_p50_us``)."""
     nan = float('nan')
     seconds = 1.0 if quick else 3.0
-    runs = mode_runs(seconds, 2 if quick else REPEATS,
-                     executor=executor)      # one run of each swings 0.4–0.8×
+    layouts = ('lockstep', 'pipelined', *scheduled_layouts())
+    runs = mode_runs(seconds, 2 if quick else REPEATS, executor=executor,
+                     layouts=layouts)      # one run of each swings 0.4–0.8×
     lock_speed, *lock_details = lockstep_rows(runs, seconds)
-    table = [lock_speed, mode_rows(runs, seconds, figures)[1], *lock_details,
-             *realtime_rows(quick, executor)]
+    others = mode_rows(runs, seconds, figures)[1:]       # pipelined, the scheduled lockstep
+    graph = [*lock_details, *realtime_rows(quick, executor)]
     if graph_only:
-        return table
+        return [lock_speed, *others, *graph]
     singles = ([run_graph(seconds, executor='single')['simulator']
                 for _ in range(2 if quick else REPEATS)] if executor != 'single'
                else [d['simulator'] for d in runs['lockstep']])
     return [
         *hop_rows(quick, figures),
-        *table[:2],
+        lock_speed, *others,
         ('node graph, lockstep, SingleThreadedExecutor in every node',
          figure([d.get('real_time_factor', nan) for d in singles], '× real time', 1, 2, sep=''),
          f'median (min–max) of {len(singles)} runs of {seconds:g} s; rclpy\'s default executor; '
          'loop latency p50 '
          f'{figure([d.get("loop_latency_us_p50", nan) for d in singles], scale=1)}'),
-        *table[2:],
+        *graph,
         recorder_row(quick, executor),
     ]
 

@@ -61,13 +61,14 @@ def published(d: dict[str, dict[str, float]]) -> dict[str, int]:
 
 def run_graph(seconds: float, *, mode: str = 'lockstep', record: Path | None = None,
               all_at_1khz: bool = False, executor: str | None = None, composed: bool = False,
-              realtime: int = 0, timeout: float = 600.0, during=None,
+              realtime: int = 0, pin: bool = False, timeout: float = 600.0, during=None,
               history: dict[str, list] | None = None,
               probe: Path | None = None) -> dict[str, dict[str, float]]:
     """Run the loop processes (and the recorder into ``record``) for ``seconds`` of sim time;
     ``composed``: the estimator and the controller as one process (``controller --with-estimator``),
     whose CPU time is the controller's; ``realtime``: the loop's processes under SCHED_FIFO at that
-    priority (0: none). ``during(monitor)`` is called about 10 times a second
+    priority (0: none); ``pin``: the simulator on one CPU and the loop's other nodes on another
+    (``grasp_graph(pin=True)``). ``during(monitor)`` is called about 10 times a second
     while the simulator steps; ``history``, if given, gets the monitor's /diagnostics history
     (node → its successive values). ``probe``: every process records its timestamps there
     (:mod:`~soft_gripper_sdre.tools.benchmarks.loop_probe`, read by its :func:`graph_periods`).
@@ -96,7 +97,7 @@ def run_graph(seconds: float, *, mode: str = 'lockstep', record: Path | None = N
     if record:
         params['recorder'] = {'output': str(record)}
     spec = grasp_graph(record=bool(record), parameters=params, composed=composed,
-                       realtime=realtime)
+                       realtime=realtime, pin=pin)
     monitor = DiagnosticsMonitor(env, 'bench_monitor')
     steps = int(round(seconds / 0.001))
     try:

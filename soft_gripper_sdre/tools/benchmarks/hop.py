@@ -7,9 +7,13 @@ floor of a loop period (``make bench``'s hop rows).
 from __future__ import annotations
 
 import argparse
+from contextlib import contextmanager
 import os
 import time
+from typing import Iterator
 
+from soft_gripper_sdre.nodes import scheduling
+from soft_gripper_sdre.nodes.graph import cpus_prefix, pinned_cpus, realtime_prefix
 from soft_gripper_sdre.tools.graph.procs import ros_env
 
 #: a ping-pong round unanswered this long [s] sends its ping again (see :func:`hop`)
@@ -129,14 +133,41 @@ class _Pinger:
         return ''
 
 
-def hop(executor: str, count: int = 2000, raw: bool = False) -> dict[str, float]:
+@contextmanager
+def _running_as(priority: int, cpu: int | None) -> Iterator[None]:
+    """The calling thread (and the threads and processes it starts meanwhile) under SCHED_FIFO at
+    ``priority`` with the CPU wake-up latency held, as a loop process at real-time priority runs
+    (nodes/scheduling.py; 0: as it is), and on ``cpu`` (None: as it is); put back after."""
+    policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
+    affinity = os.sched_getaffinity(0)
+    hold = None
+    if priority:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+        hold, _ = scheduling.hold_cpu_latency()
+    if cpu is not None:
+        os.sched_setaffinity(0, {cpu})
+    try:
+        yield
+    finally:
+        if hold is not None:
+            hold.close()
+        os.sched_setaffinity(0, affinity)
+        os.sched_setscheduler(0, policy, param)
+
+
+def hop(executor: str, count: int = 2000, raw: bool = False, realtime: int = 0,
+        pin: bool = False) -> dict[str, float]:
     """One DDS hop with the graph's own message and executor, between two processes.
 
     A ping-pong of ``tip_positions``-sized PoseArrays: half the round trip is the latency of one
     hop (publish → callback in the other process → publish back); the echo process reports its CPU
     per message (receive + publish; with ``raw`` as CDR bytes decoded and encoded by nodes/cdr.py,
     as the loop nodes do). Returns µs: ``p50``, ``p99`` of one hop, ``cpu``; and the counts
-    ``rounds`` (answered, of ``count``) and ``resent``.
+    ``rounds`` (answered, of ``count``) and ``resent``. ``realtime``: both processes under
+    SCHED_FIFO at that priority with the CPU wake-up latency held, as the loop's processes run
+    at real-time priority (the caller checks the permission: ``scheduling.fifo_problem``);
+    ``pin``: each on a CPU of its own (``pinned_cpus``: the echo where the simulator would run,
+    this side where the estimator would).
 
     Round k's ping is stamped k ns and only the pong with that stamp ends it. Discovery is not
     symmetric: our reader can have matched the echo's writer before that writer has matched our
@@ -157,24 +188,28 @@ def hop(executor: str, count: int = 2000, raw: bool = False) -> dict[str, float]
     env = ros_env()
     env[EXECUTOR_ENV] = executor
     os.environ.update({k: env[k] for k in ('ROS_DOMAIN_ID', 'ROS_AUTOMATIC_DISCOVERY_RANGE')})
-    echo = subprocess.Popen([sys.executable, '-m', 'soft_gripper_sdre.tools.benchmarks.hop',
-                             str(count)] + ['--raw'] * raw,
-                            env=env, stdout=subprocess.PIPE, text=True)
-    ctx = Context()
-    rclpy.init(context=ctx)
-    node = Node('bench_ping', context=ctx)
-    ex = make_executor(executor, context=ctx)
-    pinger = _Pinger(node, count)
-    ex.add_node(node)
-    try:
-        rounds = pinger.rounds(ex)
-        out = pinger.goodbye(echo)
-    finally:
-        if echo.poll() is None:
-            echo.kill()
-        ex.shutdown()
-        node.destroy_node()
-        rclpy.try_shutdown(context=ctx)
+    cpus = pinned_cpus() if pin else {}
+    echo_cpus = (cpus['simulator'],) if pin else ()
+    with _running_as(realtime, cpus.get('estimator')):
+        echo = subprocess.Popen([*cpus_prefix(echo_cpus), *realtime_prefix(realtime),
+                                 sys.executable, '-m',
+                                 'soft_gripper_sdre.tools.benchmarks.hop', str(count)]
+                                + ['--raw'] * raw, env=env, stdout=subprocess.PIPE, text=True)
+        ctx = Context()
+        rclpy.init(context=ctx)
+        node = Node('bench_ping', context=ctx)
+        ex = make_executor(executor, context=ctx)
+        pinger = _Pinger(node, count)
+        ex.add_node(node)
+        try:
+            rounds = pinger.rounds(ex)
+            out = pinger.goodbye(echo)
+        finally:
+            if echo.poll() is None:
+                echo.kill()
+            ex.shutdown()
+            node.destroy_node()
+            rclpy.try_shutdown(context=ctx)
     cpu = next((float(line.split()[1]) for line in out.splitlines()
                 if line.startswith('cpu_per_message')), float('nan'))
     one_way = 0.5e6 * pinger.rtt[:rounds]

@@ -74,6 +74,10 @@ def _parser() -> argparse.ArgumentParser:
                          'at this priority (1 to 98, behind chrt -f; default: ordinary '
                          'scheduling): on time on a busy machine; needs root, CAP_SYS_NICE or an '
                          'rtprio limit (docs/performance.md "Real-time priority")')
+    ap.add_argument('--pin', action='store_true',
+                    help='run the simulator on one CPU and the estimator, the trajectory node and '
+                         'the controller on another (behind taskset; needs two CPUs): each keeps '
+                         'its caches from period to period (docs/performance.md "Cores")')
     ap.add_argument('--domain-id', type=int, default=None,
                     help='ROS_DOMAIN_ID (default: env or random)')
     ap.add_argument('--timeout', type=float, default=600.0,
@@ -90,7 +94,9 @@ class DemoGraph:
     controller's; ``fingers`` name → hand finger; ``period`` [s] the control period of every node
     of the loop; ``integral_gain`` the default law's; ``mode`` the simulator's stepping;
     ``composed`` the estimator in the controller's process (:meth:`GraphSpec.composed`);
-    ``realtime`` the SCHED_FIFO priority of the loop's processes (0: none)."""
+    ``realtime`` the SCHED_FIFO priority of the loop's processes (0: none); ``pin`` the simulator
+    and the other loop nodes each on a CPU of their own
+    (:func:`~soft_gripper_sdre.nodes.graph.pinned_cpus`)."""
 
     model: Path | None = None
     noise: float | None = None
@@ -102,6 +108,7 @@ class DemoGraph:
     mode: str | None = None
     composed: bool = False
     realtime: int = 0
+    pin: bool = False
 
     def spec(self, bag: Path, duration: float) -> GraphSpec:
         """The grasp graph recording into ``bag`` for ``duration`` s of sim time."""
@@ -127,7 +134,7 @@ class DemoGraph:
         for node, values in (finger_parameters(self.fingers) if self.fingers else {}).items():
             params[node].update(values)
         return grasp_graph(parameters=params, control_period=self.period, composed=self.composed,
-                           realtime=self.realtime)
+                           realtime=self.realtime, pin=self.pin)
 
 
 def run_demo(out: Path, duration: float, graph: DemoGraph = DemoGraph(), *,
@@ -326,7 +333,7 @@ def main(argv: list[str] | None = None) -> int:
                           fingers=parse_fingers(a.fingers) if a.fingers else None,
                           period=None if a.period is None else a.period * 1e-3,
                           integral_gain=a.integral_gain, mode=a.mode, composed=a.composed,
-                          realtime=a.realtime)
+                          realtime=a.realtime, pin=a.pin)
         result = run_demo(a.out, a.duration, graph, domain_id=a.domain_id, timeout=a.timeout,
                           progress=not a.no_progress)
     except RuntimeError as exc:

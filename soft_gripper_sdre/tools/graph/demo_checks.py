@@ -42,6 +42,12 @@ def argument_problem(a: argparse.Namespace) -> str | None:
         problem = fifo_problem(a.realtime)
         if problem:
             return f'--realtime {a.realtime}: {problem}'
+    if a.pin:
+        from soft_gripper_sdre.nodes.graph import pinned_cpus
+        try:
+            pinned_cpus()
+        except ValueError as exc:
+            return f'--pin: {exc}'
     if a.fingers is not None:
         problem = fingers_problem(a.fingers)
         if problem:
