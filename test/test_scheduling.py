@@ -223,6 +223,16 @@ def test_the_tools_refuse_a_bad_priority_with_status_2(tmp_path, tool, value, wo
     assert not any(tmp_path.iterdir())
 
 
+def test_deploy_refuses_a_cpu_it_may_not_run_on_with_status_2(tmp_path):
+    out = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.graph.deploy', '--params',
+                          str(tmp_path / 'params.yaml'), '--cpu', '4096'],
+                         capture_output=True, text=True, timeout=120)
+    allowed = ', '.join(map(str, sorted(os.sched_getaffinity(0))))
+    assert out.returncode == 2 and 'Traceback' not in out.stderr
+    assert f'--cpu 4096: not a CPU this process may run on ({allowed})' in out.stderr
+    assert not any(tmp_path.iterdir())
+
+
 @pytest.mark.ros
 def test_a_node_started_at_a_priority_runs_there_with_every_thread_and_reports_it(tmp_path):
     if scheduling.fifo_problem(20):

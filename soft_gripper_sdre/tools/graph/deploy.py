@@ -1,16 +1,17 @@
 """Deploy a trained model on the lab's running driver, record the grasp and score it: one command.
 
     python -m soft_gripper_sdre.tools.graph.deploy --params runs/mine/params.yaml \
-        [--law L] [--out DIR] [--realtime PRIORITY]
+        [--law L] [--out DIR] [--realtime PRIORITY] [--cpu N]
 
 Against a driver already serving ``tip_positions`` and taking ``torque_commands`` (the lab's, or
 ``plant_driver``), it starts, as separate processes over DDS, the composed loop (``controller
 --with-estimator`` on ``params.yaml``, with the law ``--law``, default ``sdre_ff``: the law the
-settings were derived for; with ``--realtime`` under SCHED_FIFO), the recorder and, once the loop
-has come up, the trajectory node on ``params.yaml`` (its fingers, the move the settings were checked
-on, the plan's timing; every finger grasps, none opens). It ends when the plan ends (its length from
-``params.yaml``: t_start + t_close + t_hold + t_open, plus ``--tail`` seconds), stops the nodes (the
-controller last sends nothing, and the driver's stale-command rule takes over), and prints the score
+settings were derived for; with ``--realtime`` under SCHED_FIFO, with ``--cpu`` on that CPU), the
+recorder and, once the loop has come up, the trajectory node on ``params.yaml`` (its fingers, the
+move the settings were checked on, the plan's timing; every finger grasps, none opens). It ends
+when the plan ends (its length from ``params.yaml``: t_start + t_close + t_hold + t_open, plus
+``--tail`` seconds), stops the nodes (the controller last sends nothing, and the driver's
+stale-command rule takes over), and prints the score
 of the run from the bag (:func:`~soft_gripper_sdre.analysis.run_score.score_run`): the RMSE of the
 tips against the plan as a share of the travel (on ``true_tip_positions`` when the driver publishes
 them, else the measured tips), the share of commands at a bound while the plan holds at rest, and
@@ -133,6 +134,10 @@ def _parser() -> argparse.ArgumentParser:
                          'SCHED_FIFO at this priority (1 to 98, behind chrt -f; default: ordinary '
                          'scheduling): on time on a busy machine; needs root, CAP_SYS_NICE or an '
                          'rtprio limit (docs/performance.md "Real-time priority")')
+    ap.add_argument('--cpu', type=int, default=None, metavar='N',
+                    help='run the loop\'s process on CPU N (behind taskset -c N), so it finds its '
+                         'caches as it left them every period; keep the driver and other work '
+                         'off that CPU (docs/performance.md "Cores"; default: any CPU)')
     ap.add_argument('--domain-id', type=int, default=None,
                     help='ROS_DOMAIN_ID (default: the environment\'s)')
     return ap
@@ -155,6 +160,14 @@ def check(a: argparse.Namespace) -> tuple[Settings | None, str | None]:
         if problem:
             return None, f'--realtime {a.realtime}: {problem}'
     import os
+    if a.cpu is not None:
+        allowed = sorted(os.sched_getaffinity(0))
+        if a.cpu not in allowed:
+            return None, (f'--cpu {a.cpu}: not a CPU this process may run on '
+                          f'({", ".join(map(str, allowed))})')
+        import shutil
+        if shutil.which('taskset') is None:
+            return None, f'--cpu {a.cpu}: needs taskset (util-linux) on the PATH; it is not there'
     if a.domain_id is None and not re.fullmatch(r'\d{0,3}', os.environ.get('ROS_DOMAIN_ID', '')):
         return None, (f'ROS_DOMAIN_ID {os.environ["ROS_DOMAIN_ID"]!r} is not a domain number; '
                       'set it to one, or give --domain-id')
@@ -216,7 +229,8 @@ def deploy(a: argparse.Namespace, s: Settings) -> Path:
                                  parameters={**BEST_EFFORT, **fingers})
             graph.start_node(NodeSpec('controller', 'controller', params_file=params,
                                       parameters={'law': a.law, **fingers},
-                                      hosted=(estimator,), realtime=a.realtime))
+                                      hosted=(estimator,), realtime=a.realtime,
+                                      cpus=() if a.cpu is None else (a.cpu,)))
             deadline = time.monotonic() + a.startup_timeout
             while not all(n in monitor.values for n in ('estimator', 'controller', 'recorder')):
                 watch(graph)
