@@ -27,8 +27,8 @@ def test_the_description_imports_no_ros_client_library():
                for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
     modules |= {n.module.split('.')[0]
                 for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.module}
-    assert modules <= {'__future__', 'dataclasses', 'pathlib', 're', 'sys', 'typing',
-                       'ament_index_python'}, modules
+    assert modules <= {'__future__', 'dataclasses', 'os', 'pathlib', 're', 'shutil', 'sys',
+                       'typing', 'ament_index_python'}, modules
     assert graph.CLOCK == CLOCK
 
 

@@ -301,8 +301,9 @@ def measure(rates: list[int], variants: list[str], seconds: float, repeats: int,
 
 #: the layouts :func:`rows` measures: the shipped one, the composed one, and the composed one at
 #: real-time priority (where this user may start one), also without the CPU wake-up latency hold
-#: a process at real-time priority makes (what the hold adds)
-ROW_VARIANTS = ('base', 'composed', 'composed+fifo', 'composed+fifo+nohold')
+#: a process at real-time priority makes (what the hold adds) and pinned (``deploy --cpu``)
+ROW_VARIANTS = ('base', 'composed', 'composed+fifo', 'composed+fifo+nohold',
+                'composed+fifo+pinned')
 #: the busy machine's rows: the composed loop at 1 kHz with a CPU-bound process on every core,
 #: at ordinary and at real-time priority
 HOG_VARIANTS = ('composed+hog', 'composed+fifo+hog')
