@@ -71,8 +71,6 @@ def fifo_problem(priority) -> str | None:
     return None
 
 
-
-
 #: the kernel's PM QoS request for CPU wake-up latency: while a process keeps this device open with
 #: a latency written to it, no CPU of the machine enters an idle state slower than that to leave
 CPU_LATENCY_DEVICE = '/dev/cpu_dma_latency'
