@@ -13,13 +13,15 @@ of ``ros2 run`` (:func:`soft_gripper_sdre.nodes.graph.realtime_prefix`).
 Setting SCHED_FIFO needs root, CAP_SYS_NICE, or an ``rtprio`` limit for the user
 (``/etc/security/limits.conf``: ``<user> - rtprio 98``, then a new login).
 
-A process at real-time priority also asks the kernel to keep every CPU's wake-up latency low
+A process at real-time priority can also ask the kernel to keep every CPU's wake-up latency low
 (:class:`CpuLatencyHold`, the PM QoS request cyclictest makes): an idle CPU then polls instead of
 halting, and a message that wakes a process of the loop is taken up at once. Each hop of the loop
-costs tens of microseconds less (docs/performance.md, "Waking up"). Writing the request needs
-root or write access to ``/dev/cpu_dma_latency`` (a udev rule); without it the process runs on,
-says so in its log and in /diagnostics (``cpu_latency``). ``SOFT_GRIPPER_CPU_LATENCY_US`` sets the
-latency asked for (default 0 µs) or ``off``.
+costs tens of microseconds less, but on the virtual machine we measure on the longest stalls did
+not get shorter and the 500 Hz loop was late more often (docs/performance.md, "Waking up"), so it
+is asked for, not implied: ``SOFT_GRIPPER_CPU_LATENCY_US=0`` (or any number of microseconds) in
+the environment of a process at real-time priority. Writing the request needs root or write access
+to ``/dev/cpu_dma_latency`` (a udev rule); without it the process runs on, says so in its log and
+in /diagnostics (``cpu_latency``).
 """
 from __future__ import annotations
 
@@ -74,10 +76,9 @@ def fifo_problem(priority) -> str | None:
 #: the kernel's PM QoS request for CPU wake-up latency: while a process keeps this device open with
 #: a latency written to it, no CPU of the machine enters an idle state slower than that to leave
 CPU_LATENCY_DEVICE = '/dev/cpu_dma_latency'
-#: environment variable: the wake-up latency [µs] a process at real-time priority asks for, or off
+#: environment variable: the wake-up latency [µs] a process at real-time priority asks for (unset
+#: or off: none)
 CPU_LATENCY_ENV = 'SOFT_GRIPPER_CPU_LATENCY_US'
-#: what a process at real-time priority asks for when the environment does not say
-DEFAULT_CPU_LATENCY_US = 0
 LATENCY_HOW = (f'run as root, or give the user write access to {CPU_LATENCY_DEVICE} (a udev rule: '
                'KERNEL=="cpu_dma_latency", GROUP="<group>", MODE="0660")')
 
@@ -90,7 +91,7 @@ class CpuLatencyHold:
         OSError: the device cannot be opened for writing (not Linux, or not permitted).
     """
 
-    def __init__(self, us: int = DEFAULT_CPU_LATENCY_US, device: str = CPU_LATENCY_DEVICE) -> None:
+    def __init__(self, us: int = 0, device: str = CPU_LATENCY_DEVICE) -> None:
         self.us = us
         self._fd: int | None = os.open(device, os.O_WRONLY)
         try:
@@ -117,15 +118,13 @@ class CpuLatencyHold:
 
 def cpu_latency_request(environ=os.environ) -> int | None:
     """The wake-up latency [µs] a process at real-time priority asks for: ``environ``'s
-    :data:`CPU_LATENCY_ENV`, else :data:`DEFAULT_CPU_LATENCY_US`; None for ``off``.
+    :data:`CPU_LATENCY_ENV`; None when it is unset, empty or ``off``.
 
     Raises:
         ValueError: the variable is neither ``off`` nor an integer from 0 to 2000000000 µs.
     """
     text = environ.get(CPU_LATENCY_ENV, '').strip()
-    if not text:
-        return DEFAULT_CPU_LATENCY_US
-    if text.lower() == 'off':
+    if not text or text.lower() == 'off':
         return None
     try:
         us = int(text)
@@ -147,7 +146,7 @@ def hold_cpu_latency(environ=os.environ,
     """
     us = cpu_latency_request(environ)
     if us is None:
-        return None, f'not held ({CPU_LATENCY_ENV}=off)'
+        return None, f'not asked for ({CPU_LATENCY_ENV} unset or off)'
     try:
         return CpuLatencyHold(us, device), f'{us} µs, held by this process'
     except PermissionError:

@@ -67,8 +67,8 @@ VARIANTS: dict[str, tuple[str, dict[str, str], dict]] = {
                {}, {'pinned': True}),
     'fifo': ('estimator, controller and driver at SCHED_FIFO priority 50 (started behind chrt -f '
              '50)', {}, {'fifo': 50}),
-    'nohold': ('at real-time priority without the CPU wake-up latency hold '
-               f'({scheduling.CPU_LATENCY_ENV}=off)', {scheduling.CPU_LATENCY_ENV: 'off'}, {}),
+    'hold': ('the processes at real-time priority holding the CPU wake-up latency at 0 µs '
+             f'({scheduling.CPU_LATENCY_ENV}=0)', {scheduling.CPU_LATENCY_ENV: '0'}, {}),
     'loop_nice': ('estimator, controller and driver at nice -10', {}, {'loop_nice': -10}),
     'hog': ('a busy machine: a CPU-bound process per core beside the loop, at nice 0', {},
             {'hog': True}),
@@ -156,7 +156,7 @@ def run_deploy(period: float, seconds: float, tips: Path, *, record: bool = Fals
     ``load_before`` (at the start). ``probe``: every process of the run records its timestamps
     there (:mod:`~soft_gripper_sdre.tools.benchmarks.loop_probe`)."""
     _, extra_env, options = variant_settings(variant)
-    env = {**ros_env(), **extra_env}
+    env = {k: v for k, v in ros_env().items() if k != scheduling.CPU_LATENCY_ENV} | extra_env
     if probe is not None:
         env = probe_env(env, probe)
     load_before = os.getloadavg()[0]
@@ -300,13 +300,13 @@ def measure(rates: list[int], variants: list[str], seconds: float, repeats: int,
 
 
 #: the layouts :func:`rows` measures: the shipped one, the composed one, and the composed one at
-#: real-time priority (where this user may start one), also without the CPU wake-up latency hold
-#: a process at real-time priority makes (what the hold adds) and pinned (``deploy --cpu``)
-ROW_VARIANTS = ('base', 'composed', 'composed+fifo', 'composed+fifo+nohold',
-                'composed+fifo+pinned')
+#: real-time priority (where this user may start one), with the CPU wake-up latency held and
+#: without, and pinned (``deploy --cpu``) with it
+ROW_VARIANTS = ('base', 'composed', 'composed+fifo+hold', 'composed+fifo',
+                'composed+fifo+hold+pinned')
 #: the busy machine's rows: the composed loop at 1 kHz with a CPU-bound process on every core,
 #: at ordinary and at real-time priority
-HOG_VARIANTS = ('composed+hog', 'composed+fifo+hog')
+HOG_VARIANTS = ('composed+hog', 'composed+fifo+hold+hog')
 #: the runs per configuration of :func:`rows`, and the measured seconds of each (after the warm-up)
 ROW_REPEATS, ROW_SECONDS = REPEATS, 6.0
 

@@ -46,10 +46,12 @@ from soft_gripper_sdre.tools.benchmarks.spread import REPEATS, LoadWatch, figure
 
 
 def hog_run(seconds: float, hog_at: float, hog_seconds: float = 1.0, executor: str | None = None,
-            timeout: float = 600.0, realtime: int = 0) -> dict[str, dict[str, float]]:
+            timeout: float = 600.0, realtime: int = 0,
+            cpu_latency: int | None = None) -> dict[str, dict[str, float]]:
     """The realtime graph for ``seconds`` of sim time, with one busy process per core for
     ``hog_seconds`` of wall time from ``hog_at`` of sim time on; ``realtime``: the loop's
-    processes under SCHED_FIFO at that priority (0: none).
+    processes under SCHED_FIFO at that priority (0: none), holding the CPU wake-up latency at
+    ``cpu_latency`` µs (None: not).
 
     Returns :func:`~soft_gripper_sdre.tools.benchmarks.bench_hog.phase_figures` of the simulator's
     /diagnostics: for each of :data:`PHASES`, lateness and loop latency.
@@ -57,7 +59,7 @@ def hog_run(seconds: float, hog_at: float, hog_seconds: float = 1.0, executor: s
     hog, history = CpuHog(hog_at, hog_seconds), {}
     try:
         run_graph(seconds, mode='realtime', executor=executor, timeout=timeout, during=hog.poll,
-                  history=history, realtime=realtime)
+                  history=history, realtime=realtime, cpu_latency=cpu_latency)
     finally:
         hog.stop()
     if hog.span is None:
@@ -87,7 +89,8 @@ def recorder_loss(seconds: float, executor: str | None = None,
 #: processes at
 REALTIME_PRIORITY = 50
 #: the graph layouts :func:`mode_runs` can alternate: (simulator mode, estimator + controller in
-#: one process, the loop's real-time priority or 0, pinned to two CPUs), and the words of their rows
+#: one process, the loop's real-time priority or 0 (with the CPU wake-up latency held at 0 µs),
+#: pinned to two CPUs), and the words of their rows
 LAYOUTS = {'lockstep': ('lockstep', False, 0, False, '4 processes, lockstep'),
            'pipelined': ('pipelined', False, 0, False, '4 processes, pipelined'),
            'pipelined_composed': ('pipelined', True, 0, False,
@@ -97,8 +100,8 @@ LAYOUTS = {'lockstep': ('lockstep', False, 0, False, '4 processes, lockstep'),
                              '(CPU wake-up latency held)'),
            'lockstep_fifo_pinned': ('lockstep', False, REALTIME_PRIORITY, True,
                                     '4 processes, lockstep, at SCHED_FIFO '
-                                    f'{REALTIME_PRIORITY} and pinned (the simulator on one CPU, '
-                                    'the other nodes on another)')}
+                                    f'{REALTIME_PRIORITY} (CPU wake-up latency held) and pinned '
+                                    '(the simulator on one CPU, the other nodes on another)')}
 #: the lockstep layouts run otherwise than the default, each also held against a floor measured
 #: the same way (its hop so): layout → the words of its rows
 SCHEDULED = {'lockstep_fifo': f'at SCHED_FIFO {REALTIME_PRIORITY}, the CPU wake-up latency held',
@@ -129,7 +132,7 @@ def mode_runs(seconds: float, repeats: int = 1, executor: str | None = None,
         for name, done in runs.items():
             mode, composed, priority, pin, _ = LAYOUTS[name]
             d = run_graph(seconds, mode=mode, executor=executor, composed=composed,
-                          realtime=priority, pin=pin)
+                          realtime=priority, pin=pin, cpu_latency=0 if priority else None)
             d['simulator']['load'] = os.getloadavg()[0]
             done.append(d)
     return runs
@@ -227,8 +230,8 @@ def realtime_rows(quick: bool, executor: str | None) -> list[tuple[str, str, str
     """The realtime graph's rows, measured now: its late and safe periods, and its latency
     before, during and after a CPU hog (:func:`hog_run`); each figure the median (min–max) of
     :data:`REALTIME_RUNS` runs (two short ones with ``quick``), with the loop's processes at
-    ordinary scheduling and at SCHED_FIFO priority :data:`REALTIME_PRIORITY` (where this user may
-    start one; the runs of the two take turns)."""
+    ordinary scheduling and at SCHED_FIFO priority :data:`REALTIME_PRIORITY` with the CPU wake-up
+    latency held (where this user may start one; the runs of the two take turns)."""
     runs = 2 if quick else REALTIME_RUNS
     real_s, hog_s, hog_at = (2.0, 9.0, 4.5) if quick else (REALTIME_S, HOG_S, HOG_AT)
     refused = fifo_problem(REALTIME_PRIORITY)
@@ -238,17 +241,18 @@ def realtime_rows(quick: bool, executor: str | None) -> list[tuple[str, str, str
     reals = {p: [] for p in priorities}
     for _ in range(runs):
         for p in priorities:
-            reals[p].append(run_graph(real_s, mode='realtime', executor=executor,
-                                      realtime=p)['simulator'])
+            reals[p].append(run_graph(real_s, mode='realtime', executor=executor, realtime=p,
+                                      cpu_latency=0 if p else None)['simulator'])
     load.note()
     hogs = {p: [] for p in priorities}
     for _ in range(runs):
         for p in priorities:
-            hogs[p].append(hog_run(hog_s, hog_at, executor=executor, realtime=p))
+            hogs[p].append(hog_run(hog_s, hog_at, executor=executor, realtime=p,
+                                   cpu_latency=0 if p else None))
     load.note()
     out = []
     for p in priorities:
-        at = f', the loop at SCHED_FIFO {p}' if p else ''
+        at = f', the loop at SCHED_FIFO {p} (CPU wake-up latency held)' if p else ''
         out += _realtime_figures(reals[p], hogs[p], at, real_s, hog_s, hog_at, load)
     if refused:
         out.append((f'realtime mode, the loop at SCHED_FIFO {REALTIME_PRIORITY}', 'not measured',
@@ -291,8 +295,10 @@ def hop_runs(kind: str, count: int, raw: bool = False, repeats: int = REPEATS,
              realtime: int = 0, pin: bool = False) -> dict[str, list[float]]:
     """:func:`~soft_gripper_sdre.tools.benchmarks.hop.hop` ``repeats`` times (each its own
     pair of processes, ``count`` rounds; ``realtime``: at that SCHED_FIFO priority; ``pin``: on
-    two CPUs of their own): per figure (``p50``, ``p99``, ``cpu`` [µs]) every run's."""
-    runs = [hop(kind, count, raw=raw, realtime=realtime, pin=pin) for _ in range(repeats)]
+    two CPUs of their own; at real-time priority with the CPU wake-up latency held): per figure
+    (``p50``, ``p99``, ``cpu`` [µs]) every run's."""
+    runs = [hop(kind, count, raw=raw, realtime=realtime, pin=pin,
+                cpu_latency=0 if realtime else None) for _ in range(repeats)]
     return {k: [r[k] for r in runs] for k in ('p50', 'p99', 'cpu')}
 
 
@@ -309,7 +315,8 @@ def hop_rows(quick: bool, figures: dict[str, float] | None = None) -> list[tuple
     got: dict[str, list[dict]] = {k: [] for k in kinds}
     for _ in range(repeats):
         for key, (kind, raw, priority, pin) in kinds.items():
-            got[key].append(hop(kind, count, raw=raw, realtime=priority, pin=pin))
+            got[key].append(hop(kind, count, raw=raw, realtime=priority, pin=pin,
+                                cpu_latency=0 if priority else None))
     runs_of = {key: {k: [r[k] for r in got[key]] for k in ('p50', 'p99', 'cpu')} for key in kinds}
     ev, st, ev_raw = runs_of['ev'], runs_of['st'], runs_of['raw']
     scheduled = [k for k in kinds if k in SCHEDULED]

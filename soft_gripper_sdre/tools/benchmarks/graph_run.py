@@ -61,17 +61,20 @@ def published(d: dict[str, dict[str, float]]) -> dict[str, int]:
 
 def run_graph(seconds: float, *, mode: str = 'lockstep', record: Path | None = None,
               all_at_1khz: bool = False, executor: str | None = None, composed: bool = False,
-              realtime: int = 0, pin: bool = False, timeout: float = 600.0, during=None,
+              realtime: int = 0, pin: bool = False, cpu_latency: int | None = None,
+              timeout: float = 600.0, during=None,
               history: dict[str, list] | None = None,
               probe: Path | None = None) -> dict[str, dict[str, float]]:
     """Run the loop processes (and the recorder into ``record``) for ``seconds`` of sim time;
     ``composed``: the estimator and the controller as one process (``controller --with-estimator``),
     whose CPU time is the controller's; ``realtime``: the loop's processes under SCHED_FIFO at that
     priority (0: none); ``pin``: the simulator on one CPU and the loop's other nodes on another
-    (``grasp_graph(pin=True)``). ``during(monitor)`` is called about 10 times a second
-    while the simulator steps; ``history``, if given, gets the monitor's /diagnostics history
-    (node → its successive values). ``probe``: every process records its timestamps there
-    (:mod:`~soft_gripper_sdre.tools.benchmarks.loop_probe`, read by its :func:`graph_periods`).
+    (``grasp_graph(pin=True)``); ``cpu_latency``: the CPU wake-up latency [µs] the processes at
+    real-time priority hold (``SOFT_GRIPPER_CPU_LATENCY_US``; None: none). ``during(monitor)`` is
+    called about 10 times a second while the simulator steps; ``history``, if given, gets the
+    monitor's /diagnostics history (node → its successive values). ``probe``: every process
+    records its timestamps there (:mod:`~soft_gripper_sdre.tools.benchmarks.loop_probe`, read by
+    its :func:`graph_periods`).
 
     Returns every node's final /diagnostics values as floats (non-numeric values dropped), for
     each node its CPU time per step while the simulator stepped (``cpu_per_step_us``), and for the
@@ -81,8 +84,12 @@ def run_graph(seconds: float, *, mode: str = 'lockstep', record: Path | None = N
         RuntimeError: a node died or the run did not finish within ``timeout``.
     """
     from soft_gripper_sdre.nodes.common import EXECUTOR_ENV
+    from soft_gripper_sdre.nodes.scheduling import CPU_LATENCY_ENV
     from soft_gripper_sdre.tools.benchmarks.loop_probe import probe_env
     env = ros_env()
+    env.pop(CPU_LATENCY_ENV, None)
+    if cpu_latency is not None:
+        env[CPU_LATENCY_ENV] = str(cpu_latency)
     if executor is not None:
         env[EXECUTOR_ENV] = executor
     if probe is not None:

@@ -134,16 +134,18 @@ class _Pinger:
 
 
 @contextmanager
-def _running_as(priority: int, cpu: int | None) -> Iterator[None]:
+def _running_as(priority: int, cpu: int | None, cpu_latency: int | None) -> Iterator[None]:
     """The calling thread (and the threads and processes it starts meanwhile) under SCHED_FIFO at
-    ``priority`` with the CPU wake-up latency held, as a loop process at real-time priority runs
-    (nodes/scheduling.py; 0: as it is), and on ``cpu`` (None: as it is); put back after."""
+    ``priority`` (0: as it is) and on ``cpu`` (None: as it is), the CPU wake-up latency held at
+    ``cpu_latency`` µs (None: not), as a loop process runs so (nodes/scheduling.py); put back
+    after."""
     policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
     affinity = os.sched_getaffinity(0)
     hold = None
     if priority:
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
-        hold, _ = scheduling.hold_cpu_latency()
+    if cpu_latency is not None:
+        hold, _ = scheduling.hold_cpu_latency({scheduling.CPU_LATENCY_ENV: str(cpu_latency)})
     if cpu is not None:
         os.sched_setaffinity(0, {cpu})
     try:
@@ -156,7 +158,7 @@ def _running_as(priority: int, cpu: int | None) -> Iterator[None]:
 
 
 def hop(executor: str, count: int = 2000, raw: bool = False, realtime: int = 0,
-        pin: bool = False) -> dict[str, float]:
+        pin: bool = False, cpu_latency: int | None = None) -> dict[str, float]:
     """One DDS hop with the graph's own message and executor, between two processes.
 
     A ping-pong of ``tip_positions``-sized PoseArrays: half the round trip is the latency of one
@@ -164,8 +166,8 @@ def hop(executor: str, count: int = 2000, raw: bool = False, realtime: int = 0,
     per message (receive + publish; with ``raw`` as CDR bytes decoded and encoded by nodes/cdr.py,
     as the loop nodes do). Returns µs: ``p50``, ``p99`` of one hop, ``cpu``; and the counts
     ``rounds`` (answered, of ``count``) and ``resent``. ``realtime``: both processes under
-    SCHED_FIFO at that priority with the CPU wake-up latency held, as the loop's processes run
-    at real-time priority (the caller checks the permission: ``scheduling.fifo_problem``);
+    SCHED_FIFO at that priority (the caller checks the permission: ``scheduling.fifo_problem``);
+    ``cpu_latency``: the CPU wake-up latency held at that many µs meanwhile;
     ``pin``: each on a CPU of its own (``pinned_cpus``: the echo where the simulator would run,
     this side where the estimator would).
 
@@ -190,7 +192,7 @@ def hop(executor: str, count: int = 2000, raw: bool = False, realtime: int = 0,
     os.environ.update({k: env[k] for k in ('ROS_DOMAIN_ID', 'ROS_AUTOMATIC_DISCOVERY_RANGE')})
     cpus = pinned_cpus() if pin else {}
     echo_cpus = (cpus['simulator'],) if pin else ()
-    with _running_as(realtime, cpus.get('estimator')):
+    with _running_as(realtime, cpus.get('estimator'), cpu_latency):
         echo = subprocess.Popen([*cpus_prefix(echo_cpus), *realtime_prefix(realtime),
                                  sys.executable, '-m',
                                  'soft_gripper_sdre.tools.benchmarks.hop', str(count)]
