@@ -190,6 +190,13 @@ def cpus_prefix(cpus: Sequence[int]) -> tuple[str, ...]:
     return ('taskset', '-c', ','.join(str(c) for c in cpus)) if cpus else ()
 
 
+def taskset_problem() -> str | None:
+    """Why no process can be started behind ``taskset`` here (util-linux missing), or None."""
+    if shutil.which('taskset') is None:
+        return 'needs taskset (util-linux) on the PATH; it is not there'
+    return None
+
+
 def pinned_cpus(available: Sequence[int] | None = None) -> dict[str, int]:
     """Node → the CPU ``pin`` starts it on (:data:`PIN_SLOTS`), from ``available`` (default: the
     CPUs this process may run on).
@@ -201,8 +208,9 @@ def pinned_cpus(available: Sequence[int] | None = None) -> dict[str, int]:
     if len(cpus) < len(set(PIN_SLOTS.values())):
         raise ValueError(f'pinning puts the simulator and the loop on two CPUs of their own; this '
                          f'process may run on {len(cpus)} ({", ".join(map(str, cpus))})')
-    if shutil.which('taskset') is None:
-        raise ValueError('pinning needs taskset (util-linux) on the PATH; it is not there')
+    problem = taskset_problem()
+    if problem:
+        raise ValueError(f'pinning {problem}')
     return {name: cpus[slot] for name, slot in PIN_SLOTS.items()}
 
 

@@ -88,6 +88,12 @@ def recorder_loss(seconds: float, executor: str | None = None,
 #: the real-time priority the realtime rows and the ``lockstep_fifo`` layout run the loop's
 #: processes at
 REALTIME_PRIORITY = 50
+def held_latency(priority: int) -> int | None:
+    """The CPU wake-up latency [µs] the graph benchmarks hold at real-time priority ``priority``
+    (0 µs; None at ordinary priority): their rows at SCHED_FIFO measure the loop waking fast."""
+    return 0 if priority else None
+
+
 #: the graph layouts :func:`mode_runs` can alternate: (simulator mode, estimator + controller in
 #: one process, the loop's real-time priority or 0 (with the CPU wake-up latency held at 0 µs),
 #: pinned to two CPUs), and the words of their rows
@@ -132,7 +138,7 @@ def mode_runs(seconds: float, repeats: int = 1, executor: str | None = None,
         for name, done in runs.items():
             mode, composed, priority, pin, _ = LAYOUTS[name]
             d = run_graph(seconds, mode=mode, executor=executor, composed=composed,
-                          realtime=priority, pin=pin, cpu_latency=0 if priority else None)
+                          realtime=priority, pin=pin, cpu_latency=held_latency(priority))
             d['simulator']['load'] = os.getloadavg()[0]
             done.append(d)
     return runs
@@ -242,13 +248,13 @@ def realtime_rows(quick: bool, executor: str | None) -> list[tuple[str, str, str
     for _ in range(runs):
         for p in priorities:
             reals[p].append(run_graph(real_s, mode='realtime', executor=executor, realtime=p,
-                                      cpu_latency=0 if p else None)['simulator'])
+                                      cpu_latency=held_latency(p))['simulator'])
     load.note()
     hogs = {p: [] for p in priorities}
     for _ in range(runs):
         for p in priorities:
             hogs[p].append(hog_run(hog_s, hog_at, executor=executor, realtime=p,
-                                   cpu_latency=0 if p else None))
+                                   cpu_latency=held_latency(p)))
     load.note()
     out = []
     for p in priorities:
@@ -298,7 +304,7 @@ def hop_runs(kind: str, count: int, raw: bool = False, repeats: int = REPEATS,
     two CPUs of their own; at real-time priority with the CPU wake-up latency held): per figure
     (``p50``, ``p99``, ``cpu`` [µs]) every run's."""
     runs = [hop(kind, count, raw=raw, realtime=realtime, pin=pin,
-                cpu_latency=0 if realtime else None) for _ in range(repeats)]
+                cpu_latency=held_latency(realtime)) for _ in range(repeats)]
     return {k: [r[k] for r in runs] for k in ('p50', 'p99', 'cpu')}
 
 
@@ -316,7 +322,7 @@ def hop_rows(quick: bool, figures: dict[str, float] | None = None) -> list[tuple
     for _ in range(repeats):
         for key, (kind, raw, priority, pin) in kinds.items():
             got[key].append(hop(kind, count, raw=raw, realtime=priority, pin=pin,
-                                cpu_latency=0 if priority else None))
+                                cpu_latency=held_latency(priority)))
     runs_of = {key: {k: [r[k] for r in got[key]] for k in ('p50', 'p99', 'cpu')} for key in kinds}
     ev, st, ev_raw = runs_of['ev'], runs_of['st'], runs_of['raw']
     scheduled = [k for k in kinds if k in SCHEDULED]

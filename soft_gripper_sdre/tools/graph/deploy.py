@@ -11,11 +11,11 @@ recorder and, once the loop has come up, the trajectory node on ``params.yaml`` 
 move the settings were checked on, the plan's timing; every finger grasps, none opens). It ends
 when the plan ends (its length from ``params.yaml``: t_start + t_close + t_hold + t_open, plus
 ``--tail`` seconds), stops the nodes (the controller last sends nothing, and the driver's
-stale-command rule takes over), and prints the score
-of the run from the bag (:func:`~soft_gripper_sdre.analysis.run_score.score_run`): the RMSE of the
-tips against the plan as a share of the travel (on ``true_tip_positions`` when the driver publishes
-them, else the measured tips), the share of commands at a bound while the plan holds at rest, and
-the commands outside the controller's bounds.
+stale-command rule takes over), and prints the score of the run from the bag
+(:func:`~soft_gripper_sdre.analysis.run_score.score_run`): the RMSE of the tips against the plan
+as a share of the travel (on ``true_tip_positions`` when the driver publishes them, else the
+measured tips), the share of commands at a bound while the plan holds at rest, and the commands
+outside the controller's bounds.
 
 Every node reads the tips best effort (which also matches a reliable driver); the nodes run on
 the caller's ROS domain (or ``--domain-id``) with the caller's DDS settings. ``OUT`` (default:
@@ -165,9 +165,10 @@ def check(a: argparse.Namespace) -> tuple[Settings | None, str | None]:
         if a.cpu not in allowed:
             return None, (f'--cpu {a.cpu}: not a CPU this process may run on '
                           f'({", ".join(map(str, allowed))})')
-        import shutil
-        if shutil.which('taskset') is None:
-            return None, f'--cpu {a.cpu}: needs taskset (util-linux) on the PATH; it is not there'
+        from soft_gripper_sdre.nodes.graph import taskset_problem
+        problem = taskset_problem()
+        if problem:
+            return None, f'--cpu {a.cpu}: {problem}'
     if a.domain_id is None and not re.fullmatch(r'\d{0,3}', os.environ.get('ROS_DOMAIN_ID', '')):
         return None, (f'ROS_DOMAIN_ID {os.environ["ROS_DOMAIN_ID"]!r} is not a domain number; '
                       'set it to one, or give --domain-id')
