@@ -140,6 +140,21 @@ def test_the_watchdog_reports_lost_estimates_once_and_their_return():
     assert gate.on_wall_time(13.0).notices == ()
 
 
+def test_estimates_that_stop_past_the_plans_end_are_the_run_ending_not_a_loss():
+    gate = make_gate(watchdog=0.5)
+    times = plan()[0]
+    gate.on_plan(*plan())
+    gate.on_estimate(int(times[-1]) - MS, estimate(), wall=10.0)      # one period before the end
+    assert gate.on_wall_time(10.5).notices == (Notice(Change.ESTIMATES_LOST,
+                                                      int(times[-1]) - MS),)
+    gate.on_estimate(int(times[-1]), estimate(), wall=11.0)           # at the end: back
+    out = gate.on_wall_time(11.5)
+    assert out.notices == (Notice(Change.RUN_ENDED, int(times[-1])),) and out.answer is None
+    assert gate.on_wall_time(12.0).notices == ()                      # reported once
+    out = gate.on_estimate(int(times[-1]) + MS, estimate(), wall=12.5)  # a run that goes on
+    assert out.notices == (Notice(Change.ESTIMATES_BACK, int(times[-1]) + MS),)
+
+
 def test_time_jumping_back_resets_and_the_old_runs_plan_is_forgotten():
     gate = make_gate(jump_ns=100 * MS)
     gate.on_plan(*plan())

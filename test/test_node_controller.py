@@ -130,6 +130,23 @@ def test_the_watchdog_reports_lost_estimates_and_nothing_is_sent_without_one(mod
         assert node.diag.counters['skipped_estimates'] == 4               # 5 … 8 ms never came
 
 
+def test_estimates_stopping_past_the_plans_end_end_the_run_without_an_error(model):
+    """The run's end (the simulator or driver finished after the plan's last point): the same
+    silence is reported at INFO with status OK, and nothing is sent."""
+    from soft_gripper_sdre.nodes.common import OK
+    rest = np.repeat(model.rest_tip[None, :2], 4, 0)
+    with ros_context() as (ctx, executor):
+        node, probe, est_pub, ref_pub = make(ctx, executor, estimate_watchdog=0.2)
+        ref_pub.publish(horizon(rest, 0)[0])                 # 21 points 5 ms apart: ends at 100 ms
+        assert spin_until(executor, lambda: node.diag.counters['references'] == 1)
+        send_estimate(executor, node, est_pub, estimate(100 * MS, rest))
+        assert spin_until(executor, lambda: len(commands(probe)) == 1)
+        assert spin_until(executor, lambda: node.gate.estimates_lost, 5.0)
+        assert node.diag.level == OK and 'the run is over' in node.diag.message
+        assert "past the plan's end at 0.1000 s" in node.diag.message
+        assert not spin_until(executor, lambda: len(commands(probe)) > 1, 0.3)   # nothing sent
+
+
 def test_a_controller_that_fell_behind_answers_only_the_newest_estimate(model):
     """Estimates that queued while the node could not run: it answers the newest (its reader keeps
     one message) and counts the skipped ones, instead of working off a queue of stale ones."""

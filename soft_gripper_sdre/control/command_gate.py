@@ -13,7 +13,8 @@ The rules (docs/design/loop_rules.md):
   waits, so the answer does not depend on which message arrived first;
 * the controller answers estimates only: when they stop, it sends nothing (the simulator's own
   rules step the physics safely) and reports ERROR after ``watchdog`` seconds of wall time without
-  one, OK again with the next;
+  one, OK again with the next; estimates that stop once they have passed the plan's end are the
+  run ending (a simulator or driver that finished), reported as such and not as an error;
 * estimates are taken in stamp order: an estimate not newer than the last is refused; a gap in
   the stamps is counted as skipped estimates (the node keeps only the newest message);
 * a stamp ``reset_jump_ns`` behind the newest estimate (a restarted simulator) resets the gate:
@@ -58,13 +59,14 @@ class Change(enum.Enum):
 
     RESET = 'time jumped back: the waiting estimate, the stamps and the law state are forgotten'
     ESTIMATES_LOST = 'no estimate for the watchdog time of wall time (ERROR)'
+    RUN_ENDED = 'no estimate for the watchdog time, the last past the plan\'s end: the run is over'
     ESTIMATES_BACK = 'an estimate arrived after estimates were lost: tracking again (OK)'
 
 
 class Notice(NamedTuple):
     """``change`` happened; ``t_ns`` is the stamp it concerns: the stamp time jumped back to
-    (RESET), the stamp of the last estimate (ESTIMATES_LOST), the returning estimate's stamp
-    (ESTIMATES_BACK)."""
+    (RESET), the stamp of the last estimate (ESTIMATES_LOST, RUN_ENDED), the returning estimate's
+    stamp (ESTIMATES_BACK)."""
 
     change: Change
     t_ns: int
@@ -159,11 +161,14 @@ class CommandGate:
 
     def on_wall_time(self, wall: float) -> Outcome:
         """The wall clock reads ``wall`` [s]: once no estimate came for ``watchdog``, estimates
-        are reported lost (once; nothing is answered)."""
+        are reported lost, or the run ended if the last was at or past the plan's end (once;
+        nothing is answered)."""
         if self.estimates_lost or self.last_heard is None or wall - self.last_heard < self.watchdog:
             return NOTHING
         self.estimates_lost = True
-        return Outcome(notices=(Notice(Change.ESTIMATES_LOST, self.last_estimate_ns),))
+        ended = self.plan is not None and self.last_estimate_ns >= self.plan.end
+        return Outcome(notices=(Notice(Change.RUN_ENDED if ended else Change.ESTIMATES_LOST,
+                                       self.last_estimate_ns),))
 
     # -- state -------------------------------------------------------------------------------
     def covers(self, t_ns: int) -> bool:

@@ -170,8 +170,8 @@ PARAMS = (
         choices=GRAPH_LAWS, read_only=True),
     *_node_params(shared=False),
     Param('estimate_watchdog', 0.5, 'wall time without a state_estimate after which the controller '
-          'reports ERROR (it sends nothing without an estimate: the simulator steps safely on its '
-          'own)', 's', 1e-2, 600.0),
+          'reports ERROR, or the run\'s end once the estimates passed the plan\'s end (it sends '
+          'nothing without an estimate: the simulator steps safely on its own)', 's', 1e-2, 600.0),
     Param('reset_on_jump', 0.1, 'a state_estimate stamp this far behind the last one (a simulator '
           'restart) resets the controller instead of being rejected; one this far ahead is '
           'counted (estimate_jumps) and warned about. The estimator resets its filter on a jump '
@@ -376,6 +376,13 @@ class ControllerNode(Node):
         elif change is Change.ESTIMATES_LOST:
             self._error(f'no state_estimate for {self.p["estimate_watchdog"]:g} s of wall time, '
                         f'the last stamped t = {t:.4f} s: commanding nothing')
+        elif change is Change.RUN_ENDED:
+            end = self.gate.plan.end / cv.NS
+            why = (f'the run is over: no state_estimate for {self.p["estimate_watchdog"]:g} s of '
+                   f'wall time, the last stamped t = {t:.4f} s, past the plan\'s end at '
+                   f'{end:.4f} s; commanding nothing')
+            self.diag.set_status(OK, why)
+            self.get_logger().info(why)
         elif change is Change.ESTIMATES_BACK:
             self.diag.set_status(OK, 'estimates are back; tracking')
             self.get_logger().info(f'state estimates are back at t = {t:.4f} s; tracking resumes')

@@ -36,8 +36,7 @@ CONFIG_DIR = Path(__file__).resolve().parents[2] / 'config'
 #: sim time, as the simulator publishes it (nodes/topics.py CLOCK)
 CLOCK = '/clock'
 #: start order: listeners first, the simulator (which waits for them) last. A run stops in reverse,
-#: so the controller goes right after the simulator, before its estimate_watchdog (wall time, once
-#: the estimates stop) would report ERROR
+#: so the controller goes right after the simulator
 GRASP_NODES = ('recorder', 'estimator', 'trajectory', 'controller', 'simulator')
 #: the nodes that declare ``control_period``: :func:`grasp_graph` gives them all one value
 PERIOD_NODES = ('estimator', 'controller', 'simulator')
