@@ -44,6 +44,7 @@ from soft_gripper_sdre.tools.benchmarks.spread import (  # noqa: E402
     figure,
     median,
 )
+from soft_gripper_sdre.tools.benchmarks.wake import wake_rows  # noqa: E402
 
 
 def _us(seconds: float) -> str:
@@ -275,8 +276,9 @@ def floor_table(quick: bool, repeats: int) -> list[Row]:
     """The floor rows alone, measured together (``--floor``): the hand's physics, the KF and
     ``sdre_ff`` compute on the closed loop's states, the raw-CDR hop, and the graph in lockstep,
     in pipelined mode and pipelined with the estimator and the controller in one process, taking
-    turns ``repeats`` times; each row the median (min–max) of its runs, with the load it ran
-    under."""
+    turns ``repeats`` times, and what waking up costs the loop's callbacks
+    (:mod:`~soft_gripper_sdre.tools.benchmarks.wake`); each row the median (min–max) of its runs,
+    with the load it ran under."""
     from soft_gripper_sdre.analysis.closed_loop import default_grasp
     from soft_gripper_sdre.tools.benchmarks.bench_graph import (
         LAYOUTS,
@@ -315,7 +317,8 @@ def floor_table(quick: bool, repeats: int) -> list[Row]:
     out += mode_rows(mode_runs(seconds, repeats, layouts=layouts), seconds, figures)
     return out + floor_rows(
         physics, median(hops['']['p50']), median(kf_runs), median(ctrl['runs']['fast']), figures,
-        rest=hand, scheduled=[(SCHEDULED[k], median(hops[k]['p50']), k) for k in hops if k])
+        rest=hand, scheduled=[(SCHEDULED[k], median(hops[k]['p50']), k) for k in hops if k]
+    ) + wake_rows(quick)
 
 
 def deploy_rows(quick: bool) -> list[Row]:
@@ -429,6 +432,7 @@ def rows(quick: bool, load: LoadWatch | None = None) -> list[Row]:
                           scheduled=[(words, figures[f'hop_{k}_p50_us'], k)
                                      for k, words in SCHEDULED.items()
                                      if f'hop_{k}_p50_us' in figures])
+    out += wake_rows(quick)
     out += deploy_rows(quick)
     out += startup_rows(quick)
     out += training_rows()
