@@ -55,9 +55,8 @@ ARGUMENTS = (
     ('realtime_priority', '0', 'run the simulator, the estimator and the controller under '
      'SCHED_FIFO at this priority (1 to 98, behind chrt -f; 0 = ordinary scheduling): on time on a '
      'busy machine; needs root, CAP_SYS_NICE or an rtprio limit'),
-    ('pin_cores', 'false', 'run the simulator on one CPU and the estimator, the trajectory node '
-     'and the controller on another (behind taskset -c; needs two CPUs): each keeps its caches '
-     'from period to period'),
+    ('pin_cores', 'false', 'run the simulator on one CPU and the estimator and the controller on '
+     'another (behind taskset -c; needs two CPUs): each keeps its caches from period to period'),
 )
 
 _TRUE, _FALSE = ('true', '1', 'yes', 'on'), ('false', '0', 'no', 'off', '')

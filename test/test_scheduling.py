@@ -140,9 +140,8 @@ def test_the_graph_runs_the_loops_processes_behind_chrt_and_the_others_as_they_a
     assert all(n.command('python')[0] == 'python' for n in grasp_graph().nodes)
 
 
-def test_pinning_puts_the_simulator_on_one_cpu_and_the_nodes_it_waits_for_on_another():
-    assert pinned_cpus([5, 3, 9]) == {'simulator': 3, 'estimator': 5, 'trajectory': 5,
-                                      'controller': 5}
+def test_pinning_puts_the_simulator_on_one_cpu_and_the_loops_other_processes_on_another():
+    assert pinned_cpus([5, 3, 9]) == {'simulator': 3, 'estimator': 5, 'controller': 5}
     with pytest.raises(ValueError, match=r'two CPUs of their own; this process may run on 1 \(2\)'):
         pinned_cpus([2])
     if len(os.sched_getaffinity(0)) < 2:
@@ -190,7 +189,7 @@ def test_the_launch_file_pins_the_loop_before_its_priority(launch_module):
     assert {k: n.get('prefix') for k, n in nodes.items()} == {
         'simulator': f'taskset -c {cpus["simulator"]} chrt -f 40',
         'estimator': f'taskset -c {cpus["estimator"]} chrt -f 40',
-        'trajectory': f'taskset -c {cpus["trajectory"]}',
+        'trajectory': None,
         'controller': f'taskset -c {cpus["controller"]} chrt -f 40'}
 
 

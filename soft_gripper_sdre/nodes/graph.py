@@ -42,10 +42,13 @@ GRASP_NODES = ('recorder', 'estimator', 'trajectory', 'controller', 'simulator')
 PERIOD_NODES = ('estimator', 'controller', 'simulator')
 #: the loop's processes, which :func:`grasp_graph` runs at real-time priority when asked
 REALTIME_NODES = ('simulator', 'estimator', 'controller')
-#: with ``pin``: the plant on one core and the nodes it waits for on another (positions in the
-#: list of CPUs the process may use), so each process finds its caches as it left them from one
-#: period to the next (docs/performance.md, "Cores"); the recorder is left to the scheduler
-PIN_SLOTS = {'simulator': 0, 'estimator': 1, 'trajectory': 1, 'controller': 1}
+#: with ``pin``: the plant on one core and the loop's other processes on another (positions in
+#: the list of CPUs the process may use), so each finds its caches as it left them from one period
+#: to the next (docs/performance.md, "Cores"). The trajectory node and the recorder are left to
+#: the scheduler: the trajectory node, idle once it has planned, would otherwise start up on the
+#: core where the estimator and the controller load their models at real-time priority, and the
+#: graph's start-up took 8.1–9.3 s against 5.5–6.2 s with it left free
+PIN_SLOTS = {'simulator': 0, 'estimator': 1, 'controller': 1}
 #: the control periods the grasp graph is run and measured at [s] (docs/results.md "Control rates")
 PERIOD_RANGE = (1e-3, 1e-2)
 #: the nodes that read ``tip_positions``, so the simulator waits for them before its first step
@@ -407,8 +410,8 @@ def grasp_graph(namespace: str = '', *, record: bool = True,
         realtime: the SCHED_FIFO priority of the loop's processes (:data:`REALTIME_NODES`: the
             simulator, the estimator, the controller; :mod:`~soft_gripper_sdre.nodes.scheduling`),
             0 for none. The trajectory node and the recorder stay ordinary.
-        pin: the simulator on one CPU, the estimator, the trajectory node and the controller on
-            another (:func:`pinned_cpus`); the recorder anywhere.
+        pin: the simulator on one CPU, the estimator and the controller on another
+            (:func:`pinned_cpus`); the trajectory node and the recorder anywhere.
 
     The simulator waits for the graph's other nodes by :func:`readiness_problem`
     (``wait_for_nodes``), unless told otherwise.

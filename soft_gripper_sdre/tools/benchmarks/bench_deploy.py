@@ -45,7 +45,13 @@ from typing import Iterator
 import numpy as np
 
 from soft_gripper_sdre.nodes import scheduling
-from soft_gripper_sdre.nodes.graph import NodeSpec, default_params_file, realtime_prefix
+from soft_gripper_sdre.nodes.graph import (
+    NodeSpec,
+    cpus_prefix,
+    default_params_file,
+    pinned_cpus,
+    realtime_prefix,
+)
 from soft_gripper_sdre.tools.benchmarks.deploy_driver import driver
 from soft_gripper_sdre.tools.benchmarks.loop_probe import late_causes, probe_env
 from soft_gripper_sdre.tools.benchmarks.spread import REPEATS, median, span
@@ -63,8 +69,9 @@ VARIANTS: dict[str, tuple[str, dict[str, str], dict]] = {
     'sync': ('Fast DDS synchronous publication (RMW_FASTRTPS_PUBLICATION_MODE=SYNCHRONOUS)',
              {'RMW_FASTRTPS_PUBLICATION_MODE': 'SYNCHRONOUS'}, {}),
     'composed': ('estimator + controller in one process, one executor', {}, {'composed': True}),
-    'pinned': ('estimator and controller on core 1, driver and trajectory on core 0 (affinity)',
-               {}, {'pinned': True}),
+    'pinned': ('the estimator and the controller on one CPU (as deploy --cpu), the driver on '
+               'another (graph.pinned_cpus, the driver in the simulator\'s place; both started '
+               'behind taskset)', {}, {'pinned': True}),
     'fifo': ('estimator, controller and driver at SCHED_FIFO priority 50 (started behind chrt -f '
              '50)', {}, {'fifo': 50}),
     'hold': ('the processes at real-time priority holding the CPU wake-up latency at 0 µs '
@@ -108,15 +115,6 @@ def _threads(pid: int) -> list[int]:
         return []
 
 
-def _pin(pid: int, cpus: set[int]) -> None:
-    """Every thread of ``pid`` on ``cpus``."""
-    for tid in _threads(pid):
-        try:
-            os.sched_setaffinity(tid, cpus)
-        except OSError:
-            pass
-
-
 def _renice(pid: int, nice: int = 0, batch: bool = False) -> None:
     """Every thread of ``pid`` at ``nice``, and under SCHED_BATCH if ``batch``."""
     for tid in _threads(pid):
@@ -142,9 +140,13 @@ def _hogs(on: bool) -> Iterator[None]:
             proc.wait()
 
 
-def _spec(name: str, parameters: dict, realtime: int = 0) -> NodeSpec:
+def _spec(name: str, parameters: dict, realtime: int = 0,
+          cpus: dict[str, int] | None = None) -> NodeSpec:
+    """The node ``name`` on its default parameter file and ``parameters``; at SCHED_FIFO
+    ``realtime``; on its CPU of ``cpus`` (:func:`~soft_gripper_sdre.nodes.graph.pinned_cpus`;
+    None: anywhere)."""
     return NodeSpec(name, name, params_file=default_params_file(name), parameters=parameters,
-                    realtime=realtime)
+                    realtime=realtime, cpus=(cpus[name],) if cpus else ())
 
 
 def run_deploy(period: float, seconds: float, tips: Path, *, record: bool = False,
@@ -162,16 +164,20 @@ def run_deploy(period: float, seconds: float, tips: Path, *, record: bool = Fals
     load_before = os.getloadavg()[0]
     timing = {'control_period': float(period)}
     fifo = options.get('fifo', 0)
+    cpus = pinned_cpus() if options.get('pinned') else None
     with tempfile.TemporaryDirectory(prefix='sgs_bench_deploy_') as tmp, \
             Graph(env, Path(tmp) / 'logs') as graph:
         if record:
             graph.start_node(_spec('recorder', {'output': str(Path(tmp) / 'bag')}))
         if options.get('composed'):
-            graph.start_node(replace(_spec('controller', timing, fifo),
+            graph.start_node(replace(_spec('controller', timing, fifo, cpus),
                                      hosted=(_spec('estimator', timing),)))
         else:
-            graph.start_node(_spec('estimator', timing, fifo))
-            graph.start_node(_spec('controller', timing, fifo))
+            graph.start_node(_spec('estimator', timing, fifo, cpus))
+            graph.start_node(_spec('controller', timing, fifo, cpus))
+        # the trajectory node is left to the scheduler, as deploy --cpu leaves it: beside a loop
+        # at real-time priority that loads its model on start-up it could miss the discovery
+        # the plan waits for
         graph.start_node(_spec('trajectory', {}))
         loop = [n for n in ('estimator', 'controller') if n in graph.procs]
         _wait_ready(graph, {'controller': (ESTIMATOR_UP, CONTROLLER_UP)} if options.get('composed')
@@ -182,19 +188,13 @@ def run_deploy(period: float, seconds: float, tips: Path, *, record: bool = Fals
             _renice(pids['recorder'], options.get('recorder_nice', 0),
                     options.get('recorder_batch', False))
         readers = 2 + record
-        cmd = [*realtime_prefix(fifo),
+        cmd = [*cpus_prefix((cpus['simulator'],) if cpus else ()), *realtime_prefix(fifo),
                sys.executable, '-m', 'soft_gripper_sdre.tools.benchmarks.bench_deploy', '--driver',
                json.dumps({'period': period, 'warmup': warmup, 'seconds': seconds,
                            'tips': str(tips), 'readers': readers, 'pids': pids})]
         with _hogs(options.get('hog', False)):
             drv = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                    text=True)
-            if options.get('pinned'):
-                time.sleep(1.0)
-                for name in loop:
-                    _pin(pids[name], {1})
-                _pin(drv.pid, {0})
-                _pin(pids['trajectory'], {0})
             if options.get('loop_nice'):
                 time.sleep(1.0)
                 for pid in [pids[name] for name in loop] + [drv.pid]:

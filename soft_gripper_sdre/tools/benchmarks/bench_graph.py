@@ -107,7 +107,8 @@ LAYOUTS = {'lockstep': ('lockstep', False, 0, False, '4 processes, lockstep'),
            'lockstep_fifo_pinned': ('lockstep', False, REALTIME_PRIORITY, True,
                                     '4 processes, lockstep, at SCHED_FIFO '
                                     f'{REALTIME_PRIORITY} (CPU wake-up latency held) and pinned '
-                                    '(the simulator on one CPU, the other nodes on another)')}
+                                    '(the simulator on one CPU, the estimator and the '
+                                    'controller on another)')}
 #: the lockstep layouts run otherwise than the default, each also held against a floor measured
 #: the same way (its hop so): layout → the words of its rows
 SCHEDULED = {'lockstep_fifo': f'at SCHED_FIFO {REALTIME_PRIORITY}, the CPU wake-up latency held',

@@ -75,9 +75,9 @@ def _parser() -> argparse.ArgumentParser:
                          'scheduling): on time on a busy machine; needs root, CAP_SYS_NICE or an '
                          'rtprio limit (docs/performance.md "Real-time priority")')
     ap.add_argument('--pin', action='store_true',
-                    help='run the simulator on one CPU and the estimator, the trajectory node and '
-                         'the controller on another (behind taskset; needs two CPUs): each keeps '
-                         'its caches from period to period (docs/performance.md "Cores")')
+                    help='run the simulator on one CPU and the estimator and the controller on '
+                         'another (behind taskset; needs two CPUs): each keeps its caches from '
+                         'period to period (docs/performance.md "Cores")')
     ap.add_argument('--domain-id', type=int, default=None,
                     help='ROS_DOMAIN_ID (default: env or random)')
     ap.add_argument('--timeout', type=float, default=600.0,
