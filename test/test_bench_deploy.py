@@ -9,6 +9,8 @@ import pytest
 from soft_gripper_sdre.tools.benchmarks.bench import floor_rows
 from soft_gripper_sdre.tools.benchmarks.bench_deploy import (
     describe,
+    driver_prefix,
+    loop_specs,
     main,
     replay_tips,
     run_deploy,
@@ -50,6 +52,22 @@ def test_separate_and_composed_loops_answer_every_tick_and_composed_costs_less_c
     runs = rounds[0]
     mid = summary([runs['base'], {**runs['base'], 'late_pct': runs['base']['late_pct'] + 1}])
     assert mid['repeats'] == 2 and mid['late_pct'] == runs['base']['late_pct'] + 0.5
+
+
+def test_the_pinned_variant_starts_the_loop_and_the_driver_on_their_cpus_the_trajectory_free():
+    cpus = {'simulator': 4, 'estimator': 7, 'controller': 7}
+    _, _, options = variant_settings('composed+fifo+hold+pinned')
+    composed, trajectory = loop_specs({'control_period': 1e-3}, options, cpus)
+    assert composed.command('python')[:6] == ['taskset', '-c', '7', 'chrt', '-f', '50']
+    assert composed.hosted[0].name == 'estimator' and trajectory.command('python')[0] == 'python'
+    assert driver_prefix(options, cpus) == ['taskset', '-c', '4', 'chrt', '-f', '50']
+    _, _, options = variant_settings('pinned')
+    estimator, controller, trajectory = loop_specs({'control_period': 1e-3}, options, cpus)
+    assert [s.cpus for s in (estimator, controller, trajectory)] == [(7,), (7,), ()]
+    assert driver_prefix(options, cpus) == ['taskset', '-c', '4']
+    _, _, options = variant_settings('composed+fifo')          # not pinned: anywhere
+    assert all(not s.cpus for s in loop_specs({}, options, None))
+    assert driver_prefix(options, None) == ['chrt', '-f', '50']
 
 
 def test_variants_join_their_settings():

@@ -153,6 +153,12 @@ def test_estimates_that_stop_past_the_plans_end_are_the_run_ending_not_a_loss():
     assert gate.on_wall_time(12.0).notices == ()                      # reported once
     out = gate.on_estimate(int(times[-1]) + MS, estimate(), wall=12.5)  # a run that goes on
     assert out.notices == (Notice(Change.ESTIMATES_BACK, int(times[-1]) + MS),)
+    # judged against the plan in force when the last estimate came, not one that came after it
+    gate.on_plan(*plan(points=3))                                     # a shorter plan arrives
+    gate.on_estimate(int(times[-1]) + 2 * MS, estimate(), wall=13.0)  # past its end too
+    gate.on_plan(*plan(points=5000))                                  # then a much longer one
+    assert gate.on_wall_time(13.5).notices == (Notice(Change.RUN_ENDED,
+                                                      int(times[-1]) + 2 * MS),)
 
 
 def test_time_jumping_back_resets_and_the_old_runs_plan_is_forgotten():

@@ -143,7 +143,7 @@ def test_estimates_stopping_past_the_plans_end_end_the_run_without_an_error(mode
         assert spin_until(executor, lambda: len(commands(probe)) == 1)
         assert spin_until(executor, lambda: node.gate.estimates_lost, 5.0)
         assert node.diag.level == OK and 'the run is over' in node.diag.message
-        assert "past the plan's end at 0.1000 s" in node.diag.message
+        assert "the last stamped t = 0.1000 s, at or past the plan's end" in node.diag.message
         assert not spin_until(executor, lambda: len(commands(probe)) > 1, 0.3)   # nothing sent
 
 

@@ -191,7 +191,8 @@ def test_the_estimator_takes_the_drivers_tips_as_they_come():
             drop_fraction=0.05, seed=2)
         e = est.diag.counters
     # the estimator keeps only the newest message (NEWEST_QOS) where the probe keeps them all: an
-    # executor running late on a loaded machine leaves it fewer, never none
+    # executor running late on a loaded machine leaves it fewer (beside two busy loops it kept
+    # 89 % of them), so half of them is the bar; a reader that did not match would take none
     assert e['received'] >= 0.5 * len(tips) and e['received'] == e['estimates']
     # every gap is a message the driver dropped, a late tick, or one best effort lost on the way
     # (published but never received: under load the reader's queue can overflow)

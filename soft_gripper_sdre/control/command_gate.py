@@ -59,7 +59,8 @@ class Change(enum.Enum):
 
     RESET = 'time jumped back: the waiting estimate, the stamps and the law state are forgotten'
     ESTIMATES_LOST = 'no estimate for the watchdog time of wall time (ERROR)'
-    RUN_ENDED = 'no estimate for the watchdog time, the last past the plan\'s end: the run is over'
+    RUN_ENDED = ('no estimate for the watchdog time, the last at or past the plan\'s end: the run '
+                 'is over')
     ESTIMATES_BACK = 'an estimate arrived after estimates were lost: tracking again (OK)'
 
 
@@ -113,6 +114,7 @@ class CommandGate:
         self.plan_after_ns = -1                # the newest estimate stamp when the plan arrived
         self.pending: tuple[int, np.ndarray] | None = None   # estimate waiting for a plan
         self.last_estimate_ns = -1
+        self.past_plan_end = False             # the last estimate at or past its plan's end
         self.last_heard: float | None = None   # wall time of the last estimate
         self.estimates_lost = False
 
@@ -144,6 +146,7 @@ class CommandGate:
             self.counters['skipped_estimates'] += max(
                 0, (stamp - last + self.period_ns // 2) // self.period_ns - 1)
         self.last_estimate_ns = stamp
+        self.past_plan_end = self.plan is not None and stamp >= self.plan.end
         self.last_heard = wall
         if self.estimates_lost:
             self.estimates_lost = False
@@ -161,14 +164,13 @@ class CommandGate:
 
     def on_wall_time(self, wall: float) -> Outcome:
         """The wall clock reads ``wall`` [s]: once no estimate came for ``watchdog``, estimates
-        are reported lost, or the run ended if the last was at or past the plan's end (once;
-        nothing is answered)."""
+        are reported lost, or the run ended if the last was at or past the end of the plan in
+        force when it came (once; nothing is answered)."""
         if self.estimates_lost or self.last_heard is None or wall - self.last_heard < self.watchdog:
             return NOTHING
         self.estimates_lost = True
-        ended = self.plan is not None and self.last_estimate_ns >= self.plan.end
-        return Outcome(notices=(Notice(Change.RUN_ENDED if ended else Change.ESTIMATES_LOST,
-                                       self.last_estimate_ns),))
+        change = Change.RUN_ENDED if self.past_plan_end else Change.ESTIMATES_LOST
+        return Outcome(notices=(Notice(change, self.last_estimate_ns),))
 
     # -- state -------------------------------------------------------------------------------
     def covers(self, t_ns: int) -> bool:

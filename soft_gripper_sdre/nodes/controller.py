@@ -35,7 +35,8 @@ law's command divided by its gain, clipped into the actuators' bounds.
 Which estimate is answered, and when, is decided by
 :class:`~soft_gripper_sdre.control.command_gate.CommandGate`: each estimate is answered with the
 plan once one covers its stamp; when estimates stop the controller sends nothing (the simulator
-steps safely on its own) and a wall-time watchdog reports ERROR after ``estimate_watchdog``
+steps safely on its own) and a wall-time watchdog reports ERROR after ``estimate_watchdog``, or,
+when the last estimate was at or past the plan's end, the run's end at INFO
 (docs/design/loop_rules.md). The law the parameters build, and its retuning, are
 :class:`~soft_gripper_sdre.nodes.law_tuning.LawTuning`'s; the arithmetic from an answered
 estimate to its torque (the plan sampled, each finger in the model's frame, the law timed) is
@@ -377,10 +378,9 @@ class ControllerNode(Node):
             self._error(f'no state_estimate for {self.p["estimate_watchdog"]:g} s of wall time, '
                         f'the last stamped t = {t:.4f} s: commanding nothing')
         elif change is Change.RUN_ENDED:
-            end = self.gate.plan.end / cv.NS
             why = (f'the run is over: no state_estimate for {self.p["estimate_watchdog"]:g} s of '
-                   f'wall time, the last stamped t = {t:.4f} s, past the plan\'s end at '
-                   f'{end:.4f} s; commanding nothing')
+                   f'wall time, the last stamped t = {t:.4f} s, at or past the plan\'s end; '
+                   'commanding nothing')
             self.diag.set_status(OK, why)
             self.get_logger().info(why)
         elif change is Change.ESTIMATES_BACK:

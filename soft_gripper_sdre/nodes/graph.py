@@ -36,7 +36,8 @@ CONFIG_DIR = Path(__file__).resolve().parents[2] / 'config'
 #: sim time, as the simulator publishes it (nodes/topics.py CLOCK)
 CLOCK = '/clock'
 #: start order: listeners first, the simulator (which waits for them) last. A run stops in reverse,
-#: so the controller goes right after the simulator
+#: so the controller goes right after the simulator, before its estimate_watchdog (wall time, once
+#: the estimates stop) would report a run cut short before the plan's end as an ERROR
 GRASP_NODES = ('recorder', 'estimator', 'trajectory', 'controller', 'simulator')
 #: the nodes that declare ``control_period``: :func:`grasp_graph` gives them all one value
 PERIOD_NODES = ('estimator', 'controller', 'simulator')
@@ -45,9 +46,8 @@ REALTIME_NODES = ('simulator', 'estimator', 'controller')
 #: with ``pin``: the plant on one core and the loop's other processes on another (positions in
 #: the list of CPUs the process may use), so each finds its caches as it left them from one period
 #: to the next (docs/performance.md, "Cores"). The trajectory node and the recorder are left to
-#: the scheduler: the trajectory node, idle once it has planned, would otherwise start up on the
-#: core where the estimator and the controller load their models at real-time priority, and the
-#: graph's start-up took 8.1–9.3 s against 5.5–6.2 s with it left free
+#: the scheduler: the trajectory node is idle once it has planned, and beside the estimator and
+#: the controller it would start up on the core where they load their models at real-time priority
 PIN_SLOTS = {'simulator': 0, 'estimator': 1, 'controller': 1}
 #: the control periods the grasp graph is run and measured at [s] (docs/results.md "Control rates")
 PERIOD_RANGE = (1e-3, 1e-2)

@@ -149,6 +149,27 @@ def _spec(name: str, parameters: dict, realtime: int = 0,
                     realtime=realtime, cpus=(cpus[name],) if cpus else ())
 
 
+def loop_specs(timing: dict, options: dict, cpus: dict[str, int] | None) -> list[NodeSpec]:
+    """The loop's processes for a variant's ``options``: the estimator and the controller (one
+    process when composed) at its real-time priority and on their CPU of ``cpus``, and the
+    trajectory node, which is left to the scheduler as ``deploy --cpu`` leaves it (idle once it
+    has planned; docs/performance.md "Cores")."""
+    fifo = options.get('fifo', 0)
+    if options.get('composed'):
+        loop = [replace(_spec('controller', timing, fifo, cpus),
+                        hosted=(_spec('estimator', timing),))]
+    else:
+        loop = [_spec('estimator', timing, fifo, cpus), _spec('controller', timing, fifo, cpus)]
+    return loop + [_spec('trajectory', {})]
+
+
+def driver_prefix(options: dict, cpus: dict[str, int] | None) -> list[str]:
+    """The driver stand-in's command prefix: on the simulator's CPU of ``cpus`` (the plant's
+    place), at the variant's real-time priority."""
+    return [*cpus_prefix((cpus['simulator'],) if cpus else ()),
+            *realtime_prefix(options.get('fifo', 0))]
+
+
 def run_deploy(period: float, seconds: float, tips: Path, *, record: bool = False,
                variant: str = 'base', warmup: float = WARMUP_S, probe: Path | None = None
                ) -> dict:
@@ -169,16 +190,8 @@ def run_deploy(period: float, seconds: float, tips: Path, *, record: bool = Fals
             Graph(env, Path(tmp) / 'logs') as graph:
         if record:
             graph.start_node(_spec('recorder', {'output': str(Path(tmp) / 'bag')}))
-        if options.get('composed'):
-            graph.start_node(replace(_spec('controller', timing, fifo, cpus),
-                                     hosted=(_spec('estimator', timing),)))
-        else:
-            graph.start_node(_spec('estimator', timing, fifo, cpus))
-            graph.start_node(_spec('controller', timing, fifo, cpus))
-        # the trajectory node is left to the scheduler, as deploy --cpu leaves it: beside a loop
-        # at real-time priority that loads its model on start-up it could miss the discovery
-        # the plan waits for
-        graph.start_node(_spec('trajectory', {}))
+        for spec in loop_specs(timing, options, cpus):
+            graph.start_node(spec)
         loop = [n for n in ('estimator', 'controller') if n in graph.procs]
         _wait_ready(graph, {'controller': (ESTIMATOR_UP, CONTROLLER_UP)} if options.get('composed')
                     else {'estimator': (ESTIMATOR_UP,), 'controller': (CONTROLLER_UP,)})
@@ -188,8 +201,8 @@ def run_deploy(period: float, seconds: float, tips: Path, *, record: bool = Fals
             _renice(pids['recorder'], options.get('recorder_nice', 0),
                     options.get('recorder_batch', False))
         readers = 2 + record
-        cmd = [*cpus_prefix((cpus['simulator'],) if cpus else ()), *realtime_prefix(fifo),
-               sys.executable, '-m', 'soft_gripper_sdre.tools.benchmarks.bench_deploy', '--driver',
+        cmd = [*driver_prefix(options, cpus), sys.executable, '-m',
+               'soft_gripper_sdre.tools.benchmarks.bench_deploy', '--driver',
                json.dumps({'period': period, 'warmup': warmup, 'seconds': seconds,
                            'tips': str(tips), 'readers': readers, 'pids': pids})]
         with _hogs(options.get('hog', False)):
@@ -319,7 +332,9 @@ def rows(quick: bool = False) -> list[tuple[str, str, str]]:
     seconds = 3.0 if quick else ROW_SECONDS
     repeats = 1 if quick else ROW_REPEATS
     refused = scheduling.fifo_problem(50)
-    variants = [v for v in ROW_VARIANTS if not (refused and 'fifo' in v)]
+    unpinned = _pinning_problem()
+    variants = [v for v in ROW_VARIANTS
+                if not (refused and 'fifo' in v) and not (unpinned and 'pinned' in v)]
     hogs = [v for v in HOG_VARIANTS if not (refused and 'fifo' in v)]
     with tempfile.TemporaryDirectory(prefix='sgs_deploy_tips_') as tmp:
         tips = replay_tips(WARMUP_S + seconds + 1.0, Path(tmp) / 'tips.npy')
@@ -328,7 +343,18 @@ def rows(quick: bool = False) -> list[tuple[str, str, str]]:
     out = [describe(s) for s in table]
     if refused:
         out.append(('deployment loop at SCHED_FIFO priority 50', 'not measured', refused))
+    if unpinned:
+        out.append(('deployment loop pinned (deploy --cpu)', 'not measured', unpinned))
     return out
+
+
+def _pinning_problem() -> str | None:
+    """Why the pinned variants cannot run here (:func:`pinned_cpus`), or None."""
+    try:
+        pinned_cpus()
+    except ValueError as exc:
+        return str(exc)
+    return None
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -59,11 +59,18 @@ class _Callbacks:
     def __init__(self, periods: int) -> None:
         import rclpy
         from rclpy.context import Context
-
-        from soft_gripper_sdre.nodes.controller import ControllerNode
-        from soft_gripper_sdre.nodes.estimator import EstimatorNode
         self.context = Context()
         rclpy.init(context=self.context)
+        self.est = self.ctrl = None
+        try:
+            self._build(periods)
+        except BaseException:
+            self.close()
+            raise
+
+    def _build(self, periods: int) -> None:
+        from soft_gripper_sdre.nodes.controller import ControllerNode
+        from soft_gripper_sdre.nodes.estimator import EstimatorNode
         self.est = EstimatorNode(context=self.context)
         self.ctrl = ControllerNode(context=self.context)
         ns = int(round(self.est.p['control_period'] * 1e9))
@@ -89,31 +96,32 @@ class _Callbacks:
 
     def close(self) -> None:
         import rclpy
-        self.est.destroy_node()
-        self.ctrl.destroy_node()
+        for node in (self.est, self.ctrl):
+            if node is not None:
+                node.destroy_node()
         rclpy.try_shutdown(context=self.context)
 
 
 def wake_costs(repeats: int = REPEATS, calls: int = 2000) -> dict:
     """Per callback (``estimator``, ``controller``) and way of :data:`WAYS`, the median call [s]
     of each of ``repeats`` runs of ``calls`` calls, the ways taking turns run by run; ``held``
-    only where the CPU wake-up latency can be held. Also ``load``, a
+    only where the CPU wake-up latency can be held (else ``unheld`` says why). Also ``load``, a
     :class:`~soft_gripper_sdre.tools.benchmarks.spread.LoadWatch`.
 
     Raises:
         RuntimeError: a call was refused instead of answered (nothing then is what it claims).
     """
-    from soft_gripper_sdre.nodes.scheduling import CpuLatencyHold
+    from soft_gripper_sdre.nodes.scheduling import CPU_LATENCY_DEVICE, CpuLatencyHold
     ways = list(WAYS)
     try:
         CpuLatencyHold(0).close()
     except OSError:
         ways.remove('held')
-    cb = _Callbacks(2 * repeats * len(ways) * calls + 1)
+    cb = _Callbacks(repeats * len(ways) * calls + 1)
     out: dict = {name: {w: [] for w in ways} for name in ('estimator', 'controller')}
     load = LoadWatch()
     load.note()
-    k = 0
+    k = 0                    # each callback's next period: its stamps run on without a jump
     try:
         for _ in range(repeats):
             for way in ways:
@@ -123,18 +131,20 @@ def wake_costs(repeats: int = REPEATS, calls: int = 2000) -> dict:
                 try:
                     for name in out:
                         out[name][way].append(_timed(getattr(cb, name), calls, before, k))
-                        k += calls
+                    k += calls
                 finally:
                     if hold is not None:
                         hold.close()
         answered = (cb.est.diag.counters['estimates'], cb.ctrl.diag.counters['commands'])
     finally:
         cb.close()
-    if answered != (k // 2, k // 2):       # every call timed the whole path, none a refusal
-        raise RuntimeError(f'{k // 2} calls each, but {answered[0]} estimates and {answered[1]} '
+    if answered != (k, k):                 # every call timed the whole path, none a refusal
+        raise RuntimeError(f'{k} calls each, but {answered[0]} estimates and {answered[1]} '
                            'commands: the benchmark timed refusals')
     load.note()
     out['load'] = load
+    if 'held' not in ways:
+        out['unheld'] = f'no latency hold: {CPU_LATENCY_DEVICE} is not writable here'
     return out
 
 
@@ -143,6 +153,7 @@ def wake_rows(quick: bool = False) -> list[tuple[str, str, str]]:
     repeats, calls = (2, 300) if quick else (REPEATS, 2000)
     costs = wake_costs(repeats, calls)
     load = costs.pop('load')
+    unheld = costs.pop('unheld', None)
     rows = []
     what = {'estimator': "estimator's on_tips (decode, KF, encode, publish)",
             'controller': "controller's on_estimate (decode, sdre_ff, checks, encode, publish)"}
@@ -152,8 +163,9 @@ def wake_rows(quick: bool = False) -> list[tuple[str, str, str]]:
                  for w in WAYS[1:] if w in ways]
         rows.append((f"a loop callback's Python, warm and after an idle gap: {what[name]}",
                      f'{figure(ways["warm"])} back to back',
-                     '; '.join(parts) + f'; median (min–max) of {len(ways["warm"])} runs of '
-                     f'{calls} calls, the ways taking turns; {load.text()}'))
+                     '; '.join(parts + ([unheld] if unheld else []))
+                     + f'; median (min–max) of {len(ways["warm"])} runs of {calls} calls, the '
+                     f'ways taking turns; {load.text()}'))
     return rows
 
 
