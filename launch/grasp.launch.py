@@ -172,11 +172,10 @@ def grasp_nodes(namespace: str = '', duration: str = '6.0', control_period: str 
             raise ValueError(f'launch argument realtime_priority:={realtime_priority!r}: {problem}')
     pinning = _boolean('pin_cores', pin_cores)
     if pinning:
-        from soft_gripper_sdre.nodes.graph import pinned_cpus
-        try:
-            pinned_cpus()
-        except ValueError as exc:
-            raise ValueError(f'launch argument pin_cores:={pin_cores!r}: {exc}') from None
+        from soft_gripper_sdre.nodes.graph import pinning_problem
+        problem = pinning_problem()
+        if problem:
+            raise ValueError(f'launch argument pin_cores:={pin_cores!r}: {problem}')
     spec = grasp_graph(namespace, record=recording, parameters=parameters, control_period=period,
                        params_files=extra, composed=composing, realtime=priority, pin=pinning)
     for path in extra:

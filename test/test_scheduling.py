@@ -16,6 +16,7 @@ from soft_gripper_sdre.nodes.graph import (
     default_params_file,
     grasp_graph,
     pinned_cpus,
+    pinning_problem,
 )
 
 
@@ -144,6 +145,9 @@ def test_pinning_puts_the_simulator_on_one_cpu_and_the_loops_other_processes_on_
     assert pinned_cpus([5, 3, 9]) == {'simulator': 3, 'estimator': 5, 'controller': 5}
     with pytest.raises(ValueError, match=r'two CPUs of their own; this process may run on 1 \(2\)'):
         pinned_cpus([2])
+    assert pinning_problem([2]) == ('pinning puts the simulator and the loop on two CPUs of their '
+                                    'own; this process may run on 1 (2)')
+    assert pinning_problem([5, 3]) is None      # the same rule as pinned_cpus (taskset is here)
     if len(os.sched_getaffinity(0)) < 2:
         pytest.skip('one CPU here')
     cpus = pinned_cpus()

@@ -199,20 +199,28 @@ def taskset_problem() -> str | None:
     return None
 
 
+def pinning_problem(available: Sequence[int] | None = None) -> str | None:
+    """Why ``pin`` cannot start the graph's processes here (fewer than two CPUs in ``available``,
+    default the CPUs this process may run on, or no ``taskset``), or None."""
+    cpus = sorted(os.sched_getaffinity(0) if available is None else available)
+    if len(cpus) < len(set(PIN_SLOTS.values())):
+        return (f'pinning puts the simulator and the loop on two CPUs of their own; this '
+                f'process may run on {len(cpus)} ({", ".join(map(str, cpus))})')
+    problem = taskset_problem()
+    return f'pinning {problem}' if problem else None
+
+
 def pinned_cpus(available: Sequence[int] | None = None) -> dict[str, int]:
     """Node → the CPU ``pin`` starts it on (:data:`PIN_SLOTS`), from ``available`` (default: the
     CPUs this process may run on).
 
     Raises:
-        ValueError: fewer than two CPUs, or no ``taskset`` (util-linux) on the PATH.
+        ValueError: :func:`pinning_problem` names why not.
     """
-    cpus = sorted(os.sched_getaffinity(0) if available is None else available)
-    if len(cpus) < len(set(PIN_SLOTS.values())):
-        raise ValueError(f'pinning puts the simulator and the loop on two CPUs of their own; this '
-                         f'process may run on {len(cpus)} ({", ".join(map(str, cpus))})')
-    problem = taskset_problem()
+    problem = pinning_problem(available)
     if problem:
-        raise ValueError(f'pinning {problem}')
+        raise ValueError(problem)
+    cpus = sorted(os.sched_getaffinity(0) if available is None else available)
     return {name: cpus[slot] for name, slot in PIN_SLOTS.items()}
 
 

@@ -50,6 +50,7 @@ from soft_gripper_sdre.nodes.graph import (
     cpus_prefix,
     default_params_file,
     pinned_cpus,
+    pinning_problem,
     realtime_prefix,
 )
 from soft_gripper_sdre.tools.benchmarks.deploy_driver import driver
@@ -332,7 +333,7 @@ def rows(quick: bool = False) -> list[tuple[str, str, str]]:
     seconds = 3.0 if quick else ROW_SECONDS
     repeats = 1 if quick else ROW_REPEATS
     refused = scheduling.fifo_problem(50)
-    unpinned = _pinning_problem()
+    unpinned = pinning_problem()
     variants = [v for v in ROW_VARIANTS
                 if not (refused and 'fifo' in v) and not (unpinned and 'pinned' in v)]
     hogs = [v for v in HOG_VARIANTS if not (refused and 'fifo' in v)]
@@ -346,15 +347,6 @@ def rows(quick: bool = False) -> list[tuple[str, str, str]]:
     if unpinned:
         out.append(('deployment loop pinned (deploy --cpu)', 'not measured', unpinned))
     return out
-
-
-def _pinning_problem() -> str | None:
-    """Why the pinned variants cannot run here (:func:`pinned_cpus`), or None."""
-    try:
-        pinned_cpus()
-    except ValueError as exc:
-        return str(exc)
-    return None
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -37,7 +37,7 @@ import os
 from pathlib import Path
 import tempfile
 
-from soft_gripper_sdre.nodes.graph import pinned_cpus
+from soft_gripper_sdre.nodes.graph import pinning_problem
 from soft_gripper_sdre.nodes.scheduling import fifo_problem
 from soft_gripper_sdre.tools.benchmarks.bench_hog import PHASES, SETTLE_S, CpuHog, phase_figures
 from soft_gripper_sdre.tools.benchmarks.graph_run import LOOP_NODES, published, run_graph
@@ -88,6 +88,8 @@ def recorder_loss(seconds: float, executor: str | None = None,
 #: the real-time priority the realtime rows and the ``lockstep_fifo`` layout run the loop's
 #: processes at
 REALTIME_PRIORITY = 50
+
+
 def held_latency(priority: int) -> int | None:
     """The CPU wake-up latency [µs] the graph benchmarks hold at real-time priority ``priority``
     (0 µs; None at ordinary priority): their rows at SCHED_FIFO measure the loop waking fast."""
@@ -121,9 +123,7 @@ def scheduled_layouts() -> tuple[str, ...]:
     CPUs and taskset for the pinned one)."""
     if fifo_problem(REALTIME_PRIORITY):
         return ()
-    try:
-        pinned_cpus()
-    except ValueError:
+    if pinning_problem():
         return ('lockstep_fifo',)
     return tuple(SCHEDULED)
 

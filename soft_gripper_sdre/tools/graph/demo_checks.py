@@ -43,11 +43,10 @@ def argument_problem(a: argparse.Namespace) -> str | None:
         if problem:
             return f'--realtime {a.realtime}: {problem}'
     if a.pin:
-        from soft_gripper_sdre.nodes.graph import pinned_cpus
-        try:
-            pinned_cpus()
-        except ValueError as exc:
-            return f'--pin: {exc}'
+        from soft_gripper_sdre.nodes.graph import pinning_problem
+        problem = pinning_problem()
+        if problem:
+            return f'--pin: {problem}'
     if a.fingers is not None:
         problem = fingers_problem(a.fingers)
         if problem:
