@@ -109,14 +109,15 @@ def wake_costs(repeats: int = REPEATS, calls: int = 2000) -> dict:
     :class:`~soft_gripper_sdre.tools.benchmarks.spread.LoadWatch`.
 
     Raises:
-        RuntimeError: a call was refused instead of answered (nothing then is what it claims).
+        RuntimeError: a call was refused instead of answered (its time is not the answering path).
     """
-    from soft_gripper_sdre.nodes.scheduling import CPU_LATENCY_DEVICE, CpuLatencyHold
+    from soft_gripper_sdre.nodes.scheduling import CPU_LATENCY_ENV, CpuLatencyHold, hold_cpu_latency
     ways = list(WAYS)
-    try:
-        CpuLatencyHold(0).close()
-    except OSError:
+    probe, said = hold_cpu_latency({CPU_LATENCY_ENV: '0'})
+    if probe is None:
         ways.remove('held')
+    else:
+        probe.close()
     cb = _Callbacks(repeats * len(ways) * calls + 1)
     out: dict = {name: {w: [] for w in ways} for name in ('estimator', 'controller')}
     load = LoadWatch()
@@ -144,7 +145,7 @@ def wake_costs(repeats: int = REPEATS, calls: int = 2000) -> dict:
     load.note()
     out['load'] = load
     if 'held' not in ways:
-        out['unheld'] = f'no latency hold: {CPU_LATENCY_DEVICE} is not writable here'
+        out['unheld'] = f'the wake-up latency {said}'
     return out
 
 
