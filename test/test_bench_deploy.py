@@ -93,6 +93,16 @@ def test_the_floor_is_the_sum_in_lockstep_and_the_larger_branch_pipelined():
                           scheduled=[('at SCHED_FIFO 50', 100.0, 'lockstep_fifo')])) == 4   # no run
 
 
+def test_a_graph_period_is_its_pace_from_the_first_command_where_the_run_reports_it():
+    figures = {'lockstep_rtf': 0.5, 'lockstep_period_us': 1900.0, 'pipelined_rtf': 0.8,
+               'pipelined_cpu_us': 1800.0}
+    (_, graph, note) = floor_rows(600e-6, 200.0, 3e-6, 47e-6, figures, rest=450e-6)[1]
+    assert graph == '1900 µs = 1.52× the floor'                   # not 1 ms / 0.5
+    assert 'its real-time factor, 0.50×, also counts the wait' in note
+    (_, pipe, _) = floor_rows(600e-6, 200.0, 3e-6, 47e-6, figures, rest=450e-6)[3]
+    assert pipe.startswith('1250 µs')                             # no pace reported: 1 ms / 0.8
+
+
 def test_lockstep_run_otherwise_is_held_against_a_floor_measured_the_same_way():
     figures = {'lockstep_rtf': 0.5, 'pipelined_rtf': 0.8, 'pipelined_cpu_us': 1800.0,
                'lockstep_fifo_rtf': 0.8}

@@ -39,6 +39,9 @@ def test_lockstep_run_reports_speed_and_latency_of_every_period(mode, composed):
             <= sim['loop_latency_us_max'])
     assert d['controller']['commands'] >= 300     # every period answered
     assert 0 < sim['first_command_after_tips_ms'] < 1e3 * sim['startup_s']
+    # the pace from the first command on: the run's wall time without the wait for that command
+    wall, waited = 0.3 / sim['real_time_factor'], 1e-3 * sim['first_command_after_tips_ms']
+    assert sim['step_period_us'] * 299 * 1e-6 == pytest.approx(wall - waited, rel=0.02)
     assert all(d[n]['cpu_per_step_us'] > 0 for n in ('simulator', 'trajectory', 'controller'))
 
 
@@ -75,6 +78,7 @@ def test_realtime_latency_comes_back_after_a_cpu_hog():
 def _run(rtf: float, load: float, cpu: float) -> dict:
     nodes = {n: {'cpu_per_step_us': cpu} for n in ('estimator', 'trajectory', 'controller')}
     return {'simulator': {'real_time_factor': rtf, 'load': load, 'cpu_per_step_us': 2 * cpu,
+                          'step_period_us': 990.0 / rtf,
                           'loop_latency_us_p50': 700.0, 'loop_latency_us_p99': 900.0}, **nodes}
 
 
@@ -93,7 +97,8 @@ def test_mode_rows_report_the_median_run_with_the_range_and_the_loads():
             and '4 processes, lockstep' in lock)
     assert ('CPU per period simulator / estimator / trajectory / controller '
             '440 / 220 / 220 / 220 µs (sum 1100)' in pipe_note)
-    assert figures == {'lockstep_rtf': 0.6, 'lockstep_cpu_us': 500.0, 'pipelined_rtf': 1.0,
+    assert figures == {'lockstep_rtf': 0.6, 'lockstep_period_us': 1650.0, 'lockstep_cpu_us': 500.0,
+                       'pipelined_rtf': 1.0, 'pipelined_period_us': 990.0,
                        'pipelined_cpu_us': 1100.0}
 
 

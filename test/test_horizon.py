@@ -106,9 +106,9 @@ def test_acceleration_on_request_is_the_derivative_of_the_velocity_interpolant()
 
 
 def test_a_whole_plan_samples_bit_for_bit_like_short_horizons_on_the_same_grid():
-    """The controller samples one plan of the whole grasp (ending at rest, held after it) where it
-    used to sample 0.1 s horizons on the same absolute grid, published every 20 ms: every instant
-    of a 10 s run, the grasp's 5.5 s and beyond, gives the very same floats."""
+    """One plan of the whole grasp (ending at rest, held after it) samples like 0.1 s horizons on
+    the same absolute grid published every 20 ms: every instant of a 10 s run, the grasp's 5.5 s
+    and beyond, gives the very same floats."""
     traj = GraspTrajectory(REST, GraspProfile(side_distance=0.004, others='open'))
     step, horizon, every = 5_000_000, 100_000_000, 20_000_000
     end = -(-int(round(traj.profile.duration * NS)) // step) * step

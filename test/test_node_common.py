@@ -147,13 +147,20 @@ def test_stepping_timing_reports_the_real_time_factor_cpu_per_step_and_latencies
 def test_stepping_timing_reports_the_first_command_accepted_after_the_start():
     clocks = {'wall': 100.0}
     timing = SteppingTiming(4, wall=lambda: clocks['wall'])
-    timing.accepted()                                        # before the start: not counted
+    timing.accepted(0)                                       # before the start: not counted
     assert 'first_command_monotonic_s' not in timing.report(0.0, 0)
     timing.start()
     clocks['wall'] = 100.25
-    timing.accepted()
+    timing.accepted(1)
+    assert 'step_period_us' not in timing.report(0.001, 1)   # no step since it
     clocks['wall'] = 101.0
-    timing.accepted()                                        # the later ones change nothing
+    timing.accepted(2)                                       # the later ones change nothing
     out = timing.report(0.0, 0)
     assert out['first_command_monotonic_s'] == '100.250000'
     assert out['first_command_after_tips_ms'] == '250.0'
+    clocks['wall'] = 101.25
+    timing.finish()                                          # 500 steps in all, 499 in 1 s
+    clocks['wall'] = 300.0
+    out = timing.report(0.5, 500)
+    assert out['step_period_us'] == '2004'                   # 1 s / 499, the 250 ms wait left out
+    assert out['real_time_factor'] == '0.4000'               # 0.5 s of sim time in 1.25 s

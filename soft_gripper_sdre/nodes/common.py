@@ -160,9 +160,11 @@ class SteppingTiming:
     """How fast a stepping loop runs, for /diagnostics: its real-time factor, this process's CPU
     time per step and the loop latency (tips for period k sent → the first command stamped k
     received), over the whole run (``loop_latency_us_*``) and since the previous report
-    (``recent_latency_us_*``); and when the first command was accepted
+    (``recent_latency_us_*``); when the first command was accepted
     (``first_command_monotonic_s`` on the wall clock, ``first_command_after_tips_ms`` from the
-    first tips). The clocks are arguments so the arithmetic can be checked."""
+    first tips); and the mean wall time of a step from that command on (``step_period_us``: the
+    loop's own pace, without the wait for the graph's first answer that the real-time factor
+    counts). The clocks are arguments so the arithmetic can be checked."""
 
     def __init__(self, periods: int, wall=time.monotonic, cpu=time.process_time,
                  perf=time.perf_counter) -> None:
@@ -174,6 +176,7 @@ class SteppingTiming:
         self.wall_start: float | None = None    # wall clock at the first step
         self._wall_end = self._cpu_start = self._cpu_end = None
         self._first_command: float | None = None    # wall clock at the first accepted command
+        self._first_step = 0                        # the steps taken by then
 
     def start(self) -> None:
         self.wall_start, self._cpu_start = self._wall(), self._cpu()
@@ -188,10 +191,11 @@ class SteppingTiming:
         """The first command for the tips of period ``k`` arrived."""
         self.latency.add(self._perf() - self._sent[k % len(self._sent)])
 
-    def accepted(self) -> None:
-        """A command was accepted; the first one after the start is reported."""
+    def accepted(self, steps: int) -> None:
+        """A command was accepted, ``steps`` steps into the run (its own included); the first
+        one after the start is reported."""
         if self.wall_start is not None and self._first_command is None:
-            self._first_command = self._wall()
+            self._first_command, self._first_step = self._wall(), steps
 
     def report(self, sim_time: float, steps: int) -> dict[str, str]:
         """The values for /diagnostics after ``steps`` steps, ``sim_time`` [s] of sim time."""
@@ -207,6 +211,9 @@ class SteppingTiming:
             out['first_command_monotonic_s'] = f'{self._first_command:.6f}'
             out['first_command_after_tips_ms'] = (
                 f'{1e3 * (self._first_command - self.wall_start):.1f}')
+            if steps > self._first_step:
+                since = (self._wall_end or self._wall()) - self._first_command
+                out['step_period_us'] = f'{1e6 * since / (steps - self._first_step):.0f}'
         out.update(self.latency.summary('loop_latency_us'))
         out.update(self.latency.summary('recent_latency_us',
                                         last=self.latency.count - self._reported))

@@ -41,8 +41,10 @@ step (``cpu_per_step_us``) and the loop latency: the wall time from publishing `
 for t_k to receiving the first command stamped t_k, as p50 / p99 / max [µs] over the last
 10 000 answered periods (``loop_latency_us_*``) and over those since the previous /diagnostics
 (``recent_latency_us_*``);
-and when the first command was accepted (``first_command_monotonic_s``, this machine's monotonic
-clock, and ``first_command_after_tips_ms``, from the first tips). Like a driver, it reports the
+when the first command was accepted (``first_command_monotonic_s``, this machine's monotonic
+clock, and ``first_command_after_tips_ms``, from the first tips); and the mean wall time of a step
+from that command on (``step_period_us``: the loop's pace without the start-up wait, which the
+real-time factor counts). Like a driver, it reports the
 interval its commands are clipped to as ``bounds``: ``ax0 [-limit, limit], ax1 [-limit, limit]``
 per exposed finger (``torque_limit``), joined by ``;``, which the excitation node takes as its
 limit when none is given (:mod:`soft_gripper_sdre.nodes.driver_limits`).
@@ -230,7 +232,7 @@ class SimulatorNode(Node):
         if outcome.refused:
             self.diag.problem(outcome.refused, f'rejected: {outcome.reason}')
         else:
-            self.timing.accepted()
+            self.timing.accepted(self.stepping.k)
         if outcome.resumed:
             self.status.back(stamp)
         self._step(outcome.step)

@@ -161,7 +161,8 @@ def mode_rows(runs: dict[str, list[dict]], seconds: float,
               figures: dict[str, float] | None = None) -> list[tuple[str, str, str]]:
     """The rows of :func:`mode_runs`: each layout's real-time factor (the median run's, with the
     min–max, every run's and the loads when there are several), latency and CPU per period (a
-    composed estimator's is the controller's). ``figures`` gets ``<layout>_rtf`` and
+    composed estimator's is the controller's). ``figures`` gets ``<layout>_rtf``,
+    ``<layout>_period_us`` (the mean period from the first command on, the median run's) and
     ``<layout>_cpu_us`` (every process's CPU per period, summed)."""
     nan = float('nan')
     out = []
@@ -173,6 +174,7 @@ def mode_rows(runs: dict[str, list[dict]], seconds: float,
         rtfs = [r['simulator'].get('real_time_factor', nan) for r in done]
         if figures is not None:
             figures[f'{mode}_rtf'] = sim.get('real_time_factor', nan)
+            figures[f'{mode}_period_us'] = sim.get('step_period_us', nan)
             figures[f'{mode}_cpu_us'] = sum(cpu.values())
         spread = (f'; median of {len(done)} runs taking turns with the other layouts: '
                   + ', '.join(f'{r:.2f}×' for r in rtfs) + ' at load '
