@@ -130,7 +130,7 @@ def test_the_watchdog_reports_lost_estimates_and_nothing_is_sent_without_one(mod
         assert node.diag.counters['skipped_estimates'] == 4               # 5 … 8 ms never came
 
 
-def test_estimates_stopping_past_the_plans_end_end_the_run_without_an_error(model):
+def test_estimates_stopping_past_the_plans_end_end_the_run_without_an_error(model, capfd):
     """The run's end (the simulator or driver finished after the plan's last point): the same
     silence is reported at INFO with status OK, and nothing is sent."""
     from soft_gripper_sdre.nodes.common import OK
@@ -145,6 +145,8 @@ def test_estimates_stopping_past_the_plans_end_end_the_run_without_an_error(mode
         assert node.diag.level == OK and 'the run is over' in node.diag.message
         assert "the last stamped t = 0.1000 s, at or past the plan's end" in node.diag.message
         assert not spin_until(executor, lambda: len(commands(probe)) > 1, 0.3)   # nothing sent
+    lines = [line for line in capfd.readouterr().err.splitlines() if 'state_estimate' in line]
+    assert [line.split(']')[0] for line in lines] == ['[INFO'], lines        # logged once, as INFO
 
 
 def test_a_controller_that_fell_behind_answers_only_the_newest_estimate(model):
