@@ -55,9 +55,11 @@ def claim_domain_id() -> tuple[int, int]:
 
 # Must be set before any rclpy.init(); subprocesses started by tests inherit them. A
 # ROS_DOMAIN_ID set by the caller is used as it is (and locked when free, so no other session
-# picks it meanwhile).
+# picks it meanwhile) in a run of one process. Each worker of a parallel run (pytest-xdist, which
+# sets PYTEST_XDIST_WORKER before this file loads) claims a domain of its own instead: it inherits
+# the starting process's ROS_DOMAIN_ID, and two workers' graphs on one domain hear each other.
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
-if os.environ.get('ROS_DOMAIN_ID', '').isdigit():
+if os.environ.get('ROS_DOMAIN_ID', '').isdigit() and not os.environ.get('PYTEST_XDIST_WORKER'):
     _DOMAIN_LOCK = _lock_domain(int(os.environ['ROS_DOMAIN_ID']))
 else:
     _domain_id, _DOMAIN_LOCK = claim_domain_id()

@@ -19,6 +19,9 @@ from soft_gripper_sdre.tools.benchmarks.bench_deploy import (
 )
 from soft_gripper_sdre.tools.benchmarks.deploy_driver import slow_ticks
 
+# late periods and CPU per period, measured: alone, after the parallel tests (Makefile)
+pytestmark = pytest.mark.serial
+
 
 @pytest.fixture(scope='module')
 def tips(tmp_path_factory):

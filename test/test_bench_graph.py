@@ -11,7 +11,8 @@ from soft_gripper_sdre.tools.benchmarks.bench_hog import PHASES
 from soft_gripper_sdre.tools.benchmarks.graph_run import SIM_TOPICS, run_graph
 from soft_gripper_sdre.tools.benchmarks.hop import hop
 
-pytestmark = pytest.mark.ros
+# latency, loss and real-time factor, measured: alone, after the parallel tests (Makefile)
+pytestmark = [pytest.mark.ros, pytest.mark.serial]
 
 
 @pytest.mark.parametrize('raw', [False, True], ids=['typed', 'raw'])

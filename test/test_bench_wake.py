@@ -3,7 +3,8 @@ import pytest
 
 from soft_gripper_sdre.tools.benchmarks import wake
 
-pytestmark = pytest.mark.ros
+# callbacks timed against each other: alone, after the parallel tests (Makefile)
+pytestmark = [pytest.mark.ros, pytest.mark.serial]
 
 
 def test_every_way_times_answered_calls_and_the_rows_give_each_against_warm():

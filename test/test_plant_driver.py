@@ -29,7 +29,8 @@ from soft_gripper_sdre.nodes.topics import (
 )
 from soft_gripper_sdre.sim.plants.chain import plant_pair
 
-pytestmark = pytest.mark.ros
+# rates, drops and wall stamps, measured: alone, after the parallel tests (Makefile)
+pytestmark = [pytest.mark.ros, pytest.mark.serial]
 
 NAMES = ['index', 'thumb']
 
