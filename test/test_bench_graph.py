@@ -1,6 +1,7 @@
 """The graph benchmarks measure what they claim: real processes over DDS, figures from the nodes."""
 import pytest
 
+from soft_gripper_sdre.nodes.scheduling import CPU_LATENCY_ENV
 from soft_gripper_sdre.tools.benchmarks.bench_graph import (
     hog_run,
     lockstep_rows,
@@ -8,7 +9,7 @@ from soft_gripper_sdre.tools.benchmarks.bench_graph import (
     recorder_loss,
 )
 from soft_gripper_sdre.tools.benchmarks.bench_hog import PHASES
-from soft_gripper_sdre.tools.benchmarks.graph_run import SIM_TOPICS, run_graph
+from soft_gripper_sdre.tools.benchmarks.graph_run import SIM_TOPICS, measured_env, run_graph
 from soft_gripper_sdre.tools.benchmarks.hop import hop
 
 # latency, loss and real-time factor, measured: alone, after the parallel tests (Makefile)
@@ -116,3 +117,10 @@ def test_lockstep_rows_give_every_timing_as_the_median_of_the_runs_with_their_ra
     assert cpu[1] == '220 / 110 / 110 / 110 µs'                   # each process's median
     assert 'sums 500–650 µs' in cpu[2] and 'compute 51 µs (50–52)' in cpu[2]
     assert startup[1] == '7.0 s (6.0–8.0)' and '40 ms of it' in startup[2]
+
+
+def test_a_measured_run_holds_the_wake_up_latency_only_when_the_benchmark_asks(monkeypatch):
+    monkeypatch.setenv(CPU_LATENCY_ENV, '5')                 # the caller's shell
+    assert CPU_LATENCY_ENV not in measured_env()
+    assert measured_env(0)[CPU_LATENCY_ENV] == '0'
+    assert measured_env()['ROS_AUTOMATIC_DISCOVERY_RANGE'] == 'LOCALHOST'

@@ -54,9 +54,10 @@ from soft_gripper_sdre.nodes.graph import (
     realtime_prefix,
 )
 from soft_gripper_sdre.tools.benchmarks.deploy_driver import driver
+from soft_gripper_sdre.tools.benchmarks.graph_run import measured_env
 from soft_gripper_sdre.tools.benchmarks.loop_probe import late_causes, probe_env
 from soft_gripper_sdre.tools.benchmarks.spread import REPEATS, median, span
-from soft_gripper_sdre.tools.graph.procs import Graph, ros_env
+from soft_gripper_sdre.tools.graph.procs import Graph
 
 #: periods before the measured window: discovery, the plan, the first cold steps
 WARMUP_S = 2.0
@@ -180,7 +181,7 @@ def run_deploy(period: float, seconds: float, tips: Path, *, record: bool = Fals
     ``load_before`` (at the start). ``probe``: every process of the run records its timestamps
     there (:mod:`~soft_gripper_sdre.tools.benchmarks.loop_probe`)."""
     _, extra_env, options = variant_settings(variant)
-    env = {k: v for k, v in ros_env().items() if k != scheduling.CPU_LATENCY_ENV} | extra_env
+    env = measured_env() | extra_env
     if probe is not None:
         env = probe_env(env, probe)
     load_before = os.getloadavg()[0]

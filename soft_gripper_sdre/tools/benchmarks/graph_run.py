@@ -27,6 +27,18 @@ LOOP_NODES = ('estimator', 'trajectory', 'controller')
 SIM_TOPICS = ('/clock', '/tip_positions', '/joint_states', '/cube_pose', '/cube_contacts')
 
 
+def measured_env(cpu_latency: int | None = None) -> dict[str, str]:
+    """The graph's environment (``procs.ros_env``) for a measured run: the CPU wake-up latency
+    held at ``cpu_latency`` µs by the processes at real-time priority when the benchmark asks for
+    it, and never because the calling shell had ``SOFT_GRIPPER_CPU_LATENCY_US`` set."""
+    from soft_gripper_sdre.nodes.scheduling import CPU_LATENCY_ENV
+    env = ros_env()
+    env.pop(CPU_LATENCY_ENV, None)
+    if cpu_latency is not None:
+        env[CPU_LATENCY_ENV] = str(cpu_latency)
+    return env
+
+
 def _cpu_seconds(pid: int) -> float:
     """User + system CPU time of a running process [s] (Linux /proc; NaN elsewhere)."""
     try:
@@ -84,12 +96,8 @@ def run_graph(seconds: float, *, mode: str = 'lockstep', record: Path | None = N
         RuntimeError: a node died or the run did not finish within ``timeout``.
     """
     from soft_gripper_sdre.nodes.common import EXECUTOR_ENV
-    from soft_gripper_sdre.nodes.scheduling import CPU_LATENCY_ENV
     from soft_gripper_sdre.tools.benchmarks.loop_probe import probe_env
-    env = ros_env()
-    env.pop(CPU_LATENCY_ENV, None)
-    if cpu_latency is not None:
-        env[CPU_LATENCY_ENV] = str(cpu_latency)
+    env = measured_env(cpu_latency)
     if executor is not None:
         env[EXECUTOR_ENV] = executor
     if probe is not None:
