@@ -135,6 +135,22 @@ def test_an_edit_of_a_callees_module_reaches_its_caller_in_another(tmp_path):
     assert not list(cache.rglob('*.tmp'))
 
 
+def test_a_refreshed_cache_keeps_no_data_file_a_new_index_entry_could_name(tmp_path):
+    """numba writes a new index entry before its data file and numbers the file as the flushed
+    entry was: the refresh deletes the stale data files with the index, so a process that finds
+    the entry early reads nothing (and compiles) instead of the old machine code."""
+    root, cache = tmp_path / 'tree', tmp_path / 'cache'
+    control = kernel_tree(root, offset=1.0)
+    assert probe(root, cache) == (4.0, 0, 1)
+    assert list(cache.rglob('pair_caller.*.nbc')) and list(cache.rglob('pair_callee.*.nbc'))
+    (control / 'pair_callee.py').write_text(CALLEE.format(offset=2.0))
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(cache), PYTHONPATH=str(root))
+    subprocess.run([sys.executable, '-c', 'import soft_gripper_sdre.control.kernels'], cwd=root,
+                   env=env, check=True, timeout=240)                 # the refresh, no kernel run
+    assert not list(cache.rglob('*.nbc'))
+    assert probe(root, cache) == (6.0, 0, 1)
+
+
 @pytest.mark.slow
 @pytest.mark.timeout(300)
 def test_an_unchanged_tree_loads_its_kernels_from_the_cache(tmp_path):

@@ -13,6 +13,7 @@ cache".
 """
 from __future__ import annotations
 
+import glob
 import hashlib
 import importlib
 import os
@@ -105,6 +106,18 @@ def _write_atomically(path: Path, text: str) -> None:
         raise
 
 
+def _forget(dispatcher, directory: Path) -> None:
+    """Empty ``dispatcher``'s cache index (numba's ``Cache.flush``) and delete its data files in
+    ``directory``. numba names a kernel's data files by their number in its index and writes the
+    index before the data: after a flush alone, a process that finds the first new entry while
+    its data file is still being written would read the stale file of the same name. A missing
+    data file numba treats as no entry (it compiles)."""
+    dispatcher._cache.flush()
+    base = dispatcher._cache._cache_file._index_name.removesuffix('.nbi')
+    for data in directory.glob(glob.escape(base) + '.*.nbc'):
+        data.unlink(missing_ok=True)
+
+
 def invalidate_stale_cache() -> list[str]:
     """Import every kernel module, empty the cache index of every kernel whose cache directory does
     not hold the kernel modules' :func:`source_digest`, then write that digest there; returns the
@@ -113,7 +126,8 @@ def invalidate_stale_cache() -> list[str]:
 
     A directory that is not writable is left alone (numba cannot cache there either). Emptying an
     index is numba's own ``Cache.flush``, which replaces the index file atomically with one that
-    lists nothing, so the kernel compiles on its next call and caches itself again; the digest is
+    lists nothing, so the kernel compiles on its next call and caches itself again; its data files
+    are deleted with it (:func:`_forget`), so no new index entry can name a stale one; the digest is
     written atomically, and only once every index there is emptied. Processes doing this at once
     at most empty an index another one has just filled (it compiles again), never leave one stale.
     """
@@ -125,7 +139,7 @@ def invalidate_stale_cache() -> list[str]:
             continue
         try:
             for dispatcher in group:
-                dispatcher._cache.flush()
+                _forget(dispatcher, Path(path))
             _write_atomically(Path(path) / DIGEST_FILE, digest)
         except OSError:         # gone or unwritable meanwhile: the next process tries again
             continue
