@@ -199,10 +199,15 @@ def taskset_problem() -> str | None:
     return None
 
 
+def _cpus(available: Sequence[int] | None) -> list[int]:
+    """``available`` sorted, default the CPUs this process may run on."""
+    return sorted(os.sched_getaffinity(0) if available is None else available)
+
+
 def pinning_problem(available: Sequence[int] | None = None) -> str | None:
     """Why ``pin`` cannot start the graph's processes here (fewer than two CPUs in ``available``,
     default the CPUs this process may run on, or no ``taskset``), or None."""
-    cpus = sorted(os.sched_getaffinity(0) if available is None else available)
+    cpus = _cpus(available)
     if len(cpus) < len(set(PIN_SLOTS.values())):
         return (f'pinning puts the simulator and the loop on two CPUs of their own; this '
                 f'process may run on {len(cpus)} ({", ".join(map(str, cpus))})')
@@ -220,7 +225,7 @@ def pinned_cpus(available: Sequence[int] | None = None) -> dict[str, int]:
     problem = pinning_problem(available)
     if problem:
         raise ValueError(problem)
-    cpus = sorted(os.sched_getaffinity(0) if available is None else available)
+    cpus = _cpus(available)
     return {name: cpus[slot] for name, slot in PIN_SLOTS.items()}
 
 
