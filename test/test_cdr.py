@@ -75,6 +75,9 @@ def test_our_bytes_are_the_message_built_the_slow_way_and_read_back_exactly(n, t
         stamp, back = codec.decode(data)
         assert stamp == ns and np.array_equal(back, values)
         assert _same((stamp, back), read(build(ns, values)))
+        # the layout writes into a buffer it keeps: bytes handed out earlier stay as they were
+        assert codec.encode(ns ^ 1, values + 1.0) != data
+        assert codec.decode(data)[0] == ns and np.array_equal(codec.decode(data)[1], values)
     assert codec.fallbacks == 0
 
 

@@ -1,10 +1,10 @@
-"""Serialized CDR bytes of the per-period loop messages, read and written with numpy.
+"""Serialized CDR bytes of the per-period loop messages, read and written at fixed offsets.
 
 rclpy builds a Python object for every nested message it deserializes, which makes the loop
 topics costly to receive. The loop's messages never change shape from one period to the next:
 only the stamp and a few float64 fields move. So each loop topic gets a :class:`Layout` learned at
-start-up from a template message that rclpy itself serializes, and a period then costs a masked
-byte comparison and a numpy gather (decode) or scatter (encode) at fixed offsets.
+start-up from a template message that rclpy itself serializes, and a period then costs a
+comparison of the structural bytes and a gather (decode) or scatter (encode) at fixed offsets.
 
 A message matches a layout when it has the template's length and the same structural bytes (the
 encapsulation header, counts, strings, fields outside the slots); the stamp, the slots and the
@@ -30,6 +30,8 @@ from __future__ import annotations
 
 import contextlib
 from dataclasses import dataclass
+import math
+import operator
 import os
 import struct
 import sys
@@ -63,6 +65,13 @@ class Layout:
 
     Build with :meth:`learn`. ``template`` holds the padding zeroed; ``mask`` is 0xFF on the
     structural bytes and 0 on the stamp, the slots and the padding.
+
+    A period's message is read and written with the standard library alone, since numpy's call
+    overhead on a few dozen bytes is what a loop node pays most of its codec time for: the
+    structural bytes are compared as the few runs they form, the slots are read by one
+    :class:`struct.Struct` in byte order and put in slot order by an ``itemgetter``, and a
+    message is written into one buffer kept for the layout, so one thread at a time encodes
+    (docs/design/cdr.md).
     """
 
     msg_type: type
@@ -73,6 +82,26 @@ class Layout:
     slots: np.ndarray             # (m,) index of each slot among the float64 words after HEADER
     shape: tuple[int, ...]        # shape of the slot values
     slack_size: int               # length of rclpy's own serialization (with its slack)
+
+    def __post_init__(self) -> None:
+        structural = np.append(self.mask == 0xFF, False).astype(np.int8)
+        edges = np.flatnonzero(np.diff(np.append(0, structural)))     # run starts and ends
+        runs = tuple((int(a), int(b), self.template[a:b]) for a, b in edges.reshape(-1, 2))
+        order = np.argsort(self.slots, kind='stable')       # the slots in byte order
+        fmt, end = '<', HEADER
+        for at in (HEADER + 8 * self.slots[order]).tolist():      # skip to each slot, read it
+            fmt += f'{at - end}xd' if at > end else 'd'
+            end = at + 8
+        values = struct.Struct(fmt)
+        rank = np.empty_like(order)
+        rank[order] = np.arange(len(order))
+        # (one slot or none: struct's tuple is already in slot order)
+        pick = operator.itemgetter(*rank.tolist()) if len(rank) > 1 else (lambda t: t)
+        buf = bytearray(self.template)
+        words = np.frombuffer(buf, '<f8', count=(len(buf) - HEADER) // 8, offset=HEADER)
+        for name, value in (('_runs', runs), ('_values', values), ('_pick', pick),
+                            ('_buf', buf), ('_words', words)):
+            object.__setattr__(self, name, value)
 
     @classmethod
     def learn(cls, msg_type: type, build: Callable[[int, np.ndarray], object],
@@ -113,25 +142,29 @@ class Layout:
             raise ValueError(f'{name}: the learned layout does not reproduce the template')
         return layout
 
+    def read(self, data: bytes) -> tuple[int, tuple[float, ...]] | None:
+        """(stamp ns, the slot values flat in slot order) of ``data``, or None when it does not
+        match."""
+        if len(data) != len(self.template) and len(data) != self.slack_size:   # rmw's or rclpy's
+            return None
+        for a, b, run in self._runs:
+            if data[a:b] != run:
+                return None
+        sec, nanosec = _STAMP.unpack_from(data, self.stamp_at)
+        return sec * cv.NS + nanosec, self._pick(self._values.unpack_from(data, HEADER))
+
     def decode(self, data: bytes) -> tuple[int, np.ndarray] | None:
         """(stamp ns, slot values of ``shape``) of ``data``, or None when it does not match."""
-        size = len(self.template)
-        if len(data) != size and len(data) != self.slack_size:     # as rmw or as rclpy serializes
+        got = self.read(data)
+        if got is None:
             return None
-        if (np.frombuffer(data, np.uint8, count=size) & self.mask).tobytes() != self.masked:
-            return None
-        sec, nanosec = _STAMP.unpack_from(data, self.stamp_at)
-        words = np.frombuffer(data, '<f8', count=(size - HEADER) // 8, offset=HEADER)
-        # a copy: data is not kept
-        return sec * cv.NS + nanosec, words[self.slots].reshape(self.shape)
+        return got[0], np.array(got[1], dtype=float).reshape(self.shape)
 
     def encode(self, ns: int, values: np.ndarray) -> bytes:
         """The CDR bytes of the message stamped ``ns`` with slot ``values`` (of ``shape``)."""
-        buf = bytearray(self.template)
-        _STAMP.pack_into(buf, self.stamp_at, *divmod(int(ns), cv.NS))
-        words = np.frombuffer(buf, '<f8', count=(len(buf) - HEADER) // 8, offset=HEADER)
-        words[self.slots] = np.asarray(values, dtype=float).ravel()
-        return bytes(buf)
+        _STAMP.pack_into(self._buf, self.stamp_at, *divmod(int(ns), cv.NS))
+        self._words[self.slots] = np.ravel(values)
+        return bytes(self._buf)
 
 
 def leading_stamp(data: bytes) -> int | None:
@@ -215,11 +248,11 @@ class LoopCodec:
             conversions.MessageError: as ``from_msg`` would, or the bytes are not a message of
                 the type at all.
         """
-        fast = self.layout.decode(data)
+        fast = self.layout.read(data)
         for layout in self.adopted:
             if fast is not None:
                 break
-            fast = layout.decode(data)
+            fast = layout.read(data)
         if fast is None:
             self.fallbacks += 1
             try:
@@ -232,8 +265,9 @@ class LoopCodec:
                     and self._adopt_attempts < MAX_ADOPT_ATTEMPTS):
                 self._adopt(data, stamp, values)
             return stamp, values
-        stamp, values = fast
-        if self._finite_what is not None:
+        stamp, flat = fast
+        values = np.array(flat, dtype=float).reshape(self.layout.shape)
+        if self._finite_what is not None and not all(map(math.isfinite, flat)):
             cv.check_finite(values, self._finite_what)
         return stamp, values
 
