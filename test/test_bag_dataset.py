@@ -256,14 +256,17 @@ def test_a_long_gap_splits_the_recording(tmp_path):
     assert [len(p.t) for p in parts] == [1000, 999]
 
 
-def test_training_on_a_jittery_bag_records_the_provenance(tmp_path):
+def test_training_on_a_jittery_bag_records_the_provenance(tmp_path, capsys):
     rng = np.random.default_rng(5)
     jittery_bag(tmp_path / 'train', rng)
     jittery_bag(tmp_path / 'val', rng, seconds=2.0)
     out = tmp_path / 'out'
-    assert train_tool.main(['--bag', str(tmp_path / 'train'), '--val-bag', str(tmp_path / 'val'),
-                            '--out', str(out), '--epochs', '2', '--rollout-epochs', '2',
-                            '--meas-std', '1e-6']) == 0
+    status = train_tool.main(['--bag', str(tmp_path / 'train'), '--val-bag',
+                              str(tmp_path / 'val'), '--out', str(out), '--epochs', '2',
+                              '--rollout-epochs', '2', '--meas-std', '1e-6'])
+    # two epochs make no model fit to control: written and judged, no params.yaml, status 3
+    assert status == train_tool.NOT_FIT
+    assert 'THE MODEL IS NOT FIT TO CONTROL' in capsys.readouterr().out
     assert sorted(p.name for p in out.iterdir()) == ['fig2_loss.png', 'fig3_accel_val.png',
                                                      'metrics.json', 'model.pt']
     assert not [p for p in tmp_path.iterdir()

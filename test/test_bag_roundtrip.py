@@ -23,6 +23,7 @@ from soft_gripper_sdre.learning.train_settings import PRESETS
 from soft_gripper_sdre.learning.training import save_checkpoint, train
 from soft_gripper_sdre.sim.hand import SimConfig
 from soft_gripper_sdre.tools.learning.collect import collect_signal
+from soft_gripper_sdre.tools.learning.train import NOT_FIT
 
 pytestmark = pytest.mark.ros
 
@@ -77,9 +78,13 @@ def test_bags_from_the_graph_train_the_model_the_npz_path_trains(tmp_path):
 
     # train from the bags with the CLI, and on the npz records with the same settings
     out = tmp_path / 'model'
-    run_tool('learning.train', '--bag', bags / 'x1', '--val-bag', bags / 'u4', '--out', out,
-             '--epochs', EPOCHS, '--meas-std', 0, '--jerk-psd', JERK, '--preset', 'default',
-             timeout=200)
+    proc = subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.learning.train',
+                           *map(str, ('--bag', bags / 'x1', '--val-bag', bags / 'u4', '--out', out,
+                                      '--epochs', EPOCHS, '--meas-std', 0, '--jerk-psd', JERK,
+                                      '--preset', 'default'))],
+                          capture_output=True, text=True, timeout=200, env=dict(os.environ))
+    # one signal's bag: written and judged; 3 = judged not fit to control (no params.yaml)
+    assert proc.returncode == (0 if (out / 'params.yaml').is_file() else NOT_FIT), proc.stderr
     metrics = json.loads((out / 'metrics.json').read_text())
     assert metrics['source'] == 'rosbag2' and metrics['train_samples'] == npz['x1'][0].t.size
     x, v = labelled['x1'], labelled['u4']

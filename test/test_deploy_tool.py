@@ -29,6 +29,7 @@ def _tool(*args, timeout=60, env=None):
 @pytest.mark.parametrize('make, args, message', [
     (None, [], '--params', ),
     ('none', [], 'no such file'),
+    ('unfit', [], 'no such file: training judged that model not fit to control (exit status 3)'),
     ('text', [], 'no /**/estimator ros__parameters section'),
     ('ok', ['--law', 'bogus'], "--law: unknown law 'bogus'"),
     ('ok', ['--tail', '-1'], '--tail must be in [0, 600]'),
@@ -47,6 +48,8 @@ def test_bad_arguments_exit_2_naming_them_with_nothing_written(tmp_path, make, a
     path = src / 'params.yaml'
     if make == 'text':
         path.write_text('just: text\n')
+    elif make == 'unfit':                  # training's output without its params.yaml
+        (src / 'metrics.json').write_text('{}')
     elif make in ('ok', 'exists', 'bad_domain'):
         params_file(path)
     elif make == 'no_times':

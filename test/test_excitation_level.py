@@ -91,6 +91,9 @@ def test_a_stiff_finger_stops_the_search_at_the_torque_limit():
     assert search.probes[-1].amplitude == pytest.approx(largest)
     assert search.amplitude == pytest.approx(largest)
     assert plan.clip_share(search.amplitude) <= 1e-4           # the peak sample touches it
+    # capped: the excursion expected there, the last probe's, is short of the goal (reported)
+    assert search.capped and search.expected == pytest.approx(search.probes[-1].excursion)
+    assert search.expected < search.goal
     assert all(np.all(np.abs(search.probe_torque(s, largest)) <= 0.02 * (1 + 1e-12))
                for s in np.linspace(0.0, 2.0, 101))
 
@@ -102,6 +105,7 @@ def test_a_soft_finger_is_scaled_down_from_the_first_probe():
     run_search(search, SpringDamper())
     [probe] = search.probes
     assert probe.excursion > 0.01 and search.amplitude < 0.2
+    assert not search.capped and search.expected == pytest.approx(search.goal)
 
 
 def test_probes_excite_only_the_chosen_finger_and_zero_settles_between():

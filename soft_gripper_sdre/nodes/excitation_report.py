@@ -93,11 +93,28 @@ class RunReport:
             self.log.info(f'level of {name}: probes of its first {search.probe_time:g} s '
                           f'(amplitude → peak excursion) {probes}, taken × {scaled} for the '
                           f'whole signal (its measured response); amplitude '
-                          f'{search.amplitude:.4g} for {1e3 * search.goal:g} mm, '
-                          f'{self._clip_text()}')
+                          f'{search.amplitude:.4g} {self._goal_text()}, {self._clip_text()}')
+            self._warn_capped()
             return
         self.log.info(f'level probes (amplitude → peak excursion): {probes}; amplitude '
-                      f'{search.amplitude:.4g} for {1e3 * search.goal:g} mm, {self._clip_text()}')
+                      f'{search.amplitude:.4g} {self._goal_text()}, {self._clip_text()}')
+        self._warn_capped()
+
+    def _goal_text(self) -> str:
+        search = self.run.search
+        if not search.capped:
+            return f'for {1e3 * search.goal:g} mm'
+        return (f'(the largest the input bounds allow) for about {1e3 * search.expected:.2f} mm '
+                f'of the {1e3 * search.goal:g} mm aimed at')
+
+    def _warn_capped(self) -> None:
+        """A warning when the bounds kept the signal below the aimed excursion."""
+        search = self.run.search
+        if search.capped:
+            self.diag.values['capped'] = f'{1e3 * search.expected:.2f} of {1e3 * search.goal:g} mm'
+            self.log.warn(f'the input bounds cap the level: about {1e3 * search.expected:.2f} mm '
+                          f'of the {1e3 * search.goal:g} mm aimed at; the recording moves the '
+                          'finger less (a lower max_excursion matches it, wider bounds exceed it)')
 
     def _first_torque(self) -> None:
         """How many zero-torque answers came before the first non-zero torque; a warning when

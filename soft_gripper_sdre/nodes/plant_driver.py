@@ -6,7 +6,8 @@ gripper"): the fingers are the plants of :mod:`soft_gripper_sdre.sim.plants.pres
 chamber pressure; ``trunk3``, a 3-D tip with three tendon tensions), and the loop runs on the
 wall clock, not in lockstep. The gripper's shape gives the command's m inputs and the tip's d
 coordinates; its bounds give each input's interval [lower, upper] in the input's unit (N·m, Pa,
-N). A steady-clock timer ticks at ``rate``; each tick
+N). A steady-clock timer ticks at ``rate`` (by default the plant's own: tendon3 200, stiff2 500,
+pneumatic1 100, trunk3 250 Hz); each tick
 
 1. takes the newest command (zero-order hold): the efforts ``<finger>/ax<k>`` for k < m of
    ``torque_commands``, clipped to the bounds (the preset's, narrowed by ``torque_limit`` and
@@ -72,7 +73,7 @@ from soft_gripper_sdre.nodes.params import (
     on_runtime_change,
 )
 from soft_gripper_sdre.nodes.topics import LOOP_QOS, NEWEST_QOS, TIP_POSITIONS, TORQUE_COMMANDS
-from soft_gripper_sdre.sim.plants.presets import GRIPPERS, plant_pair
+from soft_gripper_sdre.sim.plants.presets import GRIPPERS, RATES, plant_pair
 from soft_gripper_sdre.sim.shape import InputBounds
 
 #: the noise-free tips, for scoring (same type and stamps as tip_positions)
@@ -83,6 +84,11 @@ MAX_STEP_PERIODS = 4
 LATE_PERIODS = 1.5
 #: the fingers of each plant
 N_FINGERS = 2
+
+
+def _rate_problem(rate) -> str | None:
+    return None if rate == 0.0 or 100.0 <= rate <= 1000.0 else \
+        f'{rate:g} Hz: give 0 (the plant\'s own rate) or 100 to 1000 Hz'
 
 
 def _two_names(names) -> str | None:
@@ -100,8 +106,9 @@ PARAMS = (
     Param('finger_names', ['index', 'thumb'], 'the fingers in message order (pose i of the tips, '
           'torque_commands <finger>/ax<k> for k < m); two names, each a ROS name token',
           rule=_two_names, read_only=True),
-    Param('rate', 200.0, 'ticks per second: plants advanced, tips measured and published', 'Hz',
-          100.0, 1000.0, read_only=True),
+    Param('rate', 0.0, "ticks per second: plants advanced, tips measured and published; 0 = the "
+          "plant's own rate (tendon3 200, stiff2 500, pneumatic1 100, trunk3 250 Hz); else 100 to "
+          '1000', 'Hz', 0.0, 1000.0, read_only=True, rule=_rate_problem),
     Param('stamp_jitter', 4e-4, 'each tip_positions stamp is the measurement time plus a uniform '
           'offset in ±stamp_jitter; less than half a period, so stamps keep their order', 's',
           0.0, 0.005, read_only=True),
@@ -135,6 +142,8 @@ class PlantDriverNode(Node):
         super().__init__('plant_driver', **kwargs)
         p = declare_all(self, PARAMS)
         self.p = p
+        if p['rate'] == 0.0:
+            p['rate'] = RATES[p['plant']]
         self.period = 1.0 / p['rate']
         if p['stamp_jitter'] >= 0.5 * self.period:
             raise ParameterError(f"parameter 'stamp_jitter': {p['stamp_jitter']:g} s must be less "

@@ -557,6 +557,10 @@ class LevelSearch:
         self.rest: np.ndarray | None = None
         self.amplitude: float | None = None
         self.end: float | None = None
+        #: the peak excursion expected at ``amplitude`` (the last probe's, scaled linearly) [m]
+        self.expected: float | None = None
+        #: the goal needed more than the largest amplitude (the clip or the bounds) allow
+        self.capped = False
         self._rest_sum = np.zeros((len(self.rows), 3))
         self._rest_n = 0
         self._a = min(float(s.start), self.largest)
@@ -633,6 +637,8 @@ class LevelSearch:
         if e >= self.close * self.goal or a >= self.largest * (1 - 1e-9):
             chosen = a * self.ratio if e <= 0 else a * self.goal / e
             self.amplitude = min(chosen, a * self.ratio, self.largest)
+            self.expected = e * self.amplitude / a
+            self.capped = min(chosen, a * self.ratio) > self.largest * (1 + 1e-9)
             self.end = self._start
         else:
             grow = a * self.ratio if e <= 0 else min(a * self.ratio, a * self.goal / e)

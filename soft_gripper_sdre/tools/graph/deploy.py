@@ -57,7 +57,11 @@ class Settings:
 
     def __init__(self, path: Path) -> None:
         if not path.is_file():
-            raise ValueError(f'--params {path}: no such file')
+            hint = ''
+            if (path.parent / 'metrics.json').is_file():    # training ran there and wrote none
+                hint = (': training judged that model not fit to control (exit status 3); its '
+                        'output and metrics.json\'s "fitness" say why')
+            raise ValueError(f'--params {path}: no such file{hint}')
         try:
             data = yaml.safe_load(path.read_text(encoding='utf-8'))
         except (yaml.YAMLError, UnicodeDecodeError) as exc:

@@ -56,6 +56,7 @@ import yaml
 from soft_gripper_sdre.sim.plants.presets import RATES, gripper_bounds, gripper_shape
 from soft_gripper_sdre.sim.shape import InputBounds
 from soft_gripper_sdre.tools.graph.procs import DiagnosticsMonitor, Graph, ros_env
+from soft_gripper_sdre.tools.learning import NOT_FIT
 
 
 @dataclass(frozen=True)
@@ -305,7 +306,7 @@ def train(a: argparse.Namespace, env: dict, bags: Path, out: Path) -> tuple[dict
     cmd = train_command(a, bags, out)
     done = subprocess.run(cmd, env=env, capture_output=True, text=True)
     (out / 'train.log').write_text(done.stdout + done.stderr, encoding='utf-8')
-    if done.returncode != 0:
+    if done.returncode not in (0, NOT_FIT):         # NOT_FIT: settings_file says why
         raise RuntimeError(f'training failed (exit {done.returncode}):\n'
                            f'{done.stderr[-2000:]}')
     return json.loads((out / 'model' / 'metrics.json').read_text()), done.stdout

@@ -20,6 +20,12 @@ OUT/fig3_accel_u4.png (Figure 3), all together or none (the pipeline both paths 
 its metrics into the package as the shipped default model. Training labels are the KF + RTS
 estimates from the measured tip positions; validation (u4) is scored against the simulator's true
 accelerations.
+
+Exit status: 0 when done (with ``--bag``: the model fit to control and ``OUT/params.yaml``
+written), 2 for bad arguments or unusable bags (nothing written), 3 with ``--bag`` when the
+model was trained and written but judged not fit to control, or no controller setting passed
+its checks: the reason is printed and ``params.yaml`` is not written, so a script's
+``train … && deploy …`` stops here.
 """
 from __future__ import annotations
 
@@ -39,11 +45,16 @@ from soft_gripper_sdre.learning.dataset import DatasetError, load_records
 from soft_gripper_sdre.learning.labels import DATA_VARIANTS, VALIDATION, label_records
 from soft_gripper_sdre.learning.model import DEFAULT_MODEL, set_blas_threads, set_torch_threads
 from soft_gripper_sdre.learning.train_settings import PRESETS, TrainSettings
+from soft_gripper_sdre.tools.learning import NOT_FIT
 
 
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog='python -m soft_gripper_sdre.tools.learning.train',
-                                     description=__doc__.split('\n\n')[0])
+                                     description=__doc__.split('\n\n')[0],
+                                     epilog='exit status: 0 done (--bag: params.yaml written); '
+                                     '2 bad arguments or bags, nothing written; 3 (--bag) the '
+                                     'model was written but judged not fit to control, or no '
+                                     'controller setting passed its checks: no params.yaml')
     parser.add_argument('--data', type=Path,
                         help='directory with <signal>.npz files (tools.learning.collect)')
     parser.add_argument('--out', required=True, type=Path, help='output directory')
@@ -117,7 +128,8 @@ def main(argv: list[str] | None = None) -> int:
     set_blas_threads(1)
     settings = _settings(parser, args)
     if args.bag or args.val_bag:
-        _main_bags(parser, args, settings)
+        if not _main_bags(parser, args, settings):
+            return NOT_FIT
     else:
         _main_data(parser, args, settings)
     if args.install:
@@ -208,12 +220,14 @@ def _main_data(parser: argparse.ArgumentParser, args: argparse.Namespace,
 
 
 def _main_bags(parser: argparse.ArgumentParser, args: argparse.Namespace,
-               settings: TrainSettings) -> None:
+               settings: TrainSettings) -> bool:
     """The ``--bag`` path: arguments checked, then
-    :func:`~soft_gripper_sdre.tools.learning.train_bags.train_from_bags`."""
+    :func:`~soft_gripper_sdre.tools.learning.train_bags.train_from_bags`; whether it wrote the
+    loop's settings (``params.yaml``: the model is fit to control and a setting passed its
+    checks)."""
     from soft_gripper_sdre.analysis.bag_dataset import BagDataError
     from soft_gripper_sdre.sim.shape import ShapeError
-    from soft_gripper_sdre.tools.learning.train_bags import train_from_bags
+    from soft_gripper_sdre.tools.learning.train_bags import PARAMS_FILE, train_from_bags
 
     if args.data is not None:
         parser.error('--data and --bag exclude each other')
@@ -246,6 +260,7 @@ def _main_bags(parser: argparse.ArgumentParser, args: argparse.Namespace,
                         input_lower=args.input_lower, input_upper=args.input_upper)
     except (BagDataError, ShapeError) as exc:
         parser.error(str(exc))
+    return (args.out / PARAMS_FILE).is_file()
 
 
 if __name__ == '__main__':

@@ -319,7 +319,8 @@ def train_from_bags(train_paths: list[Path], val_paths: list[Path], out: Path,
               'the baseline is below 0 too, the labels are mostly noise or smoothed flat at this '
               'signal\'s speed; the free run below judges the model on the recorded positions '
               'instead)')
-    print(f'training: {len(result.train_loss)} epochs on {len(data.x)} samples from '
+    print(f'training: {len(result.train_loss)} + {len(result.rollout_loss)} epochs (label and '
+          f'simulation stages) on {len(data.x)} samples from '
           f'{len(data.provenance)} bag(s) in {result.seconds:.1f} s; wrote {out}')
     report_fitness(verdict.fitness, derived, out)
     print(clock.line())
