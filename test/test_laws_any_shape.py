@@ -269,10 +269,11 @@ def test_pseudo_inversion_is_exact_least_squares_or_minimum_norm():
             r = ad[i] - A2[i] @ xd[i]
             np.testing.assert_allclose(u[i], np.linalg.lstsq(G2[i], r, rcond=None)[0],
                                        rtol=1e-9, atol=1e-12)
+            # (where every input reaches, both are rounding: up to about 1e-12 on some CPUs)
             np.testing.assert_allclose(unreachable[i], np.linalg.norm(r - G2[i] @ u[i]),
-                                       rtol=1e-9, atol=1e-12)
+                                       rtol=1e-9, atol=1e-10)
         if m >= d:
-            np.testing.assert_allclose(unreachable, 0.0, atol=1e-12)
+            np.testing.assert_allclose(unreachable, 0.0, atol=1e-10)
     G2 = np.zeros((2, 3, 3))
     G2[1] = np.diag([1.0, 1.0, 1e-12])                      # singular: no inversion
     G2[0] = np.eye(3)

@@ -221,7 +221,10 @@ class DragBeyond(LinearModel):
         return A, G
 
 
+@pytest.mark.slow
+@pytest.mark.timeout(600)
 def test_a_move_no_setting_passes_on_is_halved_until_one_does():
+    # (every candidate checked on each halved move: 30 s to 2 min by the host and its load)
     model = DragBeyond(c=40.0)
     facts = ls.DataFacts(period=5e-3, noise_std=1e-5, travel=4e-3, torque_limit=0.02,
                          accel_psd_ml=1.0)

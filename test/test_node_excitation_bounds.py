@@ -161,7 +161,10 @@ def test_the_excitation_drives_a_foreign_gripper_without_a_command_clipped(plant
         drain(executor, 0.3)
         c = driver.diag.counters
         assert node.exit_code == 0
-        assert c['commands'] > 0.8 * rate * 1.8 and c['bad_commands'] == 0
+        # answered the driver's ticks (on a slow or loaded host the driver ticks late and
+        # fewer times than its rate, each tick advancing the plant by the time elapsed)
+        assert c['ticks'] > 0.2 * rate * 1.8 and c['commands'] > 0.6 * c['ticks']
+        assert c['bad_commands'] == 0
         assert c['clipped_commands'] == 0 and c['nonfinite_commands'] == 0
         np.testing.assert_array_equal(driver.applied, np.zeros((2, len(lower))))
     d = 2 if plant == 'pneumatic1' else 3
