@@ -77,7 +77,6 @@ class Layout:
     msg_type: type
     template: bytes
     mask: np.ndarray              # (size,) uint8
-    masked: bytes                 # template & mask
     stamp_at: int                 # byte offset of the stamp's sec (its nanosec follows)
     slots: np.ndarray             # (m,) index of each slot among the float64 words after HEADER
     shape: tuple[int, ...]        # shape of the slot values
@@ -136,8 +135,7 @@ class Layout:
         mask = np.where(moving | ignored, 0, 0xFF).astype(np.uint8)
         template = bytes(np.frombuffer(raw[:size], np.uint8)
                          & np.where(ignored, 0, 0xFF).astype(np.uint8))
-        layout = cls(msg_type, template, mask, bytes(np.frombuffer(template, np.uint8) & mask),
-                     stamp_at, slots, tuple(shape), len(raw))
+        layout = cls(msg_type, template, mask, stamp_at, slots, tuple(shape), len(raw))
         if deserialize_message(layout.encode(sec * cv.NS + nanosec, values), msg_type) != msg:
             raise ValueError(f'{name}: the learned layout does not reproduce the template')
         return layout
