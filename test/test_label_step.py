@@ -80,6 +80,25 @@ def test_adam_is_torchs_multi_tensor_adam_bit_for_bit(weight_decay):
                 assert torch.equal(a, b), f'step {k + 1}'
 
 
+def test_adam_steps_the_modules_own_weights_after_they_are_loaded():
+    """The parameters are views into Adam's flat tensor: weights loaded into the module
+    (``load_state_dict``, as training does with its best epoch) are the ones the next step moves,
+    and the module's tensors keep their shapes and names."""
+    torch.manual_seed(5)
+    net, other = SDCNet(shape=FingerShape(2, 1)), SDCNet(shape=FingerShape(2, 1))
+    shapes = {k: v.shape for k, v in net.state_dict().items()}
+    opt = label_step.Adam(list(net.parameters()), 1e-2)
+    net.load_state_dict(other.state_dict())
+    assert {k: v.shape for k, v in net.state_dict().items()} == shapes
+    assert torch.equal(opt.flat, torch.cat([p.reshape(-1) for p in other.parameters()]))
+    with deterministic_torch():
+        _, grads = autograd_loss_and_grads(net, *batch(net.shape, 32, seed=1))
+        opt.step(grads)
+    moved = [not torch.equal(a, b) for a, b in zip(net.parameters(), other.parameters())]
+    assert all(moved)
+    assert torch.equal(opt.flat, torch.cat([p.reshape(-1) for p in net.parameters()]))
+
+
 def test_cosine_lr_is_torchs_recursive_schedule_bit_for_bit():
     net = SDCNet()
     opt = torch.optim.SGD(net.parameters(), lr=1.5e-3)

@@ -16,7 +16,8 @@ This module calls the kernels autograd and Adam would call, in the same order, a
   operand layouts, that ``AddmmBackward`` forms for ``nn.Linear`` (its weight enters transposed,
   as a column-major operand, so ∂W comes out as ``∂yᵀ.mm(h)``).
 * **Adam**: torch's multi-tensor update (``foreach``, not capturable) with the step count kept as a
-  Python number: the bias corrections in double precision, the same ``_foreach`` calls.
+  Python number: the bias corrections in double precision, each operation on all the weights at
+  once (:class:`Adam`).
 * **Cosine annealing**: torch's recursive form of the schedule (each epoch's rate from the last),
   which differs from the closed form in the last bits.
 
@@ -80,7 +81,13 @@ def label_loss_and_grads(net: SDCNet, xs: torch.Tensor, us: torch.Tensor,
 class Adam:
     """Adam over ``params`` (L2 ``weight_decay`` added to the gradient, as ``torch.optim.Adam``);
     :meth:`step` takes the gradients as a list in ``params`` order. ``lr`` may be changed between
-    steps."""
+    steps.
+
+    The parameters become views into one flat tensor, and the moments are flat too, so a step is
+    seven element-wise operations on one tensor instead of torch's multi-tensor kernels, which on
+    the CPU loop over the tensors one operation at a time. Every operation is element-wise, so
+    each weight gets the arithmetic of ``torch.optim.Adam(foreach=True)`` to the bit whatever the
+    layout (``test/test_label_step.py``)."""
 
     def __init__(self, params: list[torch.Tensor], lr: float,
                  betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-8,
@@ -88,29 +95,32 @@ class Adam:
         self.params, self.lr, self.eps = list(params), float(lr), eps
         self.weight_decay = weight_decay
         self.beta1, self.beta2 = betas
-        self.exp_avg = [torch.zeros_like(p, memory_format=torch.preserve_format)
-                        for p in self.params]
-        self.exp_avg_sq = [torch.zeros_like(p, memory_format=torch.preserve_format)
-                           for p in self.params]
+        with torch.no_grad():
+            self.flat = torch.cat([p.detach().reshape(-1) for p in self.params])
+        offset = 0
+        for p in self.params:
+            p.data = self.flat[offset:offset + p.numel()].view_as(p)
+            offset += p.numel()
+        self.exp_avg = torch.zeros_like(self.flat)
+        self.exp_avg_sq = torch.zeros_like(self.flat)
         self.steps = 0
 
     @torch.no_grad()
     def step(self, grads: list[torch.Tensor]) -> None:
         self.steps += 1
+        grad = torch.cat([g.reshape(-1) for g in grads])
         if self.weight_decay != 0:
-            grads = torch._foreach_add(grads, self.params, alpha=self.weight_decay)
-        torch._foreach_lerp_(self.exp_avg, grads, 1 - self.beta1)
-        torch._foreach_mul_(self.exp_avg_sq, self.beta2)
-        torch._foreach_addcmul_(self.exp_avg_sq, grads, grads, 1 - self.beta2)
+            grad = grad.add(self.flat, alpha=self.weight_decay)
+        self.exp_avg.lerp_(grad, 1 - self.beta1)
+        self.exp_avg_sq.mul_(self.beta2)
+        self.exp_avg_sq.addcmul_(grad, grad, value=1 - self.beta2)
         count = float(self.steps)
         correction1 = 1 - self.beta1 ** count
         correction2_sqrt = (1 - self.beta2 ** count) ** 0.5
-        n = len(self.params)
-        denom = torch._foreach_sqrt(self.exp_avg_sq)
-        torch._foreach_div_(denom, [correction2_sqrt] * n)
-        torch._foreach_add_(denom, self.eps)
-        torch._foreach_addcdiv_(self.params, self.exp_avg, denom,
-                                [(self.lr / correction1) * -1] * n)
+        denom = self.exp_avg_sq.sqrt()
+        denom.div_(correction2_sqrt)
+        denom.add_(self.eps)
+        self.flat.addcdiv_(self.exp_avg, denom, value=(self.lr / correction1) * -1)
 
 
 def cosine_lr(lr: float, epoch: int, epochs: int) -> float:

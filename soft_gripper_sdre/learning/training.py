@@ -50,8 +50,8 @@ from soft_gripper_sdre.sim.shape import HAND_SHAPE, FingerShape, InputBounds
 #: depends on it
 TRAIN_THREADS = 1
 #: the simulation stage's Adam updates all the networks' tensors with one multi-tensor kernel per
-#: operation: the same arithmetic per element as one tensor at a time, with fewer operations per
-#: step (the label stage's :class:`~soft_gripper_sdre.learning.label_step.Adam` calls the same)
+#: operation: the same arithmetic per element as one tensor at a time (the label stage's
+#: :class:`~soft_gripper_sdre.learning.label_step.Adam` runs it on one flat tensor)
 FOREACH = True
 
 
