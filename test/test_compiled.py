@@ -207,10 +207,12 @@ def kernel_step(state, settings, a, g, x):
     return state, out
 
 
-def test_anti_stabilising_and_garbage_warm_starts_are_rejected_then_solved_exactly(model, weights):
+def test_anti_stabilising_and_garbage_warm_starts_are_rejected_then_solved_from_scratch(model,
+                                                                                      weights):
     """Warm starts at the ARE's anti-stabilising solution (a fixed point of Newton's iteration),
-    at a random symmetric matrix, at NaN and at 1e30: the kernel's checks reject each, and the
-    supervisor's exact path solves it with the reference's gains."""
+    at a random symmetric matrix, at NaN and at 1e30: Newton–Kleinman from each fails the checks,
+    and the kernel solves the finger again from scratch (the Hamiltonian's sign function, then
+    Newton–Kleinman) to the reference's gains, without the exact path."""
     x, a, g = sdc_plant(model, 2)
     zero = np.zeros((N, 4))
     A, G = full_sdc_matrices(a, g)
@@ -225,19 +227,34 @@ def test_anti_stabilising_and_garbage_warm_starts_are_rejected_then_solved_exact
         start = state.copy()
         start.P[:] = P0
         after, out = kernel_step(start, settings, a, g, x)
-        # every finger rejected, with a reason
-        assert not after.warm.any() and out.failed.all(), name
-        if name == 'anti-stabilising':
-            assert (np.all(out.residual < 1e-6)
-                    and np.all(out.failed & (Check.P_NOT_PD | Check.HURWITZ)))
-        assert np.isfinite(out.u).all()
-        np.testing.assert_array_equal(after.K, state.K)            # the gains in use are kept
+        assert after.warm.all() and not out.failed.any(), name
+        assert np.all(out.residual < 1e-9), name
+        np.testing.assert_allclose(after.K, ref.K, rtol=1e-8, err_msg=name)
         ctrl = SdreController(weights.Q, weights.R, U_MAX, n=N)
         ctrl.warm_start(P0)
-        k = ctrl.step_sdc(a, g, x, zero)  # the same step with the exact path
-        assert k.ok.all() and not k.failed_checks.any() and np.all(k.nk_iterations == 0), name
-        np.testing.assert_allclose(k.K, ref.K, rtol=1e-9, err_msg=name)
-        assert ctrl.step_sdc(a, g, x, zero).nk_iterations.min() >= 1  # and back to Newton–Kleinman
+        k = ctrl.step_sdc(a, g, x, zero)
+        assert k.ok.all() and not k.failed_checks.any() and ctrl.exact_solves == 0, name
+        assert np.all(k.nk_iterations >= 1), name
+        np.testing.assert_allclose(k.K, ref.K, rtol=1e-8, err_msg=name)
+
+
+def test_a_finger_the_restart_cannot_solve_keeps_its_gains_and_ends_cold(model, weights):
+    """With a residual tolerance nothing meets, Newton–Kleinman and the solve from scratch both
+    fail the checks: the finger ends cold (for the supervisor's exact path), with the reason,
+    and the gains in use are kept."""
+    x, a, g = sdc_plant(model, 2)
+    A, G = full_sdc_matrices(a, g)
+    anti = np.stack([-care(-A[i], G[i], weights.Q, weights.R) for i in range(N)])
+    state, settings = solved_state(weights, a, g, x)
+    settings = settings.copy()
+    settings.residual_tol[0] = 0.0
+    start = state.copy()
+    start.P[:] = anti
+    after, out = kernel_step(start, settings, a, g, x)
+    assert not after.warm.any() and np.all(out.failed & Check.RESIDUAL)
+    assert np.all(out.iterations >= 1)
+    np.testing.assert_array_equal(after.K, state.K)
+    assert np.isfinite(out.u).all()
 
 
 def test_singular_closed_loop_block_is_flagged(model, weights):

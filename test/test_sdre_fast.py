@@ -153,7 +153,8 @@ def warm(ctrl, a, g, x):
 
 def test_fast_path_rejects_the_anti_stabilising_solution(model):
     """Warm-started at the ARE's anti-stabilising solution (a fixed point of Newton's iteration),
-    the kernel's P ≻ 0 / Lyapunov test rejects it and the exact solve gives the right gains."""
+    the kernel's P ≻ 0 / Lyapunov test rejects it, and its solve from scratch gives the right
+    gains without an exact solve."""
     rng = np.random.default_rng(2)
     W = Weights(**DEFAULT_WEIGHTS)
     ctrl = SdreController(W.Q, W.R, 0.0625, n=N)
@@ -168,8 +169,8 @@ def test_fast_path_rejects_the_anti_stabilising_solution(model):
     out = ctrl.step_sdc(a, g, x, np.zeros((N, 4)))
     ref = SdreController(W.Q, W.R, 0.0625, n=N,
                          method='reference').step_sdc(a, g, x, np.zeros((N, 4)))
-    assert out.ok.all() and ctrl.exact_solves == before + N and np.all(out.nk_iterations == 0)
-    assert not out.failed_checks.any()  # the exact path's checks are the final word
+    assert out.ok.all() and ctrl.exact_solves == before and np.all(out.nk_iterations >= 1)
+    assert not out.failed_checks.any()
     np.testing.assert_allclose(out.K, ref.K, rtol=1e-9)
     assert ctrl.step_sdc(a, g, x, np.zeros((N, 4))).nk_iterations.min() >= 1    # back on the kernel
 

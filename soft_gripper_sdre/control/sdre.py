@@ -4,9 +4,10 @@ K, K_s and the checks are those of eq. 23–24 and Remarks 2–3
 (:mod:`~soft_gripper_sdre.control.riccati`). Two paths compute them:
 
 * ``method='fast'``: the compiled kernels (:mod:`~soft_gripper_sdre.control.kernels`: warm-started
-  Newton–Kleinman on the SDC form with the structure's checks, the gains and the law in one call);
-  a finger the kernel hands back (cold: first step or its last step was rejected; or a failed
-  check) takes the exact path alone: scipy's solver and the general checks, after which its
+  Newton–Kleinman on the SDC form with the structure's checks, a warm finger that fails them
+  solved again from scratch, the gains and the law in one call); a finger the kernel hands back
+  (cold: first step or its last step was rejected; or a check failed after the restart too)
+  takes the exact path alone: scipy's solver and the general checks, after which its
   torques are formed again with the gains now in use. Inputs not in SDC form, and weights for
   which the SDC form does not prove detectability, take the reference path.
 * ``method='reference'``: scipy and the general checks for every finger, every step.

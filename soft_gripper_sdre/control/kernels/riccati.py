@@ -24,6 +24,9 @@ from soft_gripper_sdre.control.kernels.linalg import (
 #: was compiled with, and the kernels' cache follows the kernel modules' sources alone
 (STABILIZABLE, HURWITZ, ACL_SINGULAR, SOLVE_FAILED, NONFINITE, RESIDUAL,
  P_NOT_PD) = 1, 4, 8, 16, 32, 64, 128
+#: the sign iteration's most steps and its relative change at convergence
+#: (:func:`hamiltonian_solve`)
+SIGN_ITERATIONS, SIGN_TOL = 50, 1e-13
 
 
 @kernel
@@ -159,15 +162,69 @@ def finger_accept(A, B, WP, PSP, settings, q_norm, state, out, work):
 
 
 @kernel
+def hamiltonian_solve(A, W, q, P):
+    """The stabilizing solution of AᵀP + PA − P S P + Q = 0 (S = [[0, 0], [0, W]]) into P, from
+    scratch, by the matrix sign function of the Hamiltonian H = [[A, −S], [−Q, −Aᵀ]]: Newton's
+    iteration Z ← (Z / c + c Z⁻¹) / 2 with c = |det Z|^(1/8) converges to sign(H), whose blocks
+    give P as the solution of [Z₁₂; Z₂₂ + I] P = −[Z₁₁ + I; Z₂₁] (a consistent 8 × 4 system,
+    solved by least squares), symmetrized. For a finger whose warm-started Newton–Kleinman ended
+    unstable: tens of µs where an exact scipy solve costs milliseconds. False (P untouched) when
+    the iteration does not converge or meets a singular or non-finite Z; the caller's checks
+    judge P either way."""
+    Z = np.zeros((8, 8))
+    for i in range(4):
+        for j in range(4):
+            Z[i, j] = A[i, j]
+            Z[4 + i, 4 + j] = -A[j, i]
+            Z[4 + i, j] = -q[i, j]
+    for r in range(2):
+        for c in range(2):
+            Z[2 + r, 6 + c] = -W[r, c]
+    converged = False
+    for _ in range(SIGN_ITERATIONS):
+        det = np.linalg.det(Z)
+        if not (np.isfinite(det) and det != 0.0):
+            return False
+        c = abs(det) ** 0.125
+        Z_next = 0.5 * (Z / c + c * np.linalg.inv(Z))
+        change, size = 0.0, 0.0
+        for i in range(8):
+            for j in range(8):
+                change += abs(Z_next[i, j] - Z[i, j])
+                size += abs(Z_next[i, j])
+        Z = Z_next
+        if not np.isfinite(size):
+            return False
+        if change <= SIGN_TOL * size:
+            converged = True
+            break
+    if not converged:
+        return False
+    M, N = np.empty((8, 4)), np.empty((8, 4))
+    for i in range(4):
+        for j in range(4):
+            M[i, j] = Z[i, 4 + j]
+            M[4 + i, j] = Z[4 + i, 4 + j] + (1.0 if i == j else 0.0)
+            N[i, j] = -(Z[i, j] + (1.0 if i == j else 0.0))
+            N[4 + i, j] = -Z[4 + i, j]
+    X = np.linalg.lstsq(M, N)[0]
+    for i in range(4):
+        for j in range(4):
+            P[i, j] = 0.5 * (X[i, j] + X[j, i])
+    return True
+
+
+@kernel
 def sdre_gains(finite, settings, state, outputs):
     """Gains of every warm finger with finite inputs (``finite``) by warm-started Newton–Kleinman
     and the checks, on the blocks a2, g2 in ``outputs``; the state records (P, warm, K, Ks) are
     updated in place.
 
     The warm fingers iterate together and stop at the first iteration where Σ ⟨Δ_low, W Δ_low⟩ <
-    residual_tol ‖Q‖_F / 2 over them; a finger whose solve fails leaves the sum. A finger keeps its
-    previous K, K_s and ends with warm False when it was cold or any check failed (``failed``: the
-    Check bits; NONFINITE and STABILIZABLE hold for cold fingers too).
+    residual_tol ‖Q‖_F / 2 over them; a finger whose solve fails leaves the sum. A warm finger that
+    fails a check is solved again from scratch (:func:`restart`). A finger keeps its previous K,
+    K_s and ends with warm False when it was cold or still fails (``failed``: the Check bits;
+    NONFINITE and STABILIZABLE hold for cold fingers too).
     """
     s = settings[0]
     n = state.shape[0]
@@ -204,4 +261,27 @@ def sdre_gains(finite, settings, state, outputs):
     for i in range(n):
         if solving[i]:
             finger_accept(A[i], B[i], WP[i], PSP[i], s, q_norm, state[i], outputs[i], work)
+            if not state[i].warm and outputs[i].failed & NONFINITE == 0:
+                restart(A[i], W[i], B[i], WP[i], PSP[i], s, q_norm, half_tol_q, state[i],
+                        outputs[i], A_k, L, p, work)
+
+
+@kernel
+def restart(A, W, B, WP, PSP, s, q_norm, half_tol_q, st, out, A_k, L, p, work):
+    """A warm finger whose Newton–Kleinman ended unstable or short of the tolerance (the SDC
+    blocks moved too far since its last solution): solved again from scratch
+    (:func:`hamiltonian_solve`), refined by Newton–Kleinman, which converges quadratically from a
+    stabilizing start, and checked again. Its ``iterations`` count the refinement's too; still
+    failing, it ends cold for the exact path."""
+    P = st.P
+    if not hamiltonian_solve(A, W, s.q, P):
+        P[:, :] = np.nan
+        return
+    quadratic_term(P, W, WP, PSP)
+    for _ in range(s.max_iterations):
+        bound = newton_kleinman_step(A, W, s.q, P, WP, PSP, A_k, L, p)
+        out.iterations += 1
+        if not bound >= half_tol_q:                  # converged, or NaN: the checks tell
+            break
+    finger_accept(A, B, WP, PSP, s, q_norm, st, out, work)
 
