@@ -92,13 +92,14 @@ class Adam:
     def __init__(self, params: list[torch.Tensor], lr: float,
                  betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-8,
                  weight_decay: float = 0.0) -> None:
-        self.params, self.lr, self.eps = list(params), float(lr), eps
+        params = list(params)
+        self.lr, self.eps = float(lr), eps
         self.weight_decay = weight_decay
         self.beta1, self.beta2 = betas
         with torch.no_grad():
-            self.flat = torch.cat([p.detach().reshape(-1) for p in self.params])
+            self.flat = torch.cat([p.detach().reshape(-1) for p in params])
         offset = 0
-        for p in self.params:
+        for p in params:
             p.data = self.flat[offset:offset + p.numel()].view_as(p)
             offset += p.numel()
         self.exp_avg = torch.zeros_like(self.flat)
