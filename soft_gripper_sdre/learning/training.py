@@ -24,7 +24,10 @@ and torch build (:data:`TRAIN_THREADS` intra-op threads, torch's deterministic a
 The settings and their presets are :mod:`soft_gripper_sdre.learning.train_settings`; the model's
 simulation of the records and L_sim, :mod:`soft_gripper_sdre.learning.rollout`; the label stage's
 step without autograd (the same bits at about half the cost), :mod:`soft_gripper_sdre.learning.
-label_step`; the networks, the checkpoint's layout and reading it back,
+label_step`; the simulation stage's loss and gradient compiled (forward and adjoint through the
+RK4 steps, autograd's to rounding in float64 at about a quarter of its cost),
+:mod:`soft_gripper_sdre.learning.compiled_rollout`; the networks, the checkpoint's layout and
+reading it back,
 :mod:`soft_gripper_sdre.learning.model`.
 """
 from __future__ import annotations
@@ -40,9 +43,16 @@ from typing import Callable, Iterator, NamedTuple
 import numpy as np
 import torch
 
-from soft_gripper_sdre.learning import label_step
+from soft_gripper_sdre.learning import compiled_rollout, label_step
 from soft_gripper_sdre.learning.model import FORMAT_VERSION, SDCNet
-from soft_gripper_sdre.learning.rollout import Run, Scales, sim_error, val_sim_error, windows
+from soft_gripper_sdre.learning.rollout import (
+    SIM_BOUND,
+    SIM_ERROR_CAP,
+    Run,
+    Scales,
+    val_sim_error,
+    windows,
+)
 from soft_gripper_sdre.learning.train_settings import TrainSettings
 from soft_gripper_sdre.sim.shape import HAND_SHAPE, FingerShape, InputBounds
 
@@ -153,16 +163,6 @@ def _label_loss(net: SDCNet, data: _Labelled) -> torch.Tensor:
     return ((net.accel(data.x, data.u) - data.acc) ** 2).sum(dim=1).mean()
 
 
-def _with_rest_penalty(loss: torch.Tensor, net: SDCNet, s: Scales,
-                       settings: TrainSettings) -> torch.Tensor:
-    """``loss`` + L_rest (module doc) when the penalty is on and some eigenvalue of A(0) is right
-    of −rest_margin (eigenvalues' gradients are only taken where they are needed)."""
-    if settings.rest_margin <= 0:
-        return loss
-    rest = _rest_penalty(net, s, settings)
-    return loss if rest is None else loss + rest
-
-
 def _rest_penalty(net: SDCNet, s: Scales, settings: TrainSettings) -> torch.Tensor | None:
     """L_rest (module doc), or None when every eigenvalue of A(0) is already left of the margin."""
     d = net.shape.d
@@ -184,18 +184,18 @@ def _gradients(loss: torch.Tensor, net: SDCNet) -> list[torch.Tensor]:
     return [p.grad for p in net.parameters()]
 
 
-def _step(opt: torch.optim.Optimizer, loss: torch.Tensor, net: SDCNet,
-          clip: float | None = None) -> bool:
-    """One optimiser step; a batch whose loss or gradient is not finite is skipped."""
-    if not torch.isfinite(loss):
+def _step(opt: torch.optim.Optimizer, loss: float, grads: list[torch.Tensor], net: SDCNet,
+          clip: float) -> bool:
+    """One optimiser step on ``grads`` (in ``net.parameters()`` order), their norm clipped to
+    ``clip``; a batch whose loss or gradient is not finite is skipped."""
+    if not math.isfinite(loss):
         return False
-    opt.zero_grad(set_to_none=True)
-    loss.backward()
-    if clip is not None:
-        norm = torch.nn.utils.clip_grad_norm_(net.parameters(), clip)
-        if not torch.isfinite(norm):
-            opt.zero_grad(set_to_none=True)
-            return False
+    for param, grad in zip(net.parameters(), grads):
+        param.grad = grad
+    norm = torch.nn.utils.clip_grad_norm_(net.parameters(), clip)
+    if not torch.isfinite(norm):
+        opt.zero_grad(set_to_none=True)
+        return False
     opt.step()
     return True
 
@@ -324,7 +324,9 @@ class _Training:
     def simulation_stage(self, runs: list[Run]) -> None:
         """The rollout epochs (module doc), continuing from the label stage's last weights."""
         settings, net, result = self.settings, self.net, self.result
-        batches = windows(runs, settings.rollout_seconds, settings.rollout_overlap)
+        batches = [(dt, *(a.double().numpy() for a in arrays))
+                   for dt, *arrays in windows(runs, settings.rollout_seconds,
+                                              settings.rollout_overlap)]
         opt = torch.optim.Adam(net.parameters(), lr=settings.rollout_lr, foreach=FOREACH)
         sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=settings.rollout_epochs)
         first = len(result.train_loss)
@@ -344,18 +346,30 @@ class _Training:
 
     def _rollout_epoch(self, opt: torch.optim.Optimizer, batches: list) -> float:
         """One pass over every window, shuffled within each grid spacing, in batches of
-        ``rollout_batch_size`` windows; returns the mean L_sim of the batches that stepped."""
-        size = self.settings.rollout_batch_size or self.settings.batch_size
+        ``rollout_batch_size`` windows; returns the mean L_sim of the batches that stepped.
+
+        L_sim and its gradient come from the compiled forward and adjoint runs
+        (:mod:`~soft_gripper_sdre.learning.compiled_rollout`); L_rest, when it is on and due,
+        through autograd, added to both."""
+        settings, net = self.settings, self.net
+        size = settings.rollout_batch_size or settings.batch_size
+        bound = SIM_BOUND * self.st.x.double().numpy()
         total, count = 0.0, 0
         for dt, x0, u, p in batches:
-            perm = torch.randperm(x0.shape[0], generator=self.gen)
+            perm = torch.randperm(x0.shape[0], generator=self.gen).numpy()
             for i in range(0, len(perm), size):
                 idx = perm[i:i + size]
-                loss = _with_rest_penalty(sim_error(self.net, self.st, dt, x0[idx], u[idx], p[idx]),
-                                          self.net, self.st, self.settings)
-                if _step(opt, loss, self.net, clip=1.0):
-                    total += loss.item() * idx.numel()
-                    count += idx.numel()
+                loss, grads = compiled_rollout.loss_and_grads(net, self.st, dt, x0[idx], u[idx],
+                                                              p[idx], SIM_ERROR_CAP, bound)
+                rest = (_rest_penalty(net, self.st, settings) if settings.rest_margin > 0
+                        else None)
+                if rest is not None:
+                    loss += rest.item()
+                    grads = [g if r is None else g + r
+                             for g, r in zip(grads, _gradients(rest, net))]
+                if _step(opt, loss, grads, net, clip=1.0):
+                    total += loss * len(idx)
+                    count += len(idx)
         return total / max(count, 1)
 
 
