@@ -190,9 +190,32 @@ def test_non_finite_inputs_give_finite_commands_within_the_bounds(law):
         assert s.ok[2] and s.fallback[2] and s.unreachable[2] == 0.0
 
 
-def test_a_failed_warm_start_goes_to_scipy_as_numpy_does():
-    """A garbage warm start: the kernel's checks reject it, scipy solves that finger, and the
-    step is numpy's."""
+@pytest.mark.parametrize('shape', [(2, 3), (3, 3), (2, 1)], ids=['d2m3', 'd3m3', 'd2m1'])
+def test_a_failed_warm_start_is_solved_again_in_the_kernel_to_numpys_step(shape):
+    """Anti-stabilising warm starts (a fixed point of Newton's iteration): the kernel's checks
+    reject Newton–Kleinman's result, the kernel solves each finger again from scratch (the
+    Hamiltonian's sign function, then Newton–Kleinman) without scipy, and the step is numpy's,
+    whose supervisor solves them with scipy."""
+    d, m = shape
+    model = FusedShapedModel(d, m)
+    bounds = CASES[shape]
+    compiled, numpy_law = make_pair('sdre', model, bounds, 2)
+    args = (np.tile(REST[:d] + 1e-4, (2, 1)), np.zeros((2, d)), np.tile(REST[:d], (2, 1)),
+            np.zeros((2, d)))
+    for law in (compiled, numpy_law):
+        law.compute(*args)
+        law.sdre.warm_start(-np.tile(np.eye(2 * d), (2, 1, 1)))      # anti-stabilising
+    a, b = compiled.compute(*args), numpy_law.compute(*args)
+    assert_same_step(a, b, bounds)
+    assert a.ok.all() and not a.failed_checks.any()
+    assert compiled.sdre.exact_solves == 2 and numpy_law.sdre.exact_solves == 4  # the cold step's
+    assert np.all(a.nk_iterations >= 1)
+
+
+def test_a_finger_the_restart_cannot_solve_goes_to_scipy_as_numpy_does():
+    """With a residual tolerance nothing meets, Newton–Kleinman and the solve from scratch both
+    fail: the finger ends cold, scipy solves it (and fails the same check), and the step, the
+    gains kept, is numpy's."""
     model = FusedShapedModel(2, 3)
     bounds = CASES[(2, 3)]
     compiled, numpy_law = make_pair('sdre', model, bounds, 2)
@@ -200,10 +223,14 @@ def test_a_failed_warm_start_goes_to_scipy_as_numpy_does():
             np.zeros((2, 2)))
     for law in (compiled, numpy_law):
         law.compute(*args)
-        law.sdre.warm_start(-np.tile(np.eye(4), (2, 1, 1)))      # anti-stabilising
+        law.sdre.warm_start(-np.tile(np.eye(4), (2, 1, 1)))
+        sdre = law.sdre                    # the tolerance of both paths, after the cold step
+        sdre.residual_tol = 0.0
+        sdre._general_settings = (*sdre._general_settings[:3], 0.0, *sdre._general_settings[4:])
     a, b = compiled.compute(*args), numpy_law.compute(*args)
     assert_same_step(a, b, bounds)
-    assert compiled.sdre.exact_solves == 4 and a.ok.all()
+    assert not a.ok.any() and np.all(a.failed_checks & Check.RESIDUAL)
+    assert compiled.sdre.exact_solves == 4
 
 
 def test_the_network_kernel_is_the_models_blocks():

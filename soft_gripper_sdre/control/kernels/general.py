@@ -23,8 +23,10 @@ serves every shape. Each kernel does what the general numpy path does
   u_ff = G2⁺(a_d − A2 x_d) with its unreachable part (:func:`finger_pseudo_inversion`), the
   reachable integral's step (:func:`reachable_integral_update`).
 
-A finger that is cold (no accepted P yet, or its last step failed), whose inputs are not finite,
-or whose result fails a check ends with ``warm`` False and its previous gains: the supervisor
+A warm finger whose result fails a check is solved again from scratch (:func:`finger_restart`:
+the Hamiltonian's sign function, then Newton–Kleinman and the checks again). A finger that is cold
+(no accepted P yet, or its last step failed), whose inputs are not finite, or whose result still
+fails a check ends with ``warm`` False and its previous gains: the supervisor
 (:class:`~soft_gripper_sdre.control.sdre.SdreController`) solves it with scipy and the general
 checks (:func:`~soft_gripper_sdre.control.riccati.solve_and_check`) and then forms the torques
 (:func:`general_torques`). Stabilisability and detectability are not tested here: a result that
@@ -40,6 +42,7 @@ import numpy as np
 
 from soft_gripper_sdre.control.kernels.cache import kernel
 from soft_gripper_sdre.control.kernels.linalg import solve_in_place
+from soft_gripper_sdre.control.kernels.riccati import hamiltonian_solve
 
 #: the bits of riccati.Check these kernels set, written out (as in kernels/riccati.py)
 (HURWITZ, ACL_SINGULAR, SOLVE_FAILED, NONFINITE, RESIDUAL, P_NOT_PD) = 4, 8, 16, 32, 64, 128
@@ -388,6 +391,24 @@ def finite_blocks(a2, g2, x, x_d):
 
 
 @kernel
+def finger_restart(A, g2, B, q, P):
+    """A warm finger whose Newton–Kleinman failed a check (its SDC blocks moved too far since its
+    last solution): P (k × k) solved again from scratch by the Hamiltonian's sign function
+    (:func:`~soft_gripper_sdre.control.kernels.riccati.hamiltonian_solve`, S's block
+    W = G2 R⁻¹ G2ᵀ from B = R⁻¹ G2ᵀ), for Newton–Kleinman to refine. False (P untouched) when the
+    sign iteration fails."""
+    d, m = g2.shape[0], g2.shape[1]
+    W = np.empty((d, d))
+    for a in range(d):
+        for b in range(d):
+            s = 0.0
+            for c in range(m):
+                s += g2[a, c] * B[c, b]
+            W[a, b] = s
+    return hamiltonian_solve(A, W, q, P)
+
+
+@kernel
 def general_gains(finite, a2, g2, q, r, r_inv, residual_tol, cond_max, max_iterations,
                   P, K, Ks, warm, P_out, residual, iterations, failed):
     """The gains of every warm finger with ``finite`` inputs by Newton–Kleinman from its state's
@@ -395,9 +416,10 @@ def general_gains(finite, a2, g2, q, r, r_inv, residual_tol, cond_max, max_itera
     (m, m).
 
     The state (P, K, K_s (n, m, 2d), warm (n,)) is updated in place: a finger that passes every
-    check with finite gains gets its new P, K, K_s and warm True; every other keeps P, K, K_s and
-    ends warm False (the supervisor solves it exactly). The step's record: P_out (n, 2d, 2d) the
-    Newton–Kleinman result (NaN where not solved), ``residual`` (NaN where not solved),
+    check with finite gains, at once or after its restart (:func:`finger_restart`), gets its new
+    P, K, K_s and warm True; every other keeps P, K, K_s and ends warm False (the supervisor
+    solves it exactly). The step's record: P_out (n, 2d, 2d) the Newton–Kleinman result, after
+    the restart where there was one (NaN where not solved), ``residual`` (NaN where not solved),
     ``iterations`` (the Lyapunov solves), ``failed`` (Check bits; NONFINITE for a finger whose
     inputs are not finite).
     """
@@ -430,6 +452,12 @@ def general_gains(finite, a2, g2, q, r, r_inv, residual_tol, cond_max, max_itera
         Ksi[:, :] = 0.0
         failed[i], residual[i] = finger_general_checks(A, g2[i], B, Pi, q, q_norm, residual_tol,
                                                        cond_max, Ki, Ksi)
+        if failed[i] != 0 and finger_restart(A, g2[i], B, q, Pi):
+            iterations[i] += finger_newton_kleinman(A, g2[i], B, q, r, Pi, max_iterations, work)
+            P_out[i] = Pi
+            Ksi[:, :] = 0.0
+            failed[i], residual[i] = finger_general_checks(A, g2[i], B, Pi, q, q_norm,
+                                                           residual_tol, cond_max, Ki, Ksi)
         if failed[i] == 0 and all_finite(Ki) and all_finite(Ksi):
             P[i] = Pi
             K[i] = Ki

@@ -163,33 +163,37 @@ def finger_accept(A, B, WP, PSP, settings, q_norm, state, out, work):
 
 @kernel
 def hamiltonian_solve(A, W, q, P):
-    """The stabilizing solution of AᵀP + PA − P S P + Q = 0 (S = [[0, 0], [0, W]]) into P, from
-    scratch, by the matrix sign function of the Hamiltonian H = [[A, −S], [−Q, −Aᵀ]]: Newton's
-    iteration Z ← (Z / c + c Z⁻¹) / 2 with c = |det Z|^(1/8) converges to sign(H), whose blocks
-    give P as the solution of [Z₁₂; Z₂₂ + I] P = −[Z₁₁ + I; Z₂₁] (a consistent 8 × 4 system,
-    solved by least squares), symmetrized. For a finger whose warm-started Newton–Kleinman ended
-    unstable: tens of µs where an exact scipy solve costs milliseconds. False (P untouched) when
-    the iteration does not converge or meets a singular or non-finite Z; the caller's checks
-    judge P either way."""
-    Z = np.zeros((8, 8))
-    for i in range(4):
-        for j in range(4):
+    """The stabilizing solution of AᵀP + PA − P S P + Q = 0 into P (k × k), from scratch, for the
+    SDC structure's S = [[0, 0], [0, W]] (W = G2 R⁻¹ G2ᵀ, d × d, in the lower right), by the
+    matrix sign function of the Hamiltonian H = [[A, −S], [−Q, −Aᵀ]]: Newton's iteration
+    Z ← (Z / c + c Z⁻¹) / 2 with c = |det Z|^(1/2k) converges to sign(H), whose blocks give P as
+    the solution of [Z₁₂; Z₂₂ + I] P = −[Z₁₁ + I; Z₂₁] (a consistent 2k × k system, solved by
+    least squares), symmetrized. For a finger whose warm-started Newton–Kleinman ended unstable:
+    tens of µs where an exact scipy solve costs milliseconds. False (P untouched) when the
+    iteration does not converge or meets a singular or non-finite Z; the caller's checks judge P
+    either way."""
+    k, d = A.shape[0], W.shape[0]
+    n = 2 * k
+    Z = np.zeros((n, n))
+    for i in range(k):
+        for j in range(k):
             Z[i, j] = A[i, j]
-            Z[4 + i, 4 + j] = -A[j, i]
-            Z[4 + i, j] = -q[i, j]
-    for r in range(2):
-        for c in range(2):
-            Z[2 + r, 6 + c] = -W[r, c]
+            Z[k + i, k + j] = -A[j, i]
+            Z[k + i, j] = -q[i, j]
+    for r in range(d):
+        for c in range(d):
+            Z[k - d + r, n - d + c] = -W[r, c]
+    power = 1.0 / n
     converged = False
     for _ in range(SIGN_ITERATIONS):
         det = np.linalg.det(Z)
         if not (np.isfinite(det) and det != 0.0):
             return False
-        c = abs(det) ** 0.125
+        c = abs(det) ** power
         Z_next = 0.5 * (Z / c + c * np.linalg.inv(Z))
         change, size = 0.0, 0.0
-        for i in range(8):
-            for j in range(8):
+        for i in range(n):
+            for j in range(n):
                 change += abs(Z_next[i, j] - Z[i, j])
                 size += abs(Z_next[i, j])
         Z = Z_next
@@ -200,16 +204,16 @@ def hamiltonian_solve(A, W, q, P):
             break
     if not converged:
         return False
-    M, N = np.empty((8, 4)), np.empty((8, 4))
-    for i in range(4):
-        for j in range(4):
-            M[i, j] = Z[i, 4 + j]
-            M[4 + i, j] = Z[4 + i, 4 + j] + (1.0 if i == j else 0.0)
+    M, N = np.empty((n, k)), np.empty((n, k))
+    for i in range(k):
+        for j in range(k):
+            M[i, j] = Z[i, k + j]
+            M[k + i, j] = Z[k + i, k + j] + (1.0 if i == j else 0.0)
             N[i, j] = -(Z[i, j] + (1.0 if i == j else 0.0))
-            N[4 + i, j] = -Z[4 + i, j]
+            N[k + i, j] = -Z[k + i, j]
     X = np.linalg.lstsq(M, N)[0]
-    for i in range(4):
-        for j in range(4):
+    for i in range(k):
+        for j in range(k):
             P[i, j] = 0.5 * (X[i, j] + X[j, i])
     return True
 
