@@ -210,7 +210,7 @@ def test_raw_bytes_over_dds_reach_typed_subscribers_and_typed_messages_take_the_
         assert spin_until(executor,
                           lambda: all(p.get_subscription_count() == 2
                                       for p in (*pubs_raw.values(), *pubs_typed.values())),
-                          10.0)
+                          30.0)                     # eight writers' discovery on a loaded machine
         for topic, (name, _) in topics.items():
             codec, build, _, _ = c[name]
             pubs_raw[topic].publish(codec.encode(NS, values[name]))       # our bytes
