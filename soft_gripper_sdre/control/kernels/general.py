@@ -264,6 +264,20 @@ def invert_in_place(M, out):
 
 
 @kernel
+def input_weight(g2, B):
+    """W = G2 R⁻¹ G2ᵀ (d × d), S's lower-right block, from g2 (d, m) and B = R⁻¹ G2ᵀ (m, d)."""
+    d, m = g2.shape[0], g2.shape[1]
+    W = np.empty((d, d))
+    for a in range(d):
+        for b in range(d):
+            s = 0.0
+            for c in range(m):
+                s += g2[a, c] * B[c, b]
+            W[a, b] = s
+    return W
+
+
+@kernel
 def finger_general_checks(A, g2, B, P, q, q_norm, residual_tol, cond_max, K, Ks):
     """(failed Check bits, relative residual) of one finger's solution P (k × k) by the checks of
     riccati.checked_gains, and its gains into K, K_s (m, k) where A_cl is invertible:
@@ -284,13 +298,7 @@ def finger_general_checks(A, g2, B, P, q, q_norm, residual_tol, cond_max, K, Ks)
     k, d, m = A.shape[0], g2.shape[0], g2.shape[1]
     if not all_finite(P):
         return SOLVE_FAILED, np.nan
-    W = np.empty((d, d))                                       # G2 R⁻¹ G2ᵀ
-    for a in range(d):
-        for b in range(d):
-            s = 0.0
-            for c in range(m):
-                s += g2[a, c] * B[c, b]
-            W[a, b] = s
+    W = input_weight(g2, B)                                    # G2 R⁻¹ G2ᵀ
     PSP = np.empty((k, k))                                     # P S P = P_lowᵀ W P_low
     res2 = 0.0
     for i in range(k):
@@ -397,15 +405,7 @@ def finger_restart(A, g2, B, q, P):
     (:func:`~soft_gripper_sdre.control.kernels.riccati.hamiltonian_solve`, S's block
     W = G2 R⁻¹ G2ᵀ from B = R⁻¹ G2ᵀ), for Newton–Kleinman to refine. False (P untouched) when the
     sign iteration fails."""
-    d, m = g2.shape[0], g2.shape[1]
-    W = np.empty((d, d))
-    for a in range(d):
-        for b in range(d):
-            s = 0.0
-            for c in range(m):
-                s += g2[a, c] * B[c, b]
-            W[a, b] = s
-    return hamiltonian_solve(A, W, q, P)
+    return hamiltonian_solve(A, input_weight(g2, B), q, P)
 
 
 @kernel
