@@ -48,7 +48,7 @@ def test_the_loss_and_gradient_are_autograds(shape):
     assert errors[1] == SIM_ERROR_CAP and np.all(errors[2:] < SIM_ERROR_CAP)
     ref_loss, ref_grads = _autograd(net, s, dt, x0, u, p)
     loss, grads = compiled_rollout.loss_and_grads(
-        net, s, dt, x0.numpy(), u.numpy(), p.numpy(), SIM_ERROR_CAP, SIM_BOUND * s.x.numpy())
+        net, s, dt, x0.numpy(), u.numpy(), p.numpy())
     assert loss == pytest.approx(ref_loss, rel=1e-12)
     assert [g.shape for g in grads] == [g.shape for g in ref_grads]
     assert all(g.dtype == torch.float64 for g in grads)
@@ -63,13 +63,11 @@ def test_a_capped_window_passes_no_gradient():
     to the loss and nothing to any weight."""
     shape = FingerShape(2, 2)
     net, s, dt, x0, u, p = _case(shape)
-    bound = SIM_BOUND * s.x.numpy()
     args = lambda keep: (x0[keep].numpy(), u[keep].numpy(), p[keep].numpy())  # noqa: E731
     every = list(range(8))
     without = [i for i in every if i != 1]
-    loss, grads = compiled_rollout.loss_and_grads(net, s, dt, *args(every), SIM_ERROR_CAP, bound)
-    rest, rest_grads = compiled_rollout.loss_and_grads(net, s, dt, *args(without), SIM_ERROR_CAP,
-                                                       bound)
+    loss, grads = compiled_rollout.loss_and_grads(net, s, dt, *args(every))
+    rest, rest_grads = compiled_rollout.loss_and_grads(net, s, dt, *args(without))
     assert loss == pytest.approx((7 * rest + SIM_ERROR_CAP) / 8, rel=1e-12)
     for g, r in zip(grads, rest_grads):
         np.testing.assert_allclose(g.numpy(), 7 / 8 * r.numpy(), rtol=1e-12, atol=1e-300)
@@ -82,7 +80,7 @@ def test_a_network_that_is_not_finite_gives_a_loss_that_is_not_finite():
     with torch.no_grad():
         net.a_net[4].bias[0] = float('nan')
     loss, grads = compiled_rollout.loss_and_grads(
-        net, s, dt, x0.numpy(), u.numpy(), p.numpy(), SIM_ERROR_CAP, SIM_BOUND * s.x.numpy())
+        net, s, dt, x0.numpy(), u.numpy(), p.numpy())
     assert np.isnan(loss)
     assert len(grads) == 12
 
@@ -94,8 +92,7 @@ def test_float32_networks_get_float32_gradients():
     ref_loss, ref_grads = _autograd(net, s, dt, x0, u, p)
     net = net.float()
     loss, grads = compiled_rollout.loss_and_grads(
-        net, Scales(*(a.float() for a in s)), dt, x0.numpy(), u.numpy(), p.numpy(),
-        SIM_ERROR_CAP, SIM_BOUND * s.x.numpy())
+        net, Scales(*(a.float() for a in s)), dt, x0.numpy(), u.numpy(), p.numpy())
     assert all(g.dtype == torch.float32 for g in grads)
     assert loss == pytest.approx(ref_loss, rel=1e-5)
     for got, ref in zip(grads, ref_grads):

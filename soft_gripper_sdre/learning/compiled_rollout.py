@@ -36,6 +36,7 @@ import numpy as np
 import torch
 
 from soft_gripper_sdre.learning.model import SDCNet
+from soft_gripper_sdre.learning.rollout import SIM_BOUND, SIM_ERROR_CAP, Scales
 
 _njit = njit(cache=True, error_model='numpy', nogil=True)
 
@@ -229,19 +230,20 @@ def _arrays(seq) -> tuple[np.ndarray, ...]:
     return tuple(np.ascontiguousarray(t.detach().numpy(), dtype=np.float64) for t in seq)
 
 
-def loss_and_grads(net: SDCNet, s, dt: float, x0: np.ndarray, u: np.ndarray, p: np.ndarray,
-                   cap: float, bound: np.ndarray) -> tuple[float, list[torch.Tensor]]:
-    """The mean over the windows of each window's L_sim capped at ``cap`` (as
-    :func:`~soft_gripper_sdre.learning.rollout.sim_error`) and its gradient with respect to
-    ``net.parameters()``, in that order (float32 tensors; float64 arithmetic).
+def loss_and_grads(net: SDCNet, s: Scales, dt: float, x0: np.ndarray, u: np.ndarray,
+                   p: np.ndarray) -> tuple[float, list[torch.Tensor]]:
+    """The mean over the windows of each window's L_sim capped at
+    :data:`~soft_gripper_sdre.learning.rollout.SIM_ERROR_CAP`, the state held within
+    :data:`~soft_gripper_sdre.learning.rollout.SIM_BOUND` data standard deviations (as
+    :func:`~soft_gripper_sdre.learning.rollout.sim_error`), and its gradient with respect to
+    ``net.parameters()``, in that order (tensors of the networks' dtype; float64 arithmetic).
 
-    ``s`` the data's scales (:class:`~soft_gripper_sdre.learning.rollout.Scales`); ``x0`` (B, 2d),
-    ``u`` (B, H, m), ``p`` (B, H, d) float64 arrays (SI); ``bound`` (2d,) the state's bound (SI).
-    A loss that is not finite comes back as NaN with zero gradients."""
+    ``s`` the data's scales; ``x0`` (B, 2d), ``u`` (B, H, m), ``p`` (B, H, d) float64 arrays (SI).
+    A loss that is not finite comes back as NaN."""
     params = list(net.parameters())
     pa, pg = _arrays(params[:6]), _arrays(params[6:])
     ga = tuple(np.zeros_like(a) for a in pa)
     gg = tuple(np.zeros_like(a) for a in pg)
     sx, su, sa = _arrays((s.x, s.u, s.acc))
-    loss = _batch(pa, pg, sx, su, sa, bound, float(dt), x0, u, p, float(cap), ga, gg)
+    loss = _batch(pa, pg, sx, su, sa, SIM_BOUND * sx, float(dt), x0, u, p, SIM_ERROR_CAP, ga, gg)
     return float(loss), [torch.from_numpy(g).to(params[0].dtype) for g in ga + gg]

@@ -46,8 +46,6 @@ import torch
 from soft_gripper_sdre.learning import compiled_rollout, label_step
 from soft_gripper_sdre.learning.model import FORMAT_VERSION, SDCNet
 from soft_gripper_sdre.learning.rollout import (
-    SIM_BOUND,
-    SIM_ERROR_CAP,
     Run,
     Scales,
     val_sim_error,
@@ -353,14 +351,13 @@ class _Training:
         through autograd, added to both."""
         settings, net = self.settings, self.net
         size = settings.rollout_batch_size or settings.batch_size
-        bound = SIM_BOUND * self.st.x.double().numpy()
         total, count = 0.0, 0
         for dt, x0, u, p in batches:
             perm = torch.randperm(x0.shape[0], generator=self.gen).numpy()
             for i in range(0, len(perm), size):
                 idx = perm[i:i + size]
                 loss, grads = compiled_rollout.loss_and_grads(net, self.st, dt, x0[idx], u[idx],
-                                                              p[idx], SIM_ERROR_CAP, bound)
+                                                              p[idx])
                 rest = (_rest_penalty(net, self.st, settings) if settings.rest_margin > 0
                         else None)
                 if rest is not None:
