@@ -68,11 +68,13 @@ os.environ.setdefault('OMP_NUM_THREADS', '1')
 
 
 def pytest_sessionstart(session):
-    """Compile the control kernels into numba's on-disk cache, or load them from it, before the
-    first test: outside every test's time limit, and before the node processes that graph tests
-    start, which then load them from the cache instead of each compiling them."""
-    from soft_gripper_sdre.control.kernels import warm_up
+    """Compile the control kernels and the closed-loop check's into numba's on-disk cache, or
+    load them from it, before the first test: outside every test's time limit, and before the
+    node processes that graph tests start, which then load them from the cache instead of each
+    compiling them."""
+    from soft_gripper_sdre.control.kernels import warm_up, warm_up_check_loop
     warm_up()
+    warm_up_check_loop()
 
 
 @pytest.fixture(scope='session', autouse=True)

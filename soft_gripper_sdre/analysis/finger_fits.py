@@ -141,11 +141,16 @@ class LinearFingerPlant:
     def tip(self) -> np.ndarray:
         return self.rest_tip + self.z[:self.fit.d] - self.origin
 
-    def step(self, u: np.ndarray, dt: float) -> None:
-        """Hold ``u`` (1, m) or (m,) over ``dt`` [s]."""
+    def matrices(self, dt: float) -> tuple[np.ndarray, np.ndarray]:
+        """(A_d, B_d): the exact step z ← A_d z + B_d u over ``dt`` [s] (u before the input gain;
+        computed once per ``dt``)."""
         if dt not in self._cache:
             self._cache[dt] = self.fit.discrete(dt)
-        Ad, Bd = self._cache[dt]
+        return self._cache[dt]
+
+    def step(self, u: np.ndarray, dt: float) -> None:
+        """Hold ``u`` (1, m) or (m,) over ``dt`` [s]."""
+        Ad, Bd = self.matrices(dt)
         u = np.asarray(u, dtype=float).reshape(-1)
         self.z = Ad @ self.z + Bd @ (u / self.gain if self.gain != 1.0 else u)
 

@@ -135,7 +135,7 @@ import numpy as np
 
 from soft_gripper_sdre.analysis import model_fitness
 from soft_gripper_sdre.analysis.data_facts import DataFacts
-from soft_gripper_sdre.analysis.finger_fits import LinearFinger
+from soft_gripper_sdre.analysis.finger_fits import LinearFinger, LinearFingerPlant
 from soft_gripper_sdre.analysis.holding import (
     HOLD_SHARE,
     EquilibriumCurve,
@@ -147,6 +147,12 @@ from soft_gripper_sdre.analysis.holding import (
     loop_bounds,
 )
 from soft_gripper_sdre.analysis.model_fitness import model_shape, rk4_step
+from soft_gripper_sdre.control.kernels import warm_up_check_loop
+from soft_gripper_sdre.control.kernels.check_loop import (
+    LINEAR_PLANT,
+    NETWORK_PLANT,
+    feedforward_check_steps,
+)
 from soft_gripper_sdre.control.kf import ConstantVelocityKF
 from soft_gripper_sdre.control.laws import make_law
 from soft_gripper_sdre.control.riccati import sdre_gains
@@ -388,6 +394,77 @@ def _at_bound(u: np.ndarray, bounds: InputBounds) -> np.ndarray:
     return np.any(low | high, axis=-1)
 
 
+class _CompiledSteps:
+    """:func:`check_on_model`'s steps in one compiled call
+    (:func:`~soft_gripper_sdre.control.kernels.check_loop.feedforward_check_steps`) where the
+    loop allows: the default law stepping compiled on the hand's path with its integral action
+    (:meth:`~soft_gripper_sdre.control.laws.feedforward.SdreFeedforwardLaw.hand_kernel_parts`),
+    a planar estimator, two-sided inputs (``facts.bounds`` None) and the learned model (compiled)
+    or a finger's linear fit as the plant (those classes themselves). The kernel works on the
+    law's, the estimator's, the plant's and the loop's own arrays, taken afresh at each call, so
+    a step it hands back runs in Python on the same state and the results are the Python loop's
+    (test/test_compiled_check_loop.py)."""
+
+    def __init__(self, ctrl, parts: tuple, kf: ConstantVelocityKF, plant, loop: tuple,
+                 tail: tuple) -> None:
+        self.ctrl, self.law, self.roll_off = ctrl, parts[:-1], parts[-1]
+        self.kf, self.plant, self.loop, self.tail = kf, plant, loop, tail
+        self.saved = np.zeros_like(self.law[5])           # the SDRE state before a step
+        self.kf_matrices = (kf.F, kf.Q, kf.R)
+
+    @classmethod
+    def of(cls, ctrl, kf, plant, dt: float, rest: np.ndarray, ref, noise: np.ndarray,
+           facts: DataFacts, pending: np.ndarray, bound: float, pos: np.ndarray,
+           u_hist: np.ndarray, sat: np.ndarray) -> _CompiledSteps | None:
+        """The compiled steps of this loop, or None where they do not apply (class doc)."""
+        parts = getattr(ctrl, 'hand_kernel_parts', lambda: None)()
+        if (parts is None or facts.bounds is not None or type(kf) is not ConstantVelocityKF
+                or kf.d != 2):
+            return None
+        if type(plant) is ModelPlant and plant.rk4 is not None:
+            plant_args = (NETWORK_PLANT, plant.rest, np.zeros(2), plant.k)
+            tail = (*plant.rk4.layers, np.zeros((1, 1)), np.zeros((1, 1)))
+        elif type(plant) is LinearFingerPlant:
+            plant_args = (LINEAR_PLANT, plant.rest_tip, plant.origin, plant.gain)
+            no_layers = (np.zeros((1, 1)), np.zeros(1)) * 3
+            tail = (*no_layers, *(np.ascontiguousarray(a, dtype=float)
+                                  for a in plant.matrices(dt)))
+        else:
+            return None
+        kind, rest_tip, origin, gain = plant_args
+        move = tuple(np.ascontiguousarray(a[:, 0], dtype=float)
+                     for a in (ref.pos, ref.vel, ref.acc))
+        loop = (noise, float(facts.noise_std), rest, *move)
+        tail = (kind, np.asarray(rest_tip, dtype=float), np.asarray(origin, dtype=float),
+                float(gain), float(dt), math.ceil(dt / MAX_STEP - 1e-9), *tail, float(bound),
+                pos, u_hist, sat, pending)
+        return cls(ctrl, parts, kf, plant, loop, tail)
+
+    def _plant_state(self) -> np.ndarray | None:
+        state = self.plant.x[0] if type(self.plant) is ModelPlant else self.plant.z
+        ok = (isinstance(state, np.ndarray) and state.dtype == np.float64
+              and state.flags.c_contiguous and state.flags.writeable)
+        return state if ok else None
+
+    def run(self, k: int) -> tuple[int, bool]:
+        """Steps from ``k`` on; (the first step not run here, whether the run diverged)."""
+        state = self._plant_state()
+        if state is None:
+            return k, False
+        alpha, previous, has_previous = self.roll_off.kernel_args(np.zeros((1, 2)))
+        u_prev = np.array(previous, dtype=float).reshape(1, 2)
+        has_prev = np.array([has_previous], dtype=np.bool_)
+        *plant_tail, pos, u_hist, sat, pending = self.tail
+        end, left = feedforward_check_steps(
+            k, *self.loop, self.kf.x, self.kf.P, *self.kf_matrices, *self.law[:8], self.saved,
+            *self.law[8:], alpha, u_prev, has_prev, pending, state, *plant_tail, pos,
+            u_hist, sat)
+        if has_prev[0]:
+            self.roll_off.keep(u_prev)
+        self.ctrl.sdre.steps += end - k
+        return end, bool(left)
+
+
 def check_on_model(model, settings: LoopSettings, facts: DataFacts, law: str = 'sdre_ff',
                    gain_error: float = 1.0, seed: int = 0, delay: int = 1,
                    plant=None) -> CheckResult:
@@ -428,21 +505,38 @@ def check_on_model(model, settings: LoopSettings, facts: DataFacts, law: str = '
                     lowpass_hz=settings.torque_lowpass_hz, dt=dt, **options)
     kf = (ConstantVelocityKF(dt, settings.accel_psd, settings.meas_std, n=1) if d == 2
           else _SpatialKF(dt, settings.accel_psd, settings.meas_std))
-    rng = np.random.default_rng(seed)
-    pending = [np.array(bounds.rest[None], dtype=float) if facts.bounds is not None
-               else np.zeros((1, m))] * delay
+    noise = np.random.default_rng(seed).standard_normal((steps, d))   # one draw per step
+    first = np.asarray(bounds.rest if facts.bounds is not None else np.zeros(m), dtype=float)
+    pending = np.tile(first, (delay, 1))            # the commands not yet applied, oldest first
     pos = np.empty((steps, d))
     u_hist = np.empty((steps, m))
     sat = np.zeros(steps, dtype=bool)
     outside, unreachable = 0, 0.0
     bound = 20 * abs(facts.travel) + 0.01
+    compiled = None
     tip = rest
-    for k in range(steps):
-        z = tip[None] + facts.noise_std * rng.standard_normal((1, d))
+    k = 0
+    while k < steps:
+        if k == 1 and law == 'sdre_ff':      # the estimator set up by the first step
+            compiled = _CompiledSteps.of(ctrl, kf, plant, dt, rest, ref, noise, facts, pending,
+                                         bound, pos, u_hist, sat)
+        if k and compiled is not None:
+            k, left = compiled.run(k)
+            if left:
+                return CheckResult(law, math.inf, 1.0, math.inf, 1.0, True, outside, unreachable)
+            if k == steps:
+                break
+            tip = np.array(plant.tip(), dtype=float)
+        z = tip[None] + facts.noise_std * noise[k][None]
         xh = kf.step(z) if k else (kf.reset(z), kf.x.copy())[1]
         out = ctrl.compute(xh[:, :d], xh[:, d:], rest + ref.pos[k], ref.vel[k], ref_acc=ref.acc[k])
-        pending.append(out.u)
-        plant.step(pending.pop(0), dt)
+        if delay:
+            applied = pending[0].copy()
+            pending[:-1] = pending[1:]
+            pending[-1] = out.u[0]
+        else:
+            applied = out.u[0]
+        plant.step(applied[None], dt)
         tip = np.array(plant.tip(), dtype=float)
         pos[k], u_hist[k] = tip - rest, out.u[0]
         if facts.bounds is None:
@@ -453,6 +547,7 @@ def check_on_model(model, settings: LoopSettings, facts: DataFacts, law: str = '
             unreachable = max(unreachable, float(np.max(getattr(out, 'unreachable', 0.0))))
         if not (np.all(np.isfinite(tip)) and np.abs(pos[k]).max() < bound):
             return CheckResult(law, math.inf, 1.0, math.inf, 1.0, True, outside, unreachable)
+        k += 1
     err = np.linalg.norm(pos - ref.pos[:, 0], axis=1)
     at_rest = t < traj.profile.t_start
     rest_torque = (float(np.abs(u_hist[at_rest]).max() / limit)
@@ -730,6 +825,7 @@ def derive(model, facts: DataFacts, laws: tuple[str, ...] = ('sdre_ff', 'sdre'),
             'tried stay under it')
     fingers = tuple(fit for fit in fingers if fit.lag > 0)
     rows: list[dict] = []
+    warm_up_check_loop()                # compiled once here: the forked workers inherit it
     with CheckRunner(model, workers) as runner:
         while True:
             kept = _search(runner, facts, bandwidths, rows, say, tuple(fingers))

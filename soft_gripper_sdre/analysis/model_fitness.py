@@ -22,9 +22,9 @@ from dataclasses import asdict, dataclass, field
 import itertools
 import math
 
-from numba import njit
 import numpy as np
 
+from soft_gripper_sdre.control.kernels.network_plant import network_rk4, network_run
 from soft_gripper_sdre.sim.shape import FingerShape
 
 #: a free run whose error is above this share of the validation positions' spread is not fit
@@ -64,79 +64,6 @@ def rk4_step(model, x: np.ndarray, u: np.ndarray, dt: float) -> np.ndarray:
     k3 = xdot(model, x + 0.5 * dt * k2, u)
     k4 = xdot(model, x + dt * k3, u)
     return x + dt / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
-
-
-@njit(cache=True, error_model='numpy', nogil=True)
-def _network_xdot(x, u, w1, b1, w2, b2, w3, b3, d, h1, h2, out, dx):
-    """dx (2d,) = ẋ = [ṗ; A₂(x) x + G₂(x) u] for one state x (2d,) and input u (m,): the fused
-    network's blocks (``SDCModel.fused_network``), row-major [A21 A22] (d, 2d) then G2 (d, m);
-    h1, h2 and out are the activations' scratch."""
-    ns, m, hidden = 2 * d, u.shape[0], b1.shape[0]
-    for j in range(hidden):
-        acc = 0.0
-        for k in range(ns):
-            acc += x[k] * w1[k, j]
-        acc += b1[j]
-        h1[j] = 0.0 if acc < 0.0 else acc          # ReLU that keeps NaN, as np.maximum
-    for j in range(hidden):
-        acc = 0.0
-        for k in range(hidden):
-            acc += h1[k] * w2[k, j]
-        acc += b2[j]
-        h2[j] = 0.0 if acc < 0.0 else acc
-    for j in range(out.shape[0]):
-        acc = 0.0
-        for k in range(hidden):
-            acc += h2[k] * w3[k, j]
-        out[j] = acc + b3[j]
-    for i in range(d):
-        dx[i] = x[d + i]
-        acc = 0.0
-        for j in range(ns):
-            acc += out[i * ns + j] * x[j]
-        for j in range(m):
-            acc += out[2 * d * d + i * m + j] * u[j]
-        dx[d + i] = acc
-
-
-@njit(cache=True, error_model='numpy', nogil=True)
-def _network_rk4(x, u, dt, substeps, w1, b1, w2, b2, w3, b3, d):
-    """``substeps`` classical Runge–Kutta steps of dt / substeps [s] of ẋ = A(x)x + G(x)u for one
-    state x (2d,), in place, the input u (m,) held (:func:`rk4_step`'s arithmetic)."""
-    ns, hidden = 2 * d, b1.shape[0]
-    h1, h2, out = np.empty(hidden), np.empty(hidden), np.empty(b3.shape[0])
-    k1, k2, k3, k4, xt = (np.empty(ns), np.empty(ns), np.empty(ns), np.empty(ns),
-                          np.empty(ns))
-    h = dt / substeps
-    for _ in range(substeps):
-        _network_xdot(x, u, w1, b1, w2, b2, w3, b3, d, h1, h2, out, k1)
-        for i in range(ns):
-            xt[i] = x[i] + 0.5 * h * k1[i]
-        _network_xdot(xt, u, w1, b1, w2, b2, w3, b3, d, h1, h2, out, k2)
-        for i in range(ns):
-            xt[i] = x[i] + 0.5 * h * k2[i]
-        _network_xdot(xt, u, w1, b1, w2, b2, w3, b3, d, h1, h2, out, k3)
-        for i in range(ns):
-            xt[i] = x[i] + h * k3[i]
-        _network_xdot(xt, u, w1, b1, w2, b2, w3, b3, d, h1, h2, out, k4)
-        for i in range(ns):
-            x[i] = x[i] + h / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i])
-
-
-@njit(cache=True, error_model='numpy', nogil=True)
-def _network_run(x0, u, dt, substeps, bound, w1, b1, w2, b2, w3, b3, d, out):
-    """out (T + 1, 2d): the run from x0 (2d,) under the inputs u (T, m), each held over ``dt``
-    [s] in ``substeps`` RK4 steps; NaN from the first state that leaves ``bound`` or is not
-    finite on (:func:`simulate`'s rule)."""
-    x = x0.copy()
-    out[:] = np.nan
-    out[0] = x
-    for k in range(u.shape[0]):
-        _network_rk4(x, u[k], dt, substeps, w1, b1, w2, b2, w3, b3, d)
-        for i in range(x.shape[0]):
-            if not (np.isfinite(x[i]) and abs(x[i]) < bound):
-                return
-        out[k + 1] = x
 
 
 class CompiledRK4:
@@ -184,7 +111,7 @@ class CompiledRK4:
         if not (isinstance(substeps, int) and substeps >= 1 and math.isfinite(dt) and dt > 0):
             raise ValueError(f'CompiledRK4.step: substeps must be an int >= 1 and dt finite and '
                              f'> 0, got {substeps!r} and {dt!r}')
-        _network_rk4(x, np.asarray(u, dtype=np.float64), float(dt), substeps, *self.layers,
+        network_rk4(x, np.asarray(u, dtype=np.float64), float(dt), substeps, *self.layers,
                      self.d)
 
     def simulate(self, x0: np.ndarray, u: np.ndarray, dt: float, substeps: int = 2,
@@ -210,7 +137,7 @@ class CompiledRK4:
             raise ValueError(f'CompiledRK4.simulate: substeps must be an int >= 1, dt finite and '
                              f'> 0 and bound > 0, got {substeps!r}, {dt!r} and {bound!r}')
         out = np.empty((u.shape[0] + 1, 2 * self.d))
-        _network_run(x0, u, float(dt), substeps, float(bound), *self.layers, self.d, out)
+        network_run(x0, u, float(dt), substeps, float(bound), *self.layers, self.d, out)
         return out
 
 

@@ -45,6 +45,7 @@ from typing import ClassVar, NamedTuple, Self
 import numpy as np
 
 from soft_gripper_sdre.control.kernels.cache import invalidate_stale_cache
+from soft_gripper_sdre.control.kernels.check_loop import feedforward_check_steps
 from soft_gripper_sdre.control.kernels.general import (
     general_feedforward_finish,
     general_feedforward_gains,
@@ -76,7 +77,8 @@ __all__ = ['KernelRecords', 'SdcNetwork', 'SdreSettings', 'SdreState', 'SdreOutp
            'model_inversion', 'feedforward_step', 'kf_step', 'kf_step_dt', 'integral_step',
            'integral_update', 'integral_roll_off', 'plan_sample', 'GeneralOutputs',
            'general_step_gains', 'general_tracking_gains', 'general_feedforward_gains',
-           'general_feedforward_finish', 'general_torques', 'shaped_forward']
+           'general_feedforward_finish', 'general_torques', 'shaped_forward',
+           'feedforward_check_steps', 'warm_up_check_loop']
 
 #: the kernels' float type, in the record dtypes
 F8 = np.float64
@@ -308,6 +310,28 @@ def warm_up() -> None:
     plan_sample(np.array([0, 1], dtype=np.int64), plan, plan, plan, 0, rows.copy(), rows.copy(),
                 rows.copy())
     warm_up_general()
+
+
+def warm_up_check_loop() -> None:
+    """Compile (or load from numba's cache) the closed-loop check's kernel
+    (:func:`~soft_gripper_sdre.control.kernels.check_loop.feedforward_check_steps`) at the types
+    the training's checks call it with: a process calls it before it forks the checks' workers,
+    which then inherit it. Not part of :func:`warm_up`: no node runs it."""
+    network = SdcNetwork.pack(np.zeros((4, 2)), np.zeros(2), np.zeros((2, 2)), np.zeros(2),
+                              np.zeros((2, 12)), np.zeros(12))
+    state = SdreState(1).records
+    integral = IntegralSettings.of(np.eye(2), np.eye(2), 1e-3, 1e-3, 0.9, 1.0).records
+    none = np.zeros((0, 2))
+    layers = (np.zeros((4, 2)), np.zeros(2), np.zeros((2, 2)), np.zeros(2), np.zeros((2, 12)),
+              np.zeros(12))
+    feedforward_check_steps(
+        0, none, 0.0, np.zeros(2), none, none, none, np.zeros((1, 4)), np.zeros((1, 4, 4)),
+        np.eye(4), np.eye(4), np.eye(2), np.zeros(2), False, *network,
+        SdreSettings.of(np.eye(4), np.eye(2), 1.0).records, state, SdreOutputs(1).records,
+        FeedforwardOutputs(1).records, state.copy(), np.zeros((1, 2)), integral, 0.0,
+        np.zeros((1, 2)), np.zeros(1, dtype=np.bool_), np.zeros((1, 2)), np.zeros(4), 0,
+        np.zeros(2), np.zeros(2), 1.0, 1e-3, 1, *layers, np.zeros((1, 1)), np.zeros((1, 1)), 1.0,
+        none.copy(), none.copy(), np.zeros(0, dtype=np.bool_))
 
 
 # before any kernel runs: numba's cache of them held to the kernel modules' sources as a whole

@@ -247,6 +247,21 @@ class SdreFeedforwardLaw:
             self.integral.update(x[:, :d] - xd[:, :d], out.u_unsat, finite)
         return out
 
+    def hand_kernel_parts(self) -> tuple | None:
+        """This law's arguments of a compiled loop of its steps on one finger
+        (:func:`~soft_gripper_sdre.control.kernels.check_loop.feedforward_check_steps`): origin,
+        ff_at_reference, the packed network and its width, the SDRE's settings, state, outputs and
+        feedforward records, the integral's ξ and settings, all the law's own arrays (a step there
+        updates them as :meth:`compute` does), and the roll-off; None unless the law steps
+        compiled on the hand's path with integral action, for one finger."""
+        if (self.network is None or not self.io.hand or self.integral is None
+                or self.n_fingers != 1):
+            return None
+        s = self.sdre
+        return (self.io.origin, self.ff_at == 'ref', *self.network, s.settings.records,
+                s.state.records, s.outputs.records, s.feedforward.records, self.integral.xi,
+                self.integral.settings, self.io.roll_off)
+
     def _general_compiled_step(self, pos, vel, ref_pos, ref_vel, ref_acc) -> LawStep:
         """:meth:`compute` off the hand's path in the general kernels (the same law, flags and
         integral as the numpy general path), then the roll-off."""
