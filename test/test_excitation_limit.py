@@ -87,7 +87,9 @@ def test_without_a_limit_the_excitation_plays_within_the_drivers_bounds(plant, c
             assert node.run.plan.map.bounds == bounds
         assert drv.diag.counters.get('clipped_commands', 0) == 0
         assert drv.diag.counters.get('bad_commands', 0) == 0
-        assert drv.diag.counters['commands'] > 50
+        # the 1.3 s run answers the driver's tips at its rate (100 to 250 Hz); beside two busy
+        # test workers the starved 100 Hz driver heard 34 commands
+        assert drv.diag.counters['commands'] > 20
     log = capfd.readouterr().err
     assert f'within {bounds} (limit_source driver: the bounds of /plant_driver)' in log or (
         '|u| <= 0.02 N·m (limit_source driver: the bounds of /plant_driver)' in log), log

@@ -130,7 +130,10 @@ def test_the_recipe_runs_end_to_end_on_the_tendon_finger(tmp_path):
         assert not (out / 'model' / 'params.yaml').exists()
         assert 'no controller setting passed' in r.stderr
         return
-    assert derived['settings']['control_period'] == pytest.approx(1 / 200, rel=0.02)
+    # the loop runs at the bags' tip period: the driver's 200 Hz, its ticks a little late on a
+    # loaded machine (a median of 5.33 ms in one CI run beside other work)
+    assert derived['settings']['control_period'] == facts['period']
+    assert facts['period'] == pytest.approx(1 / 200, rel=0.1)
     # the move goes the way the finger bends (up and in: the inputs' common direction, 120–140°),
     # and params.yaml gives it to the trajectory node
     assert 110 < facts['direction'] < 150
