@@ -14,7 +14,7 @@ import math
 
 import numpy as np
 
-from soft_gripper_sdre.control.kf import cv_matrices
+from soft_gripper_sdre.learning.compiled_labels import cv_loglik_axis
 from soft_gripper_sdre.sim.shape import InputBounds, ShapeError
 
 #: the check's move: along the data's principal direction by a share of the data's reach that way
@@ -131,25 +131,13 @@ class DataFacts:
 
 
 def cv_loglik(t: np.ndarray, pos: np.ndarray, accel_psd: float, meas_std: float) -> float:
-    """Innovation log-likelihood of tips ``pos`` (N, 2) at times ``t`` under the estimator's
-    constant-velocity model (each axis on its own)."""
-    R = meas_std ** 2
-    ll = 0.0
-    for axis in range(pos.shape[1]):
-        x = np.array([pos[0, axis], 0.0])
-        P = np.diag([R, 1.0])
-        for k in range(1, len(t)):
-            F, Q = cv_matrices(t[k] - t[k - 1], accel_psd)
-            F, Q = F[np.ix_([0, 2], [0, 2])], Q[np.ix_([0, 2], [0, 2])]
-            x = F @ x
-            P = F @ P @ F.T + Q
-            S = P[0, 0] + R
-            v = pos[k, axis] - x[0]
-            ll -= 0.5 * (math.log(2 * math.pi * S) + v * v / S)
-            K = P[:, 0] / S
-            x = x + K * v
-            P = P - np.outer(K, P[0, :])
-    return ll
+    """Innovation log-likelihood of tips ``pos`` (N, d) at times ``t`` under the estimator's
+    constant-velocity model (each axis on its own; compiled:
+    :func:`~soft_gripper_sdre.learning.compiled_labels.cv_loglik_axis`)."""
+    t = np.ascontiguousarray(t, dtype=float)
+    pos = np.asarray(pos, dtype=float)
+    return float(sum(cv_loglik_axis(t, np.ascontiguousarray(pos[:, axis]), float(accel_psd),
+                                    float(meas_std) ** 2) for axis in range(pos.shape[1])))
 
 
 def tune_accel_psd(t: np.ndarray, pos: np.ndarray, meas_std: float,

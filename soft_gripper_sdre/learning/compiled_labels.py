@@ -172,3 +172,28 @@ def smoothed(steps: np.ndarray, z: np.ndarray, measured: np.ndarray, z0: float, 
             for c in range(3):
                 Pk[r, c] += D[r, 0] * C[c, 0] + D[r, 1] * C[c, 1] + D[r, 2] * C[c, 2]
     return xs
+
+
+@_njit
+def cv_loglik_axis(t: np.ndarray, z: np.ndarray, q: float, R: float) -> float:
+    """The estimator's innovation log-likelihood for one coordinate (``analysis.data_facts.
+    cv_loglik``): the constant-velocity model of white acceleration ``q`` per step of ``t`` [s],
+    F = [[1, h], [0, 1]], Σ_v = q [[h³/3, h²/2], [h²/2, h]], started at x̂ = [z₀, 0],
+    P = diag(``R``, 1), each innovation's −(log 2πS + y²/S) / 2 summed (the update P − K P₀ᵀ)."""
+    x0, x1 = z[0], 0.0
+    p00, p01, p10, p11 = R, 0.0, 0.0, 1.0
+    total = 0.0
+    for k in range(1, z.shape[0]):
+        h = t[k] - t[k - 1]
+        q00, q01, q11 = q * (h ** 3 / 3), q * (h ** 2 / 2), q * h
+        x0, x1 = x0 + h * x1, x1
+        f00, f01, f10, f11 = p00 + h * p10, p01 + h * p11, p10, p11          # F P
+        p00, p01 = f00 + f01 * h + q00, f01 + q01                            # F P Fᵀ + Σ_v
+        p10, p11 = f10 + f11 * h + q01, f11 + q11
+        S = p00 + R
+        v = z[k] - x0
+        total -= 0.5 * (math.log(2.0 * math.pi * S) + v * v / S)
+        k0, k1 = p00 / S, p10 / S
+        x0, x1 = x0 + k0 * v, x1 + k1 * v
+        p00, p01, p10, p11 = p00 - k0 * p00, p01 - k0 * p01, p10 - k1 * p00, p11 - k1 * p01
+    return total
