@@ -15,6 +15,10 @@ agree with filterpy's to rounding (test/test_compiled_labels.py: 1e-12 relative)
 on them is not the one trained on filterpy's bit for bit, so the ``.npz`` path of the shipped model
 keeps filterpy's and the bag path uses these.
 
+The estimator's constant-velocity likelihood, whose maximum over a grid picks the loop's
+estimator intensity (:func:`~soft_gripper_sdre.analysis.data_facts.tune_accel_psd`), is compiled
+here too (:func:`cv_loglik_axis`; numpy's matrix steps to 1e-12, test/test_model_fitness.py).
+
 The kernels call only each other, in this file, so numba's own on-disk cache rule (a kernel's
 cache is keyed on its source file) holds for them; they are not part of the controller's kernels
 (:mod:`soft_gripper_sdre.control.compiled_cache`).
