@@ -155,6 +155,7 @@ from soft_gripper_sdre.control.kernels.check_loop import (
 )
 from soft_gripper_sdre.control.kf import ConstantVelocityKF
 from soft_gripper_sdre.control.laws import make_law
+from soft_gripper_sdre.control.laws.feedforward import HandKernelParts
 from soft_gripper_sdre.control.riccati import sdre_gains
 from soft_gripper_sdre.control.tracking import Weights
 from soft_gripper_sdre.control.trajectory import GraspProfile, GraspTrajectory
@@ -401,15 +402,15 @@ class _CompiledSteps:
     (:meth:`~soft_gripper_sdre.control.laws.feedforward.SdreFeedforwardLaw.hand_kernel_parts`),
     a planar estimator, two-sided inputs (``facts.bounds`` None) and the learned model (compiled)
     or a finger's linear fit as the plant (those classes themselves). The kernel works on the
-    law's, the estimator's, the plant's and the loop's own arrays, taken afresh at each call, so
-    a step it hands back runs in Python on the same state and the results are the Python loop's
-    (test/test_compiled_check_loop.py)."""
+    law's, the estimator's, the plant's and the loop's own arrays, the plant's state taken afresh
+    at each call, so a step it hands back runs in Python on the same state and the results are
+    the Python loop's (test/test_compiled_check_loop.py)."""
 
-    def __init__(self, ctrl, parts: tuple, kf: ConstantVelocityKF, plant, loop: tuple,
-                 tail: tuple) -> None:
-        self.ctrl, self.law, self.roll_off = ctrl, parts[:-1], parts[-1]
-        self.kf, self.plant, self.loop, self.tail = kf, plant, loop, tail
-        self.saved = np.zeros_like(self.law[5])           # the SDRE state before a step
+    def __init__(self, ctrl, parts: HandKernelParts, kf: ConstantVelocityKF, plant,
+                 loop: tuple, plant_args: tuple, records: tuple, pending: np.ndarray) -> None:
+        self.ctrl, self.parts, self.kf, self.plant = ctrl, parts, kf, plant
+        self.loop, self.plant_args, self.records, self.pending = loop, plant_args, records, pending
+        self.saved = np.zeros_like(parts.state)           # the SDRE state before a step
         self.kf_matrices = (kf.F, kf.Q, kf.R)
 
     @classmethod
@@ -422,45 +423,38 @@ class _CompiledSteps:
                 or kf.d != 2):
             return None
         if type(plant) is ModelPlant and plant.rk4 is not None:
-            plant_args = (NETWORK_PLANT, plant.rest, np.zeros(2), plant.k)
-            tail = (*plant.rk4.layers, np.zeros((1, 1)), np.zeros((1, 1)))
+            kind, rest_tip, origin, gain = NETWORK_PLANT, plant.rest, np.zeros(2), plant.k
+            matrices = (*plant.rk4.layers, np.zeros((1, 1)), np.zeros((1, 1)))
         elif type(plant) is LinearFingerPlant:
-            plant_args = (LINEAR_PLANT, plant.rest_tip, plant.origin, plant.gain)
+            kind, rest_tip, origin, gain = LINEAR_PLANT, plant.rest_tip, plant.origin, plant.gain
             no_layers = (np.zeros((1, 1)), np.zeros(1)) * 3
-            tail = (*no_layers, *(np.ascontiguousarray(a, dtype=float)
-                                  for a in plant.matrices(dt)))
+            matrices = (*no_layers, *(np.ascontiguousarray(a, dtype=float)
+                                      for a in plant.matrices(dt)))
         else:
             return None
-        kind, rest_tip, origin, gain = plant_args
         move = tuple(np.ascontiguousarray(a[:, 0], dtype=float)
                      for a in (ref.pos, ref.vel, ref.acc))
-        loop = (noise, float(facts.noise_std), rest, *move)
-        tail = (kind, np.asarray(rest_tip, dtype=float), np.asarray(origin, dtype=float),
-                float(gain), float(dt), math.ceil(dt / MAX_STEP - 1e-9), *tail, float(bound),
-                pos, u_hist, sat, pending)
-        return cls(ctrl, parts, kf, plant, loop, tail)
-
-    def _plant_state(self) -> np.ndarray | None:
-        state = self.plant.x[0] if type(self.plant) is ModelPlant else self.plant.z
-        ok = (isinstance(state, np.ndarray) and state.dtype == np.float64
-              and state.flags.c_contiguous and state.flags.writeable)
-        return state if ok else None
+        plant_args = (kind, np.asarray(rest_tip, dtype=float), np.asarray(origin, dtype=float),
+                      float(gain), float(dt), math.ceil(dt / MAX_STEP - 1e-9), *matrices,
+                      float(bound))
+        return cls(ctrl, parts, kf, plant, (noise, float(facts.noise_std), rest, *move),
+                   plant_args, (pos, u_hist, sat), pending)
 
     def run(self, k: int) -> tuple[int, bool]:
         """Steps from ``k`` on; (the first step not run here, whether the run diverged)."""
-        state = self._plant_state()
-        if state is None:
-            return k, False
-        alpha, previous, has_previous = self.roll_off.kernel_args(np.zeros((1, 2)))
+        p = self.parts
+        # the plant's state as it is now: a Python step replaces a linear fit's
+        state = self.plant.x[0] if type(self.plant) is ModelPlant else self.plant.z
+        alpha, previous, has_previous = p.roll_off.kernel_args(np.zeros((1, 2)))
         u_prev = np.array(previous, dtype=float).reshape(1, 2)
         has_prev = np.array([has_previous], dtype=np.bool_)
-        *plant_tail, pos, u_hist, sat, pending = self.tail
         end, left = feedforward_check_steps(
-            k, *self.loop, self.kf.x, self.kf.P, *self.kf_matrices, *self.law[:8], self.saved,
-            *self.law[8:], alpha, u_prev, has_prev, pending, state, *plant_tail, pos,
-            u_hist, sat)
+            k, *self.loop, self.kf.x, self.kf.P, *self.kf_matrices, p.origin,
+            p.ff_at_reference, *p.network, p.settings, p.state, p.outputs, p.feedforward,
+            self.saved, p.xi, p.integral, alpha, u_prev, has_prev, self.pending, state,
+            *self.plant_args, *self.records)
         if has_prev[0]:
-            self.roll_off.keep(u_prev)
+            p.roll_off.keep(u_prev)
         self.ctrl.sdre.steps += end - k
         return end, bool(left)
 

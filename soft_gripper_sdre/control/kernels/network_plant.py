@@ -47,7 +47,8 @@ def network_xdot(x, u, w1, b1, w2, b2, w3, b3, d, h1, h2, out, dx):
 @kernel
 def network_rk4(x, u, dt, substeps, w1, b1, w2, b2, w3, b3, d):
     """``substeps`` classical Runge–Kutta steps of dt / substeps [s] of ẋ = A(x)x + G(x)u for one
-    state x (2d,), in place, the input u (m,) held (:func:`rk4_step`'s arithmetic)."""
+    state x (2d,), in place, the input u (m,) held
+    (:func:`~soft_gripper_sdre.analysis.model_fitness.rk4_step`'s arithmetic)."""
     ns, hidden = 2 * d, b1.shape[0]
     h1, h2, out = np.empty(hidden), np.empty(hidden), np.empty(b3.shape[0])
     k1, k2, k3, k4, xt = (np.empty(ns), np.empty(ns), np.empty(ns), np.empty(ns),

@@ -1,10 +1,12 @@
 """Beyond the paper: SDRE feedback on the tracking error plus model-inversion feedforward."""
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
 from soft_gripper_sdre.control.batched_linalg import batched_solve, well_conditioned_2x2
-from soft_gripper_sdre.control.kernels import compiled_network, no_integral
+from soft_gripper_sdre.control.kernels import SdcNetwork, compiled_network, no_integral
 from soft_gripper_sdre.control.laws.integral import (
     DEFAULT_INTEGRAL,
     IntegralAction,
@@ -21,6 +23,7 @@ from soft_gripper_sdre.control.tracking import (
     DEFAULT_LOWPASS_HZ,
     LawIO,
     LawStep,
+    RollOff,
     Weights,
     shape_of,
 )
@@ -127,6 +130,22 @@ def combine_feedforward(io: LawIO, feedback: LawStep, A2: np.ndarray, G2: np.nda
     if unreachable is not None:
         out.unreachable = unreachable
     return out
+
+
+class HandKernelParts(NamedTuple):
+    """What a compiled loop of :class:`SdreFeedforwardLaw`'s steps takes of the law
+    (:meth:`SdreFeedforwardLaw.hand_kernel_parts`): its own arrays, updated in place there."""
+
+    origin: np.ndarray          # p₀ (2,): the rest frame's origin
+    ff_at_reference: bool       # the feedforward evaluates the model at x_d
+    network: SdcNetwork
+    settings: np.ndarray        # the SDRE's records: settings, state, outputs, feedforward
+    state: np.ndarray
+    outputs: np.ndarray
+    feedforward: np.ndarray
+    xi: np.ndarray              # the integral's ξ (1, 2) and its settings record
+    integral: np.ndarray
+    roll_off: RollOff
 
 
 class SdreFeedforwardLaw:
@@ -247,20 +266,19 @@ class SdreFeedforwardLaw:
             self.integral.update(x[:, :d] - xd[:, :d], out.u_unsat, finite)
         return out
 
-    def hand_kernel_parts(self) -> tuple | None:
-        """This law's arguments of a compiled loop of its steps on one finger
-        (:func:`~soft_gripper_sdre.control.kernels.check_loop.feedforward_check_steps`): origin,
-        ff_at_reference, the packed network and its width, the SDRE's settings, state, outputs and
-        feedforward records, the integral's ξ and settings, all the law's own arrays (a step there
-        updates them as :meth:`compute` does), and the roll-off; None unless the law steps
-        compiled on the hand's path with integral action, for one finger."""
+    def hand_kernel_parts(self) -> HandKernelParts | None:
+        """This law's own arrays and roll-off for a compiled loop of its steps on one finger
+        (:func:`~soft_gripper_sdre.control.kernels.check_loop.feedforward_check_steps`), which
+        updates them as :meth:`compute` does; None unless the law steps compiled on the hand's
+        path with integral action, for one finger."""
         if (self.network is None or not self.io.hand or self.integral is None
                 or self.n_fingers != 1):
             return None
         s = self.sdre
-        return (self.io.origin, self.ff_at == 'ref', *self.network, s.settings.records,
-                s.state.records, s.outputs.records, s.feedforward.records, self.integral.xi,
-                self.integral.settings, self.io.roll_off)
+        return HandKernelParts(self.io.origin, self.ff_at == 'ref', self.network,
+                               s.settings.records, s.state.records, s.outputs.records,
+                               s.feedforward.records, self.integral.xi, self.integral.settings,
+                               self.io.roll_off)
 
     def _general_compiled_step(self, pos, vel, ref_pos, ref_vel, ref_acc) -> LawStep:
         """:meth:`compute` off the hand's path in the general kernels (the same law, flags and
