@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import gc
 import time
 
 import rclpy
@@ -20,13 +21,22 @@ def overrides(**params) -> list[Parameter]:
 @contextlib.contextmanager
 def ros_context(executor: str = 'single'):
     """A fresh rclpy Context and an executor on it ('single' or 'events', as the node processes
-    spin), torn down afterwards."""
+    spin), torn down afterwards.
+
+    The garbage collector is off inside: a test process holds pytest's, torch's and every received
+    message's objects (about 300 000), and one full collection of them stalls every node spun here
+    for 0.1 s on a quiet machine, 0.5 s on a loaded one, long enough to trip a lockstep timeout.
+    A node process has none of that heap (docs/performance.md measures its collections)."""
     ctx = Context()
     rclpy.init(context=ctx)
     executor = make_executor(executor, context=ctx)
+    collecting = gc.isenabled()
+    gc.disable()
     try:
         yield ctx, executor
     finally:
+        if collecting:
+            gc.enable()
         for node in list(executor.get_nodes()):
             executor.remove_node(node)
             close = getattr(node, 'close', None)
