@@ -85,3 +85,41 @@ def test_bad_arguments_are_value_errors(change, match):
     args.update(change)
     with pytest.raises(ValueError, match=match):
         derivatives.estimate_kinematics(**args)
+
+
+def _synthetic_records(n=600, seed=3):
+    """Every signal the identifying data name, as records of a noisy sinusoidal tip (no ground
+    truth)."""
+    from soft_gripper_sdre.learning.dataset import Record
+    from soft_gripper_sdre.learning.labels import DATA_VARIANTS, VALIDATION
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) * DT
+    records = {}
+    for k, name in enumerate(list(DATA_VARIANTS['identifying']) + [VALIDATION]):
+        tip = np.zeros((n, 3))
+        tip[:, 0] = 1e-3 * np.sin((2 + k) * t) + NOISE_STD * rng.standard_normal(n)
+        tip[:, 1] = -0.01 + 1e-3 * np.cos((3 + k) * t) + NOISE_STD * rng.standard_normal(n)
+        records[name] = Record(name, t, rng.normal(size=(n, 2)) * 0.01, tip,
+                               np.array([0.0, -0.01, 0.0]), DT, noise_std=NOISE_STD)
+    return records
+
+
+def test_labels_in_worker_processes_are_those_labelled_here():
+    """label_records' signals labelled side by side in forked workers: every array the same bits
+    as one signal after another in this process."""
+    from soft_gripper_sdre.learning.labels import label_records
+    records = _synthetic_records()
+    here = label_records(records, 'identifying', progress=False, workers=1)
+    forked = label_records(records, 'identifying', progress=False, workers=2)
+    for name in ('x', 'u', 'acc', 'acc_true'):
+        assert np.array_equal(getattr(here, name), getattr(forked, name)), name
+    assert set(here.val) == set(forked.val)
+    assert all(np.array_equal(here.val[k], forked.val[k]) for k in here.val)
+    assert here.jerk_psd == forked.jerk_psd and here.x.shape == (5 * 600, 4)
+
+
+@pytest.mark.parametrize('workers', [0, -1, 1.5, True])
+def test_label_workers_must_be_a_positive_int(workers):
+    from soft_gripper_sdre.learning.labels import label_records
+    with pytest.raises(ValueError, match='workers must be an int >= 1'):
+        label_records(_synthetic_records(n=50), 'identifying', progress=False, workers=workers)

@@ -35,47 +35,79 @@ from torch import nn
 from soft_gripper_sdre.learning.model import SDCNet
 
 
-def _layers(net: nn.Sequential) -> tuple[nn.Linear, nn.Linear, nn.Linear]:
-    """The three linear layers of :func:`~soft_gripper_sdre.learning.model.mlp` (ReLU between)."""
-    return net[0], net[2], net[4]
+class LabelStep:
+    """Eq. 18's loss on a batch (as ``training._label_loss``) and its gradient with respect to
+    ``net.parameters()``, in that order, without recording a graph.
+
+    Holds the networks' weight tensors, so a call reaches them without the modules' attribute
+    lookups (a step's Python work costs as much as its arithmetic at these sizes); the
+    parameters may be re-pointed (:class:`Adam` makes them views of one flat tensor) and the
+    steps see it. The gradients come out as new tensors: ``mm`` written into a given tensor
+    (``out=``) can take another kernel and part from autograd's in the last bit."""
+
+    def __init__(self, net: SDCNet) -> None:
+        self.d, self.m = net.shape.d, net.shape.m
+        self.a_params = tuple(net.a_net.parameters())        # w1, c1, w2, c2, w3, c3
+        self.g_params = tuple(net.g_net.parameters())
+        self._mean_grads: dict[tuple[int, torch.dtype], torch.Tensor] = {}
+
+    def _mean_grad(self, b: int, dtype: torch.dtype) -> torch.Tensor:
+        """The mean's gradient 1/b per sample, (b, 1), as autograd's ``MeanBackward`` forms it
+        (ones divided by b), kept per batch size."""
+        key = (b, dtype)
+        if key not in self._mean_grads:
+            self._mean_grads[key] = (torch.ones((), dtype=dtype).expand(b) / b).unsqueeze(1)
+        return self._mean_grads[key]
+
+    @torch.no_grad()
+    def __call__(self, xs: torch.Tensor, us: torch.Tensor,
+                 acc: torch.Tensor) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        d, m = self.d, self.m
+        out_a, a1, a2 = _forward(self.a_params, xs)
+        out_g, g1, g2 = _forward(self.g_params, xs)
+        a = out_a.reshape(-1, 2 * d, d).transpose(1, 2)
+        g = out_g.reshape(-1, m, d).transpose(1, 2)
+        r = (a @ xs.unsqueeze(-1) + g @ us.unsqueeze(-1)).squeeze(-1) - acc
+        loss = (r ** 2).sum(dim=1).mean()
+        b = xs.shape[0]
+        d_r = self._mean_grad(b, r.dtype).expand(b, d) * (2.0 * r)
+        d_r = d_r.unsqueeze(1)
+        d_a = (xs.unsqueeze(2) * d_r).reshape(b, 2 * d * d)     # vec, columns stacked
+        d_g = (us.unsqueeze(2) * d_r).reshape(b, m * d)
+        return loss, (_backward(self.a_params, xs, a1, a2, d_a)
+                      + _backward(self.g_params, xs, g1, g2, d_g))
 
 
-def _forward(net: nn.Sequential, xs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor,
-                                                             torch.Tensor]:
-    """The network's output and its two hidden activations (after ReLU)."""
-    l1, l2, l3 = _layers(net)
-    h1 = torch.relu(nn.functional.linear(xs, l1.weight, l1.bias))
-    h2 = torch.relu(nn.functional.linear(h1, l2.weight, l2.bias))
-    return nn.functional.linear(h2, l3.weight, l3.bias), h1, h2
+def _forward(params: tuple[torch.Tensor, ...], xs: torch.Tensor) -> tuple[torch.Tensor,
+                                                                           torch.Tensor,
+                                                                           torch.Tensor]:
+    """The network's output and its two hidden activations (after ReLU) for the weights and
+    biases ``params`` of :func:`~soft_gripper_sdre.learning.model.mlp`'s three layers."""
+    w1, c1, w2, c2, w3, c3 = params
+    h1 = torch.relu(nn.functional.linear(xs, w1, c1))
+    h2 = torch.relu(nn.functional.linear(h1, w2, c2))
+    return nn.functional.linear(h2, w3, c3), h1, h2
 
 
-def _backward(net: nn.Sequential, xs: torch.Tensor, h1: torch.Tensor, h2: torch.Tensor,
-              d_out: torch.Tensor) -> list[torch.Tensor]:
+def _backward(params: tuple[torch.Tensor, ...], xs: torch.Tensor, h1: torch.Tensor,
+              h2: torch.Tensor, d_out: torch.Tensor) -> list[torch.Tensor]:
     """The gradients of the network's weights and biases, in ``parameters()`` order, from its
     output's gradient ``d_out``."""
-    _, l2, l3 = _layers(net)
-    d2 = torch.ops.aten.threshold_backward(d_out.mm(l3.weight), h2, 0)
-    d1 = torch.ops.aten.threshold_backward(d2.mm(l2.weight), h1, 0)
+    _, _, w2, _, w3, _ = params
+    d2 = _threshold_backward(d_out.mm(w3), h2, 0)
+    d1 = _threshold_backward(d2.mm(w2), h1, 0)
     return [d1.t().mm(xs), d1.sum(0), d2.t().mm(h1), d2.sum(0), d_out.t().mm(h2), d_out.sum(0)]
 
 
-@torch.no_grad()
+#: ReLU's backward as autograd runs it (the gradient where the output is positive, else +0)
+_threshold_backward = torch.ops.aten.threshold_backward.default
+
+
 def label_loss_and_grads(net: SDCNet, xs: torch.Tensor, us: torch.Tensor,
                          acc: torch.Tensor) -> tuple[torch.Tensor, list[torch.Tensor]]:
-    """Eq. 18's loss on a batch (as ``training._label_loss``) and its gradient with respect to
+    """:class:`LabelStep` of ``net`` on one batch: eq. 18's loss and its gradient with respect to
     ``net.parameters()``, in that order, without recording a graph."""
-    d, m = net.shape.d, net.shape.m
-    out_a, a1, a2 = _forward(net.a_net, xs)
-    out_g, g1, g2 = _forward(net.g_net, xs)
-    a = out_a.reshape(-1, 2 * d, d).transpose(1, 2)
-    g = out_g.reshape(-1, m, d).transpose(1, 2)
-    r = (a @ xs.unsqueeze(-1) + g @ us.unsqueeze(-1)).squeeze(-1) - acc
-    loss = (r ** 2).sum(dim=1).mean()
-    b = xs.shape[0]
-    d_r = (torch.ones((), dtype=r.dtype).expand(b) / b).unsqueeze(1).expand(b, d) * (2.0 * r)
-    d_a = (xs[:, :, None] * d_r[:, None, :]).reshape(b, 2 * d * d)      # vec, columns stacked
-    d_g = (us[:, :, None] * d_r[:, None, :]).reshape(b, m * d)
-    return loss, _backward(net.a_net, xs, a1, a2, d_a) + _backward(net.g_net, xs, g1, g2, d_g)
+    return LabelStep(net)(xs, us, acc)
 
 
 class Adam:

@@ -4,7 +4,11 @@ validates, and the rounding-level jitter of the seed sweep's data draws.
 """
 from __future__ import annotations
 
+from concurrent.futures import ProcessPoolExecutor
+from contextlib import ExitStack
 from dataclasses import dataclass
+import multiprocessing
+import os
 
 import numpy as np
 from tqdm import tqdm
@@ -15,6 +19,10 @@ from soft_gripper_sdre.learning.dataset import Record
 #: training signals per data variant; validation is always u4
 DATA_VARIANTS = {'paper': ('u1', 'u2', 'u3'), 'identifying': ('u1', 'u2', 'u3', 'x1', 'x2')}
 VALIDATION = 'u4'
+#: processes that label the signals side by side (:func:`label_records`; capped by the machine's
+#: CPUs, 1 = in this process): each signal's KF + RTS is independent of the others', and the same
+#: arithmetic wherever it runs
+LABEL_WORKERS = 2
 
 
 def states(record: Record, jerk_psd: float) -> dict[str, np.ndarray]:
@@ -66,16 +74,28 @@ class LabelledData:
 
 
 def label_records(records: dict[str, Record], variant: str, jerk_psd: float | None = None,
-                  progress: bool = True) -> LabelledData:
+                  progress: bool = True, workers: int = LABEL_WORKERS) -> LabelledData:
     """Label ``records`` (``DATA_VARIANTS[variant]`` and the validation signal) with the KF + RTS at
-    ``jerk_psd`` (None: :func:`tuned_jerk_psd` on the first training record)."""
+    ``jerk_psd`` (None: :func:`tuned_jerk_psd` on the first training record), in ``workers``
+    forked processes side by side (capped by the CPUs; 1, or a platform that cannot fork: here).
+    """
+    if not (isinstance(workers, int) and not isinstance(workers, bool) and workers >= 1):
+        raise ValueError(f'workers must be an int >= 1, got {workers!r}')
     names = list(DATA_VARIANTS[variant]) + [VALIDATION]
     first = records[names[0]]
     jerk = jerk_psd if jerk_psd is not None else tuned_jerk_psd(first)
+    workers = min(workers, os.cpu_count() or 1, len(names))
+    if 'fork' not in multiprocessing.get_all_start_methods():
+        workers = 1
     est = {}
+    with ExitStack() as stack:
+        pool = (stack.enter_context(ProcessPoolExecutor(workers, multiprocessing.get_context(
+            'fork'))) if workers > 1 else None)
+        futures = {name: pool.submit(states, records[name], jerk) for name in names} if pool else {}
+        for name in tqdm(names, desc='KF + RTS', unit='signal', disable=not progress):
+            est[name] = futures[name].result() if pool else states(records[name], jerk)
     deriv_err = {}
-    for name in tqdm(names, desc='KF + RTS', unit='signal', disable=not progress):
-        est[name] = states(records[name], jerk)
+    for name in names:
         r = records[name]
         if r.acc_true is not None:
             deriv_err[name] = derivatives.estimate_errors(est[name]['vel'], est[name]['acc'],

@@ -256,9 +256,10 @@ class _Training:
         settings, net, result = self.settings, self.net, self.result
         opt = label_step.Adam(list(net.parameters()), settings.lr,
                               weight_decay=settings.weight_decay)
+        step = label_step.LabelStep(net)
         for epoch in range(settings.epochs):
             net.train()
-            train_loss = self._label_epoch(opt, train_set)
+            train_loss = self._label_epoch(opt, step, train_set)
             if settings.cosine:
                 opt.lr = label_step.cosine_lr(opt.lr, epoch + 1, settings.epochs)
             net.eval()
@@ -279,34 +280,37 @@ class _Training:
             if self.keep_if_best(epoch, score):
                 break
 
-    def _label_epoch(self, opt: label_step.Adam, data: _Labelled) -> float:
+    def _label_epoch(self, opt: label_step.Adam, step: label_step.LabelStep,
+                     data: _Labelled) -> float:
         """One pass over the shuffled training set in batches; returns the mean loss.
 
-        A batch with only the label loss takes its gradient in closed form
+        The set is shuffled once per epoch and the batches are its consecutive slices. A batch
+        with only the label loss takes its gradient in closed form
         (:mod:`~soft_gripper_sdre.learning.label_step`); one with a penalty on, through autograd.
         Either way Adam's update is the same arithmetic, and a batch whose loss is not finite is
         skipped."""
         settings, net = self.settings, self.net
         n = data.x.shape[0]
         perm = torch.randperm(n, generator=self.gen)
+        shuffled = _Labelled(data.x[perm], data.u[perm], data.acc[perm])
         total = 0.0
         for i in range(0, n, settings.batch_size):
-            idx = perm[i:i + settings.batch_size]
-            batch = _Labelled(data.x[idx], data.u[idx], data.acc[idx])
+            batch = _Labelled(*(a[i:i + settings.batch_size] for a in shuffled))
+            count = batch.x.shape[0]
             rest = _rest_penalty(net, self.st, settings) if settings.rest_margin > 0 else None
             if settings.sv_penalty == 0 and rest is None:
-                loss, grads = label_step.label_loss_and_grads(net, *batch)
+                loss, grads = step(*batch)
             else:
                 loss = _label_loss(net, batch)
                 if settings.sv_penalty > 0:
-                    loss = loss + self._sv_penalty(idx.numel())
+                    loss = loss + self._sv_penalty(count)
                 if rest is not None:
                     loss = loss + rest
                 grads = _gradients(loss, net)
             value = loss.item()
             if math.isfinite(value):
                 opt.step(grads)
-            total += value * idx.numel()
+            total += value * count
         return total / n
 
     def _sv_penalty(self, count: int) -> torch.Tensor:
