@@ -197,3 +197,36 @@ def test_the_numpy_score_is_the_torch_runs_to_float32_rounding(shape):
     assert rollout.val_sim_error(net, s, val) == pytest.approx(ref, rel=2e-4)
     wild, _, _ = _scored_net(shape, gain=40.0)               # runs that leave the bound
     assert rollout.val_sim_error(wild, s, val) == pytest.approx(rollout.SIM_ERROR_CAP)
+
+
+@pytest.mark.parametrize('shape', [FingerShape(2, 2), FingerShape(3, 3), FingerShape(2, 1)])
+def test_the_compiled_free_runs_are_numpys_to_rounding(shape):
+    """rollout.simulate_compiled (network_windows) against simulate_numpy: the same positions to
+    1e-12 for runs that stay, the same bound-held states for runs that leave it, NaN where a
+    start is NaN; and the scores val_sim_error takes from them."""
+    import torch
+
+    from soft_gripper_sdre.learning import rollout
+    from soft_gripper_sdre.learning.rollout import Scales
+    net, s, val = _scored_net(shape)
+    s = Scales(s.x, s.u, torch.ones(shape.d) * s.x[:shape.d].mean())
+    wild, _, _ = _scored_net(shape, gain=40.0)
+    for model in (net, wild):
+        layers = rollout.fused_network(model, s)
+        for dt, x0, u, p in val:
+            x0 = x0.clone()
+            x0[1] = float('nan')
+            ref = rollout.simulate_numpy(layers, shape.d, s, x0, u, dt)
+            got = rollout.simulate_compiled(layers, shape.d, s, x0, u, dt)
+            assert got.shape == ref.shape
+            assert np.array_equal(np.isnan(got), np.isnan(ref)) and np.isnan(got[1]).all()
+            np.testing.assert_allclose(got, ref, rtol=1e-12, atol=1e-15)
+            kept = np.isfinite(ref).all(axis=(1, 2))
+            errs = [rollout.window_errors_numpy(layers, shape.d, s, dt, x0, u, p, compiled=c)
+                    for c in (False, True)]
+            np.testing.assert_allclose(errs[1], errs[0], rtol=1e-12)
+            assert (errs[1][~kept] == rollout.SIM_ERROR_CAP).all()
+    bound = rollout.SIM_BOUND * s.x.double().numpy()
+    held = rollout.simulate_compiled(rollout.fused_network(wild, s), shape.d, s, val[0][1],
+                                     val[0][2], val[0][0])
+    assert np.isclose(np.abs(held), bound[:shape.d]).any()      # the wild runs met the bound

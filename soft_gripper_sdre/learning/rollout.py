@@ -103,14 +103,16 @@ def val_sim_error(net: SDCNet, s: Scales, val_windows) -> float:
     :data:`SIM_ERROR_CAP` (a diverged run counts as the cap).
 
     Scored as the deployed model evaluates the networks (:class:`~soft_gripper_sdre.learning.model.
-    SDCModel`: both networks fused into three float64 matmuls in SI units) and in numpy: the runs
-    are sequential, a few windows wide, and torch's cost per operation, not the arithmetic, set
-    their time (at 500 Hz one scoring was 1.2 s in torch). The same runs as :func:`window_errors`
-    to float32 rounding."""
+    SDCModel`: both networks fused into three float64 layers in SI units), the runs compiled
+    (:func:`~soft_gripper_sdre.control.kernels.network_plant.network_windows`): they are
+    sequential and a few windows wide, so any array library's cost per operation, not the
+    arithmetic, would set their time (at 500 Hz one scoring took 1.2 s in torch, 0.19 s in numpy).
+    The same runs as :func:`simulate_numpy` to rounding, and as :func:`window_errors` to float32
+    rounding."""
     layers = fused_network(net, s)
     total, count = 0.0, 0
     for dt, x0, u, p in val_windows:
-        err = window_errors_numpy(layers, net.shape.d, s, dt, x0, u, p)
+        err = window_errors_numpy(layers, net.shape.d, s, dt, x0, u, p, compiled=True)
         total += float(err.sum())
         count += err.size
     return total / count
@@ -162,12 +164,29 @@ def simulate_numpy(layers: list[tuple[np.ndarray, np.ndarray]], d: int, s: Scale
     return out
 
 
-def window_errors_numpy(layers, d: int, s: Scales, dt: float, x0, u, p) -> np.ndarray:
-    """:func:`window_errors` with :func:`simulate_numpy`: each window's L_sim, capped at
-    :data:`SIM_ERROR_CAP`, a run that is not finite counted as the cap."""
+def simulate_compiled(layers: list[tuple[np.ndarray, np.ndarray]], d: int, s: Scales, x0, u,
+                      dt: float) -> np.ndarray:
+    """:func:`simulate_numpy` compiled (:func:`~soft_gripper_sdre.control.kernels.network_plant.
+    network_windows`): the same runs to rounding."""
+    from soft_gripper_sdre.control.kernels.network_plant import network_windows
+    x0 = np.ascontiguousarray(np.asarray(x0, dtype=np.float64))
+    u = np.ascontiguousarray(np.asarray(u, dtype=np.float64))
+    bound = SIM_BOUND * s.x.detach().double().numpy()
+    out = np.empty((x0.shape[0], u.shape[1], d))
+    network_windows(x0, u, float(dt), bound, *(np.ascontiguousarray(a) for layer in layers
+                                               for a in layer), d, out)
+    return out
+
+
+def window_errors_numpy(layers, d: int, s: Scales, dt: float, x0, u, p,
+                        compiled: bool = False) -> np.ndarray:
+    """:func:`window_errors` with :func:`simulate_numpy` (``compiled``: :func:`simulate_compiled`):
+    each window's L_sim, capped at :data:`SIM_ERROR_CAP`, a run that is not finite counted as the
+    cap."""
     scale = s.x[:d].detach().double().numpy()
+    run = simulate_compiled if compiled else simulate_numpy
     with np.errstate(all='ignore'):
-        err = (((simulate_numpy(layers, d, s, x0, u, dt) - np.asarray(p, dtype=np.float64))
+        err = (((run(layers, d, s, x0, u, dt) - np.asarray(p, dtype=np.float64))
                 / scale) ** 2).sum(axis=-1).mean(axis=1)
         err = np.minimum(err, SIM_ERROR_CAP)
     return np.where(np.isfinite(err), err, SIM_ERROR_CAP)

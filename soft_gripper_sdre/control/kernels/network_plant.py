@@ -12,28 +12,30 @@ from soft_gripper_sdre.control.kernels.cache import kernel
 
 
 @kernel
+def _layer(h, w, b, out, relu):
+    """out = h @ w + b, then ReLU (one that keeps NaN, as np.maximum) when ``relu``. Each output
+    sums its products in the order of h's entries from 0.0, then adds its bias; the loops run
+    along w's rows, so the products of one entry of h with a row are independent and run as
+    vector instructions."""
+    out[:] = 0.0
+    for k in range(h.shape[0]):
+        hk = h[k]
+        for j in range(out.shape[0]):
+            out[j] += hk * w[k, j]
+    for j in range(out.shape[0]):
+        v = out[j] + b[j]
+        out[j] = 0.0 if relu and v < 0.0 else v
+
+
+@kernel
 def network_xdot(x, u, w1, b1, w2, b2, w3, b3, d, h1, h2, out, dx):
     """dx (2d,) = ẋ = [ṗ; A₂(x) x + G₂(x) u] for one state x (2d,) and input u (m,): the fused
     network's blocks (``SDCModel.fused_network``), row-major [A21 A22] (d, 2d) then G2 (d, m);
     h1, h2 and out are the activations' scratch."""
-    ns, m, hidden = 2 * d, u.shape[0], b1.shape[0]
-    for j in range(hidden):
-        acc = 0.0
-        for k in range(ns):
-            acc += x[k] * w1[k, j]
-        acc += b1[j]
-        h1[j] = 0.0 if acc < 0.0 else acc          # ReLU that keeps NaN, as np.maximum
-    for j in range(hidden):
-        acc = 0.0
-        for k in range(hidden):
-            acc += h1[k] * w2[k, j]
-        acc += b2[j]
-        h2[j] = 0.0 if acc < 0.0 else acc
-    for j in range(out.shape[0]):
-        acc = 0.0
-        for k in range(hidden):
-            acc += h2[k] * w3[k, j]
-        out[j] = acc + b3[j]
+    ns, m = 2 * d, u.shape[0]
+    _layer(x, w1, b1, h1, True)
+    _layer(h1, w2, b2, h2, True)
+    _layer(h2, w3, b3, out, False)
     for i in range(d):
         dx[i] = x[d + i]
         acc = 0.0
@@ -83,3 +85,22 @@ def network_run(x0, u, dt, substeps, bound, w1, b1, w2, b2, w3, b3, d, out):
             if not (np.isfinite(x[i]) and abs(x[i]) < bound):
                 return
         out[k + 1] = x
+
+
+@kernel
+def network_windows(x0, u, dt, bound, w1, b1, w2, b2, w3, b3, d, out):
+    """out (B, H, d): the positions of B runs from x0 (B, 2d) under the inputs u (B, H, m), one
+    RK4 step of ``dt`` [s] per input held, each state then held within ±``bound`` (2d,) element
+    by element, a NaN kept (:func:`~soft_gripper_sdre.learning.rollout.simulate_numpy`'s rule)."""
+    x = np.empty(x0.shape[1])
+    for b in range(x0.shape[0]):
+        x[:] = x0[b]
+        for k in range(u.shape[1]):
+            network_rk4(x, u[b, k], dt, 1, w1, b1, w2, b2, w3, b3, d)
+            for i in range(x.shape[0]):
+                if x[i] > bound[i]:
+                    x[i] = bound[i]
+                elif x[i] < -bound[i]:
+                    x[i] = -bound[i]
+            for i in range(d):
+                out[b, k, i] = x[i]
