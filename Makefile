@@ -24,7 +24,7 @@ $(STAMP): requirements.txt setup.py setup.cfg package.xml
 venv: $(STAMP)
 
 $(KERNELS): $(STAMP) $(wildcard soft_gripper_sdre/control/kernels/*.py)
-	$(PY) -c 'from soft_gripper_sdre.control.kernels import warm_up, warm_up_training; warm_up(); warm_up_training()'
+	$(PY) -c 'from soft_gripper_sdre.control.kernels import warm_up, warm_up_check_loop; warm_up(); warm_up_check_loop()'
 	mkdir -p $(@D) && touch $@
 
 kernels: $(KERNELS)

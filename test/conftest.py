@@ -72,9 +72,9 @@ def pytest_sessionstart(session):
     load them from it, before the first test: outside every test's time limit, and before the
     node processes that graph tests start, which then load them from the cache instead of each
     compiling them."""
-    from soft_gripper_sdre.control.kernels import warm_up, warm_up_training
+    from soft_gripper_sdre.control.kernels import warm_up, warm_up_check_loop
     warm_up()
-    warm_up_training()
+    warm_up_check_loop()
 
 
 @pytest.fixture(scope='session', autouse=True)

@@ -201,9 +201,9 @@ def test_the_numpy_score_is_the_torch_runs_to_float32_rounding(shape):
 
 @pytest.mark.parametrize('shape', [FingerShape(2, 2), FingerShape(3, 3), FingerShape(2, 1)])
 def test_the_compiled_free_runs_are_numpys_to_rounding(shape):
-    """rollout.simulate_compiled (network_windows) against simulate_numpy: the same positions to
-    1e-12 for runs that stay, the same bound-held states for runs that leave it, NaN where a
-    start is NaN; and the scores val_sim_error takes from them."""
+    """rollout.simulate_compiled (compiled_rollout.free_runs) against simulate_numpy: the same
+    positions to 1e-12 for runs that stay, the same bound-held states for runs that leave it, NaN
+    where a start is NaN; and the scores val_sim_error takes from them."""
     import torch
 
     from soft_gripper_sdre.learning import rollout

@@ -147,7 +147,7 @@ from soft_gripper_sdre.analysis.holding import (
     loop_bounds,
 )
 from soft_gripper_sdre.analysis.model_fitness import model_shape, rk4_step
-from soft_gripper_sdre.control.kernels import warm_up_training
+from soft_gripper_sdre.control.kernels import warm_up_check_loop
 from soft_gripper_sdre.control.kernels.check_loop import (
     LINEAR_PLANT,
     NETWORK_PLANT,
@@ -819,7 +819,7 @@ def derive(model, facts: DataFacts, laws: tuple[str, ...] = ('sdre_ff', 'sdre'),
             'tried stay under it')
     fingers = tuple(fit for fit in fingers if fit.lag > 0)
     rows: list[dict] = []
-    warm_up_training()                # compiled once here: the forked workers inherit it
+    warm_up_check_loop()                # compiled once here: the forked workers inherit it
     with CheckRunner(model, workers) as runner:
         while True:
             kept = _search(runner, facts, bandwidths, rows, say, tuple(fingers))

@@ -226,6 +226,47 @@ def _batch(pa, pg, sx, su, sa, bound, dt, x0, u, p, cap, ga, gg) -> float:
     return total * inv_n
 
 
+@_njit
+def free_runs(w1, b1, w2, b2, w3, b3, d, x0, u, dt, bound, out) -> None:
+    """out (B, H, d): the positions of B runs of the fused float64 network
+    (:func:`~soft_gripper_sdre.learning.rollout.fused_network`: each layer's weights (inputs,
+    outputs), the output row-major [A21 A22] (d, 2d) then G2 (d, m), SI) from x0 (B, 2d) under
+    the inputs u (B, H, m), one RK4 step of ``dt`` per input held, each state then held within
+    ±``bound`` (2d,), a NaN kept: :func:`~soft_gripper_sdre.learning.rollout.simulate_numpy`'s
+    runs to rounding, for the epochs' validation scores."""
+    n, m = x0.shape[1], u.shape[2]
+    nh, n_a = b1.shape[0], 2 * d * d
+    h1, h2, o = np.empty(nh), np.empty(nh), np.empty(b3.shape[0])
+    ks = np.empty((4, n))
+    x, xt = np.empty(n), np.empty(n)
+    for b in range(x0.shape[0]):
+        for i in range(n):
+            x[i] = x0[b, i]
+        for k in range(u.shape[1]):
+            for s in range(4):
+                c = _STAGE[s] * dt
+                for i in range(n):
+                    xt[i] = x[i] + c * ks[s - 1, i] if s > 0 else x[i]
+                _mlp_forward(w1, b1, w2, b2, w3, b3, xt, h1, h2, o)
+                for i in range(d):
+                    ks[s, i] = xt[d + i]
+                    acc = 0.0
+                    for j in range(n):
+                        acc += o[i * n + j] * xt[j]
+                    for j in range(m):
+                        acc += o[n_a + i * m + j] * u[b, k, j]
+                    ks[s, d + i] = acc
+            for i in range(n):
+                y = x[i] + dt / 6.0 * (ks[0, i] + 2.0 * ks[1, i] + 2.0 * ks[2, i] + ks[3, i])
+                if y > bound[i]:
+                    y = bound[i]
+                elif y < -bound[i]:
+                    y = -bound[i]
+                x[i] = y
+            for i in range(d):
+                out[b, k, i] = x[i]
+
+
 def _arrays(seq) -> tuple[np.ndarray, ...]:
     return tuple(np.ascontiguousarray(t.detach().numpy(), dtype=np.float64) for t in seq)
 

@@ -104,7 +104,7 @@ def val_sim_error(net: SDCNet, s: Scales, val_windows) -> float:
 
     Scored as the deployed model evaluates the networks (:class:`~soft_gripper_sdre.learning.model.
     SDCModel`: both networks fused into three float64 layers in SI units), the runs compiled
-    (:func:`~soft_gripper_sdre.control.kernels.network_plant.network_windows`): they are
+    (:func:`~soft_gripper_sdre.learning.compiled_rollout.free_runs`): they are
     sequential and a few windows wide, so any array library's cost per operation, not the
     arithmetic, would set their time (at 500 Hz one scoring took 1.2 s in torch, 0.19 s in numpy).
     The same runs as :func:`simulate_numpy` to rounding, and as :func:`window_errors` to float32
@@ -166,15 +166,15 @@ def simulate_numpy(layers: list[tuple[np.ndarray, np.ndarray]], d: int, s: Scale
 
 def simulate_compiled(layers: list[tuple[np.ndarray, np.ndarray]], d: int, s: Scales, x0, u,
                       dt: float) -> np.ndarray:
-    """:func:`simulate_numpy` compiled (:func:`~soft_gripper_sdre.control.kernels.network_plant.
-    network_windows`): the same runs to rounding."""
-    from soft_gripper_sdre.control.kernels.network_plant import network_windows
+    """:func:`simulate_numpy` compiled (:func:`~soft_gripper_sdre.learning.compiled_rollout.
+    free_runs`): the same runs to rounding."""
+    from soft_gripper_sdre.learning.compiled_rollout import free_runs  # it imports this module
     x0 = np.ascontiguousarray(np.asarray(x0, dtype=np.float64))
     u = np.ascontiguousarray(np.asarray(u, dtype=np.float64))
     bound = SIM_BOUND * s.x.detach().double().numpy()
     out = np.empty((x0.shape[0], u.shape[1], d))
-    network_windows(x0, u, float(dt), bound, *(np.ascontiguousarray(a) for layer in layers
-                                               for a in layer), d, out)
+    free_runs(*(np.ascontiguousarray(a) for layer in layers for a in layer), d, x0, u, float(dt),
+              bound, out)
     return out
 
 

@@ -61,7 +61,6 @@ from soft_gripper_sdre.control.kernels.integral import (
     integral_update,
 )
 from soft_gripper_sdre.control.kernels.kf import kf_step, kf_step_dt
-from soft_gripper_sdre.control.kernels.network_plant import network_windows
 from soft_gripper_sdre.control.kernels.riccati import sdre_gains
 from soft_gripper_sdre.control.kernels.sdc_network import sdc_forward
 from soft_gripper_sdre.control.kernels.sdre import (
@@ -79,7 +78,7 @@ __all__ = ['KernelRecords', 'SdcNetwork', 'SdreSettings', 'SdreState', 'SdreOutp
            'integral_update', 'integral_roll_off', 'plan_sample', 'GeneralOutputs',
            'general_step_gains', 'general_tracking_gains', 'general_feedforward_gains',
            'general_feedforward_finish', 'general_torques', 'shaped_forward',
-           'feedforward_check_steps', 'warm_up_training']
+           'feedforward_check_steps', 'warm_up_check_loop']
 
 #: the kernels' float type, in the record dtypes
 F8 = np.float64
@@ -313,13 +312,11 @@ def warm_up() -> None:
     warm_up_general()
 
 
-def warm_up_training() -> None:
-    """Compile (or load from numba's cache) the kernels training runs, at the types it calls them
-    with: the closed-loop check's
-    (:func:`~soft_gripper_sdre.control.kernels.check_loop.feedforward_check_steps`; a process
-    calls this before it forks the checks' workers, which then inherit it) and the validation
-    free runs' (:func:`~soft_gripper_sdre.control.kernels.network_plant.network_windows`). Not
-    part of :func:`warm_up`: no node runs them."""
+def warm_up_check_loop() -> None:
+    """Compile (or load from numba's cache) the closed-loop check's kernel
+    (:func:`~soft_gripper_sdre.control.kernels.check_loop.feedforward_check_steps`) at the types
+    the training's checks call it with: a process calls it before it forks the checks' workers,
+    which then inherit it. Not part of :func:`warm_up`: no node runs it."""
     network = SdcNetwork.pack(np.zeros((4, 2)), np.zeros(2), np.zeros((2, 2)), np.zeros(2),
                               np.zeros((2, 12)), np.zeros(12))
     state = SdreState(1).records
@@ -335,8 +332,6 @@ def warm_up_training() -> None:
         np.zeros((1, 2)), np.zeros(1, dtype=np.bool_), np.zeros((1, 2)), np.zeros(4), 0,
         np.zeros(2), np.zeros(2), 1.0, 1e-3, 1, *layers, np.zeros((1, 1)), np.zeros((1, 1)), 1.0,
         none.copy(), none.copy(), np.zeros(0, dtype=np.bool_))
-    network_windows(np.zeros((1, 4)), np.zeros((1, 1, 2)), 1e-3, np.ones(4), *layers, 2,
-                    np.zeros((1, 1, 2)))
 
 
 # before any kernel runs: numba's cache of them held to the kernel modules' sources as a whole

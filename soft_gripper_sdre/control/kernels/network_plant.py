@@ -86,21 +86,3 @@ def network_run(x0, u, dt, substeps, bound, w1, b1, w2, b2, w3, b3, d, out):
                 return
         out[k + 1] = x
 
-
-@kernel
-def network_windows(x0, u, dt, bound, w1, b1, w2, b2, w3, b3, d, out):
-    """out (B, H, d): the positions of B runs from x0 (B, 2d) under the inputs u (B, H, m), one
-    RK4 step of ``dt`` [s] per input held, each state then held within ±``bound`` (2d,) element
-    by element, a NaN kept (:func:`~soft_gripper_sdre.learning.rollout.simulate_numpy`'s rule)."""
-    x = np.empty(x0.shape[1])
-    for b in range(x0.shape[0]):
-        x[:] = x0[b]
-        for k in range(u.shape[1]):
-            network_rk4(x, u[b, k], dt, 1, w1, b1, w2, b2, w3, b3, d)
-            for i in range(x.shape[0]):
-                if x[i] > bound[i]:
-                    x[i] = bound[i]
-                elif x[i] < -bound[i]:
-                    x[i] = -bound[i]
-            for i in range(d):
-                out[b, k, i] = x[i]
