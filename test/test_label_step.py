@@ -162,4 +162,3 @@ def test_a_label_stage_gives_the_weights_of_autograd_and_torchs_adam(shape):
     assert set(got) == set(want)
     for k in want:
         assert torch.equal(got[k], want[k]), k
-
