@@ -63,8 +63,8 @@ class LabelStep:
     def __call__(self, xs: torch.Tensor, us: torch.Tensor,
                  acc: torch.Tensor) -> tuple[torch.Tensor, list[torch.Tensor]]:
         d, m = self.d, self.m
-        out_a, a1, a2 = _forward(self.a_params, xs)
-        out_g, g1, g2 = _forward(self.g_params, xs)
+        out_a, a1, a2 = mlp_forward(self.a_params, xs)
+        out_g, g1, g2 = mlp_forward(self.g_params, xs)
         a = out_a.reshape(-1, 2 * d, d).transpose(1, 2)
         g = out_g.reshape(-1, m, d).transpose(1, 2)
         r = (a @ xs.unsqueeze(-1) + g @ us.unsqueeze(-1)).squeeze(-1) - acc
@@ -78,11 +78,13 @@ class LabelStep:
                       + _backward(self.g_params, xs, g1, g2, d_g))
 
 
-def _forward(params: tuple[torch.Tensor, ...], xs: torch.Tensor) -> tuple[torch.Tensor,
-                                                                           torch.Tensor,
-                                                                           torch.Tensor]:
+def mlp_forward(params: tuple[torch.Tensor, ...], xs: torch.Tensor) -> tuple[torch.Tensor,
+                                                                              torch.Tensor,
+                                                                              torch.Tensor]:
     """The network's output and its two hidden activations (after ReLU) for the weights and
-    biases ``params`` of :func:`~soft_gripper_sdre.learning.model.mlp`'s three layers."""
+    biases ``params`` of :func:`~soft_gripper_sdre.learning.model.mlp`'s three layers: the
+    operations the module runs, so the same bits, without its dispatch; a graph is recorded
+    where grad mode is on."""
     w1, c1, w2, c2, w3, c3 = params
     h1 = torch.relu(nn.functional.linear(xs, w1, c1))
     h2 = torch.relu(nn.functional.linear(h1, w2, c2))

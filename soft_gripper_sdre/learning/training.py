@@ -42,7 +42,6 @@ from typing import Callable, Iterator, NamedTuple
 
 import numpy as np
 import torch
-from torch import nn
 
 from soft_gripper_sdre.learning import compiled_rollout, label_step
 from soft_gripper_sdre.learning.model import FORMAT_VERSION, SDCNet
@@ -165,16 +164,15 @@ def _label_loss(net: SDCNet, data: _Labelled) -> torch.Tensor:
 def _rest_penalty(net: SDCNet, s: Scales, settings: TrainSettings) -> torch.Tensor | None:
     """L_rest (module doc), or None when every eigenvalue of A(0) is already left of the margin.
 
-    A(0) comes from a_net's layers alone, called as the module calls them (the same bits as
-    ``net(0)``'s, without g_net and the modules' dispatch: the check runs every batch)."""
+    A(0) comes from a_net alone (:func:`~soft_gripper_sdre.learning.label_step.mlp_forward`: the
+    same bits as ``net(0)``'s, without g_net and the modules' dispatch: the check runs every
+    batch)."""
     d = net.shape.d
-    l1, _, l2, _, l3 = net.a_net
+    params = tuple(net.a_net.parameters())
 
     def real_parts():
-        h = torch.relu(nn.functional.linear(torch.zeros(1, 2 * d), l1.weight, l1.bias))
-        h = torch.relu(nn.functional.linear(h, l2.weight, l2.bias))
-        a = nn.functional.linear(h, l3.weight, l3.bias).reshape(-1, 2 * d, d).transpose(1, 2)
-        a0 = a[0] * s.acc[:, None] / s.x[None, :]                            # [A21 A22], SI
+        out, _, _ = label_step.mlp_forward(params, torch.zeros(1, 2 * d))
+        a0 = out.reshape(2 * d, d).t() * s.acc[:, None] / s.x[None, :]          # [A21 A22], SI
         top = torch.cat([torch.zeros(d, d), torch.eye(d)], dim=1)
         return torch.linalg.eigvals(torch.cat([top, a0], dim=0)).real
     with torch.no_grad():
