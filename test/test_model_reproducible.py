@@ -82,6 +82,30 @@ def test_training_fixes_its_thread_count_and_restores_the_callers(data):
         assert torch.equal(value, b.net.state_dict()[key]), key
 
 
+
+def test_training_runs_under_atens_deterministic_flag_without_importing_the_graph_compiler():
+    """Inside training ATen's deterministic algorithms are on (errors, not warnings); torch's graph
+    compiler, whose configuration ``torch.use_deterministic_algorithms`` would import, is not
+    loaded by training (a fresh process: the test session may have imported it)."""
+    code = (
+        'import sys, numpy as np, torch\n'
+        'from dataclasses import replace\n'
+        'from soft_gripper_sdre.learning.train_settings import PRESETS\n'
+        'from soft_gripper_sdre.learning.training import train\n'
+        'seen = []\n'
+        'def on_epoch(*_):\n'
+        '    seen.append((torch.are_deterministic_algorithms_enabled(),\n'
+        '                 torch.is_deterministic_algorithms_warn_only_enabled()))\n'
+        'rng = np.random.default_rng(0)\n'
+        'x, u, a = (rng.normal(size=(300, k)) for k in (4, 2, 2))\n'
+        'train(x, u, a, x, u, a, replace(PRESETS["default"], epochs=2), on_epoch)\n'
+        'print(seen, torch.are_deterministic_algorithms_enabled(),\n'
+        '      "torch._inductor.config" in sys.modules)\n')
+    out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, timeout=300,
+                         env={**os.environ, **PINNED_KERNELS})
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.split() == ['[(True,', 'False),', '(True,', 'False)]', 'False', 'False']
+
 #: how far the trained model may move when the training arrays' bits do (another CPU's kernels):
 #: the u4 R² X and Y (absolute), the two dominant entries of G2 at the origin (relative), the
 #: angles of G2's columns [deg] and the derivative errors (relative). Measured (MEASURED): the

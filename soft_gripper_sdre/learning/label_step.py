@@ -50,32 +50,56 @@ class LabelStep:
         self.a_params = tuple(net.a_net.parameters())        # w1, c1, w2, c2, w3, c3
         self.g_params = tuple(net.g_net.parameters())
         self._mean_grads: dict[tuple[int, torch.dtype], torch.Tensor] = {}
+        self._transposed: dict[int, tuple[torch.Tensor, ...]] = {}
 
     def _mean_grad(self, b: int, dtype: torch.dtype) -> torch.Tensor:
-        """The mean's gradient 1/b per sample, (b, 1), as autograd's ``MeanBackward`` forms it
-        (ones divided by b), kept per batch size."""
+        """The mean's gradient 1/b per sample and coordinate, (b, d), as autograd's
+        ``MeanBackward`` forms it (ones divided by b), kept per batch size."""
         key = (b, dtype)
         if key not in self._mean_grads:
-            self._mean_grads[key] = (torch.ones((), dtype=dtype).expand(b) / b).unsqueeze(1)
+            self._mean_grads[key] = ((torch.ones((), dtype=dtype).expand(b) / b)
+                                     .unsqueeze(1).expand(b, self.d))
         return self._mean_grads[key]
+
+    def _forward(self, params: tuple[torch.Tensor, ...], xs: torch.Tensor) -> tuple[
+            torch.Tensor, torch.Tensor, torch.Tensor]:
+        """:func:`mlp_forward` as ``nn.functional.linear`` runs it on a batch (``addmm`` of the
+        bias, the input and the weight transposed), the weights' transposed views kept while the
+        weights stay where they are."""
+        w1, c1, w2, c2, w3, c3 = params
+        key = w1.data_ptr()
+        if key not in self._transposed:
+            self._transposed[key] = (w1.t(), w2.t(), w3.t())
+        t1, t2, t3 = self._transposed[key]
+        h1 = torch.relu(torch.addmm(c1, xs, t1))
+        h2 = torch.relu(torch.addmm(c2, h1, t2))
+        return torch.addmm(c3, h2, t3), h1, h2
 
     @torch.no_grad()
     def __call__(self, xs: torch.Tensor, us: torch.Tensor,
                  acc: torch.Tensor) -> tuple[torch.Tensor, list[torch.Tensor]]:
         d, m = self.d, self.m
-        out_a, a1, a2 = mlp_forward(self.a_params, xs)
-        out_g, g1, g2 = mlp_forward(self.g_params, xs)
-        a = out_a.reshape(-1, 2 * d, d).transpose(1, 2)
-        g = out_g.reshape(-1, m, d).transpose(1, 2)
-        r = (a @ xs.unsqueeze(-1) + g @ us.unsqueeze(-1)).squeeze(-1) - acc
+        out_a, a1, a2 = self._forward(self.a_params, xs)
+        out_g, g1, g2 = self._forward(self.g_params, xs)
+        a = out_a.view(-1, 2 * d, d).transpose(1, 2)
+        g = out_g.view(-1, m, d).transpose(1, 2)
+        r = (torch.bmm(a, xs.unsqueeze(-1)) + torch.bmm(g, us.unsqueeze(-1))).squeeze(-1) - acc
         loss = (r ** 2).sum(dim=1).mean()
         b = xs.shape[0]
-        d_r = self._mean_grad(b, r.dtype).expand(b, d) * (2.0 * r)
-        d_r = d_r.unsqueeze(1)
-        d_a = (xs.unsqueeze(2) * d_r).reshape(b, 2 * d * d)     # vec, columns stacked
-        d_g = (us.unsqueeze(2) * d_r).reshape(b, m * d)
+        d_r = (self._mean_grad(b, r.dtype) * (2.0 * r)).unsqueeze(1)
+        d_a = (xs.unsqueeze(2) * d_r).view(b, 2 * d * d)     # vec, columns stacked
+        d_g = (us.unsqueeze(2) * d_r).view(b, m * d)
         return loss, (_backward(self.a_params, xs, a1, a2, d_a)
                       + _backward(self.g_params, xs, g1, g2, d_g))
+
+    @torch.no_grad()
+    def loss(self, xs: torch.Tensor, us: torch.Tensor, acc: torch.Tensor) -> torch.Tensor:
+        """Eq. 18's loss alone (a validation set's): the same bits as :meth:`__call__`'s."""
+        d, m = self.d, self.m
+        a = self._forward(self.a_params, xs)[0].view(-1, 2 * d, d).transpose(1, 2)
+        g = self._forward(self.g_params, xs)[0].view(-1, m, d).transpose(1, 2)
+        r = (torch.bmm(a, xs.unsqueeze(-1)) + torch.bmm(g, us.unsqueeze(-1))).squeeze(-1) - acc
+        return (r ** 2).sum(dim=1).mean()
 
 
 def mlp_forward(params: tuple[torch.Tensor, ...], xs: torch.Tensor) -> tuple[torch.Tensor,
@@ -143,7 +167,7 @@ class Adam:
     @torch.no_grad()
     def step(self, grads: list[torch.Tensor]) -> None:
         self.steps += 1
-        grad = torch.cat([g.reshape(-1) for g in grads])
+        grad = torch.cat([g.view(-1) for g in grads])
         if self.weight_decay != 0:
             grad = grad.add(self.flat, alpha=self.weight_decay)
         self.exp_avg.lerp_(grad, 1 - self.beta1)

@@ -97,12 +97,24 @@ def deterministic_torch(threads: int = TRAIN_THREADS) -> Iterator[None]:
     old_mode = torch.are_deterministic_algorithms_enabled()
     old_warn_only = torch.is_deterministic_algorithms_warn_only_enabled()
     torch.set_num_threads(threads)
-    torch.use_deterministic_algorithms(True)
+    _set_deterministic_algorithms(True, warn_only=False)
     try:
         yield
     finally:
-        torch.use_deterministic_algorithms(old_mode, warn_only=old_warn_only)
+        _set_deterministic_algorithms(old_mode, warn_only=old_warn_only)
         torch.set_num_threads(old_threads)
+
+
+def _set_deterministic_algorithms(mode: bool, warn_only: bool) -> None:
+    """ATen's deterministic-algorithms flag, which is all training runs under.
+    ``torch.use_deterministic_algorithms`` also sets the flag of torch's graph compiler, and
+    importing that compiler's configuration costs seconds (1.5–3 s on two cores); training never
+    compiles a graph, so where torch offers ATen's flag alone it is set alone."""
+    set_aten_flag = getattr(torch._C, '_set_deterministic_algorithms', None)
+    if set_aten_flag is None:
+        torch.use_deterministic_algorithms(mode, warn_only=warn_only)
+    else:
+        set_aten_flag(mode, warn_only=warn_only)
 
 
 def train(x: np.ndarray, u: np.ndarray, acc: np.ndarray, x_val: np.ndarray, u_val: np.ndarray,
@@ -269,8 +281,7 @@ class _Training:
             if settings.cosine:
                 opt.lr = label_step.cosine_lr(opt.lr, epoch + 1, settings.epochs)
             net.eval()
-            with torch.no_grad():
-                val = float(_label_loss(net, val_set))
+            val = float(step.loss(*val_set))
             result.train_loss.append(train_loss)
             result.val_loss.append(val)
             if self.on_epoch is not None:
@@ -298,10 +309,11 @@ class _Training:
         settings, net = self.settings, self.net
         n = data.x.shape[0]
         perm = torch.randperm(n, generator=self.gen)
-        shuffled = _Labelled(data.x[perm], data.u[perm], data.acc[perm])
+        size = settings.batch_size
         total = 0.0
-        for i in range(0, n, settings.batch_size):
-            batch = _Labelled(*(a[i:i + settings.batch_size] for a in shuffled))
+        for batch in zip(data.x[perm].split(size), data.u[perm].split(size),
+                         data.acc[perm].split(size)):
+            batch = _Labelled(*batch)
             count = batch.x.shape[0]
             rest = _rest_penalty(net, self.st, settings) if settings.rest_margin > 0 else None
             if settings.sv_penalty == 0 and rest is None:
