@@ -31,6 +31,8 @@ def test_a_row_gives_the_median_and_spread_of_the_total_each_stages_share_and_th
     assert what == 'training, tendon3' and figure == '60 s (50–90)'
     assert note.startswith('median (min–max) of 3 runs, load 2.0 (1.0–4.0)')
     assert 'loop settings 40.0 s (67 %)' in note
+    assert s['wall'] == [61.0, 51.0, 91.0]
+    assert note.endswith('imports included: 61 s (51–91)')
 
 
 def test_the_rows_make_bench_shows_are_the_ones_written(tmp_path):

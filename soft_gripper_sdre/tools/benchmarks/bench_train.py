@@ -9,9 +9,11 @@ A case is the hand's ``--data`` directory of .npz records (the default preset, t
 model's recipe) or a directory of bags with ``train/`` and ``val/`` inside (``train --bag``, the
 gripper preset), named ``NAME=DIR``. Each run is a fresh process, the cases one after another,
 each case's runs in a row, its stages read off the tool's ``stages [s]`` line (``--bag`` also
-keeps them in ``metrics.json``). A row gives the total's median and min–max over the runs, each
-stage's median and its share of the median total, and the 1-minute load average (median and
-min–max, read before each run): the machine is shared, and a run beside other work is slower.
+keeps them in ``metrics.json``). A row gives the total's median and min–max over the runs (the
+stages the tool times, from reading the data to writing the report), each stage's median and its
+share of the median total, the command's own wall time (Python's imports and start-up too), and
+the 1-minute load average (median and min–max, read before each run): the machine is shared, and a
+run beside other work is slower.
 ``--write`` keeps the rows as JSON, which ``tools.benchmarks.bench`` (``make bench``) puts in
 BENCHMARKS.md (:func:`rows`).
 """
@@ -89,6 +91,7 @@ def summary(name: str, runs: list[dict]) -> dict:
     to 1), the load (median, min, max), what the runs gave (verdicts, free-run errors, chosen
     bandwidths) and every run's timings."""
     totals = [r['timings']['total'] for r in runs]
+    walls = [r['wall'] for r in runs]
     loads = [r['load'] for r in runs]
     median = statistics.median(totals)
     stages = {}
@@ -98,6 +101,7 @@ def summary(name: str, runs: list[dict]) -> dict:
             stages[stage] = {'median': statistics.median(got),
                              'share': statistics.median(got) / median}
     return {'case': name, 'runs': len(runs), 'total': [median, min(totals), max(totals)],
+            'wall': [statistics.median(walls), min(walls), max(walls)],
             'load': [statistics.median(loads), min(loads), max(loads)], 'stages': stages,
             'fit': [r['fit'] for r in runs], 'free_run_mm': [r['free_run_mm'] for r in runs],
             'bandwidth_hz': [r['bandwidth_hz'] for r in runs],
@@ -110,9 +114,11 @@ def row_text(s: dict) -> tuple[str, str, str]:
     parts = [f'{k.replace("_", " ")} {v["median"]:.1f} s ({100 * v["share"]:.0f} %)'
              for k, v in s['stages'].items() if v['median'] >= 0.05]
     load = s['load']
+    wall = (f'; the command from start to exit, Python\'s imports included: '
+            f'{s["wall"][0]:.0f} s ({s["wall"][1]:.0f}–{s["wall"][2]:.0f})' if 'wall' in s else '')
     return (f'training, {s["case"]}', f'{med:.0f} s ({lo:.0f}–{hi:.0f})',
             f'median (min–max) of {s["runs"]} runs, load {load[0]:.1f} ({load[1]:.1f}–'
-            f'{load[2]:.1f}); stages (median, share): ' + ', '.join(parts))
+            f'{load[2]:.1f}); stages (median, share): ' + ', '.join(parts) + wall)
 
 
 def rows(path: Path = RESULTS) -> list[tuple[str, str, str]]:
