@@ -52,6 +52,39 @@ def test_the_closed_form_gradient_is_autograds_bit_for_bit(shape, size):
     assert any(float(g.abs().max()) > 0 for g in grads)
 
 
+@pytest.mark.parametrize('shape', SHAPES, ids=str)
+@pytest.mark.parametrize('size', [10000, 77])
+def test_the_loss_alone_is_the_modules_bit_for_bit(shape, size):
+    """The validation loss through the step's forward pass: the bits of the module's, which
+    selects the kept epoch."""
+    with deterministic_torch():
+        torch.manual_seed(size)
+        net = SDCNet(shape=shape)
+        data = batch(shape, size, seed=size + 1)
+        with torch.no_grad():
+            want = ((net.accel(*data[:2]) - data[2]) ** 2).sum(dim=1).mean()
+        assert torch.equal(label_step.LabelStep(net).loss(*data), want)
+
+
+def test_the_step_follows_its_weights_when_they_are_moved_or_reloaded():
+    """A step built before Adam re-points the weights into its flat tensor, and used before and
+    after, gives autograd's gradient of the weights the module holds each time."""
+    torch.manual_seed(11)
+    net, other = SDCNet(shape=FingerShape(3, 2)), SDCNet(shape=FingerShape(3, 2))
+    step = label_step.LabelStep(net)
+    data = batch(net.shape, 64, seed=2)
+    with deterministic_torch():
+        step(*data)
+        opt = label_step.Adam(list(net.parameters()), 1e-2)
+        net.load_state_dict(other.state_dict())
+        for k in range(3):
+            loss, grads = step(*data)
+            ref_loss, ref_grads = autograd_loss_and_grads(net, *data)
+            assert torch.equal(loss, ref_loss), k
+            assert all(torch.equal(a, b) for a, b in zip(grads, ref_grads)), k
+            opt.step(grads)
+
+
 def test_the_closed_form_gradient_records_no_graph():
     net = SDCNet()
     loss, grads = label_step.label_loss_and_grads(net, *batch(net.shape, 16, seed=1))

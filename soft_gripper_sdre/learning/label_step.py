@@ -15,6 +15,9 @@ This module calls the kernels autograd and Adam would call, in the same order, a
   where its output is positive (``threshold_backward``). These are the matrix products, in the
   operand layouts, that ``AddmmBackward`` forms for ``nn.Linear`` (its weight enters transposed,
   as a column-major operand, so ∂W comes out as ``∂yᵀ.mm(h)``).
+* **The forward pass** calls what ``nn.Linear`` and ``matmul`` call underneath: ``addmm`` of the
+  bias, the batch and the weight's transposed view (kept while the weight stays where it is) and
+  ``bmm``, without the wrappers' dispatch.
 * **Adam**: torch's multi-tensor update (``foreach``, not capturable) with the step count kept as a
   Python number: the bias corrections in double precision, each operation on all the weights at
   once (:class:`Adam`).
