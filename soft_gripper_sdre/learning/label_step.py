@@ -170,7 +170,7 @@ class Adam:
     @torch.no_grad()
     def step(self, grads: list[torch.Tensor]) -> None:
         self.steps += 1
-        grad = torch.cat([g.view(-1) for g in grads])
+        grad = torch.cat([g if g.dim() == 1 else g.view(-1) for g in grads])   # a view: µs each
         if self.weight_decay != 0:
             grad = grad.add(self.flat, alpha=self.weight_decay)
         self.exp_avg.lerp_(grad, 1 - self.beta1)
