@@ -121,9 +121,18 @@ def test_tiny_training_run_writes_model_metrics_and_figures(tmp_path, data_dir):
                 and all(len(v) == 2 for v in err.values()))
     assert np.shape(metrics['G2_at_origin']) == (2, 2)
     assert metrics['best_val_loss'] > 0 and metrics['final_train_loss'] > 0
+    timings = metrics['timings']        # the report's own time is printed only
+    assert list(timings) == ['read', 'labels', 'training', 'label_stage', 'simulation_stage',
+                             'checkpoint', 'total']
+    assert all(v >= 0 for v in timings.values())
+    assert timings['simulation_stage'] < 0.1       # off in this preset: the best weights loaded
+    assert timings['label_stage'] <= timings['training'] + 1e-3
+    assert timings['read'] + timings['labels'] + timings['training'] + timings['checkpoint'] \
+        <= timings['total'] + 4e-3
 
     model = SDCModel(out / 'model.pt')
-    assert model.metrics == metrics
+    # the checkpoint is written before its own writing is timed: metrics.json's less the timings
+    assert model.metrics == {k: v for k, v in metrics.items() if k != 'timings'}
     assert model.settings['epochs'] == 3 and model.settings['seed'] == 1
     assert model.data['train_signals'] == list(DATA_VARIANTS['identifying'])
     assert len(model.history['val_loss']) == 3

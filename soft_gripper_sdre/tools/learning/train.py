@@ -208,6 +208,7 @@ def _main_data(parser: argparse.ArgumentParser, args: argparse.Namespace,
         clock.seconds.update(training=result.seconds, **result.timings)
         clock.lap('checkpoint')
         clock.seconds['checkpoint'] -= result.seconds
+        metrics['timings'] = clock.record()
         training_run.write_report(
             stage, result, metrics, scores, records[VALIDATION].t, data.acc_true,
             loss_title=f'Training loss, {args.preset} preset ({variant} data)',
