@@ -33,6 +33,8 @@ def test_a_row_gives_the_median_and_spread_of_the_total_each_stages_share_and_th
     assert 'loop settings 40.0 s (67 %)' in note
     assert s['wall'] == [61.0, 51.0, 91.0]
     assert note.endswith('imports included: 61 s (51–91)')
+    older = {k: v for k, v in s.items() if k != 'wall'}          # rows kept without the wall
+    assert bench_train.row_text(older)[2] == note.split('; the command from start')[0]
 
 
 def test_the_rows_make_bench_shows_are_the_ones_written(tmp_path):

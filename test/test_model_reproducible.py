@@ -82,11 +82,11 @@ def test_training_fixes_its_thread_count_and_restores_the_callers(data):
         assert torch.equal(value, b.net.state_dict()[key]), key
 
 
-
 def test_training_runs_under_atens_deterministic_flag_without_importing_the_graph_compiler():
     """Inside training ATen's deterministic algorithms are on (errors, not warnings); torch's graph
     compiler, whose configuration ``torch.use_deterministic_algorithms`` would import, is not
-    loaded by training (a fresh process: the test session may have imported it)."""
+    loaded by a training without the simulation stage (whose ``torch.optim.Adam`` loads it), in a
+    fresh process: the test session may have imported it."""
     code = (
         'import sys, numpy as np, torch\n'
         'from dataclasses import replace\n'
@@ -105,6 +105,7 @@ def test_training_runs_under_atens_deterministic_flag_without_importing_the_grap
                          env={**os.environ, **PINNED_KERNELS})
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.split() == ['[(True,', 'False),', '(True,', 'False)]', 'False', 'False']
+
 
 #: how far the trained model may move when the training arrays' bits do (another CPU's kernels):
 #: the u4 R² X and Y (absolute), the two dominant entries of G2 at the origin (relative), the

@@ -16,7 +16,7 @@ This module calls the kernels autograd and Adam would call, in the same order, a
   operand layouts, that ``AddmmBackward`` forms for ``nn.Linear`` (its weight enters transposed,
   as a column-major operand, so ∂W comes out as ``∂yᵀ.mm(h)``).
 * **The forward pass** calls what ``nn.Linear`` and ``matmul`` call underneath: ``addmm`` of the
-  bias, the batch and the weight's transposed view (kept while the weight stays where it is) and
+  bias, the batch and the weight's transposed view (kept per place the weights are stored at) and
   ``bmm``, without the wrappers' dispatch.
 * **Adam**: torch's multi-tensor update (``foreach``, not capturable) with the step count kept as a
   Python number: the bias corrections in double precision, each operation on all the weights at
@@ -53,7 +53,7 @@ class LabelStep:
         self.a_params = tuple(net.a_net.parameters())        # w1, c1, w2, c2, w3, c3
         self.g_params = tuple(net.g_net.parameters())
         self._mean_grads: dict[tuple[int, torch.dtype], torch.Tensor] = {}
-        self._transposed: dict[int, tuple[torch.Tensor, ...]] = {}
+        self._transposed: dict[tuple[int, int, int], tuple[torch.Tensor, ...]] = {}
 
     def _mean_grad(self, b: int, dtype: torch.dtype) -> torch.Tensor:
         """The mean's gradient 1/b per sample and coordinate, (b, d), as autograd's
@@ -67,10 +67,10 @@ class LabelStep:
     def _forward(self, params: tuple[torch.Tensor, ...], xs: torch.Tensor) -> tuple[
             torch.Tensor, torch.Tensor, torch.Tensor]:
         """:func:`mlp_forward` as ``nn.functional.linear`` runs it on a batch (``addmm`` of the
-        bias, the input and the weight transposed), the weights' transposed views kept while the
-        weights stay where they are."""
+        bias, the input and the weight transposed), the weights' transposed views kept per place
+        the weights are stored at."""
         w1, c1, w2, c2, w3, c3 = params
-        key = w1.data_ptr()
+        key = (w1.data_ptr(), w2.data_ptr(), w3.data_ptr())
         if key not in self._transposed:
             self._transposed[key] = (w1.t(), w2.t(), w3.t())
         t1, t2, t3 = self._transposed[key]
@@ -84,9 +84,7 @@ class LabelStep:
         d, m = self.d, self.m
         out_a, a1, a2 = self._forward(self.a_params, xs)
         out_g, g1, g2 = self._forward(self.g_params, xs)
-        a = out_a.view(-1, 2 * d, d).transpose(1, 2)
-        g = out_g.view(-1, m, d).transpose(1, 2)
-        r = (torch.bmm(a, xs.unsqueeze(-1)) + torch.bmm(g, us.unsqueeze(-1))).squeeze(-1) - acc
+        r = self._residual(out_a, out_g, xs, us, acc)
         loss = (r ** 2).sum(dim=1).mean()
         b = xs.shape[0]
         d_r = (self._mean_grad(b, r.dtype) * (2.0 * r)).unsqueeze(1)
@@ -97,12 +95,20 @@ class LabelStep:
 
     @torch.no_grad()
     def loss(self, xs: torch.Tensor, us: torch.Tensor, acc: torch.Tensor) -> torch.Tensor:
-        """Eq. 18's loss alone (a validation set's): the same bits as :meth:`__call__`'s."""
-        d, m = self.d, self.m
-        a = self._forward(self.a_params, xs)[0].view(-1, 2 * d, d).transpose(1, 2)
-        g = self._forward(self.g_params, xs)[0].view(-1, m, d).transpose(1, 2)
-        r = (torch.bmm(a, xs.unsqueeze(-1)) + torch.bmm(g, us.unsqueeze(-1))).squeeze(-1) - acc
+        """Eq. 18's loss alone (a validation set's), by :meth:`__call__`'s forward pass."""
+        r = self._residual(self._forward(self.a_params, xs)[0],
+                           self._forward(self.g_params, xs)[0], xs, us, acc)
         return (r ** 2).sum(dim=1).mean()
+
+    def _residual(self, out_a: torch.Tensor, out_g: torch.Tensor, xs: torch.Tensor,
+                  us: torch.Tensor, acc: torch.Tensor) -> torch.Tensor:
+        """r = [A21 A22] x + G2 u − p̈ (B, d) from the networks' outputs, as
+        :meth:`~soft_gripper_sdre.learning.model.SDCNet.accel` forms it (``matmul`` of the
+        batched matrices is ``bmm``)."""
+        d, m = self.d, self.m
+        a = out_a.view(-1, 2 * d, d).transpose(1, 2)
+        g = out_g.view(-1, m, d).transpose(1, 2)
+        return (torch.bmm(a, xs.unsqueeze(-1)) + torch.bmm(g, us.unsqueeze(-1))).squeeze(-1) - acc
 
 
 def mlp_forward(params: tuple[torch.Tensor, ...], xs: torch.Tensor) -> tuple[torch.Tensor,
@@ -141,8 +147,8 @@ def label_loss_and_grads(net: SDCNet, xs: torch.Tensor, us: torch.Tensor,
 
 class Adam:
     """Adam over ``params`` (L2 ``weight_decay`` added to the gradient, as ``torch.optim.Adam``);
-    :meth:`step` takes the gradients as a list in ``params`` order. ``lr`` may be changed between
-    steps.
+    :meth:`step` takes the gradients as a list of contiguous tensors in ``params`` order. ``lr``
+    may be changed between steps.
 
     The parameters become views into one flat tensor, and the moments are flat too, so a step is
     seven element-wise operations on one tensor instead of torch's multi-tensor kernels, which on
@@ -170,7 +176,7 @@ class Adam:
     @torch.no_grad()
     def step(self, grads: list[torch.Tensor]) -> None:
         self.steps += 1
-        grad = torch.cat([g if g.dim() == 1 else g.view(-1) for g in grads])   # a view: µs each
+        grad = torch.cat([g if g.dim() == 1 else g.view(-1) for g in grads])  # view(): µs a call
         if self.weight_decay != 0:
             grad = grad.add(self.flat, alpha=self.weight_decay)
         self.exp_avg.lerp_(grad, 1 - self.beta1)

@@ -20,7 +20,7 @@ finger's is. When the rollout stage is on, the kept weights are those of the epo
 stage, whose free runs of ``rollout_val_seconds`` on the validation records miss least.
 
 Seeded and deterministic: the same data and settings give the same bits on the same machine kind
-and torch build (:data:`TRAIN_THREADS` intra-op threads, torch's deterministic algorithms only).
+and torch build (:data:`TRAIN_THREADS` intra-op threads, ATen's deterministic algorithms only).
 The settings and their presets are :mod:`soft_gripper_sdre.learning.train_settings`; the model's
 simulation of the records and L_sim, :mod:`soft_gripper_sdre.learning.rollout`; the label stage's
 step without autograd (the same bits at about half the cost), :mod:`soft_gripper_sdre.learning.
@@ -91,7 +91,7 @@ def _scales(x: np.ndarray, u: np.ndarray, acc: np.ndarray, scale: bool) -> dict[
 
 @contextmanager
 def deterministic_torch(threads: int = TRAIN_THREADS) -> Iterator[None]:
-    """Run the block with ``threads`` intra-op threads and torch's deterministic algorithms only,
+    """Run the block with ``threads`` intra-op threads and ATen's deterministic algorithms only,
     then put both settings back."""
     old_threads = torch.get_num_threads()
     old_mode = torch.are_deterministic_algorithms_enabled()
@@ -109,7 +109,9 @@ def _set_deterministic_algorithms(mode: bool, warn_only: bool) -> None:
     """ATen's deterministic-algorithms flag, which is all training runs under.
     ``torch.use_deterministic_algorithms`` also sets the flag of torch's graph compiler, and
     importing that compiler's configuration costs seconds (1.5–3 s on two cores); training never
-    compiles a graph, so where torch offers ATen's flag alone it is set alone."""
+    compiles a graph, so where torch offers ATen's flag alone it is set alone. (The simulation
+    stage's ``torch.optim.Adam`` imports the compiler as it is made: a run with that stage pays
+    the import there.)"""
     set_aten_flag = getattr(torch._C, '_set_deterministic_algorithms', None)
     if set_aten_flag is None:
         torch.use_deterministic_algorithms(mode, warn_only=warn_only)
@@ -311,9 +313,9 @@ class _Training:
         perm = torch.randperm(n, generator=self.gen)
         size = settings.batch_size
         total = 0.0
-        for batch in zip(data.x[perm].split(size), data.u[perm].split(size),
-                         data.acc[perm].split(size)):
-            batch = _Labelled(*batch)
+        for xs, us, acc in zip(data.x[perm].split(size), data.u[perm].split(size),
+                               data.acc[perm].split(size)):
+            batch = _Labelled(xs, us, acc)
             count = batch.x.shape[0]
             rest = _rest_penalty(net, self.st, settings) if settings.rest_margin > 0 else None
             if settings.sv_penalty == 0 and rest is None:

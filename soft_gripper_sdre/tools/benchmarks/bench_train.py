@@ -8,8 +8,8 @@ time as the tool itself records it (``metrics.json``'s ``timings``), with its sp
 A case is the hand's ``--data`` directory of .npz records (the default preset, the shipped
 model's recipe) or a directory of bags with ``train/`` and ``val/`` inside (``train --bag``, the
 gripper preset), named ``NAME=DIR``. Each run is a fresh process, the cases one after another,
-each case's runs in a row, its stages read off the tool's ``stages [s]`` line (``--bag`` also
-keeps them in ``metrics.json``). A row gives the total's median and min–max over the runs (the
+each case's runs in a row, its stages read off the tool's ``stages [s]`` line (``metrics.json``
+keeps them too). A row gives the total's median and min–max over the runs (the
 stages the tool times, from reading the data to writing the report), each stage's median and its
 share of the median total, the command's own wall time (Python's imports and start-up too), and
 the 1-minute load average (median and min–max, read before each run): the machine is shared, and a
