@@ -198,19 +198,22 @@ def test_raw_bytes_over_dds_reach_typed_subscribers_and_typed_messages_take_the_
               for name, _ in topics.values()}
     with ros_context() as (ctx, executor):
         typed, raw = Probe(ctx, 'typed'), Probe(ctx, 'raw')
-        pubs_raw, pubs_typed, got_raw = {}, {}, {}
+        pubs_raw, pubs_typed, got_raw, subs = {}, {}, {}, []
         for topic, (name, msg_type) in topics.items():
-            typed.listen(msg_type, topic, LOOP_QOS)
+            subs.append(typed.listen(msg_type, topic, LOOP_QOS))
             got_raw[topic] = []
-            raw.create_subscription(msg_type, topic, got_raw[topic].append, LOOP_QOS, raw=True)
+            subs.append(raw.create_subscription(msg_type, topic, got_raw[topic].append, LOOP_QOS,
+                                                raw=True))
             pubs_raw[topic] = raw.create_publisher(msg_type, topic, LOOP_QOS)
             pubs_typed[topic] = typed.create_publisher(msg_type, topic, LOOP_QOS)
         executor.add_node(typed)
         executor.add_node(raw)
+        # both ends of every pair matched (a reader that has not yet matched its writer drops
+        # what the writer already sends it): eight writers' discovery on a loaded machine
         assert spin_until(executor,
                           lambda: all(p.get_subscription_count() == 2
-                                      for p in (*pubs_raw.values(), *pubs_typed.values())),
-                          30.0)                     # eight writers' discovery on a loaded machine
+                                      for p in (*pubs_raw.values(), *pubs_typed.values()))
+                          and all(s.get_publisher_count() == 2 for s in subs), 30.0)
         for topic, (name, _) in topics.items():
             codec, build, _, _ = c[name]
             pubs_raw[topic].publish(codec.encode(NS, values[name]))       # our bytes
