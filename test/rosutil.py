@@ -57,6 +57,17 @@ def spin_until(executor, predicate, timeout: float = 10.0) -> bool:
     return bool(predicate())
 
 
+def linked(publisher, *readers: Node) -> bool:
+    """Both ends of ``publisher``'s links matched: every node of ``readers`` has a subscription to
+    its topic that has matched a writer, and the publisher has matched at least that many readers.
+    Counts at least, never exactly: a participant that exits without saying so (a killed process
+    of an earlier test on the domain) stays a match until its lease runs out."""
+    topic = publisher.topic_name
+    subs = [[s for s in node.subscriptions if s.topic_name == topic] for node in readers]
+    return (publisher.get_subscription_count() >= len(readers)
+            and all(any(s.get_publisher_count() > 0 for s in found) for found in subs))
+
+
 def drain(executor, seconds: float = 0.1) -> None:
     """Run every callback that becomes ready within ``seconds`` (a poll for :meth:`Graph.wait`,
     which sleeps 0.1 s between polls; one ``spin_once`` would take one message a poll)."""

@@ -1,5 +1,11 @@
 """tools.graph.foreign: the README's own-gripper recipe over DDS on a gripper unlike the package's
-own (sim/plants/chain.py through the plant_driver node)."""
+own (sim/plants/chain.py through the plant_driver node).
+
+The end-to-end runs are marked serial: the driver node stands in for the lab's plant, and a plant
+simulated in a process starved of CPU is not the plant (its late ticks step it over longer
+periods, a stall past MAX_STEP_PERIODS slows its time). Beside the suite's other worker the
+pneumatic finger's recordings fitted worse (free runs of 36-39 % of the motion, 12-13 % alone)
+and its chambers' 40 and 60 ms lags read as 10 and 20 ms."""
 import json
 import math
 import os
@@ -91,6 +97,7 @@ def test_an_existing_output_is_never_overwritten(tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.serial
 @pytest.mark.ros
 @pytest.mark.timeout(1500)
 def test_the_recipe_runs_end_to_end_on_the_tendon_finger(tmp_path):
@@ -155,7 +162,7 @@ def test_the_recipe_runs_end_to_end_on_the_tendon_finger(tmp_path):
     assert score['samples'] > 500 and score['saturated_at_rest'] == 0.0
     # the model pooled from both fingers, trained this short, serves one of them well (thumb or
     # index within 4-9 % of travel in the runs measured on a quiet machine, 25-26 % in two CI
-    # runs beside the suite's other worker: best-effort, wall-stamped ticks) and the other by luck
+    # runs beside another test's load) and the other by luck
     # of the recording (8-66 %: the index is 1.8 times as compliant); neither may run away (a
     # diverging loop misses by several travels)
     pct = score['rmse_pct_of_travel']
@@ -163,6 +170,7 @@ def test_the_recipe_runs_end_to_end_on_the_tendon_finger(tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.serial
 @pytest.mark.ros
 @pytest.mark.timeout(1800)
 def test_the_recipe_runs_end_to_end_on_the_one_chamber_pneumatic_finger(tmp_path):
@@ -174,7 +182,7 @@ def test_the_recipe_runs_end_to_end_on_the_one_chamber_pneumatic_finger(tmp_path
     40 + 10 epochs, the model's rest drifted off (not fit). Training finds each chamber's pressure
     lag in its own fit (the valves' 40 and 60 ms as 50-60 and 80 ms) and checks the candidates on
     those fits; the deployed grasp tracked within 4.2 % of travel over DDS on a quiet machine
-    (docs/own_gripper.md), bounded here at twice that for a loaded one."""
+    (docs/own_gripper.md), bounded here at twice that."""
     out = tmp_path / 'pneumatic1'
     r = _tool('--plant', 'pneumatic1', '--out', str(out), '--laws', 'sdre_ff', timeout=1700)
     assert r.returncode in (0, 1), r.stderr[-3000:]

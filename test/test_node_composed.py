@@ -11,7 +11,7 @@ from geometry_msgs.msg import PoseArray
 from node_harness import MS, horizon
 import numpy as np
 import pytest
-from rosutil import Probe, deep, ros_context, spin_until
+from rosutil import Probe, deep, linked, ros_context, spin_until
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import MultiDOFJointTrajectory
 
@@ -52,10 +52,9 @@ def _loop(composed: bool, tips: np.ndarray, rest: np.ndarray):
         ref_pub = probe.create_publisher(MultiDOFJointTrajectory, GRASP_REFERENCE, REFERENCE_QOS)
         for node in (est, ctl, probe):
             executor.add_node(node)
-        assert spin_until(executor, lambda: tip_pub.get_subscription_count() == 1
-                          and ref_pub.get_subscription_count() == 1
-                          and ctl.pub_cmd.get_subscription_count() == 1
-                          and est.pub.get_subscription_count() == 1 + (not composed), 20.0)
+        readers = (probe,) if composed else (probe, ctl)
+        assert spin_until(executor, lambda: linked(tip_pub, est) and linked(ref_pub, ctl)
+                          and linked(ctl.pub_cmd, probe) and linked(est.pub, *readers), 20.0)
         ref_pub.publish(horizon(rest, 0)[0])
         assert spin_until(executor, lambda: ctl.diag.counters['references'] == 1)
         for k, z in enumerate(tips):

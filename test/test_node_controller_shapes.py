@@ -8,7 +8,7 @@ from geometry_msgs.msg import PoseArray
 from node_harness import MS, make_controller
 import numpy as np
 import pytest
-from rosutil import Probe, deep, overrides, ros_context, spin_until
+from rosutil import Probe, deep, linked, overrides, ros_context, spin_until
 from sensor_msgs.msg import JointState
 import torch
 from trajectory_msgs.msg import MultiDOFJointTrajectory
@@ -246,9 +246,8 @@ def test_the_composed_controller_filters_the_models_tips_and_refuses_another_tas
         ref_pub = probe.create_publisher(MultiDOFJointTrajectory, GRASP_REFERENCE, REFERENCE_QOS)
         for node in (est, ctl, probe):
             executor.add_node(node)
-        assert spin_until(executor, lambda: tip_pub.get_subscription_count() == 1
-                          and ref_pub.get_subscription_count() == 1
-                          and ctl.pub_cmd.get_subscription_count() == 1, 20.0)
+        assert spin_until(executor, lambda: linked(tip_pub, est) and linked(ref_pub, ctl)
+                          and linked(ctl.pub_cmd, probe), 20.0)
         ref_pub.publish(_plan(d)[0])
         assert spin_until(executor, lambda: ctl.diag.counters['references'] == 1)
         tips = np.array([[0.001, -0.002, 0.003], [0.0, 0.001, -0.001]])
