@@ -104,22 +104,52 @@ def _synthetic_records(n=600, seed=3):
     return records
 
 
-def test_labels_in_worker_processes_are_those_labelled_here():
-    """label_records' signals labelled side by side in forked workers: every array the same bits
-    as one signal after another in this process."""
-    from soft_gripper_sdre.learning.labels import label_records
+def _filterpy_smoothed(t, pos, jerk_psd, meas_std):
+    """filterpy's own batch_filter and rts_smoother, one filter object per column: (3, N, d)."""
+    dt = float(np.median(np.diff(t)))
+    out = np.empty((3,) + pos.shape)
+    for j in range(pos.shape[1]):
+        kf = derivatives._started_filter(pos[0, j], dt, jerk_psd, meas_std)
+        means, covs, _, _ = kf.batch_filter(pos[:, j], update_first=True)
+        means, _, _, _ = kf.rts_smoother(means, covs)
+        out[:, :, j] = means[:, :, 0].T
+    return out
+
+
+def test_the_stacked_smoother_is_filterpys_bit_for_bit(noisy_record):
+    """estimate_kinematics runs filterpy's arithmetic on stacks of columns: the same bits as
+    filterpy's filter object per column, on the simulator's noisy finger and on random walks of
+    other lengths, periods, intensities and column counts; Σ_v is Q_continuous_white_noise's."""
+    from filterpy.common import Q_continuous_white_noise
+    r = noisy_record
+    cases = [(r['t'], r['tip'][:, :2], 1e4, NOISE_STD)]
+    rng = np.random.default_rng(5)
+    for n, d, dt, q, sigma in ((7, 1, 1e-3, 1.0, 0.0), (300, 3, 2e-3, 3e5, 1e-4),
+                               (1000, 2, 1 / 300, 10.0, 5e-6)):
+        cases.append((np.arange(n) * dt, 1e-3 * np.cumsum(rng.standard_normal((n, d)), axis=0),
+                      q, sigma))
+    for t, pos, q, sigma in cases:
+        got = np.array(derivatives.estimate_kinematics(t, pos, q, sigma))
+        assert np.array_equal(got, _filterpy_smoothed(t, pos, q, sigma)), (pos.shape, q)
+        dt = float(np.median(np.diff(t)))
+        assert np.array_equal(derivatives._process_noise(dt, q),
+                              Q_continuous_white_noise(dim=3, dt=dt, spectral_density=q))
+
+
+def test_labels_of_signals_smoothed_together_are_each_signals_own():
+    """label_records smooths the signals sampled alike as one stack: every signal's labels the
+    same bits as its own states(), and a signal of another length labelled beside them."""
+    from soft_gripper_sdre.learning.labels import label_records, states, states_of
     records = _synthetic_records()
-    here = label_records(records, 'identifying', progress=False, workers=1)
-    forked = label_records(records, 'identifying', progress=False, workers=2)
-    for name in ('x', 'u', 'acc', 'acc_true'):
-        assert np.array_equal(getattr(here, name), getattr(forked, name)), name
-    assert set(here.val) == set(forked.val)
-    assert all(np.array_equal(here.val[k], forked.val[k]) for k in here.val)
-    assert here.jerk_psd == forked.jerk_psd and here.x.shape == (5 * 600, 4)
-
-
-@pytest.mark.parametrize('workers', [0, -1, 1.5, True])
-def test_label_workers_must_be_a_positive_int(workers):
-    from soft_gripper_sdre.learning.labels import label_records
-    with pytest.raises(ValueError, match='workers must be an int >= 1'):
-        label_records(_synthetic_records(n=50), 'identifying', progress=False, workers=workers)
+    data = label_records(records, 'identifying')
+    train = [states(records[name], data.jerk_psd) for name in data.train_signals]
+    for key in ('x', 'acc'):
+        assert np.array_equal(getattr(data, key), np.vstack([s[key] for s in train])), key
+    alone = states(records['u4'], data.jerk_psd)
+    assert all(np.array_equal(data.val[k], alone[k]) for k in alone)
+    assert data.x.shape == (5 * 600, 4)
+    short = _synthetic_records(n=200, seed=4)['u1']
+    mixed = states_of([records['u1'], short, records['u2']], data.jerk_psd)
+    for got, record in zip(mixed, (records['u1'], short, records['u2'])):
+        own = states(record, data.jerk_psd)
+        assert all(np.array_equal(got[k], own[k]) for k in own)

@@ -250,7 +250,7 @@ def main(argv=None) -> int:
         with jobs.session(runner):
             from soft_gripper_sdre.control.kernels import warm_up
             warm_up()  # the kernels into numba's cache once, before the workers load them
-            data = label_records(records, 'identifying', progress=progress)
+            data = label_records(records, 'identifying')
             context = SweepContext(data, settings, args.jitter, tuple(args.laws),
                                    tuple(args.trajectories), args.duration)
             todo = [ModelJob(None)] + [ModelJob(s, d) for s in range(args.seeds)
