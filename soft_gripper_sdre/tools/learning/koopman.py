@@ -31,7 +31,7 @@ from soft_gripper_sdre.learning.koopman import (
     KoopmanSettings,
     fit_koopman,
 )
-from soft_gripper_sdre.learning.labels import DATA_VARIANTS, VALIDATION, states, tuned_jerk_psd
+from soft_gripper_sdre.learning.labels import DATA_VARIANTS, VALIDATION, states_of, tuned_jerk_psd
 
 #: score_model's samples: every 10th step of the first 4 s, from step 10 on
 SCORE_EVERY, SCORE_SECONDS = 10, 4.0
@@ -81,7 +81,7 @@ def fit_from_directory(data: Path, settings: KoopmanSettings = KoopmanSettings()
     records = load_records(data, list(names) + [VALIDATION])
     first = records[names[0]]
     jerk = tuned_jerk_psd(first)
-    est = {n: states(records[n], jerk) for n in names}
+    est = dict(zip(names, states_of([records[n] for n in names], jerk)))
     series = [(est[n]['x'][:, :2], est[n]['x'][:, 2:], est[n]['u']) for n in names]
     info = dict(train_signals=list(names), validation=VALIDATION, jerk_psd=jerk,
                 noise_std=float(first.noise_std))
