@@ -153,3 +153,7 @@ def test_labels_of_signals_smoothed_together_are_each_signals_own():
     for got, record in zip(mixed, (records['u1'], short, records['u2'])):
         own = states(record, data.jerk_psd)
         assert all(np.array_equal(got[k], own[k]) for k in own)
+    uneven = _synthetic_records(seed=5)['u2']
+    uneven.t[300:] += 0.5 * DT                       # one late sample on: refused, not stacked
+    with pytest.raises(ValueError, match='t must be uniformly sampled'):
+        states_of([records['u1'], uneven], data.jerk_psd)

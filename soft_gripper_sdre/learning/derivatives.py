@@ -15,7 +15,8 @@ Three implementations run the same filter. :func:`estimate_kinematics` smooths e
 axes with filterpy's arithmetic, operation for operation (the same NumPy products and inverses in
 the same order, so the same bits as filterpy's ``batch_filter`` and ``rts_smoother``), stacked
 over the axes instead of one filter object per axis: the simulator's ``.npz`` labels that the
-shipped model is trained on, about 4 times as fast. ``compiled=True`` runs
+shipped model is trained on, its six signals' axes in one pass (docs/own_gripper.md, "What
+training costs"). ``compiled=True`` runs
 :mod:`~soft_gripper_sdre.learning.compiled_labels` (the same estimates to rounding, about a
 thousand times faster), as the bag path does. filterpy itself runs the reference paths (the
 non-compiled likelihoods and irregular stamps), imported when they run.
@@ -65,7 +66,7 @@ def _smoothed(dt: float, pos: np.ndarray, jerk_psd: float, meas_std: float) -> n
     started as :func:`_started_filter` starts it: filterpy's ``batch_filter(update_first=True)``
     then ``rts_smoother``, every product and inverse the one filterpy computes, on (k, ·, ·)
     stacks (NumPy's stacked ``matmul`` and ``inv`` give each slice the bits of ``dot`` and ``inv``
-    on it alone; tests/test_derivatives.py holds them to filterpy's)."""
+    on it alone; test/test_derivatives.py holds them to filterpy's)."""
     n, k = pos.shape
     F, FT = _transition(dt), _transition(dt).T
     H, HT = np.array([[1.0, 0.0, 0.0]]), np.array([[1.0, 0.0, 0.0]]).T

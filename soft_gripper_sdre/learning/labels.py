@@ -22,13 +22,16 @@ def states(record: Record, jerk_psd: float) -> dict[str, np.ndarray]:
 
 
 def states_of(records: list[Record], jerk_psd: float) -> list[dict[str, np.ndarray]]:
-    """:func:`states` of each of ``records``, the same bits: the records sampled alike (the same
-    length, period and noise) are smoothed as the columns of one stack
+    """:func:`states` of each of ``records``, the same bits: the records sampled alike (evenly, at
+    the same length, period and noise) are smoothed as the columns of one stack
     (:func:`~soft_gripper_sdre.learning.derivatives.estimate_kinematics` smooths each column
     alone, stacked for speed: the simulator's six signals in one pass)."""
     groups: dict[tuple, list[int]] = {}
     for i, r in enumerate(records):
-        groups.setdefault((r.t.size, r.dt, float(r.noise_std)), []).append(i)
+        # unevenly stamped records alone: estimate_kinematics refuses them, naming the reason
+        key = ((r.t.size, float(np.median(np.diff(r.t))), float(r.noise_std))
+               if derivatives.is_uniform(r.t) else (i,))
+        groups.setdefault(key, []).append(i)
     out: list[dict[str, np.ndarray]] = [{} for _ in records]
     for members in groups.values():
         first = records[members[0]]
