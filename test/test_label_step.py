@@ -121,6 +121,27 @@ def test_adam_is_torchs_multi_tensor_adam_bit_for_bit(weight_decay):
                 assert torch.equal(a, b), f'step {k + 1}'
 
 
+@pytest.mark.parametrize('scale', [1e-4, 1.0, 1e3])
+def test_the_simulation_stages_clipping_is_clip_grad_norms_bit_for_bit(scale):
+    """training._clipped on gradients whose norm is under the clip and over it: the same tensors
+    as torch.nn.utils.clip_grad_norm_ leaves in the parameters' .grad; a non-finite one: None."""
+    from soft_gripper_sdre.learning.training import _clipped
+    torch.manual_seed(11)
+    net = SDCNet(shape=FingerShape(2, 2))
+    with deterministic_torch():
+        _, grads = autograd_loss_and_grads(net, *batch(net.shape, 64, seed=2))
+        grads = [g * scale for g in grads]
+        ours = _clipped(grads, 1.0)
+        for param, g in zip(net.parameters(), grads):
+            param.grad = g.clone()
+        torch.nn.utils.clip_grad_norm_(net.parameters(), 1.0)
+    assert all(torch.equal(a, p.grad) for a, p in zip(ours, net.parameters()))
+    assert (scale < 1) == all(torch.equal(a, g) for a, g in zip(ours, grads))
+    grads[3] = grads[3].clone()
+    grads[3][0] = float('nan')
+    assert _clipped(grads, 1.0) is None
+
+
 def test_adam_steps_the_modules_own_weights_after_they_are_loaded():
     """The parameters are views into Adam's flat tensor: weights loaded into the module
     (``load_state_dict``, as training does with its best epoch) are the ones the next step moves,

@@ -84,12 +84,13 @@ def test_training_fixes_its_thread_count_and_restores_the_callers(data):
 
 def test_training_runs_under_atens_deterministic_flag_without_importing_the_graph_compiler():
     """Inside training ATen's deterministic algorithms are on (errors, not warnings); torch's graph
-    compiler, whose configuration ``torch.use_deterministic_algorithms`` would import, is not
-    loaded by a training without the simulation stage (whose ``torch.optim.Adam`` loads it), in a
-    fresh process: the test session may have imported it."""
+    compiler, whose configuration ``torch.use_deterministic_algorithms`` would import and which a
+    ``torch.optim`` optimizer imports as it is made, is not loaded by a training, with the
+    simulation stage or without, in a fresh process: the test session may have imported it."""
     code = (
         'import sys, numpy as np, torch\n'
         'from dataclasses import replace\n'
+        'from soft_gripper_sdre.learning.rollout import Run\n'
         'from soft_gripper_sdre.learning.train_settings import PRESETS\n'
         'from soft_gripper_sdre.learning.training import train\n'
         'seen = []\n'
@@ -99,12 +100,15 @@ def test_training_runs_under_atens_deterministic_flag_without_importing_the_grap
         'rng = np.random.default_rng(0)\n'
         'x, u, a = (rng.normal(size=(300, k)) for k in (4, 2, 2))\n'
         'train(x, u, a, x, u, a, replace(PRESETS["default"], epochs=2), on_epoch)\n'
+        'runs = [Run(1e-3 * x, 1e-3 * u, 1e-3)]\n'
+        'train(x, u, a, x, u, a, replace(PRESETS["gripper"], epochs=1, rollout_epochs=1,\n'
+        '      rollout_val_seconds=0.1), on_epoch, runs=runs, val_runs=runs)\n'
         'print(seen, torch.are_deterministic_algorithms_enabled(),\n'
-        '      "torch._inductor.config" in sys.modules)\n')
+        '      "torch._inductor.config" in sys.modules, "torch._dynamo" in sys.modules)\n')
     out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, timeout=300,
                          env={**os.environ, **PINNED_KERNELS})
     assert out.returncode == 0, out.stderr[-2000:]
-    assert out.stdout.split() == ['[(True,', 'False),', '(True,', 'False)]', 'False', 'False']
+    assert out.stdout.strip() == f'{[(True, False)] * 4} False False False'
 
 
 #: how far the trained model may move when the training arrays' bits do (another CPU's kernels):

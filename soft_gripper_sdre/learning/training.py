@@ -57,10 +57,6 @@ from soft_gripper_sdre.sim.shape import HAND_SHAPE, FingerShape, InputBounds
 #: intra-op threads while training: the order of torch's reductions, and so every weight's bits,
 #: depends on it
 TRAIN_THREADS = 1
-#: the simulation stage's Adam updates all the networks' tensors with one multi-tensor kernel per
-#: operation: the same arithmetic per element as one tensor at a time (the label stage's
-#: :class:`~soft_gripper_sdre.learning.label_step.Adam` runs it on one flat tensor)
-FOREACH = True
 
 
 @dataclass
@@ -109,9 +105,9 @@ def _set_deterministic_algorithms(mode: bool, warn_only: bool) -> None:
     """ATen's deterministic-algorithms flag, which is all training runs under.
     ``torch.use_deterministic_algorithms`` also sets the flag of torch's graph compiler, and
     importing that compiler's configuration costs seconds (1.5–3 s on two cores); training never
-    compiles a graph, so where torch offers ATen's flag alone it is set alone. (The simulation
-    stage's ``torch.optim.Adam`` imports the compiler as it is made: a run with that stage pays
-    the import there.)"""
+    compiles a graph, so where torch offers ATen's flag alone it is set alone. (``torch.optim``'s
+    optimizers import the compiler as they are made; both stages step
+    :class:`~soft_gripper_sdre.learning.label_step.Adam`, the same arithmetic.)"""
     set_aten_flag = getattr(torch._C, '_set_deterministic_algorithms', None)
     if set_aten_flag is None:
         torch.use_deterministic_algorithms(mode, warn_only=warn_only)
@@ -202,20 +198,15 @@ def _gradients(loss: torch.Tensor, net: SDCNet) -> list[torch.Tensor]:
     return [p.grad for p in net.parameters()]
 
 
-def _step(opt: torch.optim.Optimizer, loss: float, grads: list[torch.Tensor], net: SDCNet,
-          clip: float) -> bool:
-    """One optimiser step on ``grads`` (in ``net.parameters()`` order), their norm clipped to
-    ``clip``; a batch whose loss or gradient is not finite is skipped."""
-    if not math.isfinite(loss):
-        return False
-    for param, grad in zip(net.parameters(), grads):
-        param.grad = grad
-    norm = torch.nn.utils.clip_grad_norm_(net.parameters(), clip)
+def _clipped(grads: list[torch.Tensor], clip: float) -> list[torch.Tensor] | None:
+    """``grads`` scaled so their total 2-norm is at most ``clip``, as
+    ``torch.nn.utils.clip_grad_norm_`` scales a model's gradients (the same norm, coefficient and
+    products); None when the norm is not finite."""
+    norm = torch.nn.utils.get_total_norm(grads)
     if not torch.isfinite(norm):
-        opt.zero_grad(set_to_none=True)
-        return False
-    opt.step()
-    return True
+        return None
+    coef = torch.clamp(clip / (norm + 1e-6), max=1.0)
+    return [g * coef for g in grads]
 
 
 def _train_seeded(x, u, acc, x_val, u_val, acc_val, settings: TrainSettings, on_epoch, runs,
@@ -349,13 +340,12 @@ class _Training:
         batches = [(dt, *(a.double().numpy() for a in arrays))
                    for dt, *arrays in windows(runs, settings.rollout_seconds,
                                               settings.rollout_overlap)]
-        opt = torch.optim.Adam(net.parameters(), lr=settings.rollout_lr, foreach=FOREACH)
-        sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=settings.rollout_epochs)
+        opt = label_step.Adam(list(net.parameters()), settings.rollout_lr)
         first = len(result.train_loss)
         for epoch in range(settings.rollout_epochs):
             net.train()
             train_loss = self._rollout_epoch(opt, batches)
-            sched.step()
+            opt.lr = label_step.cosine_lr(opt.lr, epoch + 1, settings.rollout_epochs)
             net.eval()
             val = val_sim_error(net, self.st, self.val_windows)
             result.rollout_loss.append(train_loss)
@@ -366,7 +356,7 @@ class _Training:
             if self.keep_if_best(first + epoch, val):
                 break
 
-    def _rollout_epoch(self, opt: torch.optim.Optimizer, batches: list) -> float:
+    def _rollout_epoch(self, opt: label_step.Adam, batches: list) -> float:
         """One pass over every window, shuffled within each grid spacing, in batches of
         ``rollout_batch_size`` windows; returns the mean L_sim of the batches that stepped.
 
@@ -388,7 +378,9 @@ class _Training:
                     loss += rest.item()
                     grads = [g if r is None else g + r
                              for g, r in zip(grads, _gradients(rest, net))]
-                if _step(opt, loss, grads, net, clip=1.0):
+                grads = _clipped(grads, 1.0) if math.isfinite(loss) else None
+                if grads is not None:                    # a non-finite batch is skipped
+                    opt.step(grads)
                     total += loss * len(idx)
                     count += len(idx)
         return total / max(count, 1)
