@@ -68,8 +68,10 @@ def _smoothed(dt: float, pos: np.ndarray, jerk_psd: float, meas_std: float) -> n
     stacks (NumPy's stacked ``matmul`` and ``inv`` give each slice the bits of ``dot`` and ``inv``
     on it alone; test/test_derivatives.py holds them to filterpy's)."""
     n, k = pos.shape
-    F, FT = _transition(dt), _transition(dt).T
-    H, HT = np.array([[1.0, 0.0, 0.0]]), np.array([[1.0, 0.0, 0.0]]).T
+    F = _transition(dt)
+    FT = F.T
+    H = np.array([[1.0, 0.0, 0.0]])
+    HT = H.T
     Q, R = _process_noise(dt, jerk_psd), np.array([[_meas_var(meas_std)]])
     eye = np.eye(3)
     x = np.zeros((k, 3, 1))
@@ -221,7 +223,7 @@ def _irregular_models(times: np.ndarray,
     """F and Σ_v of each step between consecutive ``times``: element i goes from i to i + 1."""
     Fs, Qs = [], []
     for h in np.diff(times).tolist():
-        Fs.append(np.array([[1.0, h, 0.5 * h * h], [0.0, 1.0, h], [0.0, 0.0, 1.0]]))
+        Fs.append(_transition(h))
         Qs.append(_process_noise(h, jerk_psd))
     return Fs, Qs
 
