@@ -160,13 +160,10 @@ def test_the_recipe_runs_end_to_end_on_the_tendon_finger(tmp_path):
     score = metrics['deploy']['sdre_ff']
     assert metrics['deploy']['travel'] == facts['travel']
     assert score['samples'] > 500 and score['saturated_at_rest'] == 0.0
-    # the model pooled from both fingers, trained this short, serves one of them well (thumb or
-    # index within 4-9 % of travel in the runs measured on a quiet machine, 25-26 % in two CI
-    # runs beside another test's load) and the other by luck
-    # of the recording (8-66 %: the index is 1.8 times as compliant); neither may run away (a
-    # diverging loop misses by several travels)
-    pct = score['rmse_pct_of_travel']
-    assert min(pct) < 35.0 and max(pct) < 100.0, score
+    # the model pooled from both fingers, trained this short, with each finger's input gain:
+    # index / thumb 1.2 / 0.7 % and 1.7 / 0.9 % of travel in two CI runs; bounded at twice the
+    # recipe's 5 % target
+    assert max(score['rmse_pct_of_travel']) < 10.0, score
 
 
 @pytest.mark.slow
