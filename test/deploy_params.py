@@ -15,7 +15,7 @@ def params_file(path: Path, drop: tuple[str, ...] = (), **plan) -> Path:
     trajectory = {'finger_names': list(NAMES), 'grasp_fingers': [0, 1], 'others': 'hold',
                   't_start': 0.5, 't_close': 1.0, 't_hold': 0.5, 't_open': 1.0,
                   'close_distance': 0.002, 'side_distance': 0.0, 'contact_distance': 0.002,
-                  **plan}
+                  'rest_samples': 50, **plan}
     for key in drop:
         trajectory.pop(key)
     body = {'/**/estimator': {'ros__parameters': {'finger_names': list(NAMES),

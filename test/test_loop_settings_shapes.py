@@ -146,12 +146,15 @@ def test_the_3d_move_is_cut_where_pull_only_tendons_cannot_hold_it():
 
 def test_the_hand_shape_keeps_its_parameters():
     """A planar straight move with the symmetric limit: the trajectory node's close_distance and
-    side_distance, no bounds, no task_dim (the hand's files as they were)."""
+    side_distance, no bounds, no task_dim; the rest pose the mean of a quarter second of tips
+    (50 at 5 ms)."""
     facts = ls.DataFacts(period=5e-3, noise_std=5e-5, travel=2e-3, torque_limit=0.02,
                          accel_psd_ml=1.0, direction=120.0)
     settings = ls.settings_for(_Linear2(), facts, 2.0, 1.0)
     params = ls.Derivation(settings, {}, [], facts).params(['index', 'thumb'])
-    assert list(params['trajectory']) == ['close_distance', 'side_distance', 'contact_distance']
+    assert list(params['trajectory']) == ['close_distance', 'side_distance', 'contact_distance',
+                                          'rest_samples']
+    assert params['trajectory']['rest_samples'] == 50
     assert 'task_dim' not in params['estimator'] and 'input_lower' not in params['controller']
     close, side = facts.move()
     assert params['trajectory']['close_distance'] == close

@@ -79,6 +79,35 @@ def test_the_whole_grasp_is_planned_from_the_first_tips_which_are_then_no_longer
         assert node.diag.counters['tips'] == 1 and node.diag.counters['references'] == 1
 
 
+def test_rest_samples_plans_from_the_mean_of_that_many_tips_at_the_last_ones_stamp():
+    """A noisy driver's rest pose: the mean of ``rest_samples`` tip messages, the plan's origin
+    the last one's stamp; a restart gathers them afresh."""
+    rng = np.random.default_rng(3)
+    noisy = [REST + 5e-5 * rng.standard_normal(REST.shape) for _ in range(8)]
+    with ros_context() as (ctx, executor):
+        node, probe, pub = make(ctx, executor, rest_samples=4, reset_on_jump=0.01, **FAST)
+        for k, tips in enumerate(noisy[:3]):
+            send(executor, node, pub, cv.tips_to_msg((10 + k) * MS, tips))
+        assert node.diag.counters['references'] == 0
+        assert node.diag.values['rest_samples'] == '3 of 4'
+        send(executor, node, pub, cv.tips_to_msg(13 * MS, noisy[3]))
+        (plan,) = references(executor, node, probe)
+        mean = np.mean(noisy[:4], axis=0)
+        check_plan(plan, mean, origin=13 * MS, **FAST)
+        # closer to the rest than a single message: a quarter of the noise's variance
+        assert np.abs(mean - REST).max() < np.abs(noisy[0] - REST).max()
+        assert spin_until(executor, lambda: node.sub is None, 5.0)
+        for k in range(10, 40, 10):
+            tick(executor, node, probe, k * MS)
+        tick(executor, node, probe, 0)                               # restarted simulator
+        assert spin_until(executor, lambda: pub.get_subscription_count() > 0, 5.0)
+        for k, tips in enumerate(noisy[4:]):
+            send(executor, node, pub, cv.tips_to_msg((1 + k) * MS, tips))
+        refs = references(executor, node, probe)
+        assert len(refs) == 2
+        check_plan(refs[1], np.mean(noisy[4:], axis=0), origin=0, **FAST)   # the new run's start
+
+
 def test_bad_tip_messages_are_counted_and_a_restart_takes_a_new_rest_pose():
     with ros_context() as (ctx, executor):
         node, probe, pub = make(ctx, executor, reset_on_jump=0.01, **FAST)
@@ -132,7 +161,8 @@ def test_close_to_plans_every_grasping_finger_to_the_same_closed_y():
     (dict(rest_pose=' '.join(['nan'] * 8)), 'rest_pose'), (dict(close_to='near'), 'close_to'),
     (dict(close_to='0.5'), 'close_to'), (dict(close_to='nan'), 'close_to'),
     (dict(start_at='soon'), 'start_at'), (dict(start_at='-1'), 'start_at'),
-    (dict(start_at='inf'), 'start_at'), (dict(tips_reliability='sometimes'), 'tips_reliability')])
+    (dict(start_at='inf'), 'start_at'), (dict(tips_reliability='sometimes'), 'tips_reliability'),
+    (dict(rest_samples=0), 'rest_samples'), (dict(rest_samples=1.5), 'rest_samples')])
 def test_bad_parameters_fail_at_startup_naming_the_parameter(params, name):
     with ros_context() as (ctx, executor):
         with pytest.raises(ParameterError, match=name):

@@ -29,6 +29,8 @@ integral_gain      k_i = ω_c³ / d, d in :data:`INTEGRAL_DIVISORS` (picked in t
                    3.7 % with all of it). The recipe's plan has no contact; a grasp that presses
                    into an object sets ``integral_band`` below the depth it presses
 pd_kp, pd_kd       ω_c² and 2 ζ ω_c with ζ = :data:`PD_DAMPING`, for ``pd``
+rest_samples       the trajectory node's rest pose, the mean of :data:`REST_SECONDS` of tips
+                   (one message's noise is a hold a slack finger must be pulled or bent to)
 feedforward_at     ``ref``: the feedforward inverts the model on the reference. Evaluated
                    at the estimate, a model that depends on velocity (friction) turns the
                    estimate's noise into torque; on the tendon finger's model that alone
@@ -188,6 +190,10 @@ GAIN_ERRORS = (0.5, 2.0)
 #: by as much, which the feedback corrects only over the move)
 KEEP_NOMINAL = 0.05
 KEEP_ROBUST = 0.5
+#: the tips the deployed plan's rest pose averages [s] (the trajectory node's ``rest_samples`` at
+#: the control period): one message's noise off a slack finger's rest is a hold the law must
+#: pull or bend it to (nodes/trajectory.py)
+REST_SECONDS = 0.25
 PREFER_SLOWER = 1.5
 #: the check's move is at least this many σ of measurement noise
 MIN_TRAVEL_NOISE = 10.0
@@ -706,7 +712,8 @@ class Derivation:
         ``input_lower``/``input_upper`` in place of ``torque_limit``. Its move is ``direction``
         (d values, the unit direction) with ``close_distance`` its length, and for a curved move
         ``close_path`` (d values per waypoint after the rest, relative to it, flat; then
-        ``direction`` is its chord), both lists of floats.
+        ``direction`` is its chord), both lists of floats. The trajectory node's rest pose is the
+        mean of :data:`REST_SECONDS` of tips (``rest_samples``).
 
         Raises:
             ValueError: no settings were derived (:attr:`reason`).
@@ -735,6 +742,7 @@ class Derivation:
         else:
             est['task_dim'] = f.d
             plan = _plan(f)
+        plan['rest_samples'] = max(1, round(REST_SECONDS / d.control_period))
         return {'estimator': est, 'controller': ctrl, 'trajectory': plan}
 
     def move_text(self) -> str:

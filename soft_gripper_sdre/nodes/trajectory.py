@@ -1,10 +1,16 @@
 """The trajectory node: publishes the planned grasp as a whole, once per plan.
 
-Subscribes ``tip_positions`` only until it has a rest pose (one message), and ``/clock`` (100 Hz of
-sim time) to notice a restarted simulator; publishes ``grasp_reference`` and ``/diagnostics``.
-The rest pose of :class:`~soft_gripper_sdre.control.trajectory.GraspTrajectory` is the first tip
-message (as in :func:`soft_gripper_sdre.analysis.closed_loop.run_closed_loop`), or the
-``rest_pose`` parameter. The plan then goes out at once, on a transient-local topic (a controller
+Subscribes ``tip_positions`` only until it has a rest pose (``rest_samples`` messages, one by
+default), and ``/clock`` (100 Hz of sim time) to notice a restarted simulator; publishes
+``grasp_reference`` and ``/diagnostics``. The rest pose of
+:class:`~soft_gripper_sdre.control.trajectory.GraspTrajectory` is the first tip message (as in
+:func:`soft_gripper_sdre.analysis.closed_loop.run_closed_loop`), the mean of the first
+``rest_samples`` of them, or the ``rest_pose`` parameter. One message carries the tips' noise
+into the whole plan: a rest pose 0.1 mm off where a finger rests is a hold the law must pull or
+bend the finger to (a tendon or chamber at rest is slack, so it cannot push back), and on the
+three-tendon segment that first command bent a finger by 1.2 mm at the plan's start. The mean
+of N messages has 1/√N of that noise; training's ``params.yaml`` asks for a quarter second of
+tips. The plan then goes out at once, on a transient-local topic (a controller
 or recorder that starts later still gets it), and the tip subscription is dropped: the node
 receives nothing per control period.
 
@@ -24,10 +30,10 @@ once every node is wired (docs/design/loop_rules.md, "Start"), so the controller
 plan starts at 0. With ``rest_pose`` the plan goes out at once either way.
 
 **Time comes from the data.** The plan starts at its origin: the stamp of the tips the rest pose
-is taken from, whatever clock the driver stamps with (sim time from 0, or wall time), or the
-``start_at`` parameter; with ``rest_pose`` and without ``start_at`` the origin is 0. The plan
-holds the points at the times origin + k·``horizon_step`` up to the first grid time at or after
-the grasp's end, where the fingers are back at rest: header stamp = the origin,
+is taken from (the last of them), whatever clock the driver stamps with (sim time from 0, or wall
+time), or the ``start_at`` parameter; with ``rest_pose`` and without ``start_at`` the origin is
+0. The plan holds the points at the times origin + k·``horizon_step`` up to the first grid time
+at or after the grasp's end, where the fingers are back at rest: header stamp = the origin,
 ``time_from_start`` = k·``horizon_step``, positions / velocities / accelerations from
 ``GraspTrajectory.sample`` at k·``horizon_step``. After its last point the reference stays there
 (:func:`soft_gripper_sdre.control.horizon.sample_plan`). The simulator's first tips are stamped 0,
@@ -150,6 +156,10 @@ PARAMS = (
           "with task_dim 3); '' = the first "
           "tip message. Give it when restarting the node mid-run: the tips then are not at rest",
           'm', read_only=True),
+    Param('rest_samples', 1, 'tip messages averaged for the rest pose: their mean is the plan\'s '
+          'rest, the last one\'s stamp its origin (each message\'s noise averaged down by the '
+          'square root of their number); 1 = the first tip message', '', 1, 100000,
+          read_only=True),
     Param('start_at', '', "when the plan starts (its origin), an absolute time in s on the "
           "clock of the tip stamps, e.g. '1767225600.25'; '' = the stamp of the tips the rest "
           "pose is taken from, or 0 with rest_pose. Give it, with rest_pose, when restarting the "
@@ -286,6 +296,7 @@ class TrajectoryNode(Node):
         self.traj: GraspTrajectory | None = None
         self.clock_ns = -1                      # newest /clock stamp
         self.sub = None                         # the tip subscription, while a rest pose is wanted
+        self._rest_tips: list[np.ndarray] = []  # the tips gathered for the rest pose so far
         self.cdr_tips = cdr.tips_codec(self.names)  # CDR bytes read at fixed offsets (nodes/cdr.py)
         self.cdr_clock = cdr.clock_codec()
         self.cdr_plan = PlanCodec(self.names, self.d)
@@ -342,8 +353,20 @@ class TrajectoryNode(Node):
                               f'after the grasp began (start_at {format_time(origin)} s + '
                               't_start): taking them as the rest pose (give rest_pose when '
                               'restarting mid-run)')
+        self._rest_tips.append(tips[:, :self.d])
+        wanted = self.p['rest_samples']
+        if len(self._rest_tips) < wanted:
+            self.diag.values['rest_samples'] = f'{len(self._rest_tips)} of {wanted}'
+            return
+        if wanted == 1:
+            rest, source = self._rest_tips[0], f'from the tips at t = {format_time(stamp)} s'
+        else:
+            rest = np.mean(self._rest_tips, axis=0)
+            source = f'the mean of {wanted} tip messages up to t = {format_time(stamp)} s'
+            self.diag.values['rest_samples'] = f'{wanted} of {wanted}'
+        self._rest_tips = []
         self._drop_timer.reset()
-        self._plan(tips[:, :self.d], f'from the tips at t = {format_time(stamp)} s', origin)
+        self._plan(rest, source, origin)
 
     def controller_problem(self) -> str | None:
         """What the plan waits for with ``start_when: controller`` (the graph as this node sees
@@ -394,6 +417,7 @@ class TrajectoryNode(Node):
             self._plan(self.fixed_rest, 'given', self._given_origin())
         else:
             self.traj = None
+            self._rest_tips = []
             self._want_tips()
 
     def _given_origin(self) -> int:
