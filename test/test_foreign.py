@@ -208,9 +208,9 @@ def test_the_recipe_runs_end_to_end_on_the_one_chamber_pneumatic_finger(tmp_path
     ctrl = params['/**/controller']['ros__parameters']
     assert ctrl['input_lower'] == [0.0] and ctrl['input_upper'] == facts['bounds']['upper']
     score = metrics['deploy']['sdre_ff']
-    # the plan's true tips at 100 Hz, best effort: thinned on a loaded machine (190 in a CI run
-    # beside the suite's other worker), enough to score from 100 on
-    assert score['samples'] > 100 and score['commands'] > 200
+    # the plan's 5.5 s of true tips at 100 Hz, best effort (551 of 551 in two serial CI runs; a
+    # driver starved beside other work thins them: 190 in a run beside the suite's other worker)
+    assert score['samples'] > 300 and score['commands'] > 200
     assert score['outside_bounds'] == 0 and score['outside_plant_bounds'] == 0
     assert score['saturated_at_rest'] == 0.0
     model_metrics = json.loads((out / 'model' / 'metrics.json').read_text())
