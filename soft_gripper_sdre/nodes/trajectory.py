@@ -40,7 +40,7 @@ at or after the grasp's end, where the fingers are back at rest: header stamp = 
 so its plan starts at 0.
 
 A ``/clock`` stamp more than ``reset_on_jump`` behind the newest one means the simulator
-restarted: the node takes a new rest pose from the next tip message, and a new origin: the time
+restarted: the node takes a new rest pose from the next tips, and a new origin: the time
 /clock jumped back to, the new run's start (the tip subscription, made again only now, misses the
 new run's first tips). With ``rest_pose`` it publishes its plan again. The controller forgets a
 plan made for the old run. A ``start_at`` that was given stays. Malformed tip or clock messages
@@ -348,7 +348,7 @@ class TrajectoryNode(Node):
         origin = self.fixed_start
         if origin is None:
             origin = stamp if self.run_start is None else min(self.run_start, stamp)
-        if stamp > origin + int(self.profile.t_start * cv.NS):
+        if not self._rest_tips and stamp > origin + int(self.profile.t_start * cv.NS):
             self.diag.problem('late_start', f'first tip_positions at t = {format_time(stamp)} s, '
                               f'after the grasp began (start_at {format_time(origin)} s + '
                               't_start): taking them as the rest pose (give rest_pose when '
