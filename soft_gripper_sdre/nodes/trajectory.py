@@ -358,13 +358,13 @@ class TrajectoryNode(Node):
         if len(self._rest_tips) < wanted:
             self.diag.values['rest_samples'] = f'{len(self._rest_tips)} of {wanted}'
             return
+        rest = np.mean(self._rest_tips, axis=0)       # of one message: that message, exactly
+        self._rest_tips = []
         if wanted == 1:
-            rest, source = self._rest_tips[0], f'from the tips at t = {format_time(stamp)} s'
+            source = f'from the tips at t = {format_time(stamp)} s'
         else:
-            rest = np.mean(self._rest_tips, axis=0)
             source = f'the mean of {wanted} tip messages up to t = {format_time(stamp)} s'
             self.diag.values['rest_samples'] = f'{wanted} of {wanted}'
-        self._rest_tips = []
         self._drop_timer.reset()
         self._plan(rest, source, origin)
 
