@@ -23,8 +23,14 @@ $(STAMP): requirements.txt setup.py setup.cfg package.xml
 
 venv: $(STAMP)
 
+# numba's cache of the kernels, filled in two processes (the general kernels take about as long as
+# the others); the import before them empties a stale cache once.
 $(KERNELS): $(STAMP) $(wildcard soft_gripper_sdre/control/kernels/*.py)
-	$(PY) -c 'from soft_gripper_sdre.control.kernels import warm_up, warm_up_check_loop; warm_up(); warm_up_check_loop()'
+	$(PY) -c 'import soft_gripper_sdre.control.kernels'
+	$(PY) -c 'from soft_gripper_sdre.control.kernels import warm_up_general; warm_up_general()' & \
+	general=$$!; \
+	$(PY) -c 'from soft_gripper_sdre.control.kernels import warm_up_hand, warm_up_check_loop; warm_up_hand(); warm_up_check_loop()' \
+	&& wait $$general
 	mkdir -p $(@D) && touch $@
 
 kernels: $(KERNELS)

@@ -127,10 +127,11 @@ def _ringing(model) -> ff.LinearFinger:
 
 
 @pytest.mark.timeout(300)
-def test_a_loop_that_rings_on_a_finger_s_own_fit_is_not_chosen():
+def test_a_loop_that_rings_on_a_finger_s_own_fit_is_not_chosen(monkeypatch):
     """On the model alone the 4 Hz candidates score best (their nominal and lowered-gain runs);
     on the finger's fit they ring, so a slower loop is chosen. Every kept candidate's score is
-    the worst of its nominal, lowered-gain and fit runs."""
+    the worst of its nominal, lowered-gain and fit runs. Two of the integral gains are tried."""
+    monkeypatch.setattr(ls, 'INTEGRAL_DIVISORS', (10.0, 2.0))
     model = LinearChamber()
     derived = ls.derive(model, _chamber_facts(), bandwidths=(2.0, 4.0), laws=('sdre_ff',),
                         workers=1, fingers=(_ringing(model),))

@@ -7,6 +7,7 @@ import math
 
 from chamber_models import (
     P_MAX,
+    SHORT_PROFILE,
     T_MAX,
     OneChamber,
     ThreeTendons,
@@ -61,7 +62,8 @@ def test_a_one_sided_input_sweeps_toward_its_only_side():
 
 
 @pytest.mark.timeout(180)
-def test_a_one_input_finger_is_checked_along_the_curve_it_can_hold():
+def test_a_one_input_finger_is_checked_along_the_curve_it_can_hold(monkeypatch):
+    monkeypatch.setattr(ls, 'CHECK_PROFILE', SHORT_PROFILE)
     model = OneChamber()
     derived = ls.derive(model, _chamber_facts(), bandwidths=(2.0,), laws=('sdre_ff',))
     assert derived.settings is not None, derived.candidates
@@ -109,7 +111,8 @@ def test_a_straight_move_off_the_curve_is_never_the_one_checked():
 
 
 @pytest.mark.timeout(240)
-def test_a_three_tendon_segment_is_checked_in_3d_within_its_pull_only_bounds():
+def test_a_three_tendon_segment_is_checked_in_3d_within_its_pull_only_bounds(monkeypatch):
+    monkeypatch.setattr(ls, 'CHECK_PROFILE', SHORT_PROFILE)
     model = ThreeTendons()
     derived = ls.derive(model, _tendon_facts(model), bandwidths=(2.0,))
     assert derived.settings is not None, derived.candidates
@@ -118,7 +121,8 @@ def test_a_three_tendon_segment_is_checked_in_3d_within_its_pull_only_bounds():
     nominal = derived.checks['sdre_ff']
     assert nominal.ok and nominal.rmse_rel <= ls.KEEP_NOMINAL
     ref = ls.check_move(derived.facts)
-    held = ref.sample(np.array([3.0])).pos[0, 0]
+    held = ref.sample(np.array([SHORT_PROFILE['t_start'] + SHORT_PROFILE['t_close']
+                                + SHORT_PROFILE['t_hold'] / 2])).pos[0, 0]
     np.testing.assert_allclose(held, derived.facts.travel * derived.facts.unit, atol=1e-12)
     params = derived.params(['a', 'b'])
     assert params['estimator']['task_dim'] == 3 and params['trajectory']['task_dim'] == 3

@@ -3,6 +3,7 @@ data (analysis/loop_settings.py, the torques that hold the model still: analysis
 SDC models of known structure and on the shipped model."""
 import math
 
+from chamber_models import SHORT_PROFILE
 import numpy as np
 import pytest
 from scipy.linalg import solve_continuous_are
@@ -257,8 +258,9 @@ class DragBeyond(LinearModel):
 
 @pytest.mark.slow
 @pytest.mark.timeout(600)
-def test_a_move_no_setting_passes_on_is_halved_until_one_does():
-    # (every candidate checked on each halved move: 30 s to 2 min by the host and its load)
+def test_a_move_no_setting_passes_on_is_halved_until_one_does(monkeypatch):
+    # every candidate checked on each halved move, along the short move
+    monkeypatch.setattr(ls, 'CHECK_PROFILE', SHORT_PROFILE)
     model = DragBeyond(c=40.0)
     facts = ls.DataFacts(period=5e-3, noise_std=1e-5, travel=4e-3, torque_limit=0.02,
                          accel_psd_ml=1.0)

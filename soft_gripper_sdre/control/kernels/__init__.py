@@ -73,6 +73,7 @@ from soft_gripper_sdre.control.kernels.sdre import (
 
 __all__ = ['KernelRecords', 'SdcNetwork', 'SdreSettings', 'SdreState', 'SdreOutputs',
            'FeedforwardOutputs', 'IntegralSettings', 'compiled_network', 'kernel_array', 'warm_up',
+           'warm_up_hand', 'warm_up_general',
            'sdc_forward', 'sdre_gains', 'tracking_torques', 'sdre_step', 'tracking_step',
            'model_inversion', 'feedforward_step', 'kf_step', 'kf_step_dt', 'integral_step',
            'integral_update', 'integral_roll_off', 'plan_sample', 'GeneralOutputs',
@@ -283,6 +284,13 @@ def warm_up_general(d: int = 3, m: int = 2) -> None:
 def warm_up() -> None:
     """Compile (or load from numba's cache) every kernel at the types the controller uses: call it
     before a node reports ready, so that no step pays for compilation."""
+    warm_up_hand()
+    warm_up_general()
+
+
+def warm_up_hand() -> None:
+    """Compile (or load) the kernels of the hand's shape (d = 2, m = 2): :func:`warm_up` without
+    :func:`warm_up_general`, which another process can compile meanwhile (``make kernels``)."""
     n = 1
     network = SdcNetwork.pack(np.zeros((4, 2)), np.zeros(2), np.zeros((2, 2)), np.zeros(2),
                               np.zeros((2, 12)), np.zeros(12))
@@ -309,7 +317,6 @@ def warm_up() -> None:
     plan = np.zeros((2, n, 2))
     plan_sample(np.array([0, 1], dtype=np.int64), plan, plan, plan, 0, rows.copy(), rows.copy(),
                 rows.copy())
-    warm_up_general()
 
 
 def warm_up_check_loop() -> None:
