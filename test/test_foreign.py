@@ -5,7 +5,8 @@ The end-to-end runs are marked serial: the driver node stands in for the lab's p
 simulated in a process starved of CPU is not the plant (its late ticks step it over longer
 periods, a stall past MAX_STEP_PERIODS slows its time). Beside the suite's other worker the
 pneumatic finger's recordings fitted worse (free runs of 36-39 % of the motion, 12-13 % alone)
-and its chambers' 40 and 60 ms lags read as 10 and 20 ms."""
+and its chambers' 40 and 60 ms lags read as 10 and 20 ms. The two grippers' recordings, which
+take a quarter of the machine each, run side by side; their trainings and deployments do not."""
 import json
 import math
 import os
@@ -38,6 +39,7 @@ def _tool(*args, timeout=60):
     (['--domain-id', '500'], '--domain-id must be'),
     (['--rollout-epochs', '-1'], '--rollout-epochs must be >= 0'),
     (['--bags', '/nonexistent/bags'], 'has no train/ and val/ bag directories'),
+    (['--identify-only', '--bags', '/nonexistent/bags'], '--identify-only records new bags'),
 ])
 def test_bad_arguments_exit_2_before_anything_starts(tmp_path, args, message):
     out = tmp_path / 'out'
@@ -96,26 +98,53 @@ def test_an_existing_output_is_never_overwritten(tmp_path):
     assert (tmp_path / 'keep.txt').read_text() == 'mine'
 
 
+def _identified_side_by_side(tmp_path: Path) -> dict[str, Path]:
+    """Step 1 of the tendon and the one-chamber grippers' recipes at once (``--identify-only``),
+    each on its own domain: a recording takes about a quarter of the two cores (its driver, the
+    excitation node and the recorder), so two leave each driver the CPU it needs; training, which
+    takes both cores, and deploying come after, one gripper at a time. Each run's directory."""
+    runs = {plant: tmp_path / f'{plant}_identified' for plant in ('tendon3', 'pneumatic1')}
+    procs = {plant: subprocess.Popen(
+        [sys.executable, '-m', 'soft_gripper_sdre.tools.graph.foreign', '--plant', plant,
+         '--out', str(out), '--identify-only'], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+        text=True, cwd=ROOT, env={**os.environ, 'PYTHONUNBUFFERED': '1'})
+        for plant, out in runs.items()}
+    for plant, proc in procs.items():
+        _, err = proc.communicate(timeout=900)
+        assert proc.returncode == 0, (plant, err[-3000:])
+        assert not (runs[plant] / 'model').exists()          # step 1 only: nothing trained
+    return runs
+
+
 @pytest.mark.slow
 @pytest.mark.serial
 @pytest.mark.ros
-@pytest.mark.timeout(1500)
-def test_the_recipe_runs_end_to_end_on_the_tendon_finger(tmp_path):
-    """Identify over DDS from a best-effort, wall-stamped 200 Hz driver, train, derive, and deploy
-    or say why not: every bag holds its settle phase and the measured noise, the level search
-    chose an amplitude, the model is judged fit, the checked move follows the travel rule, and a
-    deployed grasp tracks without saturating at rest. Both training stages run, shortened (the
-    label stage has converged by about 40 epochs; each simulation-stage epoch costs seconds): such
-    a model can stop at the closed-loop check, which the full preset's passes
+@pytest.mark.timeout(2700)
+def test_the_recipe_runs_end_to_end_on_the_tendon_and_the_one_chamber_fingers(tmp_path):
+    """The recipe over DDS on a two-torque finger and a one-input finger, each identified from a
+    best-effort, wall-stamped driver (side by side), then trained and deployed on those bags
+    (``--bags``): :func:`_tendon_trained_and_deployed`, :func:`_pneumatic_trained_and_deployed`."""
+    identified = _identified_side_by_side(tmp_path)
+    _tendon_trained_and_deployed(tmp_path / 'tendon3', identified['tendon3'])
+    _pneumatic_trained_and_deployed(tmp_path / 'pneumatic1', identified['pneumatic1'])
+
+
+def _tendon_trained_and_deployed(out: Path, identified: Path) -> None:
+    """The 200 Hz tendon finger: every bag holds its settle phase and the measured noise, the
+    level search chose an amplitude, the model is judged fit, the checked move follows the travel
+    rule, and a deployed grasp tracks without saturating at rest. Both training stages run,
+    shortened (the label stage has converged by about 40 epochs; each simulation-stage epoch costs
+    seconds): such a model can stop at the closed-loop check, which the full preset's passes
     (docs/own_gripper.md, "Two grippers unlike the hand")."""
-    out = tmp_path / 'tendon3'
-    r = _tool('--plant', 'tendon3', '--out', str(out), '--laws', 'sdre_ff', '--epochs', '40',
-              '--rollout-epochs', '10', timeout=1400)
+    r = _tool('--plant', 'tendon3', '--out', str(out), '--bags', str(identified / 'bags'),
+              '--laws', 'sdre_ff', '--epochs', '40', '--rollout-epochs', '10', timeout=1400)
     assert r.returncode in (0, 1), r.stderr[-3000:]
     metrics = json.loads((out / 'metrics.json').read_text())
-    assert all(0 < a < 1 for a in metrics['identification']['amplitude'].values())
-    bags = sorted((out / 'bags' / 'train').glob('*/metadata.yaml')) + \
-        sorted((out / 'bags' / 'val').glob('*/metadata.yaml'))
+    identification = json.loads((identified / 'metrics.json').read_text())['identification']
+    bags = identified / 'bags'
+    assert all(0 < a < 1 for a in identification['amplitude'].values())
+    bags = sorted((bags / 'train').glob('*/metadata.yaml')) + \
+        sorted((bags / 'val').glob('*/metadata.yaml'))
     assert len(bags) == 6
     for meta in bags:
         rec = read_recording(meta.parent)
@@ -166,26 +195,24 @@ def test_the_recipe_runs_end_to_end_on_the_tendon_finger(tmp_path):
     assert max(score['rmse_pct_of_travel']) < 10.0, score
 
 
-@pytest.mark.slow
-@pytest.mark.serial
-@pytest.mark.ros
-@pytest.mark.timeout(1800)
-def test_the_recipe_runs_end_to_end_on_the_one_chamber_pneumatic_finger(tmp_path):
-    """The same recipe on a finger of one input (a chamber, 0 to 60 kPa, a pressure lag) and a
-    planar tip at 100 Hz: the excitation and training get the chamber's bounds, the model has
-    shape (2, 1), the checked move follows the curve of the model's equilibria (params.yaml's
-    close_path), and the deployed grasp never commands outside the bounds nor sits at a bound
-    other than the vented chamber at rest. The preset's full training (about 5 minutes): trained
-    40 + 10 epochs, the model's rest drifted off (not fit). Training finds each chamber's pressure
-    lag in its own fit (the valves' 40 and 60 ms as 50-60 and 80 ms) and checks the candidates on
-    those fits; the deployed grasp tracked within 4.2 % of travel over DDS on a quiet machine
-    (docs/own_gripper.md), bounded here at twice that."""
-    out = tmp_path / 'pneumatic1'
-    r = _tool('--plant', 'pneumatic1', '--out', str(out), '--laws', 'sdre_ff', timeout=1700)
+def _pneumatic_trained_and_deployed(out: Path, identified: Path) -> None:
+    """A finger of one input (a chamber, 0 to 60 kPa, a pressure lag) and a planar tip at 100 Hz:
+    the excitation and training get the chamber's bounds, the model has shape (2, 1), the checked
+    move follows the curve of the model's equilibria (params.yaml's close_path), and the deployed
+    grasp never commands outside the bounds nor sits at a bound other than the vented chamber at
+    rest. The preset's full training (trained 40 + 10 epochs, the model's rest drifted off: not
+    fit). Training finds each chamber's pressure lag in its own fit (the valves' 40 and 60 ms as
+    50-60 and 80 ms) and checks the candidates on those fits; the deployed grasp tracked within
+    4.2 % of travel over DDS on a quiet machine (docs/own_gripper.md), bounded here at twice
+    that."""
+    r = _tool('--plant', 'pneumatic1', '--out', str(out), '--bags', str(identified / 'bags'),
+              '--laws', 'sdre_ff', timeout=1700)
     assert r.returncode in (0, 1), r.stderr[-3000:]
     metrics = json.loads((out / 'metrics.json').read_text())
-    assert all(0 < a <= 1 for a in metrics['identification']['amplitude'].values())
-    for meta in sorted((out / 'bags').glob('*/*/metadata.yaml')):
+    identification = json.loads((identified / 'metrics.json').read_text())['identification']
+    bags = identified / 'bags'
+    assert all(0 < a <= 1 for a in identification['amplitude'].values())
+    for meta in sorted(bags.glob('*/*/metadata.yaml')):
         rec = read_recording(meta.parent)
         assert rec.n_inputs == 1
         u = rec.torques.reshape(-1)

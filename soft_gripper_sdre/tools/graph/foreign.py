@@ -11,8 +11,8 @@ best-effort tips stamped with wall time, jitter, dropped messages, noise): ``ten
 ``stiff2`` (two torques, a planar tip), ``pneumatic1`` (one chamber, 0 to 60 kPa, a planar tip, at
 100 Hz) and ``trunk3`` (three pull-only tendons, 0 to 4 N, a 3-D tip, at 250 Hz). Every step is
 what README "Use with your own gripper" tells a user to run, as separate processes over DDS,
-with the settings the tools produce and nothing tuned by hand (``--bags`` reuses an earlier
-run's recordings and starts at step 2); a lab with one-sided actuators gives their bounds
+with the settings the tools produce and nothing tuned by hand (``--identify-only`` stops after
+step 1; ``--bags`` reuses an earlier run's recordings and starts at step 2); a lab with one-sided actuators gives their bounds
 (``input_lower``/``input_upper``) to the excitation and to training, as the preset's:
 
 1. **identify** — recorder + excitation node, one bag per signal (u1 x1 x2 b1 b2 and the
@@ -126,6 +126,9 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument('--bags', type=Path, default=None,
                     help='skip step 1: train on the bags an earlier run wrote (its OUT/bags, with '
                          'train/ and val/)')
+    ap.add_argument('--identify-only', action='store_true',
+                    help='step 1 only: record the bags into OUT/bags and stop (train on them '
+                         'later with --bags OUT/bags)')
     ap.add_argument('--rollout-epochs', type=int, default=None,
                     help='simulation-stage epochs of training (default: the preset)')
     ap.add_argument('--domain-id', type=int, default=None,
@@ -145,6 +148,8 @@ def argument_problem(a: argparse.Namespace) -> str | None:
         return f'--seed must be in [0, 2^31 - 64), got {a.seed}'
     if a.epochs is not None and a.epochs < 1:
         return f'--epochs must be >= 1, got {a.epochs}'
+    if a.identify_only and a.bags is not None:
+        return '--identify-only records new bags: it takes no --bags'
     if a.bags is not None and not all((a.bags / d).is_dir() for d in ('train', 'val')):
         return f'--bags {a.bags} has no train/ and val/ bag directories'
     if a.rollout_epochs is not None and a.rollout_epochs < 0:
@@ -372,6 +377,8 @@ def main(argv: list[str] | None = None) -> int:
         else:
             out.mkdir(parents=True)
             metrics['identification'] = {'bags': str(a.bags)}
+        if a.identify_only:
+            return 0
 
         t0 = time.monotonic()
         trained, stdout = train(a, env, bags, out)
