@@ -64,7 +64,7 @@ def _derive(model, facts, workers, bandwidths):
 
 @pytest.mark.timeout(600)
 @pytest.mark.parametrize('make_model, make_facts, bandwidths', [
-    (OneChamber, lambda model: _chamber_facts(), (1.0, 2.0, 4.0)),
+    (OneChamber, lambda model: _chamber_facts(), (1.0, 2.0)),
     (ThreeTendons, _tendon_facts, (2.0, 4.0)),
 ])
 def test_checks_side_by_side_choose_what_one_after_another_chooses(monkeypatch, make_model,

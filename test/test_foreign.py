@@ -100,14 +100,17 @@ def test_an_existing_output_is_never_overwritten(tmp_path):
 
 def _identified_side_by_side(tmp_path: Path) -> dict[str, Path]:
     """Step 1 of the tendon and the one-chamber grippers' recipes at once (``--identify-only``),
-    each on its own domain: a recording takes about a quarter of the two cores (its driver, the
-    excitation node and the recorder), so two leave each driver the CPU it needs; training, which
-    takes both cores, and deploying come after, one gripper at a time. Each run's directory."""
+    each on a domain of its own (the tool claims a free one when ``ROS_DOMAIN_ID`` is unset: on
+    one domain each run's excitation hears the other's tips): a recording takes about a quarter
+    of the two cores (its driver, the excitation node and the recorder), so two leave each driver
+    the CPU it needs; training, which takes both cores, and deploying come after, one gripper at
+    a time. Each run's directory."""
     runs = {plant: tmp_path / f'{plant}_identified' for plant in ('tendon3', 'pneumatic1')}
+    env = {k: v for k, v in os.environ.items() if k != 'ROS_DOMAIN_ID'}
     procs = {plant: subprocess.Popen(
         [sys.executable, '-m', 'soft_gripper_sdre.tools.graph.foreign', '--plant', plant,
          '--out', str(out), '--identify-only'], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-        text=True, cwd=ROOT, env={**os.environ, 'PYTHONUNBUFFERED': '1'})
+        text=True, cwd=ROOT, env={**env, 'PYTHONUNBUFFERED': '1'})
         for plant, out in runs.items()}
     for plant, proc in procs.items():
         _, err = proc.communicate(timeout=900)
