@@ -12,8 +12,9 @@ best-effort tips stamped with wall time, jitter, dropped messages, noise): ``ten
 100 Hz) and ``trunk3`` (three pull-only tendons, 0 to 4 N, a 3-D tip, at 250 Hz). Every step is
 what README "Use with your own gripper" tells a user to run, as separate processes over DDS,
 with the settings the tools produce and nothing tuned by hand (``--identify-only`` stops after
-step 1; ``--bags`` reuses an earlier run's recordings and starts at step 2); a lab with one-sided actuators gives their bounds
-(``input_lower``/``input_upper``) to the excitation and to training, as the preset's:
+step 1; ``--bags`` reuses an earlier run's recordings and starts at step 2); a lab with
+one-sided actuators gives their bounds (``input_lower``/``input_upper``) to the excitation and
+to training, as the preset's:
 
 1. **identify** — recorder + excitation node, one bag per signal (u1 x1 x2 b1 b2 and the
    validation signal u4, on trunk3's three tendons staggered by a third of its period each so
