@@ -4,7 +4,8 @@ A driver stamping with wall time publishes tips at 1 kHz from its own timer; the
 trajectory node and the controller (the shipped model, real kernels) start in every order with
 random delays between them. Whatever the order, the plan's origin is a tip heard after the
 controller and the estimator were up, and the controller's first command follows the origin by
-the loop's latency, never seconds into the plan.
+the loop's latency, never seconds into the plan. A lockstep simulator's first tips, heard before
+the controller could be seen, are planned from once it can.
 """
 import itertools
 import random
@@ -166,3 +167,31 @@ def test_bad_start_values_exit_2_naming_them_without_a_traceback(node, arg, name
     assert out.returncode == 2, out.stderr
     assert named in out.stderr and 'Traceback' not in out.stderr
     assert not list(tmp_path.iterdir())            # nothing written (no bag)
+
+
+@pytest.mark.timeout(60)
+def test_tips_heard_before_the_controller_are_planned_from_when_no_newer_ones_come():
+    """A lockstep simulator's start: the tips of t = 0 once, nothing newer until they are
+    answered. The trajectory node heard them before it could see the controller (in a graph of
+    processes it learns the controller's name a little after its subscription matched); once the
+    controller shows up the plan starts at t = 0 from those tips."""
+    with ros_context() as (ctx, executor):
+        driver = Probe(ctx, 'lockstep_driver')
+        pub = driver.create_publisher(PoseArray, TIP_POSITIONS, LOOP_QOS)
+        driver.listen(MultiDOFJointTrajectory, GRASP_REFERENCE, deep(REFERENCE_QOS))
+        traj = TrajectoryNode(context=ctx, parameter_overrides=overrides(**FAST_GRASP))
+        for node in (driver, traj):
+            executor.add_node(node)
+        assert spin_until(executor, lambda: pub.get_subscription_count() >= 1, 10.0)
+        tips = np.zeros((4, 3))
+        tips[:, :2] = SDCModel().rest_tip[:2]
+        pub.publish(cv.tips_to_msg(0, tips))
+        assert spin_until(executor, lambda: traj.diag.counters['early_tips'] == 1, 10.0)
+        spin_until(executor, lambda: False, 0.1)
+        assert traj.traj is None                                # still waiting: no controller
+        for node in (EstimatorNode(context=ctx), ControllerNode(context=ctx)):
+            executor.add_node(node)
+        plans = driver.received[GRASP_REFERENCE]
+        assert spin_until(executor, lambda: plans, 20.0), traj.diag.values
+        assert cv.msg_to_reference(plans[0], 4)[0] == 0          # from the tips of t = 0
+        assert traj.diag.counters['early_tips'] == 1 and traj.diag.values['waiting_for'] == ''

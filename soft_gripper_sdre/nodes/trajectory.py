@@ -21,13 +21,16 @@ the plan (the controller opens its topics only after its model is loaded and its
 and ``state_estimate`` has a writer (an estimator, or the controller's own with
 ``--with-estimator``). The controller answers nothing before it has a plan, so the node cannot wait
 for a command; it waits for that subscription instead, and the controller's first command follows
-the plan's origin by the loop's latency. Tips heard before are not planned from (``early_tips``);
-the wait goes to the log (at the start, then a WARN every ``WAIT_WARN_S`` of wall time) and to
-/diagnostics (``start_when``, ``waiting_for``, ``waited_s``). With ``tips`` the plan starts at the
-first tips whatever the graph holds (a test without a controller, a controller of another name).
-In the simulator's lockstep graph both give the same plan: the simulator sends its first tips only
-once every node is wired (docs/design/loop_rules.md, "Start"), so the controller is there and the
-plan starts at 0. With ``rest_pose`` the plan goes out at once either way.
+the plan's origin by the loop's latency. Tips heard before are not planned from (``early_tips``),
+except the newest of them once the controller shows up before newer ones come (the graph is
+looked at again every ``RECHECK_S`` of wall time while the plan waits); the wait goes to the
+log (at the start, then a WARN every ``WAIT_WARN_S`` of wall time) and to /diagnostics
+(``start_when``, ``waiting_for``, ``waited_s``). With ``tips`` the plan starts at the first tips
+whatever the graph holds (a test without a controller, a controller of another name). In the
+simulator's lockstep graph both give the same plan: the simulator sends its first tips only once
+every node is wired (docs/design/loop_rules.md, "Start"), so the controller is there and the
+plan starts at 0 (from those tips, held, when this node learns the controller's name a little
+after its subscription matched). With ``rest_pose`` the plan goes out at once either way.
 
 **Time comes from the data.** The plan starts at its origin: the stamp of the tips the rest pose
 is taken from (the last of them), whatever clock the driver stamps with (sim time from 0, or wall
@@ -106,6 +109,10 @@ PROFILE_FIELDS = tuple(f.name for f in fields(GraspProfile))
 MAX_PLAN_POINTS = 20_000
 #: start_when controller: a WARN in the log every this much wall time while the plan waits [s]
 WAIT_WARN_S = 10.0
+#: start_when controller: while the plan waits, the graph is looked at again this often [s] of
+#: wall time, so the newest tips heard are planned from once the controller shows up even when
+#: no newer ones come (a lockstep simulator waits for its first tips to be answered)
+RECHECK_S = 0.01
 
 def _node_name_problem(name: str) -> str | None:
     """Why ``name`` is not a ROS node name (a letter, then letters, digits and '_'), or None."""
@@ -290,6 +297,7 @@ class TrajectoryNode(Node):
         self.origin_ns: int | None = None       # the plan's origin, once planned
         self.run_start: int | None = None       # where /clock jumped back to (a new run's start)
         self.waiting_since: float | None = None  # wall time the plan began to wait
+        self._early: bytes | None = None        # the newest tips heard while the plan waits
         self._warned_at = 0.0                   # wall time of the last WARN about that wait
         on_runtime_change(self, PARAMS, apply=self._apply)
 
@@ -304,6 +312,7 @@ class TrajectoryNode(Node):
         self.sub_clock = self.create_subscription(Clock, CLOCK, self.on_clock, CLOCK_QOS, raw=True)
         # the tip subscription is dropped outside its own callback, by this timer
         self._drop_timer = self.create_timer(0.001, self._drop_tips, autostart=False)
+        self._recheck_timer = self.create_timer(RECHECK_S, self._recheck, autostart=False)
         self.diag = Diagnostics(self)
         cdr.watch(self.diag, self.cdr_tips, self.cdr_clock)
         self.diag.values['start_when'] = p['start_when']
@@ -336,13 +345,19 @@ class TrajectoryNode(Node):
         if self.p['start_when'] == 'controller':
             problem = self.controller_problem()
             if problem is not None:
+                self._early = data
+                if self._recheck_timer.is_canceled():
+                    self._recheck_timer.reset()
                 self._wait(problem, stamp)
                 return
+            self._early = None
+            self._recheck_timer.cancel()
             if self.waiting_since is not None:
                 waited = time.monotonic() - self.waiting_since
                 self.diag.values['waited_s'] = f'{waited:.3f}'
                 self.get_logger().info(f'the controller is ready after {waited:.3f} s of wall '
-                                       'time: planning from the next tips')
+                                       f'time: planning from the tips at t = '
+                                       f'{format_time(stamp)} s')
             self.waiting_since = None
             self.diag.values['waiting_for'] = ''
         origin = self.fixed_start
@@ -379,6 +394,15 @@ class TrajectoryNode(Node):
         if self.count_publishers(self.estimate_topic) == 0:
             return f'a writer of {self.estimate_topic} (the estimator)'
         return None
+
+    def _recheck(self) -> None:
+        """While the plan waits: once the controller shows up, plan from the newest tips heard
+        (:data:`RECHECK_S`), without waiting for newer ones."""
+        if self.traj is not None or self._early is None:
+            self._recheck_timer.cancel()
+            return
+        if self.controller_problem() is None:
+            self.on_tips(self._early)
 
     def _wait(self, problem: str, stamp: int) -> None:
         """Tips at ``stamp`` heard while the controller is not ready: not planned from; the wait
