@@ -297,7 +297,8 @@ class TrajectoryNode(Node):
         self.origin_ns: int | None = None       # the plan's origin, once planned
         self.run_start: int | None = None       # where /clock jumped back to (a new run's start)
         self.waiting_since: float | None = None  # wall time the plan began to wait
-        self._early: bytes | None = None        # the newest tips heard while the plan waits
+        self._early: tuple[int, np.ndarray] | None = None  # the newest tips (stamp, tips) heard
+                                                # while the plan waits
         self._warned_at = 0.0                   # wall time of the last WARN about that wait
         on_runtime_change(self, PARAMS, apply=self._apply)
 
@@ -342,10 +343,15 @@ class TrajectoryNode(Node):
             self.diag.problem('bad_message', f'rejected: {exc}')
             return
         self.diag.count('tips')
+        self._take(stamp, tips)
+
+    def _take(self, stamp: int, tips: np.ndarray) -> None:
+        """Tips at ``stamp``, decoded and counted: planned from, gathered toward the rest pose,
+        or (the controller not ready) held while the plan waits."""
         if self.p['start_when'] == 'controller':
             problem = self.controller_problem()
             if problem is not None:
-                self._early = data
+                self._early = (stamp, tips)
                 if self._recheck_timer.is_canceled():
                     self._recheck_timer.reset()
                 self._wait(problem, stamp)
@@ -402,7 +408,7 @@ class TrajectoryNode(Node):
             self._recheck_timer.cancel()
             return
         if self.controller_problem() is None:
-            self.on_tips(self._early)
+            self._take(*self._early)
 
     def _wait(self, problem: str, stamp: int) -> None:
         """Tips at ``stamp`` heard while the controller is not ready: not planned from; the wait
