@@ -25,10 +25,12 @@ from soft_gripper_sdre.tools.graph import foreign
 ROOT = Path(__file__).resolve().parents[1]
 
 
+TOOL = [sys.executable, '-m', 'soft_gripper_sdre.tools.graph.foreign']
+
+
 def _tool(*args, timeout=60):
-    return subprocess.run([sys.executable, '-m', 'soft_gripper_sdre.tools.graph.foreign', *args],
-                          capture_output=True, text=True, timeout=timeout, cwd=ROOT,
-                          env={**os.environ, 'PYTHONUNBUFFERED': '1'})
+    return subprocess.run([*TOOL, *args], capture_output=True, text=True, timeout=timeout,
+                          cwd=ROOT, env={**os.environ, 'PYTHONUNBUFFERED': '1'})
 
 
 @pytest.mark.parametrize('args, message', [
@@ -108,9 +110,8 @@ def _identified_side_by_side(tmp_path: Path) -> dict[str, Path]:
     runs = {plant: tmp_path / f'{plant}_identified' for plant in ('tendon3', 'pneumatic1')}
     env = {k: v for k, v in os.environ.items() if k != 'ROS_DOMAIN_ID'}
     procs = {plant: subprocess.Popen(
-        [sys.executable, '-m', 'soft_gripper_sdre.tools.graph.foreign', '--plant', plant,
-         '--out', str(out), '--identify-only'], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-        text=True, cwd=ROOT, env={**env, 'PYTHONUNBUFFERED': '1'})
+        [*TOOL, '--plant', plant, '--out', str(out), '--identify-only'], stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE, text=True, cwd=ROOT, env={**env, 'PYTHONUNBUFFERED': '1'})
         for plant, out in runs.items()}
     for plant, proc in procs.items():
         _, err = proc.communicate(timeout=900)
