@@ -136,12 +136,12 @@ def test_the_recipe_runs_end_to_end_on_the_tendon_and_the_one_chamber_fingers(tm
 def _tendon_trained_and_deployed(out: Path, identified: Path) -> None:
     """The 200 Hz tendon finger: every bag holds its settle phase and the measured noise, the
     level search chose an amplitude, the model is judged fit, the checked move follows the travel
-    rule, and a deployed grasp tracks without saturating at rest. Both training stages run,
-    shortened (the label stage has converged by about 40 epochs; each simulation-stage epoch costs
-    seconds): such a model can stop at the closed-loop check, which the full preset's passes
-    (docs/own_gripper.md, "Two grippers unlike the hand")."""
+    rule, and a deployed grasp tracks without saturating at rest. The preset's full training, as
+    the README runs it (about 20 s here; trained 40 + 10 epochs, one CI run's recordings gave a
+    model whose free run missed by 69 %, not fit, where the full preset's is fit and tracked within
+    1.1 / 1.0 % over DDS)."""
     r = _tool('--plant', 'tendon3', '--out', str(out), '--bags', str(identified / 'bags'),
-              '--laws', 'sdre_ff', '--epochs', '40', '--rollout-epochs', '10', timeout=1400)
+              '--laws', 'sdre_ff', timeout=1400)
     assert r.returncode in (0, 1), r.stderr[-3000:]
     metrics = json.loads((out / 'metrics.json').read_text())
     identification = json.loads((identified / 'metrics.json').read_text())['identification']
@@ -193,9 +193,8 @@ def _tendon_trained_and_deployed(out: Path, identified: Path) -> None:
     score = metrics['deploy']['sdre_ff']
     assert metrics['deploy']['travel'] == facts['travel']
     assert score['samples'] > 500 and score['saturated_at_rest'] == 0.0
-    # the model pooled from both fingers, trained this short, with each finger's input gain:
-    # index / thumb 1.2 / 0.7 % and 1.7 / 0.9 % of travel in two CI runs; bounded at twice the
-    # recipe's 5 % target
+    # the model pooled from both fingers, with each finger's input gain: index / thumb
+    # 1.1 / 1.0 % of travel on one CI run's recordings; bounded at twice the recipe's 5 % target
     assert max(score['rmse_pct_of_travel']) < 10.0, score
 
 
