@@ -50,7 +50,7 @@ def reference_search(runner, facts, bandwidths, rows, say, fingers=()):
                                                      zip(ls.GAIN_ERRORS, runs) if g < 1])
         if not any(nominal.diverged or any(r['diverged'] for r in row.get('robust', ()))
                    for nominal, _, row in tried[:ls.MARGIN_INTENSITIES]):
-            kept += [(row['score'], hz, cand, nominal) for nominal, cand, row in tried
+            kept += [(row['score'], hz, cand, nominal, row) for nominal, cand, row in tried
                      if row.get('robust_ok', False)]
     return kept
 

@@ -160,6 +160,12 @@ def test_a_loop_that_rings_on_a_finger_s_own_fit_is_not_chosen(monkeypatch):
                   and row['accel_psd'] == derived.settings.accel_psd
                   and row['integral_gain'] == derived.settings.integral_gain)
     assert chosen['fingers']['slow']['rmse_rel'] <= ls.KEEP_ROBUST
+    # what the fit expects of the chosen settings is kept and said (a miss of 5 % warned)
+    assert derived.on_fingers == chosen['fingers']
+    assert derived.summary()['on_fingers'] == chosen['fingers']
+    said, warning = derived.fingers_text()
+    assert f"slow {100 * chosen['fingers']['slow']['rmse_rel']:.2f} %" in said
+    assert (warning is None) == (chosen['fingers']['slow']['rmse_rel'] <= ls.KEEP_NOMINAL)
     assert derived.checks['sdre_ff'].rmse_rel <= ls.KEEP_NOMINAL
 
 

@@ -253,4 +253,8 @@ def _pneumatic_trained_and_deployed(out: Path, identified: Path) -> None:
     assert [g['finger'] for g in gains] == foreign.FINGERS
     assert all(0.7 < g['gain'] < 1.4 for g in gains), gains
     assert ctrl['input_gains'] == [g['gain'] for g in gains]
+    # what the fits with their lags expect of the chosen settings: kept and said
+    expected = derived['on_fingers']
+    assert list(expected) == foreign.FINGERS
+    assert "on the fingers' own fits, each with its input lag" in (out / 'train.log').read_text()
     assert max(score['rmse_pct_of_travel']) < 10.0, score

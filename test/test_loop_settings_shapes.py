@@ -163,6 +163,36 @@ def test_the_hand_shape_keeps_its_parameters():
     close, side = facts.move()
     assert params['trajectory']['close_distance'] == close
     assert 'axis' not in ls.Derivation(settings, {}, [], facts).summary()['facts']
+    # no finger's fit with a lag took part: nothing expected of the fingers, nothing said
+    assert 'on_fingers' not in ls.Derivation(settings, {}, [], facts).summary()
+    assert ls.Derivation(settings, {}, [], facts).fingers_text() == ('', None)
+
+
+def test_the_fingers_fits_expectation_is_said_and_a_miss_warned_naming_the_finger():
+    """The chosen settings' runs on the fingers' fits are printed after training's verdict; a
+    finger beyond KEEP_NOMINAL of the travel on its fit, or diverging there, is warned about by
+    name."""
+    facts = ls.DataFacts(period=1e-2, noise_std=5e-5, travel=3.7e-3, torque_limit=0.02,
+                         accel_psd_ml=1.0)
+    settings = ls.settings_for(_Linear2(), facts, 1.0, 1.0)
+
+    def run(rmse, diverged=False):
+        return {'rmse_rel': rmse, 'diverged': diverged}
+    held = ls.Derivation(settings, {}, [], facts,
+                         on_fingers={'index': run(0.0363), 'thumb': run(0.0344)})
+    said, warning = held.fingers_text()
+    assert said.startswith("on the fingers' own fits") and 'index 3.63 %, thumb 3.44 %' in said
+    assert warning is None
+    assert held.summary()['on_fingers'] == held.on_fingers
+    missed = ls.Derivation(settings, {}, [], facts,
+                           on_fingers={'index': run(0.087), 'thumb': run(0.03)})
+    _, warning = missed.fingers_text()
+    assert warning.startswith('WARNING') and 'index 8.70 %' in warning and 'thumb' not in warning
+    assert f'{100 * ls.KEEP_NOMINAL:g} %' in warning
+    ringing = ls.Derivation(settings, {}, [], facts,
+                            on_fingers={'index': run(math.inf, True), 'thumb': run(0.02)})
+    said, warning = ringing.fingers_text()
+    assert 'index diverges' in said and 'index diverges' in warning
 
 
 class _Linear2:

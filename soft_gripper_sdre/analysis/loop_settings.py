@@ -681,6 +681,9 @@ class Derivation:
     #: the paper's law on the chosen settings: the share of the move it holds short of, and the
     #: bandwidth it would need for :data:`PAPER_LAW_SHARE` (:func:`paper_law_offset`)
     paper_law: dict | None = None
+    #: the chosen settings' runs on the fingers' own fits with their input lags, by finger
+    #: (:func:`check_on_model` results as dicts; None: no fit with a lag took part)
+    on_fingers: dict[str, dict] | None = None
 
     def summary(self) -> dict:
         facts = asdict(replace(self.facts, bounds=None))
@@ -694,6 +697,7 @@ class Derivation:
                 'reason': self.reason, 'facts': facts, 'paper_law': self.paper_law,
                 'checks': {k: asdict(v) for k, v in self.checks.items()},
                 'candidates': self.candidates,
+                **({'on_fingers': self.on_fingers} if self.on_fingers else {}),
                 'rules': {'bandwidths_hz': list(BANDWIDTHS_HZ), 'gain_errors': list(GAIN_ERRORS),
                           'keep_nominal': KEEP_NOMINAL, 'keep_robust': KEEP_ROBUST,
                           'hold_share': HOLD_SHARE, 'min_travel_noise': MIN_TRAVEL_NOISE,
@@ -755,6 +759,28 @@ class Derivation:
         if f.d == 3:
             return (f'{1e3 * f.travel:.3g} mm along ({", ".join(f"{v:.3f}" for v in f.unit)})')
         return f'{1e3 * f.travel:.3g} mm at {f.direction:.0f}° from +X toward +Y'
+
+    def fingers_text(self) -> tuple[str, str | None]:
+        """What the fingers' own fits (:attr:`on_fingers`) expect of the chosen settings, in
+        words, and a warning when a finger misses :data:`KEEP_NOMINAL` of the travel on its fit or
+        diverges there (None: none does); ('', None) without such fits."""
+        if not self.on_fingers:
+            return '', None
+        def figure(r: dict) -> str:
+            return 'diverges' if r['diverged'] else f'{100 * r["rmse_rel"]:.2f} %'
+        said = ('on the fingers\' own fits, each with its input lag, error / travel: '
+                + ', '.join(f'{name} {figure(r)}' for name, r in self.on_fingers.items())
+                + ' (what training expects of the deployed grasp)')
+        missing = {name: r for name, r in self.on_fingers.items()
+                   if r['diverged'] or not r['rmse_rel'] <= KEEP_NOMINAL}
+        if not missing:
+            return said, None
+        return said, (
+            'WARNING: on its own fit ' + ', '.join(f'{name} {figure(r)}'
+                                                   for name, r in missing.items())
+            + f' misses the {100 * KEEP_NOMINAL:g} % of the travel the check keeps on the model: '
+            'the deployed grasp may miss it too. Record longer or richer excitation and train '
+            'again, or deploy and score the grasp (docs/own_gripper.md, "The expectation")')
 
 
 def derive(model, facts: DataFacts, laws: tuple[str, ...] = ('sdre_ff', 'sdre'),
@@ -851,7 +877,7 @@ def derive(model, facts: DataFacts, laws: tuple[str, ...] = ('sdre_ff', 'sdre'),
         kept.sort(key=lambda c: (c[0], c[1]))
         best = kept[0]
         slower = [c for c in kept if c[1] < best[1] and c[0] <= PREFER_SLOWER * best[0]]
-        chosen, nominal = (max(slower, key=lambda c: (c[1], -c[0])) if slower else best)[2:]
+        chosen, nominal, row = (max(slower, key=lambda c: (c[1], -c[0])) if slower else best)[2:]
         # the default law's nominal check of the chosen settings is the one the search ran
         runs = {law: (None if law == 'sdre_ff' else runner.submit(chosen, facts, law=law))
                 for law in laws}
@@ -860,7 +886,8 @@ def derive(model, facts: DataFacts, laws: tuple[str, ...] = ('sdre_ff', 'sdre'),
     paper = {'hold_offset': paper_law_offset(model, facts, chosen.bandwidth_hz),
              'share': PAPER_LAW_SHARE,
              'needs_bandwidth_hz': needs if math.isfinite(needs) else None}     # None: over 1 kHz
-    return Derivation(chosen, checks, rows, facts, paper_law=paper)
+    return Derivation(chosen, checks, rows, facts, paper_law=paper,
+                      on_fingers=row.get('fingers'))
 
 
 def _check_facts(facts: DataFacts, shape, fingers: tuple[LinearFinger, ...] = ()) -> None:
@@ -970,9 +997,9 @@ class CheckRunner:
 
 def _search(runner: CheckRunner, facts: DataFacts, bandwidths: tuple[float, ...],
             rows: list[dict], say, fingers: tuple[LinearFinger, ...] = ()
-            ) -> list[tuple[float, float, LoopSettings, CheckResult]]:
+            ) -> list[tuple[float, float, LoopSettings, CheckResult, dict]]:
     """The candidates along ``facts``' move (module doc), each run appended to ``rows``; returns
-    the kept ones as (score, bandwidth, settings, nominal check).
+    the kept ones as (score, bandwidth, settings, nominal check, row).
 
     The checks are submitted to ``runner`` as soon as the rule knows they will run (the next
     bandwidth's intensities beside this one's integral gains and robustness runs) and their
@@ -1046,7 +1073,7 @@ def _search(runner: CheckRunner, facts: DataFacts, bandwidths: tuple[float, ...]
                         for nominal, _, row in tried[:min(first, MARGIN_INTENSITIES)])
         for nominal, cand, row in tried:
             if holds and row.get('robust_ok', False):
-                kept.append((row['score'], hz, cand, nominal))
+                kept.append((row['score'], hz, cand, nominal, row))
     for _, run in ahead:
         run.cancel()
     return kept

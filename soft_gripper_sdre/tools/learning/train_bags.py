@@ -533,6 +533,9 @@ def report_fitness(fitness: model_fitness.Fitness, derived, out: Path) -> None:
           + f'roll-off {d.torque_lowpass_hz:g} Hz, integral {d.integral_gain:.3g} / '
           f'{1e3 * d.integral_band:.2f} mm; closed loop on the model, error / travel '
           f'{1e3 * derived.facts.travel:.2f} mm: {checks}')
+    for line in derived.fingers_text():
+        if line:
+            print(line)
     close, side = derived.facts.move()
     if derived.facts.d == 2 and derived.facts.path is None:
         print(f'the checked move: {1e3 * derived.facts.travel:.2f} mm at '
