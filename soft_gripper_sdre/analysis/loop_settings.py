@@ -766,21 +766,22 @@ class Derivation:
         diverges there (None: none does); ('', None) without such fits."""
         if not self.on_fingers:
             return '', None
+
         def figure(r: dict) -> str:
             return 'diverges' if r['diverged'] else f'{100 * r["rmse_rel"]:.2f} %'
         said = ('on the fingers\' own fits, each with its input lag, error / travel: '
                 + ', '.join(f'{name} {figure(r)}' for name, r in self.on_fingers.items())
                 + ' (what training expects of the deployed grasp)')
-        missing = {name: r for name, r in self.on_fingers.items()
-                   if r['diverged'] or not r['rmse_rel'] <= KEEP_NOMINAL}
-        if not missing:
+        beyond = {name: r for name, r in self.on_fingers.items()
+                  if r['diverged'] or not r['rmse_rel'] <= KEEP_NOMINAL}
+        if not beyond:
             return said, None
         return said, (
             'WARNING: on its own fit ' + ', '.join(f'{name} {figure(r)}'
-                                                   for name, r in missing.items())
-            + f' misses the {100 * KEEP_NOMINAL:g} % of the travel the check keeps on the model: '
-            'the deployed grasp may miss it too. Record longer or richer excitation and train '
-            'again, or deploy and score the grasp (docs/own_gripper.md, "The expectation")')
+                                                   for name, r in beyond.items())
+            + f', beyond the {100 * KEEP_NOMINAL:g} % of travel the check holds the model to: the '
+            'deployed grasp may miss it too. Record longer or richer excitation and train again, '
+            'or deploy and score the grasp (docs/own_gripper.md, "The expectation")')
 
 
 def derive(model, facts: DataFacts, laws: tuple[str, ...] = ('sdre_ff', 'sdre'),
