@@ -103,7 +103,7 @@ FLOOR_REPEATS ?= 5
 bench-floor: $(KERNELS)
 	$(PY) -m soft_gripper_sdre.tools.benchmarks.bench --floor $(FLOOR_REPEATS)
 
-# README "Noise, gains and the finger's bending modes" and "Identifying G2"
+# docs/results.md "Noise, gains and the finger's bending modes"
 sweep: $(KERNELS)
 	$(PY) -m soft_gripper_sdre.tools.judging.sweep --out runs/sweep
 

@@ -32,7 +32,7 @@ class TrainSettings:
     patience: int | None = None
     seed: int = 0
     hidden: int = HIDDEN
-    #: controllability-aware learning (README "Beyond the paper"): weight of the penalty
+    #: controllability-aware learning (docs/results.md "Beyond the paper"): weight of the penalty
     #: mean(relu(σ_floor − σ_min(G2(x)))²) on G2's smallest singular value at states drawn uniformly
     #: from a box of ±sv_box (scaled units: data standard deviations) each batch; 0 = off
     sv_penalty: float = 0.0

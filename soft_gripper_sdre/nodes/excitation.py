@@ -159,7 +159,7 @@ PARAMS = (
           'tip messages were heard since the start (with settle_time > 0; 0 = settle_time alone)',
           '', 0, 1_000_000, read_only=True),
     finger_names_param('the fingers: pose i of tip_positions is finger i; the torque_commands '
-                       'names are <finger>/ax0, <finger>/ax1'),
+                       'names are <finger>/ax0 … <finger>/ax<m−1>'),
     Param('finger', -1, 'the finger to excite, an index into finger_names (-1 = all); the others '
           'get zero torque', '', -1, 3, read_only=True),
     Param('torque_limit', 0.0, "the hand's two torques: every torque is clipped to ±limit (the "

@@ -102,7 +102,7 @@ def _parser() -> argparse.ArgumentParser:
                         help="override the preset's simulation-stage epochs (--bag only; 0 = off)")
     parser.add_argument('--patience', type=int, default=None,
                         help="stop after this many epochs without a new best validation loss "
-                             "(default: the preset's; both presets run every epoch)")
+                             "(default: the preset's; every preset runs every epoch)")
     parser.add_argument('--jitter', type=float, default=0.0,
                         help='robustness check: multiply every training state and label by '
                              '1 + JITTER·N(0, 1), e.g. 1e-9 to flip float32 roundings (0 = off)')
