@@ -83,17 +83,27 @@ def _recorder_hears(diags, topics, name: str = 'recorder') -> bool:
 SIM_TOPICS = ('/clock', TIP_POSITIONS, 'joint_states', 'cube_pose', 'cube_contacts')
 
 
+#: the loop's nodes the simulator waits for before its first step (``wait_for_nodes``; the
+#: recorders, which may record only some topics, are waited for by the tests themselves)
+LOOP_NODES = 'estimator,trajectory,controller'
+
+
 def _start_simulator_once_recorded(graph, executor, probe, params: dict, subscribers: int,
                                    recorders: tuple[str, ...] = ('recorder',),
                                    topics: tuple[str, ...] = SIM_TOPICS) -> None:
-    """Start the simulator so that no recorder misses its first messages.
+    """Start the simulator so that no recorder misses its first messages and every loop topic is
+    wired before the first tips.
 
     The simulator starts once it has matched ``min_tip_subscribers`` readers, but a reader may
     not have matched it back yet, and a volatile topic loses what is published before that. So
     it is told to wait for one reader more than the graph has; the probe adds that reader only
-    once every recorder reports the simulator's publishers in its /diagnostics.
+    once every recorder reports the simulator's publishers in its /diagnostics. It also waits
+    for the graph's nodes to report their topics matched at both ends (``wait_for_nodes``, the
+    demo's rule): without that, an estimate of t = 0 published before the controller matched the
+    estimator was lost in one CI run, and t = 0 waited out the lockstep timeout.
     """
-    graph.start('simulator', {**params, 'min_tip_subscribers': subscribers + 1})
+    graph.start('simulator', {'wait_for_nodes': LOOP_NODES, **params,
+                              'min_tip_subscribers': subscribers + 1})
     diags = probe.received[DIAGNOSTICS]
     assert spin_until(executor, lambda: all(_recorder_hears(diags, topics, r) for r in recorders),
                       60.0), graph.procs['simulator'].log_tail()
@@ -356,7 +366,7 @@ def test_restarted_simulator_clock_jumps_back_and_every_node_resets(tmp_path):
             graph.start(node, dict(SHORT) if node == 'trajectory' else {})
         wired = probe.create_subscription(JointState, TORQUE_COMMANDS, lambda m: None, LOOP_QOS)
         assert spin_until(executor, lambda: wired.get_publisher_count() > 0, 60.0)
-        graph.start('simulator', sim_params)
+        graph.start('simulator', {**sim_params, 'wait_for_nodes': LOOP_NODES})
         assert spin_until(executor, lambda: got[TIP_POSITIONS]
                           and _stamp(got[TIP_POSITIONS][-1]) >= KILL_AT * cv.NS, 120.0)
         graph.procs['simulator'].popen.send_signal(signal.SIGKILL)
