@@ -23,7 +23,11 @@ TARGET_PCT = 5.0
 WINDOW = 0.1
 #: the number of each fault in the README table "Faults survived", and the table's row order
 ITEMS = {'fuzz_simulator': 1, 'fuzz_estimator': 1, 'fuzz_trajectory': 1, 'fuzz_controller': 1,
-         'fuzz_trajectory_clock': 1, 'lost_estimates': 2, 'crashed_controller': 3,
+         'fuzz_trajectory_clock': 1, 'fuzz_controller_d2m1': 1, 'fuzz_controller_d3m3': 1,
+         'fuzz_composed_d2m1': 1, 'fuzz_composed_d3m3': 1, 'fuzz_estimator_3d': 1,
+         'fuzz_plant_driver_pneumatic1': 1, 'fuzz_plant_driver_trunk3': 1, 'fuzz_mocap_tips': 1,
+         'fuzz_excitation_m1': 1, 'fuzz_excitation_m3': 1, 'lost_estimates': 2,
+         'crashed_controller': 3,
          'crashed_estimator': 4, 'crashed_trajectory': 4, 'riccati_trouble': 5, 'recording': 8,
          'clock_jump_back': 9, 'link_down': 10}
 #: environment variable naming the directory of the outcome records

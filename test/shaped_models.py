@@ -128,3 +128,49 @@ def track(law, model, reference, dt=2e-4, x0=None, noise=0.0, seed=0):
         commands.append(u)
         steps.append(step)
     return np.array(errors), np.array(commands), steps
+
+
+#: known systems p̈ = −k p − c ṗ + G₂ u a model is really trained on, by shape (d, m): G₂ [m/s² per
+#: input unit] and the inputs' bounds (a one-chamber planar finger, pressure 0..2e5 Pa; a
+#: three-tendon 3-D segment, pull-only tendons 0..2 N)
+KNOWN_SYSTEMS = {
+    (2, 1): (np.array([[5e-6], [-2e-6]]), ([0.0], [2e5])),
+    (3, 3): (np.array([[0.6, -0.3, -0.3], [0.0, 0.52, -0.52], [0.2, 0.2, 0.2]]),
+             ([0.0] * 3, [2.0] * 3)),
+}
+KNOWN_STIFFNESS, KNOWN_DAMPING = 400.0, 20.0       # k [1/s²], c [1/s]
+
+
+def known_system_data(d: int, m: int, n: int, seed: int):
+    """``n`` seeded samples (x, u, ẍ) of the known system of shape (d, m), inputs uniform over
+    their bounds."""
+    from soft_gripper_sdre.sim.shape import InputBounds
+    G2, (lower, upper) = KNOWN_SYSTEMS[(d, m)]
+    bounds = InputBounds(lower, upper)
+    rng = np.random.default_rng(seed)
+    u = bounds.lower + (bounds.upper - bounds.lower) * rng.random((n, m))
+    scale = np.abs(G2 @ bounds.half_span).max() / KNOWN_STIFFNESS
+    p = scale * rng.standard_normal((n, d))
+    v = 10 * scale * rng.standard_normal((n, d))
+    return np.hstack([p, v]), u, -KNOWN_STIFFNESS * p - KNOWN_DAMPING * v + u @ G2.T
+
+
+def trained_known_system(d: int, m: int, directory):
+    """A checkpoint really trained (20 epochs, seeded) on the known system of shape (d, m), with
+    its inputs' bounds: (FingerShape, InputBounds, path of model.pt in ``directory``)."""
+    from dataclasses import replace
+
+    import torch
+
+    from soft_gripper_sdre.learning.train_settings import PRESETS
+    from soft_gripper_sdre.learning.training import save_checkpoint, train
+    from soft_gripper_sdre.sim.shape import FingerShape, InputBounds
+    torch.set_num_threads(1)
+    settings = replace(PRESETS['default'], epochs=20)
+    result = train(*known_system_data(d, m, 2000, 0), *known_system_data(d, m, 400, 1), settings,
+                   shape=FingerShape(d, m))
+    bounds = InputBounds(*KNOWN_SYSTEMS[(d, m)][1])
+    path = directory / 'model.pt'
+    save_checkpoint(path, result, rest_tip=np.zeros(3), dt=1e-3, settings=settings,
+                    data={'source': 'test'}, input_bounds=bounds)
+    return FingerShape(d, m), bounds, path

@@ -2,7 +2,6 @@
 hand: a one-chamber planar finger (d = 2, m = 1, pressure 0..2e5 Pa) and a three-tendon 3-D
 segment (d = 3, m = 3, pull-only tendons 0..2 N), each with a model really trained on a known
 SDC system."""
-from dataclasses import replace
 
 from geometry_msgs.msg import PoseArray
 from node_harness import MS, make_controller
@@ -10,14 +9,12 @@ import numpy as np
 import pytest
 from rosutil import Probe, deep, linked, overrides, ros_context, spin_until
 from sensor_msgs.msg import JointState
-import torch
+from shaped_models import KNOWN_SYSTEMS, trained_known_system
 from trajectory_msgs.msg import MultiDOFJointTrajectory
 
 from soft_gripper_sdre.control.laws import make_law
 from soft_gripper_sdre.control.tracking import Weights
 from soft_gripper_sdre.learning.model import SDCModel
-from soft_gripper_sdre.learning.train_settings import PRESETS
-from soft_gripper_sdre.learning.training import save_checkpoint, train
 from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.controller import ControllerNode, composed
 from soft_gripper_sdre.nodes.params import ParameterError
@@ -28,43 +25,18 @@ from soft_gripper_sdre.nodes.topics import (
     TIP_POSITIONS,
     TORQUE_COMMANDS,
 )
-from soft_gripper_sdre.sim.shape import FingerShape, InputBounds
+from soft_gripper_sdre.sim.shape import InputBounds
 
 pytestmark = pytest.mark.ros
 
 NAMES = ['index', 'thumb']
-#: G2 [m/s² per unit input] and the inputs' bounds of each known system
-SYSTEMS = {
-    (2, 1): (np.array([[5e-6], [-2e-6]]), InputBounds([0.0], [2e5])),
-    (3, 3): (np.array([[0.6, -0.3, -0.3], [0.0, 0.52, -0.52], [0.2, 0.2, 0.2]]),
-             InputBounds([0.0] * 3, [2.0] * 3)),
-}
-STIFFNESS, DAMPING = 400.0, 20.0       # p̈ = −k p − c ṗ + G2 u
 WEIGHTS = dict(q_pos=8e5, q_vel=0.0, r=1e-6)
 
 
-def _data(d: int, m: int, n: int, seed: int):
-    G2, bounds = SYSTEMS[(d, m)]
-    rng = np.random.default_rng(seed)
-    u = bounds.lower + (bounds.upper - bounds.lower) * rng.random((n, m))
-    scale = np.abs(G2 @ bounds.half_span).max() / STIFFNESS
-    p = scale * rng.standard_normal((n, d))
-    v = 10 * scale * rng.standard_normal((n, d))
-    return np.hstack([p, v]), u, -STIFFNESS * p - DAMPING * v + u @ G2.T
-
-
-@pytest.fixture(scope='module', params=list(SYSTEMS), ids=lambda s: f'd{s[0]}m{s[1]}')
+@pytest.fixture(scope='module', params=list(KNOWN_SYSTEMS), ids=lambda s: f'd{s[0]}m{s[1]}')
 def checkpoint(request, tmp_path_factory):
-    """(shape, bounds, the path of a model trained on the system of that shape)."""
-    d, m = request.param
-    torch.set_num_threads(1)
-    settings = replace(PRESETS['default'], epochs=20)
-    result = train(*_data(d, m, 2000, 0), *_data(d, m, 400, 1), settings,
-                   shape=FingerShape(d, m))
-    path = tmp_path_factory.mktemp('shape') / 'model.pt'
-    save_checkpoint(path, result, rest_tip=np.zeros(3), dt=1e-3, settings=settings,
-                    data={'source': 'test'}, input_bounds=SYSTEMS[(d, m)][1])
-    return FingerShape(d, m), SYSTEMS[(d, m)][1], path
+    """(shape, bounds, the path of a model trained on the known system of that shape)."""
+    return trained_known_system(*request.param, tmp_path_factory.mktemp('shape'))
 
 
 def _bounds_params(bounds: InputBounds) -> dict:

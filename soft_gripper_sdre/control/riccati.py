@@ -221,9 +221,10 @@ def checked_gains(A: np.ndarray, G: np.ndarray, P: np.ndarray, usable: np.ndarra
     solved = usable & np.all(np.isfinite(P), axis=(1, 2))
     failed[usable & ~solved] |= Check.SOLVE_FAILED
     Psafe = np.where(solved[:, None, None], P, 0.0)
-    GRG = G @ cost.R_inv @ G.transpose(0, 2, 1)
-    Res = Psafe @ A + A.transpose(0, 2, 1) @ Psafe + cost.Q - Psafe @ GRG @ Psafe
-    residual = np.where(solved, np.linalg.norm(Res, axis=(1, 2)) / cost.q_norm, np.nan)
+    with np.errstate(over='ignore', invalid='ignore'):     # a G far off the data overflows:
+        GRG = G @ cost.R_inv @ G.transpose(0, 2, 1)         # its checks fail below
+        Res = Psafe @ A + A.transpose(0, 2, 1) @ Psafe + cost.Q - Psafe @ GRG @ Psafe
+        residual = np.where(solved, np.linalg.norm(Res, axis=(1, 2)) / cost.q_norm, np.nan)
     failed[solved & ~(residual < residual_tol)] |= Check.RESIDUAL
     pd = np.zeros(n, dtype=bool)
     if solved.any():
@@ -231,13 +232,16 @@ def checked_gains(A: np.ndarray, G: np.ndarray, P: np.ndarray, usable: np.ndarra
     failed[solved & ~pd] |= Check.P_NOT_PD
 
     Rinv_Gt = cost.R_inv @ G.transpose(0, 2, 1)                  # (n, m, 2d)
-    K = -Rinv_Gt @ Psafe                                         # K = −R⁻¹GᵀP
-    A_cl = A + G @ K                                             # A − G R⁻¹ Gᵀ P
+    with np.errstate(over='ignore', invalid='ignore'):
+        K = -Rinv_Gt @ Psafe                                     # K = −R⁻¹GᵀP
+        A_cl = A + G @ K                                         # A − G R⁻¹ Gᵀ P
     hurwitz = np.zeros(n, dtype=bool)
     invertible = np.zeros(n, dtype=bool)
     Ks = np.zeros(K.shape)
-    if solved.any():
-        s = np.flatnonzero(solved)
+    # a finger whose A_cl overflowed is neither Hurwitz nor invertible (numpy's eigvals refuses it)
+    closed = solved & np.all(np.isfinite(A_cl), axis=(1, 2))
+    if closed.any():
+        s = np.flatnonzero(closed)
         hurwitz[s] = np.all(np.linalg.eigvals(A_cl[s]).real < 0, axis=1)
         with np.errstate(all='ignore'):
             invertible[s] = np.linalg.cond(A_cl[s]) < cond_max

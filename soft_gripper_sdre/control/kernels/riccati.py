@@ -100,13 +100,18 @@ def finger_checks(A, P, WP, PSP, settings, q_norm, C, N, work):
         # the Lyapunov argument is sufficient only: A_cl = A − S P's eigenvalues decide
         A_cl = np.zeros((4, 4), dtype=np.complex128)
         A_cl[0, 2] = A_cl[1, 3] = 1.0
+        finite = True
         for r in range(2):
             for c in range(4):
                 A_cl[2 + r, c] = A[2 + r, c] - WP[r, c]
-        for v in np.linalg.eigvals(A_cl):
-            if not v.real < 0.0:
-                failed |= HURWITZ
-                break
+                finite = finite and np.isfinite(A_cl[2 + r, c].real)
+        if not finite:                     # S P overflowed: numba's eigvals refuses it
+            failed |= HURWITZ
+        else:
+            for v in np.linalg.eigvals(A_cl):
+                if not v.real < 0.0:
+                    failed |= HURWITZ
+                    break
     for r in range(2):
         for c in range(2):
             C[r, c] = A[2 + r, c] - WP[r, c]
@@ -169,11 +174,13 @@ def hamiltonian_solve(A, W, q, P):
     Z ← (Z / c + c Z⁻¹) / 2 with c = |det Z|^(1/2k) converges to sign(H), whose blocks give P as
     the solution of [Z₁₂; Z₂₂ + I] P = −[Z₁₁ + I; Z₂₁] (a consistent 2k × k system, solved by
     least squares), symmetrized. For a finger whose warm-started Newton–Kleinman ended unstable:
-    tens of µs where an exact scipy solve costs milliseconds. False (P untouched) when the
-    iteration does not converge or meets a singular or non-finite Z; the caller's checks judge P
-    either way."""
+    tens of µs where an exact scipy solve costs milliseconds. False (P untouched) when A, W or Q
+    is not finite (W overflows for a G2 far off the data), or the iteration does not converge or
+    meets a singular or non-finite Z; the caller's checks judge P either way."""
     k, d = A.shape[0], W.shape[0]
     n = 2 * k
+    if not (np.all(np.isfinite(A)) and np.all(np.isfinite(W)) and np.all(np.isfinite(q))):
+        return False                       # W = G2 R⁻¹ G2ᵀ overflowed: numba's det refuses it
     Z = np.zeros((n, n))
     for i in range(k):
         for j in range(k):

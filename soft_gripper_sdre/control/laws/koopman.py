@@ -223,8 +223,14 @@ class KoopmanMpcLaw(KoopmanLqrLaw):
     def compute(self, pos, vel, ref_pos, ref_vel, ref_acc=None) -> LawStep:
         z, xd, a_d, finite, acc_ok = self.lifted(pos, vel, ref_pos, ref_vel, ref_acc)
         zd = self.blocks.reference(xd, a_d, self.horizon + 1)
-        U, active = self.qp.solve(self.gradient(z, zd, self.blocks.feedforward(zd)))
-        step = self.io.finish(U[:, :2], finite)
+        with np.errstate(over='ignore', invalid='ignore'):
+            g = self.gradient(z, zd, self.blocks.feedforward(zd))
+        # a state far off the lifting's range overflows its features: that finger rests
+        solvable = np.isfinite(g).all(axis=1)
+        U, active = np.zeros_like(g), np.zeros(len(g), dtype=bool)
+        if solvable.any():
+            U[solvable], active[solvable] = self.qp.solve(g[solvable])
+        step = self.io.finish(U[:, :2], finite & solvable)
         step.fallback |= ~acc_ok
         step.saturated = active[:, None] & (np.abs(U[:, :2]) >= self.io.u_max * (1 - 1e-9))
         return step
