@@ -54,6 +54,23 @@ def test_jitter_under_one_and_a_half_periods_is_no_loss_and_the_period_follows_t
     assert sum(lost[100 + PERIOD_WINDOW:]) == 0
 
 
+def test_a_step_over_a_second_and_a_hundred_periods_is_a_jump_not_a_loss():
+    """A half-second hole at 1 kHz is 499 lost messages; a stamp 5 s or 2⁶² ns ahead (a stalled
+    publisher, a clock set forward, a bad stamp) is a jump the stream starts afresh from; at
+    10 Hz a 1.5 s hole is still losses (under 100 periods)."""
+    counter = GapCounter()
+    stamps = [k * MS for k in range(20)] + [519 * MS] + [5519 * MS + k * MS for k in range(20)]
+    lost = [counter.add(s) for s in stamps]
+    assert lost[20] == 499 and counter.lost == 499 and counter.jumps == 1
+    assert sum(lost[21:]) == 0 and counter.period == MS
+    assert counter.add(2**62) == 0 and counter.jumps == 2 and counter.jumped
+    assert counter.add(2**62 + MS) == 0 and not counter.jumped
+    slow = GapCounter()
+    for k in range(20):
+        slow.add(k * 100 * MS)
+    assert slow.add(19 * 100 * MS + 1500 * MS) == 14 and slow.jumps == 0
+
+
 def test_a_restarted_publisher_and_repeats_are_no_loss():
     stamps = [k * MS for k in range(50)] + [k * MS for k in range(50)] + [49 * MS]
     assert sum(_counts(stamps)) == 0

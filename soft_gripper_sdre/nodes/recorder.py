@@ -133,6 +133,10 @@ GAP_FACTOR = 1.5
 #: stamp steps the period is the median of, and how many a stream needs before it is judged
 PERIOD_WINDOW = 64
 PERIOD_LEARN = 8
+#: a stamp step over both of these [s] and [periods] is a jump (a stalled publisher, a clock
+#: set forward, a bad stamp), not lost messages: the stream starts afresh from it
+JUMP_SECONDS = 1.0
+JUMP_PERIODS = 100
 
 
 class GapCounter:
@@ -145,7 +149,8 @@ class GapCounter:
     step over
     ``GAP_FACTOR`` periods counts ``round(step / period) - 1`` lost messages (at least one). A
     repeated stamp is ignored; a stamp before the previous one (a restarted publisher) starts the
-    stream afresh from it, keeping its period.
+    stream afresh from it, keeping its period; so does a step over both ``JUMP_SECONDS`` and
+    ``JUMP_PERIODS`` periods, counted in :attr:`jumps` instead of as losses.
     """
 
     def __init__(self) -> None:
@@ -153,15 +158,23 @@ class GapCounter:
         self.period: float | None = None        # the learned period [ns]
         self.lost = 0                           # messages lost in all
         self.gaps = 0                           # steps that lost messages
+        self.jumps = 0                          # steps forward too long to be losses
+        self.jumped = False                     # whether the last step was one
         self._steps: deque = deque(maxlen=PERIOD_WINDOW)
         self._since = 0                         # steps since the period was taken
 
     def add(self, stamp: int) -> int:
         """Take the next message's stamp [ns]; the number of messages lost just before it."""
         last, self.last = self.last, stamp
+        self.jumped = False
         if last is None or stamp <= last:
             return 0
         step = stamp - last
+        if (self.period is not None and step > JUMP_SECONDS * 1e9
+                and step > JUMP_PERIODS * self.period):
+            self.jumps += 1
+            self.jumped = True
+            return 0
         lost = 0
         if self.period is not None and step > GAP_FACTOR * self.period:
             lost = max(1, round(step / self.period) - 1)
@@ -423,6 +436,12 @@ class RecorderNode(Node):
                 lost = gaps.add(stamp)
                 if lost:
                     self._lost(topic, gaps, lost, before, stamp)
+                elif gaps.jumped:
+                    self.diag.count(f'jumps {topic}')
+                    self.log.warn(f'jump {topic}', f'{topic}: stamps jumped forward from '
+                                  f'{before / 1e9:.6f} to {stamp / 1e9:.6f} s (a stalled '
+                                  'publisher, a clock set forward or a bad stamp): not counted '
+                                  f'as lost; {gaps.jumps} such jump(s) of this topic')
             wall_ns = time.time_ns()
             if self._pending is None:
                 self._write(conn, self._entry_time(stamp, wall_ns), data)
@@ -525,6 +544,10 @@ class RecorderNode(Node):
         if lost:
             logger.warning('messages missing from the streams (stamp gaps): ' + ', '.join(
                 f'{name} {g.lost} in {g.gaps} gap(s)' for name, g in lost.items()))
+        jumped = {name: g.jumps for name, g in self.gaps.items() if g.jumps}
+        if jumped:
+            logger.warning('stamps jumped forward (not counted as lost): ' + ', '.join(
+                f'{name} {n} time(s)' for name, n in jumped.items()))
 
 
 def main(args=None) -> int:
