@@ -199,3 +199,47 @@ def test_a_recorder_process_warns_with_counts_in_its_log_and_diagnostics(tmp_pat
             '(period 1.000 ms); 5 lost of this topic in all') in err
     assert ('messages missing from the streams (stamp gaps): /tip_positions 5 in 1 gap(s)'
             in err)
+
+
+def test_a_stamp_jump_is_reported_at_warn_and_the_stream_judged_afresh(tmp_path):
+    """A tip 5 s ahead of its stream: /diagnostics at WARN naming the jump, no message counted
+    lost; the stream's period learned again from the stamps after it (its gaps counted again);
+    OK after a report without a new jump."""
+    with ros_context() as (ctx, executor):
+        rec = RecorderNode(context=ctx, parameter_overrides=overrides(
+            output=str(tmp_path / 'bag'), topics=[TIP_POSITIONS]))
+        probe = Probe(ctx)
+        tips = probe.create_publisher(PoseArray, TIP_POSITIONS, deep(topic_qos(TIP_POSITIONS)))
+        probe.listen(DiagnosticArray, DIAGNOSTICS, deep(STREAM_QOS))
+        executor.add_node(rec)
+        executor.add_node(probe)
+        assert spin_until(executor, lambda: tips.get_subscription_count() > 0, 20.0)
+
+        def send(ks):
+            sent = rec.counts['/tip_positions'] + len(ks)
+            for k in ks:
+                tips.publish(cv.tips_to_msg(k * MS, TIPS))
+            assert spin_until(executor, lambda: rec.counts['/tip_positions'] == sent, 10.0)
+
+        def report() -> DiagnosticStatus:
+            diags = probe.received[DIAGNOSTICS]
+            n = len(diags)
+            rec.diag.publish()
+            assert spin_until(executor, lambda: len(diags) > n, 5.0)
+            return _status(diags)
+
+        send(range(50))
+        send(range(5050, 5100))                              # 5 s ahead, then 1 kHz again
+        gaps = rec.gaps['/tip_positions']
+        assert gaps.jumps == 1 and gaps.lost == 0 and gaps.period == MS
+        assert rec.diag.counters['jumps /tip_positions'] == 1
+        status = report()
+        assert status.level == DiagnosticStatus.WARN
+        assert '1 stamp jump(s) over 1 s' in status.message and 'lost' not in status.message
+        send([k for k in range(5100, 5140) if k != 5120])    # judged again: one lost
+        assert gaps.lost == 1
+        assert '1 message(s) lost since the last report' in report().message
+        send(range(5140, 5160))
+        status = report()
+        assert status.level == DiagnosticStatus.OK
+        assert '1 message(s) lost earlier and 1 stamp jump(s)' in status.message

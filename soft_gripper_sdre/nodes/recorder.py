@@ -54,9 +54,12 @@ publisher never sent (a node that skipped a period); the publisher's own counts 
 /diagnostics tell which. The counts go to /diagnostics (``lost <topic>``, and the learned
 ``period <topic>``), which is at WARN, naming the topics, in every report while losses grow and
 back at OK after a report without a new one; the log WARNs with the counts (throttled), and the
-run's totals are logged when the bag is closed. Topics stamped with wall time by several nodes
-(``WALL_TIME_TOPICS``), unstamped ones and a topic while it has several publishers are not
-judged; a stamp that goes back (a restarted publisher) starts the stream afresh.
+run's totals are logged when the bag is closed. A step over ``JUMP_SECONDS`` and
+``JUMP_PERIODS`` periods is a jump, not losses (a stalled publisher, a clock set forward, a bad
+stamp): counted as ``jumps <topic>``, at WARN the same way, and the stream is judged afresh from
+it. Topics stamped with wall time by several nodes (``WALL_TIME_TOPICS``), unstamped ones and a
+topic while it has several publishers are not judged; a stamp that goes back (a restarted
+publisher) starts the stream afresh.
 """
 from __future__ import annotations
 
@@ -149,8 +152,10 @@ class GapCounter:
     step over
     ``GAP_FACTOR`` periods counts ``round(step / period) - 1`` lost messages (at least one). A
     repeated stamp is ignored; a stamp before the previous one (a restarted publisher) starts the
-    stream afresh from it, keeping its period; so does a step over both ``JUMP_SECONDS`` and
-    ``JUMP_PERIODS`` periods, counted in :attr:`jumps` instead of as losses.
+    stream afresh from it, keeping its period. A step over both ``JUMP_SECONDS`` and
+    ``JUMP_PERIODS`` periods (a stalled publisher, a clock set forward, a bad stamp) is counted in
+    :attr:`jumps` instead of as losses, and the stream starts afresh from it, its period learned
+    again (so a stream that slows down that much is followed too).
     """
 
     def __init__(self) -> None:
@@ -174,6 +179,9 @@ class GapCounter:
                 and step > JUMP_PERIODS * self.period):
             self.jumps += 1
             self.jumped = True
+            self.period = None
+            self._steps.clear()
+            self._since = 0
             return 0
         lost = 0
         if self.period is not None and step > GAP_FACTOR * self.period:
@@ -340,6 +348,7 @@ class RecorderNode(Node):
         self.gaps: dict[str, GapCounter] = {}
         self._single: dict[str, bool] = {}
         self._lost_reported = 0                 # messages lost at the previous /diagnostics
+        self._jumps_reported = 0                # stamp jumps at the previous /diagnostics
         self._loss_warn = False                 # the WARN in /diagnostics is the losses'
         self._own_reports = 0                   # marked reports of its own still to leave out
         self.diag.before_publish.append(self._report_losses)
@@ -481,21 +490,35 @@ class RecorderNode(Node):
 
     def _report_losses(self) -> None:
         """Before each /diagnostics: the learned periods, and WARN naming the topics while their
-        losses grow (OK again after a report without a new loss; an ERROR stays)."""
+        losses or stamp jumps grow (OK again after a report without a new one; an ERROR
+        stays)."""
         for name, gaps in self.gaps.items():
             if gaps.period is not None:
                 self.diag.values[f'period {name}'] = f'{gaps.period / 1e6:.3f} ms'
         total = sum(g.lost for g in self.gaps.values())
-        if total > self._lost_reported and self.diag.level != ERROR:
-            topics = ', '.join(f'{name} {g.lost}' for name, g in self.gaps.items() if g.lost)
-            self.diag.set_status(WARN, f'{total - self._lost_reported} message(s) lost since the '
-                                 f'last report; lost in all: {topics}')
+        jumps = sum(g.jumps for g in self.gaps.values())
+        new_lost, new_jumps = total - self._lost_reported, jumps - self._jumps_reported
+        if (new_lost or new_jumps) and self.diag.level != ERROR:
+            said = []
+            if new_lost:
+                topics = ', '.join(f'{name} {g.lost}' for name, g in self.gaps.items() if g.lost)
+                said.append(f'{new_lost} message(s) lost since the last report; lost in all: '
+                            f'{topics}')
+            if new_jumps:
+                topics = ', '.join(f'{name} {g.jumps}' for name, g in self.gaps.items()
+                                   if g.jumps)
+                said.append(f'{new_jumps} stamp jump(s) over {JUMP_SECONDS:g} s since the last '
+                            f'report (a stalled publisher, a clock set forward or a bad stamp); '
+                            f'in all: {topics}')
+            self.diag.set_status(WARN, '; '.join(said))
             self._loss_warn = True
         elif self._loss_warn and self.diag.level == WARN:
             self.diag.set_status(OK, f'recording {len(self._subs) + len(self._waiting)} topics; '
-                                 f'{total} message(s) lost earlier, none since the last report')
+                                 f'{total} message(s) lost earlier'
+                                 + (f' and {jumps} stamp jump(s)' if jumps else '')
+                                 + ', none since the last report')
             self._loss_warn = False
-        self._lost_reported = total
+        self._lost_reported, self._jumps_reported = total, jumps
 
     def _entry_time(self, stamp: int | None, wall_ns: int) -> int:
         """Bag timestamp [ns] of a message (the rule in the module doc)."""

@@ -226,11 +226,14 @@ class KoopmanMpcLaw(KoopmanLqrLaw):
         with np.errstate(over='ignore', invalid='ignore'):
             g = self.gradient(z, zd, self.blocks.feedforward(zd))
         # a state far off the lifting's range overflows its features: that finger rests
-        solvable = np.isfinite(g).all(axis=1)
-        U, active = np.zeros_like(g), np.zeros(len(g), dtype=bool)
-        if solvable.any():
-            U[solvable], active[solvable] = self.qp.solve(g[solvable])
-        step = self.io.finish(U[:, :2], finite & solvable)
+        finite_gradient = np.isfinite(g).all(axis=1)
+        if finite_gradient.all():
+            U, active = self.qp.solve(g)
+        else:
+            U, active = np.zeros_like(g), np.zeros(len(g), dtype=bool)
+            if finite_gradient.any():
+                U[finite_gradient], active[finite_gradient] = self.qp.solve(g[finite_gradient])
+        step = self.io.finish(U[:, :2], finite & finite_gradient)
         step.fallback |= ~acc_ok
         step.saturated = active[:, None] & (np.abs(U[:, :2]) >= self.io.u_max * (1 - 1e-9))
         return step
