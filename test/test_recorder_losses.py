@@ -55,9 +55,9 @@ def test_jitter_under_one_and_a_half_periods_is_no_loss_and_the_period_follows_t
 
 
 def test_a_step_over_a_second_and_a_hundred_periods_is_a_jump_not_a_loss():
-    """A half-second hole at 1 kHz is 499 lost messages; a stamp 5 s or 2⁶² ns ahead (a stalled
-    publisher, a clock set forward, a bad stamp) is a jump the stream starts afresh from; at
-    10 Hz a 1.5 s hole is still losses (under 100 periods)."""
+    """A half-second hole at 1 kHz is 499 lost messages; a stamp 5 s or 2⁶² ns ahead (a clock
+    set forward, a bad stamp) is a jump the stream starts afresh from; at 10 Hz a 1.5 s hole is
+    still losses (under 100 periods)."""
     counter = GapCounter()
     stamps = [k * MS for k in range(20)] + [519 * MS] + [5519 * MS + k * MS for k in range(20)]
     lost = [counter.add(s) for s in stamps]
@@ -69,6 +69,20 @@ def test_a_step_over_a_second_and_a_hundred_periods_is_a_jump_not_a_loss():
     for k in range(20):
         slow.add(k * 100 * MS)
     assert slow.add(19 * 100 * MS + 1500 * MS) == 14 and slow.jumps == 0
+
+
+def test_a_long_hole_whose_stamps_kept_pace_with_their_arrivals_is_losses():
+    """A recorder starved for 2.5 s (or a publisher that stalled that long): the stamps after the
+    hole advanced as the arrival clock did, so its periods are lost messages, not a jump; the
+    same step arriving 1 ms after its predecessor is a jump."""
+    counter = GapCounter()
+    for k in range(20):
+        counter.add(k * MS, received=k * MS)
+    assert counter.add(2519 * MS, received=2519 * MS + 3 * MS) == 2499
+    assert counter.jumps == 0 and counter.lost == 2499
+    for k in range(2520, 2540):
+        counter.add(k * MS, received=k * MS)
+    assert counter.add(7539 * MS, received=2540 * MS) == 0 and counter.jumps == 1
 
 
 def test_a_restarted_publisher_and_repeats_are_no_loss():

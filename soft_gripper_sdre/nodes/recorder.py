@@ -55,11 +55,13 @@ publisher never sent (a node that skipped a period); the publisher's own counts 
 ``period <topic>``), which is at WARN, naming the topics, in every report while losses grow and
 back at OK after a report without a new one; the log WARNs with the counts (throttled), and the
 run's totals are logged when the bag is closed. A step over ``JUMP_SECONDS`` and
-``JUMP_PERIODS`` periods is a jump, not losses (a stalled publisher, a clock set forward, a bad
-stamp): counted as ``jumps <topic>``, at WARN the same way, and the stream is judged afresh from
-it. Topics stamped with wall time by several nodes (``WALL_TIME_TOPICS``), unstamped ones and a
-topic while it has several publishers are not judged; a stamp that goes back (a restarted
-publisher) starts the stream afresh.
+``JUMP_PERIODS`` periods that is also ``JUMP_RATIO`` times longer than the time between the two
+messages' arrivals is a jump, not losses (a clock set forward, a bad stamp; a stalled publisher's
+or recorder's stamps advance with the time that passed, and its gap is losses): counted as
+``jumps <topic>``, at WARN the same way, and the stream is judged afresh from it. Topics
+stamped with wall time by several nodes (``WALL_TIME_TOPICS``), unstamped ones and a topic while
+it has several publishers are not judged; a stamp that goes back (a restarted publisher) starts
+the stream afresh.
 """
 from __future__ import annotations
 
@@ -136,10 +138,12 @@ GAP_FACTOR = 1.5
 #: stamp steps the period is the median of, and how many a stream needs before it is judged
 PERIOD_WINDOW = 64
 PERIOD_LEARN = 8
-#: a stamp step over both of these [s] and [periods] is a jump (a stalled publisher, a clock
-#: set forward, a bad stamp), not lost messages: the stream starts afresh from it
+#: a stamp step over both of these [s] and [periods], and over JUMP_RATIO times the time between
+#: the two messages' arrivals, is a jump (a clock set forward, a bad stamp), not lost messages:
+#: the stream starts afresh from it
 JUMP_SECONDS = 1.0
 JUMP_PERIODS = 100
+JUMP_RATIO = 10.0
 
 
 class GapCounter:
@@ -153,9 +157,10 @@ class GapCounter:
     ``GAP_FACTOR`` periods counts ``round(step / period) - 1`` lost messages (at least one). A
     repeated stamp is ignored; a stamp before the previous one (a restarted publisher) starts the
     stream afresh from it, keeping its period. A step over both ``JUMP_SECONDS`` and
-    ``JUMP_PERIODS`` periods (a stalled publisher, a clock set forward, a bad stamp) is counted in
-    :attr:`jumps` instead of as losses, and the stream starts afresh from it, its period learned
-    again (so a stream that slows down that much is followed too).
+    ``JUMP_PERIODS`` periods that is also over ``JUMP_RATIO`` times the time between the two
+    messages' arrivals (when ``received`` is given) ran ahead of time itself (a clock set
+    forward, a bad stamp): it is counted in :attr:`jumps` instead of as losses, and the stream
+    starts afresh from it, its period learned again.
     """
 
     def __init__(self) -> None:
@@ -165,18 +170,23 @@ class GapCounter:
         self.gaps = 0                           # steps that lost messages
         self.jumps = 0                          # steps forward too long to be losses
         self.jumped = False                     # whether the last step was one
+        self.received: int | None = None        # the newest message's arrival [ns]
         self._steps: deque = deque(maxlen=PERIOD_WINDOW)
         self._since = 0                         # steps since the period was taken
 
-    def add(self, stamp: int) -> int:
-        """Take the next message's stamp [ns]; the number of messages lost just before it."""
+    def add(self, stamp: int, received: int | None = None) -> int:
+        """Take the next message's stamp [ns] (and its arrival on any steady clock [ns], if
+        known); the number of messages lost just before it."""
         last, self.last = self.last, stamp
+        arrived, self.received = self.received, received
         self.jumped = False
         if last is None or stamp <= last:
             return 0
         step = stamp - last
         if (self.period is not None and step > JUMP_SECONDS * 1e9
-                and step > JUMP_PERIODS * self.period):
+                and step > JUMP_PERIODS * self.period
+                and (received is None or arrived is None
+                     or step > JUMP_RATIO * (received - arrived))):
             self.jumps += 1
             self.jumped = True
             self.period = None
@@ -442,15 +452,15 @@ class RecorderNode(Node):
             gaps = self.gaps.get(topic)
             if gaps is not None and stamp is not None and self._single.get(topic, True):
                 before = gaps.last
-                lost = gaps.add(stamp)
+                lost = gaps.add(stamp, time.monotonic_ns())
                 if lost:
                     self._lost(topic, gaps, lost, before, stamp)
                 elif gaps.jumped:
                     self.diag.count(f'jumps {topic}')
                     self.log.warn(f'jump {topic}', f'{topic}: stamps jumped forward from '
-                                  f'{before / 1e9:.6f} to {stamp / 1e9:.6f} s (a stalled '
-                                  'publisher, a clock set forward or a bad stamp): not counted '
-                                  f'as lost; {gaps.jumps} such jump(s) of this topic')
+                                  f'{before / 1e9:.6f} to {stamp / 1e9:.6f} s, far more than '
+                                  'the time that passed (a clock set forward or a bad stamp): '
+                                  f'not counted as lost; {gaps.jumps} such jump(s) of this topic')
             wall_ns = time.time_ns()
             if self._pending is None:
                 self._write(conn, self._entry_time(stamp, wall_ns), data)
@@ -508,8 +518,8 @@ class RecorderNode(Node):
                 topics = ', '.join(f'{name} {g.jumps}' for name, g in self.gaps.items()
                                    if g.jumps)
                 said.append(f'{new_jumps} stamp jump(s) over {JUMP_SECONDS:g} s since the last '
-                            f'report (a stalled publisher, a clock set forward or a bad stamp); '
-                            f'in all: {topics}')
+                            'report, far ahead of the time that passed (a clock set forward or '
+                            f'a bad stamp); in all: {topics}')
             self.diag.set_status(WARN, '; '.join(said))
             self._loss_warn = True
         elif self._loss_warn and self.diag.level == WARN:
