@@ -26,7 +26,8 @@ ITEMS = {'fuzz_simulator': 1, 'fuzz_estimator': 1, 'fuzz_trajectory': 1, 'fuzz_c
          'fuzz_trajectory_clock': 1, 'fuzz_controller_d2m1': 1, 'fuzz_controller_d3m3': 1,
          'fuzz_composed_d2m1': 1, 'fuzz_composed_d3m3': 1, 'fuzz_estimator_3d': 1,
          'fuzz_plant_driver_pneumatic1': 1, 'fuzz_plant_driver_trunk3': 1, 'fuzz_mocap_tips': 1,
-         'fuzz_excitation_m1': 1, 'fuzz_excitation_m3': 1, 'fuzz_recorder': 1, 'lost_estimates': 2,
+         'fuzz_excitation_m1': 1, 'fuzz_excitation_m3': 1, 'fuzz_recorder': 1,
+         'fuzz_simulator_two_fingers': 1, 'lost_estimates': 2,
          'crashed_controller': 3,
          'crashed_estimator': 4, 'crashed_trajectory': 4, 'riccati_trouble': 5, 'recording': 8,
          'clock_jump_back': 9, 'link_down': 10}

@@ -35,6 +35,7 @@ from soft_gripper_sdre.nodes.excitation import ExcitationNode
 from soft_gripper_sdre.nodes.mocap_tips import MocapTipsNode
 from soft_gripper_sdre.nodes.plant_driver import TRUE_TIP_POSITIONS, PlantDriverNode
 from soft_gripper_sdre.nodes.recorder import RecorderNode
+from soft_gripper_sdre.nodes.simulator import SimulatorNode
 from soft_gripper_sdre.nodes.topics import (
     GRASP_REFERENCE,
     LOOP_QOS,
@@ -150,11 +151,14 @@ class Fuzz:
         self.note(numbers)
         return msg
 
-    def joint_state(self, lower, upper) -> JointState:
+    def joint_state(self, lower, upper, ns: int | None = None) -> JointState:
         """Commands for the fingers' inputs (or another finger shape's), effort values hostile
-        or anywhere from twice below the bounds to twice above them."""
+        or anywhere from twice below the bounds to twice above them; stamped ``ns`` (one in
+        seven a hostile stamp instead), or anywhere."""
         msg = JointState()
-        msg.header.stamp = cv.to_time(int(self.rng.integers(0, 2**62)))
+        if ns is None or self.rng.random() < 1 / 7:
+            ns = int(self.rng.integers(0, 2**62))
+        msg.header.stamp = cv.to_time(ns)
         m = int(self.rng.choice([self.m, self.m, self.m, self.m + 1, max(self.m - 1, 1)]))
         names = cv.torque_names(NAMES, m)
         n = self.count(len(names))
@@ -575,3 +579,31 @@ def test_fuzzed_loop_messages_are_all_recorded_and_the_bag_reads_back(tmp_path):
            nonfinite_outputs=0, messages_lost=0, recovery_s=None,
            notes='every message in the bag as sent ('
                  + ', '.join(f'{t} {n}' for t, n in sent.items()) + '); the bag reads back')
+
+
+def test_fuzzed_commands_for_two_of_the_hands_fingers_never_reach_the_physics():
+    """The simulator exposing two of the hand's fingers (``hand_fingers`` 0 and 2): commands
+    named for four fingers, for one input, unknown or duplicated, with NaN/Inf, stale or ahead of
+    the period are refused one by one; the physics never steps with a non-finite torque."""
+    fz = Fuzz(91, 2, 2)
+    with ros_context() as (ctx, executor):
+        sim = SimulatorNode(context=ctx, parameter_overrides=overrides(
+            scene='hand', finger_names=NAMES, hand_fingers=[0, 2], startup_timeout=0.0,
+            lockstep_timeout=60.0, noise_std=0.0))
+        probe = Probe(ctx)
+        probe.listen(PoseArray, TIP_POSITIONS, deep(LOOP_QOS))
+        pub = probe.create_publisher(JointState, TORQUE_COMMANDS, LOOP_QOS)
+        for n in (sim, probe):
+            executor.add_node(n)
+        assert spin_until(executor, lambda: linked(pub, sim) and sim.stepping.started
+                          and probe.received[TIP_POSITIONS], 20.0)
+        refused = ('bad_command', 'stale_command', 'future_command')
+        tips = probe.received[TIP_POSITIONS]
+        _fuzz(executor, pub, lambda: fz.joint_state(       # mostly for the period in force
+            [-0.1, -0.1], [0.1, 0.1], cv.from_time(tips[-1].header.stamp)), sim,
+            ('commands', *refused), refused, fz)
+        assert _rejected(sim, refused) >= fz.bad > 40 and sim.stepping.counters['steps'] > 20
+        assert np.all(np.isfinite(sim.sim.truth().tip_pos))
+        assert all(np.isfinite(cv.msg_to_tips(msg, NAMES)[1]).all() for msg in tips)
+        _record('simulator_two_fingers', 'torque_commands', _rejected(sim, refused), fz.bad,
+                good=f'{len(tips)} tip messages, all finite')
