@@ -51,6 +51,17 @@ def test_bad_arguments_exit_2_before_anything_starts(tmp_path, args, message):
     assert not out.exists()
 
 
+def test_the_amplitude_is_read_from_the_level_line_capped_by_the_bounds_or_not():
+    """The excitation node's two forms of the level line (nodes/excitation_report.py)."""
+    aimed = ('[excitation]: level of u1: probes … taken × 1, 1 for the whole signal (its measured '
+             'response); amplitude 0.4649 for 8 mm, 0.0 % of the signals\' samples at the bounds')
+    capped = ('[excitation]: level of u1: probes … (its measured response); amplitude 1.231 (the '
+              'largest the input bounds allow) for about 6.20 mm of the 8 mm aimed at')
+    assert foreign.chosen_amplitude(aimed) == 0.4649
+    assert foreign.chosen_amplitude(capped) == 1.231
+    assert foreign.chosen_amplitude('finished: 10.5 s played') is None
+
+
 def test_every_gripper_has_its_lab_setup_and_one_sided_actuators_give_their_bounds():
     assert set(foreign.SETUPS) == set(GRIPPERS)
     assert all(foreign.SETUPS[k].rate == RATES[k] for k in GRIPPERS)

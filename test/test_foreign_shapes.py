@@ -46,7 +46,8 @@ def test_every_gripper_knows_its_shape_bounds_and_rate():
     expected = {'tendon3': (FingerShape(2, 2), InputBounds.symmetric(0.02, 2)),
                 'stiff2': (FingerShape(2, 2), InputBounds.symmetric(0.25, 2)),
                 'pneumatic1': (FingerShape(2, 1), InputBounds([0.0], [P_MAX])),
-                'trunk3': (FingerShape(3, 3), InputBounds(np.zeros(3), np.full(3, 4.0)))}
+                'trunk3': (FingerShape(3, 3), InputBounds(np.zeros(3), np.full(3, 4.0))),
+                'flexor2': (FingerShape(2, 2), InputBounds(np.zeros(2), np.full(2, 4.0)))}
     assert set(GRIPPERS) == set(expected) == set(RATES)
     for kind, (shape, bounds) in expected.items():
         assert gripper_shape(kind) == shape and gripper_bounds(kind) == bounds, kind

@@ -101,14 +101,16 @@ def _two_names(names) -> str | None:
 PARAMS = (
     Param('plant', 'tendon3', 'the gripper, from sim/plants/presets.py: tendon3 (an index and a '
           'thumb, soft three-link tendon fingers), stiff2 (two fast two-link fingers), pneumatic1 '
-          '(one chamber each: one input, 0..60 kPa, planar tip) or trunk3 (three-tendon '
-          'segments: three inputs, 0..4 N, 3-D tip)', choices=tuple(GRIPPERS), read_only=True),
+          '(one chamber each: one input, 0..60 kPa, planar tip), trunk3 (three-tendon '
+          'segments: three inputs, 0..4 N, 3-D tip) or flexor2 (the tendon fingers driven by a '
+          'flexor and an extensor tendon that only pull: two inputs, 0..4 N, planar tip)',
+          choices=tuple(GRIPPERS), read_only=True),
     Param('finger_names', ['index', 'thumb'], 'the fingers in message order (pose i of the tips, '
           'torque_commands <finger>/ax<k> for k < m); two names, each a ROS name token',
           rule=_two_names, read_only=True),
     Param('rate', 0.0, "ticks per second: plants advanced, tips measured and published; 0 = the "
-          "plant's own rate (tendon3 200, stiff2 500, pneumatic1 100, trunk3 250 Hz); else 100 to "
-          '1000', 'Hz', 0.0, 1000.0, read_only=True, rule=_rate_problem),
+          "plant's own rate (tendon3 200, stiff2 500, pneumatic1 100, trunk3 250, flexor2 200 "
+          "Hz); else 100 to 1000", 'Hz', 0.0, 1000.0, read_only=True, rule=_rate_problem),
     Param('stamp_jitter', 4e-4, 'each tip_positions stamp is the measurement time plus a uniform '
           'offset in ±stamp_jitter; less than half a period, so stamps keep their order', 's',
           0.0, 0.005, read_only=True),

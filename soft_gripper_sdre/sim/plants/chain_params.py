@@ -38,6 +38,7 @@ v(q̇) = v_s tanh(|q̇|/v_s) bounds the bristles' relaxation rate σv/F_c, which
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 import math
 from typing import Callable
@@ -184,10 +185,35 @@ def stiff2_b() -> FingerParams:
         transmission=((1.0, 0.2), (0.3, 1.0)), torque_limit=0.25, substep=2e-4)
 
 
+#: the flexor's and the extensor's moment arms [m] about the three joints: pulleys of 5 mm
+#: radius, the flexor on the palm side mostly about the proximal joint, the extensor on the back
+#: mostly about the distal ones
+_FLEXOR_EXTENSOR = ((0.008, 0.003, 0.0015), (-0.0025, -0.0045, -0.007))
+#: a tendon's largest tension [N]
+TENDON_MAX = 4.0
+
+
+def flexor2_index() -> FingerParams:
+    """The tendon index's links, springs and friction, driven by two antagonistic tendons that
+    only pull (0 to 4 N each): a flexor toward the palm (+Y) and an extensor away from it."""
+    return dataclasses.replace(tendon3_index(), name='flexor2_index',
+                               transmission=_FLEXOR_EXTENSOR, torque_limit=TENDON_MAX,
+                               lower_limits=(0.0, 0.0))
+
+
+def flexor2_thumb() -> FingerParams:
+    """The tendon thumb's links, springs and friction, with the index's two tendons."""
+    return dataclasses.replace(tendon3_thumb(), name='flexor2_thumb',
+                               transmission=_FLEXOR_EXTENSOR, torque_limit=TENDON_MAX,
+                               lower_limits=(0.0, 0.0))
+
+
 #: preset name → its parameters (a plant: ``sim.plants.chain.FingerPlant(PLANTS[name]())``)
 PLANTS: dict[str, Callable[[], FingerParams]] = {
     'tendon3_index': tendon3_index, 'tendon3_thumb': tendon3_thumb,
     'stiff2_a': stiff2_a, 'stiff2_b': stiff2_b,
+    'flexor2_index': flexor2_index, 'flexor2_thumb': flexor2_thumb,
 }
 #: gripper kind → the presets of its two fingers (the fingers: ``chain.plant_pair(kind)``)
-PAIRS = {'tendon3': ('tendon3_index', 'tendon3_thumb'), 'stiff2': ('stiff2_a', 'stiff2_b')}
+PAIRS = {'tendon3': ('tendon3_index', 'tendon3_thumb'), 'stiff2': ('stiff2_a', 'stiff2_b'),
+         'flexor2': ('flexor2_index', 'flexor2_thumb')}

@@ -37,7 +37,8 @@ PRESETS: dict[str, Callable[[], Union[FingerParams, TrunkParams]]] = {
 GRIPPERS: dict[str, tuple[str, str]] = {
     **PAIRS, 'pneumatic1': ('pneumatic1_a', 'pneumatic1_b'), 'trunk3': ('trunk3_a', 'trunk3_b')}
 #: gripper kind → the rate [Hz] a driver serves it at
-RATES = {'tendon3': 200.0, 'stiff2': 500.0, 'pneumatic1': 100.0, 'trunk3': 250.0}
+RATES = {'tendon3': 200.0, 'stiff2': 500.0, 'pneumatic1': 100.0, 'trunk3': 250.0,
+         'flexor2': 200.0}
 
 
 def _kind(kind: str) -> tuple[str, str]:

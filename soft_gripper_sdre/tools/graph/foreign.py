@@ -75,7 +75,8 @@ class Setup:
 SETUPS = {'tendon3': Setup(rate=RATES['tendon3'], max_excursion=0.016),
           'stiff2': Setup(rate=RATES['stiff2'], max_excursion=0.008),
           'pneumatic1': Setup(rate=RATES['pneumatic1'], max_excursion=0.016),
-          'trunk3': Setup(rate=RATES['trunk3'], max_excursion=0.016)}
+          'trunk3': Setup(rate=RATES['trunk3'], max_excursion=0.016),
+          'flexor2': Setup(rate=RATES['flexor2'], max_excursion=0.016)}
 FINGERS = ['index', 'thumb']
 TRAIN_SIGNALS = ['u1', 'x1', 'x2', 'b1', 'b2']
 #: the grasp: trajectory node defaults (hold 0.5 s at rest, close 2 s, hold 1 s, open 2 s)
@@ -268,6 +269,14 @@ def score(bag: Path, travel: float, bounds: InputBounds, d: int = 2,
         raise RuntimeError(str(exc)) from None
 
 
+def chosen_amplitude(log: str) -> float | None:
+    """The amplitude the excitation node's level search chose, from its log line ('…;
+    amplitude A for 8 mm' or, capped by the input bounds, '…; amplitude A (the largest the input
+    bounds allow) for about …'), or None."""
+    found = re.search(r'; amplitude ([0-9.eE+-]+) (?:\([^)]*\) )?for', log)
+    return None if found is None else float(found.group(1))
+
+
 def identify(a: argparse.Namespace, env: dict, bags: Path) -> dict:
     """Step 1 (module doc): one bag per signal, each at its own level (``level:=auto``: probes
     of the signal's start), the first probe of each at u1's amplitude."""
@@ -276,11 +285,11 @@ def identify(a: argparse.Namespace, env: dict, bags: Path) -> dict:
     for i, signal in enumerate(TRAIN_SIGNALS + ['u4']):
         bag = bags / ('train' if signal != 'u4' else 'val') / signal
         log = excite(a, env, bag, [signal], level, a.seed + i)
-        found = re.search(r'; amplitude ([0-9.eE+-]+) for', log)
-        if found is None:
+        amplitude = chosen_amplitude(log)
+        if amplitude is None:
             raise RuntimeError(f'the excitation node did not report the amplitude it chose for '
                                f'{signal}')
-        amplitudes[signal] = float(found.group(1))
+        amplitudes[signal] = amplitude
         level = {'level': 'auto', 'level_start': amplitudes[TRAIN_SIGNALS[0]]}
     print(f'identified at amplitudes {amplitudes} in {time.monotonic() - t0:.0f} s', flush=True)
     return {'amplitude': amplitudes, 'wall_s': round(time.monotonic() - t0, 1)}
