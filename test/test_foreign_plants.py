@@ -7,6 +7,7 @@ import pytest
 
 from soft_gripper_sdre.sim.plants.chain import FingerPlant, FingerState, input_angle, plant_pair
 from soft_gripper_sdre.sim.plants.chain_params import PAIRS, PLANTS, FingerParams
+from soft_gripper_sdre.sim.shape import InputBounds
 
 UM = 1e-6
 
@@ -78,13 +79,26 @@ def test_without_damping_or_friction_energy_is_conserved(name):
     assert drift[1] < drift[0] / 16
 
 
-@pytest.mark.parametrize('name', PLANTS)
+@pytest.mark.parametrize('name', [n for n in PLANTS if not n.startswith('flexor2')])
 def test_the_two_inputs_move_the_tip_in_nearly_the_same_direction(name):
     """Poorly conditioned like a tendon finger: 5° to 30° between the inputs' tip directions."""
     plant = FingerPlant(PLANTS[name]())
     gain = plant.static_gain()
     assert 5.0 < input_angle(gain) < 30.0
     assert np.all(gain[1] > 0), 'positive torques close the finger (+Y)'
+
+
+@pytest.mark.parametrize('name', ['flexor2_index', 'flexor2_thumb'])
+def test_the_flexor_closes_the_extensor_opens_nearly_opposite(name):
+    """Two antagonistic tendons that only pull: the flexor's tension moves the tip toward the
+    palm (+Y), the extensor's away from it, 160° to 175° apart; neither pushes."""
+    plant = FingerPlant(PLANTS[name]())
+    gain = plant.static_gain()
+    flexor, extensor = gain.T / np.linalg.norm(gain, axis=0)[:, None]
+    assert 160.0 < np.degrees(np.arccos(flexor @ extensor)) < 175.0
+    assert input_angle(gain) < 20.0                         # nearly one line, as tendon3's
+    assert gain[1, 0] > 0 > gain[1, 1]
+    assert plant.bounds == InputBounds([0.0, 0.0], [4.0, 4.0])
 
 
 @pytest.mark.parametrize('name', ['tendon3_index', 'stiff2_a'])

@@ -31,6 +31,10 @@ stiff2_b       (71.7, 38.4)   20.0, 100.2       0.055  0.013, 0.012  121°, 133�
   6.0/3.5 (a) or 7.0/4.0 N·m/rad (b) with a hardening k₃ = 60 k (+60 % stiffness at 0.1 rad);
   a coupled 2 × 2 transmission (1.0/0.2 and 0.3/1.0); lightly damped; Dahl friction 3/2 mN·m
   with a 2 mrad presliding range. Torque limit 0.25 N·m (tip ~4 mm); RK4 steps of 0.2 ms.
+* ``flexor2_*``: the ``tendon3_*`` fingers (the same rest tips and modes) driven by two tendons
+  that only pull, 0 to 4 N: a flexor on the palm side (moment arms 8/3/1.5 mm) and an extensor on
+  the back (2.5/4.5/7 mm). Their tip directions at rest lie 167° apart (index: 7.4 mm per N at
+  125°, 6.7 mm per N at 318°).
 
 Friction above ``friction_speed`` v_s (20 rad/s tendon, 10 rad/s stiff) grows like F_c|q̇|/v_s:
 v(q̇) = v_s tanh(|q̇|/v_s) bounds the bristles' relaxation rate σv/F_c, which keeps RK4 stable
