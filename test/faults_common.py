@@ -89,6 +89,19 @@ def recovery_time(t: np.ndarray, err: np.ndarray, free: np.ndarray, excursion: n
     return float(ends[bad[-1] + 1] - since)
 
 
+def hostile_value(rng: np.random.Generator, spread: float) -> float:
+    """One seeded fuzz number: NaN (4 %), ±Inf (2 %), ±1e300, 0 or a subnormal (4 %), else
+    normal with standard deviation ``spread`` (the fuzz tests' shared draw)."""
+    r = rng.random()
+    if r < 0.04:
+        return float('nan')
+    if r < 0.06:
+        return float(rng.choice([np.inf, -np.inf]))
+    if r < 0.1:
+        return float(rng.choice([1e300, -1e300, 0.0, 5e-324]))
+    return float(rng.normal(0.0, spread))
+
+
 def records_dir() -> Path:
     """The directory named by ``$FAULTS_OUT``.
 

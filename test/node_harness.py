@@ -9,12 +9,12 @@ from __future__ import annotations
 from geometry_msgs.msg import PoseArray
 import numpy as np
 from rosgraph_msgs.msg import Clock
-from rosutil import Probe, deep, overrides, spin_until
+from rosutil import Probe, deep, linked, overrides, spin_until
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import MultiDOFJointTrajectory
 
 from soft_gripper_sdre.nodes import conversions as cv
-from soft_gripper_sdre.nodes.controller import ControllerNode
+from soft_gripper_sdre.nodes.controller import ControllerNode, composed
 from soft_gripper_sdre.nodes.estimator import EstimatorNode
 from soft_gripper_sdre.nodes.topics import (
     CLOCK,
@@ -50,6 +50,22 @@ def make_controller(ctx, executor, **params):
                       and ref_pub.get_subscription_count() > 0
                       and node.pub_cmd.get_subscription_count() > 0, 20.0)
     return node, probe, est_pub, ref_pub
+
+
+def make_composed(ctx, executor, **params):
+    """``controller --with-estimator`` (:func:`~soft_gripper_sdre.nodes.controller.composed`) + a
+    probe publishing tip_positions and grasp_reference and recording torque_commands, every
+    link matched: ``(estimator, controller, probe, tip publisher, reference publisher)``."""
+    est, ctl = composed(context=ctx, parameter_overrides=overrides(**params))
+    probe = Probe(ctx)
+    probe.listen(JointState, TORQUE_COMMANDS, deep(LOOP_QOS))
+    tip_pub = probe.create_publisher(PoseArray, TIP_POSITIONS, LOOP_QOS)
+    ref_pub = probe.create_publisher(MultiDOFJointTrajectory, GRASP_REFERENCE, REFERENCE_QOS)
+    for node in (est, ctl, probe):
+        executor.add_node(node)
+    assert spin_until(executor, lambda: linked(tip_pub, est) and linked(ref_pub, ctl)
+                      and linked(ctl.pub_cmd, probe), 20.0)
+    return est, ctl, probe, tip_pub, ref_pub
 
 
 def make_estimator(ctx, executor, **params):

@@ -6,7 +6,7 @@ future — and sends 1000 of them to each node over real DDS. An exception in an
 surface from the executor and fail the test; every message holding a non-finite number must be
 counted as rejected; the node must still answer a good message afterwards.
 """
-from faults_common import record
+from faults_common import hostile_value, record
 from geometry_msgs.msg import Pose, PoseArray, Transform, Twist
 from node_harness import FAST_GRASP as FAST
 from node_harness import make_controller, make_estimator, make_trajectory
@@ -43,14 +43,7 @@ class Fuzz:
         self.bad = 0           # messages that certainly hold a non-finite number
 
     def value(self) -> float:
-        r = self.rng.random()
-        if r < 0.04:
-            return float('nan')
-        if r < 0.06:
-            return float(self.rng.choice([np.inf, -np.inf]))
-        if r < 0.1:
-            return float(self.rng.choice([1e300, -1e300, 0.0, 5e-324]))
-        return float(self.rng.normal(0.0, 0.05))
+        return hostile_value(self.rng, 0.05)
 
     def values(self, n: int) -> list[float]:
         return [self.value() for _ in range(n)]

@@ -13,8 +13,9 @@ time. An exception in a callback would surface from the executor and fail the te
 holding a non-finite number where the node reads one must be refused and counted; the node must
 still answer a good message afterwards.
 """
-from faults_common import record
+from faults_common import hostile_value, record
 from geometry_msgs.msg import Pose, PoseArray, PoseStamped, Transform, Twist
+from node_harness import make_composed
 import numpy as np
 import pytest
 from rclpy.qos import qos_profile_sensor_data
@@ -29,7 +30,7 @@ from soft_gripper_sdre.control.laws.registry import DEFAULT_WEIGHTS, graph_laws,
 from soft_gripper_sdre.control.tracking import Weights
 from soft_gripper_sdre.learning.model import SDCModel
 from soft_gripper_sdre.nodes import conversions as cv
-from soft_gripper_sdre.nodes.controller import ControllerNode, composed
+from soft_gripper_sdre.nodes.controller import ControllerNode
 from soft_gripper_sdre.nodes.estimator import MESSAGE_OUTCOMES, EstimatorNode
 from soft_gripper_sdre.nodes.excitation import ExcitationNode
 from soft_gripper_sdre.nodes.mocap_tips import MocapTipsNode
@@ -73,14 +74,7 @@ class Fuzz:
         self.step, self.k, self.jumps = step, 0, jumps   # the running clock of :meth:`stamp`
 
     def value(self) -> float:
-        r = self.rng.random()
-        if r < 0.04:
-            return float('nan')
-        if r < 0.06:
-            return float(self.rng.choice([np.inf, -np.inf]))
-        if r < 0.1:
-            return float(self.rng.choice([1e300, -1e300, 0.0, 5e-324]))
-        return float(self.rng.normal(0.0, 0.005))
+        return hostile_value(self.rng, 0.005)
 
     def xyz(self, numbers: list) -> tuple[float, float, float]:
         """Three hostile coordinates; the ``d`` the nodes read are noted in ``numbers``."""
@@ -296,17 +290,9 @@ def test_fuzzed_tips_never_reach_the_composed_controllers_commands(checkpoint):
     d, m = shape.d, shape.m
     fz = Fuzz(21 + d, d, m, jumps=('repeat',))     # a jump back resets: the plan is needed again
     with ros_context() as (ctx, executor):
-        est, ctl = composed(context=ctx, parameter_overrides=overrides(
-            task_dim=d, model_path=str(path), finger_names=NAMES, estimate_watchdog=60.0,
-            **_bounds_params(bounds)))
-        probe = Probe(ctx)
-        probe.listen(JointState, TORQUE_COMMANDS, deep(LOOP_QOS))
-        tip_pub = probe.create_publisher(PoseArray, TIP_POSITIONS, LOOP_QOS)
-        ref_pub = probe.create_publisher(MultiDOFJointTrajectory, GRASP_REFERENCE, REFERENCE_QOS)
-        for n in (est, ctl, probe):
-            executor.add_node(n)
-        assert spin_until(executor, lambda: linked(tip_pub, est) and linked(ref_pub, ctl)
-                          and linked(ctl.pub_cmd, probe), 20.0)
+        est, ctl, probe, tip_pub, ref_pub = make_composed(
+            ctx, executor, task_dim=d, model_path=str(path), finger_names=NAMES,
+            estimate_watchdog=60.0, **_bounds_params(bounds))
         ref_pub.publish(_good_plan(d))
         assert spin_until(executor, lambda: ctl.diag.counters['references'] == 1)
         _fuzz(executor, tip_pub, fz.pose_array, est, MESSAGE_OUTCOMES, MESSAGE_OUTCOMES[1:], fz)

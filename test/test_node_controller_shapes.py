@@ -3,14 +3,11 @@ hand: a one-chamber planar finger (d = 2, m = 1, pressure 0..2e5 Pa) and a three
 segment (d = 3, m = 3, pull-only tendons 0..2 N), each with a model really trained on a known
 SDC system."""
 
-from geometry_msgs.msg import PoseArray
-from node_harness import MS, make_controller
+from node_harness import MS, make_composed, make_controller
 import numpy as np
 import pytest
-from rosutil import Probe, deep, linked, overrides, ros_context, spin_until
-from sensor_msgs.msg import JointState
+from rosutil import overrides, ros_context, spin_until
 from shaped_models import KNOWN_SYSTEMS, trained_known_system
-from trajectory_msgs.msg import MultiDOFJointTrajectory
 
 from soft_gripper_sdre.control.laws import make_law
 from soft_gripper_sdre.control.tracking import Weights
@@ -19,10 +16,6 @@ from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.controller import ControllerNode, composed
 from soft_gripper_sdre.nodes.params import ParameterError
 from soft_gripper_sdre.nodes.topics import (
-    GRASP_REFERENCE,
-    LOOP_QOS,
-    REFERENCE_QOS,
-    TIP_POSITIONS,
     TORQUE_COMMANDS,
 )
 from soft_gripper_sdre.sim.shape import InputBounds
@@ -211,15 +204,7 @@ def test_the_composed_controller_filters_the_models_tips_and_refuses_another_tas
         with pytest.raises(ParameterError, match=f"'task_dim'.*give task_dim {d}"):
             composed(context=ctx, parameter_overrides=overrides(task_dim=5 - d, **params))
     with ros_context() as (ctx, executor):
-        est, ctl = composed(context=ctx, parameter_overrides=overrides(task_dim=d, **params))
-        probe = Probe(ctx)
-        probe.listen(JointState, TORQUE_COMMANDS, deep(LOOP_QOS))
-        tip_pub = probe.create_publisher(PoseArray, TIP_POSITIONS, LOOP_QOS)
-        ref_pub = probe.create_publisher(MultiDOFJointTrajectory, GRASP_REFERENCE, REFERENCE_QOS)
-        for node in (est, ctl, probe):
-            executor.add_node(node)
-        assert spin_until(executor, lambda: linked(tip_pub, est) and linked(ref_pub, ctl)
-                          and linked(ctl.pub_cmd, probe), 20.0)
+        est, ctl, probe, tip_pub, ref_pub = make_composed(ctx, executor, task_dim=d, **params)
         ref_pub.publish(_plan(d)[0])
         assert spin_until(executor, lambda: ctl.diag.counters['references'] == 1)
         tips = np.array([[0.001, -0.002, 0.003], [0.0, 0.001, -0.001]])
