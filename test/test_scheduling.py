@@ -251,8 +251,11 @@ def test_a_node_started_at_a_priority_runs_there_with_every_thread_and_reports_i
             proc = graph.start_node(NodeSpec('estimator', 'estimator',
                                              params_file=default_params_file('estimator'),
                                              realtime=20, cpus=(cpu,)))
+            # inside the suite's 60 s limit, so that a node that stays silent shows its log
             assert monitor.spin_until(lambda: 'scheduling' in monitor.values.get('estimator', {}),
-                                      120.0), proc.log_tail()
+                                      45.0), (f'running: {proc.alive()}, '
+                                              f'exit status: {proc.popen.returncode}, '
+                                              f'log: {proc.log_tail()!r}')
             assert monitor.values['estimator']['scheduling'] == 'SCHED_FIFO 20'
             assert monitor.values['estimator']['cpu_latency'] == '0 µs, held by this process'
             assert _device_latency() in (0, None)           # (None: not readable here)

@@ -566,7 +566,8 @@ def excitation_run(p: dict, n: int, bounds: InputBounds | None = None) -> Excita
         MAX_TORQUE, 10 * float(np.abs(np.concatenate([bounds.lower, bounds.upper])).max()))
     try:
         signals = resolve_signals(list(p['signals']), p['spec_file'] or None,
-                                  p['duration'] or None, m, limit)
+                                  p['duration'] or None, m, limit,
+                                  bounds is not None and bool(bounds.one_sided.all()))
         plan = ExcitationPlan(signals, p['settle_time'], n, finger,
                               p['torque_limit'] or PLAN_TORQUE_LIMIT, p['amplitude'], bounds)
     except (SignalSpecError, ValueError) as exc:

@@ -64,9 +64,11 @@ class Signal:
     share: bool = False
 
 
-def builtin_signal(name: str, duration: float | None = None, m: int | None = None) -> Signal:
+def builtin_signal(name: str, duration: float | None = None, m: int | None = None,
+                   one_sided: bool = False) -> Signal:
     """The built-in signal ``name`` (u1..u4, x1, x2, b1, b2), ``duration`` long (default 10 s):
-    the hand's torques, or with ``m`` the shares for m inputs.
+    the hand's torques, or with ``m`` the shares for m inputs (``one_sided``: every input only
+    pushes or only pulls, :func:`~soft_gripper_sdre.sim.signals.input_signal`).
 
     Raises:
         KeyError: unknown name (the message lists the known ones).
@@ -76,7 +78,7 @@ def builtin_signal(name: str, duration: float | None = None, m: int | None = Non
     duration = DURATION if duration is None else float(duration)
     if m is None:
         return Signal(name, duration, SIGNALS[name])
-    return Signal(name, duration, input_signal(name, m), share=True)
+    return Signal(name, duration, input_signal(name, m, one_sided), share=True)
 
 
 # -- user-defined signals --------------------------------------------------------------------
@@ -227,10 +229,11 @@ def load_signal_specs(path: str | Path, m: int = 2,
 
 def resolve_signals(names: Sequence[str], spec_file: str | Path | None = None,
                     duration: float | None = None, m: int | None = None,
-                    limit: float = MAX_TORQUE) -> list[Signal]:
+                    limit: float = MAX_TORQUE, one_sided: bool = False) -> list[Signal]:
     """The signals called ``names``: built-in, or defined in ``spec_file``; ``duration`` (if given)
     replaces each one's own length. Without ``m`` the hand's two torques; with ``m`` the
-    signals of m inputs (module doc), a spec file's amplitudes and offsets up to ``limit``.
+    signals of m inputs (module doc), a spec file's amplitudes and offsets up to ``limit``;
+    ``one_sided``: every input only pushes or only pulls (:func:`builtin_signal`).
 
     Raises:
         SignalSpecError: no names, a bad spec file, or a name found in neither place.
@@ -243,7 +246,7 @@ def resolve_signals(names: Sequence[str], spec_file: str | Path | None = None,
         if name in user:
             signal = user[name]
         elif name in SIGNALS:
-            signal = builtin_signal(name, m=m)
+            signal = builtin_signal(name, m=m, one_sided=one_sided)
         else:
             known = list(SIGNALS) + list(user)
             raise SignalSpecError(f'unknown signal {name!r}; known: {", ".join(known)}'

@@ -14,8 +14,9 @@ record and each takes both signs — with peaks inside the paper's ±25 sim-unit
 **Fingers of m inputs** (1 to 4) with per-input bounds take the same signals as shares of their
 intervals (:func:`input_signal`): each signal in sim units divided by :data:`REFERENCE` (40 sim
 units, the simulator's 0.1 N·m actuator limit, so u1 peaks at 0.625), for m inputs: u1..u3 the
-same on every input, and u4 too for one or two inputs; for three or four inputs u4 plays on input
-k the same waveform delayed by k/m of its period (:data:`U4_PERIOD`, :func:`u4_delays`); x1,
+same on every input, and u4 too for one input or two bidirectional ones; for three or four inputs,
+or two that only push or pull, u4 plays on input k the same waveform delayed by k/m of its
+period (:data:`U4_PERIOD`, :func:`u4_delays`); x1,
 x2 multisines on disjoint, incommensurate frequency sets per input (the hand's two sets, then
 two more); b1, b2 the broadband multisine with its 12 frequencies per
 input dealt to the inputs in turn (b2 starting one input later; for one input b1 and b2 take
@@ -31,8 +32,13 @@ a validation record with every input equal moves the tip little and tests one di
 input space. Delayed by k/m of the 2 s period, the three components of u4 (0.5, 1 and 1.5 Hz)
 reach the inputs at phases 2πjk/m (j = 1, 2, 3): for m = 3 the 0.5 and 1 Hz components sum to
 zero over the inputs (a tip that circles) and the 1.5 Hz one stays common to all (the
-shortening), for m = 4 none is common. Every input plays u4's own values, so its peak and its
-level are u4's.
+shortening), for m = 4 none is common. Two inputs that only push or pull are most often a pair
+acting against each other (a flexor and an extensor tendon, chambers on opposite sides): played
+alike they cancel at the tip, and a validation record of them tests the pair's stiffening and
+hardly its motion. Delayed by half the period, u4's 0.5 and 1.5 Hz components drive the pair
+against each other (the tip moves) and its 1 Hz one drives both alike (co-contraction, or the
+bending of two inputs that act the same way), so the record holds both whatever the pair's
+arrangement. Every input plays u4's own values, so its peak and its level are u4's.
 """
 from __future__ import annotations
 
@@ -136,11 +142,11 @@ _PAPER = {
 U4_PERIOD = 2.0
 
 
-def u4_delays(m: int) -> np.ndarray:
-    """The delay [s] of u4 on each of ``m`` inputs (module doc): 0 on every input for one or two
-    inputs (the hand's u4, both torques equal), k·:data:`U4_PERIOD`/m on input k for three or
-    four."""
-    if m <= 2:
+def u4_delays(m: int, one_sided: bool = False) -> np.ndarray:
+    """The delay [s] of u4 on each of ``m`` inputs (module doc): k·:data:`U4_PERIOD`/m on input
+    k for three or four inputs, and for two that only push or pull (``one_sided``); 0 on every
+    input otherwise (the hand's u4, both torques equal)."""
+    if m == 1 or (m == 2 and not one_sided):
         return np.zeros(m)
     return np.arange(m) * U4_PERIOD / m
 
@@ -167,9 +173,10 @@ def _broadband_shares(f_lo: float, f_hi: float, per_axis: int, m: int, first: in
     return signal
 
 
-def input_signal(name: str, m: int) -> Callable[[np.ndarray], np.ndarray]:
+def input_signal(name: str, m: int, one_sided: bool = False) -> Callable[[np.ndarray], np.ndarray]:
     """The built-in signal ``name`` for ``m`` inputs as shares of each input's interval: t (N,)
-    [s] → (N, m), within ±1 (module doc).
+    [s] → (N, m), within ±1 (module doc); ``one_sided``: every input only pushes or only pulls
+    (u4 is then staggered for two inputs too, :func:`u4_delays`).
 
     Raises:
         KeyError: unknown name (the message lists the known ones).
@@ -178,8 +185,9 @@ def input_signal(name: str, m: int) -> Callable[[np.ndarray], np.ndarray]:
     get_signal(name)
     if not (isinstance(m, (int, np.integer)) and 1 <= m <= 4):
         raise ValueError(f'the number of inputs m must be 1 to 4, got {m!r}')
-    if name == 'u4' and m > 2:
-        f, delays = _PAPER[name], u4_delays(m)
+    delays = u4_delays(m, one_sided) if name == 'u4' else np.zeros(m)
+    if delays.any():
+        f = _PAPER[name]
 
         def staggered(t):
             t = np.asarray(t, dtype=float)
