@@ -53,8 +53,10 @@ def _play(executor, node, probe, pub, period_ms: int, most: int):
 @pytest.mark.parametrize('m, lower, upper, signals', [
     (1, [0.0], [60000.0], ['u1', 'x1']),
     (3, [0.0, 0.0, 0.0], [4.0, 4.0, 4.0], ['x2', 'b1']),
+    (2, [0.0, 0.0], [4.0, 4.0], ['u4', 'u1']),
 ])
 def test_one_sided_inputs_are_played_from_rest_into_their_bounds(m, lower, upper, signals):
+    """(Two tendons: u4 staggered over the pair, u1 alike, sim/signals.py.)"""
     bounds = InputBounds(lower, upper)
     with ros_context() as (ctx, executor):
         node, probe, pub = _start(ctx, executor, signals=signals, duration=0.1, settle_time=0.02,
@@ -66,8 +68,8 @@ def test_one_sided_inputs_are_played_from_rest_into_their_bounds(m, lower, upper
         assert all(list(msg.name) == [f'{f}/ax{k}' for f in NAMES for k in range(m)]
                    for msg in msgs)
         got = [cv.msg_to_torques(msg, NAMES, m) for msg in msgs]
-    plan = ExcitationPlan(resolve_signals(signals, duration=0.1, m=m), 0.02, 2, amplitude=1.5,
-                          bounds=bounds)
+    plan = ExcitationPlan(resolve_signals(signals, duration=0.1, m=m, one_sided=True), 0.02, 2,
+                          amplitude=1.5, bounds=bounds)
     for k, (stamp, u) in enumerate(got[:-1]):
         assert stamp == 5 * MS + 2 * k * MS
         np.testing.assert_array_equal(u, plan.torques(2 * k * MS / cv.NS))
@@ -76,6 +78,10 @@ def test_one_sided_inputs_are_played_from_rest_into_their_bounds(m, lower, upper
     assert np.all(u[:10] == 0.0) and np.all(got[-1][1] == 0.0), 'at rest: settling and at the end'
     assert u.max() > 0.3 * max(upper)
     assert node.exit_code == 0 and node.diag.values['level'] == 'fixed'
+    if m == 2:
+        u4, u1 = u[10:60], u[70:120]                # each signal's 50 commands after settling
+        assert np.abs(u4[..., 0] - u4[..., 1]).max() > 0.5
+        np.testing.assert_array_equal(u1[..., 0], u1[..., 1])
 
 
 def test_symmetric_bounds_on_two_inputs_are_the_hands_torque_limit():
