@@ -18,7 +18,8 @@ to training, as the preset's:
 
 1. **identify** — recorder + excitation node, one bag per signal (u1 x1 x2 b1 b2 and the
    validation signal u4, on trunk3's three tendons staggered by a third of its period each so
-   that it bends the segment: :func:`~soft_gripper_sdre.sim.signals.u4_delays`), each with
+   that it bends the segment, and on flexor2's two by half of it so that the pair moves the
+   tip: :func:`~soft_gripper_sdre.sim.signals.u4_delays`), each with
    ``level:=auto`` (its amplitude found by probing the finger with the signal's start to half
    of ``max_excursion``; the first probe at u1's amplitude, ``level_start``) and the driver's
    limit (``torque_limit`` or the one-sided bounds);
