@@ -53,8 +53,8 @@ def test_every_intensity_is_tried_with_every_integral_gain(derived):
         assert len(got) == len(want)
         assert [v for pair in got for v in pair] == pytest.approx(
             [v for pair in want for v in pair], rel=1e-12)
-        # the integral's last divisor puts k_i at twice the loop's ω_c³
-        assert max(row['integral_gain'] for row in tried) == pytest.approx(2 * w ** 3)
+        # the integral's last divisor puts k_i at eight times the loop's ω_c³
+        assert max(row['integral_gain'] for row in tried) == pytest.approx(8 * w ** 3)
 
 
 def test_a_candidate_is_scored_by_its_nominal_run_and_the_runs_with_the_gain_lowered(derived):

@@ -177,8 +177,12 @@ ROLL_OFF_RATIO = 4.0
 #: integral gains tried, k_i = ω_c³ / divisor: the corner a decade under the loop's first, then
 #: nearer it (a stronger integral absorbs more of the model's gain error while a move goes on).
 #: Along a move where the finger's own spring κ is stiffer than the loop (ω_c² < κ) the corner
-#: is k_i / (ω_c² + κ), below ω_c even at the last divisor (``trunk3``'s shortening: ω_c / 17)
-INTEGRAL_DIVISORS = (10.0, 4.0, 2.0, 1.0, 0.5)
+#: is k_i / (ω_c² + κ): at the last divisor ``trunk3``'s shortening ω_c / 4, ``flexor2``'s
+#: 0.7 Hz loop on its 2.3 Hz model 0.7 ω_c. The divisors under 0.5 are for such stiff fingers:
+#: with them the check keeps the loop that takes the offset out within the move where the
+#: margin rule leaves only slow loops (docs/own_gripper.md, "Two antagonistic tendons"); on a
+#: finger softer than its loop the corner passes ω_c and the check's runs refuse it
+INTEGRAL_DIVISORS = (10.0, 4.0, 2.0, 1.0, 0.5, 0.25, 0.125)
 #: the integral's band as a share of the travel (module doc's table)
 BAND_TRAVEL = 1.0
 PD_DAMPING = 0.7
