@@ -70,6 +70,9 @@ def _derive(model, facts, workers, bandwidths):
 def test_checks_side_by_side_choose_what_one_after_another_chooses(monkeypatch, make_model,
                                                                    make_facts, bandwidths):
     monkeypatch.setattr(ls, 'CHECK_PROFILE', SHORT_PROFILE)
+    # four of the integral gains, the weakest and the strongest among them: the rule's order
+    # is what is compared, not the number of candidates
+    monkeypatch.setattr(ls, 'INTEGRAL_DIVISORS', (10.0, 2.0, 0.5, 0.125))
     model = make_model()
     facts = make_facts(model)
     parallel, said = _derive(model, facts, 2, bandwidths)
