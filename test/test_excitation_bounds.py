@@ -94,24 +94,35 @@ def test_u4_is_staggered_over_two_inputs_that_only_pull_and_alike_over_two_that_
     np.testing.assert_array_equal(names[1].torque(T), pair)
 
 
+def _u4_alike(m: int) -> Signal:
+    """u4 the same on all ``m`` inputs, 4 s (the shares of one input's u4 repeated)."""
+    one = input_signal('u4', 1)
+    return Signal('u4', 4.0, lambda t: np.repeat(one(t), m, axis=-1), share=True)
+
+
+def _tip_spread(preset: str, signal: Signal, bounds: InputBounds, level: float,
+                dt: float) -> np.ndarray:
+    """The standard deviation per coordinate [m] of the preset finger's tip about its rest while
+    ``signal`` plays at ``level`` after a 0.5 s settle, every input within ``bounds``."""
+    plant = make_plant(preset)
+    plan = ExcitationPlan([signal], 0.5, 1, bounds=bounds).scaled(level)
+    tips = []
+    for k in range(int(plan.duration / dt)):
+        u = plan.torques(k * dt)[0]
+        assert bounds.contains(u)
+        plant.step(u, dt)
+        tips.append(plant.tip() - plant.rest_tip)
+    return np.std(tips, axis=0)
+
+
 def test_staggered_u4_bends_the_trunk_segment_where_u4_alike_only_shortens_it():
     """On the real three-tendon segment (trunk3_a, from slack at the level the recipe's search
     found, 0.45): u4 alike on the three tendons moves the tip along the segment's axis alone;
     staggered, the same tendons within [0, 4 N] bend it across the axis in both directions by
     more than half its motion along it."""
-    one = input_signal('u4', 1)
-    alike = Signal('u4', 4.0, lambda t: np.repeat(one(t), 3, axis=-1), share=True)
-    spread = {}
-    for name, signal in (('staggered', builtin_signal('u4', 4.0, m=3)), ('alike', alike)):
-        plant = make_plant('trunk3_a')
-        plan = ExcitationPlan([signal], 0.5, 1, bounds=TENDONS).scaled(0.45)
-        tips, dt = [], 0.004
-        for k in range(int(plan.duration / dt)):
-            u = plan.torques(k * dt)[0]
-            assert TENDONS.contains(u)
-            plant.step(u, dt)
-            tips.append(plant.tip() - plant.rest_tip)
-        spread[name] = np.std(tips, axis=0)          # (x along the segment, y, z) [m]
+    spread = {name: _tip_spread('trunk3_a', signal, TENDONS, 0.45, 0.004)
+              for name, signal in (('staggered', builtin_signal('u4', 4.0, m=3)),
+                                   ('alike', _u4_alike(3)))}   # (x along the segment, y, z) [m]
     assert np.all(spread['alike'][1:] < 1e-9) and spread['alike'][0] > 1e-3
     assert np.all(spread['staggered'][1:] > 0.5 * spread['staggered'][0])
     assert np.all(spread['staggered'][1:] > 0.5e-3)
@@ -122,20 +133,9 @@ def test_staggered_u4_moves_the_flexor_extensor_finger_that_u4_alike_hardly_move
     apart, from slack at a level the recipe's search chooses, 0.6 of [0, 4 N]): u4 alike on the
     two tendons moves the tip less than half as far as the same tendons staggered."""
     bounds = InputBounds(np.zeros(2), np.full(2, 4.0))
-    one = input_signal('u4', 1)
-    alike = Signal('u4', 4.0, lambda t: np.repeat(one(t), 2, axis=-1), share=True)
-    spread = {}
-    for name, signal in (('staggered', builtin_signal('u4', 4.0, m=2, one_sided=True)),
-                         ('alike', alike)):
-        plant = make_plant('flexor2_index')
-        plan = ExcitationPlan([signal], 0.5, 1, bounds=bounds).scaled(0.6)
-        tips, dt = [], 0.005
-        for k in range(int(plan.duration / dt)):
-            u = plan.torques(k * dt)[0]
-            assert bounds.contains(u)
-            plant.step(u, dt)
-            tips.append(plant.tip() - plant.rest_tip)
-        spread[name] = float(np.linalg.norm(np.std(tips, axis=0)))
+    spread = {name: float(np.linalg.norm(_tip_spread('flexor2_index', signal, bounds, 0.6, 0.005)))
+              for name, signal in (('staggered', builtin_signal('u4', 4.0, m=2, one_sided=True)),
+                                   ('alike', _u4_alike(2)))}
     assert spread['staggered'] > 2 * spread['alike'], spread
     assert spread['staggered'] > 2e-3, spread
 

@@ -197,19 +197,22 @@ _FLEXOR_EXTENSOR = ((0.008, 0.003, 0.0015), (-0.0025, -0.0045, -0.007))
 TENDON_MAX = 4.0
 
 
+def _flexor_extensor(finger: FingerParams, name: str) -> FingerParams:
+    """``finger``'s links, springs and friction driven by the flexor and the extensor, each
+    pulling 0 to :data:`TENDON_MAX`."""
+    return dataclasses.replace(finger, name=name, transmission=_FLEXOR_EXTENSOR,
+                               torque_limit=TENDON_MAX, lower_limits=(0.0, 0.0))
+
+
 def flexor2_index() -> FingerParams:
     """The tendon index's links, springs and friction, driven by two antagonistic tendons that
     only pull (0 to 4 N each): a flexor toward the palm (+Y) and an extensor away from it."""
-    return dataclasses.replace(tendon3_index(), name='flexor2_index',
-                               transmission=_FLEXOR_EXTENSOR, torque_limit=TENDON_MAX,
-                               lower_limits=(0.0, 0.0))
+    return _flexor_extensor(tendon3_index(), 'flexor2_index')
 
 
 def flexor2_thumb() -> FingerParams:
     """The tendon thumb's links, springs and friction, with the index's two tendons."""
-    return dataclasses.replace(tendon3_thumb(), name='flexor2_thumb',
-                               transmission=_FLEXOR_EXTENSOR, torque_limit=TENDON_MAX,
-                               lower_limits=(0.0, 0.0))
+    return _flexor_extensor(tendon3_thumb(), 'flexor2_thumb')
 
 
 #: preset name → its parameters (a plant: ``sim.plants.chain.FingerPlant(PLANTS[name]())``)
