@@ -4,7 +4,8 @@ A seeded generator builds well-typed messages with hostile content — NaN/Inf, 
 and oversized arrays, unknown and duplicate names, stamps at zero, in the past and far in the
 future — and sends 1000 of them to each node over real DDS. An exception in any callback would
 surface from the executor and fail the test; every message holding a non-finite number must be
-counted as rejected; the node must still answer a good message afterwards.
+refused, message by message (a NaN where a planar reader looks: X, Y and the fields it reads);
+the node must still answer a good message afterwards.
 """
 from faults_common import hostile_value, record
 from geometry_msgs.msg import Pose, PoseArray, Transform, Twist
@@ -40,7 +41,7 @@ class Fuzz:
 
     def __init__(self, seed: int) -> None:
         self.rng = np.random.default_rng(seed)
-        self.bad = 0           # messages that certainly hold a non-finite number
+        self.bad = 0           # messages holding a non-finite number where a planar reader looks
 
     def value(self) -> float:
         return hostile_value(self.rng, 0.05)
@@ -79,12 +80,14 @@ class Fuzz:
         for _ in range(self.count()):
             p = Pose()
             p.position.x, p.position.y, p.position.z = xyz = self.values(3)
-            numbers += xyz
+            numbers += xyz[:2]
             msg.poses.append(p)
         self.note(numbers)
         return msg
 
-    def trajectory(self, points: int) -> MultiDOFJointTrajectory:
+    def trajectory(self, points: int, read=('transforms', 'velocities', 'accelerations')
+                   ) -> MultiDOFJointTrajectory:
+        """A horizon of ``points``; NaN/Inf noted where a planar reader of ``read`` looks (X, Y)."""
         msg = MultiDOFJointTrajectory()
         self.stamp(msg)
         n = self.count() // 2 if self.rng.random() < 0.3 else 4
@@ -97,7 +100,8 @@ class Fuzz:
                 items = []
                 for _ in range(int(self.rng.choice([n, n, n, self.count()]))):
                     xyz = self.values(3)
-                    numbers += xyz
+                    if field in read:
+                        numbers += xyz[:2]
                     if field == 'transforms':
                         item = Transform()
                         item.translation.x, item.translation.y, item.translation.z = xyz
@@ -116,16 +120,21 @@ def _finite_outputs(msgs, reader) -> bool:
     return all(np.all(np.isfinite(reader(m))) for m in msgs)
 
 
-def _fuzz(executor, pub, make, node, received, n=N_MESSAGES):
+def _fuzz(executor, pub, make, node, received, refused=(), fz=None, n=N_MESSAGES):
     """Send ``n`` fuzzed messages one at a time, each once the node has taken the previous one
-    (``received`` counters of its diagnostics), so no queue overflows and every one is judged."""
-    def taken() -> int:
-        return sum(node.diag.counters[k] for k in received)
-    start = taken()
+    (``received`` counters of its diagnostics), so no queue overflows and every one is judged; a
+    message ``fz`` noted as holding a NaN/Inf must have raised one of the ``refused`` counters."""
+    def count(keys) -> int:
+        return sum(node.diag.counters[k] for k in keys)
     for i in range(n):
+        taken, was_refused, bad = count(received), count(refused), fz.bad if fz else 0
         pub.publish(make())
-        assert spin_until(executor, lambda: taken() >= start + i + 1, 5.0), (
+        assert spin_until(executor, lambda: count(received) > taken, 5.0), (
             f'message {i} not handled; counters {dict(node.diag.counters)}')
+        if fz is not None and fz.bad > bad:
+            assert count(refused) > was_refused, (
+                f'message {i} held a NaN/Inf and was not refused; counters '
+                f'{dict(node.diag.counters)}')
 
 
 def _record(node: str, topic: str, rejected: int, bad: int) -> None:
@@ -151,9 +160,9 @@ def test_fuzzed_torque_commands_never_reach_the_physics():
         executor.add_node(probe)
         assert spin_until(executor, lambda: pub.get_subscription_count() > 0
                           and sim.stepping.started and probe.received[TIP_POSITIONS])
-        _fuzz(executor, pub, fz.joint_state, sim,
-              ('commands', 'bad_command', 'stale_command', 'future_command'))
-        rejected = _rejected(sim, ('bad_command', 'stale_command', 'future_command'))
+        refused = ('bad_command', 'stale_command', 'future_command')
+        _fuzz(executor, pub, fz.joint_state, sim, ('commands', *refused), refused, fz)
+        rejected = _rejected(sim, refused)
         assert rejected >= fz.bad > 50
         assert np.all(np.isfinite(sim.sim.truth().tip_pos))
         assert _finite_outputs(probe.received[TIP_POSITIONS], lambda m: cv.msg_to_tips(m, 4)[1])
@@ -164,7 +173,7 @@ def test_fuzzed_tips_never_reach_the_estimate():
     fz = Fuzz(2)
     with ros_context() as (ctx, executor):
         node, probe, pub = make_estimator(ctx, executor)
-        _fuzz(executor, pub, fz.pose_array, node, MESSAGE_OUTCOMES)
+        _fuzz(executor, pub, fz.pose_array, node, MESSAGE_OUTCOMES, MESSAGE_OUTCOMES[1:], fz)
         assert _rejected(node, MESSAGE_OUTCOMES[1:]) >= fz.bad > 50
         out = probe.received[STATE_ESTIMATE]
         assert _finite_outputs(out, lambda m: cv.msg_to_estimate(m, 4)[1])
@@ -185,10 +194,12 @@ def test_fuzzed_tips_never_reach_the_plan():
         node, probe, pub = make_trajectory(ctx, executor, **FAST)
         c = node.diag.counters
         for i in range(N_MESSAGES):
-            taken = c['tips']
+            taken, refused, bad = c['tips'], c['bad_message'], fz.bad
             pub.publish(fz.pose_array())
             assert spin_until(executor, lambda: c['tips'] + c['bad_message'] > i, 5.0), (
                 f'message {i} not handled; counters {dict(c)}')
+            assert fz.bad == bad or c['bad_message'] > refused, (
+                f'message {i} held a NaN/Inf and was not refused; counters {dict(c)}')
             if c['tips'] > taken:                               # planned: restart to listen again
                 resets = c['resets']
                 for ns in (10**9, 0):
@@ -247,10 +258,11 @@ def test_fuzzed_estimates_and_references_never_reach_the_actuators():
         cmds = probe.received[TORQUE_COMMANDS]
         bad_before = fz.bad
         _fuzz(executor, ref_pub, lambda: fz.trajectory(points=int(fz.rng.integers(0, 6))), node,
-              ('references', 'bad_reference'), N_MESSAGES // 2)
+              ('references', 'bad_reference'), ('bad_reference',), fz, N_MESSAGES // 2)
         bad_refs = fz.bad - bad_before
-        _fuzz(executor, est_pub, lambda: fz.trajectory(points=1), node,
-              ('estimates', 'bad_estimate', 'old_estimate'), N_MESSAGES // 2)
+        _fuzz(executor, est_pub, lambda: fz.trajectory(1, ('transforms', 'velocities')), node,
+              ('estimates', 'bad_estimate', 'old_estimate'), ('bad_estimate', 'old_estimate'), fz,
+              N_MESSAGES // 2)
         bad_est = fz.bad - bad_before - bad_refs
         assert node.diag.counters['bad_reference'] >= bad_refs > 20
         assert (node.diag.counters['bad_estimate'] + node.diag.counters['old_estimate']
