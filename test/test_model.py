@@ -261,6 +261,17 @@ BAD_CHECKPOINTS = {
                     'scale x has shape'),
     'rest tip shape': (lambda c: {**c, 'rest_tip': torch.zeros(2)}, 'rest_tip has shape'),
     'not a dict': (lambda c: [1, 2, 3], 'is not a soft_gripper_sdre checkpoint'),
+    'no history': (lambda c: without(c, 'history'), 'history is missing'),
+    'metrics not a mapping': (lambda c: {**c, 'metrics': 'none'}, 'metrics must be a mapping'),
+    'period a string': (lambda c: {**c, 'dt': 'abc'}, "dt must be a period > 0 s, got 'abc'"),
+    'period zero': (lambda c: {**c, 'dt': 0.0}, 'dt must be a period > 0 s'),
+    'rest tip NaN': (lambda c: {**c, 'rest_tip': torch.tensor([float('nan'), 0.0, 0.0])},
+                     'rest_tip holds a NaN or an infinity'),
+    'scale infinite': (lambda c: {**c, 'scales': {**c['scales'], 'u': c['scales']['u'] * np.inf}},
+                       'scale u holds a NaN or an infinity'),
+    'weight NaN': (lambda c: {**c, 'state_dict': {**c['state_dict'], 'g_net.4.bias':
+                                                  c['state_dict']['g_net.4.bias'] * np.nan}},
+                   'weight g_net.4.bias holds a NaN'),
 }
 
 

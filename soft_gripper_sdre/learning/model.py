@@ -29,6 +29,7 @@ networks as one fused network of three matmuls.
 from __future__ import annotations
 
 import hashlib
+import math
 from pathlib import Path
 import pickle
 import re
@@ -202,9 +203,40 @@ def read_checkpoint(path: Path) -> dict:
     except (KeyError, RuntimeError, ValueError, TypeError) as exc:
         raise ModelFileError(
             f'model file {path} does not match the network layout: {exc}'[:400]) from None
+    _check_record(path, ckpt)
     ckpt['net'] = net
     ckpt['shape'], ckpt['input_bounds'] = shape, bounds
     return ckpt
+
+
+def _check_record(path: Path, ckpt: dict) -> None:
+    """The checkpoint's numbers a model is built from are finite (``rest_tip``, every scale,
+    every weight), its period ``dt`` a positive number, and the records the model carries
+    (``settings``, ``data``, ``metrics``: mappings; ``history``: a mapping or a list) present.
+
+    Raises:
+        ModelFileError: naming the key and what it holds.
+    """
+    def bad(key: str, why: str) -> ModelFileError:
+        return ModelFileError(f'model file {path}: {key} {why}'[:400])
+    tensors = {'rest_tip': ckpt['rest_tip'],
+               **{f'scale {k}': v for k, v in ckpt['scales'].items()},
+               **{f'weight {k}': v for k, v in ckpt['state_dict'].items()}}
+    for key, value in tensors.items():
+        if not bool(torch.isfinite(value).all()):
+            raise bad(key, 'holds a NaN or an infinity')
+    dt = ckpt.get('dt')
+    if isinstance(dt, torch.Tensor) and dt.numel() == 1:
+        dt = dt.item()
+    if isinstance(dt, bool) or not isinstance(dt, (int, float)) or not (math.isfinite(dt)
+                                                                         and dt > 0):
+        raise bad('dt', f'must be a period > 0 s, got {dt!r}')
+    for key, kinds in (('settings', dict), ('data', dict), ('metrics', dict),
+                       ('history', (dict, list))):
+        if key not in ckpt:
+            raise bad(key, 'is missing (a checkpoint tools.learning.train writes has it)')
+        if not isinstance(ckpt[key], kinds):
+            raise bad(key, f'must be a mapping, got {type(ckpt[key]).__name__}')
 
 
 def _checkpoint_shape(path: Path, ckpt: dict) -> tuple[FingerShape, InputBounds | None]:
