@@ -39,6 +39,9 @@ def _tool(*args, timeout=60, env=None):
     ('bad_time', [], 't_start, t_close, t_hold, t_open must be numbers >= 0 s'),
     ('no_names', [], 'finger_names must be a list of 1 to 4 names'),
     ('no_travel', [], 'close_distance > 0'),
+    ('bad_task_dim', [], "the trajectory section's task_dim must be 2 or 3 (the tip's "
+                         "coordinates), got 5"),
+    ('no_model', [], "the controller's bounds: model_path: model file"),
     ('exists', [], 'exists already'),
     ('bad_domain', [], "ROS_DOMAIN_ID 'lab' is not a domain number"),
 ])
@@ -63,6 +66,13 @@ def test_bad_arguments_exit_2_naming_them_with_nothing_written(tmp_path, make, a
         path.write_text(yaml.safe_dump(data))
     elif make == 'no_travel':
         params_file(path, close_distance=0.0)
+    elif make == 'bad_task_dim':
+        params_file(path, task_dim=5)
+    elif make == 'no_model':
+        params_file(path)
+        data = yaml.safe_load(path.read_text())
+        data['/**/controller']['ros__parameters']['model_path'] = str(src / 'gone.pt')
+        path.write_text(yaml.safe_dump(data))
     out = tmp_path / 'out'
     if make == 'exists':
         out.mkdir()
@@ -133,3 +143,39 @@ def test_the_params_training_writes_hold_what_the_deployment_reads(tmp_path, fac
     assert got.finger_names == NAMES and got.plan_seconds == 5.5 and got.rest_seconds == 0.5
     assert got.travel == pytest.approx(facts.travel, rel=1e-9) and got.d == facts.d
     assert got.bounds == (facts.bounds or InputBounds.symmetric(0.02, 2))
+
+
+def test_a_symmetric_limit_reaches_the_deployment_on_every_input_of_the_model(tmp_path):
+    """Symmetric bounds on other than two inputs, or beyond the controller's torque_limit range
+    (inputs in N), are written as input_lower / input_upper; a torque_limit alone is taken on
+    each input of the model at model_path."""
+    from shaped_models import trained_known_system
+
+    from soft_gripper_sdre.analysis import loop_settings as ls
+    from soft_gripper_sdre.tools.graph.deploy import Settings, controller_bounds
+    facts = ls.DataFacts(period=5e-3, noise_std=5e-5, accel_psd_ml=1.0, travel=2e-3,
+                         torque_limit=0.02, direction=120.0)
+
+    def controller(limit, m):
+        settings = ls.LoopSettings(5e-3, 5e-5, 1.0, 1e6, 1e3, 1.0, limit, 50.0, 0.0, 1e-3, 1.0,
+                                   0.1, 2.0)
+        return ls.Derivation(settings, {}, [], facts, m=m).params(NAMES)['controller']
+
+    assert controller(0.02, 2)['torque_limit'] == 0.02              # the hand's: as it was
+    assert 'input_lower' not in controller(0.02, 2)
+    for limit, m in ((0.02, 3), (0.02, 1), (40.0, 2)):
+        ctrl = controller(limit, m)
+        assert 'torque_limit' not in ctrl
+        assert ctrl['input_lower'] == [-limit] * m and ctrl['input_upper'] == [limit] * m
+    from soft_gripper_sdre.nodes.controller import PARAMS
+    assert ls.TORQUE_LIMIT_RANGE == next((p.min, p.max) for p in PARAMS
+                                         if p.name == 'torque_limit')
+    # a params file holding only torque_limit: the bounds are on each of the model's inputs
+    _, _, model = trained_known_system(3, 3, tmp_path)
+    assert controller_bounds({'torque_limit': 0.5, 'model_path': str(model)},
+                             tmp_path) == InputBounds.symmetric(0.5, 3)
+    path = params_file(tmp_path / 'params.yaml', task_dim=3)
+    data = yaml.safe_load(path.read_text())
+    data['/**/controller']['ros__parameters']['model_path'] = str(model)
+    path.write_text(yaml.safe_dump(data))
+    assert Settings(path).bounds == InputBounds.symmetric(0.02, 3)

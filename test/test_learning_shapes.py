@@ -550,10 +550,10 @@ def _derivation():
     from soft_gripper_sdre.analysis.data_facts import DataFacts
     from soft_gripper_sdre.analysis.loop_settings import Derivation, LoopSettings
     settings = LoopSettings(control_period=0.005, meas_std=1e-5, accel_psd=10.0, q_pos=1e6,
-                            q_vel=1.0, r=1.0, torque_limit=2.0, torque_lowpass_hz=40.0,
+                            q_vel=1.0, r=1.0, torque_limit=0.05, torque_lowpass_hz=40.0,
                             integral_gain=5.0, integral_band=1e-3, pd_kp=100.0, pd_kd=1.0,
                             bandwidth_hz=4.0)
-    facts = DataFacts(period=0.005, noise_std=1e-5, travel=0.01, torque_limit=2.0,
+    facts = DataFacts(period=0.005, noise_std=1e-5, travel=0.01, torque_limit=0.05,
                       accel_psd_ml=10.0)
     return Derivation(settings, {}, [], facts)
 

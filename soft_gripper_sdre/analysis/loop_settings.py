@@ -199,6 +199,9 @@ KEEP_ROBUST = 0.5
 #: pull or bend it to (nodes/trajectory.py)
 REST_SECONDS = 0.25
 PREFER_SLOWER = 1.5
+#: the controller node's ``torque_limit`` range [N·m] (nodes/controller.py): a symmetric limit
+#: outside it goes to the node as input_lower / input_upper (:meth:`Derivation.params`)
+TORQUE_LIMIT_RANGE = (1e-6, 1.0)
 #: the check's move is at least this many σ of measurement noise
 MIN_TRAVEL_NOISE = 10.0
 #: when no candidate passes along the move, the check is made again along this share of it (a
@@ -688,6 +691,9 @@ class Derivation:
     #: the chosen settings' runs on the fingers' own fits with their input lags, by finger
     #: (:func:`check_on_model` results as dicts; None: no fit with a lag took part)
     on_fingers: dict[str, dict] | None = None
+    #: the model's inputs per finger (m): symmetric bounds on any other number than the hand's
+    #: two go to the controller as input_lower / input_upper (:meth:`params`)
+    m: int = 2
 
     def summary(self) -> dict:
         facts = asdict(replace(self.facts, bounds=None))
@@ -714,10 +720,12 @@ class Derivation:
         """The nodes' parameters for these settings as plain data: ``{'estimator': {…},
         'controller': {…}, 'trajectory': {…}}`` (the controller's ``model_path`` is the caller's).
 
-        The hand's shape with symmetric bounds gets the parameters it always had (the planar
-        straight move as ``close_distance`` and ``side_distance``). Another shape adds
-        ``task_dim`` (estimator, trajectory) and, for per-input bounds, the controller's
-        ``input_lower``/``input_upper`` in place of ``torque_limit``. Its move is ``direction``
+        Two inputs with symmetric bounds within :data:`TORQUE_LIMIT_RANGE` get the controller's
+        ``torque_limit``; per-input bounds, symmetric bounds on another number of inputs (:attr:`m`)
+        or beyond that range (inputs in N or Pa) get ``input_lower``/``input_upper`` in its place
+        (the node's ``torque_limit`` is the hand's, in N·m). The hand's planar straight move is
+        ``close_distance`` and ``side_distance``; another shape adds ``task_dim`` (estimator,
+        trajectory). Its move is ``direction``
         (d values, the unit direction) with ``close_distance`` its length, and for a curved move
         ``close_path`` (d values per waypoint after the rest, relative to it, flat; then
         ``direction`` is its chord), both lists of floats. The trajectory node's rest pose is the
@@ -737,11 +745,15 @@ class Derivation:
                 'torque_lowpass_hz': d.torque_lowpass_hz,
                 'integral_gain': d.integral_gain, 'integral_band': d.integral_band,
                 'feedforward_at': d.feedforward_at, 'pd_kp': d.pd_kp, 'pd_kd': d.pd_kd}
-        if f.bounds is not None:
+        bounds = f.bounds
+        if bounds is None and (self.m != 2 or not (TORQUE_LIMIT_RANGE[0] <= d.torque_limit
+                                                   <= TORQUE_LIMIT_RANGE[1])):
+            bounds = InputBounds.symmetric(d.torque_limit, self.m)
+        if bounds is not None:
             # the bounds replace the symmetric limit (the node's torque_limit is in N·m)
             del ctrl['torque_limit']
-            ctrl['input_lower'] = [float(v) for v in f.bounds.lower]
-            ctrl['input_upper'] = [float(v) for v in f.bounds.upper]
+            ctrl['input_lower'] = [float(v) for v in bounds.lower]
+            ctrl['input_upper'] = [float(v) for v in bounds.upper]
         if f.input_gains:
             ctrl['input_gains'] = [f.input_gains.get(name, 1.0) for name in names]
         if f.d == 2 and f.path is None:
@@ -837,7 +849,7 @@ def derive(model, facts: DataFacts, laws: tuple[str, ...] = ('sdre_ff', 'sdre'),
     if facts.travel < MIN_TRAVEL_NOISE * facts.noise_std:
         need = np.abs(hold_torques(model,
                                    MIN_TRAVEL_NOISE * facts.noise_std * facts.unit[None])).max()
-        return Derivation(None, {}, [], facts, reason=(
+        return Derivation(None, {}, [], facts, m=shape.m, reason=(
             f'the model holds at most {1e3 * facts.travel:.3g} mm along {way} with '
             f'{HOLD_SHARE:g} of {limit}, under '
             f'{MIN_TRAVEL_NOISE:g} σ of noise ({1e3 * MIN_TRAVEL_NOISE * facts.noise_std:.3g} mm, '
@@ -869,7 +881,7 @@ def derive(model, facts: DataFacts, laws: tuple[str, ...] = ('sdre_ff', 'sdre'),
                      else _along_curve(facts, curve, shorter))
             say(f'no setting passed: a move of {1e3 * shorter:.3g} mm')
         if not kept:
-            return Derivation(None, {}, rows, facts)
+            return Derivation(None, {}, rows, facts, m=shape.m)
         # the best bandwidth's neighbours half an octave either side (module doc)
         best_hz = min(kept, key=lambda c: (c[0], c[1]))[1]
         between = tuple(hz for hz in (best_hz / REFINE_STEP, best_hz * REFINE_STEP)
@@ -891,7 +903,7 @@ def derive(model, facts: DataFacts, laws: tuple[str, ...] = ('sdre_ff', 'sdre'),
     paper = {'hold_offset': paper_law_offset(model, facts, chosen.bandwidth_hz),
              'share': PAPER_LAW_SHARE,
              'needs_bandwidth_hz': needs if math.isfinite(needs) else None}     # None: over 1 kHz
-    return Derivation(chosen, checks, rows, facts, paper_law=paper,
+    return Derivation(chosen, checks, rows, facts, paper_law=paper, m=shape.m,
                       on_fingers=row.get('fingers'))
 
 

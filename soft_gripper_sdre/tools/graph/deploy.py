@@ -93,7 +93,10 @@ class Settings:
                              f'got {times!r}')
         self.plan_seconds = float(sum(times))
         self.rest_seconds = float(plan['t_start'])
-        self.d = int(plan.get('task_dim', 2))
+        self.d = plan.get('task_dim', 2)
+        if self.d not in (2, 3) or isinstance(self.d, bool):
+            raise ValueError(f'--params {path}: the trajectory section\'s task_dim must be 2 or 3 '
+                             f'(the tip\'s coordinates), got {self.d!r}')
         close = plan.get('close_distance')
         side = plan.get('side_distance', 0.0) if self.d == 2 and 'close_path' not in plan else 0.0
         if not (isinstance(close, (int, float)) and isinstance(side, (int, float))
@@ -109,14 +112,26 @@ class Settings:
 
 def controller_bounds(ctrl: dict, path: Path) -> InputBounds:
     """The bounds the controller section ``ctrl`` commands within: its ``input_lower`` and
-    ``input_upper``, or ±``torque_limit`` on the hand's two torques."""
+    ``input_upper``, or ±``torque_limit`` on each input of its model (``model_path``: the
+    checkpoint's m; the hand's two torques without one).
+
+    Raises:
+        ShapeError: bounds that cannot be used, or a ``model_path`` that does not load.
+    """
     if 'input_lower' in ctrl or 'input_upper' in ctrl:
         lower, upper = ctrl['input_lower'], ctrl['input_upper']
         return InputBounds.parse(lower, upper, len(lower), f'{path}: input_lower/input_upper')
     limit = ctrl['torque_limit']
     if not (isinstance(limit, (int, float)) and limit > 0):
         raise ShapeError(f'torque_limit must be > 0, got {limit!r}')
-    return InputBounds.symmetric(float(limit), 2)
+    m = 2
+    if ctrl.get('model_path'):
+        from soft_gripper_sdre.learning.model import ModelFileError, read_checkpoint
+        try:
+            m = read_checkpoint(Path(ctrl['model_path']))['shape'].m
+        except ModelFileError as exc:
+            raise ShapeError(f'model_path: {exc}') from None
+    return InputBounds.symmetric(float(limit), m)
 
 
 def _parser() -> argparse.ArgumentParser:
