@@ -348,7 +348,7 @@ class Law(Protocol):
 
     def compute(self, pos: np.ndarray, vel: np.ndarray, ref_pos: np.ndarray, ref_vel: np.ndarray,
                 ref_acc: np.ndarray | None = None) -> LawStep:
-        """Torques for every finger from (n, 2) tip positions [m] and velocities [m/s], their
+        """Inputs for every finger from (n, d) tip positions [m] and velocities [m/s], their
         references, and the reference acceleration [m/s²] (used by the feedforward laws;
         None = 0)."""
 

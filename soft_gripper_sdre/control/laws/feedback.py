@@ -32,9 +32,10 @@ class SdreLaw:
     (:meth:`~soft_gripper_sdre.control.sdre.SdreController.track`).
 
     Args:
-        model: object with ``AG(x) -> (A (n,4,4), G (n,4,2))`` and ``rest_tip`` (3,) [m] (an
-            :class:`soft_gripper_sdre.learning.model.SDCModel`); if it also has
-            ``sdc_blocks(x) -> ([A21 A22] (n,2,4), G2 (n,2,2))``, only those lower rows are used,
+        model: object with ``AG(x) -> (A (n, 2d, 2d), G (n, 2d, m))`` and ``rest_tip`` (3,) [m]
+            (an :class:`soft_gripper_sdre.learning.model.SDCModel`); if it also has
+            ``sdc_blocks(x) -> ([A21 A22] (n, d, 2d), G2 (n, d, m))``, only those lower rows are
+            used,
             and if it has ``fused_network`` (the layers
             :class:`~soft_gripper_sdre.control.kernels.SdcNetwork` packs), the compiled step
             evaluates it.

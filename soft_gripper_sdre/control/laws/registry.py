@@ -86,12 +86,14 @@ class LawParam:
 #: built with, read by the laws that list them
 WEIGHT_PARAMS = (
     LawParam('q_pos', DEFAULT_WEIGHTS['q_pos'], 'SDRE state weight on tip position, Q = '
-             'diag(q_pos, q_pos, q_vel, q_vel) (paper: 2 in sim units = 800 SI)', '1/m²', 0.0,
+             'diag(q_pos I_d, q_vel I_d), d the tip\'s coordinates (paper: 2 in sim units = 800 '
+             'SI)', '1/m²', 0.0,
              1e12, runtime=True, shown=('weights', 'q_pos')),
     LawParam('q_vel', DEFAULT_WEIGHTS['q_vel'], 'SDRE state weight on tip velocity', 's²/m²',
              0.0, 1e12, runtime=True, shown=('weights', 'q_vel')),
-    LawParam('r', DEFAULT_WEIGHTS['r'], 'SDRE input weight, R = diag(r, r) (paper: 0.1 in sim '
-             'units = 16000 SI)', '1/(N·m)²', 1e-12, 1e12, runtime=True, shown=('weights', 'r')),
+    LawParam('r', DEFAULT_WEIGHTS['r'], 'SDRE input weight, R = r I_m, m the inputs (paper: 0.1 '
+             'in sim units = 16000 SI)', '1/(input unit)²', 1e-12, 1e12, runtime=True,
+             shown=('weights', 'r')),
 )
 
 
