@@ -77,6 +77,14 @@ def test_bad_model_files_and_settings_are_refused_with_the_reason(tmp_path):
         KoopmanSettings(delays=(0,))
     with pytest.raises(ValueError, match='koopman_path'):
         make_law('sdre', None, WEIGHTS, U_MAX, koopman_path='x.npz')
+    # a lifted model of one input is a file, not the hand's baseline
+    shipped = KoopmanModel.load()
+    one = KoopmanModel(shipped.A, shipped.B[:, :1], shipped.state_scale, shipped.rest_tip,
+                       shipped.dt, shipped.settings).save(tmp_path / 'one_input.npz')
+    with pytest.raises(ValueError, match=r'koopman_path: .*one_input.npz was fitted to a tip of 2 '
+                                         r'coordinates and 1 input\(s\); the Koopman laws are '
+                                         r"the hand's"):
+        make_law('koopman_mpc', None, WEIGHTS, U_MAX, koopman_path=one)
 
 
 def test_tool_refuses_bad_arguments_before_reading_anything(tmp_path, run_main):

@@ -256,6 +256,11 @@ def _koopman(s: LawSettings, law=KoopmanMpcLaw, koopman_path=None):
         koopman = KoopmanModel.load(koopman_path)
     except KoopmanFileError as exc:
         raise ValueError(f'koopman_path: {exc}') from None
+    fitted = (koopman.d, koopman.B.shape[1])
+    if fitted != (HAND_SHAPE.d, HAND_SHAPE.m):
+        raise ValueError(f'koopman_path: {koopman_path or "the shipped model"} was fitted to a tip '
+                         f'of {fitted[0]} coordinates and {fitted[1]} input(s); the Koopman laws '
+                         f'are the hand\'s ({HAND_SHAPE})')
     u_max = s.u_max if s.bounds is None else s.bounds.symmetric_limit
     return law(koopman, s.weights, u_max, n_fingers=s.n_fingers, lowpass_hz=s.lowpass_hz, dt=s.dt)
 
