@@ -231,6 +231,14 @@ def test_data_facts_in_3d_and_with_one_sided_inputs():
     assert both.bounds is None
     assert both.torque_limit == pytest.approx(df.TORQUE_MARGIN * np.percentile(
         np.abs(u - 1.0).max(axis=1), 99.9))
+    # ... unless the bounds are the actuators' (given): then never beyond them
+    alike = df.input_range(u - 1.0, InputBounds(np.full(3, -1.5), np.full(3, 1.5)), given=True)
+    assert alike == (1.5, None)
+    uneven = df.input_range(u - 1.0, InputBounds([-1.5, -3.0, -1.2], [1.5, 3.0, 5.0]), given=True)
+    np.testing.assert_allclose(uneven[1].lower, [-1.5, -both.torque_limit, -1.2])
+    np.testing.assert_allclose(uneven[1].upper, [1.5, both.torque_limit, both.torque_limit])
+    assert df.input_range(u - 1.0, InputBounds(np.full(3, -5.0), np.full(3, 5.0)),
+                          given=True) == (both.torque_limit, None)
     # a pull-only input (acting toward −) rests at its upper bound
     lo, hi = df.input_range(-u[:, :1], InputBounds([-T_MAX], [0.0]))[1].lower, \
         df.input_range(-u[:, :1], InputBounds([-T_MAX], [0.0]))[1].upper

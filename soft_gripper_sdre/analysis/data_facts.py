@@ -173,8 +173,8 @@ def closing_direction(positions: np.ndarray) -> float:
     return float(math.degrees(math.atan2(y, x)))
 
 
-def input_range(torques: np.ndarray, recorded: InputBounds | None) -> tuple[float,
-                                                                          InputBounds | None]:
+def input_range(torques: np.ndarray, recorded: InputBounds | None,
+                given: bool = False) -> tuple[float, InputBounds | None]:
     """The loop's input range from the held inputs ``torques`` (N, m) and the bounds the data
     were recorded under (``recorded``; None: the hand's checkpoints): (the largest magnitude,
     the per-input bounds or None).
@@ -184,6 +184,11 @@ def input_range(torques: np.ndarray, recorded: InputBounds | None) -> tuple[floa
     (a chamber 0..p_max, a tendon 0..T_max): from its rest bound to :data:`TORQUE_MARGIN` × the
     data's largest excursion from it, within the recorded bounds (it cannot deliver past them);
     its two-sided neighbours keep ±:data:`TORQUE_MARGIN` × their own largest input.
+
+    ``given``: ``recorded`` are the bounds the actuators deliver (the user gave them, e.g. the
+    driver's), not the range the commands spanned: every two-sided interval above is cut to them
+    too, so the loop never counts on more than the actuator delivers (symmetric and alike on
+    every input: the symmetric limit, no bounds).
     """
     u = np.asarray(torques, dtype=float)
     limit = TORQUE_MARGIN * float(np.percentile(np.abs(u).max(axis=1), 99.9))
@@ -193,7 +198,14 @@ def input_range(torques: np.ndarray, recorded: InputBounds | None) -> tuple[floa
         raise ShapeError(f'input bounds: {recorded.m} input(s) recorded, the data hold '
                          f'{u.shape[1]}')
     if not recorded.one_sided.any():
-        return limit, None
+        if not given:
+            return limit, None
+        lo, hi = np.maximum(recorded.lower, -limit), np.minimum(recorded.upper, limit)
+        if np.allclose(lo, -hi, rtol=1e-12, atol=0.0) and np.allclose(hi, hi[0], rtol=1e-12,
+                                                                       atol=0.0):
+            return float(hi[0]), None
+        bounds = InputBounds(lo, hi)
+        return float(np.max(np.maximum(np.abs(lo), np.abs(hi)))), bounds
     rest = recorded.rest
     span = TORQUE_MARGIN * np.percentile(np.abs(u - rest), 99.9, axis=0)
     span = np.where(span > 0, span, recorded.half_span)          # an input the data never moved
@@ -203,13 +215,15 @@ def input_range(torques: np.ndarray, recorded: InputBounds | None) -> tuple[floa
                                                  -span))
     hi = np.where(pull, recorded.upper, np.where(push, np.minimum(recorded.upper, rest + span),
                                                  span))
+    if given:
+        lo, hi = np.maximum(lo, recorded.lower), np.minimum(hi, recorded.upper)
     bounds = InputBounds(lo, hi)
     return float(np.max(np.maximum(np.abs(bounds.lower), np.abs(bounds.upper)))), bounds
 
 
 def data_facts(positions: np.ndarray, torques: np.ndarray, period: float, noise_std: float,
                tune: list[tuple[np.ndarray, np.ndarray]],
-               bounds: InputBounds | None = None) -> DataFacts:
+               bounds: InputBounds | None = None, given: bool = False) -> DataFacts:
     """:class:`DataFacts` from the training samples: translated positions (N, d), held inputs
     (N, m), the tip period, the measured σ, (t, tips) of stretches to tune the estimator on
     (the largest intensity any of them asks for: the loop must follow the fastest motion), and
@@ -222,7 +236,7 @@ def data_facts(positions: np.ndarray, torques: np.ndarray, period: float, noise_
     positions = np.asarray(positions, dtype=float)
     if positions.ndim != 2 or positions.shape[1] not in (2, 3):
         raise ShapeError(f'the tips must be (N, 2) or (N, 3), got {positions.shape}')
-    limit, loop = input_range(torques, bounds)
+    limit, loop = input_range(torques, bounds, given)
     psd = max(tune_accel_psd(t, tips, noise_std) for t, tips in tune)
     if positions.shape[1] == 2:
         direction = closing_direction(positions)

@@ -266,7 +266,8 @@ def train_from_bags(train_paths: list[Path], val_paths: list[Path], out: Path,
         task_dim: 2, 3 or 'auto' (:func:`~soft_gripper_sdre.analysis.bag_dataset.task_dimension`
             on the training bags); 2 with a tip whose z moves prints a note saying so.
         input_lower, input_upper: one bound per input (both or neither): the bounds the
-            checkpoint records; None: the range the training bags' commands spanned.
+            actuators deliver, which the checkpoint records and the derived loop stays within;
+            None: the range the training bags' commands spanned.
 
     Raises:
         BagDataError: a bag cannot be used, the bags disagree on the number of inputs, the task
@@ -280,6 +281,7 @@ def train_from_bags(train_paths: list[Path], val_paths: list[Path], out: Path,
     shape, bounds = finger_shape(train_set, val_set, task_dim, input_lower, input_upper)
     clock.lap('read')
     data = _label_sets(train_set, val_set, jerk_psd, meas_std, shape, bounds)
+    data.bounds_given = input_lower is not None
     clock.lap('labels')
     bar = tqdm(total=settings.epochs + settings.rollout_epochs, desc=f'train ({settings.preset})',
                unit='epoch')
@@ -388,6 +390,8 @@ class _BagData:
     jerk: float
     shape: FingerShape
     bounds: InputBounds
+    #: the bounds were given (the actuators'), not read off the commands' range
+    bounds_given: bool = False
 
     def __post_init__(self) -> None:
         _, self.x, self.u, self.acc = _stack(self.samples)
@@ -468,7 +472,7 @@ class _Verdict:
             d = data.shape.d
             facts = data_facts(data.x[:, :d], data.u, data.dt, data.noise,
                                [tuning_stretch(rec, f[0], d) for rec, f in data.train_set],
-                               bounds=data.bounds)
+                               bounds=data.bounds, given=data.bounds_given)
             if self.gains:
                 facts = replace(facts, input_gains=finger_fits.gains_by_finger(self.gains, unread))
             rest = None if data.bounds is None else data.bounds.rest
