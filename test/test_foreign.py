@@ -72,11 +72,15 @@ def test_every_gripper_has_its_lab_setup_and_one_sided_actuators_give_their_boun
                                                      'input_upper': [60e3]}
     assert foreign.actuator_bounds('trunk3') == {'input_lower': [0.0] * 3,
                                                  'input_upper': [4.0] * 3}
+    # training is given every driver's bounds
+    assert foreign.driver_bounds('stiff2') == {'input_lower': [-0.25] * 2,
+                                               'input_upper': [0.25] * 2}
+    assert foreign.driver_bounds('trunk3') == foreign.actuator_bounds('trunk3')
 
 
 def test_the_training_command_is_the_readmes_for_each_gripper(tmp_path):
     """A 3-D tip (trunk3) is trained with --task-dim 3 (README: a 3-D tip: --task-dim 3), the
-    planar grippers with the default; one-sided actuators give their bounds."""
+    planar grippers with the default; every gripper gives its driver's bounds."""
     def command(plant, *extra):
         a = foreign._parser().parse_args(['--plant', plant, '--out', str(tmp_path / 'o'), *extra])
         return foreign.train_command(a, tmp_path / 'bags', tmp_path / 'o')
@@ -87,7 +91,8 @@ def test_the_training_command_is_the_readmes_for_each_gripper(tmp_path):
     assert trunk[trunk.index('--bag') + 1] == str(tmp_path / 'bags' / 'train')
     for plant in ('tendon3', 'stiff2', 'pneumatic1'):
         assert '--task-dim' not in command(plant)
-    assert '--input-lower' not in command('tendon3')
+    tendon = command('tendon3')
+    assert tendon[tendon.index('--input-lower') + 1:][:2] == ['-0.02'] * 2
     tail = command('stiff2', '--epochs', '5', '--rollout-epochs', '0')[-4:]
     assert tail == ['--epochs', '5', '--rollout-epochs', '0']
 

@@ -13,8 +13,9 @@ best-effort tips stamped with wall time, jitter, dropped messages, noise): ``ten
 what README "Use with your own gripper" tells a user to run, as separate processes over DDS,
 with the settings the tools produce and nothing tuned by hand (``--identify-only`` stops after
 step 1; ``--bags`` reuses an earlier run's recordings and starts at step 2); a lab with
-one-sided actuators gives their bounds (``input_lower``/``input_upper``) to the excitation and
-to training, as the preset's:
+one-sided actuators gives their bounds (``input_lower``/``input_upper``) to the excitation, and
+every lab gives training its driver's bounds (``--input-lower``/``--input-upper``), as the
+preset's:
 
 1. **identify** — recorder + excitation node, one bag per signal (u1 x1 x2 b1 b2 and the
    validation signal u4, on trunk3's three tendons staggered by a third of its period each so
@@ -23,8 +24,9 @@ to training, as the preset's:
    ``level:=auto`` (its amplitude found by probing the finger with the signal's start to half
    of ``max_excursion``; the first probe at u1's amplitude, ``level_start``) and the driver's
    limit (``torque_limit`` or the one-sided bounds);
-2. **train** — ``tools.learning.train --bag … --val-bag …`` (``--task-dim 3`` for trunk3's
-   3-D tip): the model, its verdict and ``params.yaml``;
+2. **train** — ``tools.learning.train --bag … --val-bag … --input-lower … --input-upper …``
+   (the driver's bounds; ``--task-dim 3`` for trunk3's 3-D tip): the model, its verdict and
+   ``params.yaml``, whose loop stays within those bounds;
 3. **deploy** — estimator, controller and trajectory node on ``params.yaml``: both fingers close
    along the move the settings were checked for (the way the finger moved most in the
    identification data, by at most half its reach that way: a learned model is only known where
@@ -177,6 +179,14 @@ def actuator_bounds(plant: str) -> dict:
             'input_upper': [float(v) for v in bounds.upper]}
 
 
+def driver_bounds(plant: str) -> dict:
+    """What a lab tells training: its driver's bounds, the preset's, as ``input_lower`` /
+    ``input_upper`` (the loop training derives stays within them)."""
+    bounds = gripper_bounds(plant)
+    return {'input_lower': [float(v) for v in bounds.lower],
+            'input_upper': [float(v) for v in bounds.upper]}
+
+
 def excitation_limit(plant: str) -> dict:
     """The excitation's limit, the driver's: the one-sided bounds (:func:`actuator_bounds`), or
     the torque grippers' ``torque_limit`` (what the driver clamps at)."""
@@ -298,17 +308,16 @@ def identify(a: argparse.Namespace, env: dict, bags: Path) -> dict:
 
 def train_command(a: argparse.Namespace, bags: Path, out: Path) -> list[str]:
     """The README's training command for ``a.plant`` on ``bags``' train/ and val/ into
-    ``out/model``: ``--task-dim 3`` for a 3-D tip, the one-sided actuators' bounds
-    (:func:`actuator_bounds`), and ``--epochs``/``--rollout-epochs`` when given."""
+    ``out/model``: ``--task-dim 3`` for a 3-D tip, the driver's bounds (:func:`driver_bounds`),
+    and ``--epochs``/``--rollout-epochs`` when given."""
     cmd = [sys.executable, '-m', 'soft_gripper_sdre.tools.learning.train',
            '--bag', str(bags / 'train'),
            '--val-bag', str(bags / 'val'), '--out', str(out / 'model')]
     if gripper_shape(a.plant).d == 3:
         cmd += ['--task-dim', '3']
-    bounds = actuator_bounds(a.plant)
-    if bounds:
-        cmd += ['--input-lower', *map(repr, bounds['input_lower']),
-                '--input-upper', *map(repr, bounds['input_upper'])]
+    bounds = driver_bounds(a.plant)
+    cmd += ['--input-lower', *map(repr, bounds['input_lower']),
+            '--input-upper', *map(repr, bounds['input_upper'])]
     if a.epochs is not None:
         cmd += ['--epochs', str(a.epochs)]
     if a.rollout_epochs is not None:
