@@ -114,7 +114,7 @@ input-matrix: $(STAMP)
 # (make evaluate RAY=auto; make ray installs the optional Ray first; tools/judging/jobs.py)
 RUNNER = $(if $(RAY),--ray $(RAY))
 
-# README "Beyond the paper": every law on the grasp and a fast grasp, the model vs ground truth
+# docs/results.md "Beyond the paper": every law on the grasp and a fast grasp, the model vs ground truth
 .PHONY: evaluate
 evaluate: $(KERNELS)
 	$(PY) -m soft_gripper_sdre.tools.judging.evaluate --out runs/evaluate $(RUNNER)
