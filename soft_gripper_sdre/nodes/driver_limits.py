@@ -140,7 +140,7 @@ EXCITATION = Role(
     "the finger receives other inputs than the ones recorded (give the driver's limit)")
 CONTROLLER = Role(
     'this controller',
-    "is the model the driver's finger's? (model_path)",
+    "the model at model_path is not of the driver's finger: give the driver's finger's model",
     'the driver clips the commands beyond it, which the law counts on, and the integral winds up '
     'against a bound it does not know',
     ' (train with --input-lower/--input-upper set to the driver\'s, and the params.yaml it '
@@ -150,7 +150,7 @@ CONTROLLER = Role(
 
 
 def limit_parameter(bounds: InputBounds) -> str:
-    """The parameter(s) that give ``bounds`` to the excitation node."""
+    """The parameter(s) that give ``bounds`` to the excitation node or the controller."""
     if bounds.m == 2 and bounds.symmetric_limit is not None:
         return "torque_limit (or input_lower / input_upper)"
     return 'input_lower / input_upper'
@@ -172,7 +172,7 @@ class DriverLimits:
 
     def __init__(self, node: Node, diag: Diagnostics, bounds: InputBounds | None, *,
                  take: Callable[[str, InputBounds, str], None],
-                 refuse: Callable[[str], None], role: 'Role | None' = None) -> None:
+                 refuse: Callable[[str], None], role: Role | None = None) -> None:
         self.node, self.diag = node, diag
         self.bounds = bounds
         self.take, self.refuse = take, refuse
