@@ -102,7 +102,9 @@ class Scores:
         model = '  '.join(f'{a} {v:.3f}' for a, v in zip(axes, self.r2))
         baseline = '  '.join(f'{a} {v:.3f}' for a, v in zip(axes, self.r2_ls))
         return [f'{against}: {model}   (3rd-order least squares: {baseline})',
-                f'G2 at the origin [m/s² per {unit}]: {np.round(self.G2, 1).tolist()}']
+                f'G2 at the origin [m/s² per {unit}]: '
+                + '[' + ', '.join('[' + ', '.join(f'{v:.3g}' for v in row) + ']'
+                                  for row in self.G2) + ']']
 
 
 def score(model: SDCModel, train: tuple[np.ndarray, ...], val: tuple[np.ndarray, np.ndarray],

@@ -49,6 +49,7 @@ from soft_gripper_sdre.analysis.bag_dataset import (
     tip_stretches,
 )
 from soft_gripper_sdre.analysis.data_facts import data_facts
+from soft_gripper_sdre.control.tracking import roll_off_corner_hz
 from soft_gripper_sdre.control.trajectory import GraspProfile
 from soft_gripper_sdre.learning import derivatives
 from soft_gripper_sdre.learning.rollout import Run
@@ -509,6 +510,16 @@ def report_gains(gains: list[finger_fits.InputGain], unread: list[str]) -> None:
               'input gain is the model\'s (1)')
 
 
+def roll_off_text(hz: float, period: float) -> str:
+    """The roll-off's corner as the controller applies it at ``period``: ``hz``, or a tenth of
+    the rate where that is lower (:func:`~soft_gripper_sdre.control.tracking.roll_off_corner_hz`),
+    said so."""
+    corner = roll_off_corner_hz(hz, period)
+    if corner < hz:
+        return f'{hz:g} Hz (applied at {corner:g} Hz, a tenth of the rate)'
+    return f'{hz:g} Hz'
+
+
 def report_fitness(fitness: model_fitness.Fitness, derived, out: Path) -> None:
     """Say plainly whether the model is fit to control and what was written for the loop."""
     rest, run = fitness.rest, fitness.free_run
@@ -534,7 +545,8 @@ def report_fitness(fitness: model_fitness.Fitness, derived, out: Path) -> None:
           f'bandwidth {d.bandwidth_hz:g} Hz '
           f'(q_pos {d.q_pos:.3g}, r {d.r:.3g}), torque_limit {d.torque_limit:.3g} '
           + ('N·m, ' if derived.facts.bounds is None else '(the inputs\' unit), ')
-          + f'roll-off {d.torque_lowpass_hz:g} Hz, integral {d.integral_gain:.3g} / '
+          + f'roll-off {roll_off_text(d.torque_lowpass_hz, d.control_period)}, integral '
+          f'{d.integral_gain:.3g} / '
           f'{1e3 * d.integral_band:.2f} mm; closed loop on the model, error / travel '
           f'{1e3 * derived.facts.travel:.2f} mm: {checks}')
     for line in derived.fingers_text():
