@@ -843,7 +843,7 @@ def derive(model, facts: DataFacts, laws: tuple[str, ...] = ('sdre_ff', 'sdre'),
         way = (f'{facts.direction:.0f}° from +X toward +Y' if facts.d == 2 else
                f'({", ".join(f"{v:.3f}" for v in facts.unit)})')
     limit = (f'the torque limit {loop_bounds(facts, shape.m).upper[0]:.3g} N·m'
-             if facts.bounds is None else f'the input range {loop_bounds(facts, shape.m)}')
+             if facts.bounds is None else f'the loop\'s input range {loop_bounds(facts, shape.m)}')
     if facts.input_gains:
         limit += ' (what every finger delivers through its input gain)'
     if facts.travel < MIN_TRAVEL_NOISE * facts.noise_std:

@@ -510,6 +510,16 @@ def report_gains(gains: list[finger_fits.InputGain], unread: list[str]) -> None:
               'input gain is the model\'s (1)')
 
 
+def limit_text(derived: loop_settings.Derivation) -> str:
+    """The controller's limit as ``params.yaml`` gives it: ``torque_limit`` [N·m], or the
+    bounds of ``input_lower`` / ``input_upper``."""
+    ctrl = derived.params([FINGER_NAMES[0]])['controller']
+    if 'torque_limit' in ctrl:
+        return f'torque_limit {ctrl["torque_limit"]:.3g} N·m'
+    bounds = InputBounds(ctrl['input_lower'], ctrl['input_upper'])
+    return f'inputs {bounds} (input_lower, input_upper)'
+
+
 def roll_off_text(hz: float, period: float) -> str:
     """The roll-off's corner as the controller applies it at ``period``: ``hz``, or a tenth of
     the rate where that is lower (:func:`~soft_gripper_sdre.control.tracking.roll_off_corner_hz`),
@@ -543,8 +553,7 @@ def report_fitness(fitness: model_fitness.Fitness, derived, out: Path) -> None:
     print(f'model fit to control. {out / PARAMS_FILE}: control_period {d.control_period:g} s, '
           f'meas_std {d.meas_std:.3g} m, accel_psd {d.accel_psd:.3g}, '
           f'bandwidth {d.bandwidth_hz:g} Hz '
-          f'(q_pos {d.q_pos:.3g}, r {d.r:.3g}), torque_limit {d.torque_limit:.3g} '
-          + ('N·m, ' if derived.facts.bounds is None else '(the inputs\' unit), ')
+          f'(q_pos {d.q_pos:.3g}, r {d.r:.3g}), {limit_text(derived)}, '
           + f'roll-off {roll_off_text(d.torque_lowpass_hz, d.control_period)}, integral '
           f'{d.integral_gain:.3g} / '
           f'{1e3 * d.integral_band:.2f} mm; closed loop on the model, error / travel '
