@@ -72,3 +72,15 @@ def test_the_checkpoint_is_scored_as_loaded_and_carries_the_callers_metrics(tmp_
     assert scores.r2_ls == pytest.approx(baseline)
     assert min(scores.r2_ls) > 0.99                       # the baseline holds a linear plant
     assert np.array_equal(np.asarray(metrics['G2_at_origin']), model.AG(np.zeros(4))[1][0, 2:, :])
+
+
+def test_the_report_prints_g2_in_any_unit_and_the_roll_off_the_controller_applies():
+    """A gain per pascal (1e-5 m/s² per Pa) reads as a number, not as 0.0; a roll-off above a
+    tenth of the recordings' rate is printed with the corner the controller applies."""
+    from soft_gripper_sdre.tools.learning.train_bags import roll_off_text
+    scores = training_run.Scores(np.zeros((3, 2)), [0.9, 0.8], [0.5, 0.4],
+                                 np.array([[-1.234e-5], [2.5e-6]]))
+    assert scores.lines('u4')[1] == ('G2 at the origin [m/s² per unit of input]: '
+                                     '[[-1.23e-05], [2.5e-06]]')
+    assert roll_off_text(16.6326, 0.01) == '16.6326 Hz (applied at 10 Hz, a tenth of the rate)'
+    assert roll_off_text(40.0, 0.001) == '40 Hz'
