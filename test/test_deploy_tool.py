@@ -41,7 +41,9 @@ def _tool(*args, timeout=60, env=None):
     ('no_travel', [], 'close_distance > 0'),
     ('bad_task_dim', [], "the trajectory section's task_dim must be 2 or 3 (the tip's "
                          "coordinates), got 5"),
-    ('no_model', [], "the controller's bounds: model_path: model file"),
+    ('no_model', [], "the controller's model_path: model file"),
+    ('dim_mismatch', [], "the trajectory section's task_dim is 3, the model at model_path has "
+                         "2-D tips; give task_dim 2"),
     ('exists', [], 'exists already'),
     ('bad_domain', [], "ROS_DOMAIN_ID 'lab' is not a domain number"),
 ])
@@ -68,6 +70,8 @@ def test_bad_arguments_exit_2_naming_them_with_nothing_written(tmp_path, make, a
         params_file(path, close_distance=0.0)
     elif make == 'bad_task_dim':
         params_file(path, task_dim=5)
+    elif make == 'dim_mismatch':
+        params_file(path, task_dim=3)
     elif make == 'no_model':
         params_file(path)
         data = yaml.safe_load(path.read_text())
@@ -135,7 +139,13 @@ def test_the_params_training_writes_hold_what_the_deployment_reads(tmp_path, fac
     settings = ls.LoopSettings(5e-3, 5e-5, 1.0, 1e6, 1e3, 1.0, facts.torque_limit, 50.0, 0.0,
                                1e-3, 1.0, 0.1, 2.0)
     path = tmp_path / 'params.yaml'
-    path.write_text(params_yaml(ls.Derivation(settings, {}, [], facts), MODEL, NAMES, 'bags'))
+    if facts.d == 2:
+        model, m = MODEL, 2
+    else:                   # the deployment checks the nodes' task_dim against the model's
+        from shaped_models import trained_known_system
+        model, m = trained_known_system(3, 3, tmp_path)[2], 3
+    path.write_text(params_yaml(ls.Derivation(settings, {}, [], facts, m=m), model, NAMES,
+                                'bags'))
     plan = yaml.safe_load(path.read_text())['/**/trajectory']['ros__parameters']
     assert plan['finger_names'] == NAMES and plan['grasp_fingers'] == [0, 1]
     assert plan['others'] == 'hold'
@@ -177,5 +187,6 @@ def test_a_symmetric_limit_reaches_the_deployment_on_every_input_of_the_model(tm
     path = params_file(tmp_path / 'params.yaml', task_dim=3)
     data = yaml.safe_load(path.read_text())
     data['/**/controller']['ros__parameters']['model_path'] = str(model)
+    data['/**/estimator']['ros__parameters']['task_dim'] = 3
     path.write_text(yaml.safe_dump(data))
     assert Settings(path).bounds == InputBounds.symmetric(0.02, 3)

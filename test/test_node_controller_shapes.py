@@ -244,32 +244,3 @@ def test_bad_shape_parameters_exit_2_naming_them(node, args, needle, tmp_path):
     assert out.returncode == 2, out.stderr
     assert needle in out.stderr and 'Traceback' not in out.stderr
     assert not list(tmp_path.iterdir())
-
-
-def test_a_3d_model_refuses_estimates_and_plans_of_planar_nodes_naming_task_dim(checkpoint):
-    """A planar estimator or trajectory node (task_dim 2) writes z = 0: a 3-D model refuses
-    their messages naming the parameter, and commands nothing for them."""
-    shape, bounds, path = checkpoint
-    if shape.d != 3:
-        pytest.skip('a planar model reads no z')
-    with ros_context() as (ctx, executor):
-        node, probe, est_pub, ref_pub = make_controller(
-            ctx, executor, model_path=str(path), finger_names=NAMES, **WEIGHTS,
-            **_bounds_params(bounds))
-        c = node.diag.counters
-        flat, _ = _plan(2)                         # a planar node's plan: z = 0 everywhere
-        ref_pub.publish(flat)
-        assert spin_until(executor, lambda: c['bad_reference'] == 1, 5.0)
-        assert 'grasp_reference: z is 0 for every finger: the plan comes from a planar ' \
-               'trajectory node (task_dim 2)' in node.diag.message
-        assert 'give the trajectory task_dim: 3' in node.diag.message
-        msg, _ = _plan(3)
-        ref_pub.publish(msg)
-        assert spin_until(executor, lambda: c['references'] == 1, 5.0)
-        est_pub.publish(cv.estimate_to_msg(0, np.full((2, 2), 1e-3), np.zeros((2, 2)), NAMES))
-        assert spin_until(executor, lambda: c['bad_estimate'] == 1, 5.0)
-        assert 'a planar estimator node (task_dim 2)' in node.diag.message
-        x = np.full((2, 3), 1e-3)
-        est_pub.publish(cv.estimate_to_msg(MS, x, np.zeros((2, 3)), NAMES))
-        assert spin_until(executor, lambda: len(probe.received[TORQUE_COMMANDS]) == 1, 5.0)
-        assert c['estimates'] == 1

@@ -17,9 +17,7 @@ time, skipped estimates).
 
 **The finger's shape comes from the model.** The checkpoint's task dimension d (2: a planar tip,
 3: a 3-D tip, read from the estimates' and the plan's z) and number of inputs m make the messages:
-``torque_commands`` names ``<finger>/ax0`` … ``<finger>/ax<m−1>``; a 3-D model refuses estimates and
-plans whose z is 0 for every finger (a planar estimator or trajectory node's, ``task_dim`` 2),
-naming the parameter. Each input k is bounded by
+``torque_commands`` names ``<finger>/ax0`` … ``<finger>/ax<m−1>``. Each input k is bounded by
 ``[input_lower[k], input_upper[k]]`` (one value per input, in the input's SI unit; a pneumatic
 chamber 0..p_max, a tendon 0..T_max); both [0.0] (unset) bound each of the model's inputs by
 ±``torque_limit``. Lists that do not give one value per input, or an empty interval, end the node
@@ -198,13 +196,6 @@ SKIP_WARN_SHARE = 0.1
 SKIP_WARN_MIN = 10
 
 
-#: why a 3-D model refuses a message whose z is 0 for every finger (a planar node writes z = 0;
-#: a 3-D tip measured or planned in its finger's base frame is never exactly there)
-PLANAR_SOURCE = ('{topic}: z is 0 for every finger: {what} comes from a planar {node} node '
-                 "(task_dim 2) and this model's tip is 3-D; give the {node} task_dim: 3 (the "
-                 'params.yaml training wrote has it)')
-
-
 class ControllerNode(Node):
     """SDRE tracking controller on topics (see module doc)."""
 
@@ -352,10 +343,6 @@ class ControllerNode(Node):
         except cv.MessageError as exc:
             self._reject('bad_reference', str(exc))
             return
-        if self.shape.d == 3 and not np.any(pos[..., 2]):
-            self._reject('bad_reference', PLANAR_SOURCE.format(
-                topic=GRASP_REFERENCE, what='the plan', node='trajectory'))
-            return
         self._act(self.gate.on_plan(times, pos, vel, acc), GRASP_REFERENCE)
 
     def on_estimate(self, data: bytes) -> None:
@@ -363,10 +350,6 @@ class ControllerNode(Node):
             stamp, x = self.cdr_estimate.decode(data)
         except cv.MessageError as exc:
             self._reject('bad_estimate', str(exc))
-            return
-        if self.shape.d == 3 and not np.any(x[:, 2]):
-            self._reject('bad_estimate', PLANAR_SOURCE.format(
-                topic=STATE_ESTIMATE, what='the estimate', node='estimator'))
             return
         self._estimate(stamp, x)
 

@@ -97,6 +97,13 @@ class Settings:
         if self.d not in (2, 3) or isinstance(self.d, bool):
             raise ValueError(f'--params {path}: the trajectory section\'s task_dim must be 2 or 3 '
                              f'(the tip\'s coordinates), got {self.d!r}')
+        model_d = _model_task_dim(ctrl, path)
+        for node, section in (('estimator', sections['estimator']), ('trajectory', plan)):
+            d = section.get('task_dim', 2)
+            if model_d is not None and d != model_d:
+                raise ValueError(f'--params {path}: the {node} section\'s task_dim is {d!r}, the '
+                                 f'model at model_path has {model_d}-D tips; give task_dim '
+                                 f'{model_d} (train writes it)')
         close = plan.get('close_distance')
         side = plan.get('side_distance', 0.0) if self.d == 2 and 'close_path' not in plan else 0.0
         if not (isinstance(close, (int, float)) and isinstance(side, (int, float))
@@ -108,6 +115,21 @@ class Settings:
             self.bounds = controller_bounds(ctrl, path)
         except (ShapeError, KeyError, TypeError) as exc:
             raise ValueError(f'--params {path}: the controller\'s bounds: {exc}') from None
+
+
+def _model_task_dim(ctrl: dict, path: Path) -> int | None:
+    """The task dimension of the model at the controller's ``model_path`` (None without one).
+
+    Raises:
+        ValueError: the model file does not load (naming it).
+    """
+    if not ctrl.get('model_path'):
+        return None
+    from soft_gripper_sdre.learning.model import ModelFileError, read_checkpoint
+    try:
+        return read_checkpoint(Path(ctrl['model_path']))['shape'].d
+    except ModelFileError as exc:
+        raise ValueError(f'--params {path}: the controller\'s model_path: {exc}') from None
 
 
 def controller_bounds(ctrl: dict, path: Path) -> InputBounds:
