@@ -88,30 +88,3 @@ def test_each_signal_gets_its_own_level_on_the_drivers_gripper_over_dds():
         peak = moved[(stamps >= lo) & (stamps <= hi)].max()
         assert 0.7 * 0.008 < peak < 1.3 * 0.008, (name, peak)
 
-
-@pytest.mark.parametrize('limit, narrower', [(0.0625, True), (0.02, False)])
-def test_the_controller_warns_when_the_driver_takes_less_than_its_bounds(limit, narrower):
-    """The controller (the hand's model, ±limit on its two inputs) beside plant_driver's tendon
-    gripper (±0.02 N·m): a wider limit is a WARN naming the driver's bounds and the parameters
-    to give; the driver's own limit is quiet."""
-    from soft_gripper_sdre.nodes.common import WARN
-    from soft_gripper_sdre.nodes.controller import ControllerNode
-    from soft_gripper_sdre.nodes.plant_driver import PlantDriverNode
-    with ros_context('events') as (ctx, executor):
-        driver = PlantDriverNode(context=ctx, parameter_overrides=overrides(
-            finger_names=NAMES, plant='tendon3', rate=200.0))
-        ctrl = ControllerNode(context=ctx, parameter_overrides=overrides(
-            finger_names=NAMES, torque_limit=limit, control_period=0.005))
-        executor.add_node(driver)
-        executor.add_node(ctrl)
-        assert spin_until(executor, lambda: 'driver_bounds' in ctrl.diag.values, 10.0)
-        drain(executor, 0.2)
-        assert ctrl.diag.values['driver_bounds'].startswith('ax0 [-0.02, 0.02]')
-        if narrower:
-            why = ctrl.diag.values['driver_narrower']
-            assert why.startswith('the driver /plant_driver takes ax0 [-0.02, 0.02]')
-            assert f'narrower than the bounds of this controller (ax0 [-{limit:g}' in why
-            assert 'input_lower / input_upper' in why and '--input-lower/--input-upper' in why
-            assert ctrl.diag.level == WARN and ctrl.diag.counters['driver_narrower'] == 1
-        else:
-            assert 'driver_narrower' not in ctrl.diag.values and ctrl.diag.level != WARN

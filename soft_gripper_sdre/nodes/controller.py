@@ -21,10 +21,7 @@ time, skipped estimates).
 ``[input_lower[k], input_upper[k]]`` (one value per input, in the input's SI unit; a pneumatic
 chamber 0..p_max, a tendon 0..T_max); both [0.0] (unset) bound each of the model's inputs by
 ±``torque_limit``. Lists that do not give one value per input, or an empty interval, end the node
-at start-up naming the parameters. A driver in the node's namespace that reports narrower
-``bounds`` on /diagnostics (or another number of inputs) is a WARN naming both
-(``driver_narrower``), and so is each rise of its ``clipped_commands`` (``driver_clipped``:
-nodes/driver_limits.py). /diagnostics shows the shape, the bounds and, for a finger
+at start-up naming the parameters. /diagnostics shows the shape, the bounds and, for a finger
 whose inputs cannot reach every direction (m < d), the largest part of the plan's acceleration
 no input can reach (``unreachable_max``, m/s²).
 
@@ -105,7 +102,6 @@ from soft_gripper_sdre.nodes.composition import (
     composed_params,
     with_estimator,
 )
-from soft_gripper_sdre.nodes.driver_limits import CONTROLLER, DriverLimits
 from soft_gripper_sdre.nodes.law_tuning import LawTuning
 from soft_gripper_sdre.nodes.params import (
     Param,
@@ -258,10 +254,6 @@ class ControllerNode(Node):
         self.gate = CommandGate(_ns(p['control_period']), _ns(p['reset_on_jump']),
                                 p['estimate_watchdog'], counters=self.diag.counters)
         self._show_settings()
-        #: the driver's reported bounds checked against the ones commands are clipped into
-        self.driver_limits = DriverLimits(self, self.diag, self.bounds,
-                                          take=lambda *report: None,
-                                          refuse=self._driver_narrower, role=CONTROLLER)
         self._watchdog = self.create_timer(
             0.05, lambda: self._act(self.gate.on_wall_time(time.monotonic())))
         self._log_start()
@@ -306,12 +298,6 @@ class ControllerNode(Node):
         self.diag.before_publish.append(self._judge_skips)
         self._window = (0, 0)           # (estimates, skipped_estimates) at the previous report
         self._behind = False            # the WARN in /diagnostics is the skipped estimates'
-
-    def _driver_narrower(self, why: str) -> None:
-        """The driver does not take all of this controller's bounds: WARN (the loop goes on;
-        what the driver clips it counts and reports)."""
-        self.diag.values['driver_narrower'] = why
-        self.diag.problem('driver_narrower', why)
 
     def _log_start(self) -> None:
         """One line of what runs: the model, the weights, the limit, the law, the fingers."""

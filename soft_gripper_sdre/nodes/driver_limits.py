@@ -9,7 +9,7 @@ clipped to as ``bounds``, ``ax0 [lower, upper], ax1 [lower, upper], …`` per fi
 joined by ``;`` (``plant_driver``; the simulator node reports ±``torque_limit`` on the hand's two
 torques the same way), and the count of the commands it clipped as ``clipped_commands``. Only
 the nodes in this node's namespace count as its driver (the topics it reads and writes resolve
-there). :class:`DriverLimits` reads these reports for the excitation node and the controller:
+there). :class:`DriverLimits` reads these reports for the excitation node:
 
 * While the node has no limit of its own (none given as a parameter), the first driver's bounds
   that read (:func:`parse_bounds`: the tightest interval of each input over the fingers) are
@@ -27,15 +27,9 @@ there). :class:`DriverLimits` reads these reports for the excitation node and th
 
 A driver that reports no bounds is not checked: the excitation's limit is then the user's to
 match to it.
-
-The controller always has its bounds (its parameters, or the ``params.yaml`` training wrote):
-a driver narrower than them, or one of another number of inputs, is a WARN naming both and the
-parameters to give (the driver clips what the law counts on, and the integral winds up against
-a bound it does not know), and so are the driver's clipped commands.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
 import re
 import time
 from typing import Callable
@@ -119,38 +113,8 @@ def reported_bounds(text: str) -> InputBounds | None:
         return None
 
 
-@dataclass(frozen=True)
-class Role:
-    """What a node sending inputs says about a driver that does not take them all."""
-
-    name: str               # the node, as the reasons name it
-    other_count: str        # a driver of another number of inputs: what to do
-    narrower: str           # a driver narrower than the node's bounds: what goes wrong
-    or_else: str            # appended to 'Give … within the driver's'
-    clipped: str            # the driver clipped commands: what it means
-
-
-EXCITATION = Role(
-    'this excitation',
-    "give input_lower / input_upper for the driver's inputs, or leave torque_limit 0 and "
-    "input_lower / input_upper '' to take the driver's",
-    'the driver would clip the signals and the level probes, and the bag would record commands '
-    'the finger never received',
-    ", or leave torque_limit 0 and input_lower / input_upper '' to take the driver's",
-    "the finger receives other inputs than the ones recorded (give the driver's limit)")
-CONTROLLER = Role(
-    'this controller',
-    "the model at model_path is not of the driver's finger: give the driver's finger's model",
-    'the driver clips the commands beyond it, which the law counts on, and the integral winds up '
-    'against a bound it does not know',
-    ' (train with --input-lower/--input-upper set to the driver\'s, and the params.yaml it '
-    'writes has them)',
-    'the finger receives less than the law commands (give the controller the driver\'s bounds: '
-    'input_lower / input_upper)')
-
-
 def limit_parameter(bounds: InputBounds) -> str:
-    """The parameter(s) that give ``bounds`` to the excitation node or the controller."""
+    """The parameter(s) that give ``bounds`` to the excitation node."""
     if bounds.m == 2 and bounds.symmetric_limit is not None:
         return "torque_limit (or input_lower / input_upper)"
     return 'input_lower / input_upper'
@@ -167,16 +131,14 @@ class DriverLimits:
             first driver's that read, and :meth:`use` sets the node's).
         take: called with (the driver's name, its bounds, its text) while ``bounds`` is None.
         refuse: called with the reason once a driver's bounds do not contain ``bounds``.
-        role: the node's texts in those reasons: :data:`EXCITATION` or :data:`CONTROLLER`.
     """
 
     def __init__(self, node: Node, diag: Diagnostics, bounds: InputBounds | None, *,
                  take: Callable[[str, InputBounds, str], None],
-                 refuse: Callable[[str], None], role: Role | None = None) -> None:
+                 refuse: Callable[[str], None]) -> None:
         self.node, self.diag = node, diag
         self.bounds = bounds
         self.take, self.refuse = take, refuse
-        self.role = EXCITATION if role is None else role
         self.refused = False
         #: by driver: its newest bounds text that read (the ones checked)
         self.reported: dict[str, str] = {}
@@ -233,16 +195,20 @@ class DriverLimits:
     def _problem(self, driver: str, theirs: InputBounds, text: str) -> str | None:
         """Why the node's limit cannot go to ``driver``, which takes ``theirs`` (``text``); None
         when the driver takes all of it."""
-        mine, role = self.bounds, self.role
+        mine = self.bounds
         if theirs.m != mine.m:
-            return (f'the driver {driver} takes {theirs.m} input(s) ({text}), {role.name} '
-                    f'sends {mine.m} ({mine}): {role.other_count}')
+            return (f'the driver {driver} takes {theirs.m} input(s) ({text}), this excitation '
+                    f'sends {mine.m} ({mine}): give input_lower / input_upper for its '
+                    f'{theirs.m} input(s), or leave torque_limit 0 and input_lower / input_upper '
+                    "'' to take the driver's")
         tol = 1e-9 * np.maximum(1.0, mine.upper - mine.lower)
         if np.all(theirs.lower <= mine.lower + tol) and np.all(theirs.upper >= mine.upper - tol):
             return None
-        return (f'the driver {driver} takes {text}, narrower than the bounds of {role.name} '
-                f'({mine}, {limit_parameter(mine)}): {role.narrower}. Give '
-                f'{limit_parameter(mine)} within the driver\'s{role.or_else}')
+        return (f'the driver {driver} takes {text}, narrower than the limit given to this '
+                f'excitation ({mine}, {limit_parameter(mine)}): the driver would clip the '
+                'signals and the level probes, and the bag would record commands the finger '
+                f'never received. Give {limit_parameter(mine)} within the driver\'s, or leave '
+                "torque_limit 0 and input_lower / input_upper '' to take the driver's")
 
     def _check_clipped(self, driver: str, value: str) -> None:
         try:
@@ -258,5 +224,5 @@ class DriverLimits:
         if now - self._last_warn >= WARN_PERIOD:
             self._last_warn = now
             self.node.get_logger().warn(
-                f'the driver {driver} has clipped {count} command(s) of this run: '
-                f'{self.role.clipped}')
+                f'the driver {driver} has clipped {count} command(s) of this run: the finger '
+                'receives other inputs than the ones recorded (give the driver\'s limit)')
