@@ -745,10 +745,7 @@ class Derivation:
                 'torque_lowpass_hz': d.torque_lowpass_hz,
                 'integral_gain': d.integral_gain, 'integral_band': d.integral_band,
                 'feedforward_at': d.feedforward_at, 'pd_kp': d.pd_kp, 'pd_kd': d.pd_kd}
-        bounds = f.bounds
-        if bounds is None and (self.m != 2 or not (TORQUE_LIMIT_RANGE[0] <= d.torque_limit
-                                                   <= TORQUE_LIMIT_RANGE[1])):
-            bounds = InputBounds.symmetric(d.torque_limit, self.m)
+        bounds = self.input_bounds()
         if bounds is not None:
             # the bounds replace the symmetric limit (the node's torque_limit is in N·m)
             del ctrl['torque_limit']
@@ -764,6 +761,16 @@ class Derivation:
             plan = _plan(f)
         plan['rest_samples'] = max(1, round(REST_SECONDS / d.control_period))
         return {'estimator': est, 'controller': ctrl, 'trajectory': plan}
+
+    def input_bounds(self) -> InputBounds | None:
+        """The controller's ``input_lower`` / ``input_upper`` for these settings, or None where
+        its ``torque_limit`` gives them (two inputs, a symmetric limit within
+        :data:`TORQUE_LIMIT_RANGE`: :meth:`params`)."""
+        f, limit = self.facts, self.settings.torque_limit
+        if f.bounds is None and (self.m != 2 or not (TORQUE_LIMIT_RANGE[0] <= limit
+                                                     <= TORQUE_LIMIT_RANGE[1])):
+            return InputBounds.symmetric(limit, self.m)
+        return f.bounds
 
     def move_text(self) -> str:
         """The checked move in words: its length and where it goes."""

@@ -35,7 +35,7 @@ import time
 
 import yaml
 
-from soft_gripper_sdre.sim.shape import InputBounds, ShapeError
+from soft_gripper_sdre.sim.shape import FingerShape, InputBounds, ShapeError
 
 #: the trajectory node's timing keys, whose sum is the plan's length
 PLAN_TIMES = ('t_start', 't_close', 't_hold', 't_open')
@@ -97,13 +97,16 @@ class Settings:
         if self.d not in (2, 3) or isinstance(self.d, bool):
             raise ValueError(f'--params {path}: the trajectory section\'s task_dim must be 2 or 3 '
                              f'(the tip\'s coordinates), got {self.d!r}')
-        model_d = _model_task_dim(ctrl, path)
+        try:
+            shape = _model_shape(ctrl)
+        except ShapeError as exc:
+            raise ValueError(f'--params {path}: the controller\'s {exc}') from None
         for node, section in (('estimator', sections['estimator']), ('trajectory', plan)):
             d = section.get('task_dim', 2)
-            if model_d is not None and d != model_d:
+            if shape is not None and d != shape.d:
                 raise ValueError(f'--params {path}: the {node} section\'s task_dim is {d!r}, the '
-                                 f'model at model_path has {model_d}-D tips; give task_dim '
-                                 f'{model_d} (train writes it)')
+                                 f'model at model_path has {shape.d}-D tips; give task_dim '
+                                 f'{shape.d} (train writes it)')
         close = plan.get('close_distance')
         side = plan.get('side_distance', 0.0) if self.d == 2 and 'close_path' not in plan else 0.0
         if not (isinstance(close, (int, float)) and isinstance(side, (int, float))
@@ -112,30 +115,30 @@ class Settings:
                              f'(the travel scored against), got {close!r}')
         self.travel = float(math.hypot(close, side))
         try:
-            self.bounds = controller_bounds(ctrl, path)
+            self.bounds = controller_bounds(ctrl, path, 2 if shape is None else shape.m)
         except (ShapeError, KeyError, TypeError) as exc:
             raise ValueError(f'--params {path}: the controller\'s bounds: {exc}') from None
 
 
-def _model_task_dim(ctrl: dict, path: Path) -> int | None:
-    """The task dimension of the model at the controller's ``model_path`` (None without one).
+def _model_shape(ctrl: dict) -> FingerShape | None:
+    """The shape of the model at the controller section's ``model_path`` (None without one).
 
     Raises:
-        ValueError: the model file does not load (naming it).
+        ShapeError: the model file does not load (naming ``model_path`` and the file).
     """
     if not ctrl.get('model_path'):
         return None
     from soft_gripper_sdre.learning.model import ModelFileError, read_checkpoint
     try:
-        return read_checkpoint(Path(ctrl['model_path']))['shape'].d
+        return read_checkpoint(Path(ctrl['model_path']))['shape']
     except ModelFileError as exc:
-        raise ValueError(f'--params {path}: the controller\'s model_path: {exc}') from None
+        raise ShapeError(f'model_path: {exc}') from None
 
 
-def controller_bounds(ctrl: dict, path: Path) -> InputBounds:
+def controller_bounds(ctrl: dict, path: Path, m: int | None = None) -> InputBounds:
     """The bounds the controller section ``ctrl`` commands within: its ``input_lower`` and
-    ``input_upper``, or ±``torque_limit`` on each input of its model (``model_path``: the
-    checkpoint's m; the hand's two torques without one).
+    ``input_upper``, or ±``torque_limit`` on each of the model's ``m`` inputs (None: the
+    checkpoint's at ``model_path``, the hand's two torques without one).
 
     Raises:
         ShapeError: bounds that cannot be used, or a ``model_path`` that does not load.
@@ -146,13 +149,9 @@ def controller_bounds(ctrl: dict, path: Path) -> InputBounds:
     limit = ctrl['torque_limit']
     if not (isinstance(limit, (int, float)) and limit > 0):
         raise ShapeError(f'torque_limit must be > 0, got {limit!r}')
-    m = 2
-    if ctrl.get('model_path'):
-        from soft_gripper_sdre.learning.model import ModelFileError, read_checkpoint
-        try:
-            m = read_checkpoint(Path(ctrl['model_path']))['shape'].m
-        except ModelFileError as exc:
-            raise ShapeError(f'model_path: {exc}') from None
+    if m is None:
+        shape = _model_shape(ctrl)
+        m = 2 if shape is None else shape.m
     return InputBounds.symmetric(float(limit), m)
 
 

@@ -169,14 +169,10 @@ def _driver(a: argparse.Namespace, seed: int) -> dict:
 
 
 def actuator_bounds(plant: str) -> dict:
-    """What a lab with one-sided actuators tells the excitation and training: the preset's
-    bounds as ``input_lower``/``input_upper``; nothing for the symmetric torque grippers (their
-    recipe as it always was)."""
-    bounds = gripper_bounds(plant)
-    if bounds.symmetric_limit is not None:
-        return {}
-    return {'input_lower': [float(v) for v in bounds.lower],
-            'input_upper': [float(v) for v in bounds.upper]}
+    """What a lab with one-sided actuators tells the excitation: the preset's bounds as
+    ``input_lower``/``input_upper`` (:func:`driver_bounds`); nothing for the symmetric torque
+    grippers (their excitation takes ``torque_limit``)."""
+    return {} if gripper_bounds(plant).symmetric_limit is not None else driver_bounds(plant)
 
 
 def driver_bounds(plant: str) -> dict:

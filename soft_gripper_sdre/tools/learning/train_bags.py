@@ -281,8 +281,8 @@ def train_from_bags(train_paths: list[Path], val_paths: list[Path], out: Path,
     val_set = load_bags(val_paths, tips_topic, torques_topic, min_duration, finger)
     shape, bounds = finger_shape(train_set, val_set, task_dim, input_lower, input_upper)
     clock.lap('read')
-    data = _label_sets(train_set, val_set, jerk_psd, meas_std, shape, bounds)
-    data.bounds_given = input_lower is not None
+    data = _label_sets(train_set, val_set, jerk_psd, meas_std, shape, bounds,
+                       bounds_given=input_lower is not None)
     clock.lap('labels')
     bar = tqdm(total=settings.epochs + settings.rollout_epochs, desc=f'train ({settings.preset})',
                unit='epoch')
@@ -415,8 +415,10 @@ class _BagData:
 
 def _label_sets(train_set: list[tuple[Recording, list[int]]],
                 val_set: list[tuple[Recording, list[int]]], jerk_psd: float | None,
-                meas_std: float | None, shape: FingerShape, bounds: InputBounds) -> _BagData:
-    """Both sets labelled (:func:`label_bags`), saying which jerk intensity the labels used.
+                meas_std: float | None, shape: FingerShape, bounds: InputBounds,
+                bounds_given: bool = False) -> _BagData:
+    """Both sets labelled (:func:`label_bags`), saying which jerk intensity the labels used;
+    ``bounds_given``: ``bounds`` are the actuators' (given), not the commands' range.
 
     Raises:
         BagDataError: the first bag has no settle phase to measure the noise on, or a set gave
@@ -436,7 +438,7 @@ def _label_sets(train_set: list[tuple[Recording, list[int]]],
     if not samples or not val_samples:
         raise BagDataError('no training samples' if not samples else 'no validation samples')
     return _BagData(train_set, samples, val_samples, provenance, val_provenance, rest_tip, noise,
-                    jerk, shape, bounds)
+                    jerk, shape, bounds, bounds_given)
 
 
 class _Verdict:
@@ -513,10 +515,9 @@ def report_gains(gains: list[finger_fits.InputGain], unread: list[str]) -> None:
 def limit_text(derived: loop_settings.Derivation) -> str:
     """The controller's limit as ``params.yaml`` gives it: ``torque_limit`` [N·m], or the
     bounds of ``input_lower`` / ``input_upper``."""
-    ctrl = derived.params([FINGER_NAMES[0]])['controller']
-    if 'torque_limit' in ctrl:
-        return f'torque_limit {ctrl["torque_limit"]:.3g} N·m'
-    bounds = InputBounds(ctrl['input_lower'], ctrl['input_upper'])
+    bounds = derived.input_bounds()
+    if bounds is None:
+        return f'torque_limit {derived.settings.torque_limit:.3g} N·m'
     return f'inputs {bounds} (input_lower, input_upper)'
 
 
