@@ -41,14 +41,14 @@ demo: $(KERNELS)
 # The tests mostly wait on DDS and wall clocks: those run on TEST_WORKERS pytest-xdist workers (a
 # file's tests on one worker); the tests marked serial measure timing, latency or tracking against
 # a bar that a neighbour's load would move, and run after them, alone. Both parts always run
-# (pytest's status 5, no test selected, counts as passed); each lists its 15 slowest tests.
+# (pytest's status 5, no test selected, counts as passed).
 TEST_WORKERS ?= 2
 PARALLEL := -n $(TEST_WORKERS) --dist loadfile
 BOTH_PASSED := for s in $$a $$b; do test $$s -eq 0 || test $$s -eq 5 || exit $$s; done
 
 test: $(KERNELS)
-	$(PY) -m pytest -v --durations=15 $(PARALLEL) -m "not serial"; a=$$?; \
-	$(PY) -m pytest -v --durations=15 -m serial; b=$$?; $(BOTH_PASSED)
+	$(PY) -m pytest -v $(PARALLEL) -m "not serial"; a=$$?; \
+	$(PY) -m pytest -v -m serial; b=$$?; $(BOTH_PASSED)
 
 test-fast: $(KERNELS)
 	$(PY) -m pytest $(PARALLEL) -m "not slow and not serial"; a=$$?; \

@@ -15,6 +15,7 @@ import yaml
 
 from soft_gripper_sdre.analysis.run_score import ScoreError, score_run
 from soft_gripper_sdre.sim.shape import InputBounds
+from soft_gripper_sdre.tools.graph.deploy import loop_report, loop_text
 from soft_gripper_sdre.tools.graph.procs import Graph, ros_env
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -102,6 +103,31 @@ def test_the_score_refuses_bad_inputs_and_a_bag_without_its_topics(tmp_path):
         score_run(tmp_path / 'nobag', 0.01, b, 2, 3.0, 0.5)
 
 
+def test_the_loop_report_counts_what_happened_while_the_plan_ran():
+    start = {'controller': {'estimates': '10', 'skipped_estimates': '2'},
+             'recorder': {'lost /tip_positions': '3', 'messages /tip_positions': '40'},
+             'lab_driver': {'late_ticks': '7', 'stale_ticks': '400', 'plant': 'x'}}
+    end = {'controller': {'estimates': '610', 'skipped_estimates': '9', 'estimate_jumps': '1'},
+           'estimator': {'estimates': '620', 'resets': '2'},
+           'recorder': {'lost /tip_positions': '5', 'lost /torque_commands': '4'},
+           'lab_driver': {'late_ticks': '27', 'stale_ticks': '400'}, 'trajectory': {'ticks': '9'}}
+    report = loop_report(start, end)
+    # counted from the plan's start: the driver's stale ticks of an earlier run are not this one's
+    assert report == {'controller': {'estimates': 600, 'skipped_estimates': 7, 'estimate_jumps': 1},
+                      'estimator': {'resets': 2, 'dropouts': 0, 'bad_message': 0},
+                      'lost': {'/tip_positions': 2, '/torque_commands': 4},
+                      'driver': {'node': 'lab_driver', 'late_ticks': 20, 'stale_ticks': 0}}
+    text = loop_text(report)
+    assert text.startswith('the loop: estimates skipped 7 of 607, estimate stamp jumps 1, '
+                           'estimator resets 2, tip dropouts 0; messages lost: /tip_positions 2, '
+                           '/torque_commands 4; lab_driver: late ticks 20, stale ticks 0')
+    assert 'give the loop its cores' in text
+    quiet = loop_report({}, {'controller': {'estimates': '600'}, 'recorder': {}})
+    assert quiet['driver'] is None and quiet['lost'] == {}
+    assert loop_text(quiet) == ('the loop: estimates skipped 0 of 600, estimate stamp jumps 0, '
+                                'estimator resets 0, tip dropouts 0; messages lost: none')
+
+
 @pytest.mark.slow
 def test_one_command_deploys_records_ends_with_the_plan_and_scores_it(tmp_path):
     env = ros_env()
@@ -124,6 +150,10 @@ def test_one_command_deploys_records_ends_with_the_plan_and_scores_it(tmp_path):
     assert all(np.isfinite(score['rmse_pct_of_travel']))
     assert f'{score["rmse_pct_of_travel"]} % of the 2 mm travel' in r.stdout
     assert (out / 'bag').is_dir() and (out / 'logs' / 'controller.log').is_file()
+    # what the loop counted over the plan, plant_driver's ticks among it, printed and kept
+    loop = score['loop']
+    assert loop['driver']['node'] == 'plant_driver' and loop['controller']['estimates'] > 100
+    assert loop_text(loop).split('. A busy')[0] in r.stdout
 
 
 @pytest.mark.parametrize('facts', [

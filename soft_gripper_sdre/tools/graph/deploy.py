@@ -45,6 +45,53 @@ TOPICS = ['tip_positions', 'true_tip_positions', 'state_estimate', 'grasp_refere
 BEST_EFFORT = {'tips_reliability': 'best_effort'}
 #: the key of a node's section in a parameters file
 SECTION = '/**/{}'
+#: the loop's troubles each node counts on /diagnostics (docs/faults.md), as the report gives them
+LOOP_COUNTERS = {'controller': ('estimates', 'skipped_estimates', 'estimate_jumps'),
+                 'estimator': ('resets', 'dropouts', 'bad_message'),
+                 'driver': ('late_ticks', 'stale_ticks')}
+
+
+def loop_report(start: dict[str, dict[str, str]], end: dict[str, dict[str, str]]) -> dict:
+    """What the loop's nodes counted while the plan ran: the change between their /diagnostics
+    values (by node name) at its ``start`` and at its ``end``: the controller's estimates, those
+    it skipped and the stamp jumps it warned of, the estimator's resets and dropouts, the
+    messages the recorder found missing per topic (``lost``), and a driver's late and stale
+    ticks where the driver reports them (``plant_driver`` does; ``driver`` None where no node
+    does; a lab's driver that runs on between deployments counts from before this one). A
+    counter a node never raised is 0."""
+    def count(node: str, key: str) -> int:
+        return int(end.get(node, {}).get(key, 0)) - int(start.get(node, {}).get(key, 0))
+
+    def counts(node: str, keys: tuple[str, ...]) -> dict[str, int]:
+        return {k: count(node, k) for k in keys}
+
+    driver = next((n for n, v in end.items()
+                   if n not in ('controller', 'estimator', 'recorder')
+                   and any(k in v for k in LOOP_COUNTERS['driver'])), None)
+    return {'controller': counts('controller', LOOP_COUNTERS['controller']),
+            'estimator': counts('estimator', LOOP_COUNTERS['estimator']),
+            'lost': {k.split(' ', 1)[1]: count('recorder', k)
+                     for k in sorted(end.get('recorder', {})) if k.startswith('lost ')},
+            'driver': None if driver is None else
+            {'node': driver, **counts(driver, LOOP_COUNTERS['driver'])}}
+
+
+def loop_text(report: dict) -> str:
+    """:func:`loop_report` in a line, ending with what to do when the loop was troubled."""
+    c, e, d = report['controller'], report['estimator'], report['driver']
+    lost = ', '.join(f'{t} {n}' for t, n in report['lost'].items() if n) or 'none'
+    text = (f"the loop: estimates skipped {c['skipped_estimates']} of "
+            f"{c['estimates'] + c['skipped_estimates']}, estimate stamp jumps "
+            f"{c['estimate_jumps']}, estimator resets {e['resets']}, tip dropouts "
+            f"{e['dropouts']}; messages lost: {lost}")
+    if d is not None:
+        text += f"; {d['node']}: late ticks {d['late_ticks']}, stale ticks {d['stale_ticks']}"
+    troubled = (c['skipped_estimates'] or e['resets'] or c['estimate_jumps'] or e['dropouts']
+                or (d is not None and (d['late_ticks'] or d['stale_ticks'])))
+    if troubled:
+        text += ('. A busy machine moves the score: give the loop its cores or --realtime '
+                 '(docs/faults.md)')
+    return text
 
 
 class Settings:
@@ -239,8 +286,9 @@ def _env(domain_id: int | None) -> dict:
     return env
 
 
-def deploy(a: argparse.Namespace, s: Settings) -> Path:
-    """Start the loop, the recorder and the plan; return the bag once the plan has ended.
+def deploy(a: argparse.Namespace, s: Settings) -> tuple[Path, dict]:
+    """Start the loop, the recorder and the plan; once the plan has ended, return the bag and
+    what the loop's nodes counted meanwhile (:func:`loop_report`, taken before they stop).
 
     Raises:
         RuntimeError: a node exited, or the loop or the plan did not start in time (named, with
@@ -288,16 +336,19 @@ def deploy(a: argparse.Namespace, s: Settings) -> Path:
                                                     f'({a.startup_timeout:g} s)')
                 monitor.spin_until(lambda: False, 0.1)
             end = time.monotonic() + s.plan_seconds + a.tail
+            monitor.poll()
+            at_start = {node: dict(v) for node, v in monitor.values.items()}
             print(f'plan started: {s.plan_seconds:g} s, {len(s.finger_names)} finger(s) with '
                   f'{a.law}', flush=True)
             while time.monotonic() < end:
                 watch(graph)
                 monitor.spin_until(lambda: False, 0.1)
+            report = loop_report(at_start, monitor.values)
             for name in ('trajectory', 'controller', 'recorder'):
                 graph.stop(name)
     finally:
         monitor.close()
-    return bag
+    return bag, report
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -308,19 +359,20 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(problem)
     from soft_gripper_sdre.analysis.run_score import ScoreError, score_run
     try:
-        bag = deploy(a, settings)
+        bag, loop = deploy(a, settings)
         score = score_run(bag, settings.travel, settings.bounds, settings.d,
                           settings.plan_seconds, settings.rest_seconds)
     except (RuntimeError, ScoreError) as exc:
         print(f'error: {exc}', file=sys.stderr)
         return 1
     score = {'law': a.law, 'params': str(settings.path), 'travel_m': settings.travel,
-             'plan_seconds': settings.plan_seconds, **score}
+             'plan_seconds': settings.plan_seconds, **score, 'loop': loop}
     (a.out / 'score.json').write_text(json.dumps(score, indent=2))
     print(f'{a.law}: RMSE {score["rmse_mm"]} mm = {score["rmse_pct_of_travel"]} % of the '
           f'{1e3 * settings.travel:.3g} mm travel (on {score["tips_topic"]}); at a bound at rest '
           f'{100 * score["saturated_at_rest"]:.1f} %; {score["outside_bounds"]} of '
           f'{score["commands"]} commands outside the bounds; {a.out}', flush=True)
+    print(loop_text(loop), flush=True)
     return 0
 
 
