@@ -3,16 +3,17 @@ hand: a one-chamber planar finger (d = 2, m = 1, pressure 0..2e5 Pa) and a three
 segment (d = 3, m = 3, pull-only tendons 0..2 N), each with a model really trained on a known
 SDC system."""
 
-from node_harness import MS, make_composed, make_controller
+from node_harness import MS, make_composed, make_controller, make_estimator
 import numpy as np
 import pytest
-from rosutil import overrides, ros_context, spin_until
+from rosutil import drain, overrides, ros_context, spin_until
 from shaped_models import KNOWN_SYSTEMS, trained_known_system
 
 from soft_gripper_sdre.control.laws import make_law
 from soft_gripper_sdre.control.tracking import Weights
 from soft_gripper_sdre.learning.model import SDCModel
 from soft_gripper_sdre.nodes import conversions as cv
+from soft_gripper_sdre.nodes.common import ERROR, OK
 from soft_gripper_sdre.nodes.controller import ControllerNode, composed
 from soft_gripper_sdre.nodes.params import ParameterError
 from soft_gripper_sdre.nodes.topics import (
@@ -244,3 +245,41 @@ def test_bad_shape_parameters_exit_2_naming_them(node, args, needle, tmp_path):
     assert out.returncode == 2, out.stderr
     assert needle in out.stderr and 'Traceback' not in out.stderr
     assert not list(tmp_path.iterdir())
+
+
+def test_an_estimator_of_another_task_dim_is_named_and_its_estimates_refused(checkpoint):
+    """A planar estimator before a 3-D model (or a 3-D one before a planar model) sends
+    estimates nothing in them tells apart: the controller asks the publisher for its task_dim,
+    reports ERROR naming it with the fix, and commands nothing until that publisher is gone;
+    a publisher without the parameter (the probe, a lab's estimator) is taken as it is."""
+    shape, bounds, path = checkpoint
+    d = shape.d
+    with ros_context() as (ctx, executor):
+        node, probe, est_pub, ref_pub = make_controller(
+            ctx, executor, model_path=str(path), finger_names=NAMES, **WEIGHTS,
+            **_bounds_params(bounds))
+        wrong, _, _ = make_estimator(ctx, executor, finger_names=NAMES, task_dim=5 - d)
+
+        def settled(expect_problem: bool) -> bool:
+            node.peers.poll()
+            return (node.peers.problem is not None) == expect_problem
+        assert spin_until(executor, lambda: settled(True), 10.0)
+        want = (f'/estimator publishes /state_estimate for task_dim {5 - d}, but the model is of '
+                f'{d}-D tips: start it with -p task_dim:={d}')
+        assert node.peers.problem == want
+        assert node.diag.level == ERROR and node.diag.values['task_dim_mismatch'] == want
+        msg, _ = _plan(d)
+        ref_pub.publish(msg)
+        assert spin_until(executor, lambda: node.diag.counters['references'] == 1)
+        x = np.zeros((2, d))
+        est_pub.publish(cv.estimate_to_msg(0, x, x, NAMES))
+        assert spin_until(executor, lambda: node.diag.counters['wrong_task_dim'] == 1)
+        drain(executor, 0.2)
+        assert probe.received[TORQUE_COMMANDS] == []
+        # the estimator gone, the probe's estimates (no task_dim there) are answered
+        executor.remove_node(wrong)
+        wrong.destroy_node()
+        assert spin_until(executor, lambda: settled(False), 10.0)
+        assert node.diag.level == OK and 'task_dim_mismatch' not in node.diag.values
+        est_pub.publish(cv.estimate_to_msg(MS, x, x, NAMES))
+        assert spin_until(executor, lambda: len(probe.received[TORQUE_COMMANDS]) == 1)

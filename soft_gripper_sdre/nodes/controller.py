@@ -112,6 +112,7 @@ from soft_gripper_sdre.nodes.params import (
     numbers_param,
     on_runtime_change,
 )
+from soft_gripper_sdre.nodes.peer_shape import PeerShapes
 from soft_gripper_sdre.nodes.plan_cdr import PlanCodec
 from soft_gripper_sdre.nodes.topics import (
     GRASP_REFERENCE,
@@ -254,6 +255,10 @@ class ControllerNode(Node):
         self.gate = CommandGate(_ns(p['control_period']), _ns(p['reset_on_jump']),
                                 p['estimate_watchdog'], counters=self.diag.counters)
         self._show_settings()
+        self.peers = PeerShapes(self, self.shape.d,
+                                [s.topic_name for s in (self.sub_est, self.sub_ref) if s],
+                                on_change=self._peer_shapes)
+        self.diag.before_publish.append(self.peers.poll)
         self._watchdog = self.create_timer(
             0.05, lambda: self._act(self.gate.on_wall_time(time.monotonic())))
         self._log_start()
@@ -345,6 +350,9 @@ class ControllerNode(Node):
         self._estimate(stamp, x)
 
     def _estimate(self, stamp: int, x: np.ndarray) -> None:
+        if self.peers.problem is not None:          # an estimator or plan of another task_dim
+            self.diag.count('wrong_task_dim')
+            return
         last = self.gate.last_estimate_ns
         self._act(self.gate.on_estimate(stamp, x, time.monotonic()), STATE_ESTIMATE)
         if last >= 0 and stamp - last > self.gate.reset_jump_ns:
@@ -386,6 +394,19 @@ class ControllerNode(Node):
         elif change is Change.ESTIMATES_BACK:
             self.diag.set_status(OK, 'estimates are back; tracking')
             self.get_logger().info(f'state estimates are back at t = {t:.4f} s; tracking resumes')
+
+    def _peer_shapes(self, problem: str | None) -> None:
+        """A publisher of estimates or plans of another ``task_dim`` appeared (``problem``, named
+        with the fix: ERROR, estimates refused and counted as ``wrong_task_dim``), or the last
+        one left (None: OK, tracking again)."""
+        if problem is not None:
+            self.diag.values['task_dim_mismatch'] = problem
+            self._error(f'{problem}; commanding nothing until it does')
+        else:
+            self.diag.values.pop('task_dim_mismatch', None)
+            self.diag.set_status(OK, 'every estimator and plan matches the model\'s task_dim')
+            self.get_logger().info('every publisher of estimates and plans matches the model\'s '
+                                   'task_dim: tracking again')
 
     def _error(self, why: str) -> None:
         """Enter ERROR with ``why`` (status and log)."""
