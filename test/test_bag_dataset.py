@@ -1,6 +1,7 @@
 """Training data from rosbag2 recordings: every bad bag refused by name, and jittery, gappy,
 differently stamped recordings labelled right (real bags written with rosbags, real KF + RTS)."""
 import json
+import math
 import subprocess
 import sys
 
@@ -15,8 +16,11 @@ from soft_gripper_sdre.analysis.bag_dataset import (
     settle_estimates,
     tip_stretches,
 )
+from soft_gripper_sdre.analysis.data_facts import DataFacts
+from soft_gripper_sdre.analysis.loop_settings import Derivation, LoopSettings
 from soft_gripper_sdre.learning.model import read_checkpoint
 from soft_gripper_sdre.tools.learning import train as train_tool
+from soft_gripper_sdre.tools.learning.train_bags import Draw
 
 N = 2000
 STAMPS = np.arange(N) * MS
@@ -156,6 +160,9 @@ def test_the_cli_exits_2_without_a_traceback(tmp_path):
     (['--bag', 'a', '--val-bag', 'b', '--meas-std', 'nan'], '--meas-std must be in [0, 0.01) m'),
     (['--bag', 'a', '--val-bag', 'b', '--min-duration', '0'], '--min-duration must be > 0 s'),
     (['--bag', 'a', '--val-bag', 'b', '--finger', '4'], '--finger must be in [0, 3]'),
+    (['--bag', 'a', '--val-bag', 'b', '--draws', '0'], '--draws must be in [1, 10]'),
+    (['--bag', 'a', '--val-bag', 'b', '--draws', '11'], '--draws must be in [1, 10]'),
+    (['--data', 'c', '--draws', '2'], '--draws applies to --bag only'),
     (['--bag', 'a', '--val-bag', 'b', '--rollout-epochs', '-1'],
      '--rollout-epochs takes an int >= 0'),
     (['--data', 'c', '--rollout-epochs', '5'],
@@ -323,3 +330,39 @@ def test_the_labels_filter_is_tuned_on_the_excited_tips_not_on_the_rest_before_t
                                         JERK_GRID)
     q = tune_jerk(rec, 0, 5e-5)
     assert q >= 100 * at_rest, (q, at_rest)
+
+
+def _derivation(on_fingers: dict | None, settings: bool = True):
+    """A derivation as training gives it: chosen settings (or none) and what the fingers' own
+    fits expect of them, error / travel by finger."""
+    facts = DataFacts(period=0.005, noise_std=5e-5, travel=3e-3, torque_limit=0.01,
+                      accel_psd_ml=0.1)
+    chosen = LoopSettings(control_period=0.005, meas_std=5e-5, accel_psd=0.1, q_pos=1e3,
+                          q_vel=0.0, r=1e4, torque_limit=0.01, torque_lowpass_hz=20.0,
+                          integral_gain=1e3, integral_band=3e-3, pd_kp=40.0, pd_kd=9.0,
+                          bandwidth_hz=2.0)
+    runs = None if on_fingers is None else {
+        name: {'rmse_rel': e, 'diverged': e == math.inf} for name, e in on_fingers.items()}
+    return Derivation(chosen if settings else None, {}, [], facts, on_fingers=runs)
+
+
+def test_another_draw_while_the_fits_expect_a_miss_and_the_best_is_kept():
+    """The draws' rule (train_bags.Draw): a fit model whose fingers' fits expect a miss beyond
+    KEEP_NOMINAL, or that gave no setting, asks for another seed; an unfit model or one without
+    fits does not; the best sorts first: fit, with settings, the smaller expected miss, the
+    earlier seed."""
+    miss, hit = Draw(0, _derivation({'index': 0.072, 'thumb': 0.029})), \
+        Draw(1, _derivation({'index': 0.032, 'thumb': 0.016}))
+    assert miss.expected == 0.072 and miss.retry
+    assert hit.expected == 0.032 and not hit.retry
+    diverges = Draw(2, _derivation({'index': 0.01, 'thumb': math.inf}))
+    assert diverges.expected == math.inf and diverges.retry
+    nothing = Draw(3, _derivation(None, settings=False))
+    assert nothing.expected is None and nothing.retry
+    unfit, no_fits = Draw(4, None), Draw(5, _derivation(None))
+    assert not unfit.retry and not no_fits.retry and no_fits.expected is None
+    ranked = sorted([unfit, nothing, diverges, miss, hit, no_fits], key=Draw.rank)
+    assert [d.seed for d in ranked] == [1, 0, 2, 5, 3, 4]
+    assert 'index 7.20 %, thumb 2.90 %' in miss.text() and unfit.text() == 'not fit to control'
+    assert miss.summary() == {'seed': 0, 'fit_for_control': True, 'settings': True,
+                              'expected_rmse_rel': 0.072}

@@ -118,11 +118,13 @@ def test_an_existing_output_is_never_overwritten(tmp_path):
 
 
 def _miss(out: Path, metrics: dict) -> str:
-    """What a missed grasp needs to be told apart: the score, the settings and what training
-    expected of them, and the last warning of each node of the deployment (a starved driver's late
-    ticks, the recorder's lost messages, the controller's skipped estimates)."""
+    """What a missed grasp needs to be told apart: the score with what the loop's nodes counted
+    meanwhile (a starved driver's late ticks, lost messages, skipped estimates), the settings and
+    what training expected of them, and the last warning of each kind from each node."""
     derived = metrics['training']['derived_settings']
     settings = {k: derived['settings'][k] for k in ('bandwidth_hz', 'accel_psd', 'integral_gain')}
+    expected = {'model': derived['checks']['sdre_ff']['rmse_rel'],
+                **{f: c['rmse_rel'] for f, c in (derived.get('on_fingers') or {}).items()}}
     warnings = {}
     for log in sorted((out / 'deploy_sdre_ff' / 'logs').glob('*.log')):
         last = {}       # the last warning of each kind (its first words, numbers aside)
@@ -132,11 +134,9 @@ def _miss(out: Path, metrics: dict) -> str:
                 last[re.sub(r'[\d.]+', '#', text)[:24]] = text[:240]
         if last:
             warnings[log.stem] = list(last.values())
-    expected = {'model': derived['checks']['sdre_ff']['rmse_rel'],
-                **{f: c['rmse_rel'] for f, c in (derived.get('on_fingers') or {}).items()}}
     return (f"score {metrics['deploy']['sdre_ff']}; settings {settings}; error / travel "
-            f"expected on the model and the fingers' own fits {expected}; "
-            f"free run {metrics['training']['fitness'].get('free_run')}; warnings {warnings}")
+            f"expected on the model and the fingers' own fits {expected}; free run "
+            f"{metrics['training']['fitness'].get('free_run')}; warnings {warnings}")
 
 
 def _identified_side_by_side(tmp_path: Path) -> dict[str, Path]:
@@ -232,6 +232,8 @@ def _tendon_trained_and_deployed(out: Path, identified: Path) -> None:
     score = metrics['deploy']['sdre_ff']
     assert metrics['deploy']['travel'] == facts['travel']
     assert score['samples'] > 500 and score['saturated_at_rest'] == 0.0
+    assert score['loop']['driver']['node'] == 'plant_driver'      # counted over the plan
+    assert score['loop']['controller']['estimates'] > 500
     # the model pooled from both fingers, with each finger's input gain: index / thumb
     # 1.1 / 1.0 % of travel on one CI run's recordings; bounded at twice the recipe's 5 % target
     assert max(score['rmse_pct_of_travel']) < 10.0, _miss(out, metrics)
@@ -296,4 +298,10 @@ def _pneumatic_trained_and_deployed(out: Path, identified: Path) -> None:
     expected = derived['on_fingers']
     assert list(expected) == foreign.FINGERS
     assert "on the fingers' own fits, each with its input lag" in (out / 'train.log').read_text()
+    # each training drawn is said and kept; the kept one's expectation is the one above
+    draws = model_metrics['draws']
+    assert 1 <= len(draws) <= 3 and all(d['fit_for_control'] for d in draws[:-1])
+    assert model_metrics['seed'] == min(draws, key=lambda d: (
+        not d['settings'], d['expected_rmse_rel'] if d['expected_rmse_rel'] is not None
+        else math.inf, d['seed']))['seed']
     assert max(score['rmse_pct_of_travel']) < 10.0, _miss(out, metrics)

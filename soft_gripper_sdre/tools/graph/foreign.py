@@ -36,7 +36,9 @@ preset's:
    (``true_tip_positions``, in the tip's d coordinates) against the plan, as a share of the
    travel, the share of commands at a bound (not an input's rest bound: a vented chamber, a slack
    tendon) while the plan holds at rest, and the commands outside the controller's bounds
-   (``params.yaml``) or the gripper's, which must be none.
+   (``params.yaml``) or the gripper's, which must be none; and what the loop's nodes counted
+   over the plan (``loop``: skipped estimates, resets, lost messages, the driver's late and
+   stale ticks: :func:`~soft_gripper_sdre.tools.graph.deploy.loop_report`).
 
 ``OUT/metrics.json`` holds every figure, ``OUT/<step>/logs`` the node logs. Arguments are checked
 before anything starts (exit 2); a failed step ends the tool with exit status 1 and names it.
@@ -59,6 +61,7 @@ import yaml
 
 from soft_gripper_sdre.sim.plants.presets import RATES, gripper_bounds, gripper_shape
 from soft_gripper_sdre.sim.shape import InputBounds
+from soft_gripper_sdre.tools.graph.deploy import loop_report, loop_text
 from soft_gripper_sdre.tools.graph.procs import DiagnosticsMonitor, Graph, ros_env
 from soft_gripper_sdre.tools.learning import NOT_FIT
 
@@ -222,9 +225,11 @@ def excite(a: argparse.Namespace, env: dict, bag: Path, signals: list[str], leve
         return graph.procs['excitation'].log_path.read_text(encoding='utf-8')
 
 
-def deploy(a: argparse.Namespace, env: dict, out: Path, params: Path, law: str, seed: int) -> Path:
+def deploy(a: argparse.Namespace, env: dict, out: Path, params: Path, law: str,
+           seed: int) -> tuple[Path, dict]:
     """The grasp with ``law`` on ``params``, closing by the move they were checked on (their
-    trajectory section); returns the bag."""
+    trajectory section); returns the bag and what the loop's nodes counted from the plan's start
+    to its end (:func:`~soft_gripper_sdre.tools.graph.deploy.loop_report`)."""
     bag = out / 'bag'
     monitor = DiagnosticsMonitor(env, f'foreign_monitor_{law}')
     try:
@@ -242,15 +247,21 @@ def deploy(a: argparse.Namespace, env: dict, out: Path, params: Path, law: str, 
             graph.start('trajectory', {'finger_names': FINGERS, 'grasp_fingers': [0, 1],
                                        'others': 'hold', **BEST_EFFORT}, params_file=params)
             end = time.monotonic() + GRASP_SECONDS + 3.0
+            at_start = at_end = None
             while time.monotonic() < end:
                 dead = [p.name for p in graph.procs.values() if not p.alive()]
                 if dead:
                     raise _fail(graph, dead[0], f'deploying {law}: {dead[0]} exited')
                 monitor.poll()
+                if at_start is None and monitor.get('recorder', 'messages /grasp_reference') > 0:
+                    at_start = {node: dict(v) for node, v in monitor.values.items()}
+                    plan_end = time.monotonic() + GRASP_SECONDS
+                elif at_start is not None and at_end is None and time.monotonic() > plan_end:
+                    at_end = {node: dict(v) for node, v in monitor.values.items()}
                 time.sleep(0.1)
     finally:
         monitor.close()
-    return bag
+    return bag, loop_report(at_start or {}, at_end or monitor.values)
 
 
 def controller_bounds(params: Path, m: int) -> InputBounds:
@@ -367,13 +378,14 @@ def deploy_laws(a: argparse.Namespace, env: dict, out: Path, params: Path, facts
     metrics['deploy'] = {'travel': travel, 'direction_deg': facts['direction'],
                          'bounds': bounds.to_record()}
     for i, law in enumerate(a.laws):
-        bag = deploy(a, env, out / f'deploy_{law}', params, law, a.seed + 10 + i)
-        metrics['deploy'][law] = score(bag, travel, bounds, shape.d, gripper_bounds(a.plant))
-        s = metrics['deploy'][law]
+        bag, loop = deploy(a, env, out / f'deploy_{law}', params, law, a.seed + 10 + i)
+        s = {**score(bag, travel, bounds, shape.d, gripper_bounds(a.plant)), 'loop': loop}
+        metrics['deploy'][law] = s
         print(f'{law}: RMSE {s["rmse_mm"]} mm = {s["rmse_pct_of_travel"]} % of the '
               f'{move_text(facts)}; at a bound at rest {100 * s["saturated_at_rest"]:.1f} %; '
               f'{s["outside_bounds"]} of {s["commands"]} commands outside the bounds',
               flush=True)
+        print(loop_text(loop), flush=True)
 
 
 def main(argv: list[str] | None = None) -> int:

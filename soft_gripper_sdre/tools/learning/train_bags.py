@@ -16,6 +16,12 @@ state translated by that finger's rest pose.
 The checkpoint's ``data`` records the provenance: every bag with its topics, types, message
 counts, rates, jitter, gaps, durations, fingers, rest poses, noise levels and sample counts.
 
+A training is one draw (one seed) of a nonconvex fit. Where the fingers' own fits with an input
+lag judge the derived settings, or a model fit to control gave no setting that passed its checks,
+another is drawn with the next seed while the fits expect the grasp to miss
+:data:`~soft_gripper_sdre.analysis.loop_settings.KEEP_NOMINAL` of the travel, ``draws`` at most,
+and the best is kept (:class:`Draw`); each draw is printed and listed in the metrics (``draws``).
+
 The outputs are written to a temporary directory beside ``--out`` and moved into it only when
 all are complete, so a failed run leaves nothing half-written there. Validation R² is scored
 against the validation bags' own KF + RTS labels (a recording has no true acceleration).
@@ -23,6 +29,7 @@ against the validation bags' own KF + RTS labels (a recording has no true accele
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+import math
 from pathlib import Path
 
 import numpy as np
@@ -63,6 +70,11 @@ TUNE_SAMPLES = 2000
 JERK_GRID = np.logspace(-3, 7, 11)
 #: written only for a model fit to control whose settings passed their closed-loop check
 PARAMS_FILE = 'params.yaml'
+#: trainings of one recipe at most by default (``--draws``; seeds ``--seed``, +1, …): another is
+#: drawn while the fingers' own fits expect the deployed grasp to miss
+#: :data:`~soft_gripper_sdre.analysis.loop_settings.KEEP_NOMINAL` of the travel, or a model fit to
+#: control gave no setting that passed its checks
+MAX_DRAWS = 3
 
 
 def expand_bag_paths(paths: list[Path]) -> list[Path]:
@@ -259,7 +271,7 @@ def train_from_bags(train_paths: list[Path], val_paths: list[Path], out: Path,
                     tips_topic: str, torques_topic: str, min_duration: float, finger: int | None,
                     meas_std: float | None, jerk_psd: float | None, task_dim: str | int = 2,
                     input_lower: list[float] | None = None,
-                    input_upper: list[float] | None = None) -> dict:
+                    input_upper: list[float] | None = None, draws: int = MAX_DRAWS) -> dict:
     """Read, label, train, validate, judge, derive the loop's settings and write (module doc);
     returns the metrics.
 
@@ -269,6 +281,8 @@ def train_from_bags(train_paths: list[Path], val_paths: list[Path], out: Path,
         input_lower, input_upper: one bound per input (both or neither): the bounds the
             actuators deliver, which the checkpoint records and the derived loop stays within;
             None: the range the training bags' commands spanned.
+        draws: trainings at most (seeds ``settings.seed``, +1, …): another while the last
+            :class:`Draw` asks for a retry; the best by :meth:`Draw.rank` is kept (module doc).
 
     Raises:
         BagDataError: a bag cannot be used, the bags disagree on the number of inputs, the task
@@ -284,23 +298,28 @@ def train_from_bags(train_paths: list[Path], val_paths: list[Path], out: Path,
     data = _label_sets(train_set, val_set, jerk_psd, meas_std, shape, bounds,
                        bounds_given=input_lower is not None)
     clock.lap('labels')
-    bar = tqdm(total=settings.epochs + settings.rollout_epochs, desc=f'train ({settings.preset})',
-               unit='epoch')
-    result = train(data.x, data.u, data.acc, data.x_val, data.u_val, data.acc_val, settings,
-                   lambda epoch, tl, vl: (bar.update(1),
-                                          bar.set_postfix(train=f'{tl:.3g}', val=f'{vl:.3g}')),
-                   runs=runs(data.samples), val_runs=runs(data.val_samples), shape=shape)
-    bar.close()
-    clock.lap('training')
-    clock.seconds.update(result.timings)
-    verdict = _Verdict(data, settings, result, clock)
     # never a params.yaml from another model beside this one
     with training_run.staged(out, stale=(PARAMS_FILE,)) as stage:
-        _, scores, metrics = training_run.checkpoint(
-            stage / 'model.pt', result, settings, rest_tip=data.rest_tip, dt=data.dt,
-            data=data.info(tips_topic, torques_topic), train=(data.x, data.u, data.acc),
-            val=(data.x_val, data.u_val), acc_ref=data.acc_val, describe=verdict.describe,
-            input_bounds=bounds)
+        tried: list[_Trained] = []
+        for k in range(draws):
+            t = _draw(data, replace(settings, seed=settings.seed + k), clock,
+                      stage / ('model.pt' if k == 0 else f'draw{k}.pt'), bounds, tips_topic,
+                      torques_topic)
+            tried.append(t)
+            more = k + 1 < draws and t.draw.retry
+            print(f'draw {k + 1} (seed {t.draw.seed}): {t.draw.text()}'
+                  + (f'; another draw (seed {t.draw.seed + 1})' if more else ''), flush=True)
+            if not more:
+                break
+        kept = min(tried, key=lambda t: t.draw.rank())
+        for t in tried:
+            if t is not kept:
+                t.path.unlink()
+        kept.path.replace(stage / 'model.pt')
+        if len(tried) > 1:
+            print(f'kept draw {tried.index(kept) + 1} (seed {kept.draw.seed})', flush=True)
+        result, verdict, scores, metrics = kept.result, kept.verdict, kept.scores, kept.metrics
+        metrics['draws'] = [t.draw.summary() for t in tried]
         clock.lap('checkpoint')
         metrics['timings'] = clock.record()
         training_run.write_report(
@@ -439,6 +458,92 @@ def _label_sets(train_set: list[tuple[Recording, list[int]]],
         raise BagDataError('no training samples' if not samples else 'no validation samples')
     return _BagData(train_set, samples, val_samples, provenance, val_provenance, rest_tip, noise,
                     jerk, shape, bounds, bounds_given)
+
+
+@dataclass
+class Draw:
+    """One training of the recipe: its ``seed`` and its derivation (``derived``: None when the
+    model is not fit to control). The rule of :func:`train_from_bags`'s draws."""
+
+    seed: int
+    derived: loop_settings.Derivation | None
+
+    @property
+    def expected(self) -> float | None:
+        """The largest error / travel the fingers' own fits expect of the chosen settings (inf:
+        one diverges); None: no settings, or no finger has a fit."""
+        d = self.derived
+        if d is None or d.settings is None or not d.on_fingers:
+            return None
+        return max(float('inf') if r['diverged'] else r['rmse_rel'] for r in d.on_fingers.values())
+
+    @property
+    def retry(self) -> bool:
+        """Whether another seed may do better: the model is fit to control (an unfit model is the
+        recordings' matter, not the seed's), and no setting passed or the fits expect a miss
+        beyond KEEP_NOMINAL."""
+        if self.derived is None:
+            return False
+        if self.derived.settings is None:
+            return True
+        expected = self.expected
+        return expected is not None and not expected <= loop_settings.KEEP_NOMINAL
+
+    def rank(self) -> tuple:
+        """Better draws sort first: fit, with settings, the smaller expected miss, the earlier
+        seed."""
+        d, expected = self.derived, self.expected
+        return (d is None, d is None or d.settings is None,
+                math.inf if expected is None else expected, self.seed)
+
+    def text(self) -> str:
+        d = self.derived
+        if d is None:
+            return 'not fit to control'
+        if d.settings is None:
+            return 'fit to control; no controller setting passed its checks'
+        return (d.fingers_text()[0]
+                or f'error / travel on the model {100 * d.checks["sdre_ff"].rmse_rel:.2f} %')
+
+    def summary(self) -> dict:
+        return {'seed': self.seed, 'fit_for_control': self.derived is not None,
+                'settings': self.derived is not None and self.derived.settings is not None,
+                'expected_rmse_rel': self.expected}
+
+
+@dataclass
+class _Trained:
+    """A draw's training, its checkpoint at ``path`` and what judging it gave."""
+
+    draw: Draw
+    path: Path
+    result: TrainResult
+    verdict: _Verdict
+    scores: training_run.Scores
+    metrics: dict
+
+
+def _draw(data: _BagData, settings: TrainSettings, clock: training_run.Stages, path: Path,
+          bounds: InputBounds, tips_topic: str, torques_topic: str) -> _Trained:
+    """Train with ``settings`` (its seed), write the checkpoint to ``path``, judge it and, when
+    fit, derive its settings."""
+    bar = tqdm(total=settings.epochs + settings.rollout_epochs,
+               desc=f'train ({settings.preset}, seed {settings.seed})', unit='epoch')
+    result = train(data.x, data.u, data.acc, data.x_val, data.u_val, data.acc_val, settings,
+                   lambda epoch, tl, vl: (bar.update(1),
+                                          bar.set_postfix(train=f'{tl:.3g}', val=f'{vl:.3g}')),
+                   runs=runs(data.samples), val_runs=runs(data.val_samples), shape=data.shape)
+    bar.close()
+    clock.lap('training')
+    for stage, seconds in result.timings.items():          # each draw's stages add up
+        clock.seconds[stage] = clock.seconds.get(stage, 0.0) + seconds
+    verdict = _Verdict(data, settings, result, clock)
+    _, scores, metrics = training_run.checkpoint(
+        path, result, settings, rest_tip=data.rest_tip, dt=data.dt,
+        data=data.info(tips_topic, torques_topic), train=(data.x, data.u, data.acc),
+        val=(data.x_val, data.u_val), acc_ref=data.acc_val, describe=verdict.describe,
+        input_bounds=bounds)
+    return _Trained(Draw(settings.seed, verdict.derived), path, result, verdict, scores, metrics)
 
 
 class _Verdict:
