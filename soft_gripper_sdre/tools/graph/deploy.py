@@ -48,7 +48,11 @@ SECTION = '/**/{}'
 #: the loop's troubles each node counts on /diagnostics (docs/faults.md), as the report gives them
 LOOP_COUNTERS = {'controller': ('estimates', 'skipped_estimates', 'estimate_jumps'),
                  'estimator': ('resets', 'dropouts', 'bad_message'),
-                 'driver': ('late_ticks', 'stale_ticks')}
+                 'driver': ('ticks', 'late_ticks', 'stale_ticks')}
+#: what the run's line calls a troubled loop (beyond a best-effort link's few lost messages): more
+#: than this share of the estimates skipped, or of the driver's ticks late, or any reset, stamp
+#: jump, dropout or stale tick
+TROUBLE_SHARE = 0.05
 
 
 def loop_report(start: dict[str, dict[str, str]], end: dict[str, dict[str, str]]) -> dict:
@@ -77,7 +81,8 @@ def loop_report(start: dict[str, dict[str, str]], end: dict[str, dict[str, str]]
 
 
 def loop_text(report: dict) -> str:
-    """:func:`loop_report` in a line, ending with what to do when the loop was troubled."""
+    """:func:`loop_report` in a line, ending with what to do when the loop was troubled
+    (:data:`TROUBLE_SHARE`)."""
     c, e, d = report['controller'], report['estimator'], report['driver']
     lost = ', '.join(f'{t} {n}' for t, n in report['lost'].items() if n) or 'none'
     text = (f"the loop: estimates skipped {c['skipped_estimates']} of "
@@ -85,9 +90,13 @@ def loop_text(report: dict) -> str:
             f"{c['estimate_jumps']}, estimator resets {e['resets']}, tip dropouts "
             f"{e['dropouts']}; messages lost: {lost}")
     if d is not None:
-        text += f"; {d['node']}: late ticks {d['late_ticks']}, stale ticks {d['stale_ticks']}"
-    troubled = (c['skipped_estimates'] or e['resets'] or c['estimate_jumps'] or e['dropouts']
-                or (d is not None and (d['late_ticks'] or d['stale_ticks'])))
+        text += (f"; {d['node']}: late ticks {d['late_ticks']} of {d['ticks']}, stale ticks "
+                 f"{d['stale_ticks']}")
+    periods = c['estimates'] + c['skipped_estimates']
+    troubled = (c['skipped_estimates'] > TROUBLE_SHARE * periods
+                or e['resets'] or c['estimate_jumps'] or e['dropouts']
+                or (d is not None and (d['late_ticks'] > TROUBLE_SHARE * d['ticks']
+                                       or d['stale_ticks'])))
     if troubled:
         text += ('. A busy machine moves the score: give the loop its cores or --realtime '
                  '(docs/faults.md)')
