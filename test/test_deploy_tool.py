@@ -107,14 +107,17 @@ def test_the_loop_report_counts_what_happened_while_the_plan_ran():
     start = {'controller': {'estimates': '10', 'skipped_estimates': '2'},
              'recorder': {'lost /tip_positions': '3', 'messages /tip_positions': '40'},
              'lab_driver': {'ticks': '1000', 'late_ticks': '7', 'stale_ticks': '400', 'plant': 'x'}}
-    end = {'controller': {'estimates': '610', 'skipped_estimates': '9', 'estimate_jumps': '1'},
-           'estimator': {'estimates': '620', 'resets': '2'},
+    # the trajectory node counts ticks too; the driver is the node that counts late ones
+    end = {'trajectory': {'ticks': '9'},
+           'controller': {'estimates': '610', 'skipped_estimates': '9', 'estimate_jumps': '1'},
+           'estimator': {'estimates': '620', 'resets': '2', 'dropouts': 'n/a'},
            'recorder': {'lost /tip_positions': '5', 'lost /torque_commands': '4'},
-           'lab_driver': {'ticks': '1600', 'late_ticks': '27', 'stale_ticks': '400'},
-           'trajectory': {'ticks': '9'}}
+           'lab_driver': {'ticks': '1600', 'late_ticks': '27', 'stale_ticks': '400'}}
     report = loop_report(start, end)
-    # counted from the plan's start: the driver's stale ticks of an earlier run are not this one's
-    assert report == {'controller': {'estimates': 600, 'skipped_estimates': 7, 'estimate_jumps': 1},
+    # counted from the plan's start: the driver's stale ticks of an earlier run are not this one's;
+    # a value that is not a number counts 0
+    assert report == {'controller': {'estimates': 600, 'skipped_estimates': 7, 'estimate_jumps': 1,
+                                     'wrong_task_dim': 0},
                       'estimator': {'resets': 2, 'dropouts': 0, 'bad_message': 0},
                       'lost': {'/tip_positions': 2, '/torque_commands': 4},
                       'driver': {'node': 'lab_driver', 'ticks': 600, 'late_ticks': 20,
@@ -131,7 +134,15 @@ def test_the_loop_report_counts_what_happened_while_the_plan_ran():
     late = loop_report(start, {**end, 'estimator': {}, 'controller': {'estimates': '610'},
                                'lab_driver': {'ticks': '1600', 'late_ticks': '40'}})
     assert late['driver']['late_ticks'] == 33 and 'give the loop its cores' in loop_text(late)
-    quiet = loop_report({}, {'controller': {'estimates': '600'}, 'recorder': {}})
+    # estimates refused for another task_dim, or none answered: said, and what to do
+    refused = loop_report({}, {'controller': {'wrong_task_dim': '300'}})
+    assert loop_text(refused).endswith('refused for another task_dim 300; messages lost: none. A '
+                                       'node of another task_dim fed the controller (its log '
+                                       "names it): give it the model's")
+    assert loop_text(loop_report({}, {})).endswith(
+        '. The controller answered no estimate: is the estimator running?')
+    quiet = loop_report({}, {'controller': {'estimates': '600'}, 'recorder': {},
+                             'trajectory': {'ticks': '600'}})
     assert quiet['driver'] is None and quiet['lost'] == {}
     assert loop_text(quiet) == ('the loop: estimates skipped 0 of 600, estimate stamp jumps 0, '
                                 'estimator resets 0, tip dropouts 0; messages lost: none')

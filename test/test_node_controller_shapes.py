@@ -6,8 +6,10 @@ SDC system."""
 from node_harness import MS, make_composed, make_controller, make_estimator
 import numpy as np
 import pytest
+from rclpy.node import Node
 from rosutil import drain, overrides, ros_context, spin_until
 from shaped_models import KNOWN_SYSTEMS, trained_known_system
+from trajectory_msgs.msg import MultiDOFJointTrajectory
 
 from soft_gripper_sdre.control.laws import make_law
 from soft_gripper_sdre.control.tracking import Weights
@@ -16,9 +18,7 @@ from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.common import ERROR, OK
 from soft_gripper_sdre.nodes.controller import ControllerNode, composed
 from soft_gripper_sdre.nodes.params import ParameterError
-from soft_gripper_sdre.nodes.topics import (
-    TORQUE_COMMANDS,
-)
+from soft_gripper_sdre.nodes.topics import GRASP_REFERENCE, REFERENCE_QOS, TORQUE_COMMANDS
 from soft_gripper_sdre.sim.shape import InputBounds
 
 pytestmark = pytest.mark.ros
@@ -269,17 +269,51 @@ def test_an_estimator_of_another_task_dim_is_named_and_its_estimates_refused(che
         assert node.peers.problem == want
         assert node.diag.level == ERROR and node.diag.values['task_dim_mismatch'] == want
         msg, _ = _plan(d)
-        ref_pub.publish(msg)
-        assert spin_until(executor, lambda: node.diag.counters['references'] == 1)
-        x = np.zeros((2, d))
-        est_pub.publish(cv.estimate_to_msg(0, x, x, NAMES))
+        ref_pub.publish(msg)                    # refused meanwhile, as the estimates are
         assert spin_until(executor, lambda: node.diag.counters['wrong_task_dim'] == 1)
-        drain(executor, 0.2)
-        assert probe.received[TORQUE_COMMANDS] == []
-        # the estimator gone, the probe's estimates (no task_dim there) are answered
+        x = np.zeros((2, d))
+        for k in range(8):                      # refused estimates over 0.8 s: past the
+            est_pub.publish(cv.estimate_to_msg(k * MS, x, x, NAMES))    # watchdog, the same
+            drain(executor, 0.1)                                        # ERROR
+        assert node.diag.counters['wrong_task_dim'] >= 5
+        assert probe.received[TORQUE_COMMANDS] == [] and node.diag.message.startswith(want)
+        # the estimator gone, the probe's plan and estimates (no task_dim there) are answered
         executor.remove_node(wrong)
         wrong.destroy_node()
         assert spin_until(executor, lambda: settled(False), 10.0)
         assert node.diag.level == OK and 'task_dim_mismatch' not in node.diag.values
-        est_pub.publish(cv.estimate_to_msg(MS, x, x, NAMES))
+        ref_pub.publish(msg)
+        assert spin_until(executor, lambda: node.diag.counters['references'] == 1)
+        est_pub.publish(cv.estimate_to_msg(10 * MS, x, x, NAMES))
         assert spin_until(executor, lambda: len(probe.received[TORQUE_COMMANDS]) == 1)
+        assert node.diag.counters['estimate_jumps'] == 0
+
+
+def test_a_plan_publisher_of_another_task_dim_drops_the_plan_and_its_plans_are_refused(checkpoint):
+    """A node of another task_dim on grasp_reference: the plan the controller held is dropped
+    (it may be that node's), plans are refused and counted until it is gone, then taken again."""
+    shape, bounds, path = checkpoint
+    d = shape.d
+    with ros_context() as (ctx, executor):
+        node, probe, est_pub, ref_pub = make_controller(
+            ctx, executor, model_path=str(path), finger_names=NAMES, **WEIGHTS,
+            **_bounds_params(bounds))
+        msg, _ = _plan(d)
+        ref_pub.publish(msg)
+        assert spin_until(executor, lambda: node.gate.plan is not None)
+        planner = Node('trajectory', context=ctx, parameter_overrides=overrides(task_dim=5 - d),
+                       automatically_declare_parameters_from_overrides=True)
+        planner.create_publisher(MultiDOFJointTrajectory, GRASP_REFERENCE, REFERENCE_QOS)
+        executor.add_node(planner)
+        assert spin_until(executor, lambda: node.peers.problem is not None, 15.0)
+        assert node.peers.problem.startswith(f'/trajectory publishes /grasp_reference for '
+                                             f'task_dim {5 - d}')
+        assert node.gate.plan is None and node.diag.level == ERROR
+        ref_pub.publish(msg)
+        assert spin_until(executor, lambda: node.diag.counters['wrong_task_dim'] == 1)
+        assert node.gate.plan is None
+        executor.remove_node(planner)
+        planner.destroy_node()
+        assert spin_until(executor, lambda: node.peers.problem is None, 15.0)
+        ref_pub.publish(msg)
+        assert spin_until(executor, lambda: node.gate.plan is not None)

@@ -23,7 +23,10 @@ chamber 0..p_max, a tendon 0..T_max); both [0.0] (unset) bound each of the model
 ±``torque_limit``. Lists that do not give one value per input, or an empty interval, end the node
 at start-up naming the parameters. /diagnostics shows the shape, the bounds and, for a finger
 whose inputs cannot reach every direction (m < d), the largest part of the plan's acceleration
-no input can reach (``unreachable_max``, m/s²).
+no input can reach (``unreachable_max``, m/s²). The controller asks each node publishing its
+estimates or plans for its ``task_dim`` (:mod:`~soft_gripper_sdre.nodes.peer_shape`); while one
+has another, it reports ERROR naming the node (``task_dim_mismatch``), drops the plan it held and
+refuses estimates and plans (``wrong_task_dim``).
 
 **Fingers that share one model** are not alike: ``input_gains`` gives per finger how much more
 strongly its inputs act than the model's (training reads it from each finger's recordings:
@@ -258,7 +261,6 @@ class ControllerNode(Node):
         self.peers = PeerShapes(self, self.shape.d,
                                 [s.topic_name for s in (self.sub_est, self.sub_ref) if s],
                                 on_change=self._peer_shapes)
-        self.diag.before_publish.append(self.peers.poll)
         self._watchdog = self.create_timer(
             0.05, lambda: self._act(self.gate.on_wall_time(time.monotonic())))
         self._log_start()
@@ -334,6 +336,9 @@ class ControllerNode(Node):
         except cv.MessageError as exc:
             self._reject('bad_reference', str(exc))
             return
+        if self.peers.problem is not None:          # maybe from the node of another task_dim
+            self.diag.count('wrong_task_dim')
+            return
         self._act(self.gate.on_plan(times, pos, vel, acc), GRASP_REFERENCE)
 
     def on_estimate(self, data: bytes) -> None:
@@ -352,6 +357,7 @@ class ControllerNode(Node):
     def _estimate(self, stamp: int, x: np.ndarray) -> None:
         if self.peers.problem is not None:          # an estimator or plan of another task_dim
             self.diag.count('wrong_task_dim')
+            self.gate.last_heard = time.monotonic()     # heard: the watchdog keeps the ERROR
             return
         last = self.gate.last_estimate_ns
         self._act(self.gate.on_estimate(stamp, x, time.monotonic()), STATE_ESTIMATE)
@@ -397,16 +403,25 @@ class ControllerNode(Node):
 
     def _peer_shapes(self, problem: str | None) -> None:
         """A publisher of estimates or plans of another ``task_dim`` appeared (``problem``, named
-        with the fix: ERROR, estimates refused and counted as ``wrong_task_dim``), or the last
-        one left (None: OK, tracking again)."""
+        with the fix: ERROR, estimates and plans refused and counted as ``wrong_task_dim``), or
+        the last one left (None: OK, tracking again once estimates come). Either way the stored
+        plan and the run are dropped."""
+        # what came before may be that node's: the plan and the run start again from the next
+        # plan and estimate that pass
+        self.gate.plan = self.gate.pending = None
+        self.gate.last_estimate_ns = self.gate.plan_after_ns = -1
+        self.tuning.law.reset()
         if problem is not None:
             self.diag.values['task_dim_mismatch'] = problem
             self._error(f'{problem}; commanding nothing until it does')
+            return
+        self.diag.values.pop('task_dim_mismatch', None)
+        why = 'every publisher of estimates and plans matches the model\'s task_dim'
+        if self.gate.estimates_lost:
+            self.get_logger().info(f'{why}; waiting for estimates')
         else:
-            self.diag.values.pop('task_dim_mismatch', None)
-            self.diag.set_status(OK, 'every estimator and plan matches the model\'s task_dim')
-            self.get_logger().info('every publisher of estimates and plans matches the model\'s '
-                                   'task_dim: tracking again')
+            self.diag.set_status(OK, why)
+            self.get_logger().info(f'{why}: tracking again')
 
     def _error(self, why: str) -> None:
         """Enter ERROR with ``why`` (status and log)."""

@@ -4,15 +4,17 @@ A planar estimator (``task_dim`` 2) feeding a controller whose model is of 3-D t
 estimates with z = 0 however the tip moves, and a planar trajectory node plans z = 0 for a tip
 that rests elsewhere: nothing in those messages tells them from a 3-D tip at z = 0, so the
 controller asks each publisher of its estimates and plans for its ``task_dim`` parameter instead
-(``rcl_interfaces/GetParameters``, once per publisher, as publishers appear). A publisher of
-another ``task_dim`` is a mismatch, named with the fix; a publisher without the parameter (a
-lab's own estimator) or without parameter services is taken as it is. ``controller
---with-estimator`` checks its own estimator when it starts; this covers nodes started by hand.
+(``rcl_interfaces/GetParameters``, once per publisher, as publishers appear: a timer looks every
+:data:`POLL_PERIOD`, and a request unanswered after :data:`ANSWER_TIMEOUT` is sent again). A
+publisher of another ``task_dim`` is a mismatch, named with the fix; a publisher without the
+parameter (a lab's own estimator) is taken as it is. ``controller --with-estimator`` checks its
+own estimator when it starts; this covers nodes started by hand.
 """
 from __future__ import annotations
 
 from collections.abc import Sequence
 from functools import partial
+import time
 
 from rcl_interfaces.msg import ParameterType
 from rcl_interfaces.srv import GetParameters
@@ -20,6 +22,10 @@ from rclpy.node import Node
 
 #: the parameter each publisher is asked for
 TASK_DIM = 'task_dim'
+#: how often the publishers are looked at [s]
+POLL_PERIOD = 0.25
+#: a request unanswered this long is dropped and sent again [s]
+ANSWER_TIMEOUT = 3.0
 
 
 def _full_name(namespace: str, name: str) -> str:
@@ -28,28 +34,35 @@ def _full_name(namespace: str, name: str) -> str:
 
 class PeerShapes:
     """Asks every publisher of ``topics`` (resolved names) for its ``task_dim`` and compares it
-    with ``d``; :meth:`poll` at a slow rate (the node's /diagnostics), ``problem`` the first
-    mismatch of a publisher still present (None: none), ``on_change(problem)`` called when it
-    changes."""
+    with ``d``; ``problem`` is the first mismatch of a publisher still present (None: none),
+    ``on_change(problem)`` is called when it changes."""
 
     def __init__(self, node: Node, d: int, topics: Sequence[str], on_change=None) -> None:
         self._node, self._d, self._topics = node, d, tuple(topics)
         self._on_change = on_change
         self._clients: dict[str, object] = {}       # by the publisher node's full name
-        self._asked: set[bytes] = set()             # publishers (gids) asked or answered
+        self._answered: set[bytes] = set()          # publishers (gids) whose answer came
+        self._waiting: dict[bytes, tuple] = {}      # gid → (client, future, when sent)
         self._wrong: dict[bytes, str] = {}          # publishers of another task_dim: why
         self.problem: str | None = None
+        self._timer = node.create_timer(POLL_PERIOD, self.poll) if self._topics else None
 
     def poll(self) -> None:
-        """Ask the publishers not yet asked whose parameter service is up; forget the
-        mismatches of publishers gone."""
-        present = set()
+        """Ask the publishers not yet answered whose parameter service is up (again when a
+        request went unanswered); forget what publishers gone said."""
+        present, now = set(), time.monotonic()
         for topic in self._topics:
             for info in self._node.get_publishers_info_by_topic(topic):
                 gid = bytes(info.endpoint_gid)
                 present.add(gid)
-                if gid in self._asked:
+                if gid in self._answered:
                     continue
+                if gid in self._waiting:
+                    client, future, sent = self._waiting[gid]
+                    if now - sent < ANSWER_TIMEOUT:
+                        continue
+                    client.remove_pending_request(future)
+                    del self._waiting[gid]
                 peer = _full_name(info.node_namespace, info.node_name)
                 client = self._clients.get(peer)
                 if client is None:
@@ -57,15 +70,20 @@ class PeerShapes:
                     self._clients[peer] = client
                 if not client.service_is_ready():
                     continue                                    # asked at a later poll
-                self._asked.add(gid)
-                request = GetParameters.Request(names=[TASK_DIM])
-                client.call_async(request).add_done_callback(
-                    partial(self._answered, gid, peer, topic))
-        self._asked &= present
-        self._wrong = {gid: why for gid, why in self._wrong.items() if gid in present}
+                future = client.call_async(GetParameters.Request(names=[TASK_DIM]))
+                self._waiting[gid] = (client, future, now)
+                future.add_done_callback(partial(self._on_answer, gid, peer, topic))
+        self._answered &= present
+        self._waiting = {g: w for g, w in self._waiting.items() if g in present}
+        self._wrong = {g: why for g, why in self._wrong.items() if g in present}
         self._update()
 
-    def _answered(self, gid: bytes, peer: str, topic: str, future) -> None:
+    def _on_answer(self, gid: bytes, peer: str, topic: str, future) -> None:
+        waiting = self._waiting.get(gid)
+        if waiting is None or waiting[1] is not future:
+            return                                  # gone, or asked again since
+        del self._waiting[gid]
+        self._answered.add(gid)
         response = future.result()
         values = [] if response is None else response.values
         if len(values) != 1 or values[0].type != ParameterType.PARAMETER_INTEGER:

@@ -180,6 +180,8 @@ class PlantDriverNode(Node):
         self.sub_cmd = self.create_subscription(JointState, TORQUE_COMMANDS, self.on_command,
                                                 NEWEST_QOS, raw=True)
         self.diag = Diagnostics(self, hardware_id=f'plant_driver/{p["plant"]}')
+        for key in ('ticks', 'late_ticks', 'stale_ticks'):     # reported from the start, at 0
+            self.diag.counters[key] = 0
         cdr.watch(self.diag, self.cdr_cmd)
         self.diag.before_publish.append(self._refresh_diagnostics)
         self.diag.values['plant'] = p['plant']

@@ -15,11 +15,14 @@ stale-command rule takes over), and prints the score of the run from the bag
 (:func:`~soft_gripper_sdre.analysis.run_score.score_run`): the RMSE of the tips against the plan
 as a share of the travel (on ``true_tip_positions`` when the driver publishes them, else the
 measured tips), the share of commands at a bound while the plan holds at rest, and the commands
-outside the controller's bounds.
+outside the controller's bounds; then a line of what the loop's nodes counted while the plan ran
+(:func:`loop_report`: skipped estimates, resets, lost messages, a reporting driver's late ticks),
+with advice when the loop was troubled.
 
 Every node reads the tips best effort (which also matches a reliable driver); the nodes run on
 the caller's ROS domain (or ``--domain-id``) with the caller's DDS settings. ``OUT`` (default:
-``deploy_<law>`` beside ``params.yaml``) gets ``bag/``, ``logs/`` and ``score.json``. Bad
+``deploy_<law>`` beside ``params.yaml``) gets ``bag/``, ``logs/`` and ``score.json`` (the
+score, and the loop's counts as ``loop``). Bad
 arguments or a ``params.yaml`` without what the deployment needs: exit 2, nothing started and
 nothing written; a node that fails or a bag that cannot be scored: exit 1, naming it.
 """
@@ -46,32 +49,44 @@ BEST_EFFORT = {'tips_reliability': 'best_effort'}
 #: the key of a node's section in a parameters file
 SECTION = '/**/{}'
 #: the loop's troubles each node counts on /diagnostics (docs/faults.md), as the report gives them
-LOOP_COUNTERS = {'controller': ('estimates', 'skipped_estimates', 'estimate_jumps'),
+LOOP_COUNTERS = {'controller': ('estimates', 'skipped_estimates', 'estimate_jumps',
+                                'wrong_task_dim'),
                  'estimator': ('resets', 'dropouts', 'bad_message'),
                  'driver': ('ticks', 'late_ticks', 'stale_ticks')}
 #: what the run's line calls a troubled loop (beyond a best-effort link's few lost messages): more
-#: than this share of the estimates skipped, or of the driver's ticks late, or any reset, stamp
-#: jump, dropout or stale tick
+#: than this share of the estimates skipped, or of the driver's ticks late, no estimate answered,
+#: or any refusal for another task_dim, reset, stamp jump, dropout or stale tick
 TROUBLE_SHARE = 0.05
+
+
+def _number(value) -> int:
+    """A counter's /diagnostics value as an int (0 where it is not a number: a lab's node may
+    publish anything under a key)."""
+    try:
+        return int(float(value))
+    except (TypeError, ValueError, OverflowError):
+        return 0
 
 
 def loop_report(start: dict[str, dict[str, str]], end: dict[str, dict[str, str]]) -> dict:
     """What the loop's nodes counted while the plan ran: the change between their /diagnostics
-    values (by node name) at its ``start`` and at its ``end``: the controller's estimates, those
-    it skipped and the stamp jumps it warned of, the estimator's resets and dropouts, the
-    messages the recorder found missing per topic (``lost``), and a driver's late and stale
-    ticks where the driver reports them (``plant_driver`` does; ``driver`` None where no node
-    does; a lab's driver that runs on between deployments counts from before this one). A
-    counter a node never raised is 0."""
+    values (by node name) at its ``start`` and at its ``end`` (each node reports about once a
+    second, so the window is the plan's to about a second): the controller's estimates, those it
+    skipped, the stamp jumps it warned of and what it refused for another task_dim, the
+    estimator's resets and dropouts, the messages the recorder found missing per topic
+    (``lost``), and the late and stale ticks of a driver that reports them (``late_ticks``, as
+    ``plant_driver`` does from its start; ``driver`` None where no node does; counted from the
+    start, so a lab's driver that runs on between deployments counts this one's alone). A counter
+    a node never raised is 0."""
     def count(node: str, key: str) -> int:
-        return int(end.get(node, {}).get(key, 0)) - int(start.get(node, {}).get(key, 0))
+        return _number(end.get(node, {}).get(key, 0)) - _number(start.get(node, {}).get(key, 0))
 
     def counts(node: str, keys: tuple[str, ...]) -> dict[str, int]:
         return {k: count(node, k) for k in keys}
 
     driver = next((n for n, v in end.items()
-                   if n not in ('controller', 'estimator', 'recorder')
-                   and any(k in v for k in LOOP_COUNTERS['driver'])), None)
+                   if n not in ('controller', 'estimator', 'recorder') and 'late_ticks' in v),
+                  None)
     return {'controller': counts('controller', LOOP_COUNTERS['controller']),
             'estimator': counts('estimator', LOOP_COUNTERS['estimator']),
             'lost': {k.split(' ', 1)[1]: count('recorder', k)
@@ -85,19 +100,26 @@ def loop_text(report: dict) -> str:
     (:data:`TROUBLE_SHARE`)."""
     c, e, d = report['controller'], report['estimator'], report['driver']
     lost = ', '.join(f'{t} {n}' for t, n in report['lost'].items() if n) or 'none'
-    text = (f"the loop: estimates skipped {c['skipped_estimates']} of "
-            f"{c['estimates'] + c['skipped_estimates']}, estimate stamp jumps "
-            f"{c['estimate_jumps']}, estimator resets {e['resets']}, tip dropouts "
-            f"{e['dropouts']}; messages lost: {lost}")
+    periods = c['estimates'] + c['skipped_estimates']
+    text = (f"the loop: estimates skipped {c['skipped_estimates']} of {periods}, estimate stamp "
+            f"jumps {c['estimate_jumps']}, estimator resets {e['resets']}, tip dropouts "
+            f"{e['dropouts']}"
+            + (f", refused for another task_dim {c['wrong_task_dim']}" if c['wrong_task_dim']
+               else '')
+            + f"; messages lost: {lost}")
     if d is not None:
         text += (f"; {d['node']}: late ticks {d['late_ticks']} of {d['ticks']}, stale ticks "
                  f"{d['stale_ticks']}")
-    periods = c['estimates'] + c['skipped_estimates']
-    troubled = (c['skipped_estimates'] > TROUBLE_SHARE * periods
-                or e['resets'] or c['estimate_jumps'] or e['dropouts']
-                or (d is not None and (d['late_ticks'] > TROUBLE_SHARE * d['ticks']
-                                       or d['stale_ticks'])))
-    if troubled:
+    if c['wrong_task_dim']:
+        return text + ('. A node of another task_dim fed the controller (its log names it): '
+                       'give it the model\'s')
+    if c['estimates'] <= 0:
+        return text + '. The controller answered no estimate: is the estimator running?'
+    busy = (c['skipped_estimates'] > TROUBLE_SHARE * periods or e['resets']
+            or c['estimate_jumps'] or e['dropouts']
+            or (d is not None and (d['late_ticks'] > TROUBLE_SHARE * d['ticks']
+                                   or d['stale_ticks'])))
+    if busy:
         text += ('. A busy machine moves the score: give the loop its cores or --realtime '
                  '(docs/faults.md)')
     return text

@@ -86,7 +86,7 @@ def _parser() -> argparse.ArgumentParser:
                            '--input-upper (default: the range the recorded commands spanned)')
     bags.add_argument('--input-upper', type=float, nargs='+', metavar='U',
                       help='upper bound of each input, one value per input (see --input-lower)')
-    bags.add_argument('--draws', type=int, default=None,
+    bags.add_argument('--tries', type=int, default=None,
                       help='trainings at most, seeds --seed, +1, ...: another while the fingers\' '
                            'own fits (where they found an input lag) expect the grasp to miss 5 %% '
                            'of its travel, or no setting passed its checks; the best is kept '
@@ -184,8 +184,8 @@ def _main_data(parser: argparse.ArgumentParser, args: argparse.Namespace,
     if args.task_dim is not None or args.input_lower is not None or args.input_upper is not None:
         parser.error('--task-dim, --input-lower and --input-upper apply to --bag only (the .npz '
                      "records are the hand's: a planar tip, two torques)")
-    if args.draws is not None:
-        parser.error('--draws applies to --bag only (the draws are judged on the fingers\' own '
+    if args.tries is not None:
+        parser.error('--tries applies to --bag only (the draws are judged on the fingers\' own '
                      'fits to their recordings)')
     variant = args.variant or ('paper' if args.preset == 'paper' else 'identifying')
     names = list(DATA_VARIANTS[variant]) + [VALIDATION]
@@ -252,8 +252,8 @@ def _main_bags(parser: argparse.ArgumentParser, args: argparse.Namespace,
         parser.error(f'--finger must be in [0, 3], got {args.finger}')
     if args.jerk_psd is not None and not (np.isfinite(args.jerk_psd) and args.jerk_psd > 0):
         parser.error(f'--jerk-psd must be > 0, got {args.jerk_psd}')
-    if args.draws is not None and not 1 <= args.draws <= 10:
-        parser.error(f'--draws must be in [1, 10], got {args.draws}')
+    if args.tries is not None and not 1 <= args.tries <= 10:
+        parser.error(f'--tries must be in [1, 10], got {args.tries}')
     if (args.input_lower is None) != (args.input_upper is None):
         parser.error('--input-lower and --input-upper go together: one value per input each '
                      '(or neither: the range the recorded commands spanned)')
@@ -269,7 +269,7 @@ def _main_bags(parser: argparse.ArgumentParser, args: argparse.Namespace,
                         finger=args.finger, meas_std=args.meas_std, jerk_psd=args.jerk_psd,
                         task_dim=('auto' if args.task_dim == 'auto' else int(args.task_dim or 2)),
                         input_lower=args.input_lower, input_upper=args.input_upper,
-                        **({} if args.draws is None else {'draws': args.draws}))
+                        **({} if args.tries is None else {'draws': args.tries}))
     except (BagDataError, ShapeError) as exc:
         parser.error(str(exc))
     return (args.out / PARAMS_FILE).is_file()

@@ -70,7 +70,7 @@ TUNE_SAMPLES = 2000
 JERK_GRID = np.logspace(-3, 7, 11)
 #: written only for a model fit to control whose settings passed their closed-loop check
 PARAMS_FILE = 'params.yaml'
-#: trainings of one recipe at most by default (``--draws``; seeds ``--seed``, +1, …): another is
+#: trainings of one recipe at most by default (``--tries``; seeds ``--seed``, +1, …): another is
 #: drawn while the fingers' own fits expect the deployed grasp to miss
 #: :data:`~soft_gripper_sdre.analysis.loop_settings.KEEP_NOMINAL` of the travel, or a model fit to
 #: control gave no setting that passed its checks
