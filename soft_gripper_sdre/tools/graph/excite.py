@@ -6,10 +6,12 @@
 For each signal a fresh graph is started (so every run begins from the settled finger, as
 ``tools.learning.collect``'s records do): the recorder (``tip_positions``, ``torque_commands``,
 ``/clock``, ``/diagnostics``), the excitation node playing the signal after ``--settle`` seconds of
-zero torque, and the simulator in lockstep; the tool waits for the excitation node to finish, then
-stops the others. ``OUT/<signal>/`` is the signal's rosbag2 directory and ``OUT/logs/<signal>/``
-holds the node logs; ``tools.learning.train --bag OUT`` reads every bag in ``OUT``. ``--one-bag``
-plays all signals in one run into ``OUT/<first signal>/`` instead.
+zero torque, and the simulator in lockstep; the tool waits for the excitation node to finish, stops
+the simulator, and stops the recorder once its count of tips holds still over two of its reports
+(a loaded machine can leave it a second behind). ``OUT/<signal>/`` is the signal's rosbag2
+directory and ``OUT/logs/<signal>/`` holds the node logs; ``tools.learning.train --bag OUT``
+reads every bag in ``OUT``. ``--one-bag`` plays all signals in one run into
+``OUT/<first signal>/`` instead.
 
 ``--amplitude`` scales every signal before ``--torque-limit`` clips it; ``--level auto`` lets the
 excitation node choose the amplitude on the finger instead (probes aiming at ``--level-target`` ×
@@ -183,6 +185,12 @@ def record_run(out: Path, signals: list[str], a: argparse.Namespace, seed: int, 
                                    f'last lines of {dead}.log:\n'
                                    f'{graph.procs[dead].log_tail()}')
             graph.stop('simulator')
+            # no tip comes any more: the recorder, which a loaded machine can leave behind, is
+            # stopped once it has taken every one
+            if not monitor.wait_steady('recorder', 'messages /tip_positions'):
+                raise RuntimeError(f'the run of {", ".join(signals)}: the recorder did not '
+                                   'settle on its last tips; last lines of recorder.log:\n'
+                                   f'{graph.procs["recorder"].log_tail()}')
     except RuntimeError:
         shutil.rmtree(bag, ignore_errors=True)
         raise

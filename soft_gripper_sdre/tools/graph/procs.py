@@ -236,6 +236,18 @@ class DiagnosticsMonitor:
             self._exec.spin_once(timeout_sec=0.05)
         return bool(predicate())
 
+    def wait_steady(self, node: str, key: str, reports: int = 2, timeout: float = 15.0) -> bool:
+        """Wait until ``reports`` reports of ``node`` arrived after this call and the last
+        ``reports`` of them agree on ``key`` (e.g. a recorder that has taken every message a
+        finished run published, however far a loaded machine left it behind); False after
+        ``timeout`` seconds."""
+        seen = len(self.history.get(node, []))
+
+        def steady() -> bool:
+            new = self.history.get(node, [])[seen:]
+            return len(new) >= reports and len({v.get(key) for v in new[-reports:]}) == 1
+        return self.spin_until(steady, timeout)
+
     def close(self) -> None:
         import rclpy
         self._exec.shutdown()
