@@ -25,8 +25,8 @@ at start-up naming the parameters. /diagnostics shows the shape, the bounds and,
 whose inputs cannot reach every direction (m < d), the largest part of the plan's acceleration
 no input can reach (``unreachable_max``, m/s²). The controller asks each node publishing its
 estimates or plans for its ``task_dim`` (:mod:`~soft_gripper_sdre.nodes.peer_shape`); while one
-has another, it reports ERROR naming the node (``task_dim_mismatch``), drops the plan it held and
-refuses estimates and plans (``wrong_task_dim``).
+has another, it reports ERROR naming the node (``task_dim_mismatch``) and refuses estimates
+(``wrong_task_dim``); a trajectory node of another has its plans refused and the plan held dropped.
 
 **Fingers that share one model** are not alike: ``input_gains`` gives per finger how much more
 strongly its inputs act than the model's (training reads it from each finger's recordings:
@@ -336,7 +336,7 @@ class ControllerNode(Node):
         except cv.MessageError as exc:
             self._reject('bad_reference', str(exc))
             return
-        if self.peers.problem is not None:          # maybe from the node of another task_dim
+        if self.sub_ref.topic_name in self.peers.wrong_topics:    # maybe that node's
             self.diag.count('wrong_task_dim')
             return
         self._act(self.gate.on_plan(times, pos, vel, acc), GRASP_REFERENCE)
@@ -404,13 +404,15 @@ class ControllerNode(Node):
     def _peer_shapes(self, problem: str | None) -> None:
         """A publisher of estimates or plans of another ``task_dim`` appeared (``problem``, named
         with the fix: ERROR, estimates and plans refused and counted as ``wrong_task_dim``), or
-        the last one left (None: OK, tracking again once estimates come). Either way the stored
-        plan and the run are dropped."""
-        # what came before may be that node's: the plan and the run start again from the next
-        # plan and estimate that pass
-        self.gate.plan = self.gate.pending = None
-        self.gate.last_estimate_ns = self.gate.plan_after_ns = -1
+        the last one left (None: OK, tracking again once estimates come). The plan held is
+        dropped when a planner of another task_dim appears (it may be that node's; a planner of
+        the model's task_dim keeps it), and the run restarts from the next estimate that
+        passes."""
+        self.gate.pending = None
+        self.gate.last_estimate_ns = -1
         self.tuning.law.reset()
+        if self.sub_ref.topic_name in self.peers.wrong_topics:
+            self.gate.plan = None
         if problem is not None:
             self.diag.values['task_dim_mismatch'] = problem
             self._error(f'{problem}; commanding nothing until it does')

@@ -35,7 +35,8 @@ def _full_name(namespace: str, name: str) -> str:
 class PeerShapes:
     """Asks every publisher of ``topics`` (resolved names) for its ``task_dim`` and compares it
     with ``d``; ``problem`` is the first mismatch of a publisher still present (None: none),
-    ``on_change(problem)`` is called when it changes."""
+    ``wrong_topics`` the topics such publishers publish on, ``on_change(problem)`` is called when
+    the problem changes."""
 
     def __init__(self, node: Node, d: int, topics: Sequence[str], on_change=None) -> None:
         self._node, self._d, self._topics = node, d, tuple(topics)
@@ -43,8 +44,10 @@ class PeerShapes:
         self._clients: dict[str, object] = {}       # by the publisher node's full name
         self._answered: set[bytes] = set()          # publishers (gids) whose answer came
         self._waiting: dict[bytes, tuple] = {}      # gid → (client, future, when sent)
-        self._wrong: dict[bytes, str] = {}          # publishers of another task_dim: why
+        self._wrong: dict[bytes, tuple[str, str]] = {}  # another task_dim's: (why, topic)
         self.problem: str | None = None
+        #: the topics a publisher of another task_dim publishes on
+        self.wrong_topics: frozenset[str] = frozenset()
         self._timer = node.create_timer(POLL_PERIOD, self.poll) if self._topics else None
 
     def poll(self) -> None:
@@ -91,11 +94,12 @@ class PeerShapes:
         theirs = values[0].integer_value
         if theirs != self._d:
             self._wrong[gid] = (f"{peer} publishes {topic} for task_dim {theirs}, but the model is "
-                                f"of {self._d}-D tips: start it with -p task_dim:={self._d}")
+                                f"of {self._d}-D tips: start it with -p task_dim:={self._d}", topic)
             self._update()
 
     def _update(self) -> None:
-        problem = next(iter(self._wrong.values()), None)
+        problem = next((why for why, _ in self._wrong.values()), None)
+        self.wrong_topics = frozenset(topic for _, topic in self._wrong.values())
         if problem != self.problem:
             self.problem = problem
             if self._on_change is not None:
