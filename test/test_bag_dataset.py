@@ -20,7 +20,7 @@ from soft_gripper_sdre.analysis.data_facts import DataFacts
 from soft_gripper_sdre.analysis.loop_settings import Derivation, LoopSettings
 from soft_gripper_sdre.learning.model import read_checkpoint
 from soft_gripper_sdre.tools.learning import train as train_tool
-from soft_gripper_sdre.tools.learning.train_bags import Draw
+from soft_gripper_sdre.tools.learning.train_bags import MAX_DRAWS, RETRY_SCORE, Draw
 
 N = 2000
 STAMPS = np.arange(N) * MS
@@ -332,9 +332,9 @@ def test_the_labels_filter_is_tuned_on_the_excited_tips_not_on_the_rest_before_t
     assert q >= 100 * at_rest, (q, at_rest)
 
 
-def _derivation(on_fingers: dict | None, settings: bool = True):
-    """A derivation as training gives it: chosen settings (or none) and what the fingers' own
-    fits expect of them, error / travel by finger."""
+def _derivation(on_fingers: dict | None, settings: bool = True, score: float = 0.04):
+    """A derivation as training gives it: chosen settings (or none), their score on the model and
+    what the fingers' own fits expect of them, error / travel by finger."""
     facts = DataFacts(period=0.005, noise_std=5e-5, travel=3e-3, torque_limit=0.01,
                       accel_psd_ml=0.1)
     chosen = LoopSettings(control_period=0.005, meas_std=5e-5, accel_psd=0.1, q_pos=1e3,
@@ -343,14 +343,15 @@ def _derivation(on_fingers: dict | None, settings: bool = True):
                           bandwidth_hz=2.0)
     runs = None if on_fingers is None else {
         name: {'rmse_rel': e, 'diverged': e == math.inf} for name, e in on_fingers.items()}
-    return Derivation(chosen if settings else None, {}, [], facts, on_fingers=runs)
+    return Derivation(chosen if settings else None, {}, [], facts, on_fingers=runs,
+                      score=score if settings else None)
 
 
 def test_another_draw_while_the_fits_expect_a_miss_and_the_best_is_kept():
     """The draws' rule (train_bags.Draw): a fit model whose fingers' fits expect a miss beyond
-    KEEP_NOMINAL, or that gave no setting, asks for another seed; an unfit model or one without
-    fits does not; the best sorts first: fit, with settings, the smaller expected miss, the
-    earlier seed."""
+    KEEP_NOMINAL, or that gave no setting, or, without such fits, whose settings score over
+    RETRY_SCORE on the model, asks for another seed; an unfit model does not; the best sorts
+    first: fit, with settings, the smaller expected miss, the smaller score, the earlier seed."""
     miss, hit = Draw(0, _derivation({'index': 0.072, 'thumb': 0.029})), \
         Draw(1, _derivation({'index': 0.032, 'thumb': 0.016}))
     assert miss.expected == 0.072 and miss.retry
@@ -361,8 +362,19 @@ def test_another_draw_while_the_fits_expect_a_miss_and_the_best_is_kept():
     assert nothing.expected is None and nothing.retry
     unfit, no_fits = Draw(4, None), Draw(5, _derivation(None))
     assert not unfit.retry and not no_fits.retry and no_fits.expected is None
-    ranked = sorted([unfit, nothing, diverges, miss, hit, no_fits], key=Draw.rank)
-    assert [d.seed for d in ranked] == [1, 0, 2, 5, 3, 4]
+    # no fit expects anything: the score decides, at RETRY_SCORE itself no retry
+    at = Draw(6, _derivation(None, score=RETRY_SCORE))
+    over = Draw(7, _derivation(None, score=RETRY_SCORE * 1.2))
+    assert not at.retry and over.retry and over.score == RETRY_SCORE * 1.2
+    # the fits' expectation rules where there is one, whatever the score
+    assert not Draw(8, _derivation({'index': 0.03}, score=0.3)).retry
+    ranked = sorted([unfit, nothing, over, diverges, miss, at, hit, no_fits], key=Draw.rank)
+    assert [d.seed for d in ranked] == [1, 0, 2, 5, 6, 7, 3, 4]
     assert 'index 7.20 %, thumb 2.90 %' in miss.text() and unfit.text() == 'not fit to control'
+    assert 'score 4.00 %' in miss.text() and 'score' not in nothing.text()
     assert miss.summary() == {'seed': 0, 'fit_for_control': True, 'settings': True,
-                              'expected_rmse_rel': 0.072}
+                              'expected_rmse_rel': 0.072, 'score': 0.04}
+    # the tool's help states the rule with the module's numbers
+    usage = ' '.join(train_tool._parser().format_help().split())
+    assert f'score over {100 * RETRY_SCORE:g} % on the model' in usage
+    assert f'(default {MAX_DRAWS}; 1: one training)' in usage

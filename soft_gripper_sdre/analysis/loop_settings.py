@@ -694,6 +694,9 @@ class Derivation:
     #: the model's inputs per finger (m): symmetric bounds on any other number than the hand's
     #: two go to the controller as input_lower / input_upper (:meth:`params`)
     m: int = 2
+    #: the chosen settings' score (module doc: the worst error / travel of the nominal run, the
+    #: runs with the input gain lowered and those on the fingers' fits); None: nothing chosen
+    score: float | None = None
 
     def summary(self) -> dict:
         facts = asdict(replace(self.facts, bounds=None))
@@ -706,7 +709,7 @@ class Derivation:
         return {'settings': asdict(self.settings) if self.settings else None,
                 'reason': self.reason, 'facts': facts, 'paper_law': self.paper_law,
                 'checks': {k: asdict(v) for k, v in self.checks.items()},
-                'candidates': self.candidates,
+                'candidates': self.candidates, 'score': self.score,
                 **({'on_fingers': self.on_fingers} if self.on_fingers else {}),
                 'rules': {'bandwidths_hz': list(BANDWIDTHS_HZ), 'gain_errors': list(GAIN_ERRORS),
                           'keep_nominal': KEEP_NOMINAL, 'keep_robust': KEEP_ROBUST,
@@ -911,7 +914,7 @@ def derive(model, facts: DataFacts, laws: tuple[str, ...] = ('sdre_ff', 'sdre'),
              'share': PAPER_LAW_SHARE,
              'needs_bandwidth_hz': needs if math.isfinite(needs) else None}     # None: over 1 kHz
     return Derivation(chosen, checks, rows, facts, paper_law=paper, m=shape.m,
-                      on_fingers=row.get('fingers'))
+                      on_fingers=row.get('fingers'), score=row['score'])
 
 
 def _check_facts(facts: DataFacts, shape, fingers: tuple[LinearFinger, ...] = ()) -> None:

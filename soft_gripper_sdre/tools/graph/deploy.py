@@ -368,7 +368,7 @@ def deploy(a: argparse.Namespace, s: Settings) -> tuple[Path, dict]:
                 monitor.spin_until(lambda: False, 0.1)
             end = time.monotonic() + s.plan_seconds + a.tail
             monitor.poll()
-            at_start = {node: dict(v) for node, v in monitor.values.items()}
+            at_start = monitor.snapshot()
             print(f'plan started: {s.plan_seconds:g} s, {len(s.finger_names)} finger(s) with '
                   f'{a.law}', flush=True)
             while time.monotonic() < end:

@@ -254,10 +254,10 @@ def deploy(a: argparse.Namespace, env: dict, out: Path, params: Path, law: str,
                     raise _fail(graph, dead[0], f'deploying {law}: {dead[0]} exited')
                 monitor.poll()
                 if at_start is None and monitor.get('recorder', 'messages /grasp_reference') > 0:
-                    at_start = {node: dict(v) for node, v in monitor.values.items()}
+                    at_start = monitor.snapshot()
                     plan_end = time.monotonic() + GRASP_SECONDS
                 elif at_start is not None and at_end is None and time.monotonic() > plan_end:
-                    at_end = {node: dict(v) for node, v in monitor.values.items()}
+                    at_end = monitor.snapshot()
                 time.sleep(0.1)
     finally:
         monitor.close()

@@ -215,6 +215,11 @@ class DiagnosticsMonitor:
         except ValueError:
             return default
 
+    def snapshot(self) -> dict[str, dict[str, str]]:
+        """A copy of every node's newest values, by node name (a window's start or end for
+        :func:`~soft_gripper_sdre.tools.graph.deploy.loop_report`)."""
+        return {node: dict(values) for node, values in self.values.items()}
+
     def poll(self, most: int = 1000) -> None:
         """Take whatever has arrived (up to ``most`` messages), without waiting. One spin_once
         runs one ready entity, a message or one of the executor's own guard conditions, so spin

@@ -89,8 +89,9 @@ def _parser() -> argparse.ArgumentParser:
     bags.add_argument('--tries', type=int, default=None,
                       help='trainings at most, seeds --seed, +1, ...: another while the fingers\' '
                            'own fits (where they found an input lag) expect the grasp to miss 5 %% '
-                           'of its travel, or no setting passed its checks; the best is kept '
-                           '(default 3; 1: one training)')
+                           'of its travel, or, with no such fit, the settings score over 10 %% on '
+                           'the model (the input gain halved among its checks), or no setting '
+                           'passed its checks; the best is kept (default 3; 1: one training)')
     bags.add_argument('--min-duration', type=float, default=1.0,
                       help='refuse a bag with less commanded time than this [s] '
                            '(default %(default)s)')

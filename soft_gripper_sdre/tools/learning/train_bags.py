@@ -16,11 +16,12 @@ state translated by that finger's rest pose.
 The checkpoint's ``data`` records the provenance: every bag with its topics, types, message
 counts, rates, jitter, gaps, durations, fingers, rest poses, noise levels and sample counts.
 
-A training is one draw (one seed) of a nonconvex fit. Where the fingers' own fits with an input
-lag judge the derived settings, or a model fit to control gave no setting that passed its checks,
-another is drawn with the next seed while the fits expect the grasp to miss
-:data:`~soft_gripper_sdre.analysis.loop_settings.KEEP_NOMINAL` of the travel, ``draws`` at most,
-and the best is kept (:class:`Draw`); each draw is printed and listed in the metrics (``draws``).
+A training is one draw (one seed) of a nonconvex fit. Another is drawn with the next seed, up to
+``draws`` in all, while the last one asks for it (:class:`Draw`): a model fit to control gave no
+setting that passed its checks; the fingers' own fits with an input lag expect the grasp to miss
+:data:`~soft_gripper_sdre.analysis.loop_settings.KEEP_NOMINAL` of the travel; or, where no such fit
+judges the settings, their score on the model is over :data:`RETRY_SCORE`. The best draw is kept;
+each is printed and listed in the metrics (``draws``).
 
 The outputs are written to a temporary directory beside ``--out`` and moved into it only when
 all are complete, so a failed run leaves nothing half-written there. Validation R² is scored
@@ -70,11 +71,14 @@ TUNE_SAMPLES = 2000
 JERK_GRID = np.logspace(-3, 7, 11)
 #: written only for a model fit to control whose settings passed their closed-loop check
 PARAMS_FILE = 'params.yaml'
-#: trainings of one recipe at most by default (``--tries``; seeds ``--seed``, +1, …): another is
-#: drawn while the fingers' own fits expect the deployed grasp to miss
-#: :data:`~soft_gripper_sdre.analysis.loop_settings.KEEP_NOMINAL` of the travel, or a model fit to
-#: control gave no setting that passed its checks
+#: trainings of one recipe at most by default (``--tries``; seeds ``--seed``, +1, …; module doc)
 MAX_DRAWS = 3
+#: where no fit of a finger with an input lag judges the chosen settings, another draw is made
+#: while their score on the model (``Derivation.score`` of
+#: :mod:`~soft_gripper_sdre.analysis.loop_settings`: chiefly the move with the model's input gain
+#: halved, the loop's reliance on what the model says of the finger's statics) is over this
+#: share of the travel (docs/own_gripper.md, "Draws")
+RETRY_SCORE = 0.10
 
 
 def expand_bag_paths(paths: list[Path]) -> list[Path]:
@@ -416,6 +420,15 @@ class _BagData:
     def __post_init__(self) -> None:
         _, self.x, self.u, self.acc = _stack(self.samples)
         self.t_val, self.x_val, self.u_val, self.acc_val = _stack(self.val_samples)
+        self._fits: tuple[list[finger_fits.LinearFinger], list[str]] | None = None
+
+    def own_fits(self) -> tuple[list[finger_fits.LinearFinger], list[str]]:
+        """Each finger's own linear fit and the fingers without one
+        (:func:`~soft_gripper_sdre.analysis.finger_fits.fit_fingers`): the recordings', the same
+        for every draw, so fitted once."""
+        if self._fits is None:
+            self._fits = finger_fits.fit_fingers(self.samples, self.val_samples)
+        return self._fits
 
     @property
     def dt(self) -> float:
@@ -478,23 +491,33 @@ class Draw:
         return max(float('inf') if r['diverged'] else r['rmse_rel'] for r in d.on_fingers.values())
 
     @property
+    def score(self) -> float | None:
+        """The chosen settings' score on the model (:attr:`Derivation.score
+        <soft_gripper_sdre.analysis.loop_settings.Derivation.score>`); None: no settings."""
+        d = self.derived
+        return None if d is None or d.settings is None else d.score
+
+    @property
     def retry(self) -> bool:
         """Whether another seed may do better: the model is fit to control (an unfit model is the
-        recordings' matter, not the seed's), and no setting passed or the fits expect a miss
-        beyond KEEP_NOMINAL."""
+        recordings' matter, not the seed's), and no setting passed, or the fits expect a miss
+        beyond KEEP_NOMINAL, or, with no fit to expect by, the score is over RETRY_SCORE."""
         if self.derived is None:
             return False
         if self.derived.settings is None:
             return True
         expected = self.expected
-        return expected is not None and not expected <= loop_settings.KEEP_NOMINAL
+        if expected is not None:
+            return not expected <= loop_settings.KEEP_NOMINAL
+        return self.score is not None and not self.score <= RETRY_SCORE
 
     def rank(self) -> tuple:
-        """Better draws sort first: fit, with settings, the smaller expected miss, the earlier
-        seed."""
-        d, expected = self.derived, self.expected
+        """Better draws sort first: fit, with settings, the smaller expected miss, the smaller
+        score, the earlier seed."""
+        d, expected, score = self.derived, self.expected, self.score
         return (d is None, d is None or d.settings is None,
-                math.inf if expected is None else expected, self.seed)
+                math.inf if expected is None else expected,
+                math.inf if score is None else score, self.seed)
 
     def text(self) -> str:
         d = self.derived
@@ -502,13 +525,18 @@ class Draw:
             return 'not fit to control'
         if d.settings is None:
             return 'fit to control; no controller setting passed its checks'
-        return (d.fingers_text()[0]
-                or f'error / travel on the model {100 * d.checks["sdre_ff"].rmse_rel:.2f} %')
+        score = ('' if self.score is None else
+                 f'; score {100 * self.score:.2f} % (the worst error / travel of its checks on '
+                 'the model, the input gain halved among them)')
+        said = d.fingers_text()[0]
+        if not said:
+            said = f'error / travel on the model {100 * d.checks["sdre_ff"].rmse_rel:.2f} %'
+        return said + score
 
     def summary(self) -> dict:
         return {'seed': self.seed, 'fit_for_control': self.derived is not None,
                 'settings': self.derived is not None and self.derived.settings is not None,
-                'expected_rmse_rel': self.expected}
+                'expected_rmse_rel': self.expected, 'score': self.score}
 
 
 @dataclass
@@ -543,6 +571,7 @@ def _draw(data: _BagData, settings: TrainSettings, clock: training_run.Stages, p
         data=data.info(tips_topic, torques_topic), train=(data.x, data.u, data.acc),
         val=(data.x_val, data.u_val), acc_ref=data.acc_val, describe=verdict.describe,
         input_bounds=bounds)
+    clock.lap('checkpoint')                 # the writing after the verdict, not the next draw's
     return _Trained(Draw(settings.seed, verdict.derived), path, result, verdict, scores, metrics)
 
 
@@ -569,7 +598,7 @@ class _Verdict:
         self.clock.lap('fitness')
         self.derived = None
         if self.fitness.fit:
-            self.fingers, unfit = finger_fits.fit_fingers(data.samples, data.val_samples)
+            self.fingers, unfit = data.own_fits()
             for name in unfit:
                 print(f'  {name}: no linear fit of its own runs free within '
                       f'{100 * model_fitness.FREE_RUN_LIMIT:.0f} % of its validation motion; '
