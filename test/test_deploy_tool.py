@@ -121,7 +121,7 @@ def test_the_loop_report_counts_what_happened_while_the_plan_ran():
                       'estimator': {'resets': 2, 'dropouts': 0, 'bad_message': 0},
                       'lost': {'/tip_positions': 2, '/torque_commands': 4},
                       'driver': {'node': 'lab_driver', 'ticks': 600, 'late_ticks': 20,
-                                 'stale_ticks': 0}}
+                                 'stale_ticks': 0, 'clipped_commands': 0}}
     text = loop_text(report)
     assert text.startswith('the loop: estimates skipped 7 of 607, estimate stamp jumps 1, '
                            'estimator resets 2, tip dropouts 0; messages lost: /tip_positions 2, '
@@ -134,6 +134,15 @@ def test_the_loop_report_counts_what_happened_while_the_plan_ran():
     late = loop_report(start, {**end, 'estimator': {}, 'controller': {'estimates': '610'},
                                'lab_driver': {'ticks': '1600', 'late_ticks': '40'}})
     assert late['driver']['late_ticks'] == 33 and 'give the loop its cores' in loop_text(late)
+    # a driver that clipped the controller's commands: counted over the plan, said, and the fix
+    clipped = loop_report(start, {**end, 'estimator': {'resets': '0'}, 'controller': {
+        'estimates': '610', 'skipped_estimates': '9'}, 'lab_driver': {
+        'ticks': '1600', 'late_ticks': '7', 'stale_ticks': '400', 'clipped_commands': '12'}})
+    assert clipped['driver']['clipped_commands'] == 12
+    assert 'stale ticks 0, clipped commands 12. The driver clipped commands: its bounds are ' \
+        "narrower than the controller's" in loop_text(clipped)
+    assert 'give the loop its cores' not in loop_text(clipped)
+    assert 'clipped' not in loop_text(calm)
     # estimates refused for another task_dim, or none answered: said, and what to do
     refused = loop_report({}, {'controller': {'wrong_task_dim': '300'}})
     assert loop_text(refused).endswith('refused for another task_dim 300; messages lost: none. A '

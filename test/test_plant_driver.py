@@ -235,6 +235,7 @@ def test_bad_nan_and_stale_commands_leave_the_previous_or_zero_torque():
 
         _send(executor, node, cmd_pub, [[1.0, -1.0], [0.003, 0.0]])           # beyond the limit
         assert c['clipped_commands'] == 1
+        assert node.diag.level == WARN and 'was clipped into them' in node.diag.message
         _after_a_tick(executor, node)
         np.testing.assert_array_equal(node.applied, [[0.02, -0.02], [0.003, 0.0]])
         assert c['stale_ticks'] == 0

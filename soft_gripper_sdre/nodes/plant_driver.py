@@ -34,11 +34,13 @@ the palm; Z = X × Y): (x, y, 0) for a planar finger, (x, y, z) for a 3-D one. N
 Commands are never trusted: one that does not decode (unknown, missing or duplicate names — a
 command for another number of inputs —, sizes) is counted (``bad_commands``) with a throttled
 warning and the previous command stays in force; one with a NaN or Inf effort is counted
-(``nonfinite_commands``) and the rest input is applied. /diagnostics (1 Hz) carries these
-counters and ``ticks``, ``published``, ``commands``, ``clipped_commands``, the plant time, the
-command's age, the tick intervals, the shape and the bounds (``bounds``: ``ax0 [lower, upper],
-…`` per finger joined by ``;``, which the excitation node takes as its limit when none is given:
-:mod:`soft_gripper_sdre.nodes.driver_limits`).
+(``nonfinite_commands``) and the rest input is applied; one outside the bounds is clipped into
+them, counted (``clipped_commands``) and warned of (a sender whose bounds are wider than the
+driver's: its integral and feedforward act on inputs the finger does not receive).
+/diagnostics (1 Hz) carries these counters and ``ticks``, ``published``, ``commands``, the
+plant time, the command's age, the tick intervals, the shape and the bounds (``bounds``: ``ax0
+[lower, upper], …`` per finger joined by ``;``, which the excitation node takes as its limit when
+none is given: :mod:`soft_gripper_sdre.nodes.driver_limits`).
 The node stops at ``duration`` of wall time (exit 0) or on SIGINT / SIGTERM.
 """
 from __future__ import annotations
@@ -217,7 +219,10 @@ class PlantDriverNode(Node):
             return
         clipped = np.clip(u, self.lower, self.upper)
         if np.any(clipped != u):
-            self.diag.count('clipped_commands')
+            self.diag.problem('clipped_commands', 'a command outside the bounds '
+                              f'({self.diag.values["bounds"]}) was clipped into them: the finger '
+                              'receives other inputs than its sender computed; give the sender '
+                              "the driver's bounds (input_lower / input_upper, torque_limit)")
         self._take(clipped)
 
     def _take(self, u: np.ndarray) -> None:

@@ -52,7 +52,7 @@ SECTION = '/**/{}'
 LOOP_COUNTERS = {'controller': ('estimates', 'skipped_estimates', 'estimate_jumps',
                                 'wrong_task_dim'),
                  'estimator': ('resets', 'dropouts', 'bad_message'),
-                 'driver': ('ticks', 'late_ticks', 'stale_ticks')}
+                 'driver': ('ticks', 'late_ticks', 'stale_ticks', 'clipped_commands')}
 #: what the run's line calls a troubled loop (beyond a best-effort link's few lost messages): more
 #: than this share of the estimates skipped, or of the driver's ticks late, no estimate answered,
 #: or any refusal for another task_dim, reset, stamp jump, dropout or stale tick
@@ -109,12 +109,18 @@ def loop_text(report: dict) -> str:
             + f"; messages lost: {lost}")
     if d is not None:
         text += (f"; {d['node']}: late ticks {d['late_ticks']} of {d['ticks']}, stale ticks "
-                 f"{d['stale_ticks']}")
+                 f"{d['stale_ticks']}"
+                 + (f", clipped commands {d['clipped_commands']}" if d['clipped_commands']
+                    else ''))
     if c['wrong_task_dim']:
         return text + ('. A node of another task_dim fed the controller (its log names it): '
                        'give it the model\'s')
     if c['estimates'] <= 0:
         return text + '. The controller answered no estimate: is the estimator running?'
+    if d is not None and d['clipped_commands']:
+        text += ('. The driver clipped commands: its bounds are narrower than the controller\'s '
+                 '(its log names them); give the controller the driver\'s (input_lower / '
+                 'input_upper), or train with them (--input-lower / --input-upper)')
     busy = (c['skipped_estimates'] > TROUBLE_SHARE * periods or e['resets']
             or c['estimate_jumps'] or e['dropouts']
             or (d is not None and (d['late_ticks'] > TROUBLE_SHARE * d['ticks']
