@@ -348,10 +348,10 @@ def _derivation(on_fingers: dict | None, settings: bool = True, score: float = 0
 
 
 def test_another_draw_while_the_fits_expect_a_miss_and_the_best_is_kept():
-    """The draws' rule (train_bags.Draw): a fit model whose fingers' fits expect a miss beyond
-    KEEP_NOMINAL, or that gave no setting, or, without such fits, whose settings score over
-    RETRY_SCORE on the model, asks for another seed; an unfit model does not; the best sorts
-    first: fit, with settings, the smaller expected miss, the smaller score, the earlier seed."""
+    """The draws' rule (train_bags.Draw): an unfit model, a fit one that gave no setting, one
+    whose fingers' fits expect a miss beyond KEEP_NOMINAL, or, without such fits, whose settings
+    score over RETRY_SCORE on the model, asks for another seed; the best sorts first: fit, with
+    settings, the smaller expected miss, the smaller score, the earlier seed."""
     miss, hit = Draw(0, _derivation({'index': 0.072, 'thumb': 0.029})), \
         Draw(1, _derivation({'index': 0.032, 'thumb': 0.016}))
     assert miss.expected == 0.072 and miss.retry
@@ -361,7 +361,7 @@ def test_another_draw_while_the_fits_expect_a_miss_and_the_best_is_kept():
     nothing = Draw(3, _derivation(None, settings=False))
     assert nothing.expected is None and nothing.retry
     unfit, no_fits = Draw(4, None), Draw(5, _derivation(None))
-    assert not unfit.retry and not no_fits.retry and no_fits.expected is None
+    assert unfit.retry and not no_fits.retry and no_fits.expected is None
     # no fit expects anything: the score decides, at RETRY_SCORE itself no retry
     at = Draw(6, _derivation(None, score=RETRY_SCORE))
     over = Draw(7, _derivation(None, score=RETRY_SCORE * 1.2))

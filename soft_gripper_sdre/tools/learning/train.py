@@ -87,11 +87,12 @@ def _parser() -> argparse.ArgumentParser:
     bags.add_argument('--input-upper', type=float, nargs='+', metavar='U',
                       help='upper bound of each input, one value per input (see --input-lower)')
     bags.add_argument('--tries', type=int, default=None,
-                      help='trainings at most, seeds --seed, +1, ...: another while the fingers\' '
-                           'own fits (where they found an input lag) expect the grasp to miss 5 %% '
-                           'of its travel, or, with no such fit, the settings score over 10 %% on '
-                           'the model (the input gain halved among its checks), or no setting '
-                           'passed its checks; the best is kept (default 3; 1: one training)')
+                      help='trainings at most, seeds --seed, +1, ...: another while the model is '
+                           'not fit to control, no setting passed its checks, the fingers\' own '
+                           'fits (where they found an input lag) expect the grasp to miss 5 %% of '
+                           'its travel, or, with no such fit, the settings score over 10 %% on the '
+                           'model (the input gain halved among its checks); the best is kept '
+                           '(default 3; 1: one training)')
     bags.add_argument('--min-duration', type=float, default=1.0,
                       help='refuse a bag with less commanded time than this [s] '
                            '(default %(default)s)')

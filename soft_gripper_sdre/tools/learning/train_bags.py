@@ -17,11 +17,12 @@ The checkpoint's ``data`` records the provenance: every bag with its topics, typ
 counts, rates, jitter, gaps, durations, fingers, rest poses, noise levels and sample counts.
 
 A training is one draw (one seed) of a nonconvex fit. Another is drawn with the next seed, up to
-``draws`` in all, while the last one asks for it (:class:`Draw`): a model fit to control gave no
-setting that passed its checks; the fingers' own fits with an input lag expect the grasp to miss
-:data:`~soft_gripper_sdre.analysis.loop_settings.KEEP_NOMINAL` of the travel; or, where no such fit
-judges the settings, their score on the model is over :data:`RETRY_SCORE`. The best draw is kept;
-each is printed and listed in the metrics (``draws``).
+``draws`` in all, while the last one asks for it (:class:`Draw`): the model is not fit to control;
+a model fit to control gave no setting that passed its checks; the fingers' own fits with an
+input lag expect the grasp to miss
+:data:`~soft_gripper_sdre.analysis.loop_settings.KEEP_NOMINAL` of the travel; or, where no such
+fit judges the settings, their score on the model is over :data:`RETRY_SCORE`. The best draw is
+kept; each is printed and listed in the metrics (``draws``).
 
 The outputs are written to a temporary directory beside ``--out`` and moved into it only when
 all are complete, so a failed run leaves nothing half-written there. Validation R² is scored
@@ -499,12 +500,11 @@ class Draw:
 
     @property
     def retry(self) -> bool:
-        """Whether another seed may do better: the model is fit to control (an unfit model is the
-        recordings' matter, not the seed's), and no setting passed, or the fits expect a miss
-        beyond KEEP_NOMINAL, or, with no fit to expect by, the score is over RETRY_SCORE."""
-        if self.derived is None:
-            return False
-        if self.derived.settings is None:
+        """Whether another seed may do better: the model is not fit to control (one seed's model
+        of a recording set can fail the verdict where the next seeds' pass), no setting passed,
+        the fits expect a miss beyond KEEP_NOMINAL, or, with no fit to expect by, the score is
+        over RETRY_SCORE."""
+        if self.derived is None or self.derived.settings is None:
             return True
         expected = self.expected
         if expected is not None:
