@@ -371,6 +371,8 @@ def test_another_draw_while_the_fits_expect_a_miss_and_the_best_is_kept():
     ranked = sorted([unfit, nothing, over, diverges, miss, at, hit, no_fits], key=Draw.rank)
     assert [d.seed for d in ranked] == [1, 0, 2, 5, 6, 7, 3, 4]
     assert 'index 7.20 %, thumb 2.90 %' in miss.text() and unfit.text() == 'not fit to control'
+    assert Draw(9, None, ('the learned rest is unstable', 'a free run diverged')).text() == (
+        'not fit to control (the learned rest is unstable; a free run diverged)')
     assert 'score 4.00 %' in miss.text() and 'score' not in nothing.text()
     assert miss.summary() == {'seed': 0, 'fit_for_control': True, 'settings': True,
                               'expected_rmse_rel': 0.072, 'score': 0.04}

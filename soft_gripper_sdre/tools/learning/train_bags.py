@@ -477,10 +477,12 @@ def _label_sets(train_set: list[tuple[Recording, list[int]]],
 @dataclass
 class Draw:
     """One training of the recipe: its ``seed`` and its derivation (``derived``: None when the
-    model is not fit to control). The rule of :func:`train_from_bags`'s draws."""
+    model is not fit to control, ``unfit`` then saying why). The rule of
+    :func:`train_from_bags`'s draws."""
 
     seed: int
     derived: loop_settings.Derivation | None
+    unfit: tuple[str, ...] = ()
 
     @property
     def expected(self) -> float | None:
@@ -522,7 +524,7 @@ class Draw:
     def text(self) -> str:
         d = self.derived
         if d is None:
-            return 'not fit to control'
+            return 'not fit to control' + (f' ({"; ".join(self.unfit)})' if self.unfit else '')
         if d.settings is None:
             return 'fit to control; no controller setting passed its checks'
         score = ('' if self.score is None else
@@ -572,7 +574,9 @@ def _draw(data: _BagData, settings: TrainSettings, clock: training_run.Stages, p
         val=(data.x_val, data.u_val), acc_ref=data.acc_val, describe=verdict.describe,
         input_bounds=bounds)
     clock.lap('checkpoint')                 # the writing after the verdict, not the next draw's
-    return _Trained(Draw(settings.seed, verdict.derived), path, result, verdict, scores, metrics)
+    unfit = () if verdict.fitness is None or verdict.fitness.fit else tuple(verdict.fitness.reasons)
+    return _Trained(Draw(settings.seed, verdict.derived, unfit), path, result, verdict, scores,
+                    metrics)
 
 
 class _Verdict:
