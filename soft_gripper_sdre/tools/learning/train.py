@@ -187,8 +187,8 @@ def _main_data(parser: argparse.ArgumentParser, args: argparse.Namespace,
         parser.error('--task-dim, --input-lower and --input-upper apply to --bag only (the .npz '
                      "records are the hand's: a planar tip, two torques)")
     if args.tries is not None:
-        parser.error('--tries applies to --bag only (the draws are judged on the fingers\' own '
-                     'fits to their recordings)')
+        parser.error('--tries applies to --bag only (the .npz records train the hand\'s model '
+                     'once, with --seed)')
     variant = args.variant or ('paper' if args.preset == 'paper' else 'identifying')
     names = list(DATA_VARIANTS[variant]) + [VALIDATION]
     clock = training_run.Stages()

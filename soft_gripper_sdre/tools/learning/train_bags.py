@@ -31,6 +31,7 @@ against the validation bags' own KF + RTS labels (a recording has no true accele
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from functools import cached_property
 import math
 from pathlib import Path
 
@@ -421,15 +422,13 @@ class _BagData:
     def __post_init__(self) -> None:
         _, self.x, self.u, self.acc = _stack(self.samples)
         self.t_val, self.x_val, self.u_val, self.acc_val = _stack(self.val_samples)
-        self._fits: tuple[list[finger_fits.LinearFinger], list[str]] | None = None
 
+    @cached_property
     def own_fits(self) -> tuple[list[finger_fits.LinearFinger], list[str]]:
         """Each finger's own linear fit and the fingers without one
         (:func:`~soft_gripper_sdre.analysis.finger_fits.fit_fingers`): the recordings', the same
         for every draw, so fitted once."""
-        if self._fits is None:
-            self._fits = finger_fits.fit_fingers(self.samples, self.val_samples)
-        return self._fits
+        return finger_fits.fit_fingers(self.samples, self.val_samples)
 
     @property
     def dt(self) -> float:
@@ -497,8 +496,7 @@ class Draw:
     def score(self) -> float | None:
         """The chosen settings' score on the model (:attr:`Derivation.score
         <soft_gripper_sdre.analysis.loop_settings.Derivation.score>`); None: no settings."""
-        d = self.derived
-        return None if d is None or d.settings is None else d.score
+        return None if self.derived is None else self.derived.score
 
     @property
     def retry(self) -> bool:
@@ -602,7 +600,7 @@ class _Verdict:
         self.clock.lap('fitness')
         self.derived = None
         if self.fitness.fit:
-            self.fingers, unfit = data.own_fits()
+            self.fingers, unfit = data.own_fits
             for name in unfit:
                 print(f'  {name}: no linear fit of its own runs free within '
                       f'{100 * model_fitness.FREE_RUN_LIMIT:.0f} % of its validation motion; '
