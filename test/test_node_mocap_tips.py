@@ -15,7 +15,7 @@ from geometry_msgs.msg import PoseArray, PoseStamped
 import numpy as np
 import pytest
 from rclpy.qos import qos_profile_sensor_data
-from rosutil import Probe, deep, overrides, ros_context, spin_until
+from rosutil import Probe, deep, linked, overrides, ros_context, spin_until
 
 from soft_gripper_sdre.nodes import conversions as cv
 from soft_gripper_sdre.nodes.mocap_tips import (
@@ -319,8 +319,9 @@ def test_the_estimator_takes_the_mocap_tips_at_the_captures_rate():
             finger_names=['left', 'right'], control_period=1.0 / 120))
         m.reader.listen(MultiDOFJointTrajectory, STATE_ESTIMATE, deep(LOOP_QOS))
         executor.add_node(est)
-        assert spin_until(executor, lambda: m.node.pub.get_subscription_count() == 2
-                          and est.pub.get_subscription_count() > 0, 20.0)
+        # each reader matched (at least: an earlier test's reader may linger on the domain)
+        assert spin_until(executor, lambda: linked(m.node.pub, m.reader, est)
+                          and linked(est.pub, m.reader), 20.0)
         frames = []
         for k in range(60):
             left = np.array([0.1, 0.0, 0.2]) + [0.002 * math.sin(k / 10), 0.03, 0.0]
